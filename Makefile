@@ -1,0 +1,40 @@
+# Two commands do all the set-up on a fresh machine (see README):
+#   make run    -> the paper's ring scenario end to end
+#   make test   -> lint + the test suite
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+SCENARIO ?= scenarios/ring_paper.toml
+OUT    ?= runs/ring_paper
+
+.PHONY: setup run test test-slow lint format bench clean
+
+$(VENV)/.installed: pyproject.toml constraints-cpu.txt
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	# CPU torch first: a plain torch requirement would pull the CUDA build.
+	$(PY) -m pip install --quiet -c constraints-cpu.txt "torch==2.13.0"
+	$(PY) -m pip install --quiet -c constraints-cpu.txt -e ".[dev]"
+	touch $@
+
+setup: $(VENV)/.installed
+
+run: setup
+	$(VENV)/bin/macromicro run $(SCENARIO) --out $(OUT)
+
+lint: setup
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+format: setup
+	$(VENV)/bin/ruff format .
+	$(VENV)/bin/ruff check --fix .
+
+test: setup
+	$(VENV)/bin/pytest -q
+
+test-slow: setup
+	$(VENV)/bin/pytest -q -m slow
+
+clean:
+	rm -rf $(VENV) runs .pytest_cache

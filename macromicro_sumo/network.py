@@ -1,0 +1,166 @@
+"""Ring networks: build an exact circle with netconvert, and read its 1-D geometry.
+
+The ring is a single lane of length exactly 2 pi R, split into edges ``e0 .. e{n-1}`` so
+that speed limits can be piecewise constant. Vehicles circulate forever through one-lap
+routes ``r_eI`` and a rerouter on every edge (see shared/notes/sumo-ring-facts.md).
+"""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import sumolib
+
+from macromicro_sumo.errors import UserError
+
+NETCONVERT_ARGS = [
+    # Without these the lane moves outward, junctions add internal lanes and lengths are
+    # rounded: the ring silently stops being 2 pi R long.
+    "--no-internal-links",
+    "true",
+    "--no-turnarounds",
+    "true",
+    "--junctions.corner-detail",
+    "0",
+    "--precision",
+    "6",
+]
+
+
+@dataclass(frozen=True)
+class RingGeometry:
+    """Where each edge of a ring sits on the arc coordinate s in [0, L)."""
+
+    edge_ids: tuple[str, ...]
+    lane_ids: tuple[str, ...]
+    offsets_m: np.ndarray  # start of each edge on the arc [m]
+    lengths_m: np.ndarray  # lane length of each edge [m]
+
+    @property
+    def length_m(self) -> float:
+        return float(self.lengths_m.sum())
+
+    def edge_index(self, arc_m: np.ndarray) -> np.ndarray:
+        """Index of the edge holding each arc position."""
+        s = np.mod(arc_m, self.length_m)
+        return np.clip(
+            np.searchsorted(self.offsets_m, s, side="right") - 1, 0, len(self.edge_ids) - 1
+        )
+
+    def to_edge(self, arc_m: float) -> tuple[int, float]:
+        """(edge index, lane position [m]) of an arc position."""
+        i = int(self.edge_index(np.array([arc_m]))[0])
+        pos = float(np.mod(arc_m, self.length_m) - self.offsets_m[i])
+        return i, min(max(pos, 0.0), float(self.lengths_m[i]))
+
+
+def ring_node_xy(radius_m: float, n_edges: int) -> list[tuple[float, float]]:
+    return [
+        (
+            radius_m * math.cos(2 * math.pi * k / n_edges),
+            radius_m * math.sin(2 * math.pi * k / n_edges),
+        )
+        for k in range(n_edges)
+    ]
+
+
+def build_ring(
+    radius_m: float, n_edges: int, out_dir: Path, name: str, speed_mps: float = 13.89
+) -> tuple[Path, Path]:
+    """Write ``<name>.net.xml`` (exact ring) and ``<name>.add.xml`` (routes + rerouters)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    edge_len = 2 * math.pi * radius_m / n_edges
+    xy = ring_node_xy(radius_m, n_edges)
+    nodes = "\n".join(
+        f'    <node id="n{k}" x="{x:.6f}" y="{y:.6f}"/>' for k, (x, y) in enumerate(xy)
+    )
+    edges = []
+    for k in range(n_edges):
+        k2 = (k + 1) % n_edges
+        # Intermediate shape points trace the arc (only for drawing; length is explicit).
+        shape = []
+        for j in range(17):
+            a = 2 * math.pi * (k + j / 16) / n_edges
+            shape.append(f"{radius_m * math.cos(a):.6f},{radius_m * math.sin(a):.6f}")
+        edges.append(
+            f'    <edge id="e{k}" from="n{k}" to="n{k2}" numLanes="1" speed="{speed_mps}" '
+            f'length="{edge_len:.6f}" spreadType="center" shape="{" ".join(shape)}"/>'
+        )
+    net_path = out_dir / f"{name}.net.xml"
+    with tempfile.TemporaryDirectory() as tmp:
+        nod = Path(tmp) / "ring.nod.xml"
+        edg = Path(tmp) / "ring.edg.xml"
+        nod.write_text(f"<nodes>\n{nodes}\n</nodes>\n")
+        edg.write_text("<edges>\n" + "\n".join(edges) + "\n</edges>\n")
+        cmd = [
+            sumolib.checkBinary("netconvert"),
+            "--node-files",
+            str(nod),
+            "--edge-files",
+            str(edg),
+            "--output-file",
+            str(net_path),
+            *NETCONVERT_ARGS,
+        ]
+        subprocess.run(cmd, check=True, capture_output=True, text=True)
+    add_path = out_dir / f"{name}.add.xml"
+    add_path.write_text(ring_routes_xml(n_edges))
+    return net_path, add_path
+
+
+def ring_routes_xml(n_edges: int) -> str:
+    """One-lap routes per start edge, then a rerouter per edge that restarts the lap."""
+    routes = []
+    rerouters = []
+    for k in range(n_edges):
+        lap = " ".join(f"e{(k + j) % n_edges}" for j in range(n_edges + 1))
+        routes.append(f'    <route id="r_e{k}" edges="{lap}"/>')
+        rerouters.append(
+            f'    <rerouter id="rr_e{k}" edges="e{k}">\n'
+            f'        <interval begin="0" end="1e9"><routeProbReroute id="r_e{k}"/></interval>\n'
+            f"    </rerouter>"
+        )
+    # Routes must come before the rerouters that name them.
+    return "<additional>\n" + "\n".join(routes + rerouters) + "\n</additional>\n"
+
+
+def read_ring(net_file: Path) -> RingGeometry:
+    """Read the ring's edges in driving order; errors name the file and the problem."""
+    try:
+        net = sumolib.net.readNet(str(net_file))
+    except Exception as exc:  # sumolib raises bare parser errors
+        raise UserError(f"{net_file}: not a readable SUMO network ({type(exc).__name__})") from None
+    edges = [e for e in net.getEdges() if e.getFunction() != "internal"]
+    if not edges:
+        raise UserError(f"{net_file}: network has no edges")
+    start = net.getEdge("e0") if net.hasEdge("e0") else edges[0]
+    ordered = [start]
+    while True:
+        nxt = [e for e in ordered[-1].getOutgoing() if e.getFunction() != "internal"]
+        if len(nxt) != 1:
+            raise UserError(
+                f"{net_file}: edge {ordered[-1].getID()} does not continue a single-lane ring"
+            )
+        if nxt[0] is start:
+            break
+        if nxt[0] in ordered or len(ordered) > len(edges):
+            raise UserError(f"{net_file}: edges do not form a closed ring")
+        ordered.append(nxt[0])
+    for e in ordered:
+        if e.getLaneNumber() != 1:
+            raise UserError(
+                f"{net_file}: ring edge {e.getID()} has {e.getLaneNumber()} lanes; accepted 1"
+            )
+    lengths = np.array([e.getLanes()[0].getLength() for e in ordered], dtype=float)
+    offsets = np.concatenate([[0.0], np.cumsum(lengths)[:-1]])
+    return RingGeometry(
+        edge_ids=tuple(e.getID() for e in ordered),
+        lane_ids=tuple(e.getLanes()[0].getID() for e in ordered),
+        offsets_m=offsets,
+        lengths_m=lengths,
+    )

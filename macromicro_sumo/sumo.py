@@ -1,0 +1,260 @@
+"""The SUMO boundary: the only module that talks to libsumo.
+
+It builds SUMO's command line explicitly, starts one simulation per process (libsumo
+allows no more) and reloads it for later runs, and exchanges plain numpy arrays with
+the rest of the package. Leaders and gaps are NOT read from SUMO (``getLeader`` misses
+leaders on rings with mixed limits); callers compute them from arc positions.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import subprocess
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import libsumo
+import numpy as np
+import sumolib
+
+from macromicro_sumo.errors import UserError
+
+_VARS = (
+    libsumo.constants.VAR_ROAD_ID,
+    libsumo.constants.VAR_LANEPOSITION,
+    libsumo.constants.VAR_SPEED,
+)
+
+
+def versions() -> dict[str, str]:
+    """Versions of the SUMO binary and of libsumo in use."""
+    sumo_bin = sumolib.checkBinary("sumo")
+    first = subprocess.run(
+        [sumo_bin, "--version"], capture_output=True, text=True
+    ).stdout.splitlines()
+    return {
+        "sumo_binary": sumo_bin,
+        "sumo": first[0].strip() if first else "unknown",
+        "libsumo": libsumo.__file__ and _dist_version("libsumo"),
+        "libsumo_api": str(libsumo.getVersion()[1]) if _is_running() else "",
+    }
+
+
+def _dist_version(name: str) -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version(name)
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def _is_running() -> bool:
+    try:
+        libsumo.simulation.getTime()
+        return True
+    except Exception:
+        return False
+
+
+@dataclass(frozen=True)
+class SumoOptions:
+    """Everything that goes on SUMO's command line."""
+
+    net_file: Path
+    additional_files: tuple[Path, ...]
+    step_length_s: float
+    seed: int
+    error_log: Path | None = None
+
+    def args(self) -> list[str]:
+        args = [
+            "-n",
+            str(self.net_file),
+            "--step-length",
+            repr(float(self.step_length_s)),
+            "--seed",
+            str(int(self.seed)),
+            # Learning needs every vehicle kept: no teleports, collisions only reported.
+            "--collision.action",
+            "warn",
+            "--time-to-teleport",
+            "-1",
+            # Our vehicles are placed exactly where the data says; we verify insertion ourselves.
+            "--insertion-checks",
+            "none",
+            "--no-step-log",
+            "true",
+            "--duration-log.disable",
+            "true",
+            "--no-warnings",
+            "true",
+        ]
+        if self.additional_files:
+            args += ["-a", ",".join(str(p) for p in self.additional_files)]
+        if self.error_log is not None:
+            args += ["--error-log", str(self.error_log)]
+        return args
+
+
+class Simulation:
+    """One libsumo simulation, started once per process and reloaded for each run."""
+
+    _started_pid: int | None = None  # class-level: libsumo holds one simulation per process
+
+    def __init__(self, options: SumoOptions) -> None:
+        self.options = options
+        self._dt = float(options.step_length_s)
+        self._load(options)
+
+    # ------------------------------------------------------------------ lifecycle
+    def _load(self, options: SumoOptions) -> None:
+        args = options.args()
+        try:
+            if Simulation._started_pid == os.getpid() and _is_running():
+                libsumo.load(args)
+            else:
+                libsumo.start([sumolib.checkBinary("sumo"), *args])
+                Simulation._started_pid = os.getpid()
+        except libsumo.TraCIException as exc:
+            raise UserError(f"SUMO could not start with {options.net_file}: {exc}") from None
+        except Exception as exc:  # libsumo says only "Process Error"; SUMO's message went to stderr
+            raise UserError(
+                f"SUMO could not start with {options.net_file} ({exc}); see SUMO's message above"
+            ) from None
+        self.options = options
+        self._dt = float(options.step_length_s)
+
+    def reload(self, options: SumoOptions) -> None:
+        """Start a new run in the same process (new files, new seed)."""
+        self._load(options)
+
+    def close(self) -> None:
+        if Simulation._started_pid == os.getpid():
+            with contextlib.suppress(Exception):
+                libsumo.close()
+            Simulation._started_pid = None
+
+    @property
+    def dt_s(self) -> float:
+        return self._dt
+
+    def time_s(self) -> float:
+        return float(libsumo.simulation.getTime())
+
+    # ------------------------------------------------------------------ network
+    def set_lane_speed_limits(self, lane_ids: Sequence[str], limits_mps: Sequence[float]) -> None:
+        for lane, v in zip(lane_ids, limits_mps, strict=True):
+            libsumo.lane.setMaxSpeed(lane, float(v))
+
+    def lane_speed_limits(self, lane_ids: Sequence[str]) -> np.ndarray:
+        return np.array([libsumo.lane.getMaxSpeed(lane) for lane in lane_ids])
+
+    # ------------------------------------------------------------------ vehicles
+    def add_vehicles(
+        self,
+        vehicle_ids: Sequence[str],
+        route_ids: Sequence[str],
+        type_ids: Sequence[str],
+        lane_pos_m: Sequence[float],
+        speeds_mps: Sequence[float],
+    ) -> None:
+        """Queue vehicles for insertion at exact lane positions and speeds (next step)."""
+        for vid, route, vtype, pos, v in zip(
+            vehicle_ids, route_ids, type_ids, lane_pos_m, speeds_mps, strict=True
+        ):
+            try:
+                libsumo.vehicle.add(
+                    vid,
+                    route,
+                    typeID=vtype,
+                    depart="now",
+                    departLane="0",
+                    departPos=repr(float(pos)),
+                    departSpeed=repr(float(v)),
+                )
+            except libsumo.TraCIException as exc:
+                raise UserError(
+                    f"SUMO refused vehicle {vid} at {pos:.2f} m, {v:.2f} m/s: {exc}"
+                ) from None
+
+    def subscribe(self, vehicle_ids: Sequence[str]) -> None:
+        for vid in vehicle_ids:
+            libsumo.vehicle.subscribe(vid, _VARS)
+
+    def pending_vehicles(self) -> tuple[str, ...]:
+        return tuple(libsumo.simulation.getPendingVehicles())
+
+    def vehicle_ids(self) -> tuple[str, ...]:
+        return tuple(libsumo.vehicle.getIDList())
+
+    def remove_vehicles(self, vehicle_ids: Sequence[str]) -> None:
+        for vid in vehicle_ids:
+            libsumo.vehicle.remove(vid)
+
+    def read_states(
+        self, vehicle_ids: Sequence[str], edge_index: dict[str, int]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(edge index, lane position [m], speed [m/s]) of subscribed vehicles, in given order.
+
+        A vehicle that has left the simulation raises ``KeyError`` naming it.
+        """
+        res = libsumo.vehicle.getAllSubscriptionResults()
+        n = len(vehicle_ids)
+        edge = np.empty(n, dtype=np.int64)
+        pos = np.empty(n)
+        speed = np.empty(n)
+        road, lpos, spd = _VARS
+        for i, vid in enumerate(vehicle_ids):
+            r = res[vid]
+            edge[i] = edge_index[r[road]]
+            pos[i] = r[lpos]
+            speed[i] = r[spd]
+        return edge, pos, speed
+
+    def set_speed_mode(self, vehicle_ids: Sequence[str], mode: int) -> None:
+        for vid in vehicle_ids:
+            libsumo.vehicle.setSpeedMode(vid, int(mode))
+
+    def set_speeds(self, vehicle_ids: Sequence[str], speeds_mps: Sequence[float]) -> None:
+        """Speed commands for the next step (speed mode 0 applies them exactly)."""
+        for vid, v in zip(vehicle_ids, speeds_mps, strict=True):
+            libsumo.vehicle.setSpeed(vid, float(v))
+
+    def move_to(
+        self,
+        vehicle_ids: Sequence[str],
+        lane_ids: Sequence[str],
+        lane_pos_m: Sequence[float],
+        route_ids: Sequence[str],
+    ) -> None:
+        """Place vehicles without insertion checks (soft reset); their routes restart there."""
+        for vid, lane, pos, route in zip(vehicle_ids, lane_ids, lane_pos_m, route_ids, strict=True):
+            libsumo.vehicle.setRouteID(vid, route)
+            libsumo.vehicle.moveTo(vid, lane, float(pos))
+
+    # ------------------------------------------------------------------ stepping
+    def step(self) -> None:
+        libsumo.simulationStep()
+
+    def collisions(self) -> int:
+        """Vehicles in collision during the last step."""
+        return int(libsumo.simulation.getCollidingVehiclesNumber())
+
+    def teleports(self) -> int:
+        return int(libsumo.simulation.getStartingTeleportNumber())
+
+
+def quick_check(net_file: Path, additional: Path) -> str:
+    """Run one simulated second on ``net_file``; returns SUMO's version string."""
+    sim = Simulation(SumoOptions(net_file, (additional,), 0.1, 0))
+    for _ in range(10):
+        sim.step()
+    t = sim.time_s()
+    version = libsumo.getVersion()[1]
+    sim.close()
+    if abs(t - 1.0) > 1e-9:
+        raise UserError(f"SUMO ran to t = {t} s instead of 1 s")
+    return str(version)

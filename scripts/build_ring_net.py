@@ -1,0 +1,34 @@
+"""Build the exact ring network checked in under sumo_nets/.
+
+python scripts/build_ring_net.py --radius 100 --edges 4 --name ring_r100_e4
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+from macromicro_sumo.network import build_ring, read_ring
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--radius", type=float, default=100.0, help="ring radius R [m]")
+    ap.add_argument("--edges", type=int, default=4, help="number of edges (speed-limit pieces)")
+    ap.add_argument("--name", default=None, help="file stem (default ring_r<R>_e<edges>)")
+    ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "sumo_nets")
+    args = ap.parse_args(argv)
+    name = args.name or f"ring_r{args.radius:g}_e{args.edges}"
+    net, add = build_ring(args.radius, args.edges, args.out, name)
+    geo = read_ring(net)
+    err = geo.length_m - 2 * math.pi * args.radius
+    print(
+        f"{net}: {len(geo.edge_ids)} edges, lane length {geo.length_m:.6f} m (2 pi R error {err * 1e3:+.3f} mm)"
+    )
+    print(f"{add}: routes and rerouters")
+    return 0 if abs(err) < 1e-3 else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
