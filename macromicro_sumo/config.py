@@ -257,7 +257,8 @@ def _build(cls: type, table: Any, prefix: str, file: str) -> Any:
             pair = tuple(_check_scalar(v, kind, key, f.metadata, file) for v in value)
             if pair[0] > pair[1]:
                 raise UserError(
-                    f"{file}: {key} = {value!r} is reversed; give [low, high] with low <= high"
+                    f"{file}: {key} = {value!r} is reversed; accepted [low, high] with "
+                    f"low <= high, both in {_describe_range(f.metadata)}"
                 )
             kwargs[name] = pair
         else:
