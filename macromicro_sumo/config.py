@@ -318,8 +318,8 @@ def _check_consistency(sc: Scenario, file: str) -> None:
         )
 
 
-def load_scenario(path: str | Path, overrides: dict[str, Any] | None = None) -> Scenario:
-    """Load and validate a scenario TOML; ``overrides`` maps dotted keys to values (sweeps)."""
+def read_scenario_toml(path: str | Path) -> tuple[dict[str, Any], dict[str, Any] | None]:
+    """The raw tables of a scenario file: (scenario table, its ``[sweep]`` table or None)."""
     path = Path(path)
     file = str(path)
     if not path.is_file():
@@ -330,6 +330,24 @@ def load_scenario(path: str | Path, overrides: dict[str, Any] | None = None) -> 
         raise UserError(f"{file}: malformed TOML ({exc})") from None
     except UnicodeDecodeError:
         raise UserError(f"{file}: not a text file (malformed TOML)") from None
+    return table, table.pop("sweep", None)
+
+
+def load_scenario(
+    path: str | Path, overrides: dict[str, Any] | None = None, *, allow_sweep: bool = False
+) -> Scenario:
+    """Load and validate a scenario TOML; ``overrides`` maps dotted keys to values (sweeps).
+
+    A ``[sweep]`` table is for ``macromicro batch``, which passes ``allow_sweep=True`` and
+    one variant's values as ``overrides``; elsewhere it is an error.
+    """
+    path = Path(path)
+    file = str(path)
+    table, sweep = read_scenario_toml(path)
+    if sweep is not None and not allow_sweep:
+        raise UserError(
+            f"{file}: has a [sweep] table; run its variants with `macromicro batch {file}`"
+        )
     for dotted, value in (overrides or {}).items():
         node = table
         *parents, leaf = dotted.split(".")
