@@ -3,6 +3,7 @@ detector accuracy, insertion and SUMO's IDM against the textbook model."""
 
 from __future__ import annotations
 
+import ast
 import json
 import math
 from pathlib import Path
@@ -12,6 +13,7 @@ import pandas as pd
 import pytest
 from conftest import SMALL, write_scenario
 
+import macromicro_sumo
 from macromicro_sumo.cli import main
 from macromicro_sumo.config import Scenario, load_scenario
 from macromicro_sumo.ground_truth import record_run, sample_run, simulate, vtypes_xml
@@ -254,3 +256,18 @@ def test_sumo_idm_matches_textbook_idm_with_uniform_limits(tmp_path, make_scenar
     assert np.abs(circular_diff(arc, rec.arc_m, geo.length_m)).max() < 1e-6
     # The fleet actually interacted: speeds changed by more than rounding.
     assert np.ptp(rec.speed_mps, axis=0).max() > 0.1
+
+
+def test_sumo_py_is_the_only_libsumo_importer():
+    package = Path(macromicro_sumo.__file__).parent
+    importers = set()
+    for path in package.glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module]
+            if any(n.split(".")[0] in ("libsumo", "traci") for n in names):
+                importers.add(path.name)
+    assert importers == {"sumo.py"}
