@@ -1,0 +1,543 @@
+"""Stage I: the hidden-vehicle generator G_phi (paper: Algorithms 2 and 3).
+
+The scene is a set of vehicles on the ring. Each autoregressive step looks at the gaps of
+the current scene (observed vehicles plus those generated so far), sorted by angle, so
+the model does not depend on the order or labels of vehicles and the ring has no start.
+For every gap an MLP, given the gap's features and the macro descriptor Psi, outputs:
+
+* a score: which gap receives the next vehicle (categorical over the current gaps);
+* where in the gap: a logit-normal fraction of the gap (reparameterised);
+* its speed: logit-normal on Psi's [v_min, v_max] (reparameterised, always in bounds).
+
+With no vehicle present (K = N) the first vehicle goes anywhere (rotation symmetry):
+its gap is the whole ring from a random angle.
+
+Training minimises L_gen = lambda_v L_speed + lambda_d (L_mean + L_min + L_max + L_var)
+(+ lambda_rec L_rec as a switch). Gradients reach the positions and speeds through the
+reparameterised samples; the discrete gap choice gets the score-function (REINFORCE)
+gradient of the same loss with a batch-mean baseline, which is the unbiased estimator
+for a discrete choice inside a stochastic computation graph.
+
+Inference is Algorithm 3, batched over snapshots: every step proposes T_max candidates at
+once (the proposal distribution does not change between trials, so this equals
+resampling one at a time) and keeps the first whose touched gaps and speed are within
+bounds; if none is, the last candidate is projected onto the nearest feasible point and
+counted. A touched gap that will still receive vehicles is judged by what it can hold:
+it must split into m + 1 gaps in [d_min, d_max] for some m <= vehicles still to place
+(the paper's check when none remain; without it a whole scene, K = N, could never start).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+from scipy.optimize import linear_sum_assignment
+from torch import nn
+from tqdm import tqdm
+
+from macromicro_sumo.config import Scenario
+from macromicro_sumo.dataset import Snapshots
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.files import atomic_path, write_csv
+
+FEATURE_VERSION = 1
+N_GAP_FEATURES = 7
+N_GLOBAL_FEATURES = 8
+LOSS_TERMS = ("L_speed", "L_mean", "L_min", "L_max", "L_var")
+
+
+# --------------------------------------------------------------------------- scene geometry
+
+
+def ring_gaps(arc: torch.Tensor, present: torch.Tensor, length_m: float) -> tuple[torch.Tensor, ...]:
+    """Gaps of the present vehicles in arc order, batched over rows.
+
+    Returns (follower slot, leader slot, gap [m], valid) each (B, N): position i holds
+    the i-th gap in arc order; positions >= the number of present vehicles are invalid.
+    A lone vehicle's gap is the whole ring.
+    """
+    b, n = arc.shape
+    key = torch.where(present, arc, arc + 4 * length_m)
+    order = key.argsort(dim=1)
+    m = present.sum(dim=1, keepdim=True)
+    idx = torch.arange(n, device=arc.device).expand(b, n)
+    nxt = torch.where(idx + 1 < m, idx + 1, torch.zeros_like(idx))
+    follower = order
+    leader = order.gather(1, nxt)
+    gap = torch.remainder(arc.gather(1, leader) - arc.gather(1, follower), length_m)
+    gap = torch.where(follower == leader, torch.full_like(gap, length_m), gap)
+    return follower, leader, gap, idx < m
+
+
+@dataclass(frozen=True)
+class PsiTensors:
+    """Psi split into named (B,) tensors, plus the scales features are normalised by."""
+
+    v_mean: torch.Tensor
+    d_mean: torch.Tensor
+    d_min: torch.Tensor
+    d_max: torch.Tensor
+    v_min: torch.Tensor
+    v_max: torch.Tensor
+
+    @classmethod
+    def from_array(cls, psi: np.ndarray | torch.Tensor) -> PsiTensors:
+        p = torch.as_tensor(psi, dtype=torch.float32)
+        return cls(*p.unbind(dim=1))
+
+    @property
+    def v_scale(self) -> torch.Tensor:
+        return torch.clamp(0.5 * (self.v_max - self.v_min), min=0.1)
+
+
+def features(arc: torch.Tensor, speed: torch.Tensor, present: torch.Tensor, remaining: torch.Tensor,
+             psi: PsiTensors, length_m: float, anchor: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """Per-gap and global features of the current scene (all relative, no labels)."""
+    b, n = arc.shape
+    m = present.sum(dim=1)
+    empty = m == 0
+    # An empty ring gets one virtual anchor vehicle (random angle) whose gap is the ring.
+    arc_e = torch.where(empty[:, None] & (torch.arange(n) == 0), anchor[:, None].expand(b, n), arc)
+    present_e = present | (empty[:, None] & (torch.arange(n) == 0))
+    follower, leader, gap, valid = ring_gaps(arc_e, present_e, length_m)
+    vs, vm, dm = psi.v_scale[:, None], psi.v_mean[:, None], psi.d_mean[:, None]
+    v_f = torch.where(empty[:, None], vm, speed.gather(1, follower))
+    v_l = torch.where(empty[:, None], vm, speed.gather(1, leader))
+    gap_feat = torch.stack([
+        gap / dm, (gap - psi.d_min[:, None]) / dm, (gap - psi.d_max[:, None]) / dm, gap / dm - 1.0 - remaining[:, None] / n,
+        (v_f - vm) / vs, (v_l - vm) / vs, gap / length_m,
+    ], dim=-1)
+    v_sum = (speed * present).sum(dim=1)
+    need_v = needed_speed(speed, present, remaining, psi)
+    mean_v = torch.where(empty, psi.v_mean, v_sum / torch.clamp(m, min=1))
+    glob = torch.stack([
+        remaining / n, m / n, psi.d_min / psi.d_mean, psi.d_max / psi.d_mean,
+        (need_v - psi.v_mean) / psi.v_scale, (mean_v - psi.v_mean) / psi.v_scale,
+        (psi.v_max - psi.v_min) / psi.v_mean, (psi.v_min + psi.v_max - 2 * psi.v_mean) / (2 * psi.v_scale),
+    ], dim=-1)
+    return gap_feat, glob, follower, arc_e, gap, valid
+
+
+def needed_speed(speed: torch.Tensor, present: torch.Tensor, remaining: torch.Tensor, psi: PsiTensors) -> torch.Tensor:
+    """Mean speed the vehicles still to place need for the fleet to average Psi's mean."""
+    n = speed.shape[1]
+    return (n * psi.v_mean - (speed * present).sum(dim=1)) / torch.clamp(remaining, min=1).float()
+
+
+class GeneratorNet(nn.Module):
+    """Shared MLP scoring every gap: (logit, fraction mean, fraction log-std, speed mean, speed log-std)."""
+
+    def __init__(self, hidden_size: int = 64) -> None:
+        super().__init__()
+        self.hidden_size = hidden_size
+        self.body = nn.Sequential(
+            nn.Linear(N_GAP_FEATURES + N_GLOBAL_FEATURES, hidden_size), nn.Tanh(),
+            nn.Linear(hidden_size, hidden_size), nn.Tanh(),
+            nn.Linear(hidden_size, 5),
+        )
+
+    def forward(self, gap_feat: torch.Tensor, glob: torch.Tensor) -> torch.Tensor:
+        x = torch.cat([gap_feat, glob[:, None, :].expand(-1, gap_feat.shape[1], -1)], dim=-1)
+        return self.body(x)
+
+
+@dataclass
+class Proposal:
+    """S candidates for each of B scenes: (S, B) tensors."""
+
+    gap_pos: torch.Tensor
+    arc: torch.Tensor
+    speed: torch.Tensor
+    frac: torch.Tensor
+    gap: torch.Tensor
+    log_prob_choice: torch.Tensor
+
+
+def propose(net: GeneratorNet, arc: torch.Tensor, speed: torch.Tensor, present: torch.Tensor,
+            remaining: torch.Tensor, psi: PsiTensors, length_m: float, n_samples: int,
+            gen: torch.Generator, allowed: torch.Tensor | None = None) -> Proposal:
+    """Sample ``n_samples`` candidates for the next hidden vehicle of every scene.
+
+    ``allowed`` (B, N) optionally removes gap choices (in arc order) before sampling.
+    """
+    b, n = arc.shape
+    anchor = torch.rand(b, generator=gen) * length_m
+    gap_feat, glob, follower, arc_e, gap, valid = features(arc, speed, present, remaining, psi, length_m, anchor)
+    need_v = needed_speed(speed, present, remaining, psi)
+    out = net(gap_feat, glob)
+    if allowed is not None:
+        valid = valid & (allowed | ~(allowed & valid).any(dim=1, keepdim=True))
+    logits = out[..., 0].masked_fill(~valid, -torch.inf)
+    probs = torch.softmax(logits, dim=1)
+    choice = torch.multinomial(probs, n_samples, replacement=True, generator=gen).T  # (S, B)
+    log_p = torch.log_softmax(logits, dim=1)
+    rows = torch.arange(b).expand(n_samples, b)
+    pick = out[rows, choice]  # (S, B, 5)
+    eps = torch.randn(n_samples, b, 2, generator=gen)
+    frac = torch.sigmoid(pick[..., 1] + torch.exp(pick[..., 2].clamp(-5, 2)) * eps[..., 0]).clamp(1e-3, 1 - 1e-3)
+    # Speeds live in Psi's [v_min, v_max] by construction (logit-normal on that interval):
+    # the paper's loss has no speed-bound term, so an unbounded proposal drifts outside.
+    # Centred on the speed the remaining vehicles need for Psi's mean: the MLP adds a residual.
+    need = ((need_v - psi.v_min) / (psi.v_max - psi.v_min).clamp(min=1e-3)).clamp(0.02, 0.98)
+    base = torch.log(need / (1 - need))
+    u = torch.sigmoid(base + pick[..., 3] + torch.exp(pick[..., 4].clamp(-6, 1)) * eps[..., 1])
+    v = psi.v_min + (psi.v_max - psi.v_min) * u
+    g = gap[rows, choice]
+    start = arc_e.gather(1, follower)[rows, choice]
+    new_arc = torch.remainder(start + frac * g, length_m)
+    return Proposal(choice, new_arc, v, frac, g, log_p[rows, choice])
+
+
+# --------------------------------------------------------------------------- losses
+
+
+def macro_losses(arc: torch.Tensor, speed: torch.Tensor, generated: torch.Tensor, psi: PsiTensors,
+                 length_m: float) -> dict[str, torch.Tensor]:
+    """The paper's L_speed and L_dist terms of completed scenes, (B,) each.
+
+    A (the gaps influenced by generated vehicles) holds every gap whose follower or
+    leader was generated. Same definitions as ``macro.spacing_losses`` (numpy).
+    """
+    present = torch.ones_like(generated)
+    follower, leader, gap, _ = ring_gaps(arc, present, length_m)
+    a = (generated.gather(1, follower) | generated.gather(1, leader)).float()
+    cnt = a.sum(dim=1).clamp(min=1.0)
+    mean = (gap * a).sum(dim=1) / cnt
+    dmin, dmax = psi.d_min[:, None], psi.d_max[:, None]
+    var = (((gap - mean[:, None]) ** 2) * a).sum(dim=1) / cnt
+    has = a.sum(dim=1) > 0
+    zero = torch.zeros_like(mean)
+    return {
+        "L_speed": (speed.mean(dim=1) / psi.v_mean - 1.0) ** 2,
+        "L_mean": torch.where(has, (mean / psi.d_mean - 1.0) ** 2, zero),
+        "L_min": ((torch.relu(dmin - gap) / dmin) ** 2 * a).sum(dim=1) / cnt,
+        "L_max": ((torch.relu(gap - dmax) / dmax) ** 2 * a).sum(dim=1) / cnt,
+        # sqrt has an infinite slope at 0: the epsilon keeps equal gaps trainable.
+        "L_var": torch.where(has, torch.sqrt(var + 1e-8) / psi.d_mean, zero),
+    }
+
+
+def total_loss(terms: dict[str, torch.Tensor], lambda_v: float, lambda_d: float) -> torch.Tensor:
+    return lambda_v * terms["L_speed"] + lambda_d * (terms["L_mean"] + terms["L_min"] + terms["L_max"] + terms["L_var"])
+
+
+def reconstruction_loss(arc: torch.Tensor, speed: torch.Tensor, true_arc: torch.Tensor, true_speed: torch.Tensor,
+                        hidden: torch.Tensor, psi: PsiTensors, length_m: float) -> torch.Tensor:
+    """L_rec = mean over hidden of ||s_hat - s||^2 (angle in rad, speed / v_scale), matched.
+
+    Generated vehicles are matched to true hidden ones by the assignment minimising the
+    total error (vehicles are unlabelled), computed on detached values.
+    """
+    b, n = arc.shape
+    th = 2 * math.pi / length_m
+    loss = arc.new_zeros(b)
+    with torch.no_grad():
+        perms = []
+        for i in range(b):
+            idx = torch.nonzero(hidden[i]).flatten()
+            if len(idx) == 0:
+                perms.append((idx, idx))
+                continue
+            da = torch.remainder(arc[i, idx][:, None] - true_arc[i, idx][None, :] + length_m / 2, length_m) - length_m / 2
+            dv = (speed[i, idx][:, None] - true_speed[i, idx][None, :]) / psi.v_scale[i]
+            r, c = linear_sum_assignment(((da * th) ** 2 + dv**2).numpy())
+            perms.append((idx[r], idx[c]))
+    for i, (gi, ti) in enumerate(perms):
+        if len(gi) == 0:
+            continue
+        da = torch.remainder(arc[i, gi] - true_arc[i, ti] + length_m / 2, length_m) - length_m / 2
+        dv = (speed[i, gi] - true_speed[i, ti]) / psi.v_scale[i]
+        loss[i] = ((da * th) ** 2 + dv**2).mean()
+    return loss
+
+
+# --------------------------------------------------------------------------- rollouts
+
+
+def _next_hidden_slot(hidden: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
+    free = hidden & ~present
+    return torch.where(free.any(dim=1), free.float().argmax(dim=1), torch.zeros(free.shape[0], dtype=torch.long))
+
+
+def rollout(net: GeneratorNet, snaps: Snapshots, gen: torch.Generator) -> tuple[torch.Tensor, ...]:
+    """Training rollout (no rejection): returns (arc, speed, generated mask, sum log p(choice))."""
+    hidden = torch.as_tensor(snaps.hidden)
+    present = ~hidden
+    arc = torch.as_tensor(snaps.arc_m, dtype=torch.float32).masked_fill(hidden, 0.0)
+    speed = torch.as_tensor(snaps.speed_mps, dtype=torch.float32).masked_fill(hidden, 0.0)
+    psi = PsiTensors.from_array(snaps.psi)
+    b, n = arc.shape
+    log_p = arc.new_zeros(b)
+    k = hidden.sum(dim=1)
+    for step in range(int(k.max().item()) if b else 0):
+        active = k > step
+        remaining = (k - step).clamp(min=0)
+        prop = propose(net, arc, speed, present, remaining, psi, snaps.length_m, 1, gen)
+        slot = _next_hidden_slot(hidden, present)
+        onehot = torch.nn.functional.one_hot(slot, n).bool() & active[:, None]
+        arc = torch.where(onehot, prop.arc[0][:, None], arc)
+        speed = torch.where(onehot, prop.speed[0][:, None], speed)
+        present = present | onehot
+        log_p = log_p + torch.where(active, prop.log_prob_choice[0], torch.zeros_like(log_p))
+    return arc, speed, hidden, log_p
+
+
+def _piece_range(x: torch.Tensor, d_min: torch.Tensor, d_max: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Fewest and most further vehicles m such that x splits into m + 1 gaps in [d_min, d_max]."""
+    lo_m = torch.clamp(torch.ceil(x / d_max - 1e-6) - 1, min=0)
+    hi_m = torch.floor(x / d_min + 1e-6) - 1
+    return lo_m, hi_m
+
+
+def _gap_budget(arc: torch.Tensor, present: torch.Tensor, generated: torch.Tensor, psi: PsiTensors,
+                length_m: float) -> tuple[torch.Tensor, ...]:
+    """Per current gap: vehicles it must still receive (touched gaps) and can receive."""
+    follower, leader, gap, valid = ring_gaps(arc, present, length_m)
+    lo, hi = _piece_range(gap, psi.d_min[:, None], psi.d_max[:, None])
+    touched = generated.gather(1, follower) | generated.gather(1, leader)
+    need = torch.where(valid & touched, lo, torch.zeros_like(lo))
+    cap = torch.where(valid, hi.clamp(min=0), torch.zeros_like(hi))
+    return need, cap
+
+
+def _choosable_gaps(arc: torch.Tensor, present: torch.Tensor, psi: PsiTensors, rem_after: torch.Tensor,
+                    budget: tuple[torch.Tensor, torch.Tensor], length_m: float, grid: int = 65) -> torch.Tensor:
+    """(B, N) gaps where some split point passes the check: rejecting the others up front
+    is the T_max -> infinity limit of rejection for the discrete part of the proposal."""
+    _, _, gap, valid = ring_gaps(arc, present, length_m)
+    b, n = gap.shape
+    frac = torch.linspace(0.0, 1.0, grid + 2)[1:-1]
+    a1 = frac[:, None, None] * gap[None]  # (G, B, N)
+    choice = torch.arange(n).expand(b, n)
+    ok = torch.zeros(b, n, dtype=torch.bool)
+    for g in range(grid):
+        ok |= _pieces_ok(a1[g], gap - a1[g], choice, psi, rem_after[:, None].expand(b, n), budget, per_gap=True)
+    empty = present.sum(dim=1) == 0
+    return (ok & valid) | empty[:, None]
+
+
+def _pieces_ok(a1: torch.Tensor, a2: torch.Tensor, choice: torch.Tensor, psi: PsiTensors,
+               rem_after: torch.Tensor, budget: tuple[torch.Tensor, torch.Tensor],
+               per_gap: bool = False) -> torch.Tensor:
+    """After splitting the chosen gap into a1 and a2, can the scene still be completed in bounds?
+
+    The two new gaps must each be able to end as gaps in [d_min, d_max]; the vehicles left
+    must cover what every touched gap still needs and fit where there is room. With none
+    left this is the paper's check (both gaps in [d_min, d_max]).
+    """
+    d_min, d_max = (psi.d_min[:, None], psi.d_max[:, None]) if per_gap else (psi.d_min, psi.d_max)
+    lo1, hi1 = _piece_range(a1, d_min, d_max)
+    lo2, hi2 = _piece_range(a2, d_min, d_max)
+    need, cap = budget
+    if per_gap:  # a1, a2, choice are (B, N): one split per gap
+        need_rest = need.sum(dim=1, keepdim=True) - need
+        cap_rest = cap.sum(dim=1, keepdim=True) - cap
+    else:  # (S, B): one chosen gap per candidate
+        rows = torch.arange(need.shape[0]).expand_as(choice)
+        need_rest = need.sum(dim=1) - need[rows, choice]
+        cap_rest = cap.sum(dim=1) - cap[rows, choice]
+    r = rem_after.float()
+    return ((lo1 <= hi1) & (lo2 <= hi2) & (need_rest + lo1 + lo2 <= r)
+            & (cap_rest + hi1.clamp(min=0) + hi2.clamp(min=0) >= r))
+
+
+@dataclass
+class Completion:
+    arc_m: np.ndarray
+    speed_mps: np.ndarray
+    projected: np.ndarray  # (B,) number of hidden vehicles that needed projection
+    wall_s: float
+
+
+@torch.inference_mode()
+def complete(net: GeneratorNet, snaps: Snapshots, t_max: int, seed: int) -> Completion:
+    """Algorithm 3, batched: rejection sampling against Psi's bounds, projection as fallback."""
+    t0 = time.perf_counter()
+    gen = torch.Generator().manual_seed(int(seed))
+    hidden = torch.as_tensor(snaps.hidden)
+    present = ~hidden
+    arc = torch.as_tensor(snaps.arc_m, dtype=torch.float32).masked_fill(hidden, 0.0)
+    speed = torch.as_tensor(snaps.speed_mps, dtype=torch.float32).masked_fill(hidden, 0.0)
+    psi = PsiTensors.from_array(snaps.psi)
+    b, n = arc.shape
+    k = hidden.sum(dim=1)
+    projected = torch.zeros(b, dtype=torch.long)
+    rows = torch.arange(b)
+    for step in range(int(k.max().item()) if b else 0):
+        active = k > step
+        rem_after = (k - step - 1).clamp(min=0)
+        budget = _gap_budget(arc, present, hidden & present, psi, snaps.length_m)
+        allowed = _choosable_gaps(arc, present, psi, rem_after, budget, snaps.length_m)
+        prop = propose(net, arc, speed, present, (k - step).clamp(min=0), psi, snaps.length_m, t_max, gen, allowed)
+        a1 = prop.frac * prop.gap
+        a2 = prop.gap - a1
+        ok = (_pieces_ok(a1, a2, prop.gap_pos, psi, rem_after, budget)
+              & (prop.speed >= psi.v_min) & (prop.speed <= psi.v_max))
+        any_ok = ok.any(dim=0)
+        first = ok.float().argmax(dim=0)
+        pick = torch.where(any_ok, first, torch.full_like(first, t_max - 1))
+        new_arc, new_v = prop.arc[pick, rows], prop.speed[pick, rows]
+        # Projection of the last candidate: nearest split point whose pieces can be feasible.
+        g, a = prop.gap[pick, rows], a1[pick, rows]
+        cap = (rem_after + 1).float() * psi.d_max
+        lo = torch.maximum(psi.d_min, g - cap)
+        hi = torch.minimum(cap, g - psi.d_min)
+        a_proj = torch.where(lo <= hi, torch.minimum(torch.maximum(a, lo), hi), g / 2)
+        start = prop.arc[pick, rows] - a
+        proj_arc = torch.remainder(start + a_proj, snaps.length_m)
+        proj_v = torch.minimum(torch.maximum(new_v, psi.v_min), psi.v_max)
+        new_arc = torch.where(any_ok, new_arc, proj_arc)
+        new_v = torch.where(any_ok, new_v, proj_v)
+        projected += (active & ~any_ok).long()
+        slot = _next_hidden_slot(hidden, present)
+        onehot = torch.nn.functional.one_hot(slot, n).bool() & active[:, None]
+        arc = torch.where(onehot, new_arc[:, None], arc)
+        speed = torch.where(onehot, new_v[:, None], speed)
+        present = present | onehot
+    # Observed vehicles never move: copy them back in double precision.
+    arc_out = np.where(snaps.hidden, arc.double().numpy() % snaps.length_m, snaps.arc_m)
+    speed_out = np.where(snaps.hidden, speed.double().numpy(), snaps.speed_mps)
+    return Completion(arc_out, speed_out, projected.numpy(), time.perf_counter() - t0)
+
+
+# --------------------------------------------------------------------------- baselines
+
+
+def complete_uniform(snaps: Snapshots, seed: int) -> Completion:
+    """Baseline: hidden vehicles at uniform random positions and speeds within Psi's bounds."""
+    t0 = time.perf_counter()
+    rng = np.random.default_rng([seed, 101])
+    b, n = snaps.arc_m.shape
+    arc = np.where(snaps.hidden, rng.uniform(0, snaps.length_m, (b, n)), snaps.arc_m)
+    v = rng.uniform(snaps.psi[:, 4:5], snaps.psi[:, 5:6], (b, n))
+    speed = np.where(snaps.hidden, v, snaps.speed_mps)
+    return Completion(arc, speed, np.zeros(b, dtype=int), time.perf_counter() - t0)
+
+
+def complete_equal_gap(snaps: Snapshots, seed: int) -> Completion:
+    """Baseline: water-fill the observed gaps with evenly spaced vehicles at the speed
+    that makes the fleet mean equal Psi's mean speed (clipped to the bounds)."""
+    t0 = time.perf_counter()
+    rng = np.random.default_rng([seed, 202])
+    b, n = snaps.arc_m.shape
+    arc = snaps.arc_m.copy()
+    speed = snaps.speed_mps.copy()
+    length = snaps.length_m
+    for i in range(b):
+        hid = np.flatnonzero(snaps.hidden[i])
+        k = len(hid)
+        if k == 0:
+            continue
+        obs = np.sort(snaps.arc_m[i, ~snaps.hidden[i]])
+        if len(obs) == 0:
+            starts, arcs = np.array([rng.uniform(0, length)]), np.array([length])
+            counts = np.array([k - 1])
+        else:
+            starts = obs
+            arcs = np.mod(np.roll(obs, -1) - obs, length)
+            arcs[arcs == 0] = length if len(obs) == 1 else 0.0
+            counts = np.zeros(len(obs), dtype=int)
+            for _ in range(k):
+                counts[np.argmax(arcs / (counts + 1))] += 1
+        pos = []
+        for s0, ln, c in zip(starts, arcs, counts, strict=True):
+            if len(obs) == 0:
+                pos += [s0 + ln * j / k for j in range(k)]
+            else:
+                pos += [s0 + ln * j / (c + 1) for j in range(1, c + 1)]
+        arc[i, hid] = np.mod(pos, length)
+        v_obs = snaps.speed_mps[i, ~snaps.hidden[i]].sum()
+        speed[i, hid] = np.clip((n * snaps.psi[i, 0] - v_obs) / k, snaps.psi[i, 4], snaps.psi[i, 5])
+    return Completion(arc, speed, np.zeros(b, dtype=int), time.perf_counter() - t0)
+
+
+# --------------------------------------------------------------------------- metrics
+
+
+def feasible_exists(snaps: Snapshots) -> np.ndarray:
+    """(B,) whether any completion puts every touched gap and speed within Psi's bounds."""
+    out = np.zeros(len(snaps), dtype=bool)
+    for i in range(len(snaps)):
+        d_min, d_max, v_min, v_max = snaps.psi[i, 2:6]
+        k = int(snaps.hidden[i].sum())
+        if v_min > v_max or d_min > d_max:
+            continue
+        obs = np.sort(snaps.arc_m[i, ~snaps.hidden[i]])
+        if k == 0:
+            out[i] = True
+            continue
+        if len(obs) == 0:
+            out[i] = k * d_min <= snaps.length_m <= k * d_max
+            continue
+        arcs = np.mod(np.roll(obs, -1) - obs, snaps.length_m)
+        if len(obs) == 1:
+            arcs = np.array([snaps.length_m])
+        reachable = {0}
+        for ln in arcs:
+            options = [0] + [c for c in range(1, k + 1) if (c + 1) * d_min <= ln <= (c + 1) * d_max]
+            reachable = {r + c for r in reachable for c in options if r + c <= k}
+        out[i] = k in reachable
+    return out
+
+
+def completion_metrics(snaps: Snapshots, comp: Completion) -> pd.DataFrame:
+    """Per snapshot: feasibility, macro errors, each L term, matched hidden-state errors."""
+    psi_t = PsiTensors.from_array(snaps.psi)
+    terms = macro_losses(torch.as_tensor(comp.arc_m, dtype=torch.float64), torch.as_tensor(comp.speed_mps, dtype=torch.float64),
+                         torch.as_tensor(snaps.hidden), PsiTensors(*[t.double() for t in psi_t.__dict__.values()]), snaps.length_m)
+    length = snaps.length_m
+    b = len(snaps)
+    in_bounds = np.zeros(b, dtype=bool)
+    pos_err = np.full(b, np.nan)
+    spd_err = np.full(b, np.nan)
+    mean_spacing = np.full(b, length / snaps.arc_m.shape[1])
+    for i in range(b):
+        hid = snaps.hidden[i]
+        s = np.mod(comp.arc_m[i], length)
+        order = np.argsort(s)
+        gaps = np.mod(np.roll(s[order], -1) - s[order], length)
+        gaps[gaps == 0] = length if len(s) == 1 else 0.0
+        touched = hid[order] | np.roll(hid[order], -1)
+        d_min, d_max, v_min, v_max = snaps.psi[i, 2:6]
+        g_ok = np.all((gaps[touched] >= d_min - 1e-6) & (gaps[touched] <= d_max + 1e-6))
+        v = comp.speed_mps[i, hid]
+        in_bounds[i] = g_ok and np.all((v >= v_min - 1e-6) & (v <= v_max + 1e-6))
+        idx = np.flatnonzero(hid)
+        if len(idx):
+            da = np.abs(np.mod(comp.arc_m[i, idx][:, None] - snaps.arc_m[i, idx][None, :] + length / 2, length) - length / 2)
+            dv = np.abs(comp.speed_mps[i, idx][:, None] - snaps.speed_mps[i, idx][None, :])
+            r, c = linear_sum_assignment(da / snaps.psi[i, 1] + dv / max(snaps.psi[i, 5] - snaps.psi[i, 4], 0.1))
+            pos_err[i], spd_err[i] = da[r, c].mean(), dv[r, c].mean()
+    return pd.DataFrame({
+        "run": snaps.run, "time_s": snaps.time_s, "K": snaps.k,
+        "feasible_exists": feasible_exists(snaps), "projected": comp.projected,
+        "feasible": in_bounds & (comp.projected == 0),
+        "speed_rel_err": np.abs(comp.speed_mps.mean(axis=1) - snaps.psi[:, 0]) / snaps.psi[:, 0],
+        "spacing_rel_err": np.abs(mean_spacing - snaps.psi[:, 1]) / snaps.psi[:, 1],
+        **{k: v.numpy() for k, v in terms.items()},
+        "pos_err_m": pos_err, "speed_err_mps": spd_err,
+    })
+
+
+def summarise_metrics(per_snapshot: pd.DataFrame) -> pd.DataFrame:
+    """generator_metrics.csv: one row per method and K."""
+    rows = []
+    for (method, k), g in per_snapshot.groupby(["method", "K"], sort=True):
+        fe = g["feasible_exists"]
+        rows.append({
+            "method": method, "K": k, "n_snapshots": len(g), "n_feasible_exists": int(fe.sum()),
+            "n_no_feasible": int((~fe).sum()),
+            "feasibility_rate": float(g.loc[fe, "feasible"].mean()) if fe.any() else np.nan,
+            "projected_vehicles": int(g["projected"].sum()),
+            "speed_rel_err": g["speed_rel_err"].mean(), "spacing_rel_err": g["spacing_rel_err"].mean(),
+            **{t: g[t].mean() for t in LOSS_TERMS},
+            "pos_err_m": g["pos_err_m"].mean(), "speed_err_mps": g["speed_err_mps"].mean(),
+        })
+    return pd.DataFrame(rows)

@@ -1,0 +1,201 @@
+"""Stage I training and evaluation: fit G_phi on macro losses, check it on held-out runs.
+
+``train_generator`` runs Algorithm 2 over minibatches of training snapshots (a fresh
+random hidden set every epoch), stops early on the validation runs' loss, writes
+``generator.pt`` atomically on every improvement, and logs ``generator_train_log.csv``.
+``evaluate_generator`` completes held-out snapshots for each K with the generator and
+the two baselines and writes ``generator_metrics.csv``.
+"""
+
+from __future__ import annotations
+
+import copy
+import io
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+from tqdm import tqdm
+
+from macromicro_sumo.config import Scenario, scenario_from_dict
+from macromicro_sumo.dataset import GroundTruth, Snapshots, held_out_by_k, hide, snapshot_states, split_runs
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.files import atomic_path, write_csv
+from macromicro_sumo.generator import (
+    FEATURE_VERSION,
+    LOSS_TERMS,
+    GeneratorNet,
+    PsiTensors,
+    complete,
+    complete_equal_gap,
+    complete_uniform,
+    completion_metrics,
+    macro_losses,
+    reconstruction_loss,
+    rollout,
+    summarise_metrics,
+    total_loss,
+)
+
+CHECKPOINT_FORMAT = "macromicro-generator"
+
+
+def signature(sc: Scenario) -> dict[str, Any]:
+    """What a generator depends on: a checkpoint is only valid for the same values."""
+    return {
+        "fleet.n_vehicles": sc.fleet.n_vehicles,
+        "network.radius_m": sc.network.radius_m,
+        "bounds.spacing_m": list(sc.bounds.spacing_m),
+        "bounds.speed_mps": list(sc.bounds.speed_mps),
+        "generator.psi_source": sc.generator.psi_source,
+        "generator.bounds_source": sc.generator.bounds_source,
+        "observation_layout": f"ring-gaps-v{FEATURE_VERSION}",
+    }
+
+
+def save_generator(path: Path, net: GeneratorNet, sc: Scenario, extra: dict[str, Any] | None = None) -> None:
+    payload = {
+        "format": CHECKPOINT_FORMAT, "state_dict": net.state_dict(), "hidden_size": net.hidden_size,
+        "signature": signature(sc), "scenario": sc.to_dict(), **(extra or {}),
+    }
+    buf = io.BytesIO()
+    torch.save(payload, buf)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(buf.getvalue())
+
+
+def load_generator(path: Path | str, sc: Scenario) -> GeneratorNet:
+    """Load ``generator.pt``; a corrupt file or one trained for another scenario is an error."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: generator checkpoint not found (run `macromicro train-generator`)")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+        if payload.get("format") != CHECKPOINT_FORMAT:
+            raise ValueError("not a generator checkpoint")
+        net = GeneratorNet(int(payload["hidden_size"]))
+        net.load_state_dict(payload["state_dict"])
+    except Exception as exc:
+        raise UserError(f"{path}: corrupt or truncated generator checkpoint ({type(exc).__name__})") from None
+    want = signature(sc)
+    for key, have in payload["signature"].items():
+        if want.get(key) != have:
+            raise UserError(
+                f"{path}: generator was trained for {key} = {have}, scenario {sc.source} has {want.get(key)}"
+            )
+    net.eval()
+    return net
+
+
+def _batch_loss(net: GeneratorNet, snaps: Snapshots, sc: Scenario, gen: torch.Generator) -> tuple[torch.Tensor, dict]:
+    arc, speed, generated, log_p = rollout(net, snaps, gen)
+    psi = PsiTensors.from_array(snaps.psi)
+    terms = macro_losses(arc, speed, generated, psi, snaps.length_m)
+    loss = total_loss(terms, sc.generator.lambda_v, sc.generator.lambda_d)
+    if sc.generator.lambda_rec > 0:
+        rec = reconstruction_loss(arc, speed, torch.as_tensor(snaps.arc_m, dtype=torch.float32),
+                                  torch.as_tensor(snaps.speed_mps, dtype=torch.float32),
+                                  generated, psi, snaps.length_m)
+        terms["L_rec"] = rec
+        loss = loss + sc.generator.lambda_rec * rec
+    # Score-function gradient for the discrete gap choices, batch-mean baseline.
+    advantage = (loss - loss.mean()).detach()
+    surrogate = loss.mean() + (advantage * log_p).mean()
+    return surrogate, {k: float(v.mean()) for k, v in terms.items()} | {"loss": float(loss.mean())}
+
+
+def train_generator(sc: Scenario, gt: GroundTruth, out: Path, progress: bool = True) -> dict[str, Any]:
+    """Train on the train runs, early-stop on val runs; returns the split and timings."""
+    cfg = sc.generator
+    torch.manual_seed(sc.seed)
+    splits = split_runs(gt.runs, cfg.held_out_fraction, sc.seed)
+    train = snapshot_states(gt, sc, splits["train"])
+    val_states = snapshot_states(gt, sc, splits["val"]) if len(splits["val"]) else train
+    rng = np.random.default_rng([sc.seed, 1])
+    lo, hi = cfg.hidden_train
+    val = hide(val_states, rng.integers(lo, hi + 1, len(val_states)), np.random.default_rng([sc.seed, 2]))
+    net = GeneratorNet(cfg.hidden_size)
+    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    gen = torch.Generator().manual_seed(sc.seed)
+    best, best_state, bad, log = np.inf, copy.deepcopy(net.state_dict()), 0, []
+    t0 = time.perf_counter()
+    bar = tqdm(range(cfg.epochs), desc="train-generator", unit="epoch", disable=not progress)
+    for epoch in bar:
+        net.train()
+        snaps = hide(train, rng.integers(lo, hi + 1, len(train)), rng)
+        perm = rng.permutation(len(snaps))
+        stats = []
+        for start in range(0, len(perm), cfg.batch_size):
+            loss, s = _batch_loss(net, snaps.take(perm[start:start + cfg.batch_size]), sc, gen)
+            opt.zero_grad()
+            loss.backward()
+            nn_utils_clip(net)
+            opt.step()
+            stats.append(s)
+        net.eval()
+        with torch.no_grad():
+            _, vs = _batch_loss(net, val, sc, torch.Generator().manual_seed(sc.seed + 17))
+        row = {"epoch": epoch, "wall_s": time.perf_counter() - t0,
+               **{f"train_{k}": float(np.mean([s[k] for s in stats])) for k in stats[0]},
+               **{f"val_{k}": v for k, v in vs.items()}}
+        log.append(row)
+        if vs["loss"] < best - 1e-6:
+            best, best_state, bad = vs["loss"], copy.deepcopy(net.state_dict()), 0
+            save_generator(out / "generator.pt", net, sc, {"epoch": epoch, "val_loss": best})
+        else:
+            bad += 1
+        bar.set_postfix(train=f"{row['train_loss']:.4f}", val=f"{vs['loss']:.4f}", best=f"{best:.4f}")
+        if bad >= cfg.patience:
+            break
+    net.load_state_dict(best_state)
+    write_csv(pd.DataFrame(log), out / "generator_train_log.csv")
+    return {"splits": {k: v.tolist() for k, v in splits.items()}, "train_s": time.perf_counter() - t0,
+            "epochs": len(log), "best_val_loss": best, "net": net}
+
+
+def nn_utils_clip(net: torch.nn.Module) -> None:
+    torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
+
+
+def held_out_sets(sc: Scenario, gt: GroundTruth) -> dict[int, Snapshots]:
+    splits = split_runs(gt.runs, sc.generator.held_out_fraction, sc.seed)
+    states = snapshot_states(gt, sc, splits["held_out"])
+    lo, hi = sc.generator.hidden_eval
+    return held_out_by_k(states, range(lo, hi + 1), sc.seed)
+
+
+def evaluate_generator(net: GeneratorNet, sc: Scenario, gt: GroundTruth) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """(generator_metrics per method and K, per-snapshot metrics) on held-out runs."""
+    per = []
+    for k, snaps in held_out_sets(sc, gt).items():
+        for method, fn in (("generator", lambda s, seed: complete(net, s, sc.generator.t_max, seed)),
+                           ("uniform", complete_uniform), ("equal_gap", complete_equal_gap)):
+            m = completion_metrics(snaps, fn(snaps, sc.seed + k))
+            m.insert(0, "method", method)
+            per.append(m)
+    per_df = pd.concat(per, ignore_index=True)
+    return summarise_metrics(per_df), per_df
+
+
+def completions_frame(snaps_by_k: dict[int, Snapshots], net: GeneratorNet, sc: Scenario) -> pd.DataFrame:
+    """completions.csv: every vehicle of every completed held-out snapshot, true state beside."""
+    rows = []
+    for k, snaps in snaps_by_k.items():
+        comp = complete(net, snaps, sc.generator.t_max, sc.seed + k)
+        b, n = snaps.arc_m.shape
+        rows.append(pd.DataFrame({
+            "K": k, "snapshot": np.repeat(np.arange(b), n), "run": np.repeat(snaps.run, n),
+            "time_s": np.repeat(snaps.time_s, n), "slot": np.tile(np.arange(n), b),
+            "observed": (~snaps.hidden).ravel().astype(int), "arc_pos_m": comp.arc_m.ravel(),
+            "theta_rad": (2 * np.pi * comp.arc_m / snaps.length_m).ravel(), "speed_mps": comp.speed_mps.ravel(),
+            "true_arc_pos_m": snaps.arc_m.ravel(), "true_speed_mps": snaps.speed_mps.ravel(),
+            "projected_in_snapshot": np.repeat(comp.projected, n),
+        }))
+    return pd.concat(rows, ignore_index=True)
+
+
+__all__ = ["LOSS_TERMS", "evaluate_generator", "load_generator", "save_generator", "scenario_from_dict",
+           "train_generator", "completions_frame", "held_out_sets"]
