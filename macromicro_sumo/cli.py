@@ -25,6 +25,28 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train_generator(args: argparse.Namespace) -> int:
+    from macromicro_sumo.config import load_scenario
+    from macromicro_sumo.generator_train import run_train_generator
+
+    sc = load_scenario(args.scenario)
+    m = run_train_generator(sc, args.data, args.out, args.command_line, progress=not args.quiet)
+    print(
+        f"generator written to {args.out / 'generator.pt'} ({m['epochs']} epochs, {m['timings_s']['train_generator']:.1f} s)"
+    )
+    return 0
+
+
+def _cmd_complete(args: argparse.Namespace) -> int:
+    from macromicro_sumo.config import load_scenario
+    from macromicro_sumo.generator_train import run_complete
+
+    sc = load_scenario(args.scenario)
+    path = run_complete(sc, args.generator, args.data, args.out, args.hidden)
+    print(f"completions written to {path}")
+    return 0
+
+
 def _cmd_doctor(args: argparse.Namespace) -> int:
     from macromicro_sumo import sumo
 
@@ -55,6 +77,20 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("scenario", type=Path, help="scenario TOML")
     p.add_argument("--out", type=Path, required=True, help="output folder")
+
+    p = add("train-generator", _cmd_train_generator, "Stage I: train the hidden-vehicle generator")
+    p.add_argument("scenario", type=Path, help="scenario TOML")
+    p.add_argument("--data", type=Path, required=True, help="ground-truth folder (from simulate)")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+
+    p = add("complete", _cmd_complete, "complete the held-out snapshots with a trained generator")
+    p.add_argument("scenario", type=Path, help="scenario TOML")
+    p.add_argument("--generator", type=Path, required=True, help="generator.pt")
+    p.add_argument("--data", type=Path, required=True, help="ground-truth folder (from simulate)")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument(
+        "--hidden", type=int, nargs="+", help="hidden counts K (default: generator.hidden_eval)"
+    )
 
     add(
         "doctor",

@@ -41,14 +41,20 @@ def load_ground_truth(folder: Path | str, sc: Scenario | None = None) -> GroundT
     """Read a ``simulate`` output folder; missing files and scenario mismatches are errors."""
     folder = Path(folder)
     if not folder.is_dir():
-        raise UserError(f"{folder}: ground-truth folder not found (run `macromicro simulate` first)")
+        raise UserError(
+            f"{folder}: ground-truth folder not found (run `macromicro simulate` first)"
+        )
     missing = [f for f in GT_FILES if not (folder / f).is_file()]
     if missing:
         raise UserError(f"{folder}: ground-truth folder is missing {', '.join(missing)}")
     manifest = json.loads((folder / "manifest.json").read_text())
     if sc is not None:
         got = manifest.get("scenario", {})
-        for table, key in (("fleet", "n_vehicles"), ("network", "radius_m"), ("simulation", "step_length_s")):
+        for table, key in (
+            ("fleet", "n_vehicles"),
+            ("network", "radius_m"),
+            ("simulation", "step_length_s"),
+        ):
             want = getattr(getattr(sc, table), key)
             have = got.get(table, {}).get(key)
             if have != want:
@@ -69,18 +75,22 @@ def load_ground_truth(folder: Path | str, sc: Scenario | None = None) -> GroundT
         raise UserError(f"{folder}: unreadable ground-truth CSV ({exc})") from None
 
 
-def split_runs(runs: np.ndarray, held_out_fraction: float, seed: int, val_fraction: float = 0.15) -> dict[str, np.ndarray]:
+def split_runs(
+    runs: np.ndarray, held_out_fraction: float, seed: int, val_fraction: float = 0.15
+) -> dict[str, np.ndarray]:
     """Disjoint train / val / held_out run ids (seeded shuffle); val drives early stopping."""
     rng = np.random.default_rng([seed, 7])
     perm = rng.permutation(runs)
     n_held = max(1, int(round(held_out_fraction * len(runs))))
     n_val = max(1, int(round(val_fraction * len(runs)))) if len(runs) - n_held >= 2 else 0
     if len(runs) - n_held - n_val < 1:
-        raise UserError(f"need at least 2 ground-truth runs to split train / held-out, got {len(runs)}")
+        raise UserError(
+            f"need at least 2 ground-truth runs to split train / held-out, got {len(runs)}"
+        )
     return {
         "held_out": np.sort(perm[:n_held]),
-        "val": np.sort(perm[n_held:n_held + n_val]),
-        "train": np.sort(perm[n_held + n_val:]),
+        "val": np.sort(perm[n_held : n_held + n_val]),
+        "train": np.sort(perm[n_held + n_val :]),
     }
 
 
@@ -104,11 +114,20 @@ class Snapshots:
         return self.hidden.sum(axis=1)
 
     def take(self, idx: np.ndarray) -> Snapshots:
-        return replace(self, run=self.run[idx], time_s=self.time_s[idx], arc_m=self.arc_m[idx],
-                       speed_mps=self.speed_mps[idx], psi=self.psi[idx], hidden=self.hidden[idx])
+        return replace(
+            self,
+            run=self.run[idx],
+            time_s=self.time_s[idx],
+            arc_m=self.arc_m[idx],
+            speed_mps=self.speed_mps[idx],
+            psi=self.psi[idx],
+            hidden=self.hidden[idx],
+        )
 
 
-def run_arrays(traj: pd.DataFrame, run: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+def run_arrays(
+    traj: pd.DataFrame, run: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
     """(times (T,), arc (T, N), speed (T, N), vehicle ids) of one run."""
     g = traj[traj["run"] == run]
     ids = sorted(g["vehicle_id"].unique(), key=lambda s: (len(s), s))
@@ -120,10 +139,16 @@ def run_arrays(traj: pd.DataFrame, run: int) -> tuple[np.ndarray, np.ndarray, np
 def psi_for(gt: GroundTruth, sc: Scenario, run: int, time_s: float) -> np.ndarray:
     """Psi of the interval holding ``time_s``; bounds per the scenario's ``bounds_source``."""
     m = gt.macro
-    rows = m[(m["run"] == run) & (m["source"] == sc.generator.psi_source)
-             & (m["begin_s"] <= time_s + 1e-9) & (m["end_s"] > time_s + 1e-9)]
+    rows = m[
+        (m["run"] == run)
+        & (m["source"] == sc.generator.psi_source)
+        & (m["begin_s"] <= time_s + 1e-9)
+        & (m["end_s"] > time_s + 1e-9)
+    ]
     if rows.empty:
-        raise UserError(f"{gt.folder}/macro.csv: no {sc.generator.psi_source} row for run {run} at t = {time_s:g} s")
+        raise UserError(
+            f"{gt.folder}/macro.csv: no {sc.generator.psi_source} row for run {run} at t = {time_s:g} s"
+        )
     psi = rows.iloc[0][PSI_COLUMNS].to_numpy(dtype=float)
     if sc.generator.bounds_source == "fixed":
         psi[2:4] = sc.bounds.spacing_m
@@ -150,9 +175,13 @@ def snapshot_states(gt: GroundTruth, sc: Scenario, runs: np.ndarray) -> Snapshot
         raise UserError(f"{gt.folder}: no snapshots in runs {list(runs)}")
     n = sc.fleet.n_vehicles
     return Snapshots(
-        run=np.array(out["run"]), time_s=np.array(out["time_s"]), arc_m=np.array(out["arc"]),
-        speed_mps=np.array(out["speed"]), psi=np.array(out["psi"]),
-        hidden=np.zeros((len(out["run"]), n), dtype=bool), length_m=sc.network.length_m,
+        run=np.array(out["run"]),
+        time_s=np.array(out["time_s"]),
+        arc_m=np.array(out["arc"]),
+        speed_mps=np.array(out["speed"]),
+        psi=np.array(out["psi"]),
+        hidden=np.zeros((len(out["run"]), n), dtype=bool),
+        length_m=sc.network.length_m,
     )
 
 

@@ -32,20 +32,14 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pandas as pd
 import torch
 from scipy.optimize import linear_sum_assignment
 from torch import nn
-from tqdm import tqdm
 
-from macromicro_sumo.config import Scenario
 from macromicro_sumo.dataset import Snapshots
-from macromicro_sumo.errors import UserError
-from macromicro_sumo.files import atomic_path, write_csv
 
 FEATURE_VERSION = 1
 N_GAP_FEATURES = 7
@@ -56,7 +50,9 @@ LOSS_TERMS = ("L_speed", "L_mean", "L_min", "L_max", "L_var")
 # --------------------------------------------------------------------------- scene geometry
 
 
-def ring_gaps(arc: torch.Tensor, present: torch.Tensor, length_m: float) -> tuple[torch.Tensor, ...]:
+def ring_gaps(
+    arc: torch.Tensor, present: torch.Tensor, length_m: float
+) -> tuple[torch.Tensor, ...]:
     """Gaps of the present vehicles in arc order, batched over rows.
 
     Returns (follower slot, leader slot, gap [m], valid) each (B, N): position i holds
@@ -97,8 +93,15 @@ class PsiTensors:
         return torch.clamp(0.5 * (self.v_max - self.v_min), min=0.1)
 
 
-def features(arc: torch.Tensor, speed: torch.Tensor, present: torch.Tensor, remaining: torch.Tensor,
-             psi: PsiTensors, length_m: float, anchor: torch.Tensor) -> tuple[torch.Tensor, ...]:
+def features(
+    arc: torch.Tensor,
+    speed: torch.Tensor,
+    present: torch.Tensor,
+    remaining: torch.Tensor,
+    psi: PsiTensors,
+    length_m: float,
+    anchor: torch.Tensor,
+) -> tuple[torch.Tensor, ...]:
     """Per-gap and global features of the current scene (all relative, no labels)."""
     b, n = arc.shape
     m = present.sum(dim=1)
@@ -110,22 +113,40 @@ def features(arc: torch.Tensor, speed: torch.Tensor, present: torch.Tensor, rema
     vs, vm, dm = psi.v_scale[:, None], psi.v_mean[:, None], psi.d_mean[:, None]
     v_f = torch.where(empty[:, None], vm, speed.gather(1, follower))
     v_l = torch.where(empty[:, None], vm, speed.gather(1, leader))
-    gap_feat = torch.stack([
-        gap / dm, (gap - psi.d_min[:, None]) / dm, (gap - psi.d_max[:, None]) / dm, gap / dm - 1.0 - remaining[:, None] / n,
-        (v_f - vm) / vs, (v_l - vm) / vs, gap / length_m,
-    ], dim=-1)
+    gap_feat = torch.stack(
+        [
+            gap / dm,
+            (gap - psi.d_min[:, None]) / dm,
+            (gap - psi.d_max[:, None]) / dm,
+            gap / dm - 1.0 - remaining[:, None] / n,
+            (v_f - vm) / vs,
+            (v_l - vm) / vs,
+            gap / length_m,
+        ],
+        dim=-1,
+    )
     v_sum = (speed * present).sum(dim=1)
     need_v = needed_speed(speed, present, remaining, psi)
     mean_v = torch.where(empty, psi.v_mean, v_sum / torch.clamp(m, min=1))
-    glob = torch.stack([
-        remaining / n, m / n, psi.d_min / psi.d_mean, psi.d_max / psi.d_mean,
-        (need_v - psi.v_mean) / psi.v_scale, (mean_v - psi.v_mean) / psi.v_scale,
-        (psi.v_max - psi.v_min) / psi.v_mean, (psi.v_min + psi.v_max - 2 * psi.v_mean) / (2 * psi.v_scale),
-    ], dim=-1)
+    glob = torch.stack(
+        [
+            remaining / n,
+            m / n,
+            psi.d_min / psi.d_mean,
+            psi.d_max / psi.d_mean,
+            (need_v - psi.v_mean) / psi.v_scale,
+            (mean_v - psi.v_mean) / psi.v_scale,
+            (psi.v_max - psi.v_min) / psi.v_mean,
+            (psi.v_min + psi.v_max - 2 * psi.v_mean) / (2 * psi.v_scale),
+        ],
+        dim=-1,
+    )
     return gap_feat, glob, follower, arc_e, gap, valid
 
 
-def needed_speed(speed: torch.Tensor, present: torch.Tensor, remaining: torch.Tensor, psi: PsiTensors) -> torch.Tensor:
+def needed_speed(
+    speed: torch.Tensor, present: torch.Tensor, remaining: torch.Tensor, psi: PsiTensors
+) -> torch.Tensor:
     """Mean speed the vehicles still to place need for the fleet to average Psi's mean."""
     n = speed.shape[1]
     return (n * psi.v_mean - (speed * present).sum(dim=1)) / torch.clamp(remaining, min=1).float()
@@ -138,8 +159,10 @@ class GeneratorNet(nn.Module):
         super().__init__()
         self.hidden_size = hidden_size
         self.body = nn.Sequential(
-            nn.Linear(N_GAP_FEATURES + N_GLOBAL_FEATURES, hidden_size), nn.Tanh(),
-            nn.Linear(hidden_size, hidden_size), nn.Tanh(),
+            nn.Linear(N_GAP_FEATURES + N_GLOBAL_FEATURES, hidden_size),
+            nn.Tanh(),
+            nn.Linear(hidden_size, hidden_size),
+            nn.Tanh(),
             nn.Linear(hidden_size, 5),
         )
 
@@ -160,16 +183,27 @@ class Proposal:
     log_prob_choice: torch.Tensor
 
 
-def propose(net: GeneratorNet, arc: torch.Tensor, speed: torch.Tensor, present: torch.Tensor,
-            remaining: torch.Tensor, psi: PsiTensors, length_m: float, n_samples: int,
-            gen: torch.Generator, allowed: torch.Tensor | None = None) -> Proposal:
+def propose(
+    net: GeneratorNet,
+    arc: torch.Tensor,
+    speed: torch.Tensor,
+    present: torch.Tensor,
+    remaining: torch.Tensor,
+    psi: PsiTensors,
+    length_m: float,
+    n_samples: int,
+    gen: torch.Generator,
+    allowed: torch.Tensor | None = None,
+) -> Proposal:
     """Sample ``n_samples`` candidates for the next hidden vehicle of every scene.
 
     ``allowed`` (B, N) optionally removes gap choices (in arc order) before sampling.
     """
     b, n = arc.shape
     anchor = torch.rand(b, generator=gen) * length_m
-    gap_feat, glob, follower, arc_e, gap, valid = features(arc, speed, present, remaining, psi, length_m, anchor)
+    gap_feat, glob, follower, arc_e, gap, valid = features(
+        arc, speed, present, remaining, psi, length_m, anchor
+    )
     need_v = needed_speed(speed, present, remaining, psi)
     out = net(gap_feat, glob)
     if allowed is not None:
@@ -181,7 +215,9 @@ def propose(net: GeneratorNet, arc: torch.Tensor, speed: torch.Tensor, present: 
     rows = torch.arange(b).expand(n_samples, b)
     pick = out[rows, choice]  # (S, B, 5)
     eps = torch.randn(n_samples, b, 2, generator=gen)
-    frac = torch.sigmoid(pick[..., 1] + torch.exp(pick[..., 2].clamp(-5, 2)) * eps[..., 0]).clamp(1e-3, 1 - 1e-3)
+    frac = torch.sigmoid(pick[..., 1] + torch.exp(pick[..., 2].clamp(-5, 2)) * eps[..., 0]).clamp(
+        1e-3, 1 - 1e-3
+    )
     # Speeds live in Psi's [v_min, v_max] by construction (logit-normal on that interval):
     # the paper's loss has no speed-bound term, so an unbounded proposal drifts outside.
     # Centred on the speed the remaining vehicles need for Psi's mean: the MLP adds a residual.
@@ -198,8 +234,13 @@ def propose(net: GeneratorNet, arc: torch.Tensor, speed: torch.Tensor, present: 
 # --------------------------------------------------------------------------- losses
 
 
-def macro_losses(arc: torch.Tensor, speed: torch.Tensor, generated: torch.Tensor, psi: PsiTensors,
-                 length_m: float) -> dict[str, torch.Tensor]:
+def macro_losses(
+    arc: torch.Tensor,
+    speed: torch.Tensor,
+    generated: torch.Tensor,
+    psi: PsiTensors,
+    length_m: float,
+) -> dict[str, torch.Tensor]:
     """The paper's L_speed and L_dist terms of completed scenes, (B,) each.
 
     A (the gaps influenced by generated vehicles) holds every gap whose follower or
@@ -225,11 +266,20 @@ def macro_losses(arc: torch.Tensor, speed: torch.Tensor, generated: torch.Tensor
 
 
 def total_loss(terms: dict[str, torch.Tensor], lambda_v: float, lambda_d: float) -> torch.Tensor:
-    return lambda_v * terms["L_speed"] + lambda_d * (terms["L_mean"] + terms["L_min"] + terms["L_max"] + terms["L_var"])
+    return lambda_v * terms["L_speed"] + lambda_d * (
+        terms["L_mean"] + terms["L_min"] + terms["L_max"] + terms["L_var"]
+    )
 
 
-def reconstruction_loss(arc: torch.Tensor, speed: torch.Tensor, true_arc: torch.Tensor, true_speed: torch.Tensor,
-                        hidden: torch.Tensor, psi: PsiTensors, length_m: float) -> torch.Tensor:
+def reconstruction_loss(
+    arc: torch.Tensor,
+    speed: torch.Tensor,
+    true_arc: torch.Tensor,
+    true_speed: torch.Tensor,
+    hidden: torch.Tensor,
+    psi: PsiTensors,
+    length_m: float,
+) -> torch.Tensor:
     """L_rec = mean over hidden of ||s_hat - s||^2 (angle in rad, speed / v_scale), matched.
 
     Generated vehicles are matched to true hidden ones by the assignment minimising the
@@ -245,7 +295,12 @@ def reconstruction_loss(arc: torch.Tensor, speed: torch.Tensor, true_arc: torch.
             if len(idx) == 0:
                 perms.append((idx, idx))
                 continue
-            da = torch.remainder(arc[i, idx][:, None] - true_arc[i, idx][None, :] + length_m / 2, length_m) - length_m / 2
+            da = (
+                torch.remainder(
+                    arc[i, idx][:, None] - true_arc[i, idx][None, :] + length_m / 2, length_m
+                )
+                - length_m / 2
+            )
             dv = (speed[i, idx][:, None] - true_speed[i, idx][None, :]) / psi.v_scale[i]
             r, c = linear_sum_assignment(((da * th) ** 2 + dv**2).numpy())
             perms.append((idx[r], idx[c]))
@@ -263,7 +318,9 @@ def reconstruction_loss(arc: torch.Tensor, speed: torch.Tensor, true_arc: torch.
 
 def _next_hidden_slot(hidden: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
     free = hidden & ~present
-    return torch.where(free.any(dim=1), free.float().argmax(dim=1), torch.zeros(free.shape[0], dtype=torch.long))
+    return torch.where(
+        free.any(dim=1), free.float().argmax(dim=1), torch.zeros(free.shape[0], dtype=torch.long)
+    )
 
 
 def rollout(net: GeneratorNet, snaps: Snapshots, gen: torch.Generator) -> tuple[torch.Tensor, ...]:
@@ -289,15 +346,22 @@ def rollout(net: GeneratorNet, snaps: Snapshots, gen: torch.Generator) -> tuple[
     return arc, speed, hidden, log_p
 
 
-def _piece_range(x: torch.Tensor, d_min: torch.Tensor, d_max: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _piece_range(
+    x: torch.Tensor, d_min: torch.Tensor, d_max: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Fewest and most further vehicles m such that x splits into m + 1 gaps in [d_min, d_max]."""
     lo_m = torch.clamp(torch.ceil(x / d_max - 1e-6) - 1, min=0)
     hi_m = torch.floor(x / d_min + 1e-6) - 1
     return lo_m, hi_m
 
 
-def _gap_budget(arc: torch.Tensor, present: torch.Tensor, generated: torch.Tensor, psi: PsiTensors,
-                length_m: float) -> tuple[torch.Tensor, ...]:
+def _gap_budget(
+    arc: torch.Tensor,
+    present: torch.Tensor,
+    generated: torch.Tensor,
+    psi: PsiTensors,
+    length_m: float,
+) -> tuple[torch.Tensor, ...]:
     """Per current gap: vehicles it must still receive (touched gaps) and can receive."""
     follower, leader, gap, valid = ring_gaps(arc, present, length_m)
     lo, hi = _piece_range(gap, psi.d_min[:, None], psi.d_max[:, None])
@@ -307,8 +371,15 @@ def _gap_budget(arc: torch.Tensor, present: torch.Tensor, generated: torch.Tenso
     return need, cap
 
 
-def _choosable_gaps(arc: torch.Tensor, present: torch.Tensor, psi: PsiTensors, rem_after: torch.Tensor,
-                    budget: tuple[torch.Tensor, torch.Tensor], length_m: float, grid: int = 65) -> torch.Tensor:
+def _choosable_gaps(
+    arc: torch.Tensor,
+    present: torch.Tensor,
+    psi: PsiTensors,
+    rem_after: torch.Tensor,
+    budget: tuple[torch.Tensor, torch.Tensor],
+    length_m: float,
+    grid: int = 65,
+) -> torch.Tensor:
     """(B, N) gaps where some split point passes the check: rejecting the others up front
     is the T_max -> infinity limit of rejection for the discrete part of the proposal."""
     _, _, gap, valid = ring_gaps(arc, present, length_m)
@@ -318,14 +389,22 @@ def _choosable_gaps(arc: torch.Tensor, present: torch.Tensor, psi: PsiTensors, r
     choice = torch.arange(n).expand(b, n)
     ok = torch.zeros(b, n, dtype=torch.bool)
     for g in range(grid):
-        ok |= _pieces_ok(a1[g], gap - a1[g], choice, psi, rem_after[:, None].expand(b, n), budget, per_gap=True)
+        ok |= _pieces_ok(
+            a1[g], gap - a1[g], choice, psi, rem_after[:, None].expand(b, n), budget, per_gap=True
+        )
     empty = present.sum(dim=1) == 0
     return (ok & valid) | empty[:, None]
 
 
-def _pieces_ok(a1: torch.Tensor, a2: torch.Tensor, choice: torch.Tensor, psi: PsiTensors,
-               rem_after: torch.Tensor, budget: tuple[torch.Tensor, torch.Tensor],
-               per_gap: bool = False) -> torch.Tensor:
+def _pieces_ok(
+    a1: torch.Tensor,
+    a2: torch.Tensor,
+    choice: torch.Tensor,
+    psi: PsiTensors,
+    rem_after: torch.Tensor,
+    budget: tuple[torch.Tensor, torch.Tensor],
+    per_gap: bool = False,
+) -> torch.Tensor:
     """After splitting the chosen gap into a1 and a2, can the scene still be completed in bounds?
 
     The two new gaps must each be able to end as gaps in [d_min, d_max]; the vehicles left
@@ -344,8 +423,12 @@ def _pieces_ok(a1: torch.Tensor, a2: torch.Tensor, choice: torch.Tensor, psi: Ps
         need_rest = need.sum(dim=1) - need[rows, choice]
         cap_rest = cap.sum(dim=1) - cap[rows, choice]
     r = rem_after.float()
-    return ((lo1 <= hi1) & (lo2 <= hi2) & (need_rest + lo1 + lo2 <= r)
-            & (cap_rest + hi1.clamp(min=0) + hi2.clamp(min=0) >= r))
+    return (
+        (lo1 <= hi1)
+        & (lo2 <= hi2)
+        & (need_rest + lo1 + lo2 <= r)
+        & (cap_rest + hi1.clamp(min=0) + hi2.clamp(min=0) >= r)
+    )
 
 
 @dataclass
@@ -375,11 +458,25 @@ def complete(net: GeneratorNet, snaps: Snapshots, t_max: int, seed: int) -> Comp
         rem_after = (k - step - 1).clamp(min=0)
         budget = _gap_budget(arc, present, hidden & present, psi, snaps.length_m)
         allowed = _choosable_gaps(arc, present, psi, rem_after, budget, snaps.length_m)
-        prop = propose(net, arc, speed, present, (k - step).clamp(min=0), psi, snaps.length_m, t_max, gen, allowed)
+        prop = propose(
+            net,
+            arc,
+            speed,
+            present,
+            (k - step).clamp(min=0),
+            psi,
+            snaps.length_m,
+            t_max,
+            gen,
+            allowed,
+        )
         a1 = prop.frac * prop.gap
         a2 = prop.gap - a1
-        ok = (_pieces_ok(a1, a2, prop.gap_pos, psi, rem_after, budget)
-              & (prop.speed >= psi.v_min) & (prop.speed <= psi.v_max))
+        ok = (
+            _pieces_ok(a1, a2, prop.gap_pos, psi, rem_after, budget)
+            & (prop.speed >= psi.v_min)
+            & (prop.speed <= psi.v_max)
+        )
         any_ok = ok.any(dim=0)
         first = ok.float().argmax(dim=0)
         pick = torch.where(any_ok, first, torch.full_like(first, t_max - 1))
@@ -490,8 +587,13 @@ def feasible_exists(snaps: Snapshots) -> np.ndarray:
 def completion_metrics(snaps: Snapshots, comp: Completion) -> pd.DataFrame:
     """Per snapshot: feasibility, macro errors, each L term, matched hidden-state errors."""
     psi_t = PsiTensors.from_array(snaps.psi)
-    terms = macro_losses(torch.as_tensor(comp.arc_m, dtype=torch.float64), torch.as_tensor(comp.speed_mps, dtype=torch.float64),
-                         torch.as_tensor(snaps.hidden), PsiTensors(*[t.double() for t in psi_t.__dict__.values()]), snaps.length_m)
+    terms = macro_losses(
+        torch.as_tensor(comp.arc_m, dtype=torch.float64),
+        torch.as_tensor(comp.speed_mps, dtype=torch.float64),
+        torch.as_tensor(snaps.hidden),
+        PsiTensors(*[t.double() for t in psi_t.__dict__.values()]),
+        snaps.length_m,
+    )
     length = snaps.length_m
     b = len(snaps)
     in_bounds = np.zeros(b, dtype=bool)
@@ -511,19 +613,33 @@ def completion_metrics(snaps: Snapshots, comp: Completion) -> pd.DataFrame:
         in_bounds[i] = g_ok and np.all((v >= v_min - 1e-6) & (v <= v_max + 1e-6))
         idx = np.flatnonzero(hid)
         if len(idx):
-            da = np.abs(np.mod(comp.arc_m[i, idx][:, None] - snaps.arc_m[i, idx][None, :] + length / 2, length) - length / 2)
+            da = np.abs(
+                np.mod(
+                    comp.arc_m[i, idx][:, None] - snaps.arc_m[i, idx][None, :] + length / 2, length
+                )
+                - length / 2
+            )
             dv = np.abs(comp.speed_mps[i, idx][:, None] - snaps.speed_mps[i, idx][None, :])
-            r, c = linear_sum_assignment(da / snaps.psi[i, 1] + dv / max(snaps.psi[i, 5] - snaps.psi[i, 4], 0.1))
+            r, c = linear_sum_assignment(
+                da / snaps.psi[i, 1] + dv / max(snaps.psi[i, 5] - snaps.psi[i, 4], 0.1)
+            )
             pos_err[i], spd_err[i] = da[r, c].mean(), dv[r, c].mean()
-    return pd.DataFrame({
-        "run": snaps.run, "time_s": snaps.time_s, "K": snaps.k,
-        "feasible_exists": feasible_exists(snaps), "projected": comp.projected,
-        "feasible": in_bounds & (comp.projected == 0),
-        "speed_rel_err": np.abs(comp.speed_mps.mean(axis=1) - snaps.psi[:, 0]) / snaps.psi[:, 0],
-        "spacing_rel_err": np.abs(mean_spacing - snaps.psi[:, 1]) / snaps.psi[:, 1],
-        **{k: v.numpy() for k, v in terms.items()},
-        "pos_err_m": pos_err, "speed_err_mps": spd_err,
-    })
+    return pd.DataFrame(
+        {
+            "run": snaps.run,
+            "time_s": snaps.time_s,
+            "K": snaps.k,
+            "feasible_exists": feasible_exists(snaps),
+            "projected": comp.projected,
+            "feasible": in_bounds & (comp.projected == 0),
+            "speed_rel_err": np.abs(comp.speed_mps.mean(axis=1) - snaps.psi[:, 0])
+            / snaps.psi[:, 0],
+            "spacing_rel_err": np.abs(mean_spacing - snaps.psi[:, 1]) / snaps.psi[:, 1],
+            **{k: v.numpy() for k, v in terms.items()},
+            "pos_err_m": pos_err,
+            "speed_err_mps": spd_err,
+        }
+    )
 
 
 def summarise_metrics(per_snapshot: pd.DataFrame) -> pd.DataFrame:
@@ -531,13 +647,20 @@ def summarise_metrics(per_snapshot: pd.DataFrame) -> pd.DataFrame:
     rows = []
     for (method, k), g in per_snapshot.groupby(["method", "K"], sort=True):
         fe = g["feasible_exists"]
-        rows.append({
-            "method": method, "K": k, "n_snapshots": len(g), "n_feasible_exists": int(fe.sum()),
-            "n_no_feasible": int((~fe).sum()),
-            "feasibility_rate": float(g.loc[fe, "feasible"].mean()) if fe.any() else np.nan,
-            "projected_vehicles": int(g["projected"].sum()),
-            "speed_rel_err": g["speed_rel_err"].mean(), "spacing_rel_err": g["spacing_rel_err"].mean(),
-            **{t: g[t].mean() for t in LOSS_TERMS},
-            "pos_err_m": g["pos_err_m"].mean(), "speed_err_mps": g["speed_err_mps"].mean(),
-        })
+        rows.append(
+            {
+                "method": method,
+                "K": k,
+                "n_snapshots": len(g),
+                "n_feasible_exists": int(fe.sum()),
+                "n_no_feasible": int((~fe).sum()),
+                "feasibility_rate": float(g.loc[fe, "feasible"].mean()) if fe.any() else np.nan,
+                "projected_vehicles": int(g["projected"].sum()),
+                "speed_rel_err": g["speed_rel_err"].mean(),
+                "spacing_rel_err": g["spacing_rel_err"].mean(),
+                **{t: g[t].mean() for t in LOSS_TERMS},
+                "pos_err_m": g["pos_err_m"].mean(),
+                "speed_err_mps": g["speed_err_mps"].mean(),
+            }
+        )
     return pd.DataFrame(rows)

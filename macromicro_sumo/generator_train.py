@@ -21,7 +21,14 @@ import torch
 from tqdm import tqdm
 
 from macromicro_sumo.config import Scenario, scenario_from_dict
-from macromicro_sumo.dataset import GroundTruth, Snapshots, held_out_by_k, hide, snapshot_states, split_runs
+from macromicro_sumo.dataset import (
+    GroundTruth,
+    Snapshots,
+    held_out_by_k,
+    hide,
+    snapshot_states,
+    split_runs,
+)
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import atomic_path, write_csv
 from macromicro_sumo.generator import (
@@ -56,10 +63,16 @@ def signature(sc: Scenario) -> dict[str, Any]:
     }
 
 
-def save_generator(path: Path, net: GeneratorNet, sc: Scenario, extra: dict[str, Any] | None = None) -> None:
+def save_generator(
+    path: Path, net: GeneratorNet, sc: Scenario, extra: dict[str, Any] | None = None
+) -> None:
     payload = {
-        "format": CHECKPOINT_FORMAT, "state_dict": net.state_dict(), "hidden_size": net.hidden_size,
-        "signature": signature(sc), "scenario": sc.to_dict(), **(extra or {}),
+        "format": CHECKPOINT_FORMAT,
+        "state_dict": net.state_dict(),
+        "hidden_size": net.hidden_size,
+        "signature": signature(sc),
+        "scenario": sc.to_dict(),
+        **(extra or {}),
     }
     buf = io.BytesIO()
     torch.save(payload, buf)
@@ -71,7 +84,9 @@ def load_generator(path: Path | str, sc: Scenario) -> GeneratorNet:
     """Load ``generator.pt``; a corrupt file or one trained for another scenario is an error."""
     path = Path(path)
     if not path.is_file():
-        raise UserError(f"{path}: generator checkpoint not found (run `macromicro train-generator`)")
+        raise UserError(
+            f"{path}: generator checkpoint not found (run `macromicro train-generator`)"
+        )
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
         if payload.get("format") != CHECKPOINT_FORMAT:
@@ -79,7 +94,9 @@ def load_generator(path: Path | str, sc: Scenario) -> GeneratorNet:
         net = GeneratorNet(int(payload["hidden_size"]))
         net.load_state_dict(payload["state_dict"])
     except Exception as exc:
-        raise UserError(f"{path}: corrupt or truncated generator checkpoint ({type(exc).__name__})") from None
+        raise UserError(
+            f"{path}: corrupt or truncated generator checkpoint ({type(exc).__name__})"
+        ) from None
     want = signature(sc)
     for key, have in payload["signature"].items():
         if want.get(key) != have:
@@ -90,24 +107,36 @@ def load_generator(path: Path | str, sc: Scenario) -> GeneratorNet:
     return net
 
 
-def _batch_loss(net: GeneratorNet, snaps: Snapshots, sc: Scenario, gen: torch.Generator) -> tuple[torch.Tensor, dict]:
+def _batch_loss(
+    net: GeneratorNet, snaps: Snapshots, sc: Scenario, gen: torch.Generator
+) -> tuple[torch.Tensor, dict]:
     arc, speed, generated, log_p = rollout(net, snaps, gen)
     psi = PsiTensors.from_array(snaps.psi)
     terms = macro_losses(arc, speed, generated, psi, snaps.length_m)
     loss = total_loss(terms, sc.generator.lambda_v, sc.generator.lambda_d)
     if sc.generator.lambda_rec > 0:
-        rec = reconstruction_loss(arc, speed, torch.as_tensor(snaps.arc_m, dtype=torch.float32),
-                                  torch.as_tensor(snaps.speed_mps, dtype=torch.float32),
-                                  generated, psi, snaps.length_m)
+        rec = reconstruction_loss(
+            arc,
+            speed,
+            torch.as_tensor(snaps.arc_m, dtype=torch.float32),
+            torch.as_tensor(snaps.speed_mps, dtype=torch.float32),
+            generated,
+            psi,
+            snaps.length_m,
+        )
         terms["L_rec"] = rec
         loss = loss + sc.generator.lambda_rec * rec
     # Score-function gradient for the discrete gap choices, batch-mean baseline.
     advantage = (loss - loss.mean()).detach()
     surrogate = loss.mean() + (advantage * log_p).mean()
-    return surrogate, {k: float(v.mean()) for k, v in terms.items()} | {"loss": float(loss.mean())}
+    return surrogate, {k: float(v.detach().mean()) for k, v in terms.items()} | {
+        "loss": float(loss.detach().mean())
+    }
 
 
-def train_generator(sc: Scenario, gt: GroundTruth, out: Path, progress: bool = True) -> dict[str, Any]:
+def train_generator(
+    sc: Scenario, gt: GroundTruth, out: Path, progress: bool = True
+) -> dict[str, Any]:
     """Train on the train runs, early-stop on val runs; returns the split and timings."""
     cfg = sc.generator
     torch.manual_seed(sc.seed)
@@ -116,7 +145,9 @@ def train_generator(sc: Scenario, gt: GroundTruth, out: Path, progress: bool = T
     val_states = snapshot_states(gt, sc, splits["val"]) if len(splits["val"]) else train
     rng = np.random.default_rng([sc.seed, 1])
     lo, hi = cfg.hidden_train
-    val = hide(val_states, rng.integers(lo, hi + 1, len(val_states)), np.random.default_rng([sc.seed, 2]))
+    val = hide(
+        val_states, rng.integers(lo, hi + 1, len(val_states)), np.random.default_rng([sc.seed, 2])
+    )
     net = GeneratorNet(cfg.hidden_size)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     gen = torch.Generator().manual_seed(sc.seed)
@@ -129,7 +160,7 @@ def train_generator(sc: Scenario, gt: GroundTruth, out: Path, progress: bool = T
         perm = rng.permutation(len(snaps))
         stats = []
         for start in range(0, len(perm), cfg.batch_size):
-            loss, s = _batch_loss(net, snaps.take(perm[start:start + cfg.batch_size]), sc, gen)
+            loss, s = _batch_loss(net, snaps.take(perm[start : start + cfg.batch_size]), sc, gen)
             opt.zero_grad()
             loss.backward()
             nn_utils_clip(net)
@@ -138,22 +169,32 @@ def train_generator(sc: Scenario, gt: GroundTruth, out: Path, progress: bool = T
         net.eval()
         with torch.no_grad():
             _, vs = _batch_loss(net, val, sc, torch.Generator().manual_seed(sc.seed + 17))
-        row = {"epoch": epoch, "wall_s": time.perf_counter() - t0,
-               **{f"train_{k}": float(np.mean([s[k] for s in stats])) for k in stats[0]},
-               **{f"val_{k}": v for k, v in vs.items()}}
+        row = {
+            "epoch": epoch,
+            "wall_s": time.perf_counter() - t0,
+            **{f"train_{k}": float(np.mean([s[k] for s in stats])) for k in stats[0]},
+            **{f"val_{k}": v for k, v in vs.items()},
+        }
         log.append(row)
         if vs["loss"] < best - 1e-6:
             best, best_state, bad = vs["loss"], copy.deepcopy(net.state_dict()), 0
             save_generator(out / "generator.pt", net, sc, {"epoch": epoch, "val_loss": best})
         else:
             bad += 1
-        bar.set_postfix(train=f"{row['train_loss']:.4f}", val=f"{vs['loss']:.4f}", best=f"{best:.4f}")
+        bar.set_postfix(
+            train=f"{row['train_loss']:.4f}", val=f"{vs['loss']:.4f}", best=f"{best:.4f}"
+        )
         if bad >= cfg.patience:
             break
     net.load_state_dict(best_state)
     write_csv(pd.DataFrame(log), out / "generator_train_log.csv")
-    return {"splits": {k: v.tolist() for k, v in splits.items()}, "train_s": time.perf_counter() - t0,
-            "epochs": len(log), "best_val_loss": best, "net": net}
+    return {
+        "splits": {k: v.tolist() for k, v in splits.items()},
+        "train_s": time.perf_counter() - t0,
+        "epochs": len(log),
+        "best_val_loss": best,
+        "net": net,
+    }
 
 
 def nn_utils_clip(net: torch.nn.Module) -> None:
@@ -167,12 +208,17 @@ def held_out_sets(sc: Scenario, gt: GroundTruth) -> dict[int, Snapshots]:
     return held_out_by_k(states, range(lo, hi + 1), sc.seed)
 
 
-def evaluate_generator(net: GeneratorNet, sc: Scenario, gt: GroundTruth) -> tuple[pd.DataFrame, pd.DataFrame]:
+def evaluate_generator(
+    net: GeneratorNet, sc: Scenario, gt: GroundTruth
+) -> tuple[pd.DataFrame, pd.DataFrame]:
     """(generator_metrics per method and K, per-snapshot metrics) on held-out runs."""
     per = []
     for k, snaps in held_out_sets(sc, gt).items():
-        for method, fn in (("generator", lambda s, seed: complete(net, s, sc.generator.t_max, seed)),
-                           ("uniform", complete_uniform), ("equal_gap", complete_equal_gap)):
+        for method, fn in (
+            ("generator", lambda s, seed: complete(net, s, sc.generator.t_max, seed)),
+            ("uniform", complete_uniform),
+            ("equal_gap", complete_equal_gap),
+        ):
             m = completion_metrics(snaps, fn(snaps, sc.seed + k))
             m.insert(0, "method", method)
             per.append(m)
@@ -180,22 +226,121 @@ def evaluate_generator(net: GeneratorNet, sc: Scenario, gt: GroundTruth) -> tupl
     return summarise_metrics(per_df), per_df
 
 
-def completions_frame(snaps_by_k: dict[int, Snapshots], net: GeneratorNet, sc: Scenario) -> pd.DataFrame:
+def completions_frame(
+    snaps_by_k: dict[int, Snapshots], net: GeneratorNet, sc: Scenario
+) -> pd.DataFrame:
     """completions.csv: every vehicle of every completed held-out snapshot, true state beside."""
     rows = []
     for k, snaps in snaps_by_k.items():
         comp = complete(net, snaps, sc.generator.t_max, sc.seed + k)
         b, n = snaps.arc_m.shape
-        rows.append(pd.DataFrame({
-            "K": k, "snapshot": np.repeat(np.arange(b), n), "run": np.repeat(snaps.run, n),
-            "time_s": np.repeat(snaps.time_s, n), "slot": np.tile(np.arange(n), b),
-            "observed": (~snaps.hidden).ravel().astype(int), "arc_pos_m": comp.arc_m.ravel(),
-            "theta_rad": (2 * np.pi * comp.arc_m / snaps.length_m).ravel(), "speed_mps": comp.speed_mps.ravel(),
-            "true_arc_pos_m": snaps.arc_m.ravel(), "true_speed_mps": snaps.speed_mps.ravel(),
-            "projected_in_snapshot": np.repeat(comp.projected, n),
-        }))
+        rows.append(
+            pd.DataFrame(
+                {
+                    "K": k,
+                    "snapshot": np.repeat(np.arange(b), n),
+                    "run": np.repeat(snaps.run, n),
+                    "time_s": np.repeat(snaps.time_s, n),
+                    "slot": np.tile(np.arange(n), b),
+                    "observed": (~snaps.hidden).ravel().astype(int),
+                    "arc_pos_m": comp.arc_m.ravel(),
+                    "theta_rad": (2 * np.pi * comp.arc_m / snaps.length_m).ravel(),
+                    "speed_mps": comp.speed_mps.ravel(),
+                    "true_arc_pos_m": snaps.arc_m.ravel(),
+                    "true_speed_mps": snaps.speed_mps.ravel(),
+                    "projected_in_snapshot": np.repeat(comp.projected, n),
+                }
+            )
+        )
     return pd.concat(rows, ignore_index=True)
 
 
-__all__ = ["LOSS_TERMS", "evaluate_generator", "load_generator", "save_generator", "scenario_from_dict",
-           "train_generator", "completions_frame", "held_out_sets"]
+__all__ = [
+    "LOSS_TERMS",
+    "evaluate_generator",
+    "load_generator",
+    "save_generator",
+    "scenario_from_dict",
+    "train_generator",
+    "completions_frame",
+    "held_out_sets",
+]
+
+
+def check_psi(snaps: Snapshots, source: str) -> None:
+    """Reject a Psi whose bounds no completion of N vehicles on the ring can satisfy."""
+    n = snaps.arc_m.shape[1]
+    d_min, d_max, v_min, v_max = snaps.psi[:, 2], snaps.psi[:, 3], snaps.psi[:, 4], snaps.psi[:, 5]
+    bad = (
+        (~np.isfinite(snaps.psi).all(axis=1))
+        | (d_min > d_max)
+        | (v_min > v_max)
+        | (n * d_min > snaps.length_m)
+        | (n * d_max < snaps.length_m)
+    )
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise UserError(
+            f"{source}: Psi of run {snaps.run[i]} at t = {snaps.time_s[i]:g} s has bounds d = [{d_min[i]:.2f}, "
+            f"{d_max[i]:.2f}] m, v = [{v_min[i]:.2f}, {v_max[i]:.2f}] m/s that no completion of {n} vehicles "
+            f"on a {snaps.length_m:.2f} m ring satisfies; accepted: d_min <= L/N <= d_max, v_min <= v_max"
+        )
+
+
+def run_train_generator(
+    sc: Scenario, data: Path, out: Path, command: str = "", progress: bool = True
+) -> dict[str, Any]:
+    """CLI stage: train, evaluate on held-out runs, write generator.pt + metrics + log."""
+    from macromicro_sumo.dataset import load_ground_truth
+    from macromicro_sumo.files import prepare_out_dir, write_json
+    from macromicro_sumo.manifest import build_manifest
+
+    out = prepare_out_dir(out)
+    gt = load_ground_truth(data, sc)
+    for snaps in held_out_sets(sc, gt).values():
+        check_psi(snaps, str(Path(data) / "macro.csv"))
+    torch.set_num_threads(1)  # a tiny MLP: one thread is fastest and leaves a core for SUMO
+    res = train_generator(sc, gt, out, progress)
+    summary, per = evaluate_generator(res.pop("net"), sc, gt)
+    write_csv(summary, out / "generator_metrics.csv")
+    write_csv(per, out / "generator_metrics_per_snapshot.csv")
+    manifest = build_manifest(sc, command, stage="train-generator")
+    manifest.update(
+        ground_truth=str(data),
+        splits=res["splits"],
+        epochs=res["epochs"],
+        best_val_loss=res["best_val_loss"],
+        timings_s={"train_generator": round(res["train_s"], 3)},
+    )
+    write_json(manifest, out / "generator_manifest.json")
+    return manifest
+
+
+def run_complete(
+    sc: Scenario, generator: Path, data: Path, out: Path, hidden: list[int] | None = None
+) -> Path:
+    """CLI stage: complete every held-out snapshot for each K; write completions.csv."""
+    from macromicro_sumo.dataset import load_ground_truth, snapshot_states, split_runs
+    from macromicro_sumo.files import prepare_out_dir
+
+    n = sc.fleet.n_vehicles
+    ks = (
+        hidden
+        if hidden
+        else list(range(sc.generator.hidden_eval[0], sc.generator.hidden_eval[1] + 1))
+    )
+    for k in ks:
+        if not 0 <= k <= n:
+            raise UserError(
+                f"--hidden {k}: K must be in [0, {n}] (N = fleet.n_vehicles of {sc.source})"
+            )
+    net = load_generator(generator, sc)
+    out = prepare_out_dir(out)
+    gt = load_ground_truth(data, sc)
+    splits = split_runs(gt.runs, sc.generator.held_out_fraction, sc.seed)
+    states = snapshot_states(gt, sc, splits["held_out"])
+    sets = held_out_by_k(states, ks, sc.seed)
+    for snaps in sets.values():
+        check_psi(snaps, str(Path(data) / "macro.csv"))
+    write_csv(completions_frame(sets, net, sc), out / "completions.csv")
+    return out / "completions.csv"
