@@ -12,6 +12,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+from macromicro_sumo import batch
 from macromicro_sumo.errors import UserError
 
 
@@ -47,6 +48,16 @@ def _cmd_complete(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_run(args: argparse.Namespace) -> int:
+    from macromicro_sumo.config import load_scenario
+    from macromicro_sumo.pipeline import run
+
+    sc = load_scenario(args.scenario)
+    run(sc, args.out, args.command_line, progress=not args.quiet)
+    print(f"pipeline outputs in {args.out}")
+    return 0
+
+
 def _cmd_doctor(args: argparse.Namespace) -> int:
     from macromicro_sumo import sumo
 
@@ -78,6 +89,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scenario", type=Path, help="scenario TOML")
     p.add_argument("--out", type=Path, required=True, help="output folder")
 
+    p = add("run", _cmd_run, "the whole pipeline: ground truth, generator (stages resume)")
+    p.add_argument("scenario", type=Path, help="scenario TOML")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+
     p = add("train-generator", _cmd_train_generator, "Stage I: train the hidden-vehicle generator")
     p.add_argument("scenario", type=Path, help="scenario TOML")
     p.add_argument("--data", type=Path, required=True, help="ground-truth folder (from simulate)")
@@ -97,6 +112,7 @@ def build_parser() -> argparse.ArgumentParser:
         _cmd_doctor,
         "which SUMO and libsumo are in use, and whether a one-second run works",
     )
+    batch.register(sub)  # batch and export
     return ap
 
 
