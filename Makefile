@@ -1,6 +1,6 @@
 # Two commands do all the set-up on a fresh machine (see README):
 #   make run    -> the paper's ring scenario end to end
-#   make test   -> lint + the test suite
+#   make test   -> the test suite (CI runs `make lint` first)
 PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
