@@ -152,6 +152,22 @@ class PolicyConfig:
     eta: float = _f(0.3, lo=0.0, hi=1e6, doc="macro reward weight eta")
     horizon: int = _f(10, lo=1, hi=100_000, doc="episode length H [policy steps]")
     objective: str = _f("mix", choices=("mix", "micro_only", "macro_only"), doc="ablation switch")
+    hidden_train: tuple[int, int] = _f((1, 4), lo=1, hi=10_000, doc="K range of training episodes")
+    updates: int = _f(60, lo=1, hi=1_000_000, doc="PPO updates")
+    episodes_per_update: int = _f(32, lo=1, hi=100_000, doc="episodes per rollout")
+    epochs: int = _f(4, lo=1, hi=1000, doc="PPO epochs per update")
+    minibatches: int = _f(4, lo=1, hi=1000, doc="minibatches per epoch")
+    lr: float = _f(3e-3, lo=1e-7, hi=1.0, doc="Adam learning rate")
+    gamma: float = _f(0.99, lo=0.0, hi=1.0, doc="discount")
+    gae_lambda: float = _f(0.95, lo=0.0, hi=1.0, doc="GAE lambda")
+    clip_coef: float = _f(0.2, lo=0.0, hi=10.0, doc="PPO clip")
+    vf_coef: float = _f(0.5, lo=0.0, hi=100.0, doc="value loss weight")
+    ent_coef: float = _f(0.0, lo=0.0, hi=10.0, doc="entropy bonus weight")
+    hidden_size: int = _f(64, lo=4, hi=4096, doc="MLP width")
+    init_log_std: float = _f(
+        -1.0, lo=-10.0, hi=2.0, doc="initial log std of the action [log m/s^2]"
+    )
+    checkpoint_every: int = _f(5, lo=1, hi=1_000_000, doc="updates between resumable checkpoints")
 
 
 @dataclass(frozen=True, kw_only=True)

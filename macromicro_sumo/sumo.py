@@ -68,6 +68,7 @@ class SumoOptions:
     step_length_s: float
     seed: int
     error_log: Path | None = None
+    fcd_file: Path | None = None  # SUMO floating-car-data output (evaluation rollouts)
 
     def args(self) -> list[str]:
         args = [
@@ -94,6 +95,8 @@ class SumoOptions:
         ]
         if self.additional_files:
             args += ["-a", ",".join(str(p) for p in self.additional_files)]
+        if self.fcd_file is not None:
+            args += ["--fcd-output", str(self.fcd_file)]
         if self.error_log is not None:
             args += ["--error-log", str(self.error_log)]
         return args
@@ -232,8 +235,10 @@ class Simulation:
     ) -> None:
         """Place vehicles without insertion checks (soft reset); their routes restart there."""
         for vid, lane, pos, route in zip(vehicle_ids, lane_ids, lane_pos_m, route_ids, strict=True):
-            libsumo.vehicle.setRouteID(vid, route)
+            # moveTo first, then the lap route that starts on the new edge: the other order
+            # can leave the vehicle on its route's last edge, and it vanishes at its end.
             libsumo.vehicle.moveTo(vid, lane, float(pos))
+            libsumo.vehicle.setRouteID(vid, route)
 
     # ------------------------------------------------------------------ stepping
     def step(self) -> None:

@@ -1,0 +1,244 @@
+"""Stage II environment: the ring in SUMO, hidden vehicles driven by one shared policy.
+
+``RingCore`` owns one running SUMO simulation and is reused across episodes (resets move
+the vehicles with ``moveTo``; SUMO is never restarted). The gymnasium (one hidden vehicle)
+and PettingZoo (K hidden vehicles) environments in ``envs.py`` wrap it.
+
+Episode start: a held-in snapshot whose hidden vehicles were completed by the trained
+generator (completions are precomputed in a batch, which is what Algorithm 3 does per
+episode, only faster). Every step, each vehicle gets a speed command in speed mode 0
+(applied exactly, no SUMO safety checks): hidden vehicles v' = max(0, v + a dt) with the
+agent's acceleration clipped to [a_min, a_max]; observed vehicles replay their recorded
+ground-truth speeds. Leaders, spacings and observations come from arc positions.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from macromicro_sumo.config import Scenario
+from macromicro_sumo.dataset import GroundTruth, Snapshots, hide, run_arrays, snapshot_states
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.macro import spacing_losses, speed_loss
+from macromicro_sumo.network import RingGeometry, read_ring
+from macromicro_sumo.physics import ring_leaders, ring_observations
+from macromicro_sumo.sumo import Simulation, SumoOptions
+
+CTRL_TYPE = "ctrl"
+OBS_NAMES = ("speed_mps", "speed_limit_mps", "spacing_m", "delta_v_mps")
+
+
+@dataclass(frozen=True)
+class EpisodeBank:
+    """Start states and recorded futures of many episodes; arrays over episodes (E, ...)."""
+
+    arc0_m: np.ndarray  # (E, N) completed scene
+    speed0_mps: np.ndarray  # (E, N)
+    hidden: np.ndarray  # (E, N) bool
+    psi: np.ndarray  # (E, 6)
+    limits_mps: np.ndarray  # (E, n_edges)
+    replay_speed_mps: np.ndarray  # (E, H + 1, N) recorded speeds (observed vehicles replay them)
+    gt_accel_mps2: np.ndarray  # (E, H, N) recorded actions
+    true_arc0_m: np.ndarray  # (E, N) the true scene (evaluation only)
+    run: np.ndarray
+    time_s: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.run)
+
+
+def build_bank(
+    sc: Scenario,
+    gt: GroundTruth,
+    runs: np.ndarray,
+    complete_fn,
+    k: int | tuple[int, int],
+    seed: int,
+    horizon: int | None = None,
+) -> EpisodeBank:
+    """Episodes from snapshots of ``runs`` with ``k`` hidden vehicles (a value or a range).
+
+    ``complete_fn(snaps) -> (arc, speed)`` fills the hidden vehicles (the generator, or a
+    baseline). Snapshots too close to the end of a run for ``horizon`` steps are dropped.
+    """
+    h = horizon or sc.policy.horizon
+    states = snapshot_states(gt, sc, runs)
+    arrays = {r: run_arrays(gt.trajectories, r) for r in np.unique(states.run)}
+    keep, replay, accel = [], [], []
+    for i, (r, t) in enumerate(zip(states.run, states.time_s, strict=True)):
+        times, _, spd, _ = arrays[r]
+        j = int(np.searchsorted(times, t - 1e-9))
+        if j + h + 1 > len(times):
+            continue
+        keep.append(i)
+        replay.append(spd[j : j + h + 1])
+        accel.append(np.diff(spd[j : j + h + 1], axis=0) / sc.simulation.step_length_s)
+    if not keep:
+        raise UserError(f"{gt.folder}: no snapshot leaves {h} steps of recorded future")
+    states = states.take(np.array(keep))
+    rng = np.random.default_rng([seed, 31])
+    kk = rng.integers(k[0], k[1] + 1, len(states)) if isinstance(k, tuple) else k
+    snaps = hide(states, kk, rng)
+    arc, speed = complete_fn(snaps)
+    lim = gt.speed_limits.pivot(index="run", columns="edge_id", values="speed_limit_mps")
+    geo_edges = sorted(lim.columns, key=lambda e: (len(e), e))
+    return EpisodeBank(
+        arc0_m=arc,
+        speed0_mps=speed,
+        hidden=snaps.hidden,
+        psi=snaps.psi,
+        limits_mps=lim.loc[snaps.run, geo_edges].to_numpy(),
+        replay_speed_mps=np.array(replay),
+        gt_accel_mps2=np.array(accel),
+        true_arc0_m=states.arc_m,
+        run=snaps.run,
+        time_s=snaps.time_s,
+    )
+
+
+def generator_completion(net, sc: Scenario, seed: int):
+    """``complete_fn`` for ``build_bank`` that runs the trained generator (Algorithm 3)."""
+    from macromicro_sumo.generator import complete
+
+    def fn(snaps: Snapshots) -> tuple[np.ndarray, np.ndarray]:
+        comp = complete(net, snaps, sc.generator.t_max, seed)
+        return comp.arc_m, comp.speed_mps
+
+    return fn
+
+
+@dataclass
+class StepResult:
+    obs: np.ndarray  # (N, 4) every vehicle's observation
+    r_macro: float
+    terms: dict[str, float]
+    collision: bool
+    truncated: bool
+    error: str
+
+
+class RingCore:
+    """One SUMO ring reused for every episode; numpy state in, numpy state out."""
+
+    def __init__(
+        self, sc: Scenario, bank: EpisodeBank, seed: int = 0, fcd_file: Path | None = None
+    ) -> None:
+        self.sc = sc
+        self.bank = bank
+        self.geo: RingGeometry = read_ring(sc.resolve(sc.network.net_file))
+        self.length = self.geo.length_m
+        self.dt = sc.simulation.step_length_s
+        self.a_min, self.a_max = sc.bounds.accel_mps2
+        self.n = sc.fleet.n_vehicles
+        self.ids = [f"veh{i}" for i in range(self.n)]
+        self._edge_index = {e: i for i, e in enumerate(self.geo.edge_ids)}
+        self._tmp = tempfile.TemporaryDirectory(prefix="macromicro-env-")
+        vtype = Path(self._tmp.name) / "ctrl.add.xml"
+        # Speed-controlled vehicles: no car-following of their own matters (speed mode 0);
+        # a high speedFactor lets SUMO accept any recorded speed at insertion.
+        vtype.write_text(
+            f'<additional><vType id="{CTRL_TYPE}" length="{sc.fleet.length_m:g}" minGap="0" '
+            f'maxSpeed="60" speedFactor="3" speedDev="0" accel="10" decel="10" emergencyDecel="20"/></additional>'
+        )
+        adds = (sc.resolve(sc.network.routes_file), vtype)
+        self.sim = Simulation(
+            SumoOptions(sc.resolve(sc.network.net_file), adds, self.dt, seed, fcd_file=fcd_file)
+        )
+        spacing = self.length / self.n
+        edges, pos = zip(*(self.geo.to_edge(i * spacing) for i in range(self.n)), strict=True)
+        self.sim.add_vehicles(
+            self.ids,
+            [f"r_{self.geo.edge_ids[e]}" for e in edges],
+            [CTRL_TYPE] * self.n,
+            pos,
+            [0.0] * self.n,
+        )
+        self.sim.step()
+        if len(self.sim.vehicle_ids()) != self.n:
+            raise UserError(f"SUMO inserted {len(self.sim.vehicle_ids())} of {self.n} vehicles")
+        self.sim.subscribe(self.ids)
+        self.sim.set_speed_mode(self.ids, 0)
+        self.episode = -1
+        self.t = 0
+        self.arc = np.zeros(self.n)
+        self.speed = np.zeros(self.n)
+        self.limits = np.zeros(len(self.geo.edge_ids))
+
+    def close(self) -> None:
+        self.sim.close()
+        self._tmp.cleanup()
+
+    # ------------------------------------------------------------------ episode
+    def reset(self, episode: int) -> np.ndarray:
+        """Place the episode's completed scene in SUMO (no restart); returns observations."""
+        b = self.bank
+        self.episode = episode
+        self.t = 0
+        self.arc = b.arc0_m[episode].copy()
+        self.speed = b.speed0_mps[episode].copy()
+        self.hidden = b.hidden[episode]
+        self.psi = b.psi[episode]
+        self.limits = b.limits_mps[episode]
+        self.sim.set_lane_speed_limits(self.geo.lane_ids, self.limits)
+        lanes, pos, routes = [], [], []
+        for a in self.arc:
+            e, p = self.geo.to_edge(a)
+            lanes.append(self.geo.lane_ids[e])
+            pos.append(p)
+            routes.append(f"r_{self.geo.edge_ids[e]}")
+        self.sim.move_to(self.ids, lanes, pos, routes)
+        self._verify_first = True
+        return self.observations()
+
+    def observations(self) -> np.ndarray:
+        lim = self.limits[self.geo.edge_index(self.arc)]
+        return ring_observations(self.arc, self.speed, lim, self.length)
+
+    def macro_reward(self) -> tuple[float, dict[str, float]]:
+        """r_macro,t = 1 / (1 + lambda_v L_speed + lambda_d L_dist) on the whole scene."""
+        leader, spacing = ring_leaders(self.arc, self.length)
+        touched = self.hidden | self.hidden[leader]
+        p = self.psi
+        terms = spacing_losses(spacing[None], touched[None], p[1:2], p[2:3], p[3:4])
+        terms = {k: float(v[0]) for k, v in terms.items()}
+        terms["L_speed"] = float(speed_loss(self.speed[None], p[0:1])[0])
+        g = self.sc.generator
+        l_dist = terms["L_mean"] + terms["L_min"] + terms["L_max"] + terms["L_var"]
+        return 1.0 / (1.0 + g.lambda_v * terms["L_speed"] + g.lambda_d * l_dist), terms
+
+    def step(self, accel_hidden: np.ndarray) -> StepResult:
+        """Advance one step: hidden vehicles apply ``accel_hidden`` (K,), observed replay."""
+        a = np.clip(accel_hidden, self.a_min, self.a_max)
+        cmd = self.bank.replay_speed_mps[self.episode, self.t + 1].copy()
+        cmd[self.hidden] = np.maximum(0.0, self.speed[self.hidden] + a * self.dt)
+        self.sim.set_speeds(self.ids, cmd)
+        error = ""
+        try:
+            self.sim.step()
+            e, p, v = self.sim.read_states(self.ids, self._edge_index)
+        except (KeyError, Exception) as exc:  # a vehicle lost or a SUMO error: truncate, go on
+            error = f"{type(exc).__name__}: {exc}"
+            obs = self.observations()
+            return StepResult(obs, 0.0, {}, False, True, error)
+        prev_arc = self.arc
+        self.arc = np.mod(self.geo.offsets_m[e] + p, self.length)
+        self.speed = v
+        self.t += 1
+        if self._verify_first:
+            self._verify_first = False
+            moved = (
+                np.mod(prev_arc + cmd * self.dt - self.arc + self.length / 2, self.length)
+                - self.length / 2
+            )
+            if np.abs(moved).max() > 0.01 or np.abs(v - cmd).max() > 0.01:
+                error = f"insertion check failed: position off by {np.abs(moved).max():.3f} m"
+        _, spacing = ring_leaders(self.arc, self.length)
+        # Arc gaps decide collisions: SUMO also reports one when moveTo reorders vehicles at reset.
+        collision = bool((spacing < self.sc.fleet.length_m).any())
+        self.sumo_collisions = self.sim.collisions()
+        r, terms = self.macro_reward()
+        return StepResult(self.observations(), r, terms, collision, bool(error), error)

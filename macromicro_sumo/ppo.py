@@ -1,0 +1,369 @@
+"""Stage II: PPO for the shared policy, J(theta) = E[r_micro + eta r_macro] (paper, Alg. 1).
+
+Read top to bottom as CleanRL's ppo_continuous_action: agent, rollout, GAE, update.
+
+* The policy is a Gaussian over the acceleration with a state-independent std; the env
+  clips the sample to [a_min, a_max]. One policy drives every hidden vehicle.
+* r_macro enters through the policy gradient: each hidden vehicle's reward is
+  eta * r_macro,t (shared), with a value baseline, GAE and the clipped surrogate.
+* r_micro = sum log pi(u | o) over observed vehicles depends on theta directly, so it is a
+  likelihood term of the loss on the observed (o, u) pairs: its gradient is exact. Both
+  terms are averaged per vehicle-step, so eta keeps its meaning as the macro weight.
+  Advantages are normalised only when there is no likelihood term (macro_only).
+* Ablations (``policy.objective``): ``mix`` (the paper), ``micro_only`` (eta = 0:
+  behaviour cloning), ``macro_only`` (no likelihood term).
+"""
+
+from __future__ import annotations
+
+import io
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+from torch import nn
+from tqdm import tqdm
+
+from macromicro_sumo.config import Scenario
+from macromicro_sumo.env import EpisodeBank, RingCore
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.files import atomic_path, write_csv
+
+CHECKPOINT_FORMAT = "macromicro-policy"
+# Fixed observation scaling [v, v_limit, spacing, delta_v]: SI units -> O(1).
+OBS_SHIFT = np.array([12.0, 13.0, 125.0, 0.0], dtype=np.float32)
+OBS_SCALE = np.array([2.0, 1.0, 50.0, 1.0], dtype=np.float32)
+
+
+# --------------------------------------------------------------------------- agent
+
+
+class Agent(nn.Module):
+    def __init__(self, hidden_size: int = 64, init_log_std: float = -1.0) -> None:
+        super().__init__()
+        self.register_buffer("shift", torch.as_tensor(OBS_SHIFT))
+        self.register_buffer("scale", torch.as_tensor(OBS_SCALE))
+        self.actor = nn.Sequential(
+            nn.Linear(4, hidden_size),
+            nn.Tanh(),
+            nn.Linear(hidden_size, hidden_size),
+            nn.Tanh(),
+            nn.Linear(hidden_size, 1),
+        )
+        self.critic = nn.Sequential(
+            nn.Linear(5, hidden_size),
+            nn.Tanh(),
+            nn.Linear(hidden_size, hidden_size),
+            nn.Tanh(),
+            nn.Linear(hidden_size, 1),
+        )
+        self.log_std = nn.Parameter(torch.full((1,), float(init_log_std)))
+        self.hidden_size = hidden_size
+
+    def dist(self, obs: torch.Tensor) -> torch.distributions.Normal:
+        mean = self.actor((obs - self.shift) / self.scale).squeeze(-1)
+        return torch.distributions.Normal(mean, self.log_std.exp().expand_as(mean))
+
+    def value(self, obs: torch.Tensor, t_frac: torch.Tensor) -> torch.Tensor:
+        x = torch.cat([(obs - self.shift) / self.scale, t_frac[..., None]], dim=-1)
+        return self.critic(x).squeeze(-1)
+
+
+def gae(
+    rewards: np.ndarray, values: np.ndarray, gamma: float, lam: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Generalised advantage estimation along axis 0 for episodes that end after the last step.
+
+    ``rewards`` and ``values`` are (T, ...); returns (advantages, returns) of the same shape.
+    """
+    adv = np.zeros_like(rewards)
+    last = np.zeros_like(rewards[0])
+    for t in reversed(range(len(rewards))):
+        next_v = values[t + 1] if t + 1 < len(rewards) else 0.0
+        delta = rewards[t] + gamma * next_v - values[t]
+        last = delta + gamma * lam * last
+        adv[t] = last
+    return adv, adv + values
+
+
+def clipped_actions(actions: np.ndarray, a_min: float, a_max: float) -> tuple[np.ndarray, float]:
+    """Ground-truth actions clipped to the bounds for the likelihood, and the clipped share."""
+    out = np.clip(actions, a_min, a_max)
+    return out, float((out != actions).mean()) if actions.size else 0.0
+
+
+# --------------------------------------------------------------------------- rollout
+
+
+@dataclass
+class Rollout:
+    obs: np.ndarray  # (E, H, N, 4)
+    actions: np.ndarray  # (E, H, N)
+    logp: np.ndarray
+    values: np.ndarray
+    rewards: np.ndarray  # (E, H)
+    hidden: np.ndarray  # (E, N)
+    gt_actions: np.ndarray  # (E, H, N)
+    r_macro: np.ndarray  # (E, H)
+    collisions: int
+    sumo_errors: int
+
+
+def collect(
+    agent: Agent,
+    core: RingCore,
+    episodes: np.ndarray,
+    eta: float,
+    horizon: int,
+    gen: torch.Generator,
+) -> Rollout:
+    n = core.n
+    e_n = len(episodes)
+    obs = np.zeros((e_n, horizon, n, 4), dtype=np.float32)
+    act = np.zeros((e_n, horizon, n), dtype=np.float32)
+    logp = np.zeros_like(act)
+    val = np.zeros_like(act)
+    r_macro = np.zeros((e_n, horizon), dtype=np.float32)
+    hidden = core.bank.hidden[episodes]
+    collisions = errors = 0
+    t_frac = torch.arange(horizon, dtype=torch.float32) / horizon
+    for i, ep in enumerate(episodes):
+        o = core.reset(int(ep))
+        for t in range(horizon):
+            ot = torch.as_tensor(o, dtype=torch.float32)
+            with torch.no_grad():
+                d = agent.dist(ot)
+                a = d.mean + d.stddev * torch.randn(d.mean.shape, generator=gen)
+                obs[i, t], act[i, t] = o, a.numpy()
+                logp[i, t] = d.log_prob(a).numpy()
+                val[i, t] = agent.value(ot, t_frac[t].expand(n)).numpy()
+            res = core.step(act[i, t][hidden[i]])
+            r_macro[i, t] = res.r_macro
+            o = res.obs
+            if res.collision or res.truncated:
+                collisions += res.collision
+                errors += bool(res.error)
+                obs[i, t + 1 :] = o  # the episode ends here: later steps carry no reward
+                break
+    return Rollout(
+        obs,
+        act,
+        logp,
+        val,
+        eta * r_macro,
+        hidden,
+        core.bank.gt_accel_mps2[episodes][:, :horizon],
+        r_macro,
+        collisions,
+        errors,
+    )
+
+
+# --------------------------------------------------------------------------- training
+
+
+def signature(sc: Scenario) -> dict[str, Any]:
+    return {
+        "fleet.n_vehicles": sc.fleet.n_vehicles,
+        "network.radius_m": sc.network.radius_m,
+        "bounds.accel_mps2": list(sc.bounds.accel_mps2),
+        "simulation.step_length_s": sc.simulation.step_length_s,
+        "observation": "v,v_limit,spacing,delta_v",
+    }
+
+
+def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
+    buf = io.BytesIO()
+    torch.save(payload, buf)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(buf.getvalue())
+
+
+def load_checkpoint(path: Path, sc: Scenario) -> dict[str, Any]:
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=False)
+        if payload.get("format") != CHECKPOINT_FORMAT:
+            raise ValueError("not a policy checkpoint")
+    except Exception as exc:
+        raise UserError(
+            f"{path}: corrupt or truncated policy checkpoint ({type(exc).__name__})"
+        ) from None
+    want = signature(sc)
+    for key, have in payload["signature"].items():
+        if want.get(key) != have:
+            raise UserError(
+                f"{path}: policy was trained for {key} = {have}, scenario {sc.source} has {want.get(key)}"
+            )
+    return payload
+
+
+def load_policy(path: Path | str, sc: Scenario) -> Agent:
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: policy checkpoint not found (run `macromicro train-policy`)")
+    payload = load_checkpoint(path, sc)
+    agent = Agent(payload["hidden_size"])
+    agent.load_state_dict(payload["state_dict"])
+    agent.eval()
+    return agent
+
+
+def train_policy(
+    sc: Scenario,
+    bank: EpisodeBank,
+    out: Path,
+    objective: str | None = None,
+    resume: bool = False,
+    progress: bool = True,
+    updates: int | None = None,
+) -> dict[str, Any]:
+    """PPO on the env over ``bank``; writes policy.pt, policy_train_log.csv, checkpoints."""
+    cfg = sc.policy
+    objective = objective or cfg.objective
+    eta = 0.0 if objective == "micro_only" else sc.policy.eta
+    use_micro = objective != "macro_only"
+    n_updates = updates or cfg.updates
+    ckpt_path = out / f"policy_{objective}_checkpoint.pt"
+    torch.manual_seed(sc.seed)
+    agent = Agent(cfg.hidden_size, cfg.init_log_std)
+    opt = torch.optim.Adam(agent.parameters(), lr=cfg.lr)
+    rng = np.random.default_rng([sc.seed, 41])
+    gen = torch.Generator().manual_seed(sc.seed)
+    log: list[dict[str, Any]] = []
+    start = 0
+    if resume and ckpt_path.is_file():
+        ck = load_checkpoint(ckpt_path, sc)
+        agent.load_state_dict(ck["state_dict"])
+        opt.load_state_dict(ck["optimizer"])
+        rng.bit_generator.state = ck["numpy_rng"]
+        gen.set_state(ck["torch_rng"])
+        log, start = ck["log"], ck["update"]
+    a_min, a_max = sc.bounds.accel_mps2
+    core = RingCore(sc, bank, seed=sc.seed)
+    t0 = time.perf_counter()
+    env_steps = 0
+    try:
+        bar = tqdm(
+            range(start, n_updates),
+            desc=f"train-policy ({objective})",
+            unit="update",
+            disable=not progress,
+            initial=start,
+            total=n_updates,
+        )
+        for update in bar:
+            episodes = rng.integers(0, len(bank), cfg.episodes_per_update)
+            ro = collect(agent, core, episodes, eta, cfg.horizon, gen)
+            env_steps += cfg.episodes_per_update * cfg.horizon
+            h_axis = np.moveaxis
+            adv, ret = gae(
+                h_axis(np.broadcast_to(ro.rewards[..., None], ro.values.shape), 1, 0),
+                h_axis(ro.values, 1, 0),
+                cfg.gamma,
+                cfg.gae_lambda,
+            )
+            adv, ret = h_axis(adv, 0, 1), h_axis(ret, 0, 1)
+            hid = np.broadcast_to(ro.hidden[:, None, :], ro.actions.shape)
+            t_frac = np.broadcast_to(
+                (np.arange(cfg.horizon) / cfg.horizon)[None, :, None], ro.actions.shape
+            )
+            b_obs = torch.as_tensor(ro.obs[hid])
+            b_act, b_logp = torch.as_tensor(ro.actions[hid]), torch.as_tensor(ro.logp[hid])
+            b_adv, b_ret = torch.as_tensor(adv[hid]), torch.as_tensor(ret[hid])
+            b_t = torch.as_tensor(t_frac[hid], dtype=torch.float32)
+            if not use_micro and len(b_adv) > 1:
+                b_adv = (b_adv - b_adv.mean()) / (b_adv.std() + 1e-8)
+            gt, clip_share = clipped_actions(ro.gt_actions[~hid], a_min, a_max)
+            m_obs, m_act = torch.as_tensor(ro.obs[~hid]), torch.as_tensor(gt, dtype=torch.float32)
+            n_b, n_m = len(b_obs), len(m_obs)
+            stats: dict[str, list[float]] = {
+                k: [] for k in ("pg_loss", "v_loss", "entropy", "kl", "micro_logp")
+            }
+            for _ in range(cfg.epochs):
+                perm_b, perm_m = (
+                    torch.randperm(n_b, generator=gen),
+                    torch.randperm(n_m, generator=gen),
+                )
+                for j in range(cfg.minibatches):
+                    ib = perm_b[j * n_b // cfg.minibatches : (j + 1) * n_b // cfg.minibatches]
+                    im = perm_m[j * n_m // cfg.minibatches : (j + 1) * n_m // cfg.minibatches]
+                    loss = torch.zeros(())
+                    if eta > 0 and len(ib):
+                        d = agent.dist(b_obs[ib])
+                        new_logp = d.log_prob(b_act[ib])
+                        ratio = (new_logp - b_logp[ib]).exp()
+                        pg = torch.max(
+                            -b_adv[ib] * ratio,
+                            -b_adv[ib] * ratio.clamp(1 - cfg.clip_coef, 1 + cfg.clip_coef),
+                        ).mean()
+                        v_loss = 0.5 * ((agent.value(b_obs[ib], b_t[ib]) - b_ret[ib]) ** 2).mean()
+                        ent = d.entropy().mean()
+                        loss = loss + pg + cfg.vf_coef * v_loss - cfg.ent_coef * ent
+                        stats["pg_loss"].append(float(pg.detach()))
+                        stats["v_loss"].append(float(v_loss.detach()))
+                        stats["entropy"].append(float(ent.detach()))
+                        stats["kl"].append(
+                            float(((ratio - 1) - (new_logp - b_logp[ib])).mean().detach())
+                        )
+                    if use_micro and len(im):
+                        micro = agent.dist(m_obs[im]).log_prob(m_act[im]).mean()
+                        loss = loss - micro
+                        stats["micro_logp"].append(float(micro.detach()))
+                    opt.zero_grad()
+                    loss.backward()
+                    nn.utils.clip_grad_norm_(agent.parameters(), 0.5)
+                    opt.step()
+            with torch.no_grad():
+                micro_all = float(agent.dist(m_obs).log_prob(m_act).mean()) if n_m else float("nan")
+            row = {
+                "update": update + 1,
+                "env_steps": (update + 1) * cfg.episodes_per_update * cfg.horizon,
+                "r_macro": float(ro.r_macro.mean()),
+                "r_micro_per_pair": micro_all,
+                **{k: float(np.mean(v)) if v else float("nan") for k, v in stats.items()},
+                "action_std_mps2": float(agent.log_std.exp()),
+                "collisions": ro.collisions,
+                "sumo_errors": ro.sumo_errors,
+                "gt_actions_clipped_share": clip_share,
+                "wall_s": time.perf_counter() - t0,
+            }
+            log.append(row)
+            bar.set_postfix(
+                r_macro=f"{row['r_macro']:.4f}", logp=f"{micro_all:.3f}", coll=ro.collisions
+            )
+            if (update + 1) % cfg.checkpoint_every == 0 or update + 1 == n_updates:
+                save_checkpoint(
+                    ckpt_path,
+                    {
+                        "format": CHECKPOINT_FORMAT,
+                        "signature": signature(sc),
+                        "state_dict": agent.state_dict(),
+                        "optimizer": opt.state_dict(),
+                        "numpy_rng": rng.bit_generator.state,
+                        "torch_rng": gen.get_state(),
+                        "update": update + 1,
+                        "log": log,
+                        "hidden_size": agent.hidden_size,
+                    },
+                )
+    finally:
+        core.close()
+    wall = time.perf_counter() - t0
+    save_checkpoint(
+        out / (f"policy_{objective}.pt" if objective != "mix" else "policy.pt"),
+        {
+            "format": CHECKPOINT_FORMAT,
+            "signature": signature(sc),
+            "state_dict": agent.state_dict(),
+            "hidden_size": agent.hidden_size,
+            "objective": objective,
+            "scenario": sc.to_dict(),
+        },
+    )
+    name = "policy_train_log.csv" if objective == "mix" else f"policy_train_log_{objective}.csv"
+    write_csv(pd.DataFrame(log), out / name)
+    return {"agent": agent, "wall_s": wall, "env_steps": env_steps, "log": log}
