@@ -48,6 +48,19 @@ def _cmd_complete(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train_policy(args: argparse.Namespace) -> int:
+    from macromicro_sumo.config import load_scenario
+    from macromicro_sumo.ppo import run_train_policy
+
+    sc = load_scenario(args.scenario)
+    m = run_train_policy(
+        sc, args.data, args.generator, args.out, args.resume, args.command_line, not args.quiet
+    )
+    print(m["alignment"].round(4).to_string(index=False))
+    print(f"policy written to {args.out / 'policy.pt'} ({m['timings_s']['train_policy']:.1f} s)")
+    return 0
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     from macromicro_sumo.config import load_scenario
     from macromicro_sumo.pipeline import run
@@ -97,6 +110,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scenario", type=Path, help="scenario TOML")
     p.add_argument("--data", type=Path, required=True, help="ground-truth folder (from simulate)")
     p.add_argument("--out", type=Path, required=True, help="output folder")
+
+    p = add(
+        "train-policy", _cmd_train_policy, "Stage II: PPO for the shared policy (micro + eta macro)"
+    )
+    p.add_argument("scenario", type=Path, help="scenario TOML")
+    p.add_argument("--data", type=Path, required=True, help="ground-truth folder (from simulate)")
+    p.add_argument("--generator", type=Path, required=True, help="generator.pt")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument(
+        "--resume", action="store_true", help="continue from the last checkpoint in --out"
+    )
 
     p = add("complete", _cmd_complete, "complete the held-out snapshots with a trained generator")
     p.add_argument("scenario", type=Path, help="scenario TOML")

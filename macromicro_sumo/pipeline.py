@@ -31,15 +31,21 @@ def _done(manifest: Path, sc: Scenario) -> bool:
 def run(sc: Scenario, out: Path | str, command: str = "", progress: bool = True) -> dict[str, Any]:
     from macromicro_sumo.generator_train import run_train_generator
     from macromicro_sumo.ground_truth import simulate
+    from macromicro_sumo.ppo import run_train_policy
 
     out = prepare_out_dir(out)
-    gt, gen = out / "ground_truth", out / "generator"
+    gt, gen, pol = out / "ground_truth", out / "generator", out / "policy"
     stages: list[tuple[str, Path, Callable[[], Any]]] = [
         ("simulate", gt / "manifest.json", lambda: simulate(sc, gt, command, progress)),
         (
             "train_generator",
             gen / "generator_manifest.json",
             lambda: run_train_generator(sc, gt, gen, command, progress),
+        ),
+        (
+            "train_policy",
+            pol / "policy_manifest.json",
+            lambda: run_train_policy(sc, gt, gen / "generator.pt", pol, True, command, progress),
         ),
     ]
     timings: dict[str, float | str] = {}
