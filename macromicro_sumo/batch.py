@@ -262,6 +262,23 @@ def expand(inputs: Sequence[str | Path]) -> list[Variant]:
 # --------------------------------------------------------------------------- one variant
 
 
+def _unavailable(name: str, module: str) -> str:
+    return (
+        f"stage {name!r} is not available in this version of macromicro-sumo "
+        f"(module {module} is missing); run --stage simulate"
+    )
+
+
+def stage_problem(name: str) -> str:
+    """Why stage ``name`` cannot run here ('' when it can), checked without importing it."""
+    import importlib.util
+
+    if name not in STAGES:
+        return f"unknown stage {name!r}; accepted: {', '.join(STAGES)}"
+    module = STAGES[name].split(":")[0]
+    return "" if importlib.util.find_spec(module) else _unavailable(name, module)
+
+
 def resolve_stage(name: str) -> Callable[..., Any]:
     """The stage function registered under ``name`` (imported only when a variant needs it)."""
     import importlib
@@ -274,10 +291,7 @@ def resolve_stage(name: str) -> Callable[..., Any]:
     except ModuleNotFoundError as exc:
         if exc.name != module:
             raise
-        raise UserError(
-            f"stage {name!r} is not available in this version of macromicro-sumo "
-            f"(module {module} is missing); run --stage simulate"
-        ) from None
+        raise UserError(_unavailable(name, module)) from None
     if not hasattr(mod, func):
         raise UserError(f"stage {name!r} is not available: {module} has no {func}()")
     return getattr(mod, func)
@@ -583,6 +597,12 @@ def is_complete(folder: Path, variant: Variant, stages: Sequence[str]) -> bool:
     )
 
 
+def _discard(partial: Path) -> None:
+    """Remove an unfinished variant's folder and the stderr log beside it."""
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.with_name(partial.name + ".log").unlink(missing_ok=True)
+
+
 @contextlib.contextmanager
 def _lock(out: Path) -> Iterator[None]:
     """One batch per folder at a time (the lock dies with its process, even on SIGKILL)."""
@@ -642,9 +662,10 @@ def run_batch(
 
         statuses: dict[str, dict[str, Any]] = {}
         tasks, by_name = [], {v.name: v for v in variants}
+        missing = "; ".join(filter(None, (stage_problem(s) for s in stages)))
         for v in variants:
-            if v.error:
-                statuses[v.name] = {"status": "failed", "error": v.error}
+            if v.error or (missing and not is_complete(vdir / v.name, v, stages)):
+                statuses[v.name] = {"status": "failed", "error": v.error or missing}
             elif is_complete(vdir / v.name, v, stages):
                 info = json.loads((vdir / v.name / export.VARIANT_FILE).read_text())
                 statuses[v.name] = {"status": "complete", "reused": True, "wall_s": info["wall_s"]}
@@ -712,7 +733,7 @@ def run_batch(
                 statuses[task.name] = {"status": "complete", "wall_s": outcome.wall_s}
                 say(f"  complete  {task.name}  ({outcome.wall_s:.1f} s)")
             else:
-                shutil.rmtree(partial, ignore_errors=True)
+                _discard(partial)
                 statuses[task.name] = {
                     "status": "failed",
                     "wall_s": outcome.wall_s,
@@ -729,8 +750,11 @@ def run_batch(
         except BaseException:
             bar.close()
             for t in tasks:
-                shutil.rmtree(t.out, ignore_errors=True)
-                statuses.setdefault(t.name, {"status": "interrupted"})
+                _discard(Path(t.out))
+                if t.name not in statuses:  # it may have been renamed into place just now
+                    final = vdir / t.name
+                    done_now = is_complete(final, by_name[t.name], stages)
+                    statuses[t.name] = {"status": "complete" if done_now else "interrupted"}
             with contextlib.suppress(Exception):
                 write_tables(export.TABLES)
             raise
