@@ -656,8 +656,11 @@ def run_batch(
             {"name": v.name, "scenario": v.scenario_name, "file": v.file, "params": v.params}
             for v in variants
         ]
+        # Parameters as [key, value] pairs: JSON objects are written with sorted keys, and the
+        # sweep's own order is the order of the parameter columns.
+        stored = [{**row, "params": list(row["params"].items())} for row in spec]
         write_json(
-            {"stages": list(stages), "command": command, "variants": spec}, out / "batch.json"
+            {"stages": list(stages), "command": command, "variants": stored}, out / "batch.json"
         )
 
         statuses: dict[str, dict[str, Any]] = {}
@@ -715,7 +718,7 @@ def run_batch(
                 info = {
                     "variant": v.name,
                     "scenario_file": v.file,
-                    "params": v.params,
+                    "params": list(v.params.items()),
                     "stages": list(task.stages),
                     "scenario_sha256": v.scenario.digest(),
                     "wall_s": outcome.wall_s,

@@ -246,6 +246,8 @@ def export(folder: Path | str, fmt: str) -> list[Path]:
         require_parquet()
     if (folder / "batch.json").is_file():
         spec = _read_json(folder / "batch.json")
+        for v in spec["variants"]:
+            v["params"] = dict(v["params"])  # stored as [key, value] pairs, in sweep order
         variants_dir = folder / "variants"
         statuses = read_summary_statuses(folder / "batch_summary.csv")
         for v in spec["variants"]:
