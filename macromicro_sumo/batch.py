@@ -493,13 +493,23 @@ def _localise(sc: Scenario, inputs: dict[str, bytes], tmp: Path) -> Scenario:
     return dataclasses.replace(sc, network=dataclasses.replace(sc.network, **changes))
 
 
-def ray_task(task: Task, inputs: dict[str, bytes]) -> tuple[Outcome, bytes]:
-    """A Ray task: run the variant on the node's disk and send its folder back as a tar."""
+def run_shipped(task: Task, inputs: dict[str, bytes]) -> tuple[Outcome, bytes]:
+    """Run a variant on a node that shares no disk with the driver: network files come in
+    ``inputs`` (path -> bytes), the variant's folder goes back as an uncompressed tar."""
     with tempfile.TemporaryDirectory(prefix="macromicro-") as tmp:
         sc = _localise(task.scenario, inputs, Path(tmp))
         local = dataclasses.replace(task, scenario=sc, out=str(Path(tmp) / "out"))
         outcome = run_task(local)
         return outcome, _pack(Path(local.out)) if outcome.ok else b""
+
+
+def ray_task(task: Task, inputs: dict[str, bytes], driver_node: str) -> tuple[Outcome, bytes]:
+    """A Ray task: on the driver's node, straight into the batch folder; elsewhere shipped."""
+    import ray
+
+    if ray.get_runtime_context().get_node_id() == driver_node:
+        return run_task(task), b""
+    return run_shipped(task, inputs)
 
 
 def require_ray() -> Any:
@@ -534,6 +544,7 @@ class RayBackend:
                     f"--address {self.address}: cannot connect to Ray ({exc})"
                 ) from None
         remote = ray.remote(num_cpus=1, max_retries=0)(ray_task)
+        node = ray.get_runtime_context().get_node_id()
         refs = {}
         try:
             for task in tasks:
@@ -541,14 +552,14 @@ class RayBackend:
                 for key in ("net_file", "routes_file"):
                     path = task.scenario.resolve(getattr(task.scenario.network, key))
                     inputs[str(path)] = path.read_bytes()
-                refs[remote.remote(task, inputs)] = task
+                refs[remote.remote(task, inputs, node)] = task
             while refs:
                 ready, _ = ray.wait(list(refs), num_returns=1)
                 for ref in ready:
                     task = refs.pop(ref)
                     try:
                         outcome, blob = ray.get(ref)
-                        if outcome.ok:
+                        if outcome.ok and blob:
                             _unpack(blob, Path(task.out))
                     except ray.exceptions.RayError as exc:
                         outcome = _failed(task, _ray_error(exc))

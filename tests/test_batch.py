@@ -372,3 +372,34 @@ def test_ray_backend_gives_the_same_bytes_as_local(tmp_path):
     assert res.counts["complete"] == 2
     assert variant_csvs(ray_out) == variant_csvs(local)
     assert (ray_out / "batch_macro.csv").read_bytes() == (local / "batch_macro.csv").read_bytes()
+
+
+def test_a_node_without_shared_disk_gets_inputs_and_returns_the_same_bytes(tmp_path):
+    """What a remote Ray node does: network files arrive as bytes, outputs leave as a tar."""
+    nets = tmp_path / "nets"
+    nets.mkdir()
+    good = scenario_table()["network"]
+    for key in ("net_file", "routes_file"):
+        (nets / Path(good[key]).name).write_bytes(Path(good[key]).read_bytes())
+    path = write_sweep(
+        tmp_path / "in" / "s.toml",
+        "seed = [1]",
+        {
+            "network.net_file": f"../nets/{Path(good['net_file']).name}",
+            "network.routes_file": f"../nets/{Path(good['routes_file']).name}",
+        },
+    )
+    (v,) = expand([path])
+    local = tmp_path / "local"
+    assert run_batch([path], local, workers=1, progress=False).counts["complete"] == 1
+    inputs = {str(p.resolve()): p.read_bytes() for p in nets.iterdir()}
+    moved = tmp_path / "elsewhere"
+    nets.rename(moved)  # this "node" does not have the network files
+    task = batch.Task(v.name, v.scenario, ("simulate",), str(tmp_path / "unused"), "test")
+    outcome, blob = batch.run_shipped(task, inputs)
+    assert outcome.ok, outcome.error
+    batch._unpack(blob, tmp_path / "back")
+    here = {p.name: p.read_bytes() for p in (tmp_path / "back").glob("*.csv")}
+    there = {p.name: p.read_bytes() for p in (local / "variants" / v.name).glob("*.csv")}
+    assert here == there and len(here) == 7
+    assert (tmp_path / "back" / "sumo" / "run_000" / "e1.xml").is_file()

@@ -1,0 +1,83 @@
+"""Wall time of a batch sweep with 1 and 2 local workers (and optionally Ray), in one run.
+
+    .venv/bin/python scripts/bench_batch.py                      # scenarios/ring_sweep.toml
+    .venv/bin/python scripts/bench_batch.py --workers 1 2 --ray --min-speedup 1.8
+
+Each configuration runs the whole sweep (``simulate`` stage) into a fresh folder; the
+per-variant CSVs of every configuration must be byte-identical. Prints one line per
+configuration and the speed-up over the first; exits 1 when a variant failed, the bytes
+differ, or the speed-up of the last local configuration is below ``--min-speedup``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from macromicro_sumo.batch import expand, run_batch
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def variant_csvs(out: Path) -> dict[str, bytes]:
+    return {
+        str(p.relative_to(out)): p.read_bytes() for p in sorted((out / "variants").rglob("*.csv"))
+    }
+
+
+def get_options(argv: list[str] | None = None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenario", type=Path, default=ROOT / "scenarios" / "ring_sweep.toml")
+    ap.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="local worker counts")
+    ap.add_argument("--ray", action="store_true", help="also run on a local Ray instance")
+    ap.add_argument(
+        "--min-speedup", type=float, default=0.0, help="fail below this speed-up (last vs first)"
+    )
+    return ap.parse_args(argv)
+
+
+def main(options: argparse.Namespace) -> bool:
+    n = len(expand([options.scenario]))
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    print(f"sweep: {options.scenario.name}, {n} variants, stage simulate; {cpus} CPUs available")
+    configs = [("local", w) for w in options.workers]
+    if options.ray:
+        configs.append(("ray", max(options.workers)))
+    walls: dict[tuple[str, int], float] = {}
+    reference: dict[str, bytes] | None = None
+    ok = True
+    with tempfile.TemporaryDirectory(prefix="bench-batch-") as tmp:
+        for backend, workers in configs:
+            out = Path(tmp) / f"{backend}-{workers}"
+            load = os.getloadavg()[0]
+            t0 = time.perf_counter()
+            res = run_batch(
+                [options.scenario], out, workers=workers, backend=backend, progress=False
+            )
+            wall = time.perf_counter() - t0
+            walls[(backend, workers)] = wall
+            csvs = variant_csvs(out)
+            same = reference is None or csvs == reference
+            reference = reference or csvs
+            complete = res.counts.get("complete", 0)
+            ok &= complete == n and same
+            speedup = walls[configs[0]] / wall
+            print(
+                f"{backend:5s} workers={workers}: {wall:6.2f} s  speed-up x{speedup:4.2f}  "
+                f"complete {complete}/{n}  CSVs {'identical' if same else 'DIFFER'}  "
+                f"(load average before: {load:.2f})"
+            )
+    local = [c for c in configs if c[0] == "local"]
+    speedup = walls[local[0]] / walls[local[-1]]
+    if speedup < options.min_speedup:
+        print(f"speed-up x{speedup:.2f} is below --min-speedup {options.min_speedup}")
+        ok = False
+    return ok
+
+
+if __name__ == "__main__":  # spawned workers import this file: run only as a script
+    sys.exit(0 if main(get_options()) else 1)
