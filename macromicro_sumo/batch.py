@@ -382,6 +382,10 @@ def _worker_init() -> None:
     # Ctrl-C goes to the whole process group: the driver alone handles it and stops the
     # workers, so that no worker prints a traceback.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # One thread per worker for torch/BLAS (as Ray gives a one-CPU task): workers do not
+    # oversubscribe the CPUs, and results do not depend on the worker count.
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
     if sys.platform.startswith("linux"):
         # A worker must not outlive a driver killed with SIGKILL (it would keep writing).
         with contextlib.suppress(Exception):
@@ -522,8 +526,9 @@ def require_ray() -> Any:
 
 class RayBackend:
     """Variants as Ray tasks (one CPU each): a local Ray instance with ``workers`` CPUs,
-    or the cluster at ``address``. Network files travel with each task and outputs come
-    back to the driver, so nodes need macromicro-sumo installed but no shared disk."""
+    or the cluster at ``address``. Tasks on the driver's node write into the batch folder;
+    elsewhere network files travel with the task and the variant's folder comes back, so
+    other nodes need macromicro-sumo installed but no shared disk."""
 
     def __init__(self, workers: int, address: str | None) -> None:
         self.ray = require_ray()
@@ -576,9 +581,9 @@ class RayBackend:
 
 def _ray_error(exc: Exception) -> str:
     name = type(exc).__name__
-    if "WorkerCrashed" in name or "NodeDied" in name or "ActorDied" in name:
+    if "WorkerCrashed" in name or "NodeDied" in name:
         return f"worker process died while running this variant ({name})"
-    return _one_line(exc).splitlines()[0] if str(exc) else name
+    return (_one_line(exc) or name)[:500]
 
 
 # --------------------------------------------------------------------------- the batch
