@@ -194,7 +194,7 @@ def _kill_when_running(folder: Path, variant: str, found: list[int], stop: threa
 
 
 def test_killed_worker_fails_only_its_variant(tmp_path):
-    path = write_sweep(tmp_path / "s.toml", "n_runs = [1, 30]\nseed = [1, 2, 3]")
+    path = write_sweep(tmp_path / "s.toml", "n_runs = [1, 30]\nseed = [1, 2]")
     out = tmp_path / "out"
     victim = "n_runs=30__seed=1"
     found: list[int] = []
@@ -212,11 +212,11 @@ def test_killed_worker_fails_only_its_variant(tmp_path):
     assert "worker process died" in s.loc[victim, "error"]
     others = s.drop(index=victim)
     assert (others["status"] == "complete").all(), others[["status", "error"]]
-    assert res.counts == {"complete": 5, "failed": 1, "reused": 0}
+    assert res.counts == {"complete": 3, "failed": 1, "reused": 0}
     assert not list((out / "variants").glob(".partial-*"))
     # A re-run redoes only the failed variant.
     res = run_batch([path], out, workers=2, progress=False)
-    assert res.counts == {"complete": 6, "reused": 5}
+    assert res.counts == {"complete": 4, "reused": 3}
 
 
 def _wait_for(pred, timeout_s: float = 60.0) -> None:
@@ -246,9 +246,9 @@ def _batch_process(path: Path, out: Path, workers: int) -> subprocess.Popen:
 
 def test_batch_killed_with_sigkill_and_rerun_redoes_only_the_unfinished(tmp_path):
     # Light variants first, then heavy ones: the kill lands while a heavy one is half-done.
-    path = write_sweep(tmp_path / "s.toml", "n_runs = [1, 12]\nseed = [1, 2, 3]")
+    path = write_sweep(tmp_path / "s.toml", "n_runs = [1, 12]\nseed = [1, 2]")
     ref = tmp_path / "ref"
-    assert run_batch([path], ref, workers=2, progress=False).counts["complete"] == 6
+    assert run_batch([path], ref, workers=2, progress=False).counts["complete"] == 4
 
     out = tmp_path / "out"
     proc = _batch_process(path, out, workers=1)
@@ -258,11 +258,11 @@ def test_batch_killed_with_sigkill_and_rerun_redoes_only_the_unfinished(tmp_path
     finally:
         proc.wait()
     before = {p.parent.name: (p.stat().st_ino, p.stat().st_mtime_ns) for p in _complete(out)}
-    assert 1 <= len(before) < 6
+    assert 1 <= len(before) < 4
     assert list((out / "variants").glob(".partial-*")), "no half-done variant to redo"
 
     res = run_batch([path], out, workers=2, progress=False)
-    assert res.counts == {"complete": 6, "reused": len(before)}
+    assert res.counts == {"complete": 4, "reused": len(before)}
     after = {p.parent.name: (p.stat().st_ino, p.stat().st_mtime_ns) for p in _complete(out)}
     assert {k: after[k] for k in before} == before, "a finished variant was redone"
     s = summary(out)
@@ -273,7 +273,7 @@ def test_batch_killed_with_sigkill_and_rerun_redoes_only_the_unfinished(tmp_path
 
 
 def test_ctrl_c_stops_cleanly_and_keeps_finished_variants(tmp_path):
-    path = write_sweep(tmp_path / "s.toml", "n_runs = [1, 12]\nseed = [1, 2, 3]")
+    path = write_sweep(tmp_path / "s.toml", "n_runs = [1, 12]\nseed = [1, 2]")
     out = tmp_path / "out"
     proc = _batch_process(path, out, workers=1)
     try:
