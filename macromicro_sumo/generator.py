@@ -84,8 +84,10 @@ class PsiTensors:
     v_max: torch.Tensor
 
     @classmethod
-    def from_array(cls, psi: np.ndarray | torch.Tensor) -> PsiTensors:
-        p = torch.as_tensor(psi, dtype=torch.float32)
+    def from_array(
+        cls, psi: np.ndarray | torch.Tensor, dtype: torch.dtype = torch.float32
+    ) -> PsiTensors:
+        p = torch.as_tensor(psi, dtype=dtype)
         return cls(*p.unbind(dim=1))
 
     @property
@@ -200,12 +202,12 @@ def propose(
     ``allowed`` (B, N) optionally removes gap choices (in arc order) before sampling.
     """
     b, n = arc.shape
-    anchor = torch.rand(b, generator=gen) * length_m
+    anchor = torch.rand(b, generator=gen, dtype=arc.dtype) * length_m
     gap_feat, glob, follower, arc_e, gap, valid = features(
         arc, speed, present, remaining, psi, length_m, anchor
     )
     need_v = needed_speed(speed, present, remaining, psi)
-    out = net(gap_feat, glob)
+    out = net(gap_feat.float(), glob.float())
     if allowed is not None:
         valid = valid & (allowed | ~(allowed & valid).any(dim=1, keepdim=True))
     logits = out[..., 0].masked_fill(~valid, -torch.inf)
@@ -346,89 +348,116 @@ def rollout(net: GeneratorNet, snaps: Snapshots, gen: torch.Generator) -> tuple[
     return arc, speed, hidden, log_p
 
 
+# Inference runs its geometry in float64; this absorbs its rounding, far below the 1e-6 m
+# that metrics allow, and is the same for counts and split points so the two agree.
+GEOMETRY_TOL_M = 1e-9
+
+
 def _piece_range(
     x: torch.Tensor, d_min: torch.Tensor, d_max: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Fewest and most further vehicles m such that x splits into m + 1 gaps in [d_min, d_max]."""
-    lo_m = torch.clamp(torch.ceil(x / d_max - 1e-6) - 1, min=0)
-    hi_m = torch.floor(x / d_min + 1e-6) - 1
+    lo_m = torch.clamp(torch.ceil((x - GEOMETRY_TOL_M) / d_max) - 1, min=0)
+    hi_m = torch.floor((x + GEOMETRY_TOL_M) / d_min) - 1
     return lo_m, hi_m
 
 
-def _gap_budget(
+def _sumset(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """{x + y : x in a, y in b} of count sets held as bool masks over 0..R (truncated at R)."""
+    r1 = a.shape[-1]
+    out = a & b[..., :1]
+    for c in range(1, r1):
+        out[..., c:] |= a[..., : r1 - c] & b[..., c : c + 1]
+    return out
+
+
+@dataclass
+class Lookahead:
+    """Where the next vehicle may go so that the scene can still be completed within bounds.
+
+    For every current gap j (arc order) and every split of the vehicles still to place
+    after this one into c1 behind and c2 ahead of it (the rest going to other gaps), the
+    split points a1 (distance from the gap's follower) that leave both new gaps completable
+    form the interval [lo, hi]; ``ok`` marks the pairs (c1, c2) the other gaps can match.
+    The check is exact: an accepted vehicle never leaves a scene that cannot be finished.
+    With none left to place it is the paper's check (both new gaps in [d_min, d_max]).
+    """
+
+    lo: torch.Tensor  # (B, N, P) [m]
+    hi: torch.Tensor  # (B, N, P) [m]
+    ok: torch.Tensor  # (B, N, P)
+    empty: torch.Tensor  # (B,) no vehicle yet: the first one goes anywhere
+    empty_ok: torch.Tensor  # (B,) ... and then the ring must hold the rest within bounds
+
+    @property
+    def allowed(self) -> torch.Tensor:
+        """(B, N) gaps with some feasible split point: rejecting the others up front is the
+        T_max -> infinity limit of rejection for the discrete part of the proposal."""
+        return self.ok.any(dim=2) | self.empty[:, None]
+
+    def accepts(self, choice: torch.Tensor, a1: torch.Tensor) -> torch.Tensor:
+        """(S, B) whether candidates (gap ``choice``, split point ``a1``) pass the check."""
+        rows = torch.arange(choice.shape[1]).expand_as(choice)
+        lo, hi, ok = self.lo[rows, choice], self.hi[rows, choice], self.ok[rows, choice]
+        tol = GEOMETRY_TOL_M
+        inside = (ok & (a1[..., None] >= lo - tol) & (a1[..., None] <= hi + tol)).any(dim=-1)
+        return torch.where(self.empty, self.empty_ok.expand_as(inside), inside)
+
+    def project(self, choice: torch.Tensor, a1: torch.Tensor) -> torch.Tensor:
+        """(B,) the feasible split point of gap ``choice`` nearest to ``a1`` (a1 if none)."""
+        rows = torch.arange(choice.shape[0])
+        lo, hi, ok = self.lo[rows, choice], self.hi[rows, choice], self.ok[rows, choice]
+        near = torch.minimum(torch.maximum(a1[:, None], lo), hi)
+        dist = torch.where(ok, (near - a1[:, None]).abs(), torch.full_like(near, torch.inf))
+        best = near.gather(1, dist.argmin(dim=1, keepdim=True))[:, 0]
+        return torch.where(ok.any(dim=1) & ~self.empty, best, a1)
+
+
+def lookahead(
     arc: torch.Tensor,
     present: torch.Tensor,
     generated: torch.Tensor,
     psi: PsiTensors,
-    length_m: float,
-) -> tuple[torch.Tensor, ...]:
-    """Per current gap: vehicles it must still receive (touched gaps) and can receive."""
-    follower, leader, gap, valid = ring_gaps(arc, present, length_m)
-    lo, hi = _piece_range(gap, psi.d_min[:, None], psi.d_max[:, None])
-    touched = generated.gather(1, follower) | generated.gather(1, leader)
-    need = torch.where(valid & touched, lo, torch.zeros_like(lo))
-    cap = torch.where(valid, hi.clamp(min=0), torch.zeros_like(hi))
-    return need, cap
-
-
-def _choosable_gaps(
-    arc: torch.Tensor,
-    present: torch.Tensor,
-    psi: PsiTensors,
     rem_after: torch.Tensor,
-    budget: tuple[torch.Tensor, torch.Tensor],
     length_m: float,
-    grid: int = 65,
-) -> torch.Tensor:
-    """(B, N) gaps where some split point passes the check: rejecting the others up front
-    is the T_max -> infinity limit of rejection for the discrete part of the proposal."""
-    _, _, gap, valid = ring_gaps(arc, present, length_m)
-    b, n = gap.shape
-    frac = torch.linspace(0.0, 1.0, grid + 2)[1:-1]
-    a1 = frac[:, None, None] * gap[None]  # (G, B, N)
-    choice = torch.arange(n).expand(b, n)
-    ok = torch.zeros(b, n, dtype=torch.bool)
-    for g in range(grid):
-        ok |= _pieces_ok(
-            a1[g], gap - a1[g], choice, psi, rem_after[:, None].expand(b, n), budget, per_gap=True
-        )
-    empty = present.sum(dim=1) == 0
-    return (ok & valid) | empty[:, None]
+) -> Lookahead:
+    """The exact feasibility check for placing one more vehicle, ``rem_after`` still to come.
 
-
-def _pieces_ok(
-    a1: torch.Tensor,
-    a2: torch.Tensor,
-    choice: torch.Tensor,
-    psi: PsiTensors,
-    rem_after: torch.Tensor,
-    budget: tuple[torch.Tensor, torch.Tensor],
-    per_gap: bool = False,
-) -> torch.Tensor:
-    """After splitting the chosen gap into a1 and a2, can the scene still be completed in bounds?
-
-    The two new gaps must each be able to end as gaps in [d_min, d_max]; the vehicles left
-    must cover what every touched gap still needs and fit where there is room. With none
-    left this is the paper's check (both gaps in [d_min, d_max]).
+    A touched gap (a generated vehicle at either end) must end as gaps in [d_min, d_max], so
+    it takes c in [lo, hi] further vehicles; an untouched gap (two observed vehicles) may stay
+    as it is or take c >= 1 if its pieces then fit. The counts the other gaps can absorb
+    together are a sum of these sets (a small dynamic programme over 0..R).
     """
-    d_min, d_max = (psi.d_min[:, None], psi.d_max[:, None]) if per_gap else (psi.d_min, psi.d_max)
-    lo1, hi1 = _piece_range(a1, d_min, d_max)
-    lo2, hi2 = _piece_range(a2, d_min, d_max)
-    need, cap = budget
-    if per_gap:  # a1, a2, choice are (B, N): one split per gap
-        need_rest = need.sum(dim=1, keepdim=True) - need
-        cap_rest = cap.sum(dim=1, keepdim=True) - cap
-    else:  # (S, B): one chosen gap per candidate
-        rows = torch.arange(need.shape[0]).expand_as(choice)
-        need_rest = need.sum(dim=1) - need[rows, choice]
-        cap_rest = cap.sum(dim=1) - cap[rows, choice]
-    r = rem_after.float()
-    return (
-        (lo1 <= hi1)
-        & (lo2 <= hi2)
-        & (need_rest + lo1 + lo2 <= r)
-        & (cap_rest + hi1.clamp(min=0) + hi2.clamp(min=0) >= r)
+    follower, leader, gap, valid = ring_gaps(arc, present, length_m)
+    b, n = gap.shape
+    d_min, d_max = psi.d_min[:, None], psi.d_max[:, None]
+    r_max = int(rem_after.max()) if b else 0
+    counts = torch.arange(r_max + 1)
+    lo_c, hi_c = _piece_range(gap, d_min, d_max)
+    fits = (counts >= lo_c[..., None]) & (counts <= hi_c[..., None])
+    touched = valid & (generated.gather(1, follower) | generated.gather(1, leader))
+    zero = counts == 0
+    sets = torch.where(touched[..., None], fits, (fits & valid[..., None]) | zero)
+    # rest[:, j]: what all gaps but j can absorb together.
+    rest = zero.expand(b, n, r_max + 1).clone()
+    eye = torch.eye(n, dtype=torch.bool)[..., None]
+    for i in range(int(valid.sum(dim=1).max()) if b else 0):
+        rest = _sumset(rest, torch.where(eye[i], zero, sets[:, i : i + 1]))
+    c1, c2 = (t.flatten() for t in torch.meshgrid(counts, counts, indexing="ij"))
+    keep = c1 + c2 <= r_max
+    c1, c2 = c1[keep], c2[keep]
+    need = rem_after[:, None] - (c1 + c2)  # (B, P): what the other gaps must absorb
+    ok = (need >= 0)[:, None, :] & rest.gather(
+        2, need.clamp(min=0)[:, None, :].expand(b, n, len(c1))
     )
+    g = gap[..., None]
+    lo = torch.maximum((c1 + 1) * d_min[..., None], g - (c2 + 1) * d_max[..., None])
+    hi = torch.minimum((c1 + 1) * d_max[..., None], g - (c2 + 1) * d_min[..., None])
+    ok = ok & valid[..., None] & (lo <= hi + 2 * GEOMETRY_TOL_M)
+    empty = ~present.any(dim=1)
+    lo_r, hi_r = _piece_range(torch.full((b,), length_m, dtype=gap.dtype), psi.d_min, psi.d_max)
+    empty_ok = (lo_r <= rem_after) & (rem_after <= hi_r)
+    return Lookahead(lo, hi, ok, empty, empty_ok)
 
 
 @dataclass
@@ -446,9 +475,11 @@ def complete(net: GeneratorNet, snaps: Snapshots, t_max: int, seed: int) -> Comp
     gen = torch.Generator().manual_seed(int(seed))
     hidden = torch.as_tensor(snaps.hidden)
     present = ~hidden
-    arc = torch.as_tensor(snaps.arc_m, dtype=torch.float32).masked_fill(hidden, 0.0)
-    speed = torch.as_tensor(snaps.speed_mps, dtype=torch.float32).masked_fill(hidden, 0.0)
-    psi = PsiTensors.from_array(snaps.psi)
+    # Geometry in float64 (the network still sees float32 features): accepted gaps are
+    # then within Psi's bounds to rounding, not to float32's ~1e-4 m on a ring.
+    arc = torch.as_tensor(snaps.arc_m, dtype=torch.float64).masked_fill(hidden, 0.0)
+    speed = torch.as_tensor(snaps.speed_mps, dtype=torch.float64).masked_fill(hidden, 0.0)
+    psi = PsiTensors.from_array(snaps.psi, dtype=torch.float64)
     b, n = arc.shape
     k = hidden.sum(dim=1)
     projected = torch.zeros(b, dtype=torch.long)
@@ -456,8 +487,7 @@ def complete(net: GeneratorNet, snaps: Snapshots, t_max: int, seed: int) -> Comp
     for step in range(int(k.max().item()) if b else 0):
         active = k > step
         rem_after = (k - step - 1).clamp(min=0)
-        budget = _gap_budget(arc, present, hidden & present, psi, snaps.length_m)
-        allowed = _choosable_gaps(arc, present, psi, rem_after, budget, snaps.length_m)
+        look = lookahead(arc, present, hidden & present, psi, rem_after, snaps.length_m)
         prop = propose(
             net,
             arc,
@@ -468,27 +498,18 @@ def complete(net: GeneratorNet, snaps: Snapshots, t_max: int, seed: int) -> Comp
             snaps.length_m,
             t_max,
             gen,
-            allowed,
+            look.allowed,
         )
         a1 = prop.frac * prop.gap
-        a2 = prop.gap - a1
-        ok = (
-            _pieces_ok(a1, a2, prop.gap_pos, psi, rem_after, budget)
-            & (prop.speed >= psi.v_min)
-            & (prop.speed <= psi.v_max)
-        )
+        ok = look.accepts(prop.gap_pos, a1) & (prop.speed >= psi.v_min) & (prop.speed <= psi.v_max)
         any_ok = ok.any(dim=0)
         first = ok.float().argmax(dim=0)
         pick = torch.where(any_ok, first, torch.full_like(first, t_max - 1))
         new_arc, new_v = prop.arc[pick, rows], prop.speed[pick, rows]
-        # Projection of the last candidate: nearest split point whose pieces can be feasible.
-        g, a = prop.gap[pick, rows], a1[pick, rows]
-        cap = (rem_after + 1).float() * psi.d_max
-        lo = torch.maximum(psi.d_min, g - cap)
-        hi = torch.minimum(cap, g - psi.d_min)
-        a_proj = torch.where(lo <= hi, torch.minimum(torch.maximum(a, lo), hi), g / 2)
-        start = prop.arc[pick, rows] - a
-        proj_arc = torch.remainder(start + a_proj, snaps.length_m)
+        # Projection of the last candidate: the nearest split point of its gap that passes.
+        a = a1[pick, rows]
+        a_proj = look.project(prop.gap_pos[pick, rows], a)
+        proj_arc = torch.remainder(new_arc - a + a_proj, snaps.length_m)
         proj_v = torch.minimum(torch.maximum(new_v, psi.v_min), psi.v_max)
         new_arc = torch.where(any_ok, new_arc, proj_arc)
         new_v = torch.where(any_ok, new_v, proj_v)
@@ -498,9 +519,9 @@ def complete(net: GeneratorNet, snaps: Snapshots, t_max: int, seed: int) -> Comp
         arc = torch.where(onehot, new_arc[:, None], arc)
         speed = torch.where(onehot, new_v[:, None], speed)
         present = present | onehot
-    # Observed vehicles never move: copy them back in double precision.
-    arc_out = np.where(snaps.hidden, arc.double().numpy() % snaps.length_m, snaps.arc_m)
-    speed_out = np.where(snaps.hidden, speed.double().numpy(), snaps.speed_mps)
+    # Observed vehicles never move: the input values, bit for bit.
+    arc_out = np.where(snaps.hidden, arc.numpy() % snaps.length_m, snaps.arc_m)
+    speed_out = np.where(snaps.hidden, speed.numpy(), snaps.speed_mps)
     return Completion(arc_out, speed_out, projected.numpy(), time.perf_counter() - t0)
 
 

@@ -1,0 +1,638 @@
+"""Stage I generator: ring geometry, symmetry of the proposal, the rejection-sampling
+completion (Algorithm 3), gradients of the paper's loss terms, baselines and metrics.
+
+Hand-made scenes test the pure functions; one small ground truth (real SUMO) and one
+generator trained on it with a small budget (real torch) are shared by the module.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from conftest import write_scenario
+
+from macromicro_sumo.config import Scenario, load_scenario
+from macromicro_sumo.dataset import GroundTruth, Snapshots, hide, load_ground_truth
+from macromicro_sumo.generator import (
+    LOSS_TERMS,
+    Completion,
+    GeneratorNet,
+    PsiTensors,
+    complete,
+    complete_equal_gap,
+    complete_uniform,
+    completion_metrics,
+    feasible_exists,
+    features,
+    macro_losses,
+    reconstruction_loss,
+    ring_gaps,
+    rollout,
+)
+from macromicro_sumo.generator_train import (
+    _batch_loss,
+    held_out_sets,
+    run_train_generator,
+    train_generator,
+)
+from macromicro_sumo.ground_truth import simulate
+from macromicro_sumo.macro import spacing_losses, speed_loss
+
+L = 2 * math.pi * 100.0
+N = 5
+PAPER_PSI = [12.06, 126.0, 115.0, 140.0, 10.5, 14.0]  # the paper's case-study table
+TOL_M = 1e-6  # completion_metrics' tolerance on bounds
+
+
+def snaps_of(arc, speed, hidden, psi=PAPER_PSI, length=L) -> Snapshots:
+    """Hand-made snapshots: arrays (B, N) or (N,), one Psi for all rows unless (B, 6)."""
+    arc = np.atleast_2d(np.asarray(arc, float))
+    b = len(arc)
+    speed = np.broadcast_to(np.asarray(speed, float), arc.shape).copy()
+    hidden = np.broadcast_to(np.asarray(hidden, bool), arc.shape).copy()
+    psi = np.broadcast_to(np.asarray(psi, float), (b, 6)).copy()
+    return Snapshots(
+        run=np.zeros(b, int),
+        time_s=np.arange(b, dtype=float),
+        arc_m=arc,
+        speed_mps=speed,
+        psi=psi,
+        hidden=hidden,
+        length_m=length,
+    )
+
+
+def gaps_np(arc: np.ndarray, length: float = L) -> np.ndarray:
+    s = np.sort(np.mod(arc, length), axis=-1)
+    return np.mod(np.roll(s, -1, axis=-1) - s, length)
+
+
+def touched_gaps(arc: np.ndarray, hidden: np.ndarray, length: float = L) -> list[np.ndarray]:
+    """Per row: the gaps with a hidden (generated) vehicle at either end (the set A)."""
+    out = []
+    for a, h in zip(arc, hidden, strict=True):
+        o = np.argsort(np.mod(a, length))
+        g = np.mod(np.roll(a[o], -1) - a[o], length)
+        out.append(g[h[o] | np.roll(h[o], -1)])
+    return out
+
+
+def zero_net() -> GeneratorNet:
+    """An uninformed proposal: every gap equally likely, fraction logit-normal(0, 1)."""
+    net = GeneratorNet(16)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.zero_()
+    return net.eval()
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory) -> tuple[Scenario, GroundTruth, GeneratorNet, Path]:
+    """8 runs of 120 s on the paper ring, and a generator trained on them for 30 epochs."""
+    folder = tmp_path_factory.mktemp("gen")
+    sc = load_scenario(
+        write_scenario(
+            folder,
+            {
+                "simulation.n_runs": 8,
+                "simulation.duration_s": 120.0,
+                "generator.epochs": 30,
+                "generator.patience": 30,
+            },
+        )
+    )
+    gt_dir = simulate(sc, folder / "gt", progress=False)
+    out = folder / "gen"
+    run_train_generator(sc, gt_dir, out, progress=False)
+    gt = load_ground_truth(gt_dir, sc)
+    from macromicro_sumo.generator_train import load_generator
+
+    return sc, gt, load_generator(out / "generator.pt", sc), out
+
+
+@pytest.fixture(scope="module")
+def held_out(trained) -> dict[int, Snapshots]:
+    sc, gt, _, _ = trained
+    return held_out_sets(sc, gt)
+
+
+# --------------------------------------------------------------------------- ring geometry
+
+
+def test_ring_gaps_sum_to_the_ring_and_follow_arc_order():
+    gen = torch.Generator().manual_seed(0)
+    arc = torch.rand(200, N, generator=gen, dtype=torch.float64) * L
+    present = torch.ones(200, N, dtype=torch.bool)
+    follower, leader, gap, valid = ring_gaps(arc, present, L)
+    assert valid.all()
+    torch.testing.assert_close(gap.sum(dim=1), torch.full((200,), L, dtype=torch.float64))
+    np.testing.assert_allclose(np.sort(gap.numpy(), 1), np.sort(gaps_np(arc.numpy()), 1))
+    # Follower i's leader is the next vehicle ahead: the follower of gap i + 1.
+    torch.testing.assert_close(leader, follower.roll(-1, dims=1))
+    ahead = torch.remainder(arc.gather(1, leader) - arc.gather(1, follower), L)
+    torch.testing.assert_close(ahead, gap)
+
+
+def test_ring_gaps_ignore_slot_order():
+    rng = np.random.default_rng(1)
+    arc = rng.uniform(0, L, (50, N))
+    present = rng.random((50, N)) < 0.6
+    perm = rng.permutation(N)
+    a = ring_gaps(torch.tensor(arc), torch.tensor(present), L)
+    b = ring_gaps(torch.tensor(arc[:, perm]), torch.tensor(present[:, perm]), L)
+    torch.testing.assert_close(a[2], b[2])  # same gaps, same (arc) order
+    torch.testing.assert_close(a[3], b[3])
+    # Slots map through the permutation.
+    torch.testing.assert_close(
+        torch.tensor(perm)[b[0]].masked_fill(~b[3], 0), a[0].masked_fill(~a[3], 0)
+    )
+
+
+def test_ring_gaps_of_partial_scenes():
+    arc = torch.tensor([[10.0, 0.0, 110.0, 0.0, 300.0], [42.0, 0.0, 0.0, 0.0, 0.0]])
+    present = torch.tensor([[1, 0, 1, 0, 1], [1, 0, 0, 0, 0]], dtype=torch.bool)
+    _, _, gap, valid = ring_gaps(arc, present, L)
+    assert valid.sum(dim=1).tolist() == [3, 1]
+    torch.testing.assert_close(gap[0, :3], torch.tensor([100.0, 190.0, L - 290.0]))
+    assert gap[1, 0].item() == pytest.approx(L)  # a lone vehicle's gap is the whole ring
+
+
+# --------------------------------------------------------------------------- symmetry
+
+
+def proposal_outputs(net, snaps: Snapshots, shift_m: float = 0.0, perm=None):
+    """Network outputs per gap (in arc order) and the gaps, for a shifted / permuted scene."""
+    perm = np.arange(N) if perm is None else perm
+    arc = torch.tensor(np.mod(snaps.arc_m[:, perm] + shift_m, L), dtype=torch.float32)
+    hidden = torch.tensor(snaps.hidden[:, perm])
+    arc = arc.masked_fill(hidden, 0.0)
+    speed = torch.tensor(snaps.speed_mps[:, perm], dtype=torch.float32).masked_fill(hidden, 0.0)
+    psi = PsiTensors.from_array(snaps.psi)
+    remaining = hidden.sum(dim=1)
+    anchor = torch.zeros(len(snaps))
+    gap_feat, glob, _, _, gap, valid = features(arc, speed, ~hidden, remaining, psi, L, anchor)
+    with torch.no_grad():
+        out = net(gap_feat, glob)
+    return out, gap, valid
+
+
+def test_proposal_ignores_vehicle_order_and_labels(trained, held_out):
+    net = trained[2]
+    snaps = held_out[2]
+    a = proposal_outputs(net, snaps)
+    for seed in range(3):
+        perm = np.random.default_rng(seed).permutation(N)
+        b = proposal_outputs(net, snaps, perm=perm)
+        # Equal up to float rounding of sums taken in another order.
+        for x, y in zip(a, b, strict=True):
+            torch.testing.assert_close(x, y, rtol=0, atol=1e-5)
+
+
+def test_proposal_is_invariant_to_rotating_the_ring(trained, held_out):
+    net = trained[2]
+    snaps = held_out[2]
+    out0, gap0, valid0 = proposal_outputs(net, snaps)
+    out1, gap1, valid1 = proposal_outputs(net, snaps, shift_m=0.37 * L)
+    m = int(valid0[0].sum())
+    assert (valid0.sum(dim=1) == m).all() and torch.equal(valid0, valid1)
+    # Rotation moves which gap comes first in arc order: align rows by the cyclic shift.
+    for i in range(len(snaps)):
+        shifts = [
+            s for s in range(m) if torch.allclose(gap0[i, :m].roll(s), gap1[i, :m], atol=1e-3)
+        ]
+        assert len(shifts) == 1
+        torch.testing.assert_close(
+            out0[i, :m].roll(shifts[0], dims=0), out1[i, :m], rtol=0, atol=2e-4
+        )
+    # The choice distribution (softmax over valid gaps) is the same as a multiset.
+    p0 = torch.softmax(out0[:, :m, 0], dim=1).sort(dim=1).values
+    p1 = torch.softmax(out1[:, :m, 0], dim=1).sort(dim=1).values
+    torch.testing.assert_close(p0, p1, rtol=0, atol=1e-4)
+
+
+def test_completion_ignores_slot_order_for_the_same_seed(trained, held_out):
+    sc, _, net, _ = trained
+    snaps = held_out[3]
+    perm = np.array([3, 0, 4, 1, 2])
+    permuted = dataclasses.replace(
+        snaps,
+        arc_m=snaps.arc_m[:, perm],
+        speed_mps=snaps.speed_mps[:, perm],
+        hidden=snaps.hidden[:, perm],
+    )
+    a = complete(net, snaps, sc.generator.t_max, seed=9)
+    b = complete(net, permuted, sc.generator.t_max, seed=9)
+    np.testing.assert_array_equal(a.projected, b.projected)
+    for i in range(len(snaps)):
+        sa = sorted(zip(a.arc_m[i], a.speed_mps[i], strict=True))
+        sb = sorted(zip(b.arc_m[i], b.speed_mps[i], strict=True))
+        np.testing.assert_allclose(sa, sb, rtol=0, atol=1e-3)
+
+
+# --------------------------------------------------------------------------- completion
+
+
+def test_k_zero_returns_the_input_unchanged(trained, held_out):
+    sc, _, net, _ = trained
+    snaps = dataclasses.replace(held_out[1], hidden=np.zeros_like(held_out[1].hidden))
+    comp = complete(net, snaps, sc.generator.t_max, seed=0)
+    np.testing.assert_array_equal(comp.arc_m, snaps.arc_m)
+    np.testing.assert_array_equal(comp.speed_mps, snaps.speed_mps)
+    assert (comp.projected == 0).all()
+
+
+@pytest.mark.parametrize("k", [1, 2, 3, 4, N])
+def test_completions_keep_observed_vehicles_and_respect_speed_bounds(trained, held_out, k):
+    sc, _, net, _ = trained
+    snaps = held_out[1] if k == N else held_out[k]
+    if k == N:
+        snaps = hide(snaps, N, np.random.default_rng(0))
+    comp = complete(net, snaps, sc.generator.t_max, seed=k)
+    obs = ~snaps.hidden
+    # Observed vehicles never move: bit-for-bit the input.
+    np.testing.assert_array_equal(comp.arc_m[obs], snaps.arc_m[obs])
+    np.testing.assert_array_equal(comp.speed_mps[obs], snaps.speed_mps[obs])
+    assert np.isfinite(comp.arc_m).all() and np.isfinite(comp.speed_mps).all()
+    assert ((comp.arc_m >= 0) & (comp.arc_m < L)).all()
+    v = np.where(snaps.hidden, comp.speed_mps, np.nan)
+    assert (np.nanmin(v, axis=1) >= snaps.psi[:, 4]).all()
+    assert (np.nanmax(v, axis=1) <= snaps.psi[:, 5]).all()
+    assert (comp.projected >= 0).all() and (comp.projected <= k).all()
+    # Generated vehicles never sit on top of another vehicle.
+    assert (gaps_np(comp.arc_m) > 1.0).all()
+
+
+def test_completions_are_deterministic_per_seed(trained, held_out):
+    sc, _, net, _ = trained
+    snaps = held_out[2]
+    a = complete(net, snaps, sc.generator.t_max, seed=4)
+    b = complete(net, snaps, sc.generator.t_max, seed=4)
+    c = complete(net, snaps, sc.generator.t_max, seed=5)
+    np.testing.assert_array_equal(a.arc_m, b.arc_m)
+    np.testing.assert_array_equal(a.speed_mps, b.speed_mps)
+    np.testing.assert_array_equal(a.projected, b.projected)
+    assert not np.array_equal(a.speed_mps, c.speed_mps)
+
+
+def test_unprojected_completions_are_within_psi_bounds(trained, held_out):
+    """Accepted candidates pass Algorithm 3's check: every touched gap in [d_min, d_max]."""
+    sc, _, net, _ = trained
+    for k, snaps in held_out.items():
+        comp = complete(net, snaps, sc.generator.t_max, seed=k)
+        assert_within_bounds(snaps, comp, comp.projected == 0)
+
+
+def assert_within_bounds(snaps: Snapshots, comp: Completion, rows: np.ndarray) -> None:
+    """Every touched gap in [d_min, d_max] and every generated speed in [v_min, v_max]."""
+    for i, g in enumerate(touched_gaps(comp.arc_m, snaps.hidden)):
+        if rows[i]:
+            d_min, d_max, v_min, v_max = snaps.psi[i, 2:6]
+            v = comp.speed_mps[i, snaps.hidden[i]]
+            assert (g >= d_min - TOL_M).all() and (g <= d_max + TOL_M).all(), (i, g, d_min, d_max)
+            assert (v >= v_min - TOL_M).all() and (v <= v_max + TOL_M).all(), (i, v)
+
+
+@pytest.mark.parametrize("k", [1, 2, 3, 4, N])
+def test_every_completion_is_within_bounds_where_one_exists(trained, held_out, k):
+    """The look-ahead never accepts a dead end and projection lands on a feasible point,
+    so a completion within Psi's bounds comes out whenever one exists, projected or not."""
+    sc, _, net, _ = trained
+    snaps = hide(held_out[1], k, np.random.default_rng(k))
+    exists = feasible_exists(snaps)
+    assert exists.mean() > 0.9
+    broad = complete(zero_net(), snaps, t_max=200, seed=k)
+    assert_within_bounds(snaps, broad, exists)
+    # A broad proposal with many trials rarely needs projection (only for windows of
+    # centimetres left by an earlier vehicle).
+    assert broad.projected[exists].mean() < 0.05
+    learned = complete(net, snaps, sc.generator.t_max, seed=k)
+    assert_within_bounds(snaps, learned, exists)
+    # T_max = 1 rejects often: every one of those vehicles is projected into bounds.
+    once = complete(zero_net(), snaps, t_max=1, seed=k)
+    assert once.projected.sum() > 0
+    assert_within_bounds(snaps, once, exists)
+
+
+def test_lookahead_never_accepts_a_dead_end():
+    """Observed gaps 400, 150 and 78.3 m, bounds [60, 165] m, two vehicles to place.
+
+    One vehicle fits in the 150 m gap, but then the second has nowhere to go: 400 m holds
+    0 or 2 to 5 more vehicles, never exactly 1. Both must go into the 400 m gap."""
+    b = 200
+    arc = np.tile([0.0, 400.0, 550.0, 0.0, 0.0], (b, 1))
+    snaps = snaps_of(arc, 12.0, [0, 0, 0, 1, 1], [12.0, 125.0, 60.0, 165.0, 10.5, 14.0])
+    assert feasible_exists(snaps).all()
+    comp = complete(zero_net(), snaps, t_max=500, seed=0)
+    assert ((comp.arc_m[:, 3:] > 0) & (comp.arc_m[:, 3:] < 400)).all()
+    assert_within_bounds(snaps, comp, np.ones(b, bool))
+    # Projection only when the first vehicle left the second a window of a few metres.
+    assert comp.projected.mean() < 0.05
+
+
+def test_whole_scene_from_psi_alone_with_the_papers_fixed_bounds():
+    """K = N: nothing observed, the ring is filled from Psi alone (bounds [115, 140] m)."""
+    b = 64
+    snaps = snaps_of(np.zeros((b, N)), 0.0, np.ones((b, N), bool))
+    assert feasible_exists(snaps).all()
+    comp = complete(zero_net(), snaps, t_max=2000, seed=0)
+    assert (comp.projected == 0).all()
+    assert_within_bounds(snaps, comp, np.ones(b, bool))
+    # Rotation symmetry: the first vehicle goes anywhere on the ring.
+    first = np.sort(comp.arc_m, axis=1)[:, 0]
+    assert np.ptp(first) > 30.0
+
+
+# --------------------------------------------------------------------------- loss terms
+
+
+def test_macro_losses_equal_the_numpy_definitions():
+    rng = np.random.default_rng(3)
+    b = 300
+    arc = rng.uniform(0, L, (b, N))
+    speed = rng.uniform(10.0, 14.5, (b, N))
+    generated = rng.random((b, N)) < 0.5
+    generated[:10] = False  # empty A: every spacing term is zero
+    psi = np.column_stack(
+        [
+            rng.uniform(11, 13, b),
+            rng.uniform(120, 130, b),
+            rng.uniform(60, 120, b),
+            rng.uniform(140, 180, b),
+            np.full(b, 10.5),
+            np.full(b, 14.0),
+        ]
+    )
+    got = macro_losses(
+        torch.tensor(arc),
+        torch.tensor(speed),
+        torch.tensor(generated),
+        PsiTensors(*torch.tensor(psi).unbind(dim=1)),
+        L,
+    )
+    order = np.argsort(arc, axis=1)
+    s = np.take_along_axis(arc, order, 1)
+    gaps = np.mod(np.roll(s, -1, axis=1) - s, L)
+    g = np.take_along_axis(generated, order, 1)
+    a_mask = g | np.roll(g, -1, axis=1)  # follower or leader generated
+    want = spacing_losses(gaps, a_mask, psi[:, 1], psi[:, 2], psi[:, 3])
+    want["L_speed"] = speed_loss(speed, psi[:, 0])
+    assert set(got) == set(LOSS_TERMS)
+    for term in LOSS_TERMS:
+        np.testing.assert_allclose(
+            got[term].numpy(), want[term], rtol=1e-6, atol=1e-7, err_msg=term
+        )
+    assert (got["L_min"][10:] > 0).any() and (got["L_max"][10:] > 0).any()
+    assert (got["L_var"][:10] == 0).all() and (got["L_mean"][:10] == 0).all()
+
+
+def test_macro_losses_vanish_on_an_ideal_scene():
+    arc = torch.arange(N, dtype=torch.float64)[None] * L / N
+    speed = torch.full((1, N), 12.0, dtype=torch.float64)
+    psi = PsiTensors(*torch.tensor([[12.0, L / N, 115.0, 140.0, 10.5, 14.0]]).double().unbind(1))
+    terms = macro_losses(arc, speed, torch.ones(1, N, dtype=torch.bool), psi, L)
+    for term, value in terms.items():
+        assert value.item() == pytest.approx(0.0, abs=1e-6), term
+
+
+def hidden_k(b: int, k: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return np.argsort(rng.random((b, N)), axis=1) < k
+
+
+def last_layer_grad(net: GeneratorNet, loss: torch.Tensor) -> np.ndarray:
+    """|grad| of the output layer's weight, summed per output row (logit, frac mu, frac
+    log-std, speed mu, speed log-std)."""
+    net.zero_grad()
+    loss.backward(retain_graph=True)
+    return net.body[-1].weight.grad.abs().sum(dim=1).numpy()
+
+
+def test_gradients_reach_the_speed_and_position_heads_through_the_samples(held_out):
+    torch.manual_seed(0)
+    net = GeneratorNet(32)
+    base = held_out[1]
+    snaps = dataclasses.replace(base, hidden=hidden_k(len(base), 1))
+    arc, speed, generated, log_p = rollout(net, snaps, torch.Generator().manual_seed(0))
+    terms = macro_losses(arc, speed, generated, PsiTensors.from_array(snaps.psi), L)
+    # K = 1: the speed term only depends on the speed head, the spacing terms only on the
+    # position head; the gap choice gets no pathwise gradient (it is discrete).
+    g_speed = last_layer_grad(net, terms["L_speed"].mean())
+    assert (g_speed[[3, 4]] > 0).all() and (g_speed[[0, 1, 2]] == 0).all(), g_speed
+    dist = terms["L_mean"] + terms["L_min"] + terms["L_max"] + terms["L_var"]
+    g_dist = last_layer_grad(net, dist.mean())
+    assert (g_dist[[1, 2]] > 0).all() and (g_dist[[0, 3, 4]] == 0).all(), g_dist
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in net.parameters())
+    # K = 3: later vehicles see earlier ones, so every reparameterised head gets both terms.
+    snaps = dataclasses.replace(base, hidden=hidden_k(len(base), 3))
+    arc, speed, generated, _ = rollout(net, snaps, torch.Generator().manual_seed(0))
+    terms = macro_losses(arc, speed, generated, PsiTensors.from_array(snaps.psi), L)
+    assert (last_layer_grad(net, terms["L_speed"].mean())[1:] > 0).all()
+    dist = terms["L_mean"] + terms["L_min"] + terms["L_max"] + terms["L_var"]
+    assert (last_layer_grad(net, dist.mean())[1:] > 0).all()
+
+
+def test_the_training_loss_trains_the_gap_choice(trained, held_out):
+    """The score-function term gives the choice logits a gradient."""
+    sc = trained[0]
+    torch.manual_seed(0)
+    net = GeneratorNet(32)
+    snaps = dataclasses.replace(held_out[2], hidden=hidden_k(len(held_out[2]), 2))
+    loss, stats = _batch_loss(net, snaps, sc, torch.Generator().manual_seed(0))
+    g = last_layer_grad(net, loss)
+    assert (g > 0).all(), g
+    assert set(stats) == {*LOSS_TERMS, "loss"}
+    want = 0.5 * stats["L_speed"] + 0.5 * sum(stats[t] for t in LOSS_TERMS[1:])
+    assert stats["loss"] == pytest.approx(want, rel=1e-5)
+
+
+def test_reconstruction_loss_matches_vehicles_by_assignment():
+    true_arc = torch.tensor([[2.0, 100.0, 250.0, 400.0, 520.0]], dtype=torch.float64)
+    true_v = torch.tensor([[11.0, 12.0, 13.0, 12.5, 11.5]], dtype=torch.float64)
+    hidden = torch.tensor([[True, True, False, False, True]])
+    psi = PsiTensors(*torch.tensor([PAPER_PSI]).double().unbind(1))  # v_scale = 1.75 m/s
+    # The same hidden states in other slots: zero after matching.
+    perm = torch.tensor([4, 0, 2, 3, 1])
+    loss = reconstruction_loss(true_arc[:, perm], true_v[:, perm], true_arc, true_v, hidden, psi, L)
+    assert loss.item() == pytest.approx(0.0, abs=1e-12)
+    # One hidden vehicle 10 m and 0.35 m/s off; another 5 m behind across the ring's seam.
+    arc, v = true_arc.clone(), true_v.clone()
+    arc[0, 4] += 10.0
+    v[0, 4] += 0.35
+    arc[0, 0] = L - 3.0
+    rad = 2 * math.pi / L
+    want = ((10.0 * rad) ** 2 + (0.35 / 1.75) ** 2 + (5.0 * rad) ** 2) / 3
+    loss = reconstruction_loss(arc, v, true_arc, true_v, hidden, psi, L)
+    assert loss.item() == pytest.approx(want, rel=1e-9)
+
+
+def test_reconstruction_switch_trains_and_logs_l_rec(trained, tmp_path):
+    sc, gt, _, _ = trained
+    on = dataclasses.replace(
+        sc, generator=dataclasses.replace(sc.generator, lambda_rec=1.0, epochs=3, patience=10)
+    )
+    train_generator(on, gt, tmp_path / "on", progress=False)
+    log = pd.read_csv(tmp_path / "on" / "generator_train_log.csv")
+    assert len(log) == 3
+    for col in ("train_L_rec", "val_L_rec"):
+        assert col in log and (log[col] > 0).all() and np.isfinite(log[col]).all()
+    # The logged loss includes lambda_rec * L_rec.
+    macro = 0.5 * log["val_L_speed"] + 0.5 * log[[f"val_{t}" for t in LOSS_TERMS[1:]]].sum(axis=1)
+    np.testing.assert_allclose(log["val_loss"], macro + log["val_L_rec"], rtol=1e-5)
+    off = pd.read_csv(trained[3] / "generator_train_log.csv")
+    assert "train_L_rec" not in off and "val_L_rec" not in off
+
+
+# --------------------------------------------------------------------------- training and metrics
+
+
+def test_training_lowers_the_validation_loss(trained):
+    log = pd.read_csv(trained[3] / "generator_train_log.csv")
+    assert len(log) == 30
+    assert log["val_loss"].min() < 0.5 * log["val_loss"].iloc[0]
+    assert (np.diff(log["wall_s"]) > 0).all()
+
+
+def test_trained_generator_beats_uniform_on_every_macro_term(trained):
+    metrics = pd.read_csv(trained[3] / "generator_metrics.csv")
+    gen = metrics[metrics["method"] == "generator"].set_index("K")
+    uni = metrics[metrics["method"] == "uniform"].set_index("K")
+    assert list(gen.index) == [1, 2, 3, 4]
+    for k in gen.index:
+        for term in (*LOSS_TERMS, "speed_rel_err"):
+            if term == "L_mean" and k == N - 1:
+                # One observed vehicle: A is every gap, whose mean is L / N whatever the
+                # completion, so all methods tie.
+                assert gen.loc[k, term] == pytest.approx(uni.loc[k, term], abs=1e-9)
+                continue
+            if uni.loc[k, term] > 0:
+                assert gen.loc[k, term] < uni.loc[k, term], (k, term)
+            else:
+                assert gen.loc[k, term] == 0, (k, term)
+        assert gen.loc[k, "feasibility_rate"] > uni.loc[k, "feasibility_rate"]
+        assert gen.loc[k, "pos_err_m"] < uni.loc[k, "pos_err_m"]
+
+
+def test_baselines(held_out):
+    snaps = held_out[2]
+    hid = snaps.hidden
+    v_min, v_max = snaps.psi[:, 4:5], snaps.psi[:, 5:6]
+    for comp in (complete_uniform(snaps, 0), complete_equal_gap(snaps, 0)):
+        np.testing.assert_array_equal(comp.arc_m[~hid], snaps.arc_m[~hid])
+        np.testing.assert_array_equal(comp.speed_mps[~hid], snaps.speed_mps[~hid])
+        assert ((comp.speed_mps >= v_min) | ~hid).all() and ((comp.speed_mps <= v_max) | ~hid).all()
+    # Equal gap: hidden speeds make the fleet mean Psi's mean, unless clipped to the bounds.
+    eq = complete_equal_gap(snaps, 0)
+    need = (N * snaps.psi[:, 0] - np.where(hid, 0.0, snaps.speed_mps).sum(1)) / hid.sum(1)
+    free = (need > v_min[:, 0]) & (need < v_max[:, 0])
+    assert free.mean() > 0.5
+    np.testing.assert_allclose(eq.speed_mps.mean(1)[free], snaps.psi[free, 0], rtol=1e-12)
+    # K = N: evenly spaced vehicles at Psi's mean speed.
+    full = hide(snaps, N, np.random.default_rng(0))
+    eq = complete_equal_gap(full, 0)
+    np.testing.assert_allclose(gaps_np(eq.arc_m), L / N, atol=1e-9)
+    np.testing.assert_allclose(eq.speed_mps, np.repeat(full.psi[:, :1], N, 1))
+
+
+def test_equal_gap_fills_the_largest_gap_at_its_middle():
+    arc = [0.0, 100.0, 200.0, 300.0, 0.0]  # observed gaps 100, 100, 100 and 328.3
+    comp = complete_equal_gap(snaps_of(arc, 12.0, [0, 0, 0, 0, 1]), 0)
+    assert comp.arc_m[0, 4] == pytest.approx(300.0 + (L - 300.0) / 2)
+
+
+# --------------------------------------------------------------------------- feasibility
+
+
+@pytest.mark.parametrize(
+    ("arc", "hidden", "psi_bounds", "expected"),
+    [
+        # Nothing hidden: trivially feasible.
+        ([0, 125, 250, 375, 500], [0, 0, 0, 0, 0], (115, 140), True),
+        # One hidden, the 253.3 m gap splits into two in [115, 140].
+        ([0, 125, 250, 375, 0], [0, 0, 0, 0, 1], (115, 140), True),
+        # One hidden, but the largest gap (300 m) cannot split into two <= 140 m.
+        ([0, 100, 200, 328.3, 0], [0, 0, 0, 0, 1], (115, 140), False),
+        # Two hidden, gaps 200, 200, 228.3: each too short for two >= 115 m.
+        ([0, 200, 400, 0, 0], [0, 0, 0, 1, 1], (115, 140), False),
+        # Same scene with d_min = 100 m: one vehicle into each of two gaps.
+        ([0, 200, 400, 0, 0], [0, 0, 0, 1, 1], (100, 140), True),
+        # Two observed 100 m apart (untouched gap may break bounds); three into 528.3 m.
+        ([0, 100, 0, 0, 0], [0, 0, 1, 1, 1], (115, 140), True),
+        # Whole scene: 5 x 115 <= L <= 5 x 140.
+        ([0, 0, 0, 0, 0], [1, 1, 1, 1, 1], (115, 140), True),
+        # Whole scene: 5 x 130 > L.
+        ([0, 0, 0, 0, 0], [1, 1, 1, 1, 1], (130, 140), False),
+        # Inverted bounds.
+        ([0, 125, 250, 375, 0], [0, 0, 0, 0, 1], (140, 115), False),
+    ],
+)
+def test_feasible_exists_on_hand_made_scenes(arc, hidden, psi_bounds, expected):
+    psi = [12.0, 125.0, *psi_bounds, 10.5, 14.0]
+    snaps = snaps_of(arc, 12.0, hidden, psi)
+    assert feasible_exists(snaps).tolist() == [expected]
+
+
+def test_feasible_exists_agrees_with_a_brute_force_search():
+    """K = 1 and 2 on random scenes against a 0.5 m grid over all placements."""
+    rng = np.random.default_rng(7)
+    for trial in range(60):
+        k = 1 + trial % 2
+        arc = np.sort(rng.uniform(0, L, N))
+        hidden = np.zeros(N, bool)
+        hidden[rng.choice(N, k, replace=False)] = True
+        d_min, d_max = rng.uniform(80, 120), rng.uniform(130, 200)
+        snaps = snaps_of(arc, 12.0, hidden, [12.0, 125.0, d_min, d_max, 10.5, 14.0])
+        obs = arc[~hidden]
+        grid = np.arange(0, L, 0.5)
+        cands = (
+            grid[:, None]
+            if k == 1
+            else np.stack(np.meshgrid(grid[::4], grid[::4]), -1).reshape(-1, 2)
+        )
+        full = np.concatenate([np.broadcast_to(obs, (len(cands), len(obs))), cands], axis=1)
+        gen_mask = np.concatenate([np.zeros(len(obs), bool), np.ones(k, bool)])
+        ok = False
+        for row in np.array_split(full, max(1, len(full) // 4000)):
+            o = np.argsort(row, axis=1)
+            s = np.take_along_axis(row, o, 1)
+            g = np.mod(np.roll(s, -1, 1) - s, L)
+            h = gen_mask[o]
+            t = h | np.roll(h, -1, 1)
+            inb = (g >= d_min) & (g <= d_max)
+            ok |= bool(np.any(np.all(inb | ~t, axis=1)))
+        if ok:  # a grid point found a completion: one exists
+            assert feasible_exists(snaps)[0], (arc, hidden, d_min, d_max)
+
+
+def test_completion_metrics_on_a_known_completion():
+    truth = np.array([0.0, 125.0, 250.0, 375.0, 500.0])
+    hidden = np.array([False, True, False, True, False])
+    snaps = snaps_of(
+        truth, [12.0, 11.0, 12.0, 13.0, 12.0], hidden, [12.0, L / N, 115, 140, 10.5, 14]
+    )
+    # The two hidden vehicles swapped (same states, other slots) and exactly on truth.
+    comp = Completion(
+        arc_m=truth[[0, 3, 2, 1, 4]][None],
+        speed_mps=np.array([[12.0, 13.0, 12.0, 11.0, 12.0]]),
+        projected=np.zeros(1, int),
+        wall_s=0.0,
+    )
+    m = completion_metrics(snaps, comp).iloc[0]
+    assert m["pos_err_m"] == pytest.approx(0.0) and m["speed_err_mps"] == pytest.approx(0.0)
+    assert bool(m["feasible"]) and bool(m["feasible_exists"])
+    assert m["speed_rel_err"] == pytest.approx(0.0, abs=1e-12)
+    # Move one hidden vehicle 20 m forward: a gap of 145 m > d_max.
+    comp.arc_m[0, 1] = 395.0
+    m = completion_metrics(snaps, comp).iloc[0]
+    assert not bool(m["feasible"])
+    assert m["pos_err_m"] == pytest.approx(10.0)  # (0 + 20) / 2, after matching
+    assert m["L_max"] > 0
+    # A projected vehicle is never counted feasible.
+    comp.arc_m[0, 1] = 375.0
+    comp.projected[0] = 1
+    assert not bool(completion_metrics(snaps, comp).iloc[0]["feasible"])
