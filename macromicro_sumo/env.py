@@ -212,6 +212,12 @@ class RingCore:
 
     def step(self, accel_hidden: np.ndarray) -> StepResult:
         """Advance one step: hidden vehicles apply ``accel_hidden`` (K,), observed replay."""
+        if not self.sim.is_active():
+            raise UserError(
+                "another SUMO simulation was started in this process; libsumo runs one per process"
+            )
+        if self.t >= self.bank.replay_speed_mps.shape[1] - 1:
+            raise UserError(f"episode over after {self.t} steps: call reset()")
         a = np.clip(accel_hidden, self.a_min, self.a_max)
         cmd = self.bank.replay_speed_mps[self.episode, self.t + 1].copy()
         cmd[self.hidden] = np.maximum(0.0, self.speed[self.hidden] + a * self.dt)

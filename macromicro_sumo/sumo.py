@@ -106,6 +106,7 @@ class Simulation:
     """One libsumo simulation, started once per process and reloaded for each run."""
 
     _started_pid: int | None = None  # class-level: libsumo holds one simulation per process
+    _active: Simulation | None = None  # the instance whose run libsumo holds now
 
     def __init__(self, options: SumoOptions) -> None:
         self.options = options
@@ -129,16 +130,23 @@ class Simulation:
             ) from None
         self.options = options
         self._dt = float(options.step_length_s)
+        Simulation._active = self
+
+    def is_active(self) -> bool:
+        """False once another instance (or a close) took libsumo's one simulation."""
+        return Simulation._active is self
 
     def reload(self, options: SumoOptions) -> None:
         """Start a new run in the same process (new files, new seed)."""
         self._load(options)
 
     def close(self) -> None:
-        if Simulation._started_pid == os.getpid():
+        """End this instance's run; a no-op when another instance has taken libsumo over."""
+        if Simulation._started_pid == os.getpid() and Simulation._active in (self, None):
             with contextlib.suppress(Exception):
                 libsumo.close()
             Simulation._started_pid = None
+            Simulation._active = None
 
     @property
     def dt_s(self) -> float:
