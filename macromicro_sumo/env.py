@@ -23,9 +23,7 @@ import numpy as np
 from macromicro_sumo.config import Scenario
 from macromicro_sumo.dataset import GroundTruth, Snapshots, hide, run_arrays, snapshot_states
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.macro import spacing_losses, speed_loss
 from macromicro_sumo.network import RingGeometry, read_ring
-from macromicro_sumo.physics import ring_leaders, ring_observations
 from macromicro_sumo.sumo import Simulation, SumoOptions
 
 CTRL_TYPE = "ctrl"
@@ -162,6 +160,7 @@ class RingCore:
             raise UserError(f"SUMO inserted {len(self.sim.vehicle_ids())} of {self.n} vehicles")
         self.sim.subscribe(self.ids)
         self.sim.set_speed_mode(self.ids, 0)
+        self._next = np.roll(np.arange(self.n), -1)
         self.episode = -1
         self.t = 0
         self.arc = np.zeros(self.n)
@@ -184,28 +183,61 @@ class RingCore:
         self.psi = b.psi[episode]
         self.limits = b.limits_mps[episode]
         self.sim.set_lane_speed_limits(self.geo.lane_ids, self.limits)
-        lanes, pos, routes = [], [], []
-        for a in self.arc:
-            e, p = self.geo.to_edge(a)
-            lanes.append(self.geo.lane_ids[e])
-            pos.append(p)
-            routes.append(f"r_{self.geo.edge_ids[e]}")
-        self.sim.move_to(self.ids, lanes, pos, routes)
+        self.edge = self.geo.edge_index(self.arc)
+        pos = self.arc - self.geo.offsets_m[self.edge]
+        self.sim.move_to(
+            self.ids,
+            [self.geo.lane_ids[e] for e in self.edge],
+            pos,
+            [f"r_{self.geo.edge_ids[e]}" for e in self.edge],
+        )
         self._verify_first = True
+        self._scene()
         return self.observations()
 
+    def _scene(self) -> None:
+        """Leader and front-to-front spacing of every vehicle, once per step (hot path)."""
+        order = np.argsort(self.arc)
+        s = self.arc[order]
+        gaps = np.empty(self.n)
+        gaps[:-1] = s[1:] - s[:-1]
+        gaps[-1] = s[0] + self.length - s[-1]
+        self.leader = np.empty(self.n, dtype=np.int64)
+        self.leader[order] = order[self._next]
+        self.spacing = np.empty(self.n)
+        self.spacing[order] = gaps
+
     def observations(self) -> np.ndarray:
-        lim = self.limits[self.geo.edge_index(self.arc)]
-        return ring_observations(self.arc, self.speed, lim, self.length)
+        """[v, v_limit, spacing, v - v_leader] of every vehicle (see physics.ring_observations)."""
+        obs = np.empty((self.n, 4))
+        obs[:, 0] = self.speed
+        obs[:, 1] = self.limits[self.edge]
+        obs[:, 2] = self.spacing
+        obs[:, 3] = self.speed - self.speed[self.leader]
+        return obs
 
     def macro_reward(self) -> tuple[float, dict[str, float]]:
-        """r_macro,t = 1 / (1 + lambda_v L_speed + lambda_d L_dist) on the whole scene."""
-        leader, spacing = ring_leaders(self.arc, self.length)
-        touched = self.hidden | self.hidden[leader]
-        p = self.psi
-        terms = spacing_losses(spacing[None], touched[None], p[1:2], p[2:3], p[3:4])
-        terms = {k: float(v[0]) for k, v in terms.items()}
-        terms["L_speed"] = float(speed_loss(self.speed[None], p[0:1])[0])
+        """r_macro,t = 1 / (1 + lambda_v L_speed + lambda_d L_dist) on the whole scene.
+
+        The terms of ``macro.spacing_losses`` / ``speed_loss`` for one scene, written for
+        a single ring because this runs every step (tested equal to them).
+        """
+        v_mean, d_mean, d_min, d_max = self.psi[0], self.psi[1], self.psi[2], self.psi[3]
+        a = self.spacing[self.hidden | self.hidden[self.leader]]
+        terms = {"L_speed": float((self.speed.sum() / self.n / v_mean - 1.0) ** 2)}
+        m = a.size
+        if m:
+            # sum()/m rather than mean()/std(): numpy's reductions cost more than the math here.
+            mean = a.sum() / m
+            dev = a - mean
+            low = np.maximum(0.0, d_min - a)
+            high = np.maximum(0.0, a - d_max)
+            terms["L_mean"] = float((mean / d_mean - 1.0) ** 2)
+            terms["L_min"] = float((low * low).sum() / (m * d_min * d_min))
+            terms["L_max"] = float((high * high).sum() / (m * d_max * d_max))
+            terms["L_var"] = float(np.sqrt((dev * dev).sum() / m) / d_mean)
+        else:
+            terms.update(L_mean=0.0, L_min=0.0, L_max=0.0, L_var=0.0)
         g = self.sc.generator
         l_dist = terms["L_mean"] + terms["L_min"] + terms["L_max"] + terms["L_var"]
         return 1.0 / (1.0 + g.lambda_v * terms["L_speed"] + g.lambda_d * l_dist), terms
@@ -222,29 +254,29 @@ class RingCore:
         cmd = self.bank.replay_speed_mps[self.episode, self.t + 1].copy()
         cmd[self.hidden] = np.maximum(0.0, self.speed[self.hidden] + a * self.dt)
         self.sim.set_speeds(self.ids, cmd)
-        error = ""
         try:
             self.sim.step()
             e, p, v = self.sim.read_states(self.ids, self._edge_index)
-        except (KeyError, Exception) as exc:  # a vehicle lost or a SUMO error: truncate, go on
-            error = f"{type(exc).__name__}: {exc}"
-            obs = self.observations()
-            return StepResult(obs, 0.0, {}, False, True, error)
+        except Exception as exc:  # a vehicle lost or a SUMO error: truncate, training goes on
+            return StepResult(
+                self.observations(), 0.0, {}, False, True, f"{type(exc).__name__}: {exc}"
+            )
         prev_arc = self.arc
-        self.arc = np.mod(self.geo.offsets_m[e] + p, self.length)
+        self.edge = e
+        self.arc = self.geo.offsets_m[e] + p
         self.speed = v
         self.t += 1
-        if self._verify_first:
+        error = ""
+        if self._verify_first:  # the placement at reset, checked after its first step
             self._verify_first = False
-            moved = (
+            off = (
                 np.mod(prev_arc + cmd * self.dt - self.arc + self.length / 2, self.length)
                 - self.length / 2
             )
-            if np.abs(moved).max() > 0.01 or np.abs(v - cmd).max() > 0.01:
-                error = f"insertion check failed: position off by {np.abs(moved).max():.3f} m"
-        _, spacing = ring_leaders(self.arc, self.length)
+            if np.abs(off).max() > 0.01 or np.abs(v - cmd).max() > 0.01:
+                error = f"insertion check failed: position off by {np.abs(off).max():.3f} m"
+        self._scene()
         # Arc gaps decide collisions: SUMO also reports one when moveTo reorders vehicles at reset.
-        collision = bool((spacing < self.sc.fleet.length_m).any())
-        self.sumo_collisions = self.sim.collisions()
+        collision = bool(self.spacing.min() < self.sc.fleet.length_m)
         r, terms = self.macro_reward()
         return StepResult(self.observations(), r, terms, collision, bool(error), error)

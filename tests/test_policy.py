@@ -139,3 +139,29 @@ def test_train_policy_cli_writes_policy_and_log(small_gt, tmp_path):
     assert (align["collisions"] == 0).all()
     assert (align["abs_error_mps"] < 0.3).all()
     assert (pol / "policy.pt").is_file()
+
+
+def test_env_macro_reward_equals_the_shared_loss_terms(small_gt):
+    """The env's single-ring fast path computes exactly macro.spacing_losses / speed_loss."""
+    from macromicro_sumo.macro import spacing_losses, speed_loss
+    from macromicro_sumo.physics import ring_leaders
+
+    sc, gt_dir = small_gt
+    bank = _bank(sc, gt_dir, 3)
+    core = RingCore(sc, bank, seed=0)
+    try:
+        for ep in range(5):
+            core.reset(ep)
+            res = core.step(np.zeros(3))
+            leader, spacing = ring_leaders(core.arc, core.length)
+            np.testing.assert_allclose(core.spacing, spacing, atol=1e-9)
+            touched = core.hidden | core.hidden[leader]
+            p = core.psi
+            ref = spacing_losses(spacing[None], touched[None], p[1:2], p[2:3], p[3:4])
+            for key, val in ref.items():
+                assert res.terms[key] == pytest.approx(float(val[0]), abs=1e-12)
+            assert res.terms["L_speed"] == pytest.approx(
+                float(speed_loss(core.speed[None], p[0:1])[0]), abs=1e-12
+            )
+    finally:
+        core.close()
