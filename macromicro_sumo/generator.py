@@ -29,9 +29,11 @@ it must split into m + 1 gaps in [d_min, d_max] for some m <= vehicles still to 
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import pandas as pd
@@ -59,16 +61,14 @@ def ring_gaps(
     the i-th gap in arc order; positions >= the number of present vehicles are invalid.
     A lone vehicle's gap is the whole ring.
     """
-    b, n = arc.shape
-    key = torch.where(present, arc, arc + 4 * length_m)
-    order = key.argsort(dim=1)
+    n = arc.shape[1]
+    order = torch.where(present, arc, arc + 4 * length_m).argsort(dim=1)
     m = present.sum(dim=1, keepdim=True)
-    idx = torch.arange(n, device=arc.device).expand(b, n)
-    nxt = torch.where(idx + 1 < m, idx + 1, torch.zeros_like(idx))
+    idx = torch.arange(n, device=arc.device)
     follower = order
-    leader = order.gather(1, nxt)
+    leader = order.gather(1, torch.where(idx + 1 < m, idx + 1, 0))
     gap = torch.remainder(arc.gather(1, leader) - arc.gather(1, follower), length_m)
-    gap = torch.where(follower == leader, torch.full_like(gap, length_m), gap)
+    gap = torch.where(follower == leader, length_m, gap)
     return follower, leader, gap, idx < m
 
 
@@ -90,9 +90,45 @@ class PsiTensors:
         p = torch.as_tensor(psi, dtype=dtype)
         return cls(*p.unbind(dim=1))
 
-    @property
+    @cached_property
+    def v_range(self) -> torch.Tensor:
+        return self.v_max - self.v_min
+
+    @cached_property
     def v_scale(self) -> torch.Tensor:
         return torch.clamp(0.5 * (self.v_max - self.v_min), min=0.1)
+
+    @cached_property
+    def static_features(self) -> torch.Tensor:
+        """(B, 4) the global features that depend on Psi alone (computed once per batch)."""
+        return torch.stack(
+            [
+                self.d_min / self.d_mean,
+                self.d_max / self.d_mean,
+                (self.v_max - self.v_min) / self.v_mean,
+                (self.v_min + self.v_max - 2 * self.v_mean) / (2 * self.v_scale),
+            ],
+            dim=-1,
+        )
+
+
+def scene_gaps(
+    arc: torch.Tensor, present: torch.Tensor, length_m: float, anchor: torch.Tensor
+) -> tuple[torch.Tensor, ...]:
+    """``ring_gaps`` of a scene, plus each gap's start [m] (B, N).
+
+    An empty ring gets one virtual vehicle at ``anchor`` (a random angle) whose gap is the
+    whole ring, so the first vehicle of a scene goes anywhere (rotation symmetry).
+    """
+    n = arc.shape[1]
+    virtual = ~present.any(dim=1, keepdim=True) & (torch.arange(n) == 0)
+    arc_e = torch.where(virtual, anchor[:, None], arc)
+    follower, leader, gap, valid = ring_gaps(arc_e, present | virtual, length_m)
+    return follower, leader, gap, valid, arc_e.gather(1, follower)
+
+
+# Global feature order: remaining, present, d_min, d_max, needed v, mean v, v range, v centre.
+_GLOBAL_ORDER = [0, 1, 4, 5, 2, 3, 6, 7]
 
 
 def features(
@@ -103,24 +139,29 @@ def features(
     psi: PsiTensors,
     length_m: float,
     anchor: torch.Tensor,
+    geometry: tuple[torch.Tensor, ...] | None = None,
 ) -> tuple[torch.Tensor, ...]:
-    """Per-gap and global features of the current scene (all relative, no labels)."""
-    b, n = arc.shape
+    """Per-gap and global features of the current scene (all relative, no labels).
+
+    Returns (gap features (B, N, 7), global features (B, 8), needed speed (B,), geometry);
+    ``geometry`` is ``scene_gaps``' result, computed here unless the caller has it.
+    """
+    n = arc.shape[1]
     m = present.sum(dim=1)
-    empty = m == 0
-    # An empty ring gets one virtual anchor vehicle (random angle) whose gap is the ring.
-    arc_e = torch.where(empty[:, None] & (torch.arange(n) == 0), anchor[:, None].expand(b, n), arc)
-    present_e = present | (empty[:, None] & (torch.arange(n) == 0))
-    follower, leader, gap, valid = ring_gaps(arc_e, present_e, length_m)
+    empty = (m == 0)[:, None]
+    if geometry is None:
+        geometry = scene_gaps(arc, present, length_m, anchor)
+    follower, leader, gap, _, _ = geometry
     vs, vm, dm = psi.v_scale[:, None], psi.v_mean[:, None], psi.d_mean[:, None]
-    v_f = torch.where(empty[:, None], vm, speed.gather(1, follower))
-    v_l = torch.where(empty[:, None], vm, speed.gather(1, leader))
+    v_f = torch.where(empty, vm, speed.gather(1, follower))
+    v_l = torch.where(empty, vm, speed.gather(1, leader))
+    gap_dm = gap / dm
     gap_feat = torch.stack(
         [
-            gap / dm,
+            gap_dm,
             (gap - psi.d_min[:, None]) / dm,
             (gap - psi.d_max[:, None]) / dm,
-            gap / dm - 1.0 - remaining[:, None] / n,
+            gap_dm - 1.0 - remaining[:, None] / n,
             (v_f - vm) / vs,
             (v_l - vm) / vs,
             gap / length_m,
@@ -128,30 +169,20 @@ def features(
         dim=-1,
     )
     v_sum = (speed * present).sum(dim=1)
-    need_v = needed_speed(speed, present, remaining, psi)
-    mean_v = torch.where(empty, psi.v_mean, v_sum / torch.clamp(m, min=1))
-    glob = torch.stack(
+    # The mean speed the vehicles still to place need for the fleet to average Psi's mean.
+    need_v = (n * psi.v_mean - v_sum) / torch.clamp(remaining, min=1)
+    mean_v = torch.where(empty[:, 0], psi.v_mean, v_sum / torch.clamp(m, min=1))
+    dynamic = torch.stack(
         [
             remaining / n,
             m / n,
-            psi.d_min / psi.d_mean,
-            psi.d_max / psi.d_mean,
             (need_v - psi.v_mean) / psi.v_scale,
             (mean_v - psi.v_mean) / psi.v_scale,
-            (psi.v_max - psi.v_min) / psi.v_mean,
-            (psi.v_min + psi.v_max - 2 * psi.v_mean) / (2 * psi.v_scale),
         ],
         dim=-1,
     )
-    return gap_feat, glob, follower, arc_e, gap, valid
-
-
-def needed_speed(
-    speed: torch.Tensor, present: torch.Tensor, remaining: torch.Tensor, psi: PsiTensors
-) -> torch.Tensor:
-    """Mean speed the vehicles still to place need for the fleet to average Psi's mean."""
-    n = speed.shape[1]
-    return (n * psi.v_mean - (speed * present).sum(dim=1)) / torch.clamp(remaining, min=1).float()
+    glob = torch.cat([dynamic, psi.static_features.to(dynamic.dtype)], dim=-1)[:, _GLOBAL_ORDER]
+    return gap_feat, glob, need_v, geometry
 
 
 class GeneratorNet(nn.Module):
@@ -196,26 +227,30 @@ def propose(
     n_samples: int,
     gen: torch.Generator,
     allowed: torch.Tensor | None = None,
+    anchor: torch.Tensor | None = None,
+    geometry: tuple[torch.Tensor, ...] | None = None,
 ) -> Proposal:
     """Sample ``n_samples`` candidates for the next hidden vehicle of every scene.
 
     ``allowed`` (B, N) optionally removes gap choices (in arc order) before sampling.
+    ``anchor`` and ``geometry`` (``scene_gaps`` with that anchor) may come from the caller;
+    otherwise the anchor is drawn here, first, from ``gen``.
     """
-    b, n = arc.shape
-    anchor = torch.rand(b, generator=gen, dtype=arc.dtype) * length_m
-    gap_feat, glob, follower, arc_e, gap, valid = features(
-        arc, speed, present, remaining, psi, length_m, anchor
+    b = arc.shape[0]
+    if anchor is None:
+        anchor = torch.rand(b, generator=gen, dtype=arc.dtype) * length_m
+    gap_feat, glob, need_v, geometry = features(
+        arc, speed, present, remaining, psi, length_m, anchor, geometry
     )
-    need_v = needed_speed(speed, present, remaining, psi)
+    _, _, gap, valid, start = geometry
     out = net(gap_feat.float(), glob.float())
     if allowed is not None:
         valid = valid & (allowed | ~(allowed & valid).any(dim=1, keepdim=True))
     logits = out[..., 0].masked_fill(~valid, -torch.inf)
     probs = torch.softmax(logits, dim=1)
-    choice = torch.multinomial(probs, n_samples, replacement=True, generator=gen).T  # (S, B)
+    choice = torch.multinomial(probs, n_samples, replacement=True, generator=gen)  # (B, S)
     log_p = torch.log_softmax(logits, dim=1)
-    rows = torch.arange(b).expand(n_samples, b)
-    pick = out[rows, choice]  # (S, B, 5)
+    pick = out.gather(1, choice[..., None].expand(-1, -1, out.shape[-1])).transpose(0, 1)
     eps = torch.randn(n_samples, b, 2, generator=gen)
     frac = torch.sigmoid(pick[..., 1] + torch.exp(pick[..., 2].clamp(-5, 2)) * eps[..., 0]).clamp(
         1e-3, 1 - 1e-3
@@ -223,14 +258,13 @@ def propose(
     # Speeds live in Psi's [v_min, v_max] by construction (logit-normal on that interval):
     # the paper's loss has no speed-bound term, so an unbounded proposal drifts outside.
     # Centred on the speed the remaining vehicles need for Psi's mean: the MLP adds a residual.
-    need = ((need_v - psi.v_min) / (psi.v_max - psi.v_min).clamp(min=1e-3)).clamp(0.02, 0.98)
-    base = torch.log(need / (1 - need))
+    need = ((need_v - psi.v_min) / psi.v_range.clamp(min=1e-3)).clamp(0.02, 0.98)
+    base = torch.logit(need)
     u = torch.sigmoid(base + pick[..., 3] + torch.exp(pick[..., 4].clamp(-6, 1)) * eps[..., 1])
-    v = psi.v_min + (psi.v_max - psi.v_min) * u
-    g = gap[rows, choice]
-    start = arc_e.gather(1, follower)[rows, choice]
-    new_arc = torch.remainder(start + frac * g, length_m)
-    return Proposal(choice, new_arc, v, frac, g, log_p[rows, choice])
+    v = psi.v_min + psi.v_range * u
+    g = gap.gather(1, choice).T
+    new_arc = torch.remainder(start.gather(1, choice).T + frac * g, length_m)
+    return Proposal(choice.T, new_arc, v, frac, g, log_p.gather(1, choice).T)
 
 
 # --------------------------------------------------------------------------- losses
@@ -365,10 +399,36 @@ def _piece_range(
 def _sumset(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """{x + y : x in a, y in b} of count sets held as bool masks over 0..R (truncated at R)."""
     r1 = a.shape[-1]
-    out = a & b[..., :1]
-    for c in range(1, r1):
-        out[..., c:] |= a[..., : r1 - c] & b[..., c : c + 1]
-    return out
+    # windows[..., x, k] = a[x - (R - k)] (False before 0): pair it with b[R - k].
+    windows = torch.nn.functional.pad(a, (r1 - 1, 0)).unfold(-1, r1, 1)
+    return (windows & b.flip(-1)[..., None, :]).any(dim=-1)
+
+
+class SplitTable:
+    """What the look-ahead needs that stays the same over the steps of one completion.
+
+    Pairs (c1, c2) count the vehicles still to come behind and ahead of the next one in
+    its gap, ordered by c1 + c2 so that the pairs for r vehicles to come are a prefix.
+    A split point a1 (distance from the gap's follower) serves (c1, c2) if
+    (c1 + 1) d_min <= a1 <= (c1 + 1) d_max and (c2 + 1) d_min <= gap - a1 <= (c2 + 1) d_max.
+    """
+
+    def __init__(self, psi: PsiTensors, r_max: int, length_m: float, n: int) -> None:
+        c1, c2, self.total, self.counts, self.not_self = _count_pairs(r_max, n, psi.d_min.dtype)
+        self.d_min, self.d_max = psi.d_min[:, None], psi.d_max[:, None]
+        self.lo1, self.hi1 = (c1 + 1) * self.d_min[..., None], (c1 + 1) * self.d_max[..., None]
+        self.lo2, self.hi2 = (c2 + 1) * self.d_max[..., None], (c2 + 1) * self.d_min[..., None]
+        ring = torch.full_like(psi.d_min, length_m)
+        self.ring_lo, self.ring_hi = _piece_range(ring, psi.d_min, psi.d_max)
+
+
+@functools.lru_cache(maxsize=64)
+def _count_pairs(r_max: int, n: int, dtype: torch.dtype) -> tuple[torch.Tensor, ...]:
+    """(c1, c2, c1 + c2, counts 0..R, not-self mask (N, N, 1)) for ``SplitTable``."""
+    pairs = [(c1, t - c1) for t in range(r_max + 1) for c1 in range(t + 1)]
+    c1, c2 = torch.tensor(pairs, dtype=dtype).reshape(-1, 2).unbind(dim=1)
+    not_self = ~torch.eye(n, dtype=torch.bool)[..., None]
+    return c1, c2, (c1 + c2).long(), torch.arange(r_max + 1, dtype=dtype), not_self
 
 
 @dataclass
@@ -397,67 +457,65 @@ class Lookahead:
 
     def accepts(self, choice: torch.Tensor, a1: torch.Tensor) -> torch.Tensor:
         """(S, B) whether candidates (gap ``choice``, split point ``a1``) pass the check."""
-        rows = torch.arange(choice.shape[1]).expand_as(choice)
-        lo, hi, ok = self.lo[rows, choice], self.hi[rows, choice], self.ok[rows, choice]
-        tol = GEOMETRY_TOL_M
-        inside = (ok & (a1[..., None] >= lo - tol) & (a1[..., None] <= hi + tol)).any(dim=-1)
-        return torch.where(self.empty, self.empty_ok.expand_as(inside), inside)
+        idx = choice.T[..., None].expand(-1, -1, self.lo.shape[-1])  # (B, S, P)
+        lo, hi, ok = self.lo.gather(1, idx), self.hi.gather(1, idx), self.ok.gather(1, idx)
+        a = a1.T[..., None]
+        inside = (ok & (a >= lo - GEOMETRY_TOL_M) & (a <= hi + GEOMETRY_TOL_M)).any(dim=-1).T
+        return inside | (self.empty & self.empty_ok)
 
     def project(self, choice: torch.Tensor, a1: torch.Tensor) -> torch.Tensor:
         """(B,) the feasible split point of gap ``choice`` nearest to ``a1`` (a1 if none)."""
-        rows = torch.arange(choice.shape[0])
-        lo, hi, ok = self.lo[rows, choice], self.hi[rows, choice], self.ok[rows, choice]
+        idx = choice[:, None, None].expand(-1, 1, self.lo.shape[-1])
+        lo, hi, ok = (t.gather(1, idx)[:, 0] for t in (self.lo, self.hi, self.ok))
         near = torch.minimum(torch.maximum(a1[:, None], lo), hi)
-        dist = torch.where(ok, (near - a1[:, None]).abs(), torch.full_like(near, torch.inf))
+        dist = torch.where(ok, (near - a1[:, None]).abs(), torch.inf)
         best = near.gather(1, dist.argmin(dim=1, keepdim=True))[:, 0]
         return torch.where(ok.any(dim=1) & ~self.empty, best, a1)
 
 
 def lookahead(
-    arc: torch.Tensor,
+    table: SplitTable,
+    geometry: tuple[torch.Tensor, ...],
     present: torch.Tensor,
     generated: torch.Tensor,
-    psi: PsiTensors,
     rem_after: torch.Tensor,
-    length_m: float,
 ) -> Lookahead:
     """The exact feasibility check for placing one more vehicle, ``rem_after`` still to come.
 
-    A touched gap (a generated vehicle at either end) must end as gaps in [d_min, d_max], so
-    it takes c in [lo, hi] further vehicles; an untouched gap (two observed vehicles) may stay
-    as it is or take c >= 1 if its pieces then fit. The counts the other gaps can absorb
-    together are a sum of these sets (a small dynamic programme over 0..R).
+    ``geometry`` is ``scene_gaps`` of the scene. A touched gap (a generated vehicle at
+    either end) must end as gaps in [d_min, d_max], so it takes c in [lo, hi] further
+    vehicles; an untouched gap (two observed vehicles) may stay as it is or take c >= 1 if
+    its pieces then fit. The counts the other gaps can absorb together are a sum of these
+    sets (a small dynamic programme over 0..R).
     """
-    follower, leader, gap, valid = ring_gaps(arc, present, length_m)
+    follower, leader, gap, valid, _ = geometry
     b, n = gap.shape
-    d_min, d_max = psi.d_min[:, None], psi.d_max[:, None]
     r_max = int(rem_after.max()) if b else 0
-    counts = torch.arange(r_max + 1)
-    lo_c, hi_c = _piece_range(gap, d_min, d_max)
+    counts = table.counts[: r_max + 1]
+    n_pairs = (r_max + 1) * (r_max + 2) // 2
+    lo_c, hi_c = _piece_range(gap, table.d_min, table.d_max)
     fits = (counts >= lo_c[..., None]) & (counts <= hi_c[..., None])
     touched = valid & (generated.gather(1, follower) | generated.gather(1, leader))
     zero = counts == 0
     sets = torch.where(touched[..., None], fits, (fits & valid[..., None]) | zero)
-    # rest[:, j]: what all gaps but j can absorb together.
-    rest = zero.expand(b, n, r_max + 1).clone()
-    eye = torch.eye(n, dtype=torch.bool)[..., None]
-    for i in range(int(valid.sum(dim=1).max()) if b else 0):
-        rest = _sumset(rest, torch.where(eye[i], zero, sets[:, i : i + 1]))
-    c1, c2 = (t.flatten() for t in torch.meshgrid(counts, counts, indexing="ij"))
-    keep = c1 + c2 <= r_max
-    c1, c2 = c1[keep], c2[keep]
-    need = rem_after[:, None] - (c1 + c2)  # (B, P): what the other gaps must absorb
+    # rest[:, j]: the counts all gaps but j can absorb together.
+    if r_max == 0:  # none to come: every other gap must be able to stay as it is
+        lacks = (~sets[..., 0]).long()
+        rest = (lacks.sum(dim=1, keepdim=True) == lacks)[..., None]
+    else:
+        rest = zero.expand(b, n, r_max + 1)
+        for i in range(int(valid.sum(dim=1).max()) if b else 0):
+            rest = _sumset(rest, torch.where(table.not_self[i], sets[:, i : i + 1], zero))
+    need = rem_after[:, None] - table.total[:n_pairs]  # (B, P): what the other gaps absorb
     ok = (need >= 0)[:, None, :] & rest.gather(
-        2, need.clamp(min=0)[:, None, :].expand(b, n, len(c1))
+        2, need.clamp(min=0)[:, None, :].expand(b, n, n_pairs)
     )
     g = gap[..., None]
-    lo = torch.maximum((c1 + 1) * d_min[..., None], g - (c2 + 1) * d_max[..., None])
-    hi = torch.minimum((c1 + 1) * d_max[..., None], g - (c2 + 1) * d_min[..., None])
+    lo = torch.maximum(table.lo1[..., :n_pairs], g - table.lo2[..., :n_pairs])
+    hi = torch.minimum(table.hi1[..., :n_pairs], g - table.hi2[..., :n_pairs])
     ok = ok & valid[..., None] & (lo <= hi + 2 * GEOMETRY_TOL_M)
-    empty = ~present.any(dim=1)
-    lo_r, hi_r = _piece_range(torch.full((b,), length_m, dtype=gap.dtype), psi.d_min, psi.d_max)
-    empty_ok = (lo_r <= rem_after) & (rem_after <= hi_r)
-    return Lookahead(lo, hi, ok, empty, empty_ok)
+    empty_ok = (table.ring_lo <= rem_after) & (rem_after <= table.ring_hi)
+    return Lookahead(lo, hi, ok, ~present.any(dim=1), empty_ok)
 
 
 @dataclass
@@ -480,47 +538,54 @@ def complete(net: GeneratorNet, snaps: Snapshots, t_max: int, seed: int) -> Comp
     arc = torch.as_tensor(snaps.arc_m, dtype=torch.float64).masked_fill(hidden, 0.0)
     speed = torch.as_tensor(snaps.speed_mps, dtype=torch.float64).masked_fill(hidden, 0.0)
     psi = PsiTensors.from_array(snaps.psi, dtype=torch.float64)
+    length = snaps.length_m
     b, n = arc.shape
     k = hidden.sum(dim=1)
+    k_max = int(k.max()) if b else 0
+    table = SplitTable(psi, max(k_max - 1, 0), length, n)
     projected = torch.zeros(b, dtype=torch.long)
-    rows = torch.arange(b)
-    for step in range(int(k.max().item()) if b else 0):
+    rank = hidden.cumsum(dim=1).masked_fill(~hidden, 0)  # hidden slots fill in slot order
+    for step in range(k_max):
         active = k > step
         rem_after = (k - step - 1).clamp(min=0)
-        look = lookahead(arc, present, hidden & present, psi, rem_after, snaps.length_m)
+        anchor = torch.rand(b, generator=gen, dtype=torch.float64) * length
+        geometry = scene_gaps(arc, present, length, anchor)
+        look = lookahead(table, geometry, present, hidden & present, rem_after)
         prop = propose(
             net,
             arc,
             speed,
             present,
-            (k - step).clamp(min=0),
+            k - step,
             psi,
-            snaps.length_m,
+            length,
             t_max,
             gen,
             look.allowed,
+            anchor,
+            geometry,
         )
         a1 = prop.frac * prop.gap
         ok = look.accepts(prop.gap_pos, a1) & (prop.speed >= psi.v_min) & (prop.speed <= psi.v_max)
         any_ok = ok.any(dim=0)
-        first = ok.float().argmax(dim=0)
-        pick = torch.where(any_ok, first, torch.full_like(first, t_max - 1))
-        new_arc, new_v = prop.arc[pick, rows], prop.speed[pick, rows]
-        # Projection of the last candidate: the nearest split point of its gap that passes.
-        a = a1[pick, rows]
-        a_proj = look.project(prop.gap_pos[pick, rows], a)
-        proj_arc = torch.remainder(new_arc - a + a_proj, snaps.length_m)
-        proj_v = torch.minimum(torch.maximum(new_v, psi.v_min), psi.v_max)
-        new_arc = torch.where(any_ok, new_arc, proj_arc)
-        new_v = torch.where(any_ok, new_v, proj_v)
-        projected += (active & ~any_ok).long()
-        slot = _next_hidden_slot(hidden, present)
-        onehot = torch.nn.functional.one_hot(slot, n).bool() & active[:, None]
+        # The first accepted candidate, else the last one, projected: the nearest split
+        # point of its gap that passes, its speed clipped to the bounds.
+        pick = torch.where(any_ok, ok.byte().argmax(dim=0), t_max - 1)[None]
+        new_arc, new_v = prop.arc.gather(0, pick)[0], prop.speed.gather(0, pick)[0]
+        if not bool(any_ok.all()):
+            a = a1.gather(0, pick)[0]
+            a_proj = look.project(prop.gap_pos.gather(0, pick)[0], a)
+            new_arc = torch.where(any_ok, new_arc, torch.remainder(new_arc - a + a_proj, length))
+            new_v = torch.where(
+                any_ok, new_v, torch.minimum(torch.maximum(new_v, psi.v_min), psi.v_max)
+            )
+            projected += active & ~any_ok
+        onehot = rank == step + 1
         arc = torch.where(onehot, new_arc[:, None], arc)
         speed = torch.where(onehot, new_v[:, None], speed)
         present = present | onehot
     # Observed vehicles never move: the input values, bit for bit.
-    arc_out = np.where(snaps.hidden, arc.numpy() % snaps.length_m, snaps.arc_m)
+    arc_out = np.where(snaps.hidden, arc.numpy() % length, snaps.arc_m)
     speed_out = np.where(snaps.hidden, speed.numpy(), snaps.speed_mps)
     return Completion(arc_out, speed_out, projected.numpy(), time.perf_counter() - t0)
 
@@ -607,12 +672,11 @@ def feasible_exists(snaps: Snapshots) -> np.ndarray:
 
 def completion_metrics(snaps: Snapshots, comp: Completion) -> pd.DataFrame:
     """Per snapshot: feasibility, macro errors, each L term, matched hidden-state errors."""
-    psi_t = PsiTensors.from_array(snaps.psi)
     terms = macro_losses(
         torch.as_tensor(comp.arc_m, dtype=torch.float64),
         torch.as_tensor(comp.speed_mps, dtype=torch.float64),
         torch.as_tensor(snaps.hidden),
-        PsiTensors(*[t.double() for t in psi_t.__dict__.values()]),
+        PsiTensors.from_array(snaps.psi, dtype=torch.float64),
         snaps.length_m,
     )
     length = snaps.length_m

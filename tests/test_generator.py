@@ -176,7 +176,8 @@ def proposal_outputs(net, snaps: Snapshots, shift_m: float = 0.0, perm=None):
     psi = PsiTensors.from_array(snaps.psi)
     remaining = hidden.sum(dim=1)
     anchor = torch.zeros(len(snaps))
-    gap_feat, glob, _, _, gap, valid = features(arc, speed, ~hidden, remaining, psi, L, anchor)
+    gap_feat, glob, _, geometry = features(arc, speed, ~hidden, remaining, psi, L, anchor)
+    gap, valid = geometry[2], geometry[3]
     with torch.no_grad():
         out = net(gap_feat, glob)
     return out, gap, valid

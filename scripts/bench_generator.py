@@ -1,0 +1,143 @@
+"""Benchmark: Stage I generator inference and training against the issue's targets.
+
+(a) one held-out snapshot completed with K = 4 hidden vehicles on one core (torch with
+    one thread): median over many snapshots and seeds, target <= 2 ms;
+(b) 1,000 snapshots completed in one batch (K = 4, and K = 1..4 mixed), target <= 1 s;
+(c) wall time of the whole ``train-generator`` stage on the paper's ring (train, evaluate
+    on held-out runs, write outputs), target <= 2 min on 2 cores.
+
+The ground truth is simulated first (about 2 s) unless ``--data`` names one; (a) and (b)
+use the generator trained in (c), or ``--generator`` with ``--skip-train``.
+
+    python scripts/bench_generator.py
+    python scripts/bench_generator.py --data runs/gt1 --generator runs/gen2/generator.pt --skip-train
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+from macromicro_sumo.config import load_scenario
+from macromicro_sumo.dataset import hide, load_ground_truth, snapshot_states, split_runs
+from macromicro_sumo.generator import complete
+from macromicro_sumo.generator_train import load_generator, run_train_generator
+from macromicro_sumo.ground_truth import simulate
+
+ROOT = Path(__file__).resolve().parents[1]
+TARGET_ONE_MS = 2.0
+TARGET_BATCH_S = 1.0
+TARGET_TRAIN_S = 120.0
+
+
+def get_options(argv: list[str] | None = None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenario", type=Path, default=ROOT / "scenarios" / "ring_paper.toml")
+    ap.add_argument("--data", type=Path, help="ground-truth folder (default: simulate one)")
+    ap.add_argument("--generator", type=Path, help="generator.pt for (a) and (b)")
+    ap.add_argument("--skip-train", action="store_true", help="skip (c); needs --generator")
+    ap.add_argument("--repeats", type=int, default=500, help="single-snapshot completions in (a)")
+    ap.add_argument("--threads", type=int, default=2, help="torch threads for (b) [cores]")
+    args = ap.parse_args(argv)
+    if args.skip_train and args.generator is None:
+        ap.error("--skip-train needs --generator")
+    return args
+
+
+def bench_one(net, snaps, t_max: int, repeats: int) -> list[float]:
+    """Seconds per single-snapshot completion, cycling over snapshots and seeds."""
+    torch.set_num_threads(1)
+    for i in range(20):  # warm-up: allocator, lazy initialisation
+        complete(net, snaps.take(np.array([i % len(snaps)])), t_max, seed=i)
+    times = []
+    for i in range(repeats):
+        one = snaps.take(np.array([i % len(snaps)]))
+        t0 = time.perf_counter()
+        complete(net, one, t_max, seed=i)
+        times.append(time.perf_counter() - t0)
+    return times
+
+
+def bench_batch(net, snaps, t_max: int, threads: int, repeats: int = 5) -> list[float]:
+    torch.set_num_threads(threads)
+    complete(net, snaps, t_max, seed=0)
+    times = []
+    for i in range(repeats):
+        t0 = time.perf_counter()
+        complete(net, snaps, t_max, seed=i)
+        times.append(time.perf_counter() - t0)
+    return times
+
+
+def main(args: argparse.Namespace) -> int:
+    sc = load_scenario(args.scenario)
+    work = Path(tempfile.mkdtemp(prefix="bench_generator_"))
+    data = args.data
+    if data is None:
+        t0 = time.perf_counter()
+        data = simulate(sc, work / "gt", progress=False)
+        print(
+            f"ground truth: {sc.simulation.n_runs} runs simulated in {time.perf_counter() - t0:.1f} s"
+        )
+    rows: dict[str, list[tuple[str, float, str, float]]] = {"a": [], "b": [], "c": []}
+    if not args.skip_train:
+        torch.set_num_threads(2)
+        t0 = time.perf_counter()
+        manifest = run_train_generator(sc, data, work / "gen", progress=False)
+        wall = time.perf_counter() - t0
+        gen_path = work / "gen" / "generator.pt"
+        rows["c"].append(("(c) train-generator stage, paper ring", wall, "s", TARGET_TRAIN_S))
+        print(
+            f"training: {manifest['epochs']} epochs, {manifest['timings_s']['train_generator']:.1f} s "
+            f"of {wall:.1f} s in the stage; metrics:"
+        )
+        metrics = pd.read_csv(work / "gen" / "generator_metrics.csv")
+        cols = ["method", "K", "feasibility_rate", "projected_vehicles", "speed_rel_err", "L_var"]
+        print(metrics[cols].to_string(index=False))
+    else:
+        gen_path = args.generator
+    net = load_generator(args.generator or gen_path, sc)
+    gt = load_ground_truth(data, sc)
+    splits = split_runs(gt.runs, sc.generator.held_out_fraction, sc.seed)
+    states = snapshot_states(gt, sc, splits["held_out"])
+    t_max = sc.generator.t_max
+    k4 = hide(states, 4, np.random.default_rng(0))
+
+    one = bench_one(net, k4, t_max, args.repeats)
+    median = statistics.median(one)
+    rows["a"].append(
+        ("(a) one snapshot, K = 4, 1 thread (median)", median * 1e3, "ms", TARGET_ONE_MS)
+    )
+    print(
+        f"(a) {len(one)} completions: median {median * 1e3:.3f} ms, "
+        f"p10 {np.percentile(one, 10) * 1e3:.3f} ms, p90 {np.percentile(one, 90) * 1e3:.3f} ms"
+    )
+    idx = np.arange(1000) % len(states)
+    batch4 = k4.take(idx)
+    mixed = hide(states.take(idx), 1 + np.arange(1000) % 4, np.random.default_rng(1))
+    for label, snaps in (("K = 4", batch4), ("K = 1..4 mixed", mixed)):
+        times = bench_batch(net, snaps, t_max, args.threads)
+        med = statistics.median(times)
+        name = f"(b) 1,000 snapshots batched, {label}, {args.threads} threads"
+        rows["b"].append((name, med, "s", TARGET_BATCH_S))
+    print()
+    table = rows["a"] + rows["b"] + rows["c"]
+    width = max(len(r[0]) for r in table)
+    print(f"{'measure':<{width}}  {'value':>10}  {'target':>8}  {'value/target':>12}")
+    for name, value, unit, target in table:
+        print(
+            f"{name:<{width}}  {value:>8.3f} {unit:<2} {target:>6g} {unit:<2} {value / target:>11.2f}x"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(get_options()))
