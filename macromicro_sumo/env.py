@@ -146,26 +146,37 @@ class RingCore:
         self.sim = Simulation(
             SumoOptions(sc.resolve(sc.network.net_file), adds, self.dt, seed, fcd_file=fcd_file)
         )
-        spacing = self.length / self.n
-        edges, pos = zip(*(self.geo.to_edge(i * spacing) for i in range(self.n)), strict=True)
-        self.sim.add_vehicles(
-            self.ids,
-            [f"r_{self.geo.edge_ids[e]}" for e in edges],
-            [CTRL_TYPE] * self.n,
-            pos,
-            [0.0] * self.n,
-        )
-        self.sim.step()
-        if len(self.sim.vehicle_ids()) != self.n:
-            raise UserError(f"SUMO inserted {len(self.sim.vehicle_ids())} of {self.n} vehicles")
-        self.sim.subscribe(self.ids)
-        self.sim.set_speed_mode(self.ids, 0)
+        self._broken = True
+        self._insert_fleet()
         self._next = np.roll(np.arange(self.n), -1)
         self.episode = -1
         self.t = 0
         self.arc = np.zeros(self.n)
         self.speed = np.zeros(self.n)
         self.limits = np.zeros(len(self.geo.edge_ids))
+
+    def _insert_fleet(self) -> None:
+        """(Re-)insert any vehicle SUMO does not have (at start, or after a lost vehicle)."""
+        present = set(self.sim.vehicle_ids())
+        missing = [i for i, vid in enumerate(self.ids) if vid not in present]
+        if missing:
+            spacing = self.length / self.n
+            edges, pos = zip(*(self.geo.to_edge(i * spacing) for i in missing), strict=True)
+            self.sim.add_vehicles(
+                [self.ids[i] for i in missing],
+                [f"r_{self.geo.edge_ids[e]}" for e in edges],
+                [CTRL_TYPE] * len(missing),
+                pos,
+                [0.0] * len(missing),
+            )
+            self.sim.step()
+        if len(self.sim.vehicle_ids()) != self.n:
+            raise UserError(
+                f"SUMO holds {len(self.sim.vehicle_ids())} of {self.n} vehicles after insertion"
+            )
+        self.sim.subscribe(self.ids)
+        self.sim.set_speed_mode(self.ids, 0)
+        self._broken = False
 
     def close(self) -> None:
         self.sim.close()
@@ -182,6 +193,8 @@ class RingCore:
         self.hidden = b.hidden[episode]
         self.psi = b.psi[episode]
         self.limits = b.limits_mps[episode]
+        if self._broken:
+            self._insert_fleet()
         self.sim.set_lane_speed_limits(self.geo.lane_ids, self.limits)
         self.edge = self.geo.edge_index(self.arc)
         pos = self.arc - self.geo.offsets_m[self.edge]
@@ -253,11 +266,12 @@ class RingCore:
         a = np.clip(accel_hidden, self.a_min, self.a_max)
         cmd = self.bank.replay_speed_mps[self.episode, self.t + 1].copy()
         cmd[self.hidden] = np.maximum(0.0, self.speed[self.hidden] + a * self.dt)
-        self.sim.set_speeds(self.ids, cmd)
         try:
+            self.sim.set_speeds(self.ids, cmd)
             self.sim.step()
             e, p, v = self.sim.read_states(self.ids, self._edge_index)
         except Exception as exc:  # a vehicle lost or a SUMO error: truncate, training goes on
+            self._broken = True
             return StepResult(
                 self.observations(), 0.0, {}, False, True, f"{type(exc).__name__}: {exc}"
             )
