@@ -87,21 +87,26 @@ def load_generator(path: Path | str, sc: Scenario) -> GeneratorNet:
         raise UserError(
             f"{path}: generator checkpoint not found (run `macromicro train-generator`)"
         )
+    corrupt = f"{path}: corrupt or truncated generator checkpoint"
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
-        if payload.get("format") != CHECKPOINT_FORMAT:
-            raise ValueError("not a generator checkpoint")
+    except Exception as exc:
+        raise UserError(f"{corrupt} ({type(exc).__name__})") from None
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        raise UserError(
+            f"{path}: not a generator checkpoint (written by `macromicro train-generator`)"
+        )
+    try:
         net = GeneratorNet(int(payload["hidden_size"]))
         net.load_state_dict(payload["state_dict"])
-    except Exception as exc:
-        raise UserError(
-            f"{path}: corrupt or truncated generator checkpoint ({type(exc).__name__})"
-        ) from None
-    want = signature(sc)
-    for key, have in payload["signature"].items():
-        if want.get(key) != have:
+        trained_for = dict(payload["signature"])
+    except Exception as exc:  # a field missing or of the wrong shape
+        raise UserError(f"{corrupt} ({type(exc).__name__})") from None
+    for key, want in signature(sc).items():
+        if trained_for.get(key) != want:
             raise UserError(
-                f"{path}: generator was trained for {key} = {have}, scenario {sc.source} has {want.get(key)}"
+                f"{path}: generator was trained for {key} = {trained_for.get(key)}, "
+                f"scenario {sc.source} has {want}"
             )
     net.eval()
     return net
@@ -295,10 +300,10 @@ def run_train_generator(
     from macromicro_sumo.files import prepare_out_dir, write_json
     from macromicro_sumo.manifest import build_manifest
 
-    out = prepare_out_dir(out)
     gt = load_ground_truth(data, sc)
     for snaps in held_out_sets(sc, gt).values():
         check_psi(snaps, str(Path(data) / "macro.csv"))
+    out = prepare_out_dir(out)  # only once the inputs are known to be good
     torch.set_num_threads(1)  # a tiny MLP: one thread is fastest and leaves a core for SUMO
     res = train_generator(sc, gt, out, progress)
     summary, per = evaluate_generator(res.pop("net"), sc, gt)
@@ -335,12 +340,12 @@ def run_complete(
                 f"--hidden {k}: K must be in [0, {n}] (N = fleet.n_vehicles of {sc.source})"
             )
     net = load_generator(generator, sc)
-    out = prepare_out_dir(out)
     gt = load_ground_truth(data, sc)
     splits = split_runs(gt.runs, sc.generator.held_out_fraction, sc.seed)
     states = snapshot_states(gt, sc, splits["held_out"])
     sets = held_out_by_k(states, ks, sc.seed)
     for snaps in sets.values():
         check_psi(snaps, str(Path(data) / "macro.csv"))
+    out = prepare_out_dir(out)  # only once the inputs are known to be good
     write_csv(completions_frame(sets, net, sc), out / "completions.csv")
     return out / "completions.csv"
