@@ -625,7 +625,7 @@ def test_completion_metrics_on_a_known_completion():
     )
     m = completion_metrics(snaps, comp).iloc[0]
     assert m["pos_err_m"] == pytest.approx(0.0) and m["speed_err_mps"] == pytest.approx(0.0)
-    assert bool(m["feasible"]) and bool(m["feasible_exists"])
+    assert bool(m["feasible"]) and bool(m["feasible_exists"]) and bool(m["in_bounds"])
     assert m["speed_rel_err"] == pytest.approx(0.0, abs=1e-12)
     # Move one hidden vehicle 20 m forward: a gap of 145 m > d_max.
     comp.arc_m[0, 1] = 395.0
@@ -633,7 +633,9 @@ def test_completion_metrics_on_a_known_completion():
     assert not bool(m["feasible"])
     assert m["pos_err_m"] == pytest.approx(10.0)  # (0 + 20) / 2, after matching
     assert m["L_max"] > 0
-    # A projected vehicle is never counted feasible.
+    assert not bool(m["in_bounds"])
+    # A projected vehicle is never counted feasible, though the scene is in bounds.
     comp.arc_m[0, 1] = 375.0
     comp.projected[0] = 1
-    assert not bool(completion_metrics(snaps, comp).iloc[0]["feasible"])
+    m = completion_metrics(snaps, comp).iloc[0]
+    assert not bool(m["feasible"]) and bool(m["in_bounds"])

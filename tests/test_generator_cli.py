@@ -40,6 +40,7 @@ METRIC_COLUMNS = [
     "n_feasible_exists",
     "n_no_feasible",
     "feasibility_rate",
+    "in_bounds_rate",
     "projected_vehicles",
     "speed_rel_err",
     "spacing_rel_err",
@@ -148,6 +149,11 @@ def test_train_generator_metrics_and_log(stage):
     assert (metrics["n_snapshots"] == n_held).all()
     assert (metrics["n_feasible_exists"] + metrics["n_no_feasible"] == n_held).all()
     assert metrics["feasibility_rate"].between(0, 1).all()
+    # Exact look-ahead and projection: the generator's completions always meet the bounds
+    # where some completion does; a strict (projection-free) completion is rarer.
+    gen_rows = metrics[metrics["method"] == "generator"]
+    assert (gen_rows["in_bounds_rate"] == 1.0).all()
+    assert (metrics["in_bounds_rate"] >= metrics["feasibility_rate"]).all()
     for col in ("L_speed", "L_mean", "L_min", "L_max", "L_var", "pos_err_m"):
         assert (metrics[col] >= 0).all() and np.isfinite(metrics[col]).all(), col
     per = pd.read_csv(gen / "generator_metrics_per_snapshot.csv")
