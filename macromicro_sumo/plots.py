@@ -1,0 +1,317 @@
+"""Evaluation figures as PNG files: leader-follower profiles, time-space diagrams,
+speed/spacing distributions and training curves.
+
+Every function takes DataFrames (or CSV paths) and writes one PNG atomically (a temporary
+name in the same folder, then ``os.replace``). Figures are built with ``matplotlib.figure``
+directly, not pyplot: no display, no global backend switch, no figures left open.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import matplotlib as mpl
+import numpy as np
+import pandas as pd
+from matplotlib.collections import LineCollection
+from matplotlib.colors import Normalize
+from matplotlib.figure import Figure
+
+from macromicro_sumo.files import atomic_path
+
+DPI = 120
+LEADER_COLOR = "tab:green"
+IDM_COLOR = "tab:blue"
+REFERENCE_COLOR = "black"
+# Learned methods: the first is orange as in the paper's Fig. 3.
+METHOD_COLORS = ("tab:orange", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan")
+SPEED_CMAP = "RdYlGn"  # red = slow, green = fast, as in traffic-state maps
+
+
+def _save(fig: Figure, path: Path | str) -> Path:
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=DPI)
+    return path
+
+
+def _frame(data: pd.DataFrame | Path | str) -> pd.DataFrame:
+    return data if isinstance(data, pd.DataFrame) else pd.read_csv(data)
+
+
+def _require(df: pd.DataFrame, columns: Sequence[str], what: str) -> None:
+    missing = [c for c in columns if c not in df.columns]
+    if missing:
+        raise ValueError(f"{what}: missing columns {', '.join(missing)}")
+    if df.empty:
+        raise ValueError(f"{what}: no rows to plot")
+
+
+# --------------------------------------------------------------------------- leader-follower
+
+
+def plot_leader_follower(
+    traces: pd.DataFrame | Path | str, path: Path | str, idm_method: str = "IDM"
+) -> Path:
+    """Fig. 3 of the paper: per scenario, speed (left) and gap (right) against time.
+
+    ``traces`` has the columns of ``leader_follower.csv``. The leader is green, the IDM
+    follower blue, every trial of a learned method thin and their mean thick (orange for
+    the first method).
+    """
+    df = _frame(traces)
+    cols = ["scenario", "method", "trial", "time_s", "leader_speed_mps", "follower_speed_mps"]
+    _require(df, [*cols, "gap_m"], "leader-follower traces")
+    scenarios = list(dict.fromkeys(df["scenario"]))
+    methods = [m for m in dict.fromkeys(df["method"]) if m != idm_method]
+    fig = Figure(figsize=(12, 3.6 * len(scenarios)), layout="constrained")
+    axes = fig.subplots(len(scenarios), 2, squeeze=False, sharex=True)
+    for row, scenario in zip(axes, scenarios, strict=True):
+        d = df[df["scenario"] == scenario]
+        ax_v, ax_g = row
+        first = d[d["trial"] == d["trial"].min()].drop_duplicates("time_s")
+        ax_v.plot(
+            first["time_s"],
+            first["leader_speed_mps"],
+            color=LEADER_COLOR,
+            lw=2.5,
+            label="leader (prescribed)",
+        )
+        for j, method in enumerate(methods):
+            color = METHOD_COLORS[j % len(METHOD_COLORS)]
+            m = d[d["method"] == method]
+            n = m["trial"].nunique()
+            for k, (_, tr) in enumerate(m.groupby("trial")):
+                label = f"{method}: {n} trials" if k == 0 else None
+                ax_v.plot(
+                    tr["time_s"],
+                    tr["follower_speed_mps"],
+                    color=color,
+                    lw=0.6,
+                    alpha=0.35,
+                    label=label,
+                )
+                ax_g.plot(tr["time_s"], tr["gap_m"], color=color, lw=0.6, alpha=0.35)
+            mean = m.groupby("time_s")[["follower_speed_mps", "gap_m"]].mean()
+            ax_v.plot(
+                mean.index,
+                mean["follower_speed_mps"],
+                color=color,
+                lw=2.5,
+                label=f"{method}: mean of trials",
+            )
+            ax_g.plot(mean.index, mean["gap_m"], color=color, lw=2.5)
+        idm = d[d["method"] == idm_method]
+        if not idm.empty:
+            ax_v.plot(
+                idm["time_s"],
+                idm["follower_speed_mps"],
+                color=IDM_COLOR,
+                lw=2.5,
+                ls="--",
+                label="IDM follower (ground truth)",
+            )
+            ax_g.plot(idm["time_s"], idm["gap_m"], color=IDM_COLOR, lw=2.5, ls="--")
+        v0, v1 = first["leader_speed_mps"].iloc[[0, -1]]
+        verb = {"accelerate": "accelerates", "decelerate": "decelerates"}.get(scenario, scenario)
+        ax_v.set_title(f"{scenario}: leader {verb} {v0:g} → {v1:g} m/s — speed")
+        ax_g.set_title(f"{scenario}: follower's gap to the leader")
+        ax_v.set_ylabel("speed (m/s)")
+        ax_g.set_ylabel("gap, bumper to bumper (m)")
+        ax_v.legend(loc="best", fontsize="small")
+        for ax in row:
+            ax.grid(alpha=0.3)
+    for ax in axes[-1]:
+        ax.set_xlabel("time (s)")
+    return _save(fig, path)
+
+
+# --------------------------------------------------------------------------- time-space
+
+
+def _trajectory_segments(
+    t: np.ndarray, x: np.ndarray, v: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Line segments of one vehicle's trajectory, leaving out jumps: the wrap at the end of
+    the ring (position decreases) and restarts of time (a new episode)."""
+    pts = np.column_stack([t, x])
+    seg = np.stack([pts[:-1], pts[1:]], axis=1)
+    keep = (np.diff(x) >= 0) & (np.diff(t) > 0)
+    return seg[keep], 0.5 * (v[:-1] + v[1:])[keep]
+
+
+def plot_time_space(
+    df: pd.DataFrame | Path | str,
+    path: Path | str,
+    ring_length_m: float | None = None,
+    methods: Sequence[str] | None = None,
+) -> Path:
+    """Time-space diagram per method: arc position against time, coloured by speed.
+
+    ``df`` has the columns method, time_s, vehicle_id, arc_pos_m, speed_mps. Lines are not
+    drawn across the wrap of the ring (nor across a restart of time). One colour scale for
+    all panels.
+    """
+    df = _frame(df)
+    _require(df, ["method", "time_s", "vehicle_id", "arc_pos_m", "speed_mps"], "time-space data")
+    methods = list(methods or dict.fromkeys(df["method"]))
+    norm = Normalize(float(df["speed_mps"].min()), float(df["speed_mps"].max()))
+    if norm.vmin == norm.vmax:
+        norm = Normalize(norm.vmin - 0.5, norm.vmax + 0.5)
+    cmap = mpl.colormaps[SPEED_CMAP]
+    fig = Figure(figsize=(5.5 * len(methods) + 1.0, 5.0), layout="constrained")
+    axes = fig.subplots(1, len(methods), squeeze=False, sharey=True)[0]
+    top = ring_length_m or float(df["arc_pos_m"].max())
+    for ax, method in zip(axes, methods, strict=True):
+        d = df[df["method"] == method]
+        segs, speeds = [], []
+        for _, veh in d.groupby("vehicle_id", sort=True):
+            s, v = _trajectory_segments(
+                veh["time_s"].to_numpy(), veh["arc_pos_m"].to_numpy(), veh["speed_mps"].to_numpy()
+            )
+            segs.append(s)
+            speeds.append(v)
+        lc = LineCollection(np.concatenate(segs), cmap=cmap, norm=norm, linewidths=1.6)
+        lc.set_array(np.concatenate(speeds))
+        ax.add_collection(lc)
+        ax.set_xlim(d["time_s"].min(), d["time_s"].max())
+        ax.set_ylim(0.0, top)
+        ax.set_title(f"{method}: {d['vehicle_id'].nunique()} vehicles")
+        ax.set_xlabel("time (s)")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("arc position on the ring (m)")
+    sm = mpl.cm.ScalarMappable(norm=norm, cmap=cmap)
+    fig.colorbar(sm, ax=list(axes), label="speed (m/s)", shrink=0.9)
+    fig.suptitle("Time-space diagram (one line per vehicle, coloured by speed)")
+    return _save(fig, path)
+
+
+# --------------------------------------------------------------------------- distributions
+
+
+def plot_distributions(
+    df: pd.DataFrame | Path | str,
+    path: Path | str,
+    reference: str = "ground_truth",
+    by_k: bool = False,
+    bins: int = 40,
+) -> Path:
+    """Speed and spacing histograms per method, overlaid as density steps.
+
+    ``df`` has the columns method, K, speed_mps, spacing_m. The ``reference`` method is drawn
+    thick and black. With ``by_k`` there is one row of panels per number of hidden vehicles
+    K; reference rows whose K is missing appear in every row. Legends give mean and std.
+    """
+    df = _frame(df)
+    _require(df, ["method", "K", "speed_mps", "spacing_m"], "distribution data")
+    methods = list(dict.fromkeys(df["method"]))
+    if reference in methods:  # reference first, so it is drawn under the others' legend
+        methods = [reference] + [m for m in methods if m != reference]
+    ks = sorted(df["K"].dropna().unique()) if by_k else [None]
+    ks = ks or [None]
+    columns = (
+        ("speed_mps", "Speed", "speed (m/s)", "density (s/m)"),
+        ("spacing_m", "Spacing", "spacing, front to front (m)", "density (1/m)"),
+    )
+    edges = {c[0]: np.histogram_bin_edges(df[c[0]].dropna(), bins=bins) for c in columns}
+    fig = Figure(figsize=(12, 3.8 * len(ks)), layout="constrained")
+    axes = fig.subplots(len(ks), 2, squeeze=False)
+    for row, k in zip(axes, ks, strict=True):
+        d = df if k is None else df[(df["K"] == k) | df["K"].isna()]
+        for ax, (col, name, xlabel, ylabel) in zip(row, columns, strict=True):
+            j = 0
+            for method in methods:
+                x = d.loc[d["method"] == method, col].dropna().to_numpy()
+                if not x.size:
+                    continue
+                ref = method == reference
+                color = REFERENCE_COLOR if ref else METHOD_COLORS[j % len(METHOD_COLORS)]
+                j += 0 if ref else 1
+                ax.hist(
+                    x,
+                    bins=edges[col],
+                    density=True,
+                    histtype="step",
+                    color=color,
+                    lw=2.8 if ref else 1.5,
+                    zorder=3 if ref else 2,
+                    label=f"{method}: mean {x.mean():.2f}, std {x.std():.2f}",
+                )
+            ax.set_ylim(0.0, ax.get_ylim()[1] * 1.4)  # head room for the legend
+            ax.set_xlabel(xlabel)
+            ax.set_ylabel(ylabel)
+            ax.set_title(name if k is None else f"{name}, K = {int(k)} hidden vehicles")
+            ax.legend(fontsize="small", loc="upper left")
+            ax.grid(alpha=0.3)
+    return _save(fig, path)
+
+
+# --------------------------------------------------------------------------- training
+
+
+def plot_generator_training(log: pd.DataFrame | Path | str, path: Path | str) -> Path:
+    """Stage I: total generator loss (train and validation) and each L term per epoch."""
+    df = _frame(log)
+    _require(df, ["epoch", "train_loss", "val_loss"], "generator_train_log")
+    fig = Figure(figsize=(12, 4.2), layout="constrained")
+    ax_l, ax_t = fig.subplots(1, 2)
+    ax_l.plot(df["epoch"], df["train_loss"], color="tab:blue", lw=2, label="train")
+    ax_l.plot(df["epoch"], df["val_loss"], color="tab:red", lw=2, label="validation")
+    best = df.loc[df["val_loss"].idxmin()]
+    ax_l.axvline(
+        best["epoch"], color="grey", ls=":", label=f"best validation: epoch {int(best['epoch'])}"
+    )
+    ax_l.set_title("Generator loss L_gen")
+    ax_l.set_ylabel("loss (dimensionless)")
+    terms = [c[len("train_") :] for c in df.columns if c.startswith("train_L")]
+    for j, term in enumerate(terms):
+        color = f"C{j}"
+        ax_t.plot(df["epoch"], df[f"train_{term}"], color=color, lw=1.6, label=f"{term} train")
+        if f"val_{term}" in df:
+            ax_t.plot(
+                df["epoch"],
+                df[f"val_{term}"],
+                color=color,
+                lw=1.6,
+                ls="--",
+                label=f"{term} validation",
+            )
+    if terms and (df[[f"train_{t}" for t in terms]] > 0).all().all():
+        ax_t.set_yscale("log")
+    ax_t.set_title("Loss terms (solid: train, dashed: validation)")
+    ax_t.set_ylabel("term value (dimensionless)")
+    for ax in (ax_l, ax_t):
+        ax.set_xlabel("epoch")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize="small", ncols=2 if ax is ax_t else 1)
+    return _save(fig, path)
+
+
+POLICY_PANELS = (
+    ("r_macro", "macro reward r_macro,t (per step, 0..1)", "reward (dimensionless)"),
+    ("r_micro_per_pair", "micro log-likelihood per observed pair", "log-likelihood (nats)"),
+    ("pg_loss", "policy-gradient loss", "loss (dimensionless)"),
+    ("v_loss", "value loss", "loss (reward^2)"),
+    ("kl", "approximate KL per update", "KL (nats)"),
+    ("action_std_mps2", "action std of the policy", "std (m/s^2)"),
+)
+
+
+def plot_policy_training(log: pd.DataFrame | Path | str, path: Path | str) -> Path:
+    """Stage II: PPO diagnostics per update (rewards, losses, KL, action std)."""
+    df = _frame(log)
+    _require(df, ["update", *(c for c, _, _ in POLICY_PANELS)], "policy_train_log")
+    fig = Figure(figsize=(13, 6.5), layout="constrained")
+    axes = fig.subplots(2, 3, sharex=True).ravel()
+    for j, (ax, (col, title, ylabel)) in enumerate(zip(axes, POLICY_PANELS, strict=True)):
+        ax.plot(df["update"], df[col], color=f"C{j}", lw=1.8)
+        if col == "v_loss" and (df[col] > 0).all():
+            ax.set_yscale("log")
+        ax.set_title(title)
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+    for ax in axes[3:]:
+        ax.set_xlabel("PPO update")
+    fig.suptitle("Policy training (PPO)")
+    return _save(fig, path)
