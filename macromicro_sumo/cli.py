@@ -61,6 +61,23 @@ def _cmd_train_policy(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from macromicro_sumo.config import load_scenario
+    from macromicro_sumo.evaluation import evaluate
+    from macromicro_sumo.pipeline import policy_paths
+
+    sc = load_scenario(args.scenario)
+    policies = (
+        policy_paths(args.policy.parent)
+        if args.policy.name == "policy.pt"
+        else {"policy": args.policy}
+    )
+    policies["policy"] = args.policy
+    evaluate(sc, args.data, args.generator, policies, args.out, args.command_line, not args.quiet)
+    print(f"evaluation written to {args.out}")
+    return 0
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     from macromicro_sumo.config import load_scenario
     from macromicro_sumo.pipeline import run
@@ -102,7 +119,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scenario", type=Path, help="scenario TOML")
     p.add_argument("--out", type=Path, required=True, help="output folder")
 
-    p = add("run", _cmd_run, "the whole pipeline: ground truth, generator (stages resume)")
+    p = add(
+        "run",
+        _cmd_run,
+        "the whole pipeline: ground truth, generator, policies, evaluation, report (stages resume)",
+    )
     p.add_argument("scenario", type=Path, help="scenario TOML")
     p.add_argument("--out", type=Path, required=True, help="output folder")
 
@@ -121,6 +142,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--resume", action="store_true", help="continue from the last checkpoint in --out"
     )
+
+    p = add(
+        "evaluate", _cmd_evaluate, "macro alignment, micro consistency and leader-follower tests"
+    )
+    p.add_argument("scenario", type=Path, help="scenario TOML")
+    p.add_argument("--data", type=Path, required=True, help="ground-truth folder (from simulate)")
+    p.add_argument("--generator", type=Path, required=True, help="generator.pt")
+    p.add_argument(
+        "--policy", type=Path, required=True, help="policy.pt (ablations beside it are used too)"
+    )
+    p.add_argument("--out", type=Path, required=True, help="output folder")
 
     p = add("complete", _cmd_complete, "complete the held-out snapshots with a trained generator")
     p.add_argument("scenario", type=Path, help="scenario TOML")

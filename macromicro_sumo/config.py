@@ -171,6 +171,24 @@ class PolicyConfig:
 
 
 @dataclass(frozen=True, kw_only=True)
+class EvaluationConfig:
+    """Evaluation protocol: macro alignment rollouts and leader-follower tests."""
+
+    horizon_steps: int = _f(10, lo=1, hi=100_000, doc="rollout length for macro alignment [steps]")
+    lf_trials: int = _f(20, lo=1, hi=100_000, doc="stochastic leader-follower trials per method")
+    lf_duration_s: float = _f(60.0, lo=1.0, hi=1e5, doc="leader-follower test length [s]")
+    min_safe_gap_m: float = _f(
+        2.0, lo=0.0, hi=1e3, doc="minimum safe bumper gap in leader-follower tests [m]"
+    )
+    fcd_episodes: int = _f(
+        20, lo=0, hi=100_000, doc="episodes per method and K written as SUMO FCD"
+    )
+    timespace_s: float = _f(
+        120.0, lo=1.0, hi=1e5, doc="length of the time-space diagram rollouts [s]"
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
 class Scenario:
     """A whole scenario file. ``source`` is the file it came from (for messages and paths)."""
 
@@ -185,6 +203,7 @@ class Scenario:
     bounds: BoundsConfig = _f()
     generator: GeneratorConfig = _f(GeneratorConfig())
     policy: PolicyConfig = _f(PolicyConfig())
+    evaluation: EvaluationConfig = _f(EvaluationConfig())
     source: str = field(default="", compare=False)
 
     def resolve(self, relative: str) -> Path:

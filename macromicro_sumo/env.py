@@ -131,7 +131,9 @@ class RingCore:
         self.length = self.geo.length_m
         self.dt = sc.simulation.step_length_s
         self.a_min, self.a_max = sc.bounds.accel_mps2
-        self.n = bank.arc0_m.shape[1]  # the fleet of the episodes (N, or 2 for leader-follower tests)
+        self.n = bank.arc0_m.shape[
+            1
+        ]  # the fleet of the episodes (N, or 2 for leader-follower tests)
         self.ids = [f"veh{i}" for i in range(self.n)]
         self._edge_index = {e: i for i, e in enumerate(self.geo.edge_ids)}
         self._tmp = tempfile.TemporaryDirectory(prefix="macromicro-env-")

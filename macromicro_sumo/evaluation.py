@@ -1,64 +1,384 @@
-"""Evaluation: roll out a policy on generator-completed held-out scenes and compare the
-fleet's macro statistics with the ground truth over the same steps (paper's protocol).
+"""Evaluation: macro alignment per K and method, micro consistency, on held-out runs.
+
+The paper's protocol, measured in SUMO: for each K, the held-out snapshots are completed
+(by the generator, or, for ``ground_truth``, with the true hidden vehicles) and rolled out
+for ``evaluation.horizon_steps``; observed vehicles replay their recorded speeds and the
+hidden ones are driven by the method. All methods run on the same scenes:
+
+* ``ground_truth``: the recorded fleet (true scene, hidden vehicles apply their recorded actions);
+* ``policy``, ``micro_only``, ``macro_only``: the learned policies (stochastic);
+* ``idm_calibrated``: one IDM fitted by least squares to the observed vehicles' data;
+* ``idm_true``: each hidden vehicle's own ground-truth IDM parameters (an oracle bound),
+  given to the generated vehicle it is matched to (least position + speed error).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import torch
+from scipy.optimize import linear_sum_assignment
+from scipy.stats import wasserstein_distance
 
-from macromicro_sumo.env import RingCore
+from macromicro_sumo.config import Scenario
+from macromicro_sumo.dataset import GroundTruth, run_arrays
+from macromicro_sumo.env import EpisodeBank, RingCore
+from macromicro_sumo.idm_fit import IdmParams, idm_policy_accel
+
+# fn(core, obs (N, 4), rng) -> accelerations of the hidden vehicles (K,)
+ActionFn = Callable[[RingCore, np.ndarray, np.random.Generator], np.ndarray]
 
 
-def rollout_policy(
-    agent, core: RingCore, horizon: int, seed: int, stochastic: bool = True
-) -> pd.DataFrame:
-    """Every episode of the core's bank once: speeds and spacings of all vehicles per step."""
-    gen = torch.Generator().manual_seed(seed)
-    rows = []
-    bank = core.bank
-    for ep in range(len(bank)):
-        o = core.reset(ep)
-        k = int(bank.hidden[ep].sum())
+@dataclass
+class Rollouts:
+    """Per episode, step (1..H) and vehicle; NaN after an episode ended early."""
+
+    arc_m: np.ndarray
+    speed_mps: np.ndarray
+    spacing_m: np.ndarray
+    accel_mps2: np.ndarray
+    hidden: np.ndarray  # (E, N)
+    collisions: int
+    errors: int
+
+
+def rollout(
+    core: RingCore, act: ActionFn, horizon: int, seed: int, episodes: range | None = None
+) -> Rollouts:
+    """Run ``act`` on every episode of the core's bank (or ``episodes``)."""
+    eps = list(episodes if episodes is not None else range(len(core.bank)))
+    n = core.n
+    shape = (len(eps), horizon, n)
+    arc, speed, spacing, accel = (np.full(shape, np.nan) for _ in range(4))
+    rng = np.random.default_rng(seed)
+    collisions = errors = 0
+    for i, ep in enumerate(eps):
+        obs = core.reset(ep)
         for t in range(horizon):
-            with torch.no_grad():
-                d = agent.dist(torch.as_tensor(o, dtype=torch.float32))
-                a = d.mean + (
-                    d.stddev * torch.randn(d.mean.shape, generator=gen) if stochastic else 0.0
-                )
-            res = core.step(a.numpy()[bank.hidden[ep]])
-            o = res.obs
-            rows.append(
-                {
-                    "episode": ep,
-                    "K": k,
-                    "step": t + 1,
-                    "mean_speed_mps": float(o[:, 0].mean()),
-                    "speed_std_mps": float(o[:, 0].std()),
-                    "spacing_std_m": float(o[:, 2].std()),
-                    "gt_mean_speed_mps": float(bank.replay_speed_mps[ep, t + 1].mean()),
-                    "collision": res.collision,
-                    "error": res.error,
-                }
-            )
+            v0 = core.speed.copy()
+            res = core.step(act(core, obs, rng))
+            obs = res.obs
+            arc[i, t], speed[i, t], spacing[i, t] = core.arc, core.speed, core.spacing
+            accel[i, t] = (core.speed - v0) / core.dt
             if res.collision or res.truncated:
+                collisions += res.collision
+                errors += bool(res.error)
                 break
+    return Rollouts(arc, speed, spacing, accel, core.bank.hidden[eps], collisions, errors)
+
+
+def policy_action(agent, stochastic: bool = True) -> ActionFn:
+    def act(core: RingCore, obs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        with torch.no_grad():
+            d = agent.dist(torch.as_tensor(obs[core.hidden], dtype=torch.float32))
+        mean, std = d.mean.numpy(), d.stddev.numpy()
+        return mean + std * rng.standard_normal(mean.shape) if stochastic else mean
+
+    return act
+
+
+def recorded_action(core: RingCore, obs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """The hidden vehicles' recorded actions (with the true scene: the ground truth itself)."""
+    return core.bank.gt_accel_mps2[core.episode, core.t][core.hidden]
+
+
+def idm_action(params: Callable[[RingCore], IdmParams], veh_length_m: float) -> ActionFn:
+    def act(core: RingCore, obs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        return idm_policy_accel(obs[core.hidden], params(core), veh_length_m)
+
+    return act
+
+
+def true_idm_params(
+    sc: Scenario, gt: GroundTruth, bank: EpisodeBank
+) -> Callable[[RingCore], IdmParams]:
+    """Per episode, the true IDM parameters of the hidden vehicles, matched to generated ones."""
+    veh = gt.vehicles.set_index(["run", "vehicle_id"])
+    n = bank.arc0_m.shape[1]
+    ids = [f"v{i}" for i in range(n)]
+    cache: dict[int, IdmParams] = {}
+    length = sc.network.length_m
+
+    def params(core: RingCore) -> IdmParams:
+        ep = core.episode
+        if ep not in cache:
+            hid = np.flatnonzero(bank.hidden[ep])
+            true_arc, gen_arc = bank.true_arc0_m[ep, hid], bank.arc0_m[ep, hid]
+            cost = np.abs(
+                np.mod(gen_arc[:, None] - true_arc[None, :] + length / 2, length) - length / 2
+            )
+            _, col = linear_sum_assignment(cost)
+            rows = veh.loc[[(bank.run[ep], ids[hid[c]]) for c in col]]
+            cache[ep] = IdmParams(
+                rows["speed_factor"].to_numpy(),
+                rows["tau_s"].to_numpy(),
+                rows["accel_mps2"].to_numpy(),
+                rows["decel_mps2"].to_numpy(),
+                rows["min_gap_m"].to_numpy(),
+                float(rows["delta"].iloc[0]),
+            )
+        return cache[ep]
+
+    return params
+
+
+def micro_pairs(sc: Scenario, gt: GroundTruth, runs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(observation, recorded action) of every vehicle-step of ``runs``: the micro data."""
+    t = gt.trajectories[gt.trajectories["run"].isin(runs)]
+    obs = np.stack(
+        [
+            t["speed_mps"],
+            t["speed_limit_mps"],
+            t["spacing_m"],
+            t["speed_mps"] - t["leader_speed_mps"],
+        ],
+        axis=1,
+    )
+    return obs.astype(np.float64), t["accel_mps2"].to_numpy()
+
+
+def macro_row(k: int, method: str, ro: Rollouts, ref: Rollouts | None) -> dict[str, float]:
+    v, d, a = ro.speed_mps, ro.spacing_m, ro.accel_mps2
+    row = {
+        "K": k,
+        "method": method,
+        "mean_speed_mps": np.nanmean(v),
+        "std_speed_mps": np.nanstd(v),
+        "mean_spacing_m": np.nanmean(d),
+        "std_spacing_m": np.nanstd(d),
+        "collisions": ro.collisions,
+        "episodes": len(v),
+        "sumo_errors": ro.errors,
+    }
+    if ref is not None:
+
+        def w1(x: np.ndarray, y: np.ndarray) -> float:
+            return float(wasserstein_distance(x[np.isfinite(x)], y[np.isfinite(y)]))
+
+        row.update(
+            mean_speed_err_mps=abs(row["mean_speed_mps"] - np.nanmean(ref.speed_mps)),
+            w1_speed_mps=w1(v.ravel(), ref.speed_mps.ravel()),
+            w1_accel_mps2=w1(a.ravel(), ref.accel_mps2.ravel()),
+            w1_spacing_m=w1(d.ravel(), ref.spacing_m.ravel()),
+        )
+    return row
+
+
+def samples_frame(k: int, method: str, ro: Rollouts, max_episodes: int = 100) -> pd.DataFrame:
+    """A sample of rollout states for histograms (first ``max_episodes`` episodes)."""
+    e = min(max_episodes, len(ro.speed_mps))
+    v, d = ro.speed_mps[:e].ravel(), ro.spacing_m[:e].ravel()
+    ok = np.isfinite(v)
+    return pd.DataFrame({"K": k, "method": method, "speed_mps": v[ok], "spacing_m": d[ok]})
+
+
+def micro_consistency(
+    agents: dict, idms: dict[str, IdmParams], obs: np.ndarray, accel: np.ndarray, sc: Scenario
+) -> pd.DataFrame:
+    """Held-out observed actions: NLL under each learned policy, action RMSE for every method."""
+    a_min, a_max = sc.bounds.accel_mps2
+    u = np.clip(accel, a_min, a_max)
+    rows = []
+    o = torch.as_tensor(obs, dtype=torch.float32)
+    for name, agent in agents.items():
+        with torch.no_grad():
+            d = agent.dist(o)
+            nll = float(-d.log_prob(torch.as_tensor(u, dtype=torch.float32)).mean())
+            rmse = float(np.sqrt(np.mean((np.clip(d.mean.numpy(), a_min, a_max) - u) ** 2)))
+        rows.append({"method": name, "nll": nll, "action_rmse_mps2": rmse, "n_pairs": len(u)})
+    for name, p in idms.items():
+        pred = np.clip(idm_policy_accel(obs, p, sc.fleet.length_m), a_min, a_max)
+        rows.append(
+            {
+                "method": name,
+                "nll": np.nan,
+                "action_rmse_mps2": float(np.sqrt(np.mean((pred - u) ** 2))),
+                "n_pairs": len(u),
+            }
+        )
     return pd.DataFrame(rows)
 
 
-def speed_alignment(df: pd.DataFrame) -> pd.DataFrame:
-    """Per K: policy fleet mean speed vs ground truth over the same episodes and steps."""
-    g = df.groupby("K")
-    return pd.DataFrame(
-        {
-            "mean_speed_mps": g["mean_speed_mps"].mean(),
-            "gt_mean_speed_mps": g["gt_mean_speed_mps"].mean(),
-            "abs_error_mps": (g["mean_speed_mps"].mean() - g["gt_mean_speed_mps"].mean()).abs(),
-            "collisions": g["collision"].sum(),
-            "episodes": g["episode"].nunique(),
-        }
-    ).reset_index()
+def long_rollout_bank(
+    sc: Scenario, gt: GroundTruth, run: int, seconds: float, k: int, complete_fn, seed: int
+) -> EpisodeBank:
+    """One long episode from the start of a held-out run (time-space diagrams)."""
+    from macromicro_sumo.env import build_bank
+
+    times, _, _, _ = run_arrays(gt.trajectories, run)
+    steps = min(int(round(seconds / sc.simulation.step_length_s)), len(times) - 2)
+    bank = build_bank(sc, gt, np.array([run]), complete_fn, k, seed, horizon=steps)
+    first = int(np.argmin(bank.time_s))
+    return EpisodeBank(*(getattr(bank, f)[first : first + 1] for f in bank.__dataclass_fields__))
 
 
-__all__ = ["rollout_policy", "speed_alignment", "np"]
+__all__ = [
+    "Path",
+    "Rollouts",
+    "rollout",
+    "policy_action",
+    "recorded_action",
+    "idm_action",
+    "true_idm_params",
+    "micro_pairs",
+    "macro_row",
+    "samples_frame",
+    "micro_consistency",
+    "long_rollout_bank",
+]
+
+
+# --------------------------------------------------------------------------- the stage
+
+METHOD_ORDER = ["ground_truth", "policy", "micro_only", "macro_only", "idm_calibrated", "idm_true"]
+
+
+def evaluate(
+    sc: Scenario,
+    data: Path,
+    generator: Path,
+    policies: dict[str, Path],
+    out: Path,
+    command: str = "",
+    progress: bool = True,
+) -> dict:
+    """Write macro_alignment.csv, micro_consistency.csv, leader_follower*.csv, samples,
+    FCD files and an evaluation manifest into ``out``; returns the manifest."""
+    import time
+
+    from tqdm import tqdm
+
+    from macromicro_sumo.dataset import load_ground_truth, split_runs
+    from macromicro_sumo.env import build_bank, generator_completion
+    from macromicro_sumo.errors import UserError
+    from macromicro_sumo.files import prepare_out_dir, staging_dir, write_csv, write_json
+    from macromicro_sumo.generator_train import load_generator
+    from macromicro_sumo.idm_fit import calibrate_idm
+    from macromicro_sumo.manifest import build_manifest
+    from macromicro_sumo.ppo import load_policy
+
+    t0 = time.perf_counter()
+    if "policy" not in policies:
+        raise UserError("evaluate needs the trained policy (policy.pt)")
+    net = load_generator(generator, sc)
+    agents = {name: load_policy(path, sc) for name, path in policies.items()}
+    gt = load_ground_truth(data, sc)
+    out = prepare_out_dir(out)
+    torch.set_num_threads(1)
+    splits = split_runs(gt.runs, sc.generator.held_out_fraction, sc.seed)
+    fit_obs, fit_acc = micro_pairs(sc, gt, np.concatenate([splits["train"], splits["val"]]))
+    idm_cal, idm_rmse = calibrate_idm(fit_obs, fit_acc, sc.fleet.length_m, sc.fleet.delta)
+    h = sc.evaluation.horizon_steps
+    ks = range(sc.generator.hidden_eval[0], sc.generator.hidden_eval[1] + 1)
+    rows, samples = [], []
+    with staging_dir(out) as stage:
+        (stage / "fcd").mkdir()
+        jobs = [
+            (k, m)
+            for k in ks
+            for m in METHOD_ORDER
+            if m in agents or not m.startswith(("policy", "micro", "macro"))
+        ]
+        bar = tqdm(total=len(jobs), desc="evaluate", unit="rollout", disable=not progress)
+        for k in ks:
+            seed = sc.seed + 100 + k
+            true_bank = build_bank(
+                sc, gt, splits["held_out"], lambda s: (s.arc_m, s.speed_mps), k, seed, horizon=h
+            )
+            gen_bank = build_bank(
+                sc, gt, splits["held_out"], generator_completion(net, sc, seed), k, seed, horizon=h
+            )
+            methods: dict[str, tuple[EpisodeBank, ActionFn]] = {
+                "ground_truth": (true_bank, recorded_action)
+            }
+            for name, agent in agents.items():
+                methods[name] = (gen_bank, policy_action(agent))
+            methods["idm_calibrated"] = (
+                gen_bank,
+                idm_action(lambda core: idm_cal, sc.fleet.length_m),
+            )
+            methods["idm_true"] = (
+                gen_bank,
+                idm_action(true_idm_params(sc, gt, gen_bank), sc.fleet.length_m),
+            )
+            ref = None
+            for name in [m for m in METHOD_ORDER if m in methods]:
+                bank, act = methods[name]
+                core = RingCore(sc, bank, seed=sc.seed)
+                try:
+                    ro = rollout(core, act, h, seed)
+                finally:
+                    core.close()
+                if sc.evaluation.fcd_episodes > 0:
+                    fcd = stage / "fcd" / f"{name}_K{k}.fcd.xml"
+                    core = RingCore(sc, bank, seed=sc.seed, fcd_file=fcd)
+                    try:
+                        rollout(
+                            core, act, h, seed, range(min(sc.evaluation.fcd_episodes, len(bank)))
+                        )
+                    finally:
+                        core.close()
+                ref = ro if name == "ground_truth" else ref
+                rows.append(macro_row(k, name, ro, ref))
+                samples.append(samples_frame(k, name, ro))
+                bar.update()
+        bar.close()
+        align = pd.DataFrame(rows)
+        write_csv(align, stage / "macro_alignment.csv")
+        write_csv(pd.concat(samples, ignore_index=True), stage / "eval_samples.csv")
+        held_obs, held_acc = micro_pairs(sc, gt, splits["held_out"])
+        micro = micro_consistency(agents, {"idm_calibrated": idm_cal}, held_obs, held_acc, sc)
+        write_csv(micro, stage / "micro_consistency.csv")
+        write_csv(
+            timespace(sc, gt, splits["held_out"], net, agents["policy"]), stage / "timespace.csv"
+        )
+        manifest = build_manifest(sc, command, stage="evaluate")
+        manifest.update(
+            idm_calibrated={**idm_cal.as_dict(), "fit_rmse_mps2": idm_rmse},
+            horizon_steps=h,
+            policies={k: str(v) for k, v in policies.items()},
+            generator=str(generator),
+            ground_truth=str(data),
+            timings_s={"evaluate": round(time.perf_counter() - t0, 3)},
+        )
+        write_json(manifest, stage / "evaluation_manifest.json")
+    return manifest
+
+
+def timespace(sc: Scenario, gt: GroundTruth, runs: np.ndarray, net, agent) -> pd.DataFrame:
+    """Long rollouts from the start of the first held-out run: ground truth vs policy (K = N - 1)."""
+    from macromicro_sumo.env import generator_completion
+
+    k = min(sc.generator.hidden_eval[1], sc.fleet.n_vehicles - 1)
+    frames = []
+    for name, complete_fn, act in (
+        ("ground_truth", lambda s: (s.arc_m, s.speed_mps), recorded_action),
+        ("policy", generator_completion(net, sc, sc.seed), policy_action(agent)),
+    ):
+        bank = long_rollout_bank(
+            sc, gt, int(runs[0]), sc.evaluation.timespace_s, k, complete_fn, sc.seed
+        )
+        core = RingCore(sc, bank, seed=sc.seed)
+        try:
+            steps = bank.replay_speed_mps.shape[1] - 1
+            ro = rollout(core, act, steps, sc.seed)
+        finally:
+            core.close()
+        e, t, n = ro.arc_m.shape
+        frames.append(
+            pd.DataFrame(
+                {
+                    "method": name,
+                    "time_s": np.repeat((np.arange(t) + 1) * sc.simulation.step_length_s, n),
+                    "vehicle_id": np.tile([f"veh{i}" for i in range(n)], t),
+                    "hidden": np.tile(bank.hidden[0], t).astype(int),
+                    "arc_pos_m": ro.arc_m[0].ravel(),
+                    "speed_mps": ro.speed_mps[0].ravel(),
+                }
+            )
+        )
+    return pd.concat(frames, ignore_index=True).dropna()

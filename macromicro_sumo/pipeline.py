@@ -28,13 +28,30 @@ def _done(manifest: Path, sc: Scenario) -> bool:
     return m.get("scenario_sha256") == sc.digest() and m.get("seed") == sc.seed
 
 
+def policy_paths(pol: Path) -> dict[str, Path]:
+    """The learned methods' checkpoints in a policy folder (the ablations when present)."""
+    paths = {"policy": pol / "policy.pt"}
+    for name in ("micro_only", "macro_only"):
+        if (pol / f"policy_{name}.pt").is_file():
+            paths[name] = pol / f"policy_{name}.pt"
+    return paths
+
+
 def run(sc: Scenario, out: Path | str, command: str = "", progress: bool = True) -> dict[str, Any]:
+    from macromicro_sumo.evaluation import evaluate
     from macromicro_sumo.generator_train import run_train_generator
     from macromicro_sumo.ground_truth import simulate
     from macromicro_sumo.ppo import run_train_policy
+    from macromicro_sumo.report import write_report
 
     out = prepare_out_dir(out)
-    gt, gen, pol = out / "ground_truth", out / "generator", out / "policy"
+    gt, gen, pol, ev = out / "ground_truth", out / "generator", out / "policy", out / "evaluation"
+
+    def train(objective: str) -> Callable[[], Any]:
+        return lambda: run_train_policy(
+            sc, gt, gen / "generator.pt", pol, True, command, progress, objective
+        )
+
     stages: list[tuple[str, Path, Callable[[], Any]]] = [
         ("simulate", gt / "manifest.json", lambda: simulate(sc, gt, command, progress)),
         (
@@ -42,16 +59,22 @@ def run(sc: Scenario, out: Path | str, command: str = "", progress: bool = True)
             gen / "generator_manifest.json",
             lambda: run_train_generator(sc, gt, gen, command, progress),
         ),
+        ("train_policy", pol / "policy_manifest.json", train("mix")),
+        ("train_policy_micro_only", pol / "policy_manifest_micro_only.json", train("micro_only")),
+        ("train_policy_macro_only", pol / "policy_manifest_macro_only.json", train("macro_only")),
         (
-            "train_policy",
-            pol / "policy_manifest.json",
-            lambda: run_train_policy(sc, gt, gen / "generator.pt", pol, True, command, progress),
+            "evaluate",
+            ev / "evaluation_manifest.json",
+            lambda: evaluate(
+                sc, gt, gen / "generator.pt", policy_paths(pol), ev, command, progress
+            ),
         ),
     ]
-    timings: dict[str, float | str] = {}
+    previous = _previous_timings(out / "manifest.json")
+    timings: dict[str, Any] = {}
     for name, manifest, fn in stages:
         if _done(manifest, sc):
-            timings[name] = "skipped (outputs exist for this scenario and seed)"
+            timings[name] = previous.get(name, "skipped (outputs existed)")
             if progress:
                 print(f"[{name}] skipped: outputs exist for this scenario and seed")
             continue
@@ -63,4 +86,13 @@ def run(sc: Scenario, out: Path | str, command: str = "", progress: bool = True)
     manifest = build_manifest(sc, command, stage="run")
     manifest["timings_s"] = timings
     write_json(manifest, out / "manifest.json")
+    write_report(sc, out, manifest)
     return manifest
+
+
+def _previous_timings(path: Path) -> dict[str, Any]:
+    """Stage timings of an earlier, interrupted or finished, run into the same folder."""
+    try:
+        return dict(json.loads(path.read_text()).get("timings_s", {}))
+    except (OSError, json.JSONDecodeError):
+        return {}

@@ -16,6 +16,7 @@ Read top to bottom as CleanRL's ppo_continuous_action: agent, rollout, GAE, upda
 
 from __future__ import annotations
 
+import hashlib
 import io
 import time
 from dataclasses import dataclass
@@ -201,6 +202,28 @@ def load_checkpoint(path: Path, sc: Scenario) -> dict[str, Any]:
     return payload
 
 
+def resumable_checkpoint(
+    path: Path, sc: Scenario, run_key: str, resume: bool | str
+) -> dict[str, Any] | None:
+    """The checkpoint to continue from, if any.
+
+    ``resume`` True: the checkpoint must be of this very run (same scenario, ground truth,
+    generator and objective: ``run_key``) or it is an error; "auto": such a checkpoint is
+    used and any other ignored (the pipeline after an input changed); False: none.
+    """
+    if not resume or not path.is_file():
+        return None
+    ck = load_checkpoint(path, sc)
+    if ck.get("run_key") != run_key:
+        if resume == "auto":
+            return None
+        raise UserError(
+            f"{path}: checkpoint belongs to another run (scenario, ground truth, generator or objective "
+            "differ); start without --resume or use another --out"
+        )
+    return ck
+
+
 def load_policy(path: Path | str, sc: Scenario) -> Agent:
     path = Path(path)
     if not path.is_file():
@@ -217,9 +240,10 @@ def train_policy(
     bank: EpisodeBank,
     out: Path,
     objective: str | None = None,
-    resume: bool = False,
+    resume: bool | str = False,
     progress: bool = True,
     updates: int | None = None,
+    run_key: str = "",
 ) -> dict[str, Any]:
     """PPO on the env over ``bank``; writes policy.pt, policy_train_log.csv, checkpoints."""
     cfg = sc.policy
@@ -235,8 +259,8 @@ def train_policy(
     gen = torch.Generator().manual_seed(sc.seed)
     log: list[dict[str, Any]] = []
     start = 0
-    if resume and ckpt_path.is_file():
-        ck = load_checkpoint(ckpt_path, sc)
+    ck = resumable_checkpoint(ckpt_path, sc, run_key, resume)
+    if ck is not None:
         agent.load_state_dict(ck["state_dict"])
         opt.load_state_dict(ck["optimizer"])
         rng.bit_generator.state = ck["numpy_rng"]
@@ -341,6 +365,7 @@ def train_policy(
                     {
                         "format": CHECKPOINT_FORMAT,
                         "signature": signature(sc),
+                        "run_key": run_key,
                         "state_dict": agent.state_dict(),
                         "optimizer": opt.state_dict(),
                         "numpy_rng": rng.bit_generator.state,
@@ -374,14 +399,16 @@ def run_train_policy(
     data: Path,
     generator: Path,
     out: Path,
-    resume: bool = False,
+    resume: bool | str = False,
     command: str = "",
     progress: bool = True,
+    objective: str | None = None,
 ) -> dict[str, Any]:
     """CLI stage: episodes from train+val runs completed by the generator, PPO, held-out check."""
+    objective = objective or sc.policy.objective
     from macromicro_sumo.dataset import load_ground_truth, split_runs
     from macromicro_sumo.env import build_bank, generator_completion
-    from macromicro_sumo.evaluation import rollout_policy, speed_alignment
+    from macromicro_sumo.evaluation import policy_action, rollout
     from macromicro_sumo.files import prepare_out_dir, write_json
     from macromicro_sumo.generator_train import load_generator
     from macromicro_sumo.manifest import build_manifest
@@ -389,10 +416,13 @@ def run_train_policy(
     net = load_generator(generator, sc)
     gt = load_ground_truth(data, sc)
     out = prepare_out_dir(out)
-    if resume:
-        ck = out / f"policy_{sc.policy.objective}_checkpoint.pt"
-        if ck.is_file():
-            load_checkpoint(ck, sc)  # fail early, before anything is overwritten
+    from macromicro_sumo.files import file_sha256
+
+    run_key = hashlib.sha256(
+        f"{sc.digest()}|{file_sha256(generator)}|{file_sha256(Path(data) / 'trajectories.csv')}|{objective}".encode()
+    ).hexdigest()
+    # Fail early, before anything is overwritten.
+    resumable_checkpoint(out / f"policy_{objective}_checkpoint.pt", sc, run_key, resume)
     torch.set_num_threads(1)
     splits = split_runs(gt.runs, sc.generator.held_out_fraction, sc.seed)
     bank = build_bank(
@@ -403,26 +433,41 @@ def run_train_policy(
         sc.policy.hidden_train,
         sc.seed,
     )
-    res = train_policy(sc, bank, out, resume=resume, progress=progress)
+    res = train_policy(
+        sc, bank, out, objective=objective, resume=resume, progress=progress, run_key=run_key
+    )
     # Held-out check of the issue's target: fleet mean speed vs ground truth per K.
     rows = []
+    h = sc.policy.horizon
     for k in range(sc.generator.hidden_eval[0], sc.generator.hidden_eval[1] + 1):
         held = build_bank(
             sc, gt, splits["held_out"], generator_completion(net, sc, sc.seed + k), k, sc.seed + k
         )
         core = RingCore(sc, held, seed=sc.seed)
         try:
-            rows.append(rollout_policy(res["agent"], core, sc.policy.horizon, sc.seed + k))
+            ro = rollout(core, policy_action(res["agent"]), h, sc.seed + k)
         finally:
             core.close()
-    align = speed_alignment(pd.concat(rows, ignore_index=True))
-    write_csv(align, out / "policy_heldout_speed.csv")
-    manifest = build_manifest(sc, command, stage="train-policy")
+        v, v_gt = np.nanmean(ro.speed_mps), held.replay_speed_mps[:, 1 : h + 1].mean()
+        rows.append(
+            {
+                "K": k,
+                "mean_speed_mps": v,
+                "gt_mean_speed_mps": v_gt,
+                "abs_error_mps": abs(v - v_gt),
+                "collisions": ro.collisions,
+                "episodes": len(held),
+            }
+        )
+    align = pd.DataFrame(rows)
+    suffix = "" if objective == "mix" else f"_{objective}"
+    write_csv(align, out / f"policy_heldout_speed{suffix}.csv")
+    manifest = build_manifest(sc, command, stage=f"train-policy{suffix}")
     manifest.update(
         timings_s={"train_policy": round(res["wall_s"], 3)},
         env_steps=res["env_steps"],
         ground_truth=str(data),
         generator=str(generator),
     )
-    write_json(manifest, out / "policy_manifest.json")
+    write_json(manifest, out / f"policy_manifest{suffix}.json")
     return {"alignment": align, **manifest}

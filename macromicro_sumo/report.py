@@ -1,0 +1,264 @@
+"""report.md: the run's tables and plots, the paper's numbers beside ours, the manifest."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from macromicro_sumo.config import Scenario
+from macromicro_sumo.files import write_text
+
+# The paper's ring results (Results and discussions): policy per K, and its ground truth.
+PAPER_GT = {
+    "mean_speed_mps": 12.06,
+    "std_speed_mps": 0.37,
+    "mean_spacing_m": 125.66,
+    "std_spacing_m": 34.60,
+}
+PAPER_POLICY_SPEED = {1: 11.55, 2: 11.54, 3: 11.52, 4: 11.53}
+PAPER_POLICY_SPEED_STD = "0.78-0.80"
+PAPER_POLICY_SPACING_STD = "<= 34.79"
+
+
+def _table(df: pd.DataFrame, digits: int = 3) -> str:
+    """A GitHub markdown table (no extra dependency)."""
+    cols = list(df.columns)
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for _, row in df.iterrows():
+        cells = []
+        for c in cols:
+            v = row[c]
+            if isinstance(v, float | np.floating):
+                cells.append("" if np.isnan(v) else f"{v:.{digits}f}")
+            else:
+                cells.append(str(v))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _read(path: Path) -> pd.DataFrame | None:
+    return pd.read_csv(path) if path.is_file() else None
+
+
+def alignment_verdicts(align: pd.DataFrame) -> pd.DataFrame:
+    """The issue's targets for ``policy`` per K, measured against the ground truth rows."""
+    gt = align[align["method"] == "ground_truth"].set_index("K")
+    pol = align[align["method"] == "policy"].set_index("K")
+    rows = []
+    for k in pol.index:
+        g, p = gt.loc[k], pol.loc[k]
+        rows.append(
+            {
+                "K": k,
+                "speed error (m/s, <= 0.1)": abs(p["mean_speed_mps"] - g["mean_speed_mps"]),
+                "speed std vs GT (%, within 25)": 100
+                * (p["std_speed_mps"] / g["std_speed_mps"] - 1),
+                "mean spacing - L/N (m)": p["mean_spacing_m"] - g["mean_spacing_m"],
+                "spacing std vs GT (%, within 1)": 100
+                * (p["std_spacing_m"] / g["std_spacing_m"] - 1),
+                "collisions (0)": str(int(p["collisions"])),
+            }
+        )
+    return pd.DataFrame(rows)
+
+
+def write_report(sc: Scenario, out: Path, manifest: dict[str, Any]) -> Path:
+    out = Path(out)
+    gt_dir, gen_dir, pol_dir, ev_dir = (
+        out / "ground_truth",
+        out / "generator",
+        out / "policy",
+        out / "evaluation",
+    )
+    parts = [f"# macromicro-sumo report: {sc.name}", ""]
+    parts += [
+        f"Scenario `{sc.source}` (sha256 `{sc.digest()[:12]}`), seed {sc.seed}. "
+        "Every figure below was measured in this run.",
+        "",
+    ]
+
+    traj = _read(gt_dir / "trajectories.csv")
+    runs = _read(gt_dir / "runs.csv")
+    if traj is not None and runs is not None:
+        parts += [
+            "## Ground truth",
+            "",
+            _table(
+                pd.DataFrame(
+                    [
+                        {
+                            "": "paper",
+                            "mean speed (m/s)": PAPER_GT["mean_speed_mps"],
+                            "speed std (m/s)": PAPER_GT["std_speed_mps"],
+                            "mean spacing (m)": PAPER_GT["mean_spacing_m"],
+                            "spacing std (m)": PAPER_GT["std_spacing_m"],
+                            "collisions": "",
+                            "teleports": "",
+                        },
+                        {
+                            "": "ours (SUMO)",
+                            "mean speed (m/s)": traj["speed_mps"].mean(),
+                            "speed std (m/s)": traj["speed_mps"].std(),
+                            "mean spacing (m)": traj["spacing_m"].mean(),
+                            "spacing std (m)": traj["spacing_m"].std(),
+                            "collisions": int(runs["collisions"].sum()),
+                            "teleports": int(runs["teleports"].sum()),
+                        },
+                    ]
+                ),
+                2,
+            ),
+            "",
+        ]
+        macro = _read(gt_dir / "macro.csv")
+        if macro is not None:
+            d = macro[macro["source"] == "detectors"].set_index(["run", "begin_s"])
+            t = macro[macro["source"] == "trajectories"].set_index(["run", "begin_s"])
+            err = {
+                c: float(((d[c] - t[c]) / t[c]).abs().max() * 100)
+                for c in ("mean_speed_mps", "density_vehpkm", "mean_spacing_m")
+            }
+            parts += [
+                "Detector estimates vs trajectories, worst interval: "
+                + ", ".join(f"{k} {v:.2f}%" for k, v in err.items())
+                + ".",
+                "",
+            ]
+
+    gm = _read(gen_dir / "generator_metrics.csv")
+    if gm is not None:
+        cols = [
+            "method",
+            "K",
+            "feasibility_rate",
+            "n_no_feasible",
+            "projected_vehicles",
+            "speed_rel_err",
+            "L_mean",
+            "L_min",
+            "L_max",
+            "L_var",
+            "pos_err_m",
+            "speed_err_mps",
+        ]
+        parts += [
+            "## Stage I: generator (held-out snapshots)",
+            "",
+            _table(gm[[c for c in cols if c in gm]], 4),
+            "",
+        ]
+
+    align = _read(ev_dir / "macro_alignment.csv")
+    if align is not None:
+        parts += [
+            "## Macro alignment (held-out scenes, rollouts of "
+            f"{sc.evaluation.horizon_steps} x {sc.simulation.step_length_s:g} s)",
+            "",
+        ]
+        paper = pd.DataFrame(
+            [
+                {
+                    "K": k,
+                    "method": "paper policy",
+                    "mean_speed_mps": v,
+                    "std_speed_mps": PAPER_POLICY_SPEED_STD,
+                    "mean_spacing_m": 125.66,
+                    "std_spacing_m": PAPER_POLICY_SPACING_STD,
+                }
+                for k, v in PAPER_POLICY_SPEED.items()
+            ]
+        )
+        cols = [
+            "K",
+            "method",
+            "mean_speed_mps",
+            "std_speed_mps",
+            "mean_spacing_m",
+            "std_spacing_m",
+            "collisions",
+            "mean_speed_err_mps",
+            "w1_speed_mps",
+            "w1_accel_mps2",
+            "w1_spacing_m",
+        ]
+        parts += [
+            _table(align[[c for c in cols if c in align]]),
+            "",
+            f"The paper (its own ground truth: {PAPER_GT['mean_speed_mps']} m/s, std {PAPER_GT['std_speed_mps']}):",
+            "",
+            _table(paper, 2),
+            "",
+            "Targets for `policy`:",
+            "",
+            _table(alignment_verdicts(align)),
+            "",
+        ]
+        speed_err = align.dropna(subset=["mean_speed_err_mps"]).pivot(
+            index="K", columns="method", values="mean_speed_err_mps"
+        )
+        better = [
+            m
+            for m in speed_err.columns
+            if m != "policy" and (speed_err[m] < speed_err["policy"]).any()
+        ]
+        if better:
+            parts += [
+                "Where a baseline beats `policy` on mean-speed error for some K: "
+                + ", ".join(f"`{m}`" for m in better)
+                + ".",
+                "",
+            ]
+
+    micro = _read(ev_dir / "micro_consistency.csv")
+    if micro is not None:
+        parts += ["## Micro consistency (held-out observed actions)", "", _table(micro, 4), ""]
+
+    lf = _read(ev_dir / "leader_follower_summary.csv")
+    if lf is not None:
+        s = (
+            lf.groupby(["scenario", "method"])
+            .agg(
+                mean_rmse_vs_idm_mps=("rmse_vs_idm_mps", "mean"),
+                min_gap_m=("min_gap_m", "min"),
+                collisions=("collision", "sum"),
+                trials=("trial", "nunique"),
+            )
+            .reset_index()
+        )
+        parts += ["## Leader-follower (paper Fig. 3)", "", _table(s), ""]
+
+    plots = sorted((out / "plots").glob("*.png")) if (out / "plots").is_dir() else []
+    if plots:
+        parts += ["## Plots", ""] + [f"![{p.stem}](plots/{p.name})" for p in plots] + [""]
+
+    logs = _read(pol_dir / "policy_train_log.csv")
+    if logs is not None:
+        last = logs.iloc[-1]
+        parts += [
+            "## Training",
+            "",
+            f"Policy: {int(last['update'])} updates, final r_macro {last['r_macro']:.4f}, "
+            f"r_micro per pair {last['r_micro_per_pair']:.3f}, ground-truth actions clipped for the likelihood: "
+            f"{100 * logs['gt_actions_clipped_share'].mean():.2f}%.",
+            "",
+        ]
+
+    parts += [
+        "## Manifest",
+        "",
+        "```json",
+        json.dumps(
+            {k: manifest[k] for k in ("timings_s", "versions", "command", "seed") if k in manifest},
+            indent=2,
+            default=str,
+        ),
+        "```",
+        "",
+    ]
+    path = out / "report.md"
+    write_text("\n".join(parts), path)
+    return path
