@@ -73,7 +73,16 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         else {"policy": args.policy}
     )
     policies["policy"] = args.policy
-    evaluate(sc, args.data, args.generator, policies, args.out, args.command_line, not args.quiet)
+    evaluate(
+        sc,
+        args.data,
+        args.generator,
+        policies,
+        args.out,
+        args.command_line,
+        not args.quiet,
+        args.hidden,
+    )
     print(f"evaluation written to {args.out}")
     return 0
 
@@ -153,6 +162,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--policy", type=Path, required=True, help="policy.pt (ablations beside it are used too)"
     )
     p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument(
+        "--hidden", type=int, nargs="+", help="hidden counts K (default: generator.hidden_eval)"
+    )
 
     p = add("complete", _cmd_complete, "complete the held-out snapshots with a trained generator")
     p.add_argument("scenario", type=Path, help="scenario TOML")

@@ -245,6 +245,7 @@ def evaluate(
     out: Path,
     command: str = "",
     progress: bool = True,
+    hidden: list[int] | None = None,
 ) -> dict:
     """Write macro_alignment.csv, micro_consistency.csv, leader_follower*.csv, samples,
     FCD files and an evaluation manifest into ``out``; returns the manifest."""
@@ -264,6 +265,18 @@ def evaluate(
     t0 = time.perf_counter()
     if "policy" not in policies:
         raise UserError("evaluate needs the trained policy (policy.pt)")
+    n = sc.fleet.n_vehicles
+    for k in hidden or []:
+        if not 1 <= k <= n - 1:
+            raise UserError(
+                f"--hidden {k}: K must be in [1, {n - 1}] (N = fleet.n_vehicles = {n} of {sc.source}; "
+                "at least one vehicle must be observed)"
+            )
+    for name, path in policies.items():
+        if not Path(path).is_file():
+            raise UserError(
+                f"{path}: {name} checkpoint not found (run `macromicro train-policy` first)"
+            )
     net = load_generator(generator, sc)
     agents = {name: load_policy(path, sc) for name, path in policies.items()}
     gt = load_ground_truth(data, sc)
@@ -273,7 +286,7 @@ def evaluate(
     fit_obs, fit_acc = micro_pairs(sc, gt, np.concatenate([splits["train"], splits["val"]]))
     idm_cal, idm_rmse = calibrate_idm(fit_obs, fit_acc, sc.fleet.length_m, sc.fleet.delta)
     h = sc.evaluation.horizon_steps
-    ks = range(sc.generator.hidden_eval[0], sc.generator.hidden_eval[1] + 1)
+    ks = hidden or list(range(sc.generator.hidden_eval[0], sc.generator.hidden_eval[1] + 1))
     rows, samples = [], []
     with staging_dir(out) as stage:
         (stage / "fcd").mkdir()
