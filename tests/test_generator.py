@@ -38,6 +38,7 @@ from macromicro_sumo.generator import (
 from macromicro_sumo.generator_train import (
     _batch_loss,
     held_out_sets,
+    load_generator,
     run_train_generator,
     train_generator,
 )
@@ -92,6 +93,14 @@ def zero_net() -> GeneratorNet:
     return net.eval()
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _keep_torch_threads():
+    """train-generator sets torch to one thread for the whole process: restore it after."""
+    threads = torch.get_num_threads()
+    yield
+    torch.set_num_threads(threads)
+
+
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory) -> tuple[Scenario, GroundTruth, GeneratorNet, Path]:
     """8 runs of 120 s on the paper ring, and a generator trained on them for 30 epochs."""
@@ -111,8 +120,6 @@ def trained(tmp_path_factory) -> tuple[Scenario, GroundTruth, GeneratorNet, Path
     out = folder / "gen"
     run_train_generator(sc, gt_dir, out, progress=False)
     gt = load_ground_truth(gt_dir, sc)
-    from macromicro_sumo.generator_train import load_generator
-
     return sc, gt, load_generator(out / "generator.pt", sc), out
 
 

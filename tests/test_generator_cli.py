@@ -88,6 +88,14 @@ def fails(capsys, argv: list[str], out: Path, *fragments: str) -> str:
     return err
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _keep_torch_threads():
+    """train-generator sets torch to one thread for the whole process: restore it after."""
+    threads = torch.get_num_threads()
+    yield
+    torch.set_num_threads(threads)
+
+
 @pytest.fixture(scope="module")
 def stage(tmp_path_factory) -> dict:
     """Ground truth (4 runs of 120 s) and a generator trained on it for 3 epochs, via main."""
