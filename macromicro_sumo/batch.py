@@ -544,10 +544,9 @@ class RayBackend:
                 kwargs["num_cpus"] = self.workers
             try:
                 ray.init(**kwargs, include_dashboard=False, logging_level="ERROR")
-            except ConnectionError as exc:
-                raise UserError(
-                    f"--address {self.address}: cannot connect to Ray ({exc})"
-                ) from None
+            except Exception as exc:  # Ray raises ConnectionError, RuntimeError, ... here
+                where = f"--address {self.address}" if self.address else "a local Ray instance"
+                raise UserError(f"{where}: Ray did not start ({_one_line(exc)[:300]})") from None
         remote = ray.remote(num_cpus=1, max_retries=0)(ray_task)
         node = ray.get_runtime_context().get_node_id()
         refs = {}
