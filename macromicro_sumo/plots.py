@@ -70,10 +70,11 @@ def plot_leader_follower(
     for row, scenario in zip(axes, scenarios, strict=True):
         d = df[df["scenario"] == scenario]
         ax_v, ax_g = row
-        first = d[d["trial"] == d["trial"].min()].drop_duplicates("time_s")
+        # Every row carries the leader; a trial cut short by a collision must not cut it.
+        lead = d.groupby("time_s")["leader_speed_mps"].first()
         ax_v.plot(
-            first["time_s"],
-            first["leader_speed_mps"],
+            lead.index,
+            lead.to_numpy(),
             color=LEADER_COLOR,
             lw=2.5,
             label="leader (prescribed)",
@@ -113,7 +114,7 @@ def plot_leader_follower(
                 label="IDM follower (ground truth)",
             )
             ax_g.plot(idm["time_s"], idm["gap_m"], color=IDM_COLOR, lw=2.5, ls="--")
-        v0, v1 = first["leader_speed_mps"].iloc[[0, -1]]
+        v0, v1 = lead.iloc[[0, -1]]
         verb = {"accelerate": "accelerates", "decelerate": "decelerates"}.get(scenario, scenario)
         ax_v.set_title(f"{scenario}: leader {verb} {v0:g} → {v1:g} m/s — speed")
         ax_g.set_title(f"{scenario}: follower's gap to the leader")
