@@ -349,6 +349,9 @@ def evaluate(
         write_csv(
             timespace(sc, gt, splits["held_out"], net, agents["policy"]), stage / "timespace.csv"
         )
+        lf_traces, lf_summary = leader_follower_tests(sc, agents, idm_cal)
+        write_csv(lf_traces, stage / "leader_follower.csv")
+        write_csv(lf_summary, stage / "leader_follower_summary.csv")
         manifest = build_manifest(sc, command, stage="evaluate")
         manifest.update(
             idm_calibrated={**idm_cal.as_dict(), "fit_rmse_mps2": idm_rmse},
@@ -395,3 +398,25 @@ def timespace(sc: Scenario, gt: GroundTruth, runs: np.ndarray, net, agent) -> pd
             )
         )
     return pd.concat(frames, ignore_index=True).dropna()
+
+
+def leader_follower_tests(
+    sc: Scenario, agents: dict, idm_cal: IdmParams
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The paper's Fig. 3 tests for every learned method and the calibrated IDM."""
+    from macromicro_sumo.leader_follower import (
+        LeaderProfile,
+        idm_follower,
+        mean_idm_params,
+        policy_follower,
+        run_leader_follower,
+    )
+
+    followers = {name: policy_follower(agent) for name, agent in agents.items()}
+    cal = {k: float(v) for k, v in idm_cal.as_dict().items()}
+    followers["idm_calibrated"] = idm_follower(cal, sc.fleet.length_m)
+    duration = sc.evaluation.lf_duration_s
+    profile = LeaderProfile(duration_s=duration, hold_s=min(20.0, duration / 3))
+    return run_leader_follower(
+        sc, followers, mean_idm_params(sc), sc.evaluation.lf_trials, sc.seed, profile
+    )
