@@ -152,6 +152,11 @@ class PolicyConfig:
     eta: float = _f(0.3, lo=0.0, hi=1e6, doc="macro reward weight eta")
     horizon: int = _f(10, lo=1, hi=100_000, doc="episode length H [policy steps]")
     objective: str = _f("mix", choices=("mix", "micro_only", "macro_only"), doc="ablation switch")
+    observation: str = _f(
+        "paper",
+        choices=("paper", "lookahead"),
+        doc="paper: [v, v_limit, spacing, delta_v]; lookahead adds [next edge's limit, distance to it]",
+    )
     hidden_train: tuple[int, int] = _f((1, 4), lo=1, hi=10_000, doc="K range of training episodes")
     updates: int = _f(60, lo=1, hi=1_000_000, doc="PPO updates")
     episodes_per_update: int = _f(32, lo=1, hi=100_000, doc="episodes per rollout")

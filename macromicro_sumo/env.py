@@ -24,10 +24,10 @@ from macromicro_sumo.config import Scenario
 from macromicro_sumo.dataset import GroundTruth, Snapshots, hide, run_arrays, snapshot_states
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.network import RingGeometry, read_ring
+from macromicro_sumo.physics import OBSERVATION_FEATURES, lookahead_features
 from macromicro_sumo.sumo import Simulation, SumoOptions
 
 CTRL_TYPE = "ctrl"
-OBS_NAMES = ("speed_mps", "speed_limit_mps", "spacing_m", "delta_v_mps")
 
 
 @dataclass(frozen=True)
@@ -151,6 +151,7 @@ class RingCore:
         self._broken = True
         self._insert_fleet()
         self._next = np.roll(np.arange(self.n), -1)
+        self.obs_dim = len(OBSERVATION_FEATURES[sc.policy.observation])
         self.episode = -1
         self.t = 0
         self.arc = np.zeros(self.n)
@@ -223,12 +224,17 @@ class RingCore:
         self.spacing[order] = gaps
 
     def observations(self) -> np.ndarray:
-        """[v, v_limit, spacing, v - v_leader] of every vehicle (see physics.ring_observations)."""
-        obs = np.empty((self.n, 4))
+        """Per vehicle [v, v_limit, spacing, v - v_leader] (+ [next limit, distance] with
+        ``policy.observation = "lookahead"``); see physics.OBSERVATION_FEATURES."""
+        obs = np.empty((self.n, self.obs_dim))
         obs[:, 0] = self.speed
         obs[:, 1] = self.limits[self.edge]
         obs[:, 2] = self.spacing
         obs[:, 3] = self.speed - self.speed[self.leader]
+        if self.obs_dim > 4:
+            obs[:, 4], obs[:, 5] = lookahead_features(
+                self.arc, self.edge, self.geo.offsets_m, self.geo.lengths_m, self.limits
+            )
         return obs
 
     def macro_reward(self) -> tuple[float, dict[str, float]]:

@@ -9,7 +9,9 @@ naming the agent.
 
 ## Observation Space
 Per hidden vehicle: ``Box(4,)`` = [v (m/s), v_limit at its position (m/s), spacing to the
-vehicle ahead, front to front (m), v - v_leader (m/s)], from arc positions.
+vehicle ahead, front to front (m), v - v_leader (m/s)], from arc positions (the paper's
+observation). With ``policy.observation = "lookahead"``: ``Box(6,)``, adding the next
+edge's speed limit (m/s) and the distance to it (m).
 
 ## Rewards
 r_macro,t = 1 / (1 + lambda_v L_speed,t + lambda_d L_dist,t) on the whole scene, the same
@@ -51,6 +53,7 @@ from pettingzoo import ParallelEnv
 from macromicro_sumo.config import Scenario, load_scenario
 from macromicro_sumo.dataset import load_ground_truth, split_runs
 from macromicro_sumo.env import EpisodeBank, RingCore, build_bank, generator_completion
+from macromicro_sumo.physics import OBSERVATION_FEATURES
 
 ENV_ID = "macromicro/RingHidden-v0"
 
@@ -78,11 +81,9 @@ def make_bank(
 def _spaces(sc: Scenario, length_m: float) -> tuple[spaces.Box, spaces.Box]:
     a_min, a_max = sc.bounds.accel_mps2
     act = spaces.Box(np.float32(a_min), np.float32(a_max), (1,), np.float32)
-    obs = spaces.Box(
-        np.array([0, 0, 0, -100], np.float32),
-        np.array([100, 100, length_m, 100], np.float32),
-        dtype=np.float32,
-    )
+    lo, hi = [0, 0, 0, -100, 0, 0], [100, 100, length_m, 100, 100, length_m]
+    d = len(OBSERVATION_FEATURES[sc.policy.observation])
+    obs = spaces.Box(np.array(lo[:d], np.float32), np.array(hi[:d], np.float32), dtype=np.float32)
     return act, obs
 
 

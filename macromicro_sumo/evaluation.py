@@ -28,6 +28,8 @@ from macromicro_sumo.config import Scenario
 from macromicro_sumo.dataset import GroundTruth, run_arrays
 from macromicro_sumo.env import EpisodeBank, RingCore
 from macromicro_sumo.idm_fit import IdmParams, idm_policy_accel
+from macromicro_sumo.network import read_ring
+from macromicro_sumo.physics import lookahead_features
 
 # fn(core, obs (N, 4), rng) -> accelerations of the hidden vehicles (K,)
 ActionFn = Callable[[RingCore, np.ndarray, np.random.Generator], np.ndarray]
@@ -127,18 +129,26 @@ def true_idm_params(
 
 
 def micro_pairs(sc: Scenario, gt: GroundTruth, runs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(observation, recorded action) of every vehicle-step of ``runs``: the micro data."""
+    """(observation, recorded action) of every vehicle-step of ``runs``: the micro data,
+    with the same features as the env's observations (``policy.observation``)."""
     t = gt.trajectories[gt.trajectories["run"].isin(runs)]
-    obs = np.stack(
-        [
-            t["speed_mps"],
-            t["speed_limit_mps"],
-            t["spacing_m"],
-            t["speed_mps"] - t["leader_speed_mps"],
-        ],
-        axis=1,
-    )
-    return obs.astype(np.float64), t["accel_mps2"].to_numpy()
+    cols = [
+        t["speed_mps"],
+        t["speed_limit_mps"],
+        t["spacing_m"],
+        t["speed_mps"] - t["leader_speed_mps"],
+    ]
+    if sc.policy.observation == "lookahead":
+        geo = read_ring(sc.resolve(sc.network.net_file))
+        lim = gt.speed_limits.pivot(index="run", columns="edge_id", values="speed_limit_mps")[
+            list(geo.edge_ids)
+        ]
+        arc = t["arc_pos_m"].to_numpy()
+        edge = geo.edge_index(arc)
+        limits = lim.loc[t["run"]].to_numpy()
+        cols += list(lookahead_features(arc, edge[:, None], geo.offsets_m, geo.lengths_m, limits))
+        cols[-2], cols[-1] = cols[-2][:, 0], cols[-1][:, 0]
+    return np.stack(cols, axis=1).astype(np.float64), t["accel_mps2"].to_numpy()
 
 
 def macro_row(k: int, method: str, ro: Rollouts, ref: Rollouts | None) -> dict[str, float]:

@@ -141,7 +141,7 @@ def idm_follower(params: Mapping[str, float], vehicle_length_m: float) -> Follow
     p = {k: float(params[k]) for k in IDM_KEYS}
 
     def fn(obs: np.ndarray, rng: np.random.Generator) -> float:
-        v, limit, spacing, dv = obs
+        v, limit, spacing, dv = obs[:4]
         return float(
             idm_accel(
                 v,

@@ -107,3 +107,35 @@ def ring_observations(
     leader, spacing = ring_leaders(arc_m, length_m)
     v_lead = np.take_along_axis(speed_mps, leader, axis=-1)
     return np.stack([speed_mps, limit_mps, spacing, speed_mps - v_lead], axis=-1)
+
+
+OBSERVATION_FEATURES = {
+    "paper": ("speed_mps", "speed_limit_mps", "spacing_m", "delta_v_mps"),
+    "lookahead": (
+        "speed_mps",
+        "speed_limit_mps",
+        "spacing_m",
+        "delta_v_mps",
+        "next_limit_mps",
+        "dist_to_next_m",
+    ),
+}
+
+
+def lookahead_features(
+    arc_m: np.ndarray,
+    edge: np.ndarray,
+    offsets_m: np.ndarray,
+    lengths_m: np.ndarray,
+    limits_mps: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Speed limit of the next edge and the distance to it [m], per vehicle.
+
+    Drivers (and SUMO) slow down ahead of a lower limit: without this the local limit
+    alone cannot tell 'accelerate' from 'hold' on a ring with piecewise limits.
+    """
+    n_edges = len(offsets_m)
+    nxt = (edge + 1) % n_edges
+    return limits_mps[..., nxt] if limits_mps.ndim == 1 else np.take_along_axis(
+        limits_mps, nxt, -1
+    ), (offsets_m[edge] + lengths_m[edge] - arc_m)

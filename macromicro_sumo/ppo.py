@@ -33,30 +33,42 @@ from macromicro_sumo.config import Scenario
 from macromicro_sumo.env import EpisodeBank, RingCore
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import atomic_path, write_csv
+from macromicro_sumo.physics import OBSERVATION_FEATURES
 
 CHECKPOINT_FORMAT = "macromicro-policy"
-# Fixed observation scaling [v, v_limit, spacing, delta_v]: SI units -> O(1).
-OBS_SHIFT = np.array([12.0, 13.0, 125.0, 0.0], dtype=np.float32)
-OBS_SCALE = np.array([2.0, 1.0, 50.0, 1.0], dtype=np.float32)
+# Fixed observation scaling per feature (physics.OBSERVATION_FEATURES): SI units -> O(1).
+OBS_SHIFT_SCALE = {
+    "speed_mps": (12.0, 2.0),
+    "speed_limit_mps": (13.0, 1.0),
+    "spacing_m": (125.0, 50.0),
+    "delta_v_mps": (0.0, 1.0),
+    "next_limit_mps": (13.0, 1.0),
+    "dist_to_next_m": (80.0, 50.0),
+}
 
 
 # --------------------------------------------------------------------------- agent
 
 
 class Agent(nn.Module):
-    def __init__(self, hidden_size: int = 64, init_log_std: float = -1.0) -> None:
+    def __init__(
+        self, hidden_size: int = 64, init_log_std: float = -1.0, observation: str = "paper"
+    ) -> None:
         super().__init__()
-        self.register_buffer("shift", torch.as_tensor(OBS_SHIFT))
-        self.register_buffer("scale", torch.as_tensor(OBS_SCALE))
+        features = OBSERVATION_FEATURES[observation]
+        obs_dim = len(features)
+        self.observation = observation
+        self.register_buffer("shift", torch.tensor([OBS_SHIFT_SCALE[f][0] for f in features]))
+        self.register_buffer("scale", torch.tensor([OBS_SHIFT_SCALE[f][1] for f in features]))
         self.actor = nn.Sequential(
-            nn.Linear(4, hidden_size),
+            nn.Linear(obs_dim, hidden_size),
             nn.Tanh(),
             nn.Linear(hidden_size, hidden_size),
             nn.Tanh(),
             nn.Linear(hidden_size, 1),
         )
         self.critic = nn.Sequential(
-            nn.Linear(5, hidden_size),
+            nn.Linear(obs_dim + 1, hidden_size),
             nn.Tanh(),
             nn.Linear(hidden_size, hidden_size),
             nn.Tanh(),
@@ -124,7 +136,7 @@ def collect(
 ) -> Rollout:
     n = core.n
     e_n = len(episodes)
-    obs = np.zeros((e_n, horizon, n, 4), dtype=np.float32)
+    obs = np.zeros((e_n, horizon, n, core.obs_dim), dtype=np.float32)
     act = np.zeros((e_n, horizon, n), dtype=np.float32)
     logp = np.zeros_like(act)
     val = np.zeros_like(act)
@@ -173,7 +185,7 @@ def signature(sc: Scenario) -> dict[str, Any]:
         "network.radius_m": sc.network.radius_m,
         "bounds.accel_mps2": list(sc.bounds.accel_mps2),
         "simulation.step_length_s": sc.simulation.step_length_s,
-        "observation": "v,v_limit,spacing,delta_v",
+        "policy.observation": ",".join(OBSERVATION_FEATURES[sc.policy.observation]),
     }
 
 
@@ -229,7 +241,7 @@ def load_policy(path: Path | str, sc: Scenario) -> Agent:
     if not path.is_file():
         raise UserError(f"{path}: policy checkpoint not found (run `macromicro train-policy`)")
     payload = load_checkpoint(path, sc)
-    agent = Agent(payload["hidden_size"])
+    agent = Agent(payload["hidden_size"], observation=sc.policy.observation)
     agent.load_state_dict(payload["state_dict"])
     agent.eval()
     return agent
@@ -253,7 +265,7 @@ def train_policy(
     n_updates = updates or cfg.updates
     ckpt_path = out / f"policy_{objective}_checkpoint.pt"
     torch.manual_seed(sc.seed)
-    agent = Agent(cfg.hidden_size, cfg.init_log_std)
+    agent = Agent(cfg.hidden_size, cfg.init_log_std, cfg.observation)
     opt = torch.optim.Adam(agent.parameters(), lr=cfg.lr)
     rng = np.random.default_rng([sc.seed, 41])
     gen = torch.Generator().manual_seed(sc.seed)
