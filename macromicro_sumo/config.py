@@ -133,6 +133,12 @@ class GeneratorConfig:
     lambda_d: float = _f(0.5, lo=0.0, hi=1e6, doc="spacing penalty weight lambda_d")
     lambda_rec: float = _f(0.0, lo=0.0, hi=1e6, doc="reconstruction weight (0: off, as the paper)")
     psi_source: str = _f("detectors", choices=("detectors", "trajectories"), doc="Psi source")
+    spacing_dispersion: str = _f(
+        "paper",
+        choices=("paper", "measured"),
+        doc="L_var: paper = std of the touched gaps / mean (drives gaps equal); measured = its distance "
+        "to the detectors' spacing std",
+    )
     bounds_source: str = _f(
         "interval", choices=("interval", "fixed"), doc="Psi bounds: measured per interval or fixed"
     )

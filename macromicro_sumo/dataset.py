@@ -105,6 +105,9 @@ class Snapshots:
     psi: np.ndarray  # (B, 6) in PSI_COLUMNS order
     hidden: np.ndarray  # (B, N) bool
     length_m: float
+    # The detectors' spacing std per snapshot [m], present when the scenario asks the
+    # generator to match the measured dispersion (generator.spacing_dispersion = "measured").
+    spacing_std_m: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.run)
@@ -122,6 +125,7 @@ class Snapshots:
             speed_mps=self.speed_mps[idx],
             psi=self.psi[idx],
             hidden=self.hidden[idx],
+            spacing_std_m=None if self.spacing_std_m is None else self.spacing_std_m[idx],
         )
 
 
@@ -138,6 +142,11 @@ def run_arrays(
 
 def psi_for(gt: GroundTruth, sc: Scenario, run: int, time_s: float) -> np.ndarray:
     """Psi of the interval holding ``time_s``; bounds per the scenario's ``bounds_source``."""
+    return psi_and_dispersion(gt, sc, run, time_s)[:6]
+
+
+def psi_and_dispersion(gt: GroundTruth, sc: Scenario, run: int, time_s: float) -> np.ndarray:
+    """Psi followed by the interval's spacing std [m] (7 values)."""
     m = gt.macro
     rows = m[
         (m["run"] == run)
@@ -149,7 +158,7 @@ def psi_for(gt: GroundTruth, sc: Scenario, run: int, time_s: float) -> np.ndarra
         raise UserError(
             f"{gt.folder}/macro.csv: no {sc.generator.psi_source} row for run {run} at t = {time_s:g} s"
         )
-    psi = rows.iloc[0][PSI_COLUMNS].to_numpy(dtype=float)
+    psi = rows.iloc[0][[*PSI_COLUMNS, "spacing_std_m"]].to_numpy(dtype=float)
     if sc.generator.bounds_source == "fixed":
         psi[2:4] = sc.bounds.spacing_m
         psi[4:6] = sc.bounds.speed_mps
@@ -170,7 +179,7 @@ def snapshot_states(gt: GroundTruth, sc: Scenario, runs: np.ndarray) -> Snapshot
             out["time_s"].append(times[i])
             out["arc"].append(arc[i])
             out["speed"].append(spd[i])
-            out["psi"].append(psi_for(gt, sc, run, times[i]))
+            out["psi"].append(psi_and_dispersion(gt, sc, run, times[i]))
     if not out["run"]:
         raise UserError(f"{gt.folder}: no snapshots in runs {list(runs)}")
     n = sc.fleet.n_vehicles
@@ -179,9 +188,12 @@ def snapshot_states(gt: GroundTruth, sc: Scenario, runs: np.ndarray) -> Snapshot
         time_s=np.array(out["time_s"]),
         arc_m=np.array(out["arc"]),
         speed_mps=np.array(out["speed"]),
-        psi=np.array(out["psi"]),
+        psi=np.array(out["psi"])[:, :6],
         hidden=np.zeros((len(out["run"]), n), dtype=bool),
         length_m=sc.network.length_m,
+        spacing_std_m=np.array(out["psi"])[:, 6]
+        if sc.generator.spacing_dispersion == "measured"
+        else None,
     )
 
 

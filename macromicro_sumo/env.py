@@ -44,9 +44,19 @@ class EpisodeBank:
     true_arc0_m: np.ndarray  # (E, N) the true scene (evaluation only)
     run: np.ndarray
     time_s: np.ndarray
+    spacing_std_m: np.ndarray | None = None  # (E,) L_var's target when measured dispersion is on
 
     def __len__(self) -> int:
         return len(self.run)
+
+    def take(self, idx: np.ndarray) -> EpisodeBank:
+        """The episodes ``idx`` only."""
+        return EpisodeBank(
+            **{
+                f: None if getattr(self, f) is None else getattr(self, f)[idx]
+                for f in self.__dataclass_fields__
+            }
+        )
 
 
 def build_bank(
@@ -95,6 +105,7 @@ def build_bank(
         true_arc0_m=states.arc_m,
         run=snaps.run,
         time_s=snaps.time_s,
+        spacing_std_m=snaps.spacing_std_m,
     )
 
 
@@ -256,7 +267,10 @@ class RingCore:
             terms["L_mean"] = float((mean / d_mean - 1.0) ** 2)
             terms["L_min"] = float((low * low).sum() / (m * d_min * d_min))
             terms["L_max"] = float((high * high).sum() / (m * d_max * d_max))
-            terms["L_var"] = float(np.sqrt((dev * dev).sum() / m) / d_mean)
+            std = np.sqrt((dev * dev).sum() / m)
+            if self.bank.spacing_std_m is not None:
+                std = abs(std - self.bank.spacing_std_m[self.episode])
+            terms["L_var"] = float(std / d_mean)
         else:
             terms.update(L_mean=0.0, L_min=0.0, L_max=0.0, L_var=0.0)
         g = self.sc.generator

@@ -223,7 +223,7 @@ def long_rollout_bank(
     steps = min(int(round(seconds / sc.simulation.step_length_s)), len(times) - 2)
     bank = build_bank(sc, gt, np.array([run]), complete_fn, k, seed, horizon=steps)
     first = int(np.argmin(bank.time_s))
-    return EpisodeBank(*(getattr(bank, f)[first : first + 1] for f in bank.__dataclass_fields__))
+    return bank.take(np.array([first]))
 
 
 __all__ = [

@@ -43,9 +43,9 @@ from torch import nn
 
 from macromicro_sumo.dataset import Snapshots
 
-FEATURE_VERSION = 1
+FEATURE_VERSION = 2
 N_GAP_FEATURES = 7
-N_GLOBAL_FEATURES = 8
+N_GLOBAL_FEATURES = 9
 LOSS_TERMS = ("L_speed", "L_mean", "L_min", "L_max", "L_var")
 
 
@@ -82,13 +82,24 @@ class PsiTensors:
     d_max: torch.Tensor
     v_min: torch.Tensor
     v_max: torch.Tensor
+    d_std: torch.Tensor | None = None  # measured spacing std [m] (spacing_dispersion = "measured")
 
     @classmethod
     def from_array(
-        cls, psi: np.ndarray | torch.Tensor, dtype: torch.dtype = torch.float32
+        cls,
+        psi: np.ndarray | torch.Tensor,
+        dtype: torch.dtype = torch.float32,
+        d_std: np.ndarray | None = None,
     ) -> PsiTensors:
         p = torch.as_tensor(psi, dtype=dtype)
-        return cls(*p.unbind(dim=1))
+        return cls(
+            *p.unbind(dim=1), d_std=None if d_std is None else torch.as_tensor(d_std, dtype=dtype)
+        )
+
+    @classmethod
+    def of(cls, snaps: Snapshots, dtype: torch.dtype = torch.float32) -> PsiTensors:
+        """Psi of a batch of snapshots, with the dispersion target when they carry one."""
+        return cls.from_array(snaps.psi, dtype, snaps.spacing_std_m)
 
     @cached_property
     def v_range(self) -> torch.Tensor:
@@ -107,6 +118,7 @@ class PsiTensors:
                 self.d_max / self.d_mean,
                 (self.v_max - self.v_min) / self.v_mean,
                 (self.v_min + self.v_max - 2 * self.v_mean) / (2 * self.v_scale),
+                torch.zeros_like(self.d_mean) if self.d_std is None else self.d_std / self.d_mean,
             ],
             dim=-1,
         )
@@ -128,7 +140,7 @@ def scene_gaps(
 
 
 # Global feature order: remaining, present, d_min, d_max, needed v, mean v, v range, v centre.
-_GLOBAL_ORDER = [0, 1, 4, 5, 2, 3, 6, 7]
+_GLOBAL_ORDER = [0, 1, 4, 5, 2, 3, 6, 7, 8]
 
 
 def features(
@@ -280,7 +292,10 @@ def macro_losses(
     """The paper's L_speed and L_dist terms of completed scenes, (B,) each.
 
     A (the gaps influenced by generated vehicles) holds every gap whose follower or
-    leader was generated. Same definitions as ``macro.spacing_losses`` (numpy).
+    leader was generated. Same definitions as ``macro.spacing_losses`` (numpy). When Psi
+    carries the detectors' spacing std ``d_std``, L_var is |std(d_A) - d_std| / d_mean:
+    the paper's std(d_A) / d_mean pulls every completion towards equal gaps, which the
+    measured spacing distribution contradicts.
     """
     present = torch.ones_like(generated)
     follower, leader, gap, _ = ring_gaps(arc, present, length_m)
@@ -297,8 +312,17 @@ def macro_losses(
         "L_min": ((torch.relu(dmin - gap) / dmin) ** 2 * a).sum(dim=1) / cnt,
         "L_max": ((torch.relu(gap - dmax) / dmax) ** 2 * a).sum(dim=1) / cnt,
         # sqrt has an infinite slope at 0: the epsilon keeps equal gaps trainable.
-        "L_var": torch.where(has, torch.sqrt(var + 1e-8) / psi.d_mean, zero),
+        "L_var": torch.where(
+            has, _dispersion(torch.sqrt(var + 1e-8), psi.d_std) / psi.d_mean, zero
+        ),
     }
+
+
+def _dispersion(std: torch.Tensor, target: torch.Tensor | None) -> torch.Tensor:
+    if target is None:
+        return std
+    target = torch.as_tensor(target, dtype=std.dtype)
+    return torch.sqrt((std - target) ** 2 + 1e-8)
 
 
 def total_loss(terms: dict[str, torch.Tensor], lambda_v: float, lambda_d: float) -> torch.Tensor:
@@ -365,7 +389,7 @@ def rollout(net: GeneratorNet, snaps: Snapshots, gen: torch.Generator) -> tuple[
     present = ~hidden
     arc = torch.as_tensor(snaps.arc_m, dtype=torch.float32).masked_fill(hidden, 0.0)
     speed = torch.as_tensor(snaps.speed_mps, dtype=torch.float32).masked_fill(hidden, 0.0)
-    psi = PsiTensors.from_array(snaps.psi)
+    psi = PsiTensors.of(snaps)
     b, n = arc.shape
     log_p = arc.new_zeros(b)
     k = hidden.sum(dim=1)
@@ -537,7 +561,7 @@ def complete(net: GeneratorNet, snaps: Snapshots, t_max: int, seed: int) -> Comp
     # then within Psi's bounds to rounding, not to float32's ~1e-4 m on a ring.
     arc = torch.as_tensor(snaps.arc_m, dtype=torch.float64).masked_fill(hidden, 0.0)
     speed = torch.as_tensor(snaps.speed_mps, dtype=torch.float64).masked_fill(hidden, 0.0)
-    psi = PsiTensors.from_array(snaps.psi, dtype=torch.float64)
+    psi = PsiTensors.of(snaps, dtype=torch.float64)
     length = snaps.length_m
     b, n = arc.shape
     k = hidden.sum(dim=1)
@@ -670,13 +694,20 @@ def feasible_exists(snaps: Snapshots) -> np.ndarray:
     return out
 
 
+def _ring_spacing_std(arc_m: np.ndarray, length_m: float) -> np.ndarray:
+    """Std of all spacings of each completed ring, (B,)."""
+    s = np.sort(np.mod(arc_m, length_m), axis=1)
+    gaps = np.diff(np.concatenate([s, s[:, :1] + length_m], axis=1), axis=1)
+    return gaps.std(axis=1)
+
+
 def completion_metrics(snaps: Snapshots, comp: Completion) -> pd.DataFrame:
     """Per snapshot: feasibility, macro errors, each L term, matched hidden-state errors."""
     terms = macro_losses(
         torch.as_tensor(comp.arc_m, dtype=torch.float64),
         torch.as_tensor(comp.speed_mps, dtype=torch.float64),
         torch.as_tensor(snaps.hidden),
-        PsiTensors.from_array(snaps.psi, dtype=torch.float64),
+        PsiTensors.of(snaps, dtype=torch.float64),
         snaps.length_m,
     )
     length = snaps.length_m
@@ -723,6 +754,8 @@ def completion_metrics(snaps: Snapshots, comp: Completion) -> pd.DataFrame:
             "speed_rel_err": np.abs(comp.speed_mps.mean(axis=1) - snaps.psi[:, 0])
             / snaps.psi[:, 0],
             "spacing_rel_err": np.abs(mean_spacing - snaps.psi[:, 1]) / snaps.psi[:, 1],
+            "spacing_std_m": _ring_spacing_std(comp.arc_m, snaps.length_m),
+            "true_spacing_std_m": _ring_spacing_std(snaps.arc_m, snaps.length_m),
             **{k: v.numpy() for k, v in terms.items()},
             "pos_err_m": pos_err,
             "speed_err_mps": spd_err,
@@ -747,6 +780,8 @@ def summarise_metrics(per_snapshot: pd.DataFrame) -> pd.DataFrame:
                 "projected_vehicles": int(g["projected"].sum()),
                 "speed_rel_err": g["speed_rel_err"].mean(),
                 "spacing_rel_err": g["spacing_rel_err"].mean(),
+                "spacing_std_m": np.sqrt((g["spacing_std_m"] ** 2).mean()),
+                "true_spacing_std_m": np.sqrt((g["true_spacing_std_m"] ** 2).mean()),
                 **{t: g[t].mean() for t in LOSS_TERMS},
                 "pos_err_m": g["pos_err_m"].mean(),
                 "speed_err_mps": g["speed_err_mps"].mean(),

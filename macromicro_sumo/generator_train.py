@@ -59,6 +59,7 @@ def signature(sc: Scenario) -> dict[str, Any]:
         "bounds.speed_mps": list(sc.bounds.speed_mps),
         "generator.psi_source": sc.generator.psi_source,
         "generator.bounds_source": sc.generator.bounds_source,
+        "generator.spacing_dispersion": sc.generator.spacing_dispersion,
         "observation_layout": f"ring-gaps-v{FEATURE_VERSION}",
     }
 
@@ -116,7 +117,7 @@ def _batch_loss(
     net: GeneratorNet, snaps: Snapshots, sc: Scenario, gen: torch.Generator
 ) -> tuple[torch.Tensor, dict]:
     arc, speed, generated, log_p = rollout(net, snaps, gen)
-    psi = PsiTensors.from_array(snaps.psi)
+    psi = PsiTensors.of(snaps)
     terms = macro_losses(arc, speed, generated, psi, snaps.length_m)
     loss = total_loss(terms, sc.generator.lambda_v, sc.generator.lambda_d)
     if sc.generator.lambda_rec > 0:

@@ -194,11 +194,14 @@ def spacing_losses(
     mean_target_m: np.ndarray,
     d_min_m: np.ndarray,
     d_max_m: np.ndarray,
+    target_std_m: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """The paper's L_mean, L_min, L_max, L_var over the gaps in ``mask`` (the set A).
 
     Arrays are batched over the leading axis: ``gaps_m`` and ``mask`` are (B, N), the
-    targets (B,). Rows with an empty A give zeros.
+    targets (B,). Rows with an empty A give zeros. With ``target_std_m`` (the detectors'
+    spacing std, ``generator.spacing_dispersion = "measured"``) L_var is
+    |std(d_A) - target| / mean instead of the paper's std(d_A) / mean.
     """
     m = mask.astype(float)
     cnt = np.maximum(m.sum(-1), 1.0)
@@ -207,7 +210,8 @@ def spacing_losses(
     l_min = ((np.maximum(0.0, d_min_m[:, None] - gaps_m) / d_min_m[:, None]) ** 2 * m).sum(-1) / cnt
     l_max = ((np.maximum(0.0, gaps_m - d_max_m[:, None]) / d_max_m[:, None]) ** 2 * m).sum(-1) / cnt
     var = (((gaps_m - mean[:, None]) ** 2) * m).sum(-1) / cnt
-    l_var = np.sqrt(var) / mean_target_m
+    std = np.sqrt(var)
+    l_var = (std if target_std_m is None else np.abs(std - target_std_m)) / mean_target_m
     empty = m.sum(-1) == 0
     out = {"L_mean": l_mean, "L_min": l_min, "L_max": l_max, "L_var": l_var}
     return {k: np.where(empty, 0.0, v) for k, v in out.items()}
