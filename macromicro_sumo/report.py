@@ -235,7 +235,7 @@ def write_report(sc: Scenario, out: Path, manifest: dict[str, Any]) -> Path:
         better = [
             m
             for m in speed_err.columns
-            if m != "policy" and (speed_err[m] < speed_err["policy"]).any()
+            if m not in ("policy", "ground_truth") and (speed_err[m] < speed_err["policy"]).any()
         ]
         if better:
             parts += [

@@ -54,7 +54,8 @@ def test_gymnasium_env_is_registered(gt):
     env = gymnasium.make(ENV_ID, scenario=path, data=data, generator=gen)
     try:
         obs, info = env.reset(seed=3)
-        assert obs.shape == (4,) and info["observed_obs"].shape == (4, 4)
+        d = env.observation_space.shape[0]
+        assert obs.shape == (d,) and info["observed_obs"].shape == (4, d)
         steps, done = 0, False
         while not done:
             obs, r, term, trunc, info = env.step(np.array([0.0], np.float32))

@@ -137,7 +137,7 @@ def test_bad_arguments(sc):
 def random_agent_runs(sc):
     """A random-weights agent, 3 stochastic trials, twice with seed 7 and once with seed 8."""
     torch.manual_seed(0)
-    agent = Agent()
+    agent = Agent(observation=sc.policy.observation)
     followers = {
         "policy": lf.policy_follower(agent),
         "policy_mean": lf.policy_follower(agent, False),

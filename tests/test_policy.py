@@ -157,7 +157,8 @@ def test_env_macro_reward_equals_the_shared_loss_terms(small_gt):
             np.testing.assert_allclose(core.spacing, spacing, atol=1e-9)
             touched = core.hidden | core.hidden[leader]
             p = core.psi
-            ref = spacing_losses(spacing[None], touched[None], p[1:2], p[2:3], p[3:4])
+            target = None if bank.spacing_std_m is None else bank.spacing_std_m[ep : ep + 1]
+            ref = spacing_losses(spacing[None], touched[None], p[1:2], p[2:3], p[3:4], target)
             for key, val in ref.items():
                 assert res.terms[key] == pytest.approx(float(val[0]), abs=1e-12)
             assert res.terms["L_speed"] == pytest.approx(
