@@ -179,6 +179,20 @@ class PolicyConfig:
         -1.0, lo=-10.0, hi=2.0, doc="initial log std of the action [log m/s^2]"
     )
     checkpoint_every: int = _f(5, lo=1, hi=1_000_000, doc="updates between resumable checkpoints")
+    refine_iterations: int = _f(
+        0,
+        lo=0,
+        hi=100,
+        doc="joint refinement: outer iterations of Algorithm 1 (0: single pass, the paper's case study)",
+    )
+    refine_updates: int = _f(20, lo=1, hi=1_000_000, doc="PPO updates per refinement iteration")
+    refine_epochs: int = _f(20, lo=1, hi=100_000, doc="generator epochs per refinement iteration")
+    refine_lambda_rec: float = _f(
+        1.0,
+        lo=0.0,
+        hi=1e6,
+        doc="weight of the consistency term L_rec against policy-rolled hidden states",
+    )
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -141,28 +141,49 @@ def _batch_loss(
 
 
 def train_generator(
-    sc: Scenario, gt: GroundTruth, out: Path, progress: bool = True
+    sc: Scenario,
+    gt: GroundTruth,
+    out: Path,
+    progress: bool = True,
+    *,
+    given: tuple[Snapshots, Snapshots] | None = None,
+    init: dict[str, Any] | None = None,
+    epochs: int | None = None,
 ) -> dict[str, Any]:
-    """Train on the train runs, early-stop on val runs; returns the split and timings."""
+    """Train on the train runs, early-stop on val runs; returns the split and timings.
+
+    ``given`` = (train, val) snapshots with fixed hidden masks replaces the ground-truth
+    snapshots with fresh random masks (the joint refinement trains on policy rollouts);
+    ``init`` starts from existing weights.
+    """
     cfg = sc.generator
     torch.manual_seed(sc.seed)
     splits = split_runs(gt.runs, cfg.held_out_fraction, sc.seed)
-    train = snapshot_states(gt, sc, splits["train"])
-    val_states = snapshot_states(gt, sc, splits["val"]) if len(splits["val"]) else train
     rng = np.random.default_rng([sc.seed, 1])
     lo, hi = cfg.hidden_train
-    val = hide(
-        val_states, rng.integers(lo, hi + 1, len(val_states)), np.random.default_rng([sc.seed, 2])
-    )
+    if given is None:
+        train = snapshot_states(gt, sc, splits["train"])
+        val_states = snapshot_states(gt, sc, splits["val"]) if len(splits["val"]) else train
+        val = hide(
+            val_states,
+            rng.integers(lo, hi + 1, len(val_states)),
+            np.random.default_rng([sc.seed, 2]),
+        )
+    else:
+        train, val = given
     net = GeneratorNet(cfg.hidden_size)
+    if init is not None:
+        net.load_state_dict(init)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     gen = torch.Generator().manual_seed(sc.seed)
     best, best_state, bad, log = np.inf, copy.deepcopy(net.state_dict()), 0, []
     t0 = time.perf_counter()
-    bar = tqdm(range(cfg.epochs), desc="train-generator", unit="epoch", disable=not progress)
+    bar = tqdm(
+        range(epochs or cfg.epochs), desc="train-generator", unit="epoch", disable=not progress
+    )
     for epoch in bar:
         net.train()
-        snaps = hide(train, rng.integers(lo, hi + 1, len(train)), rng)
+        snaps = hide(train, rng.integers(lo, hi + 1, len(train)), rng) if given is None else train
         perm = rng.permutation(len(snaps))
         stats = []
         for start in range(0, len(perm), cfg.batch_size):

@@ -70,6 +70,32 @@ def run(sc: Scenario, out: Path | str, command: str = "", progress: bool = True)
             ),
         ),
     ]
+    if sc.policy.refine_iterations > 0:
+        from macromicro_sumo.refinement import refine
+
+        ref = out / "refined"
+        stages += [
+            (
+                "refine",
+                ref / "refine_manifest.json",
+                lambda: refine(
+                    sc, gt, gen / "generator.pt", pol / "policy.pt", ref, command, progress
+                ),
+            ),
+            (
+                "evaluate_refined",
+                ref / "evaluation" / "evaluation_manifest.json",
+                lambda: evaluate(
+                    sc,
+                    gt,
+                    ref / "generator.pt",
+                    {"policy": ref / "policy.pt"},
+                    ref / "evaluation",
+                    command,
+                    progress,
+                ),
+            ),
+        ]
     previous = _previous_timings(out / "manifest.json")
     timings: dict[str, Any] = {}
     for name, manifest, fn in stages:

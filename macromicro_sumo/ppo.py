@@ -256,6 +256,7 @@ def train_policy(
     progress: bool = True,
     updates: int | None = None,
     run_key: str = "",
+    init: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """PPO on the env over ``bank``; writes policy.pt, policy_train_log.csv, checkpoints."""
     cfg = sc.policy
@@ -266,6 +267,8 @@ def train_policy(
     ckpt_path = out / f"policy_{objective}_checkpoint.pt"
     torch.manual_seed(sc.seed)
     agent = Agent(cfg.hidden_size, cfg.init_log_std, cfg.observation)
+    if init is not None:
+        agent.load_state_dict(init)
     opt = torch.optim.Adam(agent.parameters(), lr=cfg.lr)
     rng = np.random.default_rng([sc.seed, 41])
     gen = torch.Generator().manual_seed(sc.seed)

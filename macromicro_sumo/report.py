@@ -245,6 +245,28 @@ def write_report(sc: Scenario, out: Path, manifest: dict[str, Any]) -> Path:
                 "",
             ]
 
+    refined = _read(out / "refined" / "evaluation" / "macro_alignment.csv")
+    if align is not None and refined is not None:
+        cols = [
+            "K",
+            "mean_speed_mps",
+            "std_speed_mps",
+            "std_spacing_m",
+            "mean_speed_err_mps",
+            "w1_speed_mps",
+            "w1_spacing_m",
+            "collisions",
+        ]
+        single = align[align["method"] == "policy"][cols].assign(run="single pass")
+        joint = refined[refined["method"] == "policy"][cols].assign(run="joint refinement")
+        both = pd.concat([single, joint]).sort_values(["K", "run"], kind="stable")
+        parts += [
+            f"## Joint refinement ({sc.policy.refine_iterations} outer iterations) vs single pass",
+            "",
+            _table(both[["K", "run", *cols[1:]]]),
+            "",
+        ]
+
     micro = _read(ev_dir / "micro_consistency.csv")
     if micro is not None:
         parts += ["## Micro consistency (held-out observed actions)", "", _table(micro, 4), ""]
