@@ -146,8 +146,7 @@ def micro_pairs(sc: Scenario, gt: GroundTruth, runs: np.ndarray) -> tuple[np.nda
         arc = t["arc_pos_m"].to_numpy()
         edge = geo.edge_index(arc)
         limits = lim.loc[t["run"]].to_numpy()
-        cols += list(lookahead_features(arc, edge[:, None], geo.offsets_m, geo.lengths_m, limits))
-        cols[-2], cols[-1] = cols[-2][:, 0], cols[-1][:, 0]
+        cols += list(lookahead_features(arc, edge, geo.offsets_m, geo.lengths_m, limits))
     return np.stack(cols, axis=1).astype(np.float64), t["accel_mps2"].to_numpy()
 
 

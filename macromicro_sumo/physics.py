@@ -131,11 +131,13 @@ def lookahead_features(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Speed limit of the next edge and the distance to it [m], per vehicle.
 
-    Drivers (and SUMO) slow down ahead of a lower limit: without this the local limit
-    alone cannot tell 'accelerate' from 'hold' on a ring with piecewise limits.
+    ``arc_m`` and ``edge`` are (V,); ``limits_mps`` is one ring's (n_edges,) or one row per
+    vehicle (V, n_edges). Drivers (and SUMO) slow down ahead of a lower limit: without this
+    the local limit alone cannot tell 'accelerate' from 'hold' on a ring with piecewise limits.
     """
-    n_edges = len(offsets_m)
-    nxt = (edge + 1) % n_edges
-    return limits_mps[..., nxt] if limits_mps.ndim == 1 else np.take_along_axis(
-        limits_mps, nxt, -1
-    ), (offsets_m[edge] + lengths_m[edge] - arc_m)
+    nxt = (edge + 1) % len(offsets_m)
+    if limits_mps.ndim == 1:
+        next_limit = limits_mps[nxt]
+    else:
+        next_limit = np.take_along_axis(limits_mps, nxt[:, None], axis=1)[:, 0]
+    return next_limit, offsets_m[edge] + lengths_m[edge] - arc_m
