@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import sys
 import tempfile
 import time
@@ -29,6 +30,16 @@ def variant_csvs(out: Path) -> dict[str, bytes]:
     return {
         str(p.relative_to(out)): p.read_bytes() for p in sorted((out / "variants").rglob("*.csv"))
     }
+
+
+def _children_cpu_s() -> float:
+    """CPU seconds of finished child processes (the local workers, once their pool closed).
+
+    With N workers a share near 100% of N CPUs means the workers got the CPUs; a lower
+    share means other work on the machine took them, and the speed-up shows that, not us.
+    """
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
 
 
 def get_options(argv: list[str] | None = None) -> argparse.Namespace:
@@ -57,11 +68,13 @@ def main(options: argparse.Namespace) -> bool:
         for backend, workers in configs:
             with tempfile.TemporaryDirectory(prefix="bench-batch-") as tmp:
                 load = os.getloadavg()[0]
+                cpu0 = _children_cpu_s()
                 t0 = time.perf_counter()
                 res = run_batch(
                     [options.scenario], tmp, workers=workers, backend=backend, progress=False
                 )
                 wall = time.perf_counter() - t0
+                cpu = _children_cpu_s() - cpu0  # local workers only: Ray's are not our children
                 csvs = variant_csvs(Path(tmp))
             walls[(backend, workers)] = min(wall, walls.get((backend, workers), wall))
             same = reference is None or csvs == reference
@@ -69,10 +82,12 @@ def main(options: argparse.Namespace) -> bool:
             complete = res.counts.get("complete", 0)
             ok &= complete == n and same
             per_variant = res.summary["wall_s"].mean()
+            share = f"{cpu / (wall * workers):4.0%}" if backend == "local" else " n/a"
             print(
                 f"run {rep + 1}: {backend:5s} workers={workers}: {wall:6.2f} s  "
-                f"(mean variant {per_variant:.2f} s, load average before {load:.2f})  "
-                f"complete {complete}/{n}  CSVs {'identical' if same else 'DIFFER'}"
+                f"workers' CPU share {share}  mean variant {per_variant:.2f} s  "
+                f"load average before {load:.2f}  complete {complete}/{n}  "
+                f"CSVs {'identical' if same else 'DIFFER'}"
             )
     for config in configs:
         print(
