@@ -418,6 +418,13 @@ class LocalBackend:
         return ProcessPoolExecutor(1, mp_context=self._ctx, initializer=_worker_init)
 
     def run(self, tasks: Sequence[Task], done: Done) -> None:
+        main_file = getattr(sys.modules["__main__"], "__file__", None)
+        if tasks and main_file and not Path(main_file).is_file():
+            # Spawned workers re-import the main script; every one would die at start.
+            raise UserError(
+                f"local workers cannot start from a script read from {main_file}; "
+                "run the batch from a file or with the macromicro command"
+            )
         queue = list(reversed(tasks))
         pools = [self._pool() for _ in range(min(self.workers, len(tasks)))]
         running: dict[Future[Outcome], tuple[int, Task]] = {}
