@@ -42,6 +42,22 @@ def _children_cpu_s() -> float:
     return r.ru_utime + r.ru_stime
 
 
+def _self_cpu_s() -> float:
+    """CPU seconds of this process (the batch driver)."""
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+def _machine_busy_s() -> float:
+    """CPU seconds the whole machine was busy (Linux /proc/stat; 0 elsewhere)."""
+    try:
+        fields = Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]
+    except OSError:
+        return 0.0
+    user, nice, system, _idle, _iowait, irq, softirq, steal = map(int, fields[:8])
+    return (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK")
+
+
 def get_options(argv: list[str] | None = None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", type=Path, default=ROOT / "scenarios" / "ring_sweep.toml")
@@ -68,13 +84,14 @@ def main(options: argparse.Namespace) -> bool:
         for backend, workers in configs:
             with tempfile.TemporaryDirectory(prefix="bench-batch-") as tmp:
                 load = os.getloadavg()[0]
-                cpu0 = _children_cpu_s()
+                cpu0, busy0, self0 = _children_cpu_s(), _machine_busy_s(), _self_cpu_s()
                 t0 = time.perf_counter()
                 res = run_batch(
                     [options.scenario], tmp, workers=workers, backend=backend, progress=False
                 )
                 wall = time.perf_counter() - t0
                 cpu = _children_cpu_s() - cpu0  # local workers only: Ray's are not our children
+                others = _machine_busy_s() - busy0 - cpu - (_self_cpu_s() - self0)
                 csvs = variant_csvs(Path(tmp))
             walls[(backend, workers)] = min(wall, walls.get((backend, workers), wall))
             same = reference is None or csvs == reference
@@ -83,11 +100,12 @@ def main(options: argparse.Namespace) -> bool:
             ok &= complete == n and same
             per_variant = res.summary["wall_s"].mean()
             share = f"{cpu / (wall * workers):4.0%}" if backend == "local" else " n/a"
+            other = f"{others / wall:4.2f}" if backend == "local" else " n/a"
             print(
                 f"run {rep + 1}: {backend:5s} workers={workers}: {wall:6.2f} s  "
-                f"workers' CPU share {share}  mean variant {per_variant:.2f} s  "
-                f"load average before {load:.2f}  complete {complete}/{n}  "
-                f"CSVs {'identical' if same else 'DIFFER'}"
+                f"workers' CPU share {share}  other processes' CPUs {other}  "
+                f"mean variant {per_variant:.2f} s  load before {load:.2f}  "
+                f"complete {complete}/{n}  CSVs {'identical' if same else 'DIFFER'}"
             )
     for config in configs:
         print(
