@@ -14,7 +14,8 @@ $(VENV)/.installed: pyproject.toml constraints-cpu.txt
 	$(PY) -m pip install --quiet --upgrade pip
 	# CPU torch first: a plain torch requirement would pull the CUDA build.
 	$(PY) -m pip install --quiet -c constraints-cpu.txt "torch==2.13.0"
-	$(PY) -m pip install --quiet -c constraints-cpu.txt -e ".[dev]"
+	# The optional extras too, so that the tests cover the Ray backend and Parquet export.
+	$(PY) -m pip install --quiet -c constraints-cpu.txt -e ".[dev,ray,parquet]"
 	touch $@
 
 setup: $(VENV)/.installed

@@ -88,7 +88,9 @@ def staging_dir(out: Path) -> Iterator[Path]:
     stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
     try:
         yield stage
-        for item in sorted(stage.iterdir()):
+        # Manifests go last: a stage counts as done when its manifest exists, so a kill
+        # between two renames must never leave a manifest beside missing files.
+        for item in sorted(stage.iterdir(), key=lambda p: ("manifest" in p.name, p.name)):
             target = out / item.name
             if target.is_dir() and not target.is_symlink():
                 shutil.rmtree(target)

@@ -96,3 +96,29 @@ def test_digest_changes_with_any_value(make_scenario):
     # A default written out explicitly is the same scenario.
     explicit = make_scenario({"detectors.interval_s": 60.0}, name="e.toml")
     assert load_scenario(explicit).digest() == base
+
+
+def test_staging_moves_manifests_last(tmp_path):
+    """A stage is done when its manifest exists: it must arrive after every other output."""
+    import os
+
+    from macromicro_sumo.files import staging_dir
+
+    seen = []
+    real = os.replace
+
+    def spy(src, dst):
+        seen.append(os.path.basename(dst))
+        return real(src, dst)
+
+    os.replace = spy
+    try:
+        with staging_dir(tmp_path) as stage:
+            for name in ("a.csv", "manifest.json", "z.csv", "policy_manifest.json"):
+                (stage / name).write_text("x")
+    finally:
+        os.replace = real
+    assert seen[-2:] == ["manifest.json", "policy_manifest.json"] and set(seen[:2]) == {
+        "a.csv",
+        "z.csv",
+    }
