@@ -12,19 +12,11 @@ For every gap an MLP, given the gap's features and the macro descriptor Psi, out
 With no vehicle present (K = N) the first vehicle goes anywhere (rotation symmetry):
 its gap is the whole ring from a random angle.
 
-A gap's features include what the exact look-ahead (below) knows about it: whether it
-is touched (a generated vehicle at either end), how many vehicles it must and can still
-take within [d_min, d_max] relative to the vehicles still to place, whether the next
-vehicle may go into it at all, and the range of its feasible split points (in the
-position head's logit units). Without them the network scores gaps blind to how many
-vehicles each can or must still take (FEATURE_VERSION 3).
-
 Training minimises L_gen = lambda_v L_speed + lambda_d (L_mean + L_min + L_max + L_var)
 (+ lambda_rec L_rec as a switch). Gradients reach the positions and speeds through the
 reparameterised samples; the discrete gap choice gets the score-function (REINFORCE)
 gradient of the same loss with a batch-mean baseline, which is the unbiased estimator
-for a discrete choice inside a stochastic computation graph. The look-ahead features are
-detached (counts are integers; the split range is a geometric input).
+for a discrete choice inside a stochastic computation graph.
 
 Inference is Algorithm 3, batched over snapshots: every step proposes T_max candidates at
 once (the proposal distribution does not change between trials, so this equals
@@ -34,21 +26,27 @@ counted. A touched gap that will still receive vehicles is judged by what it can
 it must split into m + 1 gaps in [d_min, d_max] for some m <= vehicles still to place
 (the paper's check when none remain; without it a whole scene, K = N, could never start).
 
-Extension (``complete(..., truncate=True)``, the default): each trial is drawn from the
-proposal restricted to the split points that pass the check, the T_max -> infinity limit
-of rejection. Gap j is chosen with probability proportional to p_j m_j (p_j the network's
-choice probability, m_j the mass its position distribution puts on gap j's feasible split
-points) and the split point from the logit-normal truncated to them (inverse CDF, in log
-space so that any tail is exact). The check still judges every candidate and projection
-stays the counted fallback (a scene whose proposal has no feasible mass at all).
+Extension (``complete(..., truncate=True)``, the default): the split point of each trial
+is drawn from the position proposal truncated to the chosen gap's feasible split points,
+the T_max -> infinity limit of resampling it (inverse CDF over the disjoint feasible
+pieces, in log space so that any tail is exact). The gap is chosen as in the plain
+algorithm, from the network's scores over the gaps with some feasible split point (the
+same limit for the discrete part). Why: the paper's loss barely penalises a gap a few
+metres past d_min or d_max (L_min, L_max are squared relative violations), so the trained
+position spread collapses onto points just outside the bounds and the T_max trials are
+nearly identical. The check still judges every candidate and projection stays the
+counted fallback (a gap whose feasible pieces carry no mass at all under the proposal).
 ``truncate=False`` is the plain Algorithm 3. ``Completion.accept_prob`` keeps, per step,
-the probability that one plain trial would have passed (sum_j p_j m_j), so how much the
-truncation does is on record (``rejection_success``).
+the probability that one plain trial would have passed (sum_j p_j m_j, m_j the mass the
+position proposal puts on gap j's feasible points), so how much the truncation does is
+on record: ``rejection_success`` is the chance that plain Algorithm 3 would have placed
+every vehicle of a completion without projection.
 
 Inference runs in numpy (float64 geometry, the MLP in float32 with the trained weights):
-a K = 4 completion of one snapshot is some 200 tiny array operations, and numpy's
-per-operation overhead is a third of torch's. Geometry and features are one definition
-for both backends (``_xp``); training runs them in torch, with gradients.
+placing one vehicle of one snapshot takes a few hundred tiny array operations, and
+numpy's per-operation overhead is a third of torch's. Geometry and features are one
+definition for both (``_xp``); training runs them in torch, with gradients, exactly as
+before (same autograd graph, bit-identical weights).
 """
 
 from __future__ import annotations
@@ -56,6 +54,7 @@ from __future__ import annotations
 import functools
 import math
 import time
+import weakref
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
@@ -69,14 +68,13 @@ from torch import nn
 
 from macromicro_sumo.dataset import Snapshots
 
-FEATURE_VERSION = 3
-N_GAP_FEATURES = 13
+FEATURE_VERSION = 2
+N_GAP_FEATURES = 7
 N_GLOBAL_FEATURES = 9
 LOSS_TERMS = ("L_speed", "L_mean", "L_min", "L_max", "L_var")
-# Limits of the position head's log-std and of the split-range features (logit units).
+# Limits of the log-std of the position and speed heads.
 FRAC_LOG_STD = (-5.0, 2.0)
 SPEED_LOG_STD = (-6.0, 1.0)
-LOGIT_CLIP = 5.0
 
 
 def _xp(x: Any) -> Any:
@@ -86,10 +84,33 @@ def _xp(x: Any) -> Any:
 
 
 def _take(x: Any, idx: Any) -> Any:
-    """x[b, idx[b, i]] along axis 1."""
+    """x[b, idx[b, i]] along axis 1 (numpy: trailing axes of x are kept)."""
     if isinstance(x, torch.Tensor):
         return x.gather(1, idx)
-    return np.take_along_axis(x, idx, axis=1)
+    return x[_rows(len(x)), idx]
+
+
+@functools.lru_cache(maxsize=32)
+def _rows(b: int, ndim: int = 2) -> np.ndarray:
+    """np.arange(b) shaped (B, 1, ...) with ``ndim`` axes, for fancy indexing."""
+    return np.arange(b).reshape(b, *[1] * (ndim - 1))
+
+
+def _clip(x: Any, lo: Any = None, hi: Any = None) -> Any:
+    """torch.clamp / np.clip without the latter's per-call overhead."""
+    if isinstance(x, torch.Tensor):
+        return torch.clamp(x, lo, hi)
+    if lo is not None:
+        x = np.maximum(x, lo)
+    return x if hi is None else np.minimum(x, hi)
+
+
+def _stack(xs: list[Any]) -> Any:
+    """Stack along a new last axis."""
+    if isinstance(xs[0], torch.Tensor):
+        return torch.stack(xs, -1)
+    a = np.array(xs, dtype=np.float64)  # the arrays must have the same shape
+    return a.transpose(*range(1, a.ndim), 0)
 
 
 # --------------------------------------------------------------------------- scene geometry
@@ -158,22 +179,28 @@ class PsiTensors:
 
     @cached_property
     def v_scale(self) -> Any:
-        return _xp(self.v_max).clip(0.5 * (self.v_max - self.v_min), 0.1, None)
+        return _clip(0.5 * (self.v_max - self.v_min), 0.1)
 
     @cached_property
-    def static_features(self) -> Any:
-        """(B, 5) the global features that depend on Psi alone (computed once per batch)."""
+    def static_features(self) -> list[Any]:
+        """The 5 global features (B,) each that depend on Psi alone (computed once):
+        d_min, d_max relative to the mean spacing, then the speed range and centre, and the
+        dispersion target (0 unless spacing_dispersion = "measured")."""
         xp = _xp(self.d_mean)
         d_std = xp.zeros_like(self.d_mean) if self.d_std is None else self.d_std
-        return xp.stack(
-            [
-                self.d_min / self.d_mean,
-                self.d_max / self.d_mean,
-                (self.v_max - self.v_min) / self.v_mean,
-                (self.v_min + self.v_max - 2 * self.v_mean) / (2 * self.v_scale),
-                d_std / self.d_mean,
-            ],
-            -1,
+        return [
+            self.d_min / self.d_mean,
+            self.d_max / self.d_mean,
+            (self.v_max - self.v_min) / self.v_mean,
+            (self.v_min + self.v_max - 2 * self.v_mean) / (2 * self.v_scale),
+            d_std / self.d_mean,
+        ]
+
+    @cached_property
+    def columns(self) -> tuple[Any, ...]:
+        """(v_scale, v_mean, d_mean, d_min, d_max) as (B, 1) columns (computed once)."""
+        return tuple(
+            x[:, None] for x in (self.v_scale, self.v_mean, self.d_mean, self.d_min, self.d_max)
         )
 
 
@@ -184,11 +211,14 @@ def scene_gaps(arc: Any, present: Any, length_m: float, anchor: Any) -> tuple[An
     whole ring, so the first vehicle of a scene goes anywhere (rotation symmetry).
     """
     xp = _xp(arc)
-    n = arc.shape[1]
-    virtual = ~present.any(1)[:, None] & (xp.arange(n) == 0)
-    arc_e = xp.where(virtual, anchor[:, None], arc)
-    follower, leader, gap, valid = ring_gaps(arc_e, present | virtual, length_m)
-    return follower, leader, gap, valid, _take(arc_e, follower)
+    empty = ~present.any(1)
+    # numpy skips it when no ring is empty; torch always takes it, so that the autograd
+    # graph, and with it training, stays the same to the last bit.
+    if xp is torch or empty.any():
+        virtual = empty[:, None] & (xp.arange(arc.shape[1]) == 0)
+        arc, present = xp.where(virtual, anchor[:, None], arc), present | virtual
+    follower, leader, gap, valid = ring_gaps(arc, present, length_m)
+    return follower, leader, gap, valid, _take(arc, follower)
 
 
 # --------------------------------------------------------------------------- look-ahead
@@ -213,10 +243,10 @@ def _sum_matrix(r1: int) -> np.ndarray:
 
 
 def _sumset(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """{x + y : x in a, y in b} of count sets held as bool masks over 0..R (truncated at R)."""
-    r1 = a.shape[-1]
-    outer = a[..., :, None] & b[..., None, :]
-    return outer.reshape(*outer.shape[:-2], r1 * r1) @ _sum_matrix(r1)
+    """{x + y : x in a, y in b} of count sets held as bool masks (B, N, R + 1) over 0..R
+    (truncated at R)."""
+    bb, n, r1 = a.shape
+    return (a[..., :, None] & b[..., None, :]).reshape(bb, n, r1 * r1) @ _sum_matrix(r1)
 
 
 @functools.lru_cache(maxsize=64)
@@ -267,50 +297,21 @@ class Lookahead:
     empty: np.ndarray  # (B,) no vehicle yet: the first one goes anywhere
     empty_ok: np.ndarray  # (B,) ... and then the ring must hold the rest within bounds
     gap: np.ndarray  # (B, N) [m]
-    touched: np.ndarray  # (B, N) a generated vehicle at either end
-    lo_c: np.ndarray  # (B, N) fewest further vehicles for pieces <= d_max
-    hi_c: np.ndarray  # (B, N) most further vehicles for pieces >= d_min
 
     @cached_property
     def allowed(self) -> np.ndarray:
         """(B, N) gaps with some feasible split point: rejecting the others up front is the
         T_max -> infinity limit of rejection for the discrete part of the proposal."""
-        return self.ok.any(axis=2) | self.empty[:, None]
-
-    def gap_features(self, remaining: np.ndarray, n: int) -> np.ndarray:
-        """(B, N, 6) per-gap features: touched; fewest and most vehicles the gap can take,
-        less the vehicles still to place (this one included), / N; whether the next vehicle
-        may go into it; its feasible split range as logits of the gap fraction / LOGIT_CLIP."""
-        rem = np.asarray(remaining, dtype=np.float64)[:, None]
-        any_ok = self.ok.any(axis=2)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            lo = np.where(self.ok, self.lo, np.inf).min(axis=2) / self.gap
-            hi = np.where(self.ok, self.hi, -np.inf).max(axis=2) / self.gap
-            rng = np.log(np.stack([lo, hi], -1)) - np.log1p(-np.stack([lo, hi], -1))
-        rng = np.where(any_ok[..., None], np.clip(rng, -LOGIT_CLIP, LOGIT_CLIP), 0.0)
-        allowed = np.where(self.empty[:, None], self.empty_ok[:, None], any_ok)
-        return np.concatenate(
-            [
-                np.stack(
-                    [
-                        self.touched,
-                        (np.clip(self.lo_c, 0, n) - rem) / n,
-                        (np.clip(self.hi_c, -1, n) - rem) / n,
-                        allowed,
-                    ],
-                    -1,
-                ),
-                rng / LOGIT_CLIP,
-            ],
-            -1,
-        )
+        return np.logical_or.reduce(self.ok, axis=2) | self.empty[:, None]
 
     def accepts(self, choice: np.ndarray, a1: np.ndarray) -> np.ndarray:
         """(B, S) whether candidates (gap ``choice``, split point ``a1``) pass the check."""
-        rows = np.arange(len(choice))[:, None]
+        rows = _rows(len(choice))
         lo, hi, ok = self.lo[rows, choice], self.hi[rows, choice], self.ok[rows, choice]
         a = a1[..., None]
-        inside = (ok & (a >= lo - GEOMETRY_TOL_M) & (a <= hi + GEOMETRY_TOL_M)).any(axis=-1)
+        inside = np.logical_or.reduce(
+            ok & (a >= lo - GEOMETRY_TOL_M) & (a <= hi + GEOMETRY_TOL_M), axis=-1
+        )
         return inside | (self.empty & self.empty_ok)[:, None]
 
     def project(self, choice: np.ndarray, a1: np.ndarray) -> np.ndarray:
@@ -319,7 +320,7 @@ class Lookahead:
         lo, hi, ok = self.lo[rows, choice], self.hi[rows, choice], self.ok[rows, choice]
         near = np.minimum(np.maximum(a1[:, None], lo), hi)
         dist = np.where(ok, np.abs(near - a1[:, None]), np.inf)
-        best = np.take_along_axis(near, dist.argmin(axis=1)[:, None], axis=1)[:, 0]
+        best = near[rows, dist.argmin(axis=1)]
         return np.where(ok.any(axis=1) & ~self.empty, best, a1)
 
 
@@ -353,26 +354,24 @@ def lookahead(
         lacks = (~sets[..., 0]).astype(int)
         rest = (lacks.sum(axis=1, keepdims=True) == lacks)[..., None]
     else:
-        rest = np.broadcast_to(zero, (b, n, r_max + 1))
-        for i in range(int(valid.sum(axis=1).max()) if b else 0):
-            rest = _sumset(rest, np.where(table.not_self[i], sets[:, i : i + 1], zero))
+        m = max(int(np.add.reduce(valid, axis=1).max()) if b else 0, 1)
+        # others[:, j, i]: the counts gap i can take, seen from gap j ({0} for i = j).
+        others = np.where(table.not_self[:, :m], sets[:, None, :m], zero)
+        rest = others[:, :, 0]
+        for i in range(1, m):
+            rest = _sumset(rest, others[:, :, i])
     need = rem_after[:, None] - table.total[:n_pairs]  # (B, P): what the other gaps absorb
-    ok = (need >= 0)[:, None, :] & np.take_along_axis(
-        rest, np.broadcast_to(np.maximum(need, 0)[:, None, :], (b, n, n_pairs)), axis=2
-    )
+    ok = (need >= 0)[:, None, :] & rest[_rows(b, 3), _rows(n), np.maximum(need, 0)[:, None, :]]
     g = gap[..., None]
     lo = np.maximum(table.lo1[..., :n_pairs], g - table.lo2[..., :n_pairs])
     hi = np.minimum(table.hi1[..., :n_pairs], g - table.hi2[..., :n_pairs])
     ok = ok & valid[..., None] & (lo <= hi + 2 * GEOMETRY_TOL_M)
     empty_ok = (table.ring_lo <= rem_after) & (rem_after <= table.ring_hi)
-    return Lookahead(lo, hi, ok, ~present.any(axis=1), empty_ok, gap, touched, lo_c, hi_c)
+    empty = ~np.logical_or.reduce(present, axis=1)
+    return Lookahead(lo, hi, ok, empty, empty_ok, gap)
 
 
 # --------------------------------------------------------------------------- features
-
-
-# Global feature order: remaining, present, d_min, d_max, needed v, mean v, v range, v centre.
-_GLOBAL_ORDER = [0, 1, 4, 5, 2, 3, 6, 7, 8]
 
 
 def features(
@@ -383,107 +382,74 @@ def features(
     psi: PsiTensors,
     length_m: float,
     geometry: tuple[Any, ...],
-    look_feat: Any,
 ) -> tuple[Any, ...]:
     """Per-gap and global features of the current scene (all relative, no labels).
 
-    ``geometry`` is ``scene_gaps``' result and ``look_feat`` ``Lookahead.gap_features``,
-    both of the same backend as ``arc``. Returns (gap features (B, N, 13), global features
-    (B, 9), the mean speed the vehicles still to place need (B,)).
+    ``geometry`` is ``scene_gaps``' result (same backend as ``arc``). Returns (gap features
+    (B, N, 7), global features (B, 9), the mean speed the vehicles still to place need (B,)).
     """
     xp = _xp(arc)
     n = arc.shape[1]
     m = present.sum(1)
-    empty = (m == 0)[:, None]
+    empty = m == 0
     follower, leader, gap, _, _ = geometry
-    vs, vm, dm = psi.v_scale[:, None], psi.v_mean[:, None], psi.d_mean[:, None]
-    v_f = xp.where(empty, vm, _take(speed, follower))
-    v_l = xp.where(empty, vm, _take(speed, leader))
+    vs, vm, dm, d_min, d_max = psi.columns
+    v_f = xp.where(empty[:, None], vm, _take(speed, follower))
+    v_l = xp.where(empty[:, None], vm, _take(speed, leader))
     gap_dm = gap / dm
-    base = xp.stack(
+    gap_feat = _stack(
         [
             gap_dm,
-            (gap - psi.d_min[:, None]) / dm,
-            (gap - psi.d_max[:, None]) / dm,
+            (gap - d_min) / dm,
+            (gap - d_max) / dm,
             gap_dm - 1.0 - remaining[:, None] / n,
             (v_f - vm) / vs,
             (v_l - vm) / vs,
             gap / length_m,
-        ],
-        -1,
+        ]
     )
     v_sum = (speed * present).sum(1)
     # The mean speed the vehicles still to place need for the fleet to average Psi's mean.
-    need_v = (n * psi.v_mean - v_sum) / xp.clip(remaining, 1, None)
-    mean_v = xp.where(empty[:, 0], psi.v_mean, v_sum / xp.clip(m, 1, None))
-    dynamic = xp.stack(
+    need_v = (n * psi.v_mean - v_sum) / _clip(remaining, 1)
+    mean_v = xp.where(empty, psi.v_mean, v_sum / _clip(m, 1))
+    d_min_rel, d_max_rel, *v_static = psi.static_features
+    glob = _stack(
         [
             remaining / n,
             m / n,
+            d_min_rel,
+            d_max_rel,
             (need_v - psi.v_mean) / psi.v_scale,
             (mean_v - psi.v_mean) / psi.v_scale,
-        ],
-        -1,
+            *v_static,
+        ]
     )
-    glob = xp.concatenate([dynamic, psi.static_features], -1)[:, _GLOBAL_ORDER]
-    return xp.concatenate([base, look_feat], -1), glob, need_v
+    return gap_feat, glob, need_v
 
 
 @dataclass
 class Observation:
-    """What one autoregressive step sees."""
+    """What one autoregressive step sees (torch or numpy, as its inputs)."""
 
-    geometry: tuple[Any, ...]
-    look: Lookahead
-    gap_feat: Any
-    glob: Any
-    need_v: Any
+    geometry: tuple[Any, ...]  # scene_gaps
+    gap_feat: Any  # (B, N, N_GAP_FEATURES)
+    glob: Any  # (B, N_GLOBAL_FEATURES)
+    need_v: Any  # (B,)
 
 
 def observe(
     arc: Any,
     speed: Any,
     present: Any,
-    generated: Any,
     remaining: Any,
     psi: PsiTensors,
     length_m: float,
     anchor: Any,
-    table: SplitTable | None = None,
 ) -> Observation:
-    """Geometry, exact look-ahead and features of a scene (torch or numpy inputs).
-
-    ``remaining`` counts the vehicles still to place, the next one included. ``table``
-    may come from the caller (it only depends on Psi and the largest K).
-    """
+    """Geometry and features of a scene; ``remaining`` counts the vehicles still to place,
+    the next one included, and ``anchor`` places the first vehicle of an empty ring."""
     geometry = scene_gaps(arc, present, length_m, anchor)
-    if isinstance(arc, torch.Tensor):
-        geo_np = tuple(t.detach().numpy() for t in geometry)
-        present_np, generated_np = present.numpy(), generated.numpy()
-        rem_np = remaining.numpy()
-    else:
-        geo_np, present_np, generated_np, rem_np = geometry, present, generated, remaining
-    rem_after = np.maximum(rem_np - 1, 0)
-    if table is None:
-        d_min, d_max = (np.asarray(_numpy(x), dtype=np.float64) for x in (psi.d_min, psi.d_max))
-        table = SplitTable(
-            d_min, d_max, int(rem_after.max()) if len(rem_after) else 0, length_m, arc.shape[1]
-        )
-    look = lookahead(table, geo_np, present_np, generated_np, rem_after)
-    look_feat = look.gap_features(rem_np, arc.shape[1])
-    import os  # TEMP experiment
-    if os.environ.get("NOLOOKFEAT"):
-        look_feat = look_feat * 0.0
-    if isinstance(arc, torch.Tensor):
-        look_feat = torch.from_numpy(look_feat).to(arc.dtype)
-    gap_feat, glob, need_v = features(
-        arc, speed, present, remaining, psi, length_m, geometry, look_feat
-    )
-    return Observation(geometry, look, gap_feat, glob, need_v)
-
-
-def _numpy(x: Any) -> np.ndarray:
-    return x.detach().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+    return Observation(geometry, *features(arc, speed, present, remaining, psi, length_m, geometry))
 
 
 # --------------------------------------------------------------------------- model
@@ -507,15 +473,32 @@ class GeneratorNet(nn.Module):
         x = torch.cat([gap_feat, glob[:, None, :].expand(-1, gap_feat.shape[1], -1)], dim=-1)
         return self.body(x)
 
-    def forward_numpy(self, gap_feat: np.ndarray, glob: np.ndarray) -> np.ndarray:
+    def numpy_weights(self) -> tuple[np.ndarray, ...]:
+        """The layers as numpy views of the parameters (no copy, so in-place updates show):
+        (W1 for the gap features, W1 for the global ones, b1, W2, b2, W3, b3), transposed."""
+        params = tuple(self.body.parameters())
+        cached = _NUMPY_WEIGHTS.get(self)
+        if cached is None or any(a is not b for a, b in zip(cached[0], params, strict=True)):
+            w1, b1, w2, b2, w3, b3 = (p.detach().numpy() for p in params)
+            f = N_GAP_FEATURES
+            cached = params, (w1[:, :f].T, w1[:, f:].T, b1, w2.T, b2, w3.T, b3)
+            _NUMPY_WEIGHTS[self] = cached
+        return cached[1]
+
+    def forward_numpy(
+        self, gap_feat: np.ndarray, glob: np.ndarray, weights: tuple[np.ndarray, ...] | None = None
+    ) -> np.ndarray:
         """``forward`` in float32 numpy (inference): the global features enter the first
         layer once per scene instead of once per gap."""
-        w1, b1, w2, b2, w3, b3 = (p.detach().numpy() for p in self.body.parameters())
-        f = gap_feat.shape[-1]
+        w1g, w1s, b1, w2, b2, w3, b3 = weights or self.numpy_weights()
         x, g = gap_feat.astype(np.float32), glob.astype(np.float32)
-        h = np.tanh(x @ w1[:, :f].T + (g @ w1[:, f:].T + b1)[:, None, :])
-        h = np.tanh(h @ w2.T + b2)
-        return h @ w3.T + b3
+        h = np.tanh(x @ w1g + (g @ w1s + b1)[:, None, :])
+        return np.tanh(h @ w2 + b2) @ w3 + b3
+
+
+# Numpy views of a network's layers, kept beside it (not in it: a deep copy must not
+# carry views of the original's memory).
+_NUMPY_WEIGHTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _speed_base(need_v: Any, psi: PsiTensors) -> Any:
@@ -525,9 +508,8 @@ def _speed_base(need_v: Any, psi: PsiTensors) -> Any:
     the paper's loss has no speed-bound term, so an unbounded proposal drifts outside.
     Centred on the speed the remaining vehicles need for Psi's mean: the MLP adds a residual.
     """
-    xp = _xp(need_v)
-    need = xp.clip((need_v - psi.v_min) / xp.clip(psi.v_range, 1e-3, None), 0.02, 0.98)
-    return xp.log(need) - xp.log1p(-need)
+    need = _clip((need_v - psi.v_min) / _clip(psi.v_range, 1e-3), 0.02, 0.98)
+    return torch.logit(need) if isinstance(need, torch.Tensor) else np.log(need / (1 - need))
 
 
 @dataclass
@@ -691,15 +673,11 @@ def rollout(net: GeneratorNet, snaps: Snapshots, gen: torch.Generator) -> tuple[
     b, n = arc.shape
     log_p = arc.new_zeros(b)
     k = hidden.sum(dim=1)
-    k_max = int(k.max().item()) if b else 0
-    table = SplitTable(snaps.psi[:, 2], snaps.psi[:, 3], max(k_max - 1, 0), snaps.length_m, n)
-    for step in range(k_max):
+    for step in range(int(k.max().item()) if b else 0):
         active = k > step
         remaining = (k - step).clamp(min=0)
         anchor = torch.rand(b, generator=gen) * snaps.length_m
-        obs = observe(
-            arc, speed, present, hidden & present, remaining, psi, snaps.length_m, anchor, table
-        )
+        obs = observe(arc, speed, present, remaining, psi, snaps.length_m, anchor)
         prop = propose(net, obs, psi, snaps.length_m, 1, gen)
         slot = _next_hidden_slot(hidden, present)
         onehot = torch.nn.functional.one_hot(slot, n).bool() & active[:, None]
@@ -713,28 +691,21 @@ def rollout(net: GeneratorNet, snaps: Snapshots, gen: torch.Generator) -> tuple[
 # --------------------------------------------------------------------------- inference
 
 
-def _logit(p: np.ndarray) -> np.ndarray:
-    return np.log(p) - np.log1p(-p)
-
-
 def _sigmoid(x: np.ndarray) -> np.ndarray:
     return 0.5 * (1.0 + np.tanh(0.5 * x))
 
 
 def _log_softmax(x: np.ndarray) -> np.ndarray:
-    top = x.max(axis=-1, keepdims=True)
-    top = np.where(np.isfinite(top), top, 0.0)
-    return x - top - np.log(np.exp(x - top).sum(axis=-1, keepdims=True))
+    top = np.maximum.reduce(x, axis=-1, keepdims=True)
+    return x - top - np.log(np.add.reduce(np.exp(x - top), axis=-1, keepdims=True))
 
 
 def _categorical(log_w: np.ndarray, u: np.ndarray) -> np.ndarray:
     """(..., S) draws from the categoricals exp(log_w) (..., C), unnormalised, by inverse
     CDF of the uniforms ``u`` (..., S). A row without mass draws 0."""
-    top = log_w.max(axis=-1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cdf = np.cumsum(np.exp(log_w - np.where(np.isfinite(top), top, 0.0)), axis=-1)
-        cdf /= cdf[..., -1:]
-    return (u[..., None] >= cdf[..., None, :]).sum(axis=-1)
+    cdf = np.cumsum(np.exp(log_w - np.maximum.reduce(log_w, axis=-1, keepdims=True)), axis=-1)
+    cdf /= cdf[..., -1:]
+    return np.add.reduce(u[..., None] >= cdf[..., None, :], axis=-1)
 
 
 class FeasibleSplits:
@@ -744,37 +715,41 @@ class FeasibleSplits:
     The look-ahead's intervals (one per count pair, overlapping) are sorted and cut into
     disjoint pieces; each piece's probability and the inverse CDF within it are computed
     from log Phi (the lower tail, mirrored for pieces above the mean), so a piece far in
-    the tail keeps an exact, tiny mass and its draws stay inside it.
+    the tail keeps an exact, tiny mass and its draws stay inside it. The intervals are
+    widened by the check's tolerance, so a gap that fits exactly keeps a feasible piece.
     """
 
     def __init__(self, look: Lookahead, mu: np.ndarray, sigma: np.ndarray) -> None:
         tol = GEOMETRY_TOL_M
-        order = np.argsort(np.where(look.ok, look.lo, np.inf), axis=-1)
-        lo = np.take_along_axis(np.where(look.ok, look.lo - tol, np.inf), order, axis=-1)
-        hi = np.take_along_axis(
-            np.where(look.ok, np.maximum(look.hi, look.lo) + tol, -np.inf), order, axis=-1
-        )
-        covered = np.maximum.accumulate(hi, axis=-1)
-        prev = np.concatenate([np.full_like(hi[..., :1], -np.inf), covered[..., :-1]], axis=-1)
-        lo, hi = np.maximum(lo, prev), np.maximum(hi, prev)
-        g = look.gap[..., None]
+        lo = np.where(look.ok, look.lo - tol, np.inf)
+        hi = np.where(look.ok, look.hi + tol, -np.inf)
+        b, n, _ = lo.shape
+        ix = (_rows(b, 3), _rows(n), lo.argsort(axis=-1))
+        lo, hi = lo[ix], np.maximum.accumulate(hi[ix], axis=-1)
+        # Sorted by start, piece i keeps what pieces before it do not cover.
+        lo[..., 1:] = np.maximum(lo[..., 1:], hi[..., :-1])
         good = hi > lo
-        self.lo_m = np.where(good, lo, 0.25 * g)  # [m] from the gap's follower
-        self.hi_m = np.where(good, hi, 0.75 * g)
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            za = (_logit(self.lo_m / g) - mu[..., None]) / sigma[..., None]
-            zb = (_logit(self.hi_m / g) - mu[..., None]) / sigma[..., None]
-            self.flip = za > 0
-            self.za = np.where(self.flip, -zb, za)  # lower end, <= 0
-            self.zb = np.where(self.flip, -za, zb)
-            self.log_phi_a, self.log_phi_b = log_ndtr(self.za), log_ndtr(self.zb)
-            lm = self.log_phi_b + np.log(-np.expm1(self.log_phi_a - self.log_phi_b))
-            self.log_mass = np.where(good & ~np.isnan(lm), lm, -np.inf)  # (B, N, P)
-            # (B, N): log of the mass the gap's position proposal puts on feasible points.
-            log_m = np.logaddexp.reduce(self.log_mass, axis=-1)
-        self.log_m = np.where(
-            look.empty[:, None], np.where(look.empty_ok, 0.0, -np.inf)[:, None], log_m
-        )
+        g = look.gap[..., None]
+        lo, hi = np.where(good, lo, 0.25 * g), np.where(good, hi, 0.75 * g)  # [m]
+        m, s = mu[..., None], sigma[..., None]
+        za = (np.log(lo) - np.log(g - lo) - m) / s
+        zb = (np.log(hi) - np.log(g - hi) - m) / s
+        flip = za > 0
+        za, zb = np.where(flip, -zb, za), np.where(flip, -za, zb)  # za <= 0
+        log_a, log_b = log_ndtr(za), log_ndtr(zb)
+        lm = log_b + np.log(-np.expm1(log_a - log_b))
+        self.log_mass = np.where(good & (lm == lm), lm, -np.inf)  # (B, N, P)
+        # What ``sample`` looks up for a chosen piece, in one array.
+        self.pieces = np.empty((7, *lo.shape))
+        self.pieces[0], self.pieces[1], self.pieces[2], self.pieces[3] = log_a, log_b, za, zb
+        self.pieces[4], self.pieces[5], self.pieces[6] = flip, lo, hi
+        # (B, N): log of the mass the gap's position proposal puts on feasible points.
+        log_m = np.logaddexp.reduce(self.log_mass, axis=-1)
+        # Each gap's pieces as a CDF (B, N, P), to draw a piece by its mass.
+        self.cdf = np.cumsum(np.exp(self.log_mass - log_m[..., None]), axis=-1)
+        self.cdf /= self.cdf[..., -1:]
+        empty = np.where(look.empty_ok, 0.0, -np.inf)[:, None]
+        self.log_m = np.where(look.empty[:, None], empty, log_m)
 
     def sample(
         self,
@@ -787,18 +762,15 @@ class FeasibleSplits:
     ) -> np.ndarray:
         """(B, S) split points [m] in gaps ``choice`` drawn from the truncated proposal
         (``mu``, ``sigma``, ``gap`` of the chosen gaps, (B, S)): a piece by its mass, then
-        the inverse CDF within it."""
-        rows = np.arange(len(choice))[:, None]
-        piece = _categorical(self.log_mass[rows, choice], u_piece[..., None])[..., 0]
-        idx = (rows, choice, piece)
-        with np.errstate(divide="ignore"):
-            # Phi(z) = (1 - u) Phi(za) + u Phi(zb), in logs.
-            log_t = np.logaddexp(
-                np.log1p(-u) + self.log_phi_a[idx], np.log(u) + self.log_phi_b[idx]
-            )
-        z = np.clip(ndtri_exp(log_t), self.za[idx], self.zb[idx])
-        z = np.where(self.flip[idx], -z, z)
-        return np.clip(gap * _sigmoid(mu + sigma * z), self.lo_m[idx], self.hi_m[idx])
+        the inverse CDF within it. Call under np.errstate (rows without mass give NaN)."""
+        rows = _rows(len(choice))
+        piece = np.add.reduce(u_piece[..., None] >= self.cdf[rows, choice], axis=-1)
+        log_a, log_b, za, zb, flip, lo, hi = self.pieces[:, rows, choice, piece]
+        # Phi(z) = (1 - u) Phi(za) + u Phi(zb), in logs.
+        z = ndtri_exp(np.logaddexp(np.log1p(-u) + log_a, np.log(u) + log_b))
+        z = np.minimum(np.maximum(z, za), zb)
+        z = np.where(flip > 0, -z, z)
+        return np.minimum(np.maximum(gap * _sigmoid(mu + sigma * z), lo), hi)
 
 
 @dataclass
@@ -824,73 +796,119 @@ def complete(
     t0 = time.perf_counter()
     rng = np.random.default_rng(int(seed))
     hidden = np.asarray(snaps.hidden, dtype=bool)
-    present = ~hidden
     # Geometry in float64 (the network sees float32 features): accepted gaps are then
     # within Psi's bounds to rounding, not to float32's ~1e-4 m on a ring.
     arc = np.where(hidden, 0.0, snaps.arc_m).astype(np.float64)
     speed = np.where(hidden, 0.0, snaps.speed_mps).astype(np.float64)
     psi = PsiTensors.arrays(snaps)
-    length = snaps.length_m
     b, n = arc.shape
     k = hidden.sum(axis=1)
     k_max = int(k.max()) if b else 0
-    table = SplitTable(psi.d_min, psi.d_max, max(k_max - 1, 0), length, n)
+    state = _Scene(arc, speed, ~hidden, hidden, snaps.length_m)
+    table = SplitTable(psi.d_min, psi.d_max, max(k_max - 1, 0), snaps.length_m, n)
+    weights = net.numpy_weights()
     projected = np.zeros(b, dtype=int)
     accept_prob = np.full((b, k_max), np.nan)
     rank = np.where(hidden, hidden.cumsum(axis=1), 0)  # hidden slots fill in slot order
-    rows = np.arange(b)
-    for step in range(k_max):
-        active = k > step
-        remaining = np.maximum(k - step, 0)
-        anchor = rng.random(b) * length
-        obs = observe(arc, speed, present, hidden & present, remaining, psi, length, anchor, table)
-        _, _, gap, valid, start = obs.geometry
-        look = obs.look
-        out = net.forward_numpy(obs.gap_feat, obs.glob).astype(np.float64)
-        choosable = valid & (look.allowed | ~(look.allowed & valid).any(axis=1, keepdims=True))
-        log_p = _log_softmax(np.where(choosable, out[..., 0], -np.inf))
-        mu = out[..., 1]
-        sigma = np.exp(np.clip(out[..., 2], *FRAC_LOG_STD))
-        splits = FeasibleSplits(look, mu, sigma)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            log_acc = np.logaddexp.reduce(log_p + splits.log_m, axis=1)
-        accept_prob[:, step] = np.where(active, np.exp(log_acc), np.nan)
-        # Trials: the gap, the split point (truncated or plain) and the speed.
-        trunc = truncate & np.isfinite(log_acc) & ~look.empty
-        log_w = log_p
-        u = rng.random((b, t_max, 3))
-        eps = rng.standard_normal((b, t_max, 2))
-        choice = _categorical(log_w, u[..., 0])  # (B, S)
-        g, mu_c, sig_c = (np.take_along_axis(x, choice, axis=1) for x in (gap, mu, sigma))
-        frac = np.clip(_sigmoid(mu_c + sig_c * eps[..., 0]), 1e-3, 1 - 1e-3)
-        a1 = frac * g
-        if trunc.any():
-            a_t = splits.sample(choice, u[..., 1], u[..., 2], mu_c, sig_c, g)
-            a1 = np.where(trunc[:, None], a_t, a1)
-        base = _speed_base(obs.need_v, psi)[:, None]
-        out_c = np.take_along_axis(out, choice[..., None], axis=1)  # (B, S, 5)
-        log_std_v = np.clip(out_c[..., 4], *SPEED_LOG_STD)
-        v_u = _sigmoid(base + out_c[..., 3] + np.exp(log_std_v) * eps[..., 1])
-        v = np.minimum(psi.v_min[:, None] + psi.v_range[:, None] * v_u, psi.v_max[:, None])
-        ok = look.accepts(choice, a1) & (v >= psi.v_min[:, None]) & (v <= psi.v_max[:, None])
-        any_ok = ok.any(axis=1)
-        # The first accepted candidate, else the last one, projected: the nearest split
-        # point of its gap that passes, its speed clipped to the bounds.
-        pick = np.where(any_ok, ok.argmax(axis=1), t_max - 1)
-        c, a, new_v = choice[rows, pick], a1[rows, pick], v[rows, pick]
-        if not any_ok.all():
-            a = np.where(any_ok, a, look.project(c, a))
-            new_v = np.where(any_ok, new_v, np.clip(new_v, psi.v_min, psi.v_max))
-            projected += active & ~any_ok
-        new_arc = (start[rows, c] + a) % length
-        onehot = rank == step + 1
-        arc = np.where(onehot, new_arc[:, None], arc)
-        speed = np.where(onehot, new_v[:, None], speed)
-        present = present | onehot
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        for step in range(k_max):
+            active = k > step
+            out = _algorithm3_step(net, weights, state, psi, table, k - step, t_max, truncate, rng)
+            projected += active & out.projected
+            accept_prob[:, step] = np.where(active, out.accept_prob, np.nan)
+            state.place(rank == step + 1, out.arc, out.speed)
     # Observed vehicles never move: the input values, bit for bit.
-    arc_out = np.where(snaps.hidden, arc % length, snaps.arc_m)
-    speed_out = np.where(snaps.hidden, speed, snaps.speed_mps)
+    arc_out = np.where(hidden, state.arc % snaps.length_m, snaps.arc_m)
+    speed_out = np.where(hidden, state.speed, snaps.speed_mps)
     return Completion(arc_out, speed_out, projected, time.perf_counter() - t0, accept_prob)
+
+
+@dataclass
+class _Scene:
+    """A scene being completed (numpy, (B, N) each)."""
+
+    arc: np.ndarray
+    speed: np.ndarray
+    present: np.ndarray
+    hidden: np.ndarray
+    length_m: float
+
+    def place(self, onehot: np.ndarray, arc: np.ndarray, speed: np.ndarray) -> None:
+        self.arc = np.where(onehot, arc[:, None], self.arc)
+        self.speed = np.where(onehot, speed[:, None], self.speed)
+        self.present = self.present | onehot
+
+
+@dataclass
+class _Placed:
+    arc: np.ndarray  # (B,) [m]
+    speed: np.ndarray  # (B,)
+    projected: np.ndarray  # (B,) no trial passed: projected
+    accept_prob: np.ndarray  # (B,) one plain trial's chance to pass
+
+
+def _algorithm3_step(
+    net: GeneratorNet,
+    weights: tuple[np.ndarray, ...],
+    scene: _Scene,
+    psi: PsiTensors,
+    table: SplitTable,
+    remaining: np.ndarray,
+    t_max: int,
+    truncate: bool,
+    rng: np.random.Generator,
+) -> _Placed:
+    """One vehicle for every scene: T_max trials, the first that passes, else projection."""
+    b = len(remaining)
+    rows = np.arange(b)
+    remaining = np.maximum(remaining, 0)
+    anchor = rng.random(b) * scene.length_m
+    obs = observe(scene.arc, scene.speed, scene.present, remaining, psi, scene.length_m, anchor)
+    _, _, gap, valid, start = obs.geometry
+    look = lookahead(
+        table,
+        obs.geometry,
+        scene.present,
+        scene.hidden & scene.present,
+        np.maximum(remaining - 1, 0),
+    )
+    out = net.forward_numpy(obs.gap_feat, obs.glob, weights).astype(np.float64)
+    allowed = look.allowed & valid
+    choosable = valid & (allowed | ~np.logical_or.reduce(allowed, axis=1, keepdims=True))
+    log_p = _log_softmax(np.where(choosable, out[..., 0], -np.inf))
+    mu = out[..., 1]
+    sigma = np.exp(np.minimum(np.maximum(out[..., 2], FRAC_LOG_STD[0]), FRAC_LOG_STD[1]))
+    splits = FeasibleSplits(look, mu, sigma)
+    log_acc = np.logaddexp.reduce(log_p + splits.log_m, axis=1)
+    # Trials: the gap, the split point (truncated or plain) and the speed.
+    u = rng.random((3, b, t_max))
+    eps = rng.standard_normal((2, b, t_max))
+    choice = _categorical(log_p, u[0])  # (B, S)
+    sel = (rows[:, None], choice)
+    g, mu_c, sig_c, out_c = gap[sel], mu[sel], sigma[sel], out[sel]
+    trunc = (log_acc > -np.inf) & ~look.empty if truncate else np.zeros(b, dtype=bool)
+    if trunc.all():
+        a1 = splits.sample(choice, u[1], u[2], mu_c, sig_c, g)
+    else:
+        a1 = g * np.minimum(np.maximum(_sigmoid(mu_c + sig_c * eps[0]), 1e-3), 1 - 1e-3)
+        if trunc.any():
+            a1 = np.where(trunc[:, None], splits.sample(choice, u[1], u[2], mu_c, sig_c, g), a1)
+    v_min, v_max = psi.v_min[:, None], psi.v_max[:, None]
+    log_std_v = np.minimum(np.maximum(out_c[..., 4], SPEED_LOG_STD[0]), SPEED_LOG_STD[1])
+    v_u = _sigmoid(
+        _speed_base(obs.need_v, psi)[:, None] + out_c[..., 3] + np.exp(log_std_v) * eps[1]
+    )
+    v = np.minimum(v_min + psi.v_range[:, None] * v_u, v_max)
+    ok = look.accepts(choice, a1) & (v >= v_min) & (v <= v_max)
+    any_ok = np.logical_or.reduce(ok, axis=1)
+    # The first accepted candidate, else the last one, projected: the nearest split
+    # point of its gap that passes, its speed clipped to the bounds.
+    pick = np.where(any_ok, ok.argmax(axis=1), t_max - 1)
+    c, a, new_v = choice[rows, pick], a1[rows, pick], v[rows, pick]
+    if not any_ok.all():
+        a = np.where(any_ok, a, look.project(c, a))
+        new_v = np.where(any_ok, new_v, np.minimum(np.maximum(new_v, psi.v_min), psi.v_max))
+    return _Placed((start[rows, c] + a) % scene.length_m, new_v, ~any_ok, np.exp(log_acc))
 
 
 def rejection_success(comp: Completion, t_max: int) -> np.ndarray:
