@@ -730,19 +730,16 @@ class FeasibleSplits:
         lo[..., 1:] = np.maximum(lo[..., 1:], hi[..., :-1])
         good = hi > lo
         g = look.gap[..., None]
-        lo, hi = np.where(good, lo, 0.25 * g), np.where(good, hi, 0.75 * g)  # [m]
-        m, s = mu[..., None], sigma[..., None]
-        za = (np.log(lo) - np.log(g - lo) - m) / s
-        zb = (np.log(hi) - np.log(g - hi) - m) / s
-        flip = za > 0
-        za, zb = np.where(flip, -zb, za), np.where(flip, -za, zb)  # za <= 0
-        log_a, log_b = log_ndtr(za), log_ndtr(zb)
-        lm = log_b + np.log(-np.expm1(log_a - log_b))
+        ends = np.array([np.where(good, lo, 0.25 * g), np.where(good, hi, 0.75 * g)])  # [m]
+        z = (np.log(ends) - np.log(g - ends) - mu[..., None]) / sigma[..., None]
+        flip = z[0] > 0
+        z = np.where(flip, -z[::-1], z)  # mirrored above the mean: z[0] <= 0
+        log_phi = log_ndtr(z)
+        lm = log_phi[1] + np.log(-np.expm1(log_phi[0] - log_phi[1]))
         self.log_mass = np.where(good & (lm == lm), lm, -np.inf)  # (B, N, P)
-        # What ``sample`` looks up for a chosen piece, in one array.
-        self.pieces = np.empty((7, *lo.shape))
-        self.pieces[0], self.pieces[1], self.pieces[2], self.pieces[3] = log_a, log_b, za, zb
-        self.pieces[4], self.pieces[5], self.pieces[6] = flip, lo, hi
+        # What ``sample`` looks up for a chosen piece, in one array: log Phi at both ends,
+        # both ends (mirrored or not), whether mirrored, both ends in metres.
+        self.pieces = np.concatenate([log_phi, z, flip[None], ends])
         # (B, N): log of the mass the gap's position proposal puts on feasible points.
         log_m = np.logaddexp.reduce(self.log_mass, axis=-1)
         # Each gap's pieces as a CDF (B, N, P), to draw a piece by its mass.
