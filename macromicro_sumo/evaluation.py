@@ -225,22 +225,6 @@ def long_rollout_bank(
     return bank.take(np.array([first]))
 
 
-__all__ = [
-    "Path",
-    "Rollouts",
-    "rollout",
-    "policy_action",
-    "recorded_action",
-    "idm_action",
-    "true_idm_params",
-    "micro_pairs",
-    "macro_row",
-    "samples_frame",
-    "micro_consistency",
-    "long_rollout_bank",
-]
-
-
 # --------------------------------------------------------------------------- the stage
 
 METHOD_ORDER = ["ground_truth", "policy", "micro_only", "macro_only", "idm_calibrated", "idm_true"]

@@ -20,7 +20,7 @@ import pandas as pd
 import torch
 from tqdm import tqdm
 
-from macromicro_sumo.config import Scenario, scenario_from_dict
+from macromicro_sumo.config import Scenario
 from macromicro_sumo.dataset import (
     GroundTruth,
     Snapshots,
@@ -33,7 +33,6 @@ from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import atomic_path, write_csv
 from macromicro_sumo.generator import (
     FEATURE_VERSION,
-    LOSS_TERMS,
     GeneratorNet,
     PsiTensors,
     complete,
@@ -280,18 +279,6 @@ def completions_frame(
             )
         )
     return pd.concat(rows, ignore_index=True)
-
-
-__all__ = [
-    "LOSS_TERMS",
-    "evaluate_generator",
-    "load_generator",
-    "save_generator",
-    "scenario_from_dict",
-    "train_generator",
-    "completions_frame",
-    "held_out_sets",
-]
 
 
 def check_psi(snaps: Snapshots, source: str) -> None:
