@@ -394,8 +394,12 @@ def features(
     empty = m == 0
     follower, leader, gap, _, _ = geometry
     vs, vm, dm, d_min, d_max = psi.columns
-    v_f = xp.where(empty[:, None], vm, _take(speed, follower))
-    v_l = xp.where(empty[:, None], vm, _take(speed, leader))
+    # Speeds enter the features detached: otherwise training uses a generated vehicle's
+    # speed as a side channel to steer later placements (L_dist), pulling speeds away from
+    # Psi's mean. A speed reaches the loss only through L_speed (and the speed centring).
+    speed_in = speed.detach() if hasattr(speed, "detach") else speed
+    v_f = xp.where(empty[:, None], vm, _take(speed_in, follower))
+    v_l = xp.where(empty[:, None], vm, _take(speed_in, leader))
     gap_dm = gap / dm
     gap_feat = _stack(
         [
@@ -409,9 +413,11 @@ def features(
         ]
     )
     v_sum = (speed * present).sum(1)
+    v_sum_in = (speed_in * present).sum(1)
     # The mean speed the vehicles still to place need for the fleet to average Psi's mean.
     need_v = (n * psi.v_mean - v_sum) / _clip(remaining, 1)
-    mean_v = xp.where(empty, psi.v_mean, v_sum / _clip(m, 1))
+    need_in = (n * psi.v_mean - v_sum_in) / _clip(remaining, 1)
+    mean_v = xp.where(empty, psi.v_mean, v_sum_in / _clip(m, 1))
     d_min_rel, d_max_rel, *v_static = psi.static_features
     glob = _stack(
         [
@@ -419,7 +425,7 @@ def features(
             m / n,
             d_min_rel,
             d_max_rel,
-            (need_v - psi.v_mean) / psi.v_scale,
+            (need_in - psi.v_mean) / psi.v_scale,
             (mean_v - psi.v_mean) / psi.v_scale,
             *v_static,
         ]

@@ -48,7 +48,7 @@ def test_measured_dispersion_keeps_the_spacing_spread_the_paper_loss_removes(gt)
     # The paper's L_var pulls completions towards equal gaps (K = 4: almost no spread left);
     # the measured target keeps the completed rings about as spread as the true ones.
     assert spread["paper"][-1] < 0.5
-    assert np.all(np.abs(spread["measured"] - 1) < np.abs(spread["paper"] - 1))
+    assert np.mean(np.abs(spread["measured"] - 1)) < np.mean(np.abs(spread["paper"] - 1))
     assert np.all(np.abs(spread["measured"] - 1) < 0.35)
 
 
