@@ -189,7 +189,7 @@ def train_generator(
             loss, s = _batch_loss(net, snaps.take(perm[start : start + cfg.batch_size]), sc, gen)
             opt.zero_grad()
             loss.backward()
-            nn_utils_clip(net)
+            torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
             opt.step()
             stats.append(s)
         net.eval()
@@ -221,10 +221,6 @@ def train_generator(
         "best_val_loss": best,
         "net": net,
     }
-
-
-def nn_utils_clip(net: torch.nn.Module) -> None:
-    torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
 
 
 def held_out_sets(sc: Scenario, gt: GroundTruth) -> dict[int, Snapshots]:

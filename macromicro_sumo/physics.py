@@ -95,20 +95,6 @@ def forward_accel(speed_mps: np.ndarray, dt_s: float) -> np.ndarray:
     return np.diff(speed_mps, axis=0) / dt_s
 
 
-def ring_observations(
-    arc_m: np.ndarray, speed_mps: np.ndarray, limit_mps: np.ndarray, length_m: float
-) -> np.ndarray:
-    """The paper's local observation o = [v, v_limit(theta), d_pre, delta_v] per vehicle.
-
-    ``d_pre`` is the front-to-front spacing to the vehicle ahead in arc order and
-    ``delta_v = v - v_leader`` (positive when closing in, the IDM convention).
-    Shapes: (..., N) in, (..., N, 4) out.
-    """
-    leader, spacing = ring_leaders(arc_m, length_m)
-    v_lead = np.take_along_axis(speed_mps, leader, axis=-1)
-    return np.stack([speed_mps, limit_mps, spacing, speed_mps - v_lead], axis=-1)
-
-
 OBSERVATION_FEATURES = {
     "paper": ("speed_mps", "speed_limit_mps", "spacing_m", "delta_v_mps"),
     "lookahead": (

@@ -298,14 +298,12 @@ def train_policy(
             episodes = rng.integers(0, len(bank), cfg.episodes_per_update)
             ro = collect(agent, core, episodes, eta, cfg.horizon, gen)
             env_steps += cfg.episodes_per_update * cfg.horizon
-            h_axis = np.moveaxis
+            # GAE runs along time: (E, H, N) -> (H, E, N) and back.
+            rewards = np.broadcast_to(ro.rewards[..., None], ro.values.shape)
             adv, ret = gae(
-                h_axis(np.broadcast_to(ro.rewards[..., None], ro.values.shape), 1, 0),
-                h_axis(ro.values, 1, 0),
-                cfg.gamma,
-                cfg.gae_lambda,
+                np.swapaxes(rewards, 0, 1), np.swapaxes(ro.values, 0, 1), cfg.gamma, cfg.gae_lambda
             )
-            adv, ret = h_axis(adv, 0, 1), h_axis(ret, 0, 1)
+            adv, ret = np.swapaxes(adv, 0, 1), np.swapaxes(ret, 0, 1)
             hid = np.broadcast_to(ro.hidden[:, None, :], ro.actions.shape)
             t_frac = np.broadcast_to(
                 (np.arange(cfg.horizon) / cfg.horizon)[None, :, None], ro.actions.shape

@@ -37,7 +37,7 @@ def versions() -> dict[str, str]:
     return {
         "sumo_binary": sumo_bin,
         "sumo": first[0].strip() if first else "unknown",
-        "libsumo": libsumo.__file__ and _dist_version("libsumo"),
+        "libsumo": _dist_version("libsumo"),
         "libsumo_api": str(libsumo.getVersion()[1]) if _is_running() else "",
     }
 
