@@ -219,10 +219,7 @@ def simulate(sc: Scenario, out: Path | str, command: str = "", progress: bool = 
                     spec.sumo_seed,
                     error_log=run_dir / "sumo.log",
                 )
-                if sim is None:
-                    sim = Simulation(opts)
-                else:
-                    sim.reload(opts)
+                sim = Simulation(opts)  # after the first run: reloads the one libsumo simulation
                 rec = record_run(sim, spec, geo, n_steps)
                 df = trajectory_frame(spec, rec, geo, dt)
                 traj.append(df)

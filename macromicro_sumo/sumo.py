@@ -136,10 +136,6 @@ class Simulation:
         """False once another instance (or a close) took libsumo's one simulation."""
         return Simulation._active is self
 
-    def reload(self, options: SumoOptions) -> None:
-        """Start a new run in the same process (new files, new seed)."""
-        self._load(options)
-
     def close(self) -> None:
         """End this instance's run; a no-op when another instance has taken libsumo over."""
         if Simulation._started_pid == os.getpid() and Simulation._active in (self, None):

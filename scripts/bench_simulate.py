@@ -128,10 +128,9 @@ def main(argv: list[str] | None = None) -> int:
                         spec.sumo_seed,
                         error_log=run_dir / "sumo.log",
                     )
-                    if sim is None:
-                        sim = Simulation(opts)
-                    else:
-                        sim.reload(opts)
+                    sim = Simulation(
+                        opts
+                    )  # after the first run: reloads the one libsumo simulation
                     walls[name].append(loop(sim, spec, geo, n_steps))
         finally:
             if sim is not None:
