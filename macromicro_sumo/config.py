@@ -308,6 +308,11 @@ def _build(cls: type, table: Any, prefix: str, file: str) -> Any:
         value = table[name]
         if dataclasses.is_dataclass(hint):
             kwargs[name] = _build(hint, value, key, file)
+        elif typing.get_origin(hint) is list:
+            kind = typing.get_args(hint)[0]
+            if not isinstance(value, list):
+                raise UserError(f"{file}: {key} = {value!r} must be a list")
+            kwargs[name] = [_check_scalar(v, kind, key, f.metadata, file) for v in value]
         elif typing.get_origin(hint) is tuple:
             kind = typing.get_args(hint)[0]
             if not isinstance(value, list) or len(value) != 2:
@@ -395,7 +400,7 @@ def read_scenario_toml(path: str | Path) -> tuple[dict[str, Any], dict[str, Any]
 
 def load_scenario(
     path: str | Path, overrides: dict[str, Any] | None = None, *, allow_sweep: bool = False
-) -> Scenario:
+) -> Any:
     """Load and validate a scenario TOML; ``overrides`` maps dotted keys to values (sweeps).
 
     A ``[sweep]`` table is for ``macromicro batch``, which passes ``allow_sweep=True`` and
@@ -414,6 +419,17 @@ def load_scenario(
         for p in parents:
             node = node.setdefault(p, {})
         node[leaf] = value
+    network = table.get("network")
+    kind = network.get("kind", "ring") if isinstance(network, dict) else "ring"
+    if kind == "sumo":
+        from macromicro_sumo.section_config import build_section_scenario
+
+        return build_section_scenario(table, file, str(path.resolve()))
+    if kind != "ring":
+        raise UserError(
+            f"{file}: network.kind = {kind!r} is not accepted; accepted: one of 'ring', 'sumo'"
+        )
+    network.pop("kind", None)
     sc = _build(Scenario, table, "", file)
     sc = dataclasses.replace(sc, source=str(path.resolve()))
     _check_consistency(sc, file)
@@ -424,6 +440,10 @@ def load_scenario(
     return sc
 
 
-def scenario_from_dict(d: dict[str, Any], source: str) -> Scenario:
+def scenario_from_dict(d: dict[str, Any], source: str) -> Any:
     """Rebuild a scenario stored in a checkpoint or manifest (already validated once)."""
+    if d.get("network", {}).get("kind") == "sumo":
+        from macromicro_sumo.section_config import SectionScenario
+
+        return dataclasses.replace(_build(SectionScenario, d, "", source), source=source)
     return dataclasses.replace(_build(Scenario, d, "", source), source=source)

@@ -26,6 +26,12 @@ _VARS = (
     libsumo.constants.VAR_LANEPOSITION,
     libsumo.constants.VAR_SPEED,
 )
+_LANE_VARS = (
+    libsumo.constants.VAR_LANE_ID,
+    libsumo.constants.VAR_LANEPOSITION,
+    libsumo.constants.VAR_SPEED,
+    libsumo.constants.VAR_ACCELERATION,
+)
 
 
 def versions() -> dict[str, str]:
@@ -69,6 +75,10 @@ class SumoOptions:
     seed: int
     error_log: Path | None = None
     fcd_file: Path | None = None  # SUMO floating-car-data output (evaluation rollouts)
+    route_files: tuple[Path, ...] = ()  # a user's demand (sections); the ring has none
+    # The ring places its vehicles exactly and checks them itself; a user's demand keeps
+    # SUMO's own insertion checks and teleports, as the user's runs have them.
+    user_demand: bool = False
 
     def args(self) -> list[str]:
         args = [
@@ -78,14 +88,9 @@ class SumoOptions:
             repr(float(self.step_length_s)),
             "--seed",
             str(int(self.seed)),
-            # Learning needs every vehicle kept: no teleports, collisions only reported.
+            # Collisions are only reported: learning needs every vehicle kept.
             "--collision.action",
             "warn",
-            "--time-to-teleport",
-            "-1",
-            # Our vehicles are placed exactly where the data says; we verify insertion ourselves.
-            "--insertion-checks",
-            "none",
             "--no-step-log",
             "true",
             "--duration-log.disable",
@@ -93,6 +98,12 @@ class SumoOptions:
             "--no-warnings",
             "true",
         ]
+        if not self.user_demand:
+            # No teleports; our vehicles are placed exactly where the data says and we
+            # verify insertion ourselves.
+            args += ["--time-to-teleport", "-1", "--insertion-checks", "none"]
+        if self.route_files:
+            args += ["-r", ",".join(str(p) for p in self.route_files)]
         if self.additional_files:
             args += ["-a", ",".join(str(p) for p in self.additional_files)]
         if self.fcd_file is not None:
@@ -243,6 +254,82 @@ class Simulation:
             # can leave the vehicle on its route's last edge, and it vanishes at its end.
             libsumo.vehicle.moveTo(vid, lane, float(pos))
             libsumo.vehicle.setRouteID(vid, route)
+
+    # ------------------------------------------------------------------ sections
+    def add_route(self, route_id: str, edges: Sequence[str]) -> None:
+        libsumo.route.add(route_id, list(edges))
+
+    def add_vehicle(
+        self,
+        vehicle_id: str,
+        route_id: str,
+        type_id: str,
+        lane: int,
+        pos_m: float,
+        speed_mps: float,
+    ) -> None:
+        """Queue one vehicle at an exact lane, position and speed (inserted next step)."""
+        try:
+            libsumo.vehicle.add(
+                vehicle_id,
+                route_id,
+                typeID=type_id,
+                depart="now",
+                departLane=str(int(lane)),
+                departPos=repr(float(pos_m)),
+                departSpeed=repr(float(speed_mps)),
+            )
+        except libsumo.TraCIException as exc:
+            raise UserError(
+                f"SUMO refused vehicle {vehicle_id} at {pos_m:.2f} m, {speed_mps:.2f} m/s: {exc}"
+            ) from None
+
+    def subscribe_lanes(self, vehicle_ids: Sequence[str]) -> None:
+        """Subscribe vehicles to (lane ID, lane position, speed, acceleration)."""
+        for vid in vehicle_ids:
+            libsumo.vehicle.subscribe(vid, _LANE_VARS)
+
+    def read_lane_states(self) -> dict[str, tuple[str, float, float, float]]:
+        """{vehicle: (lane ID, lane position, speed, acceleration)} of subscribed vehicles
+        still in the simulation."""
+        lane, pos, spd, acc = _LANE_VARS
+        return {
+            vid: (r[lane], r[pos], r[spd], r[acc])
+            for vid, r in libsumo.vehicle.getAllSubscriptionResults().items()
+            if lane in r
+        }
+
+    def departed(self) -> tuple[str, ...]:
+        """Vehicles that entered the network in the last step."""
+        return tuple(libsumo.simulation.getDepartedIDList())
+
+    def vehicle_type(self, vehicle_id: str) -> str:
+        return str(libsumo.vehicle.getTypeID(vehicle_id))
+
+    def set_lane_change_mode(self, vehicle_ids: Sequence[str], mode: int) -> None:
+        for vid in vehicle_ids:
+            libsumo.vehicle.setLaneChangeMode(vid, int(mode))
+
+    def move_to_lanes(
+        self, vehicle_ids: Sequence[str], lane_ids: Sequence[str], lane_pos_m: Sequence[float]
+    ) -> None:
+        """Place vehicles on exact lanes and positions (replay of recorded traces)."""
+        for vid, lane, pos in zip(vehicle_ids, lane_ids, lane_pos_m, strict=True):
+            libsumo.vehicle.moveTo(vid, lane, float(pos))
+
+    def release_speed(self, vehicle_ids: Sequence[str]) -> None:
+        """Hand vehicles back to their own car-following model (speed -1, default mode)."""
+        for vid in vehicle_ids:
+            libsumo.vehicle.setSpeedMode(vid, 31)
+            libsumo.vehicle.setSpeed(vid, -1.0)
+
+    def clear_vehicles(self) -> None:
+        """Remove every vehicle, running or waiting to be inserted."""
+        for vid in libsumo.vehicle.getIDList():
+            libsumo.vehicle.remove(vid)
+        for vid in libsumo.simulation.getPendingVehicles():
+            with contextlib.suppress(libsumo.TraCIException):
+                libsumo.vehicle.remove(vid)
 
     # ------------------------------------------------------------------ stepping
     def step(self) -> None:
