@@ -16,11 +16,22 @@ from macromicro_sumo import batch
 from macromicro_sumo.errors import UserError
 
 
+def is_section(sc: object) -> bool:
+    """A scenario on a user's SUMO network (``[network] kind = "sumo"``)."""
+    from macromicro_sumo.section_config import SectionScenario
+
+    return isinstance(sc, SectionScenario)
+
+
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from macromicro_sumo.config import load_scenario
     from macromicro_sumo.ground_truth import simulate
 
     sc = load_scenario(args.scenario)
+    if is_section(sc):
+        from macromicro_sumo.section_truth import simulate_section
+
+        simulate = simulate_section
     out = simulate(sc, args.out, command=args.command_line, progress=not args.quiet)
     print(f"ground truth written to {out}")
     return 0
