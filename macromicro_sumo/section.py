@@ -50,8 +50,9 @@ class Section:
 
     @property
     def lane_length_m(self) -> float:
-        """Total lane length [m]: the denominator of a density given per lane."""
-        return float((self.lengths_m * self.n_lanes).sum())
+        """Total lane length [m], junctions included (vehicles crossing them count too):
+        the denominator of a density given per lane."""
+        return float(((self.lengths_m + self.junction_m) * self.n_lanes).sum())
 
     @property
     def edge_lane_ids(self) -> list[list[str]]:

@@ -71,6 +71,12 @@ class SectionDetectorConfig:
         hi=1e5,
         doc="place E1 loops on every lane at this spacing when the section has none (0: off)",
     )
+    k_window_s: float = _f(
+        60.0,
+        lo=0.0,
+        hi=1e6,
+        doc="the hidden-count estimate averages detector density over this window [s]",
+    )
 
 
 @dataclass(frozen=True, kw_only=True)

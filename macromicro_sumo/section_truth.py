@@ -244,16 +244,46 @@ def read_detectors(
     return det, passages
 
 
+def station_cells(arcs: np.ndarray, section: Section) -> np.ndarray:
+    """Arc length each detector station stands for: the section split half-way between
+    stations (around the loop on a closed section)."""
+    order = np.argsort(arcs)
+    a = arcs[order]
+    if len(a) == 1:
+        cells = np.array([section.length_m])
+    elif section.closed:
+        gaps = np.diff(np.concatenate([a, [a[0] + section.length_m]]))
+        cells = 0.5 * (gaps + np.roll(gaps, 1))
+    else:
+        mids = np.concatenate([[0.0], 0.5 * (a[1:] + a[:-1]), [section.length_m]])
+        cells = np.diff(mids)
+    out = np.empty_like(cells)
+    out[order] = cells
+    return out
+
+
 def detector_macro(
-    det: pd.DataFrame, passages: pd.DataFrame, warmup_s: float, min_spacing_m: float
+    det: pd.DataFrame,
+    passages: pd.DataFrame,
+    warmup_s: float,
+    min_spacing_m: float,
+    section: Section,
 ) -> pd.DataFrame:
     """Macro statistics per run and interval as the section's detectors estimate them.
 
     Speed: space-mean (E2 weighted by time on the detector; E1 harmonic means weighted by
     counts). Density per lane: E2 vehicles per metre, E1 flow / speed, averaged over the
-    detectors. Spacing spread and speed bounds: from the per-vehicle passages.
+    detectors. Vehicles on the section: E1 stations' density summed over their lanes and
+    integrated along the arc (each station stands for the stretch half-way to its
+    neighbours: lane counts that change along the section are weighted right); E2: their
+    vehicles scaled to the section's lane length. Spacing spread and speed bounds: from
+    the per-vehicle passages.
     """
     spacings = passage_spacings(passages)
+    stations = np.sort(det.loc[det["kind"] == "e1", "arc_m"].unique())
+    cells = (
+        dict(zip(stations, station_cells(stations, section), strict=True)) if len(stations) else {}
+    )
     rows = []
     det = det[det["begin_s"] >= warmup_s - 1e-9]
     for (run, begin, end), g in det.groupby(["run", "begin_s", "end_s"], sort=True):
@@ -263,11 +293,14 @@ def detector_macro(
             v = e2["speed_mps"].to_numpy()
             speed = float(np.nansum(v * ss) / ss.sum()) if ss.sum() > 0 else np.nan
             density = float(np.average(e2["density_vpkm"], weights=e2["length_m"]))
+            vehicles = density / 1000.0 * section.lane_length_m
         else:
             n, v = e1["n_veh"].to_numpy(), e1["speed_mps"].to_numpy()
             ok = n > 0
             speed = float(n[ok].sum() / (n[ok] / v[ok]).sum()) if ok.any() else np.nan
             density = float(e1["density_vpkm"].mean())
+            per_station = e1.groupby("arc_m")["density_vpkm"].sum()
+            vehicles = float(sum(k / 1000.0 * cells[a] for a, k in per_station.items()))
         ip = passages[
             (passages["run"] == run) & (passages["time_s"] >= begin) & (passages["time_s"] < end)
         ]
@@ -290,7 +323,7 @@ def detector_macro(
                 "std_spacing_m": float(d.std()) if d.size > 1 else np.nan,
                 "speed_min_mps": float(ps.min()) if ps.size else np.nan,
                 "speed_max_mps": float(ps.max()) if ps.size else np.nan,
-                "vehicles": np.nan,
+                "vehicles": vehicles,
             }
         )
     return pd.DataFrame(rows)
@@ -339,22 +372,35 @@ def trajectory_macro(
 
 
 def k_estimates(
-    traj: pd.DataFrame, det_macro: pd.DataFrame, section: Section, every_s: float
+    traj: pd.DataFrame,
+    det_macro: pd.DataFrame,
+    section: Section,
+    every_s: float,
+    window_s: float,
 ) -> pd.DataFrame:
-    """Hidden count per snapshot time: the truth and round(density x lane length) - observed."""
+    """Hidden count per snapshot time: the truth, and the estimate from the detectors.
+
+    Estimate: round(vehicles on the section by the detectors) - observed vehicles, the
+    detectors' count (see ``detector_macro``) averaged over the intervals centred within ``window_s``
+    of the snapshot (``detectors.k_window_s``; at least the interval holding it). Longer
+    windows average out platoons that one interval's loops see or miss.
+    """
     rows = []
     for (run, t), g in traj.groupby(["run", "time_s"], sort=True):
         if abs(t / every_s - round(t / every_s)) > 1e-6:
             continue
-        m = det_macro[
-            (det_macro["run"] == run) & (det_macro["begin_s"] <= t) & (det_macro["end_s"] > t)
-        ]
-        if m.empty or not np.isfinite(m["density_vpkm_lane"].iloc[0]):
+        r = det_macro[det_macro["run"] == run]
+        centre = 0.5 * (r["begin_s"] + r["end_s"])
+        m = r[(centre >= t - window_s / 2) & (centre <= t + window_s / 2)]
+        if m.empty:
+            m = r[(r["begin_s"] <= t) & (r["end_s"] > t)]
+        vehicles = float(m["vehicles"].mean()) if len(m) else np.nan
+        if not np.isfinite(vehicles):
             continue
         n_obs = int(g["observed"].sum())
-        total = int(round(float(m["density_vpkm_lane"].iloc[0]) * section.lane_length_m / 1000.0))
-        k_est = max(0, total - n_obs)
+        total = int(round(vehicles))
         k_true = len(g) - n_obs
+        k_est = max(0, total - n_obs)
         rows.append(
             {
                 "run": run,
@@ -510,11 +556,13 @@ def simulate_section(
         pas = pd.concat(passages, ignore_index=True)
         end = sc.simulation.warmup_s + sc.simulation.duration_s
         min_spacing = min_len + sc.bounds.min_gap_m
-        det_macro = detector_macro(det, pas, sc.simulation.warmup_s, min_spacing)
+        det_macro = detector_macro(det, pas, sc.simulation.warmup_s, min_spacing, section)
         tr_macro = trajectory_macro(
             traj, section, sc.detectors.interval_s, sc.simulation.warmup_s, end
         )
-        k_df = k_estimates(traj, det_macro, section, sc.generator.snapshot_every_s)
+        k_df = k_estimates(
+            traj, det_macro, section, sc.generator.snapshot_every_s, sc.detectors.k_window_s
+        )
         vt = pd.DataFrame(
             [
                 {
