@@ -14,6 +14,7 @@ hidden ones are driven by the method. All methods run on the same scenes:
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -150,7 +151,29 @@ def micro_pairs(sc: Scenario, gt: GroundTruth, runs: np.ndarray) -> tuple[np.nda
     return np.stack(cols, axis=1).astype(np.float64), t["accel_mps2"].to_numpy()
 
 
-def macro_row(k: int, method: str, ro: Rollouts, ref: Rollouts | None) -> dict[str, float]:
+BOOTSTRAP_RESAMPLES = 2000
+
+
+def paired_bootstrap_ci(
+    diff: np.ndarray, seed: int, level: float = 0.95, resamples: int = BOOTSTRAP_RESAMPLES
+) -> tuple[float, float]:
+    """Percentile bootstrap interval of mean(diff) over paired episodes (resampled together)."""
+    d = diff[np.isfinite(diff)]
+    if len(d) < 2:
+        return float("nan"), float("nan")
+    rng = np.random.default_rng([seed, 7])
+    means = d[rng.integers(0, len(d), (resamples, len(d)))].mean(axis=1)
+    lo, hi = np.quantile(means, [(1 - level) / 2, (1 + level) / 2])
+    return float(lo), float(hi)
+
+
+def macro_row(
+    k: int, method: str, ro: Rollouts, ref: Rollouts | None, seed: int = 0
+) -> dict[str, float]:
+    """One row of macro_alignment.csv; with ``ref`` (the ground truth on the same held-out
+    snapshots, episode for episode) the errors against it and a 95% paired-bootstrap
+    interval of the signed mean-speed error (scenes and action noise of this evaluation;
+    not the training seed's noise: ``scripts/lf_seeds.py --speed``)."""
     v, d, a = ro.speed_mps, ro.spacing_m, ro.accel_mps2
     row = {
         "K": k,
@@ -168,8 +191,14 @@ def macro_row(k: int, method: str, ro: Rollouts, ref: Rollouts | None) -> dict[s
         def w1(x: np.ndarray, y: np.ndarray) -> float:
             return float(wasserstein_distance(x[np.isfinite(x)], y[np.isfinite(y)]))
 
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # an episode that ended at once
+            diff = np.nanmean(v, axis=(1, 2)) - np.nanmean(ref.speed_mps, axis=(1, 2))
+        lo, hi = paired_bootstrap_ci(diff, seed)
         row.update(
             mean_speed_err_mps=abs(row["mean_speed_mps"] - np.nanmean(ref.speed_mps)),
+            speed_err_ci_lo_mps=lo,
+            speed_err_ci_hi_mps=hi,
             w1_speed_mps=w1(v.ravel(), ref.speed_mps.ravel()),
             w1_accel_mps2=w1(a.ravel(), ref.accel_mps2.ravel()),
             w1_spacing_m=w1(d.ravel(), ref.spacing_m.ravel()),
@@ -230,6 +259,77 @@ def long_rollout_bank(
 METHOD_ORDER = ["ground_truth", "policy", "micro_only", "macro_only", "idm_calibrated", "idm_true"]
 
 
+def macro_alignment(
+    sc: Scenario,
+    gt: GroundTruth,
+    net,
+    agents: dict,
+    idm_cal: IdmParams | None,
+    runs: np.ndarray,
+    ks: list[int],
+    fcd_dir: Path | None = None,
+    progress: bool = False,
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """macro_alignment.csv and eval_samples.csv: every method on the same scenes of ``runs``.
+
+    Per K, the snapshots are completed once by the generator (and once with the true hidden
+    vehicles for ``ground_truth``); each method's rollout draws from its own generator
+    seeded ``seed + 100 + K``, so a method's rows do not depend on which other methods run
+    (``idm_cal`` None leaves out ``idm_calibrated``). FCD of the first
+    ``evaluation.fcd_episodes`` episodes goes to ``fcd_dir`` when given.
+    """
+    from tqdm import tqdm
+
+    from macromicro_sumo.env import build_bank, generator_completion
+
+    h = sc.evaluation.horizon_steps
+    names = [
+        m
+        for m in METHOD_ORDER
+        if m in agents or m in ("ground_truth", "idm_true") or (m == "idm_calibrated" and idm_cal)
+    ]
+    rows, samples = [], []
+    bar = tqdm(total=len(ks) * len(names), desc="evaluate", unit="rollout", disable=not progress)
+    for k in ks:
+        seed = sc.seed + 100 + k
+        true_bank = build_bank(sc, gt, runs, lambda s: (s.arc_m, s.speed_mps), k, seed, horizon=h)
+        gen_bank = build_bank(sc, gt, runs, generator_completion(net, sc, seed), k, seed, horizon=h)
+        methods: dict[str, tuple[EpisodeBank, ActionFn]] = {
+            "ground_truth": (true_bank, recorded_action)
+        }
+        for name, agent in agents.items():
+            methods[name] = (gen_bank, policy_action(agent))
+        if idm_cal is not None:
+            methods["idm_calibrated"] = (
+                gen_bank,
+                idm_action(lambda core: idm_cal, sc.fleet.length_m),
+            )
+        methods["idm_true"] = (
+            gen_bank,
+            idm_action(true_idm_params(sc, gt, gen_bank), sc.fleet.length_m),
+        )
+        ref = None
+        for name in [m for m in METHOD_ORDER if m in methods]:
+            bank, act = methods[name]
+            core = RingCore(sc, bank, seed=sc.seed)
+            try:
+                ro = rollout(core, act, h, seed)
+            finally:
+                core.close()
+            if fcd_dir is not None and sc.evaluation.fcd_episodes > 0:
+                core = RingCore(sc, bank, seed=sc.seed, fcd_file=fcd_dir / f"{name}_K{k}.fcd.xml")
+                try:
+                    rollout(core, act, h, seed, range(min(sc.evaluation.fcd_episodes, len(bank))))
+                finally:
+                    core.close()
+            ref = ro if name == "ground_truth" else ref
+            rows.append(macro_row(k, name, ro, ref, seed))
+            samples.append(samples_frame(k, name, ro))
+            bar.update()
+    bar.close()
+    return pd.DataFrame(rows), pd.concat(samples, ignore_index=True)
+
+
 def evaluate(
     sc: Scenario,
     data: Path,
@@ -244,10 +344,7 @@ def evaluate(
     FCD files and an evaluation manifest into ``out``; returns the manifest."""
     import time
 
-    from tqdm import tqdm
-
     from macromicro_sumo.dataset import load_ground_truth, split_runs
-    from macromicro_sumo.env import build_bank, generator_completion
     from macromicro_sumo.errors import UserError
     from macromicro_sumo.files import prepare_out_dir, staging_dir, write_csv, write_json
     from macromicro_sumo.generator_train import load_generator
@@ -280,62 +377,13 @@ def evaluate(
     idm_cal, idm_rmse = calibrate_idm(fit_obs, fit_acc, sc.fleet.length_m, sc.fleet.delta)
     h = sc.evaluation.horizon_steps
     ks = hidden or list(range(sc.generator.hidden_eval[0], sc.generator.hidden_eval[1] + 1))
-    rows, samples = [], []
     with staging_dir(out) as stage:
         (stage / "fcd").mkdir()
-        jobs = [
-            (k, m)
-            for k in ks
-            for m in METHOD_ORDER
-            if m in agents or not m.startswith(("policy", "micro", "macro"))
-        ]
-        bar = tqdm(total=len(jobs), desc="evaluate", unit="rollout", disable=not progress)
-        for k in ks:
-            seed = sc.seed + 100 + k
-            true_bank = build_bank(
-                sc, gt, splits["held_out"], lambda s: (s.arc_m, s.speed_mps), k, seed, horizon=h
-            )
-            gen_bank = build_bank(
-                sc, gt, splits["held_out"], generator_completion(net, sc, seed), k, seed, horizon=h
-            )
-            methods: dict[str, tuple[EpisodeBank, ActionFn]] = {
-                "ground_truth": (true_bank, recorded_action)
-            }
-            for name, agent in agents.items():
-                methods[name] = (gen_bank, policy_action(agent))
-            methods["idm_calibrated"] = (
-                gen_bank,
-                idm_action(lambda core: idm_cal, sc.fleet.length_m),
-            )
-            methods["idm_true"] = (
-                gen_bank,
-                idm_action(true_idm_params(sc, gt, gen_bank), sc.fleet.length_m),
-            )
-            ref = None
-            for name in [m for m in METHOD_ORDER if m in methods]:
-                bank, act = methods[name]
-                core = RingCore(sc, bank, seed=sc.seed)
-                try:
-                    ro = rollout(core, act, h, seed)
-                finally:
-                    core.close()
-                if sc.evaluation.fcd_episodes > 0:
-                    fcd = stage / "fcd" / f"{name}_K{k}.fcd.xml"
-                    core = RingCore(sc, bank, seed=sc.seed, fcd_file=fcd)
-                    try:
-                        rollout(
-                            core, act, h, seed, range(min(sc.evaluation.fcd_episodes, len(bank)))
-                        )
-                    finally:
-                        core.close()
-                ref = ro if name == "ground_truth" else ref
-                rows.append(macro_row(k, name, ro, ref))
-                samples.append(samples_frame(k, name, ro))
-                bar.update()
-        bar.close()
-        align = pd.DataFrame(rows)
+        align, samples = macro_alignment(
+            sc, gt, net, agents, idm_cal, splits["held_out"], ks, stage / "fcd", progress
+        )
         write_csv(align, stage / "macro_alignment.csv")
-        write_csv(pd.concat(samples, ignore_index=True), stage / "eval_samples.csv")
+        write_csv(samples, stage / "eval_samples.csv")
         held_obs, held_acc = micro_pairs(sc, gt, splits["held_out"])
         micro = micro_consistency(agents, {"idm_calibrated": idm_cal}, held_obs, held_acc, sc)
         write_csv(micro, stage / "micro_consistency.csv")
