@@ -66,6 +66,92 @@ def alignment_verdicts(align: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+# figure -> (column of macro_alignment.csv, how a row scores: lower is better)
+FIGURES = {
+    "mean-speed error (m/s)": ("mean_speed_err_mps", lambda r, g: r["mean_speed_err_mps"]),
+    "speed std vs GT (|%|)": (
+        "std_speed_mps",
+        lambda r, g: 100 * abs(r["std_speed_mps"] / g["std_speed_mps"] - 1),
+    ),
+    "spacing std vs GT (|%|)": (
+        "std_spacing_m",
+        lambda r, g: 100 * abs(r["std_spacing_m"] / g["std_spacing_m"] - 1),
+    ),
+    "W1 speed (m/s)": ("w1_speed_mps", lambda r, g: r["w1_speed_mps"]),
+    "W1 spacing (m)": ("w1_spacing_m", lambda r, g: r["w1_spacing_m"]),
+}
+
+
+def _overlap(a: pd.Series, b: pd.Series) -> bool:
+    cols = ("speed_err_ci_lo_mps", "speed_err_ci_hi_mps")
+    if not all(c in a.index and c in b.index for c in cols):
+        return False
+    return bool(a[cols[0]] <= b[cols[1]] and b[cols[0]] <= a[cols[1]])
+
+
+def figure_winners(
+    align: pd.DataFrame, micro: pd.DataFrame | None = None, lf: pd.DataFrame | None = None
+) -> pd.DataFrame:
+    """Per figure (and K or leader-follower scenario): the best method, and `policy` vs
+    `micro_only` stated plainly. On the mean-speed error the two are called a tie when their
+    95% intervals (``speed_err_ci_*``) overlap: the difference is then within this
+    evaluation's noise."""
+    rows = []
+    gt = align[align["method"] == "ground_truth"].set_index("K")
+    others = align[align["method"] != "ground_truth"]
+    for figure, (col, score) in FIGURES.items():
+        if col not in align:
+            continue
+        for k, grp in others.groupby("K", sort=True):
+            sc = {r["method"]: score(r, gt.loc[k]) for _, r in grp.iterrows()}
+            best = min(sc, key=sc.get)
+            row = {"figure": figure, "K / test": str(k), "best": best, "best value": sc[best]}
+            row["policy"] = sc.get("policy", np.nan)
+            row["micro_only"] = sc.get("micro_only", np.nan)
+            if "policy" in sc and "micro_only" in sc:
+                p = grp[grp["method"] == "policy"].iloc[0]
+                m = grp[grp["method"] == "micro_only"].iloc[0]
+                if col == "mean_speed_err_mps" and _overlap(p, m):
+                    row["policy vs micro_only"] = "tie (95% intervals overlap)"
+                else:
+                    row["policy vs micro_only"] = (
+                        "policy" if sc["policy"] < sc["micro_only"] else "micro_only"
+                    )
+            rows.append(row)
+    if micro is not None:
+        for col, figure in (("nll", "micro NLL"), ("action_rmse_mps2", "action RMSE (m/s2)")):
+            sc = micro.dropna(subset=[col]).set_index("method")[col].to_dict()
+            if not sc:
+                continue
+            best = min(sc, key=sc.get)
+            row = {"figure": figure, "K / test": "held-out", "best": best, "best value": sc[best]}
+            row |= {"policy": sc.get("policy", np.nan), "micro_only": sc.get("micro_only", np.nan)}
+            if "policy" in sc and "micro_only" in sc:
+                row["policy vs micro_only"] = (
+                    "policy" if sc["policy"] < sc["micro_only"] else "micro_only"
+                )
+            rows.append(row)
+    if lf is not None:
+        g = lf[lf["method"] != "IDM"].groupby(["scenario", "method"])["rmse_vs_idm_mps"].mean()
+        for scenario in g.index.get_level_values(0).unique():
+            sc = g.loc[scenario].to_dict()
+            best = min(sc, key=sc.get)
+            row = {
+                "figure": "leader-follower RMSE (m/s)",
+                "K / test": scenario,
+                "best": best,
+                "best value": sc[best],
+                "policy": sc.get("policy", np.nan),
+                "micro_only": sc.get("micro_only", np.nan),
+            }
+            if "policy" in sc and "micro_only" in sc:
+                row["policy vs micro_only"] = (
+                    "policy" if sc["policy"] < sc["micro_only"] else "micro_only"
+                )
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
 def make_plots(sc: Scenario, out: Path) -> list[Path]:
     """Every plot whose inputs exist in a run folder, into ``out/plots``."""
     from macromicro_sumo import plots
@@ -213,6 +299,8 @@ def write_report(sc: Scenario, out: Path, manifest: dict[str, Any]) -> Path:
             "std_spacing_m",
             "collisions",
             "mean_speed_err_mps",
+            "speed_err_ci_lo_mps",
+            "speed_err_ci_hi_mps",
             "w1_speed_mps",
             "w1_accel_mps2",
             "w1_spacing_m",
@@ -229,22 +317,6 @@ def write_report(sc: Scenario, out: Path, manifest: dict[str, Any]) -> Path:
             _table(alignment_verdicts(align)),
             "",
         ]
-        speed_err = align.dropna(subset=["mean_speed_err_mps"]).pivot(
-            index="K", columns="method", values="mean_speed_err_mps"
-        )
-        better = [
-            m
-            for m in speed_err.columns
-            if m not in ("policy", "ground_truth") and (speed_err[m] < speed_err["policy"]).any()
-        ]
-        if better:
-            parts += [
-                "Where a baseline beats `policy` on mean-speed error for some K: "
-                + ", ".join(f"`{m}`" for m in better)
-                + ".",
-                "",
-            ]
-
     refined = _read(out / "refined" / "evaluation" / "macro_alignment.csv")
     if align is not None and refined is not None:
         cols = [
@@ -283,6 +355,18 @@ def write_report(sc: Scenario, out: Path, manifest: dict[str, Any]) -> Path:
             "<= 0.3 m/s against the IDM follower.",
             "",
             _table(method_summary(lf)),
+            "",
+        ]
+
+    if align is not None:
+        parts += [
+            "## Which method wins each figure",
+            "",
+            "Lower is better everywhere; `best` among all methods but the ground truth. One "
+            "evaluation of one trained policy per method: the training seed moves these "
+            "figures too (`scripts/lf_seeds.py` measures that spread).",
+            "",
+            _table(figure_winners(align, micro, lf), 4),
             "",
         ]
 
