@@ -1,0 +1,151 @@
+"""The whole pipeline on a section of a user's network, stage by stage, resumable.
+
+Same shape as ``pipeline.run`` on the ring: ground truth -> generator -> three policies
+(the paper's objective and its two ablations) -> evaluation -> report, each stage skipped
+when its manifest records the same scenario digest and seed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from macromicro_sumo.files import file_sha256, prepare_out_dir, write_csv, write_json
+from macromicro_sumo.manifest import build_manifest
+from macromicro_sumo.pipeline import _done, _previous_timings, policy_paths
+
+
+def run_train_section_policy(
+    sc,
+    data: Path,
+    generator: Path,
+    out: Path,
+    resume: bool | str = False,
+    command: str = "",
+    progress: bool = True,
+    objective: str | None = None,
+) -> dict[str, Any]:
+    """Stage II on a section: episodes from the train+val runs completed by the generator."""
+    import torch
+
+    from macromicro_sumo.dataset import split_runs
+    from macromicro_sumo.ppo import resumable_checkpoint, train_policy
+    from macromicro_sumo.section_data import section_snapshots
+    from macromicro_sumo.section_env import SectionCore, build_section_bank
+    from macromicro_sumo.section_generator import complete_section, load_section_generator
+    from macromicro_sumo.section_truth import load_section_truth, scenario_inputs
+
+    objective = objective or sc.policy.objective
+    truth = load_section_truth(data, sc)
+    net = load_section_generator(generator, sc)
+    out = prepare_out_dir(out)
+    run_key = hashlib.sha256(
+        f"{sc.digest()}|{file_sha256(generator)}|"
+        f"{file_sha256(Path(data) / 'trajectories.csv')}|{objective}".encode()
+    ).hexdigest()
+    resumable_checkpoint(out / f"policy_{objective}_checkpoint.pt", sc, run_key, resume)
+    torch.set_num_threads(1)
+    splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
+    snaps = section_snapshots(truth, sc, np.concatenate([splits["train"], splits["val"]]))
+    k = snaps.k_true if sc.generator.k_source == "truth" else snaps.k_est
+
+    def complete(s):
+        idx = _subset_index(snaps, s)
+        c = complete_section(net, truth.section, s, k[idx], sc.generator.t_max, sc.seed)
+        return c.lane, c.arc_m, c.speed_mps, c.valid, c.generated
+
+    bank = build_section_bank(sc, truth, snaps, complete, sc.policy.horizon, sc.seed)
+    net_file = scenario_inputs(sc).net_file
+
+    def make_core(bank_, seed: int, fcd_file: Path | None = None) -> SectionCore:
+        return SectionCore(sc, truth.section, bank_, net_file, seed=seed, fcd_file=fcd_file)
+
+    res = train_policy(
+        sc,
+        bank,
+        out,
+        objective=objective,
+        resume=resume,
+        progress=progress,
+        run_key=run_key,
+        make_core=make_core,
+    )
+    suffix = "" if objective == "mix" else f"_{objective}"
+    manifest = build_manifest(sc, command, stage=f"train-policy{suffix}")
+    manifest.update(
+        timings_s={"train_policy": round(res["wall_s"], 3)},
+        env_steps=res["env_steps"],
+        episodes=len(bank),
+        ground_truth=str(data),
+        generator=str(generator),
+    )
+    write_json(manifest, out / f"policy_manifest{suffix}.json")
+    return manifest
+
+
+def _subset_index(full, part) -> np.ndarray:
+    """Rows of ``part`` (snapshots kept by the bank) in ``full``."""
+    key = {
+        (int(r), float(t)): i for i, (r, t) in enumerate(zip(full.run, full.time_s, strict=True))
+    }
+    return np.array([key[(int(r), float(t))] for r, t in zip(part.run, part.time_s, strict=True)])
+
+
+def run_section(sc, out: Path | str, command: str = "", progress: bool = True) -> dict[str, Any]:
+    """Every stage on a section scenario into ``out``; returns the run manifest."""
+    from macromicro_sumo.section_eval import evaluate_section
+    from macromicro_sumo.section_generator import run_train_section_generator
+    from macromicro_sumo.section_report import write_section_report
+    from macromicro_sumo.section_truth import simulate_section
+
+    out = prepare_out_dir(out)
+    gt, gen, pol, ev = out / "ground_truth", out / "generator", out / "policy", out / "evaluation"
+
+    def train(objective: str) -> Callable[[], Any]:
+        return lambda: run_train_section_policy(
+            sc, gt, gen / "generator.pt", pol, "auto", command, progress, objective
+        )
+
+    stages: list[tuple[str, Path, Callable[[], Any]]] = [
+        ("simulate", gt / "manifest.json", lambda: simulate_section(sc, gt, command, progress)),
+        (
+            "train_generator",
+            gen / "generator_manifest.json",
+            lambda: run_train_section_generator(sc, gt, gen, command, progress),
+        ),
+        ("train_policy", pol / "policy_manifest.json", train("mix")),
+        ("train_policy_micro_only", pol / "policy_manifest_micro_only.json", train("micro_only")),
+        ("train_policy_macro_only", pol / "policy_manifest_macro_only.json", train("macro_only")),
+        (
+            "evaluate",
+            ev / "evaluation_manifest.json",
+            lambda: evaluate_section(
+                sc, gt, gen / "generator.pt", policy_paths(pol), ev, command, progress
+            ),
+        ),
+    ]
+    previous = _previous_timings(out / "manifest.json")
+    timings: dict[str, Any] = {}
+    for name, manifest, fn in stages:
+        if _done(manifest, sc):
+            timings[name] = previous.get(name, "skipped (outputs existed)")
+            if progress:
+                print(f"[{name}] skipped: outputs exist for this scenario and seed")
+            continue
+        t0 = time.perf_counter()
+        fn()
+        timings[name] = round(time.perf_counter() - t0, 3)
+        if progress:
+            print(f"[{name}] done in {timings[name]:.1f} s")
+    manifest = build_manifest(sc, command, stage="run")
+    manifest["timings_s"] = timings
+    write_json(manifest, out / "manifest.json")
+    write_csv(pd.DataFrame([timings]), out / "timings.csv")
+    write_section_report(sc, out, manifest)
+    return manifest
