@@ -42,6 +42,10 @@ def _cmd_train_generator(args: argparse.Namespace) -> int:
     from macromicro_sumo.generator_train import run_train_generator
 
     sc = load_scenario(args.scenario)
+    if is_section(sc):
+        from macromicro_sumo.section_generator import run_train_section_generator
+
+        run_train_generator = run_train_section_generator
     m = run_train_generator(sc, args.data, args.out, args.command_line, progress=not args.quiet)
     print(
         f"generator written to {args.out / 'generator.pt'} ({m['epochs']} epochs, {m['timings_s']['train_generator']:.1f} s)"
@@ -54,6 +58,11 @@ def _cmd_complete(args: argparse.Namespace) -> int:
     from macromicro_sumo.generator_train import run_complete
 
     sc = load_scenario(args.scenario)
+    if is_section(sc):
+        raise UserError(
+            f"{args.scenario}: `complete` is for ring scenarios; on a section, `train-generator` "
+            "writes the held-out completions' metrics (generator_metrics.csv)"
+        )
     path = run_complete(sc, args.generator, args.data, args.out, args.hidden)
     print(f"completions written to {path}")
     return 0
@@ -64,6 +73,16 @@ def _cmd_train_policy(args: argparse.Namespace) -> int:
     from macromicro_sumo.ppo import run_train_policy
 
     sc = load_scenario(args.scenario)
+    if is_section(sc):
+        from macromicro_sumo.section_pipeline import run_train_section_policy
+
+        m = run_train_section_policy(
+            sc, args.data, args.generator, args.out, args.resume, args.command_line, not args.quiet
+        )
+        print(
+            f"policy written to {args.out / 'policy.pt'} ({m['timings_s']['train_policy']:.1f} s)"
+        )
+        return 0
     m = run_train_policy(
         sc, args.data, args.generator, args.out, args.resume, args.command_line, not args.quiet
     )
@@ -84,6 +103,19 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         else {"policy": args.policy}
     )
     policies["policy"] = args.policy
+    if is_section(sc):
+        from macromicro_sumo.section_eval import evaluate_section
+
+        if args.hidden:
+            raise UserError(
+                "--hidden is for ring scenarios; on a section the hidden count is estimated "
+                "from the detectors (generator.k_source)"
+            )
+        evaluate_section(
+            sc, args.data, args.generator, policies, args.out, args.command_line, not args.quiet
+        )
+        print(f"evaluation written to {args.out}")
+        return 0
     evaluate(
         sc,
         args.data,
@@ -103,6 +135,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from macromicro_sumo.pipeline import run
 
     sc = load_scenario(args.scenario)
+    if is_section(sc):
+        from macromicro_sumo.section_pipeline import run_section
+
+        run = run_section
     run(sc, args.out, args.command_line, progress=not args.quiet)
     print(f"pipeline outputs in {args.out}")
     return 0
