@@ -331,6 +331,15 @@ class Simulation:
             with contextlib.suppress(libsumo.TraCIException):
                 libsumo.vehicle.remove(vid)
 
+    def drop_vehicles(self, vehicle_ids: Sequence[str]) -> None:
+        """Remove vehicles, subscribed or not: libsumo 1.28 fails every later step
+        ("Vehicle ... is not known") when a subscribed vehicle is removed without
+        unsubscribing it first."""
+        for vid in vehicle_ids:
+            with contextlib.suppress(libsumo.TraCIException):
+                libsumo.vehicle.unsubscribe(vid)
+            libsumo.vehicle.remove(vid)
+
     # ------------------------------------------------------------------ stepping
     def step(self) -> None:
         libsumo.simulationStep()
