@@ -42,9 +42,8 @@ class SectionConfig:
 class InstrumentedConfig:
     """Which vehicles are observed in detail (micro data): one of three ways."""
 
-    penetration: float = _f(
-        0.1, lo=0.0, hi=1.0, doc="share of vehicles with full trajectories, in (0, 1]"
-    )
+    # Range (0, 1] is checked in _check: the typed ranges are closed intervals.
+    penetration: float = _f(0.1, doc="share of vehicles with full trajectories, in (0, 1]")
     vtype: str = _f("", doc="instead: every vehicle of this vType is instrumented")
     ids: list[str] = _f([], doc="instead: exactly these vehicle IDs are instrumented")
 
@@ -171,7 +170,7 @@ def _check(sc: SectionScenario, file: str) -> None:
     ways = [ins.vtype != "", bool(ins.ids)]
     if sum(ways) > 1:
         raise UserError(f"{file}: [instrumented] takes one of penetration, vtype or ids, not both")
-    if not any(ways) and not 0.0 < ins.penetration <= 1.0:
+    if not 0.0 < ins.penetration <= 1.0:
         raise UserError(
             f"{file}: instrumented.penetration = {ins.penetration!r} is out of range; "
             "accepted: (0, 1]"

@@ -1,0 +1,114 @@
+"""Bad input on a section scenario: one `error:` line naming file and element, exit 2,
+no traceback, and no output folder left behind."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+from conftest import ROOT, dump_toml
+
+from macromicro_sumo.cli import main
+
+CORRIDOR = ROOT / "sumo_nets" / "netgen_corridor"
+EDGES = ["e0", "e1", "e2", "e3", "e4", "e5", "e6"]
+
+
+@pytest.fixture
+def files(tmp_path: Path) -> Path:
+    """A private copy of the corridor example (net, routes) to break."""
+    for name in ("corridor.net.xml", "corridor.rou.xml"):
+        shutil.copy(CORRIDOR / name, tmp_path / name)
+    return tmp_path
+
+
+def scenario(folder: Path, **tables: dict) -> Path:
+    table = {
+        "name": "bad",
+        "network": {
+            "kind": "sumo",
+            "net_file": str(folder / "corridor.net.xml"),
+            "route_files": [str(folder / "corridor.rou.xml")],
+        },
+        "section": {"edges": EDGES},
+        "simulation": {"warmup_s": 10.0, "duration_s": 60.0, "n_runs": 2},
+    }
+    for name, sub in tables.items():
+        table.setdefault(name, {}).update(sub)
+    path = folder / "bad.toml"
+    path.write_text(dump_toml(table))
+    return path
+
+
+def fails(capsys: pytest.CaptureFixture, path: Path, *needles: str) -> str:
+    out = path.parent / "out"
+    assert main(["simulate", str(path), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "\n" not in err, err
+    assert "Traceback" not in err
+    for needle in needles:
+        assert needle in err, err
+    assert not out.exists()
+    return err
+
+
+def test_net_file_that_is_not_sumo_xml(capsys, files: Path) -> None:
+    (files / "corridor.net.xml").write_text("<routes/>\n")
+    fails(capsys, scenario(files), "corridor.net.xml", "not a SUMO network", "<routes>")
+
+
+def test_route_with_a_missing_edge(capsys, files: Path) -> None:
+    rou = files / "corridor.rou.xml"
+    rou.write_text(
+        rou.read_text().replace('"e0 ', '"e0 nowhere ', 1).replace('"e0"', '"nowhere"', 1)
+    )
+    err = fails(capsys, scenario(files), "corridor.rou.xml", "nowhere")
+    assert "not in" in err
+
+
+def test_disconnected_section(capsys, files: Path) -> None:
+    fails(capsys, scenario(files, section={"edges": ["e0", "e2"]}), "'e0' -> 'e2'", "not connected")
+
+
+def test_section_edge_not_in_the_network(capsys, files: Path) -> None:
+    fails(capsys, scenario(files, section={"edges": ["e0", "e9"]}), "'e9'", "corridor.net.xml")
+
+
+def test_vtype_without_length(capsys, files: Path) -> None:
+    rou = files / "corridor.rou.xml"
+    text = rou.read_text()
+    start = text.index("<vType")
+    end = text.index(">", start)
+    vtype = text[start:end]
+    no_length = " ".join(p for p in vtype.split(" ") if not p.startswith("length="))
+    rou.write_text(text.replace(vtype, no_length, 1))
+    fails(capsys, scenario(files), "corridor.rou.xml", "has no length")
+
+
+def test_detector_file_for_another_network(capsys, files: Path) -> None:
+    add = files / "loops.add.xml"
+    add.write_text(
+        '<additional><inductionLoop id="d1" lane="gneE7_0" pos="5" period="60" file="o.xml"/>'
+        "</additional>\n"
+    )
+    path = scenario(files, network={"additional_files": [str(add)]})
+    fails(capsys, path, "loops.add.xml", "'d1'", "gneE7_0", "another network")
+
+
+@pytest.mark.parametrize("rate", [0.0, 1.5, -0.1])
+def test_penetration_outside_0_1(capsys, files: Path, rate: float) -> None:
+    fails(capsys, scenario(files, instrumented={"penetration": rate}), "penetration", "(0, 1]")
+
+
+def test_no_detectors_and_placement_off(capsys, files: Path) -> None:
+    path = scenario(files, detectors={"auto_spacing_m": 0.0})
+    fails(capsys, path, "auto_spacing_m = 0", "no detector")
+
+
+def test_unknown_network_kind(capsys, files: Path) -> None:
+    fails(capsys, scenario(files, network={"kind": "osm"}), "network.kind", "'ring', 'sumo'")
+
+
+def test_instrumented_vtype_not_in_the_demand(capsys, files: Path) -> None:
+    fails(capsys, scenario(files, instrumented={"vtype": "truck"}), "instrumented.vtype", "'truck'")
