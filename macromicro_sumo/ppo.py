@@ -12,6 +12,12 @@ Read top to bottom as CleanRL's ppo_continuous_action: agent, rollout, GAE, upda
   Advantages are normalised only when there is no likelihood term (macro_only).
 * Ablations (``policy.objective``): ``mix`` (the paper), ``micro_only`` (eta = 0:
   behaviour cloning), ``macro_only`` (no likelihood term).
+* The env core is the ring's ``RingCore`` or a section's ``SectionCore`` (``make_core``).
+  On a section vehicles leave mid-episode and recorded actions can be unknown: steps of
+  an inactive vehicle carry no loss (its value target ends there), NaN actions no
+  likelihood. Observations are normalised with fixed ring constants on the ring and with
+  the mean/std of the bank's initial observations on a section (buffers of the agent, so
+  they travel in the checkpoint's state_dict).
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ from __future__ import annotations
 import hashlib
 import io
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -34,6 +41,8 @@ from macromicro_sumo.env import EpisodeBank, RingCore
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import atomic_path, write_csv
 from macromicro_sumo.physics import OBSERVATION_FEATURES
+from macromicro_sumo.section_config import SectionScenario
+from macromicro_sumo.section_env import SectionBank, SectionCore, initial_observations
 
 CHECKPOINT_FORMAT = "macromicro-policy"
 # Fixed observation scaling per feature (physics.OBSERVATION_FEATURES): SI units -> O(1).
@@ -52,14 +61,25 @@ OBS_SHIFT_SCALE = {
 
 class Agent(nn.Module):
     def __init__(
-        self, hidden_size: int = 64, init_log_std: float = -1.0, observation: str = "paper"
+        self,
+        hidden_size: int = 64,
+        init_log_std: float = -1.0,
+        observation: str = "paper",
+        shift_scale: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> None:
+        """``shift_scale``: the observation normalisation (None: the ring's OBS_SHIFT_SCALE)."""
         super().__init__()
         features = OBSERVATION_FEATURES[observation]
         obs_dim = len(features)
         self.observation = observation
-        self.register_buffer("shift", torch.tensor([OBS_SHIFT_SCALE[f][0] for f in features]))
-        self.register_buffer("scale", torch.tensor([OBS_SHIFT_SCALE[f][1] for f in features]))
+        if shift_scale is None:
+            shift = torch.tensor([OBS_SHIFT_SCALE[f][0] for f in features])
+            scale = torch.tensor([OBS_SHIFT_SCALE[f][1] for f in features])
+        else:
+            shift = torch.as_tensor(np.asarray(shift_scale[0]), dtype=torch.float32)
+            scale = torch.as_tensor(np.asarray(shift_scale[1]), dtype=torch.float32)
+        self.register_buffer("shift", shift)
+        self.register_buffer("scale", scale)
         self.actor = nn.Sequential(
             nn.Linear(obs_dim, hidden_size),
             nn.Tanh(),
@@ -103,6 +123,14 @@ def gae(
     return adv, adv + values
 
 
+def observation_shift_scale(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-feature mean and std of ``obs`` (V, D); a constant feature gets scale 1."""
+    if len(obs) == 0:
+        return np.zeros(obs.shape[1]), np.ones(obs.shape[1])
+    shift, scale = obs.mean(axis=0), obs.std(axis=0)
+    return shift, np.where(scale > 1e-6, scale, 1.0)
+
+
 def clipped_actions(actions: np.ndarray, a_min: float, a_max: float) -> tuple[np.ndarray, float]:
     """Ground-truth actions clipped to the bounds for the likelihood, and the clipped share."""
     out = np.clip(actions, a_min, a_max)
@@ -114,27 +142,33 @@ def clipped_actions(actions: np.ndarray, a_min: float, a_max: float) -> tuple[np
 
 @dataclass
 class Rollout:
-    obs: np.ndarray  # (E, H, N, 4)
+    obs: np.ndarray  # (E, H, N, obs_dim)
     actions: np.ndarray  # (E, H, N)
     logp: np.ndarray
     values: np.ndarray
     rewards: np.ndarray  # (E, H)
     hidden: np.ndarray  # (E, N)
-    gt_actions: np.ndarray  # (E, H, N)
+    gt_actions: np.ndarray  # (E, H, N) (NaN: unknown)
     r_macro: np.ndarray  # (E, H)
     collisions: int
     sumo_errors: int
+    active: np.ndarray  # (E, H, N) bool: the vehicle was on the road at the step (ring: all)
+
+
+Core = RingCore | SectionCore
 
 
 def collect(
     agent: Agent,
-    core: RingCore,
+    core: Core,
     episodes: np.ndarray,
     eta: float,
     horizon: int,
     gen: torch.Generator,
 ) -> Rollout:
     n = core.n
+    section = isinstance(core, SectionCore)
+    active = np.ones((len(episodes), horizon, n), dtype=bool)
     e_n = len(episodes)
     obs = np.zeros((e_n, horizon, n, core.obs_dim), dtype=np.float32)
     act = np.zeros((e_n, horizon, n), dtype=np.float32)
@@ -147,6 +181,8 @@ def collect(
     for i, ep in enumerate(episodes):
         o = core.reset(int(ep))
         for t in range(horizon):
+            if section:
+                active[i, t] = core.active
             ot = torch.as_tensor(o, dtype=torch.float32)
             with torch.no_grad():
                 d = agent.dist(ot)
@@ -161,6 +197,8 @@ def collect(
                 collisions += res.collision
                 errors += bool(res.error)
                 obs[i, t + 1 :] = o  # the episode ends here: later steps carry no reward
+                if section:
+                    active[i, t + 1 :] = False
                 break
     return Rollout(
         obs,
@@ -173,13 +211,24 @@ def collect(
         r_macro,
         collisions,
         errors,
+        active,
     )
 
 
 # --------------------------------------------------------------------------- training
 
 
-def signature(sc: Scenario) -> dict[str, Any]:
+def signature(sc: Scenario | SectionScenario) -> dict[str, Any]:
+    """What a policy checkpoint must agree on with the scenario that loads it."""
+    if isinstance(sc, SectionScenario):
+        return {
+            "network.kind": "sumo",
+            "section.edges": ",".join(sc.section.edges),
+            "section.closed": sc.section.closed,
+            "bounds.accel_mps2": list(sc.bounds.accel_mps2),
+            "simulation.step_length_s": sc.simulation.step_length_s,
+            "policy.observation": ",".join(OBSERVATION_FEATURES[sc.policy.observation]),
+        }
     return {
         "fleet.n_vehicles": sc.fleet.n_vehicles,
         "network.radius_m": sc.network.radius_m,
@@ -248,8 +297,8 @@ def load_policy(path: Path | str, sc: Scenario) -> Agent:
 
 
 def train_policy(
-    sc: Scenario,
-    bank: EpisodeBank,
+    sc: Scenario | SectionScenario,
+    bank: EpisodeBank | SectionBank,
     out: Path,
     objective: str | None = None,
     resume: bool | str = False,
@@ -257,35 +306,45 @@ def train_policy(
     updates: int | None = None,
     run_key: str = "",
     init: dict[str, Any] | None = None,
+    make_core: Callable[[Any, int], Core] | None = None,
 ) -> dict[str, Any]:
-    """PPO on the env over ``bank``; writes policy.pt, policy_train_log.csv, checkpoints."""
+    """PPO on the env over ``bank``; writes policy.pt, policy_train_log.csv, checkpoints.
+
+    ``make_core(bank, seed)`` builds the env core (default: the ring's ``RingCore``; a
+    section passes one that builds its ``SectionCore``).
+    """
     cfg = sc.policy
     objective = objective or cfg.objective
     eta = 0.0 if objective == "micro_only" else sc.policy.eta
     use_micro = objective != "macro_only"
     n_updates = updates or cfg.updates
     ckpt_path = out / f"policy_{objective}_checkpoint.pt"
-    torch.manual_seed(sc.seed)
-    agent = Agent(cfg.hidden_size, cfg.init_log_std, cfg.observation)
-    if init is not None:
-        agent.load_state_dict(init)
-    opt = torch.optim.Adam(agent.parameters(), lr=cfg.lr)
-    rng = np.random.default_rng([sc.seed, 41])
-    gen = torch.Generator().manual_seed(sc.seed)
-    log: list[dict[str, Any]] = []
-    start = 0
-    ck = resumable_checkpoint(ckpt_path, sc, run_key, resume)
-    if ck is not None:
-        agent.load_state_dict(ck["state_dict"])
-        opt.load_state_dict(ck["optimizer"])
-        rng.bit_generator.state = ck["numpy_rng"]
-        gen.set_state(ck["torch_rng"])
-        log, start = ck["log"], ck["update"]
-    a_min, a_max = sc.bounds.accel_mps2
-    core = RingCore(sc, bank, seed=sc.seed)
+    if make_core is None:
+        make_core = lambda b, seed: RingCore(sc, b, seed=seed)  # noqa: E731
+    core = make_core(bank, sc.seed)
     t0 = time.perf_counter()
     env_steps = 0
     try:
+        shift_scale = None
+        if isinstance(core, SectionCore):
+            shift_scale = observation_shift_scale(initial_observations(sc, core.section, bank))
+        torch.manual_seed(sc.seed)
+        agent = Agent(cfg.hidden_size, cfg.init_log_std, cfg.observation, shift_scale)
+        if init is not None:
+            agent.load_state_dict(init)
+        opt = torch.optim.Adam(agent.parameters(), lr=cfg.lr)
+        rng = np.random.default_rng([sc.seed, 41])
+        gen = torch.Generator().manual_seed(sc.seed)
+        log: list[dict[str, Any]] = []
+        start = 0
+        ck = resumable_checkpoint(ckpt_path, sc, run_key, resume)
+        if ck is not None:
+            agent.load_state_dict(ck["state_dict"])
+            opt.load_state_dict(ck["optimizer"])
+            rng.bit_generator.state = ck["numpy_rng"]
+            gen.set_state(ck["torch_rng"])
+            log, start = ck["log"], ck["update"]
+        a_min, a_max = sc.bounds.accel_mps2
         bar = tqdm(
             range(start, n_updates),
             desc=f"train-policy ({objective})",
@@ -298,13 +357,18 @@ def train_policy(
             episodes = rng.integers(0, len(bank), cfg.episodes_per_update)
             ro = collect(agent, core, episodes, eta, cfg.horizon, gen)
             env_steps += cfg.episodes_per_update * cfg.horizon
-            # GAE runs along time: (E, H, N) -> (H, E, N) and back.
-            rewards = np.broadcast_to(ro.rewards[..., None], ro.values.shape)
+            # GAE runs along time: (E, H, N) -> (H, E, N) and back. A vehicle's episode ends
+            # when it leaves (no reward, value 0 after): the ring's vehicles never do.
+            rewards = np.where(ro.active, ro.rewards[..., None], np.float32(0.0))
+            values = np.where(ro.active, ro.values, np.float32(0.0))
             adv, ret = gae(
-                np.swapaxes(rewards, 0, 1), np.swapaxes(ro.values, 0, 1), cfg.gamma, cfg.gae_lambda
+                np.swapaxes(rewards, 0, 1), np.swapaxes(values, 0, 1), cfg.gamma, cfg.gae_lambda
             )
             adv, ret = np.swapaxes(adv, 0, 1), np.swapaxes(ret, 0, 1)
-            hid = np.broadcast_to(ro.hidden[:, None, :], ro.actions.shape)
+            hid_all = np.broadcast_to(ro.hidden[:, None, :], ro.actions.shape)
+            hid = hid_all & ro.active
+            with np.errstate(invalid="ignore"):
+                obs_pairs = ~hid_all & ro.active & np.isfinite(ro.gt_actions)
             t_frac = np.broadcast_to(
                 (np.arange(cfg.horizon) / cfg.horizon)[None, :, None], ro.actions.shape
             )
@@ -314,8 +378,9 @@ def train_policy(
             b_t = torch.as_tensor(t_frac[hid], dtype=torch.float32)
             if not use_micro and len(b_adv) > 1:
                 b_adv = (b_adv - b_adv.mean()) / (b_adv.std() + 1e-8)
-            gt, clip_share = clipped_actions(ro.gt_actions[~hid], a_min, a_max)
-            m_obs, m_act = torch.as_tensor(ro.obs[~hid]), torch.as_tensor(gt, dtype=torch.float32)
+            gt, clip_share = clipped_actions(ro.gt_actions[obs_pairs], a_min, a_max)
+            m_obs = torch.as_tensor(ro.obs[obs_pairs])
+            m_act = torch.as_tensor(gt, dtype=torch.float32)
             n_b, n_m = len(b_obs), len(m_obs)
             stats: dict[str, list[float]] = {
                 k: [] for k in ("pg_loss", "v_loss", "entropy", "kl", "micro_logp")
