@@ -83,7 +83,10 @@ def recorded(bank: SectionBank, section: Section, horizon: int, dt: float) -> Se
     v = bank.true_speed_mps[:, 1 : horizon + 1]
     lane = bank.true_lane[:, 1 : horizon + 1]
     arc = bank.true_arc_m[:, 1 : horizon + 1]
-    ok = bank.true_valid[:, 1 : horizon + 1]
+    # Only the vehicles of the start scene: the rollouts do not insert vehicles that enter
+    # during the horizon either.
+    ok = bank.true_valid[:, 1 : horizon + 1] & bank.true_valid[:, :1]
+    v = np.where(ok, v, np.nan)
     spacing = np.full(v.shape, np.nan)
     for e in range(v.shape[0]):
         for t in range(v.shape[1]):
@@ -96,7 +99,7 @@ def recorded(bank: SectionBank, section: Section, horizon: int, dt: float) -> Se
                     section.closed,
                 )
                 spacing[e, t, idx[lead >= 0]] = gap[lead >= 0]
-    v_all = bank.true_speed_mps[:, : horizon + 1]
+    v_all = np.where(bank.true_valid[:, :1], bank.true_speed_mps[:, : horizon + 1], np.nan)
     with np.errstate(invalid="ignore"):
         accel = np.diff(v_all, axis=1) / dt
     return SectionRollouts(v, spacing, accel, lane, arc, 0, 0)
