@@ -69,11 +69,11 @@ def alignment_verdicts(align: pd.DataFrame) -> pd.DataFrame:
 # figure -> (column of macro_alignment.csv, how a row scores: lower is better)
 FIGURES = {
     "mean-speed error (m/s)": ("mean_speed_err_mps", lambda r, g: r["mean_speed_err_mps"]),
-    "speed std vs GT (|%|)": (
+    "speed std vs GT (abs %)": (
         "std_speed_mps",
         lambda r, g: 100 * abs(r["std_speed_mps"] / g["std_speed_mps"] - 1),
     ),
-    "spacing std vs GT (|%|)": (
+    "spacing std vs GT (abs %)": (
         "std_spacing_m",
         lambda r, g: 100 * abs(r["std_spacing_m"] / g["std_spacing_m"] - 1),
     ),
