@@ -65,7 +65,7 @@ from macromicro_sumo.section import Section, lane_leaders
 from macromicro_sumo.section_config import SectionScenario
 from macromicro_sumo.section_data import PSI_FIELDS, SectionSnapshots
 
-FEATURE_VERSION = 1
+FEATURE_VERSION = 2
 CHECKPOINT_FORMAT = "macromicro-section-generator"
 N_GAP_FEATURES = 11
 N_GLOBAL_FEATURES = 10
@@ -111,6 +111,7 @@ class Road:
     # the same as one (lanes, P, 2) tensor, padded with empty spans; on a loop repeated
     # one and two lengths on, since a gap may run past the loop's end
     span_table: torch.Tensor
+    lane_extent_m: torch.Tensor  # (lanes,) arc length on which each lane index exists
 
     @classmethod
     def of(cls, section: Section) -> Road:
@@ -145,6 +146,7 @@ class Road:
             n_lanes=torch.as_tensor(n_lanes),
             limits_mps=torch.as_tensor(lim),
             lane_spans=tuple(spans),
+            lane_extent_m=torch.as_tensor([float(np.sum(x[:, 1] - x[:, 0])) for x in spans]),
             span_table=torch.as_tensor(table),
         )
 
@@ -395,6 +397,7 @@ class Observation:
     gap_feat: torch.Tensor  # (B, G, N_GAP_FEATURES)
     glob: torch.Tensor  # (B, N_GLOBAL_FEATURES)
     need_v: torch.Tensor  # (B,) mean speed the vehicles still to place need [m/s]
+    remaining: torch.Tensor  # (B,) vehicles still to place, the next one included
 
 
 def observe(
@@ -420,14 +423,17 @@ def observe(
     # Speeds enter the features detached (as on the ring): a speed reaches the loss only
     # through L_speed, not as a side channel steering later placements.
     v_f, v_l = gaps.v_f.detach(), gaps.v_l.detach()
+    usable = share * gaps.room.clamp(min=0.0)
     mid = gaps.start + 0.5 * gaps.length
     limit = road.limit(gaps.lane, mid)
     lane_rel = gaps.lane.double() / max(road.max_lanes - 1, 1)
     pos_rel = torch.zeros_like(mid) if road.closed else mid.detach() / road.length_m
     gap_feat = torch.stack(
         [
-            gaps.length / dm,
-            gaps.room.clamp(min=-dm) / dm,
+            # lengths as usable on the gap's lane: an empty lane that exists on one short
+            # edge is a short gap, not one of the section's length
+            (gaps.length - gaps.room.clamp(min=0.0) + usable) / dm,
+            torch.where(gaps.room > 0, usable, gaps.room.clamp(min=-dm)) / dm,
             gaps.has_f.double(),
             gaps.has_l.double(),
             torch.where(gaps.has_f, (v_f - vm) / vs, 0.0),
@@ -435,7 +441,7 @@ def observe(
             ((limit - vm) / vs).clamp(-10.0, 10.0),
             lane_rel,
             share,
-            gaps.n_lane * dm / road.length_m,
+            gaps.n_lane * dm / road.lane_extent_m[gaps.lane],
             pos_rel,
         ],
         dim=-1,
@@ -462,7 +468,7 @@ def observe(
         ],
         dim=-1,
     )
-    return Observation(gaps, share, choosable, gap_feat, glob, need_v)
+    return Observation(gaps, share, choosable, gap_feat, glob, need_v, remaining)
 
 
 # --------------------------------------------------------------------------- model
@@ -534,10 +540,16 @@ def propose(
     lane = g.lane.gather(1, choice)
     a = g.start.gather(1, choice) + g.lo.gather(1, choice)
     arc = road.wrap(road.place_on_lane(lane, a, g.room.gather(1, choice).clamp(min=0.0), frac))
+    # Bridge: of r vehicles still to place whose speeds must average need_v, the next one
+    # given that constraint deviates by sqrt((r - 1) / r) of the unconstrained spread (the
+    # conditional law of exchangeable draws given their sum); the last one takes need_v.
+    # Without it the last vehicle's own spread stays in the completed mean (measured on
+    # the Bremen section: 0.11 m/s held-out error, last vehicles 10-18 m/s off psi).
+    r = obs.remaining.double().clamp(min=1.0)
+    bridge = torch.sqrt((r - 1.0) / r)[:, None]
     u = torch.sigmoid(
         _speed_base(obs.need_v, psi)[:, None]
-        + pick[..., 3]
-        + pick[..., 4].clamp(*SPEED_LOG_STD).exp() * eps[..., 1]
+        + bridge * (pick[..., 3] + pick[..., 4].clamp(*SPEED_LOG_STD).exp() * eps[..., 1])
     )
     speed = psi.v_min[:, None] + (psi.v_max - psi.v_min)[:, None] * u
     probs = log_p.detach().exp()
