@@ -12,6 +12,7 @@ of a short ground truth (true hidden vehicles as the generated ones).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import tempfile
 import time
 from pathlib import Path
@@ -124,6 +125,23 @@ def main(argv: list[str] | None = None) -> int:
                 )
         finally:
             core.close()
+        # Per-step cost against the number of vehicles: the same scenes, thinned to the
+        # first n slots (observed and hidden alike).
+        print("  per-step cost vs vehicles (same scenes, thinned):")
+        for n in (10, 20, 40, int(n_veh.max())):
+            keep = np.arange(bank.valid.shape[1]) < n
+            thin = dataclasses.replace(bank, valid=bank.valid & keep, hidden=bank.hidden & keep)
+            v = thin.valid.sum(axis=1).mean()
+            core = SectionCore(sc, truth.section, thin, net, seed=0)
+            try:
+                rate = bench_core(core, args.steps // 2, np.random.default_rng([sc.seed, n]))
+            finally:
+                core.close()
+            us = 1e6 / rate
+            print(
+                f"    {v:5.1f} vehicles: {rate:8,.0f} steps/s, {us:7.0f} us/step, "
+                f"{us / v:6.1f} us per vehicle-step"
+            )
     return 0
 
 
