@@ -16,8 +16,9 @@ detectors' density). The method is the same (Algorithms 2 and 3 of the paper):
   plus global ones: a categorical over all gaps picks where the next vehicle goes, a
   logit-normal picks its place inside the part of the gap that keeps the front-to-front
   spacing >= psi's spacing_min to both neighbours, a logit-normal on psi's
-  [speed_min, speed_max] (centred on the speed the vehicles still to place need for psi's
-  mean) its speed. The place is thus feasible for spacing by construction, the
+  [speed_min, speed_max] its speed, centred on the speed the vehicles still to place need
+  for psi's mean and restricted to the speeds that keep that mean reachable, with the
+  spread of a sum-constrained draw (``propose``): the completed mean equals psi's. The place is thus feasible for spacing by construction, the
   ``truncate`` limit of the ring generator, so training and inference sample the same law.
 * Rejection (Algorithm 3). Each vehicle gets up to T_max trials; a trial fails if its
   position lies on an edge that lacks the gap's lane (a lane drop inside the gap) or
@@ -33,7 +34,9 @@ detectors' density). The method is the same (Algorithms 2 and 3 of the paper):
   finite spacing std (zero where the detectors cannot tell). On an open section the
   first vehicle of a lane has no leader on the section: its spacing is unknown and left
   out (``section.lane_leaders`` reports NO_LEADER_GAP_M for it, not a measurement).
-  Positions and speeds are reparameterised; the gap choices get the score-function
+  L_vstd = |std of speeds - target| / psi mean speed (weighted with L_speed by lambda_v)
+  where a speed spread is known (``speed_spread_target``: psi's, else the observed
+  vehicles'). Positions and speeds are reparameterised; the gap choices get the score-function
   gradient with a batch-mean baseline, as on the ring.
 
 Geometry and features are torch (float64 for positions), one definition for the training
@@ -69,7 +72,7 @@ FEATURE_VERSION = 2
 CHECKPOINT_FORMAT = "macromicro-section-generator"
 N_GAP_FEATURES = 11
 N_GLOBAL_FEATURES = 10
-LOSS_TERMS = ("L_speed", "L_mean", "L_min", "L_var")
+LOSS_TERMS = ("L_speed", "L_vstd", "L_mean", "L_min", "L_var")
 FRAC_LOG_STD = (-5.0, 2.0)  # limits of the position head's log-std
 SPEED_LOG_STD = (-6.0, 1.0)  # limits of the speed head's log-std
 END_MARGIN_M = 1e-6  # keeps a vehicle at an open downstream end strictly on the section
@@ -212,8 +215,11 @@ class Psi:
     v_max: torch.Tensor
     s_min: torch.Tensor
 
+    # speed spread target [m/s] (NaN where unknown; ``speed_spread_target``)
+    v_std: torch.Tensor | None = None
+
     @classmethod
-    def of(cls, psi: np.ndarray) -> Psi:
+    def of(cls, psi: np.ndarray, v_std: np.ndarray | None = None) -> Psi:
         p = torch.as_tensor(np.asarray(psi, dtype=np.float64))
         d_std = p[:, _PSI["std_spacing_m"]]
         known = torch.isfinite(d_std)
@@ -225,10 +231,16 @@ class Psi:
             v_min=p[:, _PSI["speed_min_mps"]],
             v_max=p[:, _PSI["speed_max_mps"]],
             s_min=p[:, _PSI["spacing_min_m"]],
+            v_std=None if v_std is None else torch.as_tensor(np.asarray(v_std, np.float64)),
         )
 
     def take(self, idx: torch.Tensor) -> Psi:
-        return Psi(*(getattr(self, f)[idx] for f in self.__dataclass_fields__))
+        return Psi(
+            *(
+                None if getattr(self, f) is None else getattr(self, f)[idx]
+                for f in self.__dataclass_fields__
+            )
+        )
 
     @property
     def v_scale(self) -> torch.Tensor:
@@ -504,10 +516,24 @@ class SectionGeneratorNet(nn.Module):
         return out.index_put((rows, cols), self.head(h).double())
 
 
-def _speed_base(need_v: torch.Tensor, psi: Psi) -> torch.Tensor:
-    """Logit of the speed the remaining vehicles need, on psi's [v_min, v_max]: the speed
-    head adds a residual, so an untrained net already aims at psi's mean speed."""
-    u = ((need_v - psi.v_min) / (psi.v_max - psi.v_min).clamp(min=1e-3)).clamp(0.02, 0.98)
+def speed_range(
+    need_v: torch.Tensor, remaining: torch.Tensor, psi: Psi
+) -> tuple[torch.Tensor, ...]:
+    """Speeds [lo, hi] for the next vehicle that keep psi's mean reachable: the r - 1 after
+    it can still average what is left within [v_min, v_max] (exact look-ahead for the mean,
+    as the ring's is for gaps). The last vehicle's range is the one speed it needs. Where
+    psi's mean is out of reach from the start, the whole of [v_min, v_max]."""
+    r = remaining.double().clamp(min=1.0)
+    lo = torch.maximum(psi.v_min, r * need_v - (r - 1.0) * psi.v_max)
+    hi = torch.minimum(psi.v_max, r * need_v - (r - 1.0) * psi.v_min)
+    bad = lo > hi
+    return torch.where(bad, psi.v_min, lo), torch.where(bad, psi.v_max, hi)
+
+
+def _speed_base(need_v: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+    """Logit of the speed the remaining vehicles need, on [lo, hi]: the speed head adds a
+    residual, so an untrained net already aims at psi's mean speed."""
+    u = ((need_v - lo) / (hi - lo).clamp(min=1e-6)).clamp(1e-4, 1.0 - 1e-4)
     return torch.logit(u)
 
 
@@ -544,14 +570,16 @@ def propose(
     # given that constraint deviates by sqrt((r - 1) / r) of the unconstrained spread (the
     # conditional law of exchangeable draws given their sum); the last one takes need_v.
     # Without it the last vehicle's own spread stays in the completed mean (measured on
-    # the Bremen section: 0.11 m/s held-out error, last vehicles 10-18 m/s off psi).
+    # the Bremen section: 0.11 m/s held-out error, last vehicles 10-18 m/s off psi). The
+    # range keeps the speed the last one needs within psi's bounds (``speed_range``).
     r = obs.remaining.double().clamp(min=1.0)
     bridge = torch.sqrt((r - 1.0) / r)[:, None]
+    v_lo, v_hi = speed_range(obs.need_v, obs.remaining, psi)
     u = torch.sigmoid(
-        _speed_base(obs.need_v, psi)[:, None]
+        _speed_base(obs.need_v, v_lo, v_hi)[:, None]
         + bridge * (pick[..., 3] + pick[..., 4].clamp(*SPEED_LOG_STD).exp() * eps[..., 1])
     )
-    speed = psi.v_min[:, None] + (psi.v_max - psi.v_min)[:, None] * u
+    speed = v_lo[:, None] + (v_hi - v_lo)[:, None] * u
     probs = log_p.detach().exp()
     return Trials(choice, lane, arc, speed, log_p.gather(1, choice), probs)
 
@@ -587,8 +615,17 @@ def section_losses(
     std = torch.sqrt(var + 1e-8)  # the epsilon keeps equal spacings trainable
     zero = torch.zeros_like(mean)
     n = present.double().sum(dim=1).clamp(min=1.0)
+    v_mean = (speed * present).sum(dim=1) / n
+    v_std = torch.sqrt(((speed - v_mean[:, None]) ** 2 * present).sum(dim=1) / n + 1e-8)
+    if psi.v_std is None:
+        l_vstd = zero
+    else:
+        known = torch.isfinite(psi.v_std)
+        target = torch.where(known, psi.v_std, 0.0)
+        l_vstd = torch.where(known, torch.sqrt((v_std - target) ** 2 + 1e-8) / psi.v_mean, zero)
     return {
-        "L_speed": ((speed * present).sum(dim=1) / n / psi.v_mean - 1.0) ** 2,
+        "L_speed": (v_mean / psi.v_mean - 1.0) ** 2,
+        "L_vstd": l_vstd,
         "L_mean": torch.where(any_sp, (mean / psi.d_mean - 1.0) ** 2, zero),
         "L_min": ((torch.relu(psi.s_min[:, None] - sp) / psi.s_min[:, None]) ** 2 * w).sum(dim=1)
         / cnt,
@@ -600,8 +637,30 @@ def section_losses(
     }
 
 
+MIN_OBSERVED_FOR_SPREAD = 3  # observed vehicles needed to estimate a speed spread
+
+
+def speed_spread_target(snaps: SectionSnapshots) -> np.ndarray:
+    """(S,) the speed std [m/s] the completed scene should have: psi's ``std_speed_mps``
+    where psi carries one, else the spread of the observed vehicles' speeds (a sample of
+    the same stream; NaN with fewer than MIN_OBSERVED_FOR_SPREAD of them).
+
+    Why: psi's other fields say nothing about the speed spread, and with the mean bridged
+    exactly (``propose``) nothing else in the loss does: the spread stayed at the speed
+    head's initial value (Bremen: 12.2 m/s completed vs 6.9 m/s true)."""
+    if "std_speed_mps" in _PSI:
+        return np.asarray(snaps.psi[:, _PSI["std_speed_mps"]], dtype=np.float64)
+    obs = snaps.valid & snaps.observed
+    n = obs.sum(axis=1)
+    v = np.where(obs, snaps.speed_mps, 0.0)
+    mean = v.sum(axis=1) / np.maximum(n, 1)
+    var = (np.where(obs, snaps.speed_mps - mean[:, None], 0.0) ** 2).sum(axis=1)
+    std = np.sqrt(var / np.maximum(n - 1, 1))
+    return np.where(n >= MIN_OBSERVED_FOR_SPREAD, std, np.nan)
+
+
 def total_loss(terms: dict[str, torch.Tensor], lambda_v: float, lambda_d: float) -> torch.Tensor:
-    return lambda_v * terms["L_speed"] + lambda_d * (
+    return lambda_v * (terms["L_speed"] + terms["L_vstd"]) + lambda_d * (
         terms["L_mean"] + terms["L_min"] + terms["L_var"]
     )
 
@@ -960,6 +1019,8 @@ def completion_metrics(
                 "psi_mean_speed_mps": snaps.psi[i, _PSI["mean_speed_mps"]],
                 "mean_speed_mps": comp.speed_mps[i, c].mean() if c.any() else np.nan,
                 "true_mean_speed_mps": snaps.speed_mps[i, t].mean() if t.any() else np.nan,
+                "std_speed_mps": comp.speed_mps[i, c].std() if c.any() else np.nan,
+                "true_std_speed_mps": snaps.speed_mps[i, t].std() if t.any() else np.nan,
                 "psi_mean_spacing_m": snaps.psi[i, _PSI["mean_spacing_m"]],
                 "mean_spacing_m": mean_c,
                 "true_mean_spacing_m": mean_t,
@@ -1053,7 +1114,12 @@ def _batch_loss(
     choices, batch-mean baseline) and the batch means of every term."""
     scene, log_p = rollout(net, road, snaps, k, gen)
     terms = section_losses(
-        scene.lane, scene.arc, scene.speed, scene.present, Psi.of(snaps.psi), road
+        scene.lane,
+        scene.arc,
+        scene.speed,
+        scene.present,
+        Psi.of(snaps.psi, speed_spread_target(snaps)),
+        road,
     )
     loss = total_loss(terms, sc.generator.lambda_v, sc.generator.lambda_d)
     advantage = (loss - loss.mean()).detach()
@@ -1203,6 +1269,7 @@ def run_train_section_generator(
             "snapshots": int(len(g)),
             "speed_err_vs_psi_mps": float(g["speed_err_vs_psi_mps"].mean()),
             "spacing_std_ratio": float(g["std_spacing_m"].mean() / g["true_std_spacing_m"].mean()),
+            "speed_std_ratio": float(g["std_speed_mps"].mean() / g["true_std_speed_mps"].mean()),
             "feasible_share": float(g["feasible"].mean()),
             "projections": int(g["projections"].sum()),
         }

@@ -38,6 +38,7 @@ from macromicro_sumo.section_generator import (
     scene_gaps,
     section_losses,
     spacings,
+    speed_spread_target,
     train_section_generator,
     uniform_completion,
 )
@@ -196,17 +197,32 @@ def test_losses_zero_for_a_scene_that_matches_psi(bremen: Section) -> None:
     road = Road.of(bremen)
     arc = torch.tensor([[100.0, 130.0, 160.0, 190.0]], dtype=torch.float64)
     lane = torch.zeros(1, 4, dtype=torch.long)
-    psi = Psi.of(np.array([[20.0, 30.0, 0.0, 10.0, 30.0, S_MIN]]))
+    psi = Psi.of(np.array([[20.0, 30.0, 0.0, 10.0, 30.0, S_MIN]]), np.array([0.0]))
     terms = section_losses(
         lane, arc, torch.full((1, 4), 20.0), torch.ones(1, 4, dtype=bool), psi, road
     )
     for name, v in terms.items():
         assert float(v[0]) < 1e-4, name
-    psi_far = Psi.of(np.array([[20.0, 60.0, 10.0, 10.0, 30.0, 40.0]]))
+    psi_far = Psi.of(np.array([[20.0, 60.0, 10.0, 10.0, 30.0, 40.0]]), np.array([5.0]))
     far = section_losses(
         lane, arc, torch.full((1, 4), 25.0), torch.ones(1, 4, dtype=bool), psi_far, road
     )
     assert all(float(v[0]) > 1e-3 for v in far.values())
+
+
+def test_speed_spread_target_from_observed(bremen: Section) -> None:
+    """Without a speed std in psi the observed vehicles' spread is the target; fewer than
+    three observed: unknown (NaN), and L_vstd is then 0."""
+    snaps = synthetic(bremen, 6, seed=5, p_obs=0.3)
+    target = speed_spread_target(snaps)
+    for i in range(len(snaps)):
+        v = snaps.speed_mps[i][snaps.valid[i] & snaps.observed[i]]
+        if len(v) >= 3:
+            assert target[i] == pytest.approx(v.std(ddof=1))
+        else:
+            assert np.isnan(target[i])
+    one = dataclasses.replace(snaps, observed=snaps.observed & (np.cumsum(snaps.observed, 1) <= 2))
+    assert np.isnan(speed_spread_target(one)).all()
 
 
 def test_positions_only_where_the_lane_exists(bremen: Section) -> None:
@@ -234,6 +250,9 @@ def test_completion_is_feasible_open_multilane(bremen: Section) -> None:
         assert comp.projections.sum() == 0
         assert np.all(comp.trials >= k)
         assert completion_violations(bremen, snaps, comp).to_numpy().sum() == 0
+        # psi's mean speed is reachable in these scenes: the completion hits it exactly
+        err = completion_metrics(bremen, snaps, comp, k)["speed_err_vs_psi_mps"]
+        assert err.max() < 1e-9
     # the fourth lane (E0 only) receives vehicles, all on E0
     on3 = comp.generated & (comp.lane == 3)
     assert on3.sum() > 0
