@@ -297,7 +297,16 @@ def evaluate_section(
             seed = sc.seed + 100 + (label == "true")
 
             def complete(s, k=k, seed=seed):
-                return _complete(net, truth.section, s, snaps, k, sc.generator.t_max, seed)
+                return _complete(
+                    net,
+                    truth.section,
+                    s,
+                    snaps,
+                    k,
+                    sc.generator.t_max,
+                    seed,
+                    -sc.bounds.accel_mps2[0],
+                )
 
             gen_bank = build_section_bank(sc, truth, snaps, complete, horizon=h)
             ref = recorded(gen_bank, truth.section, h, sc.simulation.step_length_s)
@@ -365,12 +374,14 @@ def evaluate_section(
     return manifest
 
 
-def _complete(net, section: Section, s, snaps, k: np.ndarray, t_max: int, seed: int):
+def _complete(
+    net, section: Section, s, snaps, k: np.ndarray, t_max: int, seed: int, brake_mps2: float
+):
     """The generator's completion of the snapshots ``s`` (a subset of ``snaps``)."""
     from macromicro_sumo.section_generator import complete_section
 
     idx = _subset_index(snaps, s)
-    c = complete_section(net, section, s, k[idx], t_max, seed)
+    c = complete_section(net, section, s, k[idx], t_max, seed, brake_mps2)
     return c.lane, c.arc_m, c.speed_mps, c.valid, c.generated
 
 

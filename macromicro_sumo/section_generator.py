@@ -789,6 +789,7 @@ class SectionCompletion:
     generated: np.ndarray
     trials: np.ndarray  # (S,) trials used over all generated vehicles
     projections: np.ndarray  # (S,) generated vehicles placed by projection
+    speed_fixes: np.ndarray | None = None  # (S,) speeds changed by ``safe_speeds``
     wall_s: float = 0.0
 
 
@@ -826,11 +827,54 @@ def complete_section(
     k: np.ndarray,
     t_max: int,
     seed: int,
+    brake_mps2: float | None = None,
 ) -> SectionCompletion:
     """Algorithm 3 on a section, batched over snapshots: ``k[s]`` hidden vehicles for
-    snapshot s, each from up to ``t_max`` trials, projection as the counted fallback."""
+    snapshot s, each from up to ``t_max`` trials, projection as the counted fallback.
+
+    With ``brake_mps2`` (the scenario's braking bound), generated speeds are then made
+    kinematically consistent with their lane neighbours (``safe_speeds``)."""
     with one_thread():
-        return _complete(net, section, snaps, k, t_max, seed)
+        comp = _complete(net, section, snaps, k, t_max, seed)
+    if brake_mps2 is not None:
+        safe_speeds(comp, section, snaps.psi[:, _PSI["spacing_min_m"]], brake_mps2)
+    return comp
+
+
+def safe_speeds(
+    comp: SectionCompletion, section: Section, standstill_m: np.ndarray, brake_mps2: float
+) -> None:
+    """Cap each generated vehicle's speed so that it can stop behind its leader, and raise
+    it where an observed follower could not stop behind it (in place; counted in
+    ``comp.speed_fixes``).
+
+    The spacing and speed bounds say nothing about pairs: a generated vehicle 15 m/s faster
+    than a leader 10 m behind satisfies both and crashes in the first second. The bound is
+    the stopping-distance condition v^2 <= v_leader^2 + 2 b (spacing - standstill spacing),
+    with b the action bound's braking and the standstill spacing psi's smallest spacing.
+    Lanes are walked downstream to upstream, so a capped leader caps its followers.
+    """
+    fixes = np.zeros(len(comp.speed_mps), dtype=np.int64)
+    for s in range(len(comp.speed_mps)):
+        on = np.flatnonzero(comp.valid[s])
+        if on.size < 2:
+            continue
+        lane, arc = comp.lane[s, on], comp.arc_m[s, on]
+        v, gen = comp.speed_mps[s, on].copy(), comp.generated[s, on]
+        leader, spacing = lane_leaders(lane, arc, section.length_m, section.closed)
+        room = 2.0 * brake_mps2 * np.maximum(0.0, spacing - standstill_m[s])
+        for i in np.lexsort((-arc, lane)):  # per lane, front first
+            j = leader[i]
+            if gen[i] and j >= 0:
+                cap = math.sqrt(v[j] ** 2 + room[i])
+                if v[i] > cap:
+                    v[i], fixes[s] = cap, fixes[s] + 1
+            if j >= 0 and gen[j] and not gen[i]:  # an observed follower must be able to stop
+                floor = math.sqrt(max(0.0, v[i] ** 2 - room[i]))
+                if v[j] < floor:
+                    v[j], fixes[s] = floor, fixes[s] + 1
+        comp.speed_mps[s, on] = v
+    comp.speed_fixes = fixes
 
 
 def _complete(

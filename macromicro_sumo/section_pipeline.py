@@ -57,7 +57,9 @@ def run_train_section_policy(
 
     def complete(s):
         idx = _subset_index(snaps, s)
-        c = complete_section(net, truth.section, s, k[idx], sc.generator.t_max, sc.seed)
+        c = complete_section(
+            net, truth.section, s, k[idx], sc.generator.t_max, sc.seed, -sc.bounds.accel_mps2[0]
+        )
         return c.lane, c.arc_m, c.speed_mps, c.valid, c.generated
 
     bank = build_section_bank(sc, truth, snaps, complete, sc.policy.horizon, sc.seed)

@@ -342,3 +342,26 @@ def test_checkpoint_round_trip_and_refusal(trained, bremen: Section, tmp_path: P
     path.write_bytes(b"not a checkpoint")
     with pytest.raises(UserError, match="corrupt"):
         load_section_generator(path, sc)
+
+
+def test_safe_speeds_cap_generated_vehicles_behind_slow_leaders() -> None:
+    """A generated vehicle 20 m/s faster than its leader 10 m ahead is capped to the speed it
+    can still stop from; one in front of a fast observed follower is raised."""
+    from macromicro_sumo.section_generator import SectionCompletion, safe_speeds
+
+    ring = read_section(Path("sumo_nets/ring_r100_e4.net.xml"), ["e0", "e1", "e2", "e3"], True)
+    comp = SectionCompletion(
+        lane=np.zeros((1, 4), dtype=np.int64),
+        arc_m=np.array([[100.0, 90.0, 300.0, 260.0]]),
+        speed_mps=np.array([[10.0, 30.0, 5.0, 30.0]]),
+        valid=np.ones((1, 4), dtype=bool),
+        generated=np.array([[False, True, True, False]]),
+        trials=np.zeros(1),
+        projections=np.zeros(1),
+    )
+    safe_speeds(comp, ring, np.array([6.5]), 4.5)
+    v = comp.speed_mps[0]
+    assert v[1] == pytest.approx(np.sqrt(10.0**2 + 2 * 4.5 * (10.0 - 6.5)))
+    assert v[2] == pytest.approx(np.sqrt(30.0**2 - 2 * 4.5 * (40.0 - 6.5)))
+    assert v[0] == 10.0 and v[3] == 30.0  # observed vehicles keep their recorded speeds
+    assert comp.speed_fixes.tolist() == [2]
