@@ -204,6 +204,15 @@ def build_section_bank(
     )
 
 
+def typical_vclass(truth: SectionTruth) -> str:
+    """SUMO vehicle class for our vehicles: that of the vType with the most vehicles (lanes
+    may admit only some classes, e.g. a race track only ``vip``)."""
+    vt = truth.vtypes
+    if "vclass" not in vt:
+        return "passenger"
+    return str(vt["vclass"].iloc[int(np.argmax(vt["vehicles"].to_numpy()))])
+
+
 def _typical_length(truth: SectionTruth) -> float:
     """Length of generated vehicles: the vType with the most vehicles on the section."""
     vt = truth.vtypes
@@ -373,6 +382,7 @@ class SectionCore:
         net_file: Path,
         seed: int = 0,
         fcd_file: Path | None = None,
+        vclass: str = "passenger",
     ) -> None:
         self.sc = sc
         self.section = section
@@ -387,12 +397,19 @@ class SectionCore:
         lengths = np.unique(np.round(lengths[np.isfinite(lengths) & (lengths > 0)], 2))
         self._vtype = {float(x): f"mm_L{i}" for i, x in enumerate(lengths)}
         vtypes = Path(self._tmp.name) / "vtypes.add.xml"
-        vtypes.write_text(_vtypes_xml(self._vtype, sc.bounds.accel_mps2, sc.bounds.min_gap_m))
+        vtypes.write_text(
+            _vtypes_xml(self._vtype, sc.bounds.accel_mps2, sc.bounds.min_gap_m, vclass)
+        )
         self.sim = Simulation(
             SumoOptions(Path(net_file), (vtypes,), self.dt, seed, fcd_file=fcd_file)
         )
         self._routes = self._add_routes()
         self._lanes = section.lanes
+        # (edge index, lane index entered) -> (internal lane, its arc start, arc per metre)
+        self._via: dict[tuple[int, int], tuple[str, float, float]] = {}
+        for lane_id, (e, idx, start, scale) in section.lanes.items():
+            if lane_id.startswith(":"):
+                self._via.setdefault((e, idx), (lane_id, start, scale))
         self._resets = 0
         self.episode = -1
         self.t = 0
@@ -450,9 +467,23 @@ class SectionCore:
         slots = np.flatnonzero(valid)
         want = np.zeros(self.n)
         want_lane = np.zeros(self.n, dtype=np.int64)
+        in_junction: dict[int, tuple[str, float, int]] = {}
         for i in slots:
-            e, lane_idx, pos = self._place(int(b.lane0[episode, i]), float(b.arc0_m[episode, i]))
+            lane0, arc0 = int(b.lane0[episode, i]), float(b.arc0_m[episode, i])
+            via = self._junction_lane(lane0, arc0)
+            if via is not None:
+                # Inserted near the end of the edge before, then moved onto the junction's own
+                # lane after the insertion step: stacking every vehicle of a junction at the
+                # next edge's start crashes them (long junctions of a race track: 35 m).
+                in_junction[i] = via[1:]
+                e = via[0]
+                lane_idx = min(lane0, int(sec.n_lanes[e]) - 1)
+                pos = max(0.0, float(sec.lengths_m[e]) - 0.5)
+            else:
+                e, lane_idx, pos = self._place(lane0, arc0)
             want[i], want_lane[i] = sec.offsets_m[e] + pos, lane_idx
+            if i in in_junction:
+                want[i], want_lane[i] = arc0, lane0
             length = float(np.round(b.length_m[episode, i], 2))
             # SUMO refuses a departure above the lane's limit; the env keeps the true speed
             # and the first speed command (mode 0) applies it exactly.
@@ -473,7 +504,18 @@ class SectionCore:
         self.arc = np.zeros(self.n)
         self.speed = np.where(valid, b.speed0_mps[episode], 0.0)
         worst = 0.0
+        for i, (via_id, depth, lane_idx) in in_junction.items():
+            try:
+                self.sim.move_to_lanes([self.ids[i]], [via_id], [depth])
+            except Exception as exc:  # SUMO refused: the episode is truncated, training goes on
+                self._error = f"junction placement failed: {type(exc).__name__}: {exc}"
+                continue
+            self.active[i] = True
+            self.lane[i] = lane_idx
+            self.arc[i] = want[i]
         for i in slots:
+            if i in in_junction:
+                continue
             st = states.get(self.ids[i])
             hit = None if st is None else self._lanes.get(st[0])
             if hit is None:
@@ -493,6 +535,21 @@ class SectionCore:
         self.sim.set_lane_change_mode([self.ids[i] for i in slots if not self.hidden[i]], 0)
         self._scene()
         return self._obs.copy()
+
+    def _junction_lane(self, lane: int, arc_m: float) -> tuple[int, str, float, int] | None:
+        """(edge before, internal lane ID, position on it, lane index) of a position inside
+        a junction of the section, or None."""
+        sec = self.section
+        s = float(np.mod(arc_m, sec.length_m)) if sec.closed else float(arc_m)
+        e = int(sec.edge_index(np.array([s]))[0])
+        if s - float(sec.offsets_m[e]) <= sec.lengths_m[e]:
+            return None
+        hit = self._via.get((e, int(lane)))
+        if hit is None:
+            return None
+        via_id, start, scale = hit
+        depth = (s - start) / scale if scale > 0 else 0.0
+        return e, via_id, max(0.0, depth), int(lane)
 
     def _place(self, lane: int, arc_m: float) -> tuple[int, int, float]:
         """(edge index, lane index, lane position) where SUMO can put (lane, arc).
@@ -624,7 +681,12 @@ class SectionCore:
         return ""
 
 
-def _vtypes_xml(types: dict[float, str], accel_mps2: tuple[float, float], min_gap_m: float) -> str:
+def _vtypes_xml(
+    types: dict[float, str],
+    accel_mps2: tuple[float, float],
+    min_gap_m: float,
+    vclass: str = "passenger",
+) -> str:
     """Our vehicle types, one per length: speed-commanded, SUMO's lane changing.
 
     speedFactor 1 (SUMO's lane-change model sees the lane limit as the desired speed),
@@ -637,7 +699,8 @@ def _vtypes_xml(types: dict[float, str], accel_mps2: tuple[float, float], min_ga
         rows.append(
             f'    <vType id="{tid}" length="{length:g}" minGap="{min_gap_m:g}" maxSpeed="100" '
             f'speedFactor="1" speedDev="0" accel="{a_max:g}" decel="{-a_min:g}" '
-            f'emergencyDecel="{max(9.0, -a_min):g}" collisionMinGapFactor="0"/>'
+            f'emergencyDecel="{max(9.0, -a_min):g}" collisionMinGapFactor="0" '
+            f'vClass="{vclass}"/>'
         )
     rows.append("</additional>")
     return "\n".join(rows) + "\n"

@@ -31,7 +31,12 @@ from macromicro_sumo.errors import UserError
 from macromicro_sumo.idm_fit import IdmParams, calibrate_idm, idm_policy_accel
 from macromicro_sumo.section import Section, lane_leaders
 from macromicro_sumo.section_data import SectionTruth
-from macromicro_sumo.section_env import SectionBank, SectionCore, section_observations
+from macromicro_sumo.section_env import (
+    SectionBank,
+    SectionCore,
+    section_observations,
+    typical_vclass,
+)
 
 ActionFn = Callable[[SectionCore, np.ndarray, np.random.Generator], np.ndarray]
 METHOD_ORDER = ["ground_truth", "policy", "micro_only", "macro_only", "idm_calibrated"]
@@ -282,6 +287,7 @@ def evaluate_section(
     snaps = section_snapshots(truth, sc, held)
     h = sc.evaluation.horizon_steps
     net_file = scenario_inputs(sc).net_file
+    vclass = typical_vclass(truth)
     length = float(truth.vtypes["length_m"].iloc[int(np.argmax(truth.vtypes["vehicles"]))])
     obs_tr, acc_tr = micro_pairs(sc, truth, np.concatenate([splits["train"], splits["val"]]))
     idm, idm_rmse = calibrate_idm(obs_tr, acc_tr, length)
@@ -316,7 +322,9 @@ def evaluate_section(
             methods: dict[str, ActionFn] = {n: policy_action(a) for n, a in agents.items()}
             methods["idm_calibrated"] = idm_action(idm, length)
             for name in [m for m in METHOD_ORDER if m in methods]:
-                core = SectionCore(sc, truth.section, gen_bank, net_file, seed=sc.seed)
+                core = SectionCore(
+                    sc, truth.section, gen_bank, net_file, seed=sc.seed, vclass=vclass
+                )
                 try:
                     ro = rollout(core, methods[name], h, seed)
                 finally:
@@ -329,6 +337,7 @@ def evaluate_section(
                         net_file,
                         seed=sc.seed,
                         fcd_file=fcd / f"{name}.fcd.xml",
+                        vclass=vclass,
                     )
                     try:
                         rollout(

@@ -37,7 +37,7 @@ def run_train_section_policy(
     from macromicro_sumo.dataset import split_runs
     from macromicro_sumo.ppo import resumable_checkpoint, train_policy
     from macromicro_sumo.section_data import section_snapshots
-    from macromicro_sumo.section_env import SectionCore, build_section_bank
+    from macromicro_sumo.section_env import SectionCore, build_section_bank, typical_vclass
     from macromicro_sumo.section_generator import complete_section, load_section_generator
     from macromicro_sumo.section_truth import load_section_truth, scenario_inputs
 
@@ -64,9 +64,12 @@ def run_train_section_policy(
 
     bank = build_section_bank(sc, truth, snaps, complete, sc.policy.horizon, sc.seed)
     net_file = scenario_inputs(sc).net_file
+    vclass = typical_vclass(truth)
 
     def make_core(bank_, seed: int, fcd_file: Path | None = None) -> SectionCore:
-        return SectionCore(sc, truth.section, bank_, net_file, seed=seed, fcd_file=fcd_file)
+        return SectionCore(
+            sc, truth.section, bank_, net_file, seed=seed, fcd_file=fcd_file, vclass=vclass
+        )
 
     res = train_policy(
         sc,

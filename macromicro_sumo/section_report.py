@@ -109,7 +109,7 @@ def make_section_plots(out: Path) -> list[Path]:
         plot_lane_time_space(truth.trajectories, truth.section, run, plots / "time_space.png")
     )
     made.append(plot_detectors_vs_truth(truth.macro, truth.k_estimate, plots / "detectors.png"))
-    samples = pd.read_csv(out / "evaluation" / "eval_samples.csv")
+    samples = pd.read_csv(out / "evaluation" / "eval_samples.csv", dtype={"hidden_count": str})
     est = samples[samples["hidden_count"] == "estimated"]
     made.append(plot_distributions(est, plots / "distributions.png"))
     if (out / "generator" / "generator_train_log.csv").is_file():

@@ -439,6 +439,7 @@ def record_run(
     n_warm = int(round(sc.simulation.warmup_s / dt))
     n_rec = int(round(sc.simulation.duration_s / dt))
     types: dict[str, str] = {}
+    classes: dict[str, str] = {}
     observed: dict[str, bool] = {}
     cols: dict[str, list] = {
         k: []
@@ -461,6 +462,8 @@ def record_run(
             sim.subscribe_lanes(new)
             for vid in new:
                 types[vid] = sim.vehicle_type(vid)
+                if types[vid] not in classes:
+                    classes[types[vid]] = sim.vehicle_class(types[vid])
                 observed[vid] = _is_instrumented(sc, vid, types[vid], run)
         collisions += sim.collisions()
         teleports += sim.teleports()
@@ -489,6 +492,7 @@ def record_run(
         "observed": int(df.loc[df["observed"], "vehicle_id"].nunique()),
         "collisions": collisions,
         "teleports": teleports,
+        "vclass": classes,
     }
     return df, stats
 
@@ -504,6 +508,7 @@ def simulate_section(
     min_len = min(v.length_m for v in vtypes.values())
     with staging_dir(out) as stage:
         trajs, dets, passages, runs = [], [], [], []
+        vclass: dict[str, str] = {}
         sim: Simulation | None = None
         try:
             for run in tqdm(
@@ -531,6 +536,7 @@ def simulate_section(
                 sim = Simulation(opts)
                 df, stats = record_run(sim, sc, section, run)
                 trajs.append(df)
+                vclass.update(stats.pop("vclass"))
                 runs.append({"run": run, "sumo_seed": seed, **stats})
         finally:
             if sim is not None:
@@ -568,6 +574,7 @@ def simulate_section(
                 {
                     "vtype": v.id,
                     "car_follow_model": v.car_follow_model,
+                    "vclass": vclass.get(v.id, "passenger"),
                     "length_m": v.length_m,
                     "min_gap_m": v.min_gap_m,
                     "vehicles": int(traj.loc[traj["vtype"] == v.id, "vehicle_id"].nunique()),
@@ -659,6 +666,6 @@ def load_section_truth(folder: Path | str, sc: SectionScenario | None = None) ->
         trajectories=traj,
         detectors=pd.read_csv(folder / "detectors.csv"),
         macro=pd.read_csv(folder / "macro.csv"),
-        vtypes=pd.read_csv(folder / "vtypes.csv", dtype={"vtype": str}),
+        vtypes=pd.read_csv(folder / "vtypes.csv", dtype={"vtype": str, "vclass": str}),
         k_estimate=pd.read_csv(folder / "k_estimate.csv"),
     )

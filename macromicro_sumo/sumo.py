@@ -306,6 +306,10 @@ class Simulation:
     def vehicle_type(self, vehicle_id: str) -> str:
         return str(libsumo.vehicle.getTypeID(vehicle_id))
 
+    def vehicle_class(self, type_id: str) -> str:
+        """SUMO's vehicle class of a vType (lanes may admit only some classes)."""
+        return str(libsumo.vehicletype.getVehicleClass(type_id))
+
     def set_lane_change_mode(self, vehicle_ids: Sequence[str], mode: int) -> None:
         for vid in vehicle_ids:
             libsumo.vehicle.setLaneChangeMode(vid, int(mode))
