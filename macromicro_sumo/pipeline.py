@@ -17,8 +17,10 @@ from macromicro_sumo.config import Scenario
 from macromicro_sumo.files import prepare_out_dir, write_json
 from macromicro_sumo.manifest import build_manifest
 
+Stage = tuple[str, Path, Callable[[], Any]]  # name, its manifest, the function that runs it
 
-def _done(manifest: Path, sc: Scenario) -> bool:
+
+def _done(manifest: Path, sc: Any) -> bool:
     if not manifest.is_file():
         return False
     try:
@@ -52,7 +54,7 @@ def run(sc: Scenario, out: Path | str, command: str = "", progress: bool = True)
             sc, gt, gen / "generator.pt", pol, True, command, progress, objective
         )
 
-    stages: list[tuple[str, Path, Callable[[], Any]]] = [
+    stages: list[Stage] = [
         ("simulate", gt / "manifest.json", lambda: simulate(sc, gt, command, progress)),
         (
             "train_generator",
@@ -96,6 +98,16 @@ def run(sc: Scenario, out: Path | str, command: str = "", progress: bool = True)
                 ),
             ),
         ]
+    manifest = run_stages(sc, stages, out, command, progress)
+    write_report(sc, out, manifest)
+    return manifest
+
+
+def run_stages(
+    sc: Any, stages: list[Stage], out: Path, command: str, progress: bool
+) -> dict[str, Any]:
+    """Run (name, manifest path, function) stages in order, skipping those done for this
+    scenario and seed; per-stage wall times go into ``out/manifest.json`` (returned)."""
     previous = _previous_timings(out / "manifest.json")
     timings: dict[str, Any] = {}
     for name, manifest, fn in stages:
@@ -112,7 +124,6 @@ def run(sc: Scenario, out: Path | str, command: str = "", progress: bool = True)
     manifest = build_manifest(sc, command, stage="run")
     manifest["timings_s"] = timings
     write_json(manifest, out / "manifest.json")
-    write_report(sc, out, manifest)
     return manifest
 
 

@@ -8,17 +8,15 @@ when its manifest records the same scenario digest and seed.
 from __future__ import annotations
 
 import hashlib
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pandas as pd
 
-from macromicro_sumo.files import file_sha256, prepare_out_dir, write_csv, write_json
+from macromicro_sumo.files import file_sha256, prepare_out_dir, write_json
 from macromicro_sumo.manifest import build_manifest
-from macromicro_sumo.pipeline import _done, _previous_timings, policy_paths
+from macromicro_sumo.pipeline import Stage, policy_paths, run_stages
 
 
 def run_train_section_policy(
@@ -117,7 +115,7 @@ def run_section(sc, out: Path | str, command: str = "", progress: bool = True) -
             sc, gt, gen / "generator.pt", pol, "auto", command, progress, objective
         )
 
-    stages: list[tuple[str, Path, Callable[[], Any]]] = [
+    stages: list[Stage] = [
         ("simulate", gt / "manifest.json", lambda: simulate_section(sc, gt, command, progress)),
         (
             "train_generator",
@@ -135,22 +133,6 @@ def run_section(sc, out: Path | str, command: str = "", progress: bool = True) -
             ),
         ),
     ]
-    previous = _previous_timings(out / "manifest.json")
-    timings: dict[str, Any] = {}
-    for name, manifest, fn in stages:
-        if _done(manifest, sc):
-            timings[name] = previous.get(name, "skipped (outputs existed)")
-            if progress:
-                print(f"[{name}] skipped: outputs exist for this scenario and seed")
-            continue
-        t0 = time.perf_counter()
-        fn()
-        timings[name] = round(time.perf_counter() - t0, 3)
-        if progress:
-            print(f"[{name}] done in {timings[name]:.1f} s")
-    manifest = build_manifest(sc, command, stage="run")
-    manifest["timings_s"] = timings
-    write_json(manifest, out / "manifest.json")
-    write_csv(pd.DataFrame([timings]), out / "timings.csv")
+    manifest = run_stages(sc, stages, out, command, progress)
     write_section_report(sc, out, manifest)
     return manifest
