@@ -78,23 +78,21 @@ class Section:
             np.searchsorted(self.offsets_m, s, side="right") - 1, 0, len(self.edge_ids) - 1
         )
 
-    def to_lane(self, lane: int, arc_m: float) -> tuple[str, float]:
-        """(SUMO lane ID, lane position) for a lane index and arc, clamped onto the edge.
+    def to_lane(self, lane: int, arc_m: float) -> tuple[int, int, float]:
+        """(edge index, lane index, lane position) where SUMO can put (lane, arc).
 
-        A position in a junction goes to the end of the edge before it; a lane index the
-        edge does not have goes to its leftmost lane.
+        A position inside a junction goes to the start of the next edge: a lane index in
+        a junction is the index of the lane it leads to, and the same index on the edge
+        before may be a lane that ends there (an on-ramp's acceleration lane). A lane index
+        the edge does not have goes to its leftmost lane.
         """
-        e = int(self.edge_index(np.array([arc_m]))[0])
         s = float(np.mod(arc_m, self.length_m)) if self.closed else float(arc_m)
-        pos = min(max(s - float(self.offsets_m[e]), 0.0), float(self.lengths_m[e]) - 0.01)
-        idx = min(int(lane), int(self.n_lanes[e]) - 1)
-        return f"{self.edge_ids[e]}_{idx}", pos
-
-    def limit_at(self, lane: np.ndarray, arc_m: np.ndarray) -> np.ndarray:
-        """Speed limit where each vehicle drives [m/s]."""
-        e = self.edge_index(arc_m)
-        idx = np.minimum(lane, self.n_lanes[e] - 1)
-        return self.limits_mps[e, idx]
+        e = int(self.edge_index(np.array([s]))[0])
+        pos = s - float(self.offsets_m[e])
+        if pos > self.lengths_m[e] and (self.closed or e + 1 < len(self.edge_ids)):
+            e, pos = (e + 1) % len(self.edge_ids), 0.0
+        pos = min(max(pos, 0.0), float(self.lengths_m[e]) - 0.01)
+        return e, min(int(lane), int(self.n_lanes[e]) - 1), pos
 
     def to_json(self) -> dict[str, Any]:
         return {

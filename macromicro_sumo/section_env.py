@@ -457,8 +457,7 @@ class SectionCore:
             )
         b, sec = self.bank, self.section
         self.episode, self.t, self._error = episode, 0, ""
-        self.sim.drop_vehicles(self.sim.vehicle_ids())
-        self.sim.clear_vehicles()  # any still waiting for insertion
+        self.sim.clear_vehicles()
         self._resets += 1
         self.ids = [f"m{self._resets}.{i}" for i in range(self.n)]
         self.hidden = b.hidden[episode]
@@ -480,7 +479,7 @@ class SectionCore:
                 lane_idx = min(lane0, int(sec.n_lanes[e]) - 1)
                 pos = max(0.0, float(sec.lengths_m[e]) - 0.5)
             else:
-                e, lane_idx, pos = self._place(lane0, arc0)
+                e, lane_idx, pos = self.section.to_lane(lane0, arc0)
             want[i], want_lane[i] = sec.offsets_m[e] + pos, lane_idx
             if i in in_junction:
                 want[i], want_lane[i] = arc0, lane0
@@ -551,22 +550,6 @@ class SectionCore:
         depth = (s - start) / scale if scale > 0 else 0.0
         return e, via_id, max(0.0, depth), int(lane)
 
-    def _place(self, lane: int, arc_m: float) -> tuple[int, int, float]:
-        """(edge index, lane index, lane position) where SUMO can put (lane, arc).
-
-        A position inside a junction goes to the start of the next edge: a lane index in
-        a junction is the index of the lane it leads to, and the same index on the edge
-        before may be a lane that ends there (an on-ramp's acceleration lane).
-        """
-        sec = self.section
-        s = float(np.mod(arc_m, sec.length_m)) if sec.closed else float(arc_m)
-        e = int(sec.edge_index(np.array([s]))[0])
-        pos = s - float(sec.offsets_m[e])
-        if pos > sec.lengths_m[e] and (sec.closed or e + 1 < len(sec.edge_ids)):
-            e, pos = (e + 1) % len(sec.edge_ids), 0.0
-        pos = min(max(pos, 0.0), float(sec.lengths_m[e]) - 0.01)
-        return e, min(int(lane), int(sec.n_lanes[e]) - 1), pos
-
     def _scene(self) -> None:
         """Leaders, spacings and observations of the active vehicles (one sort)."""
         self._obs, self.leader, self.spacing = section_observations(
@@ -615,7 +598,7 @@ class SectionCore:
         gone = obs_slots & np.isnan(rv)
         if gone.any():  # the recorded vehicle left the section: it leaves the episode
             self.active &= ~gone
-            self.sim.drop_vehicles([self.ids[i] for i in np.flatnonzero(gone)])
+            self.sim.remove_vehicles([self.ids[i] for i in np.flatnonzero(gone)])
         replay = obs_slots & ~gone
         cmd[replay] = rv[replay]
         live = np.flatnonzero(self.active)
@@ -645,7 +628,7 @@ class SectionCore:
             self.arc[i] = hit[2] + st[1] * hit[3]
             self.speed[i] = st[2]
         if left:
-            self.sim.drop_vehicles(left)
+            self.sim.remove_vehicles(left)
         error = self._follow_records(replay, b.replay_lane[ep, t + 1], b.replay_arc_m[ep, t + 1])
         self.t += 1
         self._scene()
@@ -666,7 +649,7 @@ class SectionCore:
         )
         if not fix.size:
             return ""
-        places = [self._place(int(lane[i]), float(arc_m[i])) for i in fix]
+        places = [self.section.to_lane(int(lane[i]), float(arc_m[i])) for i in fix]
         try:
             self.sim.move_to(
                 [self.ids[i] for i in fix],

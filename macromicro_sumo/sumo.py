@@ -209,7 +209,12 @@ class Simulation:
         return tuple(libsumo.vehicle.getIDList())
 
     def remove_vehicles(self, vehicle_ids: Sequence[str]) -> None:
+        """Remove vehicles, subscribed or not: libsumo 1.28 fails every later step
+        ("Vehicle ... is not known") when a subscribed vehicle is removed without
+        unsubscribing it first."""
         for vid in vehicle_ids:
+            with contextlib.suppress(libsumo.TraCIException):
+                libsumo.vehicle.unsubscribe(vid)
             libsumo.vehicle.remove(vid)
 
     def read_states(
@@ -321,28 +326,12 @@ class Simulation:
         for vid, lane, pos in zip(vehicle_ids, lane_ids, lane_pos_m, strict=True):
             libsumo.vehicle.moveTo(vid, lane, float(pos))
 
-    def release_speed(self, vehicle_ids: Sequence[str]) -> None:
-        """Hand vehicles back to their own car-following model (speed -1, default mode)."""
-        for vid in vehicle_ids:
-            libsumo.vehicle.setSpeedMode(vid, 31)
-            libsumo.vehicle.setSpeed(vid, -1.0)
-
     def clear_vehicles(self) -> None:
         """Remove every vehicle, running or waiting to be inserted."""
-        for vid in libsumo.vehicle.getIDList():
-            libsumo.vehicle.remove(vid)
+        self.remove_vehicles(libsumo.vehicle.getIDList())
         for vid in libsumo.simulation.getPendingVehicles():
             with contextlib.suppress(libsumo.TraCIException):
                 libsumo.vehicle.remove(vid)
-
-    def drop_vehicles(self, vehicle_ids: Sequence[str]) -> None:
-        """Remove vehicles, subscribed or not: libsumo 1.28 fails every later step
-        ("Vehicle ... is not known") when a subscribed vehicle is removed without
-        unsubscribing it first."""
-        for vid in vehicle_ids:
-            with contextlib.suppress(libsumo.TraCIException):
-                libsumo.vehicle.unsubscribe(vid)
-            libsumo.vehicle.remove(vid)
 
     # ------------------------------------------------------------------ stepping
     def step(self) -> None:

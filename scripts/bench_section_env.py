@@ -64,7 +64,7 @@ def bench_bare(core: SectionCore, steps: int, rng: np.random.Generator) -> float
         slots = np.flatnonzero(bank.valid[ep])
         ids = [f"b{resets}.{i}" for i in slots]
         for vid, i in zip(ids, slots, strict=True):
-            e, lane, pos = core._place(int(bank.lane0[ep, i]), float(bank.arc0_m[ep, i]))
+            e, lane, pos = core.section.to_lane(int(bank.lane0[ep, i]), float(bank.arc0_m[ep, i]))
             libsumo.vehicle.add(
                 vid,
                 f"mm_r{e}",

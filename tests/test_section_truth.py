@@ -87,7 +87,8 @@ def test_corridor_geometry_matches_the_network(tmp_path: Path) -> None:
     np.testing.assert_allclose(
         sec.offsets_m[1:], (sec.offsets_m + sec.lengths_m + sec.junction_m)[:-1]
     )
-    lane_id, pos = sec.to_lane(0, float(sec.offsets_m[2] + 12.5))
+    e, idx, pos = sec.to_lane(0, float(sec.offsets_m[2] + 12.5))
+    lane_id = f"{sec.edge_ids[e]}_{idx}"
     assert lane_id == f"{cor.section_edges[2]}_0" and pos == pytest.approx(12.5)
     assert sec.locate(lane_id, pos) == (0, pytest.approx(sec.offsets_m[2] + 12.5))
 
