@@ -213,8 +213,28 @@ class EvaluationConfig:
     )
 
 
+class ScenarioFile:
+    """What every scenario kind does with the file it came from (``source``)."""
+
+    source: str
+
+    def resolve(self, relative: str) -> Path:
+        """A path from the scenario file, relative to the file's folder."""
+        p = Path(relative)
+        return p if p.is_absolute() else (Path(self.source).parent / p).resolve()
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d.pop("source")
+        return d
+
+    def digest(self) -> str:
+        """SHA-256 of the scenario as loaded (not of the file's bytes or comments)."""
+        return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()
+
+
 @dataclass(frozen=True, kw_only=True)
-class Scenario:
+class Scenario(ScenarioFile):
     """A whole scenario file. ``source`` is the file it came from (for messages and paths)."""
 
     name: str = _f(doc="scenario name")
@@ -230,20 +250,6 @@ class Scenario:
     policy: PolicyConfig = _f(PolicyConfig())
     evaluation: EvaluationConfig = _f(EvaluationConfig())
     source: str = field(default="", compare=False)
-
-    def resolve(self, relative: str) -> Path:
-        """A path from the scenario file, relative to the file's folder."""
-        p = Path(relative)
-        return p if p.is_absolute() else (Path(self.source).parent / p).resolve()
-
-    def to_dict(self) -> dict[str, Any]:
-        d = dataclasses.asdict(self)
-        d.pop("source")
-        return d
-
-    def digest(self) -> str:
-        """SHA-256 of the scenario as loaded (not of the file's bytes or comments)."""
-        return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()
 
 
 # --------------------------------------------------------------------------- loading

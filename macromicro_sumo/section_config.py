@@ -9,13 +9,10 @@ ring's typed-field machinery, so errors read the same (file, key, accepted range
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
-from macromicro_sumo.config import EvaluationConfig, PolicyConfig, _build, _f
+from macromicro_sumo.config import EvaluationConfig, PolicyConfig, ScenarioFile, _build, _f
 from macromicro_sumo.errors import UserError
 
 
@@ -110,7 +107,7 @@ class SectionGeneratorConfig:
 
 
 @dataclass(frozen=True, kw_only=True)
-class SectionScenario:
+class SectionScenario(ScenarioFile):
     """A scenario on a section of the user's SUMO network."""
 
     name: str = _f(doc="scenario name")
@@ -125,20 +122,6 @@ class SectionScenario:
     policy: PolicyConfig = _f(PolicyConfig())
     evaluation: EvaluationConfig = _f(EvaluationConfig())
     source: str = field(default="", compare=False)
-
-    def resolve(self, relative: str) -> Path:
-        """A path from the scenario file, relative to the file's folder."""
-        p = Path(relative)
-        return p if p.is_absolute() else (Path(self.source).parent / p).resolve()
-
-    def to_dict(self) -> dict[str, Any]:
-        d = dataclasses.asdict(self)
-        d.pop("source")
-        return d
-
-    def digest(self) -> str:
-        """SHA-256 of the scenario as loaded (not of the file's bytes or comments)."""
-        return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()
 
 
 def build_section_scenario(table: dict[str, Any], file: str, source: str) -> SectionScenario:
