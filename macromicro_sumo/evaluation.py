@@ -215,9 +215,17 @@ def samples_frame(k: int, method: str, ro: Rollouts, max_episodes: int = 100) ->
 
 
 def micro_consistency(
-    agents: dict, idms: dict[str, IdmParams], obs: np.ndarray, accel: np.ndarray, sc: Scenario
+    agents: dict,
+    idms: dict[str, IdmParams],
+    obs: np.ndarray,
+    accel: np.ndarray,
+    sc,
+    veh_length_m: float | None = None,
 ) -> pd.DataFrame:
-    """Held-out observed actions: NLL under each learned policy, action RMSE for every method."""
+    """Held-out observed actions: NLL under each learned policy, action RMSE for every method.
+
+    ``veh_length_m``: the leader length IDM subtracts (default: the ring fleet's)."""
+    length = sc.fleet.length_m if veh_length_m is None else veh_length_m
     a_min, a_max = sc.bounds.accel_mps2
     u = np.clip(accel, a_min, a_max)
     rows = []
@@ -229,7 +237,7 @@ def micro_consistency(
             rmse = float(np.sqrt(np.mean((np.clip(d.mean.numpy(), a_min, a_max) - u) ** 2)))
         rows.append({"method": name, "nll": nll, "action_rmse_mps2": rmse, "n_pairs": len(u)})
     for name, p in idms.items():
-        pred = np.clip(idm_policy_accel(obs, p, sc.fleet.length_m), a_min, a_max)
+        pred = np.clip(idm_policy_accel(obs, p, length), a_min, a_max)
         rows.append(
             {
                 "method": name,

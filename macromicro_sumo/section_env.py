@@ -177,7 +177,7 @@ def build_section_bank(
             if j is not None:
                 s = w["step"][k]
                 replay[:, i, s, j] = w["lane"][k], w["arc"][k], w["speed"][k]
-    length[hidden] = _typical_length(truth)
+    length[hidden] = typical_length(truth)
     spd = replay[2]
     with np.errstate(invalid="ignore"):
         gt_accel = np.diff(spd, axis=1) / dt  # NaN where either end is off the section
@@ -213,7 +213,7 @@ def typical_vclass(truth: SectionTruth) -> str:
     return str(vt["vclass"].iloc[int(np.argmax(vt["vehicles"].to_numpy()))])
 
 
-def _typical_length(truth: SectionTruth) -> float:
+def typical_length(truth: SectionTruth) -> float:
     """Length of generated vehicles: the vType with the most vehicles on the section."""
     vt = truth.vtypes
     return float(vt["length_m"].iloc[int(np.argmax(vt["vehicles"].to_numpy()))])

@@ -24,17 +24,18 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-import torch
 from scipy.stats import wasserstein_distance
 
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.idm_fit import IdmParams, calibrate_idm, idm_policy_accel
+from macromicro_sumo.evaluation import idm_action, micro_consistency, policy_action
+from macromicro_sumo.idm_fit import calibrate_idm
 from macromicro_sumo.section import Section, lane_leaders
 from macromicro_sumo.section_data import SectionTruth
 from macromicro_sumo.section_env import (
     SectionBank,
     SectionCore,
     section_observations,
+    typical_length,
     typical_vclass,
 )
 
@@ -108,23 +109,6 @@ def recorded(bank: SectionBank, section: Section, horizon: int, dt: float) -> Se
     with np.errstate(invalid="ignore"):
         accel = np.diff(v_all, axis=1) / dt
     return SectionRollouts(v, spacing, accel, lane, arc, 0, 0)
-
-
-def policy_action(agent, stochastic: bool = True) -> ActionFn:
-    def act(core: SectionCore, obs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        with torch.no_grad():
-            d = agent.dist(torch.as_tensor(obs[core.hidden], dtype=torch.float32))
-        mean, std = d.mean.numpy(), d.stddev.numpy()
-        return mean + std * rng.standard_normal(mean.shape) if stochastic else mean
-
-    return act
-
-
-def idm_action(params: IdmParams, veh_length_m: float) -> ActionFn:
-    def act(core: SectionCore, obs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        return idm_policy_accel(obs[core.hidden], params, veh_length_m)
-
-    return act
 
 
 def macro_row(
@@ -227,29 +211,6 @@ def micro_pairs(
     return obs, acc
 
 
-def micro_consistency(
-    agents: dict, idm: IdmParams | None, obs: np.ndarray, accel: np.ndarray, sc, veh_length_m: float
-) -> pd.DataFrame:
-    """Held-out observed actions: NLL under each learned policy, action RMSE for all."""
-    a_min, a_max = sc.bounds.accel_mps2
-    u = np.clip(accel, a_min, a_max)
-    rows = []
-    o = torch.as_tensor(obs, dtype=torch.float32)
-    for name, agent in agents.items():
-        with torch.no_grad():
-            d = agent.dist(o)
-            nll = float(-d.log_prob(torch.as_tensor(u, dtype=torch.float32)).mean())
-            rmse = float(np.sqrt(np.mean((np.clip(d.mean.numpy(), a_min, a_max) - u) ** 2)))
-        rows.append({"method": name, "nll": nll, "action_rmse_mps2": rmse, "n_pairs": len(u)})
-    if idm is not None:
-        pred = np.clip(idm_policy_accel(obs, idm, veh_length_m), a_min, a_max)
-        rmse = float(np.sqrt(np.mean((pred - u) ** 2)))
-        rows.append(
-            {"method": "idm_calibrated", "nll": np.nan, "action_rmse_mps2": rmse, "n_pairs": len(u)}
-        )
-    return pd.DataFrame(rows)
-
-
 # --------------------------------------------------------------------------- the stage
 
 
@@ -272,7 +233,7 @@ def evaluate_section(
     from macromicro_sumo.ppo import load_policy
     from macromicro_sumo.section_data import section_snapshots
     from macromicro_sumo.section_env import build_section_bank
-    from macromicro_sumo.section_generator import load_section_generator
+    from macromicro_sumo.section_generator import generator_completion, load_section_generator
     from macromicro_sumo.section_truth import k_summary, load_section_truth, scenario_inputs
 
     t0 = time.perf_counter()
@@ -288,39 +249,28 @@ def evaluate_section(
     h = sc.evaluation.horizon_steps
     net_file = scenario_inputs(sc).net_file
     vclass = typical_vclass(truth)
-    length = float(truth.vtypes["length_m"].iloc[int(np.argmax(truth.vtypes["vehicles"]))])
+    length = typical_length(truth)
     obs_tr, acc_tr = micro_pairs(sc, truth, np.concatenate([splits["train"], splits["val"]]))
     idm, idm_rmse = calibrate_idm(obs_tr, acc_tr, length)
     rows, samples = [], []
     counts = {"estimated": snaps.k_est, "true": snaps.k_true}
+    sources = {"estimated": "estimate", "true": "truth"}  # report label -> k_source
     bar = tqdm(
         total=len(counts) * (len(agents) + 2), desc="evaluate", unit="rollout", disable=not progress
     )
     with staging_dir(out) as stage:
         fcd = stage / "fcd"
         fcd.mkdir()
-        for label, k in counts.items():
+        for label, source in sources.items():
             seed = sc.seed + 100 + (label == "true")
-
-            def complete(s, k=k, seed=seed):
-                return _complete(
-                    net,
-                    truth.section,
-                    s,
-                    snaps,
-                    k,
-                    sc.generator.t_max,
-                    seed,
-                    -sc.bounds.accel_mps2[0],
-                )
-
+            complete = generator_completion(net, truth.section, sc, source, seed)
             gen_bank = build_section_bank(sc, truth, snaps, complete, horizon=h)
             ref = recorded(gen_bank, truth.section, h, sc.simulation.step_length_s)
             rows.append(macro_row(label, "ground_truth", ref, ref))
             samples.append(samples_frame(label, "ground_truth", ref))
             bar.update()
             methods: dict[str, ActionFn] = {n: policy_action(a) for n, a in agents.items()}
-            methods["idm_calibrated"] = idm_action(idm, length)
+            methods["idm_calibrated"] = idm_action(lambda core: idm, length)
             for name in [m for m in METHOD_ORDER if m in methods]:
                 core = SectionCore(
                     sc, truth.section, gen_bank, net_file, seed=sc.seed, vclass=vclass
@@ -359,7 +309,7 @@ def evaluate_section(
         write_csv(pd.concat(samples, ignore_index=True), stage / "eval_samples.csv")
         obs_ho, acc_ho = micro_pairs(sc, truth, held)
         write_csv(
-            micro_consistency(agents, idm, obs_ho, acc_ho, sc, length),
+            micro_consistency(agents, {"idm_calibrated": idm}, obs_ho, acc_ho, sc, length),
             stage / "micro_consistency.csv",
         )
         ks = k_summary(truth.k_estimate, truth.section)
@@ -381,21 +331,3 @@ def evaluate_section(
         )
         write_json(manifest, stage / "evaluation_manifest.json")
     return manifest
-
-
-def _complete(
-    net, section: Section, s, snaps, k: np.ndarray, t_max: int, seed: int, brake_mps2: float
-):
-    """The generator's completion of the snapshots ``s`` (a subset of ``snaps``)."""
-    from macromicro_sumo.section_generator import complete_section
-
-    idx = _subset_index(snaps, s)
-    c = complete_section(net, section, s, k[idx], t_max, seed, brake_mps2)
-    return c.lane, c.arc_m, c.speed_mps, c.valid, c.generated
-
-
-def _subset_index(full, part) -> np.ndarray:
-    key = {
-        (int(r), float(t)): i for i, (r, t) in enumerate(zip(full.run, full.time_s, strict=True))
-    }
-    return np.array([key[(int(r), float(t))] for r, t in zip(part.run, part.time_s, strict=True)])

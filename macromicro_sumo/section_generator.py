@@ -841,6 +841,19 @@ def complete_section(
     return comp
 
 
+def generator_completion(net: SectionGeneratorNet, section: Section, sc, k_source: str, seed: int):
+    """``completion(snaps)`` for ``section_env.build_section_bank``: Algorithm 3 with the
+    hidden count ``k_source`` asks for (each snapshot carries both), then safe speeds."""
+
+    def fn(s: SectionSnapshots):
+        c = complete_section(
+            net, section, s, _k_of(s, k_source), sc.generator.t_max, seed, -sc.bounds.accel_mps2[0]
+        )
+        return c.lane, c.arc_m, c.speed_mps, c.valid, c.generated
+
+    return fn
+
+
 def safe_speeds(
     comp: SectionCompletion, section: Section, standstill_m: np.ndarray, brake_mps2: float
 ) -> None:
