@@ -472,6 +472,15 @@ def train_policy(
     return {"agent": agent, "wall_s": wall, "env_steps": env_steps, "log": log}
 
 
+def policy_run_key(sc, data: Path, generator: Path, objective: str) -> str:
+    """What a resumable checkpoint must belong to: scenario, ground truth, generator, objective."""
+    from macromicro_sumo.files import file_sha256
+
+    return hashlib.sha256(
+        f"{sc.digest()}|{file_sha256(generator)}|{file_sha256(Path(data) / 'trajectories.csv')}|{objective}".encode()
+    ).hexdigest()
+
+
 def run_train_policy(
     sc: Scenario,
     data: Path,
@@ -494,11 +503,7 @@ def run_train_policy(
     net = load_generator(generator, sc)
     gt = load_ground_truth(data, sc)
     out = prepare_out_dir(out)
-    from macromicro_sumo.files import file_sha256
-
-    run_key = hashlib.sha256(
-        f"{sc.digest()}|{file_sha256(generator)}|{file_sha256(Path(data) / 'trajectories.csv')}|{objective}".encode()
-    ).hexdigest()
+    run_key = policy_run_key(sc, data, generator, objective)
     # Fail early, before anything is overwritten.
     resumable_checkpoint(out / f"policy_{objective}_checkpoint.pt", sc, run_key, resume)
     torch.set_num_threads(1)

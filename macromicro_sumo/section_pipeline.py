@@ -7,14 +7,13 @@ when its manifest records the same scenario digest and seed.
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from macromicro_sumo.files import file_sha256, prepare_out_dir, write_json
+from macromicro_sumo.files import prepare_out_dir, write_json
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.pipeline import Stage, policy_paths, run_stages
 
@@ -33,33 +32,22 @@ def run_train_section_policy(
     import torch
 
     from macromicro_sumo.dataset import split_runs
-    from macromicro_sumo.ppo import resumable_checkpoint, train_policy
+    from macromicro_sumo.ppo import policy_run_key, resumable_checkpoint, train_policy
     from macromicro_sumo.section_data import section_snapshots
     from macromicro_sumo.section_env import SectionCore, build_section_bank, typical_vclass
-    from macromicro_sumo.section_generator import complete_section, load_section_generator
+    from macromicro_sumo.section_generator import generator_completion, load_section_generator
     from macromicro_sumo.section_truth import load_section_truth, scenario_inputs
 
     objective = objective or sc.policy.objective
     truth = load_section_truth(data, sc)
     net = load_section_generator(generator, sc)
     out = prepare_out_dir(out)
-    run_key = hashlib.sha256(
-        f"{sc.digest()}|{file_sha256(generator)}|"
-        f"{file_sha256(Path(data) / 'trajectories.csv')}|{objective}".encode()
-    ).hexdigest()
+    run_key = policy_run_key(sc, data, generator, objective)
     resumable_checkpoint(out / f"policy_{objective}_checkpoint.pt", sc, run_key, resume)
     torch.set_num_threads(1)
     splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
     snaps = section_snapshots(truth, sc, np.concatenate([splits["train"], splits["val"]]))
-    k = snaps.k_true if sc.generator.k_source == "truth" else snaps.k_est
-
-    def complete(s):
-        idx = _subset_index(snaps, s)
-        c = complete_section(
-            net, truth.section, s, k[idx], sc.generator.t_max, sc.seed, -sc.bounds.accel_mps2[0]
-        )
-        return c.lane, c.arc_m, c.speed_mps, c.valid, c.generated
-
+    complete = generator_completion(net, truth.section, sc, sc.generator.k_source, sc.seed)
     bank = build_section_bank(sc, truth, snaps, complete, sc.policy.horizon, sc.seed)
     net_file = scenario_inputs(sc).net_file
     vclass = typical_vclass(truth)
@@ -90,14 +78,6 @@ def run_train_section_policy(
     )
     write_json(manifest, out / f"policy_manifest{suffix}.json")
     return manifest
-
-
-def _subset_index(full, part) -> np.ndarray:
-    """Rows of ``part`` (snapshots kept by the bank) in ``full``."""
-    key = {
-        (int(r), float(t)): i for i, (r, t) in enumerate(zip(full.run, full.time_s, strict=True))
-    }
-    return np.array([key[(int(r), float(t))] for r, t in zip(part.run, part.time_s, strict=True)])
 
 
 def run_section(sc, out: Path | str, command: str = "", progress: bool = True) -> dict[str, Any]:
