@@ -10,7 +10,6 @@ the two baselines and writes ``generator_metrics.csv``.
 from __future__ import annotations
 
 import copy
-import io
 import time
 from pathlib import Path
 from typing import Any
@@ -20,6 +19,7 @@ import pandas as pd
 import torch
 from tqdm import tqdm
 
+from macromicro_sumo.checkpoints import load_network, save_torch
 from macromicro_sumo.config import Scenario
 from macromicro_sumo.dataset import (
     GroundTruth,
@@ -30,7 +30,7 @@ from macromicro_sumo.dataset import (
     split_runs,
 )
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.files import atomic_path, write_csv
+from macromicro_sumo.files import write_csv
 from macromicro_sumo.generator import (
     FEATURE_VERSION,
     GeneratorNet,
@@ -66,50 +66,24 @@ def signature(sc: Scenario) -> dict[str, Any]:
 def save_generator(
     path: Path, net: GeneratorNet, sc: Scenario, extra: dict[str, Any] | None = None
 ) -> None:
-    payload = {
-        "format": CHECKPOINT_FORMAT,
-        "state_dict": net.state_dict(),
-        "hidden_size": net.hidden_size,
-        "signature": signature(sc),
-        "scenario": sc.to_dict(),
-        **(extra or {}),
-    }
-    buf = io.BytesIO()
-    torch.save(payload, buf)
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(buf.getvalue())
+    save_torch(
+        path,
+        {
+            "format": CHECKPOINT_FORMAT,
+            "state_dict": net.state_dict(),
+            "hidden_size": net.hidden_size,
+            "signature": signature(sc),
+            "scenario": sc.to_dict(),
+            **(extra or {}),
+        },
+    )
 
 
 def load_generator(path: Path | str, sc: Scenario) -> GeneratorNet:
     """Load ``generator.pt``; a corrupt file or one trained for another scenario is an error."""
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(
-            f"{path}: generator checkpoint not found (run `macromicro train-generator`)"
-        )
-    corrupt = f"{path}: corrupt or truncated generator checkpoint"
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:
-        raise UserError(f"{corrupt} ({type(exc).__name__})") from None
-    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
-        raise UserError(
-            f"{path}: not a generator checkpoint (written by `macromicro train-generator`)"
-        )
-    try:
-        net = GeneratorNet(int(payload["hidden_size"]))
-        net.load_state_dict(payload["state_dict"])
-        trained_for = dict(payload["signature"])
-    except Exception as exc:  # a field missing or of the wrong shape
-        raise UserError(f"{corrupt} ({type(exc).__name__})") from None
-    for key, want in signature(sc).items():
-        if trained_for.get(key) != want:
-            raise UserError(
-                f"{path}: generator was trained for {key} = {trained_for.get(key)}, "
-                f"scenario {sc.source} has {want}"
-            )
-    net.eval()
-    return net
+    return load_network(
+        path, CHECKPOINT_FORMAT, "generator", signature(sc), GeneratorNet, sc.source
+    )
 
 
 def _batch_loss(

@@ -23,7 +23,6 @@ Read top to bottom as CleanRL's ppo_continuous_action: agent, rollout, GAE, upda
 from __future__ import annotations
 
 import hashlib
-import io
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -36,10 +35,11 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from macromicro_sumo.checkpoints import save_torch
 from macromicro_sumo.config import Scenario
 from macromicro_sumo.env import EpisodeBank, RingCore
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.files import atomic_path, write_csv
+from macromicro_sumo.files import write_csv
 from macromicro_sumo.physics import OBSERVATION_FEATURES
 from macromicro_sumo.section_config import SectionScenario
 from macromicro_sumo.section_env import SectionBank, SectionCore, initial_observations
@@ -238,13 +238,6 @@ def signature(sc: Scenario | SectionScenario) -> dict[str, Any]:
     }
 
 
-def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
-    buf = io.BytesIO()
-    torch.save(payload, buf)
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(buf.getvalue())
-
-
 def load_checkpoint(path: Path, sc: Scenario) -> dict[str, Any]:
     try:
         payload = torch.load(path, map_location="cpu", weights_only=False)
@@ -438,7 +431,7 @@ def train_policy(
                 r_macro=f"{row['r_macro']:.4f}", logp=f"{micro_all:.3f}", coll=ro.collisions
             )
             if (update + 1) % cfg.checkpoint_every == 0 or update + 1 == n_updates:
-                save_checkpoint(
+                save_torch(
                     ckpt_path,
                     {
                         "format": CHECKPOINT_FORMAT,
@@ -456,7 +449,7 @@ def train_policy(
     finally:
         core.close()
     wall = time.perf_counter() - t0
-    save_checkpoint(
+    save_torch(
         out / (f"policy_{objective}.pt" if objective != "mix" else "policy.pt"),
         {
             "format": CHECKPOINT_FORMAT,

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from macromicro_sumo.checkpoints import save_torch
 from macromicro_sumo.config import Scenario
 from macromicro_sumo.dataset import Snapshots, load_ground_truth, split_runs
 from macromicro_sumo.env import RingCore, build_bank, generator_completion
@@ -27,7 +28,6 @@ from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.ppo import (
     CHECKPOINT_FORMAT,
     load_policy,
-    save_checkpoint,
     signature,
     train_policy,
 )
@@ -117,7 +117,7 @@ def refine(
     save_generator(
         out / "generator.pt", net, sc, {"refined_iterations": sc.policy.refine_iterations}
     )
-    save_checkpoint(
+    save_torch(
         out / "policy.pt",
         {
             "format": CHECKPOINT_FORMAT,

@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import contextlib
 import copy
-import io
 import math
 import time
 from collections.abc import Iterator
@@ -62,8 +61,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from macromicro_sumo.errors import UserError
-from macromicro_sumo.files import atomic_path
+from macromicro_sumo.checkpoints import load_network, save_torch
 from macromicro_sumo.section import Section, lane_leaders
 from macromicro_sumo.section_config import SectionScenario
 from macromicro_sumo.section_data import PSI_FIELDS, SectionSnapshots
@@ -1113,47 +1111,30 @@ def save_section_generator(
     path: Path, net: SectionGeneratorNet, sc: SectionScenario, extra: dict[str, Any] | None = None
 ) -> None:
     """Write ``generator.pt`` atomically (a crash never leaves a half-written checkpoint)."""
-    payload = {
-        "format": CHECKPOINT_FORMAT,
-        "state_dict": net.state_dict(),
-        "hidden_size": net.hidden_size,
-        "signature": signature(sc),
-        "scenario": sc.to_dict(),
-        **(extra or {}),
-    }
-    buf = io.BytesIO()
-    torch.save(payload, buf)
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(buf.getvalue())
+    save_torch(
+        path,
+        {
+            "format": CHECKPOINT_FORMAT,
+            "state_dict": net.state_dict(),
+            "hidden_size": net.hidden_size,
+            "signature": signature(sc),
+            "scenario": sc.to_dict(),
+            **(extra or {}),
+        },
+    )
 
 
 def load_section_generator(path: Path | str, sc: SectionScenario) -> SectionGeneratorNet:
     """Load a section ``generator.pt``; a corrupt file or one trained for another section is
     a one-line UserError naming the file and what differs."""
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"{path}: section generator checkpoint not found")
-    corrupt = f"{path}: corrupt or truncated section generator checkpoint"
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:
-        raise UserError(f"{corrupt} ({type(exc).__name__})") from None
-    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
-        raise UserError(f"{path}: not a section generator checkpoint")
-    try:
-        net = SectionGeneratorNet(int(payload["hidden_size"]))
-        net.load_state_dict(payload["state_dict"])
-        trained_for = dict(payload["signature"])
-    except Exception as exc:  # a field missing or of the wrong shape
-        raise UserError(f"{corrupt} ({type(exc).__name__})") from None
-    for key, want in signature(sc).items():
-        if trained_for.get(key) != want:
-            raise UserError(
-                f"{path}: generator was trained for {key} = {trained_for.get(key)}, "
-                f"scenario {sc.source or sc.name} has {want}"
-            )
-    net.eval()
-    return net
+    return load_network(
+        path,
+        CHECKPOINT_FORMAT,
+        "section generator",
+        signature(sc),
+        SectionGeneratorNet,
+        sc.source or sc.name,
+    )
 
 
 # --------------------------------------------------------------------------- training
