@@ -56,8 +56,12 @@ def detectors_xml(geo: RingGeometry, cfg: DetectorConfig) -> str:
     return "<additional>\n" + "\n".join(rows) + "\n</additional>\n"
 
 
-def _records(path: Path, tag: str) -> list[dict[str, str]]:
+def records(path: Path, tag: str, required: bool = True) -> list[dict[str, str]]:
+    """Attributes of every ``tag`` element of a SUMO output file (none if it is missing and
+    not ``required``: SUMO writes no file for a detector kind that is not defined)."""
     if not path.is_file():
+        if not required:
+            return []
         raise UserError(f"{path}: detector output missing")
     try:
         return [el.attrib for el in ET.parse(path).getroot().iter(tag)]
@@ -69,7 +73,7 @@ def read_run(run_dir: Path, run: int, geo: RingGeometry) -> tuple[pd.DataFrame, 
     """(per-interval detector table, per-vehicle passages) of one run's SUMO output."""
     lengths = dict(zip(geo.edge_ids, geo.lengths_m.tolist(), strict=True))
     rows = []
-    for r in _records(run_dir / E1_FILE, "interval"):
+    for r in records(run_dir / E1_FILE, "interval"):
         rows.append(
             {
                 "run": run,
@@ -81,12 +85,12 @@ def read_run(run_dir: Path, run: int, geo: RingGeometry) -> tuple[pd.DataFrame, 
                 "n_veh": int(r["nVehContrib"]),
                 "flow_vehph": float(r["flow"]),
                 "occupancy_pct": float(r["occupancy"]),
-                "speed_mps": _speed(r["speed"]),
-                "harmonic_mean_speed_mps": _speed(r["harmonicMeanSpeed"]),
-                "mean_length_m": _speed(r["length"]),
+                "speed_mps": speed_or_nan(r["speed"]),
+                "harmonic_mean_speed_mps": speed_or_nan(r["harmonicMeanSpeed"]),
+                "mean_length_m": speed_or_nan(r["length"]),
             }
         )
-    for r in _records(run_dir / E2_FILE, "interval"):
+    for r in records(run_dir / E2_FILE, "interval"):
         rows.append(
             {
                 "run": run,
@@ -97,14 +101,20 @@ def read_run(run_dir: Path, run: int, geo: RingGeometry) -> tuple[pd.DataFrame, 
                 "end_s": float(r["end"]),
                 "n_veh": int(r["nVehSeen"]),
                 "occupancy_pct": float(r["meanOccupancy"]),
-                "speed_mps": _speed(r["meanSpeed"]),
+                "speed_mps": speed_or_nan(r["meanSpeed"]),
                 "sampled_seconds_s": float(r["sampledSeconds"]),
                 "mean_vehicle_number": float(r["meanVehicleNumber"]),
                 "detector_length_m": lengths[r["id"].removeprefix("e2_")],
             }
         )
     det = pd.DataFrame(rows).reindex(columns=DETECTOR_COLUMNS)
-    passages = pd.DataFrame(
+    passages = read_passages(run_dir / INSTANT_FILE, run)
+    return det, passages
+
+
+def read_passages(path: Path, run: int, required: bool = True) -> pd.DataFrame:
+    """Per-vehicle passages ('enter') of the instantaneous loops in ``path``."""
+    return pd.DataFrame(
         [
             {
                 "run": run,
@@ -114,15 +124,14 @@ def read_run(run_dir: Path, run: int, geo: RingGeometry) -> tuple[pd.DataFrame, 
                 "speed_mps": float(r["speed"]),
                 "length_m": float(r["length"]),
             }
-            for r in _records(run_dir / INSTANT_FILE, "instantOut")
+            for r in records(path, "instantOut", required)
             if r.get("state") == "enter"
         ],
         columns=["run", "detector_id", "time_s", "vehicle_id", "speed_mps", "length_m"],
     )
-    return det, passages
 
 
-def _speed(value: str) -> float:
+def speed_or_nan(value: str | None) -> float:
     """SUMO writes -1 for 'no vehicle in this interval'."""
-    v = float(value)
+    v = float(value) if value is not None else -1.0
     return np.nan if v < 0 else v

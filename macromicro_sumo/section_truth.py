@@ -23,6 +23,14 @@ import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
+from macromicro_sumo.detectors import (
+    E1_FILE,
+    E2_FILE,
+    INSTANT_FILE,
+    read_passages,
+    records,
+    speed_or_nan,
+)
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import prepare_out_dir, staging_dir, write_csv, write_json
 from macromicro_sumo.macro import passage_spacings
@@ -41,7 +49,6 @@ from macromicro_sumo.sumo_inputs import (
     user_detectors,
 )
 
-E1_FILE, E2_FILE, INSTANT_FILE = "e1.xml", "e2.xml", "instant.xml"
 _DETECTOR_TAGS = {
     "inductionLoop",
     "e1Detector",
@@ -162,30 +169,15 @@ def _without_detectors(src: Path, dst: Path) -> Path:
     return dst
 
 
-def _records(path: Path, tag: str) -> list[dict[str, str]]:
-    if not path.is_file():
-        return []
-    try:
-        return [el.attrib for el in ET.parse(path).getroot().iter(tag)]
-    except ET.ParseError as exc:
-        raise UserError(f"{path}: detector output is not valid XML ({exc})") from None
-
-
-def _num(value: str | None) -> float:
-    """SUMO writes -1 for 'no vehicle in this interval'."""
-    v = float(value) if value is not None else -1.0
-    return np.nan if v < 0 else v
-
-
 def read_detectors(
     run_dir: Path, run: int, placed: list[Placed]
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """(per-interval table, per-vehicle passages) of one run's detector output."""
     where = {p.spec.id: p for p in placed}
     rows = []
-    for r in _records(run_dir / E1_FILE, "interval"):
+    for r in records(run_dir / E1_FILE, "interval", required=False):
         p = where[r["id"]]
-        flow, speed = float(r["flow"]), _num(r.get("harmonicMeanSpeed"))
+        flow, speed = float(r["flow"]), speed_or_nan(r.get("harmonicMeanSpeed"))
         rows.append(
             {
                 "run": run,
@@ -205,7 +197,7 @@ def read_detectors(
                 "length_m": 0.0,
             }
         )
-    for r in _records(run_dir / E2_FILE, "interval"):
+    for r in records(run_dir / E2_FILE, "interval", required=False):
         p = where[r["id"]]
         rows.append(
             {
@@ -219,7 +211,7 @@ def read_detectors(
                 "end_s": float(r["end"]),
                 "n_veh": int(r["nVehSeen"]),
                 "flow_vph": np.nan,
-                "speed_mps": _num(r.get("meanSpeed")),
+                "speed_mps": speed_or_nan(r.get("meanSpeed")),
                 "occupancy_pct": float(r["meanOccupancy"]),
                 "density_vpkm": float(r["meanVehicleNumber"]) / p.spec.length_m * 1000.0,
                 "length_m": p.spec.length_m,
@@ -227,20 +219,7 @@ def read_detectors(
             }
         )
     det = pd.DataFrame(rows)
-    passages = pd.DataFrame(
-        [
-            {
-                "run": run,
-                "detector_id": r["id"],
-                "time_s": float(r["time"]),
-                "vehicle_id": r["vehID"],
-                "speed_mps": float(r["speed"]),
-            }
-            for r in _records(run_dir / INSTANT_FILE, "instantOut")
-            if r.get("state") == "enter"
-        ],
-        columns=["run", "detector_id", "time_s", "vehicle_id", "speed_mps"],
-    )
+    passages = read_passages(run_dir / INSTANT_FILE, run, required=False)
     return det, passages
 
 
