@@ -76,6 +76,12 @@ def check_columns(df: pd.DataFrame, columns: tuple[str, ...], path: Path) -> Non
         raise UserError(f"{path}: missing column(s) {', '.join(missing)}")
 
 
+def at_snapshot_times(traj: pd.DataFrame, every_s: float) -> pd.DataFrame:
+    """The rows of ``traj`` at whole multiples of ``every_s`` (the snapshot grid)."""
+    t = traj["time_s"].to_numpy()
+    return traj[np.abs(t / every_s - np.round(t / every_s)) < 1e-6]
+
+
 def psi_table(truth: SectionTruth, sc) -> pd.DataFrame:
     """psi per (run, interval) from the detectors, with bounds filled where they are silent.
 
@@ -97,8 +103,7 @@ def section_snapshots(truth: SectionTruth, sc, runs: np.ndarray) -> SectionSnaps
     every = sc.generator.snapshot_every_s
     traj = truth.trajectories
     traj = traj[traj["run"].isin(runs)]
-    t = traj["time_s"].to_numpy()
-    traj = traj[np.abs(t / every - np.round(t / every)) < 1e-6]
+    traj = at_snapshot_times(traj, every)
     psi = psi_table(truth, sc)
     k = truth.k_estimate.set_index(["run", "time_s"])
     lengths = dict(zip(truth.vtypes["vtype"], truth.vtypes["length_m"], strict=True))

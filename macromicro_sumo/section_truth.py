@@ -37,7 +37,7 @@ from macromicro_sumo.macro import passage_spacings
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.section import Section, lane_leaders, read_section
 from macromicro_sumo.section_config import SectionScenario
-from macromicro_sumo.section_data import SectionTruth, check_columns
+from macromicro_sumo.section_data import SectionTruth, at_snapshot_times, check_columns
 from macromicro_sumo.sumo import Simulation, SumoOptions
 from macromicro_sumo.sumo_inputs import (
     DetectorSpec,
@@ -365,9 +365,7 @@ def k_estimates(
     windows average out platoons that one interval's loops see or miss.
     """
     rows = []
-    for (run, t), g in traj.groupby(["run", "time_s"], sort=True):
-        if abs(t / every_s - round(t / every_s)) > 1e-6:
-            continue
+    for (run, t), g in at_snapshot_times(traj, every_s).groupby(["run", "time_s"], sort=True):
         r = det_macro[det_macro["run"] == run]
         centre = 0.5 * (r["begin_s"] + r["end_s"])
         m = r[(centre >= t - window_s / 2) & (centre <= t + window_s / 2)]
