@@ -154,7 +154,11 @@ def test_k_estimate_and_instrumented_share(corridor_truth: tuple[Path, Path]) ->
     sc = load_scenario(sc_path)
     truth = load_section_truth(gt, sc)
     k = truth.k_estimate
-    assert (k["k_true"] == k["n_vehicles"] - k["n_observed"]).all()
+    # The true hidden count, recounted from the trajectories themselves.
+    traj = truth.trajectories
+    hidden = traj[~traj["observed"]].groupby(["run", "time_s"]).size()
+    recount = hidden.reindex(list(zip(k["run"], k["time_s"], strict=True)), fill_value=0)
+    assert (k["k_true"].to_numpy() == recount.to_numpy()).all()
     assert (k["k_error"] == k["k_est"] - k["k_true"]).all()
     share = truth.trajectories.groupby("vehicle_id")["observed"].first().mean()
     assert 0.15 < share < 0.45  # penetration 0.3
