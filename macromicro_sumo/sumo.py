@@ -179,24 +179,11 @@ class Simulation:
         lane_pos_m: Sequence[float],
         speeds_mps: Sequence[float],
     ) -> None:
-        """Queue vehicles for insertion at exact lane positions and speeds (next step)."""
+        """Queue vehicles for insertion on lane 0 at exact positions and speeds (next step)."""
         for vid, route, vtype, pos, v in zip(
             vehicle_ids, route_ids, type_ids, lane_pos_m, speeds_mps, strict=True
         ):
-            try:
-                libsumo.vehicle.add(
-                    vid,
-                    route,
-                    typeID=vtype,
-                    depart="now",
-                    departLane="0",
-                    departPos=repr(float(pos)),
-                    departSpeed=repr(float(v)),
-                )
-            except libsumo.TraCIException as exc:
-                raise UserError(
-                    f"SUMO refused vehicle {vid} at {pos:.2f} m, {v:.2f} m/s: {exc}"
-                ) from None
+            self.add_vehicle(vid, route, vtype, 0, pos, v)
 
     def subscribe(self, vehicle_ids: Sequence[str]) -> None:
         for vid in vehicle_ids:
