@@ -136,8 +136,8 @@ class GeneratorConfig:
     spacing_dispersion: str = _f(
         "paper",
         choices=("paper", "measured"),
-        doc="L_var: paper = std of the touched gaps / mean (drives gaps equal); measured = its distance "
-        "to the detectors' spacing std",
+        doc="L_var: paper = std of the touched gaps / mean (drives gaps equal); measured = their "
+        "mean squared deviation from the mean spacing against the detectors' spacing variance",
     )
     bounds_source: str = _f(
         "interval", choices=("interval", "fixed"), doc="Psi bounds: measured per interval or fixed"

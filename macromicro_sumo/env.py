@@ -267,10 +267,12 @@ class RingCore:
             terms["L_mean"] = float((mean / d_mean - 1.0) ** 2)
             terms["L_min"] = float((low * low).sum() / (m * d_min * d_min))
             terms["L_max"] = float((high * high).sum() / (m * d_max * d_max))
-            std = np.sqrt((dev * dev).sum() / m)
-            if self.bank.spacing_std_m is not None:
-                std = abs(std - self.bank.spacing_std_m[self.episode])
-            terms["L_var"] = float(std / d_mean)
+            if self.bank.spacing_std_m is None:
+                terms["L_var"] = float(np.sqrt((dev * dev).sum() / m) / d_mean)
+            else:  # macro.measured_dispersion
+                dev = a - d_mean
+                target = self.bank.spacing_std_m[self.episode]
+                terms["L_var"] = float(abs((dev * dev).sum() / m - target * target) / d_mean**2)
         else:
             terms.update(L_mean=0.0, L_min=0.0, L_max=0.0, L_var=0.0)
         g = self.sc.generator

@@ -67,6 +67,7 @@ from scipy.special import log_ndtr, ndtri_exp
 from torch import nn
 
 from macromicro_sumo.dataset import Snapshots
+from macromicro_sumo.macro import measured_dispersion
 
 FEATURE_VERSION = 2
 N_GAP_FEATURES = 7
@@ -579,8 +580,8 @@ def macro_losses(
 
     A (the gaps influenced by generated vehicles) holds every gap whose follower or
     leader was generated. Same definitions as ``macro.spacing_losses`` (numpy). When Psi
-    carries the detectors' spacing std ``d_std``, L_var is |std(d_A) - d_std| / d_mean:
-    the paper's std(d_A) / d_mean pulls every completion towards equal gaps, which the
+    carries the detectors' spacing std ``d_std``, L_var is ``measured_dispersion``: the
+    paper's std(d_A) / d_mean pulls every completion towards equal gaps, which the
     measured spacing distribution contradicts.
     """
     present = torch.ones_like(generated)
@@ -592,23 +593,18 @@ def macro_losses(
     var = (((gap - mean[:, None]) ** 2) * a).sum(dim=1) / cnt
     has = a.sum(dim=1) > 0
     zero = torch.zeros_like(mean)
+    if psi.d_std is None:
+        # sqrt has an infinite slope at 0: the epsilon keeps equal gaps trainable.
+        l_var = torch.sqrt(var + 1e-8) / psi.d_mean
+    else:
+        l_var = measured_dispersion(gap, a.bool(), psi.d_mean, torch.as_tensor(psi.d_std))
     return {
         "L_speed": (speed.mean(dim=1) / psi.v_mean - 1.0) ** 2,
         "L_mean": torch.where(has, (mean / psi.d_mean - 1.0) ** 2, zero),
         "L_min": ((torch.relu(dmin - gap) / dmin) ** 2 * a).sum(dim=1) / cnt,
         "L_max": ((torch.relu(gap - dmax) / dmax) ** 2 * a).sum(dim=1) / cnt,
-        # sqrt has an infinite slope at 0: the epsilon keeps equal gaps trainable.
-        "L_var": torch.where(
-            has, _dispersion(torch.sqrt(var + 1e-8), psi.d_std) / psi.d_mean, zero
-        ),
+        "L_var": torch.where(has, l_var, zero),
     }
-
-
-def _dispersion(std: torch.Tensor, target: torch.Tensor | None) -> torch.Tensor:
-    if target is None:
-        return std
-    target = torch.as_tensor(target, dtype=std.dtype)
-    return torch.sqrt((std - target) ** 2 + 1e-8)
 
 
 def total_loss(terms: dict[str, torch.Tensor], lambda_v: float, lambda_d: float) -> torch.Tensor:

@@ -22,6 +22,8 @@ Psi(S) = [mean speed, mean spacing, d_min, d_max, v_min, v_max] (PSI_COLUMNS).
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pandas as pd
 
@@ -201,7 +203,7 @@ def spacing_losses(
     Arrays are batched over the leading axis: ``gaps_m`` and ``mask`` are (B, N), the
     targets (B,). Rows with an empty A give zeros. With ``target_std_m`` (the detectors'
     spacing std, ``generator.spacing_dispersion = "measured"``) L_var is
-    |std(d_A) - target| / mean instead of the paper's std(d_A) / mean.
+    ``measured_dispersion`` instead of the paper's std(d_A) / mean.
     """
     m = mask.astype(float)
     cnt = np.maximum(m.sum(-1), 1.0)
@@ -209,12 +211,30 @@ def spacing_losses(
     l_mean = (mean / mean_target_m - 1.0) ** 2
     l_min = ((np.maximum(0.0, d_min_m[:, None] - gaps_m) / d_min_m[:, None]) ** 2 * m).sum(-1) / cnt
     l_max = ((np.maximum(0.0, gaps_m - d_max_m[:, None]) / d_max_m[:, None]) ** 2 * m).sum(-1) / cnt
-    var = (((gaps_m - mean[:, None]) ** 2) * m).sum(-1) / cnt
-    std = np.sqrt(var)
-    l_var = (std if target_std_m is None else np.abs(std - target_std_m)) / mean_target_m
+    if target_std_m is None:
+        l_var = np.sqrt((((gaps_m - mean[:, None]) ** 2) * m).sum(-1) / cnt) / mean_target_m
+    else:
+        l_var = measured_dispersion(gaps_m, mask, mean_target_m, target_std_m)
     empty = m.sum(-1) == 0
     out = {"L_mean": l_mean, "L_min": l_min, "L_max": l_max, "L_var": l_var}
     return {k: np.where(empty, 0.0, v) for k, v in out.items()}
+
+
+def measured_dispersion(gaps_m: Any, mask: Any, mean_m: Any, std_m: Any) -> Any:
+    """L_var against a measured spacing std: |mean_A (d - mean)^2 - std^2| / mean^2, (B,).
+
+    Batched like ``spacing_losses`` (numpy or torch). Deviations are taken from the
+    measured mean spacing, not from A's own mean: A holds a few gaps (two when one vehicle
+    is placed), and their spread around their own mean is a biased, smaller estimate of
+    the stream's. Squared deviations against the variance, not the std, so that each
+    scene's error adds linearly to the pooled spacing variance the detectors measure (an
+    error in a widely spread scene then counts for what it does to that figure).
+    """
+    m = mask * 1.0
+    cnt = m.sum(-1)
+    cnt = cnt.clip(min=1.0) if hasattr(cnt, "clip") else max(cnt, 1.0)
+    var = (((gaps_m - mean_m[..., None]) ** 2) * m).sum(-1) / cnt
+    return abs(var - std_m**2) / mean_m**2
 
 
 def speed_loss(speeds_mps: np.ndarray, target_mps: np.ndarray) -> np.ndarray:

@@ -59,6 +59,25 @@ def test_l_var_measured_is_the_distance_to_the_target():
     paper = spacing_losses(gaps, mask, one, one * 0.5, one * 2)["L_var"][0]
     measured = spacing_losses(gaps, mask, one, one * 0.5, one * 2, np.array([25.0]))["L_var"][0]
     assert paper == pytest.approx(25.0 / 125.0) and measured == pytest.approx(0.0)
+    # Deviations count from the measured mean, not from A's own (112.5 m here).
+    gaps = np.array([[100.0, 125.0, 0.0]])
+    measured = spacing_losses(gaps, mask, one, one * 0.5, one * 2, np.array([10.0]))["L_var"][0]
+    assert measured == pytest.approx(abs((25.0**2 + 0.0) / 2 - 10.0**2) / 125.0**2)
+
+
+def test_l_var_measured_is_unbiased_for_the_few_gaps_one_vehicle_touches():
+    """One placed vehicle touches two gaps: their spread around their own mean is half the
+    stream's variance on average; around the measured mean it is the stream's."""
+    rng = np.random.default_rng(0)
+    gaps = rng.normal(125.0, 30.0, size=(20_000, 2))
+    mask = np.ones_like(gaps, dtype=bool)
+    mean = np.full(len(gaps), 125.0)
+    zero = np.zeros(len(gaps))
+    # L_var = |var_A - target^2| / mean^2 with target 0 gives var_A itself.
+    var_a = spacing_losses(gaps, mask, mean, mean * 0.1, mean * 10, zero)["L_var"] * 125.0**2
+    own_mean = gaps.var(axis=1)
+    assert var_a.mean() == pytest.approx(900.0, rel=0.03)
+    assert own_mean.mean() == pytest.approx(450.0, rel=0.03)
 
 
 @pytest.mark.parametrize(("observation", "dim"), [("paper", 4), ("lookahead", 6)])

@@ -527,7 +527,8 @@ def test_feasibility_target_with_the_papers_dispersion_too(trained):
 # --------------------------------------------------------------------------- loss terms
 
 
-def test_macro_losses_equal_the_numpy_definitions():
+@pytest.mark.parametrize("measured", [False, True])
+def test_macro_losses_equal_the_numpy_definitions(measured):
     rng = np.random.default_rng(3)
     b = 300
     arc = rng.uniform(0, L, (b, N))
@@ -544,11 +545,12 @@ def test_macro_losses_equal_the_numpy_definitions():
             np.full(b, 14.0),
         ]
     )
+    d_std = rng.uniform(5.0, 40.0, b) if measured else None
     got = macro_losses(
         torch.tensor(arc),
         torch.tensor(speed),
         torch.tensor(generated),
-        PsiTensors(*torch.tensor(psi).unbind(dim=1)),
+        PsiTensors(*torch.tensor(psi).unbind(dim=1), d_std=d_std),
         L,
     )
     order = np.argsort(arc, axis=1)
@@ -556,7 +558,7 @@ def test_macro_losses_equal_the_numpy_definitions():
     gaps = np.mod(np.roll(s, -1, axis=1) - s, L)
     g = np.take_along_axis(generated, order, 1)
     a_mask = g | np.roll(g, -1, axis=1)  # follower or leader generated
-    want = spacing_losses(gaps, a_mask, psi[:, 1], psi[:, 2], psi[:, 3])
+    want = spacing_losses(gaps, a_mask, psi[:, 1], psi[:, 2], psi[:, 3], d_std)
     want["L_speed"] = speed_loss(speed, psi[:, 0])
     assert set(got) == set(LOSS_TERMS)
     for term in LOSS_TERMS:
