@@ -126,6 +126,7 @@ def main(argv: list[str] | None = None) -> int:
                     Path(tmp),
                     objective=objective,
                     progress=False,
+                    val_runs=splits["val"],
                 )
             agent = res["agent"].eval()
             lf = lf_rmse(sc, agent)
