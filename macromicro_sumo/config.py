@@ -178,6 +178,32 @@ class PolicyConfig:
     init_log_std: float = _f(
         -1.0, lo=-10.0, hi=2.0, doc="initial log std of the action [log m/s^2]"
     )
+    lr_schedule: str = _f(
+        "constant",
+        choices=("constant", "linear"),
+        doc="Adam rate over the updates: constant, or linear decay to 0 after the last update "
+        "(the final policy is then not one noisy step of a constant rate)",
+    )
+    micro_pairs: str = _f(
+        "all",
+        choices=("all", "observed_leader"),
+        doc="observed vehicle-steps in r_micro: all (the paper), or only those whose leader is "
+        "observed too (behind a hidden leader the spacing and delta_v are generated, not the "
+        "ones the recorded action answered)",
+    )
+    micro_replay: int = _f(
+        1,
+        lo=1,
+        hi=1_000_000,
+        doc="rollouts whose observed pairs r_micro uses at each update (1: this update's only, "
+        "the paper); with observed_leader the pairs do not depend on the policy",
+    )
+    checkpoint_selection: str = _f(
+        "last",
+        choices=("last", "val_micro_logp"),
+        doc="policy kept: the last update's, or the update's with the best micro log-likelihood "
+        "on the validation runs (their episodes are then not trained on)",
+    )
     checkpoint_every: int = _f(5, lo=1, hi=1_000_000, doc="updates between resumable checkpoints")
     refine_iterations: int = _f(
         0,

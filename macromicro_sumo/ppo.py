@@ -22,6 +22,7 @@ Read top to bottom as CleanRL's ppo_continuous_action: agent, rollout, GAE, upda
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import time
 from collections.abc import Callable
@@ -153,6 +154,7 @@ class Rollout:
     collisions: int
     sumo_errors: int
     active: np.ndarray  # (E, H, N) bool: the vehicle was on the road at the step (ring: all)
+    leader_hidden: np.ndarray  # (E, H, N) bool: the vehicle's leader at the step is hidden
 
 
 Core = RingCore | SectionCore
@@ -170,6 +172,7 @@ def collect(
     section = isinstance(core, SectionCore)
     active = np.ones((len(episodes), horizon, n), dtype=bool)
     e_n = len(episodes)
+    leader_hidden = np.zeros((e_n, horizon, n), dtype=bool)
     obs = np.zeros((e_n, horizon, n, core.obs_dim), dtype=np.float32)
     act = np.zeros((e_n, horizon, n), dtype=np.float32)
     logp = np.zeros_like(act)
@@ -183,6 +186,7 @@ def collect(
         for t in range(horizon):
             if section:
                 active[i, t] = core.active
+            leader_hidden[i, t] = (core.leader >= 0) & hidden[i][np.maximum(core.leader, 0)]
             ot = torch.as_tensor(o, dtype=torch.float32)
             with torch.no_grad():
                 d = agent.dist(ot)
@@ -197,6 +201,7 @@ def collect(
                 collisions += res.collision
                 errors += bool(res.error)
                 obs[i, t + 1 :] = o  # the episode ends here: later steps carry no reward
+                leader_hidden[i, t + 1 :] = leader_hidden[i, t]
                 if section:
                     active[i, t + 1 :] = False
                 break
@@ -212,10 +217,62 @@ def collect(
         collisions,
         errors,
         active,
+        leader_hidden,
     )
 
 
 # --------------------------------------------------------------------------- training
+
+
+def split_episodes(runs: np.ndarray, val_runs: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Episode indices for training and for validation (those of ``val_runs``)."""
+    is_val = np.isin(runs, val_runs) if val_runs is not None else np.zeros(len(runs), dtype=bool)
+    if is_val.all():
+        raise UserError("every episode belongs to a validation run: none is left to train on")
+    return np.flatnonzero(~is_val), np.flatnonzero(is_val)
+
+
+def micro_mask(ro: Rollout, observed_leader: bool) -> np.ndarray:
+    """(E, H, N) bool: the observed vehicle-steps whose recorded action enters r_micro.
+
+    ``observed_leader`` keeps only vehicles whose leader is observed too: their observation
+    is the recorded one, while behind a hidden leader the spacing and v - v_leader come from
+    the generator's completion and the policy, so the recorded action answers another state
+    (noise in the inputs, which flattens the learned response to spacing and delta_v).
+    """
+    hid = np.broadcast_to(ro.hidden[:, None, :], ro.actions.shape)
+    with np.errstate(invalid="ignore"):
+        keep = ~hid & ro.active & np.isfinite(ro.gt_actions)
+    return keep & ~ro.leader_hidden if observed_leader else keep
+
+
+def validation_pairs(
+    agent: Agent, core: Core, episodes: np.ndarray, horizon: int, sc: Scenario | SectionScenario
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Observed (o, u) pairs of validation episodes whose observation is recorded.
+
+    Pairs of a vehicle whose leader is observed do not depend on the policy that drives the
+    hidden vehicles, so one rollout (with the initial policy) fixes the validation set.
+    """
+    if len(episodes) == 0:
+        return torch.zeros((0, core.obs_dim)), torch.zeros(0)
+    ro = collect(agent, core, episodes, 0.0, horizon, torch.Generator().manual_seed(sc.seed + 1))
+    keep = micro_mask(ro, observed_leader=True)
+    act, _ = clipped_actions(ro.gt_actions[keep], *sc.bounds.accel_mps2)
+    return torch.as_tensor(ro.obs[keep]), torch.as_tensor(act, dtype=torch.float32)
+
+
+def mean_logp(agent: Agent, obs: torch.Tensor, actions: torch.Tensor) -> float:
+    """Mean log-likelihood of ``actions`` under the agent (NaN without pairs)."""
+    if len(obs) == 0:
+        return float("nan")
+    with torch.no_grad():
+        return float(agent.dist(obs).log_prob(actions).mean())
+
+
+def learning_rate(lr: float, schedule: str, update: int, n_updates: int) -> float:
+    """Adam's rate at ``update`` (0-based): constant, or linear decay reaching 0 after the last."""
+    return lr * (1.0 - update / n_updates) if schedule == "linear" else lr
 
 
 def signature(sc: Scenario | SectionScenario) -> dict[str, Any]:
@@ -300,11 +357,14 @@ def train_policy(
     run_key: str = "",
     init: dict[str, Any] | None = None,
     make_core: Callable[[Any, int], Core] | None = None,
+    val_runs: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """PPO on the env over ``bank``; writes policy.pt, policy_train_log.csv, checkpoints.
 
     ``make_core(bank, seed)`` builds the env core (default: the ring's ``RingCore``; a
-    section passes one that builds its ``SectionCore``).
+    section passes one that builds its ``SectionCore``). With ``policy.checkpoint_selection
+    = "val_micro_logp"``, the episodes of ``val_runs`` are kept out of training and the
+    policy returned and saved is the update's with the best validation micro log-likelihood.
     """
     cfg = sc.policy
     objective = objective or cfg.objective
@@ -325,11 +385,18 @@ def train_policy(
         agent = Agent(cfg.hidden_size, cfg.init_log_std, cfg.observation, shift_scale)
         if init is not None:
             agent.load_state_dict(init)
+        select = cfg.checkpoint_selection == "val_micro_logp"
+        train_eps, val_eps = split_episodes(bank.run, val_runs if select else None)
+        val_obs, val_act = validation_pairs(agent, core, val_eps, cfg.horizon, sc)
+        best_val, best_state = -float("inf"), None
         opt = torch.optim.Adam(agent.parameters(), lr=cfg.lr)
         rng = np.random.default_rng([sc.seed, 41])
         gen = torch.Generator().manual_seed(sc.seed)
         log: list[dict[str, Any]] = []
         start = 0
+        # Observed (o, u) pairs of the last ``micro_replay`` rollouts: the likelihood term is
+        # supervised, so pairs of earlier rollouts are as valid as this one's.
+        micro_pool: list[tuple[torch.Tensor, torch.Tensor]] = []
         ck = resumable_checkpoint(ckpt_path, sc, run_key, resume)
         if ck is not None:
             agent.load_state_dict(ck["state_dict"])
@@ -337,6 +404,8 @@ def train_policy(
             rng.bit_generator.state = ck["numpy_rng"]
             gen.set_state(ck["torch_rng"])
             log, start = ck["log"], ck["update"]
+            micro_pool = ck.get("micro_pool", [])
+            best_val, best_state = ck.get("best_val", best_val), ck.get("best_state_dict")
         a_min, a_max = sc.bounds.accel_mps2
         bar = tqdm(
             range(start, n_updates),
@@ -347,7 +416,8 @@ def train_policy(
             total=n_updates,
         )
         for update in bar:
-            episodes = rng.integers(0, len(bank), cfg.episodes_per_update)
+            opt.param_groups[0]["lr"] = learning_rate(cfg.lr, cfg.lr_schedule, update, n_updates)
+            episodes = train_eps[rng.integers(0, len(train_eps), cfg.episodes_per_update)]
             ro = collect(agent, core, episodes, eta, cfg.horizon, gen)
             env_steps += cfg.episodes_per_update * cfg.horizon
             # GAE runs along time: (E, H, N) -> (H, E, N) and back. A vehicle's episode ends
@@ -360,8 +430,7 @@ def train_policy(
             adv, ret = np.swapaxes(adv, 0, 1), np.swapaxes(ret, 0, 1)
             hid_all = np.broadcast_to(ro.hidden[:, None, :], ro.actions.shape)
             hid = hid_all & ro.active
-            with np.errstate(invalid="ignore"):
-                obs_pairs = ~hid_all & ro.active & np.isfinite(ro.gt_actions)
+            obs_pairs = micro_mask(ro, cfg.micro_pairs == "observed_leader")
             t_frac = np.broadcast_to(
                 (np.arange(cfg.horizon) / cfg.horizon)[None, :, None], ro.actions.shape
             )
@@ -372,8 +441,12 @@ def train_policy(
             if not use_micro and len(b_adv) > 1:
                 b_adv = (b_adv - b_adv.mean()) / (b_adv.std() + 1e-8)
             gt, clip_share = clipped_actions(ro.gt_actions[obs_pairs], a_min, a_max)
-            m_obs = torch.as_tensor(ro.obs[obs_pairs])
-            m_act = torch.as_tensor(gt, dtype=torch.float32)
+            micro_pool.append(
+                (torch.as_tensor(ro.obs[obs_pairs]), torch.as_tensor(gt, dtype=torch.float32))
+            )
+            del micro_pool[: -cfg.micro_replay]
+            m_obs = torch.cat([o for o, _ in micro_pool])
+            m_act = torch.cat([a for _, a in micro_pool])
             n_b, n_m = len(b_obs), len(m_obs)
             stats: dict[str, list[float]] = {
                 k: [] for k in ("pg_loss", "v_loss", "entropy", "kl", "micro_logp")
@@ -413,12 +486,17 @@ def train_policy(
                     nn.utils.clip_grad_norm_(agent.parameters(), 0.5)
                     opt.step()
             with torch.no_grad():
-                micro_all = float(agent.dist(m_obs).log_prob(m_act).mean()) if n_m else float("nan")
+                new_obs, new_act = micro_pool[-1]
+                micro_all = mean_logp(agent, new_obs, new_act)
+                val_logp = mean_logp(agent, val_obs, val_act)
+            if val_logp > best_val:  # NaN (no validation pairs) never is: the last one is kept
+                best_val, best_state = val_logp, copy.deepcopy(agent.state_dict())
             row = {
                 "update": update + 1,
                 "env_steps": (update + 1) * cfg.episodes_per_update * cfg.horizon,
                 "r_macro": float(ro.r_macro.mean()),
                 "r_micro_per_pair": micro_all,
+                "val_micro_logp": val_logp,
                 **{k: float(np.mean(v)) if v else float("nan") for k, v in stats.items()},
                 "action_std_mps2": float(agent.log_std.detach().exp()),
                 "collisions": ro.collisions,
@@ -444,10 +522,15 @@ def train_policy(
                         "update": update + 1,
                         "log": log,
                         "hidden_size": agent.hidden_size,
+                        "micro_pool": micro_pool,
+                        "best_val": best_val,
+                        "best_state_dict": best_state,
                     },
                 )
     finally:
         core.close()
+    if best_state is not None:
+        agent.load_state_dict(best_state)
     wall = time.perf_counter() - t0
     save_torch(
         out / (f"policy_{objective}.pt" if objective != "mix" else "policy.pt"),
@@ -510,7 +593,14 @@ def run_train_policy(
         sc.seed,
     )
     res = train_policy(
-        sc, bank, out, objective=objective, resume=resume, progress=progress, run_key=run_key
+        sc,
+        bank,
+        out,
+        objective=objective,
+        resume=resume,
+        progress=progress,
+        run_key=run_key,
+        val_runs=splits["val"],
     )
     # Held-out check of the issue's target: fleet mean speed vs ground truth per K.
     rows = []

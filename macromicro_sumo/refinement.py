@@ -104,6 +104,7 @@ def refine(
             progress=progress,
             updates=sc.policy.refine_updates,
             init=agent.state_dict(),
+            val_runs=splits["val"],
         )
         agent = pres["agent"]
         history.append(

@@ -66,6 +66,7 @@ def run_train_section_policy(
         progress=progress,
         run_key=run_key,
         make_core=make_core,
+        val_runs=splits["val"],
     )
     suffix = "" if objective == "mix" else f"_{objective}"
     manifest = build_manifest(sc, command, stage=f"train-policy{suffix}")

@@ -18,8 +18,10 @@ Training seed ``scenario.seed + i`` for i = 0..n-1: i = 0 is the policy of ``mac
 ``--set`` changes the scenario for training and evaluation alike; the generator of
 ``--run`` must still fit it (its signature is checked).
 
-Writes ``lf_seeds.csv`` (one row per objective, training seed, scenario and follower) and
-``lf_seeds_summary.csv`` (mean, min, max over seeds), ``heldout_speed_seeds.csv`` with
+Writes ``lf_seeds.csv`` (one row per objective, training seed, scenario and follower),
+``lf_seeds_summary.csv`` (mean, min, max over seeds), ``lf_mean_traces.csv`` (per training
+seed, scenario and follower: the speed and gap averaged over trials at every step, with the
+IDM follower's speed, to see where a follower departs from IDM), ``heldout_speed_seeds.csv`` with
 ``--speed``, and prints the summary table.
 """
 
@@ -51,19 +53,25 @@ from macromicro_sumo.leader_follower import (
 from macromicro_sumo.ppo import train_policy
 
 
-def lf_rmse(sc: Scenario, agent) -> pd.DataFrame:
-    """Leader-follower summary (evaluation's protocol) of one policy, stochastic and mean."""
+def lf_rmse(sc: Scenario, agent) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Leader-follower summary (evaluation's protocol) of one policy, stochastic and mean,
+    and the per-step mean over trials of each follower's speed (for the trace diagnosis)."""
     duration = sc.evaluation.lf_duration_s
     profile = LeaderProfile(duration_s=duration, hold_s=min(20.0, duration / 3))
     followers = {
         "stochastic": policy_follower(agent),
         "mean_action": policy_follower(agent, stochastic=False),
     }
-    _, summary = run_leader_follower(
+    traces, summary = run_leader_follower(
         sc, followers, mean_idm_params(sc), sc.evaluation.lf_trials, sc.seed, profile
     )
     s = method_summary(summary)
-    return s[s["method"] != "IDM"].rename(columns={"method": "follower"})
+    cols = ["follower_speed_mps", "idm_follower_speed_mps", "gap_m"]
+    mean_trace = traces.groupby(["scenario", "method", "time_s"], sort=False)[cols].mean()
+    return (
+        s[s["method"] != "IDM"].rename(columns={"method": "follower"}),
+        mean_trace.reset_index().rename(columns={"method": "follower"}),
+    )
 
 
 def heldout_speed(sc: Scenario, gt: GroundTruth, net, agent, held: np.ndarray) -> pd.DataFrame:
@@ -114,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
         sc.policy.hidden_train,
         sc.seed,
     )
-    lf_rows, speed_rows = [], []
+    lf_rows, trace_rows, speed_rows = [], [], []
     for objective in args.objective:
         for i in range(args.seeds):
             seed = sc.seed + i
@@ -126,12 +134,15 @@ def main(argv: list[str] | None = None) -> int:
                     Path(tmp),
                     objective=objective,
                     progress=False,
+                    val_runs=splits["val"],
                 )
             agent = res["agent"].eval()
-            lf = lf_rmse(sc, agent)
-            lf.insert(0, "train_seed", seed)
-            lf.insert(0, "objective", objective)
+            lf, trace = lf_rmse(sc, agent)
+            for frame in (lf, trace):
+                frame.insert(0, "train_seed", seed)
+                frame.insert(0, "objective", objective)
             lf_rows.append(lf)
+            trace_rows.append(trace)
             if args.speed:
                 sp = heldout_speed(sc, gt, net, agent, splits["held_out"])
                 sp.insert(0, "train_seed", seed)
@@ -148,6 +159,8 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     per = pd.concat(lf_rows, ignore_index=True)
     per.to_csv(out / "lf_seeds.csv", index=False, float_format="%.6f")
+    traces = pd.concat(trace_rows, ignore_index=True)
+    traces.to_csv(out / "lf_mean_traces.csv", index=False, float_format="%.4f")
     g = per.groupby(["objective", "scenario", "follower"], sort=False)["mean_rmse_vs_idm_mps"]
     summary = g.agg(seeds="size", mean="mean", min="min", max="max").reset_index()
     coll = per.groupby(["objective", "scenario", "follower"], sort=False)["collisions"].sum()
