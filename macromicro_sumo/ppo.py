@@ -385,7 +385,8 @@ def train_policy(
         agent = Agent(cfg.hidden_size, cfg.init_log_std, cfg.observation, shift_scale)
         if init is not None:
             agent.load_state_dict(init)
-        select = cfg.checkpoint_selection == "val_micro_logp"
+        # macro_only never sees observed actions: choosing its update by them would leak them.
+        select = cfg.checkpoint_selection == "val_micro_logp" and objective != "macro_only"
         train_eps, val_eps = split_episodes(bank.run, val_runs if select else None)
         val_obs, val_act = validation_pairs(agent, core, val_eps, cfg.horizon, sc)
         best_val, best_state = -float("inf"), None
