@@ -261,13 +261,13 @@ class RingCore:
         if m:
             # sum()/m rather than mean()/std(): numpy's reductions cost more than the math here.
             mean = a.sum() / m
-            dev = a - mean
             low = np.maximum(0.0, d_min - a)
             high = np.maximum(0.0, a - d_max)
             terms["L_mean"] = float((mean / d_mean - 1.0) ** 2)
             terms["L_min"] = float((low * low).sum() / (m * d_min * d_min))
             terms["L_max"] = float((high * high).sum() / (m * d_max * d_max))
             if self.bank.spacing_std_m is None:
+                dev = a - mean
                 terms["L_var"] = float(np.sqrt((dev * dev).sum() / m) / d_mean)
             else:  # macro.measured_dispersion
                 dev = a - d_mean

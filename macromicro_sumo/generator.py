@@ -590,10 +590,10 @@ def macro_losses(
     cnt = a.sum(dim=1).clamp(min=1.0)
     mean = (gap * a).sum(dim=1) / cnt
     dmin, dmax = psi.d_min[:, None], psi.d_max[:, None]
-    var = (((gap - mean[:, None]) ** 2) * a).sum(dim=1) / cnt
     has = a.sum(dim=1) > 0
     zero = torch.zeros_like(mean)
     if psi.d_std is None:
+        var = (((gap - mean[:, None]) ** 2) * a).sum(dim=1) / cnt
         # sqrt has an infinite slope at 0: the epsilon keeps equal gaps trainable.
         l_var = torch.sqrt(var + 1e-8) / psi.d_mean
     else:

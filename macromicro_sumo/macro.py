@@ -231,9 +231,7 @@ def measured_dispersion(gaps_m: Any, mask: Any, mean_m: Any, std_m: Any) -> Any:
     error in a widely spread scene then counts for what it does to that figure).
     """
     m = mask * 1.0
-    cnt = m.sum(-1)
-    cnt = cnt.clip(min=1.0) if hasattr(cnt, "clip") else max(cnt, 1.0)
-    var = (((gaps_m - mean_m[..., None]) ** 2) * m).sum(-1) / cnt
+    var = (((gaps_m - mean_m[..., None]) ** 2) * m).sum(-1) / m.sum(-1).clip(min=1.0)
     return abs(var - std_m**2) / mean_m**2
 
 

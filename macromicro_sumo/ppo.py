@@ -486,10 +486,8 @@ def train_policy(
                     loss.backward()
                     nn.utils.clip_grad_norm_(agent.parameters(), 0.5)
                     opt.step()
-            with torch.no_grad():
-                new_obs, new_act = micro_pool[-1]
-                micro_all = mean_logp(agent, new_obs, new_act)
-                val_logp = mean_logp(agent, val_obs, val_act)
+            micro_all = mean_logp(agent, *micro_pool[-1])
+            val_logp = mean_logp(agent, val_obs, val_act)
             if val_logp > best_val:  # NaN (no validation pairs) never is: the last one is kept
                 best_val, best_state = val_logp, copy.deepcopy(agent.state_dict())
             row = {
