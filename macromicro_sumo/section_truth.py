@@ -296,10 +296,10 @@ def detector_macro(
                 "end_s": end,
                 "source": "detectors",
                 "mean_speed_mps": speed,
-                "std_speed_mps": float(ps.std()) if ps.size else np.nan,
+                "std_speed_mps": float(ps.std(ddof=1)) if ps.size > 1 else np.nan,
                 "density_vpkm_lane": density,
                 "mean_spacing_m": 1000.0 / density if density > 0 else np.nan,
-                "std_spacing_m": float(d.std()) if d.size > 1 else np.nan,
+                "std_spacing_m": float(d.std(ddof=1)) if d.size > 1 else np.nan,  # sample std
                 "speed_min_mps": float(ps.min()) if ps.size else np.nan,
                 "speed_max_mps": float(ps.max()) if ps.size else np.nan,
                 "vehicles": vehicles,
