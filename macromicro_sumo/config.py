@@ -140,7 +140,11 @@ class GeneratorConfig:
         "mean squared deviation from the mean spacing against the detectors' spacing variance",
     )
     bounds_source: str = _f(
-        "interval", choices=("interval", "fixed"), doc="Psi bounds: measured per interval or fixed"
+        "interval",
+        choices=("interval", "extended", "fixed"),
+        doc="Psi bounds: measured per interval; the same widened by (max - min) / (n - 1) on "
+        "each side, n the interval's samples (n samples' extremes leave out ~2 / (n + 1) of "
+        "the stream); or fixed",
     )
     snapshot_every_s: float = _f(5.0, lo=0.01, hi=1e6, doc="time between snapshots [s]")
     held_out_fraction: float = _f(0.25, lo=0.01, hi=0.99, doc="share of runs held out")

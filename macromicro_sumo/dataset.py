@@ -159,6 +159,13 @@ def psi_and_dispersion(gt: GroundTruth, sc: Scenario, run: int, time_s: float) -
             f"{gt.folder}/macro.csv: no {sc.generator.psi_source} row for run {run} at t = {time_s:g} s"
         )
     psi = rows.iloc[0][[*PSI_COLUMNS, "spacing_std_m"]].to_numpy(dtype=float)
+    if sc.generator.bounds_source == "extended":
+        # The sample range of n draws covers on average (n - 1) / (n + 1) of the stream's
+        # distribution; range / (n - 1) each side is the classical correction of the ends.
+        n = max(float(rows.iloc[0]["n_samples"]), 2.0)
+        for lo, hi in ((2, 3), (4, 5)):
+            widen = (psi[hi] - psi[lo]) / (n - 1)
+            psi[lo], psi[hi] = psi[lo] - widen, psi[hi] + widen
     if sc.generator.bounds_source == "fixed":
         psi[2:4] = sc.bounds.spacing_m
         psi[4:6] = sc.bounds.speed_mps

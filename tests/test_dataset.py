@@ -252,6 +252,28 @@ def test_psi_fixed_bounds_come_from_the_scenario(gt_small):
     assert not np.array_equal(snaps.psi[:, 2:], interval.psi[:, 2:])
 
 
+def test_psi_extended_bounds_widen_the_measured_range_by_range_over_n_minus_1(gt_small):
+    """The detectors' n-sample extremes widened each side; the means stay measured, and
+    fewer recorded gaps and speeds fall outside than outside the measured range."""
+    sc, gt = gt_small
+    ext = snapshot_states(gt, with_generator(sc, bounds_source="extended"), gt.runs)
+    meas = snapshot_states(gt, sc, gt.runs)
+    np.testing.assert_array_equal(ext.psi[:, :2], meas.psi[:, :2])
+    for i, t in enumerate(ext.time_s):
+        n = macro_row(gt, int(ext.run[i]), "detectors", float(t))["n_samples"]
+        for lo, hi in ((2, 3), (4, 5)):
+            widen = (meas.psi[i, hi] - meas.psi[i, lo]) / (n - 1)
+            assert widen > 0
+            np.testing.assert_allclose(ext.psi[i, [lo, hi]], meas.psi[i, [lo, hi]] + [-widen, widen])
+
+    def outside(snaps, x, lo, hi):
+        return ((x < snaps.psi[:, lo, None]) | (x > snaps.psi[:, hi, None])).mean()
+
+    gaps = ring_gaps_np(meas.arc_m)
+    assert outside(ext, gaps, 2, 3) < outside(meas, gaps, 2, 3)
+    assert outside(ext, ext.speed_mps, 4, 5) <= outside(meas, meas.speed_mps, 4, 5)
+
+
 def test_psi_for_a_time_outside_every_interval_names_macro_csv(gt_small):
     sc, gt = gt_small
     with pytest.raises(UserError, match=r"macro\.csv: no detectors row for run 0 at t = 500 s"):
