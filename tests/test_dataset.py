@@ -264,7 +264,9 @@ def test_psi_extended_bounds_widen_the_measured_range_by_range_over_n_minus_1(gt
         for lo, hi in ((2, 3), (4, 5)):
             widen = (meas.psi[i, hi] - meas.psi[i, lo]) / (n - 1)
             assert widen > 0
-            np.testing.assert_allclose(ext.psi[i, [lo, hi]], meas.psi[i, [lo, hi]] + [-widen, widen])
+            np.testing.assert_allclose(
+                ext.psi[i, [lo, hi]], meas.psi[i, [lo, hi]] + [-widen, widen]
+            )
 
     def outside(snaps, x, lo, hi):
         return ((x < snaps.psi[:, lo, None]) | (x > snaps.psi[:, hi, None])).mean()
