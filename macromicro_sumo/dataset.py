@@ -164,7 +164,7 @@ def psi_and_dispersion(gt: GroundTruth, sc: Scenario, run: int, time_s: float) -
         # distribution; range / (n - 1) each side is the classical correction of the ends.
         n = max(float(rows.iloc[0]["n_samples"]), 2.0)
         for lo, hi in ((2, 3), (4, 5)):
-            widen = (psi[hi] - psi[lo]) / (n - 1)
+            widen = max(psi[hi] - psi[lo], 0.0) / (n - 1)  # crossed bounds stay as measured
             psi[lo], psi[hi] = psi[lo] - widen, psi[hi] + widen
     if sc.generator.bounds_source == "fixed":
         psi[2:4] = sc.bounds.spacing_m

@@ -218,7 +218,7 @@ def macro_row(gt: GroundTruth, run: int, source: str, t: float) -> pd.Series:
 @pytest.mark.parametrize("source", ["detectors", "trajectories"])
 def test_psi_is_the_macro_row_of_the_snapshot_interval(gt_small, source):
     sc, gt = gt_small
-    sc = with_generator(sc, psi_source=source)
+    sc = with_generator(sc, psi_source=source, bounds_source="interval")
     snaps = snapshot_states(gt, sc, gt.runs)
     for i in range(len(snaps)):
         row = macro_row(gt, snaps.run[i], source, snaps.time_s[i])
@@ -257,7 +257,7 @@ def test_psi_extended_bounds_widen_the_measured_range_by_range_over_n_minus_1(gt
     fewer recorded gaps and speeds fall outside than outside the measured range."""
     sc, gt = gt_small
     ext = snapshot_states(gt, with_generator(sc, bounds_source="extended"), gt.runs)
-    meas = snapshot_states(gt, sc, gt.runs)
+    meas = snapshot_states(gt, with_generator(sc, bounds_source="interval"), gt.runs)
     np.testing.assert_array_equal(ext.psi[:, :2], meas.psi[:, :2])
     for i, t in enumerate(ext.time_s):
         n = macro_row(gt, int(ext.run[i]), "detectors", float(t))["n_samples"]
