@@ -202,6 +202,13 @@ class PolicyConfig:
         doc="rollouts whose observed pairs r_micro uses at each update (1: this update's only, "
         "the paper); with observed_leader the pairs do not depend on the policy",
     )
+    macro_speed_scale_mps: float = _f(
+        0.0,
+        lo=0.0,
+        hi=1e3,
+        doc="r_macro's L_speed: 0 is the paper's (v / v_mean - 1)^2; s > 0 makes it "
+        "((v - v_mean) / s)^2, a bias of s costing as much as the paper's 100% error",
+    )
     checkpoint_selection: str = _f(
         "last",
         choices=("last", "val_micro_logp"),

@@ -256,7 +256,8 @@ class RingCore:
         """
         v_mean, d_mean, d_min, d_max = self.psi[0], self.psi[1], self.psi[2], self.psi[3]
         a = self.spacing[self.hidden | self.hidden[self.leader]]
-        terms = {"L_speed": float((self.speed.sum() / self.n / v_mean - 1.0) ** 2)}
+        scale = self.sc.policy.macro_speed_scale_mps or v_mean  # macro.speed_loss
+        terms = {"L_speed": float(((self.speed.sum() / self.n - v_mean) / scale) ** 2)}
         m = a.size
         if m:
             # sum()/m rather than mean()/std(): numpy's reductions cost more than the math here.

@@ -238,6 +238,13 @@ def measured_dispersion(gaps_m: Any, mask: Any, mean_m: Any, std_m: Any) -> Any:
     return abs(var - std_m**2) / mean_m**2
 
 
-def speed_loss(speeds_mps: np.ndarray, target_mps: np.ndarray) -> np.ndarray:
-    """L_speed = (mean fleet speed / v_GT - 1)^2, batched over the leading axis."""
-    return (speeds_mps.mean(-1) / target_mps - 1.0) ** 2
+def speed_loss(
+    speeds_mps: np.ndarray, target_mps: np.ndarray, scale_mps: float = 0.0
+) -> np.ndarray:
+    """L_speed = ((mean fleet speed - v_GT) / s)^2, batched over the leading axis.
+
+    s = v_GT (``scale_mps`` 0) is the paper's relative error; a fixed s in m/s makes a
+    bias of s cost what the paper charges for a 100% error (``policy.macro_speed_scale_mps``).
+    """
+    scale = scale_mps if scale_mps > 0 else target_mps
+    return ((speeds_mps.mean(-1) - target_mps) / scale) ** 2

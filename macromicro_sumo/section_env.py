@@ -306,6 +306,7 @@ def section_macro_reward(
     psi: np.ndarray,
     lambda_v: float,
     lambda_d: float,
+    speed_scale_mps: float = 0.0,
 ) -> tuple[float, dict[str, float]]:
     """r_macro = 1 / (1 + lambda_v L_speed + lambda_d L_dist) of the active vehicles vs psi.
 
@@ -320,7 +321,8 @@ def section_macro_reward(
     n = int(active.sum())
     if n == 0:
         return 0.0, {}
-    terms = {"L_speed": float((speed_mps[active].sum() / n / v_mean - 1.0) ** 2)}
+    scale = speed_scale_mps or v_mean  # macro.speed_loss
+    terms = {"L_speed": float(((speed_mps[active].sum() / n - v_mean) / scale) ** 2)}
     has = active & (leader >= 0)
     lead = np.maximum(leader, 0)
     a = spacing_m[has & (hidden | hidden[lead])]
@@ -570,6 +572,7 @@ class SectionCore:
             self.psi,
             g.lambda_v,
             g.lambda_d,
+            self.sc.policy.macro_speed_scale_mps,
         )
 
     def _result(self, r: float, terms, collision: bool, truncated: bool, error: str):

@@ -177,6 +177,15 @@ def test_speed_loss():
     )
 
 
+def test_speed_loss_with_a_scale_charges_a_bias_of_the_scale_one():
+    """policy.macro_speed_scale_mps: a 0.1 m/s bias costs 1, as a 100% error in the paper's."""
+    v = np.array([[12.05, 12.15], [12.0, 12.0]])
+    np.testing.assert_allclose(speed_loss(v, np.array([12.0, 12.0]), 0.1), [1.0, 0.0])
+    # 4 cm/s at 12 m/s: 1e-5 in the paper's form, 0.16 with s = 0.1 m/s
+    assert speed_loss(np.array([[12.04]]), np.array([12.0]))[0] < 2e-5
+    assert speed_loss(np.array([[12.04]]), np.array([12.0]), 0.1)[0] == pytest.approx(0.16)
+
+
 def test_lookahead_features_per_vehicle_rows_and_one_ring():
     from macromicro_sumo.physics import lookahead_features
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -141,13 +143,17 @@ def test_train_policy_cli_writes_policy_and_log(small_gt, tmp_path):
     assert (pol / "policy.pt").is_file()
 
 
-def test_env_macro_reward_equals_the_shared_loss_terms(small_gt):
+@pytest.mark.parametrize("speed_scale", [0.0, 0.1])
+def test_env_macro_reward_equals_the_shared_loss_terms(small_gt, speed_scale):
     """The env's single-ring fast path computes exactly macro.spacing_losses / speed_loss."""
     from macromicro_sumo.macro import spacing_losses, speed_loss
     from macromicro_sumo.physics import ring_leaders
 
     sc, gt_dir = small_gt
     bank = _bank(sc, gt_dir, 3)
+    sc = dataclasses.replace(
+        sc, policy=dataclasses.replace(sc.policy, macro_speed_scale_mps=speed_scale)
+    )
     core = RingCore(sc, bank, seed=0)
     try:
         for ep in range(5):
@@ -162,7 +168,11 @@ def test_env_macro_reward_equals_the_shared_loss_terms(small_gt):
             for key, val in ref.items():
                 assert res.terms[key] == pytest.approx(float(val[0]), abs=1e-12)
             assert res.terms["L_speed"] == pytest.approx(
-                float(speed_loss(core.speed[None], p[0:1])[0]), abs=1e-12
+                float(speed_loss(core.speed[None], p[0:1], speed_scale)[0]), abs=1e-12
             )
+            g = sc.generator
+            l_dist = sum(res.terms[k] for k in ("L_mean", "L_min", "L_max", "L_var"))
+            want = 1 / (1 + g.lambda_v * res.terms["L_speed"] + g.lambda_d * l_dist)
+            assert res.r_macro == pytest.approx(want, rel=1e-12)
     finally:
         core.close()

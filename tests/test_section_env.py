@@ -199,6 +199,25 @@ def test_reward_with_no_hidden_pair_and_nan_std():
     assert r == 1.0 and terms["L_var"] == 0.0
 
 
+def test_reward_speed_scale_charges_a_bias_in_mps():
+    """policy.macro_speed_scale_mps on a section: a bias of the scale costs L_speed = 1."""
+    args = (
+        np.array([30.2, 30.2]),
+        np.array([50.0, NO_LEADER_GAP_M]),
+        np.array([1, -1]),
+        np.array([False, False]),
+        np.array([True, True]),
+        np.array([30.0, 60.0, np.nan, 0.0, 50.0, 7.0]),
+        0.5,
+        0.5,
+    )
+    r_paper, paper = section_macro_reward(*args)
+    r_scaled, scaled = section_macro_reward(*args, 0.2)
+    assert paper["L_speed"] == pytest.approx((0.2 / 30.0) ** 2)
+    assert scaled["L_speed"] == pytest.approx(1.0)
+    assert r_scaled == pytest.approx(1 / 1.5) and r_paper > 0.9999
+
+
 def test_closed_ring_gives_the_leaders_of_ring_core(tmp_path):
     """The ring as a one-lane closed section: same leaders and spacings as RingCore."""
     ring_sc = load_scenario(PAPER_SCENARIO)
