@@ -122,3 +122,22 @@ def test_validation_selection_keeps_the_best_update(ring, tmp_path):
     saved = torch.load(tmp_path / "policy.pt", weights_only=False)["state_dict"]
     for k, v in res["agent"].state_dict().items():
         torch.testing.assert_close(saved[k], v)
+
+
+def test_macro_only_ignores_the_validation_selection(ring, tmp_path):
+    """macro_only never sees observed actions: it trains on every episode, validation runs
+    included, and keeps its last update even when the scenario selects by likelihood."""
+    sc, bank, val_runs = ring
+    sc = dataclasses.replace(
+        sc, policy=dataclasses.replace(sc.policy, checkpoint_selection="val_micro_logp")
+    )
+    res = train_policy(
+        sc, bank, tmp_path, objective="macro_only", progress=False, updates=2, val_runs=val_runs
+    )
+    assert [row["update"] for row in res["log"]] == [1, 2]
+    assert np.isnan([row["val_micro_logp"] for row in res["log"]]).all()
+    last = torch.load(tmp_path / "policy_macro_only_checkpoint.pt", weights_only=False)
+    assert last["update"] == 2 and last["best_state_dict"] is None
+    saved = torch.load(tmp_path / "policy_macro_only.pt", weights_only=False)["state_dict"]
+    for k, v in last["state_dict"].items():
+        torch.testing.assert_close(saved[k], v)
