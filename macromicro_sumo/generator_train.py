@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 import torch
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from tqdm import tqdm
 
 from macromicro_sumo.checkpoints import load_network, save_torch
@@ -148,6 +149,14 @@ def train_generator(
     if init is not None:
         net.load_state_dict(init)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    # The REINFORCE gradient of the gap choice is noisy: the averaged weights change less
+    # with the training seed than the last step's (ema_decay > 0 validates and keeps them).
+    ema = (
+        AveragedModel(net, multi_avg_fn=get_ema_multi_avg_fn(cfg.ema_decay))
+        if cfg.ema_decay > 0
+        else None
+    )
+    kept = ema.module if ema is not None else net
     gen = torch.Generator().manual_seed(sc.seed)
     best, best_state, bad, log = np.inf, copy.deepcopy(net.state_dict()), 0, []
     t0 = time.perf_counter()
@@ -165,10 +174,12 @@ def train_generator(
             loss.backward()
             torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
             opt.step()
+            if ema is not None:
+                ema.update_parameters(net)
             stats.append(s)
-        net.eval()
+        kept.eval()
         with torch.no_grad():
-            _, vs = _batch_loss(net, val, sc, torch.Generator().manual_seed(sc.seed + 17))
+            _, vs = _batch_loss(kept, val, sc, torch.Generator().manual_seed(sc.seed + 17))
         row = {
             "epoch": epoch,
             "wall_s": time.perf_counter() - t0,
@@ -177,8 +188,8 @@ def train_generator(
         }
         log.append(row)
         if vs["loss"] < best - 1e-6:
-            best, best_state, bad = vs["loss"], copy.deepcopy(net.state_dict()), 0
-            save_generator(out / "generator.pt", net, sc, {"epoch": epoch, "val_loss": best})
+            best, best_state, bad = vs["loss"], copy.deepcopy(kept.state_dict()), 0
+            save_generator(out / "generator.pt", kept, sc, {"epoch": epoch, "val_loss": best})
         else:
             bad += 1
         bar.set_postfix(

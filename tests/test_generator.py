@@ -672,6 +672,35 @@ def test_reconstruction_switch_trains_and_logs_l_rec(trained, tmp_path):
 # --------------------------------------------------------------------------- training and metrics
 
 
+def test_weight_averaging_validates_and_keeps_the_averaged_weights(trained, tmp_path):
+    """generator.ema_decay: training itself is unchanged (same seed, same train losses); the
+    validation loss, early stopping and the saved file see the moving average."""
+    sc, gt, _, _ = trained
+
+    def fit(decay: float) -> tuple[pd.DataFrame, dict]:
+        cfg = dataclasses.replace(sc.generator, ema_decay=decay, epochs=3, patience=10)
+        out = tmp_path / f"ema{decay}"
+        res = train_generator(dataclasses.replace(sc, generator=cfg), gt, out, progress=False)
+        saved = load_generator(out / "generator.pt", sc).state_dict()
+        best = int(np.argmin(pd.read_csv(out / "generator_train_log.csv")["val_loss"]))
+        if best == 2:  # the best epoch is the last: the returned net is the saved one
+            for key, val in res["net"].state_dict().items():
+                torch.testing.assert_close(saved[key], val)
+        return pd.read_csv(out / "generator_train_log.csv"), saved
+
+    raw_log, raw = fit(0.0)
+    avg_log, avg = fit(0.9)
+    near_log, near = fit(1e-12)
+    train_cols = [c for c in raw_log if c.startswith("train_")]
+    pd.testing.assert_frame_equal(raw_log[train_cols], avg_log[train_cols])
+    assert not np.allclose(raw_log["val_loss"], avg_log["val_loss"])
+    assert any(not torch.allclose(raw[k], avg[k]) for k in raw)
+    # A vanishing decay averages nothing: the same weights and validation as without it.
+    np.testing.assert_allclose(near_log["val_loss"], raw_log["val_loss"], rtol=1e-5)
+    for key in raw:
+        torch.testing.assert_close(near[key], raw[key], rtol=1e-5, atol=1e-6)
+
+
 def test_training_lowers_the_validation_loss(trained):
     log = pd.read_csv(trained[3] / "generator_train_log.csv")
     assert len(log) == 30
