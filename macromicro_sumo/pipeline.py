@@ -39,6 +39,34 @@ def policy_paths(pol: Path) -> dict[str, Path]:
     return paths
 
 
+def standard_stages(
+    out: Path,
+    simulate: Callable[[Path], Any],
+    train_generator: Callable[[Path, Path], Any],
+    train_policy: Callable[[Path, Path, Path, str], Any],
+    evaluate: Callable[[Path, Path, dict[str, Path], Path], Any],
+) -> list[Stage]:
+    """Ground truth -> generator -> the paper's policy and its two ablations -> evaluation,
+    in ``out``'s sub-folders; the callables take the folders (and the policy's objective)."""
+    gt, gen, pol, ev = out / "ground_truth", out / "generator", out / "policy", out / "evaluation"
+
+    def train(objective: str) -> Callable[[], Any]:
+        return lambda: train_policy(gt, gen / "generator.pt", pol, objective)
+
+    return [
+        ("simulate", gt / "manifest.json", lambda: simulate(gt)),
+        ("train_generator", gen / "generator_manifest.json", lambda: train_generator(gt, gen)),
+        ("train_policy", pol / "policy_manifest.json", train("mix")),
+        ("train_policy_micro_only", pol / "policy_manifest_micro_only.json", train("micro_only")),
+        ("train_policy_macro_only", pol / "policy_manifest_macro_only.json", train("macro_only")),
+        (
+            "evaluate",
+            ev / "evaluation_manifest.json",
+            lambda: evaluate(gt, gen / "generator.pt", policy_paths(pol), ev),
+        ),
+    ]
+
+
 def run(sc: Scenario, out: Path | str, command: str = "", progress: bool = True) -> dict[str, Any]:
     from macromicro_sumo.evaluation import evaluate
     from macromicro_sumo.generator_train import run_train_generator
@@ -47,31 +75,14 @@ def run(sc: Scenario, out: Path | str, command: str = "", progress: bool = True)
     from macromicro_sumo.report import write_report
 
     out = prepare_out_dir(out)
-    gt, gen, pol, ev = out / "ground_truth", out / "generator", out / "policy", out / "evaluation"
-
-    def train(objective: str) -> Callable[[], Any]:
-        return lambda: run_train_policy(
-            sc, gt, gen / "generator.pt", pol, True, command, progress, objective
-        )
-
-    stages: list[Stage] = [
-        ("simulate", gt / "manifest.json", lambda: simulate(sc, gt, command, progress)),
-        (
-            "train_generator",
-            gen / "generator_manifest.json",
-            lambda: run_train_generator(sc, gt, gen, command, progress),
-        ),
-        ("train_policy", pol / "policy_manifest.json", train("mix")),
-        ("train_policy_micro_only", pol / "policy_manifest_micro_only.json", train("micro_only")),
-        ("train_policy_macro_only", pol / "policy_manifest_macro_only.json", train("macro_only")),
-        (
-            "evaluate",
-            ev / "evaluation_manifest.json",
-            lambda: evaluate(
-                sc, gt, gen / "generator.pt", policy_paths(pol), ev, command, progress
-            ),
-        ),
-    ]
+    gt, gen, pol = out / "ground_truth", out / "generator", out / "policy"
+    stages = standard_stages(
+        out,
+        lambda gt_: simulate(sc, gt_, command, progress),
+        lambda gt_, gen_: run_train_generator(sc, gt_, gen_, command, progress),
+        lambda gt_, g, pol_, obj: run_train_policy(sc, gt_, g, pol_, True, command, progress, obj),
+        lambda gt_, g, pols, ev: evaluate(sc, gt_, g, pols, ev, command, progress),
+    )
     if sc.policy.refine_iterations > 0:
         from macromicro_sumo.refinement import refine
 

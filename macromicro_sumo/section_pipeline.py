@@ -7,7 +7,6 @@ when its manifest records the same scenario digest and seed.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +14,7 @@ import numpy as np
 
 from macromicro_sumo.files import prepare_out_dir, write_json
 from macromicro_sumo.manifest import build_manifest
-from macromicro_sumo.pipeline import Stage, policy_paths, run_stages
+from macromicro_sumo.pipeline import run_stages, standard_stages
 
 
 def run_train_section_policy(
@@ -89,31 +88,15 @@ def run_section(sc, out: Path | str, command: str = "", progress: bool = True) -
     from macromicro_sumo.section_truth import simulate_section
 
     out = prepare_out_dir(out)
-    gt, gen, pol, ev = out / "ground_truth", out / "generator", out / "policy", out / "evaluation"
-
-    def train(objective: str) -> Callable[[], Any]:
-        return lambda: run_train_section_policy(
-            sc, gt, gen / "generator.pt", pol, "auto", command, progress, objective
-        )
-
-    stages: list[Stage] = [
-        ("simulate", gt / "manifest.json", lambda: simulate_section(sc, gt, command, progress)),
-        (
-            "train_generator",
-            gen / "generator_manifest.json",
-            lambda: run_train_section_generator(sc, gt, gen, command, progress),
+    stages = standard_stages(
+        out,
+        lambda gt: simulate_section(sc, gt, command, progress),
+        lambda gt, gen: run_train_section_generator(sc, gt, gen, command, progress),
+        lambda gt, g, pol, obj: run_train_section_policy(
+            sc, gt, g, pol, "auto", command, progress, obj
         ),
-        ("train_policy", pol / "policy_manifest.json", train("mix")),
-        ("train_policy_micro_only", pol / "policy_manifest_micro_only.json", train("micro_only")),
-        ("train_policy_macro_only", pol / "policy_manifest_macro_only.json", train("macro_only")),
-        (
-            "evaluate",
-            ev / "evaluation_manifest.json",
-            lambda: evaluate_section(
-                sc, gt, gen / "generator.pt", policy_paths(pol), ev, command, progress
-            ),
-        ),
-    ]
+        lambda gt, g, pols, ev: evaluate_section(sc, gt, g, pols, ev, command, progress),
+    )
     manifest = run_stages(sc, stages, out, command, progress)
     write_section_report(sc, out, manifest)
     return manifest
