@@ -185,9 +185,10 @@ def test_observations_and_reward_match_direct_computation(tmp_path, highway):
         core.close()
 
 
-def test_reward_with_no_hidden_pair_and_nan_std():
-    r, terms = section_macro_reward(
-        np.array([30.0, 30.0]),
+def two_cars_no_hidden(speed_mps: float) -> tuple:
+    """section_macro_reward's arguments: two observed cars in one lane, psi with a NaN std."""
+    return (
+        np.array([speed_mps, speed_mps]),
         np.array([50.0, NO_LEADER_GAP_M]),
         np.array([1, -1]),
         np.array([False, False]),
@@ -196,23 +197,17 @@ def test_reward_with_no_hidden_pair_and_nan_std():
         0.5,
         0.5,
     )
+
+
+def test_reward_with_no_hidden_pair_and_nan_std():
+    r, terms = section_macro_reward(*two_cars_no_hidden(30.0))
     assert r == 1.0 and terms["L_var"] == 0.0
 
 
 def test_reward_speed_scale_charges_a_bias_in_mps():
     """policy.macro_speed_scale_mps on a section: a bias of the scale costs L_speed = 1."""
-    args = (
-        np.array([30.2, 30.2]),
-        np.array([50.0, NO_LEADER_GAP_M]),
-        np.array([1, -1]),
-        np.array([False, False]),
-        np.array([True, True]),
-        np.array([30.0, 60.0, np.nan, 0.0, 50.0, 7.0]),
-        0.5,
-        0.5,
-    )
-    r_paper, paper = section_macro_reward(*args)
-    r_scaled, scaled = section_macro_reward(*args, 0.2)
+    r_paper, paper = section_macro_reward(*two_cars_no_hidden(30.2))
+    r_scaled, scaled = section_macro_reward(*two_cars_no_hidden(30.2), 0.2)
     assert paper["L_speed"] == pytest.approx((0.2 / 30.0) ** 2)
     assert scaled["L_speed"] == pytest.approx(1.0)
     assert r_scaled == pytest.approx(1 / 1.5) and r_paper > 0.9999
