@@ -28,6 +28,28 @@ def save_torch(path: Path, payload: dict[str, Any]) -> None:
         tmp.write_bytes(buf.getvalue())
 
 
+def save_network(
+    path: Path,
+    fmt: str,
+    net: nn.Module,
+    signature: dict[str, Any],
+    scenario: dict[str, Any],
+    extra: dict[str, Any] | None = None,
+) -> None:
+    """The checkpoint ``load_network`` reads: format tag, weights, width, signature, scenario."""
+    save_torch(
+        path,
+        {
+            "format": fmt,
+            "state_dict": net.state_dict(),
+            "hidden_size": net.hidden_size,
+            "signature": signature,
+            "scenario": scenario,
+            **(extra or {}),
+        },
+    )
+
+
 def load_network(
     path: Path | str,
     fmt: str,

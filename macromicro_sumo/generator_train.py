@@ -20,7 +20,7 @@ import torch
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from tqdm import tqdm
 
-from macromicro_sumo.checkpoints import load_network, save_torch
+from macromicro_sumo.checkpoints import load_network, save_network
 from macromicro_sumo.config import Scenario
 from macromicro_sumo.dataset import (
     GroundTruth,
@@ -67,17 +67,7 @@ def signature(sc: Scenario) -> dict[str, Any]:
 def save_generator(
     path: Path, net: GeneratorNet, sc: Scenario, extra: dict[str, Any] | None = None
 ) -> None:
-    save_torch(
-        path,
-        {
-            "format": CHECKPOINT_FORMAT,
-            "state_dict": net.state_dict(),
-            "hidden_size": net.hidden_size,
-            "signature": signature(sc),
-            "scenario": sc.to_dict(),
-            **(extra or {}),
-        },
-    )
+    save_network(path, CHECKPOINT_FORMAT, net, signature(sc), sc.to_dict(), extra)
 
 
 def load_generator(path: Path | str, sc: Scenario) -> GeneratorNet:

@@ -61,7 +61,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from macromicro_sumo.checkpoints import load_network, save_torch
+from macromicro_sumo.checkpoints import load_network, save_network
 from macromicro_sumo.section import Section, lane_leaders
 from macromicro_sumo.section_config import SectionScenario
 from macromicro_sumo.section_data import PSI_FIELDS, SectionSnapshots
@@ -1111,17 +1111,7 @@ def save_section_generator(
     path: Path, net: SectionGeneratorNet, sc: SectionScenario, extra: dict[str, Any] | None = None
 ) -> None:
     """Write ``generator.pt`` atomically (a crash never leaves a half-written checkpoint)."""
-    save_torch(
-        path,
-        {
-            "format": CHECKPOINT_FORMAT,
-            "state_dict": net.state_dict(),
-            "hidden_size": net.hidden_size,
-            "signature": signature(sc),
-            "scenario": sc.to_dict(),
-            **(extra or {}),
-        },
-    )
+    save_network(path, CHECKPOINT_FORMAT, net, signature(sc), sc.to_dict(), extra)
 
 
 def load_section_generator(path: Path | str, sc: SectionScenario) -> SectionGeneratorNet:
