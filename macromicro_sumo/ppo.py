@@ -556,6 +556,47 @@ def policy_run_key(sc, data: Path, generator: Path, objective: str) -> str:
     ).hexdigest()
 
 
+def training_bank(sc: Scenario, gt, net, splits: dict[str, np.ndarray]):
+    """The ring policy's episodes: train + val runs completed by the generator (scenario seed)."""
+    from macromicro_sumo.env import build_bank, generator_completion
+
+    return build_bank(
+        sc,
+        gt,
+        np.concatenate([splits["train"], splits["val"]]),
+        generator_completion(net, sc, sc.seed),
+        sc.policy.hidden_train,
+        sc.seed,
+    )
+
+
+def heldout_speed(sc: Scenario, gt, net, agent, held: np.ndarray) -> pd.DataFrame:
+    """Per K: the fleet's mean speed on the held-out runs, policy-driven vs recorded."""
+    from macromicro_sumo.env import build_bank, generator_completion
+    from macromicro_sumo.evaluation import policy_action, rollout
+
+    rows, h = [], sc.policy.horizon
+    for k in range(sc.generator.hidden_eval[0], sc.generator.hidden_eval[1] + 1):
+        bank = build_bank(sc, gt, held, generator_completion(net, sc, sc.seed + k), k, sc.seed + k)
+        core = RingCore(sc, bank, seed=sc.seed)
+        try:
+            ro = rollout(core, policy_action(agent), h, sc.seed + k)
+        finally:
+            core.close()
+        v, v_gt = np.nanmean(ro.speed_mps), bank.replay_speed_mps[:, 1 : h + 1].mean()
+        rows.append(
+            {
+                "K": k,
+                "mean_speed_mps": v,
+                "gt_mean_speed_mps": v_gt,
+                "abs_error_mps": abs(v - v_gt),
+                "collisions": ro.collisions,
+                "episodes": len(bank),
+            }
+        )
+    return pd.DataFrame(rows)
+
+
 def run_train_policy(
     sc: Scenario,
     data: Path,
@@ -569,11 +610,8 @@ def run_train_policy(
     """CLI stage: episodes from train+val runs completed by the generator, PPO, held-out check."""
     objective = objective or sc.policy.objective
     from macromicro_sumo.dataset import load_ground_truth, split_runs
-    from macromicro_sumo.env import build_bank, generator_completion
-    from macromicro_sumo.evaluation import policy_action, rollout
-    from macromicro_sumo.files import prepare_out_dir, write_json
+    from macromicro_sumo.files import prepare_out_dir
     from macromicro_sumo.generator_train import load_generator
-    from macromicro_sumo.manifest import build_manifest
 
     net = load_generator(generator, sc)
     gt = load_ground_truth(data, sc)
@@ -583,14 +621,7 @@ def run_train_policy(
     resumable_checkpoint(out / f"policy_{objective}_checkpoint.pt", sc, run_key, resume)
     torch.set_num_threads(1)
     splits = split_runs(gt.runs, sc.generator.held_out_fraction, sc.seed)
-    bank = build_bank(
-        sc,
-        gt,
-        np.concatenate([splits["train"], splits["val"]]),
-        generator_completion(net, sc, sc.seed),
-        sc.policy.hidden_train,
-        sc.seed,
-    )
+    bank = training_bank(sc, gt, net, splits)
     res = train_policy(
         sc,
         bank,
@@ -602,37 +633,29 @@ def run_train_policy(
         val_runs=splits["val"],
     )
     # Held-out check of the issue's target: fleet mean speed vs ground truth per K.
-    rows = []
-    h = sc.policy.horizon
-    for k in range(sc.generator.hidden_eval[0], sc.generator.hidden_eval[1] + 1):
-        held = build_bank(
-            sc, gt, splits["held_out"], generator_completion(net, sc, sc.seed + k), k, sc.seed + k
-        )
-        core = RingCore(sc, held, seed=sc.seed)
-        try:
-            ro = rollout(core, policy_action(res["agent"]), h, sc.seed + k)
-        finally:
-            core.close()
-        v, v_gt = np.nanmean(ro.speed_mps), held.replay_speed_mps[:, 1 : h + 1].mean()
-        rows.append(
-            {
-                "K": k,
-                "mean_speed_mps": v,
-                "gt_mean_speed_mps": v_gt,
-                "abs_error_mps": abs(v - v_gt),
-                "collisions": ro.collisions,
-                "episodes": len(held),
-            }
-        )
-    align = pd.DataFrame(rows)
+    align = heldout_speed(sc, gt, net, res["agent"], splits["held_out"])
     suffix = "" if objective == "mix" else f"_{objective}"
     write_csv(align, out / f"policy_heldout_speed{suffix}.csv")
+    manifest = write_policy_manifest(sc, command, objective, res, data, generator, out)
+    return {"alignment": align, **manifest}
+
+
+def write_policy_manifest(
+    sc, command: str, objective: str, res: dict, data: Path, generator: Path, out: Path, **extra
+) -> dict[str, Any]:
+    """``policy_manifest[_objective].json`` of a policy stage (ring or section); returned.
+    Written last: the pipeline takes a stage with its manifest as done."""
+    from macromicro_sumo.files import write_json
+    from macromicro_sumo.manifest import build_manifest
+
+    suffix = "" if objective == "mix" else f"_{objective}"
     manifest = build_manifest(sc, command, stage=f"train-policy{suffix}")
     manifest.update(
         timings_s={"train_policy": round(res["wall_s"], 3)},
         env_steps=res["env_steps"],
+        **extra,
         ground_truth=str(data),
         generator=str(generator),
     )
     write_json(manifest, out / f"policy_manifest{suffix}.json")
-    return {"alignment": align, **manifest}
+    return manifest

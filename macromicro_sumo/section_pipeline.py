@@ -12,8 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from macromicro_sumo.files import prepare_out_dir, write_json
-from macromicro_sumo.manifest import build_manifest
+from macromicro_sumo.files import prepare_out_dir
 from macromicro_sumo.pipeline import run_stages, standard_stages
 
 
@@ -31,7 +30,12 @@ def run_train_section_policy(
     import torch
 
     from macromicro_sumo.dataset import split_runs
-    from macromicro_sumo.ppo import policy_run_key, resumable_checkpoint, train_policy
+    from macromicro_sumo.ppo import (
+        policy_run_key,
+        resumable_checkpoint,
+        train_policy,
+        write_policy_manifest,
+    )
     from macromicro_sumo.section_data import section_snapshots
     from macromicro_sumo.section_env import SectionCore, build_section_bank, typical_vclass
     from macromicro_sumo.section_generator import generator_completion, load_section_generator
@@ -67,17 +71,9 @@ def run_train_section_policy(
         make_core=make_core,
         val_runs=splits["val"],
     )
-    suffix = "" if objective == "mix" else f"_{objective}"
-    manifest = build_manifest(sc, command, stage=f"train-policy{suffix}")
-    manifest.update(
-        timings_s={"train_policy": round(res["wall_s"], 3)},
-        env_steps=res["env_steps"],
-        episodes=len(bank),
-        ground_truth=str(data),
-        generator=str(generator),
+    return write_policy_manifest(
+        sc, command, objective, res, data, generator, out, episodes=len(bank)
     )
-    write_json(manifest, out / f"policy_manifest{suffix}.json")
-    return manifest
 
 
 def run_section(sc, out: Path | str, command: str = "", progress: bool = True) -> dict[str, Any]:

@@ -34,14 +34,11 @@ import time
 import tomllib
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 import torch
 
 from macromicro_sumo.config import Scenario, load_scenario
-from macromicro_sumo.dataset import GroundTruth, load_ground_truth, split_runs
-from macromicro_sumo.env import RingCore, build_bank, generator_completion
-from macromicro_sumo.evaluation import policy_action, rollout
+from macromicro_sumo.dataset import load_ground_truth, split_runs
 from macromicro_sumo.generator_train import load_generator
 from macromicro_sumo.leader_follower import (
     LeaderProfile,
@@ -50,7 +47,7 @@ from macromicro_sumo.leader_follower import (
     policy_follower,
     run_leader_follower,
 )
-from macromicro_sumo.ppo import train_policy
+from macromicro_sumo.ppo import heldout_speed, train_policy, training_bank
 
 
 def lf_rmse(sc: Scenario, agent) -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -72,21 +69,6 @@ def lf_rmse(sc: Scenario, agent) -> tuple[pd.DataFrame, pd.DataFrame]:
         s[s["method"] != "IDM"].rename(columns={"method": "follower"}),
         mean_trace.reset_index().rename(columns={"method": "follower"}),
     )
-
-
-def heldout_speed(sc: Scenario, gt: GroundTruth, net, agent, held: np.ndarray) -> pd.DataFrame:
-    """Signed held-out fleet mean-speed error per K (as ``policy_heldout_speed.csv``)."""
-    rows, h = [], sc.policy.horizon
-    for k in range(sc.generator.hidden_eval[0], sc.generator.hidden_eval[1] + 1):
-        bank = build_bank(sc, gt, held, generator_completion(net, sc, sc.seed + k), k, sc.seed + k)
-        core = RingCore(sc, bank, seed=sc.seed)
-        try:
-            ro = rollout(core, policy_action(agent), h, sc.seed + k)
-        finally:
-            core.close()
-        err = np.nanmean(ro.speed_mps) - bank.replay_speed_mps[:, 1 : h + 1].mean()
-        rows.append({"K": k, "speed_err_mps": err})
-    return pd.DataFrame(rows)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -114,14 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     splits = split_runs(gt.runs, sc.generator.held_out_fraction, sc.seed)
     # The training episodes of run_train_policy: built once with the scenario's own seed.
-    bank = build_bank(
-        sc,
-        gt,
-        np.concatenate([splits["train"], splits["val"]]),
-        generator_completion(net, sc, sc.seed),
-        sc.policy.hidden_train,
-        sc.seed,
-    )
+    bank = training_bank(sc, gt, net, splits)
     lf_rows, trace_rows, speed_rows = [], [], []
     for objective in args.objective:
         for i in range(args.seeds):
@@ -145,6 +120,8 @@ def main(argv: list[str] | None = None) -> int:
             trace_rows.append(trace)
             if args.speed:
                 sp = heldout_speed(sc, gt, net, agent, splits["held_out"])
+                sp["speed_err_mps"] = sp["mean_speed_mps"] - sp["gt_mean_speed_mps"]
+                sp = sp[["K", "speed_err_mps"]]
                 sp.insert(0, "train_seed", seed)
                 sp.insert(0, "objective", objective)
                 speed_rows.append(sp)
