@@ -87,7 +87,8 @@ def test_second_run_skips_finished_stages(pipeline, capsys):
     assert (out / "policy" / "policy.pt").read_bytes() == before
 
 
-def _evaluate(path, out, dest, *extra):
+def _evaluate(path, out, dest, *extra, policy=None):
+    """``macromicro evaluate`` on the pipeline's stage outputs (``policy`` replaces its policy)."""
     return cli.main(
         [
             "evaluate",
@@ -97,7 +98,7 @@ def _evaluate(path, out, dest, *extra):
             "--generator",
             str(out / "generator" / "generator.pt"),
             "--policy",
-            str(out / "policy" / "policy.pt"),
+            str(policy or out / "policy" / "policy.pt"),
             "--out",
             str(dest),
             "--quiet",
@@ -122,48 +123,14 @@ def test_evaluate_rejects_k_outside_the_scenario(pipeline, tmp_path, capsys, k):
 def test_evaluate_rejects_policy_of_another_scenario(pipeline, tmp_path, capsys):
     path, out = pipeline
     other = write_scenario(tmp_path / "other", {**SMALL_RUN, "bounds.accel_mps2": [-2.0, 1.0]})
-    assert (
-        cli.main(
-            [
-                "evaluate",
-                str(other),
-                "--data",
-                str(out / "ground_truth"),
-                "--generator",
-                str(out / "generator" / "generator.pt"),
-                "--policy",
-                str(out / "policy" / "policy.pt"),
-                "--out",
-                str(tmp_path / "ev"),
-                "--quiet",
-            ]
-        )
-        == 2
-    )
+    assert _evaluate(other, out, tmp_path / "ev") == 2
     err = capsys.readouterr().err
     assert "policy was trained for bounds.accel_mps2" in err and len(err.strip().splitlines()) == 1
 
 
 def test_evaluate_rejects_missing_stage_outputs(pipeline, tmp_path, capsys):
     path, out = pipeline
-    assert (
-        cli.main(
-            [
-                "evaluate",
-                str(path),
-                "--data",
-                str(out / "ground_truth"),
-                "--generator",
-                str(out / "generator" / "generator.pt"),
-                "--policy",
-                str(tmp_path / "nope" / "policy.pt"),
-                "--out",
-                str(tmp_path / "ev"),
-                "--quiet",
-            ]
-        )
-        == 2
-    )
+    assert _evaluate(path, out, tmp_path / "ev", policy=tmp_path / "nope" / "policy.pt") == 2
     assert "checkpoint not found" in capsys.readouterr().err
     assert not (tmp_path / "ev").exists() or not any((tmp_path / "ev").iterdir())
 
