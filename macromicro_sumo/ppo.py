@@ -609,18 +609,12 @@ def run_train_policy(
 ) -> dict[str, Any]:
     """CLI stage: episodes from train+val runs completed by the generator, PPO, held-out check."""
     objective = objective or sc.policy.objective
-    from macromicro_sumo.dataset import load_ground_truth, split_runs
-    from macromicro_sumo.files import prepare_out_dir
+    from macromicro_sumo.dataset import load_ground_truth
     from macromicro_sumo.generator_train import load_generator
 
     net = load_generator(generator, sc)
     gt = load_ground_truth(data, sc)
-    out = prepare_out_dir(out)
-    run_key = policy_run_key(sc, data, generator, objective)
-    # Fail early, before anything is overwritten.
-    resumable_checkpoint(out / f"policy_{objective}_checkpoint.pt", sc, run_key, resume)
-    torch.set_num_threads(1)
-    splits = split_runs(gt.runs, sc.generator.held_out_fraction, sc.seed)
+    out, run_key, splits = open_policy_stage(sc, gt.runs, data, generator, out, objective, resume)
     bank = training_bank(sc, gt, net, splits)
     res = train_policy(
         sc,
@@ -638,6 +632,21 @@ def run_train_policy(
     write_csv(align, out / f"policy_heldout_speed{suffix}.csv")
     manifest = write_policy_manifest(sc, command, objective, res, data, generator, out)
     return {"alignment": align, **manifest}
+
+
+def open_policy_stage(
+    sc, runs: np.ndarray, data: Path, generator: Path, out: Path, objective: str, resume: bool | str
+) -> tuple[Path, str, dict[str, np.ndarray]]:
+    """The head of a policy stage (ring or section): the output folder, the run key, and the
+    run split. Checks a checkpoint to resume before anything is overwritten."""
+    from macromicro_sumo.dataset import split_runs
+    from macromicro_sumo.files import prepare_out_dir
+
+    out = prepare_out_dir(out)
+    run_key = policy_run_key(sc, data, generator, objective)
+    resumable_checkpoint(out / f"policy_{objective}_checkpoint.pt", sc, run_key, resume)
+    torch.set_num_threads(1)
+    return out, run_key, split_runs(runs, sc.generator.held_out_fraction, sc.seed)
 
 
 def write_policy_manifest(

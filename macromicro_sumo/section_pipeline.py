@@ -27,15 +27,7 @@ def run_train_section_policy(
     objective: str | None = None,
 ) -> dict[str, Any]:
     """Stage II on a section: episodes from the train+val runs completed by the generator."""
-    import torch
-
-    from macromicro_sumo.dataset import split_runs
-    from macromicro_sumo.ppo import (
-        policy_run_key,
-        resumable_checkpoint,
-        train_policy,
-        write_policy_manifest,
-    )
+    from macromicro_sumo.ppo import open_policy_stage, train_policy, write_policy_manifest
     from macromicro_sumo.section_data import section_snapshots
     from macromicro_sumo.section_env import SectionCore, build_section_bank, typical_vclass
     from macromicro_sumo.section_generator import generator_completion, load_section_generator
@@ -44,11 +36,9 @@ def run_train_section_policy(
     objective = objective or sc.policy.objective
     truth = load_section_truth(data, sc)
     net = load_section_generator(generator, sc)
-    out = prepare_out_dir(out)
-    run_key = policy_run_key(sc, data, generator, objective)
-    resumable_checkpoint(out / f"policy_{objective}_checkpoint.pt", sc, run_key, resume)
-    torch.set_num_threads(1)
-    splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
+    out, run_key, splits = open_policy_stage(
+        sc, truth.runs, data, generator, out, objective, resume
+    )
     snaps = section_snapshots(truth, sc, np.concatenate([splits["train"], splits["val"]]))
     complete = generator_completion(net, truth.section, sc, sc.generator.k_source, sc.seed)
     bank = build_section_bank(sc, truth, snaps, complete, sc.policy.horizon, sc.seed)
