@@ -139,6 +139,13 @@ class GeneratorConfig:
         doc="L_var: paper = std of the touched gaps / mean (drives gaps equal); measured = their "
         "mean squared deviation from the mean spacing against the detectors' spacing variance",
     )
+    gap_choice: str = _f(
+        "network",
+        choices=("network", "posterior"),
+        doc="which gap receives the next hidden vehicle: network = the generator's scores "
+        "(the paper); posterior = drawn from the posterior of i.i.d. normal spacings with the "
+        "detectors' mean and std (needs spacing_dispersion = measured)",
+    )
     bounds_source: str = _f(
         "interval",
         choices=("interval", "extended", "fixed"),
@@ -424,6 +431,11 @@ def _check_consistency(sc: Scenario, file: str) -> None:
             raise UserError(
                 f"{file}: generator.{name} = [{lo}, {hi}] exceeds N = {n}; accepted [0, {n}]"
             )
+    if sc.generator.gap_choice == "posterior" and sc.generator.spacing_dispersion != "measured":
+        raise UserError(
+            f'{file}: generator.gap_choice = "posterior" needs the detectors\' spacing std: '
+            f'generator.spacing_dispersion = "{sc.generator.spacing_dispersion}"; accepted "measured"'
+        )
     if sc.simulation.duration_s < sc.simulation.step_length_s * 2:
         raise UserError(f"{file}: simulation.duration_s must cover at least two steps")
     if sc.detectors.interval_s > sc.simulation.duration_s:

@@ -60,6 +60,7 @@ def signature(sc: Scenario) -> dict[str, Any]:
         "generator.psi_source": sc.generator.psi_source,
         "generator.bounds_source": sc.generator.bounds_source,
         "generator.spacing_dispersion": sc.generator.spacing_dispersion,
+        "generator.gap_choice": sc.generator.gap_choice,
         "observation_layout": f"ring-gaps-v{FEATURE_VERSION}",
     }
 
@@ -73,7 +74,12 @@ def save_generator(
 def load_generator(path: Path | str, sc: Scenario) -> GeneratorNet:
     """Load ``generator.pt``; a corrupt file or one trained for another scenario is an error."""
     return load_network(
-        path, CHECKPOINT_FORMAT, "generator", signature(sc), GeneratorNet, sc.source
+        path,
+        CHECKPOINT_FORMAT,
+        "generator",
+        signature(sc),
+        lambda hidden_size: GeneratorNet(hidden_size, sc.generator.gap_choice),
+        sc.source,
     )
 
 
@@ -135,7 +141,7 @@ def train_generator(
         )
     else:
         train, val = given
-    net = GeneratorNet(cfg.hidden_size)
+    net = GeneratorNet(cfg.hidden_size, cfg.gap_choice)
     if init is not None:
         net.load_state_dict(init)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)

@@ -92,6 +92,15 @@ def test_speed_bounds_reversed(capsys, make_scenario, out):
     simulate_fails(capsys, path, out, str(path), "bounds.speed_mps", "reversed", "[0, 100]")
 
 
+def test_posterior_gap_choice_needs_the_measured_dispersion(capsys, make_scenario, out):
+    path = make_scenario(
+        {"generator.gap_choice": "posterior", "generator.spacing_dispersion": "paper"}
+    )
+    simulate_fails(
+        capsys, path, out, str(path), "generator.gap_choice", "spacing_dispersion", '"measured"'
+    )
+
+
 def test_missing_network_file(capsys, make_scenario, tmp_path, out):
     missing = tmp_path / "nets" / "ring.net.xml"
     path = make_scenario({"network.net_file": str(missing)})

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import itertools
 import math
 import tempfile
 from pathlib import Path
@@ -33,6 +34,7 @@ from macromicro_sumo.generator import (
     complete_uniform,
     completion_metrics,
     feasible_exists,
+    gap_posterior,
     macro_losses,
     observe,
     reconstruction_loss,
@@ -524,6 +526,115 @@ def test_feasibility_target_with_the_papers_dispersion_too(trained):
     assert (gen["n_no_feasible"] == 0).all()
     assert (gen["feasibility_rate"] >= 0.99).all(), gen["feasibility_rate"]
     assert (gen["speed_rel_err"] <= 0.01).all()
+
+
+# --------------------------------------------------------------------------- gap posterior
+
+
+def normal_psi(b: int, d_min: float, d_max: float, d_std: float = 30.0) -> PsiTensors:
+    return PsiTensors.arrays(
+        dataclasses.replace(
+            snaps_of(np.zeros((b, N)), 12.0, False, [12.0, L / N, d_min, d_max, 10.5, 14.0]),
+            spacing_std_m=np.full(b, d_std),
+        )
+    )
+
+
+@pytest.mark.parametrize(("d_min", "d_max"), [(10.0, 1000.0), (90.0, 160.0)])
+def test_gap_posterior_is_the_posterior_of_every_allocation(d_min, d_max):
+    """E[c_j] / R over all allocations of R vehicles to the gaps, each weighted by the
+    normal spacing likelihood of the scene it makes, counts outside the bounds excluded."""
+    rng = np.random.default_rng(1)
+    b = 8
+    gap = rng.uniform(80.0, 330.0, (b, N))
+    valid = np.ones((b, N), bool)
+    valid[0, 4] = valid[1, 3:] = False
+    touched = rng.random((b, N)) < 0.3
+    remaining = rng.integers(1, 4, b)
+    got = np.exp(gap_posterior(gap, valid, touched, remaining, normal_psi(b, d_min, d_max)))
+
+    def log_n(x, m, v):
+        return -0.5 * ((x - m) ** 2 / v + np.log(v))
+
+    mu, var = L / N, 30.0**2
+    for i in range(b):
+        e, z = np.zeros(N), 0.0
+        for c in itertools.product(range(remaining[i] + 1), repeat=N):
+            if sum(c) != remaining[i] or any(c[j] and not valid[i, j] for j in range(N)):
+                continue
+            ends_ok = all(
+                (c[j] == 0 and not touched[i, j])
+                or (c[j] + 1) * d_min <= gap[i, j] <= (c[j] + 1) * d_max
+                for j in range(N)
+                if valid[i, j]
+            )
+            if not ends_ok:
+                continue
+            w = np.exp(
+                sum(
+                    log_n(gap[i, j], (c[j] + 1) * mu, (c[j] + 1) * var) - log_n(gap[i, j], mu, var)
+                    for j in range(N)
+                    if valid[i, j]
+                )
+            )
+            e, z = e + w * np.array(c), z + w
+        if z == 0:  # no allocation within the bounds: the unbounded posterior stands in
+            continue
+        np.testing.assert_allclose(got[i], e / z / remaining[i], atol=1e-9, err_msg=str(i))
+    assert (got[~valid] == 0).all()
+
+
+def posterior_net() -> GeneratorNet:
+    net = zero_net()
+    net.gap_choice = "posterior"
+    return net
+
+
+def test_posterior_choice_draws_each_gap_at_its_posterior_rate():
+    """One hidden vehicle, observed gaps 170, 165, 165 and 128.3 m: the network's uniform
+    scores would pick each a quarter of the time; the posterior of normal spacings (mean
+    L / N, std 30 m) prefers the gaps that two spacings fill best, and the completions
+    follow it."""
+    b = 4000
+    obs_arc = np.cumsum([0.0, 170.0, 165.0, 165.0])
+    arc = np.tile([*obs_arc, 0.0], (b, 1))
+    snaps = dataclasses.replace(
+        snaps_of(arc, 12.0, [0, 0, 0, 0, 1], [12.0, L / N, 60.0, 170.0, 10.5, 14.0]),
+        spacing_std_m=np.full(b, 30.0),
+    )
+    gaps = gaps_np(obs_arc[None])[0]
+    want = np.exp(
+        gap_posterior(
+            gaps[None],
+            np.ones((1, 4), bool),
+            np.zeros((1, 4), bool),
+            np.array([1]),
+            PsiTensors.arrays(snaps.take(np.array([0]))),
+        )
+    )[0]
+    assert want.max() < 0.9 and np.abs(want - 0.25).max() > 0.1  # neither sure nor uniform
+    comp = complete(posterior_net(), snaps, 20, seed=3)
+    into = np.searchsorted(obs_arc, comp.arc_m[:, 4], side="right") - 1
+    freq = np.bincount(into, minlength=4) / b
+    np.testing.assert_allclose(freq, want, atol=4 * np.sqrt(0.25 / b))
+    assert (comp.projected == 0).all()
+    uniform = np.bincount(
+        np.searchsorted(obs_arc, complete(zero_net(), snaps, 20, 3).arc_m[:, 4], side="right") - 1,
+        minlength=4,
+    )
+    assert np.abs(uniform / b - 0.25).max() < 0.03  # the network's own (uniform) scores
+
+
+def test_posterior_choice_trains_only_where_and_how_fast(trained, held_out):
+    """With the gap drawn from the posterior, the score-function term has nothing to
+    train: the choice logits get no gradient, the position and speed heads do."""
+    torch.manual_seed(0)
+    net = GeneratorNet(32, "posterior")
+    snaps = dataclasses.replace(held_out[2], hidden=hidden_k(len(held_out[2]), 2))
+    assert snaps.spacing_std_m is not None  # the paper scenario measures the dispersion
+    loss, _ = _batch_loss(net, snaps, trained[0], torch.Generator().manual_seed(0))
+    g = last_layer_grad(net, loss)
+    assert g[0] == 0 and (g[1:] > 0).all(), g
 
 
 # --------------------------------------------------------------------------- loss terms
