@@ -167,13 +167,49 @@ def paired_bootstrap_ci(
     return float(lo), float(hi)
 
 
+def paired_bootstrap_std_ratio_ci(
+    x: np.ndarray,
+    ref: np.ndarray,
+    seed: int,
+    level: float = 0.95,
+    resamples: int = BOOTSTRAP_RESAMPLES,
+) -> tuple[float, float]:
+    """Percentile bootstrap interval of 100 (std(x) / std(ref) - 1) [%], both pooled over
+    all their finite values, resampling episodes (the first axis) together.
+
+    Each episode's completion is a random draw, so this interval holds the noise of the
+    completions and of the policy's actions on these scenes, which a single number hides.
+    """
+
+    def moments(a: np.ndarray) -> np.ndarray:
+        a = a.reshape(len(a), -1)
+        ok = np.isfinite(a)
+        v = np.where(ok, a, 0.0)
+        return np.stack([ok.sum(axis=1), v.sum(axis=1), (v * v).sum(axis=1)], axis=1)
+
+    if len(x) < 2 or len(x) != len(ref):
+        return float("nan"), float("nan")
+    mx, mr = moments(x), moments(ref)
+    rng = np.random.default_rng([seed, 8])
+    idx = rng.integers(0, len(x), (resamples, len(x)))
+
+    def std(m: np.ndarray) -> np.ndarray:
+        n, s1, s2 = m[idx].sum(axis=1).T
+        return np.sqrt(np.maximum(s2 / n - (s1 / n) ** 2, 0.0))
+
+    pct = 100 * (std(mx) / std(mr) - 1)
+    lo, hi = np.quantile(pct, [(1 - level) / 2, (1 + level) / 2])
+    return float(lo), float(hi)
+
+
 def macro_row(
     k: int, method: str, ro: Rollouts, ref: Rollouts | None, seed: int = 0
 ) -> dict[str, float]:
     """One row of macro_alignment.csv; with ``ref`` (the ground truth on the same held-out
-    snapshots, episode for episode) the errors against it and a 95% paired-bootstrap
-    interval of the signed mean-speed error (scenes and action noise of this evaluation;
-    not the training seed's noise: ``scripts/lf_seeds.py --speed``)."""
+    snapshots, episode for episode) the errors against it and 95% paired-bootstrap
+    intervals of the signed mean-speed error and of the spacing-std error in % (scenes,
+    completions and action noise of this evaluation; not the training seed's noise:
+    ``scripts/lf_seeds.py --speed``)."""
     v, d, a = ro.speed_mps, ro.spacing_m, ro.accel_mps2
     row = {
         "K": k,
@@ -195,10 +231,14 @@ def macro_row(
             warnings.simplefilter("ignore", RuntimeWarning)  # an episode that ended at once
             diff = np.nanmean(v, axis=(1, 2)) - np.nanmean(ref.speed_mps, axis=(1, 2))
         lo, hi = paired_bootstrap_ci(diff, seed)
+        s_lo, s_hi = paired_bootstrap_std_ratio_ci(d, ref.spacing_m, seed)
         row.update(
             mean_speed_err_mps=abs(row["mean_speed_mps"] - np.nanmean(ref.speed_mps)),
             speed_err_ci_lo_mps=lo,
             speed_err_ci_hi_mps=hi,
+            spacing_std_err_pct=100 * (row["std_spacing_m"] / np.nanstd(ref.spacing_m) - 1),
+            spacing_std_err_ci_lo_pct=s_lo,
+            spacing_std_err_ci_hi_pct=s_hi,
             w1_speed_mps=w1(v.ravel(), ref.speed_mps.ravel()),
             w1_accel_mps2=w1(a.ravel(), ref.accel_mps2.ravel()),
             w1_spacing_m=w1(d.ravel(), ref.spacing_m.ravel()),

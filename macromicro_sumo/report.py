@@ -60,10 +60,17 @@ def alignment_verdicts(align: pd.DataFrame) -> pd.DataFrame:
                 "mean spacing - L/N (m)": p["mean_spacing_m"] - g["mean_spacing_m"],
                 "spacing std vs GT (%, within 1)": 100
                 * (p["std_spacing_m"] / g["std_spacing_m"] - 1),
+                "its 95% interval (%)": _interval(p, "spacing_std_err_ci"),
                 "collisions (0)": str(int(p["collisions"])),
             }
         )
     return pd.DataFrame(rows)
+
+
+def _interval(row: pd.Series, prefix: str) -> str:
+    """'[lo, hi]' of a row's ``prefix``_lo_pct / _hi_pct columns ('' when absent)."""
+    lo, hi = row.get(f"{prefix}_lo_pct", np.nan), row.get(f"{prefix}_hi_pct", np.nan)
+    return "" if pd.isna(lo) or pd.isna(hi) else f"[{lo:+.2f}, {hi:+.2f}]"
 
 
 # figure -> (column of macro_alignment.csv, how a row scores: lower is better)
@@ -301,6 +308,9 @@ def write_report(sc: Scenario, out: Path, manifest: dict[str, Any]) -> Path:
             "mean_speed_err_mps",
             "speed_err_ci_lo_mps",
             "speed_err_ci_hi_mps",
+            "spacing_std_err_pct",
+            "spacing_std_err_ci_lo_pct",
+            "spacing_std_err_ci_hi_pct",
             "w1_speed_mps",
             "w1_accel_mps2",
             "w1_spacing_m",
