@@ -42,6 +42,13 @@ position proposal puts on gap j's feasible points), so how much the truncation d
 on record: ``rejection_success`` is the chance that plain Algorithm 3 would have placed
 every vehicle of a completion without projection.
 
+Extension (``generator.gap_choice = "posterior"``): the gap of the next vehicle is drawn
+from the posterior of the vehicles' whereabouts under i.i.d. normal spacings with the
+detectors' mean and std (``gap_posterior``), in training and inference alike; the network
+then learns where in the gap and how fast. Trained on per-scene losses, the network's own
+choice becomes deterministic (the gap that makes the loss smallest), which a real stream's
+vehicles are not.
+
 Inference runs in numpy (float64 geometry, the MLP in float32 with the trained weights):
 placing one vehicle of one snapshot takes a few hundred tiny array operations, and
 numpy's per-operation overhead is a third of torch's. Geometry and features are one
