@@ -57,11 +57,13 @@ def load_network(
     signature: dict[str, Any],
     make: Callable[[int], nn.Module],
     source: str,
+    before: dict[str, Any] | None = None,
 ) -> Any:
     """The network in ``path`` (``make(hidden_size)`` with its weights), in eval mode.
 
     ``what`` names the checkpoint in messages ("generator"); ``signature`` holds the
-    scenario values the checkpoint must have been trained for; ``source`` the scenario file.
+    scenario values the checkpoint must have been trained for; ``source`` the scenario file;
+    ``before`` the values that signature keys added later had implicitly in older files.
     """
     path = Path(path)
     if not path.is_file():
@@ -78,7 +80,7 @@ def load_network(
     try:
         net = make(int(payload["hidden_size"]))
         net.load_state_dict(payload["state_dict"])
-        trained_for = dict(payload["signature"])
+        trained_for = (before or {}) | dict(payload["signature"])
     except Exception as exc:  # a field missing or of the wrong shape
         raise UserError(f"{corrupt} ({type(exc).__name__})") from None
     for key, want in signature.items():

@@ -80,6 +80,7 @@ def load_generator(path: Path | str, sc: Scenario) -> GeneratorNet:
         signature(sc),
         lambda hidden_size: GeneratorNet(hidden_size, sc.generator.gap_choice),
         sc.source,
+        before={"generator.gap_choice": "network"},  # the only choice before it was a key
     )
 
 
