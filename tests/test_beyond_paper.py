@@ -36,7 +36,12 @@ def test_measured_dispersion_keeps_the_spacing_spread_the_paper_loss_removes(gt)
     folder, data = gt
     spread = {}
     for mode in ("paper", "measured"):
-        path = write_scenario(folder / mode, {**BASE, "generator.spacing_dispersion": mode})
+        # The posterior gap choice needs the measured dispersion: the paper's setting has neither.
+        choice = "network" if mode == "paper" else "posterior"
+        path = write_scenario(
+            folder / mode,
+            {**BASE, "generator.spacing_dispersion": mode, "generator.gap_choice": choice},
+        )
         out = folder / mode / "gen"
         assert (
             cli.main(

@@ -281,14 +281,15 @@ def test_checkpoint_for_other_bounds(stage, capsys, tmp_path, out):
 
 
 def test_checkpoint_for_the_other_gap_choice(stage, capsys, tmp_path, out):
-    path = other_checkpoint(tmp_path, {"generator.gap_choice": "posterior"})
+    assert stage["sc"].generator.gap_choice == "posterior"  # the paper scenario's
+    path = other_checkpoint(tmp_path, {"generator.gap_choice": "network"})
     fails(
         capsys,
         complete_argv(stage, path, out),
         out,
         str(path),
-        "generator.gap_choice = posterior",
-        "has network",
+        "generator.gap_choice = network",
+        "has posterior",
     )
 
 
@@ -297,12 +298,11 @@ def test_checkpoint_from_before_the_gap_choice_key_is_a_network_choice(stage, tm
     del payload["signature"]["generator.gap_choice"]
     path = tmp_path / "generator.pt"
     torch.save(payload, path)
-    assert main([*complete_argv(stage, path, tmp_path / "done", "--hidden", "1"), "--quiet"]) == 0
+    network = write_scenario(tmp_path / "network", {**SMALL, "generator.gap_choice": "network"})
+    argv = complete_argv({**stage, "scenario": network}, path, tmp_path / "done", "--hidden", "1")
+    assert main([*argv, "--quiet"]) == 0
     assert (tmp_path / "done" / "completions.csv").is_file()
-    posterior = write_scenario(
-        tmp_path / "posterior", {**SMALL, "generator.gap_choice": "posterior"}
-    )
-    argv = complete_argv({**stage, "scenario": posterior}, path, tmp_path / "out")
+    argv = complete_argv(stage, path, tmp_path / "out")
     fails(capsys, argv, tmp_path / "out", "generator.gap_choice = network", "has posterior")
 
 
