@@ -251,6 +251,14 @@ class EvaluationConfig:
     """Evaluation protocol: macro alignment rollouts and leader-follower tests."""
 
     horizon_steps: int = _f(10, lo=1, hi=100_000, doc="rollout length for macro alignment [steps]")
+    completions_per_scene: int = _f(
+        1,
+        lo=1,
+        hi=1_000,
+        doc="independent generator completions of each held-out scene, each rolled out by every "
+        "method (ring scenarios): each completion is one random draw, so more of them shrink "
+        "the evaluation's noise",
+    )
     lf_trials: int = _f(20, lo=1, hi=100_000, doc="stochastic leader-follower trials per method")
     lf_duration_s: float = _f(60.0, lo=1.0, hi=1e5, doc="leader-follower test length [s]")
     min_safe_gap_m: float = _f(

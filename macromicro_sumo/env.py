@@ -49,6 +49,18 @@ class EpisodeBank:
     def __len__(self) -> int:
         return len(self.run)
 
+    @classmethod
+    def concat(cls, banks: list[EpisodeBank]) -> EpisodeBank:
+        """The episodes of ``banks`` one after the other."""
+        return cls(
+            **{
+                f: None
+                if getattr(banks[0], f) is None
+                else np.concatenate([getattr(b, f) for b in banks])
+                for f in cls.__dataclass_fields__
+            }
+        )
+
     def take(self, idx: np.ndarray) -> EpisodeBank:
         """The episodes ``idx`` only."""
         return EpisodeBank(

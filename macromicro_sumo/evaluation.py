@@ -320,11 +320,13 @@ def macro_alignment(
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """macro_alignment.csv and eval_samples.csv: every method on the same scenes of ``runs``.
 
-    Per K, the snapshots are completed once by the generator (and once with the true hidden
-    vehicles for ``ground_truth``); each method's rollout draws from its own generator
-    seeded ``seed + 100 + K``, so a method's rows do not depend on which other methods run
-    (``idm_cal`` None leaves out ``idm_calibrated``). FCD of the first
-    ``evaluation.fcd_episodes`` episodes goes to ``fcd_dir`` when given.
+    Per K, the snapshots are completed ``evaluation.completions_per_scene`` times by the
+    generator, draw m seeded ``seed + 10_000 m`` (the episodes of draw 0 first), and the
+    true scenes (``ground_truth``) are repeated as often, so that episodes pair up one to one;
+    each method's rollout draws from its own generator seeded ``seed + 100 + K``, so a
+    method's rows do not depend on which other methods run (``idm_cal`` None leaves out
+    ``idm_calibrated``). FCD of the first ``evaluation.fcd_episodes`` episodes goes to
+    ``fcd_dir`` when given.
     """
     from tqdm import tqdm
 
@@ -340,8 +342,17 @@ def macro_alignment(
     bar = tqdm(total=len(ks) * len(names), desc="evaluate", unit="rollout", disable=not progress)
     for k in ks:
         seed = sc.seed + 100 + k
+        draws = range(sc.evaluation.completions_per_scene)
         true_bank = build_bank(sc, gt, runs, lambda s: (s.arc_m, s.speed_mps), k, seed, horizon=h)
-        gen_bank = build_bank(sc, gt, runs, generator_completion(net, sc, seed), k, seed, horizon=h)
+        true_bank = EpisodeBank.concat([true_bank] * len(draws))
+        gen_bank = EpisodeBank.concat(
+            [
+                build_bank(
+                    sc, gt, runs, generator_completion(net, sc, seed + 10_000 * m), k, seed, h
+                )
+                for m in draws
+            ]
+        )
         methods: dict[str, tuple[EpisodeBank, ActionFn]] = {
             "ground_truth": (true_bank, recorded_action)
         }

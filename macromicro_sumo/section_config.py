@@ -163,6 +163,11 @@ def _check(sc: SectionScenario, file: str) -> None:
         raise UserError(
             f"{file}: bounds.accel_mps2 = [{a_min:g}, {a_max:g}] must satisfy a_min < 0 < a_max"
         )
+    if sc.evaluation.completions_per_scene != 1:
+        raise UserError(
+            f"{file}: evaluation.completions_per_scene = {sc.evaluation.completions_per_scene} "
+            "is for ring scenarios; accepted 1 with [network] kind = 'sumo'"
+        )
     if sc.detectors.interval_s > sc.simulation.duration_s:
         raise UserError(
             f"{file}: detectors.interval_s = {sc.detectors.interval_s:g} exceeds "
