@@ -14,7 +14,7 @@ fails. A deliberate change re-writes the reference:
 
     .venv/bin/python tests/test_ring_regression.py --write
 
-About 110 s on 2 cores (the generator and policy training dominate); in the default run.
+About 130 s on 2 cores (the generator and policy training dominate); in the default run.
 """
 
 from __future__ import annotations
