@@ -163,21 +163,24 @@ def test_joint_refinement_switch_runs_and_is_compared_in_the_report(tmp_path):
 
 
 def test_several_completions_per_scene_pair_each_draw_with_the_true_scene(pipeline, tmp_path):
-    """Two completions of every held-out scene: twice the episodes for every method; the
-    ground truth is the same scenes repeated (same figures), the generated methods see a
+    """One and two completions of every held-out scene: twice the episodes for every method;
+    the ground truth is the same scenes repeated (same figures), the generated methods see a
     second, different draw (different spread)."""
     _, out = pipeline
-    path = write_scenario(tmp_path / "twice", {**SMALL_RUN, "evaluation.completions_per_scene": 2})
-    assert _evaluate(path, out, tmp_path / "eval") == 0
-    once = pd.read_csv(out / "evaluation" / "macro_alignment.csv").set_index(["K", "method"])
-    twice = pd.read_csv(tmp_path / "eval" / "macro_alignment.csv").set_index(["K", "method"])
+    align = {}
+    for m in (1, 2):
+        path = write_scenario(
+            tmp_path / f"m{m}", {**SMALL_RUN, "evaluation.completions_per_scene": m}
+        )
+        assert _evaluate(path, out, tmp_path / f"eval{m}") == 0
+        csv = tmp_path / f"eval{m}" / "macro_alignment.csv"
+        align[m] = pd.read_csv(csv).set_index(["K", "method"])
+    once, twice = align[1], align[2]
     assert (twice["episodes"] == 2 * once.loc[twice.index, "episodes"]).all()
-    gt = twice.xs("ground_truth", level="method")
+    figures = ["mean_speed_mps", "std_speed_mps", "std_spacing_m"]
     pd.testing.assert_frame_equal(
-        gt[["mean_speed_mps", "std_speed_mps", "std_spacing_m"]],
-        once.xs("ground_truth", level="method")[
-            ["mean_speed_mps", "std_speed_mps", "std_spacing_m"]
-        ],
+        twice.xs("ground_truth", level="method")[figures],
+        once.xs("ground_truth", level="method")[figures],
         rtol=1e-9,
     )
     policy = twice.xs("policy", level="method")["std_spacing_m"]
