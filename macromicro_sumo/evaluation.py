@@ -48,6 +48,12 @@ class Rollouts:
     collisions: int
     errors: int
 
+    def repeated(self, times: int) -> Rollouts:
+        """The same episodes ``times`` over, one after the other (counts included)."""
+        arrays = (self.arc_m, self.speed_mps, self.spacing_m, self.accel_mps2, self.hidden)
+        tiled = (np.concatenate([a] * times) for a in arrays)
+        return Rollouts(*tiled, self.collisions * times, self.errors * times)
+
 
 def rollout(
     core: RingCore, act: ActionFn, horizon: int, seed: int, episodes: range | None = None
@@ -322,7 +328,8 @@ def macro_alignment(
 
     Per K, the snapshots are completed ``evaluation.completions_per_scene`` times by the
     generator, draw m seeded ``seed + 10_000 m`` (the episodes of draw 0 first), and the
-    true scenes (``ground_truth``) are repeated as often, so that episodes pair up one to one;
+    true scenes' rollout (``ground_truth``, the recording) is repeated as often, so that
+    episodes pair up one to one;
     each method's rollout draws from its own generator seeded ``seed + 100 + K``, so a
     method's rows do not depend on which other methods run (``idm_cal`` None leaves out
     ``idm_calibrated``). FCD of the first ``evaluation.fcd_episodes`` episodes goes to
@@ -344,7 +351,6 @@ def macro_alignment(
         seed = sc.seed + 100 + k
         draws = range(sc.evaluation.completions_per_scene)
         true_bank = build_bank(sc, gt, runs, lambda s: (s.arc_m, s.speed_mps), k, seed, horizon=h)
-        true_bank = EpisodeBank.concat([true_bank] * len(draws))
         gen_bank = EpisodeBank.concat(
             [
                 build_bank(
@@ -375,6 +381,8 @@ def macro_alignment(
                 ro = rollout(core, act, h, seed)
             finally:
                 core.close()
+            if name == "ground_truth":  # the recording: the same for every draw, replayed once
+                ro = ro.repeated(len(draws))
             if fcd_dir is not None and sc.evaluation.fcd_episodes > 0:
                 core = RingCore(sc, bank, seed=sc.seed, fcd_file=fcd_dir / f"{name}_K{k}.fcd.xml")
                 try:
