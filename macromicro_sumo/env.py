@@ -15,7 +15,7 @@ ground-truth speeds. Leaders, spacings and observations come from arc positions.
 from __future__ import annotations
 
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -50,25 +50,39 @@ class EpisodeBank:
         return len(self.run)
 
     @classmethod
-    def concat(cls, banks: list[EpisodeBank]) -> EpisodeBank:
-        """The episodes of ``banks`` one after the other."""
+    def _from_fields(cls, banks: list[EpisodeBank], fn) -> EpisodeBank:
+        """A bank whose every array field is ``fn`` of that field in ``banks``."""
         return cls(
             **{
-                f: None
-                if getattr(banks[0], f) is None
-                else np.concatenate([getattr(b, f) for b in banks])
+                f: None if getattr(banks[0], f) is None else fn([getattr(b, f) for b in banks])
                 for f in cls.__dataclass_fields__
             }
         )
 
+    @classmethod
+    def concat(cls, banks: list[EpisodeBank]) -> EpisodeBank:
+        """The episodes of ``banks`` one after the other."""
+        return cls._from_fields(banks, np.concatenate)
+
     def take(self, idx: np.ndarray) -> EpisodeBank:
         """The episodes ``idx`` only."""
-        return EpisodeBank(
-            **{
-                f: None if getattr(self, f) is None else getattr(self, f)[idx]
-                for f in self.__dataclass_fields__
-            }
+        return self._from_fields([self], lambda a: a[0][idx])
+
+    def completed_again(self, complete_fn, length_m: float) -> EpisodeBank:
+        """The same episodes with the hidden vehicles completed anew by ``complete_fn``
+        (``build_bank``'s), without rebuilding the scenes and recorded futures."""
+        snaps = Snapshots(
+            run=self.run,
+            time_s=self.time_s,
+            arc_m=self.true_arc0_m,
+            speed_mps=self.speed0_mps,  # observed speeds are the recorded ones
+            psi=self.psi,
+            hidden=self.hidden,
+            length_m=length_m,
+            spacing_std_m=self.spacing_std_m,
         )
+        arc, speed = complete_fn(snaps)
+        return replace(self, arc0_m=arc, speed0_mps=speed)
 
 
 def build_bank(

@@ -351,12 +351,14 @@ def macro_alignment(
         seed = sc.seed + 100 + k
         draws = range(sc.evaluation.completions_per_scene)
         true_bank = build_bank(sc, gt, runs, lambda s: (s.arc_m, s.speed_mps), k, seed, horizon=h)
+        first = build_bank(sc, gt, runs, generator_completion(net, sc, seed), k, seed, horizon=h)
         gen_bank = EpisodeBank.concat(
-            [
-                build_bank(
-                    sc, gt, runs, generator_completion(net, sc, seed + 10_000 * m), k, seed, h
+            [first]
+            + [
+                first.completed_again(
+                    generator_completion(net, sc, seed + 10_000 * m), sc.network.length_m
                 )
-                for m in draws
+                for m in draws[1:]
             ]
         )
         methods: dict[str, tuple[EpisodeBank, ActionFn]] = {
