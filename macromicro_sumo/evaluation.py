@@ -193,17 +193,20 @@ def paired_bootstrap_std_ratio_ci(
         v = np.where(ok, a, 0.0)
         return np.stack([ok.sum(axis=1), v.sum(axis=1), (v * v).sum(axis=1)], axis=1)
 
-    if len(x) < 2 or len(x) != len(ref):
+    e = len(x)
+    if e < 2 or e != len(ref):
         return float("nan"), float("nan")
-    mx, mr = moments(x), moments(ref)
     rng = np.random.default_rng([seed, 8])
-    idx = rng.integers(0, len(x), (resamples, len(x)))
+    idx = rng.integers(0, e, (resamples, e))
+    # How often each resample draws each episode, shared by both sides: (resamples, E).
+    times = np.bincount((np.arange(resamples)[:, None] * e + idx).ravel(), minlength=resamples * e)
+    times = times.reshape(resamples, e).astype(np.float64)
 
-    def std(m: np.ndarray) -> np.ndarray:
-        n, s1, s2 = m[idx].sum(axis=1).T
+    def std(a: np.ndarray) -> np.ndarray:
+        n, s1, s2 = (times @ moments(a)).T
         return np.sqrt(np.maximum(s2 / n - (s1 / n) ** 2, 0.0))
 
-    pct = 100 * (std(mx) / std(mr) - 1)
+    pct = 100 * (std(x) / std(ref) - 1)
     lo, hi = np.quantile(pct, [(1 - level) / 2, (1 + level) / 2])
     return float(lo), float(hi)
 
