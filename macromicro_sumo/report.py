@@ -60,16 +60,17 @@ def alignment_verdicts(align: pd.DataFrame) -> pd.DataFrame:
                 "mean spacing - L/N (m)": p["mean_spacing_m"] - g["mean_spacing_m"],
                 "spacing std vs GT (%, within 1)": 100
                 * (p["std_spacing_m"] / g["std_spacing_m"] - 1),
-                "its 95% interval (%)": _interval(p, "spacing_std_err_ci"),
+                "its 95% interval (%)": _spacing_std_interval(p),
                 "collisions (0)": str(int(p["collisions"])),
             }
         )
     return pd.DataFrame(rows)
 
 
-def _interval(row: pd.Series, prefix: str) -> str:
-    """'[lo, hi]' of a row's ``prefix``_lo_pct / _hi_pct columns ('' when absent)."""
-    lo, hi = row.get(f"{prefix}_lo_pct", np.nan), row.get(f"{prefix}_hi_pct", np.nan)
+def _spacing_std_interval(row: pd.Series) -> str:
+    """'[lo, hi]' of a row's spacing-std error interval in % ('' in files from before it)."""
+    lo = row.get("spacing_std_err_ci_lo_pct", np.nan)
+    hi = row.get("spacing_std_err_ci_hi_pct", np.nan)
     return "" if pd.isna(lo) or pd.isna(hi) else f"[{lo:+.2f}, {hi:+.2f}]"
 
 
