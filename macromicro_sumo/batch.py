@@ -652,7 +652,7 @@ def run_batch(
     from tqdm import tqdm
 
     from macromicro_sumo import export
-    from macromicro_sumo.files import prepare_out_dir, write_json, write_text
+    from macromicro_sumo.files import OUTPUT_MARK, prepare_out_dir, write_json, write_text
 
     if workers < 1:
         raise UserError(f"--workers {workers}: accepted >= 1")
@@ -665,7 +665,7 @@ def run_batch(
             raise UserError(f"unknown stage {stage!r}; accepted: {', '.join(STAGES)}")
     engine = LocalBackend(workers) if backend == "local" else RayBackend(workers, address)
     variants = expand(inputs)
-    out = prepare_out_dir(out)
+    out = prepare_out_dir(out, [v.file for v in variants if v.file])
     vdir = out / "variants"
     vdir.mkdir(exist_ok=True)
     with _lock(out):
@@ -734,6 +734,12 @@ def run_batch(
         def done(task: Task, outcome: Outcome) -> None:
             partial, final = Path(task.out), vdir / task.name
             write_text(outcome.log, out / "logs" / f"{task.name}.log")
+            if outcome.ok and final.exists() and not (final / OUTPUT_MARK).is_file():
+                outcome = dataclasses.replace(
+                    outcome,
+                    ok=False,
+                    error=f"{final}: exists and was not written by macromicro-sumo; move it away",
+                )
             if outcome.ok:
                 v = by_name[task.name]
                 assert v.scenario is not None

@@ -11,6 +11,7 @@ import shlex
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from macromicro_sumo import batch
 from macromicro_sumo.errors import UserError
@@ -23,11 +24,29 @@ def is_section(sc: object) -> bool:
     return isinstance(sc, SectionScenario)
 
 
-def _cmd_simulate(args: argparse.Namespace) -> int:
+def _scenario(args: argparse.Namespace) -> Any:
+    """The scenario of ``args``, with ``--out`` checked against every file it reads."""
     from macromicro_sumo.config import load_scenario
-    from macromicro_sumo.ground_truth import simulate
+    from macromicro_sumo.files import check_out_path
 
     sc = load_scenario(args.scenario)
+    inputs = [args.scenario]
+    if is_section(sc):
+        from macromicro_sumo.section_truth import scenario_inputs
+
+        files = scenario_inputs(sc)
+        inputs += [files.net_file, *files.route_files, *files.additional_files]
+        inputs += [files.sumocfg] if files.sumocfg else []
+    else:
+        inputs += [sc.resolve(sc.network.net_file), sc.resolve(sc.network.routes_file)]
+    check_out_path(args.out, inputs)
+    return sc
+
+
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    from macromicro_sumo.ground_truth import simulate
+
+    sc = _scenario(args)
     if is_section(sc):
         from macromicro_sumo.section_truth import simulate_section
 
@@ -38,10 +57,9 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def _cmd_train_generator(args: argparse.Namespace) -> int:
-    from macromicro_sumo.config import load_scenario
     from macromicro_sumo.generator_train import run_train_generator
 
-    sc = load_scenario(args.scenario)
+    sc = _scenario(args)
     if is_section(sc):
         from macromicro_sumo.section_generator import run_train_section_generator
 
@@ -54,10 +72,9 @@ def _cmd_train_generator(args: argparse.Namespace) -> int:
 
 
 def _cmd_complete(args: argparse.Namespace) -> int:
-    from macromicro_sumo.config import load_scenario
     from macromicro_sumo.generator_train import run_complete
 
-    sc = load_scenario(args.scenario)
+    sc = _scenario(args)
     if is_section(sc):
         raise UserError(
             f"{args.scenario}: `complete` is for ring scenarios; on a section, `train-generator` "
@@ -69,10 +86,9 @@ def _cmd_complete(args: argparse.Namespace) -> int:
 
 
 def _cmd_train_policy(args: argparse.Namespace) -> int:
-    from macromicro_sumo.config import load_scenario
     from macromicro_sumo.ppo import run_train_policy
 
-    sc = load_scenario(args.scenario)
+    sc = _scenario(args)
     if is_section(sc):
         from macromicro_sumo.section_pipeline import run_train_section_policy
 
@@ -92,11 +108,10 @@ def _cmd_train_policy(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from macromicro_sumo.config import load_scenario
     from macromicro_sumo.evaluation import evaluate
     from macromicro_sumo.pipeline import policy_paths
 
-    sc = load_scenario(args.scenario)
+    sc = _scenario(args)
     policies = (
         policy_paths(args.policy.parent)
         if args.policy.name == "policy.pt"
@@ -131,10 +146,9 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from macromicro_sumo.config import load_scenario
     from macromicro_sumo.pipeline import run
 
-    sc = load_scenario(args.scenario)
+    sc = _scenario(args)
     if is_section(sc):
         from macromicro_sumo.section_pipeline import run_section
 

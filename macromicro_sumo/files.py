@@ -12,7 +12,7 @@ import json
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -66,13 +66,43 @@ def file_sha256(path: Path | str) -> str:
     return h.hexdigest()
 
 
-def prepare_out_dir(out: Path | str) -> Path:
+# Every folder the tool writes carries this file. A folder is replaced only when it has it,
+# so a user's own ``DIR/sumo`` (their network, say) is never deleted by ``--out DIR``.
+OUTPUT_MARK = ".macromicro-output"
+
+
+def mark_output(folder: Path) -> None:
+    """Mark ``folder`` as written by this tool (it may be replaced by a later run)."""
+    (folder / OUTPUT_MARK).write_text("written by macromicro-sumo; a later run may replace it\n")
+
+
+def check_out_path(out: Path | str, inputs: Iterable[Path | str] = ()) -> None:
+    """Refuse output folders that would put the user's files at risk.
+
+    ``/``, the home folder, an input file itself, or a folder holding an input: a stage
+    replaces its output folders, so none of these may be one.
+    """
+    where = Path(out).expanduser().resolve()
+    if where == Path(where.anchor) or where == Path.home().resolve():
+        raise UserError(f"--out {out}: refusing the root or home folder; pass a folder of its own")
+    for item in inputs:
+        src = Path(item).expanduser().resolve()
+        if src == where or where in src.parents:
+            raise UserError(
+                f"--out {out}: holds the input {item}; pass an output folder outside the inputs"
+            )
+
+
+def prepare_out_dir(out: Path | str, inputs: Iterable[Path | str] = ()) -> Path:
     """Check that ``out`` can hold outputs: a folder or nothing yet, never a file."""
+    check_out_path(out, inputs)
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise UserError(f"{out}: output folder is an existing file; pass a folder path")
     try:
         out.mkdir(parents=True, exist_ok=True)
+        if not any(out.iterdir()):  # new or empty: ours from now on
+            mark_output(out)
     except OSError as exc:
         raise UserError(f"{out}: cannot create output folder ({exc.strerror})") from None
     return out
@@ -88,11 +118,27 @@ def staging_dir(out: Path) -> Iterator[Path]:
     stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
     try:
         yield stage
+        items = sorted(stage.iterdir(), key=lambda p: ("manifest" in p.name, p.name))
+        # All checks before the first rename: a refused target leaves ``out`` untouched.
+        for item in items:
+            target = out / item.name
+            if target.is_symlink() or (target.exists() and target.is_dir() != item.is_dir()):
+                raise UserError(
+                    f"{target}: exists and is not this tool's output; move it away or "
+                    "choose another --out"
+                )
+            if target.is_dir() and not (target / OUTPUT_MARK).is_file():
+                raise UserError(
+                    f"{target}: folder was not written by macromicro-sumo (no {OUTPUT_MARK}); "
+                    "move it away or choose another --out"
+                )
         # Manifests go last: a stage counts as done when its manifest exists, so a kill
         # between two renames must never leave a manifest beside missing files.
-        for item in sorted(stage.iterdir(), key=lambda p: ("manifest" in p.name, p.name)):
+        for item in items:
             target = out / item.name
-            if target.is_dir() and not target.is_symlink():
+            if item.is_dir():
+                mark_output(item)
+            if target.is_dir():
                 shutil.rmtree(target)
             os.replace(item, target)
     finally:

@@ -297,8 +297,9 @@ def signature(sc: Scenario | SectionScenario) -> dict[str, Any]:
 
 def load_checkpoint(path: Path, sc: Scenario) -> dict[str, Any]:
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=False)
-        if payload.get("format") != CHECKPOINT_FORMAT:
+        # weights_only: a checkpoint is data; a crafted pickle must never run code here.
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+        if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
             raise ValueError("not a policy checkpoint")
     except Exception as exc:
         raise UserError(

@@ -119,7 +119,7 @@ def test_validation_selection_keeps_the_best_update(ring, tmp_path):
     finally:
         core.close()
     assert mean_logp(res["agent"], val_obs, val_act) == pytest.approx(max(logged), abs=1e-5)
-    saved = torch.load(tmp_path / "policy.pt", weights_only=False)["state_dict"]
+    saved = torch.load(tmp_path / "policy.pt", weights_only=True)["state_dict"]
     for k, v in res["agent"].state_dict().items():
         torch.testing.assert_close(saved[k], v)
 
@@ -136,8 +136,8 @@ def test_macro_only_ignores_the_validation_selection(ring, tmp_path):
     )
     assert [row["update"] for row in res["log"]] == [1, 2]
     assert np.isnan([row["val_micro_logp"] for row in res["log"]]).all()
-    last = torch.load(tmp_path / "policy_macro_only_checkpoint.pt", weights_only=False)
+    last = torch.load(tmp_path / "policy_macro_only_checkpoint.pt", weights_only=True)
     assert last["update"] == 2 and last["best_state_dict"] is None
-    saved = torch.load(tmp_path / "policy_macro_only.pt", weights_only=False)["state_dict"]
+    saved = torch.load(tmp_path / "policy_macro_only.pt", weights_only=True)["state_dict"]
     for k, v in last["state_dict"].items():
         torch.testing.assert_close(saved[k], v)

@@ -1,0 +1,96 @@
+"""What the tool must never do to a user's files: run code from a checkpoint, delete or
+replace a folder it did not write, write into the inputs, the home folder or ``/``."""
+
+from __future__ import annotations
+
+import pickle
+from pathlib import Path
+
+import pytest
+
+from macromicro_sumo import cli
+from macromicro_sumo.config import load_scenario
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.files import OUTPUT_MARK, prepare_out_dir, staging_dir
+from macromicro_sumo.ppo import load_checkpoint
+
+
+class _RunsCode:
+    """A pickle that creates a file when it is loaded: what a crafted policy.pt would do."""
+
+    def __init__(self, witness: Path) -> None:
+        self.witness = witness
+
+    def __reduce__(self):
+        return (Path.touch, (self.witness,))
+
+
+def test_a_crafted_policy_checkpoint_runs_no_code(make_scenario, tmp_path):
+    witness = tmp_path / "code_ran"
+    planted = tmp_path / "policy.pt"
+    # torch.save uses pickle underneath; a plain pickle of the payload is what an attacker plants.
+    planted.write_bytes(pickle.dumps({"format": "x", "payload": _RunsCode(witness)}, protocol=2))
+    import torch
+
+    torch.save({"format": "macromicro-policy", "evil": _RunsCode(witness)}, tmp_path / "p2.pt")
+    sc = load_scenario(make_scenario())
+    for path in (planted, tmp_path / "p2.pt"):
+        with pytest.raises(UserError, match="corrupt or truncated policy checkpoint"):
+            load_checkpoint(path, sc)
+    assert not witness.exists()
+
+
+def test_simulate_keeps_a_users_folder_of_the_same_name(make_scenario, tmp_path, capsys):
+    out = tmp_path / "out"
+    users = out / "sumo"
+    users.mkdir(parents=True)
+    (users / "my.net.xml").write_text("<net/>\n")
+    code = cli.main(["simulate", str(make_scenario()), "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "was not written by macromicro-sumo" in err
+    assert (users / "my.net.xml").read_text() == "<net/>\n"
+    assert "manifest.json" not in {p.name for p in out.iterdir()}  # nothing half-moved
+
+
+def test_simulate_twice_replaces_its_own_folders(make_scenario, tmp_path):
+    out = tmp_path / "out"
+    path = str(make_scenario())
+    assert cli.main(["simulate", path, "--out", str(out), "--quiet"]) == 0
+    staged = [p for p in out.iterdir() if p.is_dir()]
+    assert staged and all((p / OUTPUT_MARK).is_file() for p in staged)
+    assert cli.main(["simulate", path, "--out", str(out), "--quiet"]) == 0
+
+
+def test_staging_refuses_a_file_where_a_folder_goes(tmp_path):
+    out = prepare_out_dir(tmp_path / "o")
+    (out / "fcd").write_text("user's notes\n")
+    with pytest.raises(UserError, match="not this tool's output"), staging_dir(out) as stage:
+        (stage / "fcd").mkdir()
+        (stage / "a.csv").write_text("x\n")
+    assert (out / "fcd").read_text() == "user's notes\n" and not (out / "a.csv").exists()
+
+
+@pytest.mark.parametrize("where", ["scenario_folder", "scenario_file", "home", "root"])
+def test_out_that_holds_an_input_or_is_home_or_root_is_refused(
+    make_scenario, tmp_path, capsys, where
+):
+    scenario = make_scenario()
+    out = {
+        "scenario_folder": scenario.parent,
+        "scenario_file": scenario,
+        "home": Path.home(),
+        "root": Path("/"),
+    }[where]
+    before = sorted(p.name for p in scenario.parent.iterdir())
+    code = cli.main(["simulate", str(scenario), "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith("error: --out") and err.count("\n") == 1, err
+    assert sorted(p.name for p in scenario.parent.iterdir()) == before
+
+
+def test_out_that_holds_the_network_is_refused(make_scenario, tmp_path, capsys):
+    from conftest import NETS
+
+    code = cli.main(["simulate", str(make_scenario()), "--out", str(NETS), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and "holds the input" in err and "ring_r" in err
