@@ -2,6 +2,7 @@
 
 ``main(argv)`` parses, runs and returns an exit code, so tests call it without a
 subprocess. Bad input surfaces as one ``error:`` line and exit code 2, never a traceback.
+Each subcommand loads the scenario and calls its stage function for the scenario's kind.
 """
 
 from __future__ import annotations
@@ -13,27 +14,33 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from macromicro_sumo import batch
+from macromicro_sumo.batch import runner as batch
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.evaluation.ring import evaluate
+from macromicro_sumo.evaluation.section import evaluate_section
+from macromicro_sumo.files import check_out_path
+from macromicro_sumo.generator.ring_train import run_complete, run_train_generator
+from macromicro_sumo.generator.section import run_train_section_generator
+from macromicro_sumo.pipeline.ring import policy_paths, run
+from macromicro_sumo.pipeline.section import run_section, run_train_section_policy
+from macromicro_sumo.policy.ppo import run_train_policy
+from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.scenario.section import SectionScenario
+from macromicro_sumo.sumo import simulation as sumo
+from macromicro_sumo.truth.ring import simulate
+from macromicro_sumo.truth.section import scenario_inputs, simulate_section
 
 
 def is_section(sc: object) -> bool:
     """A scenario on a user's SUMO network (``[network] kind = "sumo"``)."""
-    from macromicro_sumo.section_config import SectionScenario
-
     return isinstance(sc, SectionScenario)
 
 
 def _scenario(args: argparse.Namespace) -> Any:
     """The scenario of ``args``, with ``--out`` checked against every file it reads."""
-    from macromicro_sumo.config import load_scenario
-    from macromicro_sumo.files import check_out_path
-
     sc = load_scenario(args.scenario)
     inputs = [args.scenario]
     if is_section(sc):
-        from macromicro_sumo.section_truth import scenario_inputs
-
         files = scenario_inputs(sc)
         inputs += [files.net_file, *files.route_files, *files.additional_files]
         inputs += [files.sumocfg] if files.sumocfg else []
@@ -44,27 +51,17 @@ def _scenario(args: argparse.Namespace) -> Any:
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
-    from macromicro_sumo.ground_truth import simulate
-
     sc = _scenario(args)
-    if is_section(sc):
-        from macromicro_sumo.section_truth import simulate_section
-
-        simulate = simulate_section
-    out = simulate(sc, args.out, command=args.command_line, progress=not args.quiet)
+    stage = simulate_section if is_section(sc) else simulate
+    out = stage(sc, args.out, command=args.command_line, progress=not args.quiet)
     print(f"ground truth written to {out}")
     return 0
 
 
 def _cmd_train_generator(args: argparse.Namespace) -> int:
-    from macromicro_sumo.generator_train import run_train_generator
-
     sc = _scenario(args)
-    if is_section(sc):
-        from macromicro_sumo.section_generator import run_train_section_generator
-
-        run_train_generator = run_train_section_generator
-    m = run_train_generator(sc, args.data, args.out, args.command_line, progress=not args.quiet)
+    stage = run_train_section_generator if is_section(sc) else run_train_generator
+    m = stage(sc, args.data, args.out, args.command_line, progress=not args.quiet)
     print(
         f"generator written to {args.out / 'generator.pt'} ({m['epochs']} epochs, {m['timings_s']['train_generator']:.1f} s)"
     )
@@ -72,8 +69,6 @@ def _cmd_train_generator(args: argparse.Namespace) -> int:
 
 
 def _cmd_complete(args: argparse.Namespace) -> int:
-    from macromicro_sumo.generator_train import run_complete
-
     sc = _scenario(args)
     if is_section(sc):
         raise UserError(
@@ -86,31 +81,18 @@ def _cmd_complete(args: argparse.Namespace) -> int:
 
 
 def _cmd_train_policy(args: argparse.Namespace) -> int:
-    from macromicro_sumo.ppo import run_train_policy
-
     sc = _scenario(args)
-    if is_section(sc):
-        from macromicro_sumo.section_pipeline import run_train_section_policy
-
-        m = run_train_section_policy(
-            sc, args.data, args.generator, args.out, args.resume, args.command_line, not args.quiet
-        )
-        print(
-            f"policy written to {args.out / 'policy.pt'} ({m['timings_s']['train_policy']:.1f} s)"
-        )
-        return 0
-    m = run_train_policy(
+    stage = run_train_section_policy if is_section(sc) else run_train_policy
+    m = stage(
         sc, args.data, args.generator, args.out, args.resume, args.command_line, not args.quiet
     )
-    print(m["alignment"].round(4).to_string(index=False))
+    if "alignment" in m:
+        print(m["alignment"].round(4).to_string(index=False))
     print(f"policy written to {args.out / 'policy.pt'} ({m['timings_s']['train_policy']:.1f} s)")
     return 0
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from macromicro_sumo.evaluation import evaluate
-    from macromicro_sumo.pipeline import policy_paths
-
     sc = _scenario(args)
     policies = (
         policy_paths(args.policy.parent)
@@ -119,8 +101,6 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     )
     policies["policy"] = args.policy
     if is_section(sc):
-        from macromicro_sumo.section_eval import evaluate_section
-
         if args.hidden:
             raise UserError(
                 "--hidden is for ring scenarios; on a section the hidden count is estimated "
@@ -129,38 +109,31 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         evaluate_section(
             sc, args.data, args.generator, policies, args.out, args.command_line, not args.quiet
         )
-        print(f"evaluation written to {args.out}")
-        return 0
-    evaluate(
-        sc,
-        args.data,
-        args.generator,
-        policies,
-        args.out,
-        args.command_line,
-        not args.quiet,
-        args.hidden,
-    )
+    else:
+        evaluate(
+            sc,
+            args.data,
+            args.generator,
+            policies,
+            args.out,
+            args.command_line,
+            not args.quiet,
+            args.hidden,
+        )
     print(f"evaluation written to {args.out}")
     return 0
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from macromicro_sumo.pipeline import run
-
     sc = _scenario(args)
-    if is_section(sc):
-        from macromicro_sumo.section_pipeline import run_section
-
-        run = run_section
-    run(sc, args.out, args.command_line, progress=not args.quiet)
+    (run_section if is_section(sc) else run)(
+        sc, args.out, args.command_line, progress=not args.quiet
+    )
     print(f"pipeline outputs in {args.out}")
     return 0
 
 
 def _cmd_doctor(args: argparse.Namespace) -> int:
-    from macromicro_sumo import sumo
-
     root = Path(__file__).resolve().parents[1] / "sumo_nets"
     info = sumo.versions()
     print(f"SUMO binary : {info['sumo_binary']}")

@@ -101,8 +101,6 @@ def prepare_out_dir(out: Path | str, inputs: Iterable[Path | str] = ()) -> Path:
         raise UserError(f"{out}: output folder is an existing file; pass a folder path")
     try:
         out.mkdir(parents=True, exist_ok=True)
-        if not any(out.iterdir()):  # new or empty: ours from now on
-            mark_output(out)
     except OSError as exc:
         raise UserError(f"{out}: cannot create output folder ({exc.strerror})") from None
     return out

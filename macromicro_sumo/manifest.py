@@ -7,7 +7,7 @@ import sys
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
-from macromicro_sumo.config import Scenario
+from macromicro_sumo.scenario.ring import Scenario
 
 
 def package_versions() -> dict[str, str]:

@@ -21,7 +21,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from macromicro_sumo.batch import expand, run_batch
+from macromicro_sumo.batch.runner import expand, run_batch
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -22,11 +22,11 @@ import libsumo
 import numpy as np
 import torch
 
-from macromicro_sumo.config import load_scenario
-from macromicro_sumo.dataset import load_ground_truth, split_runs
-from macromicro_sumo.env import RingCore, build_bank
-from macromicro_sumo.ground_truth import simulate
-from macromicro_sumo.ppo import train_policy
+from macromicro_sumo.data.ring import load_ground_truth, split_runs
+from macromicro_sumo.env.ring import RingCore, build_bank
+from macromicro_sumo.policy.ppo import train_policy
+from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.truth.ring import simulate
 
 
 def bench_core(core: RingCore, steps: int, horizon: int, rng: np.random.Generator) -> float:
@@ -103,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  bare libsumo, same SUMO calls   : {bare_s:10,.0f} steps/s")
         print(f"  env cost / bare loop            : {bare_s / env_s:10.2f} x")
 
-        from macromicro_sumo.envs import RingHiddenEnv
+        from macromicro_sumo.env.wrappers import RingHiddenEnv
 
         env = RingHiddenEnv(sc, gt_dir, None)
         env.reset(seed=0)

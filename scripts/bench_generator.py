@@ -35,16 +35,16 @@ import numpy as np
 import pandas as pd
 import torch
 
-from macromicro_sumo.config import load_scenario
-from macromicro_sumo.dataset import hide, load_ground_truth, snapshot_states, split_runs
-from macromicro_sumo.generator import (
+from macromicro_sumo.data.ring import hide, load_ground_truth, snapshot_states, split_runs
+from macromicro_sumo.generator.ring import (
     complete,
     completion_metrics,
     feasible_exists,
     rejection_success,
 )
-from macromicro_sumo.generator_train import held_out_sets, load_generator, run_train_generator
-from macromicro_sumo.ground_truth import simulate
+from macromicro_sumo.generator.ring_train import held_out_sets, load_generator, run_train_generator
+from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.truth.ring import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGET_ONE_MS = 2.0

@@ -20,10 +20,10 @@ from pathlib import Path
 import libsumo
 import numpy as np
 
-from macromicro_sumo.config import load_scenario
-from macromicro_sumo.section_data import section_snapshots
-from macromicro_sumo.section_env import SectionCore, build_section_bank
-from macromicro_sumo.section_truth import load_section_truth, simulate_section
+from macromicro_sumo.data.section import section_snapshots
+from macromicro_sumo.env.section import SectionCore, build_section_bank
+from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.truth.section import load_section_truth, simulate_section
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import sumo
 
-from macromicro_sumo.netgen import random_corridor
+from macromicro_sumo.sumo.netgen import random_corridor
 
 GAME = Path(sumo.SUMO_HOME) / "tools" / "game"
 SUMO_VERSION = importlib.metadata.version("eclipse-sumo")
@@ -125,7 +125,7 @@ def spreewaldring(out: Path) -> None:
 
 
 def netgen_corridor(out: Path) -> None:
-    """A random one-way corridor from ``macromicro_sumo.netgen`` with a fixed seed."""
+    """A random one-way corridor from ``macromicro_sumo.sumo.netgen`` with a fixed seed."""
     c = random_corridor(out, seed=CORRIDOR_SEED, name="corridor")
     rows = "\n".join(
         f"| `{e}` | {k} | {length:.1f} | {v:.2f} |"
@@ -135,7 +135,7 @@ def netgen_corridor(out: Path) -> None:
     )
     (out / "README.md").write_text(
         "# netgen_corridor\n\n"
-        f"Built by `macromicro_sumo.netgen.random_corridor(seed={CORRIDOR_SEED})` with the\n"
+        f"Built by `macromicro_sumo.sumo.netgen.random_corridor(seed={CORRIDOR_SEED})` with the\n"
         f"netconvert of eclipse-sumo {SUMO_VERSION} (`scripts/build_example_nets.py`): a\n"
         "one-way corridor nobody designed, with lane counts and speed limits that change\n"
         f"between edges. Demand: {c.vehs_per_hour:g} veh/h in two flows, vType `car_idm`\n"

@@ -9,7 +9,7 @@ import argparse
 import math
 from pathlib import Path
 
-from macromicro_sumo.network import build_ring, read_ring
+from macromicro_sumo.road.ring import build_ring, read_ring
 
 
 def main(argv: list[str] | None = None) -> int:

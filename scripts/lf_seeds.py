@@ -37,17 +37,18 @@ from pathlib import Path
 import pandas as pd
 import torch
 
-from macromicro_sumo.config import Scenario, load_scenario
-from macromicro_sumo.dataset import load_ground_truth, split_runs
-from macromicro_sumo.generator_train import load_generator
-from macromicro_sumo.leader_follower import (
+from macromicro_sumo.data.ring import load_ground_truth, split_runs
+from macromicro_sumo.evaluation.leader_follower import (
     LeaderProfile,
     mean_idm_params,
     method_summary,
     policy_follower,
     run_leader_follower,
 )
-from macromicro_sumo.ppo import heldout_speed, train_policy, training_bank
+from macromicro_sumo.generator.ring_train import load_generator
+from macromicro_sumo.policy.ppo import heldout_speed, train_policy, training_bank
+from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.scenario.ring import Scenario
 
 
 def lf_rmse(sc: Scenario, agent) -> tuple[pd.DataFrame, pd.DataFrame]:

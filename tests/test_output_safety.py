@@ -9,10 +9,10 @@ from pathlib import Path
 import pytest
 
 from macromicro_sumo import cli
-from macromicro_sumo.config import load_scenario
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import OUTPUT_MARK, prepare_out_dir, staging_dir
-from macromicro_sumo.ppo import load_checkpoint
+from macromicro_sumo.policy.ppo import load_checkpoint
+from macromicro_sumo.scenario.load import load_scenario
 
 
 class _RunsCode:

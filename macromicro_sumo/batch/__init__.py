@@ -1,0 +1,1 @@
+"""Batch runs of scenario variants and the export of their tables."""

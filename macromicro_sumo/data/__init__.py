@@ -1,0 +1,1 @@
+"""What the stages exchange: recorded truth, snapshots, psi, the macro statistics."""

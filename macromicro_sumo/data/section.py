@@ -1,0 +1,145 @@
+"""What the stages exchange on a section: the recorded truth, snapshots, psi, hidden counts.
+
+Arrays are padded to the largest fleet in the set: ``valid`` says which slots hold a
+vehicle. Positions are ``(lane index, arc)`` on the section (``section.Section``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.road.section import Section
+
+# psi per snapshot, from the detectors' interval that holds it (columns of ``psi``):
+PSI_FIELDS = (
+    "mean_speed_mps",  # space-mean speed on the section
+    "mean_spacing_m",  # 1 / density per lane
+    "std_spacing_m",  # spread of the spacings (NaN where the detectors cannot tell)
+    "speed_min_mps",  # admissible speeds [v_min, v_max]
+    "speed_max_mps",
+    "spacing_min_m",  # smallest admissible front-to-front spacing (length + min gap)
+)
+
+
+@dataclass(frozen=True)
+class SectionTruth:
+    """A ground-truth folder of ``macromicro simulate`` on a section (see docs/sections.md)."""
+
+    folder: Path
+    section: Section
+    trajectories: pd.DataFrame
+    detectors: pd.DataFrame
+    macro: pd.DataFrame
+    vtypes: pd.DataFrame
+    k_estimate: pd.DataFrame
+
+    @property
+    def runs(self) -> np.ndarray:
+        return np.sort(self.trajectories["run"].unique())
+
+
+@dataclass(frozen=True)
+class SectionSnapshots:
+    """Scenes on the section at snapshot times; (S, N) arrays padded with ``valid``."""
+
+    run: np.ndarray  # (S,)
+    time_s: np.ndarray  # (S,)
+    lane: np.ndarray  # (S, N) int lane index
+    arc_m: np.ndarray  # (S, N)
+    speed_mps: np.ndarray  # (S, N)
+    length_m: np.ndarray  # (S, N) vehicle lengths
+    valid: np.ndarray  # (S, N) bool: a vehicle in this slot
+    observed: np.ndarray  # (S, N) bool: instrumented (known to the method)
+    psi: np.ndarray  # (S, len(PSI_FIELDS))
+    k_true: np.ndarray  # (S,) hidden vehicles on the section (the simulation knows)
+    k_est: np.ndarray  # (S,) hidden vehicles estimated from detector density
+
+    def __len__(self) -> int:
+        return len(self.run)
+
+    @property
+    def hidden(self) -> np.ndarray:
+        return self.valid & ~self.observed
+
+    def take(self, idx: np.ndarray) -> SectionSnapshots:
+        return SectionSnapshots(**{f: getattr(self, f)[idx] for f in self.__dataclass_fields__})
+
+
+def check_columns(df: pd.DataFrame, columns: tuple[str, ...], path: Path) -> None:
+    missing = [c for c in columns if c not in df.columns]
+    if missing:
+        raise UserError(f"{path}: missing column(s) {', '.join(missing)}")
+
+
+def at_snapshot_times(traj: pd.DataFrame, every_s: float) -> pd.DataFrame:
+    """The rows of ``traj`` at whole multiples of ``every_s`` (the snapshot grid)."""
+    t = traj["time_s"].to_numpy()
+    return traj[np.abs(t / every_s - np.round(t / every_s)) < 1e-6]
+
+
+def psi_table(truth: SectionTruth, sc) -> pd.DataFrame:
+    """psi per (run, interval) from the detectors, with bounds filled where they are silent.
+
+    Speed bounds come from the passages of the interval (widened by 10%: the interval's
+    extremes are a sample), falling back to [0, highest limit]; the smallest spacing is the
+    shortest vehicle plus the scenario's minimum gap.
+    """
+    m = truth.macro[truth.macro["source"] == "detectors"].copy()
+    vmax_lim = float(np.nanmax(truth.section.limits_mps))
+    lo = m["speed_min_mps"].fillna(0.0) * 0.9
+    hi = (m["speed_max_mps"] * 1.1).fillna(vmax_lim).clip(upper=vmax_lim * 1.5)
+    m["speed_min_mps"], m["speed_max_mps"] = lo, hi
+    m["spacing_min_m"] = float(truth.vtypes["length_m"].min()) + sc.bounds.min_gap_m
+    return m
+
+
+def section_snapshots(truth: SectionTruth, sc, runs: np.ndarray) -> SectionSnapshots:
+    """Scenes every ``generator.snapshot_every_s`` of ``runs`` with psi and hidden counts."""
+    every = sc.generator.snapshot_every_s
+    traj = truth.trajectories
+    traj = traj[traj["run"].isin(runs)]
+    traj = at_snapshot_times(traj, every)
+    psi = psi_table(truth, sc)
+    k = truth.k_estimate.set_index(["run", "time_s"])
+    lengths = dict(zip(truth.vtypes["vtype"], truth.vtypes["length_m"], strict=True))
+    scenes = []
+    for (run, time_s), g in traj.groupby(["run", "time_s"], sort=True):
+        m = psi[(psi["run"] == run) & (psi["begin_s"] <= time_s) & (psi["end_s"] > time_s)]
+        if m.empty or not np.isfinite(m["mean_speed_mps"].iloc[0]) or (run, time_s) not in k.index:
+            continue
+        scenes.append((run, time_s, g, m.iloc[0][list(PSI_FIELDS)].to_numpy(dtype=float)))
+    if not scenes:
+        raise UserError(
+            f"{truth.folder}: no snapshot of runs {list(runs)} falls in a detector interval"
+        )
+    s_n, n = len(scenes), max(len(g) for _, _, g, _ in scenes)
+    lane = np.zeros((s_n, n), dtype=np.int64)
+    arc, speed, length = np.zeros((s_n, n)), np.zeros((s_n, n)), np.zeros((s_n, n))
+    valid, observed = np.zeros((s_n, n), bool), np.zeros((s_n, n), bool)
+    for i, (_, _, g, _) in enumerate(scenes):
+        j = len(g)
+        lane[i, :j] = g["lane_index"].to_numpy()
+        arc[i, :j] = g["arc_m"].to_numpy()
+        speed[i, :j] = g["speed_mps"].to_numpy()
+        length[i, :j] = g["vtype"].map(lengths).to_numpy(dtype=float)
+        valid[i, :j] = True
+        observed[i, :j] = g["observed"].to_numpy(dtype=bool)
+    keys = [(r, t) for r, t, _, _ in scenes]
+    return SectionSnapshots(
+        run=np.array([r for r, _ in keys]),
+        time_s=np.array([t for _, t in keys]),
+        lane=lane,
+        arc_m=arc,
+        speed_mps=speed,
+        length_m=length,
+        valid=valid,
+        observed=observed,
+        psi=np.stack([p for *_, p in scenes]),
+        k_true=k.loc[keys, "k_true"].to_numpy(),
+        k_est=k.loc[keys, "k_est"].to_numpy(),
+    )

@@ -1,0 +1,1 @@
+"""Stage II environments: the SUMO core and the gymnasium / PettingZoo wrappers."""

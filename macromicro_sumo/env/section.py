@@ -1,0 +1,692 @@
+"""Stage II on a road section of the user's network: hidden vehicles driven by the shared policy.
+
+``SectionCore`` owns one SUMO run of the user's network WITHOUT the user's demand (the net
+plus our vehicle types) and is reused for every episode. The ring's ``RingCore`` is the
+special case of one lane, a closed loop and a fixed fleet; here vehicles enter lanes of
+different widths of road, change lanes and leave the section, and the number of vehicles
+varies per episode (arrays are padded to N slots; ``valid`` and ``active`` say which count).
+
+Action Space
+    One acceleration [m/s^2] per hidden vehicle (``bank.hidden[ep]`` order), clipped to
+    ``sc.bounds.accel_mps2``; applied as a speed command v' = max(0, v + a dt) in speed
+    mode 0 (exact, no SUMO safety checks). Lane changes of hidden vehicles are SUMO's own
+    lane-change model.
+Observation Space
+    Per slot, ``physics.OBSERVATION_FEATURES[sc.policy.observation]``: speed, the local
+    limit on its lane, the spacing to the leader in its lane (``NO_LEADER_GAP_M`` with no
+    leader), v - v_leader (0 with no leader) and, with ``"lookahead"``, the next edge's
+    limit on its lane and the distance to that edge (on the last edge of an open section:
+    its own limit and the distance to the section's end). Inactive slots are zeros.
+Rewards
+    r_macro = 1 / (1 + lambda_v L_speed + lambda_d L_dist) of the active vehicles against
+    psi (``section_macro_reward``).
+Starting State
+    The episode's completed scene (observed vehicles + generated hidden vehicles), inserted
+    with ``vehicle.add`` at the exact lane and position; checked after the insertion step.
+Episode End
+    After H steps; earlier (``truncated``) on a SUMO error, a failed insertion, or when no
+    vehicle is left on the section. A vehicle that leaves the section (or SUMO) becomes
+    inactive and is removed. Observed vehicles replay their recorded lane and speed every
+    step; their record ends where they left the section in the ground truth.
+Arguments
+    ``SectionCore(sc, section, bank, net_file, seed, fcd_file=None)``.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from macromicro_sumo.data.section import PSI_FIELDS, SectionSnapshots, SectionTruth
+from macromicro_sumo.env.ring import StepResult
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.road.physics import OBSERVATION_FEATURES
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section, lane_leaders
+from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
+
+_PSI = {f: i for i, f in enumerate(PSI_FIELDS)}
+POSITION_TOL_M = 0.01  # insertion and replay checks: a placement off by more is an error
+
+
+# --------------------------------------------------------------------------- episodes
+
+
+@dataclass(frozen=True)
+class SectionBank:
+    """Start scenes and recorded futures of many episodes; arrays over episodes (E, ...)."""
+
+    lane0: np.ndarray  # (E, N) int lane index, completed scene (observed first, then generated)
+    arc0_m: np.ndarray  # (E, N)
+    speed0_mps: np.ndarray  # (E, N)
+    length_m: np.ndarray  # (E, N) vehicle lengths
+    valid: np.ndarray  # (E, N) bool: a vehicle in this slot
+    hidden: np.ndarray  # (E, N) bool: generated (driven by the policy)
+    psi: np.ndarray  # (E, len(PSI_FIELDS))
+    # Recorded futures of the observed vehicles (NaN: off the section at that step).
+    replay_lane: np.ndarray  # (E, H + 1, N) float lane index
+    replay_arc_m: np.ndarray  # (E, H + 1, N)
+    replay_speed_mps: np.ndarray  # (E, H + 1, N)
+    gt_accel_mps2: np.ndarray  # (E, H, N) recorded actions (NaN: unknown)
+    # Every true vehicle on the section over the horizon (the ground-truth method, evaluation).
+    true_lane: np.ndarray  # (E, H + 1, M) float lane index
+    true_arc_m: np.ndarray  # (E, H + 1, M)
+    true_speed_mps: np.ndarray  # (E, H + 1, M)
+    true_valid: np.ndarray  # (E, H + 1, M) bool
+    true_length_m: np.ndarray  # (E, M)
+    run: np.ndarray  # (E,)
+    time_s: np.ndarray  # (E,)
+
+    def __len__(self) -> int:
+        return len(self.run)
+
+    @property
+    def horizon(self) -> int:
+        return self.replay_speed_mps.shape[1] - 1
+
+    @property
+    def observed(self) -> np.ndarray:
+        return self.valid & ~self.hidden
+
+    def take(self, idx: np.ndarray) -> SectionBank:
+        """The episodes ``idx`` only."""
+        return SectionBank(**{f: getattr(self, f)[idx] for f in self.__dataclass_fields__})
+
+
+Completion = Callable[
+    [SectionSnapshots], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+]
+
+
+def build_section_bank(
+    sc,
+    truth: SectionTruth,
+    snaps: SectionSnapshots,
+    completion: Completion,
+    horizon: int | None = None,
+    seed: int = 0,
+) -> SectionBank:
+    """Episodes from ``snaps``: completed start scenes plus the recorded futures.
+
+    ``completion(snaps) -> (lane, arc, speed, valid, generated)``, each (S, N'), observed
+    vehicles first then the generated ones (the generator's ``SectionCompletion``, or the
+    true hidden vehicles for tests). Observed vehicles are found in the trajectories by
+    (run, time, lane, arc); snapshots with fewer than ``horizon`` recorded steps after them
+    are dropped. ``seed`` is kept for the draws of future completions (none here).
+    """
+    del seed  # every draw of this stage happens inside ``completion``
+    h = horizon or sc.policy.horizon
+    dt = sc.simulation.step_length_s
+    traj = truth.trajectories
+    length_of = dict(zip(truth.vtypes["vtype"], truth.vtypes["length_m"], strict=True))
+    runs: dict[int, dict[str, np.ndarray]] = {}
+    for r, g in traj.groupby("run", sort=True):
+        g = g.sort_values("time_s", kind="stable")
+        runs[int(r)] = {
+            "time": g["time_s"].to_numpy(dtype=float),
+            "vid": g["vehicle_id"].to_numpy(dtype=object),
+            "lane": g["lane_index"].to_numpy(dtype=float),
+            "arc": g["arc_m"].to_numpy(dtype=float),
+            "speed": g["speed_mps"].to_numpy(dtype=float),
+            "observed": g["observed"].to_numpy(dtype=bool),
+            "length": g["vtype"].map(length_of).to_numpy(dtype=float),
+        }
+    keep = [
+        i
+        for i, (r, t) in enumerate(zip(snaps.run, snaps.time_s, strict=True))
+        if int(r) in runs and t + h * dt <= runs[int(r)]["time"][-1] + 1e-6
+    ]
+    if not keep:
+        raise UserError(f"{truth.folder}: no snapshot leaves {h} steps of recorded future")
+    snaps = snaps.take(np.array(keep))
+    lane, arc, speed, valid, generated = (np.asarray(x) for x in completion(snaps))
+    valid = valid.astype(bool)
+    hidden = valid & generated.astype(bool)
+    e_n, n = arc.shape
+    replay = np.full((3, e_n, h + 1, n), np.nan)
+    length = np.zeros((e_n, n))
+    windows = []
+    for i, (r, t0) in enumerate(zip(snaps.run, snaps.time_s, strict=True)):
+        d = runs[int(r)]
+        lo, hi = np.searchsorted(d["time"], [t0 - 1e-6, t0 + h * dt + 1e-6])
+        w = {k: v[lo:hi] for k, v in d.items()}
+        w["step"] = np.rint((w["time"] - t0) / dt).astype(np.int64)
+        windows.append(w)
+        at0 = np.flatnonzero(w["step"] == 0)
+        slot_of = {}
+        for j in np.flatnonzero(valid[i] & ~hidden[i]):
+            cand = at0[(w["lane"][at0] == lane[i, j]) & w["observed"][at0]]
+            if cand.size == 0:
+                raise UserError(
+                    f"run {r}, t = {t0:g} s: observed vehicle at lane {lane[i, j]}, "
+                    f"{arc[i, j]:.2f} m is not in the trajectories"
+                )
+            k = cand[np.argmin(np.abs(w["arc"][cand] - arc[i, j]))]
+            if abs(w["arc"][k] - arc[i, j]) > 1e-3:
+                raise UserError(
+                    f"run {r}, t = {t0:g} s: no recorded observed vehicle at lane "
+                    f"{lane[i, j]}, {arc[i, j]:.2f} m"
+                )
+            slot_of[w["vid"][k]] = j
+            length[i, j] = w["length"][k]
+        for k in range(len(w["time"])):
+            j = slot_of.get(w["vid"][k])
+            if j is not None:
+                s = w["step"][k]
+                replay[:, i, s, j] = w["lane"][k], w["arc"][k], w["speed"][k]
+    length[hidden] = typical_length(truth)
+    spd = replay[2]
+    with np.errstate(invalid="ignore"):
+        gt_accel = np.diff(spd, axis=1) / dt  # NaN where either end is off the section
+    true = _true_scenes(windows, h)
+    return SectionBank(
+        lane0=lane.astype(np.int64),
+        arc0_m=arc.astype(float),
+        speed0_mps=speed.astype(float),
+        length_m=length,
+        valid=valid,
+        hidden=hidden,
+        psi=snaps.psi,
+        replay_lane=replay[0],
+        replay_arc_m=replay[1],
+        replay_speed_mps=replay[2],
+        gt_accel_mps2=gt_accel,
+        true_lane=true[0],
+        true_arc_m=true[1],
+        true_speed_mps=true[2],
+        true_valid=np.isfinite(true[2]),
+        true_length_m=true[3][:, 0, :],
+        run=snaps.run,
+        time_s=snaps.time_s,
+    )
+
+
+def typical_vclass(truth: SectionTruth) -> str:
+    """SUMO vehicle class for our vehicles: that of the vType with the most vehicles (lanes
+    may admit only some classes, e.g. a race track only ``vip``)."""
+    vt = truth.vtypes
+    if "vclass" not in vt:
+        return "passenger"
+    return str(vt["vclass"].iloc[int(np.argmax(vt["vehicles"].to_numpy()))])
+
+
+def typical_length(truth: SectionTruth) -> float:
+    """Length of generated vehicles: the vType with the most vehicles on the section."""
+    vt = truth.vtypes
+    return float(vt["length_m"].iloc[int(np.argmax(vt["vehicles"].to_numpy()))])
+
+
+def _true_scenes(windows: list[dict[str, np.ndarray]], h: int) -> np.ndarray:
+    """(lane, arc, speed, length) of every true vehicle per episode step: (4, E, H + 1, M);
+    slots in order of first appearance (the start scene first)."""
+    slots = []
+    for w in windows:
+        _, first = np.unique(w["vid"], return_index=True)
+        order = np.sort(first)
+        slots.append({w["vid"][k]: j for j, k in enumerate(order)})
+    m = max(1, max(len(s) for s in slots))
+    out = np.full((4, len(windows), h + 1, m), np.nan)
+    for i, (w, s) in enumerate(zip(windows, slots, strict=True)):
+        j = np.array([s[v] for v in w["vid"]], dtype=np.int64)
+        out[:, i, w["step"], j] = w["lane"], w["arc"], w["speed"], w["length"]
+    # A vehicle's length holds at every step: fill it along the horizon for step 0's use.
+    longest = np.where(np.isnan(out[3]), -np.inf, out[3]).max(axis=1, keepdims=True)
+    out[3] = np.where(np.isfinite(longest), longest, np.nan)
+    return out
+
+
+# --------------------------------------------------------------------------- physics
+
+
+def section_observations(
+    section: Section,
+    lane: np.ndarray,
+    arc_m: np.ndarray,
+    speed_mps: np.ndarray,
+    active: np.ndarray,
+    observation: str,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Observations (N, obs_dim), leader (-1: none) and spacing of the active vehicles.
+
+    One sort per call (``lane_leaders``); inactive slots get zeros and no leader.
+    """
+    n = len(arc_m)
+    obs = np.zeros((n, len(OBSERVATION_FEATURES[observation])))
+    leader = np.full(n, -1, dtype=np.int64)
+    spacing = np.full(n, NO_LEADER_GAP_M)
+    idx = np.flatnonzero(active)
+    if idx.size == 0:
+        return obs, leader, spacing
+    ln, s, v = lane[idx], arc_m[idx], speed_mps[idx]
+    lead, gap = lane_leaders(ln, s, section.length_m, section.closed)
+    has = lead >= 0
+    leader[idx[has]] = idx[lead[has]]
+    spacing[idx] = gap
+    e = section.edge_index(s)
+    lim = section.limits_mps
+    o = obs[idx]
+    o[:, 0] = v
+    o[:, 1] = lim[e, np.minimum(ln, section.n_lanes[e] - 1)]
+    o[:, 2] = gap
+    o[:, 3] = np.where(has, v - v[np.maximum(lead, 0)], 0.0)
+    if o.shape[1] > 4:
+        o[:, 4], o[:, 5] = _lookahead(section, ln, s, e, o[:, 1])
+    obs[idx] = o
+    return obs, leader, spacing
+
+
+def _lookahead(
+    section: Section, lane: np.ndarray, arc_m: np.ndarray, e: np.ndarray, own_limit: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The next edge's limit on the vehicle's lane and the distance to that edge's start."""
+    n_e = len(section.edge_ids)
+    s = np.mod(arc_m, section.length_m) if section.closed else arc_m
+    if section.closed:
+        nxt = (e + 1) % n_e
+        start = section.offsets_m[nxt] + np.where(nxt == 0, section.length_m, 0.0)
+        return section.limits_mps[nxt, np.minimum(lane, section.n_lanes[nxt] - 1)], start - s
+    last = e == n_e - 1
+    nxt = np.minimum(e + 1, n_e - 1)
+    limit = np.where(
+        last, own_limit, section.limits_mps[nxt, np.minimum(lane, section.n_lanes[nxt] - 1)]
+    )
+    start = np.where(last, section.length_m, section.offsets_m[nxt])
+    return limit, start - s
+
+
+def section_macro_reward(
+    speed_mps: np.ndarray,
+    spacing_m: np.ndarray,
+    leader: np.ndarray,
+    hidden: np.ndarray,
+    active: np.ndarray,
+    psi: np.ndarray,
+    lambda_v: float,
+    lambda_d: float,
+    speed_scale_mps: float = 0.0,
+) -> tuple[float, dict[str, float]]:
+    """r_macro = 1 / (1 + lambda_v L_speed + lambda_d L_dist) of the active vehicles vs psi.
+
+    As ``RingCore.macro_reward``: L_speed on the mean speed of all active vehicles; the
+    spacing terms on the per-lane spacings that touch a hidden vehicle (it, or its leader),
+    vehicles without a leader excluded. psi has no upper spacing bound, so L_max is absent;
+    L_var is |std - detectors' spacing std| / d_mean where the detectors measured one, else
+    the paper's std / d_mean.
+    """
+    v_mean, d_mean = psi[_PSI["mean_speed_mps"]], psi[_PSI["mean_spacing_m"]]
+    d_std, d_min = psi[_PSI["std_spacing_m"]], psi[_PSI["spacing_min_m"]]
+    n = int(active.sum())
+    if n == 0:
+        return 0.0, {}
+    scale = speed_scale_mps or v_mean  # macro.speed_loss
+    terms = {"L_speed": float(((speed_mps[active].sum() / n - v_mean) / scale) ** 2)}
+    has = active & (leader >= 0)
+    lead = np.maximum(leader, 0)
+    a = spacing_m[has & (hidden | hidden[lead])]
+    m = a.size
+    if m:
+        mean = a.sum() / m
+        dev = a - mean
+        low = np.maximum(0.0, d_min - a)
+        std = np.sqrt((dev * dev).sum() / m)
+        terms["L_mean"] = float((mean / d_mean - 1.0) ** 2)
+        terms["L_min"] = float((low * low).sum() / (m * d_min * d_min))
+        terms["L_var"] = float((abs(std - d_std) if np.isfinite(d_std) else std) / d_mean)
+    else:
+        terms.update(L_mean=0.0, L_min=0.0, L_var=0.0)
+    l_dist = terms["L_mean"] + terms["L_min"] + terms["L_var"]
+    return 1.0 / (1.0 + lambda_v * terms["L_speed"] + lambda_d * l_dist), terms
+
+
+def initial_observations(sc, section: Section, bank: SectionBank) -> np.ndarray:
+    """Every valid vehicle's observation at the start of every episode, (V, obs_dim).
+
+    What the policy's input normalisation is fitted on (no SUMO run needed).
+    """
+    rows = []
+    for ep in range(len(bank)):
+        valid = bank.valid[ep]
+        obs, _, _ = section_observations(
+            section,
+            bank.lane0[ep],
+            _on_section(section, bank.arc0_m[ep]),
+            bank.speed0_mps[ep],
+            valid,
+            sc.policy.observation,
+        )
+        rows.append(obs[valid])
+    return np.concatenate(rows) if rows else np.zeros((0, 4))
+
+
+def _on_section(section: Section, arc_m: np.ndarray) -> np.ndarray:
+    return np.mod(arc_m, section.length_m) if section.closed else arc_m
+
+
+# --------------------------------------------------------------------------- core
+
+
+@dataclass
+class SectionStepResult(StepResult):
+    active: np.ndarray  # (N,) bool: slots on the section after this step
+
+
+class SectionCore:
+    """One SUMO run of the user's network (no demand) reused for every episode."""
+
+    def __init__(
+        self,
+        sc,
+        section: Section,
+        bank: SectionBank,
+        net_file: Path,
+        seed: int = 0,
+        fcd_file: Path | None = None,
+        vclass: str = "passenger",
+    ) -> None:
+        self.sc = sc
+        self.section = section
+        self.bank = bank
+        self.dt = sc.simulation.step_length_s
+        self.a_min, self.a_max = sc.bounds.accel_mps2
+        self.n = bank.arc0_m.shape[1]
+        self.observation = sc.policy.observation
+        self.obs_dim = len(OBSERVATION_FEATURES[self.observation])
+        self._tmp = tempfile.TemporaryDirectory(prefix="macromicro-section-env-")
+        lengths = np.concatenate([bank.length_m[bank.valid], bank.true_length_m.ravel()])
+        lengths = np.unique(np.round(lengths[np.isfinite(lengths) & (lengths > 0)], 2))
+        self._vtype = {float(x): f"mm_L{i}" for i, x in enumerate(lengths)}
+        vtypes = Path(self._tmp.name) / "vtypes.add.xml"
+        vtypes.write_text(
+            _vtypes_xml(self._vtype, sc.bounds.accel_mps2, sc.bounds.min_gap_m, vclass)
+        )
+        self.sim = Simulation(
+            SumoOptions(Path(net_file), (vtypes,), self.dt, seed, fcd_file=fcd_file)
+        )
+        self._routes = self._add_routes()
+        self._lanes = section.lanes
+        # (edge index, lane index entered) -> (internal lane, its arc start, arc per metre)
+        self._via: dict[tuple[int, int], tuple[str, float, float]] = {}
+        for lane_id, (e, idx, start, scale) in section.lanes.items():
+            if lane_id.startswith(":"):
+                self._via.setdefault((e, idx), (lane_id, start, scale))
+        self._resets = 0
+        self.episode = -1
+        self.t = 0
+        self.ids: list[str] = []
+        self.lane = np.zeros(self.n, dtype=np.int64)
+        self.arc = np.zeros(self.n)
+        self.speed = np.zeros(self.n)
+        self.active = np.zeros(self.n, dtype=bool)
+        self.hidden = np.zeros(self.n, dtype=bool)
+        self.leader = np.full(self.n, -1, dtype=np.int64)
+        self.spacing = np.full(self.n, NO_LEADER_GAP_M)
+        self._obs = np.zeros((self.n, self.obs_dim))
+        self._error = ""
+
+    def _add_routes(self) -> list[str]:
+        """One route per start edge to the section's end (a loop: laps for any episode)."""
+        edges = list(self.section.edge_ids)
+        laps = 1
+        if self.section.closed:
+            b = self.bank
+            v = np.nanmax(
+                np.concatenate([b.speed0_mps[b.valid], b.replay_speed_mps.ravel(), [1.0]])
+            )
+            reach = (v + self.a_max * b.horizon * self.dt) * b.horizon * self.dt
+            laps = int(np.ceil(reach / self.section.length_m)) + 2
+        ids = []
+        for e in range(len(edges)):
+            rid = f"mm_r{e}"
+            self.sim.add_route(
+                rid, (edges[e:] + edges[:e]) * laps if self.section.closed else edges[e:]
+            )
+            ids.append(rid)
+        return ids
+
+    def close(self) -> None:
+        self.sim.close()
+        self._tmp.cleanup()
+
+    # ------------------------------------------------------------------ episode
+    def reset(self, episode: int) -> np.ndarray:
+        """Insert the episode's scene (no restart); returns the observations (N, obs_dim)."""
+        if not self.sim.is_active():
+            raise UserError(
+                "another SUMO simulation was started in this process; libsumo runs one per process"
+            )
+        b, sec = self.bank, self.section
+        self.episode, self.t, self._error = episode, 0, ""
+        self.sim.clear_vehicles()
+        self._resets += 1
+        self.ids = [f"m{self._resets}.{i}" for i in range(self.n)]
+        self.hidden = b.hidden[episode]
+        self.psi = b.psi[episode]
+        valid = b.valid[episode]
+        slots = np.flatnonzero(valid)
+        want = np.zeros(self.n)
+        want_lane = np.zeros(self.n, dtype=np.int64)
+        in_junction: dict[int, tuple[str, float, int]] = {}
+        for i in slots:
+            lane0, arc0 = int(b.lane0[episode, i]), float(b.arc0_m[episode, i])
+            via = self._junction_lane(lane0, arc0)
+            if via is not None:
+                # Inserted near the end of the edge before, then moved onto the junction's own
+                # lane after the insertion step: stacking every vehicle of a junction at the
+                # next edge's start crashes them (long junctions of a race track: 35 m).
+                in_junction[i] = via[1:]
+                e = via[0]
+                lane_idx = min(lane0, int(sec.n_lanes[e]) - 1)
+                pos = max(0.0, float(sec.lengths_m[e]) - 0.5)
+            else:
+                e, lane_idx, pos = self.section.to_lane(lane0, arc0)
+            want[i], want_lane[i] = sec.offsets_m[e] + pos, lane_idx
+            if i in in_junction:
+                want[i], want_lane[i] = arc0, lane0
+            length = float(np.round(b.length_m[episode, i], 2))
+            # SUMO refuses a departure above the lane's limit; the env keeps the true speed
+            # and the first speed command (mode 0) applies it exactly.
+            self.sim.add_vehicle(
+                self.ids[i],
+                self._routes[e],
+                self._vtype[length],
+                lane_idx,
+                pos,
+                min(float(b.speed0_mps[episode, i]), float(sec.limits_mps[e, lane_idx])),
+            )
+        self.sim.step()
+        live = [self.ids[i] for i in slots]
+        self.sim.subscribe_lanes(live)
+        states = self.sim.read_lane_states()
+        self.active = np.zeros(self.n, dtype=bool)
+        self.lane = np.zeros(self.n, dtype=np.int64)
+        self.arc = np.zeros(self.n)
+        self.speed = np.where(valid, b.speed0_mps[episode], 0.0)
+        worst = 0.0
+        for i, (via_id, depth, lane_idx) in in_junction.items():
+            try:
+                self.sim.move_to_lanes([self.ids[i]], [via_id], [depth])
+            except Exception as exc:  # SUMO refused: the episode is truncated, training goes on
+                self._error = f"junction placement failed: {type(exc).__name__}: {exc}"
+                continue
+            self.active[i] = True
+            self.lane[i] = lane_idx
+            self.arc[i] = want[i]
+        for i in slots:
+            if i in in_junction:
+                continue
+            st = states.get(self.ids[i])
+            hit = None if st is None else self._lanes.get(st[0])
+            if hit is None:
+                self._error = f"insertion failed: vehicle {i} is not on the section"
+                continue
+            self.active[i] = True
+            self.lane[i] = hit[1]
+            self.arc[i] = hit[2] + st[1] * hit[3]
+            worst = max(
+                worst,
+                abs(self.arc[i] - want[i]),
+                abs(hit[1] - want_lane[i]),
+            )
+        if worst > POSITION_TOL_M and not self._error:
+            self._error = f"insertion check failed: position off by {worst:.3f} m"
+        self.sim.set_speed_mode(live, 0)
+        self.sim.set_lane_change_mode([self.ids[i] for i in slots if not self.hidden[i]], 0)
+        self._scene()
+        return self._obs.copy()
+
+    def _junction_lane(self, lane: int, arc_m: float) -> tuple[int, str, float, int] | None:
+        """(edge before, internal lane ID, position on it, lane index) of a position inside
+        a junction of the section, or None."""
+        sec = self.section
+        s = float(np.mod(arc_m, sec.length_m)) if sec.closed else float(arc_m)
+        e = int(sec.edge_index(np.array([s]))[0])
+        if s - float(sec.offsets_m[e]) <= sec.lengths_m[e]:
+            return None
+        hit = self._via.get((e, int(lane)))
+        if hit is None:
+            return None
+        via_id, start, scale = hit
+        depth = (s - start) / scale if scale > 0 else 0.0
+        return e, via_id, max(0.0, depth), int(lane)
+
+    def _scene(self) -> None:
+        """Leaders, spacings and observations of the active vehicles (one sort)."""
+        self._obs, self.leader, self.spacing = section_observations(
+            self.section, self.lane, self.arc, self.speed, self.active, self.observation
+        )
+
+    def observations(self) -> np.ndarray:
+        return self._obs.copy()
+
+    def macro_reward(self) -> tuple[float, dict[str, float]]:
+        g = self.sc.generator
+        return section_macro_reward(
+            self.speed,
+            self.spacing,
+            self.leader,
+            self.hidden,
+            self.active,
+            self.psi,
+            g.lambda_v,
+            g.lambda_d,
+            self.sc.policy.macro_speed_scale_mps,
+        )
+
+    def _result(self, r: float, terms, collision: bool, truncated: bool, error: str):
+        return SectionStepResult(
+            self._obs.copy(), r, terms, collision, truncated, error, self.active.copy()
+        )
+
+    def step(self, accel_hidden: np.ndarray) -> SectionStepResult:
+        """Advance one step: hidden vehicles apply ``accel_hidden`` (one per hidden slot,
+        inactive ones ignored), observed vehicles replay their records."""
+        if not self.sim.is_active():
+            raise UserError(
+                "another SUMO simulation was started in this process; libsumo runs one per process"
+            )
+        b = self.bank
+        if self.t >= b.horizon:
+            raise UserError(f"episode over after {self.t} steps: call reset()")
+        if self._error:
+            return self._result(0.0, {}, False, True, self._error)
+        ep, t = self.episode, self.t
+        cmd = np.zeros(self.n)
+        a = np.clip(accel_hidden, self.a_min, self.a_max)
+        cmd[self.hidden] = np.maximum(0.0, self.speed[self.hidden] + a * self.dt)
+        obs_slots = self.active & ~self.hidden
+        rv = b.replay_speed_mps[ep, t + 1]
+        gone = obs_slots & np.isnan(rv)
+        if gone.any():  # the recorded vehicle left the section: it leaves the episode
+            self.active &= ~gone
+            self.sim.remove_vehicles([self.ids[i] for i in np.flatnonzero(gone)])
+        replay = obs_slots & ~gone
+        cmd[replay] = rv[replay]
+        live = np.flatnonzero(self.active)
+        try:
+            self.sim.set_speeds([self.ids[i] for i in live], cmd[live])
+            self.sim.step()
+            states = self.sim.read_lane_states()
+            collision = self.sim.collisions() > 0
+        except Exception as exc:  # a SUMO error: truncate, training goes on
+            return self._result(0.0, {}, False, True, f"{type(exc).__name__}: {exc}")
+        lanes, left = self._lanes, []
+        for i in live:
+            st = states.get(self.ids[i])
+            if st is None:  # arrived at the end of its route: off the open end
+                self.active[i] = False
+                continue
+            hit = lanes.get(st[0])
+            if hit is None:
+                if st[0].startswith(":"):  # an internal lane the section does not map
+                    self.arc[i] += st[2] * self.dt
+                    self.speed[i] = st[2]
+                    continue
+                self.active[i] = False
+                left.append(self.ids[i])
+                continue
+            self.lane[i] = hit[1]
+            self.arc[i] = hit[2] + st[1] * hit[3]
+            self.speed[i] = st[2]
+        if left:
+            self.sim.remove_vehicles(left)
+        error = self._follow_records(replay, b.replay_lane[ep, t + 1], b.replay_arc_m[ep, t + 1])
+        self.t += 1
+        self._scene()
+        if error or not self.active.any():
+            return self._result(0.0, {}, collision, True, error)
+        r, terms = self.macro_reward()
+        return self._result(r, terms, collision, False, "")
+
+    def _follow_records(self, replay: np.ndarray, lane: np.ndarray, arc_m: np.ndarray) -> str:
+        """Put observed vehicles that are off their record (a recorded lane change, or
+        drift) where the record says; returns an error text if SUMO refuses."""
+        sec = self.section
+        off = self.arc - arc_m
+        if sec.closed:
+            off = np.mod(off + sec.length_m / 2, sec.length_m) - sec.length_m / 2
+        fix = np.flatnonzero(
+            replay & self.active & ((lane != self.lane) | (np.abs(off) > POSITION_TOL_M))
+        )
+        if not fix.size:
+            return ""
+        places = [self.section.to_lane(int(lane[i]), float(arc_m[i])) for i in fix]
+        try:
+            self.sim.move_to(
+                [self.ids[i] for i in fix],
+                [f"{sec.edge_ids[e]}_{k}" for e, k, _ in places],
+                [p for _, _, p in places],
+                [self._routes[e] for e, _, _ in places],
+            )
+        except Exception as exc:
+            return f"{type(exc).__name__}: {exc}"
+        for i, (e, k, p) in zip(fix, places, strict=True):
+            self.lane[i], self.arc[i] = k, sec.offsets_m[e] + p
+        return ""
+
+
+def _vtypes_xml(
+    types: dict[float, str],
+    accel_mps2: tuple[float, float],
+    min_gap_m: float,
+    vclass: str = "passenger",
+) -> str:
+    """Our vehicle types, one per length: speed-commanded, SUMO's lane changing.
+
+    speedFactor 1 (SUMO's lane-change model sees the lane limit as the desired speed),
+    maxSpeed high (commands above the limit apply in speed mode 0), collisions only on
+    bumper overlap (collisionMinGapFactor 0), accel/decel = the action bounds.
+    """
+    a_min, a_max = accel_mps2
+    rows = ["<additional>"]
+    for length, tid in types.items():
+        rows.append(
+            f'    <vType id="{tid}" length="{length:g}" minGap="{min_gap_m:g}" maxSpeed="100" '
+            f'speedFactor="1" speedDev="0" accel="{a_max:g}" decel="{-a_min:g}" '
+            f'emergencyDecel="{max(9.0, -a_min):g}" collisionMinGapFactor="0" '
+            f'vClass="{vclass}"/>'
+        )
+    rows.append("</additional>")
+    return "\n".join(rows) + "\n"

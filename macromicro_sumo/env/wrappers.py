@@ -1,0 +1,220 @@
+"""Public environments over the SUMO ring: gymnasium (one hidden vehicle) and PettingZoo
+(K hidden vehicles, one shared policy). Both wrap ``env.RingCore``.
+
+## Action Space
+Per hidden vehicle: ``Box(a_min, a_max, (1,), float32)``, the longitudinal acceleration
+[m/s^2] (the paper's [-1.1, 0.5]). It is clipped to the bounds and applied as a speed command
+v' = max(0, v + a dt) in SUMO speed mode 0. A wrong shape or a NaN/inf raises ``ValueError``
+naming the agent.
+
+## Observation Space
+Per hidden vehicle: ``Box(4,)`` = [v (m/s), v_limit at its position (m/s), spacing to the
+vehicle ahead, front to front (m), v - v_leader (m/s)], from arc positions (the paper's
+observation). With ``policy.observation = "lookahead"``: ``Box(6,)``, adding the next
+edge's speed limit (m/s) and the distance to it (m).
+
+## Rewards
+r_macro,t = 1 / (1 + lambda_v L_speed,t + lambda_d L_dist,t) on the whole scene, the same
+for every hidden vehicle (the trainer weights it by eta). The micro term is not a reward:
+``info["observed_obs"]`` (M, 4) and ``info["observed_action_mps2"]`` (M,) carry each observed
+vehicle's observation in the simulated scene and its recorded action at this step, for the
+likelihood term. ``info`` also has ``collision``, ``error`` (a SUMO failure, if any) and the
+named terms ``L_speed, L_mean, L_min, L_max, L_var``.
+
+## Starting State
+A snapshot of a ground-truth run (the ``split``'s runs) with K hidden vehicles, completed
+by the trained generator and placed in SUMO (moved, not re-inserted: SUMO is not restarted).
+Observed vehicles replay their recorded speeds.
+
+## Episode End
+Truncated after H = ``policy.horizon`` steps of ``simulation.step_length_s`` seconds (10 x
+0.5 s on the paper's ring); terminated on a collision (bumper gap below 0); truncated early
+with ``info["error"]`` if SUMO fails.
+
+## Arguments
+``scenario`` (TOML path), ``data`` (ground-truth folder), ``generator`` (generator.pt, or
+``None`` to start from the true hidden states), ``split`` ("train", "val", "held_out"),
+``hidden`` (K, or a (low, high) range; gymnasium: 1), ``seed``.
+
+libsumo runs one simulation per process: keep one environment per process (use a
+vector env with subprocesses for more).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+
+from macromicro_sumo.data.ring import load_ground_truth, split_runs
+from macromicro_sumo.env.ring import EpisodeBank, RingCore, build_bank, generator_completion
+from macromicro_sumo.generator.ring_train import load_generator
+from macromicro_sumo.road.physics import OBSERVATION_FEATURES
+from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.scenario.ring import Scenario
+
+ENV_ID = "macromicro/RingHidden-v0"
+
+
+def make_bank(
+    scenario: str | Path | Scenario,
+    data: str | Path,
+    generator: str | Path | None,
+    split: str = "train",
+    hidden: int | tuple[int, int] = 1,
+    seed: int = 0,
+) -> tuple[Scenario, EpisodeBank]:
+    sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
+    gt = load_ground_truth(data, sc)
+    runs = split_runs(gt.runs, sc.generator.held_out_fraction, sc.seed)[split]
+    if generator is None:
+        fn = lambda s: (s.arc_m, s.speed_mps)  # noqa: E731 - the true hidden states
+    else:
+        fn = generator_completion(load_generator(generator, sc), sc, seed)
+    return sc, build_bank(sc, gt, runs, fn, hidden, seed)
+
+
+def _spaces(sc: Scenario, length_m: float) -> tuple[spaces.Box, spaces.Box]:
+    a_min, a_max = sc.bounds.accel_mps2
+    act = spaces.Box(np.float32(a_min), np.float32(a_max), (1,), np.float32)
+    lo, hi = [0, 0, 0, -100, 0, 0], [100, 100, length_m, 100, 100, length_m]
+    d = len(OBSERVATION_FEATURES[sc.policy.observation])
+    obs = spaces.Box(np.array(lo[:d], np.float32), np.array(hi[:d], np.float32), dtype=np.float32)
+    return act, obs
+
+
+def _check_action(agent: str, action: Any) -> float:
+    a = np.asarray(action, dtype=np.float64)
+    if a.shape not in ((1,), ()):
+        raise ValueError(f"agent {agent}: action must have shape (1,), got {a.shape}")
+    if not np.isfinite(a).all():
+        raise ValueError(f"agent {agent}: action must be finite, got {a.reshape(-1)[0]}")
+    return float(a.reshape(-1)[0])
+
+
+def _info(core: RingCore, res=None) -> dict[str, Any]:
+    obs = core.observations()
+    observed = ~core.hidden
+    t = min(core.t, core.bank.gt_accel_mps2.shape[1] - 1)
+    info: dict[str, Any] = {
+        "observed_obs": obs[observed].astype(np.float32),
+        "observed_action_mps2": core.bank.gt_accel_mps2[core.episode, t][observed],
+        "collision": bool(res.collision) if res else False,
+        "error": res.error if res else "",
+    }
+    if res is not None:
+        info.update(res.terms)
+    return info
+
+
+class RingHiddenEnv(gym.Env):
+    """Gymnasium env: one hidden vehicle on the SUMO ring (see the module docstring)."""
+
+    metadata = {"render_modes": []}
+
+    def __init__(
+        self,
+        scenario: str | Path | Scenario,
+        data: str | Path,
+        generator: str | Path | None = None,
+        split: str = "train",
+        seed: int = 0,
+    ) -> None:
+        sc, bank = make_bank(scenario, data, generator, split, 1, seed)
+        self.core = RingCore(sc, bank, seed=seed)
+        self.horizon = sc.policy.horizon
+        self.action_space, self.observation_space = _spaces(sc, self.core.length)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        obs = self.core.reset(int(self.np_random.integers(len(self.core.bank))))
+        return obs[self.core.hidden][0].astype(np.float32), _info(self.core)
+
+    def step(self, action):
+        a = _check_action("hidden_0", action)
+        res = self.core.step(np.array([a]))
+        truncated = res.truncated or self.core.t >= self.horizon
+        obs = res.obs[self.core.hidden][0].astype(np.float32)
+        return obs, float(res.r_macro), bool(res.collision), bool(truncated), _info(self.core, res)
+
+    def close(self) -> None:
+        self.core.close()
+
+
+class RingHiddenParallelEnv(ParallelEnv):
+    """PettingZoo parallel env: K hidden vehicles, one shared policy (module docstring)."""
+
+    metadata = {"name": "macromicro_ring_hidden_v0", "render_modes": []}
+
+    def __init__(
+        self,
+        scenario: str | Path | Scenario,
+        data: str | Path,
+        generator: str | Path | None = None,
+        split: str = "train",
+        hidden: int | tuple[int, int] = (1, 4),
+        seed: int = 0,
+    ) -> None:
+        sc, bank = make_bank(scenario, data, generator, split, hidden, seed)
+        self.core = RingCore(sc, bank, seed=seed)
+        self.horizon = sc.policy.horizon
+        self.possible_agents = [f"hidden_{i}" for i in range(sc.fleet.n_vehicles)]
+        self.agents: list[str] = []
+        self._act, self._obs = _spaces(sc, self.core.length)
+        self._rng = np.random.default_rng(seed)
+
+    def observation_space(self, agent: str) -> spaces.Box:
+        return self._obs
+
+    def action_space(self, agent: str) -> spaces.Box:
+        return self._act
+
+    def _split(self, obs: np.ndarray) -> dict[str, np.ndarray]:
+        return {
+            a: o.astype(np.float32) for a, o in zip(self.agents, obs[self.core.hidden], strict=True)
+        }
+
+    def reset(self, seed: int | None = None, options: dict | None = None):
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+        obs = self.core.reset(int(self._rng.integers(len(self.core.bank))))
+        self.agents = self.possible_agents[: int(self.core.hidden.sum())]
+        info = _info(self.core)
+        return self._split(obs), {a: info for a in self.agents}
+
+    def step(self, actions: dict[str, Any]):
+        missing = [a for a in self.agents if a not in actions]
+        if missing:
+            raise ValueError(f"agent {missing[0]}: no action given")
+        acc = np.array([_check_action(a, actions[a]) for a in self.agents])
+        res = self.core.step(acc)
+        truncated = res.truncated or self.core.t >= self.horizon
+        obs = self._split(res.obs)
+        info = _info(self.core, res)
+        agents = list(self.agents)
+        out = (
+            obs,
+            {a: float(res.r_macro) for a in agents},
+            {a: bool(res.collision) for a in agents},
+            {a: bool(truncated) for a in agents},
+            {a: info for a in agents},
+        )
+        if res.collision or truncated:
+            self.agents = []
+        return out
+
+    def close(self) -> None:
+        self.core.close()
+
+
+def register() -> None:
+    """Register the gymnasium env (idempotent): ``gymnasium.make(ENV_ID, scenario=..., data=...)``."""
+    if ENV_ID not in gym.registry:
+        gym.register(id=ENV_ID, entry_point="macromicro_sumo.env.wrappers:RingHiddenEnv")
+
+
+register()

@@ -1,0 +1,1 @@
+"""Evaluation: methods and baselines, rollouts, statistics, leader-follower tests."""

@@ -1,0 +1,304 @@
+"""Leader-follower tests of a car-following policy (the paper's Fig. 3), run in SUMO.
+
+Two vehicles on the scenario's ring under one uniform speed limit: the leader replays a
+prescribed speed profile (``accelerate``: 11 -> 13 m/s, ``decelerate``: 13 -> 11 m/s, a
+smooth ramp between two holds), the follower starts 126 m (front to front) behind it at
+the same speed and is driven by a *follower function* ``fn(obs, rng) -> accel [m/s^2]``
+of its observation o = [v, v_limit, spacing, v - v_leader]. The ground-truth follower is
+IDM with given parameters (deterministic); learned policies sample their Gaussian.
+
+Both run through ``env.RingCore`` exactly as in training: speed mode 0,
+v' = max(0, v + a dt) with a clipped to the scenario's action bounds [a_min, a_max], so the
+IDM follower has the same actuator limits as the policy. With a ring of 628 m the leader
+(the follower's leader) is 500 m ahead of the follower's back: it never reacts to it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from macromicro_sumo.env.ring import EpisodeBank, RingCore
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.road.physics import idm_accel
+from macromicro_sumo.scenario.ring import Scenario
+
+SCENARIOS = ("accelerate", "decelerate")
+IDM_METHOD = "IDM"
+FOLLOWER, LEADER = 0, 1  # vehicle indices in the two-vehicle bank
+IDM_KEYS = ("accel_mps2", "decel_mps2", "tau_s", "min_gap_m", "speed_factor", "delta")
+
+Follower = Callable[[np.ndarray, np.random.Generator], float]
+"""Acceleration [m/s^2] from one observation [v, v_limit, spacing, v - v_leader] (4,)."""
+
+
+@dataclass(frozen=True)
+class LeaderProfile:
+    """The leader's prescribed speed profile and the start of a leader-follower test."""
+
+    low_speed_mps: float = 11.0
+    """Speed before an acceleration ramp / after a deceleration ramp [m/s]."""
+    high_speed_mps: float = 13.0
+    """Speed after an acceleration ramp / before a deceleration ramp [m/s]."""
+    ramp_mps2: float = 0.2
+    """Magnitude of the leader's acceleration during the ramp [m/s^2]."""
+    hold_s: float = 20.0
+    """Time the first speed is held before the ramp starts [s]."""
+    duration_s: float = 60.0
+    """Length of a test [s]; a multiple of the scenario's step length."""
+    spacing_m: float = 126.0
+    """Initial front-to-front distance from the follower to the leader [m]."""
+
+    def horizon(self, dt_s: float) -> int:
+        """Steps of ``dt_s`` in a test."""
+        h = round(self.duration_s / dt_s)
+        if h < 1 or abs(h * dt_s - self.duration_s) > 1e-9 * self.duration_s:
+            raise UserError(
+                f"leader-follower duration_s = {self.duration_s:g} is not a multiple of the "
+                f"step length {dt_s:g} s"
+            )
+        return h
+
+
+def leader_speeds(scenario: str, profile: LeaderProfile, dt_s: float) -> np.ndarray:
+    """The leader's speed [m/s] at t = 0, dt, ..., duration, shape (H + 1,)."""
+    if scenario not in SCENARIOS:
+        raise UserError(f"leader-follower scenario {scenario!r}; accepted: {', '.join(SCENARIOS)}")
+    if not 0.0 <= profile.low_speed_mps <= profile.high_speed_mps or profile.ramp_mps2 <= 0:
+        raise UserError(
+            "leader profile needs 0 <= low_speed_mps <= high_speed_mps and ramp_mps2 > 0"
+        )
+    t = np.arange(profile.horizon(dt_s) + 1) * dt_s
+    span = profile.high_speed_mps - profile.low_speed_mps
+    ramp = np.clip((t - profile.hold_s) * profile.ramp_mps2, 0.0, span)
+    if scenario == "accelerate":
+        return profile.low_speed_mps + ramp
+    return profile.high_speed_mps - ramp
+
+
+def leader_follower_bank(
+    sc: Scenario, profile: LeaderProfile, speed_limit_mps: float
+) -> EpisodeBank:
+    """Two-vehicle episodes, one per scenario in ``SCENARIOS`` order: follower 0 (hidden),
+    leader 1 (replays its profile), ``profile.spacing_m`` apart at the leader's start speed."""
+    dt = sc.simulation.step_length_s
+    lead = np.stack([leader_speeds(s, profile, dt) for s in SCENARIOS])  # (E, H + 1)
+    e, h1 = lead.shape
+    if not sc.fleet.length_m < profile.spacing_m < sc.network.length_m - sc.fleet.length_m:
+        raise UserError(
+            f"leader-follower spacing_m = {profile.spacing_m:g} does not fit two "
+            f"{sc.fleet.length_m:g} m vehicles on the {sc.network.length_m:.2f} m ring"
+        )
+    replay = np.zeros((e, h1, 2))
+    replay[:, :, LEADER] = lead
+    arc0 = np.tile([0.0, profile.spacing_m], (e, 1))
+    hidden = np.zeros((e, 2), dtype=bool)
+    hidden[:, FOLLOWER] = True
+    # Psi only enters the macro reward, which these tests ignore; any valid one will do.
+    psi = np.array(
+        [
+            float(np.mean(sc.bounds.speed_mps)),
+            sc.network.length_m / sc.fleet.n_vehicles,
+            *sc.bounds.spacing_m,
+            *sc.bounds.speed_mps,
+        ]
+    )
+    return EpisodeBank(
+        arc0_m=arc0,
+        speed0_mps=np.repeat(lead[:, :1], 2, axis=1),
+        hidden=hidden,
+        psi=np.tile(psi, (e, 1)),
+        limits_mps=np.full((e, sc.network.n_edges), float(speed_limit_mps)),
+        replay_speed_mps=replay,
+        gt_accel_mps2=np.zeros((e, h1 - 1, 2)),
+        true_arc0_m=arc0.copy(),
+        run=np.zeros(e, dtype=np.int64),
+        time_s=np.zeros(e),
+    )
+
+
+# --------------------------------------------------------------------------- followers
+
+
+def mean_idm_params(sc: Scenario) -> dict[str, float]:
+    """IDM parameters at the middle of the scenario's fleet ranges (the 'average driver')."""
+    f = sc.fleet
+    mid = {k: float(np.mean(getattr(f, k))) for k in IDM_KEYS if k != "delta"}
+    return {**mid, "delta": float(f.delta)}
+
+
+def idm_follower(params: Mapping[str, float], vehicle_length_m: float) -> Follower:
+    """The ground-truth follower: IDM with ``params`` (keys ``IDM_KEYS``), deterministic.
+
+    Desired speed = speed_factor x the observed limit; gap = spacing - vehicle length.
+    """
+    missing = [k for k in IDM_KEYS if k not in params]
+    if missing:
+        raise UserError(f"IDM parameters miss {', '.join(missing)}; needed: {', '.join(IDM_KEYS)}")
+    p = {k: float(params[k]) for k in IDM_KEYS}
+
+    def fn(obs: np.ndarray, rng: np.random.Generator) -> float:
+        v, limit, spacing, dv = obs[:4]
+        return float(
+            idm_accel(
+                v,
+                spacing - vehicle_length_m,
+                dv,
+                p["speed_factor"] * limit,
+                p["tau_s"],
+                p["accel_mps2"],
+                p["decel_mps2"],
+                p["min_gap_m"],
+                p["delta"],
+            )
+        )
+
+    return fn
+
+
+def policy_follower(agent, stochastic: bool = True) -> Follower:
+    """A follower that samples the agent's Gaussian (``stochastic``) or takes its mean.
+
+    The noise comes from the trial's numpy generator, so a seed fixes the trace.
+    """
+    import torch
+
+    def fn(obs: np.ndarray, rng: np.random.Generator) -> float:
+        with torch.no_grad():
+            d = agent.dist(torch.as_tensor(np.asarray(obs, dtype=np.float32)[None]))
+        a = float(d.mean[0])
+        if stochastic:
+            a += float(d.stddev[0]) * float(rng.standard_normal())
+        return a
+
+    return fn
+
+
+# --------------------------------------------------------------------------- runs
+
+
+@dataclass(frozen=True)
+class Trace:
+    """One trial: speeds and gap at t = 0, dt, ... until the end or a collision."""
+
+    time_s: np.ndarray
+    leader_speed_mps: np.ndarray
+    follower_speed_mps: np.ndarray
+    gap_m: np.ndarray  # bumper to bumper, follower to leader
+    collision: bool
+
+
+def run_trial(core: RingCore, episode: int, follower: Follower, rng: np.random.Generator) -> Trace:
+    """Drive the follower of ``episode`` through the whole test; stops at a collision."""
+    obs = core.reset(episode)
+    h = core.bank.replay_speed_mps.shape[1] - 1
+    length = core.sc.fleet.length_m
+    rows = [(obs[LEADER, 0], obs[FOLLOWER, 0], obs[FOLLOWER, 2] - length)]
+    collision = False
+    for _ in range(h):
+        a = follower(obs[FOLLOWER], rng)
+        res = core.step(np.array([a]))
+        if res.truncated:
+            raise UserError(f"leader-follower test stopped by SUMO: {res.error}")
+        obs = res.obs
+        rows.append((obs[LEADER, 0], obs[FOLLOWER, 0], obs[FOLLOWER, 2] - length))
+        if res.collision:
+            collision = True
+            break
+    lead, foll, gap = (np.array(c) for c in zip(*rows, strict=True))
+    return Trace(np.arange(len(rows)) * core.dt, lead, foll, gap, collision)
+
+
+def rmse_vs_reference(speed_mps: np.ndarray, reference_mps: np.ndarray) -> float:
+    """RMSE [m/s] of a follower trace against the reference over the simulated steps.
+
+    Both start at t = 0 with the same speed, so the first sample is left out; a trace cut
+    short by a collision is compared over its own length.
+    """
+    n = len(speed_mps)
+    if n < 2:
+        return float("nan")
+    return float(np.sqrt(np.mean((speed_mps[1:] - reference_mps[1:n]) ** 2)))
+
+
+def run_leader_follower(
+    sc: Scenario,
+    followers: Mapping[str, Follower],
+    idm_params: Mapping[str, float],
+    n_trials: int,
+    seed: int,
+    profile: LeaderProfile = LeaderProfile(),
+    speed_limit_mps: float | None = None,
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Both scenarios: one IDM trial and ``n_trials`` trials of every follower in SUMO.
+
+    ``speed_limit_mps`` is the uniform limit (default: the scenario's upper limit bound).
+    Trial t of every method in a scenario draws from the generator seeded
+    ``[seed, scenario index, t]`` (common random numbers across methods).
+    Returns ``(traces, summary)``: traces has one row per (scenario, method, trial, step)
+    with the columns of ``leader_follower.csv``; summary one row per trial with the RMSE
+    against the IDM follower, the smallest gap and whether the follower collided.
+    """
+    if IDM_METHOD in followers:
+        raise UserError(f"follower name {IDM_METHOD!r} is reserved for the IDM reference")
+    if n_trials < 1:
+        raise UserError(f"n_trials = {n_trials}; accepted >= 1")
+    limit = sc.speed_limits.range_mps[1] if speed_limit_mps is None else speed_limit_mps
+    bank = leader_follower_bank(sc, profile, limit)
+    idm = idm_follower(idm_params, sc.fleet.length_m)
+    frames, summary = [], []
+    core = RingCore(sc, bank, seed=seed)  # one SUMO run per process: reused for every trial
+    try:
+        for ep, scenario in enumerate(SCENARIOS):
+            ref = run_trial(core, ep, idm, np.random.default_rng([seed, ep, 0]))
+            runs = [(IDM_METHOD, 0, ref)]
+            for method, fn in followers.items():
+                for trial in range(n_trials):
+                    rng = np.random.default_rng([seed, ep, trial])
+                    runs.append((method, trial, run_trial(core, ep, fn, rng)))
+            for method, trial, tr in runs:
+                n = len(tr.time_s)
+                frames.append(
+                    pd.DataFrame(
+                        {
+                            "scenario": scenario,
+                            "method": method,
+                            "trial": trial,
+                            "time_s": tr.time_s,
+                            "leader_speed_mps": tr.leader_speed_mps,
+                            "follower_speed_mps": tr.follower_speed_mps,
+                            "idm_follower_speed_mps": ref.follower_speed_mps[:n],
+                            "gap_m": tr.gap_m,
+                        }
+                    )
+                )
+                summary.append(
+                    {
+                        "scenario": scenario,
+                        "method": method,
+                        "trial": trial,
+                        "rmse_vs_idm_mps": rmse_vs_reference(
+                            tr.follower_speed_mps, ref.follower_speed_mps
+                        ),
+                        "min_gap_m": float(tr.gap_m.min()),
+                        "collision": tr.collision,
+                    }
+                )
+    finally:
+        core.close()
+    return pd.concat(frames, ignore_index=True), pd.DataFrame(summary)
+
+
+def method_summary(summary: pd.DataFrame) -> pd.DataFrame:
+    """Per (scenario, method): mean and max RMSE against IDM, smallest gap, collisions."""
+    g = summary.groupby(["scenario", "method"], sort=False)
+    return g.agg(
+        trials=("trial", "size"),
+        mean_rmse_vs_idm_mps=("rmse_vs_idm_mps", "mean"),
+        max_rmse_vs_idm_mps=("rmse_vs_idm_mps", "max"),
+        min_gap_m=("min_gap_m", "min"),
+        collisions=("collision", "sum"),
+    ).reset_index()

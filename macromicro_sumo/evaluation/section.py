@@ -1,0 +1,331 @@
+"""Evaluation on a section: macro alignment per method, micro consistency, the K estimate.
+
+The ring's protocol carried over to open, multi-lane roads. Held-out snapshots are completed
+by the generator (with the estimated hidden count, and with the true one to show what the
+estimate costs) and rolled out for ``evaluation.horizon_steps``; observed vehicles replay
+their records, hidden ones are driven by the method. Methods, on the same scenes:
+
+* ``ground_truth``: the recorded vehicles (whatever model the user's vTypes have);
+* ``policy``, ``micro_only``, ``macro_only``: the learned policies (stochastic);
+* ``idm_calibrated``: one IDM fitted by least squares to the observed vehicles' data.
+
+Statistics count every vehicle on the section at every step; spacings are per lane,
+front to front, for vehicles with a leader on the section.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from scipy.stats import wasserstein_distance
+
+from macromicro_sumo.data.ring import split_runs
+from macromicro_sumo.data.section import SectionTruth, section_snapshots
+from macromicro_sumo.env.section import (
+    SectionBank,
+    SectionCore,
+    build_section_bank,
+    section_observations,
+    typical_length,
+    typical_vclass,
+)
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.evaluation.idm_fit import calibrate_idm
+from macromicro_sumo.evaluation.ring import idm_action, micro_consistency
+from macromicro_sumo.files import prepare_out_dir, staging_dir, write_csv, write_json
+from macromicro_sumo.generator.section import generator_completion, load_section_generator
+from macromicro_sumo.manifest import build_manifest
+from macromicro_sumo.policy.ppo import load_policy, policy_action
+from macromicro_sumo.road.section import Section, lane_leaders
+from macromicro_sumo.truth.section import k_summary, load_section_truth, scenario_inputs
+
+ActionFn = Callable[[SectionCore, np.ndarray, np.random.Generator], np.ndarray]
+METHOD_ORDER = ["ground_truth", "policy", "micro_only", "macro_only", "idm_calibrated"]
+
+
+@dataclass
+class SectionRollouts:
+    """Per episode, step (1..H) and slot; NaN where no vehicle is on the section."""
+
+    speed_mps: np.ndarray
+    spacing_m: np.ndarray  # NaN also where the vehicle has no leader on the section
+    accel_mps2: np.ndarray
+    lane: np.ndarray
+    arc_m: np.ndarray
+    collisions: int
+    errors: int
+
+
+def rollout(
+    core: SectionCore, act: ActionFn, horizon: int, seed: int, episodes: range | None = None
+) -> SectionRollouts:
+    """Run ``act`` on every episode of the core's bank (or ``episodes``)."""
+    eps = list(episodes if episodes is not None else range(len(core.bank)))
+    shape = (len(eps), horizon, core.n)
+    speed, spacing, accel, lane, arc = (np.full(shape, np.nan) for _ in range(5))
+    rng = np.random.default_rng(seed)
+    collisions = errors = 0
+    for i, ep in enumerate(eps):
+        obs = core.reset(ep)
+        for t in range(horizon):
+            v0 = core.speed.copy()
+            res = core.step(act(core, obs, rng))
+            obs = res.obs
+            on = res.active
+            speed[i, t, on] = core.speed[on]
+            accel[i, t, on] = (core.speed[on] - v0[on]) / core.dt
+            with_leader = on & (core.leader >= 0)
+            spacing[i, t, with_leader] = core.spacing[with_leader]
+            lane[i, t, on], arc[i, t, on] = core.lane[on], core.arc[on]
+            if res.collision or res.truncated:
+                collisions += res.collision
+                errors += bool(res.error)
+                break
+    return SectionRollouts(speed, spacing, accel, lane, arc, collisions, errors)
+
+
+def recorded(bank: SectionBank, section: Section, horizon: int, dt: float) -> SectionRollouts:
+    """The ground truth as a rollout: every true vehicle of the scene over the horizon."""
+    v = bank.true_speed_mps[:, 1 : horizon + 1]
+    lane = bank.true_lane[:, 1 : horizon + 1]
+    arc = bank.true_arc_m[:, 1 : horizon + 1]
+    # Only the vehicles of the start scene: the rollouts do not insert vehicles that enter
+    # during the horizon either.
+    ok = bank.true_valid[:, 1 : horizon + 1] & bank.true_valid[:, :1]
+    v = np.where(ok, v, np.nan)
+    spacing = np.full(v.shape, np.nan)
+    for e in range(v.shape[0]):
+        for t in range(v.shape[1]):
+            idx = np.flatnonzero(ok[e, t])
+            if idx.size:
+                lead, gap = lane_leaders(
+                    lane[e, t, idx].astype(np.int64),
+                    arc[e, t, idx],
+                    section.length_m,
+                    section.closed,
+                )
+                spacing[e, t, idx[lead >= 0]] = gap[lead >= 0]
+    v_all = np.where(bank.true_valid[:, :1], bank.true_speed_mps[:, : horizon + 1], np.nan)
+    with np.errstate(invalid="ignore"):
+        accel = np.diff(v_all, axis=1) / dt
+    return SectionRollouts(v, spacing, accel, lane, arc, 0, 0)
+
+
+def macro_row(
+    hidden_count: str, method: str, ro: SectionRollouts, ref: SectionRollouts | None
+) -> dict[str, Any]:
+    """One row of macro_alignment.csv (errors against ``ref``, the ground truth)."""
+    v, d, a = ro.speed_mps, ro.spacing_m, ro.accel_mps2
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        row: dict[str, Any] = {
+            "hidden_count": hidden_count,
+            "method": method,
+            "mean_speed_mps": float(np.nanmean(v)),
+            "std_speed_mps": float(np.nanstd(v)),
+            "mean_spacing_m": float(np.nanmean(d)),
+            "std_spacing_m": float(np.nanstd(d)),
+            "vehicles_per_step": float(np.isfinite(v).sum() / max(1, np.isfinite(v[:, :, 0]).size)),
+            "collisions": ro.collisions,
+            "episodes": len(v),
+            "sumo_errors": ro.errors,
+        }
+    if ref is not None:
+
+        def w1(x: np.ndarray, y: np.ndarray) -> float:
+            x, y = x[np.isfinite(x)], y[np.isfinite(y)]
+            return float(wasserstein_distance(x, y)) if x.size and y.size else float("nan")
+
+        ref_row = macro_row(hidden_count, "ref", ref, None)
+        row.update(
+            mean_speed_err_mps=abs(row["mean_speed_mps"] - ref_row["mean_speed_mps"]),
+            std_speed_ratio=row["std_speed_mps"] / ref_row["std_speed_mps"],
+            mean_spacing_ratio=row["mean_spacing_m"] / ref_row["mean_spacing_m"],
+            std_spacing_ratio=row["std_spacing_m"] / ref_row["std_spacing_m"],
+            w1_speed_mps=w1(v.ravel(), ref.speed_mps.ravel()),
+            w1_accel_mps2=w1(a.ravel(), ref.accel_mps2.ravel()),
+            w1_spacing_m=w1(d.ravel(), ref.spacing_m.ravel()),
+        )
+    return row
+
+
+def samples_frame(hidden_count: str, method: str, ro: SectionRollouts) -> pd.DataFrame:
+    v, d = ro.speed_mps.ravel(), ro.spacing_m.ravel()
+    ok = np.isfinite(v)
+    return pd.DataFrame(
+        {
+            "K": np.nan,
+            "hidden_count": hidden_count,
+            "method": method,
+            "speed_mps": v[ok],
+            "spacing_m": d[ok],
+        }
+    )
+
+
+# --------------------------------------------------------------------------- micro data
+
+
+def micro_pairs(
+    sc, truth: SectionTruth, runs: np.ndarray, max_pairs: int = 20_000
+) -> tuple[np.ndarray, np.ndarray]:
+    """Observed vehicles' (observation, action) pairs: what their own sensors saw (the true
+    scene around them) and the acceleration they applied over the next step."""
+    dt = sc.simulation.step_length_s
+    traj = truth.trajectories[truth.trajectories["run"].isin(runs)]
+    obs_rows, acc_rows = [], []
+    for _, g in traj.groupby("run", sort=True):
+        times = np.sort(g["time_s"].unique())
+        by_t = dict(tuple(g.groupby("time_s")))
+        nxt_speed = {}
+        for t in times:
+            s = by_t[t]
+            nxt_speed[t] = dict(zip(s["vehicle_id"], s["speed_mps"], strict=True))
+        for t0, t1 in zip(times[:-1], times[1:], strict=True):
+            if abs(t1 - t0 - dt) > 1e-6:
+                continue
+            s = by_t[t0]
+            o = s["observed"].to_numpy(dtype=bool)
+            if not o.any():
+                continue
+            obs, _, _ = section_observations(
+                truth.section,
+                s["lane_index"].to_numpy(),
+                s["arc_m"].to_numpy(),
+                s["speed_mps"].to_numpy(),
+                np.ones(len(s), dtype=bool),
+                sc.policy.observation,
+            )
+            ids = s["vehicle_id"].to_numpy()[o]
+            v1 = np.array([nxt_speed[t1].get(v, np.nan) for v in ids])
+            a = (v1 - s["speed_mps"].to_numpy()[o]) / dt
+            keep = np.isfinite(a)
+            obs_rows.append(obs[o][keep])
+            acc_rows.append(a[keep])
+    if not obs_rows:
+        raise UserError(f"{truth.folder}: no observed vehicle pair in runs {list(runs)}")
+    obs, acc = np.concatenate(obs_rows), np.concatenate(acc_rows)
+    if len(acc) > max_pairs:  # evenly thinned: neighbouring steps say nearly the same
+        idx = np.linspace(0, len(acc) - 1, max_pairs).astype(np.int64)
+        obs, acc = obs[idx], acc[idx]
+    return obs, acc
+
+
+# --------------------------------------------------------------------------- the stage
+
+
+def evaluate_section(
+    sc,
+    data: Path,
+    generator: Path,
+    policies: dict[str, Path],
+    out: Path,
+    command: str = "",
+    progress: bool = True,
+) -> dict[str, Any]:
+    """macro_alignment.csv, micro_consistency.csv, k_estimate_summary.csv, samples, FCD and
+    a manifest in ``out``; returns the manifest."""
+    from tqdm import tqdm
+
+    t0 = time.perf_counter()
+    if "policy" not in policies:
+        raise UserError("evaluate needs the trained policy (policy.pt)")
+    truth = load_section_truth(data, sc)
+    net = load_section_generator(generator, sc)
+    agents = {name: load_policy(p, sc) for name, p in policies.items()}
+    out = prepare_out_dir(out)
+    splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
+    held = splits["held_out"]
+    snaps = section_snapshots(truth, sc, held)
+    h = sc.evaluation.horizon_steps
+    net_file = scenario_inputs(sc).net_file
+    vclass = typical_vclass(truth)
+    length = typical_length(truth)
+    obs_tr, acc_tr = micro_pairs(sc, truth, np.concatenate([splits["train"], splits["val"]]))
+    idm, idm_rmse = calibrate_idm(obs_tr, acc_tr, length)
+    rows, samples = [], []
+    counts = {"estimated": snaps.k_est, "true": snaps.k_true}
+    sources = {"estimated": "estimate", "true": "truth"}  # report label -> k_source
+    bar = tqdm(
+        total=len(counts) * (len(agents) + 2), desc="evaluate", unit="rollout", disable=not progress
+    )
+    with staging_dir(out) as stage:
+        fcd = stage / "fcd"
+        fcd.mkdir()
+        for label, source in sources.items():
+            seed = sc.seed + 100 + (label == "true")
+            complete = generator_completion(net, truth.section, sc, source, seed)
+            gen_bank = build_section_bank(sc, truth, snaps, complete, horizon=h)
+            ref = recorded(gen_bank, truth.section, h, sc.simulation.step_length_s)
+            rows.append(macro_row(label, "ground_truth", ref, ref))
+            samples.append(samples_frame(label, "ground_truth", ref))
+            bar.update()
+            methods: dict[str, ActionFn] = {n: policy_action(a) for n, a in agents.items()}
+            methods["idm_calibrated"] = idm_action(lambda core: idm, length)
+            for name in [m for m in METHOD_ORDER if m in methods]:
+                core = SectionCore(
+                    sc, truth.section, gen_bank, net_file, seed=sc.seed, vclass=vclass
+                )
+                try:
+                    ro = rollout(core, methods[name], h, seed)
+                finally:
+                    core.close()
+                if sc.evaluation.fcd_episodes > 0 and label == "estimated":
+                    core = SectionCore(
+                        sc,
+                        truth.section,
+                        gen_bank,
+                        net_file,
+                        seed=sc.seed,
+                        fcd_file=fcd / f"{name}.fcd.xml",
+                        vclass=vclass,
+                    )
+                    try:
+                        rollout(
+                            core,
+                            methods[name],
+                            h,
+                            seed,
+                            range(min(sc.evaluation.fcd_episodes, len(gen_bank))),
+                        )
+                    finally:
+                        core.close()
+                rows.append(macro_row(label, name, ro, ref))
+                samples.append(samples_frame(label, name, ro))
+                bar.update()
+        bar.close()
+        align = pd.DataFrame(rows)
+        align.insert(1, "mean_k", [float(np.mean(counts[r])) for r in align["hidden_count"]])
+        write_csv(align, stage / "macro_alignment.csv")
+        write_csv(pd.concat(samples, ignore_index=True), stage / "eval_samples.csv")
+        obs_ho, acc_ho = micro_pairs(sc, truth, held)
+        write_csv(
+            micro_consistency(agents, {"idm_calibrated": idm}, obs_ho, acc_ho, sc, length),
+            stage / "micro_consistency.csv",
+        )
+        ks = k_summary(truth.k_estimate, truth.section)
+        ks_held = k_summary(truth.k_estimate[truth.k_estimate["run"].isin(held)], truth.section)
+        write_csv(
+            pd.DataFrame([{"runs": "all", **ks}, {"runs": "held_out", **ks_held}]),
+            stage / "k_estimate_summary.csv",
+        )
+        manifest = build_manifest(sc, command, stage="evaluate")
+        manifest.update(
+            ground_truth=str(data),
+            generator=str(generator),
+            policies={k: str(v) for k, v in policies.items()},
+            held_out_runs=[int(r) for r in held],
+            episodes=len(snaps),
+            idm_calibrated=idm.as_dict() | {"fit_rmse_mps2": idm_rmse},
+            k_estimate=ks,
+            timings_s={"evaluate": round(time.perf_counter() - t0, 3)},
+        )
+        write_json(manifest, stage / "evaluation_manifest.json")
+    return manifest

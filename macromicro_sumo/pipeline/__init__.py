@@ -1,0 +1,1 @@
+"""The whole pipeline, stage by stage, resumable."""

@@ -1,0 +1,88 @@
+"""The whole pipeline on a section of a user's network, stage by stage, resumable.
+
+Same shape as ``pipeline.run`` on the ring: ground truth -> generator -> three policies
+(the paper's objective and its two ablations) -> evaluation -> report, each stage skipped
+when its manifest records the same scenario digest and seed.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from macromicro_sumo.data.section import section_snapshots
+from macromicro_sumo.env.section import SectionCore, build_section_bank, typical_vclass
+from macromicro_sumo.evaluation.section import evaluate_section
+from macromicro_sumo.files import prepare_out_dir
+from macromicro_sumo.generator.section import (
+    generator_completion,
+    load_section_generator,
+    run_train_section_generator,
+)
+from macromicro_sumo.pipeline.ring import run_stages, standard_stages
+from macromicro_sumo.policy.ppo import open_policy_stage, train_policy, write_policy_manifest
+from macromicro_sumo.report.section import write_section_report
+from macromicro_sumo.truth.section import load_section_truth, scenario_inputs, simulate_section
+
+
+def run_train_section_policy(
+    sc,
+    data: Path,
+    generator: Path,
+    out: Path,
+    resume: bool | str = False,
+    command: str = "",
+    progress: bool = True,
+    objective: str | None = None,
+) -> dict[str, Any]:
+    """Stage II on a section: episodes from the train+val runs completed by the generator."""
+    objective = objective or sc.policy.objective
+    truth = load_section_truth(data, sc)
+    net = load_section_generator(generator, sc)
+    out, run_key, splits = open_policy_stage(
+        sc, truth.runs, data, generator, out, objective, resume
+    )
+    snaps = section_snapshots(truth, sc, np.concatenate([splits["train"], splits["val"]]))
+    complete = generator_completion(net, truth.section, sc, sc.generator.k_source, sc.seed)
+    bank = build_section_bank(sc, truth, snaps, complete, sc.policy.horizon, sc.seed)
+    net_file = scenario_inputs(sc).net_file
+    vclass = typical_vclass(truth)
+
+    def make_core(bank_, seed: int, fcd_file: Path | None = None) -> SectionCore:
+        return SectionCore(
+            sc, truth.section, bank_, net_file, seed=seed, fcd_file=fcd_file, vclass=vclass
+        )
+
+    res = train_policy(
+        sc,
+        bank,
+        out,
+        objective=objective,
+        resume=resume,
+        progress=progress,
+        run_key=run_key,
+        make_core=make_core,
+        val_runs=splits["val"],
+    )
+    return write_policy_manifest(
+        sc, command, objective, res, data, generator, out, episodes=len(bank)
+    )
+
+
+def run_section(sc, out: Path | str, command: str = "", progress: bool = True) -> dict[str, Any]:
+    """Every stage on a section scenario into ``out``; returns the run manifest."""
+    out = prepare_out_dir(out)
+    stages = standard_stages(
+        out,
+        lambda gt: simulate_section(sc, gt, command, progress),
+        lambda gt, gen: run_train_section_generator(sc, gt, gen, command, progress),
+        lambda gt, g, pol, obj: run_train_section_policy(
+            sc, gt, g, pol, "auto", command, progress, obj
+        ),
+        lambda gt, g, pols, ev: evaluate_section(sc, gt, g, pols, ev, command, progress),
+    )
+    manifest = run_stages(sc, stages, out, command, progress)
+    write_section_report(sc, out, manifest)
+    return manifest

@@ -1,0 +1,1 @@
+"""Stage II: the shared policy and its PPO training."""

@@ -1,0 +1,1 @@
+"""Road geometry: the ring, sections of any network, lanes, leaders, pure physics."""

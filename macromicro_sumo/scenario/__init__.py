@@ -1,0 +1,1 @@
+"""Scenarios: TOML files -> typed, validated dataclasses (ring and sections)."""

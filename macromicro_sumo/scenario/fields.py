@@ -1,0 +1,147 @@
+"""Typed scenario fields: every field with a unit, an accepted range and a docstring.
+
+A scenario file has one table per dataclass. Every field has a unit in its name
+or docstring (``metadata["doc"]``) and, where it makes sense, an accepted range
+(``metadata["range"]``, inclusive; ``None`` means unbounded). Loading rejects unknown
+keys, missing required keys, wrong types and out-of-range values with a one-line
+``UserError`` that names the file, the key and the accepted range.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import types
+import typing
+from dataclasses import field
+from pathlib import Path
+from typing import Any
+
+from macromicro_sumo.errors import UserError
+
+Pair = tuple[float, float]
+
+
+def spec(
+    default: Any = dataclasses.MISSING,
+    *,
+    lo: float | None = None,
+    hi: float | None = None,
+    doc: str = "",
+    choices: tuple[str, ...] | None = None,
+) -> Any:
+    """A dataclass field with its doc, accepted range and (for strings) choices."""
+    meta = {"range": (lo, hi), "doc": doc, "choices": choices}
+    if default is dataclasses.MISSING:
+        return field(metadata=meta)
+    if isinstance(default, list | dict):
+        return field(default_factory=lambda d=default: type(d)(d), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+class ScenarioFile:
+    """What every scenario kind does with the file it came from (``source``)."""
+
+    source: str
+
+    def resolve(self, relative: str) -> Path:
+        """A path from the scenario file, relative to the file's folder."""
+        p = Path(relative)
+        return p if p.is_absolute() else (Path(self.source).parent / p).resolve()
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d.pop("source")
+        return d
+
+    def digest(self) -> str:
+        """SHA-256 of the scenario as loaded (not of the file's bytes or comments)."""
+        return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()
+
+
+def _describe_range(meta: dict[str, Any]) -> str:
+    lo, hi = meta.get("range", (None, None))
+    if meta.get("choices"):
+        return "one of " + ", ".join(repr(c) for c in meta["choices"])
+    lo_s = "-inf" if lo is None else f"{lo:g}"
+    hi_s = "inf" if hi is None else f"{hi:g}"
+    return f"[{lo_s}, {hi_s}]"
+
+
+def _check_scalar(value: Any, kind: type, key: str, meta: dict[str, Any], file: str) -> Any:
+    accepted = _describe_range(meta)
+    if kind is bool:
+        if not isinstance(value, bool):
+            raise UserError(f"{file}: {key} = {value!r} must be true or false")
+        return value
+    if kind is str:
+        if not isinstance(value, str):
+            raise UserError(f"{file}: {key} = {value!r} must be a string")
+        choices = meta.get("choices")
+        if choices and value not in choices:
+            raise UserError(f"{file}: {key} = {value!r} is not accepted; accepted: {accepted}")
+        return value
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise UserError(f"{file}: {key} = {value!r} must be a number in {accepted}")
+    if kind is int and not float(value).is_integer():
+        raise UserError(f"{file}: {key} = {value!r} must be an integer in {accepted}")
+    value = kind(value)
+    if not math.isfinite(value):
+        raise UserError(f"{file}: {key} = {value!r} must be finite, in {accepted}")
+    lo, hi = meta.get("range", (None, None))
+    if (lo is not None and value < lo) or (hi is not None and value > hi):
+        raise UserError(f"{file}: {key} = {value!r} is out of range; accepted: {accepted}")
+    return value
+
+
+def build_table(cls: type, table: Any, prefix: str, file: str) -> Any:
+    """``cls`` built from a TOML table, every key checked (one-line ``UserError`` otherwise)."""
+    if not isinstance(table, dict):
+        raise UserError(f"{file}: [{prefix}] must be a table")
+    hints = typing.get_type_hints(cls)
+    known = {f.name: f for f in dataclasses.fields(cls) if f.name != "source"}
+    for key in table:
+        if key not in known:
+            where = f"[{prefix}] " if prefix else ""
+            raise UserError(
+                f"{file}: unknown key {where}{key!r}; accepted keys: {', '.join(sorted(known))}"
+            )
+    kwargs: dict[str, Any] = {}
+    for name, f in known.items():
+        key = f"{prefix}.{name}" if prefix else name
+        if name not in table:
+            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+                hint = hints[name]
+                what = f"table [{key}]" if dataclasses.is_dataclass(hint) else f"key {key!r}"
+                raise UserError(f"{file}: missing required {what}")
+            continue
+        hint = hints[name]
+        value = table[name]
+        if dataclasses.is_dataclass(hint):
+            kwargs[name] = build_table(hint, value, key, file)
+        elif typing.get_origin(hint) is list:
+            kind = typing.get_args(hint)[0]
+            if not isinstance(value, list):
+                raise UserError(f"{file}: {key} = {value!r} must be a list")
+            kwargs[name] = [_check_scalar(v, kind, key, f.metadata, file) for v in value]
+        elif typing.get_origin(hint) is tuple:
+            kind = typing.get_args(hint)[0]
+            if not isinstance(value, list) or len(value) != 2:
+                raise UserError(
+                    f"{file}: {key} = {value!r} must be a pair [low, high] in {_describe_range(f.metadata)}"
+                )
+            pair = tuple(_check_scalar(v, kind, key, f.metadata, file) for v in value)
+            if pair[0] > pair[1]:
+                raise UserError(
+                    f"{file}: {key} = {value!r} is reversed; accepted [low, high] with "
+                    f"low <= high, both in {_describe_range(f.metadata)}"
+                )
+            kwargs[name] = pair
+        else:
+            kind = hint if isinstance(hint, type) else typing.get_args(hint)[0]
+            if isinstance(hint, types.UnionType):
+                kind = typing.get_args(hint)[0]
+            kwargs[name] = _check_scalar(value, kind, key, f.metadata, file)
+    return cls(**kwargs)

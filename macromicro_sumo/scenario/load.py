@@ -1,0 +1,75 @@
+"""Loading a scenario file of any kind: TOML -> the ring or the section dataclasses."""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.scenario.fields import build_table
+from macromicro_sumo.scenario.ring import Scenario, check_consistency
+from macromicro_sumo.scenario.section import SectionScenario, build_section_scenario
+
+
+def read_scenario_toml(path: str | Path) -> tuple[dict[str, Any], dict[str, Any] | None]:
+    """The raw tables of a scenario file: (scenario table, its ``[sweep]`` table or None)."""
+    path = Path(path)
+    file = str(path)
+    if not path.is_file():
+        raise UserError(f"{file}: scenario file not found")
+    try:
+        table = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise UserError(f"{file}: malformed TOML ({exc})") from None
+    except UnicodeDecodeError:
+        raise UserError(f"{file}: not a text file (malformed TOML)") from None
+    return table, table.pop("sweep", None)
+
+
+def load_scenario(
+    path: str | Path, overrides: dict[str, Any] | None = None, *, allow_sweep: bool = False
+) -> Any:
+    """Load and validate a scenario TOML; ``overrides`` maps dotted keys to values (sweeps).
+
+    A ``[sweep]`` table is for ``macromicro batch``, which passes ``allow_sweep=True`` and
+    one variant's values as ``overrides``; elsewhere it is an error.
+    """
+    path = Path(path)
+    file = str(path)
+    table, sweep = read_scenario_toml(path)
+    if sweep is not None and not allow_sweep:
+        raise UserError(
+            f"{file}: has a [sweep] table; run its variants with `macromicro batch {file}`"
+        )
+    for dotted, value in (overrides or {}).items():
+        node = table
+        *parents, leaf = dotted.split(".")
+        for p in parents:
+            node = node.setdefault(p, {})
+        node[leaf] = value
+    network = table.get("network")
+    kind = network.get("kind", "ring") if isinstance(network, dict) else "ring"
+    if kind == "sumo":
+        return build_section_scenario(table, file, str(path.resolve()))
+    if kind != "ring":
+        raise UserError(
+            f"{file}: network.kind = {kind!r} is not accepted; accepted: one of 'ring', 'sumo'"
+        )
+    network.pop("kind", None)
+    sc = build_table(Scenario, table, "", file)
+    sc = dataclasses.replace(sc, source=str(path.resolve()))
+    check_consistency(sc, file)
+    for key in ("net_file", "routes_file"):
+        p = sc.resolve(getattr(sc.network, key))
+        if not p.is_file():
+            raise UserError(f"{file}: network.{key} = {p} does not exist")
+    return sc
+
+
+def scenario_from_dict(d: dict[str, Any], source: str) -> Any:
+    """Rebuild a scenario stored in a checkpoint or manifest (already validated once)."""
+    if d.get("network", {}).get("kind") == "sumo":
+        return dataclasses.replace(build_table(SectionScenario, d, "", source), source=source)
+    return dataclasses.replace(build_table(Scenario, d, "", source), source=source)

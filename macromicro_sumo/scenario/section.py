@@ -1,0 +1,181 @@
+"""Scenarios on a user's own SUMO network: ``[network] kind = "sumo"`` plus a road section.
+
+The ring scenario (``scenario.ring.Scenario``) draws its own IDM fleet; here SUMO runs the user's
+network, demand and vehicle types, and the method works on a section of it: a list of
+connected edges in driving order (an open corridor) or a closed loop. The tables reuse the
+ring's typed-field machinery, so errors read the same (file, key, accepted range).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.scenario.fields import ScenarioFile, build_table, spec
+from macromicro_sumo.scenario.stages import EvaluationConfig, PolicyConfig
+
+
+@dataclass(frozen=True, kw_only=True)
+class SumoNetworkConfig:
+    """The user's SUMO files: a .sumocfg, or a net plus route and additional files."""
+
+    kind: str = spec("sumo", choices=("ring", "sumo"), doc="network kind")
+    sumocfg: str = spec("", doc="SUMO configuration (.sumocfg), relative to the scenario file")
+    net_file: str = spec("", doc="SUMO .net.xml (when no sumocfg, or to override it)")
+    route_files: list[str] = spec([], doc="route files with the demand (vTypes, routes, flows)")
+    additional_files: list[str] = spec([], doc="additional files (detectors, rerouters, ...)")
+
+
+@dataclass(frozen=True, kw_only=True)
+class SectionConfig:
+    """The road section the method runs on."""
+
+    edges: list[str] = spec(doc="edge IDs in driving order; consecutive edges must be connected")
+    closed: bool = spec(False, doc="true: the last edge leads back to the first (a loop)")
+
+
+@dataclass(frozen=True, kw_only=True)
+class InstrumentedConfig:
+    """Which vehicles are observed in detail (micro data): one of three ways."""
+
+    # Range (0, 1] is checked in _check: the typed ranges are closed intervals.
+    penetration: float = spec(0.1, doc="share of vehicles with full trajectories, in (0, 1]")
+    vtype: str = spec("", doc="instead: every vehicle of this vType is instrumented")
+    ids: list[str] = spec([], doc="instead: exactly these vehicle IDs are instrumented")
+
+
+@dataclass(frozen=True, kw_only=True)
+class SectionSimulationConfig:
+    """How SUMO runs the user's demand for the ground truth."""
+
+    step_length_s: float = spec(0.5, lo=0.01, hi=5.0, doc="SUMO step length = policy step dt [s]")
+    warmup_s: float = spec(300.0, lo=0.0, hi=1e6, doc="simulated before recording starts [s]")
+    duration_s: float = spec(600.0, lo=1.0, hi=1e6, doc="recorded duration of each run [s]")
+    n_runs: int = spec(4, lo=1, hi=10_000, doc="runs, each with its own SUMO seed")
+
+
+@dataclass(frozen=True, kw_only=True)
+class SectionDetectorConfig:
+    """Loop detectors on the section: the user's own, or placed by the tool."""
+
+    interval_s: float = spec(60.0, lo=1.0, hi=1e6, doc="aggregation interval [s]")
+    use_user: bool = spec(True, doc="use the E1/E2 detectors of the user's files on the section")
+    auto_spacing_m: float = spec(
+        250.0,
+        lo=0.0,
+        hi=1e5,
+        doc="place E1 loops on every lane at this spacing when the section has none (0: off)",
+    )
+    k_window_s: float = spec(
+        60.0,
+        lo=0.0,
+        hi=1e6,
+        doc="the hidden-count estimate averages detector density over this window [s]",
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class SectionBoundsConfig:
+    """Bounds that cannot be measured: actions and the safety gap."""
+
+    accel_mps2: tuple[float, float] = spec(
+        (-4.5, 2.6), lo=-50.0, hi=50.0, doc="action bounds [a_min, a_max] [m/s^2]"
+    )
+    min_gap_m: float = spec(2.0, lo=0.0, hi=100.0, doc="smallest admissible bumper gap [m]")
+
+
+@dataclass(frozen=True, kw_only=True)
+class SectionGeneratorConfig:
+    """Stage I on a section: lanes, open ends and an unknown hidden count."""
+
+    k_source: str = spec(
+        "estimate",
+        choices=("estimate", "truth"),
+        doc="hidden count: estimated from detector density (the default), or the simulation's truth",
+    )
+    t_max: int = spec(20, lo=1, hi=10_000, doc="max trials per hidden vehicle T_max")
+    lambda_v: float = spec(0.5, lo=0.0, hi=1e6, doc="speed penalty weight lambda_v")
+    lambda_d: float = spec(0.5, lo=0.0, hi=1e6, doc="spacing penalty weight lambda_d")
+    snapshot_every_s: float = spec(10.0, lo=0.01, hi=1e6, doc="time between snapshots [s]")
+    held_out_fraction: float = spec(0.25, lo=0.01, hi=0.99, doc="share of runs held out")
+    hidden_size: int = spec(64, lo=4, hi=4096, doc="MLP width")
+    epochs: int = spec(100, lo=1, hi=100_000, doc="max training epochs")
+    batch_size: int = spec(64, lo=1, hi=1_000_000, doc="snapshots per batch")
+    lr: float = spec(3e-3, lo=1e-7, hi=1.0, doc="Adam learning rate")
+    patience: int = spec(15, lo=1, hi=100_000, doc="early-stopping patience [epochs]")
+
+
+@dataclass(frozen=True, kw_only=True)
+class SectionScenario(ScenarioFile):
+    """A scenario on a section of the user's SUMO network."""
+
+    name: str = spec(doc="scenario name")
+    seed: int = spec(0, lo=0, hi=2**32 - 1, doc="master seed for every random draw")
+    network: SumoNetworkConfig = spec()
+    section: SectionConfig = spec()
+    instrumented: InstrumentedConfig = spec(InstrumentedConfig())
+    simulation: SectionSimulationConfig = spec(SectionSimulationConfig())
+    detectors: SectionDetectorConfig = spec(SectionDetectorConfig())
+    bounds: SectionBoundsConfig = spec(SectionBoundsConfig())
+    generator: SectionGeneratorConfig = spec(SectionGeneratorConfig())
+    policy: PolicyConfig = spec(PolicyConfig())
+    evaluation: EvaluationConfig = spec(EvaluationConfig())
+    source: str = field(default="", compare=False)
+
+
+def build_section_scenario(table: dict[str, Any], file: str, source: str) -> SectionScenario:
+    """Validate a ``kind = "sumo"`` scenario table (raw TOML) into a ``SectionScenario``."""
+    sc = build_table(SectionScenario, table, "", file)
+    sc = dataclasses.replace(sc, source=source)
+    _check(sc, file)
+    return sc
+
+
+def _check(sc: SectionScenario, file: str) -> None:
+    """Cross-field checks that no single range can express."""
+    net = sc.network
+    if not net.sumocfg and not net.net_file:
+        raise UserError(f"{file}: [network] needs sumocfg or net_file (kind = 'sumo')")
+    for key in ("sumocfg", "net_file"):
+        value = getattr(net, key)
+        if value and not sc.resolve(value).is_file():
+            raise UserError(f"{file}: network.{key} = {sc.resolve(value)} does not exist")
+    for key in ("route_files", "additional_files"):
+        for value in getattr(net, key):
+            if not sc.resolve(value).is_file():
+                raise UserError(f"{file}: network.{key} entry {sc.resolve(value)} does not exist")
+    if not sc.section.edges:
+        raise UserError(f"{file}: section.edges is empty; accepted: one or more edge IDs")
+    if len(set(sc.section.edges)) != len(sc.section.edges):
+        raise UserError(f"{file}: section.edges lists an edge twice")
+    ins = sc.instrumented
+    ways = [ins.vtype != "", bool(ins.ids)]
+    if sum(ways) > 1:
+        raise UserError(f"{file}: [instrumented] takes one of penetration, vtype or ids, not both")
+    if not 0.0 < ins.penetration <= 1.0:
+        raise UserError(
+            f"{file}: instrumented.penetration = {ins.penetration!r} is out of range; "
+            "accepted: (0, 1]"
+        )
+    a_min, a_max = sc.bounds.accel_mps2
+    if not a_min < 0 < a_max:
+        raise UserError(
+            f"{file}: bounds.accel_mps2 = [{a_min:g}, {a_max:g}] must satisfy a_min < 0 < a_max"
+        )
+    if sc.evaluation.completions_per_scene != 1:
+        raise UserError(
+            f"{file}: evaluation.completions_per_scene = {sc.evaluation.completions_per_scene} "
+            "is for ring scenarios; accepted 1 with [network] kind = 'sumo'"
+        )
+    if sc.detectors.interval_s > sc.simulation.duration_s:
+        raise UserError(
+            f"{file}: detectors.interval_s = {sc.detectors.interval_s:g} exceeds "
+            f"simulation.duration_s = {sc.simulation.duration_s:g}; accepted <= duration"
+        )
+    if sc.simulation.duration_s < sc.detectors.interval_s * 2 and sc.simulation.n_runs < 2:
+        raise UserError(
+            f"{file}: one run with fewer than two detector intervals leaves nothing to hold out; "
+            "accepted: simulation.n_runs >= 2 or duration_s >= 2 x detectors.interval_s"
+        )

@@ -1,0 +1,114 @@
+"""Stage settings shared by every scenario kind: the policy and the evaluation."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from macromicro_sumo.scenario.fields import spec
+
+
+@dataclass(frozen=True, kw_only=True)
+class PolicyConfig:
+    """Stage II: shared policy trained with PPO on micro + eta * macro."""
+
+    eta: float = spec(0.3, lo=0.0, hi=1e6, doc="macro reward weight eta")
+    horizon: int = spec(10, lo=1, hi=100_000, doc="episode length H [policy steps]")
+    objective: str = spec("mix", choices=("mix", "micro_only", "macro_only"), doc="ablation switch")
+    observation: str = spec(
+        "paper",
+        choices=("paper", "lookahead"),
+        doc="paper: [v, v_limit, spacing, delta_v]; lookahead adds [next edge's limit, distance to it]",
+    )
+    hidden_train: tuple[int, int] = spec(
+        (1, 4), lo=1, hi=10_000, doc="K range of training episodes"
+    )
+    updates: int = spec(60, lo=1, hi=1_000_000, doc="PPO updates")
+    episodes_per_update: int = spec(32, lo=1, hi=100_000, doc="episodes per rollout")
+    epochs: int = spec(4, lo=1, hi=1000, doc="PPO epochs per update")
+    minibatches: int = spec(4, lo=1, hi=1000, doc="minibatches per epoch")
+    lr: float = spec(3e-3, lo=1e-7, hi=1.0, doc="Adam learning rate")
+    gamma: float = spec(0.99, lo=0.0, hi=1.0, doc="discount")
+    gae_lambda: float = spec(0.95, lo=0.0, hi=1.0, doc="GAE lambda")
+    clip_coef: float = spec(0.2, lo=0.0, hi=10.0, doc="PPO clip")
+    vf_coef: float = spec(0.5, lo=0.0, hi=100.0, doc="value loss weight")
+    ent_coef: float = spec(0.0, lo=0.0, hi=10.0, doc="entropy bonus weight")
+    hidden_size: int = spec(64, lo=4, hi=4096, doc="MLP width")
+    init_log_std: float = spec(
+        -1.0, lo=-10.0, hi=2.0, doc="initial log std of the action [log m/s^2]"
+    )
+    lr_schedule: str = spec(
+        "constant",
+        choices=("constant", "linear"),
+        doc="Adam rate over the updates: constant, or linear decay to 0 after the last update "
+        "(the final policy is then not one noisy step of a constant rate)",
+    )
+    micro_pairs: str = spec(
+        "all",
+        choices=("all", "observed_leader"),
+        doc="observed vehicle-steps in r_micro: all (the paper), or only those whose leader is "
+        "observed too (behind a hidden leader the spacing and delta_v are generated, not the "
+        "ones the recorded action answered)",
+    )
+    micro_replay: int = spec(
+        1,
+        lo=1,
+        hi=1_000_000,
+        doc="rollouts whose observed pairs r_micro uses at each update (1: this update's only, "
+        "the paper); with observed_leader the pairs do not depend on the policy",
+    )
+    macro_speed_scale_mps: float = spec(
+        0.0,
+        lo=0.0,
+        hi=1e3,
+        doc="r_macro's L_speed: 0 is the paper's (v / v_mean - 1)^2; s > 0 makes it "
+        "((v - v_mean) / s)^2, a bias of s costing as much as the paper's 100% error",
+    )
+    checkpoint_selection: str = spec(
+        "last",
+        choices=("last", "val_micro_logp"),
+        doc="policy kept: the last update's, or the update's with the best micro log-likelihood "
+        "on the validation runs (their episodes are then not trained on)",
+    )
+    checkpoint_every: int = spec(5, lo=1, hi=1_000_000, doc="updates between resumable checkpoints")
+    refine_iterations: int = spec(
+        0,
+        lo=0,
+        hi=100,
+        doc="joint refinement: outer iterations of Algorithm 1 (0: single pass, the paper's case study)",
+    )
+    refine_updates: int = spec(20, lo=1, hi=1_000_000, doc="PPO updates per refinement iteration")
+    refine_epochs: int = spec(20, lo=1, hi=100_000, doc="generator epochs per refinement iteration")
+    refine_lambda_rec: float = spec(
+        1.0,
+        lo=0.0,
+        hi=1e6,
+        doc="weight of the consistency term L_rec against policy-rolled hidden states",
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class EvaluationConfig:
+    """Evaluation protocol: macro alignment rollouts and leader-follower tests."""
+
+    horizon_steps: int = spec(
+        10, lo=1, hi=100_000, doc="rollout length for macro alignment [steps]"
+    )
+    completions_per_scene: int = spec(
+        1,
+        lo=1,
+        hi=1_000,
+        doc="independent generator completions of each held-out scene, each rolled out by every "
+        "method (ring scenarios): each completion is one random draw, so more of them shrink "
+        "the evaluation's noise",
+    )
+    lf_trials: int = spec(20, lo=1, hi=100_000, doc="stochastic leader-follower trials per method")
+    lf_duration_s: float = spec(60.0, lo=1.0, hi=1e5, doc="leader-follower test length [s]")
+    min_safe_gap_m: float = spec(
+        2.0, lo=0.0, hi=1e3, doc="minimum safe bumper gap in leader-follower tests [m]"
+    )
+    fcd_episodes: int = spec(
+        20, lo=0, hi=100_000, doc="episodes per method and K written as SUMO FCD"
+    )
+    timespace_s: float = spec(
+        120.0, lo=1.0, hi=1e5, doc="length of the time-space diagram rollouts [s]"
+    )

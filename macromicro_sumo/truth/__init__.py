@@ -1,0 +1,1 @@
+"""Ground truth: a demand run in SUMO, recorded with detectors."""

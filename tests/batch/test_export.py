@@ -1,0 +1,113 @@
+"""``macromicro export``: CSV and Parquet tables of a finished batch or run, and the
+schema in docs/batch.md against the columns actually written."""
+
+from __future__ import annotations
+
+import re
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from conftest import ROOT, SMALL, dump_toml, scenario_table, write_scenario
+
+from macromicro_sumo.batch.runner import run_batch
+from macromicro_sumo.cli import main
+
+TABLES = ("macro", "detectors", "summary")
+
+
+@pytest.fixture(scope="module")
+def finished_batch(tmp_path_factory) -> Path:
+    """Three variants, one of them failed (its N breaks the spacing bounds)."""
+    folder = tmp_path_factory.mktemp("batch")
+    table = scenario_table({"simulation.n_runs": 1, "simulation.duration_s": 120.0})
+    path = folder / "s.toml"
+    path.write_text(dump_toml(table) + '\n[sweep]\nseed = [1, 2]\n"fleet.n_vehicles" = [5, 9]\n')
+    run_batch([path], folder / "out", workers=2, progress=False)
+    return folder / "out"
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("run")
+    path = write_scenario(folder, SMALL)
+    assert main(["simulate", str(path), "--out", str(folder / "gt"), "--quiet"]) == 0
+    return folder / "gt"
+
+
+def test_csv_export_of_a_batch_rewrites_the_same_bytes(finished_batch, tmp_path):
+    before = {t: (finished_batch / f"batch_{t}.csv").read_bytes() for t in TABLES}
+    for t in TABLES:
+        (finished_batch / f"batch_{t}.csv").unlink()
+    (finished_batch / "batch_summary.csv").write_bytes(before["summary"])  # statuses live here
+    assert main(["export", str(finished_batch), "--format", "csv"]) == 0
+    after = {t: (finished_batch / f"batch_{t}.csv").read_bytes() for t in TABLES}
+    assert after == before
+
+
+def test_batch_tables_shape(finished_batch):
+    s = pd.read_csv(finished_batch / "batch_summary.csv")
+    assert s["status"].value_counts().to_dict() == {"complete": 2, "failed": 2}
+    failed = s[s["status"] == "failed"]
+    assert failed["error"].str.contains("bounds.spacing_m").all()
+    assert failed["traj_mean_speed_mps"].isna().all()
+    macro = pd.read_csv(finished_batch / "batch_macro.csv")
+    assert set(macro["variant"]) == set(s.loc[s["status"] == "complete", "variant"])
+    assert len(macro) == 2 * 1 * 2 * 2  # complete variants x runs x sources x intervals
+    assert macro["fleet.n_vehicles"].eq(5).all()
+
+
+def test_parquet_export_holds_the_same_tables(finished_batch):
+    pytest.importorskip("pyarrow")
+    assert main(["export", str(finished_batch), "--format", "parquet"]) == 0
+    for t in TABLES:
+        pq = pd.read_parquet(finished_batch / f"batch_{t}.parquet")
+        csv = pd.read_csv(finished_batch / f"batch_{t}.csv")
+        assert list(pq.columns) == list(csv.columns)
+        assert len(pq) == len(csv)
+    pq = pd.read_parquet(finished_batch / "batch_macro.parquet")
+    csv = pd.read_csv(finished_batch / "batch_macro.csv")
+    pd.testing.assert_series_equal(pq["mean_speed_mps"].round(6), csv["mean_speed_mps"])
+
+
+def test_parquet_without_pyarrow_says_how_to_install(finished_batch, capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, "pyarrow", None)  # as if not installed
+    code = main(["export", str(finished_batch), "--format", "parquet"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err
+    assert "pip install 'macromicro-sumo[parquet]'" in err
+
+
+def test_export_of_a_single_run(finished_run):
+    assert main(["export", str(finished_run)]) == 0
+    macro = pd.read_csv(finished_run / "export_macro.csv")
+    own = pd.read_csv(finished_run / "macro.csv")
+    assert len(macro) == len(own)
+    assert (macro["variant"] == finished_run.name).all()
+    pd.testing.assert_frame_equal(macro.drop(columns=["variant", "scenario"]), own)
+    s = pd.read_csv(finished_run / "export_summary.csv")
+    assert s["status"].tolist() == ["complete"] and s["n_runs"].tolist() == [2]
+
+
+def test_export_of_anything_else_is_a_one_line_error(tmp_path, capsys):
+    code = main(["export", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith("error: ") and err.count("\n") == 1
+    assert "not a finished run or batch" in err
+
+
+def documented_columns(table: str) -> list[str]:
+    """Column names listed in docs/batch.md under the heading for ``table``."""
+    text = (ROOT / "docs" / "batch.md").read_text()
+    section = text.split(f"### `{table}`", 1)[1].split("\n### ", 1)[0]
+    return re.findall(r"^\| `([^`]+)` \|", section, flags=re.M)
+
+
+@pytest.mark.parametrize("table", TABLES)
+def test_every_column_is_documented(finished_batch, table):
+    written = list(pd.read_csv(finished_batch / f"batch_{table}.csv", nrows=0).columns)
+    params = {"seed", "fleet.n_vehicles"}  # this sweep's parameter columns
+    documented = documented_columns(f"batch_{table}")
+    assert documented, "no column table found in docs/batch.md"
+    assert [c for c in written if c not in params] == documented

@@ -1,0 +1,105 @@
+"""The two documented departures from the paper, each against the paper's own setting."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+from conftest import write_scenario
+from gymnasium.utils.env_checker import check_env
+
+from macromicro_sumo import cli
+from macromicro_sumo.data.macro import spacing_losses
+from macromicro_sumo.env.wrappers import RingHiddenEnv
+from macromicro_sumo.scenario.load import load_scenario
+
+BASE = {
+    "simulation.n_runs": 8,
+    "simulation.duration_s": 120.0,
+    "generator.epochs": 150,
+    "generator.patience": 150,
+    # A 0.995 average of 150 short epochs' batches still lags far behind the raw weights.
+    "generator.ema_decay": 0.0,
+}
+
+
+@pytest.fixture(scope="module")
+def gt(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("beyond")
+    path = write_scenario(folder, BASE)
+    out = folder / "gt"
+    assert cli.main(["simulate", str(path), "--out", str(out), "--quiet"]) == 0
+    return folder, out
+
+
+def test_measured_dispersion_keeps_the_spacing_spread_the_paper_loss_removes(gt):
+    folder, data = gt
+    spread = {}
+    for mode in ("paper", "measured"):
+        # The posterior gap choice needs the measured dispersion: the paper's setting has neither.
+        choice = "network" if mode == "paper" else "posterior"
+        path = write_scenario(
+            folder / mode,
+            {**BASE, "generator.spacing_dispersion": mode, "generator.gap_choice": choice},
+        )
+        out = folder / mode / "gen"
+        assert (
+            cli.main(
+                ["train-generator", str(path), "--data", str(data), "--out", str(out), "--quiet"]
+            )
+            == 0
+        )
+        m = pd.read_csv(out / "generator_metrics.csv")
+        g = m[m["method"] == "generator"].set_index("K")
+        spread[mode] = (g["spacing_std_m"] / g["true_spacing_std_m"]).to_numpy()
+    # The paper's L_var pulls completions towards equal gaps (K = 4: almost no spread left);
+    # the measured target keeps the completed rings about as spread as the true ones.
+    assert spread["paper"][-1] < 0.5
+    assert np.mean(np.abs(spread["measured"] - 1)) < np.mean(np.abs(spread["paper"] - 1))
+    assert np.all(np.abs(spread["measured"] - 1) < 0.35)
+
+
+def test_l_var_measured_is_the_distance_to_the_target():
+    gaps = np.array([[100.0, 150.0, 0.0]])
+    mask = np.array([[True, True, False]])
+    one = np.array([125.0])
+    paper = spacing_losses(gaps, mask, one, one * 0.5, one * 2)["L_var"][0]
+    measured = spacing_losses(gaps, mask, one, one * 0.5, one * 2, np.array([25.0]))["L_var"][0]
+    assert paper == pytest.approx(25.0 / 125.0) and measured == pytest.approx(0.0)
+    # Deviations count from the measured mean, not from A's own (112.5 m here).
+    gaps = np.array([[100.0, 125.0, 0.0]])
+    measured = spacing_losses(gaps, mask, one, one * 0.5, one * 2, np.array([10.0]))["L_var"][0]
+    assert measured == pytest.approx(abs((25.0**2 + 0.0) / 2 - 10.0**2) / 125.0**2)
+
+
+def test_l_var_measured_is_unbiased_for_the_few_gaps_one_vehicle_touches():
+    """One placed vehicle touches two gaps: their spread around their own mean is half the
+    stream's variance on average; around the measured mean it is the stream's."""
+    rng = np.random.default_rng(0)
+    gaps = rng.normal(125.0, 30.0, size=(20_000, 2))
+    mask = np.ones_like(gaps, dtype=bool)
+    mean = np.full(len(gaps), 125.0)
+    zero = np.zeros(len(gaps))
+    # L_var = |var_A - target^2| / mean^2 with target 0 gives var_A itself.
+    var_a = spacing_losses(gaps, mask, mean, mean * 0.1, mean * 10, zero)["L_var"] * 125.0**2
+    own_mean = gaps.var(axis=1)
+    assert var_a.mean() == pytest.approx(900.0, rel=0.03)
+    assert own_mean.mean() == pytest.approx(450.0, rel=0.03)
+
+
+@pytest.mark.parametrize(("observation", "dim"), [("paper", 4), ("lookahead", 6)])
+def test_both_observations_pass_the_gymnasium_checker(gt, observation, dim):
+    folder, data = gt
+    path = write_scenario(folder / observation, {**BASE, "policy.observation": observation})
+    env = RingHiddenEnv(load_scenario(path), data, None)
+    try:
+        check_env(env, skip_render_check=True)
+        obs, _ = env.reset(seed=1)
+        assert obs.shape == (dim,)
+        if observation == "lookahead":
+            core = env.core
+            nxt = core.limits[(core.edge[core.hidden][0] + 1) % len(core.limits)]
+            assert obs[4] == pytest.approx(nxt)
+            assert 0 < obs[5] <= core.geo.lengths_m.max()
+    finally:
+        env.close()

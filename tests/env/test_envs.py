@@ -1,0 +1,104 @@
+"""The public environments pass the official gymnasium and PettingZoo checkers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import write_scenario
+from gymnasium.utils.env_checker import check_env
+from pettingzoo.test import parallel_api_test
+
+from macromicro_sumo import cli
+from macromicro_sumo.env.wrappers import ENV_ID, RingHiddenEnv, RingHiddenParallelEnv
+from macromicro_sumo.errors import UserError
+
+
+@pytest.fixture(scope="module")
+def gt(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("envs")
+    path = write_scenario(
+        folder, {"simulation.n_runs": 4, "simulation.duration_s": 120.0, "generator.epochs": 3}
+    )
+    out = folder / "gt"
+    assert cli.main(["simulate", str(path), "--out", str(out), "--quiet"]) == 0
+    assert (
+        cli.main(
+            [
+                "train-generator",
+                str(path),
+                "--data",
+                str(out),
+                "--out",
+                str(folder / "gen"),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    return path, out, folder / "gen" / "generator.pt"
+
+
+def test_gymnasium_env_passes_check_env(gt):
+    path, data, gen = gt
+    env = RingHiddenEnv(path, data, gen)
+    try:
+        check_env(env, skip_render_check=True)
+    finally:
+        env.close()
+
+
+def test_gymnasium_env_is_registered(gt):
+    import gymnasium
+
+    path, data, gen = gt
+    env = gymnasium.make(ENV_ID, scenario=path, data=data, generator=gen)
+    try:
+        obs, info = env.reset(seed=3)
+        d = env.observation_space.shape[0]
+        assert obs.shape == (d,) and info["observed_obs"].shape == (4, d)
+        steps, done = 0, False
+        while not done:
+            obs, r, term, trunc, info = env.step(np.array([0.0], np.float32))
+            assert 0.0 < r <= 1.0
+            steps += 1
+            done = term or trunc
+        assert steps == 10  # H policy steps
+    finally:
+        env.close()
+
+
+def test_pettingzoo_env_passes_parallel_api_test(gt):
+    path, data, gen = gt
+    env = RingHiddenParallelEnv(path, data, gen, hidden=(1, 4))
+    try:
+        parallel_api_test(env, num_cycles=50)
+    finally:
+        env.close()
+
+
+def test_bad_actions_name_the_agent(gt):
+    path, data, gen = gt
+    env = RingHiddenParallelEnv(path, data, gen, hidden=2)
+    try:
+        env.reset(seed=0)
+        with pytest.raises(ValueError, match="agent hidden_1: action must be finite"):
+            env.step({"hidden_0": np.array([0.0]), "hidden_1": np.array([np.nan])})
+        with pytest.raises(ValueError, match="agent hidden_0: action must have shape"):
+            env.step({"hidden_0": np.zeros(3), "hidden_1": np.array([0.0])})
+    finally:
+        env.close()
+
+
+def test_second_env_in_one_process_is_refused_clearly(gt):
+    path, data, gen = gt
+    first = RingHiddenEnv(path, data, gen)
+    first.reset(seed=0)
+    second = RingHiddenEnv(path, data, gen)
+    try:
+        with pytest.raises(UserError, match="one per process"):
+            first.step(np.array([0.0], np.float32))
+        second.reset(seed=0)
+        second.step(np.array([0.0], np.float32))
+    finally:
+        first.close()
+        second.close()

@@ -1,0 +1,156 @@
+"""Stage II faults: resume after SIGKILL, bad checkpoints, SUMO errors inside an episode."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from conftest import write_scenario
+
+from macromicro_sumo import cli
+from macromicro_sumo.env.ring import RingCore
+from macromicro_sumo.env.wrappers import make_bank
+from macromicro_sumo.scenario.load import load_scenario
+
+UPDATES = 12
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("faults")
+    path = write_scenario(
+        folder,
+        {
+            "simulation.n_runs": 4,
+            "simulation.duration_s": 120.0,
+            "generator.epochs": 3,
+            "policy.updates": UPDATES,
+            "policy.checkpoint_every": 2,
+            "policy.episodes_per_update": 8,
+        },
+    )
+    gt = folder / "gt"
+    assert cli.main(["simulate", str(path), "--out", str(gt), "--quiet"]) == 0
+    assert (
+        cli.main(
+            [
+                "train-generator",
+                str(path),
+                "--data",
+                str(gt),
+                "--out",
+                str(folder / "gen"),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    return path, gt, folder / "gen" / "generator.pt"
+
+
+def _train_args(path, gt, gen, out, *extra):
+    return [
+        "train-policy",
+        str(path),
+        "--data",
+        str(gt),
+        "--generator",
+        str(gen),
+        "--out",
+        str(out),
+        "--quiet",
+        *extra,
+    ]
+
+
+def test_sigkill_then_resume_matches_an_uninterrupted_run(setup, tmp_path):
+    path, gt, gen = setup
+    ref = tmp_path / "ref"
+    assert cli.main(_train_args(path, gt, gen, ref)) == 0
+    out = tmp_path / "killed"
+    ckpt = out / "policy_mix_checkpoint.pt"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "macromicro_sumo.cli", *_train_args(path, gt, gen, out)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    deadline = time.time() + 120
+    while time.time() < deadline and proc.poll() is None:
+        if ckpt.is_file() and torch.load(ckpt, weights_only=False)["update"] >= 4:
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "training finished before it could be killed"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    done = torch.load(ckpt, weights_only=False)["update"]
+    assert done < UPDATES and not (out / "policy.pt").exists()
+    assert cli.main(_train_args(path, gt, gen, out, "--resume")) == 0
+    log, ref_log = (
+        pd.read_csv(out / "policy_train_log.csv"),
+        pd.read_csv(ref / "policy_train_log.csv"),
+    )
+    assert list(log["update"]) == list(range(1, UPDATES + 1))
+    # Weights, optimiser and RNG states were restored: the resumed run is the same run.
+    cols = ["r_macro", "r_micro_per_pair", "pg_loss", "collisions"]
+    pd.testing.assert_frame_equal(log[cols], ref_log[cols], rtol=1e-5)
+    a = torch.load(out / "policy.pt", weights_only=False)["state_dict"]
+    b = torch.load(ref / "policy.pt", weights_only=False)["state_dict"]
+    for k in a:
+        torch.testing.assert_close(a[k], b[k])
+
+
+def test_resume_from_corrupt_checkpoint_is_refused_and_nothing_overwritten(setup, tmp_path, capsys):
+    path, gt, gen = setup
+    out = tmp_path / "pol"
+    out.mkdir()
+    ckpt = out / "policy_mix_checkpoint.pt"
+    ckpt.write_bytes(b"not a checkpoint")
+    assert cli.main(_train_args(path, gt, gen, out, "--resume")) == 2
+    err = capsys.readouterr().err.strip()
+    assert (
+        err.startswith("error:")
+        and "corrupt or truncated policy checkpoint" in err
+        and "\n" not in err
+    )
+    assert ckpt.read_bytes() == b"not a checkpoint"
+    assert sorted(p.name for p in out.iterdir()) == ["policy_mix_checkpoint.pt"]
+
+
+def test_resume_from_another_scenario_is_refused(setup, tmp_path, capsys):
+    path, gt, gen = setup
+    out = tmp_path / "pol"
+    assert cli.main(_train_args(path, gt, gen, out)) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    other = write_scenario(
+        tmp_path / "other",
+        {"simulation.n_runs": 4, "simulation.duration_s": 120.0, "bounds.accel_mps2": [-2.0, 1.0]},
+    )
+    assert cli.main(_train_args(other, gt, gen, out, "--resume")) == 2
+    err = capsys.readouterr().err
+    assert "bounds.accel_mps2" in err and "Traceback" not in err
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before
+
+
+def test_sumo_error_inside_an_episode_truncates_with_reason(setup):
+    path, gt, gen = setup
+    sc, bank = make_bank(load_scenario(path), gt, None, "train", 2, 0)
+    core = RingCore(sc, bank, seed=0)
+    try:
+        core.reset(0)
+        core.step(np.zeros(2))
+        core.sim.remove_vehicles([core.ids[0]])  # a vehicle lost mid-episode
+        res = core.step(np.zeros(2))
+        assert res.truncated and "veh0" in res.error
+        # The next episode starts whole again: the lost vehicle is re-inserted.
+        core.reset(1)
+        res = core.step(np.zeros(2))
+        assert not res.error and not res.truncated
+    finally:
+        core.close()

@@ -1,0 +1,143 @@
+"""Stage II's likelihood term: which observed pairs enter it, the lr schedule, and keeping
+the update with the best validation micro log-likelihood (real torch, real SUMO)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+from conftest import write_scenario
+
+from macromicro_sumo import cli
+from macromicro_sumo.data.ring import load_ground_truth, split_runs
+from macromicro_sumo.env.ring import RingCore, build_bank
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.policy.ppo import (
+    Agent,
+    collect,
+    learning_rate,
+    mean_logp,
+    micro_mask,
+    split_episodes,
+    train_policy,
+    validation_pairs,
+)
+from macromicro_sumo.scenario.load import load_scenario
+
+
+def test_linear_learning_rate_reaches_zero_after_the_last_update():
+    rates = [learning_rate(1e-3, "linear", u, 4) for u in range(4)]
+    np.testing.assert_allclose(rates, [1e-3, 7.5e-4, 5e-4, 2.5e-4])
+    assert learning_rate(1e-3, "constant", 3, 4) == 1e-3
+
+
+def test_split_episodes_keeps_validation_runs_out_of_training():
+    train, val = split_episodes(np.array([0, 0, 1, 2, 1]), np.array([1]))
+    np.testing.assert_array_equal(train, [0, 1, 3])
+    np.testing.assert_array_equal(val, [2, 4])
+    np.testing.assert_array_equal(split_episodes(np.array([3, 4]), None)[0], [0, 1])
+    with pytest.raises(UserError, match="none is left to train on"):
+        split_episodes(np.array([1, 1]), np.array([1]))
+
+
+@pytest.fixture(scope="module")
+def ring(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("micro")
+    path = write_scenario(
+        folder,
+        {
+            "simulation.n_runs": 4,
+            "simulation.duration_s": 120.0,
+            "policy.updates": 4,
+            "policy.episodes_per_update": 8,
+        },
+    )
+    sc = load_scenario(path)
+    out = folder / "gt"
+    assert cli.main(["simulate", str(path), "--out", str(out), "--quiet"]) == 0
+    gt = load_ground_truth(out, sc)
+    splits = split_runs(gt.runs, sc.generator.held_out_fraction, sc.seed)
+    runs = np.concatenate([splits["train"], splits["val"]])
+    # Completing with the true hidden states isolates the likelihood term from the generator.
+    bank = build_bank(sc, gt, runs, lambda s: (s.arc_m, s.speed_mps), (1, 3), 0)
+    return sc, bank, splits["val"]
+
+
+def _rollout(sc, bank, agent, episodes):
+    core = RingCore(sc, bank, seed=0)
+    try:
+        return collect(agent, core, episodes, 0.0, sc.policy.horizon, torch.Generator())
+    finally:
+        core.close()
+
+
+def test_pairs_with_an_observed_leader_do_not_depend_on_the_policy(ring):
+    """Behind an observed leader the observation is the recorded one; behind a hidden
+    leader it moves with whatever drives the hidden vehicle."""
+    sc, bank, _ = ring
+    episodes = np.arange(12)
+    agents = []
+    for seed, bias in ((0, 0.4), (1, -0.8)):
+        torch.manual_seed(seed)
+        agent = Agent(16, -3.0, sc.policy.observation)
+        torch.nn.init.constant_(agent.actor[-1].bias, bias)  # two clearly different drivers
+        agents.append(agent)
+    a, b = (_rollout(sc, bank, ag, episodes) for ag in agents)
+    np.testing.assert_array_equal(a.leader_hidden, b.leader_hidden)
+    clean = micro_mask(a, observed_leader=True)
+    everything = micro_mask(a, observed_leader=False)
+    behind_hidden = everything & ~clean
+    assert clean.any() and behind_hidden.any()
+    np.testing.assert_allclose(a.obs[clean], b.obs[clean], atol=1e-4)
+    assert np.abs(a.obs[behind_hidden] - b.obs[behind_hidden]).max() > 0.1
+    # Hidden vehicles never enter the likelihood.
+    assert not (everything & a.hidden[:, None, :]).any()
+
+
+def test_validation_selection_keeps_the_best_update(ring, tmp_path):
+    sc, bank, val_runs = ring
+    sc = dataclasses.replace(
+        sc,
+        policy=dataclasses.replace(
+            sc.policy,
+            lr_schedule="linear",
+            micro_pairs="observed_leader",
+            micro_replay=4,
+            checkpoint_selection="val_micro_logp",
+        ),
+    )
+    res = train_policy(sc, bank, tmp_path, progress=False, val_runs=val_runs)
+    logged = [row["val_micro_logp"] for row in res["log"]]
+    assert np.isfinite(logged).all()
+    core = RingCore(sc, bank, seed=0)
+    try:
+        val_obs, val_act = validation_pairs(
+            res["agent"], core, split_episodes(bank.run, val_runs)[1], sc.policy.horizon, sc
+        )
+    finally:
+        core.close()
+    assert mean_logp(res["agent"], val_obs, val_act) == pytest.approx(max(logged), abs=1e-5)
+    saved = torch.load(tmp_path / "policy.pt", weights_only=True)["state_dict"]
+    for k, v in res["agent"].state_dict().items():
+        torch.testing.assert_close(saved[k], v)
+
+
+def test_macro_only_ignores_the_validation_selection(ring, tmp_path):
+    """macro_only never sees observed actions: it trains on every episode, validation runs
+    included, and keeps its last update even when the scenario selects by likelihood."""
+    sc, bank, val_runs = ring
+    sc = dataclasses.replace(
+        sc, policy=dataclasses.replace(sc.policy, checkpoint_selection="val_micro_logp")
+    )
+    res = train_policy(
+        sc, bank, tmp_path, objective="macro_only", progress=False, updates=2, val_runs=val_runs
+    )
+    assert [row["update"] for row in res["log"]] == [1, 2]
+    assert np.isnan([row["val_micro_logp"] for row in res["log"]]).all()
+    last = torch.load(tmp_path / "policy_macro_only_checkpoint.pt", weights_only=True)
+    assert last["update"] == 2 and last["best_state_dict"] is None
+    saved = torch.load(tmp_path / "policy_macro_only.pt", weights_only=True)["state_dict"]
+    for k, v in last["state_dict"].items():
+        torch.testing.assert_close(saved[k], v)

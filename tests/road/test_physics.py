@@ -1,0 +1,201 @@
+"""Pure physics and loss terms, tested without SUMO."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from macromicro_sumo.data.macro import spacing_losses, speed_loss
+from macromicro_sumo.road.physics import idm_accel, ring_leaders, sorted_spacings
+
+L = 2 * math.pi * 100.0  # the paper's ring [m]
+
+# One heterogeneous-free IDM driver [SI units].
+IDM = dict(desired_speed_mps=13.0, tau_s=1.2, accel_mps2=1.0, decel_mps2=1.5, min_gap_m=2.0)
+
+
+def accel(speed, gap, delta_v, **over):
+    p = {**IDM, **over}
+    return idm_accel(
+        np.asarray(speed, float),
+        np.asarray(gap, float),
+        np.asarray(delta_v, float),
+        p["desired_speed_mps"],
+        p["tau_s"],
+        p["accel_mps2"],
+        p["decel_mps2"],
+        p["min_gap_m"],
+    )
+
+
+# --------------------------------------------------------------------------- ring geometry
+
+
+def test_spacings_sum_to_ring_length():
+    arc = np.random.default_rng(0).uniform(0, L, (50, 7))
+    _, spacing = ring_leaders(arc, L)
+    np.testing.assert_allclose(spacing.sum(-1), L, rtol=0, atol=1e-9)
+    assert (spacing > 0).all()
+    np.testing.assert_allclose(sorted_spacings(arc, L).sum(-1), L, rtol=0, atol=1e-9)
+
+
+def test_leader_is_next_in_arc_order_with_wrap_around():
+    arc = np.array([10.0, 300.0, 600.0, 50.0])
+    leader, spacing = ring_leaders(arc, L)
+    # Arc order 0 -> 3 -> 1 -> 2 -> (wrap) 0.
+    assert leader.tolist() == [3, 2, 0, 1]
+    np.testing.assert_allclose(spacing, [40.0, 300.0, L - 600.0 + 10.0, 250.0], atol=1e-9)
+
+
+def test_positions_outside_one_lap_are_wrapped():
+    arc = np.array([10.0, 300.0, 600.0, 50.0])
+    shifted = arc + np.array([0.0, -1.0, 2.0, 1.0]) * L
+    leader, spacing = ring_leaders(shifted, L)
+    leader0, spacing0 = ring_leaders(arc, L)
+    assert leader.tolist() == leader0.tolist()
+    np.testing.assert_allclose(spacing, spacing0, atol=1e-9)
+
+
+def test_batched_leaders_equal_ring_by_ring():
+    arc = np.random.default_rng(1).uniform(0, L, (3, 4, 6))
+    leader, spacing = ring_leaders(arc, L)
+    assert leader.shape == spacing.shape == (3, 4, 6)
+    for i in range(3):
+        for j in range(4):
+            li, si = ring_leaders(arc[i, j], L)
+            assert leader[i, j].tolist() == li.tolist()
+            np.testing.assert_array_equal(spacing[i, j], si)
+
+
+# --------------------------------------------------------------------------- IDM
+
+
+def test_free_road_accelerates_toward_desired_speed():
+    v0 = IDM["desired_speed_mps"]
+    assert accel(5.0, 1e6, 0.0) == pytest.approx(IDM["accel_mps2"] * (1 - (5 / v0) ** 4))
+    assert accel(v0, 1e6, 0.0) == pytest.approx(0.0, abs=1e-9)
+    assert accel(v0 + 2, 1e6, 0.0) < 0
+    # Euler from standstill: speed rises monotonically to v0 and never overshoots.
+    v, dt, trace = 0.0, 0.1, []
+    for _ in range(1200):
+        v = max(0.0, v + float(accel(v, 1e6, 0.0)) * dt)
+        trace.append(v)
+    assert np.all(np.diff(trace) >= 0)
+    assert max(trace) <= v0
+    assert trace[-1] == pytest.approx(v0, abs=0.05)
+
+
+def test_stopped_leader_makes_follower_brake_and_stop_before_it():
+    assert accel(15.0, 30.0, 15.0) < -IDM["decel_mps2"]  # closing fast: brakes harder than b
+    # A follower at 15 m/s, 100 m behind a stopped car, stops without touching it.
+    v, gap, dt = 15.0, 100.0, 0.1
+    min_gap = gap
+    for _ in range(1000):
+        v = max(0.0, v + float(accel(v, gap, v)) * dt)
+        gap -= v * dt
+        min_gap = min(min_gap, gap)
+    assert v == pytest.approx(0.0, abs=1e-3)
+    assert min_gap > 0.5 * IDM["min_gap_m"]
+
+
+def test_equilibrium_gap_gives_zero_acceleration():
+    v = np.array([5.0, 10.0, 12.0])
+    s_eq = (IDM["min_gap_m"] + v * IDM["tau_s"]) / np.sqrt(1 - (v / IDM["desired_speed_mps"]) ** 4)
+    np.testing.assert_allclose(accel(v, s_eq, 0.0), 0.0, atol=1e-9)
+    assert (accel(v, 0.8 * s_eq, 0.0) < 0).all()
+    assert (accel(v, 1.2 * s_eq, 0.0) > 0).all()
+
+
+def test_idm_broadcasts_per_vehicle_parameters():
+    v = np.array([10.0, 10.0])
+    a = idm_accel(
+        v,
+        np.array([1e6, 1e6]),
+        np.zeros(2),
+        np.array([10.0, 20.0]),
+        np.full(2, 1.2),
+        np.array([1.0, 2.0]),
+        np.full(2, 1.5),
+        np.full(2, 2.0),
+    )
+    np.testing.assert_allclose(a, [0.0, 2.0 * (1 - 0.5**4)], atol=1e-8)
+
+
+# --------------------------------------------------------------------------- loss terms
+
+
+def losses(gaps, mask=None, mean_target=125.0, d_min=115.0, d_max=140.0):
+    gaps = np.atleast_2d(np.asarray(gaps, float))
+    mask = np.ones_like(gaps, bool) if mask is None else np.atleast_2d(np.asarray(mask, bool))
+    b = gaps.shape[0]
+    return spacing_losses(gaps, mask, np.full(b, mean_target), np.full(b, d_min), np.full(b, d_max))
+
+
+def test_spacing_losses_zero_on_target():
+    out = losses([125.0] * 5)
+    for name in ("L_mean", "L_min", "L_max", "L_var"):
+        assert out[name][0] == pytest.approx(0.0, abs=1e-15), name
+
+
+def test_spacing_losses_penalise_only_violations():
+    inside = losses([116.0, 139.0, 120.0, 130.0])
+    assert inside["L_min"][0] == 0.0 and inside["L_max"][0] == 0.0
+    assert inside["L_mean"][0] > 0 and inside["L_var"][0] > 0  # off-mean, spread
+
+    low = losses([100.0, 125.0, 125.0, 150.0])
+    assert low["L_min"][0] == pytest.approx(((115 - 100) / 115) ** 2 / 4)
+    assert low["L_max"][0] == pytest.approx(((150 - 140) / 140) ** 2 / 4)
+
+    only_low = losses([100.0, 125.0, 125.0, 125.0])
+    assert only_low["L_min"][0] > 0 and only_low["L_max"][0] == 0.0
+
+
+def test_spacing_losses_ignore_masked_gaps():
+    base = losses([120.0, 130.0, 125.0, 125.0], mask=[1, 1, 1, 1])
+    masked = losses([120.0, 130.0, 125.0, 125.0, 1.0, 900.0], mask=[1, 1, 1, 1, 0, 0])
+    for name in base:
+        assert masked[name][0] == pytest.approx(base[name][0], abs=1e-15), name
+    empty = losses([1.0, 900.0], mask=[0, 0])
+    for name in empty:
+        assert empty[name][0] == 0.0, name
+
+
+def test_spacing_losses_batched_rows_are_independent():
+    two = losses([[125.0, 125.0], [100.0, 150.0]])
+    assert two["L_min"].shape == (2,)
+    assert two["L_min"][0] == 0.0 and two["L_min"][1] > 0
+
+
+def test_speed_loss():
+    assert speed_loss(np.array([[12.0, 12.0]]), np.array([12.0]))[0] == 0.0
+    assert speed_loss(np.array([[11.0, 13.0]]), np.array([12.0]))[0] == 0.0  # the mean counts
+    np.testing.assert_allclose(
+        speed_loss(np.array([[10.0, 12.0], [12.0, 12.0]]), np.array([12.0, 10.0])),
+        [(11 / 12 - 1) ** 2, (12 / 10 - 1) ** 2],
+    )
+
+
+def test_speed_loss_with_a_scale_charges_a_bias_of_the_scale_one():
+    """policy.macro_speed_scale_mps: a 0.1 m/s bias costs 1, as a 100% error in the paper's."""
+    v = np.array([[12.05, 12.15], [12.0, 12.0]])
+    np.testing.assert_allclose(speed_loss(v, np.array([12.0, 12.0]), 0.1), [1.0, 0.0])
+    # 4 cm/s at 12 m/s: 1e-5 in the paper's form, 0.16 with s = 0.1 m/s
+    assert speed_loss(np.array([[12.04]]), np.array([12.0]))[0] < 2e-5
+    assert speed_loss(np.array([[12.04]]), np.array([12.0]), 0.1)[0] == pytest.approx(0.16)
+
+
+def test_lookahead_features_per_vehicle_rows_and_one_ring():
+    from macromicro_sumo.road.physics import lookahead_features
+
+    offsets, lengths = np.array([0.0, 100.0, 200.0]), np.array([100.0, 100.0, 100.0])
+    arc, edge = np.array([10.0, 150.0, 290.0]), np.array([0, 1, 2])
+    one = np.array([12.0, 13.0, 14.0])
+    nxt, dist = lookahead_features(arc, edge, offsets, lengths, one)
+    np.testing.assert_allclose(nxt, [13.0, 14.0, 12.0])
+    np.testing.assert_allclose(dist, [90.0, 50.0, 10.0])
+    rows = np.array([one, one + 1, one + 2])  # one ring's limits per vehicle (different runs)
+    nxt_rows, dist_rows = lookahead_features(arc, edge, offsets, lengths, rows)
+    assert nxt_rows.shape == (3,) and dist_rows.shape == (3,)
+    np.testing.assert_allclose(nxt_rows, [13.0, 15.0, 14.0])

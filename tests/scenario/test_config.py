@@ -1,0 +1,120 @@
+"""Scenario loading: typed dataclasses, defaults, digest."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import subprocess
+import sys
+
+import pytest
+from conftest import PAPER_SCENARIO, ROOT, dump_toml, scenario_table
+
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.scenario.load import load_scenario, scenario_from_dict
+from macromicro_sumo.scenario.ring import DetectorConfig, FleetConfig, NetworkConfig, Scenario
+
+
+def test_paper_scenario_loads_into_typed_dataclasses():
+    sc = load_scenario(PAPER_SCENARIO)
+    assert isinstance(sc, Scenario)
+    assert isinstance(sc.network, NetworkConfig) and isinstance(sc.fleet, FleetConfig)
+    assert (sc.name, sc.seed) == ("ring_paper", 2024)
+    assert sc.network.radius_m == 100.0 and type(sc.network.radius_m) is float
+    assert sc.network.length_m == pytest.approx(2 * math.pi * 100.0)
+    assert sc.fleet.n_vehicles == 5 and type(sc.fleet.n_vehicles) is int
+    assert sc.fleet.accel_mps2 == (0.8, 1.2)
+    assert sc.fleet.max_speed_mps == (50.0, 50.0)
+    assert sc.speed_limits.range_mps == (12.0, 14.0)
+    assert sc.simulation.step_length_s == 0.5 and sc.simulation.n_runs == 40
+    assert sc.bounds.spacing_m == (115.0, 140.0)
+    assert sc.bounds.speed_mps == (10.5, 14.0)
+    assert sc.bounds.accel_mps2 == (-1.1, 0.5)
+    assert sc.generator.hidden_train == (0, 5) and sc.generator.t_max == 20
+    # eta 0.6 with a 0.1 m/s speed scale: a documented departure (paper: 0.3, relative error)
+    assert sc.policy.eta == 0.6 and sc.policy.macro_speed_scale_mps == 0.1
+    assert sc.policy.horizon == 10
+    assert sc.source == str(PAPER_SCENARIO.resolve())
+    assert sc.resolve(sc.network.net_file) == (ROOT / "sumo_nets" / "ring_r100_e4.net.xml")
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        sc.seed = 1  # type: ignore[misc]
+
+
+def test_omitted_tables_and_keys_take_defaults(make_scenario):
+    sc = load_scenario(make_scenario(drop=("detectors", "fleet.delta", "speed_limits.step_mps")))
+    assert sc.detectors == DetectorConfig()
+    assert sc.fleet.delta == 4.0
+    assert sc.speed_limits.step_mps == 0.5
+
+
+def test_overrides_are_applied_and_validated(make_scenario):
+    path = make_scenario()
+    assert load_scenario(path, {"simulation.n_runs": 3}).simulation.n_runs == 3
+    with pytest.raises(UserError, match=r"fleet\.n_vehicles"):
+        load_scenario(path, {"fleet.n_vehicles": 1})
+
+
+def test_scenario_round_trips_through_its_dict():
+    sc = load_scenario(PAPER_SCENARIO)
+    again = scenario_from_dict(json.loads(json.dumps(sc.to_dict())), sc.source)
+    assert again == sc
+    assert again.digest() == sc.digest()
+
+
+def test_digest_is_stable_and_ignores_formatting(tmp_path):
+    table = scenario_table()
+    plain = tmp_path / "plain.toml"
+    plain.write_text(dump_toml(table))
+    # Same values, other formatting: comments, blank lines, keys in another order.
+    text = "# a comment\n\n" + dump_toml(dict(reversed(list(table.items()))))
+    fancy = tmp_path / "fancy.toml"
+    fancy.write_text(text.replace("\n[", "\n# section\n["))
+    digest = load_scenario(plain).digest()
+    assert len(digest) == 64 and int(digest, 16) >= 0
+    assert load_scenario(plain).digest() == digest
+    assert load_scenario(fancy).digest() == digest
+    # ... and in a fresh interpreter (no dependence on hash seeds or object ids).
+    code = (
+        "from macromicro_sumo.scenario.load import load_scenario; import sys; "
+        "print(load_scenario(sys.argv[1]).digest())"
+    )
+    fresh = subprocess.run(
+        [sys.executable, "-c", code, str(plain)], capture_output=True, text=True, check=True
+    )
+    assert fresh.stdout.strip() == digest
+
+
+def test_digest_changes_with_any_value(make_scenario):
+    base = load_scenario(make_scenario()).digest()
+    assert load_scenario(make_scenario({"seed": 2025}, name="s.toml")).digest() != base
+    assert load_scenario(make_scenario({"fleet.delta": 4.5}, name="d.toml")).digest() != base
+    # A default written out explicitly is the same scenario.
+    explicit = make_scenario({"detectors.interval_s": 60.0}, name="e.toml")
+    assert load_scenario(explicit).digest() == base
+
+
+def test_staging_moves_manifests_last(tmp_path):
+    """A stage is done when its manifest exists: it must arrive after every other output."""
+    import os
+
+    from macromicro_sumo.files import staging_dir
+
+    seen = []
+    real = os.replace
+
+    def spy(src, dst):
+        seen.append(os.path.basename(dst))
+        return real(src, dst)
+
+    os.replace = spy
+    try:
+        with staging_dir(tmp_path) as stage:
+            for name in ("a.csv", "manifest.json", "z.csv", "policy_manifest.json"):
+                (stage / name).write_text("x")
+    finally:
+        os.replace = real
+    assert seen[-2:] == ["manifest.json", "policy_manifest.json"] and set(seen[:2]) == {
+        "a.csv",
+        "z.csv",
+    }
