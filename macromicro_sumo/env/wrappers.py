@@ -87,6 +87,11 @@ def _spaces(sc: Scenario, length_m: float) -> tuple[spaces.Box, spaces.Box]:
     return act, obs
 
 
+def _check_render_mode(render_mode: str | None) -> None:
+    if render_mode is not None:
+        raise ValueError(f"render_mode {render_mode!r} is not supported; accepted: None")
+
+
 def _check_action(agent: str, action: Any) -> float:
     a = np.asarray(action, dtype=np.float64)
     if a.shape not in ((1,), ()):
@@ -123,7 +128,10 @@ class RingHiddenEnv(gym.Env):
         generator: str | Path | None = None,
         split: str = "train",
         seed: int = 0,
+        render_mode: str | None = None,
     ) -> None:
+        _check_render_mode(render_mode)
+        self.render_mode = render_mode
         sc, bank = make_bank(scenario, data, generator, split, 1, seed)
         self.core = RingCore(sc, bank, seed=seed)
         self.horizon = sc.policy.horizon
@@ -158,11 +166,16 @@ class RingHiddenParallelEnv(ParallelEnv):
         split: str = "train",
         hidden: int | tuple[int, int] = (1, 4),
         seed: int = 0,
+        render_mode: str | None = None,
     ) -> None:
+        _check_render_mode(render_mode)
+        self.render_mode = render_mode
         sc, bank = make_bank(scenario, data, generator, split, hidden, seed)
         self.core = RingCore(sc, bank, seed=seed)
         self.horizon = sc.policy.horizon
-        self.possible_agents = [f"hidden_{i}" for i in range(sc.fleet.n_vehicles)]
+        # As many agents as the most hidden vehicles any episode of the bank has.
+        most = int(bank.hidden.sum(axis=1).max())
+        self.possible_agents = [f"hidden_{i}" for i in range(most)]
         self.agents: list[str] = []
         self._act, self._obs = _spaces(sc, self.core.length)
         self._rng = np.random.default_rng(seed)
@@ -184,7 +197,7 @@ class RingHiddenParallelEnv(ParallelEnv):
         obs = self.core.reset(int(self._rng.integers(len(self.core.bank))))
         self.agents = self.possible_agents[: int(self.core.hidden.sum())]
         info = _info(self.core)
-        return self._split(obs), {a: info for a in self.agents}
+        return self._split(obs), {a: dict(info) for a in self.agents}
 
     def step(self, actions: dict[str, Any]):
         missing = [a for a in self.agents if a not in actions]
@@ -201,7 +214,9 @@ class RingHiddenParallelEnv(ParallelEnv):
             {a: float(res.r_macro) for a in agents},
             {a: bool(res.collision) for a in agents},
             {a: bool(truncated) for a in agents},
-            {a: info for a in agents},
+            # One dict per agent: wrappers (SuperSuit) write each agent's final observation
+            # into its info, and a shared dict would hand every agent the last one's.
+            {a: dict(info) for a in agents},
         )
         if res.collision or truncated:
             self.agents = []

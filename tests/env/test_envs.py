@@ -102,3 +102,47 @@ def test_second_env_in_one_process_is_refused_clearly(gt):
     finally:
         first.close()
         second.close()
+
+
+def test_every_agent_gets_its_own_info_dict(gt):
+    path, data, gen = gt
+    env = RingHiddenParallelEnv(path, data, gen, hidden=3)
+    try:
+        _, infos = env.reset(seed=0)
+        assert len({id(i) for i in infos.values()}) == len(infos) == 3
+        _, _, _, _, infos = env.step({a: np.array([0.0]) for a in env.agents})
+        infos["hidden_0"]["terminal_observation"] = "only hidden_0's"
+        assert all("terminal_observation" not in infos[a] for a in ("hidden_1", "hidden_2"))
+    finally:
+        env.close()
+
+
+def test_render_mode_none_is_accepted_and_possible_agents_fit_the_bank(gt):
+    path, data, gen = gt
+    env = RingHiddenParallelEnv(path, data, gen, hidden=(1, 2), render_mode=None)
+    try:
+        assert env.render_mode is None and len(env.possible_agents) == 2
+        for seed in range(4):
+            env.reset(seed=seed)
+            assert set(env.agents) <= set(env.possible_agents)
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="render_mode 'human' is not supported"):
+        RingHiddenEnv(path, data, gen, render_mode="human")
+
+
+def test_supersuit_vector_wrapper_without_adapters(gt):
+    """SuperSuit's PettingZoo -> vector env conversion (what SB3 users call) steps as is."""
+    import supersuit as ss
+
+    path, data, gen = gt
+    env = RingHiddenParallelEnv(path, data, gen, hidden=2)
+    vec = ss.pettingzoo_env_to_vec_env_v1(env)
+    try:
+        obs, infos = vec.reset(seed=0)
+        assert obs.shape == (2, env.observation_space("hidden_0").shape[0])
+        for _ in range(12):  # past one horizon (10 steps): the auto-reset path runs too
+            obs, rew, term, trunc, infos = vec.step(np.zeros((2, 1), np.float32))
+            assert obs.shape[0] == 2 and np.isfinite(rew).all()
+    finally:
+        env.close()
