@@ -313,12 +313,16 @@ def load_checkpoint(path: Path, sc: Scenario) -> dict[str, Any]:
     try:
         # weights_only: a checkpoint is data; a crafted pickle must never run code here.
         payload = torch.load(path, map_location="cpu", weights_only=True)
-        if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
-            raise ValueError("not a policy checkpoint")
     except Exception as exc:
         raise UserError(
             f"{path}: corrupt or truncated policy checkpoint ({type(exc).__name__})"
         ) from None
+    fmt = payload.get("format") if isinstance(payload, dict) else None
+    if fmt != CHECKPOINT_FORMAT:
+        what = f"a {fmt!r} file" if isinstance(fmt, str) else "no format tag"
+        raise UserError(
+            f"{path}: not a policy checkpoint ({what}); pass the policy.pt of train-policy"
+        )
     want = signature(sc)
     for key, have in payload["signature"].items():
         if want.get(key) != have:

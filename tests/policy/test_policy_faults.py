@@ -17,6 +17,8 @@ from conftest import write_scenario
 from macromicro_sumo import cli
 from macromicro_sumo.env.ring import RingCore
 from macromicro_sumo.env.wrappers import make_bank
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.policy.ppo import load_checkpoint
 from macromicro_sumo.scenario.load import load_scenario
 
 UPDATES = 12
@@ -154,3 +156,11 @@ def test_sumo_error_inside_an_episode_truncates_with_reason(setup):
         assert not res.error and not res.truncated
     finally:
         core.close()
+
+
+def test_a_generator_given_as_policy_is_named_for_what_it_is(setup):
+    path, _, gen = setup
+    with pytest.raises(
+        UserError, match="not a policy checkpoint \\('macromicro-generator' file\\)"
+    ):
+        load_checkpoint(gen, load_scenario(path))
