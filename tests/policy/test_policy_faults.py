@@ -161,6 +161,6 @@ def test_sumo_error_inside_an_episode_truncates_with_reason(setup):
 def test_a_generator_given_as_policy_is_named_for_what_it_is(setup):
     path, _, gen = setup
     with pytest.raises(
-        UserError, match="not a policy checkpoint \\('macromicro-generator' file\\)"
+        UserError, match="not a policy checkpoint \\(a 'macromicro-generator' file\\)"
     ):
         load_checkpoint(gen, load_scenario(path))
