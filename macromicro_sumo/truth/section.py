@@ -13,6 +13,7 @@ penetration rate, a vType or explicit IDs.
 from __future__ import annotations
 
 import hashlib
+import json
 import time
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -613,8 +614,28 @@ TRAJ_COLUMNS = (
 )
 
 
+def check_step_length(manifest: Path, sc: SectionScenario) -> None:
+    """The ground truth of ``manifest`` was recorded every ``simulation.step_length_s`` of
+    ``sc``: its recorded actions and replays are per step of that length."""
+    try:
+        have = json.loads(manifest.read_text())["scenario"]["simulation"]["step_length_s"]
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError):
+        raise UserError(
+            f"{manifest}: unreadable ground-truth manifest, no simulation.step_length_s "
+            "(run `macromicro simulate` on a section scenario)"
+        ) from None
+    want = sc.simulation.step_length_s
+    if have != want:
+        raise UserError(
+            f"{manifest}: ground truth was simulated with simulation.step_length_s = {have}, "
+            f"scenario {sc.source} has {want}"
+        )
+
+
 def load_section_truth(folder: Path | str, sc: SectionScenario | None = None) -> SectionTruth:
-    """Read a section ground-truth folder; missing files are one-line errors."""
+    """Read a section ground-truth folder; missing files are one-line errors, and so is a
+    ground truth of another section or step length than ``sc``'s (every stage that reads one
+    loads it here)."""
     folder = Path(folder)
     need = (
         "section.json",
@@ -623,6 +644,7 @@ def load_section_truth(folder: Path | str, sc: SectionScenario | None = None) ->
         "macro.csv",
         "vtypes.csv",
         "k_estimate.csv",
+        "manifest.json",
     )
     for name in need:
         if not (folder / name).is_file():
@@ -635,6 +657,8 @@ def load_section_truth(folder: Path | str, sc: SectionScenario | None = None) ->
             f"{folder}: ground truth is for section {list(section.edge_ids)}, scenario {sc.source} "
             f"has {list(sc.section.edges)}"
         )
+    if sc is not None:
+        check_step_length(folder / "manifest.json", sc)
     traj = pd.read_csv(folder / "trajectories.csv", dtype={"vehicle_id": str, "vtype": str})
     check_columns(traj, TRAJ_COLUMNS, folder / "trajectories.csv")
     return SectionTruth(

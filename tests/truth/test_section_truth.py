@@ -204,3 +204,26 @@ def test_user_detectors_are_used_and_placement_can_be_off(tmp_path: Path) -> Non
     path = corridor_scenario(tmp_path, detectors={"auto_spacing_m": 0.0})
     assert main(["simulate", str(path), "--out", str(tmp_path / "gt2"), "--quiet"]) == 2
     assert not (tmp_path / "gt2").exists()
+
+
+@pytest.mark.parametrize("command", ["train-generator", "train-policy", "evaluate"])
+def test_stages_refuse_a_ground_truth_of_another_step_length(
+    corridor_truth: tuple[Path, Path], tmp_path: Path, capsys, command: str
+) -> None:
+    """The ground truth's recorded actions and replays are per step of its length: a stage of
+    a scenario with another step length stops before writing anything."""
+    _, gt = corridor_truth
+    path = corridor_scenario(tmp_path, simulation={"step_length_s": 1.0})
+    args = [command, str(path), "--data", str(gt), "--out", str(tmp_path / "o"), "--quiet"]
+    if command != "train-generator":
+        args += ["--generator", str(tmp_path / "generator.pt")]
+    if command == "evaluate":
+        args += ["--policy", str(tmp_path / "policy.pt")]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "\n" not in err and "Traceback" not in err, err
+    assert str(gt / "manifest.json") in err, err
+    assert "simulation.step_length_s = 0.5" in err and "has 1.0" in err, err
+    assert not (tmp_path / "o").exists()
+    with pytest.raises(UserError, match="step_length_s"):
+        load_section_truth(gt, load_scenario(path))
