@@ -148,12 +148,15 @@ def generator_completion(net, sc: Scenario, seed: int):
 
 @dataclass
 class StepResult:
-    obs: np.ndarray  # (N, 4) every vehicle's observation
+    """What one step of a core (ring or section) returns."""
+
+    obs: np.ndarray  # (N, d) every slot's observation
     r_macro: float
     terms: dict[str, float]
     collision: bool
     truncated: bool
     error: str
+    active: np.ndarray  # (N,) bool: slots on the road after this step
 
 
 class RingCore:
@@ -168,9 +171,11 @@ class RingCore:
         self.length = self.geo.length_m
         self.dt = sc.simulation.step_length_s
         self.a_min, self.a_max = sc.bounds.accel_mps2
-        self.n = bank.arc0_m.shape[
-            1
-        ]  # the fleet of the episodes (N, or 2 for leader-follower tests)
+        # The fleet of the episodes (N, or 2 for leader-follower tests): on a closed
+        # one-lane road every slot is always on it, in lane 0.
+        self.n = bank.arc0_m.shape[1]
+        self.on = np.ones(self.n, dtype=bool)
+        self.lane = np.zeros(self.n, dtype=np.int64)
         self.ids = [f"veh{i}" for i in range(self.n)]
         self._edge_index = {e: i for i, e in enumerate(self.geo.edge_ids)}
         self._tmp = tempfile.TemporaryDirectory(prefix="macromicro-env-")
@@ -324,7 +329,7 @@ class RingCore:
         except Exception as exc:  # a vehicle lost or a SUMO error: truncate, training goes on
             self._broken = True
             return StepResult(
-                self.observations(), 0.0, {}, False, True, f"{type(exc).__name__}: {exc}"
+                self.observations(), 0.0, {}, False, True, f"{type(exc).__name__}: {exc}", self.on
             )
         prev_arc = self.arc
         self.edge = e
@@ -344,4 +349,4 @@ class RingCore:
         # Arc gaps decide collisions: SUMO also reports one when moveTo reorders vehicles at reset.
         collision = bool(self.spacing.min() < self.sc.fleet.length_m)
         r, terms = self.macro_reward()
-        return StepResult(self.observations(), r, terms, collision, bool(error), error)
+        return StepResult(self.observations(), r, terms, collision, bool(error), error, self.on)

@@ -368,11 +368,6 @@ def _on_section(section: Section, arc_m: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- core
 
 
-@dataclass
-class SectionStepResult(StepResult):
-    active: np.ndarray  # (N,) bool: slots on the section after this step
-
-
 class SectionCore:
     """One SUMO run of the user's network (no demand) reused for every episode."""
 
@@ -576,11 +571,11 @@ class SectionCore:
         )
 
     def _result(self, r: float, terms, collision: bool, truncated: bool, error: str):
-        return SectionStepResult(
+        return StepResult(
             self._obs.copy(), r, terms, collision, truncated, error, self.active.copy()
         )
 
-    def step(self, accel_hidden: np.ndarray) -> SectionStepResult:
+    def step(self, accel_hidden: np.ndarray) -> StepResult:
         """Advance one step: hidden vehicles apply ``accel_hidden`` (one per hidden slot,
         inactive ones ignored), observed vehicles replay their records."""
         if not self.sim.is_active():

@@ -14,7 +14,6 @@ hidden ones are driven by the method. All methods run on the same scenes:
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Callable
 from pathlib import Path
 
@@ -22,11 +21,10 @@ import numpy as np
 import pandas as pd
 import torch
 from scipy.optimize import linear_sum_assignment
-from scipy.stats import wasserstein_distance
 
 from macromicro_sumo.data.ring import GroundTruth, load_ground_truth, run_arrays, split_runs
 from macromicro_sumo.env.ring import EpisodeBank, RingCore, build_bank, generator_completion
-from macromicro_sumo.env.rollout import ActionFn, Rollouts, rollout
+from macromicro_sumo.env.rollout import ActionFn, rollout
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.idm_fit import IdmParams, calibrate_idm, idm_policy_accel
 from macromicro_sumo.evaluation.leader_follower import (
@@ -36,10 +34,12 @@ from macromicro_sumo.evaluation.leader_follower import (
     policy_follower,
     run_leader_follower,
 )
+from macromicro_sumo.evaluation.statistics import macro_row, samples_frame
 from macromicro_sumo.files import prepare_out_dir, staging_dir, write_csv, write_json
 from macromicro_sumo.generator.ring_train import load_generator
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.policy.ppo import load_policy, policy_action
+from macromicro_sumo.progress import tqdm
 from macromicro_sumo.road.physics import lookahead_features
 from macromicro_sumo.road.ring import read_ring
 from macromicro_sumo.scenario.ring import Scenario
@@ -110,112 +110,6 @@ def micro_pairs(sc: Scenario, gt: GroundTruth, runs: np.ndarray) -> tuple[np.nda
         limits = lim.loc[t["run"]].to_numpy()
         cols += list(lookahead_features(arc, edge, geo.offsets_m, geo.lengths_m, limits))
     return np.stack(cols, axis=1).astype(np.float64), t["accel_mps2"].to_numpy()
-
-
-BOOTSTRAP_RESAMPLES = 2000
-
-
-def paired_bootstrap_ci(
-    diff: np.ndarray, seed: int, level: float = 0.95, resamples: int = BOOTSTRAP_RESAMPLES
-) -> tuple[float, float]:
-    """Percentile bootstrap interval of mean(diff) over paired episodes (resampled together)."""
-    d = diff[np.isfinite(diff)]
-    if len(d) < 2:
-        return float("nan"), float("nan")
-    rng = np.random.default_rng([seed, 7])
-    means = d[rng.integers(0, len(d), (resamples, len(d)))].mean(axis=1)
-    lo, hi = np.quantile(means, [(1 - level) / 2, (1 + level) / 2])
-    return float(lo), float(hi)
-
-
-def paired_bootstrap_std_ratio_ci(
-    x: np.ndarray,
-    ref: np.ndarray,
-    seed: int,
-    level: float = 0.95,
-    resamples: int = BOOTSTRAP_RESAMPLES,
-) -> tuple[float, float]:
-    """Percentile bootstrap interval of 100 (std(x) / std(ref) - 1) [%], both pooled over
-    all their finite values, resampling episodes (the first axis) together.
-
-    Each episode's completion is a random draw, so this interval holds the noise of the
-    completions and of the policy's actions on these scenes, which a single number hides.
-    """
-
-    def moments(a: np.ndarray) -> np.ndarray:
-        a = a.reshape(len(a), -1)
-        ok = np.isfinite(a)
-        v = np.where(ok, a, 0.0)
-        return np.stack([ok.sum(axis=1), v.sum(axis=1), (v * v).sum(axis=1)], axis=1)
-
-    e = len(x)
-    if e < 2 or e != len(ref):
-        return float("nan"), float("nan")
-    rng = np.random.default_rng([seed, 8])
-    idx = rng.integers(0, e, (resamples, e))
-    # How often each resample draws each episode, shared by both sides: (resamples, E).
-    times = np.bincount((np.arange(resamples)[:, None] * e + idx).ravel(), minlength=resamples * e)
-    times = times.reshape(resamples, e).astype(np.float64)
-
-    def std(a: np.ndarray) -> np.ndarray:
-        n, s1, s2 = (times @ moments(a)).T
-        return np.sqrt(np.maximum(s2 / n - (s1 / n) ** 2, 0.0))
-
-    pct = 100 * (std(x) / std(ref) - 1)
-    lo, hi = np.quantile(pct, [(1 - level) / 2, (1 + level) / 2])
-    return float(lo), float(hi)
-
-
-def macro_row(
-    k: int, method: str, ro: Rollouts, ref: Rollouts | None, seed: int = 0
-) -> dict[str, float]:
-    """One row of macro_alignment.csv; with ``ref`` (the ground truth on the same held-out
-    snapshots, episode for episode) the errors against it and 95% paired-bootstrap
-    intervals of the signed mean-speed error and of the spacing-std error in % (scenes,
-    completions and action noise of this evaluation; not the training seed's noise:
-    ``scripts/lf_seeds.py --speed``)."""
-    v, d, a = ro.speed_mps, ro.spacing_m, ro.accel_mps2
-    row = {
-        "K": k,
-        "method": method,
-        "mean_speed_mps": np.nanmean(v),
-        "std_speed_mps": np.nanstd(v),
-        "mean_spacing_m": np.nanmean(d),
-        "std_spacing_m": np.nanstd(d),
-        "collisions": ro.collisions,
-        "episodes": len(v),
-        "sumo_errors": ro.errors,
-    }
-    if ref is not None:
-
-        def w1(x: np.ndarray, y: np.ndarray) -> float:
-            return float(wasserstein_distance(x[np.isfinite(x)], y[np.isfinite(y)]))
-
-        with np.errstate(invalid="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # an episode that ended at once
-            diff = np.nanmean(v, axis=(1, 2)) - np.nanmean(ref.speed_mps, axis=(1, 2))
-        lo, hi = paired_bootstrap_ci(diff, seed)
-        s_lo, s_hi = paired_bootstrap_std_ratio_ci(d, ref.spacing_m, seed)
-        row.update(
-            mean_speed_err_mps=abs(row["mean_speed_mps"] - np.nanmean(ref.speed_mps)),
-            speed_err_ci_lo_mps=lo,
-            speed_err_ci_hi_mps=hi,
-            spacing_std_err_pct=100 * (row["std_spacing_m"] / np.nanstd(ref.spacing_m) - 1),
-            spacing_std_err_ci_lo_pct=s_lo,
-            spacing_std_err_ci_hi_pct=s_hi,
-            w1_speed_mps=w1(v.ravel(), ref.speed_mps.ravel()),
-            w1_accel_mps2=w1(a.ravel(), ref.accel_mps2.ravel()),
-            w1_spacing_m=w1(d.ravel(), ref.spacing_m.ravel()),
-        )
-    return row
-
-
-def samples_frame(k: int, method: str, ro: Rollouts, max_episodes: int = 100) -> pd.DataFrame:
-    """A sample of rollout states for histograms (first ``max_episodes`` episodes)."""
-    e = min(max_episodes, len(ro.speed_mps))
-    v, d = ro.speed_mps[:e].ravel(), ro.spacing_m[:e].ravel()
-    ok = np.isfinite(v)
-    return pd.DataFrame({"K": k, "method": method, "speed_mps": v[ok], "spacing_m": d[ok]})
 
 
 def micro_consistency(
@@ -291,8 +185,6 @@ def macro_alignment(
     ``idm_calibrated``). FCD of the first ``evaluation.fcd_episodes`` episodes goes to
     ``fcd_dir`` when given.
     """
-    from tqdm import tqdm
-
     h = sc.evaluation.horizon_steps
     names = [
         m
@@ -346,8 +238,8 @@ def macro_alignment(
                 finally:
                     core.close()
             ref = ro if name == "ground_truth" else ref
-            rows.append(macro_row(k, name, ro, ref, seed))
-            samples.append(samples_frame(k, name, ro))
+            rows.append(macro_row({"K": k}, name, ro, ref, seed))
+            samples.append(samples_frame({"K": k}, name, ro))
             bar.update()
     bar.close()
     return pd.DataFrame(rows), pd.concat(samples, ignore_index=True)

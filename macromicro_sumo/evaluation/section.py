@@ -16,18 +16,15 @@ front to front, for vehicles with a leader on the section.
 from __future__ import annotations
 
 import time
-import warnings
-from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
-from scipy.stats import wasserstein_distance
 
 from macromicro_sumo.data.ring import split_runs
 from macromicro_sumo.data.section import SectionTruth, section_snapshots
+from macromicro_sumo.env.rollout import ActionFn, Rollouts, rollout
 from macromicro_sumo.env.section import (
     SectionBank,
     SectionCore,
@@ -39,59 +36,19 @@ from macromicro_sumo.env.section import (
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.idm_fit import calibrate_idm
 from macromicro_sumo.evaluation.ring import idm_action, micro_consistency
+from macromicro_sumo.evaluation.statistics import macro_row, samples_frame
 from macromicro_sumo.files import prepare_out_dir, staging_dir, write_csv, write_json
 from macromicro_sumo.generator.section import generator_completion, load_section_generator
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.policy.ppo import load_policy, policy_action
+from macromicro_sumo.progress import tqdm
 from macromicro_sumo.road.section import Section, lane_leaders
 from macromicro_sumo.truth.section import k_summary, load_section_truth, scenario_inputs
 
-ActionFn = Callable[[SectionCore, np.ndarray, np.random.Generator], np.ndarray]
 METHOD_ORDER = ["ground_truth", "policy", "micro_only", "macro_only", "idm_calibrated"]
 
 
-@dataclass
-class SectionRollouts:
-    """Per episode, step (1..H) and slot; NaN where no vehicle is on the section."""
-
-    speed_mps: np.ndarray
-    spacing_m: np.ndarray  # NaN also where the vehicle has no leader on the section
-    accel_mps2: np.ndarray
-    lane: np.ndarray
-    arc_m: np.ndarray
-    collisions: int
-    errors: int
-
-
-def rollout(
-    core: SectionCore, act: ActionFn, horizon: int, seed: int, episodes: range | None = None
-) -> SectionRollouts:
-    """Run ``act`` on every episode of the core's bank (or ``episodes``)."""
-    eps = list(episodes if episodes is not None else range(len(core.bank)))
-    shape = (len(eps), horizon, core.n)
-    speed, spacing, accel, lane, arc = (np.full(shape, np.nan) for _ in range(5))
-    rng = np.random.default_rng(seed)
-    collisions = errors = 0
-    for i, ep in enumerate(eps):
-        obs = core.reset(ep)
-        for t in range(horizon):
-            v0 = core.speed.copy()
-            res = core.step(act(core, obs, rng))
-            obs = res.obs
-            on = res.active
-            speed[i, t, on] = core.speed[on]
-            accel[i, t, on] = (core.speed[on] - v0[on]) / core.dt
-            with_leader = on & (core.leader >= 0)
-            spacing[i, t, with_leader] = core.spacing[with_leader]
-            lane[i, t, on], arc[i, t, on] = core.lane[on], core.arc[on]
-            if res.collision or res.truncated:
-                collisions += res.collision
-                errors += bool(res.error)
-                break
-    return SectionRollouts(speed, spacing, accel, lane, arc, collisions, errors)
-
-
-def recorded(bank: SectionBank, section: Section, horizon: int, dt: float) -> SectionRollouts:
+def recorded(bank: SectionBank, section: Section, horizon: int, dt: float) -> Rollouts:
     """The ground truth as a rollout: every true vehicle of the scene over the horizon."""
     v = bank.true_speed_mps[:, 1 : horizon + 1]
     lane = bank.true_lane[:, 1 : horizon + 1]
@@ -115,59 +72,9 @@ def recorded(bank: SectionBank, section: Section, horizon: int, dt: float) -> Se
     v_all = np.where(bank.true_valid[:, :1], bank.true_speed_mps[:, : horizon + 1], np.nan)
     with np.errstate(invalid="ignore"):
         accel = np.diff(v_all, axis=1) / dt
-    return SectionRollouts(v, spacing, accel, lane, arc, 0, 0)
-
-
-def macro_row(
-    hidden_count: str, method: str, ro: SectionRollouts, ref: SectionRollouts | None
-) -> dict[str, Any]:
-    """One row of macro_alignment.csv (errors against ``ref``, the ground truth)."""
-    v, d, a = ro.speed_mps, ro.spacing_m, ro.accel_mps2
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        row: dict[str, Any] = {
-            "hidden_count": hidden_count,
-            "method": method,
-            "mean_speed_mps": float(np.nanmean(v)),
-            "std_speed_mps": float(np.nanstd(v)),
-            "mean_spacing_m": float(np.nanmean(d)),
-            "std_spacing_m": float(np.nanstd(d)),
-            "vehicles_per_step": float(np.isfinite(v).sum() / max(1, np.isfinite(v[:, :, 0]).size)),
-            "collisions": ro.collisions,
-            "episodes": len(v),
-            "sumo_errors": ro.errors,
-        }
-    if ref is not None:
-
-        def w1(x: np.ndarray, y: np.ndarray) -> float:
-            x, y = x[np.isfinite(x)], y[np.isfinite(y)]
-            return float(wasserstein_distance(x, y)) if x.size and y.size else float("nan")
-
-        ref_row = macro_row(hidden_count, "ref", ref, None)
-        row.update(
-            mean_speed_err_mps=abs(row["mean_speed_mps"] - ref_row["mean_speed_mps"]),
-            std_speed_ratio=row["std_speed_mps"] / ref_row["std_speed_mps"],
-            mean_spacing_ratio=row["mean_spacing_m"] / ref_row["mean_spacing_m"],
-            std_spacing_ratio=row["std_spacing_m"] / ref_row["std_spacing_m"],
-            w1_speed_mps=w1(v.ravel(), ref.speed_mps.ravel()),
-            w1_accel_mps2=w1(a.ravel(), ref.accel_mps2.ravel()),
-            w1_spacing_m=w1(d.ravel(), ref.spacing_m.ravel()),
-        )
-    return row
-
-
-def samples_frame(hidden_count: str, method: str, ro: SectionRollouts) -> pd.DataFrame:
-    v, d = ro.speed_mps.ravel(), ro.spacing_m.ravel()
-    ok = np.isfinite(v)
-    return pd.DataFrame(
-        {
-            "K": np.nan,
-            "hidden_count": hidden_count,
-            "method": method,
-            "speed_mps": v[ok],
-            "spacing_m": d[ok],
-        }
-    )
+    # The bank does not keep which true vehicles were hidden: none marked.
+    unmarked = np.zeros(bank.true_valid[:, 0].shape, dtype=bool)
+    return Rollouts(arc, v, spacing, accel, lane, unmarked, 0, 0)
 
 
 # --------------------------------------------------------------------------- micro data
@@ -232,8 +139,6 @@ def evaluate_section(
 ) -> dict[str, Any]:
     """macro_alignment.csv, micro_consistency.csv, k_estimate_summary.csv, samples, FCD and
     a manifest in ``out``; returns the manifest."""
-    from tqdm import tqdm
-
     t0 = time.perf_counter()
     if "policy" not in policies:
         raise UserError("evaluate needs the trained policy (policy.pt)")
@@ -264,8 +169,8 @@ def evaluate_section(
             complete = generator_completion(net, truth.section, sc, source, seed)
             gen_bank = build_section_bank(sc, truth, snaps, complete, horizon=h)
             ref = recorded(gen_bank, truth.section, h, sc.simulation.step_length_s)
-            rows.append(macro_row(label, "ground_truth", ref, ref))
-            samples.append(samples_frame(label, "ground_truth", ref))
+            rows.append(macro_row({"hidden_count": label}, "ground_truth", ref, ref, sc.seed))
+            samples.append(samples_frame({"K": np.nan, "hidden_count": label}, "ground_truth", ref))
             bar.update()
             methods: dict[str, ActionFn] = {n: policy_action(a) for n, a in agents.items()}
             methods["idm_calibrated"] = idm_action(lambda core: idm, length)
@@ -297,8 +202,8 @@ def evaluate_section(
                         )
                     finally:
                         core.close()
-                rows.append(macro_row(label, name, ro, ref))
-                samples.append(samples_frame(label, name, ro))
+                rows.append(macro_row({"hidden_count": label}, name, ro, ref, sc.seed))
+                samples.append(samples_frame({"K": np.nan, "hidden_count": label}, name, ro))
                 bar.update()
         bar.close()
         align = pd.DataFrame(rows)

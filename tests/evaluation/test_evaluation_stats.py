@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from macromicro_sumo.evaluation.ring import paired_bootstrap_ci, paired_bootstrap_std_ratio_ci
+from macromicro_sumo.evaluation.statistics import paired_bootstrap_ci, paired_bootstrap_std_ratio_ci
 from macromicro_sumo.report.ring import figure_winners
 
 
