@@ -12,6 +12,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "macromicro_sumo"
 RANK = {
     "errors": 0,
     "files": 1,
+    "progress": 1,
     "checkpoints": 2,
     "scenario": 3,
     "manifest": 4,

@@ -59,13 +59,13 @@ import numpy as np
 import pandas as pd
 import torch
 from torch import nn
-from tqdm import tqdm
 
 from macromicro_sumo.checkpoints import load_network, save_network
 from macromicro_sumo.data.ring import split_runs
 from macromicro_sumo.data.section import PSI_FIELDS, SectionSnapshots, section_snapshots
 from macromicro_sumo.files import prepare_out_dir, write_csv, write_json
 from macromicro_sumo.manifest import build_manifest
+from macromicro_sumo.progress import tqdm
 from macromicro_sumo.road.section import Section, lane_leaders
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.truth.section import load_section_truth

@@ -16,12 +16,12 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from tqdm import tqdm
 
 from macromicro_sumo.data import macro
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import prepare_out_dir, staging_dir, write_csv, write_json
 from macromicro_sumo.manifest import build_manifest
+from macromicro_sumo.progress import tqdm
 from macromicro_sumo.road.physics import forward_accel, ring_leaders
 from macromicro_sumo.road.ring import RingGeometry, read_ring
 from macromicro_sumo.scenario.ring import Scenario
