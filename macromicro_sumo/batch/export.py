@@ -4,8 +4,9 @@ the variant's parameters as columns, as CSV or Parquet.
 A batch folder (``batch.json``, one output folder per variant under ``variants/``) gives
 ``batch_macro``, ``batch_detectors`` and ``batch_summary``; a single run folder (the
 output of ``macromicro simulate``) gives the same tables as a batch of one variant, named
-``export_macro``, ``export_detectors`` and ``export_summary``. The schema of every column
-is in docs/batch.md.
+``export_macro``, ``export_detectors`` and ``export_summary``. Variants may be ring or
+section scenarios (each kind's ``simulate`` writes its own macro and detector columns; the
+tables hold the union). The schema of every column is in docs/batch.md.
 """
 
 from __future__ import annotations
@@ -40,6 +41,9 @@ HEADLINE_COLUMNS = [
     "det_density_vehpkm",
     "traj_flow_vehph",
     "det_flow_vehph",
+    "traj_vehicles",
+    "det_vehicles",
+    "k_mean_abs_error_veh",
 ]
 
 
@@ -62,25 +66,45 @@ def _read(folder: Path, name: str) -> pd.DataFrame | None:
         raise UserError(f"{path}: not a readable CSV ({type(exc).__name__})") from None
 
 
+def _mean(df: pd.DataFrame, column: str) -> float:
+    return float(df[column].mean()) if column in df else np.nan
+
+
 def headline(folder: Path) -> dict[str, Any]:
-    """Headline figures of one finished variant (NaN where its outputs lack them)."""
+    """Headline figures of one finished variant (NaN where its outputs lack them).
+
+    Ring and section outputs differ: a section's ``macro.csv`` has a density per lane
+    (``density_vpkm_lane``, reported as the density) and no flow (reported as density x
+    speed, per lane, as the ring's trajectories do), plus vehicles on the section; its
+    ``k_estimate.csv`` gives the hidden count's error. The ring's ``runs.csv`` alone has
+    ``min_gap_m``.
+    """
     out: dict[str, Any] = dict.fromkeys(HEADLINE_COLUMNS, np.nan)
     runs = _read(folder, "runs.csv")
     if runs is not None and not runs.empty:
         out["n_runs"] = len(runs)
-        out["collisions"] = int(runs["collisions"].sum())
-        out["teleports"] = int(runs["teleports"].sum())
-        out["min_gap_m"] = float(runs["min_gap_m"].min())
+        for col in ("collisions", "teleports"):
+            if col in runs:
+                out[col] = int(runs[col].sum())
+        if "min_gap_m" in runs:
+            out["min_gap_m"] = float(runs["min_gap_m"].min())
+    k = _read(folder, "k_estimate.csv")
+    if k is not None and not k.empty and "k_error" in k:
+        out["k_mean_abs_error_veh"] = float(k["k_error"].abs().mean())
     m = _read(folder, "macro.csv")
     if m is None or m.empty:
         return out
+    density = "density_vehpkm" if "density_vehpkm" in m else "density_vpkm_lane"
+    if "flow_vehph" not in m and density in m:
+        m = m.assign(flow_vehph=m[density] * m["mean_speed_mps"] * 3.6)
     tr, de = m[m["source"] == "trajectories"], m[m["source"] == "detectors"]
     out["n_intervals"] = len(tr)
     for prefix, part in (("traj", tr), ("det", de)):
-        out[f"{prefix}_mean_speed_mps"] = part["mean_speed_mps"].mean()
-        out[f"{prefix}_mean_spacing_m"] = part["mean_spacing_m"].mean()
-        out[f"{prefix}_density_vehpkm"] = part["density_vehpkm"].mean()
-        out[f"{prefix}_flow_vehph"] = part["flow_vehph"].mean()
+        out[f"{prefix}_mean_speed_mps"] = _mean(part, "mean_speed_mps")
+        out[f"{prefix}_mean_spacing_m"] = _mean(part, "mean_spacing_m")
+        out[f"{prefix}_density_vehpkm"] = _mean(part, density)
+        out[f"{prefix}_flow_vehph"] = _mean(part, "flow_vehph")
+        out[f"{prefix}_vehicles"] = _mean(part, "vehicles")
     both = tr.merge(de, on=["run", "begin_s", "end_s"], suffixes=("_t", "_d"))
     if not both.empty:
         out["det_speed_abs_error_mps"] = (
@@ -89,14 +113,27 @@ def headline(folder: Path) -> dict[str, Any]:
     return out
 
 
+def _is_pair(value: Any) -> bool:
+    """A [low, high] pair of numbers (a ring bound, ``bounds.accel_mps2``)."""
+    return (
+        isinstance(value, list | tuple)
+        and len(value) == 2
+        and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+    )
+
+
 def param_columns(params: Sequence[dict[str, Any]]) -> dict[str, list[Any]]:
-    """Sweep parameters as columns: one per dotted key, pairs split into ``.lo``/``.hi``."""
+    """Sweep parameters as columns: one per dotted key, pairs of numbers split into
+    ``.lo``/``.hi``, other lists (a section's ``section.edges``, ``network.route_files``)
+    written as their items joined by spaces, as SUMO writes lists."""
     flat: list[dict[str, Any]] = []
     for p in params:
         row: dict[str, Any] = {}
         for key, value in p.items():
-            if isinstance(value, list | tuple) and len(value) == 2:
+            if _is_pair(value):
                 row[f"{key}.lo"], row[f"{key}.hi"] = value
+            elif isinstance(value, list | tuple):
+                row[key] = " ".join(str(v) for v in value)
             else:
                 row[key] = value
         flat.append(row)

@@ -70,9 +70,15 @@ def ring_node_xy(radius_m: float, n_edges: int) -> list[tuple[float, float]]:
 
 
 def build_ring(
-    radius_m: float, n_edges: int, out_dir: Path, name: str, speed_mps: float = 13.89
+    radius_m: float,
+    n_edges: int,
+    out_dir: Path,
+    name: str,
+    speed_mps: float = 13.89,
+    lanes: int = 1,
 ) -> tuple[Path, Path]:
-    """Write ``<name>.net.xml`` (exact ring) and ``<name>.add.xml`` (routes + rerouters)."""
+    """Write ``<name>.net.xml`` (exact ring, ``lanes`` lanes; the centre line is the
+    circle) and ``<name>.add.xml`` (routes + rerouters)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     edge_len = 2 * math.pi * radius_m / n_edges
     xy = ring_node_xy(radius_m, n_edges)
@@ -88,7 +94,7 @@ def build_ring(
             a = 2 * math.pi * (k + j / 16) / n_edges
             shape.append(f"{radius_m * math.cos(a):.6f},{radius_m * math.sin(a):.6f}")
         edges.append(
-            f'    <edge id="e{k}" from="n{k}" to="n{k2}" numLanes="1" speed="{speed_mps}" '
+            f'    <edge id="e{k}" from="n{k}" to="n{k2}" numLanes="{lanes}" speed="{speed_mps}" '
             f'length="{edge_len:.6f}" spreadType="center" shape="{" ".join(shape)}"/>'
         )
     net_path = out_dir / f"{name}.net.xml"
