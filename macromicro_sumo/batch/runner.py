@@ -9,6 +9,10 @@ the cartesian product of named variants::
     speed_limits.range_mps = [[10.0, 12.0], [12.0, 14.0]]   # dotted key: table.key
     n_runs = [10, 40]                                       # short key: unique across tables
 
+Sweep keys are those of the file's scenario kind: the ring's tables, or a section's
+(``[network] kind = "sumo"``: ``detectors.auto_spacing_m``, ``instrumented.penetration``, ...).
+Each stage has a function per kind (``STAGES`` for the ring, ``SECTION_STAGES``).
+
 Layout of a batch folder ``DIR``::
 
     DIR/batch.json            the expanded spec (variants, their parameters, stages)
@@ -62,13 +66,23 @@ from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import OUTPUT_MARK, mark_output, prepare_out_dir, write_json, write_text
 from macromicro_sumo.scenario.load import load_scenario, read_scenario_toml
 from macromicro_sumo.scenario.ring import Scenario
+from macromicro_sumo.scenario.section import SectionScenario
+from macromicro_sumo.truth.section import scenario_inputs
 
-# A stage is a function (scenario, out folder, command=..., progress=...) -> out folder.
-# ``run`` (the whole pipeline) plugs in by name once its module exists.
+AnyScenario = Scenario | SectionScenario
+
+# A stage is a function (scenario, out folder, command=..., progress=...) -> out folder,
+# named as "module:function" and imported only when a variant runs it; one table per
+# scenario kind, with the same stage names.
 STAGES: dict[str, str] = {
     "simulate": "macromicro_sumo.truth.ring:simulate",
     "run": "macromicro_sumo.pipeline.ring:run",
 }
+SECTION_STAGES: dict[str, str] = {
+    "simulate": "macromicro_sumo.truth.section:simulate_section",
+    "run": "macromicro_sumo.pipeline.section:run_section",
+}
+KINDS = ("ring", "section")
 BACKENDS = ("local", "ray")
 EXPORT_FORMATS = export.FORMATS
 RAY_INSTALL = "pip install 'macromicro-sumo[ray]'"
@@ -77,6 +91,16 @@ LOG_LIMIT = 64_000  # characters of a variant's stderr kept
 
 
 # --------------------------------------------------------------------------- sweeps
+
+
+def scenario_kind(sc: Any) -> str:
+    """``"section"`` for a scenario on the user's SUMO network, else ``"ring"``."""
+    return "section" if isinstance(sc, SectionScenario) else "ring"
+
+
+def stage_table(kind: str) -> dict[str, str]:
+    """The stage functions of a scenario kind (``"ring"`` or ``"section"``)."""
+    return SECTION_STAGES if kind == "section" else STAGES
 
 
 def _leaf_keys(cls: type = Scenario, prefix: str = "") -> dict[str, Any]:
@@ -89,13 +113,32 @@ def _leaf_keys(cls: type = Scenario, prefix: str = "") -> dict[str, Any]:
         key = f"{prefix}{f.name}"
         if dataclasses.is_dataclass(hints[f.name]):
             out.update(_leaf_keys(hints[f.name], key + "."))
-        else:
+        elif key != "network.kind":  # the kind picks the tables: one file per kind
             out[key] = hints[f.name]
     return out
 
 
-LEAF_KEYS = _leaf_keys()
-TABLES = {k.split(".")[0] for k in LEAF_KEYS if "." in k}
+# Sweepable keys per scenario kind, with an example for error messages.
+LEAF_KEYS: dict[str, dict[str, Any]] = {
+    "ring": _leaf_keys(Scenario),
+    "section": _leaf_keys(SectionScenario),
+}
+EXAMPLE_KEY = {"ring": "fleet.n_vehicles", "section": "detectors.auto_spacing_m"}
+
+
+def _tables(kind: str) -> list[str]:
+    return list(dict.fromkeys(k.split(".")[0] for k in LEAF_KEYS[kind] if "." in k))
+
+
+def _top_keys(kind: str) -> list[str]:
+    return [k for k in LEAF_KEYS[kind] if "." not in k]
+
+
+def sweep_kind(table: dict[str, Any]) -> str | None:
+    """The scenario kind of a raw scenario table (None when its network.kind is not valid)."""
+    network = table.get("network")
+    kind = network.get("kind", "ring") if isinstance(network, dict) else "ring"
+    return {"ring": "ring", "sumo": "section"}.get(kind) if isinstance(kind, str) else None
 
 
 def _flatten(table: dict[str, Any], prefix: str = "") -> Iterator[tuple[str, Any]]:
@@ -107,48 +150,60 @@ def _flatten(table: dict[str, Any], prefix: str = "") -> Iterator[tuple[str, Any
             yield f"{prefix}{key}", value
 
 
-def resolve_key(key: str, file: str) -> str:
-    """The dotted scenario key a sweep key names (short keys must be unique across tables)."""
-    if key in LEAF_KEYS:
+def resolve_key(key: str, file: str, kind: str = "ring") -> str:
+    """The dotted key of a ``kind`` scenario a sweep key names (short keys must be unique
+    across tables)."""
+    keys = LEAF_KEYS[kind]
+    if key in keys:
         return key
-    if key in TABLES:
-        example = next(k for k in LEAF_KEYS if k.startswith(key + "."))
+    if key == "network.kind":
+        raise UserError(
+            f"{file}: sweep key 'network.kind' cannot be swept; write one scenario file per kind"
+        )
+    if key in _tables(kind):
+        example = next(k for k in keys if k.startswith(key + "."))
         raise UserError(
             f"{file}: sweep key {key!r} is a table; sweep one of its keys, e.g. {example}"
         )
-    matches = [k for k in LEAF_KEYS if k.rsplit(".", 1)[-1] == key]
+    matches = [k for k in keys if k.rsplit(".", 1)[-1] == key]
     if len(matches) == 1:
         return matches[0]
     if len(matches) > 1:
         raise UserError(
             f"{file}: sweep key {key!r} is ambiguous; give one of {', '.join(sorted(matches))}"
         )
-    close = difflib.get_close_matches(key, list(LEAF_KEYS), n=3)
+    close = difflib.get_close_matches(key, list(keys), n=3)
     hint = f"; did you mean {', '.join(close)}?" if close else ""
+    what = "a section scenario" if kind == "section" else "a ring scenario"
+    top, tables = ", ".join(_top_keys(kind)), ", ".join(_tables(kind))
     raise UserError(
-        f"{file}: unknown sweep key {key!r}; accepted: a dotted scenario key such as "
-        f"fleet.n_vehicles, or a key name unique across tables{hint}"
+        f"{file}: unknown sweep key {key!r} for {what}; accepted: {top} or a dotted key "
+        f"table.key of the tables {tables} (e.g. {EXAMPLE_KEY[kind]}), or a key name unique "
+        f"across tables{hint}"
     )
 
 
-def parse_sweep(sweep: Any, file: str) -> list[tuple[str, str, list[Any]]]:
-    """Validate a ``[sweep]`` table: (key as written, dotted key, values) in file order."""
+def parse_sweep(sweep: Any, file: str, kind: str = "ring") -> list[tuple[str, str, list[Any]]]:
+    """Validate a ``[sweep]`` table of a ``kind`` scenario (``"ring"`` or ``"section"``):
+    (key as written, dotted key, values) in file order."""
     if not isinstance(sweep, dict) or not sweep:
         raise UserError(f"{file}: [sweep] must be a table of key = [value, ...] lines")
     out, seen = [], {}
     for key, values in _flatten(sweep):
-        dotted = resolve_key(key, file)
+        dotted = resolve_key(key, file, kind)
         if dotted in seen:
             raise UserError(f"{file}: sweep keys {seen[dotted]!r} and {key!r} both set {dotted}")
         seen[dotted] = key
         if not isinstance(values, list) or not values:
             raise UserError(f"{file}: sweep.{key} = {values!r} must be a non-empty list of values")
-        if typing.get_origin(LEAF_KEYS[dotted]) is tuple:
+        origin = typing.get_origin(LEAF_KEYS[kind][dotted])
+        if origin in (tuple, list):
+            what = "a pair [low, high]" if origin is tuple else "a list"
             for v in values:
                 if not isinstance(v, list):
                     raise UserError(
-                        f"{file}: sweep.{key} = {values!r}: each value must be a pair "
-                        f"[low, high], e.g. [{values!r}] for one variant"
+                        f"{file}: sweep.{key} = {values!r}: each value must be {what}, "
+                        f"e.g. [{values!r}] for one variant"
                     )
         out.append((key, dotted, values))
     return out
@@ -181,7 +236,7 @@ class Variant:
     name: str
     file: str
     params: dict[str, Any]  # dotted scenario key -> value
-    scenario: Scenario | None
+    scenario: AnyScenario | None
     error: str = ""
 
     @property
@@ -197,12 +252,13 @@ def expand_file(path: Path, prefix: str) -> list[Variant]:
     """
     file = str(path)
     try:
-        _, sweep = read_scenario_toml(path)
+        table, sweep = read_scenario_toml(path)
     except UserError as exc:
         return [Variant(prefix or path.stem, file, {}, None, str(exc))]
-    if sweep is None:
+    kind = sweep_kind(table)
+    if sweep is None or kind is None:  # an unaccepted network.kind fails in load_scenario
         return [_load(prefix or path.stem, path, {})]
-    keys = parse_sweep(sweep, file)
+    keys = parse_sweep(sweep, file, kind)
     out = []
     for combo in itertools.product(*(values for _, _, values in keys)):
         parts = [(key, v) for (key, _, _), v in zip(keys, combo, strict=True)]
@@ -272,23 +328,27 @@ def _unavailable(name: str, module: str) -> str:
     )
 
 
-def stage_problem(name: str) -> str:
-    """Why stage ``name`` cannot run here ('' when it can), checked without importing it."""
+def stage_problem(name: str, kind: str = "ring") -> str:
+    """Why stage ``name`` cannot run here for a ``kind`` scenario ('' when it can), checked
+    without importing it."""
     import importlib.util
 
-    if name not in STAGES:
-        return f"unknown stage {name!r}; accepted: {', '.join(STAGES)}"
-    module = STAGES[name].split(":")[0]
+    table = stage_table(kind)
+    if name not in table:
+        return f"unknown stage {name!r}; accepted: {', '.join(table)}"
+    module = table[name].split(":")[0]
     return "" if importlib.util.find_spec(module) else _unavailable(name, module)
 
 
-def resolve_stage(name: str) -> Callable[..., Any]:
-    """The stage function registered under ``name`` (imported only when a variant needs it)."""
+def resolve_stage(name: str, kind: str = "ring") -> Callable[..., Any]:
+    """The stage function registered under ``name`` for a ``kind`` scenario (imported only
+    when a variant needs it)."""
     import importlib
 
-    if name not in STAGES:
-        raise UserError(f"unknown stage {name!r}; accepted: {', '.join(STAGES)}")
-    module, func = STAGES[name].split(":")
+    table = stage_table(kind)
+    if name not in table:
+        raise UserError(f"unknown stage {name!r}; accepted: {', '.join(table)}")
+    module, func = table[name].split(":")
     try:
         mod = importlib.import_module(module)
     except ModuleNotFoundError as exc:
@@ -305,7 +365,7 @@ class Task:
     """What a worker needs to run one variant into a fresh folder ``out``."""
 
     name: str
-    scenario: Scenario
+    scenario: AnyScenario
     stages: tuple[str, ...]
     out: str
     command: str
@@ -354,8 +414,10 @@ def run_task(task: Task) -> Outcome:
         with _stderr_to(log_path):
             try:
                 out.mkdir(parents=True)
+                kind = scenario_kind(task.scenario)
                 for stage in task.stages:
-                    resolve_stage(stage)(task.scenario, out, command=task.command, progress=False)
+                    run = resolve_stage(stage, kind)
+                    run(task.scenario, out, command=task.command, progress=False)
             except Exception as exc:
                 error = _one_line(exc) or type(exc).__name__
         log = log_path.read_text(errors="replace")[-LOG_LIMIT:]
@@ -492,24 +554,75 @@ def _unpack(blob: bytes, folder: Path) -> None:
         tar.extractall(folder, filter="data")
 
 
-def _localise(sc: Scenario, inputs: dict[str, bytes], tmp: Path) -> Scenario:
-    """On a node without the scenario's network files, use the copies the driver sent."""
-    changes = {}
-    for key in ("net_file", "routes_file"):
-        path = sc.resolve(getattr(sc.network, key))
-        if not path.is_file():
-            local = tmp / "inputs" / key / path.name
-            local.parent.mkdir(parents=True)
-            local.write_bytes(inputs[str(path)])
-            changes[key] = str(local)
-    if not changes:
+def _input_key(path: str | Path) -> str:
+    """How a shipped input file is named: its absolute path, ``..`` and ``.`` folded."""
+    return os.path.normpath(os.path.abspath(path))
+
+
+def _network_paths(sc: AnyScenario) -> dict[str, str | list[str]]:
+    """The scenario's own file keys under ``[network]`` (paths as written, "" when unset)."""
+    n = sc.network
+    if isinstance(sc, SectionScenario):
+        return {
+            "sumocfg": n.sumocfg,
+            "net_file": n.net_file,
+            "route_files": list(n.route_files),
+            "additional_files": list(n.additional_files),
+        }
+    return {"net_file": n.net_file, "routes_file": n.routes_file}
+
+
+def input_files(sc: AnyScenario) -> list[Path]:
+    """Every file besides the scenario that a variant reads: the ring's net and routes, or a
+    section's SUMO files (the .sumocfg and every file it names, and the explicit ones)."""
+    if isinstance(sc, SectionScenario):
+        i = scenario_inputs(sc)
+        files = [*([i.sumocfg] if i.sumocfg else []), i.net_file, *i.route_files]
+        files += i.additional_files
+    else:
+        files = [sc.resolve(sc.network.net_file), sc.resolve(sc.network.routes_file)]
+    return list(dict.fromkeys(Path(f) for f in files))
+
+
+def shipment(sc: AnyScenario) -> dict[str, bytes]:
+    """What a node without the scenario's input files needs: their bytes by absolute path."""
+    return {_input_key(p): p.read_bytes() for p in input_files(sc)}
+
+
+def _localise(sc: AnyScenario, inputs: dict[str, bytes], tmp: Path) -> AnyScenario:
+    """On a node without the scenario's input files, use the copies the driver sent.
+
+    The copies keep their layout relative to each other under ``tmp/inputs`` (a .sumocfg
+    names its files relative to itself), and the scenario's ``[network]`` paths point at them.
+    """
+    if not inputs or all(os.path.isfile(k) for k in inputs):
         return sc
+    root = os.path.commonpath([os.path.dirname(k) for k in inputs])
+    base = tmp / "inputs"
+
+    def local(path: str) -> str:
+        key = _input_key(sc.resolve(path))
+        if key not in inputs:  # not shipped: leave it (the stage names what is missing)
+            return path
+        return str(base / os.path.relpath(key, root))
+
+    for key, data in inputs.items():
+        copy = base / os.path.relpath(key, root)
+        copy.parent.mkdir(parents=True, exist_ok=True)
+        copy.write_bytes(data)
+    changes: dict[str, Any] = {}
+    for field, value in _network_paths(sc).items():
+        if isinstance(value, list):
+            changes[field] = [local(v) for v in value]
+        elif value:
+            changes[field] = local(value)
     return dataclasses.replace(sc, network=dataclasses.replace(sc.network, **changes))
 
 
 def run_shipped(task: Task, inputs: dict[str, bytes]) -> tuple[Outcome, bytes]:
-    """Run a variant on a node that shares no disk with the driver: network files come in
-    ``inputs`` (path -> bytes), the variant's folder goes back as an uncompressed tar."""
+    """Run a variant on a node that shares no disk with the driver: input files come in
+    ``inputs`` (``shipment``: path -> bytes), the variant's folder goes back as an
+    uncompressed tar."""
     with tempfile.TemporaryDirectory(prefix="macromicro-") as tmp:
         sc = _localise(task.scenario, inputs, Path(tmp))
         local = dataclasses.replace(task, scenario=sc, out=str(Path(tmp) / "out"))
@@ -537,8 +650,10 @@ def require_ray() -> Any:
 class RayBackend:
     """Variants as Ray tasks (one CPU each): a local Ray instance with ``workers`` CPUs,
     or the cluster at ``address``. Tasks on the driver's node write into the batch folder;
-    elsewhere network files travel with the task and the variant's folder comes back, so
-    other nodes need macromicro-sumo installed but no shared disk."""
+    elsewhere the scenario's input files (``shipment``: the ring's net and routes, a
+    section's SUMO files) travel with the task and the variant's folder comes back, so
+    other nodes need macromicro-sumo installed but no shared disk. Each distinct set of
+    input files is put into Ray's object store once, however many variants share it."""
 
     def __init__(self, workers: int, address: str | None) -> None:
         self.ray = require_ray()
@@ -559,14 +674,18 @@ class RayBackend:
                 raise UserError(f"{where}: Ray did not start ({_one_line(exc)[:300]})") from None
         remote = ray.remote(num_cpus=1, max_retries=0)(ray_task)
         node = ray.get_runtime_context().get_node_id()
-        refs = {}
+        refs: dict[Any, Task] = {}
+        shipped: dict[tuple[str, ...], Any] = {}  # input paths -> their bytes in the store
         try:
             for task in tasks:
-                inputs = {}
-                for key in ("net_file", "routes_file"):
-                    path = task.scenario.resolve(getattr(task.scenario.network, key))
-                    inputs[str(path)] = path.read_bytes()
-                refs[remote.remote(task, inputs, node)] = task
+                try:
+                    files = tuple(_input_key(p) for p in input_files(task.scenario))
+                    if files not in shipped:
+                        shipped[files] = ray.put(shipment(task.scenario))
+                except (UserError, OSError) as exc:  # an input vanished since loading
+                    done(task, _failed(task, _one_line(exc)))
+                    continue
+                refs[remote.remote(task, shipped[files], node)] = task
             while refs:
                 ready, _ = ray.wait(list(refs), num_returns=1)
                 for ref in ready:
@@ -659,7 +778,7 @@ def run_batch(
     if address and backend != "ray":
         raise UserError("--address is for --backend ray")
     for stage in stages:
-        if stage not in STAGES:
+        if stage not in STAGES or stage not in SECTION_STAGES:
             raise UserError(f"unknown stage {stage!r}; accepted: {', '.join(STAGES)}")
     engine = LocalBackend(workers) if backend == "local" else RayBackend(workers, address)
     variants = expand(inputs)
@@ -685,10 +804,14 @@ def run_batch(
 
         statuses: dict[str, dict[str, Any]] = {}
         tasks, by_name = [], {v.name: v for v in variants}
-        missing = "; ".join(filter(None, (stage_problem(s) for s in stages)))
+        missing = {
+            kind: "; ".join(filter(None, (stage_problem(s, kind) for s in stages)))
+            for kind in KINDS
+        }
         for v in variants:
-            if v.error or (missing and not is_complete(vdir / v.name, v, stages)):
-                statuses[v.name] = {"status": "failed", "error": v.error or missing}
+            cannot = missing[scenario_kind(v.scenario)]
+            if v.error or (cannot and not is_complete(vdir / v.name, v, stages)):
+                statuses[v.name] = {"status": "failed", "error": v.error or cannot}
             elif is_complete(vdir / v.name, v, stages):
                 info = json.loads((vdir / v.name / export.VARIANT_FILE).read_text())
                 statuses[v.name] = {"status": "complete", "reused": True, "wall_s": info["wall_s"]}

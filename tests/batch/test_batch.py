@@ -1,20 +1,24 @@
 """``macromicro batch`` against real SUMO: sweeps, failed variants, a killed worker, a killed
-batch and its re-run, Ctrl-C, and the same bytes from every backend and worker count."""
+batch and its re-run, Ctrl-C, and the same bytes from every backend and worker count; for
+ring scenarios and for sections of a user's SUMO network."""
 
 from __future__ import annotations
 
 import os
+import re
+import shutil
 import signal
 import subprocess
 import sys
 import threading
 import time
+import tomllib
 from pathlib import Path
 from typing import Any
 
 import pandas as pd
 import pytest
-from conftest import ROOT, dump_toml, scenario_table
+from conftest import NETS, ROOT, dump_toml, scenario_table
 
 from macromicro_sumo.batch import runner as batch
 from macromicro_sumo.batch.runner import expand, run_batch
@@ -395,7 +399,8 @@ def test_a_node_without_shared_disk_gets_inputs_and_returns_the_same_bytes(tmp_p
     (v,) = expand([path])
     local = tmp_path / "local"
     assert run_batch([path], local, workers=1, progress=False).counts["complete"] == 1
-    inputs = {str(p.resolve()): p.read_bytes() for p in nets.iterdir()}
+    inputs = batch.shipment(v.scenario)
+    assert sorted(Path(k).name for k in inputs) == sorted(p.name for p in nets.iterdir())
     moved = tmp_path / "elsewhere"
     nets.rename(moved)  # this "node" does not have the network files
     task = batch.Task(v.name, v.scenario, ("simulate",), str(tmp_path / "unused"), "test")
@@ -406,3 +411,285 @@ def test_a_node_without_shared_disk_gets_inputs_and_returns_the_same_bytes(tmp_p
     there = {p.name: p.read_bytes() for p in (local / "variants" / v.name).glob("*.csv")}
     assert here == there and len(here) == 7
     assert (tmp_path / "back" / "sumo" / "run_000" / "e1.xml").is_file()
+
+
+# --------------------------------------------------------------------------- sections
+
+CORRIDOR = ROOT / "scenarios" / "netgen_corridor.toml"
+# One 60 s run after a 60 s warm-up, two 30 s intervals: about 0.3 s of SUMO per variant.
+SECTION_TINY = {
+    "simulation.n_runs": 1,
+    "simulation.warmup_s": 60.0,
+    "simulation.duration_s": 60.0,
+    "detectors.interval_s": 30.0,
+    "instrumented.penetration": 0.3,
+}
+SECTION_FILES = ("macro.csv", "detectors.csv", "trajectories.csv", "k_estimate.csv", "runs.csv")
+
+
+def section_table(overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The netgen corridor example (its sumocfg by absolute path), ``overrides`` applied."""
+    table = tomllib.loads(CORRIDOR.read_text())
+    table["network"]["sumocfg"] = str((CORRIDOR.parent / table["network"]["sumocfg"]).resolve())
+    for dotted, value in {**SECTION_TINY, **(overrides or {})}.items():
+        *parents, leaf = dotted.split(".")
+        node = table
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return table
+
+
+def write_section_sweep(
+    path: Path, sweep: str | None, overrides: dict[str, Any] | None = None
+) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    text = dump_toml(section_table(overrides))
+    path.write_text(text + ("\n[sweep]\n" + sweep.strip() + "\n" if sweep else ""))
+    return path
+
+
+def documented(heading: str) -> list[str]:
+    """Column names listed in docs/batch.md under ``heading``."""
+    text = (ROOT / "docs" / "batch.md").read_text()
+    section = text.split(heading, 1)[1].split("\n### ", 1)[0]
+    return re.findall(r"^\| `([^`]+)` \|", section, flags=re.M)
+
+
+@pytest.fixture(scope="module")
+def section_batch(tmp_path_factory) -> tuple[Path, Path]:
+    """A section scenario swept over two detector spacings, run with two local workers."""
+    folder = tmp_path_factory.mktemp("section")
+    path = write_section_sweep(folder / "corridor.toml", "auto_spacing_m = [200.0, 400.0]")
+    out = folder / "out"
+    assert main(["batch", str(path), "--out", str(out), "--workers", "2", "--quiet"]) == 0
+    return path, out
+
+
+def test_section_sweep_keys_are_the_section_tables(tmp_path):
+    path = write_section_sweep(
+        tmp_path / "s.toml",
+        """
+        simulation.n_runs = [1, 2]
+        "generator.epochs" = [3]
+        instrumented.penetration = [0.2, 0.5]
+        auto_spacing_m = [300.0]
+        section.edges = [["e0", "e1"], ["e2", "e3", "e4"]]
+        """,
+    )
+    variants = expand([path])
+    assert len(variants) == 8 and all(not v.error for v in variants), variants[0].error
+    assert variants[0].name == (
+        "simulation.n_runs=1__generator.epochs=3__instrumented.penetration=0.2__"
+        "auto_spacing_m=300__section.edges=e0_e1"
+    )
+    for v in variants:
+        sc = v.scenario
+        assert type(sc).__name__ == "SectionScenario"
+        assert sc.simulation.n_runs == v.params["simulation.n_runs"]
+        assert sc.generator.epochs == 3
+        assert sc.instrumented.penetration == v.params["instrumented.penetration"]
+        assert sc.detectors.auto_spacing_m == v.params["detectors.auto_spacing_m"]  # short key
+        assert list(sc.section.edges) == v.params["section.edges"]
+    # An invalid value fails its own variant, as on the ring.
+    path = write_section_sweep(tmp_path / "t.toml", "instrumented.penetration = [0.5, 1.5]")
+    bad = {v.name: v.error for v in expand([path])}
+    assert not bad["instrumented.penetration=0.5"]
+    assert "instrumented.penetration" in bad["instrumented.penetration=1.5"]
+
+
+@pytest.mark.parametrize(
+    ("sweep", "fragments"),
+    [
+        (
+            "colour = [1, 2]",
+            [
+                "unknown sweep key 'colour' for a section scenario",
+                "accepted:",
+                "seed",
+                "simulation, detectors",
+                "detectors.auto_spacing_m",
+            ],
+        ),
+        ("fleet.n_vehicles = [5]", ["unknown sweep key 'fleet.n_vehicles'", "instrumented"]),
+        ("auto_spacing = [5.0]", ["unknown sweep key", "detectors.auto_spacing_m"]),
+        ("epochs = [1]", ["ambiguous", "generator.epochs", "policy.epochs"]),
+        ("detectors = [1]", ["'detectors' is a table", "detectors.interval_s"]),
+        ('network.kind = ["ring"]', ["'network.kind' cannot be swept"]),
+        ('section.edges = ["e0", "e1"]', ["sweep.section.edges", "must be a list"]),
+    ],
+)
+def test_bad_section_sweep_is_one_line_error_naming_accepted_keys(
+    tmp_path, capsys, sweep, fragments
+):
+    path = write_section_sweep(tmp_path / "bad.toml", sweep)
+    code = main(["batch", str(path), "--out", str(tmp_path / "out"), "--quiet"])
+    assert_one_line_error(capsys, code, str(path), *fragments)
+    assert not (tmp_path / "out" / "variants").exists()
+
+
+def test_section_batch_runs_every_variant(section_batch):
+    path, out = section_batch
+    s = summary(out)
+    assert list(s.index) == ["auto_spacing_m=200", "auto_spacing_m=400"]
+    assert s["detectors.auto_spacing_m"].astype(float).tolist() == [200.0, 400.0]
+    assert (s["status"] == "complete").all() and (s["scenario"] == "netgen_corridor").all()
+    assert (s["n_runs"].astype(int) == 1).all() and (s["n_intervals"].astype(int) == 2).all()
+    assert (s["collisions"].astype(int) == 0).all() and (s["min_gap_m"] == "").all()
+    for col in ("traj_mean_speed_mps", "det_mean_speed_mps"):
+        assert s[col].astype(float).between(5.0, 40.0).all(), s[col]
+    for col in ("traj_density_vehpkm", "det_density_vehpkm", "traj_vehicles", "det_vehicles"):
+        assert (s[col].astype(float) > 0).all(), s[col]
+    assert (s["k_mean_abs_error_veh"].astype(float) >= 0).all()
+    counts = {}
+    for name in s.index:
+        folder = out / "variants" / name
+        for f in (*SECTION_FILES, "manifest.json", "section.json", "variant.json"):
+            assert (folder / f).is_file(), folder / f
+        assert (folder / "sumo" / "run_000" / "detectors.add.xml").is_file()
+        det = pd.read_csv(folder / "detectors.csv")
+        assert set(det["source"]) == {"auto"}
+        counts[name] = det["detector_id"].nunique()
+    # Half the spacing, about twice the loops: the swept value reached the simulation.
+    assert counts["auto_spacing_m=200"] > 1.5 * counts["auto_spacing_m=400"]
+    macro = pd.read_csv(out / "batch_macro.csv")
+    assert not macro.duplicated(["variant", "run", "source", "begin_s"]).any()
+    assert len(macro) == 2 * 1 * 2 * 2  # variants x runs x sources x intervals
+    v = "auto_spacing_m=400"
+    own = pd.read_csv(out / "variants" / v / "macro.csv")
+    mine = macro[macro["variant"] == v].drop(columns=macro.columns[:3]).reset_index(drop=True)
+    pd.testing.assert_frame_equal(mine, own)
+    det = pd.read_csv(out / "batch_detectors.csv")
+    assert det.groupby("variant")["detector_id"].nunique().to_dict() == counts
+    # The same command again reuses both variants.
+    res = run_batch([path], out, workers=2, progress=False)
+    assert res.counts == {"complete": 2, "reused": 2}
+
+
+def test_section_batch_exports_and_documents_its_columns(section_batch):
+    _, out = section_batch
+    before = {t: (out / f"batch_{t}.csv").read_bytes() for t in ("macro", "detectors", "summary")}
+    (out / "batch_macro.csv").unlink()
+    assert main(["export", str(out), "--format", "csv"]) == 0
+    after = {t: (out / f"batch_{t}.csv").read_bytes() for t in ("macro", "detectors", "summary")}
+    assert after == before
+    params = {"detectors.auto_spacing_m"}
+    for table in ("macro", "detectors"):
+        written = list(pd.read_csv(out / f"batch_{table}.csv", nrows=0).columns)
+        doc = documented(f"### Section scenarios: `batch_{table}`")
+        only_e2 = {"sampled_seconds_s"}  # written where the section has E2 detectors
+        expect = [c for c in doc if c not in only_e2 or c in written]
+        assert doc and [c for c in written if c not in params] == expect
+    written = list(pd.read_csv(out / "batch_summary.csv", nrows=0).columns)
+    assert [c for c in written if c not in params] == documented("### `batch_summary`")
+
+
+def test_ring_and_section_files_in_one_batch(tmp_path):
+    """Each variant runs its own kind's stage; the tables hold both schemas."""
+    write_section_sweep(tmp_path / "in" / "corridor.toml", "seed = [3]")
+    write_sweep(tmp_path / "in" / "ring.toml", "seed = [3]")
+    out = tmp_path / "out"
+    res = run_batch([str(tmp_path / "in" / "*.toml")], out, workers=2, progress=False)
+    assert res.counts == {"complete": 2, "reused": 0}
+    assert (out / "variants" / "corridor__seed=3" / "k_estimate.csv").is_file()
+    assert (out / "variants" / "ring__seed=3" / "vehicles.csv").is_file()
+    s = summary(out)
+    assert s.loc["ring__seed=3", "min_gap_m"] != "" and s.loc["corridor__seed=3", "min_gap_m"] == ""
+    macro = pd.read_csv(out / "batch_macro.csv")
+    ring, corridor = (
+        macro[macro["variant"] == "ring__seed=3"],
+        macro["variant"] == "corridor__seed=3",
+    )
+    assert ring["density_vehpkm"].notna().all() and ring["density_vpkm_lane"].isna().all()
+    assert macro.loc[corridor, "density_vpkm_lane"].notna().all()
+
+
+def test_section_stage_is_chosen_by_scenario_kind(tmp_path, monkeypatch):
+    monkeypatch.setitem(batch.SECTION_STAGES, "run", "macromicro_sumo.no_such_pipeline:run")
+    path = write_section_sweep(tmp_path / "s.toml", "seed = [1]")
+    (v,) = expand([path])
+    assert batch.scenario_kind(v.scenario) == "section"
+    assert batch.resolve_stage("simulate", "section").__name__ == "simulate_section"
+    assert batch.resolve_stage("simulate").__name__ == "simulate"  # the ring's
+    res = run_batch([path], tmp_path / "out", stages=("run",), progress=False)
+    assert res.counts == {"failed": 1, "reused": 0}
+    assert "macromicro_sumo.no_such_pipeline" in summary(tmp_path / "out").loc["seed=1", "error"]
+
+
+def _moved_section(tmp_path: Path) -> tuple[Path, Path]:
+    """A section scenario whose sumocfg and additional file live in two other folders."""
+    shutil.copytree(NETS / "netgen_corridor", tmp_path / "nets")
+    (tmp_path / "extra").mkdir()
+    (tmp_path / "extra" / "loops.add.xml").write_text(
+        '<additional>\n    <inductionLoop id="u1" lane="e1_0" pos="200" period="30" file="x.xml"/>'
+        '\n    <inductionLoop id="u3" lane="e3_0" pos="150" period="30" file="x.xml"/>'
+        "\n</additional>\n"
+    )
+    path = write_section_sweep(
+        tmp_path / "in" / "s.toml",
+        "seed = [4]",
+        {
+            "network.sumocfg": "../nets/corridor.sumocfg",
+            "network.additional_files": ["../extra/loops.add.xml"],
+        },
+    )
+    return path, tmp_path / "nets"
+
+
+def test_a_node_without_shared_disk_gets_a_sections_files(tmp_path):
+    """The sumocfg, the files it names (relative to it) and the additional file travel as
+    bytes, keep their layout on the node, and give the same CSVs as the driver's run."""
+    path, nets = _moved_section(tmp_path)
+    (v,) = expand([path])
+    inputs = batch.shipment(v.scenario)
+    names = sorted(Path(k).name for k in inputs)
+    assert names == ["corridor.net.xml", "corridor.rou.xml", "corridor.sumocfg", "loops.add.xml"]
+    local = tmp_path / "local"
+    assert run_batch([path], local, workers=1, progress=False).counts["complete"] == 1
+    nets.rename(tmp_path / "gone")
+    (tmp_path / "extra").rename(tmp_path / "gone_too")  # this "node" has none of them
+    task = batch.Task(v.name, v.scenario, ("simulate",), str(tmp_path / "unused"), "test")
+    outcome, blob = batch.run_shipped(task, inputs)
+    assert outcome.ok, outcome.error
+    batch._unpack(blob, tmp_path / "back")
+    here = {p.name: p.read_bytes() for p in (tmp_path / "back").glob("*.csv")}
+    there = {p.name: p.read_bytes() for p in (local / "variants" / v.name).glob("*.csv")}
+    assert here == there and set(SECTION_FILES) <= set(here)
+    det = pd.read_csv(tmp_path / "back" / "detectors.csv")
+    assert set(det["detector_id"]) == {"u1", "u3"}  # the shipped additional file's loops
+    # Where the files exist, the scenario is left as it is.
+    assert batch._localise(v.scenario, {}, tmp_path) is v.scenario
+
+
+def test_ray_backend_runs_a_section_sweep_with_the_same_bytes(section_batch, tmp_path):
+    pytest.importorskip("ray")
+    path, local = section_batch
+    ray_out = tmp_path / "ray"
+    res = run_batch([path], ray_out, workers=2, backend="ray", progress=False)
+    assert res.counts == {"complete": 2, "reused": 0}
+    assert variant_csvs(ray_out) == variant_csvs(local)
+    assert (ray_out / "batch_macro.csv").read_bytes() == (local / "batch_macro.csv").read_bytes()
+
+
+@pytest.mark.slow  # about 25 s: the generator, three policies and the evaluation
+def test_section_run_stage_runs_the_section_pipeline(tmp_path):
+    budget = {
+        "simulation.n_runs": 2,
+        "simulation.duration_s": 120.0,
+        "generator.epochs": 4,
+        "generator.snapshot_every_s": 10.0,
+        "policy.updates": 2,
+        "policy.episodes_per_update": 8,
+        "evaluation.fcd_episodes": 2,
+        "evaluation.lf_trials": 2,
+    }
+    path = write_section_sweep(tmp_path / "s.toml", "seed = [1]", budget)
+    out = tmp_path / "out"
+    assert run_batch([path], out, stages=("run",), progress=False).counts["complete"] == 1
+    folder = out / "variants" / "seed=1"
+    assert (folder / "report.md").is_file()
+    assert (folder / "evaluation" / "macro_alignment.csv").is_file()
+    s = summary(out)
+    assert s.loc["seed=1", "n_runs"] == 2 and s.loc["seed=1", "n_intervals"] == 8
+    macro = pd.read_csv(out / "batch_macro.csv")  # found under ground_truth/
+    assert len(macro) == 2 * 2 * 4
