@@ -1,8 +1,12 @@
 """The whole pipeline in one call: ground truth -> generator (-> policy -> evaluation).
 
-Each stage writes into its own sub-folder of ``out`` and is skipped when its manifest
-already records the same scenario (digest) and seed, so an interrupted run resumes where
-it stopped. Per-stage wall times go into ``out/manifest.json``.
+Each stage writes into its own sub-folder of ``out``. It is skipped when its manifest
+records the scenario's values of every key that it, or a stage it reads from, depends on
+(``Stage``: an edit of ``policy.eta`` redoes the policies and the evaluation, not the
+ground truth or the generator) and no stage it reads from was redone in this call. An
+interrupted run resumes where it stopped; a stage redone after an edit starts afresh over
+the earlier run's checkpoints (``RESUME``). Per-stage wall times go into
+``out/manifest.json``.
 """
 
 from __future__ import annotations
@@ -10,6 +14,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -23,17 +28,74 @@ from macromicro_sumo.report.ring import write_report
 from macromicro_sumo.scenario.ring import Scenario
 from macromicro_sumo.truth.ring import simulate
 
-Stage = tuple[str, Path, Callable[[], Any]]  # name, its manifest, the function that runs it
+# The one resume rule of the pipeline, ring or section (``ppo.resumable_checkpoint``): a
+# stage's checkpoint of this very run is continued, one of another run (any input edited
+# since) is ignored and replaced.
+RESUME = "auto"
+
+# Scenario keys no stage's outputs depend on: the scenario's label, and the objective of
+# ``train-policy`` (the pipeline trains every objective).
+_NOWHERE = ("name", "policy.objective")
+_REFINE = (
+    "policy.refine_iterations",
+    "policy.refine_updates",
+    "policy.refine_epochs",
+    "policy.refine_lambda_rec",
+)
+_TRUTH_IGNORES = (*_NOWHERE, "generator", "policy", "evaluation")
+_POLICY_IGNORES = (*_NOWHERE, "evaluation", *_REFINE)
 
 
-def _done(manifest: Path, sc: Any) -> bool:
-    if not manifest.is_file():
-        return False
+@dataclass(frozen=True)
+class Stage:
+    """A pipeline stage: done when ``manifest`` records the scenario's settings for every
+    key outside ``ignores`` (the keys neither it nor the stages it ``needs`` read, dotted:
+    a table or one key) and no stage in ``needs`` was redone in this call."""
+
+    name: str
+    manifest: Path
+    run: Callable[[], Any]
+    needs: tuple[str, ...] = ()
+    ignores: tuple[str, ...] = ()
+    reads: tuple[str, ...] = ()  # keys under ``ignores`` that it reads all the same
+
+
+def _flat(table: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in table.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def stage_settings(scenario: dict[str, Any], stage: Stage) -> dict[str, Any]:
+    """The dotted keys of ``scenario`` (``to_dict`` or a manifest's copy) that ``stage``
+    depends on, with their values as a manifest's JSON holds them."""
+    flat = _flat(json.loads(json.dumps(scenario, default=str)))
+
+    def under(key: str, prefixes: tuple[str, ...]) -> bool:
+        return any(key == p or key.startswith(f"{p}.") for p in prefixes)
+
+    return {k: v for k, v in flat.items() if not under(k, stage.ignores) or under(k, stage.reads)}
+
+
+def _why_redo(stage: Stage, sc: Any, redone: set[str]) -> str | None:
+    """None when ``stage`` is done for ``sc``; else why it runs (printed with progress)."""
+    if not stage.manifest.is_file():
+        return "no outputs yet"
     try:
-        m = json.loads(manifest.read_text())
-    except (OSError, json.JSONDecodeError):
-        return False
-    return m.get("scenario_sha256") == sc.digest() and m.get("seed") == sc.seed
+        recorded = json.loads(stage.manifest.read_text())["scenario"]
+    except (OSError, json.JSONDecodeError, KeyError, TypeError):
+        return f"{stage.manifest.name} unreadable"
+    have, want = stage_settings(recorded, stage), stage_settings(sc.to_dict(), stage)
+    changed = sorted(k for k in have.keys() | want.keys() if have.get(k) != want.get(k))
+    if changed:
+        more = f" and {len(changed) - 3} more" if len(changed) > 3 else ""
+        return f"{', '.join(changed[:3])}{more} changed"
+    inputs = [n for n in stage.needs if n in redone]
+    return f"{', '.join(inputs)} redone" if inputs else None
 
 
 def policy_paths(pol: Path) -> dict[str, Path]:
@@ -49,26 +111,62 @@ def standard_stages(
     out: Path,
     simulate: Callable[[Path], Any],
     train_generator: Callable[[Path, Path], Any],
-    train_policy: Callable[[Path, Path, Path, str], Any],
+    train_policy: Callable[[Path, Path, Path, str, bool | str], Any],
     evaluate: Callable[[Path, Path, dict[str, Path], Path], Any],
+    truth_reads: tuple[str, ...] = (),
 ) -> list[Stage]:
     """Ground truth -> generator -> the paper's policy and its two ablations -> evaluation,
-    in ``out``'s sub-folders; the callables take the folders (and the policy's objective)."""
+    in ``out``'s sub-folders; the callables take the folders (and the policy's objective and
+    the resume rule). ``truth_reads``: keys of the later stages' tables the ground truth
+    reads too."""
     gt, gen, pol, ev = out / "ground_truth", out / "generator", out / "policy", out / "evaluation"
+    upstream = ("simulate", "train_generator")
 
     def train(objective: str) -> Callable[[], Any]:
-        return lambda: train_policy(gt, gen / "generator.pt", pol, objective)
+        return lambda: train_policy(gt, gen / "generator.pt", pol, objective, RESUME)
 
     return [
-        ("simulate", gt / "manifest.json", lambda: simulate(gt)),
-        ("train_generator", gen / "generator_manifest.json", lambda: train_generator(gt, gen)),
-        ("train_policy", pol / "policy_manifest.json", train("mix")),
-        ("train_policy_micro_only", pol / "policy_manifest_micro_only.json", train("micro_only")),
-        ("train_policy_macro_only", pol / "policy_manifest_macro_only.json", train("macro_only")),
-        (
+        Stage(
+            "simulate",
+            gt / "manifest.json",
+            lambda: simulate(gt),
+            ignores=_TRUTH_IGNORES,
+            reads=truth_reads,
+        ),
+        Stage(
+            "train_generator",
+            gen / "generator_manifest.json",
+            lambda: train_generator(gt, gen),
+            needs=("simulate",),
+            ignores=(*_NOWHERE, "policy", "evaluation"),
+        ),
+        Stage(
+            "train_policy",
+            pol / "policy_manifest.json",
+            train("mix"),
+            needs=upstream,
+            ignores=_POLICY_IGNORES,
+        ),
+        Stage(
+            "train_policy_micro_only",
+            pol / "policy_manifest_micro_only.json",
+            train("micro_only"),
+            needs=upstream,
+            ignores=(*_POLICY_IGNORES, "policy.eta"),  # behaviour cloning: eta = 0
+        ),
+        Stage(
+            "train_policy_macro_only",
+            pol / "policy_manifest_macro_only.json",
+            train("macro_only"),
+            needs=upstream,
+            ignores=_POLICY_IGNORES,
+        ),
+        Stage(
             "evaluate",
             ev / "evaluation_manifest.json",
             lambda: evaluate(gt, gen / "generator.pt", policy_paths(pol), ev),
+            needs=(*upstream, "train_policy", "train_policy_micro_only", "train_policy_macro_only"),
+            ignores=(*_NOWHERE, *_REFINE),
         ),
     ]
 
@@ -80,20 +178,24 @@ def run(sc: Scenario, out: Path | str, command: str = "", progress: bool = True)
         out,
         lambda gt_: simulate(sc, gt_, command, progress),
         lambda gt_, gen_: run_train_generator(sc, gt_, gen_, command, progress),
-        lambda gt_, g, pol_, obj: run_train_policy(sc, gt_, g, pol_, True, command, progress, obj),
+        lambda gt_, g, pol_, obj, resume: run_train_policy(
+            sc, gt_, g, pol_, resume, command, progress, obj
+        ),
         lambda gt_, g, pols, ev: evaluate(sc, gt_, g, pols, ev, command, progress),
     )
     if sc.policy.refine_iterations > 0:
         ref = out / "refined"
         stages += [
-            (
+            Stage(
                 "refine",
                 ref / "refine_manifest.json",
                 lambda: refine(
                     sc, gt, gen / "generator.pt", pol / "policy.pt", ref, command, progress
                 ),
+                needs=("simulate", "train_generator", "train_policy"),
+                ignores=(*_NOWHERE, "evaluation"),
             ),
-            (
+            Stage(
                 "evaluate_refined",
                 ref / "evaluation" / "evaluation_manifest.json",
                 lambda: evaluate(
@@ -105,6 +207,8 @@ def run(sc: Scenario, out: Path | str, command: str = "", progress: bool = True)
                     command,
                     progress,
                 ),
+                needs=("simulate", "refine"),
+                ignores=_NOWHERE,
             ),
         ]
     manifest = run_stages(sc, stages, out, command, progress)
@@ -115,21 +219,26 @@ def run(sc: Scenario, out: Path | str, command: str = "", progress: bool = True)
 def run_stages(
     sc: Any, stages: list[Stage], out: Path, command: str, progress: bool
 ) -> dict[str, Any]:
-    """Run (name, manifest path, function) stages in order, skipping those done for this
-    scenario and seed; per-stage wall times go into ``out/manifest.json`` (returned)."""
+    """Run ``stages`` in order, skipping those done for this scenario (``Stage``); per-stage
+    wall times go into ``out/manifest.json`` (returned)."""
     previous = _previous_timings(out / "manifest.json")
     timings: dict[str, Any] = {}
-    for name, manifest, fn in stages:
-        if _done(manifest, sc):
-            timings[name] = previous.get(name, "skipped (outputs existed)")
+    redone: set[str] = set()
+    for stage in stages:
+        why = _why_redo(stage, sc, redone)
+        if why is None:
+            timings[stage.name] = previous.get(stage.name, "skipped (outputs existed)")
             if progress:
-                print(f"[{name}] skipped: outputs exist for this scenario and seed")
+                print(f"[{stage.name}] skipped: outputs exist for these settings")
             continue
-        t0 = time.perf_counter()
-        fn()
-        timings[name] = round(time.perf_counter() - t0, 3)
         if progress:
-            print(f"[{name}] done in {timings[name]:.1f} s")
+            print(f"[{stage.name}] running: {why}")
+        t0 = time.perf_counter()
+        stage.run()
+        redone.add(stage.name)
+        timings[stage.name] = round(time.perf_counter() - t0, 3)
+        if progress:
+            print(f"[{stage.name}] done in {timings[stage.name]:.1f} s")
     manifest = build_manifest(sc, command, stage="run")
     manifest["timings_s"] = timings
     write_json(manifest, out / "manifest.json")

@@ -1,8 +1,8 @@
 """The whole pipeline on a section of a user's network, stage by stage, resumable.
 
-Same shape as ``pipeline.run`` on the ring: ground truth -> generator -> three policies
-(the paper's objective and its two ablations) -> evaluation -> report, each stage skipped
-when its manifest records the same scenario digest and seed.
+Same shape as ``pipeline.run`` on the ring, with the same stages and skip and resume rules
+(``pipeline.ring.Stage``, ``RESUME``): ground truth -> generator -> three policies (the
+paper's objective and its two ablations) -> evaluation -> report.
 """
 
 from __future__ import annotations
@@ -78,10 +78,12 @@ def run_section(sc, out: Path | str, command: str = "", progress: bool = True) -
         out,
         lambda gt: simulate_section(sc, gt, command, progress),
         lambda gt, gen: run_train_section_generator(sc, gt, gen, command, progress),
-        lambda gt, g, pol, obj: run_train_section_policy(
-            sc, gt, g, pol, "auto", command, progress, obj
+        lambda gt, g, pol, obj, resume: run_train_section_policy(
+            sc, gt, g, pol, resume, command, progress, obj
         ),
         lambda gt, g, pols, ev: evaluate_section(sc, gt, g, pols, ev, command, progress),
+        # The K estimates of the ground truth are on the generator's snapshot grid.
+        truth_reads=("generator.snapshot_every_s",),
     )
     manifest = run_stages(sc, stages, out, command, progress)
     write_section_report(sc, out, manifest)

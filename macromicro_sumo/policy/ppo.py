@@ -309,7 +309,8 @@ def signature(sc: Scenario | SectionScenario) -> dict[str, Any]:
     }
 
 
-def load_checkpoint(path: Path, sc: Scenario) -> dict[str, Any]:
+def read_checkpoint(path: Path) -> dict[str, Any]:
+    """A policy checkpoint's payload, whatever scenario it was trained for."""
     try:
         # weights_only: a checkpoint is data; a crafted pickle must never run code here.
         payload = torch.load(path, map_location="cpu", weights_only=True)
@@ -323,6 +324,11 @@ def load_checkpoint(path: Path, sc: Scenario) -> dict[str, Any]:
         raise UserError(
             f"{path}: not a policy checkpoint ({what}); pass the policy.pt of train-policy"
         )
+    return payload
+
+
+def load_checkpoint(path: Path, sc: Scenario) -> dict[str, Any]:
+    payload = read_checkpoint(path)
     want = signature(sc)
     for key, have in payload["signature"].items():
         if want.get(key) != have:
@@ -339,14 +345,16 @@ def resumable_checkpoint(
 
     ``resume`` True: the checkpoint must be of this very run (same scenario, ground truth,
     generator and objective: ``run_key``) or it is an error; "auto": such a checkpoint is
-    used and any other ignored (the pipeline after an input changed); False: none.
+    used and any other ignored, whatever scenario it was trained for (the pipeline after an
+    input changed: training starts afresh and replaces it); False: none. A file that is not
+    a policy checkpoint is an error either way.
     """
     if not resume or not path.is_file():
         return None
+    if resume == "auto" and read_checkpoint(path).get("run_key") != run_key:
+        return None
     ck = load_checkpoint(path, sc)
     if ck.get("run_key") != run_key:
-        if resume == "auto":
-            return None
         raise UserError(
             f"{path}: checkpoint belongs to another run (scenario, ground truth, generator or objective "
             "differ); start without --resume or use another --out"

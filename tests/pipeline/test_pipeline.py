@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import shutil
+from pathlib import Path
 
 import pandas as pd
 import pytest
@@ -10,6 +13,10 @@ from conftest import write_scenario
 
 from macromicro_sumo import cli
 from macromicro_sumo.evaluation.ring import METHOD_ORDER
+from macromicro_sumo.files import write_json
+from macromicro_sumo.manifest import build_manifest
+from macromicro_sumo.pipeline.ring import RESUME, run_stages, standard_stages
+from macromicro_sumo.scenario.load import load_scenario
 
 SMALL_RUN = {
     "simulation.n_runs": 4,
@@ -185,3 +192,150 @@ def test_several_completions_per_scene_pair_each_draw_with_the_true_scene(pipeli
     )
     policy = twice.xs("policy", level="method")["std_spacing_m"]
     assert (policy != once.xs("policy", level="method")["std_spacing_m"]).all()
+
+
+# --------------------------------------------------------------------------- edits between runs
+
+STAGE_MANIFESTS = {
+    "simulate": "ground_truth/manifest.json",
+    "train_generator": "generator/generator_manifest.json",
+    "train_policy": "policy/policy_manifest.json",
+    "train_policy_micro_only": "policy/policy_manifest_micro_only.json",
+    "train_policy_macro_only": "policy/policy_manifest_macro_only.json",
+    "evaluate": "evaluation/evaluation_manifest.json",
+}
+
+
+@pytest.fixture
+def finished_copy(pipeline, tmp_path) -> Path:
+    """A copy (mtimes kept) of the finished pipeline's folder, for a run of an edited scenario.
+    Its policy folder holds the checkpoints of the first run."""
+    _, out = pipeline
+    copy = tmp_path / "run"
+    shutil.copytree(out, copy)
+    assert (copy / "policy" / "policy_mix_checkpoint.pt").is_file()
+    return copy
+
+
+def _state(out: Path) -> dict[str, tuple[bytes, int]]:
+    """Per stage: its manifest's bytes and mtime."""
+    return {
+        name: ((out / rel).read_bytes(), (out / rel).stat().st_mtime_ns)
+        for name, rel in STAGE_MANIFESTS.items()
+    }
+
+
+def _digest(out: Path, stage: str) -> str:
+    return json.loads((out / STAGE_MANIFESTS[stage]).read_text())["scenario_sha256"]
+
+
+def test_run_after_a_policy_edit_reuses_ground_truth_and_generator(finished_copy, tmp_path):
+    """Issue 16: `run` after an edit of policy.eta stopped at the policy's checkpoint of the
+    first run ("belongs to another run"), after redoing the ground truth and the generator."""
+    out = finished_copy
+    before = _state(out)
+    files = {
+        f: (out / f).stat().st_mtime_ns
+        for f in ("ground_truth/trajectories.csv", "generator/generator.pt")
+    }
+    timings = json.loads((out / "manifest.json").read_text())["timings_s"]
+    path = write_scenario(tmp_path / "edited", {**SMALL_RUN, "policy.eta": 0.5})
+    assert cli.main(["run", str(path), "--out", str(out), "--quiet"]) == 0
+    after, digest = _state(out), load_scenario(path).digest()
+    for name in ("simulate", "train_generator", "train_policy_micro_only"):  # micro_only: eta = 0
+        assert after[name] == before[name], name
+    assert {f: (out / f).stat().st_mtime_ns for f in files} == files
+    new_timings = json.loads((out / "manifest.json").read_text())["timings_s"]
+    assert {k: new_timings[k] for k in ("simulate", "train_generator")} == {
+        k: timings[k] for k in ("simulate", "train_generator")
+    }
+    for name in ("train_policy", "train_policy_macro_only", "evaluate"):
+        assert _digest(out, name) == digest, name
+    assert (
+        json.loads((out / STAGE_MANIFESTS["train_policy"]).read_text())["scenario"]["policy"]["eta"]
+        == 0.5
+    )
+    assert cli.main(["run", str(path), "--out", str(out), "--quiet"]) == 0  # and now all done
+    assert _state(out) == after
+
+
+def test_run_after_a_ground_truth_edit_redoes_every_stage(finished_copy, tmp_path):
+    out = finished_copy
+    before = _state(out)
+    path = write_scenario(tmp_path / "edited", {**SMALL_RUN, "simulation.duration_s": 150.0})
+    assert cli.main(["run", str(path), "--out", str(out), "--quiet"]) == 0
+    after, digest = _state(out), load_scenario(path).digest()
+    for name in STAGE_MANIFESTS:
+        assert after[name][1] != before[name][1] and _digest(out, name) == digest, name
+    traj = pd.read_csv(out / "ground_truth" / "trajectories.csv")
+    assert traj["time_s"].max() > 120.0
+
+
+def _stub_stages(sc, out: Path, calls: list, truth_reads: tuple[str, ...] = ()):
+    """The standard stages with stand-ins that only write their manifest for ``sc``."""
+
+    def stage(name: str, manifest: Path) -> None:
+        calls.append(name)
+        manifest.parent.mkdir(parents=True, exist_ok=True)
+        write_json(build_manifest(sc, "", name), manifest)
+
+    def policy(gt, gen, pol, objective, resume) -> None:
+        assert resume == RESUME == "auto"
+        suffix = "" if objective == "mix" else f"_{objective}"
+        stage(f"train_policy{suffix}", pol / f"policy_manifest{suffix}.json")
+
+    return standard_stages(
+        out,
+        lambda gt: stage("simulate", gt / "manifest.json"),
+        lambda gt, gen: stage("train_generator", gen / "generator_manifest.json"),
+        policy,
+        lambda gt, gen, pols, ev: stage("evaluate", ev / "evaluation_manifest.json"),
+        truth_reads,
+    )
+
+
+def _redone(sc, out: Path, truth_reads: tuple[str, ...] = ()) -> list[str]:
+    calls: list[str] = []
+    run_stages(sc, _stub_stages(sc, out, calls, truth_reads), out, "", False)
+    return calls
+
+
+def _edit(sc, table: str, **values):
+    return dataclasses.replace(sc, **{table: dataclasses.replace(getattr(sc, table), **values)})
+
+
+def test_stages_redo_what_an_edit_reaches(make_scenario, tmp_path):
+    """The skip rule shared by the ring and section pipelines, stage by stage."""
+    sc, out = load_scenario(make_scenario()), tmp_path / "run"
+    every = list(STAGE_MANIFESTS)
+    policies = ["train_policy", "train_policy_micro_only", "train_policy_macro_only"]
+    assert _redone(sc, out) == every
+    assert _redone(sc, out) == []
+    assert _redone(dataclasses.replace(sc, name="renamed"), out) == []
+    assert _redone(_edit(sc, "evaluation", lf_trials=3), out) == ["evaluate"]
+    sc = _edit(sc, "evaluation", lf_trials=3)
+    assert _redone(_edit(sc, "policy", eta=0.7), out) == [
+        "train_policy",
+        "train_policy_macro_only",
+        "evaluate",
+    ]
+    sc = _edit(sc, "policy", eta=0.7)
+    assert _redone(_edit(sc, "policy", refine_updates=3, objective="micro_only"), out) == []
+    assert _redone(_edit(sc, "policy", updates=3), out) == [*policies, "evaluate"]
+    sc = _edit(sc, "policy", updates=3)
+    assert _redone(_edit(sc, "generator", epochs=2), out) == [
+        "train_generator",
+        *policies,
+        "evaluate",
+    ]
+    sc = _edit(sc, "generator", epochs=2)
+    assert _redone(dataclasses.replace(sc, seed=sc.seed + 1), out) == every
+    sc = dataclasses.replace(sc, seed=sc.seed + 1)
+    # A stage redone for any reason (here its output gone) redoes the stages that read it.
+    (out / STAGE_MANIFESTS["train_generator"]).unlink()
+    assert _redone(sc, out) == ["train_generator", *policies, "evaluate"]
+    # A section's ground truth reads generator.snapshot_every_s (its K estimates' grid).
+    every_s = sc.generator.snapshot_every_s + 1.0
+    assert _redone(_edit(sc, "generator", snapshot_every_s=every_s), out)[0] == "train_generator"
+    reads = ("generator.snapshot_every_s",)
+    assert _redone(_edit(sc, "generator", snapshot_every_s=every_s + 1), out, reads) == every
