@@ -34,7 +34,6 @@ import numpy as np
 import pandas as pd
 import torch
 from torch import nn
-from tqdm import tqdm
 
 from macromicro_sumo.checkpoints import save_torch
 from macromicro_sumo.data.ring import load_ground_truth, split_runs
@@ -45,6 +44,7 @@ from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import file_sha256, prepare_out_dir, write_csv, write_json
 from macromicro_sumo.generator.ring_train import load_generator
 from macromicro_sumo.manifest import build_manifest
+from macromicro_sumo.progress import tqdm
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES
 from macromicro_sumo.scenario.ring import Scenario
 from macromicro_sumo.scenario.section import SectionScenario

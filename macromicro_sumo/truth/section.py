@@ -22,13 +22,13 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 import pandas as pd
-from tqdm import tqdm
 
 from macromicro_sumo.data.macro import passage_spacings
 from macromicro_sumo.data.section import SectionTruth, at_snapshot_times, check_columns
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import prepare_out_dir, staging_dir, write_csv, write_json
 from macromicro_sumo.manifest import build_manifest
+from macromicro_sumo.progress import tqdm
 from macromicro_sumo.road.section import Section, lane_leaders, read_section
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.inputs import (
