@@ -69,6 +69,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 import torch
+from numpy.lib.stride_tricks import sliding_window_view
 from scipy.optimize import linear_sum_assignment
 from scipy.special import log_ndtr, ndtri_exp
 from torch import nn
@@ -243,27 +244,49 @@ def _piece_range(x: np.ndarray, d_min: np.ndarray, d_max: np.ndarray) -> tuple[n
     return lo_m, hi_m
 
 
-@functools.lru_cache(maxsize=16)
-def _sum_matrix(r1: int) -> np.ndarray:
-    """(r1 * r1, r1) bool: pair (x, y) -> count x + y (dropped beyond r1 - 1)."""
-    x, y = np.divmod(np.arange(r1 * r1), r1)
-    return (x + y)[:, None] == np.arange(r1)
+def _windows(x: np.ndarray) -> np.ndarray:
+    """(..., R + 1, R + 1) of polynomials' coefficients x (..., R + 1) of degree 0..R: row c
+    holds (x_{c - R}, ..., x_c), zero below degree 0; a strided view of x behind R zeros."""
+    r1 = x.shape[-1]
+    padded = np.concatenate([np.zeros((*x.shape[:-1], r1 - 1)), x], axis=-1)
+    return sliding_window_view(padded, r1, axis=-1)
 
 
-def _sumset(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """{x + y : x in a, y in b} of count sets held as bool masks (B, N, R + 1) over 0..R
-    (truncated at R)."""
-    bb, n, r1 = a.shape
-    return (a[..., :, None] & b[..., None, :]).reshape(bb, n, r1 * r1) @ _sum_matrix(r1)
+def _poly_mul(windows: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Products x y of polynomials truncated at degree R, O(R^2) each, given x's
+    ``_windows``: coefficient c is row c of them times y reversed."""
+    return (windows @ y[..., ::-1, None])[..., 0]
+
+
+def _leave_one_out(p: np.ndarray, sets: bool = False) -> np.ndarray:
+    """(B, N, R + 1): for every j, the product of the polynomials p[:, i] (B, N, R + 1) of
+    all i but j, truncated at degree R.
+
+    Prefix and suffix products (pre_j = p_0 ... p_{j-1}, suf_j = p_{j+1} ... p_{N-1}) give
+    every j's product as pre_j suf_j: 3N products in all, where multiplying out each j's
+    N - 1 others takes N^2 (the cost per step then grew with the square of the vehicles).
+    Truncation commutes with the products, so the result is the same polynomial.
+    ``sets``: p holds count sets as 0/1 coefficients (which totals a gap can take) and
+    every product is clipped back to 0/1 (which totals the gaps can take together).
+    """
+    b, n, r1 = p.shape
+    # One array runs both chains: [0, :, i] = pre_i, [1, :, i] = suf_{N-1-i}.
+    factors = _windows(np.stack([p, p[:, ::-1]]))
+    chain = np.zeros((2, b, n, r1))
+    chain[:, :, 0, 0] = 1.0
+    for i in range(n - 1):
+        nxt = _poly_mul(factors[:, :, i], chain[:, :, i])
+        chain[:, :, i + 1] = np.minimum(nxt, 1.0) if sets else nxt
+    out = _poly_mul(_windows(chain[0]), chain[1, :, ::-1])
+    return np.minimum(out, 1.0) if sets else out
 
 
 @functools.lru_cache(maxsize=64)
-def _count_pairs(r_max: int, n: int) -> tuple[np.ndarray, ...]:
-    """(c1, c2, c1 + c2, counts 0..R, not-self mask (N, N, 1)) for ``SplitTable``."""
+def _count_pairs(r_max: int) -> tuple[np.ndarray, ...]:
+    """(c1, c2, c1 + c2, counts 0..R) for ``SplitTable``."""
     pairs = np.array([(c1, t - c1) for t in range(r_max + 1) for c1 in range(t + 1)], float)
     c1, c2 = pairs.reshape(-1, 2).T
-    not_self = ~np.eye(n, dtype=bool)[..., None]
-    return c1, c2, (c1 + c2).astype(int), np.arange(r_max + 1), not_self
+    return c1, c2, (c1 + c2).astype(int), np.arange(r_max + 1)
 
 
 class SplitTable:
@@ -275,12 +298,10 @@ class SplitTable:
     (c1 + 1) d_min <= a1 <= (c1 + 1) d_max and (c2 + 1) d_min <= gap - a1 <= (c2 + 1) d_max.
     """
 
-    def __init__(
-        self, d_min: np.ndarray, d_max: np.ndarray, r_max: int, length_m: float, n: int
-    ) -> None:
+    def __init__(self, d_min: np.ndarray, d_max: np.ndarray, r_max: int, length_m: float) -> None:
         d_min = np.asarray(d_min, dtype=np.float64)
         d_max = np.asarray(d_max, dtype=np.float64)
-        c1, c2, self.total, self.counts, self.not_self = _count_pairs(r_max, n)
+        c1, c2, self.total, self.counts = _count_pairs(r_max)
         self.d_min, self.d_max = d_min[:, None], d_max[:, None]
         self.lo1, self.hi1 = (c1 + 1) * d_min[:, None, None], (c1 + 1) * d_max[:, None, None]
         self.lo2, self.hi2 = (c2 + 1) * d_max[:, None, None], (c2 + 1) * d_min[:, None, None]
@@ -345,7 +366,8 @@ def lookahead(
     at either end) must end as gaps in [d_min, d_max], so it takes c in [lo, hi] further
     vehicles; an untouched gap (two observed vehicles) may stay as it is or take c >= 1 if
     its pieces then fit. The counts the other gaps can absorb together are a sum of these
-    sets (a small dynamic programme over 0..R).
+    sets (a small dynamic programme over 0..R), for every gap at once from prefix and
+    suffix sumsets (``_leave_one_out``: linear in the number of gaps).
     """
     follower, leader, gap, valid, _ = geometry
     b, n = gap.shape
@@ -362,12 +384,12 @@ def lookahead(
         lacks = (~sets[..., 0]).astype(int)
         rest = (lacks.sum(axis=1, keepdims=True) == lacks)[..., None]
     else:
+        # Valid gaps come first (arc order); the slots beyond can take {0} only.
         m = max(int(np.add.reduce(valid, axis=1).max()) if b else 0, 1)
-        # others[:, j, i]: the counts gap i can take, seen from gap j ({0} for i = j).
-        others = np.where(table.not_self[:, :m], sets[:, None, :m], zero)
-        rest = others[:, :, 0]
-        for i in range(1, m):
-            rest = _sumset(rest, others[:, :, i])
+        rest = _leave_one_out(sets[:, :m].astype(np.float64), sets=True) > 0
+        if m < n:  # an invalid slot j: every valid gap absorbs
+            every = _poly_mul(_windows(rest[:, :1].astype(np.float64)), sets[:, :1])
+            rest = np.concatenate([rest, np.repeat(every > 0, n - m, axis=1)], axis=1)
     need = rem_after[:, None] - table.total[:n_pairs]  # (B, P): what the other gaps absorb
     ok = (need >= 0)[:, None, :] & rest[_rows(b, 3), _rows(n), np.maximum(need, 0)[:, None, :]]
     g = gap[..., None]
@@ -388,33 +410,22 @@ def _gap_index(n: int) -> np.ndarray:
     return np.arange(n)[:, None]
 
 
-@functools.lru_cache(maxsize=16)
-def _degree_matrix(r1: int) -> np.ndarray:
-    """``_sum_matrix`` as floats: coefficient pair (i, j) of two polynomials -> degree i + j."""
-    return _sum_matrix(r1).astype(np.float64)
-
-
 def _next_gap_log_prob(log_w: np.ndarray, remaining: np.ndarray) -> np.ndarray:
     """(B, N) log P(a random one of the ``remaining`` vehicles lies in gap j) = log E[c_j] / R.
 
     ``log_w`` (B, N, R + 1): each gap's log-weight for holding c = 0..R of them; an
     allocation's weight is the product over gaps, restricted to sum(c) = remaining. For
     every j at once, the other gaps' joint weights are the product of their polynomials
-    (sum_c w_i(c) x^c, truncated at degree R), built one gap at a time. Each gap's weights
-    are scaled to a largest of 1 first, so the products stay in range in linear space; a
-    row whose allocations all vanish comes out NaN (no mass).
+    (sum_c w_i(c) x^c, truncated at degree R), from prefix and suffix products
+    (``_leave_one_out``: O(N R^2) per row). Each gap's weights are scaled to a largest of 1
+    first, so the products stay in range in linear space; a row whose allocations all
+    vanish comes out NaN (no mass).
     """
     b, n, r1 = log_w.shape
     counts = np.arange(r1)
     top = np.maximum.reduce(log_w, axis=-1, keepdims=True)
     w = np.exp(log_w - np.where(top > -np.inf, top, 0.0))
-    degree = _degree_matrix(r1)
-    others = np.zeros((b, n, r1))
-    others[..., 0] = 1.0
-    for i in range(n):
-        times_i = (others[..., :, None] * w[:, i, None, None, :]).reshape(b, n, r1 * r1) @ degree
-        times_i[:, i] = others[:, i]  # gap i's own count is not among the others
-        others = times_i
+    others = _leave_one_out(w)
     rest = remaining[:, None] - counts  # (B, R + 1): what the other gaps hold
     o = others[_rows(b, 3), _gap_index(n), np.maximum(rest, 0)[:, None, :]]
     use = ((rest >= 0) & (counts >= 1))[:, None, :]
@@ -910,7 +921,7 @@ def complete(
     k = hidden.sum(axis=1)
     k_max = int(k.max()) if b else 0
     state = _Scene(arc, speed, ~hidden, hidden, snaps.length_m)
-    table = SplitTable(psi.d_min, psi.d_max, max(k_max - 1, 0), snaps.length_m, n)
+    table = SplitTable(psi.d_min, psi.d_max, max(k_max - 1, 0), snaps.length_m)
     weights = net.numpy_weights()
     projected = np.zeros(b, dtype=int)
     accept_prob = np.full((b, k_max), np.nan)

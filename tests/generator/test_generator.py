@@ -24,11 +24,20 @@ from scipy.special import logit, ndtr
 
 from macromicro_sumo.data.macro import spacing_losses, speed_loss
 from macromicro_sumo.data.ring import GroundTruth, Snapshots, hide, load_ground_truth
+from macromicro_sumo.generator import ring as ring_module
 from macromicro_sumo.generator.ring import (
+    GEOMETRY_TOL_M,
     LOSS_TERMS,
     Completion,
     GeneratorNet,
+    Lookahead,
     PsiTensors,
+    SplitTable,
+    _leave_one_out,
+    _next_gap_log_prob,
+    _piece_range,
+    _rows,
+    _take,
     complete,
     complete_equal_gap,
     complete_uniform,
@@ -41,7 +50,9 @@ from macromicro_sumo.generator.ring import (
     rejection_success,
     ring_gaps,
     rollout,
+    scene_gaps,
 )
+from macromicro_sumo.generator.ring import lookahead as lookahead_check
 from macromicro_sumo.generator.ring_train import (
     _batch_loss,
     evaluate_generator,
@@ -577,6 +588,211 @@ def test_gap_posterior_is_the_posterior_of_every_allocation():
     # Nothing left to place: a uniform choice of the valid gaps (the step is inactive).
     idle = np.exp(gap_posterior(gap[:2], valid[:2], np.zeros(2, int), normal_psi(2)))
     np.testing.assert_allclose(idle.sum(axis=1), valid[:2].sum(axis=1))
+
+
+# --------------------------------------------------------------------------- cost in N
+# The look-ahead and the gap posterior need, for every gap j, the product of the other
+# gaps' polynomials (count sets, weights). Multiplied out one gap at a time that took N^2
+# products of O(R^3) per step (7 s per training epoch with 22 vehicles and K up to 22);
+# prefix and suffix products take 3N of O(R^2). The quadratic programmes they replaced are
+# kept here, verbatim, as the reference.
+
+
+def quadratic_leave_one_out(p: np.ndarray, sets: bool = False) -> np.ndarray:
+    """Every j's product of the others, multiplied out one polynomial at a time."""
+    b, n, r1 = p.shape
+    out = np.zeros((b, n, r1))
+    out[..., 0] = 1.0
+    for j in range(n):
+        for i in range(n):
+            if i != j:
+                prod = np.zeros((b, r1))
+                for d in range(r1):
+                    prod[:, d:] += out[:, j, d : d + 1] * p[:, i, : r1 - d]
+                out[:, j] = np.minimum(prod, 1.0) if sets else prod
+    return out
+
+
+def quadratic_next_gap_log_prob(log_w: np.ndarray, remaining: np.ndarray) -> np.ndarray:
+    """``_next_gap_log_prob`` as it was: the others' products built one gap at a time."""
+    b, n, r1 = log_w.shape
+    counts = np.arange(r1)
+    top = np.maximum.reduce(log_w, axis=-1, keepdims=True)
+    w = np.exp(log_w - np.where(top > -np.inf, top, 0.0))
+    x, y = np.divmod(np.arange(r1 * r1), r1)
+    degree = ((x + y)[:, None] == np.arange(r1)).astype(np.float64)
+    others = np.zeros((b, n, r1))
+    others[..., 0] = 1.0
+    for i in range(n):
+        times_i = (others[..., :, None] * w[:, i, None, None, :]).reshape(b, n, r1 * r1) @ degree
+        times_i[:, i] = others[:, i]  # gap i's own count is not among the others
+        others = times_i
+    rest = remaining[:, None] - counts
+    o = others[_rows(b, 3), np.arange(n)[:, None], np.maximum(rest, 0)[:, None, :]]
+    use = ((rest >= 0) & (counts >= 1))[:, None, :]
+    e = np.add.reduce(np.where(use, counts * w * o, 0.0), axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.log(e / np.add.reduce(e, axis=1, keepdims=True))
+
+
+def quadratic_lookahead(table, geometry, present, generated, rem_after) -> Lookahead:
+    """``lookahead`` as it was: the counts the other gaps absorb, one sumset at a time."""
+    follower, leader, gap, valid, _ = geometry
+    b, n = gap.shape
+    r_max = int(rem_after.max()) if b else 0
+    counts = table.counts[: r_max + 1]
+    n_pairs = (r_max + 1) * (r_max + 2) // 2
+    lo_c, hi_c = _piece_range(gap, table.d_min, table.d_max)
+    fits = (counts >= lo_c[..., None]) & (counts <= hi_c[..., None])
+    touched = valid & (_take(generated, follower) | _take(generated, leader))
+    zero = counts == 0
+    sets = np.where(touched[..., None], fits, (fits & valid[..., None]) | zero)
+    if r_max == 0:
+        lacks = (~sets[..., 0]).astype(int)
+        rest = (lacks.sum(axis=1, keepdims=True) == lacks)[..., None]
+    else:
+        r1 = r_max + 1
+        x, y = np.divmod(np.arange(r1 * r1), r1)
+        sum_matrix = (x + y)[:, None] == np.arange(r1)
+        m = max(int(np.add.reduce(valid, axis=1).max()) if b else 0, 1)
+        not_self = ~np.eye(n, dtype=bool)[..., None]
+        others = np.where(not_self[:, :m], sets[:, None, :m], zero)
+        rest = others[:, :, 0]
+        for i in range(1, m):
+            pairs = rest[..., :, None] & others[:, :, i][..., None, :]
+            rest = pairs.reshape(b, n, r1 * r1) @ sum_matrix
+    need = rem_after[:, None] - table.total[:n_pairs]
+    ok = (need >= 0)[:, None, :] & rest[_rows(b, 3), _rows(n), np.maximum(need, 0)[:, None, :]]
+    g = gap[..., None]
+    lo = np.maximum(table.lo1[..., :n_pairs], g - table.lo2[..., :n_pairs])
+    hi = np.minimum(table.hi1[..., :n_pairs], g - table.hi2[..., :n_pairs])
+    ok = ok & valid[..., None] & (lo <= hi + 2 * GEOMETRY_TOL_M)
+    empty_ok = (table.ring_lo <= rem_after) & (rem_after <= table.ring_hi)
+    empty = ~np.logical_or.reduce(present, axis=1)
+    return Lookahead(lo, hi, ok, empty, empty_ok, gap)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 7])
+@pytest.mark.parametrize("r1", [1, 2, 6])
+def test_leave_one_out_equals_multiplying_out_the_others(n, r1):
+    rng = np.random.default_rng([n, r1])
+    w = rng.uniform(0.0, 1.0, (4, n, r1)) * (rng.random((4, n, r1)) < 0.8)
+    np.testing.assert_allclose(
+        _leave_one_out(w), quadratic_leave_one_out(w), rtol=1e-13, atol=1e-300
+    )
+    counts = (rng.random((4, n, r1)) < 0.4).astype(np.float64)
+    got = _leave_one_out(counts, sets=True)
+    np.testing.assert_array_equal(got, quadratic_leave_one_out(counts, sets=True))
+    assert set(np.unique(got)) <= {0.0, 1.0}
+
+
+def ring_scenes(rng, b: int, n: int, length: float, k_max: int):
+    """Random partial scenes: (arc, present, generated, remaining) with up to ``k_max``
+    vehicles still to place and some placed ones generated."""
+    arc = np.sort(rng.uniform(0.0, length, (b, n)), axis=1)
+    remaining = rng.integers(0, k_max + 1, b)
+    rank = np.argsort(rng.random((b, n)), axis=1).argsort(axis=1)
+    present = rank >= remaining[:, None]
+    generated = present & (rank < remaining[:, None] + rng.integers(0, 3, b)[:, None])
+    return arc, present, generated, remaining
+
+
+@pytest.mark.parametrize("n", [3, 8, 22])
+def test_gap_posterior_equals_the_quadratic_programme(n):
+    rng = np.random.default_rng(n)
+    b, length = 64, 230.0
+    arc, present, _, remaining = ring_scenes(rng, b, n, length, min(n, 6))
+    _, _, gap, valid, _ = scene_gaps(arc, present, length, rng.uniform(0, length, b))
+    mean = length / n
+    psi = PsiTensors.arrays(
+        dataclasses.replace(
+            snaps_of(arc, 5.0, ~present, [5.0, mean, 0.6 * mean, 1.8 * mean, 0.0, 10.0], length),
+            spacing_std_m=rng.uniform(0.1, 0.5, b) * mean,
+        )
+    )
+    m = max(int(valid.sum(axis=1).max()), 1)
+    counts = np.arange(max(int(remaining.max()), 1) + 1)
+    z = ((gap[:, :m] - psi.d_mean[:, None]) / psi.d_std[:, None])[..., None]
+    c_z = (counts * psi.d_mean[:, None] / psi.d_std[:, None])[:, None, :]
+    log_w = 0.5 * (z * z - (z - c_z) ** 2 / (counts + 1) - np.log(counts + 1))
+    log_w = np.where(valid[:, :m, None], log_w, np.where(counts == 0, 0.0, -np.inf))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        got, want = (
+            np.exp(_next_gap_log_prob(log_w, remaining)),
+            np.exp(quadratic_next_gap_log_prob(log_w, remaining)),
+        )
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-300)
+    assert np.isfinite(gap_posterior(gap, valid, remaining, psi)).any(axis=1).all()
+
+
+@pytest.mark.parametrize("n", [3, 8, 22])
+def test_lookahead_equals_the_quadratic_programme(n):
+    rng = np.random.default_rng(100 + n)
+    b, length = 200, 230.0
+    arc, present, generated, remaining = ring_scenes(rng, b, n, length, min(n, 6))
+    mean = length / n
+    d_min = rng.uniform(0.5, 1.0, b) * mean
+    d_max = d_min + rng.uniform(0.1, 1.5, b) * mean
+    rem_after = np.maximum(remaining - 1, 0)
+    table = SplitTable(d_min, d_max, int(rem_after.max()), length)
+    geometry = scene_gaps(arc, present, length, rng.uniform(0, length, b))
+    got = lookahead_check(table, geometry, present, generated, rem_after)
+    want = quadratic_lookahead(table, geometry, present, generated, rem_after)
+    for field in ("lo", "hi", "ok", "empty", "empty_ok", "gap"):
+        np.testing.assert_array_equal(getattr(got, field), getattr(want, field), err_msg=field)
+    assert got.ok.any() and not got.ok.all()
+
+
+def test_posterior_and_lookahead_work_grows_linearly_with_the_gaps(monkeypatch):
+    """Multiply-adds of the polynomial products per step: at most 3 N B (R + 1)^2."""
+    work = []
+    products = ring_module._poly_mul
+
+    def counted(windows, y):
+        work.append(windows.size)
+        return products(windows, y)
+
+    monkeypatch.setattr(ring_module, "_poly_mul", counted)
+    b, r = 16, 5
+    rng = np.random.default_rng(0)
+    for n in (5, 10, 20, 40):
+        work.clear()
+        _next_gap_log_prob(np.log(rng.uniform(0.1, 1.0, (b, n, r + 1))), np.full(b, r))
+        assert 0 < sum(work) <= 3 * n * b * (r + 1) ** 2, (n, sum(work))
+        length = 20.0 * n
+        arc, present, generated, _ = ring_scenes(rng, b, n, length, 0)
+        table = SplitTable(np.full(b, 10.0), np.full(b, 40.0), r, length)
+        geometry = scene_gaps(arc, present, length, np.zeros(b))
+        work.clear()
+        lookahead_check(table, geometry, present, generated, np.full(b, r))
+        assert 0 < sum(work) <= 3 * n * b * (r + 1) ** 2, (n, sum(work))
+
+
+def test_completion_of_a_sugiyama_ring_equals_the_quadratic_programme(monkeypatch):
+    """22 vehicles on 230 m, K = 1..8: the same completions, draw for draw."""
+    rng = np.random.default_rng(5)
+    b, n, length = 48, 22, 230.0
+    spacing = rng.uniform(0.6, 1.4, (b, n))
+    spacing *= length / spacing.sum(axis=1, keepdims=True)
+    arc = np.mod(np.cumsum(spacing, axis=1), length)
+    k = rng.integers(1, 9, b)
+    hidden = np.argsort(rng.random((b, n)), axis=1).argsort(axis=1) < k[:, None]
+    psi = np.column_stack(
+        [np.full(b, 5.0), np.full(b, length / n), spacing.min(1) - 1, spacing.max(1) + 1]
+        + [np.zeros(b), np.full(b, 10.0)]
+    )
+    snaps = dataclasses.replace(
+        snaps_of(arc, rng.uniform(0, 10, (b, n)), hidden, psi, length),
+        spacing_std_m=spacing.std(axis=1),
+    )
+    nets = (zero_net(), posterior_net())
+    fast = [complete(net, snaps, 20, seed=1) for net in nets]
+    monkeypatch.setattr(ring_module, "_leave_one_out", quadratic_leave_one_out)
+    for net, got in zip(nets, fast, strict=True):
+        want = complete(net, snaps, 20, seed=1)
+        np.testing.assert_array_equal(got.arc_m, want.arc_m)
+        np.testing.assert_array_equal(got.speed_mps, want.speed_mps)
+        np.testing.assert_array_equal(got.projected, want.projected)
 
 
 def posterior_net() -> GeneratorNet:
