@@ -11,12 +11,21 @@ Both run through ``env.RingCore`` exactly as in training: speed mode 0,
 v' = max(0, v + a dt) with a clipped to the scenario's action bounds [a_min, a_max], so the
 IDM follower has the same actuator limits as the policy. With a ring of 628 m the leader
 (the follower's leader) is 500 m ahead of the follower's back: it never reacts to it.
+
+Those figures are the paper's ring's (R = 100 m, N = 5, limits up to 14 m/s): 126 m is its
+mean spacing L / N and 11-13 m/s lie below its limit. ``run_leader_follower`` moves the
+test to the scenario's ring (``LeaderProfile.on_ring``): speeds scaled by the upper speed
+limit over 14 m/s, the start spacing by L / N over the paper's 125.7 m; the paper's ring
+keeps them exactly. Unscaled, a 230 m ring with 22 vehicles and limits up to 10 m/s put
+the follower at a spacing its fleet never drives, behind a leader faster than its desired
+speed, 104 m ahead of it round the ring: the leader came round and ran into it.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pandas as pd
@@ -30,6 +39,10 @@ SCENARIOS = ("accelerate", "decelerate")
 IDM_METHOD = "IDM"
 FOLLOWER, LEADER = 0, 1  # vehicle indices in the two-vehicle bank
 IDM_KEYS = ("accel_mps2", "decel_mps2", "tau_s", "min_gap_m", "speed_factor", "delta")
+# The ring that ``LeaderProfile``'s figures are stated for: the paper's (R = 100 m, N = 5,
+# limits 12-14 m/s); its mean spacing L / N is the 126 m start.
+PAPER_MEAN_SPACING_M = 2.0 * math.pi * 100.0 / 5
+PAPER_SPEED_LIMIT_MPS = 14.0
 
 Follower = Callable[[np.ndarray, np.random.Generator], float]
 """Acceleration [m/s^2] from one observation [v, v_limit, spacing, v - v_leader] (4,)."""
@@ -37,7 +50,11 @@ Follower = Callable[[np.ndarray, np.random.Generator], float]
 
 @dataclass(frozen=True)
 class LeaderProfile:
-    """The leader's prescribed speed profile and the start of a leader-follower test."""
+    """The leader's prescribed speed profile and the start of a leader-follower test.
+
+    Speeds, ramp and spacing are stated for the paper's ring; ``run_leader_follower`` runs
+    ``on_ring(sc)`` of them (the same values on the paper's ring).
+    """
 
     low_speed_mps: float = 11.0
     """Speed before an acceleration ramp / after a deceleration ramp [m/s]."""
@@ -51,6 +68,21 @@ class LeaderProfile:
     """Length of a test [s]; a multiple of the scenario's step length."""
     spacing_m: float = 126.0
     """Initial front-to-front distance from the follower to the leader [m]."""
+
+    def on_ring(self, sc: Scenario) -> LeaderProfile:
+        """This test moved from the paper's ring to the scenario's: the speeds and the ramp
+        scaled by the scenario's upper speed limit over 14 m/s (the ramp keeps its length in
+        time), the start spacing by the mean spacing L / N over 125.7 m. Times stay. On the
+        paper's ring both factors are exactly 1."""
+        v = sc.speed_limits.range_mps[1] / PAPER_SPEED_LIMIT_MPS
+        d = sc.network.length_m / sc.fleet.n_vehicles / PAPER_MEAN_SPACING_M
+        return replace(
+            self,
+            low_speed_mps=self.low_speed_mps * v,
+            high_speed_mps=self.high_speed_mps * v,
+            ramp_mps2=self.ramp_mps2 * v,
+            spacing_m=self.spacing_m * d,
+        )
 
     def horizon(self, dt_s: float) -> int:
         """Steps of ``dt_s`` in a test."""
@@ -215,13 +247,13 @@ def run_trial(core: RingCore, episode: int, follower: Follower, rng: np.random.G
 def rmse_vs_reference(speed_mps: np.ndarray, reference_mps: np.ndarray) -> float:
     """RMSE [m/s] of a follower trace against the reference over the simulated steps.
 
-    Both start at t = 0 with the same speed, so the first sample is left out; a trace cut
-    short by a collision is compared over its own length.
+    Both start at t = 0 with the same speed, so the first sample is left out; where a
+    collision cut either short, they are compared over the steps both have.
     """
-    n = len(speed_mps)
+    n = min(len(speed_mps), len(reference_mps))
     if n < 2:
         return float("nan")
-    return float(np.sqrt(np.mean((speed_mps[1:] - reference_mps[1:n]) ** 2)))
+    return float(np.sqrt(np.mean((speed_mps[1:n] - reference_mps[1:n]) ** 2)))
 
 
 def run_leader_follower(
@@ -235,19 +267,22 @@ def run_leader_follower(
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Both scenarios: one IDM trial and ``n_trials`` trials of every follower in SUMO.
 
+    ``profile`` is stated for the paper's ring and runs as ``profile.on_ring(sc)``.
     ``speed_limit_mps`` is the uniform limit (default: the scenario's upper limit bound).
     Trial t of every method in a scenario draws from the generator seeded
     ``[seed, scenario index, t]`` (common random numbers across methods).
     Returns ``(traces, summary)``: traces has one row per (scenario, method, trial, step)
     with the columns of ``leader_follower.csv``; summary one row per trial with the RMSE
-    against the IDM follower, the smallest gap and whether the follower collided.
+    against the IDM follower, the smallest gap and whether the follower collided. Where a
+    collision ended the IDM reference before a trial, ``idm_follower_speed_mps`` is NaN for
+    the trial's later steps.
     """
     if IDM_METHOD in followers:
         raise UserError(f"follower name {IDM_METHOD!r} is reserved for the IDM reference")
     if n_trials < 1:
         raise UserError(f"n_trials = {n_trials}; accepted >= 1")
     limit = sc.speed_limits.range_mps[1] if speed_limit_mps is None else speed_limit_mps
-    bank = leader_follower_bank(sc, profile, limit)
+    bank = leader_follower_bank(sc, profile.on_ring(sc), limit)
     idm = idm_follower(idm_params, sc.fleet.length_m)
     frames, summary = [], []
     core = RingCore(sc, bank, seed=seed)  # one SUMO run per process: reused for every trial
@@ -261,6 +296,10 @@ def run_leader_follower(
                     runs.append((method, trial, run_trial(core, ep, fn, rng)))
             for method, trial, tr in runs:
                 n = len(tr.time_s)
+                # A collision ends a trace: the reference may be shorter than this trial.
+                ref_speed = np.full(n, np.nan)
+                m = min(n, len(ref.follower_speed_mps))
+                ref_speed[:m] = ref.follower_speed_mps[:m]
                 frames.append(
                     pd.DataFrame(
                         {
@@ -270,7 +309,7 @@ def run_leader_follower(
                             "time_s": tr.time_s,
                             "leader_speed_mps": tr.leader_speed_mps,
                             "follower_speed_mps": tr.follower_speed_mps,
-                            "idm_follower_speed_mps": ref.follower_speed_mps[:n],
+                            "idm_follower_speed_mps": ref_speed,
                             "gap_m": tr.gap_m,
                         }
                     )

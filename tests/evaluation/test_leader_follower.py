@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from conftest import PAPER_SCENARIO
+from conftest import PAPER_SCENARIO, ROOT
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation import leader_follower as lf
@@ -210,3 +210,83 @@ def test_trace_table_and_summary(random_agent_runs):
     assert pol["trials"] == 3
     sel = summary[(summary["method"] == "policy") & (summary["scenario"] == "decelerate")]
     assert pol["mean_rmse_vs_idm_mps"] == pytest.approx(sel["rmse_vs_idm_mps"].mean())
+
+
+# --------------------------------------------------------------------------- other rings
+
+SUGIYAMA_SCENARIO = ROOT / "scenarios" / "ring_sugiyama.toml"
+
+
+def test_paper_ring_keeps_the_paper_profile(sc):
+    assert lf.LeaderProfile().on_ring(sc) == lf.LeaderProfile()
+    custom = lf.LeaderProfile(spacing_m=30.0, duration_s=20.0, hold_s=5.0)
+    assert custom.on_ring(sc) == custom
+
+
+def test_leader_follower_on_a_sugiyama_ring():
+    """A 230 m ring with 22 vehicles (limits up to 10 m/s): the test, moved to the ring,
+    runs for a learned policy and the IDM followers without error. Unscaled, the leader
+    (11 -> 13 m/s, above the followers' desired speed) came round the ring into the IDM
+    follower, and a follower that outlived that reference ended in a ValueError."""
+    sc = load_scenario(SUGIYAMA_SCENARIO)
+    assert sc.fleet.n_vehicles == 22
+    assert sc.network.length_m == pytest.approx(230.0, abs=0.1)
+    torch.manual_seed(0)
+    params = lf.mean_idm_params(sc)
+    followers = {
+        "policy": lf.policy_follower(Agent(observation=sc.policy.observation)),
+        "idm_calibrated": lf.idm_follower(params, sc.fleet.length_m),
+    }
+    profile = lf.LeaderProfile(duration_s=30.0, hold_s=10.0)
+    traces, summary = lf.run_leader_follower(sc, followers, params, 2, sc.seed, profile)
+    moved = profile.on_ring(sc)
+    mean_spacing = sc.network.length_m / sc.fleet.n_vehicles
+    assert moved.spacing_m == pytest.approx(126.0 * mean_spacing / (2 * np.pi * 100 / 5))
+    assert moved.low_speed_mps == pytest.approx(11.0 * 10.0 / 14.0)
+    assert moved.high_speed_mps == pytest.approx(13.0 * 10.0 / 14.0)
+    assert len(summary) == 2 * (1 + 2 + 2)
+    dt = sc.simulation.step_length_s
+    for scenario in lf.SCENARIOS:
+        d = traces[(traces["scenario"] == scenario) & (traces["method"] == "IDM")]
+        lead = lf.leader_speeds(scenario, moved, dt)
+        np.testing.assert_array_equal(d["leader_speed_mps"], lead)
+        assert d["gap_m"].iloc[0] == pytest.approx(moved.spacing_m - sc.fleet.length_m)
+        assert d["follower_speed_mps"].max() <= params["speed_factor"] * 10.0 + 1e-9
+    # The IDM followers follow the leader without touching it, and are never run into.
+    idm = summary[summary["method"].isin(["IDM", "idm_calibrated"])]
+    assert not idm["collision"].any()
+    assert (idm["min_gap_m"] > params["min_gap_m"]).all()
+    assert (summary.loc[summary["method"] == "idm_calibrated", "rmse_vs_idm_mps"] == 0).all()
+    assert traces.groupby(["scenario", "method", "trial"]).size().le(profile.horizon(dt) + 1).all()
+
+
+def test_trial_that_outlives_the_reference(sc):
+    """A reference follower that crashes ends before the trials: their later steps have no
+    reference speed (NaN) and their RMSE covers the steps both have."""
+    # Braking late (T = 0.1 s, s0 = 0, a = b = 10 m/s^2) with the actuator's a_min: it crashes.
+    reckless = lf.mean_idm_params(sc) | {
+        "accel_mps2": 10.0,
+        "decel_mps2": 10.0,
+        "tau_s": 0.1,
+        "min_gap_m": 0.0,
+        "speed_factor": 2.0,
+    }
+    careful = lf.idm_follower(lf.mean_idm_params(sc), sc.fleet.length_m)
+    profile = lf.LeaderProfile(spacing_m=30.0, duration_s=30.0, hold_s=5.0)
+    traces, summary = lf.run_leader_follower(sc, {"careful": careful}, reckless, 1, 0, profile)
+    for scenario in lf.SCENARIOS:
+        d = traces[traces["scenario"] == scenario]
+        ref = d[d["method"] == "IDM"]
+        mine = d[d["method"] == "careful"]
+        assert summary.set_index(["scenario", "method"]).loc[(scenario, "IDM"), "collision"]
+        assert len(ref) < len(mine) == profile.horizon(sc.simulation.step_length_s) + 1
+        ref_col = mine["idm_follower_speed_mps"].to_numpy()
+        np.testing.assert_array_equal(ref_col[: len(ref)], ref["follower_speed_mps"])
+        assert np.isnan(ref_col[len(ref) :]).all()
+        v, r = mine["follower_speed_mps"].to_numpy(), ref["follower_speed_mps"].to_numpy()
+        got = summary.set_index(["scenario", "method"]).loc[
+            (scenario, "careful"), "rmse_vs_idm_mps"
+        ]
+        n = len(r)
+        assert got == pytest.approx(np.sqrt(np.mean((v[1:n] - r[1:n]) ** 2)), rel=1e-12)
+    assert lf.rmse_vs_reference(np.array([1.0, 2.0, 3.0]), np.array([1.0, 2.5])) == 0.5
