@@ -238,6 +238,9 @@ class RingCore:
         self.hidden = b.hidden[episode]
         self.psi = b.psi[episode]
         self.limits = b.limits_mps[episode]
+        if not self.sim.is_active():  # another simulation took libsumo's one: ours again
+            self.sim.reload()
+            self._broken = True
         if self._broken:
             self._insert_fleet()
         self.sim.set_lane_speed_limits(self.geo.lane_ids, self.limits)
@@ -315,7 +318,8 @@ class RingCore:
         """Advance one step: hidden vehicles apply ``accel_hidden`` (K,), observed replay."""
         if not self.sim.is_active():
             raise UserError(
-                "another SUMO simulation was started in this process; libsumo runs one per process"
+                "another SUMO simulation was started in this process; libsumo runs one per "
+                "process: reset() starts this one's again"
             )
         if self.t >= self.bank.replay_speed_mps.shape[1] - 1:
             raise UserError(f"episode over after {self.t} steps: call reset()")

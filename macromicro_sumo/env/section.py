@@ -448,10 +448,9 @@ class SectionCore:
     # ------------------------------------------------------------------ episode
     def reset(self, episode: int) -> np.ndarray:
         """Insert the episode's scene (no restart); returns the observations (N, obs_dim)."""
-        if not self.sim.is_active():
-            raise UserError(
-                "another SUMO simulation was started in this process; libsumo runs one per process"
-            )
+        if not self.sim.is_active():  # another simulation took libsumo's one: ours again
+            self.sim.reload()
+            self._routes = self._add_routes()
         b, sec = self.bank, self.section
         self.episode, self.t, self._error = episode, 0, ""
         self.sim.clear_vehicles()
@@ -580,7 +579,8 @@ class SectionCore:
         inactive ones ignored), observed vehicles replay their records."""
         if not self.sim.is_active():
             raise UserError(
-                "another SUMO simulation was started in this process; libsumo runs one per process"
+                "another SUMO simulation was started in this process; libsumo runs one per "
+                "process: reset() starts this one's again"
             )
         b = self.bank
         if self.t >= b.horizon:

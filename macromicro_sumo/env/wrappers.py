@@ -36,12 +36,19 @@ with ``info["error"]`` if SUMO fails.
 ``None`` to start from the true hidden states), ``split`` ("train", "val", "held_out"),
 ``hidden`` (K, or a (low, high) range; gymnasium: 1), ``seed``.
 
-libsumo runs one simulation per process: keep one environment per process (use a
-vector env with subprocesses for more).
+## One SUMO simulation per process
+libsumo runs one simulation per process. A second env (or ``gymnasium.utils.env_checker.
+check_env``'s, which builds and closes one) takes it over; the first env's ``reset()``
+then starts its own run again (a fresh SUMO run of the same network), while its ``step()``
+without that reset raises ``UserError``. Vectorise with subprocesses:
+``gymnasium.vector.AsyncVectorEnv`` (``gymnasium.make_vec(..., vectorization_mode="async")``)
+or Stable-Baselines3's ``SubprocVecEnv``; a ``SyncVectorEnv`` or ``DummyVecEnv`` of more
+than one env is refused when it is built.
 """
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +59,7 @@ from pettingzoo import ParallelEnv
 
 from macromicro_sumo.data.ring import load_ground_truth, split_runs
 from macromicro_sumo.env.ring import EpisodeBank, RingCore, build_bank, generator_completion
+from macromicro_sumo.errors import UserError
 from macromicro_sumo.generator.ring_train import load_generator
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES
 from macromicro_sumo.scenario.load import load_scenario
@@ -85,6 +93,39 @@ def _spaces(sc: Scenario, length_m: float) -> tuple[spaces.Box, spaces.Box]:
     d = len(OBSERVATION_FEATURES[sc.policy.observation])
     obs = spaces.Box(np.array(lo[:d], np.float32), np.array(hi[:d], np.float32), dtype=np.float32)
     return act, obs
+
+
+# Vector envs that step their envs one after the other in this process: (module, class).
+_IN_PROCESS_VECTORS = {
+    ("gymnasium.vector.sync_vector_env", "SyncVectorEnv"): "gymnasium.vector.SyncVectorEnv",
+    ("stable_baselines3.common.vec_env.dummy_vec_env", "DummyVecEnv"): "DummyVecEnv",
+}
+_SUBPROCESS_HINT = (
+    "gymnasium.vector.AsyncVectorEnv (gymnasium.make_vec(..., vectorization_mode='async')) "
+    "or stable_baselines3's SubprocVecEnv"
+)
+
+
+def _refuse_in_process_vector(name: str) -> None:
+    """Fail while a vector env that would hold several of these envs in this process is
+    being built: libsumo runs one simulation per process, so each env's reset would take
+    SUMO from the others and their steps would fail."""
+    frame = sys._getframe(1)
+    while frame is not None:
+        owner = frame.f_locals.get("self") if frame.f_code.co_name == "__init__" else None
+        cls = type(owner)
+        vector = _IN_PROCESS_VECTORS.get((cls.__module__, cls.__name__))
+        if vector is not None:
+            try:
+                n = len(frame.f_locals.get("env_fns", ()))
+            except TypeError:  # an iterator of env functions: its length is unknown
+                n = 1
+            if n > 1:
+                raise UserError(
+                    f"{vector} would run {n} {name} envs in one process, but libsumo runs one "
+                    f"SUMO simulation per process; use {_SUBPROCESS_HINT}: one process per env"
+                )
+        frame = frame.f_back
 
 
 def _check_render_mode(render_mode: str | None) -> None:
@@ -131,6 +172,7 @@ class RingHiddenEnv(gym.Env):
         render_mode: str | None = None,
     ) -> None:
         _check_render_mode(render_mode)
+        _refuse_in_process_vector(ENV_ID)
         self.render_mode = render_mode
         sc, bank = make_bank(scenario, data, generator, split, 1, seed)
         self.core = RingCore(sc, bank, seed=seed)

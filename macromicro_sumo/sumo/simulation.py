@@ -147,6 +147,12 @@ class Simulation:
         """False once another instance (or a close) took libsumo's one simulation."""
         return Simulation._active is self
 
+    def reload(self) -> None:
+        """Start this instance's run again, with its options, after another instance (or a
+        close) took libsumo's one simulation: a fresh run, with no vehicles and nothing
+        added through libsumo (routes, vehicles) since the options' files were loaded."""
+        self._load(self.options)
+
     def close(self) -> None:
         """End this instance's run; a no-op when another instance has taken libsumo over."""
         if Simulation._started_pid == os.getpid() and Simulation._active in (self, None):

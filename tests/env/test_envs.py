@@ -146,3 +146,78 @@ def test_supersuit_vector_wrapper_without_adapters(gt):
             assert obs.shape[0] == 2 and np.isfinite(rew).all()
     finally:
         env.close()
+
+
+def test_env_made_by_gymnasium_lives_on_after_check_env(gt):
+    """check_env builds and closes a second env from the spec; the first one's reset starts
+    its SUMO run again."""
+    import gymnasium
+
+    path, data, gen = gt
+    env = gymnasium.make(ENV_ID, scenario=path, data=data, generator=gen)
+    try:
+        check_env(env, skip_render_check=True)  # the issue's call: on gymnasium.make's env
+        env.reset(seed=1)
+        for _ in range(3):
+            _, r, term, trunc, info = env.step(np.array([0.0], np.float32))
+            assert not info["error"] and 0.0 < r <= 1.0
+    finally:
+        env.close()
+
+
+def test_displaced_env_says_so_and_reloads_at_reset(gt):
+    path, data, gen = gt
+    first = RingHiddenEnv(path, data, gen)
+    second = RingHiddenEnv(path, data, gen)
+    try:
+        first.reset(seed=0)  # takes SUMO back from the second
+        first.step(np.array([0.0], np.float32))
+        with pytest.raises(UserError, match="reset\\(\\) starts this one's again"):
+            second.step(np.array([0.0], np.float32))
+        for env in (second, first, second):
+            env.reset(seed=2)
+            _, _, _, _, info = env.step(np.array([0.0], np.float32))
+            assert not info["error"]
+    finally:
+        first.close()
+        second.close()
+
+
+def test_in_process_vector_envs_are_refused_when_built(gt):
+    import gymnasium
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    path, data, gen = gt
+    kwargs = dict(scenario=path, data=data, generator=gen)
+    with pytest.raises(UserError, match="SyncVectorEnv would run 2 .*AsyncVectorEnv"):
+        gymnasium.make_vec(ENV_ID, num_envs=2, vectorization_mode="sync", **kwargs)
+    with pytest.raises(UserError, match="DummyVecEnv would run 3 .*SubprocVecEnv"):
+        DummyVecEnv([lambda: gymnasium.make(ENV_ID, **kwargs)] * 3)
+    one = gymnasium.make_vec(ENV_ID, num_envs=1, vectorization_mode="sync", **kwargs)
+    try:
+        one.reset(seed=0)
+        one.step(np.zeros((1, 1), np.float32))
+    finally:
+        one.close()
+
+
+def test_async_vector_env_steps(gt):
+    import gymnasium
+
+    path, data, gen = gt
+    vec = gymnasium.make_vec(
+        ENV_ID,
+        num_envs=2,
+        vectorization_mode="async",
+        scenario=path,
+        data=data,
+        generator=gen,
+    )
+    try:
+        obs, _ = vec.reset(seed=0)
+        assert obs.shape[0] == 2
+        for _ in range(12):  # past one horizon: autoreset too
+            obs, rew, term, trunc, info = vec.step(np.zeros((2, 1), np.float32))
+            assert np.isfinite(rew).all() and not any(info.get("error", ["", ""]))
+    finally:
+        vec.close()
