@@ -66,6 +66,149 @@ def file_sha256(path: Path | str) -> str:
     return h.hexdigest()
 
 
+# --------------------------------------------------------------------------- outputs map
+#
+# A stage's manifest records every file it wrote beside it: ``"outputs": {name: {"bytes",
+# "sha256", "rows" (CSV data rows)}}``. A later stage reads those files through
+# ``read_checked_csv`` / ``check_outputs``, so a truncated, edited or deleted output is a
+# one-line error naming the file instead of a silently shorter dataset. Folders written
+# before the map existed carry none and load unchecked.
+
+MANIFEST = "manifest.json"
+
+
+def _scan(path: Path) -> tuple[int, int, str]:
+    """(bytes, lines, sha256) of ``path`` in one pass; a last line without newline counts."""
+    h = hashlib.sha256()
+    size = newlines = 0
+    last = b""
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+            size += len(chunk)
+            newlines += chunk.count(b"\n")
+            last = chunk[-1:]
+    return size, newlines + (1 if last not in (b"", b"\n") else 0), h.hexdigest()
+
+
+def output_record(path: Path) -> dict[str, Any]:
+    """What a manifest records of one output file: size, SHA-256, and CSV data rows."""
+    size, lines, digest = _scan(path)
+    record: dict[str, Any] = {"bytes": size, "sha256": digest}
+    if path.suffix == ".csv":
+        record["rows"] = max(lines - 1, 0)
+    return record
+
+
+def record_outputs(folder: Path, skip: Iterable[str] = (MANIFEST,)) -> dict[str, dict[str, Any]]:
+    """The outputs map of every plain top-level file in ``folder`` but ``skip`` and hidden ones."""
+    skip = set(skip)
+    return {
+        p.name: output_record(p)
+        for p in sorted(folder.iterdir())
+        if p.is_file() and not p.name.startswith(".") and p.name not in skip
+    }
+
+
+def write_manifest(manifest: dict[str, Any], folder: Path, name: str = MANIFEST) -> None:
+    """Write ``folder/name`` with the outputs map of the files already in ``folder``."""
+    write_json({**manifest, "outputs": record_outputs(folder, skip=(name,))}, folder / name)
+
+
+def read_manifest(path: Path | str) -> dict[str, Any]:
+    """A stage's manifest as a dict; unreadable or not a JSON object is a one-line error."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise UserError(f"{path}: missing; re-run the stage that writes this folder") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise UserError(
+            f"{path}: unreadable manifest ({type(exc).__name__}: {exc}); re-run the stage "
+            "that writes this folder"
+        ) from None
+    if not isinstance(data, dict):
+        raise UserError(f"{path}: not a manifest (a JSON object); re-run the stage that wrote it")
+    return data
+
+
+def _rerun(manifest: dict[str, Any]) -> str:
+    stage = str(manifest.get("stage") or "").replace("_", "-")
+    return f"re-run `macromicro {stage}`" if stage else "re-run the stage that wrote it"
+
+
+def check_outputs(
+    folder: Path | str,
+    manifest: dict[str, Any] | None = None,
+    names: Iterable[str] | None = None,
+    deep: bool = True,
+    rerun: str = "",
+) -> None:
+    """Check the files that ``folder``'s manifest lists (or ``names`` of them) against it.
+
+    Missing files and other sizes or row counts are one-line errors naming the file;
+    ``deep`` also compares SHA-256 (reads every byte). ``manifest``: the folder's manifest,
+    already read (else ``folder/manifest.json``, when there is one). A manifest without an
+    outputs map (written before it existed) checks nothing. ``rerun``: what the message
+    tells the user to do (default: re-run the stage that wrote the folder).
+    """
+    folder = Path(folder)
+    if manifest is None:
+        if not (folder / MANIFEST).is_file():
+            return
+        manifest = read_manifest(folder / MANIFEST)
+    outputs = manifest.get("outputs")
+    if not isinstance(outputs, dict):
+        return
+    where = f"{MANIFEST} of {folder}"
+    hint = rerun or _rerun(manifest)
+    for name in outputs if names is None else names:
+        want = outputs.get(name)
+        if not isinstance(want, dict):
+            continue
+        path = folder / name
+        if not path.is_file():
+            raise UserError(f"{path}: missing, though {where} lists it; {hint}")
+        size = path.stat().st_size
+        if not deep and size == want.get("bytes"):
+            continue
+        size, lines, digest = _scan(path)
+        rows = max(lines - 1, 0)
+        if "rows" in want and rows != want["rows"]:
+            raise UserError(
+                f"{path}: {rows} data rows, {where} records {want['rows']} (truncated or "
+                f"edited); {hint}"
+            )
+        if size != want.get("bytes") or digest != want.get("sha256"):
+            raise UserError(
+                f"{path}: content differs from what {where} records ({size} bytes, recorded "
+                f"{want.get('bytes')}; edited or corrupt); {hint}"
+            )
+
+
+def read_checked_csv(
+    folder: Path | str,
+    name: str,
+    manifest: dict[str, Any] | None = None,
+    columns: Iterable[str] = (),
+    **read_csv: Any,
+) -> pd.DataFrame:
+    """``folder/name`` as a DataFrame, checked against the folder's manifest (``check_outputs``)
+    and for ``columns``; every problem is a one-line error naming the file."""
+    path = Path(folder) / name
+    if not path.is_file():
+        raise UserError(f"{path}: missing; {_rerun(manifest or {})}")
+    check_outputs(folder, manifest, names=(name,))
+    try:
+        df = pd.read_csv(path, **read_csv)
+    except ValueError as exc:  # pandas' parser and decoding errors are ValueErrors
+        raise UserError(f"{path}: not a readable CSV ({type(exc).__name__}: {exc})") from None
+    missing = [c for c in columns if c not in df.columns]
+    if missing:
+        raise UserError(f"{path}: missing column(s) {', '.join(missing)}")
+    return df
+
+
 # Every folder the tool writes carries this file. A folder is replaced only when it has it,
 # so a user's own ``DIR/sumo`` (their network, say) is never deleted by ``--out DIR``.
 OUTPUT_MARK = ".macromicro-output"

@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.files import atomic_path, write_csv
+from macromicro_sumo.files import MANIFEST, atomic_path, check_outputs, read_checked_csv, write_csv
 
 FORMATS = ("csv", "parquet")
 TABLES = ("macro", "detectors", "summary")
@@ -57,13 +57,24 @@ def find_output(folder: Path, name: str) -> Path | None:
 
 
 def _read(folder: Path, name: str) -> pd.DataFrame | None:
+    """``name`` of a finished folder, checked against its manifest; None where it has none."""
     path = find_output(folder, name)
     if path is None:
         return None
-    try:
-        return pd.read_csv(path)
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-        raise UserError(f"{path}: not a readable CSV ({type(exc).__name__})") from None
+    return read_checked_csv(path.parent, path.name)
+
+
+def damaged(folder: Path, rerun: str = "") -> str:
+    """Why a finished folder's outputs are not what its manifests record ('' when they are):
+    a listed file missing, or of another size or row count (sizes only, no hashing)."""
+    for manifest in sorted(folder.rglob(MANIFEST)):
+        if any(part.startswith(".") for part in manifest.relative_to(folder).parts):
+            continue  # a stale staging folder's, not an output
+        try:
+            check_outputs(manifest.parent, deep=False, rerun=rerun)
+        except UserError as exc:
+            return str(exc)
+    return ""
 
 
 def _mean(df: pd.DataFrame, column: str) -> float:
@@ -290,6 +301,12 @@ def export(folder: Path | str, fmt: str) -> list[Path]:
         for v in spec["variants"]:
             vfile = variants_dir / v["name"] / VARIANT_FILE
             if (variants_dir / v["name"] / "manifest.json").is_file() and vfile.is_file():
+                # A finished variant's files must be the ones its manifest lists: one lost
+                # or cut short would drop or garble its rows in the tables.
+                rerun = f"re-run `macromicro batch` into {folder} (it redoes variant {v['name']})"
+                problem = damaged(variants_dir / v["name"], rerun)
+                if problem:
+                    raise UserError(problem)
                 info = _read_json(vfile)
                 prev = statuses.get(v["name"], {})
                 statuses[v["name"]] = {
@@ -304,6 +321,9 @@ def export(folder: Path | str, fmt: str) -> list[Path]:
     manifest = folder / "manifest.json"
     if manifest.is_file():
         m = _read_json(manifest)
+        problem = damaged(folder)
+        if problem:
+            raise UserError(problem)
         wall = m.get("timings_s", {}).get(m.get("stage", ""), np.nan)
         spec = [{"name": folder.name, "scenario": m.get("scenario_name", ""), "params": {}}]
         statuses = {folder.name: {"status": "complete", "wall_s": wall}}

@@ -736,6 +736,7 @@ def is_complete(folder: Path, variant: Variant, stages: Sequence[str]) -> bool:
         variant.scenario is not None
         and info.get("scenario_sha256") == variant.scenario.digest()
         and info.get("stages") == list(stages)
+        and not export.damaged(folder)  # an output lost or cut short: redo the variant
     )
 
 

@@ -9,7 +9,6 @@ never seen in training.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -18,6 +17,7 @@ import pandas as pd
 
 from macromicro_sumo.data.macro import PSI_COLUMNS
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.files import read_checked_csv, read_manifest
 from macromicro_sumo.scenario.ring import Scenario
 
 GT_FILES = ("trajectories.csv", "macro.csv", "vehicles.csv", "speed_limits.csv", "manifest.json")
@@ -47,7 +47,7 @@ def load_ground_truth(folder: Path | str, sc: Scenario | None = None) -> GroundT
     missing = [f for f in GT_FILES if not (folder / f).is_file()]
     if missing:
         raise UserError(f"{folder}: ground-truth folder is missing {', '.join(missing)}")
-    manifest = json.loads((folder / "manifest.json").read_text())
+    manifest = read_manifest(folder / "manifest.json")
     if sc is not None:
         got = manifest.get("scenario", {})
         for table, key in (
@@ -62,17 +62,16 @@ def load_ground_truth(folder: Path | str, sc: Scenario | None = None) -> GroundT
                     f"{folder}: ground truth was simulated with {table}.{key} = {have}, "
                     f"scenario {sc.source} has {want}"
                 )
-    try:
-        return GroundTruth(
-            folder=folder,
-            trajectories=pd.read_csv(folder / "trajectories.csv"),
-            macro=pd.read_csv(folder / "macro.csv"),
-            vehicles=pd.read_csv(folder / "vehicles.csv"),
-            speed_limits=pd.read_csv(folder / "speed_limits.csv"),
-            manifest=manifest,
-        )
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-        raise UserError(f"{folder}: unreadable ground-truth CSV ({exc})") from None
+    # Each CSV is checked against the manifest's outputs map (rows and SHA-256): a file
+    # cut short or edited after `simulate` wrote it is refused, not half-used.
+    return GroundTruth(
+        folder=folder,
+        trajectories=read_checked_csv(folder, "trajectories.csv", manifest),
+        macro=read_checked_csv(folder, "macro.csv", manifest),
+        vehicles=read_checked_csv(folder, "vehicles.csv", manifest),
+        speed_limits=read_checked_csv(folder, "speed_limits.csv", manifest),
+        manifest=manifest,
+    )
 
 
 def split_runs(

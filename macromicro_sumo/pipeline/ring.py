@@ -18,8 +18,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.ring import evaluate
-from macromicro_sumo.files import prepare_out_dir, write_json
+from macromicro_sumo.files import check_outputs, prepare_out_dir, write_json
 from macromicro_sumo.generator.ring_train import run_train_generator
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.pipeline.refinement import refine
@@ -86,9 +87,14 @@ def _why_redo(stage: Stage, sc: Any, redone: set[str]) -> str | None:
     if not stage.manifest.is_file():
         return "no outputs yet"
     try:
-        recorded = json.loads(stage.manifest.read_text())["scenario"]
-    except (OSError, json.JSONDecodeError, KeyError, TypeError):
+        manifest = json.loads(stage.manifest.read_text())
+        recorded = manifest["scenario"]
+        # Outputs lost, cut short or edited since the stage wrote them: it runs again.
+        check_outputs(stage.manifest.parent, manifest, rerun="redoing the stage")
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError):
         return f"{stage.manifest.name} unreadable"
+    except UserError as exc:
+        return str(exc)
     have, want = stage_settings(recorded, stage), stage_settings(sc.to_dict(), stage)
     changed = sorted(k for k in have.keys() | want.keys() if have.get(k) != want.get(k))
     if changed:

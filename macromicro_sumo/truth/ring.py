@@ -19,7 +19,7 @@ import pandas as pd
 
 from macromicro_sumo.data import macro
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.files import prepare_out_dir, staging_dir, write_csv, write_json
+from macromicro_sumo.files import prepare_out_dir, staging_dir, write_csv, write_manifest
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.progress import tqdm
 from macromicro_sumo.road.physics import forward_accel, ring_leaders
@@ -276,5 +276,5 @@ def simulate(sc: Scenario, out: Path | str, command: str = "", progress: bool = 
         manifest["collisions"] = int(runs_df["collisions"].sum())
         manifest["teleports"] = int(runs_df["teleports"].sum())
         manifest["timings_s"] = {"simulate": round(time.perf_counter() - t_start, 3)}
-        write_json(manifest, stage / "manifest.json")
+        write_manifest(manifest, stage)
     return out

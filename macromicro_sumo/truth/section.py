@@ -26,7 +26,15 @@ import pandas as pd
 from macromicro_sumo.data.macro import passage_spacings
 from macromicro_sumo.data.section import SectionTruth, at_snapshot_times, check_columns
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.files import prepare_out_dir, staging_dir, write_csv, write_json
+from macromicro_sumo.files import (
+    check_outputs,
+    prepare_out_dir,
+    read_checked_csv,
+    read_manifest,
+    staging_dir,
+    write_csv,
+    write_manifest,
+)
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.progress import tqdm
 from macromicro_sumo.road.section import Section, lane_leaders, read_section
@@ -579,7 +587,7 @@ def simulate_section(
             k_estimate=k_summary(k_df, section),
             timings_s={"simulate": round(time.perf_counter() - t_start, 3)},
         )
-        write_json(manifest, stage / "manifest.json")
+        write_manifest(manifest, stage)
     return out
 
 
@@ -651,6 +659,8 @@ def load_section_truth(folder: Path | str, sc: SectionScenario | None = None) ->
             raise UserError(
                 f"{folder / name}: missing (run `macromicro simulate` on a section scenario)"
             )
+    manifest = read_manifest(folder / "manifest.json")
+    check_outputs(folder, manifest, names=("section.json",))
     section = Section.read(folder / "section.json")
     if sc is not None and tuple(sc.section.edges) != section.edge_ids:
         raise UserError(
@@ -659,14 +669,19 @@ def load_section_truth(folder: Path | str, sc: SectionScenario | None = None) ->
         )
     if sc is not None:
         check_step_length(folder / "manifest.json", sc)
-    traj = pd.read_csv(folder / "trajectories.csv", dtype={"vehicle_id": str, "vtype": str})
+    # Each CSV is checked against the manifest's outputs map (rows and SHA-256).
+    traj = read_checked_csv(
+        folder, "trajectories.csv", manifest, dtype={"vehicle_id": str, "vtype": str}
+    )
     check_columns(traj, TRAJ_COLUMNS, folder / "trajectories.csv")
     return SectionTruth(
         folder=folder,
         section=section,
         trajectories=traj,
-        detectors=pd.read_csv(folder / "detectors.csv"),
-        macro=pd.read_csv(folder / "macro.csv"),
-        vtypes=pd.read_csv(folder / "vtypes.csv", dtype={"vtype": str, "vclass": str}),
-        k_estimate=pd.read_csv(folder / "k_estimate.csv"),
+        detectors=read_checked_csv(folder, "detectors.csv", manifest),
+        macro=read_checked_csv(folder, "macro.csv", manifest),
+        vtypes=read_checked_csv(
+            folder, "vtypes.csv", manifest, dtype={"vtype": str, "vclass": str}
+        ),
+        k_estimate=read_checked_csv(folder, "k_estimate.csv", manifest),
     )

@@ -4,6 +4,7 @@ schema in docs/batch.md against the columns actually written."""
 from __future__ import annotations
 
 import re
+import shutil
 import sys
 from pathlib import Path
 
@@ -95,6 +96,48 @@ def test_export_of_anything_else_is_a_one_line_error(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and err.startswith("error: ") and err.count("\n") == 1
     assert "not a finished run or batch" in err
+
+
+def export_fails(capsys, folder: Path, *fragments: str) -> str:
+    """``macromicro export folder`` refused in one line; no table written."""
+    before = sorted(p.name for p in folder.iterdir())
+    code = main(["export", str(folder)])
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith("error: ") and err.count("\n") == 1, err
+    assert "Traceback" not in err
+    for fragment in fragments:
+        assert fragment in err, (fragment, err)
+    assert sorted(p.name for p in folder.iterdir()) == before
+    return err
+
+
+def test_export_of_a_run_with_a_truncated_macro_csv_names_it(finished_run, tmp_path, capsys):
+    copy = tmp_path / "gt"
+    shutil.copytree(finished_run, copy)
+    data = (copy / "macro.csv").read_bytes()
+    (copy / "macro.csv").write_bytes(data[: data.index(b"\n") + 5])  # header + 4 bytes
+    export_fails(capsys, copy, f"{copy / 'macro.csv'}: 1 data rows", "re-run `macromicro simulate`")
+
+
+def test_a_batch_variant_without_macro_csv_is_refused_then_redone(finished_batch, tmp_path, capsys):
+    copy = tmp_path / "out"
+    shutil.copytree(finished_batch, copy)
+    summary = pd.read_csv(copy / "batch_summary.csv")
+    name = summary.loc[summary["status"] == "complete", "variant"].iloc[0]
+    (copy / "variants" / name / "macro.csv").unlink()
+    export_fails(
+        capsys,
+        copy,
+        f"{copy / 'variants' / name / 'macro.csv'}: missing",
+        f"re-run `macromicro batch` into {copy} (it redoes variant {name})",
+    )
+    # The re-run sees the variant as unfinished and redoes it (and only it).
+    res = run_batch([finished_batch.parent / "s.toml"], copy, workers=1, progress=False)
+    assert res.counts["reused"] == 1 and res.counts["complete"] == 2
+    assert (copy / "variants" / name / "macro.csv").is_file()
+    assert main(["export", str(copy)]) == 0
+    macro = pd.read_csv(copy / "batch_macro.csv")
+    assert (macro["variant"] == name).sum() == 4  # runs x sources x intervals
 
 
 def documented_columns(table: str) -> list[str]:

@@ -4,6 +4,7 @@ masks and the macro descriptor Psi each snapshot carries."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import shutil
 from pathlib import Path
@@ -26,6 +27,7 @@ from macromicro_sumo.data.ring import (
     split_runs,
 )
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.files import file_sha256
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.scenario.ring import Scenario
 
@@ -316,13 +318,74 @@ def test_load_ground_truth_rejects_another_scenario(gt_small, tmp_path):
         load_ground_truth(gt.folder, other)
 
 
+def legacy_copy(gt: GroundTruth, folder: Path) -> Path:
+    """A copy of ``gt`` whose manifest has no outputs map, as folders written before it."""
+    shutil.copytree(gt.folder, folder, ignore=shutil.ignore_patterns("sumo"))
+    manifest = json.loads((folder / "manifest.json").read_text())
+    del manifest["outputs"]
+    (folder / "manifest.json").write_text(json.dumps(manifest))
+    return folder
+
+
 def test_load_ground_truth_rejects_an_unreadable_csv(gt_small, tmp_path):
+    sc, gt = gt_small
+    copy = legacy_copy(gt, tmp_path / "gt")
+    (copy / "macro.csv").write_bytes(b"")
+    with pytest.raises(UserError, match=r"macro\.csv: not a readable CSV"):
+        load_ground_truth(copy, sc)
+
+
+def test_manifest_records_rows_and_hash_of_every_csv(gt_small):
+    _, gt = gt_small
+    outputs = gt.manifest["outputs"]
+    csvs = sorted(p.name for p in gt.folder.glob("*.csv") if not p.name.startswith("export_"))
+    assert sorted(n for n in outputs if n.endswith(".csv")) == csvs
+    for name in csvs:
+        assert outputs[name]["rows"] == len(pd.read_csv(gt.folder / name)), name
+        assert outputs[name]["sha256"] == file_sha256(gt.folder / name), name
+    assert "manifest.json" not in outputs
+
+
+@pytest.mark.parametrize("name", ["trajectories.csv", "macro.csv", "vehicles.csv"])
+def test_a_csv_cut_mid_row_is_refused_by_name(gt_small, tmp_path, name):
     sc, gt = gt_small
     copy = tmp_path / "gt"
     shutil.copytree(gt.folder, copy, ignore=shutil.ignore_patterns("sumo"))
-    (copy / "macro.csv").write_bytes(b"")
-    with pytest.raises(UserError, match="unreadable ground-truth CSV"):
+    data = (copy / name).read_bytes()
+    (copy / name).write_bytes(data[: len(data) // 2])  # a kill or full disk while copying
+    rows = gt.manifest["outputs"][name]["rows"]
+    with pytest.raises(UserError, match=rf"{name}: \d+ data rows, .* records {rows} "):
         load_ground_truth(copy, sc)
+
+
+def test_a_csv_edited_in_place_is_refused_by_name(gt_small, tmp_path):
+    sc, gt = gt_small
+    copy = tmp_path / "gt"
+    shutil.copytree(gt.folder, copy, ignore=shutil.ignore_patterns("sumo"))
+    text = (copy / "macro.csv").read_text()
+    (copy / "macro.csv").write_text(text.replace("detectors", "detectorz", 1))
+    with pytest.raises(UserError, match=r"macro\.csv: content differs from .*edited or corrupt"):
+        load_ground_truth(copy, sc)
+
+
+def test_a_folder_without_outputs_map_still_loads(gt_small, tmp_path):
+    sc, gt = gt_small
+    old = load_ground_truth(legacy_copy(gt, tmp_path / "gt"), sc)
+    pd.testing.assert_frame_equal(old.trajectories, gt.trajectories)
+
+
+def test_cli_train_generator_on_a_cut_trajectory_file_is_one_line(gt_small, tmp_path, capsys):
+    sc, gt = gt_small
+    copy = tmp_path / "gt"
+    shutil.copytree(gt.folder, copy, ignore=shutil.ignore_patterns("sumo"))
+    data = (copy / "trajectories.csv").read_bytes()
+    (copy / "trajectories.csv").write_bytes(data[: len(data) * 2 // 3 + 7])
+    out = tmp_path / "gen"
+    code = main(["train-generator", sc.source, "--data", str(copy), "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith("error: ") and err.count("\n") == 1, err
+    assert f"{copy / 'trajectories.csv'}: " in err and "Traceback" not in err
+    assert not out.exists() or not any(out.iterdir())
 
 
 def test_ground_truth_runs_are_sorted_unique(gt_small):

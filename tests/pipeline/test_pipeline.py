@@ -13,7 +13,7 @@ from conftest import write_scenario
 
 from macromicro_sumo import cli
 from macromicro_sumo.evaluation.ring import METHOD_ORDER
-from macromicro_sumo.files import write_json
+from macromicro_sumo.files import write_json, write_manifest
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.pipeline.ring import RESUME, run_stages, standard_stages
 from macromicro_sumo.scenario.load import load_scenario
@@ -339,3 +339,16 @@ def test_stages_redo_what_an_edit_reaches(make_scenario, tmp_path):
     assert _redone(_edit(sc, "generator", snapshot_every_s=every_s), out)[0] == "train_generator"
     reads = ("generator.snapshot_every_s",)
     assert _redone(_edit(sc, "generator", snapshot_every_s=every_s + 1), out, reads) == every
+
+
+def test_a_stage_whose_outputs_were_cut_short_is_redone(make_scenario, tmp_path):
+    """A ground truth whose CSV no longer matches its manifest's outputs map is redone,
+    and with it every stage that reads it."""
+    sc, out = load_scenario(make_scenario()), tmp_path / "run"
+    assert _redone(sc, out) == list(STAGE_MANIFESTS)
+    gt = out / "ground_truth"
+    (gt / "trajectories.csv").write_text("run,time_s\n0,0.0\n0,0.5\n")
+    write_manifest(build_manifest(sc, "", "simulate"), gt)  # records the file's rows and hash
+    assert _redone(sc, out) == []
+    (gt / "trajectories.csv").write_text("run,time_s\n0,0.0\n0,0")  # cut mid-row
+    assert _redone(sc, out) == list(STAGE_MANIFESTS)

@@ -7,6 +7,8 @@ lane counts and limits that change between edges and two car-following models.
 from __future__ import annotations
 
 import json
+import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -227,3 +229,33 @@ def test_stages_refuse_a_ground_truth_of_another_step_length(
     assert not (tmp_path / "o").exists()
     with pytest.raises(UserError, match="step_length_s"):
         load_section_truth(gt, load_scenario(path))
+
+
+@pytest.mark.parametrize("name", ["vtypes.csv", "k_estimate.csv", "section.json"])
+def test_section_truth_refuses_an_output_that_changed(
+    corridor_truth: tuple[Path, Path], tmp_path: Path, name: str
+) -> None:
+    """Every file of a section's ground truth is checked against its manifest's outputs map."""
+    path, gt = corridor_truth
+    manifest = json.loads((gt / "manifest.json").read_text())
+    assert set(manifest["outputs"]) >= {
+        "section.json",
+        "trajectories.csv",
+        "detectors.csv",
+        "macro.csv",
+        "vtypes.csv",
+        "k_estimate.csv",
+        "runs.csv",
+        "detector_passages.csv",
+    }
+    copy = tmp_path / "gt"
+    shutil.copytree(gt, copy, ignore=shutil.ignore_patterns("sumo"))
+    data = (copy / name).read_bytes()
+    (copy / name).write_bytes(data[:-3])
+    with pytest.raises(
+        UserError, match=rf"{re.escape(str(copy / name))}: .*re-run `macromicro simulate`"
+    ):
+        load_section_truth(copy, load_scenario(path))
+    (copy / name).unlink()
+    with pytest.raises(UserError, match=rf"{re.escape(str(copy / name))}: missing"):
+        load_section_truth(copy)
