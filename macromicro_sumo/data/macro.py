@@ -27,6 +27,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from macromicro_sumo.data.objective import MacroTarget, spacing_terms, speed_terms
+
 PSI_COLUMNS = [
     "mean_speed_mps",
     "mean_spacing_m",
@@ -201,26 +203,10 @@ def spacing_losses(
     d_max_m: np.ndarray,
     target_std_m: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
-    """The paper's L_mean, L_min, L_max, L_var over the gaps in ``mask`` (the set A).
-
-    Arrays are batched over the leading axis: ``gaps_m`` and ``mask`` are (B, N), the
-    targets (B,). Rows with an empty A give zeros. With ``target_std_m`` (the detectors'
-    spacing std, ``generator.spacing_dispersion = "measured"``) L_var is
-    ``measured_dispersion`` instead of the paper's std(d_A) / mean.
-    """
-    m = mask.astype(float)
-    cnt = np.maximum(m.sum(-1), 1.0)
-    mean = (gaps_m * m).sum(-1) / cnt
-    l_mean = (mean / mean_target_m - 1.0) ** 2
-    l_min = ((np.maximum(0.0, d_min_m[:, None] - gaps_m) / d_min_m[:, None]) ** 2 * m).sum(-1) / cnt
-    l_max = ((np.maximum(0.0, gaps_m - d_max_m[:, None]) / d_max_m[:, None]) ** 2 * m).sum(-1) / cnt
-    if target_std_m is None:
-        l_var = np.sqrt((((gaps_m - mean[:, None]) ** 2) * m).sum(-1) / cnt) / mean_target_m
-    else:
-        l_var = measured_dispersion(gaps_m, mask, mean_target_m, target_std_m)
-    empty = m.sum(-1) == 0
-    out = {"L_mean": l_mean, "L_min": l_min, "L_max": l_max, "L_var": l_var}
-    return {k: np.where(empty, 0.0, v) for k, v in out.items()}
+    """The paper's L_mean, L_min, L_max, L_var over the gaps in ``mask`` (the set A), (B,)
+    each: ``objective.spacing_terms`` with Psi's fields as positional arrays."""
+    target = MacroTarget(np.nan, mean_target_m, d_min_m, d_max_m, target_std_m)
+    return spacing_terms(gaps_m, mask.astype(float), target)
 
 
 def measured_dispersion(gaps_m: Any, mask: Any, mean_m: Any, std_m: Any) -> Any:
@@ -241,10 +227,6 @@ def measured_dispersion(gaps_m: Any, mask: Any, mean_m: Any, std_m: Any) -> Any:
 def speed_loss(
     speeds_mps: np.ndarray, target_mps: np.ndarray, scale_mps: float = 0.0
 ) -> np.ndarray:
-    """L_speed = ((mean fleet speed - v_GT) / s)^2, batched over the leading axis.
-
-    s = v_GT (``scale_mps`` 0) is the paper's relative error; a fixed s in m/s makes a
-    bias of s cost what the paper charges for a 100% error (``policy.macro_speed_scale_mps``).
-    """
-    scale = scale_mps if scale_mps > 0 else target_mps
-    return ((speeds_mps.mean(-1) - target_mps) / scale) ** 2
+    """L_speed of (B, N) fleets (every vehicle counted): ``objective.speed_terms``."""
+    target = MacroTarget(target_mps, np.nan, np.nan, np.nan)
+    return speed_terms(speeds_mps, np.ones_like(speeds_mps), target, scale_mps)["L_speed"]

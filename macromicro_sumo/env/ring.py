@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from macromicro_sumo.data.objective import MacroTarget, macro_reward, macro_terms
 from macromicro_sumo.data.ring import GroundTruth, Snapshots, hide, run_arrays, snapshot_states
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.generator.ring import complete
@@ -237,6 +238,9 @@ class RingCore:
         self.speed = b.speed0_mps[episode].copy()
         self.hidden = b.hidden[episode]
         self.psi = b.psi[episode]
+        std = None if b.spacing_std_m is None else b.spacing_std_m[episode]
+        # Psi's columns (data.macro.PSI_COLUMNS): v_mean, d_mean, d_min, d_max, v_min, v_max.
+        self._target = MacroTarget(*self.psi[:4], spacing_std_m=std)
         self.limits = b.limits_mps[episode]
         if not self.sim.is_active():  # another simulation took libsumo's one: ours again
             self.sim.reload()
@@ -283,36 +287,20 @@ class RingCore:
         return obs
 
     def macro_reward(self) -> tuple[float, dict[str, float]]:
-        """r_macro,t = 1 / (1 + lambda_v L_speed + lambda_d L_dist) on the whole scene.
-
-        The terms of ``macro.spacing_losses`` / ``speed_loss`` for one scene, written for
-        a single ring because this runs every step (tested equal to them).
-        """
-        v_mean, d_mean, d_min, d_max = self.psi[0], self.psi[1], self.psi[2], self.psi[3]
-        a = self.spacing[self.hidden | self.hidden[self.leader]]
-        scale = self.sc.policy.macro_speed_scale_mps or v_mean  # macro.speed_loss
-        terms = {"L_speed": float(((self.speed.sum() / self.n - v_mean) / scale) ** 2)}
-        m = a.size
-        if m:
-            # sum()/m rather than mean()/std(): numpy's reductions cost more than the math here.
-            mean = a.sum() / m
-            low = np.maximum(0.0, d_min - a)
-            high = np.maximum(0.0, a - d_max)
-            terms["L_mean"] = float((mean / d_mean - 1.0) ** 2)
-            terms["L_min"] = float((low * low).sum() / (m * d_min * d_min))
-            terms["L_max"] = float((high * high).sum() / (m * d_max * d_max))
-            if self.bank.spacing_std_m is None:
-                dev = a - mean
-                terms["L_var"] = float(np.sqrt((dev * dev).sum() / m) / d_mean)
-            else:  # macro.measured_dispersion
-                dev = a - d_mean
-                target = self.bank.spacing_std_m[self.episode]
-                terms["L_var"] = float(abs((dev * dev).sum() / m - target * target) / d_mean**2)
-        else:
-            terms.update(L_mean=0.0, L_min=0.0, L_max=0.0, L_var=0.0)
+        """r_macro,t of the whole scene against the episode's Psi (``data.objective``):
+        every vehicle's speed, and the spacings that touch a hidden vehicle (it, or its
+        leader) as A."""
+        terms = macro_terms(
+            self.speed,
+            None,  # every slot of a ring is on it
+            self.spacing[self.hidden | self.hidden[self.leader]],
+            None,  # already the set A
+            self._target,
+            self.sc.policy.macro_speed_scale_mps,
+        )
+        terms = {k: float(v) for k, v in terms.items()}
         g = self.sc.generator
-        l_dist = terms["L_mean"] + terms["L_min"] + terms["L_max"] + terms["L_var"]
-        return 1.0 / (1.0 + g.lambda_v * terms["L_speed"] + g.lambda_d * l_dist), terms
+        return float(macro_reward(terms, g.lambda_v, g.lambda_d)), terms
 
     def step(self, accel_hidden: np.ndarray) -> StepResult:
         """Advance one step: hidden vehicles apply ``accel_hidden`` (K,), observed replay."""

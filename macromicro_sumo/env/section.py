@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from macromicro_sumo.data.objective import MacroTarget, macro_reward, macro_terms
 from macromicro_sumo.data.section import PSI_FIELDS, SectionSnapshots, SectionTruth
 from macromicro_sumo.env.ring import StepResult
 from macromicro_sumo.errors import UserError
@@ -308,37 +309,34 @@ def section_macro_reward(
     lambda_d: float,
     speed_scale_mps: float = 0.0,
 ) -> tuple[float, dict[str, float]]:
-    """r_macro = 1 / (1 + lambda_v L_speed + lambda_d L_dist) of the active vehicles vs psi.
+    """r_macro of the active vehicles against psi (``data.objective``, as on the ring).
 
-    As ``RingCore.macro_reward``: L_speed on the mean speed of all active vehicles; the
-    spacing terms on the per-lane spacings that touch a hidden vehicle (it, or its leader),
-    vehicles without a leader excluded. psi has no upper spacing bound, so L_max is absent;
-    L_var is |std - detectors' spacing std| / d_mean where the detectors measured one, else
-    the paper's std / d_mean.
+    L_speed on the mean speed of all active vehicles; A holds the per-lane spacings that
+    touch a hidden vehicle (it, or its leader), vehicles without a leader excluded. psi has
+    no upper spacing bound (L_max is 0); L_var is the measured dispersion where the
+    detectors measured a spacing std, else the paper's.
     """
-    v_mean, d_mean = psi[_PSI["mean_speed_mps"]], psi[_PSI["mean_spacing_m"]]
-    d_std, d_min = psi[_PSI["std_spacing_m"]], psi[_PSI["spacing_min_m"]]
-    n = int(active.sum())
-    if n == 0:
+    if not active.any():
         return 0.0, {}
-    scale = speed_scale_mps or v_mean  # macro.speed_loss
-    terms = {"L_speed": float(((speed_mps[active].sum() / n - v_mean) / scale) ** 2)}
     has = active & (leader >= 0)
-    lead = np.maximum(leader, 0)
-    a = spacing_m[has & (hidden | hidden[lead])]
-    m = a.size
-    if m:
-        mean = a.sum() / m
-        dev = a - mean
-        low = np.maximum(0.0, d_min - a)
-        std = np.sqrt((dev * dev).sum() / m)
-        terms["L_mean"] = float((mean / d_mean - 1.0) ** 2)
-        terms["L_min"] = float((low * low).sum() / (m * d_min * d_min))
-        terms["L_var"] = float((abs(std - d_std) if np.isfinite(d_std) else std) / d_mean)
-    else:
-        terms.update(L_mean=0.0, L_min=0.0, L_var=0.0)
-    l_dist = terms["L_mean"] + terms["L_min"] + terms["L_var"]
-    return 1.0 / (1.0 + lambda_v * terms["L_speed"] + lambda_d * l_dist), terms
+    in_a = has & (hidden | hidden[np.maximum(leader, 0)])
+    target = MacroTarget(
+        psi[_PSI["mean_speed_mps"]],
+        psi[_PSI["mean_spacing_m"]],
+        psi[_PSI["spacing_min_m"]],
+        np.float64(np.inf),
+        spacing_std_m=psi[_PSI["std_spacing_m"]],
+    )
+    terms = macro_terms(
+        np.where(active, speed_mps, 0.0),
+        active,
+        np.where(in_a, spacing_m, 0.0),
+        in_a,
+        target,
+        speed_scale_mps,
+    )
+    terms = {k: float(v) for k, v in terms.items()}
+    return float(macro_reward(terms, lambda_v, lambda_d)), terms
 
 
 def initial_observations(sc, section: Section, bank: SectionBank) -> np.ndarray:

@@ -61,6 +61,7 @@ import torch
 from torch import nn
 
 from macromicro_sumo.checkpoints import load_network, save_network
+from macromicro_sumo.data.objective import MacroTarget, macro_loss, macro_terms
 from macromicro_sumo.data.ring import split_runs
 from macromicro_sumo.data.section import PSI_FIELDS, SectionSnapshots, section_snapshots
 from macromicro_sumo.files import prepare_out_dir, write_csv, write_json
@@ -607,36 +608,20 @@ def section_losses(
     psi: Psi,
     road: Road,
 ) -> dict[str, torch.Tensor]:
-    """The macro terms of completed scenes, (B,) each (module docstring)."""
+    """The macro terms of completed scenes, (B,) each (``data.objective``): every present
+    vehicle's speed, and every per-lane spacing on the section as A (psi has no upper
+    spacing bound: L_max is 0)."""
     sp, has = spacings(lane, arc, present, road)
-    w = has.double()
-    cnt = w.sum(dim=1).clamp(min=1.0)
-    any_sp = has.any(dim=1)
-    mean = (sp * w).sum(dim=1) / cnt
-    var = ((sp - mean[:, None]) ** 2 * w).sum(dim=1) / cnt
-    std = torch.sqrt(var + 1e-8)  # the epsilon keeps equal spacings trainable
-    zero = torch.zeros_like(mean)
-    n = present.double().sum(dim=1).clamp(min=1.0)
-    v_mean = (speed * present).sum(dim=1) / n
-    v_std = torch.sqrt(((speed - v_mean[:, None]) ** 2 * present).sum(dim=1) / n + 1e-8)
-    if psi.v_std is None:
-        l_vstd = zero
-    else:
-        known = torch.isfinite(psi.v_std)
-        target = torch.where(known, psi.v_std, 0.0)
-        l_vstd = torch.where(known, torch.sqrt((v_std - target) ** 2 + 1e-8) / psi.v_mean, zero)
-    return {
-        "L_speed": (v_mean / psi.v_mean - 1.0) ** 2,
-        "L_vstd": l_vstd,
-        "L_mean": torch.where(any_sp, (mean / psi.d_mean - 1.0) ** 2, zero),
-        "L_min": ((torch.relu(psi.s_min[:, None] - sp) / psi.s_min[:, None]) ** 2 * w).sum(dim=1)
-        / cnt,
-        "L_var": torch.where(
-            any_sp & psi.d_std_known,
-            torch.sqrt((std - psi.d_std) ** 2 + 1e-8) / psi.d_mean,
-            zero,
-        ),
-    }
+    target = MacroTarget(
+        psi.v_mean,
+        psi.d_mean,
+        psi.s_min,
+        torch.full_like(psi.d_mean, math.inf),
+        spacing_std_m=torch.where(psi.d_std_known, psi.d_std, math.nan),
+        speed_std_mps=psi.v_std,
+    )
+    # eps under the square roots keeps equal spacings and speeds trainable.
+    return macro_terms(speed, present.double(), sp, has.double(), target, eps=1e-8)
 
 
 MIN_OBSERVED_FOR_SPREAD = 3  # observed vehicles needed to estimate a speed spread
@@ -659,12 +644,6 @@ def speed_spread_target(snaps: SectionSnapshots) -> np.ndarray:
     var = (np.where(obs, snaps.speed_mps - mean[:, None], 0.0) ** 2).sum(axis=1)
     std = np.sqrt(var / np.maximum(n - 1, 1))
     return np.where(n >= MIN_OBSERVED_FOR_SPREAD, std, np.nan)
-
-
-def total_loss(terms: dict[str, torch.Tensor], lambda_v: float, lambda_d: float) -> torch.Tensor:
-    return lambda_v * (terms["L_speed"] + terms["L_vstd"]) + lambda_d * (
-        terms["L_mean"] + terms["L_min"] + terms["L_var"]
-    )
 
 
 # --------------------------------------------------------------------------- rollouts
@@ -1153,7 +1132,7 @@ def _batch_loss(
         Psi.of(snaps.psi, speed_spread_target(snaps)),
         road,
     )
-    loss = total_loss(terms, sc.generator.lambda_v, sc.generator.lambda_d)
+    loss = macro_loss(terms, sc.generator.lambda_v, sc.generator.lambda_d)
     advantage = (loss - loss.mean()).detach()
     surrogate = loss.mean() + (advantage * log_p).mean()
     stats = {name: float(v.detach().mean()) for name, v in terms.items()}

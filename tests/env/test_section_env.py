@@ -175,7 +175,9 @@ def test_observations_and_reward_match_direct_computation(tmp_path, highway):
         l_speed = (v.mean() / PSI["mean_speed_mps"] - 1) ** 2
         l_mean = (a.mean() / PSI["mean_spacing_m"] - 1) ** 2
         l_min = (np.maximum(0, PSI["spacing_min_m"] - a) ** 2).mean() / PSI["spacing_min_m"] ** 2
-        l_var = abs(a.std() - PSI["std_spacing_m"]) / PSI["mean_spacing_m"]
+        # the measured dispersion (data.objective): variances around the measured mean
+        d_mean, d_std = PSI["mean_spacing_m"], PSI["std_spacing_m"]
+        l_var = abs(((a - d_mean) ** 2).mean() - d_std**2) / d_mean**2
         want = 1 / (
             1 + sc.generator.lambda_v * l_speed + sc.generator.lambda_d * (l_mean + l_min + l_var)
         )

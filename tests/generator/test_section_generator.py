@@ -207,6 +207,8 @@ def test_losses_zero_for_a_scene_that_matches_psi(bremen: Section) -> None:
     far = section_losses(
         lane, arc, torch.full((1, 4), 25.0), torch.ones(1, 4, dtype=bool), psi_far, road
     )
+    # psi has no upper spacing bound on a section: L_max is 0, every other term charges.
+    assert float(far.pop("L_max")[0]) == 0.0
     assert all(float(v[0]) > 1e-3 for v in far.values())
 
 
