@@ -16,52 +16,30 @@ from typing import Any
 
 from macromicro_sumo.batch import runner as batch
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.evaluation.ring import evaluate
-from macromicro_sumo.evaluation.section import evaluate_section
 from macromicro_sumo.files import check_out_path
-from macromicro_sumo.generator.ring_train import run_complete, run_train_generator
-from macromicro_sumo.generator.section import run_train_section_generator
-from macromicro_sumo.pipeline.ring import policy_paths, run
-from macromicro_sumo.pipeline.section import run_section, run_train_section_policy
-from macromicro_sumo.policy.ppo import run_train_policy
+from macromicro_sumo.generator.ring_train import run_complete
+from macromicro_sumo.pipeline import stages
+from macromicro_sumo.pipeline.ring import policy_paths
 from macromicro_sumo.scenario.load import load_scenario
-from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo import simulation as sumo
-from macromicro_sumo.truth.ring import simulate
-from macromicro_sumo.truth.section import scenario_inputs, simulate_section
-
-
-def is_section(sc: object) -> bool:
-    """A scenario on a user's SUMO network (``[network] kind = "sumo"``)."""
-    return isinstance(sc, SectionScenario)
 
 
 def _scenario(args: argparse.Namespace) -> Any:
     """The scenario of ``args``, with ``--out`` checked against every file it reads."""
     sc = load_scenario(args.scenario)
-    inputs = [args.scenario]
-    if is_section(sc):
-        files = scenario_inputs(sc)
-        inputs += [files.net_file, *files.route_files, *files.additional_files]
-        inputs += [files.sumocfg] if files.sumocfg else []
-    else:
-        inputs += [sc.resolve(sc.network.net_file), sc.resolve(sc.network.routes_file)]
-    check_out_path(args.out, inputs)
+    check_out_path(args.out, [args.scenario, *stages.input_files(sc)])
     return sc
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
-    sc = _scenario(args)
-    stage = simulate_section if is_section(sc) else simulate
-    out = stage(sc, args.out, command=args.command_line, progress=not args.quiet)
+    out = stages.simulate(_scenario(args), args.out, args.command_line, not args.quiet)
     print(f"ground truth written to {out}")
     return 0
 
 
 def _cmd_train_generator(args: argparse.Namespace) -> int:
     sc = _scenario(args)
-    stage = run_train_section_generator if is_section(sc) else run_train_generator
-    m = stage(sc, args.data, args.out, args.command_line, progress=not args.quiet)
+    m = stages.train_generator(sc, args.data, args.out, args.command_line, not args.quiet)
     print(
         f"generator written to {args.out / 'generator.pt'} ({m['epochs']} epochs, {m['timings_s']['train_generator']:.1f} s)"
     )
@@ -70,7 +48,7 @@ def _cmd_train_generator(args: argparse.Namespace) -> int:
 
 def _cmd_complete(args: argparse.Namespace) -> int:
     sc = _scenario(args)
-    if is_section(sc):
+    if stages.is_section(sc):
         raise UserError(
             f"{args.scenario}: `complete` is for ring scenarios; on a section, `train-generator` "
             "writes the held-out completions' metrics (generator_metrics.csv)"
@@ -82,8 +60,7 @@ def _cmd_complete(args: argparse.Namespace) -> int:
 
 def _cmd_train_policy(args: argparse.Namespace) -> int:
     sc = _scenario(args)
-    stage = run_train_section_policy if is_section(sc) else run_train_policy
-    m = stage(
+    m = stages.train_policy(
         sc, args.data, args.generator, args.out, args.resume, args.command_line, not args.quiet
     )
     if "alignment" in m:
@@ -100,35 +77,22 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         else {"policy": args.policy}
     )
     policies["policy"] = args.policy
-    if is_section(sc):
-        if args.hidden:
-            raise UserError(
-                "--hidden is for ring scenarios; on a section the hidden count is estimated "
-                "from the detectors (generator.k_source)"
-            )
-        evaluate_section(
-            sc, args.data, args.generator, policies, args.out, args.command_line, not args.quiet
-        )
-    else:
-        evaluate(
-            sc,
-            args.data,
-            args.generator,
-            policies,
-            args.out,
-            args.command_line,
-            not args.quiet,
-            args.hidden,
-        )
+    stages.evaluate(
+        sc,
+        args.data,
+        args.generator,
+        policies,
+        args.out,
+        args.command_line,
+        not args.quiet,
+        args.hidden,
+    )
     print(f"evaluation written to {args.out}")
     return 0
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    sc = _scenario(args)
-    (run_section if is_section(sc) else run)(
-        sc, args.out, args.command_line, progress=not args.quiet
-    )
+    stages.run(_scenario(args), args.out, args.command_line, progress=not args.quiet)
     print(f"pipeline outputs in {args.out}")
     return 0
 

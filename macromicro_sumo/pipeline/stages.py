@@ -1,0 +1,93 @@
+"""Each stage as one function for every scenario: the only place that looks at the kind.
+
+The command line and batch runs call these; the scenario (the paper's ring or a section
+of a user's network) picks the implementation, so no caller branches on it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.evaluation.ring import evaluate as evaluate_ring
+from macromicro_sumo.evaluation.section import evaluate_section
+from macromicro_sumo.generator.ring_train import run_train_generator
+from macromicro_sumo.generator.section import run_train_section_generator
+from macromicro_sumo.pipeline.ring import run as run_ring
+from macromicro_sumo.pipeline.section import run_section, run_train_section_policy
+from macromicro_sumo.policy.ppo import run_train_policy
+from macromicro_sumo.scenario.section import SectionScenario
+from macromicro_sumo.truth.ring import simulate as simulate_ring
+from macromicro_sumo.truth.section import scenario_inputs, simulate_section
+
+
+def is_section(sc: object) -> bool:
+    """A scenario on a user's SUMO network (``[network] kind = "sumo"``)."""
+    return isinstance(sc, SectionScenario)
+
+
+def input_files(sc: Any) -> list[Path]:
+    """Every file of the user's that the scenario reads (``--out`` must hold none)."""
+    files = [Path(sc.source)]
+    if is_section(sc):
+        found = scenario_inputs(sc)
+        files += [found.net_file, *found.route_files, *found.additional_files]
+        files += [found.sumocfg] if found.sumocfg else []
+    else:
+        files += [sc.resolve(sc.network.net_file), sc.resolve(sc.network.routes_file)]
+    return files
+
+
+def simulate(sc: Any, out: Path | str, command: str = "", progress: bool = True) -> Path:
+    """Ground truth: the scenario's demand in SUMO, recorded with detectors."""
+    stage = simulate_section if is_section(sc) else simulate_ring
+    return stage(sc, out, command=command, progress=progress)
+
+
+def train_generator(
+    sc: Any, data: Path, out: Path, command: str = "", progress: bool = True
+) -> dict[str, Any]:
+    """Stage I: the hidden-vehicle generator, trained on the ground truth in ``data``."""
+    stage = run_train_section_generator if is_section(sc) else run_train_generator
+    return stage(sc, data, out, command, progress=progress)
+
+
+def train_policy(
+    sc: Any,
+    data: Path,
+    generator: Path,
+    out: Path,
+    resume: bool | str = False,
+    command: str = "",
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Stage II: the shared policy, trained with PPO on micro + eta macro."""
+    stage = run_train_section_policy if is_section(sc) else run_train_policy
+    return stage(sc, data, generator, out, resume, command, progress)
+
+
+def evaluate(
+    sc: Any,
+    data: Path,
+    generator: Path,
+    policies: dict[str, Path],
+    out: Path,
+    command: str = "",
+    progress: bool = True,
+    hidden: list[int] | None = None,
+) -> Any:
+    """Every method on the held-out runs; ``hidden`` picks K on the ring."""
+    if not is_section(sc):
+        return evaluate_ring(sc, data, generator, policies, out, command, progress, hidden)
+    if hidden:
+        raise UserError(
+            "--hidden is for ring scenarios; on a section the hidden count is estimated "
+            "from the detectors (generator.k_source)"
+        )
+    return evaluate_section(sc, data, generator, policies, out, command, progress)
+
+
+def run(sc: Any, out: Path | str, command: str = "", progress: bool = True) -> dict[str, Any]:
+    """The whole pipeline, stage by stage; stages whose inputs did not change are reused."""
+    return (run_section if is_section(sc) else run_ring)(sc, out, command, progress=progress)
