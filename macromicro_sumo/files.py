@@ -16,6 +16,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 
 from macromicro_sumo.errors import UserError
@@ -24,21 +25,39 @@ _UMASK = os.umask(0)
 os.umask(_UMASK)
 
 
+class WriteError(UserError):
+    """An output could not be written (disk full, read-only folder): one line naming it."""
+
+    def __init__(self, path: Path | str, exc: OSError) -> None:
+        self.path, self.reason = Path(path), _reason(exc)
+        super().__init__(f"{path}: cannot write ({self.reason})")
+
+
 @contextlib.contextmanager
 def atomic_path(path: Path | str) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success rename it into place."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:
+        raise WriteError(path, exc) from None
     os.close(fd)
     tmp_path = Path(tmp)
     os.chmod(tmp_path, 0o666 & ~_UMASK)  # mkstemp makes 0600; outputs are ordinary files
     try:
         yield tmp_path
         os.replace(tmp_path, path)
+    except OSError as exc:  # disk full, read-only or vanished folder: one line, no traceback
+        raise WriteError(path, exc) from None
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
+
+
+def _reason(exc: OSError) -> str:
+    """An OSError in words: 'No space left on device', 'Permission denied', ..."""
+    return exc.strerror or str(exc) or type(exc).__name__
 
 
 def write_csv(df: pd.DataFrame, path: Path | str, float_format: str = "%.6f") -> None:
@@ -191,10 +210,12 @@ def read_checked_csv(
     name: str,
     manifest: dict[str, Any] | None = None,
     columns: Iterable[str] = (),
+    finite: Iterable[str] = (),
     **read_csv: Any,
 ) -> pd.DataFrame:
-    """``folder/name`` as a DataFrame, checked against the folder's manifest (``check_outputs``)
-    and for ``columns``; every problem is a one-line error naming the file."""
+    """``folder/name`` as a DataFrame, checked against the folder's manifest (``check_outputs``),
+    for ``columns`` and for finite numbers in the columns ``finite``; every problem is a
+    one-line error naming the file (and the column and line)."""
     path = Path(folder) / name
     if not path.is_file():
         raise UserError(f"{path}: missing; {_rerun(manifest or {})}")
@@ -206,6 +227,16 @@ def read_checked_csv(
     missing = [c for c in columns if c not in df.columns]
     if missing:
         raise UserError(f"{path}: missing column(s) {', '.join(missing)}")
+    for col in finite:
+        if col not in df.columns:
+            continue
+        values = pd.to_numeric(df[col], errors="coerce").to_numpy(dtype=float)
+        bad = np.flatnonzero(~np.isfinite(values))
+        if bad.size:
+            raise UserError(
+                f"{path}: column {col} holds {bad.size} value(s) that are not finite numbers, "
+                f"first {df[col].iloc[bad[0]]!r} on line {bad[0] + 2}; accepted: finite numbers"
+            )
     return df
 
 
@@ -245,7 +276,14 @@ def prepare_out_dir(out: Path | str, inputs: Iterable[Path | str] = ()) -> Path:
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise UserError(f"{out}: cannot create output folder ({exc.strerror})") from None
+        raise UserError(f"{out}: cannot create output folder ({_reason(exc)})") from None
+    try:  # an existing folder may be read-only (or on a read-only file system)
+        with tempfile.TemporaryFile(dir=out):
+            pass
+    except OSError as exc:
+        raise UserError(
+            f"{out}: output folder is not writable ({_reason(exc)}); pass a folder you can write"
+        ) from None
     return out
 
 
@@ -256,9 +294,23 @@ def staging_dir(out: Path) -> Iterator[Path]:
     Stages write many files; staging them keeps ``out`` free of partial results when a
     stage fails half-way (bad input found late, SUMO error, Ctrl-C).
     """
-    stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
     try:
-        yield stage
+        stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
+    except OSError as exc:
+        raise UserError(f"{out}: cannot write into the output folder ({_reason(exc)})") from None
+    try:
+        try:
+            yield stage
+        except (OSError, WriteError) as exc:  # a write failed: disk full, permissions
+            path = exc.path if isinstance(exc, WriteError) else Path(exc.filename or stage)
+            reason = exc.reason if isinstance(exc, WriteError) else _reason(exc)
+            if path == stage or stage in path.parents:
+                # Named where it was going: the staging folder is gone with this error.
+                path = out / path.relative_to(stage)
+                raise UserError(f"{path}: cannot write ({reason}); {out} is unchanged") from None
+            if isinstance(exc, WriteError):
+                raise
+            raise UserError(f"{path}: {reason}") from None
         items = sorted(stage.iterdir(), key=lambda p: ("manifest" in p.name, p.name))
         # All checks before the first rename: a refused target leaves ``out`` untouched.
         for item in items:
@@ -275,12 +327,15 @@ def staging_dir(out: Path) -> Iterator[Path]:
                 )
         # Manifests go last: a stage counts as done when its manifest exists, so a kill
         # between two renames must never leave a manifest beside missing files.
-        for item in items:
-            target = out / item.name
-            if item.is_dir():
-                mark_output(item)
-            if target.is_dir():
-                shutil.rmtree(target)
-            os.replace(item, target)
+        try:
+            for item in items:
+                target = out / item.name
+                if item.is_dir():
+                    mark_output(item)
+                if target.is_dir():
+                    shutil.rmtree(target)
+                os.replace(item, target)
+        except OSError as exc:
+            raise UserError(f"{exc.filename or out}: cannot replace ({_reason(exc)})") from None
     finally:
         shutil.rmtree(stage, ignore_errors=True)

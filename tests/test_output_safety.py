@@ -3,10 +3,18 @@ replace a folder it did not write, write into the inputs, the home folder or ``/
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import os
 import pickle
+import shutil
+import subprocess
+from collections.abc import Iterator
 from pathlib import Path
 
+import pandas as pd
 import pytest
+from conftest import SMALL
 
 from macromicro_sumo import cli
 from macromicro_sumo.errors import UserError
@@ -94,3 +102,82 @@ def test_out_that_holds_the_network_is_refused(make_scenario, tmp_path, capsys):
     code = cli.main(["simulate", str(make_scenario()), "--out", str(NETS), "--quiet"])
     err = capsys.readouterr().err
     assert code == 2 and "holds the input" in err and "ring_r" in err
+
+
+def listing(folder: Path) -> list[str]:
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*"))
+
+
+def one_line_error(capsys, code: int, *fragments: str) -> str:
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert err.startswith("error: ") and err.count("\n") == 1 and "Traceback" not in err, err
+    for fragment in fragments:
+        assert fragment in err, (fragment, err)
+    return err
+
+
+@contextlib.contextmanager
+def read_only(folder: Path) -> Iterator[None]:
+    """``folder`` made unwritable: by its mode, or (as root, who ignores modes) immutable."""
+    folder.chmod(0o555)
+    immutable = False
+    try:
+        if os.access(folder, os.W_OK):  # root
+            done = subprocess.run(["chattr", "+i", str(folder)], capture_output=True)
+            if done.returncode != 0 or not shutil.which("chattr"):
+                pytest.skip("cannot make a folder read-only for root here (no chattr +i)")
+            immutable = True
+        yield
+    finally:
+        if immutable:
+            subprocess.run(["chattr", "-i", str(folder)], check=True)
+        folder.chmod(0o755)
+
+
+def test_an_existing_read_only_out_is_one_line(make_scenario, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    with read_only(out):
+        code = cli.main(["simulate", str(make_scenario()), "--out", str(out), "--quiet"])
+        one_line_error(capsys, code, f"{out}: output folder is not writable")
+    assert listing(out) == []
+
+
+def test_a_read_only_out_found_by_the_write_probe(tmp_path, monkeypatch):
+    """Whatever makes the folder unwritable (mode, read-only mount), the probe reports it."""
+
+    def refuse(*args, **kwargs):
+        raise PermissionError(errno.EROFS, os.strerror(errno.EROFS), str(tmp_path))
+
+    monkeypatch.setattr("tempfile.TemporaryFile", refuse)
+    with pytest.raises(UserError, match="not writable .Read-only file system."):
+        prepare_out_dir(tmp_path / "o")
+
+
+@pytest.mark.parametrize("victim", ["trajectories.csv", "macro.csv", "manifest.json"])
+def test_disk_full_is_one_line_and_leaves_out_as_it_was(
+    make_scenario, tmp_path, capsys, monkeypatch, victim
+):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "notes.txt").write_text("the user's\n")
+    before = listing(out)
+    full = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    to_csv, write_text = pd.DataFrame.to_csv, Path.write_text
+
+    def csv_full(self, path=None, *args, **kwargs):
+        if f".{victim}." in str(path):
+            raise full
+        return to_csv(self, path, *args, **kwargs)
+
+    def text_full(self, *args, **kwargs):
+        if self.name.startswith(f".{victim}."):
+            raise full
+        return write_text(self, *args, **kwargs)
+
+    monkeypatch.setattr(pd.DataFrame, "to_csv", csv_full)
+    monkeypatch.setattr(Path, "write_text", text_full)
+    code = cli.main(["simulate", str(make_scenario(SMALL)), "--out", str(out), "--quiet"])
+    one_line_error(capsys, code, f"{out / victim}: cannot write (No space left on device)")
+    assert listing(out) == before

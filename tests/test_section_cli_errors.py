@@ -117,3 +117,10 @@ def test_instrumented_vtype_not_in_the_demand(capsys, files: Path) -> None:
 def test_several_completions_per_scene_are_for_rings(capsys, files: Path) -> None:
     path = scenario(files, evaluation={"completions_per_scene": 4})
     fails(capsys, path, "evaluation.completions_per_scene = 4", "ring", "accepted 1")
+
+
+def test_route_file_without_vehicles(capsys, files: Path) -> None:
+    """Routes and vTypes but nothing that drives them (was: `min() arg is an empty sequence`)."""
+    rou = files / "corridor.rou.xml"
+    rou.write_text("".join(ln for ln in rou.read_text().splitlines(True) if "<flow" not in ln))
+    fails(capsys, scenario(files), "corridor.rou.xml", "no vehicle, trip or flow")

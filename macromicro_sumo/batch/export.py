@@ -56,12 +56,13 @@ def find_output(folder: Path, name: str) -> Path | None:
     return found[0] if found else None
 
 
-def _read(folder: Path, name: str) -> pd.DataFrame | None:
-    """``name`` of a finished folder, checked against its manifest; None where it has none."""
+def _read(folder: Path, name: str, columns: Sequence[str] = ()) -> pd.DataFrame | None:
+    """``name`` of a finished folder, checked against its manifest and for ``columns``;
+    None where it has none."""
     path = find_output(folder, name)
     if path is None:
         return None
-    return read_checked_csv(path.parent, path.name)
+    return read_checked_csv(path.parent, path.name, columns=columns)
 
 
 def damaged(folder: Path, rerun: str = "") -> str:
@@ -102,7 +103,7 @@ def headline(folder: Path) -> dict[str, Any]:
     k = _read(folder, "k_estimate.csv")
     if k is not None and not k.empty and "k_error" in k:
         out["k_mean_abs_error_veh"] = float(k["k_error"].abs().mean())
-    m = _read(folder, "macro.csv")
+    m = _read(folder, "macro.csv", ("run", "source", "begin_s", "end_s", "mean_speed_mps"))
     if m is None or m.empty:
         return out
     density = "density_vehpkm" if "density_vehpkm" in m else "density_vpkm_lane"

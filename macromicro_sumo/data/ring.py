@@ -22,6 +22,38 @@ from macromicro_sumo.scenario.ring import Scenario
 
 GT_FILES = ("trajectories.csv", "macro.csv", "vehicles.csv", "speed_limits.csv", "manifest.json")
 
+# The columns later stages read (see docs/design.md for each file's whole schema) and those
+# that must hold finite numbers: a NaN in a state or a parameter would surface stages later.
+TRAJECTORY_COLUMNS = (
+    "run",
+    "time_s",
+    "vehicle_id",
+    "arc_pos_m",
+    "theta_rad",
+    "speed_mps",
+    "accel_mps2",
+    "leader_id",
+    "spacing_m",
+    "gap_m",
+    "leader_speed_mps",
+    "speed_limit_mps",
+)
+TRAJECTORY_NUMBERS = tuple(c for c in TRAJECTORY_COLUMNS if c not in ("vehicle_id", "leader_id"))
+MACRO_COLUMNS = ("run", "source", "begin_s", "end_s", *PSI_COLUMNS, "spacing_std_m", "n_samples")
+VEHICLE_COLUMNS = (
+    "run",
+    "vehicle_id",
+    "accel_mps2",
+    "decel_mps2",
+    "tau_s",
+    "min_gap_m",
+    "delta",
+    "speed_factor",
+    "max_speed_mps",
+    "length_m",
+)
+LIMIT_COLUMNS = ("run", "edge_id", "speed_limit_mps")
+
 
 @dataclass(frozen=True)
 class GroundTruth:
@@ -49,14 +81,16 @@ def load_ground_truth(folder: Path | str, sc: Scenario | None = None) -> GroundT
         raise UserError(f"{folder}: ground-truth folder is missing {', '.join(missing)}")
     manifest = read_manifest(folder / "manifest.json")
     if sc is not None:
-        got = manifest.get("scenario", {})
+        got = manifest.get("scenario")
+        got = got if isinstance(got, dict) else {}
         for table, key in (
             ("fleet", "n_vehicles"),
             ("network", "radius_m"),
             ("simulation", "step_length_s"),
         ):
             want = getattr(getattr(sc, table), key)
-            have = got.get(table, {}).get(key)
+            sub = got.get(table)
+            have = sub.get(key) if isinstance(sub, dict) else None
             if have != want:
                 raise UserError(
                     f"{folder}: ground truth was simulated with {table}.{key} = {have}, "
@@ -66,10 +100,28 @@ def load_ground_truth(folder: Path | str, sc: Scenario | None = None) -> GroundT
     # cut short or edited after `simulate` wrote it is refused, not half-used.
     return GroundTruth(
         folder=folder,
-        trajectories=read_checked_csv(folder, "trajectories.csv", manifest),
-        macro=read_checked_csv(folder, "macro.csv", manifest),
-        vehicles=read_checked_csv(folder, "vehicles.csv", manifest),
-        speed_limits=read_checked_csv(folder, "speed_limits.csv", manifest),
+        trajectories=read_checked_csv(
+            folder,
+            "trajectories.csv",
+            manifest,
+            TRAJECTORY_COLUMNS,
+            TRAJECTORY_NUMBERS,
+        ),
+        macro=read_checked_csv(folder, "macro.csv", manifest, MACRO_COLUMNS, ("run",)),
+        vehicles=read_checked_csv(
+            folder,
+            "vehicles.csv",
+            manifest,
+            VEHICLE_COLUMNS,
+            [c for c in VEHICLE_COLUMNS if c != "vehicle_id"],
+        ),
+        speed_limits=read_checked_csv(
+            folder,
+            "speed_limits.csv",
+            manifest,
+            LIMIT_COLUMNS,
+            ("run", "speed_limit_mps"),
+        ),
         manifest=manifest,
     )
 

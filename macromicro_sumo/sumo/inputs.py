@@ -291,6 +291,12 @@ def check_demand(inputs: SumoInputs, net: sumolib.net.Net) -> dict[str, VType]:
                 "which is defined in none of the route or additional files"
             )
 
+    if not users:
+        where = ", ".join(str(f) for f in files) or f"{inputs.sumocfg or inputs.net_file}"
+        raise UserError(
+            f"{where}: the demand has no vehicle, trip or flow, so SUMO would drive nothing; "
+            "accepted: at least one <vehicle>, <trip> or <flow> in the route or additional files"
+        )
     used: dict[str, VType] = {}
     for file, kind, eid, type_id in users:
         members = dists.get(type_id, [type_id])

@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 
 from macromicro_sumo.data.macro import passage_spacings
-from macromicro_sumo.data.section import SectionTruth, at_snapshot_times, check_columns
+from macromicro_sumo.data.section import SectionTruth, at_snapshot_times
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import (
     check_outputs,
@@ -620,6 +620,19 @@ TRAJ_COLUMNS = (
     "speed_mps",
     "accel_mps2",
 )
+TRAJ_NUMBERS = tuple(c for c in TRAJ_COLUMNS if c not in ("vehicle_id", "vtype", "observed"))
+MACRO_COLUMNS = (
+    "run",
+    "source",
+    "begin_s",
+    "end_s",
+    "mean_speed_mps",
+    "mean_spacing_m",
+    "std_spacing_m",
+    "speed_min_mps",
+    "speed_max_mps",
+)
+K_COLUMNS = ("run", "time_s", "k_true", "k_est", "k_error")
 
 
 def check_step_length(manifest: Path, sc: SectionScenario) -> None:
@@ -670,18 +683,28 @@ def load_section_truth(folder: Path | str, sc: SectionScenario | None = None) ->
     if sc is not None:
         check_step_length(folder / "manifest.json", sc)
     # Each CSV is checked against the manifest's outputs map (rows and SHA-256).
+    # Columns the later stages read must be there, states and counts finite numbers.
     traj = read_checked_csv(
-        folder, "trajectories.csv", manifest, dtype={"vehicle_id": str, "vtype": str}
+        folder,
+        "trajectories.csv",
+        manifest,
+        TRAJ_COLUMNS,
+        TRAJ_NUMBERS,
+        dtype={"vehicle_id": str, "vtype": str},
     )
-    check_columns(traj, TRAJ_COLUMNS, folder / "trajectories.csv")
     return SectionTruth(
         folder=folder,
         section=section,
         trajectories=traj,
         detectors=read_checked_csv(folder, "detectors.csv", manifest),
-        macro=read_checked_csv(folder, "macro.csv", manifest),
+        macro=read_checked_csv(folder, "macro.csv", manifest, MACRO_COLUMNS, ("run",)),
         vtypes=read_checked_csv(
-            folder, "vtypes.csv", manifest, dtype={"vtype": str, "vclass": str}
+            folder,
+            "vtypes.csv",
+            manifest,
+            ("vtype", "length_m", "vehicles"),
+            ("length_m", "vehicles"),
+            dtype={"vtype": str, "vclass": str},
         ),
-        k_estimate=read_checked_csv(folder, "k_estimate.csv", manifest),
+        k_estimate=read_checked_csv(folder, "k_estimate.csv", manifest, K_COLUMNS, K_COLUMNS),
     )

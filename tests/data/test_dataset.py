@@ -392,3 +392,48 @@ def test_ground_truth_runs_are_sorted_unique(gt_small):
     _, gt = gt_small
     assert list(gt.runs) == list(range(N_RUNS))
     assert isinstance(gt.folder, Path)
+
+
+def stage_fails(capsys, sc: Scenario, data: Path, out: Path, *fragments: str) -> str:
+    """``train-generator`` on a bad ground truth: exit 2, one line, ``out`` never written."""
+    code = main(["train-generator", sc.source, "--data", str(data), "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith("error: ") and err.count("\n") == 1, err
+    assert "Traceback" not in err
+    for fragment in fragments:
+        assert fragment in err, (fragment, err)
+    assert not out.exists()
+    return err
+
+
+@pytest.mark.parametrize("text", ["{not json", "[1, 2]", ""])
+def test_invalid_manifest_is_one_line(gt_small, tmp_path, capsys, text):
+    sc, gt = gt_small
+    copy = tmp_path / "gt"
+    shutil.copytree(gt.folder, copy, ignore=shutil.ignore_patterns("sumo"))
+    (copy / "manifest.json").write_text(text)
+    stage_fails(capsys, sc, copy, tmp_path / "gen", f"{copy / 'manifest.json'}: ")
+
+
+@pytest.mark.parametrize(
+    ("name", "column"),
+    [("trajectories.csv", "speed_mps"), ("macro.csv", "source"), ("vehicles.csv", "tau_s")],
+)
+def test_a_missing_column_is_one_line(gt_small, tmp_path, capsys, name, column):
+    sc, gt = gt_small
+    copy = legacy_copy(gt, tmp_path / "gt")
+    df = pd.read_csv(copy / name)
+    df.drop(columns=column).to_csv(copy / name, index=False)
+    stage_fails(capsys, sc, copy, tmp_path / "gen", f"{copy / name}: missing column(s) {column}")
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), "fast"])
+def test_non_finite_trajectories_are_one_line(gt_small, tmp_path, capsys, value):
+    """A NaN, inf or word in a state was a ValueError stages later, after the log began."""
+    sc, gt = gt_small
+    copy = legacy_copy(gt, tmp_path / "gt")
+    df = pd.read_csv(copy / "trajectories.csv")
+    df["speed_mps"] = df["speed_mps"].astype(object)
+    df.loc[7, "speed_mps"] = value
+    df.to_csv(copy / "trajectories.csv", index=False)
+    stage_fails(capsys, sc, copy, tmp_path / "gen", "trajectories.csv: column speed_mps", "line 9")

@@ -259,3 +259,31 @@ def test_section_truth_refuses_an_output_that_changed(
     (copy / name).unlink()
     with pytest.raises(UserError, match=rf"{re.escape(str(copy / name))}: missing"):
         load_section_truth(copy)
+
+
+@pytest.mark.parametrize(
+    ("name", "column", "value", "needle"),
+    [
+        ("trajectories.csv", "arc_m", float("nan"), "column arc_m holds 1 value(s)"),
+        ("k_estimate.csv", "k_est", float("inf"), "column k_est holds 1 value(s)"),
+        ("macro.csv", "source", None, "missing column(s) source"),
+    ],
+)
+def test_section_truth_refuses_missing_columns_and_non_finite_values(
+    corridor_truth: tuple[Path, Path], tmp_path: Path, name, column, value, needle
+) -> None:
+    _, gt = corridor_truth
+    copy = tmp_path / "gt"
+    shutil.copytree(gt, copy, ignore=shutil.ignore_patterns("sumo"))
+    manifest = json.loads((copy / "manifest.json").read_text())
+    del manifest["outputs"]  # as written before the outputs map: only the content tells
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    df = pd.read_csv(copy / name)
+    if value is None:
+        df = df.drop(columns=column)
+    else:
+        df[column] = df[column].astype(float)
+        df.loc[0, column] = value
+    df.to_csv(copy / name, index=False)
+    with pytest.raises(UserError, match=re.escape(f"{copy / name}: {needle}")):
+        load_section_truth(copy)
