@@ -250,13 +250,26 @@ def mark_output(folder: Path) -> None:
     (folder / OUTPUT_MARK).write_text("written by macromicro-sumo; a later run may replace it\n")
 
 
+def refuse_comma(path: Path | str, where: str) -> None:
+    """SUMO splits every file option at commas (``-n a,b.net.xml`` opens ``a`` and
+    ``b.net.xml``), with no way to quote one: refuse such a path before SUMO misreads it."""
+    text = str(path)
+    if "," in text:
+        raise UserError(
+            f"{where}: {text} has a comma, and SUMO splits its file lists at commas (it would "
+            f"open {text.split(',')[0]!r}); rename or move it to a path without ','"
+        )
+
+
 def check_out_path(out: Path | str, inputs: Iterable[Path | str] = ()) -> None:
-    """Refuse output folders that would put the user's files at risk.
+    """Refuse output folders that would put the user's files at risk, or SUMO would misread.
 
     ``/``, the home folder, an input file itself, or a folder holding an input: a stage
-    replaces its output folders, so none of these may be one.
+    replaces its output folders, so none of these may be one. A comma anywhere in the path:
+    stages hand SUMO files inside ``out`` (``refuse_comma``).
     """
     where = Path(out).expanduser().resolve()
+    refuse_comma(where, "--out")
     if where == Path(where.anchor) or where == Path.home().resolve():
         raise UserError(f"--out {out}: refusing the root or home folder; pass a folder of its own")
     for item in inputs:

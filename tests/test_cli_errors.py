@@ -3,6 +3,7 @@ key and the accepted range, no traceback, and no files in the output folder."""
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import pytest
@@ -137,3 +138,56 @@ def test_output_folder_is_a_file(capsys, make_scenario, tmp_path):
     simulate_fails(capsys, scenario, out_file, str(out_file), "existing file")
     assert out_file.read_text() == "keep me\n"
     assert listing(tmp_path) == siblings
+
+
+# --------------------------------------------------------------------------- SUMO's file lists
+
+
+def test_network_file_in_a_folder_with_a_comma(capsys, make_scenario, tmp_path, out):
+    """SUMO splits every file option at commas: such a path is refused, naming it."""
+    nets = tmp_path / "nets,v2"
+    nets.mkdir()
+    for name in ("ring_r100_e4.net.xml", "ring_r100_e4.add.xml"):
+        shutil.copy(NETS / name, nets / name)
+    path = make_scenario({"network.net_file": str(nets / "ring_r100_e4.net.xml")})
+    simulate_fails(
+        capsys, path, out, "network.net_file", str(nets / "ring_r100_e4.net.xml"), "comma"
+    )
+
+
+def test_out_with_a_comma(capsys, make_scenario, tmp_path):
+    out = tmp_path / "results,2024"
+    simulate_fails(capsys, make_scenario(), out, f"--out: {out} has a comma")
+
+
+def ring_routes(tmp_path: Path, keep) -> Path:
+    """The ring's routes file with only the lines ``keep`` accepts."""
+    lines = (NETS / "ring_r100_e4.add.xml").read_text().splitlines(True)
+    path = tmp_path / "ring.add.xml"
+    path.write_text("".join(ln for ln in lines if keep(ln)))
+    return path
+
+
+@pytest.mark.parametrize(
+    ("drop", "needles"),
+    [
+        ('<route id="r_e2"', ("no route 'r_e2'", "e0, e1, e2, e3")),
+        ("rerouter", ("no rerouter on ring edge 'e0'",)),
+    ],
+)
+def test_ring_routes_file_is_checked_before_sumo_starts(
+    capsys, make_scenario, tmp_path, out, drop, needles
+):
+    # A rerouter spans three lines; drop every line of the element when it is the target.
+    routes = ring_routes(
+        tmp_path, lambda ln: drop not in ln and ("interval" not in ln or drop != "rerouter")
+    )
+    path = make_scenario({"network.routes_file": str(routes)})
+    simulate_fails(capsys, path, out, str(routes), *needles)
+
+
+def test_ring_routes_file_that_is_not_xml(capsys, make_scenario, tmp_path, out):
+    routes = tmp_path / "ring.add.xml"
+    routes.write_text("routes: r_e0 r_e1\n")
+    path = make_scenario({"network.routes_file": str(routes)})
+    simulate_fails(capsys, path, out, str(routes), "not an XML file")

@@ -124,3 +124,12 @@ def test_route_file_without_vehicles(capsys, files: Path) -> None:
     rou = files / "corridor.rou.xml"
     rou.write_text("".join(ln for ln in rou.read_text().splitlines(True) if "<flow" not in ln))
     fails(capsys, scenario(files), "corridor.rou.xml", "no vehicle, trip or flow")
+
+
+def test_route_file_in_a_folder_with_a_comma(capsys, files: Path) -> None:
+    """SUMO would open 'a' and 'b/corridor.rou.xml' for 'a,b/corridor.rou.xml'."""
+    odd = files / "demand,v2"
+    odd.mkdir()
+    shutil.move(files / "corridor.rou.xml", odd / "corridor.rou.xml")
+    path = scenario(files, network={"route_files": [str(odd / "corridor.rou.xml")]})
+    fails(capsys, path, str(odd / "corridor.rou.xml"), "has a comma", "rename or move")

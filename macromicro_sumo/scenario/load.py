@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.files import refuse_comma
 from macromicro_sumo.scenario.fields import build_table
 from macromicro_sumo.scenario.ring import Scenario, check_consistency
 from macromicro_sumo.scenario.section import SectionScenario, build_section_scenario
@@ -65,6 +66,7 @@ def load_scenario(
         p = sc.resolve(getattr(sc.network, key))
         if not p.is_file():
             raise UserError(f"{file}: network.{key} = {p} does not exist")
+        refuse_comma(p, f"{file}: network.{key}")
     return sc
 
 

@@ -21,6 +21,7 @@ from xml.sax.saxutils import quoteattr
 import sumolib
 
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.files import refuse_comma
 
 DEFAULT_VEHTYPE = "DEFAULT_VEHTYPE"
 """SUMO's implicit vType for vehicles without ``type=``: passenger, length 5 m, minGap 2.5 m,
@@ -134,6 +135,8 @@ def resolve_inputs(
     _must_exist(net, "net_file", where)
     routes = [*cfg_routes, *(_must_exist(Path(p), "route file", where) for p in route_files)]
     adds = [*cfg_adds, *(_must_exist(Path(p), "additional file", where) for p in additional_files)]
+    for path in (net, *routes, *adds):
+        refuse_comma(path, where)
     return SumoInputs(net, tuple(routes), tuple(adds), sumocfg)
 
 
@@ -317,6 +320,54 @@ def check_demand(inputs: SumoInputs, net: sumolib.net.Net) -> dict[str, VType]:
                     "of the route or additional files"
                 )
     return used
+
+
+def check_ring_routes(path: Path, edge_ids: Sequence[str], net_file: Path) -> None:
+    """The ring's routes file (``network.routes_file``), checked before SUMO starts.
+
+    Vehicles are inserted on route ``r_<edge>`` of the edge they start on and kept going
+    round by a rerouter on every edge (``scripts/build_ring_net.py`` writes both). A missing
+    route made SUMO fail at the first insertion, a missing rerouter let vehicles leave the
+    ring at the end of their route.
+    """
+    path = Path(path)
+    root = _parse(path)
+    tag = _local(root.tag)
+    if tag not in ("additional", "routes"):
+        raise UserError(
+            f"{path}: not a SUMO routes file (root element <{tag}>, expected <additional> or "
+            "<routes>)"
+        )
+    routes: dict[str, list[str]] = {}
+    rerouted: set[str] = set()
+    for elem in root:
+        kind = _local(elem.tag)
+        if kind == "route":
+            routes[elem.get("id", "")] = elem.get("edges", "").split()
+        elif kind == "rerouter":
+            rerouted.update(elem.get("edges", "").split())
+    ring = set(edge_ids)
+    for edge in edge_ids:
+        rid = f"r_{edge}"
+        if rid not in routes:
+            raise UserError(
+                f"{path}: no route '{rid}'; the ring of {Path(net_file).name} needs a route "
+                f"r_<edge> starting on each of its edges ({', '.join(edge_ids)}); "
+                "scripts/build_ring_net.py writes them"
+            )
+        off = [e for e in routes[rid] if e not in ring]
+        if off:
+            raise UserError(
+                f"{path}: route '{rid}' uses edge '{off[0]}' which is not on the ring of "
+                f"{Path(net_file).name}"
+            )
+        if not routes[rid] or routes[rid][0] != edge:
+            raise UserError(f"{path}: route '{rid}' does not start on edge '{edge}'")
+        if edge not in rerouted:
+            raise UserError(
+                f"{path}: no rerouter on ring edge '{edge}'; vehicles would leave the ring at "
+                "the end of their route (scripts/build_ring_net.py writes routes and rerouters)"
+            )
 
 
 # ---------------------------------------------------------------- detectors

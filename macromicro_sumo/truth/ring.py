@@ -25,6 +25,7 @@ from macromicro_sumo.progress import tqdm
 from macromicro_sumo.road.physics import forward_accel, ring_leaders
 from macromicro_sumo.road.ring import RingGeometry, read_ring
 from macromicro_sumo.scenario.ring import Scenario
+from macromicro_sumo.sumo.inputs import check_ring_routes
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.truth import ring_detectors as detectors
 
@@ -197,6 +198,7 @@ def simulate(sc: Scenario, out: Path | str, command: str = "", progress: bool = 
             f"{net_file}: ring length {geo.length_m:.4f} m does not match network.radius_m = "
             f"{sc.network.radius_m:g} (2 pi R = {sc.network.length_m:.4f} m)"
         )
+    check_ring_routes(routes_file, geo.edge_ids, net_file)
     dt = sc.simulation.step_length_s
     n_steps = int(round(sc.simulation.duration_s / dt))
     rng = np.random.default_rng(sc.seed)
