@@ -22,8 +22,6 @@ Psi(S) = [mean speed, mean spacing, d_min, d_max, v_min, v_max] (PSI_COLUMNS).
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 import pandas as pd
 
@@ -207,21 +205,6 @@ def spacing_losses(
     each: ``objective.spacing_terms`` with Psi's fields as positional arrays."""
     target = MacroTarget(np.nan, mean_target_m, d_min_m, d_max_m, target_std_m)
     return spacing_terms(gaps_m, mask.astype(float), target)
-
-
-def measured_dispersion(gaps_m: Any, mask: Any, mean_m: Any, std_m: Any) -> Any:
-    """L_var against a measured spacing std: |mean_A (d - mean)^2 - std^2| / mean^2, (B,).
-
-    Batched like ``spacing_losses`` (numpy or torch). Deviations are taken from the
-    measured mean spacing, not from A's own mean: A holds a few gaps (two when one vehicle
-    is placed), and their spread around their own mean is a biased, smaller estimate of
-    the stream's. Squared deviations against the variance, not the std, so that each
-    scene's error adds linearly to the pooled spacing variance the detectors measure (an
-    error in a widely spread scene then counts for what it does to that figure).
-    """
-    m = mask * 1.0
-    var = (((gaps_m - mean_m[..., None]) ** 2) * m).sum(-1) / m.sum(-1).clip(min=1.0)
-    return abs(var - std_m**2) / mean_m**2
 
 
 def speed_loss(

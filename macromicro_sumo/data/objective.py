@@ -6,8 +6,8 @@ linear combination of named terms (as HighwayEnv's reward terms or Waymax's metr
 
 * ``L_speed`` = ((v_mean - v_target) / s)^2 over every vehicle on the road; s = v_target
   (the paper's relative error) or a fixed scale in m/s (``policy.macro_speed_scale_mps``);
-* ``L_vstd`` = |std(v) - the detectors' speed std| / v_target, where a target is given
-  (else 0): the speed spread that Psi's other fields say nothing about;
+* ``L_vstd`` = |std(v) - the detectors' speed std| / v_target, only where a target is
+  given: the speed spread that Psi's other fields say nothing about;
 * over the spacings in A (the gaps a generated or driven vehicle touches, chosen by the
   caller): ``L_mean`` = (mean_A(d) / d_target - 1)^2; ``L_min`` and ``L_max`` = mean_A of
   the squared relative shortfall under d_min and excess over d_max (inf: no upper bound);
@@ -122,12 +122,12 @@ def speed_terms(
     counted, n, _ = _counted(on_road, speed_mps)
     v_mean = counted.sum(-1) / n
     v_t = target.mean_speed_mps
-    scale = speed_scale_mps if speed_scale_mps > 0 else v_t
-    terms = {"L_speed": ((v_mean - v_t) / scale) ** 2}
+    if speed_scale_mps > 0:
+        terms = {"L_speed": ((v_mean - v_t) / speed_scale_mps) ** 2}
+    else:  # the paper's relative error
+        terms = {"L_speed": (v_mean / v_t - 1.0) ** 2}
     sigma = target.speed_std_mps
-    if sigma is None:
-        terms["L_vstd"] = v_mean * 0.0
-    else:
+    if sigma is not None:  # no target, no term
         dev, _, _ = _counted(on_road, speed_mps - v_mean[..., None])
         v_std = _sqrt((dev * dev).sum(-1) / n + eps)
         known = _where(sigma == sigma, 1.0, 0.0)  # NaN: no target
@@ -143,8 +143,8 @@ def spacing_terms(
     counted, cnt, has = _counted(in_a, spacing_m)
     d_t, d_min, d_max = target.mean_spacing_m, target.spacing_min_m, target.spacing_max_m
     mean = counted.sum(-1) / cnt
-    low, _, _ = _counted(in_a, _relu(d_min[..., None] - spacing_m))
-    high, _, _ = _counted(in_a, _relu(spacing_m - d_max[..., None]))
+    low, _, _ = _counted(in_a, _relu(d_min[..., None] - spacing_m) / d_min[..., None])
+    high, _, _ = _counted(in_a, _relu(spacing_m - d_max[..., None]) / d_max[..., None])
     sigma = target.spacing_std_m
     measured_only = sigma is not None and _all_finite(sigma)
     if not measured_only:  # the paper's dispersion, around A's own mean
@@ -158,15 +158,15 @@ def spacing_terms(
         l_var = measured if measured_only else _where(sigma == sigma, measured, own)
     return {
         "L_mean": has * (mean / d_t - 1.0) ** 2,
-        "L_min": (low * low).sum(-1) / (cnt * d_min * d_min),
-        "L_max": (high * high).sum(-1) / (cnt * d_max * d_max),
+        "L_min": (low * low).sum(-1) / cnt,
+        "L_max": (high * high).sum(-1) / cnt,
         "L_var": has * l_var,
     }
 
 
 def macro_loss(terms: dict[str, Any], lambda_v: float, lambda_d: float) -> Any:
     """lambda_v (L_speed + L_vstd) + lambda_d (L_mean + L_min + L_max + L_var)."""
-    speed = terms["L_speed"] + terms["L_vstd"]
+    speed = terms["L_speed"] + terms.get("L_vstd", 0.0)
     spacing = terms["L_mean"] + terms["L_min"] + terms["L_max"] + terms["L_var"]
     return lambda_v * speed + lambda_d * spacing
 

@@ -74,7 +74,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.special import log_ndtr, ndtri_exp
 from torch import nn
 
-from macromicro_sumo.data.macro import measured_dispersion
+from macromicro_sumo.data.objective import MacroTarget, macro_loss, macro_terms
 from macromicro_sumo.data.ring import Snapshots
 
 FEATURE_VERSION = 2
@@ -686,41 +686,29 @@ def macro_losses(
     psi: PsiTensors,
     length_m: float,
 ) -> dict[str, torch.Tensor]:
-    """The paper's L_speed and L_dist terms of completed scenes, (B,) each.
+    """The macro terms of completed scenes, (B,) each (``data.objective``).
 
     A (the gaps influenced by generated vehicles) holds every gap whose follower or
-    leader was generated. Same definitions as ``macro.spacing_losses`` (numpy). When Psi
-    carries the detectors' spacing std ``d_std``, L_var is ``measured_dispersion``: the
-    paper's std(d_A) / d_mean pulls every completion towards equal gaps, which the
-    measured spacing distribution contradicts.
+    leader was generated. When Psi carries the detectors' spacing std ``d_std``, L_var is
+    the measured dispersion: the paper's std(d_A) / d_mean pulls every completion towards
+    equal gaps, which the measured spacing distribution contradicts.
     """
     present = torch.ones_like(generated)
     follower, leader, gap, _ = ring_gaps(arc, present, length_m)
     a = (generated.gather(1, follower) | generated.gather(1, leader)).float()
-    cnt = a.sum(dim=1).clamp(min=1.0)
-    mean = (gap * a).sum(dim=1) / cnt
-    dmin, dmax = psi.d_min[:, None], psi.d_max[:, None]
-    has = a.sum(dim=1) > 0
-    zero = torch.zeros_like(mean)
-    if psi.d_std is None:
-        var = (((gap - mean[:, None]) ** 2) * a).sum(dim=1) / cnt
-        # sqrt has an infinite slope at 0: the epsilon keeps equal gaps trainable.
-        l_var = torch.sqrt(var + 1e-8) / psi.d_mean
-    else:
-        l_var = measured_dispersion(gap, a.bool(), psi.d_mean, torch.as_tensor(psi.d_std))
-    return {
-        "L_speed": (speed.mean(dim=1) / psi.v_mean - 1.0) ** 2,
-        "L_mean": torch.where(has, (mean / psi.d_mean - 1.0) ** 2, zero),
-        "L_min": ((torch.relu(dmin - gap) / dmin) ** 2 * a).sum(dim=1) / cnt,
-        "L_max": ((torch.relu(gap - dmax) / dmax) ** 2 * a).sum(dim=1) / cnt,
-        "L_var": torch.where(has, l_var, zero),
-    }
+    target = MacroTarget(
+        psi.v_mean,
+        psi.d_mean,
+        psi.d_min,
+        psi.d_max,
+        spacing_std_m=None if psi.d_std is None else torch.as_tensor(psi.d_std),
+    )
+    # eps: sqrt has an infinite slope at 0; the epsilon keeps equal gaps trainable.
+    return macro_terms(speed, None, gap, a, target, eps=1e-8)
 
 
 def total_loss(terms: dict[str, torch.Tensor], lambda_v: float, lambda_d: float) -> torch.Tensor:
-    return lambda_v * terms["L_speed"] + lambda_d * (
-        terms["L_mean"] + terms["L_min"] + terms["L_max"] + terms["L_var"]
-    )
+    return macro_loss(terms, lambda_v, lambda_d)
 
 
 def reconstruction_loss(
