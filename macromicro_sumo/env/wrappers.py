@@ -3,15 +3,19 @@
 
 ## Action Space
 Per hidden vehicle: ``Box(a_min, a_max, (1,), float32)``, the longitudinal acceleration
-[m/s^2] (the paper's [-1.1, 0.5]). It is clipped to the bounds and applied as a speed command
-v' = max(0, v + a dt) in SUMO speed mode 0. A wrong shape or a NaN/inf raises ``ValueError``
-naming the agent.
+[m/s^2] (``bounds.accel_mps2``, the paper's [-1.1, 0.5]). It is clipped to the bounds and
+applied as a speed command v' = max(0, v + a dt) in SUMO speed mode 0. With
+``normalize=True``: ``Box(-1, 1, (1,), float32)``, mapped linearly onto [a_min, a_max]
+(-1 -> a_min, 1 -> a_max; on the paper's ring 0 is -0.3 m/s^2). A wrong shape or a
+NaN/inf raises ``ValueError`` naming the agent.
 
 ## Observation Space
 Per hidden vehicle: ``Box(4,)`` = [v (m/s), v_limit at its position (m/s), spacing to the
 vehicle ahead, front to front (m), v - v_leader (m/s)], from arc positions (the paper's
 observation). With ``policy.observation = "lookahead"``: ``Box(6,)``, adding the next
-edge's speed limit (m/s) and the distance to it (m).
+edge's speed limit (m/s) and the distance to it (m). With ``normalize=True`` each feature
+is (value - shift) / scale with the fixed per-feature table of ``env.observation.FEATURES``
+(the one the ring's PPO agent uses), and the bounds move with it.
 
 ## Rewards
 r_macro,t = 1 / (1 + lambda_v L_speed,t + lambda_d L_dist,t) on the whole scene, the same
@@ -29,12 +33,15 @@ Observed vehicles replay their recorded speeds.
 ## Episode End
 Truncated after H = ``policy.horizon`` steps of ``simulation.step_length_s`` seconds (10 x
 0.5 s on the paper's ring); terminated on a collision (bumper gap below 0); truncated early
-with ``info["error"]`` if SUMO fails.
+with ``info["error"]`` if SUMO fails. ``gymnasium.make`` wraps the env in a ``TimeLimit`` of
+H steps, so ``env.spec.max_episode_steps`` is the scenario's H.
 
 ## Arguments
 ``scenario`` (TOML path), ``data`` (ground-truth folder), ``generator`` (generator.pt, or
 ``None`` to start from the true hidden states), ``split`` ("train", "val", "held_out"),
-``hidden`` (K, or a (low, high) range; gymnasium: 1), ``seed``.
+``hidden`` (K, or a (low, high) range; gymnasium: 1), ``seed``, ``normalize`` (False:
+SI units; True: actions in [-1, 1] and normalised observations, for off-the-shelf RL
+libraries such as Stable-Baselines3), ``render_mode`` (None only).
 
 ## One SUMO simulation per process
 libsumo runs one simulation per process. A second env (or ``gymnasium.utils.env_checker.
@@ -55,13 +62,14 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
+from gymnasium.wrappers import TimeLimit
 from pettingzoo import ParallelEnv
 
 from macromicro_sumo.data.ring import load_ground_truth, split_runs
+from macromicro_sumo.env.observation import feature_names, shift_scale
 from macromicro_sumo.env.ring import EpisodeBank, RingCore, build_bank, generator_completion
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.generator.ring_train import load_generator
-from macromicro_sumo.road.physics import OBSERVATION_FEATURES
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.scenario.ring import Scenario
 
@@ -86,13 +94,63 @@ def make_bank(
     return sc, build_bank(sc, gt, runs, fn, hidden, seed)
 
 
-def _spaces(sc: Scenario, length_m: float) -> tuple[spaces.Box, spaces.Box]:
-    a_min, a_max = sc.bounds.accel_mps2
-    act = spaces.Box(np.float32(a_min), np.float32(a_max), (1,), np.float32)
-    lo, hi = [0, 0, 0, -100, 0, 0], [100, 100, length_m, 100, 100, length_m]
-    d = len(OBSERVATION_FEATURES[sc.policy.observation])
-    obs = spaces.Box(np.array(lo[:d], np.float32), np.array(hi[:d], np.float32), dtype=np.float32)
-    return act, obs
+# Bounds of the raw observation features; "length" is the road's length [m].
+_FEATURE_BOUNDS = {
+    "speed_mps": (0.0, 100.0),
+    "speed_limit_mps": (0.0, 100.0),
+    "spacing_m": (0.0, "length"),
+    "delta_v_mps": (-100.0, 100.0),
+    "next_limit_mps": (0.0, 100.0),
+    "dist_to_next_m": (0.0, "length"),
+}
+
+
+class Scaling:
+    """The agent's units <-> the core's: actions (m/s^2) and observations (SI), raw or
+    normalised (``normalize``; the module docstring's Action and Observation Space)."""
+
+    def __init__(
+        self,
+        accel_mps2: tuple[float, float],
+        observation: str,
+        length_m: float,
+        normalize: bool,
+        shift_scale_: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> None:
+        self.a_min, self.a_max = (float(a) for a in accel_mps2)
+        self.normalize = bool(normalize)
+        names = feature_names(observation)
+        lo = np.array([_FEATURE_BOUNDS[n][0] for n in names], dtype=np.float64)
+        hi = np.array(
+            [
+                length_m if _FEATURE_BOUNDS[n][1] == "length" else _FEATURE_BOUNDS[n][1]
+                for n in names
+            ]
+        )
+        if self.normalize:
+            self.shift, self.scale = shift_scale_ or shift_scale(observation)
+            lo, hi = (lo - self.shift) / self.scale, (hi - self.shift) / self.scale
+            self.action_space = spaces.Box(np.float32(-1), np.float32(1), (1,), np.float32)
+        else:
+            self.shift, self.scale = np.zeros(len(names)), np.ones(len(names))
+            self.action_space = spaces.Box(
+                np.float32(self.a_min), np.float32(self.a_max), (1,), np.float32
+            )
+        self.observation_space = spaces.Box(
+            lo.astype(np.float32), hi.astype(np.float32), dtype=np.float32
+        )
+
+    def accel(self, action: float) -> float:
+        """The acceleration [m/s^2] an action asks for (the core clips it to the bounds)."""
+        if not self.normalize:
+            return action
+        return self.a_min + (action + 1.0) * 0.5 * (self.a_max - self.a_min)
+
+    def obs(self, raw: np.ndarray) -> np.ndarray:
+        """Observations (..., d) in the agent's units, float32."""
+        if not self.normalize:
+            return raw.astype(np.float32)
+        return ((raw - self.shift) / self.scale).astype(np.float32)
 
 
 # Vector envs that step their envs one after the other in this process: (module, class).
@@ -170,6 +228,7 @@ class RingHiddenEnv(gym.Env):
         split: str = "train",
         seed: int = 0,
         render_mode: str | None = None,
+        normalize: bool = False,
     ) -> None:
         _check_render_mode(render_mode)
         _refuse_in_process_vector(ENV_ID)
@@ -177,18 +236,22 @@ class RingHiddenEnv(gym.Env):
         sc, bank = make_bank(scenario, data, generator, split, 1, seed)
         self.core = RingCore(sc, bank, seed=seed)
         self.horizon = sc.policy.horizon
-        self.action_space, self.observation_space = _spaces(sc, self.core.length)
+        self.scaling = Scaling(
+            sc.bounds.accel_mps2, sc.policy.observation, self.core.length, normalize
+        )
+        self.action_space = self.scaling.action_space
+        self.observation_space = self.scaling.observation_space
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         obs = self.core.reset(int(self.np_random.integers(len(self.core.bank))))
-        return obs[self.core.hidden][0].astype(np.float32), _info(self.core)
+        return self.scaling.obs(obs[self.core.hidden][0]), _info(self.core)
 
     def step(self, action):
-        a = _check_action("hidden_0", action)
+        a = self.scaling.accel(_check_action("hidden_0", action))
         res = self.core.step(np.array([a]))
         truncated = res.truncated or self.core.t >= self.horizon
-        obs = res.obs[self.core.hidden][0].astype(np.float32)
+        obs = self.scaling.obs(res.obs[self.core.hidden][0])
         return obs, float(res.r_macro), bool(res.collision), bool(truncated), _info(self.core, res)
 
     def close(self) -> None:
@@ -209,6 +272,7 @@ class RingHiddenParallelEnv(ParallelEnv):
         hidden: int | tuple[int, int] = (1, 4),
         seed: int = 0,
         render_mode: str | None = None,
+        normalize: bool = False,
     ) -> None:
         _check_render_mode(render_mode)
         self.render_mode = render_mode
@@ -219,7 +283,10 @@ class RingHiddenParallelEnv(ParallelEnv):
         most = int(bank.hidden.sum(axis=1).max())
         self.possible_agents = [f"hidden_{i}" for i in range(most)]
         self.agents: list[str] = []
-        self._act, self._obs = _spaces(sc, self.core.length)
+        self.scaling = Scaling(
+            sc.bounds.accel_mps2, sc.policy.observation, self.core.length, normalize
+        )
+        self._act, self._obs = self.scaling.action_space, self.scaling.observation_space
         self._rng = np.random.default_rng(seed)
 
     def observation_space(self, agent: str) -> spaces.Box:
@@ -229,9 +296,8 @@ class RingHiddenParallelEnv(ParallelEnv):
         return self._act
 
     def _split(self, obs: np.ndarray) -> dict[str, np.ndarray]:
-        return {
-            a: o.astype(np.float32) for a, o in zip(self.agents, obs[self.core.hidden], strict=True)
-        }
+        hidden = self.scaling.obs(obs[self.core.hidden])
+        return dict(zip(self.agents, hidden, strict=True))
 
     def reset(self, seed: int | None = None, options: dict | None = None):
         if seed is not None:
@@ -245,7 +311,7 @@ class RingHiddenParallelEnv(ParallelEnv):
         missing = [a for a in self.agents if a not in actions]
         if missing:
             raise ValueError(f"agent {missing[0]}: no action given")
-        acc = np.array([_check_action(a, actions[a]) for a in self.agents])
+        acc = np.array([self.scaling.accel(_check_action(a, actions[a])) for a in self.agents])
         res = self.core.step(acc)
         truncated = res.truncated or self.core.t >= self.horizon
         obs = self._split(res.obs)
@@ -268,10 +334,18 @@ class RingHiddenParallelEnv(ParallelEnv):
         self.core.close()
 
 
+def make_ring_hidden_env(**kwargs: Any) -> gym.Env:
+    """``gymnasium.make``'s entry point: a ``RingHiddenEnv`` in a ``TimeLimit`` of its
+    scenario's horizon, so that ``env.spec.max_episode_steps`` is that scenario's H (the
+    registry cannot know it: the scenario is an argument)."""
+    env = RingHiddenEnv(**kwargs)
+    return TimeLimit(env, env.horizon)
+
+
 def register() -> None:
     """Register the gymnasium env (idempotent): ``gymnasium.make(ENV_ID, scenario=..., data=...)``."""
     if ENV_ID not in gym.registry:
-        gym.register(id=ENV_ID, entry_point="macromicro_sumo.env.wrappers:RingHiddenEnv")
+        gym.register(id=ENV_ID, entry_point="macromicro_sumo.env.wrappers:make_ring_hidden_env")
 
 
 register()

@@ -37,6 +37,7 @@ from torch import nn
 
 from macromicro_sumo.checkpoints import save_torch
 from macromicro_sumo.data.ring import load_ground_truth, split_runs
+from macromicro_sumo.env.observation import OBS_SHIFT_SCALE
 from macromicro_sumo.env.ring import EpisodeBank, RingCore, build_bank, generator_completion
 from macromicro_sumo.env.rollout import ActionFn, rollout
 from macromicro_sumo.env.section import SectionBank, SectionCore, initial_observations
@@ -50,15 +51,7 @@ from macromicro_sumo.scenario.ring import Scenario
 from macromicro_sumo.scenario.section import SectionScenario
 
 CHECKPOINT_FORMAT = "macromicro-policy"
-# Fixed observation scaling per feature (physics.OBSERVATION_FEATURES): SI units -> O(1).
-OBS_SHIFT_SCALE = {
-    "speed_mps": (12.0, 2.0),
-    "speed_limit_mps": (13.0, 1.0),
-    "spacing_m": (125.0, 50.0),
-    "delta_v_mps": (0.0, 1.0),
-    "next_limit_mps": (13.0, 1.0),
-    "dist_to_next_m": (80.0, 50.0),
-}
+# Fixed observation scaling per feature: env.observation.FEATURES (the envs' normalize too).
 
 
 # --------------------------------------------------------------------------- agent

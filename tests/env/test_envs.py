@@ -221,3 +221,69 @@ def test_async_vector_env_steps(gt):
             assert np.isfinite(rew).all() and not any(info.get("error", ["", ""]))
     finally:
         vec.close()
+
+
+def test_spec_max_episode_steps_is_the_scenario_horizon(gt, tmp_path):
+    import gymnasium
+
+    path, data, gen = gt
+    kwargs = dict(data=data, generator=gen)
+    env = gymnasium.make(ENV_ID, scenario=path, **kwargs)
+    assert env.spec.max_episode_steps == 10 == env.unwrapped.horizon
+    env.close()
+    short = write_scenario(
+        tmp_path,
+        {
+            "simulation.n_runs": 4,
+            "simulation.duration_s": 120.0,
+            "generator.epochs": 3,
+            "policy.horizon": 6,
+        },
+    )
+    env = gymnasium.make(ENV_ID, scenario=short, **kwargs)
+    try:
+        assert env.spec.max_episode_steps == 6
+        env.reset(seed=0)
+        steps, done = 0, False
+        while not done:
+            _, _, term, trunc, _ = env.step(np.array([0.0], np.float32))
+            steps, done = steps + 1, term or trunc
+        assert steps == 6
+    finally:
+        env.close()
+
+
+def test_normalized_spaces_map_onto_the_bounds(gt):
+    from macromicro_sumo.env.observation import shift_scale
+
+    path, data, gen = gt
+    raw = RingHiddenEnv(path, data, gen)
+    norm = RingHiddenEnv(path, data, gen, normalize=True)
+    try:
+        assert (norm.action_space.low, norm.action_space.high) == (-1.0, 1.0)
+        check_env(norm, skip_render_check=True)
+        shift, scale = shift_scale(raw.core.sc.policy.observation)
+        a_min, a_max = raw.core.sc.bounds.accel_mps2
+        dt = raw.core.dt
+        for action, accel in ((-1.0, a_min), (1.0, a_max), (0.0, (a_min + a_max) / 2)):
+            o_raw, _ = raw.reset(seed=5)
+            o_norm, _ = norm.reset(seed=5)
+            np.testing.assert_allclose(o_norm, (o_raw - shift) / scale, rtol=1e-5, atol=1e-5)
+            assert norm.observation_space.contains(o_norm)
+            v0 = norm.core.speed[norm.core.hidden][0]
+            norm.step(np.array([action], np.float32))
+            v1 = norm.core.speed[norm.core.hidden][0]
+            assert v1 == pytest.approx(max(0.0, v0 + accel * dt), abs=1e-3)
+    finally:
+        raw.close()
+        norm.close()
+
+
+def test_pettingzoo_env_normalized_passes_parallel_api_test(gt):
+    path, data, gen = gt
+    env = RingHiddenParallelEnv(path, data, gen, hidden=(1, 3), normalize=True)
+    try:
+        assert env.action_space("hidden_0").high[0] == 1.0
+        parallel_api_test(env, num_cycles=30)
+    finally:
+        env.close()
