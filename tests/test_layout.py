@@ -124,3 +124,14 @@ def test_only_the_sumo_boundary_imports_libsumo_or_traci():
             if any(n.split(".")[0] in ("libsumo", "traci") for n in names):
                 importers.add(name)
     assert importers == {"sumo.simulation"}
+
+
+def test_no_module_imports_another_modules_private_names():
+    private = []
+    for name, tree in _modules().items():
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith(
+                "macromicro_sumo"
+            ):
+                private += [f"{name}: {a.name}" for a in node.names if a.name.startswith("_")]
+    assert not private, "private names imported across modules: " + ", ".join(private)

@@ -34,6 +34,7 @@ from macromicro_sumo.evaluation.leader_follower import (
     policy_follower,
     run_leader_follower,
 )
+from macromicro_sumo.evaluation.methods import method_order
 from macromicro_sumo.evaluation.statistics import macro_row, samples_frame
 from macromicro_sumo.files import prepare_out_dir, staging_dir, write_csv, write_json
 from macromicro_sumo.generator.ring_train import load_generator
@@ -160,7 +161,7 @@ def long_rollout_bank(
 
 # --------------------------------------------------------------------------- the stage
 
-METHOD_ORDER = ["ground_truth", "policy", "micro_only", "macro_only", "idm_calibrated", "idm_true"]
+METHOD_ORDER = method_order("ring")
 
 
 def macro_alignment(

@@ -35,6 +35,7 @@ from macromicro_sumo.env.section import (
 )
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.idm_fit import calibrate_idm
+from macromicro_sumo.evaluation.methods import method_order
 from macromicro_sumo.evaluation.ring import idm_action, micro_consistency
 from macromicro_sumo.evaluation.statistics import macro_row, samples_frame
 from macromicro_sumo.files import prepare_out_dir, staging_dir, write_csv, write_json
@@ -45,7 +46,7 @@ from macromicro_sumo.progress import tqdm
 from macromicro_sumo.road.section import Section, lane_leaders
 from macromicro_sumo.truth.section import k_summary, load_section_truth, scenario_inputs
 
-METHOD_ORDER = ["ground_truth", "policy", "micro_only", "macro_only", "idm_calibrated"]
+METHOD_ORDER = method_order("sumo")
 
 
 def recorded(bank: SectionBank, section: Section, horizon: int, dt: float) -> Rollouts:

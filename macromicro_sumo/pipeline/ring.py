@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.evaluation.methods import LEARNED, checkpoint_name
 from macromicro_sumo.evaluation.ring import evaluate
 from macromicro_sumo.files import check_outputs, prepare_out_dir, write_json
 from macromicro_sumo.generator.ring_train import run_train_generator
@@ -107,9 +108,9 @@ def _why_redo(stage: Stage, sc: Any, redone: set[str]) -> str | None:
 def policy_paths(pol: Path) -> dict[str, Path]:
     """The learned methods' checkpoints in a policy folder (the ablations when present)."""
     paths = {"policy": pol / "policy.pt"}
-    for name in ("micro_only", "macro_only"):
-        if (pol / f"policy_{name}.pt").is_file():
-            paths[name] = pol / f"policy_{name}.pt"
+    for method in LEARNED:
+        if (pol / checkpoint_name(method)).is_file():
+            paths[method.name] = pol / checkpoint_name(method)
     return paths
 
 

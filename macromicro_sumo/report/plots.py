@@ -29,7 +29,7 @@ METHOD_COLORS = ("tab:orange", "tab:purple", "tab:brown", "tab:pink", "tab:olive
 SPEED_CMAP = "RdYlGn"  # red = slow, green = fast, as in traffic-state maps
 
 
-def _save(fig: Figure, path: Path | str) -> Path:
+def save_figure(fig: Figure, path: Path | str) -> Path:
     path = Path(path)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=DPI)
@@ -125,7 +125,7 @@ def plot_leader_follower(
             ax.grid(alpha=0.3)
     for ax in axes[-1]:
         ax.set_xlabel("time (s)")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 # --------------------------------------------------------------------------- time-space
@@ -185,7 +185,7 @@ def plot_time_space(
     sm = mpl.cm.ScalarMappable(norm=norm, cmap=cmap)
     fig.colorbar(sm, ax=list(axes), label="speed (m/s)", shrink=0.9)
     fig.suptitle("Time-space diagram (one line per vehicle, coloured by speed)")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 # --------------------------------------------------------------------------- distributions
@@ -245,7 +245,7 @@ def plot_distributions(
             ax.set_title(name if k is None else f"{name}, K = {int(k)} hidden vehicles")
             ax.legend(fontsize="small", loc="upper left")
             ax.grid(alpha=0.3)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 # --------------------------------------------------------------------------- training
@@ -286,7 +286,7 @@ def plot_generator_training(log: pd.DataFrame | Path | str, path: Path | str) ->
         ax.set_xlabel("epoch")
         ax.grid(alpha=0.3)
         ax.legend(fontsize="small", ncols=2 if ax is ax_t else 1)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 POLICY_PANELS = (
@@ -315,4 +315,4 @@ def plot_policy_training(log: pd.DataFrame | Path | str, path: Path | str) -> Pa
     for ax in axes[3:]:
         ax.set_xlabel("PPO update")
     fig.suptitle("Policy training (PPO)")
-    return _save(fig, path)
+    return save_figure(fig, path)

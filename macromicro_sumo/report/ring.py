@@ -10,8 +10,10 @@ import numpy as np
 import pandas as pd
 
 from macromicro_sumo.evaluation.leader_follower import method_summary
+from macromicro_sumo.evaluation.methods import methods_markdown
 from macromicro_sumo.files import write_text
 from macromicro_sumo.report import plots
+from macromicro_sumo.report.tables import markdown_table, read_if_present
 from macromicro_sumo.scenario.ring import Scenario
 
 # The paper's ring results (Results and discussions): policy per K, and its ground truth.
@@ -24,26 +26,6 @@ PAPER_GT = {
 PAPER_POLICY_SPEED = {1: 11.55, 2: 11.54, 3: 11.52, 4: 11.53}
 PAPER_POLICY_SPEED_STD = "0.78-0.80"
 PAPER_POLICY_SPACING_STD = "<= 34.79"
-
-
-def _table(df: pd.DataFrame, digits: int = 3) -> str:
-    """A GitHub markdown table (no extra dependency)."""
-    cols = list(df.columns)
-    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-    for _, row in df.iterrows():
-        cells = []
-        for c in cols:
-            v = row[c]
-            if isinstance(v, float | np.floating):
-                cells.append("" if np.isnan(v) else f"{v:.{digits}f}")
-            else:
-                cells.append(str(v))
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
-
-
-def _read(path: Path) -> pd.DataFrame | None:
-    return pd.read_csv(path) if path.is_file() else None
 
 
 def alignment_verdicts(align: pd.DataFrame) -> pd.DataFrame:
@@ -207,13 +189,13 @@ def write_report(sc: Scenario, out: Path, manifest: dict[str, Any]) -> Path:
         "",
     ]
 
-    traj = _read(gt_dir / "trajectories.csv")
-    runs = _read(gt_dir / "runs.csv")
+    traj = read_if_present(gt_dir / "trajectories.csv")
+    runs = read_if_present(gt_dir / "runs.csv")
     if traj is not None and runs is not None:
         parts += [
             "## Ground truth",
             "",
-            _table(
+            markdown_table(
                 pd.DataFrame(
                     [
                         {
@@ -240,7 +222,7 @@ def write_report(sc: Scenario, out: Path, manifest: dict[str, Any]) -> Path:
             ),
             "",
         ]
-        macro = _read(gt_dir / "macro.csv")
+        macro = read_if_present(gt_dir / "macro.csv")
         if macro is not None:
             d = macro[macro["source"] == "detectors"].set_index(["run", "begin_s"])
             t = macro[macro["source"] == "trajectories"].set_index(["run", "begin_s"])
@@ -255,7 +237,7 @@ def write_report(sc: Scenario, out: Path, manifest: dict[str, Any]) -> Path:
                 "",
             ]
 
-    gm = _read(gen_dir / "generator_metrics.csv")
+    gm = read_if_present(gen_dir / "generator_metrics.csv")
     if gm is not None:
         cols = [
             "method",
@@ -274,16 +256,17 @@ def write_report(sc: Scenario, out: Path, manifest: dict[str, Any]) -> Path:
         parts += [
             "## Stage I: generator (held-out snapshots)",
             "",
-            _table(gm[[c for c in cols if c in gm]], 4),
+            markdown_table(gm[[c for c in cols if c in gm]], 4),
             "",
         ]
 
-    align = _read(ev_dir / "macro_alignment.csv")
+    align = read_if_present(ev_dir / "macro_alignment.csv")
     if align is not None:
         parts += [
             "## Macro alignment (held-out scenes, rollouts of "
             f"{sc.evaluation.horizon_steps} x {sc.simulation.step_length_s:g} s)",
             "",
+            *methods_markdown("ring", set(align["method"])),
         ]
         paper = pd.DataFrame(
             [
@@ -317,18 +300,18 @@ def write_report(sc: Scenario, out: Path, manifest: dict[str, Any]) -> Path:
             "w1_spacing_m",
         ]
         parts += [
-            _table(align[[c for c in cols if c in align]]),
+            markdown_table(align[[c for c in cols if c in align]]),
             "",
             f"The paper (its own ground truth: {PAPER_GT['mean_speed_mps']} m/s, std {PAPER_GT['std_speed_mps']}):",
             "",
-            _table(paper, 2),
+            markdown_table(paper, 2),
             "",
             "Targets for `policy`:",
             "",
-            _table(alignment_verdicts(align)),
+            markdown_table(alignment_verdicts(align)),
             "",
         ]
-    refined = _read(out / "refined" / "evaluation" / "macro_alignment.csv")
+    refined = read_if_present(out / "refined" / "evaluation" / "macro_alignment.csv")
     if align is not None and refined is not None:
         cols = [
             "K",
@@ -346,15 +329,20 @@ def write_report(sc: Scenario, out: Path, manifest: dict[str, Any]) -> Path:
         parts += [
             f"## Joint refinement ({sc.policy.refine_iterations} outer iterations) vs single pass",
             "",
-            _table(both[["K", "run", *cols[1:]]]),
+            markdown_table(both[["K", "run", *cols[1:]]]),
             "",
         ]
 
-    micro = _read(ev_dir / "micro_consistency.csv")
+    micro = read_if_present(ev_dir / "micro_consistency.csv")
     if micro is not None:
-        parts += ["## Micro consistency (held-out observed actions)", "", _table(micro, 4), ""]
+        parts += [
+            "## Micro consistency (held-out observed actions)",
+            "",
+            markdown_table(micro, 4),
+            "",
+        ]
 
-    lf = _read(ev_dir / "leader_follower_summary.csv")
+    lf = read_if_present(ev_dir / "leader_follower_summary.csv")
     if lf is not None:
         parts += [
             "## Leader-follower (paper Fig. 3)",
@@ -363,7 +351,7 @@ def write_report(sc: Scenario, out: Path, manifest: dict[str, Any]) -> Path:
             f"fleet's IDM ranges; minimum safe gap {sc.evaluation.min_safe_gap_m:g} m; target: mean RMSE "
             "<= 0.3 m/s against the IDM follower.",
             "",
-            _table(method_summary(lf)),
+            markdown_table(method_summary(lf)),
             "",
         ]
 
@@ -375,7 +363,7 @@ def write_report(sc: Scenario, out: Path, manifest: dict[str, Any]) -> Path:
             "evaluation of one trained policy per method: the training seed moves these "
             "figures too (`scripts/lf_seeds.py` measures that spread).",
             "",
-            _table(figure_winners(align, micro, lf), 4),
+            markdown_table(figure_winners(align, micro, lf), 4),
             "",
         ]
 
@@ -383,7 +371,7 @@ def write_report(sc: Scenario, out: Path, manifest: dict[str, Any]) -> Path:
     if plots:
         parts += ["## Plots", ""] + [f"![{p.stem}](plots/{p.name})" for p in plots] + [""]
 
-    logs = _read(pol_dir / "policy_train_log.csv")
+    logs = read_if_present(pol_dir / "policy_train_log.csv")
     if logs is not None:
         last = logs.iloc[-1]
         parts += [

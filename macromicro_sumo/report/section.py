@@ -19,15 +19,16 @@ from matplotlib.collections import LineCollection
 from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 
+from macromicro_sumo.evaluation.methods import methods_markdown
 from macromicro_sumo.files import atomic_path
 from macromicro_sumo.report.plots import (
     SPEED_CMAP,
-    _save,
     plot_distributions,
     plot_generator_training,
     plot_policy_training,
+    save_figure,
 )
-from macromicro_sumo.report.ring import _read, _table
+from macromicro_sumo.report.tables import markdown_table, read_if_present
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.truth.section import load_section_truth
 
@@ -66,7 +67,7 @@ def plot_lane_time_space(
     axes[0].set_ylabel("position along the section (m)")
     fig.colorbar(mpl.cm.ScalarMappable(norm=norm, cmap=cmap), ax=list(axes), label="speed (m/s)")
     fig.suptitle(f"Ground truth, run {run}: time-space diagram per lane (dotted: edge borders)")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_detectors_vs_truth(macro: pd.DataFrame, k_est: pd.DataFrame, path: Path) -> Path:
@@ -94,7 +95,7 @@ def plot_detectors_vs_truth(macro: pd.DataFrame, k_est: pd.DataFrame, path: Path
     err = k_est["k_error"].abs().mean() if len(k_est) else np.nan
     ax_h.set_title(f"Hidden count per snapshot (mean |error| {err:.2f} veh)")
     ax_h.grid(alpha=0.3)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def make_section_plots(out: Path) -> list[Path]:
@@ -133,12 +134,12 @@ def write_section_report(sc, out: Path, manifest: dict[str, Any]) -> Path:
     plots = make_section_plots(out)
     gt = json.loads((out / "ground_truth" / "manifest.json").read_text())
     ev = json.loads((out / "evaluation" / "evaluation_manifest.json").read_text())
-    align = _read(out / "evaluation" / "macro_alignment.csv")
-    micro = _read(out / "evaluation" / "micro_consistency.csv")
-    kdf = _read(out / "evaluation" / "k_estimate_summary.csv")
-    gen = _read(out / "generator" / "generator_metrics.csv")
-    runs = _read(out / "ground_truth" / "runs.csv")
-    vt = _read(out / "ground_truth" / "vtypes.csv")
+    align = read_if_present(out / "evaluation" / "macro_alignment.csv")
+    micro = read_if_present(out / "evaluation" / "micro_consistency.csv")
+    kdf = read_if_present(out / "evaluation" / "k_estimate_summary.csv")
+    gen = read_if_present(out / "generator" / "generator_metrics.csv")
+    runs = read_if_present(out / "ground_truth" / "runs.csv")
+    vt = read_if_present(out / "ground_truth" / "vtypes.csv")
     lines = [
         f"# {sc.name}: macro-micro calibration on a SUMO section",
         "",
@@ -154,9 +155,9 @@ def write_section_report(sc, out: Path, manifest: dict[str, Any]) -> Path:
         "",
     ]
     if runs is not None:
-        lines += [_table(runs), ""]
+        lines += [markdown_table(runs), ""]
     if vt is not None:
-        lines += [_table(vt), ""]
+        lines += [markdown_table(vt), ""]
     lines += [
         "## Hidden count estimated from detector density",
         "",
@@ -165,12 +166,18 @@ def write_section_report(sc, out: Path, manifest: dict[str, Any]) -> Path:
         "",
     ]
     if kdf is not None:
-        lines += [_table(kdf, 3), ""]
+        lines += [markdown_table(kdf, 3), ""]
     if gen is not None:
-        lines += ["## Stage I: generator (held-out snapshots)", "", _table(_summary(gen), 3), ""]
+        lines += [
+            "## Stage I: generator (held-out snapshots)",
+            "",
+            markdown_table(_summary(gen), 3),
+            "",
+        ]
     lines += [
         "## Macro alignment (held-out runs)",
         "",
+        *methods_markdown("sumo", set(align["method"]) if align is not None else set()),
         "`hidden_count`: the generator completed the scenes with the estimated hidden count "
         "(what a user has) or the true one (what the estimate costs). Ratios are against "
         "`ground_truth` on the same scenes.",
@@ -196,10 +203,15 @@ def write_section_report(sc, out: Path, manifest: dict[str, Any]) -> Path:
             )
             if c in align
         ]
-        lines += [_table(align[cols], 3), ""]
+        lines += [markdown_table(align[cols], 3), ""]
         lines += _verdicts(align)
     if micro is not None:
-        lines += ["## Micro consistency (held-out observed actions)", "", _table(micro, 3), ""]
+        lines += [
+            "## Micro consistency (held-out observed actions)",
+            "",
+            markdown_table(micro, 3),
+            "",
+        ]
     lines += [
         f"IDM calibrated on the observed vehicles: {json.dumps(ev.get('idm_calibrated', {}))}",
         "",

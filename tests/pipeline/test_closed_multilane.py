@@ -83,5 +83,9 @@ def test_closed_multilane_section_end_to_end(tmp_path: Path) -> None:
     # On a closed road the detectors see the whole fleet: the hidden count is within one
     # vehicle per lane.
     assert k["k_error"].abs().mean() <= lanes
+    report = (out / "report.md").read_text()
+    # The methods registry describes every method of the table; the ring's oracle is absent.
+    assert "- `idm_calibrated` (baseline): one IDM fitted by least squares" in report
+    assert "`idm_true`" not in report
     manifest = json.loads((out / "manifest.json").read_text())
     assert "evaluate" in manifest["timings_s"]
