@@ -18,7 +18,6 @@ import numpy as np
 import pandas as pd
 import torch
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
-from tqdm import tqdm
 
 from macromicro_sumo.checkpoints import load_network, save_network
 from macromicro_sumo.data.ring import (
@@ -47,6 +46,7 @@ from macromicro_sumo.generator.ring import (
     total_loss,
 )
 from macromicro_sumo.manifest import build_manifest
+from macromicro_sumo.progress import tqdm
 from macromicro_sumo.scenario.ring import Scenario
 
 CHECKPOINT_FORMAT = "macromicro-generator"
