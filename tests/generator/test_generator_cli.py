@@ -17,6 +17,7 @@ from conftest import write_scenario
 
 from macromicro_sumo.cli import main
 from macromicro_sumo.data.ring import load_ground_truth, snapshot_states, split_runs
+from macromicro_sumo.files import write_manifest
 from macromicro_sumo.generator.ring import GeneratorNet
 from macromicro_sumo.generator.ring_train import (
     CHECKPOINT_FORMAT,
@@ -351,12 +352,21 @@ def copy_gt(stage: dict, tmp_path: Path) -> Path:
     return dst
 
 
+def as_measured(gt: Path) -> None:
+    """Re-record the manifest's outputs map after an edit: detectors that really measured
+    these values (an edit alone is refused as a corrupt file before psi is checked)."""
+    manifest = json.loads((gt / "manifest.json").read_text())
+    manifest.pop("outputs", None)
+    write_manifest(manifest, gt)
+
+
 def test_psi_no_completion_can_satisfy(stage, capsys, tmp_path, out):
     gt = copy_gt(stage, tmp_path)
     macro = pd.read_csv(gt / "macro.csv")
     # d_max = 100 m: five gaps of at most 100 m cannot close a 628 m ring.
     macro.loc[macro["source"] == "detectors", "spacing_max_m"] = 100.0
     macro.to_csv(gt / "macro.csv", index=False)
+    as_measured(gt)
     argv = complete_argv(stage, stage["gen"] / "generator.pt", out, data=gt)
     fails(capsys, argv, out, str(gt / "macro.csv"), "100.00", "no completion of 5 vehicles")
     train = ["train-generator", str(stage["scenario"]), "--data", str(gt), "--out", str(out)]
@@ -368,6 +378,7 @@ def test_psi_with_inverted_speed_bounds(stage, capsys, tmp_path, out):
     macro = pd.read_csv(gt / "macro.csv")
     macro.loc[macro["source"] == "detectors", "speed_min_mps"] = 20.0
     macro.to_csv(gt / "macro.csv", index=False)
+    as_measured(gt)
     out.mkdir()  # an existing output folder stays as it was
     (out / "keep.txt").write_text("keep")
     argv = complete_argv(stage, stage["gen"] / "generator.pt", out, data=gt)
