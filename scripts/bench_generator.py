@@ -50,12 +50,8 @@ from macromicro_sumo.data.ring import (
     snapshot_states,
     split_runs,
 )
-from macromicro_sumo.generator.ring import (
-    complete,
-    completion_metrics,
-    feasible_exists,
-    rejection_success,
-)
+from macromicro_sumo.generator.ring_metrics import completion_metrics, feasible_exists
+from macromicro_sumo.generator.ring_sampler import complete, rejection_success
 from macromicro_sumo.generator.ring_train import (
     held_out_sets,
     load_generator,

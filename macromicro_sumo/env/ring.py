@@ -23,7 +23,7 @@ import numpy as np
 from macromicro_sumo.data.objective import MacroTarget, macro_reward, macro_terms
 from macromicro_sumo.data.ring import GroundTruth, Snapshots, hide, run_arrays, snapshot_states
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.generator.ring import complete
+from macromicro_sumo.generator.ring_sampler import complete
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES, lookahead_features
 from macromicro_sumo.road.ring import RingGeometry, read_ring
 from macromicro_sumo.scenario.ring import Scenario

@@ -31,20 +31,17 @@ from macromicro_sumo.data.ring import (
 )
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import prepare_out_dir, write_csv, write_json
-from macromicro_sumo.generator.ring import (
+from macromicro_sumo.generator.ring_gaps import PsiTensors
+from macromicro_sumo.generator.ring_metrics import completion_metrics, summarise_metrics
+from macromicro_sumo.generator.ring_model import (
     FEATURE_VERSION,
     GeneratorNet,
-    PsiTensors,
-    complete,
-    complete_equal_gap,
-    complete_uniform,
-    completion_metrics,
     macro_losses,
     reconstruction_loss,
     rollout,
-    summarise_metrics,
     total_loss,
 )
+from macromicro_sumo.generator.ring_sampler import complete, complete_equal_gap, complete_uniform
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.progress import tqdm
 from macromicro_sumo.scenario.ring import Scenario

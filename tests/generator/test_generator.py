@@ -24,35 +24,34 @@ from scipy.special import logit, ndtr
 
 from macromicro_sumo.data.macro import spacing_losses, speed_loss
 from macromicro_sumo.data.ring import GroundTruth, Snapshots, hide, load_ground_truth
-from macromicro_sumo.generator import ring as ring_module
-from macromicro_sumo.generator.ring import (
-    GEOMETRY_TOL_M,
+from macromicro_sumo.generator import ring_posterior as ring_module
+from macromicro_sumo.generator.ring_gaps import PsiTensors, ring_gaps, row_index, scene_gaps, take
+from macromicro_sumo.generator.ring_metrics import completion_metrics, feasible_exists
+from macromicro_sumo.generator.ring_model import (
     LOSS_TERMS,
-    Completion,
     GeneratorNet,
+    macro_losses,
+    observe,
+    reconstruction_loss,
+    rollout,
+)
+from macromicro_sumo.generator.ring_posterior import (
+    GEOMETRY_TOL_M,
     Lookahead,
-    PsiTensors,
     SplitTable,
     _leave_one_out,
     _next_gap_log_prob,
     _piece_range,
-    _rows,
-    _take,
+    gap_posterior,
+)
+from macromicro_sumo.generator.ring_posterior import lookahead as lookahead_check
+from macromicro_sumo.generator.ring_sampler import (
+    Completion,
     complete,
     complete_equal_gap,
     complete_uniform,
-    completion_metrics,
-    feasible_exists,
-    gap_posterior,
-    macro_losses,
-    observe,
-    reconstruction_loss,
     rejection_success,
-    ring_gaps,
-    rollout,
-    scene_gaps,
 )
-from macromicro_sumo.generator.ring import lookahead as lookahead_check
 from macromicro_sumo.generator.ring_train import (
     _batch_loss,
     evaluate_generator,
@@ -628,7 +627,7 @@ def quadratic_next_gap_log_prob(log_w: np.ndarray, remaining: np.ndarray) -> np.
         times_i[:, i] = others[:, i]  # gap i's own count is not among the others
         others = times_i
     rest = remaining[:, None] - counts
-    o = others[_rows(b, 3), np.arange(n)[:, None], np.maximum(rest, 0)[:, None, :]]
+    o = others[row_index(b, 3), np.arange(n)[:, None], np.maximum(rest, 0)[:, None, :]]
     use = ((rest >= 0) & (counts >= 1))[:, None, :]
     e = np.add.reduce(np.where(use, counts * w * o, 0.0), axis=-1)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -644,7 +643,7 @@ def quadratic_lookahead(table, geometry, present, generated, rem_after) -> Looka
     n_pairs = (r_max + 1) * (r_max + 2) // 2
     lo_c, hi_c = _piece_range(gap, table.d_min, table.d_max)
     fits = (counts >= lo_c[..., None]) & (counts <= hi_c[..., None])
-    touched = valid & (_take(generated, follower) | _take(generated, leader))
+    touched = valid & (take(generated, follower) | take(generated, leader))
     zero = counts == 0
     sets = np.where(touched[..., None], fits, (fits & valid[..., None]) | zero)
     if r_max == 0:
@@ -662,7 +661,9 @@ def quadratic_lookahead(table, geometry, present, generated, rem_after) -> Looka
             pairs = rest[..., :, None] & others[:, :, i][..., None, :]
             rest = pairs.reshape(b, n, r1 * r1) @ sum_matrix
     need = rem_after[:, None] - table.total[:n_pairs]
-    ok = (need >= 0)[:, None, :] & rest[_rows(b, 3), _rows(n), np.maximum(need, 0)[:, None, :]]
+    ok = (need >= 0)[:, None, :] & rest[
+        row_index(b, 3), row_index(n), np.maximum(need, 0)[:, None, :]
+    ]
     g = gap[..., None]
     lo = np.maximum(table.lo1[..., :n_pairs], g - table.lo2[..., :n_pairs])
     hi = np.minimum(table.hi1[..., :n_pairs], g - table.hi2[..., :n_pairs])

@@ -18,7 +18,7 @@ from conftest import write_scenario
 from macromicro_sumo.cli import main
 from macromicro_sumo.data.ring import load_ground_truth, snapshot_states, split_runs
 from macromicro_sumo.files import write_manifest
-from macromicro_sumo.generator.ring import GeneratorNet
+from macromicro_sumo.generator.ring_model import GeneratorNet
 from macromicro_sumo.generator.ring_train import (
     CHECKPOINT_FORMAT,
     load_generator,
