@@ -98,8 +98,10 @@ from macromicro_sumo.env.section import (
 )
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.generator.ring_train import load_generator
-from macromicro_sumo.generator.section import generator_completion as section_completion
-from macromicro_sumo.generator.section import load_section_generator
+from macromicro_sumo.generator.section_sampler import (
+    generator_completion as section_completion,
+)
+from macromicro_sumo.generator.section_train import load_section_generator
 from macromicro_sumo.road.section import NO_LEADER_GAP_M
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.scenario.ring import Scenario

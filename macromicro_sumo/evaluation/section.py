@@ -39,7 +39,8 @@ from macromicro_sumo.evaluation.methods import method_order
 from macromicro_sumo.evaluation.ring import idm_action, micro_consistency
 from macromicro_sumo.evaluation.statistics import macro_row, samples_frame
 from macromicro_sumo.files import prepare_out_dir, staging_dir, write_csv, write_json
-from macromicro_sumo.generator.section import generator_completion, load_section_generator
+from macromicro_sumo.generator.section_sampler import generator_completion
+from macromicro_sumo.generator.section_train import load_section_generator
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.policy.ppo import load_policy, policy_action
 from macromicro_sumo.progress import tqdm

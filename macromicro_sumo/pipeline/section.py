@@ -16,8 +16,8 @@ from macromicro_sumo.data.section import section_snapshots
 from macromicro_sumo.env.section import SectionCore, build_section_bank, typical_vclass
 from macromicro_sumo.evaluation.section import evaluate_section
 from macromicro_sumo.files import prepare_out_dir
-from macromicro_sumo.generator.section import (
-    generator_completion,
+from macromicro_sumo.generator.section_sampler import generator_completion
+from macromicro_sumo.generator.section_train import (
     load_section_generator,
     run_train_section_generator,
 )

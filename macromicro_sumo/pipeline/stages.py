@@ -13,7 +13,7 @@ from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.ring import evaluate as evaluate_ring
 from macromicro_sumo.evaluation.section import evaluate_section
 from macromicro_sumo.generator.ring_train import run_train_generator
-from macromicro_sumo.generator.section import run_train_section_generator
+from macromicro_sumo.generator.section_train import run_train_section_generator
 from macromicro_sumo.pipeline.ring import run as run_ring
 from macromicro_sumo.pipeline.section import run_section, run_train_section_policy
 from macromicro_sumo.policy.ppo import run_train_policy

@@ -17,23 +17,24 @@ import torch
 
 from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.generator.section import (
-    Psi,
-    Road,
-    SectionCompletion,
+from macromicro_sumo.generator.section_metrics import completion_metrics, completion_violations
+from macromicro_sumo.generator.section_model import (
     SectionGeneratorNet,
-    _eval_loss,
-    complete_section,
-    completion_metrics,
-    completion_violations,
-    load_section_generator,
-    save_section_generator,
-    scene_gaps,
     section_losses,
     spacings,
     speed_spread_target,
-    train_section_generator,
+)
+from macromicro_sumo.generator.section_sampler import (
+    SectionCompletion,
+    complete_section,
     uniform_completion,
+)
+from macromicro_sumo.generator.section_scene import Psi, Road, scene_gaps
+from macromicro_sumo.generator.section_train import (
+    _eval_loss,
+    load_section_generator,
+    save_section_generator,
+    train_section_generator,
 )
 from macromicro_sumo.road.section import Section, read_section
 from macromicro_sumo.scenario.section import (
@@ -349,7 +350,7 @@ def test_checkpoint_round_trip_and_refusal(trained, bremen: Section, tmp_path: P
 def test_safe_speeds_cap_generated_vehicles_behind_slow_leaders() -> None:
     """A generated vehicle 20 m/s faster than its leader 10 m ahead is capped to the speed it
     can still stop from; one in front of a fast observed follower is raised."""
-    from macromicro_sumo.generator.section import SectionCompletion, safe_speeds
+    from macromicro_sumo.generator.section_sampler import SectionCompletion, safe_speeds
 
     ring = read_section(Path("sumo_nets/ring_r100_e4.net.xml"), ["e0", "e1", "e2", "e3"], True)
     comp = SectionCompletion(

@@ -1,0 +1,415 @@
+"""Stage I on a road section: the generator's features, network, proposal and losses.
+
+The scene and its gaps are ``section_scene``'s; the method is the ring's (Algorithms 2
+and 3 of the paper):
+
+* Proposal. One MLP scores every gap of every lane from scale-free, label-free features
+  (gap / psi's mean spacing, neighbours' speeds relative to psi's mean speed, the lane's
+  limit, its relative index, whether the gap is an open end, how full the lane already is)
+  plus global ones: a categorical over all gaps picks where the next vehicle goes, a
+  logit-normal picks its place inside the part of the gap that keeps the front-to-front
+  spacing >= psi's spacing_min to both neighbours, a logit-normal on psi's
+  [speed_min, speed_max] its speed, centred on the speed the vehicles still to place need
+  for psi's mean and restricted to the speeds that keep that mean reachable, with the
+  spread of a sum-constrained draw (``propose``): the completed mean equals psi's. The place is thus feasible for spacing by construction, the
+  ``truncate`` limit of the ring generator, so training and inference sample the same law.
+* Training. The completed scene is scored with the paper's macro terms, per snapshot:
+  L_speed = (mean speed / psi mean speed - 1)^2 over all vehicles, and the spacing terms
+  over the front-to-front spacings of every vehicle to its leader in its lane:
+  L_mean = (mean / psi mean spacing - 1)^2, L_min = mean of (relu(spacing_min - s) /
+  spacing_min)^2, L_var = |std - psi std_spacing_m| / psi mean spacing where psi has a
+  finite spacing std (zero where the detectors cannot tell). On an open section the
+  first vehicle of a lane has no leader on the section: its spacing is unknown and left
+  out (``section.lane_leaders`` reports NO_LEADER_GAP_M for it, not a measurement).
+  L_vstd = |std of speeds - target| / psi mean speed (weighted with L_speed by lambda_v)
+  where a speed spread is known (``speed_spread_target``: psi's, else the observed
+  vehicles'). Positions and speeds are reparameterised; the gap choices get the score-function
+  gradient with a batch-mean baseline, as on the ring.
+
+``Scene`` holds the scenes being completed, for the training ``rollout`` here and for
+Algorithm 3 in ``section_sampler``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from macromicro_sumo.data.objective import MacroTarget, macro_terms
+from macromicro_sumo.data.section import SectionSnapshots
+from macromicro_sumo.generator.section_scene import (
+    PSI_INDEX,
+    Gaps,
+    Psi,
+    Road,
+    lane_exists_share,
+    lane_order,
+    scene_gaps,
+)
+
+FEATURE_VERSION = 2
+N_GAP_FEATURES = 11
+N_GLOBAL_FEATURES = 10
+LOSS_TERMS = ("L_speed", "L_vstd", "L_mean", "L_min", "L_var")
+FRAC_LOG_STD = (-5.0, 2.0)  # limits of the position head's log-std
+SPEED_LOG_STD = (-6.0, 1.0)  # limits of the speed head's log-std
+
+
+# --------------------------------------------------------------------------- features
+
+
+@dataclass
+class Observation:
+    """What one autoregressive step sees."""
+
+    gaps: Gaps
+    share: torch.Tensor  # (B, G) lane_exists_share
+    choosable: torch.Tensor  # (B, G) gaps the next vehicle may go to
+    gap_feat: torch.Tensor  # (B, G, N_GAP_FEATURES)
+    glob: torch.Tensor  # (B, N_GLOBAL_FEATURES)
+    need_v: torch.Tensor  # (B,) mean speed the vehicles still to place need [m/s]
+    remaining: torch.Tensor  # (B,) vehicles still to place, the next one included
+
+
+def observe(
+    lane: torch.Tensor,
+    arc: torch.Tensor,
+    speed: torch.Tensor,
+    present: torch.Tensor,
+    remaining: torch.Tensor,
+    total: torch.Tensor,
+    psi: Psi,
+    road: Road,
+    anchor: torch.Tensor,
+) -> Observation:
+    """Gaps and scale-free features of the scenes; ``remaining`` counts the vehicles still to
+    place (the next one included), ``total`` the vehicles of the completed scene."""
+    gaps = scene_gaps(lane, arc, speed, present, road, psi.s_min, anchor)
+    share = lane_exists_share(gaps, road)
+    room_ok = gaps.valid & (gaps.room > 0) & (share > 0)
+    # None with room: the section is fuller than psi's minimum spacing allows; every
+    # valid gap stays choosable and the placement ends in a (counted) projection.
+    choosable = room_ok | (gaps.valid & ~room_ok.any(dim=1, keepdim=True))
+    vm, dm, vs = psi.v_mean[:, None], psi.d_mean[:, None], psi.v_scale[:, None]
+    # Speeds enter the features detached (as on the ring): a speed reaches the loss only
+    # through L_speed, not as a side channel steering later placements.
+    v_f, v_l = gaps.v_f.detach(), gaps.v_l.detach()
+    usable = share * gaps.room.clamp(min=0.0)
+    mid = gaps.start + 0.5 * gaps.length
+    limit = road.limit(gaps.lane, mid)
+    lane_rel = gaps.lane.double() / max(road.max_lanes - 1, 1)
+    pos_rel = torch.zeros_like(mid) if road.closed else mid.detach() / road.length_m
+    gap_feat = torch.stack(
+        [
+            # lengths as usable on the gap's lane: an empty lane that exists on one short
+            # edge is a short gap, not one of the section's length
+            (gaps.length - gaps.room.clamp(min=0.0) + usable) / dm,
+            torch.where(gaps.room > 0, usable, gaps.room.clamp(min=-dm)) / dm,
+            gaps.has_f.double(),
+            gaps.has_l.double(),
+            torch.where(gaps.has_f, (v_f - vm) / vs, 0.0),
+            torch.where(gaps.has_l, (v_l - vm) / vs, 0.0),
+            ((limit - vm) / vs).clamp(-10.0, 10.0),
+            lane_rel,
+            share,
+            gaps.n_lane * dm / road.lane_extent_m[gaps.lane],
+            pos_rel,
+        ],
+        dim=-1,
+    )
+    n_present = present.sum(dim=1).double()
+    v_sum = (speed * present).sum(dim=1)
+    rem = remaining.double().clamp(min=1.0)
+    need_v = (total * psi.v_mean - v_sum) / rem
+    need_in = (total * psi.v_mean - v_sum.detach()) / rem
+    mean_v = torch.where(n_present > 0, v_sum.detach() / n_present.clamp(min=1), psi.v_mean)
+    tot = total.double().clamp(min=1.0)
+    glob = torch.stack(
+        [
+            remaining.double() / tot,
+            n_present / tot,
+            ((need_in - psi.v_mean) / psi.v_scale).clamp(-10.0, 10.0),
+            (mean_v - psi.v_mean) / psi.v_scale,
+            psi.s_min / psi.d_mean,
+            psi.d_std / psi.d_mean,
+            psi.d_std_known.double(),
+            (psi.v_max - psi.v_min) / psi.v_mean,
+            torch.full_like(rem, float(road.closed)),
+            tot * psi.d_mean / road.lane_length_m,
+        ],
+        dim=-1,
+    )
+    return Observation(gaps, share, choosable, gap_feat, glob, need_v, remaining)
+
+
+# --------------------------------------------------------------------------- model
+
+
+class SectionGeneratorNet(nn.Module):
+    """One-hidden-layer ReLU MLP scoring every gap: (choice logit, position mean, position
+    log-std, speed residual, speed log-std).
+
+    One hidden layer: the net runs once per gap per placed vehicle (a 1,000-snapshot
+    completion evaluates it ~10^7 times), and the global features enter once per scene;
+    ReLU rather than the ring's tanh for the same reason (tanh was half of inference time).
+    """
+
+    def __init__(self, hidden_size: int = 64) -> None:
+        super().__init__()
+        self.hidden_size = hidden_size
+        self.gap_in = nn.Linear(N_GAP_FEATURES, hidden_size, bias=False)
+        self.glob_in = nn.Linear(N_GLOBAL_FEATURES, hidden_size)
+        self.head = nn.Linear(hidden_size, 5)
+
+    def forward(
+        self, gap_feat: torch.Tensor, glob: torch.Tensor, mask: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """(B, G, 5) outputs; with ``mask`` (B, G) only those gaps are evaluated (the rest
+        read 0): most slots of a scene being completed are still empty."""
+        g = self.glob_in(glob.float())
+        if mask is None:
+            return self.head(torch.relu(self.gap_in(gap_feat.float()) + g[:, None, :])).double()
+        rows, cols = mask.nonzero(as_tuple=True)
+        h = torch.relu(self.gap_in(gap_feat[rows, cols].float()) + g[rows])
+        out = torch.zeros(*mask.shape, 5, dtype=torch.float64)
+        return out.index_put((rows, cols), self.head(h).double())
+
+
+def speed_range(
+    need_v: torch.Tensor, remaining: torch.Tensor, psi: Psi
+) -> tuple[torch.Tensor, ...]:
+    """Speeds [lo, hi] for the next vehicle that keep psi's mean reachable: the r - 1 after
+    it can still average what is left within [v_min, v_max] (exact look-ahead for the mean,
+    as the ring's is for gaps). The last vehicle's range is the one speed it needs. Where
+    psi's mean is out of reach from the start, the whole of [v_min, v_max]."""
+    r = remaining.double().clamp(min=1.0)
+    lo = torch.maximum(psi.v_min, r * need_v - (r - 1.0) * psi.v_max)
+    hi = torch.minimum(psi.v_max, r * need_v - (r - 1.0) * psi.v_min)
+    bad = lo > hi
+    return torch.where(bad, psi.v_min, lo), torch.where(bad, psi.v_max, hi)
+
+
+def _speed_base(need_v: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+    """Logit of the speed the remaining vehicles need, on [lo, hi]: the speed head adds a
+    residual, so an untrained net already aims at psi's mean speed."""
+    u = ((need_v - lo) / (hi - lo).clamp(min=1e-6)).clamp(1e-4, 1.0 - 1e-4)
+    return torch.logit(u)
+
+
+@dataclass
+class Trials:
+    """``n`` candidates for the next vehicle of each of B scenes, (B, n) each."""
+
+    choice: torch.Tensor
+    lane: torch.Tensor
+    arc: torch.Tensor
+    speed: torch.Tensor
+    log_p: torch.Tensor  # log-probability of the gap choice
+    probs: torch.Tensor  # (B, G) the gap choice's distribution (detached)
+
+
+def propose(
+    net: SectionGeneratorNet, obs: Observation, psi: Psi, road: Road, n: int, gen: torch.Generator
+) -> Trials:
+    """Sample ``n`` candidates per scene: a gap, a point in its admissible part, a speed."""
+    out = net(obs.gap_feat, obs.glob, obs.gaps.valid)  # (B, G, 5)
+    b = out.shape[0]
+    logits = out[..., 0].masked_fill(~obs.choosable, -math.inf)
+    log_p = torch.log_softmax(logits, dim=1)
+    choice = torch.multinomial(log_p.detach().exp(), n, replacement=True, generator=gen)
+    pick = out.gather(1, choice[..., None].expand(-1, -1, out.shape[-1]))  # (B, n, 5)
+    eps = torch.randn(b, n, 2, generator=gen, dtype=torch.float64)
+    g = obs.gaps
+    frac = torch.sigmoid(pick[..., 1] + pick[..., 2].clamp(*FRAC_LOG_STD).exp() * eps[..., 0])
+    frac = frac.clamp(1e-6, 1.0 - 1e-6)
+    lane = g.lane.gather(1, choice)
+    a = g.start.gather(1, choice) + g.lo.gather(1, choice)
+    arc = road.wrap(road.place_on_lane(lane, a, g.room.gather(1, choice).clamp(min=0.0), frac))
+    # Bridge: of r vehicles still to place whose speeds must average need_v, the next one
+    # given that constraint deviates by sqrt((r - 1) / r) of the unconstrained spread (the
+    # conditional law of exchangeable draws given their sum); the last one takes need_v.
+    # Without it the last vehicle's own spread stays in the completed mean (measured on
+    # the Bremen section: 0.11 m/s held-out error, last vehicles 10-18 m/s off psi). The
+    # range keeps the speed the last one needs within psi's bounds (``speed_range``).
+    r = obs.remaining.double().clamp(min=1.0)
+    bridge = torch.sqrt((r - 1.0) / r)[:, None]
+    v_lo, v_hi = speed_range(obs.need_v, obs.remaining, psi)
+    u = torch.sigmoid(
+        _speed_base(obs.need_v, v_lo, v_hi)[:, None]
+        + bridge * (pick[..., 3] + pick[..., 4].clamp(*SPEED_LOG_STD).exp() * eps[..., 1])
+    )
+    speed = v_lo[:, None] + (v_hi - v_lo)[:, None] * u
+    probs = log_p.detach().exp()
+    return Trials(choice, lane, arc, speed, log_p.gather(1, choice), probs)
+
+
+# --------------------------------------------------------------------------- losses
+
+
+def spacings(
+    lane: torch.Tensor, arc: torch.Tensor, present: torch.Tensor, road: Road
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B, M) front-to-front spacing of each vehicle to its leader in its lane, and whether
+    it counts: a vehicle with no leader on an open section (the first of its lane) has an
+    unknown spacing and is left out."""
+    lo_ = lane_order(lane, arc, present, road)
+    return lo_["lead_arc"] - lo_["arc"], lo_["has_l"] & lo_["present"]
+
+
+def section_losses(
+    lane: torch.Tensor,
+    arc: torch.Tensor,
+    speed: torch.Tensor,
+    present: torch.Tensor,
+    psi: Psi,
+    road: Road,
+) -> dict[str, torch.Tensor]:
+    """The macro terms of completed scenes, (B,) each (``data.objective``): every present
+    vehicle's speed, and every per-lane spacing on the section as A (psi has no upper
+    spacing bound: L_max is 0)."""
+    sp, has = spacings(lane, arc, present, road)
+    target = MacroTarget(
+        psi.v_mean,
+        psi.d_mean,
+        psi.s_min,
+        torch.full_like(psi.d_mean, math.inf),
+        spacing_std_m=torch.where(psi.d_std_known, psi.d_std, math.nan),
+        speed_std_mps=psi.v_std,
+    )
+    # eps under the square roots keeps equal spacings and speeds trainable.
+    return macro_terms(speed, present.double(), sp, has.double(), target, eps=1e-8)
+
+
+MIN_OBSERVED_FOR_SPREAD = 3  # observed vehicles needed to estimate a speed spread
+
+
+def speed_spread_target(snaps: SectionSnapshots) -> np.ndarray:
+    """(S,) the speed std [m/s] the completed scene should have: psi's ``std_speed_mps``
+    where psi carries one, else the spread of the observed vehicles' speeds (a sample of
+    the same stream; NaN with fewer than MIN_OBSERVED_FOR_SPREAD of them).
+
+    Why: psi's other fields say nothing about the speed spread, and with the mean bridged
+    exactly (``propose``) nothing else in the loss does: the spread stayed at the speed
+    head's initial value (Bremen: 12.2 m/s completed vs 6.9 m/s true)."""
+    if "std_speed_mps" in PSI_INDEX:
+        return np.asarray(snaps.psi[:, PSI_INDEX["std_speed_mps"]], dtype=np.float64)
+    obs = snaps.valid & snaps.observed
+    n = obs.sum(axis=1)
+    v = np.where(obs, snaps.speed_mps, 0.0)
+    mean = v.sum(axis=1) / np.maximum(n, 1)
+    var = (np.where(obs, snaps.speed_mps - mean[:, None], 0.0) ** 2).sum(axis=1)
+    std = np.sqrt(var / np.maximum(n - 1, 1))
+    return np.where(n >= MIN_OBSERVED_FOR_SPREAD, std, np.nan)
+
+
+# --------------------------------------------------------------------------- rollouts
+
+
+@dataclass
+class Scene:
+    """Observed vehicles in the first N slots, the generated ones after (B, N + K_max)."""
+
+    lane: torch.Tensor
+    arc: torch.Tensor
+    speed: torch.Tensor
+    present: torch.Tensor
+    n_obs_slots: int
+    k: torch.Tensor  # (B,) vehicles to generate
+    total: torch.Tensor  # (B,) vehicles of the completed scene
+
+    # (B, n_obs_slots) the snapshot slot of each packed observed slot (-1: none)
+    source_slot: np.ndarray | None = None
+
+    @classmethod
+    def start(cls, snaps: SectionSnapshots, k: np.ndarray, road: Road) -> Scene:
+        """The observed vehicles packed to the front (a snapshot's hidden slots are never
+        present: packing shrinks every per-step array), K_max empty slots after them."""
+        obs = np.asarray(snaps.valid & snaps.observed, dtype=bool)
+        k_t = torch.as_tensor(np.maximum(np.asarray(k, dtype=np.int64), 0))
+        k_max = int(k_t.max()) if len(k_t) else 0
+        b = len(obs)
+        n = max(int(obs.sum(axis=1).max()) if b else 0, 1)
+        slot = np.argsort(~obs, axis=1, kind="stable")[:, :n]
+        rows = np.arange(b)[:, None]
+        packed = obs[rows, slot]
+        source = np.where(packed, slot, -1)
+        pad = np.zeros((b, k_max))
+        arc = np.where(packed, snaps.arc_m[rows, slot], 0.0)
+        if road.closed:
+            arc = np.mod(arc, road.length_m)
+        lane = np.where(packed, snaps.lane[rows, slot], 0)
+        speed = np.where(packed, snaps.speed_mps[rows, slot], 0.0)
+        return cls(
+            lane=torch.as_tensor(np.concatenate([lane, pad], 1).astype(np.int64)),
+            arc=torch.as_tensor(np.concatenate([arc, pad], 1)),
+            speed=torch.as_tensor(np.concatenate([speed, pad], 1)),
+            present=torch.as_tensor(np.concatenate([packed, pad.astype(bool)], 1)),
+            n_obs_slots=n,
+            k=k_t,
+            total=torch.as_tensor(obs.sum(axis=1)) + k_t,
+            source_slot=source,
+        )
+
+    def observe(
+        self, step: int, idx: torch.Tensor, psi: Psi, road: Road, gen: torch.Generator
+    ) -> Observation:
+        """What step ``step`` sees in rows ``idx`` (those with a vehicle still to place);
+        only the slots that can be filled by now (observed + ``step`` generated) enter."""
+        m = self.n_obs_slots + step
+        return observe(
+            self.lane[idx, :m],
+            self.arc[idx, :m],
+            self.speed[idx, :m],
+            self.present[idx, :m],
+            self.k[idx] - step,
+            self.total[idx],
+            psi,
+            road,
+            _anchor(len(idx), road, gen),
+        )
+
+    def place(
+        self, step: int, idx: torch.Tensor, lane: torch.Tensor, arc: torch.Tensor, v: torch.Tensor
+    ) -> None:
+        """Put the step's vehicle of rows ``idx`` into its slot (out of place: the training
+        graph keeps every earlier step's values)."""
+        j = self.n_obs_slots + step
+
+        def put(x: torch.Tensor, new: torch.Tensor) -> torch.Tensor:
+            col = x[:, j].index_put((idx,), new)
+            return torch.cat([x[:, :j], col[:, None], x[:, j + 1 :]], dim=1)
+
+        self.lane = put(self.lane, lane)
+        self.arc = put(self.arc, arc)
+        self.speed = put(self.speed, v)
+        self.present = put(self.present, torch.ones_like(idx, dtype=torch.bool))
+
+
+def _anchor(b: int, road: Road, gen: torch.Generator) -> torch.Tensor:
+    return torch.rand(b, road.max_lanes, generator=gen, dtype=torch.float64) * road.length_m
+
+
+def rollout(
+    net: SectionGeneratorNet,
+    road: Road,
+    snaps: SectionSnapshots,
+    k: np.ndarray,
+    gen: torch.Generator,
+) -> tuple[Scene, torch.Tensor]:
+    """Training rollout (one sample per step, no rejection): the completed scenes and the
+    summed log-probability of each scene's gap choices (B,)."""
+    scene = Scene.start(snaps, k, road)
+    psi = Psi.of(snaps.psi)
+    b = len(snaps)
+    log_p = torch.zeros(b, dtype=torch.float64)
+    for step in range(int(scene.k.max()) if b else 0):
+        idx = torch.nonzero(scene.k > step).flatten()
+        sub = psi.take(idx)
+        t = propose(net, scene.observe(step, idx, sub, road, gen), sub, road, 1, gen)
+        log_p = log_p.index_add(0, idx, t.log_p[:, 0])
+        scene.place(step, idx, t.lane[:, 0], t.arc[:, 0], t.speed[:, 0])
+    return scene, log_p

@@ -1,0 +1,274 @@
+"""Stage I on a road section: Algorithm 3 (``complete_section``), safe speeds, baseline.
+
+Rejection (Algorithm 3). Each vehicle gets up to T_max trials; a trial fails if its
+position lies on an edge that lacks the gap's lane (a lane drop inside the gap) or
+breaks a bound; after T_max failures the last trial is projected onto the nearest
+feasible point (of its gap, else of the most likely gap that has one) and counted.
+Gaps with no room at all (a gap shorter than two minimum spacings) are not chosen
+unless no gap has room (the section is fuller than psi allows: projection, counted).
+
+Inference is torch under no_grad, the T_max trials of a step at once, batched over
+snapshots, with the proposal of ``section_model``. ``safe_speeds`` then makes generated
+speeds kinematically consistent with their lane neighbours; ``uniform_completion`` is the
+baseline.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from macromicro_sumo.data.section import SectionSnapshots
+from macromicro_sumo.generator.section_model import Scene, SectionGeneratorNet, propose
+from macromicro_sumo.generator.section_scene import PSI_INDEX, TOL_M, Gaps, Psi, Road
+from macromicro_sumo.road.section import Section, lane_leaders
+
+
+@contextlib.contextmanager
+def one_thread() -> Iterator[None]:
+    """Run torch on one thread inside the block: the per-step arrays are small, and on a
+    shared machine torch's thread pool made completion ten times slower (measured)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+# --------------------------------------------------------------------------- inference
+
+
+@dataclass
+class SectionCompletion:
+    """Completed scenes (S, N + K_max): the snapshot's observed vehicles in their slots
+    (its hidden slots empty), then the generated ones."""
+
+    lane: np.ndarray
+    arc_m: np.ndarray
+    speed_mps: np.ndarray
+    valid: np.ndarray
+    generated: np.ndarray
+    trials: np.ndarray  # (S,) trials used over all generated vehicles
+    projections: np.ndarray  # (S,) generated vehicles placed by projection
+    speed_fixes: np.ndarray | None = None  # (S,) speeds changed by ``safe_speeds``
+    wall_s: float = 0.0
+
+
+def k_of(snaps: SectionSnapshots, source: str) -> np.ndarray:
+    """The hidden count per snapshot that the scenario's ``k_source`` asks for."""
+    return np.asarray(snaps.k_true if source == "truth" else snaps.k_est, dtype=np.int64)
+
+
+def _project(
+    road: Road, gaps: Gaps, probs: torch.Tensor, row: int, choice: int, arc: float
+) -> float:
+    """The feasible point nearest to ``arc`` in gap ``choice``, else in the most likely gap
+    that has one (its point nearest to the middle of its admissible part); ``arc`` if none."""
+    start, lo, hi = gaps.start[row].numpy(), gaps.lo[row].numpy(), gaps.hi[row].numpy()
+    lanes, valid = gaps.lane[row].numpy(), gaps.valid[row].numpy()
+    order = [choice] + [
+        int(j) for j in np.argsort(-probs[row].numpy(), kind="stable") if valid[j] and j != choice
+    ]
+    target = arc
+    if road.closed and choice < len(start):  # unwrap onto the chosen gap
+        target = start[choice] + np.mod(arc - start[choice], road.length_m)
+    for j in order:
+        a, b = start[j] + lo[j], start[j] + hi[j]
+        x = road.nearest_on_lane(int(lanes[j]), a, b, target if j == choice else 0.5 * (a + b))
+        if x is not None:
+            return float(np.mod(x, road.length_m)) if road.closed else x
+    return arc
+
+
+@torch.no_grad()
+def complete_section(
+    net: SectionGeneratorNet,
+    section: Section,
+    snaps: SectionSnapshots,
+    k: np.ndarray,
+    t_max: int,
+    seed: int,
+    brake_mps2: float | None = None,
+) -> SectionCompletion:
+    """Algorithm 3 on a section, batched over snapshots: ``k[s]`` hidden vehicles for
+    snapshot s, each from up to ``t_max`` trials, projection as the counted fallback.
+
+    With ``brake_mps2`` (the scenario's braking bound), generated speeds are then made
+    kinematically consistent with their lane neighbours (``safe_speeds``)."""
+    with one_thread():
+        comp = _complete(net, section, snaps, k, t_max, seed)
+    if brake_mps2 is not None:
+        safe_speeds(comp, section, snaps.psi[:, PSI_INDEX["spacing_min_m"]], brake_mps2)
+    return comp
+
+
+def generator_completion(net: SectionGeneratorNet, section: Section, sc, k_source: str, seed: int):
+    """``completion(snaps)`` for ``section_env.build_section_bank``: Algorithm 3 with the
+    hidden count ``k_source`` asks for (each snapshot carries both), then safe speeds."""
+
+    def fn(s: SectionSnapshots):
+        c = complete_section(
+            net, section, s, k_of(s, k_source), sc.generator.t_max, seed, -sc.bounds.accel_mps2[0]
+        )
+        return c.lane, c.arc_m, c.speed_mps, c.valid, c.generated
+
+    return fn
+
+
+def safe_speeds(
+    comp: SectionCompletion, section: Section, standstill_m: np.ndarray, brake_mps2: float
+) -> None:
+    """Cap each generated vehicle's speed so that it can stop behind its leader, and raise
+    it where an observed follower could not stop behind it (in place; counted in
+    ``comp.speed_fixes``).
+
+    The spacing and speed bounds say nothing about pairs: a generated vehicle 15 m/s faster
+    than a leader 10 m behind satisfies both and crashes in the first second. The bound is
+    the stopping-distance condition v^2 <= v_leader^2 + 2 b (spacing - standstill spacing),
+    with b the action bound's braking and the standstill spacing psi's smallest spacing.
+    Lanes are walked downstream to upstream, so a capped leader caps its followers.
+    """
+    fixes = np.zeros(len(comp.speed_mps), dtype=np.int64)
+    for s in range(len(comp.speed_mps)):
+        on = np.flatnonzero(comp.valid[s])
+        if on.size < 2:
+            continue
+        lane, arc = comp.lane[s, on], comp.arc_m[s, on]
+        v, gen = comp.speed_mps[s, on].copy(), comp.generated[s, on]
+        leader, spacing = lane_leaders(lane, arc, section.length_m, section.closed)
+        room = 2.0 * brake_mps2 * np.maximum(0.0, spacing - standstill_m[s])
+        for i in np.lexsort((-arc, lane)):  # per lane, front first
+            j = leader[i]
+            if gen[i] and j >= 0:
+                cap = math.sqrt(v[j] ** 2 + room[i])
+                if v[i] > cap:
+                    v[i], fixes[s] = cap, fixes[s] + 1
+            if j >= 0 and gen[j] and not gen[i]:  # an observed follower must be able to stop
+                floor = math.sqrt(max(0.0, v[i] ** 2 - room[i]))
+                if v[j] < floor:
+                    v[j], fixes[s] = floor, fixes[s] + 1
+        comp.speed_mps[s, on] = v
+    comp.speed_fixes = fixes
+
+
+def _complete(
+    net: SectionGeneratorNet,
+    section: Section,
+    snaps: SectionSnapshots,
+    k: np.ndarray,
+    t_max: int,
+    seed: int,
+) -> SectionCompletion:
+    t0 = time.perf_counter()
+    road = Road.of(section)
+    gen = torch.Generator().manual_seed(int(seed))
+    scene = Scene.start(snaps, k, road)
+    psi = Psi.of(snaps.psi)
+    b = len(snaps)
+    trials = np.zeros(b, dtype=np.int64)
+    projections = np.zeros(b, dtype=np.int64)
+    for step in range(int(scene.k.max()) if b else 0):
+        idx = torch.nonzero(scene.k > step).flatten()
+        sub = psi.take(idx)
+        obs = scene.observe(step, idx, sub, road, gen)
+        t = propose(net, obs, sub, road, t_max, gen)
+        g = obs.gaps
+        a = t.arc - g.start.gather(1, t.choice)
+        if road.closed:
+            a = torch.remainder(a, road.length_m)
+        ok = (
+            obs.choosable.gather(1, t.choice)
+            & (g.room.gather(1, t.choice) >= 0)
+            & (a >= g.lo.gather(1, t.choice) - TOL_M)
+            & (a <= g.hi.gather(1, t.choice) + TOL_M)
+            & road.has_lane(t.lane, t.arc)
+            & (t.speed >= sub.v_min[:, None])
+            & (t.speed <= sub.v_max[:, None])
+        )
+        any_ok = ok.any(dim=1)
+        rows = torch.arange(len(idx))
+        pick = torch.where(any_ok, ok.double().argmax(dim=1), t_max - 1)
+        lane, arc, v = t.lane[rows, pick], t.arc[rows, pick].clone(), t.speed[rows, pick]
+        idx_np = idx.numpy()
+        trials[idx_np] += pick.numpy() + 1
+        failed = np.flatnonzero(~any_ok.numpy())
+        if len(failed):
+            choice = t.choice[rows, pick]
+            for r in failed:
+                arc[r] = _project(road, g, t.probs, int(r), int(choice[r]), float(arc[r]))
+            projections[idx_np[failed]] += 1
+        v = torch.minimum(torch.maximum(v, sub.v_min), sub.v_max)
+        scene.place(step, idx, lane, arc, v)
+    return _unpack(scene, snaps, trials, projections, time.perf_counter() - t0)
+
+
+def _unpack(
+    scene: Scene,
+    snaps: SectionSnapshots,
+    trials: np.ndarray,
+    projections: np.ndarray,
+    wall_s: float,
+) -> SectionCompletion:
+    """The completed scenes in the output layout: observed vehicles back in their snapshot
+    slots (bit for bit), the generated ones after them."""
+    b, n = snaps.arc_m.shape
+    m = scene.n_obs_slots
+    obs = np.asarray(snaps.valid & snaps.observed, dtype=bool)
+    gen = scene.present[:, m:].numpy()
+    return SectionCompletion(
+        lane=np.concatenate([np.where(obs, snaps.lane, 0), np.where(gen, scene.lane[:, m:], 0)], 1),
+        arc_m=np.concatenate(
+            [np.where(obs, snaps.arc_m, 0.0), np.where(gen, scene.arc[:, m:], 0.0)], 1
+        ),
+        speed_mps=np.concatenate(
+            [np.where(obs, snaps.speed_mps, 0.0), np.where(gen, scene.speed[:, m:], 0.0)], 1
+        ),
+        valid=np.concatenate([obs, gen], 1),
+        generated=np.concatenate([np.zeros_like(obs), gen], 1),
+        trials=trials,
+        projections=projections,
+        wall_s=wall_s,
+    )
+
+
+def uniform_completion(
+    net: SectionGeneratorNet | None,
+    section: Section,
+    snaps: SectionSnapshots,
+    k: np.ndarray,
+    t_max: int,
+    seed: int,
+) -> SectionCompletion:
+    """Baseline: hidden vehicles at uniform positions on the section, a lane drawn uniformly
+    among those the edge there has, at psi's mean speed (no bounds checked; ``net`` and
+    ``t_max`` are unused: the signature is ``complete_section``'s)."""
+    t0 = time.perf_counter()
+    rng = np.random.default_rng([int(seed), 303])
+    b, n = snaps.arc_m.shape
+    k = np.maximum(np.asarray(k, dtype=np.int64), 0)
+    k_max = int(k.max()) if b else 0
+    gen_mask = np.arange(k_max)[None, :] < k[:, None]
+    arc = rng.uniform(0.0, section.length_m, (b, k_max))
+    lanes_there = section.n_lanes[section.edge_index(arc)]
+    lane = np.floor(rng.random((b, k_max)) * lanes_there).astype(np.int64)
+    obs = snaps.valid & snaps.observed
+    v_mean = snaps.psi[:, PSI_INDEX["mean_speed_mps"]]
+    return SectionCompletion(
+        lane=np.concatenate([np.where(obs, snaps.lane, 0), np.where(gen_mask, lane, 0)], 1),
+        arc_m=np.concatenate([np.where(obs, snaps.arc_m, 0.0), np.where(gen_mask, arc, 0.0)], 1),
+        speed_mps=np.concatenate(
+            [np.where(obs, snaps.speed_mps, 0.0), np.where(gen_mask, v_mean[:, None], 0.0)], 1
+        ),
+        valid=np.concatenate([obs, gen_mask], 1),
+        generated=np.concatenate([np.zeros_like(obs), gen_mask], 1),
+        trials=np.zeros(b, dtype=np.int64),
+        projections=np.zeros(b, dtype=np.int64),
+        wall_s=time.perf_counter() - t0,
+    )

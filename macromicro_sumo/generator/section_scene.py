@@ -1,0 +1,337 @@
+"""Stage I on a road section: the scene a completion works on (road, psi, gaps).
+
+The ring generator (``ring_model``) places K hidden vehicles in the gaps of one lane
+loop. On a road section the scene is a section of a user's network: several lanes, lane
+counts that change from edge to edge, an open corridor (vehicles enter upstream and leave
+downstream) or a closed loop, and a hidden count K that varies per snapshot (estimated
+from the detectors' density). The method is the same (Algorithms 2 and 3 of the paper):
+the network is ``section_model``, Algorithm 3 ``section_sampler``, training
+``section_train``.
+
+Gaps. Every lane is cut by its vehicles into gaps: between consecutive vehicles, and on
+an open section the two open ends (upstream of the lane's last vehicle, downstream of its
+first); on a closed section the last gap wraps around the loop. An empty lane is one gap
+of the section's length (closed: from a random anchor, the loop has no start).
+
+Geometry is torch (float64 for positions), one definition for the training rollout (with
+gradients) and for inference (no_grad, T_max trials per step at once, batched over
+snapshots).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from macromicro_sumo.data.section import PSI_FIELDS
+from macromicro_sumo.road.section import Section
+
+END_MARGIN_M = 1e-6  # keeps a vehicle at an open downstream end strictly on the section
+LANE_PROBES = 8  # points per gap that estimate the share of it where its lane exists
+TOL_M = 1e-6  # rounding allowed in the spacing check [m]
+
+PSI_INDEX = {name: i for i, name in enumerate(PSI_FIELDS)}
+
+
+# --------------------------------------------------------------------------- road and psi
+
+
+@dataclass(frozen=True)
+class Road:
+    """What the generator needs of a ``Section``, as torch tensors (positions in float64)."""
+
+    length_m: float
+    closed: bool
+    max_lanes: int
+    lane_length_m: float
+    offsets_m: torch.Tensor  # (E,)
+    n_lanes: torch.Tensor  # (E,) int64
+    limits_mps: torch.Tensor  # (E, max lanes); a lane the edge lacks has its leftmost's limit
+    # per lane index: (a, b) arc intervals where that lane exists (numpy, for projection)
+    lane_spans: tuple[np.ndarray, ...]
+    # the same as one (lanes, P, 2) tensor, padded with empty spans; on a loop repeated
+    # one and two lengths on, since a gap may run past the loop's end
+    span_table: torch.Tensor
+    lane_extent_m: torch.Tensor  # (lanes,) arc length on which each lane index exists
+
+    @classmethod
+    def of(cls, section: Section) -> Road:
+        lim = np.array(section.limits_mps, dtype=np.float64)
+        n_lanes = np.asarray(section.n_lanes, dtype=np.int64)
+        for e, n in enumerate(n_lanes):
+            lim[e, n:] = lim[e, n - 1]
+        ends = np.append(section.offsets_m[1:], section.length_m)
+        spans = []
+        for lane in range(section.max_lanes):
+            has = n_lanes > lane
+            pieces: list[list[float]] = []
+            for e in np.flatnonzero(has):
+                a, b = float(section.offsets_m[e]), float(ends[e])
+                if pieces and abs(pieces[-1][1] - a) < 1e-9:
+                    pieces[-1][1] = b
+                else:
+                    pieces.append([a, b])
+            spans.append(np.array(pieces, dtype=np.float64).reshape(-1, 2))
+        reps = 3 if section.closed else 1
+        p = max(len(x) for x in spans) * reps
+        table = np.zeros((section.max_lanes, p, 2))
+        for lane, x in enumerate(spans):
+            rep = np.concatenate([x + k * section.length_m for k in range(reps)])
+            table[lane, : len(rep)] = rep
+        return cls(
+            length_m=section.length_m,
+            closed=section.closed,
+            max_lanes=section.max_lanes,
+            lane_length_m=section.lane_length_m,
+            offsets_m=torch.as_tensor(np.asarray(section.offsets_m, dtype=np.float64)),
+            n_lanes=torch.as_tensor(n_lanes),
+            limits_mps=torch.as_tensor(lim),
+            lane_spans=tuple(spans),
+            lane_extent_m=torch.as_tensor([float(np.sum(x[:, 1] - x[:, 0])) for x in spans]),
+            span_table=torch.as_tensor(table),
+        )
+
+    def wrap(self, arc: torch.Tensor) -> torch.Tensor:
+        return torch.remainder(arc, self.length_m) if self.closed else arc
+
+    def edge(self, arc: torch.Tensor) -> torch.Tensor:
+        """Edge index (the junction after an edge counts as that edge) of each position."""
+        e = torch.bucketize(self.wrap(arc.detach()).contiguous(), self.offsets_m, right=True) - 1
+        return e.clamp(0, len(self.offsets_m) - 1)
+
+    def has_lane(self, lane: torch.Tensor, arc: torch.Tensor) -> torch.Tensor:
+        """Whether the edge at ``arc`` has lane index ``lane`` (same shapes)."""
+        return self.n_lanes[self.edge(arc)] > lane
+
+    def limit(self, lane: torch.Tensor, arc: torch.Tensor) -> torch.Tensor:
+        """Speed limit [m/s] of lane ``lane`` at ``arc`` (the edge's leftmost where it lacks it)."""
+        e = self.edge(arc)
+        return self.limits_mps[e, lane.clamp(0, self.max_lanes - 1)]
+
+    def place_on_lane(
+        self, lane: torch.Tensor, a: torch.Tensor, room: torch.Tensor, frac: torch.Tensor
+    ) -> torch.Tensor:
+        """The point at share ``frac`` of the length of [a, a + room] on which ``lane``
+        exists (the pieces laid end to end): a gap across a lane drop only offers the
+        part where its lane is. Where the lane is nowhere in it, ``a + frac room``."""
+        spans = self.span_table[lane]  # (..., P, 2)
+        pa = torch.maximum(a[..., None], spans[..., 0])
+        plen = (torch.minimum((a + room)[..., None], spans[..., 1]) - pa).clamp(min=0.0)
+        cum = plen.cumsum(dim=-1)
+        total = cum[..., -1]
+        t = frac * total
+        piece = (t.detach()[..., None] >= cum.detach()).sum(dim=-1, keepdim=True)
+        piece = piece.clamp(max=spans.shape[-2] - 1)
+        x = pa.gather(-1, piece) + (t[..., None] - (cum - plen).gather(-1, piece))
+        return torch.where(total > 0, x[..., 0], a + frac * room)
+
+    def nearest_on_lane(self, lane: int, a: float, b: float, x: float) -> float | None:
+        """The point of [a, b] nearest to ``x`` where lane ``lane`` exists (None: nowhere)."""
+        if b < a:
+            return None
+        spans = self.lane_spans[lane]
+        if self.closed:  # [a, b] may run past the loop's end (a < 2 L, b < 3 L)
+            spans = np.concatenate([spans + k * self.length_m for k in range(3)])
+        lo = np.maximum(spans[:, 0], a)
+        hi = np.minimum(spans[:, 1] - END_MARGIN_M, b)
+        ok = lo <= hi
+        if not ok.any():
+            return None
+        near = np.clip(x, lo[ok], hi[ok])
+        return float(near[np.argmin(np.abs(near - x))])
+
+
+@dataclass(frozen=True)
+class Psi:
+    """psi of a batch of snapshots as named (B,) float64 tensors."""
+
+    v_mean: torch.Tensor
+    d_mean: torch.Tensor
+    d_std: torch.Tensor  # 0 where the detectors give no spacing std
+    d_std_known: torch.Tensor  # bool
+    v_min: torch.Tensor
+    v_max: torch.Tensor
+    s_min: torch.Tensor
+
+    # speed spread target [m/s] (NaN where unknown; ``speed_spread_target``)
+    v_std: torch.Tensor | None = None
+
+    @classmethod
+    def of(cls, psi: np.ndarray, v_std: np.ndarray | None = None) -> Psi:
+        p = torch.as_tensor(np.asarray(psi, dtype=np.float64))
+        d_std = p[:, PSI_INDEX["std_spacing_m"]]
+        known = torch.isfinite(d_std)
+        return cls(
+            v_mean=p[:, PSI_INDEX["mean_speed_mps"]],
+            d_mean=p[:, PSI_INDEX["mean_spacing_m"]],
+            d_std=torch.where(known, d_std, 0.0),
+            d_std_known=known,
+            v_min=p[:, PSI_INDEX["speed_min_mps"]],
+            v_max=p[:, PSI_INDEX["speed_max_mps"]],
+            s_min=p[:, PSI_INDEX["spacing_min_m"]],
+            v_std=None if v_std is None else torch.as_tensor(np.asarray(v_std, np.float64)),
+        )
+
+    def take(self, idx: torch.Tensor) -> Psi:
+        return Psi(
+            *(
+                None if getattr(self, f) is None else getattr(self, f)[idx]
+                for f in self.__dataclass_fields__
+            )
+        )
+
+    @property
+    def v_scale(self) -> torch.Tensor:
+        """Half the admissible speed range (at least 0.1 m/s): the unit of speed features."""
+        return (0.5 * (self.v_max - self.v_min)).clamp(min=0.1)
+
+
+# --------------------------------------------------------------------------- scene geometry
+
+
+@dataclass
+class Gaps:
+    """Every gap of every lane, (B, G) each: G = M vehicle slots (the gap ahead of each
+    vehicle, in (lane, arc) order) + one head gap per lane (open section: upstream of the
+    lane's last vehicle, the whole lane when empty; closed: the whole loop of an empty lane).
+
+    A new vehicle at ``start + a`` keeps both spacings >= s_min iff lo <= a <= hi.
+    """
+
+    start: torch.Tensor
+    length: torch.Tensor
+    lo: torch.Tensor
+    hi: torch.Tensor
+    lane: torch.Tensor
+    has_f: torch.Tensor  # a vehicle behind (False: the open upstream end, or an empty lane)
+    has_l: torch.Tensor  # a vehicle ahead (False: the open downstream end, or an empty lane)
+    v_f: torch.Tensor  # speed of the vehicle behind (0 where none)
+    v_l: torch.Tensor
+    valid: torch.Tensor
+    n_lane: torch.Tensor  # vehicles already on the gap's lane
+
+    @property
+    def room(self) -> torch.Tensor:
+        return self.hi - self.lo
+
+
+def lane_order(
+    lane: torch.Tensor, arc: torch.Tensor, present: torch.Tensor, road: Road
+) -> dict[str, torch.Tensor]:
+    """Vehicles sorted by (lane, arc), each with its leader in the lane, batched (B, M).
+
+    Returns sorted ``lane``, ``arc``, ``present``, ``order`` (slot of each sorted entry),
+    ``lead_arc`` (the leader's arc, unwrapped: + L around a loop; the open end L on an
+    open section), ``has_l`` (a leader exists), ``has_next`` (the leader is the next entry,
+    not around the loop), and per lane ``count``, ``first_slot``, ``first_arc`` (B, lanes).
+    """
+    b, m = arc.shape
+    nl = road.max_lanes
+    big = 4.0 * road.length_m
+    key = torch.where(present, lane.double() * big + arc.detach(), math.inf)
+    order = key.argsort(dim=1)
+    s_lane = lane.gather(1, order)
+    s_arc = arc.gather(1, order)
+    s_pres = present.gather(1, order)
+    same = s_pres[:, 1:] & (s_lane[:, 1:] == s_lane[:, :-1])
+    has_next = torch.cat([same, same.new_zeros(b, 1)], dim=1)
+    onehot = (lane[..., None] == torch.arange(nl)) & present[..., None]  # (B, M, lanes)
+    count = onehot.sum(dim=1)
+    first_slot = torch.where(onehot, arc.detach()[..., None], math.inf).argmin(dim=1)
+    first_arc = arc.gather(1, first_slot)
+    lane_c = s_lane.clamp(0, nl - 1)
+    next_arc = torch.cat([s_arc[:, 1:], s_arc[:, -1:]], dim=1)
+    if road.closed:
+        lead_arc = torch.where(has_next, next_arc, first_arc.gather(1, lane_c) + road.length_m)
+        has_l = s_pres
+    else:
+        lead_arc = torch.where(has_next, next_arc, road.length_m)
+        has_l = has_next
+    return {
+        "lane": s_lane,
+        "arc": s_arc,
+        "present": s_pres,
+        "order": order,
+        "lead_arc": lead_arc,
+        "has_l": has_l,
+        "has_next": has_next,
+        "count": count,
+        "first_slot": first_slot,
+        "first_arc": first_arc,
+    }
+
+
+def scene_gaps(
+    lane: torch.Tensor,
+    arc: torch.Tensor,
+    speed: torch.Tensor,
+    present: torch.Tensor,
+    road: Road,
+    s_min: torch.Tensor,
+    anchor: torch.Tensor,
+) -> Gaps:
+    """The gaps of the current scenes (``Gaps``); ``anchor`` (B, lanes) is where an empty
+    lane's gap starts on a closed section."""
+    b, m = arc.shape
+    nl = road.max_lanes
+    lo_ = lane_order(lane, arc, present, road)
+    s_v = speed.gather(1, lo_["order"])
+    lane_c = lo_["lane"].clamp(0, nl - 1)
+    first_v = speed.gather(1, lo_["first_slot"])
+    next_v = torch.cat([s_v[:, 1:], s_v[:, -1:]], dim=1)
+    if road.closed:
+        v_l = torch.where(lo_["has_next"], next_v, first_v.gather(1, lane_c))
+    else:
+        v_l = torch.where(lo_["has_next"], next_v, 0.0)
+    has_l = lo_["has_l"]
+    length = lo_["lead_arc"] - lo_["arc"]
+    s_min_c = s_min[:, None]
+    lo = s_min_c.expand(b, m)
+    hi = length - torch.where(has_l, s_min_c, END_MARGIN_M)
+    count = lo_["count"]
+    occupied = count > 0
+    lanes = torch.arange(nl).expand(b, nl)
+    if road.closed:
+        h_start = anchor
+        h_len = torch.full((b, nl), road.length_m, dtype=torch.float64)
+        h_hi = h_len - END_MARGIN_M
+        h_valid = ~occupied
+        h_has_l = torch.zeros_like(occupied)
+        h_v_l = torch.zeros_like(h_len)
+    else:
+        first_arc = lo_["first_arc"]
+        h_start = torch.zeros(b, nl, dtype=torch.float64)
+        h_len = torch.where(occupied, first_arc, road.length_m)
+        h_hi = torch.where(occupied, first_arc - s_min_c, road.length_m - END_MARGIN_M)
+        h_valid = torch.ones_like(occupied)
+        h_has_l = occupied
+        h_v_l = torch.where(occupied, first_v, 0.0)
+    return Gaps(
+        start=torch.cat([lo_["arc"], h_start], dim=1),
+        length=torch.cat([length, h_len], dim=1),
+        lo=torch.cat([lo, torch.zeros(b, nl, dtype=torch.float64)], dim=1),
+        hi=torch.cat([hi, h_hi], dim=1),
+        lane=torch.cat([lo_["lane"], lanes], dim=1),
+        has_f=torch.cat([lo_["present"], torch.zeros_like(occupied)], dim=1),
+        has_l=torch.cat([has_l, h_has_l], dim=1),
+        v_f=torch.cat([torch.where(lo_["present"], s_v, 0.0), torch.zeros_like(h_len)], dim=1),
+        v_l=torch.cat([torch.where(has_l, v_l, 0.0), h_v_l], dim=1),
+        valid=torch.cat([lo_["present"], h_valid], dim=1),
+        n_lane=torch.cat([count.gather(1, lane_c), count], dim=1).double(),
+    )
+
+
+def lane_exists_share(gaps: Gaps, road: Road) -> torch.Tensor:
+    """(B, G) share of each gap's admissible part [lo, hi] on edges that have its lane
+    (exact: the overlap with the lane's spans; 0 for a gap without room)."""
+    a = (gaps.start + gaps.lo).detach()
+    room = gaps.room.detach()
+    spans = road.span_table[gaps.lane]  # (B, G, P, 2)
+    over = torch.minimum((a + room)[..., None], spans[..., 1]) - torch.maximum(
+        a[..., None], spans[..., 0]
+    )
+    share = over.clamp(min=0.0).sum(dim=-1) / room.clamp(min=1e-9)
+    return torch.where(room > 0, share.clamp(max=1.0), 0.0)

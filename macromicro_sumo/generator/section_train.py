@@ -1,0 +1,266 @@
+"""Stage I on a road section: checkpoints, training (Algorithm 2) and the CLI stage.
+
+``train_section_generator`` runs minibatches of training snapshots through the rollout
+(``section_model``) with early stopping on the validation snapshots' loss;
+``run_train_section_generator`` is the ``train-generator`` stage of a section scenario:
+it splits the ground truth's runs, trains, completes the held-out snapshots with the
+generator and the uniform baseline (``section_sampler``) and writes their metrics
+(``section_metrics``).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+
+from macromicro_sumo.checkpoints import load_network, save_network
+from macromicro_sumo.data.objective import macro_loss
+from macromicro_sumo.data.ring import split_runs
+from macromicro_sumo.data.section import SectionSnapshots, section_snapshots
+from macromicro_sumo.files import prepare_out_dir, write_csv, write_json
+from macromicro_sumo.generator.section_metrics import completion_metrics
+from macromicro_sumo.generator.section_model import (
+    FEATURE_VERSION,
+    SectionGeneratorNet,
+    rollout,
+    section_losses,
+    speed_spread_target,
+)
+from macromicro_sumo.generator.section_sampler import (
+    complete_section,
+    k_of,
+    one_thread,
+    uniform_completion,
+)
+from macromicro_sumo.generator.section_scene import Psi, Road
+from macromicro_sumo.manifest import build_manifest
+from macromicro_sumo.progress import tqdm
+from macromicro_sumo.road.section import Section
+from macromicro_sumo.scenario.section import SectionScenario
+from macromicro_sumo.truth.section import load_section_truth
+
+CHECKPOINT_FORMAT = "macromicro-section-generator"
+EVAL_BATCH = 256  # snapshots per forward pass in validation and metrics
+
+
+# --------------------------------------------------------------------------- checkpoints
+
+
+def signature(sc: SectionScenario) -> dict[str, Any]:
+    """What a section generator depends on: a checkpoint is only valid for the same values."""
+    return {
+        "section.edges": list(sc.section.edges),
+        "section.closed": bool(sc.section.closed),
+        "simulation.step_length_s": float(sc.simulation.step_length_s),
+        "observation_layout": f"section-gaps-v{FEATURE_VERSION}",
+    }
+
+
+def save_section_generator(
+    path: Path, net: SectionGeneratorNet, sc: SectionScenario, extra: dict[str, Any] | None = None
+) -> None:
+    """Write ``generator.pt`` atomically (a crash never leaves a half-written checkpoint)."""
+    save_network(path, CHECKPOINT_FORMAT, net, signature(sc), sc.to_dict(), extra)
+
+
+def load_section_generator(path: Path | str, sc: SectionScenario) -> SectionGeneratorNet:
+    """Load a section ``generator.pt``; a corrupt file or one trained for another section is
+    a one-line UserError naming the file and what differs."""
+    return load_network(
+        path,
+        CHECKPOINT_FORMAT,
+        "section generator",
+        signature(sc),
+        SectionGeneratorNet,
+        sc.source or sc.name,
+    )
+
+
+# --------------------------------------------------------------------------- training
+
+
+def _batch_loss(
+    net: SectionGeneratorNet,
+    road: Road,
+    snaps: SectionSnapshots,
+    k: np.ndarray,
+    sc: SectionScenario,
+    gen: torch.Generator,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Surrogate loss of one batch (reparameterised terms + score-function term for the gap
+    choices, batch-mean baseline) and the batch means of every term."""
+    scene, log_p = rollout(net, road, snaps, k, gen)
+    terms = section_losses(
+        scene.lane,
+        scene.arc,
+        scene.speed,
+        scene.present,
+        Psi.of(snaps.psi, speed_spread_target(snaps)),
+        road,
+    )
+    loss = macro_loss(terms, sc.generator.lambda_v, sc.generator.lambda_d)
+    advantage = (loss - loss.mean()).detach()
+    surrogate = loss.mean() + (advantage * log_p).mean()
+    stats = {name: float(v.detach().mean()) for name, v in terms.items()}
+    return surrogate, stats | {"loss": float(loss.detach().mean())}
+
+
+def _eval_loss(
+    net: SectionGeneratorNet,
+    road: Road,
+    snaps: SectionSnapshots,
+    k: np.ndarray,
+    sc: SectionScenario,
+    seed: int,
+) -> dict[str, float]:
+    """Mean of every term over ``snaps`` with a fixed seed (validation: comparable epochs)."""
+    gen = torch.Generator().manual_seed(seed)
+    sums: dict[str, float] = {}
+    with torch.no_grad():
+        for s in range(0, len(snaps), EVAL_BATCH):
+            idx = np.arange(s, min(s + EVAL_BATCH, len(snaps)))
+            _, st = _batch_loss(net, road, snaps.take(idx), k[idx], sc, gen)
+            for name, v in st.items():
+                sums[name] = sums.get(name, 0.0) + v * len(idx)
+    return {name: v / max(len(snaps), 1) for name, v in sums.items()}
+
+
+def train_section_generator(
+    sc: SectionScenario,
+    section: Section,
+    train: SectionSnapshots,
+    val: SectionSnapshots,
+    progress: bool = True,
+    *,
+    out: Path | None = None,
+    epochs: int | None = None,
+) -> tuple[SectionGeneratorNet, pd.DataFrame]:
+    """Algorithm 2 on a section: minibatches of training snapshots, early stopping on the
+    validation snapshots' loss. Returns the best network and the per-epoch log.
+
+    ``out``: write ``generator.pt`` there (atomically) on every improvement, so an
+    interrupted run keeps its best weights. ``epochs`` overrides ``sc.generator.epochs``.
+    """
+    with one_thread():
+        return _train(sc, section, train, val, progress, out, epochs)
+
+
+def _train(
+    sc: SectionScenario,
+    section: Section,
+    train: SectionSnapshots,
+    val: SectionSnapshots,
+    progress: bool,
+    out: Path | None,
+    epochs: int | None,
+) -> tuple[SectionGeneratorNet, pd.DataFrame]:
+    cfg = sc.generator
+    torch.manual_seed(sc.seed)
+    road = Road.of(section)
+    net = SectionGeneratorNet(cfg.hidden_size)
+    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    gen = torch.Generator().manual_seed(sc.seed)
+    rng = np.random.default_rng([sc.seed, 31])
+    k_train, k_val = k_of(train, cfg.k_source), k_of(val, cfg.k_source)
+    best, best_state, bad, log = math.inf, copy.deepcopy(net.state_dict()), 0, []
+    t0 = time.perf_counter()
+    bar = tqdm(
+        range(epochs or cfg.epochs),
+        desc="train-section-generator",
+        unit="epoch",
+        disable=not progress,
+    )
+    for epoch in bar:
+        net.train()
+        perm = rng.permutation(len(train))
+        stats = []
+        for s in range(0, len(perm), cfg.batch_size):
+            idx = perm[s : s + cfg.batch_size]
+            loss, st = _batch_loss(net, road, train.take(idx), k_train[idx], sc, gen)
+            opt.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
+            opt.step()
+            stats.append((st, len(idx)))
+        net.eval()
+        vs = _eval_loss(net, road, val, k_val, sc, sc.seed + 17)
+        n_tr = sum(w for _, w in stats)
+        row = {
+            "epoch": epoch,
+            "wall_s": time.perf_counter() - t0,
+            **{f"train_{k}": sum(s[k] * w for s, w in stats) / n_tr for k in stats[0][0]},
+            **{f"val_{k}": v for k, v in vs.items()},
+        }
+        log.append(row)
+        if vs["loss"] < best - 1e-9:
+            best, best_state, bad = vs["loss"], copy.deepcopy(net.state_dict()), 0
+            if out is not None:
+                save_section_generator(
+                    Path(out) / "generator.pt", net, sc, {"epoch": epoch, "val_loss": best}
+                )
+        else:
+            bad += 1
+        bar.set_postfix(train=f"{row['train_loss']:.4f}", val=f"{vs['loss']:.4f}")
+        if bad >= cfg.patience:
+            break
+    net.load_state_dict(best_state)
+    net.eval()
+    return net, pd.DataFrame(log)
+
+
+def run_train_section_generator(
+    sc: SectionScenario, data: Path, out: Path, command: str = "", progress: bool = True
+) -> dict[str, Any]:
+    """CLI stage: split the ground truth's runs, train, evaluate on the held-out runs; write
+    generator.pt, generator_train_log.csv, generator_metrics.csv (per held-out snapshot,
+    generator and uniform baseline) and generator_manifest.json."""
+    truth = load_section_truth(Path(data), sc)
+    splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
+    train = section_snapshots(truth, sc, splits["train"])
+    val = section_snapshots(truth, sc, splits["val"]) if len(splits["val"]) else train
+    held = section_snapshots(truth, sc, splits["held_out"])
+    out = prepare_out_dir(out)  # only once the inputs are known to be good
+    t0 = time.perf_counter()
+    net, log = train_section_generator(sc, truth.section, train, val, progress, out=out)
+    train_s = time.perf_counter() - t0
+    save_section_generator(out / "generator.pt", net, sc, {"epochs": len(log)})
+    write_csv(log, out / "generator_train_log.csv")
+    k = k_of(held, sc.generator.k_source)
+    frames, timings = [], {"train_generator": round(train_s, 3)}
+    for method, fn in (("generator", complete_section), ("uniform", uniform_completion)):
+        comp = fn(net, truth.section, held, k, sc.generator.t_max, sc.seed)
+        timings[f"complete_{method}"] = round(comp.wall_s, 3)
+        m = completion_metrics(truth.section, held, comp, k)
+        m.insert(0, "method", method)
+        frames.append(m)
+    metrics = pd.concat(frames, ignore_index=True)
+    write_csv(metrics, out / "generator_metrics.csv")
+    summary = {
+        method: {
+            "snapshots": int(len(g)),
+            "speed_err_vs_psi_mps": float(g["speed_err_vs_psi_mps"].mean()),
+            "spacing_std_ratio": float(g["std_spacing_m"].mean() / g["true_std_spacing_m"].mean()),
+            "speed_std_ratio": float(g["std_speed_mps"].mean() / g["true_std_speed_mps"].mean()),
+            "feasible_share": float(g["feasible"].mean()),
+            "projections": int(g["projections"].sum()),
+        }
+        for method, g in metrics.groupby("method")
+    }
+    manifest = build_manifest(sc, command, stage="train-section-generator")  # type: ignore[arg-type]
+    manifest.update(
+        ground_truth=str(data),
+        splits={name: v.tolist() for name, v in splits.items()},
+        epochs=len(log),
+        best_val_loss=float(log["val_loss"].min()) if len(log) else None,
+        timings_s=timings,
+        summary=summary,
+    )
+    write_json(manifest, out / "generator_manifest.json")
+    return manifest
