@@ -150,7 +150,10 @@ def test_failing_variants_leave_failed_rows_and_the_others_complete(tmp_path, ca
     nets.mkdir()
     good = scenario_table()["network"]
     (nets / "bad.net.xml").write_text(Path(good["net_file"]).read_text()[:2000])
-    (nets / "bad.add.xml").write_text(Path(good["routes_file"]).read_text()[:300])
+    # Routes and rerouters as checked before SUMO starts, plus an element only SUMO refuses.
+    stop = '<busStop id="x" lane="nowhere_0" startPos="0" endPos="10"/>\n</additional>'
+    routes = Path(good["routes_file"]).read_text().replace("</additional>", stop)
+    (nets / "bad.add.xml").write_text(routes)
     write_sweep(tmp_path / "in" / "a.toml", "seed = [1]")
     write_sweep(
         tmp_path / "in" / "b.toml", "seed = [1]", {"network.net_file": "../nets/bad.net.xml"}
