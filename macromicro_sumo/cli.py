@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from macromicro_sumo.batch import runner as batch
+from macromicro_sumo.env.examples import example_names, example_scenario, sumo_nets_dir
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import check_out_path
 from macromicro_sumo.generator.ring_train import run_complete
@@ -26,6 +27,16 @@ from macromicro_sumo.sumo import simulation as sumo
 
 def _scenario(args: argparse.Namespace) -> Any:
     """The scenario of ``args``, with ``--out`` checked against every file it reads."""
+    example = getattr(args, "example", None)
+    if example is not None and args.scenario is not None:
+        raise UserError(f"give a scenario file or --example {example}, not both")
+    if example is not None:
+        args.scenario = example_scenario(example)
+    elif args.scenario is None:
+        raise UserError(
+            "a scenario is needed: a TOML file, or --example NAME for a shipped one "
+            f"({', '.join(example_names())})"
+        )
     sc = load_scenario(args.scenario)
     check_out_path(args.out, [args.scenario, *stages.input_files(sc)])
     return sc
@@ -98,7 +109,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_doctor(args: argparse.Namespace) -> int:
-    root = Path(__file__).resolve().parents[1] / "sumo_nets"
+    root = sumo_nets_dir()  # shipped with the package (package data), as the examples
     info = sumo.versions()
     print(f"SUMO binary : {info['sumo_binary']}")
     print(f"SUMO        : {info['sumo']}")
@@ -120,10 +131,19 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--quiet", action="store_true", help="no progress bars")
         return p
 
+    def scenario_or_example(p: argparse.ArgumentParser) -> None:
+        p.add_argument("scenario", type=Path, nargs="?", help="scenario TOML (or --example)")
+        p.add_argument(
+            "--example",
+            metavar="NAME",
+            help="a scenario shipped with the package instead of a file: "
+            + ", ".join(example_names()),
+        )
+
     p = add(
         "simulate", _cmd_simulate, "ground-truth SUMO runs with loop detectors and macro statistics"
     )
-    p.add_argument("scenario", type=Path, help="scenario TOML")
+    scenario_or_example(p)
     p.add_argument("--out", type=Path, required=True, help="output folder")
 
     p = add(
@@ -131,7 +151,7 @@ def build_parser() -> argparse.ArgumentParser:
         _cmd_run,
         "the whole pipeline: ground truth, generator, policies, evaluation, report (stages resume)",
     )
-    p.add_argument("scenario", type=Path, help="scenario TOML")
+    scenario_or_example(p)
     p.add_argument("--out", type=Path, required=True, help="output folder")
 
     p = add("train-generator", _cmd_train_generator, "Stage I: train the hidden-vehicle generator")

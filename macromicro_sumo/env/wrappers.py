@@ -45,7 +45,11 @@ H steps, so ``env.spec.max_episode_steps`` is the scenario's H.
 ``None`` to start from the true hidden states), ``split`` ("train", "val", "held_out"),
 ``hidden`` (K, or a (low, high) range; gymnasium: 1), ``seed``, ``normalize`` (False:
 SI units; True: actions in [-1, 1] and normalised observations, for off-the-shelf RL
-libraries such as Stable-Baselines3), ``render_mode`` (None only).
+libraries such as Stable-Baselines3), ``render_mode`` (None only). The ring envs with no
+``scenario``, ``data`` and ``generator`` run the demo: the shipped ``ring_paper`` scenario
+with 20 runs, whose ground truth and generator are built once (about 10 s, seeded) into a
+per-user cache folder (``env.examples``; said on stderr), so that
+``gymnasium.make("macromicro/RingHidden-v0")`` works as is.
 
 ## Sections
 The scenario is a section of a user's network (``[network] kind = "sumo"``), the ground
@@ -87,6 +91,7 @@ from pettingzoo import ParallelEnv
 
 from macromicro_sumo.data.ring import load_ground_truth, split_runs
 from macromicro_sumo.data.section import SectionSnapshots, section_snapshots
+from macromicro_sumo.env.examples import demo
 from macromicro_sumo.env.observation import bank_shift_scale, feature_names, shift_scale
 from macromicro_sumo.env.ring import EpisodeBank, RingCore, build_bank, generator_completion
 from macromicro_sumo.env.section import (
@@ -113,13 +118,22 @@ SECTION_ENV_ID = "macromicro/SectionHidden-v0"
 
 
 def make_bank(
-    scenario: str | Path | Scenario,
-    data: str | Path,
+    scenario: str | Path | Scenario | None,
+    data: str | Path | None,
     generator: str | Path | None,
     split: str = "train",
     hidden: int | tuple[int, int] = 1,
     seed: int = 0,
 ) -> tuple[Scenario, EpisodeBank]:
+    """The ring's episodes; ``scenario=None`` (and no ``data`` or ``generator``): the demo
+    (``env.examples.demo``, built into the cache on first use)."""
+    if scenario is None:
+        if data is not None or generator is not None:
+            raise UserError("data and generator go with a scenario; pass scenario= too")
+        built = demo()
+        scenario, data, generator = built.scenario, built.data, built.generator
+    elif data is None:
+        raise UserError("a scenario needs its ground truth: pass data= (from macromicro simulate)")
     sc = scenario if isinstance(scenario, Scenario | SectionScenario) else load_scenario(scenario)
     if isinstance(sc, SectionScenario):
         raise UserError(
@@ -263,8 +277,8 @@ class RingHiddenEnv(gym.Env):
 
     def __init__(
         self,
-        scenario: str | Path | Scenario,
-        data: str | Path,
+        scenario: str | Path | Scenario | None = None,
+        data: str | Path | None = None,
         generator: str | Path | None = None,
         split: str = "train",
         seed: int = 0,
@@ -306,8 +320,8 @@ class RingHiddenParallelEnv(ParallelEnv):
 
     def __init__(
         self,
-        scenario: str | Path | Scenario,
-        data: str | Path,
+        scenario: str | Path | Scenario | None = None,
+        data: str | Path | None = None,
         generator: str | Path | None = None,
         split: str = "train",
         hidden: int | tuple[int, int] = (1, 4),

@@ -1,0 +1,49 @@
+"""gymnasium.make("macromicro/RingHidden-v0") with no arguments: the demo is built into the
+cache on first use (well under a minute), said on stderr, and reused afterwards."""
+
+from __future__ import annotations
+
+import time
+
+import gymnasium
+import numpy as np
+from gymnasium.utils.env_checker import check_env
+from pettingzoo.test import parallel_api_test
+
+from macromicro_sumo.env.examples import cache_root
+from macromicro_sumo.env.wrappers import ENV_ID, RingHiddenParallelEnv
+
+
+def test_no_argument_make_builds_the_demo_once(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("MACROMICRO_CACHE", str(tmp_path / "cache"))
+    assert cache_root() == tmp_path / "cache"
+    t0 = time.perf_counter()
+    env = gymnasium.make(ENV_ID)
+    built_s = time.perf_counter() - t0
+    err = capsys.readouterr().err
+    assert built_s < 60.0
+    assert "first use of the demo" in err and "demo built in" in err
+    assert str(tmp_path / "cache") in err
+    try:
+        assert env.spec.max_episode_steps == 10
+        obs, info = env.reset(seed=0)
+        assert obs.shape == env.observation_space.shape
+        _, r, _, _, info = env.step(np.array([0.0], np.float32))
+        assert 0.0 < r <= 1.0 and not info["error"]
+        check_env(env.unwrapped, skip_render_check=True)  # its second env reads the cache
+        env.reset(seed=1)
+    finally:
+        env.close()
+    t0 = time.perf_counter()
+    again = gymnasium.make(ENV_ID, normalize=True)
+    try:
+        assert time.perf_counter() - t0 < built_s
+        assert "first use" not in capsys.readouterr().err  # reused, not rebuilt
+        assert again.action_space.high[0] == 1.0
+    finally:
+        again.close()
+    env = RingHiddenParallelEnv()  # PettingZoo: the demo too
+    try:
+        parallel_api_test(env, num_cycles=20)
+    finally:
+        env.close()
