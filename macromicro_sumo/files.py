@@ -12,6 +12,11 @@ import json
 import os
 import shutil
 import tempfile
+
+try:
+    import fcntl
+except ImportError:  # not on Windows: folders are then not locked
+    fcntl = None  # type: ignore[assignment]
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
@@ -280,6 +285,77 @@ def check_out_path(out: Path | str, inputs: Iterable[Path | str] = ()) -> None:
             )
 
 
+# --------------------------------------------------------------------------- memory
+
+
+def memory_limit_bytes() -> int | None:
+    """Physical memory of this machine, or the container's (cgroup) limit where lower."""
+    limits = []
+    with contextlib.suppress(ValueError, OSError, AttributeError):
+        limits.append(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    for cgroup in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        with contextlib.suppress(OSError):
+            text = Path(cgroup).read_text().strip()
+            if text.isdigit():
+                limits.append(int(text))
+    return min(limits) if limits else None
+
+
+def _size(n_bytes: float) -> str:
+    return f"{n_bytes / 2**40:,.1f} TiB" if n_bytes >= 2**40 else f"{n_bytes / 2**30:,.1f} GiB"
+
+
+def check_memory(need_bytes: float, what: str, fix: str) -> None:
+    """Refuse work whose estimated peak memory (``need_bytes``) exceeds this machine's."""
+    have = memory_limit_bytes()
+    if have is not None and need_bytes > have:
+        raise UserError(
+            f"{what} need about {_size(need_bytes)} of memory, more than the {_size(have)} of "
+            f"this machine; {fix}"
+        )
+
+
+# --------------------------------------------------------------------------- one writer
+
+STAGING_PREFIX = ".staging-"
+_LOCKED: set[str] = set()  # output folders this process holds (``out_lock`` is re-entrant)
+
+
+@contextlib.contextmanager
+def out_lock(out: Path) -> Iterator[None]:
+    """One writing process per output folder: a second is refused in one line.
+
+    The lock is ``flock`` on the folder itself (no lock file is left behind) and dies with its
+    process, even on SIGKILL. While it is held no other run stages into ``out``, so the
+    ``.staging-*`` folders found there are those of a killed run: they are removed.
+    """
+    key = str(Path(out).resolve())
+    if key in _LOCKED or fcntl is None:
+        yield
+        return
+    fd = os.open(key, os.O_RDONLY)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise UserError(
+                f"{out}: another macromicro run is writing into this folder; wait for it to "
+                "finish or choose another --out"
+            ) from None
+        except OSError:
+            pass  # a file system without flock (some network mounts): no lock
+        for stale in Path(key).glob(f"{STAGING_PREFIX}*"):
+            if stale.is_dir() and not stale.is_symlink():
+                shutil.rmtree(stale, ignore_errors=True)
+        _LOCKED.add(key)
+        try:
+            yield
+        finally:
+            _LOCKED.discard(key)
+    finally:
+        os.close(fd)  # releases the lock
+
+
 def prepare_out_dir(out: Path | str, inputs: Iterable[Path | str] = ()) -> Path:
     """Check that ``out`` can hold outputs: a folder or nothing yet, never a file."""
     check_out_path(out, inputs)
@@ -297,6 +373,8 @@ def prepare_out_dir(out: Path | str, inputs: Iterable[Path | str] = ()) -> Path:
         raise UserError(
             f"{out}: output folder is not writable ({_reason(exc)}); pass a folder you can write"
         ) from None
+    with out_lock(out):  # refuses a folder another run is writing; clears a killed run's
+        pass
     return out
 
 
@@ -305,10 +383,18 @@ def staging_dir(out: Path) -> Iterator[Path]:
     """A scratch folder inside ``out`` whose contents move into ``out`` only on success.
 
     Stages write many files; staging them keeps ``out`` free of partial results when a
-    stage fails half-way (bad input found late, SUMO error, Ctrl-C).
+    stage fails half-way (bad input found late, SUMO error, Ctrl-C). The stage holds
+    ``out_lock`` meanwhile: a second run into ``out`` is refused, and a staging folder left
+    by a killed run is removed.
     """
+    with out_lock(out), _staged(out) as stage:
+        yield stage
+
+
+@contextlib.contextmanager
+def _staged(out: Path) -> Iterator[Path]:
     try:
-        stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
+        stage = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=out))
     except OSError as exc:
         raise UserError(f"{out}: cannot write into the output folder ({_reason(exc)})") from None
     try:

@@ -191,3 +191,14 @@ def test_ring_routes_file_that_is_not_xml(capsys, make_scenario, tmp_path, out):
     routes.write_text("routes: r_e0 r_e1\n")
     path = make_scenario({"network.routes_file": str(routes)})
     simulate_fails(capsys, path, out, str(routes), "not an XML file")
+
+
+def test_an_obviously_huge_scenario_is_refused_with_its_estimate(capsys, make_scenario, out):
+    path = make_scenario({"simulation.n_runs": 10_000, "simulation.duration_s": 1e6})
+    simulate_fails(
+        capsys,
+        path,
+        out,
+        "10000 x 2000000 x 5 = 100,000,000,000 trajectory rows need about 23.3 TiB of memory",
+        "lower one of them",
+    )

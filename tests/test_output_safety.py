@@ -9,6 +9,8 @@ import os
 import pickle
 import shutil
 import subprocess
+import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -18,7 +20,7 @@ from conftest import SMALL
 
 from macromicro_sumo import cli
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.files import OUTPUT_MARK, prepare_out_dir, staging_dir
+from macromicro_sumo.files import OUTPUT_MARK, out_lock, prepare_out_dir, staging_dir
 from macromicro_sumo.policy.ppo import load_checkpoint
 from macromicro_sumo.scenario.load import load_scenario
 
@@ -181,3 +183,42 @@ def test_disk_full_is_one_line_and_leaves_out_as_it_was(
     code = cli.main(["simulate", str(make_scenario(SMALL)), "--out", str(out), "--quiet"])
     one_line_error(capsys, code, f"{out / victim}: cannot write (No space left on device)")
     assert listing(out) == before
+
+
+def test_two_runs_at_once_are_refused_and_a_killed_runs_staging_is_removed(
+    make_scenario, tmp_path, capsys
+):
+    """A second process writing into the same --out is refused while the first stages; the
+    staging folder a SIGKILL leaves behind is removed by the next run."""
+    out = tmp_path / "out"
+    slow = make_scenario({"simulation.n_runs": 40, "simulation.duration_s": 1800.0}, "slow.toml")
+    small = str(make_scenario(SMALL))
+    first = subprocess.Popen(
+        [sys.executable, "-m", "macromicro_sumo.cli", "simulate", str(slow), "--out", str(out)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while not list(out.glob(".staging-*")):  # staging: it holds the lock from now on
+            assert first.poll() is None, first.stderr.read()
+            assert time.monotonic() < deadline, "the first run never started staging"
+            time.sleep(0.05)
+        code = cli.main(["simulate", small, "--out", str(out), "--quiet"])
+        one_line_error(capsys, code, f"{out}: another macromicro run is writing into this folder")
+    finally:
+        first.kill()  # SIGKILL: no clean-up of its own runs
+        first.wait()
+    assert list(out.glob(".staging-*")), "SIGKILL should have left the staging folder"
+    assert cli.main(["simulate", small, "--out", str(out), "--quiet"]) == 0
+    assert not list(out.glob(".staging-*"))
+    assert (out / "manifest.json").is_file()
+
+
+def test_out_lock_is_reentrant_and_released(tmp_path):
+    out = prepare_out_dir(tmp_path / "o")
+    with out_lock(out), out_lock(out), staging_dir(out) as stage:
+        (stage / "a.csv").write_text("x\n")
+    assert (out / "a.csv").is_file()
+    with out_lock(out):  # released after the first
+        pass

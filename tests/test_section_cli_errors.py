@@ -75,15 +75,11 @@ def test_section_edge_not_in_the_network(capsys, files: Path) -> None:
     fails(capsys, scenario(files, section={"edges": ["e0", "e9"]}), "'e9'", "corridor.net.xml")
 
 
-def test_vtype_without_length(capsys, files: Path) -> None:
+def test_vtype_with_a_bad_length(capsys, files: Path) -> None:
+    """A missing length is SUMO's default for the vClass (tests/sumo); a bad one is refused."""
     rou = files / "corridor.rou.xml"
-    text = rou.read_text()
-    start = text.index("<vType")
-    end = text.index(">", start)
-    vtype = text[start:end]
-    no_length = " ".join(p for p in vtype.split(" ") if not p.startswith("length="))
-    rou.write_text(text.replace(vtype, no_length, 1))
-    fails(capsys, scenario(files), "corridor.rou.xml", "has no length")
+    rou.write_text(rou.read_text().replace('length="4.5"', 'length="-4.5"', 1))
+    fails(capsys, scenario(files), "corridor.rou.xml", "vType 'car_idm' has length '-4.5'")
 
 
 def test_detector_file_for_another_network(capsys, files: Path) -> None:
@@ -96,7 +92,7 @@ def test_detector_file_for_another_network(capsys, files: Path) -> None:
     fails(capsys, path, "loops.add.xml", "'d1'", "gneE7_0", "another network")
 
 
-@pytest.mark.parametrize("rate", [0.0, 1.5, -0.1])
+@pytest.mark.parametrize("rate", [0.0, 1.5, -0.1, float("nan"), float("inf")])
 def test_penetration_outside_0_1(capsys, files: Path, rate: float) -> None:
     fails(capsys, scenario(files, instrumented={"penetration": rate}), "penetration", "(0, 1]")
 
@@ -133,3 +129,23 @@ def test_route_file_in_a_folder_with_a_comma(capsys, files: Path) -> None:
     shutil.move(files / "corridor.rou.xml", odd / "corridor.rou.xml")
     path = scenario(files, network={"route_files": [str(odd / "corridor.rou.xml")]})
     fails(capsys, path, str(odd / "corridor.rou.xml"), "has a comma", "rename or move")
+
+
+def test_unknown_instrumented_ids(capsys, files: Path) -> None:
+    """Ids are checked against the demand before SUMO starts: a vehicle or trip id, or a
+    flow's ``<flow id>.<n>``."""
+    path = scenario(files, instrumented={"ids": ["f_idm.0", "f_krauss.12", "f_idm.x", "ghost"]})
+    fails(capsys, path, "instrumented.ids names 'f_idm.x'", "f_idm.<n>", "f_krauss.<n>")
+
+
+def test_a_ground_truth_that_will_not_fit_in_memory(capsys, files: Path, monkeypatch) -> None:
+    """A section's vehicle count is known once SUMO runs: the first rows project the need."""
+    monkeypatch.setattr("macromicro_sumo.files.memory_limit_bytes", lambda: 4096)
+    path = scenario(files)
+    out = files / "out"
+    assert main(["simulate", str(path), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "\n" not in err and "Traceback" not in err, err
+    assert "trajectory rows per run (as run 0 goes) x simulation.n_runs = 2" in err, err
+    assert "of memory, more than the 0.0 GiB of this machine" in err, err
+    assert list(out.iterdir()) == []

@@ -31,9 +31,14 @@ def spec(
     hi: float | None = None,
     doc: str = "",
     choices: tuple[str, ...] | None = None,
+    accepted: str = "",
 ) -> Any:
-    """A dataclass field with its doc, accepted range and (for strings) choices."""
-    meta = {"range": (lo, hi), "doc": doc, "choices": choices}
+    """A dataclass field with its doc, accepted range and (for strings) choices.
+
+    ``accepted``: the range as messages state it, where [lo, hi] cannot say it (an open end,
+    checked by the scenario's own cross-field checks).
+    """
+    meta = {"range": (lo, hi), "doc": doc, "choices": choices, "accepted": accepted}
     if default is dataclasses.MISSING:
         return field(metadata=meta)
     if isinstance(default, list | dict):
@@ -62,6 +67,8 @@ class ScenarioFile:
 
 
 def _describe_range(meta: dict[str, Any]) -> str:
+    if meta.get("accepted"):
+        return meta["accepted"]
     lo, hi = meta.get("range", (None, None))
     if meta.get("choices"):
         return "one of " + ", ".join(repr(c) for c in meta["choices"])

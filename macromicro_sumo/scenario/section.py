@@ -41,7 +41,9 @@ class InstrumentedConfig:
     """Which vehicles are observed in detail (micro data): one of three ways."""
 
     # Range (0, 1] is checked in _check: the typed ranges are closed intervals.
-    penetration: float = spec(0.1, doc="share of vehicles with full trajectories, in (0, 1]")
+    penetration: float = spec(
+        0.1, accepted="(0, 1]", doc="share of vehicles with full trajectories, in (0, 1]"
+    )
     vtype: str = spec("", doc="instead: every vehicle of this vType is instrumented")
     ids: list[str] = spec([], doc="instead: exactly these vehicle IDs are instrumented")
 

@@ -27,6 +27,35 @@ DEFAULT_VEHTYPE = "DEFAULT_VEHTYPE"
 """SUMO's implicit vType for vehicles without ``type=``: passenger, length 5 m, minGap 2.5 m,
 Krauss (https://sumo.dlr.de/docs/Definition_of_Vehicles%2C_Vehicle_Types%2C_and_Routes.html)."""
 
+VCLASS_DEFAULTS: dict[str, tuple[float, float]] = {
+    "pedestrian": (0.215, 0.25),
+    "bicycle": (1.6, 0.5),
+    "wheelchair": (1.2, 0.5),
+    "scooter": (1.2, 0.5),
+    "moped": (2.1, 2.5),
+    "motorcycle": (2.2, 2.5),
+    "drone": (0.5, 2.5),
+    "delivery": (6.5, 2.5),
+    "emergency": (6.5, 2.5),
+    "container": (6.096, 2.5),
+    "truck": (7.1, 2.5),
+    "bus": (12.0, 2.5),
+    "coach": (14.0, 2.5),
+    "trailer": (16.5, 2.5),
+    "ship": (17.0, 2.5),
+    "tram": (22.0, 2.5),
+    "aircraft": (72.7, 2.5),
+    "rail_urban": (109.5, 5.0),
+    "subway": (109.5, 5.0),
+    "rail": (135.0, 5.0),
+    "rail_electric": (200.0, 5.0),
+    "rail_fast": (200.0, 5.0),
+}
+"""SUMO's (length, minGap) in m of a vType that sets its ``vClass`` but not these, as SUMO
+1.28 reports them (``vehicletype.getLength``); every other class, and a vType without
+``vClass`` (a passenger car), gets ``VCLASS_DEFAULT``."""
+VCLASS_DEFAULT = (5.0, 2.5)
+
 DETECTOR_PERIOD_DEFAULT_S = 900.0
 """SUMO's default aggregation period of E1/E2 detectors when neither period nor freq is given."""
 
@@ -170,11 +199,11 @@ class VType:
 
 
 def _vtype_from_xml(elem: ET.Element, file: Path) -> VType | str:
-    """A VType, or the reason it cannot be used (no or bad length)."""
+    """A VType, or the reason it cannot be used (a bad length or minGap). A missing length or
+    minGap is SUMO's default for the vType's ``vClass`` (``VCLASS_DEFAULTS``)."""
     tid = elem.get("id", "")
-    length = elem.get("length")
-    if length is None:
-        return f"{file}: vType '{tid}' has no length; accepted: length > 0 in m"
+    default_length, default_gap = VCLASS_DEFAULTS.get(elem.get("vClass", ""), VCLASS_DEFAULT)
+    length = elem.get("length", repr(default_length))
     try:
         length_m = float(length)
     except ValueError:
@@ -192,8 +221,10 @@ def _vtype_from_xml(elem: ET.Element, file: Path) -> VType | str:
             params.update(_floats({child.get("key", ""): child.get("value", "")}))
     params.update(_floats(elem.attrib))
     try:
-        min_gap_m = float(elem.get("minGap", "2.5"))
+        min_gap_m = float(elem.get("minGap", repr(default_gap)))
     except ValueError:
+        min_gap_m = math.nan
+    if not (min_gap_m >= 0 and math.isfinite(min_gap_m)):
         return f"{file}: vType '{tid}' has minGap '{elem.get('minGap')}'; accepted: >= 0 in m"
     return VType(tid, length_m, min_gap_m, model or "Krauss", params)
 
@@ -223,11 +254,11 @@ def check_demand(inputs: SumoInputs, net: sumolib.net.Net) -> dict[str, VType]:
 
     Every route, vehicle, flow and trip in the route and additional files may only use edges
     of the network (``edges=``, ``from``/``to``/``via``, routes nested in vehicles or route
-    distributions), and every vType a vehicle can get must carry an explicit ``length``: the
-    spacing statistics depend on it and SUMO's vClass defaults would be a silent guess. The
-    one exception is SUMO's implicit ``DEFAULT_VEHTYPE`` (vehicles without ``type=``), taken
-    as SUMO documents it: length 5 m, minGap 2.5 m, Krauss. A vTypeDistribution stands for
-    its members. Returns the used vTypes by id (members, not distributions, since SUMO
+    distributions), and there must be at least one vehicle, trip or flow. A vType without
+    ``length`` or ``minGap`` has SUMO's default for its ``vClass`` (``VCLASS_DEFAULTS``: 5 m
+    and 2.5 m for a passenger car), as SUMO drives it; SUMO's implicit ``DEFAULT_VEHTYPE``
+    (vehicles without ``type=``) is a passenger car with Krauss. A vTypeDistribution stands
+    for its members. Returns the used vTypes by id (members, not distributions, since SUMO
     reports a vehicle's member type).
     """
     net_name = Path(inputs.net_file).name
@@ -313,7 +344,7 @@ def check_demand(inputs: SumoInputs, net: sumolib.net.Net) -> dict[str, VType]:
                     raise UserError(parsed)
                 used[member] = parsed
             elif member == DEFAULT_VEHTYPE:
-                used[member] = VType(DEFAULT_VEHTYPE, 5.0, 2.5, "Krauss", {})
+                used[member] = VType(DEFAULT_VEHTYPE, *VCLASS_DEFAULT, "Krauss", {})
             else:
                 raise UserError(
                     f"{file}: {kind} '{eid}' uses vType '{member}' which is defined in none "
@@ -368,6 +399,30 @@ def check_ring_routes(path: Path, edge_ids: Sequence[str], net_file: Path) -> No
                 f"{path}: no rerouter on ring edge '{edge}'; vehicles would leave the ring at "
                 "the end of their route (scripts/build_ring_net.py writes routes and rerouters)"
             )
+
+
+def check_vehicle_ids(inputs: SumoInputs, ids: Sequence[str], where: str) -> None:
+    """Every id of ``ids`` names a vehicle the demand can insert: a ``<vehicle>`` or ``<trip>``
+    id, or ``<flow id>.<n>`` (SUMO names a flow's vehicles so). ``where`` names the key."""
+    files = [*inputs.route_files, *inputs.additional_files]
+    single: set[str] = set()
+    flows: set[str] = set()
+    for _file, elem in _demand_elements(files):
+        tag = _local(elem.tag)
+        if tag in ("vehicle", "trip"):
+            single.add(elem.get("id", ""))
+        elif tag == "flow":
+            flows.add(elem.get("id", ""))
+    for vid in ids:
+        flow, dot, n = vid.rpartition(".")
+        if vid in single or (dot and n.isdigit() and flow in flows):
+            continue
+        known = sorted(single)[:3] + [f"{f}.<n>" for f in sorted(flows)[:3]]
+        raise UserError(
+            f"{where} names '{vid}', which no vehicle of the demand has; accepted: the id of a "
+            f"<vehicle> or <trip>, or <flow id>.<n> ({', '.join(known) or 'none'}"
+            f"{', ...' if len(single) + len(flows) > len(known) else ''})"
+        )
 
 
 # ---------------------------------------------------------------- detectors

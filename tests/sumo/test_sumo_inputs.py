@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import gzip
+import json
+import re
 import shutil
+import subprocess
+import sys
 import tomllib
 from pathlib import Path
 
@@ -11,9 +15,12 @@ import pytest
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.sumo.inputs import (
+    VCLASS_DEFAULT,
+    VCLASS_DEFAULTS,
     SumoInputs,
     auto_detectors_xml,
     check_demand,
+    check_vehicle_ids,
     read_net,
     resolve_inputs,
     user_detectors,
@@ -123,16 +130,76 @@ def test_trip_and_nested_route_edges_are_checked(tmp_path: Path, net_file: Path)
         check_demand(_inputs(net_file, [nested]), net)
 
 
-def test_vtype_without_length_is_named(tmp_path: Path, net_file: Path) -> None:
+def test_vtype_without_length_takes_sumos_default_for_its_class(
+    tmp_path: Path, net_file: Path
+) -> None:
     routes = _write(
         tmp_path / "demand.rou.xml",
-        '<routes><vType id="car" accel="2.0"/>'
-        '<flow id="f" type="car" from="e0" to="e6" begin="0" end="60" number="5"/></routes>',
+        '<routes><vType id="car" accel="2.0"/><vType id="lorry" vClass="truck" minGap="3"/>'
+        '<vType id="bike" vClass="bicycle"/><vType id="bad" length="0"/>'
+        '<flow id="f" type="car" from="e0" to="e6" begin="0" end="60" number="5"/>'
+        '<flow id="g" type="lorry" from="e0" to="e6" begin="0" end="60" number="5"/>'
+        '<flow id="h" type="bike" from="e0" to="e6" begin="0" end="60" number="5"/></routes>',
     )
-    with pytest.raises(
-        UserError, match=r"demand\.rou\.xml: vType 'car' has no length; accepted: length > 0 in m"
-    ):
-        check_demand(_inputs(net_file, [routes]), read_net(net_file))
+    got = check_demand(_inputs(net_file, [routes]), read_net(net_file))
+    assert (got["car"].length_m, got["car"].min_gap_m) == (5.0, 2.5)
+    assert (got["lorry"].length_m, got["lorry"].min_gap_m) == (7.1, 3.0)
+    assert (got["bike"].length_m, got["bike"].min_gap_m) == (1.6, 0.5)
+    bad = _write(tmp_path / "bad.rou.xml", routes.read_text().replace('type="car"', 'type="bad"'))
+    with pytest.raises(UserError, match=r"bad\.rou\.xml: vType 'bad' has length '0'; accepted"):
+        check_demand(_inputs(net_file, [bad]), read_net(net_file))
+
+
+_SUMO_DEFAULTS = """
+import json, sys, libsumo, sumolib
+classes = json.loads(sys.argv[1])
+with open(sys.argv[2], "w") as f:
+    f.write("<additional>" + "".join(f'<vType id="t_{c}" vClass="{c}"/>' for c in classes))
+    f.write('<vType id="t_none"/></additional>')
+libsumo.start([sumolib.checkBinary("sumo"), "-n", sys.argv[3], "-a", sys.argv[2]])
+got = {c: [libsumo.vehicletype.getLength(f"t_{c}"), libsumo.vehicletype.getMinGap(f"t_{c}")]
+       for c in [*classes, "none"]}
+libsumo.close()
+print(json.dumps(got))
+"""
+
+
+def test_vclass_defaults_are_sumos_own(tmp_path: Path, net_file: Path) -> None:
+    """The table of default lengths and gaps against the SUMO in use (its own process:
+    libsumo holds one simulation per process)."""
+    classes = [*VCLASS_DEFAULTS, "passenger", "taxi", "evehicle"]
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            _SUMO_DEFAULTS,
+            json.dumps(classes),
+            str(tmp_path / "t.add.xml"),
+            str(net_file),
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    got = json.loads(done.stdout.strip().splitlines()[-1])
+    want = {c: list(VCLASS_DEFAULTS.get(c, VCLASS_DEFAULT)) for c in [*classes, "none"]}
+    assert {c: [round(v, 4) for v in got[c]] for c in got} == want
+
+
+def test_instrumented_ids_must_name_a_vehicle_of_the_demand(tmp_path: Path, net_file: Path):
+    routes = _write(
+        tmp_path / "demand.rou.xml",
+        '<routes><route id="r" edges="e0 e1 e2 e3 e4 e5 e6"/>'
+        '<vehicle id="solo" route="r" depart="0"/><trip id="t1" from="e0" to="e6" depart="1"/>'
+        '<flow id="f" route="r" begin="0" end="60" number="5"/></routes>',
+    )
+    inputs = _inputs(net_file, [routes])
+    check_vehicle_ids(inputs, ["solo", "t1", "f.0", "f.4"], "x.toml: instrumented.ids")
+    for bad in ("f", "f.", "f.a", "g.0", "Solo"):
+        with pytest.raises(
+            UserError, match=rf"x\.toml: instrumented\.ids names '{re.escape(bad)}'"
+        ):
+            check_vehicle_ids(inputs, [bad], "x.toml: instrumented.ids")
 
 
 def test_vtypes_distribution_and_default(tmp_path: Path, net_file: Path) -> None:
