@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from macromicro_sumo.evaluation.leader_follower import method_summary
+from macromicro_sumo.evaluation.leader_follower import LeaderProfile, method_summary
 from macromicro_sumo.evaluation.methods import methods_markdown
 from macromicro_sumo.files import write_text
 from macromicro_sumo.report import plots
@@ -347,7 +347,8 @@ def write_report(sc: Scenario, out: Path, manifest: dict[str, Any]) -> Path:
         parts += [
             "## Leader-follower (paper Fig. 3)",
             "",
-            "Follower 126 m behind the leader at the same speed; the IDM follower has the middle of the "
+            f"Follower {LeaderProfile().on_ring(sc).spacing_m:.0f} m behind the leader at the "
+            "same speed; the IDM follower has the middle of the "
             f"fleet's IDM ranges; minimum safe gap {sc.evaluation.min_safe_gap_m:g} m; target: mean RMSE "
             "<= 0.3 m/s against the IDM follower.",
             "",
