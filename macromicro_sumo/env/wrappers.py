@@ -22,12 +22,13 @@ is (value - shift) / scale with the fixed per-feature table of ``env.observation
 (the one the ring's PPO agent uses), and the bounds move with it.
 
 ## Rewards
-r_macro,t = 1 / (1 + lambda_v L_speed,t + lambda_d L_dist,t) on the whole scene, the same
-for every hidden vehicle (the trainer weights it by eta). The micro term is not a reward:
+r_macro,t = 1 / (1 + lambda_v L_speed,t + lambda_d L_dist,t) on the whole scene
+(``macromicro_sumo.data.objective``), the same for every hidden vehicle (the trainer weights
+it by eta). The micro term is not a reward:
 ``info["observed_obs"]`` (M, 4) and ``info["observed_action_mps2"]`` (M,) carry each observed
 vehicle's observation in the simulated scene and its recorded action at this step, for the
 likelihood term. ``info`` also has ``collision``, ``error`` (a SUMO failure, if any) and the
-named terms ``L_speed, L_mean, L_min, L_max, L_var``.
+named terms of ``data.objective``: ``L_speed, L_mean, L_min, L_max, L_var``.
 
 ## Starting State
 A snapshot of a ground-truth run (the ``split``'s runs) with K hidden vehicles, completed
