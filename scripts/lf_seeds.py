@@ -46,7 +46,8 @@ from macromicro_sumo.evaluation.leader_follower import (
     run_leader_follower,
 )
 from macromicro_sumo.generator.ring_train import load_generator
-from macromicro_sumo.policy.ppo import heldout_speed, train_policy, training_bank
+from macromicro_sumo.policy.ppo import train_policy
+from macromicro_sumo.policy.stage import heldout_speed, training_bank
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.scenario.ring import Scenario
 

@@ -21,7 +21,7 @@ from conftest import SMALL
 from macromicro_sumo import cli
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import OUTPUT_MARK, out_lock, prepare_out_dir, staging_dir
-from macromicro_sumo.policy.ppo import load_checkpoint
+from macromicro_sumo.policy.checkpoint import load_checkpoint
 from macromicro_sumo.scenario.load import load_scenario
 
 

@@ -39,7 +39,8 @@ from macromicro_sumo.evaluation.statistics import macro_row, samples_frame
 from macromicro_sumo.files import prepare_out_dir, staging_dir, write_csv, write_json
 from macromicro_sumo.generator.ring_train import load_generator
 from macromicro_sumo.manifest import build_manifest
-from macromicro_sumo.policy.ppo import load_policy, policy_action
+from macromicro_sumo.policy.agent import policy_action
+from macromicro_sumo.policy.checkpoint import load_policy
 from macromicro_sumo.progress import tqdm
 from macromicro_sumo.road.physics import lookahead_features
 from macromicro_sumo.road.ring import read_ring

@@ -42,7 +42,8 @@ from macromicro_sumo.files import prepare_out_dir, staging_dir, write_csv, write
 from macromicro_sumo.generator.section_sampler import generator_completion
 from macromicro_sumo.generator.section_train import load_section_generator
 from macromicro_sumo.manifest import build_manifest
-from macromicro_sumo.policy.ppo import load_policy, policy_action
+from macromicro_sumo.policy.agent import policy_action
+from macromicro_sumo.policy.checkpoint import load_policy
 from macromicro_sumo.progress import tqdm
 from macromicro_sumo.road.section import Section, lane_leaders
 from macromicro_sumo.truth.section import k_summary, load_section_truth, scenario_inputs

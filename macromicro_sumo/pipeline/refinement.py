@@ -24,13 +24,9 @@ from macromicro_sumo.env.rollout import rollout
 from macromicro_sumo.files import prepare_out_dir, write_json
 from macromicro_sumo.generator.ring_train import load_generator, save_generator, train_generator
 from macromicro_sumo.manifest import build_manifest
-from macromicro_sumo.policy.ppo import (
-    CHECKPOINT_FORMAT,
-    load_policy,
-    policy_action,
-    signature,
-    train_policy,
-)
+from macromicro_sumo.policy.agent import policy_action
+from macromicro_sumo.policy.checkpoint import CHECKPOINT_FORMAT, load_policy, signature
+from macromicro_sumo.policy.ppo import train_policy
 from macromicro_sumo.scenario.ring import Scenario
 
 

@@ -25,7 +25,7 @@ from macromicro_sumo.files import check_outputs, prepare_out_dir, write_json
 from macromicro_sumo.generator.ring_train import run_train_generator
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.pipeline.refinement import refine
-from macromicro_sumo.policy.ppo import run_train_policy
+from macromicro_sumo.policy.stage import run_train_policy
 from macromicro_sumo.report.ring import write_report
 from macromicro_sumo.scenario.ring import Scenario
 from macromicro_sumo.truth.ring import simulate

@@ -22,7 +22,8 @@ from macromicro_sumo.generator.section_train import (
     run_train_section_generator,
 )
 from macromicro_sumo.pipeline.ring import run_stages, standard_stages
-from macromicro_sumo.policy.ppo import open_policy_stage, train_policy, write_policy_manifest
+from macromicro_sumo.policy.ppo import train_policy
+from macromicro_sumo.policy.stage import open_policy_stage, write_policy_manifest
 from macromicro_sumo.report.section import write_section_report
 from macromicro_sumo.truth.section import load_section_truth, scenario_inputs, simulate_section
 

@@ -16,7 +16,7 @@ from macromicro_sumo.generator.ring_train import run_train_generator
 from macromicro_sumo.generator.section_train import run_train_section_generator
 from macromicro_sumo.pipeline.ring import run as run_ring
 from macromicro_sumo.pipeline.section import run_section, run_train_section_policy
-from macromicro_sumo.policy.ppo import run_train_policy
+from macromicro_sumo.policy.stage import run_train_policy
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.truth.ring import simulate as simulate_ring
 from macromicro_sumo.truth.section import scenario_inputs, simulate_section

@@ -1,6 +1,7 @@
 """Stage II: PPO for the shared policy, J(theta) = E[r_micro + eta r_macro] (paper, Alg. 1).
 
-Read top to bottom as CleanRL's ppo_continuous_action: agent, rollout, GAE, update.
+Read top to bottom as CleanRL's ppo_continuous_action: rollout, GAE, update (the agent is
+``policy.agent``, its checkpoints ``policy.checkpoint``, the CLI stage ``policy.stage``).
 
 * The policy is a Gaussian over the acceleration with a state-independent std; the env
   clips the sample to [a_min, a_max]. One policy drives every hidden vehicle.
@@ -23,7 +24,6 @@ Read top to bottom as CleanRL's ppo_continuous_action: agent, rollout, GAE, upda
 from __future__ import annotations
 
 import copy
-import hashlib
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -36,82 +36,15 @@ import torch
 from torch import nn
 
 from macromicro_sumo.checkpoints import save_torch
-from macromicro_sumo.data.ring import load_ground_truth, split_runs
-from macromicro_sumo.env.observation import OBS_SHIFT_SCALE
-from macromicro_sumo.env.ring import EpisodeBank, RingCore, build_bank, generator_completion
-from macromicro_sumo.env.rollout import ActionFn, rollout
+from macromicro_sumo.env.ring import EpisodeBank, RingCore
 from macromicro_sumo.env.section import SectionBank, SectionCore, initial_observations
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.files import file_sha256, prepare_out_dir, write_csv, write_json
-from macromicro_sumo.generator.ring_train import load_generator
-from macromicro_sumo.manifest import build_manifest
+from macromicro_sumo.files import write_csv
+from macromicro_sumo.policy.agent import Agent, observation_shift_scale
+from macromicro_sumo.policy.checkpoint import CHECKPOINT_FORMAT, resumable_checkpoint, signature
 from macromicro_sumo.progress import tqdm
-from macromicro_sumo.road.physics import OBSERVATION_FEATURES
 from macromicro_sumo.scenario.ring import Scenario
 from macromicro_sumo.scenario.section import SectionScenario
-
-CHECKPOINT_FORMAT = "macromicro-policy"
-# Fixed observation scaling per feature: env.observation.FEATURES (the envs' normalize too).
-
-
-# --------------------------------------------------------------------------- agent
-
-
-class Agent(nn.Module):
-    def __init__(
-        self,
-        hidden_size: int = 64,
-        init_log_std: float = -1.0,
-        observation: str = "paper",
-        shift_scale: tuple[np.ndarray, np.ndarray] | None = None,
-    ) -> None:
-        """``shift_scale``: the observation normalisation (None: the ring's OBS_SHIFT_SCALE)."""
-        super().__init__()
-        features = OBSERVATION_FEATURES[observation]
-        obs_dim = len(features)
-        self.observation = observation
-        if shift_scale is None:
-            shift = torch.tensor([OBS_SHIFT_SCALE[f][0] for f in features])
-            scale = torch.tensor([OBS_SHIFT_SCALE[f][1] for f in features])
-        else:
-            shift = torch.as_tensor(np.asarray(shift_scale[0]), dtype=torch.float32)
-            scale = torch.as_tensor(np.asarray(shift_scale[1]), dtype=torch.float32)
-        self.register_buffer("shift", shift)
-        self.register_buffer("scale", scale)
-        self.actor = nn.Sequential(
-            nn.Linear(obs_dim, hidden_size),
-            nn.Tanh(),
-            nn.Linear(hidden_size, hidden_size),
-            nn.Tanh(),
-            nn.Linear(hidden_size, 1),
-        )
-        self.critic = nn.Sequential(
-            nn.Linear(obs_dim + 1, hidden_size),
-            nn.Tanh(),
-            nn.Linear(hidden_size, hidden_size),
-            nn.Tanh(),
-            nn.Linear(hidden_size, 1),
-        )
-        self.log_std = nn.Parameter(torch.full((1,), float(init_log_std)))
-        self.hidden_size = hidden_size
-
-    def dist(self, obs: torch.Tensor) -> torch.distributions.Normal:
-        mean = self.actor((obs - self.shift) / self.scale).squeeze(-1)
-        return torch.distributions.Normal(mean, self.log_std.exp().expand_as(mean))
-
-    def value(self, obs: torch.Tensor, t_frac: torch.Tensor) -> torch.Tensor:
-        x = torch.cat([(obs - self.shift) / self.scale, t_frac[..., None]], dim=-1)
-        return self.critic(x).squeeze(-1)
-
-
-def policy_action(agent, stochastic: bool = True) -> ActionFn:
-    def act(core: RingCore, obs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        with torch.no_grad():
-            d = agent.dist(torch.as_tensor(obs[core.hidden], dtype=torch.float32))
-        mean, std = d.mean.numpy(), d.stddev.numpy()
-        return mean + std * rng.standard_normal(mean.shape) if stochastic else mean
-
-    return act
 
 
 def gae(
@@ -129,14 +62,6 @@ def gae(
         last = delta + gamma * lam * last
         adv[t] = last
     return adv, adv + values
-
-
-def observation_shift_scale(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-feature mean and std of ``obs`` (V, D); a constant feature gets scale 1."""
-    if len(obs) == 0:
-        return np.zeros(obs.shape[1]), np.ones(obs.shape[1])
-    shift, scale = obs.mean(axis=0), obs.std(axis=0)
-    return shift, np.where(scale > 1e-6, scale, 1.0)
 
 
 def clipped_actions(actions: np.ndarray, a_min: float, a_max: float) -> tuple[np.ndarray, float]:
@@ -280,90 +205,6 @@ def mean_logp(agent: Agent, obs: torch.Tensor, actions: torch.Tensor) -> float:
 def learning_rate(lr: float, schedule: str, update: int, n_updates: int) -> float:
     """Adam's rate at ``update`` (0-based): constant, or linear decay reaching 0 after the last."""
     return lr * (1.0 - update / n_updates) if schedule == "linear" else lr
-
-
-def signature(sc: Scenario | SectionScenario) -> dict[str, Any]:
-    """What a policy checkpoint must agree on with the scenario that loads it."""
-    if isinstance(sc, SectionScenario):
-        return {
-            "network.kind": "sumo",
-            "section.edges": ",".join(sc.section.edges),
-            "section.closed": sc.section.closed,
-            "bounds.accel_mps2": list(sc.bounds.accel_mps2),
-            "simulation.step_length_s": sc.simulation.step_length_s,
-            "policy.observation": ",".join(OBSERVATION_FEATURES[sc.policy.observation]),
-        }
-    return {
-        "fleet.n_vehicles": sc.fleet.n_vehicles,
-        "network.radius_m": sc.network.radius_m,
-        "bounds.accel_mps2": list(sc.bounds.accel_mps2),
-        "simulation.step_length_s": sc.simulation.step_length_s,
-        "policy.observation": ",".join(OBSERVATION_FEATURES[sc.policy.observation]),
-    }
-
-
-def read_checkpoint(path: Path) -> dict[str, Any]:
-    """A policy checkpoint's payload, whatever scenario it was trained for."""
-    try:
-        # weights_only: a checkpoint is data; a crafted pickle must never run code here.
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:
-        raise UserError(
-            f"{path}: corrupt or truncated policy checkpoint ({type(exc).__name__})"
-        ) from None
-    fmt = payload.get("format") if isinstance(payload, dict) else None
-    if fmt != CHECKPOINT_FORMAT:
-        what = f"a {fmt!r} file" if isinstance(fmt, str) else "no format tag"
-        raise UserError(
-            f"{path}: not a policy checkpoint ({what}); pass the policy.pt of train-policy"
-        )
-    return payload
-
-
-def load_checkpoint(path: Path, sc: Scenario) -> dict[str, Any]:
-    payload = read_checkpoint(path)
-    want = signature(sc)
-    for key, have in payload["signature"].items():
-        if want.get(key) != have:
-            raise UserError(
-                f"{path}: policy was trained for {key} = {have}, scenario {sc.source} has {want.get(key)}"
-            )
-    return payload
-
-
-def resumable_checkpoint(
-    path: Path, sc: Scenario, run_key: str, resume: bool | str
-) -> dict[str, Any] | None:
-    """The checkpoint to continue from, if any.
-
-    ``resume`` True: the checkpoint must be of this very run (same scenario, ground truth,
-    generator and objective: ``run_key``) or it is an error; "auto": such a checkpoint is
-    used and any other ignored, whatever scenario it was trained for (the pipeline after an
-    input changed: training starts afresh and replaces it); False: none. A file that is not
-    a policy checkpoint is an error either way.
-    """
-    if not resume or not path.is_file():
-        return None
-    if resume == "auto" and read_checkpoint(path).get("run_key") != run_key:
-        return None
-    ck = load_checkpoint(path, sc)
-    if ck.get("run_key") != run_key:
-        raise UserError(
-            f"{path}: checkpoint belongs to another run (scenario, ground truth, generator or objective "
-            "differ); start without --resume or use another --out"
-        )
-    return ck
-
-
-def load_policy(path: Path | str, sc: Scenario) -> Agent:
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"{path}: policy checkpoint not found (run `macromicro train-policy`)")
-    payload = load_checkpoint(path, sc)
-    agent = Agent(payload["hidden_size"], observation=sc.policy.observation)
-    agent.load_state_dict(payload["state_dict"])
-    agent.eval()
-    return agent
 
 
 def train_policy(
@@ -565,111 +406,3 @@ def train_policy(
     name = "policy_train_log.csv" if objective == "mix" else f"policy_train_log_{objective}.csv"
     write_csv(pd.DataFrame(log), out / name)
     return {"agent": agent, "wall_s": wall, "env_steps": env_steps, "log": log}
-
-
-def policy_run_key(sc, data: Path, generator: Path, objective: str) -> str:
-    """What a resumable checkpoint must belong to: scenario, ground truth, generator, objective."""
-    return hashlib.sha256(
-        f"{sc.digest()}|{file_sha256(generator)}|{file_sha256(Path(data) / 'trajectories.csv')}|{objective}".encode()
-    ).hexdigest()
-
-
-def training_bank(sc: Scenario, gt, net, splits: dict[str, np.ndarray]):
-    """The ring policy's episodes: train + val runs completed by the generator (scenario seed)."""
-    return build_bank(
-        sc,
-        gt,
-        np.concatenate([splits["train"], splits["val"]]),
-        generator_completion(net, sc, sc.seed),
-        sc.policy.hidden_train,
-        sc.seed,
-    )
-
-
-def heldout_speed(sc: Scenario, gt, net, agent, held: np.ndarray) -> pd.DataFrame:
-    """Per K: the fleet's mean speed on the held-out runs, policy-driven vs recorded."""
-    rows, h = [], sc.policy.horizon
-    for k in range(sc.generator.hidden_eval[0], sc.generator.hidden_eval[1] + 1):
-        bank = build_bank(sc, gt, held, generator_completion(net, sc, sc.seed + k), k, sc.seed + k)
-        core = RingCore(sc, bank, seed=sc.seed)
-        try:
-            ro = rollout(core, policy_action(agent), h, sc.seed + k)
-        finally:
-            core.close()
-        v, v_gt = np.nanmean(ro.speed_mps), bank.replay_speed_mps[:, 1 : h + 1].mean()
-        rows.append(
-            {
-                "K": k,
-                "mean_speed_mps": v,
-                "gt_mean_speed_mps": v_gt,
-                "abs_error_mps": abs(v - v_gt),
-                "collisions": ro.collisions,
-                "episodes": len(bank),
-            }
-        )
-    return pd.DataFrame(rows)
-
-
-def run_train_policy(
-    sc: Scenario,
-    data: Path,
-    generator: Path,
-    out: Path,
-    resume: bool | str = False,
-    command: str = "",
-    progress: bool = True,
-    objective: str | None = None,
-) -> dict[str, Any]:
-    """CLI stage: episodes from train+val runs completed by the generator, PPO, held-out check."""
-    objective = objective or sc.policy.objective
-
-    net = load_generator(generator, sc)
-    gt = load_ground_truth(data, sc)
-    out, run_key, splits = open_policy_stage(sc, gt.runs, data, generator, out, objective, resume)
-    bank = training_bank(sc, gt, net, splits)
-    res = train_policy(
-        sc,
-        bank,
-        out,
-        objective=objective,
-        resume=resume,
-        progress=progress,
-        run_key=run_key,
-        val_runs=splits["val"],
-    )
-    # Held-out check of the issue's target: fleet mean speed vs ground truth per K.
-    align = heldout_speed(sc, gt, net, res["agent"], splits["held_out"])
-    suffix = "" if objective == "mix" else f"_{objective}"
-    write_csv(align, out / f"policy_heldout_speed{suffix}.csv")
-    manifest = write_policy_manifest(sc, command, objective, res, data, generator, out)
-    return {"alignment": align, **manifest}
-
-
-def open_policy_stage(
-    sc, runs: np.ndarray, data: Path, generator: Path, out: Path, objective: str, resume: bool | str
-) -> tuple[Path, str, dict[str, np.ndarray]]:
-    """The head of a policy stage (ring or section): the output folder, the run key, and the
-    run split. Checks a checkpoint to resume before anything is overwritten."""
-    out = prepare_out_dir(out)
-    run_key = policy_run_key(sc, data, generator, objective)
-    resumable_checkpoint(out / f"policy_{objective}_checkpoint.pt", sc, run_key, resume)
-    torch.set_num_threads(1)
-    return out, run_key, split_runs(runs, sc.generator.held_out_fraction, sc.seed)
-
-
-def write_policy_manifest(
-    sc, command: str, objective: str, res: dict, data: Path, generator: Path, out: Path, **extra
-) -> dict[str, Any]:
-    """``policy_manifest[_objective].json`` of a policy stage (ring or section); returned.
-    Written last: the pipeline takes a stage with its manifest as done."""
-    suffix = "" if objective == "mix" else f"_{objective}"
-    manifest = build_manifest(sc, command, stage=f"train-policy{suffix}")
-    manifest.update(
-        timings_s={"train_policy": round(res["wall_s"], 3)},
-        env_steps=res["env_steps"],
-        **extra,
-        ground_truth=str(data),
-        generator=str(generator),
-    )
-    write_json(manifest, out / f"policy_manifest{suffix}.json")
-    return manifest

@@ -6,7 +6,7 @@ import numpy as np
 import torch
 
 from macromicro_sumo.env.observation import FEATURES, OBS_SHIFT_SCALE, shift_scale
-from macromicro_sumo.policy.ppo import Agent
+from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES
 
 

@@ -18,7 +18,8 @@ from macromicro_sumo.env.section import (
     build_section_bank,
     section_macro_reward,
 )
-from macromicro_sumo.policy.ppo import load_policy, train_policy
+from macromicro_sumo.policy.checkpoint import load_policy
+from macromicro_sumo.policy.ppo import train_policy
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, read_section
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import load_section_truth, simulate_section

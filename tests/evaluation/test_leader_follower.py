@@ -10,7 +10,7 @@ from conftest import PAPER_SCENARIO, ROOT
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation import leader_follower as lf
-from macromicro_sumo.policy.ppo import Agent
+from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.road.physics import idm_accel
 from macromicro_sumo.scenario.load import load_scenario
 

@@ -55,7 +55,8 @@ def ring_macro_rows(out: Path) -> pd.DataFrame:
     from macromicro_sumo.data.ring import load_ground_truth, split_runs
     from macromicro_sumo.evaluation.ring import macro_alignment
     from macromicro_sumo.generator.ring_train import load_generator, run_train_generator
-    from macromicro_sumo.policy.ppo import load_policy, run_train_policy
+    from macromicro_sumo.policy.checkpoint import load_policy
+    from macromicro_sumo.policy.stage import run_train_policy
     from macromicro_sumo.scenario.load import load_scenario
     from macromicro_sumo.truth.ring import simulate
 

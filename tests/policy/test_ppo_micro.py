@@ -14,8 +14,8 @@ from macromicro_sumo import cli
 from macromicro_sumo.data.ring import load_ground_truth, split_runs
 from macromicro_sumo.env.ring import RingCore, build_bank
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.ppo import (
-    Agent,
     collect,
     learning_rate,
     mean_logp,

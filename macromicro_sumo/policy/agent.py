@@ -1,0 +1,90 @@
+"""Stage II: the shared policy's agent (actor and value baseline) and how it acts.
+
+* The policy is a Gaussian over the acceleration with a state-independent std; the env
+  clips the sample to [a_min, a_max]. One policy drives every hidden vehicle
+  (``policy_action``).
+* Observations are normalised with fixed ring constants on the ring
+  (``env.observation.OBS_SHIFT_SCALE``) and with the mean/std of the bank's initial
+  observations on a section (``observation_shift_scale``); both are buffers of the agent,
+  so they travel in the checkpoint's state_dict.
+
+Training is ``policy.ppo``, checkpoints ``policy.checkpoint``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import nn
+
+from macromicro_sumo.env.observation import OBS_SHIFT_SCALE
+from macromicro_sumo.env.ring import RingCore
+from macromicro_sumo.env.rollout import ActionFn
+from macromicro_sumo.road.physics import OBSERVATION_FEATURES
+
+# Fixed observation scaling per feature: env.observation.FEATURES (the envs' normalize too).
+
+
+class Agent(nn.Module):
+    def __init__(
+        self,
+        hidden_size: int = 64,
+        init_log_std: float = -1.0,
+        observation: str = "paper",
+        shift_scale: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> None:
+        """``shift_scale``: the observation normalisation (None: the ring's OBS_SHIFT_SCALE)."""
+        super().__init__()
+        features = OBSERVATION_FEATURES[observation]
+        obs_dim = len(features)
+        self.observation = observation
+        if shift_scale is None:
+            shift = torch.tensor([OBS_SHIFT_SCALE[f][0] for f in features])
+            scale = torch.tensor([OBS_SHIFT_SCALE[f][1] for f in features])
+        else:
+            shift = torch.as_tensor(np.asarray(shift_scale[0]), dtype=torch.float32)
+            scale = torch.as_tensor(np.asarray(shift_scale[1]), dtype=torch.float32)
+        self.register_buffer("shift", shift)
+        self.register_buffer("scale", scale)
+        self.actor = nn.Sequential(
+            nn.Linear(obs_dim, hidden_size),
+            nn.Tanh(),
+            nn.Linear(hidden_size, hidden_size),
+            nn.Tanh(),
+            nn.Linear(hidden_size, 1),
+        )
+        self.critic = nn.Sequential(
+            nn.Linear(obs_dim + 1, hidden_size),
+            nn.Tanh(),
+            nn.Linear(hidden_size, hidden_size),
+            nn.Tanh(),
+            nn.Linear(hidden_size, 1),
+        )
+        self.log_std = nn.Parameter(torch.full((1,), float(init_log_std)))
+        self.hidden_size = hidden_size
+
+    def dist(self, obs: torch.Tensor) -> torch.distributions.Normal:
+        mean = self.actor((obs - self.shift) / self.scale).squeeze(-1)
+        return torch.distributions.Normal(mean, self.log_std.exp().expand_as(mean))
+
+    def value(self, obs: torch.Tensor, t_frac: torch.Tensor) -> torch.Tensor:
+        x = torch.cat([(obs - self.shift) / self.scale, t_frac[..., None]], dim=-1)
+        return self.critic(x).squeeze(-1)
+
+
+def policy_action(agent, stochastic: bool = True) -> ActionFn:
+    def act(core: RingCore, obs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        with torch.no_grad():
+            d = agent.dist(torch.as_tensor(obs[core.hidden], dtype=torch.float32))
+        mean, std = d.mean.numpy(), d.stddev.numpy()
+        return mean + std * rng.standard_normal(mean.shape) if stochastic else mean
+
+    return act
+
+
+def observation_shift_scale(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-feature mean and std of ``obs`` (V, D); a constant feature gets scale 1."""
+    if len(obs) == 0:
+        return np.zeros(obs.shape[1]), np.ones(obs.shape[1])
+    shift, scale = obs.mean(axis=0), obs.std(axis=0)
+    return shift, np.where(scale > 1e-6, scale, 1.0)

@@ -1,0 +1,106 @@
+"""Stage II: policy checkpoints (``policy.pt``, ``policy_<objective>_checkpoint.pt``).
+
+A checkpoint carries a format tag and the ``signature`` of the scenario it was trained
+for; one that is corrupt, not a policy checkpoint or trained for another scenario is a
+one-line UserError. ``load_policy`` gives the trained agent; ``resumable_checkpoint`` the
+training state to continue from (the one resume rule of ring and section stages).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.policy.agent import Agent
+from macromicro_sumo.road.physics import OBSERVATION_FEATURES
+from macromicro_sumo.scenario.ring import Scenario
+from macromicro_sumo.scenario.section import SectionScenario
+
+CHECKPOINT_FORMAT = "macromicro-policy"
+
+
+def signature(sc: Scenario | SectionScenario) -> dict[str, Any]:
+    """What a policy checkpoint must agree on with the scenario that loads it."""
+    if isinstance(sc, SectionScenario):
+        return {
+            "network.kind": "sumo",
+            "section.edges": ",".join(sc.section.edges),
+            "section.closed": sc.section.closed,
+            "bounds.accel_mps2": list(sc.bounds.accel_mps2),
+            "simulation.step_length_s": sc.simulation.step_length_s,
+            "policy.observation": ",".join(OBSERVATION_FEATURES[sc.policy.observation]),
+        }
+    return {
+        "fleet.n_vehicles": sc.fleet.n_vehicles,
+        "network.radius_m": sc.network.radius_m,
+        "bounds.accel_mps2": list(sc.bounds.accel_mps2),
+        "simulation.step_length_s": sc.simulation.step_length_s,
+        "policy.observation": ",".join(OBSERVATION_FEATURES[sc.policy.observation]),
+    }
+
+
+def read_checkpoint(path: Path) -> dict[str, Any]:
+    """A policy checkpoint's payload, whatever scenario it was trained for."""
+    try:
+        # weights_only: a checkpoint is data; a crafted pickle must never run code here.
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:
+        raise UserError(
+            f"{path}: corrupt or truncated policy checkpoint ({type(exc).__name__})"
+        ) from None
+    fmt = payload.get("format") if isinstance(payload, dict) else None
+    if fmt != CHECKPOINT_FORMAT:
+        what = f"a {fmt!r} file" if isinstance(fmt, str) else "no format tag"
+        raise UserError(
+            f"{path}: not a policy checkpoint ({what}); pass the policy.pt of train-policy"
+        )
+    return payload
+
+
+def load_checkpoint(path: Path, sc: Scenario) -> dict[str, Any]:
+    payload = read_checkpoint(path)
+    want = signature(sc)
+    for key, have in payload["signature"].items():
+        if want.get(key) != have:
+            raise UserError(
+                f"{path}: policy was trained for {key} = {have}, scenario {sc.source} has {want.get(key)}"
+            )
+    return payload
+
+
+def resumable_checkpoint(
+    path: Path, sc: Scenario, run_key: str, resume: bool | str
+) -> dict[str, Any] | None:
+    """The checkpoint to continue from, if any.
+
+    ``resume`` True: the checkpoint must be of this very run (same scenario, ground truth,
+    generator and objective: ``run_key``) or it is an error; "auto": such a checkpoint is
+    used and any other ignored, whatever scenario it was trained for (the pipeline after an
+    input changed: training starts afresh and replaces it); False: none. A file that is not
+    a policy checkpoint is an error either way.
+    """
+    if not resume or not path.is_file():
+        return None
+    if resume == "auto" and read_checkpoint(path).get("run_key") != run_key:
+        return None
+    ck = load_checkpoint(path, sc)
+    if ck.get("run_key") != run_key:
+        raise UserError(
+            f"{path}: checkpoint belongs to another run (scenario, ground truth, generator or objective "
+            "differ); start without --resume or use another --out"
+        )
+    return ck
+
+
+def load_policy(path: Path | str, sc: Scenario) -> Agent:
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: policy checkpoint not found (run `macromicro train-policy`)")
+    payload = load_checkpoint(path, sc)
+    agent = Agent(payload["hidden_size"], observation=sc.policy.observation)
+    agent.load_state_dict(payload["state_dict"])
+    agent.eval()
+    return agent
