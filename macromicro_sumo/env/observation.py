@@ -2,7 +2,7 @@
 
 ``FEATURES`` has one entry per feature that ``physics.OBSERVATION_FEATURES`` can list; its
 shift and scale bring the SI value to O(1) on the paper's ring (speeds near 12 m/s, limits
-12-14 m/s, spacings near 125 m). The ring's PPO agent (``policy.ppo``) normalises with them,
+12-14 m/s, spacings near 125 m). The ring's PPO agent (``policy.agent``) normalises with them,
 and so do the public environments with ``normalize=True``. On a section of a user's network
 the speeds and spacings are another road's: there the shift and scale are the mean and std
 of the bank's initial observations (``bank_shift_scale``), as the section's PPO agent has.

@@ -30,7 +30,7 @@ from macromicro_sumo.report.ring import write_report
 from macromicro_sumo.scenario.ring import Scenario
 from macromicro_sumo.truth.ring import simulate
 
-# The one resume rule of the pipeline, ring or section (``ppo.resumable_checkpoint``): a
+# The one resume rule of the pipeline, ring or section (``policy.checkpoint.resumable_checkpoint``): a
 # stage's checkpoint of this very run is continued, one of another run (any input edited
 # since) is ignored and replaced.
 RESUME = "auto"
