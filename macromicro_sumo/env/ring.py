@@ -175,7 +175,7 @@ class RingCore:
         # The fleet of the episodes (N, or 2 for leader-follower tests): on a closed
         # one-lane road every slot is always on it, in lane 0.
         self.n = bank.arc0_m.shape[1]
-        self.on = np.ones(self.n, dtype=bool)
+        self.active = np.ones(self.n, dtype=bool)
         self.lane = np.zeros(self.n, dtype=np.int64)
         self.ids = [f"veh{i}" for i in range(self.n)]
         self._edge_index = {e: i for i, e in enumerate(self.geo.edge_ids)}
@@ -321,7 +321,13 @@ class RingCore:
         except Exception as exc:  # a vehicle lost or a SUMO error: truncate, training goes on
             self._broken = True
             return StepResult(
-                self.observations(), 0.0, {}, False, True, f"{type(exc).__name__}: {exc}", self.on
+                self.observations(),
+                0.0,
+                {},
+                False,
+                True,
+                f"{type(exc).__name__}: {exc}",
+                self.active,
             )
         prev_arc = self.arc
         self.edge = e
@@ -341,4 +347,4 @@ class RingCore:
         # Arc gaps decide collisions: SUMO also reports one when moveTo reorders vehicles at reset.
         collision = bool(self.spacing.min() < self.sc.fleet.length_m)
         r, terms = self.macro_reward()
-        return StepResult(self.observations(), r, terms, collision, bool(error), error, self.on)
+        return StepResult(self.observations(), r, terms, collision, bool(error), error, self.active)

@@ -256,9 +256,11 @@ def _check_action(agent: str, action: Any) -> float:
     return float(a.reshape(-1)[0])
 
 
-def _info(core: RingCore, res=None) -> dict[str, Any]:
+def _info(core: RingCore | SectionCore, res=None) -> dict[str, Any]:
+    """The observed vehicles on the road now, their observations and recorded actions (NaN
+    where unknown), and the step's outcome and named reward terms."""
     obs = core.observations()
-    observed = ~core.hidden
+    observed = core.active & ~core.hidden
     t = min(core.t, core.bank.gt_accel_mps2.shape[1] - 1)
     info: dict[str, Any] = {
         "observed_obs": obs[observed].astype(np.float32),
@@ -451,23 +453,6 @@ def _section_setup(
     return core, scaling
 
 
-def _section_info(core: SectionCore, res=None) -> dict[str, Any]:
-    """As the ring's ``_info``, for the observed vehicles on the section now (their recorded
-    actions are NaN where unknown)."""
-    obs = core.observations()
-    observed = core.active & ~core.hidden
-    t = min(core.t, core.bank.gt_accel_mps2.shape[1] - 1)
-    info: dict[str, Any] = {
-        "observed_obs": obs[observed].astype(np.float32),
-        "observed_action_mps2": core.bank.gt_accel_mps2[core.episode, t][observed],
-        "collision": bool(res.collision) if res else False,
-        "error": res.error if res else "",
-    }
-    if res is not None:
-        info.update(res.terms)
-    return info
-
-
 class SectionHiddenEnv(gym.Env):
     """Gymnasium env: one hidden vehicle on a section of a user's network (module
     docstring, "Sections"); the other hidden vehicles apply ``others``."""
@@ -505,7 +490,7 @@ class SectionHiddenEnv(gym.Env):
         self._slots = np.flatnonzero(self.core.hidden)
         self._ego = int(self.np_random.integers(len(self._slots)))
         self._raw = obs
-        return self._obs(obs), _section_info(self.core)
+        return self._obs(obs), _info(self.core)
 
     def _others_accel(self) -> np.ndarray:
         rest = np.delete(self._slots, self._ego)
@@ -524,7 +509,7 @@ class SectionHiddenEnv(gym.Env):
         left = not res.active[self._slots[self._ego]]
         terminated = bool(res.collision) or left
         truncated = not terminated and (res.truncated or self.core.t >= self.horizon)
-        info = _section_info(self.core, res)
+        info = _info(self.core, res)
         info["left_section"] = left
         return self._obs(res.obs), float(res.r_macro), terminated, bool(truncated), info
 
@@ -576,7 +561,7 @@ class SectionHiddenParallelEnv(ParallelEnv):
         self._index = {f"hidden_{k}": k for k in range(len(self._slots))}
         # A hidden vehicle SUMO could not place is not an agent (the first step truncates).
         self.agents = [a for a, k in self._index.items() if self.core.active[self._slots[k]]]
-        info = _section_info(self.core)
+        info = _info(self.core)
         return self._split(obs, self.agents), {a: dict(info) for a in self.agents}
 
     def step(self, actions: dict[str, Any]):
@@ -588,7 +573,7 @@ class SectionHiddenParallelEnv(ParallelEnv):
             acc[self._index[a]] = self.scaling.accel(_check_action(a, actions[a]))
         res = self.core.step(acc)
         truncated = res.truncated or self.core.t >= self.horizon
-        info = _section_info(self.core, res)
+        info = _info(self.core, res)
         agents = list(self.agents)
         on = {a: bool(res.active[self._slots[self._index[a]]]) for a in agents}
         out = (
