@@ -373,9 +373,32 @@ def prepare_out_dir(out: Path | str, inputs: Iterable[Path | str] = ()) -> Path:
         raise UserError(
             f"{out}: output folder is not writable ({_reason(exc)}); pass a folder you can write"
         ) from None
-    with out_lock(out):  # refuses a folder another run is writing; clears a killed run's
-        pass
+    if _SESSIONS:  # held until the stage (or the whole run) ends
+        _SESSIONS[-1].enter_context(out_lock(out))
+    else:
+        with out_lock(out):  # refuses a folder another run is writing; clears a killed run's
+            pass
     return out
+
+
+_SESSIONS: list[contextlib.ExitStack] = []
+
+
+@contextlib.contextmanager
+def writer_session() -> Iterator[None]:
+    """Every output folder prepared inside stays locked until the block ends.
+
+    A stage prepares its folder only once its inputs are known to be good (a refused input
+    leaves no folder behind), so the lock is taken there and released here, when the stage
+    or the whole pipeline has finished: a second run into the same ``--out`` is refused for
+    all of that time, not only while a stage stages files.
+    """
+    with contextlib.ExitStack() as stack:
+        _SESSIONS.append(stack)
+        try:
+            yield
+        finally:
+            _SESSIONS.pop()
 
 
 @contextlib.contextmanager

@@ -222,3 +222,30 @@ def test_out_lock_is_reentrant_and_released(tmp_path):
     assert (out / "a.csv").is_file()
     with out_lock(out):  # released after the first
         pass
+
+
+def test_a_second_run_is_refused_while_the_first_trains(make_scenario, tmp_path, capsys):
+    """`run` holds its --out for the whole pipeline, not only while a stage stages files:
+    a second run into it is refused while the first trains the generator."""
+    out = tmp_path / "out"
+    slow = make_scenario({**SMALL, "generator.epochs": 100_000}, "slow.toml")
+    first = subprocess.Popen(
+        [sys.executable, "-m", "macromicro_sumo.cli", "run", str(slow), "--out", str(out)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while not (out / "ground_truth" / "manifest.json").is_file():  # now in Stage I
+            assert first.poll() is None, first.stderr.read()
+            assert time.monotonic() < deadline, "the first run never finished its ground truth"
+            time.sleep(0.05)
+        time.sleep(0.5)
+        assert first.poll() is None
+        code = cli.main(["run", str(slow), "--out", str(out), "--quiet"])
+        one_line_error(capsys, code, f"{out}: another macromicro run is writing into this folder")
+    finally:
+        first.kill()
+        first.wait()
+    # the second run was refused before it touched anything: no generator output of its own
+    assert not (out / "generator" / "generator.pt").exists()

@@ -6,12 +6,15 @@ of a user's network) picks the implementation, so no caller branches on it.
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.ring import evaluate as evaluate_ring
 from macromicro_sumo.evaluation.section import evaluate_section
+from macromicro_sumo.files import writer_session
 from macromicro_sumo.generator.ring_train import run_train_generator
 from macromicro_sumo.generator.section_train import run_train_section_generator
 from macromicro_sumo.pipeline.ring import run as run_ring
@@ -20,6 +23,17 @@ from macromicro_sumo.policy.stage import run_train_policy
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.truth.ring import simulate as simulate_ring
 from macromicro_sumo.truth.section import scenario_inputs, simulate_section
+
+
+def _one_writer(stage: Callable[..., Any]) -> Callable[..., Any]:
+    """The stage holds the lock of every output folder it prepares until it returns."""
+
+    @functools.wraps(stage)
+    def locked(*args: Any, **kwargs: Any) -> Any:
+        with writer_session():
+            return stage(*args, **kwargs)
+
+    return locked
 
 
 def is_section(sc: object) -> bool:
@@ -39,12 +53,14 @@ def input_files(sc: Any) -> list[Path]:
     return files
 
 
+@_one_writer
 def simulate(sc: Any, out: Path | str, command: str = "", progress: bool = True) -> Path:
     """Ground truth: the scenario's demand in SUMO, recorded with detectors."""
     stage = simulate_section if is_section(sc) else simulate_ring
     return stage(sc, out, command=command, progress=progress)
 
 
+@_one_writer
 def train_generator(
     sc: Any, data: Path, out: Path, command: str = "", progress: bool = True
 ) -> dict[str, Any]:
@@ -53,6 +69,7 @@ def train_generator(
     return stage(sc, data, out, command, progress=progress)
 
 
+@_one_writer
 def train_policy(
     sc: Any,
     data: Path,
@@ -67,6 +84,7 @@ def train_policy(
     return stage(sc, data, generator, out, resume, command, progress)
 
 
+@_one_writer
 def evaluate(
     sc: Any,
     data: Path,
@@ -88,6 +106,7 @@ def evaluate(
     return evaluate_section(sc, data, generator, policies, out, command, progress)
 
 
+@_one_writer
 def run(sc: Any, out: Path | str, command: str = "", progress: bool = True) -> dict[str, Any]:
     """The whole pipeline, stage by stage; stages whose inputs did not change are reused."""
     return (run_section if is_section(sc) else run_ring)(sc, out, command, progress=progress)
