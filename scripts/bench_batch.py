@@ -21,7 +21,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from macromicro_sumo.batch.runner import expand, run_batch
+from macromicro_sumo.batch.runner import run_batch
+from macromicro_sumo.batch.sweep import expand
 
 ROOT = Path(__file__).resolve().parents[1]
 

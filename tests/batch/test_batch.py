@@ -20,8 +20,9 @@ import pandas as pd
 import pytest
 from conftest import NETS, ROOT, dump_toml, scenario_table
 
-from macromicro_sumo.batch import runner as batch
-from macromicro_sumo.batch.runner import expand, run_batch
+from macromicro_sumo.batch import backends, tasks
+from macromicro_sumo.batch.runner import run_batch
+from macromicro_sumo.batch.sweep import expand
 from macromicro_sumo.cli import main
 from macromicro_sumo.errors import UserError
 
@@ -328,14 +329,14 @@ def test_rerun_skips_complete_variants_and_redoes_stale_ones(tmp_path):
 
 
 def test_a_stage_that_is_not_installed_fails_its_variants_clearly(tmp_path, monkeypatch):
-    monkeypatch.setitem(batch.STAGES, "run", "macromicro_sumo.no_such_pipeline:run")
+    monkeypatch.setitem(tasks.STAGES, "run", "macromicro_sumo.no_such_pipeline:run")
     path = write_sweep(tmp_path / "s.toml", "seed = [1, 2]")
     res = run_batch([path], tmp_path / "out", stages=("run",), progress=False)
     assert res.counts == {"failed": 2, "reused": 0}
     for error in summary(tmp_path / "out")["error"]:
         assert "stage 'run' is not available" in error
     with pytest.raises(UserError, match="not available"):
-        batch.resolve_stage("run")
+        tasks.resolve_stage("run")
 
 
 # --------------------------------------------------------------------------- results
@@ -402,14 +403,14 @@ def test_a_node_without_shared_disk_gets_inputs_and_returns_the_same_bytes(tmp_p
     (v,) = expand([path])
     local = tmp_path / "local"
     assert run_batch([path], local, workers=1, progress=False).counts["complete"] == 1
-    inputs = batch.shipment(v.scenario)
+    inputs = backends.shipment(v.scenario)
     assert sorted(Path(k).name for k in inputs) == sorted(p.name for p in nets.iterdir())
     moved = tmp_path / "elsewhere"
     nets.rename(moved)  # this "node" does not have the network files
-    task = batch.Task(v.name, v.scenario, ("simulate",), str(tmp_path / "unused"), "test")
-    outcome, blob = batch.run_shipped(task, inputs)
+    task = tasks.Task(v.name, v.scenario, ("simulate",), str(tmp_path / "unused"), "test")
+    outcome, blob = backends.run_shipped(task, inputs)
     assert outcome.ok, outcome.error
-    batch._unpack(blob, tmp_path / "back")
+    backends._unpack(blob, tmp_path / "back")
     here = {p.name: p.read_bytes() for p in (tmp_path / "back").glob("*.csv")}
     there = {p.name: p.read_bytes() for p in (local / "variants" / v.name).glob("*.csv")}
     assert here == there and len(here) == 7
@@ -608,12 +609,12 @@ def test_ring_and_section_files_in_one_batch(tmp_path):
 
 
 def test_section_stage_is_chosen_by_scenario_kind(tmp_path, monkeypatch):
-    monkeypatch.setitem(batch.SECTION_STAGES, "run", "macromicro_sumo.no_such_pipeline:run")
+    monkeypatch.setitem(tasks.SECTION_STAGES, "run", "macromicro_sumo.no_such_pipeline:run")
     path = write_section_sweep(tmp_path / "s.toml", "seed = [1]")
     (v,) = expand([path])
-    assert batch.scenario_kind(v.scenario) == "section"
-    assert batch.resolve_stage("simulate", "section").__name__ == "simulate_section"
-    assert batch.resolve_stage("simulate").__name__ == "simulate"  # the ring's
+    assert tasks.scenario_kind(v.scenario) == "section"
+    assert tasks.resolve_stage("simulate", "section").__name__ == "simulate_section"
+    assert tasks.resolve_stage("simulate").__name__ == "simulate"  # the ring's
     res = run_batch([path], tmp_path / "out", stages=("run",), progress=False)
     assert res.counts == {"failed": 1, "reused": 0}
     assert "macromicro_sumo.no_such_pipeline" in summary(tmp_path / "out").loc["seed=1", "error"]
@@ -644,24 +645,24 @@ def test_a_node_without_shared_disk_gets_a_sections_files(tmp_path):
     bytes, keep their layout on the node, and give the same CSVs as the driver's run."""
     path, nets = _moved_section(tmp_path)
     (v,) = expand([path])
-    inputs = batch.shipment(v.scenario)
+    inputs = backends.shipment(v.scenario)
     names = sorted(Path(k).name for k in inputs)
     assert names == ["corridor.net.xml", "corridor.rou.xml", "corridor.sumocfg", "loops.add.xml"]
     local = tmp_path / "local"
     assert run_batch([path], local, workers=1, progress=False).counts["complete"] == 1
     nets.rename(tmp_path / "gone")
     (tmp_path / "extra").rename(tmp_path / "gone_too")  # this "node" has none of them
-    task = batch.Task(v.name, v.scenario, ("simulate",), str(tmp_path / "unused"), "test")
-    outcome, blob = batch.run_shipped(task, inputs)
+    task = tasks.Task(v.name, v.scenario, ("simulate",), str(tmp_path / "unused"), "test")
+    outcome, blob = backends.run_shipped(task, inputs)
     assert outcome.ok, outcome.error
-    batch._unpack(blob, tmp_path / "back")
+    backends._unpack(blob, tmp_path / "back")
     here = {p.name: p.read_bytes() for p in (tmp_path / "back").glob("*.csv")}
     there = {p.name: p.read_bytes() for p in (local / "variants" / v.name).glob("*.csv")}
     assert here == there and set(SECTION_FILES) <= set(here)
     det = pd.read_csv(tmp_path / "back" / "detectors.csv")
     assert set(det["detector_id"]) == {"u1", "u3"}  # the shipped additional file's loops
     # Where the files exist, the scenario is left as it is.
-    assert batch._localise(v.scenario, {}, tmp_path) is v.scenario
+    assert backends._localise(v.scenario, {}, tmp_path) is v.scenario
 
 
 def test_ray_backend_runs_a_section_sweep_with_the_same_bytes(section_batch, tmp_path):

@@ -1,0 +1,248 @@
+"""A batch's variants: scenario files, globs, and the ``[sweep]`` table of a scenario,
+expanded into the cartesian product of named variants::
+
+    [sweep]
+    seed = [1, 2, 3]
+    speed_limits.range_mps = [[10.0, 12.0], [12.0, 14.0]]   # dotted key: table.key
+    n_runs = [10, 40]                                       # short key: unique across tables
+
+Sweep keys are those of the file's scenario kind: the ring's tables, or a section's
+(``[network] kind = "sumo"``: ``detectors.auto_spacing_m``, ``instrumented.penetration``, ...).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import glob
+import hashlib
+import itertools
+import re
+import typing
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.scenario.load import load_scenario, read_scenario_toml
+from macromicro_sumo.scenario.ring import Scenario
+from macromicro_sumo.scenario.section import SectionScenario
+
+AnyScenario = Scenario | SectionScenario
+MAX_NAME = 120  # characters; longer variant names are shortened with a hash
+
+
+def _leaf_keys(cls: type = Scenario, prefix: str = "") -> dict[str, Any]:
+    """Every settable scenario key, dotted, mapped to its type hint."""
+    out: dict[str, Any] = {}
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        if f.name == "source":
+            continue
+        key = f"{prefix}{f.name}"
+        if dataclasses.is_dataclass(hints[f.name]):
+            out.update(_leaf_keys(hints[f.name], key + "."))
+        elif key != "network.kind":  # the kind picks the tables: one file per kind
+            out[key] = hints[f.name]
+    return out
+
+
+# Sweepable keys per scenario kind, with an example for error messages.
+LEAF_KEYS: dict[str, dict[str, Any]] = {
+    "ring": _leaf_keys(Scenario),
+    "section": _leaf_keys(SectionScenario),
+}
+EXAMPLE_KEY = {"ring": "fleet.n_vehicles", "section": "detectors.auto_spacing_m"}
+
+
+def _tables(kind: str) -> list[str]:
+    return list(dict.fromkeys(k.split(".")[0] for k in LEAF_KEYS[kind] if "." in k))
+
+
+def _top_keys(kind: str) -> list[str]:
+    return [k for k in LEAF_KEYS[kind] if "." not in k]
+
+
+def sweep_kind(table: dict[str, Any]) -> str | None:
+    """The scenario kind of a raw scenario table (None when its network.kind is not valid)."""
+    network = table.get("network")
+    kind = network.get("kind", "ring") if isinstance(network, dict) else "ring"
+    return {"ring": "ring", "sumo": "section"}.get(kind) if isinstance(kind, str) else None
+
+
+def _flatten(table: dict[str, Any], prefix: str = "") -> Iterator[tuple[str, Any]]:
+    # TOML reads ``fleet.n_vehicles = [...]`` as a nested table: undo that.
+    for key, value in table.items():
+        if isinstance(value, dict):
+            yield from _flatten(value, f"{prefix}{key}.")
+        else:
+            yield f"{prefix}{key}", value
+
+
+def resolve_key(key: str, file: str, kind: str = "ring") -> str:
+    """The dotted key of a ``kind`` scenario a sweep key names (short keys must be unique
+    across tables)."""
+    keys = LEAF_KEYS[kind]
+    if key in keys:
+        return key
+    if key == "network.kind":
+        raise UserError(
+            f"{file}: sweep key 'network.kind' cannot be swept; write one scenario file per kind"
+        )
+    if key in _tables(kind):
+        example = next(k for k in keys if k.startswith(key + "."))
+        raise UserError(
+            f"{file}: sweep key {key!r} is a table; sweep one of its keys, e.g. {example}"
+        )
+    matches = [k for k in keys if k.rsplit(".", 1)[-1] == key]
+    if len(matches) == 1:
+        return matches[0]
+    if len(matches) > 1:
+        raise UserError(
+            f"{file}: sweep key {key!r} is ambiguous; give one of {', '.join(sorted(matches))}"
+        )
+    close = difflib.get_close_matches(key, list(keys), n=3)
+    hint = f"; did you mean {', '.join(close)}?" if close else ""
+    what = "a section scenario" if kind == "section" else "a ring scenario"
+    top, tables = ", ".join(_top_keys(kind)), ", ".join(_tables(kind))
+    raise UserError(
+        f"{file}: unknown sweep key {key!r} for {what}; accepted: {top} or a dotted key "
+        f"table.key of the tables {tables} (e.g. {EXAMPLE_KEY[kind]}), or a key name unique "
+        f"across tables{hint}"
+    )
+
+
+def parse_sweep(sweep: Any, file: str, kind: str = "ring") -> list[tuple[str, str, list[Any]]]:
+    """Validate a ``[sweep]`` table of a ``kind`` scenario (``"ring"`` or ``"section"``):
+    (key as written, dotted key, values) in file order."""
+    if not isinstance(sweep, dict) or not sweep:
+        raise UserError(f"{file}: [sweep] must be a table of key = [value, ...] lines")
+    out, seen = [], {}
+    for key, values in _flatten(sweep):
+        dotted = resolve_key(key, file, kind)
+        if dotted in seen:
+            raise UserError(f"{file}: sweep keys {seen[dotted]!r} and {key!r} both set {dotted}")
+        seen[dotted] = key
+        if not isinstance(values, list) or not values:
+            raise UserError(f"{file}: sweep.{key} = {values!r} must be a non-empty list of values")
+        origin = typing.get_origin(LEAF_KEYS[kind][dotted])
+        if origin in (tuple, list):
+            what = "a pair [low, high]" if origin is tuple else "a list"
+            for v in values:
+                if not isinstance(v, list):
+                    raise UserError(
+                        f"{file}: sweep.{key} = {values!r}: each value must be {what}, "
+                        f"e.g. [{values!r}] for one variant"
+                    )
+        out.append((key, dotted, values))
+    return out
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, float):
+        return str(int(value)) if value.is_integer() else repr(value)
+    if isinstance(value, list | tuple):
+        return "_".join(_fmt(v) for v in value)
+    return str(value)
+
+
+def variant_name(parts: Sequence[tuple[str, Any]], prefix: str = "") -> str:
+    """A deterministic, filesystem-safe name: ``seed=1__range_mps=12_14``."""
+    words = ([prefix] if prefix else []) + [f"{k}={_fmt(v)}" for k, v in parts]
+    name = re.sub(r"[^A-Za-z0-9._=+-]", "_", "__".join(words)).lstrip(".") or "variant"
+    if len(name) > MAX_NAME:
+        digest = hashlib.sha256(name.encode()).hexdigest()[:10]
+        name = f"{name[: MAX_NAME - 11]}-{digest}"
+    return name
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One scenario to run: a file, the sweep values applied to it, or why it cannot run."""
+
+    name: str
+    file: str
+    params: dict[str, Any]  # dotted scenario key -> value
+    scenario: AnyScenario | None
+    error: str = ""
+
+    @property
+    def scenario_name(self) -> str:
+        return self.scenario.name if self.scenario else ""
+
+
+def expand_file(path: Path, prefix: str) -> list[Variant]:
+    """The variants of one scenario file (one, unless it has a ``[sweep]`` table).
+
+    A file that cannot be read gives one failed variant; a variant whose values fail
+    validation is failed on its own. A malformed sweep is an error for the whole batch.
+    """
+    file = str(path)
+    try:
+        table, sweep = read_scenario_toml(path)
+    except UserError as exc:
+        return [Variant(prefix or path.stem, file, {}, None, str(exc))]
+    kind = sweep_kind(table)
+    if sweep is None or kind is None:  # an unaccepted network.kind fails in load_scenario
+        return [_load(prefix or path.stem, path, {})]
+    keys = parse_sweep(sweep, file, kind)
+    out = []
+    for combo in itertools.product(*(values for _, _, values in keys)):
+        parts = [(key, v) for (key, _, _), v in zip(keys, combo, strict=True)]
+        params = {dotted: v for (_, dotted, _), v in zip(keys, combo, strict=True)}
+        out.append(_load(variant_name(parts, prefix), path, params))
+    return out
+
+
+def _load(name: str, path: Path, params: dict[str, Any]) -> Variant:
+    try:
+        return Variant(name, str(path), params, load_scenario(path, params, allow_sweep=True))
+    except UserError as exc:
+        return Variant(name, str(path), params, None, str(exc))
+
+
+def resolve_inputs(inputs: Sequence[str | Path]) -> list[Path]:
+    """Scenario files from paths and globs, in the given order, without duplicates."""
+    files: list[Path] = []
+    for item in inputs:
+        s = str(item)
+        if Path(s).is_file():
+            found = [Path(s)]
+        elif glob.has_magic(s):
+            found = [Path(p) for p in sorted(glob.glob(s, recursive=True)) if Path(p).is_file()]
+            if not found:
+                raise UserError(f"{s}: no scenario file matches this pattern")
+        elif Path(s).is_dir():
+            raise UserError(f"{s}: is a folder; pass scenario files or a glob such as '{s}/*.toml'")
+        else:
+            raise UserError(f"{s}: scenario file not found")
+        for p in found:
+            if p.resolve() not in {f.resolve() for f in files}:
+                files.append(p)
+    return files
+
+
+def expand(inputs: Sequence[str | Path]) -> list[Variant]:
+    """Every variant of every input; names are prefixed by the file stem when several files."""
+    files = resolve_inputs(inputs)
+    stems: dict[str, Path] = {}
+    for f in files:
+        if f.stem in stems:
+            raise UserError(
+                f"{f}: has the same name as {stems[f.stem]}; variant folders are named after "
+                "files, so rename one"
+            )
+        stems[f.stem] = f
+    variants = [v for f in files for v in expand_file(f, f.stem if len(files) > 1 else "")]
+    names: dict[str, Variant] = {}
+    for v in variants:
+        if v.name in names:
+            raise UserError(
+                f"{v.file}: sweep values {names[v.name].params} and {v.params} give the same "
+                f"variant name {v.name!r}; make the values distinct"
+            )
+        names[v.name] = v
+    return variants
