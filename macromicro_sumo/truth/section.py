@@ -5,9 +5,13 @@ model they use: ``vtypes.csv`` records which). Every step, every vehicle on the 
 recorded in section coordinates (lane index, arc). Detectors are the user's own E1/E2 on
 the section (re-created with our output files and interval, so nothing is written next to
 the user's files) or, where there are none, E1 loops placed every ``auto_spacing_m`` on
-every lane. An instantaneous loop sits beside every E1 loop: its per-vehicle passages give
-the spread of the spacings, as on the ring. Instrumented vehicles are chosen by a
-penetration rate, a vType or explicit IDs.
+every lane (``truth/section_detectors.py``). An instantaneous loop sits beside every E1
+loop: its per-vehicle passages give the spread of the spacings, as on the ring. The macro
+statistics and K estimates are ``truth/section_macro.py``'s. Instrumented vehicles are
+chosen by a penetration rate, a vType or explicit IDs.
+
+This module: the runs, ``simulate_section`` writing them, and ``load_section_truth``
+reading them back.
 """
 
 from __future__ import annotations
@@ -15,16 +19,11 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-import xml.etree.ElementTree as ET
-from dataclasses import dataclass
 from pathlib import Path
-from xml.sax.saxutils import quoteattr
 
-import numpy as np
 import pandas as pd
 
-from macromicro_sumo.data.macro import passage_spacings
-from macromicro_sumo.data.section import SectionTruth, at_snapshot_times
+from macromicro_sumo.data.section import SectionTruth
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import (
     check_memory,
@@ -38,35 +37,29 @@ from macromicro_sumo.files import (
 )
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.progress import tqdm
-from macromicro_sumo.road.section import Section, lane_leaders, read_section
+from macromicro_sumo.road.section import Section, read_section
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.inputs import (
-    DetectorSpec,
     SumoInputs,
     VType,
     check_demand,
     check_vehicle_ids,
     read_net,
     resolve_inputs,
-    user_detectors,
 )
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
-from macromicro_sumo.truth.ring_detectors import (
-    E1_FILE,
-    E2_FILE,
-    INSTANT_FILE,
-    read_passages,
-    records,
-    speed_or_nan,
+from macromicro_sumo.truth.section_detectors import (
+    detectors_xml,
+    place_detectors,
+    read_detectors,
+    without_detectors,
 )
-
-_DETECTOR_TAGS = {
-    "inductionLoop",
-    "e1Detector",
-    "laneAreaDetector",
-    "e2Detector",
-    "instantInductionLoop",
-}
+from macromicro_sumo.truth.section_macro import (
+    detector_macro,
+    k_estimates,
+    k_summary,
+    trajectory_macro,
+)
 
 
 def scenario_inputs(sc: SectionScenario) -> SumoInputs:
@@ -94,316 +87,6 @@ def load_section(sc: SectionScenario) -> tuple[SumoInputs, Section, dict[str, VT
         )
     check_vehicle_ids(inputs, sc.instrumented.ids, f"{sc.source}: instrumented.ids")
     return inputs, section, vtypes
-
-
-# --------------------------------------------------------------------------- detectors
-
-
-@dataclass(frozen=True)
-class Placed:
-    """A detector on the section: its SUMO definition and where it sits on the arc."""
-
-    spec: DetectorSpec
-    source: str  # "user" or "auto"
-    lane_index: int
-    arc_m: float
-
-
-def place_detectors(sc: SectionScenario, inputs: SumoInputs, section: Section) -> list[Placed]:
-    """The user's detectors on the section, else loops every ``auto_spacing_m`` per lane."""
-    placed: list[Placed] = []
-    if sc.detectors.use_user:
-        net = read_net(inputs.net_file)
-        for spec in user_detectors(inputs, net):
-            hit = section.locate(spec.lane_id, spec.pos_m)
-            if hit is not None and not spec.lane_id.startswith(":"):
-                placed.append(Placed(spec, "user", hit[0], hit[1]))
-    if placed:
-        return placed
-    step = sc.detectors.auto_spacing_m
-    if step <= 0:
-        raise UserError(
-            f"{sc.source}: the section has no detector of the user's files and "
-            "detectors.auto_spacing_m = 0 switches placement off; accepted: auto_spacing_m > 0"
-        )
-    period = sc.detectors.interval_s
-    for arc in np.arange(step / 2, section.length_m, step):
-        e = int(section.edge_index(np.array([arc]))[0])
-        pos = float(arc - section.offsets_m[e])
-        if pos > section.lengths_m[e] - 0.5:
-            continue  # in a junction: skip this station
-        for lane_id in section.edge_lane_ids[e]:
-            idx = section.lanes[lane_id][1]
-            spec = DetectorSpec(f"auto_{lane_id}_{arc:.0f}", "e1", lane_id, pos, 0.0, period, "")
-            placed.append(Placed(spec, "auto", idx, float(arc)))
-    if not placed:
-        raise UserError(
-            f"{sc.source}: detectors.auto_spacing_m = {step:g} places no loop on a "
-            f"{section.length_m:.0f} m section; accepted: < {section.length_m:.0f}"
-        )
-    return placed
-
-
-def detectors_xml(placed: list[Placed], interval_s: float) -> str:
-    """Our definitions of the detectors (E1 + an instantaneous loop beside it, or E2)."""
-    rows = ["<additional>"]
-    for p in placed:
-        s = p.spec
-        did, lane = quoteattr(s.id), quoteattr(s.lane_id)
-        if s.kind == "e1":
-            rows.append(
-                f'    <inductionLoop id={did} lane={lane} pos="{s.pos_m:.3f}" '
-                f'period="{interval_s:g}" file="{E1_FILE}"/>'
-            )
-            rows.append(
-                f"    <instantInductionLoop id={quoteattr('i_' + s.id)} lane={lane} "
-                f'pos="{s.pos_m:.3f}" file="{INSTANT_FILE}"/>'
-            )
-        else:
-            lanes = quoteattr(" ".join(s.lane_ids or (s.lane_id,)))
-            rows.append(
-                f'    <laneAreaDetector id={did} lanes={lanes} pos="{s.pos_m:.3f}" '
-                f'length="{s.length_m:.3f}" period="{interval_s:g}" file="{E2_FILE}"/>'
-            )
-    rows.append("</additional>")
-    return "\n".join(rows) + "\n"
-
-
-def _without_detectors(src: Path, dst: Path) -> Path:
-    """A copy of a user's additional file minus its detectors (we define our own)."""
-    tree = ET.parse(src)
-    root = tree.getroot()
-    for parent in list(root.iter()):
-        for child in list(parent):
-            if child.tag.split("}")[-1] in _DETECTOR_TAGS:
-                parent.remove(child)
-    tree.write(dst)
-    return dst
-
-
-def read_detectors(
-    run_dir: Path, run: int, placed: list[Placed]
-) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """(per-interval table, per-vehicle passages) of one run's detector output."""
-    where = {p.spec.id: p for p in placed}
-    rows = []
-    for r in records(run_dir / E1_FILE, "interval", required=False):
-        p = where[r["id"]]
-        flow, speed = float(r["flow"]), speed_or_nan(r.get("harmonicMeanSpeed"))
-        rows.append(
-            {
-                "run": run,
-                "detector_id": r["id"],
-                "kind": "e1",
-                "source": p.source,
-                "lane_index": p.lane_index,
-                "arc_m": p.arc_m,
-                "begin_s": float(r["begin"]),
-                "end_s": float(r["end"]),
-                "n_veh": int(r["nVehContrib"]),
-                "flow_vph": flow,
-                "speed_mps": speed,
-                "occupancy_pct": float(r["occupancy"]),
-                # Fundamental relation k = q / v (harmonic mean: the space-mean speed).
-                "density_vpkm": flow / speed / 3.6 if speed > 0 else 0.0,
-                "length_m": 0.0,
-            }
-        )
-    for r in records(run_dir / E2_FILE, "interval", required=False):
-        p = where[r["id"]]
-        rows.append(
-            {
-                "run": run,
-                "detector_id": r["id"],
-                "kind": "e2",
-                "source": p.source,
-                "lane_index": p.lane_index,
-                "arc_m": p.arc_m,
-                "begin_s": float(r["begin"]),
-                "end_s": float(r["end"]),
-                "n_veh": int(r["nVehSeen"]),
-                "flow_vph": np.nan,
-                "speed_mps": speed_or_nan(r.get("meanSpeed")),
-                "occupancy_pct": float(r["meanOccupancy"]),
-                "density_vpkm": float(r["meanVehicleNumber"]) / p.spec.length_m * 1000.0,
-                "length_m": p.spec.length_m,
-                "sampled_seconds_s": float(r["sampledSeconds"]),
-            }
-        )
-    det = pd.DataFrame(rows)
-    passages = read_passages(run_dir / INSTANT_FILE, run, required=False)
-    return det, passages
-
-
-def station_cells(arcs: np.ndarray, section: Section) -> np.ndarray:
-    """Arc length each detector station stands for: the section split half-way between
-    stations (around the loop on a closed section)."""
-    order = np.argsort(arcs)
-    a = arcs[order]
-    if len(a) == 1:
-        cells = np.array([section.length_m])
-    elif section.closed:
-        gaps = np.diff(np.concatenate([a, [a[0] + section.length_m]]))
-        cells = 0.5 * (gaps + np.roll(gaps, 1))
-    else:
-        mids = np.concatenate([[0.0], 0.5 * (a[1:] + a[:-1]), [section.length_m]])
-        cells = np.diff(mids)
-    out = np.empty_like(cells)
-    out[order] = cells
-    return out
-
-
-def detector_macro(
-    det: pd.DataFrame,
-    passages: pd.DataFrame,
-    warmup_s: float,
-    min_spacing_m: float,
-    section: Section,
-) -> pd.DataFrame:
-    """Macro statistics per run and interval as the section's detectors estimate them.
-
-    Speed: space-mean (E2 weighted by time on the detector; E1 harmonic means weighted by
-    counts). Density per lane: E2 vehicles per metre, E1 flow / speed, averaged over the
-    detectors. Vehicles on the section: E1 stations' density summed over their lanes and
-    integrated along the arc (each station stands for the stretch half-way to its
-    neighbours: lane counts that change along the section are weighted right); E2: their
-    vehicles scaled to the section's lane length. Spacing spread and speed bounds: from
-    the per-vehicle passages.
-    """
-    spacings = passage_spacings(passages)
-    stations = np.sort(det.loc[det["kind"] == "e1", "arc_m"].unique())
-    cells = (
-        dict(zip(stations, station_cells(stations, section), strict=True)) if len(stations) else {}
-    )
-    rows = []
-    det = det[det["begin_s"] >= warmup_s - 1e-9]
-    for (run, begin, end), g in det.groupby(["run", "begin_s", "end_s"], sort=True):
-        e1, e2 = g[g["kind"] == "e1"], g[g["kind"] == "e2"]
-        if len(e2):
-            ss = e2["sampled_seconds_s"].to_numpy()
-            v = e2["speed_mps"].to_numpy()
-            speed = float(np.nansum(v * ss) / ss.sum()) if ss.sum() > 0 else np.nan
-            density = float(np.average(e2["density_vpkm"], weights=e2["length_m"]))
-            vehicles = density / 1000.0 * section.lane_length_m
-        else:
-            n, v = e1["n_veh"].to_numpy(), e1["speed_mps"].to_numpy()
-            ok = n > 0
-            speed = float(n[ok].sum() / (n[ok] / v[ok]).sum()) if ok.any() else np.nan
-            density = float(e1["density_vpkm"].mean())
-            per_station = e1.groupby("arc_m")["density_vpkm"].sum()
-            vehicles = float(sum(k / 1000.0 * cells[a] for a, k in per_station.items()))
-        ip = passages[
-            (passages["run"] == run) & (passages["time_s"] >= begin) & (passages["time_s"] < end)
-        ]
-        sp = spacings[
-            (spacings["run"] == run) & (spacings["time_s"] >= begin) & (spacings["time_s"] < end)
-        ]
-        ps = ip["speed_mps"].to_numpy()
-        d = sp["spacing_m"].to_numpy()
-        d = d[d >= min_spacing_m * 0.5]  # a lane change between two loops is not a spacing
-        rows.append(
-            {
-                "run": run,
-                "begin_s": begin,
-                "end_s": end,
-                "source": "detectors",
-                "mean_speed_mps": speed,
-                "std_speed_mps": float(ps.std(ddof=1)) if ps.size > 1 else np.nan,
-                "density_vpkm_lane": density,
-                "mean_spacing_m": 1000.0 / density if density > 0 else np.nan,
-                "std_spacing_m": float(d.std(ddof=1)) if d.size > 1 else np.nan,  # sample std
-                "speed_min_mps": float(ps.min()) if ps.size else np.nan,
-                "speed_max_mps": float(ps.max()) if ps.size else np.nan,
-                "vehicles": vehicles,
-            }
-        )
-    return pd.DataFrame(rows)
-
-
-def trajectory_macro(
-    traj: pd.DataFrame, section: Section, interval_s: float, warmup_s: float, end_s: float
-) -> pd.DataFrame:
-    """The same statistics from the full trajectories (what the simulation knows)."""
-    rows = []
-    bounds = np.arange(warmup_s, end_s + 1e-9, interval_s)
-    for run, g in traj.groupby("run", sort=True):
-        for begin, end in zip(bounds[:-1], bounds[1:], strict=True):
-            w = g[(g["time_s"] >= begin) & (g["time_s"] < end)]
-            if w.empty:
-                continue
-            spacing = []
-            for _, s in w.groupby("time_s"):
-                lead, sp = lane_leaders(
-                    s["lane_index"].to_numpy(),
-                    s["arc_m"].to_numpy(),
-                    section.length_m,
-                    section.closed,
-                )
-                spacing.append(sp[lead >= 0])
-            d = np.concatenate(spacing) if spacing else np.array([])
-            n_t = w.groupby("time_s").size().mean()
-            density = n_t / section.lane_length_m * 1000.0
-            rows.append(
-                {
-                    "run": run,
-                    "begin_s": begin,
-                    "end_s": end,
-                    "source": "trajectories",
-                    "mean_speed_mps": float(w["speed_mps"].mean()),
-                    "std_speed_mps": float(w["speed_mps"].std(ddof=0)),
-                    "density_vpkm_lane": density,
-                    "mean_spacing_m": 1000.0 / density if density > 0 else np.nan,
-                    "std_spacing_m": float(d.std()) if d.size > 1 else np.nan,
-                    "speed_min_mps": float(w["speed_mps"].min()),
-                    "speed_max_mps": float(w["speed_mps"].max()),
-                    "vehicles": float(n_t),
-                }
-            )
-    return pd.DataFrame(rows)
-
-
-def k_estimates(
-    traj: pd.DataFrame,
-    det_macro: pd.DataFrame,
-    section: Section,
-    every_s: float,
-    window_s: float,
-) -> pd.DataFrame:
-    """Hidden count per snapshot time: the truth, and the estimate from the detectors.
-
-    Estimate: round(vehicles on the section by the detectors) - observed vehicles, the
-    detectors' count (see ``detector_macro``) averaged over the intervals centred within ``window_s``
-    of the snapshot (``detectors.k_window_s``; at least the interval holding it). Longer
-    windows average out platoons that one interval's loops see or miss.
-    """
-    rows = []
-    for (run, t), g in at_snapshot_times(traj, every_s).groupby(["run", "time_s"], sort=True):
-        r = det_macro[det_macro["run"] == run]
-        centre = 0.5 * (r["begin_s"] + r["end_s"])
-        m = r[(centre >= t - window_s / 2) & (centre <= t + window_s / 2)]
-        if m.empty:
-            m = r[(r["begin_s"] <= t) & (r["end_s"] > t)]
-        vehicles = float(m["vehicles"].mean()) if len(m) else np.nan
-        if not np.isfinite(vehicles):
-            continue
-        n_obs = int(g["observed"].sum())
-        total = int(round(vehicles))
-        k_true = len(g) - n_obs
-        k_est = max(0, total - n_obs)
-        rows.append(
-            {
-                "run": run,
-                "time_s": t,
-                "n_vehicles": len(g),
-                "n_observed": n_obs,
-                "k_true": k_true,
-                "k_est": k_est,
-                "k_error": k_est - k_true,
-            }
-        )
-    return pd.DataFrame(
-        rows, columns=["run", "time_s", "n_vehicles", "n_observed", "k_true", "k_est", "k_error"]
-    )
 
 
 # --------------------------------------------------------------------------- runs
@@ -528,7 +211,7 @@ def simulate_section(
                     detectors_xml(placed, sc.detectors.interval_s)
                 )
                 adds = tuple(
-                    _without_detectors(p, run_dir / f"user_{i}_{p.name}")
+                    without_detectors(p, run_dir / f"user_{i}_{p.name}")
                     for i, p in enumerate(inputs.additional_files)
                 )
                 seed = sc.seed + run
@@ -612,21 +295,6 @@ def simulate_section(
         )
         write_manifest(manifest, stage)
     return out
-
-
-def k_summary(k_df: pd.DataFrame, section: Section) -> dict[str, float]:
-    """The K estimate's error: mean, mean absolute, and mean absolute per lane."""
-    if k_df.empty:
-        return {"snapshots": 0}
-    err = k_df["k_error"].to_numpy(dtype=float)
-    lanes = float((section.n_lanes * section.lengths_m).sum() / section.lengths_m.sum())
-    return {
-        "snapshots": len(err),
-        "mean_error_veh": float(err.mean()),
-        "mean_abs_error_veh": float(np.abs(err).mean()),
-        "mean_abs_error_per_lane_veh": float(np.abs(err).mean() / lanes),
-        "mean_k_true": float(k_df["k_true"].mean()),
-    }
 
 
 # --------------------------------------------------------------------------- loading

@@ -1,0 +1,172 @@
+"""A section's detectors: the user's own E1/E2 on the section, else E1 loops placed every
+``auto_spacing_m`` on every lane; our definitions of them (an instantaneous loop beside
+every E1 loop, our output files and interval, the user's additional files copied without
+their detectors) and the reading of their output after a run.
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+import pandas as pd
+
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.road.section import Section
+from macromicro_sumo.scenario.section import SectionScenario
+from macromicro_sumo.sumo.inputs import DetectorSpec, SumoInputs, read_net, user_detectors
+from macromicro_sumo.truth.ring_detectors import (
+    E1_FILE,
+    E2_FILE,
+    INSTANT_FILE,
+    read_passages,
+    records,
+    speed_or_nan,
+)
+
+_DETECTOR_TAGS = {
+    "inductionLoop",
+    "e1Detector",
+    "laneAreaDetector",
+    "e2Detector",
+    "instantInductionLoop",
+}
+
+
+@dataclass(frozen=True)
+class Placed:
+    """A detector on the section: its SUMO definition and where it sits on the arc."""
+
+    spec: DetectorSpec
+    source: str  # "user" or "auto"
+    lane_index: int
+    arc_m: float
+
+
+def place_detectors(sc: SectionScenario, inputs: SumoInputs, section: Section) -> list[Placed]:
+    """The user's detectors on the section, else loops every ``auto_spacing_m`` per lane."""
+    placed: list[Placed] = []
+    if sc.detectors.use_user:
+        net = read_net(inputs.net_file)
+        for spec in user_detectors(inputs, net):
+            hit = section.locate(spec.lane_id, spec.pos_m)
+            if hit is not None and not spec.lane_id.startswith(":"):
+                placed.append(Placed(spec, "user", hit[0], hit[1]))
+    if placed:
+        return placed
+    step = sc.detectors.auto_spacing_m
+    if step <= 0:
+        raise UserError(
+            f"{sc.source}: the section has no detector of the user's files and "
+            "detectors.auto_spacing_m = 0 switches placement off; accepted: auto_spacing_m > 0"
+        )
+    period = sc.detectors.interval_s
+    for arc in np.arange(step / 2, section.length_m, step):
+        e = int(section.edge_index(np.array([arc]))[0])
+        pos = float(arc - section.offsets_m[e])
+        if pos > section.lengths_m[e] - 0.5:
+            continue  # in a junction: skip this station
+        for lane_id in section.edge_lane_ids[e]:
+            idx = section.lanes[lane_id][1]
+            spec = DetectorSpec(f"auto_{lane_id}_{arc:.0f}", "e1", lane_id, pos, 0.0, period, "")
+            placed.append(Placed(spec, "auto", idx, float(arc)))
+    if not placed:
+        raise UserError(
+            f"{sc.source}: detectors.auto_spacing_m = {step:g} places no loop on a "
+            f"{section.length_m:.0f} m section; accepted: < {section.length_m:.0f}"
+        )
+    return placed
+
+
+def detectors_xml(placed: list[Placed], interval_s: float) -> str:
+    """Our definitions of the detectors (E1 + an instantaneous loop beside it, or E2)."""
+    rows = ["<additional>"]
+    for p in placed:
+        s = p.spec
+        did, lane = quoteattr(s.id), quoteattr(s.lane_id)
+        if s.kind == "e1":
+            rows.append(
+                f'    <inductionLoop id={did} lane={lane} pos="{s.pos_m:.3f}" '
+                f'period="{interval_s:g}" file="{E1_FILE}"/>'
+            )
+            rows.append(
+                f"    <instantInductionLoop id={quoteattr('i_' + s.id)} lane={lane} "
+                f'pos="{s.pos_m:.3f}" file="{INSTANT_FILE}"/>'
+            )
+        else:
+            lanes = quoteattr(" ".join(s.lane_ids or (s.lane_id,)))
+            rows.append(
+                f'    <laneAreaDetector id={did} lanes={lanes} pos="{s.pos_m:.3f}" '
+                f'length="{s.length_m:.3f}" period="{interval_s:g}" file="{E2_FILE}"/>'
+            )
+    rows.append("</additional>")
+    return "\n".join(rows) + "\n"
+
+
+def without_detectors(src: Path, dst: Path) -> Path:
+    """A copy of a user's additional file minus its detectors (we define our own)."""
+    tree = ET.parse(src)
+    root = tree.getroot()
+    for parent in list(root.iter()):
+        for child in list(parent):
+            if child.tag.split("}")[-1] in _DETECTOR_TAGS:
+                parent.remove(child)
+    tree.write(dst)
+    return dst
+
+
+def read_detectors(
+    run_dir: Path, run: int, placed: list[Placed]
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """(per-interval table, per-vehicle passages) of one run's detector output."""
+    where = {p.spec.id: p for p in placed}
+    rows = []
+    for r in records(run_dir / E1_FILE, "interval", required=False):
+        p = where[r["id"]]
+        flow, speed = float(r["flow"]), speed_or_nan(r.get("harmonicMeanSpeed"))
+        rows.append(
+            {
+                "run": run,
+                "detector_id": r["id"],
+                "kind": "e1",
+                "source": p.source,
+                "lane_index": p.lane_index,
+                "arc_m": p.arc_m,
+                "begin_s": float(r["begin"]),
+                "end_s": float(r["end"]),
+                "n_veh": int(r["nVehContrib"]),
+                "flow_vph": flow,
+                "speed_mps": speed,
+                "occupancy_pct": float(r["occupancy"]),
+                # Fundamental relation k = q / v (harmonic mean: the space-mean speed).
+                "density_vpkm": flow / speed / 3.6 if speed > 0 else 0.0,
+                "length_m": 0.0,
+            }
+        )
+    for r in records(run_dir / E2_FILE, "interval", required=False):
+        p = where[r["id"]]
+        rows.append(
+            {
+                "run": run,
+                "detector_id": r["id"],
+                "kind": "e2",
+                "source": p.source,
+                "lane_index": p.lane_index,
+                "arc_m": p.arc_m,
+                "begin_s": float(r["begin"]),
+                "end_s": float(r["end"]),
+                "n_veh": int(r["nVehSeen"]),
+                "flow_vph": np.nan,
+                "speed_mps": speed_or_nan(r.get("meanSpeed")),
+                "occupancy_pct": float(r["meanOccupancy"]),
+                "density_vpkm": float(r["meanVehicleNumber"]) / p.spec.length_m * 1000.0,
+                "length_m": p.spec.length_m,
+                "sampled_seconds_s": float(r["sampledSeconds"]),
+            }
+        )
+    det = pd.DataFrame(rows)
+    passages = read_passages(run_dir / INSTANT_FILE, run, required=False)
+    return det, passages
