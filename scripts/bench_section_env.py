@@ -21,7 +21,8 @@ import libsumo
 import numpy as np
 
 from macromicro_sumo.data.section import section_snapshots
-from macromicro_sumo.env.section import SectionCore, build_section_bank
+from macromicro_sumo.env.section import SectionCore
+from macromicro_sumo.env.section_bank import build_section_bank
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import load_section_truth, simulate_section
 

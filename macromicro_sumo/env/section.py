@@ -5,6 +5,7 @@ plus our vehicle types) and is reused for every episode. The ring's ``RingCore``
 special case of one lane, a closed loop and a fixed fleet; here vehicles enter lanes of
 different widths of road, change lanes and leave the section, and the number of vehicles
 varies per episode (arrays are padded to N slots; ``valid`` and ``active`` say which count).
+The episodes (``SectionBank``) and the observation are ``env/section_bank.py``'s.
 
 Action Space
     One acceleration [m/s^2] per hidden vehicle (``bank.hidden[ep]`` order), clipped to
@@ -35,267 +36,21 @@ Arguments
 from __future__ import annotations
 
 import tempfile
-from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from macromicro_sumo.data.objective import MacroTarget, macro_reward, macro_terms
-from macromicro_sumo.data.section import PSI_FIELDS, SectionSnapshots, SectionTruth
+from macromicro_sumo.data.section import PSI_FIELDS
 from macromicro_sumo.env.ring import StepResult
+from macromicro_sumo.env.section_bank import SectionBank, section_observations
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES
-from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section, lane_leaders
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 
 _PSI = {f: i for i, f in enumerate(PSI_FIELDS)}
 POSITION_TOL_M = 0.01  # insertion and replay checks: a placement off by more is an error
-
-
-# --------------------------------------------------------------------------- episodes
-
-
-@dataclass(frozen=True)
-class SectionBank:
-    """Start scenes and recorded futures of many episodes; arrays over episodes (E, ...)."""
-
-    lane0: np.ndarray  # (E, N) int lane index, completed scene (observed first, then generated)
-    arc0_m: np.ndarray  # (E, N)
-    speed0_mps: np.ndarray  # (E, N)
-    length_m: np.ndarray  # (E, N) vehicle lengths
-    valid: np.ndarray  # (E, N) bool: a vehicle in this slot
-    hidden: np.ndarray  # (E, N) bool: generated (driven by the policy)
-    psi: np.ndarray  # (E, len(PSI_FIELDS))
-    # Recorded futures of the observed vehicles (NaN: off the section at that step).
-    replay_lane: np.ndarray  # (E, H + 1, N) float lane index
-    replay_arc_m: np.ndarray  # (E, H + 1, N)
-    replay_speed_mps: np.ndarray  # (E, H + 1, N)
-    gt_accel_mps2: np.ndarray  # (E, H, N) recorded actions (NaN: unknown)
-    # Every true vehicle on the section over the horizon (the ground-truth method, evaluation).
-    true_lane: np.ndarray  # (E, H + 1, M) float lane index
-    true_arc_m: np.ndarray  # (E, H + 1, M)
-    true_speed_mps: np.ndarray  # (E, H + 1, M)
-    true_valid: np.ndarray  # (E, H + 1, M) bool
-    true_length_m: np.ndarray  # (E, M)
-    run: np.ndarray  # (E,)
-    time_s: np.ndarray  # (E,)
-
-    def __len__(self) -> int:
-        return len(self.run)
-
-    @property
-    def horizon(self) -> int:
-        return self.replay_speed_mps.shape[1] - 1
-
-    @property
-    def observed(self) -> np.ndarray:
-        return self.valid & ~self.hidden
-
-    def take(self, idx: np.ndarray) -> SectionBank:
-        """The episodes ``idx`` only."""
-        return SectionBank(**{f: getattr(self, f)[idx] for f in self.__dataclass_fields__})
-
-
-Completion = Callable[
-    [SectionSnapshots], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
-]
-
-
-def build_section_bank(
-    sc,
-    truth: SectionTruth,
-    snaps: SectionSnapshots,
-    completion: Completion,
-    horizon: int | None = None,
-    seed: int = 0,
-) -> SectionBank:
-    """Episodes from ``snaps``: completed start scenes plus the recorded futures.
-
-    ``completion(snaps) -> (lane, arc, speed, valid, generated)``, each (S, N'), observed
-    vehicles first then the generated ones (the generator's ``SectionCompletion``, or the
-    true hidden vehicles for tests). Observed vehicles are found in the trajectories by
-    (run, time, lane, arc); snapshots with fewer than ``horizon`` recorded steps after them
-    are dropped. ``seed`` is kept for the draws of future completions (none here).
-    """
-    del seed  # every draw of this stage happens inside ``completion``
-    h = horizon or sc.policy.horizon
-    dt = sc.simulation.step_length_s
-    traj = truth.trajectories
-    length_of = dict(zip(truth.vtypes["vtype"], truth.vtypes["length_m"], strict=True))
-    runs: dict[int, dict[str, np.ndarray]] = {}
-    for r, g in traj.groupby("run", sort=True):
-        g = g.sort_values("time_s", kind="stable")
-        runs[int(r)] = {
-            "time": g["time_s"].to_numpy(dtype=float),
-            "vid": g["vehicle_id"].to_numpy(dtype=object),
-            "lane": g["lane_index"].to_numpy(dtype=float),
-            "arc": g["arc_m"].to_numpy(dtype=float),
-            "speed": g["speed_mps"].to_numpy(dtype=float),
-            "observed": g["observed"].to_numpy(dtype=bool),
-            "length": g["vtype"].map(length_of).to_numpy(dtype=float),
-        }
-    keep = [
-        i
-        for i, (r, t) in enumerate(zip(snaps.run, snaps.time_s, strict=True))
-        if int(r) in runs and t + h * dt <= runs[int(r)]["time"][-1] + 1e-6
-    ]
-    if not keep:
-        raise UserError(f"{truth.folder}: no snapshot leaves {h} steps of recorded future")
-    snaps = snaps.take(np.array(keep))
-    lane, arc, speed, valid, generated = (np.asarray(x) for x in completion(snaps))
-    valid = valid.astype(bool)
-    hidden = valid & generated.astype(bool)
-    e_n, n = arc.shape
-    replay = np.full((3, e_n, h + 1, n), np.nan)
-    length = np.zeros((e_n, n))
-    windows = []
-    for i, (r, t0) in enumerate(zip(snaps.run, snaps.time_s, strict=True)):
-        d = runs[int(r)]
-        lo, hi = np.searchsorted(d["time"], [t0 - 1e-6, t0 + h * dt + 1e-6])
-        w = {k: v[lo:hi] for k, v in d.items()}
-        w["step"] = np.rint((w["time"] - t0) / dt).astype(np.int64)
-        windows.append(w)
-        at0 = np.flatnonzero(w["step"] == 0)
-        slot_of = {}
-        for j in np.flatnonzero(valid[i] & ~hidden[i]):
-            cand = at0[(w["lane"][at0] == lane[i, j]) & w["observed"][at0]]
-            if cand.size == 0:
-                raise UserError(
-                    f"run {r}, t = {t0:g} s: observed vehicle at lane {lane[i, j]}, "
-                    f"{arc[i, j]:.2f} m is not in the trajectories"
-                )
-            k = cand[np.argmin(np.abs(w["arc"][cand] - arc[i, j]))]
-            if abs(w["arc"][k] - arc[i, j]) > 1e-3:
-                raise UserError(
-                    f"run {r}, t = {t0:g} s: no recorded observed vehicle at lane "
-                    f"{lane[i, j]}, {arc[i, j]:.2f} m"
-                )
-            slot_of[w["vid"][k]] = j
-            length[i, j] = w["length"][k]
-        for k in range(len(w["time"])):
-            j = slot_of.get(w["vid"][k])
-            if j is not None:
-                s = w["step"][k]
-                replay[:, i, s, j] = w["lane"][k], w["arc"][k], w["speed"][k]
-    length[hidden] = typical_length(truth)
-    spd = replay[2]
-    with np.errstate(invalid="ignore"):
-        gt_accel = np.diff(spd, axis=1) / dt  # NaN where either end is off the section
-    true = _true_scenes(windows, h)
-    return SectionBank(
-        lane0=lane.astype(np.int64),
-        arc0_m=arc.astype(float),
-        speed0_mps=speed.astype(float),
-        length_m=length,
-        valid=valid,
-        hidden=hidden,
-        psi=snaps.psi,
-        replay_lane=replay[0],
-        replay_arc_m=replay[1],
-        replay_speed_mps=replay[2],
-        gt_accel_mps2=gt_accel,
-        true_lane=true[0],
-        true_arc_m=true[1],
-        true_speed_mps=true[2],
-        true_valid=np.isfinite(true[2]),
-        true_length_m=true[3][:, 0, :],
-        run=snaps.run,
-        time_s=snaps.time_s,
-    )
-
-
-def typical_vclass(truth: SectionTruth) -> str:
-    """SUMO vehicle class for our vehicles: that of the vType with the most vehicles (lanes
-    may admit only some classes, e.g. a race track only ``vip``)."""
-    vt = truth.vtypes
-    if "vclass" not in vt:
-        return "passenger"
-    return str(vt["vclass"].iloc[int(np.argmax(vt["vehicles"].to_numpy()))])
-
-
-def typical_length(truth: SectionTruth) -> float:
-    """Length of generated vehicles: the vType with the most vehicles on the section."""
-    vt = truth.vtypes
-    return float(vt["length_m"].iloc[int(np.argmax(vt["vehicles"].to_numpy()))])
-
-
-def _true_scenes(windows: list[dict[str, np.ndarray]], h: int) -> np.ndarray:
-    """(lane, arc, speed, length) of every true vehicle per episode step: (4, E, H + 1, M);
-    slots in order of first appearance (the start scene first)."""
-    slots = []
-    for w in windows:
-        _, first = np.unique(w["vid"], return_index=True)
-        order = np.sort(first)
-        slots.append({w["vid"][k]: j for j, k in enumerate(order)})
-    m = max(1, max(len(s) for s in slots))
-    out = np.full((4, len(windows), h + 1, m), np.nan)
-    for i, (w, s) in enumerate(zip(windows, slots, strict=True)):
-        j = np.array([s[v] for v in w["vid"]], dtype=np.int64)
-        out[:, i, w["step"], j] = w["lane"], w["arc"], w["speed"], w["length"]
-    # A vehicle's length holds at every step: fill it along the horizon for step 0's use.
-    longest = np.where(np.isnan(out[3]), -np.inf, out[3]).max(axis=1, keepdims=True)
-    out[3] = np.where(np.isfinite(longest), longest, np.nan)
-    return out
-
-
-# --------------------------------------------------------------------------- physics
-
-
-def section_observations(
-    section: Section,
-    lane: np.ndarray,
-    arc_m: np.ndarray,
-    speed_mps: np.ndarray,
-    active: np.ndarray,
-    observation: str,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Observations (N, obs_dim), leader (-1: none) and spacing of the active vehicles.
-
-    One sort per call (``lane_leaders``); inactive slots get zeros and no leader.
-    """
-    n = len(arc_m)
-    obs = np.zeros((n, len(OBSERVATION_FEATURES[observation])))
-    leader = np.full(n, -1, dtype=np.int64)
-    spacing = np.full(n, NO_LEADER_GAP_M)
-    idx = np.flatnonzero(active)
-    if idx.size == 0:
-        return obs, leader, spacing
-    ln, s, v = lane[idx], arc_m[idx], speed_mps[idx]
-    lead, gap = lane_leaders(ln, s, section.length_m, section.closed)
-    has = lead >= 0
-    leader[idx[has]] = idx[lead[has]]
-    spacing[idx] = gap
-    e = section.edge_index(s)
-    lim = section.limits_mps
-    o = obs[idx]
-    o[:, 0] = v
-    o[:, 1] = lim[e, np.minimum(ln, section.n_lanes[e] - 1)]
-    o[:, 2] = gap
-    o[:, 3] = np.where(has, v - v[np.maximum(lead, 0)], 0.0)
-    if o.shape[1] > 4:
-        o[:, 4], o[:, 5] = _lookahead(section, ln, s, e, o[:, 1])
-    obs[idx] = o
-    return obs, leader, spacing
-
-
-def _lookahead(
-    section: Section, lane: np.ndarray, arc_m: np.ndarray, e: np.ndarray, own_limit: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """The next edge's limit on the vehicle's lane and the distance to that edge's start."""
-    n_e = len(section.edge_ids)
-    s = np.mod(arc_m, section.length_m) if section.closed else arc_m
-    if section.closed:
-        nxt = (e + 1) % n_e
-        start = section.offsets_m[nxt] + np.where(nxt == 0, section.length_m, 0.0)
-        return section.limits_mps[nxt, np.minimum(lane, section.n_lanes[nxt] - 1)], start - s
-    last = e == n_e - 1
-    nxt = np.minimum(e + 1, n_e - 1)
-    limit = np.where(
-        last, own_limit, section.limits_mps[nxt, np.minimum(lane, section.n_lanes[nxt] - 1)]
-    )
-    start = np.where(last, section.length_m, section.offsets_m[nxt])
-    return limit, start - s
 
 
 def section_macro_reward(
@@ -337,30 +92,6 @@ def section_macro_reward(
     )
     terms = {k: float(v) for k, v in terms.items()}
     return float(macro_reward(terms, lambda_v, lambda_d)), terms
-
-
-def initial_observations(sc, section: Section, bank: SectionBank) -> np.ndarray:
-    """Every valid vehicle's observation at the start of every episode, (V, obs_dim).
-
-    What the policy's input normalisation is fitted on (no SUMO run needed).
-    """
-    rows = []
-    for ep in range(len(bank)):
-        valid = bank.valid[ep]
-        obs, _, _ = section_observations(
-            section,
-            bank.lane0[ep],
-            _on_section(section, bank.arc0_m[ep]),
-            bank.speed0_mps[ep],
-            valid,
-            sc.policy.observation,
-        )
-        rows.append(obs[valid])
-    return np.concatenate(rows) if rows else np.zeros((0, 4))
-
-
-def _on_section(section: Section, arc_m: np.ndarray) -> np.ndarray:
-    return np.mod(arc_m, section.length_m) if section.closed else arc_m
 
 
 # --------------------------------------------------------------------------- core

@@ -95,9 +95,9 @@ from macromicro_sumo.data.section import SectionSnapshots, section_snapshots
 from macromicro_sumo.env.examples import demo
 from macromicro_sumo.env.observation import bank_shift_scale, feature_names, shift_scale
 from macromicro_sumo.env.ring import EpisodeBank, RingCore, build_bank, generator_completion
-from macromicro_sumo.env.section import (
+from macromicro_sumo.env.section import SectionCore
+from macromicro_sumo.env.section_bank import (
     SectionBank,
-    SectionCore,
     build_section_bank,
     initial_observations,
     typical_vclass,

@@ -25,9 +25,9 @@ import pandas as pd
 from macromicro_sumo.data.ring import split_runs
 from macromicro_sumo.data.section import SectionTruth, section_snapshots
 from macromicro_sumo.env.rollout import ActionFn, Rollouts, rollout
-from macromicro_sumo.env.section import (
+from macromicro_sumo.env.section import SectionCore
+from macromicro_sumo.env.section_bank import (
     SectionBank,
-    SectionCore,
     build_section_bank,
     section_observations,
     typical_length,

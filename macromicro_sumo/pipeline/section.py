@@ -13,7 +13,8 @@ from typing import Any
 import numpy as np
 
 from macromicro_sumo.data.section import section_snapshots
-from macromicro_sumo.env.section import SectionCore, build_section_bank, typical_vclass
+from macromicro_sumo.env.section import SectionCore
+from macromicro_sumo.env.section_bank import build_section_bank, typical_vclass
 from macromicro_sumo.evaluation.section import evaluate_section
 from macromicro_sumo.files import prepare_out_dir
 from macromicro_sumo.generator.section_sampler import generator_completion

@@ -37,7 +37,8 @@ from torch import nn
 
 from macromicro_sumo.checkpoints import save_torch
 from macromicro_sumo.env.ring import EpisodeBank, RingCore
-from macromicro_sumo.env.section import SectionBank, SectionCore, initial_observations
+from macromicro_sumo.env.section import SectionCore
+from macromicro_sumo.env.section_bank import SectionBank, initial_observations
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import write_csv
 from macromicro_sumo.policy.agent import Agent, observation_shift_scale

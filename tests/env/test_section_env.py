@@ -12,12 +12,8 @@ from conftest import PAPER_SCENARIO, ROOT, dump_toml
 
 from macromicro_sumo.data.section import PSI_FIELDS, section_snapshots
 from macromicro_sumo.env.ring import EpisodeBank, RingCore
-from macromicro_sumo.env.section import (
-    SectionBank,
-    SectionCore,
-    build_section_bank,
-    section_macro_reward,
-)
+from macromicro_sumo.env.section import SectionCore, section_macro_reward
+from macromicro_sumo.env.section_bank import SectionBank, build_section_bank
 from macromicro_sumo.policy.checkpoint import load_policy
 from macromicro_sumo.policy.ppo import train_policy
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, read_section
