@@ -103,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  bare libsumo, same SUMO calls   : {bare_s:10,.0f} steps/s")
         print(f"  env cost / bare loop            : {bare_s / env_s:10.2f} x")
 
-        from macromicro_sumo.env.wrappers import RingHiddenEnv
+        from macromicro_sumo.env.ring_envs import RingHiddenEnv
 
         env = RingHiddenEnv(sc, gt_dir, None)
         env.reset(seed=0)

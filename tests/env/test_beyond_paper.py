@@ -10,7 +10,7 @@ from gymnasium.utils.env_checker import check_env
 
 from macromicro_sumo import cli
 from macromicro_sumo.data.macro import spacing_losses
-from macromicro_sumo.env.wrappers import RingHiddenEnv
+from macromicro_sumo.env.ring_envs import RingHiddenEnv
 from macromicro_sumo.scenario.load import load_scenario
 
 BASE = {

@@ -11,7 +11,8 @@ from gymnasium.utils.env_checker import check_env
 from pettingzoo.test import parallel_api_test
 
 from macromicro_sumo.env.examples import cache_root
-from macromicro_sumo.env.wrappers import ENV_ID, RingHiddenParallelEnv
+from macromicro_sumo.env.ring_envs import RingHiddenParallelEnv
+from macromicro_sumo.env.wrappers import ENV_ID
 
 
 def test_no_argument_make_builds_the_demo_once(tmp_path, monkeypatch, capsys):

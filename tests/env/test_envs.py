@@ -9,7 +9,8 @@ from gymnasium.utils.env_checker import check_env
 from pettingzoo.test import parallel_api_test
 
 from macromicro_sumo import cli
-from macromicro_sumo.env.wrappers import ENV_ID, RingHiddenEnv, RingHiddenParallelEnv
+from macromicro_sumo.env.ring_envs import RingHiddenEnv, RingHiddenParallelEnv
+from macromicro_sumo.env.wrappers import ENV_ID
 from macromicro_sumo.errors import UserError
 
 

@@ -11,13 +11,9 @@ from gymnasium.utils.env_checker import check_env
 from pettingzoo.test import parallel_api_test
 
 from macromicro_sumo import cli
-from macromicro_sumo.env.wrappers import (
-    ENV_ID,
-    SECTION_ENV_ID,
-    RingHiddenEnv,
-    SectionHiddenEnv,
-    SectionHiddenParallelEnv,
-)
+from macromicro_sumo.env.ring_envs import RingHiddenEnv
+from macromicro_sumo.env.section_envs import SectionHiddenEnv, SectionHiddenParallelEnv
+from macromicro_sumo.env.wrappers import ENV_ID, SECTION_ENV_ID
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.sumo.netgen import random_corridor
 

@@ -16,7 +16,7 @@ from conftest import write_scenario
 
 from macromicro_sumo import cli
 from macromicro_sumo.env.ring import RingCore
-from macromicro_sumo.env.wrappers import make_bank
+from macromicro_sumo.env.ring_envs import make_bank
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.policy.checkpoint import load_checkpoint
 from macromicro_sumo.scenario.load import load_scenario
