@@ -31,7 +31,7 @@ from macromicro_sumo.progress import tqdm
 from macromicro_sumo.road.physics import forward_accel, ring_leaders
 from macromicro_sumo.road.ring import RingGeometry, read_ring
 from macromicro_sumo.scenario.ring import Scenario
-from macromicro_sumo.sumo.inputs import check_ring_routes
+from macromicro_sumo.sumo.demand import check_ring_routes
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.truth import ring_detectors as detectors
 

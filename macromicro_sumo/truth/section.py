@@ -39,14 +39,8 @@ from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.progress import tqdm
 from macromicro_sumo.road.section import Section, read_section
 from macromicro_sumo.scenario.section import SectionScenario
-from macromicro_sumo.sumo.inputs import (
-    SumoInputs,
-    VType,
-    check_demand,
-    check_vehicle_ids,
-    read_net,
-    resolve_inputs,
-)
+from macromicro_sumo.sumo.demand import VType, check_demand, check_vehicle_ids
+from macromicro_sumo.sumo.inputs import SumoInputs, read_net, resolve_inputs
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.truth.section_detectors import (
     detectors_xml,

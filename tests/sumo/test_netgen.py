@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from macromicro_sumo.sumo.inputs import check_demand, read_net, resolve_inputs
+from macromicro_sumo.sumo.demand import check_demand
+from macromicro_sumo.sumo.inputs import read_net, resolve_inputs
 from macromicro_sumo.sumo.netgen import LANES_RANGE, SPEED_RANGE_MPS, random_corridor
 
 

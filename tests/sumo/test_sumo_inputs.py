@@ -14,13 +14,15 @@ from pathlib import Path
 import pytest
 
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.sumo.inputs import (
+from macromicro_sumo.sumo.demand import (
     VCLASS_DEFAULT,
     VCLASS_DEFAULTS,
-    SumoInputs,
-    auto_detectors_xml,
     check_demand,
     check_vehicle_ids,
+)
+from macromicro_sumo.sumo.inputs import (
+    SumoInputs,
+    auto_detectors_xml,
     read_net,
     resolve_inputs,
     user_detectors,
