@@ -135,3 +135,12 @@ def test_no_module_imports_another_modules_private_names():
             ):
                 private += [f"{name}: {a.name}" for a in node.names if a.name.startswith("_")]
     assert not private, "private names imported across modules: " + ", ".join(private)
+
+
+def test_no_module_needs_more_than_500_lines():
+    long = {
+        str(p.relative_to(PACKAGE)): n
+        for p in PACKAGE.rglob("*.py")
+        if (n := len(p.read_text().splitlines())) > 500
+    }
+    assert not long, f"split these by concept: {long}"
