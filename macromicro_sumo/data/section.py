@@ -70,12 +70,6 @@ class SectionSnapshots:
         return SectionSnapshots(**{f: getattr(self, f)[idx] for f in self.__dataclass_fields__})
 
 
-def check_columns(df: pd.DataFrame, columns: tuple[str, ...], path: Path) -> None:
-    missing = [c for c in columns if c not in df.columns]
-    if missing:
-        raise UserError(f"{path}: missing column(s) {', '.join(missing)}")
-
-
 def at_snapshot_times(traj: pd.DataFrame, every_s: float) -> pd.DataFrame:
     """The rows of ``traj`` at whole multiples of ``every_s`` (the snapshot grid)."""
     t = traj["time_s"].to_numpy()
