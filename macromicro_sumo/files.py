@@ -139,6 +139,24 @@ def write_manifest(manifest: dict[str, Any], folder: Path, name: str = MANIFEST)
     write_json({**manifest, "outputs": record_outputs(folder, skip=(name,))}, folder / name)
 
 
+def write_stage_manifest(
+    manifest: dict[str, Any], folder: Path, name: str, files: Iterable[str]
+) -> None:
+    """``folder/name`` with the outputs map of the stage's own ``files`` (those it wrote):
+    a folder may hold several stages' outputs (the policy and its ablations)."""
+    outputs = {f: output_record(folder / f) for f in files if (folder / f).is_file()}
+    write_json({**manifest, "outputs": outputs}, folder / name)
+
+
+def check_beside(path: Path | str, manifest_name: str) -> None:
+    """Check ``path`` against the outputs map of the stage manifest beside it, if any: a
+    checkpoint cut short or replaced since its stage wrote it is a one-line error."""
+    path = Path(path)
+    if path.is_file() and (path.parent / manifest_name).is_file():
+        manifest = read_manifest(path.parent / manifest_name)
+        check_outputs(path.parent, manifest, names=[path.name], manifest_name=manifest_name)
+
+
 def read_manifest(path: Path | str) -> dict[str, Any]:
     """A stage's manifest as a dict; unreadable or not a JSON object is a one-line error."""
     path = Path(path)
@@ -167,6 +185,7 @@ def check_outputs(
     names: Iterable[str] | None = None,
     deep: bool = True,
     rerun: str = "",
+    manifest_name: str = MANIFEST,
 ) -> None:
     """Check the files that ``folder``'s manifest lists (or ``names`` of them) against it.
 
@@ -184,7 +203,7 @@ def check_outputs(
     outputs = manifest.get("outputs")
     if not isinstance(outputs, dict):
         return
-    where = f"{MANIFEST} of {folder}"
+    where = f"{manifest_name} of {folder}"
     hint = rerun or _rerun(manifest)
     for name in outputs if names is None else names:
         want = outputs.get(name)

@@ -36,7 +36,12 @@ from macromicro_sumo.evaluation.leader_follower import (
 )
 from macromicro_sumo.evaluation.methods import method_order
 from macromicro_sumo.evaluation.statistics import macro_row, samples_frame
-from macromicro_sumo.files import prepare_out_dir, staging_dir, write_csv, write_json
+from macromicro_sumo.files import (
+    prepare_out_dir,
+    staging_dir,
+    write_csv,
+    write_stage_manifest,
+)
 from macromicro_sumo.generator.ring_train import load_generator
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.policy.agent import policy_action
@@ -311,7 +316,8 @@ def evaluate(
             ground_truth=str(data),
             timings_s={"evaluate": round(time.perf_counter() - t0, 3)},
         )
-        write_json(manifest, stage / "evaluation_manifest.json")
+        outputs = [p.name for p in stage.iterdir() if p.is_file()]
+        write_stage_manifest(manifest, stage, "evaluation_manifest.json", outputs)
     return manifest
 
 

@@ -38,7 +38,12 @@ from macromicro_sumo.evaluation.idm_fit import calibrate_idm
 from macromicro_sumo.evaluation.methods import method_order
 from macromicro_sumo.evaluation.ring import idm_action, micro_consistency
 from macromicro_sumo.evaluation.statistics import macro_row, samples_frame
-from macromicro_sumo.files import prepare_out_dir, staging_dir, write_csv, write_json
+from macromicro_sumo.files import (
+    prepare_out_dir,
+    staging_dir,
+    write_csv,
+    write_stage_manifest,
+)
 from macromicro_sumo.generator.section_sampler import generator_completion
 from macromicro_sumo.generator.section_train import load_section_generator
 from macromicro_sumo.manifest import build_manifest
@@ -236,5 +241,6 @@ def evaluate_section(
             k_estimate=ks,
             timings_s={"evaluate": round(time.perf_counter() - t0, 3)},
         )
-        write_json(manifest, stage / "evaluation_manifest.json")
+        outputs = [p.name for p in stage.iterdir() if p.is_file()]
+        write_stage_manifest(manifest, stage, "evaluation_manifest.json", outputs)
     return manifest

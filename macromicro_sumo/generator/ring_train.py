@@ -30,7 +30,12 @@ from macromicro_sumo.data.ring import (
     split_runs,
 )
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.files import prepare_out_dir, write_csv, write_json
+from macromicro_sumo.files import (
+    check_beside,
+    prepare_out_dir,
+    write_csv,
+    write_stage_manifest,
+)
 from macromicro_sumo.generator.ring_gaps import PsiTensors
 from macromicro_sumo.generator.ring_metrics import completion_metrics, summarise_metrics
 from macromicro_sumo.generator.ring_model import (
@@ -47,6 +52,14 @@ from macromicro_sumo.progress import tqdm
 from macromicro_sumo.scenario.ring import Scenario
 
 CHECKPOINT_FORMAT = "macromicro-generator"
+# What a generator stage writes beside its manifest (ring and sections alike).
+GENERATOR_FILES = (
+    "generator.pt",
+    "generator_train_log.csv",
+    "generator_metrics.csv",
+    "generator_metrics_per_snapshot.csv",
+)
+GENERATOR_MANIFEST = "generator_manifest.json"
 
 
 def signature(sc: Scenario) -> dict[str, Any]:
@@ -72,6 +85,7 @@ def save_generator(
 
 def load_generator(path: Path | str, sc: Scenario) -> GeneratorNet:
     """Load ``generator.pt``; a corrupt file or one trained for another scenario is an error."""
+    check_beside(path, GENERATOR_MANIFEST)
     return load_network(
         path,
         CHECKPOINT_FORMAT,
@@ -299,7 +313,7 @@ def run_train_generator(
         best_val_loss=res["best_val_loss"],
         timings_s={"train_generator": round(res["train_s"], 3)},
     )
-    write_json(manifest, out / "generator_manifest.json")
+    write_stage_manifest(manifest, out, GENERATOR_MANIFEST, GENERATOR_FILES)
     return manifest
 
 

@@ -24,7 +24,13 @@ from macromicro_sumo.checkpoints import load_network, save_network
 from macromicro_sumo.data.objective import macro_loss
 from macromicro_sumo.data.ring import split_runs
 from macromicro_sumo.data.section import SectionSnapshots, section_snapshots
-from macromicro_sumo.files import prepare_out_dir, write_csv, write_json
+from macromicro_sumo.files import (
+    check_beside,
+    prepare_out_dir,
+    write_csv,
+    write_stage_manifest,
+)
+from macromicro_sumo.generator.ring_train import GENERATOR_FILES, GENERATOR_MANIFEST
 from macromicro_sumo.generator.section_metrics import completion_metrics
 from macromicro_sumo.generator.section_model import (
     FEATURE_VERSION,
@@ -73,6 +79,7 @@ def save_section_generator(
 def load_section_generator(path: Path | str, sc: SectionScenario) -> SectionGeneratorNet:
     """Load a section ``generator.pt``; a corrupt file or one trained for another section is
     a one-line UserError naming the file and what differs."""
+    check_beside(path, GENERATOR_MANIFEST)
     return load_network(
         path,
         CHECKPOINT_FORMAT,
@@ -262,5 +269,5 @@ def run_train_section_generator(
         timings_s=timings,
         summary=summary,
     )
-    write_json(manifest, out / "generator_manifest.json")
+    write_stage_manifest(manifest, out, GENERATOR_MANIFEST, GENERATOR_FILES)
     return manifest

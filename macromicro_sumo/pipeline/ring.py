@@ -91,7 +91,12 @@ def _why_redo(stage: Stage, sc: Any, redone: set[str]) -> str | None:
         manifest = json.loads(stage.manifest.read_text())
         recorded = manifest["scenario"]
         # Outputs lost, cut short or edited since the stage wrote them: it runs again.
-        check_outputs(stage.manifest.parent, manifest, rerun="redoing the stage")
+        check_outputs(
+            stage.manifest.parent,
+            manifest,
+            rerun="redoing the stage",
+            manifest_name=stage.manifest.name,
+        )
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError):
         return f"{stage.manifest.name} unreadable"
     except UserError as exc:

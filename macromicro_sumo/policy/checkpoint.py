@@ -14,6 +14,7 @@ from typing import Any
 import torch
 
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.files import check_beside
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES
 from macromicro_sumo.scenario.ring import Scenario
@@ -99,6 +100,8 @@ def load_policy(path: Path | str, sc: Scenario) -> Agent:
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: policy checkpoint not found (run `macromicro train-policy`)")
+    # policy.pt -> policy_manifest.json, policy_micro_only.pt -> policy_manifest_micro_only.json
+    check_beside(path, path.name.replace("policy", "policy_manifest", 1).replace(".pt", ".json"))
     payload = load_checkpoint(path, sc)
     agent = Agent(payload["hidden_size"], observation=sc.policy.observation)
     agent.load_state_dict(payload["state_dict"])

@@ -19,7 +19,12 @@ import torch
 from macromicro_sumo.data.ring import load_ground_truth, split_runs
 from macromicro_sumo.env.ring import RingCore, build_bank, generator_completion
 from macromicro_sumo.env.rollout import rollout
-from macromicro_sumo.files import file_sha256, prepare_out_dir, write_csv, write_json
+from macromicro_sumo.files import (
+    file_sha256,
+    prepare_out_dir,
+    write_csv,
+    write_stage_manifest,
+)
 from macromicro_sumo.generator.ring_train import load_generator
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.policy.agent import policy_action
@@ -132,5 +137,10 @@ def write_policy_manifest(
         ground_truth=str(data),
         generator=str(generator),
     )
-    write_json(manifest, out / f"policy_manifest{suffix}.json")
+    own = (
+        f"policy{suffix}.pt",
+        f"policy_train_log{suffix}.csv",
+        f"policy_heldout_speed{suffix}.csv",
+    )
+    write_stage_manifest(manifest, out, f"policy_manifest{suffix}.json", own)
     return manifest

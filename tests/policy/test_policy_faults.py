@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -18,7 +20,7 @@ from macromicro_sumo import cli
 from macromicro_sumo.env.ring import RingCore
 from macromicro_sumo.env.ring_envs import make_bank
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.policy.checkpoint import load_checkpoint
+from macromicro_sumo.policy.checkpoint import load_checkpoint, load_policy
 from macromicro_sumo.scenario.load import load_scenario
 
 UPDATES = 12
@@ -164,3 +166,30 @@ def test_a_generator_given_as_policy_is_named_for_what_it_is(setup):
         UserError, match="not a policy checkpoint \\(a 'macromicro-generator' file\\)"
     ):
         load_checkpoint(gen, load_scenario(path))
+
+
+def test_checkpoints_cut_short_after_their_stage_are_refused_by_name(setup, tmp_path, capsys):
+    """Generator and policy manifests record their own files: a later stage refuses a
+    checkpoint that changed since (issue 19, item 3), before reading a byte of it."""
+    path, gt, gen = setup
+    pol = tmp_path / "pol"
+    assert cli.main(_train_args(path, gt, gen, pol)) == 0
+    manifest = json.loads((pol / "policy_manifest.json").read_text())
+    assert set(manifest["outputs"]) >= {"policy.pt", "policy_train_log.csv"}
+    data = (pol / "policy.pt").read_bytes()
+    (pol / "policy.pt").write_bytes(data[: len(data) // 2])
+    with pytest.raises(UserError, match=r"policy\.pt: .*policy_manifest\.json"):
+        load_policy(pol / "policy.pt", load_scenario(path))
+    gen_copy = tmp_path / "gen"
+    shutil.copytree(gen.parent, gen_copy)
+    blob = (gen_copy / "generator.pt").read_bytes()
+    (gen_copy / "generator.pt").write_bytes(blob[:-10])
+    code = cli.main(_train_args(path, gt, gen_copy / "generator.pt", tmp_path / "p2"))
+    err = capsys.readouterr().err
+    assert (
+        code == 2
+        and err.count("\n") == 1
+        and "generator.pt" in err
+        and "generator_manifest.json" in err
+    )
+    assert not (tmp_path / "p2").exists()
