@@ -20,7 +20,7 @@ Observation Space
     its own limit and the distance to the section's end). Inactive slots are zeros.
 Rewards
     r_macro = 1 / (1 + lambda_v L_speed + lambda_d L_dist) of the active vehicles against
-    psi (``section_macro_reward``).
+    psi (``section_target``, ``section_macro_reward``).
 Starting State
     The episode's completed scene (observed vehicles + generated hidden vehicles), inserted
     with ``vehicle.add`` at the exact lane and position; checked after the insertion step.
@@ -53,43 +53,40 @@ _PSI = {f: i for i, f in enumerate(PSI_FIELDS)}
 POSITION_TOL_M = 0.01  # insertion and replay checks: a placement off by more is an error
 
 
-def section_macro_reward(
-    speed_mps: np.ndarray,
-    spacing_m: np.ndarray,
-    leader: np.ndarray,
-    hidden: np.ndarray,
-    active: np.ndarray,
-    psi: np.ndarray,
-    lambda_v: float,
-    lambda_d: float,
-    speed_scale_mps: float = 0.0,
-) -> tuple[float, dict[str, float]]:
-    """r_macro of the active vehicles against psi (``data.objective``, as on the ring).
-
-    L_speed on the mean speed of all active vehicles; A holds the per-lane spacings that
-    touch a hidden vehicle (it, or its leader), vehicles without a leader excluded. psi has
-    no upper spacing bound (L_max is 0); L_var is the measured dispersion where the
-    detectors measured a spacing std, else the paper's.
-    """
-    if not active.any():
-        return 0.0, {}
-    has = active & (leader >= 0)
-    in_a = has & (hidden | hidden[np.maximum(leader, 0)])
-    target = MacroTarget(
+def section_target(psi: np.ndarray) -> MacroTarget:
+    """What a section scene's reward compares with: psi's fields (no upper spacing bound:
+    L_max is 0; L_var is the measured dispersion where the detectors measured a spacing
+    std, else the paper's). Built once per episode."""
+    return MacroTarget(
         psi[_PSI["mean_speed_mps"]],
         psi[_PSI["mean_spacing_m"]],
         psi[_PSI["spacing_min_m"]],
         np.float64(np.inf),
         spacing_std_m=psi[_PSI["std_spacing_m"]],
     )
-    terms = macro_terms(
-        np.where(active, speed_mps, 0.0),
-        active,
-        np.where(in_a, spacing_m, 0.0),
-        in_a,
-        target,
-        speed_scale_mps,
-    )
+
+
+def section_macro_reward(
+    speed_mps: np.ndarray,
+    spacing_m: np.ndarray,
+    leader: np.ndarray,
+    hidden: np.ndarray,
+    active: np.ndarray,
+    target: MacroTarget,
+    lambda_v: float,
+    lambda_d: float,
+    speed_scale_mps: float = 0.0,
+) -> tuple[float, dict[str, float]]:
+    """r_macro of the active vehicles against ``target`` (``data.objective``, as on the ring).
+
+    L_speed on the mean speed of all active vehicles; A holds the per-lane spacings that
+    touch a hidden vehicle (it, or its leader), vehicles without a leader excluded.
+    """
+    if not active.any():
+        return 0.0, {}
+    in_a = active & (leader >= 0) & (hidden | hidden[np.maximum(leader, 0)])
+    # Already selected, as on the ring: no masks to multiply on this hot path.
+    terms = macro_terms(speed_mps[active], None, spacing_m[in_a], None, target, speed_scale_mps)
     terms = {k: float(v) for k, v in terms.items()}
     return float(macro_reward(terms, lambda_v, lambda_d)), terms
 
@@ -187,6 +184,7 @@ class SectionCore:
         self.ids = [f"m{self._resets}.{i}" for i in range(self.n)]
         self.hidden = b.hidden[episode]
         self.psi = b.psi[episode]
+        self._target = section_target(self.psi)
         valid = b.valid[episode]
         slots = np.flatnonzero(valid)
         want = np.zeros(self.n)
@@ -292,7 +290,7 @@ class SectionCore:
             self.leader,
             self.hidden,
             self.active,
-            self.psi,
+            self._target,
             g.lambda_v,
             g.lambda_d,
             self.sc.policy.macro_speed_scale_mps,

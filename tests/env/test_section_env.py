@@ -12,7 +12,7 @@ from conftest import PAPER_SCENARIO, ROOT, dump_toml
 
 from macromicro_sumo.data.section import PSI_FIELDS, section_snapshots
 from macromicro_sumo.env.ring import EpisodeBank, RingCore
-from macromicro_sumo.env.section import SectionCore, section_macro_reward
+from macromicro_sumo.env.section import SectionCore, section_macro_reward, section_target
 from macromicro_sumo.env.section_bank import SectionBank, build_section_bank
 from macromicro_sumo.policy.checkpoint import load_policy
 from macromicro_sumo.policy.ppo import train_policy
@@ -192,7 +192,7 @@ def two_cars_no_hidden(speed_mps: float) -> tuple:
         np.array([1, -1]),
         np.array([False, False]),
         np.array([True, True]),
-        np.array([30.0, 60.0, np.nan, 0.0, 50.0, 7.0]),
+        section_target(np.array([30.0, 60.0, np.nan, 0.0, 50.0, 7.0])),
         0.5,
         0.5,
     )
