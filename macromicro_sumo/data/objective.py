@@ -130,8 +130,8 @@ def speed_terms(
     if sigma is not None:  # no target, no term
         dev, _, _ = _counted(on_road, speed_mps - v_mean[..., None])
         v_std = _sqrt((dev * dev).sum(-1) / n + eps)
-        known = _where(sigma == sigma, 1.0, 0.0)  # NaN: no target
-        gap = v_std - _where(sigma == sigma, sigma, 0.0)
+        known = sigma == sigma  # NaN: no target
+        gap = v_std - _where(known, sigma, 0.0)
         terms["L_vstd"] = known * _sqrt(gap * gap + eps) / v_t
     return terms
 
