@@ -23,6 +23,7 @@ from macromicro_sumo.pipeline import stages
 from macromicro_sumo.pipeline.ring import policy_paths
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo import simulation as sumo
+from macromicro_sumo.sumo.inputs import input_files
 
 
 def _scenario(args: argparse.Namespace) -> Any:
@@ -38,7 +39,7 @@ def _scenario(args: argparse.Namespace) -> Any:
             f"({', '.join(example_names())})"
         )
     sc = load_scenario(args.scenario)
-    check_out_path(args.out, [args.scenario, *stages.input_files(sc)])
+    check_out_path(args.out, [args.scenario, *input_files(sc)])
     return sc
 
 

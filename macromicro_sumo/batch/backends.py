@@ -27,7 +27,7 @@ from macromicro_sumo.batch.sweep import AnyScenario
 from macromicro_sumo.batch.tasks import Outcome, Task, one_line, run_task
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.scenario.section import SectionScenario
-from macromicro_sumo.truth.section import scenario_inputs
+from macromicro_sumo.sumo.inputs import input_files
 
 RAY_INSTALL = "pip install 'macromicro-sumo[ray]'"
 
@@ -161,18 +161,6 @@ def _network_paths(sc: AnyScenario) -> dict[str, str | list[str]]:
             "additional_files": list(n.additional_files),
         }
     return {"net_file": n.net_file, "routes_file": n.routes_file}
-
-
-def input_files(sc: AnyScenario) -> list[Path]:
-    """Every file besides the scenario that a variant reads: the ring's net and routes, or a
-    section's SUMO files (the .sumocfg and every file it names, and the explicit ones)."""
-    if isinstance(sc, SectionScenario):
-        i = scenario_inputs(sc)
-        files = [*([i.sumocfg] if i.sumocfg else []), i.net_file, *i.route_files]
-        files += i.additional_files
-    else:
-        files = [sc.resolve(sc.network.net_file), sc.resolve(sc.network.routes_file)]
-    return list(dict.fromkeys(Path(f) for f in files))
 
 
 def shipment(sc: AnyScenario) -> dict[str, bytes]:

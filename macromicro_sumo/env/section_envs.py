@@ -46,7 +46,8 @@ from macromicro_sumo.road.section import NO_LEADER_GAP_M
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.scenario.ring import Scenario
 from macromicro_sumo.scenario.section import SectionScenario
-from macromicro_sumo.truth.section import SectionTruth, load_section_truth, scenario_inputs
+from macromicro_sumo.sumo.inputs import scenario_inputs
+from macromicro_sumo.truth.section import SectionTruth, load_section_truth
 
 
 def true_section_completion(snaps: SectionSnapshots):

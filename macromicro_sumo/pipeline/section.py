@@ -26,7 +26,8 @@ from macromicro_sumo.pipeline.ring import run_stages, standard_stages
 from macromicro_sumo.policy.ppo import train_policy
 from macromicro_sumo.policy.stage import open_policy_stage, write_policy_manifest
 from macromicro_sumo.report.section import write_section_report
-from macromicro_sumo.truth.section import load_section_truth, scenario_inputs, simulate_section
+from macromicro_sumo.sumo.inputs import scenario_inputs
+from macromicro_sumo.truth.section import load_section_truth, simulate_section
 
 
 def run_train_section_policy(

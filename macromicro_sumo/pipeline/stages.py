@@ -22,7 +22,7 @@ from macromicro_sumo.pipeline.section import run_section, run_train_section_poli
 from macromicro_sumo.policy.stage import run_train_policy
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.truth.ring import simulate as simulate_ring
-from macromicro_sumo.truth.section import scenario_inputs, simulate_section
+from macromicro_sumo.truth.section import simulate_section
 
 
 def _one_writer(stage: Callable[..., Any]) -> Callable[..., Any]:
@@ -39,18 +39,6 @@ def _one_writer(stage: Callable[..., Any]) -> Callable[..., Any]:
 def is_section(sc: object) -> bool:
     """A scenario on a user's SUMO network (``[network] kind = "sumo"``)."""
     return isinstance(sc, SectionScenario)
-
-
-def input_files(sc: Any) -> list[Path]:
-    """Every file of the user's that the scenario reads (``--out`` must hold none)."""
-    files = [Path(sc.source)]
-    if is_section(sc):
-        found = scenario_inputs(sc)
-        files += [found.net_file, *found.route_files, *found.additional_files]
-        files += [found.sumocfg] if found.sumocfg else []
-    else:
-        files += [sc.resolve(sc.network.net_file), sc.resolve(sc.network.routes_file)]
-    return files
 
 
 @_one_writer

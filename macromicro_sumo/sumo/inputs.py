@@ -23,6 +23,8 @@ import sumolib
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import refuse_comma
+from macromicro_sumo.scenario.ring import Scenario
+from macromicro_sumo.scenario.section import SectionScenario
 
 DETECTOR_PERIOD_DEFAULT_S = 900.0
 """SUMO's default aggregation period of E1/E2 detectors when neither period nor freq is given."""
@@ -276,3 +278,28 @@ def auto_detectors_xml(
         )
     lines.append("</additional>")
     return "\n".join(lines) + "\n"
+
+
+def scenario_inputs(sc: SectionScenario) -> SumoInputs:
+    """The user's SUMO files named by a section scenario, resolved and checked to exist."""
+    n = sc.network
+    return resolve_inputs(
+        sc.resolve(n.sumocfg) if n.sumocfg else None,
+        sc.resolve(n.net_file) if n.net_file else None,
+        [sc.resolve(p) for p in n.route_files],
+        [sc.resolve(p) for p in n.additional_files],
+        sc.source,
+    )
+
+
+def input_files(sc: Scenario | SectionScenario) -> list[Path]:
+    """Every file besides the scenario file that a scenario reads, once each: the ring's net
+    and routes, or a section's SUMO files (the .sumocfg and every file it names, and the
+    explicit ones). What ``--out`` must not hold and what a batch ships to a Ray node."""
+    if isinstance(sc, SectionScenario):
+        i = scenario_inputs(sc)
+        files = [*([i.sumocfg] if i.sumocfg else []), i.net_file, *i.route_files]
+        files += i.additional_files
+    else:
+        files = [sc.resolve(sc.network.net_file), sc.resolve(sc.network.routes_file)]
+    return list(dict.fromkeys(Path(f) for f in files))

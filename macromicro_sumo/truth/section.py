@@ -40,7 +40,7 @@ from macromicro_sumo.progress import tqdm
 from macromicro_sumo.road.section import Section, read_section
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.demand import VType, check_demand, check_vehicle_ids
-from macromicro_sumo.sumo.inputs import SumoInputs, read_net, resolve_inputs
+from macromicro_sumo.sumo.inputs import SumoInputs, read_net, scenario_inputs
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.truth.section_detectors import (
     detectors_xml,
@@ -54,18 +54,6 @@ from macromicro_sumo.truth.section_macro import (
     k_summary,
     trajectory_macro,
 )
-
-
-def scenario_inputs(sc: SectionScenario) -> SumoInputs:
-    """The user's SUMO files named by the scenario, resolved and checked to exist."""
-    n = sc.network
-    return resolve_inputs(
-        sc.resolve(n.sumocfg) if n.sumocfg else None,
-        sc.resolve(n.net_file) if n.net_file else None,
-        [sc.resolve(p) for p in n.route_files],
-        [sc.resolve(p) for p in n.additional_files],
-        sc.source,
-    )
 
 
 def load_section(sc: SectionScenario) -> tuple[SumoInputs, Section, dict[str, VType]]:
