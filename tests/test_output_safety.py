@@ -242,10 +242,11 @@ def test_a_second_run_is_refused_while_the_first_trains(make_scenario, tmp_path,
             time.sleep(0.05)
         time.sleep(0.5)
         assert first.poll() is None
+        before = {p: p.stat().st_mtime_ns for p in (out / "ground_truth").iterdir()}
         code = cli.main(["run", str(slow), "--out", str(out), "--quiet"])
         one_line_error(capsys, code, f"{out}: another macromicro run is writing into this folder")
+        # refused before it touched anything: the first run's ground truth is as it was
+        assert {p: p.stat().st_mtime_ns for p in (out / "ground_truth").iterdir()} == before
     finally:
         first.kill()
         first.wait()
-    # the second run was refused before it touched anything: no generator output of its own
-    assert not (out / "generator" / "generator.pt").exists()
