@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from macromicro_sumo.policy.checkpoint import policy_file
+
 
 @dataclass(frozen=True)
 class Method:
@@ -56,7 +58,7 @@ def method_order(road: str) -> list[str]:
 
 def checkpoint_name(method: Method) -> str:
     """The file a learned method's policy is saved as in a policy folder."""
-    return "policy.pt" if method.objective == "mix" else f"policy_{method.objective}.pt"
+    return policy_file(method.objective)
 
 
 LEARNED = tuple(m for m in METHODS if m.role == "learned")

@@ -25,6 +25,7 @@ from macromicro_sumo.files import check_outputs, prepare_out_dir, write_json
 from macromicro_sumo.generator.ring_train import run_train_generator
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.pipeline.refinement import refine
+from macromicro_sumo.policy.checkpoint import policy_file
 from macromicro_sumo.policy.stage import run_train_policy
 from macromicro_sumo.report.ring import write_report
 from macromicro_sumo.scenario.ring import Scenario
@@ -154,21 +155,21 @@ def standard_stages(
         ),
         Stage(
             "train_policy",
-            pol / "policy_manifest.json",
+            pol / policy_file("mix", "manifest"),
             train("mix"),
             needs=upstream,
             ignores=_POLICY_IGNORES,
         ),
         Stage(
             "train_policy_micro_only",
-            pol / "policy_manifest_micro_only.json",
+            pol / policy_file("micro_only", "manifest"),
             train("micro_only"),
             needs=upstream,
             ignores=(*_POLICY_IGNORES, "policy.eta"),  # behaviour cloning: eta = 0
         ),
         Stage(
             "train_policy_macro_only",
-            pol / "policy_manifest_macro_only.json",
+            pol / policy_file("macro_only", "manifest"),
             train("macro_only"),
             needs=upstream,
             ignores=_POLICY_IGNORES,

@@ -96,12 +96,26 @@ def resumable_checkpoint(
     return ck
 
 
+def policy_file(objective: str, kind: str = "pt") -> str:
+    """What a policy stage of ``objective`` names its files: ``policy.pt`` for the paper's
+    objective, ``policy_micro_only.pt`` for an ablation; ``kind`` ``manifest``,
+    ``train_log`` or ``heldout_speed`` for the stage's other files."""
+    suffix = "" if objective == "mix" else f"_{objective}"
+    return {
+        "pt": f"policy{suffix}.pt",
+        "manifest": f"policy_manifest{suffix}.json",
+        "train_log": f"policy_train_log{suffix}.csv",
+        "heldout_speed": f"policy_heldout_speed{suffix}.csv",
+    }[kind]
+
+
 def load_policy(path: Path | str, sc: Scenario) -> Agent:
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: policy checkpoint not found (run `macromicro train-policy`)")
     # policy.pt -> policy_manifest.json, policy_micro_only.pt -> policy_manifest_micro_only.json
-    check_beside(path, path.name.replace("policy", "policy_manifest", 1).replace(".pt", ".json"))
+    objective = path.stem.removeprefix("policy").removeprefix("_") or "mix"
+    check_beside(path, policy_file(objective, "manifest"))
     payload = load_checkpoint(path, sc)
     agent = Agent(payload["hidden_size"], observation=sc.policy.observation)
     agent.load_state_dict(payload["state_dict"])

@@ -42,7 +42,12 @@ from macromicro_sumo.env.section_bank import SectionBank, initial_observations
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import write_csv
 from macromicro_sumo.policy.agent import Agent, observation_shift_scale
-from macromicro_sumo.policy.checkpoint import CHECKPOINT_FORMAT, resumable_checkpoint, signature
+from macromicro_sumo.policy.checkpoint import (
+    CHECKPOINT_FORMAT,
+    policy_file,
+    resumable_checkpoint,
+    signature,
+)
 from macromicro_sumo.progress import tqdm
 from macromicro_sumo.scenario.ring import Scenario
 from macromicro_sumo.scenario.section import SectionScenario
@@ -394,7 +399,7 @@ def train_policy(
         agent.load_state_dict(best_state)
     wall = time.perf_counter() - t0
     save_torch(
-        out / (f"policy_{objective}.pt" if objective != "mix" else "policy.pt"),
+        out / policy_file(objective),
         {
             "format": CHECKPOINT_FORMAT,
             "signature": signature(sc),
@@ -404,6 +409,5 @@ def train_policy(
             "scenario": sc.to_dict(),
         },
     )
-    name = "policy_train_log.csv" if objective == "mix" else f"policy_train_log_{objective}.csv"
-    write_csv(pd.DataFrame(log), out / name)
+    write_csv(pd.DataFrame(log), out / policy_file(objective, "train_log"))
     return {"agent": agent, "wall_s": wall, "env_steps": env_steps, "log": log}

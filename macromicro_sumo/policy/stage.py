@@ -28,7 +28,7 @@ from macromicro_sumo.files import (
 from macromicro_sumo.generator.ring_train import load_generator
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.policy.agent import policy_action
-from macromicro_sumo.policy.checkpoint import resumable_checkpoint
+from macromicro_sumo.policy.checkpoint import policy_file, resumable_checkpoint
 from macromicro_sumo.policy.ppo import train_policy
 from macromicro_sumo.scenario.ring import Scenario
 
@@ -105,8 +105,7 @@ def run_train_policy(
     )
     # Held-out check of the issue's target: fleet mean speed vs ground truth per K.
     align = heldout_speed(sc, gt, net, res["agent"], splits["held_out"])
-    suffix = "" if objective == "mix" else f"_{objective}"
-    write_csv(align, out / f"policy_heldout_speed{suffix}.csv")
+    write_csv(align, out / policy_file(objective, "heldout_speed"))
     manifest = write_policy_manifest(sc, command, objective, res, data, generator, out)
     return {"alignment": align, **manifest}
 
@@ -128,8 +127,8 @@ def write_policy_manifest(
 ) -> dict[str, Any]:
     """``policy_manifest[_objective].json`` of a policy stage (ring or section); returned.
     Written last: the pipeline takes a stage with its manifest as done."""
-    suffix = "" if objective == "mix" else f"_{objective}"
-    manifest = build_manifest(sc, command, stage=f"train-policy{suffix}")
+    stage = "train-policy" if objective == "mix" else f"train-policy_{objective}"
+    manifest = build_manifest(sc, command, stage=stage)
     manifest.update(
         timings_s={"train_policy": round(res["wall_s"], 3)},
         env_steps=res["env_steps"],
@@ -137,10 +136,6 @@ def write_policy_manifest(
         ground_truth=str(data),
         generator=str(generator),
     )
-    own = (
-        f"policy{suffix}.pt",
-        f"policy_train_log{suffix}.csv",
-        f"policy_heldout_speed{suffix}.csv",
-    )
-    write_stage_manifest(manifest, out, f"policy_manifest{suffix}.json", own)
+    own = [policy_file(objective, kind) for kind in ("pt", "train_log", "heldout_speed")]
+    write_stage_manifest(manifest, out, policy_file(objective, "manifest"), own)
     return manifest
