@@ -24,10 +24,11 @@ RANK = {
     "env": 9,
     "policy": 10,
     "evaluation": 11,
-    "report": 12,
-    "pipeline": 13,
-    "batch": 14,
-    "cli": 15,
+    "deploy": 12,
+    "report": 13,
+    "pipeline": 14,
+    "batch": 15,
+    "cli": 16,
 }
 
 

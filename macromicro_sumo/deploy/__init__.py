@@ -1,0 +1,1 @@
+"""Stage III: every method deployed population-wide on the scenario's own demand."""
