@@ -20,6 +20,7 @@ RANK = {
     "road": 5,
     "data": 6,
     "truth": 7,
+    "fielddata": 7,
     "generator": 8,
     "env": 9,
     "policy": 10,
