@@ -9,15 +9,14 @@ the two baselines and writes ``generator_metrics.csv``.
 
 from __future__ import annotations
 
-import copy
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 import torch
-from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from macromicro_sumo.checkpoints import load_network, save_network
 from macromicro_sumo.data.ring import (
@@ -47,8 +46,8 @@ from macromicro_sumo.generator.ring_model import (
     total_loss,
 )
 from macromicro_sumo.generator.ring_sampler import complete, complete_equal_gap, complete_uniform
+from macromicro_sumo.generator.training import Batch, FitSettings, fit
 from macromicro_sumo.manifest import build_manifest
-from macromicro_sumo.progress import tqdm
 from macromicro_sumo.scenario.ring import Scenario
 
 CHECKPOINT_FORMAT = "macromicro-generator"
@@ -98,8 +97,8 @@ def load_generator(path: Path | str, sc: Scenario) -> GeneratorNet:
 
 
 def _batch_loss(
-    net: GeneratorNet, snaps: Snapshots, sc: Scenario, gen: torch.Generator
-) -> tuple[torch.Tensor, dict]:
+    net: torch.nn.Module, snaps: Snapshots, sc: Scenario, gen: torch.Generator
+) -> tuple[torch.Tensor, dict[str, float]]:
     arc, speed, generated, log_p = rollout(net, snaps, gen)
     psi = PsiTensors.of(snaps)
     terms = macro_losses(arc, speed, generated, psi, snaps.length_m)
@@ -158,62 +157,34 @@ def train_generator(
     net = GeneratorNet(cfg.hidden_size, cfg.gap_choice)
     if init is not None:
         net.load_state_dict(init)
-    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
-    # The REINFORCE gradient of the gap choice is noisy: the averaged weights change less
-    # with the training seed than the last step's (ema_decay > 0 validates and keeps them).
-    ema = (
-        AveragedModel(net, multi_avg_fn=get_ema_multi_avg_fn(cfg.ema_decay))
-        if cfg.ema_decay > 0
-        else None
-    )
-    kept = ema.module if ema is not None else net
     gen = torch.Generator().manual_seed(sc.seed)
-    best, best_state, bad, log = np.inf, copy.deepcopy(net.state_dict()), 0, []
-    t0 = time.perf_counter()
-    bar = tqdm(
-        range(epochs or cfg.epochs), desc="train-generator", unit="epoch", disable=not progress
-    )
-    for epoch in bar:
-        net.train()
+
+    def epoch_batches(epoch: int) -> list[Batch]:
         snaps = hide(train, rng.integers(lo, hi + 1, len(train)), rng) if given is None else train
         perm = rng.permutation(len(snaps))
-        stats = []
-        for start in range(0, len(perm), cfg.batch_size):
-            loss, s = _batch_loss(net, snaps.take(perm[start : start + cfg.batch_size]), sc, gen)
-            opt.zero_grad()
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
-            opt.step()
-            if ema is not None:
-                ema.update_parameters(net)
-            stats.append(s)
-        kept.eval()
+        return [
+            (partial(_batch_loss, snaps=snaps.take(idx), sc=sc, gen=gen), len(idx))
+            for idx in (perm[s : s + cfg.batch_size] for s in range(0, len(perm), cfg.batch_size))
+        ]
+
+    def validate(model: torch.nn.Module) -> dict[str, float]:
         with torch.no_grad():
-            _, vs = _batch_loss(kept, val, sc, torch.Generator().manual_seed(sc.seed + 17))
-        row = {
-            "epoch": epoch,
-            "wall_s": time.perf_counter() - t0,
-            **{f"train_{k}": float(np.mean([s[k] for s in stats])) for k in stats[0]},
-            **{f"val_{k}": v for k, v in vs.items()},
-        }
-        log.append(row)
-        if vs["loss"] < best - 1e-6:
-            best, best_state, bad = vs["loss"], copy.deepcopy(kept.state_dict()), 0
-            save_generator(out / "generator.pt", kept, sc, {"epoch": epoch, "val_loss": best})
-        else:
-            bad += 1
-        bar.set_postfix(
-            train=f"{row['train_loss']:.4f}", val=f"{vs['loss']:.4f}", best=f"{best:.4f}"
-        )
-        if bad >= cfg.patience:
-            break
-    net.load_state_dict(best_state)
-    write_csv(pd.DataFrame(log), out / "generator_train_log.csv")
+            return _batch_loss(model, val, sc, torch.Generator().manual_seed(sc.seed + 17))[1]
+
+    def save(model: torch.nn.Module, epoch: int, best: float) -> None:
+        save_generator(out / "generator.pt", model, sc, {"epoch": epoch, "val_loss": best})
+
+    t0 = time.perf_counter()
+    settings = FitSettings(
+        epochs or cfg.epochs, cfg.patience, cfg.lr, cfg.ema_decay, desc="train-generator"
+    )
+    log = fit(net, settings, epoch_batches, validate, save, progress)
+    write_csv(log, out / "generator_train_log.csv")
     return {
         "splits": {k: v.tolist() for k, v in splits.items()},
         "train_s": time.perf_counter() - t0,
         "epochs": len(log),
-        "best_val_loss": best,
+        "best_val_loss": float(log["val_loss"].min()),
         "net": net,
     }
 

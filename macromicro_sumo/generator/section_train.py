@@ -10,9 +10,8 @@ generator and the uniform baseline (``section_sampler``) and writes their metric
 
 from __future__ import annotations
 
-import copy
-import math
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -46,8 +45,8 @@ from macromicro_sumo.generator.section_sampler import (
     uniform_completion,
 )
 from macromicro_sumo.generator.section_scene import Psi, Road
+from macromicro_sumo.generator.training import Batch, FitSettings, fit
 from macromicro_sumo.manifest import build_manifest
-from macromicro_sumo.progress import tqdm
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.truth.section import load_section_truth
@@ -172,54 +171,35 @@ def _train(
     torch.manual_seed(sc.seed)
     road = Road.of(section)
     net = SectionGeneratorNet(cfg.hidden_size)
-    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     gen = torch.Generator().manual_seed(sc.seed)
     rng = np.random.default_rng([sc.seed, 31])
     k_train, k_val = k_of(train, cfg.k_source), k_of(val, cfg.k_source)
-    best, best_state, bad, log = math.inf, copy.deepcopy(net.state_dict()), 0, []
-    t0 = time.perf_counter()
-    bar = tqdm(
-        range(epochs or cfg.epochs),
-        desc="train-section-generator",
-        unit="epoch",
-        disable=not progress,
-    )
-    for epoch in bar:
-        net.train()
+
+    def epoch_batches(epoch: int) -> list[Batch]:
         perm = rng.permutation(len(train))
-        stats = []
-        for s in range(0, len(perm), cfg.batch_size):
-            idx = perm[s : s + cfg.batch_size]
-            loss, st = _batch_loss(net, road, train.take(idx), k_train[idx], sc, gen)
-            opt.zero_grad()
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
-            opt.step()
-            stats.append((st, len(idx)))
-        net.eval()
-        vs = _eval_loss(net, road, val, k_val, sc, sc.seed + 17)
-        n_tr = sum(w for _, w in stats)
-        row = {
-            "epoch": epoch,
-            "wall_s": time.perf_counter() - t0,
-            **{f"train_{k}": sum(s[k] * w for s, w in stats) / n_tr for k in stats[0][0]},
-            **{f"val_{k}": v for k, v in vs.items()},
-        }
-        log.append(row)
-        if vs["loss"] < best - 1e-9:
-            best, best_state, bad = vs["loss"], copy.deepcopy(net.state_dict()), 0
-            if out is not None:
-                save_section_generator(
-                    Path(out) / "generator.pt", net, sc, {"epoch": epoch, "val_loss": best}
-                )
-        else:
-            bad += 1
-        bar.set_postfix(train=f"{row['train_loss']:.4f}", val=f"{vs['loss']:.4f}")
-        if bad >= cfg.patience:
-            break
-    net.load_state_dict(best_state)
-    net.eval()
-    return net, pd.DataFrame(log)
+        return [
+            (
+                partial(
+                    _batch_loss, road=road, snaps=train.take(idx), k=k_train[idx], sc=sc, gen=gen
+                ),
+                len(idx),
+            )
+            for idx in (perm[s : s + cfg.batch_size] for s in range(0, len(perm), cfg.batch_size))
+        ]
+
+    def validate(model: torch.nn.Module) -> dict[str, float]:
+        return _eval_loss(model, road, val, k_val, sc, sc.seed + 17)
+
+    def save(model: torch.nn.Module, epoch: int, best: float) -> None:
+        save_section_generator(
+            Path(out) / "generator.pt", model, sc, {"epoch": epoch, "val_loss": best}
+        )
+
+    settings = FitSettings(
+        epochs or cfg.epochs, cfg.patience, cfg.lr, 0.0, "train-section-generator"
+    )
+    log = fit(net, settings, epoch_batches, validate, save if out is not None else None, progress)
+    return net, log
 
 
 def run_train_section_generator(
