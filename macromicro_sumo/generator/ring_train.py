@@ -46,19 +46,17 @@ from macromicro_sumo.generator.ring_model import (
     total_loss,
 )
 from macromicro_sumo.generator.ring_sampler import complete, complete_equal_gap, complete_uniform
-from macromicro_sumo.generator.training import Batch, FitSettings, fit
+from macromicro_sumo.generator.training import (
+    GENERATOR_FILES,
+    GENERATOR_MANIFEST,
+    Batch,
+    FitSettings,
+    fit,
+)
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.scenario.ring import Scenario
 
 CHECKPOINT_FORMAT = "macromicro-generator"
-# What a generator stage writes beside its manifest (ring and sections alike).
-GENERATOR_FILES = (
-    "generator.pt",
-    "generator_train_log.csv",
-    "generator_metrics.csv",
-    "generator_metrics_per_snapshot.csv",
-)
-GENERATOR_MANIFEST = "generator_manifest.json"
 
 
 def signature(sc: Scenario) -> dict[str, Any]:

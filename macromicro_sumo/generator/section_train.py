@@ -29,7 +29,6 @@ from macromicro_sumo.files import (
     write_csv,
     write_stage_manifest,
 )
-from macromicro_sumo.generator.ring_train import GENERATOR_FILES, GENERATOR_MANIFEST
 from macromicro_sumo.generator.section_metrics import completion_metrics
 from macromicro_sumo.generator.section_model import (
     FEATURE_VERSION,
@@ -45,7 +44,13 @@ from macromicro_sumo.generator.section_sampler import (
     uniform_completion,
 )
 from macromicro_sumo.generator.section_scene import Psi, Road
-from macromicro_sumo.generator.training import Batch, FitSettings, fit
+from macromicro_sumo.generator.training import (
+    GENERATOR_FILES,
+    GENERATOR_MANIFEST,
+    Batch,
+    FitSettings,
+    fit,
+)
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.section import SectionScenario

@@ -27,6 +27,15 @@ from macromicro_sumo.progress import tqdm
 # the loss terms, named; and how many snapshots it holds (the epoch's means weigh by it).
 Batch = tuple[Callable[[nn.Module], tuple[torch.Tensor, dict[str, float]]], int]
 
+# What a generator stage writes beside its manifest (ring and sections alike).
+GENERATOR_FILES = (
+    "generator.pt",
+    "generator_train_log.csv",
+    "generator_metrics.csv",
+    "generator_metrics_per_snapshot.csv",
+)
+GENERATOR_MANIFEST = "generator_manifest.json"
+
 GRAD_CLIP = 5.0  # global norm: the score-function gradient of the gap choice has outliers
 # A validation loss must fall by more than this to count as an improvement: EMA weights
 # move slowly, and improvements in the 7th digit are noise that only delays stopping.
