@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +24,7 @@ from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import write_json
 
 NO_LEADER_GAP_M = 250.0  # spacing reported when nothing drives ahead on the section
+STOP = -2  # leader index of a standing obstacle: a lane's end, or a red light's stop line
 
 
 @dataclass(frozen=True)
@@ -39,6 +41,26 @@ class Section:
     # lane ID -> (edge index, lane index, arc of the lane's start, arc per lane metre);
     # internal lanes of the section's junctions are in here too.
     lanes: dict[str, tuple[int, int, float, float]] = field(repr=False)
+    # (E, max lanes, max lanes) bool: lane i of edge e continues onto lane j of the next
+    # section edge (a loop's last edge: its first), from the network's connections. None
+    # (a section file written before connections were kept): lane i onto lane i.
+    links: np.ndarray | None = field(default=None, repr=False)
+    # (E, max lanes) bool: the lane leads nowhere (no connection at all): its end is a
+    # standing obstacle to whoever drives on it (an on-ramp's acceleration lane, a lane drop).
+    lane_ends: np.ndarray | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.lane_ends is None:
+            ends = np.zeros((len(self.edge_ids), int(self.n_lanes.max())), dtype=bool)
+            object.__setattr__(self, "lane_ends", ends)
+        if self.links is None:
+            n, m = len(self.edge_ids), int(self.n_lanes.max())
+            links = np.zeros((n, m, m), dtype=bool)
+            for e in range(n if self.closed else n - 1):
+                nxt = int(self.n_lanes[(e + 1) % n])
+                for i in range(int(self.n_lanes[e])):
+                    links[e, i, min(i, nxt - 1)] = True
+            object.__setattr__(self, "links", links)
 
     @property
     def length_m(self) -> float:
@@ -54,6 +76,68 @@ class Section:
         """Total lane length [m], junctions included (vehicles crossing them count too):
         the denominator of a density given per lane."""
         return float(((self.lengths_m + self.junction_m) * self.n_lanes).sum())
+
+    @cached_property
+    def node_start_m(self) -> np.ndarray:
+        """(E,) arc where each edge's lanes begin for their drivers: the junction before an
+        edge belongs to it (a vehicle inside a junction is on the lane it enters)."""
+        end = self.offsets_m + self.lengths_m
+        start = np.roll(end, 1)
+        start[0] = end[-1] - self.length_m if self.closed else 0.0
+        return start
+
+    @cached_property
+    def node_span_m(self) -> np.ndarray:
+        """(E,) arc length of each edge's stretch, the junction before it included."""
+        return self.offsets_m + self.lengths_m - self.node_start_m
+
+    def node_of(self, arc_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(edge index, arc from that edge's stretch start) of arc positions; a position
+        inside a junction belongs to the edge after it."""
+        n = len(self.edge_ids)
+        s = np.mod(arc_m, self.length_m) if self.closed else np.asarray(arc_m, dtype=float)
+        e = self.edge_index(s)
+        inside = (s > self.offsets_m[e] + self.lengths_m[e]) & (self.closed | (e + 1 < n))
+        ne = np.where(inside, (e + 1) % n, e)
+        rel = s - self.node_start_m[ne]
+        return ne, np.mod(rel, self.length_m) if self.closed else rel
+
+    def next_lane(self, edge: np.ndarray, lane: np.ndarray) -> np.ndarray:
+        """The lane of the next section edge that ``lane`` of ``edge`` continues onto (its
+        rightmost connection); the same index, clipped, where it continues nowhere."""
+        e = np.asarray(edge, dtype=np.int64)
+        i = np.minimum(np.asarray(lane, dtype=np.int64), self.n_lanes[e] - 1)
+        row = self.links[e, i]
+        nxt = (e + 1) % len(self.edge_ids)
+        return np.where(row.any(axis=-1), row.argmax(axis=-1), np.minimum(i, self.n_lanes[nxt] - 1))
+
+    def ahead_of_lanes(
+        self, first_idx: np.ndarray, first_rel: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Per lane (E * max lanes, edge-major): the first item met downstream of the lane's
+        end along its connections, and its arc distance from that end (-1, inf: none).
+
+        ``first_idx`` / ``first_rel``: per lane, the item nearest its start (-1: none) and
+        its arc from the start. Where a lane continues onto several, the nearest item wins
+        (the cautious reading of a fan-out). A loop needs two passes round.
+        """
+        n, m = len(self.edge_ids), self.max_lanes
+        fi, fr = first_idx.reshape(n, m), first_rel.reshape(n, m)
+        idx = np.full((n, m), -1, dtype=np.int64)
+        off = np.full((n, m), np.inf)
+        rows = np.arange(m)
+        for _ in range(2 if self.closed else 1):
+            for e in reversed(range(n if self.closed else n - 1)):
+                k = (e + 1) % n
+                c_off = np.where(fi[k] >= 0, fr[k], off[k] + self.node_span_m[k])
+                c_idx = np.where(fi[k] >= 0, fi[k], idx[k])
+                cand = np.where(self.links[e], c_off[None, :], np.inf)
+                j = cand.argmin(axis=1)
+                best = cand[rows, j]
+                ok = np.isfinite(best)
+                off[e] = np.where(ok, best, np.inf)
+                idx[e] = np.where(ok, c_idx[j], -1)
+        return idx.ravel(), off.ravel()
 
     @property
     def edge_lane_ids(self) -> list[list[str]]:
@@ -105,6 +189,8 @@ class Section:
             "n_lanes": self.n_lanes.tolist(),
             "limits_mps": np.where(np.isnan(self.limits_mps), -1.0, self.limits_mps).tolist(),
             "lanes": {k: list(v) for k, v in self.lanes.items()},
+            "links": np.asarray(self.links, dtype=np.int64).tolist(),
+            "lane_ends": np.asarray(self.lane_ends, dtype=np.int64).tolist(),
             "length_m": self.length_m,
         }
 
@@ -122,6 +208,8 @@ class Section:
             lanes={
                 k: (int(v[0]), int(v[1]), float(v[2]), float(v[3])) for k, v in d["lanes"].items()
             },
+            links=np.array(d["links"], dtype=bool) if "links" in d else None,
+            lane_ends=np.array(d["lane_ends"], dtype=bool) if "lane_ends" in d else None,
         )
 
     def write(self, path: Path) -> None:
@@ -144,10 +232,11 @@ def read_net(net_file: Path) -> sumolib.net.Net:
 
 
 def _junction(
-    net_file: Path, net: Any, a: Any, b: Any
+    net_file: Path, net: Any, a: Any, b: Any, links: np.ndarray
 ) -> tuple[float, list[tuple[str, int, float]]]:
     """Internal lanes from edge ``a`` into edge ``b``: (nominal length, [(via lane, lane
-    index on b, its length)]). Raises when no lane of ``a`` leads into ``b``."""
+    index on b, its length)]); ``links[i, j]`` set where lane i of ``a`` continues onto
+    lane j of ``b``. Raises when no lane of ``a`` leads into ``b``."""
     vias: list[tuple[str, int, float]] = []
     connected = False
     for lane in a.getLanes():
@@ -155,6 +244,7 @@ def _junction(
             if con.getToLane().getEdge() is not b:
                 continue
             connected = True
+            links[lane.getIndex(), con.getToLane().getIndex()] = True
             via = con.getViaLaneID()
             if via:
                 vias.append((via, con.getToLane().getIndex(), net.getLane(via).getLength()))
@@ -186,18 +276,22 @@ def read_section(net_file: Path, edges: list[str], closed: bool, where: str = ""
     lengths = np.array([e.getLanes()[0].getLength() for e in objs], dtype=float)
     junction = np.zeros(n)
     via_lists: list[list[tuple[str, int, float]]] = [[] for _ in objs]
+    width = max(e.getLaneNumber() for e in objs)
+    links = np.zeros((n, width, width), dtype=bool)
     for i, (a, b) in enumerate(pairs):
         try:
-            junction[i], via_lists[i] = _junction(net_file, net, a, b)
+            junction[i], via_lists[i] = _junction(net_file, net, a, b, links[i])
         except UserError as exc:
             raise UserError(f"{where}: {str(exc).split(': ', 1)[1]}") from None
     offsets = np.concatenate([[0.0], np.cumsum(lengths + junction)[:-1]])
     n_lanes = np.array([e.getLaneNumber() for e in objs], dtype=np.int64)
     limits = np.full((n, int(n_lanes.max())), np.nan)
     lanes: dict[str, tuple[int, int, float, float]] = {}
+    lane_ends = np.zeros((n, width), dtype=bool)
     for i, e in enumerate(objs):
         for lane in e.getLanes():
             idx = lane.getIndex()
+            lane_ends[i, idx] = not lane.getOutgoing() and (closed or i + 1 < n)
             limits[i, idx] = lane.getSpeed()
             scale = lengths[i] / lane.getLength() if lane.getLength() > 0 else 1.0
             lanes[lane.getID()] = (i, idx, float(offsets[i]), float(scale))
@@ -213,6 +307,8 @@ def read_section(net_file: Path, edges: list[str], closed: bool, where: str = ""
         n_lanes=n_lanes,
         limits_mps=limits,
         lanes=lanes,
+        links=links,
+        lane_ends=lane_ends,
     )
 
 
@@ -245,4 +341,61 @@ def lane_leaders(
         spacing[lasts] = s[first] + length_m - s[last]
         alone = firsts == lasts
         spacing[lasts[alone]] = length_m
+    return leader, spacing
+
+
+def section_leaders(
+    section: Section,
+    lane: np.ndarray,
+    arc_m: np.ndarray,
+    stop_lane: np.ndarray | None = None,
+    stop_arc_m: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Leader index and front-to-front spacing [m] of every vehicle along the network's
+    lane connections (what a driver on that lane meets next), not along lane indices.
+
+    Where a lane is added on the right (an on-ramp), the through lanes' indices shift by
+    one at the edge boundary: a leader looked up by index would be a vehicle on another
+    lane. Leader -1: none on the section (spacing ``NO_LEADER_GAP_M``); ``STOP``: a
+    standing obstacle, at the end of a lane that leads nowhere or at a stop point given
+    by ``stop_lane`` / ``stop_arc_m`` (a red light's stop line), with the spacing to it.
+    O(V log V): one sort by (lane of an edge, arc), then one pass over the section's lanes.
+    """
+    v = len(arc_m)
+    leader = np.full(v, -1, dtype=np.int64)
+    spacing = np.full(v, NO_LEADER_GAP_M)
+    if v == 0:
+        return leader, spacing
+    lane = np.asarray(lane, dtype=np.int64)
+    arc = np.asarray(arc_m, dtype=float)
+    if stop_lane is not None and stop_arc_m is not None and len(stop_arc_m):
+        lane = np.concatenate([lane, np.asarray(stop_lane, dtype=np.int64)])
+        arc = np.concatenate([arc, np.asarray(stop_arc_m, dtype=float)])
+    m = section.max_lanes
+    edge, rel = section.node_of(arc)
+    node = edge * m + np.clip(lane, 0, section.n_lanes[edge] - 1)
+    order = np.lexsort((rel, node))
+    nd, r = node[order], rel[order]
+    same = nd[1:] == nd[:-1]
+    nxt = np.full(len(arc), -1, dtype=np.int64)
+    gap = np.full(len(arc), NO_LEADER_GAP_M)
+    nxt[order[:-1][same]] = order[1:][same]
+    gap[order[:-1][same]] = (r[1:] - r[:-1])[same]
+    first = np.concatenate([[True], ~same])
+    last = np.concatenate([~same, [True]])
+    first_idx = np.full(len(section.edge_ids) * m, -1, dtype=np.int64)
+    first_rel = np.full(len(section.edge_ids) * m, np.inf)
+    first_idx[nd[first]], first_rel[nd[first]] = order[first], r[first]
+    ahead, off = section.ahead_of_lanes(first_idx, first_rel)
+    lasts, ln = order[last], nd[last]
+    to_end = section.node_span_m[edge[lasts]] - rel[lasts]
+    found = ahead[ln] >= 0
+    nxt[lasts[found]] = ahead[ln[found]]
+    gap[lasts[found]] = (to_end + off[ln])[found]
+    ends = ~found & section.lane_ends.ravel()[ln]
+    nxt[lasts[ends]] = STOP
+    gap[lasts[ends]] = to_end[ends]
+    nxt, gap = nxt[:v], gap[:v]
+    leader[:] = np.where(nxt >= v, STOP, nxt)
+    spacing[:] = np.where(nxt == -1, NO_LEADER_GAP_M, gap)
     return leader, spacing
