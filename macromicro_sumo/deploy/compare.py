@@ -1,0 +1,406 @@
+"""A deployment's detectors against the ground truth's, station by station and interval by
+interval: deploy_comparison.csv and deploy_summary.csv (definitions: docs/deploy.md).
+
+A deployment folder holds the ground truth's files in the ground truth's schemas
+(detectors.csv, trajectories.csv, runs.csv, ...) for the held-out runs; the truth folder
+holds every run. They are compared on the runs both have, matched by run number, station,
+lane and interval. The statistics are pure functions on DataFrames; ``compare_folders``
+reads the folders and ``write_comparison`` writes the two CSVs.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from macromicro_sumo.deploy.distributions import distribution_distances, lane_trajectories
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.files import write_csv
+
+GEH_LIMIT = 5.0  # DMRB acceptance: GEH < 5 for more than 85% of the counts
+SPEED_TOLERANCE = 0.05  # |method - truth| / truth within 5%
+# Loops of one kind less than this far apart along the section form one station (a
+# user's loops across the lanes of a carriageway are rarely at exactly the same position).
+STATION_TOLERANCE_M = 5.0
+ALL_LANES = -1  # the ``lane`` of a station's row aggregated over its lanes
+
+KEYS = ["run", "station", "lane", "begin_s", "end_s"]
+MEASURES = ("flow_vph", "speed_mps", "density_vpkm")
+STATION_COLUMNS = [*KEYS, "arc_m", "n_veh", *MEASURES]
+COMPARISON_COLUMNS = [
+    "method",
+    *KEYS,
+    "arc_m",
+    "flow_truth_vph",
+    "flow_method_vph",
+    "geh",
+    "speed_truth_mps",
+    "speed_method_mps",
+    "speed_rel_error",
+    "density_truth_vpkm",
+    "density_method_vpkm",
+]
+SAFETY_COLUMNS = (
+    "collisions",
+    "teleports",
+    "emergency_brakings",
+    "vehicle_steps_driven",
+    "safety_acted",
+)
+SUMMARY_COLUMNS = [
+    "method",
+    "runs",
+    "station_intervals",
+    "share_geh_below_5",
+    "share_speed_within_5pct",
+    "mean_geh",
+    "speed_rmse_mps",
+    "speed_bias_mps",
+    "density_rmse_vpkm",
+    "w1_speed_mps",
+    "w1_accel_mps2",
+    "w1_headway_s",
+    "w1_ttc_s",
+    *SAFETY_COLUMNS,
+    "truth_collisions",
+    "truth_teleports",
+]
+
+
+# --------------------------------------------------------------------------- statistics
+
+
+def geh(model_vph: np.ndarray, count_vph: np.ndarray) -> np.ndarray:
+    """GEH statistic of modelled against counted flows, both in veh/h.
+
+    GEH = sqrt(2 (M - C)^2 / (M + C)) (Geoffrey E. Havers, 1970s; the calibration
+    criterion of the UK Design Manual for Roads and Bridges, Vol. 12 Sec. 2 Part 1, and of
+    TAG unit M3.1: GEH < 5 for more than 85% of hourly link flows). An interval's count
+    enters as its hourly rate (n veh in 60 s -> 60 n veh/h), as SUMO's loops write it:
+    shorter intervals make the test stricter, not looser. Both zero: GEH 0 (agreement).
+    NaN where either flow is missing (a lane-area detector measures no flow).
+    """
+    m = np.asarray(model_vph, dtype=float)
+    c = np.asarray(count_vph, dtype=float)
+    total = m + c
+    with np.errstate(divide="ignore", invalid="ignore"):
+        g = np.sqrt(2.0 * (m - c) ** 2 / total)
+    return np.where(total == 0, 0.0, g)
+
+
+def rmse(a: np.ndarray, b: np.ndarray) -> float:
+    """Root mean square of a - b over the pairs where both are finite (NaN: none)."""
+    d = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
+    d = d[np.isfinite(d)]
+    return float(np.sqrt(np.mean(d**2))) if d.size else float("nan")
+
+
+def relative_error(method: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """(method - truth) / truth; NaN where either is missing or the truth is 0."""
+    m, t = np.asarray(method, dtype=float), np.asarray(truth, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(t > 0, (m - t) / t, np.nan)
+
+
+def detector_scores(comparison: pd.DataFrame) -> dict[str, float]:
+    """Summary of station-intervals (rows with ``lane == ALL_LANES``) of a comparison.
+
+    Shares count agreements over the station-intervals where the quantity was measured:
+    GEH over those with a flow on both sides (both zero counts as GEH 0); speed within
+    ``SPEED_TOLERANCE`` over those where either side has a speed (a speed on one side only
+    -- vehicles passed in one run and not in the other -- is a miss). RMSEs are over the
+    intervals with both values.
+    """
+    s = comparison[comparison["lane"] == ALL_LANES]
+    g = s["geh"].to_numpy(dtype=float)
+    g = g[np.isfinite(g)]
+    vt = s["speed_truth_mps"].to_numpy(dtype=float)
+    vm = s["speed_method_mps"].to_numpy(dtype=float)
+    rel = relative_error(vm, vt)
+    measured = np.isfinite(vt) | np.isfinite(vm)
+    within = np.isfinite(rel) & (np.abs(rel) <= SPEED_TOLERANCE + 1e-12)
+    both = np.isfinite(vt) & np.isfinite(vm)
+    return {
+        "station_intervals": len(s),
+        "share_geh_below_5": float(np.mean(g < GEH_LIMIT)) if g.size else np.nan,
+        "share_speed_within_5pct": float(within[measured].mean()) if measured.any() else np.nan,
+        "mean_geh": float(g.mean()) if g.size else np.nan,
+        "speed_rmse_mps": rmse(vm, vt),
+        "speed_bias_mps": float(np.mean(vm[both] - vt[both])) if both.any() else np.nan,
+        "density_rmse_vpkm": rmse(s["density_method_vpkm"], s["density_truth_vpkm"]),
+    }
+
+
+def safety_counts(runs: pd.DataFrame, keep: list[int]) -> dict[str, float]:
+    """Sums of ``SAFETY_COLUMNS`` of ``runs.csv`` over the runs ``keep`` (NaN: not recorded)."""
+    r = runs[runs["run"].isin(keep)]
+    return {
+        c: float(r[c].sum()) if c in r.columns and r[c].notna().any() else np.nan
+        for c in SAFETY_COLUMNS
+    }
+
+
+# --------------------------------------------------------------------------- stations
+
+
+def station_names(kind: pd.Series, arc_m: pd.Series) -> pd.Series:
+    """Station of every loop: loops of one kind within ``STATION_TOLERANCE_M`` of the next
+    along the arc are one station, named by kind and mean position (``e1_500m``)."""
+    out = pd.Series("", index=arc_m.index, dtype=object)
+    for k, arcs in arc_m.groupby(kind):
+        values = np.sort(arcs.unique())
+        cluster = np.concatenate([[0], np.cumsum(np.diff(values) > STATION_TOLERANCE_M)])
+        centre = pd.Series(values).groupby(cluster).transform("mean").to_numpy()
+        name = {a: f"{str(k).lower()}_{c:.0f}m" for a, c in zip(values, centre, strict=True)}
+        out[arcs.index] = arcs.map(name)
+    return out
+
+
+def loop_rows(det: pd.DataFrame) -> pd.DataFrame:
+    """One row per detector and interval in one schema, from either ``detectors.csv``.
+
+    Ring (``edge_id``, ``flow_vehph``): one station per edge, flow and speed from its
+    induction loop (harmonic mean: the space-mean speed), density from its lane-area
+    detector's mean vehicle number per km where it has one, else flow / speed. Section:
+    flow and speed as the file has them, density ``density_vpkm`` (E1: flow / speed; E2:
+    vehicles on the detector per km).
+    """
+    if "flow_vehph" in det.columns:
+        e1 = det[det["kind"] == "E1"]
+        e2 = det[det["kind"] == "E2"].set_index(["run", "edge_id", "begin_s"])
+        key = pd.MultiIndex.from_frame(e1[["run", "edge_id", "begin_s"]])
+        flow, speed = e1["flow_vehph"].to_numpy(float), e1["harmonic_mean_speed_mps"].to_numpy()
+        with np.errstate(divide="ignore", invalid="ignore"):
+            from_flow = np.where(speed > 0, flow / speed / 3.6, 0.0)
+        lane_area = (
+            (e2["mean_vehicle_number"] / e2["detector_length_m"] * 1000.0).reindex(key).to_numpy()
+            if len(e2)
+            else np.full(len(e1), np.nan)
+        )
+        return pd.DataFrame(
+            {
+                "run": e1["run"].to_numpy(),
+                "station": e1["edge_id"].astype(str).to_numpy(),
+                "kind": "e1",
+                "lane_index": 0,
+                "arc_m": np.nan,
+                "begin_s": e1["begin_s"].to_numpy(),
+                "end_s": e1["end_s"].to_numpy(),
+                "n_veh": e1["n_veh"].to_numpy(),
+                "flow_vph": flow,
+                "speed_mps": speed,
+                "density_vpkm": np.where(np.isfinite(lane_area), lane_area, from_flow),
+                "sampled_s": np.nan,
+            }
+        )
+    out = det.reindex(
+        columns=["run", "kind", "lane_index", "arc_m", "begin_s", "end_s", "n_veh", *MEASURES]
+    ).copy()
+    out["sampled_s"] = det.get("sampled_seconds_s", pd.Series(np.nan, index=det.index))
+    out.insert(1, "station", station_names(det["kind"], det["arc_m"]))
+    return out
+
+
+def station_table(det: pd.DataFrame) -> pd.DataFrame:
+    """Per run, station and interval: the station over all its lanes (``lane == ALL_LANES``)
+    and, at stations with loops on more than one lane, every lane on its own. Intervals
+    shorter than the detectors' period (the partial one SUMO writes at the end) are left out.
+
+    Over the lanes: flow and density add up (veh/h and veh/km of the cross-section); speed
+    is the space-mean speed of the vehicles that passed (harmonic mean of the lanes'
+    speeds weighted by their counts) for loops, the mean weighted by time on the detector
+    for lane-area detectors.
+    """
+    loops = loop_rows(det)
+    loops[["begin_s", "end_s"]] = loops[["begin_s", "end_s"]].round(3)
+    # SUMO closes a run with a partial interval (120 s to 120.5 s): not a measurement.
+    length = loops["end_s"] - loops["begin_s"]
+    loops = loops[length >= length.mode().max() - 1e-6]
+    v, n = loops["speed_mps"].to_numpy(float), loops["n_veh"].to_numpy(float)
+    passed = np.isfinite(v) & (v > 0) & (n > 0)
+    ss = loops["sampled_s"].fillna(0.0).to_numpy(float)
+    timed = np.isfinite(v) & (ss > 0)
+    loops = loops.assign(
+        w_n=np.where(passed, n, 0.0),
+        w_inv=np.where(passed, n / np.where(passed, v, 1.0), 0.0),
+        w_ss=np.where(timed, ss, 0.0),
+        w_ssv=np.where(timed, ss * np.where(timed, v, 0.0), 0.0),
+    )
+    group = loops.groupby(["run", "station", "begin_s", "end_s"], sort=True)
+    agg = group.agg(
+        arc_m=("arc_m", "mean"),
+        lanes=("lane_index", "size"),
+        kind=("kind", "first"),
+        loop_speed=("speed_mps", "first"),
+        n_veh=("n_veh", "sum"),
+        flow_vph=("flow_vph", lambda x: x.sum(min_count=1)),
+        density_vpkm=("density_vpkm", lambda x: x.sum(min_count=1)),
+        w_n=("w_n", "sum"),
+        w_inv=("w_inv", "sum"),
+        w_ss=("w_ss", "sum"),
+        w_ssv=("w_ssv", "sum"),
+    ).reset_index()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        harmonic = np.where(agg["w_inv"] > 0, agg["w_n"] / agg["w_inv"], np.nan)
+        timed_mean = np.where(agg["w_ss"] > 0, agg["w_ssv"] / agg["w_ss"], np.nan)
+    speed = np.where(agg["kind"] == "e2", timed_mean, harmonic)
+    # A one-loop station is its loop: its speed as written, not re-derived through n / v.
+    agg["speed_mps"] = np.where(agg["lanes"] == 1, agg["loop_speed"], speed)
+    agg["lane"] = ALL_LANES
+    multi = loops.groupby(["run", "station"])["lane_index"].transform("nunique") > 1
+    lanes = loops[multi].rename(columns={"lane_index": "lane"})
+    out = pd.concat([agg[STATION_COLUMNS], lanes[STATION_COLUMNS]], ignore_index=True)
+    return out.sort_values(KEYS, kind="stable").reset_index(drop=True)
+
+
+def comparison_table(truth: pd.DataFrame, method: pd.DataFrame, name: str) -> pd.DataFrame:
+    """Rows of deploy_comparison.csv: ``station_table`` rows of truth and method matched on
+    run, station, lane and interval (the runs and intervals both have)."""
+    m = truth.merge(method, on=KEYS, suffixes=("_truth", "_method"), how="inner")
+    out = pd.DataFrame(
+        {
+            "method": name,
+            **{k: m[k] for k in KEYS},
+            "arc_m": m["arc_m_truth"],
+            "flow_truth_vph": m["flow_vph_truth"],
+            "flow_method_vph": m["flow_vph_method"],
+            "geh": geh(m["flow_vph_method"], m["flow_vph_truth"]),
+            "speed_truth_mps": m["speed_mps_truth"],
+            "speed_method_mps": m["speed_mps_method"],
+            "speed_rel_error": relative_error(m["speed_mps_method"], m["speed_mps_truth"]),
+            "density_truth_vpkm": m["density_vpkm_truth"],
+            "density_method_vpkm": m["density_vpkm_method"],
+        }
+    )
+    return out.reindex(columns=COMPARISON_COLUMNS)
+
+
+# --------------------------------------------------------------------------- folders
+
+
+@dataclass(frozen=True)
+class Outputs:
+    """What the comparison reads of one folder (ground truth or one method's deployment)."""
+
+    folder: Path
+    stations: pd.DataFrame  # station_table
+    runs: pd.DataFrame  # runs.csv (may lack SAFETY_COLUMNS)
+    lanes: pd.DataFrame  # trajectories in lane_trajectories' schema (may be empty)
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """What leaders on a section need: its length, whether it loops, the vTypes' lengths."""
+
+    length_m: float = 0.0
+    closed: bool = False
+    vehicle_lengths_m: Mapping[str, float] | None = None
+
+
+def read_table(folder: Path, name: str, required: bool = True, **kwargs: object) -> pd.DataFrame:
+    path = folder / name
+    if not path.is_file():
+        if required:
+            raise UserError(f"{path}: missing (a ground-truth or deploy folder holds it)")
+        return pd.DataFrame()
+    try:
+        return pd.read_csv(path, **kwargs)
+    except ValueError as exc:
+        raise UserError(f"{path}: not a readable CSV ({type(exc).__name__}: {exc})") from None
+
+
+def truth_geometry(folder: Path | str) -> Geometry:
+    """The section of a section's ground truth (section.json, vtypes.csv); nothing on a ring."""
+    folder = Path(folder)
+    if not (folder / "section.json").is_file():
+        return Geometry()
+    try:
+        sec = json.loads((folder / "section.json").read_text())
+        length, closed = float(sec["length_m"]), bool(sec["closed"])
+    except (OSError, ValueError, KeyError) as exc:
+        raise UserError(f"{folder / 'section.json'}: not a section file ({exc})") from None
+    vt = read_table(folder, "vtypes.csv", required=False, dtype={"vtype": str})
+    lengths = dict(zip(vt["vtype"], vt["length_m"], strict=True)) if len(vt) else {}
+    return Geometry(length, closed, lengths)
+
+
+def read_outputs(folder: Path | str, geometry: Geometry) -> Outputs:
+    """detectors.csv as stations, runs.csv, and trajectories.csv (if there) with leaders."""
+    folder = Path(folder)
+    det = read_table(folder, "detectors.csv")
+    if det.empty:
+        raise UserError(f"{folder / 'detectors.csv'}: no detector interval")
+    runs = read_table(folder, "runs.csv", required=False)
+    traj = read_table(
+        folder, "trajectories.csv", required=False, dtype={"vehicle_id": str, "vtype": str}
+    )
+    lanes = (
+        lane_trajectories(traj, geometry.length_m, geometry.closed, geometry.vehicle_lengths_m)
+        if len(traj)
+        else pd.DataFrame(columns=["run", "time_s"])
+    )
+    if runs.empty:
+        runs = pd.DataFrame({"run": sorted(det["run"].unique())})
+    return Outputs(folder, station_table(det), runs, lanes)
+
+
+def summary_row(name: str, truth: Outputs, method: Outputs, comparison: pd.DataFrame) -> dict:
+    """One row of deploy_summary.csv: ``method`` against ``truth`` on the runs of
+    ``comparison`` (``comparison_table(truth.stations, method.stations, name)``)."""
+    runs = sorted(int(r) for r in comparison["run"].unique())
+    lanes = method.lanes[method.lanes["run"].isin(runs)]
+    dist = (
+        distribution_distances(truth.lanes, lanes)
+        if len(lanes) and len(truth.lanes)
+        else {f"w1_{k}": np.nan for k in ("speed_mps", "accel_mps2", "headway_s", "ttc_s")}
+    )
+    truth_safety = safety_counts(truth.runs, runs)
+    return {
+        "method": name,
+        "runs": len(runs),
+        **detector_scores(comparison),
+        **dist,
+        **safety_counts(method.runs, runs),
+        "truth_collisions": truth_safety["collisions"],
+        "truth_teleports": truth_safety["teleports"],
+    }
+
+
+def compare_folders(
+    truth_dir: Path | str, method_dirs: Mapping[str, Path | str]
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """(deploy_comparison, deploy_summary) of every method's folder against the truth's."""
+    geometry = truth_geometry(truth_dir)
+    truth = read_outputs(truth_dir, geometry)
+    tables, rows = [], []
+    for name, folder in method_dirs.items():
+        method = read_outputs(folder, geometry)
+        comp = comparison_table(truth.stations, method.stations, name)
+        if comp.empty:
+            raise UserError(
+                f"{folder}: no run, station and interval in common with the ground truth "
+                f"{truth_dir} (another scenario, or other runs?)"
+            )
+        tables.append(comp)
+        rows.append(summary_row(name, truth, method, comp))
+    comparison = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
+    return comparison.reindex(columns=COMPARISON_COLUMNS), pd.DataFrame(
+        rows, columns=SUMMARY_COLUMNS
+    )
+
+
+def write_comparison(
+    truth_dir: Path | str, method_dirs: Mapping[str, Path | str], out_dir: Path | str
+) -> tuple[Path, Path]:
+    """Write deploy_comparison.csv and deploy_summary.csv into ``out_dir``; their paths."""
+    out = Path(out_dir)
+    comparison, summary = compare_folders(truth_dir, method_dirs)
+    paths = out / "deploy_comparison.csv", out / "deploy_summary.csv"
+    write_csv(comparison, paths[0])
+    write_csv(summary, paths[1])
+    return paths

@@ -1,0 +1,137 @@
+"""Microscopic distributions of a deployment against the ground truth, from trajectories.csv:
+speed, acceleration, time headway and time-to-collision, compared by their Wasserstein-1
+distance.
+
+Both schemas of ``trajectories.csv`` are read: the ring's (``arc_pos_m`` with the leader's
+gap and speed already recorded per row) and a section's (``lane_index``, ``arc_m``: leaders
+are found here, per lane, with ``road.section.lane_leaders``). Every function is pure.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+import pandas as pd
+from scipy.stats import wasserstein_distance
+
+from macromicro_sumo.road.section import lane_leaders
+
+# Below this speed a time headway gap / speed is dominated by the division (a queued
+# vehicle 2 m behind its leader at 0.01 m/s would have a 200 s headway).
+HEADWAY_MIN_SPEED_MPS = 0.5
+# Time-to-collision is kept up to this value: beyond it nobody is on a collision course
+# within any horizon that matters for safety (surrogate safety studies flag 1.5-3 s), and
+# unbounded values (closing at 1 mm/s) would dominate a distance between distributions.
+TTC_MAX_S = 30.0
+DEFAULT_VEHICLE_LENGTH_M = 5.0  # SUMO's default passenger length, for unknown vTypes
+
+LANE_COLUMNS = (
+    "run",
+    "time_s",
+    "vehicle_id",
+    "lane_index",
+    "arc_m",
+    "speed_mps",
+    "accel_mps2",
+    "gap_m",
+    "leader_speed_mps",
+)
+DISTRIBUTIONS = ("speed_mps", "accel_mps2", "headway_s", "ttc_s")
+
+
+def time_headways(
+    gap_m: np.ndarray, speed_mps: np.ndarray, min_speed_mps: float = HEADWAY_MIN_SPEED_MPS
+) -> np.ndarray:
+    """Time headway [s] = bumper-to-bumper gap / own speed, of vehicles faster than
+    ``min_speed_mps`` that have a leader (finite gap)."""
+    gap, v = np.asarray(gap_m, dtype=float), np.asarray(speed_mps, dtype=float)
+    ok = np.isfinite(gap) & (v > min_speed_mps)
+    return gap[ok] / v[ok]
+
+
+def times_to_collision(
+    gap_m: np.ndarray,
+    speed_mps: np.ndarray,
+    leader_speed_mps: np.ndarray,
+    max_s: float = TTC_MAX_S,
+) -> np.ndarray:
+    """Time-to-collision [s] = gap / closing speed (own speed - leader's speed), of
+    vehicles closing in on a leader (closing speed > 0), up to ``max_s``."""
+    gap = np.asarray(gap_m, dtype=float)
+    closing = np.asarray(speed_mps, dtype=float) - np.asarray(leader_speed_mps, dtype=float)
+    ok = np.isfinite(gap) & np.isfinite(closing) & (closing > 0)
+    ttc = np.maximum(gap[ok], 0.0) / closing[ok]
+    return ttc[ttc <= max_s]
+
+
+def w1(a: np.ndarray, b: np.ndarray) -> float:
+    """Wasserstein-1 distance of two samples (in their unit), NaN if either is empty."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    a, b = a[np.isfinite(a)], b[np.isfinite(b)]
+    if not a.size or not b.size:
+        return float("nan")
+    return float(wasserstein_distance(a, b))
+
+
+def lane_trajectories(
+    traj: pd.DataFrame,
+    length_m: float = 0.0,
+    closed: bool = False,
+    vehicle_lengths_m: Mapping[str, float] | None = None,
+) -> pd.DataFrame:
+    """Rows of ``trajectories.csv`` in one schema (``LANE_COLUMNS``), with the gap to the
+    leader on the same lane and that leader's speed (NaN: no leader).
+
+    Ring rows (``arc_pos_m``) carry their leader already. Section rows get theirs here:
+    the vehicle ahead on the same lane index at the same run and time, on a ``closed``
+    section around the loop of ``length_m``; gap = spacing - the leader's length (its
+    vType's, from ``vehicle_lengths_m``, else ``DEFAULT_VEHICLE_LENGTH_M``). Deploy outputs
+    that record ``gap_m`` and ``leader_speed_mps`` themselves are taken as they are.
+    """
+    if "arc_pos_m" in traj.columns:
+        out = traj.rename(columns={"arc_pos_m": "arc_m"}).assign(lane_index=0)
+        return out.reindex(columns=LANE_COLUMNS).reset_index(drop=True)
+    out = traj.reindex(columns=[*LANE_COLUMNS, "vtype"]).reset_index(drop=True)
+    if traj.columns.isin(["gap_m", "leader_speed_mps"]).sum() == 2:
+        return out[list(LANE_COLUMNS)]
+    # One lane_leaders call for all time steps: the (run, time, lane) key as the lane,
+    # so leaders are only ever looked for within a single snapshot.
+    snap = pd.MultiIndex.from_frame(out[["run", "time_s"]]).factorize()[0].astype(np.int64)
+    lane = out["lane_index"].to_numpy(dtype=np.int64)
+    key = snap * (int(lane.max(initial=0)) + 1) + lane
+    leader, spacing = lane_leaders(key, out["arc_m"].to_numpy(dtype=float), length_m, closed)
+    has = leader >= 0
+    lengths = out["vtype"].map(dict(vehicle_lengths_m or {})).fillna(DEFAULT_VEHICLE_LENGTH_M)
+    lead_len = lengths.to_numpy(dtype=float)[np.where(has, leader, 0)]
+    speed = out["speed_mps"].to_numpy(dtype=float)
+    out["gap_m"] = np.where(has, spacing - lead_len, np.nan)
+    out["leader_speed_mps"] = np.where(has, speed[np.where(has, leader, 0)], np.nan)
+    return out[list(LANE_COLUMNS)]
+
+
+def same_window(truth: pd.DataFrame, method: pd.DataFrame) -> pd.DataFrame:
+    """The truth's rows of the runs ``method`` has, up to the last time ``method`` recorded
+    in that run (a deployment may record only its first minutes)."""
+    last = method.groupby("run")["time_s"].max()
+    end = truth["run"].map(last)
+    return truth[end.notna() & (truth["time_s"] <= end + 1e-9)]
+
+
+def samples(lanes: pd.DataFrame) -> dict[str, np.ndarray]:
+    """The four samples compared, from rows in ``lane_trajectories``' schema."""
+    gap, v = lanes["gap_m"].to_numpy(dtype=float), lanes["speed_mps"].to_numpy(dtype=float)
+    return {
+        "speed_mps": v,
+        "accel_mps2": lanes["accel_mps2"].to_numpy(dtype=float),
+        "headway_s": time_headways(gap, v),
+        "ttc_s": times_to_collision(gap, v, lanes["leader_speed_mps"].to_numpy(dtype=float)),
+    }
+
+
+def distribution_distances(truth: pd.DataFrame, method: pd.DataFrame) -> dict[str, float]:
+    """W1 distances ``w1_<sample>`` between the truth's and the method's samples, both in
+    ``lane_trajectories``' schema, over the runs and time window the method recorded."""
+    method = method[method["run"].isin(truth["run"].unique())]
+    a, b = samples(same_window(truth, method)), samples(method)
+    return {f"w1_{name}": w1(a[name], b[name]) for name in DISTRIBUTIONS}
