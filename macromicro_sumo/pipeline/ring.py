@@ -37,8 +37,9 @@ from macromicro_sumo.truth.ring import simulate
 RESUME = "auto"
 
 # Scenario keys no stage's outputs depend on: the scenario's label, and the objective of
-# ``train-policy`` (the pipeline trains every objective).
-_NOWHERE = ("name", "policy.objective")
+# ``train-policy`` (the pipeline trains every objective); [deploy] is read by the deploy
+# stage only (its own ignores: ``DEPLOY_IGNORES``).
+_NOWHERE = ("name", "policy.objective", "deploy")
 _REFINE = (
     "policy.refine_iterations",
     "policy.refine_updates",

@@ -7,7 +7,12 @@ from dataclasses import dataclass, field
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.scenario.fields import Pair, ScenarioFile, spec
-from macromicro_sumo.scenario.stages import EvaluationConfig, PolicyConfig
+from macromicro_sumo.scenario.stages import (
+    DeployConfig,
+    EvaluationConfig,
+    PolicyConfig,
+    check_deploy,
+)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -156,11 +161,18 @@ class Scenario(ScenarioFile):
     generator: GeneratorConfig = spec(GeneratorConfig())
     policy: PolicyConfig = spec(PolicyConfig())
     evaluation: EvaluationConfig = spec(EvaluationConfig())
+    deploy: DeployConfig = spec(DeployConfig())
     source: str = field(default="", compare=False)
 
 
 def check_consistency(sc: Scenario, file: str) -> None:
     """Cross-field checks that no single range can express."""
+    check_deploy(sc.deploy, file)
+    if sc.deploy.vtype:
+        raise UserError(
+            f"{file}: deploy.vtype = {sc.deploy.vtype!r} is for section scenarios; on the ring "
+            "every vehicle has its own vType: accepted '' (use deploy.share)"
+        )
     length = sc.network.length_m
     n = sc.fleet.n_vehicles
     d_min, d_max = sc.bounds.spacing_m

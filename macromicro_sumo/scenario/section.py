@@ -14,7 +14,12 @@ from typing import Any
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.scenario.fields import ScenarioFile, build_table, spec
-from macromicro_sumo.scenario.stages import EvaluationConfig, PolicyConfig
+from macromicro_sumo.scenario.stages import (
+    DeployConfig,
+    EvaluationConfig,
+    PolicyConfig,
+    check_deploy,
+)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -124,6 +129,7 @@ class SectionScenario(ScenarioFile):
     generator: SectionGeneratorConfig = spec(SectionGeneratorConfig())
     policy: PolicyConfig = spec(PolicyConfig())
     evaluation: EvaluationConfig = spec(EvaluationConfig())
+    deploy: DeployConfig = spec(DeployConfig())
     source: str = field(default="", compare=False)
 
 
@@ -137,6 +143,7 @@ def build_section_scenario(table: dict[str, Any], file: str, source: str) -> Sec
 
 def _check(sc: SectionScenario, file: str) -> None:
     """Cross-field checks that no single range can express."""
+    check_deploy(sc.deploy, file)
     net = sc.network
     if not net.sumocfg and not net.net_file:
         raise UserError(f"{file}: [network] needs sumocfg or net_file (kind = 'sumo')")

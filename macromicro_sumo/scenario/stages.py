@@ -1,9 +1,10 @@
-"""Stage settings shared by every scenario kind: the policy and the evaluation."""
+"""Stage settings shared by every scenario kind: the policy, the evaluation, the deployment."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+from macromicro_sumo.errors import UserError
 from macromicro_sumo.scenario.fields import spec
 
 
@@ -112,3 +113,53 @@ class EvaluationConfig:
     timespace_s: float = spec(
         120.0, lo=1.0, hi=1e5, doc="length of the time-space diagram rollouts [s]"
     )
+
+
+DEPLOY_METHODS = (
+    "policy",
+    "micro_only",
+    "macro_only",
+    "idm_calibrated",
+    "sumo_default",
+    "oracle",
+)
+
+
+@dataclass(frozen=True, kw_only=True)
+class DeployConfig:
+    """Stage III: every method deployed population-wide over the held-out runs' whole demand."""
+
+    methods: list[str] = spec(
+        list(DEPLOY_METHODS),
+        choices=DEPLOY_METHODS,
+        doc="methods deployed, each into deploy/<method>/ (default: all)",
+    )
+    safety: str = spec(
+        "none",
+        choices=("none", "sumo"),
+        doc="none: speed commands applied exactly; sumo: SUMO caps them at its model's safe "
+        "speed, right of way and red lights (runs.csv counts how often: safety_acted)",
+    )
+    fcd_s: float = spec(
+        120.0, lo=0.0, hi=1e6, doc="trajectories.csv keeps the first fcd_s recorded seconds [s]"
+    )
+    share: float = spec(
+        1.0,
+        accepted="(0, 1]",
+        doc="share of the population that is driven, drawn per vehicle (hash of seed, run, id)",
+    )
+    vtype: str = spec(
+        "", doc="instead: only vehicles of this vType are driven (sections; '' = any vType)"
+    )
+
+
+def check_deploy(d: DeployConfig, file: str) -> None:
+    """[deploy]'s cross-field checks (both scenario kinds)."""
+    if not 0.0 < d.share <= 1.0:
+        raise UserError(f"{file}: deploy.share = {d.share!r} is out of range; accepted: (0, 1]")
+    if not d.methods:
+        raise UserError(
+            f"{file}: deploy.methods is empty; accepted: one or more of {', '.join(DEPLOY_METHODS)}"
+        )
+    if len(set(d.methods)) != len(d.methods):
+        raise UserError(f"{file}: deploy.methods lists a method twice")

@@ -2,8 +2,9 @@
 
 It builds SUMO's command line explicitly, starts one simulation per process (libsumo
 allows no more) and reloads it for later runs, and exchanges plain numpy arrays with
-the rest of the package. Leaders and gaps are NOT read from SUMO (``getLeader`` misses
-leaders on rings with mixed limits); callers compute them from arc positions.
+the rest of the package. The ground truth and the environments compute leaders and gaps
+from arc positions; a deployment on a user's network reads SUMO's own leader (``getLeader``
+follows the network's lane connections, where lane indices shift at an added lane).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import subprocess
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import libsumo
 import numpy as np
@@ -32,6 +34,16 @@ _LANE_VARS = (
     libsumo.constants.VAR_SPEED,
     libsumo.constants.VAR_ACCELERATION,
 )
+# A driven vehicle's subscription: the lane state plus its leader within a look-ahead.
+_DRIVE_VARS = (*_LANE_VARS, libsumo.constants.VAR_LEADER)
+# Signal states a driver treats as a standing leader at the stop line (red, yellow, red-yellow).
+STOP_STATES = frozenset("rRyYu")
+
+
+# SUMO's speed mode (TraCI setSpeedMode) bits: 1 safe speed, 2 max accel, 4 max decel, 8
+# right of way at junctions, 16 brake for red lights, 32 disregard right of way inside a
+# junction. 31 is SUMO's default.
+DEFAULT_SPEED_MODE = 31
 
 
 def versions() -> dict[str, str]:
@@ -111,6 +123,14 @@ class SumoOptions:
         if self.error_log is not None:
             args += ["--error-log", str(self.error_log)]
         return args
+
+
+class Driver(Protocol):
+    """Who drives some of the vehicles of a run (a deployment): ``before_step`` is called
+    once per step, before ``Simulation.step``; it reads the state it needs and sets speeds
+    or vTypes. The ground truth's run loops take one (None: SUMO drives everyone)."""
+
+    def before_step(self, sim: Simulation) -> None: ...
 
 
 class Simulation:
@@ -296,6 +316,61 @@ class Simulation:
             for vid, r in libsumo.vehicle.getAllSubscriptionResults().items()
             if lane in r
         }
+
+    def subscribe_driving(self, vehicle_ids: Sequence[str], lookahead_m: float) -> None:
+        """Subscribe vehicles to the lane state (``subscribe_lanes``'s variables, which
+        ``read_lane_states`` keeps reading) plus their leader within ``lookahead_m``: one
+        subscription per vehicle, since a second one would replace the first."""
+        leader = libsumo.constants.VAR_LEADER
+        for vid in vehicle_ids:
+            libsumo.vehicle.subscribe(vid, _DRIVE_VARS, 0, 2**31 - 1, {leader: float(lookahead_m)})
+
+    def read_leaders(self) -> dict[str, tuple[str, float]]:
+        """{vehicle: (leader ID or "", SUMO's gap: leader's back minus own front and minGap)}
+        of the vehicles subscribed with ``subscribe_driving``."""
+        leader = libsumo.constants.VAR_LEADER
+        return {
+            vid: r[leader]
+            for vid, r in libsumo.vehicle.getAllSubscriptionResults().items()
+            if leader in r
+        }
+
+    def has_traffic_lights(self) -> bool:
+        return int(libsumo.trafficlight.getIDCount()) > 0
+
+    def stop_line_m(self, vehicle_id: str) -> float:
+        """Distance from the vehicle's front to the next stop line whose signal is red or
+        yellow for it (inf when none ahead on its route)."""
+        for _tls, _link, dist, state in libsumo.vehicle.getNextTLS(vehicle_id):
+            if state in STOP_STATES:
+                return float(dist)
+        return float("inf")
+
+    def vtype_shape(self, type_id: str) -> tuple[float, float, float]:
+        """(length, minGap, decel) of a vType [m, m, m/s^2]."""
+        vt = libsumo.vehicletype
+        return (
+            float(vt.getLength(type_id)),
+            float(vt.getMinGap(type_id)),
+            float(vt.getDecel(type_id)),
+        )
+
+    def set_types(self, vehicle_ids: Sequence[str], type_ids: Sequence[str]) -> None:
+        for vid, tid in zip(vehicle_ids, type_ids, strict=True):
+            libsumo.vehicle.setType(vid, tid)
+
+    def speed_factors(self, vehicle_ids: Sequence[str]) -> np.ndarray:
+        return np.array([libsumo.vehicle.getSpeedFactor(v) for v in vehicle_ids], dtype=float)
+
+    def set_speed_factors(self, vehicle_ids: Sequence[str], factors: Sequence[float]) -> None:
+        for vid, f in zip(vehicle_ids, factors, strict=True):
+            libsumo.vehicle.setSpeedFactor(vid, float(f))
+
+    def release_speeds(self, vehicle_ids: Sequence[str]) -> None:
+        """Hand vehicles back to their own model: no speed command, SUMO's default mode."""
+        for vid in vehicle_ids:
+            libsumo.vehicle.setSpeed(vid, -1.0)
+            libsumo.vehicle.setSpeedMode(vid, DEFAULT_SPEED_MODE)
 
     def departed(self) -> tuple[str, ...]:
         """Vehicles that entered the network in the last step."""

@@ -11,6 +11,7 @@ detector_passages.csv, macro.csv, manifest.json and SUMO's own XML under sumo/.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,7 +33,7 @@ from macromicro_sumo.road.physics import forward_accel, ring_leaders
 from macromicro_sumo.road.ring import RingGeometry, read_ring
 from macromicro_sumo.scenario.ring import Scenario
 from macromicro_sumo.sumo.demand import check_ring_routes
-from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
+from macromicro_sumo.sumo.simulation import Driver, Simulation, SumoOptions
 from macromicro_sumo.truth import ring_detectors as detectors
 
 # SUMO rounds a vehicle's speedFactor to 4 decimals; sampling on that grid keeps the
@@ -135,8 +136,16 @@ class RunRecord:
     time0_s: float  # SUMO time of the first recorded state (after the insertion step)
 
 
-def record_run(sim: Simulation, spec: RunSpec, geo: RingGeometry, n_steps: int) -> RunRecord:
-    """Insert the fleet, verify the insertion, then step and record every vehicle."""
+def record_run(
+    sim: Simulation,
+    spec: RunSpec,
+    geo: RingGeometry,
+    n_steps: int,
+    driver: Driver | None = None,
+) -> RunRecord:
+    """Insert the fleet, verify the insertion, then step and record every vehicle.
+    ``driver`` (a deployment) acts before every step after the insertion; None: SUMO
+    drives every vehicle with its own IDM."""
     ids = list(spec.params["vehicle_id"])
     edges, pos = zip(*(geo.to_edge(a) for a in spec.arc0_m), strict=True)
     sim.set_lane_speed_limits(geo.lane_ids, spec.limits_mps)
@@ -157,6 +166,8 @@ def record_run(sim: Simulation, spec: RunSpec, geo: RingGeometry, n_steps: int) 
     arc[0], speed[0] = geo.offsets_m[e] + p, v
     time0 = sim.time_s()
     for t in range(1, n_steps + 1):
+        if driver is not None:
+            driver.before_step(sim)
         sim.step()
         e, p, v = sim.read_states(ids, edge_index)
         arc[t] = geo.offsets_m[e] + p
@@ -197,6 +208,102 @@ def trajectory_frame(spec: RunSpec, rec: RunRecord, geo: RingGeometry, dt_s: flo
     )
 
 
+def check_ring(sc: Scenario) -> tuple[RingGeometry, Path, Path]:
+    """(geometry, net file, routes file) of the scenario's ring, checked against it."""
+    net_file = sc.resolve(sc.network.net_file)
+    routes_file = sc.resolve(sc.network.routes_file)
+    geo = read_ring(net_file)
+    if abs(geo.length_m - sc.network.length_m) > 1e-3:
+        raise UserError(
+            f"{net_file}: ring length {geo.length_m:.4f} m does not match network.radius_m = "
+            f"{sc.network.radius_m:g} (2 pi R = {sc.network.length_m:.4f} m)"
+        )
+    check_ring_routes(routes_file, geo.edge_ids, net_file)
+    return geo, net_file, routes_file
+
+
+def run_specs(sc: Scenario, geo: RingGeometry) -> list[RunSpec]:
+    """Every run's random draws, in run order from ``sc.seed`` (a deployment re-draws
+    them identically and picks its runs)."""
+    rng = np.random.default_rng(sc.seed)
+    return [sample_run(sc, geo, r, rng) for r in range(sc.simulation.n_runs)]
+
+
+def run_ring(
+    sc: Scenario,
+    geo: RingGeometry,
+    files: tuple[Path, Path],
+    stage: Path,
+    specs: Sequence[RunSpec],
+    progress: bool = True,
+    driver_for: Callable[[RunSpec], Driver | None] | None = None,
+    extra_additional: tuple[Path, ...] = (),
+    desc: str = "simulate",
+) -> tuple[list[pd.DataFrame], list[dict], list[RunRecord]]:
+    """Step the runs of ``specs`` (SUMO's files under ``stage/sumo``); returns their
+    trajectory frames, runs.csv rows and records. ``files``: (net, routes);
+    ``driver_for(spec)``: who drives besides SUMO (a deployment), with the vTypes it
+    switches to in ``extra_additional``."""
+    net_file, routes_file = files
+    dt = sc.simulation.step_length_s
+    n_steps = int(round(sc.simulation.duration_s / dt))
+    traj, runs, records = [], [], []
+    sim: Simulation | None = None
+    try:
+        for spec in tqdm(specs, desc=desc, unit="run", disable=not progress):
+            run_dir = stage / "sumo" / f"run_{spec.run:03d}"
+            run_dir.mkdir(parents=True)
+            (run_dir / "vtypes.add.xml").write_text(vtypes_xml(spec.params, dt))
+            (run_dir / "detectors.add.xml").write_text(detectors.detectors_xml(geo, sc.detectors))
+            adds = (routes_file, run_dir / "vtypes.add.xml", run_dir / "detectors.add.xml")
+            opts = SumoOptions(
+                net_file,
+                (*adds, *extra_additional),
+                dt,
+                spec.sumo_seed,
+                error_log=run_dir / "sumo.log",
+            )
+            sim = Simulation(opts)  # after the first run: reloads the one libsumo simulation
+            driver = driver_for(spec) if driver_for is not None else None
+            rec = record_run(sim, spec, geo, n_steps, driver)
+            df = trajectory_frame(spec, rec, geo, dt)
+            traj.append(df)
+            records.append(rec)
+            runs.append(
+                {
+                    "run": spec.run,
+                    "sumo_seed": spec.sumo_seed,
+                    "collisions": rec.collisions,
+                    "teleports": rec.teleports,
+                    "min_gap_m": float(df["gap_m"].min()),
+                    "mean_speed_mps": float(df["speed_mps"].mean()),
+                    "spacing_std_m": float(df["spacing_m"].std()),
+                    "sim_wall_s": rec.wall_s,
+                }
+            )
+    finally:
+        if sim is not None:
+            sim.close()  # SUMO writes a run's detector files when the next load or close ends it
+    return traj, runs, records
+
+
+def ring_detector_tables(
+    sc: Scenario, geo: RingGeometry, stage: Path, specs: Sequence[RunSpec], traj: pd.DataFrame
+) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
+    """(detectors.csv, detector_passages.csv, macro.csv) of the runs of ``specs``."""
+    det, passages = [], []
+    for spec in specs:
+        d, p = detectors.read_run(stage / "sumo" / f"run_{spec.run:03d}", spec.run, geo)
+        det.append(d)
+        passages.append(p)
+    det_df = pd.concat(det, ignore_index=True)
+    pas_df = pd.concat(passages, ignore_index=True)
+    macro_df = macro.macro_table(
+        traj, det_df, pas_df, geo.length_m, sc.detectors.interval_s, sc.simulation.duration_s
+    )
+    return det_df, pas_df, macro_df
+
+
 def simulate(sc: Scenario, out: Path | str, command: str = "", progress: bool = True) -> Path:
     """Run every ground-truth run of ``sc`` and write the outputs into ``out``."""
     runs, n = sc.simulation.n_runs, sc.fleet.n_vehicles
@@ -208,65 +315,13 @@ def simulate(sc: Scenario, out: Path | str, command: str = "", progress: bool = 
         "lower one of them (or split the runs over several scenarios with `macromicro batch`)",
     )
     out = prepare_out_dir(out)
-    net_file = sc.resolve(sc.network.net_file)
-    routes_file = sc.resolve(sc.network.routes_file)
-    geo = read_ring(net_file)
-    if abs(geo.length_m - sc.network.length_m) > 1e-3:
-        raise UserError(
-            f"{net_file}: ring length {geo.length_m:.4f} m does not match network.radius_m = "
-            f"{sc.network.radius_m:g} (2 pi R = {sc.network.length_m:.4f} m)"
-        )
-    check_ring_routes(routes_file, geo.edge_ids, net_file)
-    dt = sc.simulation.step_length_s
-    n_steps = int(round(sc.simulation.duration_s / dt))
-    rng = np.random.default_rng(sc.seed)
-    specs = [sample_run(sc, geo, r, rng) for r in range(sc.simulation.n_runs)]
+    geo, net_file, routes_file = check_ring(sc)
+    specs = run_specs(sc, geo)
     t_start = time.perf_counter()
     with staging_dir(out) as stage:
-        traj, det, passages, rows, runs = [], [], [], [], []
-        sim: Simulation | None = None
-        try:
-            for spec in tqdm(specs, desc="simulate", unit="run", disable=not progress):
-                run_dir = stage / "sumo" / f"run_{spec.run:03d}"
-                run_dir.mkdir(parents=True)
-                (run_dir / "vtypes.add.xml").write_text(vtypes_xml(spec.params, dt))
-                (run_dir / "detectors.add.xml").write_text(
-                    detectors.detectors_xml(geo, sc.detectors)
-                )
-                opts = SumoOptions(
-                    net_file,
-                    (routes_file, run_dir / "vtypes.add.xml", run_dir / "detectors.add.xml"),
-                    dt,
-                    spec.sumo_seed,
-                    error_log=run_dir / "sumo.log",
-                )
-                sim = Simulation(opts)  # after the first run: reloads the one libsumo simulation
-                rec = record_run(sim, spec, geo, n_steps)
-                df = trajectory_frame(spec, rec, geo, dt)
-                traj.append(df)
-                rows.append(spec.params)
-                runs.append(
-                    {
-                        "run": spec.run,
-                        "sumo_seed": spec.sumo_seed,
-                        "collisions": rec.collisions,
-                        "teleports": rec.teleports,
-                        "min_gap_m": float(df["gap_m"].min()),
-                        "mean_speed_mps": float(df["speed_mps"].mean()),
-                        "spacing_std_m": float(df["spacing_m"].std()),
-                        "sim_wall_s": rec.wall_s,
-                    }
-                )
-        finally:
-            if sim is not None:
-                sim.close()  # SUMO writes a run's detector files when the next load or close ends it
-        for spec in specs:
-            d, p = detectors.read_run(stage / "sumo" / f"run_{spec.run:03d}", spec.run, geo)
-            det.append(d)
-            passages.append(p)
+        traj, runs, _ = run_ring(sc, geo, (net_file, routes_file), stage, specs, progress)
         traj_df = pd.concat(traj, ignore_index=True)
-        det_df = pd.concat(det, ignore_index=True)
-        pas_df = pd.concat(passages, ignore_index=True)
+        det_df, pas_df, macro_df = ring_detector_tables(sc, geo, stage, specs, traj_df)
         limits_df = pd.DataFrame(
             [
                 {
@@ -280,12 +335,9 @@ def simulate(sc: Scenario, out: Path | str, command: str = "", progress: bool = 
                 for i, e in enumerate(geo.edge_ids)
             ]
         )
-        macro_df = macro.macro_table(
-            traj_df, det_df, pas_df, geo.length_m, sc.detectors.interval_s, sc.simulation.duration_s
-        )
         runs_df = pd.DataFrame(runs)
         write_csv(traj_df, stage / "trajectories.csv")
-        write_csv(pd.concat(rows, ignore_index=True), stage / "vehicles.csv")
+        write_csv(pd.concat([s.params for s in specs], ignore_index=True), stage / "vehicles.csv")
         write_csv(limits_df, stage / "speed_limits.csv")
         write_csv(runs_df.drop(columns="sim_wall_s"), stage / "runs.csv")
         write_csv(det_df, stage / "detectors.csv")

@@ -19,6 +19,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import pandas as pd
@@ -41,7 +42,7 @@ from macromicro_sumo.road.section import Section, read_section
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.demand import VType, check_demand, check_vehicle_ids
 from macromicro_sumo.sumo.inputs import SumoInputs, read_net, scenario_inputs
-from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
+from macromicro_sumo.sumo.simulation import Driver, Simulation, SumoOptions
 from macromicro_sumo.truth.section_detectors import (
     detectors_xml,
     place_detectors,
@@ -74,7 +75,7 @@ def load_section(sc: SectionScenario) -> tuple[SumoInputs, Section, dict[str, VT
 # --------------------------------------------------------------------------- runs
 
 
-def _is_instrumented(sc: SectionScenario, vid: str, vtype: str, run: int) -> bool:
+def is_instrumented(sc: SectionScenario, vid: str, vtype: str, run: int) -> bool:
     """Deterministic per (seed, run, vehicle): the same vehicle is chosen on every rerun."""
     ins = sc.instrumented
     if ins.ids:
@@ -103,9 +104,10 @@ def check_run_memory(sc: SectionScenario, rows_per_run: float, run: int) -> None
 
 
 def record_run(
-    sim: Simulation, sc: SectionScenario, section: Section, run: int
+    sim: Simulation, sc: SectionScenario, section: Section, run: int, driver: Driver | None = None
 ) -> tuple[pd.DataFrame, dict[str, int]]:
-    """Step one run; rows of every vehicle on the section after the warm-up."""
+    """Step one run; rows of every vehicle on the section after the warm-up. ``driver``
+    (a deployment) acts before every step; None: SUMO drives every vehicle."""
     dt = sc.simulation.step_length_s
     n_warm = int(round(sc.simulation.warmup_s / dt))
     n_rec = int(round(sc.simulation.duration_s / dt))
@@ -127,6 +129,8 @@ def record_run(
     lanes = section.lanes
     collisions = teleports = 0
     for step in range(n_warm + n_rec):
+        if driver is not None:
+            driver.before_step(sim)
         sim.step()
         new = sim.departed()
         if new:
@@ -135,7 +139,7 @@ def record_run(
                 types[vid] = sim.vehicle_type(vid)
                 if types[vid] not in classes:
                     classes[types[vid]] = sim.vehicle_class(types[vid])
-                observed[vid] = _is_instrumented(sc, vid, types[vid], run)
+                observed[vid] = is_instrumented(sc, vid, types[vid], run)
         collisions += sim.collisions()
         teleports += sim.teleports()
         if step < n_warm:
@@ -170,6 +174,85 @@ def record_run(
     return df, stats
 
 
+def run_section(
+    sc: SectionScenario,
+    inputs: SumoInputs,
+    section: Section,
+    placed: list,
+    stage: Path,
+    runs: Sequence[int],
+    progress: bool = True,
+    driver_for: Callable[[int], Driver | None] | None = None,
+    desc: str = "simulate",
+) -> tuple[list[pd.DataFrame], list[dict], dict[str, str]]:
+    """Step ``runs`` (SUMO seed ``sc.seed + run``), SUMO's files under ``stage/sumo``;
+    returns (trajectory frames, runs.csv rows, vType -> vClass). ``driver_for(run)``: who
+    drives in that run besides SUMO (a deployment)."""
+    trajs, rows = [], []
+    vclass: dict[str, str] = {}
+    sim: Simulation | None = None
+    try:
+        for run in tqdm(runs, desc=desc, unit="run", disable=not progress):
+            run_dir = stage / "sumo" / f"run_{run:03d}"
+            run_dir.mkdir(parents=True)
+            (run_dir / "detectors.add.xml").write_text(
+                detectors_xml(placed, sc.detectors.interval_s)
+            )
+            adds = tuple(
+                without_detectors(p, run_dir / f"user_{i}_{p.name}")
+                for i, p in enumerate(inputs.additional_files)
+            )
+            seed = sc.seed + run
+            opts = SumoOptions(
+                inputs.net_file,
+                (*adds, run_dir / "detectors.add.xml"),
+                sc.simulation.step_length_s,
+                seed,
+                error_log=run_dir / "sumo.log",
+                route_files=inputs.route_files,
+                user_demand=True,
+            )
+            sim = Simulation(opts)
+            driver = driver_for(run) if driver_for is not None else None
+            df, stats = record_run(sim, sc, section, run, driver)
+            trajs.append(df)
+            check_run_memory(sc, sum(len(d) for d in trajs) / len(trajs), run)
+            vclass.update(stats.pop("vclass"))
+            rows.append({"run": run, "sumo_seed": seed, **stats})
+    finally:
+        if sim is not None:
+            sim.close()  # SUMO writes a run's detector files when the next load or close ends it
+    return trajs, rows, vclass
+
+
+def read_run_detectors(
+    stage: Path, runs: Sequence[int], placed: list
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """detectors.csv and detector_passages.csv of ``runs`` from SUMO's files in ``stage``."""
+    dets, passages = [], []
+    for run in runs:
+        d, p = read_detectors(stage / "sumo" / f"run_{run:03d}", run, placed)
+        dets.append(d)
+        passages.append(p)
+    return pd.concat(dets, ignore_index=True), pd.concat(passages, ignore_index=True)
+
+
+def section_macro(
+    sc: SectionScenario,
+    section: Section,
+    traj: pd.DataFrame,
+    det: pd.DataFrame,
+    pas: pd.DataFrame,
+    vtypes: dict[str, VType],
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """macro.csv's two parts: the detectors' statistics and the trajectories', per interval."""
+    end = sc.simulation.warmup_s + sc.simulation.duration_s
+    min_spacing = min(v.length_m for v in vtypes.values()) + sc.bounds.min_gap_m
+    det_macro = detector_macro(det, pas, sc.simulation.warmup_s, min_spacing, section)
+    tr_macro = trajectory_macro(traj, section, sc.detectors.interval_s, sc.simulation.warmup_s, end)
+    return det_macro, tr_macro
+
+
 def simulate_section(
     sc: SectionScenario, out: Path | str, command: str = "", progress: bool = True
 ) -> Path:
@@ -178,47 +261,10 @@ def simulate_section(
     placed = place_detectors(sc, inputs, section)
     out = prepare_out_dir(out)
     t_start = time.perf_counter()
-    min_len = min(v.length_m for v in vtypes.values())
+    all_runs = range(sc.simulation.n_runs)
     with staging_dir(out) as stage:
-        trajs, dets, passages, runs = [], [], [], []
-        vclass: dict[str, str] = {}
-        sim: Simulation | None = None
-        try:
-            for run in tqdm(
-                range(sc.simulation.n_runs), desc="simulate", unit="run", disable=not progress
-            ):
-                run_dir = stage / "sumo" / f"run_{run:03d}"
-                run_dir.mkdir(parents=True)
-                (run_dir / "detectors.add.xml").write_text(
-                    detectors_xml(placed, sc.detectors.interval_s)
-                )
-                adds = tuple(
-                    without_detectors(p, run_dir / f"user_{i}_{p.name}")
-                    for i, p in enumerate(inputs.additional_files)
-                )
-                seed = sc.seed + run
-                opts = SumoOptions(
-                    inputs.net_file,
-                    (*adds, run_dir / "detectors.add.xml"),
-                    sc.simulation.step_length_s,
-                    seed,
-                    error_log=run_dir / "sumo.log",
-                    route_files=inputs.route_files,
-                    user_demand=True,
-                )
-                sim = Simulation(opts)
-                df, stats = record_run(sim, sc, section, run)
-                trajs.append(df)
-                check_run_memory(sc, sum(len(d) for d in trajs) / (run + 1), run)
-                vclass.update(stats.pop("vclass"))
-                runs.append({"run": run, "sumo_seed": seed, **stats})
-        finally:
-            if sim is not None:
-                sim.close()  # SUMO writes a run's detector files when the next load or close ends it
-        for run in range(sc.simulation.n_runs):
-            d, p = read_detectors(stage / "sumo" / f"run_{run:03d}", run, placed)
-            dets.append(d)
-            passages.append(p)
+        trajs, runs, vclass = run_section(sc, inputs, section, placed, stage, all_runs, progress)
+        det, pas = read_run_detectors(stage, all_runs, placed)
         traj = pd.concat(trajs, ignore_index=True)
         if traj.empty:
             raise UserError(
@@ -230,16 +276,9 @@ def simulate_section(
                 f"{sc.source}: no instrumented vehicle drove on the section; raise "
                 "instrumented.penetration or name other vtype/ids"
             )
-        det = pd.concat(dets, ignore_index=True)
         if det.empty:
             raise UserError(f"{sc.source}: the section's detectors wrote no interval")
-        pas = pd.concat(passages, ignore_index=True)
-        end = sc.simulation.warmup_s + sc.simulation.duration_s
-        min_spacing = min_len + sc.bounds.min_gap_m
-        det_macro = detector_macro(det, pas, sc.simulation.warmup_s, min_spacing, section)
-        tr_macro = trajectory_macro(
-            traj, section, sc.detectors.interval_s, sc.simulation.warmup_s, end
-        )
+        det_macro, tr_macro = section_macro(sc, section, traj, det, pas, vtypes)
         k_df = k_estimates(
             traj, det_macro, section, sc.generator.snapshot_every_s, sc.detectors.k_window_s
         )
