@@ -10,7 +10,6 @@ reads the folders and ``write_comparison`` writes the two CSVs.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,6 +20,7 @@ import pandas as pd
 from macromicro_sumo.deploy.distributions import distribution_distances, lane_trajectories
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import write_csv
+from macromicro_sumo.road.section import Section
 
 GEH_LIMIT = 5.0  # DMRB acceptance: GEH < 5 for more than 85% of the counts
 SPEED_TOLERANCE = 0.05  # |method - truth| / truth within 5%
@@ -295,10 +295,9 @@ class Outputs:
 
 @dataclass(frozen=True)
 class Geometry:
-    """What leaders on a section need: its length, whether it loops, the vTypes' lengths."""
+    """What leaders on a section need: the section and the vTypes' lengths (ring: none)."""
 
-    length_m: float = 0.0
-    closed: bool = False
+    section: Section | None = None
     vehicle_lengths_m: Mapping[str, float] | None = None
 
 
@@ -319,14 +318,9 @@ def truth_geometry(folder: Path | str) -> Geometry:
     folder = Path(folder)
     if not (folder / "section.json").is_file():
         return Geometry()
-    try:
-        sec = json.loads((folder / "section.json").read_text())
-        length, closed = float(sec["length_m"]), bool(sec["closed"])
-    except (OSError, ValueError, KeyError) as exc:
-        raise UserError(f"{folder / 'section.json'}: not a section file ({exc})") from None
     vt = read_table(folder, "vtypes.csv", required=False, dtype={"vtype": str})
     lengths = dict(zip(vt["vtype"], vt["length_m"], strict=True)) if len(vt) else {}
-    return Geometry(length, closed, lengths)
+    return Geometry(Section.read(folder / "section.json"), lengths)
 
 
 def read_outputs(folder: Path | str, geometry: Geometry) -> Outputs:
@@ -340,7 +334,7 @@ def read_outputs(folder: Path | str, geometry: Geometry) -> Outputs:
         folder, "trajectories.csv", required=False, dtype={"vehicle_id": str, "vtype": str}
     )
     lanes = (
-        lane_trajectories(traj, geometry.length_m, geometry.closed, geometry.vehicle_lengths_m)
+        lane_trajectories(traj, geometry.section, geometry.vehicle_lengths_m)
         if len(traj)
         else pd.DataFrame(columns=["run", "time_s"])
     )

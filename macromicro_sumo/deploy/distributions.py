@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 from scipy.stats import wasserstein_distance
 
-from macromicro_sumo.road.section import lane_leaders
+from macromicro_sumo.road.section import Section, lane_leaders, section_leaders
 
 # Below this speed a time headway gap / speed is dominated by the division (a queued
 # vehicle 2 m behind its leader at 0.01 m/s would have a 200 s headway).
@@ -76,18 +76,19 @@ def w1(a: np.ndarray, b: np.ndarray) -> float:
 
 def lane_trajectories(
     traj: pd.DataFrame,
-    length_m: float = 0.0,
-    closed: bool = False,
+    section: Section | None = None,
     vehicle_lengths_m: Mapping[str, float] | None = None,
 ) -> pd.DataFrame:
     """Rows of ``trajectories.csv`` in one schema (``LANE_COLUMNS``), with the gap to the
-    leader on the same lane and that leader's speed (NaN: no leader).
+    vehicle ahead and that vehicle's speed (NaN: none on the section).
 
-    Ring rows (``arc_pos_m``) carry their leader already. Section rows get theirs here:
-    the vehicle ahead on the same lane index at the same run and time, on a ``closed``
-    section around the loop of ``length_m``; gap = spacing - the leader's length (its
-    vType's, from ``vehicle_lengths_m``, else ``DEFAULT_VEHICLE_LENGTH_M``). Deploy outputs
-    that record ``gap_m`` and ``leader_speed_mps`` themselves are taken as they are.
+    Ring rows (``arc_pos_m``) carry their leader already. Section rows get theirs here, per
+    run and time: along the ``section``'s lane connections (``section_leaders``: where a
+    lane is added on the right, the leader is the physically next vehicle, not the one
+    with the same lane index), by lane index on an open road without ``section``. A lane's
+    end is not a vehicle: no leader there. Gap = spacing - the leader's length (its vType's,
+    from ``vehicle_lengths_m``, else ``DEFAULT_VEHICLE_LENGTH_M``). Deploy outputs that
+    record ``gap_m`` and ``leader_speed_mps`` themselves are taken as they are.
     """
     if "arc_pos_m" in traj.columns:
         out = traj.rename(columns={"arc_pos_m": "arc_m"}).assign(lane_index=0)
@@ -95,12 +96,10 @@ def lane_trajectories(
     out = traj.reindex(columns=[*LANE_COLUMNS, "vtype"]).reset_index(drop=True)
     if traj.columns.isin(["gap_m", "leader_speed_mps"]).sum() == 2:
         return out[list(LANE_COLUMNS)]
-    # One lane_leaders call for all time steps: the (run, time, lane) key as the lane,
-    # so leaders are only ever looked for within a single snapshot.
-    snap = pd.MultiIndex.from_frame(out[["run", "time_s"]]).factorize()[0].astype(np.int64)
     lane = out["lane_index"].to_numpy(dtype=np.int64)
-    key = snap * (int(lane.max(initial=0)) + 1) + lane
-    leader, spacing = lane_leaders(key, out["arc_m"].to_numpy(dtype=float), length_m, closed)
+    arc = out["arc_m"].to_numpy(dtype=float)
+    snap = pd.MultiIndex.from_frame(out[["run", "time_s"]]).factorize()[0].astype(np.int64)
+    leader, spacing = snapshot_leaders(snap, lane, arc, section)
     has = leader >= 0
     lengths = out["vtype"].map(dict(vehicle_lengths_m or {})).fillna(DEFAULT_VEHICLE_LENGTH_M)
     lead_len = lengths.to_numpy(dtype=float)[np.where(has, leader, 0)]
@@ -108,6 +107,28 @@ def lane_trajectories(
     out["gap_m"] = np.where(has, spacing - lead_len, np.nan)
     out["leader_speed_mps"] = np.where(has, speed[np.where(has, leader, 0)], np.nan)
     return out[list(LANE_COLUMNS)]
+
+
+def snapshot_leaders(
+    snap: np.ndarray, lane: np.ndarray, arc_m: np.ndarray, section: Section | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Leader (row index, -1: none or a lane's end) and spacing of every row, within its
+    snapshot ``snap``."""
+    if section is None:
+        # One lane_leaders call for all snapshots: the (snapshot, lane) key as the lane,
+        # so leaders are only ever looked for within a single snapshot.
+        key = snap * (int(lane.max(initial=0)) + 1) + lane
+        return lane_leaders(key, arc_m, 0.0, False)
+    leader = np.full(len(snap), -1, dtype=np.int64)
+    spacing = np.full(len(snap), np.nan)
+    order = np.argsort(snap, kind="stable")
+    cuts = np.flatnonzero(np.diff(snap[order])) + 1
+    for rows in np.split(order, cuts):
+        lead, sp = section_leaders(section, lane[rows], arc_m[rows])
+        vehicle = lead >= 0
+        leader[rows[vehicle]] = rows[lead[vehicle]]
+        spacing[rows] = sp
+    return leader, spacing
 
 
 def same_window(truth: pd.DataFrame, method: pd.DataFrame) -> pd.DataFrame:

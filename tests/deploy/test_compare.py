@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import ROOT, SMALL, dump_toml, write_scenario
+from conftest import NETS, ROOT, SMALL, dump_toml, write_scenario
 
 from macromicro_sumo.cli import main
 from macromicro_sumo.deploy.compare import (
@@ -33,6 +33,10 @@ from macromicro_sumo.deploy.distributions import (
     times_to_collision,
     w1,
 )
+from macromicro_sumo.road.ring import read_ring
+from macromicro_sumo.road.section import read_section
+
+RING = NETS / "ring_r100_e4.net.xml"
 
 # --------------------------------------------------------------------------- statistics
 
@@ -96,7 +100,7 @@ def test_headway_and_ttc_of_a_two_vehicle_trajectory() -> None:
             "accel_mps2": 0.0,
         }
     )
-    lanes = lane_trajectories(traj, 1000.0, False, {"car": 5.0})
+    lanes = lane_trajectories(traj, None, {"car": 5.0})
     np.testing.assert_allclose(lanes["gap_m"].to_numpy(), [25.0, np.nan, np.nan, 35.0, np.nan])
     np.testing.assert_allclose(lanes["leader_speed_mps"], [15.0, np.nan, np.nan, 15.0, np.nan])
     s = samples(lanes)
@@ -108,6 +112,8 @@ def test_headway_and_ttc_of_a_two_vehicle_trajectory() -> None:
 
 
 def test_closed_section_leader_wraps_around_the_loop() -> None:
+    ring = read_ring(RING)
+    section = read_section(RING, list(ring.edge_ids), closed=True)
     traj = pd.DataFrame(
         {
             "run": 0,
@@ -115,14 +121,16 @@ def test_closed_section_leader_wraps_around_the_loop() -> None:
             "vehicle_id": ["a", "b"],
             "vtype": "car",
             "lane_index": 0,
-            "arc_m": [10.0, 290.0],
+            "arc_m": [10.0, 600.0],
             "speed_mps": [5.0, 8.0],
             "accel_mps2": 0.0,
         }
     )
-    lanes = lane_trajectories(traj, 300.0, True, {"car": 4.0})
-    # b at 290 follows a at 10 around a 300 m loop: spacing 20 m, gap 16 m.
-    np.testing.assert_allclose(lanes["gap_m"], [276.0, 16.0])
+    lanes = lane_trajectories(traj, section, {"car": 4.0})
+    # b at 600 m follows a at 10 m around the loop of 2 pi 100 m: its gap is the spacing
+    # 10 + L - 600 minus a's 4 m; a follows b 590 m ahead.
+    np.testing.assert_allclose(lanes["gap_m"], [586.0, 10.0 + section.length_m - 600.0 - 4.0])
+    np.testing.assert_allclose(lanes["leader_speed_mps"], [8.0, 5.0])
 
 
 def test_station_aggregates_the_lanes_of_one_position() -> None:
