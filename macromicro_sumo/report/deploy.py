@@ -1,0 +1,383 @@
+"""The deployment's figures and its section of report.md: every method driving the whole
+population on the scenario's own demand, against the ground truth (docs/deploy.md).
+
+Plots (PNG): the fundamental diagram (flow against density) per detector station, the
+speed over time and space per lane (a heatmap) and the time-space diagram per lane, the
+ground truth beside each method. ``deployment_markdown`` writes the section's text from
+deploy_summary.csv alone: the table per method and, in plain words, where the
+detector-calibrated IDM or the oracle is ahead of the policy, and by how much.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import matplotlib as mpl
+import numpy as np
+import pandas as pd
+from matplotlib.collections import LineCollection
+from matplotlib.colors import Normalize
+from matplotlib.figure import Figure
+
+from macromicro_sumo.deploy.compare import (
+    ALL_LANES,
+    GEH_LIMIT,
+    SPEED_TOLERANCE,
+    read_outputs,
+    truth_geometry,
+)
+from macromicro_sumo.report.plots import METHOD_COLORS, REFERENCE_COLOR, SPEED_CMAP, save_figure
+from macromicro_sumo.report.tables import markdown_table
+
+TRUTH = "ground_truth"
+POLICY = "policy"
+# The challengers the report measures the policy against, in words.
+CHALLENGERS = {"idm_detectors": "the detector-calibrated IDM", "oracle": "the oracle"}
+# The policy is also to beat these on speed RMSE (issue 17's criterion).
+BASELINES = {"sumo_default": "SUMO's uncalibrated defaults", "idm_calibrated": "the fitted IDM"}
+TARGET_SHARE = 0.85  # GEH < 5 and speed within 5% in at least 85% of station-intervals
+MAX_STATIONS = 16  # fundamental diagrams drawn (the first ones along the road)
+TIME_BIN_S = 10.0
+SPACE_BINS = 60
+
+# (column, header, how to print, higher is better)
+SUMMARY_TABLE = (
+    ("share_geh_below_5", f"GEH < {GEH_LIMIT:g} (%)", "pct", True),
+    ("share_speed_within_5pct", f"speed within {SPEED_TOLERANCE:.0%} (%)", "pct", True),
+    ("speed_rmse_mps", "speed RMSE (m/s)", "3f", False),
+    ("density_rmse_vpkm", "density RMSE (veh/km)", "2f", False),
+    ("w1_speed_mps", "W1 speed (m/s)", "3f", False),
+    ("w1_accel_mps2", "W1 accel (m/s²)", "3f", False),
+    ("w1_headway_s", "W1 headway (s)", "3f", False),
+    ("w1_ttc_s", "W1 TTC (s)", "3f", False),
+    ("collisions", "collisions", "int", False),
+    ("teleports", "teleports", "int", False),
+    ("emergency_brakings", "emergency brakings", "int", False),
+    ("vehicle_steps_driven", "vehicle-steps driven", "int", None),
+    ("safety_acted", "safety layer acted", "int", None),
+)
+
+
+def method_color(i: int) -> str:
+    return METHOD_COLORS[i % len(METHOD_COLORS)]
+
+
+# --------------------------------------------------------------------------- plots
+
+
+def plot_fundamental_diagrams(comparison: pd.DataFrame, path: Path | str) -> Path:
+    """Flow against density per station (every run and interval a point): the ground truth
+    as black rings, each method in its colour. Stations without a flow (lane-area detectors) are
+    left out; at most ``MAX_STATIONS`` stations, in the order of the road."""
+    d = comparison[(comparison["lane"] == ALL_LANES) & comparison["flow_truth_vph"].notna()]
+    if d.empty:
+        raise ValueError("deploy comparison: no station with a flow to plot")
+    order = d.groupby("station")["arc_m"].first().fillna(0.0).sort_values(kind="stable")
+    stations = list(order.index[:MAX_STATIONS])
+    methods = list(dict.fromkeys(d["method"]))
+    cols = min(4, len(stations))
+    rows = -(-len(stations) // cols)
+    fig = Figure(figsize=(4.2 * cols, 3.6 * rows + 0.6), layout="constrained")
+    axes = fig.subplots(rows, cols, squeeze=False).ravel()
+    for ax, station in zip(axes, stations, strict=False):
+        s = d[d["station"] == station]
+        truth = s.drop_duplicates(["run", "begin_s"])
+        ax.scatter(
+            truth["density_truth_vpkm"],
+            truth["flow_truth_vph"],
+            s=40,
+            facecolors="none",
+            edgecolors=REFERENCE_COLOR,
+            label=TRUTH,
+            zorder=2,
+        )
+        for i, m in enumerate(methods):
+            g = s[s["method"] == m]
+            ax.scatter(
+                g["density_method_vpkm"],
+                g["flow_method_vph"],
+                s=12,
+                color=method_color(i),
+                alpha=0.7,
+                label=m,
+                zorder=3,
+            )
+        # From the origin: a fundamental diagram is read against (0, 0).
+        k = s[["density_truth_vpkm", "density_method_vpkm"]].to_numpy(float)
+        q = s[["flow_truth_vph", "flow_method_vph"]].to_numpy(float)
+        ax.set_xlim(0.0, 1.08 * max(float(np.nanmax(k, initial=0.0)), 1.0))
+        ax.set_ylim(0.0, 1.08 * max(float(np.nanmax(q, initial=0.0)), 1.0))
+        ax.set_title(f"station {station}")
+        ax.set_xlabel("density (veh/km, all lanes)")
+        ax.set_ylabel("flow (veh/h, all lanes)")
+        ax.grid(alpha=0.3)
+    for ax in axes[len(stations) :]:
+        ax.set_visible(False)
+    axes[0].legend(fontsize="small")
+    fig.suptitle("Fundamental diagram per station: ground truth and each deployed method")
+    return save_figure(fig, path)
+
+
+def window(lanes: Mapping[str, pd.DataFrame], run: int) -> dict[str, pd.DataFrame]:
+    """The rows of ``run`` up to the last time every source recorded (a deployment may
+    record its trajectories for the first minutes only)."""
+    d = {name: df[df["run"] == run] for name, df in lanes.items()}
+    d = {name: df for name, df in d.items() if len(df)}
+    if not d:
+        raise ValueError(f"no trajectory of run {run} to plot")
+    end = min(float(df["time_s"].max()) for df in d.values())
+    return {name: df[df["time_s"] <= end + 1e-9] for name, df in d.items()}
+
+
+def lane_grid(
+    d: Mapping[str, pd.DataFrame], title: str
+) -> tuple[Figure, np.ndarray, list[int], Normalize]:
+    """A figure with a row per lane and a column per source, and one speed scale."""
+    lane_ids = sorted({int(x) for df in d.values() for x in df["lane_index"].unique()})
+    v = np.concatenate([df["speed_mps"].to_numpy(float) for df in d.values()])
+    norm = Normalize(float(np.nanmin(v)), float(np.nanmax(v)) + 1e-6)
+    fig = Figure(figsize=(4.0 * len(d) + 1.2, 3.0 * len(lane_ids) + 0.8), layout="constrained")
+    axes = fig.subplots(len(lane_ids), len(d), squeeze=False, sharex=True, sharey=True)
+    fig.suptitle(title)
+    return fig, axes, lane_ids, norm
+
+
+def finish_lane_grid(fig: Figure, axes: np.ndarray, names: list[str], lane_ids: list[int]) -> None:
+    for j, name in enumerate(names):
+        axes[0, j].set_title(name)
+        axes[-1, j].set_xlabel("time (s)")
+    for i, lane in enumerate(lane_ids):
+        axes[i, 0].set_ylabel(f"lane {lane}: position (m)")
+
+
+def plot_speed_heatmaps(
+    lanes: Mapping[str, pd.DataFrame],
+    path: Path | str,
+    run: int,
+    time_bin_s: float = TIME_BIN_S,
+    space_bins: int = SPACE_BINS,
+) -> Path:
+    """Mean speed per cell of time and position, one row per lane (0 = rightmost) and one
+    column per source (the ground truth first), for one run. ``lanes`` maps a source's name
+    to its trajectories in ``lane_trajectories``' schema. Empty cells are white."""
+    d = window(lanes, run)
+    fig, axes, lane_ids, norm = lane_grid(d, f"Speed over time and space per lane, run {run}")
+    t0 = min(float(df["time_s"].min()) for df in d.values())
+    t1 = max(float(df["time_s"].max()) for df in d.values())
+    x1 = max(float(df["arc_m"].max()) for df in d.values())
+    t_edges = np.arange(t0, t1 + time_bin_s, time_bin_s)
+    x_edges = np.linspace(0.0, x1 + 1e-6, space_bins + 1)
+    cmap = mpl.colormaps[SPEED_CMAP].with_extremes(bad="white")
+    for j, df in enumerate(d.values()):
+        for i, lane in enumerate(lane_ids):
+            g = df[df["lane_index"] == lane]
+            t, x, v = (g[c].to_numpy(float) for c in ("time_s", "arc_m", "speed_mps"))
+            n, _, _ = np.histogram2d(t, x, bins=(t_edges, x_edges))
+            s, _, _ = np.histogram2d(t, x, bins=(t_edges, x_edges), weights=v)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                mean = np.where(n > 0, s / n, np.nan)
+            axes[i, j].pcolormesh(
+                t_edges, x_edges, np.ma.masked_invalid(mean).T, cmap=cmap, norm=norm
+            )
+    finish_lane_grid(fig, axes, list(d), lane_ids)
+    fig.colorbar(mpl.cm.ScalarMappable(norm=norm, cmap=cmap), ax=axes, label="speed (m/s)")
+    return save_figure(fig, path)
+
+
+def lane_segments(g: pd.DataFrame, max_dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Line segments (time, position) of every vehicle's consecutive rows on one lane, and
+    their mean speeds; no segment across a lane change (a gap in time), a restart of time
+    or the wrap of a loop (position going back)."""
+    g = g.sort_values(["vehicle_id", "time_s"], kind="stable")
+    t, x, v = (g[c].to_numpy(float) for c in ("time_s", "arc_m", "speed_mps"))
+    same = g["vehicle_id"].to_numpy()[1:] == g["vehicle_id"].to_numpy()[:-1]
+    dt, dx = np.diff(t), np.diff(x)
+    keep = same & (dt > 0) & (dt <= max_dt_s) & (dx >= 0)
+    pts = np.column_stack([t, x])
+    return np.stack([pts[:-1], pts[1:]], axis=1)[keep], 0.5 * (v[:-1] + v[1:])[keep]
+
+
+def plot_lane_time_space(
+    lanes: Mapping[str, pd.DataFrame], path: Path | str, run: int, seconds: float = 300.0
+) -> Path:
+    """Time-space diagram per lane: position against time, a line per vehicle coloured by
+    speed, one row per lane and one column per source, over the first ``seconds`` of one
+    run (where every source recorded)."""
+    d = window(lanes, run)
+    start = min(float(df["time_s"].min()) for df in d.values())
+    d = {k: df[df["time_s"] <= start + seconds] for k, df in d.items()}
+    fig, axes, lane_ids, norm = lane_grid(d, f"Time-space diagram per lane, run {run}")
+    cmap = mpl.colormaps[SPEED_CMAP]
+    for j, df in enumerate(d.values()):
+        times = np.unique(df["time_s"].to_numpy(float))
+        step = float(np.median(np.diff(times))) if len(times) > 1 else 1.0
+        for i, lane in enumerate(lane_ids):
+            segs, speeds = lane_segments(df[df["lane_index"] == lane], 1.5 * step)
+            if len(segs):
+                lc = LineCollection(segs, cmap=cmap, norm=norm, linewidths=1.2)
+                lc.set_array(speeds)
+                axes[i, j].add_collection(lc)
+            axes[i, j].autoscale_view()
+            axes[i, j].grid(alpha=0.3)
+    finish_lane_grid(fig, axes, list(d), lane_ids)
+    fig.colorbar(mpl.cm.ScalarMappable(norm=norm, cmap=cmap), ax=axes, label="speed (m/s)")
+    return save_figure(fig, path)
+
+
+def make_deploy_plots(
+    truth_dir: Path | str,
+    method_dirs: Mapping[str, Path | str],
+    comparison: pd.DataFrame,
+    plots_dir: Path | str,
+    run: int | None = None,
+) -> list[Path]:
+    """The three figures into ``plots_dir`` (deploy_fundamental_diagram.png,
+    deploy_speed_heatmap.png, deploy_time_space.png), for ``run`` (default: the first run
+    compared); the trajectory figures only where the folders hold trajectories."""
+    plots = Path(plots_dir)
+    plots.mkdir(parents=True, exist_ok=True)
+    made = [plot_fundamental_diagrams(comparison, plots / "deploy_fundamental_diagram.png")]
+    geometry = truth_geometry(truth_dir)
+    sources = {TRUTH: truth_dir, **method_dirs}
+    lanes = {name: read_outputs(folder, geometry).lanes for name, folder in sources.items()}
+    run = int(comparison["run"].min()) if run is None else run
+    if any(len(df) and (df["run"] == run).any() for df in lanes.values()):
+        made.append(plot_speed_heatmaps(lanes, plots / "deploy_speed_heatmap.png", run))
+        made.append(plot_lane_time_space(lanes, plots / "deploy_time_space.png", run))
+    return made
+
+
+# --------------------------------------------------------------------------- report text
+
+
+def cell(value: float, how: str) -> str:
+    if not np.isfinite(value):
+        return "n/a"
+    if how == "pct":
+        return f"{100 * value:.1f}"
+    if how == "int":
+        return f"{value:.0f}"
+    return f"{value:.{how[0]}f}"
+
+
+def summary_markdown(summary: pd.DataFrame) -> str:
+    """deploy_summary.csv as a markdown table, shares in percent."""
+    rows = []
+    for _, r in summary.iterrows():
+        row = {"method": str(r["method"]), "runs": f"{r['runs']:.0f}"}
+        for col, head, how, _ in SUMMARY_TABLE:
+            row[head] = cell(float(r.get(col, np.nan)), how)
+        rows.append(row)
+    return markdown_table(pd.DataFrame(rows))
+
+
+def gap_words(col: str, ahead: float, behind: float) -> str:
+    """'by 12.5 percentage points (90.0% vs 77.5%)' / 'by 0.120 m/s (0.300 vs 0.420 m/s)'."""
+    _, head, how, _ = next(x for x in SUMMARY_TABLE if x[0] == col)
+    if how == "pct":
+        return (
+            f"by {100 * abs(ahead - behind):.1f} percentage points "
+            f"({100 * ahead:.1f}% vs {100 * behind:.1f}%)"
+        )
+    unit = " " + head[head.find("(") + 1 : head.find(")")] if "(" in head else ""
+    return f"by {cell(abs(ahead - behind), how)}{unit} ({cell(ahead, how)} vs {cell(behind, how)})"
+
+
+def versus(summary: pd.DataFrame, challenger: str, words: str) -> list[str]:
+    """Where ``challenger`` is ahead of the policy, and by how much; where it is not."""
+    s = summary.set_index("method")
+    p, c = s.loc[POLICY], s.loc[challenger]
+    ahead, behind = [], []
+    for col, head, _, higher in SUMMARY_TABLE:
+        if higher is None or not (np.isfinite(p[col]) and np.isfinite(c[col])):
+            continue
+        if c[col] == p[col]:
+            continue
+        better = c[col] > p[col] if higher else c[col] < p[col]
+        name = head.split(" (")[0]
+        if better:
+            ahead.append(f"{name} {gap_words(col, c[col], p[col])}")
+        else:
+            behind.append(name)
+    who = f"- {words[0].upper()}{words[1:]} (`{challenger}`)"
+    if not ahead and not behind:
+        return [f"{who} is level with the policy on every figure."]
+    if ahead:
+        lines = [f"{who} is ahead of the policy on: " + "; ".join(ahead) + "."]
+    else:
+        lines = [f"{who} is ahead of the policy on nothing."]
+    if behind:
+        lines.append(f"  The policy is ahead of it on: {', '.join(behind)}.")
+    return lines
+
+
+def policy_targets(summary: pd.DataFrame) -> list[str]:
+    """The policy against issue 17's targets: shares of 85% and speed RMSE below the
+    uncalibrated defaults and the IDM fitted to the observed vehicles."""
+    s = summary.set_index("method")
+    p = s.loc[POLICY]
+    lines = []
+    for col, what in (
+        ("share_geh_below_5", f"flow GEH < {GEH_LIMIT:g}"),
+        ("share_speed_within_5pct", f"mean speed within {SPEED_TOLERANCE:.0%}"),
+    ):
+        if np.isfinite(p[col]):
+            verdict = "met" if p[col] >= TARGET_SHARE else "missed"
+            lines.append(
+                f"- The policy: {what} in {100 * p[col]:.1f}% of station-intervals "
+                f"(target at least {TARGET_SHARE:.0%}): {verdict}."
+            )
+    for name, words in BASELINES.items():
+        if name in s.index and np.isfinite(s.loc[name, "speed_rmse_mps"]):
+            theirs, ours = s.loc[name, "speed_rmse_mps"], p["speed_rmse_mps"]
+            verdict = "better" if ours < theirs else "not better"
+            lines.append(
+                f"- Speed RMSE: policy {ours:.3f} m/s, {words} (`{name}`) {theirs:.3f} m/s: "
+                f"the policy is {verdict}."
+            )
+    return lines
+
+
+def safety_lines(summary: pd.DataFrame) -> list[str]:
+    truth = summary["truth_collisions"].max(), summary["truth_teleports"].max()
+    lines = [
+        f"- Ground truth over the same runs: {cell(truth[0], 'int')} collisions, "
+        f"{cell(truth[1], 'int')} teleports."
+    ]
+    bad = summary[(summary["collisions"].fillna(0) > 0) | (summary["teleports"].fillna(0) > 0)]
+    for _, r in bad.iterrows():
+        lines.append(
+            f"- `{r['method']}`: {cell(r['collisions'], 'int')} collisions and "
+            f"{cell(r['teleports'], 'int')} teleports the ground truth does not have."
+        )
+    return lines
+
+
+def deployment_markdown(summary: pd.DataFrame, plots: Sequence[str] = ()) -> str:
+    """The "Deployment" section of report.md from deploy_summary.csv; ``plots`` are image
+    paths relative to report.md."""
+    lines = [
+        "## Deployment",
+        "",
+        "Every method drives the whole driven population over the scenario's own demand "
+        "and duration, on the ground truth's held-out runs (same demand, same seeds). Its "
+        "detectors are compared with the ground truth's station by station and interval by "
+        f"interval (definitions: docs/deploy.md). GEH < {GEH_LIMIT:g}: share of "
+        "station-intervals whose flow passes the GEH test; speed within "
+        f"{SPEED_TOLERANCE:.0%}: share whose space-mean speed is within {SPEED_TOLERANCE:.0%} "
+        "of the truth's; W1: Wasserstein-1 distance to the ground truth's distribution.",
+        "",
+        summary_markdown(summary),
+        "",
+    ]
+    methods = set(summary["method"])
+    if POLICY in methods:
+        lines += policy_targets(summary)
+        for name, words in CHALLENGERS.items():
+            if name in methods:
+                lines += versus(summary, name, words)
+        lines.append("")
+    lines += [*safety_lines(summary), ""]
+    lines += [f"![{Path(p).stem}]({p})" for p in plots]
+    return "\n".join(lines).rstrip() + "\n"
