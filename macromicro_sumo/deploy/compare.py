@@ -17,7 +17,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from macromicro_sumo.deploy.distributions import distribution_distances, lane_trajectories
+from macromicro_sumo.deploy.distributions import (
+    LANE_COLUMNS,
+    distribution_distances,
+    lane_trajectories,
+)
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import write_csv
 from macromicro_sumo.road.section import Section
@@ -323,8 +327,9 @@ def truth_geometry(folder: Path | str) -> Geometry:
     return Geometry(Section.read(folder / "section.json"), lengths)
 
 
-def read_outputs(folder: Path | str, geometry: Geometry) -> Outputs:
-    """detectors.csv as stations, runs.csv, and trajectories.csv (if there) with leaders."""
+def read_outputs(folder: Path | str, geometry: Geometry, leaders: bool = True) -> Outputs:
+    """detectors.csv as stations, runs.csv, and trajectories.csv (if there; with each
+    vehicle's leader unless not ``leaders``)."""
     folder = Path(folder)
     det = read_table(folder, "detectors.csv")
     if det.empty:
@@ -334,9 +339,9 @@ def read_outputs(folder: Path | str, geometry: Geometry) -> Outputs:
         folder, "trajectories.csv", required=False, dtype={"vehicle_id": str, "vtype": str}
     )
     lanes = (
-        lane_trajectories(traj, geometry.section, geometry.vehicle_lengths_m)
+        lane_trajectories(traj, geometry.section, geometry.vehicle_lengths_m, leaders)
         if len(traj)
-        else pd.DataFrame(columns=["run", "time_s"])
+        else pd.DataFrame(columns=list(LANE_COLUMNS))
     )
     if runs.empty:
         runs = pd.DataFrame({"run": sorted(det["run"].unique())})

@@ -78,6 +78,7 @@ def lane_trajectories(
     traj: pd.DataFrame,
     section: Section | None = None,
     vehicle_lengths_m: Mapping[str, float] | None = None,
+    leaders: bool = True,
 ) -> pd.DataFrame:
     """Rows of ``trajectories.csv`` in one schema (``LANE_COLUMNS``), with the gap to the
     vehicle ahead and that vehicle's speed (NaN: none on the section).
@@ -88,13 +89,14 @@ def lane_trajectories(
     with the same lane index), by lane index on an open road without ``section``. A lane's
     end is not a vehicle: no leader there. Gap = spacing - the leader's length (its vType's,
     from ``vehicle_lengths_m``, else ``DEFAULT_VEHICLE_LENGTH_M``). Deploy outputs that
-    record ``gap_m`` and ``leader_speed_mps`` themselves are taken as they are.
+    record ``gap_m`` and ``leader_speed_mps`` themselves are taken as they are. Without
+    ``leaders`` (plots need none) section rows keep NaN gaps.
     """
     if "arc_pos_m" in traj.columns:
         out = traj.rename(columns={"arc_pos_m": "arc_m"}).assign(lane_index=0)
         return out.reindex(columns=LANE_COLUMNS).reset_index(drop=True)
     out = traj.reindex(columns=[*LANE_COLUMNS, "vtype"]).reset_index(drop=True)
-    if traj.columns.isin(["gap_m", "leader_speed_mps"]).sum() == 2:
+    if traj.columns.isin(["gap_m", "leader_speed_mps"]).sum() == 2 or not leaders:
         return out[list(LANE_COLUMNS)]
     lane = out["lane_index"].to_numpy(dtype=np.int64)
     arc = out["arc_m"].to_numpy(dtype=float)

@@ -240,7 +240,10 @@ def make_deploy_plots(
     made = [plot_fundamental_diagrams(comparison, plots / "deploy_fundamental_diagram.png")]
     geometry = truth_geometry(truth_dir)
     sources = {TRUTH: truth_dir, **method_dirs}
-    lanes = {name: read_outputs(folder, geometry).lanes for name, folder in sources.items()}
+    lanes = {
+        name: read_outputs(folder, geometry, leaders=False).lanes
+        for name, folder in sources.items()
+    }
     run = int(comparison["run"].min()) if run is None else run
     if any(len(df) and (df["run"] == run).any() for df in lanes.values()):
         made.append(plot_speed_heatmaps(lanes, plots / "deploy_speed_heatmap.png", run))
