@@ -22,6 +22,8 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import minimize
 
+from macromicro_sumo.deploy.compare import geh
+
 # IDM parameters the search varies, with the ranges it may use (SUMO's attribute names).
 IDM_RANGES: dict[str, tuple[float, float]] = {
     "accel": (0.5, 3.0),  # [m/s^2] maximum acceleration a
@@ -44,13 +46,6 @@ class Calibration:
 
 class _Stop(Exception):
     """Raised inside the objective when the budget is spent (scipy then returns)."""
-
-
-def geh(model_vph: np.ndarray, count_vph: np.ndarray) -> np.ndarray:
-    """GEH statistic of hourly flows: sqrt(2 (M - C)^2 / (M + C)); 0 where both are 0."""
-    m, c = np.asarray(model_vph, float), np.asarray(count_vph, float)
-    total = m + c
-    return np.where(total > 0, np.sqrt(2.0 * (m - c) ** 2 / np.where(total > 0, total, 1.0)), 0.0)
 
 
 def detector_loss(truth: pd.DataFrame, sim: pd.DataFrame) -> float:

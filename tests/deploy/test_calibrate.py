@@ -6,14 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from macromicro_sumo.deploy.calibrate import IDM_RANGES, calibrate, detector_loss, geh
-
-
-def test_geh_by_hand() -> None:
-    # M = 1100, C = 1000: sqrt(2 * 100^2 / 2100) = 3.086
-    assert geh(np.array([1100.0, 0.0, 0.0]), np.array([1000.0, 0.0, 50.0])) == pytest.approx(
-        [3.0861, 0.0, 10.0], abs=1e-4
-    )
+from macromicro_sumo.deploy.calibrate import IDM_RANGES, calibrate, detector_loss
 
 
 def test_the_search_finds_a_known_minimum_inside_the_box() -> None:
