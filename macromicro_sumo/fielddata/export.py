@@ -107,7 +107,10 @@ def export_ngsim(
     ids = numeric_ids(obs["vehicle_id"])
     vid = obs["vehicle_id"].map(ids).to_numpy()
     t = obs["time_s"].to_numpy()
-    y = obs["arc_m"].to_numpy() + rng.normal(0.0, noise_m, len(obs))
+    # Noise may not push a position off the section (the recorded stretch): clipped there.
+    y = np.clip(
+        obs["arc_m"].to_numpy() + rng.normal(0.0, noise_m, len(obs)), 0.0, section.length_m - 0.01
+    )
     v = derive_rates(vid, t, y)
     a = derive_rates(vid, t, v)
     dt = float(np.median(np.diff(np.unique(t))))

@@ -1,0 +1,163 @@
+"""Cleaning a traffic engineer expects before field data feeds the method.
+
+Trajectories: video-extracted positions (NGSIM) carry a few decimetres of noise, which
+numerical differentiation turns into metres per second of speed noise and tens of m/s^2
+of acceleration noise. Speeds and accelerations are therefore re-derived from the
+positions with the symmetric exponential moving average (sEMA) of Thiemann, Treiber and
+Kesting (2008), "Estimating acceleration and lane-changing dynamics from Next Generation
+Simulation trajectory data", Transportation Research Record 2088, pp. 90-101
+(arXiv:0804.0108): positions are smoothed with a kernel exp(-|t_i - t_k| / T), then
+differentiated (central differences) and smoothed again; near the ends of a trajectory the
+window shrinks symmetrically, as Thiemann et al. do, so a moving vehicle's position does
+not lag there. Outliers (|a| beyond a
+physical bound, speed jumps no vehicle can make in one sample) and time gaps (a vehicle
+missing for more than ``gap_factor`` sampling periods) are flagged; a gap splits the
+smoothing, so no kernel reaches across it.
+
+Stations: intervals with too few samples, with PeMS ``% Observed`` under a threshold
+(imputed rather than measured) or without any value are excluded and counted.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from macromicro_sumo.fielddata.schema import MAX_ACCEL_MPS2
+from macromicro_sumo.fielddata.stations import Stations
+from macromicro_sumo.fielddata.trajectories import Trajectories
+from macromicro_sumo.scenario.fields import spec
+
+
+@dataclass(frozen=True, kw_only=True)
+class CleaningConfig:
+    """How field data is cleaned (docs/field-data.md)."""
+
+    smoother: str = spec(
+        "none",
+        choices=("none", "ema"),
+        doc="re-derive speeds and accelerations from positions: 'ema' (Thiemann et al. 2008)",
+    )
+    position_width_s: float = spec(0.5, lo=0.0, hi=60.0, doc="sEMA width T for positions [s]")
+    speed_width_s: float = spec(0.5, lo=0.0, hi=60.0, doc="sEMA width T for speeds [s]")
+    accel_width_s: float = spec(1.0, lo=0.0, hi=60.0, doc="sEMA width T for accelerations [s]")
+    max_accel_mps2: float = spec(
+        MAX_ACCEL_MPS2, lo=0.1, hi=50.0, doc="|a| beyond this is an outlier [m/s^2]"
+    )
+    gap_factor: float = spec(
+        3.0, lo=1.01, hi=1000.0, doc="a step longer than this many sampling periods is a gap"
+    )
+    min_samples: float = spec(
+        0.0, lo=0.0, hi=1e6, doc="station intervals with fewer samples are excluded"
+    )
+    min_observed_pct: float = spec(
+        50.0, lo=0.0, hi=100.0, doc="PeMS: intervals observed less than this [%] are excluded"
+    )
+
+
+DEFAULT_CLEANING = CleaningConfig()
+NGSIM_CLEANING = CleaningConfig(smoother="ema")
+
+
+def sema(t: np.ndarray, x: np.ndarray, width_s: float) -> np.ndarray:
+    """Symmetric exponential moving average of ``x`` sampled at times ``t``: weights
+    exp(-|t_i - t_k| / width) over a window symmetric about t_i, cut at 3 widths and, near
+    the ends, at the distance to the nearer end (Thiemann et al. 2008): a one-sided window
+    there would make a moving vehicle's smoothed position lag by about speed x width."""
+    if width_s <= 0 or len(x) < 3:
+        return x.astype(float).copy()
+    half = np.minimum(3.0 * width_s, np.minimum(t - t[0], t[-1] - t))
+    lo = np.searchsorted(t, t - half - 1e-9, side="left")
+    hi = np.searchsorted(t, t + half + 1e-9, side="right")
+    out = np.empty(len(x))
+    for i in range(len(x)):
+        w = np.exp(-np.abs(t[lo[i] : hi[i]] - t[i]) / width_s)
+        out[i] = (w * x[lo[i] : hi[i]]).sum() / w.sum()
+    return out
+
+
+def segments(t: np.ndarray, gap_factor: float) -> tuple[list[np.ndarray], np.ndarray]:
+    """Index runs of one vehicle's samples without a gap, and which samples follow a gap."""
+    if len(t) < 2:
+        return [np.arange(len(t))], np.zeros(len(t), dtype=bool)
+    step = np.diff(t)
+    gap = step > gap_factor * np.median(step)
+    cuts = np.flatnonzero(gap) + 1
+    after = np.zeros(len(t), dtype=bool)
+    after[cuts] = True
+    return np.split(np.arange(len(t)), cuts), after
+
+
+@dataclass(frozen=True)
+class CleanTrajectories:
+    """Cleaned trajectories and the flags of every row (same order as ``frame``)."""
+
+    source: Trajectories
+    frame: pd.DataFrame  # trajectories.csv schema, speeds/accelerations re-derived if asked
+    raw_speed_mps: np.ndarray  # the file's speeds, row by row with ``frame``
+    flags: pd.DataFrame  # accel_outlier, speed_jump, after_gap (bool per row)
+
+
+def clean_trajectories(
+    traj: Trajectories, cfg: CleaningConfig = DEFAULT_CLEANING
+) -> CleanTrajectories:
+    """Flag outliers and gaps; with ``cfg.smoother = "ema"`` re-derive speeds and
+    accelerations from the positions (the lane and the vehicle's rows are kept)."""
+    df = traj.frame.sort_values(["vehicle_id", "time_s"], kind="stable").reset_index(drop=True)
+    t = df["time_s"].to_numpy()
+    arc = df["arc_m"].to_numpy()
+    raw_v = df["speed_mps"].to_numpy().copy()
+    v, a = raw_v.copy(), df["accel_mps2"].to_numpy().copy()
+    jump = np.zeros(len(df), dtype=bool)
+    after_gap = np.zeros(len(df), dtype=bool)
+    for idx in df.groupby("vehicle_id", sort=False).indices.values():
+        runs, after = segments(t[idx], cfg.gap_factor)
+        after_gap[idx] = after
+        for seg in runs:
+            k = idx[seg]
+            if len(k) < 2:
+                continue
+            dt = np.diff(t[k])
+            # A speed change no vehicle makes in one sample (twice the physical bound).
+            jump[k[1:]] = np.abs(np.diff(raw_v[k])) > 2.0 * cfg.max_accel_mps2 * dt
+            if cfg.smoother == "ema":
+                x = sema(t[k], arc[k], cfg.position_width_s)
+                v[k] = np.maximum(sema(t[k], np.gradient(x, t[k]), cfg.speed_width_s), 0.0)
+                a[k] = sema(t[k], np.gradient(v[k], t[k]), cfg.accel_width_s)
+    frame = df.assign(speed_mps=v, accel_mps2=a)
+    flags = pd.DataFrame(
+        {
+            "vehicle_id": df["vehicle_id"].to_numpy(),
+            "time_s": t,
+            "accel_outlier": np.abs(a) > cfg.max_accel_mps2,
+            "speed_jump": jump,
+            "after_gap": after_gap,
+        }
+    )
+    return CleanTrajectories(traj, frame, raw_v, flags)
+
+
+@dataclass(frozen=True)
+class CleanStations:
+    """Kept station intervals and the reason each dropped one was excluded."""
+
+    source: Stations
+    frame: pd.DataFrame  # detectors.csv schema, kept rows only
+    dropped: pd.DataFrame  # detector_id, lane_index, begin_s, reason
+
+
+def clean_stations(st: Stations, cfg: CleaningConfig = DEFAULT_CLEANING) -> CleanStations:
+    """Exclude intervals with too few samples, too little observed (PeMS), or no value."""
+    f, q = st.frame.reset_index(drop=True), st.quality.reset_index(drop=True)
+    reason = np.full(len(f), "", dtype=object)
+    no_value = f["n_veh"].isna() & f["speed_mps"].isna() & f["occupancy_pct"].isna()
+    reason[no_value.to_numpy()] = "no value"
+    few = (q["samples"] < cfg.min_samples).to_numpy() & (reason == "")
+    reason[few] = f"samples < {cfg.min_samples:g}"
+    low = (q["observed_pct"] < cfg.min_observed_pct).to_numpy() & (reason == "")
+    reason[low] = f"observed < {cfg.min_observed_pct:g} %"
+    drop = reason != ""
+    dropped = f.loc[drop, ["detector_id", "lane_index", "begin_s"]].assign(reason=reason[drop])
+    return CleanStations(st, f[~drop].reset_index(drop=True), dropped.reset_index(drop=True))
