@@ -89,8 +89,10 @@ def numbers(df: pd.DataFrame, column: str, path: Path, allow_nan: bool = False) 
     hit = np.flatnonzero(bad)
     if hit.size:
         i = int(hit[0])
+        # The frame's index labels are the file's data rows (subsets keep them).
+        row = int(df.index[i]) if pd.api.types.is_integer_dtype(df.index) else i
         raise UserError(
-            f"{where(path, i, column)}: {raw.iloc[i]!r} is not a finite number"
+            f"{where(path, row, column)}: {raw.iloc[i]!r} is not a finite number"
             + ("" if allow_nan else " (no empty cells)")
         )
     return values
