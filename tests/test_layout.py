@@ -20,7 +20,7 @@ RANK = {
     "road": 5,
     "data": 6,
     "truth": 7,
-    "fielddata": 7,
+    "fielddata": 6,  # reads files into the ground truth's frames: truth/ may build on it
     "generator": 8,
     "env": 9,
     "policy": 10,
