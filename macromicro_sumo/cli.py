@@ -103,6 +103,48 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _deploy_inputs(policy: Path, data: Path | None) -> tuple[Path, Path]:
+    """(ground-truth folder, policy folder) from --policy (a finished ``macromicro run``
+    folder, a policy folder or a policy.pt) and --data (default: the run's ground_truth)."""
+    if policy.is_file():
+        pol = policy.parent
+    elif (policy / "policy").is_dir():
+        pol = policy / "policy"
+    elif policy.is_dir():
+        pol = policy
+    else:
+        raise UserError(
+            f"--policy {policy}: not found; pass a finished `macromicro run` folder, a policy "
+            "folder or its policy.pt"
+        )
+    if data is None:
+        for cand in (pol.parent / "ground_truth", policy / "ground_truth"):
+            if (cand / "manifest.json").is_file():
+                data = cand
+                break
+    if data is None:
+        raise UserError(
+            f"--policy {policy}: no ground_truth folder beside it; pass --data GROUND_TRUTH"
+        )
+    return data, pol
+
+
+def _cmd_deploy(args: argparse.Namespace) -> int:
+    sc = _scenario(args)
+    data, pol = _deploy_inputs(args.policy, args.data)
+    check_out_path(args.out, [data, pol])
+    m = stages.deploy(
+        sc, data, pol, args.out, args.command_line, not args.quiet, args.methods or None
+    )
+    for name, t in m["totals"].items():
+        print(
+            f"{name:>15}: {t['collisions']} collisions, {t['teleports']} teleports, "
+            f"{t['vehicle_steps_driven']} vehicle-steps driven, safety acted {t['safety_acted']}"
+        )
+    print(f"deployment written to {args.out}")
+    return 0
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     stages.run(_scenario(args), args.out, args.command_line, progress=not args.quiet)
     print(f"pipeline outputs in {args.out}")
@@ -183,6 +225,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument(
         "--hidden", type=int, nargs="+", help="hidden counts K (default: generator.hidden_eval)"
+    )
+
+    p = add(
+        "deploy",
+        _cmd_deploy,
+        "Stage III: every method driving the held-out runs' whole demand in SUMO",
+    )
+    p.add_argument("scenario", type=Path, help="scenario TOML")
+    p.add_argument(
+        "--policy",
+        type=Path,
+        required=True,
+        help="a finished `macromicro run` folder, a policy folder, or its policy.pt",
+    )
+    p.add_argument(
+        "--data", type=Path, help="ground-truth folder (default: the run folder's ground_truth)"
+    )
+    p.add_argument("--out", type=Path, required=True, help="output folder (one folder per method)")
+    p.add_argument(
+        "--methods", nargs="+", help="methods to deploy (default: the scenario's deploy.methods)"
     )
 
     p = add("complete", _cmd_complete, "complete the held-out snapshots with a trained generator")

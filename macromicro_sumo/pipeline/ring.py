@@ -1,4 +1,5 @@
-"""The whole pipeline in one call: ground truth -> generator (-> policy -> evaluation).
+"""The whole pipeline in one call: ground truth -> generator (-> policy -> evaluation ->
+deployment).
 
 Each stage writes into its own sub-folder of ``out``. It is skipped when its manifest
 records the scenario's values of every key that it, or a stage it reads from, depends on
@@ -18,6 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from macromicro_sumo.deploy.stage import MANIFEST as DEPLOY_MANIFEST
+from macromicro_sumo.deploy.stage import deploy
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.methods import LEARNED, checkpoint_name
 from macromicro_sumo.evaluation.ring import evaluate
@@ -47,6 +50,8 @@ _REFINE = (
     "policy.refine_lambda_rec",
 )
 _TRUTH_IGNORES = (*_NOWHERE, "generator", "policy", "evaluation")
+# The deploy stage reads [deploy], the ground truth and the policies, not the evaluation.
+DEPLOY_IGNORES = ("name", "policy.objective", "evaluation", *_REFINE)
 _POLICY_IGNORES = (*_NOWHERE, "evaluation", *_REFINE)
 
 
@@ -128,18 +133,20 @@ def standard_stages(
     train_policy: Callable[[Path, Path, Path, str, bool | str], Any],
     evaluate: Callable[[Path, Path, dict[str, Path], Path], Any],
     truth_reads: tuple[str, ...] = (),
+    deploy: Callable[[Path, Path, Path], Any] | None = None,
 ) -> list[Stage]:
-    """Ground truth -> generator -> the paper's policy and its two ablations -> evaluation,
-    in ``out``'s sub-folders; the callables take the folders (and the policy's objective and
-    the resume rule). ``truth_reads``: keys of the later stages' tables the ground truth
-    reads too."""
+    """Ground truth -> generator -> the paper's policy and its two ablations -> evaluation
+    (-> deployment), in ``out``'s sub-folders; the callables take the folders (and the
+    policy's objective and the resume rule). ``truth_reads``: keys of the later stages'
+    tables the ground truth reads too."""
     gt, gen, pol, ev = out / "ground_truth", out / "generator", out / "policy", out / "evaluation"
     upstream = ("simulate", "train_generator")
 
     def train(objective: str) -> Callable[[], Any]:
         return lambda: train_policy(gt, gen / "generator.pt", pol, objective, RESUME)
 
-    return [
+    policies = ("train_policy", "train_policy_micro_only", "train_policy_macro_only")
+    stages = [
         Stage(
             "simulate",
             gt / "manifest.json",
@@ -183,6 +190,17 @@ def standard_stages(
             ignores=(*_NOWHERE, *_REFINE),
         ),
     ]
+    if deploy is not None:
+        stages.append(
+            Stage(
+                "deploy",
+                out / "deploy" / DEPLOY_MANIFEST,
+                lambda: deploy(gt, pol, out / "deploy"),
+                needs=("simulate", *policies),
+                ignores=DEPLOY_IGNORES,
+            )
+        )
+    return stages
 
 
 def run(sc: Scenario, out: Path | str, command: str = "", progress: bool = True) -> dict[str, Any]:
@@ -196,6 +214,7 @@ def run(sc: Scenario, out: Path | str, command: str = "", progress: bool = True)
             sc, gt_, g, pol_, resume, command, progress, obj
         ),
         lambda gt_, g, pols, ev: evaluate(sc, gt_, g, pols, ev, command, progress),
+        deploy=lambda gt_, pol_, dep: deploy(sc, gt_, pol_, dep, command, progress),
     )
     if sc.policy.refine_iterations > 0:
         ref = out / "refined"

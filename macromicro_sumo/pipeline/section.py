@@ -2,7 +2,7 @@
 
 Same shape as ``pipeline.run`` on the ring, with the same stages and skip and resume rules
 (``pipeline.ring.Stage``, ``RESUME``): ground truth -> generator -> three policies (the
-paper's objective and its two ablations) -> evaluation -> report.
+paper's objective and its two ablations) -> evaluation -> deployment -> report.
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from macromicro_sumo.data.section import section_snapshots
+from macromicro_sumo.deploy.stage import deploy
 from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import build_section_bank, typical_vclass
 from macromicro_sumo.evaluation.section import evaluate_section
@@ -87,6 +88,7 @@ def run_section(sc, out: Path | str, command: str = "", progress: bool = True) -
         lambda gt, g, pols, ev: evaluate_section(sc, gt, g, pols, ev, command, progress),
         # The K estimates of the ground truth are on the generator's snapshot grid.
         truth_reads=("generator.snapshot_every_s",),
+        deploy=lambda gt, pol, dep: deploy(sc, gt, pol, dep, command, progress),
     )
     manifest = run_stages(sc, stages, out, command, progress)
     write_section_report(sc, out, manifest)

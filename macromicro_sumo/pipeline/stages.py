@@ -11,6 +11,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from macromicro_sumo.deploy.stage import deploy as deploy_stage
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.ring import evaluate as evaluate_ring
 from macromicro_sumo.evaluation.section import evaluate_section
@@ -92,6 +93,20 @@ def evaluate(
             "from the detectors (generator.k_source)"
         )
     return evaluate_section(sc, data, generator, policies, out, command, progress)
+
+
+@_one_writer
+def deploy(
+    sc: Any,
+    data: Path,
+    policy: Path | None,
+    out: Path,
+    command: str = "",
+    progress: bool = True,
+    methods: list[str] | None = None,
+) -> dict[str, Any]:
+    """Stage III: every method over the held-out runs' whole demand, in ``out/<method>``."""
+    return deploy_stage(sc, data, policy, out, command, progress, methods)
 
 
 @_one_writer

@@ -134,11 +134,12 @@ class DeployConfig:
         choices=DEPLOY_METHODS,
         doc="methods deployed, each into deploy/<method>/ (default: all)",
     )
+    # On by default: the policy alone collided on the Bremen example (0 collisions with it).
     safety: str = spec(
-        "none",
+        "sumo",
         choices=("none", "sumo"),
-        doc="none: speed commands applied exactly; sumo: SUMO caps them at its model's safe "
-        "speed, right of way and red lights (runs.csv counts how often: safety_acted)",
+        doc="sumo: SUMO caps the speed commands at its model's safe speed, right of way and "
+        "red lights (runs.csv counts how often: safety_acted); none: applied exactly",
     )
     fcd_s: float = spec(
         120.0, lo=0.0, hi=1e6, doc="trajectories.csv keeps the first fcd_s recorded seconds [s]"

@@ -346,6 +346,15 @@ class Simulation:
                 return float(dist)
         return float("inf")
 
+    def lane_end_m(self, vehicle_id: str, lane_id: str, pos_m: float) -> float:
+        """Distance from the vehicle's front to the end of its lane when the vehicle must
+        leave that lane to follow its route (an acceleration lane, a lane drop); inf when
+        the lane carries it on."""
+        for lane, length, _occ, offset, _cont, _next in libsumo.vehicle.getBestLanes(vehicle_id):
+            if lane == lane_id:
+                return float(length - pos_m) if offset != 0 else float("inf")
+        return float("inf")
+
     def vtype_shape(self, type_id: str) -> tuple[float, float, float]:
         """(length, minGap, decel) of a vType [m, m, m/s^2]."""
         vt = libsumo.vehicletype

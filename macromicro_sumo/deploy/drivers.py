@@ -1,0 +1,438 @@
+"""Who drives in a deployment: drivers the ground truth's run loops call before every step.
+
+A driver (``sumo.simulation.Driver``) reads the live SUMO state it needs and drives the
+vehicles of the driven population, the others keep their own SUMO models:
+
+* on a section (``SectionDriver`` and its subclasses) the population is every vehicle that
+  is not instrumented (``truth.section.is_instrumented``), or a share of them drawn per
+  vehicle by a hash, or one vType; each is driven from the step it is on a lane of the
+  section until it leaves the section;
+* on the ring (``RingDriver`` ...) the population is the fleet, or a share of it.
+
+Two ways to drive: speed commands (``*SpeedDriver``: v + a dt with a from a batched action
+function, for the learned policies) and a vType switch (``*TypeDriver``: SUMO's own model
+with other parameters, for the IDM baselines and SUMO's defaults). The passive base classes
+drive nobody: the oracle, which only counts. Every driver counts per run:
+``vehicle_steps_driven``, ``safety_acted`` (speed commands SUMO lowered by more than
+0.01 m/s) and ``emergency_brakings`` (vehicle-steps, all vehicles on the road, whose
+acceleration was below minus the decel of their own demand vType by more than 0.01 m/s^2).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from macromicro_sumo.road.physics import lookahead_features, ring_leaders
+from macromicro_sumo.road.ring import RingGeometry
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
+from macromicro_sumo.sumo.simulation import Simulation
+from macromicro_sumo.truth.section import is_instrumented
+
+# Obs (V, D) -> acceleration (V,) [m/s^2]: one batched call for every driven vehicle.
+ActionBatch = Callable[[np.ndarray], np.ndarray]
+
+# Speed modes of speed-commanded vehicles (SUMO's bits, ``sumo.simulation``). "none" applies
+# the command exactly (32: no safe speed, no accel/decel limits, no right of way, no braking
+# for red lights). "sumo" (24) keeps right of way and red lights, and the driver caps each
+# command at SUMO's Krauss safe speed behind the leader it observes (``safe_speed``):
+# SUMO's own safe-speed bit is left off because it also caps at the lane's limit times the
+# speed factor and at its model's choice (IDM's follow speed is its next speed), no safety.
+SPEED_MODES = {"none": 32, "sumo": 24}
+SAFETY_TOLERANCE_MPS = 0.01
+STOP_DECEL_MPS2 = 9.0  # a standing "leader" (stop line, lane end) never brakes: any value
+BRAKING_TOLERANCE_MPS2 = 0.01
+
+
+def in_share(seed: int, run: int, vehicle_id: str, share: float) -> bool:
+    """Whether a vehicle is in a driven share: a hash of (seed, run, vehicle), so the same
+    vehicles are chosen whatever method drives and however often the run is repeated."""
+    if share >= 1.0:
+        return True
+    h = hashlib.sha256(f"deploy|{seed}|{run}|{vehicle_id}".encode()).digest()
+    return int.from_bytes(h[:8], "little") / 2**64 < share
+
+
+@dataclass
+class DriveStats:
+    """What a driver counted over one run."""
+
+    vehicle_steps_driven: int = 0
+    safety_acted: int = 0
+    emergency_brakings: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return {
+            "emergency_brakings": self.emergency_brakings,
+            "vehicle_steps_driven": self.vehicle_steps_driven,
+            "safety_acted": self.safety_acted,
+        }
+
+
+@dataclass
+class SwitchedType:
+    """A vType switch: the vType each demand vType's vehicles get, and their speed factor
+    (a number, or None to draw one per vehicle around SUMO's default 1 with sd 0.1)."""
+
+    type_of: dict[str, str]
+    speed_factor: float | None
+    rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
+
+    def factors(self, n: int) -> np.ndarray:
+        if self.speed_factor is not None:
+            return np.full(n, self.speed_factor)
+        # SUMO's passenger default: normal(1, 0.1) cut at two deviations.
+        return np.clip(self.rng.normal(1.0, 0.1, n), 0.8, 1.2)
+
+
+# --------------------------------------------------------------------------- sections
+
+
+class SectionDriver:
+    """Drives nobody (the oracle); keeps track of the population on the section and counts."""
+
+    drives = False  # the oracle's vehicles are SUMO's: none counts as driven
+
+    def __init__(self, sc, section: Section, run: int) -> None:
+        self.sc, self.section, self.run = sc, section, run
+        self.stats = DriveStats()
+        self.types: dict[str, str] = {}  # vehicle -> its demand vType
+        self.population: set[str] = set()  # vehicles this method may drive
+        self.driven: set[str] = set()  # driven now (on the section)
+        self.shapes: dict[str, tuple[float, float, float]] = {}  # vType -> length, minGap, decel
+
+    def before_step(self, sim: Simulation) -> None:
+        new = sim.departed()
+        if new:
+            self.arrive(sim, new)
+        states = sim.read_lane_states()
+        self.count_brakings(states)
+        now = {v for v in self.population if v in states and states[v][0] in self.section.lanes}
+        left = [v for v in self.driven if v not in now and v in states]
+        if left:
+            self.release(sim, sorted(left))
+        entered = sorted(now - self.driven)
+        if entered:
+            self.take(sim, entered)
+        self.driven = now
+        self.stats.vehicle_steps_driven += len(now) if self.drives else 0
+        if now:
+            self.drive(sim, sorted(now), states)
+
+    def arrive(self, sim: Simulation, new: tuple[str, ...]) -> None:
+        dep = self.sc.deploy
+        for vid in new:
+            vt = sim.vehicle_type(vid)
+            self.types[vid] = vt
+            if vt not in self.shapes:
+                self.shapes[vt] = sim.vtype_shape(vt)
+            if is_instrumented(self.sc, vid, vt, self.run):
+                continue
+            if dep.vtype and vt != dep.vtype:
+                continue
+            if in_share(self.sc.seed, self.run, vid, dep.share):
+                self.population.add(vid)
+
+    def count_brakings(self, states: dict[str, tuple[str, float, float, float]]) -> None:
+        n = 0
+        for vid, (_lane, _pos, _v, acc) in states.items():
+            vt = self.types.get(vid)
+            # The decel of the vehicle's own demand vType, whatever it drives with now.
+            if vt is not None and acc < -self.shapes[vt][2] - BRAKING_TOLERANCE_MPS2:
+                n += 1
+        self.stats.emergency_brakings += n
+
+    def take(self, sim: Simulation, vids: list[str]) -> None:
+        """Vehicles that entered the section (or the population's drive) this step."""
+
+    def release(self, sim: Simulation, vids: list[str]) -> None:
+        """Vehicles that left the section: back to their own model."""
+
+    def drive(self, sim: Simulation, vids: list[str], states: dict) -> None:
+        """Act on the vehicles driven now (sorted), before the step."""
+
+
+class SectionSpeedDriver(SectionDriver):
+    """Speed commands from ``act`` for every driven vehicle, one batched call per step."""
+
+    drives = True
+
+    def __init__(
+        self,
+        sc,
+        section: Section,
+        run: int,
+        act: ActionBatch,
+        safety: str,
+    ) -> None:
+        super().__init__(sc, section, run)
+        self.act = act
+        self.safety = safety
+        self.mode = SPEED_MODES[safety]
+        self.commands: dict[str, float] = {}
+        self.has_lights: bool | None = None
+
+    def arrive(self, sim: Simulation, new: tuple[str, ...]) -> None:
+        super().arrive(sim, new)
+        # Every vehicle's leader is read from SUMO (a driven vehicle's or not: cheap).
+        sim.subscribe_driving(new, NO_LEADER_GAP_M)
+
+    def take(self, sim: Simulation, vids: list[str]) -> None:
+        sim.set_speed_mode(vids, self.mode)
+
+    def release(self, sim: Simulation, vids: list[str]) -> None:
+        sim.release_speeds(vids)
+        for v in vids:
+            self.commands.pop(v, None)
+
+    def drive(self, sim: Simulation, vids: list[str], states: dict) -> None:
+        for v in vids:  # last step's command against the speed SUMO applied
+            cmd = self.commands.get(v)
+            if cmd is not None and states[v][2] < cmd - SAFETY_TOLERANCE_MPS:
+                self.stats.safety_acted += 1
+        if self.has_lights is None:
+            self.has_lights = sim.has_traffic_lights()
+        obs, gap, lead_decel = section_observations(self, sim, vids, states)
+        a_min, a_max = self.sc.bounds.accel_mps2
+        a = np.clip(self.act(obs), a_min, a_max)
+        cmd = np.maximum(0.0, obs[:, 0] + a * self.sc.simulation.step_length_s)
+        if self.safety == "sumo":
+            own = np.array([self.shapes[self.types[v]][2] for v in vids])
+            cmd = safety_cap(self, cmd, obs, gap, own, lead_decel)
+        sim.set_speeds(vids, cmd)
+        self.commands = dict(zip(vids, cmd.tolist(), strict=True))
+
+
+def safe_speed(
+    gap_m: np.ndarray,
+    leader_speed_mps: np.ndarray,
+    decel_mps2: np.ndarray,
+    leader_decel_mps2: np.ndarray,
+    dt_s: float,
+) -> np.ndarray:
+    """SUMO's Krauss safe speed (Gipps): the fastest speed from which the vehicle, reacting
+    one step later and braking at its decel, stops behind a leader braking at its decel:
+    v dt + v^2 / 2b <= gap + v_l^2 / 2b_l."""
+    reach = np.maximum(gap_m, 0.0) + leader_speed_mps**2 / (2.0 * leader_decel_mps2)
+    bt = decel_mps2 * dt_s
+    return -bt + np.sqrt(bt**2 + 2.0 * decel_mps2 * reach)
+
+
+def safety_cap(
+    drv: SectionSpeedDriver | RingSpeedDriver,
+    cmd: np.ndarray,
+    obs: np.ndarray,
+    gap: np.ndarray,
+    decel: np.ndarray,
+    lead_decel: np.ndarray,
+) -> np.ndarray:
+    """``cmd`` capped at ``safe_speed`` behind each vehicle's observed leader (none within
+    the look-ahead: no cap); counts the capped vehicle-steps in ``safety_acted``."""
+    safe = safe_speed(
+        gap, obs[:, 0] - obs[:, 3], decel, lead_decel, drv.sc.simulation.step_length_s
+    )
+    safe = np.where(gap < NO_LEADER_GAP_M, safe, np.inf)
+    drv.stats.safety_acted += int((safe < cmd - SAFETY_TOLERANCE_MPS).sum())
+    return np.minimum(cmd, safe)
+
+
+def section_observations(
+    drv: SectionSpeedDriver, sim: Simulation, vids: list[str], states: dict
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Observations (V, obs_dim) of driven vehicles as the section env defines them
+    (``env.section_bank.section_observations``), the leader from SUMO: front-to-front
+    spacing = SUMO's gap + own minGap + leader's length; a red or yellow light, or the end
+    of a lane the vehicle must leave (an on-ramp's acceleration lane), nearer than the
+    leader is a standing leader there (its back at the line, a vehicle length long).
+    Also returns SUMO's gap to that leader and the leader's decel (for ``safety_cap``)."""
+    sec = drv.section
+    leaders = sim.read_leaders()
+    n = len(vids)
+    speed = np.array([states[v][2] for v in vids])
+    lane = np.empty(n, dtype=np.int64)
+    edge = np.empty(n, dtype=np.int64)
+    arc = np.empty(n)
+    spacing = np.full(n, NO_LEADER_GAP_M)
+    sumo_gap = np.full(n, NO_LEADER_GAP_M)
+    lead_decel = np.full(n, STOP_DECEL_MPS2)
+    lead_v = speed.copy()  # delta_v 0 without a leader
+    for i, v in enumerate(vids):
+        e, idx, start, scale = sec.lanes[states[v][0]]
+        edge[i], lane[i], arc[i] = e, idx, start + states[v][1] * scale
+        length, min_gap, _ = drv.shapes[drv.types[v]]
+        lid, gap = leaders.get(v, ("", -1.0))
+        if lid and lid in states:
+            lead_len, _, decel = drv.shapes[drv.types[lid]]
+            s = gap + min_gap + lead_len
+            if s < NO_LEADER_GAP_M:
+                spacing[i], lead_v[i] = s, states[lid][2]
+                sumo_gap[i], lead_decel[i] = gap, decel
+        # A red light, or the end of a lane the vehicle must leave: a standing leader there.
+        stop = sim.lane_end_m(v, states[v][0], states[v][1])
+        if drv.has_lights:
+            stop = min(stop, sim.stop_line_m(v))
+        if stop + length < spacing[i]:
+            spacing[i], lead_v[i] = stop + length, 0.0
+            sumo_gap[i], lead_decel[i] = max(stop - min_gap, 0.0), STOP_DECEL_MPS2
+    limit = sec.limits_mps[edge, np.minimum(lane, sec.n_lanes[edge] - 1)]
+    cols = [speed, limit, spacing, speed - lead_v]
+    if drv.sc.policy.observation == "lookahead":
+        cols += list(section_lookahead(sec, lane, arc, edge, limit))
+    return np.stack(cols, axis=1), sumo_gap, lead_decel
+
+
+def section_lookahead(
+    sec: Section, lane: np.ndarray, arc_m: np.ndarray, edge: np.ndarray, own_limit: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The next edge's limit on the vehicle's lane index and the distance to that edge's
+    start; on an open section's last edge the own limit and the distance to its end (the
+    section env's definition, ``env.section_bank``)."""
+    n_e = len(sec.edge_ids)
+    if sec.closed:
+        s = np.mod(arc_m, sec.length_m)
+        nxt = (edge + 1) % n_e
+        start = sec.offsets_m[nxt] + np.where(nxt == 0, sec.length_m, 0.0)
+        return sec.limits_mps[nxt, np.minimum(lane, sec.n_lanes[nxt] - 1)], start - s
+    last = edge == n_e - 1
+    nxt = np.minimum(edge + 1, n_e - 1)
+    limit = np.where(last, own_limit, sec.limits_mps[nxt, np.minimum(lane, sec.n_lanes[nxt] - 1)])
+    start = np.where(last, sec.length_m, sec.offsets_m[nxt])
+    return limit, start - arc_m
+
+
+class SectionTypeDriver(SectionDriver):
+    """Driven vehicles switched to another vType while on the section (SUMO drives them
+    with that vType's model and parameters), switched back when they leave it."""
+
+    drives = True
+
+    def __init__(self, sc, section: Section, run: int, switch: SwitchedType) -> None:
+        super().__init__(sc, section, run)
+        self.switch = switch
+        self.own_factor: dict[str, float] = {}
+        self.factor: dict[str, float] = {}  # one draw per vehicle, kept on re-entry
+
+    def take(self, sim: Simulation, vids: list[str]) -> None:
+        own = sim.speed_factors(vids)
+        fresh = [v for v in vids if v not in self.factor]
+        self.factor.update(zip(fresh, self.switch.factors(len(fresh)).tolist(), strict=True))
+        self.own_factor.update(zip(vids, own.tolist(), strict=True))
+        sim.set_types(vids, [self.switch.type_of[self.types[v]] for v in vids])
+        sim.set_speed_factors(vids, [self.factor[v] for v in vids])
+
+    def release(self, sim: Simulation, vids: list[str]) -> None:
+        sim.set_types(vids, [self.types[v] for v in vids])
+        sim.set_speed_factors(vids, [self.own_factor[v] for v in vids])
+
+
+# --------------------------------------------------------------------------- the ring
+
+
+class RingDriver:
+    """Drives nobody on the ring (the oracle); counts emergency brakings of the fleet."""
+
+    drives = False
+
+    def __init__(
+        self,
+        sc,
+        geo: RingGeometry,
+        run: int,
+        ids: list[str],
+        limits_mps: np.ndarray,
+        decel: np.ndarray,
+    ) -> None:
+        self.sc, self.geo, self.ids = sc, geo, ids
+        self.limits = limits_mps
+        self.decel = decel
+        self.edge_index = {e: i for i, e in enumerate(geo.edge_ids)}
+        share = sc.deploy.share
+        self.mask = np.array([in_share(sc.seed, run, v, share) for v in ids], dtype=bool)
+        self.driven = [v for v, m in zip(ids, self.mask, strict=True) if m]
+        self.stats = DriveStats()
+        self.prev_speed: np.ndarray | None = None
+        self.started = False
+
+    def before_step(self, sim: Simulation) -> None:
+        e, p, v = sim.read_states(self.ids, self.edge_index)
+        if self.prev_speed is not None:
+            a = (v - self.prev_speed) / self.sc.simulation.step_length_s
+            self.stats.emergency_brakings += int((a < -self.decel - BRAKING_TOLERANCE_MPS2).sum())
+        self.prev_speed = v
+        if not self.started:
+            self.started = True
+            self.take(sim)
+        self.stats.vehicle_steps_driven += len(self.driven) if self.drives else 0
+        self.drive(sim, self.geo.offsets_m[e] + p, v, e)
+
+    def take(self, sim: Simulation) -> None:
+        """The driven vehicles, before the first driven step."""
+
+    def drive(self, sim: Simulation, arc: np.ndarray, speed: np.ndarray, edge: np.ndarray) -> None:
+        """Act on the driven vehicles, before the step."""
+
+
+class RingSpeedDriver(RingDriver):
+    """Speed commands from ``act``; observations as the ring env's (``env.ring``): leaders
+    and spacings from arc positions around the ring, lookahead to the next edge."""
+
+    drives = True
+
+    def __init__(
+        self, *args, act: ActionBatch, safety: str, length: np.ndarray, min_gap: np.ndarray
+    ) -> None:
+        super().__init__(*args)
+        self.act = act
+        self.safety = safety
+        self.length, self.min_gap = length, min_gap
+        self.mode = SPEED_MODES[safety]
+        self.commands: np.ndarray | None = None
+
+    def take(self, sim: Simulation) -> None:
+        sim.set_speed_mode(self.driven, self.mode)
+
+    def drive(self, sim: Simulation, arc: np.ndarray, speed: np.ndarray, edge: np.ndarray) -> None:
+        m = self.mask
+        if self.commands is not None:
+            self.stats.safety_acted += int((speed[m] < self.commands - SAFETY_TOLERANCE_MPS).sum())
+        full = ring_observations(self, arc, speed, edge)
+        obs = full[m]
+        a_min, a_max = self.sc.bounds.accel_mps2
+        a = np.clip(self.act(obs), a_min, a_max)
+        cmd = np.maximum(0.0, speed[m] + a * self.sc.simulation.step_length_s)
+        if self.safety == "sumo":
+            leader, _ = ring_leaders(np.mod(arc, self.geo.length_m), self.geo.length_m)
+            gap = obs[:, 2] - self.length[leader[m]] - self.min_gap[m]
+            cmd = safety_cap(self, cmd, obs, gap, self.decel[m], self.decel[leader[m]])
+        self.commands = cmd
+        sim.set_speeds(self.driven, self.commands)
+
+
+def ring_observations(
+    drv: RingDriver, arc: np.ndarray, speed: np.ndarray, edge: np.ndarray
+) -> np.ndarray:
+    """Every vehicle's [v, v_limit, spacing, v - v_leader] (+ lookahead), as the ring env."""
+    geo = drv.geo
+    arc = np.mod(arc, geo.length_m)
+    leader, spacing = ring_leaders(arc, geo.length_m)
+    cols = [speed, drv.limits[edge], spacing, speed - speed[leader]]
+    if drv.sc.policy.observation == "lookahead":
+        cols += list(lookahead_features(arc, edge, geo.offsets_m, geo.lengths_m, drv.limits))
+    return np.stack(cols, axis=1)
+
+
+class RingTypeDriver(RingDriver):
+    """The driven vehicles switched to another vType for the whole run."""
+
+    drives = True
+
+    def __init__(self, *args, switch: SwitchedType) -> None:
+        super().__init__(*args)
+        self.switch = switch
+
+    def take(self, sim: Simulation) -> None:
+        sim.set_types(self.driven, [self.switch.type_of["fleet"]] * len(self.driven))
+        sim.set_speed_factors(self.driven, self.switch.factors(len(self.driven)))

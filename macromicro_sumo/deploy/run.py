@@ -1,0 +1,314 @@
+"""One method deployed over whole runs: the ground truth's run loops with a driver.
+
+``load_context`` reads what every deployment of a scenario shares: the held-out runs of
+its ground truth and how to re-run them with the same seeds (a section: SUMO seed
+``sc.seed + run``; the ring: every ``RunSpec`` re-drawn from ``sc.seed`` in run order), so
+that the only difference from the ground truth is who drives. ``run_method`` steps some of
+those runs with a method's driver and returns the outputs in the ground truth's schemas
+(``DeployResult``); ``write_method`` writes them into one method's folder.
+
+A method that switches the driven vehicles to an IDM vType takes its parameters ``theta``
+(SUMO's attribute names: accel, decel, tau, minGap, speedFactor and optionally delta), so a
+calibration (``deploy.calibrate``) can deploy any candidate through ``run_method``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from macromicro_sumo.data.ring import load_ground_truth, split_runs
+from macromicro_sumo.deploy.drivers import (
+    ActionBatch,
+    RingDriver,
+    RingSpeedDriver,
+    RingTypeDriver,
+    SectionDriver,
+    SectionSpeedDriver,
+    SectionTypeDriver,
+    SwitchedType,
+)
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.files import write_csv, write_manifest
+from macromicro_sumo.road.ring import RingGeometry
+from macromicro_sumo.road.section import Section
+from macromicro_sumo.scenario.section import SectionScenario
+from macromicro_sumo.sumo.demand import VType
+from macromicro_sumo.sumo.inputs import SumoInputs
+from macromicro_sumo.truth.ring import (
+    RunSpec,
+    check_ring,
+    ring_detector_tables,
+    run_ring,
+    run_specs,
+)
+from macromicro_sumo.truth.section import (
+    load_section,
+    load_section_truth,
+    read_run_detectors,
+    run_section,
+    section_macro,
+)
+from macromicro_sumo.truth.section_detectors import place_detectors
+
+# runs.csv's columns beyond the ground truth's (``deploy.drivers``), totals in the manifest.
+SAFETY_COLUMNS = (
+    "collisions",
+    "teleports",
+    "emergency_brakings",
+    "vehicle_steps_driven",
+    "safety_acted",
+)
+# The vType every driven vehicle of the ring's fleet is switched to (its demand has one
+# vType per vehicle).
+FLEET = "fleet"
+
+
+@dataclass(frozen=True)
+class Drive:
+    """How a method drives: ``act`` (speed commands), ``theta`` (an IDM vType with these
+    parameters), ``defaults`` (SUMO's default model and parameters of each vClass), or
+    nothing of these (the oracle: SUMO drives every vehicle with its true model)."""
+
+    act: ActionBatch | None = None
+    theta: dict[str, float] | None = None
+    defaults: bool = False
+
+
+@dataclass
+class DeployContext:
+    """What every deployment of one scenario shares (``load_context``)."""
+
+    sc: Any
+    truth_dir: Path
+    held_out: list[int]
+    section: Section | None = None
+    inputs: SumoInputs | None = None
+    placed: list | None = None
+    vtypes: dict[str, VType] | None = None
+    vclass: dict[str, str] | None = None  # demand vType -> vClass (from vtypes.csv)
+    geo: RingGeometry | None = None
+    files: tuple[Path, Path] | None = None
+    specs: dict[int, RunSpec] | None = None
+    truth_runs: pd.DataFrame | None = None
+
+    @property
+    def is_section(self) -> bool:
+        return self.section is not None
+
+
+@dataclass
+class DeployResult:
+    """A deployment's outputs over its runs, in the ground truth's schemas."""
+
+    trajectories: pd.DataFrame
+    detectors: pd.DataFrame
+    passages: pd.DataFrame
+    macro: pd.DataFrame
+    runs: pd.DataFrame
+
+
+def load_context(sc: Any, truth_dir: Path | str) -> DeployContext:
+    """The held-out runs of the ground truth in ``truth_dir`` and how to re-run them."""
+    truth_dir = Path(truth_dir)
+    if isinstance(sc, SectionScenario):
+        truth = load_section_truth(truth_dir, sc)
+        held = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)["held_out"]
+        inputs, section, vtypes = load_section(sc)
+        if sc.deploy.vtype and sc.deploy.vtype not in vtypes:
+            raise UserError(
+                f"{sc.source}: deploy.vtype = {sc.deploy.vtype!r} is not a vType of the demand; "
+                f"accepted: one of {', '.join(sorted(vtypes))}"
+            )
+        vt = truth.vtypes
+        vclass = dict(zip(vt["vtype"], vt["vclass"].astype(str), strict=True))
+        return DeployContext(
+            sc,
+            truth_dir,
+            [int(r) for r in held],
+            section=section,
+            inputs=inputs,
+            placed=place_detectors(sc, inputs, section),
+            vtypes=vtypes,
+            vclass=vclass,
+        )
+    gt = load_ground_truth(truth_dir, sc)
+    held = [
+        int(r) for r in split_runs(gt.runs, sc.generator.held_out_fraction, sc.seed)["held_out"]
+    ]
+    geo, net_file, routes_file = check_ring(sc)
+    specs = {s.run: s for s in run_specs(sc, geo)}
+    for r in held:  # the re-drawn runs must be the recorded ones
+        rec = gt.vehicles[gt.vehicles["run"] == r]["initial_arc_m"].to_numpy()
+        if r not in specs or not np.allclose(rec, specs[r].arc0_m, atol=1e-4):
+            raise UserError(
+                f"{truth_dir}: run {r} of the ground truth is not the one scenario {sc.source} "
+                "draws (another seed or fleet?); re-run `macromicro simulate`"
+            )
+    return DeployContext(sc, truth_dir, held, geo=geo, files=(net_file, routes_file), specs=specs)
+
+
+# --------------------------------------------------------------------------- vTypes
+
+
+def vtype_xml(rows: dict[str, tuple[str, float]], drive: Drive) -> tuple[str, dict]:
+    """(additional-file XML, demand vType -> switched vType) for a vType-switching method.
+
+    ``rows``: demand vType -> (vClass, length). Defaults: only vClass and length are given,
+    SUMO fills in its model and parameters for that vClass. IDM: ``theta``'s parameters with
+    SUMO's own IDM integration (its default ``stepping``), no speed deviation (the vehicles
+    get ``theta``'s speedFactor).
+    """
+    lines, type_of = [], {}
+    for i, (vt, (vclass, length)) in enumerate(sorted(rows.items())):
+        tid = f"deploy_{i}"
+        type_of[vt] = tid
+        attrs = f'id="{tid}" vClass="{vclass}" length="{length:g}"'
+        if drive.theta is not None:
+            th = drive.theta
+            attrs += (
+                f' carFollowModel="IDM" accel="{th["accel"]:.4f}" decel="{th["decel"]:.4f}"'
+                f' tau="{th["tau"]:.4f}" minGap="{th["minGap"]:.4f}"'
+                f' delta="{th.get("delta", 4.0):g}" speedFactor="{th["speedFactor"]:.4f}"'
+                f' speedDev="0"'
+            )
+        lines.append(f"    <vType {attrs}/>")
+    return "<additional>\n" + "\n".join(lines) + "\n</additional>\n", type_of
+
+
+def _switch_file(ctx: DeployContext, drive: Drive, stage: Path) -> tuple[tuple[Path, ...], dict]:
+    """The additional file with the vTypes a method switches to (none for the others)."""
+    if drive.theta is None and not drive.defaults:
+        return (), {}
+    sc = ctx.sc
+    if ctx.is_section:
+        rows = {v: (ctx.vclass.get(v, "passenger"), t.length_m) for v, t in ctx.vtypes.items()}
+    else:
+        rows = {FLEET: ("passenger", sc.fleet.length_m)}
+    text, type_of = vtype_xml(rows, drive)
+    path = stage / "sumo" / "deploy_vtypes.add.xml"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return (path,), type_of
+
+
+# --------------------------------------------------------------------------- runs
+
+
+def run_method(
+    ctx: DeployContext,
+    drive: Drive,
+    stage: Path,
+    runs: list[int] | None = None,
+    progress: bool = False,
+    desc: str = "deploy",
+) -> DeployResult:
+    """Step ``runs`` (default: the held-out ones) with ``drive``; SUMO's files under
+    ``stage/sumo``."""
+    runs = ctx.held_out if runs is None else runs
+    extra, type_of = _switch_file(ctx, drive, stage)
+    drivers: dict[int, Any] = {}
+    speed = drive.theta["speedFactor"] if drive.theta is not None else None
+    sc = ctx.sc
+
+    def switch(run: int) -> SwitchedType:
+        return SwitchedType(type_of, speed, np.random.default_rng([sc.seed, run, 17]))
+
+    if ctx.is_section:
+        result = _section_runs(ctx, drive, stage, runs, extra, switch, drivers, progress, desc)
+    else:
+        result = _ring_runs(ctx, drive, stage, runs, extra, switch, drivers, progress, desc)
+    counts = pd.DataFrame([{"run": r, **drivers[r].stats.as_dict()} for r in runs])
+    result.runs = result.runs.merge(counts, on="run", how="left")
+    return result
+
+
+def _section_runs(ctx, drive, stage, runs, extra, switch, drivers, progress, desc):
+    sc = ctx.sc
+
+    def driver_for(run: int) -> SectionDriver:
+        args = (sc, ctx.section, run)
+        if drive.act is not None:
+            d = SectionSpeedDriver(*args, drive.act, sc.deploy.safety)
+        elif drive.theta is not None or drive.defaults:
+            d = SectionTypeDriver(*args, switch(run))
+        else:
+            d = SectionDriver(*args)
+        drivers[run] = d
+        return d
+
+    inputs = ctx.inputs
+    if extra:
+        inputs = dataclasses.replace(inputs, additional_files=(*inputs.additional_files, *extra))
+    trajs, rows, _ = run_section(
+        sc, inputs, ctx.section, ctx.placed, stage, runs, progress, driver_for, desc
+    )
+    det, pas = read_run_detectors(stage, runs, ctx.placed)
+    traj = pd.concat(trajs, ignore_index=True)
+    det_macro, tr_macro = section_macro(sc, ctx.section, traj, det, pas, ctx.vtypes)
+    macro = pd.concat([det_macro, tr_macro], ignore_index=True)
+    return DeployResult(traj, det, pas, macro, pd.DataFrame(rows))
+
+
+def _ring_runs(ctx, drive, stage, runs, extra, switch, drivers, progress, desc):
+    sc = ctx.sc
+    specs = [ctx.specs[r] for r in runs]
+
+    def driver_for(spec: RunSpec) -> RingDriver:
+        ids = list(spec.params["vehicle_id"])
+        decel = spec.params["decel_mps2"].to_numpy()
+        args = (sc, ctx.geo, spec.run, ids, spec.limits_mps, decel)
+        if drive.act is not None:
+            d = RingSpeedDriver(
+                *args,
+                act=drive.act,
+                safety=sc.deploy.safety,
+                length=spec.params["length_m"].to_numpy(),
+                min_gap=spec.params["min_gap_m"].to_numpy(),
+            )
+        elif drive.theta is not None or drive.defaults:
+            d = RingTypeDriver(*args, switch=switch(spec.run))
+        else:
+            d = RingDriver(*args)
+        drivers[spec.run] = d
+        return d
+
+    trajs, rows, _ = run_ring(
+        sc, ctx.geo, ctx.files, stage, specs, progress, driver_for, extra, desc
+    )
+    traj = pd.concat(trajs, ignore_index=True)
+    det, pas, macro = ring_detector_tables(sc, ctx.geo, stage, specs, traj)
+    return DeployResult(traj, det, pas, macro, pd.DataFrame(rows).drop(columns="sim_wall_s"))
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def first_seconds(traj: pd.DataFrame, seconds: float) -> pd.DataFrame:
+    """The rows of each run's first ``seconds`` recorded seconds (FCD kept small)."""
+    t0 = traj.groupby("run")["time_s"].transform("min")
+    return traj[traj["time_s"] < t0 + seconds - 1e-9].reset_index(drop=True)
+
+
+def write_method(
+    ctx: DeployContext, res: DeployResult, folder: Path, manifest: dict[str, Any]
+) -> None:
+    """One method's folder (SUMO's files already in ``folder/sumo``) and its manifest."""
+    sc = ctx.sc
+    write_csv(first_seconds(res.trajectories, sc.deploy.fcd_s), folder / "trajectories.csv")
+    write_csv(res.detectors, folder / "detectors.csv")
+    write_csv(res.passages, folder / "detector_passages.csv")
+    write_csv(res.macro, folder / "macro.csv")
+    write_csv(res.runs, folder / "runs.csv")
+    if ctx.is_section:
+        ctx.section.write(folder / "section.json")
+    else:
+        specs = [ctx.specs[r] for r in sorted(res.runs["run"])]
+        write_csv(pd.concat([s.params for s in specs], ignore_index=True), folder / "vehicles.csv")
+    totals = {c: int(res.runs[c].sum()) for c in SAFETY_COLUMNS}
+    write_manifest({**manifest, **totals}, folder)

@@ -1,0 +1,223 @@
+"""Stage III: every method deployed population-wide on the held-out runs (``deploy``).
+
+The methods (``DEPLOY_METHODS``; names as the evaluation's where they are the same method):
+
+* ``policy``, ``micro_only``, ``macro_only``: the learned checkpoints, speed commands from
+  the policy's deterministic mean action, one batched torch call per step for every driven
+  vehicle (``deploy.drivers``);
+* ``idm_calibrated``: the IDM least-squares-fitted to the observed vehicles' (observation,
+  action) pairs of the training runs, as the evaluation fits it (``evaluation.idm_fit``),
+  applied by switching the driven vehicles to an IDM vType with those parameters: SUMO's
+  own IDM drives them (with its own leaders, red lights and right of way);
+* ``sumo_default``: the driven vehicles switched to a vType with SUMO's default model and
+  parameters of their vClass, only length and vClass kept: what a user gets without
+  calibration;
+* ``oracle``: nobody is switched; SUMO drives every vehicle with its true model and
+  parameters, so its detector outputs are the ground truth's.
+
+A method that is "an IDM vType with parameters theta" is ``Drive(theta=...)``
+(``deploy.run``): a detector-calibrated IDM (``deploy.calibrate``) plugs in there.
+
+Outputs: ``out/<method>/`` per method (``deploy.run.write_method``: the ground truth's
+files for the held-out runs, runs.csv with the safety counts, SUMO's files under sumo/,
+manifest.json) and ``out/deploy_manifest.json``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from macromicro_sumo.data.ring import load_ground_truth, split_runs
+from macromicro_sumo.deploy.drivers import ActionBatch
+from macromicro_sumo.deploy.run import (
+    SAFETY_COLUMNS,
+    DeployContext,
+    Drive,
+    load_context,
+    run_method,
+    write_method,
+)
+from macromicro_sumo.env.section_bank import typical_length
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.evaluation import ring as ring_eval
+from macromicro_sumo.evaluation import section as section_eval
+from macromicro_sumo.evaluation.idm_fit import IdmParams, calibrate_idm
+from macromicro_sumo.evaluation.methods import BY_NAME
+from macromicro_sumo.files import prepare_out_dir, staging_dir, write_stage_manifest
+from macromicro_sumo.manifest import build_manifest
+from macromicro_sumo.policy.agent import Agent
+from macromicro_sumo.policy.checkpoint import load_policy, policy_file
+from macromicro_sumo.progress import tqdm
+from macromicro_sumo.truth.section import load_section_truth
+
+MANIFEST = "deploy_manifest.json"
+
+
+@dataclass(frozen=True)
+class DeployMethod:
+    """One deployed method: ``how`` it drives (``learned``, ``idm``, ``defaults``,
+    ``oracle``), what it is, and the PPO objective of a learned one."""
+
+    name: str
+    how: str
+    what: str
+    objective: str = ""
+
+
+def _what(name: str, fallback: str) -> str:
+    return BY_NAME[name].what if name in BY_NAME else fallback
+
+
+DEPLOY_METHODS: tuple[DeployMethod, ...] = (
+    DeployMethod("policy", "learned", _what("policy", ""), "mix"),
+    DeployMethod("micro_only", "learned", _what("micro_only", ""), "micro_only"),
+    DeployMethod("macro_only", "learned", _what("macro_only", ""), "macro_only"),
+    DeployMethod("idm_calibrated", "idm", _what("idm_calibrated", "")),
+    DeployMethod("sumo_default", "defaults", "SUMO's default model and parameters of each vClass"),
+    DeployMethod("oracle", "oracle", "SUMO drives every vehicle with its true model"),
+)
+METHOD = {m.name: m for m in DEPLOY_METHODS}
+
+
+def policy_batch(agent: Agent) -> ActionBatch:
+    """The policy's deterministic mean action for every driven vehicle, one torch call."""
+
+    def act(obs: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            mean = agent.dist(torch.as_tensor(obs, dtype=torch.float32)).mean
+        return mean.numpy().astype(np.float64)
+
+    return act
+
+
+def idm_theta(p: IdmParams) -> dict[str, float]:
+    """IDM parameters as SUMO's vType attributes (what ``Drive.theta`` takes)."""
+    return {
+        "accel": float(p.accel_mps2),
+        "decel": float(p.decel_mps2),
+        "tau": float(p.tau_s),
+        "minGap": float(p.min_gap_m),
+        "speedFactor": float(p.speed_factor),
+        "delta": float(p.delta),
+    }
+
+
+def fit_idm(ctx: DeployContext) -> tuple[IdmParams, float]:
+    """The IDM least-squares-fitted to the observed vehicles of the train and val runs, as
+    the evaluation fits it; (parameters, RMSE of the fit [m/s^2])."""
+    sc = ctx.sc
+    if ctx.is_section:
+        truth = load_section_truth(ctx.truth_dir, sc)
+        splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
+        obs, acc = section_eval.micro_pairs(
+            sc, truth, np.concatenate([splits["train"], splits["val"]])
+        )
+        return calibrate_idm(obs, acc, typical_length(truth))
+    gt = load_ground_truth(ctx.truth_dir, sc)
+    splits = split_runs(gt.runs, sc.generator.held_out_fraction, sc.seed)
+    obs, acc = ring_eval.micro_pairs(sc, gt, np.concatenate([splits["train"], splits["val"]]))
+    return calibrate_idm(obs, acc, sc.fleet.length_m, sc.fleet.delta)
+
+
+def policy_paths(policy_dir: Path | None, methods: list[str]) -> dict[str, Path]:
+    """The checkpoints of the learned methods among ``methods``; a missing one is a
+    one-line error naming the folder."""
+    paths = {}
+    for name in methods:
+        m = METHOD[name]
+        if m.how != "learned":
+            continue
+        if policy_dir is None:
+            raise UserError(f"deploying {name} needs --policy (a policy folder or run folder)")
+        path = policy_dir / policy_file(m.objective)
+        if not path.is_file():
+            raise UserError(
+                f"{policy_dir}: no {path.name} for method {name}; pass a finished "
+                "`macromicro run` folder or a policy folder (or leave the method out of "
+                "deploy.methods)"
+            )
+        paths[name] = path
+    return paths
+
+
+def method_drive(
+    name: str, sc: Any, agents: dict[str, Agent], idm: IdmParams | None
+) -> tuple[Drive, dict[str, Any]]:
+    """How ``name`` drives, and what its manifest records of it."""
+    how = METHOD[name].how
+    if how == "learned":
+        return Drive(act=policy_batch(agents[name])), {"safety": sc.deploy.safety}
+    if how == "idm":
+        theta = idm_theta(idm)
+        return Drive(theta=theta), {"theta": theta}
+    if how == "defaults":
+        return Drive(defaults=True), {}
+    return Drive(), {}
+
+
+def deploy(
+    sc: Any,
+    data: Path | str,
+    policy_dir: Path | str | None,
+    out: Path | str,
+    command: str = "",
+    progress: bool = True,
+    methods: list[str] | None = None,
+) -> dict[str, Any]:
+    """Deploy ``methods`` (default ``deploy.methods``) on the held-out runs of the ground
+    truth in ``data`` into ``out/<method>/``; returns the stage manifest."""
+    t0 = time.perf_counter()
+    methods = list(methods or sc.deploy.methods)
+    unknown = [m for m in methods if m not in METHOD]
+    if unknown:
+        raise UserError(f"unknown deploy method {unknown[0]!r}; accepted: {', '.join(METHOD)}")
+    policy_dir = Path(policy_dir) if policy_dir is not None else None
+    paths = policy_paths(policy_dir, methods)
+    agents = {name: load_policy(p, sc) for name, p in paths.items()}
+    ctx = load_context(sc, data)
+    torch.set_num_threads(1)
+    idm, idm_rmse = fit_idm(ctx) if "idm_calibrated" in methods else (None, float("nan"))
+    out = prepare_out_dir(out)
+    timings, totals = {}, {}
+    with staging_dir(out) as stage:
+        for name in tqdm(methods, desc="deploy", unit="method", disable=not progress):
+            t1 = time.perf_counter()
+            drive, extra = method_drive(name, sc, agents, idm)
+            folder = stage / name
+            folder.mkdir()
+            res = run_method(ctx, drive, folder)
+            timings[name] = round(time.perf_counter() - t1, 3)
+            manifest = build_manifest(sc, command, stage="deploy")
+            manifest.update(
+                method=name,
+                what=METHOD[name].what,
+                ground_truth=str(data),
+                policy=str(paths.get(name, "")),
+                held_out_runs=ctx.held_out,
+                share=sc.deploy.share,
+                vtype=sc.deploy.vtype,
+                timings_s={"deploy": timings[name]},
+                **extra,
+            )
+            write_method(ctx, res, folder, manifest)
+            totals[name] = {c: int(res.runs[c].sum()) for c in SAFETY_COLUMNS}
+        manifest = build_manifest(sc, command, stage="deploy")
+        manifest.update(
+            ground_truth=str(data),
+            policy_dir=str(policy_dir or ""),
+            methods=methods,
+            held_out_runs=ctx.held_out,
+            safety=sc.deploy.safety,
+            idm_calibrated=(idm.as_dict() | {"fit_rmse_mps2": idm_rmse}) if idm else None,
+            totals=totals,
+            timings_s={"deploy": round(time.perf_counter() - t0, 3), **timings},
+        )
+        files = [f"{m}/manifest.json" for m in methods]
+        write_stage_manifest(manifest, stage, MANIFEST, files)
+    return manifest
