@@ -11,6 +11,19 @@ import pandas as pd
 from macromicro_sumo.data.macro import passage_spacings
 from macromicro_sumo.data.section import at_snapshot_times
 from macromicro_sumo.road.section import Section, lane_leaders
+from macromicro_sumo.truth.density import (
+    DEFAULT_VEHICLE_LENGTH_M,
+    anchored_counts,
+    cumulative_count,
+    cumulative_mean,
+    point_density,
+    profile_integral,
+)
+
+IO_ANCHOR_WINDOW_S = 600.0
+"""Window over which the input-output counts take their level from the density estimate
+(``density.anchored_counts``): long enough to average many intervals' noise, short
+enough to follow the drift of an unmeasured ramp between two stations."""
 
 
 def station_cells(arcs: np.ndarray, section: Section) -> np.ndarray:
@@ -31,6 +44,62 @@ def station_cells(arcs: np.ndarray, section: Section) -> np.ndarray:
     return out
 
 
+def loop_densities(det: pd.DataFrame, passages: pd.DataFrame) -> np.ndarray:
+    """Each E1 row's density (veh/km, ``density.point_density``: flow / harmonic speed in
+    free flow, occupancy / vehicle length where speeds collapse); E2 rows keep theirs.
+
+    The vehicle length is the mean of the loop's own passages in that run (its traffic's
+    mix of cars and trucks), else of every loop's in the run, else SUMO's passenger car.
+    """
+    out = det["density_vpkm"].to_numpy(dtype=float).copy()
+    e1 = (det["kind"] == "e1").to_numpy()
+    if not e1.any():
+        return out
+    length = np.full(len(det), DEFAULT_VEHICLE_LENGTH_M)
+    if len(passages):
+        ids = passages["detector_id"].str.removeprefix("i_")
+        per_loop = passages.groupby([passages["run"], ids])["length_m"].mean()
+        per_run = passages.groupby("run")["length_m"].mean()
+        keys = pd.MultiIndex.from_arrays([det["run"], det["detector_id"]])
+        own = per_loop.reindex(keys).to_numpy()
+        run_mean = per_run.reindex(det["run"]).to_numpy()
+        length = np.where(np.isfinite(own), own, np.where(np.isfinite(run_mean), run_mean, length))
+    k = point_density(
+        det["flow_vph"].to_numpy(dtype=float),
+        det["speed_mps"].to_numpy(dtype=float),
+        det["occupancy_pct"].to_numpy(dtype=float),
+        length,
+    )
+    out[e1] = k[e1]
+    return out
+
+
+def station_density(e1: pd.DataFrame, section: Section) -> pd.Series:
+    """Density over all lanes (veh/km) of each station (arc) in one interval: the mean of
+    its lanes that reported times the lanes of its edge. A lane with no row or no finite
+    value is thereby imputed from the station's other lanes; a station with none drops
+    out and its neighbours' densities are interpolated over it."""
+    k = e1["k_point_vpkm"]
+    ok = np.isfinite(k)
+    per_lane = k[ok].groupby(e1.loc[ok, "arc_m"]).mean()
+    lanes = section.n_lanes[section.edge_index(per_lane.index.to_numpy(dtype=float))]
+    return per_lane * lanes
+
+
+def integrate_stations(
+    per_station: pd.Series, section: Section, lo_m: float = 0.0, hi_m: float | None = None
+) -> float:
+    """Vehicles on [lo_m, hi_m] of the section from the stations' densities."""
+    return profile_integral(
+        per_station.index.to_numpy(dtype=float),
+        per_station.to_numpy(dtype=float),
+        section.length_m,
+        section.closed,
+        lo_m,
+        hi_m,
+    )
+
+
 def detector_macro(
     det: pd.DataFrame,
     passages: pd.DataFrame,
@@ -49,6 +118,7 @@ def detector_macro(
     the per-vehicle passages.
     """
     spacings = passage_spacings(passages)
+    det = det.assign(k_point_vpkm=loop_densities(det, passages))
     stations = np.sort(det.loc[det["kind"] == "e1", "arc_m"].unique())
     cells = (
         dict(zip(stations, station_cells(stations, section), strict=True)) if len(stations) else {}
@@ -62,14 +132,17 @@ def detector_macro(
             v = e2["speed_mps"].to_numpy()
             speed = float(np.nansum(v * ss) / ss.sum()) if ss.sum() > 0 else np.nan
             density = float(np.average(e2["density_vpkm"], weights=e2["length_m"]))
-            vehicles = density / 1000.0 * section.lane_length_m
+            vehicles = vehicles_fs = density / 1000.0 * section.lane_length_m
         else:
             n, v = e1["n_veh"].to_numpy(), e1["speed_mps"].to_numpy()
             ok = n > 0
             speed = float(n[ok].sum() / (n[ok] / v[ok]).sum()) if ok.any() else np.nan
-            density = float(e1["density_vpkm"].mean())
+            density = float(e1["k_point_vpkm"].mean())
+            vehicles = integrate_stations(station_density(e1, section), section)
+            # The former estimate, kept for comparison: flow / speed only, each station's
+            # lanes summed and held constant over its cell.
             per_station = e1.groupby("arc_m")["density_vpkm"].sum()
-            vehicles = float(sum(k / 1000.0 * cells[a] for a, k in per_station.items()))
+            vehicles_fs = float(sum(k / 1000.0 * cells[a] for a, k in per_station.items()))
         ip = passages[
             (passages["run"] == run) & (passages["time_s"] >= begin) & (passages["time_s"] < end)
         ]
@@ -93,6 +166,7 @@ def detector_macro(
                 "speed_min_mps": float(ps.min()) if ps.size else np.nan,
                 "speed_max_mps": float(ps.max()) if ps.size else np.nan,
                 "vehicles": vehicles,
+                "vehicles_flow_speed": vehicles_fs,
             }
         )
     return pd.DataFrame(rows)
@@ -140,48 +214,147 @@ def trajectory_macro(
     return pd.DataFrame(rows)
 
 
+def full_stations(det: pd.DataFrame, section: Section) -> np.ndarray:
+    """Arcs of the E1 stations that count every vehicle crossing them: a loop on every lane
+    of their edge (each E1 loop has its instantaneous loop beside it, whose passages are
+    the counts; a lane nobody used has none). Only between two such stations is the
+    input-output count a count."""
+    e1 = det[det["kind"] == "e1"]
+    arcs = [
+        float(arc)
+        for arc, g in e1.groupby("arc_m")
+        if g["lane_index"].nunique() == int(section.n_lanes[section.edge_index(np.array([arc]))[0]])
+    ]
+    return np.array(sorted(arcs))
+
+
+def io_vehicles(
+    det: pd.DataFrame,
+    passages: pd.DataFrame,
+    section: Section,
+    run: int,
+    at_s: np.ndarray,
+    window_s: float,
+) -> tuple[np.ndarray, pd.DataFrame]:
+    """Vehicles on the stretches between consecutive full stations at the times ``at_s``
+    (input-output counts, anchored to the density estimate over ``IO_ANCHOR_WINDOW_S``),
+    and per interval the density estimate of the rest of the section (outside those
+    stretches: ``begin_s, end_s, vehicles``; all of it where fewer than two stations count
+    every vehicle)."""
+    d = det[det["run"] == run]
+    p = passages[passages["run"] == run]
+    arcs = full_stations(d, section)
+    pairs = list(zip(arcs[:-1], arcs[1:], strict=True))
+    if section.closed and len(arcs) > 1:
+        pairs.append((arcs[-1], arcs[0]))
+    times = {
+        a: p.loc[
+            p["detector_id"]
+            .str.removeprefix("i_")
+            .isin(set(d.loc[d["arc_m"] == a, "detector_id"])),
+            "time_s",
+        ].to_numpy()
+        for a in arcs
+    }
+    intervals = d[["begin_s", "end_s"]].drop_duplicates().sort_values("begin_s")
+    centres = 0.5 * (intervals["begin_s"] + intervals["end_s"]).to_numpy()
+    dens = {pair: [] for pair in pairs}
+    io_mean = {pair: [] for pair in pairs}
+    rest = []
+    for begin, end in intervals.itertuples(index=False):
+        per_station = station_density(d[(d["begin_s"] == begin) & (d["kind"] == "e1")], section)
+        total = integrate_stations(per_station, section)
+        inside = 0.0
+        for lo, hi in pairs:
+            if hi > lo:
+                n = integrate_stations(per_station, section, lo, hi)
+            else:  # the pair that closes the loop
+                n = integrate_stations(per_station, section, lo) + integrate_stations(
+                    per_station, section, 0.0, hi
+                )
+            dens[(lo, hi)].append(n)
+            io_mean[(lo, hi)].append(
+                cumulative_mean(times[lo], begin, end) - cumulative_mean(times[hi], begin, end)
+            )
+            inside += n
+        rest.append({"begin_s": begin, "end_s": end, "vehicles": total - inside})
+    counted = np.zeros(len(at_s))
+    for pair in pairs:
+        io = cumulative_count(times[pair[0]], at_s) - cumulative_count(times[pair[1]], at_s)
+        counted += anchored_counts(
+            io, np.array(io_mean[pair]), np.array(dens[pair]), centres, at_s, IO_ANCHOR_WINDOW_S
+        )
+    return counted, pd.DataFrame(rest, columns=["begin_s", "end_s", "vehicles"])
+
+
+def window_mean(r: pd.DataFrame, column: str, t: float, window_s: float) -> float:
+    """Mean of ``column`` over the intervals centred within ``window_s`` / 2 of ``t`` (at
+    least the interval holding ``t``)."""
+    centre = 0.5 * (r["begin_s"] + r["end_s"])
+    m = r[(centre >= t - window_s / 2) & (centre <= t + window_s / 2)]
+    if m.empty:
+        m = r[(r["begin_s"] <= t) & (r["end_s"] > t)]
+    return float(m[column].mean()) if len(m) else float("nan")
+
+
 def k_estimates(
     traj: pd.DataFrame,
     det_macro: pd.DataFrame,
     section: Section,
     every_s: float,
     window_s: float,
+    det: pd.DataFrame | None = None,
+    passages: pd.DataFrame | None = None,
 ) -> pd.DataFrame:
     """Hidden count per snapshot time: the truth, and the estimate from the detectors.
 
-    Estimate: round(vehicles on the section by the detectors) - observed vehicles, the
-    detectors' count (see ``detector_macro``) averaged over the intervals centred within ``window_s``
-    of the snapshot (``detectors.k_window_s``; at least the interval holding it). Longer
-    windows average out platoons that one interval's loops see or miss.
+    Estimate: round(vehicles on the section by the detectors) - observed vehicles on it.
+    Vehicles by the detectors: the density estimate (``detector_macro``'s) averaged over
+    the intervals centred within ``window_s`` of the snapshot (``detectors.k_window_s``; at
+    least the interval holding it). Given the detector table and the passages, the
+    stretches between stations that count every vehicle take the input-output count at the
+    snapshot instead (``io_vehicles``): an interval's mean misses the platoons, signal
+    cycles and growing queues within it. ``k_est_flow_speed``: the former estimate (flow /
+    speed, station cells, interval means), for comparison.
     """
+    snaps = at_snapshot_times(traj, every_s)
+    hybrid = det is not None and passages is not None and (det["kind"] == "e1").all()
+    if hybrid:
+        det = det.assign(k_point_vpkm=loop_densities(det, passages))
     rows = []
-    for (run, t), g in at_snapshot_times(traj, every_s).groupby(["run", "time_s"], sort=True):
+    for run, gr in snaps.groupby("run", sort=True):
         r = det_macro[det_macro["run"] == run]
-        centre = 0.5 * (r["begin_s"] + r["end_s"])
-        m = r[(centre >= t - window_s / 2) & (centre <= t + window_s / 2)]
-        if m.empty:
-            m = r[(r["begin_s"] <= t) & (r["end_s"] > t)]
-        vehicles = float(m["vehicles"].mean()) if len(m) else np.nan
-        if not np.isfinite(vehicles):
-            continue
-        n_obs = int(g["observed"].sum())
-        total = int(round(vehicles))
-        k_true = len(g) - n_obs
-        k_est = max(0, total - n_obs)
-        rows.append(
-            {
-                "run": run,
-                "time_s": t,
-                "n_vehicles": len(g),
-                "n_observed": n_obs,
-                "k_true": k_true,
-                "k_est": k_est,
-                "k_error": k_est - k_true,
-            }
+        times = np.sort(gr["time_s"].unique())
+        counted, rest = (
+            io_vehicles(det, passages, section, run, times, window_s)
+            if hybrid
+            else (np.zeros(len(times)), r)
         )
-    return pd.DataFrame(
-        rows, columns=["run", "time_s", "n_vehicles", "n_observed", "k_true", "k_est", "k_error"]
-    )
+        for t, c in zip(times, counted, strict=True):
+            g = gr[gr["time_s"] == t]
+            vehicles = c + window_mean(rest, "vehicles", t, window_s)
+            if not np.isfinite(vehicles):
+                continue
+            n_obs = int(g["observed"].sum())
+            k_true = len(g) - n_obs
+            k_est = max(0, int(round(vehicles)) - n_obs)
+            fs = window_mean(r, "vehicles_flow_speed", t, window_s) if len(r) else np.nan
+            rows.append(
+                {
+                    "run": run,
+                    "time_s": t,
+                    "n_vehicles": len(g),
+                    "n_observed": n_obs,
+                    "k_true": k_true,
+                    "k_est": k_est,
+                    "k_error": k_est - k_true,
+                    "k_est_flow_speed": max(0, int(round(fs)) - n_obs) if np.isfinite(fs) else -1,
+                }
+            )
+    return pd.DataFrame(rows, columns=[*K_ESTIMATE_COLUMNS, "k_est_flow_speed"])
+
+
+K_ESTIMATE_COLUMNS = ("run", "time_s", "n_vehicles", "n_observed", "k_true", "k_est", "k_error")
 
 
 def k_summary(k_df: pd.DataFrame, section: Section) -> dict[str, float]:

@@ -1,0 +1,179 @@
+"""Traffic density from loop detectors and the vehicle count of a road section from it:
+pure functions, no SUMO, no pandas.
+
+Point density of one loop in one interval (veh/km per lane), by speed regime:
+- **free flow**: flow / harmonic-mean speed (k = q / v_s, the fundamental relation with the
+  space-mean speed, which is the harmonic mean of the spot speeds);
+- **collapsed speeds** (queues): occupancy / effective vehicle length (k = o / (L + l_loop),
+  the single-loop method). Where vehicles crawl or stand over a loop, the few passages give
+  a poor space-mean speed and a standing vehicle gives no passage at all, but the loop is
+  occupied the whole time it stands there;
+- between the two thresholds the two are blended linearly, so that the estimate does not
+  jump when the interval's speed crosses one.
+
+Along the section: each station (the loops at one arc) gives a density over all its lanes
+(the mean of its reporting lanes times its lane count: a missing lane is imputed from its
+neighbours at the station, as a lane-ratio fill does); that density is linear in arc
+between stations, constant beyond the outermost stations of an open section and periodic
+on a closed one, and is integrated along the arc. The density over all lanes, not per
+lane, is what carries across a lane drop or gain: the same flow at the same speed has the
+same density whether it uses one lane or three.
+
+Within an interval the count moves faster than any 30-60 s aggregate follows (platoons,
+signal cycles, a queue growing): the per-vehicle passages of stations that cover every lane
+give the count between two stations exactly up to a constant (vehicles in = passages at the
+upstream station, out = at the downstream one: the input-output method), and the constant
+is taken from the density estimate averaged over a window (drift correction: ramps between
+stations, missed counts).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+SPEED_OCCUPANCY_BELOW_MPS = 5.0
+"""At or below this interval speed (m/s), or where no vehicle passed, the density is the
+occupancy's: queues and stop-and-go."""
+SPEED_FLOW_ABOVE_MPS = 10.0
+"""At or above this interval speed (m/s) the density is flow / harmonic-mean speed; in
+between, a linear blend. Both thresholds sit far below a motorway's or an arterial's free
+speed and above a queue's crawl; on SUMO's loops both estimates agree within ~1% in free
+flow, so the blend only matters where speeds collapse."""
+DEFAULT_VEHICLE_LENGTH_M = 5.0
+"""Vehicle length where a loop saw no vehicle to measure one on (SUMO's passenger car)."""
+
+
+def flow_speed_density(flow_vph: np.ndarray, speed_mps: np.ndarray) -> np.ndarray:
+    """k = q / v_s in veh/km; NaN where no speed was measured (no vehicle passed)."""
+    q = np.asarray(flow_vph, dtype=float)
+    v = np.asarray(speed_mps, dtype=float)
+    ok = np.isfinite(v) & (v > 0)
+    out = np.full(np.broadcast(q, v).shape, np.nan)
+    np.divide(q / 3.6, v, out=out, where=ok)
+    return out
+
+
+def occupancy_density(
+    occupancy_pct: np.ndarray, vehicle_length_m: np.ndarray, loop_length_m: float = 0.0
+) -> np.ndarray:
+    """k = occupancy / (vehicle length + loop length) in veh/km (a vehicle occupies a loop
+    while any part of it is over it, hence the loop's own length; SUMO's E1 loop is a
+    point, length 0)."""
+    occ = np.asarray(occupancy_pct, dtype=float) / 100.0
+    return occ / (np.asarray(vehicle_length_m, dtype=float) + loop_length_m) * 1000.0
+
+
+def occupancy_weight(
+    speed_mps: np.ndarray,
+    below_mps: float = SPEED_OCCUPANCY_BELOW_MPS,
+    above_mps: float = SPEED_FLOW_ABOVE_MPS,
+) -> np.ndarray:
+    """Weight of the occupancy estimate: 1 at or below ``below_mps`` or without a speed,
+    0 at or above ``above_mps``, linear in between."""
+    v = np.asarray(speed_mps, dtype=float)
+    w = np.clip((above_mps - v) / (above_mps - below_mps), 0.0, 1.0)
+    return np.where(np.isfinite(v), w, 1.0)
+
+
+def point_density(
+    flow_vph: np.ndarray,
+    speed_mps: np.ndarray,
+    occupancy_pct: np.ndarray,
+    vehicle_length_m: np.ndarray,
+    loop_length_m: float = 0.0,
+) -> np.ndarray:
+    """One loop's density per interval (veh/km): the speed-regime blend of flow / speed and
+    occupancy / effective length (see the module's docstring)."""
+    w = occupancy_weight(speed_mps)
+    k_occ = occupancy_density(occupancy_pct, vehicle_length_m, loop_length_m)
+    k_fs = flow_speed_density(flow_vph, speed_mps)
+    return np.where(w >= 1.0, k_occ, w * k_occ + (1.0 - w) * np.nan_to_num(k_fs))
+
+
+def profile_integral(
+    station_arcs_m: np.ndarray,
+    k_vpkm: np.ndarray,
+    length_m: float,
+    closed: bool,
+    lo_m: float = 0.0,
+    hi_m: float | None = None,
+) -> float:
+    """Vehicles on [lo_m, hi_m] (default: the whole section) when the density (veh/km over
+    all lanes) is linear in arc between stations, constant beyond the outermost ones of an
+    open section and periodic on a closed one: the trapezoid rule, exact for it."""
+    a = np.asarray(station_arcs_m, dtype=float)
+    k = np.asarray(k_vpkm, dtype=float) / 1000.0
+    ok = np.isfinite(k)
+    a, k = a[ok], k[ok]
+    if a.size == 0:
+        return float("nan")
+    order = np.argsort(a)
+    a, k = a[order], k[order]
+    hi = float(length_m) if hi_m is None else float(hi_m)
+    if closed:
+        # One station before the first and one after the last, a lap away: periodic.
+        a = np.concatenate([a[-1:] - length_m, a, a[:1] + length_m])
+        k = np.concatenate([k[-1:], k, k[:1]])
+    grid = np.unique(np.concatenate([a, [lo_m, hi]]))
+    grid = grid[(grid >= lo_m) & (grid <= hi)]
+    dens = np.interp(grid, a, k)  # constant beyond the ends of an open section
+    return float((0.5 * (dens[1:] + dens[:-1]) * np.diff(grid)).sum())
+
+
+def cumulative_count(passage_times_s: np.ndarray, at_s: np.ndarray) -> np.ndarray:
+    """Passages strictly before each time of ``at_s`` (a loop's cumulative count)."""
+    t = np.sort(np.asarray(passage_times_s, dtype=float))
+    return np.searchsorted(t, np.asarray(at_s, dtype=float), side="left").astype(float)
+
+
+def cumulative_mean(passage_times_s: np.ndarray, begin_s: float, end_s: float) -> float:
+    """Time mean over [begin_s, end_s) of a loop's cumulative count (``cumulative_count``),
+    exactly: the count at ``begin_s`` plus each passage inside for the rest of the span."""
+    t = np.asarray(passage_times_s, dtype=float)
+    inside = t[(t >= begin_s) & (t < end_s)]
+    base = float((t < begin_s).sum())
+    return base + float((end_s - inside).sum()) / (end_s - begin_s)
+
+
+def anchored_counts(
+    io_counts: np.ndarray,
+    io_means: np.ndarray,
+    density_counts: np.ndarray,
+    interval_centres_s: np.ndarray,
+    at_s: np.ndarray,
+    window_s: float,
+) -> np.ndarray:
+    """Input-output counts made absolute: ``io_counts`` (at ``at_s``, known up to a constant)
+    plus (density estimate - input-output mean) over the intervals whose centres lie within
+    ``window_s`` / 2 of each time (the nearest interval where none does), fitted by a line
+    in time (``local_line``) and taken at that time.
+
+    The density estimate is right on average but follows neither platoons nor signal cycles
+    within an interval; the input-output count follows them exactly but drifts where
+    vehicles enter or leave between stations or a count is missed. The window's offset
+    keeps the second's timing and the first's level.
+    """
+    c = np.asarray(interval_centres_s, dtype=float)
+    off = np.asarray(density_counts, dtype=float) - np.asarray(io_means, dtype=float)
+    ok = np.isfinite(off)
+    c, off = c[ok], off[ok]
+    out = np.full(len(np.atleast_1d(at_s)), np.nan)
+    if c.size == 0:
+        return out
+    for i, t in enumerate(np.atleast_1d(np.asarray(at_s, dtype=float))):
+        near = np.abs(c - t) <= window_s / 2
+        if not near.any():
+            near = np.abs(c - t) == np.abs(c - t).min()
+        out[i] = io_counts[i] + local_line(c[near], off[near], t)
+    return out
+
+
+def local_line(x: np.ndarray, y: np.ndarray, at: float) -> float:
+    """The least-squares line through (x, y) evaluated at ``at``; the mean where fewer than
+    three points or no spread in x. An unmeasured ramp between two stations makes their
+    input-output count drift at its flow: a line follows that drift to a window's end,
+    where a mean would lag by half the window's drift."""
+    if len(x) < 3 or np.ptp(x) == 0:
+        return float(np.mean(y))
+    slope, intercept = np.polyfit(x, y, 1)
+    return float(intercept + slope * at)
