@@ -9,9 +9,11 @@ The episodes (``SectionBank``) and the observation are ``env/section_bank.py``'s
 
 Action Space
     One acceleration [m/s^2] per hidden vehicle (``bank.hidden[ep]`` order), clipped to
-    ``sc.bounds.accel_mps2``; applied as a speed command v' = max(0, v + a dt) in speed
-    mode 0 (exact, no SUMO safety checks). Lane changes of hidden vehicles are SUMO's own
-    lane-change model.
+    ``sc.bounds.accel_mps2``; applied as a speed command v' = max(0, v + a dt): exactly
+    (speed mode 0) with ``safety = "none"``, capped at SUMO's safe speed behind whatever
+    SUMO sees ahead (``SAFE_MODE``) with ``safety = "sumo"`` (the default: the policy
+    alone does not reach zero collisions at merges; ``counts["safety_capped"]``). Lane
+    changes of hidden vehicles are SUMO's own lane-change model (its gap checks).
 Observation Space
     Per slot, ``physics.OBSERVATION_FEATURES[sc.policy.observation]``: speed, the local
     limit on its lane, the spacing to the leader in its lane (``NO_LEADER_GAP_M`` with no
@@ -28,7 +30,10 @@ Episode End
     After H steps; earlier (``truncated``) on a SUMO error, a failed insertion, or when no
     vehicle is left on the section. A vehicle that leaves the section (or SUMO) becomes
     inactive and is removed. Observed vehicles replay their recorded lane and speed every
-    step; their record ends where they left the section in the ground truth.
+    step while that is safe (SUMO's safe speed caps them; a recorded lane change into a
+    vehicle waits): one that had to deviate is off its record from then on, never moved
+    back onto it (``off_record``, ``counts``); their record ends where they left the
+    section in the ground truth. Collisions are counted and truncate the episode.
 Arguments
     ``SectionCore(sc, section, bank, net_file, seed, fcd_file=None)``.
 """
@@ -40,55 +45,38 @@ from pathlib import Path
 
 import numpy as np
 
-from macromicro_sumo.data.objective import MacroTarget, macro_reward, macro_terms
-from macromicro_sumo.data.section import PSI_FIELDS
 from macromicro_sumo.env.ring import StepResult
-from macromicro_sumo.env.section_bank import SectionBank, section_observations
+from macromicro_sumo.env.section_bank import (
+    SectionBank,
+    section_macro_reward,
+    section_observations,
+    section_target,
+)
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES
-from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section, section_leaders
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 
-_PSI = {f: i for i, f in enumerate(PSI_FIELDS)}
 POSITION_TOL_M = 0.01  # insertion and replay checks: a placement off by more is an error
-
-
-def section_target(psi: np.ndarray) -> MacroTarget:
-    """What a section scene's reward compares with: psi's fields (no upper spacing bound:
-    L_max is 0; L_var is the measured dispersion where the detectors measured a spacing
-    std, else the paper's). Built once per episode."""
-    return MacroTarget(
-        psi[_PSI["mean_speed_mps"]],
-        psi[_PSI["mean_spacing_m"]],
-        psi[_PSI["spacing_min_m"]],
-        np.float64(np.inf),
-        spacing_std_m=psi[_PSI["std_spacing_m"]],
-    )
-
-
-def section_macro_reward(
-    speed_mps: np.ndarray,
-    spacing_m: np.ndarray,
-    leader: np.ndarray,
-    hidden: np.ndarray,
-    active: np.ndarray,
-    target: MacroTarget,
-    lambda_v: float,
-    lambda_d: float,
-    speed_scale_mps: float = 0.0,
-) -> tuple[float, dict[str, float]]:
-    """r_macro of the active vehicles against ``target`` (``data.objective``, as on the ring).
-
-    L_speed on the mean speed of all active vehicles; A holds the per-lane spacings that
-    touch a hidden vehicle (it, or its leader), vehicles without a leader excluded.
-    """
-    if not active.any():
-        return 0.0, {}
-    in_a = active & (leader >= 0) & (hidden | hidden[np.maximum(leader, 0)])
-    # Already selected, as on the ring: no masks to multiply on this hot path.
-    terms = macro_terms(speed_mps[active], None, spacing_m[in_a], None, target, speed_scale_mps)
-    terms = {k: float(v) for k, v in terms.items()}
-    return float(macro_reward(terms, lambda_v, lambda_d)), terms
+EXACT_MODE = 0  # SUMO speed mode: a speed command applies exactly, no checks
+# SUMO speed mode: a command is capped at the car-following model's safe speed behind
+# whatever SUMO sees ahead on the vehicle's route (bit 0) and stops at a red light (bit 4);
+# acceleration bounds are not imposed (bits 1, 2), so a safe command still applies exactly.
+SAFE_MODE = 1 | 16
+SAFETY = ("none", "sumo")  # hidden vehicles' safety layer: none, or SAFE_MODE
+DEFAULT_SAFETY = "sumo"
+REPLAY_SUFFIX = "_replay"  # observed vehicles' vTypes: no speed-limit cap (``_vtypes_xml``)
+REPLAY_SPEED_FACTOR = 3.0
+SPEED_TOL_MPS = 1e-3  # a read speed this far below its command: SUMO capped it
+COUNTERS = (
+    "replay_vehicles",  # observed vehicles replayed (per episode)
+    "replay_off_record",  # ... that left their record once (a capped speed, a refused move)
+    "replay_steps",  # observed vehicle-steps replayed
+    "replay_capped",  # ... below their recorded speed (SUMO's safe speed, then max accel)
+    "replay_moves_refused",  # recorded lane changes / placements postponed: target unsafe
+    "hidden_steps",  # hidden vehicle-steps commanded
+    "safety_capped",  # ... whose command the safety layer capped (safety = "sumo")
+)
 
 
 # --------------------------------------------------------------------------- core
@@ -106,7 +94,15 @@ class SectionCore:
         seed: int = 0,
         fcd_file: Path | None = None,
         vclass: str = "passenger",
+        safety: str | None = None,
     ) -> None:
+        # Training and evaluation alike: the scenario's choice, else the safety layer (the
+        # policy alone does not reach zero collisions on multi-lane sections, measured).
+        safety = safety or getattr(sc.policy, "safety", DEFAULT_SAFETY)
+        if safety not in SAFETY:
+            raise UserError(f"safety = {safety!r}: one of {', '.join(SAFETY)}")
+        self.safety = safety
+        self.counts = dict.fromkeys(COUNTERS, 0)
         self.sc = sc
         self.section = section
         self.bank = bank
@@ -121,7 +117,7 @@ class SectionCore:
         self._vtype = {float(x): f"mm_L{i}" for i, x in enumerate(lengths)}
         vtypes = Path(self._tmp.name) / "vtypes.add.xml"
         vtypes.write_text(
-            _vtypes_xml(self._vtype, sc.bounds.accel_mps2, sc.bounds.min_gap_m, vclass)
+            _vtypes_xml(self._vtype, sc.bounds.accel_mps2, sc.bounds.min_gap_m, vclass, self.dt)
         )
         self.sim = Simulation(
             SumoOptions(Path(net_file), (vtypes,), self.dt, seed, fcd_file=fcd_file)
@@ -144,6 +140,9 @@ class SectionCore:
         self.hidden = np.zeros(self.n, dtype=bool)
         self.leader = np.full(self.n, -1, dtype=np.int64)
         self.spacing = np.full(self.n, NO_LEADER_GAP_M)
+        # Observed vehicles that left their record (a capped speed, a postponed lane
+        # change): they replay recorded speeds from where they are, never moved back.
+        self.off_record = np.zeros(self.n, dtype=bool)
         self._obs = np.zeros((self.n, self.obs_dim))
         self._error = ""
 
@@ -212,7 +211,8 @@ class SectionCore:
             self.sim.add_vehicle(
                 self.ids[i],
                 self._routes[e],
-                self._vtype[length],
+                self._vtype[length]
+                + ("" if self.hidden[i] and self.safety == "none" else REPLAY_SUFFIX),
                 lane_idx,
                 pos,
                 min(float(b.speed0_mps[episode, i]), float(sec.limits_mps[e, lane_idx])),
@@ -253,7 +253,13 @@ class SectionCore:
             )
         if worst > POSITION_TOL_M and not self._error:
             self._error = f"insertion check failed: position off by {worst:.3f} m"
-        self.sim.set_speed_mode(live, 0)
+        self.off_record = np.zeros(self.n, dtype=bool)
+        self.counts["replay_vehicles"] += int((valid & ~self.hidden).sum())
+        # Observed vehicles replay their record only while it is safe (SAFE_MODE): the
+        # hidden vehicles around them are not the recorded ones.
+        hidden_mode = SAFE_MODE if self.safety == "sumo" else EXACT_MODE
+        self.sim.set_speed_mode([self.ids[i] for i in slots if self.hidden[i]], hidden_mode)
+        self.sim.set_speed_mode([self.ids[i] for i in slots if not self.hidden[i]], SAFE_MODE)
         self.sim.set_lane_change_mode([self.ids[i] for i in slots if not self.hidden[i]], 0)
         self._scene()
         return self._obs.copy()
@@ -334,6 +340,7 @@ class SectionCore:
             collision = self.sim.collisions() > 0
         except Exception as exc:  # a SUMO error: truncate, training goes on
             return self._result(0.0, {}, False, True, f"{type(exc).__name__}: {exc}")
+        self._count_caps(live, cmd, replay, states)
         lanes, left = self._lanes, []
         for i in live:
             st = states.get(self.ids[i])
@@ -362,19 +369,61 @@ class SectionCore:
         r, terms = self.macro_reward()
         return self._result(r, terms, collision, False, "")
 
+    def _count_caps(self, live: np.ndarray, cmd: np.ndarray, replay: np.ndarray, states) -> None:
+        """Count the commands SUMO's safe speed capped; a capped observed vehicle is off
+        its record from now on."""
+        read = np.full(self.n, np.nan)
+        for i in live:
+            st = states.get(self.ids[i])
+            if st is not None:
+                read[i] = st[2]
+        with np.errstate(invalid="ignore"):
+            capped = read < cmd - SPEED_TOL_MPS
+        hid = np.zeros(self.n, dtype=bool)
+        hid[live] = self.hidden[live]
+        self.counts["replay_steps"] += int(replay.sum())
+        self.counts["replay_capped"] += int((capped & replay).sum())
+        self.counts["hidden_steps"] += int(hid.sum())
+        if self.safety != "none":
+            self.counts["safety_capped"] += int((capped & hid).sum())
+        self._leave_record(capped & replay)
+
+    def _leave_record(self, mask: np.ndarray) -> None:
+        self.counts["replay_off_record"] += int((mask & ~self.off_record).sum())
+        self.off_record |= mask
+
     def _follow_records(self, replay: np.ndarray, lane: np.ndarray, arc_m: np.ndarray) -> str:
         """Put observed vehicles that are off their record (a recorded lane change, or
-        drift) where the record says; returns an error text if SUMO refuses."""
+        drift) where the record says, if that place is safe now; returns an error text if
+        SUMO refuses.
+
+        A vehicle off its record (its speed was capped) keeps its own arc: only its
+        recorded lane is applied, where the record is on the same edge. A target place
+        that would cut in too close to the vehicles there waits (counted).
+        """
         sec = self.section
+        on_record = replay & self.active & ~self.off_record
         off = self.arc - arc_m
         if sec.closed:
             off = np.mod(off + sec.length_m / 2, sec.length_m) - sec.length_m / 2
+        behind = replay & self.active & self.off_record
+        same_edge = sec.node_of(arc_m)[0] == sec.node_of(self.arc)[0]
+        want_arc = np.where(behind, self.arc, arc_m)
         fix = np.flatnonzero(
-            replay & self.active & ((lane != self.lane) | (np.abs(off) > POSITION_TOL_M))
+            (on_record & ((lane != self.lane) | (np.abs(off) > POSITION_TOL_M)))
+            | (behind & same_edge & (lane != self.lane))
         )
         if not fix.size:
             return ""
-        places = [self.section.to_lane(int(lane[i]), float(arc_m[i])) for i in fix]
+        ok = self._safe_places(fix, lane[fix].astype(np.int64), want_arc[fix])
+        self.counts["replay_moves_refused"] += int((~ok).sum())
+        refused = np.zeros(self.n, dtype=bool)
+        refused[fix[~ok]] = True
+        self._leave_record(refused)
+        fix = fix[ok]
+        if not fix.size:
+            return ""
+        places = [self.section.to_lane(int(lane[i]), float(want_arc[i])) for i in fix]
         try:
             self.sim.move_to(
                 [self.ids[i] for i in fix],
@@ -388,27 +437,56 @@ class SectionCore:
             self.lane[i], self.arc[i] = k, sec.offsets_m[e] + p
         return ""
 
+    def _safe_places(self, fix: np.ndarray, lane: np.ndarray, arc_m: np.ndarray) -> np.ndarray:
+        """Whether each vehicle ``fix`` can be put at (lane, arc) now: its follower there
+        and it can each stop behind their leader (braking at the action bound, one step
+        to react), bumpers at least the minimum gap apart."""
+        act = np.flatnonzero(self.active)
+        ln, s = self.lane[act].copy(), self.arc[act].copy()
+        pos = np.searchsorted(act, fix)
+        ln[pos], s[pos] = lane, arc_m
+        lead, spacing = section_leaders(self.section, ln, s)
+        v = self.speed[act]
+        length = self.bank.length_m[self.episode, act]
+        has = lead >= 0
+        v_l = np.where(has, v[np.maximum(lead, 0)], 0.0)
+        l_l = np.where(has, length[np.maximum(lead, 0)], 0.0)
+        brake = -self.a_min
+        need = self.sc.bounds.min_gap_m + v * self.dt + np.maximum(0.0, v**2 - v_l**2) / (2 * brake)
+        safe = np.where(lead == -1, True, spacing - l_l >= need)
+        ok = safe[pos].copy()
+        # ... and whoever follows it there
+        followers = np.flatnonzero(np.isin(lead, pos))
+        for f in followers:
+            ok[np.searchsorted(pos, lead[f])] &= bool(safe[f])
+        return ok
+
 
 def _vtypes_xml(
     types: dict[float, str],
     accel_mps2: tuple[float, float],
     min_gap_m: float,
     vclass: str = "passenger",
+    tau_s: float = 1.0,
 ) -> str:
     """Our vehicle types, one per length: speed-commanded, SUMO's lane changing.
 
     speedFactor 1 (SUMO's lane-change model sees the lane limit as the desired speed),
     maxSpeed high (commands above the limit apply in speed mode 0), collisions only on
     bumper overlap (collisionMinGapFactor 0), accel/decel = the action bounds.
+    Each length has a second type for observed vehicles (id + ``REPLAY_SUFFIX``) with
+    speedFactor ``REPLAY_SPEED_FACTOR``: their safe-speed check (``SAFE_MODE``) also caps
+    at limit x speedFactor, and recorded speeds above the limit are what they drove.
     """
     a_min, a_max = accel_mps2
     rows = ["<additional>"]
     for length, tid in types.items():
-        rows.append(
-            f'    <vType id="{tid}" length="{length:g}" minGap="{min_gap_m:g}" maxSpeed="100" '
-            f'speedFactor="1" speedDev="0" accel="{a_max:g}" decel="{-a_min:g}" '
-            f'emergencyDecel="{max(9.0, -a_min):g}" collisionMinGapFactor="0" '
-            f'vClass="{vclass}"/>'
-        )
+        for suffix, factor in (("", 1.0), (REPLAY_SUFFIX, REPLAY_SPEED_FACTOR)):
+            rows.append(
+                f'    <vType id="{tid}{suffix}" length="{length:g}" minGap="{min_gap_m:g}" '
+                f'maxSpeed="100" speedFactor="{factor:g}" speedDev="0" accel="{a_max:g}" '
+                f'decel="{-a_min:g}" emergencyDecel="{max(9.0, -a_min):g}" '
+                f'collisionMinGapFactor="0" vClass="{vclass}" tau="{tau_s:g}"/>'
+            )
     rows.append("</additional>")
     return "\n".join(rows) + "\n"

@@ -4,7 +4,8 @@
 the observed vehicles' recorded futures and every true vehicle over the horizon, built
 from the ground truth's snapshots (``build_section_bank``). ``section_observations``: a
 vehicle's observation on the section (``initial_observations``: at every episode's start,
-what the policy's input normalisation is fitted on).
+what the policy's input normalisation is fitted on); ``section_target`` and
+``section_macro_reward``: what a scene's reward compares with, and the reward.
 """
 
 from __future__ import annotations
@@ -14,10 +15,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from macromicro_sumo.data.section import SectionSnapshots, SectionTruth
+from macromicro_sumo.data.objective import MacroTarget, macro_reward, macro_terms
+from macromicro_sumo.data.section import PSI_FIELDS, SectionSnapshots, SectionTruth
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES
-from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section, lane_leaders
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, STOP, Section, section_leaders
 
 
 @dataclass(frozen=True)
@@ -210,10 +212,15 @@ def section_observations(
     speed_mps: np.ndarray,
     active: np.ndarray,
     observation: str,
+    stop_lane: np.ndarray | None = None,
+    stop_arc_m: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Observations (N, obs_dim), leader (-1: none) and spacing of the active vehicles.
+    """Observations (N, obs_dim), leader (-1: none, ``STOP``: a standing obstacle) and
+    spacing of the active vehicles.
 
-    One sort per call (``lane_leaders``); inactive slots get zeros and no leader.
+    Leaders along the lane connections (``section_leaders``, one sort per call); the end
+    of a lane that leads nowhere and the stop points given (red lights) are standing
+    leaders, as a driver sees them. Inactive slots get zeros and no leader.
     """
     n = len(arc_m)
     obs = np.zeros((n, len(OBSERVATION_FEATURES[observation])))
@@ -223,7 +230,7 @@ def section_observations(
     if idx.size == 0:
         return obs, leader, spacing
     ln, s, v = lane[idx], arc_m[idx], speed_mps[idx]
-    lead, gap = lane_leaders(ln, s, section.length_m, section.closed)
+    lead, gap = section_leaders(section, ln, s, stop_lane, stop_arc_m)
     has = lead >= 0
     leader[idx[has]] = idx[lead[has]]
     spacing[idx] = gap
@@ -233,7 +240,7 @@ def section_observations(
     o[:, 0] = v
     o[:, 1] = lim[e, np.minimum(ln, section.n_lanes[e] - 1)]
     o[:, 2] = gap
-    o[:, 3] = np.where(has, v - v[np.maximum(lead, 0)], 0.0)
+    o[:, 3] = np.where(has, v - v[np.maximum(lead, 0)], np.where(lead == STOP, v, 0.0))
     if o.shape[1] > 4:
         o[:, 4], o[:, 5] = _lookahead(section, ln, s, e, o[:, 1])
     obs[idx] = o
@@ -246,15 +253,17 @@ def _lookahead(
     """The next edge's limit on the vehicle's lane and the distance to that edge's start."""
     n_e = len(section.edge_ids)
     s = np.mod(arc_m, section.length_m) if section.closed else arc_m
+    # The lane it continues onto (an on-ramp shifts the through lanes' indices); inside a
+    # junction a vehicle's lane index is already the one it enters.
+    inside = s > section.offsets_m[e] + section.lengths_m[e]
+    onto = np.where(inside, lane, section.next_lane(e, lane))
+    nxt = (e + 1) % n_e if section.closed else np.minimum(e + 1, n_e - 1)
+    next_limit = section.limits_mps[nxt, np.minimum(onto, section.n_lanes[nxt] - 1)]
     if section.closed:
-        nxt = (e + 1) % n_e
         start = section.offsets_m[nxt] + np.where(nxt == 0, section.length_m, 0.0)
-        return section.limits_mps[nxt, np.minimum(lane, section.n_lanes[nxt] - 1)], start - s
+        return next_limit, start - s
     last = e == n_e - 1
-    nxt = np.minimum(e + 1, n_e - 1)
-    limit = np.where(
-        last, own_limit, section.limits_mps[nxt, np.minimum(lane, section.n_lanes[nxt] - 1)]
-    )
+    limit = np.where(last, own_limit, next_limit)
     start = np.where(last, section.length_m, section.offsets_m[nxt])
     return limit, start - s
 
@@ -281,3 +290,44 @@ def initial_observations(sc, section: Section, bank: SectionBank) -> np.ndarray:
 
 def _on_section(section: Section, arc_m: np.ndarray) -> np.ndarray:
     return np.mod(arc_m, section.length_m) if section.closed else arc_m
+
+
+_PSI = {f: i for i, f in enumerate(PSI_FIELDS)}
+
+
+def section_target(psi: np.ndarray) -> MacroTarget:
+    """What a section scene's reward compares with: psi's fields (no upper spacing bound:
+    L_max is 0; L_var is the measured dispersion where the detectors measured a spacing
+    std, else the paper's). Built once per episode."""
+    return MacroTarget(
+        psi[_PSI["mean_speed_mps"]],
+        psi[_PSI["mean_spacing_m"]],
+        psi[_PSI["spacing_min_m"]],
+        np.float64(np.inf),
+        spacing_std_m=psi[_PSI["std_spacing_m"]],
+    )
+
+
+def section_macro_reward(
+    speed_mps: np.ndarray,
+    spacing_m: np.ndarray,
+    leader: np.ndarray,
+    hidden: np.ndarray,
+    active: np.ndarray,
+    target: MacroTarget,
+    lambda_v: float,
+    lambda_d: float,
+    speed_scale_mps: float = 0.0,
+) -> tuple[float, dict[str, float]]:
+    """r_macro of the active vehicles against ``target`` (``data.objective``, as on the ring).
+
+    L_speed on the mean speed of all active vehicles; A holds the per-lane spacings that
+    touch a hidden vehicle (it, or its leader), vehicles without a leader excluded.
+    """
+    if not active.any():
+        return 0.0, {}
+    in_a = active & (leader >= 0) & (hidden | hidden[np.maximum(leader, 0)])
+    # Already selected, as on the ring: no masks to multiply on this hot path.
+    terms = macro_terms(speed_mps[active], None, spacing_m[in_a], None, target, speed_scale_mps)
+    terms = {k: float(v) for k, v in terms.items()}
+    return float(macro_reward(terms, lambda_v, lambda_d)), terms

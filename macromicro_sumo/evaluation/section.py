@@ -25,7 +25,7 @@ import pandas as pd
 from macromicro_sumo.data.ring import split_runs
 from macromicro_sumo.data.section import SectionTruth, section_snapshots
 from macromicro_sumo.env.rollout import ActionFn, Rollouts, rollout
-from macromicro_sumo.env.section import SectionCore
+from macromicro_sumo.env.section import DEFAULT_SAFETY, SectionCore
 from macromicro_sumo.env.section_bank import (
     SectionBank,
     build_section_bank,
@@ -50,7 +50,7 @@ from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.policy.agent import policy_action
 from macromicro_sumo.policy.checkpoint import load_policy
 from macromicro_sumo.progress import tqdm
-from macromicro_sumo.road.section import Section, lane_leaders
+from macromicro_sumo.road.section import Section, section_leaders
 from macromicro_sumo.sumo.inputs import scenario_inputs
 from macromicro_sumo.truth.section import load_section_truth
 from macromicro_sumo.truth.section_macro import k_summary
@@ -72,11 +72,8 @@ def recorded(bank: SectionBank, section: Section, horizon: int, dt: float) -> Ro
         for t in range(v.shape[1]):
             idx = np.flatnonzero(ok[e, t])
             if idx.size:
-                lead, gap = lane_leaders(
-                    lane[e, t, idx].astype(np.int64),
-                    arc[e, t, idx],
-                    section.length_m,
-                    section.closed,
+                lead, gap = section_leaders(
+                    section, lane[e, t, idx].astype(np.int64), arc[e, t, idx]
                 )
                 spacing[e, t, idx[lead >= 0]] = gap[lead >= 0]
     v_all = np.where(bank.true_valid[:, :1], bank.true_speed_mps[:, : horizon + 1], np.nan)
@@ -138,6 +135,41 @@ def micro_pairs(
 # --------------------------------------------------------------------------- the stage
 
 
+def _safety(sc) -> str:
+    """The hidden vehicles' safety layer in evaluation (``env.section.SAFETY``)."""
+    return str(getattr(sc.evaluation, "safety", DEFAULT_SAFETY))
+
+
+def _run(
+    sc,
+    truth: SectionTruth,
+    bank: SectionBank,
+    net_file: Path,
+    vclass: str,
+    act: ActionFn,
+    horizon: int,
+    seed: int,
+    safety: str | None = None,
+) -> tuple[Rollouts, dict[str, Any]]:
+    """One method's rollouts of every episode, and safety.csv's figures of them: the
+    collisions, how often an observed vehicle left its record, how often the hidden
+    vehicles' safety layer capped a command."""
+    safety = safety or _safety(sc)
+    core = SectionCore(
+        sc, truth.section, bank, net_file, seed=sc.seed, vclass=vclass, safety=safety
+    )
+    try:
+        ro = rollout(core, act, horizon, seed)
+    finally:
+        core.close()
+    return ro, {
+        "safety": safety,
+        "collisions": ro.collisions,
+        "episodes": len(ro.speed_mps),
+        **core.counts,
+    }
+
+
 def evaluate_section(
     sc,
     data: Path,
@@ -165,7 +197,7 @@ def evaluate_section(
     length = typical_length(truth)
     obs_tr, acc_tr = micro_pairs(sc, truth, np.concatenate([splits["train"], splits["val"]]))
     idm, idm_rmse = calibrate_idm(obs_tr, acc_tr, length)
-    rows, samples = [], []
+    rows, samples, safety_rows = [], [], []
     counts = {"estimated": snaps.k_est, "true": snaps.k_true}
     sources = {"estimated": "estimate", "true": "truth"}  # report label -> k_source
     bar = tqdm(
@@ -185,13 +217,14 @@ def evaluate_section(
             methods: dict[str, ActionFn] = {n: policy_action(a) for n, a in agents.items()}
             methods["idm_calibrated"] = idm_action(lambda core: idm, length)
             for name in [m for m in METHOD_ORDER if m in methods]:
-                core = SectionCore(
-                    sc, truth.section, gen_bank, net_file, seed=sc.seed, vclass=vclass
-                )
-                try:
-                    ro = rollout(core, methods[name], h, seed)
-                finally:
-                    core.close()
+                ro, counts_ = _run(sc, truth, gen_bank, net_file, vclass, methods[name], h, seed)
+                safety_rows.append({"hidden_count": label, "method": name, **counts_})
+                if name == "policy" and counts_["safety"] != "none":
+                    # What the safety layer hides: the policy alone on the same scenes.
+                    _, alone = _run(
+                        sc, truth, gen_bank, net_file, vclass, methods[name], h, seed, "none"
+                    )
+                    safety_rows.append({"hidden_count": label, "method": name, **alone})
                 if sc.evaluation.fcd_episodes > 0 and label == "estimated":
                     core = SectionCore(
                         sc,
@@ -201,6 +234,7 @@ def evaluate_section(
                         seed=sc.seed,
                         fcd_file=fcd / f"{name}.fcd.xml",
                         vclass=vclass,
+                        safety=_safety(sc),
                     )
                     try:
                         rollout(
@@ -220,6 +254,7 @@ def evaluate_section(
         align.insert(1, "mean_k", [float(np.mean(counts[r])) for r in align["hidden_count"]])
         write_csv(align, stage / "macro_alignment.csv")
         write_csv(pd.concat(samples, ignore_index=True), stage / "eval_samples.csv")
+        write_csv(pd.DataFrame(safety_rows), stage / "safety.csv")
         obs_ho, acc_ho = micro_pairs(sc, truth, held)
         write_csv(
             micro_consistency(agents, {"idm_calibrated": idm}, obs_ho, acc_ho, sc, length),
@@ -238,6 +273,7 @@ def evaluate_section(
             policies={k: str(v) for k, v in policies.items()},
             held_out_runs=[int(r) for r in held],
             episodes=len(snaps),
+            safety=_safety(sc),
             idm_calibrated=idm.as_dict() | {"fit_rmse_mps2": idm_rmse},
             k_estimate=ks,
             timings_s={"evaluate": round(time.perf_counter() - t0, 3)},

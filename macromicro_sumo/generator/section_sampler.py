@@ -27,7 +27,7 @@ import torch
 from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.generator.section_model import Scene, SectionGeneratorNet, propose
 from macromicro_sumo.generator.section_scene import PSI_INDEX, TOL_M, Gaps, Psi, Road
-from macromicro_sumo.road.section import Section, lane_leaders
+from macromicro_sumo.road.section import STOP, Section, section_leaders
 
 
 @contextlib.contextmanager
@@ -133,7 +133,8 @@ def safe_speeds(
     than a leader 10 m behind satisfies both and crashes in the first second. The bound is
     the stopping-distance condition v^2 <= v_leader^2 + 2 b (spacing - standstill spacing),
     with b the action bound's braking and the standstill spacing psi's smallest spacing.
-    Lanes are walked downstream to upstream, so a capped leader caps its followers.
+    Vehicles are walked downstream to upstream, so a capped leader caps its followers; a
+    generated vehicle must also be able to stop before the end of a lane that leads nowhere.
     """
     fixes = np.zeros(len(comp.speed_mps), dtype=np.int64)
     for s in range(len(comp.speed_mps)):
@@ -142,10 +143,16 @@ def safe_speeds(
             continue
         lane, arc = comp.lane[s, on], comp.arc_m[s, on]
         v, gen = comp.speed_mps[s, on].copy(), comp.generated[s, on]
-        leader, spacing = lane_leaders(lane, arc, section.length_m, section.closed)
+        # Along the lane connections; a lane's end is a standing leader (STOP, < 0).
+        leader, spacing = section_leaders(section, lane, arc)
         room = 2.0 * brake_mps2 * np.maximum(0.0, spacing - standstill_m[s])
-        for i in np.lexsort((-arc, lane)):  # per lane, front first
+        # Front first: a leader (on this lane or the one it continues onto) is capped first.
+        for i in np.argsort(-arc, kind="stable"):
             j = leader[i]
+            if gen[i] and j == STOP:
+                cap = math.sqrt(room[i])
+                if v[i] > cap:
+                    v[i], fixes[s] = cap, fixes[s] + 1
             if gen[i] and j >= 0:
                 cap = math.sqrt(v[j] ** 2 + room[i])
                 if v[i] > cap:
