@@ -2,8 +2,9 @@
 
 The paper's protocol, measured in SUMO: for each K, the held-out snapshots are completed
 (by the generator, or, for ``ground_truth``, with the true hidden vehicles) and rolled out
-for ``evaluation.horizon_steps``; observed vehicles replay their recorded speeds and the
-hidden ones are driven by the method. All methods run on the same scenes:
+for ``evaluation.horizon_steps``; observed vehicles replay their recorded speeds (except
+where that would run them into a generated leader: ``env.ring.keep_clear``, counted in the
+``replay_overrides`` columns) and the hidden ones are driven by the method. All methods run on the same scenes:
 
 * ``ground_truth``: the recorded fleet (true scene, hidden vehicles apply their recorded actions);
 * ``policy``, ``micro_only``, ``macro_only``: the learned policies (stochastic);
@@ -236,8 +237,16 @@ def macro_alignment(
                 ro = rollout(core, act, h, seed)
             finally:
                 core.close()
+            # Observed vehicles that left their record to keep clear of a generated leader
+            # (``env.ring.keep_clear``): vehicle-steps and episodes, on record beside the
+            # collisions they stand in for.
+            overrides = {
+                "replay_overrides": core.replay_overrides,
+                "replay_override_episodes": len(core.overridden_episodes),
+            }
             if name == "ground_truth":  # the recording: the same for every draw, replayed once
                 ro = ro.repeated(len(draws))
+                overrides = {key: val * len(draws) for key, val in overrides.items()}
             if fcd_dir is not None and sc.evaluation.fcd_episodes > 0:
                 core = RingCore(sc, bank, seed=sc.seed, fcd_file=fcd_dir / f"{name}_K{k}.fcd.xml")
                 try:
@@ -245,7 +254,7 @@ def macro_alignment(
                 finally:
                     core.close()
             ref = ro if name == "ground_truth" else ref
-            rows.append(macro_row({"K": k}, name, ro, ref, seed))
+            rows.append({**macro_row({"K": k}, name, ro, ref, seed), **overrides})
             samples.append(samples_frame({"K": k}, name, ro))
             bar.update()
     bar.close()

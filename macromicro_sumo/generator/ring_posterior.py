@@ -143,14 +143,27 @@ class Lookahead:
         )
         return inside | (self.empty & self.empty_ok)[:, None]
 
-    def project(self, choice: np.ndarray, a1: np.ndarray) -> np.ndarray:
-        """(B,) the feasible split point of gap ``choice`` nearest to ``a1`` (a1 if none)."""
+    def project(self, choice: np.ndarray, a1: np.ndarray, standstill_m: float = 0.0) -> np.ndarray:
+        """(B,) the feasible split point of gap ``choice`` nearest to ``a1``.
+
+        With none (Psi's bounds cannot be met), ``a1`` itself, or with ``standstill_m`` > 0
+        the point nearest to it that keeps both new spacings at least that long (the gap's
+        middle where it cannot): Psi's spacing bounds, measured from passages at the
+        detectors, can exclude every real gap of a dense ring (ring_sugiyama: 22% of the
+        true spacings lie below the detectors' d_min), and a split point left where the
+        proposal drew it put vehicles on top of each other.
+        """
         rows = np.arange(len(choice))
         lo, hi, ok = self.lo[rows, choice], self.hi[rows, choice], self.ok[rows, choice]
         near = np.minimum(np.maximum(a1[:, None], lo), hi)
         dist = np.where(ok, np.abs(near - a1[:, None]), np.inf)
         best = near[rows, dist.argmin(axis=1)]
-        return np.where(ok.any(axis=1) & ~self.empty, best, a1)
+        fallback = a1
+        if standstill_m > 0:
+            g = self.gap[rows, choice]
+            inner = np.minimum(np.maximum(a1, standstill_m), g - standstill_m)
+            fallback = np.where(g >= 2 * standstill_m, inner, 0.5 * g)
+        return np.where(ok.any(axis=1) & ~self.empty, best, np.where(self.empty, a1, fallback))
 
 
 def lookahead(

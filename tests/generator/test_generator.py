@@ -51,6 +51,7 @@ from macromicro_sumo.generator.ring_sampler import (
     complete_equal_gap,
     complete_uniform,
     rejection_success,
+    safe_speeds,
 )
 from macromicro_sumo.generator.ring_train import (
     _batch_loss,
@@ -794,6 +795,82 @@ def test_completion_of_a_sugiyama_ring_equals_the_quadratic_programme(monkeypatc
         np.testing.assert_array_equal(got.arc_m, want.arc_m)
         np.testing.assert_array_equal(got.speed_mps, want.speed_mps)
         np.testing.assert_array_equal(got.projected, want.projected)
+
+
+def jammed_ring(b: int, seed: int) -> Snapshots:
+    """ring_sugiyama's regime: 22 vehicles on 230 m, every spacing 6.6-8 m but the hidden
+    vehicle's two (a 15 m gap), Psi's d_min 8.4 m above all of them as the detectors
+    measure it in a jam (15 m cannot split into two spacings in Psi's bounds) and speeds
+    0-6 m/s."""
+    rng = np.random.default_rng(seed)
+    n, length = 22, 230.0
+    spacing = rng.uniform(6.6, 8.0, (b, n))
+    spacing[:, -2:] = 0.0
+    spacing[:, :-2] *= (length - 15.0) / spacing[:, :-2].sum(axis=1, keepdims=True)
+    spacing[:, -2] = 15.0
+    arc = np.mod(np.cumsum(spacing, axis=1), length)
+    hidden = np.zeros((b, n), bool)
+    hidden[:, -1] = True  # the vehicle between the last two observed ones
+    psi = [3.4, length / n, 8.4, 26.0, 0.0, 6.0]
+    snaps = snaps_of(arc, rng.uniform(0.0, 6.0, (b, n)), hidden, psi, length)
+    return dataclasses.replace(snaps, spacing_std_m=np.full(b, 3.4))
+
+
+def test_dense_ring_completions_keep_the_standstill_spacing():
+    """With no split point inside Psi's bounds, plain Algorithm 3 leaves the projected
+    vehicle where the proposal drew it, on top of its neighbours (ring_sugiyama: spacings of
+    1.5-3.5 m, vehicles 5 m long); with ``standstill_m`` every new spacing is at least it."""
+    snaps = jammed_ring(200, 0)
+    for net in (zero_net(), posterior_net()):
+        plain = complete(net, snaps, t_max=20, seed=0)
+        assert (plain.projected == 1).all()
+        assert (gaps_np(plain.arc_m, 230.0).min(axis=1) < 5.0).any()  # the defect
+        kept = complete(net, snaps, t_max=20, seed=0, standstill_m=6.5)
+        np.testing.assert_array_equal(kept.arc_m[:, :-1], snaps.arc_m[:, :-1])
+        assert gaps_np(kept.arc_m, 230.0).min() >= 6.5 - 1e-9
+
+
+def test_safe_speeds_let_generated_vehicles_stop_and_be_stopped_behind():
+    """Observed O (slot 0), generated G (slots 1, 2) on a 230 m ring, b = 3 m/s^2, standstill
+    spacing 6.5 m: a generated leader too slow for its observed follower is raised, a
+    generated vehicle too fast for its leader is capped, and a cap travels back along a
+    chain of generated vehicles."""
+    hidden = np.array([[False, True, False], [False, True, True]])
+    arc = np.array([[0.0, 8.0, 100.0], [0.0, 60.0, 67.0]])
+    speed = np.array([[6.0, 0.3, 5.0], [3.0, 9.0, 1.0]])
+    v, fixes = safe_speeds(arc, speed, hidden, 230.0, 6.5, 3.0)
+    # Row 0: O at 6 m/s, 1.5 m beyond the standstill spacing behind G: G >= sqrt(36 - 9).
+    assert v[0, 1] == pytest.approx(math.sqrt(36.0 - 9.0))
+    assert v[0, 0] == 6.0 and v[0, 2] == 5.0 and fixes[0] == 1
+    # Row 1: G2 at 1 m/s, 163 m behind O (round the ring): free; G1 0.5 m beyond the
+    # standstill spacing behind G2: capped to sqrt(1 + 3).
+    assert v[1, 2] == 1.0 and v[1, 1] == pytest.approx(2.0) and fixes[1] == 1
+    # The headway cap: at most (spacing - standstill) / 0.6 s.
+    v, _ = safe_speeds(arc, speed, hidden, 230.0, 6.5, 3.0, headway_s=0.6)
+    assert v[1, 1] == pytest.approx(0.5 / 0.6)
+    # Observed speeds never change.
+    np.testing.assert_array_equal(v[~hidden], speed[~hidden])
+
+
+def test_dense_ring_completions_have_consistent_speeds():
+    """The completed scenes of ``jammed_ring`` with the standstill spacing, b = 3 m/s^2 and
+    a 0.6 s headway: every generated vehicle can stop behind its leader, and is no faster
+    than the headway allows."""
+    snaps = jammed_ring(200, 1)
+    comp = complete(
+        posterior_net(), snaps, 20, seed=0, standstill_m=6.5, brake_mps2=3.0, headway_s=0.6
+    )
+    arc, v = comp.arc_m, comp.speed_mps
+    order = np.argsort(arc, axis=1)
+    rows = row_index(len(arc))
+    lead = np.empty_like(order)
+    lead[rows, order] = np.roll(order, -1, axis=1)
+    spacing = np.mod(arc[rows, lead] - arc, 230.0)
+    gen = snaps.hidden
+    stop = np.sqrt(v[rows, lead] ** 2 + 6.0 * (spacing - 6.5))
+    assert (v[gen] <= stop[gen] + 1e-9).all()
+    assert (v[gen] <= (spacing[gen] - 6.5) / 0.6 + 1e-9).all()
+    assert comp.speed_fixes.sum() > 0
 
 
 def posterior_net() -> GeneratorNet:
