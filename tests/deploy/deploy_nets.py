@@ -1,0 +1,146 @@
+"""Tiny SUMO networks for the deployment tests, built by netconvert from plain XML, and a
+small policy cloned from IDM (the deployment needs one that drives sensibly, quickly)."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import sumolib
+import torch
+
+from macromicro_sumo.policy.agent import Agent
+from macromicro_sumo.road.physics import OBSERVATION_FEATURES, idm_accel
+
+CAR = (
+    '<vType id="car" length="5" minGap="2.5" accel="2.6" decel="4.5" sigma="0.5" '
+    'speedFactor="1.0" speedDev="0.1"/>'
+)
+
+
+def netconvert(folder: Path, nodes: str, edges: str, cons: str = "", extra: tuple = ()) -> Path:
+    (folder / "n.nod.xml").write_text(f"<nodes>\n{nodes}\n</nodes>\n")
+    (folder / "e.edg.xml").write_text(f"<edges>\n{edges}\n</edges>\n")
+    cmd = [
+        sumolib.checkBinary("netconvert"),
+        "--node-files", str(folder / "n.nod.xml"),
+        "--edge-files", str(folder / "e.edg.xml"),
+        "--output-file", str(folder / "net.net.xml"),
+        "--no-turnarounds", "true",
+        "--no-warnings", "true",
+        *extra,
+    ]  # fmt: skip
+    if cons:
+        (folder / "c.con.xml").write_text(f"<connections>\n{cons}\n</connections>\n")
+        cmd += ["--connection-files", str(folder / "c.con.xml")]
+    subprocess.run(cmd, check=True, capture_output=True)
+    return folder / "net.net.xml"
+
+
+def merge_net(folder: Path, main_vph: float = 1800.0, ramp_vph: float = 500.0) -> tuple[Path, Path]:
+    """Mainline A (2 lanes) -> B (3 lanes: the on-ramp R adds an acceleration lane on the
+    right, so A's lanes 0 and 1 go on as B's 1 and 2) -> C (2 lanes: B's lane 0 ends, its
+    vehicles must change lanes). Returns (net, routes)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    nodes = "\n".join(
+        [
+            '<node id="n0" x="0" y="0"/>',
+            '<node id="n1" x="500" y="0"/>',
+            '<node id="n2" x="800" y="0"/>',
+            '<node id="n3" x="1300" y="0"/>',
+            '<node id="r0" x="300" y="-40"/>',
+        ]
+    )
+    edges = "\n".join(
+        [
+            '<edge id="A" from="n0" to="n1" numLanes="2" speed="30"/>',
+            '<edge id="R" from="r0" to="n1" numLanes="1" speed="25"/>',
+            '<edge id="B" from="n1" to="n2" numLanes="3" speed="30"/>',
+            '<edge id="C" from="n2" to="n3" numLanes="2" speed="30"/>',
+        ]
+    )
+    cons = "\n".join(
+        [
+            '<connection from="A" to="B" fromLane="0" toLane="1"/>',
+            '<connection from="A" to="B" fromLane="1" toLane="2"/>',
+            '<connection from="R" to="B" fromLane="0" toLane="0"/>',
+            '<connection from="B" to="C" fromLane="1" toLane="0"/>',
+            '<connection from="B" to="C" fromLane="2" toLane="1"/>',
+        ]
+    )
+    net = netconvert(folder, nodes, edges, cons)
+    routes = folder / "merge.rou.xml"
+    routes.write_text(
+        f"<routes>\n    {CAR}\n"
+        '    <route id="main" edges="A B C"/>\n    <route id="ramp" edges="R B C"/>\n'
+        f'    <flow id="m" type="car" route="main" begin="0" end="3600" vehsPerHour="{main_vph}" '
+        'departLane="best" departSpeed="max"/>\n'
+        f'    <flow id="r" type="car" route="ramp" begin="0" end="3600" vehsPerHour="{ramp_vph}" '
+        'departLane="best" departSpeed="max"/>\n</routes>\n'
+    )
+    return net, routes
+
+
+def light_net(folder: Path) -> tuple[Path, Path, Path]:
+    """One lane A (400 m) -> a traffic light that stays red -> B (200 m); one car.
+    Returns (net, routes, additional with the all-red program)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    nodes = "\n".join(
+        [
+            '<node id="n0" x="0" y="0"/>',
+            '<node id="tl" x="400" y="0" type="traffic_light"/>',
+            '<node id="n2" x="600" y="0"/>',
+        ]
+    )
+    edges = "\n".join(
+        [
+            '<edge id="A" from="n0" to="tl" numLanes="1" speed="20"/>',
+            '<edge id="B" from="tl" to="n2" numLanes="1" speed="20"/>',
+        ]
+    )
+    net = netconvert(folder, nodes, edges)
+    routes = folder / "light.rou.xml"
+    routes.write_text(
+        f"<routes>\n    {CAR}\n"
+        '    <vehicle id="v0" type="car" depart="0" departSpeed="15"><route edges="A B"/></vehicle>\n'
+        '    <vehicle id="probe" type="car" depart="1"><route edges="A B"/></vehicle>\n'
+        "</routes>\n"
+    )
+    red = folder / "red.add.xml"
+    red.write_text(
+        '<additional>\n    <tlLogic id="tl" type="static" programID="red" offset="0">\n'
+        '        <phase duration="10000" state="r"/>\n    </tlLogic>\n</additional>\n'
+    )
+    return net, routes, red
+
+
+def idm_agent(observation: str, limit: float, seed: int = 0, steps: int = 400) -> Agent:
+    """An agent whose mean action is IDM's (v0 = limit, T 1.2 s, a 2, b 3, s0 2 m, 5 m cars),
+    cloned by regression on random observations: a sensible small policy in seconds."""
+    rng = np.random.default_rng(seed)
+    n = 8192
+    v = rng.uniform(0.0, limit * 1.1, n)
+    spacing = np.exp(rng.uniform(np.log(5.5), np.log(250.0), n))
+    dv = rng.uniform(-8.0, 12.0, n)
+    dv = np.minimum(dv, v)  # the leader's speed is never negative
+    cols = [v, np.full(n, limit), spacing, dv]
+    if len(OBSERVATION_FEATURES[observation]) > 4:
+        cols += [np.full(n, limit), rng.uniform(0.0, 500.0, n)]
+    obs = np.stack(cols, axis=1)
+    a = idm_accel(v, spacing - 5.0, dv, limit, 1.2, 2.0, 3.0, 2.0)
+    a = np.clip(a, -9.0, 2.6)
+    shift, scale = obs.mean(axis=0), np.where(obs.std(axis=0) > 1e-6, obs.std(axis=0), 1.0)
+    torch.manual_seed(seed)
+    agent = Agent(64, observation=observation, shift_scale=(shift, scale))
+    x = torch.as_tensor(obs, dtype=torch.float32)
+    y = torch.as_tensor(a, dtype=torch.float32)
+    opt = torch.optim.Adam(agent.actor.parameters(), lr=3e-3)
+    for _ in range(steps):
+        idx = torch.as_tensor(rng.integers(0, n, 1024))
+        loss = ((agent.dist(x[idx]).mean - y[idx]) ** 2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    agent.eval()
+    return agent

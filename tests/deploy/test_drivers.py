@@ -1,0 +1,144 @@
+"""Drivers on live SUMO: what a driven vehicle sees (leaders across an added lane, red
+lights) and that it acts on it. Real SUMO, a small policy cloned from IDM."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import dump_toml
+from deploy_nets import idm_agent, light_net, merge_net
+
+from macromicro_sumo.deploy.drivers import SectionSpeedDriver, section_observations
+from macromicro_sumo.deploy.stage import policy_batch
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, read_section
+from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
+from macromicro_sumo.truth.section import record_run
+
+
+def _scenario(folder: Path, net: Path, routes: Path, edges: list[str], **tables) -> object:
+    table = {
+        "name": "t",
+        "seed": 5,
+        "network": {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]},
+        "section": {"edges": edges},
+        "simulation": {"warmup_s": 0.0, "duration_s": 60.0, "n_runs": 2},
+        "detectors": {"interval_s": 30.0},
+        "policy": {"observation": "lookahead"},
+        **tables,
+    }
+    path = folder / "s.toml"
+    path.write_text(dump_toml(table))
+    return load_scenario(path)
+
+
+class Recording(SectionSpeedDriver):
+    """A policy driver that also keeps every step's observations and lane states."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.seen: list[tuple[list[str], np.ndarray, dict]] = []
+
+    def drive(self, sim, vids, states) -> None:
+        if self.has_lights is None:
+            self.has_lights = sim.has_traffic_lights()
+        obs, _, _ = section_observations(self, sim, vids, states)
+        self.seen.append((vids, obs, dict(states)))
+        super().drive(sim, vids, states)
+
+
+def _run(sc, driver, additional: tuple[Path, ...] = ()) -> object:
+    sim = Simulation(
+        SumoOptions(
+            sc.resolve(sc.network.net_file),
+            additional,
+            sc.simulation.step_length_s,
+            sc.seed,
+            route_files=tuple(sc.resolve(r) for r in sc.network.route_files),
+            user_demand=True,
+        )
+    )
+    try:
+        df, stats = record_run(sim, sc, driver.section, 0, driver)
+    finally:
+        sim.close()
+    return df, stats
+
+
+@pytest.fixture(scope="module")
+def merge_files(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    return merge_net(tmp_path_factory.mktemp("merge"))
+
+
+def _through_lane(section, lane_id: str) -> tuple[int, int] | None:
+    """(edge, lane) of the through lane holding ``lane_id``: A's lanes 0 and 1 go on as B's
+    1 and 2 and C's 0 and 1 (``merge_net``); a junction lane counts as the lane it enters."""
+    e, idx, _, _ = section.lanes[lane_id]
+    if lane_id.startswith(":"):
+        e += 1
+    through = {0: {0: 0, 1: 1}, 1: {1: 0, 2: 1}, 2: {0: 0, 1: 1}}[e]
+    return (0, through[idx]) if idx in through else None
+
+
+def test_leader_across_an_added_lane_is_the_physically_next_vehicle(
+    merge_files: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """Where B adds a lane on the right, A's lane 0 goes on as B's lane 1: the spacing a
+    driver on A sees is to the next vehicle on its through lane (lane indices differ)."""
+    net, routes = merge_files
+    sc = _scenario(tmp_path, net, routes, ["A", "B", "C"], instrumented={"penetration": 0.01})
+    section = read_section(net, ["A", "B", "C"], False)
+    agent = idm_agent("lookahead", 30.0)
+    drv = Recording(sc, section, 0, policy_batch(agent), "sumo")
+    _run(sc, drv)
+    crossing = checked = 0
+    for vids, obs, states in drv.seen:
+        pos = {}
+        for v, (lane, p, _, _) in states.items():
+            if lane in section.lanes and _through_lane(section, lane) is not None:
+                hit = section.lanes[lane]
+                pos[v] = (_through_lane(section, lane), hit[2] + p * hit[3], lane)
+        for i, v in enumerate(vids):
+            if v not in pos:
+                continue
+            lane_key, arc, lane = pos[v]
+            ahead = [(a - arc, w) for w, (k, a, _) in pos.items() if k == lane_key and a > arc]
+            if not ahead:
+                continue
+            gap, w = min(ahead)
+            if gap >= NO_LEADER_GAP_M - 10 or obs[i, 2] >= NO_LEADER_GAP_M:
+                continue
+            checked += 1
+            # SUMO's distance along the lanes vs arc positions (junction shapes): 1 m.
+            assert abs(obs[i, 2] - gap) < 1.5, (v, lane, w, pos[w][2], obs[i, 2], gap)
+            if not lane.startswith(":") and section.lanes[lane][0] == 0 and pos[w][2][0] == "B":
+                crossing += 1
+                # The same lane index on B is another lane: an index lookup would be wrong.
+                assert section.lanes[lane][1] != section.lanes[pos[w][2]][1]
+    assert checked > 500 and crossing > 20, (checked, crossing)
+
+
+def test_a_red_light_stops_a_policy_driven_vehicle_before_the_stop_line(tmp_path: Path) -> None:
+    net, routes, red = light_net(tmp_path)
+    sc = _scenario(
+        tmp_path,
+        net,
+        routes,
+        ["A", "B"],
+        instrumented={"ids": ["probe"]},
+        simulation={"warmup_s": 0.0, "duration_s": 60.0, "n_runs": 2},
+    )
+    section = read_section(net, ["A", "B"], False)
+    agent = idm_agent("lookahead", 20.0)
+    # Safety "none": SUMO neither brakes for the light nor caps the command: only the
+    # policy, seeing the red light as a standing leader, can stop the car.
+    drv = SectionSpeedDriver(sc, section, 0, policy_batch(agent), "none")
+    df, stats = _run(sc, drv, (red,))
+    v0 = df[df["vehicle_id"] == "v0"]
+    line = float(section.lengths_m[0])
+    assert v0["arc_m"].max() < line, v0["arc_m"].max()
+    last = v0.iloc[-1]
+    assert last["speed_mps"] < 0.1 and line - last["arc_m"] < 15.0, last.to_dict()
+    assert stats["collisions"] == 0 and drv.stats.vehicle_steps_driven > 100
