@@ -79,6 +79,13 @@ class PolicyConfig:
     )
     refine_updates: int = spec(20, lo=1, hi=1_000_000, doc="PPO updates per refinement iteration")
     refine_epochs: int = spec(20, lo=1, hi=100_000, doc="generator epochs per refinement iteration")
+    safety: str = spec(
+        "sumo",
+        choices=("none", "sumo"),
+        doc="hidden vehicles' safety layer in training and evaluation rollouts (sections): sumo "
+        "caps each speed command at SUMO's safe speed behind what it sees ahead (counted); "
+        "none applies it exactly",
+    )
     refine_lambda_rec: float = spec(
         1.0,
         lo=0.0,
@@ -151,6 +158,15 @@ class DeployConfig:
     )
     vtype: str = spec(
         "", doc="instead: only vehicles of this vType are driven (sections; '' = any vType)"
+    )
+    calibration_budget_s: float = spec(
+        300.0,
+        lo=1.0,
+        hi=1e6,
+        doc="idm_detectors: wall-clock budget of the IDM fit to the training runs' detectors [s]",
+    )
+    calibration_evals: int = spec(
+        60, lo=1, hi=100_000, doc="idm_detectors: most whole-run evaluations the fit may use"
     )
 
 
