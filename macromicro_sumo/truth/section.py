@@ -43,6 +43,7 @@ from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.demand import VType, check_demand, check_vehicle_ids
 from macromicro_sumo.sumo.inputs import SumoInputs, read_net, scenario_inputs
 from macromicro_sumo.sumo.simulation import Driver, Simulation, SumoOptions
+from macromicro_sumo.truth.files import truth_from_files
 from macromicro_sumo.truth.section_detectors import (
     detectors_xml,
     place_detectors,
@@ -260,6 +261,8 @@ def simulate_section(
     sc: SectionScenario, out: Path | str, command: str = "", progress: bool = True
 ) -> Path:
     """All ground-truth runs of a section scenario, written into ``out``."""
+    if sc.data.source == "files":  # field data instead of SUMO runs (truth/files.py)
+        return truth_from_files(sc, out, command, progress)
     inputs, section, vtypes = load_section(sc)
     placed = place_detectors(sc, inputs, section)
     out = prepare_out_dir(out)
