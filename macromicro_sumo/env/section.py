@@ -29,11 +29,11 @@ Starting State
 Episode End
     After H steps; earlier (``truncated``) on a SUMO error, a failed insertion, or when no
     vehicle is left on the section. A vehicle that leaves the section (or SUMO) becomes
-    inactive and is removed. Observed vehicles replay their recorded lane and speed every
-    step while that is safe (SUMO's safe speed caps them; a recorded lane change into a
-    vehicle waits): one that had to deviate is off its record from then on, never moved
-    back onto it (``off_record``, ``counts``); their record ends where they left the
-    section in the ground truth. Collisions are counted and truncate the episode.
+    inactive and is removed. Observed vehicles replay their recorded lane and speed while
+    that is safe (SUMO's safe speed caps them; a recorded lane change into a vehicle
+    waits); one that had to deviate catches up by speed until it is on its record again
+    (``env/section_replay.py``; ``off_record``, ``counts``); their record ends where they
+    left the section in the ground truth. Collisions are counted and truncate the episode.
 Arguments
     ``SectionCore(sc, section, bank, net_file, seed, fcd_file=None)``.
 """
@@ -52,9 +52,18 @@ from macromicro_sumo.env.section_bank import (
     section_observations,
     section_target,
 )
+from macromicro_sumo.env.section_replay import (
+    REPLAY_SPEED_FACTOR,
+    REPLAY_SUFFIX,
+    SAFE_SUFFIX,
+    arc_lag,
+    catch_up_speeds,
+    safe_places,
+    vtypes_xml,
+)
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES
-from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section, section_leaders
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 
 POSITION_TOL_M = 0.01  # insertion and replay checks: a placement off by more is an error
@@ -65,14 +74,15 @@ EXACT_MODE = 0  # SUMO speed mode: a speed command applies exactly, no checks
 SAFE_MODE = 1 | 16
 SAFETY = ("none", "sumo")  # hidden vehicles' safety layer: none, or SAFE_MODE
 DEFAULT_SAFETY = "sumo"
-REPLAY_SUFFIX = "_replay"  # observed vehicles' vTypes: no speed-limit cap (``_vtypes_xml``)
-REPLAY_SPEED_FACTOR = 3.0
 SPEED_TOL_MPS = 1e-3  # a read speed this far below its command: SUMO capped it
 COUNTERS = (
     "replay_vehicles",  # observed vehicles replayed (per episode)
-    "replay_off_record",  # ... that left their record once (a capped speed, a refused move)
+    "replay_off_record",  # times an observed vehicle left its record (capped, refused move)
+    "replay_returned",  # ... and came back onto it (position and lane)
     "replay_steps",  # observed vehicle-steps replayed
-    "replay_capped",  # ... below their recorded speed (SUMO's safe speed, then max accel)
+    "replay_capped",  # ... whose command SUMO's safe speed capped
+    "replay_off_steps",  # ... that ended off their record
+    "replay_lag_m",  # sum over those of |recorded - actual arc| (mean: / replay_off_steps)
     "replay_moves_refused",  # recorded lane changes / placements postponed: target unsafe
     "hidden_steps",  # hidden vehicle-steps commanded
     "safety_capped",  # ... whose command the safety layer capped (safety = "sumo")
@@ -95,6 +105,7 @@ class SectionCore:
         fcd_file: Path | None = None,
         vclass: str = "passenger",
         safety: str | None = None,
+        replay_min_gap_m: float | None = None,
     ) -> None:
         # Training and evaluation alike: the scenario's choice, else the safety layer (the
         # policy alone does not reach zero collisions on multi-lane sections, measured).
@@ -117,7 +128,14 @@ class SectionCore:
         self._vtype = {float(x): f"mm_L{i}" for i, x in enumerate(lengths)}
         vtypes = Path(self._tmp.name) / "vtypes.add.xml"
         vtypes.write_text(
-            _vtypes_xml(self._vtype, sc.bounds.accel_mps2, sc.bounds.min_gap_m, vclass, self.dt)
+            vtypes_xml(
+                self._vtype,
+                sc.bounds.accel_mps2,
+                sc.bounds.min_gap_m,
+                vclass,
+                self.dt,
+                replay_min_gap_m,
+            )
         )
         self.sim = Simulation(
             SumoOptions(Path(net_file), (vtypes,), self.dt, seed, fcd_file=fcd_file)
@@ -140,8 +158,8 @@ class SectionCore:
         self.hidden = np.zeros(self.n, dtype=bool)
         self.leader = np.full(self.n, -1, dtype=np.int64)
         self.spacing = np.full(self.n, NO_LEADER_GAP_M)
-        # Observed vehicles that left their record (a capped speed, a postponed lane
-        # change): they replay recorded speeds from where they are, never moved back.
+        # Observed vehicles off their record (a capped speed, a postponed lane change): they
+        # catch up by speed (``catch_up_speeds``) until they are on it again.
         self.off_record = np.zeros(self.n, dtype=bool)
         self._obs = np.zeros((self.n, self.obs_dim))
         self._error = ""
@@ -206,16 +224,22 @@ class SectionCore:
             if i in in_junction:
                 want[i], want_lane[i] = arc0, lane0
             length = float(np.round(b.length_m[episode, i], 2))
-            # SUMO refuses a departure above the lane's limit; the env keeps the true speed
-            # and the first speed command (mode 0) applies it exactly.
+            # SUMO refuses a departure above the lane's limit x the vType's speedFactor; the
+            # env keeps the true speed. Under the safe-speed check a command may not exceed
+            # the inserted speed + one step of accel: every replayed vehicle recorded above
+            # the limit was held back in the first step (Bremen: 50 of 123 off their record).
+            if not self.hidden[i]:
+                suffix = REPLAY_SUFFIX
+            else:
+                suffix = "" if self.safety == "none" else SAFE_SUFFIX
+            factor = 1.0 if suffix == "" else REPLAY_SPEED_FACTOR
             self.sim.add_vehicle(
                 self.ids[i],
                 self._routes[e],
-                self._vtype[length]
-                + ("" if self.hidden[i] and self.safety == "none" else REPLAY_SUFFIX),
+                self._vtype[length] + suffix,
                 lane_idx,
                 pos,
-                min(float(b.speed0_mps[episode, i]), float(sec.limits_mps[e, lane_idx])),
+                min(float(b.speed0_mps[episode, i]), factor * float(sec.limits_mps[e, lane_idx])),
             )
         self.sim.step()
         live = [self.ids[i] for i in slots]
@@ -332,6 +356,17 @@ class SectionCore:
             self.sim.remove_vehicles([self.ids[i] for i in np.flatnonzero(gone)])
         replay = obs_slots & ~gone
         cmd[replay] = rv[replay]
+        back = np.flatnonzero(replay & self.off_record)
+        if back.size:
+            cmd[back] = catch_up_speeds(
+                self.speed[back],
+                rv[back],
+                b.replay_arc_m[ep, t + 1, back],
+                self.arc[back],
+                arc_lag(self.section, b.replay_arc_m[ep, t, back], self.arc[back]),
+                self.dt,
+                (self.a_min, self.a_max),
+            )
         live = np.flatnonzero(self.active)
         try:
             self.sim.set_speeds([self.ids[i] for i in live], cmd[live])
@@ -361,6 +396,7 @@ class SectionCore:
             self.speed[i] = st[2]
         if left:
             self.sim.remove_vehicles(left)
+        self._rejoin(replay, b.replay_lane[ep, t + 1], b.replay_arc_m[ep, t + 1])
         error = self._follow_records(replay, b.replay_lane[ep, t + 1], b.replay_arc_m[ep, t + 1])
         self.t += 1
         self._scene()
@@ -388,18 +424,29 @@ class SectionCore:
             self.counts["safety_capped"] += int((capped & hid).sum())
         self._leave_record(capped & replay)
 
+    def _rejoin(self, replay: np.ndarray, lane: np.ndarray, arc_m: np.ndarray) -> None:
+        """Vehicles that caught up with their record (position within ``POSITION_TOL_M``,
+        the recorded lane) are on it again; count the others' lag."""
+        off = replay & self.active & self.off_record
+        lag = np.abs(arc_lag(self.section, arc_m, self.arc))
+        back = off & (lag <= POSITION_TOL_M) & (lane == self.lane)
+        self.off_record &= ~back
+        self.counts["replay_returned"] += int(back.sum())
+        still = off & ~back
+        self.counts["replay_off_steps"] += int(still.sum())
+        self.counts["replay_lag_m"] += float(lag[still].sum())
+
     def _leave_record(self, mask: np.ndarray) -> None:
         self.counts["replay_off_record"] += int((mask & ~self.off_record).sum())
         self.off_record |= mask
 
     def _follow_records(self, replay: np.ndarray, lane: np.ndarray, arc_m: np.ndarray) -> str:
-        """Put observed vehicles that are off their record (a recorded lane change, or
-        drift) where the record says, if that place is safe now; returns an error text if
-        SUMO refuses.
+        """Put observed vehicles where the record says (a recorded lane change, or drift),
+        if that place is safe now; returns an error text if SUMO refuses.
 
-        A vehicle off its record (its speed was capped) keeps its own arc: only its
-        recorded lane is applied, where the record is on the same edge. A target place
-        that would cut in too close to the vehicles there waits (counted).
+        A vehicle off its record (its speed was capped) keeps its own arc, catching up by
+        speed: only its recorded lane is applied, where the record is on the same edge. A
+        target place that would cut in too close to the vehicles there waits (counted).
         """
         sec = self.section
         on_record = replay & self.active & ~self.off_record
@@ -415,7 +462,20 @@ class SectionCore:
         )
         if not fix.size:
             return ""
-        ok = self._safe_places(fix, lane[fix].astype(np.int64), want_arc[fix])
+        act = np.flatnonzero(self.active)
+        ok = safe_places(
+            sec,
+            self.lane[act],
+            self.arc[act],
+            self.speed[act],
+            self.bank.length_m[self.episode, act],
+            np.searchsorted(act, fix),
+            lane[fix].astype(np.int64),
+            want_arc[fix],
+            self.dt,
+            self.a_min,
+            self.sc.bounds.min_gap_m,
+        )
         self.counts["replay_moves_refused"] += int((~ok).sum())
         refused = np.zeros(self.n, dtype=bool)
         refused[fix[~ok]] = True
@@ -436,57 +496,3 @@ class SectionCore:
         for i, (e, k, p) in zip(fix, places, strict=True):
             self.lane[i], self.arc[i] = k, sec.offsets_m[e] + p
         return ""
-
-    def _safe_places(self, fix: np.ndarray, lane: np.ndarray, arc_m: np.ndarray) -> np.ndarray:
-        """Whether each vehicle ``fix`` can be put at (lane, arc) now: its follower there
-        and it can each stop behind their leader (braking at the action bound, one step
-        to react), bumpers at least the minimum gap apart."""
-        act = np.flatnonzero(self.active)
-        ln, s = self.lane[act].copy(), self.arc[act].copy()
-        pos = np.searchsorted(act, fix)
-        ln[pos], s[pos] = lane, arc_m
-        lead, spacing = section_leaders(self.section, ln, s)
-        v = self.speed[act]
-        length = self.bank.length_m[self.episode, act]
-        has = lead >= 0
-        v_l = np.where(has, v[np.maximum(lead, 0)], 0.0)
-        l_l = np.where(has, length[np.maximum(lead, 0)], 0.0)
-        brake = -self.a_min
-        need = self.sc.bounds.min_gap_m + v * self.dt + np.maximum(0.0, v**2 - v_l**2) / (2 * brake)
-        safe = np.where(lead == -1, True, spacing - l_l >= need)
-        ok = safe[pos].copy()
-        # ... and whoever follows it there
-        followers = np.flatnonzero(np.isin(lead, pos))
-        for f in followers:
-            ok[np.searchsorted(pos, lead[f])] &= bool(safe[f])
-        return ok
-
-
-def _vtypes_xml(
-    types: dict[float, str],
-    accel_mps2: tuple[float, float],
-    min_gap_m: float,
-    vclass: str = "passenger",
-    tau_s: float = 1.0,
-) -> str:
-    """Our vehicle types, one per length: speed-commanded, SUMO's lane changing.
-
-    speedFactor 1 (SUMO's lane-change model sees the lane limit as the desired speed),
-    maxSpeed high (commands above the limit apply in speed mode 0), collisions only on
-    bumper overlap (collisionMinGapFactor 0), accel/decel = the action bounds.
-    Each length has a second type for observed vehicles (id + ``REPLAY_SUFFIX``) with
-    speedFactor ``REPLAY_SPEED_FACTOR``: their safe-speed check (``SAFE_MODE``) also caps
-    at limit x speedFactor, and recorded speeds above the limit are what they drove.
-    """
-    a_min, a_max = accel_mps2
-    rows = ["<additional>"]
-    for length, tid in types.items():
-        for suffix, factor in (("", 1.0), (REPLAY_SUFFIX, REPLAY_SPEED_FACTOR)):
-            rows.append(
-                f'    <vType id="{tid}{suffix}" length="{length:g}" minGap="{min_gap_m:g}" '
-                f'maxSpeed="100" speedFactor="{factor:g}" speedDev="0" accel="{a_max:g}" '
-                f'decel="{-a_min:g}" emergencyDecel="{max(9.0, -a_min):g}" '
-                f'collisionMinGapFactor="0" vClass="{vclass}" tau="{tau_s:g}"/>'
-            )
-    rows.append("</additional>")
-    return "\n".join(rows) + "\n"

@@ -186,6 +186,14 @@ def typical_length(truth: SectionTruth) -> float:
     return float(vt["length_m"].iloc[int(np.argmax(vt["vehicles"].to_numpy()))])
 
 
+def recorded_min_gap(truth: SectionTruth) -> float | None:
+    """The smallest minGap of the recorded vehicles' vTypes [m] (None: not recorded)."""
+    vt = truth.vtypes
+    if "min_gap_m" not in vt or not len(vt):
+        return None
+    return float(vt["min_gap_m"].min())
+
+
 def _true_scenes(windows: list[dict[str, np.ndarray]], h: int) -> np.ndarray:
     """(lane, arc, speed, length) of every true vehicle per episode step: (4, E, H + 1, M);
     slots in order of first appearance (the start scene first)."""

@@ -26,6 +26,7 @@ from macromicro_sumo.env.section_bank import (
     SectionBank,
     build_section_bank,
     initial_observations,
+    recorded_min_gap,
     typical_vclass,
 )
 from macromicro_sumo.env.wrappers import (
@@ -101,7 +102,15 @@ def _section_setup(
 ) -> tuple[SectionCore, Scaling]:
     sc, truth, bank = make_section_bank(scenario, data, generator, split, seed)
     net_file = scenario_inputs(sc).net_file
-    core = SectionCore(sc, truth.section, bank, net_file, seed=seed, vclass=typical_vclass(truth))
+    core = SectionCore(
+        sc,
+        truth.section,
+        bank,
+        net_file,
+        seed=seed,
+        vclass=typical_vclass(truth),
+        replay_min_gap_m=recorded_min_gap(truth),
+    )
     reach = max(float(truth.section.length_m), NO_LEADER_GAP_M)
     fitted = bank_shift_scale(initial_observations(sc, truth.section, bank)) if normalize else None
     scaling = Scaling(sc.bounds.accel_mps2, sc.policy.observation, reach, normalize, fitted)

@@ -29,6 +29,7 @@ from macromicro_sumo.env.section import DEFAULT_SAFETY, SectionCore
 from macromicro_sumo.env.section_bank import (
     SectionBank,
     build_section_bank,
+    recorded_min_gap,
     section_observations,
     typical_length,
     typical_vclass,
@@ -156,7 +157,14 @@ def _run(
     vehicles' safety layer capped a command."""
     safety = safety or _safety(sc)
     core = SectionCore(
-        sc, truth.section, bank, net_file, seed=sc.seed, vclass=vclass, safety=safety
+        sc,
+        truth.section,
+        bank,
+        net_file,
+        seed=sc.seed,
+        vclass=vclass,
+        safety=safety,
+        replay_min_gap_m=recorded_min_gap(truth),
     )
     try:
         ro = rollout(core, act, horizon, seed)
@@ -235,6 +243,7 @@ def evaluate_section(
                         fcd_file=fcd / f"{name}.fcd.xml",
                         vclass=vclass,
                         safety=_safety(sc),
+                        replay_min_gap_m=recorded_min_gap(truth),
                     )
                     try:
                         rollout(

@@ -96,26 +96,36 @@ def complete_section(
     t_max: int,
     seed: int,
     brake_mps2: float | None = None,
+    reaction_s: float = 0.0,
 ) -> SectionCompletion:
     """Algorithm 3 on a section, batched over snapshots: ``k[s]`` hidden vehicles for
     snapshot s, each from up to ``t_max`` trials, projection as the counted fallback.
 
     With ``brake_mps2`` (the scenario's braking bound), generated speeds are then made
-    kinematically consistent with their lane neighbours (``safe_speeds``)."""
+    kinematically consistent with their lane neighbours (``safe_speeds``, with a reaction
+    time of ``reaction_s``)."""
     with one_thread():
         comp = _complete(net, section, snaps, k, t_max, seed)
     if brake_mps2 is not None:
-        safe_speeds(comp, section, snaps.psi[:, PSI_INDEX["spacing_min_m"]], brake_mps2)
+        safe_speeds(comp, section, snaps.psi[:, PSI_INDEX["spacing_min_m"]], brake_mps2, reaction_s)
     return comp
 
 
 def generator_completion(net: SectionGeneratorNet, section: Section, sc, k_source: str, seed: int):
     """``completion(snaps)`` for ``section_env.build_section_bank``: Algorithm 3 with the
-    hidden count ``k_source`` asks for (each snapshot carries both), then safe speeds."""
+    hidden count ``k_source`` asks for (each snapshot carries both), then safe speeds with
+    one step of reaction (what SUMO's safe speed in the environment allows)."""
 
     def fn(s: SectionSnapshots):
         c = complete_section(
-            net, section, s, k_of(s, k_source), sc.generator.t_max, seed, -sc.bounds.accel_mps2[0]
+            net,
+            section,
+            s,
+            k_of(s, k_source),
+            sc.generator.t_max,
+            seed,
+            -sc.bounds.accel_mps2[0],
+            sc.simulation.step_length_s,
         )
         return c.lane, c.arc_m, c.speed_mps, c.valid, c.generated
 
@@ -123,18 +133,32 @@ def generator_completion(net: SectionGeneratorNet, section: Section, sc, k_sourc
 
 
 def safe_speeds(
-    comp: SectionCompletion, section: Section, standstill_m: np.ndarray, brake_mps2: float
+    comp: SectionCompletion,
+    section: Section,
+    standstill_m: np.ndarray,
+    brake_mps2: float,
+    reaction_s: float = 0.0,
 ) -> None:
-    """Cap each generated vehicle's speed so that it can stop behind its leader, and raise
-    it where an observed follower could not stop behind it (in place; counted in
-    ``comp.speed_fixes``).
+    """Give each generated vehicle a speed it can stop from behind its leader, and raise
+    a generated leader where an observed follower could not stop behind it (in place;
+    speeds changed are counted in ``comp.speed_fixes``).
 
     The spacing and speed bounds say nothing about pairs: a generated vehicle 15 m/s faster
     than a leader 10 m behind satisfies both and crashes in the first second. The bound is
     the stopping-distance condition v^2 <= v_leader^2 + 2 b (spacing - standstill spacing),
-    with b the action bound's braking and the standstill spacing psi's smallest spacing.
-    Vehicles are walked downstream to upstream, so a capped leader caps its followers; a
-    generated vehicle must also be able to stop before the end of a lane that leads nowhere.
+    with b the action bound's braking and the standstill spacing psi's smallest spacing;
+    with a reaction time tau the follower first drives on for tau, v^2 + 2 b tau v <= ...
+    (SUMO's safe speed in the environment, tau = one step: without it, 75 of the 123
+    observed vehicles that SUMO held back on the Bremen example were held back in the
+    first step, behind a generated leader). A generated vehicle must also be able to stop before the end of a lane that leads
+    nowhere. The generated speeds are kept as a set and dealt out again: walking the
+    vehicles downstream to upstream (a leader is served first), each gets the speed left
+    in the set nearest its own that it can stop from, and only where none is left is the
+    slowest one capped. Then, upstream to downstream, a generated leader is raised where
+    its follower could not stop behind it (an observed follower keeps its record), and
+    so on along the chain. Capping every offender instead lowered the scene's mean speed by
+    1.7 m/s on the Bremen example (a quarter of the generated vehicles, 5.8 m/s each),
+    and every method's rollouts inherited that error.
     """
     fixes = np.zeros(len(comp.speed_mps), dtype=np.int64)
     for s in range(len(comp.speed_mps)):
@@ -143,26 +167,46 @@ def safe_speeds(
             continue
         lane, arc = comp.lane[s, on], comp.arc_m[s, on]
         v, gen = comp.speed_mps[s, on].copy(), comp.generated[s, on]
+        before = v.copy()
+        pool = np.sort(v[gen])
         # Along the lane connections; a lane's end is a standing leader (STOP, < 0).
         leader, spacing = section_leaders(section, lane, arc)
         room = 2.0 * brake_mps2 * np.maximum(0.0, spacing - standstill_m[s])
-        # Front first: a leader (on this lane or the one it continues onto) is capped first.
+        bt = brake_mps2 * reaction_s
+        # Front first: a leader (on this lane or the one it continues onto) is served first.
         for i in np.argsort(-arc, kind="stable"):
             j = leader[i]
-            if gen[i] and j == STOP:
-                cap = math.sqrt(room[i])
-                if v[i] > cap:
-                    v[i], fixes[s] = cap, fixes[s] + 1
-            if gen[i] and j >= 0:
-                cap = math.sqrt(v[j] ** 2 + room[i])
-                if v[i] > cap:
-                    v[i], fixes[s] = cap, fixes[s] + 1
-            if j >= 0 and gen[j] and not gen[i]:  # an observed follower must be able to stop
-                floor = math.sqrt(max(0.0, v[i] ** 2 - room[i]))
-                if v[j] < floor:
-                    v[j], fixes[s] = floor, fixes[s] + 1
+            if gen[i]:
+                cap = math.inf
+                if j == STOP:
+                    cap = math.sqrt(bt * bt + room[i]) - bt
+                elif j >= 0:
+                    cap = math.sqrt(bt * bt + v[j] ** 2 + room[i]) - bt
+                k = _nearest_below(pool, v[i], cap)
+                v[i] = min(pool[k], cap)
+                pool = np.delete(pool, k)
+        # Back first: a follower that cannot stop behind a generated leader raises it (an
+        # observed one, and a generated one raised so), along whole chains of them.
+        for i in np.argsort(arc, kind="stable"):
+            j = leader[i]
+            if j >= 0 and gen[j]:
+                need = v[i] ** 2 + 2.0 * bt * v[i] - room[i]
+                v[j] = max(v[j], math.sqrt(max(0.0, need)))
+        fixes[s] = int((np.abs(v - before) > 1e-9).sum())
         comp.speed_mps[s, on] = v
     comp.speed_fixes = fixes
+
+
+def _nearest_below(pool: np.ndarray, v: float, cap: float) -> int:
+    """Index of the sorted ``pool``'s value nearest ``v`` among those <= ``cap`` (the
+    smallest value's, 0, where none is)."""
+    hi = int(np.searchsorted(pool, cap, side="right"))  # pool[:hi] <= cap
+    if hi == 0:
+        return 0
+    k = min(int(np.searchsorted(pool, v)), hi - 1)
+    if k > 0 and abs(pool[k - 1] - v) <= abs(pool[k] - v):
+        k -= 1
+    return k
 
 
 def _complete(

@@ -367,3 +367,26 @@ def test_recorded_lane_change_into_a_generated_vehicle_waits(tmp_path, highway):
         assert core.counts["replay_moves_refused"] >= 1 and core.off_record[0]
     finally:
         core.close()
+
+
+def test_held_back_replayed_vehicle_catches_up_with_its_record(tmp_path, highway):
+    """An observed vehicle held back by a slower generated vehicle returns onto its
+    recorded position and speed once the way is free, never closer than safe on the way,
+    and the steps it spent off its record and its lag are counted."""
+    sc = section_scenario(tmp_path, HIGHWAY, HIGHWAY_EDGES, False)
+    bank = synthetic_bank([0, 0], [100.0, 125.0], [30.0, 20.0], [False, True], horizon=30)
+    core = SectionCore(sc, highway, bank, HIGHWAY, seed=0, safety="none")
+    try:
+        core.reset(0)
+        held = False
+        for _ in range(30):
+            res = core.step(np.full(1, 2.6))  # the generated vehicle speeds up to 39 m/s
+            assert not res.collision and not res.error
+            assert core.arc[1] - core.arc[0] > 5.0
+            held |= bool(core.off_record[0])
+        assert held and core.counts["replay_returned"] == 1 and not core.off_record[0]
+        assert core.counts["replay_off_steps"] >= 2 and core.counts["replay_lag_m"] > 1.0
+        assert abs(core.arc[0] - bank.replay_arc_m[0, 30, 0]) <= 0.01
+        assert core.speed[0] == pytest.approx(30.0, abs=1e-6)
+    finally:
+        core.close()

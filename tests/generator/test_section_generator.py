@@ -368,3 +368,24 @@ def test_safe_speeds_cap_generated_vehicles_behind_slow_leaders() -> None:
     assert v[2] == pytest.approx(np.sqrt(30.0**2 - 2 * 4.5 * (40.0 - 6.5)))
     assert v[0] == 10.0 and v[3] == 30.0  # observed vehicles keep their recorded speeds
     assert comp.speed_fixes.tolist() == [2]
+
+
+def test_safe_speeds_deal_the_generated_speeds_out_again() -> None:
+    """A generated vehicle too fast behind a slow one takes a slower generated speed that
+    fits, and the one it took it from gets the fast one where that is safe: the scene's
+    mean speed is kept where a cap alone would lower it."""
+    from macromicro_sumo.generator.section_sampler import SectionCompletion, safe_speeds
+
+    ring = read_section(Path("sumo_nets/ring_r100_e4.net.xml"), ["e0", "e1", "e2", "e3"], True)
+    comp = SectionCompletion(
+        lane=np.zeros((1, 3), dtype=np.int64),
+        arc_m=np.array([[200.0, 190.0, 90.0]]),
+        speed_mps=np.array([[10.0, 30.0, 10.0]]),
+        valid=np.ones((1, 3), dtype=bool),
+        generated=np.ones((1, 3), dtype=bool),
+        trials=np.zeros(1),
+        projections=np.zeros(1),
+    )
+    safe_speeds(comp, ring, np.array([6.5]), 4.5)
+    np.testing.assert_allclose(comp.speed_mps[0], [10.0, 10.0, 30.0])
+    assert comp.speed_fixes.tolist() == [2]
