@@ -14,15 +14,22 @@ acceptance threshold, so both terms are ~1 where a fit is just acceptable).
 from __future__ import annotations
 
 import math
+import shutil
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
 from scipy.optimize import minimize
 
+from macromicro_sumo.data.ring import split_runs
 from macromicro_sumo.deploy.compare import geh
+from macromicro_sumo.deploy.run import DeployContext, Drive, run_method
+from macromicro_sumo.errors import UserError
 
 # IDM parameters the search varies, with the ranges it may use (SUMO's attribute names).
 IDM_RANGES: dict[str, tuple[float, float]] = {
@@ -61,10 +68,32 @@ def detector_loss(truth: pd.DataFrame, sim: pd.DataFrame) -> float:
     )
     m["flow_vph_s"] = m["flow_vph_s"].fillna(0.0)
     g = geh(m["flow_vph_s"].to_numpy(), m["flow_vph_t"].to_numpy())
+    g = g[np.isfinite(g)]  # a lane-area detector measures no flow: its speed counts only
     ok = (m["speed_mps_t"] > 0.1) & m["speed_mps_s"].notna()
     rel = (m.loc[ok, "speed_mps_s"] - m.loc[ok, "speed_mps_t"]) / m.loc[ok, "speed_mps_t"]
     speed_term = float(np.sqrt(np.mean(rel**2))) if ok.any() else 1.0
     return speed_term + float(np.mean(g)) / 5.0 if len(g) else math.inf
+
+
+def loss_frame(det: pd.DataFrame) -> pd.DataFrame:
+    """``detector_loss``'s columns from either ``detectors.csv``: a section's as written; the
+    ring's induction loops (``flow_vehph``) with their harmonic-mean (space-mean) speed, as
+    the comparison reads them. SUMO's -1 (nobody passed) is no speed."""
+    if "flow_vehph" in det.columns:
+        e1 = det[det["kind"] == "E1"]
+        det = pd.DataFrame(
+            {
+                "run": e1["run"],
+                "detector_id": e1["detector_id"],
+                "begin_s": e1["begin_s"],
+                "flow_vph": e1["flow_vehph"],
+                "speed_mps": e1["harmonic_mean_speed_mps"],
+            }
+        )
+    out = det[["run", "detector_id", "begin_s", "flow_vph", "speed_mps"]].copy()
+    out["begin_s"] = out["begin_s"].round(3)
+    out.loc[out["speed_mps"] < 0, "speed_mps"] = np.nan
+    return out.reset_index(drop=True)
 
 
 def calibrate(
@@ -119,3 +148,55 @@ def calibrate(
     history = pd.DataFrame(rows)
     best = history.loc[history["loss"].idxmin()]
     return Calibration({n: float(best[n]) for n in names}, float(best["loss"]), history, stopped_by)
+
+
+def training_runs(ctx: DeployContext) -> list[int]:
+    """The ground truth's training runs (never the held-out ones, never validation)."""
+    sc = ctx.sc
+    runs = np.sort(pd.read_csv(ctx.truth_dir / "runs.csv")["run"].unique())
+    splits = split_runs(runs, sc.generator.held_out_fraction, sc.seed)
+    if [int(r) for r in splits["held_out"]] != list(ctx.held_out):  # same split as the stage's
+        raise UserError(
+            f"{ctx.truth_dir}/runs.csv: its runs are not the ground truth's; re-simulate"
+        )
+    return [int(r) for r in splits["train"]]
+
+
+def fit_to_detectors(
+    ctx: DeployContext, scratch: Path, fixed: dict[str, float] | None = None
+) -> tuple[Calibration, list[int], float]:
+    """IDM fitted to the training runs' detectors by whole deployments of each candidate
+    (``deploy.calibration_budget_s``, ``deploy.calibration_evals``); SUMO's files of each
+    evaluation go to a scratch folder under ``scratch``, removed at once. ``fixed``: IDM
+    parameters held, not fitted (the ring fleet's delta). Returns (the calibration, the
+    runs fitted on, the start point's loss)."""
+    dep = ctx.sc.deploy
+    runs = training_runs(ctx)
+    det = pd.read_csv(ctx.truth_dir / "detectors.csv")
+    truth = loss_frame(det[det["run"].isin(runs)])
+    scratch.mkdir(parents=True, exist_ok=True)
+
+    def loss_of(params: dict[str, float]) -> float:
+        folder = Path(tempfile.mkdtemp(prefix="eval_", dir=scratch))
+        try:
+            res = run_method(ctx, Drive(theta={**params, **(fixed or {})}), folder, runs=runs)
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
+        return detector_loss(truth, loss_frame(res.detectors))
+
+    cal = calibrate(loss_of, IDM_RANGES, dep.calibration_budget_s, dep.calibration_evals)
+    return cal, runs, float(cal.history["loss"].iloc[0])
+
+
+def calibration_record(cal: Calibration, runs: list[int], start_loss: float) -> dict[str, Any]:
+    """What a manifest records of a detector calibration."""
+    return {
+        "params": cal.params,
+        "loss": cal.loss,
+        "start_loss": start_loss,
+        "evaluations": len(cal.history),
+        "stopped_by": cal.stopped_by,
+        "wall_s": round(float(cal.history["wall_s"].iloc[-1]), 3),
+        "training_runs": runs,
+        "ranges": {k: list(v) for k, v in IDM_RANGES.items()},
+    }

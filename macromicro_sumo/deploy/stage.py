@@ -9,6 +9,10 @@ The methods (``DEPLOY_METHODS``; names as the evaluation's where they are the sa
   action) pairs of the training runs, as the evaluation fits it (``evaluation.idm_fit``),
   applied by switching the driven vehicles to an IDM vType with those parameters: SUMO's
   own IDM drives them (with its own leaders, red lights and right of way);
+* ``idm_detectors``: an IDM vType whose parameters are fitted to the TRAINING runs'
+  detectors by a black-box search over whole SUMO runs (``deploy.calibrate``; budget
+  ``deploy.calibration_budget_s`` and ``deploy.calibration_evals``), then deployed on the
+  held-out runs like the others; its folder holds calibration_history.csv;
 * ``sumo_default``: the driven vehicles switched to a vType with SUMO's default model and
   parameters of their vClass, only length and vClass kept: what a user gets without
   calibration;
@@ -16,24 +20,32 @@ The methods (``DEPLOY_METHODS``; names as the evaluation's where they are the sa
   parameters, so its detector outputs are the ground truth's.
 
 A method that is "an IDM vType with parameters theta" is ``Drive(theta=...)``
-(``deploy.run``): a detector-calibrated IDM (``deploy.calibrate``) plugs in there.
+(``deploy.run``).
 
 Outputs: ``out/<method>/`` per method (``deploy.run.write_method``: the ground truth's
 files for the held-out runs, runs.csv with the safety counts, SUMO's files under sumo/,
-manifest.json) and ``out/deploy_manifest.json``.
+manifest.json), ``out/deploy_comparison.csv`` and ``out/deploy_summary.csv`` (every method
+against the ground truth, ``deploy.compare``), the figures under ``out/plots/`` when the
+caller passes its plotting function (the report layer's, ``report.deploy``), and
+``out/deploy_manifest.json`` listing them all.
 """
 
 from __future__ import annotations
 
+import shutil
 import time
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 import torch
 
 from macromicro_sumo.data.ring import load_ground_truth, split_runs
+from macromicro_sumo.deploy.calibrate import Calibration, calibration_record, fit_to_detectors
+from macromicro_sumo.deploy.compare import compare_folders
 from macromicro_sumo.deploy.drivers import ActionBatch
 from macromicro_sumo.deploy.run import (
     SAFETY_COLUMNS,
@@ -49,7 +61,7 @@ from macromicro_sumo.evaluation import ring as ring_eval
 from macromicro_sumo.evaluation import section as section_eval
 from macromicro_sumo.evaluation.idm_fit import IdmParams, calibrate_idm
 from macromicro_sumo.evaluation.methods import BY_NAME
-from macromicro_sumo.files import prepare_out_dir, staging_dir, write_stage_manifest
+from macromicro_sumo.files import prepare_out_dir, staging_dir, write_csv, write_stage_manifest
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.checkpoint import load_policy, policy_file
@@ -57,6 +69,12 @@ from macromicro_sumo.progress import tqdm
 from macromicro_sumo.truth.section import load_section_truth
 
 MANIFEST = "deploy_manifest.json"
+COMPARISON, SUMMARY = "deploy_comparison.csv", "deploy_summary.csv"
+HISTORY = "calibration_history.csv"
+PLOTS = "plots"
+# (truth folder, method folders, comparison, plots folder) -> figures written: the report
+# layer's ``report.deploy.make_deploy_plots``, passed in by the pipeline.
+PlotDeploy = Callable[[Path, Mapping[str, Path], pd.DataFrame, Path], list[Path]]
 
 
 @dataclass(frozen=True)
@@ -79,6 +97,11 @@ DEPLOY_METHODS: tuple[DeployMethod, ...] = (
     DeployMethod("micro_only", "learned", _what("micro_only", ""), "micro_only"),
     DeployMethod("macro_only", "learned", _what("macro_only", ""), "macro_only"),
     DeployMethod("idm_calibrated", "idm", _what("idm_calibrated", "")),
+    DeployMethod(
+        "idm_detectors",
+        "detectors",
+        "IDM fitted to the training runs' detectors over whole SUMO runs (black box)",
+    ),
     DeployMethod("sumo_default", "defaults", "SUMO's default model and parameters of each vClass"),
     DeployMethod("oracle", "oracle", "SUMO drives every vehicle with its true model"),
 )
@@ -146,16 +169,28 @@ def policy_paths(policy_dir: Path | None, methods: list[str]) -> dict[str, Path]
     return paths
 
 
+def fixed_idm(ctx: DeployContext) -> dict[str, float]:
+    """IDM parameters a detector fit holds: the ring fleet's delta (SUMO's 4 on sections)."""
+    return {} if ctx.is_section else {"delta": float(ctx.sc.fleet.delta)}
+
+
 def method_drive(
-    name: str, sc: Any, agents: dict[str, Agent], idm: IdmParams | None
+    name: str,
+    sc: Any,
+    agents: dict[str, Agent],
+    idm: IdmParams | None,
+    fitted: dict[str, float] | None = None,
 ) -> tuple[Drive, dict[str, Any]]:
-    """How ``name`` drives, and what its manifest records of it."""
+    """How ``name`` drives, and what its manifest records of it (``fitted``: the
+    detector-calibrated IDM's vType parameters)."""
     how = METHOD[name].how
     if how == "learned":
         return Drive(act=policy_batch(agents[name])), {"safety": sc.deploy.safety}
     if how == "idm":
         theta = idm_theta(idm)
         return Drive(theta=theta), {"theta": theta}
+    if how == "detectors":
+        return Drive(theta=fitted), {"theta": fitted}
     if how == "defaults":
         return Drive(defaults=True), {}
     return Drive(), {}
@@ -169,9 +204,11 @@ def deploy(
     command: str = "",
     progress: bool = True,
     methods: list[str] | None = None,
+    plots: PlotDeploy | None = None,
 ) -> dict[str, Any]:
     """Deploy ``methods`` (default ``deploy.methods``) on the held-out runs of the ground
-    truth in ``data`` into ``out/<method>/``; returns the stage manifest."""
+    truth in ``data`` into ``out/<method>/``, compare them with it, and draw the figures
+    with ``plots`` (none without); returns the stage manifest."""
     t0 = time.perf_counter()
     methods = list(methods or sc.deploy.methods)
     unknown = [m for m in methods if m not in METHOD]
@@ -185,10 +222,21 @@ def deploy(
     idm, idm_rmse = fit_idm(ctx) if "idm_calibrated" in methods else (None, float("nan"))
     out = prepare_out_dir(out)
     timings, totals = {}, {}
+    cal: Calibration | None = None
+    fitted, record = None, None
     with staging_dir(out) as stage:
+        if "idm_detectors" in methods:
+            t1 = time.perf_counter()
+            cal, fit_runs, start = fit_to_detectors(ctx, stage / "calibration", fixed_idm(ctx))
+            shutil.rmtree(stage / "calibration", ignore_errors=True)
+            fitted = {**cal.params, **fixed_idm(ctx)}
+            record = calibration_record(cal, fit_runs, start)
+            timings["idm_detectors_fit"] = round(time.perf_counter() - t1, 3)
         for name in tqdm(methods, desc="deploy", unit="method", disable=not progress):
             t1 = time.perf_counter()
-            drive, extra = method_drive(name, sc, agents, idm)
+            drive, extra = method_drive(name, sc, agents, idm, fitted)
+            if name == "idm_detectors":
+                extra["calibration"] = record
             folder = stage / name
             folder.mkdir()
             res = run_method(ctx, drive, folder)
@@ -205,8 +253,14 @@ def deploy(
                 timings_s={"deploy": timings[name]},
                 **extra,
             )
+            if name == "idm_detectors":
+                write_csv(cal.history, folder / HISTORY)
             write_method(ctx, res, folder, manifest)
             totals[name] = {c: int(res.runs[c].sum()) for c in SAFETY_COLUMNS}
+        files = [f"{m}/manifest.json" for m in methods]
+        files += compare_into(Path(data), {m: stage / m for m in methods}, stage, plots)
+        if cal is not None:
+            files.append(f"idm_detectors/{HISTORY}")
         manifest = build_manifest(sc, command, stage="deploy")
         manifest.update(
             ground_truth=str(data),
@@ -215,9 +269,21 @@ def deploy(
             held_out_runs=ctx.held_out,
             safety=sc.deploy.safety,
             idm_calibrated=(idm.as_dict() | {"fit_rmse_mps2": idm_rmse}) if idm else None,
+            idm_detectors=record,
             totals=totals,
             timings_s={"deploy": round(time.perf_counter() - t0, 3), **timings},
         )
-        files = [f"{m}/manifest.json" for m in methods]
         write_stage_manifest(manifest, stage, MANIFEST, files)
     return manifest
+
+
+def compare_into(
+    truth_dir: Path, method_dirs: Mapping[str, Path], stage: Path, plots: PlotDeploy | None
+) -> list[str]:
+    """deploy_comparison.csv, deploy_summary.csv and the figures (``plots``) in ``stage``;
+    their names relative to it (the stage's outputs)."""
+    comparison, summary = compare_folders(truth_dir, method_dirs)
+    write_csv(comparison, stage / COMPARISON)
+    write_csv(summary, stage / SUMMARY)
+    made = plots(truth_dir, method_dirs, comparison, stage / PLOTS) if plots else []
+    return [COMPARISON, SUMMARY, *(f"{PLOTS}/{Path(p).name}" for p in made)]

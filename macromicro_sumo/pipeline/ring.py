@@ -30,6 +30,7 @@ from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.pipeline.refinement import refine
 from macromicro_sumo.policy.checkpoint import policy_file
 from macromicro_sumo.policy.stage import run_train_policy
+from macromicro_sumo.report.deploy import make_deploy_plots
 from macromicro_sumo.report.ring import write_report
 from macromicro_sumo.scenario.ring import Scenario
 from macromicro_sumo.truth.ring import simulate
@@ -214,7 +215,9 @@ def run(sc: Scenario, out: Path | str, command: str = "", progress: bool = True)
             sc, gt_, g, pol_, resume, command, progress, obj
         ),
         lambda gt_, g, pols, ev: evaluate(sc, gt_, g, pols, ev, command, progress),
-        deploy=lambda gt_, pol_, dep: deploy(sc, gt_, pol_, dep, command, progress),
+        deploy=lambda gt_, pol_, dep: deploy(
+            sc, gt_, pol_, dep, command, progress, plots=make_deploy_plots
+        ),
     )
     if sc.policy.refine_iterations > 0:
         ref = out / "refined"

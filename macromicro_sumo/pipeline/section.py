@@ -26,6 +26,7 @@ from macromicro_sumo.generator.section_train import (
 from macromicro_sumo.pipeline.ring import run_stages, standard_stages
 from macromicro_sumo.policy.ppo import train_policy
 from macromicro_sumo.policy.stage import open_policy_stage, write_policy_manifest
+from macromicro_sumo.report.deploy import make_deploy_plots
 from macromicro_sumo.report.section import write_section_report
 from macromicro_sumo.sumo.inputs import scenario_inputs
 from macromicro_sumo.truth.section import load_section_truth, simulate_section
@@ -88,7 +89,9 @@ def run_section(sc, out: Path | str, command: str = "", progress: bool = True) -
         lambda gt, g, pols, ev: evaluate_section(sc, gt, g, pols, ev, command, progress),
         # The K estimates of the ground truth are on the generator's snapshot grid.
         truth_reads=("generator.snapshot_every_s",),
-        deploy=lambda gt, pol, dep: deploy(sc, gt, pol, dep, command, progress),
+        deploy=lambda gt, pol, dep: deploy(
+            sc, gt, pol, dep, command, progress, plots=make_deploy_plots
+        ),
     )
     manifest = run_stages(sc, stages, out, command, progress)
     write_section_report(sc, out, manifest)

@@ -21,6 +21,7 @@ from macromicro_sumo.generator.section_train import run_train_section_generator
 from macromicro_sumo.pipeline.ring import run as run_ring
 from macromicro_sumo.pipeline.section import run_section, run_train_section_policy
 from macromicro_sumo.policy.stage import run_train_policy
+from macromicro_sumo.report.deploy import make_deploy_plots
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.truth.ring import simulate as simulate_ring
 from macromicro_sumo.truth.section import simulate_section
@@ -106,7 +107,7 @@ def deploy(
     methods: list[str] | None = None,
 ) -> dict[str, Any]:
     """Stage III: every method over the held-out runs' whole demand, in ``out/<method>``."""
-    return deploy_stage(sc, data, policy, out, command, progress, methods)
+    return deploy_stage(sc, data, policy, out, command, progress, methods, make_deploy_plots)
 
 
 @_one_writer

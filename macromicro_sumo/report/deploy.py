@@ -384,3 +384,17 @@ def deployment_markdown(summary: pd.DataFrame, plots: Sequence[str] = ()) -> str
     lines += [*safety_lines(summary), ""]
     lines += [f"![{Path(p).stem}]({p})" for p in plots]
     return "\n".join(lines).rstrip() + "\n"
+
+
+def deployment_section(run_dir: Path | str) -> list[str]:
+    """report.md's "Deployment" lines of a run folder: from ``deploy/deploy_summary.csv``
+    and the figures in ``deploy/plots/`` (paths relative to report.md); none when the run
+    has no deployment."""
+    deploy_dir = Path(run_dir) / "deploy"
+    path = deploy_dir / "deploy_summary.csv"
+    if not path.is_file():
+        return []
+    summary = pd.read_csv(path)
+    plots = sorted((deploy_dir / "plots").glob("*.png"))
+    text = deployment_markdown(summary, [f"deploy/plots/{p.name}" for p in plots])
+    return [*text.splitlines(), ""]

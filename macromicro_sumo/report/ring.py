@@ -13,6 +13,7 @@ from macromicro_sumo.evaluation.leader_follower import LeaderProfile, method_sum
 from macromicro_sumo.evaluation.methods import methods_markdown
 from macromicro_sumo.files import write_text
 from macromicro_sumo.report import plots
+from macromicro_sumo.report.deploy import deployment_section
 from macromicro_sumo.report.tables import markdown_table, read_if_present
 from macromicro_sumo.scenario.ring import Scenario
 
@@ -367,6 +368,8 @@ def write_report(sc: Scenario, out: Path, manifest: dict[str, Any]) -> Path:
             markdown_table(figure_winners(align, micro, lf), 4),
             "",
         ]
+
+    parts += deployment_section(out)
 
     plots = sorted((out / "plots").glob("*.png")) if (out / "plots").is_dir() else []
     if plots:

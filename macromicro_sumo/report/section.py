@@ -21,6 +21,7 @@ from matplotlib.figure import Figure
 
 from macromicro_sumo.evaluation.methods import methods_markdown
 from macromicro_sumo.files import atomic_path
+from macromicro_sumo.report.deploy import deployment_section
 from macromicro_sumo.report.plots import (
     SPEED_CMAP,
     plot_distributions,
@@ -215,6 +216,7 @@ def write_section_report(sc, out: Path, manifest: dict[str, Any]) -> Path:
     lines += [
         f"IDM calibrated on the observed vehicles: {json.dumps(ev.get('idm_calibrated', {}))}",
         "",
+        *deployment_section(out),
         "## Plots",
         "",
     ]

@@ -127,6 +127,7 @@ DEPLOY_METHODS = (
     "micro_only",
     "macro_only",
     "idm_calibrated",
+    "idm_detectors",
     "sumo_default",
     "oracle",
 )
