@@ -130,7 +130,9 @@ def export_ngsim(
             "v_Length": obs["length_m"].to_numpy() / FT,
             "v_Width": 6.0,
             "v_Class": 2,
-            "v_Vel": v / FT,
+            # Differenced from noisy positions, a crawling vehicle's speed dips below 0;
+            # NGSIM's own v_Vel never does (and the reader refuses negative speeds).
+            "v_Vel": np.maximum(v, 0.0) / FT,
             "v_Acc": a / FT,
             "Lane_ID": lanes,
             "Preceding": prec.to_numpy(),

@@ -357,10 +357,6 @@ def export_field_files(
     for run in runs:
         path = folder / f"ngsim_run{run}.csv"
         tm, _ = export_ngsim(gt, path, run, noise_m, seed + run)
-        # Speeds differenced from noisy positions dip below 0 where a vehicle crawls or
-        # stands (a merge queue); NGSIM's own v_Vel never does, and the reader refuses it.
-        ngsim = pd.read_csv(path)
-        write_csv(ngsim.assign(v_Vel=ngsim["v_Vel"].clip(lower=0.0)), path, float_format="%.3f")
         sm = export_pems(gt, folder / f"pems_run{run}.csv", run)
         traj_files.append(f"ngsim_run{run}.csv")
         station_files.append(f"pems_run{run}.csv")
