@@ -1,4 +1,5 @@
-"""Pure, vectorised physics on a single-lane ring: IDM and arc-position geometry.
+"""Pure, vectorised physics on a single-lane ring: IDM, arc-position geometry and the
+Krauss/Gipps safe speed.
 
 Nothing here knows SUMO; every function takes and returns numpy arrays in SI units.
 """
@@ -127,3 +128,38 @@ def lookahead_features(
     else:
         next_limit = np.take_along_axis(limits_mps, nxt[:, None], axis=1)[:, 0]
     return next_limit, offsets_m[edge] + lengths_m[edge] - arc_m
+
+
+def brake_gap(speed_mps: np.ndarray, decel_mps2: np.ndarray | float, dt_s: float) -> np.ndarray:
+    """Distance [m] a vehicle covers braking at ``decel_mps2`` from ``speed_mps`` in Euler
+    steps of ``dt_s`` (v' = max(0, v - b dt), x' = x + v' dt): SUMO's ``brakeGap``
+    (headway 0). At most the continuous v^2 / 2b; short by up to v dt / 2 when b dt is large
+    next to v, the braking that a few coarse steps stop."""
+    reduction = np.multiply(decel_mps2, dt_s)
+    steps = np.floor(np.asarray(speed_mps) / reduction)
+    return dt_s * (steps * speed_mps - reduction * steps * (steps + 1.0) / 2.0)
+
+
+def safe_speed(
+    gap_m: np.ndarray,
+    leader_speed_mps: np.ndarray,
+    decel_mps2: np.ndarray | float,
+    leader_decel_mps2: np.ndarray | float,
+    dt_s: float,
+) -> np.ndarray:
+    """SUMO's Krauss safe speed (Gipps) [m/s]: the fastest speed from which the vehicle,
+    reacting one step later and braking at its decel, stops behind a leader braking at its
+    decel: v dt + v^2 / 2b <= gap + brake_gap(v_l, b_l).
+
+    The leader's braking distance is its Euler one (``brake_gap``, as SUMO's
+    ``maximumSafeFollowSpeed``), not the continuous v_l^2 / 2b_l: with a leader that brakes
+    hard in coarse steps (b_l dt near v_l) that overstated the room by up to v_l dt / 2 and
+    followers ran into it (tested). The follower's side, v dt + v^2 / 2b, bounds its Euler
+    distance from above. The condition is on where both stop; with b_l >= b it holds on the
+    way too (a follower faster than its leader stays faster until it stops, so the gap only
+    shrinks), with b_l < b a much faster follower can run into the leader before it stops.
+    ``gap_m`` is the bumper-to-bumper gap; a negative one counts as 0. Never negative.
+    """
+    reach = np.maximum(gap_m, 0.0) + brake_gap(leader_speed_mps, leader_decel_mps2, dt_s)
+    bt = np.multiply(decel_mps2, dt_s)
+    return -bt + np.sqrt(bt**2 + 2.0 * np.multiply(decel_mps2, reach))

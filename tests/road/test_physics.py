@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from macromicro_sumo.data.macro import spacing_losses, speed_loss
-from macromicro_sumo.road.physics import idm_accel, ring_leaders, sorted_spacings
+from macromicro_sumo.road.physics import (
+    brake_gap,
+    idm_accel,
+    ring_leaders,
+    safe_speed,
+    sorted_spacings,
+)
 
 L = 2 * math.pi * 100.0  # the paper's ring [m]
 
@@ -199,3 +205,64 @@ def test_lookahead_features_per_vehicle_rows_and_one_ring():
     nxt_rows, dist_rows = lookahead_features(arc, edge, offsets, lengths, rows)
     assert nxt_rows.shape == (3,) and dist_rows.shape == (3,)
     np.testing.assert_allclose(nxt_rows, [13.0, 15.0, 14.0])
+
+
+# --------------------------------------------------------------------------- safe speed
+
+
+def test_brake_gap_is_the_euler_braking_distance():
+    v, b, dt = np.array([0.0, 1.0, 5.0, 14.6, 12.0]), np.array([3.0, 3.0, 3.0, 15.0, 1.1]), 0.5
+    want = []
+    for v0, b0 in zip(v, b, strict=True):
+        x, u = 0.0, v0
+        while u > 0:
+            u = max(u - b0 * dt, 0.0)
+            x += u * dt
+        want.append(x)
+    np.testing.assert_allclose(brake_gap(v, b, dt), want, atol=1e-12)
+    cont = v**2 / (2 * b)
+    assert np.all(brake_gap(v, b, dt) <= cont + 1e-12)
+    assert brake_gap(v, b, dt)[3] < cont[3] - 3.0  # hard braking in coarse steps: half of it
+
+
+def test_safe_speed_meets_the_gipps_condition_with_equality():
+    gap, v_l, b, b_l, dt = np.array([0.0, 3.0, 40.0]), np.array([0.0, 5.0, 12.0]), 3.0, 6.0, 0.5
+    v = safe_speed(gap, v_l, b, b_l, dt)
+    np.testing.assert_allclose(v * dt + v**2 / (2 * b), gap + brake_gap(v_l, b_l, dt))
+    assert v[0] == 0.0  # no room, a standing leader: stand
+    assert np.all(np.diff(v) > 0)  # more room, a faster leader: faster
+
+
+def test_safe_speed_is_krauss_vsafe_for_a_standing_leader():
+    """MSCFModel_Krauss: vsafe = -b tau + sqrt((b tau)^2 + v_l^2 + 2 b gap), tau = dt; with
+    v_l = 0 the leader's braking distance is 0 in either form."""
+    gap, b, dt = np.array([2.0, 10.0]), 4.5, 1.0
+    want = -b * dt + np.sqrt((b * dt) ** 2 + 2 * b * gap)
+    np.testing.assert_allclose(safe_speed(gap, np.zeros(2), b, b, dt), want)
+
+
+def test_safe_speed_counts_a_negative_gap_as_none_and_takes_per_vehicle_decels():
+    v = safe_speed(np.array([-1.0, 0.0]), np.array([6.0, 6.0]), np.array([3.0, 3.0]), 6.0, 0.5)
+    assert v[0] == v[1] > 0.0  # the leader's own braking distance still leaves room
+    per = safe_speed(np.array([5.0, 5.0]), np.array([5.0, 5.0]), np.array([1.0, 4.0]), 6.0, 0.5)
+    assert per[1] > per[0]  # a vehicle that brakes harder may go faster
+
+
+def test_following_at_the_safe_speed_never_collides_when_the_leader_brakes():
+    """Euler steps as SUMO's (v' commanded, x' = x + v' dt): a follower that takes the safe
+    speed, then brakes at b, stops behind a leader that brakes at b_l >= b from the same
+    moment, for random gaps and speeds (with b_l < b a much faster follower can close in
+    on the way and stop behind the leader's stop only: the tested bound needs b_l >= b)."""
+    rng = np.random.default_rng(0)
+    n, dt = 2000, 0.5
+    gap = rng.uniform(0.0, 30.0, n)
+    v_l = rng.uniform(0.0, 15.0, n)
+    b = rng.uniform(1.0, 6.0, n)
+    b_l = b * rng.uniform(1.0, 3.0, n)
+    v = safe_speed(gap, v_l, b, b_l, dt)
+    for _ in range(200):
+        v_l = np.maximum(v_l - b_l * dt, 0.0)
+        gap = gap + (v_l - v) * dt
+        assert gap.min() > -1e-9
+        v = np.maximum(v - b * dt, 0.0)
+    assert np.all(v == 0.0) and np.all(v_l == 0.0)
