@@ -11,7 +11,7 @@ from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import refuse_comma
 from macromicro_sumo.scenario.fields import build_table
 from macromicro_sumo.scenario.ring import Scenario, check_consistency
-from macromicro_sumo.scenario.section import SectionScenario, build_section_scenario
+from macromicro_sumo.scenario.section import SectionScenario, build_data, build_section_scenario
 
 
 def read_scenario_toml(path: str | Path) -> tuple[dict[str, Any], dict[str, Any] | None]:
@@ -73,5 +73,8 @@ def load_scenario(
 def scenario_from_dict(d: dict[str, Any], source: str) -> Any:
     """Rebuild a scenario stored in a checkpoint or manifest (already validated once)."""
     if d.get("network", {}).get("kind") == "sumo":
-        return dataclasses.replace(build_table(SectionScenario, d, "", source), source=source)
+        d = dict(d)
+        data = build_data(d.pop("data", None) or {}, source)  # nested tables: its own builder
+        sc = build_table(SectionScenario, d, "", source)
+        return dataclasses.replace(sc, source=source, data=data)
     return dataclasses.replace(build_table(Scenario, d, "", source), source=source)

@@ -62,6 +62,15 @@ def test_scenario_round_trips_through_its_dict():
     assert again.digest() == sc.digest()
 
 
+@pytest.mark.parametrize("name", ["highway_bremen", "highway_bremen_files"])
+def test_section_scenario_round_trips_through_its_dict(name):
+    """A checkpoint's stored scenario rebuilds, nested [data] tables (field files) included."""
+    sc = load_scenario(PAPER_SCENARIO.parent / f"{name}.toml")
+    again = scenario_from_dict(json.loads(json.dumps(sc.to_dict())), sc.source)
+    assert again == sc
+    assert again.data.source == ("files" if name.endswith("files") else "simulate")
+
+
 def test_digest_is_stable_and_ignores_formatting(tmp_path):
     table = scenario_table()
     plain = tmp_path / "plain.toml"
