@@ -14,7 +14,7 @@ import pandas as pd
 from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.generator.section_sampler import SectionCompletion
 from macromicro_sumo.generator.section_scene import PSI_INDEX, TOL_M
-from macromicro_sumo.road.section import Section, lane_leaders
+from macromicro_sumo.road.section import Section, section_leaders
 
 # --------------------------------------------------------------------------- checks, metrics
 
@@ -22,9 +22,12 @@ from macromicro_sumo.road.section import Section, lane_leaders
 def _scene_spacings(
     lane: np.ndarray, arc: np.ndarray, section: Section
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Leader index and spacing of one scene's vehicles; NaN spacing where there is no leader."""
-    leader, sp = lane_leaders(lane, arc, section.length_m, section.closed)
-    return leader, np.where(leader >= 0, sp, np.nan)
+    """Leader index and spacing of one scene's vehicles along the lane connections (the
+    environment's leaders); NaN spacing where there is no vehicle ahead (a lane's end is
+    no spacing), leader -1 there."""
+    leader, sp = section_leaders(section, lane, arc)
+    has = leader >= 0
+    return np.where(has, leader, -1), np.where(has, sp, np.nan)
 
 
 def completion_violations(

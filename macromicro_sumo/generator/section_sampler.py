@@ -156,7 +156,8 @@ def safe_speeds(
     in the set nearest its own that it can stop from, and only where none is left is the
     slowest one capped. Then, upstream to downstream, a generated leader is raised where
     its follower could not stop behind it (an observed follower keeps its record), and
-    so on along the chain, as far as its own leader allows. Capping every offender instead lowered the scene's mean speed by
+    so on along the chain, as far as its own leader allows. Capping every offender instead
+    lowered the scene's mean speed by
     1.7 m/s on the Bremen example (a quarter of the generated vehicles, 5.8 m/s each),
     and every method's rollouts inherited that error.
     """

@@ -10,7 +10,7 @@ import pandas as pd
 
 from macromicro_sumo.data.macro import passage_spacings
 from macromicro_sumo.data.section import at_snapshot_times
-from macromicro_sumo.road.section import Section, lane_leaders
+from macromicro_sumo.road.section import Section, section_leaders
 from macromicro_sumo.truth.density import (
     DEFAULT_VEHICLE_LENGTH_M,
     anchored_counts,
@@ -185,11 +185,10 @@ def trajectory_macro(
                 continue
             spacing = []
             for _, s in w.groupby("time_s"):
-                lead, sp = lane_leaders(
-                    s["lane_index"].to_numpy(),
-                    s["arc_m"].to_numpy(),
-                    section.length_m,
-                    section.closed,
+                # Along the lane connections, as the environment finds leaders (lane
+                # indices shift where a lane is added or dropped); lane ends are no spacing.
+                lead, sp = section_leaders(
+                    section, s["lane_index"].to_numpy(), s["arc_m"].to_numpy()
                 )
                 spacing.append(sp[lead >= 0])
             d = np.concatenate(spacing) if spacing else np.array([])

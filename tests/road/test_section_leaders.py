@@ -10,6 +10,7 @@ import subprocess
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 import sumolib
 
@@ -21,6 +22,7 @@ from macromicro_sumo.road.section import (
     read_section,
     section_leaders,
 )
+from macromicro_sumo.truth.section_macro import trajectory_macro
 
 EDGES = ["a", "b", "c"]
 
@@ -128,3 +130,21 @@ def test_loop_matches_lane_leaders():
     np.testing.assert_allclose(got[1], want[1])
     alone = section_leaders(ring, lane[:1], arc[:1])
     assert alone[0][0] == 0 and alone[1][0] == pytest.approx(ring.length_m)
+
+
+def test_truth_macro_spacings_follow_the_connections(merge):
+    """macro.csv's spacing dispersion (trajectory source) uses the environment's leaders:
+    at the ramp merge the spacings are 70 and 60 m (std 5), where lane indices would pair
+    the through lane with the ramp lane (40, 45, 60 m)."""
+    b0 = merge.offsets_m[1]
+    traj = pd.DataFrame(
+        {
+            "run": 0,
+            "time_s": 0.0,
+            "lane_index": [0, 0, 1, 1, 1],
+            "arc_m": [b0 - 30.0, b0 + 10.0, b0 + 40.0, b0 - 5.0, b0 + 100.0],
+            "speed_mps": 20.0,
+        }
+    )
+    row = trajectory_macro(traj, merge, 1.0, 0.0, 1.0).iloc[0]
+    assert row["std_spacing_m"] == pytest.approx(5.0)
