@@ -147,19 +147,25 @@ def safe_speed(
     leader_decel_mps2: np.ndarray | float,
     dt_s: float,
 ) -> np.ndarray:
-    """SUMO's Krauss safe speed (Gipps) [m/s]: the fastest speed from which the vehicle,
-    reacting one step later and braking at its decel, stops behind a leader braking at its
-    decel: v dt + v^2 / 2b <= gap + brake_gap(v_l, b_l).
+    """SUMO's Krauss safe speed (Gipps) [m/s] in Euler steps: the fastest speed v from which
+    the vehicle, moving one step at v and braking at its decel b after it, stops behind a
+    leader that brakes at its decel b_l from now on:
+    v dt + brake_gap(v, b) <= gap + brake_gap(v_l, b_l) (SUMO's ``maximumSafeFollowSpeed``
+    with ``maximumSafeStopSpeedEuler``, reaction time one step).
 
-    The leader's braking distance is its Euler one (``brake_gap``, as SUMO's
-    ``maximumSafeFollowSpeed``), not the continuous v_l^2 / 2b_l: with a leader that brakes
-    hard in coarse steps (b_l dt near v_l) that overstated the room by up to v_l dt / 2 and
-    followers ran into it (tested). The follower's side, v dt + v^2 / 2b, bounds its Euler
-    distance from above. The condition is on where both stop; with b_l >= b it holds on the
-    way too (a follower faster than its leader stays faster until it stops, so the gap only
-    shrinks), with b_l < b a much faster follower can run into the leader before it stops.
-    ``gap_m`` is the bumper-to-bumper gap; a negative one counts as 0. Never negative.
+    The continuous form v dt + v^2 / 2b <= gap + v_l^2 / 2b_l (deploy's first definition)
+    overstates the leader's braking distance by up to v_l dt / 2 where it brakes hard in
+    coarse steps (followers ran into it; tested); the leader's Euler distance beside the
+    follower's continuous one would understate the room by as much and cap a follower one
+    step behind a leader of its speed and decel, where both forms agree on v = v_l.
+    The condition is on where both stop; with b_l >= b it holds on the way too (a follower
+    faster than its leader stays faster until it stops, so the gap only shrinks), with
+    b_l < b a much faster follower can run into the leader before it stops. ``gap_m`` is
+    the bumper-to-bumper gap; a negative one counts as 0. Never negative.
     """
-    reach = np.maximum(gap_m, 0.0) + brake_gap(leader_speed_mps, leader_decel_mps2, dt_s)
-    bt = np.multiply(decel_mps2, dt_s)
-    return -bt + np.sqrt(bt**2 + 2.0 * np.multiply(decel_mps2, reach))
+    room = np.maximum(gap_m, 0.0) + brake_gap(leader_speed_mps, leader_decel_mps2, dt_s)
+    # v dt + brake_gap(v, b) is piecewise linear in v, (n + 1) v dt - b dt^2 n (n + 1) / 2
+    # with n = floor(v / b dt), and b dt^2 n (n + 1) / 2 at v = n b dt: invert it piece-wise.
+    bdt2 = np.multiply(decel_mps2, dt_s**2)
+    n = np.floor((-1.0 + np.sqrt(1.0 + 8.0 * room / bdt2)) / 2.0)
+    return (room + bdt2 * n * (n + 1.0) / 2.0) / (dt_s * (n + 1.0))

@@ -228,17 +228,17 @@ def test_brake_gap_is_the_euler_braking_distance():
 def test_safe_speed_meets_the_gipps_condition_with_equality():
     gap, v_l, b, b_l, dt = np.array([0.0, 3.0, 40.0]), np.array([0.0, 5.0, 12.0]), 3.0, 6.0, 0.5
     v = safe_speed(gap, v_l, b, b_l, dt)
-    np.testing.assert_allclose(v * dt + v**2 / (2 * b), gap + brake_gap(v_l, b_l, dt))
+    np.testing.assert_allclose(v * dt + brake_gap(v, b, dt), gap + brake_gap(v_l, b_l, dt))
     assert v[0] == 0.0  # no room, a standing leader: stand
     assert np.all(np.diff(v) > 0)  # more room, a faster leader: faster
 
 
-def test_safe_speed_is_krauss_vsafe_for_a_standing_leader():
-    """MSCFModel_Krauss: vsafe = -b tau + sqrt((b tau)^2 + v_l^2 + 2 b gap), tau = dt; with
-    v_l = 0 the leader's braking distance is 0 in either form."""
-    gap, b, dt = np.array([2.0, 10.0]), 4.5, 1.0
-    want = -b * dt + np.sqrt((b * dt) ** 2 + 2 * b * gap)
-    np.testing.assert_allclose(safe_speed(gap, np.zeros(2), b, b, dt), want)
+def test_safe_speed_keeps_a_gap_of_one_step_behind_a_leader_of_the_same_speed_and_decel():
+    """b_l = b: the follower may drive at its leader's speed with a gap of v dt (it covers
+    what the leader does, one step later), as in the continuous form."""
+    v_l, b, dt = np.array([2.0, 5.0, 8.0]), 3.0, 0.5
+    np.testing.assert_allclose(safe_speed(v_l * dt, v_l, b, b, dt), v_l)
+    assert np.all(safe_speed(v_l * dt - 0.1, v_l, b, b, dt) < v_l)  # closer: slower
 
 
 def test_safe_speed_counts_a_negative_gap_as_none_and_takes_per_vehicle_decels():
