@@ -45,6 +45,10 @@ SPEED_MODES = {"none": 32, "sumo": 24}
 SAFETY_TOLERANCE_MPS = 0.01
 STOP_DECEL_MPS2 = 9.0  # a standing "leader" (stop line, lane end) never brakes: any value
 BRAKING_TOLERANCE_MPS2 = 0.01
+# A lane that carries a vehicle on is asked again (SUMO's best lanes, one call per vehicle)
+# this many steps later: SUMO sees a lane's end only within its look-ahead (~3 km), which
+# a vehicle nears by at most a few hundred metres meanwhile; a lane end, once seen, stays.
+LANE_END_RECHECK_STEPS = 20
 
 
 def in_share(seed: int, run: int, vehicle_id: str, share: float) -> bool:
@@ -103,14 +107,18 @@ class SectionDriver:
         self.population: set[str] = set()  # vehicles this method may drive
         self.driven: set[str] = set()  # driven now (on the section)
         self.shapes: dict[str, tuple[float, float, float]] = {}  # vType -> length, minGap, decel
+        self.shape_of: dict[str, tuple[float, float, float]] = {}  # vehicle -> its vType's
+        self.steps = 0
 
     def before_step(self, sim: Simulation) -> None:
+        self.steps += 1
         new = sim.departed()
         if new:
             self.arrive(sim, new)
         states = sim.read_lane_states()
         self.count_brakings(states)
-        now = {v for v in self.population if v in states and states[v][0] in self.section.lanes}
+        lanes, pop = self.section.lanes, self.population
+        now = {v for v, st in states.items() if st[0] in lanes and v in pop}
         left = [v for v in self.driven if v not in now and v in states]
         if left:
             self.release(sim, sorted(left))
@@ -129,6 +137,7 @@ class SectionDriver:
             self.types[vid] = vt
             if vt not in self.shapes:
                 self.shapes[vt] = sim.vtype_shape(vt)
+            self.shape_of[vid] = self.shapes[vt]
             if is_instrumented(self.sc, vid, vt, self.run):
                 continue
             if dep.vtype and vt != dep.vtype:
@@ -137,13 +146,15 @@ class SectionDriver:
                 self.population.add(vid)
 
     def count_brakings(self, states: dict[str, tuple[str, float, float, float]]) -> None:
-        n = 0
-        for vid, (_lane, _pos, _v, acc) in states.items():
-            vt = self.types.get(vid)
-            # The decel of the vehicle's own demand vType, whatever it drives with now.
-            if vt is not None and acc < -self.shapes[vt][2] - BRAKING_TOLERANCE_MPS2:
-                n += 1
-        self.stats.emergency_brakings += n
+        if not states:
+            return
+        n = len(states)
+        acc = np.fromiter((st[3] for st in states.values()), float, n)
+        # The decel of the vehicle's own demand vType, whatever it drives with now.
+        shape = self.shape_of
+        none = (0.0, 0.0, np.inf)
+        decel = np.fromiter((shape.get(v, none)[2] for v in states), float, n)
+        self.stats.emergency_brakings += int((acc < -decel - BRAKING_TOLERANCE_MPS2).sum())
 
     def take(self, sim: Simulation, vids: list[str]) -> None:
         """Vehicles that entered the section (or the population's drive) this step."""
@@ -174,6 +185,9 @@ class SectionSpeedDriver(SectionDriver):
         self.mode = SPEED_MODES[safety]
         self.commands: dict[str, float] = {}
         self.has_lights: bool | None = None
+        # vehicle -> (lane, distance from that lane's start to where the vehicle must have
+        # left it [m] (inf: it carries on), step asked): SUMO's best lanes, cached.
+        self.lane_ends: dict[str, tuple[str, float, int]] = {}
 
     def arrive(self, sim: Simulation, new: tuple[str, ...]) -> None:
         super().arrive(sim, new)
@@ -187,12 +201,35 @@ class SectionSpeedDriver(SectionDriver):
         sim.release_speeds(vids)
         for v in vids:
             self.commands.pop(v, None)
+            self.lane_ends.pop(v, None)
+
+    def lane_end_m(self, sim: Simulation, vids: list[str], lanes: list[str]) -> np.ndarray:
+        """Per vehicle, the distance from its lane's start to where it must have left that
+        lane (inf: the lane carries it on), from SUMO's best lanes: asked when a vehicle is
+        on a lane for the first time, a lane that carries it on again after
+        ``LANE_END_RECHECK_STEPS`` (one call per vehicle and step would cost more than
+        SUMO's whole step)."""
+        cache, now = self.lane_ends, self.steps
+        out = np.empty(len(vids))
+        for i, (v, lane) in enumerate(zip(vids, lanes, strict=True)):
+            hit = cache.get(v)
+            if (
+                hit is None
+                or hit[0] != lane
+                or (hit[1] == np.inf and now - hit[2] >= LANE_END_RECHECK_STEPS)
+            ):
+                hit = (lane, sim.lane_end_m(v, lane, 0.0), now)
+                cache[v] = hit
+            out[i] = hit[1]
+        return out
 
     def drive(self, sim: Simulation, vids: list[str], states: dict) -> None:
-        for v in vids:  # last step's command against the speed SUMO applied
-            cmd = self.commands.get(v)
-            if cmd is not None and states[v][2] < cmd - SAFETY_TOLERANCE_MPS:
-                self.stats.safety_acted += 1
+        n = len(vids)
+        # Last step's command against the speed SUMO applied.
+        cmds, none = self.commands, -np.inf  # no command yet: nothing to lower
+        last = np.fromiter((cmds.get(v, none) for v in vids), float, n)
+        speed = np.fromiter((states[v][2] for v in vids), float, n)
+        self.stats.safety_acted += int((speed < last - SAFETY_TOLERANCE_MPS).sum())
         if self.has_lights is None:
             self.has_lights = sim.has_traffic_lights()
         obs, gap, lead_decel = section_observations(self, sim, vids, states)
@@ -200,7 +237,7 @@ class SectionSpeedDriver(SectionDriver):
         a = np.clip(self.act(obs), a_min, a_max)
         cmd = np.maximum(0.0, obs[:, 0] + a * self.sc.simulation.step_length_s)
         if self.safety == "sumo":
-            own = np.array([self.shapes[self.types[v]][2] for v in vids])
+            own = np.fromiter((self.shape_of[v][2] for v in vids), float, len(vids))
             cmd = safety_cap(self, cmd, obs, gap, own, lead_decel)
         sim.set_speeds(vids, cmd)
         self.commands = dict(zip(vids, cmd.tolist(), strict=True))
@@ -251,32 +288,47 @@ def section_observations(
     sec = drv.section
     leaders = sim.read_leaders()
     n = len(vids)
-    speed = np.array([states[v][2] for v in vids])
-    lane = np.empty(n, dtype=np.int64)
-    edge = np.empty(n, dtype=np.int64)
-    arc = np.empty(n)
-    spacing = np.full(n, NO_LEADER_GAP_M)
-    sumo_gap = np.full(n, NO_LEADER_GAP_M)
-    lead_decel = np.full(n, STOP_DECEL_MPS2)
-    lead_v = speed.copy()  # delta_v 0 without a leader
-    for i, v in enumerate(vids):
-        e, idx, start, scale = sec.lanes[states[v][0]]
-        edge[i], lane[i], arc[i] = e, idx, start + states[v][1] * scale
-        length, min_gap, _ = drv.shapes[drv.types[v]]
-        lid, gap = leaders.get(v, ("", -1.0))
-        if lid and lid in states:
-            lead_len, _, decel = drv.shapes[drv.types[lid]]
-            s = gap + min_gap + lead_len
-            if s < NO_LEADER_GAP_M:
-                spacing[i], lead_v[i] = s, states[lid][2]
-                sumo_gap[i], lead_decel[i] = gap, decel
-        # A red light, or the end of a lane the vehicle must leave: a standing leader there.
-        stop = sim.lane_end_m(v, states[v][0], states[v][1])
-        if drv.has_lights:
-            stop = min(stop, sim.stop_line_m(v))
-        if stop + length < spacing[i]:
-            spacing[i], lead_v[i] = stop + length, 0.0
-            sumo_gap[i], lead_decel[i] = max(stop - min_gap, 0.0), STOP_DECEL_MPS2
+    st = [states[v] for v in vids]
+    lanes = [s[0] for s in st]
+    pos = np.fromiter((s[1] for s in st), float, n)
+    speed = np.fromiter((s[2] for s in st), float, n)
+    where = np.array([sec.lanes[lane] for lane in lanes], dtype=float).reshape(n, 4)
+    edge, lane = where[:, 0].astype(np.int64), where[:, 1].astype(np.int64)
+    arc = where[:, 2] + pos * where[:, 3]
+    shape_of = drv.shape_of
+    own = np.array([shape_of[v] for v in vids], dtype=float).reshape(n, 3)
+    length, min_gap = own[:, 0], own[:, 1]
+    # The leader SUMO sees: front-to-front spacing = its gap + own minGap + leader's length.
+    none = ("", -1.0)
+    lead = [leaders.get(v, none) for v in vids]
+    has = np.fromiter((bool(lid) and lid in states for lid, _ in lead), bool, n)
+    gap = np.fromiter((g for _, g in lead), float, n)
+    standing = (0.0, 0.0, STOP_DECEL_MPS2)
+    lead_shape = np.array(
+        [
+            shape_of.get(lid, standing) if h else standing
+            for (lid, _), h in zip(lead, has, strict=True)
+        ],
+        dtype=float,
+    ).reshape(n, 3)
+    lead_speed = np.fromiter(
+        (states[lid][2] if h else 0.0 for (lid, _), h in zip(lead, has, strict=True)), float, n
+    )
+    s = gap + min_gap + lead_shape[:, 0]
+    ok = has & (s < NO_LEADER_GAP_M)
+    spacing = np.where(ok, s, NO_LEADER_GAP_M)
+    lead_v = np.where(ok, lead_speed, speed)  # delta_v 0 without a leader
+    sumo_gap = np.where(ok, gap, NO_LEADER_GAP_M)
+    lead_decel = np.where(ok, lead_shape[:, 2], STOP_DECEL_MPS2)
+    # A red light, or the end of a lane the vehicle must leave: a standing leader there.
+    stop = drv.lane_end_m(sim, vids, lanes) - pos
+    if drv.has_lights:
+        stop = np.minimum(stop, np.fromiter((sim.stop_line_m(v) for v in vids), float, n))
+    closer = stop + length < spacing
+    spacing = np.where(closer, stop + length, spacing)
+    lead_v = np.where(closer, 0.0, lead_v)
+    sumo_gap = np.where(closer, np.maximum(stop - min_gap, 0.0), sumo_gap)
+    lead_decel = np.where(closer, STOP_DECEL_MPS2, lead_decel)
     limit = sec.limits_mps[edge, np.minimum(lane, sec.n_lanes[edge] - 1)]
     cols = [speed, limit, spacing, speed - lead_v]
     if drv.sc.policy.observation == "lookahead":

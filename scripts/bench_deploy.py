@@ -1,0 +1,269 @@
+"""Benchmark a deployment with the policy in the loop against SUMO driving the same demand
+with its own models, in the same run.
+
+1. The Bremen example's demand (scenarios/highway_bremen.toml, one whole run: 120 s
+   warm-up + 600 s): vehicle-steps/s (every vehicle in the network, every step) of
+   - SUMO alone: the run's simulation steps, nothing read (SUMO's own speed);
+   - the oracle deployment: the ground truth's run loop (recording trajectories) with
+     SUMO driving everyone;
+   - the policy deployment: the same loop, every non-instrumented vehicle on the section
+     driven by the policy (``deploy.drivers.SectionSpeedDriver``: state through
+     subscriptions, one batched policy call per step, the safety layer on),
+   and the ratios. The policy is runs/highway_bremen/policy/policy.pt when it exists, else
+   an untrained agent of the same shape (timing only).
+2. The per-vehicle cost against the number of vehicles: a straight 4-lane road of 30 km
+   (netconvert), N = 50 ... 2,000 vehicles placed on it at t = 0 and driven by the policy
+   for ``--steps`` steps, next to SUMO driving the same N alone: microseconds per
+   vehicle-step of each and of the driver's own share.
+
+    python scripts/bench_deploy.py [--steps 200] [--sizes 50 200 500 1000 2000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import libsumo
+import sumolib
+import torch
+
+from macromicro_sumo.deploy.drivers import SectionDriver, SectionSpeedDriver
+from macromicro_sumo.deploy.stage import policy_batch
+from macromicro_sumo.policy.agent import Agent
+from macromicro_sumo.policy.checkpoint import load_policy
+from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
+from macromicro_sumo.truth.section import load_section, record_run
+from macromicro_sumo.truth.section_detectors import detectors_xml, place_detectors
+
+ROOT = Path(__file__).resolve().parents[1]
+LANES, ROAD_M, LIMIT_MPS = 4, 30_000.0, 30.0
+
+
+class Counted:
+    """A driver (or none) that also counts the vehicles in the network before each step."""
+
+    def __init__(self, inner: SectionDriver | None) -> None:
+        self.inner = inner
+        self.vehicle_steps = 0
+
+    def before_step(self, sim: Simulation) -> None:
+        self.vehicle_steps += libsumo.vehicle.getIDCount()
+        if self.inner is not None:
+            self.inner.before_step(sim)
+
+
+def bremen_scenario(tmp: Path):
+    text = (ROOT / "scenarios" / "highway_bremen.toml").read_text()
+    path = tmp / "highway.toml"
+    path.write_text(text.replace('"../sumo_nets', f'"{ROOT}/sumo_nets'))
+    return load_scenario(path)
+
+
+def agent_for(sc, checkpoint: Path) -> tuple[Agent, str]:
+    if checkpoint.is_file():
+        return load_policy(checkpoint, sc), str(checkpoint.relative_to(ROOT))
+    torch.manual_seed(0)
+    return Agent(64, observation=sc.policy.observation), "untrained agent (timing only)"
+
+
+def bremen_run(sc, tmp: Path, how: str, act, run: int = 0) -> tuple[float, int, dict]:
+    """(wall s, vehicle-steps, counts) of one whole run of the Bremen demand."""
+    inputs, section, _ = load_section(sc)
+    folder = tmp / f"{how}_{run}"
+    folder.mkdir()
+    placed = place_detectors(sc, inputs, section)
+    (folder / "det.add.xml").write_text(detectors_xml(placed, sc.detectors.interval_s))
+    opts = SumoOptions(
+        inputs.net_file,
+        (*inputs.additional_files, folder / "det.add.xml"),
+        sc.simulation.step_length_s,
+        sc.seed + run,
+        route_files=inputs.route_files,
+        user_demand=True,
+    )
+    sim = Simulation(opts)
+    try:
+        if how == "sumo":
+            n = int(round((sc.simulation.warmup_s + sc.simulation.duration_s) / sim.dt_s))
+            count = Counted(None)
+            t0 = time.perf_counter()
+            for _ in range(n):
+                count.before_step(sim)
+                sim.step()
+            return time.perf_counter() - t0, count.vehicle_steps, {}
+        inner = (
+            SectionSpeedDriver(sc, section, run, act, sc.deploy.safety)
+            if how == "policy"
+            else SectionDriver(sc, section, run)
+        )
+        count = Counted(inner)
+        t0 = time.perf_counter()
+        _, stats = record_run(sim, sc, section, run, count)
+        wall = time.perf_counter() - t0
+        return wall, count.vehicle_steps, {**inner.stats.as_dict(), **stats}
+    finally:
+        sim.close()
+
+
+def straight_road(folder: Path) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "n.nod.xml").write_text(
+        f'<nodes>\n<node id="a" x="0" y="0"/>\n<node id="b" x="{ROAD_M:g}" y="0"/>\n</nodes>\n'
+    )
+    (folder / "e.edg.xml").write_text(
+        f'<edges>\n<edge id="road" from="a" to="b" numLanes="{LANES}" speed="{LIMIT_MPS}"/>\n'
+        "</edges>\n"
+    )
+    net = folder / "road.net.xml"
+    subprocess.run(
+        [
+            sumolib.checkBinary("netconvert"),
+            "--node-files",
+            str(folder / "n.nod.xml"),
+            "--edge-files",
+            str(folder / "e.edg.xml"),
+            "--output-file",
+            str(net),
+            "--no-warnings",
+            "true",
+        ],  # fmt: skip
+        check=True,
+        capture_output=True,
+    )
+    return net
+
+
+def road_demand(folder: Path, n: int) -> Path:
+    """n vehicles spread evenly over the lanes and the first 25 km, departing at t = 0."""
+    per_lane = math.ceil(n / LANES)
+    gap = 25_000.0 / per_lane
+    lines = [
+        "<routes>",
+        '<vType id="car" length="5" minGap="2.5" accel="2.6" decel="4.5" sigma="0.5"/>',
+        '<route id="r" edges="road"/>',
+    ]
+    for i in range(n):
+        lane, k = i % LANES, i // LANES
+        lines.append(
+            f'<vehicle id="v{i}" type="car" route="r" depart="0" departLane="{lane}" '
+            f'departPos="{25_000.0 - k * gap:.1f}" departSpeed="20"/>'
+        )
+    path = folder / f"road_{n}.rou.xml"
+    path.write_text("\n".join([*lines, "</routes>"]) + "\n")
+    return path
+
+
+def road_scenario(folder: Path, net: Path, routes: Path):
+    path = folder / f"{routes.stem}.toml"
+    path.write_text(
+        "\n".join(
+            [
+                'name = "straight"',
+                "seed = 1",
+                "[network]",
+                'kind = "sumo"',
+                f'net_file = "{net}"',
+                f'route_files = ["{routes}"]',
+                "[section]",
+                'edges = ["road"]',
+                "[instrumented]",
+                "penetration = 0.01",
+                "[simulation]",
+                "step_length_s = 0.5",
+                "[policy]",
+                'observation = "lookahead"',
+            ]
+        )
+        + "\n"
+    )
+    return load_scenario(path)
+
+
+def road_run(sc, routes: Path, net: Path, act, steps: int) -> tuple[float, int, int]:
+    """(wall s of ``steps`` steps, vehicle-steps, vehicles driven) after 2 settling steps;
+    ``act`` None: SUMO alone."""
+    _, section, _ = load_section(sc)
+    sim = Simulation(SumoOptions(net, (), 0.5, 1, route_files=(routes,), user_demand=True))
+    try:
+        drv = SectionSpeedDriver(sc, section, 0, act, "sumo") if act is not None else None
+        count = Counted(drv)
+        for _ in range(2):  # every vehicle inserted and (with a policy) subscribed
+            count.before_step(sim)
+            sim.step()
+        count.vehicle_steps = 0
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            count.before_step(sim)
+            sim.step()
+        wall = time.perf_counter() - t0
+        return wall, count.vehicle_steps, len(drv.driven) if drv is not None else 0
+    finally:
+        sim.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--steps", type=int, default=200, help="steps per size on the straight road")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[50, 200, 500, 1000, 2000])
+    ap.add_argument("--repeats", type=int, default=2, help="Bremen runs per method")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        sc = bremen_scenario(tmp)
+        agent, which = agent_for(sc, ROOT / "runs" / "highway_bremen" / "policy" / "policy.pt")
+        act = policy_batch(agent)
+        print(f"Bremen example's demand, one whole run ({sc.simulation.warmup_s:g} s warm-up + "
+              f"{sc.simulation.duration_s:g} s, step {sc.simulation.step_length_s} s); "
+              f"policy: {which}, safety {sc.deploy.safety}")  # fmt: skip
+        rates: dict[str, list[float]] = {"sumo": [], "oracle": [], "policy": []}
+        for r in range(args.repeats):
+            line = []
+            for how in rates:
+                wall, vs, stats = bremen_run(sc, tmp, how, act, run=r)
+                rates[how].append(vs / wall)
+                line.append(f"{how} {vs / wall:9,.0f} veh-steps/s ({vs:,} in {wall:.2f} s)")
+                if how == "policy":
+                    line.append(
+                        f"driven {stats['vehicle_steps_driven']:,}, collisions "
+                        f"{stats['collisions']}, teleports {stats['teleports']}"
+                    )
+            print(f"  run {r}: " + " | ".join(line))
+        best = {k: max(v) for k, v in rates.items()}
+        print(
+            f"  best of {args.repeats}: SUMO alone {best['sumo']:,.0f}, oracle deployment "
+            f"{best['oracle']:,.0f}, policy deployment {best['policy']:,.0f} veh-steps/s; "
+            f"ratio policy / SUMO alone {best['policy'] / best['sumo']:.2f}x, "
+            f"policy / oracle deployment {best['policy'] / best['oracle']:.2f}x (target >= 0.3x)"
+        )
+
+        print(f"\nStraight {LANES}-lane road, {ROAD_M / 1000:g} km, {args.steps} steps per size; "
+              "microseconds per vehicle-step:")  # fmt: skip
+        net = straight_road(tmp / "road")
+        print(
+            f"  {'vehicles':>8} {'driven':>7} {'SUMO alone':>11} {'with policy':>12} "
+            f"{'driver share':>13} {'ratio':>6}"
+        )
+        for n in args.sizes:
+            routes = road_demand(tmp / "road", n)
+            rsc = road_scenario(tmp / "road", net, routes)
+            w0, vs0, _ = road_run(rsc, routes, net, None, args.steps)
+            w1, vs1, driven = road_run(rsc, routes, net, act, args.steps)
+            us0, us1 = 1e6 * w0 / vs0, 1e6 * w1 / vs1
+            print(
+                f"  {vs1 / args.steps:8.0f} {driven:7d} {us0:11.2f} {us1:12.2f} "
+                f"{us1 - us0:13.2f} {us0 / us1:6.2f}"
+            )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
