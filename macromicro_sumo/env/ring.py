@@ -8,10 +8,12 @@ Episode start: a held-in snapshot whose hidden vehicles were completed by the tr
 generator (completions are precomputed in a batch, which is what Algorithm 3 does per
 episode, only faster). Every step, each vehicle gets a speed command in speed mode 0
 (applied exactly, no SUMO safety checks): hidden vehicles v' = max(0, v + a dt) with the
-agent's acceleration clipped to [a_min, a_max]; observed vehicles replay their recorded
-ground-truth speeds, except where that would run them into their leader (``keep_clear``:
-counted in ``RingCore.replay_overrides``). Leaders, spacings and observations come from arc
-positions.
+agent's acceleration clipped to [a_min, a_max], capped by the safety layer
+(``policy.safety = "sumo"``, the default: ``safety_cap``, counted in
+``RingCore.safety_capped``; ``"none"``: applied as asked); observed vehicles replay their
+recorded ground-truth speeds, except where that would run them into their leader
+(``keep_clear``: counted in ``RingCore.replay_overrides``). Leaders, spacings and
+observations come from arc positions.
 """
 
 from __future__ import annotations
@@ -26,12 +28,14 @@ from macromicro_sumo.data.objective import MacroTarget, macro_reward, macro_term
 from macromicro_sumo.data.ring import GroundTruth, Snapshots, hide, run_arrays, snapshot_states
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.generator.ring_sampler import complete
-from macromicro_sumo.road.physics import OBSERVATION_FEATURES, lookahead_features
+from macromicro_sumo.road.physics import OBSERVATION_FEATURES, lookahead_features, safe_speed
 from macromicro_sumo.road.ring import RingGeometry, read_ring
 from macromicro_sumo.scenario.ring import Scenario
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 
 CTRL_TYPE = "ctrl"
+SAFETY = ("none", "sumo")  # hidden vehicles' safety layer: none, or ``safety_cap``
+SAFETY_TOLERANCE_MPS = 0.01  # a cap lower than the command by more counts as acting
 
 
 @dataclass(frozen=True)
@@ -207,6 +211,37 @@ def keep_clear(
     return out
 
 
+def safety_cap(
+    cmd: np.ndarray,
+    hidden: np.ndarray,
+    leader: np.ndarray,
+    spacing: np.ndarray,
+    speed: np.ndarray,
+    length_m: float,
+    clear_m: float,
+    brake_mps2: float,
+    dt: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Speed commands (N,) with each ``hidden`` vehicle's capped at the Krauss/Gipps safe
+    speed (``road.physics.safe_speed``) behind its leader, both braking at ``brake_mps2``
+    (it one step later), keeping a bumper gap of ``clear_m``; and which it capped (by more
+    than ``SAFETY_TOLERANCE_MPS``). A cap may brake harder than a_min, as SUMO's does.
+    Why: a policy braking at 1.2-1.5 m/s^2 where more was needed ran into observed leaders
+    braking as recorded (ring_sugiyama: 89-139 of 1,400 episodes per K, IDM methods 0).
+    The leader brakes at |a_min| (symmetric: safe on the way to the stop too): a hidden one
+    no harder by its action, the recording's drivers in 0.07% of ring_sugiyama's steps (its
+    first seconds); the cap binds on no recorded command of either ring, where 2 |a_min|
+    (``keep_clear``'s) capped 1% of ring_sugiyama's recorded vehicle-steps.
+    """
+    gap = spacing[hidden] - length_m - clear_m
+    safe = safe_speed(gap, speed[leader[hidden]], brake_mps2, brake_mps2, dt)
+    capped = np.zeros(len(cmd), dtype=bool)
+    capped[hidden] = safe < cmd[hidden] - SAFETY_TOLERANCE_MPS
+    out = cmd.copy()
+    out[capped] = np.maximum(safe[capped[hidden]], 0.0)
+    return out, capped
+
+
 @dataclass
 class StepResult:
     """What one step of a core (ring or section) returns."""
@@ -224,8 +259,18 @@ class RingCore:
     """One SUMO ring reused for every episode; numpy state in, numpy state out."""
 
     def __init__(
-        self, sc: Scenario, bank: EpisodeBank, seed: int = 0, fcd_file: Path | None = None
+        self,
+        sc: Scenario,
+        bank: EpisodeBank,
+        seed: int = 0,
+        fcd_file: Path | None = None,
+        safety: str | None = None,
     ) -> None:
+        # Training and evaluation alike, unless told (the recording replays with "none").
+        safety = safety or sc.policy.safety
+        if safety not in SAFETY:
+            raise UserError(f"safety = {safety!r}: one of {', '.join(SAFETY)}")
+        self.safety = safety
         self.sc = sc
         self.bank = bank
         self.geo: RingGeometry = read_ring(sc.resolve(sc.network.net_file))
@@ -245,6 +290,11 @@ class RingCore:
         # Vehicle-steps on which an observed vehicle left its record, and the episodes.
         self.replay_overrides = 0
         self.overridden_episodes: set[int] = set()
+        # Hidden vehicle-steps; those the safety layer capped (in all, last step's, episodes).
+        self.hidden_steps = 0
+        self.safety_capped = 0
+        self.step_capped = np.zeros(self.n, dtype=bool)
+        self.capped_episodes: set[int] = set()
         self.active = np.ones(self.n, dtype=bool)
         self.lane = np.zeros(self.n, dtype=np.int64)
         self.ids = [f"veh{i}" for i in range(self.n)]
@@ -384,6 +434,22 @@ class RingCore:
         a = np.clip(accel_hidden, self.a_min, self.a_max)
         cmd = self.bank.replay_speed_mps[self.episode, self.t + 1].copy()
         cmd[self.hidden] = np.maximum(0.0, self.speed[self.hidden] + a * self.dt)
+        self.hidden_steps += int(self.hidden.sum())
+        if self.safety == "sumo":  # before keep_clear: observed followers see the capped speed
+            cmd, self.step_capped = safety_cap(
+                cmd,
+                self.hidden,
+                self.leader,
+                self.spacing,
+                self.speed,
+                self.sc.fleet.length_m,
+                self.clear_m,
+                -self.a_min,
+                self.dt,
+            )
+            if self.step_capped.any():
+                self.safety_capped += int(self.step_capped.sum())
+                self.capped_episodes.add(self.episode)
         kept = keep_clear(
             cmd,
             ~self.hidden,

@@ -28,8 +28,11 @@ r_macro,t = 1 / (1 + lambda_v L_speed,t + lambda_d L_dist,t) on the whole scene
 it by eta). The micro term is not a reward:
 ``info["observed_obs"]`` (M, 4) and ``info["observed_action_mps2"]`` (M,) carry each observed
 vehicle's observation in the simulated scene and its recorded action at this step, for the
-likelihood term. ``info`` also has ``collision``, ``error`` (a SUMO failure, if any) and the
-named terms of ``data.objective``: ``L_speed, L_mean, L_min, L_max, L_var``.
+likelihood term. ``info`` also has ``collision``, ``error`` (a SUMO failure, if any), the
+named terms of ``data.objective``: ``L_speed, L_mean, L_min, L_max, L_var``, and on the ring
+``safety_capped``: how many hidden vehicles' commands the safety layer capped this step
+(``policy.safety = "sumo"``, the default: each command at the Krauss safe speed behind its
+leader, ``env.ring.safety_cap``; ``"none"``: applied as asked, always 0).
 
 ## Starting State
 A snapshot of a ground-truth run (the ``split``'s runs) with K hidden vehicles, completed
@@ -217,6 +220,8 @@ def step_info(core: RingCore | SectionCore, res=None) -> dict[str, Any]:
         "collision": bool(res.collision) if res else False,
         "error": res.error if res else "",
     }
+    if isinstance(core, RingCore):
+        info["safety_capped"] = int(core.step_capped.sum()) if res else 0
     if res is not None:
         info.update(res.terms)
     return info

@@ -9,7 +9,9 @@ IDM with given parameters (deterministic); learned policies sample their Gaussia
 
 Both run through ``env.RingCore`` exactly as in training: speed mode 0,
 v' = max(0, v + a dt) with a clipped to the scenario's action bounds [a_min, a_max], so the
-IDM follower has the same actuator limits as the policy. With a ring of 628 m the leader
+IDM follower has the same actuator limits as the policy; without the hidden vehicles'
+safety layer (``policy.safety``, ``env.ring.safety_cap``): the tests measure how the
+follower itself follows, and a collision here is its own. With a ring of 628 m the leader
 (the follower's leader) is 500 m ahead of the follower's back: it never reacts to it.
 
 Those figures are the paper's ring's (R = 100 m, N = 5, limits up to 14 m/s): 126 m is its
@@ -285,7 +287,8 @@ def run_leader_follower(
     bank = leader_follower_bank(sc, profile.on_ring(sc), limit)
     idm = idm_follower(idm_params, sc.fleet.length_m)
     frames, summary = [], []
-    core = RingCore(sc, bank, seed=seed)  # one SUMO run per process: reused for every trial
+    # One SUMO run per process, reused for every trial; the follower as it drives itself.
+    core = RingCore(sc, bank, seed=seed, safety="none")
     try:
         for ep, scenario in enumerate(SCENARIOS):
             ref = run_trial(core, ep, idm, np.random.default_rng([seed, ep, 0]))

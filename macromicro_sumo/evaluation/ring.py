@@ -4,7 +4,10 @@ The paper's protocol, measured in SUMO: for each K, the held-out snapshots are c
 (by the generator, or, for ``ground_truth``, with the true hidden vehicles) and rolled out
 for ``evaluation.horizon_steps``; observed vehicles replay their recorded speeds (except
 where that would run them into a generated leader: ``env.ring.keep_clear``, counted in the
-``replay_overrides`` columns) and the hidden ones are driven by the method. All methods run on the same scenes:
+``replay_overrides`` columns) and the hidden ones are driven by the method, under the
+scenario's safety layer (``policy.safety``: ``env.ring.safety_cap``, counted in the
+``safety_capped`` columns; the recording, ``ground_truth``, replays without it). All methods
+run on the same scenes:
 
 * ``ground_truth``: the recorded fleet (true scene, hidden vehicles apply their recorded actions);
 * ``policy``, ``micro_only``, ``macro_only``: the learned policies (stochastic);
@@ -232,23 +235,31 @@ def macro_alignment(
         ref = None
         for name in [m for m in METHOD_ORDER if m in methods]:
             bank, act = methods[name]
-            core = RingCore(sc, bank, seed=sc.seed)
+            safety = "none" if name == "ground_truth" else sc.policy.safety
+            core = RingCore(sc, bank, seed=sc.seed, safety=safety)
             try:
                 ro = rollout(core, act, h, seed)
             finally:
                 core.close()
             # Observed vehicles that left their record to keep clear of a generated leader
-            # (``env.ring.keep_clear``): vehicle-steps and episodes, on record beside the
+            # (``env.ring.keep_clear``) and hidden vehicles' commands the safety layer capped
+            # (``env.ring.safety_cap``): vehicle-steps and episodes, on record beside the
             # collisions they stand in for.
             overrides = {
                 "replay_overrides": core.replay_overrides,
                 "replay_override_episodes": len(core.overridden_episodes),
+                "safety_capped": core.safety_capped,
+                "safety_capped_episodes": len(core.capped_episodes),
+                "hidden_steps": core.hidden_steps,
             }
             if name == "ground_truth":  # the recording: the same for every draw, replayed once
                 ro = ro.repeated(len(draws))
                 overrides = {key: val * len(draws) for key, val in overrides.items()}
+            overrides["safety"] = safety
+            overrides["safety_capped_share"] = core.safety_capped / max(core.hidden_steps, 1)
             if fcd_dir is not None and sc.evaluation.fcd_episodes > 0:
-                core = RingCore(sc, bank, seed=sc.seed, fcd_file=fcd_dir / f"{name}_K{k}.fcd.xml")
+                fcd = fcd_dir / f"{name}_K{k}.fcd.xml"
+                core = RingCore(sc, bank, seed=sc.seed, fcd_file=fcd, safety=safety)
                 try:
                     rollout(core, act, h, seed, range(min(sc.evaluation.fcd_episodes, len(bank))))
                 finally:
@@ -341,7 +352,8 @@ def timespace(sc: Scenario, gt: GroundTruth, runs: np.ndarray, net, agent) -> pd
         bank = long_rollout_bank(
             sc, gt, int(runs[0]), sc.evaluation.timespace_s, k, complete_fn, sc.seed
         )
-        core = RingCore(sc, bank, seed=sc.seed)
+        safety = "none" if name == "ground_truth" else sc.policy.safety
+        core = RingCore(sc, bank, seed=sc.seed, safety=safety)
         try:
             steps = bank.replay_speed_mps.shape[1] - 1
             ro = rollout(core, act, steps, sc.seed)

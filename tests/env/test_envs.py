@@ -118,6 +118,29 @@ def test_every_agent_gets_its_own_info_dict(gt):
         env.close()
 
 
+def test_info_counts_the_safety_layers_caps(gt):
+    """``info["safety_capped"]``: this step's capped hidden commands, 0 at a reset; summed,
+    the core's count. On the paper's ring (spacings ~125 m) even full throttle for a whole
+    episode leaves the layer idle: it binds where the ring is dense (test_ring_collisions)."""
+    path, data, gen = gt
+    env = RingHiddenEnv(path, data, gen)
+    try:
+        assert env.core.safety == "sumo"  # the default
+        total, steps = 0, 0
+        for seed in range(3):
+            _, info = env.reset(seed=seed)
+            assert info["safety_capped"] == 0
+            done = False
+            while not done:
+                _, _, term, trunc, info = env.step(np.array([env.action_space.high[0]]))
+                assert info["safety_capped"] in (0, 1)
+                total, steps, done = total + info["safety_capped"], steps + 1, term or trunc
+        assert total == env.core.safety_capped == 0 and env.core.hidden_steps == steps
+        assert not term  # no collision under the layer
+    finally:
+        env.close()
+
+
 def test_render_mode_none_is_accepted_and_possible_agents_fit_the_bank(gt):
     path, data, gen = gt
     env = RingHiddenParallelEnv(path, data, gen, hidden=(1, 2), render_mode=None)

@@ -19,6 +19,7 @@ from conftest import dump_toml
 from macromicro_sumo.data.ring import load_ground_truth
 from macromicro_sumo.env.ring import EpisodeBank, RingCore, build_bank, generator_completion
 from macromicro_sumo.env.rollout import rollout
+from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.ring import idm_action, true_idm_params
 from macromicro_sumo.generator.ring_model import GeneratorNet
 from macromicro_sumo.scenario.load import load_scenario
@@ -122,3 +123,54 @@ def test_generated_scenes_of_a_dense_ring_drive_without_collisions(dense, k):
     assert len(bank) >= 200
     assert ro.collisions == 0 and ro.errors == 0
     assert np.nanmin(ro.spacing_m) > sc.fleet.length_m
+
+
+@pytest.mark.parametrize("safety", ["sumo", "none"])
+def test_the_safety_layer_stops_a_hidden_vehicle_behind_a_braking_observed_leader(safety):
+    """A hidden vehicle at 6 m/s whose action holds its speed, 12 m behind an observed
+    vehicle that brakes from 6 m/s to a stop at 3 m/s^2 as recorded: with the safety layer
+    its commands are capped (counted, per step in ``step_capped``) and it stops behind its
+    leader, keeping the bumper gap; without it, it runs into the leader."""
+    sc = load_scenario(SUGIYAMA)
+    lead = np.maximum(6.0 - 3.0 * sc.simulation.step_length_s * np.arange(H + 1), 0.0)
+    bank = one_episode_bank(
+        sc, [0.0, 12.0, 120.0], [6.0, 6.0, 6.0], [True, False, False], [6.0] * 3
+    )
+    bank.replay_speed_mps[0, :, 1] = lead
+    core = RingCore(sc, bank, seed=0, safety=safety)
+    try:
+        ro = rollout(core, lambda c, o, r: np.zeros(1), H, 0)
+    finally:
+        core.close()
+    if safety == "none":  # the collision ends the episode
+        assert ro.collisions == 1 and core.safety_capped == 0 and core.hidden_steps < H
+        return
+    assert ro.collisions == 0 and ro.errors == 0 and core.hidden_steps == H
+    assert 0 < core.safety_capped <= H and core.capped_episodes == {0}
+    gap = ro.spacing_m[0, :, 0] - sc.fleet.length_m
+    assert gap.min() >= 0.5 * sc.fleet.min_gap_m[0] - 1e-6
+    assert ro.speed_mps[0, -1, 0] == pytest.approx(0.0, abs=1e-6)
+    np.testing.assert_allclose(ro.speed_mps[0, :, 1], lead[1:], atol=1e-6)  # on record
+
+
+def test_the_safety_layer_leaves_the_recorded_drivers_alone_on_a_dense_ring(dense):
+    """True scenes with 4 hidden vehicles applying their recorded actions under the safety
+    layer: it never acts, and the recording replays exactly (its leader assumption, |a_min|,
+    is no stricter than the fleet's own driving)."""
+    sc, gt = dense
+    bank = build_bank(sc, gt, gt.runs, lambda s: (s.arc_m, s.speed_mps), 4, 1, horizon=H)
+    core = RingCore(sc, bank, seed=0, safety="sumo")
+    try:
+        ro = rollout(core, lambda c, o, r: c.bank.gt_accel_mps2[c.episode, c.t][c.hidden], H, 0)
+    finally:
+        core.close()
+    assert len(bank) >= 60 and core.hidden_steps == 4 * H * len(bank)
+    assert core.safety_capped == 0 and core.replay_overrides == 0 and ro.collisions == 0
+    np.testing.assert_allclose(ro.speed_mps, bank.replay_speed_mps[:, 1:], atol=1e-6)
+
+
+def test_an_unknown_safety_layer_is_refused():
+    sc = load_scenario(SUGIYAMA)
+    bank = one_episode_bank(sc, [0.0, 50.0], [5.0, 5.0], [True, False], [5.0, 5.0])
+    with pytest.raises(UserError, match="safety = 'gipps'"):
+        RingCore(sc, bank, seed=0, safety="gipps")
