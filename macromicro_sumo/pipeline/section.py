@@ -14,6 +14,7 @@ import numpy as np
 
 from macromicro_sumo.data.section import section_snapshots
 from macromicro_sumo.deploy.stage import deploy
+from macromicro_sumo.env.demand import DemandCore
 from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import build_section_bank, typical_vclass
 from macromicro_sumo.evaluation.section import evaluate_section
@@ -60,6 +61,16 @@ def run_train_section_policy(
             sc, truth.section, bank_, net_file, seed=seed, fcd_file=fcd_file, vclass=vclass
         )
 
+    # Demand episodes (policy.episodes): windows of the runs the policy trains on; the
+    # validation runs stay out where they choose the checkpoint.
+    demand_runs = splits["train"]
+    if sc.policy.checkpoint_selection != "val_micro_logp":
+        demand_runs = np.concatenate([splits["train"], splits["val"]])
+    horizon = int(round(sc.policy.demand_horizon_s / sc.simulation.step_length_s))
+
+    def make_demand() -> DemandCore:
+        return DemandCore(sc, truth, demand_runs, horizon)
+
     res = train_policy(
         sc,
         bank,
@@ -70,6 +81,7 @@ def run_train_section_policy(
         run_key=run_key,
         make_core=make_core,
         val_runs=splits["val"],
+        make_demand=make_demand,
     )
     return write_policy_manifest(
         sc, command, objective, res, data, generator, out, episodes=len(bank)

@@ -36,6 +36,7 @@ import torch
 from torch import nn
 
 from macromicro_sumo.checkpoints import save_torch
+from macromicro_sumo.env.demand import DemandCore
 from macromicro_sumo.env.ring import EpisodeBank, RingCore
 from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import SectionBank, initial_observations
@@ -48,6 +49,7 @@ from macromicro_sumo.policy.checkpoint import (
     resumable_checkpoint,
     signature,
 )
+from macromicro_sumo.policy.demand_rollout import collect_demand, demand_log, join_demand
 from macromicro_sumo.progress import tqdm
 from macromicro_sumo.scenario.ring import Scenario
 from macromicro_sumo.scenario.section import SectionScenario
@@ -225,8 +227,14 @@ def train_policy(
     init: dict[str, Any] | None = None,
     make_core: Callable[[Any, int], Core] | None = None,
     val_runs: np.ndarray | None = None,
+    make_demand: Callable[[], DemandCore] | None = None,
 ) -> dict[str, Any]:
     """PPO on the env over ``bank``; writes policy.pt, policy_train_log.csv, checkpoints.
+
+    ``make_demand()`` builds a section's demand episodes (``env.demand``): with
+    ``policy.episodes`` = "demand" or "mixed" each update's policy gradient also (or only)
+    learns from ``policy.demand_episodes_per_update`` of them (``policy.demand_rollout``);
+    the likelihood term keeps the snapshot episodes' recorded pairs.
 
     ``make_core(bank, seed)`` builds the env core (default: the ring's ``RingCore``; a
     section passes one that builds its ``SectionCore``). With ``policy.checkpoint_selection
@@ -242,6 +250,9 @@ def train_policy(
     if make_core is None:
         make_core = lambda b, seed: RingCore(sc, b, seed=seed)  # noqa: E731
     core = make_core(bank, sc.seed)
+    # Demand episodes only where the policy gradient is used (micro_only has none).
+    use_demand = make_demand is not None and cfg.episodes != "snapshots" and eta > 0
+    demand = make_demand() if use_demand else None
     t0 = time.perf_counter()
     env_steps = 0
     try:
@@ -306,6 +317,26 @@ def train_policy(
             b_act, b_logp = torch.as_tensor(ro.actions[hid]), torch.as_tensor(ro.logp[hid])
             b_adv, b_ret = torch.as_tensor(adv[hid]), torch.as_tensor(ret[hid])
             b_t = torch.as_tensor(t_frac[hid], dtype=torch.float32)
+            if cfg.episodes == "demand" and demand is not None:  # the snapshots' pairs only
+                b_obs, b_act, b_logp, b_adv, b_ret, b_t = (
+                    x[:0] for x in (b_obs, b_act, b_logp, b_adv, b_ret, b_t)
+                )
+            db = None
+            if demand is not None:
+                windows = demand.windows(rng, cfg.demand_episodes_per_update)
+                db = collect_demand(
+                    agent,
+                    demand,
+                    windows,
+                    eta,
+                    cfg.collision_penalty,
+                    cfg.gamma,
+                    cfg.gae_lambda,
+                    gen,
+                )
+                b_obs, b_act, b_logp, b_adv, b_ret, b_t = join_demand(
+                    (b_obs, b_act, b_logp, b_adv, b_ret, b_t), db
+                )
             if not use_micro and len(b_adv) > 1:
                 b_adv = (b_adv - b_adv.mean()) / (b_adv.std() + 1e-8)
             gt, clip_share = clipped_actions(ro.gt_actions[obs_pairs], a_min, a_max)
@@ -368,6 +399,7 @@ def train_policy(
                 "collisions": ro.collisions,
                 "sumo_errors": ro.sumo_errors,
                 "gt_actions_clipped_share": clip_share,
+                **demand_log(db),
                 "wall_s": time.perf_counter() - t0,
             }
             log.append(row)
@@ -395,6 +427,8 @@ def train_policy(
                 )
     finally:
         core.close()
+        if demand is not None:
+            demand.close()
     if best_state is not None:
         agent.load_state_dict(best_state)
     wall = time.perf_counter() - t0

@@ -86,6 +86,28 @@ class PolicyConfig:
         "caps each speed command at SUMO's safe speed behind what it sees ahead (counted); "
         "none applies it exactly",
     )
+    episodes: str = spec(
+        "snapshots",
+        choices=("snapshots", "demand", "mixed"),
+        doc="sections: the episodes PPO's policy gradient learns from: snapshots (H steps from "
+        "a generated completion, the paper's), demand (windows of the training runs' own "
+        "demand, the hidden population driven as it enters, as a deployment drives it; "
+        "env.demand), or mixed (both); the likelihood term uses the snapshot episodes' "
+        "recorded pairs in every case. The ring has snapshots only",
+    )
+    demand_horizon_s: float = spec(
+        120.0, lo=1.0, hi=1e6, doc="length of a demand episode [s] (SUMO warms up before it)"
+    )
+    demand_episodes_per_update: int = spec(
+        1, lo=1, hi=10_000, doc="demand episodes per PPO update"
+    )
+    collision_penalty: float = spec(
+        0.0,
+        lo=0.0,
+        hi=1e6,
+        doc="demand episodes: reward subtracted on the step a driven vehicle collides (its "
+        "episode ends there in any case, losing its future eta * r_macro)",
+    )
     refine_lambda_rec: float = spec(
         1.0,
         lo=0.0,

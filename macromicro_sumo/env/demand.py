@@ -1,0 +1,354 @@
+"""Stage II's "demand" episodes on a section: a window of a training run replayed from the
+scenario's own demand, the hidden population driven by the policy as it enters.
+
+Snapshot episodes (``env.section``) start from a generated completion and last H steps
+(5 s): no vehicle enters, and a policy trained on them alone never meets the closing
+speeds, dense platoons and merges a deployment (``deploy``) meets over whole runs. A demand
+episode is what a deployment does, on a training run of the ground truth:
+
+* SUMO runs the run's demand with the ground truth's seed (``sc.seed + run``) and drives
+  every vehicle until the window starts (``t0``); from then on every vehicle of the
+  population (not instrumented, ``truth.section.is_instrumented``) is driven by the policy
+  from the step it is on a lane of the section until it leaves it, instrumented vehicles
+  keep their own SUMO models (as in a deployment);
+* speed commands v' = max(0, v + a dt) apply exactly (speed mode 32, the deployment's
+  ``safety = "none"``): the policy meets the consequences of its own actions;
+* observations are the deployment's, from SUMO's state (``sumo_observations``: SUMO's
+  leader along the lane connections, a red light or the end of a lane the vehicle must
+  leave as a standing leader) with the section env's lookahead (``env.section_bank``);
+  tests check both against the env's observation of the same state;
+* the reward of a step is the section env's r_macro of every vehicle on the section
+  against psi of the detector interval holding the step (``section_macro_reward``);
+* a vehicle whose front passed its leader's back (a collision) is removed: its episode
+  ends there (``DemandStep.collided``); one that leaves the section ends without a
+  terminal (``DemandStep.left``).
+"""
+
+from __future__ import annotations
+
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from macromicro_sumo.data.section import PSI_FIELDS, SectionTruth, psi_table
+from macromicro_sumo.env.section_bank import section_macro_reward, section_target
+from macromicro_sumo.road.physics import OBSERVATION_FEATURES
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
+from macromicro_sumo.sumo.inputs import scenario_inputs
+from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
+from macromicro_sumo.truth.section import is_instrumented
+from macromicro_sumo.truth.section_detectors import without_detectors
+
+EXACT_MODE = 32  # speed commands applied exactly (the deployment's safety = "none")
+STOP_DECEL_MPS2 = 9.0  # a standing "leader" (stop line, lane end) never brakes
+
+
+@dataclass
+class DemandStep:
+    """What one step of a demand episode returns."""
+
+    r_macro: float
+    collided: list[str]  # driven vehicles whose episode ended in a collision this step
+    left: list[str]  # driven vehicles that left the section (or the network) this step
+    collisions: int  # every vehicle that collided (driven or not)
+
+
+# --------------------------------------------------------------------------- observations
+
+
+def lookahead(
+    section: Section, lane: np.ndarray, arc_m: np.ndarray, edge: np.ndarray, own_limit: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The next edge's limit on the lane the vehicle continues onto and the distance to
+    that edge's start; on an open section's last edge its own limit and the distance to
+    the end (the section env's definition, ``env.section_bank.section_observations``)."""
+    n_e = len(section.edge_ids)
+    s = np.mod(arc_m, section.length_m) if section.closed else arc_m
+    inside = s > section.offsets_m[edge] + section.lengths_m[edge]
+    onto = np.where(inside, lane, section.next_lane(edge, lane))
+    nxt = (edge + 1) % n_e if section.closed else np.minimum(edge + 1, n_e - 1)
+    next_limit = section.limits_mps[nxt, np.minimum(onto, section.n_lanes[nxt] - 1)]
+    if section.closed:
+        start = section.offsets_m[nxt] + np.where(nxt == 0, section.length_m, 0.0)
+        return next_limit, start - s
+    last = edge == n_e - 1
+    return (
+        np.where(last, own_limit, next_limit),
+        np.where(last, section.length_m, section.offsets_m[nxt]) - s,
+    )
+
+
+@dataclass
+class SumoScene:
+    """Observations of driven vehicles from SUMO's state, with what the reward needs."""
+
+    obs: np.ndarray  # (V, obs_dim)
+    leader: list[str]  # SUMO's leader ("" none or a standing obstacle)
+    spacing_m: np.ndarray  # (V,) front-to-front spacing to ``leader`` (NO_LEADER_GAP_M: none)
+    gap_m: np.ndarray  # (V,) SUMO's gap to what the vehicle sees ahead
+
+
+def sumo_observations(
+    observation: str,
+    section: Section,
+    vids: list[str],
+    states: dict[str, tuple[str, float, float, float]],
+    leaders: dict[str, tuple[str, float]],
+    shapes: dict[str, tuple[float, float, float]],
+    stops_m: np.ndarray,
+) -> SumoScene:
+    """Observations (V, obs_dim) of ``vids`` as a deployment builds them from SUMO.
+
+    ``states``: SUMO's lane states, ``leaders``: SUMO's leader and gap (leader's back minus
+    own front and minGap), ``shapes``: each vehicle's (length, minGap, decel),
+    ``stops_m``: (V,) distance to a red light or the end of a lane the vehicle must leave
+    (inf: none), a standing leader there. Spacing is front to front: gap + own minGap +
+    leader's length, as the env's arcs give it.
+    """
+    n = len(vids)
+    speed = np.array([states[v][2] for v in vids])
+    lane = np.empty(n, dtype=np.int64)
+    arc = np.empty(n)
+    spacing = np.full(n, NO_LEADER_GAP_M)
+    gap_out = np.full(n, NO_LEADER_GAP_M)
+    lead_v = speed.copy()  # delta_v 0 without a leader
+    leader = [""] * n
+    for i, v in enumerate(vids):
+        _e, idx, start, scale = section.lanes[states[v][0]]
+        lane[i], arc[i] = idx, start + states[v][1] * scale
+        length, min_gap, _ = shapes[v]
+        lid, gap = leaders.get(v, ("", -1.0))
+        if lid and lid in states and lid in shapes:
+            s = gap + min_gap + shapes[lid][0]
+            if s < NO_LEADER_GAP_M:
+                spacing[i], lead_v[i], gap_out[i], leader[i] = s, states[lid][2], gap, lid
+        if stops_m[i] + length < spacing[i]:
+            spacing[i], lead_v[i], leader[i] = stops_m[i] + length, 0.0, ""
+            gap_out[i] = max(stops_m[i] - min_gap, 0.0)
+    edge = section.edge_index(arc)
+    limit = section.limits_mps[edge, np.minimum(lane, section.n_lanes[edge] - 1)]
+    cols = [speed, limit, spacing, speed - lead_v]
+    if len(OBSERVATION_FEATURES[observation]) > 4:
+        cols += list(lookahead(section, lane, arc, edge, limit))
+    obs = np.stack(cols, axis=1) if n else np.zeros((0, len(OBSERVATION_FEATURES[observation])))
+    return SumoScene(obs, leader, spacing, gap_out)
+
+
+# --------------------------------------------------------------------------- the core
+
+
+class DemandCore:
+    """Demand episodes of the training runs ``runs`` of a section scenario's ground truth.
+
+    ``reset(run, t0_s)`` starts the run's demand (SUMO drives until ``t0_s``);
+    ``observe()`` returns the driven vehicles and their observations, ``step(accel)``
+    drives them one step. One SUMO simulation, reloaded for each episode (libsumo holds one
+    per process: a snapshot env in the same process takes it over and gives it back).
+    """
+
+    def __init__(self, sc, truth: SectionTruth, runs: np.ndarray, horizon_steps: int) -> None:
+        self.sc = sc
+        self.section = truth.section
+        self.runs = np.asarray(runs, dtype=np.int64)
+        self.horizon = int(horizon_steps)
+        self.dt = sc.simulation.step_length_s
+        self.observation = sc.policy.observation
+        self.obs_dim = len(OBSERVATION_FEATURES[self.observation])
+        inputs = scenario_inputs(sc)
+        self._tmp = tempfile.TemporaryDirectory(prefix="macromicro-demand-")
+        adds = tuple(
+            without_detectors(p, Path(self._tmp.name) / f"user_{i}_{p.name}")
+            for i, p in enumerate(inputs.additional_files)
+        )
+        self._inputs, self._adds = inputs, adds
+        psi = psi_table(truth, sc)
+        psi = psi[np.isfinite(psi["mean_speed_mps"])]
+        self._psi = {
+            int(r): (
+                g["begin_s"].to_numpy(dtype=float),
+                g["end_s"].to_numpy(dtype=float),
+                g[list(PSI_FIELDS)].to_numpy(dtype=float),
+            )
+            for r, g in psi.groupby("run")
+        }
+        self.sim: Simulation | None = None
+        self.run, self.t = -1, 0
+        self.types: dict[str, str] = {}
+        self.shapes: dict[str, tuple[float, float, float]] = {}  # vType -> shape
+        self.population: set[str] = set()
+        self.driven: list[str] = []
+        self._speed: np.ndarray = np.zeros(0)
+        self._has_lights = False
+        self.counts = {"episodes": 0, "vehicle_steps": 0, "collisions": 0, "teleports": 0}
+
+    # ------------------------------------------------------------------ episodes
+    def windows(self, rng: np.random.Generator, n: int) -> list[tuple[int, float]]:
+        """``n`` episode starts (run, t0): a run with psi, a start on the step grid such
+        that the window lies after the warm-up and inside the recorded duration."""
+        runs = [int(r) for r in self.runs if int(r) in self._psi]
+        sim = self.sc.simulation
+        lo = sim.warmup_s
+        hi = max(lo, sim.warmup_s + sim.duration_s - self.horizon * self.dt)
+        out = []
+        for _ in range(n):
+            r = runs[int(rng.integers(len(runs)))]
+            t0 = lo + float(rng.uniform(0.0, hi - lo))
+            out.append((r, round(round(t0 / self.dt) * self.dt, 6)))
+        return out
+
+    def reset(self, run: int, t0_s: float) -> None:
+        """Start ``run``'s demand and let SUMO drive everyone until ``t0_s``."""
+        opts = SumoOptions(
+            self._inputs.net_file,
+            self._adds,
+            self.dt,
+            self.sc.seed + int(run),
+            route_files=self._inputs.route_files,
+            user_demand=True,
+        )
+        if self.sim is None:
+            self.sim = Simulation(opts)
+        else:
+            self.sim.options = opts
+            self.sim.reload()
+        sim = self.sim
+        self.run, self.t = int(run), 0
+        self.types, self.population, self.driven = {}, set(), []
+        for _ in range(int(round(t0_s / self.dt))):
+            sim.step()
+        self._arrive(sim.vehicle_ids())
+        self._has_lights = sim.has_traffic_lights()
+        self.counts["episodes"] += 1
+
+    def _arrive(self, vids) -> None:
+        sim = self.sim
+        if not vids:
+            return
+        sim.subscribe_driving(vids, NO_LEADER_GAP_M)
+        for vid in vids:
+            vt = sim.vehicle_type(vid)
+            self.types[vid] = vt
+            if vt not in self.shapes:
+                self.shapes[vt] = sim.vtype_shape(vt)
+            if not is_instrumented(self.sc, vid, vt, self.run):
+                self.population.add(vid)
+
+    def time_s(self) -> float:
+        return self.sim.time_s()
+
+    def _stops(self, vids: list[str], states) -> np.ndarray:
+        sim = self.sim
+        stops = np.array([sim.lane_end_m(v, states[v][0], states[v][1]) for v in vids])
+        if self._has_lights and len(vids):
+            stops = np.minimum(stops, [sim.stop_line_m(v) for v in vids])
+        return stops
+
+    def lane_states(self) -> dict[str, tuple[str, float, float, float]]:
+        """SUMO's lane states of the vehicles in the network now: after a reload,
+        subscription results of the last run's vehicles can linger."""
+        ids = set(self.sim.vehicle_ids())
+        return {v: s for v, s in self.sim.read_lane_states().items() if v in ids}
+
+    def observe(self) -> tuple[list[str], np.ndarray]:
+        """The driven vehicles now (sorted) and their observations (V, obs_dim)."""
+        sim = self.sim
+        states = self.lane_states()
+        lanes = self.section.lanes
+        now = sorted(v for v in self.population if v in states and states[v][0] in lanes)
+        fresh = sorted(set(now) - set(self.driven))
+        if fresh:
+            sim.set_speed_mode(fresh, EXACT_MODE)
+        gone = [v for v in self.driven if v not in now and v in states]
+        if gone:
+            sim.release_speeds(gone)
+        self.driven = now
+        shapes = {v: self.shapes[self.types[v]] for v in states if v in self.types}
+        scene = sumo_observations(
+            self.observation,
+            self.section,
+            now,
+            states,
+            sim.read_leaders(),
+            shapes,
+            self._stops(now, states),
+        )
+        self._speed = scene.obs[:, 0].copy() if len(now) else np.zeros(0)
+        return now, scene.obs
+
+    def step(self, accel: np.ndarray) -> DemandStep:
+        """Apply ``accel`` (one per vehicle of the last ``observe``) and step SUMO."""
+        sim = self.sim
+        a_min, a_max = self.sc.bounds.accel_mps2
+        driven = self.driven
+        if driven:
+            cmd = np.maximum(0.0, self._speed + np.clip(accel, a_min, a_max) * self.dt)
+            sim.set_speeds(driven, cmd)
+        sim.step()
+        self.t += 1
+        self._arrive(sim.departed())
+        collisions = sim.collisions()
+        self.counts["collisions"] += collisions
+        self.counts["teleports"] += sim.teleports()
+        self.counts["vehicle_steps"] += len(driven)
+        states = self.lane_states()
+        leaders = sim.read_leaders()
+        lanes = self.section.lanes
+        on = [v for v in states if states[v][0] in lanes and v in self.types]
+        # A collision: the follower's front passed the leader's back (SUMO's gap is net of
+        # the follower's minGap). The follower is removed, as SUMO's collision.action
+        # "remove" would, so the run goes on without a stuck pair.
+        hit = []
+        for v in on:
+            lid, gap = leaders.get(v, ("", -1.0))
+            if lid and gap + self.shapes[self.types[v]][1] < 0.0:
+                hit.append(v)
+        if hit:
+            sim.remove_vehicles(hit)
+            hit_set = set(hit)
+            on = [v for v in on if v not in hit_set]
+        r = self._reward(on, states, leaders)
+        now = set(on)
+        left = [v for v in driven if v not in now and v not in hit]
+        return DemandStep(r, [v for v in hit if v in set(driven)], left, collisions)
+
+    def _reward(self, on: list[str], states, leaders) -> float:
+        """r_macro of every vehicle on the section against psi of the interval now."""
+        if not on:
+            return 0.0
+        begin, end, psi = self._psi[self.run]
+        t = self.sim.time_s()
+        k = np.flatnonzero((begin <= t) & (end > t))
+        if not k.size:
+            k = np.array([int(np.argmin(np.abs(begin - t)))])
+        index = {v: i for i, v in enumerate(on)}
+        speed = np.array([states[v][2] for v in on])
+        leader = np.full(len(on), -1, dtype=np.int64)
+        spacing = np.full(len(on), NO_LEADER_GAP_M)
+        for i, v in enumerate(on):
+            lid, gap = leaders.get(v, ("", -1.0))
+            j = index.get(lid, -1) if lid else -1
+            if j >= 0:
+                s = gap + self.shapes[self.types[v]][1] + self.shapes[self.types[lid]][0]
+                if s < NO_LEADER_GAP_M:
+                    leader[i], spacing[i] = j, s
+        hidden = np.array([v in self.population for v in on])
+        g = self.sc.generator
+        r, _ = section_macro_reward(
+            speed,
+            spacing,
+            leader,
+            hidden,
+            np.ones(len(on), dtype=bool),
+            section_target(psi[int(k[0])]),
+            g.lambda_v,
+            g.lambda_d,
+            self.sc.policy.macro_speed_scale_mps,
+        )
+        return r
+
+    def close(self) -> None:
+        if self.sim is not None:
+            self.sim.close()
+        self._tmp.cleanup()

@@ -1,0 +1,175 @@
+"""PPO's rollouts of demand episodes (``env.demand``): one trajectory per driven vehicle.
+
+A demand episode lasts ``policy.demand_horizon_s`` and its vehicles come and go, so its
+batch is flat (one row per driven vehicle-step) and GAE runs along each vehicle's own
+steps:
+
+* every step's reward is eta * r_macro of the scene (shared, as in snapshot episodes);
+* a vehicle that leaves the section, or is still driving when the window ends, is
+  truncated: its return is bootstrapped with its last value, so that leaving early or late
+  is neither rewarded nor punished (a terminal there, with r_macro > 0, would pay a vehicle
+  for staying on the section, that is for driving slowly);
+* a vehicle that collides is terminal (no future reward) and gets
+  ``-policy.collision_penalty`` on that step.
+
+The critic's time input is ``DEMAND_T_FRAC`` for every demand step: these episodes have no
+horizon to count down, unlike snapshot episodes (t / H in [0, 1)).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from macromicro_sumo.env.demand import DemandCore
+from macromicro_sumo.policy.agent import Agent
+
+DEMAND_T_FRAC = -1.0
+
+
+@dataclass
+class DemandBatch:
+    """Flat PPO rows of demand episodes, with what the training log reports."""
+
+    obs: np.ndarray  # (B, obs_dim)
+    actions: np.ndarray  # (B,)
+    logp: np.ndarray
+    advantages: np.ndarray
+    returns: np.ndarray
+    r_macro: float  # mean over the episodes' steps
+    collided: int  # driven vehicles removed after a collision
+    collisions: int  # SUMO's count, every vehicle
+    teleports: int
+    vehicle_steps: int
+
+
+@dataclass
+class _Track:
+    obs: list
+    act: list
+    logp: list
+    value: list
+    reward: list
+    terminal: bool = False
+
+
+def vehicle_gae(
+    rewards: np.ndarray, values: np.ndarray, terminal: bool, gamma: float, lam: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """GAE along one vehicle's steps; after the last step the value is 0 if ``terminal``,
+    else the last value (a truncation bootstrapped with the vehicle's own estimate)."""
+    adv = np.zeros_like(rewards)
+    last = 0.0
+    after = 0.0 if terminal else float(values[-1])
+    for t in reversed(range(len(rewards))):
+        next_v = values[t + 1] if t + 1 < len(rewards) else after
+        delta = rewards[t] + gamma * next_v - values[t]
+        last = delta + gamma * lam * last
+        adv[t] = last
+    return adv, adv + values
+
+
+def collect_demand(
+    agent: Agent,
+    core: DemandCore,
+    windows: list[tuple[int, float]],
+    eta: float,
+    penalty: float,
+    gamma: float,
+    lam: float,
+    gen: torch.Generator,
+) -> DemandBatch:
+    """Drive the demand episodes ``windows`` (run, t0) with the stochastic policy."""
+    tracks: list[_Track] = []
+    rewards, collided, collisions, teleports, steps = [], 0, 0, 0, 0
+    t_frac = torch.tensor(DEMAND_T_FRAC)
+    for run, t0 in windows:
+        c0, tp0 = core.counts["collisions"], core.counts["teleports"]
+        core.reset(run, t0)
+        live: dict[str, _Track] = {}
+        for _ in range(core.horizon):
+            vids, o = core.observe()
+            if vids:
+                ot = torch.as_tensor(o, dtype=torch.float32)
+                with torch.no_grad():
+                    d = agent.dist(ot)
+                    a = d.mean + d.stddev * torch.randn(d.mean.shape, generator=gen)
+                    lp = d.log_prob(a).numpy()
+                    v = agent.value(ot, t_frac.expand(len(vids))).numpy()
+                a = a.numpy()
+                for i, vid in enumerate(vids):
+                    tr = live.get(vid)
+                    if tr is None:
+                        tr = live[vid] = _Track([], [], [], [], [])
+                        tracks.append(tr)
+                    tr.obs.append(o[i])
+                    tr.act.append(a[i])
+                    tr.logp.append(lp[i])
+                    tr.value.append(v[i])
+            else:
+                a = np.zeros(0)
+            res = core.step(a)
+            steps += len(vids)
+            rewards.append(res.r_macro)
+            for vid in vids:
+                live[vid].reward.append(eta * res.r_macro)
+            for vid in res.collided:
+                tr = live.pop(vid)
+                tr.reward[-1] -= penalty
+                tr.terminal = True
+                collided += 1
+            for vid in res.left:
+                live.pop(vid, None)
+        collisions += core.counts["collisions"] - c0
+        teleports += core.counts["teleports"] - tp0
+    parts = []
+    for tr in tracks:
+        val = np.asarray(tr.value, dtype=np.float32)
+        adv, ret = vehicle_gae(
+            np.asarray(tr.reward, dtype=np.float32), val, tr.terminal, gamma, lam
+        )
+        parts.append((np.asarray(tr.obs), np.asarray(tr.act), np.asarray(tr.logp), adv, ret))
+    if parts:
+        cols = [np.concatenate(x).astype(np.float32) for x in zip(*parts, strict=True)]
+    else:
+        z = np.zeros(0, dtype=np.float32)
+        cols = [np.zeros((0, core.obs_dim), dtype=np.float32), z, z, z, z]
+    return DemandBatch(
+        *cols,
+        float(np.mean(rewards)) if rewards else float("nan"),
+        collided,
+        collisions,
+        teleports,
+        steps,
+    )
+
+
+def join_demand(batch: tuple[torch.Tensor, ...], db: DemandBatch) -> tuple[torch.Tensor, ...]:
+    """The snapshot episodes' PPO rows (obs, action, logp, advantage, return, t_frac)
+    followed by the demand episodes'."""
+    extra = (
+        db.obs,
+        db.actions,
+        db.logp,
+        db.advantages,
+        db.returns,
+        np.full(len(db.actions), DEMAND_T_FRAC, dtype=np.float32),
+    )
+    return tuple(
+        torch.cat([b, torch.as_tensor(x, dtype=b.dtype)]) for b, x in zip(batch, extra, strict=True)
+    )
+
+
+def demand_log(db: DemandBatch | None) -> dict[str, float]:
+    """The training log's demand columns (NaN without demand episodes)."""
+    if db is None:
+        return {}
+    return {
+        "demand_r_macro": db.r_macro,
+        "demand_vehicle_steps": db.vehicle_steps,
+        "demand_collided": db.collided,
+        "demand_collisions": db.collisions,
+        "demand_teleports": db.teleports,
+    }

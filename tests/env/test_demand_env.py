@@ -1,0 +1,119 @@
+"""Demand episodes (``env.demand``) on a small section with inflow, an on-ramp merge and a
+lane drop: vehicles enter during the episode and are driven as they do, and what the policy
+observes there is what the section env and a deployment observe of the same SUMO state."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import dump_toml
+
+sys.path.insert(0, str(Path(__file__).parents[1] / "deploy"))
+from deploy_nets import merge_net  # noqa: E402
+
+from macromicro_sumo.deploy.drivers import SectionSpeedDriver  # noqa: E402
+from macromicro_sumo.deploy.drivers import section_observations as deploy_observations  # noqa: E402
+from macromicro_sumo.env.demand import DemandCore  # noqa: E402
+from macromicro_sumo.env.section_bank import section_observations  # noqa: E402
+from macromicro_sumo.road.physics import idm_accel  # noqa: E402
+from macromicro_sumo.scenario.load import load_scenario  # noqa: E402
+from macromicro_sumo.truth.section import load_section_truth, simulate_section  # noqa: E402
+
+
+def act(obs: np.ndarray) -> np.ndarray:
+    """IDM on the observation (the merge's cars: 5 m long, limit 30 m/s), no network."""
+    return idm_accel(obs[:, 0], obs[:, 2] - 5.0, obs[:, 3], 30.0, 1.2, 2.0, 3.0, 2.5)
+
+
+@pytest.fixture(scope="module")
+def merge(tmp_path_factory: pytest.TempPathFactory):
+    """(scenario, ground truth) of the merge: 2 runs of 60 s warm-up + 120 s."""
+    folder = tmp_path_factory.mktemp("demand_merge")
+    net, routes = merge_net(folder / "net")
+    table = {
+        "name": "merge",
+        "seed": 9,
+        "network": {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]},
+        "section": {"edges": ["A", "B", "C"]},
+        "instrumented": {"penetration": 0.2},
+        "simulation": {"warmup_s": 60.0, "duration_s": 120.0, "n_runs": 2},
+        "detectors": {"interval_s": 30.0, "auto_spacing_m": 200.0},
+        "policy": {"observation": "lookahead", "demand_horizon_s": 30.0},
+    }
+    path = folder / "merge.toml"
+    path.write_text(dump_toml(table))
+    sc = load_scenario(path)
+    gt = simulate_section(sc, folder / "gt", progress=False)
+    return sc, load_section_truth(gt, sc)
+
+
+def test_vehicles_enter_and_an_idm_like_policy_drives_them_without_collisions(merge) -> None:
+    sc, truth = merge
+    core = DemandCore(sc, truth, truth.runs, 60)
+    try:
+        windows = core.windows(np.random.default_rng(0), 3)
+        assert all(60.0 <= t0 <= 60.0 + 120.0 - 30.0 for _, t0 in windows)
+        core.reset(*windows[0])
+        seen: set[str] = set()
+        first: list[str] = []
+        rewards = []
+        for t in range(60):
+            vids, obs = core.observe()
+            if t == 0:
+                first = vids
+            assert obs.shape == (len(vids), 6)
+            seen.update(vids)
+            res = core.step(act(obs))
+            assert not res.collided and res.collisions == 0
+            rewards.append(res.r_macro)
+        assert first and len(seen - set(first)) >= 5  # vehicles entered during the episode
+        assert min(rewards) > 0.0 and max(rewards) <= 1.0
+        assert core.counts["vehicle_steps"] > 60 * len(first) * 0.5
+    finally:
+        core.close()
+
+
+def test_observations_agree_with_the_section_env_and_the_deployment(merge) -> None:
+    """One SUMO state, three observations: the demand core's, the section env's from arc
+    positions (leaders along lane connections), the deployment driver's."""
+    sc, truth = merge
+    core = DemandCore(sc, truth, truth.runs, 60)
+    sec = truth.section
+    n_checked = 0
+    try:
+        core.reset(int(truth.runs[0]), 90.0)
+        for t in range(40):
+            vids, obs = core.observe()
+            if t % 8 == 7 and vids:
+                states = core.lane_states()
+                # The env's observation from every vehicle on the section's arcs.
+                on = [v for v in states if states[v][0] in sec.lanes]
+                lane = np.array([sec.lanes[states[v][0]][1] for v in on])
+                arc = np.array([sec.lanes[states[v][0]][2] + states[v][1] for v in on])
+                speed = np.array([states[v][2] for v in on])
+                env_obs, _, _ = section_observations(
+                    sec, lane, arc, speed, np.ones(len(on), bool), sc.policy.observation
+                )
+                env_of = dict(zip(on, env_obs, strict=True))
+                ref = np.stack([env_of[v] for v in vids])
+                np.testing.assert_allclose(obs[:, [0, 1, 4, 5]], ref[:, [0, 1, 4, 5]], atol=1e-6)
+                # Spacing and delta_v: the same leader, front to front (inside a junction
+                # SUMO's lane geometry is not the section's straight arc: a metre).
+                close = np.abs(obs[:, 2] - ref[:, 2]) < 1.0
+                assert close.mean() >= 0.9, (obs[~close, 2], ref[~close, 2])
+                np.testing.assert_allclose(obs[close, 3], ref[close, 3], atol=1e-6)
+                # The deployment's driver on the same state: the same first four features.
+                drv = SectionSpeedDriver(sc, sec, int(truth.runs[0]), act, "none")
+                drv.types = dict(core.types)
+                drv.shapes = dict(core.shapes)
+                drv.has_lights = False
+                dep, _, _ = deploy_observations(drv, core.sim, vids, states)
+                np.testing.assert_allclose(obs[:, :4], dep[:, :4], atol=1e-9)
+                n_checked += len(vids)
+            core.step(act(obs))
+    finally:
+        core.close()
+    assert n_checked > 50
