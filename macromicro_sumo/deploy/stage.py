@@ -112,8 +112,11 @@ def policy_batch(agent: Agent) -> ActionBatch:
     """The policy's deterministic mean action for every driven vehicle, one torch call."""
 
     def act(obs: np.ndarray) -> np.ndarray:
-        with torch.no_grad():
-            mean = agent.dist(torch.as_tensor(obs, dtype=torch.float32)).mean
+        # The actor's output is the distribution's mean (``Agent.dist``); building the
+        # distribution each step costs more than the network at deployment's batch sizes.
+        with torch.inference_mode():
+            x = (torch.as_tensor(obs, dtype=torch.float32) - agent.shift) / agent.scale
+            mean = agent.actor(x).squeeze(-1)
         return mean.numpy().astype(np.float64)
 
     return act
