@@ -17,9 +17,10 @@ Action Space
 Observation Space
     Per slot, ``physics.OBSERVATION_FEATURES[sc.policy.observation]``: speed, the local
     limit on its lane, the spacing to the leader in its lane (``NO_LEADER_GAP_M`` with no
-    leader), v - v_leader (0 with no leader) and, with ``"lookahead"``, the next edge's
-    limit on its lane and the distance to that edge (on the last edge of an open section:
-    its own limit and the distance to the section's end). Inactive slots are zeros.
+    leader; a lane end or a red/yellow signal's stop line is a standing leader), v -
+    v_leader (0 with no leader) and, with ``"lookahead"``, the next edge's limit on its
+    lane and the distance to that edge (on the last edge of an open section: its own
+    limit and the distance to the section's end). Inactive slots are zeros.
 Rewards
     r_macro = 1 / (1 + lambda_v L_speed + lambda_d L_dist) of the active vehicles against
     psi (``section_target``, ``section_macro_reward``).
@@ -34,8 +35,6 @@ Episode End
     waits); one that had to deviate catches up by speed until it is on its record again
     (``env/section_replay.py``; ``off_record``, ``counts``); their record ends where they
     left the section in the ground truth. Collisions are counted and truncate the episode.
-Arguments
-    ``SectionCore(sc, section, bank, net_file, seed, fcd_file=None)``.
 """
 
 from __future__ import annotations
@@ -51,6 +50,7 @@ from macromicro_sumo.env.section_bank import (
     section_macro_reward,
     section_observations,
     section_target,
+    stop_points,
 )
 from macromicro_sumo.env.section_replay import (
     REPLAY_SPEED_FACTOR,
@@ -58,6 +58,8 @@ from macromicro_sumo.env.section_replay import (
     SAFE_SUFFIX,
     arc_lag,
     catch_up_speeds,
+    junction_lane,
+    junction_vias,
     safe_places,
     vtypes_xml,
 )
@@ -141,12 +143,9 @@ class SectionCore:
             SumoOptions(Path(net_file), (vtypes,), self.dt, seed, fcd_file=fcd_file)
         )
         self._routes = self._add_routes()
+        self._has_lights = self.sim.has_traffic_lights()
         self._lanes = section.lanes
-        # (edge index, lane index entered) -> (internal lane, its arc start, arc per metre)
-        self._via: dict[tuple[int, int], tuple[str, float, float]] = {}
-        for lane_id, (e, idx, start, scale) in section.lanes.items():
-            if lane_id.startswith(":"):
-                self._via.setdefault((e, idx), (lane_id, start, scale))
+        self._via = junction_vias(section)
         self._resets = 0
         self.episode = -1
         self.t = 0
@@ -209,7 +208,7 @@ class SectionCore:
         in_junction: dict[int, tuple[str, float, int]] = {}
         for i in slots:
             lane0, arc0 = int(b.lane0[episode, i]), float(b.arc0_m[episode, i])
-            via = self._junction_lane(lane0, arc0)
+            via = junction_lane(sec, self._via, lane0, arc0)
             if via is not None:
                 # Inserted near the end of the edge before, then moved onto the junction's own
                 # lane after the insertion step: stacking every vehicle of a junction at the
@@ -288,25 +287,23 @@ class SectionCore:
         self._scene()
         return self._obs.copy()
 
-    def _junction_lane(self, lane: int, arc_m: float) -> tuple[int, str, float, int] | None:
-        """(edge before, internal lane ID, position on it, lane index) of a position inside
-        a junction of the section, or None."""
-        sec = self.section
-        s = float(np.mod(arc_m, sec.length_m)) if sec.closed else float(arc_m)
-        e = int(sec.edge_index(np.array([s]))[0])
-        if s - float(sec.offsets_m[e]) <= sec.lengths_m[e]:
-            return None
-        hit = self._via.get((e, int(lane)))
-        if hit is None:
-            return None
-        via_id, start, scale = hit
-        depth = (s - start) / scale if scale > 0 else 0.0
-        return e, via_id, max(0.0, depth), int(lane)
-
     def _scene(self) -> None:
-        """Leaders, spacings and observations of the active vehicles (one sort)."""
+        """Leaders, spacings and observations of the active vehicles (one sort); a red or
+        yellow signal ahead is a standing leader at its stop line."""
+        stop_lane = stop_arc = None
+        if self._has_lights:
+            live = np.flatnonzero(self.active)
+            dist = np.array([self.sim.stop_line_m(self.ids[i]) for i in live], dtype=float)
+            stop_lane, stop_arc = stop_points(self.section, self.lane[live], self.arc[live], dist)
         self._obs, self.leader, self.spacing = section_observations(
-            self.section, self.lane, self.arc, self.speed, self.active, self.observation
+            self.section,
+            self.lane,
+            self.arc,
+            self.speed,
+            self.active,
+            self.observation,
+            stop_lane,
+            stop_arc,
         )
 
     def observations(self) -> np.ndarray:

@@ -255,6 +255,35 @@ def section_observations(
     return obs, leader, spacing
 
 
+def stop_points(
+    section: Section, lane: np.ndarray, arc_m: np.ndarray, dist_m: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(lane, arc) of the stop lines ``dist_m`` ahead of vehicles at (``lane``, ``arc_m``)
+    (inf: none), one per distinct place.
+
+    A stop line is the end of an edge: the distance SUMO gives is along the vehicle's own
+    lane, whose length can differ from the section's arc of that edge (a curve), so each
+    point is snapped to the edge end nearest that distance ahead; the spacing observed is
+    then the arc to it. Lines past an open section's end are dropped.
+    """
+    ok = np.isfinite(dist_m)
+    if not ok.any():
+        return np.zeros(0, dtype=np.int64), np.zeros(0)
+    ln, s, d = np.asarray(lane)[ok], np.asarray(arc_m, dtype=float)[ok], dist_m[ok]
+    ends = section.offsets_m + section.lengths_m
+    ahead = ends[None, :] - s[:, None]
+    if section.closed:
+        ahead = np.mod(ahead, section.length_m)
+    ahead = np.where(ahead >= 0.0, ahead, np.inf)
+    best = ahead[np.arange(len(s)), np.argmin(np.abs(ahead - d[:, None]), axis=1)]
+    keep = np.isfinite(best)
+    arc = s[keep] + best[keep]
+    if section.closed:
+        arc = np.mod(arc, section.length_m)
+    pts = np.unique(np.stack([ln[keep].astype(float), np.round(arc, 6)], axis=1), axis=0)
+    return pts[:, 0].astype(np.int64), pts[:, 1]
+
+
 def _lookahead(
     section: Section, lane: np.ndarray, arc_m: np.ndarray, e: np.ndarray, own_limit: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:

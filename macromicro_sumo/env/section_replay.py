@@ -7,7 +7,8 @@ its record, behind it. ``catch_up_speeds`` brings it back: its recorded speed pl
 catch-up term that lands it on its recorded position as soon as its safe speed and its
 vType's acceleration allow, never faster than it could shed the extra speed again before
 reaching the record (no overshoot). ``safe_places`` says where a recorded lane change can
-be applied now. ``vtypes_xml``: the vehicle types of our vehicles.
+be applied now. ``vtypes_xml``: the vehicle types of our vehicles; ``junction_lane``: where
+a start position inside a junction is inserted.
 """
 
 from __future__ import annotations
@@ -89,6 +90,36 @@ def safe_places(
     for f in np.flatnonzero(np.isin(lead, fix)):
         ok[np.searchsorted(fix, lead[f])] &= bool(safe[f])
     return ok
+
+
+Via = dict[tuple[int, int], tuple[str, float, float]]
+
+
+def junction_vias(section: Section) -> Via:
+    """(edge index, lane index entered) -> (internal lane, its arc start, arc per metre)."""
+    via: Via = {}
+    for lane_id, (e, idx, start, scale) in section.lanes.items():
+        if lane_id.startswith(":"):
+            via.setdefault((e, idx), (lane_id, start, scale))
+    return via
+
+
+def junction_lane(
+    section: Section, via: Via, lane: int, arc_m: float
+) -> tuple[int, str, float, int] | None:
+    """(edge before, internal lane ID, position on it, lane index) of a position inside
+    a junction of the section, or None."""
+    sec = section
+    s = float(np.mod(arc_m, sec.length_m)) if sec.closed else float(arc_m)
+    e = int(sec.edge_index(np.array([s]))[0])
+    if s - float(sec.offsets_m[e]) <= sec.lengths_m[e]:
+        return None
+    hit = via.get((e, int(lane)))
+    if hit is None:
+        return None
+    via_id, start, scale = hit
+    depth = (s - start) / scale if scale > 0 else 0.0
+    return e, via_id, max(0.0, depth), int(lane)
 
 
 def vtypes_xml(

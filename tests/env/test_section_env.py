@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
+import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
+import sumolib
 import torch
 from conftest import PAPER_SCENARIO, ROOT, dump_toml
 
@@ -16,6 +18,7 @@ from macromicro_sumo.env.section import SectionCore, section_macro_reward, secti
 from macromicro_sumo.env.section_bank import SectionBank, build_section_bank
 from macromicro_sumo.policy.checkpoint import load_policy
 from macromicro_sumo.policy.ppo import train_policy
+from macromicro_sumo.road.physics import idm_accel
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, read_section
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import load_section_truth, simulate_section
@@ -388,5 +391,89 @@ def test_held_back_replayed_vehicle_catches_up_with_its_record(tmp_path, highway
         assert core.counts["replay_off_steps"] >= 2 and core.counts["replay_lag_m"] > 1.0
         assert abs(core.arc[0] - bank.replay_arc_m[0, 30, 0]) <= 0.01
         assert core.speed[0] == pytest.approx(30.0, abs=1e-6)
+    finally:
+        core.close()
+
+
+def signal_net(folder: Path, state: str) -> Path:
+    """One lane A (300 m) -> a traffic light whose one phase is ``state`` for good -> B
+    (200 m), built by netconvert (the program in the net: the env loads no additional)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "n.nod.xml").write_text(
+        '<nodes>\n<node id="n0" x="0" y="0"/>\n<node id="tl" x="300" y="0" '
+        'type="traffic_light"/>\n<node id="n2" x="500" y="0"/>\n</nodes>\n'
+    )
+    (folder / "e.edg.xml").write_text(
+        '<edges>\n<edge id="A" from="n0" to="tl" numLanes="1" speed="15"/>\n'
+        '<edge id="B" from="tl" to="n2" numLanes="1" speed="15"/>\n</edges>\n'
+    )
+    (folder / "t.tll.xml").write_text(
+        '<tlLogics>\n<tlLogic id="tl" type="static" programID="0" offset="0">\n'
+        f'<phase duration="10000" state="{state}"/>\n</tlLogic>\n</tlLogics>\n'
+    )
+    net = folder / "net.net.xml"
+    subprocess.run(
+        [
+            sumolib.checkBinary("netconvert"),
+            "--node-files", str(folder / "n.nod.xml"),
+            "--edge-files", str(folder / "e.edg.xml"),
+            "--tllogic-files", str(folder / "t.tll.xml"),
+            "--output-file", str(net),
+            "--no-turnarounds", "true",
+        ],
+        check=True,
+        capture_output=True,
+    )  # fmt: skip
+    return net
+
+
+def idm_policy(obs: np.ndarray) -> np.ndarray:
+    """IDM on the observation (v0 = the limit; the spacing to a standing stop point is the
+    gap itself, to a vehicle the gap plus its 5 m length)."""
+    v, limit, spacing, dv = obs[:, 0], obs[:, 1], obs[:, 2], obs[:, 3]
+    gap = np.where(spacing < NO_LEADER_GAP_M, spacing, 1e6)
+    return idm_accel(v, np.maximum(gap - 1.0, 0.1), dv, limit, 1.2, 2.0, 3.0, 2.0)
+
+
+@pytest.mark.parametrize("state", ["r", "y"])
+def test_policy_stops_at_a_red_or_yellow_light(tmp_path, state):
+    """A red (or yellow) signal ahead is a standing leader at the stop line in the
+    observation: its spacing is SUMO's distance to the stop line, and an IDM policy
+    driving by it (exact commands: SUMO does not brake for it) stops before the line."""
+    net = signal_net(tmp_path / "net", state)
+    sec = read_section(net, ["A", "B"], False)
+    sc = section_scenario(tmp_path, net, ["A", "B"], False)
+    bank = synthetic_bank([0], [100.0], [14.0], [True], horizon=80)
+    core = SectionCore(sc, sec, bank, net, seed=0, safety="none")
+    line = float(sec.offsets_m[0] + sec.lengths_m[0])
+    try:
+        obs = core.reset(0)
+        assert obs[0, 2] == pytest.approx(core.sim.stop_line_m(core.ids[0]), abs=1e-6)
+        assert obs[0, 2] == pytest.approx(line - 100.0, abs=1e-6)
+        assert obs[0, 3] == pytest.approx(14.0)  # closing on a standing leader
+        for _ in range(80):
+            res = core.step(idm_policy(obs))
+            obs = res.obs
+            assert not res.collision and not res.error and res.active[0]
+            assert core.arc[0] <= line  # never past the stop line
+            assert obs[0, 2] == pytest.approx(line - core.arc[0], abs=1e-6)
+        assert core.speed[0] < 0.1 and line - core.arc[0] < 5.0  # stopped at the line
+    finally:
+        core.close()
+
+
+def test_green_light_is_no_leader(tmp_path):
+    """A green signal is not a stop point: no leader, and the vehicle drives through."""
+    net = signal_net(tmp_path / "net", "G")
+    sec = read_section(net, ["A", "B"], False)
+    sc = section_scenario(tmp_path, net, ["A", "B"], False)
+    bank = synthetic_bank([0], [250.0], [14.0], [True], horizon=10)
+    core = SectionCore(sc, sec, bank, net, seed=0, safety="none")
+    try:
+        obs = core.reset(0)
+        assert obs[0, 2] == NO_LEADER_GAP_M and core.leader[0] == -1
+        for _ in range(10):
+            obs = core.step(idm_policy(obs)).obs
+        assert core.arc[0] > sec.offsets_m[1]  # on B, past the light
     finally:
         core.close()
