@@ -105,13 +105,14 @@ def test_observations_agree_with_the_section_env_and_the_deployment(merge) -> No
                 close = np.abs(obs[:, 2] - ref[:, 2]) < 1.0
                 assert close.mean() >= 0.9, (obs[~close, 2], ref[~close, 2])
                 np.testing.assert_allclose(obs[close, 3], ref[close, 3], atol=1e-6)
-                # The deployment's driver on the same state: the same first four features.
+                # The deployment's driver on the same state: the same features.
                 drv = SectionSpeedDriver(sc, sec, int(truth.runs[0]), act, "none")
                 drv.types = dict(core.types)
                 drv.shapes = dict(core.shapes)
+                drv.shape_of = {v: core.shapes[t] for v, t in core.types.items()}
                 drv.has_lights = False
                 dep, _, _ = deploy_observations(drv, core.sim, vids, states)
-                np.testing.assert_allclose(obs[:, :4], dep[:, :4], atol=1e-9)
+                np.testing.assert_allclose(obs, dep, atol=1e-9)
                 n_checked += len(vids)
             core.step(act(obs))
     finally:
