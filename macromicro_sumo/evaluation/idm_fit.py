@@ -3,7 +3,7 @@
 ``idm_policy`` turns IDM parameters into the same kind of action (acceleration from the
 observation [v, v_limit, spacing, v - v_leader]) as the learned policy, so both drive the
 hidden vehicles through the same speed-command path. ``calibrate_idm`` fits one shared
-parameter set to observed (observation, action) pairs by least squares (scipy).
+parameter set to observed (observation, action) pairs by robust least squares (scipy).
 """
 
 from __future__ import annotations
@@ -35,9 +35,9 @@ def idm_policy_accel(obs: np.ndarray, p: IdmParams, veh_length_m: float) -> np.n
     """IDM acceleration [m/s^2] from observations (..., 4)."""
     v, limit, spacing, dv = obs[..., 0], obs[..., 1], obs[..., 2], obs[..., 3]
     desired = np.maximum(np.asarray(p.speed_factor) * limit, 0.1)
-    return idm_accel(
+    accel = idm_accel(
         v,
-        spacing - veh_length_m,
+        np.maximum(spacing - veh_length_m, MIN_GAP_M),
         dv,
         desired,
         p.tau_s,
@@ -46,16 +46,27 @@ def idm_policy_accel(obs: np.ndarray, p: IdmParams, veh_length_m: float) -> np.n
         p.min_gap_m,
         p.delta,
     )
+    return np.maximum(accel, -EMERGENCY_DECEL_MPS2)
 
 
 _LOWER = np.array([0.5, 0.3, 0.1, 0.1, 0.0])
 _UPPER = np.array([1.5, 5.0, 5.0, 10.0, 20.0])
+# A car brakes no harder than this (SUMO's emergencyDecel default for passenger cars): IDM's
+# interaction term grows without bound as the gap closes, and a few pairs at a near-zero
+# gap (a lane change into a short gap, a vehicle of another length than veh_length_m) gave
+# residuals of 1e19 m/s^2 that dragged the fit onto its bounds (Bremen: a = 0.1, b = 10).
+EMERGENCY_DECEL_MPS2 = 9.0
+MIN_GAP_M = 0.1  # bumper gaps below this count as this (a gap cannot be negative)
+# The fit's loss is linear beyond this residual [m/s^2] (soft L1): the pairs IDM cannot
+# explain (a driver reacting to something it does not see) must not decide the parameters.
+ROBUST_SCALE_MPS2 = 0.5
 
 
 def calibrate_idm(
     obs: np.ndarray, accel: np.ndarray, veh_length_m: float, delta: float = 4.0
 ) -> tuple[IdmParams, float]:
-    """Least-squares fit of (speed_factor, T, a, b, s0) to observed pairs; returns (params, RMSE)."""
+    """Robust least-squares fit (soft L1) of (speed_factor, T, a, b, s0) to observed pairs;
+    returns (params, RMSE of the fitted accelerations)."""
 
     def resid(x: np.ndarray) -> np.ndarray:
         p = IdmParams(*x, delta=delta)
@@ -63,7 +74,12 @@ def calibrate_idm(
 
     x0 = np.array([0.95, 1.5, 1.0, 1.5, 2.0])
     fit = least_squares(
-        resid, x0, bounds=(_LOWER, _UPPER), x_scale=np.array([0.05, 0.5, 0.5, 0.5, 1.0])
+        resid,
+        x0,
+        bounds=(_LOWER, _UPPER),
+        x_scale=np.array([0.05, 0.5, 0.5, 0.5, 1.0]),
+        loss="soft_l1",
+        f_scale=ROBUST_SCALE_MPS2,
     )
     p = IdmParams(*fit.x, delta=delta)
     return p, float(np.sqrt(np.mean(fit.fun**2)))
