@@ -20,6 +20,7 @@ import math
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 import torch
@@ -28,6 +29,8 @@ from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.generator.section_model import Scene, SectionGeneratorNet, propose
 from macromicro_sumo.generator.section_scene import PSI_INDEX, TOL_M, Gaps, Psi, Road
 from macromicro_sumo.road.section import STOP, Section, section_leaders
+
+PROJECTION_PROBES = 32  # points per gap a projection tries for a kinematically consistent one
 
 
 @contextlib.contextmanager
@@ -67,10 +70,21 @@ def k_of(snaps: SectionSnapshots, source: str) -> np.ndarray:
 
 
 def _project(
-    road: Road, gaps: Gaps, probs: torch.Tensor, row: int, choice: int, arc: float
-) -> float:
+    road: Road,
+    gaps: Gaps,
+    probs: torch.Tensor,
+    row: int,
+    choice: int,
+    arc: float,
+    window=None,
+) -> tuple[float, int]:
     """The feasible point nearest to ``arc`` in gap ``choice``, else in the most likely gap
-    that has one (its point nearest to the middle of its admissible part); ``arc`` if none."""
+    that has one (its point nearest to the middle of its admissible part), and that gap;
+    ``arc`` (gap -1) if none.
+
+    With ``window(gap, offsets) -> (lo, hi)`` (the kinematic speed window of points that
+    far into a gap), a point where some speed keeps both neighbours consistent is
+    preferred (``PROJECTION_PROBES`` points per gap), in the same order of gaps."""
     start, lo, hi = gaps.start[row].numpy(), gaps.lo[row].numpy(), gaps.hi[row].numpy()
     lanes, valid = gaps.lane[row].numpy(), gaps.valid[row].numpy()
     order = [choice] + [
@@ -79,12 +93,28 @@ def _project(
     target = arc
     if road.closed and choice < len(start):  # unwrap onto the chosen gap
         target = start[choice] + np.mod(arc - start[choice], road.length_m)
+    first = None
     for j in order:
         a, b = start[j] + lo[j], start[j] + hi[j]
-        x = road.nearest_on_lane(int(lanes[j]), a, b, target if j == choice else 0.5 * (a + b))
-        if x is not None:
-            return float(np.mod(x, road.length_m)) if road.closed else x
-    return arc
+        aim = target if j == choice else 0.5 * (a + b)
+        x = road.nearest_on_lane(int(lanes[j]), a, b, aim)
+        if x is None:
+            continue
+        if window is None:
+            return _wrapped(road, x), j
+        first = (x, j) if first is None else first
+        probe = np.linspace(a, b, PROJECTION_PROBES)
+        v_lo, v_hi = window(j, torch.as_tensor(probe - start[j]))
+        ok = v_lo <= v_hi
+        for k in np.argsort(np.abs(probe - aim), kind="stable"):
+            y = float(probe[k])
+            if ok[k] and road.nearest_on_lane(int(lanes[j]), y, y, y) is not None:
+                return _wrapped(road, y), j
+    return (arc, -1) if first is None else (_wrapped(road, first[0]), first[1])
+
+
+def _wrapped(road: Road, x: float) -> float:
+    return float(np.mod(x, road.length_m)) if road.closed else x
 
 
 @torch.no_grad()
@@ -104,8 +134,9 @@ def complete_section(
     With ``brake_mps2`` (the scenario's braking bound), generated speeds are then made
     kinematically consistent with their lane neighbours (``safe_speeds``, with a reaction
     time of ``reaction_s``)."""
+    kin = None if brake_mps2 is None else (float(brake_mps2), float(reaction_s))
     with one_thread():
-        comp = _complete(net, section, snaps, k, t_max, seed)
+        comp = _complete(net, section, snaps, k, t_max, seed, kin)
     if brake_mps2 is not None:
         safe_speeds(comp, section, snaps.psi[:, PSI_INDEX["spacing_min_m"]], brake_mps2, reaction_s)
     return comp
@@ -218,6 +249,48 @@ def _nearest_below(pool: np.ndarray, v: float, cap: float) -> int:
     return k
 
 
+def _window_of(
+    g: Gaps, psi: Psi, row: int, kin: tuple[float, float], gap: int, offsets: torch.Tensor
+) -> tuple[np.ndarray, np.ndarray]:
+    """``kinematic_speeds`` of points ``offsets`` m into gap ``gap`` of scene ``row``."""
+    one = Gaps(*(getattr(g, f)[row : row + 1] for f in g.__dataclass_fields__))
+    choice = torch.full((1, len(offsets)), gap, dtype=torch.int64)
+    lo, hi = kinematic_speeds(one, choice, offsets[None], psi.take(torch.tensor([row])), *kin)
+    return lo[0].numpy(), hi[0].numpy()
+
+
+def kinematic_speeds(
+    gaps: Gaps,
+    choice: torch.Tensor,
+    a: torch.Tensor,
+    psi: Psi,
+    brake_mps2: float,
+    reaction_s: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(lo, hi) speeds [m/s] of candidates at ``a`` m into their gap ``choice`` (B, n) that
+    keep both new pairs kinematically consistent (``safe_speeds``'s condition): the
+    gap's follower can stop behind the candidate, v^2 >= v_f^2 + 2 b tau v_f - room_f, and
+    the candidate behind the gap's leader, v^2 + 2 b tau v <= v_l^2 + room_l, within psi's
+    speed bounds; lo > hi: no speed does, the position is refused.
+
+    Why positions and not only speeds: in a dense platoon (Spreewaldring, 0.5-2 m bumper
+    gaps) a vehicle put into a short gap behind a slow leader and ahead of a fast observed
+    follower has no such speed; whichever speed ``safe_speeds`` then gives it, one of
+    them must brake far beyond the bound in the first step and the vehicle behind that
+    one runs into it.
+    """
+    b, tau = brake_mps2, reaction_s
+    s_min = psi.s_min[:, None]
+    v_f, v_l = gaps.v_f.gather(1, choice), gaps.v_l.gather(1, choice)
+    room_f = 2.0 * b * (a - s_min).clamp(min=0.0)
+    room_l = 2.0 * b * (gaps.length.gather(1, choice) - a - s_min).clamp(min=0.0)
+    need = torch.sqrt((v_f * v_f + 2.0 * b * tau * v_f - room_f).clamp(min=0.0))
+    cap = torch.sqrt(b * b * tau * tau + v_l * v_l + room_l) - b * tau
+    lo = torch.where(gaps.has_f.gather(1, choice), need, 0.0)
+    hi = torch.where(gaps.has_l.gather(1, choice), cap, math.inf)
+    return torch.maximum(lo, psi.v_min[:, None]), torch.minimum(hi, psi.v_max[:, None])
+
+
 def _complete(
     net: SectionGeneratorNet,
     section: Section,
@@ -225,6 +298,7 @@ def _complete(
     k: np.ndarray,
     t_max: int,
     seed: int,
+    kin: tuple[float, float] | None = None,
 ) -> SectionCompletion:
     t0 = time.perf_counter()
     road = Road.of(section)
@@ -252,6 +326,10 @@ def _complete(
             & (t.speed >= sub.v_min[:, None])
             & (t.speed <= sub.v_max[:, None])
         )
+        if kin is not None:
+            v_lo, v_hi = kinematic_speeds(g, t.choice, a, sub, *kin)
+            ok &= v_lo <= v_hi
+            t.speed = torch.where(ok, torch.minimum(torch.maximum(t.speed, v_lo), v_hi), t.speed)
         any_ok = ok.any(dim=1)
         rows = torch.arange(len(idx))
         pick = torch.where(any_ok, ok.double().argmax(dim=1), t_max - 1)
@@ -262,7 +340,16 @@ def _complete(
         if len(failed):
             choice = t.choice[rows, pick]
             for r in failed:
-                arc[r] = _project(road, g, t.probs, int(r), int(choice[r]), float(arc[r]))
+                window = None if kin is None else partial(_window_of, g, sub, int(r), kin)
+                x, j = _project(road, g, t.probs, int(r), int(choice[r]), float(arc[r]), window)
+                arc[r] = x
+                if window is not None and j >= 0:  # its speed into the window where it is
+                    off = x - float(g.start[r, j])
+                    off = float(np.mod(off, road.length_m)) if road.closed else off
+                    w_lo, w_hi = window(j, torch.tensor([off], dtype=torch.float64))
+                    v[r] = min(
+                        max(float(v[r]), float(w_lo[0])), max(float(w_lo[0]), float(w_hi[0]))
+                    )
             projections[idx_np[failed]] += 1
         v = torch.minimum(torch.maximum(v, sub.v_min), sub.v_max)
         scene.place(step, idx, lane, arc, v)

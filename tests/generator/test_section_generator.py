@@ -389,3 +389,60 @@ def test_safe_speeds_deal_the_generated_speeds_out_again() -> None:
     safe_speeds(comp, ring, np.array([6.5]), 4.5)
     np.testing.assert_allclose(comp.speed_mps[0], [10.0, 10.0, 30.0])
     assert comp.speed_fixes.tolist() == [2]
+
+
+def kinematic_violations(
+    section: Section, comp: SectionCompletion, s_min: float, b: float, tau: float
+):
+    """Pairs touching a generated vehicle whose follower cannot stop behind its leader
+    (v_f^2 + 2 b tau v_f > v_l^2 + 2 b (spacing - s_min)), over all scenes."""
+    from macromicro_sumo.road.section import section_leaders
+
+    bad = 0
+    for i in range(len(comp.valid)):
+        on = np.flatnonzero(comp.valid[i])
+        lead, sp = section_leaders(section, comp.lane[i, on], comp.arc_m[i, on])
+        v, gen = comp.speed_mps[i, on], comp.generated[i, on]
+        for f, j in enumerate(lead):
+            if j >= 0 and (gen[f] or gen[j]):
+                room = 2 * b * max(0.0, sp[f] - s_min)
+                bad += v[f] ** 2 + 2 * b * tau * v[f] > v[j] ** 2 + room + 1e-6
+    return bad
+
+
+def test_generated_vehicles_only_where_both_neighbours_stay_consistent(ring: Section) -> None:
+    """A platoon of observed vehicles 20 m apart at 15 m/s: each gap has room for a vehicle
+    by the spacing bound, but no speed there lets both the follower stop behind it and it
+    stop behind its leader. Positions are chosen where one does (the rest of the loop):
+    every pair is kinematically consistent, where fixing speeds afterwards cannot be."""
+    from macromicro_sumo.generator.section_sampler import safe_speeds
+
+    n = 8
+    arcs = np.array([100.0, 120, 140, 160, 180, 200])
+    m = len(arcs)
+    psi = np.tile([15.0, 40.0, 0.0, 0.0, 30.0, S_MIN], (n, 1))
+    snaps = SectionSnapshots(
+        run=np.zeros(n, dtype=int),
+        time_s=np.arange(n) * 10.0,
+        lane=np.zeros((n, m), np.int64),
+        arc_m=np.tile(arcs, (n, 1)),
+        speed_mps=np.full((n, m), 15.0),
+        length_m=np.full((n, m), 5.0),
+        valid=np.ones((n, m), bool),
+        observed=np.ones((n, m), bool),
+        psi=psi,
+        k_true=np.full(n, 8),
+        k_est=np.full(n, 8),
+    )
+    b, tau = 4.5, 0.5
+    comp = complete_section(
+        untrained(), ring, snaps, snaps.k_true, 20, seed=0, brake_mps2=b, reaction_s=tau
+    )
+    check_completion(ring, snaps, comp, snaps.k_true)
+    assert kinematic_violations(ring, comp, S_MIN, b, tau) == 0
+    platoon = (comp.arc_m > 100.0) & (comp.arc_m < 200.0) & comp.generated
+    assert not platoon.any()
+    # Speeds alone: the same generator, positions by the spacing bound only.
+    speeds_only = complete_section(untrained(), ring, snaps, snaps.k_true, 20, seed=0)
+    safe_speeds(speeds_only, ring, psi[:, 5], b, tau)
+    assert kinematic_violations(ring, speeds_only, S_MIN, b, tau) > 0
