@@ -1,8 +1,10 @@
 """Stage I on a road section: Algorithm 3 (``complete_section``), safe speeds, baseline.
 
 Rejection (Algorithm 3). Each vehicle gets up to T_max trials; a trial fails if its
-position lies on an edge that lacks the gap's lane (a lane drop inside the gap) or
-breaks a bound; after T_max failures the last trial is projected onto the nearest
+position lies on an edge that lacks the gap's lane (a lane drop inside the gap), breaks
+a bound, or (with a braking bound) leaves no speed at which the gap's follower can stop
+behind it and it behind the gap's leader (``kinematic_speeds``; its speed is clipped
+into that window); after T_max failures the last trial is projected onto the nearest
 feasible point (of its gap, else of the most likely gap that has one) and counted.
 Gaps with no room at all (a gap shorter than two minimum spacings) are not chosen
 unless no gap has room (the section is fuller than psi allows: projection, counted).
