@@ -23,13 +23,15 @@ from __future__ import annotations
 import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from itertools import repeat
 
 import numpy as np
 
+from macromicro_sumo.deploy.observe import observe_rows, states_of
 from macromicro_sumo.road.physics import lookahead_features, ring_leaders
 from macromicro_sumo.road.ring import RingGeometry
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
-from macromicro_sumo.sumo.simulation import Simulation
+from macromicro_sumo.sumo.simulation import Simulation, VehicleStates
 from macromicro_sumo.truth.section import is_instrumented
 
 # Obs (V, D) -> acceleration (V,) [m/s^2]: one batched call for every driven vehicle.
@@ -43,7 +45,6 @@ ActionBatch = Callable[[np.ndarray], np.ndarray]
 # speed factor and at its model's choice (IDM's follow speed is its next speed), no safety.
 SPEED_MODES = {"none": 32, "sumo": 24}
 SAFETY_TOLERANCE_MPS = 0.01
-STOP_DECEL_MPS2 = 9.0  # a standing "leader" (stop line, lane end) never brakes: any value
 BRAKING_TOLERANCE_MPS2 = 0.01
 # A lane that carries a vehicle on is asked again (SUMO's best lanes, one call per vehicle)
 # this many steps later: SUMO sees a lane's end only within its look-ahead (~3 km), which
@@ -108,6 +109,7 @@ class SectionDriver:
         self.driven: set[str] = set()  # driven now (on the section)
         self.shapes: dict[str, tuple[float, float, float]] = {}  # vType -> length, minGap, decel
         self.shape_of: dict[str, tuple[float, float, float]] = {}  # vehicle -> its vType's
+        self.decel_of: dict[str, float] = {}  # vehicle -> its vType's decel
         self.steps = 0
 
     def before_step(self, sim: Simulation) -> None:
@@ -115,11 +117,15 @@ class SectionDriver:
         new = sim.departed()
         if new:
             self.arrive(sim, new)
-        states = sim.read_lane_states()
-        self.count_brakings(states)
-        lanes, pop = self.section.lanes, self.population
-        now = {v for v, st in states.items() if st[0] in lanes and v in pop}
-        left = [v for v in self.driven if v not in now and v in states]
+        # The state after the last step, read once and shared with the recorder.
+        st = sim.vehicle_states()
+        self.count_brakings(st)
+        lanes = self.section.lanes
+        now = {v for v, lane in zip(st.ids, st.lanes, strict=True) if lane in lanes}
+        now &= self.population
+        # Still in the network (on the road or teleporting), not on the section now.
+        gone = sim.arrived() if self.driven else frozenset()
+        left = [v for v in self.driven if v not in now and v not in gone]
         if left:
             self.release(sim, sorted(left))
         entered = sorted(now - self.driven)
@@ -128,7 +134,7 @@ class SectionDriver:
         self.driven = now
         self.stats.vehicle_steps_driven += len(now) if self.drives else 0
         if now:
-            self.drive(sim, sorted(now), states)
+            self.drive(sim, sorted(now), st)
 
     def arrive(self, sim: Simulation, new: tuple[str, ...]) -> None:
         dep = self.sc.deploy
@@ -138,6 +144,7 @@ class SectionDriver:
             if vt not in self.shapes:
                 self.shapes[vt] = sim.vtype_shape(vt)
             self.shape_of[vid] = self.shapes[vt]
+            self.decel_of[vid] = self.shapes[vt][2]
             if is_instrumented(self.sc, vid, vt, self.run):
                 continue
             if dep.vtype and vt != dep.vtype:
@@ -145,16 +152,17 @@ class SectionDriver:
             if in_share(self.sc.seed, self.run, vid, dep.share):
                 self.population.add(vid)
 
-    def count_brakings(self, states: dict[str, tuple[str, float, float, float]]) -> None:
-        if not states:
+    def count_brakings(self, st: VehicleStates) -> None:
+        """Vehicles on the road braking harder than their demand vType's decel (one
+        teleporting is not on the road: SUMO's acceleration of it is a placeholder)."""
+        n = len(st.ids)
+        if not n:
             return
-        n = len(states)
-        acc = np.fromiter((st[3] for st in states.values()), float, n)
         # The decel of the vehicle's own demand vType, whatever it drives with now.
-        shape = self.shape_of
-        none = (0.0, 0.0, np.inf)
-        decel = np.fromiter((shape.get(v, none)[2] for v in states), float, n)
-        self.stats.emergency_brakings += int((acc < -decel - BRAKING_TOLERANCE_MPS2).sum())
+        decel = np.fromiter(map(self.decel_of.get, st.ids, repeat(np.inf)), float, n)
+        self.stats.emergency_brakings += int(
+            (st.accel_mps2 < -decel - BRAKING_TOLERANCE_MPS2).sum()
+        )
 
     def take(self, sim: Simulation, vids: list[str]) -> None:
         """Vehicles that entered the section (or the population's drive) this step."""
@@ -162,8 +170,8 @@ class SectionDriver:
     def release(self, sim: Simulation, vids: list[str]) -> None:
         """Vehicles that left the section: back to their own model."""
 
-    def drive(self, sim: Simulation, vids: list[str], states: dict) -> None:
-        """Act on the vehicles driven now (sorted), before the step."""
+    def drive(self, sim: Simulation, vids: list[str], st: VehicleStates) -> None:
+        """Act on the vehicles driven now (sorted; on the road: in ``st``), before the step."""
 
 
 class SectionSpeedDriver(SectionDriver):
@@ -188,11 +196,6 @@ class SectionSpeedDriver(SectionDriver):
         # vehicle -> (lane, distance from that lane's start to where the vehicle must have
         # left it [m] (inf: it carries on), step asked): SUMO's best lanes, cached.
         self.lane_ends: dict[str, tuple[str, float, int]] = {}
-
-    def arrive(self, sim: Simulation, new: tuple[str, ...]) -> None:
-        super().arrive(sim, new)
-        # Every vehicle's leader is read from SUMO (a driven vehicle's or not: cheap).
-        sim.subscribe_driving(new, NO_LEADER_GAP_M)
 
     def take(self, sim: Simulation, vids: list[str]) -> None:
         sim.set_speed_mode(vids, self.mode)
@@ -223,24 +226,37 @@ class SectionSpeedDriver(SectionDriver):
             out[i] = hit[1]
         return out
 
-    def drive(self, sim: Simulation, vids: list[str], states: dict) -> None:
+    def drive(self, sim: Simulation, vids: list[str], st: VehicleStates) -> None:
         n = len(vids)
+        rows = np.fromiter(map(st.index.__getitem__, vids), np.int64, n)
         # Last step's command against the speed SUMO applied.
-        cmds, none = self.commands, -np.inf  # no command yet: nothing to lower
-        last = np.fromiter((cmds.get(v, none) for v in vids), float, n)
-        speed = np.fromiter((states[v][2] for v in vids), float, n)
-        self.stats.safety_acted += int((speed < last - SAFETY_TOLERANCE_MPS).sum())
+        last = np.fromiter(map(self.commands.get, vids, repeat(-np.inf)), float, n)
+        self.stats.safety_acted += int((st.speed_mps[rows] < last - SAFETY_TOLERANCE_MPS).sum())
         if self.has_lights is None:
             self.has_lights = sim.has_traffic_lights()
-        obs, gap, lead_decel = section_observations(self, sim, vids, states)
+        obs, gap, lead_decel = self.observe(sim, vids, rows, st)
         a_min, a_max = self.sc.bounds.accel_mps2
         a = np.clip(self.act(obs), a_min, a_max)
         cmd = np.maximum(0.0, obs[:, 0] + a * self.sc.simulation.step_length_s)
         if self.safety == "sumo":
-            own = np.fromiter((self.shape_of[v][2] for v in vids), float, len(vids))
+            own = np.fromiter(map(self.decel_of.__getitem__, vids), float, n)
             cmd = safety_cap(self, cmd, obs, gap, own, lead_decel)
         sim.set_speeds(vids, cmd)
         self.commands = dict(zip(vids, cmd.tolist(), strict=True))
+
+    def observe(
+        self, sim: Simulation, vids: list[str], rows: np.ndarray, st: VehicleStates
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``observe_rows`` of driven vehicles ``vids`` (rows ``rows`` of ``st``): SUMO's
+        leaders, lane ends and red lights asked now."""
+        lanes = [st.lanes[i] for i in rows.tolist()]
+        stop = self.lane_end_m(sim, vids, lanes) - st.pos_m[rows]
+        if self.has_lights:
+            stop = np.minimum(stop, sim.stop_lines_m(vids))
+        leaders = sim.leaders(vids, NO_LEADER_GAP_M)
+        return observe_rows(
+            self.section, self.sc.policy.observation, vids, rows, st, leaders, self.shape_of, stop
+        )
 
 
 def safe_speed(
@@ -279,80 +295,11 @@ def safety_cap(
 def section_observations(
     drv: SectionSpeedDriver, sim: Simulation, vids: list[str], states: dict
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Observations (V, obs_dim) of driven vehicles as the section env defines them
-    (``env.section_bank.section_observations``), the leader from SUMO: front-to-front
-    spacing = SUMO's gap + own minGap + leader's length; a red or yellow light, or the end
-    of a lane the vehicle must leave (an on-ramp's acceleration lane), nearer than the
-    leader is a standing leader there (its back at the line, a vehicle length long).
-    Also returns SUMO's gap to that leader and the leader's decel (for ``safety_cap``)."""
-    sec = drv.section
-    leaders = sim.read_leaders()
-    n = len(vids)
-    st = [states[v] for v in vids]
-    lanes = [s[0] for s in st]
-    pos = np.fromiter((s[1] for s in st), float, n)
-    speed = np.fromiter((s[2] for s in st), float, n)
-    where = np.array([sec.lanes[lane] for lane in lanes], dtype=float).reshape(n, 4)
-    edge, lane = where[:, 0].astype(np.int64), where[:, 1].astype(np.int64)
-    arc = where[:, 2] + pos * where[:, 3]
-    shape_of = drv.shape_of
-    own = np.array([shape_of[v] for v in vids], dtype=float).reshape(n, 3)
-    length, min_gap = own[:, 0], own[:, 1]
-    # The leader SUMO sees: front-to-front spacing = its gap + own minGap + leader's length.
-    none = ("", -1.0)
-    lead = [leaders.get(v, none) for v in vids]
-    has = np.fromiter((bool(lid) and lid in states for lid, _ in lead), bool, n)
-    gap = np.fromiter((g for _, g in lead), float, n)
-    standing = (0.0, 0.0, STOP_DECEL_MPS2)
-    lead_shape = np.array(
-        [
-            shape_of.get(lid, standing) if h else standing
-            for (lid, _), h in zip(lead, has, strict=True)
-        ],
-        dtype=float,
-    ).reshape(n, 3)
-    lead_speed = np.fromiter(
-        (states[lid][2] if h else 0.0 for (lid, _), h in zip(lead, has, strict=True)), float, n
-    )
-    s = gap + min_gap + lead_shape[:, 0]
-    ok = has & (s < NO_LEADER_GAP_M)
-    spacing = np.where(ok, s, NO_LEADER_GAP_M)
-    lead_v = np.where(ok, lead_speed, speed)  # delta_v 0 without a leader
-    sumo_gap = np.where(ok, gap, NO_LEADER_GAP_M)
-    lead_decel = np.where(ok, lead_shape[:, 2], STOP_DECEL_MPS2)
-    # A red light, or the end of a lane the vehicle must leave: a standing leader there.
-    stop = drv.lane_end_m(sim, vids, lanes) - pos
-    if drv.has_lights:
-        stop = np.minimum(stop, np.fromiter((sim.stop_line_m(v) for v in vids), float, n))
-    closer = stop + length < spacing
-    spacing = np.where(closer, stop + length, spacing)
-    lead_v = np.where(closer, 0.0, lead_v)
-    sumo_gap = np.where(closer, np.maximum(stop - min_gap, 0.0), sumo_gap)
-    lead_decel = np.where(closer, STOP_DECEL_MPS2, lead_decel)
-    limit = sec.limits_mps[edge, np.minimum(lane, sec.n_lanes[edge] - 1)]
-    cols = [speed, limit, spacing, speed - lead_v]
-    if drv.sc.policy.observation == "lookahead":
-        cols += list(section_lookahead(sec, lane, arc, edge, limit))
-    return np.stack(cols, axis=1), sumo_gap, lead_decel
-
-
-def section_lookahead(
-    sec: Section, lane: np.ndarray, arc_m: np.ndarray, edge: np.ndarray, own_limit: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """The next edge's limit on the vehicle's lane index and the distance to that edge's
-    start; on an open section's last edge the own limit and the distance to its end (the
-    section env's definition, ``env.section_bank``)."""
-    n_e = len(sec.edge_ids)
-    if sec.closed:
-        s = np.mod(arc_m, sec.length_m)
-        nxt = (edge + 1) % n_e
-        start = sec.offsets_m[nxt] + np.where(nxt == 0, sec.length_m, 0.0)
-        return sec.limits_mps[nxt, np.minimum(lane, sec.n_lanes[nxt] - 1)], start - s
-    last = edge == n_e - 1
-    nxt = np.minimum(edge + 1, n_e - 1)
-    limit = np.where(last, own_limit, sec.limits_mps[nxt, np.minimum(lane, sec.n_lanes[nxt] - 1)])
-    start = np.where(last, sec.length_m, sec.offsets_m[nxt])
-    return limit, start - arc_m
+    """``SectionSpeedDriver.observe`` of ``vids`` from a {vehicle: (lane ID, lane position,
+    speed, acceleration)} dictionary of the vehicles on the road (the demand env's)."""
+    st = states_of(states)
+    rows = np.fromiter(map(st.index.__getitem__, vids), np.int64, len(vids))
+    return drv.observe(sim, vids, rows, st)
 
 
 class SectionTypeDriver(SectionDriver):

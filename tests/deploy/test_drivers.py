@@ -41,12 +41,22 @@ class Recording(SectionSpeedDriver):
         super().__init__(*args, **kwargs)
         self.seen: list[tuple[list[str], np.ndarray, dict]] = []
 
-    def drive(self, sim, vids, states) -> None:
+    def drive(self, sim, vids, st) -> None:
         if self.has_lights is None:
             self.has_lights = sim.has_traffic_lights()
+        states = {
+            v: (lane, p, s, a)
+            for v, lane, p, s, a in zip(
+                st.ids, st.lanes, st.pos_m, st.speed_mps, st.accel_mps2, strict=True
+            )
+        }
+        # The dictionary form (the demand env's) sees what the driver's own arrays give.
         obs, _, _ = section_observations(self, sim, vids, states)
-        self.seen.append((vids, obs, dict(states)))
-        super().drive(sim, vids, states)
+        rows = np.array([st.index[v] for v in vids])
+        own, _, _ = self.observe(sim, vids, rows, st)
+        np.testing.assert_array_equal(obs, own)
+        self.seen.append((vids, obs, states))
+        super().drive(sim, vids, st)
 
 
 def _run(sc, driver, additional: tuple[Path, ...] = ()) -> object:
