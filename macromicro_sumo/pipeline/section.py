@@ -16,8 +16,9 @@ from macromicro_sumo.data.section import section_snapshots
 from macromicro_sumo.deploy.stage import deploy
 from macromicro_sumo.env.demand import DemandCore
 from macromicro_sumo.env.section import SectionCore
-from macromicro_sumo.env.section_bank import build_section_bank, typical_vclass
-from macromicro_sumo.evaluation.section import evaluate_section
+from macromicro_sumo.env.section_bank import build_section_bank, typical_length, typical_vclass
+from macromicro_sumo.evaluation.idm_fit import calibrate_idm
+from macromicro_sumo.evaluation.section import evaluate_section, micro_pairs
 from macromicro_sumo.files import prepare_out_dir
 from macromicro_sumo.generator.section_sampler import generator_completion
 from macromicro_sumo.generator.section_train import (
@@ -26,6 +27,7 @@ from macromicro_sumo.generator.section_train import (
 )
 from macromicro_sumo.pipeline.ring import run_stages, standard_stages
 from macromicro_sumo.policy.ppo import train_policy
+from macromicro_sumo.policy.prior import idm_prior_params
 from macromicro_sumo.policy.stage import open_policy_stage, write_policy_manifest
 from macromicro_sumo.report.deploy import make_deploy_plots
 from macromicro_sumo.report.section import write_section_report
@@ -71,6 +73,15 @@ def run_train_section_policy(
     def make_demand() -> DemandCore:
         return DemandCore(sc, truth, demand_runs, horizon)
 
+    prior, extra = None, {}
+    if sc.policy.prior == "idm":
+        # The same fit as the evaluation's idm_calibrated (its pairs, runs and length), so
+        # the policy starts as that baseline and its residual is what training adds.
+        length = typical_length(truth)
+        obs, acc = micro_pairs(sc, truth, np.concatenate([splits["train"], splits["val"]]))
+        idm, rmse = calibrate_idm(obs, acc, length)
+        prior = idm_prior_params(idm.as_dict(), length)
+        extra = {"prior": {"kind": "idm", **prior, "fit_rmse_mps2": rmse, "pairs": len(acc)}}
     res = train_policy(
         sc,
         bank,
@@ -82,9 +93,10 @@ def run_train_section_policy(
         make_core=make_core,
         val_runs=splits["val"],
         make_demand=make_demand,
+        prior_params=prior,
     )
     return write_policy_manifest(
-        sc, command, objective, res, data, generator, out, episodes=len(bank)
+        sc, command, objective, res, data, generator, out, episodes=len(bank), **extra
     )
 
 

@@ -7,11 +7,17 @@
   (``env.observation.OBS_SHIFT_SCALE``) and with the mean/std of the bank's initial
   observations on a section (``observation_shift_scale``); both are buffers of the agent,
   so they travel in the checkpoint's state_dict.
+* ``prior`` (``policy.prior``): "none", the mean is the actor's output; "idm", the mean is
+  a fixed, fitted IDM's acceleration on the raw observation plus the actor's output (a
+  residual; ``policy.prior``), the IDM's parameters a buffer too. ``mean_action`` is that
+  mean; everything that acts or scores goes through it (``dist``).
 
 Training is ``policy.ppo``, checkpoints ``policy.checkpoint``.
 """
 
 from __future__ import annotations
+
+from collections.abc import Mapping
 
 import numpy as np
 import torch
@@ -20,6 +26,8 @@ from torch import nn
 from macromicro_sumo.env.observation import OBS_SHIFT_SCALE
 from macromicro_sumo.env.ring import RingCore
 from macromicro_sumo.env.rollout import ActionFn
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.policy.prior import IDM_PRIOR_KEYS, PRIORS, idm_prior_accel
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES
 
 # Fixed observation scaling per feature: env.observation.FEATURES (the envs' normalize too).
@@ -32,9 +40,15 @@ class Agent(nn.Module):
         init_log_std: float = -1.0,
         observation: str = "paper",
         shift_scale: tuple[np.ndarray, np.ndarray] | None = None,
+        prior: str = "none",
+        prior_params: Mapping[str, float] | None = None,
     ) -> None:
-        """``shift_scale``: the observation normalisation (None: the ring's OBS_SHIFT_SCALE)."""
+        """``shift_scale``: the observation normalisation (None: the ring's OBS_SHIFT_SCALE).
+        ``prior_params`` (``policy.prior.idm_prior_params``) for ``prior`` "idm"; None
+        leaves them NaN, for a checkpoint's state_dict to fill."""
         super().__init__()
+        if prior not in PRIORS:
+            raise UserError(f"policy.prior = {prior!r}: expected one of {', '.join(PRIORS)}")
         features = OBSERVATION_FEATURES[observation]
         obs_dim = len(features)
         self.observation = observation
@@ -62,9 +76,30 @@ class Agent(nn.Module):
         )
         self.log_std = nn.Parameter(torch.full((1,), float(init_log_std)))
         self.hidden_size = hidden_size
+        self.prior = prior
+        if prior == "idm":
+            values = [float("nan")] * len(IDM_PRIOR_KEYS)
+            if prior_params is not None:
+                values = [float(prior_params[k]) for k in IDM_PRIOR_KEYS]
+            self.register_buffer("idm_prior", torch.tensor(values, dtype=torch.float32))
+            # The residual starts at 0: training starts from the calibrated IDM, and the
+            # likelihood moves it only where the observed pairs disagree with the IDM.
+            last = self.actor[-1]
+            assert isinstance(last, nn.Linear)
+            nn.init.zeros_(last.weight)
+            nn.init.zeros_(last.bias)
+
+    def mean_action(self, obs: torch.Tensor) -> torch.Tensor:
+        """The policy's deterministic action [m/s^2] for raw observations (..., D): the
+        actor's output, plus the IDM prior's acceleration with ``prior`` "idm"."""
+        mean = self.actor((obs - self.shift) / self.scale).squeeze(-1)
+        if self.prior == "idm":
+            p = dict(zip(IDM_PRIOR_KEYS, self.idm_prior.unbind(), strict=True))
+            mean = mean + idm_prior_accel(obs, p)
+        return mean
 
     def dist(self, obs: torch.Tensor) -> torch.distributions.Normal:
-        mean = self.actor((obs - self.shift) / self.scale).squeeze(-1)
+        mean = self.mean_action(obs)
         return torch.distributions.Normal(mean, self.log_std.exp().expand_as(mean))
 
     def value(self, obs: torch.Tensor, t_frac: torch.Tensor) -> torch.Tensor:

@@ -2,7 +2,8 @@
 
 A checkpoint carries a format tag and the ``signature`` of the scenario it was trained
 for; one that is corrupt, not a policy checkpoint or trained for another scenario is a
-one-line UserError. ``load_policy`` gives the trained agent; ``resumable_checkpoint`` the
+one-line UserError, and so is one trained with another ``policy.prior`` (recorded as
+"prior"; the IDM prior's parameters are in the state_dict). ``load_policy`` gives the trained agent; ``resumable_checkpoint`` the
 training state to continue from (the one resume rule of ring and section stages).
 """
 
@@ -69,6 +70,14 @@ def load_checkpoint(path: Path, sc: Scenario) -> dict[str, Any]:
             raise UserError(
                 f"{path}: policy was trained for {key} = {have}, scenario {sc.source} has {want.get(key)}"
             )
+    # Checkpoints from before policy.prior have none. Not in the signature, so that those
+    # still load: the policy's mean is another function with and without a prior.
+    have = payload.get("prior", "none")
+    if have != sc.policy.prior:
+        raise UserError(
+            f"{path}: policy was trained with policy.prior = {have!r}, scenario {sc.source} has "
+            f"{sc.policy.prior!r}"
+        )
     return payload
 
 
@@ -117,7 +126,7 @@ def load_policy(path: Path | str, sc: Scenario) -> Agent:
     objective = path.stem.removeprefix("policy").removeprefix("_") or "mix"
     check_beside(path, policy_file(objective, "manifest"))
     payload = load_checkpoint(path, sc)
-    agent = Agent(payload["hidden_size"], observation=sc.policy.observation)
+    agent = Agent(payload["hidden_size"], observation=sc.policy.observation, prior=sc.policy.prior)
     agent.load_state_dict(payload["state_dict"])
     agent.eval()
     return agent

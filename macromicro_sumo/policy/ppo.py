@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import copy
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -228,6 +228,7 @@ def train_policy(
     make_core: Callable[[Any, int], Core] | None = None,
     val_runs: np.ndarray | None = None,
     make_demand: Callable[[], DemandCore] | None = None,
+    prior_params: Mapping[str, float] | None = None,
 ) -> dict[str, Any]:
     """PPO on the env over ``bank``; writes policy.pt, policy_train_log.csv, checkpoints.
 
@@ -240,12 +241,17 @@ def train_policy(
     section passes one that builds its ``SectionCore``). With ``policy.checkpoint_selection
     = "val_micro_logp"``, the episodes of ``val_runs`` are kept out of training and the
     policy returned and saved is the update's with the best validation micro log-likelihood.
+
+    ``prior_params`` (``policy.prior.idm_prior_params``): the fitted IDM under the actor
+    with ``policy.prior`` = "idm" (required then); recorded in the checkpoints as "prior".
     """
     cfg = sc.policy
     objective = objective or cfg.objective
     eta = 0.0 if objective == "micro_only" else sc.policy.eta
     use_micro = objective != "macro_only"
     n_updates = updates or cfg.updates
+    if cfg.prior != "none" and prior_params is None:
+        raise UserError(f"policy.prior = {cfg.prior!r} needs its fitted parameters (sections only)")
     ckpt_path = out / f"policy_{objective}_checkpoint.pt"
     if make_core is None:
         make_core = lambda b, seed: RingCore(sc, b, seed=seed)  # noqa: E731
@@ -260,7 +266,9 @@ def train_policy(
         if isinstance(core, SectionCore):
             shift_scale = observation_shift_scale(initial_observations(sc, core.section, bank))
         torch.manual_seed(sc.seed)
-        agent = Agent(cfg.hidden_size, cfg.init_log_std, cfg.observation, shift_scale)
+        agent = Agent(
+            cfg.hidden_size, cfg.init_log_std, cfg.observation, shift_scale, cfg.prior, prior_params
+        )
         if init is not None:
             agent.load_state_dict(init)
         # macro_only never sees observed actions: choosing its update by them would leak them.
@@ -420,6 +428,7 @@ def train_policy(
                         "update": update + 1,
                         "log": log,
                         "hidden_size": agent.hidden_size,
+                        "prior": agent.prior,
                         "micro_pool": micro_pool,
                         "best_val": best_val,
                         "best_state_dict": best_state,
@@ -439,6 +448,7 @@ def train_policy(
             "signature": signature(sc),
             "state_dict": agent.state_dict(),
             "hidden_size": agent.hidden_size,
+            "prior": agent.prior,
             "objective": objective,
             "scenario": sc.to_dict(),
         },

@@ -20,6 +20,14 @@ class PolicyConfig:
         choices=("paper", "lookahead"),
         doc="paper: [v, v_limit, spacing, delta_v]; lookahead adds [next edge's limit, distance to it]",
     )
+    prior: str = spec(
+        "none",
+        choices=("none", "idm"),
+        doc="sections: the policy's mean action is the actor's output (none, the paper's), or "
+        "an IDM fitted to the training runs' observed pairs (as idm_calibrated; fixed) plus "
+        "the actor's output as a residual (idm): the IDM reacts to spacing where the observed "
+        "pairs rarely show close following",
+    )
     hidden_train: tuple[int, int] = spec(
         (1, 4), lo=1, hi=10_000, doc="K range of training episodes"
     )

@@ -1,0 +1,151 @@
+"""policy.prior = "idm": the policy's mean is a fitted IDM plus the actor's residual (real
+torch, real SUMO on a small ring)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+from conftest import write_scenario
+
+from macromicro_sumo import cli
+from macromicro_sumo.data.ring import load_ground_truth, split_runs
+from macromicro_sumo.env.ring import build_bank
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.evaluation import idm_fit
+from macromicro_sumo.evaluation.idm_fit import IdmParams, idm_policy_accel
+from macromicro_sumo.policy import prior as prior_mod
+from macromicro_sumo.policy.agent import Agent
+from macromicro_sumo.policy.checkpoint import load_policy
+from macromicro_sumo.policy.ppo import train_policy
+from macromicro_sumo.policy.prior import idm_prior_params
+from macromicro_sumo.scenario.load import load_scenario
+
+PARAMS = IdmParams(speed_factor=1.05, tau_s=1.2, accel_mps2=1.4, decel_mps2=2.1, min_gap_m=2.5)
+LENGTH_M = 4.8
+
+
+def _obs(n: int, dim: int, seed: int = 0) -> np.ndarray:
+    """Observations across the IDM's regimes: free road (no leader: a huge spacing), closing
+    in, falling back, and spacings below the vehicle length (the gap floor)."""
+    rng = np.random.default_rng(seed)
+    obs = np.zeros((n, dim), dtype=np.float32)
+    obs[:, 0] = rng.uniform(0.0, 40.0, n)
+    obs[:, 1] = rng.choice([0.0, 13.9, 27.8, 44.4], n)  # 0: the desired speed's floor
+    obs[:, 2] = np.concatenate(
+        [rng.uniform(0.0, 8.0, n // 4), rng.uniform(0.0, 1000.0, n - n // 4)]
+    )
+    obs[:, 3] = rng.uniform(-10.0, 10.0, n)
+    if dim > 4:
+        obs[:, 4:] = rng.uniform(0.0, 200.0, (n, dim - 4))
+    return obs
+
+
+@pytest.mark.parametrize("dim", [4, 6])
+def test_prior_mean_equals_idm_policy_accel(dim):
+    observation = "paper" if dim == 4 else "lookahead"
+    params = idm_prior_params(PARAMS.as_dict(), LENGTH_M)
+    agent = Agent(16, observation=observation, prior="idm", prior_params=params)
+    agent.actor.requires_grad_(False)
+    obs = _obs(2000, dim)
+    with torch.no_grad():
+        mean = agent.mean_action(torch.as_tensor(obs)).numpy()
+        dist_mean = agent.dist(torch.as_tensor(obs)).mean.numpy()
+    want = idm_policy_accel(obs.astype(np.float64), PARAMS, LENGTH_M)
+    # The residual starts at exactly 0: the untrained policy is the fitted IDM.
+    np.testing.assert_allclose(mean, want, rtol=1e-4, atol=1e-3)
+    np.testing.assert_array_equal(mean, dist_mean)
+    assert want.min() == -idm_fit.EMERGENCY_DECEL_MPS2  # the braking bound was exercised
+    assert prior_mod.EMERGENCY_DECEL_MPS2 == idm_fit.EMERGENCY_DECEL_MPS2
+    assert prior_mod.MIN_GAP_M == idm_fit.MIN_GAP_M
+
+
+def test_no_prior_is_the_actor_alone():
+    torch.manual_seed(0)
+    agent = Agent(16, observation="lookahead")
+    assert "idm_prior" not in agent.state_dict()
+    obs = torch.as_tensor(_obs(50, 6))
+    with torch.no_grad():
+        actor = agent.actor((obs - agent.shift) / agent.scale).squeeze(-1)
+        torch.testing.assert_close(agent.mean_action(obs), actor)
+    with pytest.raises(UserError, match="policy.prior = 'gipps'"):
+        Agent(16, prior="gipps")
+
+
+@pytest.fixture(scope="module")
+def ring(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("prior")
+    path = write_scenario(
+        folder,
+        {
+            "simulation.n_runs": 4,
+            "simulation.duration_s": 120.0,
+            "policy.episodes_per_update": 8,
+            "policy.prior": "idm",
+        },
+    )
+    sc = load_scenario(path)
+    out = folder / "gt"
+    assert cli.main(["simulate", str(path), "--out", str(out), "--quiet"]) == 0
+    gt = load_ground_truth(out, sc)
+    splits = split_runs(gt.runs, sc.generator.held_out_fraction, sc.seed)
+    runs = np.concatenate([splits["train"], splits["val"]])
+    bank = build_bank(sc, gt, runs, lambda s: (s.arc_m, s.speed_mps), (1, 3), 0)
+    # Motorway-like parameters, not the ring's fit: the paper ring's slow, gentle IDM
+    # (a = 0.28, b = 0.15 m/s^2) brakes at its bound at 51 m too when closing at 6 m/s.
+    return sc, bank, idm_prior_params(PARAMS.as_dict(), sc.fleet.length_m)
+
+
+@pytest.fixture(scope="module")
+def trained(ring, tmp_path_factory):
+    sc, bank, params = ring
+    out = tmp_path_factory.mktemp("prior_policy")
+    return train_policy(sc, bank, out, progress=False, updates=3, prior_params=params), out
+
+
+def test_training_keeps_the_spacing_response(ring, trained):
+    """At 30 m/s closing at 6 m/s (a 33.3 m/s limit), a trained policy with the prior brakes
+    far harder at 5 m spacing than at 51 m: the response the actor alone did not learn."""
+    res, _ = trained
+    # lookahead's features: the next edge has the same limit, 500 m ahead.
+    obs = torch.tensor([[30.0, 33.3, 51.0, 6.0, 33.3, 500.0], [30.0, 33.3, 5.0, 6.0, 33.3, 500.0]])
+    obs = obs[:, : len(res["agent"].shift)]
+    with torch.no_grad():
+        far, near = res["agent"].mean_action(obs).tolist()
+    assert near < far - 2.0, (far, near)
+
+
+def test_checkpoint_round_trips_with_its_prior(ring, trained):
+    sc, _, params = ring
+    res, out = trained
+    payload = torch.load(out / "policy.pt", weights_only=True)
+    assert payload["prior"] == "idm"
+    agent = load_policy(out / "policy.pt", sc)
+    assert agent.prior == "idm"
+    np.testing.assert_allclose(
+        agent.idm_prior.numpy(), [params[k] for k in prior_mod.IDM_PRIOR_KEYS], rtol=1e-6
+    )
+    obs = torch.as_tensor(_obs(200, len(agent.shift), seed=1))
+    with torch.no_grad():
+        torch.testing.assert_close(agent.mean_action(obs), res["agent"].mean_action(obs))
+
+
+def test_a_prior_mismatch_is_a_one_line_error(ring, trained, tmp_path):
+    sc, bank, _ = ring
+    _, out = trained
+    plain = dataclasses.replace(sc, policy=dataclasses.replace(sc.policy, prior="none"))
+    with pytest.raises(UserError, match="policy.prior = 'idm'") as err:
+        load_policy(out / "policy.pt", plain)
+    assert "\n" not in str(err.value)
+    # A checkpoint from before the option (no "prior" recorded) was trained without one.
+    payload = torch.load(out / "policy.pt", weights_only=True)
+    del payload["prior"]
+    torch.save(payload, tmp_path / "policy.pt")
+    with pytest.raises(UserError, match="policy.prior = 'none'") as err:
+        load_policy(tmp_path / "policy.pt", sc)
+    assert "\n" not in str(err.value)
+    # The prior's parameters come from the stage's fit: none is an error, not a NaN policy.
+    with pytest.raises(UserError, match="needs its fitted parameters"):
+        train_policy(sc, bank, tmp_path, progress=False, updates=1)
