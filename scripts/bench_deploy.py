@@ -7,8 +7,9 @@ with its own models, in the same run.
    - the oracle deployment: the ground truth's run loop (recording trajectories) with
      SUMO driving everyone;
    - the policy deployment: the same loop, every non-instrumented vehicle on the section
-     driven by the policy (``deploy.drivers.SectionSpeedDriver``: state through
-     subscriptions, one batched policy call per step, the safety layer on),
+     driven by the policy (``deploy.drivers.SectionSpeedDriver``: SUMO's state read once
+     per step and shared with the recorder (``Simulation.vehicle_states``), SUMO's leaders
+     of the driven vehicles, one batched policy call per step, the safety layer on),
    and the ratios. The policy is runs/highway_bremen/policy/policy.pt when it exists, else
    an untrained agent of the same shape (timing only).
 2. The per-vehicle cost against the number of vehicles: a straight 4-lane road of 30 km

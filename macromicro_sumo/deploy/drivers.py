@@ -27,7 +27,7 @@ from itertools import repeat
 
 import numpy as np
 
-from macromicro_sumo.deploy.observe import observe_rows, states_of
+from macromicro_sumo.deploy.observe import STANDING, Table, observe_rows, states_of
 from macromicro_sumo.road.physics import lookahead_features, ring_leaders
 from macromicro_sumo.road.ring import RingGeometry
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
@@ -110,6 +110,10 @@ class SectionDriver:
         self.shapes: dict[str, tuple[float, float, float]] = {}  # vType -> length, minGap, decel
         self.shape_of: dict[str, tuple[float, float, float]] = {}  # vehicle -> its vType's
         self.decel_of: dict[str, float] = {}  # vehicle -> its vType's decel
+        # shape_of and section.lanes as numpy tables (``deploy.observe.Table``)
+        self.shape_table = Table(STANDING)
+        self.type_code: dict[str, int] = {}  # vType -> its row in shape_table
+        self.lane_table = Table.of_rows(section.lanes, (np.nan,) * 4)
         self.steps = 0
 
     def before_step(self, sim: Simulation) -> None:
@@ -143,8 +147,10 @@ class SectionDriver:
             self.types[vid] = vt
             if vt not in self.shapes:
                 self.shapes[vt] = sim.vtype_shape(vt)
+                self.type_code[vt] = self.shape_table.add_row(self.shapes[vt])
             self.shape_of[vid] = self.shapes[vt]
             self.decel_of[vid] = self.shapes[vt][2]
+            self.shape_table.code[vid] = self.type_code[vt]
             if is_instrumented(self.sc, vid, vt, self.run):
                 continue
             if dep.vtype and vt != dep.vtype:
@@ -245,17 +251,31 @@ class SectionSpeedDriver(SectionDriver):
         self.commands = dict(zip(vids, cmd.tolist(), strict=True))
 
     def observe(
-        self, sim: Simulation, vids: list[str], rows: np.ndarray, st: VehicleStates
+        self,
+        sim: Simulation,
+        vids: list[str],
+        rows: np.ndarray,
+        st: VehicleStates,
+        shapes: Table | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``observe_rows`` of driven vehicles ``vids`` (rows ``rows`` of ``st``): SUMO's
-        leaders, lane ends and red lights asked now."""
+        leaders, lane ends and red lights asked now; ``shapes``: vehicle -> (length,
+        minGap, decel) (default: the vTypes of the vehicles this driver saw arrive)."""
         lanes = [st.lanes[i] for i in rows.tolist()]
         stop = self.lane_end_m(sim, vids, lanes) - st.pos_m[rows]
         if self.has_lights:
             stop = np.minimum(stop, sim.stop_lines_m(vids))
         leaders = sim.leaders(vids, NO_LEADER_GAP_M)
         return observe_rows(
-            self.section, self.sc.policy.observation, vids, rows, st, leaders, self.shape_of, stop
+            self.section,
+            self.lane_table,
+            self.sc.policy.observation,
+            vids,
+            rows,
+            st,
+            leaders,
+            self.shape_table if shapes is None else shapes,
+            stop,
         )
 
 
@@ -299,7 +319,7 @@ def section_observations(
     speed, acceleration)} dictionary of the vehicles on the road (the demand env's)."""
     st = states_of(states)
     rows = np.fromiter(map(st.index.__getitem__, vids), np.int64, len(vids))
-    return drv.observe(sim, vids, rows, st)
+    return drv.observe(sim, vids, rows, st, Table.of_rows(drv.shape_of, STANDING))
 
 
 class SectionTypeDriver(SectionDriver):

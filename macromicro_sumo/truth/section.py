@@ -20,6 +20,7 @@ import hashlib
 import json
 import time
 from collections.abc import Callable, Sequence
+from itertools import repeat
 from pathlib import Path
 from typing import Any
 
@@ -125,7 +126,9 @@ def record_run(
     names = ("time_s", "lane_index", "edge_index", "arc_m", "speed_mps", "accel_mps2")
     chunks: dict[str, list[np.ndarray]] = {k: [] for k in names}
     vids: list[str] = []
-    lanes = section.lanes
+    # section.lanes as codes into one array: (edge, lane index, arc at lane start, scale).
+    lane_code = {lane: i for i, lane in enumerate(section.lanes)}
+    lane_rows = np.array(list(section.lanes.values()), dtype=float).reshape(-1, 4)
     collisions = teleports = 0
     for step in range(n_warm + n_rec):
         if driver is not None:
@@ -144,12 +147,12 @@ def record_run(
         if (step - n_warm + 1) % MEMORY_CHECK_STEPS == 0:
             check_run_memory(sc, len(vids) * n_rec / (step - n_warm + 1), run)
         st = sim.vehicle_states()
-        hits = list(map(lanes.get, st.lanes))
-        on = [i for i, h in enumerate(hits) if h is not None]
-        if not on:
+        code = np.fromiter(map(lane_code.get, st.lanes, repeat(-1)), np.int64, len(st.ids))
+        on = np.flatnonzero(code >= 0)
+        if not on.size:
             continue
-        where = np.array([hits[i] for i in on], dtype=float).reshape(len(on), 4)
-        vids.extend([st.ids[i] for i in on])
+        where = lane_rows[code[on]]
+        vids.extend([st.ids[i] for i in on.tolist()])
         chunks["time_s"].append(np.full(len(on), round((step + 1) * dt, 6)))
         chunks["lane_index"].append(where[:, 1].astype(np.int64))
         chunks["edge_index"].append(where[:, 0].astype(np.int64))

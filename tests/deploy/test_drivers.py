@@ -152,3 +152,39 @@ def test_a_red_light_stops_a_policy_driven_vehicle_before_the_stop_line(tmp_path
     last = v0.iloc[-1]
     assert last["speed_mps"] < 0.1 and line - last["arc_m"] < 15.0, last.to_dict()
     assert stats["collisions"] == 0 and drv.stats.vehicle_steps_driven > 100
+
+
+def test_one_read_per_step_gives_what_subscriptions_give(
+    merge_files: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """``Simulation.vehicle_states`` (getters, read once per step and shared) and
+    ``leaders`` hold, step by step, what the subscriptions the deployment used held: the
+    same vehicles in the same order, the same numbers; a teleporting vehicle (lane "") is
+    not on the road. With a policy driving, so that speed commands are in play."""
+    net, routes = merge_files
+    sc = _scenario(tmp_path, net, routes, ["A", "B", "C"], instrumented={"penetration": 0.2})
+    section = read_section(net, ["A", "B", "C"], False)
+    drv = SectionSpeedDriver(sc, section, 0, policy_batch(idm_agent("lookahead", 30.0)), "sumo")
+    sim = Simulation(
+        SumoOptions(
+            net, (), sc.simulation.step_length_s, sc.seed, route_files=(routes,), user_demand=True
+        )
+    )
+    compared = 0
+    try:
+        for _ in range(240):
+            drv.before_step(sim)
+            sim.step()
+            sim.subscribe_driving(sim.departed(), NO_LEADER_GAP_M)
+            subs = {v: s for v, s in sim.read_lane_states().items() if s[0]}
+            st = sim.vehicle_states()
+            assert sim.vehicle_states() is st  # one read per step
+            assert list(st.ids) == list(subs)
+            for i, v in enumerate(st.ids):
+                assert (st.lanes[i], st.pos_m[i], st.speed_mps[i], st.accel_mps2[i]) == subs[v]
+            lead = sim.read_leaders()
+            assert sim.leaders(list(st.ids), NO_LEADER_GAP_M) == [lead[v] for v in st.ids]
+            compared += len(st.ids)
+    finally:
+        sim.close()
+    assert compared > 2000 and drv.stats.vehicle_steps_driven > 1000
