@@ -124,9 +124,10 @@ class SectionDriver:
         # The state after the last step, read once and shared with the recorder.
         st = sim.vehicle_states()
         self.count_brakings(st)
-        lanes = self.section.lanes
-        now = {v for v, lane in zip(st.ids, st.lanes, strict=True) if lane in lanes}
-        now &= self.population
+        lanes, pop = self.section.lanes, self.population
+        # In SUMO's order, which is sorted by ID (``VehicleStates``): no sort needed.
+        vids = [v for v, lane in zip(st.ids, st.lanes, strict=True) if lane in lanes and v in pop]
+        now = set(vids)
         # Still in the network (on the road or teleporting), not on the section now.
         gone = sim.arrived() if self.driven else frozenset()
         left = [v for v in self.driven if v not in now and v not in gone]
@@ -137,8 +138,8 @@ class SectionDriver:
             self.take(sim, entered)
         self.driven = now
         self.stats.vehicle_steps_driven += len(now) if self.drives else 0
-        if now:
-            self.drive(sim, sorted(now), st)
+        if vids:
+            self.drive(sim, vids, st)
 
     def arrive(self, sim: Simulation, new: tuple[str, ...]) -> None:
         dep = self.sc.deploy
@@ -218,19 +219,15 @@ class SectionSpeedDriver(SectionDriver):
         on a lane for the first time, a lane that carries it on again after
         ``LANE_END_RECHECK_STEPS`` (one call per vehicle and step would cost more than
         SUMO's whole step)."""
-        cache, now = self.lane_ends, self.steps
-        out = np.empty(len(vids))
-        for i, (v, lane) in enumerate(zip(vids, lanes, strict=True)):
-            hit = cache.get(v)
-            if (
-                hit is None
-                or hit[0] != lane
-                or (hit[1] == np.inf and now - hit[2] >= LANE_END_RECHECK_STEPS)
-            ):
+        cache, now, inf = self.lane_ends, self.steps, np.inf
+        stale = now - LANE_END_RECHECK_STEPS
+        out = []
+        for v, lane, hit in zip(vids, lanes, map(cache.get, vids), strict=True):
+            if hit is None or hit[0] != lane or (hit[1] == inf and hit[2] <= stale):
                 hit = (lane, sim.lane_end_m(v, lane, 0.0), now)
                 cache[v] = hit
-            out[i] = hit[1]
-        return out
+            out.append(hit[1])
+        return np.array(out, dtype=float)
 
     def drive(self, sim: Simulation, vids: list[str], st: VehicleStates) -> None:
         n = len(vids)

@@ -128,8 +128,8 @@ class SumoOptions:
 
 @dataclass(frozen=True)
 class VehicleStates:
-    """Every vehicle on the road (not teleporting) after a step, in SUMO's order (by ID):
-    row i for ``ids[i]`` (``Simulation.vehicle_states``)."""
+    """Every vehicle on the road (not teleporting) after a step, in SUMO's order: sorted
+    by ID (its vehicle dictionary is a std::map); row i for ``ids[i]``."""
 
     ids: tuple[str, ...]
     lanes: list[str]

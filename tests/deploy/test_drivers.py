@@ -179,7 +179,7 @@ def test_one_read_per_step_gives_what_subscriptions_give(
             subs = {v: s for v, s in sim.read_lane_states().items() if s[0]}
             st = sim.vehicle_states()
             assert sim.vehicle_states() is st  # one read per step
-            assert list(st.ids) == list(subs)
+            assert list(st.ids) == list(subs) == sorted(st.ids)
             for i, v in enumerate(st.ids):
                 assert (st.lanes[i], st.pos_m[i], st.speed_mps[i], st.accel_mps2[i]) == subs[v]
             lead = sim.read_leaders()
