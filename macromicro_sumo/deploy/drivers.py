@@ -203,6 +203,8 @@ class SectionSpeedDriver(SectionDriver):
         # vehicle -> (lane, distance from that lane's start to where the vehicle must have
         # left it [m] (inf: it carries on), step asked): SUMO's best lanes, cached.
         self.lane_ends: dict[str, tuple[str, float, int]] = {}
+        # vehicle -> (lane, step asked): SUMO found no signal ahead of it on its route.
+        self.dark: dict[str, tuple[str, int]] = {}
 
     def take(self, sim: Simulation, vids: list[str]) -> None:
         sim.set_speed_mode(vids, self.mode)
@@ -212,6 +214,7 @@ class SectionSpeedDriver(SectionDriver):
         for v in vids:
             self.commands.pop(v, None)
             self.lane_ends.pop(v, None)
+            self.dark.pop(v, None)
 
     def lane_end_m(self, sim: Simulation, vids: list[str], lanes: list[str]) -> np.ndarray:
         """Per vehicle, the distance from its lane's start to where it must have left that
@@ -228,6 +231,28 @@ class SectionSpeedDriver(SectionDriver):
                 cache[v] = hit
             out.append(hit[1])
         return np.array(out, dtype=float)
+
+    def stop_lines_m(self, sim: Simulation, vids: list[str], lanes: list[str]) -> np.ndarray:
+        """Per vehicle, ``Simulation.stop_lines_m`` (inf: no red or yellow ahead), asked
+        only of vehicles that may meet a signal: one SUMO found none ahead of on its whole
+        route is asked again when it changes lane or ``LANE_END_RECHECK_STEPS`` later (on
+        Bremen's highway only the ramp has one: the call was a tenth of the driver)."""
+        dark, now = self.dark, self.steps
+        stale = now - LANE_END_RECHECK_STEPS
+        ask = [
+            i
+            for i, (v, lane, hit) in enumerate(zip(vids, lanes, map(dark.get, vids), strict=True))
+            if hit is None or hit[0] != lane or hit[1] <= stale
+        ]
+        out = np.full(len(vids), np.inf)
+        got = sim.stop_lines_m([vids[i] for i in ask])
+        for i, d in zip(ask, got.tolist(), strict=True):
+            if d != d:  # NaN: no signal ahead
+                dark[vids[i]] = (lanes[i], now)
+            else:
+                dark.pop(vids[i], None)
+                out[i] = d
+        return out
 
     def drive(self, sim: Simulation, vids: list[str], st: VehicleStates) -> None:
         n = len(vids)
@@ -261,7 +286,7 @@ class SectionSpeedDriver(SectionDriver):
         lanes = [st.lanes[i] for i in rows.tolist()]
         stop = self.lane_end_m(sim, vids, lanes) - st.pos_m[rows]
         if self.has_lights:
-            stop = np.minimum(stop, sim.stop_lines_m(vids))
+            stop = np.minimum(stop, self.stop_lines_m(sim, vids, lanes))
         leaders = sim.leaders(vids, NO_LEADER_GAP_M)
         return observe_rows(
             self.section,

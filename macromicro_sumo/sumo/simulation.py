@@ -363,7 +363,7 @@ class Simulation:
     def stop_line_m(self, vehicle_id: str) -> float:
         """Distance from the vehicle's front to the next stop line whose signal is red or
         yellow for it (inf when none ahead on its route)."""
-        return float(self.stop_lines_m([vehicle_id])[0])
+        return float(np.nan_to_num(self.stop_lines_m([vehicle_id])[0], nan=np.inf))
 
     def lane_end_m(self, vehicle_id: str, lane_id: str, pos_m: float) -> float:
         """Distance from the vehicle's front to the end of its lane when the vehicle must
@@ -466,8 +466,7 @@ class Simulation:
         """(leader ID or "", SUMO's gap: leader's back minus own front and minGap) of each
         vehicle, within ``lookahead_m`` along its route (``getLeader``: the network's lane
         connections); ("", -1) without one."""
-        get, dist = libsumo.vehicle.getLeader, float(lookahead_m)
-        none = ("", -1.0)
+        get, dist, none = libsumo.vehicle.getLeader, float(lookahead_m), ("", -1.0)
         return [get(v, dist) or none for v in vehicle_ids]
 
     def arrived(self) -> frozenset[str]:
@@ -475,11 +474,12 @@ class Simulation:
         return frozenset(libsumo.simulation.getArrivedIDList())
 
     def stop_lines_m(self, vehicle_ids: Sequence[str]) -> np.ndarray:
-        """``stop_line_m`` of each vehicle."""
+        """``stop_line_m`` of each vehicle; NaN: no signal at all ahead on its route."""
         get, stop, inf = libsumo.vehicle.getNextTLS, STOP_STATES, float("inf")
-        out = np.full(len(vehicle_ids), inf)
+        out = np.empty(len(vehicle_ids))
         for i, vid in enumerate(vehicle_ids):
-            for _tls, _link, dist, state in get(vid):
+            out[i] = inf if (ahead := get(vid)) else np.nan
+            for _tls, _link, dist, state in ahead:
                 if state in stop:
                     out[i] = dist
                     break
