@@ -363,7 +363,8 @@ class Simulation:
     def stop_line_m(self, vehicle_id: str) -> float:
         """Distance from the vehicle's front to the next stop line whose signal is red or
         yellow for it (inf when none ahead on its route)."""
-        return float(np.nan_to_num(self.stop_lines_m([vehicle_id])[0], nan=np.inf))
+        dist = self.stop_lines_m([vehicle_id])[0]
+        return float("inf") if np.isnan(dist) else float(dist)
 
     def lane_end_m(self, vehicle_id: str, lane_id: str, pos_m: float) -> float:
         """Distance from the vehicle's front to the end of its lane when the vehicle must
@@ -463,9 +464,8 @@ class Simulation:
         return self._states
 
     def leaders(self, vehicle_ids: Sequence[str], lookahead_m: float) -> list[tuple[str, float]]:
-        """(leader ID or "", SUMO's gap: leader's back minus own front and minGap) of each
-        vehicle, within ``lookahead_m`` along its route (``getLeader``: the network's lane
-        connections); ("", -1) without one."""
+        """(leader ID, SUMO's gap: leader's back - own front - minGap; ("", -1): none) of
+        each vehicle within ``lookahead_m`` along the network's lanes (``getLeader``)."""
         get, dist, none = libsumo.vehicle.getLeader, float(lookahead_m), ("", -1.0)
         return [get(v, dist) or none for v in vehicle_ids]
 
