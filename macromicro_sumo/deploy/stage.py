@@ -112,11 +112,11 @@ def policy_batch(agent: Agent) -> ActionBatch:
     """The policy's deterministic mean action for every driven vehicle, one torch call."""
 
     def act(obs: np.ndarray) -> np.ndarray:
-        # The actor's output is the distribution's mean (``Agent.dist``); building the
-        # distribution each step costs more than the network at deployment's batch sizes.
+        # The distribution's mean (``Agent.dist``), with the IDM prior where the agent has
+        # one; building the distribution each step costs more than the network at
+        # deployment's batch sizes.
         with torch.inference_mode():
-            x = (torch.as_tensor(obs, dtype=torch.float32) - agent.shift) / agent.scale
-            mean = agent.actor(x).squeeze(-1)
+            mean = agent.mean_action(torch.as_tensor(obs, dtype=torch.float32))
         return mean.numpy().astype(np.float64)
 
     return act

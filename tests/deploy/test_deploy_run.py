@@ -8,14 +8,19 @@ import dataclasses
 import json
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
+import torch
 from conftest import dump_toml
 from deploy_nets import idm_agent, merge_net
 
 from macromicro_sumo.cli import main
 from macromicro_sumo.deploy.run import Drive, load_context, run_method
 from macromicro_sumo.deploy.stage import deploy, policy_batch
+from macromicro_sumo.evaluation.idm_fit import IdmParams
+from macromicro_sumo.policy.agent import Agent
+from macromicro_sumo.policy.prior import idm_prior_params
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import simulate_section
 
@@ -121,3 +126,25 @@ def test_deploy_without_a_policy_is_a_one_line_error(
     assert rc == 2 and "\n" not in err
     assert err.startswith("error: ") and "policy.pt" in err and str(empty) in err
     assert not (tmp_path / "d").exists()
+
+
+@pytest.mark.parametrize("prior", ["none", "idm"])
+def test_the_deployed_action_is_the_policys_mean_action(prior: str) -> None:
+    """One batched call gives ``Agent.mean_action``: the actor's output, plus the fitted
+    IDM's acceleration for a residual policy (``policy.prior = "idm"``)."""
+    torch.manual_seed(0)
+    idm = IdmParams(speed_factor=1.0, tau_s=1.2, accel_mps2=1.5, decel_mps2=2.0, min_gap_m=2.0)
+    params = idm_prior_params(idm.as_dict(), 5.0) if prior == "idm" else None
+    agent = Agent(16, observation="lookahead", prior=prior, prior_params=params)
+    rng = np.random.default_rng(0)
+    obs = np.column_stack(
+        [rng.uniform(0, 30, 300), np.full(300, 30.0), rng.uniform(5, 250, 300)]
+        + [rng.uniform(-5, 5, 300), np.full(300, 30.0), rng.uniform(0, 500, 300)]
+    )
+    with torch.no_grad():
+        want = agent.mean_action(torch.as_tensor(obs, dtype=torch.float32)).numpy()
+    got = policy_batch(agent)(obs)
+    assert got.dtype == np.float64 and got.shape == (300,)
+    np.testing.assert_array_equal(got, want.astype(np.float64))
+    if prior == "idm":  # the IDM's braking behind a close, slower leader is in there
+        assert got.min() < -1.0
