@@ -28,7 +28,7 @@ from itertools import repeat
 import numpy as np
 
 from macromicro_sumo.deploy.observe import STANDING, Table, observe_rows, states_of
-from macromicro_sumo.road.physics import lookahead_features, ring_leaders
+from macromicro_sumo.road.physics import lookahead_features, ring_leaders, safe_speed
 from macromicro_sumo.road.ring import RingGeometry
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
 from macromicro_sumo.sumo.simulation import Simulation, VehicleStates
@@ -299,21 +299,6 @@ class SectionSpeedDriver(SectionDriver):
             self.shape_table if shapes is None else shapes,
             stop,
         )
-
-
-def safe_speed(
-    gap_m: np.ndarray,
-    leader_speed_mps: np.ndarray,
-    decel_mps2: np.ndarray,
-    leader_decel_mps2: np.ndarray,
-    dt_s: float,
-) -> np.ndarray:
-    """SUMO's Krauss safe speed (Gipps): the fastest speed from which the vehicle, reacting
-    one step later and braking at its decel, stops behind a leader braking at its decel:
-    v dt + v^2 / 2b <= gap + v_l^2 / 2b_l."""
-    reach = np.maximum(gap_m, 0.0) + leader_speed_mps**2 / (2.0 * leader_decel_mps2)
-    bt = decel_mps2 * dt_s
-    return -bt + np.sqrt(bt**2 + 2.0 * decel_mps2 * reach)
 
 
 def safety_cap(

@@ -16,7 +16,12 @@ from macromicro_sumo.data.section import section_snapshots
 from macromicro_sumo.deploy.stage import deploy
 from macromicro_sumo.env.demand import DemandCore
 from macromicro_sumo.env.section import SectionCore
-from macromicro_sumo.env.section_bank import build_section_bank, typical_length, typical_vclass
+from macromicro_sumo.env.section_bank import (
+    build_section_bank,
+    recorded_min_gap,
+    typical_length,
+    typical_vclass,
+)
 from macromicro_sumo.evaluation.idm_fit import calibrate_idm
 from macromicro_sumo.evaluation.section import evaluate_section, micro_pairs
 from macromicro_sumo.files import prepare_out_dir
@@ -57,10 +62,20 @@ def run_train_section_policy(
     bank = build_section_bank(sc, truth, snaps, complete, sc.policy.horizon, sc.seed)
     net_file = scenario_inputs(sc).net_file
     vclass = typical_vclass(truth)
+    min_gap = recorded_min_gap(truth)
 
     def make_core(bank_, seed: int, fcd_file: Path | None = None) -> SectionCore:
+        # Replayed observed vehicles keep the recorded minGap in training as in evaluation
+        # (Spreewaldring's race cars: 0 m, where the scenario's bound says 0.5 m).
         return SectionCore(
-            sc, truth.section, bank_, net_file, seed=seed, fcd_file=fcd_file, vclass=vclass
+            sc,
+            truth.section,
+            bank_,
+            net_file,
+            seed=seed,
+            fcd_file=fcd_file,
+            vclass=vclass,
+            replay_min_gap_m=min_gap,
         )
 
     # Demand episodes (policy.episodes): windows of the runs the policy trains on; the

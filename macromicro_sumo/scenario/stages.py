@@ -90,7 +90,7 @@ class PolicyConfig:
     safety: str = spec(
         "sumo",
         choices=("none", "sumo"),
-        doc="hidden vehicles' safety layer in training and evaluation rollouts (sections): sumo "
+        doc="hidden vehicles' safety layer in training and evaluation rollouts (ring and sections): sumo "
         "caps each speed command at SUMO's safe speed behind what it sees ahead (counted); "
         "none applies it exactly",
     )
@@ -106,9 +106,7 @@ class PolicyConfig:
     demand_horizon_s: float = spec(
         120.0, lo=1.0, hi=1e6, doc="length of a demand episode [s] (SUMO warms up before it)"
     )
-    demand_episodes_per_update: int = spec(
-        1, lo=1, hi=10_000, doc="demand episodes per PPO update"
-    )
+    demand_episodes_per_update: int = spec(1, lo=1, hi=10_000, doc="demand episodes per PPO update")
     collision_penalty: float = spec(
         0.0,
         lo=0.0,
