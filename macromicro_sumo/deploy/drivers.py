@@ -118,11 +118,16 @@ class SectionDriver:
 
     def before_step(self, sim: Simulation) -> None:
         self.steps += 1
-        new = sim.departed()
-        if new:
-            self.arrive(sim, new)
         # The state after the last step, read once and shared with the recorder.
         st = sim.vehicle_states()
+        # Every vehicle on the road this driver has not met yet, not only those SUMO lists
+        # as departed in the last step: on a closed section cars that loop for the whole
+        # run (rerouters) departed once, and a departure this driver did not see (before
+        # it was attached, or a list read by someone else) must not leave them undriven.
+        types = self.types
+        new = [v for v in st.ids if v not in types]
+        if new:
+            self.arrive(sim, tuple(new))
         self.count_brakings(st)
         lanes, pop = self.section.lanes, self.population
         # In SUMO's order, which is sorted by ID (``VehicleStates``): no sort needed.

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -148,3 +149,30 @@ def test_the_deployed_action_is_the_policys_mean_action(prior: str) -> None:
     np.testing.assert_array_equal(got, want.astype(np.float64))
     if prior == "idm":  # the IDM's braking behind a close, slower leader is in there
         assert got.min() < -1.0
+
+
+def test_a_vtype_switch_drives_the_cars_looping_on_a_closed_section(tmp_path: Path) -> None:
+    """Spreewaldring (one-lane circuit, 31 cars kept looping by rerouters, section closed):
+    SUMO's defaults drive the non-instrumented cars (vehicle_steps_driven > 0) and change
+    the detectors against the oracle, which reproduces the ground truth."""
+    root = Path(__file__).resolve().parents[2]
+    table = tomllib.loads((root / "scenarios" / "spreewaldring.toml").read_text())
+    table["network"]["sumocfg"] = str(
+        root / "sumo_nets" / "spreewaldring" / "spreewaldring.sumocfg"
+    )
+    table["simulation"].update(warmup_s=60.0, duration_s=120.0, n_runs=2)
+    table["detectors"]["interval_s"] = 30.0
+    table["deploy"] = {"fcd_s": 30.0}
+    path = tmp_path / "spreewald.toml"
+    path.write_text(dump_toml(table))
+    sc = load_scenario(path)
+    gt = simulate_section(sc, tmp_path / "gt", progress=False)
+    ctx = load_context(sc, gt)
+    oracle = run_method(ctx, Drive(), tmp_path / "oracle")
+    dflt = run_method(ctx, Drive(defaults=True), tmp_path / "defaults")
+    assert (oracle.runs["vehicle_steps_driven"] == 0).all()
+    assert (dflt.runs["vehicle_steps_driven"] > 0).all()
+    # ~80% of the cars are driven from their start: most of their steps on the section.
+    steps = (sc.simulation.warmup_s + sc.simulation.duration_s) / sc.simulation.step_length_s
+    assert dflt.runs["vehicle_steps_driven"].min() > 0.5 * 0.8 * 31 * steps
+    assert not dflt.detectors.equals(oracle.detectors)
