@@ -117,6 +117,12 @@ def load_context(sc: Any, truth_dir: Path | str) -> DeployContext:
     """The held-out runs of the ground truth in ``truth_dir`` and how to re-run them."""
     truth_dir = Path(truth_dir)
     if isinstance(sc, SectionScenario):
+        if sc.data.source == "files":
+            raise UserError(
+                f"{sc.source}: data.source = 'files': a deployment re-runs the ground truth's "
+                "simulated runs, and comparing one with field stations is not supported yet; "
+                "accepted: data.source = 'simulate'"
+            )
         truth = load_section_truth(truth_dir, sc)
         held = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)["held_out"]
         inputs, section, vtypes = load_section(sc)

@@ -128,7 +128,12 @@ def run_section(sc, out: Path | str, command: str = "", progress: bool = True) -
         lambda gt, g, pols, ev: evaluate_section(sc, gt, g, pols, ev, command, progress),
         # The K estimates of the ground truth are on the generator's snapshot grid.
         truth_reads=("generator.snapshot_every_s",),
-        deploy=lambda gt, pol, dep: deploy(
+        # A ground truth read from field files has no simulated runs to re-run with the
+        # same seeds: its deployment would have to be compared with the field stations
+        # themselves, which is not built yet (deploy refuses it in one line).
+        deploy=None
+        if sc.data.source == "files"
+        else lambda gt, pol, dep: deploy(
             sc, gt, pol, dep, command, progress, plots=make_deploy_plots
         ),
     )
