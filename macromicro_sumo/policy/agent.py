@@ -5,7 +5,7 @@
   (``policy_action``).
 * Observations are normalised with fixed ring constants on the ring
   (``env.observation.OBS_SHIFT_SCALE``) and with the mean/std of the bank's initial
-  observations on a section (``observation_shift_scale``); both are buffers of the agent,
+  observations on a section (``env.observation.bank_shift_scale``); both are buffers of the agent,
   so they travel in the checkpoint's state_dict.
 * ``prior`` (``policy.prior``): "none", the mean is the actor's output; "idm", the mean is
   a fixed, fitted IDM's acceleration on the raw observation plus the actor's output (a
@@ -115,11 +115,3 @@ def policy_action(agent, stochastic: bool = True) -> ActionFn:
         return mean + std * rng.standard_normal(mean.shape) if stochastic else mean
 
     return act
-
-
-def observation_shift_scale(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-feature mean and std of ``obs`` (V, D); a constant feature gets scale 1."""
-    if len(obs) == 0:
-        return np.zeros(obs.shape[1]), np.ones(obs.shape[1])
-    shift, scale = obs.mean(axis=0), obs.std(axis=0)
-    return shift, np.where(scale > 1e-6, scale, 1.0)

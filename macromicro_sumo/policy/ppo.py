@@ -37,12 +37,13 @@ from torch import nn
 
 from macromicro_sumo.checkpoints import save_torch
 from macromicro_sumo.env.demand import DemandCore
+from macromicro_sumo.env.observation import bank_shift_scale
 from macromicro_sumo.env.ring import EpisodeBank, RingCore
 from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import SectionBank, initial_observations
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import write_csv
-from macromicro_sumo.policy.agent import Agent, observation_shift_scale
+from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.checkpoint import (
     CHECKPOINT_FORMAT,
     policy_file,
@@ -264,7 +265,7 @@ def train_policy(
     try:
         shift_scale = None
         if isinstance(core, SectionCore):
-            shift_scale = observation_shift_scale(initial_observations(sc, core.section, bank))
+            shift_scale = bank_shift_scale(initial_observations(sc, core.section, bank))
         torch.manual_seed(sc.seed)
         agent = Agent(
             cfg.hidden_size, cfg.init_log_std, cfg.observation, shift_scale, cfg.prior, prior_params

@@ -29,6 +29,7 @@ import pandas as pd
 
 from macromicro_sumo.data.section import SectionTruth
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.fielddata.schema import TRAJ_COLUMNS
 from macromicro_sumo.files import (
     check_memory,
     check_outputs,
@@ -333,18 +334,7 @@ def simulate_section(
 
 # --------------------------------------------------------------------------- loading
 
-TRAJ_COLUMNS = (
-    "run",
-    "time_s",
-    "vehicle_id",
-    "vtype",
-    "observed",
-    "lane_index",
-    "edge_index",
-    "arc_m",
-    "speed_mps",
-    "accel_mps2",
-)
+# The columns are the ground truth's schema, one definition with the field-data readers'.
 TRAJ_NUMBERS = tuple(c for c in TRAJ_COLUMNS if c not in ("vehicle_id", "vtype", "observed"))
 MACRO_COLUMNS = (
     "run",
