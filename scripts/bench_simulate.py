@@ -27,9 +27,11 @@ import numpy as np
 from macromicro_sumo.road.ring import RingGeometry, read_ring
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.scenario.ring import Scenario
+from macromicro_sumo.sumo.fleet import vtypes_xml
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.truth import ring_detectors as detectors
-from macromicro_sumo.truth.ring import RunSpec, record_run, sample_run, simulate, vtypes_xml
+from macromicro_sumo.truth.fleet import RunSpec, sample_run
+from macromicro_sumo.truth.ring import record_run, simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGET_RATIO = 2.0

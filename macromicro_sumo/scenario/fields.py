@@ -103,6 +103,18 @@ def _check_scalar(value: Any, kind: type, key: str, meta: dict[str, Any], file: 
     return value
 
 
+def _table_class(hint: Any) -> Any:
+    """The dataclass of a table field: ``Table``, or ``Table | None`` (an optional table,
+    absent unless the file has it); None for any other field."""
+    if dataclasses.is_dataclass(hint):
+        return hint
+    args = typing.get_args(hint)
+    inner = [a for a in args if a is not type(None)]
+    if len(args) == 2 and len(inner) == 1 and dataclasses.is_dataclass(inner[0]):
+        return inner[0]
+    return None
+
+
 def build_table(cls: type, table: Any, prefix: str, file: str) -> Any:
     """``cls`` built from a TOML table, every key checked (one-line ``UserError`` otherwise)."""
     if not isinstance(table, dict):
@@ -126,8 +138,10 @@ def build_table(cls: type, table: Any, prefix: str, file: str) -> Any:
             continue
         hint = hints[name]
         value = table[name]
-        if dataclasses.is_dataclass(hint):
-            kwargs[name] = build_table(hint, value, key, file)
+        if _table_class(hint) is not None:
+            # None: an optional table stored absent (a scenario rebuilt from its dict).
+            sub = _table_class(hint)
+            kwargs[name] = None if value is None else build_table(sub, value, key, file)
         elif typing.get_origin(hint) is list:
             kind = typing.get_args(hint)[0]
             if not isinstance(value, list):

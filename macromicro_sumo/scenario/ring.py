@@ -7,6 +7,13 @@ from dataclasses import dataclass, field
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.scenario.fields import Pair, ScenarioFile, spec
+from macromicro_sumo.scenario.fleet import (
+    FleetConfig,
+    FleetDemand,
+    InitialConfig,
+    SpeedLimitConfig,
+    check_fleet,
+)
 from macromicro_sumo.scenario.stages import (
     DeployConfig,
     EvaluationConfig,
@@ -28,44 +35,6 @@ class NetworkConfig:
     def length_m(self) -> float:
         """Ring length L = 2 pi R [m]."""
         return 2.0 * math.pi * self.radius_m
-
-
-@dataclass(frozen=True, kw_only=True)
-class FleetConfig:
-    """Heterogeneous IDM drivers: each vehicle draws its own parameters from these ranges."""
-
-    n_vehicles: int = spec(lo=2, hi=10_000, doc="vehicles on the ring N")
-    length_m: float = spec(5.0, lo=0.5, hi=30.0, doc="vehicle length [m]")
-    accel_mps2: Pair = spec(lo=0.01, hi=10.0, doc="IDM maximum acceleration a range [m/s^2]")
-    decel_mps2: Pair = spec(lo=0.01, hi=10.0, doc="IDM comfortable deceleration b range [m/s^2]")
-    tau_s: Pair = spec(lo=0.1, hi=10.0, doc="IDM desired time headway T range [s]")
-    min_gap_m: Pair = spec(lo=0.0, hi=50.0, doc="IDM jam distance s0 range [m]")
-    delta: float = spec(4.0, lo=1.0, hi=10.0, doc="IDM acceleration exponent (same for all)")
-    speed_factor: Pair = spec(lo=0.1, hi=3.0, doc="desired speed / local limit range [-]")
-    max_speed_mps: Pair = spec((50.0, 50.0), lo=0.1, hi=100.0, doc="vehicle top speed range [m/s]")
-
-
-@dataclass(frozen=True, kw_only=True)
-class SpeedLimitConfig:
-    """Random piecewise-constant limits: each edge draws its own limit per run."""
-
-    range_mps: Pair = spec(lo=0.1, hi=100.0, doc="per-edge limit range [m/s]")
-    step_mps: float = spec(
-        0.5, lo=0.0, hi=10.0, doc="limits are rounded to this step [m/s] (0: none)"
-    )
-
-
-@dataclass(frozen=True, kw_only=True)
-class InitialConfig:
-    """Initial conditions away from steady state."""
-
-    speed_mps: Pair = spec(lo=0.0, hi=100.0, doc="initial speeds, uniform in this range [m/s]")
-    spacing_concentration: float = spec(
-        20.0, lo=0.1, hi=1e6, doc="Dirichlet concentration of initial spacings (high: even)"
-    )
-    min_spacing_m: float = spec(
-        20.0, lo=0.0, hi=1e5, doc="smallest initial front-to-front spacing [m]"
-    )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -164,6 +133,11 @@ class Scenario(ScenarioFile):
     deploy: DeployConfig = spec(DeployConfig())
     source: str = field(default="", compare=False)
 
+    @property
+    def fleet_demand(self) -> FleetDemand:
+        """The fleet, its speed limits and initial state: the ring's demand source."""
+        return FleetDemand(self.fleet, self.speed_limits, self.initial)
+
 
 def check_consistency(sc: Scenario, file: str) -> None:
     """Cross-field checks that no single range can express."""
@@ -191,20 +165,7 @@ def check_consistency(sc: Scenario, file: str) -> None:
         raise UserError(
             f"{file}: bounds.accel_mps2 = [{a_min:g}, {a_max:g}] must satisfy a_min < 0 < a_max"
         )
-    if n * sc.fleet.length_m >= length:
-        raise UserError(
-            f"{file}: fleet of {n} x {sc.fleet.length_m:g} m does not fit on a {length:.2f} m ring"
-        )
-    if n * sc.initial.min_spacing_m >= length:
-        raise UserError(
-            f"{file}: initial.min_spacing_m = {sc.initial.min_spacing_m:g} too large for {n} vehicles; "
-            f"accepted < {length / n:.2f}"
-        )
-    if sc.initial.min_spacing_m < sc.fleet.length_m:
-        raise UserError(
-            f"{file}: initial.min_spacing_m = {sc.initial.min_spacing_m:g} < vehicle length "
-            f"{sc.fleet.length_m:g}; accepted >= {sc.fleet.length_m:g}"
-        )
+    check_fleet(sc.fleet_demand, length, "ring", file)
     for name in ("hidden_train", "hidden_eval"):
         lo, hi = getattr(sc.generator, name)
         if hi > n:

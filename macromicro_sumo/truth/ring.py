@@ -1,7 +1,7 @@
 """Ground truth: heterogeneous IDM fleets on the SUMO ring, recorded with loop detectors.
 
 For each run: sample per-vehicle IDM parameters, piecewise speed limits and an initial
-state away from equilibrium; insert the fleet through the SUMO boundary; step and record
+state away from equilibrium (``truth/fleet.py``); insert the fleet through the SUMO boundary; step and record
 every vehicle; then derive leaders, spacings and gaps from arc positions (not from SUMO's
 getLeader). Outputs (all in the output folder, written atomically):
 trajectories.csv, vehicles.csv, speed_limits.csv, runs.csv, detectors.csv,
@@ -33,97 +33,15 @@ from macromicro_sumo.road.physics import forward_accel, ring_leaders
 from macromicro_sumo.road.ring import RingGeometry, read_ring
 from macromicro_sumo.scenario.ring import Scenario
 from macromicro_sumo.sumo.demand import check_ring_routes
+from macromicro_sumo.sumo.fleet import vtypes_xml
 from macromicro_sumo.sumo.simulation import Driver, Simulation, SumoOptions
+from macromicro_sumo.truth import fleet
 from macromicro_sumo.truth import ring_detectors as detectors
-
-# SUMO rounds a vehicle's speedFactor to 4 decimals; sampling on that grid keeps the
-# recorded parameters exactly the ones SUMO drives with.
-PARAM_DECIMALS = 4
+from macromicro_sumo.truth.fleet import RunSpec
 
 # Peak memory of `simulate` per trajectory row (run x step x vehicle): 245 B measured on
 # 720,000 rows (the per-run frames, their concatenation, macro statistics, CSV writing).
 BYTES_PER_ROW = 256
-
-
-@dataclass(frozen=True)
-class RunSpec:
-    """Everything random about one run, drawn before SUMO starts."""
-
-    run: int
-    sumo_seed: int
-    limits_mps: np.ndarray  # per edge
-    params: pd.DataFrame  # one row per vehicle
-    arc0_m: np.ndarray
-    speed0_mps: np.ndarray
-
-
-def sample_limits(sc: Scenario, n_edges: int, rng: np.random.Generator) -> np.ndarray:
-    lo, hi = sc.speed_limits.range_mps
-    v = rng.uniform(lo, hi, n_edges)
-    step = sc.speed_limits.step_mps
-    if step > 0:
-        v = np.clip(np.round(v / step) * step, lo, hi)
-    return v
-
-
-def sample_initial_arcs(sc: Scenario, length_m: float, rng: np.random.Generator) -> np.ndarray:
-    """Random angular positions: Dirichlet spacings with a floor, random rotation."""
-    n = sc.fleet.n_vehicles
-    floor = sc.initial.min_spacing_m
-    # Spacings = floor + Dirichlet share of the slack: always feasible, no rejection loop.
-    share = rng.dirichlet(np.full(n, sc.initial.spacing_concentration))
-    spacing = floor + share * (length_m - n * floor)
-    arc = rng.uniform(0.0, length_m) + np.concatenate([[0.0], np.cumsum(spacing)[:-1]])
-    return np.mod(arc, length_m)
-
-
-def sample_run(sc: Scenario, geo: RingGeometry, run: int, rng: np.random.Generator) -> RunSpec:
-    f = sc.fleet
-    n = f.n_vehicles
-
-    def draw(pair: tuple[float, float]) -> np.ndarray:
-        return np.round(rng.uniform(pair[0], pair[1], n), PARAM_DECIMALS)
-
-    limits = sample_limits(sc, len(geo.edge_ids), rng)
-    params = pd.DataFrame(
-        {
-            "run": run,
-            "vehicle_id": [f"v{i}" for i in range(n)],
-            "accel_mps2": draw(f.accel_mps2),
-            "decel_mps2": draw(f.decel_mps2),
-            "tau_s": draw(f.tau_s),
-            "min_gap_m": draw(f.min_gap_m),
-            "delta": f.delta,
-            "speed_factor": draw(f.speed_factor),
-            "max_speed_mps": draw(f.max_speed_mps),
-            "length_m": f.length_m,
-        }
-    )
-    arc0 = sample_initial_arcs(sc, geo.length_m, rng)
-    local_limit = limits[geo.edge_index(arc0)]
-    desired = np.minimum(
-        params["max_speed_mps"].to_numpy(), params["speed_factor"].to_numpy() * local_limit
-    )
-    lo, hi = sc.initial.speed_mps
-    # A driver never starts above their own desired speed (SUMO refuses such a departure).
-    speed0 = np.minimum(rng.uniform(lo, hi, n), desired)
-    params["initial_arc_m"] = arc0
-    params["initial_speed_mps"] = speed0
-    return RunSpec(run, int(rng.integers(0, 2**31 - 1)), limits, params, arc0, speed0)
-
-
-def vtypes_xml(params: pd.DataFrame, step_length_s: float) -> str:
-    """One IDM vType per vehicle (delta can only be set in XML, not at run time)."""
-    rows = []
-    for r in params.itertuples():
-        rows.append(
-            f'    <vType id="{r.vehicle_id}" carFollowModel="IDM" accel="{r.accel_mps2:.4f}" '
-            f'decel="{r.decel_mps2:.4f}" emergencyDecel="9" tau="{r.tau_s:.4f}" minGap="{r.min_gap_m:.4f}" '
-            f'delta="{r.delta:g}" speedFactor="{r.speed_factor:.4f}" speedDev="0" '
-            f'maxSpeed="{r.max_speed_mps:.4f}" length="{r.length_m:g}" stepping="{step_length_s:g}"/>'
-        )
-    # stepping = step length: one Euler IDM iteration per step, as the textbook model.
-    return "<additional>\n" + "\n".join(rows) + "\n</additional>\n"
 
 
 @dataclass
@@ -225,8 +143,7 @@ def check_ring(sc: Scenario) -> tuple[RingGeometry, Path, Path]:
 def run_specs(sc: Scenario, geo: RingGeometry) -> list[RunSpec]:
     """Every run's random draws, in run order from ``sc.seed`` (a deployment re-draws
     them identically and picks its runs)."""
-    rng = np.random.default_rng(sc.seed)
-    return [sample_run(sc, geo, r, rng) for r in range(sc.simulation.n_runs)]
+    return fleet.run_specs(sc.fleet_demand, geo, sc.simulation.n_runs, sc.seed)
 
 
 def run_ring(
@@ -322,19 +239,7 @@ def simulate(sc: Scenario, out: Path | str, command: str = "", progress: bool = 
         traj, runs, _ = run_ring(sc, geo, (net_file, routes_file), stage, specs, progress)
         traj_df = pd.concat(traj, ignore_index=True)
         det_df, pas_df, macro_df = ring_detector_tables(sc, geo, stage, specs, traj_df)
-        limits_df = pd.DataFrame(
-            [
-                {
-                    "run": s.run,
-                    "edge_id": e,
-                    "start_m": geo.offsets_m[i],
-                    "end_m": geo.offsets_m[i] + geo.lengths_m[i],
-                    "speed_limit_mps": s.limits_mps[i],
-                }
-                for s in specs
-                for i, e in enumerate(geo.edge_ids)
-            ]
-        )
+        limits_df = fleet.limits_frame(specs, geo)
         runs_df = pd.DataFrame(runs)
         write_csv(traj_df, stage / "trajectories.csv")
         write_csv(pd.concat([s.params for s in specs], ignore_index=True), stage / "vehicles.csv")

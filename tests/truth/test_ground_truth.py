@@ -17,8 +17,10 @@ from macromicro_sumo.road.physics import simulate_idm_ring
 from macromicro_sumo.road.ring import read_ring
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.scenario.ring import Scenario
+from macromicro_sumo.sumo.fleet import vtypes_xml
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
-from macromicro_sumo.truth.ring import record_run, sample_run, simulate, vtypes_xml
+from macromicro_sumo.truth.fleet import sample_run
+from macromicro_sumo.truth.ring import record_run, simulate
 
 L = 2 * math.pi * 100.0  # R = 100 m
 N = 5
