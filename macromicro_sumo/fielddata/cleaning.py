@@ -25,40 +25,12 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from macromicro_sumo.fielddata.schema import MAX_ACCEL_MPS2
 from macromicro_sumo.fielddata.stations import Stations
 from macromicro_sumo.fielddata.trajectories import Trajectories
-from macromicro_sumo.scenario.fields import spec
-
-
-@dataclass(frozen=True, kw_only=True)
-class CleaningConfig:
-    """How field data is cleaned (docs/field-data.md)."""
-
-    smoother: str = spec(
-        "none",
-        choices=("none", "ema"),
-        doc="re-derive speeds and accelerations from positions: 'ema' (Thiemann et al. 2008)",
-    )
-    position_width_s: float = spec(0.5, lo=0.0, hi=60.0, doc="sEMA width T for positions [s]")
-    speed_width_s: float = spec(0.5, lo=0.0, hi=60.0, doc="sEMA width T for speeds [s]")
-    accel_width_s: float = spec(1.0, lo=0.0, hi=60.0, doc="sEMA width T for accelerations [s]")
-    max_accel_mps2: float = spec(
-        MAX_ACCEL_MPS2, lo=0.1, hi=50.0, doc="|a| beyond this is an outlier [m/s^2]"
-    )
-    gap_factor: float = spec(
-        3.0, lo=1.01, hi=1000.0, doc="a step longer than this many sampling periods is a gap"
-    )
-    min_samples: float = spec(
-        0.0, lo=0.0, hi=1e6, doc="station intervals with fewer samples are excluded"
-    )
-    min_observed_pct: float = spec(
-        50.0, lo=0.0, hi=100.0, doc="PeMS: intervals observed less than this [%] are excluded"
-    )
-
+from macromicro_sumo.scenario.data import CLEANING_LAYOUT_DEFAULTS, CleaningConfig
 
 DEFAULT_CLEANING = CleaningConfig()
-NGSIM_CLEANING = CleaningConfig(smoother="ema")
+NGSIM_CLEANING = CleaningConfig(**CLEANING_LAYOUT_DEFAULTS["ngsim"])
 
 
 def sema(t: np.ndarray, x: np.ndarray, width_s: float) -> np.ndarray:

@@ -25,11 +25,11 @@ from macromicro_sumo.fielddata.mapping import (
     lane_position,
     lanes_at,
 )
-from macromicro_sumo.fielddata.schema import FT, SPEED_UNITS
 from macromicro_sumo.fielddata.stations import PEMS_FIXED, PEMS_LANE, PEMS_MAPPING
 from macromicro_sumo.fielddata.trajectories import NGSIM_MAPPING, derive_rates
 from macromicro_sumo.files import write_csv, write_text
 from macromicro_sumo.road.section import Section, lane_leaders
+from macromicro_sumo.scenario.data import FT, SPEED_UNITS
 
 NGSIM_EPOCH_MS = 1_118_846_980_200  # US-101's first Global_Time (2005-06-15 07:49:40.2 PDT)
 PEMS_ORIGIN = "2024-01-01T00:00:00"

@@ -5,8 +5,8 @@ numbers lanes its own way (NGSIM and PeMS count from the median, SUMO from the k
 keeps its own clock. ``TrajectoryMapping`` says how to turn that into the section's
 ``(lane index from the right, arc from the start of the first edge)`` and the truth's
 clock; ``StationMapping`` places each station (detector) at an arc and a lane. Both are
-dataclasses with the scenario's typed fields (``scenario.fields.spec``), so a scenario
-table can carry them with the same one-line errors.
+the scenario's ``[data]`` conventions (``scenario.data``) plus the run a file's rows get,
+so a key is declared once and its errors read as the scenario's.
 """
 
 from __future__ import annotations
@@ -21,78 +21,32 @@ import numpy as np
 import pandas as pd
 
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.fielddata.schema import (
+from macromicro_sumo.fielddata.schema import unit, where
+from macromicro_sumo.road.section import Section
+from macromicro_sumo.scenario.data import (
     ACCEL_UNITS,
     LENGTH_UNITS,
     SPEED_UNITS,
     TIME_UNITS,
-    unit,
-    where,
+    StationConventions,
+    StationPlace,
+    TrajectoryConventions,
 )
-from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.fields import build_table, spec
 
 
 @dataclass(frozen=True, kw_only=True)
-class TrajectoryMapping:
-    """A trajectory file's coordinates, units and clock -> the section's."""
+class TrajectoryMapping(TrajectoryConventions):
+    """A trajectory file's coordinates, units and clock -> the section's, as run ``run``."""
 
-    offset_m: float = spec(0.0, lo=-1e7, hi=1e7, doc="section arc of the file's position 0 [m]")
-    direction: int = spec(
-        1, lo=-1, hi=1, accepted="1 or -1", doc="+1: positions grow along the section; -1: against"
-    )
-    lane_numbering: str = spec(
-        "right", choices=("right", "left"), doc="the file counts lanes from the right or the left"
-    )
-    first_lane: int = spec(0, lo=-100, hi=100, doc="the file's number of its first lane")
-    lane_count: int = spec(
-        0, lo=0, hi=64, doc="lanes counted from the left: road width (0: the section's lanes there)"
-    )
-    length_unit: str = spec("m", choices=tuple(LENGTH_UNITS), doc="unit of positions")
-    speed_unit: str = spec("m/s", choices=tuple(SPEED_UNITS), doc="unit of speeds")
-    accel_unit: str = spec("m/s^2", choices=tuple(ACCEL_UNITS), doc="unit of accelerations")
-    time_unit: str = spec("s", choices=tuple(TIME_UNITS), doc="unit of the file's times")
-    clock_offset_s: float = spec(
-        0.0, lo=-1e13, hi=1e13, doc="added to every time after unit conversion [s]"
-    )
-    frame_rate_hz: float = spec(25.0, lo=0.01, hi=1000.0, doc="frames per second (highD)")
     run: int = spec(0, lo=0, hi=1_000_000, doc="run number the file's rows get (a recording)")
-    vtype: str = spec("observed", doc="vtype of vehicles whose file names none")
 
 
 @dataclass(frozen=True, kw_only=True)
-class StationPlace:
-    """One station (detector) of a station file on the section."""
+class StationMapping(StationConventions):
+    """A station file's stations, lane numbering and clock -> the section's, as run ``run``."""
 
-    id: str = spec(doc="station ID as the file writes it")
-    arc_m: float = spec(lo=-1e7, hi=1e7, doc="section arc of the station [m]")
-    lane: int = spec(
-        -1, lo=-1, hi=63, doc="lane index from the right; -1: the file's own lane numbers"
-    )
-
-
-@dataclass(frozen=True, kw_only=True)
-class StationMapping:
-    """A station file's stations, lane numbering and clock -> the section's."""
-
-    stations: tuple[StationPlace, ...] = ()
-    lane_numbering: str = spec(
-        "right", choices=("right", "left"), doc="the file counts lanes from the right or the left"
-    )
-    first_lane: int = spec(0, lo=-100, hi=100, doc="the file's number of its first lane")
-    lane_count: int = spec(
-        0, lo=0, hi=64, doc="lanes counted from the left: road width (0: the section's lanes there)"
-    )
-    clock_origin: str = spec("", doc="ISO date-time that is t = 0 s of the section's clock")
-    clock_offset_s: float = spec(0.0, lo=-1e13, hi=1e13, doc="added to every time [s]")
-    interval_s: float = spec(0.0, lo=0.0, hi=86400.0, doc="interval length [s] (0: from data)")
     run: int = spec(0, lo=0, hi=1_000_000, doc="run number the file's rows get (a recording)")
-
-    def place(self, station: str) -> StationPlace | None:
-        for s in self.stations:
-            if s.id == station:
-                return s
-        return None
 
 
 def trajectory_mapping(table: dict[str, Any], source: str, **defaults: Any) -> TrajectoryMapping:

@@ -45,18 +45,8 @@ DET_COLUMNS = (
     "length_m",
 )
 
-# Conversion factors to SI (exact by definition of the foot and the mile).
-FT = 0.3048
-MILE = 1609.344
-LENGTH_UNITS = {"m": 1.0, "ft": FT, "km": 1000.0, "mi": MILE}
-SPEED_UNITS = {"m/s": 1.0, "ft/s": FT, "km/h": 1 / 3.6, "mph": MILE / 3600.0}
-ACCEL_UNITS = {"m/s^2": 1.0, "ft/s^2": FT}
-TIME_UNITS = {"s": 1.0, "ms": 1e-3}
-
 # Faster than any road vehicle: a speed above it is a unit declared wrong (ft/s read as m/s).
 MAX_SPEED_MPS = 100.0
-# Harder than any tyre can brake or any car can accelerate: beyond it a sample is an outlier.
-MAX_ACCEL_MPS2 = 10.0
 
 
 def where(path: Path | str, row: int | None, column: str, line: int | None = None) -> str:

@@ -33,7 +33,6 @@ from macromicro_sumo.fielddata.mapping import (
 from macromicro_sumo.fielddata.schema import (
     DET_COLUMNS,
     MAX_SPEED_MPS,
-    SPEED_UNITS,
     check_range,
     numbers,
     read_table,
@@ -42,7 +41,7 @@ from macromicro_sumo.fielddata.schema import (
     where,
 )
 from macromicro_sumo.road.section import Section
-from macromicro_sumo.scenario.fields import spec
+from macromicro_sumo.scenario.data import SPEED_UNITS, STATION_LAYOUT_DEFAULTS, StationColumns
 
 PEMS_FIXED = (
     "Timestamp",
@@ -59,25 +58,8 @@ PEMS_FIXED = (
     "Avg Speed",
 )
 PEMS_LANE = ("Samples", "Flow", "Avg Occ", "Avg Speed", "Observed")
-PEMS_MAPPING = StationMapping(lane_numbering="left", first_lane=1)
+PEMS_MAPPING = StationMapping(**STATION_LAYOUT_DEFAULTS["pems"])
 DEFAULT_MAPPING = StationMapping()
-
-
-@dataclass(frozen=True, kw_only=True)
-class StationColumns:
-    """Column names and units of a generic station CSV ("": the file has no such column)."""
-
-    station: str = spec("station", doc="station ID column")
-    begin: str = spec("begin_s", doc="interval start: seconds or a date-time")
-    end: str = spec("", doc="interval end ('': begin + mapping.interval_s)")
-    lane: str = spec("", doc="lane number column ('': the station's lane, or all lanes)")
-    flow: str = spec("flow", doc="flow column")
-    flow_unit: str = spec("veh/h", choices=("veh/h", "veh"), doc="veh/h, or vehicles per interval")
-    speed: str = spec("speed", doc="mean speed column (empty cell: no vehicle)")
-    speed_unit: str = spec("m/s", choices=tuple(SPEED_UNITS), doc="unit of speeds")
-    occupancy: str = spec("", doc="occupancy column ('': unknown)")
-    occupancy_unit: str = spec("%", choices=("%", "fraction"), doc="percent or fraction 0-1")
-    samples: str = spec("", doc="samples per interval ('': unknown)")
 
 
 DEFAULT_COLUMNS = StationColumns()

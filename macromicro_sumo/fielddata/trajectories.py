@@ -37,35 +37,14 @@ from macromicro_sumo.fielddata.schema import (
     where,
 )
 from macromicro_sumo.road.section import Section
-from macromicro_sumo.scenario.fields import spec
+from macromicro_sumo.scenario.data import TRAJECTORY_LAYOUT_DEFAULTS, TrajectoryColumns
 
-NGSIM_MAPPING = TrajectoryMapping(
-    lane_numbering="left",
-    first_lane=1,
-    length_unit="ft",
-    speed_unit="ft/s",
-    accel_unit="ft/s^2",
-    time_unit="ms",
-)
+NGSIM_MAPPING = TrajectoryMapping(**TRAJECTORY_LAYOUT_DEFAULTS["ngsim"])
 HIGHD_MAPPING = TrajectoryMapping(frame_rate_hz=25.0)
 DEFAULT_MAPPING = TrajectoryMapping()
 NGSIM_CLASSES = {1: "motorcycle", 2: "auto", 3: "truck"}
 # An acceleration this large is no outlier but a unit declared wrong.
 MAX_FILE_ACCEL_MPS2 = 50.0
-
-
-@dataclass(frozen=True, kw_only=True)
-class TrajectoryColumns:
-    """Column names of a generic trajectory CSV ("": the file has no such column)."""
-
-    vehicle_id: str = spec("vehicle_id", doc="vehicle ID column")
-    time: str = spec("time_s", doc="time column (unit: mapping.time_unit)")
-    position: str = spec("position_m", doc="position along the road (mapping.length_unit)")
-    lane: str = spec("lane", doc="lane number (mapping.lane_numbering, first_lane)")
-    speed: str = spec("speed_mps", doc="speed column ('' : derived from positions)")
-    accel: str = spec("accel_mps2", doc="acceleration column ('': derived from speeds)")
-    vtype: str = spec("", doc="vehicle type column ('': mapping.vtype)")
-    length: str = spec("", doc="vehicle length column (mapping.length_unit; '': unknown)")
 
 
 DEFAULT_COLUMNS = TrajectoryColumns()

@@ -9,9 +9,10 @@ from typing import Any
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import refuse_comma
+from macromicro_sumo.scenario.data import build_data
 from macromicro_sumo.scenario.fields import build_table
 from macromicro_sumo.scenario.ring import Scenario, check_consistency
-from macromicro_sumo.scenario.section import SectionScenario, build_data, build_section_scenario
+from macromicro_sumo.scenario.section import SectionScenario, build_section_scenario
 
 
 def read_scenario_toml(path: str | Path) -> tuple[dict[str, Any], dict[str, Any] | None]:

@@ -11,8 +11,7 @@ import pytest
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.fielddata import export
-from macromicro_sumo.fielddata.mapping import StationPlace
-from macromicro_sumo.fielddata.stations import StationColumns, read_generic_stations, read_pems
+from macromicro_sumo.fielddata.stations import read_generic_stations, read_pems
 from macromicro_sumo.fielddata.trajectories import (
     read_fcd,
     read_generic_trajectories,
@@ -20,6 +19,7 @@ from macromicro_sumo.fielddata.trajectories import (
     read_ngsim,
 )
 from macromicro_sumo.road.section import Section
+from macromicro_sumo.scenario.data import StationColumns, StationPlace
 
 
 def _one_line(exc: pytest.ExceptionInfo, path: Path, *parts: str) -> str:

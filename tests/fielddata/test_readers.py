@@ -10,10 +10,9 @@ import pandas as pd
 import pytest
 
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.fielddata.cleaning import CleaningConfig, clean_stations, clean_trajectories
+from macromicro_sumo.fielddata.cleaning import clean_stations, clean_trajectories
 from macromicro_sumo.fielddata.mapping import (
     StationMapping,
-    StationPlace,
     lane_index,
     lane_number,
     lane_position,
@@ -22,8 +21,9 @@ from macromicro_sumo.fielddata.mapping import (
 )
 from macromicro_sumo.fielddata.report import write_data_report
 from macromicro_sumo.fielddata.stations import read_pems, read_sumo_detectors
-from macromicro_sumo.fielddata.trajectories import TrajectoryColumns, read_generic_trajectories
+from macromicro_sumo.fielddata.trajectories import read_generic_trajectories
 from macromicro_sumo.road.section import Section
+from macromicro_sumo.scenario.data import CleaningConfig, StationPlace, TrajectoryColumns
 
 
 def test_lane_numbering_round_trips() -> None:

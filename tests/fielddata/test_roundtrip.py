@@ -20,7 +20,6 @@ from macromicro_sumo.fielddata import export
 from macromicro_sumo.fielddata.cleaning import NGSIM_CLEANING, clean_trajectories
 from macromicro_sumo.fielddata.schema import DET_COLUMNS, TRAJ_COLUMNS
 from macromicro_sumo.fielddata.stations import (
-    StationColumns,
     read_generic_stations,
     read_pems,
     read_sumo_detectors,
@@ -32,6 +31,7 @@ from macromicro_sumo.fielddata.trajectories import (
     read_ngsim,
 )
 from macromicro_sumo.road.section import Section
+from macromicro_sumo.scenario.data import StationColumns
 
 POSITION_TOL_M = 0.05
 NGSIM_SPEED_RMSE = 0.30  # measured 0.24-0.25 m/s

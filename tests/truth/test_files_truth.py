@@ -26,13 +26,16 @@ from macromicro_sumo.cli import main
 from macromicro_sumo.data.section import PSI_FIELDS, section_snapshots
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.section import micro_pairs
-from macromicro_sumo.fielddata.cleaning import NGSIM_CLEANING, CleaningConfig
-from macromicro_sumo.fielddata.mapping import StationMapping, StationPlace, TrajectoryMapping
-from macromicro_sumo.fielddata.schema import ACCEL_UNITS, LENGTH_UNITS, SPEED_UNITS, TIME_UNITS
-from macromicro_sumo.fielddata.stations import PEMS_MAPPING, StationColumns
-from macromicro_sumo.fielddata.trajectories import NGSIM_MAPPING, TrajectoryColumns
+from macromicro_sumo.fielddata.cleaning import NGSIM_CLEANING
+from macromicro_sumo.fielddata.stations import PEMS_MAPPING
+from macromicro_sumo.fielddata.trajectories import NGSIM_MAPPING
 from macromicro_sumo.road.section import Section
-from macromicro_sumo.scenario import section as scen
+from macromicro_sumo.scenario.data import (
+    CleaningConfig,
+    StationConventions,
+    TrajectoryConventions,
+    build_data,
+)
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.netgen import random_corridor
 from macromicro_sumo.truth.files import (
@@ -153,43 +156,18 @@ def test_generator_stage_runs_on_files(pair: dict, tmp_path: Path) -> None:
 # --------------------------------------------------------------------------- scenario keys
 
 
-def _fields(cls: type) -> dict[str, dataclasses.Field]:
-    return {f.name: f for f in dataclasses.fields(cls)}
-
-
-@pytest.mark.parametrize(
-    ("ours", "theirs", "skip"),
-    [
-        (scen.TrajectoryDataConfig, TrajectoryMapping, {"run"}),
-        (scen.TrajectoryColumnsConfig, TrajectoryColumns, set()),
-        (scen.StationDataConfig, StationMapping, {"run", "stations"}),
-        (scen.StationPlaceConfig, StationPlace, set()),
-        (scen.StationColumnsConfig, StationColumns, set()),
-        (scen.CleaningDataConfig, CleaningConfig, set()),
-    ],
-)
-def test_scenario_keys_mirror_fielddata(ours: type, theirs: type, skip: set) -> None:
-    """The scenario declares fielddata's keys (it ranks below fielddata): same names,
-    defaults, ranges and choices."""
-    mine, other = _fields(ours), _fields(theirs)
-    for name, f in other.items():
-        if name in skip:
-            continue
-        assert name in mine, name
-        g = mine[name]
-        assert g.default == f.default, name
-        assert g.metadata.get("range") == f.metadata.get("range"), name
-        assert tuple(g.metadata.get("choices") or ()) == tuple(f.metadata.get("choices") or ())
-
-
-def test_layout_conventions_match_fielddata() -> None:
-    assert tuple(LENGTH_UNITS) == scen.LENGTH_UNITS and tuple(SPEED_UNITS) == scen.SPEED_UNITS
-    assert tuple(ACCEL_UNITS) == scen.ACCEL_UNITS and tuple(TIME_UNITS) == scen.TIME_UNITS
-    for key, value in scen.TRAJECTORY_LAYOUT_DEFAULTS["ngsim"].items():
-        assert getattr(NGSIM_MAPPING, key) == value, key
-    for key, value in scen.STATION_LAYOUT_DEFAULTS["pems"].items():
-        assert getattr(PEMS_MAPPING, key) == value, key
-    assert scen.CLEANING_LAYOUT_DEFAULTS["ngsim"] == {"smoother": NGSIM_CLEANING.smoother}
+def test_layout_conventions_are_the_readers_defaults() -> None:
+    """A scenario naming a layout holds the conventions its reader defaults to (NGSIM:
+    feet, milliseconds, lanes from the left, sEMA cleaning; PeMS: lanes from the left)."""
+    data = build_data(
+        {"trajectories": {"layout": "ngsim"}, "stations": {"layout": "pems"}}, "s.toml"
+    )
+    for f in dataclasses.fields(TrajectoryConventions):
+        assert getattr(data.trajectories, f.name) == getattr(NGSIM_MAPPING, f.name), f.name
+    for f in dataclasses.fields(StationConventions):
+        assert getattr(data.stations, f.name) == getattr(PEMS_MAPPING, f.name), f.name
+    assert data.cleaning == NGSIM_CLEANING != CleaningConfig()
+    assert NGSIM_MAPPING.length_unit == "ft" and PEMS_MAPPING.lane_numbering == "left"
 
 
 def test_files_scenario_holds_the_layouts_conventions(pair: dict) -> None:
