@@ -15,6 +15,12 @@ from typing import Any
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.scenario.data import DataConfig, build_data, check_data
 from macromicro_sumo.scenario.fields import ScenarioFile, build_table, spec
+from macromicro_sumo.scenario.fleet import (
+    FleetConfig,
+    InitialConfig,
+    SpeedLimitConfig,
+    check_fleet_tables,
+)
 from macromicro_sumo.scenario.stages import (
     DeployConfig,
     EvaluationConfig,
@@ -132,6 +138,11 @@ class SectionScenario(ScenarioFile):
     evaluation: EvaluationConfig = spec(EvaluationConfig())
     deploy: DeployConfig = spec(DeployConfig())
     data: DataConfig = spec(DataConfig())
+    # The ring's demand source on a closed one-lane section (scenario/fleet.py); absent:
+    # the user's route files are the demand.
+    fleet: FleetConfig | None = spec(None, doc="the heterogeneous IDM fleet as the demand")
+    speed_limits: SpeedLimitConfig | None = spec(None, doc="per-edge limits drawn per run")
+    initial: InitialConfig | None = spec(None, doc="the fleet's initial state per run")
     source: str = field(default="", compare=False)
 
 
@@ -149,6 +160,7 @@ def _check(sc: SectionScenario, file: str) -> None:
     """Cross-field checks that no single range can express."""
     check_deploy(sc.deploy, file)
     check_data(sc.data, sc.resolve, sc.generator.k_source, file)
+    check_fleet_tables(sc, file)
     net = sc.network
     if not net.sumocfg and not net.net_file:
         raise UserError(f"{file}: [network] needs sumocfg or net_file (kind = 'sumo')")
