@@ -59,7 +59,8 @@ class ScenarioFile:
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
         d.pop("source")
-        return d
+        # An absent optional table is left out: a scenario without one keeps its digest.
+        return {k: v for k, v in d.items() if v is not None}
 
     def digest(self) -> str:
         """SHA-256 of the scenario as loaded (not of the file's bytes or comments)."""

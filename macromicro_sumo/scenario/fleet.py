@@ -10,6 +10,7 @@ writes the vehicle types, ``truth/section.py`` inserts and records).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.scenario.fields import Pair, spec
@@ -87,4 +88,28 @@ def check_fleet(demand: FleetDemand, length_m: float, road: str, file: str) -> N
         raise UserError(
             f"{file}: initial.min_spacing_m = {init.min_spacing_m:g} < vehicle length "
             f"{f.length_m:g}; accepted >= {f.length_m:g}"
+        )
+
+
+def fleet_demand(sc: Any) -> FleetDemand | None:
+    """A section scenario's fleet demand source, or None where its demand is the user's
+    route files (the three tables are all there or all absent: ``check_fleet_tables``)."""
+    if getattr(sc, "fleet", None) is None:
+        return None
+    return FleetDemand(sc.fleet, sc.speed_limits, sc.initial)
+
+
+def check_fleet_tables(sc: Any, file: str) -> None:
+    """A section scenario has the three fleet tables together or none, and a fleet demand
+    replaces the user's route files (their vehicles would drive among the fleet)."""
+    have = [t for t in FLEET_TABLES if getattr(sc, t) is not None]
+    if have and len(have) != len(FLEET_TABLES):
+        lacking = ", ".join(f"[{t}]" for t in FLEET_TABLES if t not in have)
+        raise UserError(
+            f"{file}: a fleet demand needs [fleet], [speed_limits] and [initial]; missing {lacking}"
+        )
+    if have and (sc.network.route_files or sc.network.sumocfg):
+        raise UserError(
+            f"{file}: [fleet] is the demand: network.route_files and network.sumocfg are not "
+            "accepted with it; accepted: net_file (and additional_files)"
         )

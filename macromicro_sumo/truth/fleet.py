@@ -10,6 +10,7 @@ so that a deployment re-draws a run's demand identically. ``truth/ring.py`` and
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -17,7 +18,10 @@ import pandas as pd
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.ring import RingGeometry
 from macromicro_sumo.road.section import Section
-from macromicro_sumo.scenario.fleet import FleetDemand
+from macromicro_sumo.scenario.fleet import FleetDemand, check_fleet
+from macromicro_sumo.sumo.demand import VType
+from macromicro_sumo.sumo.fleet import loop_laps, loop_routes_xml, vtypes_xml
+from macromicro_sumo.sumo.simulation import Simulation
 
 # SUMO rounds a vehicle's speedFactor to 4 decimals; sampling on that grid keeps the
 # recorded parameters exactly the ones SUMO drives with.
@@ -143,3 +147,70 @@ def section_ring(section: Section, where: str) -> RingGeometry:
         )
     lanes = tuple(ids[0] for ids in section.edge_lane_ids)
     return RingGeometry(section.edge_ids, lanes, section.offsets_m.copy(), section.lengths_m.copy())
+
+
+# --------------------------------------------------------------------------- a section's fleet
+
+
+def fleet_vtypes(demand: FleetDemand, geo: RingGeometry, where: str) -> dict[str, VType]:
+    """The fleet's vehicle types as the section stages see them (one per vehicle, named
+    as it): length and the smallest jam distance the draws can give; checks the fit."""
+    check_fleet(demand, geo.length_m, "section", where)
+    f = demand.fleet
+    return {f"v{i}": VType(f"v{i}", f.length_m, f.min_gap_m[0], "IDM") for i in range(f.n_vehicles)}
+
+
+def write_fleet_inputs(
+    run_dir: Path, spec: RunSpec, geo: RingGeometry, demand: FleetDemand, dt_s: float, span_s: float
+) -> tuple[Path, Path]:
+    """(vTypes, routes) additional files of one run of a fleet on a closed section, with
+    routes long enough for ``span_s`` seconds at the fleet's top speed."""
+    vtypes, routes = run_dir / "fleet_vtypes.add.xml", run_dir / "fleet_routes.add.xml"
+    vtypes.write_text(vtypes_xml(spec.params, dt_s))
+    laps = loop_laps(geo.length_m, demand.top_speed_mps(), span_s)
+    routes.write_text(loop_routes_xml(geo.edge_ids, laps))
+    return vtypes, routes
+
+
+def insert_fleet(sim: Simulation, spec: RunSpec, geo: RingGeometry, route_prefix: str) -> None:
+    """Set the run's limits and queue every vehicle at its drawn arc and speed, on the
+    route ``<route_prefix><edge>`` of its start edge (inserted by the next step)."""
+    ids = list(spec.params["vehicle_id"])
+    edges, pos = zip(*(geo.to_edge(a) for a in spec.arc0_m), strict=True)
+    sim.set_lane_speed_limits(geo.lane_ids, spec.limits_mps)
+    routes = [f"{route_prefix}{geo.edge_ids[e]}" for e in edges]
+    sim.add_vehicles(ids, routes, ids, pos, spec.speed0_mps)
+
+
+def insertion_error(
+    spec: RunSpec, geo: RingGeometry, arc_m: np.ndarray, speed_mps: np.ndarray
+) -> tuple[float, float]:
+    """(largest arc error [m], largest speed error [m/s]) of the inserted vehicles against
+    their draws; ``arc_m``/``speed_mps`` in the order of ``spec.params``."""
+    half = geo.length_m / 2
+    err = np.abs(np.mod(arc_m - spec.arc0_m + half, geo.length_m) - half)
+    return float(err.max()), float(np.abs(speed_mps - spec.speed0_mps).max())
+
+
+def check_fleet_inserted(sim: Simulation, spec: RunSpec, geo: RingGeometry) -> None:
+    """After the insertion step: every vehicle is on the road where and as fast as drawn
+    (SUMO would otherwise silently delay or move a departure)."""
+    ids = list(spec.params["vehicle_id"])
+    st = sim.vehicle_states()
+    missing = [v for v in ids if v not in st.index]
+    if sim.pending_vehicles() or missing:
+        raise UserError(
+            f"run {spec.run}: SUMO did not insert every vehicle (missing: {missing[:5]})"
+        )
+    lane = {lane: i for i, lane in enumerate(geo.lane_ids)}
+    rows = [st.index[v] for v in ids]
+    on = [lane.get(st.lanes[r], -1) for r in rows]
+    if min(on) < 0:
+        raise UserError(f"run {spec.run}: an inserted vehicle is off the section")
+    arc = geo.offsets_m[np.array(on)] + st.pos_m[rows]
+    arc_err, speed_err = insertion_error(spec, geo, arc, st.speed_mps[rows])
+    if arc_err > 0.01 or speed_err > 0.01:
+        raise UserError(
+            f"run {spec.run}: inserted vehicles are off their sampled state by {arc_err:.3f} m, "
+            f"{speed_err:.3f} m/s"
+        )

@@ -65,9 +65,7 @@ def record_run(
     ``driver`` (a deployment) acts before every step after the insertion; None: SUMO
     drives every vehicle with its own IDM."""
     ids = list(spec.params["vehicle_id"])
-    edges, pos = zip(*(geo.to_edge(a) for a in spec.arc0_m), strict=True)
-    sim.set_lane_speed_limits(geo.lane_ids, spec.limits_mps)
-    sim.add_vehicles(ids, [f"r_{geo.edge_ids[e]}" for e in edges], ids, pos, spec.speed0_mps)
+    fleet.insert_fleet(sim, spec, geo, "r_")  # the routes r_<edge> of network.routes_file
     t0 = time.perf_counter()
     sim.step()
     if sim.pending_vehicles() or len(sim.vehicle_ids()) != len(ids):
@@ -93,10 +91,10 @@ def record_run(
         collisions += sim.collisions()
         teleports += sim.teleports()
     wall = time.perf_counter() - t0
-    err = np.abs(np.mod(arc[0] - spec.arc0_m + geo.length_m / 2, geo.length_m) - geo.length_m / 2)
-    if err.max() > 0.01 or np.abs(speed[0] - spec.speed0_mps).max() > 0.01:
+    arc_err, speed_err = fleet.insertion_error(spec, geo, arc[0], speed[0])
+    if arc_err > 0.01 or speed_err > 0.01:
         raise UserError(
-            f"run {spec.run}: inserted vehicles are off their sampled state by {err.max():.3f} m"
+            f"run {spec.run}: inserted vehicles are off their sampled state by {arc_err:.3f} m"
         )
     return RunRecord(np.mod(arc, geo.length_m), speed, collisions, teleports, wall, time0)
 

@@ -42,11 +42,15 @@ from macromicro_sumo.files import (
 )
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.progress import tqdm
+from macromicro_sumo.road.ring import RingGeometry
 from macromicro_sumo.road.section import Section, read_section
+from macromicro_sumo.scenario.fleet import fleet_demand
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.demand import VType, check_demand, check_vehicle_ids
+from macromicro_sumo.sumo.fleet import FLEET_ROUTE_PREFIX
 from macromicro_sumo.sumo.inputs import SumoInputs, read_net, scenario_inputs
 from macromicro_sumo.sumo.simulation import Driver, Simulation, SumoOptions
+from macromicro_sumo.truth import fleet
 from macromicro_sumo.truth.files import truth_from_files
 from macromicro_sumo.truth.section_detectors import (
     detectors_xml,
@@ -68,16 +72,35 @@ CONGESTED_SHARE = 0.10  # of all loop intervals, for the input-output counts to 
 def load_section(sc: SectionScenario) -> tuple[SumoInputs, Section, dict[str, VType]]:
     """Inputs, the section and the vehicle types, every check done before SUMO starts."""
     inputs = scenario_inputs(sc)
-    net = read_net(inputs.net_file)
-    vtypes = check_demand(inputs, net)
     section = read_section(inputs.net_file, list(sc.section.edges), sc.section.closed, sc.source)
+    demand = fleet_demand(sc)
+    if demand is None:
+        vtypes = check_demand(inputs, read_net(inputs.net_file))
+    else:  # the fleet's vehicles, each its own vType named as it
+        vtypes = fleet.fleet_vtypes(demand, fleet.section_ring(section, sc.source), sc.source)
     if sc.instrumented.vtype and sc.instrumented.vtype not in vtypes:
         raise UserError(
             f"{sc.source}: instrumented.vtype = {sc.instrumented.vtype!r} is not a vType of the "
             f"demand; accepted: one of {', '.join(sorted(vtypes))}"
         )
-    check_vehicle_ids(inputs, sc.instrumented.ids, f"{sc.source}: instrumented.ids")
+    if demand is None:
+        check_vehicle_ids(inputs, sc.instrumented.ids, f"{sc.source}: instrumented.ids")
+    elif set(sc.instrumented.ids) - set(vtypes):
+        raise UserError(
+            f"{sc.source}: instrumented.ids names {sorted(set(sc.instrumented.ids) - set(vtypes))}"
+            f"; the fleet's vehicles are v0 .. v{len(vtypes) - 1}"
+        )
     return inputs, section, vtypes
+
+
+def fleet_specs(sc: SectionScenario, section: Section) -> tuple[RingGeometry, list[fleet.RunSpec]]:
+    """A fleet scenario's ring and every run's draws, in run order from ``sc.seed``: the
+    ring truth's draws for the same seed and tables."""
+    demand = fleet_demand(sc)
+    if demand is None:
+        raise UserError(f"{sc.source}: no [fleet] table: the demand is the route files")
+    geo = fleet.section_ring(section, sc.source)
+    return geo, fleet.run_specs(demand, geo, sc.simulation.n_runs, sc.seed)
 
 
 # --------------------------------------------------------------------------- runs
@@ -112,10 +135,18 @@ def check_run_memory(sc: SectionScenario, rows_per_run: float, run: int) -> None
 
 
 def record_run(
-    sim: Simulation, sc: SectionScenario, section: Section, run: int, driver: Driver | None = None
+    sim: Simulation,
+    sc: SectionScenario,
+    section: Section,
+    run: int,
+    driver: Driver | None = None,
+    fleet_run: tuple[fleet.RunSpec, RingGeometry] | None = None,
 ) -> tuple[pd.DataFrame, dict[str, int]]:
     """Step one run; rows of every vehicle on the section after the warm-up. ``driver``
-    (a deployment) acts before every step; None: SUMO drives every vehicle."""
+    (a deployment) acts before every step; None: SUMO drives every vehicle. ``fleet_run``:
+    the run's fleet draws, inserted before the first step and checked after it."""
+    if fleet_run is not None:
+        fleet.insert_fleet(sim, *fleet_run, FLEET_ROUTE_PREFIX)
     dt = sc.simulation.step_length_s
     n_warm = int(round(sc.simulation.warmup_s / dt))
     n_rec = int(round(sc.simulation.duration_s / dt))
@@ -143,6 +174,8 @@ def record_run(
             observed[vid] = is_instrumented(sc, vid, types[vid], run)
         collisions += sim.collisions()
         teleports += sim.teleports()
+        if step == 0 and fleet_run is not None:
+            fleet.check_fleet_inserted(sim, *fleet_run)
         if step < n_warm:
             continue
         if (step - n_warm + 1) % MEMORY_CHECK_STEPS == 0:
@@ -166,6 +199,12 @@ def record_run(
     df.insert(3, "vtype", df["vehicle_id"].map(types))
     df.insert(4, "observed", df["vehicle_id"].map(observed).astype(bool))
     df = df.sort_values(["time_s", "lane_index", "arc_m"], kind="stable").reset_index(drop=True)
+    if fleet_run is not None and len(df) != n_rec * len(fleet_run[0].params):
+        # A closed road keeps its fleet: a vehicle missing from a step left the road.
+        raise UserError(
+            f"run {run}: {len(df)} recorded rows, expected {n_rec} steps x "
+            f"{len(fleet_run[0].params)} vehicles (a fleet vehicle left the section)"
+        )
     stats = {
         "vehicles_seen": int(df["vehicle_id"].nunique()),
         "observed": int(df.loc[df["observed"], "vehicle_id"].nunique()),
@@ -192,6 +231,9 @@ def run_section(
     drives in that run besides SUMO (a deployment)."""
     trajs, rows = [], []
     vclass: dict[str, str] = {}
+    demand = fleet_demand(sc)
+    if demand is not None:
+        geo, specs = fleet_specs(sc, section)
     sim: Simulation | None = None
     try:
         for run in tqdm(runs, desc=desc, unit="run", disable=not progress):
@@ -205,6 +247,13 @@ def run_section(
                 for i, p in enumerate(inputs.additional_files)
             )
             seed = sc.seed + run
+            fleet_run = None
+            if demand is not None:  # the fleet's own seed and files; placed exactly
+                fleet_run = (specs[run], geo)
+                seed = specs[run].sumo_seed
+                span_s = sc.simulation.warmup_s + sc.simulation.duration_s
+                dt = sc.simulation.step_length_s
+                adds += fleet.write_fleet_inputs(run_dir, specs[run], geo, demand, dt, span_s)
             opts = SumoOptions(
                 inputs.net_file,
                 (*adds, run_dir / "detectors.add.xml"),
@@ -212,11 +261,11 @@ def run_section(
                 seed,
                 error_log=run_dir / "sumo.log",
                 route_files=inputs.route_files,
-                user_demand=True,
+                user_demand=demand is None,
             )
             sim = Simulation(opts)
             driver = driver_for(run) if driver_for is not None else None
-            df, stats = record_run(sim, sc, section, run, driver)
+            df, stats = record_run(sim, sc, section, run, driver, fleet_run)
             trajs.append(df)
             check_run_memory(sc, sum(len(d) for d in trajs) / len(trajs), run)
             vclass.update(stats.pop("vclass"))
@@ -317,6 +366,12 @@ def simulate_section(
         write_csv(pd.concat([det_macro, tr_macro], ignore_index=True), stage / "macro.csv")
         write_csv(k_df, stage / "k_estimate.csv")
         write_csv(pd.DataFrame(runs), stage / "runs.csv")
+        if fleet_demand(sc) is not None:  # the draws, as the ring truth writes them
+            geo, specs = fleet_specs(sc, section)
+            write_csv(
+                pd.concat([s.params for s in specs], ignore_index=True), stage / "vehicles.csv"
+            )
+            write_csv(fleet.limits_frame(specs, geo), stage / "speed_limits.csv")
         manifest = build_manifest(sc, command, stage="simulate")
         manifest.update(
             section_length_m=section.length_m,
