@@ -9,8 +9,12 @@
   so they travel in the checkpoint's state_dict.
 * ``prior`` (``policy.prior``): "none", the mean is the actor's output; "idm", the mean is
   a fixed, fitted IDM's acceleration on the raw observation plus the actor's output (a
-  residual; ``policy.prior``), the IDM's parameters a buffer too. ``mean_action`` is that
-  mean; everything that acts or scores goes through it (``dist``).
+  residual; ``policy.prior``), the IDM's parameters a buffer too. The residual is bounded,
+  B tanh(out / B) with B = ``policy.residual_bound_mps2`` (a buffer; checkpoints from before
+  it have none and load unbounded, as they were trained): unbounded, it learned to cancel
+  the IDM (Bremen, 40 m/s: IDM -9, residual +8.5 m/s^2), so the policy lost the IDM's
+  spacing response it was meant to keep. ``mean_action`` is that mean; everything that
+  acts or scores goes through it (``dist``).
 
 Training is ``policy.ppo``, checkpoints ``policy.checkpoint``.
 """
@@ -42,10 +46,13 @@ class Agent(nn.Module):
         shift_scale: tuple[np.ndarray, np.ndarray] | None = None,
         prior: str = "none",
         prior_params: Mapping[str, float] | None = None,
+        residual_bound_mps2: float = float("inf"),
     ) -> None:
         """``shift_scale``: the observation normalisation (None: the ring's OBS_SHIFT_SCALE).
         ``prior_params`` (``policy.prior.idm_prior_params``) for ``prior`` "idm"; None
-        leaves them NaN, for a checkpoint's state_dict to fill."""
+        leaves them NaN, for a checkpoint's state_dict to fill. ``residual_bound_mps2``:
+        the largest correction [m/s^2] the actor adds to the prior (inf: unbounded; 0: the
+        prior alone)."""
         super().__init__()
         if prior not in PRIORS:
             raise UserError(f"policy.prior = {prior!r}: expected one of {', '.join(PRIORS)}")
@@ -82,6 +89,9 @@ class Agent(nn.Module):
             if prior_params is not None:
                 values = [float(prior_params[k]) for k in IDM_PRIOR_KEYS]
             self.register_buffer("idm_prior", torch.tensor(values, dtype=torch.float32))
+            self.register_buffer(
+                "residual_bound", torch.tensor(float(residual_bound_mps2), dtype=torch.float32)
+            )
             # The residual starts at 0: training starts from the calibrated IDM, and the
             # likelihood moves it only where the observed pairs disagree with the IDM.
             last = self.actor[-1]
@@ -95,8 +105,21 @@ class Agent(nn.Module):
         mean = self.actor((obs - self.shift) / self.scale).squeeze(-1)
         if self.prior == "idm":
             p = dict(zip(IDM_PRIOR_KEYS, self.idm_prior.unbind(), strict=True))
+            bound = self.residual_bound
+            if bound <= 0.0:  # the fitted prior alone (an ablation)
+                mean = torch.zeros_like(mean)
+            elif torch.isfinite(bound):
+                # Slope 1 at 0: the zero-initialised residual learns as an unbounded one would.
+                mean = bound * torch.tanh(mean / bound)
             mean = mean + idm_prior_accel(obs, p)
         return mean
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
+        # Residual policies trained before the bound had none: they load unbounded.
+        key = prefix + "residual_bound"
+        if self.prior == "idm" and key not in state_dict:
+            state_dict[key] = torch.tensor(float("inf"))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def dist(self, obs: torch.Tensor) -> torch.distributions.Normal:
         mean = self.mean_action(obs)

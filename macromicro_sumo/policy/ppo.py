@@ -268,7 +268,13 @@ def train_policy(
             shift_scale = bank_shift_scale(initial_observations(sc, core.section, bank))
         torch.manual_seed(sc.seed)
         agent = Agent(
-            cfg.hidden_size, cfg.init_log_std, cfg.observation, shift_scale, cfg.prior, prior_params
+            cfg.hidden_size,
+            cfg.init_log_std,
+            cfg.observation,
+            shift_scale,
+            cfg.prior,
+            prior_params,
+            cfg.residual_bound_mps2,
         )
         if init is not None:
             agent.load_state_dict(init)

@@ -28,6 +28,13 @@ class PolicyConfig:
         "the actor's output as a residual (idm): the IDM reacts to spacing where the observed "
         "pairs rarely show close following",
     )
+    residual_bound_mps2: float = spec(
+        1.0,
+        lo=0.0,
+        hi=1e3,
+        doc="prior idm: the largest correction the actor adds to the IDM [m/s^2] (B tanh(out / B); "
+        "0: the fitted IDM alone); unbounded, the residual learned to cancel the IDM's braking",
+    )
     hidden_train: tuple[int, int] = spec(
         (1, 4), lo=1, hi=10_000, doc="K range of training episodes"
     )

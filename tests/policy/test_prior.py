@@ -149,3 +149,41 @@ def test_a_prior_mismatch_is_a_one_line_error(ring, trained, tmp_path):
     # The prior's parameters come from the stage's fit: none is an error, not a NaN policy.
     with pytest.raises(UserError, match="needs its fitted parameters"):
         train_policy(sc, bank, tmp_path, progress=False, updates=1)
+
+
+@pytest.mark.parametrize("bound", [0.0, 0.5, 1.0])
+def test_the_residual_stays_within_its_bound(bound):
+    """Whatever the actor outputs, the mean is within +-B of the IDM (B = 0: the IDM itself);
+    near 0 the bounded residual is the actor's output (tanh's slope 1)."""
+    params = idm_prior_params(PARAMS.as_dict(), LENGTH_M)
+    torch.manual_seed(0)
+    agent = Agent(
+        16, observation="lookahead", prior="idm", prior_params=params, residual_bound_mps2=bound
+    )
+    last = agent.actor[-1]
+    obs = torch.as_tensor(_obs(2000, 6, seed=2))
+    idm = torch.as_tensor(idm_policy_accel(obs.numpy().astype(np.float64), PARAMS, LENGTH_M))
+    with torch.no_grad():
+        torch.nn.init.normal_(last.weight, std=30.0)  # outputs of several m/s^2 and more
+        out = agent.actor((obs - agent.shift) / agent.scale).squeeze(-1)
+        resid = agent.mean_action(obs).double() - idm
+        assert out.abs().max() > 3.0 * max(bound, 1.0)
+        assert resid.abs().max() <= bound + 1e-3
+        if bound > 0:
+            assert resid.abs().max() > 0.9 * bound  # the bound binds, not a zero residual
+            last.weight.mul_(1e-4)
+            small = agent.actor((obs - agent.shift) / agent.scale).squeeze(-1)
+            resid = agent.mean_action(obs).double() - idm
+            torch.testing.assert_close(resid, small.double(), rtol=1e-2, atol=2e-3)
+
+
+def test_a_checkpoint_without_the_bound_loads_unbounded(ring, trained, tmp_path):
+    """Residual policies trained before the bound had none: they load as they were trained."""
+    sc, _, _ = ring
+    _, out = trained
+    payload = torch.load(out / "policy.pt", weights_only=True)
+    assert float(payload["state_dict"]["residual_bound"]) == sc.policy.residual_bound_mps2
+    del payload["state_dict"]["residual_bound"]
+    torch.save(payload, tmp_path / "policy.pt")
+    agent = load_policy(tmp_path / "policy.pt", sc)
+    assert torch.isinf(agent.residual_bound)
