@@ -267,13 +267,13 @@ class SectionSpeedDriver(SectionDriver):
         self.stats.safety_acted += int((st.speed_mps[rows] < last - SAFETY_TOLERANCE_MPS).sum())
         if self.has_lights is None:
             self.has_lights = sim.has_traffic_lights()
-        obs, gap, lead_decel = self.observe(sim, vids, rows, st)
+        obs, gap, lead_decel, lead = self.observe(sim, vids, rows, st)
         a_min, a_max = self.sc.bounds.accel_mps2
         a = np.clip(self.act(obs), a_min, a_max)
         cmd = np.maximum(0.0, obs[:, 0] + a * self.sc.simulation.step_length_s)
         if self.safety == "sumo":
             own = np.fromiter(map(self.decel_of.__getitem__, vids), float, n)
-            cmd = safety_cap(self, cmd, obs, gap, own, lead_decel)
+            cmd = safety_cap(self, cmd, obs, gap, own, lead_decel, lead)
         sim.set_speeds(vids, cmd)
         self.commands = dict(zip(vids, cmd.tolist(), strict=True))
 
@@ -284,7 +284,7 @@ class SectionSpeedDriver(SectionDriver):
         rows: np.ndarray,
         st: VehicleStates,
         shapes: Table | None = None,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``observe_rows`` of driven vehicles ``vids`` (rows ``rows`` of ``st``): SUMO's
         leaders, lane ends and red lights asked now; ``shapes``: vehicle -> (length,
         minGap, decel) (default: the vTypes of the vehicles this driver saw arrive)."""
@@ -313,25 +313,62 @@ def safety_cap(
     gap: np.ndarray,
     decel: np.ndarray,
     lead_decel: np.ndarray,
+    lead: np.ndarray,
 ) -> np.ndarray:
     """``cmd`` capped at ``safe_speed`` behind each vehicle's observed leader (none within
-    the look-ahead: no cap); counts the capped vehicle-steps in ``safety_acted``."""
-    safe = safe_speed(
-        gap, obs[:, 0] - obs[:, 3], decel, lead_decel, drv.sc.simulation.step_length_s
-    )
+    the look-ahead: no cap), and behind the command of a leader that is driven too
+    (``lead``: its index in ``cmd``, -1: none); counts the capped vehicle-steps in
+    ``safety_acted``."""
+    dt = drv.sc.simulation.step_length_s
+    safe = safe_speed(gap, obs[:, 0] - obs[:, 3], decel, lead_decel, dt)
     safe = np.where(gap < NO_LEADER_GAP_M, safe, np.inf)
-    drv.stats.safety_acted += int((safe < cmd - SAFETY_TOLERANCE_MPS).sum())
-    return np.minimum(cmd, safe)
+    out = behind_commands(np.minimum(cmd, safe), gap, lead, decel, lead_decel, dt)
+    drv.stats.safety_acted += int((out < cmd - SAFETY_TOLERANCE_MPS).sum())
+    return out
+
+
+def behind_commands(
+    cmd: np.ndarray,
+    gap: np.ndarray,
+    lead: np.ndarray,
+    decel: np.ndarray,
+    lead_decel: np.ndarray,
+    dt_s: float,
+) -> np.ndarray:
+    """``cmd`` [m/s] lowered where a driven leader's own command leaves less room than
+    ``safe_speed`` assumed: it assumes the leader brakes at most at its decel, but a
+    command may brake harder (a policy's bound below -decel, or the leader's own cap
+    behind a leader that did). SUMO applies a command within the step (speed modes
+    without the decel bit, checked: speeds after the step equal the commands), so the
+    leader's next speed v_l' is known: from where both are after the step, the follower
+    must stop behind it, ``safe_speed(gap + v_l' dt, v_l')``. A lowered command may in
+    turn brake harder than assumed for its own follower: repeated until none changes
+    (once per vehicle at most; on a ring of driven vehicles the chain may come round)."""
+    has = np.flatnonzero(lead >= 0)
+    if not has.size:
+        return cmd
+    cmd = cmd.copy()
+    room, ahead = np.maximum(gap[has], 0.0), lead[has]
+    b, b_l = decel[has], lead_decel[has]
+    for _ in range(len(has)):
+        v_l = cmd[ahead]
+        alt = safe_speed(room + v_l * dt_s, v_l, b, b_l, dt_s)
+        lower = alt < cmd[has]
+        if not lower.any():
+            break
+        cmd[has[lower]] = alt[lower]
+    return cmd
 
 
 def section_observations(
     drv: SectionSpeedDriver, sim: Simulation, vids: list[str], states: dict
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``SectionSpeedDriver.observe`` of ``vids`` from a {vehicle: (lane ID, lane position,
-    speed, acceleration)} dictionary of the vehicles on the road (the demand env's)."""
+    speed, acceleration)} dictionary of the vehicles on the road (the demand env's): the
+    observations, SUMO's gaps and the leaders' decels."""
     st = states_of(states)
     rows = np.fromiter(map(st.index.__getitem__, vids), np.int64, len(vids))
-    return drv.observe(sim, vids, rows, st, Table.of_rows(drv.shape_of, STANDING))
+    return drv.observe(sim, vids, rows, st, Table.of_rows(drv.shape_of, STANDING))[:3]
 
 
 class SectionTypeDriver(SectionDriver):
@@ -437,7 +474,11 @@ class RingSpeedDriver(RingDriver):
         if self.safety == "sumo":
             leader, _ = ring_leaders(np.mod(arc, self.geo.length_m), self.geo.length_m)
             gap = obs[:, 2] - self.length[leader[m]] - self.min_gap[m]
-            cmd = safety_cap(self, cmd, obs, gap, self.decel[m], self.decel[leader[m]])
+            # Each driven vehicle's leader among the driven (-1: SUMO drives it).
+            driven_index = np.full(len(m), -1)
+            driven_index[m] = np.arange(int(m.sum()))
+            lead = driven_index[leader[m]]
+            cmd = safety_cap(self, cmd, obs, gap, self.decel[m], self.decel[leader[m]], lead)
         self.commands = cmd
         sim.set_speeds(self.driven, self.commands)
 

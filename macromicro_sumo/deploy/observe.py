@@ -59,7 +59,7 @@ def observe_rows(
     leaders: list[tuple[str, float]],
     shapes: Table,
     stop_m: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Observations (V, obs_dim) of driven vehicles ``vids`` (rows ``rows`` of ``st``), as
     the section env defines them, the leader SUMO's (``leaders``: ``Simulation.leaders``):
     front-to-front spacing = SUMO's gap + own minGap + leader's length; ``stop_m``: the
@@ -67,7 +67,9 @@ def observe_rows(
     (inf: none), a standing leader there when nearer than the leader (its back at the
     line, a vehicle length long). ``lanes``: ``section.lanes`` as a ``Table``; ``shapes``:
     vehicle -> (length, minGap, decel), ``STANDING`` where missing.
-    Also returns SUMO's gap to what the vehicle sees ahead and that leader's decel."""
+    Also returns SUMO's gap to what the vehicle sees ahead, that leader's decel, and its
+    index in ``vids`` where it is a driven vehicle (-1: none, not driven, or a standing
+    leader): the safety layer knows a driven leader's next speed, its command."""
     n = len(vids)
     pos, speed = st.pos_m[rows], st.speed_mps[rows]
     where = lanes.of([st.lanes[i] for i in rows.tolist()])
@@ -94,11 +96,14 @@ def observe_rows(
     lead_v = np.where(closer, 0.0, lead_v)
     sumo_gap = np.where(closer, np.maximum(stop_m - min_gap, 0.0), sumo_gap)
     lead_decel = np.where(closer, STOP_DECEL_MPS2, lead_decel)
+    driven = {v: i for i, v in enumerate(vids)}
+    lead_index = np.fromiter(map(driven.get, lead_ids, repeat(-1)), np.int64, n)
+    lead_index = np.where(ok & ~closer, lead_index, -1)
     limit = sec.limits_mps[edge, np.minimum(lane, sec.n_lanes[edge] - 1)]
     cols = [speed, limit, spacing, speed - lead_v]
     if observation == "lookahead":
         cols += list(section_lookahead(sec, lane, arc, edge, limit))
-    return np.stack(cols, axis=1), sumo_gap, lead_decel
+    return np.stack(cols, axis=1), sumo_gap, lead_decel, lead_index
 
 
 def section_lookahead(

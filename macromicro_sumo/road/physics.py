@@ -149,21 +149,28 @@ def safe_speed(
 ) -> np.ndarray:
     """SUMO's Krauss safe speed (Gipps) [m/s] in Euler steps: the fastest speed v from which
     the vehicle, moving one step at v and braking at its decel b after it, stops behind a
-    leader that brakes at its decel b_l from now on:
-    v dt + brake_gap(v, b) <= gap + brake_gap(v_l, b_l) (SUMO's ``maximumSafeFollowSpeed``
-    with ``maximumSafeStopSpeedEuler``, reaction time one step).
+    leader that brakes from now on at its decel b_l or at b, whichever is harder:
+    v dt + brake_gap(v, b) <= gap + brake_gap(v_l, max(b, b_l)) (SUMO's
+    ``maximumSafeFollowSpeed`` with ``maximumSafeStopSpeedEuler``, reaction time one step).
+
+    The leader's distance is taken at max(b, b_l) as SUMO does: with b_l alone, a follower
+    that brakes harder than its leader (b > b_l) may drive faster than the leader at no gap
+    (its shorter stop still ends behind the leader's), and the two trajectories cross
+    before either stops: on the ring a follower with b = 1.43 closed in at 0.25 m/s on a
+    leader with b_l = 1.22 from its minGap to -3.5 m, uncapped (tested).
 
     The continuous form v dt + v^2 / 2b <= gap + v_l^2 / 2b_l (deploy's first definition)
     overstates the leader's braking distance by up to v_l dt / 2 where it brakes hard in
     coarse steps (followers ran into it; tested); the leader's Euler distance beside the
     follower's continuous one would understate the room by as much and cap a follower one
     step behind a leader of its speed and decel, where both forms agree on v = v_l.
-    The condition is on where both stop; with b_l >= b it holds on the way too (a follower
-    faster than its leader stays faster until it stops, so the gap only shrinks), with
-    b_l < b a much faster follower can run into the leader before it stops. ``gap_m`` is
-    the bumper-to-bumper gap; a negative one counts as 0. Never negative.
+    The condition is on where both stop; with the leader braking at least as hard as the
+    follower it holds on the way too (a follower faster than its leader stays faster until
+    it stops, so the gap only shrinks). ``gap_m`` is the bumper-to-bumper gap; a negative
+    one counts as 0. Never negative.
     """
-    room = np.maximum(gap_m, 0.0) + brake_gap(leader_speed_mps, leader_decel_mps2, dt_s)
+    lead_b = np.maximum(decel_mps2, leader_decel_mps2)
+    room = np.maximum(gap_m, 0.0) + brake_gap(leader_speed_mps, lead_b, dt_s)
     # v dt + brake_gap(v, b) is piecewise linear in v, (n + 1) v dt - b dt^2 n (n + 1) / 2
     # with n = floor(v / b dt), and b dt^2 n (n + 1) / 2 at v = n b dt: invert it piece-wise.
     bdt2 = np.multiply(decel_mps2, dt_s**2)

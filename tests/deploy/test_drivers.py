@@ -53,7 +53,7 @@ class Recording(SectionSpeedDriver):
         # The dictionary form (the demand env's) sees what the driver's own arrays give.
         obs, _, _ = section_observations(self, sim, vids, states)
         rows = np.array([st.index[v] for v in vids])
-        own, _, _ = self.observe(sim, vids, rows, st)
+        own = self.observe(sim, vids, rows, st)[0]
         np.testing.assert_array_equal(obs, own)
         self.seen.append((vids, obs, states))
         super().drive(sim, vids, st)

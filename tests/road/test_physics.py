@@ -250,15 +250,16 @@ def test_safe_speed_counts_a_negative_gap_as_none_and_takes_per_vehicle_decels()
 
 def test_following_at_the_safe_speed_never_collides_when_the_leader_brakes():
     """Euler steps as SUMO's (v' commanded, x' = x + v' dt): a follower that takes the safe
-    speed, then brakes at b, stops behind a leader that brakes at b_l >= b from the same
-    moment, for random gaps and speeds (with b_l < b a much faster follower can close in
-    on the way and stop behind the leader's stop only: the tested bound needs b_l >= b)."""
+    speed, then brakes at b, stops behind a leader that brakes at b_l from the same moment,
+    for random gaps and speeds, whichever of the two brakes harder (with the leader's
+    distance at b_l alone, a follower with b > b_l ran up to 37 m into its leader here)."""
     rng = np.random.default_rng(0)
     n, dt = 2000, 0.5
     gap = rng.uniform(0.0, 30.0, n)
     v_l = rng.uniform(0.0, 15.0, n)
     b = rng.uniform(1.0, 6.0, n)
-    b_l = b * rng.uniform(1.0, 3.0, n)
+    b_l = b * rng.uniform(0.3, 3.0, n)
+    assert (b_l < b).sum() > 200
     v = safe_speed(gap, v_l, b, b_l, dt)
     for _ in range(200):
         v_l = np.maximum(v_l - b_l * dt, 0.0)
@@ -266,3 +267,26 @@ def test_following_at_the_safe_speed_never_collides_when_the_leader_brakes():
         assert gap.min() > -1e-9
         v = np.maximum(v - b * dt, 0.0)
     assert np.all(v == 0.0) and np.all(v_l == 0.0)
+
+
+def test_a_follower_capped_at_the_safe_speed_never_collides_nor_brakes_beyond_its_decel():
+    """Closed loop: a follower that always asks for full acceleration, capped at the safe
+    speed every step, behind a leader taking random accelerations within [-b_l, 2] m/s^2,
+    for any ratio of the two decels: the gap never goes below zero, and the cap never asks
+    the follower to brake harder than its own b (Krauss' invariant: it is never caught
+    out), so a layer of such caps does not pass hard braking on to the next follower."""
+    rng = np.random.default_rng(1)
+    n, dt = 2000, 0.5
+    gap = rng.uniform(0.0, 30.0, n)
+    v_l = rng.uniform(0.0, 15.0, n)
+    b = rng.uniform(1.0, 6.0, n)
+    b_l = b * rng.uniform(0.3, 3.0, n)
+    v = np.minimum(v_l, safe_speed(gap, v_l, b, b_l, dt))
+    for _ in range(400):
+        v_l_next = np.maximum(v_l + rng.uniform(-b_l, 2.0) * dt, 0.0)
+        cmd = np.minimum(v + 3.0 * dt, safe_speed(gap, v_l, b, b_l, dt))
+        assert np.all((v - cmd) / dt <= b + 1e-9)
+        gap = gap + (v_l_next - cmd) * dt
+        assert gap.min() > -1e-9
+        v, v_l = cmd, v_l_next
+    assert v.max() > 10.0  # not all standing: the loop exercised moving traffic

@@ -1,0 +1,113 @@
+"""The deployment's safety layer against adversarial commands (``deploy.drivers.
+safety_cap``): whatever a driver asks for, full throttle or random accelerations from a
+seeded generator down to hard braking, SUMO reports no collision. Real SUMO."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import dump_toml, scenario_table
+
+from macromicro_sumo.deploy.drivers import RingSpeedDriver, behind_commands
+from macromicro_sumo.road.physics import safe_speed
+from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.truth.ring import check_ring, run_ring, run_specs
+
+Act = Callable[[np.ndarray], np.ndarray]
+
+
+def adversary(kind: str, a_min: float, a_max: float, seed: int) -> Act:
+    """Commands that test the cap: full throttle; random accelerations in the bounds; or
+    full throttle but for one vehicle (the first driven) that brakes at a_min, harder than
+    any vehicle's decel, for 5 s in every 15, so that followers close up behind it first."""
+    rng = np.random.default_rng(seed)
+    if kind == "full":
+        return lambda obs: np.full(len(obs), a_max)
+    if kind == "random":
+        return lambda obs: rng.uniform(a_min, a_max, len(obs))
+    steps = iter(range(10**9))
+
+    def brake(obs: np.ndarray) -> np.ndarray:
+        # Up to the speed limit (obs[:, 1]) at a_max: followers close up at a moderate speed.
+        a = np.minimum(a_max, (obs[:, 1] - obs[:, 0]) / 0.5)
+        if next(steps) % 30 >= 20:
+            a[0] = a_min
+        return a
+
+    return brake
+
+
+@pytest.mark.parametrize(("kind", "a_min"), [("full", -6.0), ("random", -6.0), ("brake", -30.0)])
+def test_no_command_makes_the_ring_collide(tmp_path: Path, kind: str, a_min: float) -> None:
+    """The paper's ring with 9 vehicles of unequal decels (1.2 to 1.8 m/s^2) packed at
+    35 m: a follower that brakes harder than its leader may not close in at no gap (it
+    did: ``road.physics.safe_speed``); behind a leader that stops within one step (30
+    m/s^2) its followers brake with it, not one step later (its command is known,
+    ``deploy.drivers.behind_commands``)."""
+    table = scenario_table(
+        {
+            "fleet.n_vehicles": 9,
+            "initial.min_spacing_m": 35.0,
+            "bounds.accel_mps2": [a_min, 3.0],
+            "bounds.spacing_m": [40.0, 140.0],
+            "simulation.duration_s": 90.0,
+            "simulation.n_runs": 2,
+        }
+    )
+    path = tmp_path / "ring.toml"
+    path.write_text(dump_toml(table))
+    sc = load_scenario(path)
+    geo, net, routes = check_ring(sc)
+    specs = run_specs(sc, geo)
+    drivers: list[RingSpeedDriver] = []
+
+    def driver_for(spec) -> RingSpeedDriver:
+        p = spec.params
+        drv = RingSpeedDriver(
+            sc,
+            geo,
+            spec.run,
+            list(p["vehicle_id"]),
+            spec.limits_mps,
+            p["decel_mps2"].to_numpy(),
+            act=adversary(kind, *sc.bounds.accel_mps2, seed=spec.run),
+            safety="sumo",
+            length=p["length_m"].to_numpy(),
+            min_gap=p["min_gap_m"].to_numpy(),
+        )
+        drivers.append(drv)
+        return drv
+
+    _, rows, _ = run_ring(sc, geo, (net, routes), tmp_path / "out", specs, False, driver_for)
+    assert [r["collisions"] for r in rows] == [0, 0], rows
+    # The cap acted (the commands were dangerous) and the vehicles kept moving.
+    assert all(d.stats.safety_acted > 5 for d in drivers), [d.stats for d in drivers]
+    if kind != "random":  # capped, not stopped
+        assert min(r["mean_speed_mps"] for r in rows) > 5.0, rows
+    assert min(r["min_gap_m"] for r in rows) >= 0.0, rows
+
+
+def test_followers_brake_with_a_driven_leader_that_stops_within_a_step() -> None:
+    """A platoon 0 <- 1 <- 2 (each follows the one before): 1 m/s slower than its leader
+    each, 1 m apart (safe while the leader brakes at its decel), and the first stops
+    within one step (a command of 0 m/s). ``safe_speed`` behind the leaders' present
+    speeds would let vehicle 1 drive 5 m into it during the step; behind their commands
+    every gap after the step is >= 0, and the chain reaches vehicle 2."""
+    dt, b = 0.5, np.full(3, 4.5)
+    speed = np.array([15.0, 14.0, 13.0])
+    gap = np.array([500.0, 1.0, 1.0])  # bumper gap to the leader (minGap taken off)
+    lead = np.array([-1, 0, 1])
+    lead_speed = np.array([0.0, 15.0, 14.0])
+    cmd = np.minimum(speed + 1.0, safe_speed(gap, lead_speed, b, b, dt))
+    cmd[0] = 0.0
+    assert cmd[1] > 10.0  # the leaders' present speeds leave room
+    out = behind_commands(cmd, gap, lead, b, b, dt)
+    after = gap[1:] + (out[:-1] - out[1:]) * dt
+    assert np.all(after >= -1e-9), after
+    assert out[0] == 0.0 and out[2] < cmd[2]  # the chain went on to vehicle 2
+    # Where the leaders brake no harder than assumed, nothing changes.
+    calm = np.minimum(speed, safe_speed(gap, lead_speed, b, b, dt))
+    np.testing.assert_array_equal(behind_commands(calm, gap, lead, b, b, dt), calm)
