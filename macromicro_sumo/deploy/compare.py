@@ -4,12 +4,20 @@ interval: deploy_comparison.csv and deploy_summary.csv (definitions: docs/deploy
 A deployment folder holds the ground truth's files in the ground truth's schemas
 (detectors.csv, trajectories.csv, runs.csv, ...) for the held-out runs; the truth folder
 holds every run. They are compared on the runs both have, matched by run number, station,
-lane and interval. The statistics are pure functions on DataFrames; ``compare_folders``
+lane and interval.
+
+A ground truth read from field files (its manifest's ``data_source = "files"``) is only what
+was measured, and the summary's ``reference`` says so: the detector figures are against the
+field stations, from ``simulation.warmup_s`` on (a deployment's SUMO run starts with an
+empty road and fills it first); the distributions are of speed and acceleration against
+the observed vehicles (a sample of the population), and headway and time-to-collision are
+not compared (NaN: whoever drove between two observed vehicles is unknown). The statistics are pure functions on DataFrames; ``compare_folders``
 reads the folders and ``write_comparison`` writes the two CSVs.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,7 +31,7 @@ from macromicro_sumo.deploy.distributions import (
     lane_trajectories,
 )
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.files import write_csv
+from macromicro_sumo.files import read_manifest, write_csv
 from macromicro_sumo.road.section import Section
 
 GEH_LIMIT = 5.0  # DMRB acceptance: GEH < 5 for more than 85% of the counts
@@ -56,8 +64,11 @@ SAFETY_COLUMNS = (
     "vehicle_steps_driven",
     "safety_acted",
 )
+REFERENCE_SIMULATED = "ground truth: every vehicle (simulated)"
+REFERENCE_FIELD = "field: stations (detectors), observed vehicles (speed, accel)"
 SUMMARY_COLUMNS = [
     "method",
+    "reference",
     "runs",
     "station_intervals",
     "share_geh_below_5",
@@ -348,7 +359,36 @@ def read_outputs(folder: Path | str, geometry: Geometry, leaders: bool = True) -
     return Outputs(folder, station_table(det), runs, lanes)
 
 
-def summary_row(name: str, truth: Outputs, method: Outputs, comparison: pd.DataFrame) -> dict:
+@dataclass(frozen=True)
+class Reference:
+    """What a ground-truth folder can be compared with: ``field`` data (stations and the
+    observed vehicles) from ``from_s`` on, or a simulated truth (every vehicle, all times)."""
+
+    field: bool = False
+    from_s: float = 0.0
+
+    @property
+    def label(self) -> str:
+        return REFERENCE_FIELD if self.field else REFERENCE_SIMULATED
+
+
+def truth_reference(folder: Path | str) -> Reference:
+    """A field-data truth (manifest ``data_source = "files"``) or a simulated one."""
+    path = Path(folder) / "manifest.json"
+    manifest = read_manifest(path) if path.is_file() else {}
+    if manifest.get("data_source") != "files":
+        return Reference()
+    warmup = manifest.get("scenario", {}).get("simulation", {}).get("warmup_s", 0.0)
+    return Reference(True, float(warmup))
+
+
+def summary_row(
+    name: str,
+    truth: Outputs,
+    method: Outputs,
+    comparison: pd.DataFrame,
+    reference: Reference | None = None,
+) -> dict:
     """One row of deploy_summary.csv: ``method`` against ``truth`` on the runs of
     ``comparison`` (``comparison_table(truth.stations, method.stations, name)``)."""
     runs = sorted(int(r) for r in comparison["run"].unique())
@@ -361,6 +401,7 @@ def summary_row(name: str, truth: Outputs, method: Outputs, comparison: pd.DataF
     truth_safety = safety_counts(truth.runs, runs)
     return {
         "method": name,
+        "reference": (reference or Reference()).label,
         "runs": len(runs),
         **detector_scores(comparison),
         **dist,
@@ -375,7 +416,12 @@ def compare_folders(
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """(deploy_comparison, deploy_summary) of every method's folder against the truth's."""
     geometry = truth_geometry(truth_dir)
-    truth = read_outputs(truth_dir, geometry)
+    ref = truth_reference(truth_dir)
+    # Field data: leaders among the observed vehicles are not the vehicles' leaders.
+    truth = read_outputs(truth_dir, geometry, leaders=not ref.field)
+    if ref.field:
+        st = truth.stations
+        truth = dataclasses.replace(truth, stations=st[st["begin_s"] >= ref.from_s - 1e-9])
     tables, rows = [], []
     for name, folder in method_dirs.items():
         method = read_outputs(folder, geometry)
@@ -386,7 +432,7 @@ def compare_folders(
                 f"{truth_dir} (another scenario, or other runs?)"
             )
         tables.append(comp)
-        rows.append(summary_row(name, truth, method, comp))
+        rows.append(summary_row(name, truth, method, comp, ref))
     comparison = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
     return comparison.reindex(columns=COMPARISON_COLUMNS), pd.DataFrame(
         rows, columns=SUMMARY_COLUMNS

@@ -15,6 +15,8 @@ calibration (``deploy.calibrate``) can deploy any candidate through ``run_method
 from __future__ import annotations
 
 import dataclasses
+import shutil
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,13 +35,20 @@ from macromicro_sumo.deploy.drivers import (
     SectionTypeDriver,
     SwitchedType,
 )
+from macromicro_sumo.deploy.field import (
+    check_station_grid,
+    demand_files,
+    sampled_demand,
+    station_interval,
+    station_loops,
+)
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import write_csv, write_manifest
 from macromicro_sumo.road.ring import RingGeometry
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.section import SectionScenario
-from macromicro_sumo.sumo.demand import VType
-from macromicro_sumo.sumo.inputs import SumoInputs
+from macromicro_sumo.sumo.demand import VType, check_demand
+from macromicro_sumo.sumo.inputs import SumoInputs, read_net, scenario_inputs
 from macromicro_sumo.truth.ring import (
     RunSpec,
     check_ring,
@@ -96,6 +105,11 @@ class DeployContext:
     files: tuple[Path, Path] | None = None
     specs: dict[int, RunSpec] | None = None
     truth_runs: pd.DataFrame | None = None
+    # Field data: each run's own inputs (a demand sampled from its stations), how the
+    # demand was made (every manifest records it), and the folder that holds it.
+    run_inputs: dict[int, SumoInputs] | None = None
+    demand: dict[str, Any] | None = None
+    scratch: tempfile.TemporaryDirectory | None = None
 
     @property
     def is_section(self) -> bool:
@@ -118,11 +132,7 @@ def load_context(sc: Any, truth_dir: Path | str) -> DeployContext:
     truth_dir = Path(truth_dir)
     if isinstance(sc, SectionScenario):
         if sc.data.source == "files":
-            raise UserError(
-                f"{sc.source}: data.source = 'files': a deployment re-runs the ground truth's "
-                "simulated runs, and comparing one with field stations is not supported yet; "
-                "accepted: data.source = 'simulate'"
-            )
+            return files_context(sc, truth_dir)
         truth = load_section_truth(truth_dir, sc)
         held = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)["held_out"]
         inputs, section, vtypes = load_section(sc)
@@ -157,6 +167,79 @@ def load_context(sc: Any, truth_dir: Path | str) -> DeployContext:
                 "draws (another seed or fleet?); re-run `macromicro simulate`"
             )
     return DeployContext(sc, truth_dir, held, geo=geo, files=(net_file, routes_file), specs=specs)
+
+
+def files_context(sc: SectionScenario, truth_dir: Path) -> DeployContext:
+    """A deployment on field data (``deploy.field``): loops at the stations, SUMO from t = 0
+    to the stations' last interval, and the scenario's route files as the demand, or where
+    it has none a demand per held-out recording sampled from its station counts."""
+    truth = load_section_truth(truth_dir, sc)
+    runs = [int(r) for r in truth.runs]
+    held = [
+        int(r) for r in split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)["held_out"]
+    ]
+    inputs, section = scenario_inputs(sc), truth.section
+    det = truth.detectors
+    interval = station_interval(det)
+    check_station_grid(det, interval, str(truth_dir / "detectors.csv"))
+    end = float(det["end_s"].max())
+    warmup = sc.simulation.warmup_s
+    if end <= warmup:
+        raise UserError(
+            f"{sc.source}: simulation.warmup_s = {warmup:g} s leaves no station interval to "
+            f"compare (the last ends at {end:g} s); accepted: warmup_s < {end:g}"
+        )
+    # The run covers the stations (the warm-up fills the empty road; deploy.compare leaves
+    # its intervals out); the loops aggregate as the stations do.
+    run_sc = dataclasses.replace(
+        sc,
+        simulation=dataclasses.replace(sc.simulation, duration_s=end - warmup),
+        detectors=dataclasses.replace(sc.detectors, interval_s=interval),
+    )
+    scratch, run_inputs = None, None
+    if inputs.route_files:
+        demand = {"source": "route files", "files": [str(p) for p in inputs.route_files]}
+    else:
+        scratch = tempfile.TemporaryDirectory(prefix="macromicro_demand_")
+        types, routes = sampled_demand(
+            inputs.net_file,
+            section,
+            det,
+            truth.vtypes,
+            runs,  # every recording: the detector calibration deploys the training ones
+            Path(scratch.name),
+            sc.seed,
+            (warmup, end),
+        )
+        run_inputs = {r: dataclasses.replace(inputs, route_files=(types, routes[r])) for r in runs}
+        demand = {
+            "source": "routeSampler.py on the station counts",
+            "window_s": [warmup, end],
+            "files": {str(r): routes[r].name for r in runs},
+        }
+    net = read_net(inputs.net_file)
+    vtypes: dict[str, VType] = {}
+    for i in run_inputs.values() if run_inputs else [inputs]:
+        vtypes |= check_demand(i, net)
+    if sc.deploy.vtype and sc.deploy.vtype not in vtypes:
+        raise UserError(
+            f"{sc.source}: deploy.vtype = {sc.deploy.vtype!r} is not a vType of the demand; "
+            f"accepted: one of {', '.join(sorted(vtypes))}"
+        )
+    vt = truth.vtypes
+    return DeployContext(
+        run_sc,
+        truth_dir,
+        held,
+        section=section,
+        inputs=inputs,
+        placed=station_loops(det, section, interval),
+        vtypes=vtypes,
+        vclass=dict(zip(vt["vtype"].astype(str), vt["vclass"].astype(str), strict=True)),
+        run_inputs=run_inputs,
+        demand=demand,
+        scratch=scratch,
+    )
 
 
 # --------------------------------------------------------------------------- vTypes
@@ -248,12 +331,38 @@ def _section_runs(ctx, drive, stage, runs, extra, switch, drivers, progress, des
         drivers[run] = d
         return d
 
-    inputs = ctx.inputs
-    if extra:
-        inputs = dataclasses.replace(inputs, additional_files=(*inputs.additional_files, *extra))
-    trajs, rows, _ = run_section(
-        sc, inputs, ctx.section, ctx.placed, stage, runs, progress, driver_for, desc
-    )
+    def with_extra(inputs: SumoInputs) -> SumoInputs:
+        adds = (*inputs.additional_files, *extra)
+        return dataclasses.replace(inputs, additional_files=adds) if extra else inputs
+
+    if ctx.run_inputs is None:
+        trajs, rows, _ = run_section(
+            sc,
+            with_extra(ctx.inputs),
+            ctx.section,
+            ctx.placed,
+            stage,
+            runs,
+            progress,
+            driver_for,
+            desc,
+        )
+    else:  # field data without route files: each recording has its own sampled demand
+        trajs, rows = [], []
+        for run in runs:
+            t, r, _ = run_section(
+                sc,
+                with_extra(ctx.run_inputs[run]),
+                ctx.section,
+                ctx.placed,
+                stage,
+                [run],
+                progress,
+                driver_for,
+                desc,
+            )
+            trajs += t
+            rows += r
     det, pas = read_run_detectors(stage, runs, ctx.placed)
     traj = pd.concat(trajs, ignore_index=True)
     det_macro, tr_macro = section_macro(sc, ctx.section, traj, det, pas, ctx.vtypes)
@@ -317,4 +426,10 @@ def write_method(
         specs = [ctx.specs[r] for r in sorted(res.runs["run"])]
         write_csv(pd.concat([s.params for s in specs], ignore_index=True), folder / "vehicles.csv")
     totals = {c: int(res.runs[c].sum()) for c in SAFETY_COLUMNS}
+    if ctx.demand is not None:  # field data: which demand was deployed, kept beside SUMO's files
+        manifest = {**manifest, "demand": ctx.demand}
+        if ctx.scratch is not None:
+            for run in sorted(res.runs["run"]):
+                for path in demand_files(Path(ctx.scratch.name), int(run)):
+                    shutil.copy2(path, folder / "sumo" / path.name)
     write_manifest({**manifest, **totals}, folder)

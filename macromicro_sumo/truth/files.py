@@ -193,6 +193,15 @@ def spread_cross_sections(det: pd.DataFrame, section: Section) -> pd.DataFrame:
     )
 
 
+def lane_detector_ids(det: pd.DataFrame) -> pd.Series:
+    """``detector_id`` of every row, one per loop as in a simulated ground truth: a station
+    id shared by several lanes (PeMS, spread cross-sections) gets ``_l<lane index>``, so a
+    deployment's loops can carry the same ids (``deploy.calibrate`` matches on them)."""
+    ids = det["detector_id"].astype(str)
+    shared = det.groupby(ids)["lane_index"].transform("nunique") > 1
+    return ids.where(~shared, ids + "_l" + det["lane_index"].astype(str))
+
+
 def vtype_table(trajs: list[Trajectories], traj: pd.DataFrame, min_gap_m: float) -> pd.DataFrame:
     """vtypes.csv of field data: each vtype's median vehicle length in the files (SUMO's
     passenger car where the files give none); the car-following model is unknown."""
@@ -272,6 +281,7 @@ def truth_from_files(
         if c.frame.empty:
             raise UserError(f"{c.source.file}: every interval was excluded by the cleaning")
     det = spread_cross_sections(det, section)
+    det["detector_id"] = lane_detector_ids(det)
     vt = vtype_table([c.source for c in trajs], traj, sc.bounds.min_gap_m)
     min_spacing = float(vt["length_m"].min()) + sc.bounds.min_gap_m
     passages = pd.DataFrame({c: [] for c in PASSAGE_COLUMNS})

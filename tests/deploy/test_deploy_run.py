@@ -13,13 +13,12 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from conftest import ROOT, dump_toml
+from conftest import dump_toml
 from deploy_nets import idm_agent, merge_net
 
 from macromicro_sumo.cli import main
 from macromicro_sumo.deploy.run import Drive, load_context, run_method
 from macromicro_sumo.deploy.stage import deploy, policy_batch
-from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.idm_fit import IdmParams
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.prior import idm_prior_params
@@ -177,13 +176,3 @@ def test_a_vtype_switch_drives_the_cars_looping_on_a_closed_section(tmp_path: Pa
     steps = (sc.simulation.warmup_s + sc.simulation.duration_s) / sc.simulation.step_length_s
     assert dflt.runs["vehicle_steps_driven"].min() > 0.5 * 0.8 * 31 * steps
     assert not dflt.detectors.equals(oracle.detectors)
-
-
-def test_a_files_sourced_scenario_is_not_deployed_but_says_why(tmp_path):
-    """Field data has no simulated runs to re-run with the same seeds: refused in one line
-    (and `macromicro run` leaves the stage out instead of ending in a traceback)."""
-    sc = load_scenario(ROOT / "scenarios" / "highway_bremen_files.toml")
-    with pytest.raises(
-        UserError, match=r"data\.source = 'files'.*accepted: data\.source = 'simulate'"
-    ):
-        load_context(sc, tmp_path)
