@@ -4,17 +4,21 @@ seeded generator down to hard braking, SUMO reports no collision. Real SUMO."""
 
 from __future__ import annotations
 
+import tomllib
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
-from conftest import dump_toml, scenario_table
+from conftest import ROOT, dump_toml, scenario_table
 
 from macromicro_sumo.deploy.drivers import RingSpeedDriver, behind_commands
+from macromicro_sumo.deploy.run import Drive, load_context, run_method
 from macromicro_sumo.road.physics import safe_speed
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.ring import check_ring, run_ring, run_specs
+from macromicro_sumo.truth.section import simulate_section
 
 Act = Callable[[np.ndarray], np.ndarray]
 
@@ -111,3 +115,36 @@ def test_followers_brake_with_a_driven_leader_that_stops_within_a_step() -> None
     # Where the leaders brake no harder than assumed, nothing changes.
     calm = np.minimum(speed, safe_speed(gap, lead_speed, b, b, dt))
     np.testing.assert_array_equal(behind_commands(calm, gap, lead, b, b, dt), calm)
+
+
+def _spreewaldring(folder: Path) -> Path:
+    """Spreewaldring (one lane, 31 race cars of minGap 0 queued 0.1 m apart at a standing
+    start, kept looping), 40 s after 10 s of warm-up, its ground truth simulated."""
+    table = tomllib.loads((ROOT / "scenarios" / "spreewaldring.toml").read_text())
+    table["network"]["sumocfg"] = str(
+        ROOT / "sumo_nets" / "spreewaldring" / "spreewaldring.sumocfg"
+    )
+    table["simulation"].update(warmup_s=10.0, duration_s=40.0, n_runs=2)
+    table["detectors"]["interval_s"] = 20.0
+    table["deploy"] = {"fcd_s": 20.0}
+    path = folder / "spreewald.toml"
+    path.write_text(dump_toml(table))
+    return path
+
+
+@pytest.mark.parametrize("how", ["defaults", "idm"])
+def test_a_vtype_switch_waits_until_the_new_min_gap_fits(tmp_path: Path, how: str) -> None:
+    """Switched where they queue 0.1 m apart, the race cars' new minGap (SUMO's default
+    2.5 m, or an IDM's 2 m) put every one of them in collision (SUMO counts a gap below
+    the follower's minGap); switched once it fits, none is, and still most of their
+    steps are driven."""
+    sc = load_scenario(_spreewaldring(tmp_path))
+    gt = simulate_section(sc, tmp_path / "gt", progress=False)
+    assert (pd.read_csv(gt / "runs.csv")["collisions"] == 0).all()
+    ctx = load_context(sc, gt)
+    theta = {"accel": 2.0, "decel": 4.0, "tau": 1.0, "minGap": 2.0, "speedFactor": 1.0}
+    drive = Drive(defaults=True) if how == "defaults" else Drive(theta=theta)
+    res = run_method(ctx, drive, tmp_path / how)
+    assert (res.runs["collisions"] == 0).all(), res.runs.to_dict("records")
+    steps = (sc.simulation.warmup_s + sc.simulation.duration_s) / sc.simulation.step_length_s
+    assert res.runs["vehicle_steps_driven"].min() > 0.4 * 0.8 * 31 * steps
