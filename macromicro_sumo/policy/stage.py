@@ -1,14 +1,17 @@
-"""Stage II as a CLI stage: ``train-policy`` on the ring, and what every policy stage shares.
+"""Stage II as a CLI stage: ``train-policy`` for every scenario, and what it is made of.
 
-``run_train_policy`` (the ring): episodes from the train + val runs completed by the
-generator, PPO (``policy.ppo``), then the held-out check of the fleet's mean speed per K.
-``open_policy_stage`` and ``write_policy_manifest`` are the head and tail of a policy
-stage, ring or section (``pipeline.section``).
+``run_train_policy``: episodes from the train + val runs completed by the generator, PPO
+(``policy.ppo``), then the road's held-out check. What differs between the ring (the IDM
+fleet) and a section of a user's network (its demand) is one ``PolicyRoad`` each: how the
+ground truth and the generator are read, the episodes and the env cores PPO runs on them,
+and the held-out check (the ring's fleet mean speed per K).
 """
 
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -17,8 +20,12 @@ import pandas as pd
 import torch
 
 from macromicro_sumo.data.ring import load_ground_truth, split_runs
+from macromicro_sumo.data.section import section_snapshots
+from macromicro_sumo.env.demand import DemandCore
 from macromicro_sumo.env.ring import RingCore, build_bank, generator_completion
 from macromicro_sumo.env.rollout import rollout
+from macromicro_sumo.env.section import SectionCore
+from macromicro_sumo.env.section_bank import build_section_bank, recorded_min_gap, typical_vclass
 from macromicro_sumo.files import (
     file_sha256,
     prepare_out_dir,
@@ -26,11 +33,32 @@ from macromicro_sumo.files import (
     write_stage_manifest,
 )
 from macromicro_sumo.generator.ring_train import load_generator
+from macromicro_sumo.generator.section_sampler import (
+    generator_completion as section_completion,
+)
+from macromicro_sumo.generator.section_train import load_section_generator
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.policy.agent import policy_action
 from macromicro_sumo.policy.checkpoint import policy_file, resumable_checkpoint
 from macromicro_sumo.policy.ppo import train_policy
 from macromicro_sumo.scenario.ring import Scenario
+from macromicro_sumo.scenario.section import SectionScenario
+from macromicro_sumo.sumo.inputs import scenario_inputs
+from macromicro_sumo.truth.section import load_section_truth
+
+# Fits ``policy.prior``'s IDM to the observed pairs of the given runs of a ground truth:
+# (the agent's prior parameters, what the manifest records of the fit). The fit is the
+# evaluation's (a policy module may not import it): the pipeline passes it in.
+PriorFit = Callable[[Any, Any, np.ndarray], tuple[dict[str, float], dict[str, Any]]]
+
+
+@dataclass(frozen=True)
+class Episodes:
+    """What PPO trains on: the episode bank, and the road's env cores (None: the ring's)."""
+
+    bank: Any
+    make_core: Callable[[Any, int], Any] | None = None
+    make_demand: Callable[[], DemandCore] | None = None
 
 
 def policy_run_key(sc, data: Path, generator: Path, objective: str) -> str:
@@ -76,8 +104,66 @@ def heldout_speed(sc: Scenario, gt, net, agent, held: np.ndarray) -> pd.DataFram
     return pd.DataFrame(rows)
 
 
+def section_episodes(sc: SectionScenario, truth, net, splits: dict[str, np.ndarray]) -> Episodes:
+    """A section policy's episodes: snapshots of the train + val runs completed by the
+    generator, its cores, and its demand episodes (``policy.episodes``)."""
+    snaps = section_snapshots(truth, sc, np.concatenate([splits["train"], splits["val"]]))
+    complete = section_completion(net, truth.section, sc, sc.generator.k_source, sc.seed)
+    bank = build_section_bank(sc, truth, snaps, complete, sc.policy.horizon, sc.seed)
+    net_file = scenario_inputs(sc).net_file
+    vclass = typical_vclass(truth)
+    min_gap = recorded_min_gap(truth)
+
+    def make_core(bank_, seed: int, fcd_file: Path | None = None) -> SectionCore:
+        # Replayed observed vehicles keep the recorded minGap in training as in evaluation
+        # (Spreewaldring's race cars: 0 m, where the scenario's bound says 0.5 m).
+        return SectionCore(
+            sc,
+            truth.section,
+            bank_,
+            net_file,
+            seed=seed,
+            fcd_file=fcd_file,
+            vclass=vclass,
+            replay_min_gap_m=min_gap,
+        )
+
+    # Demand episodes (policy.episodes): windows of the runs the policy trains on; the
+    # validation runs stay out where they choose the checkpoint.
+    demand_runs = splits["train"]
+    if sc.policy.checkpoint_selection != "val_micro_logp":
+        demand_runs = np.concatenate([splits["train"], splits["val"]])
+    horizon = int(round(sc.policy.demand_horizon_s / sc.simulation.step_length_s))
+
+    def make_demand() -> DemandCore:
+        return DemandCore(sc, truth, demand_runs, horizon)
+
+    return Episodes(bank, make_core, make_demand)
+
+
+@dataclass(frozen=True)
+class PolicyRoad:
+    """What the policy stage does differently on a road kind: read the ground truth and the
+    generator, build the training episodes, and check the policy on the held-out runs
+    (``heldout(sc, truth, net, agent, runs)``, written as ``policy_heldout_speed``)."""
+
+    load_truth: Callable[[Path, Any], Any]
+    load_generator: Callable[[Path, Any], Any]
+    episodes: Callable[[Any, Any, Any, dict[str, np.ndarray]], Episodes]
+    heldout: Callable[[Any, Any, Any, Any, np.ndarray], pd.DataFrame] | None = None
+
+
+RING = PolicyRoad(
+    load_ground_truth,
+    load_generator,
+    lambda sc, gt, net, splits: Episodes(training_bank(sc, gt, net, splits)),
+    heldout_speed,
+)
+SECTION = PolicyRoad(load_section_truth, load_section_generator, section_episodes)
+
+
 def run_train_policy(
-    sc: Scenario,
+    sc: Scenario | SectionScenario,
     data: Path,
     generator: Path,
     out: Path,
@@ -85,29 +171,43 @@ def run_train_policy(
     command: str = "",
     progress: bool = True,
     objective: str | None = None,
+    fit_prior: PriorFit | None = None,
 ) -> dict[str, Any]:
-    """CLI stage: episodes from train+val runs completed by the generator, PPO, held-out check."""
+    """CLI stage: episodes from train+val runs completed by the generator, PPO, held-out
+    check. ``fit_prior``: the IDM under a residual policy (``policy.prior``), fitted to the
+    train + val runs' observed pairs; without it PPO refuses a prior."""
     objective = objective or sc.policy.objective
-
-    net = load_generator(generator, sc)
-    gt = load_ground_truth(data, sc)
-    out, run_key, splits = open_policy_stage(sc, gt.runs, data, generator, out, objective, resume)
-    bank = training_bank(sc, gt, net, splits)
+    road = SECTION if isinstance(sc, SectionScenario) else RING
+    truth = road.load_truth(data, sc)
+    net = road.load_generator(generator, sc)
+    out, run_key, splits = open_policy_stage(
+        sc, truth.runs, data, generator, out, objective, resume
+    )
+    episodes = road.episodes(sc, truth, net, splits)
+    prior, extra = None, {}
+    if sc.policy.prior != "none" and fit_prior is not None:
+        prior, extra = fit_prior(sc, truth, np.concatenate([splits["train"], splits["val"]]))
     res = train_policy(
         sc,
-        bank,
+        episodes.bank,
         out,
         objective=objective,
         resume=resume,
         progress=progress,
         run_key=run_key,
+        make_core=episodes.make_core,
         val_runs=splits["val"],
+        make_demand=episodes.make_demand,
+        prior_params=prior,
     )
-    # Held-out check of the issue's target: fleet mean speed vs ground truth per K.
-    align = heldout_speed(sc, gt, net, res["agent"], splits["held_out"])
-    write_csv(align, out / policy_file(objective, "heldout_speed"))
-    manifest = write_policy_manifest(sc, command, objective, res, data, generator, out)
-    return {"alignment": align, **manifest}
+    align = None
+    if road.heldout is not None:
+        align = road.heldout(sc, truth, net, res["agent"], splits["held_out"])
+        write_csv(align, out / policy_file(objective, "heldout_speed"))
+    manifest = write_policy_manifest(
+        sc, command, objective, res, data, generator, out, episodes=len(episodes.bank), **extra
+    )
+    return {"alignment": align, **manifest} if align is not None else manifest
 
 
 def open_policy_stage(
