@@ -11,11 +11,24 @@ their records, hidden ones are driven by the method. Methods, on the same scenes
 
 Statistics count every vehicle on the section at every step; spacings are per lane,
 front to front, for vehicles with a leader on the section.
+
+What the figures are against (``reference`` in macro_alignment.csv and
+micro_consistency.csv):
+
+* a simulated ground truth: macro errors against ``ground_truth``, every recorded vehicle
+  of the same scenes (the paper's protocol), and, as ``station_*`` columns, against the
+  detectors' interval of each scene (psi: space-mean speed, spacing = 1 / density per lane);
+* field data (``data.source = "files"``): the recorded trajectories hold only the observed
+  vehicles, so they are no reference for the population. Macro figures are against the
+  stations only (the ``station_*`` columns and a ``stations`` row in place of
+  ``ground_truth``); the hidden count is the estimated one only (nobody counted the true
+  one). Either way micro figures are the held-out observed vehicles' recorded actions.
 """
 
 from __future__ import annotations
 
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +36,7 @@ import numpy as np
 import pandas as pd
 
 from macromicro_sumo.data.ring import split_runs
-from macromicro_sumo.data.section import SectionTruth, section_snapshots
+from macromicro_sumo.data.section import PSI_FIELDS, SectionTruth, section_snapshots
 from macromicro_sumo.env.rollout import ActionFn, Rollouts, rollout
 from macromicro_sumo.env.section import DEFAULT_SAFETY, SectionCore
 from macromicro_sumo.env.section_bank import (
@@ -38,7 +51,7 @@ from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.idm_fit import calibrate_idm
 from macromicro_sumo.evaluation.methods import method_order
 from macromicro_sumo.evaluation.ring import idm_action, micro_consistency
-from macromicro_sumo.evaluation.statistics import macro_row, samples_frame
+from macromicro_sumo.evaluation.statistics import macro_row, paired_bootstrap_ci, samples_frame
 from macromicro_sumo.files import (
     prepare_out_dir,
     staging_dir,
@@ -57,6 +70,10 @@ from macromicro_sumo.truth.section import load_section_truth
 from macromicro_sumo.truth.section_macro import k_summary
 
 METHOD_ORDER = method_order("sumo")
+REFERENCE_RECORDED = "ground_truth: every recorded vehicle of the scenes (simulated)"
+REFERENCE_STATIONS = "stations: each scene's detector interval (field data)"
+REFERENCE_MICRO = "held-out observed vehicles' recorded actions"
+STATIONS = "stations"  # macro_alignment.csv's reference row on field data
 
 
 def recorded(bank: SectionBank, section: Section, horizon: int, dt: float) -> Rollouts:
@@ -83,6 +100,39 @@ def recorded(bank: SectionBank, section: Section, horizon: int, dt: float) -> Ro
     # The bank does not keep which true vehicles were hidden: none marked.
     unmarked = np.zeros(bank.true_valid[:, 0].shape, dtype=bool)
     return Rollouts(arc, v, spacing, accel, lane, unmarked, 0, 0)
+
+
+def station_errors(ro: Rollouts, psi: np.ndarray, seed: int) -> dict[str, float]:
+    """A rollout against the stations' interval of each of its scenes (``psi``, one row per
+    episode): mean speed error [m/s] of the episode means, with a 95% paired-bootstrap
+    interval of the signed error, and the ratio of mean spacings (per lane, front to front;
+    the stations' is 1 / density)."""
+    v_station = psi[:, PSI_FIELDS.index("mean_speed_mps")]
+    d_station = psi[:, PSI_FIELDS.index("mean_spacing_m")]
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # an episode that ended at once
+        v = np.nanmean(ro.speed_mps, axis=(1, 2))
+        d = np.nanmean(ro.spacing_m, axis=(1, 2))
+    diff = v - v_station
+    lo, hi = paired_bootstrap_ci(diff, seed)
+    return {
+        "station_speed_err_mps": abs(float(np.nanmean(diff))),
+        "station_speed_err_ci_lo_mps": lo,
+        "station_speed_err_ci_hi_mps": hi,
+        "station_spacing_ratio": float(np.nanmean(d) / np.nanmean(d_station)),
+    }
+
+
+def stations_row(labels: dict[str, Any], psi: np.ndarray) -> dict[str, Any]:
+    """The stations' own figures over the scenes: macro_alignment.csv's reference row on
+    field data (means only: stations measure no spread)."""
+    return {
+        **labels,
+        "method": STATIONS,
+        "mean_speed_mps": float(np.nanmean(psi[:, PSI_FIELDS.index("mean_speed_mps")])),
+        "mean_spacing_m": float(np.nanmean(psi[:, PSI_FIELDS.index("mean_spacing_m")])),
+        "episodes": len(psi),
+    }
 
 
 # --------------------------------------------------------------------------- micro data
@@ -208,6 +258,9 @@ def evaluate_section(
     rows, samples, safety_rows = [], [], []
     counts = {"estimated": snaps.k_est, "true": snaps.k_true}
     sources = {"estimated": "estimate", "true": "truth"}  # report label -> k_source
+    field = sc.data.source == "files"
+    if field:  # the true hidden count of field data is unknown
+        sources.pop("true")
     bar = tqdm(
         total=len(counts) * (len(agents) + 2), desc="evaluate", unit="rollout", disable=not progress
     )
@@ -218,9 +271,17 @@ def evaluate_section(
             seed = sc.seed + 100 + (label == "true")
             complete = generator_completion(net, truth.section, sc, source, seed)
             gen_bank = build_section_bank(sc, truth, snaps, complete, horizon=h)
-            ref = recorded(gen_bank, truth.section, h, sc.simulation.step_length_s)
-            rows.append(macro_row({"hidden_count": label}, "ground_truth", ref, ref, sc.seed))
-            samples.append(samples_frame({"K": np.nan, "hidden_count": label}, "ground_truth", ref))
+            labels = {"hidden_count": label}
+            if field:
+                ref = None
+                rows.append(stations_row(labels, gen_bank.psi))
+            else:
+                ref = recorded(gen_bank, truth.section, h, sc.simulation.step_length_s)
+                rows.append(
+                    macro_row(labels, "ground_truth", ref, ref, sc.seed)
+                    | station_errors(ref, gen_bank.psi, sc.seed)
+                )
+                samples.append(samples_frame({"K": np.nan, **labels}, "ground_truth", ref))
             bar.update()
             methods: dict[str, ActionFn] = {n: policy_action(a) for n, a in agents.items()}
             methods["idm_calibrated"] = idm_action(lambda core: idm, length)
@@ -255,20 +316,23 @@ def evaluate_section(
                         )
                     finally:
                         core.close()
-                rows.append(macro_row({"hidden_count": label}, name, ro, ref, sc.seed))
+                rows.append(
+                    macro_row(labels, name, ro, ref, sc.seed)
+                    | station_errors(ro, gen_bank.psi, sc.seed)
+                )
                 samples.append(samples_frame({"K": np.nan, "hidden_count": label}, name, ro))
                 bar.update()
         bar.close()
         align = pd.DataFrame(rows)
         align.insert(1, "mean_k", [float(np.mean(counts[r])) for r in align["hidden_count"]])
+        align.insert(2, "reference", REFERENCE_STATIONS if field else REFERENCE_RECORDED)
         write_csv(align, stage / "macro_alignment.csv")
         write_csv(pd.concat(samples, ignore_index=True), stage / "eval_samples.csv")
         write_csv(pd.DataFrame(safety_rows), stage / "safety.csv")
         obs_ho, acc_ho = micro_pairs(sc, truth, held)
-        write_csv(
-            micro_consistency(agents, {"idm_calibrated": idm}, obs_ho, acc_ho, sc, length),
-            stage / "micro_consistency.csv",
-        )
+        micro = micro_consistency(agents, {"idm_calibrated": idm}, obs_ho, acc_ho, sc, length)
+        micro.insert(0, "reference", REFERENCE_MICRO)
+        write_csv(micro, stage / "micro_consistency.csv")
         ks = k_summary(truth.k_estimate, truth.section)
         ks_held = k_summary(truth.k_estimate[truth.k_estimate["run"].isin(held)], truth.section)
         write_csv(
@@ -282,6 +346,12 @@ def evaluate_section(
             policies={k: str(v) for k, v in policies.items()},
             held_out_runs=[int(r) for r in held],
             episodes=len(snaps),
+            data_source=sc.data.source,
+            references={
+                "macro": REFERENCE_STATIONS if field else REFERENCE_RECORDED,
+                "macro_station_columns": "station_*: each scene's detector interval (psi)",
+                "micro": REFERENCE_MICRO,
+            },
             safety=_safety(sc),
             idm_calibrated=idm.as_dict() | {"fit_rmse_mps2": idm_rmse},
             k_estimate=ks,
