@@ -12,13 +12,16 @@ import numpy as np
 import pandas as pd
 import pytest
 from conftest import ROOT, dump_toml, scenario_table
+from deploy_nets import merge_net
 
-from macromicro_sumo.deploy.drivers import RingSpeedDriver, behind_commands
+from macromicro_sumo.deploy.drivers import RingSpeedDriver, SectionSpeedDriver, behind_commands
 from macromicro_sumo.deploy.run import Drive, load_context, run_method
 from macromicro_sumo.road.physics import safe_speed
+from macromicro_sumo.road.section import read_section
 from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.truth.ring import check_ring, run_ring, run_specs
-from macromicro_sumo.truth.section import simulate_section
+from macromicro_sumo.truth.section import record_run, simulate_section
 
 Act = Callable[[np.ndarray], np.ndarray]
 
@@ -88,7 +91,7 @@ def test_no_command_makes_the_ring_collide(tmp_path: Path, kind: str, a_min: flo
     _, rows, _ = run_ring(sc, geo, (net, routes), tmp_path / "out", specs, False, driver_for)
     assert [r["collisions"] for r in rows] == [0, 0], rows
     # The cap acted (the commands were dangerous) and the vehicles kept moving.
-    assert all(d.stats.safety_acted > 5 for d in drivers), [d.stats for d in drivers]
+    assert sum(d.stats.safety_acted for d in drivers) > 10, [d.stats for d in drivers]
     if kind != "random":  # capped, not stopped
         assert min(r["mean_speed_mps"] for r in rows) > 5.0, rows
     assert min(r["min_gap_m"] for r in rows) >= 0.0, rows
@@ -148,3 +151,58 @@ def test_a_vtype_switch_waits_until_the_new_min_gap_fits(tmp_path: Path, how: st
     assert (res.runs["collisions"] == 0).all(), res.runs.to_dict("records")
     steps = (sc.simulation.warmup_s + sc.simulation.duration_s) / sc.simulation.step_length_s
     assert res.runs["vehicle_steps_driven"].min() > 0.4 * 0.8 * 31 * steps
+
+
+def _merge_scenario(folder: Path, net: Path, routes: Path) -> Path:
+    """The merge (``deploy_nets.merge_net``) for 120 s, 5% instrumented."""
+    table = {
+        "name": "merge",
+        "seed": 5,
+        "network": {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]},
+        "section": {"edges": ["A", "B", "C"]},
+        "instrumented": {"penetration": 0.05},
+        "simulation": {"warmup_s": 0.0, "duration_s": 120.0, "n_runs": 2},
+        "detectors": {"interval_s": 30.0},
+        "policy": {"observation": "lookahead"},
+    }
+    path = folder / "merge.toml"
+    path.write_text(dump_toml(table))
+    return path
+
+
+def _run_section(sc, driver) -> tuple[pd.DataFrame, dict]:
+    sim = Simulation(
+        SumoOptions(
+            sc.resolve(sc.network.net_file),
+            (),
+            sc.simulation.step_length_s,
+            sc.seed,
+            route_files=tuple(sc.resolve(r) for r in sc.network.route_files),
+            user_demand=True,
+        )
+    )
+    try:
+        return record_run(sim, sc, driver.section, 0, driver)
+    finally:
+        sim.close()
+
+
+def test_a_policy_that_always_brakes_cannot_stop_the_merge(tmp_path: Path) -> None:
+    """A policy that brakes at a_min whatever it sees would stand every car on the free
+    road for good (SUMO teleports a car after 300 s standing, and the stream behind it
+    jams): the safety layer's floor (a fifth of the limit, below the safe speed) keeps
+    them rolling; nobody stands longer than the queue at the lane end asks, none collides."""
+    net, routes = merge_net(tmp_path / "net")
+    sc = load_scenario(_merge_scenario(tmp_path, net, routes))
+    section = read_section(net, ["A", "B", "C"], False)
+    a_min = sc.bounds.accel_mps2[0]
+    drv = SectionSpeedDriver(sc, section, 0, lambda obs: np.full(len(obs), a_min), "sumo")
+    df, stats = _run_section(sc, drv)
+    assert stats["collisions"] == 0 and stats["teleports"] == 0, stats
+    driven = df[~df["observed"]].sort_values(["vehicle_id", "time_s"])
+    standing = driven["speed_mps"] < 0.1
+    # Longest stretch of standing steps of any driven car.
+    runs = standing.groupby([driven["vehicle_id"], (~standing).cumsum()]).sum()
+    assert runs.max() * sc.simulation.step_length_s < 20.0, runs.max()
+    assert driven["speed_mps"].mean() > 0.2 * 30.0 * 0.9
+    assert drv.stats.floor_acted > 0.5 * drv.stats.vehicle_steps_driven
