@@ -14,7 +14,7 @@ from macromicro_sumo.evaluation.methods import methods_markdown
 from macromicro_sumo.files import write_text
 from macromicro_sumo.report import plots
 from macromicro_sumo.report.deploy import deployment_section
-from macromicro_sumo.report.tables import markdown_table, read_if_present
+from macromicro_sumo.report.tables import markdown_table, read_if_present, table_section
 from macromicro_sumo.scenario.ring import Scenario
 
 # The paper's ring results (Results and discussions): policy per K, and its ground truth.
@@ -27,6 +27,21 @@ PAPER_GT = {
 PAPER_POLICY_SPEED = {1: 11.55, 2: 11.54, 3: 11.52, 4: 11.53}
 PAPER_POLICY_SPEED_STD = "0.78-0.80"
 PAPER_POLICY_SPACING_STD = "<= 34.79"
+# The generator's held-out figures the report shows (where its metrics have them).
+GENERATOR_COLUMNS = (
+    "method",
+    "K",
+    "feasibility_rate",
+    "n_no_feasible",
+    "projected_vehicles",
+    "speed_rel_err",
+    "L_mean",
+    "L_min",
+    "L_max",
+    "L_var",
+    "pos_err_m",
+    "speed_err_mps",
+)
 
 
 def alignment_verdicts(align: pd.DataFrame) -> pd.DataFrame:
@@ -240,26 +255,8 @@ def write_report(sc: Scenario, out: Path, manifest: dict[str, Any]) -> Path:
 
     gm = read_if_present(gen_dir / "generator_metrics.csv")
     if gm is not None:
-        cols = [
-            "method",
-            "K",
-            "feasibility_rate",
-            "n_no_feasible",
-            "projected_vehicles",
-            "speed_rel_err",
-            "L_mean",
-            "L_min",
-            "L_max",
-            "L_var",
-            "pos_err_m",
-            "speed_err_mps",
-        ]
-        parts += [
-            "## Stage I: generator (held-out snapshots)",
-            "",
-            markdown_table(gm[[c for c in cols if c in gm]], 4),
-            "",
-        ]
+        gm = gm[[c for c in GENERATOR_COLUMNS if c in gm]]
+    parts += table_section("Stage I: generator (held-out snapshots)", gm, 4)
 
     align = read_if_present(ev_dir / "macro_alignment.csv")
     if align is not None:
@@ -327,47 +324,40 @@ def write_report(sc: Scenario, out: Path, manifest: dict[str, Any]) -> Path:
         single = align[align["method"] == "policy"][cols].assign(run="single pass")
         joint = refined[refined["method"] == "policy"][cols].assign(run="joint refinement")
         both = pd.concat([single, joint]).sort_values(["K", "run"], kind="stable")
-        parts += [
-            f"## Joint refinement ({sc.policy.refine_iterations} outer iterations) vs single pass",
-            "",
-            markdown_table(both[["K", "run", *cols[1:]]]),
-            "",
-        ]
+        parts += table_section(
+            f"Joint refinement ({sc.policy.refine_iterations} outer iterations) vs single pass",
+            both[["K", "run", *cols[1:]]],
+        )
 
     micro = read_if_present(ev_dir / "micro_consistency.csv")
-    if micro is not None:
-        parts += [
-            "## Micro consistency (held-out observed actions)",
-            "",
-            markdown_table(micro, 4),
-            "",
-        ]
+    parts += table_section("Micro consistency (held-out observed actions)", micro, 4)
 
     lf = read_if_present(ev_dir / "leader_follower_summary.csv")
     if lf is not None:
-        parts += [
-            "## Leader-follower (paper Fig. 3)",
-            "",
-            f"Follower {LeaderProfile().on_ring(sc).spacing_m:.0f} m behind the leader at the "
-            "same speed; the IDM follower has the middle of the "
-            f"fleet's IDM ranges; minimum safe gap {sc.evaluation.min_safe_gap_m:g} m; target: mean RMSE "
-            "<= 0.3 m/s against the IDM follower.",
-            "",
-            markdown_table(method_summary(lf)),
-            "",
-        ]
+        parts += table_section(
+            "Leader-follower (paper Fig. 3)",
+            method_summary(lf),
+            intro=[
+                f"Follower {LeaderProfile().on_ring(sc).spacing_m:.0f} m behind the leader at the "
+                "same speed; the IDM follower has the middle of the "
+                f"fleet's IDM ranges; minimum safe gap {sc.evaluation.min_safe_gap_m:g} m; target: mean RMSE "
+                "<= 0.3 m/s against the IDM follower.",
+                "",
+            ],
+        )
 
     if align is not None:
-        parts += [
-            "## Which method wins each figure",
-            "",
-            "Lower is better everywhere; `best` among all methods but the ground truth. One "
-            "evaluation of one trained policy per method: the training seed moves these "
-            "figures too (`scripts/lf_seeds.py` measures that spread).",
-            "",
-            markdown_table(figure_winners(align, micro, lf), 4),
-            "",
-        ]
+        parts += table_section(
+            "Which method wins each figure",
+            figure_winners(align, micro, lf),
+            4,
+            intro=[
+                "Lower is better everywhere; `best` among all methods but the ground truth. One "
+                "evaluation of one trained policy per method: the training seed moves these "
+                "figures too (`scripts/lf_seeds.py` measures that spread).",
+                "",
+            ],
+        )
 
     parts += deployment_section(out)
 

@@ -29,7 +29,7 @@ from macromicro_sumo.report.plots import (
     plot_policy_training,
     save_figure,
 )
-from macromicro_sumo.report.tables import markdown_table, read_if_present
+from macromicro_sumo.report.tables import markdown_table, read_if_present, table_section
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.truth.section import load_section_truth
 
@@ -169,12 +169,7 @@ def write_section_report(sc, out: Path, manifest: dict[str, Any]) -> Path:
     if kdf is not None:
         lines += [markdown_table(kdf, 3), ""]
     if gen is not None:
-        lines += [
-            "## Stage I: generator (held-out snapshots)",
-            "",
-            markdown_table(_summary(gen), 3),
-            "",
-        ]
+        lines += table_section("Stage I: generator (held-out snapshots)", _summary(gen))
     lines += [
         "## Macro alignment (held-out runs)",
         "",
@@ -206,13 +201,7 @@ def write_section_report(sc, out: Path, manifest: dict[str, Any]) -> Path:
         ]
         lines += [markdown_table(align[cols], 3), ""]
         lines += _verdicts(align)
-    if micro is not None:
-        lines += [
-            "## Micro consistency (held-out observed actions)",
-            "",
-            markdown_table(micro, 3),
-            "",
-        ]
+    lines += table_section("Micro consistency (held-out observed actions)", micro)
     lines += [
         f"IDM calibrated on the observed vehicles: {json.dumps(ev.get('idm_calibrated', {}))}",
         "",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -27,3 +28,13 @@ def markdown_table(df: pd.DataFrame, digits: int = 3) -> str:
 def read_if_present(path: Path) -> pd.DataFrame | None:
     """The CSV at ``path``, or None where a stage did not write it."""
     return pd.read_csv(path) if path.is_file() else None
+
+
+def table_section(
+    title: str, df: pd.DataFrame | None, digits: int = 3, intro: Sequence[str] = ()
+) -> list[str]:
+    """A report section's lines: ``## title``, the ``intro`` lines and ``df`` as a table;
+    none where the stage wrote no such CSV (``df`` None)."""
+    if df is None:
+        return []
+    return [f"## {title}", "", *intro, markdown_table(df, digits), ""]
