@@ -4,6 +4,9 @@
 observation [v, v_limit, spacing, v - v_leader]) as the learned policy, so both drive the
 hidden vehicles through the same speed-command path. ``calibrate_idm`` fits one shared
 parameter set to observed (observation, action) pairs by robust least squares (scipy).
+``gipps_policy_accel`` and ``calibrate_gipps`` do the same for Gipps' model, and
+``fit_policy_prior`` fits either as a residual policy's prior (``policy.prior``; the
+model's definitions and why Gipps: ``policy.prior``).
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+from macromicro_sumo.policy.prior import GIPPS_PRIOR_KEYS, idm_prior_params
 from macromicro_sumo.road.physics import idm_accel
 
 
@@ -83,3 +87,71 @@ def calibrate_idm(
     )
     p = IdmParams(*fit.x, delta=delta)
     return p, float(np.sqrt(np.mean(fit.fun**2)))
+
+
+@dataclass(frozen=True)
+class GippsParams:
+    """Gipps' model; desired speed V = speed_factor x local limit, gap = spacing - vehicle
+    length - min_gap; the safe speed within the reaction time tau, reached within dt."""
+
+    speed_factor: float
+    accel_mps2: float
+    decel_mps2: float
+    tau_s: float
+    min_gap_m: float
+
+    def as_dict(self) -> dict[str, float]:
+        return {k: float(v) for k, v in asdict(self).items()}
+
+
+def gipps_policy_accel(
+    obs: np.ndarray, p: GippsParams, veh_length_m: float, dt_s: float
+) -> np.ndarray:
+    """Gipps' acceleration [m/s^2] from observations (..., 4): the free acceleration
+    2.5 a (1 - v/V) sqrt(0.025 + v/V), or reaching the safe speed
+    -b tau + sqrt((b tau)^2 + v_l^2 + 2 b gap) within dt where that is smaller."""
+    v, limit, spacing, dv = obs[..., 0], obs[..., 1], obs[..., 2], obs[..., 3]
+    ratio = np.maximum(v / np.maximum(p.speed_factor * limit, 0.1), 0.0)
+    free = 2.5 * p.accel_mps2 * (1.0 - ratio) * np.sqrt(0.025 + ratio)
+    bt = p.decel_mps2 * p.tau_s
+    gap = np.maximum(spacing - veh_length_m - p.min_gap_m, 0.0)
+    v_leader = np.maximum(v - dv, 0.0)
+    safe = -bt + np.sqrt(bt**2 + v_leader**2 + 2.0 * p.decel_mps2 * gap)
+    return np.maximum(np.minimum(free, (safe - v) / dt_s), -EMERGENCY_DECEL_MPS2)
+
+
+_GIPPS_LOWER = np.array([0.5, 0.1, 0.5, 0.1, 0.0])
+_GIPPS_UPPER = np.array([1.5, 5.0, 10.0, 5.0, 20.0])
+
+
+def calibrate_gipps(
+    obs: np.ndarray, accel: np.ndarray, veh_length_m: float, dt_s: float
+) -> tuple[GippsParams, float]:
+    """Robust least-squares fit (soft L1, as ``calibrate_idm``) of (speed_factor, a, b, tau,
+    min_gap) to observed pairs; returns (params, RMSE of the fitted accelerations)."""
+
+    def resid(x: np.ndarray) -> np.ndarray:
+        return gipps_policy_accel(obs, GippsParams(*x), veh_length_m, dt_s) - accel
+
+    fit = least_squares(
+        resid,
+        np.array([1.0, 1.5, 4.0, 1.0, 2.0]),
+        bounds=(_GIPPS_LOWER, _GIPPS_UPPER),
+        x_scale=np.array([0.05, 0.5, 0.5, 0.2, 1.0]),
+        loss="soft_l1",
+        f_scale=ROBUST_SCALE_MPS2,
+    )
+    return GippsParams(*fit.x), float(np.sqrt(np.mean(fit.fun**2)))
+
+
+def fit_policy_prior(
+    kind: str, obs: np.ndarray, accel: np.ndarray, veh_length_m: float, dt_s: float
+) -> tuple[dict[str, float], float]:
+    """``policy.prior``'s model ("idm" or "gipps") fitted to observed pairs: the agent's
+    prior parameters (``policy.prior.PRIOR_KEYS``) and the fit's RMSE [m/s^2]."""
+    if kind == "idm":
+        idm, rmse = calibrate_idm(obs, accel, veh_length_m)
+        return idm_prior_params(idm.as_dict(), veh_length_m), rmse
+    gipps, rmse = calibrate_gipps(obs, accel, veh_length_m, dt_s)
+    params = {**gipps.as_dict(), "veh_length_m": float(veh_length_m), "dt_s": float(dt_s)}
+    return {k: params[k] for k in GIPPS_PRIOR_KEYS}, rmse

@@ -14,12 +14,11 @@ import numpy as np
 
 from macromicro_sumo.deploy.stage import deploy
 from macromicro_sumo.env.section_bank import typical_length
-from macromicro_sumo.evaluation.idm_fit import calibrate_idm
+from macromicro_sumo.evaluation.idm_fit import fit_policy_prior
 from macromicro_sumo.evaluation.section import evaluate_section, micro_pairs
 from macromicro_sumo.files import prepare_out_dir
 from macromicro_sumo.generator.section_train import run_train_section_generator
 from macromicro_sumo.pipeline.ring import run_stages, standard_stages
-from macromicro_sumo.policy.prior import idm_prior_params
 from macromicro_sumo.policy.stage import run_train_policy
 from macromicro_sumo.report.deploy import make_deploy_plots
 from macromicro_sumo.report.section import write_section_report
@@ -27,15 +26,15 @@ from macromicro_sumo.truth.section import simulate_section
 
 
 def fit_idm_prior(sc, truth, runs: np.ndarray) -> tuple[dict[str, float], dict[str, Any]]:
-    """The IDM under a residual policy (``policy.prior = "idm"``): the same fit as the
-    evaluation's idm_calibrated (its pairs, runs and length), so the policy starts as that
-    baseline and its residual is what training adds. Returns the agent's prior parameters
-    and what the policy manifest records of the fit."""
+    """The model under a residual policy (``policy.prior``, "idm" or "gipps"), fitted to the
+    observed pairs as the evaluation's idm_calibrated is (its pairs, runs and length), so the
+    policy starts as that model and its residual is what training adds. Returns the agent's
+    prior parameters and what the policy manifest records of the fit."""
     length = typical_length(truth)
     obs, acc = micro_pairs(sc, truth, runs)
-    idm, rmse = calibrate_idm(obs, acc, length)
-    prior = idm_prior_params(idm.as_dict(), length)
-    return prior, {"prior": {"kind": "idm", **prior, "fit_rmse_mps2": rmse, "pairs": len(acc)}}
+    kind = sc.policy.prior
+    prior, rmse = fit_policy_prior(kind, obs, acc, length, sc.simulation.step_length_s)
+    return prior, {"prior": {"kind": kind, **prior, "fit_rmse_mps2": rmse, "pairs": len(acc)}}
 
 
 def run_section(sc, out: Path | str, command: str = "", progress: bool = True) -> dict[str, Any]:

@@ -7,9 +7,10 @@
   (``env.observation.OBS_SHIFT_SCALE``) and with the mean/std of the bank's initial
   observations on a section (``env.observation.bank_shift_scale``); both are buffers of the agent,
   so they travel in the checkpoint's state_dict.
-* ``prior`` (``policy.prior``): "none", the mean is the actor's output; "idm", the mean is
-  a fixed, fitted IDM's acceleration on the raw observation plus the actor's output (a
-  residual; ``policy.prior``), the IDM's parameters a buffer too. The residual is bounded,
+* ``prior`` (``policy.prior``): "none", the mean is the actor's output; "idm" or "gipps",
+  the mean is a fixed, fitted car-following model's acceleration on the raw observation
+  plus the actor's output (a residual; ``policy.prior``), the model's parameters a buffer
+  too (``idm_prior``, ``gipps_prior``). The residual is bounded,
   B tanh(out / B) with B = ``policy.residual_bound_mps2`` (a buffer; checkpoints from before
   it have none and load unbounded, as they were trained): unbounded, it learned to cancel
   the IDM (Bremen, 40 m/s: IDM -9, residual +8.5 m/s^2), so the policy lost the IDM's
@@ -31,7 +32,7 @@ from macromicro_sumo.env.observation import OBS_SHIFT_SCALE
 from macromicro_sumo.env.ring import RingCore
 from macromicro_sumo.env.rollout import ActionFn
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.policy.prior import IDM_PRIOR_KEYS, PRIORS, idm_prior_accel
+from macromicro_sumo.policy.prior import PRIOR_ACCEL, PRIOR_KEYS, PRIORS
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES
 
 # Fixed observation scaling per feature: env.observation.FEATURES (the envs' normalize too).
@@ -49,7 +50,7 @@ class Agent(nn.Module):
         residual_bound_mps2: float = float("inf"),
     ) -> None:
         """``shift_scale``: the observation normalisation (None: the ring's OBS_SHIFT_SCALE).
-        ``prior_params`` (``policy.prior.idm_prior_params``) for ``prior`` "idm"; None
+        ``prior_params`` (``policy.prior.PRIOR_KEYS``) for a ``prior`` other than "none"; None
         leaves them NaN, for a checkpoint's state_dict to fill. ``residual_bound_mps2``:
         the largest correction [m/s^2] the actor adds to the prior (inf: unbounded; 0: the
         prior alone)."""
@@ -84,16 +85,17 @@ class Agent(nn.Module):
         self.log_std = nn.Parameter(torch.full((1,), float(init_log_std)))
         self.hidden_size = hidden_size
         self.prior = prior
-        if prior == "idm":
-            values = [float("nan")] * len(IDM_PRIOR_KEYS)
+        if prior != "none":
+            keys = PRIOR_KEYS[prior]
+            values = [float("nan")] * len(keys)
             if prior_params is not None:
-                values = [float(prior_params[k]) for k in IDM_PRIOR_KEYS]
-            self.register_buffer("idm_prior", torch.tensor(values, dtype=torch.float32))
+                values = [float(prior_params[k]) for k in keys]
+            self.register_buffer(f"{prior}_prior", torch.tensor(values, dtype=torch.float32))
             self.register_buffer(
                 "residual_bound", torch.tensor(float(residual_bound_mps2), dtype=torch.float32)
             )
-            # The residual starts at 0: training starts from the calibrated IDM, and the
-            # likelihood moves it only where the observed pairs disagree with the IDM.
+            # The residual starts at 0: training starts from the calibrated model, and the
+            # likelihood moves it only where the observed pairs disagree with it.
             last = self.actor[-1]
             assert isinstance(last, nn.Linear)
             nn.init.zeros_(last.weight)
@@ -101,23 +103,24 @@ class Agent(nn.Module):
 
     def mean_action(self, obs: torch.Tensor) -> torch.Tensor:
         """The policy's deterministic action [m/s^2] for raw observations (..., D): the
-        actor's output, plus the IDM prior's acceleration with ``prior`` "idm"."""
+        actor's output, plus the prior's acceleration with a ``prior``."""
         mean = self.actor((obs - self.shift) / self.scale).squeeze(-1)
-        if self.prior == "idm":
-            p = dict(zip(IDM_PRIOR_KEYS, self.idm_prior.unbind(), strict=True))
+        if self.prior != "none":
+            buffer = getattr(self, f"{self.prior}_prior")
+            p = dict(zip(PRIOR_KEYS[self.prior], buffer.unbind(), strict=True))
             bound = self.residual_bound
             if bound <= 0.0:  # the fitted prior alone (an ablation)
                 mean = torch.zeros_like(mean)
             elif torch.isfinite(bound):
                 # Slope 1 at 0: the zero-initialised residual learns as an unbounded one would.
                 mean = bound * torch.tanh(mean / bound)
-            mean = mean + idm_prior_accel(obs, p)
+            mean = mean + PRIOR_ACCEL[self.prior](obs, p)
         return mean
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
         # Residual policies trained before the bound had none: they load unbounded.
         key = prefix + "residual_bound"
-        if self.prior == "idm" and key not in state_dict:
+        if self.prior != "none" and key not in state_dict:
             state_dict[key] = torch.tensor(float("inf"))
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 

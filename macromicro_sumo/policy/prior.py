@@ -1,27 +1,38 @@
 """Stage II: a physical prior under the learned policy (``policy.prior``).
 
-With ``policy.prior = "idm"`` the policy's mean action is the IDM's acceleration on the raw
-observation plus the actor's output (residual policy learning): the IDM's parameters are
-fitted to the training runs' observed pairs before training (``evaluation.idm_fit.
-calibrate_idm``, by the stage) and stay fixed. Why: SUMO's recorded accelerations are noisy
-and close-following states rare in the observed pairs, so an MLP alone learned a mean that
-barely reacts to spacing (Bremen: -1.00 m/s^2 at 51 m and -0.96 at 5 m, closing at 6 m/s)
-and collided or jammed when deployed; the IDM reacts to spacing by construction and the
-residual only corrects it where the data say so.
+With ``policy.prior = "idm"`` or ``"gipps"`` the policy's mean action is the prior's
+acceleration on the raw observation plus the actor's bounded output (residual policy
+learning): the prior's parameters are fitted to the training runs' observed pairs before
+training (``evaluation.idm_fit.fit_policy_prior``, by the stage) and stay fixed. Why:
+SUMO's recorded accelerations are noisy and close-following states rare in the observed
+pairs, so an MLP alone learned a mean that barely reacts to spacing (Bremen: -1.00 m/s^2 at
+51 m and -0.96 at 5 m, closing at 6 m/s) and collided or jammed when deployed; a
+car-following model reacts to spacing by construction and the residual only corrects it
+where the data say so.
 
-``idm_prior_accel`` is ``evaluation.idm_fit.idm_policy_accel`` on torch tensors (the same
-gap floor and braking bound: tests/policy/test_prior.py compares them); the parameters are
-buffers of the agent (``IDM_PRIOR_KEYS``), so they travel in the checkpoint's state_dict.
+* ``idm``: the Intelligent Driver Model. It plans to stop comfortably (at b) for whatever
+  stands ahead: for the end of an on-ramp's acceleration lane, a standing leader, from
+  ~250 m at 30 m/s, so deployed ramp vehicles crawled to the lane end and jammed the merge
+  (Bremen: merge lanes at 4-8 m/s against the truth's 28).
+* ``gipps``: Gipps' model (Gipps 1981; Treiber & Kesting, "Traffic Flow Dynamics",
+  ch. 11.2), Krauss' ancestor: accelerate freely, 2.5 a (1 - v/V) sqrt(0.025 + v/V), unless
+  that is faster than the safe speed behind the leader, -b tau + sqrt((b tau)^2 + v_l^2 +
+  2 b gap) (the leader assumed to brake as hard), which it then takes within the step dt.
+  It brakes only as late as is safe, as SUMO's drivers do.
+
+The torch functions here equal ``evaluation.idm_fit``'s numpy ones (the same gap floor and
+braking bound: tests/policy/test_prior.py compares them); the parameters are buffers of the
+agent (``PRIOR_KEYS``), so they travel in the checkpoint's state_dict.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 
 import torch
 
-PRIORS = ("none", "idm")
-# The agent's buffers, in this order: desired speed = speed_factor x the local limit.
+PRIORS = ("none", "idm", "gipps")
+# The agent's buffers per prior, in this order: desired speed = speed_factor x the local limit.
 IDM_PRIOR_KEYS = (
     "speed_factor",
     "tau_s",
@@ -31,6 +42,16 @@ IDM_PRIOR_KEYS = (
     "delta",
     "veh_length_m",
 )
+GIPPS_PRIOR_KEYS = (
+    "speed_factor",
+    "accel_mps2",
+    "decel_mps2",
+    "tau_s",
+    "min_gap_m",
+    "veh_length_m",
+    "dt_s",
+)
+PRIOR_KEYS = {"idm": IDM_PRIOR_KEYS, "gipps": GIPPS_PRIOR_KEYS}
 # As evaluation.idm_fit (a policy module may not import evaluation; the test checks they agree):
 # a car brakes no harder than SUMO's emergencyDecel default, a gap is never below 0.1 m.
 EMERGENCY_DECEL_MPS2 = 9.0
@@ -38,7 +59,7 @@ MIN_GAP_M = 0.1
 
 
 def idm_prior_params(params: Mapping[str, float], veh_length_m: float) -> dict[str, float]:
-    """The prior's buffer values from IDM parameters (``IdmParams.as_dict()``) and the
+    """The IDM prior's buffer values from IDM parameters (``IdmParams.as_dict()``) and the
     vehicle length the fit used."""
     out = {k: float(params[k]) for k in IDM_PRIOR_KEYS if k != "veh_length_m"}
     out["veh_length_m"] = float(veh_length_m)
@@ -57,3 +78,23 @@ def idm_prior_accel(obs: torch.Tensor, p: Mapping[str, torch.Tensor]) -> torch.T
     )
     free = 1.0 - (v / desired) ** p["delta"]
     return torch.clamp(a * (free - (s_star / gap) ** 2), min=-EMERGENCY_DECEL_MPS2)
+
+
+def gipps_prior_accel(obs: torch.Tensor, p: Mapping[str, torch.Tensor]) -> torch.Tensor:
+    """Gipps' acceleration [m/s^2] from raw observations (..., D) as ``idm_prior_accel``'s:
+    the free acceleration or the one reaching the safe speed within dt, the smaller."""
+    v, limit, spacing, dv = obs[..., 0], obs[..., 1], obs[..., 2], obs[..., 3]
+    ratio = torch.clamp(v / torch.clamp(p["speed_factor"] * limit, min=0.1), min=0.0)
+    free = 2.5 * p["accel_mps2"] * (1.0 - ratio) * torch.sqrt(0.025 + ratio)
+    bt = p["decel_mps2"] * p["tau_s"]
+    gap = torch.clamp(spacing - p["veh_length_m"] - p["min_gap_m"], min=0.0)
+    v_leader = torch.clamp(v - dv, min=0.0)
+    safe = -bt + torch.sqrt(bt**2 + v_leader**2 + 2.0 * p["decel_mps2"] * gap)
+    accel = torch.minimum(free, (safe - v) / p["dt_s"])
+    return torch.clamp(accel, min=-EMERGENCY_DECEL_MPS2)
+
+
+PRIOR_ACCEL: dict[str, Callable[[torch.Tensor, Mapping[str, torch.Tensor]], torch.Tensor]] = {
+    "idm": idm_prior_accel,
+    "gipps": gipps_prior_accel,
+}

@@ -22,18 +22,19 @@ class PolicyConfig:
     )
     prior: str = spec(
         "none",
-        choices=("none", "idm"),
+        choices=("none", "idm", "gipps"),
         doc="sections: the policy's mean action is the actor's output (none, the paper's), or "
-        "an IDM fitted to the training runs' observed pairs (as idm_calibrated; fixed) plus "
-        "the actor's output as a residual (idm): the IDM reacts to spacing where the observed "
-        "pairs rarely show close following",
+        "a car-following model fitted to the training runs' observed pairs (fixed) plus the "
+        "actor's output as a residual: idm (as idm_calibrated) or gipps (Gipps' model: brakes "
+        "only as late as is safe, as SUMO's Krauss drivers do; policy.prior): the model "
+        "reacts to spacing where the observed pairs rarely show close following",
     )
     residual_bound_mps2: float = spec(
         1.0,
         lo=0.0,
         hi=1e3,
-        doc="prior idm: the largest correction the actor adds to the IDM [m/s^2] (B tanh(out / B); "
-        "0: the fitted IDM alone); unbounded, the residual learned to cancel the IDM's braking",
+        doc="with a prior: the largest correction the actor adds to it [m/s^2] (B tanh(out / B); "
+        "0: the fitted model alone); unbounded, the residual learned to cancel the IDM's braking",
     )
     hidden_train: tuple[int, int] = spec(
         (1, 4), lo=1, hi=10_000, doc="K range of training episodes"

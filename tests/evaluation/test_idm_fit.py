@@ -8,8 +8,11 @@ import pytest
 
 from macromicro_sumo.evaluation.idm_fit import (
     EMERGENCY_DECEL_MPS2,
+    GippsParams,
     IdmParams,
+    calibrate_gipps,
     calibrate_idm,
+    gipps_policy_accel,
     idm_policy_accel,
 )
 
@@ -55,3 +58,24 @@ def test_predicted_braking_is_bounded_by_the_emergency_deceleration() -> None:
     a = idm_policy_accel(obs, TRUE, LENGTH_M)
     assert np.all(np.isfinite(a)) and np.all(a >= -EMERGENCY_DECEL_MPS2)
     assert a[0] == pytest.approx(-EMERGENCY_DECEL_MPS2)
+
+
+def test_the_gipps_fit_recovers_the_parameters_that_made_the_pairs() -> None:
+    """Gipps' pairs: free driving and the safe speed both present (closing on a slower
+    leader at short spacings), plus noise; a few outliers must not decide the fit."""
+    true = GippsParams(speed_factor=1.05, accel_mps2=1.7, decel_mps2=4.5, tau_s=1.0, min_gap_m=2.5)
+    rng = np.random.default_rng(4)
+    n = 4000
+    v = rng.uniform(2.0, 35.0, n)
+    limit = rng.choice([13.9, 27.8, 33.3], n)
+    spacing = LENGTH_M + np.where(rng.random(n) < 0.5, rng.uniform(3.0, 40.0, n), 250.0)
+    dv = rng.normal(1.0, 3.0, n)
+    obs = np.stack([v, limit, spacing, dv], axis=1)
+    accel = gipps_policy_accel(obs, true, LENGTH_M, 0.5) + rng.normal(0.0, 0.05, n)
+    accel[::200] = 3.0  # pairs no car-following model explains
+    p, rmse = calibrate_gipps(obs, accel, LENGTH_M, 0.5)
+    assert rmse < 1.0
+    assert p.speed_factor == pytest.approx(1.05, abs=0.02)
+    assert p.accel_mps2 == pytest.approx(1.7, rel=0.1)
+    assert p.decel_mps2 == pytest.approx(4.5, rel=0.15)
+    assert p.tau_s == pytest.approx(1.0, rel=0.15)

@@ -15,7 +15,13 @@ from macromicro_sumo.data.ring import load_ground_truth, split_runs
 from macromicro_sumo.env.ring import build_bank
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation import idm_fit
-from macromicro_sumo.evaluation.idm_fit import IdmParams, idm_policy_accel
+from macromicro_sumo.evaluation.idm_fit import (
+    GippsParams,
+    IdmParams,
+    fit_policy_prior,
+    gipps_policy_accel,
+    idm_policy_accel,
+)
 from macromicro_sumo.policy import prior as prior_mod
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.checkpoint import load_policy
@@ -24,7 +30,16 @@ from macromicro_sumo.policy.prior import idm_prior_params
 from macromicro_sumo.scenario.load import load_scenario
 
 PARAMS = IdmParams(speed_factor=1.05, tau_s=1.2, accel_mps2=1.4, decel_mps2=2.1, min_gap_m=2.5)
+GIPPS = GippsParams(speed_factor=1.05, accel_mps2=1.7, decel_mps2=4.6, tau_s=1.1, min_gap_m=2.0)
 LENGTH_M = 4.8
+DT_S = 0.5
+
+
+def _gipps_agent(observation: str = "lookahead", bound: float = 1.0) -> Agent:
+    params = {**GIPPS.as_dict(), "veh_length_m": LENGTH_M, "dt_s": DT_S}
+    return Agent(
+        16, observation=observation, prior="gipps", prior_params=params, residual_bound_mps2=bound
+    )
 
 
 def _obs(n: int, dim: int, seed: int = 0) -> np.ndarray:
@@ -70,8 +85,8 @@ def test_no_prior_is_the_actor_alone():
     with torch.no_grad():
         actor = agent.actor((obs - agent.shift) / agent.scale).squeeze(-1)
         torch.testing.assert_close(agent.mean_action(obs), actor)
-    with pytest.raises(UserError, match="policy.prior = 'gipps'"):
-        Agent(16, prior="gipps")
+    with pytest.raises(UserError, match="policy.prior = 'krauss'"):
+        Agent(16, prior="krauss")
 
 
 @pytest.fixture(scope="module")
@@ -187,3 +202,57 @@ def test_a_checkpoint_without_the_bound_loads_unbounded(ring, trained, tmp_path)
     torch.save(payload, tmp_path / "policy.pt")
     agent = load_policy(tmp_path / "policy.pt", sc)
     assert torch.isinf(agent.residual_bound)
+
+
+@pytest.mark.parametrize("dim", [4, 6])
+def test_gipps_prior_mean_equals_gipps_policy_accel(dim):
+    agent = _gipps_agent("paper" if dim == 4 else "lookahead")
+    obs = _obs(2000, dim, seed=3)
+    with torch.no_grad():
+        mean = agent.mean_action(torch.as_tensor(obs)).numpy()
+    want = gipps_policy_accel(obs.astype(np.float64), GIPPS, LENGTH_M, DT_S)
+    np.testing.assert_allclose(mean, want, rtol=1e-4, atol=1e-3)
+    assert want.min() == -idm_fit.EMERGENCY_DECEL_MPS2
+    # fit_policy_prior hands the agent its buffer in PRIOR_KEYS' order.
+    obs4 = obs[:, :4].astype(np.float64)
+    params, rmse = fit_policy_prior("gipps", obs4, want, LENGTH_M, DT_S)
+    assert list(params) == list(prior_mod.GIPPS_PRIOR_KEYS) and rmse < 0.05
+    assert params["dt_s"] == DT_S and params["veh_length_m"] == LENGTH_M
+
+
+def _drive_to_a_wall(agent: Agent, v0: float, wall_m: float, seconds: float) -> tuple[float, float]:
+    """Euler steps of DT_S of one car driven by the agent's mean action towards a standing
+    obstacle ``wall_m`` ahead (as the env sees a lane end: a standing leader, delta_v = v);
+    returns (the smallest bumper gap, the speed after the first 5 s)."""
+    pos, v, least, v5 = 0.0, v0, np.inf, np.nan
+    for step in range(int(seconds / DT_S)):
+        spacing = wall_m - pos + LENGTH_M  # the wall's "back" at the line, a car length long
+        obs = torch.tensor([[v, 33.3, spacing, v, 33.3, 1000.0]], dtype=torch.float32)
+        with torch.no_grad():
+            a = float(agent.mean_action(obs))
+        v = max(0.0, v + a * DT_S)
+        pos += v * DT_S
+        least = min(least, wall_m - pos)
+        if step + 1 == int(5.0 / DT_S):
+            v5 = v
+    return least, v5
+
+
+def test_gipps_stops_before_a_wall_but_drives_on_towards_a_distant_one():
+    """Physics, not numbers: a Gipps car at 30 m/s stops before a standing obstacle 120 m
+    ahead without touching it; one entering an acceleration lane at 20 m/s with its end 200 m
+    ahead speeds up over the first 5 s (SUMO's drivers do, then merge), where the IDM brakes
+    for the lane end from the start (deployed ramp vehicles crawled to it and jammed)."""
+    least, _ = _drive_to_a_wall(_gipps_agent(bound=0.0), 30.0, 120.0, 30.0)
+    assert 0.0 <= least < 10.0
+    _, v5 = _drive_to_a_wall(_gipps_agent(bound=0.0), 20.0, 200.0, 5.0)
+    assert v5 > 22.0
+    idm = Agent(
+        16,
+        observation="lookahead",
+        prior="idm",
+        prior_params=idm_prior_params(PARAMS.as_dict(), LENGTH_M),
+        residual_bound_mps2=0.0,
+    )
+    _, v5_idm = _drive_to_a_wall(idm, 20.0, 200.0, 5.0)
+    assert v5_idm < 20.0
