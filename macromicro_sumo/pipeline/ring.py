@@ -1,5 +1,8 @@
-"""The whole pipeline in one call: ground truth -> generator (-> policy -> evaluation ->
-deployment).
+"""The whole pipeline in one call, for every road: ground truth -> generator (-> policy ->
+evaluation -> deployment) -> report.
+
+``run_pipeline`` takes the road's table of stage functions (``PipelineRoad``: ``RING``
+here, ``pipeline.section.SECTION``) and builds the same stages for both.
 
 Each stage writes into its own sub-folder of ``out``. It is skipped when its manifest
 records the scenario's values of every key that it, or a stage it reads from, depends on
@@ -29,7 +32,7 @@ from macromicro_sumo.generator.ring_train import run_train_generator
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.pipeline.refinement import refine
 from macromicro_sumo.policy.checkpoint import policy_file
-from macromicro_sumo.policy.stage import run_train_policy
+from macromicro_sumo.policy.stage import PriorFit, run_train_policy
 from macromicro_sumo.report.deploy import make_deploy_plots
 from macromicro_sumo.report.ring import write_report
 from macromicro_sumo.scenario.ring import Scenario
@@ -146,7 +149,12 @@ def standard_stages(
     def train(objective: str) -> Callable[[], Any]:
         return lambda: train_policy(gt, gen / "generator.pt", pol, objective, RESUME)
 
-    policies = ("train_policy", "train_policy_micro_only", "train_policy_macro_only")
+    # The paper's policy and its two ablations: (objective, keys it ignores besides).
+    policies = {
+        "train_policy": ("mix", ()),
+        "train_policy_micro_only": ("micro_only", ("policy.eta",)),  # cloning: eta = 0
+        "train_policy_macro_only": ("macro_only", ()),
+    }
     stages = [
         Stage(
             "simulate",
@@ -162,32 +170,21 @@ def standard_stages(
             needs=("simulate",),
             ignores=(*_NOWHERE, "policy", "evaluation"),
         ),
-        Stage(
-            "train_policy",
-            pol / policy_file("mix", "manifest"),
-            train("mix"),
-            needs=upstream,
-            ignores=_POLICY_IGNORES,
-        ),
-        Stage(
-            "train_policy_micro_only",
-            pol / policy_file("micro_only", "manifest"),
-            train("micro_only"),
-            needs=upstream,
-            ignores=(*_POLICY_IGNORES, "policy.eta"),  # behaviour cloning: eta = 0
-        ),
-        Stage(
-            "train_policy_macro_only",
-            pol / policy_file("macro_only", "manifest"),
-            train("macro_only"),
-            needs=upstream,
-            ignores=_POLICY_IGNORES,
+        *(
+            Stage(
+                name,
+                pol / policy_file(objective, "manifest"),
+                train(objective),
+                needs=upstream,
+                ignores=(*_POLICY_IGNORES, *ignores),
+            )
+            for name, (objective, ignores) in policies.items()
         ),
         Stage(
             "evaluate",
             ev / "evaluation_manifest.json",
             lambda: evaluate(gt, gen / "generator.pt", policy_paths(pol), ev),
-            needs=(*upstream, "train_policy", "train_policy_micro_only", "train_policy_macro_only"),
+            needs=(*upstream, *policies),
             ignores=(*_NOWHERE, *_REFINE),
         ),
     ]
@@ -204,22 +201,46 @@ def standard_stages(
     return stages
 
 
-def run(sc: Scenario, out: Path | str, command: str = "", progress: bool = True) -> dict[str, Any]:
+@dataclass(frozen=True)
+class PipelineRoad:
+    """The stages of a road kind (the ring's IDM fleet, a section's demand), each called as
+    ``(sc, <its folders>, command, progress)``, and what its pipeline does differently."""
+
+    simulate: Callable[..., Any]
+    train_generator: Callable[..., Any]
+    evaluate: Callable[..., Any]
+    report: Callable[[Any, Path, dict[str, Any]], Path]
+    fit_prior: PriorFit | None = None  # policy.prior's IDM fit (policy.stage.run_train_policy)
+    truth_reads: tuple[str, ...] = ()  # keys of later stages' tables the ground truth reads
+    deploys: Callable[[Any], bool] = lambda sc: True  # noqa: E731
+    refine: bool = False  # joint refinement (policy.refine_iterations) is built for it
+
+
+def run_pipeline(
+    sc: Any, road: PipelineRoad, out: Path | str, command: str = "", progress: bool = True
+) -> dict[str, Any]:
+    """Every stage of ``road`` on ``sc`` into ``out``, stages done before skipped
+    (``Stage``), then the report; returns the run manifest."""
     out = prepare_out_dir(out)
     gt, gen, pol = out / "ground_truth", out / "generator", out / "policy"
     stages = standard_stages(
         out,
-        lambda gt_: simulate(sc, gt_, command, progress),
-        lambda gt_, gen_: run_train_generator(sc, gt_, gen_, command, progress),
+        lambda gt_: road.simulate(sc, gt_, command, progress),
+        lambda gt_, gen_: road.train_generator(sc, gt_, gen_, command, progress),
         lambda gt_, g, pol_, obj, resume: run_train_policy(
-            sc, gt_, g, pol_, resume, command, progress, obj
+            sc, gt_, g, pol_, resume, command, progress, obj, fit_prior=road.fit_prior
         ),
-        lambda gt_, g, pols, ev: evaluate(sc, gt_, g, pols, ev, command, progress),
-        deploy=lambda gt_, pol_, dep: deploy(
-            sc, gt_, pol_, dep, command, progress, plots=make_deploy_plots
-        ),
+        lambda gt_, g, pols, ev: road.evaluate(sc, gt_, g, pols, ev, command, progress),
+        truth_reads=road.truth_reads,
+        deploy=(
+            lambda gt_, pol_, dep: deploy(
+                sc, gt_, pol_, dep, command, progress, plots=make_deploy_plots
+            )
+        )
+        if road.deploys(sc)
+        else None,
     )
-    if sc.policy.refine_iterations > 0:
+    if road.refine and sc.policy.refine_iterations > 0:
         ref = out / "refined"
         stages += [
             Stage(
@@ -234,7 +255,7 @@ def run(sc: Scenario, out: Path | str, command: str = "", progress: bool = True)
             Stage(
                 "evaluate_refined",
                 ref / "evaluation" / "evaluation_manifest.json",
-                lambda: evaluate(
+                lambda: road.evaluate(
                     sc,
                     gt,
                     ref / "generator.pt",
@@ -248,8 +269,16 @@ def run(sc: Scenario, out: Path | str, command: str = "", progress: bool = True)
             ),
         ]
     manifest = run_stages(sc, stages, out, command, progress)
-    write_report(sc, out, manifest)
+    road.report(sc, out, manifest)
     return manifest
+
+
+RING = PipelineRoad(simulate, run_train_generator, evaluate, write_report, refine=True)
+
+
+def run(sc: Scenario, out: Path | str, command: str = "", progress: bool = True) -> dict[str, Any]:
+    """Every stage on the ring scenario ``sc`` into ``out``; returns the run manifest."""
+    return run_pipeline(sc, RING, out, command, progress)
 
 
 def run_stages(
