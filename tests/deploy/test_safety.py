@@ -206,3 +206,21 @@ def test_a_policy_that_always_brakes_cannot_stop_the_merge(tmp_path: Path) -> No
     assert runs.max() * sc.simulation.step_length_s < 20.0, runs.max()
     assert driven["speed_mps"].mean() > 0.2 * 30.0 * 0.9
     assert drv.stats.floor_acted > 0.5 * drv.stats.vehicle_steps_driven
+
+
+@pytest.mark.parametrize("kind", ["full", "random"])
+def test_no_command_makes_the_merge_collide(tmp_path: Path, kind: str) -> None:
+    """On the merge (an acceleration lane that ends, lane changes, an added lane where
+    SUMO's leader is on another lane index): full throttle, or random accelerations in the
+    scenario's bounds [-4.5, 2.6] m/s^2 from a seeded generator, for every driven car."""
+    net, routes = merge_net(tmp_path / "net")
+    sc = load_scenario(_merge_scenario(tmp_path, net, routes))
+    section = read_section(net, ["A", "B", "C"], False)
+    act = adversary(kind, *sc.bounds.accel_mps2, seed=3)
+    drv = SectionSpeedDriver(sc, section, 0, act, "sumo")
+    df, stats = _run_section(sc, drv)
+    assert stats["collisions"] == 0 and stats["teleports"] == 0, stats
+    assert drv.stats.vehicle_steps_driven > 2000
+    if kind == "full":  # the cap did the work, and the cars drove
+        assert drv.stats.safety_acted > 100, drv.stats
+        assert df.loc[~df["observed"], "speed_mps"].mean() > 15.0
