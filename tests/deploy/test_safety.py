@@ -12,10 +12,16 @@ import numpy as np
 import pandas as pd
 import pytest
 from conftest import ROOT, dump_toml, scenario_table
-from deploy_nets import merge_net
+from deploy_nets import CAR, merge_net, netconvert
 
-from macromicro_sumo.deploy.drivers import RingSpeedDriver, SectionSpeedDriver, behind_commands
-from macromicro_sumo.deploy.run import Drive, load_context, run_method
+from macromicro_sumo.deploy.drivers import (
+    RingSpeedDriver,
+    SectionSpeedDriver,
+    SectionTypeDriver,
+    SwitchedType,
+    behind_commands,
+)
+from macromicro_sumo.deploy.run import Drive, load_context, run_method, vtype_xml
 from macromicro_sumo.road.physics import safe_speed
 from macromicro_sumo.road.section import read_section
 from macromicro_sumo.scenario.load import load_scenario
@@ -170,11 +176,11 @@ def _merge_scenario(folder: Path, net: Path, routes: Path) -> Path:
     return path
 
 
-def _run_section(sc, driver) -> tuple[pd.DataFrame, dict]:
+def _run_section(sc, driver, additional: tuple[Path, ...] = ()) -> tuple[pd.DataFrame, dict]:
     sim = Simulation(
         SumoOptions(
             sc.resolve(sc.network.net_file),
-            (),
+            additional,
             sc.simulation.step_length_s,
             sc.seed,
             route_files=tuple(sc.resolve(r) for r in sc.network.route_files),
@@ -224,3 +230,48 @@ def test_no_command_makes_the_merge_collide(tmp_path: Path, kind: str) -> None:
     if kind == "full":  # the cap did the work, and the cars drove
         assert drv.stats.safety_acted > 100, drv.stats
         assert df.loc[~df["observed"], "speed_mps"].mean() > 15.0
+
+
+def test_a_vtype_switch_hands_back_where_the_own_min_gap_fits(tmp_path: Path) -> None:
+    """Section A (300 m at 30 m/s) of a road A -> B whose B (2 m/s) queues the stream
+    back onto A: cars switched to an IDM of minGap 0.5 m close up to ~1.5 m in the queue;
+    handed back to their own vType (minGap 2.5 m) at A's end there, SUMO counted each in
+    collision. Handed back once their own minGap fits, none is."""
+    folder = tmp_path / "net"
+    folder.mkdir()
+    nodes = (
+        '<node id="n0" x="0" y="0"/>\n<node id="n1" x="300" y="0"/>\n<node id="n2" x="700" y="0"/>'
+    )
+    edges = (
+        '<edge id="A" from="n0" to="n1" numLanes="1" speed="30"/>\n'
+        '<edge id="B" from="n1" to="n2" numLanes="1" speed="2"/>'
+    )
+    net = netconvert(folder, nodes, edges)
+    routes = folder / "line.rou.xml"
+    routes.write_text(
+        f"<routes>\n    {CAR}\n    <route id='r' edges='A B'/>\n"
+        "    <flow id='f' type='car' route='r' begin='0' end='3600' vehsPerHour='1800' "
+        "departSpeed='max'/>\n</routes>\n"
+    )
+    table = {
+        "name": "line",
+        "seed": 5,
+        "network": {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]},
+        "section": {"edges": ["A"]},
+        "instrumented": {"penetration": 0.01},
+        "simulation": {"warmup_s": 0.0, "duration_s": 150.0, "n_runs": 2},
+        "detectors": {"interval_s": 30.0},
+    }
+    path = tmp_path / "line.toml"
+    path.write_text(dump_toml(table))
+    sc = load_scenario(path)
+    theta = {"accel": 2.6, "decel": 4.5, "tau": 0.5, "minGap": 0.5, "speedFactor": 1.0}
+    text, type_of = vtype_xml({"car": ("passenger", 5.0)}, Drive(theta=theta))
+    extra = folder / "switch.add.xml"
+    extra.write_text(text)
+    drv = SectionTypeDriver(sc, read_section(net, ["A"], False), 0, SwitchedType(type_of, 1.0))
+    df, stats = _run_section(sc, drv, (extra,))
+    assert stats["collisions"] == 0, stats
+    assert drv.stats.vehicle_steps_driven > 1000
+    # The queue reached back onto A: the cars handed back there were close.
+    assert (df["speed_mps"] < 2.5).mean() > 0.2
