@@ -2,9 +2,9 @@
 processes or on Ray.
 
 Inputs are scenario files, globs, or a scenario with a ``[sweep]`` table, expanded into
-the cartesian product of named variants (``batch/sweep.py``). Each stage has a function
-per kind (``STAGES`` for the ring, ``SECTION_STAGES``: ``batch/tasks.py``); variants run on
-a backend of ``batch/backends.py``.
+the cartesian product of named variants (``batch/sweep.py``). Each stage is one function
+for every scenario kind (``STAGES``: ``batch/tasks.py``); variants run on a backend of
+``batch/backends.py``.
 
 Layout of a batch folder ``DIR``::
 
@@ -41,15 +41,7 @@ from typing import Any
 from macromicro_sumo.batch import export
 from macromicro_sumo.batch.backends import RAY_INSTALL, LocalBackend, RayBackend
 from macromicro_sumo.batch.sweep import Variant, expand
-from macromicro_sumo.batch.tasks import (
-    KINDS,
-    SECTION_STAGES,
-    STAGES,
-    Outcome,
-    Task,
-    scenario_kind,
-    stage_problem,
-)
+from macromicro_sumo.batch.tasks import STAGES, Outcome, Task
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import OUTPUT_MARK, mark_output, prepare_out_dir, write_json, write_text
 
@@ -119,7 +111,7 @@ def run_batch(
     if address and backend != "ray":
         raise UserError("--address is for --backend ray")
     for stage in stages:
-        if stage not in STAGES or stage not in SECTION_STAGES:
+        if stage not in STAGES:
             raise UserError(f"unknown stage {stage!r}; accepted: {', '.join(STAGES)}")
     engine = LocalBackend(workers) if backend == "local" else RayBackend(workers, address)
     variants = expand(inputs)
@@ -145,14 +137,9 @@ def run_batch(
 
         statuses: dict[str, dict[str, Any]] = {}
         tasks, by_name = [], {v.name: v for v in variants}
-        missing = {
-            kind: "; ".join(filter(None, (stage_problem(s, kind) for s in stages)))
-            for kind in KINDS
-        }
         for v in variants:
-            cannot = missing[scenario_kind(v.scenario)]
-            if v.error or (cannot and not is_complete(vdir / v.name, v, stages)):
-                statuses[v.name] = {"status": "failed", "error": v.error or cannot}
+            if v.error:
+                statuses[v.name] = {"status": "failed", "error": v.error}
             elif is_complete(vdir / v.name, v, stages):
                 info = json.loads((vdir / v.name / export.VARIANT_FILE).read_text())
                 statuses[v.name] = {"status": "complete", "reused": True, "wall_s": info["wall_s"]}

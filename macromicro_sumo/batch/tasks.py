@@ -1,6 +1,6 @@
-"""One variant's run: the stage tables of each scenario kind, a stage looked up by name,
-and a worker running a ``Task``'s stages into a fresh folder with its stderr captured
-(SUMO writes its real errors there) into an ``Outcome``."""
+"""One variant's run: the stage table (every stage serves every scenario kind), a stage
+looked up by name, and a worker running a ``Task``'s stages into a fresh folder with its
+stderr captured (SUMO writes its real errors there) into an ``Outcome``."""
 
 from __future__ import annotations
 
@@ -16,70 +16,19 @@ from typing import Any
 
 from macromicro_sumo.batch.sweep import AnyScenario
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.scenario.section import SectionScenario
+from macromicro_sumo.pipeline import stages as pipeline
 
-# A stage is a function (scenario, out folder, command=..., progress=...) -> out folder,
-# named as "module:function" and imported only when a variant runs it; one table per
-# scenario kind, with the same stage names.
-STAGES: dict[str, str] = {
-    "simulate": "macromicro_sumo.truth.ring:simulate",
-    "run": "macromicro_sumo.pipeline.ring:run",
-}
-SECTION_STAGES: dict[str, str] = {
-    "simulate": "macromicro_sumo.truth.section:simulate_section",
-    "run": "macromicro_sumo.pipeline.section:run_section",
-}
-KINDS = ("ring", "section")
+# A stage is a function (scenario, out folder, command=..., progress=...) of
+# ``pipeline.stages``: one for every scenario kind, which picks the kind's implementation.
+STAGES: dict[str, Callable[..., Any]] = {"simulate": pipeline.simulate, "run": pipeline.run}
 LOG_LIMIT = 64_000  # characters of a variant's stderr kept
 
 
-def scenario_kind(sc: Any) -> str:
-    """``"section"`` for a scenario on the user's SUMO network, else ``"ring"``."""
-    return "section" if isinstance(sc, SectionScenario) else "ring"
-
-
-def stage_table(kind: str) -> dict[str, str]:
-    """The stage functions of a scenario kind (``"ring"`` or ``"section"``)."""
-    return SECTION_STAGES if kind == "section" else STAGES
-
-
-def _unavailable(name: str, module: str) -> str:
-    return (
-        f"stage {name!r} is not available in this version of macromicro-sumo "
-        f"(module {module} is missing); run --stage simulate"
-    )
-
-
-def stage_problem(name: str, kind: str = "ring") -> str:
-    """Why stage ``name`` cannot run here for a ``kind`` scenario ('' when it can), checked
-    without importing it."""
-    import importlib.util
-
-    table = stage_table(kind)
-    if name not in table:
-        return f"unknown stage {name!r}; accepted: {', '.join(table)}"
-    module = table[name].split(":")[0]
-    return "" if importlib.util.find_spec(module) else _unavailable(name, module)
-
-
-def resolve_stage(name: str, kind: str = "ring") -> Callable[..., Any]:
-    """The stage function registered under ``name`` for a ``kind`` scenario (imported only
-    when a variant needs it)."""
-    import importlib
-
-    table = stage_table(kind)
-    if name not in table:
-        raise UserError(f"unknown stage {name!r}; accepted: {', '.join(table)}")
-    module, func = table[name].split(":")
-    try:
-        mod = importlib.import_module(module)
-    except ModuleNotFoundError as exc:
-        if exc.name != module:
-            raise
-        raise UserError(_unavailable(name, module)) from None
-    if not hasattr(mod, func):
-        raise UserError(f"stage {name!r} is not available: {module} has no {func}()")
-    return getattr(mod, func)
+def resolve_stage(name: str) -> Callable[..., Any]:
+    """The stage function registered under ``name``."""
+    if name not in STAGES:
+        raise UserError(f"unknown stage {name!r}; accepted: {', '.join(STAGES)}")
+    return STAGES[name]
 
 
 @dataclass(frozen=True)
@@ -137,9 +86,8 @@ def run_task(task: Task) -> Outcome:
         with _stderr_to(log_path):
             try:
                 out.mkdir(parents=True)
-                kind = scenario_kind(task.scenario)
                 for stage in task.stages:
-                    run = resolve_stage(stage, kind)
+                    run = resolve_stage(stage)
                     run(task.scenario, out, command=task.command, progress=False)
             except Exception as exc:
                 error = one_line(exc) or type(exc).__name__

@@ -328,15 +328,13 @@ def test_rerun_skips_complete_variants_and_redoes_stale_ones(tmp_path):
     assert not list((out / "variants").glob(".trash-*"))
 
 
-def test_a_stage_that_is_not_installed_fails_its_variants_clearly(tmp_path, monkeypatch):
-    monkeypatch.setitem(tasks.STAGES, "run", "macromicro_sumo.no_such_pipeline:run")
+def test_an_unknown_stage_is_a_one_line_error(tmp_path):
+    with pytest.raises(UserError, match="unknown stage 'train'; accepted: simulate, run"):
+        tasks.resolve_stage("train")
     path = write_sweep(tmp_path / "s.toml", "seed = [1, 2]")
-    res = run_batch([path], tmp_path / "out", stages=("run",), progress=False)
-    assert res.counts == {"failed": 2, "reused": 0}
-    for error in summary(tmp_path / "out")["error"]:
-        assert "stage 'run' is not available" in error
-    with pytest.raises(UserError, match="not available"):
-        tasks.resolve_stage("run")
+    with pytest.raises(UserError, match="unknown stage 'train'; accepted: simulate, run"):
+        run_batch([path], tmp_path / "out", stages=("simulate", "train"), progress=False)
+    assert not (tmp_path / "out").exists()
 
 
 # --------------------------------------------------------------------------- results
@@ -606,18 +604,6 @@ def test_ring_and_section_files_in_one_batch(tmp_path):
     )
     assert ring["density_vehpkm"].notna().all() and ring["density_vpkm_lane"].isna().all()
     assert macro.loc[corridor, "density_vpkm_lane"].notna().all()
-
-
-def test_section_stage_is_chosen_by_scenario_kind(tmp_path, monkeypatch):
-    monkeypatch.setitem(tasks.SECTION_STAGES, "run", "macromicro_sumo.no_such_pipeline:run")
-    path = write_section_sweep(tmp_path / "s.toml", "seed = [1]")
-    (v,) = expand([path])
-    assert tasks.scenario_kind(v.scenario) == "section"
-    assert tasks.resolve_stage("simulate", "section").__name__ == "simulate_section"
-    assert tasks.resolve_stage("simulate").__name__ == "simulate"  # the ring's
-    res = run_batch([path], tmp_path / "out", stages=("run",), progress=False)
-    assert res.counts == {"failed": 1, "reused": 0}
-    assert "macromicro_sumo.no_such_pipeline" in summary(tmp_path / "out").loc["seed=1", "error"]
 
 
 def _moved_section(tmp_path: Path) -> tuple[Path, Path]:
