@@ -48,10 +48,12 @@ HEADLINE_COLUMNS = [
 
 
 def find_output(folder: Path, name: str) -> Path | None:
-    """``folder/name``, or the first one below it (a whole-pipeline run may nest stages)."""
-    top = folder / name
-    if top.is_file():
-        return top
+    """``folder/name`` (a stage's own folder), else the ground truth's of a whole-pipeline
+    run (its deployment writes runs.csv and macro.csv too, one per method), else the first
+    one below it."""
+    for near in (folder / name, folder / "ground_truth" / name):
+        if near.is_file():
+            return near
     found = sorted(p for p in folder.rglob(name) if p.is_file())
     return found[0] if found else None
 

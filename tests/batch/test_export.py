@@ -12,6 +12,7 @@ import pandas as pd
 import pytest
 from conftest import ROOT, SMALL, dump_toml, scenario_table, write_scenario
 
+from macromicro_sumo.batch.export import find_output, headline
 from macromicro_sumo.batch.runner import run_batch
 from macromicro_sumo.cli import main
 
@@ -154,3 +155,17 @@ def test_every_column_is_documented(finished_batch, table):
     documented = documented_columns(f"batch_{table}")
     assert documented, "no column table found in docs/batch.md"
     assert [c for c in written if c not in params] == documented
+
+
+def test_a_pipeline_runs_headline_figures_are_its_ground_truths(finished_run, tmp_path):
+    """A whole-pipeline variant holds runs.csv and macro.csv per deployed method too (one
+    held-out run each): the headline figures are the ground truth's, all of its runs."""
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run / "ground_truth")
+    deployed = run / "deploy" / "policy"
+    deployed.mkdir(parents=True)
+    truth_runs = pd.read_csv(run / "ground_truth" / "runs.csv")
+    truth_runs.iloc[:1].to_csv(deployed / "runs.csv", index=False)
+    assert len(truth_runs) > 1
+    assert find_output(run, "runs.csv") == run / "ground_truth" / "runs.csv"
+    assert headline(run)["n_runs"] == len(truth_runs)
