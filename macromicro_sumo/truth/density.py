@@ -23,8 +23,11 @@ Within an interval the count moves faster than any 30-60 s aggregate follows (pl
 signal cycles, a queue growing): the per-vehicle passages of stations that cover every lane
 give the count between two stations exactly up to a constant (vehicles in = passages at the
 upstream station, out = at the downstream one: the input-output method), and the constant
-is taken from the density estimate averaged over a window (drift correction: ramps between
-stations, missed counts).
+is taken from the density estimate, weighted to its free-flowing intervals (where flow /
+speed is right; a loop in a queue does not stand for its cell): one constant for the whole
+record where no ramp lies between the stations, a line over a window where one may (drift
+correction). An open section's end pieces, beyond its outermost stations, are counted from
+the passages there, each vehicle projected at the speed it passed with.
 """
 
 from __future__ import annotations
@@ -142,11 +145,14 @@ def anchored_counts(
     interval_centres_s: np.ndarray,
     at_s: np.ndarray,
     window_s: float,
+    weights: np.ndarray | None = None,
 ) -> np.ndarray:
     """Input-output counts made absolute: ``io_counts`` (at ``at_s``, known up to a constant)
     plus (density estimate - input-output mean) over the intervals whose centres lie within
     ``window_s`` / 2 of each time (the nearest interval where none does), fitted by a line
-    in time (``local_line``) and taken at that time.
+    in time (``local_line``, weighted by ``weights``) and taken at that time. An infinite
+    ``window_s`` fits one weighted mean over every interval: a stretch nothing enters or
+    leaves between its stations has one constant for the whole record.
 
     The density estimate is right on average but follows neither platoons nor signal cycles
     within an interval; the input-output count follows them exactly but drifts where
@@ -155,25 +161,63 @@ def anchored_counts(
     """
     c = np.asarray(interval_centres_s, dtype=float)
     off = np.asarray(density_counts, dtype=float) - np.asarray(io_means, dtype=float)
-    ok = np.isfinite(off)
-    c, off = c[ok], off[ok]
+    w = np.ones_like(c) if weights is None else np.asarray(weights, dtype=float)
+    ok = np.isfinite(off) & np.isfinite(w) & (w > 0)
+    c, off, w = c[ok], off[ok], w[ok]
     out = np.full(len(np.atleast_1d(at_s)), np.nan)
     if c.size == 0:
         return out
+    if not np.isfinite(window_s):
+        return io_counts + float(np.average(off, weights=w))
     for i, t in enumerate(np.atleast_1d(np.asarray(at_s, dtype=float))):
         near = np.abs(c - t) <= window_s / 2
         if not near.any():
             near = np.abs(c - t) == np.abs(c - t).min()
-        out[i] = io_counts[i] + local_line(c[near], off[near], t)
+        out[i] = io_counts[i] + local_line(c[near], off[near], t, w[near])
     return out
 
 
-def local_line(x: np.ndarray, y: np.ndarray, at: float) -> float:
-    """The least-squares line through (x, y) evaluated at ``at``; the mean where fewer than
-    three points or no spread in x. An unmeasured ramp between two stations makes their
-    input-output count drift at its flow: a line follows that drift to a window's end,
-    where a mean would lag by half the window's drift."""
+def local_line(x: np.ndarray, y: np.ndarray, at: float, weights: np.ndarray | None = None) -> float:
+    """The (weighted) least-squares line through (x, y) evaluated at ``at``; the mean where
+    fewer than three points or no spread in x. An unmeasured ramp between two stations
+    makes their input-output count drift at its flow: a line follows that drift to a
+    window's end, where a mean would lag by half the window's drift."""
+    w = np.ones(len(x)) if weights is None else np.asarray(weights, dtype=float)
     if len(x) < 3 or np.ptp(x) == 0:
-        return float(np.mean(y))
-    slope, intercept = np.polyfit(x, y, 1)
+        return float(np.average(y, weights=w))
+    slope, intercept = np.polyfit(x, y, 1, w=np.sqrt(w))
     return float(intercept + slope * at)
+
+
+FREE_WEIGHT_FLOOR = 0.02
+"""A queued interval's weight as an anchor (``free_flow_weight``)."""
+
+
+def free_flow_weight(speed_mps: np.ndarray, floor: float = FREE_WEIGHT_FLOOR) -> np.ndarray:
+    """Weight of an interval's density estimate as an anchor for input-output counts: 1 in
+    free flow (speed at or above ``SPEED_FLOW_ABOVE_MPS``, where flow / speed is within
+    ~1%), ``floor`` in queues (the loop's density stands for its whole cell there, which a
+    queue ending between stations is not), linear in between. The floor keeps a record
+    that is congested throughout anchored."""
+    return np.maximum(1.0 - occupancy_weight(speed_mps), floor)
+
+
+def projected_passages(
+    passage_s: np.ndarray,
+    speed_mps: np.ndarray,
+    at_s: np.ndarray,
+    distance_m: float,
+    upstream: bool,
+    min_speed_mps: float = 0.5,
+) -> np.ndarray:
+    """Vehicles within ``distance_m`` of a station at each time of ``at_s``, from its
+    per-vehicle passages, each vehicle at the speed it passed with: upstream, those that
+    pass it within distance / speed after; downstream, those that passed it within
+    distance / speed before. This counts an open section's end pieces (beyond its outermost
+    stations) at the snapshot's time, where an interval's density averages over a minute.
+    Speeds below ``min_speed_mps`` count as it (a crawl over the loop)."""
+    p = np.asarray(passage_s, dtype=float)[:, None]
+    reach = distance_m / np.maximum(np.asarray(speed_mps, dtype=float), min_speed_mps)[:, None]
+    t = np.atleast_1d(np.asarray(at_s, dtype=float))[None, :]
+    inside = (p > t) & (p - t <= reach) if upstream else (p <= t) & (t - p < reach)
+    return inside.sum(axis=0).astype(float)

@@ -62,11 +62,9 @@ from macromicro_sumo.truth.section_macro import (
     detector_macro,
     k_estimates,
     k_summary,
+    side_junction_arcs,
     trajectory_macro,
 )
-
-CONGESTED_SPEED_MPS = 10.0  # a loop interval this slow is in a queue or at a signal
-CONGESTED_SHARE = 0.10  # of all loop intervals, for the input-output counts to be used
 
 
 def load_section(sc: SectionScenario) -> tuple[SumoInputs, Section, dict[str, VType]]:
@@ -332,18 +330,19 @@ def simulate_section(
         if det.empty:
             raise UserError(f"{sc.source}: the section's detectors wrote no interval")
         det_macro, tr_macro = section_macro(sc, section, traj, det, pas, vtypes)
-        # Input-output counts between stations only where queues or signals make interval
-        # means miss (10% of intervals below 10 m/s): on free-flowing examples they were a
-        # little worse than density alone (Bremen 0.63 -> 0.80 vehicles per lane), on SUMO's
-        # congested `ramp` far better (4.72 -> 2.68; docs/sections.md, "Hidden count").
-        slow = (det["speed_mps"] < CONGESTED_SPEED_MPS).mean() >= CONGESTED_SHARE
+        # Input-output counts between full stations and the end pieces from the passages in
+        # every regime: anchored together, weighted to free-flowing intervals, once for the
+        # record where no ramp lies between stations, they beat the density estimate in
+        # free flow too (docs/sections.md, "Hidden count"; scripts/bench_hidden_count.py).
         k_df = k_estimates(
             traj,
             det_macro,
             section,
             sc.generator.snapshot_every_s,
             sc.detectors.k_window_s,
-            *((det, pas) if slow else ()),
+            det,
+            pas,
+            side_junction_arcs(read_net(inputs.net_file), section),
         )
         vt = pd.DataFrame(
             [

@@ -20,11 +20,13 @@ from macromicro_sumo.truth.density import (
     cumulative_count,
     cumulative_mean,
     flow_speed_density,
+    free_flow_weight,
     local_line,
     occupancy_density,
     occupancy_weight,
     point_density,
     profile_integral,
+    projected_passages,
 )
 from macromicro_sumo.truth.section_macro import detector_macro, k_estimates, k_summary
 
@@ -40,6 +42,15 @@ def test_occupancy_and_flow_speed_densities() -> None:
     k = flow_speed_density(np.array([1800.0, 0.0]), np.array([25.0, np.nan]))
     assert k[0] == pytest.approx(20.0)
     assert np.isnan(k[1])
+
+
+def test_occupancy_and_flow_speed_agree_on_steady_passages() -> None:
+    # 60 s, three 5 m cars at 10 m/s over a point loop: each covers it 0.5 s, so 1.5 s of
+    # 60 s = 2.5% occupancy and 2.5% / 5 m = 5 veh/km; 180 veh/h / 36 km/h = 5 veh/km too.
+    occ = 100.0 * 3 * (5.0 / 10.0) / 60.0
+    assert occ == pytest.approx(2.5)
+    assert occupancy_density(np.array([occ]), np.array([5.0]))[0] == pytest.approx(5.0)
+    assert flow_speed_density(np.array([180.0]), np.array([10.0]))[0] == pytest.approx(5.0)
 
 
 def test_blend_by_speed_regime() -> None:
@@ -83,6 +94,45 @@ def test_input_output_counts() -> None:
         np.array([2.0, 4.0]), io_means, dens, centres, np.array([90.0, 95.0]), 600
     )
     np.testing.assert_allclose(out, [9.0, 11.0])
+
+
+def test_weighted_anchor_and_free_flow_weight() -> None:
+    np.testing.assert_allclose(free_flow_weight(np.array([2.0, 7.5, 12.0])), [0.02, 0.5, 1.0])
+    # The third interval is congested (weight 0): its biased density estimate is left out
+    # and the one constant of the whole record is 7.
+    centres = np.array([30.0, 90.0, 150.0])
+    io_means = np.array([1.0, 2.0, 3.0])
+    dens = io_means + np.array([7.0, 7.0, 10.0])
+    out = anchored_counts(
+        np.array([2.0, 4.0]),
+        io_means,
+        dens,
+        centres,
+        np.array([90.0, 500.0]),
+        np.inf,
+        np.array([1.0, 1.0, 0.0]),
+    )
+    np.testing.assert_allclose(out, [9.0, 11.0])
+    # Weighted line: the zero-weight point does not bend it (y = x through the first two).
+    x, y = np.array([0.0, 1.0, 2.0, 3.0]), np.array([0.0, 1.0, 2.0, 9.0])
+    assert local_line(x, y, 5.0, np.array([1.0, 1.0, 1.0, 0.0])) == pytest.approx(5.0)
+
+
+def test_end_pieces_projected_from_passages() -> None:
+    # Passages at 10, 12 and 20 s at 10, 5 and 20 m/s; 50 m of road beyond the station
+    # takes them 5, 10 and 2.5 s.
+    p, v = np.array([10.0, 12.0, 20.0]), np.array([10.0, 5.0, 20.0])
+    # Upstream at 9 s: the first two pass within their 5 and 10 s, the third (11 s) not.
+    np.testing.assert_allclose(projected_passages(p, v, np.array([9.0]), 50.0, True), [2.0])
+    # Downstream at 21 s: passed 11, 9 and 1 s ago; only the last two are within reach.
+    # At 15 s: the first passed exactly 5 s ago (at the far end, gone), the second 3 s ago.
+    np.testing.assert_allclose(
+        projected_passages(p, v, np.array([21.0, 15.0]), 50.0, False), [2.0, 1.0]
+    )
+    # A standing vehicle counts at the crawl speed: 50 m at 0.5 m/s is 100 s of reach.
+    assert projected_passages(np.array([0.0]), np.array([0.0]), np.array([60.0]), 50.0, False)[
+        0
+    ] == pytest.approx(1.0)
 
 
 def queue_network(folder: Path) -> Path:

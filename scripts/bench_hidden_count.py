@@ -1,0 +1,337 @@
+"""Bench of the hidden-count estimate K on networks drawn from a seed: error per lane and regime.
+
+Each network is a one-way main line of 3-5 edges (1-4 lanes each, so lane drops and gains,
+250-800 m) with, by draw, an on-ramp and an off-ramp at its nodes, E1 loops placed by the
+tool every 150-400 m, two car types and a truck share, and a demand that steps from one level
+to another half-way through the run (free flow up to queues behind the narrowest edge or the
+merge). ``simulate`` writes each ground truth (cached in ``--out``); the table is the mean
+absolute error of K per lane over the snapshots of each regime (a snapshot is congested when
+10% of its vehicles are below 5 m/s), for the former flow / speed estimate, the density
+estimate alone, and the estimate ``simulate`` writes (``k_estimate.csv``).
+
+    .venv/bin/python scripts/bench_hidden_count.py --seed 100 --nets 8
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import sumo
+import sumolib
+
+from macromicro_sumo.cli import main as cli_main
+from macromicro_sumo.data.section import at_snapshot_times
+from macromicro_sumo.road.section import Section, read_section
+from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.sumo.inputs import read_net, scenario_inputs
+from macromicro_sumo.truth.section_macro import detector_macro, k_estimates, side_junction_arcs
+
+SLOW_MPS = 5.0  # a snapshot is congested when ...
+SLOW_SHARE = 0.10  # ... this share of its vehicles is at or below SLOW_MPS
+CAPACITY_VPH_LANE = 2000.0  # rough capacity of a SUMO lane [veh/h], to draw demand levels
+SUMO_TOOLS = Path(sumo.__file__).resolve().parent / "tools"
+SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
+EXAMPLES = ("highway_bremen", "netgen_corridor", "spreewaldring")
+EXAMPLE_RUNS = 2
+ENTRY_STATION_M = 15.0  # past the front of a 12 m truck inserted at the lane's start
+
+
+def get_options(args: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--seed", type=int, default=100, help="first network's seed")
+    p.add_argument("--nets", type=int, default=8, help="networks, seeds seed .. seed + nets - 1")
+    p.add_argument("--out", type=Path, default=Path("/tmp/bench_hidden_count"), help="cache")
+    p.add_argument("--ramp", action="store_true", help="add SUMO's game/ramp example")
+    p.add_argument(
+        "--entry-station",
+        action="store_true",
+        help=f"drawn networks with one more station {ENTRY_STATION_M:g} m into the section "
+        "(user loops where the tool's placement puts its first half a spacing in)",
+    )
+    p.add_argument(
+        "--examples",
+        action="store_true",
+        help=f"add the shipped section examples ({', '.join(EXAMPLES)}), {EXAMPLE_RUNS} runs each",
+    )
+    return p.parse_args(args)
+
+
+def netconvert(folder: Path, name: str, nodes: list[str], edges: list[str]) -> Path:
+    (folder / f"{name}.nod.xml").write_text("<nodes>\n" + "\n".join(nodes) + "\n</nodes>\n")
+    (folder / f"{name}.edg.xml").write_text("<edges>\n" + "\n".join(edges) + "\n</edges>\n")
+    net = folder / f"{name}.net.xml"
+    subprocess.run(
+        [
+            sumolib.checkBinary("netconvert"),
+            "-n", str(folder / f"{name}.nod.xml"),
+            "-e", str(folder / f"{name}.edg.xml"),
+            "-o", str(net),
+            "--no-turnarounds", "true",
+            "--no-warnings", "true",
+        ],
+        check=True,
+        capture_output=True,
+    )  # fmt: skip
+    return net
+
+
+def build_network(folder: Path, seed: int) -> tuple[dict, str]:
+    """A drawn main line with ramps and its demand; the scenario table and a description."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(3, 6))
+    lengths = rng.uniform(250.0, 800.0, n).round(1)
+    lanes = rng.integers(1, 5, n)
+    lanes[0] = lanes.max()  # the entry is widest: any lane drop downstream is a bottleneck
+    speed = round(float(rng.uniform(22.0, 36.0)), 1)
+    x = np.concatenate([[0.0], np.cumsum(lengths)])
+    nodes = [f'<node id="n{i}" x="{xi:.1f}" y="0"/>' for i, xi in enumerate(x)]
+    edges = [
+        f'<edge id="m{i}" from="n{i}" to="n{i + 1}" numLanes="{lanes[i]}" speed="{speed}" '
+        'priority="3"/>'
+        for i in range(n)
+    ]
+    main = " ".join(f"m{i}" for i in range(n))
+    routes = [f'<route id="main" edges="{main}"/>']
+    flows = [("main", "main", 1.0)]
+    desc = [f"lanes {'-'.join(map(str, lanes))}"]
+    if n > 2 and rng.random() < 0.6:  # on-ramp at an inner node
+        j = int(rng.integers(1, n - 1))
+        nodes.append(f'<node id="r_in" x="{x[j] - 300:.1f}" y="-60"/>')
+        edges.append(
+            f'<edge id="on" from="r_in" to="n{j}" numLanes="1" speed="{min(speed, 22.0)}" '
+            'priority="1"/>'
+        )
+        routes.append(f'<route id="onramp" edges="on {" ".join(f"m{i}" for i in range(j, n))}"/>')
+        flows.append(("onramp", "onramp", float(rng.uniform(0.1, 0.3))))
+        desc.append(f"on-ramp at node {j}")
+    if n > 2 and rng.random() < 0.4:  # off-ramp at an inner node
+        j = int(rng.integers(1, n - 1))
+        nodes.append(f'<node id="r_out" x="{x[j] + 300:.1f}" y="-60"/>')
+        edges.append(
+            f'<edge id="off" from="n{j}" to="r_out" numLanes="1" speed="20" priority="1"/>'
+        )
+        routes.append(f'<route id="offramp" edges="{" ".join(f"m{i}" for i in range(j))} off"/>')
+        flows.append(("offramp", "offramp", float(rng.uniform(0.05, 0.2))))
+        desc.append(f"off-ramp at node {j}")
+    netconvert(folder, "bench", nodes, edges)
+    # Demand relative to the narrowest edge's capacity: the first half at one level, the
+    # second at another (free flow up to a queue behind a lane drop or the merge).
+    cap = CAPACITY_VPH_LANE * int(lanes.min())
+    levels = rng.uniform(0.4, 1.4, 2).round(2)
+    truck = round(float(rng.uniform(0.0, 0.2)), 2)
+    half = 600
+    rows = [
+        "<routes>",
+        '<vType id="car" length="5.0" minGap="2.5" carFollowModel="Krauss" sigma="0.5" '
+        'speedDev="0.1"/>',
+        '<vType id="car_idm" length="4.5" minGap="2.0" carFollowModel="IDM" accel="1.5" '
+        'decel="3.0" tau="1.2" speedDev="0.1"/>',
+        '<vType id="truck" length="12.0" minGap="2.5" vClass="truck" maxSpeed="25" accel="1.0" '
+        'speedDev="0.05"/>',
+        f'<vTypeDistribution id="mix" vTypes="car car_idm truck" '
+        f'probabilities="{0.6 * (1 - truck):.3f} {0.4 * (1 - truck):.3f} {truck:.3f}"/>',
+        *routes,
+    ]
+    for fid, route, share in flows:
+        for k, (b, e) in enumerate(((0, half), (half, 3600))):
+            vph = cap * levels[k] * share
+            rows.append(
+                f'<flow id="{fid}{k}" type="mix" route="{route}" begin="{b}" end="{e}" '
+                f'vehsPerHour="{vph:.0f}" departLane="free" departSpeed="max"/>'
+            )
+    rows.append("</routes>")
+    (folder / "bench.rou.xml").write_text("\n".join(rows) + "\n")
+    desc.append(f"demand {levels[0]:.2f} -> {levels[1]:.2f} x capacity, trucks {truck:.0%}")
+    table = {
+        "name": f"bench_{seed}",
+        "seed": seed,
+        "network": {
+            "kind": "sumo",
+            "net_file": str(folder / "bench.net.xml"),
+            "route_files": [str(folder / "bench.rou.xml")],
+        },
+        "section": {"edges": [f"m{i}" for i in range(n)], "closed": False},
+        "instrumented": {"penetration": 0.1},
+        "simulation": {"warmup_s": 200.0, "duration_s": 1000.0, "n_runs": 1},
+        "detectors": {
+            "interval_s": 60.0,
+            "auto_spacing_m": round(float(rng.uniform(150.0, 400.0))),
+            "k_window_s": 60.0,
+        },
+        "generator": {"snapshot_every_s": 10.0},
+    }
+    desc.append(f"loops every {table['detectors']['auto_spacing_m']:.0f} m")
+    return table, ", ".join(desc)
+
+
+def with_entry_station(folder: Path, table: dict) -> dict:
+    """``table`` with the tool's loop placement written as the user's own loops plus a
+    station ``ENTRY_STATION_M`` into the section."""
+    net_file = Path(table["network"]["net_file"])
+    section = read_section(net_file, table["section"]["edges"], False)
+    step = table["detectors"]["auto_spacing_m"]
+    rows = ["<additional>"]
+    for arc in [ENTRY_STATION_M, *np.arange(step / 2, section.length_m, step)]:
+        e = int(section.edge_index(np.array([arc]))[0])
+        pos = float(arc - section.offsets_m[e])
+        if pos > section.lengths_m[e] - 0.5:
+            continue  # in a junction, as the tool's placement
+        for lane in section.edge_lane_ids[e]:
+            rows.append(
+                f'<inductionLoop id="u_{lane}_{arc:.0f}" lane="{lane}" pos="{pos:.2f}" '
+                'period="60" file="NUL"/>'
+            )
+    rows.append("</additional>")
+    add = folder / "loops.add.xml"
+    add.write_text("\n".join(rows) + "\n")
+    network = {**table["network"], "additional_files": [str(add)]}
+    return {**table, "network": network, "detectors": {**table["detectors"], "use_user": True}}
+
+
+def ramp_example(folder: Path) -> tuple[dict, str]:
+    """SUMO's game/ramp example (a congested merge), its main line as the section."""
+    game = SUMO_TOOLS / "game" / "ramp"
+    table = {
+        "name": "ramp",
+        "seed": 1,
+        "network": {
+            "kind": "sumo",
+            "net_file": str(game / "ramp.net.xml"),
+            "route_files": [str(game / "ramp.rou.xml")],
+        },
+        "section": {"edges": ["gneE3", "gneE7", "gneE8"], "closed": False},
+        "instrumented": {"penetration": 0.1},
+        "simulation": {"warmup_s": 100.0, "duration_s": 600.0, "n_runs": 1},
+        "detectors": {"interval_s": 60.0, "auto_spacing_m": 250.0, "k_window_s": 60.0},
+        "generator": {"snapshot_every_s": 10.0},
+    }
+    return table, "SUMO game/ramp: merge, demand rising to overload"
+
+
+def dump_toml(table: dict) -> str:
+    lines = [f"{k} = {json.dumps(v)}" for k, v in table.items() if not isinstance(v, dict)]
+    for name, sub in table.items():
+        if isinstance(sub, dict):
+            lines.append(f"\n[{name}]")
+            lines += [f"{k} = {json.dumps(v)}" for k, v in sub.items()]
+    return "\n".join(lines) + "\n"
+
+
+def example_toml(name: str) -> str:
+    """A shipped scenario's TOML with its network paths absolute and ``EXAMPLE_RUNS`` runs."""
+    text = (SCENARIOS / f"{name}.toml").read_text()
+    text = text.replace('"../sumo_nets/', f'"{SCENARIOS.parent / "sumo_nets"}/')
+    return re.sub(r"(?m)^n_runs = \d+", f"n_runs = {EXAMPLE_RUNS}", text)
+
+
+def ground_truth(folder: Path, table: dict | str) -> Path:
+    """The ground truth of ``table`` (or TOML text) in ``folder/gt``, simulated once."""
+    gt = folder / "gt"
+    if (gt / "manifest.json").is_file():
+        return gt
+    toml = folder / "scenario.toml"
+    toml.write_text(table if isinstance(table, str) else dump_toml(table))
+    if cli_main(["simulate", str(toml), "--out", str(gt), "--quiet"]) != 0:
+        raise SystemExit(f"simulate failed for {toml}")
+    return gt
+
+
+def errors(gt: Path) -> pd.DataFrame:
+    """Per snapshot: regime, lanes and each estimator's K error."""
+    sc = json.loads((gt / "manifest.json").read_text())["scenario"]
+    section = Section.read(gt / "section.json")
+    traj = pd.read_csv(gt / "trajectories.csv", dtype={"vehicle_id": str, "vtype": str})
+    det = pd.read_csv(gt / "detectors.csv")
+    pas = pd.read_csv(gt / "detector_passages.csv", dtype={"vehicle_id": str})
+    every, window = sc["generator"]["snapshot_every_s"], sc["detectors"]["k_window_s"]
+    macro = detector_macro(det, pas, sc["simulation"]["warmup_s"], 6.5, section)
+    dens = k_estimates(traj, macro, section, every, window)
+    unknown = k_estimates(traj, macro, section, every, window, det, pas)
+    net_file = scenario_inputs(load_scenario(gt.parent / "scenario.toml")).net_file
+    side = side_junction_arcs(read_net(net_file), section)
+    hybrid = k_estimates(traj, macro, section, every, window, det, pas, side)
+    snaps = at_snapshot_times(traj, every)
+    slow = snaps.groupby(["run", "time_s"])["speed_mps"].apply(
+        lambda v: (v <= SLOW_MPS).mean() >= SLOW_SHARE
+    )
+    keys = ["run", "time_s"]
+    out = dens[[*keys, "k_true"]].copy()
+    out["congested"] = slow.reindex(pd.MultiIndex.from_frame(out[keys])).to_numpy()
+    out["flow_speed"] = dens["k_est_flow_speed"] - dens["k_true"]
+    out["density"] = dens["k_error"]
+    at = pd.MultiIndex.from_frame(out[keys])
+    out["io_ramps_unknown"] = unknown.set_index(keys)["k_error"].reindex(at).to_numpy()
+    out["io"] = hybrid.set_index(keys)["k_error"].reindex(at).to_numpy()
+    out["lanes"] = float((section.n_lanes * section.lengths_m).sum() / section.lengths_m.sum())
+    return out
+
+
+ESTIMATORS = ("flow_speed", "density", "io_ramps_unknown", "io")
+
+
+def table_rows(name: str, desc: str, e: pd.DataFrame) -> list[str]:
+    rows = []
+    for regime, g in e.groupby("congested"):
+        per_lane = [float(np.abs(g[c]).mean() / g["lanes"].iloc[0]) for c in ESTIMATORS]
+        bias = float(g["io"].mean())
+        rows.append(
+            f"| {name} | {desc} | {'congested' if regime else 'free'} | {len(g)} | "
+            f"{g['k_true'].mean():.0f} | "
+            + " | ".join(f"{v:.2f}" for v in per_lane)
+            + f" | {bias:+.1f} |"
+        )
+    return rows
+
+
+def main(options: argparse.Namespace) -> bool:
+    options.out.mkdir(parents=True, exist_ok=True)
+    nets: list[tuple[str, Path, dict | str, str]] = []
+    for seed in range(options.seed, options.seed + options.nets):
+        folder = options.out / f"seed_{seed}"
+        folder.mkdir(exist_ok=True)
+        table, desc = build_network(folder, seed)
+        if options.entry_station:
+            folder = folder / "entry_station"
+            folder.mkdir(exist_ok=True)
+            table = with_entry_station(folder, table)
+            desc += f", station at {ENTRY_STATION_M:g} m"
+        nets.append((f"seed {seed}", folder, table, desc))
+    if options.ramp:
+        folder = options.out / "ramp"
+        folder.mkdir(exist_ok=True)
+        nets.append(("ramp", folder, *ramp_example(folder)))
+    for name in EXAMPLES if options.examples else ():
+        folder = options.out / name
+        folder.mkdir(exist_ok=True)
+        nets.append((name, folder, example_toml(name), f"shipped example, {EXAMPLE_RUNS} runs"))
+    print(
+        "| network | drawn | regime | snapshots | mean K | "
+        + " | ".join(ESTIMATORS)
+        + " | bias (veh) |"
+    )
+    print("|---" * (6 + len(ESTIMATORS)) + "|")
+    every = []
+    for name, folder, table, desc in nets:
+        e = errors(ground_truth(folder, table))
+        every.append(e)
+        for row in table_rows(name, desc, e):
+            print(row, flush=True)
+    allv = pd.concat(every, ignore_index=True)
+    for regime, g in allv.groupby("congested"):
+        per_lane = [float((np.abs(g[c]) / g["lanes"]).mean()) for c in ESTIMATORS]
+        print(
+            f"| all | | {'congested' if regime else 'free'} | {len(g)} | "
+            f"{g['k_true'].mean():.0f} | " + " | ".join(f"{v:.2f}" for v in per_lane) + " | |"
+        )
+    return True
+
+
+if __name__ == "__main__":
+    sys.exit(0 if main(get_options()) else 1)
