@@ -3,7 +3,7 @@
 The same stages, skip and resume rules as on the ring (``pipeline.ring.run_pipeline``):
 ground truth -> generator -> three policies (the paper's objective and its two ablations)
 -> evaluation -> deployment -> report; this module names the section's stage functions,
-the IDM prior's fit and what the section does differently.
+the residual policy's prior fit and what the section does differently.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from macromicro_sumo.report.section import write_section_report
 from macromicro_sumo.truth.section import simulate_section
 
 
-def fit_idm_prior(sc, truth, runs: np.ndarray) -> tuple[dict[str, float], dict[str, Any]]:
+def fit_residual_prior(sc, truth, runs: np.ndarray) -> tuple[dict[str, float], dict[str, Any]]:
     """The model under a residual policy (``policy.prior``, "idm" or "gipps"), fitted to the
     observed pairs as the evaluation's idm_calibrated is (its pairs, runs and length), so the
     policy starts as that model and its residual is what training adds. Returns the agent's
@@ -39,7 +39,7 @@ SECTION = PipelineRoad(
     run_train_section_generator,
     evaluate_section,
     write_section_report,
-    fit_prior=fit_idm_prior,
+    fit_prior=fit_residual_prior,
     # The K estimates of the ground truth are on the generator's snapshot grid.
     truth_reads=("generator.snapshot_every_s",),
     # A ground truth read from field files has no simulated runs to re-run with the same

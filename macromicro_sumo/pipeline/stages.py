@@ -19,7 +19,7 @@ from macromicro_sumo.files import writer_session
 from macromicro_sumo.generator.ring_train import run_train_generator
 from macromicro_sumo.generator.section_train import run_train_section_generator
 from macromicro_sumo.pipeline.ring import run as run_ring
-from macromicro_sumo.pipeline.section import fit_idm_prior, run_section
+from macromicro_sumo.pipeline.section import fit_residual_prior, run_section
 from macromicro_sumo.policy.stage import run_train_policy
 from macromicro_sumo.report.deploy import make_deploy_plots
 from macromicro_sumo.scenario.section import SectionScenario
@@ -70,7 +70,7 @@ def train_policy(
     progress: bool = True,
 ) -> dict[str, Any]:
     """Stage II: the shared policy, trained with PPO on micro + eta macro."""
-    fit = fit_idm_prior if is_section(sc) else None
+    fit = fit_residual_prior if is_section(sc) else None
     return run_train_policy(sc, data, generator, out, resume, command, progress, fit_prior=fit)
 
 

@@ -46,7 +46,7 @@ from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.inputs import scenario_inputs
 from macromicro_sumo.truth.section import load_section_truth
 
-# Fits ``policy.prior``'s IDM to the observed pairs of the given runs of a ground truth:
+# Fits ``policy.prior``'s model to the observed pairs of the given runs of a ground truth:
 # (the agent's prior parameters, what the manifest records of the fit). The fit is the
 # evaluation's (a policy module may not import it): the pipeline passes it in.
 PriorFit = Callable[[Any, Any, np.ndarray], tuple[dict[str, float], dict[str, Any]]]
@@ -174,7 +174,7 @@ def run_train_policy(
     fit_prior: PriorFit | None = None,
 ) -> dict[str, Any]:
     """CLI stage: episodes from train+val runs completed by the generator, PPO, held-out
-    check. ``fit_prior``: the IDM under a residual policy (``policy.prior``), fitted to the
+    check. ``fit_prior``: the model under a residual policy (``policy.prior``), fitted to the
     train + val runs' observed pairs; without it PPO refuses a prior."""
     objective = objective or sc.policy.objective
     road = SECTION if isinstance(sc, SectionScenario) else RING
