@@ -42,10 +42,7 @@ SECTION = PipelineRoad(
     fit_prior=fit_residual_prior,
     # The K estimates of the ground truth are on the generator's snapshot grid.
     truth_reads=("generator.snapshot_every_s",),
-    # A ground truth read from field files has no simulated runs to re-run with the same
-    # seeds: its deployment would have to be compared with the field stations themselves,
-    # which is not built yet (deploy refuses it in one line).
-    deploys=lambda sc: sc.data.source != "files",
+    # Field data is deployed too: against the stations (deploy.field, deploy.compare).
 )
 
 
