@@ -12,94 +12,39 @@ vehicles of the driven population, the others keep their own SUMO models:
 Two ways to drive: speed commands (``*SpeedDriver``: v + a dt with a from a batched action
 function, for the learned policies) and a vType switch (``*TypeDriver``: SUMO's own model
 with other parameters, for the IDM baselines and SUMO's defaults). The passive base classes
-drive nobody: the oracle, which only counts. Every driver counts per run:
-``vehicle_steps_driven``, ``safety_acted`` (speed commands SUMO lowered by more than
-0.01 m/s) and ``emergency_brakings`` (vehicle-steps, all vehicles on the road, whose
-acceleration was below minus the decel of their own demand vType by more than 0.01 m/s^2).
+drive nobody: the oracle, which only counts. Every driver counts per run
+(``deploy.population.DriveStats``): ``vehicle_steps_driven``, ``safety_acted`` (speed
+commands the safety layer or SUMO lowered by more than 0.01 m/s), ``floor_acted`` (raised
+to the safety layer's floor, ``deploy.safety``) and ``emergency_brakings`` (vehicle-steps,
+all vehicles on the road, whose acceleration was below minus the decel of their own demand
+vType by more than 0.01 m/s^2).
 """
 
 from __future__ import annotations
 
-import hashlib
-from collections.abc import Callable
-from dataclasses import dataclass, field
 from itertools import repeat
 
 import numpy as np
 
 from macromicro_sumo.deploy.observe import STANDING, Table, observe_rows, states_of
+from macromicro_sumo.deploy.population import (
+    ActionBatch,
+    DriveStats,
+    SwitchedType,
+    in_share,
+)
+from macromicro_sumo.deploy.safety import SAFETY_TOLERANCE_MPS, SPEED_MODES, safety_cap
 from macromicro_sumo.road.physics import lookahead_features, ring_leaders, safe_speed
 from macromicro_sumo.road.ring import RingGeometry
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
 from macromicro_sumo.sumo.simulation import Simulation, VehicleStates
 from macromicro_sumo.truth.section import is_instrumented
 
-# Obs (V, D) -> acceleration (V,) [m/s^2]: one batched call for every driven vehicle.
-ActionBatch = Callable[[np.ndarray], np.ndarray]
-
-# Speed modes of speed-commanded vehicles (SUMO's bits, ``sumo.simulation``). "none" applies
-# the command exactly (32: no safe speed, no accel/decel limits, no right of way, no braking
-# for red lights). "sumo" (24) keeps right of way and red lights, and the driver caps each
-# command at SUMO's Krauss safe speed behind the leader it observes (``safe_speed``):
-# SUMO's own safe-speed bit is left off because it also caps at the lane's limit times the
-# speed factor and at its model's choice (IDM's follow speed is its next speed), no safety.
-SPEED_MODES = {"none": 32, "sumo": 24}
-SAFETY_TOLERANCE_MPS = 0.01
-# The safety layer's floor: a command is raised to this share of the lane's speed limit
-# (capped at the safe speed and at the vehicle's acceleration) so that a policy cannot
-# stop a vehicle where nothing ahead asks for it: Bremen's policy braked cars to a
-# standstill on the free road (leader 80 m ahead and faster) and held them there, until
-# SUMO teleported them after 300 s (93 teleports in a run). A fifth: 8.9 m/s at Bremen's
-# 44.4 m/s, below 1.1% of the ground truth's vehicle-steps, all of them queued at the merge.
-FLOOR_SHARE = 0.2
 BRAKING_TOLERANCE_MPS2 = 0.01
 # A lane that carries a vehicle on is asked again (SUMO's best lanes, one call per vehicle)
 # this many steps later: SUMO sees a lane's end only within its look-ahead (~3 km), which
 # a vehicle nears by at most a few hundred metres meanwhile; a lane end, once seen, stays.
 LANE_END_RECHECK_STEPS = 20
-
-
-def in_share(seed: int, run: int, vehicle_id: str, share: float) -> bool:
-    """Whether a vehicle is in a driven share: a hash of (seed, run, vehicle), so the same
-    vehicles are chosen whatever method drives and however often the run is repeated."""
-    if share >= 1.0:
-        return True
-    h = hashlib.sha256(f"deploy|{seed}|{run}|{vehicle_id}".encode()).digest()
-    return int.from_bytes(h[:8], "little") / 2**64 < share
-
-
-@dataclass
-class DriveStats:
-    """What a driver counted over one run."""
-
-    vehicle_steps_driven: int = 0
-    safety_acted: int = 0
-    emergency_brakings: int = 0
-    floor_acted: int = 0  # commands the safety layer raised to its floor (``FLOOR_SHARE``)
-
-    def as_dict(self) -> dict[str, int]:
-        return {
-            "emergency_brakings": self.emergency_brakings,
-            "vehicle_steps_driven": self.vehicle_steps_driven,
-            "safety_acted": self.safety_acted,
-            "floor_acted": self.floor_acted,
-        }
-
-
-@dataclass
-class SwitchedType:
-    """A vType switch: the vType each demand vType's vehicles get, and their speed factor
-    (a number, or None to draw one per vehicle around SUMO's default 1 with sd 0.1)."""
-
-    type_of: dict[str, str]
-    speed_factor: float | None
-    rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
-
-    def factors(self, n: int) -> np.ndarray:
-        if self.speed_factor is not None:
-            return np.full(n, self.speed_factor)
-        # SUMO's passenger default: normal(1, 0.1) cut at two deviations.
-        return np.clip(self.rng.normal(1.0, 0.1, n), 0.8, 1.2)
 
 
 # --------------------------------------------------------------------------- sections
@@ -279,10 +224,12 @@ class SectionSpeedDriver(SectionDriver):
         obs, gap, lead_decel, lead = self.observe(sim, vids, rows, st)
         a_min, a_max = self.sc.bounds.accel_mps2
         a = np.clip(self.act(obs), a_min, a_max)
-        cmd = np.maximum(0.0, obs[:, 0] + a * self.sc.simulation.step_length_s)
+        dt = self.sc.simulation.step_length_s
+        cmd = np.maximum(0.0, obs[:, 0] + a * dt)
         if self.safety == "sumo":
             own = np.fromiter(map(self.decel_of.__getitem__, vids), float, n)
-            cmd = safety_cap(self, cmd, obs, gap, own, lead_decel, lead)
+            safe = safety_cap(cmd, obs, gap, own, lead_decel, lead, dt, a_max)
+            cmd = self.stats.count_safety(*safe)
         sim.set_speeds(vids, cmd)
         self.commands = dict(zip(vids, cmd.tolist(), strict=True))
 
@@ -313,67 +260,6 @@ class SectionSpeedDriver(SectionDriver):
             self.shape_table if shapes is None else shapes,
             stop,
         )
-
-
-def safety_cap(
-    drv: SectionSpeedDriver | RingSpeedDriver,
-    cmd: np.ndarray,
-    obs: np.ndarray,
-    gap: np.ndarray,
-    decel: np.ndarray,
-    lead_decel: np.ndarray,
-    lead: np.ndarray,
-) -> np.ndarray:
-    """``cmd`` capped at ``safe_speed`` behind each vehicle's observed leader (none within
-    the look-ahead: no cap), and behind the command of a leader that is driven too
-    (``lead``: its index in ``cmd``, -1: none); counts the capped vehicle-steps in
-    ``safety_acted``."""
-    dt = drv.sc.simulation.step_length_s
-    safe = safe_speed(gap, obs[:, 0] - obs[:, 3], decel, lead_decel, dt)
-    safe = np.where(gap < NO_LEADER_GAP_M, safe, np.inf)
-    # The road kept open: never below a share of the lane's limit unless what is ahead
-    # (the safe speed) asks for it, and no faster than the vehicle may accelerate to it.
-    a_max = drv.sc.bounds.accel_mps2[1]
-    floor = np.minimum(safe, np.minimum(obs[:, 0] + a_max * dt, FLOOR_SHARE * obs[:, 1]))
-    capped = np.minimum(cmd, safe)
-    drv.stats.floor_acted += int((floor > capped + SAFETY_TOLERANCE_MPS).sum())
-    capped = np.maximum(capped, floor)
-    out = behind_commands(capped, gap, lead, decel, lead_decel, dt)
-    drv.stats.safety_acted += int((out < cmd - SAFETY_TOLERANCE_MPS).sum())
-    return out
-
-
-def behind_commands(
-    cmd: np.ndarray,
-    gap: np.ndarray,
-    lead: np.ndarray,
-    decel: np.ndarray,
-    lead_decel: np.ndarray,
-    dt_s: float,
-) -> np.ndarray:
-    """``cmd`` [m/s] lowered where a driven leader's own command leaves less room than
-    ``safe_speed`` assumed: it assumes the leader brakes at most at its decel, but a
-    command may brake harder (a policy's bound below -decel, or the leader's own cap
-    behind a leader that did). SUMO applies a command within the step (speed modes
-    without the decel bit, checked: speeds after the step equal the commands), so the
-    leader's next speed v_l' is known: from where both are after the step, the follower
-    must stop behind it, ``safe_speed(gap + v_l' dt, v_l')``. A lowered command may in
-    turn brake harder than assumed for its own follower: repeated until none changes
-    (once per vehicle at most; on a ring of driven vehicles the chain may come round)."""
-    has = np.flatnonzero(lead >= 0)
-    if not has.size:
-        return cmd
-    cmd = cmd.copy()
-    room, ahead = np.maximum(gap[has], 0.0), lead[has]
-    b, b_l = decel[has], lead_decel[has]
-    for _ in range(len(has)):
-        v_l = cmd[ahead]
-        alt = safe_speed(room + v_l * dt_s, v_l, b, b_l, dt_s)
-        lower = alt < cmd[has]
-        if not lower.any():
-            break
-        cmd[has[lower]] = alt[lower]
-    return cmd
 
 
 def section_observations(
@@ -570,7 +456,8 @@ class RingSpeedDriver(RingDriver):
         obs = full[m]
         a_min, a_max = self.sc.bounds.accel_mps2
         a = np.clip(self.act(obs), a_min, a_max)
-        cmd = np.maximum(0.0, speed[m] + a * self.sc.simulation.step_length_s)
+        dt = self.sc.simulation.step_length_s
+        cmd = np.maximum(0.0, speed[m] + a * dt)
         if self.safety == "sumo":
             leader, _ = ring_leaders(np.mod(arc, self.geo.length_m), self.geo.length_m)
             gap = obs[:, 2] - self.length[leader[m]] - self.min_gap[m]
@@ -578,7 +465,9 @@ class RingSpeedDriver(RingDriver):
             driven_index = np.full(len(m), -1)
             driven_index[m] = np.arange(int(m.sum()))
             lead = driven_index[leader[m]]
-            cmd = safety_cap(self, cmd, obs, gap, self.decel[m], self.decel[leader[m]], lead)
+            b, b_l = self.decel[m], self.decel[leader[m]]
+            safe = safety_cap(cmd, obs, gap, b, b_l, lead, dt, a_max)
+            cmd = self.stats.count_safety(*safe)
         self.commands = cmd
         sim.set_speeds(self.driven, self.commands)
 

@@ -1,6 +1,7 @@
-"""The deployment's safety layer against adversarial commands (``deploy.drivers.
-safety_cap``): whatever a driver asks for, full throttle or random accelerations from a
-seeded generator down to hard braking, SUMO reports no collision. Real SUMO."""
+"""The deployment's safety layer against adversarial commands (``deploy.safety``) and
+the vType switch (``deploy.drivers.SectionTypeDriver``): whatever a driver asks for, full
+throttle, random accelerations from a seeded generator, hard braking, SUMO reports no
+collision and nobody stands for good. Real SUMO."""
 
 from __future__ import annotations
 
@@ -19,9 +20,9 @@ from macromicro_sumo.deploy.drivers import (
     SectionSpeedDriver,
     SectionTypeDriver,
     SwitchedType,
-    behind_commands,
 )
 from macromicro_sumo.deploy.run import Drive, load_context, run_method, vtype_xml
+from macromicro_sumo.deploy.safety import behind_commands
 from macromicro_sumo.road.physics import safe_speed
 from macromicro_sumo.road.section import read_section
 from macromicro_sumo.scenario.load import load_scenario

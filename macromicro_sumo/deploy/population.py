@@ -1,0 +1,65 @@
+"""Who is driven in a deployment, and what a driver counts: the action function's type,
+the share drawn per vehicle by a hash, a run's counts (``DriveStats``) and the vType a
+switch gives (``SwitchedType``). Shared by the drivers (``deploy.drivers``) and the runs
+(``deploy.run``)."""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+# Obs (V, D) -> acceleration (V,) [m/s^2]: one batched call for every driven vehicle.
+ActionBatch = Callable[[np.ndarray], np.ndarray]
+
+
+def in_share(seed: int, run: int, vehicle_id: str, share: float) -> bool:
+    """Whether a vehicle is in a driven share: a hash of (seed, run, vehicle), so the same
+    vehicles are chosen whatever method drives and however often the run is repeated."""
+    if share >= 1.0:
+        return True
+    h = hashlib.sha256(f"deploy|{seed}|{run}|{vehicle_id}".encode()).digest()
+    return int.from_bytes(h[:8], "little") / 2**64 < share
+
+
+@dataclass
+class DriveStats:
+    """What a driver counted over one run."""
+
+    vehicle_steps_driven: int = 0
+    safety_acted: int = 0
+    emergency_brakings: int = 0
+    floor_acted: int = 0  # commands the safety layer raised (``deploy.safety.FLOOR_SHARE``)
+
+    def count_safety(self, cmd: np.ndarray, lowered: int, raised: int) -> np.ndarray:
+        """``cmd``, the safety layer's commands (``deploy.safety.safety_cap``), after
+        counting how many it lowered and raised."""
+        self.safety_acted += lowered
+        self.floor_acted += raised
+        return cmd
+
+    def as_dict(self) -> dict[str, int]:
+        return {
+            "emergency_brakings": self.emergency_brakings,
+            "vehicle_steps_driven": self.vehicle_steps_driven,
+            "safety_acted": self.safety_acted,
+            "floor_acted": self.floor_acted,
+        }
+
+
+@dataclass
+class SwitchedType:
+    """A vType switch: the vType each demand vType's vehicles get, and their speed factor
+    (a number, or None to draw one per vehicle around SUMO's default 1 with sd 0.1)."""
+
+    type_of: dict[str, str]
+    speed_factor: float | None
+    rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
+
+    def factors(self, n: int) -> np.ndarray:
+        if self.speed_factor is not None:
+            return np.full(n, self.speed_factor)
+        # SUMO's passenger default: normal(1, 0.1) cut at two deviations.
+        return np.clip(self.rng.normal(1.0, 0.1, n), 0.8, 1.2)
