@@ -3,7 +3,8 @@
 A checkpoint carries a format tag and the ``signature`` of the scenario it was trained
 for; one that is corrupt, not a policy checkpoint or trained for another scenario is a
 one-line UserError, and so is one trained with another ``policy.prior`` (recorded as
-"prior"; the IDM prior's parameters are in the state_dict). ``load_policy`` gives the trained agent; ``resumable_checkpoint`` the
+"prior"; the prior's parameters and the residual's bound are in the state_dict).
+``load_policy`` gives the trained agent; ``resumable_checkpoint`` the
 training state to continue from (the one resume rule of ring and section stages).
 """
 

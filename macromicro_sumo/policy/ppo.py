@@ -243,8 +243,9 @@ def train_policy(
     = "val_micro_logp"``, the episodes of ``val_runs`` are kept out of training and the
     policy returned and saved is the update's with the best validation micro log-likelihood.
 
-    ``prior_params`` (``policy.prior.idm_prior_params``): the fitted IDM under the actor
-    with ``policy.prior`` = "idm" (required then); recorded in the checkpoints as "prior".
+    ``prior_params`` (``policy.prior.PRIOR_KEYS``; ``evaluation.idm_fit.fit_policy_prior``):
+    the fitted model under the actor with a ``policy.prior`` (required then), whose residual
+    is bounded by ``policy.residual_bound_mps2``; the checkpoints record the prior.
     """
     cfg = sc.policy
     objective = objective or cfg.objective
