@@ -216,8 +216,17 @@ def projected_passages(
     distance / speed before. This counts an open section's end pieces (beyond its outermost
     stations) at the snapshot's time, where an interval's density averages over a minute.
     Speeds below ``min_speed_mps`` count as it (a crawl over the loop)."""
-    p = np.asarray(passage_s, dtype=float)[:, None]
-    reach = distance_m / np.maximum(np.asarray(speed_mps, dtype=float), min_speed_mps)[:, None]
-    t = np.atleast_1d(np.asarray(at_s, dtype=float))[None, :]
-    inside = (p > t) & (p - t <= reach) if upstream else (p <= t) & (t - p < reach)
-    return inside.sum(axis=0).astype(float)
+    p = np.asarray(passage_s, dtype=float)
+    reach = distance_m / np.maximum(np.asarray(speed_mps, dtype=float), min_speed_mps)
+    t = np.atleast_1d(np.asarray(at_s, dtype=float))
+    order = np.argsort(t)
+    ts = t[order]
+    # Each passage counts at the times of one span: upstream [p - reach, p) (it passes
+    # after t, within reach), downstream [p, p + reach); summed by a difference array.
+    lo, hi = (p - reach, p) if upstream else (p, p + reach)
+    steps = np.zeros(len(ts) + 1)
+    np.add.at(steps, np.searchsorted(ts, lo, "left"), 1.0)
+    np.add.at(steps, np.searchsorted(ts, hi, "left"), -1.0)
+    out = np.empty(len(ts))
+    out[order] = np.cumsum(steps)[:-1]
+    return out
