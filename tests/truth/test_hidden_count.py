@@ -21,7 +21,24 @@ from macromicro_sumo.truth.section_macro import (
     k_estimates,
     k_summary,
     side_junction_arcs,
+    station_passages,
 )
+
+
+def test_a_vehicle_counts_once_per_station_and_lap() -> None:
+    det = pd.DataFrame({"detector_id": ["s_0", "s_1", "t_0"], "arc_m": [100.0, 100.0, 300.0]})
+    pas = pd.DataFrame(
+        {
+            "detector_id": ["i_s_0", "i_s_1", "i_s_0", "i_t_0", "i_s_1"],
+            "vehicle_id": ["a", "a", "b", "a", "a"],
+            "time_s": [10.0, 10.5, 12.0, 20.0, 210.0],
+            "speed_mps": [20.0, 20.0, 18.0, 20.0, 21.0],
+        }
+    )
+    # a changes lane over the station's loops at 10 s (seen twice), passes again a lap later.
+    q = station_passages(det, pas, 100.0, within_s=60.0)
+    np.testing.assert_allclose(q["time_s"], [10.0, 12.0, 210.0])
+    np.testing.assert_allclose(q["speed_mps"], [20.0, 18.0, 21.0])
 
 
 def merge_scenario(folder: Path, main_vph: float, ramp_vph: float, drop_mps: float) -> Path:
