@@ -10,14 +10,16 @@ with its own models, in the same run.
      driven by the policy (``deploy.drivers.SectionSpeedDriver``: SUMO's state read once
      per step and shared with the recorder (``Simulation.vehicle_states``), SUMO's leaders
      of the driven vehicles, one batched policy call per step, the safety layer on),
-   and the ratios. The policy is runs/highway_bremen/policy/policy.pt when it exists, else
-   an untrained agent of the same shape (timing only).
+   and the ratios. The policy is ``--checkpoint`` (default runs/highway_bremen/policy/policy.pt;
+   it must match the scenario's policy settings, prior included) when it exists, else an
+   untrained agent of the same shape (timing only).
 2. The per-vehicle cost against the number of vehicles: a straight 4-lane road of 30 km
    (netconvert), N = 50 ... 2,000 vehicles placed on it at t = 0 and driven by the policy
    for ``--steps`` steps, next to SUMO driving the same N alone: microseconds per
    vehicle-step of each and of the driver's own share.
 
     python scripts/bench_deploy.py [--steps 200] [--sizes 50 200 500 1000 2000]
+        [--checkpoint runs/highway_bremen/policy/policy.pt]
 """
 
 from __future__ import annotations
@@ -68,7 +70,7 @@ def bremen_scenario(tmp: Path):
 
 def agent_for(sc, checkpoint: Path) -> tuple[Agent, str]:
     if checkpoint.is_file():
-        return load_policy(checkpoint, sc), str(checkpoint.relative_to(ROOT))
+        return load_policy(checkpoint, sc), str(checkpoint)
     torch.manual_seed(0)
     return Agent(64, observation=sc.policy.observation), "untrained agent (timing only)"
 
@@ -215,12 +217,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=200, help="steps per size on the straight road")
     ap.add_argument("--sizes", type=int, nargs="+", default=[50, 200, 500, 1000, 2000])
     ap.add_argument("--repeats", type=int, default=2, help="Bremen runs per method")
+    ap.add_argument(
+        "--checkpoint",
+        type=Path,
+        default=ROOT / "runs" / "highway_bremen" / "policy" / "policy.pt",
+        help="the Bremen policy (policy.pt of a run of scenarios/highway_bremen.toml)",
+    )
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
         sc = bremen_scenario(tmp)
-        agent, which = agent_for(sc, ROOT / "runs" / "highway_bremen" / "policy" / "policy.pt")
+        agent, which = agent_for(sc, args.checkpoint)
         act = policy_batch(agent)
         print(f"Bremen example's demand, one whole run ({sc.simulation.warmup_s:g} s warm-up + "
               f"{sc.simulation.duration_s:g} s, step {sc.simulation.step_length_s} s); "

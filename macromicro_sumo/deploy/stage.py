@@ -32,6 +32,7 @@ caller passes its plotting function (the report layer's, ``report.deploy``), and
 
 from __future__ import annotations
 
+import math
 import shutil
 import time
 from collections.abc import Callable, Mapping
@@ -59,12 +60,19 @@ from macromicro_sumo.env.section_bank import typical_length
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation import ring as ring_eval
 from macromicro_sumo.evaluation import section as section_eval
-from macromicro_sumo.evaluation.idm_fit import IdmParams, calibrate_idm
+from macromicro_sumo.evaluation.idm_fit import (
+    GippsParams,
+    IdmParams,
+    calibrate_idm,
+    gipps_policy_accel,
+    idm_policy_accel,
+)
 from macromicro_sumo.evaluation.methods import BY_NAME
 from macromicro_sumo.files import prepare_out_dir, staging_dir, write_csv, write_stage_manifest
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.checkpoint import load_policy, policy_file
+from macromicro_sumo.policy.prior import PRIOR_KEYS
 from macromicro_sumo.progress import tqdm
 from macromicro_sumo.truth.section import load_section_truth
 
@@ -72,6 +80,10 @@ MANIFEST = "deploy_manifest.json"
 COMPARISON, SUMMARY = "deploy_comparison.csv", "deploy_summary.csv"
 HISTORY = "calibration_history.csv"
 PLOTS = "plots"
+# Rows per matrix product of the actor's numpy forward pass: larger products start
+# OpenBLAS's threads, which on a loaded 2-core machine cost 1.8 ms at 500 rows instead of
+# 0.3 ms (scripts/bench_deploy.py's sizes).
+ACTOR_ROWS = 128
 # (truth folder, method folders, comparison, plots folder) -> figures written: the report
 # layer's ``report.deploy.make_deploy_plots``, passed in by the pipeline.
 PlotDeploy = Callable[[Path, Mapping[str, Path], pd.DataFrame, Path], list[Path]]
@@ -108,16 +120,70 @@ DEPLOY_METHODS: tuple[DeployMethod, ...] = (
 METHOD = {m.name: m for m in DEPLOY_METHODS}
 
 
+def actor_forward(agent: Agent) -> Callable[[np.ndarray], np.ndarray]:
+    """The agent's actor as a numpy function of raw observations (n, D), float64, its
+    weights read once: the actor's output before any prior or bound."""
+    shift = agent.shift.detach().double().numpy()
+    scale = agent.scale.detach().double().numpy()
+    layers: list[tuple[np.ndarray, np.ndarray] | None] = []  # None: tanh
+    for m in agent.actor:
+        if isinstance(m, torch.nn.Linear):
+            w = m.weight.detach().double().numpy().T.copy()
+            layers.append((w, m.bias.detach().double().numpy().copy()))
+        elif isinstance(m, torch.nn.Tanh):
+            layers.append(None)
+        else:
+            raise TypeError(f"policy_batch: actor layer {type(m).__name__} not supported")
+
+    def forward(obs: np.ndarray) -> np.ndarray:
+        x0 = (obs - shift) / scale
+        out = np.empty(len(x0))
+        for start in range(0, len(x0), ACTOR_ROWS):
+            x = x0[start : start + ACTOR_ROWS]
+            for layer in layers:
+                x = np.tanh(x, out=x) if layer is None else x @ layer[0] + layer[1]
+            out[start : start + ACTOR_ROWS] = x[:, 0]
+        return out
+
+    return forward
+
+
+def prior_forward(agent: Agent) -> Callable[[np.ndarray], np.ndarray] | None:
+    """The agent's prior acceleration [m/s^2] as a numpy function of raw observations
+    (``evaluation.idm_fit``'s twins of ``policy.prior``'s torch functions, which
+    tests/policy/test_prior.py holds equal); None without a prior."""
+    if agent.prior == "none":
+        return None
+    values = getattr(agent, f"{agent.prior}_prior").detach().double().tolist()
+    p = dict(zip(PRIOR_KEYS[agent.prior], values, strict=True))
+    if agent.prior == "idm":
+        idm = IdmParams(**{k: v for k, v in p.items() if k != "veh_length_m"})
+        return lambda obs: idm_policy_accel(obs, idm, p["veh_length_m"])
+    gipps = GippsParams(**{k: v for k, v in p.items() if k not in ("veh_length_m", "dt_s")})
+    return lambda obs: gipps_policy_accel(obs, gipps, p["veh_length_m"], p["dt_s"])
+
+
 def policy_batch(agent: Agent) -> ActionBatch:
-    """The policy's deterministic mean action for every driven vehicle, one torch call."""
+    """The policy's deterministic mean action (``Agent.mean_action``) for every driven
+    vehicle, one numpy call per step.
+
+    Numpy, float64, the weights read once: torch's fixed cost per call (~0.1 ms for the
+    actor, ~0.3 ms more for a prior's dozen small ops) was most of a step's policy time
+    below 500 driven vehicles (``scripts/bench_deploy.py``). Equal to
+    ``Agent.mean_action`` in float64 (tests/deploy/test_deploy_run.py)."""
+    actor, prior = actor_forward(agent), prior_forward(agent)
+    bound = float(agent.residual_bound) if prior is not None else math.inf
 
     def act(obs: np.ndarray) -> np.ndarray:
-        # The distribution's mean (``Agent.dist``), with the IDM prior where the agent has
-        # one; building the distribution each step costs more than the network at
-        # deployment's batch sizes.
-        with torch.inference_mode():
-            mean = agent.mean_action(torch.as_tensor(obs, dtype=torch.float32))
-        return mean.numpy().astype(np.float64)
+        obs = np.asarray(obs, dtype=np.float64)
+        if prior is None:
+            return actor(obs)
+        if bound <= 0.0:  # the fitted prior alone (an ablation)
+            return prior(obs)
+        out = actor(obs)
+        if math.isfinite(bound):
+            out = bound * np.tanh(out / bound)
+        return out + prior(obs)
 
     return act
 

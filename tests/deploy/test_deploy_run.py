@@ -19,7 +19,7 @@ from deploy_nets import idm_agent, merge_net
 from macromicro_sumo.cli import main
 from macromicro_sumo.deploy.run import Drive, load_context, run_method
 from macromicro_sumo.deploy.stage import deploy, policy_batch
-from macromicro_sumo.evaluation.idm_fit import IdmParams
+from macromicro_sumo.evaluation.idm_fit import GippsParams, IdmParams
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.prior import idm_prior_params
 from macromicro_sumo.scenario.load import load_scenario
@@ -129,25 +129,42 @@ def test_deploy_without_a_policy_is_a_one_line_error(
     assert not (tmp_path / "d").exists()
 
 
-@pytest.mark.parametrize("prior", ["none", "idm"])
-def test_the_deployed_action_is_the_policys_mean_action(prior: str) -> None:
-    """One batched call gives ``Agent.mean_action``: the actor's output, plus the fitted
-    IDM's acceleration for a residual policy (``policy.prior = "idm"``)."""
+@pytest.mark.parametrize(
+    ("prior", "bound"),
+    [("none", np.inf), ("idm", np.inf), ("idm", 1.0), ("gipps", 1.0), ("gipps", 0.0)],
+)
+def test_the_deployed_action_is_the_policys_mean_action(prior: str, bound: float) -> None:
+    """The numpy batch gives ``Agent.mean_action``: the actor's output, plus the fitted
+    model's acceleration for a residual policy (``policy.prior`` idm or gipps), the
+    residual bounded (or the prior alone: bound 0), to 1e-6 m/s^2 of the agent in float64
+    and to float32's rounding of the agent as trained."""
     torch.manual_seed(0)
     idm = IdmParams(speed_factor=1.0, tau_s=1.2, accel_mps2=1.5, decel_mps2=2.0, min_gap_m=2.0)
-    params = idm_prior_params(idm.as_dict(), 5.0) if prior == "idm" else None
-    agent = Agent(16, observation="lookahead", prior=prior, prior_params=params)
+    gipps = GippsParams(speed_factor=1.05, accel_mps2=2.0, decel_mps2=4.5, tau_s=1.1, min_gap_m=2.0)
+    params = {
+        "none": None,
+        "idm": idm_prior_params(idm.as_dict(), 5.0),
+        "gipps": {**gipps.as_dict(), "veh_length_m": 5.0, "dt_s": 0.5},
+    }[prior]
+    agent = Agent(
+        16, observation="lookahead", prior=prior, prior_params=params, residual_bound_mps2=bound
+    )
+    with torch.no_grad():  # a residual starts at 0: give it a trained-looking output
+        agent.actor[-1].weight.normal_(0.0, 1.0)
+        agent.actor[-1].bias.fill_(0.3)
     rng = np.random.default_rng(0)
     obs = np.column_stack(
         [rng.uniform(0, 30, 300), np.full(300, 30.0), rng.uniform(5, 250, 300)]
         + [rng.uniform(-5, 5, 300), np.full(300, 30.0), rng.uniform(0, 500, 300)]
     )
-    with torch.no_grad():
-        want = agent.mean_action(torch.as_tensor(obs, dtype=torch.float32)).numpy()
     got = policy_batch(agent)(obs)
+    with torch.no_grad():
+        want32 = agent.mean_action(torch.as_tensor(obs, dtype=torch.float32)).numpy()
+        want64 = agent.double().mean_action(torch.as_tensor(obs)).numpy()
     assert got.dtype == np.float64 and got.shape == (300,)
-    np.testing.assert_array_equal(got, want.astype(np.float64))
-    if prior == "idm":  # the IDM's braking behind a close, slower leader is in there
+    np.testing.assert_allclose(got, want64, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(got, want32, rtol=0, atol=1e-4)
+    if prior != "none":  # the model's braking behind a close, slower leader is in there
         assert got.min() < -1.0
 
 
