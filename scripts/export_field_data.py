@@ -24,7 +24,9 @@ import numpy as np
 import pandas as pd
 
 from macromicro_sumo.data.section import PSI_FIELDS, section_snapshots
+from macromicro_sumo.evaluation.idm_fit import calibrate_idm, idm_policy_accel
 from macromicro_sumo.evaluation.section import micro_pairs
+from macromicro_sumo.fielddata.schema import LEADER_COLUMNS
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.files import data_toml, export_field_files
 from macromicro_sumo.truth.section import load_section_truth, simulate_section
@@ -66,8 +68,25 @@ def round_trip(sim_sc: Path, sim: Path, files_sc: Path, files: Path) -> dict[str
     dk = np.abs(b.k_est[m.j] - a.k_est[m.i])
     out |= {"k_est_max_abs_diff": float(dk.max()), "k_est_mean_abs_diff": float(dk.mean())}
     out["k_est_mean_abs_err_vs_truth"] = float(np.abs(a.k_est - a.k_true).mean())
-    out["micro_pairs_sim"] = len(micro_pairs(sa, ta, ta.runs, max_pairs=10**9)[1])
-    out["micro_pairs_files"] = len(micro_pairs(sb, tb, tb.runs, max_pairs=10**9)[1])
+    # Micro pairs and the IDM fitted to them: the files' pairs behind the leader each
+    # vehicle measured, against the simulated truth's and the next-observed-vehicle ones.
+    oa, aa = micro_pairs(sa, ta, ta.runs, max_pairs=10**9)
+    ob, ab = micro_pairs(sb, tb, tb.runs, max_pairs=10**9)
+    blind = dataclasses.replace(tb, trajectories=tb.trajectories.drop(columns=list(LEADER_COLUMNS)))
+    oc, ac = micro_pairs(sb, blind, tb.runs, max_pairs=10**9)
+    out |= {"micro_pairs_sim": len(aa), "micro_pairs_files": len(ab)}
+    veh = float(ta.vtypes["length_m"].median())
+    fits = {"sim": calibrate_idm(oa, aa, veh), "files": calibrate_idm(ob, ab, veh)}
+    fits["files_next_observed"] = calibrate_idm(oc, ac, veh)
+    for name, (p, rmse) in fits.items():
+        for key in ("speed_factor", "tau_s", "accel_mps2", "decel_mps2", "min_gap_m"):
+            out[f"idm_{name}_{key}"] = float(getattr(p, key))
+        out[f"idm_{name}_fit_rmse_mps2"] = rmse
+        pred = idm_policy_accel(oa, p, veh) - idm_policy_accel(oa, fits["sim"][0], veh)
+        out[f"idm_{name}_vs_sim_on_sim_pairs_rms_mps2"] = float(np.sqrt(np.mean(pred**2)))
+    for name, o in (("files", ob), ("files_next_observed", oc)):
+        out[f"pairs_{name}_mean_spacing_m"] = float(o[:, 2].mean())
+    out["pairs_sim_mean_spacing_m"] = float(oa[:, 2].mean())
     return out
 
 

@@ -52,6 +52,7 @@ from macromicro_sumo.evaluation.idm_fit import calibrate_idm
 from macromicro_sumo.evaluation.methods import method_order
 from macromicro_sumo.evaluation.ring import idm_action, micro_consistency
 from macromicro_sumo.evaluation.statistics import macro_row, paired_bootstrap_ci, samples_frame
+from macromicro_sumo.fielddata.leaders import has_measured_leaders, with_measured_leaders
 from macromicro_sumo.files import (
     prepare_out_dir,
     staging_dir,
@@ -145,6 +146,7 @@ def micro_pairs(
     scene around them) and the acceleration they applied over the next step."""
     dt = sc.simulation.step_length_s
     traj = truth.trajectories[truth.trajectories["run"].isin(runs)]
+    measured = has_measured_leaders(traj)
     obs_rows, acc_rows = [], []
     for _, g in traj.groupby("run", sort=True):
         times = np.sort(g["time_s"].unique())
@@ -160,7 +162,7 @@ def micro_pairs(
             o = s["observed"].to_numpy(dtype=bool)
             if not o.any():
                 continue
-            obs, _, _ = section_observations(
+            obs, leader, _ = section_observations(
                 truth.section,
                 s["lane_index"].to_numpy(),
                 s["arc_m"].to_numpy(),
@@ -168,6 +170,8 @@ def micro_pairs(
                 np.ones(len(s), dtype=bool),
                 sc.policy.observation,
             )
+            if measured:  # field data: the leader each vehicle measured (fielddata.leaders)
+                obs, _ = with_measured_leaders(obs, leader, s, sc.policy.observation)
             ids = s["vehicle_id"].to_numpy()[o]
             v1 = np.array([nxt_speed[t1].get(v, np.nan) for v in ids])
             a = (v1 - s["speed_mps"].to_numpy()[o]) / dt

@@ -14,6 +14,12 @@ physical bound, speed jumps no vehicle can make in one sample) and time gaps (a 
 missing for more than ``gap_factor`` sampling periods) are flagged; a gap splits the
 smoothing, so no kernel reaches across it.
 
+Measured leaders: where a layout gives the spacing to the vehicle's own leader but not the
+leader's speed (NGSIM's Space_Headway), the leader's speed is the vehicle's cleaned speed
+plus the time derivative of the gap, smoothed as the positions are (sEMA of the spacing
+with ``position_width_s``, central differences, sEMA with ``speed_width_s``), within runs
+of one leader (a change of leader is a jump in spacing, not a speed).
+
 Stations: intervals with too few samples, with PeMS ``% Observed`` under a threshold
 (imputed rather than measured) or without any value are excluded and counted.
 """
@@ -62,6 +68,44 @@ def segments(t: np.ndarray, gap_factor: float) -> tuple[list[np.ndarray], np.nda
     return np.split(np.arange(len(t)), cuts), after
 
 
+# Without leader ids, a spacing that changes faster than this between samples is a new
+# leader (a cut-in or a lane change), not a relative speed any pair of vehicles reaches.
+LEADER_CHANGE_MPS = 40.0
+
+
+def leader_runs(t: np.ndarray, leader: np.ndarray, spacing: np.ndarray) -> list[np.ndarray]:
+    """Index runs of one vehicle's samples behind one measured leader: same leader id,
+    a finite spacing, and no jump of the spacing beyond ``LEADER_CHANGE_MPS``."""
+    ok = np.isfinite(spacing)
+    cut = np.zeros(len(t), dtype=bool)
+    if len(t) > 1:
+        rate = np.abs(np.diff(spacing)) / np.maximum(np.diff(t), 1e-9)
+        cut[1:] = (leader[1:] != leader[:-1]) | (ok[1:] != ok[:-1]) | ~(rate <= LEADER_CHANGE_MPS)
+    starts = np.flatnonzero(cut)
+    return [r for r in np.split(np.arange(len(t)), starts) if ok[r[0]]]
+
+
+def leader_speed_from_gap(
+    t: np.ndarray,
+    speed_mps: np.ndarray,
+    leader: np.ndarray,
+    spacing_m: np.ndarray,
+    position_width_s: float,
+    speed_width_s: float,
+) -> np.ndarray:
+    """A leader's speed from the measured spacing of one vehicle's samples (in time order):
+    own speed + d(spacing)/dt, the spacing smoothed as the cleaning smooths positions (sEMA,
+    central differences, sEMA); NaN without a leader or where a run of one leader has a
+    single sample. Widths 0: plain central differences."""
+    out = np.full(len(t), np.nan)
+    for k in leader_runs(t, leader, spacing_m):
+        if len(k) < 2:
+            continue
+        x = sema(t[k], spacing_m[k], position_width_s)
+        out[k] = speed_mps[k] + sema(t[k], np.gradient(x, t[k]), speed_width_s)
+    return np.maximum(out, 0.0)
+
+
 @dataclass(frozen=True)
 class CleanTrajectories:
     """Cleaned trajectories and the flags of every row (same order as ``frame``)."""
@@ -100,6 +144,8 @@ def clean_trajectories(
                 v[k] = np.maximum(sema(t[k], np.gradient(x, t[k]), cfg.speed_width_s), 0.0)
                 a[k] = sema(t[k], np.gradient(v[k], t[k]), cfg.accel_width_s)
     frame = df.assign(speed_mps=v, accel_mps2=a)
+    if traj.leader_measured:
+        frame = frame.assign(leader_speed_mps=_leader_speeds(frame, cfg))
     flags = pd.DataFrame(
         {
             "vehicle_id": df["vehicle_id"].to_numpy(),
@@ -111,6 +157,33 @@ def clean_trajectories(
         }
     )
     return CleanTrajectories(traj, frame, raw_v, flags)
+
+
+def _leader_speeds(frame: pd.DataFrame, cfg: CleaningConfig) -> np.ndarray:
+    """The measured leader speeds, derived from the gap where the file gives none."""
+    lead_v = frame["leader_speed_mps"].to_numpy(dtype=float).copy()
+    need = np.isnan(lead_v) & np.isfinite(frame["leader_spacing_m"].to_numpy(dtype=float))
+    if not need.any():
+        return lead_v
+    ema = cfg.smoother == "ema"
+    t, v = frame["time_s"].to_numpy(), frame["speed_mps"].to_numpy()
+    leader = frame["leader_id"].astype(str).to_numpy()
+    spacing = frame["leader_spacing_m"].to_numpy(dtype=float)
+    for idx in frame.groupby("vehicle_id", sort=False).indices.values():
+        if not need[idx].any():
+            continue
+        for seg in segments(t[idx], cfg.gap_factor)[0]:  # no derivative across a time gap
+            k = idx[seg]
+            derived = leader_speed_from_gap(
+                t[k],
+                v[k],
+                leader[k],
+                spacing[k],
+                cfg.position_width_s if ema else 0.0,
+                cfg.speed_width_s if ema else 0.0,
+            )
+            lead_v[k] = np.where(need[k], derived, lead_v[k])
+    return lead_v
 
 
 @dataclass(frozen=True)

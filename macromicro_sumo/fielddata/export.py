@@ -28,7 +28,7 @@ from macromicro_sumo.fielddata.mapping import (
 from macromicro_sumo.fielddata.stations import PEMS_FIXED, PEMS_LANE, PEMS_MAPPING
 from macromicro_sumo.fielddata.trajectories import NGSIM_MAPPING, derive_rates
 from macromicro_sumo.files import write_csv, write_text
-from macromicro_sumo.road.section import Section, lane_leaders
+from macromicro_sumo.road.section import Section, section_leaders
 from macromicro_sumo.scenario.data import FT, SPEED_UNITS
 
 NGSIM_EPOCH_MS = 1_118_846_980_200  # US-101's first Global_Time (2005-06-15 07:49:40.2 PDT)
@@ -47,24 +47,32 @@ def _truth(gt: Path, run: int) -> tuple[Section, pd.DataFrame, pd.DataFrame, pd.
 
 def observed_rows(gt: Path, run: int = 0) -> tuple[Section, pd.DataFrame]:
     """The observed vehicles' rows of ``run`` (sorted by vehicle, time), with each row's
-    leader among all vehicles, its front-to-front spacing and the vehicle's length."""
+    true leader among all vehicles, hidden or not (along the lane connections, as the
+    observation finds it: ``section_leaders``), its front-to-front spacing and speed (0 and
+    NaN without a vehicle ahead: a lane's end is no vehicle), and the vehicle's length:
+    what an instrumented vehicle's radar measures."""
     section, traj, _, vt = _truth(gt, run)
     traj = traj.reset_index(drop=True)
     leader = np.full(len(traj), -1)
     spacing = np.zeros(len(traj))
     for idx in traj.groupby("time_s").indices.values():
-        ld, sp = lane_leaders(
-            traj["lane_index"].to_numpy()[idx],
-            traj["arc_m"].to_numpy()[idx],
-            section.length_m,
-            section.closed,
+        ld, sp = section_leaders(
+            section, traj["lane_index"].to_numpy()[idx], traj["arc_m"].to_numpy()[idx]
         )
         leader[idx] = np.where(ld >= 0, idx[np.maximum(ld, 0)], -1)
         spacing[idx] = np.where(ld >= 0, sp, 0.0)
     ids = traj["vehicle_id"].to_numpy()
     traj["leader_id"] = np.where(leader >= 0, ids[np.maximum(leader, 0)], "")
     traj["spacing_m"] = spacing
+    speed = traj["speed_mps"].to_numpy()
+    traj["leader_speed_mps"] = np.where(leader >= 0, speed[np.maximum(leader, 0)], np.nan)
     traj["length_m"] = traj["vtype"].map(dict(zip(vt["vtype"], vt["length_m"], strict=True)))
+    lengths = traj["length_m"].to_numpy()
+    traj["leader_length_m"] = np.where(leader >= 0, lengths[np.maximum(leader, 0)], np.nan)
+    # Field layouts number every vehicle of a recording, so a hidden leader has a number too.
+    number = numeric_ids(traj.sort_values("time_s", kind="stable")["vehicle_id"])
+    traj["number"] = traj["vehicle_id"].map(number)
+    traj["leader_number"] = traj["leader_id"].map(lambda x: number.get(x, 0) if x else 0)
     obs = traj[traj["observed"]].sort_values(["vehicle_id", "time_s"], kind="stable")
     return section, obs.reset_index(drop=True)
 
@@ -104,8 +112,8 @@ def export_ngsim(
     the noisy positions, so they are as noisy as NGSIM's. Returns the mapping and the ids."""
     section, obs = observed_rows(gt, run)
     rng = np.random.default_rng(seed)
-    ids = numeric_ids(obs["vehicle_id"])
-    vid = obs["vehicle_id"].map(ids).to_numpy()
+    ids = dict(zip(obs["vehicle_id"], obs["number"], strict=False))
+    vid = obs["number"].to_numpy()
     t = obs["time_s"].to_numpy()
     # Noise may not push a position off the section (the recorded stretch): clipped there.
     y = np.clip(
@@ -116,7 +124,13 @@ def export_ngsim(
     dt = float(np.median(np.diff(np.unique(t))))
     lanes = lane_number(obs["lane_index"].to_numpy(), "left", 1, 0, lanes_at(section, obs["arc_m"]))
     frame = np.rint(t / dt).astype(np.int64)
-    prec = obs["leader_id"].map(lambda x: ids.get(x, 0) if x else 0)
+    prec = obs["leader_number"]
+    # The radar's range: the true spacing with N(0, noise_m) noise (kept above 0: 0 is
+    # NGSIM's "no leader"); 0 where nothing drives ahead.
+    has = prec.to_numpy() > 0
+    space = np.where(
+        has, np.maximum(obs["spacing_m"].to_numpy() + rng.normal(0.0, noise_m, len(obs)), 0.1), 0.0
+    )
     df = pd.DataFrame(
         {
             "Vehicle_ID": vid,
@@ -137,9 +151,11 @@ def export_ngsim(
             "Lane_ID": lanes,
             "Preceding": prec.to_numpy(),
             "Following": 0,
-            "Space_Headway": obs["spacing_m"].to_numpy() / FT,
+            "Space_Headway": space / FT,
             "Time_Headway": np.where(
-                obs["speed_mps"] > 0.1, obs["spacing_m"] / obs["speed_mps"].clip(lower=0.1), 9999.99
+                has & (obs["speed_mps"] > 0.1),
+                space / obs["speed_mps"].clip(lower=0.1).to_numpy(),
+                np.where(has, 9999.99, 0.0),
             ),
         }
     )
@@ -153,7 +169,7 @@ def export_highd(gt: Path, path: Path, run: int = 0) -> tuple[TrajectoryMapping,
     ``width`` the vehicle length, lanes numbered from the left starting at 2, one frame per
     simulation step (the mapping's ``frame_rate_hz``)."""
     section, obs = observed_rows(gt, run)
-    ids = numeric_ids(obs["vehicle_id"])
+    ids = dict(zip(obs["vehicle_id"], obs["number"], strict=False))
     t = obs["time_s"].to_numpy()
     rate = 1.0 / float(np.median(np.diff(np.unique(t))))
     m = dataclasses.replace(HIGHD_EXPORT_MAPPING, frame_rate_hz=rate, run=run)
@@ -161,7 +177,7 @@ def export_highd(gt: Path, path: Path, run: int = 0) -> tuple[TrajectoryMapping,
     df = pd.DataFrame(
         {
             "frame": np.rint(t * rate).astype(np.int64),
-            "id": obs["vehicle_id"].map(ids).to_numpy(),
+            "id": obs["number"].to_numpy(),
             "x": obs["arc_m"].to_numpy() - length,
             "y": 0.0,
             "width": length,
@@ -170,8 +186,10 @@ def export_highd(gt: Path, path: Path, run: int = 0) -> tuple[TrajectoryMapping,
             "yVelocity": 0.0,
             "xAcceleration": obs["accel_mps2"].to_numpy(),
             "yAcceleration": 0.0,
-            "dhw": obs["spacing_m"].to_numpy(),
-            "precedingId": obs["leader_id"].map(lambda x: ids.get(x, 0) if x else 0).to_numpy(),
+            # highD's dhw is bumper to bumper; 0 and precedingId 0: nothing ahead.
+            "dhw": np.nan_to_num(obs["spacing_m"].to_numpy() - obs["leader_length_m"].to_numpy()),
+            "precedingXVelocity": np.nan_to_num(obs["leader_speed_mps"].to_numpy()),
+            "precedingId": obs["leader_number"].to_numpy(),
             "laneId": lane_number(
                 obs["lane_index"].to_numpy(), "left", 2, 0, lanes_at(section, obs["arc_m"])
             ),
@@ -193,6 +211,10 @@ def export_generic_trajectories(gt: Path, path: Path, run: int = 0) -> Trajector
             "lane": obs["lane_index"],
             "speed_mps": obs["speed_mps"],
             "accel_mps2": obs["accel_mps2"],
+            # The measured leader (read when the column map names them): "", 0, empty.
+            "leader_id": obs["leader_id"],
+            "spacing_m": obs["spacing_m"],
+            "leader_speed_mps": obs["leader_speed_mps"],
         }
     )
     write_csv(df, path, float_format="%.4f")

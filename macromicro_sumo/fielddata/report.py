@@ -103,6 +103,37 @@ def _station_rows(c: CleanStations) -> pd.DataFrame:
     )
 
 
+def leader_counts(c: CleanTrajectories) -> dict[str, int]:
+    """Rows of a file with a measured leader (a vehicle ahead measured, or measured none),
+    and rows of a layout that carries no leader measurement at all."""
+    if not c.source.leader_measured:
+        return {"leader_rows_measured": 0, "leader_rows_unmeasured": len(c.frame)}
+    ahead = int(np.isfinite(c.frame["leader_spacing_m"].to_numpy(dtype=float)).sum())
+    return {"leader_rows_measured": len(c.frame), "leader_rows_with_leader": ahead}
+
+
+def leader_lines(trajectories: list[CleanTrajectories]) -> list[str]:
+    """What the micro pairs' leaders are, per file; a warning for every file without a
+    leader measurement (its pairs see the next observed vehicle as the leader)."""
+    out = []
+    for c in trajectories:
+        n = leader_counts(c)
+        if c.source.leader_measured:
+            out.append(
+                f"- {c.source.file.name}: leader measured by the vehicle in all "
+                f"{n['leader_rows_measured']} rows ({n['leader_rows_with_leader']} with a "
+                "vehicle ahead): micro pairs take it"
+            )
+        else:
+            out.append(
+                f"- **Warning**: {c.source.file.name} ({c.source.layout}) has no leader "
+                f"measurement ({n['leader_rows_unmeasured']} rows): its micro pairs' leader is "
+                "the next observed vehicle, with hidden vehicles possibly between "
+                "(docs/field-data.md)"
+            )
+    return out + [""] if out else []
+
+
 def data_report(
     trajectories: list[CleanTrajectories], stations: list[CleanStations]
 ) -> tuple[str, pd.DataFrame]:
@@ -132,6 +163,7 @@ def data_report(
                 f"{change:.3f} m/s |"
             )
         lines.append("")
+        lines += leader_lines(trajectories)
     if stations:
         lines += [
             "## Stations",

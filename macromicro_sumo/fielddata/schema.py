@@ -28,6 +28,11 @@ TRAJ_COLUMNS = (
     "speed_mps",
     "accel_mps2",
 )
+# The observed vehicle's own measurement of its leader (radar; NGSIM Preceding /
+# Space_Headway, highD precedingId / dhw / precedingXVelocity): optional columns after
+# TRAJ_COLUMNS, present when the layout carries them. ``leader_id`` "" and the other two
+# NaN: no vehicle ahead was measured in that row.
+LEADER_COLUMNS = ("leader_id", "leader_spacing_m", "leader_speed_mps")
 DET_COLUMNS = (
     "run",
     "detector_id",

@@ -19,6 +19,7 @@ import numpy as np
 import pandas as pd
 
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.fielddata.leaders import id_strings, measured_leaders
 from macromicro_sumo.fielddata.mapping import (
     TrajectoryMapping,
     check_on_section,
@@ -28,6 +29,7 @@ from macromicro_sumo.fielddata.mapping import (
     trajectory_units,
 )
 from macromicro_sumo.fielddata.schema import (
+    LEADER_COLUMNS,
     MAX_SPEED_MPS,
     TRAJ_COLUMNS,
     check_range,
@@ -60,6 +62,11 @@ class Trajectories:
     vehicles: pd.DataFrame  # vehicle_id, vtype, length_m (NaN: unknown), rows
     dropped_off_section: int = 0
     notes: list[str] = field(default_factory=list)
+
+    @property
+    def leader_measured(self) -> bool:
+        """Whether the layout carries the vehicles' own leader measurement (radar)."""
+        return "leader_spacing_m" in self.frame.columns
 
 
 def check_order(
@@ -159,6 +166,7 @@ def place(
         rows,
         lines,
     )
+    lead = measured_leaders(raw, vid, speed, lu, su, path, cols, rows, lines)
     frame = pd.DataFrame(
         {
             "run": m.run,
@@ -173,6 +181,8 @@ def place(
             "accel_mps2": accel,
         }
     )[list(TRAJ_COLUMNS)]
+    if lead is not None:
+        frame = frame.assign(**dict(zip(LEADER_COLUMNS, lead, strict=True)))
     frame = frame.sort_values(["time_s", "lane_index", "arc_m"], kind="stable")
     length = raw["length"].to_numpy(dtype=float) * lu
     vehicles = (
@@ -227,7 +237,15 @@ def read_ngsim(
         accel=values["v_Acc"],
         length=length,
     )
+    # The instrumented vehicle's own leader: Preceding (0: none), Space_Headway [ft] front
+    # to front; NGSIM gives no leader speed (the cleaning derives it from the gap).
+    if "Space_Headway" in df.columns:
+        raw["lead_spacing"] = numbers(df, "Space_Headway", path)
+        if "Preceding" in df.columns:
+            raw["lead_id"] = pd.to_numeric(df["Preceding"], errors="coerce").fillna(0)
+            raw["lead_id"] = raw["lead_id"].astype(np.int64).astype(str).to_numpy()
     cols = {"time": "Global_Time", "pos": "Local_Y", "lane": "Lane_ID"}
+    cols |= {"lead_spacing": "Space_Headway"}
     return place(
         raw, {**cols, "speed": "v_Vel", "accel": "v_Acc"}, mapping, section, path, "ngsim", outside
     )
@@ -264,7 +282,17 @@ def read_highd(
         accel=mapping.direction * values["xAcceleration"],
         length=width if "width" in df.columns else np.nan,
     )
+    # highD's own leader: precedingId (0: none), dhw [m] bumper to bumper,
+    # precedingXVelocity [m/s] signed along x like xVelocity.
+    if "dhw" in df.columns:
+        raw["lead_gap"] = numbers(df, "dhw", path)
+        if "precedingId" in df.columns:
+            raw["lead_id"] = pd.to_numeric(df["precedingId"], errors="coerce").fillna(0)
+            raw["lead_id"] = raw["lead_id"].astype(np.int64).astype(str).to_numpy()
+        if "precedingXVelocity" in df.columns:
+            raw["lead_speed"] = mapping.direction * numbers(df, "precedingXVelocity", path)
     cols = {"time": "frame", "pos": "x", "lane": "laneId", "speed": "xVelocity"}
+    cols |= {"lead_gap": "dhw", "lead_speed": "precedingXVelocity"}
     return place(raw, {**cols, "accel": "xAcceleration"}, mapping, section, path, "highd", outside)
 
 
@@ -280,7 +308,9 @@ def read_generic_trajectories(
     path = Path(path)
     df = read_table(path)
     need = [columns.vehicle_id, columns.time, columns.position, columns.lane]
-    optional = [c for c in (columns.speed, columns.accel, columns.length) if c]
+    leader = (columns.leader_id, columns.spacing, columns.gap, columns.leader_speed)
+    optional = [c for c in (columns.speed, columns.accel, columns.length, *leader) if c]
+    optional += [columns.delta_v] if columns.delta_v else []
     require_columns(df, need + optional, path)
 
     def col(name: str) -> np.ndarray | float:
@@ -288,7 +318,7 @@ def read_generic_trajectories(
 
     raw = _raw(
         df,
-        vehicle_id=df[columns.vehicle_id].astype(str),
+        vehicle_id=id_strings(df[columns.vehicle_id]),
         vtype=df[columns.vtype].astype(str) if columns.vtype else mapping.vtype,
         time=col(columns.time),
         pos=col(columns.position),
@@ -297,8 +327,21 @@ def read_generic_trajectories(
         accel=col(columns.accel),
         length=col(columns.length),
     )
+    # The vehicle's own leader measurement, where the column map names one.
+    for key, name in (
+        ("lead_spacing", columns.spacing),
+        ("lead_gap", "" if columns.spacing else columns.gap),
+        ("lead_speed", columns.leader_speed),
+        ("lead_dv", "" if columns.leader_speed else columns.delta_v),
+    ):
+        if name:
+            raw[key] = numbers(df, name, path, allow_nan=True)
+    if columns.leader_id:
+        raw["lead_id"] = id_strings(df[columns.leader_id])
     cols = {"time": columns.time, "pos": columns.position, "lane": columns.lane}
     cols |= {"speed": columns.speed or columns.position, "accel": columns.accel or columns.time}
+    cols |= {"lead_spacing": columns.spacing, "lead_gap": columns.gap}
+    cols |= {"lead_speed": columns.leader_speed or columns.delta_v}
     return place(raw, cols, mapping, section, path, "generic", outside)
 
 

@@ -86,6 +86,19 @@ class TrajectoryColumns:
     accel: str = spec("accel_mps2", doc="acceleration column ('': derived from speeds)")
     vtype: str = spec("", doc="vehicle type column ('': vtype)")
     length: str = spec("", doc="vehicle length column (length_unit; '': unknown)")
+    leader_id: str = spec(
+        "", doc="measured leader's vehicle ID column ('': none; 0 or empty: no leader)"
+    )
+    spacing: str = spec(
+        "", doc="measured front-to-front spacing to the leader (length_unit; '': none)"
+    )
+    gap: str = spec(
+        "", doc="measured bumper gap to the leader (length_unit; '': none; used without spacing)"
+    )
+    leader_speed: str = spec("", doc="measured leader speed (speed_unit; '': none)")
+    delta_v: str = spec(
+        "", doc="own minus leader speed (speed_unit; '': none; used without leader_speed)"
+    )
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -31,7 +31,7 @@ from macromicro_sumo.fielddata.trajectories import (
     read_ngsim,
 )
 from macromicro_sumo.road.section import Section
-from macromicro_sumo.scenario.data import StationColumns
+from macromicro_sumo.scenario.data import StationColumns, TrajectoryColumns
 
 POSITION_TOL_M = 0.05
 NGSIM_SPEED_RMSE = 0.30  # measured 0.24-0.25 m/s
@@ -61,13 +61,67 @@ def test_exact_trajectory_layouts_round_trip(
     else:
         m = export.export_generic_trajectories(field_truth, tmp_path / "t.csv")
         got = read_generic_trajectories(tmp_path / "t.csv", section, m)
-    assert tuple(got.frame.columns) == TRAJ_COLUMNS and got.frame["observed"].all()
+    assert tuple(got.frame.columns[: len(TRAJ_COLUMNS)]) == TRAJ_COLUMNS
+    assert got.frame["observed"].all()
+    # highD carries the vehicle's leader; the generic CSV's default column map reads none.
+    assert got.leader_measured == (layout == "highd")
     both = _matched(got.frame, observed, ids)
     assert np.abs(both["arc_m"] - both["arc_m_t"]).max() < POSITION_TOL_M
     assert (both["lane_index"] == both["lane_index_t"]).all()
     assert (both["edge_index"] == both["edge_index_t"]).all()
     assert np.abs(both["speed_mps"] - both["speed_mps_t"]).max() < 1e-3
     assert np.abs(both["accel_mps2"] - both["accel_mps2_t"]).max() < 1e-3
+
+
+@pytest.mark.parametrize("layout", ["highd", "generic", "ngsim"])
+def test_measured_leaders_round_trip(
+    layout: str, field_truth: Path, section: Section, tmp_path: Path
+) -> None:
+    """Each observed row's true leader (hidden or not) comes back: its spacing and speed
+    exactly from highD (bumper gap + the leader's length) and the generic CSV, from NGSIM
+    within the radar noise (0.3 m) with the speed derived from the smoothed gap."""
+    _, truth = export.observed_rows(field_truth)
+    assert (truth["leader_id"] != "").mean() > 0.5  # most rows have a vehicle ahead
+    hidden = ~truth["leader_id"].isin(set(truth["vehicle_id"])) & (truth["leader_id"] != "")
+    assert hidden.mean() > 0.2  # and often it is not an observed one
+    ids = dict(zip(truth["vehicle_id"], truth["number"], strict=False))
+    if layout == "highd":
+        m, ids = export.export_highd(field_truth, tmp_path / "tracks.csv")
+        got = read_highd(tmp_path / "tracks.csv", section, m).frame
+    elif layout == "generic":
+        export.export_generic_trajectories(field_truth, tmp_path / "t.csv")
+        cols = TrajectoryColumns(
+            leader_id="leader_id", spacing="spacing_m", leader_speed="leader_speed_mps"
+        )
+        got = read_generic_trajectories(tmp_path / "t.csv", section, columns=cols).frame
+        ids = None
+    else:
+        m, ids = export.export_ngsim(field_truth, tmp_path / "n.csv", noise_m=0.3, seed=0)
+        raw = read_ngsim(tmp_path / "n.csv", section, m)
+        assert raw.frame["leader_speed_mps"].isna().all()  # NGSIM has none: derived
+        got = clean_trajectories(raw, NGSIM_CLEANING).frame
+    both = _matched(got, truth, ids)
+    ahead = both["leader_id_t"] != ""
+    assert (both["leader_spacing_m"].notna() == ahead).all()
+    d_space = (both["leader_spacing_m"] - both["spacing_m"])[ahead]
+    d_speed = (both["leader_speed_mps"] - both["leader_speed_mps_t"])[ahead]
+    if layout == "ngsim":
+        assert d_space.std() == pytest.approx(0.3, abs=0.03)  # the radar noise
+        assert np.abs(d_space.mean()) < 0.03
+        # Own speed + d gap / dt, both smoothed: about the own speed's error (0.24 m/s)
+        # twice over; a leader change inside a sample pair is a jump, not a speed.
+        assert np.sqrt((d_speed**2).median()) < NGSIM_SPEED_RMSE * 2
+        assert np.sqrt((d_speed**2).mean()) < 1.0
+    else:
+        # highD numbers every vehicle of the recording, hidden leaders too.
+        want = both["leader_number"].astype(str) if ids else both["leader_id_t"]
+        assert (both.loc[ahead, "leader_id"] == want[ahead]).all()
+        assert np.abs(d_speed).max() < 1e-3
+        # highD gives the bumper gap: a hidden leader's length is the file's median one.
+        known = both.loc[ahead, "leader_id_t"].isin(set(truth["vehicle_id"]))
+        known |= layout == "generic"
+        assert np.abs(d_space[known]).max() < 1e-3
+        assert np.abs(d_space).max() <= np.ptp(truth["length_m"]) + 1e-3
 
 
 @pytest.mark.parametrize("seed", [0, 1])
