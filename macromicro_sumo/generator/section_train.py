@@ -201,7 +201,7 @@ def _train(
         )
 
     settings = FitSettings(
-        epochs or cfg.epochs, cfg.patience, cfg.lr, 0.0, "train-section-generator"
+        epochs or cfg.epochs, cfg.patience, cfg.lr, cfg.ema_decay, "train-section-generator"
     )
     log = fit(net, settings, epoch_batches, validate, save if out is not None else None, progress)
     return net, log

@@ -119,6 +119,13 @@ class SectionGeneratorConfig:
     batch_size: int = spec(64, lo=1, hi=1_000_000, doc="snapshots per batch")
     lr: float = spec(3e-3, lo=1e-7, hi=1.0, doc="Adam learning rate")
     patience: int = spec(15, lo=1, hi=100_000, doc="early-stopping patience [epochs]")
+    ema_decay: float = spec(
+        0.0,
+        lo=0.0,
+        hi=0.9999,
+        doc="exponential moving average of the weights per batch, validated and kept instead "
+        "of the raw weights (0: off, the paper)",
+    )
 
 
 @dataclass(frozen=True, kw_only=True)

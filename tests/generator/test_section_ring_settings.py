@@ -1,0 +1,138 @@
+"""The ring generator's settings on the section generator (issue 16): the same keys, the same
+meaning, and defaults that keep a section scenario's results as they were.
+
+Snapshots are synthetic (the paper's ring as a closed one-lane section, five vehicles with
+spacings >= the minimum, one or two hidden), so no SUMO run is needed.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from macromicro_sumo.data.section import SectionSnapshots
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.generator.section_train import (
+    load_section_generator,
+    train_section_generator,
+)
+from macromicro_sumo.road.section import Section, read_section
+from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.scenario.section import (
+    SectionConfig,
+    SectionGeneratorConfig,
+    SectionScenario,
+    SumoNetworkConfig,
+)
+
+ROOT = Path(__file__).resolve().parents[2]
+S_MIN_M = 7.0
+N_VEHICLES = 5
+
+
+@pytest.fixture(scope="module")
+def ring() -> Section:
+    return read_section(ROOT / "sumo_nets" / "ring_r100_e4.net.xml", ["e0", "e1", "e2", "e3"], True)
+
+
+def ring_snapshots(section: Section, n: int, seed: int) -> SectionSnapshots:
+    """Five vehicles on the loop (Dirichlet spacings above 60 m, as the ring truth draws
+    them), one or two hidden; psi from the whole scene: mean speed, L / N, the spacings'
+    std, speed bounds and the minimum spacing."""
+    rng = np.random.default_rng(seed)
+    length = section.length_m
+    arc, speed = np.zeros((n, N_VEHICLES)), np.zeros((n, N_VEHICLES))
+    observed = np.ones((n, N_VEHICLES), bool)
+    psi = np.zeros((n, 6))
+    for i in range(n):
+        gaps = 60.0 + rng.dirichlet(np.full(N_VEHICLES, 7.0)) * (length - 60.0 * N_VEHICLES)
+        arc[i] = np.mod(
+            rng.uniform(0, length) + np.concatenate([[0.0], np.cumsum(gaps[:-1])]), length
+        )
+        speed[i] = rng.uniform(10.5, 13.5, N_VEHICLES)
+        observed[i, rng.choice(N_VEHICLES, rng.integers(1, 3), replace=False)] = False
+        psi[i] = [speed[i].mean(), length / N_VEHICLES, gaps.std(), 10.0, 14.0, S_MIN_M]
+    hidden = ~observed
+    return SectionSnapshots(
+        run=np.zeros(n, dtype=int),
+        time_s=np.arange(n) * 5.0,
+        lane=np.zeros((n, N_VEHICLES), np.int64),
+        arc_m=arc,
+        speed_mps=speed,
+        length_m=np.full((n, N_VEHICLES), 5.0),
+        valid=np.ones((n, N_VEHICLES), bool),
+        observed=observed,
+        psi=psi,
+        k_true=hidden.sum(axis=1),
+        k_est=hidden.sum(axis=1),
+    )
+
+
+def scenario(section: Section, **gen: object) -> SectionScenario:
+    base = dict(epochs=3, patience=10, batch_size=16, hidden_size=16, k_source="truth", lr=1e-2)
+    return SectionScenario(
+        name="ring_settings",
+        network=SumoNetworkConfig(net_file="net.xml"),
+        section=SectionConfig(edges=list(section.edge_ids), closed=section.closed),
+        generator=SectionGeneratorConfig(**(base | gen)),  # type: ignore[arg-type]
+    )
+
+
+def test_defaults_are_the_sections_former_behaviour() -> None:
+    """Defaults: no weight averaging (as before these keys existed)."""
+    cfg = SectionGeneratorConfig()
+    assert cfg.ema_decay == 0.0
+
+
+def test_weight_averaging_validates_and_keeps_the_averaged_weights(
+    ring: Section, tmp_path: Path
+) -> None:
+    """generator.ema_decay on a section, as on the ring: training itself is unchanged (same
+    seed, same train losses); validation, early stopping and the saved file see the moving
+    average; a vanishing decay is the same as none."""
+    train, val = ring_snapshots(ring, 32, seed=1), ring_snapshots(ring, 16, seed=2)
+
+    def fit(decay: float) -> tuple:
+        sc = scenario(ring, ema_decay=decay)
+        out = tmp_path / f"ema{decay}"
+        out.mkdir()
+        net, log = train_section_generator(sc, ring, train, val, progress=False, out=out)
+        saved = load_section_generator(out / "generator.pt", sc).state_dict()
+        return log, saved, net.state_dict()
+
+    raw_log, raw, _ = fit(0.0)
+    avg_log, avg, avg_net = fit(0.9)
+    near_log, near, _ = fit(1e-12)
+    train_cols = [c for c in raw_log if c.startswith("train_")]
+    for col in train_cols:
+        np.testing.assert_array_equal(raw_log[col], avg_log[col])
+    assert not np.allclose(raw_log["val_loss"], avg_log["val_loss"])
+    assert any(not torch.allclose(raw[k], avg[k]) for k in raw)
+    for key, val in avg_net.items():  # the returned net is the saved, averaged one
+        torch.testing.assert_close(avg[key], val)
+    np.testing.assert_allclose(near_log["val_loss"], raw_log["val_loss"], rtol=1e-5)
+    for key in raw:
+        torch.testing.assert_close(near[key], raw[key], rtol=1e-5, atol=1e-6)
+
+
+def test_out_of_range_ema_decay_is_a_one_line_error(tmp_path: Path) -> None:
+    text = (ROOT / "scenarios" / "ring_paper_section.toml").read_text()
+    bad = tmp_path / "bad.toml"
+    bad.write_text(
+        text.replace("../sumo_nets/", f"{ROOT}/sumo_nets/").replace(
+            "ema_decay = 0.995", "ema_decay = 1.5"
+        )
+    )
+    with pytest.raises(UserError) as err:
+        load_scenario(bad)
+    msg = str(err.value)
+    assert "\n" not in msg and str(bad) in msg and "generator.ema_decay" in msg and "0.9999" in msg
+
+
+def test_ring_paper_section_sets_the_rings_settings() -> None:
+    """The experimental ring-as-a-section scenario turns the ring's settings on."""
+    sc = load_scenario(ROOT / "scenarios" / "ring_paper_section.toml")
+    assert sc.generator.ema_decay == 0.995
