@@ -17,8 +17,10 @@ and 3 of the paper):
   L_speed = (mean speed / psi mean speed - 1)^2 over all vehicles, and the spacing terms
   over the front-to-front spacings of every vehicle to its leader in its lane:
   L_mean = (mean / psi mean spacing - 1)^2, L_min = mean of (relu(spacing_min - s) /
-  spacing_min)^2, L_var = |std - psi std_spacing_m| / psi mean spacing where psi has a
-  finite spacing std (zero where the detectors cannot tell). On an open section the
+  spacing_min)^2, and L_var per ``generator.spacing_dispersion`` (``data.objective``):
+  measured (the default) = |mean (s - psi mean spacing)^2 - psi std_spacing_m^2| / psi mean
+  spacing^2 where psi has a finite spacing std, the paper's std / psi mean spacing where it
+  has none or with ``paper``. On an open section the
   first vehicle of a lane has no leader on the section: its spacing is unknown and left
   out (``section.lane_leaders`` reports NO_LEADER_GAP_M for it, not a measurement).
   L_vstd = |std of speeds - target| / psi mean speed (weighted with L_speed by lambda_v)
@@ -267,17 +269,20 @@ def section_losses(
     present: torch.Tensor,
     psi: Psi,
     road: Road,
+    dispersion: str = "measured",
 ) -> dict[str, torch.Tensor]:
     """The macro terms of completed scenes, (B,) each (``data.objective``): every present
     vehicle's speed, and every per-lane spacing on the section as A (psi has no upper
-    spacing bound: L_max is 0)."""
+    spacing bound: L_max is 0). ``dispersion``: ``generator.spacing_dispersion``."""
     sp, has = spacings(lane, arc, present, road)
     target = MacroTarget(
         psi.v_mean,
         psi.d_mean,
         psi.s_min,
         torch.full_like(psi.d_mean, math.inf),
-        spacing_std_m=torch.where(psi.d_std_known, psi.d_std, math.nan),
+        spacing_std_m=(
+            torch.where(psi.d_std_known, psi.d_std, math.nan) if dispersion == "measured" else None
+        ),
         speed_std_mps=psi.v_std,
     )
     # eps under the square roots keeps equal spacings and speeds trainable.

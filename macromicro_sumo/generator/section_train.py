@@ -115,6 +115,7 @@ def _batch_loss(
         scene.present,
         Psi.of(snaps.psi, speed_spread_target(snaps)),
         road,
+        sc.generator.spacing_dispersion,
     )
     loss = macro_loss(terms, sc.generator.lambda_v, sc.generator.lambda_d)
     advantage = (loss - loss.mean()).detach()

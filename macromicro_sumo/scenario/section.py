@@ -119,6 +119,13 @@ class SectionGeneratorConfig:
     batch_size: int = spec(64, lo=1, hi=1_000_000, doc="snapshots per batch")
     lr: float = spec(3e-3, lo=1e-7, hi=1.0, doc="Adam learning rate")
     patience: int = spec(15, lo=1, hi=100_000, doc="early-stopping patience [epochs]")
+    spacing_dispersion: str = spec(
+        "measured",
+        choices=("paper", "measured"),
+        doc="L_var: paper = std of the spacings / mean (drives gaps equal); measured = their "
+        "mean squared deviation from the mean spacing against the detectors' spacing variance "
+        "(the paper's where the detectors give no spacing std)",
+    )
     ema_decay: float = spec(
         0.0,
         lo=0.0,

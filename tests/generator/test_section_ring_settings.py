@@ -15,6 +15,8 @@ import torch
 
 from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.generator.section_model import section_losses
+from macromicro_sumo.generator.section_scene import Psi, Road
 from macromicro_sumo.generator.section_train import (
     load_section_generator,
     train_section_generator,
@@ -82,9 +84,35 @@ def scenario(section: Section, **gen: object) -> SectionScenario:
 
 
 def test_defaults_are_the_sections_former_behaviour() -> None:
-    """Defaults: no weight averaging (as before these keys existed)."""
+    """Defaults: no weight averaging, the measured dispersion (the section's L_var before
+    these keys existed)."""
     cfg = SectionGeneratorConfig()
     assert cfg.ema_decay == 0.0
+    assert cfg.spacing_dispersion == "measured"
+
+
+def test_spacing_dispersion_paper_and_measured(ring: Section) -> None:
+    """L_var by hand on a completed ring scene: measured = |mean (d - psi mean)^2 - psi
+    std^2| / psi mean^2, paper = std(d) / psi mean; measured falls back to the paper's
+    where psi has no spacing std."""
+    snaps = ring_snapshots(ring, 3, seed=4)
+    road = Road.of(ring)
+    lane, arc = torch.as_tensor(snaps.lane), torch.as_tensor(snaps.arc_m)
+    speed, present = torch.as_tensor(snaps.speed_mps), torch.as_tensor(snaps.valid)
+    psi_arr = snaps.psi.copy()
+    psi_arr[:, 2] = [10.0, 30.0, np.nan]  # a std below, above and unknown
+    psi = Psi.of(psi_arr)
+    measured = section_losses(lane, arc, speed, present, psi, road, "measured")["L_var"].numpy()
+    paper = section_losses(lane, arc, speed, present, psi, road, "paper")["L_var"].numpy()
+    for i in range(3):
+        a = np.sort(snaps.arc_m[i])
+        d = np.append(np.diff(a), a[0] + ring.length_m - a[-1])
+        mu, sigma = psi_arr[i, 1], psi_arr[i, 2]
+        own = np.sqrt(d.var() + 1e-8) / mu
+        assert paper[i] == pytest.approx(own, rel=1e-9)
+        want = abs(((d - mu) ** 2).mean() - sigma**2) / mu**2 if np.isfinite(sigma) else own
+        assert measured[i] == pytest.approx(want, rel=1e-9)
+    assert measured[0] != pytest.approx(measured[1])  # the target counts
 
 
 def test_weight_averaging_validates_and_keeps_the_averaged_weights(
