@@ -63,7 +63,11 @@ SAFETY_COLUMNS = (
     "emergency_brakings",
     "vehicle_steps_driven",
     "safety_acted",
+    "floor_acted",
 )
+# How often the safety layer acted, as shares of the driven vehicle-steps: it lowered a
+# command (safe speed) or raised one to its floor (``deploy.safety.FLOOR_SHARE``).
+ACTED_SHARES = {"safety_acted_share": "safety_acted", "floor_acted_share": "floor_acted"}
 REFERENCE_SIMULATED = "ground truth: every vehicle (simulated)"
 REFERENCE_FIELD = "field: stations (detectors), observed vehicles (speed, accel)"
 SUMMARY_COLUMNS = [
@@ -82,6 +86,7 @@ SUMMARY_COLUMNS = [
     "w1_headway_s",
     "w1_ttc_s",
     *SAFETY_COLUMNS,
+    *ACTED_SHARES,
     "truth_collisions",
     "truth_teleports",
 ]
@@ -158,6 +163,14 @@ def safety_counts(runs: pd.DataFrame, keep: list[int]) -> dict[str, float]:
         c: float(r[c].sum()) if c in r.columns and r[c].notna().any() else np.nan
         for c in SAFETY_COLUMNS
     }
+
+
+def acted_shares(counts: Mapping[str, float]) -> dict[str, float]:
+    """``ACTED_SHARES`` of ``safety_counts``: each count over the driven vehicle-steps
+    (NaN where nothing was driven or the count was not recorded)."""
+    driven = counts["vehicle_steps_driven"]
+    ok = np.isfinite(driven) and driven > 0
+    return {k: counts[c] / driven if ok else np.nan for k, c in ACTED_SHARES.items()}
 
 
 # --------------------------------------------------------------------------- stations
@@ -399,13 +412,15 @@ def summary_row(
         else {f"w1_{k}": np.nan for k in ("speed_mps", "accel_mps2", "headway_s", "ttc_s")}
     )
     truth_safety = safety_counts(truth.runs, runs)
+    safety = safety_counts(method.runs, runs)
     return {
         "method": name,
         "reference": (reference or Reference()).label,
         "runs": len(runs),
         **detector_scores(comparison),
         **dist,
-        **safety_counts(method.runs, runs),
+        **safety,
+        **acted_shares(safety),
         "truth_collisions": truth_safety["collisions"],
         "truth_teleports": truth_safety["teleports"],
     }

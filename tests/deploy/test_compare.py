@@ -19,6 +19,7 @@ from macromicro_sumo.deploy.compare import (
     ALL_LANES,
     COMPARISON_COLUMNS,
     SUMMARY_COLUMNS,
+    acted_shares,
     compare_folders,
     detector_scores,
     geh,
@@ -233,7 +234,7 @@ def test_another_seed_differs_and_an_edited_copy_scores_as_edited(
     runs = pd.read_csv(edited / "runs.csv").query("run > 0")
     runs.assign(
         collisions=[1, 2], emergency_brakings=[3, 0], vehicle_steps_driven=[100, 50]
-    ).to_csv(edited / "runs.csv", index=False)
+    ).assign(floor_acted=[12, 3]).to_csv(edited / "runs.csv", index=False)
     comp, summary = compare_folders(truth, {"other": other, "edited": edited})
     o, e = summary.set_index("method").loc["other"], summary.set_index("method").loc["edited"]
     assert o["runs"] == 3 and o["speed_rmse_mps"] > 0 and o["w1_speed_mps"] > 0
@@ -243,7 +244,18 @@ def test_another_seed_differs_and_an_edited_copy_scores_as_edited(
     rel = comp.loc[comp["method"] == "edited", "speed_rel_error"]
     np.testing.assert_allclose(rel.dropna(), 0.1, atol=1e-9)
     assert (e["collisions"], e["emergency_brakings"], e["vehicle_steps_driven"]) == (3, 3, 150)
-    assert np.isnan(e["safety_acted"])
+    assert np.isnan(e["safety_acted"]) and np.isnan(e["safety_acted_share"])
+    # The floor's count over the runs, and as a share of the driven vehicle-steps.
+    assert (e["floor_acted"], e["floor_acted_share"]) == (15, 15 / 150)
+    assert np.isnan(o["floor_acted_share"])  # a ground truth: nothing driven, not recorded
+
+
+def test_acted_shares_are_of_the_driven_vehicle_steps() -> None:
+    counts = {"vehicle_steps_driven": 400.0, "safety_acted": 30.0, "floor_acted": 2.0}
+    assert acted_shares(counts) == {"safety_acted_share": 0.075, "floor_acted_share": 0.005}
+    # A method that drives nobody (the oracle, a vType switch) has no share, not 0/0.
+    none = acted_shares({**counts, "vehicle_steps_driven": 0.0, "floor_acted": 0.0})
+    assert all(np.isnan(v) for v in none.values())
 
 
 def test_a_multilane_corridor_compared_with_itself(corridor: Path, tmp_path: Path) -> None:
