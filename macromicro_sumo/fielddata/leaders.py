@@ -38,9 +38,10 @@ def measured_leaders(
     ``lead_id``, ``lead_spacing`` (front to front) or ``lead_gap`` (bumper to bumper: the
     leader's length is added, its median length in the file, else the file's median
     length), ``lead_speed`` or ``lead_dv`` (own minus leader), in file units; None where the
-    layout has no spacing. A leader id 0 / empty or a spacing <= 0 is no leader (NGSIM and
-    highD write 0 there): "" and NaN. A leader speed not given is NaN here and derived from
-    the gap by the cleaning (``cleaning.leader_speed_from_gap``)."""
+    layout has no spacing. A leader id 0 / empty or a spacing 0 / empty is no leader (NGSIM
+    and highD write 0 there): "" and NaN; a negative spacing is a one-line error. A leader
+    speed not given is NaN here and derived from the gap by the cleaning
+    (``cleaning.leader_speed_from_gap``)."""
     if "lead_spacing" not in raw.columns and "lead_gap" not in raw.columns:
         return None
     ids = raw["lead_id"].astype(str).str.strip() if "lead_id" in raw.columns else None
@@ -57,7 +58,9 @@ def measured_leaders(
         spacing = raw["lead_gap"].to_numpy(dtype=float) * lu
         spacing = spacing + np.where(np.isfinite(lead_len), lead_len, fallback)
         column = cols.get("lead_gap", "gap")
-    none = ~(np.nan_to_num(raw.get("lead_spacing", raw.get("lead_gap")).to_numpy(dtype=float)) > 0)
+    # 0 or empty is the layouts' "nothing ahead"; a negative one is refused below.
+    measured = raw["lead_spacing" if "lead_spacing" in raw.columns else "lead_gap"]
+    none = np.nan_to_num(measured.to_numpy(dtype=float)) == 0.0
     if ids is not None:
         none |= ids.isin(["", "0", "0.0", "nan", "None"]).to_numpy()
     spacing = np.where(none, np.nan, spacing)

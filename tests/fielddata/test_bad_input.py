@@ -131,3 +131,15 @@ def test_pems_speed_unit_and_text(field_truth: Path, section: Section, tmp_path:
         r"row 3 \(line 4\), column 'Lane 1 Avg Speed'",
         "'fast' is not a finite number",
     )
+
+
+def test_negative_leader_spacing(field_truth: Path, section: Section, tmp_path: Path) -> None:
+    m, _ = export.export_ngsim(field_truth, tmp_path / "n.csv")
+    df = pd.read_csv(tmp_path / "n.csv")
+    df.loc[df["Space_Headway"] > 0, "Space_Headway"] *= -1.0  # a sign flipped by an export
+    df.to_csv(tmp_path / "n.csv", index=False)
+    with pytest.raises(UserError) as exc:
+        read_ngsim(tmp_path / "n.csv", section, m)
+    _one_line(
+        exc, tmp_path / "n.csv", r"row \d+ \(line \d+\)", "column 'Space_Headway'", "leader spacing"
+    )

@@ -3,6 +3,7 @@ unobserved lanes, cleaning flags, the data report, and mappings from scenario ta
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +11,11 @@ import pandas as pd
 import pytest
 
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.fielddata.cleaning import clean_stations, clean_trajectories
+from macromicro_sumo.fielddata.cleaning import (
+    clean_stations,
+    clean_trajectories,
+    leader_speed_from_gap,
+)
 from macromicro_sumo.fielddata.mapping import (
     StationMapping,
     lane_index,
@@ -19,7 +24,7 @@ from macromicro_sumo.fielddata.mapping import (
     station_mapping,
     trajectory_mapping,
 )
-from macromicro_sumo.fielddata.report import write_data_report
+from macromicro_sumo.fielddata.report import data_report, write_data_report
 from macromicro_sumo.fielddata.stations import read_pems, read_sumo_detectors
 from macromicro_sumo.fielddata.trajectories import read_generic_trajectories
 from macromicro_sumo.road.section import Section
@@ -113,3 +118,65 @@ def test_mappings_from_scenario_tables() -> None:
     assert st.place("7") == StationPlace(id="7", arc_m=50.0, lane=1) and st.interval_s == 300.0
     with pytest.raises(UserError, match=r"data.stations.stations\[0\].lane = 99"):
         station_mapping({"stations": [{"id": "7", "arc_m": 5.0, "lane": 99}]}, "s.toml")
+
+
+def test_leader_speed_from_the_smoothed_gap() -> None:
+    """Own speed + d gap / dt: a leader at constant speed behind a braking follower comes
+    back within the smoothing's end effects; a change of leader (a spacing jump) starts a
+    new run and is no speed; rows without a leader stay NaN."""
+    t = np.arange(0.0, 40.0, 0.1)
+    v = 25.0 - 0.5 * t  # braking follower
+    x = 25.0 * t - 0.25 * t**2
+    lead_x = 60.0 + 22.0 * t  # leader at 22 m/s
+    spacing = lead_x - x
+    leader = np.full(len(t), "7", dtype=object)
+    spacing[150:] -= 30.0  # a cut-in at t = 15 s: a new leader 30 m nearer, also 22 m/s
+    leader[150:] = "9"
+    spacing[250:260] = np.nan  # nothing measured ahead
+    leader[250:260] = ""
+    got = leader_speed_from_gap(t, v, leader, spacing, 0.5, 0.5)
+    ok = np.isfinite(got)
+    assert (ok == np.isfinite(spacing)).all()
+    # Away from the runs' ends (the windows shrink there: 3 widths, twice smoothed).
+    ends = np.array([0.0, 15.0, 25.0, 26.0, 39.9])
+    inner = ok & (np.abs(t[:, None] - ends).min(axis=1) > 3.0)
+    assert np.abs(got[inner] - 22.0).max() < 0.05
+    assert np.abs(got[ok] - 22.0).max() < 1.0  # no jump of 30 m read as a speed
+
+
+def test_generic_gap_and_delta_v_and_no_leader(section: Section, tmp_path: Path) -> None:
+    """A generic CSV's bumper gap becomes a spacing with the leader's length from the file
+    (a leader not in the file: the file's median length); delta_v = own - leader speed;
+    leader 0 / an empty gap is no leader. A file without leader columns: a warning line."""
+    arc0 = float(section.offsets_m[0] + 20.0)
+    rows = []
+    for k in range(6):
+        t = 0.5 * k
+        rows.append(["a", t, arc0 + 20.0 * t, 0, 20.0, 0.0, 4.0, "b", 30.0, 2.0])
+        rows.append(["b", t, arc0 + 34.0 + 18.0 * t, 0, 18.0, 0.0, 6.0, "x", 12.0, -1.0])
+        rows.append(["c", t, arc0 - 15.0 + 20.0 * t, 0, 20.0, 0.0, 5.0, "0", "", ""])
+    cols = ["id", "t", "pos", "lane", "v", "a", "len", "lead", "gap", "dv"]
+    pd.DataFrame(rows, columns=cols).to_csv(tmp_path / "g.csv", index=False)
+    columns = TrajectoryColumns(
+        vehicle_id="id", time="t", position="pos", lane="lane", speed="v", accel="a",
+        length="len", leader_id="lead", gap="gap", delta_v="dv",
+    )  # fmt: skip
+    got = read_generic_trajectories(tmp_path / "g.csv", section, columns=columns)
+    assert got.leader_measured
+    f = got.frame.set_index("vehicle_id")
+    a, b, c = f.loc["a"].iloc[0], f.loc["b"].iloc[0], f.loc["c"].iloc[0]
+    assert a["leader_spacing_m"] == pytest.approx(30.0 + 6.0)  # b's length
+    assert a["leader_speed_mps"] == pytest.approx(18.0)
+    assert b["leader_spacing_m"] == pytest.approx(12.0 + 5.0)  # x: the median length
+    assert b["leader_speed_mps"] == pytest.approx(19.0)
+    assert c["leader_id"] == "" and np.isnan(c["leader_spacing_m"])
+    # The same file without leader columns: today's pairs, and the report says so.
+    bare = read_generic_trajectories(
+        tmp_path / "g.csv", section, columns=dataclasses.replace(columns, gap="", delta_v="")
+    )
+    assert not bare.leader_measured and "leader_spacing_m" not in bare.frame
+    text, _ = data_report([clean_trajectories(bare)], [])
+    warn = [ln for ln in text.splitlines() if "Warning" in ln]
+    assert len(warn) == 1 and "g.csv" in warn[0] and "18 rows" in warn[0]
+    text, _ = data_report([clean_trajectories(got)], [])
+    assert "Warning" not in text and "12 with a vehicle ahead" in text
