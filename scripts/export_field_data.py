@@ -23,9 +23,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from macromicro_sumo.data.section import PSI_FIELDS, section_snapshots
+from macromicro_sumo.data.section import PSI_FIELDS, SectionTruth, section_snapshots
 from macromicro_sumo.evaluation.idm_fit import calibrate_idm, idm_policy_accel
 from macromicro_sumo.evaluation.section import micro_pairs
+from macromicro_sumo.fielddata.export import observed_rows
 from macromicro_sumo.fielddata.schema import LEADER_COLUMNS
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.files import data_toml, export_field_files
@@ -53,6 +54,21 @@ def gzip_file(path: Path) -> Path:
     return gz
 
 
+def cleaned(ta: SectionTruth, tb: SectionTruth, sim: Path) -> SectionTruth:
+    """The simulated truth with its observed vehicles' speeds replaced by the files'
+    cleaned (sEMA) ones: what the cleaning alone does to the micro pairs."""
+    rows = pd.concat([observed_rows(sim, int(r))[1] for r in ta.runs], ignore_index=True)
+    rows = rows[["run", "time_s", "vehicle_id", "number"]].astype({"number": str})
+    files = tb.trajectories[["run", "time_s", "vehicle_id", "speed_mps"]].rename(
+        columns={"vehicle_id": "number", "speed_mps": "v_files"}
+    )
+    back = rows.merge(files.astype({"number": str}), on=["run", "time_s", "number"])
+    back = back[["run", "time_s", "vehicle_id", "v_files"]]
+    traj = ta.trajectories.merge(back, on=["run", "time_s", "vehicle_id"], how="left")
+    traj["speed_mps"] = traj["v_files"].fillna(traj["speed_mps"])
+    return dataclasses.replace(ta, trajectories=traj.drop(columns="v_files"))
+
+
 def round_trip(sim_sc: Path, sim: Path, files_sc: Path, files: Path) -> dict[str, float]:
     """psi, K and micro-pair figures of the files' ground truth against the simulated one."""
     sa, sb = load_scenario(sim_sc), load_scenario(files_sc)
@@ -78,6 +94,9 @@ def round_trip(sim_sc: Path, sim: Path, files_sc: Path, files: Path) -> dict[str
     veh = float(ta.vtypes["length_m"].median())
     fits = {"sim": calibrate_idm(oa, aa, veh), "files": calibrate_idm(ob, ab, veh)}
     fits["files_next_observed"] = calibrate_idm(oc, ac, veh)
+    fits["sim_cleaned_speeds"] = calibrate_idm(
+        *micro_pairs(sa, cleaned(ta, tb, sim), ta.runs, 10**9), veh
+    )
     for name, (p, rmse) in fits.items():
         for key in ("speed_factor", "tau_s", "accel_mps2", "decel_mps2", "min_gap_m"):
             out[f"idm_{name}_{key}"] = float(getattr(p, key))
