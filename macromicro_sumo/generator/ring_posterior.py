@@ -266,6 +266,19 @@ def gap_posterior(
     lies in 96%; this posterior gives it 96.3% on average), so completed scenes lose the
     spread that the choice itself carries.
     """
+    return spacing_posterior(gap, valid, remaining, psi.d_mean, psi.d_std)
+
+
+def spacing_posterior(
+    gap: np.ndarray,
+    valid: np.ndarray,
+    remaining: np.ndarray,
+    d_mean: np.ndarray,
+    d_std: np.ndarray,
+) -> np.ndarray:
+    """``gap_posterior`` on plain arrays: gaps (B, N) [m], valid gaps first in each row,
+    ``remaining`` (B,) vehicles still to place, the spacings' mean and std (B,) [m]. The
+    section generator calls it per closed one-lane scene (``section_model.propose``)."""
     b, n = gap.shape
     r_max = max(int(remaining.max()) if b else 0, 1)
     counts = np.arange(r_max + 1)
@@ -273,8 +286,8 @@ def gap_posterior(
     m = max(int(np.add.reduce(valid, axis=1).max()) if b else 0, 1)
     gap, valid = gap[:, :m], valid[:, :m]
     # log N(g; (c + 1) mu, (c + 1) s^2) - log N(g; mu, s^2), with z = (g - mu) / s:
-    z = ((gap - psi.d_mean[:, None]) / psi.d_std[:, None])[..., None]
-    c_z = (counts * psi.d_mean[:, None] / psi.d_std[:, None])[:, None, :]
+    z = ((gap - d_mean[:, None]) / d_std[:, None])[..., None]
+    c_z = (counts * d_mean[:, None] / d_std[:, None])[:, None, :]
     log_w = 0.5 * (z * z - (z - c_z) ** 2 / (counts + 1) - np.log(counts + 1))
     log_w = np.where(valid[..., None], log_w, np.where(counts == 0, 0.0, -np.inf))
     out = _next_gap_log_prob(log_w, remaining)

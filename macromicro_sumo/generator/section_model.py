@@ -43,6 +43,7 @@ from torch import nn
 
 from macromicro_sumo.data.objective import MacroTarget, macro_terms
 from macromicro_sumo.data.section import SectionSnapshots
+from macromicro_sumo.generator.ring_posterior import spacing_posterior
 from macromicro_sumo.generator.section_scene import (
     PSI_INDEX,
     Gaps,
@@ -160,9 +161,13 @@ class SectionGeneratorNet(nn.Module):
     ReLU rather than the ring's tanh for the same reason (tanh was half of inference time).
     """
 
-    def __init__(self, hidden_size: int = 64) -> None:
+    def __init__(self, hidden_size: int = 64, gap_choice: str = "network") -> None:
         super().__init__()
         self.hidden_size = hidden_size
+        # How a rollout picks the next vehicle's gap (``generator.gap_choice``): "network"
+        # from the choice logits, "posterior" from ``posterior_log_probs`` (closed one-lane
+        # sections; the logits are then unused where psi has a spacing std).
+        self.gap_choice = gap_choice
         self.gap_in = nn.Linear(N_GAP_FEATURES, hidden_size, bias=False)
         self.glob_in = nn.Linear(N_GLOBAL_FEATURES, hidden_size)
         self.head = nn.Linear(hidden_size, 5)
@@ -220,7 +225,11 @@ def propose(
     """Sample ``n`` candidates per scene: a gap, a point in its admissible part, a speed."""
     out = net(obs.gap_feat, obs.glob, obs.gaps.valid)  # (B, G, 5)
     b = out.shape[0]
-    logits = out[..., 0].masked_fill(~obs.choosable, -math.inf)
+    logits = out[..., 0]
+    if net.gap_choice == "posterior":
+        post, known = posterior_log_probs(obs, psi)
+        logits = torch.where(known[:, None], post, logits)
+    logits = logits.masked_fill(~obs.choosable, -math.inf)
     log_p = torch.log_softmax(logits, dim=1)
     choice = torch.multinomial(log_p.detach().exp(), n, replacement=True, generator=gen)
     pick = out.gather(1, choice[..., None].expand(-1, -1, out.shape[-1]))  # (B, n, 5)
@@ -247,6 +256,36 @@ def propose(
     speed = v_lo[:, None] + (v_hi - v_lo)[:, None] * u
     probs = log_p.detach().exp()
     return Trials(choice, lane, arc, speed, log_p.gather(1, choice), probs)
+
+
+def posterior_log_probs(obs: Observation, psi: Psi) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B, G) log-probability that the next vehicle goes into each gap under i.i.d. normal
+    spacings with psi's mean and std (``ring_posterior.spacing_posterior``, the ring's
+    ``gap_choice = "posterior"``), and (B,) whether psi has a spacing std to use.
+
+    One lane of a closed section is the ring: every gap is a spacing between two vehicles
+    (or the whole loop when none is placed yet). The valid gaps are packed to the front of
+    each row, as the ring's function wants them. A row whose posterior leaves no mass on a
+    choosable gap (all of it on gaps without room) takes every choosable gap alike.
+    """
+    g = obs.gaps
+    valid = g.valid.numpy()
+    rows = np.arange(len(valid))[:, None]
+    order = np.argsort(~valid, axis=1, kind="stable")
+    d_std = psi.d_std.numpy()
+    known = psi.d_std_known.numpy() & (d_std > 0)
+    packed = spacing_posterior(
+        g.length.detach().numpy()[rows, order],
+        valid[rows, order],
+        obs.remaining.numpy(),
+        psi.d_mean.numpy(),
+        np.where(known, d_std, 1.0),
+    )
+    post = np.empty_like(packed)
+    post[rows, order] = packed
+    lp = torch.as_tensor(post)
+    none = ~torch.isfinite(lp.masked_fill(~obs.choosable, -math.inf)).any(dim=1, keepdim=True)
+    return torch.where(none, 0.0, lp), torch.as_tensor(known)
 
 
 # --------------------------------------------------------------------------- losses

@@ -23,6 +23,7 @@ from macromicro_sumo.checkpoints import load_network, save_network
 from macromicro_sumo.data.objective import macro_loss
 from macromicro_sumo.data.ring import split_runs
 from macromicro_sumo.data.section import SectionSnapshots, section_snapshots
+from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import (
     check_beside,
     prepare_out_dir,
@@ -69,6 +70,7 @@ def signature(sc: SectionScenario) -> dict[str, Any]:
         "section.edges": list(sc.section.edges),
         "section.closed": bool(sc.section.closed),
         "simulation.step_length_s": float(sc.simulation.step_length_s),
+        "generator.gap_choice": sc.generator.gap_choice,
         "observation_layout": f"section-gaps-v{FEATURE_VERSION}",
     }
 
@@ -89,9 +91,29 @@ def load_section_generator(path: Path | str, sc: SectionScenario) -> SectionGene
         CHECKPOINT_FORMAT,
         "section generator",
         signature(sc),
-        SectionGeneratorNet,
+        lambda hidden_size: SectionGeneratorNet(hidden_size, sc.generator.gap_choice),
         sc.source or sc.name,
+        before={"generator.gap_choice": "network"},  # the only choice before it was a key
     )
+
+
+def check_gap_choice(sc: SectionScenario, section: Section) -> None:
+    """``generator.gap_choice = "posterior"`` is the ring's: a closed one-lane section, the
+    measured dispersion (its spacing std is the posterior's). A one-line UserError else."""
+    cfg = sc.generator
+    if cfg.gap_choice != "posterior":
+        return
+    where = f'{sc.source or sc.name}: generator.gap_choice = "posterior"'
+    if not section.closed or section.max_lanes != 1:
+        raise UserError(
+            f"{where} needs a closed one-lane section (this one: closed = {section.closed}, "
+            f'{section.max_lanes} lanes); accepted "network" here'
+        )
+    if cfg.spacing_dispersion != "measured":
+        raise UserError(
+            f"{where} needs the detectors' spacing std: generator.spacing_dispersion = "
+            f'"{cfg.spacing_dispersion}"; accepted "measured"'
+        )
 
 
 # --------------------------------------------------------------------------- training
@@ -160,6 +182,7 @@ def train_section_generator(
     ``out``: write ``generator.pt`` there (atomically) on every improvement, so an
     interrupted run keeps its best weights. ``epochs`` overrides ``sc.generator.epochs``.
     """
+    check_gap_choice(sc, section)
     with one_thread():
         return _train(sc, section, train, val, progress, out, epochs)
 
@@ -176,7 +199,7 @@ def _train(
     cfg = sc.generator
     torch.manual_seed(sc.seed)
     road = Road.of(section)
-    net = SectionGeneratorNet(cfg.hidden_size)
+    net = SectionGeneratorNet(cfg.hidden_size, cfg.gap_choice)
     gen = torch.Generator().manual_seed(sc.seed)
     rng = np.random.default_rng([sc.seed, 31])
     k_train, k_val = k_of(train, cfg.k_source), k_of(val, cfg.k_source)

@@ -126,6 +126,13 @@ class SectionGeneratorConfig:
         "mean squared deviation from the mean spacing against the detectors' spacing variance "
         "(the paper's where the detectors give no spacing std)",
     )
+    gap_choice: str = spec(
+        "network",
+        choices=("network", "posterior"),
+        doc="which gap receives the next hidden vehicle: network = the generator's scores "
+        "(the paper); posterior = drawn from the posterior of i.i.d. normal spacings with the "
+        "detectors' mean and std (a closed one-lane section, spacing_dispersion = measured)",
+    )
     ema_decay: float = spec(
         0.0,
         lo=0.0,

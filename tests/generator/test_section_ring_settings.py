@@ -7,6 +7,7 @@ spacings >= the minimum, one or two hidden), so no SUMO run is needed.
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,14 @@ import torch
 
 from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.generator.section_model import section_losses
+from macromicro_sumo.generator.section_metrics import completion_metrics
+from macromicro_sumo.generator.section_model import (
+    Scene,
+    SectionGeneratorNet,
+    posterior_log_probs,
+    section_losses,
+)
+from macromicro_sumo.generator.section_sampler import complete_section
 from macromicro_sumo.generator.section_scene import Psi, Road
 from macromicro_sumo.generator.section_train import (
     load_section_generator,
@@ -164,3 +172,88 @@ def test_ring_paper_section_sets_the_rings_settings() -> None:
     """The experimental ring-as-a-section scenario turns the ring's settings on."""
     sc = load_scenario(ROOT / "scenarios" / "ring_paper_section.toml")
     assert sc.generator.ema_decay == 0.995
+
+
+def one_hidden(section: Section, n: int, seed: int) -> SectionSnapshots:
+    """``ring_snapshots`` with exactly one hidden vehicle per scene."""
+    s = ring_snapshots(section, n, seed)
+    observed = np.ones_like(s.observed)
+    observed[np.arange(n), np.random.default_rng(seed).integers(0, N_VEHICLES, n)] = False
+    ones = np.ones(n, dtype=int)
+    return dataclasses.replace(s, observed=observed, k_true=ones, k_est=ones)
+
+
+def test_posterior_gap_choice_is_calibrated_on_one_lane(ring: Section) -> None:
+    """With one hidden vehicle the posterior's probability of the largest observed gap
+    matches how often the hidden vehicle lies in it (i.i.d.-like Dirichlet spacings)."""
+    snaps = one_hidden(ring, 400, seed=5)
+    road = Road.of(ring)
+    scene = Scene.start(snaps, snaps.k_true, road)
+    psi = Psi.of(snaps.psi)
+    obs = scene.observe(0, torch.arange(len(snaps)), psi, road, torch.Generator().manual_seed(0))
+    log_p, known = posterior_log_probs(obs, psi)
+    assert bool(known.all())
+    p = log_p.exp().numpy()
+    np.testing.assert_allclose(np.where(obs.gaps.valid.numpy(), p, 0.0).sum(axis=1), 1.0)
+    length = np.where(obs.gaps.valid.numpy(), obs.gaps.length.numpy(), -1.0)
+    largest = length.argmax(axis=1)
+    start = obs.gaps.start.numpy()[np.arange(len(snaps)), largest]
+    hidden_arc = snaps.arc_m[~snaps.observed]
+    inside = np.mod(hidden_arc - start, ring.length_m) < length[np.arange(len(snaps)), largest]
+    assert abs(p[np.arange(len(snaps)), largest].mean() - inside.mean()) < 0.03
+    assert p[np.arange(len(snaps)), largest].mean() < 0.9999  # a draw, not an argmax
+
+
+def test_posterior_gap_choice_does_not_depend_on_the_network(ring: Section) -> None:
+    """Two differently initialised networks with the same seed put the hidden vehicle into
+    the same gap (the posterior chooses; the network only says where in it and how fast),
+    and every completion is feasible."""
+    snaps = one_hidden(ring, 40, seed=6)
+    sc = scenario(ring, gap_choice="posterior")
+    gaps = []
+    for init in (0, 1):
+        torch.manual_seed(init)
+        net = SectionGeneratorNet(16, "posterior")
+        comp = complete_section(net, ring, snaps, snaps.k_true, 20, seed=3)
+        assert completion_metrics(ring, snaps, comp, snaps.k_true)["feasible"].all()
+        arc = comp.arc_m[comp.generated]
+        behind = np.array(  # the observed vehicle the new one follows
+            [
+                np.mod(arc[i] - snaps.arc_m[i][snaps.observed[i]], ring.length_m).argmin()
+                for i in range(40)
+            ]
+        )
+        gaps.append(behind)
+    np.testing.assert_array_equal(gaps[0], gaps[1])
+    assert sc.generator.gap_choice == "posterior"
+
+
+def test_posterior_gap_choice_refuses_other_sections(ring: Section) -> None:
+    """Open or multi-lane sections and the paper's dispersion: one-line errors naming the
+    field and what is accepted; a checkpoint is only valid for its gap choice."""
+    bremen = read_section(
+        ROOT / "sumo_nets" / "highway_bremen" / "highway.net.xml",
+        ["145354574", "189597495", "E0", "191842213"],
+        False,
+    )
+    snaps = ring_snapshots(ring, 4, seed=7)
+    for section, extra, accepted in (
+        (bremen, {}, "closed one-lane section"),
+        (ring, {"spacing_dispersion": "paper"}, 'accepted "measured"'),
+    ):
+        sc = scenario(section, gap_choice="posterior", **extra)
+        with pytest.raises(UserError) as err:
+            train_section_generator(sc, section, snaps, snaps, progress=False)
+        msg = str(err.value)
+        assert "\n" not in msg and "generator.gap_choice" in msg and accepted in msg
+
+
+def test_posterior_checkpoint_round_trip(ring: Section, tmp_path: Path) -> None:
+    train = ring_snapshots(ring, 16, seed=8)
+    sc = scenario(ring, gap_choice="posterior", epochs=2)
+    net, log = train_section_generator(sc, ring, train, train, progress=False, out=tmp_path)
+    back = load_section_generator(tmp_path / "generator.pt", sc)
+    assert back.gap_choice == "posterior" and np.isfinite(log["val_loss"]).all()
+    other = scenario(ring, epochs=2)
+    with pytest.raises(UserError, match="generator.gap_choice"):
+        load_section_generator(tmp_path / "generator.pt", other)
