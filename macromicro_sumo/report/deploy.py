@@ -23,10 +23,12 @@ from matplotlib.figure import Figure
 from macromicro_sumo.deploy.compare import (
     ALL_LANES,
     GEH_LIMIT,
+    REFERENCE_FIELD,
     SPEED_TOLERANCE,
     read_outputs,
     truth_geometry,
 )
+from macromicro_sumo.deploy.safety import FLOOR_SHARE
 from macromicro_sumo.report.plots import METHOD_COLORS, REFERENCE_COLOR, SPEED_CMAP, save_figure
 from macromicro_sumo.report.tables import markdown_table
 
@@ -55,7 +57,8 @@ SUMMARY_TABLE = (
     ("teleports", "teleports", "int", False),
     ("emergency_brakings", "emergency brakings", "int", False),
     ("vehicle_steps_driven", "vehicle-steps driven", "int", None),
-    ("safety_acted", "safety layer acted", "int", None),
+    ("safety_acted_share", "safety lowered (% of driven)", "pct", None),
+    ("floor_acted_share", "floor raised (% of driven)", "pct", None),
 )
 
 
@@ -342,19 +345,84 @@ def policy_targets(summary: pd.DataFrame) -> list[str]:
     return lines
 
 
+def is_field(summary: pd.DataFrame) -> bool:
+    """Whether the summary is against field data (``deploy.compare``'s ``reference``)."""
+    return "reference" in summary and (summary["reference"] == REFERENCE_FIELD).any()
+
+
 def safety_lines(summary: pd.DataFrame) -> list[str]:
-    truth = summary["truth_collisions"].max(), summary["truth_teleports"].max()
-    lines = [
-        f"- Ground truth over the same runs: {cell(truth[0], 'int')} collisions, "
-        f"{cell(truth[1], 'int')} teleports."
-    ]
+    """Collisions and teleports the ground truth does not have, and how often the safety
+    layer acted on each speed-commanding method's commands."""
+    field = is_field(summary)
+    if field:  # a ground truth read from files counts none: nothing to subtract
+        lines = ["- Field data records no collisions or teleports: those below are the methods'."]
+    else:
+        truth = summary["truth_collisions"].max(), summary["truth_teleports"].max()
+        lines = [
+            f"- Ground truth over the same runs: {cell(truth[0], 'int')} collisions, "
+            f"{cell(truth[1], 'int')} teleports."
+        ]
     bad = summary[(summary["collisions"].fillna(0) > 0) | (summary["teleports"].fillna(0) > 0)]
     for _, r in bad.iterrows():
         lines.append(
             f"- `{r['method']}`: {cell(r['collisions'], 'int')} collisions and "
-            f"{cell(r['teleports'], 'int')} teleports the ground truth does not have."
+            f"{cell(r['teleports'], 'int')} teleports"
+            + (" in SUMO." if field else " the ground truth does not have.")
+        )
+    return lines + acted_lines(summary)
+
+
+def acted_lines(summary: pd.DataFrame) -> list[str]:
+    """Per method whose speed commands went through the safety layer: how many it lowered
+    (to the safe speed behind the leader) and raised (to its floor), of the driven
+    vehicle-steps (``deploy.compare.ACTED_SHARES``)."""
+
+    def of(n: float, total: float) -> str:
+        return f"{n:,.0f} ({100 * n / total:.1f}%)" if np.isfinite(n) else "n/a (not recorded)"
+
+    lines = []
+    for _, r in summary.iterrows():
+        driven = float(r.get("vehicle_steps_driven", np.nan))
+        lowered, raised = (float(r.get(c, np.nan)) for c in ("safety_acted", "floor_acted"))
+        if not (driven > 0 and (lowered > 0 or raised > 0)):
+            continue
+        lines.append(
+            f"- `{r['method']}`: of {driven:,.0f} driven vehicle-steps, the safety layer "
+            f"lowered the command to the safe speed behind the leader in {of(lowered, driven)} "
+            f"and raised it to its floor ({FLOOR_SHARE:.0%} of the lane's limit) in "
+            f"{of(raised, driven)}."
         )
     return lines
+
+
+def reference_words(summary: pd.DataFrame) -> str:
+    """What every figure of the summary is against: a simulated ground truth (its held-out
+    runs re-run) or field data (the stations and the observed vehicles)."""
+    measures = (
+        f"GEH < {GEH_LIMIT:g}: share of station-intervals whose flow passes the GEH test; "
+        f"speed within {SPEED_TOLERANCE:.0%}: share whose space-mean speed is within "
+        f"{SPEED_TOLERANCE:.0%} of the reference's"
+    )
+    if not is_field(summary):
+        return (
+            "Every method drives the whole driven population over the scenario's own demand "
+            "and duration, on the ground truth's held-out runs (same demand, same seeds). "
+            "Its detectors are compared with the ground truth's station by station and "
+            f"interval by interval (definitions: docs/deploy.md). {measures}; W1: "
+            "Wasserstein-1 distance to the ground truth's distribution (every vehicle)."
+        )
+    return (
+        "Field data (reference: the field stations and the observed vehicles): every "
+        "method drives the whole driven population of a SUMO run built for each held-out "
+        "recording, on a demand rebuilt from the files (the scenario's route files, else "
+        "SUMO's routeSampler on the station counts), with loops where the field stations "
+        "are. The flow, speed and density figures are against the field stations' "
+        "measurements, station by station and interval by interval from the end of the "
+        f"warm-up on (definitions: docs/deploy.md). {measures}. W1 speed and accel are "
+        "against the observed vehicles' distributions (a sample of the population); "
+        "headway and TTC are not compared (n/a: who drove between two observed vehicles "
+        "is unknown)."
+    )
 
 
 def deployment_markdown(summary: pd.DataFrame, plots: Sequence[str] = ()) -> str:
@@ -363,13 +431,7 @@ def deployment_markdown(summary: pd.DataFrame, plots: Sequence[str] = ()) -> str
     lines = [
         "## Deployment",
         "",
-        "Every method drives the whole driven population over the scenario's own demand "
-        "and duration, on the ground truth's held-out runs (same demand, same seeds). Its "
-        "detectors are compared with the ground truth's station by station and interval by "
-        f"interval (definitions: docs/deploy.md). GEH < {GEH_LIMIT:g}: share of "
-        "station-intervals whose flow passes the GEH test; speed within "
-        f"{SPEED_TOLERANCE:.0%}: share whose space-mean speed is within {SPEED_TOLERANCE:.0%} "
-        "of the truth's; W1: Wasserstein-1 distance to the ground truth's distribution.",
+        reference_words(summary),
         "",
         summary_markdown(summary),
         "",

@@ -20,6 +20,7 @@ from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 
 from macromicro_sumo.evaluation.methods import methods_markdown
+from macromicro_sumo.evaluation.section import REFERENCE_STATIONS
 from macromicro_sumo.files import atomic_path
 from macromicro_sumo.report.deploy import deployment_section
 from macromicro_sumo.report.plots import (
@@ -174,9 +175,7 @@ def write_section_report(sc, out: Path, manifest: dict[str, Any]) -> Path:
         "## Macro alignment (held-out runs)",
         "",
         *methods_markdown("sumo", set(align["method"]) if align is not None else set()),
-        "`hidden_count`: the generator completed the scenes with the estimated hidden count "
-        "(what a user has) or the true one (what the estimate costs). Ratios are against "
-        "`ground_truth` on the same scenes.",
+        alignment_reference(align),
         "",
     ]
     if align is not None:
@@ -196,11 +195,13 @@ def write_section_report(sc, out: Path, manifest: dict[str, Any]) -> Path:
                 "std_spacing_ratio",
                 "w1_speed_mps",
                 "w1_spacing_m",
+                "station_speed_err_mps",
+                "station_spacing_ratio",
             )
             if c in align
         ]
         lines += [markdown_table(align[cols], 3), ""]
-        lines += _verdicts(align)
+        lines += closest_methods(align)
     lines += table_section("Micro consistency (held-out observed actions)", micro)
     lines += [
         f"IDM calibrated on the observed vehicles: {json.dumps(ev.get('idm_calibrated', {}))}",
@@ -223,18 +224,64 @@ def _summary(gen: pd.DataFrame) -> pd.DataFrame:
     return num.mean().to_frame("mean").T
 
 
-def _verdicts(align: pd.DataFrame) -> list[str]:
-    """Plain statements of which method is closest to the ground truth, per figure."""
+def is_field_alignment(align: pd.DataFrame | None) -> bool:
+    """Whether macro_alignment.csv is against field stations (``evaluation.section``)."""
+    return (
+        align is not None
+        and "reference" in align
+        and bool((align["reference"] == REFERENCE_STATIONS).any())
+    )
+
+
+def alignment_reference(align: pd.DataFrame | None) -> str:
+    """What the macro alignment's figures are against, for either data source."""
+    stations = (
+        "`station_speed_err_mps`: |mean over the scenes of the rollout's mean speed - the "
+        "station interval's|; `station_spacing_ratio`: the rollouts' mean spacing over the "
+        "stations' (1 / density per lane)."
+    )
+    if is_field_alignment(align):
+        return (
+            "Field data: the reference is the stations, not a recorded population. The "
+            "`stations` row is each held-out scene's detector interval (their mean speed and "
+            "spacing; stations measure no spread), and every method is compared with it: "
+            f"{stations} Errors against the population (speed error, spread ratios, W1) are "
+            "not computed: the recorded vehicles are the observed ones only. The generator "
+            "completed the scenes with the hidden count estimated from the detectors "
+            "(nobody counted the true one)."
+        )
+    return (
+        "`hidden_count`: the generator completed the scenes with the estimated hidden count "
+        "(what a user has) or the true one (what the estimate costs). Errors, ratios and W1 "
+        "are against `ground_truth` (every recorded vehicle of the same scenes, simulated); "
+        f"the `station_*` columns against each scene's detector interval: {stations}"
+    )
+
+
+# (column, words, distance from agreement): the figures the verdicts name a winner of.
+VERDICTS = (
+    ("mean_speed_err_mps", "closest mean speed", lambda x: x.abs()),
+    ("std_spacing_ratio", "closest spacing spread", lambda x: (x - 1).abs()),
+    ("w1_speed_mps", "closest speed distribution (W1)", lambda x: x.abs()),
+    ("station_speed_err_mps", "closest mean speed to the stations", lambda x: x.abs()),
+    ("station_spacing_ratio", "closest mean spacing to the stations", lambda x: (x - 1).abs()),
+)
+REFERENCE_ROWS = ("ground_truth", "stations")
+
+
+def closest_methods(align: pd.DataFrame) -> list[str]:
+    """Plain statements of which method is closest to the reference, per figure (those the
+    table has and some method has a value of)."""
     out = []
     for label, g in align.groupby("hidden_count", sort=False):
-        g = g[g["method"] != "ground_truth"]
-        if g.empty or "mean_speed_err_mps" not in g:
-            continue
-        best_v = g.loc[g["mean_speed_err_mps"].idxmin(), "method"]
-        best_d = g.loc[(g["std_spacing_ratio"] - 1).abs().idxmin(), "method"]
-        best_w = g.loc[g["w1_speed_mps"].idxmin(), "method"]
-        out.append(
-            f"- {label} hidden count: closest mean speed: **{best_v}**; closest spacing spread: "
-            f"**{best_d}**; closest speed distribution (W1): **{best_w}**."
-        )
+        g = g[~g["method"].isin(REFERENCE_ROWS)]
+        parts = []
+        for col, words, distance in VERDICTS:
+            if col not in g:
+                continue
+            d = distance(pd.to_numeric(g[col], errors="coerce"))
+            if d.notna().any():  # idxmin of an all-NaN column raises (pandas 3)
+                parts.append(f"{words}: **{g.loc[d.idxmin(), 'method']}**")
+        if parts:
+            out.append(f"- {label} hidden count: " + "; ".join(parts) + ".")
     return out + [""] if out else []

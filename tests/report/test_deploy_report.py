@@ -11,7 +11,13 @@ import pytest
 from conftest import SMALL, write_scenario
 
 from macromicro_sumo.cli import main
-from macromicro_sumo.deploy.compare import SUMMARY_COLUMNS, compare_folders
+from macromicro_sumo.deploy.compare import (
+    REFERENCE_FIELD,
+    REFERENCE_SIMULATED,
+    SUMMARY_COLUMNS,
+    acted_shares,
+    compare_folders,
+)
 from macromicro_sumo.report.deploy import (
     deployment_markdown,
     make_deploy_plots,
@@ -126,3 +132,44 @@ def test_markdown_names_every_method_and_its_numbers() -> None:
     assert "The oracle (`oracle`) is ahead of the policy on nothing." in md
     assert "- `sumo_default`: 2 collisions and 1 teleports the ground truth does not have." in md
     assert "![deploy_speed_heatmap](plots/deploy_speed_heatmap.png)" in md
+
+
+def with_safety(df: pd.DataFrame) -> pd.DataFrame:
+    """The policy drove 2,000 vehicle-steps; its safety layer lowered 150 and raised 8."""
+    counts = {"vehicle_steps_driven": 2000.0, "safety_acted": 150.0, "floor_acted": 8.0}
+    row = {**counts, **acted_shares(counts)}
+    df = df.copy()
+    for col, value in row.items():
+        df[col] = df[col].astype(float)
+        df.loc[df["method"] == "policy", col] = value
+    return df
+
+
+def test_markdown_says_how_often_the_safety_layer_acted() -> None:
+    md = deployment_markdown(with_safety(summary()))
+    head = next(line for line in md.splitlines() if line.startswith("| method"))
+    assert "safety lowered (% of driven)" in head and "floor raised (% of driven)" in head
+    policy = next(line for line in md.splitlines() if line.startswith("| policy"))
+    assert policy.endswith("| 2000 | 7.5 | 0.4 |")  # 150 / 2000 and 8 / 2000
+    assert (
+        "- `policy`: of 2,000 driven vehicle-steps, the safety layer lowered the command to "
+        "the safe speed behind the leader in 150 (7.5%) and raised it to its floor (20% of "
+        "the lane's limit) in 8 (0.4%)."
+    ) in md
+    # Methods that drove nothing through it (a vType switch, the oracle) get no such line.
+    assert md.count("driven vehicle-steps, the safety layer") == 1
+
+
+def test_markdown_says_what_each_data_source_is_compared_with() -> None:
+    sim = deployment_markdown(summary().assign(reference=REFERENCE_SIMULATED))
+    assert "same demand, same seeds" in sim and "Field data" not in sim
+    assert "- Ground truth over the same runs: 0 collisions, 0 teleports." in sim
+    assert "2 collisions and 1 teleports the ground truth does not have." in sim
+    field = deployment_markdown(summary().assign(reference=REFERENCE_FIELD))
+    # Field data has no held-out runs to re-run and counts no collisions of its own.
+    assert "same seeds" not in field and "ground truth" not in field
+    assert "against the field stations' measurements" in field
+    assert "W1 speed and accel are against the observed vehicles" in field
+    assert "headway and TTC are not compared" in field
+    assert "- Field data records no collisions or teleports" in field
+    assert "- `sumo_default`: 2 collisions and 1 teleports in SUMO." in field
