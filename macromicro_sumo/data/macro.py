@@ -22,6 +22,8 @@ Psi(S) = [mean speed, mean spacing, d_min, d_max, v_min, v_max] (PSI_COLUMNS).
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pandas as pd
 
@@ -48,6 +50,15 @@ MACRO_COLUMNS = [
     "flow_vehph",
     "n_samples",
 ]
+
+
+def extended_bounds(lo: Any, hi: Any, n: Any) -> tuple[Any, Any]:
+    """[lo, hi], the extremes of n samples, widened by (hi - lo) / (n - 1) on each side
+    (``generator.bounds_source = "extended"``, ring and sections): n draws' range covers on
+    average (n - 1) / (n + 1) of the distribution, and range / (n - 1) each side is the
+    classical correction of the ends. Crossed bounds stay as measured; n < 2 counts as 2."""
+    widen = np.maximum(np.subtract(hi, lo), 0.0) / (np.maximum(n, 2.0) - 1.0)
+    return lo - widen, hi + widen
 
 
 def _intervals(interval_s: float, duration_s: float) -> list[tuple[float, float]]:

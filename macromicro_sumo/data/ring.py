@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from macromicro_sumo.data.macro import PSI_COLUMNS
+from macromicro_sumo.data.macro import PSI_COLUMNS, extended_bounds
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import read_checked_csv, read_manifest
 from macromicro_sumo.scenario.ring import Scenario
@@ -211,12 +211,9 @@ def psi_and_dispersion(gt: GroundTruth, sc: Scenario, run: int, time_s: float) -
         )
     psi = rows.iloc[0][[*PSI_COLUMNS, "spacing_std_m"]].to_numpy(dtype=float)
     if sc.generator.bounds_source == "extended":
-        # The sample range of n draws covers on average (n - 1) / (n + 1) of the stream's
-        # distribution; range / (n - 1) each side is the classical correction of the ends.
-        n = max(float(rows.iloc[0]["n_samples"]), 2.0)
+        n = float(rows.iloc[0]["n_samples"])
         for lo, hi in ((2, 3), (4, 5)):
-            widen = max(psi[hi] - psi[lo], 0.0) / (n - 1)  # crossed bounds stay as measured
-            psi[lo], psi[hi] = psi[lo] - widen, psi[hi] + widen
+            psi[lo], psi[hi] = extended_bounds(psi[lo], psi[hi], n)
     if sc.generator.bounds_source == "fixed":
         psi[2:4] = sc.bounds.spacing_m
         psi[4:6] = sc.bounds.speed_mps

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from macromicro_sumo.data.macro import extended_bounds
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.section import Section
 
@@ -79,17 +80,45 @@ def at_snapshot_times(traj: pd.DataFrame, every_s: float) -> pd.DataFrame:
 def psi_table(truth: SectionTruth, sc) -> pd.DataFrame:
     """psi per (run, interval) from the detectors, with bounds filled where they are silent.
 
-    Speed bounds come from the passages of the interval (widened by 10%: the interval's
-    extremes are a sample), falling back to [0, highest limit]; the smallest spacing is the
+    Speed bounds come from the passages of the interval, per ``generator.bounds_source``
+    (the interval's extremes are a sample): "margin" widens them by 10%, "interval" keeps
+    them, "extended" widens them by (max - min) / (n - 1), n the interval's passages (as
+    the ring does); where there are none, [0, highest limit]. The smallest spacing is the
     shortest vehicle plus the scenario's minimum gap.
     """
     m = truth.macro[truth.macro["source"] == "detectors"].copy()
     vmax_lim = float(np.nanmax(truth.section.limits_mps))
-    lo = m["speed_min_mps"].fillna(0.0) * 0.9
-    hi = (m["speed_max_mps"] * 1.1).fillna(vmax_lim).clip(upper=vmax_lim * 1.5)
-    m["speed_min_mps"], m["speed_max_mps"] = lo, hi
+    lo, hi = m["speed_min_mps"], m["speed_max_mps"]
+    if sc.generator.bounds_source == "margin":
+        lo, hi = lo * 0.9, hi * 1.1
+    elif sc.generator.bounds_source == "extended":
+        lo, hi = extended_bounds(lo, hi, interval_passages(truth, m))
+    m["speed_min_mps"] = lo.fillna(0.0)
+    m["speed_max_mps"] = hi.fillna(vmax_lim).clip(upper=vmax_lim * 1.5)
     m["spacing_min_m"] = float(truth.vtypes["length_m"].min()) + sc.bounds.min_gap_m
     return m
+
+
+def interval_passages(truth: SectionTruth, m: pd.DataFrame) -> np.ndarray:
+    """(rows of ``m``,) detector passages in each row's run and [begin_s, end_s): the
+    sample whose extremes are the interval's speed bounds (``truth.section_macro``)."""
+    path = truth.folder / "detector_passages.csv"
+    if not path.is_file():
+        raise UserError(
+            f'{path}: missing; generator.bounds_source = "extended" counts each interval\'s '
+            f'passages (field data has none: accepted "margin" or "interval")'
+        )
+    p = pd.read_csv(path, usecols=["run", "time_s"])
+    times = {run: np.sort(g.to_numpy()) for run, g in p.groupby("run")["time_s"]}
+    none = np.array([])
+    return np.array(
+        [
+            np.searchsorted(t, e, side="left") - np.searchsorted(t, b, side="left")
+            for run, b, e in zip(m["run"], m["begin_s"], m["end_s"], strict=True)
+            for t in (times.get(run, none),)
+        ],
+        dtype=np.float64,
+    )
 
 
 def section_snapshots(truth: SectionTruth, sc, runs: np.ndarray) -> SectionSnapshots:

@@ -133,6 +133,14 @@ class SectionGeneratorConfig:
         "(the paper); posterior = drawn from the posterior of i.i.d. normal spacings with the "
         "detectors' mean and std (a closed one-lane section, spacing_dispersion = measured)",
     )
+    bounds_source: str = spec(
+        "margin",
+        choices=("margin", "interval", "extended"),
+        doc="psi's speed bounds from each detector interval's passages: their extremes widened "
+        "by 10% (margin); as measured (interval); widened by (max - min) / (n - 1) on each "
+        "side, n the interval's passages (extended, as the ring: n samples' extremes leave "
+        "out ~2 / (n + 1) of the stream)",
+    )
     ema_decay: float = spec(
         0.0,
         lo=0.0,

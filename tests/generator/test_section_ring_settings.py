@@ -11,10 +11,11 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 
-from macromicro_sumo.data.section import SectionSnapshots
+from macromicro_sumo.data.section import SectionSnapshots, psi_table
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.generator.section_metrics import completion_metrics
 from macromicro_sumo.generator.section_model import (
@@ -37,6 +38,7 @@ from macromicro_sumo.scenario.section import (
     SectionScenario,
     SumoNetworkConfig,
 )
+from macromicro_sumo.truth.section import load_section_truth, simulate_section
 
 ROOT = Path(__file__).resolve().parents[2]
 S_MIN_M = 7.0
@@ -92,11 +94,12 @@ def scenario(section: Section, **gen: object) -> SectionScenario:
 
 
 def test_defaults_are_the_sections_former_behaviour() -> None:
-    """Defaults: no weight averaging, the measured dispersion (the section's L_var before
-    these keys existed)."""
+    """Defaults: no weight averaging, the measured dispersion, speed bounds widened by 10%,
+    the network's gap choice (the section generator before these keys existed)."""
     cfg = SectionGeneratorConfig()
     assert cfg.ema_decay == 0.0
     assert cfg.spacing_dispersion == "measured"
+    assert cfg.bounds_source == "margin" and cfg.gap_choice == "network"
 
 
 def test_spacing_dispersion_paper_and_measured(ring: Section) -> None:
@@ -171,7 +174,13 @@ def test_out_of_range_ema_decay_is_a_one_line_error(tmp_path: Path) -> None:
 def test_ring_paper_section_sets_the_rings_settings() -> None:
     """The experimental ring-as-a-section scenario turns the ring's settings on."""
     sc = load_scenario(ROOT / "scenarios" / "ring_paper_section.toml")
-    assert sc.generator.ema_decay == 0.995
+    g = sc.generator
+    assert (g.ema_decay, g.spacing_dispersion, g.bounds_source, g.gap_choice) == (
+        0.995,
+        "measured",
+        "extended",
+        "posterior",
+    )
 
 
 def one_hidden(section: Section, n: int, seed: int) -> SectionSnapshots:
@@ -257,3 +266,69 @@ def test_posterior_checkpoint_round_trip(ring: Section, tmp_path: Path) -> None:
     other = scenario(ring, epochs=2)
     with pytest.raises(UserError, match="generator.gap_choice"):
         load_section_generator(tmp_path / "generator.pt", other)
+
+
+@pytest.fixture(scope="module")
+def ring_truth(tmp_path_factory: pytest.TempPathFactory) -> tuple[SectionScenario, Path]:
+    """ring_paper_section's fleet on the ring, two short runs (real SUMO)."""
+    folder = tmp_path_factory.mktemp("ring_truth")
+    text = (ROOT / "scenarios" / "ring_paper_section.toml").read_text()
+    text = text.replace("../sumo_nets/", f"{ROOT}/sumo_nets/")
+    text = text.replace("duration_s = 180.0", "duration_s = 120.0").replace(
+        "n_runs = 40", "n_runs = 2"
+    )
+    path = folder / "ring.toml"
+    path.write_text(text)
+    sc = load_scenario(path)
+    simulate_section(sc, folder / "gt", progress=False)
+    return sc, folder / "gt"
+
+
+def test_bounds_source_margin_interval_extended(ring_truth) -> None:
+    """psi's speed bounds: margin = the passages' extremes x 0.9 / x 1.1 (the section's
+    former bounds), interval = the extremes, extended = widened by range / (n - 1) with n
+    the interval's passages counted here from detector_passages.csv; the extended bounds
+    hold more of the recorded speeds than the interval's."""
+    sc, gt = ring_truth
+    truth = load_section_truth(gt, sc)
+
+    def table(source: str) -> pd.DataFrame:
+        cfg = dataclasses.replace(sc.generator, bounds_source=source)
+        return psi_table(truth, dataclasses.replace(sc, generator=cfg)).reset_index(drop=True)
+
+    margin, interval, extended = table("margin"), table("interval"), table("extended")
+    assert len(interval) == 4  # two runs x two 60 s intervals
+    np.testing.assert_allclose(margin["speed_min_mps"], 0.9 * interval["speed_min_mps"])
+    np.testing.assert_allclose(margin["speed_max_mps"], 1.1 * interval["speed_max_mps"])
+    passages = pd.read_csv(gt / "detector_passages.csv")
+    inside_int = inside_ext = 0
+    traj = truth.trajectories
+    for i, row in interval.iterrows():
+        at = (passages["run"] == row["run"]) & passages["time_s"].between(
+            row["begin_s"], row["end_s"], inclusive="left"
+        )
+        speeds = passages.loc[at, "speed_mps"]
+        assert speeds.min() == pytest.approx(row["speed_min_mps"])
+        widen = (speeds.max() - speeds.min()) / (at.sum() - 1)
+        assert extended.loc[i, "speed_min_mps"] == pytest.approx(row["speed_min_mps"] - widen)
+        assert extended.loc[i, "speed_max_mps"] == pytest.approx(row["speed_max_mps"] + widen)
+        w = traj[
+            (traj["run"] == row["run"])
+            & traj["time_s"].between(row["begin_s"], row["end_s"], inclusive="left")
+        ]
+        v = w["speed_mps"]
+        inside_int += int(v.between(row["speed_min_mps"], row["speed_max_mps"]).sum())
+        lo, hi = extended.loc[i, ["speed_min_mps", "speed_max_mps"]]
+        inside_ext += int(v.between(lo, hi).sum())
+    assert inside_ext > inside_int
+
+
+def test_extended_bounds_need_the_passages(ring_truth, tmp_path: Path) -> None:
+    sc, gt = ring_truth
+    truth = load_section_truth(gt, sc)
+    cfg = dataclasses.replace(sc.generator, bounds_source="extended")
+    bare = dataclasses.replace(truth, folder=tmp_path)  # a folder without passages
+    with pytest.raises(UserError) as err:
+        psi_table(bare, dataclasses.replace(sc, generator=cfg))
+    msg = str(err.value)
+    assert "\n" not in msg and "detector_passages.csv" in msg and "bounds_source" in msg
