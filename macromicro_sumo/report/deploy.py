@@ -397,32 +397,37 @@ def acted_lines(summary: pd.DataFrame) -> list[str]:
 
 def reference_words(summary: pd.DataFrame) -> str:
     """What every figure of the summary is against: a simulated ground truth (its held-out
-    runs re-run) or field data (the stations and the observed vehicles)."""
+    runs re-run) or field data (the stations and the observed vehicles), ending with the
+    summary's ``reference`` as written."""
     measures = (
         f"GEH < {GEH_LIMIT:g}: share of station-intervals whose flow passes the GEH test; "
         f"speed within {SPEED_TOLERANCE:.0%}: share whose space-mean speed is within "
         f"{SPEED_TOLERANCE:.0%} of the reference's"
     )
-    if not is_field(summary):
-        return (
+    if is_field(summary):
+        text = (
+            "Field data: every method drives the whole driven population of a SUMO run "
+            "built for each held-out recording, on a demand rebuilt from the files (the "
+            "scenario's route files, else SUMO's routeSampler on the station counts), with "
+            "loops where the field stations are. The flow, speed and density figures are "
+            "against the field stations' measurements, station by station and interval by "
+            "interval from the end of the warm-up on (definitions: docs/deploy.md). "
+            f"{measures}. W1 speed and accel are against the observed vehicles' "
+            "distributions (a sample of the population); headway and TTC are not compared "
+            "(n/a: who drove between two observed vehicles is unknown)."
+        )
+    else:
+        text = (
             "Every method drives the whole driven population over the scenario's own demand "
             "and duration, on the ground truth's held-out runs (same demand, same seeds). "
             "Its detectors are compared with the ground truth's station by station and "
             f"interval by interval (definitions: docs/deploy.md). {measures}; W1: "
             "Wasserstein-1 distance to the ground truth's distribution (every vehicle)."
         )
-    return (
-        "Field data (reference: the field stations and the observed vehicles): every "
-        "method drives the whole driven population of a SUMO run built for each held-out "
-        "recording, on a demand rebuilt from the files (the scenario's route files, else "
-        "SUMO's routeSampler on the station counts), with loops where the field stations "
-        "are. The flow, speed and density figures are against the field stations' "
-        "measurements, station by station and interval by interval from the end of the "
-        f"warm-up on (definitions: docs/deploy.md). {measures}. W1 speed and accel are "
-        "against the observed vehicles' distributions (a sample of the population); "
-        "headway and TTC are not compared (n/a: who drove between two observed vehicles "
-        "is unknown)."
-    )
+    refs = summary["reference"].dropna().unique() if "reference" in summary else []
+    if len(refs):
+        text += f" Reference (`reference`): {'; '.join(map(str, refs))}."
+    return text
 
 
 def deployment_markdown(summary: pd.DataFrame, plots: Sequence[str] = ()) -> str:

@@ -163,6 +163,7 @@ def test_markdown_says_how_often_the_safety_layer_acted() -> None:
 def test_markdown_says_what_each_data_source_is_compared_with() -> None:
     sim = deployment_markdown(summary().assign(reference=REFERENCE_SIMULATED))
     assert "same demand, same seeds" in sim and "Field data" not in sim
+    assert f"Reference (`reference`): {REFERENCE_SIMULATED}." in sim
     assert "- Ground truth over the same runs: 0 collisions, 0 teleports." in sim
     assert "2 collisions and 1 teleports the ground truth does not have." in sim
     field = deployment_markdown(summary().assign(reference=REFERENCE_FIELD))
@@ -171,5 +172,6 @@ def test_markdown_says_what_each_data_source_is_compared_with() -> None:
     assert "against the field stations' measurements" in field
     assert "W1 speed and accel are against the observed vehicles" in field
     assert "headway and TTC are not compared" in field
+    assert f"Reference (`reference`): {REFERENCE_FIELD}." in field
     assert "- Field data records no collisions or teleports" in field
     assert "- `sumo_default`: 2 collisions and 1 teleports in SUMO." in field
