@@ -152,6 +152,8 @@ def fit_policy_prior(
     if kind == "idm":
         idm, rmse = calibrate_idm(obs, accel, veh_length_m)
         return idm_prior_params(idm.as_dict(), veh_length_m), rmse
+    if kind != "gipps":
+        raise ValueError(f"no model to fit for policy.prior = {kind!r}")
     gipps, rmse = calibrate_gipps(obs, accel, veh_length_m, dt_s)
     params = {**gipps.as_dict(), "veh_length_m": float(veh_length_m), "dt_s": float(dt_s)}
     return {k: params[k] for k in GIPPS_PRIOR_KEYS}, rmse

@@ -15,7 +15,9 @@ from conftest import PAPER_SCENARIO, ROOT, dump_toml
 from macromicro_sumo.data.section import PSI_FIELDS, section_snapshots
 from macromicro_sumo.env.ring import EpisodeBank, RingCore
 from macromicro_sumo.env.section import SectionCore, section_macro_reward, section_target
-from macromicro_sumo.env.section_bank import SectionBank, build_section_bank
+from macromicro_sumo.env.section_bank import SectionBank, build_section_bank, typical_length
+from macromicro_sumo.evaluation.idm_fit import fit_policy_prior
+from macromicro_sumo.evaluation.section import micro_pairs
 from macromicro_sumo.policy.checkpoint import load_policy
 from macromicro_sumo.policy.ppo import train_policy
 from macromicro_sumo.road.physics import idm_accel
@@ -319,6 +321,11 @@ def test_recorded_scene_is_replayed_and_ppo_trains(highway_truth, tmp_path):
         core.close()
     torch.set_num_threads(1)
     sc = dataclasses.replace(sc, policy=dataclasses.replace(sc.policy, episodes_per_update=4))
+    # The example's prior (policy.prior), fitted to the observed pairs as the stage does.
+    obs, acc = micro_pairs(sc, truth, truth.runs)
+    prior, _ = fit_policy_prior(
+        sc.policy.prior, obs, acc, typical_length(truth), sc.simulation.step_length_s
+    )
     res = train_policy(
         sc,
         bank,
@@ -326,9 +333,11 @@ def test_recorded_scene_is_replayed_and_ppo_trains(highway_truth, tmp_path):
         updates=2,
         progress=False,
         make_core=lambda b, seed: SectionCore(sc, truth.section, b, net, seed=seed),
+        prior_params=prior,
     )
     assert len(res["log"]) == 2 and np.isfinite(res["log"][-1]["r_macro"])
     agent = load_policy(tmp_path / "policy.pt", sc)
+    assert agent.prior == sc.policy.prior
     assert torch.equal(agent.shift, res["agent"].shift) and not torch.equal(
         agent.scale, torch.ones(6)
     )
