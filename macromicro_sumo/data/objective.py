@@ -45,6 +45,9 @@ class MacroTarget:
         spacing_std_m: measured spacing std [m] for the measured dispersion; None for the
             paper's; NaN entries fall back to the paper's.
         speed_std_mps: measured speed std [m/s] for ``L_vstd``; None (or NaN): no term.
+        spacing_center_m: the mean spacing [m] the measured dispersion counts deviations
+            from; None: ``mean_spacing_m`` (a closed section's generator passes its scene's
+            exact mean, see ``generator.dispersion_center``).
     """
 
     mean_speed_mps: Any
@@ -53,6 +56,7 @@ class MacroTarget:
     spacing_max_m: Any
     spacing_std_m: Any = None
     speed_std_mps: Any = None
+    spacing_center_m: Any = None
 
 
 def _sqrt(x: Any) -> Any:
@@ -153,7 +157,8 @@ def spacing_terms(
     if sigma is None:
         l_var = own
     else:  # the measured dispersion, around the measured mean
-        dev, _, _ = _counted(in_a, spacing_m - d_t[..., None])
+        center = d_t if target.spacing_center_m is None else target.spacing_center_m
+        dev, _, _ = _counted(in_a, spacing_m - center[..., None])
         measured = abs((dev * dev).sum(-1) / cnt - sigma * sigma) / (d_t * d_t)
         l_var = measured if measured_only else _where(sigma == sigma, measured, own)
     return {

@@ -138,6 +138,7 @@ def _batch_loss(
         Psi.of(snaps.psi, speed_spread_target(snaps)),
         road,
         sc.generator.spacing_dispersion,
+        sc.generator.dispersion_center,
     )
     loss = macro_loss(terms, sc.generator.lambda_v, sc.generator.lambda_d)
     advantage = (loss - loss.mean()).detach()

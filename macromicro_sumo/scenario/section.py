@@ -133,6 +133,13 @@ class SectionGeneratorConfig:
         "(the paper); posterior = drawn from the posterior of i.i.d. normal spacings with the "
         "detectors' mean and std (a closed one-lane section, spacing_dispersion = measured)",
     )
+    dispersion_center: str = spec(
+        "psi",
+        choices=("psi", "scene"),
+        doc="the mean the measured dispersion counts deviations from: psi's mean spacing (the "
+        "ring's), or on a closed section the completed scene's own, exact there (all its "
+        "spacings around the loops); psi's on an open section",
+    )
     bounds_source: str = spec(
         "margin",
         choices=("margin", "interval", "extended"),

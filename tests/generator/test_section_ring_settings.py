@@ -100,6 +100,7 @@ def test_defaults_are_the_sections_former_behaviour() -> None:
     assert cfg.ema_decay == 0.0
     assert cfg.spacing_dispersion == "measured"
     assert cfg.bounds_source == "margin" and cfg.gap_choice == "network"
+    assert cfg.dispersion_center == "psi"
 
 
 def test_spacing_dispersion_paper_and_measured(ring: Section) -> None:
@@ -124,6 +125,39 @@ def test_spacing_dispersion_paper_and_measured(ring: Section) -> None:
         want = abs(((d - mu) ** 2).mean() - sigma**2) / mu**2 if np.isfinite(sigma) else own
         assert measured[i] == pytest.approx(want, rel=1e-9)
     assert measured[0] != pytest.approx(measured[1])  # the target counts
+
+
+def test_dispersion_center_scene_is_exact_on_a_closed_section(ring: Section) -> None:
+    """With psi's mean spacing 6% short (E2 density on the ring), the measured dispersion
+    around it reads the scene (mean - psi mean)^2 too wide; centred on the scene's own
+    mean it is the spacings' variance against psi's. On an open section both are psi's."""
+    snaps = ring_snapshots(ring, 3, seed=9)
+    road = Road.of(ring)
+    lane, arc = torch.as_tensor(snaps.lane), torch.as_tensor(snaps.arc_m)
+    speed, present = torch.as_tensor(snaps.speed_mps), torch.as_tensor(snaps.valid)
+    psi_arr = snaps.psi.copy()
+    psi_arr[:, 1] *= 0.94
+    psi = Psi.of(psi_arr)
+    at_psi = section_losses(lane, arc, speed, present, psi, road, "measured", "psi")["L_var"]
+    at_scene = section_losses(lane, arc, speed, present, psi, road, "measured", "scene")["L_var"]
+    for i in range(3):
+        a = np.sort(snaps.arc_m[i])
+        d = np.append(np.diff(a), a[0] + ring.length_m - a[-1])
+        mu, var = psi_arr[i, 1], psi_arr[i, 2] ** 2
+        assert d.mean() == pytest.approx(ring.length_m / N_VEHICLES)
+        assert float(at_scene[i]) == pytest.approx(abs(d.var() - var) / mu**2, rel=1e-9)
+        assert float(at_psi[i]) == pytest.approx(abs(((d - mu) ** 2).mean() - var) / mu**2)
+    bremen = read_section(
+        ROOT / "sumo_nets" / "highway_bremen" / "highway.net.xml",
+        ["145354574", "189597495", "E0", "191842213"],
+        False,
+    )
+    open_road = Road.of(bremen)
+    both = [
+        section_losses(lane, arc, speed, present, psi, open_road, "measured", c)["L_var"]
+        for c in ("psi", "scene")
+    ]
+    torch.testing.assert_close(both[0], both[1])
 
 
 def test_weight_averaging_validates_and_keeps_the_averaged_weights(
