@@ -215,6 +215,7 @@ def test_ring_paper_section_sets_the_rings_settings() -> None:
         "extended",
         "posterior",
     )
+    assert g.dispersion_center == "scene"
 
 
 def one_hidden(section: Section, n: int, seed: int) -> SectionSnapshots:
