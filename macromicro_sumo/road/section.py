@@ -22,6 +22,7 @@ import sumolib
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import write_json
+from macromicro_sumo.sumo.inputs import check_net_file
 
 NO_LEADER_GAP_M = 250.0  # spacing reported when nothing drives ahead on the section
 STOP = -2  # leader index of a standing obstacle: a lane's end, or a red light's stop line
@@ -225,6 +226,7 @@ class Section:
 
 def read_net(net_file: Path) -> sumolib.net.Net:
     """The network, with internal lanes; a file that is not a SUMO network is a UserError."""
+    check_net_file(net_file)
     try:
         return sumolib.net.readNet(str(net_file), withInternal=True)
     except Exception as exc:  # sumolib raises bare parser errors

@@ -143,13 +143,18 @@ def read_net(path: Path) -> sumolib.net.Net:
     sumolib reads any XML without complaint and returns an empty network; checking the root
     element turns a wrong file into a message instead of "edge not found" much later.
     """
+    check_net_file(path)
+    return sumolib.net.readNet(str(path), withInternal=False)
+
+
+def check_net_file(path: Path) -> None:
+    """``path`` exists and its root element is ``<net>``: a one-line error otherwise."""
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: network file does not exist")
     root = _root_tag(path)
     if root != "net":
         raise UserError(f"{path}: not a SUMO network (root element <{root}>, expected <net>)")
-    return sumolib.net.readNet(str(path), withInternal=False)
 
 
 def top_elements(files: Sequence[Path]) -> Iterator[tuple[Path, ET.Element]]:
