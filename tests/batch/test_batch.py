@@ -201,6 +201,9 @@ def _kill_when_running(folder: Path, variant: str, found: list[int], stop: threa
         time.sleep(0.002)
 
 
+# Slow (25-40 s each): the default run keeps test_failing_variants_leave_failed_rows_... and
+# test_rerun_skips_complete_variants_and_redoes_stale_ones for the same rules without a kill.
+@pytest.mark.slow
 def test_killed_worker_fails_only_its_variant(tmp_path):
     path = write_sweep(tmp_path / "s.toml", "n_runs = [1, 30]\nseed = [1, 2]")
     out = tmp_path / "out"
@@ -252,6 +255,7 @@ def _batch_process(path: Path, out: Path, workers: int) -> subprocess.Popen:
     )
 
 
+@pytest.mark.slow
 def test_batch_killed_with_sigkill_and_rerun_redoes_only_the_unfinished(tmp_path):
     # Light variants first, then heavy ones: the kill lands while one is half-done and, with
     # three seeds, before the last has started.

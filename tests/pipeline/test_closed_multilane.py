@@ -62,6 +62,7 @@ def test_closed_multilane_section_end_to_end(tmp_path: Path) -> None:
         "generator": {"epochs": 4, "snapshot_every_s": 10.0},
         "policy": {"updates": 2, "episodes_per_update": 8, "observation": "lookahead"},
         "evaluation": {"fcd_episodes": 1},
+        "deploy": {"calibration_evals": 2},  # each evaluation re-runs the training runs
     }
     path = tmp_path / "closed_multilane.toml"
     path.write_text(dump_toml(table))
