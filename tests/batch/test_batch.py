@@ -298,7 +298,9 @@ def test_ctrl_c_stops_cleanly_and_keeps_finished_variants(tmp_path):
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
-    assert proc.returncode == 130, err
+    # Once exited 0 in a fresh-clone CI run (not reproduced in 7 runs): say what was there.
+    names = sorted(p.name for p in (out / "variants").iterdir())
+    assert proc.returncode == 130, f"rc {proc.returncode}, stderr {err!r}, variants {names}"
     assert "interrupted" in err and "Traceback" not in err, err
     assert not list((out / "variants").glob(".partial-*"))
     s = summary(out)
