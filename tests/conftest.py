@@ -152,3 +152,46 @@ def observed(field_truth: Path) -> pd.DataFrame:
 @pytest.fixture(scope="session")
 def detectors(field_truth: Path) -> pd.DataFrame:
     return pd.read_csv(field_truth / "detectors.csv", dtype={"detector_id": str})
+
+
+@pytest.fixture(scope="session")
+def e2_truth(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The ``field_truth`` corridor with the user's E2 lane-area detectors instead of loops:
+    150 m from pos 50 on every lane of three edges (3, 3, 2 lanes), 30 s intervals, 120 s
+    recorded. The simulate stage keeps SUMO's own E2 output and the definitions it ran under
+    ``sumo/run_000`` (rewritten as ``lanes`` + ``length``, which SUMO runs to the lane's end)."""
+    folder = tmp_path_factory.mktemp("e2_truth")
+    cor = random_corridor(folder / "net", 3)
+    defs = [
+        f'    <laneAreaDetector id="e2_{e}_{k}" lane="{e}_{k}" pos="50" length="150" '
+        'period="30" file="e2_user.xml"/>'
+        for e, n in zip(cor.section_edges, cor.lanes_per_edge, strict=True)
+        if e in ("e1", "e2", "e5")
+        for k in range(n)
+    ]
+    (folder / "e2.add.xml").write_text("<additional>\n" + "\n".join(defs) + "\n</additional>\n")
+    (folder / "corridor.toml").write_text(
+        f"""name = "corridor_e2"
+seed = 5
+
+[network]
+kind = "sumo"
+sumocfg = {json.dumps(str(cor.sumocfg))}
+additional_files = [{json.dumps(str(folder / "e2.add.xml"))}]
+
+[section]
+edges = {json.dumps(list(cor.section_edges))}
+closed = false
+
+[simulation]
+warmup_s = 150.0
+duration_s = 120.0
+n_runs = 1
+
+[detectors]
+interval_s = 30.0
+"""
+    )
+    out = folder / "gt"
+    assert main(["simulate", str(folder / "corridor.toml"), "--out", str(out), "--quiet"]) == 0
+    return out
