@@ -159,7 +159,7 @@ def e2_truth(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The ``field_truth`` corridor with the user's E2 lane-area detectors instead of loops:
     150 m from pos 50 on every lane of three edges (3, 3, 2 lanes), 30 s intervals, 120 s
     recorded. The simulate stage keeps SUMO's own E2 output and the definitions it ran under
-    ``sumo/run_000`` (rewritten as ``lanes`` + ``length``, which SUMO runs to the lane's end)."""
+    ``sumo/run_000`` (as the truth stage rewrites them: ``lane`` + ``length``)."""
     folder = tmp_path_factory.mktemp("e2_truth")
     cor = random_corridor(folder / "net", 3)
     defs = [

@@ -96,10 +96,17 @@ def detectors_xml(placed: list[Placed], interval_s: float) -> str:
                 f"    <instantInductionLoop id={quoteattr('i_' + s.id)} lane={lane} "
                 f'pos="{s.pos_m:.3f}" file="{INSTANT_FILE}"/>'
             )
-        else:
-            lanes = quoteattr(" ".join(s.lane_ids or (s.lane_id,)))
+        elif len(s.lane_ids) > 1:
+            lanes = quoteattr(" ".join(s.lane_ids))
             rows.append(
                 f'    <laneAreaDetector id={did} lanes={lanes} pos="{s.pos_m:.3f}" '
+                f'length="{s.length_m:.3f}" period="{interval_s:g}" file="{E2_FILE}"/>'
+            )
+        else:
+            # One lane: lane= with length=. In the lanes= form SUMO ignores length and runs
+            # the area to the lane's end (a 150 m area read as 476 m: densities 3.2x off).
+            rows.append(
+                f'    <laneAreaDetector id={did} lane={lane} pos="{s.pos_m:.3f}" '
                 f'length="{s.length_m:.3f}" period="{interval_s:g}" file="{E2_FILE}"/>'
             )
     rows.append("</additional>")

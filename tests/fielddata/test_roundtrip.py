@@ -200,7 +200,10 @@ def test_pems_round_trip_within_rounding(
 # veh/km) above, its time-mean speed within 0.095 m/s (2 decimals written, the same rows).
 E2_DENSITY_REL_TOL = 0.08
 E2_DENSITY_ABS_TOL_VPKM = 0.3
-E2_SPEED_TOL_MPS = 0.15
+# On the user's 150 m areas (not to the lane's end) entries and exits weigh more: SUMO counts
+# the fraction of a step a vehicle spends on the area, this side whole steps: within
+# 0.17 m/s measured (0.7% of ~25 m/s).
+E2_SPEED_TOL_MPS = 0.25
 
 
 def _e2_truth(
@@ -232,15 +235,13 @@ def test_e2_xml_round_trip(e2_truth: Path) -> None:
     got = read_sumo_detectors(run / "e2.xml", section, run / "detectors.add.xml").frame
     assert tuple(got.columns[: len(DET_COLUMNS)]) == DET_COLUMNS
     assert (got["kind"] == "e2").all()
-    # Placed where the user's file puts them: pos 50 m on each lane. The truth stage writes
-    # them as lanes= + length=, which SUMO reads as reaching to the lane's end.
+    # Placed where the user's file puts them: pos 50 m on each lane, 150 m long (the truth
+    # stage once rewrote them as lanes= + length=, which SUMO runs to the lane's end).
     for r in got.drop_duplicates("detector_id").itertuples():
         lane_id = r.detector_id.removeprefix("e2_")
         lane, arc = section.locate(lane_id, 50.0)  # type: ignore[misc]
-        edge = section.lanes[lane_id][0]
         assert (r.lane_index, r.arc_m) == (lane, pytest.approx(arc, abs=1e-6))
-        end = section.offsets_m[edge] + section.lengths_m[edge]
-        assert r.length_m == pytest.approx(end - arc, abs=1e-6)
+        assert r.length_m == pytest.approx(150.0, abs=1e-6)
     traj = pd.read_csv(e2_truth / "trajectories.csv", dtype={"vehicle_id": str, "vtype": str})
     vt = pd.read_csv(e2_truth / "vtypes.csv", dtype={"vtype": str})
     traj["length_m"] = traj["vtype"].map(dict(zip(vt["vtype"], vt["length_m"], strict=True)))
