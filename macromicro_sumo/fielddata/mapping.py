@@ -12,6 +12,7 @@ so a key is declared once and its errors read as the scenario's.
 from __future__ import annotations
 
 import dataclasses
+import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -197,3 +198,36 @@ def trajectory_units(m: TrajectoryMapping, source: str) -> tuple[float, float, f
         unit(ACCEL_UNITS, m.accel_unit, "accel_unit", source),
         unit(TIME_UNITS, m.time_unit, "time_unit", source),
     )
+
+
+def _lane_length(section: Section, lane_id: str) -> float:
+    """Length of a section lane in its own positions (an internal lane: its junction)."""
+    edge, _, _, scale = section.lanes[lane_id]
+    along = section.junction_m[edge] if lane_id.startswith(":") else section.lengths_m[edge]
+    return float(along / scale)
+
+
+def e2_length(el: ET.Element, section: Section, additional: Path, k: int, did: str) -> float:
+    """Arc length an E2 covers, read as SUMO reads it: with ``lanes`` the area runs from
+    ``pos`` on the first lane to ``endPos`` on the last (default: its end) and SUMO ignores
+    ``length``; with ``lane``, ``length`` or else ``endPos``. Negative positions count
+    from the lane's end."""
+    chain = el.get("lanes", "").split()
+    first = chain[0] if chain else el.get("lane", "")
+    last = chain[-1] if chain else first
+    if any(lane not in section.lanes for lane in (first, last)):
+        raise UserError(
+            f"{additional}: element {k} (E2 {did!r}), attribute 'lanes': {first!r} .. {last!r} "
+            f"is not on the section ({', '.join(section.edge_ids)})"
+        )
+
+    def at(lane: str, pos: float) -> float:
+        pos = pos + _lane_length(section, lane) if pos < 0 else pos
+        return section.locate(lane, pos)[1]  # type: ignore[index]  # checked above
+
+    start = at(first, float(el.get("pos", "0")))
+    if not chain and el.get("length") is not None:
+        return float(el.get("length"))  # type: ignore[arg-type]
+    end_pos = el.get("endPos")
+    end = at(last, float(end_pos)) if end_pos is not None else at(last, _lane_length(section, last))
+    return end - start

@@ -26,6 +26,7 @@ from macromicro_sumo.fielddata.mapping import (
     StationMapping,
     StationPlace,
     check_on_section,
+    e2_length,
     lane_index,
     lanes_at,
     parse_times,
@@ -390,42 +391,9 @@ def detector_places(additional: Path, section: Section) -> dict[str, tuple[str, 
                 f"not on the section ({', '.join(section.edge_ids)})"
             )
         kind = "e1" if tag in ("inductionLoop", "e1Detector") else "e2"
-        length = _e2_length(el, section, additional, k, did) if kind == "e2" else 0.0
+        length = e2_length(el, section, additional, k, did) if kind == "e2" else 0.0
         out[did] = (kind, hit[0], hit[1], length)
     return out
-
-
-def _lane_length(section: Section, lane_id: str) -> float:
-    """Length of a section lane in its own positions (an internal lane: its junction)."""
-    edge, _, _, scale = section.lanes[lane_id]
-    along = section.junction_m[edge] if lane_id.startswith(":") else section.lengths_m[edge]
-    return float(along / scale)
-
-
-def _e2_length(el: ET.Element, section: Section, additional: Path, k: int, did: str) -> float:
-    """Arc length an E2 covers, read as SUMO reads it: with ``lanes`` the area runs from
-    ``pos`` on the first lane to ``endPos`` on the last (default: its end) and SUMO ignores
-    ``length``; with ``lane``, ``length`` or else ``endPos``. Negative positions count
-    from the lane's end."""
-    chain = el.get("lanes", "").split()
-    first = chain[0] if chain else el.get("lane", "")
-    last = chain[-1] if chain else first
-    if any(lane not in section.lanes for lane in (first, last)):
-        raise UserError(
-            f"{additional}: element {k} (E2 {did!r}), attribute 'lanes': {first!r} .. {last!r} "
-            f"is not on the section ({', '.join(section.edge_ids)})"
-        )
-
-    def at(lane: str, pos: float) -> float:
-        pos = pos + _lane_length(section, lane) if pos < 0 else pos
-        return section.locate(lane, pos)[1]  # type: ignore[index]  # checked above
-
-    start = at(first, float(el.get("pos", "0")))
-    if not chain and el.get("length") is not None:
-        return float(el.get("length"))  # type: ignore[arg-type]
-    end_pos = el.get("endPos")
-    end = at(last, float(end_pos)) if end_pos is not None else at(last, _lane_length(section, last))
-    return end - start
 
 
 def read_sumo_detectors(
