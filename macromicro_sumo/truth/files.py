@@ -32,7 +32,6 @@ import pandas as pd
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.fielddata.cleaning import (
-    CleaningConfig,
     CleanStations,
     CleanTrajectories,
     clean_stations,
@@ -48,7 +47,6 @@ from macromicro_sumo.fielddata.mapping import (
 )
 from macromicro_sumo.fielddata.report import leader_counts, write_data_report
 from macromicro_sumo.fielddata.stations import (
-    StationColumns,
     Stations,
     read_generic_stations,
     read_pems,
@@ -56,7 +54,6 @@ from macromicro_sumo.fielddata.stations import (
 )
 from macromicro_sumo.fielddata.trajectories import (
     Trajectories,
-    TrajectoryColumns,
     read_fcd,
     read_generic_trajectories,
     read_highd,
@@ -98,8 +95,7 @@ def read_trajectory_file(
         return read_highd(path, section, m, cfg.outside)
     if cfg.layout == "fcd":
         return read_fcd(path, section, m, cfg.outside)
-    columns = TrajectoryColumns(**dataclasses.asdict(cfg.columns))
-    return read_generic_trajectories(path, section, m, columns, cfg.outside)
+    return read_generic_trajectories(path, section, m, cfg.columns, cfg.outside)
 
 
 def read_station_file(sc: SectionScenario, section: Section, path: Path, run: int) -> Stations:
@@ -113,8 +109,7 @@ def read_station_file(sc: SectionScenario, section: Section, path: Path, run: in
         return read_sumo_detectors(path, section, sc.resolve(adds[run % len(adds)]), m)
     if cfg.layout == "pems":
         return read_pems(path, section, m)
-    columns = StationColumns(**dataclasses.asdict(cfg.columns))
-    return read_generic_stations(path, section, m, columns)
+    return read_generic_stations(path, section, m, cfg.columns)
 
 
 # --------------------------------------------------------------------------- shaping
@@ -259,7 +254,7 @@ def read_field_data(
     sc: SectionScenario, section: Section, progress: bool = True
 ) -> tuple[list[CleanTrajectories], list[CleanStations]]:
     """Every file of ``[data]`` read and cleaned; file i of each kind is run i."""
-    cleaning = CleaningConfig(**dataclasses.asdict(sc.data.cleaning))
+    cleaning = sc.data.cleaning  # the scenario's table is the cleaning's own config class
     trajs, stations = [], []
     pairs = list(zip(sc.data.trajectories.files, sc.data.stations.files, strict=True))
     for run, (tf, sf) in enumerate(
