@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import tomllib
 from collections.abc import Callable
 from pathlib import Path
@@ -195,3 +196,18 @@ interval_s = 30.0
     out = folder / "gt"
     assert main(["simulate", str(folder / "corridor.toml"), "--out", str(out), "--quiet"]) == 0
     return out
+
+
+BREMEN_FILES = ROOT / "scenarios" / "highway_bremen_files.toml"
+
+
+def bremen_files_with(folder: Path, budgets: str) -> Path:
+    """The shipped field-data example with absolute paths and the example's training budgets
+    replaced by ``budgets`` (TOML tables placed before its ``[data]``)."""
+    text = BREMEN_FILES.read_text().replace('"../sumo_nets', f'"{ROOT}/sumo_nets')
+    text = re.sub(r"\n\[generator\]\nepochs = \d+\n", "\n", text)
+    text = re.sub(r"\n\[policy\]\nupdates = \d+\nobservation = \"lookahead\"\n", "\n", text)
+    head, data = text.split("\n[data]\n", 1)
+    path = folder / "bremen_files.toml"
+    path.write_text(head + budgets + "\n[data]\n" + data)
+    return path

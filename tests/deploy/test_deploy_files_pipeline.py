@@ -6,19 +6,18 @@ the stations, with tiny budgets."""
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import ROOT
+from conftest import BREMEN_FILES, bremen_files_with
 
 from macromicro_sumo.cli import main
 from macromicro_sumo.deploy.compare import REFERENCE_FIELD
 from macromicro_sumo.evaluation.section import REFERENCE_MICRO, REFERENCE_STATIONS, STATIONS
 
-EXAMPLE = ROOT / "scenarios" / "highway_bremen_files.toml"
+EXAMPLE = BREMEN_FILES
 TINY = """
 [generator]
 epochs = 2
@@ -39,13 +38,7 @@ methods = ["policy", "idm_calibrated", "oracle"]
 
 def tiny_example(folder: Path) -> Path:
     """The shipped example with absolute paths and tiny budgets."""
-    text = EXAMPLE.read_text().replace('"../sumo_nets', f'"{ROOT}/sumo_nets')
-    text = re.sub(r"\n\[generator\]\nepochs = \d+\n", "\n", text)
-    text = re.sub(r"\n\[policy\]\nupdates = \d+\nobservation = \"lookahead\"\n", "\n", text)
-    head, data = text.split("\n[data]\n", 1)
-    path = folder / "bremen_files.toml"
-    path.write_text(head + TINY + "\n[data]\n" + data)
-    return path
+    return bremen_files_with(folder, TINY)
 
 
 @pytest.fixture(scope="module")

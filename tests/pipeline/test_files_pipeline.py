@@ -5,20 +5,19 @@ a files-sourced ground truth unchanged (tiny budgets)."""
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import ROOT
+from conftest import BREMEN_FILES, bremen_files_with
 
 from macromicro_sumo.cli import main
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.files import K_TRUE_UNKNOWN
 from macromicro_sumo.truth.section import load_section_truth
 
-EXAMPLE = ROOT / "scenarios" / "highway_bremen_files.toml"
+EXAMPLE = BREMEN_FILES
 TINY = """
 [generator]
 epochs = 2
@@ -35,14 +34,8 @@ fcd_episodes = 1
 
 
 def tiny_example(folder: Path) -> Path:
-    """The shipped example with absolute paths and tiny training budgets."""
-    text = EXAMPLE.read_text().replace('"../sumo_nets', f'"{ROOT}/sumo_nets')
-    text = re.sub(r"\n\[generator\]\nepochs = \d+\n", "\n", text)
-    text = re.sub(r"\n\[policy\]\nupdates = \d+\nobservation = \"lookahead\"\n", "\n", text)
-    head, data = text.split("\n[data]\n", 1)
-    path = folder / "bremen_files.toml"
-    path.write_text(head + TINY + "\n[data]\n" + data)
-    return path
+    """The shipped example with absolute paths and tiny budgets."""
+    return bremen_files_with(folder, TINY)
 
 
 @pytest.fixture(scope="module")
