@@ -18,11 +18,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import sumolib
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import write_json
-from macromicro_sumo.sumo.inputs import check_net_file
+from macromicro_sumo.sumo.inputs import read_net
 
 NO_LEADER_GAP_M = 250.0  # spacing reported when nothing drives ahead on the section
 STOP = -2  # leader index of a standing obstacle: a lane's end, or a red light's stop line
@@ -224,15 +223,6 @@ class Section:
             raise UserError(f"{path}: not a section file ({type(exc).__name__})") from None
 
 
-def read_net(net_file: Path) -> sumolib.net.Net:
-    """The network, with internal lanes; a file that is not a SUMO network is a UserError."""
-    check_net_file(net_file)
-    try:
-        return sumolib.net.readNet(str(net_file), withInternal=True)
-    except Exception as exc:  # sumolib raises bare parser errors
-        raise UserError(f"{net_file}: not a readable SUMO network ({type(exc).__name__})") from None
-
-
 def _junction(
     net_file: Path, net: Any, a: Any, b: Any, links: np.ndarray
 ) -> tuple[float, list[tuple[str, int, float]]]:
@@ -261,7 +251,7 @@ def _junction(
 
 def read_section(net_file: Path, edges: list[str], closed: bool, where: str = "") -> Section:
     """Build the section from the network; errors name the file and the offending edge."""
-    net = read_net(net_file)
+    net = read_net(net_file, with_internal=True)
     where = where or str(net_file)
     objs = []
     for eid in edges:

@@ -137,14 +137,18 @@ def resolve_inputs(
     return SumoInputs(net, tuple(routes), tuple(adds), sumocfg)
 
 
-def read_net(path: Path) -> sumolib.net.Net:
-    """The network of ``path`` (plain or gzipped), checked to be SUMO network XML first.
+def read_net(path: Path, with_internal: bool = False) -> sumolib.net.Net:
+    """The network of ``path`` (plain or gzipped), checked to be SUMO network XML first;
+    ``with_internal`` keeps the junctions' internal lanes (a section's arc runs over them).
 
     sumolib reads any XML without complaint and returns an empty network; checking the root
     element turns a wrong file into a message instead of "edge not found" much later.
     """
     check_net_file(path)
-    return sumolib.net.readNet(str(path), withInternal=False)
+    try:
+        return sumolib.net.readNet(str(path), withInternal=with_internal)
+    except Exception as exc:  # sumolib raises bare parser errors
+        raise UserError(f"{path}: not a readable SUMO network ({type(exc).__name__})") from None
 
 
 def check_net_file(path: Path) -> None:
