@@ -21,6 +21,11 @@ limit over 14 m/s, the start spacing by L / N over the paper's 125.7 m; the pape
 keeps them exactly. Unscaled, a 230 m ring with 22 vehicles and limits up to 10 m/s put
 the follower at a spacing its fleet never drives, behind a leader faster than its desired
 speed, 104 m ahead of it round the ring: the leader came round and ran into it.
+
+The trials themselves (``run_tests``: every follower, the IDM reference, the traces and
+the summary) take any core with ``reset`` / ``step``: the ring's ``RingCore`` here, the
+section's ``SectionCore`` in ``leader_follower_section`` (open and closed sections of the
+user's network, the same CSVs).
 """
 
 from __future__ import annotations
@@ -28,11 +33,13 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
+from typing import Protocol
 
 import numpy as np
 import pandas as pd
 
-from macromicro_sumo.env.ring import EpisodeBank, RingCore
+from macromicro_sumo.env.ring import EpisodeBank, RingCore, StepResult
+from macromicro_sumo.env.section_bank import SectionBank
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.physics import idm_accel
 from macromicro_sumo.scenario.ring import Scenario
@@ -76,8 +83,14 @@ class LeaderProfile:
         scaled by the scenario's upper speed limit over 14 m/s (the ramp keeps its length in
         time), the start spacing by the mean spacing L / N over 125.7 m. Times stay. On the
         paper's ring both factors are exactly 1."""
-        v = sc.speed_limits.range_mps[1] / PAPER_SPEED_LIMIT_MPS
-        d = sc.network.length_m / sc.fleet.n_vehicles / PAPER_MEAN_SPACING_M
+        return self.moved(sc.speed_limits.range_mps[1], sc.network.length_m / sc.fleet.n_vehicles)
+
+    def moved(self, speed_limit_mps: float, mean_spacing_m: float) -> LeaderProfile:
+        """This test on a road of limit ``speed_limit_mps`` whose traffic keeps a mean
+        front-to-front spacing ``mean_spacing_m``: speeds and ramp x limit / 14 m/s, the
+        start spacing x mean spacing / 125.7 m (the paper ring's L / N)."""
+        v = speed_limit_mps / PAPER_SPEED_LIMIT_MPS
+        d = mean_spacing_m / PAPER_MEAN_SPACING_M
         return replace(
             self,
             low_speed_mps=self.low_speed_mps * v,
@@ -225,23 +238,59 @@ class Trace:
     collision: bool
 
 
-def run_trial(core: RingCore, episode: int, follower: Follower, rng: np.random.Generator) -> Trace:
-    """Drive the follower of ``episode`` through the whole test; stops at a collision."""
+class Core(Protocol):
+    """What the trials need of an env core (``RingCore``, ``SectionCore``)."""
+
+    dt: float
+    leader: np.ndarray  # leader slot of every vehicle (the ring's and the section's)
+    bank: EpisodeBank | SectionBank
+
+    def reset(self, episode: int) -> np.ndarray: ...
+    def step(self, accel_hidden: np.ndarray) -> StepResult: ...
+
+
+def run_trial(
+    core: Core,
+    episode: int,
+    follower: Follower,
+    rng: np.random.Generator,
+    vehicle_length_m: float,
+    leader_speed_mps: np.ndarray | None = None,
+    after_reset: Callable[[Core], None] | None = None,
+) -> Trace:
+    """Drive the follower of ``episode`` through the whole test; stops at a collision.
+
+    ``leader_speed_mps`` (H + 1,): the leader is a hidden vehicle too (the section's core,
+    where a replayed vehicle follows its recorded positions) and is commanded the profile's
+    next speed every step; None: the bank replays it (the ring). ``after_reset(core)`` runs
+    after each reset (the section's: no lane changes).
+    """
     obs = core.reset(episode)
+    if after_reset is not None:
+        after_reset(core)
     h = core.bank.replay_speed_mps.shape[1] - 1
-    length = core.sc.fleet.length_m
-    rows = [(obs[LEADER, 0], obs[FOLLOWER, 0], obs[FOLLOWER, 2] - length)]
+    rows = [(obs[LEADER, 0], obs[FOLLOWER, 0], obs[FOLLOWER, 2] - vehicle_length_m)]
     collision = False
-    for _ in range(h):
+    for t in range(h):
         a = follower(obs[FOLLOWER], rng)
-        res = core.step(np.array([a]))
+        if leader_speed_mps is None:
+            res = core.step(np.array([a]))
+        else:  # v' = v + a dt = the profile's next speed (its ramp is within the bounds)
+            a_lead = (leader_speed_mps[t + 1] - obs[LEADER, 0]) / core.dt
+            res = core.step(np.array([a, a_lead]))
         if res.truncated:
             raise UserError(f"leader-follower test stopped by SUMO: {res.error}")
         obs = res.obs
-        rows.append((obs[LEADER, 0], obs[FOLLOWER, 0], obs[FOLLOWER, 2] - length))
-        if res.collision:
+        gap = obs[FOLLOWER, 2] - vehicle_length_m
+        rows.append((obs[LEADER, 0], obs[FOLLOWER, 0], gap))
+        if res.collision or gap < 0:
             collision = True
             break
+        if core.leader[FOLLOWER] != LEADER:
+            raise UserError(
+                f"leader-follower test: the follower lost its leader at t = {(t + 1) * core.dt:g} s "
+                f"(it sees {'a standing obstacle' if core.leader[FOLLOWER] < -1 else 'no vehicle'} ahead)"
+            )
     lead, foll, gap = (np.array(c) for c in zip(*rows, strict=True))
     return Trace(np.arange(len(rows)) * core.dt, lead, foll, gap, collision)
 
@@ -258,6 +307,83 @@ def rmse_vs_reference(speed_mps: np.ndarray, reference_mps: np.ndarray) -> float
     return float(np.sqrt(np.mean((speed_mps[1:n] - reference_mps[1:n]) ** 2)))
 
 
+def check_followers(followers: Mapping[str, Follower], n_trials: int) -> None:
+    if IDM_METHOD in followers:
+        raise UserError(f"follower name {IDM_METHOD!r} is reserved for the IDM reference")
+    if n_trials < 1:
+        raise UserError(f"n_trials = {n_trials}; accepted >= 1")
+
+
+def run_tests(
+    core: Core,
+    followers: Mapping[str, Follower],
+    reference: Follower,
+    n_trials: int,
+    seed: int,
+    vehicle_length_m: float,
+    leader_speeds_mps: np.ndarray | None = None,
+    after_reset: Callable[[Core], None] | None = None,
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Every scenario of ``SCENARIOS`` (episode i of ``core``'s bank): one trial of the
+    ``reference`` follower and ``n_trials`` of every follower; the road's part is the core.
+
+    Trial t of every method in a scenario draws from the generator seeded
+    ``[seed, scenario index, t]`` (common random numbers across methods).
+    ``leader_speeds_mps`` (E, H + 1): the leader's commanded profile per episode (see
+    ``run_trial``). Returns ``(traces, summary)``: traces has one row per (scenario, method,
+    trial, step) with the columns of ``leader_follower.csv``; summary one row per trial with
+    the RMSE against the reference, the smallest gap and whether the follower collided.
+    Where a collision ended the reference before a trial, ``idm_follower_speed_mps`` is NaN
+    for the trial's later steps.
+    """
+    check_followers(followers, n_trials)
+    frames, summary = [], []
+    for ep, scenario in enumerate(SCENARIOS):
+        lead = None if leader_speeds_mps is None else leader_speeds_mps[ep]
+
+        def trial(fn: Follower, rng: np.random.Generator, ep: int = ep, lead=lead) -> Trace:
+            return run_trial(core, ep, fn, rng, vehicle_length_m, lead, after_reset)
+
+        ref = trial(reference, np.random.default_rng([seed, ep, 0]))
+        runs = [(IDM_METHOD, 0, ref)]
+        for method, fn in followers.items():
+            for t in range(n_trials):
+                runs.append((method, t, trial(fn, np.random.default_rng([seed, ep, t]))))
+        for method, t, tr in runs:
+            n = len(tr.time_s)
+            # A collision ends a trace: the reference may be shorter than this trial.
+            ref_speed = np.full(n, np.nan)
+            m = min(n, len(ref.follower_speed_mps))
+            ref_speed[:m] = ref.follower_speed_mps[:m]
+            frames.append(
+                pd.DataFrame(
+                    {
+                        "scenario": scenario,
+                        "method": method,
+                        "trial": t,
+                        "time_s": tr.time_s,
+                        "leader_speed_mps": tr.leader_speed_mps,
+                        "follower_speed_mps": tr.follower_speed_mps,
+                        "idm_follower_speed_mps": ref_speed,
+                        "gap_m": tr.gap_m,
+                    }
+                )
+            )
+            summary.append(
+                {
+                    "scenario": scenario,
+                    "method": method,
+                    "trial": t,
+                    "rmse_vs_idm_mps": rmse_vs_reference(
+                        tr.follower_speed_mps, ref.follower_speed_mps
+                    ),
+                    "min_gap_m": float(tr.gap_m.min()),
+                    "collision": tr.collision,
+                }
+            )
+    return pd.concat(frames, ignore_index=True), pd.DataFrame(summary)
+
+
 def run_leader_follower(
     sc: Scenario,
     followers: Mapping[str, Follower],
@@ -267,71 +393,21 @@ def run_leader_follower(
     profile: LeaderProfile = LeaderProfile(),
     speed_limit_mps: float | None = None,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Both scenarios: one IDM trial and ``n_trials`` trials of every follower in SUMO.
+    """Both scenarios on the ring: ``run_tests`` with IDM of ``idm_params`` as reference.
 
     ``profile`` is stated for the paper's ring and runs as ``profile.on_ring(sc)``.
     ``speed_limit_mps`` is the uniform limit (default: the scenario's upper limit bound).
-    Trial t of every method in a scenario draws from the generator seeded
-    ``[seed, scenario index, t]`` (common random numbers across methods).
-    Returns ``(traces, summary)``: traces has one row per (scenario, method, trial, step)
-    with the columns of ``leader_follower.csv``; summary one row per trial with the RMSE
-    against the IDM follower, the smallest gap and whether the follower collided. Where a
-    collision ended the IDM reference before a trial, ``idm_follower_speed_mps`` is NaN for
-    the trial's later steps.
     """
-    if IDM_METHOD in followers:
-        raise UserError(f"follower name {IDM_METHOD!r} is reserved for the IDM reference")
-    if n_trials < 1:
-        raise UserError(f"n_trials = {n_trials}; accepted >= 1")
+    check_followers(followers, n_trials)
     limit = sc.speed_limits.range_mps[1] if speed_limit_mps is None else speed_limit_mps
     bank = leader_follower_bank(sc, profile.on_ring(sc), limit)
     idm = idm_follower(idm_params, sc.fleet.length_m)
-    frames, summary = [], []
     # One SUMO run per process, reused for every trial; the follower as it drives itself.
     core = RingCore(sc, bank, seed=seed, safety="none")
     try:
-        for ep, scenario in enumerate(SCENARIOS):
-            ref = run_trial(core, ep, idm, np.random.default_rng([seed, ep, 0]))
-            runs = [(IDM_METHOD, 0, ref)]
-            for method, fn in followers.items():
-                for trial in range(n_trials):
-                    rng = np.random.default_rng([seed, ep, trial])
-                    runs.append((method, trial, run_trial(core, ep, fn, rng)))
-            for method, trial, tr in runs:
-                n = len(tr.time_s)
-                # A collision ends a trace: the reference may be shorter than this trial.
-                ref_speed = np.full(n, np.nan)
-                m = min(n, len(ref.follower_speed_mps))
-                ref_speed[:m] = ref.follower_speed_mps[:m]
-                frames.append(
-                    pd.DataFrame(
-                        {
-                            "scenario": scenario,
-                            "method": method,
-                            "trial": trial,
-                            "time_s": tr.time_s,
-                            "leader_speed_mps": tr.leader_speed_mps,
-                            "follower_speed_mps": tr.follower_speed_mps,
-                            "idm_follower_speed_mps": ref_speed,
-                            "gap_m": tr.gap_m,
-                        }
-                    )
-                )
-                summary.append(
-                    {
-                        "scenario": scenario,
-                        "method": method,
-                        "trial": trial,
-                        "rmse_vs_idm_mps": rmse_vs_reference(
-                            tr.follower_speed_mps, ref.follower_speed_mps
-                        ),
-                        "min_gap_m": float(tr.gap_m.min()),
-                        "collision": tr.collision,
-                    }
-                )
+        return run_tests(core, followers, idm, n_trials, seed, sc.fleet.length_m)
     finally:
         core.close()
-    return pd.concat(frames, ignore_index=True), pd.DataFrame(summary)
 
 
 def method_summary(summary: pd.DataFrame) -> pd.DataFrame:
