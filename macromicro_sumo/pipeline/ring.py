@@ -34,7 +34,7 @@ from macromicro_sumo.pipeline.refinement import refine
 from macromicro_sumo.policy.checkpoint import policy_file
 from macromicro_sumo.policy.stage import PriorFit, run_train_policy
 from macromicro_sumo.report.deploy import make_deploy_plots
-from macromicro_sumo.report.ring import write_report
+from macromicro_sumo.report.write import write_report
 from macromicro_sumo.scenario.ring import Scenario
 from macromicro_sumo.truth.ring import simulate
 

@@ -18,7 +18,7 @@ from macromicro_sumo.evaluation.idm_fit import fit_policy_prior
 from macromicro_sumo.evaluation.section import evaluate_section, micro_pairs
 from macromicro_sumo.generator.section_train import run_train_section_generator
 from macromicro_sumo.pipeline.ring import PipelineRoad, run_pipeline
-from macromicro_sumo.report.section import write_section_report
+from macromicro_sumo.report.write import write_report as write_section_report
 from macromicro_sumo.truth.section import simulate_section
 
 

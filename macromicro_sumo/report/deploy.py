@@ -16,8 +16,6 @@ from pathlib import Path
 import matplotlib as mpl
 import numpy as np
 import pandas as pd
-from matplotlib.collections import LineCollection
-from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 
 from macromicro_sumo.deploy.compare import (
@@ -29,7 +27,16 @@ from macromicro_sumo.deploy.compare import (
     truth_geometry,
 )
 from macromicro_sumo.deploy.safety import FLOOR_SHARE
-from macromicro_sumo.report.plots import METHOD_COLORS, REFERENCE_COLOR, SPEED_CMAP, save_figure
+from macromicro_sumo.report.plots import (
+    METHOD_COLORS,
+    REFERENCE_COLOR,
+    SPEED_CMAP,
+    finish_lane_grid,
+    lane_grid,
+    plot_time_space,
+    save_figure,
+    window,
+)
 from macromicro_sumo.report.tables import markdown_table
 
 TRUTH = "ground_truth"
@@ -42,6 +49,7 @@ TARGET_SHARE = 0.85  # GEH < 5 and speed within 5% in at least 85% of station-in
 MAX_STATIONS = 16  # fundamental diagrams drawn (the first ones along the road)
 TIME_BIN_S = 10.0
 SPACE_BINS = 60
+TIME_SPACE_S = 300.0  # the time-space diagram's first seconds of the run
 
 # (column, header, how to print, higher is better)
 SUMMARY_TABLE = (
@@ -122,38 +130,6 @@ def plot_fundamental_diagrams(comparison: pd.DataFrame, path: Path | str) -> Pat
     return save_figure(fig, path)
 
 
-def window(lanes: Mapping[str, pd.DataFrame], run: int) -> dict[str, pd.DataFrame]:
-    """The rows of ``run`` up to the last time every source recorded (a deployment may
-    record its trajectories for the first minutes only)."""
-    d = {name: df[df["run"] == run] for name, df in lanes.items()}
-    d = {name: df for name, df in d.items() if len(df)}
-    if not d:
-        raise ValueError(f"no trajectory of run {run} to plot")
-    end = min(float(df["time_s"].max()) for df in d.values())
-    return {name: df[df["time_s"] <= end + 1e-9] for name, df in d.items()}
-
-
-def lane_grid(
-    d: Mapping[str, pd.DataFrame], title: str
-) -> tuple[Figure, np.ndarray, list[int], Normalize]:
-    """A figure with a row per lane and a column per source, and one speed scale."""
-    lane_ids = sorted({int(x) for df in d.values() for x in df["lane_index"].unique()})
-    v = np.concatenate([df["speed_mps"].to_numpy(float) for df in d.values()])
-    norm = Normalize(float(np.nanmin(v)), float(np.nanmax(v)) + 1e-6)
-    fig = Figure(figsize=(4.0 * len(d) + 1.2, 3.0 * len(lane_ids) + 0.8), layout="constrained")
-    axes = fig.subplots(len(lane_ids), len(d), squeeze=False, sharex=True, sharey=True)
-    fig.suptitle(title)
-    return fig, axes, lane_ids, norm
-
-
-def finish_lane_grid(fig: Figure, axes: np.ndarray, names: list[str], lane_ids: list[int]) -> None:
-    for j, name in enumerate(names):
-        axes[0, j].set_title(name)
-        axes[-1, j].set_xlabel("time (s)")
-    for i, lane in enumerate(lane_ids):
-        axes[i, 0].set_ylabel(f"lane {lane}: position (m)")
-
-
 def plot_speed_heatmaps(
     lanes: Mapping[str, pd.DataFrame],
     path: Path | str,
@@ -188,46 +164,6 @@ def plot_speed_heatmaps(
     return save_figure(fig, path)
 
 
-def lane_segments(g: pd.DataFrame, max_dt_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Line segments (time, position) of every vehicle's consecutive rows on one lane, and
-    their mean speeds; no segment across a lane change (a gap in time), a restart of time
-    or the wrap of a loop (position going back)."""
-    g = g.sort_values(["vehicle_id", "time_s"], kind="stable")
-    t, x, v = (g[c].to_numpy(float) for c in ("time_s", "arc_m", "speed_mps"))
-    same = g["vehicle_id"].to_numpy()[1:] == g["vehicle_id"].to_numpy()[:-1]
-    dt, dx = np.diff(t), np.diff(x)
-    keep = same & (dt > 0) & (dt <= max_dt_s) & (dx >= 0)
-    pts = np.column_stack([t, x])
-    return np.stack([pts[:-1], pts[1:]], axis=1)[keep], 0.5 * (v[:-1] + v[1:])[keep]
-
-
-def plot_lane_time_space(
-    lanes: Mapping[str, pd.DataFrame], path: Path | str, run: int, seconds: float = 300.0
-) -> Path:
-    """Time-space diagram per lane: position against time, a line per vehicle coloured by
-    speed, one row per lane and one column per source, over the first ``seconds`` of one
-    run (where every source recorded)."""
-    d = window(lanes, run)
-    start = min(float(df["time_s"].min()) for df in d.values())
-    d = {k: df[df["time_s"] <= start + seconds] for k, df in d.items()}
-    fig, axes, lane_ids, norm = lane_grid(d, f"Time-space diagram per lane, run {run}")
-    cmap = mpl.colormaps[SPEED_CMAP]
-    for j, df in enumerate(d.values()):
-        times = np.unique(df["time_s"].to_numpy(float))
-        step = float(np.median(np.diff(times))) if len(times) > 1 else 1.0
-        for i, lane in enumerate(lane_ids):
-            segs, speeds = lane_segments(df[df["lane_index"] == lane], 1.5 * step)
-            if len(segs):
-                lc = LineCollection(segs, cmap=cmap, norm=norm, linewidths=1.2)
-                lc.set_array(speeds)
-                axes[i, j].add_collection(lc)
-            axes[i, j].autoscale_view()
-            axes[i, j].grid(alpha=0.3)
-    finish_lane_grid(fig, axes, list(d), lane_ids)
-    fig.colorbar(mpl.cm.ScalarMappable(norm=norm, cmap=cmap), ax=axes, label="speed (m/s)")
-    return save_figure(fig, path)
-
-
 def make_deploy_plots(
     truth_dir: Path | str,
     method_dirs: Mapping[str, Path | str],
@@ -250,7 +186,8 @@ def make_deploy_plots(
     run = int(comparison["run"].min()) if run is None else run
     if any(len(df) and (df["run"] == run).any() for df in lanes.values()):
         made.append(plot_speed_heatmaps(lanes, plots / "deploy_speed_heatmap.png", run))
-        made.append(plot_lane_time_space(lanes, plots / "deploy_time_space.png", run))
+        ts = plots / "deploy_time_space.png"
+        made.append(plot_time_space(lanes, ts, run, seconds=TIME_SPACE_S))
     return made
 
 

@@ -1,4 +1,5 @@
-"""Evaluation figures as PNG files: leader-follower profiles, time-space diagrams,
+"""Evaluation figures as PNG files: leader-follower profiles, time-space diagrams (any
+road: a row per lane, a column per source), detectors against trajectories,
 speed/spacing distributions and training curves.
 
 Every function takes DataFrames (or CSV paths) and writes one PNG atomically (a temporary
@@ -8,7 +9,7 @@ directly, not pyplot: no display, no global backend switch, no figures left open
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import matplotlib as mpl
@@ -131,60 +132,134 @@ def plot_leader_follower(
 # --------------------------------------------------------------------------- time-space
 
 
-def _trajectory_segments(
-    t: np.ndarray, x: np.ndarray, v: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Line segments of one vehicle's trajectory, leaving out jumps: the wrap at the end of
-    the ring (position decreases) and restarts of time (a new episode)."""
+def window(
+    sources: Mapping[str, pd.DataFrame], run: int | None, seconds: float | None = None
+) -> dict[str, pd.DataFrame]:
+    """The rows of ``run`` (every row when None) up to the last time every source recorded
+    (a deployment may record its trajectories for the first minutes only), and of those the
+    first ``seconds``; sources without such rows are left out."""
+    d = {name: df if run is None else df[df["run"] == run] for name, df in sources.items()}
+    d = {name: df for name, df in d.items() if len(df)}
+    if not d:
+        raise ValueError(
+            "time-space data: no rows to plot"
+            if run is None
+            else f"no trajectory of run {run} to plot"
+        )
+    end = min(float(df["time_s"].max()) for df in d.values())
+    if seconds is not None:
+        end = min(end, min(float(df["time_s"].min()) for df in d.values()) + seconds)
+    return {name: df[df["time_s"] <= end + 1e-9] for name, df in d.items()}
+
+
+def lane_grid(
+    d: Mapping[str, pd.DataFrame], title: str
+) -> tuple[Figure, np.ndarray, list[int], Normalize]:
+    """A figure with a row per lane and a column per source, and one speed scale."""
+    lane_ids = sorted({int(x) for df in d.values() for x in df["lane_index"].unique()})
+    v = np.concatenate([df["speed_mps"].to_numpy(float) for df in d.values()])
+    norm = Normalize(float(np.nanmin(v)), float(np.nanmax(v)) + 1e-6)
+    fig = Figure(figsize=(4.0 * len(d) + 1.2, 3.0 * len(lane_ids) + 0.8), layout="constrained")
+    axes = fig.subplots(len(lane_ids), len(d), squeeze=False, sharex=True, sharey=True)
+    fig.suptitle(title)
+    return fig, axes, lane_ids, norm
+
+
+def finish_lane_grid(fig: Figure, axes: np.ndarray, names: list[str], lane_ids: list[int]) -> None:
+    for j, name in enumerate(names):
+        axes[0, j].set_title(name)
+        axes[-1, j].set_xlabel("time (s)")
+    for i, lane in enumerate(lane_ids):
+        axes[i, 0].set_ylabel(f"lane {lane}: position (m)")
+
+
+def lane_segments(g: pd.DataFrame, max_dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Line segments (time, position) of every vehicle's consecutive rows on one lane, and
+    their mean speeds; no segment across a lane change (a gap in time), a restart of time
+    or the wrap of a loop (position going back)."""
+    g = g.sort_values(["vehicle_id", "time_s"], kind="stable")
+    t, x, v = (g[c].to_numpy(float) for c in ("time_s", "arc_m", "speed_mps"))
+    same = g["vehicle_id"].to_numpy()[1:] == g["vehicle_id"].to_numpy()[:-1]
+    dt, dx = np.diff(t), np.diff(x)
+    keep = same & (dt > 0) & (dt <= max_dt_s) & (dx >= 0)
     pts = np.column_stack([t, x])
-    seg = np.stack([pts[:-1], pts[1:]], axis=1)
-    keep = (np.diff(x) >= 0) & (np.diff(t) > 0)
-    return seg[keep], 0.5 * (v[:-1] + v[1:])[keep]
+    return np.stack([pts[:-1], pts[1:]], axis=1)[keep], 0.5 * (v[:-1] + v[1:])[keep]
 
 
 def plot_time_space(
-    df: pd.DataFrame | Path | str,
+    sources: Mapping[str, pd.DataFrame],
     path: Path | str,
-    ring_length_m: float | None = None,
-    methods: Sequence[str] | None = None,
+    run: int | None = None,
+    seconds: float | None = None,
+    length_m: float | None = None,
+    borders_m: Sequence[float] = (),
+    title: str = "Time-space diagram per lane",
 ) -> Path:
-    """Time-space diagram per method: arc position against time, coloured by speed.
+    """Time-space diagram of any road: position against time, a line per vehicle coloured by
+    speed, one row per lane (0 = rightmost) and one column per source (the ground truth
+    beside each method), one speed scale.
 
-    ``df`` has the columns method, time_s, vehicle_id, arc_pos_m, speed_mps. Lines are not
-    drawn across the wrap of the ring (nor across a restart of time). One colour scale for
-    all panels.
+    ``sources`` map a name to trajectories with the columns time_s, vehicle_id, arc_m,
+    speed_mps, and lane_index (a road without it has one lane) and run where ``run`` picks
+    one. The first ``seconds`` are drawn where every source recorded; ``length_m`` is the
+    top of the position axis (the data's extent without it), ``borders_m`` are drawn dotted
+    across it (edge borders).
     """
-    df = _frame(df)
-    _require(df, ["method", "time_s", "vehicle_id", "arc_pos_m", "speed_mps"], "time-space data")
-    methods = list(methods or dict.fromkeys(df["method"]))
-    norm = Normalize(float(df["speed_mps"].min()), float(df["speed_mps"].max()))
-    if norm.vmin == norm.vmax:
-        norm = Normalize(norm.vmin - 0.5, norm.vmax + 0.5)
+    for name, df in sources.items():
+        _require(df, ["time_s", "vehicle_id", "arc_m", "speed_mps"], f"time-space data {name}")
+    d = window(
+        {k: df if "lane_index" in df else df.assign(lane_index=0) for k, df in sources.items()},
+        run,
+        seconds,
+    )
+    fig, axes, lane_ids, norm = lane_grid(d, title if run is None else f"{title}, run {run}")
     cmap = mpl.colormaps[SPEED_CMAP]
-    fig = Figure(figsize=(5.5 * len(methods) + 1.0, 5.0), layout="constrained")
-    axes = fig.subplots(1, len(methods), squeeze=False, sharey=True)[0]
-    top = ring_length_m or float(df["arc_pos_m"].max())
-    for ax, method in zip(axes, methods, strict=True):
-        d = df[df["method"] == method]
-        segs, speeds = [], []
-        for _, veh in d.groupby("vehicle_id", sort=True):
-            s, v = _trajectory_segments(
-                veh["time_s"].to_numpy(), veh["arc_pos_m"].to_numpy(), veh["speed_mps"].to_numpy()
-            )
-            segs.append(s)
-            speeds.append(v)
-        lc = LineCollection(np.concatenate(segs), cmap=cmap, norm=norm, linewidths=1.6)
-        lc.set_array(np.concatenate(speeds))
-        ax.add_collection(lc)
-        ax.set_xlim(d["time_s"].min(), d["time_s"].max())
-        ax.set_ylim(0.0, top)
-        ax.set_title(f"{method}: {d['vehicle_id'].nunique()} vehicles")
-        ax.set_xlabel("time (s)")
+    for j, df in enumerate(d.values()):
+        times = np.unique(df["time_s"].to_numpy(float))
+        step = float(np.median(np.diff(times))) if len(times) > 1 else 1.0
+        for i, lane in enumerate(lane_ids):
+            ax = axes[i, j]
+            segs, speeds = lane_segments(df[df["lane_index"] == lane], 1.5 * step)
+            if len(segs):
+                lc = LineCollection(segs, cmap=cmap, norm=norm, linewidths=1.2)
+                lc.set_array(speeds)
+                ax.add_collection(lc)
+            ax.autoscale_view()
+            if length_m is not None:
+                ax.set_ylim(0.0, length_m)
+            for border in borders_m:
+                ax.axhline(border, color="grey", lw=0.5, ls=":")
+            ax.grid(alpha=0.3)
+    finish_lane_grid(fig, axes, list(d), lane_ids)
+    fig.colorbar(mpl.cm.ScalarMappable(norm=norm, cmap=cmap), ax=axes, label="speed (m/s)")
+    return save_figure(fig, path)
+
+
+def plot_detectors_vs_truth(macro: pd.DataFrame, k_est: pd.DataFrame, path: Path) -> Path:
+    """Per interval: detector vs trajectory speed and density; K estimate vs truth."""
+    fig = Figure(figsize=(14, 4.2), layout="constrained")
+    ax_v, ax_k, ax_h = fig.subplots(1, 3)
+    for (src, g), style in zip(macro.groupby("source"), ("-", "--"), strict=False):
+        g = g.sort_values(["run", "begin_s"])
+        x = np.arange(len(g))
+        ax_v.plot(x, g["mean_speed_mps"], ls=style, marker=".", label=src)
+        ax_k.plot(x, g["density_vpkm_lane"], ls=style, marker=".", label=src)
+    ax_v.set_title("Space-mean speed per interval")
+    ax_v.set_ylabel("speed (m/s)")
+    ax_k.set_title("Density per lane per interval")
+    ax_k.set_ylabel("density (veh/km/lane)")
+    for ax in (ax_v, ax_k):
+        ax.set_xlabel("interval (runs one after another)")
+        ax.legend()
         ax.grid(alpha=0.3)
-    axes[0].set_ylabel("arc position on the ring (m)")
-    sm = mpl.cm.ScalarMappable(norm=norm, cmap=cmap)
-    fig.colorbar(sm, ax=list(axes), label="speed (m/s)", shrink=0.9)
-    fig.suptitle("Time-space diagram (one line per vehicle, coloured by speed)")
+    ax_h.scatter(k_est["k_true"], k_est["k_est"], s=10, alpha=0.6)
+    lo, hi = 0, max(1, int(max(k_est["k_true"].max(), k_est["k_est"].max())) + 1)
+    ax_h.plot([lo, hi], [lo, hi], color="black", lw=1)
+    ax_h.set_xlabel("hidden vehicles, truth")
+    ax_h.set_ylabel("hidden vehicles, estimated from detectors")
+    err = k_est["k_error"].abs().mean() if len(k_est) else np.nan
+    ax_h.set_title(f"Hidden count per snapshot (mean |error| {err:.2f} veh)")
+    ax_h.grid(alpha=0.3)
     return save_figure(fig, path)
 
 

@@ -18,7 +18,7 @@ from macromicro_sumo.cli import main
 from macromicro_sumo.deploy.calibrate import IDM_RANGES
 from macromicro_sumo.deploy.stage import COMPARISON, HISTORY, MANIFEST, SUMMARY, deploy
 from macromicro_sumo.report.deploy import deployment_section, make_deploy_plots
-from macromicro_sumo.report.ring import write_report
+from macromicro_sumo.report.write import write_report
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import simulate_section
 

@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 
 from macromicro_sumo.evaluation.statistics import paired_bootstrap_ci, paired_bootstrap_std_ratio_ci
-from macromicro_sumo.report.ring import figure_winners
+from macromicro_sumo.report.alignment import figure_winners
 
 
 def test_bootstrap_interval_covers_the_mean_and_is_seeded() -> None:

@@ -21,9 +21,9 @@ from macromicro_sumo.deploy.compare import (
 from macromicro_sumo.report.deploy import (
     deployment_markdown,
     make_deploy_plots,
-    plot_lane_time_space,
     plot_speed_heatmaps,
 )
+from macromicro_sumo.report.plots import plot_time_space
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
@@ -75,7 +75,7 @@ def test_lane_plots_of_a_two_lane_road(tmp_path: Path) -> None:
 
     lanes = {"ground_truth": frame(12.0), "policy": frame(8.0)}
     assert is_png(plot_speed_heatmaps(lanes, tmp_path / "heat.png", run=0, time_bin_s=5.0))
-    assert is_png(plot_lane_time_space(lanes, tmp_path / "ts.png", run=0))
+    assert is_png(plot_time_space(lanes, tmp_path / "ts.png", run=0))
     with pytest.raises(ValueError, match="run 3"):
         plot_speed_heatmaps(lanes, tmp_path / "none.png", run=3)
 

@@ -91,20 +91,24 @@ def test_leader_follower_plot_from_csv_replaces_old_file(tmp_path):
 def test_time_space_plot(tmp_path):
     df = pd.concat(
         [ring_trajectories("ground_truth", 5, 12.0), ring_trajectories("policy", 5, 12.5)]
-    )
-    plots.plot_time_space(df, tmp_path / "time_space.png", ring_length_m=RING_M)
+    ).rename(columns={"arc_pos_m": "arc_m"})
+    sources = {m: g for m, g in df.groupby("method")}
+    plots.plot_time_space(sources, tmp_path / "time_space.png", length_m=RING_M)
     assert_only_png(tmp_path, "time_space.png")
 
 
-def test_trajectory_segments_skip_the_wrap_and_time_restarts():
-    t = np.array([0.0, 1.0, 2.0, 3.0, 0.0, 1.0])
-    x = np.array([600.0, 612.0, 624.0, 8.0, 100.0, 112.0])  # wraps after t = 2, restarts at 4
-    v = np.full(6, 12.0)
-    segs, speeds = plots._trajectory_segments(t, x, v)
+def test_lane_segments_skip_the_wrap_and_join_no_two_vehicles():
+    t = np.array([0.0, 1.0, 2.0, 3.0, 0.0, 1.0, 2.0])
+    x = np.array([600.0, 612.0, 624.0, 8.0, 100.0, 112.0, 124.0])  # a wraps after t = 2
+    ids = ["a"] * 4 + ["b"] * 2 + ["c"]  # c's one row joins nothing
+    g = pd.DataFrame({"time_s": t, "arc_m": x, "speed_mps": 12.0, "vehicle_id": ids})
+    segs, speeds = plots.lane_segments(g, max_dt_s=1.5)
     assert len(segs) == len(speeds) == 3
     assert (segs[:, 1, 1] >= segs[:, 0, 1]).all()  # no segment runs backwards
     assert (segs[:, 1, 0] > segs[:, 0, 0]).all()
     np.testing.assert_array_equal(segs[:, 0, 1], [600.0, 612.0, 100.0])
+    # A gap longer than max_dt_s (the vehicle left the lane meanwhile) is not drawn.
+    assert len(plots.lane_segments(g, max_dt_s=0.5)[0]) == 0
 
 
 @pytest.mark.parametrize("by_k", [False, True])
@@ -167,5 +171,6 @@ def test_bad_input_writes_nothing(tmp_path):
     with pytest.raises(ValueError, match="missing columns gap_m"):
         plots.plot_leader_follower(lf_traces().drop(columns="gap_m"), tmp_path / "x.png")
     with pytest.raises(ValueError, match="no rows"):
-        plots.plot_time_space(ring_trajectories("gt", 2, 12.0).iloc[:0], tmp_path / "x.png")
+        empty = ring_trajectories("gt", 2, 12.0).rename(columns={"arc_pos_m": "arc_m"}).iloc[:0]
+        plots.plot_time_space({"gt": empty}, tmp_path / "x.png")
     assert list(tmp_path.iterdir()) == []

@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 
 from macromicro_sumo.evaluation.section import REFERENCE_RECORDED, REFERENCE_STATIONS
-from macromicro_sumo.report.section import alignment_reference, closest_methods
+from macromicro_sumo.report.alignment import alignment_reference, closest_methods
 
 NAN = np.nan
 

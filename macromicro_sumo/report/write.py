@@ -1,0 +1,441 @@
+"""report.md and its plots for every road: one writer, and per kind of road (the paper's ring,
+a section of a user's network) a table of what its report shows (``ReportKind``).
+
+The parts both kinds show are written once here (the generator's table, the macro
+alignment, micro consistency, the deployment, the plots, the manifest); the parts only one
+kind has (the paper's figures beside ours and the leader-follower tests on the ring; the
+section's lanes, demand and hidden-count estimate) are entries of its table. Every part
+reads the run folder's CSVs and is left out where a stage did not write them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from macromicro_sumo.evaluation.leader_follower import LeaderProfile, method_summary
+from macromicro_sumo.evaluation.methods import methods_markdown
+from macromicro_sumo.files import write_text
+from macromicro_sumo.report import plots
+from macromicro_sumo.report.alignment import (
+    PAPER_GT,
+    REFINED_COLUMNS,
+    RING_ALIGNMENT,
+    SECTION_ALIGNMENT,
+    alignment_reference,
+    closest_methods,
+    figure_winners,
+    paper_policy,
+)
+from macromicro_sumo.report.deploy import deployment_section
+from macromicro_sumo.report.tables import markdown_table, read_if_present, table_section
+from macromicro_sumo.scenario.section import SectionScenario
+from macromicro_sumo.truth.section import load_section_truth
+
+ALIGNMENT = "evaluation/macro_alignment.csv"
+TIME_SPACE_S = 300.0  # a section's ground-truth time-space diagram: the run's first seconds
+
+
+@dataclass
+class Run:
+    """One run folder being reported: the scenario, the folder, the run manifest and the
+    plots drawn for it (``plots/``, in the order the report shows them)."""
+
+    sc: Any
+    out: Path
+    manifest: dict[str, Any]
+    plots: list[Path] = field(default_factory=list)
+
+    def csv(self, rel: str) -> pd.DataFrame | None:
+        return read_if_present(self.out / rel)
+
+    def json(self, rel: str) -> dict[str, Any]:
+        return json.loads((self.out / rel).read_text())
+
+    def png(self, name: str) -> Path:
+        """Where plot ``name`` goes (``plots/``, made when the first plot is drawn)."""
+        (self.out / "plots").mkdir(exist_ok=True)
+        return self.out / "plots" / name
+
+
+Part = Callable[[Run], list[str]]
+PlotJob = Callable[[Run], list[Path]]
+
+
+@dataclass(frozen=True)
+class ReportKind:
+    """What report.md shows of one kind of road: its plots and its parts, in order."""
+
+    plots: tuple[PlotJob, ...]
+    parts: tuple[Part, ...]
+
+
+# --------------------------------------------------------------------------- plots
+
+
+def csv_plot(src: str, png: str, draw: Callable[[Path, Path], Path]) -> PlotJob:
+    """``draw(run folder / src, plots / png)`` where the stage wrote ``src``. A CSV without
+    the columns the plot needs (a generator log of another kind) is left to the report's
+    table."""
+
+    def job(r: Run) -> list[Path]:
+        if not (r.out / src).is_file():
+            return []
+        with contextlib.suppress(ValueError):
+            return [draw(r.out / src, r.png(png))]
+        return []
+
+    return job
+
+
+def ring_time_space(r: Run) -> list[Path]:
+    """Ground truth beside the policy on the ring (the evaluation's long rollouts)."""
+    df = r.csv("evaluation/timespace.csv")
+    if df is None:
+        return []
+    df = df.rename(columns={"arc_pos_m": "arc_m"})
+    sources = {str(m): g for m, g in df.groupby("method", sort=False)}
+    png, ring_m = r.png("time_space.png"), r.sc.network.length_m
+    return [plots.plot_time_space(sources, png, length_m=ring_m, title="Time-space diagram")]
+
+
+def section_truth_plots(r: Run) -> list[Path]:
+    """A held-out ground-truth run's time-space diagram per lane; detectors against the
+    trajectories and the hidden-count estimate."""
+    if not (r.out / "evaluation" / "evaluation_manifest.json").is_file():
+        return []
+    truth = load_section_truth(r.out / "ground_truth")
+    run = int(r.json("evaluation/evaluation_manifest.json")["held_out_runs"][0])
+    sec = truth.section
+    return [
+        plots.plot_time_space(
+            {"ground_truth": truth.trajectories},
+            r.png("time_space.png"),
+            run,
+            TIME_SPACE_S,
+            sec.length_m,
+            sec.offsets_m[1:],
+            "Ground truth (dotted: edge borders)",
+        ),
+        plots.plot_detectors_vs_truth(truth.macro, truth.k_estimate, r.png("detectors.png")),
+    ]
+
+
+def estimated_distributions(r: Run) -> list[Path]:
+    """Speed and spacing per method on the scenes completed with the estimated hidden count."""
+    src = r.out / "evaluation" / "eval_samples.csv"
+    if not src.is_file():
+        return []
+    samples = pd.read_csv(src, dtype={"hidden_count": str})
+    est = samples[samples["hidden_count"] == "estimated"]
+    return [plots.plot_distributions(est, r.png("distributions.png"))]
+
+
+TRAINING_PLOTS = (
+    csv_plot(
+        "generator/generator_train_log.csv", "generator_training.png", plots.plot_generator_training
+    ),
+    csv_plot("policy/policy_train_log.csv", "policy_training.png", plots.plot_policy_training),
+)
+
+
+# --------------------------------------------------------------------------- shared parts
+
+
+def generator_part(r: Run, table: Callable[[pd.DataFrame], pd.DataFrame], digits: int) -> list[str]:
+    gen = r.csv("generator/generator_metrics.csv")
+    return table_section(
+        "Stage I: generator (held-out snapshots)", None if gen is None else table(gen), digits
+    )
+
+
+def alignment_part(
+    r: Run,
+    heading: Callable[[Any], str],
+    road: str,
+    columns: tuple[str, ...],
+    before: Callable[[pd.DataFrame], list[str]] = lambda align: [],
+    after: Callable[[pd.DataFrame], list[str]] = lambda align: [],
+) -> list[str]:
+    """The methods on the held-out scenes: what each is (``road``'s entries of the methods
+    registry), ``columns`` of macro_alignment.csv, and the kind's words ``before`` and
+    ``after`` the table."""
+    align = r.csv(ALIGNMENT)
+    if align is None:
+        return []
+    return [
+        f"## Macro alignment ({heading(r.sc)})",
+        "",
+        *methods_markdown(road, set(align["method"])),
+        *before(align),
+        markdown_table(align[[c for c in columns if c in align]]),
+        "",
+        *after(align),
+    ]
+
+
+def micro_part(r: Run, digits: int) -> list[str]:
+    micro = r.csv("evaluation/micro_consistency.csv")
+    return table_section("Micro consistency (held-out observed actions)", micro, digits)
+
+
+def deployment_part(r: Run) -> list[str]:
+    return deployment_section(r.out)
+
+
+def plots_part(r: Run) -> list[str]:
+    if not r.plots:
+        return []
+    return ["## Plots", "", *(f"![{p.stem}](plots/{p.name})" for p in r.plots), ""]
+
+
+def manifest_part(r: Run) -> list[str]:
+    keys = ("timings_s", "versions", "command", "seed")
+    text = json.dumps({k: r.manifest[k] for k in keys if k in r.manifest}, indent=2, default=str)
+    return ["## Manifest", "", "```json", text, "```", ""]
+
+
+# --------------------------------------------------------------------------- the ring
+
+
+# The generator's held-out figures the report shows (where its metrics have them).
+GENERATOR_COLUMNS = (
+    "method",
+    "K",
+    "feasibility_rate",
+    "n_no_feasible",
+    "projected_vehicles",
+    "speed_rel_err",
+    "L_mean",
+    "L_min",
+    "L_max",
+    "L_var",
+    "pos_err_m",
+    "speed_err_mps",
+)
+
+
+def ring_head(r: Run) -> list[str]:
+    sc = r.sc
+    lines = [
+        f"# macromicro-sumo report: {sc.name}",
+        "",
+        f"Scenario `{sc.source}` (sha256 `{sc.digest()[:12]}`), seed {sc.seed}. "
+        "Every figure below was measured in this run.",
+        "",
+    ]
+    traj, runs = r.csv("ground_truth/trajectories.csv"), r.csv("ground_truth/runs.csv")
+    if traj is None or runs is None:
+        return lines
+    ours = {
+        "": "ours (SUMO)",
+        "mean speed (m/s)": traj["speed_mps"].mean(),
+        "speed std (m/s)": traj["speed_mps"].std(),
+        "mean spacing (m)": traj["spacing_m"].mean(),
+        "spacing std (m)": traj["spacing_m"].std(),
+        "collisions": int(runs["collisions"].sum()),
+        "teleports": int(runs["teleports"].sum()),
+    }
+    paper = dict(zip(ours, ["paper", *PAPER_GT.values(), "", ""], strict=True))
+    lines += ["## Ground truth", "", markdown_table(pd.DataFrame([paper, ours]), 2), ""]
+    macro = r.csv("ground_truth/macro.csv")
+    if macro is not None:
+        d = macro[macro["source"] == "detectors"].set_index(["run", "begin_s"])
+        t = macro[macro["source"] == "trajectories"].set_index(["run", "begin_s"])
+        err = {
+            c: float(((d[c] - t[c]) / t[c]).abs().max() * 100)
+            for c in ("mean_speed_mps", "density_vehpkm", "mean_spacing_m")
+        }
+        worst = ", ".join(f"{k} {v:.2f}%" for k, v in err.items())
+        lines += [f"Detector estimates vs trajectories, worst interval: {worst}.", ""]
+    return lines
+
+
+def refinement_part(r: Run) -> list[str]:
+    align, refined = r.csv(ALIGNMENT), r.csv(f"refined/{ALIGNMENT}")
+    if align is None or refined is None:
+        return []
+    cols = list(REFINED_COLUMNS)
+    single = align[align["method"] == "policy"][cols].assign(run="single pass")
+    joint = refined[refined["method"] == "policy"][cols].assign(run="joint refinement")
+    both = pd.concat([single, joint]).sort_values(["K", "run"], kind="stable")
+    return table_section(
+        f"Joint refinement ({r.sc.policy.refine_iterations} outer iterations) vs single pass",
+        both[["K", "run", *cols[1:]]],
+    )
+
+
+def leader_follower_part(r: Run) -> list[str]:
+    lf = r.csv("evaluation/leader_follower_summary.csv")
+    if lf is None:
+        return []
+    sc = r.sc
+    intro = (
+        f"Follower {LeaderProfile().on_ring(sc).spacing_m:.0f} m behind the leader at the "
+        "same speed; the IDM follower has the middle of the fleet's IDM ranges; minimum safe "
+        f"gap {sc.evaluation.min_safe_gap_m:g} m; target: mean RMSE <= 0.3 m/s against the "
+        "IDM follower."
+    )
+    return table_section("Leader-follower (paper Fig. 3)", method_summary(lf), intro=[intro, ""])
+
+
+def winners_part(r: Run) -> list[str]:
+    align = r.csv(ALIGNMENT)
+    if align is None:
+        return []
+    micro = r.csv("evaluation/micro_consistency.csv")
+    lf = r.csv("evaluation/leader_follower_summary.csv")
+    intro = (
+        "Lower is better everywhere; `best` among all methods but the ground truth. One "
+        "evaluation of one trained policy per method: the training seed moves these figures "
+        "too (`scripts/lf_seeds.py` measures that spread)."
+    )
+    return table_section(
+        "Which method wins each figure", figure_winners(align, micro, lf), 4, intro=[intro, ""]
+    )
+
+
+def training_part(r: Run) -> list[str]:
+    logs = r.csv("policy/policy_train_log.csv")
+    if logs is None:
+        return []
+    last = logs.iloc[-1]
+    clipped = 100 * logs["gt_actions_clipped_share"].mean()
+    return [
+        "## Training",
+        "",
+        f"Policy: {int(last['update'])} updates, final r_macro {last['r_macro']:.4f}, "
+        f"r_micro per pair {last['r_micro_per_pair']:.3f}, ground-truth actions clipped for "
+        f"the likelihood: {clipped:.2f}%.",
+        "",
+    ]
+
+
+RING_REPORT = ReportKind(
+    plots=(
+        csv_plot("evaluation/eval_samples.csv", "distributions.png", plots.plot_distributions),
+        TRAINING_PLOTS[0],
+        csv_plot(
+            "evaluation/leader_follower.csv", "leader_follower.png", plots.plot_leader_follower
+        ),
+        TRAINING_PLOTS[1],
+        ring_time_space,
+    ),
+    parts=(
+        ring_head,
+        partial(
+            generator_part, table=lambda g: g[[c for c in GENERATOR_COLUMNS if c in g]], digits=4
+        ),
+        partial(
+            alignment_part,
+            heading=lambda sc: (
+                "held-out scenes, rollouts of "
+                f"{sc.evaluation.horizon_steps} x {sc.simulation.step_length_s:g} s"
+            ),
+            road="ring",
+            columns=RING_ALIGNMENT,
+            after=paper_policy,
+        ),
+        refinement_part,
+        partial(micro_part, digits=4),
+        leader_follower_part,
+        winners_part,
+        deployment_part,
+        plots_part,
+        training_part,
+        manifest_part,
+    ),
+)
+
+
+# --------------------------------------------------------------------------- a section
+
+
+def section_head(r: Run) -> list[str]:
+    """The section, its demand's car-following models, detectors and ground-truth tables."""
+    sc, gt = r.sc, r.json("ground_truth/manifest.json")
+    kind = "closed loop" if sc.section.closed else "open corridor"
+    lines = [
+        f"# {sc.name}: macro-micro calibration on a SUMO section",
+        "",
+        f"Scenario `{sc.source}`, seed {sc.seed}. Section: {len(sc.section.edges)} edges "
+        f"({', '.join(sc.section.edges)}), {kind}, {gt['section_length_m']:.0f} m, lanes per "
+        f"edge {gt['section_lanes']}.",
+        "",
+        f"Car-following models of the demand (recorded, not assumed): "
+        f"{', '.join(gt['car_following_models'])}. Detectors: {gt['detectors']['count']} "
+        f"({gt['detectors']['source']}). Collisions {gt['collisions']}, teleports "
+        f"{gt['teleports']}.",
+        "",
+        "## Ground truth",
+        "",
+    ]
+    for table in (r.csv("ground_truth/runs.csv"), r.csv("ground_truth/vtypes.csv")):
+        lines += [] if table is None else [markdown_table(table), ""]
+    return lines
+
+
+def hidden_count_part(r: Run) -> list[str]:
+    return table_section(
+        "Hidden count estimated from detector density",
+        r.csv("evaluation/k_estimate_summary.csv"),
+        intro=[
+            "K = round(vehicles on the section by the detectors) - observed vehicles, against "
+            "the count the simulation knows.",
+            "",
+        ],
+    )
+
+
+def idm_calibrated_part(r: Run) -> list[str]:
+    ev = r.json("evaluation/evaluation_manifest.json")
+    fit = json.dumps(ev.get("idm_calibrated", {}))
+    return [f"IDM calibrated on the observed vehicles: {fit}", ""]
+
+
+SECTION_REPORT = ReportKind(
+    plots=(section_truth_plots, estimated_distributions, *TRAINING_PLOTS),
+    parts=(
+        section_head,
+        hidden_count_part,
+        # Means of the generator's per-snapshot metrics.
+        partial(
+            generator_part,
+            table=lambda g: g.select_dtypes("number").mean().to_frame("mean").T,
+            digits=3,
+        ),
+        partial(
+            alignment_part,
+            heading=lambda sc: "held-out runs",
+            road="sumo",
+            columns=SECTION_ALIGNMENT,
+            before=lambda align: [alignment_reference(align), ""],
+            after=closest_methods,
+        ),
+        partial(micro_part, digits=3),
+        idm_calibrated_part,
+        deployment_part,
+        plots_part,
+        manifest_part,
+    ),
+)
+
+
+def write_report(sc: Any, out: Path | str, manifest: dict[str, Any]) -> Path:
+    """report.md of the run folder ``out`` (its plots into ``out/plots``), as the kind of
+    road of ``sc`` shows it; returns its path."""
+    kind = SECTION_REPORT if isinstance(sc, SectionScenario) else RING_REPORT
+    r = Run(sc, Path(out), manifest)
+    for job in kind.plots:
+        r.plots += job(r)
+    lines = [line for part in kind.parts for line in part(r)]
+    path = r.out / "report.md"
+    write_text("\n".join(lines), path)
+    return path
