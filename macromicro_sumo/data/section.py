@@ -6,6 +6,7 @@ vehicle. Positions are ``(lane index, arc)`` on the section (``section.Section``
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -121,8 +122,93 @@ def interval_passages(truth: SectionTruth, m: pd.DataFrame) -> np.ndarray:
     )
 
 
-def section_snapshots(truth: SectionTruth, sc, runs: np.ndarray) -> SectionSnapshots:
-    """Scenes every ``generator.snapshot_every_s`` of ``runs`` with psi and hidden counts."""
+def section_snapshots(
+    truth: SectionTruth, sc, runs: np.ndarray, k_range: tuple[int, int] | None = None
+) -> SectionSnapshots:
+    """Scenes every ``generator.snapshot_every_s`` of ``runs`` with psi and hidden counts.
+
+    Observed: the instrumented vehicles (``instrumented.hidden = "run"``), or with
+    ``"snapshot"`` K random vehicles of each scene hidden, K drawn per snapshot from
+    ``k_range`` (default ``policy.hidden_train``: Stage II's episodes) by ``hide_random``,
+    seeded by the scenario's seed."""
+    snaps = recorded_snapshots(truth, sc, runs)
+    if not hidden_per_snapshot(sc):
+        return snaps
+    rng = np.random.default_rng([sc.seed, HIDDEN_STREAM])
+    return hide_random(snaps, draw_k(snaps, k_range or sc.policy.hidden_train, rng), rng)
+
+
+def hidden_per_snapshot(sc) -> bool:
+    """Whether the scenario draws its hidden sets per snapshot (``instrumented.hidden``)."""
+    return getattr(getattr(sc, "instrumented", None), "hidden", "run") == "snapshot"
+
+
+# The seed stream of the hidden sets (numpy SeedSequence [seed, stream, ...]); the ring's
+# streams are 1, 2 (generator), 7 (splits) and 11 (evaluation).
+HIDDEN_STREAM = 43
+
+
+def draw_k(snaps: SectionSnapshots, k_range: tuple[int, int], rng: np.random.Generator):
+    """(S,) hidden counts drawn uniformly from ``k_range`` (inclusive), each at most its
+    snapshot's vehicles."""
+    lo, hi = k_range
+    return np.minimum(rng.integers(lo, hi + 1, len(snaps)), snaps.valid.sum(axis=1))
+
+
+def hide_random(
+    snaps: SectionSnapshots, k: np.ndarray | int, rng: np.random.Generator
+) -> SectionSnapshots:
+    """``snaps`` with ``k`` random vehicles of each scene hidden (scalar or per snapshot),
+    every other vehicle observed: the ring's ``data.ring.hide`` on padded scenes.
+
+    ``k_true`` becomes ``k``; ``k_est`` the detectors' vehicle count (``k_est`` plus the
+    observed vehicles before) minus the observed ones now."""
+    s_n, n = snaps.valid.shape
+    k = np.broadcast_to(np.asarray(k, dtype=np.int64), (s_n,))
+    counts = snaps.valid.sum(axis=1)
+    if (k < 0).any() or (k > counts).any():
+        i = int(np.flatnonzero((k < 0) | (k > counts))[0])
+        raise UserError(
+            f"run {snaps.run[i]}, t = {snaps.time_s[i]:g} s: cannot hide {k[i]} of its "
+            f"{counts[i]} vehicles; accepted 0..{counts[i]}"
+        )
+    # Random ranks among the valid slots (padding ranks last): the k lowest are hidden.
+    keys = np.where(snaps.valid, rng.random((s_n, n)), np.inf)
+    ranks = np.argsort(np.argsort(keys, axis=1), axis=1)
+    hidden = snaps.valid & (ranks < k[:, None])
+    observed = snaps.valid & ~hidden
+    vehicles_est = snaps.k_est + snaps.observed.sum(axis=1)
+    return dataclasses.replace(
+        snaps,
+        observed=observed,
+        k_true=k.copy(),
+        k_est=np.maximum(0, vehicles_est - observed.sum(axis=1)),
+    )
+
+
+def snapshots_by_k(snaps: SectionSnapshots, ks: range, seed: int) -> dict[int, SectionSnapshots]:
+    """The evaluation protocol of ``instrumented.hidden = "snapshot"``: every snapshot with
+    at least K vehicles once per K, its hidden set drawn afresh (seed per K, as the ring's
+    ``data.ring.held_out_by_k``)."""
+    out = {}
+    for k in ks:
+        idx = np.flatnonzero(snaps.valid.sum(axis=1) >= k)
+        if idx.size:
+            out[k] = hide_random(
+                snaps.take(idx), k, np.random.default_rng([seed, HIDDEN_STREAM, k])
+            )
+    return out
+
+
+def concat_snapshots(parts: list[SectionSnapshots]) -> SectionSnapshots:
+    """The snapshots of ``parts`` one after the other (the same padding: one recorded set)."""
+    fields = SectionSnapshots.__dataclass_fields__
+    return SectionSnapshots(**{f: np.concatenate([getattr(p, f) for p in parts]) for f in fields})
+
+
+def recorded_snapshots(truth: SectionTruth, sc, runs: np.ndarray) -> SectionSnapshots:
+    """The scenes with the truth's instrumented vehicles observed, whatever
+    ``instrumented.hidden`` says (``section_snapshots`` draws the hidden sets on them)."""
     every = sc.generator.snapshot_every_s
     traj = truth.trajectories
     traj = traj[traj["run"].isin(runs)]

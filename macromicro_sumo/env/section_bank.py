@@ -16,7 +16,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from macromicro_sumo.data.objective import MacroTarget, macro_reward, macro_terms
-from macromicro_sumo.data.section import PSI_FIELDS, SectionSnapshots, SectionTruth
+from macromicro_sumo.data.section import (
+    PSI_FIELDS,
+    SectionSnapshots,
+    SectionTruth,
+    hidden_per_snapshot,
+)
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, STOP, Section, section_leaders
@@ -98,17 +103,13 @@ def build_section_bank(
             "lane": g["lane_index"].to_numpy(dtype=float),
             "arc": g["arc_m"].to_numpy(dtype=float),
             "speed": g["speed_mps"].to_numpy(dtype=float),
-            "observed": g["observed"].to_numpy(dtype=bool),
+            "observed": recordable(sc, g),
             "length": g["vtype"].map(length_of).to_numpy(dtype=float),
         }
-    keep = [
-        i
-        for i, (r, t) in enumerate(zip(snaps.run, snaps.time_s, strict=True))
-        if int(r) in runs and t + h * dt <= runs[int(r)]["time"][-1] + 1e-6
-    ]
-    if not keep:
+    keep = with_future(truth, snaps, h, dt)
+    if not keep.size:
         raise UserError(f"{truth.folder}: no snapshot leaves {h} steps of recorded future")
-    snaps = snaps.take(np.array(keep))
+    snaps = snaps.take(keep)
     lane, arc, speed, valid, generated = (np.asarray(x) for x in completion(snaps))
     valid = valid.astype(bool)
     hidden = valid & generated.astype(bool)
@@ -169,6 +170,26 @@ def build_section_bank(
         run=snaps.run,
         time_s=snaps.time_s,
     )
+
+
+def with_future(
+    truth: SectionTruth, snaps: SectionSnapshots, horizon: int, dt: float
+) -> np.ndarray:
+    """Indices of the snapshots with ``horizon`` recorded steps after them: the episodes
+    ``build_section_bank`` keeps, in order."""
+    last = truth.trajectories.groupby("run")["time_s"].max()
+    ends = last.reindex(snaps.run.astype(np.int64)).to_numpy(dtype=float)
+    with np.errstate(invalid="ignore"):  # a run with no record: NaN, dropped
+        return np.flatnonzero(snaps.time_s + horizon * dt <= ends + 1e-6)
+
+
+def recordable(sc, traj) -> np.ndarray:
+    """Which rows of ``traj`` a snapshot's observed vehicles can be: the instrumented ones,
+    or every recorded vehicle with ``instrumented.hidden = "snapshot"`` (its hidden sets
+    are drawn per snapshot: ``data.section.hide_random``)."""
+    if hidden_per_snapshot(sc):
+        return np.ones(len(traj), dtype=bool)
+    return traj["observed"].to_numpy(dtype=bool)
 
 
 def typical_vclass(truth: SectionTruth) -> str:

@@ -23,6 +23,12 @@ micro_consistency.csv):
   stations only (the ``station_*`` columns and a ``stations`` row in place of
   ``ground_truth``); the hidden count is the estimated one only (nobody counted the true
   one). Either way micro figures are the held-out observed vehicles' recorded actions.
+
+With ``instrumented.hidden = "snapshot"`` (every vehicle recorded, the ring's protocol) the
+scenes are every held-out snapshot at every K of ``generator.hidden_eval``, each with a
+fresh random hidden set; macro_alignment.csv pools them and macro_alignment_by_k.csv splits
+every row by K (the ring's table: mean-speed error and spacing-std error with their
+intervals, speed std, collisions).
 """
 
 from __future__ import annotations
@@ -36,16 +42,27 @@ import numpy as np
 import pandas as pd
 
 from macromicro_sumo.data.ring import split_runs
-from macromicro_sumo.data.section import PSI_FIELDS, SectionTruth, section_snapshots
+from macromicro_sumo.data.section import (
+    PSI_FIELDS,
+    SectionSnapshots,
+    SectionTruth,
+    concat_snapshots,
+    hidden_per_snapshot,
+    recorded_snapshots,
+    section_snapshots,
+    snapshots_by_k,
+)
 from macromicro_sumo.env.rollout import ActionFn, Rollouts, rollout
 from macromicro_sumo.env.section import DEFAULT_SAFETY, SectionCore
 from macromicro_sumo.env.section_bank import (
     SectionBank,
     build_section_bank,
+    recordable,
     recorded_min_gap,
     section_observations,
     typical_length,
     typical_vclass,
+    with_future,
 )
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.idm_fit import calibrate_idm
@@ -143,7 +160,8 @@ def micro_pairs(
     sc, truth: SectionTruth, runs: np.ndarray, max_pairs: int = 20_000
 ) -> tuple[np.ndarray, np.ndarray]:
     """Observed vehicles' (observation, action) pairs: what their own sensors saw (the true
-    scene around them) and the acceleration they applied over the next step."""
+    scene around them) and the acceleration they applied over the next step. With
+    ``instrumented.hidden = "snapshot"`` every recorded vehicle's (the ring's micro data)."""
     dt = sc.simulation.step_length_s
     traj = truth.trajectories[truth.trajectories["run"].isin(runs)]
     measured = has_measured_leaders(traj)
@@ -159,7 +177,7 @@ def micro_pairs(
             if abs(t1 - t0 - dt) > 1e-6:
                 continue
             s = by_t[t0]
-            o = s["observed"].to_numpy(dtype=bool)
+            o = recordable(sc, s)
             if not o.any():
                 continue
             obs, leader, _ = section_observations(
@@ -195,6 +213,48 @@ def _safety(sc) -> str:
     return str(getattr(sc.evaluation, "safety", DEFAULT_SAFETY))
 
 
+def held_out_scenes(
+    sc, truth: SectionTruth, held: np.ndarray, horizon: int
+) -> tuple[SectionSnapshots, dict[int, range] | None]:
+    """The evaluation's scenes, and with ``instrumented.hidden = "snapshot"`` the episodes of
+    each K: every held-out snapshot with a recorded future at every K of
+    ``generator.hidden_eval``, a fresh hidden set each (``data.section.snapshots_by_k``),
+    one K after the other."""
+    if not hidden_per_snapshot(sc):
+        return section_snapshots(truth, sc, held), None
+    lo, hi = sc.generator.hidden_eval
+    recorded_ = recorded_snapshots(truth, sc, held)
+    parts, episodes, start = [], {}, 0
+    for k, snaps in snapshots_by_k(recorded_, range(lo, hi + 1), sc.seed).items():
+        snaps = snaps.take(with_future(truth, snaps, horizon, sc.simulation.step_length_s))
+        if len(snaps):
+            parts.append(snaps)
+            episodes[k] = range(start, start + len(snaps))
+            start += len(snaps)
+    if not parts:
+        raise UserError(
+            f"{truth.folder}: no held-out snapshot has {lo} vehicles to hide and {horizon} "
+            f"recorded steps after it (generator.hidden_eval = [{lo}, {hi}])"
+        )
+    return concat_snapshots(parts), episodes
+
+
+def _concat(parts: list[Rollouts]) -> Rollouts:
+    """Rollouts of one core's episodes, one part after the other (counts summed)."""
+    arrays = ("arc_m", "speed_mps", "spacing_m", "accel_mps2", "lane", "hidden")
+    return Rollouts(
+        *(np.concatenate([getattr(p, a) for p in parts]) for a in arrays),
+        sum(p.collisions for p in parts),
+        sum(p.errors for p in parts),
+    )
+
+
+def _episodes(ro: Rollouts, eps: range) -> Rollouts:
+    """The episodes ``eps`` of ``ro`` (the recording: no collisions to split)."""
+    arrays = ("arc_m", "speed_mps", "spacing_m", "accel_mps2", "lane", "hidden")
+    return Rollouts(*(getattr(ro, a)[eps.start : eps.stop] for a in arrays), 0, ro.errors)
+
+
 def _run(
     sc,
     truth: SectionTruth,
@@ -205,10 +265,12 @@ def _run(
     horizon: int,
     seed: int,
     safety: str | None = None,
-) -> tuple[Rollouts, dict[str, Any]]:
-    """One method's rollouts of every episode, and safety.csv's figures of them: the
+    by_k: dict[int, range] | None = None,
+) -> tuple[Rollouts, dict[str, Any], dict[int, Rollouts]]:
+    """One method's rollouts of every episode, safety.csv's figures of them (the
     collisions, how often an observed vehicle left its record, how often the hidden
-    vehicles' safety layer capped a command."""
+    vehicles' safety layer capped a command) and, given ``by_k``, the rollouts of each K's
+    episodes (seeded ``seed + K``; all of them together are the first)."""
     safety = safety or _safety(sc)
     core = SectionCore(
         sc,
@@ -220,16 +282,17 @@ def _run(
         safety=safety,
         replay_min_gap_m=recorded_min_gap(truth),
     )
+    per_k: dict[int, Rollouts] = {}
     try:
-        ro = rollout(core, act, horizon, seed)
+        if by_k is None:
+            ro = rollout(core, act, horizon, seed)
+        else:
+            per_k = {k: rollout(core, act, horizon, seed + k, eps) for k, eps in by_k.items()}
+            ro = _concat(list(per_k.values()))
     finally:
         core.close()
-    return ro, {
-        "safety": safety,
-        "collisions": ro.collisions,
-        "episodes": len(ro.speed_mps),
-        **core.counts,
-    }
+    counts = {"safety": safety, "collisions": ro.collisions, "episodes": len(ro.speed_mps)}
+    return ro, counts | core.counts, per_k
 
 
 def evaluate_section(
@@ -252,14 +315,14 @@ def evaluate_section(
     out = prepare_out_dir(out)
     splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
     held = splits["held_out"]
-    snaps = section_snapshots(truth, sc, held)
     h = sc.evaluation.horizon_steps
+    snaps, by_k = held_out_scenes(sc, truth, held, h)
     net_file = scenario_inputs(sc).net_file
     vclass = typical_vclass(truth)
     length = typical_length(truth)
     obs_tr, acc_tr = micro_pairs(sc, truth, np.concatenate([splits["train"], splits["val"]]))
     idm, idm_rmse = calibrate_idm(obs_tr, acc_tr, length)
-    rows, samples, safety_rows = [], [], []
+    rows, samples, safety_rows, k_rows = [], [], [], []
     counts = {"estimated": snaps.k_est, "true": snaps.k_true}
     sources = {"estimated": "estimate", "true": "truth"}  # report label -> k_source
     field = sc.data.source == "files"
@@ -286,15 +349,25 @@ def evaluate_section(
                     | station_errors(ref, gen_bank.psi, sc.seed)
                 )
                 samples.append(samples_frame({"K": np.nan, **labels}, "ground_truth", ref))
+                for k, eps in (by_k or {}).items():
+                    ref_k = _episodes(ref, eps)
+                    k_rows.append(
+                        macro_row(labels | {"K": k}, "ground_truth", ref_k, ref_k, sc.seed + k)
+                    )
             bar.update()
             methods: dict[str, ActionFn] = {n: policy_action(a) for n, a in agents.items()}
             methods["idm_calibrated"] = idm_action(lambda core: idm, length)
             for name in [m for m in METHOD_ORDER if m in methods]:
-                ro, counts_ = _run(sc, truth, gen_bank, net_file, vclass, methods[name], h, seed)
+                ro, counts_, per_k = _run(
+                    sc, truth, gen_bank, net_file, vclass, methods[name], h, seed, by_k=by_k
+                )
                 safety_rows.append({"hidden_count": label, "method": name, **counts_})
+                for k, ro_k in per_k.items():
+                    ref_k = None if ref is None else _episodes(ref, by_k[k])
+                    k_rows.append(macro_row(labels | {"K": k}, name, ro_k, ref_k, sc.seed + k))
                 if name == "policy" and counts_["safety"] != "none":
                     # What the safety layer hides: the policy alone on the same scenes.
-                    _, alone = _run(
+                    _, alone, _ = _run(
                         sc, truth, gen_bank, net_file, vclass, methods[name], h, seed, "none"
                     )
                     safety_rows.append({"hidden_count": label, "method": name, **alone})
@@ -331,6 +404,10 @@ def evaluate_section(
         align.insert(1, "mean_k", [float(np.mean(counts[r])) for r in align["hidden_count"]])
         align.insert(2, "reference", REFERENCE_STATIONS if field else REFERENCE_RECORDED)
         write_csv(align, stage / "macro_alignment.csv")
+        if by_k is not None:  # the ring's per-K table (instrumented.hidden = "snapshot")
+            by_k_table = pd.DataFrame(k_rows)
+            by_k_table.insert(2, "reference", REFERENCE_RECORDED)
+            write_csv(by_k_table, stage / "macro_alignment_by_k.csv")
         write_csv(pd.concat(samples, ignore_index=True), stage / "eval_samples.csv")
         write_csv(pd.DataFrame(safety_rows), stage / "safety.csv")
         obs_ho, acc_ho = micro_pairs(sc, truth, held)
@@ -350,6 +427,8 @@ def evaluate_section(
             policies={k: str(v) for k, v in policies.items()},
             held_out_runs=[int(r) for r in held],
             episodes=len(snaps),
+            hidden=sc.instrumented.hidden,
+            episodes_by_k={str(k): len(eps) for k, eps in (by_k or {}).items()},
             data_source=sc.data.source,
             references={
                 "macro": REFERENCE_STATIONS if field else REFERENCE_RECORDED,

@@ -22,7 +22,17 @@ import torch
 from macromicro_sumo.checkpoints import load_network, save_network
 from macromicro_sumo.data.objective import macro_loss
 from macromicro_sumo.data.ring import split_runs
-from macromicro_sumo.data.section import SectionSnapshots, section_snapshots
+from macromicro_sumo.data.section import (
+    HIDDEN_STREAM,
+    SectionSnapshots,
+    concat_snapshots,
+    draw_k,
+    hidden_per_snapshot,
+    hide_random,
+    recorded_snapshots,
+    section_snapshots,
+    snapshots_by_k,
+)
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import (
     check_beside,
@@ -143,6 +153,8 @@ def _batch_loss(
     loss = macro_loss(terms, sc.generator.lambda_v, sc.generator.lambda_d)
     advantage = (loss - loss.mean()).detach()
     surrogate = loss.mean() + (advantage * log_p).mean()
+    if not surrogate.requires_grad:  # nothing generated (K = 0 throughout): a zero step
+        surrogate = surrogate + sum(p.sum() for p in net.parameters()) * 0.0
     stats = {name: float(v.detach().mean()) for name, v in terms.items()}
     return surrogate, stats | {"loss": float(loss.detach().mean())}
 
@@ -206,12 +218,14 @@ def _train(
     k_train, k_val = k_of(train, cfg.k_source), k_of(val, cfg.k_source)
 
     def epoch_batches(epoch: int) -> list[Batch]:
-        perm = rng.permutation(len(train))
+        snaps, k = train, k_train
+        if hidden_per_snapshot(sc):  # fresh hidden sets every epoch, as the ring's training
+            snaps = hide_random(train, draw_k(train, cfg.hidden_train, rng), rng)
+            k = k_of(snaps, cfg.k_source)
+        perm = rng.permutation(len(snaps))
         return [
             (
-                partial(
-                    _batch_loss, road=road, snaps=train.take(idx), k=k_train[idx], sc=sc, gen=gen
-                ),
+                partial(_batch_loss, road=road, snaps=snaps.take(idx), k=k[idx], sc=sc, gen=gen),
                 len(idx),
             )
             for idx in (perm[s : s + cfg.batch_size] for s in range(0, len(perm), cfg.batch_size))
@@ -232,6 +246,44 @@ def _train(
     return net, log
 
 
+def stage_snapshots(
+    sc: SectionScenario, truth, splits: dict[str, np.ndarray]
+) -> tuple[SectionSnapshots, SectionSnapshots, SectionSnapshots]:
+    """(train, val, held-out) snapshots of the generator stage. With ``instrumented.hidden =
+    "snapshot"``: K per snapshot from ``generator.hidden_train`` (training redraws them every
+    epoch; validation keeps one seeded draw), and the held-out snapshots once at every K of
+    ``generator.hidden_eval`` (``data.section.snapshots_by_k``)."""
+    if not hidden_per_snapshot(sc):
+        train = section_snapshots(truth, sc, splits["train"])
+        val = section_snapshots(truth, sc, splits["val"]) if len(splits["val"]) else train
+        return train, val, section_snapshots(truth, sc, splits["held_out"])
+    cfg = sc.generator
+    train = recorded_snapshots(truth, sc, splits["train"])
+    val = recorded_snapshots(truth, sc, splits["val"]) if len(splits["val"]) else train
+    rng = np.random.default_rng([sc.seed, HIDDEN_STREAM, 2])
+    val = hide_random(val, draw_k(val, cfg.hidden_train, rng), rng)
+    held = recorded_snapshots(truth, sc, splits["held_out"])
+    by_k = snapshots_by_k(held, range(cfg.hidden_eval[0], cfg.hidden_eval[1] + 1), sc.seed)
+    if not by_k:
+        raise UserError(
+            f"{truth.folder}: no held-out snapshot has {cfg.hidden_eval[0]} vehicles to hide "
+            f"(generator.hidden_eval = {list(cfg.hidden_eval)})"
+        )
+    return train, val, concat_snapshots(list(by_k.values()))
+
+
+def _summary(g: pd.DataFrame) -> dict[str, Any]:
+    """The manifest's figures of one method's held-out completions."""
+    return {
+        "snapshots": int(len(g)),
+        "speed_err_vs_psi_mps": float(g["speed_err_vs_psi_mps"].mean()),
+        "spacing_std_ratio": float(g["std_spacing_m"].mean() / g["true_std_spacing_m"].mean()),
+        "speed_std_ratio": float(g["std_speed_mps"].mean() / g["true_std_speed_mps"].mean()),
+        "feasible_share": float(g["feasible"].mean()),
+        "projections": int(g["projections"].sum()),
+    }
+
+
 def run_train_section_generator(
     sc: SectionScenario, data: Path, out: Path, command: str = "", progress: bool = True
 ) -> dict[str, Any]:
@@ -240,9 +292,7 @@ def run_train_section_generator(
     generator and uniform baseline) and generator_manifest.json."""
     truth = load_section_truth(Path(data), sc)
     splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
-    train = section_snapshots(truth, sc, splits["train"])
-    val = section_snapshots(truth, sc, splits["val"]) if len(splits["val"]) else train
-    held = section_snapshots(truth, sc, splits["held_out"])
+    train, val, held = stage_snapshots(sc, truth, splits)
     out = prepare_out_dir(out)  # only once the inputs are known to be good
     t0 = time.perf_counter()
     net, log = train_section_generator(sc, truth.section, train, val, progress, out=out)
@@ -259,17 +309,10 @@ def run_train_section_generator(
         frames.append(m)
     metrics = pd.concat(frames, ignore_index=True)
     write_csv(metrics, out / "generator_metrics.csv")
-    summary = {
-        method: {
-            "snapshots": int(len(g)),
-            "speed_err_vs_psi_mps": float(g["speed_err_vs_psi_mps"].mean()),
-            "spacing_std_ratio": float(g["std_spacing_m"].mean() / g["true_std_spacing_m"].mean()),
-            "speed_std_ratio": float(g["std_speed_mps"].mean() / g["true_std_speed_mps"].mean()),
-            "feasible_share": float(g["feasible"].mean()),
-            "projections": int(g["projections"].sum()),
-        }
-        for method, g in metrics.groupby("method")
-    }
+    summary = {method: _summary(g) for method, g in metrics.groupby("method")}
+    if hidden_per_snapshot(sc):  # every held-out snapshot at every K: the ring's table
+        for (method, k_true), g in metrics.groupby(["method", "k_true"]):
+            summary[f"{method}_K{k_true}"] = _summary(g)
     manifest = build_manifest(sc, command, stage="train-section-generator")  # type: ignore[arg-type]
     manifest.update(
         ground_truth=str(data),

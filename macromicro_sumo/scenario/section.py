@@ -58,6 +58,17 @@ class InstrumentedConfig:
     )
     vtype: str = spec("", doc="instead: every vehicle of this vType is instrumented")
     ids: list[str] = spec([], doc="instead: exactly these vehicle IDs are instrumented")
+    hidden: str = spec(
+        "run",
+        choices=("run", "snapshot"),
+        doc="which vehicles Stages I and II and the evaluation treat as hidden: run = the "
+        "non-instrumented ones, fixed per run (the default); snapshot = every recorded vehicle "
+        "can be observed (a simulated truth records them all, e.g. the fleet) and each snapshot "
+        "hides K of them at random, the ring's protocol: K drawn per snapshot from "
+        "generator.hidden_train (the generator) or policy.hidden_train (Stage II's episodes), "
+        "every snapshot at every K of generator.hidden_eval (evaluation, a per-K table); the "
+        "instrumented vehicles still decide k_estimate.csv and who the deployment drives",
+    )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -81,6 +92,11 @@ class SectionDetectorConfig:
         lo=0.0,
         hi=1e5,
         doc="place E1 loops on every lane at this spacing when the section has none (0: off)",
+    )
+    auto_boundary_stations: bool = spec(
+        False,
+        doc="with placed loops, also a station 15 m inside each open end and on both sides "
+        "of every node where a ramp joins or leaves (docs/sections.md, Hidden count)",
     )
     k_window_s: float = spec(
         60.0,
@@ -155,6 +171,21 @@ class SectionGeneratorConfig:
         doc="exponential moving average of the weights per batch, validated and kept instead "
         "of the raw weights (0: off, the paper)",
     )
+    # The ring's keys, read only with instrumented.hidden = "snapshot" (data.section.hide).
+    hidden_train: tuple[int, int] = spec(
+        (0, 5),
+        lo=0,
+        hi=10_000,
+        doc="K range in training with instrumented.hidden = snapshot, drawn per snapshot and "
+        "epoch, at most the snapshot's vehicles [veh]",
+    )
+    hidden_eval: tuple[int, int] = spec(
+        (1, 4),
+        lo=0,
+        hi=10_000,
+        doc="K values in evaluation with instrumented.hidden = snapshot: every held-out "
+        "snapshot with at least K vehicles at every K [veh]",
+    )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -216,6 +247,7 @@ def _check(sc: SectionScenario, file: str) -> None:
     ways = [ins.vtype != "", bool(ins.ids)]
     if sum(ways) > 1:
         raise UserError(f"{file}: [instrumented] takes one of penetration, vtype or ids, not both")
+    _check_hidden(sc, file)
     if not 0.0 < ins.penetration <= 1.0:
         raise UserError(
             f"{file}: instrumented.penetration = {ins.penetration!r} is out of range; "
@@ -240,4 +272,21 @@ def _check(sc: SectionScenario, file: str) -> None:
         raise UserError(
             f"{file}: one run with fewer than two detector intervals leaves nothing to hold out; "
             "accepted: simulation.n_runs >= 2 or duration_s >= 2 x detectors.interval_s"
+        )
+
+
+def _check_hidden(sc: SectionScenario, file: str) -> None:
+    """``instrumented.hidden = "snapshot"`` needs every vehicle recorded (a simulation) and
+    the evaluation's K from 1 up (the typed pairs refuse a reversed range)."""
+    if sc.instrumented.hidden != "snapshot":
+        return
+    if sc.data.source == "files":
+        raise UserError(
+            f'{file}: instrumented.hidden = "snapshot" hides recorded vehicles at random; field '
+            'data records the instrumented ones only (data.source = "files"); accepted "run"'
+        )
+    if sc.generator.hidden_eval[0] < 1:
+        raise UserError(
+            f"{file}: generator.hidden_eval = {list(sc.generator.hidden_eval)} starts at 0; "
+            "accepted K >= 1 (a scene with nothing hidden has nothing to evaluate)"
         )
