@@ -284,7 +284,7 @@ def run_leader_follower_for(
             core, followers, idm, n_trials, seed, vehicle_length_m, lead, keep_lanes
         )
     except UserError as exc:  # the section could not hold a trial: say so, go on
-        return skip(str(exc))
+        return skip(str(exc).removeprefix("leader-follower test: "))
     finally:
         core.close()
     return SectionLeaderFollower(
@@ -344,7 +344,7 @@ def reference_idm(sc, truth: SectionTruth, vehicle_length_m: float) -> tuple[dic
     what = "the recorded vehicles" if sc.data.source == "files" else "every recorded vehicle"
     return _idm_dict(params), (
         f"IDM fitted to {what} of the ground truth ({len(acc)} pairs, fit RMSE "
-        f"{rmse:.3f} m/s^2): its vehicles are not IDM"
+        f"{rmse:.3f} m/s^2; no [fleet] of known IDM parameters)"
     )
 
 
