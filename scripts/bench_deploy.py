@@ -80,8 +80,29 @@ def agent_for(sc, checkpoint: Path) -> tuple[Agent, str]:
         except UserError as exc:  # trained with other settings than the scenario's
             why = str(exc)
     torch.manual_seed(0)
-    agent = Agent(64, observation=sc.policy.observation)
-    return agent, f"untrained agent without a prior (timing only; checkpoint: {why})"
+    if sc.policy.prior != "gipps":
+        agent = Agent(64, observation=sc.policy.observation)
+        return agent, f"untrained agent without a prior (timing only; checkpoint: {why})"
+    # The scenario's shape: an untrained residual on Gipps' model, with parameters near
+    # those fitted to Bremen's Krauss drivers (b 4.65 m/s^2, tau 1.09 s): the vehicles
+    # drive as a trained policy's do, so the run holds as many vehicles as it would.
+    gipps = {
+        "speed_factor": 1.0,
+        "accel_mps2": 2.6,
+        "decel_mps2": 4.65,
+        "tau_s": 1.09,
+        "min_gap_m": 2.5,
+        "veh_length_m": 5.0,
+        "dt_s": sc.simulation.step_length_s,
+    }
+    agent = Agent(
+        64,
+        observation=sc.policy.observation,
+        prior="gipps",
+        prior_params=gipps,
+        residual_bound_mps2=sc.policy.residual_bound_mps2,
+    )
+    return agent, f"untrained residual on a fixed Gipps prior (timing only; checkpoint: {why})"
 
 
 def bremen_run(sc, tmp: Path, how: str, act, run: int = 0) -> tuple[float, int, dict]:

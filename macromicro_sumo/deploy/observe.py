@@ -7,7 +7,7 @@ vehicle only dictionary look-ups in Python.
 
 from __future__ import annotations
 
-from itertools import repeat
+from itertools import chain, repeat
 
 import numpy as np
 
@@ -49,61 +49,100 @@ class Table:
         return self.array[codes]
 
 
+class LaneTable(Table):
+    """``section.lanes`` with what the observation needs of each lane, tabulated once per
+    run: per lane (edge, lane index, arc of its start, arc per lane metre, its speed limit,
+    the look-ahead's next limit and where the next edge starts: ``section_lookahead`` is
+    a function of the lane alone, apart from the vehicle's arc)."""
+
+    def __init__(self, sec: Section) -> None:
+        super().__init__((np.nan,) * 7)
+        self.closed, self.length_m = bool(sec.closed), float(sec.length_m)
+        if not sec.lanes:
+            return
+        base = np.array(list(sec.lanes.values()), dtype=float).reshape(-1, 4)
+        edge, lane = base[:, 0].astype(np.int64), base[:, 1].astype(np.int64)
+        limit = sec.limits_mps[edge, np.minimum(lane, sec.n_lanes[edge] - 1)]
+        # The look-ahead at the lane's start: its distance is ``start - arc`` for any arc
+        # (on a loop ``start - arc mod length``), its next limit the lane's.
+        next_limit, start = section_lookahead(sec, lane, np.zeros(len(lane)), edge, limit)
+        rows = np.column_stack([base, limit, next_limit, start])
+        self.code = {key: i + 1 for i, key in enumerate(sec.lanes)}
+        self.rows += [tuple(r) for r in rows.tolist()]
+        self.array = np.array(self.rows, dtype=float)
+
+
 def observe_rows(
-    sec: Section,
-    lanes: Table,
+    lanes: LaneTable,
     observation: str,
     vids: list[str],
     rows: np.ndarray,
+    lane_ids: list[str],
     st: VehicleStates,
     leaders: list[tuple[str, float]],
     shapes: Table,
     stop_m: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Observations (V, obs_dim) of driven vehicles ``vids`` (rows ``rows`` of ``st``), as
-    the section env defines them, the leader SUMO's (``leaders``: ``Simulation.leaders``):
-    front-to-front spacing = SUMO's gap + own minGap + leader's length; ``stop_m``: the
-    distance from each front to a red light or the end of a lane the vehicle must leave
-    (inf: none), a standing leader there when nearer than the leader (its back at the
-    line, a vehicle length long). ``lanes``: ``section.lanes`` as a ``Table``; ``shapes``:
-    vehicle -> (length, minGap, decel), ``STANDING`` where missing.
+    """Observations (V, obs_dim) of driven vehicles ``vids`` (rows ``rows`` of ``st``, on
+    lanes ``lane_ids``), as the section env defines them, the leader SUMO's (``leaders``:
+    ``Simulation.leaders``): front-to-front spacing = SUMO's gap + own minGap + leader's
+    length; ``stop_m``: the distance from each front to a red light or the end of a lane
+    the vehicle must leave (inf: none), a standing leader there when nearer than the
+    leader (its back at the line, a vehicle length long). ``lanes``: the section's
+    ``LaneTable``; ``shapes``: vehicle -> (length, minGap, decel), ``STANDING`` where
+    missing.
     Also returns SUMO's gap to what the vehicle sees ahead, that leader's decel, and its
     index in ``vids`` where it is a driven vehicle (-1: none, not driven, or a standing
-    leader): the safety layer knows a driven leader's next speed, its command."""
+    leader): the safety layer knows a driven leader's next speed, its command.
+
+    The fixed cost per call is what a step of a small deployment pays (numpy's ~1 us a
+    call, ~60 calls before): one look-up of each table for all vehicles and leaders, the
+    standing leaders' columns only where one is nearer (``scripts/bench_deploy.py``)."""
     n = len(vids)
-    pos, speed = st.pos_m[rows], st.speed_mps[rows]
-    where = lanes.of([st.lanes[i] for i in rows.tolist()])
-    edge, lane = where[:, 0].astype(np.int64), where[:, 1].astype(np.int64)
-    arc = where[:, 2] + pos * where[:, 3]
-    own = shapes.of(vids)
-    length, min_gap = own[:, 0], own[:, 1]
-    # The leader SUMO sees, if it is on the road (in ``st``).
-    lead_ids = [lid for lid, _ in leaders]
+    obs = np.empty((n, 6 if observation == "lookahead" else 4))
+    if not n:
+        return obs, np.empty(0), np.empty(0), np.empty(0, dtype=np.int64)
+    speed = st.speed_mps[rows]
+    where = lanes.of(lane_ids)
+    lead_ids, gaps = zip(*leaders, strict=True)
+    gap = np.array(gaps, dtype=float)
+    # The leader SUMO sees, if it is on the road (in ``st``): row -1 otherwise.
     lead_row = np.fromiter(map(st.index.get, lead_ids, repeat(-1)), np.int64, n)
     has = lead_row >= 0
-    gap = np.fromiter((g for _, g in leaders), float, n)
-    lead_shape = np.where(has[:, None], shapes.of(lead_ids), STANDING)
-    lead_speed = np.where(has, st.speed_mps[lead_row], 0.0)
-    s = gap + min_gap + lead_shape[:, 0]
+    # Own and leaders' shapes in one look-up; a leader off the road is no leader.
+    codes = np.fromiter(map(shapes.code.get, chain(vids, lead_ids), repeat(0)), np.int64, 2 * n)
+    codes[n:][~has] = 0
+    shape = shapes.array[codes]
+    length, min_gap = shape[:n, 0], shape[:n, 1]
+    s = gap + min_gap + shape[n:, 0]
     ok = has & (s < NO_LEADER_GAP_M)
     spacing = np.where(ok, s, NO_LEADER_GAP_M)
-    lead_v = np.where(ok, lead_speed, speed)  # delta_v 0 without a leader
+    lead_v = np.where(ok, st.speed_mps[lead_row], speed)  # delta_v 0 without a leader
     sumo_gap = np.where(ok, gap, NO_LEADER_GAP_M)
-    lead_decel = np.where(ok, lead_shape[:, 2], STOP_DECEL_MPS2)
+    lead_decel = np.where(ok, shape[n:, 2], STOP_DECEL_MPS2)
     # A red light, or the end of a lane the vehicle must leave: a standing leader there.
-    closer = stop_m + length < spacing
-    spacing = np.where(closer, stop_m + length, spacing)
-    lead_v = np.where(closer, 0.0, lead_v)
-    sumo_gap = np.where(closer, np.maximum(stop_m - min_gap, 0.0), sumo_gap)
-    lead_decel = np.where(closer, STOP_DECEL_MPS2, lead_decel)
-    driven = {v: i for i, v in enumerate(vids)}
-    lead_index = np.fromiter(map(driven.get, lead_ids, repeat(-1)), np.int64, n)
-    lead_index = np.where(ok & ~closer, lead_index, -1)
-    limit = sec.limits_mps[edge, np.minimum(lane, sec.n_lanes[edge] - 1)]
-    cols = [speed, limit, spacing, speed - lead_v]
+    stop_back = stop_m + length
+    closer = stop_back < spacing
+    if closer.any():
+        spacing = np.where(closer, stop_back, spacing)
+        lead_v = np.where(closer, 0.0, lead_v)
+        sumo_gap = np.where(closer, np.maximum(stop_m - min_gap, 0.0), sumo_gap)
+        lead_decel = np.where(closer, STOP_DECEL_MPS2, lead_decel)
+        ok &= ~closer
+    # A driven leader's index in ``vids``: a row of ``st`` -> its index, -1 elsewhere
+    # (the extra last entry answers row -1, no leader).
+    driven = np.full(len(st.ids) + 1, -1, dtype=np.int64)
+    driven[rows] = np.arange(n)
+    lead_index = np.where(ok, driven[lead_row], -1)
+    obs[:, 0] = speed
+    obs[:, 1] = where[:, 4]
+    obs[:, 2] = spacing
+    obs[:, 3] = speed - lead_v
     if observation == "lookahead":
-        cols += list(section_lookahead(sec, lane, arc, edge, limit))
-    return np.stack(cols, axis=1), sumo_gap, lead_decel, lead_index
+        arc = where[:, 2] + st.pos_m[rows] * where[:, 3]
+        obs[:, 4] = where[:, 5]
+        obs[:, 5] = where[:, 6] - (np.mod(arc, lanes.length_m) if lanes.closed else arc)
+    return obs, sumo_gap, lead_decel, lead_index
 
 
 def section_lookahead(
