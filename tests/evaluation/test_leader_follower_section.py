@@ -153,3 +153,71 @@ def test_a_follower_that_loses_its_leader_is_skipped(monkeypatch):
     assert res.message.endswith(
         "the follower lost its leader at t = 83 s (it sees no vehicle ahead)"
     )
+
+
+# --------------------------------------------------------------------------- the stage's call
+
+
+def test_section_stage_call_on_a_simulated_corridor(field_truth):
+    """What the section evaluation calls: on a corridor whose vehicles are SUMO's IDM and
+    Krauss cars (no [fleet]) the reference is IDM fitted to every recorded vehicle, the
+    spacing the trajectories' mean, and the CSVs have the ring's columns."""
+    from macromicro_sumo.env.section_bank import typical_length, typical_vclass
+    from macromicro_sumo.evaluation.idm_fit import calibrate_idm
+    from macromicro_sumo.evaluation.section import micro_pairs
+    from macromicro_sumo.road.section import section_leaders
+    from macromicro_sumo.truth.section import load_section_truth
+
+    sc = load_scenario(field_truth.parent / "corridor.toml")
+    sc = replace(sc, evaluation=replace(sc.evaluation, lf_trials=2))
+    truth = load_section_truth(field_truth, sc)
+    length = typical_length(truth)
+    # The thinned mean spacing against every scene's.
+    traj = truth.trajectories
+    every = []
+    for _, g in traj.groupby(["run", "time_s"]):
+        lead, gap = section_leaders(
+            truth.section, g["lane_index"].to_numpy(), g["arc_m"].to_numpy()
+        )
+        every.append(gap[lead >= 0])
+    assert lfs.truth_mean_spacing(sc, truth) == pytest.approx(
+        np.concatenate(every).mean(), rel=0.03
+    )
+    obs, acc = micro_pairs(sc, truth, truth.runs)  # the observed vehicles only
+    cal, _ = calibrate_idm(obs, acc, length)
+    params, what = lfs.reference_idm(sc, truth, length)
+    assert what.startswith("IDM fitted to every recorded vehicle of the ground truth (")
+    assert params != {k: float(v) for k, v in cal.as_dict().items()}
+    torch.manual_seed(0)
+    agents = {"policy": Agent(observation=sc.policy.observation)}
+    res = lfs.section_leader_follower_tests(
+        sc, truth, scenario_inputs(sc).net_file, agents, cal, length, typical_vclass(truth)
+    )
+    assert not res.skipped, res.message
+    assert res.reference == what and res.message.endswith(f"reference: {what}")
+    assert list(res.traces.columns) == [
+        "scenario",
+        "method",
+        "trial",
+        "time_s",
+        "leader_speed_mps",
+        "follower_speed_mps",
+        "idm_follower_speed_mps",
+        "gap_m",
+    ]
+    s = res.summary
+    assert s.groupby("method").size().to_dict() == {"IDM": 2, "idm_calibrated": 4, "policy": 4}
+    assert (s.loc[s["method"] == "IDM", "rmse_vs_idm_mps"] == 0).all()
+    # The observed vehicles' IDM is not the population's: a finite, non-zero error.
+    cal_rmse = s.loc[s["method"] == "idm_calibrated", "rmse_vs_idm_mps"]
+    assert np.isfinite(cal_rmse).all() and cal_rmse.gt(0).all()
+
+
+def test_fleet_sections_use_the_fleets_idm_and_L_over_N():
+    from types import SimpleNamespace
+
+    sc, section, _ = road("ring_paper_section")
+    params, what = lfs.reference_idm(sc, None, LENGTH_M)  # a fleet needs no fit
+    assert params == lf.mean_idm_params(sc) and "the fleet's IDM" in what
+    truth = SimpleNamespace(section=section)
+    assert lfs.truth_mean_spacing(sc, truth) == pytest.approx(2 * np.pi * 100 / 5, abs=1e-5)
