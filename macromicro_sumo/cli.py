@@ -20,7 +20,7 @@ from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import check_out_path
 from macromicro_sumo.generator.ring_train import run_complete
 from macromicro_sumo.pipeline import stages
-from macromicro_sumo.pipeline.ring import policy_paths
+from macromicro_sumo.pipeline.build import policy_paths
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo import simulation as sumo
 from macromicro_sumo.sumo.inputs import input_files

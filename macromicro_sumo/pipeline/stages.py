@@ -13,18 +13,11 @@ from typing import Any
 
 from macromicro_sumo.deploy.stage import deploy as deploy_stage
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.evaluation.ring import evaluate as evaluate_ring
-from macromicro_sumo.evaluation.section import evaluate_section
 from macromicro_sumo.files import writer_session
-from macromicro_sumo.generator.ring_train import run_train_generator
-from macromicro_sumo.generator.section_train import run_train_section_generator
-from macromicro_sumo.pipeline.ring import run as run_ring
-from macromicro_sumo.pipeline.section import fit_residual_prior, run_section
+from macromicro_sumo.pipeline.build import RING, SECTION, PipelineRoad, run_pipeline
 from macromicro_sumo.policy.stage import run_train_policy
 from macromicro_sumo.report.deploy import make_deploy_plots
 from macromicro_sumo.scenario.section import SectionScenario
-from macromicro_sumo.truth.ring import simulate as simulate_ring
-from macromicro_sumo.truth.section import simulate_section
 
 
 def _one_writer(stage: Callable[..., Any]) -> Callable[..., Any]:
@@ -43,11 +36,15 @@ def is_section(sc: object) -> bool:
     return isinstance(sc, SectionScenario)
 
 
+def road(sc: object) -> PipelineRoad:
+    """The stage functions of ``sc``'s kind of road (``pipeline.build``)."""
+    return SECTION if is_section(sc) else RING
+
+
 @_one_writer
 def simulate(sc: Any, out: Path | str, command: str = "", progress: bool = True) -> Path:
     """Ground truth: the scenario's demand in SUMO, recorded with detectors."""
-    stage = simulate_section if is_section(sc) else simulate_ring
-    return stage(sc, out, command=command, progress=progress)
+    return road(sc).simulate(sc, out, command, progress)
 
 
 @_one_writer
@@ -55,8 +52,7 @@ def train_generator(
     sc: Any, data: Path, out: Path, command: str = "", progress: bool = True
 ) -> dict[str, Any]:
     """Stage I: the hidden-vehicle generator, trained on the ground truth in ``data``."""
-    stage = run_train_section_generator if is_section(sc) else run_train_generator
-    return stage(sc, data, out, command, progress=progress)
+    return road(sc).train_generator(sc, data, out, command, progress)
 
 
 @_one_writer
@@ -70,7 +66,7 @@ def train_policy(
     progress: bool = True,
 ) -> dict[str, Any]:
     """Stage II: the shared policy, trained with PPO on micro + eta macro."""
-    fit = fit_residual_prior if is_section(sc) else None
+    fit = road(sc).fit_prior
     return run_train_policy(sc, data, generator, out, resume, command, progress, fit_prior=fit)
 
 
@@ -87,13 +83,13 @@ def evaluate(
 ) -> Any:
     """Every method on the held-out runs; ``hidden`` picks K on the ring."""
     if not is_section(sc):
-        return evaluate_ring(sc, data, generator, policies, out, command, progress, hidden)
+        return RING.evaluate(sc, data, generator, policies, out, command, progress, hidden)
     if hidden:
         raise UserError(
             "--hidden is for ring scenarios; on a section the hidden count is estimated "
             "from the detectors (generator.k_source)"
         )
-    return evaluate_section(sc, data, generator, policies, out, command, progress)
+    return SECTION.evaluate(sc, data, generator, policies, out, command, progress)
 
 
 @_one_writer
@@ -113,4 +109,4 @@ def deploy(
 @_one_writer
 def run(sc: Any, out: Path | str, command: str = "", progress: bool = True) -> dict[str, Any]:
     """The whole pipeline, stage by stage; stages whose inputs did not change are reused."""
-    return (run_section if is_section(sc) else run_ring)(sc, out, command, progress=progress)
+    return run_pipeline(sc, road(sc), out, command, progress)

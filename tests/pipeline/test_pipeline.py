@@ -15,7 +15,7 @@ from macromicro_sumo import cli
 from macromicro_sumo.evaluation.ring import METHOD_ORDER
 from macromicro_sumo.files import write_json, write_manifest
 from macromicro_sumo.manifest import build_manifest
-from macromicro_sumo.pipeline.ring import RESUME, run_stages, standard_stages
+from macromicro_sumo.pipeline.build import RESUME, run_stages, standard_stages
 from macromicro_sumo.scenario.load import load_scenario
 
 SMALL_RUN = {

@@ -1,8 +1,9 @@
 """The whole pipeline in one call, for every road: ground truth -> generator (-> policy ->
 evaluation -> deployment) -> report.
 
-``run_pipeline`` takes the road's table of stage functions (``PipelineRoad``: ``RING``
-here, ``pipeline.section.SECTION``) and builds the same stages for both.
+``run_pipeline`` takes the road's table of stage functions (``PipelineRoad``: ``RING``, the
+paper's ring; ``SECTION``, a section of a user's network) and builds the same stages for
+both; ``pipeline.stages.run`` picks the table.
 
 Each stage writes into its own sub-folder of ``out``. It is skipped when its manifest
 records the scenario's values of every key that it, or a stage it reads from, depends on
@@ -22,21 +23,27 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from macromicro_sumo.deploy.stage import MANIFEST as DEPLOY_MANIFEST
 from macromicro_sumo.deploy.stage import deploy
+from macromicro_sumo.env.section_bank import typical_length
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.evaluation.idm_fit import fit_policy_prior
 from macromicro_sumo.evaluation.methods import LEARNED, checkpoint_name
 from macromicro_sumo.evaluation.ring import evaluate
+from macromicro_sumo.evaluation.section import evaluate_section, micro_pairs
 from macromicro_sumo.files import check_outputs, prepare_out_dir, write_json
 from macromicro_sumo.generator.ring_train import run_train_generator
+from macromicro_sumo.generator.section_train import run_train_section_generator
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.pipeline.refinement import refine
 from macromicro_sumo.policy.checkpoint import policy_file
 from macromicro_sumo.policy.stage import PriorFit, run_train_policy
 from macromicro_sumo.report.deploy import make_deploy_plots
 from macromicro_sumo.report.write import write_report
-from macromicro_sumo.scenario.ring import Scenario
 from macromicro_sumo.truth.ring import simulate
+from macromicro_sumo.truth.section import simulate_section
 
 # The one resume rule of the pipeline, ring or section (``policy.checkpoint.resumable_checkpoint``): a
 # stage's checkpoint of this very run is continued, one of another run (any input edited
@@ -209,7 +216,6 @@ class PipelineRoad:
     simulate: Callable[..., Any]
     train_generator: Callable[..., Any]
     evaluate: Callable[..., Any]
-    report: Callable[[Any, Path, dict[str, Any]], Path]
     fit_prior: PriorFit | None = None  # policy.prior's IDM fit (policy.stage.run_train_policy)
     truth_reads: tuple[str, ...] = ()  # keys of later stages' tables the ground truth reads
     deploys: Callable[[Any], bool] = lambda sc: True  # noqa: E731
@@ -269,16 +275,31 @@ def run_pipeline(
             ),
         ]
     manifest = run_stages(sc, stages, out, command, progress)
-    road.report(sc, out, manifest)
+    write_report(sc, out, manifest)
     return manifest
 
 
-RING = PipelineRoad(simulate, run_train_generator, evaluate, write_report, refine=True)
+def fit_residual_prior(sc, truth, runs: np.ndarray) -> tuple[dict[str, float], dict[str, Any]]:
+    """The model under a section's residual policy (``policy.prior``, "idm" or "gipps"),
+    fitted to the observed pairs as the evaluation's idm_calibrated is (its pairs, runs and
+    length), so the policy starts as that model and its residual is what training adds.
+    Returns the agent's prior parameters and what the policy manifest records of the fit."""
+    length = typical_length(truth)
+    obs, acc = micro_pairs(sc, truth, runs)
+    kind = sc.policy.prior
+    prior, rmse = fit_policy_prior(kind, obs, acc, length, sc.simulation.step_length_s)
+    return prior, {"prior": {"kind": kind, **prior, "fit_rmse_mps2": rmse, "pairs": len(acc)}}
 
 
-def run(sc: Scenario, out: Path | str, command: str = "", progress: bool = True) -> dict[str, Any]:
-    """Every stage on the ring scenario ``sc`` into ``out``; returns the run manifest."""
-    return run_pipeline(sc, RING, out, command, progress)
+RING = PipelineRoad(simulate, run_train_generator, evaluate, refine=True)
+SECTION = PipelineRoad(
+    simulate_section,
+    run_train_section_generator,
+    evaluate_section,
+    fit_prior=fit_residual_prior,
+    # The K estimates of the ground truth are on the generator's snapshot grid.
+    truth_reads=("generator.snapshot_every_s",),
+)
 
 
 def run_stages(
