@@ -16,6 +16,8 @@ from pathlib import Path
 import matplotlib as mpl
 import numpy as np
 import pandas as pd
+from matplotlib.axes import Axes
+from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 
 from macromicro_sumo.deploy.compare import (
@@ -31,8 +33,7 @@ from macromicro_sumo.report.plots import (
     METHOD_COLORS,
     REFERENCE_COLOR,
     SPEED_CMAP,
-    finish_lane_grid,
-    lane_grid,
+    lane_figure,
     plot_time_space,
     save_figure,
     window,
@@ -141,27 +142,23 @@ def plot_speed_heatmaps(
     column per source (the ground truth first), for one run. ``lanes`` maps a source's name
     to its trajectories in ``lane_trajectories``' schema. Empty cells are white."""
     d = window(lanes, run)
-    fig, axes, lane_ids, norm = lane_grid(d, f"Speed over time and space per lane, run {run}")
     t0 = min(float(df["time_s"].min()) for df in d.values())
     t1 = max(float(df["time_s"].max()) for df in d.values())
     x1 = max(float(df["arc_m"].max()) for df in d.values())
     t_edges = np.arange(t0, t1 + time_bin_s, time_bin_s)
     x_edges = np.linspace(0.0, x1 + 1e-6, space_bins + 1)
     cmap = mpl.colormaps[SPEED_CMAP].with_extremes(bad="white")
-    for j, df in enumerate(d.values()):
-        for i, lane in enumerate(lane_ids):
-            g = df[df["lane_index"] == lane]
-            t, x, v = (g[c].to_numpy(float) for c in ("time_s", "arc_m", "speed_mps"))
-            n, _, _ = np.histogram2d(t, x, bins=(t_edges, x_edges))
-            s, _, _ = np.histogram2d(t, x, bins=(t_edges, x_edges), weights=v)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                mean = np.where(n > 0, s / n, np.nan)
-            axes[i, j].pcolormesh(
-                t_edges, x_edges, np.ma.masked_invalid(mean).T, cmap=cmap, norm=norm
-            )
-    finish_lane_grid(fig, axes, list(d), lane_ids)
-    fig.colorbar(mpl.cm.ScalarMappable(norm=norm, cmap=cmap), ax=axes, label="speed (m/s)")
-    return save_figure(fig, path)
+
+    def draw(ax: Axes, g: pd.DataFrame, norm: Normalize) -> None:
+        t, x, v = (g[c].to_numpy(float) for c in ("time_s", "arc_m", "speed_mps"))
+        n, _, _ = np.histogram2d(t, x, bins=(t_edges, x_edges))
+        s, _, _ = np.histogram2d(t, x, bins=(t_edges, x_edges), weights=v)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = np.where(n > 0, s / n, np.nan)
+        ax.pcolormesh(t_edges, x_edges, np.ma.masked_invalid(mean).T, cmap=cmap, norm=norm)
+
+    title = f"Speed over time and space per lane, run {run}"
+    return lane_figure(d, path, title, cmap, draw)
 
 
 def make_deploy_plots(
@@ -321,12 +318,14 @@ def acted_lines(summary: pd.DataFrame) -> list[str]:
     for _, r in summary.iterrows():
         driven = float(r.get("vehicle_steps_driven", np.nan))
         lowered, raised = (float(r.get(c, np.nan)) for c in ("safety_acted", "floor_acted"))
+        share = float(r.get("safety_floor_share", np.nan))  # deploy.safety_floor_share
+        share = share if np.isfinite(share) else FLOOR_SHARE
         if not (driven > 0 and (lowered > 0 or raised > 0)):
             continue
         lines.append(
             f"- `{r['method']}`: of {driven:,.0f} driven vehicle-steps, the safety layer "
             f"lowered the command to the safe speed behind the leader in {of(lowered, driven)} "
-            f"and raised it to its floor ({FLOOR_SHARE:.0%} of the lane's limit) in "
+            f"and raised it to its floor ({share:.0%} of the lane's limit) in "
             f"{of(raised, driven)}."
         )
     return lines

@@ -9,14 +9,15 @@ directly, not pyplot: no display, no global backend switch, no figures left open
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import matplotlib as mpl
 import numpy as np
 import pandas as pd
+from matplotlib.axes import Axes
 from matplotlib.collections import LineCollection
-from matplotlib.colors import Normalize
+from matplotlib.colors import Colormap, Normalize
 from matplotlib.figure import Figure
 
 from macromicro_sumo.files import atomic_path
@@ -152,25 +153,30 @@ def window(
     return {name: df[df["time_s"] <= end + 1e-9] for name, df in d.items()}
 
 
-def lane_grid(
-    d: Mapping[str, pd.DataFrame], title: str
-) -> tuple[Figure, np.ndarray, list[int], Normalize]:
-    """A figure with a row per lane and a column per source, and one speed scale."""
+def lane_figure(
+    d: Mapping[str, pd.DataFrame],
+    path: Path | str,
+    title: str,
+    cmap: Colormap,
+    draw: Callable[[Axes, pd.DataFrame, Normalize], None],
+) -> Path:
+    """A figure with a row per lane (0 = rightmost) and a column per source, one speed
+    scale: ``draw(ax, rows, norm)`` fills each cell with its source's rows on its lane."""
     lane_ids = sorted({int(x) for df in d.values() for x in df["lane_index"].unique()})
     v = np.concatenate([df["speed_mps"].to_numpy(float) for df in d.values()])
     norm = Normalize(float(np.nanmin(v)), float(np.nanmax(v)) + 1e-6)
     fig = Figure(figsize=(4.0 * len(d) + 1.2, 3.0 * len(lane_ids) + 0.8), layout="constrained")
     axes = fig.subplots(len(lane_ids), len(d), squeeze=False, sharex=True, sharey=True)
-    fig.suptitle(title)
-    return fig, axes, lane_ids, norm
-
-
-def finish_lane_grid(fig: Figure, axes: np.ndarray, names: list[str], lane_ids: list[int]) -> None:
-    for j, name in enumerate(names):
+    for j, (name, df) in enumerate(d.items()):
         axes[0, j].set_title(name)
         axes[-1, j].set_xlabel("time (s)")
+        for i, lane in enumerate(lane_ids):
+            draw(axes[i, j], df[df["lane_index"] == lane], norm)
     for i, lane in enumerate(lane_ids):
         axes[i, 0].set_ylabel(f"lane {lane}: position (m)")
+    fig.suptitle(title)
+    fig.colorbar(mpl.cm.ScalarMappable(norm=norm, cmap=cmap), ax=axes, label="speed (m/s)")
+    return save_figure(fig, path)
 
 
 def lane_segments(g: pd.DataFrame, max_dt_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -207,32 +213,26 @@ def plot_time_space(
     """
     for name, df in sources.items():
         _require(df, ["time_s", "vehicle_id", "arc_m", "speed_mps"], f"time-space data {name}")
-    d = window(
-        {k: df if "lane_index" in df else df.assign(lane_index=0) for k, df in sources.items()},
-        run,
-        seconds,
-    )
-    fig, axes, lane_ids, norm = lane_grid(d, title if run is None else f"{title}, run {run}")
+    d = {k: df if "lane_index" in df else df.assign(lane_index=0) for k, df in sources.items()}
     cmap = mpl.colormaps[SPEED_CMAP]
-    for j, df in enumerate(d.values()):
-        times = np.unique(df["time_s"].to_numpy(float))
+
+    def draw(ax: Axes, g: pd.DataFrame, norm: Normalize) -> None:
+        times = np.unique(g["time_s"].to_numpy(float))
         step = float(np.median(np.diff(times))) if len(times) > 1 else 1.0
-        for i, lane in enumerate(lane_ids):
-            ax = axes[i, j]
-            segs, speeds = lane_segments(df[df["lane_index"] == lane], 1.5 * step)
-            if len(segs):
-                lc = LineCollection(segs, cmap=cmap, norm=norm, linewidths=1.2)
-                lc.set_array(speeds)
-                ax.add_collection(lc)
-            ax.autoscale_view()
-            if length_m is not None:
-                ax.set_ylim(0.0, length_m)
-            for border in borders_m:
-                ax.axhline(border, color="grey", lw=0.5, ls=":")
-            ax.grid(alpha=0.3)
-    finish_lane_grid(fig, axes, list(d), lane_ids)
-    fig.colorbar(mpl.cm.ScalarMappable(norm=norm, cmap=cmap), ax=axes, label="speed (m/s)")
-    return save_figure(fig, path)
+        segs, speeds = lane_segments(g, 1.5 * step)
+        if len(segs):
+            lc = LineCollection(segs, cmap=cmap, norm=norm, linewidths=1.2)
+            lc.set_array(speeds)
+            ax.add_collection(lc)
+        ax.autoscale_view()
+        if length_m is not None:
+            ax.set_ylim(0.0, length_m)
+        for border in borders_m:
+            ax.axhline(border, color="grey", lw=0.5, ls=":")
+        ax.grid(alpha=0.3)
+
+    title = title if run is None else f"{title}, run {run}"
+    return lane_figure(window(d, run, seconds), path, title, cmap, draw)
 
 
 def plot_detectors_vs_truth(macro: pd.DataFrame, k_est: pd.DataFrame, path: Path) -> Path:
