@@ -128,14 +128,16 @@ def section_truth_plots(r: Run) -> list[Path]:
     ]
 
 
-def estimated_distributions(r: Run) -> list[Path]:
-    """Speed and spacing per method on the scenes completed with the estimated hidden count."""
+def distributions(r: Run) -> list[Path]:
+    """Speed and spacing per method; on a section, of the scenes completed with the
+    estimated hidden count (what a user has; the true count's are the estimate's cost)."""
     src = r.out / "evaluation" / "eval_samples.csv"
     if not src.is_file():
         return []
     samples = pd.read_csv(src, dtype={"hidden_count": str})
-    est = samples[samples["hidden_count"] == "estimated"]
-    return [plots.plot_distributions(est, r.png("distributions.png"))]
+    if "hidden_count" in samples:
+        samples = samples[samples["hidden_count"] == "estimated"]
+    return [plots.plot_distributions(samples, r.png("distributions.png"))]
 
 
 TRAINING_PLOTS = (
@@ -320,7 +322,7 @@ def training_part(r: Run) -> list[str]:
 
 RING_REPORT = ReportKind(
     plots=(
-        csv_plot("evaluation/eval_samples.csv", "distributions.png", plots.plot_distributions),
+        distributions,
         TRAINING_PLOTS[0],
         csv_plot(
             "evaluation/leader_follower.csv", "leader_follower.png", plots.plot_leader_follower
@@ -401,7 +403,7 @@ def idm_calibrated_part(r: Run) -> list[str]:
 
 
 SECTION_REPORT = ReportKind(
-    plots=(section_truth_plots, estimated_distributions, *TRAINING_PLOTS),
+    plots=(section_truth_plots, distributions, *TRAINING_PLOTS),
     parts=(
         section_head,
         hidden_count_part,
