@@ -87,6 +87,8 @@ SUMMARY_COLUMNS = [
     "w1_ttc_s",
     *SAFETY_COLUMNS,
     *ACTED_SHARES,
+    "safety",
+    "safety_floor_share",
     "truth_collisions",
     "truth_teleports",
 ]
@@ -395,6 +397,15 @@ def truth_reference(folder: Path | str) -> Reference:
     return Reference(True, float(warmup))
 
 
+def safety_layer(folder: Path) -> tuple[str, float | None]:
+    """(safety layer, its floor share) a method's manifest.json records: ("sumo", 0.2) or
+    ("none", None) for a speed-commanding method; ("", None) for the others and a folder
+    without a manifest."""
+    path = folder / "manifest.json"
+    manifest = read_manifest(path) if path.is_file() else {}
+    return str(manifest.get("safety") or ""), manifest.get("safety_floor_share")
+
+
 def summary_row(
     name: str,
     truth: Outputs,
@@ -413,6 +424,7 @@ def summary_row(
     )
     truth_safety = safety_counts(truth.runs, runs)
     safety = safety_counts(method.runs, runs)
+    layer, floor = safety_layer(method.folder)
     return {
         "method": name,
         "reference": (reference or Reference()).label,
@@ -421,6 +433,8 @@ def summary_row(
         **dist,
         **safety,
         **acted_shares(safety),
+        "safety": layer,
+        "safety_floor_share": np.nan if floor is None else float(floor),
         "truth_collisions": truth_safety["collisions"],
         "truth_teleports": truth_safety["teleports"],
     }

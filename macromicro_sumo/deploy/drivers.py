@@ -69,6 +69,7 @@ class SectionDriver:
         self.type_code: dict[str, int] = {}  # vType -> its row in shape_table
         self.lane_table = LaneTable(section)
         self.steps = 0
+        self._brake_limit: tuple[tuple[str, ...], np.ndarray] = ((), np.empty(0))
 
     def before_step(self, sim: Simulation) -> None:
         self.steps += 1
@@ -124,11 +125,14 @@ class SectionDriver:
         n = len(st.ids)
         if not n:
             return
-        # The decel of the vehicle's own demand vType, whatever it drives with now.
-        decel = np.fromiter(map(self.decel_of.get, st.ids, repeat(np.inf)), float, n)
-        self.stats.emergency_brakings += int(
-            (st.accel_mps2 < -decel - BRAKING_TOLERANCE_MPS2).sum()
-        )
+        # The decel of the vehicle's own demand vType, whatever it drives with now, as the
+        # threshold -decel - tolerance; kept while the vehicles on the road are the same.
+        ids, limit = self._brake_limit
+        if st.ids != ids:
+            decel = np.fromiter(map(self.decel_of.get, st.ids, repeat(np.inf)), float, n)
+            limit = -decel - BRAKING_TOLERANCE_MPS2
+            self._brake_limit = (st.ids, limit)
+        self.stats.emergency_brakings += int(np.count_nonzero(st.accel_mps2 < limit))
 
     def take(self, sim: Simulation, vids: list[str]) -> None:
         """Vehicles that entered the section (or the population's drive) this step."""
@@ -239,7 +243,8 @@ class SectionSpeedDriver(SectionDriver):
         cmd = np.maximum(0.0, obs[:, 0] + a * dt)
         if self.safety == "sumo":
             own = np.fromiter(map(self.decel_of.__getitem__, vids), float, n)
-            safe = safety_cap(cmd, obs, gap, own, lead_decel, lead, dt, a_max)
+            floor = self.sc.deploy.safety_floor_share
+            safe = safety_cap(cmd, obs, gap, own, lead_decel, lead, dt, a_max, floor)
             cmd = self.stats.count_safety(*safe)
         sim.set_speeds(vids, cmd)
         self.last, self.gone = (vids, cmd), set()
@@ -477,7 +482,8 @@ class RingSpeedDriver(RingDriver):
             driven_index[m] = np.arange(int(m.sum()))
             lead = driven_index[leader[m]]
             b, b_l = self.decel[m], self.decel[leader[m]]
-            safe = safety_cap(cmd, obs, gap, b, b_l, lead, dt, a_max)
+            floor = self.sc.deploy.safety_floor_share
+            safe = safety_cap(cmd, obs, gap, b, b_l, lead, dt, a_max, floor)
             cmd = self.stats.count_safety(*safe)
         self.commands = cmd
         sim.set_speeds(self.driven, self.commands)

@@ -31,7 +31,7 @@ class DriveStats:
     vehicle_steps_driven: int = 0
     safety_acted: int = 0
     emergency_brakings: int = 0
-    floor_acted: int = 0  # commands the safety layer raised (``deploy.safety.FLOOR_SHARE``)
+    floor_acted: int = 0  # commands the safety layer raised to its floor (``deploy.safety``)
 
     def count_safety(self, cmd: np.ndarray, lowered: int, raised: int) -> np.ndarray:
         """``cmd``, the safety layer's commands (``deploy.safety.safety_cap``), after

@@ -80,13 +80,15 @@ FLEET = "fleet"
 
 @dataclass(frozen=True)
 class Drive:
-    """How a method drives: ``act`` (speed commands), ``theta`` (an IDM vType with these
+    """How a method drives: ``act`` (speed commands, through the safety layer ``safety``;
+    None: the scenario's ``deploy.safety``), ``theta`` (an IDM vType with these
     parameters), ``defaults`` (SUMO's default model and parameters of each vClass), or
     nothing of these (the oracle: SUMO drives every vehicle with its true model)."""
 
     act: ActionBatch | None = None
     theta: dict[str, float] | None = None
     defaults: bool = False
+    safety: str | None = None
 
 
 @dataclass
@@ -323,7 +325,7 @@ def _section_runs(ctx, drive, stage, runs, extra, switch, drivers, progress, des
     def driver_for(run: int) -> SectionDriver:
         args = (sc, ctx.section, run)
         if drive.act is not None:
-            d = SectionSpeedDriver(*args, drive.act, sc.deploy.safety)
+            d = SectionSpeedDriver(*args, drive.act, drive.safety or sc.deploy.safety)
         elif drive.theta is not None or drive.defaults:
             d = SectionTypeDriver(*args, switch(run))
         else:
@@ -382,7 +384,7 @@ def _ring_runs(ctx, drive, stage, runs, extra, switch, drivers, progress, desc):
             d = RingSpeedDriver(
                 *args,
                 act=drive.act,
-                safety=sc.deploy.safety,
+                safety=drive.safety or sc.deploy.safety,
                 length=spec.params["length_m"].to_numpy(),
                 min_gap=spec.params["min_gap_m"].to_numpy(),
             )

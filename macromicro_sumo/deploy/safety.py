@@ -6,8 +6,9 @@ no command, however poor or adversarial, makes a vehicle collide or block the ro
   observes (``road.physics.safe_speed``: the leader's braking at max(b, b_l), as SUMO's);
 * a leader that is driven too is followed by its command, its known next speed
   (``behind_commands``), so one braking harder than its decel takes its followers along;
-* the command is raised to a floor (``FLOOR_SHARE`` of the lane's limit, at most the safe
-  speed) so that no vehicle is held standing where nothing ahead asks for it.
+* the command is raised to a floor (``deploy.safety_floor_share`` of the lane's limit,
+  default ``FLOOR_SHARE``, at most the safe speed) so that no vehicle is held standing where
+  nothing ahead asks for it.
 
 Pure numpy: tested without SUMO and, through the drivers, with it
 (``tests/deploy/test_safety.py``).
@@ -19,6 +20,7 @@ import numpy as np
 
 from macromicro_sumo.road.physics import safe_speed
 from macromicro_sumo.road.section import NO_LEADER_GAP_M
+from macromicro_sumo.scenario.stages import DeployConfig
 
 # Speed modes of speed-commanded vehicles (SUMO's bits, ``sumo.simulation``). "none" applies
 # the command exactly (32: no safe speed, no accel/decel limits, no right of way, no braking
@@ -28,13 +30,14 @@ from macromicro_sumo.road.section import NO_LEADER_GAP_M
 # speed factor and at its model's choice (IDM's follow speed is its next speed), no safety.
 SPEED_MODES = {"none": 32, "sumo": 24}
 SAFETY_TOLERANCE_MPS = 0.01
-# The safety layer's floor: a command is raised to this share of the lane's speed limit
-# (capped at the safe speed and at the vehicle's acceleration) so that a policy cannot
-# stop a vehicle where nothing ahead asks for it: Bremen's policy braked cars to a
-# standstill on the free road (leader 80 m ahead and faster) and held them there, until
-# SUMO teleported them after 300 s (93 teleports in a run). A fifth: 8.9 m/s at Bremen's
-# 44.4 m/s, below 1.1% of the ground truth's vehicle-steps, all of them queued at the merge.
-FLOOR_SHARE = 0.2
+# The safety layer's floor, the default of ``deploy.safety_floor_share``: a command is
+# raised to this share of the lane's speed limit (capped at the safe speed and at the
+# vehicle's acceleration) so that a policy cannot stop a vehicle where nothing ahead asks
+# for it: Bremen's policy braked cars to a standstill on the free road (leader 80 m ahead
+# and faster) and held them there, until SUMO teleported them after 300 s (93 teleports in
+# a run). A fifth: 8.9 m/s at Bremen's 44.4 m/s, below 1.1% of the ground truth's
+# vehicle-steps, all of them queued at the merge.
+FLOOR_SHARE: float = DeployConfig.safety_floor_share
 
 
 def safety_cap(
@@ -46,11 +49,12 @@ def safety_cap(
     lead: np.ndarray,
     dt_s: float,
     a_max_mps2: float,
+    floor_share: float,
 ) -> tuple[np.ndarray, int, int]:
     """Speed commands ``cmd`` [m/s] made safe: capped at ``safe_speed`` behind each
     vehicle's observed leader (``gap``: SUMO's gap to it, ``NO_LEADER_GAP_M`` or more:
     none, no cap; its speed obs[:, 0] - obs[:, 3]), raised to the floor where nothing
-    ahead asks for less (``FLOOR_SHARE``), and capped behind the command of a leader that
+    ahead asks for less (``floor_share`` of the lane's limit obs[:, 1]), and capped behind the command of a leader that
     is driven too (``lead``: its index in ``cmd``, -1: none; ``behind_commands``).
     Returns (commands, how many the layer lowered, how many it raised), each by more than
     ``SAFETY_TOLERANCE_MPS``."""
@@ -58,11 +62,11 @@ def safety_cap(
     safe = np.where(gap < NO_LEADER_GAP_M, safe, np.inf)
     # The road kept open: never below a share of the lane's limit unless what is ahead
     # (the safe speed) asks for it, and no faster than the vehicle may accelerate to it.
-    floor = np.minimum(safe, np.minimum(obs[:, 0] + a_max_mps2 * dt_s, FLOOR_SHARE * obs[:, 1]))
+    floor = np.minimum(safe, np.minimum(obs[:, 0] + a_max_mps2 * dt_s, floor_share * obs[:, 1]))
     capped = np.minimum(cmd, safe)
-    raised = int((floor > capped + SAFETY_TOLERANCE_MPS).sum())
+    raised = int(np.count_nonzero(floor > capped + SAFETY_TOLERANCE_MPS))
     out = behind_commands(np.maximum(capped, floor), gap, lead, decel, lead_decel, dt_s)
-    return out, int((out < cmd - SAFETY_TOLERANCE_MPS).sum()), raised
+    return out, int(np.count_nonzero(out < cmd - SAFETY_TOLERANCE_MPS)), raised
 
 
 def behind_commands(

@@ -3,8 +3,11 @@
 The methods (``DEPLOY_METHODS``; names as the evaluation's where they are the same method):
 
 * ``policy``, ``micro_only``, ``macro_only``: the learned checkpoints, speed commands from
-  the policy's deterministic mean action, one batched torch call per step for every driven
-  vehicle (``deploy.drivers``);
+  the policy's deterministic mean action, one batched call per step for every driven
+  vehicle (``deploy.drivers``), through the safety layer ``deploy.safety``;
+* ``policy_no_safety``: the learned ``policy`` with its commands applied exactly
+  (``safety = "none"``), beside it: what the safety layer changes, and why it is on (a
+  collision here is a figure of the summary, not an error);
 * ``idm_calibrated``: the IDM least-squares-fitted to the observed vehicles' (observation,
   action) pairs of the training runs, as the evaluation fits it (``evaluation.idm_fit``),
   applied by switching the driven vehicles to an IDM vType with those parameters: SUMO's
@@ -92,12 +95,14 @@ PlotDeploy = Callable[[Path, Mapping[str, Path], pd.DataFrame, Path], list[Path]
 @dataclass(frozen=True)
 class DeployMethod:
     """One deployed method: ``how`` it drives (``learned``, ``idm``, ``defaults``,
-    ``oracle``), what it is, and the PPO objective of a learned one."""
+    ``oracle``), what it is, the PPO objective of a learned one and the safety layer its
+    commands go through ("": the scenario's ``deploy.safety``)."""
 
     name: str
     how: str
     what: str
     objective: str = ""
+    safety: str = ""
 
 
 def _what(name: str, fallback: str) -> str:
@@ -106,6 +111,13 @@ def _what(name: str, fallback: str) -> str:
 
 DEPLOY_METHODS: tuple[DeployMethod, ...] = (
     DeployMethod("policy", "learned", _what("policy", ""), "mix"),
+    DeployMethod(
+        "policy_no_safety",
+        "learned",
+        "the learned policy's speed commands applied exactly, without the safety layer",
+        "mix",
+        safety="none",
+    ),
     DeployMethod("micro_only", "learned", _what("micro_only", ""), "micro_only"),
     DeployMethod("macro_only", "learned", _what("macro_only", ""), "macro_only"),
     DeployMethod("idm_calibrated", "idm", _what("idm_calibrated", "")),
@@ -254,7 +266,10 @@ def method_drive(
     detector-calibrated IDM's vType parameters)."""
     how = METHOD[name].how
     if how == "learned":
-        return Drive(act=policy_batch(agents[name])), {"safety": sc.deploy.safety}
+        safety = METHOD[name].safety or sc.deploy.safety
+        floor = sc.deploy.safety_floor_share if safety == "sumo" else None
+        drive = Drive(act=policy_batch(agents[name]), safety=safety)
+        return drive, {"safety": safety, "safety_floor_share": floor}
     if how == "idm":
         theta = idm_theta(idm)
         return Drive(theta=theta), {"theta": theta}

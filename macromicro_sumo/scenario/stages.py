@@ -160,6 +160,7 @@ class EvaluationConfig:
 
 DEPLOY_METHODS = (
     "policy",
+    "policy_no_safety",
     "micro_only",
     "macro_only",
     "idm_calibrated",
@@ -176,7 +177,8 @@ class DeployConfig:
     methods: list[str] = spec(
         list(DEPLOY_METHODS),
         choices=DEPLOY_METHODS,
-        doc="methods deployed, each into deploy/<method>/ (default: all)",
+        doc="methods deployed, each into deploy/<method>/ (default: all); policy_no_safety is "
+        "the learned policy with safety none, beside policy with the scenario's safety",
     )
     # On by default: the policy alone collided on the Bremen example (0 collisions with it).
     safety: str = spec(
@@ -184,6 +186,15 @@ class DeployConfig:
         choices=("none", "sumo"),
         doc="sumo: SUMO caps the speed commands at its model's safe speed, right of way and "
         "red lights (runs.csv counts how often: safety_acted); none: applied exactly",
+    )
+    safety_floor_share: float = spec(
+        0.2,
+        lo=0.0,
+        hi=1.0,
+        doc="safety sumo: each speed command is raised to at least this share of the lane's "
+        "speed limit (at most the safe speed and what the vehicle can reach in a step), so "
+        "that no policy holds a car standing where nothing ahead asks for it; 0: no floor "
+        "(runs.csv counts the raised commands: floor_acted) [fraction of the limit]",
     )
     fcd_s: float = spec(
         120.0, lo=0.0, hi=1e6, doc="trajectories.csv keeps the first fcd_s recorded seconds [s]"
