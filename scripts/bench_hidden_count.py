@@ -10,8 +10,8 @@ absolute error of K per lane over the snapshots of each regime (a snapshot is co
 estimate; ``density``, the regime-blended density estimate alone; ``io_ramps_unknown``, the
 passages' estimate not told where the ramps are; ``io``, the estimate ``simulate`` writes
 (``k_estimate.csv``); and the mean error (bias) of ``io``. ``--ramp`` adds SUMO's
-``game/ramp``, ``--examples`` the shipped section examples, ``--entry-station`` one station
-more at the start of each drawn section (docs/sections.md, "Hidden count").
+``game/ramp``, ``--examples`` the shipped section examples, ``--boundary-stations`` the drawn
+sections with ``detectors.auto_boundary_stations`` (docs/sections.md, "Hidden count").
 
     .venv/bin/python scripts/bench_hidden_count.py --seed 200 --nets 8
 """
@@ -32,10 +32,17 @@ import sumolib
 
 from macromicro_sumo.cli import main as cli_main
 from macromicro_sumo.data.section import at_snapshot_times
-from macromicro_sumo.road.section import Section, read_section
+from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.inputs import read_net, scenario_inputs
-from macromicro_sumo.truth.section_macro import detector_macro, k_estimates, side_junction_arcs
+from macromicro_sumo.truth.section_macro import (
+    PASSAGE_LAG_STEPS,
+    detector_macro,
+    io_pieces,
+    k_estimates,
+    loop_densities,
+    side_junction_arcs,
+)
 
 SLOW_MPS = 5.0  # a snapshot is congested when ...
 SLOW_SHARE = 0.10  # ... this share of its vehicles is at or below SLOW_MPS
@@ -44,7 +51,6 @@ SUMO_TOOLS = Path(sumo.__file__).resolve().parent / "tools"
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 EXAMPLES = ("highway_bremen", "netgen_corridor", "spreewaldring")
 EXAMPLE_RUNS = 2
-ENTRY_STATION_M = 15.0  # past the front of a 12 m truck inserted at the lane's start
 
 
 def get_options(args: list[str] | None = None) -> argparse.Namespace:
@@ -54,10 +60,16 @@ def get_options(args: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--out", type=Path, default=Path("/tmp/bench_hidden_count"), help="cache")
     p.add_argument("--ramp", action="store_true", help="add SUMO's game/ramp example")
     p.add_argument(
-        "--entry-station",
+        "--boundary-stations",
         action="store_true",
-        help=f"drawn networks with one more station {ENTRY_STATION_M:g} m into the section "
-        "(user loops where the tool's placement puts its first half a spacing in)",
+        help="drawn networks with detectors.auto_boundary_stations = true (a station inside "
+        "each end and either side of each ramp's node)",
+    )
+    p.add_argument(
+        "--pieces",
+        action="store_true",
+        help="also a table of each part's error (vehicles): between stations, with a ramp, "
+        "the end pieces",
     )
     p.add_argument(
         "--examples",
@@ -175,30 +187,6 @@ def build_network(folder: Path, seed: int) -> tuple[dict, str]:
     return table, ", ".join(desc)
 
 
-def with_entry_station(folder: Path, table: dict) -> dict:
-    """``table`` with the tool's loop placement written as the user's own loops plus a
-    station ``ENTRY_STATION_M`` into the section."""
-    net_file = Path(table["network"]["net_file"])
-    section = read_section(net_file, table["section"]["edges"], False)
-    step = table["detectors"]["auto_spacing_m"]
-    rows = ["<additional>"]
-    for arc in [ENTRY_STATION_M, *np.arange(step / 2, section.length_m, step)]:
-        e = int(section.edge_index(np.array([arc]))[0])
-        pos = float(arc - section.offsets_m[e])
-        if pos > section.lengths_m[e] - 0.5:
-            continue  # in a junction, as the tool's placement
-        for lane in section.edge_lane_ids[e]:
-            rows.append(
-                f'<inductionLoop id="u_{lane}_{arc:.0f}" lane="{lane}" pos="{pos:.2f}" '
-                'period="60" file="NUL"/>'
-            )
-    rows.append("</additional>")
-    add = folder / "loops.add.xml"
-    add.write_text("\n".join(rows) + "\n")
-    network = {**table["network"], "additional_files": [str(add)]}
-    return {**table, "network": network, "detectors": {**table["detectors"], "use_user": True}}
-
-
 def ramp_example(folder: Path) -> tuple[dict, str]:
     """SUMO's game/ramp example (a congested merge), its main line as the section."""
     game = SUMO_TOOLS / "game" / "ramp"
@@ -258,10 +246,12 @@ def errors(gt: Path) -> pd.DataFrame:
     # The smallest spacing (6.5 m) only filters macro.csv's spacing spread, not K.
     macro = detector_macro(det, pas, sc["simulation"]["warmup_s"], 6.5, section)
     dens = k_estimates(traj, macro, section, every, window)
-    unknown = k_estimates(traj, macro, section, every, window, det, pas)
+    lag = PASSAGE_LAG_STEPS * sc["simulation"]["step_length_s"]
+    unknown = k_estimates(traj, macro, section, every, window, det, pas, None, lag)
     net_file = scenario_inputs(load_scenario(gt.parent / "scenario.toml")).net_file
     side = side_junction_arcs(read_net(net_file), section)
-    hybrid = k_estimates(traj, macro, section, every, window, det, pas, side)
+    lag = PASSAGE_LAG_STEPS * sc["simulation"]["step_length_s"]
+    hybrid = k_estimates(traj, macro, section, every, window, det, pas, side, lag)
     snaps = at_snapshot_times(traj, every)
     slow = snaps.groupby(["run", "time_s"])["speed_mps"].apply(
         lambda v: (v <= SLOW_MPS).mean() >= SLOW_SHARE
@@ -276,6 +266,53 @@ def errors(gt: Path) -> pd.DataFrame:
     out["io"] = hybrid.set_index(keys)["k_error"].reindex(at).to_numpy()
     out["lanes"] = float((section.n_lanes * section.lengths_m).sum() / section.lengths_m.sum())
     return out
+
+
+def piece_errors(gt: Path) -> pd.DataFrame:
+    """Per snapshot and part of the section (``io_pieces``): its count's error (vehicles)
+    and true count; the regime from ``errors``."""
+    sc = json.loads((gt / "manifest.json").read_text())["scenario"]
+    section = Section.read(gt / "section.json")
+    traj = pd.read_csv(gt / "trajectories.csv", dtype={"vehicle_id": str, "vtype": str})
+    det = pd.read_csv(gt / "detectors.csv")
+    pas = pd.read_csv(gt / "detector_passages.csv", dtype={"vehicle_id": str})
+    if not (det["kind"] == "e1").all():
+        return pd.DataFrame()
+    det = det.assign(k_point_vpkm=loop_densities(det, pas))
+    net_file = scenario_inputs(load_scenario(gt.parent / "scenario.toml")).net_file
+    side = side_junction_arcs(read_net(net_file), section)
+    snaps = at_snapshot_times(traj, sc["generator"]["snapshot_every_s"])
+    rows = []
+    for run, g in snaps.groupby("run"):
+        times = np.sort(g["time_s"].unique())
+        lag = PASSAGE_LAG_STEPS * sc["simulation"]["step_length_s"]
+        pieces, _ = io_pieces(det, pas, section, run, times, side, lag)
+        by_t = g.groupby("time_s")["arc_m"]
+        for name, piece in pieces.items():
+            true = np.array(
+                [
+                    sum(((a >= lo) & (a < hi)).sum() for lo, hi in piece.arcs_m)
+                    for a in (by_t.get_group(t).to_numpy() for t in times)
+                ]
+            )
+            for t, est, tr in zip(times, piece.vehicles, true, strict=True):
+                rows.append({"run": run, "time_s": t, "piece": name, "true": tr, "error": est - tr})
+    return pd.DataFrame(rows)
+
+
+def piece_rows(name: str, e: pd.DataFrame, p: pd.DataFrame) -> list[str]:
+    """Mean absolute error, bias and mean true count (vehicles) per regime and part."""
+    if p.empty:
+        return []
+    p = p.merge(e[["run", "time_s", "congested"]], on=["run", "time_s"])
+    rows = []
+    for (regime, piece), g in p.groupby(["congested", "piece"]):
+        rows.append(
+            f"| {name} | {'congested' if regime else 'free'} | {piece} | {len(g)} | "
+            f"{g['true'].mean():.1f} | {np.abs(g['error']).mean():.2f} | "
+            f"{g['error'].mean():+.2f} |"
+        )
+    return rows
 
 
 ESTIMATORS = ("flow_speed", "density", "io_ramps_unknown", "io")
@@ -302,11 +339,11 @@ def main(options: argparse.Namespace) -> bool:
         folder = options.out / f"seed_{seed}"
         folder.mkdir(exist_ok=True)
         table, desc = build_network(folder, seed)
-        if options.entry_station:
-            folder = folder / "entry_station"
+        if options.boundary_stations:
+            folder = folder / "boundary_stations"
             folder.mkdir(exist_ok=True)
-            table = with_entry_station(folder, table)
-            desc += f", station at {ENTRY_STATION_M:g} m"
+            table["detectors"]["auto_boundary_stations"] = True
+            desc += ", boundary stations"
         nets.append((f"seed {seed}", folder, table, desc))
     if options.ramp:
         folder = options.out / "ramp"
@@ -329,6 +366,22 @@ def main(options: argparse.Namespace) -> bool:
         for row in table_rows(name, desc, e):
             print(row, flush=True)
     allv = pd.concat(every, ignore_index=True)
+    if options.pieces:
+        print("\n| network | regime | part | snapshots | true (veh) | abs. error (veh) | bias |")
+        print("|---" * 7 + "|")
+        every_p = []
+        for (name, folder, _, _), e in zip(nets, every, strict=True):
+            p = piece_errors(folder / "gt").assign(net=name)
+            every_p.append(p.merge(e[["run", "time_s", "congested"]], on=["run", "time_s"]))
+            for row in piece_rows(name, e, p.drop(columns="net")):
+                print(row, flush=True)
+        allp = pd.concat(every_p, ignore_index=True)
+        for (regime, piece), g in allp.groupby(["congested", "piece"]):
+            print(
+                f"| all | {'congested' if regime else 'free'} | {piece} | {len(g)} | "
+                f"{g['true'].mean():.1f} | {np.abs(g['error']).mean():.2f} | "
+                f"{g['error'].mean():+.2f} |"
+            )
     for regime, g in allv.groupby("congested"):
         per_lane = [float((np.abs(g[c]) / g["lanes"]).mean()) for c in ESTIMATORS]
         print(

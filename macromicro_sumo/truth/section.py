@@ -59,6 +59,7 @@ from macromicro_sumo.truth.section_detectors import (
     without_detectors,
 )
 from macromicro_sumo.truth.section_macro import (
+    PASSAGE_LAG_STEPS,
     detector_macro,
     k_estimates,
     k_summary,
@@ -343,6 +344,7 @@ def simulate_section(
             det,
             pas,
             side_junction_arcs(read_net(inputs.net_file), section),
+            PASSAGE_LAG_STEPS * sc.simulation.step_length_s,
         )
         vt = pd.DataFrame(
             [

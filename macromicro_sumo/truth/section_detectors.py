@@ -13,6 +13,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 import pandas as pd
+import sumolib
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.section import Section
@@ -26,6 +27,7 @@ from macromicro_sumo.truth.ring_detectors import (
     records,
     speed_or_nan,
 )
+from macromicro_sumo.truth.section_macro import side_junction_arcs
 
 _DETECTOR_TAGS = {
     "inductionLoop",
@@ -46,8 +48,15 @@ class Placed:
     arc_m: float
 
 
+BOUNDARY_STATION_M = 15.0
+"""How far inside the section's open ends and either side of a ramp's node the boundary
+stations sit (``detectors.auto_boundary_stations``): past the front of a 12 m truck
+inserted at a lane's start, and clear of the junction."""
+
+
 def place_detectors(sc: SectionScenario, inputs: SumoInputs, section: Section) -> list[Placed]:
-    """The user's detectors on the section, else loops every ``auto_spacing_m`` per lane."""
+    """The user's detectors on the section, else loops every ``auto_spacing_m`` per lane
+    (with ``auto_boundary_stations``, and at ``boundary_arcs``)."""
     placed: list[Placed] = []
     if sc.detectors.use_user:
         net = read_net(inputs.net_file)
@@ -64,7 +73,10 @@ def place_detectors(sc: SectionScenario, inputs: SumoInputs, section: Section) -
             "detectors.auto_spacing_m = 0 switches placement off; accepted: auto_spacing_m > 0"
         )
     period = sc.detectors.interval_s
-    for arc in np.arange(step / 2, section.length_m, step):
+    arcs = np.arange(step / 2, section.length_m, step)
+    if sc.detectors.auto_boundary_stations:
+        arcs = merge_arcs(arcs, boundary_arcs(section, read_net(inputs.net_file)))
+    for arc in arcs:
         e = int(section.edge_index(np.array([arc]))[0])
         pos = float(arc - section.offsets_m[e])
         if pos > section.lengths_m[e] - 0.5:
@@ -79,6 +91,37 @@ def place_detectors(sc: SectionScenario, inputs: SumoInputs, section: Section) -
             f"{section.length_m:.0f} m section; accepted: < {section.length_m:.0f}"
         )
     return placed
+
+
+def boundary_arcs(section: Section, net: sumolib.net.Net) -> np.ndarray:
+    """Arcs of the stations that bound every counted stretch: ``BOUNDARY_STATION_M`` inside
+    each end of an open section, and as far before and after each node where a ramp joins
+    or leaves (``side_junction_arcs``), on the edges either side of it (at most half an
+    edge in). With full stations there, every vehicle that enters or leaves the section
+    passes one: the end pieces and the stretches around a ramp shrink to a few metres, and
+    every other stretch is counted by its stations alone (docs/sections.md, "Hidden
+    count")."""
+    n = len(section.edge_ids)
+
+    def inside(e: int, from_end: bool) -> float:
+        d = min(BOUNDARY_STATION_M, 0.5 * float(section.lengths_m[e]))
+        return float(section.offsets_m[e] + (section.lengths_m[e] - d if from_end else d))
+
+    arcs = []
+    if not section.closed:
+        arcs += [inside(0, False), inside(n - 1, True)]
+    for node_arc in side_junction_arcs(net, section):
+        e = int(np.argmin(np.abs(section.offsets_m - node_arc)))
+        arcs += [inside((e - 1) % n, True), inside(e, False)]
+    return np.array(sorted(set(arcs)))
+
+
+def merge_arcs(arcs_m: np.ndarray, extra_m: np.ndarray, apart_m: float = 1.0) -> np.ndarray:
+    """``arcs_m`` with ``extra_m`` added, an extra arc within ``apart_m`` of one already
+    there left out (two stations a metre apart count the same vehicles)."""
+    a = np.asarray(arcs_m, dtype=float)
+    keep = [x for x in extra_m if a.size == 0 or np.abs(a - x).min() >= apart_m]
+    return np.sort(np.concatenate([a, keep]))
 
 
 def detectors_xml(placed: list[Placed], interval_s: float) -> str:

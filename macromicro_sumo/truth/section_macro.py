@@ -5,6 +5,8 @@ and estimated from the detectors, with the estimate's error.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import pandas as pd
 import sumolib
@@ -30,6 +32,16 @@ from the density estimate (``density.anchored_counts``) where a ramp lies betwee
 stations: the count drifts at the ramps' net flow, which changes with the demand and the
 queues. On the bench 180 s against 60, 120, 300, 450 and 600 s (docs/sections.md,
 "Hidden count")."""
+
+
+PASSAGE_LAG_STEPS = 1
+"""SUMO's instantaneous loops time a crossing one step before the recorded state that shows
+it (trajectories.csv labels the state after a step with that step's end): a vehicle
+reported at 300.48 s is at 535.7 m at 300.5 s and 545.9 m at 301.0 s over a loop at
+545.4 m (step 0.5 s). Counted at a snapshot without this lag, every station boundary is
+off by the vehicles crossing it within a step; on the bench the counted stretches were
+0.9-1.1 vehicles off with it ignored, 0.1-0.15 with it (docs/sections.md, "Hidden
+count")."""
 
 
 def station_cells(arcs: np.ndarray, section: Section) -> np.ndarray:
@@ -281,36 +293,46 @@ def station_speeds(e1: pd.DataFrame) -> pd.Series:
     return (cnt.sum() / inv.sum()).fillna(0.0)
 
 
-def io_vehicles(
+@dataclass(frozen=True)
+class Piece:
+    """A part of the section and its vehicles counted at each snapshot time."""
+
+    arcs_m: tuple[tuple[float, float], ...]  # [lo, hi) ranges of arc it covers
+    vehicles: np.ndarray  # (snapshot times,)
+
+
+def io_pieces(
     det: pd.DataFrame,
     passages: pd.DataFrame,
     section: Section,
     run: int,
     at_s: np.ndarray,
-    window_s: float,
     side_arcs: np.ndarray | None = None,
-) -> tuple[np.ndarray, pd.DataFrame]:
-    """Vehicles counted at the times ``at_s`` from the passages, and per interval the
-    density estimate of the rest of the section (``begin_s, end_s, vehicles``; all of it
-    where no station counts every vehicle).
+    passage_lag_s: float = 0.0,
+) -> tuple[dict[str, Piece], pd.DataFrame]:
+    """The parts of the section counted from the passages at the times ``at_s``, by name,
+    and per interval the density estimate of the rest of the section (``begin_s, end_s,
+    vehicles``; all of it where no station counts every vehicle).
 
-    Counted: the stretches between consecutive full stations, together (their summed
-    input-output count anchored to their summed density estimate, weighted to the
-    free-flowing intervals: one constant for the whole record where no ramp lies between
-    two stations (``side_arcs``, arcs of the nodes with ramps), else a line over
-    ``IO_ANCHOR_WINDOW_S``; ``side_arcs`` None: unknown, the line), and on an open section
-    the end pieces beyond the outermost full stations (``density.projected_passages``;
-    upstream blended with the density estimate by the station's speed, since a vehicle
-    queued there passes slower than it drove).
+    ``between``: the stretches between consecutive full stations with no ramp between them
+    (``side_arcs``, arcs of the nodes with ramps; None: unknown, every stretch may hold
+    one), their summed input-output count anchored to their summed density estimate,
+    weighted to the free-flowing intervals, by one constant for the whole record: nothing
+    enters or leaves them but through their stations. ``ramps``: the stretches with a
+    ramp, the same but anchored by a line over ``IO_ANCHOR_WINDOW_S`` (their count drifts
+    at the ramps' net flow). On an open section ``upstream`` and ``downstream``, the end
+    pieces beyond the outermost full stations (``density.projected_passages``; upstream
+    blended with the density estimate by the station's speed, since a vehicle queued
+    there passes slower than it drove). ``passage_lag_s``: how far the passages' clock runs
+    ahead of the times ``at_s`` (``PASSAGE_LAG_STEPS``).
     """
     d = det[det["run"] == run]
+    at_p = np.asarray(at_s, dtype=float) - passage_lag_s  # the same moments, passages' clock
     p = passages[passages["run"] == run]
     arcs = full_stations(d, section)
     pairs = list(zip(arcs[:-1], arcs[1:], strict=True))
     if section.closed and len(arcs) > 1:
         pairs.append((arcs[-1], arcs[0]))
-    # A ramp between two stations makes the count drift at its flow.
-    ramps = side_arcs is None or any(ramp_between(side_arcs, *pair) for pair in pairs)
     # The fastest lap, with a margin for drivers above the limit (SUMO's speedFactor).
     lap_s = section.length_m / (1.5 * float(np.nanmax(section.limits_mps)))
     own = {a: station_passages(d, p, a, lap_s) for a in arcs}
@@ -346,42 +368,70 @@ def io_vehicles(
             up_w.append(float(occupancy_weight(np.array([speeds.get(arcs[0], 0.0)]))[0]))
             inside += up_dens[-1] + integrate_stations(per_station, section, arcs[-1])
         rest.append({"begin_s": begin, "end_s": end, "vehicles": total - inside})
-    counted = np.zeros(len(at_s))
-    # The interval holding each time (the last one before it, past the record's end).
-    j = np.clip(np.searchsorted(intervals["begin_s"].to_numpy(), at_s, "right") - 1, 0, None)
-    # Every stretch between full stations is anchored together: each alone takes the
-    # density estimate's error on its stretch (a loop on a curve or before a lane drop does
-    # not stand for its neighbours), and those errors cancel in their sum, which is all K
+    pieces: dict[str, Piece] = {}
+    # The stretches of a group are anchored together: each alone takes the density
+    # estimate's error on its stretch (a loop on a curve or before a lane drop does not
+    # stand for its neighbours), and those errors cancel in their sum, which is all K
     # needs (Spreewaldring: 5.2 vehicles per lane off anchored per stretch, 0.9 together).
-    if pairs:
+    with_ramp = [side_arcs is None or ramp_between(side_arcs, *pair) for pair in pairs]
+    for name, group, window_s in (
+        ("between", [q for q, r in zip(pairs, with_ramp, strict=True) if not r], np.inf),
+        ("ramps", [q for q, r in zip(pairs, with_ramp, strict=True) if r], IO_ANCHOR_WINDOW_S),
+    ):
+        if not group:
+            continue
         io = sum(
-            cumulative_count(times[lo], at_s) - cumulative_count(times[hi], at_s)
-            for lo, hi in pairs
+            cumulative_count(times[lo], at_p) - cumulative_count(times[hi], at_p)
+            for lo, hi in group
         )
-        counted += anchored_counts(
+        counted = anchored_counts(
             io,
-            np.sum([io_mean[pair] for pair in pairs], axis=0),
-            np.sum([dens[pair] for pair in pairs], axis=0),
+            np.sum([io_mean[pair] for pair in group], axis=0),
+            np.sum([dens[pair] for pair in group], axis=0),
             centres,
             at_s,
-            IO_ANCHOR_WINDOW_S if ramps else np.inf,
-            np.mean([free_flow_weight(np.array(speed[pair])) for pair in pairs], axis=0),
+            window_s,
+            np.mean([free_flow_weight(np.array(speed[pair])) for pair in group], axis=0),
         )
+        spans = [(lo, hi) if hi > lo else (lo, section.length_m) for lo, hi in group]
+        spans += [(0.0, hi) for lo, hi in group if hi <= lo]
+        pieces[name] = Piece(tuple(spans), counted)
     if ends:
+        # The interval holding each time (the last one before it, past the record's end).
+        j = np.clip(np.searchsorted(intervals["begin_s"].to_numpy(), at_s, "right") - 1, 0, None)
         first, last = own[arcs[0]], own[arcs[-1]]
         down = projected_passages(
             last["time_s"].to_numpy(),
             last["speed_mps"].to_numpy(),
-            at_s,
+            at_p,
             section.length_m - arcs[-1],
             upstream=False,
         )
         up = projected_passages(
-            first["time_s"].to_numpy(), first["speed_mps"].to_numpy(), at_s, arcs[0], True
+            first["time_s"].to_numpy(), first["speed_mps"].to_numpy(), at_p, arcs[0], True
         )
         w = np.array(up_w)[j]
-        counted += down + w * np.array(up_dens)[j] + (1.0 - w) * up
-    return counted, pd.DataFrame(rest, columns=["begin_s", "end_s", "vehicles"])
+        pieces["upstream"] = Piece(((0.0, arcs[0]),), w * np.array(up_dens)[j] + (1.0 - w) * up)
+        pieces["downstream"] = Piece(((arcs[-1], section.length_m),), down)
+    return pieces, pd.DataFrame(rest, columns=["begin_s", "end_s", "vehicles"])
+
+
+def io_vehicles(
+    det: pd.DataFrame,
+    passages: pd.DataFrame,
+    section: Section,
+    run: int,
+    at_s: np.ndarray,
+    side_arcs: np.ndarray | None = None,
+    passage_lag_s: float = 0.0,
+) -> tuple[np.ndarray, pd.DataFrame]:
+    """Vehicles counted at the times ``at_s`` from the passages (``io_pieces``, summed) and
+    the density estimate of the rest of the section per interval."""
+    pieces, rest = io_pieces(det, passages, section, run, at_s, side_arcs, passage_lag_s)
+    counted = np.zeros(len(at_s))
+    for piece in pieces.values():
+        counted += piece.vehicles
+    return counted, rest
 
 
 def window_mean(r: pd.DataFrame, column: str, t: float, window_s: float) -> float:
@@ -403,6 +453,7 @@ def k_estimates(
     det: pd.DataFrame | None = None,
     passages: pd.DataFrame | None = None,
     side_arcs: np.ndarray | None = None,
+    passage_lag_s: float = 0.0,
 ) -> pd.DataFrame:
     """Hidden count per snapshot time: the truth, and the estimate from the detectors.
 
@@ -415,7 +466,8 @@ def k_estimates(
     speeds (``io_vehicles``): an interval's mean misses the platoons, signal cycles and
     growing queues within it. ``side_arcs`` (``side_junction_arcs``): where ramps join or
     leave; with none between two stations the counts are anchored once for the whole
-    record, else (or None: unknown) by a line over a window.
+    record, else (or None: unknown) by a line over a window. ``passage_lag_s``: how far the
+    passages' clock runs ahead of the trajectories' (a SUMO run: ``PASSAGE_LAG_STEPS`` steps).
     ``k_est_flow_speed``: the former estimate (flow / speed, station cells, interval
     means), for comparison.
     """
@@ -428,7 +480,7 @@ def k_estimates(
         r = det_macro[det_macro["run"] == run]
         times = np.sort(gr["time_s"].unique())
         counted, rest = (
-            io_vehicles(det, passages, section, run, times, window_s, side_arcs)
+            io_vehicles(det, passages, section, run, times, side_arcs, passage_lag_s)
             if hybrid
             else (np.zeros(len(times)), r)
         )

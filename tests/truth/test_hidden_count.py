@@ -17,6 +17,7 @@ from macromicro_sumo.data.section import at_snapshot_times
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.sumo.inputs import read_net
 from macromicro_sumo.truth.section_macro import (
+    PASSAGE_LAG_STEPS,
     detector_macro,
     k_estimates,
     k_summary,
@@ -116,7 +117,7 @@ def estimate(
     side = side_junction_arcs(read_net(folder / "m.net.xml"), section)
     np.testing.assert_allclose(side, [section.offsets_m[1]])
     macro = detector_macro(det, pas, 60.0, 7.5, section)
-    again = k_estimates(traj, macro, section, 5.0, 30.0, det, pas, side)
+    again = k_estimates(traj, macro, section, 5.0, 30.0, det, pas, side, PASSAGE_LAG_STEPS * 0.5)
     np.testing.assert_array_equal(again["k_est"], k["k_est"])
     k["k_density"] = k_estimates(traj, macro, section, 5.0, 30.0)["k_est"].to_numpy()
     snaps = at_snapshot_times(traj, 5.0)
