@@ -33,7 +33,7 @@ from macromicro_sumo.deploy.population import (
     SwitchedType,
     in_share,
 )
-from macromicro_sumo.deploy.safety import SAFETY_TOLERANCE_MPS, SPEED_MODES, safety_cap
+from macromicro_sumo.deploy.safety import SAFETY_TOLERANCE_MPS, SPEED_MODES, speed_commands
 from macromicro_sumo.road.physics import lookahead_features, ring_leaders, safe_speed
 from macromicro_sumo.road.ring import RingGeometry
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
@@ -236,16 +236,12 @@ class SectionSpeedDriver(SectionDriver):
         if self.has_lights is None:
             self.has_lights = sim.has_traffic_lights()
         obs, gap, lead_decel, lead = self.observe(sim, vids, rows, st)
-        a_min, a_max = self.sc.bounds.accel_mps2
-        # np.clip's own overhead is several times that of the two calls (same values)
-        a = np.minimum(np.maximum(self.act(obs), a_min), a_max)
-        dt = self.sc.simulation.step_length_s
-        cmd = np.maximum(0.0, obs[:, 0] + a * dt)
-        if self.safety == "sumo":
+
+        def layer() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
             own = np.fromiter(map(self.decel_of.__getitem__, vids), float, n)
-            floor = self.sc.deploy.safety_floor_share
-            safe = safety_cap(cmd, obs, gap, own, lead_decel, lead, dt, a_max, floor)
-            cmd = self.stats.count_safety(*safe)
+            return gap, own, lead_decel, lead
+
+        cmd = speed_commands(self.sc, self.act, self.safety, self.stats, obs, layer)
         sim.set_speeds(vids, cmd)
         self.last, self.gone = (vids, cmd), set()
 
@@ -470,21 +466,16 @@ class RingSpeedDriver(RingDriver):
             self.stats.safety_acted += int((speed[m] < self.commands - SAFETY_TOLERANCE_MPS).sum())
         full = ring_observations(self, arc, speed, edge)
         obs = full[m]
-        a_min, a_max = self.sc.bounds.accel_mps2
-        a = np.clip(self.act(obs), a_min, a_max)
-        dt = self.sc.simulation.step_length_s
-        cmd = np.maximum(0.0, speed[m] + a * dt)
-        if self.safety == "sumo":
+
+        def layer() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
             leader, _ = ring_leaders(np.mod(arc, self.geo.length_m), self.geo.length_m)
             gap = obs[:, 2] - self.length[leader[m]] - self.min_gap[m]
             # Each driven vehicle's leader among the driven (-1: SUMO drives it).
             driven_index = np.full(len(m), -1)
             driven_index[m] = np.arange(int(m.sum()))
-            lead = driven_index[leader[m]]
-            b, b_l = self.decel[m], self.decel[leader[m]]
-            floor = self.sc.deploy.safety_floor_share
-            safe = safety_cap(cmd, obs, gap, b, b_l, lead, dt, a_max, floor)
-            cmd = self.stats.count_safety(*safe)
+            return gap, self.decel[m], self.decel[leader[m]], driven_index[leader[m]]
+
+        cmd = speed_commands(self.sc, self.act, self.safety, self.stats, obs, layer)
         self.commands = cmd
         sim.set_speeds(self.driven, self.commands)
 

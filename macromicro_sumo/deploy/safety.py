@@ -8,7 +8,10 @@ no command, however poor or adversarial, makes a vehicle collide or block the ro
   (``behind_commands``), so one braking harder than its decel takes its followers along;
 * the command is raised to a floor (``deploy.safety_floor_share`` of the lane's limit,
   default ``FLOOR_SHARE``, at most the safe speed) so that no vehicle is held standing where
-  nothing ahead asks for it.
+  nothing ahead asks for it;
+* ``speed_commands`` is the one command rule of the ring's and the sections' speed drivers
+  (``deploy.drivers``): v + a dt of the batched action, a in the scenario's bounds, through
+  this layer where ``deploy.safety = "sumo"``.
 
 Pure numpy: tested without SUMO and, through the drivers, with it
 (``tests/deploy/test_safety.py``).
@@ -16,8 +19,11 @@ Pure numpy: tested without SUMO and, through the drivers, with it
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
+from macromicro_sumo.deploy.population import ActionBatch, DriveStats
 from macromicro_sumo.road.physics import safe_speed
 from macromicro_sumo.road.section import NO_LEADER_GAP_M
 from macromicro_sumo.scenario.stages import DeployConfig
@@ -100,3 +106,28 @@ def behind_commands(
             break
         cmd[has[lower]] = alt[lower]
     return cmd
+
+
+# Per driven vehicle (SUMO's gap to what it sees ahead, its decel, that leader's decel, the
+# leader's index among the driven or -1): what the safety layer needs, asked only with it.
+LayerInputs = Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
+
+
+def speed_commands(
+    sc, act: ActionBatch, safety: str, stats: DriveStats, obs: np.ndarray, layer: LayerInputs
+) -> np.ndarray:
+    """Speed commands v' = max(0, v + a dt) [m/s] of the batched action ``act`` at
+    observations ``obs`` (v in column 0, the lane's limit in column 1), a clipped to the
+    scenario's bounds, through the safety layer (``deploy.safety.safety_cap``, floor
+    ``deploy.safety_floor_share``) where ``safety`` is "sumo", its actions counted in
+    ``stats``: the one command rule of the ring's and the sections' speed drivers."""
+    a_min, a_max = sc.bounds.accel_mps2
+    # np.clip's own overhead is several times that of the two calls (the same values)
+    a = np.minimum(np.maximum(act(obs), a_min), a_max)
+    dt = sc.simulation.step_length_s
+    cmd = np.maximum(0.0, obs[:, 0] + a * dt)
+    if safety != "sumo":
+        return cmd
+    gap, decel, lead_decel, lead = layer()
+    floor = sc.deploy.safety_floor_share
+    return stats.count_safety(*safety_cap(cmd, obs, gap, decel, lead_decel, lead, dt, a_max, floor))
