@@ -144,21 +144,16 @@ def read_net(path: Path, with_internal: bool = False) -> sumolib.net.Net:
     sumolib reads any XML without complaint and returns an empty network; checking the root
     element turns a wrong file into a message instead of "edge not found" much later.
     """
-    check_net_file(path)
-    try:
-        return sumolib.net.readNet(str(path), withInternal=with_internal)
-    except Exception as exc:  # sumolib raises bare parser errors
-        raise UserError(f"{path}: not a readable SUMO network ({type(exc).__name__})") from None
-
-
-def check_net_file(path: Path) -> None:
-    """``path`` exists and its root element is ``<net>``: a one-line error otherwise."""
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: network file does not exist")
     root = _root_tag(path)
     if root != "net":
         raise UserError(f"{path}: not a SUMO network (root element <{root}>, expected <net>)")
+    try:
+        return sumolib.net.readNet(str(path), withInternal=with_internal)
+    except Exception as exc:  # sumolib raises bare parser errors
+        raise UserError(f"{path}: not a readable SUMO network ({type(exc).__name__})") from None
 
 
 def top_elements(files: Sequence[Path]) -> Iterator[tuple[Path, ET.Element]]:
