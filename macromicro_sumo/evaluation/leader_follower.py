@@ -286,10 +286,11 @@ def run_trial(
         if res.collision or gap < 0:
             collision = True
             break
-        if core.leader[FOLLOWER] != LEADER:
+        if core.leader[FOLLOWER] != LEADER:  # a lane change, a red light: no test any more
+            ahead = "a standing obstacle" if core.leader[FOLLOWER] < -1 else "no vehicle"
             raise UserError(
-                f"leader-follower test: the follower lost its leader at t = {(t + 1) * core.dt:g} s "
-                f"(it sees {'a standing obstacle' if core.leader[FOLLOWER] < -1 else 'no vehicle'} ahead)"
+                f"leader-follower test: the follower lost its leader at t = "
+                f"{(t + 1) * core.dt:g} s (it sees {ahead} ahead)"
             )
     lead, foll, gap = (np.array(c) for c in zip(*rows, strict=True))
     return Trace(np.arange(len(rows)) * core.dt, lead, foll, gap, collision)

@@ -220,9 +220,10 @@ def run_leader_follower_for(
 ) -> SectionLeaderFollower:
     """Both scenarios on the section: ``run_tests`` with IDM of ``idm_params`` as reference.
 
-    ``profile`` (default ``LeaderProfile()``) is stated for the paper's ring and runs as ``profile.moved(limit,
-    mean_spacing_m)``; ``speed_limit_mps`` is the uniform limit (default: the fleet's upper
-    limit where the scenario has ``[speed_limits]``, else the highest on the lane path).
+    ``profile`` (default ``LeaderProfile()``) is stated for the paper's ring and runs as
+    ``profile.moved(limit, mean_spacing_m)``; ``speed_limit_mps`` is the uniform limit
+    (default: the fleet's upper limit where the scenario has ``[speed_limits]``, else the
+    highest on the lane path).
     ``reference`` names the ``IDM`` rows in the result. Skipped (a one-line message) where
     the section cannot hold the test.
     """
