@@ -221,3 +221,17 @@ def test_fleet_sections_use_the_fleets_idm_and_L_over_N():
     assert params == lf.mean_idm_params(sc) and "the fleet's IDM" in what
     truth = SimpleNamespace(section=section)
     assert lfs.truth_mean_spacing(sc, truth) == pytest.approx(2 * np.pi * 100 / 5, abs=1e-5)
+
+
+def test_field_data_spacing_is_the_measured_leaders_else_the_stations():
+    """Field data holds only the observed vehicles: the gap to the next of them is no
+    spacing. Their measured leaders where the layout has them, else the stations' 1 / k."""
+    from types import SimpleNamespace
+
+    sc = SimpleNamespace(fleet=None, data=SimpleNamespace(source="files"))
+    traj = pd.DataFrame({"leader_spacing_m": [np.nan, 30.0, 50.0], "arc_m": [0.0, 1.0, 2.0]})
+    macro = pd.DataFrame({"mean_spacing_m": [80.0, 100.0]})
+    truth = SimpleNamespace(trajectories=traj, macro=macro)
+    assert lfs.truth_mean_spacing(sc, truth) == 40.0
+    truth = SimpleNamespace(trajectories=traj.drop(columns="leader_spacing_m"), macro=macro)
+    assert lfs.truth_mean_spacing(sc, truth) == 90.0
