@@ -33,6 +33,7 @@ from macromicro_sumo.report.plots import (
     METHOD_COLORS,
     REFERENCE_COLOR,
     SPEED_CMAP,
+    TIME_SPACE_S,
     lane_figure,
     plot_time_space,
     save_figure,
@@ -50,7 +51,6 @@ TARGET_SHARE = 0.85  # GEH < 5 and speed within 5% in at least 85% of station-in
 MAX_STATIONS = 16  # fundamental diagrams drawn (the first ones along the road)
 TIME_BIN_S = 10.0
 SPACE_BINS = 60
-TIME_SPACE_S = 300.0  # the time-space diagram's first seconds of the run
 
 # (column, header, how to print, higher is better)
 SUMMARY_TABLE = (

@@ -29,6 +29,7 @@ REFERENCE_COLOR = "black"
 # Learned methods: the first is orange as in the paper's Fig. 3.
 METHOD_COLORS = ("tab:orange", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan")
 SPEED_CMAP = "RdYlGn"  # red = slow, green = fast, as in traffic-state maps
+TIME_SPACE_S = 300.0  # a run's time-space diagram: its first seconds (lines stay readable)
 
 
 def save_figure(fig: Figure, path: Path | str) -> Path:

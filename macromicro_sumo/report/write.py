@@ -40,7 +40,6 @@ from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.truth.section import load_section_truth
 
 ALIGNMENT = "evaluation/macro_alignment.csv"
-TIME_SPACE_S = 300.0  # a section's ground-truth time-space diagram: the run's first seconds
 
 
 @dataclass
@@ -119,7 +118,7 @@ def section_truth_plots(r: Run) -> list[Path]:
             {"ground_truth": truth.trajectories},
             r.png("time_space.png"),
             run,
-            TIME_SPACE_S,
+            plots.TIME_SPACE_S,
             sec.length_m,
             sec.offsets_m[1:],
             "Ground truth (dotted: edge borders)",
