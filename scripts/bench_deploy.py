@@ -12,7 +12,8 @@ with its own models, in the same run.
      of the driven vehicles, one batched policy call per step, the safety layer on),
    and the ratios. The policy is ``--checkpoint`` (default runs/highway_bremen/policy/policy.pt;
    it must match the scenario's policy settings, prior included) when it exists, else an
-   untrained agent of the same shape (timing only).
+   untrained residual on a fixed Gipps prior with parameters near those fitted to Bremen
+   (timing only: its vehicles drive as a trained policy's, so a run holds as many).
 2. The per-vehicle cost against the number of vehicles: a straight 4-lane road of 30 km
    (netconvert), N = 50 ... 2,000 vehicles placed on it at t = 0 and driven by the policy
    for ``--steps`` steps, next to SUMO driving the same N alone: microseconds per

@@ -23,6 +23,7 @@ vType by more than 0.01 m/s^2).
 from __future__ import annotations
 
 from itertools import repeat
+from operator import itemgetter
 
 import numpy as np
 
@@ -167,9 +168,11 @@ class SectionSpeedDriver(SectionDriver):
         self.gone: set[str] = set()
         self.has_lights: bool | None = None
         # vehicle -> (lane, distance from that lane's start to where the vehicle must have
-        # left it [m] (inf: it carries on), step asked): SUMO's best lanes, cached.
-        self.lane_ends: dict[str, tuple[str, float, int]] = {}
-        # vehicle -> (lane, step asked): SUMO found no signal ahead of it on its route.
+        # left it [m] (inf: it carries on), step from which it is asked again): SUMO's best
+        # lanes, cached.
+        self.lane_ends: dict[str, tuple[str, float, float]] = {}
+        # vehicle -> (lane, step from which it is asked again): SUMO found no signal ahead
+        # of it on its route.
         self.dark: dict[str, tuple[str, int]] = {}
 
     def take(self, sim: Simulation, vids: list[str]) -> None:
@@ -188,15 +191,19 @@ class SectionSpeedDriver(SectionDriver):
         on a lane for the first time, a lane that carries it on again after
         ``LANE_END_RECHECK_STEPS`` (one call per vehicle and step would cost more than
         SUMO's whole step)."""
-        cache, now, inf = self.lane_ends, self.steps, np.inf
-        stale = now - LANE_END_RECHECK_STEPS
-        out = []
-        for v, lane, hit in zip(vids, lanes, map(cache.get, vids), strict=True):
-            if hit is None or hit[0] != lane or (hit[1] == inf and hit[2] <= stale):
-                hit = (lane, sim.lane_end_m(v, lane, 0.0), now)
-                cache[v] = hit
-            out.append(hit[1])
-        return np.array(out, dtype=float)
+        cache, now = self.lane_ends, self.steps
+        hits = list(map(cache.get, vids))
+        due = [
+            i
+            for i, (lane, hit) in enumerate(zip(lanes, hits, strict=True))
+            if hit is None or hit[0] != lane or hit[2] <= now
+        ]
+        for i in due:
+            end = sim.lane_end_m(vids[i], lanes[i], 0.0)
+            # A lane end, once seen, stays; a lane that carries the vehicle on is asked again.
+            again = now + LANE_END_RECHECK_STEPS if end == np.inf else np.inf
+            hits[i] = cache[vids[i]] = (lanes[i], end, again)
+        return np.fromiter(map(itemgetter(1), hits), float, len(hits))
 
     def stop_lines_m(self, sim: Simulation, vids: list[str], lanes: list[str]) -> np.ndarray:
         """Per vehicle, ``Simulation.stop_lines_m`` (inf: no red or yellow ahead), asked
@@ -204,17 +211,16 @@ class SectionSpeedDriver(SectionDriver):
         route is asked again when it changes lane or ``LANE_END_RECHECK_STEPS`` later (on
         Bremen's highway only the ramp has one: the call was a tenth of the driver)."""
         dark, now = self.dark, self.steps
-        stale = now - LANE_END_RECHECK_STEPS
         ask = [
             i
-            for i, (v, lane, hit) in enumerate(zip(vids, lanes, map(dark.get, vids), strict=True))
-            if hit is None or hit[0] != lane or hit[1] <= stale
+            for i, (lane, hit) in enumerate(zip(lanes, map(dark.get, vids), strict=True))
+            if hit is None or hit[0] != lane or hit[1] <= now
         ]
         out = np.full(len(vids), np.inf)
         got = sim.stop_lines_m([vids[i] for i in ask])
         for i, d in zip(ask, got.tolist(), strict=True):
             if d != d:  # NaN: no signal ahead
-                dark[vids[i]] = (lanes[i], now)
+                dark[vids[i]] = (lanes[i], now + LANE_END_RECHECK_STEPS)
             else:
                 dark.pop(vids[i], None)
                 out[i] = d
