@@ -76,6 +76,29 @@ class ReportKind:
     parts: tuple[Part, ...]
 
 
+@dataclass(frozen=True)
+class Table:
+    """A part that is one CSV of the run as a table (``shape`` picks or summarises its
+    columns) under ``## title`` and the ``intro`` lines (of the scenario); left out where
+    the stage did not write the CSV."""
+
+    title: str
+    csv: str
+    digits: int = 3
+    shape: Callable[[pd.DataFrame], pd.DataFrame] = lambda df: df
+    intro: Callable[[Any], list[str]] = lambda sc: []
+
+    def __call__(self, r: Run) -> list[str]:
+        df = r.csv(self.csv)
+        if df is None:
+            return []
+        return table_section(self.title, self.shape(df), self.digits, self.intro(r.sc))
+
+
+GENERATOR = "Stage I: generator (held-out snapshots)", "generator/generator_metrics.csv"
+MICRO = "Micro consistency (held-out observed actions)", "evaluation/micro_consistency.csv"
+
+
 # --------------------------------------------------------------------------- plots
 
 
@@ -150,13 +173,6 @@ TRAINING_PLOTS = (
 # --------------------------------------------------------------------------- shared parts
 
 
-def generator_part(r: Run, table: Callable[[pd.DataFrame], pd.DataFrame], digits: int) -> list[str]:
-    gen = r.csv("generator/generator_metrics.csv")
-    return table_section(
-        "Stage I: generator (held-out snapshots)", None if gen is None else table(gen), digits
-    )
-
-
 def alignment_part(
     r: Run,
     heading: Callable[[Any], str],
@@ -180,11 +196,6 @@ def alignment_part(
         "",
         *after(align),
     ]
-
-
-def micro_part(r: Run, digits: int) -> list[str]:
-    micro = r.csv("evaluation/micro_consistency.csv")
-    return table_section("Micro consistency (held-out observed actions)", micro, digits)
 
 
 def deployment_part(r: Run) -> list[str]:
@@ -273,20 +284,6 @@ def refinement_part(r: Run) -> list[str]:
     )
 
 
-def leader_follower_part(r: Run) -> list[str]:
-    lf = r.csv("evaluation/leader_follower_summary.csv")
-    if lf is None:
-        return []
-    sc = r.sc
-    intro = (
-        f"Follower {LeaderProfile().on_ring(sc).spacing_m:.0f} m behind the leader at the "
-        "same speed; the IDM follower has the middle of the fleet's IDM ranges; minimum safe "
-        f"gap {sc.evaluation.min_safe_gap_m:g} m; target: mean RMSE <= 0.3 m/s against the "
-        "IDM follower."
-    )
-    return table_section("Leader-follower (paper Fig. 3)", method_summary(lf), intro=[intro, ""])
-
-
 def winners_part(r: Run) -> list[str]:
     align = r.csv(ALIGNMENT)
     if align is None:
@@ -331,9 +328,7 @@ RING_REPORT = ReportKind(
     ),
     parts=(
         ring_head,
-        partial(
-            generator_part, table=lambda g: g[[c for c in GENERATOR_COLUMNS if c in g]], digits=4
-        ),
+        Table(*GENERATOR, 4, lambda g: g[[c for c in GENERATOR_COLUMNS if c in g]]),
         partial(
             alignment_part,
             heading=lambda sc: (
@@ -345,8 +340,19 @@ RING_REPORT = ReportKind(
             after=paper_policy,
         ),
         refinement_part,
-        partial(micro_part, digits=4),
-        leader_follower_part,
+        Table(*MICRO, 4),
+        Table(
+            "Leader-follower (paper Fig. 3)",
+            "evaluation/leader_follower_summary.csv",
+            shape=method_summary,
+            intro=lambda sc: [
+                f"Follower {LeaderProfile().on_ring(sc).spacing_m:.0f} m behind the leader at "
+                "the same speed; the IDM follower has the middle of the fleet's IDM ranges; "
+                f"minimum safe gap {sc.evaluation.min_safe_gap_m:g} m; target: mean RMSE <= 0.3 "
+                "m/s against the IDM follower.",
+                "",
+            ],
+        ),
         winners_part,
         deployment_part,
         plots_part,
@@ -383,18 +389,6 @@ def section_head(r: Run) -> list[str]:
     return lines
 
 
-def hidden_count_part(r: Run) -> list[str]:
-    return table_section(
-        "Hidden count estimated from detector density",
-        r.csv("evaluation/k_estimate_summary.csv"),
-        intro=[
-            "K = round(vehicles on the section by the detectors) - observed vehicles, against "
-            "the count the simulation knows.",
-            "",
-        ],
-    )
-
-
 def idm_calibrated_part(r: Run) -> list[str]:
     ev = r.json("evaluation/evaluation_manifest.json")
     fit = json.dumps(ev.get("idm_calibrated", {}))
@@ -405,13 +399,17 @@ SECTION_REPORT = ReportKind(
     plots=(section_truth_plots, distributions, *TRAINING_PLOTS),
     parts=(
         section_head,
-        hidden_count_part,
-        # Means of the generator's per-snapshot metrics.
-        partial(
-            generator_part,
-            table=lambda g: g.select_dtypes("number").mean().to_frame("mean").T,
-            digits=3,
+        Table(
+            "Hidden count estimated from detector density",
+            "evaluation/k_estimate_summary.csv",
+            intro=lambda sc: [
+                "K = round(vehicles on the section by the detectors) - observed vehicles, "
+                "against the count the simulation knows.",
+                "",
+            ],
         ),
+        # Means of the generator's per-snapshot metrics.
+        Table(*GENERATOR, shape=lambda g: g.select_dtypes("number").mean().to_frame("mean").T),
         partial(
             alignment_part,
             heading=lambda sc: "held-out runs",
@@ -420,7 +418,7 @@ SECTION_REPORT = ReportKind(
             before=lambda align: [alignment_reference(align), ""],
             after=closest_methods,
         ),
-        partial(micro_part, digits=3),
+        Table(*MICRO),
         idm_calibrated_part,
         deployment_part,
         plots_part,
