@@ -148,7 +148,9 @@ def hidden_per_snapshot(sc) -> bool:
 HIDDEN_STREAM = 43
 
 
-def draw_k(snaps: SectionSnapshots, k_range: tuple[int, int], rng: np.random.Generator):
+def draw_k(
+    snaps: SectionSnapshots, k_range: tuple[int, int], rng: np.random.Generator
+) -> np.ndarray:
     """(S,) hidden counts drawn uniformly from ``k_range`` (inclusive), each at most its
     snapshot's vehicles."""
     lo, hi = k_range
