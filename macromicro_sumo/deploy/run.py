@@ -27,9 +27,6 @@ import pandas as pd
 from macromicro_sumo.data.ring import load_ground_truth, split_runs
 from macromicro_sumo.deploy.drivers import (
     ActionBatch,
-    RingDriver,
-    RingSpeedDriver,
-    RingTypeDriver,
     SectionDriver,
     SectionSpeedDriver,
     SectionTypeDriver,
@@ -42,6 +39,7 @@ from macromicro_sumo.deploy.field import (
     station_interval,
     station_loops,
 )
+from macromicro_sumo.deploy.ring_drivers import RingDriver, RingSpeedDriver, RingTypeDriver
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import write_csv, write_manifest
 from macromicro_sumo.road.ring import RingGeometry

@@ -15,7 +15,6 @@ import subprocess
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
-from itertools import repeat
 from pathlib import Path
 from typing import Protocol
 
@@ -42,25 +41,14 @@ _DRIVE_VARS = (*_LANE_VARS, libsumo.constants.VAR_LEADER)
 STOP_STATES = frozenset("rRyYu")
 
 
-# The compiled functions behind libsumo's Python wrappers, for the per-vehicle calls of a
-# deployment's every step: each wrapper adds a Python frame to a call (getSpeed 0.23 ->
-# 0.17 us a vehicle, measured with libsumo 1.28; getLeader's also checks for a legacy
-# None), which the reads below pay several times per vehicle and step. The same values:
-# getLeader's compiled function answers ("", -1.0) where its wrapper may answer None.
-_COMPILED = getattr(libsumo, "_libsumo", None)
-
-
-def _compiled(name: str, wrapper):
-    return getattr(_COMPILED, f"vehicle_{name}", None) or wrapper
-
-
-_GET_IDS = _compiled("getIDList", libsumo.vehicle.getIDList)
-_GET_LANE = _compiled("getLaneID", libsumo.vehicle.getLaneID)
-_GET_POS = _compiled("getLanePosition", libsumo.vehicle.getLanePosition)
-_GET_SPEED = _compiled("getSpeed", libsumo.vehicle.getSpeed)
-_GET_ACCEL = _compiled("getAcceleration", libsumo.vehicle.getAcceleration)
-_GET_LEADER = _compiled("getLeader", libsumo.vehicle.getLeader)
-_SET_SPEED = _compiled("setSpeed", libsumo.vehicle.setSpeed)
+# libsumo's compiled functions for the per-vehicle calls of a deployment's every step (the
+# wrappers as fallback): a wrapper adds a Python frame a call (getSpeed 0.23 -> 0.17 us,
+# libsumo 1.28); the compiled getLeader answers ("", -1.0) where its wrapper may say None.
+_GET_IDS, _GET_LANE, _GET_POS, _GET_SPEED, _GET_ACCEL, _GET_LEADER, _SET_SPEED = (
+    getattr(getattr(libsumo, "_libsumo", None), f"vehicle_{f}", None) or getattr(libsumo.vehicle, f)
+    for f in ("getIDList", "getLaneID", "getLanePosition", "getSpeed", "getAcceleration")
+    + ("getLeader", "setSpeed")
+)
 
 
 # SUMO's speed mode (TraCI setSpeedMode) bits: 1 safe speed, 2 max accel, 4 max decel, 8
@@ -117,22 +105,15 @@ class SumoOptions:
 
     def args(self) -> list[str]:
         args = [
-            "-n",
-            str(self.net_file),
-            "--step-length",
-            repr(float(self.step_length_s)),
-            "--seed",
-            str(int(self.seed)),
+            "-n", str(self.net_file),
+            "--step-length", repr(float(self.step_length_s)),
+            "--seed", str(int(self.seed)),
             # Collisions are only reported: learning needs every vehicle kept.
-            "--collision.action",
-            "warn",
-            "--no-step-log",
-            "true",
-            "--duration-log.disable",
-            "true",
-            "--no-warnings",
-            "true",
-        ]
+            "--collision.action", "warn",
+            "--no-step-log", "true",
+            "--duration-log.disable", "true",
+            "--no-warnings", "true",
+        ]  # fmt: skip
         if not self.user_demand:
             # No teleports; our vehicles are placed exactly where the data says and we
             # verify insertion ourselves.
@@ -298,12 +279,8 @@ class Simulation:
 
     def set_speeds(self, vehicle_ids: Sequence[str], speeds_mps: Sequence[float]) -> None:
         """Speed commands for the next step (speed mode 0 applies them exactly)."""
-        speeds = np.asarray(speeds_mps, dtype=float).tolist()
-        if len(speeds) != len(vehicle_ids):
-            raise ValueError(f"{len(vehicle_ids)} vehicles, {len(speeds)} speeds")
-        # map: no Python loop body per vehicle (a deployment sets every driven one a step)
-        for _ in map(_SET_SPEED, vehicle_ids, speeds):
-            pass
+        for vid, v in zip(vehicle_ids, np.asarray(speeds_mps, dtype=float).tolist(), strict=True):
+            _SET_SPEED(vid, v)
 
     def move_to(
         self,
@@ -491,8 +468,6 @@ class Simulation:
         """(leader ID, SUMO's gap: leader's back - own front - minGap; ("", -1): none) of
         each vehicle within ``lookahead_m`` along the network's lanes (``getLeader``)."""
         get, dist, none = _GET_LEADER, float(lookahead_m), ("", -1.0)
-        if _GET_LEADER is not libsumo.vehicle.getLeader:  # the compiled one: never None
-            return list(map(get, vehicle_ids, repeat(dist)))
         return [get(v, dist) or none for v in vehicle_ids]
 
     def arrived(self) -> frozenset[str]:

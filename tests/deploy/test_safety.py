@@ -15,12 +15,8 @@ import pytest
 from conftest import ROOT, dump_toml, scenario_table
 from deploy_nets import CAR, merge_net, netconvert
 
-from macromicro_sumo.deploy.drivers import (
-    RingSpeedDriver,
-    SectionSpeedDriver,
-    SectionTypeDriver,
-    SwitchedType,
-)
+from macromicro_sumo.deploy.drivers import SectionSpeedDriver, SectionTypeDriver, SwitchedType
+from macromicro_sumo.deploy.ring_drivers import RingSpeedDriver
 from macromicro_sumo.deploy.run import Drive, load_context, run_method, vtype_xml
 from macromicro_sumo.deploy.safety import behind_commands
 from macromicro_sumo.road.physics import safe_speed
