@@ -55,6 +55,7 @@ from macromicro_sumo.evaluation.leader_follower import (
     policy_follower,
     run_tests,
 )
+from macromicro_sumo.evaluation.micro_data import micro_pairs
 from macromicro_sumo.road.section import Section, section_leaders
 
 SKIPPED = "leader-follower tests skipped"
@@ -336,9 +337,6 @@ def reference_idm(sc, truth: SectionTruth, vehicle_length_m: float) -> tuple[dic
     middle of its ranges, as the ring) or IDM fitted to every recorded vehicle."""
     if getattr(sc, "fleet", None) is not None:
         return mean_idm_params(sc), "the fleet's IDM, the middle of its [fleet] ranges"
-    # Late import: evaluation.section imports this module's neighbours.
-    from macromicro_sumo.evaluation.section import micro_pairs
-
     everyone = replace(truth, trajectories=truth.trajectories.assign(observed=True))
     obs, acc = micro_pairs(sc, everyone, truth.runs)
     params, rmse = calibrate_idm(obs, acc, vehicle_length_m)

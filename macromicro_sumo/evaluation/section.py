@@ -57,19 +57,18 @@ from macromicro_sumo.env.section import DEFAULT_SAFETY, SectionCore
 from macromicro_sumo.env.section_bank import (
     SectionBank,
     build_section_bank,
-    recordable,
     recorded_min_gap,
-    section_observations,
     typical_length,
     typical_vclass,
     with_future,
 )
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.idm_fit import calibrate_idm
+from macromicro_sumo.evaluation.leader_follower_section import section_leader_follower_tests
 from macromicro_sumo.evaluation.methods import method_order
+from macromicro_sumo.evaluation.micro_data import micro_pairs
 from macromicro_sumo.evaluation.ring import idm_action, micro_consistency
 from macromicro_sumo.evaluation.statistics import macro_row, paired_bootstrap_ci, samples_frame
-from macromicro_sumo.fielddata.leaders import has_measured_leaders, with_measured_leaders
 from macromicro_sumo.files import (
     prepare_out_dir,
     staging_dir,
@@ -151,58 +150,6 @@ def stations_row(labels: dict[str, Any], psi: np.ndarray) -> dict[str, Any]:
         "mean_spacing_m": float(np.nanmean(psi[:, PSI_FIELDS.index("mean_spacing_m")])),
         "episodes": len(psi),
     }
-
-
-# --------------------------------------------------------------------------- micro data
-
-
-def micro_pairs(
-    sc, truth: SectionTruth, runs: np.ndarray, max_pairs: int = 20_000
-) -> tuple[np.ndarray, np.ndarray]:
-    """Observed vehicles' (observation, action) pairs: what their own sensors saw (the true
-    scene around them) and the acceleration they applied over the next step. With
-    ``instrumented.hidden = "snapshot"`` every recorded vehicle's (the ring's micro data)."""
-    dt = sc.simulation.step_length_s
-    traj = truth.trajectories[truth.trajectories["run"].isin(runs)]
-    measured = has_measured_leaders(traj)
-    obs_rows, acc_rows = [], []
-    for _, g in traj.groupby("run", sort=True):
-        times = np.sort(g["time_s"].unique())
-        by_t = dict(tuple(g.groupby("time_s")))
-        nxt_speed = {}
-        for t in times:
-            s = by_t[t]
-            nxt_speed[t] = dict(zip(s["vehicle_id"], s["speed_mps"], strict=True))
-        for t0, t1 in zip(times[:-1], times[1:], strict=True):
-            if abs(t1 - t0 - dt) > 1e-6:
-                continue
-            s = by_t[t0]
-            o = recordable(sc, s)
-            if not o.any():
-                continue
-            obs, leader, _ = section_observations(
-                truth.section,
-                s["lane_index"].to_numpy(),
-                s["arc_m"].to_numpy(),
-                s["speed_mps"].to_numpy(),
-                np.ones(len(s), dtype=bool),
-                sc.policy.observation,
-            )
-            if measured:  # field data: the leader each vehicle measured (fielddata.leaders)
-                obs, _ = with_measured_leaders(obs, leader, s, sc.policy.observation)
-            ids = s["vehicle_id"].to_numpy()[o]
-            v1 = np.array([nxt_speed[t1].get(v, np.nan) for v in ids])
-            a = (v1 - s["speed_mps"].to_numpy()[o]) / dt
-            keep = np.isfinite(a)
-            obs_rows.append(obs[o][keep])
-            acc_rows.append(a[keep])
-    if not obs_rows:
-        raise UserError(f"{truth.folder}: no observed vehicle pair in runs {list(runs)}")
-    obs, acc = np.concatenate(obs_rows), np.concatenate(acc_rows)
-    if len(acc) > max_pairs:  # evenly thinned: neighbouring steps say nearly the same
-        idx = np.linspace(0, len(acc) - 1, max_pairs).astype(np.int64)
-        obs, acc = obs[idx], acc[idx]
-    return obs, acc
 
 
 # --------------------------------------------------------------------------- the stage
@@ -414,6 +361,11 @@ def evaluate_section(
         micro = micro_consistency(agents, {"idm_calibrated": idm}, obs_ho, acc_ho, sc, length)
         micro.insert(0, "reference", REFERENCE_MICRO)
         write_csv(micro, stage / "micro_consistency.csv")
+        lf = section_leader_follower_tests(sc, truth, net_file, agents, idm, length, vclass)
+        if not lf.skipped:
+            write_csv(lf.traces, stage / "leader_follower.csv")
+            write_csv(lf.summary, stage / "leader_follower_summary.csv")
+        print(lf.message)
         ks = k_summary(truth.k_estimate, truth.section)
         ks_held = k_summary(truth.k_estimate[truth.k_estimate["run"].isin(held)], truth.section)
         write_csv(
@@ -438,6 +390,7 @@ def evaluate_section(
             safety=_safety(sc),
             idm_calibrated=idm.as_dict() | {"fit_rmse_mps2": idm_rmse},
             k_estimate=ks,
+            leader_follower={"message": lf.message, "reference": lf.reference},
             timings_s={"evaluate": round(time.perf_counter() - t0, 3)},
         )
         outputs = [p.name for p in stage.iterdir() if p.is_file()]

@@ -1,0 +1,64 @@
+"""Micro data of a section: the observed vehicles' (observation, action) pairs.
+
+One definition for every stage that fits or judges a driver on them: the evaluation's
+``idm_calibrated`` and micro consistency, the policy's prior, the leader-follower tests'
+reference IDM and the deployment's calibrated IDM.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from macromicro_sumo.data.section import SectionTruth
+from macromicro_sumo.env.section_bank import recordable, section_observations
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.fielddata.leaders import has_measured_leaders, with_measured_leaders
+
+
+def micro_pairs(
+    sc, truth: SectionTruth, runs: np.ndarray, max_pairs: int = 20_000
+) -> tuple[np.ndarray, np.ndarray]:
+    """Observed vehicles' (observation, action) pairs: what their own sensors saw (the true
+    scene around them) and the acceleration they applied over the next step. With
+    ``instrumented.hidden = "snapshot"`` every recorded vehicle's (the ring's micro data)."""
+    dt = sc.simulation.step_length_s
+    traj = truth.trajectories[truth.trajectories["run"].isin(runs)]
+    measured = has_measured_leaders(traj)
+    obs_rows, acc_rows = [], []
+    for _, g in traj.groupby("run", sort=True):
+        times = np.sort(g["time_s"].unique())
+        by_t = dict(tuple(g.groupby("time_s")))
+        nxt_speed = {}
+        for t in times:
+            s = by_t[t]
+            nxt_speed[t] = dict(zip(s["vehicle_id"], s["speed_mps"], strict=True))
+        for t0, t1 in zip(times[:-1], times[1:], strict=True):
+            if abs(t1 - t0 - dt) > 1e-6:
+                continue
+            s = by_t[t0]
+            o = recordable(sc, s)
+            if not o.any():
+                continue
+            obs, leader, _ = section_observations(
+                truth.section,
+                s["lane_index"].to_numpy(),
+                s["arc_m"].to_numpy(),
+                s["speed_mps"].to_numpy(),
+                np.ones(len(s), dtype=bool),
+                sc.policy.observation,
+            )
+            if measured:  # field data: the leader each vehicle measured (fielddata.leaders)
+                obs, _ = with_measured_leaders(obs, leader, s, sc.policy.observation)
+            ids = s["vehicle_id"].to_numpy()[o]
+            v1 = np.array([nxt_speed[t1].get(v, np.nan) for v in ids])
+            a = (v1 - s["speed_mps"].to_numpy()[o]) / dt
+            keep = np.isfinite(a)
+            obs_rows.append(obs[o][keep])
+            acc_rows.append(a[keep])
+    if not obs_rows:
+        raise UserError(f"{truth.folder}: no observed vehicle pair in runs {list(runs)}")
+    obs, acc = np.concatenate(obs_rows), np.concatenate(acc_rows)
+    if len(acc) > max_pairs:  # evenly thinned: neighbouring steps say nearly the same
+        idx = np.linspace(0, len(acc) - 1, max_pairs).astype(np.int64)
+        obs, acc = obs[idx], acc[idx]
+    return obs, acc
