@@ -15,6 +15,7 @@ import pandas as pd
 
 from macromicro_sumo.data.macro import extended_bounds
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.files import read_checked_csv
 from macromicro_sumo.road.section import Section
 
 # psi per snapshot, from the detectors' interval that holds it (columns of ``psi``):
@@ -88,16 +89,55 @@ def psi_table(truth: SectionTruth, sc) -> pd.DataFrame:
     shortest vehicle plus the scenario's minimum gap.
     """
     m = truth.macro[truth.macro["source"] == "detectors"].copy()
-    vmax_lim = float(np.nanmax(truth.section.limits_mps))
+    # Each row's run's highest limit (drawn per run where the truth has speed_limits.csv).
+    vmax_lim = np.nanmax(run_limits_mps(truth, m["run"].to_numpy()), axis=(1, 2))
     lo, hi = m["speed_min_mps"], m["speed_max_mps"]
     if sc.generator.bounds_source == "margin":
         lo, hi = lo * 0.9, hi * 1.1
     elif sc.generator.bounds_source == "extended":
         lo, hi = extended_bounds(lo, hi, interval_passages(truth, m))
     m["speed_min_mps"] = lo.fillna(0.0)
-    m["speed_max_mps"] = hi.fillna(vmax_lim).clip(upper=vmax_lim * 1.5)
+    hi = hi.to_numpy(dtype=float)
+    m["speed_max_mps"] = np.minimum(np.where(np.isnan(hi), vmax_lim, hi), vmax_lim * 1.5)
     m["spacing_min_m"] = float(truth.vtypes["length_m"].min()) + sc.bounds.min_gap_m
     return m
+
+
+LIMIT_COLUMNS = ("run", "edge_id", "speed_limit_mps")
+
+
+def run_limits_mps(truth: SectionTruth, runs: np.ndarray) -> np.ndarray:
+    """(len(runs), E, max lanes) each run's speed limits [m/s] (NaN: no lane): the truth's
+    ``speed_limits.csv`` where it drew them per run (``[speed_limits]``: every lane of an
+    edge takes the edge's limit), else the section's own (the network's) for every run."""
+    runs = np.asarray(runs, dtype=np.int64)
+    base = truth.section.limits_mps
+    if not (truth.folder / "speed_limits.csv").is_file():
+        return np.repeat(base[None], len(runs), axis=0)
+    df = read_checked_csv(
+        truth.folder,
+        "speed_limits.csv",
+        None,
+        LIMIT_COLUMNS,
+        ("run", "speed_limit_mps"),
+        dtype={"edge_id": str},
+    )
+    table = df.pivot_table("speed_limit_mps", "run", "edge_id", aggfunc="first")
+    edges = list(truth.section.edge_ids)
+    no_edge = [e for e in edges if e not in table.columns]
+    no_run = sorted(set(runs.tolist()) - set(table.index.tolist()))
+    if no_edge or no_run:
+        raise UserError(
+            f"{truth.folder / 'speed_limits.csv'}: no limit for section edge(s) {no_edge} "
+            f"or run(s) {no_run[:5]}; re-run `macromicro simulate`"
+        )
+    per_edge = table.loc[runs, edges].to_numpy(dtype=float)
+    return np.where(np.isnan(base)[None], np.nan, per_edge[:, :, None])
+
+
+def run_section(truth: SectionTruth, run: int) -> Section:
+    """The truth's section with run ``run``'s speed limits (``run_limits_mps``)."""
+    return dataclasses.replace(truth.section, limits_mps=run_limits_mps(truth, [run])[0])
 
 
 def interval_passages(truth: SectionTruth, m: pd.DataFrame) -> np.ndarray:
