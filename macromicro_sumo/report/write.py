@@ -395,8 +395,31 @@ def idm_calibrated_part(r: Run) -> list[str]:
     return [f"IDM calibrated on the observed vehicles: {fit}", ""]
 
 
+def section_leader_follower(r: Run) -> list[str]:
+    """The leader-follower tests on the section's own lane path, where they ran, and what
+    the followers were measured against (the evaluation manifest)."""
+    summary = r.csv("evaluation/leader_follower_summary.csv")
+    if summary is None:
+        return []
+    ev = r.json("evaluation/evaluation_manifest.json").get("leader_follower", {})
+    intro = [
+        f"{ev.get('message', '')}. Run without the safety layer: a collision is the follower's.",
+        "",
+    ]
+    title = "Leader-follower (paper Fig. 3, on the section's lane path)"
+    return table_section(title, method_summary(summary), 3, intro)
+
+
 SECTION_REPORT = ReportKind(
-    plots=(section_truth_plots, distributions, *TRAINING_PLOTS),
+    plots=(
+        section_truth_plots,
+        distributions,
+        TRAINING_PLOTS[0],
+        csv_plot(
+            "evaluation/leader_follower.csv", "leader_follower.png", plots.plot_leader_follower
+        ),
+        *TRAINING_PLOTS[1:],
+    ),
     parts=(
         section_head,
         Table(
@@ -418,8 +441,14 @@ SECTION_REPORT = ReportKind(
             before=lambda align: [alignment_reference(align), ""],
             after=closest_methods,
         ),
+        Table(
+            "Macro alignment by hidden count K (every held-out snapshot at every K)",
+            "evaluation/macro_alignment_by_k.csv",
+            shape=lambda t: t[[c for c in ("hidden_count", *RING_ALIGNMENT) if c in t]],
+        ),
         Table(*MICRO),
         idm_calibrated_part,
+        section_leader_follower,
         deployment_part,
         plots_part,
         manifest_part,

@@ -135,6 +135,20 @@ def test_ring_as_a_closed_section_with_user_demand(tmp_path: Path) -> None:
     assert set(traj.loc[traj["observed"], "vehicle_id"]) == {"v0", "v2", "v4"}
     k = pd.read_csv(out / "ground_truth" / "k_estimate.csv")
     assert (k["k_true"] == 3).all()
+    # The leader-follower tests run round the loop and the report shows them.
+    lf = pd.read_csv(out / "evaluation" / "leader_follower_summary.csv")
+    assert {"policy", "idm_calibrated"} <= set(lf["method"])
+    assert np.isfinite(lf["rmse_vs_idm_mps"]).all()
+    # The reference follows itself; the IDM fitted to the same vehicles stays close and
+    # collides nowhere (the two-update policies may: the test runs without a safety layer).
+    idm = lf[lf["method"].isin(["IDM", "idm_calibrated"])]
+    assert (
+        not idm["collision"].any() and (lf.loc[lf["method"] == "IDM", "rmse_vs_idm_mps"] == 0).all()
+    )
+    assert lf.loc[lf["method"] == "idm_calibrated", "rmse_vs_idm_mps"].max() < 0.5
+    report = (out / "report.md").read_text()
+    assert "## Leader-follower (paper Fig. 3, on the section's lane path)" in report
+    assert "reference: IDM fitted to every recorded vehicle" in report
     assert k["k_error"].abs().mean() <= 1.5
 
 
