@@ -7,7 +7,10 @@ speeds, dense platoons and merges a deployment (``deploy``) meets over whole run
 episode is what a deployment does, on a training run of the ground truth:
 
 * SUMO runs the run's demand with the ground truth's seed (``sc.seed + run``) and drives
-  every vehicle until the window starts (``t0``); from then on every vehicle of the
+  every vehicle until the window starts (``t0``); a ``[fleet]`` scenario's demand is its
+  fleet, inserted exactly as the truth inserted it (the run's draws, SUMO seed and speed
+  limits, ``truth.fleet``) and checked after SUMO's first step, which every window then
+  follows (t0 >= one step); from then on every vehicle of the
   population (not instrumented, ``truth.section.is_instrumented``) is driven by the policy
   from the step it is on a lane of the section until it leaves it, instrumented vehicles
   keep their own SUMO models (as in a deployment);
@@ -15,7 +18,8 @@ episode is what a deployment does, on a training run of the ground truth:
   ``safety = "none"``): the policy meets the consequences of its own actions;
 * observations are the deployment's, from SUMO's state (``sumo_observations``: SUMO's
   leader along the lane connections, a red light or the end of a lane the vehicle must
-  leave as a standing leader) with the section env's lookahead (``env.section_bank``);
+  leave as a standing leader) with the section env's lookahead (``env.section_bank``),
+  at the run's speed limits (``data.section.run_section``);
   tests check both against the env's observation of the same state;
 * the reward of a step is the section env's r_macro of every vehicle on the section
   against psi of the detector interval holding the step (``section_macro_reward``);
@@ -32,13 +36,16 @@ from pathlib import Path
 
 import numpy as np
 
-from macromicro_sumo.data.section import PSI_FIELDS, SectionTruth, psi_table
+from macromicro_sumo.data.section import PSI_FIELDS, SectionTruth, psi_table, run_section
 from macromicro_sumo.env.section_bank import section_macro_reward, section_target
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
+from macromicro_sumo.scenario.fleet import fleet_demand
+from macromicro_sumo.sumo.fleet import FLEET_ROUTE_PREFIX
 from macromicro_sumo.sumo.inputs import scenario_inputs
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
-from macromicro_sumo.truth.section import is_instrumented
+from macromicro_sumo.truth import fleet
+from macromicro_sumo.truth.section import fleet_specs, is_instrumented
 from macromicro_sumo.truth.section_detectors import without_detectors
 
 EXACT_MODE = 32  # speed commands applied exactly (the deployment's safety = "none")
@@ -150,7 +157,10 @@ class DemandCore:
 
     def __init__(self, sc, truth: SectionTruth, runs: np.ndarray, horizon_steps: int) -> None:
         self.sc = sc
-        self.section = truth.section
+        self.truth = truth
+        self.section = truth.section  # with the episode's run's limits from reset() on
+        # A [fleet] scenario: the ring and every run's draws, as the truth drew them.
+        self._fleet = fleet_specs(sc, truth.section) if fleet_demand(sc) is not None else None
         self.runs = np.asarray(runs, dtype=np.int64)
         self.horizon = int(horizon_steps)
         self.dt = sc.simulation.step_length_s
@@ -189,7 +199,7 @@ class DemandCore:
         that the window lies after the warm-up and inside the recorded duration."""
         runs = [int(r) for r in self.runs if int(r) in self._psi]
         sim = self.sc.simulation
-        lo = sim.warmup_s
+        lo = sim.warmup_s if self._fleet is None else max(sim.warmup_s, self.dt)  # inserted
         hi = max(lo, sim.warmup_s + sim.duration_s - self.horizon * self.dt)
         out = []
         for _ in range(n):
@@ -199,14 +209,25 @@ class DemandCore:
         return out
 
     def reset(self, run: int, t0_s: float) -> None:
-        """Start ``run``'s demand and let SUMO drive everyone until ``t0_s``."""
+        """Start ``run``'s demand and let SUMO drive everyone until ``t0_s`` (a fleet: at
+        least its insertion step)."""
+        seed, adds, fleet_run = self.sc.seed + int(run), self._adds, None
+        if self._fleet is not None:  # the truth's files, seed and exact insertion
+            geo, specs = self._fleet
+            fleet_run = (specs[int(run)], geo)
+            seed = fleet_run[0].sumo_seed
+            folder = Path(self._tmp.name) / f"run_{int(run):03d}"
+            folder.mkdir(exist_ok=True)
+            span_s = self.sc.simulation.warmup_s + self.sc.simulation.duration_s
+            demand = fleet_demand(self.sc)
+            adds += fleet.write_fleet_inputs(folder, fleet_run[0], geo, demand, self.dt, span_s)
         opts = SumoOptions(
             self._inputs.net_file,
-            self._adds,
+            adds,
             self.dt,
-            self.sc.seed + int(run),
+            seed,
             route_files=self._inputs.route_files,
-            user_demand=True,
+            user_demand=fleet_run is None,
         )
         if self.sim is None:
             self.sim = Simulation(opts)
@@ -215,8 +236,15 @@ class DemandCore:
             self.sim.reload()
         sim = self.sim
         self.run, self.t = int(run), 0
+        self.section = run_section(self.truth, self.run)
         self.types, self.population, self.driven = {}, set(), []
-        for _ in range(int(round(t0_s / self.dt))):
+        steps = int(round(t0_s / self.dt))
+        if fleet_run is not None:
+            fleet.insert_fleet(sim, *fleet_run, FLEET_ROUTE_PREFIX)
+            sim.step()
+            fleet.check_fleet_inserted(sim, *fleet_run)
+            steps -= 1
+        for _ in range(steps):
             sim.step()
         self._arrive(sim.vehicle_ids())
         self._has_lights = sim.has_traffic_lights()

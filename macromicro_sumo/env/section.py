@@ -50,6 +50,7 @@ from macromicro_sumo.env.section_bank import (
     section_macro_reward,
     section_observations,
     section_target,
+    set_sumo_limits,
     stop_points,
 )
 from macromicro_sumo.env.section_replay import (
@@ -118,6 +119,7 @@ class SectionCore:
         self.counts = dict.fromkeys(COUNTERS, 0)
         self.sc = sc
         self.section = section
+        self.episode_section, self._sumo_limits = section, section.limits_mps  # see reset
         self.bank = bank
         self.dt = sc.simulation.step_length_s
         self.a_min, self.a_max = sc.bounds.accel_mps2
@@ -193,7 +195,10 @@ class SectionCore:
         if not self.sim.is_active():  # another simulation took libsumo's one: ours again
             self.sim.reload()
             self._routes = self._add_routes()
-        b, sec = self.bank, self.section
+            self._sumo_limits = self.section.limits_mps
+        b = self.bank
+        sec = self.episode_section = b.section_of(self.section, episode)  # the run's limits
+        self._sumo_limits = set_sumo_limits(self.sim, sec, self._sumo_limits)
         self.episode, self.t, self._error = episode, 0, ""
         self.sim.clear_vehicles()
         self._resets += 1
@@ -218,7 +223,7 @@ class SectionCore:
                 lane_idx = min(lane0, int(sec.n_lanes[e]) - 1)
                 pos = max(0.0, float(sec.lengths_m[e]) - 0.5)
             else:
-                e, lane_idx, pos = self.section.to_lane(lane0, arc0)
+                e, lane_idx, pos = sec.to_lane(lane0, arc0)
             want[i], want_lane[i] = sec.offsets_m[e] + pos, lane_idx
             if i in in_junction:
                 want[i], want_lane[i] = arc0, lane0
@@ -296,7 +301,7 @@ class SectionCore:
             dist = np.array([self.sim.stop_line_m(self.ids[i]) for i in live], dtype=float)
             stop_lane, stop_arc = stop_points(self.section, self.lane[live], self.arc[live], dist)
         self._obs, self.leader, self.spacing = section_observations(
-            self.section,
+            self.episode_section,
             self.lane,
             self.arc,
             self.speed,

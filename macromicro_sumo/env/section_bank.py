@@ -10,6 +10,7 @@ what the policy's input normalisation is fitted on); ``section_target`` and
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -21,6 +22,7 @@ from macromicro_sumo.data.section import (
     SectionSnapshots,
     SectionTruth,
     hidden_per_snapshot,
+    run_limits_mps,
 )
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES
@@ -51,6 +53,9 @@ class SectionBank:
     true_length_m: np.ndarray  # (E, M)
     run: np.ndarray  # (E,)
     time_s: np.ndarray  # (E,)
+    # (E, edges, max lanes) the episode's run's speed limits [m/s] (``run_limits_mps``: drawn
+    # per run where the truth has speed_limits.csv); None: the section's own.
+    limits_mps: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.run)
@@ -65,7 +70,19 @@ class SectionBank:
 
     def take(self, idx: np.ndarray) -> SectionBank:
         """The episodes ``idx`` only."""
-        return SectionBank(**{f: getattr(self, f)[idx] for f in self.__dataclass_fields__})
+        return SectionBank(
+            **{
+                f: None if getattr(self, f) is None else getattr(self, f)[idx]
+                for f in self.__dataclass_fields__
+            }
+        )
+
+    def section_of(self, section: Section, episode: int) -> Section:
+        """``section`` with episode ``episode``'s speed limits (itself where they agree)."""
+        lim = None if self.limits_mps is None else self.limits_mps[episode]
+        if lim is None or np.array_equal(lim, section.limits_mps, equal_nan=True):
+            return section
+        return dataclasses.replace(section, limits_mps=lim)
 
 
 Completion = Callable[
@@ -169,7 +186,23 @@ def build_section_bank(
         true_length_m=true[3][:, 0, :],
         run=snaps.run,
         time_s=snaps.time_s,
+        limits_mps=run_limits_mps(truth, snaps.run),
     )
+
+
+def set_sumo_limits(sim, section: Section, now_mps: np.ndarray) -> np.ndarray:
+    """Give the lanes of the section's edges in ``sim`` (a ``Simulation``) the limits of
+    ``section`` (a run's, as the truth set them: SUMO's drivers and its departure check read
+    them) where they differ from ``now_mps``, what SUMO has; returns what it has then."""
+    if np.array_equal(section.limits_mps, now_mps, equal_nan=True):
+        return now_mps
+    pairs = [
+        (lane, float(section.limits_mps[e, i]))
+        for e, lanes in enumerate(section.edge_lane_ids)
+        for i, lane in enumerate(lanes)
+    ]
+    sim.set_lane_speed_limits([a for a, _ in pairs], [b for _, b in pairs])
+    return section.limits_mps
 
 
 def with_future(
@@ -332,10 +365,14 @@ def initial_observations(sc, section: Section, bank: SectionBank) -> np.ndarray:
     What the policy's input normalisation is fitted on (no SUMO run needed).
     """
     rows = []
+    runs: dict[int, Section] = {}  # one section per run: its speed limits
     for ep in range(len(bank)):
         valid = bank.valid[ep]
+        run = int(bank.run[ep])
+        if run not in runs:
+            runs[run] = bank.section_of(section, ep)
         obs, _, _ = section_observations(
-            section,
+            runs[run],
             bank.lane0[ep],
             _on_section(section, bank.arc0_m[ep]),
             bank.speed0_mps[ep],
