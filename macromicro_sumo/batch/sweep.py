@@ -7,7 +7,9 @@ expanded into the cartesian product of named variants::
     n_runs = [10, 40]                                       # short key: unique across tables
 
 Sweep keys are those of the file's scenario kind: the ring's tables, or a section's
-(``[network] kind = "sumo"``: ``detectors.auto_spacing_m``, ``instrumented.penetration``, ...).
+(``[network] kind = "sumo"``: ``detectors.auto_spacing_m``, ``instrumented.penetration``, ...),
+the optional tables' included where the file has them (a section's ``[fleet]``,
+``[speed_limits]``, ``[initial]``: ``fleet.n_vehicles``; ``file_keys``).
 """
 
 from __future__ import annotations
@@ -18,8 +20,9 @@ import glob
 import hashlib
 import itertools
 import re
+import types
 import typing
-from collections.abc import Iterator, Sequence
+from collections.abc import Collection, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,16 +36,27 @@ AnyScenario = Scenario | SectionScenario
 MAX_NAME = 120  # characters; longer variant names are shortened with a hash
 
 
+def _table_type(hint: Any) -> type | None:
+    """The dataclass a field's hint holds: itself, or ``X`` of an optional table ``X | None``."""
+    if dataclasses.is_dataclass(hint):
+        return hint
+    args = [a for a in typing.get_args(hint) if a is not type(None)]
+    if typing.get_origin(hint) in (typing.Union, types.UnionType) and len(args) == 1:
+        return args[0] if dataclasses.is_dataclass(args[0]) else None
+    return None
+
+
 def _leaf_keys(cls: type = Scenario, prefix: str = "") -> dict[str, Any]:
-    """Every settable scenario key, dotted, mapped to its type hint."""
+    """Every settable scenario key, dotted, mapped to its type hint (an optional table's
+    keys too: sweeping ``fleet.n_vehicles`` sets a key of ``[fleet]``, not the table)."""
     out: dict[str, Any] = {}
     hints = typing.get_type_hints(cls)
     for f in dataclasses.fields(cls):
         if f.name == "source":
             continue
         key = f"{prefix}{f.name}"
-        if dataclasses.is_dataclass(hints[f.name]):
-            out.update(_leaf_keys(hints[f.name], key + "."))
+        if (table := _table_type(hints[f.name])) is not None:
+            out.update(_leaf_keys(table, key + "."))
         elif key != "network.kind":  # the kind picks the tables: one file per kind
             out[key] = hints[f.name]
     return out
@@ -54,14 +68,35 @@ LEAF_KEYS: dict[str, dict[str, Any]] = {
     "section": _leaf_keys(SectionScenario),
 }
 EXAMPLE_KEY = {"ring": "fleet.n_vehicles", "section": "detectors.auto_spacing_m"}
+# Tables a file may leave out (``X | None``): their keys are sweepable only in a file that
+# has the table, and only there count for short keys (``file_keys``).
+OPTIONAL_TABLES: dict[str, set[str]] = {
+    kind: {
+        f.name
+        for f in dataclasses.fields(cls)
+        if not dataclasses.is_dataclass(typing.get_type_hints(cls)[f.name])
+        and _table_type(typing.get_type_hints(cls)[f.name]) is not None
+    }
+    for kind, cls in (("ring", Scenario), ("section", SectionScenario))
+}
 
 
-def _tables(kind: str) -> list[str]:
-    return list(dict.fromkeys(k.split(".")[0] for k in LEAF_KEYS[kind] if "." in k))
+def _tables(keys: dict[str, Any]) -> list[str]:
+    return list(dict.fromkeys(k.split(".")[0] for k in keys if "." in k))
 
 
-def _top_keys(kind: str) -> list[str]:
-    return [k for k in LEAF_KEYS[kind] if "." not in k]
+def _top_keys(keys: dict[str, Any]) -> list[str]:
+    return [k for k in keys if "." not in k]
+
+
+def file_keys(kind: str, tables: Collection[str] | None = None) -> dict[str, Any]:
+    """The sweepable keys of a ``kind`` file with the top-level ``tables`` (None: any): an
+    optional table's keys only where the file has that table (a section's [fleet] is its
+    demand: a variant cannot add one to a file whose demand is its route files)."""
+    if tables is None:
+        return LEAF_KEYS[kind]
+    absent = OPTIONAL_TABLES[kind] - set(tables)
+    return {k: v for k, v in LEAF_KEYS[kind].items() if k.split(".")[0] not in absent}
 
 
 def sweep_kind(table: dict[str, Any]) -> str | None:
@@ -80,17 +115,19 @@ def _flatten(table: dict[str, Any], prefix: str = "") -> Iterator[tuple[str, Any
             yield f"{prefix}{key}", value
 
 
-def resolve_key(key: str, file: str, kind: str = "ring") -> str:
+def resolve_key(
+    key: str, file: str, kind: str = "ring", tables: Collection[str] | None = None
+) -> str:
     """The dotted key of a ``kind`` scenario a sweep key names (short keys must be unique
-    across tables)."""
-    keys = LEAF_KEYS[kind]
+    across tables); ``tables``: the file's own (``file_keys``)."""
+    keys = file_keys(kind, tables)
     if key in keys:
         return key
     if key == "network.kind":
         raise UserError(
             f"{file}: sweep key 'network.kind' cannot be swept; write one scenario file per kind"
         )
-    if key in _tables(kind):
+    if key in _tables(keys):
         example = next(k for k in keys if k.startswith(key + "."))
         raise UserError(
             f"{file}: sweep key {key!r} is a table; sweep one of its keys, e.g. {example}"
@@ -105,22 +142,34 @@ def resolve_key(key: str, file: str, kind: str = "ring") -> str:
     close = difflib.get_close_matches(key, list(keys), n=3)
     hint = f"; did you mean {', '.join(close)}?" if close else ""
     what = "a section scenario" if kind == "section" else "a ring scenario"
-    top, tables = ", ".join(_top_keys(kind)), ", ".join(_tables(kind))
+    table = key.split(".")[0] if "." in key else ""
+    if table in _tables(keys):  # a table of the file: name its keys
+        own = ", ".join(k for k in keys if k.startswith(table + "."))
+        raise UserError(
+            f"{file}: unknown sweep key {key!r} for {what}; accepted keys of [{table}]: {own}{hint}"
+        )
+    missing = sorted(OPTIONAL_TABLES[kind] - set(_tables(keys)))
+    optional = f" ({', '.join(f'[{t}]' for t in missing)} only in a file that has them)"
+    optional = optional if missing else ""
+    top, names = ", ".join(_top_keys(keys)), ", ".join(_tables(keys))
     raise UserError(
         f"{file}: unknown sweep key {key!r} for {what}; accepted: {top} or a dotted key "
-        f"table.key of the tables {tables} (e.g. {EXAMPLE_KEY[kind]}), or a key name unique "
-        f"across tables{hint}"
+        f"table.key of the tables {names}{optional} (e.g. {EXAMPLE_KEY[kind]}), or a key "
+        f"name unique across tables{hint}"
     )
 
 
-def parse_sweep(sweep: Any, file: str, kind: str = "ring") -> list[tuple[str, str, list[Any]]]:
+def parse_sweep(
+    sweep: Any, file: str, kind: str = "ring", tables: Collection[str] | None = None
+) -> list[tuple[str, str, list[Any]]]:
     """Validate a ``[sweep]`` table of a ``kind`` scenario (``"ring"`` or ``"section"``):
-    (key as written, dotted key, values) in file order."""
+    (key as written, dotted key, values) in file order. ``tables``: the file's own tables
+    (``resolve_key``)."""
     if not isinstance(sweep, dict) or not sweep:
         raise UserError(f"{file}: [sweep] must be a table of key = [value, ...] lines")
     out, seen = [], {}
     for key, values in _flatten(sweep):
-        dotted = resolve_key(key, file, kind)
+        dotted = resolve_key(key, file, kind, tables)
         if dotted in seen:
             raise UserError(f"{file}: sweep keys {seen[dotted]!r} and {key!r} both set {dotted}")
         seen[dotted] = key
@@ -188,7 +237,7 @@ def expand_file(path: Path, prefix: str) -> list[Variant]:
     kind = sweep_kind(table)
     if sweep is None or kind is None:  # an unaccepted network.kind fails in load_scenario
         return [_load(prefix or path.stem, path, {})]
-    keys = parse_sweep(sweep, file, kind)
+    keys = parse_sweep(sweep, file, kind, list(table))
     out = []
     for combo in itertools.product(*(values for _, _, values in keys)):
         parts = [(key, v) for (key, _, _), v in zip(keys, combo, strict=True)]
