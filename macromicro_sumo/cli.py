@@ -136,9 +136,10 @@ def _cmd_deploy(args: argparse.Namespace) -> int:
     m = stages.deploy(
         sc, data, pol, args.out, args.command_line, not args.quiet, args.methods or None
     )
+    width = max(map(len, m["totals"]), default=0)
     for name, t in m["totals"].items():
         print(
-            f"{name:>15}: {t['collisions']} collisions, {t['teleports']} teleports, "
+            f"{name:>{width}}: {t['collisions']} collisions, {t['teleports']} teleports, "
             f"{t['vehicle_steps_driven']} vehicle-steps driven, safety acted {t['safety_acted']}"
         )
     print(f"deployment written to {args.out}")
