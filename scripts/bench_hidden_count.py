@@ -10,8 +10,10 @@ absolute error of K per lane over the snapshots of each regime (a snapshot is co
 estimate; ``density``, the regime-blended density estimate alone; ``io_ramps_unknown``, the
 passages' estimate not told where the ramps are; ``io``, the estimate ``simulate`` writes
 (``k_estimate.csv``); and the mean error (bias) of ``io``. ``--ramp`` adds SUMO's
-``game/ramp``, ``--examples`` the shipped section examples, ``--boundary-stations`` the drawn
-sections with ``detectors.auto_boundary_stations`` (docs/sections.md, "Hidden count").
+``game/ramp``, ``--examples`` the shipped section examples; ``--boundary-stations`` runs
+every network with ``detectors.auto_boundary_stations`` true (else false); ``--pieces``
+adds a table of each part's error in vehicles (``io_pieces``: stretches counted from the
+empty start, a ramp's node, the end pieces; docs/sections.md, "Hidden count").
 
     .venv/bin/python scripts/bench_hidden_count.py --seed 200 --nets 8
 """
@@ -62,8 +64,8 @@ def get_options(args: list[str] | None = None) -> argparse.Namespace:
     p.add_argument(
         "--boundary-stations",
         action="store_true",
-        help="drawn networks with detectors.auto_boundary_stations = true (a station inside "
-        "each end and either side of each ramp's node)",
+        help="detectors.auto_boundary_stations = true (a station inside each end and either "
+        "side of each ramp's node) on the drawn networks and the examples; else false",
     )
     p.add_argument(
         "--pieces",
@@ -216,9 +218,14 @@ def dump_toml(table: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def example_toml(name: str) -> str:
-    """A shipped scenario's TOML with its network paths absolute and ``EXAMPLE_RUNS`` runs."""
+def example_toml(name: str, boundary: bool) -> str:
+    """A shipped scenario's TOML with its network paths absolute, ``EXAMPLE_RUNS`` runs and
+    ``detectors.auto_boundary_stations`` = ``boundary``."""
     text = (SCENARIOS / f"{name}.toml").read_text()
+    text = re.sub(r"(?m)^auto_boundary_stations = \w+\n", "", text)
+    text = text.replace(
+        "[detectors]\n", f"[detectors]\nauto_boundary_stations = {str(boundary).lower()}\n"
+    )
     text = text.replace('"../sumo_nets/', f'"{SCENARIOS.parent / "sumo_nets"}/')
     return re.sub(r"(?m)^n_runs = \d+", f"n_runs = {EXAMPLE_RUNS}", text)
 
@@ -247,11 +254,11 @@ def errors(gt: Path) -> pd.DataFrame:
     macro = detector_macro(det, pas, sc["simulation"]["warmup_s"], 6.5, section)
     dens = k_estimates(traj, macro, section, every, window)
     lag = PASSAGE_LAG_STEPS * sc["simulation"]["step_length_s"]
-    unknown = k_estimates(traj, macro, section, every, window, det, pas, None, lag)
+    unknown = k_estimates(traj, macro, section, every, window, det, pas, None, lag, from_empty=True)
     net_file = scenario_inputs(load_scenario(gt.parent / "scenario.toml")).net_file
     side = side_junction_arcs(read_net(net_file), section)
     lag = PASSAGE_LAG_STEPS * sc["simulation"]["step_length_s"]
-    hybrid = k_estimates(traj, macro, section, every, window, det, pas, side, lag)
+    hybrid = k_estimates(traj, macro, section, every, window, det, pas, side, lag, from_empty=True)
     snaps = at_snapshot_times(traj, every)
     slow = snaps.groupby(["run", "time_s"])["speed_mps"].apply(
         lambda v: (v <= SLOW_MPS).mean() >= SLOW_SHARE
@@ -286,7 +293,7 @@ def piece_errors(gt: Path) -> pd.DataFrame:
     for run, g in snaps.groupby("run"):
         times = np.sort(g["time_s"].unique())
         lag = PASSAGE_LAG_STEPS * sc["simulation"]["step_length_s"]
-        pieces, _ = io_pieces(det, pas, section, run, times, side, lag)
+        pieces, _ = io_pieces(det, pas, section, run, times, side, lag, from_empty=True)
         by_t = g.groupby("time_s")["arc_m"]
         for name, piece in pieces.items():
             true = np.array(
@@ -339,20 +346,27 @@ def main(options: argparse.Namespace) -> bool:
         folder = options.out / f"seed_{seed}"
         folder.mkdir(exist_ok=True)
         table, desc = build_network(folder, seed)
+        table["detectors"]["auto_boundary_stations"] = options.boundary_stations
         if options.boundary_stations:
             folder = folder / "boundary_stations"
             folder.mkdir(exist_ok=True)
-            table["detectors"]["auto_boundary_stations"] = True
             desc += ", boundary stations"
         nets.append((f"seed {seed}", folder, table, desc))
     if options.ramp:
         folder = options.out / "ramp"
-        folder.mkdir(exist_ok=True)
-        nets.append(("ramp", folder, *ramp_example(folder)))
+        if options.boundary_stations:
+            folder = folder / "boundary_stations"
+        folder.mkdir(parents=True, exist_ok=True)
+        table, desc = ramp_example(folder)
+        table["detectors"]["auto_boundary_stations"] = options.boundary_stations
+        nets.append(("ramp", folder, table, desc))
     for name in EXAMPLES if options.examples else ():
         folder = options.out / name
-        folder.mkdir(exist_ok=True)
-        nets.append((name, folder, example_toml(name), f"shipped example, {EXAMPLE_RUNS} runs"))
+        if options.boundary_stations:
+            folder = folder / "boundary_stations"
+        folder.mkdir(parents=True, exist_ok=True)
+        toml = example_toml(name, options.boundary_stations)
+        nets.append((name, folder, toml, f"shipped example, {EXAMPLE_RUNS} runs"))
     print(
         "| network | drawn | regime | snapshots | mean K | "
         + " | ".join(ESTIMATORS)

@@ -94,9 +94,10 @@ class SectionDetectorConfig:
         doc="place E1 loops on every lane at this spacing when the section has none (0: off)",
     )
     auto_boundary_stations: bool = spec(
-        False,
+        True,
         doc="with placed loops, also a station 15 m inside each open end and on both sides "
-        "of every node where a ramp joins or leaves (docs/sections.md, Hidden count)",
+        "of every node where a ramp joins or leaves, so that the hidden count is counted "
+        "(docs/sections.md, Hidden count)",
     )
     k_window_s: float = spec(
         60.0,

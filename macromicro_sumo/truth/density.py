@@ -26,8 +26,10 @@ upstream station, out = at the downstream one: the input-output method), and the
 is taken from the density estimate, weighted to its free-flowing intervals (where flow /
 speed is right; a loop in a queue does not stand for its cell): one constant for the whole
 record where no ramp lies between the stations, a line over a window where one may (drift
-correction). An open section's end pieces, beyond its outermost stations, are counted from
-the passages there, each vehicle projected at the speed it passed with.
+correction); a simulation's loops count from its empty start, where the count needs no
+constant at all (``section_macro.io_pieces``). An open section's end pieces, beyond its
+outermost stations, are counted from the passages there, each vehicle projected at the
+speed it passed with.
 """
 
 from __future__ import annotations

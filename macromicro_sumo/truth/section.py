@@ -345,6 +345,7 @@ def simulate_section(
             pas,
             side_junction_arcs(read_net(inputs.net_file), section),
             PASSAGE_LAG_STEPS * sc.simulation.step_length_s,
+            from_empty=fleet_demand(sc) is None,  # SUMO starts empty; a fleet on the section
         )
         vt = pd.DataFrame(
             [

@@ -44,6 +44,28 @@ off by the vehicles crossing it within a step; on the bench the counted stretche
 count")."""
 
 
+EMPTY_START_TOLERANCE_VEH = 3.0
+EMPTY_START_TOLERANCE = 0.05
+"""A simulation starts with an empty network and its loops count from its first step: the
+input-output count between full stations is then the count, exactly, unless vehicles
+depart or arrive between them. The density estimate's offset to it (free-flow weighted,
+``density.anchored_counts``) is its check: within 3 vehicles or 5% of the stretches' count
+it is the density estimate's own error (on the bench -1.6 to +5.8 vehicles, 1-5%), beyond
+it the count drifts and the offset is taken instead."""
+
+
+SHORT_STRETCH_M = 100.0
+"""A stretch with a ramp at most this long between its stations (the boundary stations
+either side of a ramp's node: 30 m plus the junction) is estimated from its density;
+a longer one from its input-output count, anchored by a line (``io_pieces``)."""
+
+
+def stretch_m(pair: tuple[float, float], section: Section) -> float:
+    """Arc length from station ``pair[0]`` to ``pair[1]`` (around the loop where it closes)."""
+    lo, hi = pair
+    return hi - lo if hi > lo else hi + section.length_m - lo
+
+
 def station_cells(arcs: np.ndarray, section: Section) -> np.ndarray:
     """Arc length each detector station stands for: the section split half-way between
     stations (around the loop on a closed section)."""
@@ -309,22 +331,28 @@ def io_pieces(
     at_s: np.ndarray,
     side_arcs: np.ndarray | None = None,
     passage_lag_s: float = 0.0,
+    from_empty: bool = False,
 ) -> tuple[dict[str, Piece], pd.DataFrame]:
     """The parts of the section counted from the passages at the times ``at_s``, by name,
     and per interval the density estimate of the rest of the section (``begin_s, end_s,
     vehicles``; all of it where no station counts every vehicle).
 
-    ``between``: the stretches between consecutive full stations with no ramp between them
-    (``side_arcs``, arcs of the nodes with ramps; None: unknown, every stretch may hold
-    one), their summed input-output count anchored to their summed density estimate,
-    weighted to the free-flowing intervals, by one constant for the whole record: nothing
-    enters or leaves them but through their stations. ``ramps``: the stretches with a
-    ramp, the same but anchored by a line over ``IO_ANCHOR_WINDOW_S`` (their count drifts
-    at the ramps' net flow). On an open section ``upstream`` and ``downstream``, the end
-    pieces beyond the outermost full stations (``density.projected_passages``; upstream
-    blended with the density estimate by the station's speed, since a vehicle queued
-    there passes slower than it drove). ``passage_lag_s``: how far the passages' clock runs
-    ahead of the times ``at_s`` (``PASSAGE_LAG_STEPS``).
+    Stretches between consecutive full stations: ``stretches``, their summed input-output
+    count anchored to their summed density estimate, weighted to the free-flowing
+    intervals: by one constant for the whole record where no ramp lies between two
+    stations (``side_arcs``, arcs of the nodes with ramps; None: unknown, every stretch may
+    hold one), else by a line over ``IO_ANCHOR_WINDOW_S`` (the count drifts at the ramps'
+    net flow). With ``from_empty`` (the passages start with an empty section: a simulation
+    from its first step) on an open section, ``between``, the stretches with no ramp, are
+    their input-output count itself (nothing enters or leaves them but through their
+    stations), where the density estimate's offset to it agrees within
+    ``EMPTY_START_TOLERANCE_VEH`` or ``EMPTY_START_TOLERANCE`` of their count; ``ramps``,
+    the others, are anchored as ``stretches`` are. On an open section ``upstream`` and
+    ``downstream``, the end pieces beyond the outermost full stations
+    (``density.projected_passages``; upstream blended with the density estimate by the
+    station's speed, since a vehicle queued there passes slower than it drove).
+    ``passage_lag_s``: how far the passages' clock runs behind the times ``at_s``
+    (``PASSAGE_LAG_STEPS``).
     """
     d = det[det["run"] == run]
     at_p = np.asarray(at_s, dtype=float) - passage_lag_s  # the same moments, passages' clock
@@ -369,17 +397,11 @@ def io_pieces(
             inside += up_dens[-1] + integrate_stations(per_station, section, arcs[-1])
         rest.append({"begin_s": begin, "end_s": end, "vehicles": total - inside})
     pieces: dict[str, Piece] = {}
-    # The stretches of a group are anchored together: each alone takes the density
-    # estimate's error on its stretch (a loop on a curve or before a lane drop does not
-    # stand for its neighbours), and those errors cancel in their sum, which is all K
-    # needs (Spreewaldring: 5.2 vehicles per lane off anchored per stretch, 0.9 together).
-    with_ramp = [side_arcs is None or ramp_between(side_arcs, *pair) for pair in pairs]
-    for name, group, window_s in (
-        ("between", [q for q, r in zip(pairs, with_ramp, strict=True) if not r], np.inf),
-        ("ramps", [q for q, r in zip(pairs, with_ramp, strict=True) if r], IO_ANCHOR_WINDOW_S),
-    ):
-        if not group:
-            continue
+
+    def anchored(
+        group: list[tuple[float, float]], window_s: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(the group's input-output count, the same anchored to its density estimate)."""
         io = sum(
             cumulative_count(times[lo], at_p) - cumulative_count(times[hi], at_p)
             for lo, hi in group
@@ -393,12 +415,45 @@ def io_pieces(
             window_s,
             np.mean([free_flow_weight(np.array(speed[pair])) for pair in group], axis=0),
         )
-        spans = [(lo, hi) if hi > lo else (lo, section.length_m) for lo, hi in group]
-        spans += [(0.0, hi) for lo, hi in group if hi <= lo]
-        pieces[name] = Piece(tuple(spans), counted)
+        return np.asarray(io, dtype=float), counted
+
+    def spans(group: list[tuple[float, float]]) -> tuple[tuple[float, float], ...]:
+        inside = [(lo, hi) if hi > lo else (lo, section.length_m) for lo, hi in group]
+        return tuple(inside + [(0.0, hi) for lo, hi in group if hi <= lo])
+
+    with_ramp = [side_arcs is None or ramp_between(side_arcs, *pair) for pair in pairs]
+    between = [q for q, r in zip(pairs, with_ramp, strict=True) if not r]
+    ramps = [q for q, r in zip(pairs, with_ramp, strict=True) if r]
+    if from_empty and not section.closed and between:
+        # Counted since the run's start, when the section was empty: the count itself,
+        # unless the density estimate's offset says that vehicles depart or arrive inside
+        # the stretches (the count then drifts away from it).
+        io, counted = anchored(between, np.inf)
+        mean_count = float(np.nanmean(np.sum([dens[pair] for pair in between], axis=0)))
+        tolerance = max(EMPTY_START_TOLERANCE_VEH, EMPTY_START_TOLERANCE * mean_count)
+        if abs(float(np.nanmean(counted - io))) <= tolerance:
+            pieces["between"] = Piece(spans(between), io)
+            pairs = ramps
+    # The interval holding each time (the last one before it, past the record's end).
+    j = np.clip(np.searchsorted(intervals["begin_s"].to_numpy(), at_s, "right") - 1, 0, None)
+    if "between" in pieces:
+        # A short stretch with a ramp (the boundary stations' either side of its node):
+        # its density estimate, which its two stations bound closely; its input-output
+        # count drifts at the ramp's flow, and a line over a window followed that worse
+        # (SUMO's game/ramp in congestion: 3.5 vehicles off on 3, the density 0.9).
+        short = [q for q in pairs if stretch_m(q, section) <= SHORT_STRETCH_M]
+        if short:
+            pieces["ramp_nodes"] = Piece(spans(short), np.sum([dens[q] for q in short], axis=0)[j])
+        pairs = [q for q in pairs if q not in short]
+    # Every other stretch is anchored together: each alone takes the density estimate's
+    # error on its stretch (a loop on a curve or before a lane drop does not stand for its
+    # neighbours), and those errors cancel in their sum, which is all K needs
+    # (Spreewaldring: 5.2 vehicles per lane off anchored per stretch, 0.9 together).
+    if pairs:
+        window_s = IO_ANCHOR_WINDOW_S if ramps else np.inf
+        name = "ramps" if "between" in pieces else "stretches"
+        pieces[name] = Piece(spans(pairs), anchored(pairs, window_s)[1])
     if ends:
-        # The interval holding each time (the last one before it, past the record's end).
-        j = np.clip(np.searchsorted(intervals["begin_s"].to_numpy(), at_s, "right") - 1, 0, None)
         first, last = own[arcs[0]], own[arcs[-1]]
         down = projected_passages(
             last["time_s"].to_numpy(),
@@ -424,10 +479,13 @@ def io_vehicles(
     at_s: np.ndarray,
     side_arcs: np.ndarray | None = None,
     passage_lag_s: float = 0.0,
+    from_empty: bool = False,
 ) -> tuple[np.ndarray, pd.DataFrame]:
     """Vehicles counted at the times ``at_s`` from the passages (``io_pieces``, summed) and
     the density estimate of the rest of the section per interval."""
-    pieces, rest = io_pieces(det, passages, section, run, at_s, side_arcs, passage_lag_s)
+    pieces, rest = io_pieces(
+        det, passages, section, run, at_s, side_arcs, passage_lag_s, from_empty
+    )
     counted = np.zeros(len(at_s))
     for piece in pieces.values():
         counted += piece.vehicles
@@ -454,6 +512,7 @@ def k_estimates(
     passages: pd.DataFrame | None = None,
     side_arcs: np.ndarray | None = None,
     passage_lag_s: float = 0.0,
+    from_empty: bool = False,
 ) -> pd.DataFrame:
     """Hidden count per snapshot time: the truth, and the estimate from the detectors.
 
@@ -467,7 +526,8 @@ def k_estimates(
     growing queues within it. ``side_arcs`` (``side_junction_arcs``): where ramps join or
     leave; with none between two stations the counts are anchored once for the whole
     record, else (or None: unknown) by a line over a window. ``passage_lag_s``: how far the
-    passages' clock runs ahead of the trajectories' (a SUMO run: ``PASSAGE_LAG_STEPS`` steps).
+    passages' clock runs behind the trajectories' (a SUMO run: ``PASSAGE_LAG_STEPS`` steps).
+    ``from_empty``: the passages start with the section empty (``io_pieces``).
     ``k_est_flow_speed``: the former estimate (flow / speed, station cells, interval
     means), for comparison.
     """
@@ -480,7 +540,7 @@ def k_estimates(
         r = det_macro[det_macro["run"] == run]
         times = np.sort(gr["time_s"].unique())
         counted, rest = (
-            io_vehicles(det, passages, section, run, times, side_arcs, passage_lag_s)
+            io_vehicles(det, passages, section, run, times, side_arcs, passage_lag_s, from_empty)
             if hybrid
             else (np.zeros(len(times)), r)
         )

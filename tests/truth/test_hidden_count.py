@@ -15,12 +15,17 @@ from conftest import dump_toml
 from macromicro_sumo.cli import main
 from macromicro_sumo.data.section import at_snapshot_times
 from macromicro_sumo.road.section import Section
+from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.inputs import read_net
+from macromicro_sumo.truth.section import load_section
+from macromicro_sumo.truth.section_detectors import place_detectors
 from macromicro_sumo.truth.section_macro import (
     PASSAGE_LAG_STEPS,
     detector_macro,
+    io_pieces,
     k_estimates,
     k_summary,
+    loop_densities,
     side_junction_arcs,
     station_passages,
 )
@@ -42,10 +47,12 @@ def test_a_vehicle_counts_once_per_station_and_lap() -> None:
     np.testing.assert_allclose(q["speed_mps"], [20.0, 18.0, 21.0])
 
 
-def merge_scenario(folder: Path, main_vph: float, ramp_vph: float, drop_mps: float) -> Path:
+def merge_scenario(
+    folder: Path, main_vph: float, ramp_vph: float, drop_mps: float, boundary: bool = False
+) -> Path:
     """Two lanes for 800 m with an on-ramp joining at 400 m, then one lane for 300 m limited
     to ``drop_mps``: above that lane's capacity a queue grows back from the lane drop over
-    the loops."""
+    the loops. ``boundary``: ``detectors.auto_boundary_stations``."""
     (folder / "m.nod.xml").write_text(
         '<nodes><node id="a" x="0" y="0"/><node id="b" x="400" y="0"/>'
         '<node id="c" x="800" y="0"/><node id="d" x="1100" y="0"/>'
@@ -92,7 +99,12 @@ def merge_scenario(folder: Path, main_vph: float, ramp_vph: float, drop_mps: flo
         "section": {"edges": ["m0", "m1", "m2"], "closed": False},
         "instrumented": {"penetration": 0.1},
         "simulation": {"warmup_s": 60.0, "duration_s": 360.0, "n_runs": 1},
-        "detectors": {"interval_s": 30.0, "auto_spacing_m": 100.0, "k_window_s": 30.0},
+        "detectors": {
+            "interval_s": 30.0,
+            "auto_spacing_m": 100.0,
+            "k_window_s": 30.0,
+            "auto_boundary_stations": boundary,
+        },
         "generator": {"snapshot_every_s": 5.0},
     }
     path = folder / "merge.toml"
@@ -101,12 +113,12 @@ def merge_scenario(folder: Path, main_vph: float, ramp_vph: float, drop_mps: flo
 
 
 def estimate(
-    folder: Path, main_vph: float, ramp_vph: float, drop_mps: float
+    folder: Path, main_vph: float, ramp_vph: float, drop_mps: float, boundary: bool = False
 ) -> tuple[pd.DataFrame, Section, float]:
     """(k_estimate.csv, the section, the share of snapshots with 10% of vehicles at <= 5 m/s);
     the density-only estimate in ``k_density``."""
     gt = folder / "gt"
-    toml = merge_scenario(folder, main_vph, ramp_vph, drop_mps)
+    toml = merge_scenario(folder, main_vph, ramp_vph, drop_mps, boundary)
     assert main(["simulate", str(toml), "--out", str(gt), "--quiet"]) == 0
     section = Section.read(gt / "section.json")
     traj = pd.read_csv(gt / "trajectories.csv", dtype={"vehicle_id": str, "vtype": str})
@@ -117,7 +129,8 @@ def estimate(
     side = side_junction_arcs(read_net(folder / "m.net.xml"), section)
     np.testing.assert_allclose(side, [section.offsets_m[1]])
     macro = detector_macro(det, pas, 60.0, 7.5, section)
-    again = k_estimates(traj, macro, section, 5.0, 30.0, det, pas, side, PASSAGE_LAG_STEPS * 0.5)
+    lag = PASSAGE_LAG_STEPS * 0.5
+    again = k_estimates(traj, macro, section, 5.0, 30.0, det, pas, side, lag, from_empty=True)
     np.testing.assert_array_equal(again["k_est"], k["k_est"])
     k["k_density"] = k_estimates(traj, macro, section, 5.0, 30.0)["k_est"].to_numpy()
     snaps = at_snapshot_times(traj, 5.0)
@@ -140,3 +153,52 @@ def test_congested_merge(tmp_path: Path) -> None:
     err_density = float(np.abs(k["k_density"] - k["k_true"]).mean()) / lanes
     assert err <= 1.0, (err, err_density)
     assert err < err_density  # the queue's count at the snapshot, not an interval's mean
+
+
+def test_boundary_stations_bound_the_ends_and_the_ramp(tmp_path: Path) -> None:
+    toml = merge_scenario(tmp_path, 900.0, 200.0, 30.0, boundary=True)
+    sc = load_scenario(toml)
+    inputs, section, _ = load_section(sc)
+    arcs = sorted({p.arc_m for p in place_detectors(sc, inputs, section)})
+    node = float(section.offsets_m[1])  # where the on-ramp joins
+    end_m0 = node - float(section.junction_m[0])
+    want = [15.0, 50.0, 150.0, 250.0, 350.0, end_m0 - 15.0, node + 15.0, section.length_m - 15.0]
+    for arc in want:
+        assert np.isclose(arcs, arc).any(), (arc, arcs)
+    # Every station on every lane of its edge: each counts all that cross it.
+    det_off = place_detectors(
+        load_scenario(merge_scenario(tmp_path, 900.0, 200.0, 30.0)), inputs, section
+    )
+    assert len(arcs) == len({p.arc_m for p in det_off}) + 4
+
+
+def test_congested_merge_with_boundary_stations(tmp_path: Path) -> None:
+    """With a station inside each end and either side of the ramp's node, every stretch is
+    counted: in a queue far within a vehicle per lane, and the stretches between stations
+    with no ramp exactly, counted since the run's empty start with the passages one step
+    behind the trajectories (a lag left out puts them off)."""
+    k, section, congested = estimate(tmp_path, 1300.0, 400.0, 6.0, boundary=True)
+    assert congested > 0.5
+    assert k_summary(k, section)["mean_abs_error_per_lane_veh"] <= 0.4  # 0.21 measured
+    gt = tmp_path / "gt"
+    traj = pd.read_csv(gt / "trajectories.csv", dtype={"vehicle_id": str, "vtype": str})
+    det = pd.read_csv(gt / "detectors.csv")
+    pas = pd.read_csv(gt / "detector_passages.csv", dtype={"vehicle_id": str})
+    det = det.assign(k_point_vpkm=loop_densities(det, pas))
+    side = side_junction_arcs(read_net(tmp_path / "m.net.xml"), section)
+    snaps = at_snapshot_times(traj, 5.0)
+    times = np.sort(snaps["time_s"].unique())
+    by_t = snaps.groupby("time_s")["arc_m"]
+
+    def between_error(lag_s: float) -> np.ndarray:
+        pieces, _ = io_pieces(det, pas, section, 0, times, side, lag_s, from_empty=True)
+        piece = pieces["between"]
+        true = [
+            sum(((a >= lo) & (a < hi)).sum() for lo, hi in piece.arcs_m)
+            for a in (by_t.get_group(t).to_numpy() for t in times)
+        ]
+        return piece.vehicles - np.array(true)
+
+    exact = between_error(PASSAGE_LAG_STEPS * 0.5)
+    assert (exact == 0).mean() >= 0.95, exact
+    assert np.abs(between_error(0.0)).mean() > 2 * np.abs(exact).mean() + 0.1
