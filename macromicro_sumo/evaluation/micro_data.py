@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from macromicro_sumo.data.section import SectionTruth
+from macromicro_sumo.data.section import SectionTruth, run_section
 from macromicro_sumo.env.section_bank import recordable, section_observations
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.fielddata.leaders import has_measured_leaders, with_measured_leaders
@@ -25,7 +25,9 @@ def micro_pairs(
     traj = truth.trajectories[truth.trajectories["run"].isin(runs)]
     measured = has_measured_leaders(traj)
     obs_rows, acc_rows = [], []
-    for _, g in traj.groupby("run", sort=True):
+    for run, g in traj.groupby("run", sort=True):
+        # The run's own speed limits (a fleet draws them per run), as the env observes them.
+        section = run_section(truth, int(run))
         times = np.sort(g["time_s"].unique())
         by_t = dict(tuple(g.groupby("time_s")))
         nxt_speed = {}
@@ -40,7 +42,7 @@ def micro_pairs(
             if not o.any():
                 continue
             obs, leader, _ = section_observations(
-                truth.section,
+                section,
                 s["lane_index"].to_numpy(),
                 s["arc_m"].to_numpy(),
                 s["speed_mps"].to_numpy(),

@@ -23,6 +23,7 @@ from macromicro_sumo.env.section import SectionCore  # noqa: E402
 from macromicro_sumo.env.section_bank import build_section_bank  # noqa: E402
 from macromicro_sumo.env.section_envs import true_section_completion  # noqa: E402
 from macromicro_sumo.errors import UserError  # noqa: E402
+from macromicro_sumo.evaluation.micro_data import micro_pairs  # noqa: E402
 from macromicro_sumo.road.physics import idm_accel  # noqa: E402
 from macromicro_sumo.scenario.load import load_scenario  # noqa: E402
 from macromicro_sumo.sumo.inputs import scenario_inputs  # noqa: E402
@@ -189,3 +190,16 @@ def test_other_sections_keep_the_networks_limits(merge) -> None:
         np.testing.assert_array_equal(demand.section.limits_mps, sec.limits_mps)
     finally:
         demand.close()
+
+
+def test_micro_pairs_observe_the_runs_limits(ring) -> None:
+    """The observed pairs that the likelihood, the IDM fit and the prior see carry each run's
+    limits, as the env's observations do (not the network's 13.89 m/s)."""
+    sc, truth = ring
+    lim = csv_limits(truth)
+    seen = set()
+    for run in truth.runs:
+        obs, _ = micro_pairs(sc, truth, np.array([run]))
+        assert set(np.unique(obs[:, 1])) <= set(lim.loc[int(run)].to_numpy())
+        seen |= set(np.unique(obs[:, 1]))
+    assert len(seen) > 1 and NETWORK_LIMIT_MPS not in seen
