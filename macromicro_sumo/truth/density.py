@@ -27,7 +27,7 @@ is taken from the density estimate, weighted to its free-flowing intervals (wher
 speed is right; a loop in a queue does not stand for its cell): one constant for the whole
 record where no ramp lies between the stations, a line over a window where one may (drift
 correction); a simulation's loops count from its empty start, where the count needs no
-constant at all (``section_macro.io_pieces``). An open section's end pieces, beyond its
+constant at all (``hidden_count.io_pieces``). An open section's end pieces, beyond its
 outermost stations, are counted from the passages there, each vehicle projected at the
 speed it passed with.
 """

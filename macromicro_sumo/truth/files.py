@@ -66,7 +66,8 @@ from macromicro_sumo.road.section import Section, read_section
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.inputs import scenario_inputs
 from macromicro_sumo.truth.density import DEFAULT_VEHICLE_LENGTH_M
-from macromicro_sumo.truth.section_macro import detector_macro, k_estimates
+from macromicro_sumo.truth.hidden_count import k_estimates
+from macromicro_sumo.truth.section_macro import detector_macro
 
 K_TRUE_UNKNOWN = -1
 """``k_true`` of a field-data snapshot: nobody counted the hidden vehicles."""

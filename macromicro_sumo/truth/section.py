@@ -7,8 +7,8 @@ the section (re-created with our output files and interval, so nothing is writte
 the user's files) or, where there are none, E1 loops placed every ``auto_spacing_m`` on
 every lane (``truth/section_detectors.py``). An instantaneous loop sits beside every E1
 loop: its per-vehicle passages give the spread of the spacings, as on the ring. The macro
-statistics and K estimates are ``truth/section_macro.py``'s. Instrumented vehicles are
-chosen by a penetration rate, a vType or explicit IDs.
+statistics are ``truth/section_macro.py``'s, the K estimates ``truth/hidden_count.py``'s.
+Instrumented vehicles are chosen by a penetration rate, a vType or explicit IDs.
 
 This module: the runs, ``simulate_section`` writing them, and ``load_section_truth``
 reading them back.
@@ -52,20 +52,18 @@ from macromicro_sumo.sumo.inputs import SumoInputs, read_net, scenario_inputs
 from macromicro_sumo.sumo.simulation import Driver, Simulation, SumoOptions
 from macromicro_sumo.truth import fleet
 from macromicro_sumo.truth.files import truth_from_files
+from macromicro_sumo.truth.hidden_count import (
+    PASSAGE_LAG_STEPS,
+    k_estimates,
+    side_junction_arcs,
+)
 from macromicro_sumo.truth.section_detectors import (
     detectors_xml,
     place_detectors,
     read_detectors,
     without_detectors,
 )
-from macromicro_sumo.truth.section_macro import (
-    PASSAGE_LAG_STEPS,
-    detector_macro,
-    k_estimates,
-    k_summary,
-    side_junction_arcs,
-    trajectory_macro,
-)
+from macromicro_sumo.truth.section_macro import detector_macro, k_summary, trajectory_macro
 
 
 def load_section(sc: SectionScenario) -> tuple[SumoInputs, Section, dict[str, VType]]:

@@ -19,6 +19,7 @@ from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.inputs import DetectorSpec, SumoInputs, read_net, user_detectors
+from macromicro_sumo.truth.hidden_count import side_junction_arcs
 from macromicro_sumo.truth.ring_detectors import (
     E1_FILE,
     E2_FILE,
@@ -27,7 +28,6 @@ from macromicro_sumo.truth.ring_detectors import (
     records,
     speed_or_nan,
 )
-from macromicro_sumo.truth.section_macro import side_junction_arcs
 
 _DETECTOR_TAGS = {
     "inductionLoop",

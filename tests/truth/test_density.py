@@ -28,7 +28,8 @@ from macromicro_sumo.truth.density import (
     profile_integral,
     projected_passages,
 )
-from macromicro_sumo.truth.section_macro import detector_macro, k_estimates, k_summary
+from macromicro_sumo.truth.hidden_count import k_estimates
+from macromicro_sumo.truth.section_macro import detector_macro, k_summary
 
 
 def test_occupancy_and_flow_speed_densities() -> None:

@@ -48,8 +48,9 @@ from macromicro_sumo.truth.files import (
     on_step_grid,
     spread_cross_sections,
 )
+from macromicro_sumo.truth.hidden_count import k_estimates
 from macromicro_sumo.truth.section import load_section_truth
-from macromicro_sumo.truth.section_macro import k_estimates, station_density
+from macromicro_sumo.truth.section_macro import station_density
 
 PSI_TOL = 0.005  # relative, mean speed and mean spacing per snapshot
 K_TOL = 1  # vehicles per snapshot
