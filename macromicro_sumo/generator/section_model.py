@@ -44,6 +44,7 @@ from torch import nn
 from macromicro_sumo.data.objective import MacroTarget, macro_terms
 from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.generator.ring_posterior import spacing_posterior
+from macromicro_sumo.generator.section_bounds import cap_pieces, touched_gaps
 from macromicro_sumo.generator.section_scene import (
     PSI_INDEX,
     Gaps,
@@ -88,10 +89,19 @@ def observe(
     psi: Psi,
     road: Road,
     anchor: torch.Tensor,
+    generated_from: int | None = None,
 ) -> Observation:
     """Gaps and scale-free features of the scenes; ``remaining`` counts the vehicles still to
-    place (the next one included), ``total`` the vehicles of the completed scene."""
+    place (the next one included), ``total`` the vehicles of the completed scene;
+    ``generated_from``: the first generated slot (for psi's largest spacing, ``cap_pieces``)."""
     gaps = scene_gaps(lane, arc, speed, present, road, psi.s_min, anchor)
+    if bool(torch.isfinite(psi.d_max).any()):
+        touched = None
+        if generated_from is not None:
+            lo_ = lane_order(lane, arc, present, road)
+            head = torch.zeros(len(arc), road.max_lanes, dtype=torch.bool)
+            touched = torch.cat([touched_gaps(lo_, generated_from, road), head], dim=1)
+        gaps = cap_pieces(gaps, remaining, psi.d_max, touched)
     share = lane_exists_share(gaps, road)
     room_ok = gaps.valid & (gaps.room > 0) & (share > 0)
     # None with room: the section is fuller than psi's minimum spacing allows; every
@@ -292,13 +302,21 @@ def posterior_log_probs(obs: Observation, psi: Psi) -> tuple[torch.Tensor, torch
 
 
 def spacings(
-    lane: torch.Tensor, arc: torch.Tensor, present: torch.Tensor, road: Road
+    lane: torch.Tensor,
+    arc: torch.Tensor,
+    present: torch.Tensor,
+    road: Road,
+    generated_from: int | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, M) front-to-front spacing of each vehicle to its leader in its lane, and whether
     it counts: a vehicle with no leader on an open section (the first of its lane) has an
-    unknown spacing and is left out."""
+    unknown spacing and is left out. With ``generated_from`` (the first generated slot),
+    only the spacings with a generated vehicle at either end count (the ring's A)."""
     lo_ = lane_order(lane, arc, present, road)
-    return lo_["lead_arc"] - lo_["arc"], lo_["has_l"] & lo_["present"]
+    counts = lo_["has_l"] & lo_["present"]
+    if generated_from is not None:
+        counts = counts & touched_gaps(lo_, generated_from, road)
+    return lo_["lead_arc"] - lo_["arc"], counts
 
 
 def section_losses(
@@ -310,12 +328,16 @@ def section_losses(
     road: Road,
     dispersion: str = "measured",
     center: str = "psi",
+    generated_from: int | None = None,
 ) -> dict[str, torch.Tensor]:
     """The macro terms of completed scenes, (B,) each (``data.objective``): every present
-    vehicle's speed, and every per-lane spacing on the section as A (psi has no upper
-    spacing bound: L_max is 0). ``dispersion``: ``generator.spacing_dispersion``;
-    ``center``: ``generator.dispersion_center``."""
+    vehicle's speed, and every per-lane spacing on the section as A (L_max is 0 where
+    psi has no upper spacing bound). ``dispersion``: ``generator.spacing_dispersion``;
+    ``center``: ``generator.dispersion_center``; ``generated_from`` (the first generated
+    slot): A holds only the spacings a generated vehicle touches
+    (``generator.spacing_set = "touched"``)."""
     sp, has = spacings(lane, arc, present, road)
+    in_a = has if generated_from is None else spacings(lane, arc, present, road, generated_from)[1]
     scene_mean = None
     if center == "scene" and road.closed:
         # Around a loop A is every spacing of the scene: their mean is exact (the lane
@@ -324,11 +346,15 @@ def section_losses(
         # wrong mean reads 60 m^2 too wide, so the generator narrowed the scenes ~4%).
         w = has.double()
         scene_mean = ((sp * w).sum(dim=1) / w.sum(dim=1).clamp(min=1.0)).detach()
+    d_target = psi.d_mean
+    if scene_mean is not None and generated_from is not None:
+        # A is part of the loop: its mean is the touched gaps', judged against the exact one.
+        d_target = scene_mean
     target = MacroTarget(
         psi.v_mean,
-        psi.d_mean,
+        d_target,
         psi.s_min,
-        torch.full_like(psi.d_mean, math.inf),
+        psi.d_max,
         spacing_std_m=(
             torch.where(psi.d_std_known, psi.d_std, math.nan) if dispersion == "measured" else None
         ),
@@ -336,7 +362,7 @@ def section_losses(
         spacing_center_m=scene_mean,
     )
     # eps under the square roots keeps equal spacings and speeds trainable.
-    return macro_terms(speed, present.double(), sp, has.double(), target, eps=1e-8)
+    return macro_terms(speed, present.double(), sp, in_a.double(), target, eps=1e-8)
 
 
 MIN_OBSERVED_FOR_SPREAD = 3  # observed vehicles needed to estimate a speed spread
@@ -425,6 +451,7 @@ class Scene:
             psi,
             road,
             _anchor(len(idx), road, gen),
+            self.n_obs_slots,
         )
 
     def place(

@@ -155,6 +155,7 @@ class Psi:
     v_min: torch.Tensor
     v_max: torch.Tensor
     s_min: torch.Tensor
+    d_max: torch.Tensor  # largest spacing (inf: none; ``generator.spacing_bounds``)
 
     # speed spread target [m/s] (NaN where unknown; ``speed_spread_target``)
     v_std: torch.Tensor | None = None
@@ -172,6 +173,12 @@ class Psi:
             v_min=p[:, PSI_INDEX["speed_min_mps"]],
             v_max=p[:, PSI_INDEX["speed_max_mps"]],
             s_min=p[:, PSI_INDEX["spacing_min_m"]],
+            # psi arrays written before the field existed have no column: no bound
+            d_max=(
+                p[:, PSI_INDEX["spacing_max_m"]]
+                if p.shape[1] > PSI_INDEX["spacing_max_m"]
+                else torch.full_like(p[:, 0], math.inf)
+            ),
             v_std=None if v_std is None else torch.as_tensor(np.asarray(v_std, np.float64)),
         )
 

@@ -150,6 +150,27 @@ class SectionGeneratorConfig:
         "(the paper); posterior = drawn from the posterior of i.i.d. normal spacings with the "
         "detectors' mean and std (a closed one-lane section, spacing_dispersion = measured)",
     )
+    eval_completions: int = spec(
+        1,
+        lo=1,
+        hi=100,
+        doc="completions of each held-out snapshot in the generator stage's metrics (the ring "
+        "draws 4); generator_metrics.csv then has a completion column",
+    )
+    spacing_bounds: str = spec(
+        "none",
+        choices=("none", "passages"),
+        doc="psi's largest spacing: none (no upper bound), or the longest of each detector "
+        "interval's passage spacings widened per bounds_source (the ring's d_max): the loss's "
+        "L_max and the placement keep the completed spacings under it",
+    )
+    spacing_set: str = spec(
+        "all",
+        choices=("all", "touched"),
+        doc="the spacings A that the spacing terms score: every spacing of the completed "
+        "scene (all), or only those with a generated vehicle at either end (touched, the "
+        "ring's A)",
+    )
     dispersion_center: str = spec(
         "psi",
         choices=("psi", "scene"),

@@ -1,0 +1,287 @@
+"""The ring's spacing bounds, its A and several completions per scene on the section generator
+(issue 16, "Ring as a section: status" item 3).
+
+psi's largest spacing is checked by hand against a real small run of ``ring_paper_section``
+(SUMO, two runs of 120 s); the placement cap and the touched A on synthetic ring scenes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from macromicro_sumo.data.section import PSI_FIELDS, SectionSnapshots, psi_table
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.generator.section_model import Scene, SectionGeneratorNet, section_losses
+from macromicro_sumo.generator.section_sampler import complete_section
+from macromicro_sumo.generator.section_scene import Psi, Road
+from macromicro_sumo.generator.section_train import run_train_section_generator
+from macromicro_sumo.road.section import Section, read_section
+from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.scenario.section import SectionGeneratorConfig, SectionScenario
+from macromicro_sumo.truth.section import load_section_truth, simulate_section
+
+ROOT = Path(__file__).resolve().parents[2]
+N_VEHICLES = 5
+S_MIN_M = 7.0
+
+
+@pytest.fixture(scope="module")
+def ring() -> Section:
+    return read_section(ROOT / "sumo_nets" / "ring_r100_e4.net.xml", ["e0", "e1", "e2", "e3"], True)
+
+
+@pytest.fixture(scope="module")
+def ring_truth(tmp_path_factory: pytest.TempPathFactory) -> tuple[SectionScenario, Path]:
+    """ring_paper_section's fleet on the ring, two short runs (real SUMO)."""
+    folder = tmp_path_factory.mktemp("ring_bounds")
+    text = (ROOT / "scenarios" / "ring_paper_section.toml").read_text()
+    text = text.replace("../sumo_nets/", f"{ROOT}/sumo_nets/")
+    text = text.replace("duration_s = 180.0", "duration_s = 120.0").replace(
+        "n_runs = 40", "n_runs = 2"
+    )
+    path = folder / "ring.toml"
+    path.write_text(text)
+    sc = load_scenario(path)
+    simulate_section(sc, folder / "gt", progress=False)
+    return sc, folder / "gt"
+
+
+def with_generator(sc: SectionScenario, **gen: object) -> SectionScenario:
+    return dataclasses.replace(sc, generator=dataclasses.replace(sc.generator, **gen))
+
+
+def by_hand(passages: pd.DataFrame, run: int, begin: float, end: float, s_min: float) -> np.ndarray:
+    """The interval's passage spacings: at each loop, consecutive passages' headway x their
+    mean speed, dated at the second passage, shorter than s_min / 2 left out."""
+    out = []
+    for _, g in passages[passages["run"] == run].groupby("detector_id"):
+        g = g.sort_values("time_s")
+        t, v = g["time_s"].to_numpy(), g["speed_mps"].to_numpy()
+        for i in range(1, len(t)):
+            d = (t[i] - t[i - 1]) * 0.5 * (v[i] + v[i - 1])
+            if begin <= t[i] < end and d >= 0.5 * s_min:
+                out.append(d)
+    return np.array(out)
+
+
+def test_psi_spacing_max_from_the_passages_by_hand(ring_truth) -> None:
+    """spacing_bounds = "passages": psi's largest spacing is the interval's longest passage
+    spacing (interval), x 1.1 (margin), widened by range / (n - 1) (extended); "none" (the
+    default) has no bound. The extended bound holds more of the true spacings around the
+    loop than the interval's, and almost all of them."""
+    sc, gt = ring_truth
+    truth = load_section_truth(gt, sc)
+    assert SectionGeneratorConfig().spacing_bounds == "none"
+    none = psi_table(truth, with_generator(sc, spacing_bounds="none"))
+    assert np.isinf(none["spacing_max_m"]).all()
+
+    def table(source: str) -> pd.DataFrame:
+        cfg = with_generator(sc, spacing_bounds="passages", bounds_source=source)
+        return psi_table(truth, cfg).reset_index(drop=True)
+
+    interval, margin, extended = table("interval"), table("margin"), table("extended")
+    assert len(interval) == 4  # two runs x two 60 s intervals
+    np.testing.assert_allclose(margin["spacing_max_m"], 1.1 * interval["spacing_max_m"])
+    passages = pd.read_csv(gt / "detector_passages.csv")
+    traj = truth.trajectories
+    inside_int = inside_ext = total = 0
+    for i, row in interval.iterrows():
+        d = by_hand(passages, row["run"], row["begin_s"], row["end_s"], row["spacing_min_m"])
+        assert d.size > 10
+        assert row["spacing_max_m"] == pytest.approx(d.max())
+        # psi's spacing std is the std of the same sample
+        assert row["std_spacing_m"] == pytest.approx(d.std(ddof=1), rel=1e-6)
+        widen = (d.max() - d.min()) / (d.size - 1)
+        assert extended.loc[i, "spacing_max_m"] == pytest.approx(d.max() + widen)
+        w = traj[
+            (traj["run"] == row["run"])
+            & traj["time_s"].between(row["begin_s"], row["end_s"], inclusive="left")
+        ]
+        for _, s in w.groupby("time_s"):
+            a = np.sort(s["arc_m"].to_numpy())
+            gaps = np.append(np.diff(a), a[0] + truth.section.length_m - a[-1])
+            total += gaps.size
+            inside_int += int((gaps <= row["spacing_max_m"]).sum())
+            inside_ext += int((gaps <= extended.loc[i, "spacing_max_m"]).sum())
+    assert inside_ext >= inside_int and inside_ext / total > 0.97
+
+
+def test_spacing_bounds_need_the_passages(ring_truth, tmp_path: Path) -> None:
+    sc, gt = ring_truth
+    truth = load_section_truth(gt, sc)
+    bare = dataclasses.replace(truth, folder=tmp_path)  # a folder without passages
+    cfg = with_generator(sc, spacing_bounds="passages", bounds_source="interval")
+    with pytest.raises(UserError) as err:
+        psi_table(bare, cfg)
+    msg = str(err.value)
+    assert "\n" not in msg and "detector_passages.csv" in msg and "spacing_bounds" in msg
+
+
+def ring_scenes(section: Section, n: int, seed: int, d_max: float) -> SectionSnapshots:
+    """Five vehicles on the loop (Dirichlet spacings above 60 m), one hidden; psi with the
+    scene's mean speed, L / N, the spacings' std and the largest spacing ``d_max``."""
+    rng = np.random.default_rng(seed)
+    length = section.length_m
+    arc, speed = np.zeros((n, N_VEHICLES)), np.zeros((n, N_VEHICLES))
+    observed = np.ones((n, N_VEHICLES), bool)
+    psi = np.zeros((n, len(PSI_FIELDS)))
+    for i in range(n):
+        gaps = 60.0 + rng.dirichlet(np.full(N_VEHICLES, 7.0)) * (length - 60.0 * N_VEHICLES)
+        arc[i] = np.mod(
+            rng.uniform(0, length) + np.concatenate([[0.0], np.cumsum(gaps[:-1])]), length
+        )
+        speed[i] = rng.uniform(10.5, 13.5, N_VEHICLES)
+        observed[i, rng.integers(N_VEHICLES)] = False
+        psi[i] = [speed[i].mean(), length / N_VEHICLES, gaps.std(), 10.0, 14.0, S_MIN_M, d_max]
+    ones = np.ones(n, dtype=int)
+    return SectionSnapshots(
+        run=np.zeros(n, dtype=int),
+        time_s=np.arange(n) * 5.0,
+        lane=np.zeros((n, N_VEHICLES), np.int64),
+        arc_m=arc,
+        speed_mps=speed,
+        length_m=np.full((n, N_VEHICLES), 5.0),
+        valid=np.ones((n, N_VEHICLES), bool),
+        observed=observed,
+        psi=psi,
+        k_true=ones,
+        k_est=ones,
+    )
+
+
+def touched_spacings(section: Section, arc: np.ndarray, generated: np.ndarray) -> np.ndarray:
+    """The two spacings around the generated vehicle of one scene."""
+    order = np.argsort(arc)
+    a, g = arc[order], generated[order]
+    gaps = np.append(np.diff(a), a[0] + section.length_m - a[-1])  # gap ahead of each
+    j = int(np.flatnonzero(g)[0])
+    return np.array([gaps[j], gaps[j - 1]])
+
+
+def test_the_last_vehicle_keeps_both_spacings_under_psis_largest(ring: Section) -> None:
+    """With psi's d_max (the largest true spacing of each scene, so the true place fits), the
+    one hidden vehicle is placed with both its spacings <= d_max; without it (inf) the same
+    untrained generator puts some beyond."""
+    torch.manual_seed(0)
+    net = SectionGeneratorNet(16, "posterior")
+    snaps = ring_scenes(ring, 60, seed=3, d_max=np.inf)
+    true_max = np.zeros(len(snaps))
+    for i in range(len(snaps)):
+        a = np.sort(snaps.arc_m[i])
+        true_max[i] = np.append(np.diff(a), a[0] + ring.length_m - a[-1]).max()
+    capped = dataclasses.replace(snaps, psi=snaps.psi.copy())
+    capped.psi[:, PSI_FIELDS.index("spacing_max_m")] = true_max
+    beyond = {}
+    for name, s in (("capped", capped), ("free", snaps)):
+        comp = complete_section(net, ring, s, s.k_true, 20, seed=1)
+        assert comp.projections.sum() == 0
+        touched = np.array(
+            [
+                touched_spacings(
+                    ring, comp.arc_m[i][comp.valid[i]], comp.generated[i][comp.valid[i]]
+                )
+                for i in range(len(s))
+            ]
+        )
+        beyond[name] = int((touched > true_max[:, None] + 1e-6).sum())
+    assert beyond["capped"] == 0 and beyond["free"] > 0
+
+
+def test_touched_spacing_set_is_the_rings_a(ring: Section) -> None:
+    """spacing_set = "touched": the spacing terms count only the spacings with a generated
+    vehicle at either end (the ring's A), deviations from the loop's exact mean spacing."""
+    snaps = ring_scenes(ring, 4, seed=8, d_max=np.inf)
+    road = Road.of(ring)
+    # the first three slots observed, the last two generated
+    lane, arc = torch.as_tensor(snaps.lane), torch.as_tensor(snaps.arc_m)
+    speed, present = torch.as_tensor(snaps.speed_mps), torch.as_tensor(snaps.valid)
+    psi = Psi.of(snaps.psi)
+    terms = section_losses(lane, arc, speed, present, psi, road, "measured", "scene", 3)
+    every = section_losses(lane, arc, speed, present, psi, road, "measured", "scene")
+    for i in range(len(snaps)):
+        order = np.argsort(snaps.arc_m[i])
+        a = snaps.arc_m[i][order]
+        gaps = np.append(np.diff(a), a[0] + ring.length_m - a[-1])
+        gen = order >= 3
+        in_a = gen | np.roll(gen, -1)  # follower or leader generated
+        mu, var = ring.length_m / N_VEHICLES, snaps.psi[i, 2] ** 2
+        want = abs(((gaps[in_a] - mu) ** 2).mean() - var) / mu**2
+        assert float(terms["L_var"][i]) == pytest.approx(want, rel=1e-9)
+        assert float(terms["L_mean"][i]) == pytest.approx((gaps[in_a].mean() / mu - 1) ** 2)
+        assert float(every["L_var"][i]) == pytest.approx(abs(gaps.var() - var) / mu**2)
+
+
+def test_several_completions_per_held_out_scene(ring_truth, tmp_path: Path) -> None:
+    """eval_completions = 3: generator_metrics.csv holds every held-out snapshot three times
+    per method (column completion 0..2), from different draws, and the manifest pools them."""
+    sc, gt = ring_truth
+    sc = with_generator(sc, epochs=2, hidden_size=16, eval_completions=3, hidden_eval=[1, 2])
+    man = run_train_section_generator(sc, gt, tmp_path / "gen", progress=False)
+    m = pd.read_csv(tmp_path / "gen" / "generator_metrics.csv")
+    for _, g in m.groupby("method"):
+        counts = g.groupby(["run", "time_s", "k_true"])["completion"].agg(["count", "nunique"])
+        assert (counts["count"] == 3).all() and (counts["nunique"] == 3).all()
+    gen = m[(m["method"] == "generator") & (m["k_true"] == 2)]
+    spread = gen.pivot_table("std_spacing_m", ["run", "time_s"], "completion")
+    assert (spread.std(axis=1) > 1e-6).mean() > 0.5  # the completions differ
+    assert man["summary"]["generator"]["snapshots"] * 3 == len(m) // 2
+    saved = json.loads((tmp_path / "gen" / "generator_manifest.json").read_text())
+    assert saved["summary"]["generator_K1"]["snapshots"] * 3 == int(
+        ((m["method"] == "generator") & (m["k_true"] == 1)).sum()
+    )
+
+
+def test_a_touched_gap_beyond_d_max_draws_the_last_vehicle(ring: Section) -> None:
+    """Two hidden vehicles (slots 0 and 2, not neighbours): with both still to place every
+    gap up to 3 d_max has room. The first is then put 8 m ahead of the observed vehicle with
+    the longest gap ahead, which leaves a touched gap longer than d_max: the last vehicle may
+    only go there, at a point that leaves both pieces within d_max."""
+    n = 8
+    snaps = ring_scenes(ring, n, seed=11, d_max=np.inf)
+    hidden = np.zeros_like(snaps.observed)
+    hidden[:, [0, 2]] = True
+    d_max = 1.4 * ring.length_m / N_VEHICLES
+    psi_arr = snaps.psi.copy()
+    psi_arr[:, PSI_FIELDS.index("spacing_max_m")] = d_max
+    snaps = dataclasses.replace(snaps, observed=~hidden, psi=psi_arr, k_true=np.full(n, 2))
+    road = Road.of(ring)
+    scene = Scene.start(snaps, snaps.k_true, road)
+    psi = Psi.of(snaps.psi)
+    idx = torch.arange(n)
+    gen = torch.Generator().manual_seed(0)
+    first = scene.observe(0, idx, psi, road, gen).gaps
+    short = first.valid & (first.length <= 3 * d_max) & (first.room > 0)
+    assert bool(short.any()) and bool(
+        (scene.observe(0, idx, psi, road, gen).choosable | ~short).all()
+    )
+    # the longest observed gap and the vehicle behind it
+    a = np.sort(snaps.arc_m[:, [1, 3, 4]], axis=1)
+    ahead = np.concatenate([np.diff(a, axis=1), a[:, :1] + ring.length_m - a[:, -1:]], axis=1)
+    j = ahead.argmax(axis=1)
+    new_arc = torch.as_tensor(np.mod(a[np.arange(n), j] + 8.0, ring.length_m))
+    left = ahead[np.arange(n), j] - 8.0
+    scene.place(
+        0,
+        idx,
+        torch.zeros(n, dtype=torch.int64),
+        new_arc,
+        torch.full((n,), 12.0, dtype=torch.float64),
+    )
+    last = scene.observe(1, idx, psi, road, gen)
+    g = last.gaps
+    fits = (left > d_max) & (left <= 2 * d_max)
+    assert fits.sum() >= n // 2
+    target = g.valid & ((g.start - new_arc[:, None]).abs() < 1e-9)
+    for i in np.flatnonzero(fits):
+        assert bool((last.choosable[i] == target[i]).all())
+        t = int(torch.nonzero(target[i])[0])
+        assert float(g.hi[i, t]) <= d_max + 1e-9  # the piece behind the last vehicle
+        assert float(g.length[i, t] - g.lo[i, t]) <= d_max + 1e-9  # the piece ahead
+        assert float(g.room[i, t]) > 0
