@@ -279,16 +279,20 @@ def run_pipeline(
     return manifest
 
 
-def fit_residual_prior(sc, truth, runs: np.ndarray) -> tuple[dict[str, float], dict[str, Any]]:
+def fit_residual_prior(
+    sc, truth, runs: np.ndarray
+) -> tuple[dict[str, float], dict[str, Any], tuple[np.ndarray, np.ndarray]]:
     """The model under a section's residual policy (``policy.prior``, "idm" or "gipps"),
     fitted to the observed pairs as the evaluation's idm_calibrated is (its pairs, runs and
     length), so the policy starts as that model and its residual is what training adds.
-    Returns the agent's prior parameters and what the policy manifest records of the fit."""
+    Returns the agent's prior parameters, what the policy manifest records of the fit, and
+    the pairs (the residual's likelihood pairs, ``policy.residual``)."""
     length = typical_length(truth)
     obs, acc = micro_pairs(sc, truth, runs)
     kind = sc.policy.prior
     prior, rmse = fit_policy_prior(kind, obs, acc, length, sc.simulation.step_length_s)
-    return prior, {"prior": {"kind": kind, **prior, "fit_rmse_mps2": rmse, "pairs": len(acc)}}
+    extra = {"prior": {"kind": kind, **prior, "fit_rmse_mps2": rmse, "pairs": len(acc)}}
+    return prior, extra, (obs, acc)
 
 
 RING = PipelineRoad(simulate, run_train_generator, evaluate, refine=True)

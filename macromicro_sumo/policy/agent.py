@@ -101,20 +101,33 @@ class Agent(nn.Module):
             nn.init.zeros_(last.weight)
             nn.init.zeros_(last.bias)
 
+    def residual(self, obs: torch.Tensor) -> torch.Tensor:
+        """The actor's part of the mean action [m/s^2] for raw observations (..., D): its
+        output, bounded with a ``prior`` (0 with a bound of 0)."""
+        out = self.actor((obs - self.shift) / self.scale).squeeze(-1)
+        if self.prior != "none":
+            bound = self.residual_bound
+            if bound <= 0.0:  # the fitted prior alone (an ablation)
+                out = torch.zeros_like(out)
+            elif torch.isfinite(bound):
+                # Slope 1 at 0: the zero-initialised residual learns as an unbounded one would.
+                out = bound * torch.tanh(out / bound)
+        return out
+
+    def prior_accel(self, obs: torch.Tensor) -> torch.Tensor:
+        """The fixed prior's acceleration [m/s^2] (0 without a ``prior``)."""
+        if self.prior == "none":
+            return torch.zeros(obs.shape[:-1], dtype=obs.dtype)
+        buffer = getattr(self, f"{self.prior}_prior")
+        p = dict(zip(PRIOR_KEYS[self.prior], buffer.unbind(), strict=True))
+        return PRIOR_ACCEL[self.prior](obs, p)
+
     def mean_action(self, obs: torch.Tensor) -> torch.Tensor:
         """The policy's deterministic action [m/s^2] for raw observations (..., D): the
         actor's output, plus the prior's acceleration with a ``prior``."""
-        mean = self.actor((obs - self.shift) / self.scale).squeeze(-1)
+        mean = self.residual(obs)
         if self.prior != "none":
-            buffer = getattr(self, f"{self.prior}_prior")
-            p = dict(zip(PRIOR_KEYS[self.prior], buffer.unbind(), strict=True))
-            bound = self.residual_bound
-            if bound <= 0.0:  # the fitted prior alone (an ablation)
-                mean = torch.zeros_like(mean)
-            elif torch.isfinite(bound):
-                # Slope 1 at 0: the zero-initialised residual learns as an unbounded one would.
-                mean = bound * torch.tanh(mean / bound)
-            mean = mean + PRIOR_ACCEL[self.prior](obs, p)
+            mean = mean + self.prior_accel(obs)
         return mean
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:

@@ -11,6 +11,10 @@ Read top to bottom as CleanRL's ppo_continuous_action: rollout, GAE, update (the
   likelihood term of the loss on the observed (o, u) pairs: its gradient is exact. Both
   terms are averaged per vehicle-step, so eta keeps its meaning as the macro weight.
   Advantages are normalised only when there is no likelihood term (macro_only).
+* With ``policy.prior`` (a residual policy) the likelihood's pairs are the recorded ones
+  the prior was fitted on (``recorded_pairs``), the residual is fitted only where a leader
+  changes the prior's action, and anchors hold it at 0 off its pairs (``policy.residual``:
+  why, measured).
 * Ablations (``policy.objective``): ``mix`` (the paper), ``micro_only`` (eta = 0:
   behaviour cloning), ``macro_only`` (no likelihood term).
 * The env core is the ring's ``RingCore`` or a section's ``SectionCore`` (``make_core``).
@@ -51,6 +55,7 @@ from macromicro_sumo.policy.checkpoint import (
     signature,
 )
 from macromicro_sumo.policy.demand_rollout import collect_demand, demand_log, join_demand
+from macromicro_sumo.policy.residual import anchor_loss, anchor_observations, residual_pairs
 from macromicro_sumo.progress import tqdm
 from macromicro_sumo.scenario.ring import Scenario
 from macromicro_sumo.scenario.section import SectionScenario
@@ -230,6 +235,7 @@ def train_policy(
     val_runs: np.ndarray | None = None,
     make_demand: Callable[[], DemandCore] | None = None,
     prior_params: Mapping[str, float] | None = None,
+    recorded_pairs: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """PPO on the env over ``bank``; writes policy.pt, policy_train_log.csv, checkpoints.
 
@@ -246,6 +252,10 @@ def train_policy(
     ``prior_params`` (``policy.prior.PRIOR_KEYS``; ``evaluation.idm_fit.fit_policy_prior``):
     the fitted model under the actor with a ``policy.prior`` (required then), whose residual
     is bounded by ``policy.residual_bound_mps2``; the checkpoints record the prior.
+    ``recorded_pairs`` (obs (N, D), accel (N,)): the observed vehicles' recorded pairs, what
+    their own sensors saw (the pairs the prior was fitted on): the likelihood term uses them
+    instead of the rollouts' observed pairs, whose leader is often a generated vehicle the
+    recorded action did not answer (``policy.residual``).
     """
     cfg = sc.policy
     objective = objective or cfg.objective
@@ -302,6 +312,13 @@ def train_policy(
             micro_pool = ck.get("micro_pool", [])
             best_val, best_state = ck.get("best_val", best_val), ck.get("best_state_dict")
         a_min, a_max = sc.bounds.accel_mps2
+        if recorded_pairs is not None:  # the likelihood's pairs, the same every update
+            fixed_pairs = (
+                torch.as_tensor(recorded_pairs[0], dtype=torch.float32),
+                torch.as_tensor(
+                    clipped_actions(recorded_pairs[1], a_min, a_max)[0], dtype=torch.float32
+                ),
+            )
         bar = tqdm(
             range(start, n_updates),
             desc=f"train-policy ({objective})",
@@ -356,13 +373,22 @@ def train_policy(
             if not use_micro and len(b_adv) > 1:
                 b_adv = (b_adv - b_adv.mean()) / (b_adv.std() + 1e-8)
             gt, clip_share = clipped_actions(ro.gt_actions[obs_pairs], a_min, a_max)
-            micro_pool.append(
-                (torch.as_tensor(ro.obs[obs_pairs]), torch.as_tensor(gt, dtype=torch.float32))
-            )
-            del micro_pool[: -cfg.micro_replay]
+            if recorded_pairs is not None:
+                micro_pool = [fixed_pairs]
+            else:
+                micro_pool.append(
+                    (torch.as_tensor(ro.obs[obs_pairs]), torch.as_tensor(gt, dtype=torch.float32))
+                )
+                del micro_pool[: -cfg.micro_replay]
             m_obs = torch.cat([o for o, _ in micro_pool])
             m_act = torch.cat([a for _, a in micro_pool])
             n_b, n_m = len(b_obs), len(m_obs)
+            # A residual is fitted where a leader matters and held at 0 off its pairs
+            # (policy.residual): anchors are drawn from every pair's state.
+            m_all, support = m_obs, None
+            if agent.prior != "none" and float(agent.residual_bound) > 0 and n_m > 0:
+                support, m_obs, m_act = residual_pairs(agent, m_obs, m_act)
+                n_m = len(m_obs)
             stats: dict[str, list[float]] = {
                 k: [] for k in ("pg_loss", "v_loss", "entropy", "kl", "micro_logp")
             }
@@ -395,6 +421,10 @@ def train_policy(
                     if use_micro and len(im):
                         micro = agent.dist(m_obs[im]).log_prob(m_act[im]).mean()
                         loss = loss - micro
+                        if support is not None:
+                            pick = torch.randint(len(m_all), (len(im),), generator=gen)
+                            anchors = anchor_observations(m_all[pick], gen)
+                            loss = loss + anchor_loss(agent, anchors, support)
                         stats["micro_logp"].append(float(micro.detach()))
                     opt.zero_grad()
                     loss.backward()

@@ -47,9 +47,13 @@ from macromicro_sumo.sumo.inputs import scenario_inputs
 from macromicro_sumo.truth.section import load_section_truth
 
 # Fits ``policy.prior``'s model to the observed pairs of the given runs of a ground truth:
-# (the agent's prior parameters, what the manifest records of the fit). The fit is the
-# evaluation's (a policy module may not import it): the pipeline passes it in.
-PriorFit = Callable[[Any, Any, np.ndarray], tuple[dict[str, float], dict[str, Any]]]
+# (the agent's prior parameters, what the manifest records of the fit, the pairs (obs,
+# accel) it was fitted on, which the residual's likelihood uses: ``policy.residual``). The
+# fit is the evaluation's (a policy module may not import it): the pipeline passes it in.
+PriorFit = Callable[
+    [Any, Any, np.ndarray],
+    tuple[dict[str, float], dict[str, Any], tuple[np.ndarray, np.ndarray]],
+]
 
 
 @dataclass(frozen=True)
@@ -184,9 +188,10 @@ def run_train_policy(
         sc, truth.runs, data, generator, out, objective, resume
     )
     episodes = road.episodes(sc, truth, net, splits)
-    prior, extra = None, {}
+    prior, extra, pairs = None, {}, None
     if sc.policy.prior != "none" and fit_prior is not None:
-        prior, extra = fit_prior(sc, truth, np.concatenate([splits["train"], splits["val"]]))
+        runs = np.concatenate([splits["train"], splits["val"]])
+        prior, extra, pairs = fit_prior(sc, truth, runs)
     res = train_policy(
         sc,
         episodes.bank,
@@ -199,6 +204,7 @@ def run_train_policy(
         val_runs=splits["val"],
         make_demand=episodes.make_demand,
         prior_params=prior,
+        recorded_pairs=pairs,
     )
     align = None
     if road.heldout is not None:
