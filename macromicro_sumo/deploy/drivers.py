@@ -46,6 +46,17 @@ BRAKING_TOLERANCE_MPS2 = 0.01
 # this many steps later: SUMO sees a lane's end only within its look-ahead (~3 km), which
 # a vehicle nears by at most a few hundred metres meanwhile; a lane end, once seen, stays.
 LANE_END_RECHECK_STEPS = 20
+# Merges (``deploy.merge = "sumo"``). SUMO's lane changer asks for speeds (a merging
+# vehicle adapts to its target lane's leader and follower, or stops at its lane's end; a
+# follower on the target lane slows to open a gap) that a speed command overrides: with
+# every vehicle commanded the speed SUMO's car-following would choose (getFollowSpeed), a
+# 2-lane merge queued 326 vehicle-steps at the acceleration lane's end where SUMO alone
+# queued none (docs/deploy.md, "Merges"). A driven vehicle that must leave its lane within
+# MERGE_HANDOVER_M merges with SUMO's own model; a driven vehicle on the lane it merges
+# into takes SUMO's own speed where SUMO wanted more than MERGE_YIELD_TOLERANCE_MPS less
+# than it drives (more than Krauss' dawdling, sigma accel dt = 0.65 m/s at SUMO's defaults).
+MERGE_HANDOVER_M = 400.0
+MERGE_YIELD_TOLERANCE_MPS = 1.0
 
 
 # --------------------------------------------------------------------------- sections
@@ -174,6 +185,8 @@ class SectionSpeedDriver(SectionDriver):
         # vehicle -> (lane, step from which it is asked again): SUMO found no signal ahead
         # of it on its route.
         self.dark: dict[str, tuple[str, int]] = {}
+        self.merge = sc.deploy.merge == "sumo"
+        self.merging: set[str] = set()  # driven vehicles merging with SUMO's own model now
 
     def take(self, sim: Simulation, vids: list[str]) -> None:
         sim.set_speed_mode(vids, self.mode)
@@ -181,9 +194,48 @@ class SectionSpeedDriver(SectionDriver):
     def release(self, sim: Simulation, vids: list[str]) -> None:
         sim.release_speeds(vids)
         self.gone.update(vids)
+        self.merging.difference_update(vids)
         for v in vids:
             self.lane_ends.pop(v, None)
             self.dark.pop(v, None)
+
+    def merges(
+        self, sim: Simulation, vids: list[str], st: VehicleStates
+    ) -> tuple[list[str], np.ndarray | None]:
+        """``deploy.merge = "sumo"``: the driven vehicles that are commanded this step
+        (those that must leave their lane within ``MERGE_HANDOVER_M`` merge with SUMO's own
+        model, handed over until they are on a lane that carries them on) and, per
+        commanded vehicle, the speed a merge asks of it (SUMO's own speed where it is on a
+        lane a merging vehicle changes into and SUMO wanted it slower; inf: none)."""
+        index = st.index
+        lanes = [st.lanes[index[v]] for v in vids]
+        pos = np.fromiter(map(index.__getitem__, vids), np.int64, len(vids))
+        ends = self.lane_end_m(sim, vids, lanes) - st.pos_m[pos]
+        must = (ends <= MERGE_HANDOVER_M).tolist()
+        now = {v for v, m in zip(vids, must, strict=True) if m}
+        if now - self.merging:
+            sim.release_speeds(sorted(now - self.merging))
+        back = sorted(self.merging - now)
+        if back:
+            sim.set_speed_mode(back, self.mode)
+        self.merging = now
+        self.stats.vehicle_steps_driven -= len(now)
+        if not now:
+            return vids, None
+        # The lane left of each merging vehicle's (SUMO's lane IDs: edge_index).
+        into = set()
+        for v in now:
+            edge, _, i = st.lanes[index[v]].rpartition("_")
+            into.add(f"{edge}_{int(i) + 1}")
+        keep = [v for v, m in zip(vids, must, strict=True) if not m]
+        cap = np.full(len(keep), np.inf)
+        near = [i for i, v in enumerate(keep) if st.lanes[index[v]] in into]
+        if near:
+            ids = [keep[i] for i in near]
+            own = sim.own_speeds(ids)
+            v_now = st.speed_mps[np.fromiter(map(index.__getitem__, ids), np.int64, len(ids))]
+            cap[near] = np.where(own < v_now - MERGE_YIELD_TOLERANCE_MPS, own, np.inf)
+        return keep, cap
 
     def lane_end_m(self, sim: Simulation, vids: list[str], lanes: list[str]) -> np.ndarray:
         """Per vehicle, the distance from its lane's start to where it must have left that
@@ -227,6 +279,11 @@ class SectionSpeedDriver(SectionDriver):
         return out
 
     def drive(self, sim: Simulation, vids: list[str], st: VehicleStates) -> None:
+        cap = None
+        if self.merge:
+            vids, cap = self.merges(sim, vids, st)
+            if not vids:
+                return
         n = len(vids)
         rows = np.fromiter(map(st.index.__getitem__, vids), np.int64, n)
         # Last step's command against the speed SUMO applied.
@@ -247,7 +304,7 @@ class SectionSpeedDriver(SectionDriver):
             own = np.fromiter(map(self.decel_of.__getitem__, vids), float, n)
             return gap, own, lead_decel, lead
 
-        cmd = speed_commands(self.sc, self.act, self.safety, self.stats, obs, layer)
+        cmd = speed_commands(self.sc, self.act, self.safety, self.stats, obs, layer, cap)
         sim.set_speeds(vids, cmd)
         self.last, self.gone = (vids, cmd), set()
 

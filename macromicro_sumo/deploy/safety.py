@@ -114,18 +114,28 @@ LayerInputs = Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
 def speed_commands(
-    sc, act: ActionBatch, safety: str, stats: DriveStats, obs: np.ndarray, layer: LayerInputs
+    sc,
+    act: ActionBatch,
+    safety: str,
+    stats: DriveStats,
+    obs: np.ndarray,
+    layer: LayerInputs,
+    cap: np.ndarray | None = None,
 ) -> np.ndarray:
     """Speed commands v' = max(0, v + a dt) [m/s] of the batched action ``act`` at
     observations ``obs`` (v in column 0, the lane's limit in column 1), a clipped to the
     scenario's bounds, through the safety layer (``deploy.safety.safety_cap``, floor
     ``deploy.safety_floor_share``) where ``safety`` is "sumo", its actions counted in
-    ``stats``: the one command rule of the ring's and the sections' speed drivers."""
+    ``stats``: the one command rule of the ring's and the sections' speed drivers.
+    ``cap``: speeds [m/s] the commands are lowered to before the layer (a merge's
+    cooperative slow-down, ``deploy.drivers``; inf: none)."""
     a_min, a_max = sc.bounds.accel_mps2
     # np.clip's own overhead is several times that of the two calls (the same values)
     a = np.minimum(np.maximum(act(obs), a_min), a_max)
     dt = sc.simulation.step_length_s
     cmd = np.maximum(0.0, obs[:, 0] + a * dt)
+    if cap is not None:
+        cmd = np.minimum(cmd, cap)
     if safety != "sumo":
         return cmd
     gap, decel, lead_decel, lead = layer()

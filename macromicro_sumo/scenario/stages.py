@@ -196,6 +196,13 @@ class DeployConfig:
         "that no policy holds a car standing where nothing ahead asks for it; 0: no floor "
         "(runs.csv counts the raised commands: floor_acted) [fraction of the limit]",
     )
+    merge: str = spec(
+        "sumo",
+        choices=("none", "sumo"),
+        doc="sumo: a speed-commanded vehicle that must leave its lane (an acceleration lane) "
+        "merges with SUMO's model, and commands on the lane it merges into take SUMO's "
+        "cooperative slow-down (docs/deploy.md); none: commands everywhere",
+    )
     fcd_s: float = spec(
         120.0, lo=0.0, hi=1e6, doc="trajectories.csv keeps the first fcd_s recorded seconds [s]"
     )

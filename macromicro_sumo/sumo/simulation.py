@@ -44,10 +44,10 @@ STOP_STATES = frozenset("rRyYu")
 # libsumo's compiled functions for the per-vehicle calls of a deployment's every step (the
 # wrappers as fallback): a wrapper adds a Python frame a call (getSpeed 0.23 -> 0.17 us,
 # libsumo 1.28); the compiled getLeader answers ("", -1.0) where its wrapper may say None.
-_GET_IDS, _GET_LANE, _GET_POS, _GET_SPEED, _GET_ACCEL, _GET_LEADER, _SET_SPEED = (
+_GET_IDS, _GET_LANE, _GET_POS, _GET_SPEED, _GET_ACCEL, _GET_LEADER, _SET_SPEED, _OWN_SPEED = (
     getattr(getattr(libsumo, "_libsumo", None), f"vehicle_{f}", None) or getattr(libsumo.vehicle, f)
     for f in ("getIDList", "getLaneID", "getLanePosition", "getSpeed", "getAcceleration")
-    + ("getLeader", "setSpeed")
+    + ("getLeader", "setSpeed", "getSpeedWithoutTraCI")
 )
 
 
@@ -60,9 +60,8 @@ DEFAULT_SPEED_MODE = 31
 def versions() -> dict[str, str]:
     """Versions of the SUMO binary and of libsumo in use."""
     sumo_bin = sumolib.checkBinary("sumo")
-    first = subprocess.run(
-        [sumo_bin, "--version"], capture_output=True, text=True
-    ).stdout.splitlines()
+    first = subprocess.run([sumo_bin, "--version"], capture_output=True, text=True).stdout
+    first = first.splitlines()
     return {
         "sumo_binary": sumo_bin,
         "sumo": first[0].strip() if first else "unknown",
@@ -81,11 +80,9 @@ def _dist_version(name: str) -> str:
 
 
 def _is_running() -> bool:
-    try:
-        libsumo.simulation.getTime()
-        return True
-    except Exception:
-        return False
+    with contextlib.suppress(Exception):
+        return libsumo.simulation.getTime() is not None
+    return False
 
 
 @dataclass(frozen=True)
@@ -365,8 +362,11 @@ class Simulation:
     def stop_line_m(self, vehicle_id: str) -> float:
         """Distance from the vehicle's front to the next stop line whose signal is red or
         yellow for it (inf when none ahead on its route)."""
-        dist = self.stop_lines_m([vehicle_id])[0]
-        return float("inf") if np.isnan(dist) else float(dist)
+        return float(np.nan_to_num(self.stop_lines_m([vehicle_id])[0], nan=np.inf))
+
+    def own_speeds(self, vehicle_ids: Sequence[str]) -> np.ndarray:
+        """SUMO's own choice of the last step's speed where a command overrode it."""
+        return np.fromiter(map(_OWN_SPEED, vehicle_ids), float, len(vehicle_ids))
 
     def lane_end_m(self, vehicle_id: str, lane_id: str, pos_m: float) -> float:
         """Distance from the vehicle's front to the end of its lane when the vehicle must
