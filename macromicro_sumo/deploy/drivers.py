@@ -57,6 +57,7 @@ LANE_END_RECHECK_STEPS = 20
 # than it drives (more than Krauss' dawdling, sigma accel dt = 0.65 m/s at SUMO's defaults).
 MERGE_HANDOVER_M = 400.0
 MERGE_YIELD_TOLERANCE_MPS = 1.0
+MERGE_YIELD_AHEAD_M, MERGE_YIELD_BESIDE_M = 60.0, 10.0
 
 
 # --------------------------------------------------------------------------- sections
@@ -222,14 +223,25 @@ class SectionSpeedDriver(SectionDriver):
         self.stats.vehicle_steps_driven -= len(now)
         if not now:
             return vids, None
-        # The lane left of each merging vehicle's (SUMO's lane IDs: edge_index).
-        into = set()
+        # The lane left of each merging vehicle's (SUMO's lane IDs: edge_index), and where
+        # on it the merging vehicles are.
+        into: dict[str, list[float]] = {}
         for v in now:
             edge, _, i = st.lanes[index[v]].rpartition("_")
-            into.add(f"{edge}_{int(i) + 1}")
+            into.setdefault(f"{edge}_{int(i) + 1}", []).append(float(st.pos_m[index[v]]))
         keep = [v for v, m in zip(vids, must, strict=True) if not m]
         cap = np.full(len(keep), np.inf)
-        near = [i for i, v in enumerate(keep) if st.lanes[index[v]] in into]
+        # Only a vehicle whose gap a merging vehicle aims at: one beside it or ahead within
+        # MERGE_YIELD_AHEAD_M. Every vehicle on the target lane (Bremen) took SUMO's own
+        # speed wherever it wanted less, its car-following too: the stream 2 m/s slow.
+        near = [
+            i
+            for i, v in enumerate(keep)
+            if any(
+                -MERGE_YIELD_BESIDE_M <= p - st.pos_m[index[v]] <= MERGE_YIELD_AHEAD_M
+                for p in into.get(st.lanes[index[v]], ())
+            )
+        ]
         if near:
             ids = [keep[i] for i in near]
             own = sim.own_speeds(ids)

@@ -83,7 +83,7 @@ def test_a_driven_follower_yields_to_a_merging_vehicle(
 ) -> None:
     """At a ramp vehicle's change from the acceleration lane into lane 1, the vehicle
     behind it there (a driven one) slowed by more than 1 m/s in the 4 s before: it opened
-    the gap (measured: 8 of 22 merges; with merge = "none" 0 of 24)."""
+    the gap (measured: 7 of 22 merges; with merge = "none" 0 of 24)."""
     traj = dense_merge["sumo"].trajectories.sort_values(["vehicle_id", "time_s"])
     on_b = traj[traj["edge_index"] == B]
     prev = on_b.groupby("vehicle_id")["lane_index"].shift()
