@@ -46,18 +46,19 @@ BRAKING_TOLERANCE_MPS2 = 0.01
 # this many steps later: SUMO sees a lane's end only within its look-ahead (~3 km), which
 # a vehicle nears by at most a few hundred metres meanwhile; a lane end, once seen, stays.
 LANE_END_RECHECK_STEPS = 20
-# Merges (``deploy.merge = "sumo"``). SUMO's lane changer asks for speeds (a merging
-# vehicle adapts to its target lane's leader and follower, or stops at its lane's end; a
-# follower on the target lane slows to open a gap) that a speed command overrides: with
-# every vehicle commanded the speed SUMO's car-following would choose (getFollowSpeed), a
-# 2-lane merge queued 326 vehicle-steps at the acceleration lane's end where SUMO alone
-# queued none (docs/deploy.md, "Merges"). A driven vehicle that must leave its lane within
-# MERGE_HANDOVER_M merges with SUMO's own model; a driven vehicle on the lane it merges
-# into takes SUMO's own speed where SUMO wanted more than MERGE_YIELD_TOLERANCE_MPS less
-# than it drives (more than Krauss' dawdling, sigma accel dt = 0.65 m/s at SUMO's defaults).
+# Merges (``deploy.merge``). SUMO's lane changer asks for speeds (a merging vehicle adapts
+# to its target lane's leader and follower, or stops at its lane's end; a follower there
+# slows to open a gap) that a speed command overrides: with every vehicle commanded the
+# speed SUMO's car-following would choose (getFollowSpeed), a dense 2-lane merge queued 326
+# vehicle-steps at the acceleration lane's end where SUMO alone queued none, and Bremen's
+# 419 where SUMO alone queued 73 (docs/deploy.md, "Merges"). "handover": a driven vehicle
+# that must leave its lane within MERGE_HANDOVER_M merges with SUMO's own model; "sumo":
+# also, a driven vehicle that blocks its change (SUMO's blocking left follower) takes SUMO's
+# own speed where SUMO wanted more than MERGE_YIELD_TOLERANCE_MPS less than both its speed
+# and its car-following (Krauss' dawdling is at most sigma accel dt = 0.65 m/s at SUMO's
+# defaults).
 MERGE_HANDOVER_M = 400.0
 MERGE_YIELD_TOLERANCE_MPS = 1.0
-MERGE_YIELD_AHEAD_M, MERGE_YIELD_BESIDE_M = 60.0, 10.0
 
 
 # --------------------------------------------------------------------------- sections
@@ -186,7 +187,7 @@ class SectionSpeedDriver(SectionDriver):
         # vehicle -> (lane, step from which it is asked again): SUMO found no signal ahead
         # of it on its route.
         self.dark: dict[str, tuple[str, int]] = {}
-        self.merge = sc.deploy.merge == "sumo"
+        self.merge = sc.deploy.merge  # "none", "handover" or "sumo" (with the yield)
         self.merging: set[str] = set()  # driven vehicles merging with SUMO's own model now
 
     def take(self, sim: Simulation, vids: list[str]) -> None:
@@ -203,11 +204,12 @@ class SectionSpeedDriver(SectionDriver):
     def merges(
         self, sim: Simulation, vids: list[str], st: VehicleStates
     ) -> tuple[list[str], np.ndarray | None]:
-        """``deploy.merge = "sumo"``: the driven vehicles that are commanded this step
+        """``deploy.merge`` "handover" or "sumo": the driven vehicles commanded this step
         (those that must leave their lane within ``MERGE_HANDOVER_M`` merge with SUMO's own
         model, handed over until they are on a lane that carries them on) and, per
-        commanded vehicle, the speed a merge asks of it (SUMO's own speed where it is on a
-        lane a merging vehicle changes into and SUMO wanted it slower; inf: none)."""
+        commanded vehicle, the speed a merge asks of it ("sumo": SUMO's own speed where it
+        blocks a merging vehicle and SUMO wanted it slower than its car-following; inf:
+        none; None: no cap at all)."""
         index = st.index
         lanes = [st.lanes[index[v]] for v in vids]
         pos = np.fromiter(map(index.__getitem__, vids), np.int64, len(vids))
@@ -223,30 +225,36 @@ class SectionSpeedDriver(SectionDriver):
         self.stats.vehicle_steps_driven -= len(now)
         if not now:
             return vids, None
-        # The lane left of each merging vehicle's (SUMO's lane IDs: edge_index), and where
-        # on it the merging vehicles are.
-        into: dict[str, list[float]] = {}
-        for v in now:
-            edge, _, i = st.lanes[index[v]].rpartition("_")
-            into.setdefault(f"{edge}_{int(i) + 1}", []).append(float(st.pos_m[index[v]]))
         keep = [v for v, m in zip(vids, must, strict=True) if not m]
+        if self.merge != "sumo":
+            return keep, None
         cap = np.full(len(keep), np.inf)
-        # Only a vehicle whose gap a merging vehicle aims at: one beside it or ahead within
-        # MERGE_YIELD_AHEAD_M. Every vehicle on the target lane (Bremen) took SUMO's own
-        # speed wherever it wanted less, its car-following too: the stream 2 m/s slow.
-        near = [
-            i
-            for i, v in enumerate(keep)
-            if any(
-                -MERGE_YIELD_BESIDE_M <= p - st.pos_m[index[v]] <= MERGE_YIELD_AHEAD_M
-                for p in into.get(st.lanes[index[v]], ())
-            )
-        ]
+        # Only a vehicle that blocks a merging vehicle's change (SUMO's blocking left
+        # follower, whom its lane changer asks to cooperate): every vehicle on the target
+        # lane taking SUMO's lower speed slowed Bremen's stream by 2 m/s (run 1).
+        blockers = sim.left_blockers(sorted(now))
+        near = [i for i, v in enumerate(keep) if v in blockers]
         if near:
             ids = [keep[i] for i in near]
             own = sim.own_speeds(ids)
             v_now = st.speed_mps[np.fromiter(map(index.__getitem__, ids), np.int64, len(ids))]
-            cap[near] = np.where(own < v_now - MERGE_YIELD_TOLERANCE_MPS, own, np.inf)
+            # SUMO's car-following alone (Krauss' safe speed behind its leader): where SUMO's
+            # own speed is below it too, its lane changer asked for less (a cooperative
+            # slow-down); SUMO's car-following is not imposed on the policy.
+            leaders = sim.leaders(ids, NO_LEADER_GAP_M)
+            rows = [index.get(lid, -1) for lid, _ in leaders]
+            has = np.array([r >= 0 for r in rows])
+            v_l = np.array([st.speed_mps[r] if r >= 0 else 0.0 for r in rows])
+            b = np.fromiter(map(self.decel_of.__getitem__, ids), float, len(ids))
+            lead_ids = [lid for lid, _ in leaders]
+            b_l = np.array(
+                [self.decel_of.get(lid, bi) for lid, bi in zip(lead_ids, b, strict=True)]
+            )
+            gap = np.array([g for _, g in leaders])
+            dt = self.sc.simulation.step_length_s
+            follow = np.where(has, safe_speed(gap, v_l, b, b_l, dt), np.inf)
+            asked = own < np.minimum(v_now, follow) - MERGE_YIELD_TOLERANCE_MPS
+            cap[near] = np.where(asked, own, np.inf)
         return keep, cap
 
     def lane_end_m(self, sim: Simulation, vids: list[str], lanes: list[str]) -> np.ndarray:
@@ -292,7 +300,7 @@ class SectionSpeedDriver(SectionDriver):
 
     def drive(self, sim: Simulation, vids: list[str], st: VehicleStates) -> None:
         cap = None
-        if self.merge:
+        if self.merge != "none":
             vids, cap = self.merges(sim, vids, st)
             if not vids:
                 return

@@ -198,10 +198,11 @@ class DeployConfig:
     )
     merge: str = spec(
         "sumo",
-        choices=("none", "sumo"),
-        doc="sumo: a speed-commanded vehicle that must leave its lane (an acceleration lane) "
-        "merges with SUMO's model, and commands on the lane it merges into take SUMO's "
-        "cooperative slow-down (docs/deploy.md); none: commands everywhere",
+        choices=("none", "handover", "sumo"),
+        doc="handover: a speed-commanded vehicle that must leave its lane within 400 m (an "
+        "acceleration lane) merges with SUMO's model; sumo: also, a commanded vehicle that "
+        "blocks it takes SUMO's cooperative slow-down; none: commands everywhere "
+        "(docs/deploy.md, Merges)",
     )
     fcd_s: float = spec(
         120.0, lo=0.0, hi=1e6, doc="trajectories.csv keeps the first fcd_s recorded seconds [s]"

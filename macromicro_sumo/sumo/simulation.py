@@ -271,8 +271,7 @@ class Simulation:
         return edge, pos, speed
 
     def set_speed_mode(self, vehicle_ids: Sequence[str], mode: int) -> None:
-        for vid in vehicle_ids:
-            libsumo.vehicle.setSpeedMode(vid, int(mode))
+        list(map(libsumo.vehicle.setSpeedMode, vehicle_ids, [int(mode)] * len(vehicle_ids)))
 
     def set_speeds(self, vehicle_ids: Sequence[str], speeds_mps: Sequence[float]) -> None:
         """Speed commands for the next step (speed mode 0 applies them exactly)."""
@@ -368,6 +367,10 @@ class Simulation:
         """SUMO's own choice of the last step's speed where a command overrode it."""
         return np.fromiter(map(_OWN_SPEED, vehicle_ids), float, len(vehicle_ids))
 
+    def left_blockers(self, vehicle_ids: Sequence[str]) -> set[str]:
+        """The followers on the lane left of each vehicle that block its lane change."""
+        return {f for v in vehicle_ids for f, _ in libsumo.vehicle.getLeftFollowers(v, True)}
+
     def lane_end_m(self, vehicle_id: str, lane_id: str, pos_m: float) -> float:
         """Distance from the vehicle's front to the end of its lane when the vehicle must
         leave that lane to follow its route (an acceleration lane, a lane drop); inf when
@@ -387,15 +390,13 @@ class Simulation:
         )
 
     def set_types(self, vehicle_ids: Sequence[str], type_ids: Sequence[str]) -> None:
-        for vid, tid in zip(vehicle_ids, type_ids, strict=True):
-            libsumo.vehicle.setType(vid, tid)
+        list(map(libsumo.vehicle.setType, vehicle_ids, type_ids))
 
     def speed_factors(self, vehicle_ids: Sequence[str]) -> np.ndarray:
         return np.array([libsumo.vehicle.getSpeedFactor(v) for v in vehicle_ids], dtype=float)
 
     def set_speed_factors(self, vehicle_ids: Sequence[str], factors: Sequence[float]) -> None:
-        for vid, f in zip(vehicle_ids, factors, strict=True):
-            libsumo.vehicle.setSpeedFactor(vid, float(f))
+        list(map(libsumo.vehicle.setSpeedFactor, vehicle_ids, map(float, factors)))
 
     def release_speeds(self, vehicle_ids: Sequence[str]) -> None:
         """Hand vehicles back to their own model: no speed command, SUMO's default mode."""
@@ -415,8 +416,7 @@ class Simulation:
         return str(libsumo.vehicletype.getVehicleClass(type_id))
 
     def set_lane_change_mode(self, vehicle_ids: Sequence[str], mode: int) -> None:
-        for vid in vehicle_ids:
-            libsumo.vehicle.setLaneChangeMode(vid, int(mode))
+        list(map(libsumo.vehicle.setLaneChangeMode, vehicle_ids, [int(mode)] * len(vehicle_ids)))
 
     def move_to_lanes(
         self, vehicle_ids: Sequence[str], lane_ids: Sequence[str], lane_pos_m: Sequence[float]

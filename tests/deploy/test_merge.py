@@ -23,8 +23,9 @@ B = 1  # edge index of the merge edge B (lane 0: the acceleration lane)
 
 @pytest.fixture(scope="module")
 def dense_merge(tmp_path_factory: pytest.TempPathFactory) -> dict[str, DeployResult]:
-    """The merge (2,400 + 700 veh/h) deployed with an IDM-like policy, merge none and sumo,
-    and the oracle: one held-out run, 60 s warm-up + 150 s, trajectories throughout."""
+    """The merge (2,400 + 700 veh/h) deployed with an IDM-like policy, merge none, handover
+    and sumo, and the oracle: one held-out run, 60 s warm-up + 150 s, trajectories
+    throughout."""
     folder = tmp_path_factory.mktemp("dense_merge")
     net, routes = merge_net(folder / "net", main_vph=2400.0, ramp_vph=700.0)
     table = {
@@ -46,6 +47,7 @@ def dense_merge(tmp_path_factory: pytest.TempPathFactory) -> dict[str, DeployRes
     out = {}
     for name, merge, drive in [
         ("none", "none", Drive(act=act)),
+        ("handover", "handover", Drive(act=act)),
         ("sumo", "sumo", Drive(act=act)),
         ("oracle", "sumo", Drive()),
     ]:
@@ -62,7 +64,8 @@ def test_commands_override_the_merge_and_the_merge_option_restores_it(
     dense_merge: dict[str, DeployResult],
 ) -> None:
     """Commanded, ramp vehicles queue at the acceleration lane's end (SUMO alone: never);
-    with merge = "sumo" the lane drains as SUMO's own drivers drain it."""
+    with merge = "sumo" the lane drains as SUMO's own drivers drain it (measured: 121
+    vehicle-steps on it, oracle 88, merge none 718)."""
     stand = {
         k: int((on_acceleration_lane(r.trajectories)["speed_mps"] < 1.0).sum())
         for k, r in dense_merge.items()
@@ -70,9 +73,12 @@ def test_commands_override_the_merge_and_the_merge_option_restores_it(
     steps = {k: len(on_acceleration_lane(r.trajectories)) for k, r in dense_merge.items()}
     assert stand["oracle"] == 0 and stand["none"] > 50, stand
     assert stand["sumo"] == 0, stand
+    # Handing the merging vehicles over is not enough: commanded followers do not yield
+    # (measured: 161 standing vehicle-steps against 250 without, 0 with the yield).
+    assert stand["none"] > stand["handover"] > 0, stand
     assert steps["sumo"] < 0.5 * steps["none"], steps
     assert steps["sumo"] < 2.0 * steps["oracle"], steps
-    for k in ("none", "sumo"):
+    for k in ("none", "handover", "sumo"):
         runs = dense_merge[k].runs.iloc[0]
         assert runs["collisions"] == 0 and runs["teleports"] == 0, (k, runs.to_dict())
         assert runs["vehicle_steps_driven"] > 5000, (k, runs.to_dict())
@@ -83,7 +89,7 @@ def test_a_driven_follower_yields_to_a_merging_vehicle(
 ) -> None:
     """At a ramp vehicle's change from the acceleration lane into lane 1, the vehicle
     behind it there (a driven one) slowed by more than 1 m/s in the 4 s before: it opened
-    the gap (measured: 7 of 22 merges; with merge = "none" 0 of 24)."""
+    the gap (measured: 6 of 21 merges; with merge = "none" 0 of 24)."""
     traj = dense_merge["sumo"].trajectories.sort_values(["vehicle_id", "time_s"])
     on_b = traj[traj["edge_index"] == B]
     prev = on_b.groupby("vehicle_id")["lane_index"].shift()
