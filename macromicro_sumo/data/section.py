@@ -27,6 +27,7 @@ PSI_FIELDS = (
     "speed_max_mps",
     "spacing_min_m",  # smallest admissible front-to-front spacing (length + min gap)
     "spacing_max_m",  # largest admissible spacing (inf unless generator.spacing_bounds)
+    "spacing_low_m",  # shortest spacing to place at (spacing_min_m unless spacing_bounds)
 )
 
 
@@ -102,16 +103,20 @@ def psi_table(truth: SectionTruth, sc) -> pd.DataFrame:
     m["speed_max_mps"] = np.minimum(np.where(np.isnan(hi), vmax_lim, hi), vmax_lim * 1.5)
     m["spacing_min_m"] = float(truth.vtypes["length_m"].min()) + sc.bounds.min_gap_m
     m["spacing_max_m"] = np.inf
+    m["spacing_low_m"] = m["spacing_min_m"]
     if getattr(sc.generator, "spacing_bounds", "none") == "passages":
-        m["spacing_max_m"] = spacing_max_m(truth, m, sc.generator.bounds_source)
+        low, high = spacing_bounds_m(truth, m, sc.generator.bounds_source)
+        m["spacing_low_m"] = np.maximum(m["spacing_min_m"].to_numpy(), low)
+        m["spacing_max_m"] = high
     return m
 
 
-def spacing_max_m(truth: SectionTruth, m: pd.DataFrame, source: str) -> np.ndarray:
-    """(rows of ``m``,) psi's largest spacing [m] per interval, the ring's d_max: the longest
-    of the interval's passage spacings (headway x mean speed at each loop, the sample whose
-    std is psi's ``std_spacing_m``), widened per ``generator.bounds_source`` as the speed
-    bounds; inf where the interval has fewer than two spacings (no bound).
+def spacing_bounds_m(truth: SectionTruth, m: pd.DataFrame, source: str) -> tuple[np.ndarray, ...]:
+    """(rows of ``m``,) twice: psi's shortest and longest spacing [m] per interval, the ring's
+    [d_min, d_max]: the extremes of the interval's passage spacings (headway x mean speed
+    at each loop, the sample whose std is psi's ``std_spacing_m``), widened per
+    ``generator.bounds_source`` as the speed bounds; (0, inf) where the interval has fewer
+    than two spacings (no bound).
 
     Why: without it the completions' spacing spread has a long right tail (ring as a
     section, K = 3: scene variance / psi's 1.16 on average where the truth's is 0.97)."""
@@ -140,10 +145,10 @@ def spacing_max_m(truth: SectionTruth, m: pd.DataFrame, source: str) -> np.ndarr
         n.append(float(d.size))
     lo_a, hi_a, n_a = np.array(lo), np.array(hi), np.array(n)
     if source == "margin":
-        hi_a = hi_a * 1.1
+        lo_a, hi_a = lo_a * 0.9, hi_a * 1.1
     elif source == "extended":
-        hi_a = extended_bounds(lo_a, hi_a, n_a)[1]
-    return np.where(np.isnan(hi_a), np.inf, hi_a)
+        lo_a, hi_a = extended_bounds(lo_a, hi_a, n_a)
+    return np.where(np.isnan(lo_a), 0.0, lo_a), np.where(np.isnan(hi_a), np.inf, hi_a)
 
 
 LIMIT_COLUMNS = ("run", "edge_id", "speed_limit_mps")

@@ -20,16 +20,13 @@ and 3 of the paper):
   spacing_min)^2, and L_var per ``generator.spacing_dispersion`` (``data.objective``):
   measured (the default) = |mean (s - psi mean spacing)^2 - psi std_spacing_m^2| / psi mean
   spacing^2 where psi has a finite spacing std, the paper's std / psi mean spacing where it
-  has none or with ``paper``. On an open section the
-  first vehicle of a lane has no leader on the section: its spacing is unknown and left
-  out (``section.lane_leaders`` reports NO_LEADER_GAP_M for it, not a measurement).
+  has none or with ``paper``. On an open section the first vehicle of a lane has no
+  leader on the section: its spacing is unknown and left out.
   L_vstd = |std of speeds - target| / psi mean speed (weighted with L_speed by lambda_v)
   where a speed spread is known (``speed_spread_target``: psi's, else the observed
-  vehicles'). Positions and speeds are reparameterised; the gap choices get the score-function
-  gradient with a batch-mean baseline, as on the ring.
-
-``Scene`` holds the scenes being completed, for the training ``rollout`` here and for
-Algorithm 3 in ``section_sampler``.
+  vehicles'). Positions and speeds are reparameterised; the gap choices get the
+  score-function gradient with a batch-mean baseline, as on the ring. ``Scene`` holds the
+  scenes being completed (training ``rollout`` here, Algorithm 3 in ``section_sampler``).
 """
 
 from __future__ import annotations
@@ -44,7 +41,7 @@ from torch import nn
 from macromicro_sumo.data.objective import MacroTarget, macro_terms
 from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.generator.ring_posterior import spacing_posterior
-from macromicro_sumo.generator.section_bounds import cap_pieces, touched_gaps
+from macromicro_sumo.generator.section_bounds import touched_gaps
 from macromicro_sumo.generator.section_scene import (
     PSI_INDEX,
     Gaps,
@@ -89,19 +86,10 @@ def observe(
     psi: Psi,
     road: Road,
     anchor: torch.Tensor,
-    generated_from: int | None = None,
 ) -> Observation:
     """Gaps and scale-free features of the scenes; ``remaining`` counts the vehicles still to
-    place (the next one included), ``total`` the vehicles of the completed scene;
-    ``generated_from``: the first generated slot (for psi's largest spacing, ``cap_pieces``)."""
+    place (the next one included), ``total`` the vehicles of the completed scene."""
     gaps = scene_gaps(lane, arc, speed, present, road, psi.s_min, anchor)
-    if bool(torch.isfinite(psi.d_max).any()):
-        touched = None
-        if generated_from is not None:
-            lo_ = lane_order(lane, arc, present, road)
-            head = torch.zeros(len(arc), road.max_lanes, dtype=torch.bool)
-            touched = torch.cat([touched_gaps(lo_, generated_from, road), head], dim=1)
-        gaps = cap_pieces(gaps, remaining, psi.d_max, touched)
     share = lane_exists_share(gaps, road)
     room_ok = gaps.valid & (gaps.room > 0) & (share > 0)
     # None with room: the section is fuller than psi's minimum spacing allows; every
@@ -309,9 +297,8 @@ def spacings(
     generated_from: int | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, M) front-to-front spacing of each vehicle to its leader in its lane, and whether
-    it counts: a vehicle with no leader on an open section (the first of its lane) has an
-    unknown spacing and is left out. With ``generated_from`` (the first generated slot),
-    only the spacings with a generated vehicle at either end count (the ring's A)."""
+    it counts (not for a lane's first vehicle on an open section: unknown); with
+    ``generated_from`` (the first generated slot), only the ring's A (``touched_gaps``)."""
     lo_ = lane_order(lane, arc, present, road)
     counts = lo_["has_l"] & lo_["present"]
     if generated_from is not None:
@@ -346,14 +333,12 @@ def section_losses(
         # wrong mean reads 60 m^2 too wide, so the generator narrowed the scenes ~4%).
         w = has.double()
         scene_mean = ((sp * w).sum(dim=1) / w.sum(dim=1).clamp(min=1.0)).detach()
-    d_target = psi.d_mean
-    if scene_mean is not None and generated_from is not None:
-        # A is part of the loop: its mean is the touched gaps', judged against the exact one.
-        d_target = scene_mean
+    # the touched A is part of the loop: its mean is judged against the loop's exact one
+    d_target = scene_mean if scene_mean is not None and generated_from is not None else psi.d_mean
     target = MacroTarget(
         psi.v_mean,
         d_target,
-        psi.s_min,
+        psi.d_min,
         psi.d_max,
         spacing_std_m=(
             torch.where(psi.d_std_known, psi.d_std, math.nan) if dispersion == "measured" else None
@@ -451,7 +436,6 @@ class Scene:
             psi,
             road,
             _anchor(len(idx), road, gen),
-            self.n_obs_slots,
         )
 
     def place(

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from macromicro_sumo.data.section import SectionSnapshots
+from macromicro_sumo.generator.section_bounds import bounded_gaps
 from macromicro_sumo.generator.section_model import Scene, SectionGeneratorNet, propose
 from macromicro_sumo.generator.section_scene import PSI_INDEX, TOL_M, Gaps, Psi, Road
 from macromicro_sumo.road.section import STOP, Section, section_leaders
@@ -314,8 +315,22 @@ def _complete(
         idx = torch.nonzero(scene.k > step).flatten()
         sub = psi.take(idx)
         obs = scene.observe(step, idx, sub, road, gen)
+        m = scene.n_obs_slots + step
+        bounded = bounded_gaps(
+            obs.gaps,
+            scene.lane[idx, :m],
+            scene.arc[idx, :m],
+            scene.present[idx, :m],
+            scene.k[idx] - step,
+            sub,
+            road,
+            scene.n_obs_slots,
+        )
+        if bounded is not None:  # psi's spacing bounds: gaps with no accepted part are out
+            fits = bounded.valid & (bounded.room > 0)
+            obs.choosable = obs.choosable & (fits | ~(fits & obs.choosable).any(1, keepdim=True))
         t = propose(net, obs, sub, road, t_max, gen)
-        g = obs.gaps
+        g = obs.gaps if bounded is None else bounded
         a = t.arc - g.start.gather(1, t.choice)
         if road.closed:
             a = torch.remainder(a, road.length_m)

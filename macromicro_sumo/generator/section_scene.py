@@ -156,6 +156,7 @@ class Psi:
     v_max: torch.Tensor
     s_min: torch.Tensor
     d_max: torch.Tensor  # largest spacing (inf: none; ``generator.spacing_bounds``)
+    d_min: torch.Tensor  # shortest spacing to place at (s_min unless spacing_bounds)
 
     # speed spread target [m/s] (NaN where unknown; ``speed_spread_target``)
     v_std: torch.Tensor | None = None
@@ -165,6 +166,12 @@ class Psi:
         p = torch.as_tensor(np.asarray(psi, dtype=np.float64))
         d_std = p[:, PSI_INDEX["std_spacing_m"]]
         known = torch.isfinite(d_std)
+        s_min = p[:, PSI_INDEX["spacing_min_m"]]
+
+        def column(name: str, default: torch.Tensor) -> torch.Tensor:
+            # psi arrays written before the field existed have no column: the default
+            return p[:, PSI_INDEX[name]] if p.shape[1] > PSI_INDEX[name] else default
+
         return cls(
             v_mean=p[:, PSI_INDEX["mean_speed_mps"]],
             d_mean=p[:, PSI_INDEX["mean_spacing_m"]],
@@ -172,13 +179,9 @@ class Psi:
             d_std_known=known,
             v_min=p[:, PSI_INDEX["speed_min_mps"]],
             v_max=p[:, PSI_INDEX["speed_max_mps"]],
-            s_min=p[:, PSI_INDEX["spacing_min_m"]],
-            # psi arrays written before the field existed have no column: no bound
-            d_max=(
-                p[:, PSI_INDEX["spacing_max_m"]]
-                if p.shape[1] > PSI_INDEX["spacing_max_m"]
-                else torch.full_like(p[:, 0], math.inf)
-            ),
+            s_min=s_min,
+            d_max=column("spacing_max_m", torch.full_like(s_min, math.inf)),
+            d_min=torch.maximum(s_min, column("spacing_low_m", s_min)),
             v_std=None if v_std is None else torch.as_tensor(np.asarray(v_std, np.float64)),
         )
 
