@@ -25,6 +25,7 @@ import numpy as np
 import pandas as pd
 
 from macromicro_sumo.data.ring import load_ground_truth, split_runs
+from macromicro_sumo.data.section import run_limits_mps
 from macromicro_sumo.deploy.drivers import (
     ActionBatch,
     SectionDriver,
@@ -105,6 +106,7 @@ class DeployContext:
     files: tuple[Path, Path] | None = None
     specs: dict[int, RunSpec] | None = None
     truth_runs: pd.DataFrame | None = None
+    run_sections: dict[int, Section] | None = None  # each held-out run's limits (a fleet)
     # Field data: each run's own inputs (a demand sampled from its stations), how the
     # demand was made (every manifest records it), and the folder that holds it.
     run_inputs: dict[int, SumoInputs] | None = None
@@ -152,6 +154,10 @@ def load_context(sc: Any, truth_dir: Path | str) -> DeployContext:
             placed=place_detectors(sc, inputs, section),
             vtypes=vtypes,
             vclass=vclass,
+            run_sections={
+                int(r): dataclasses.replace(section, limits_mps=lim)
+                for r, lim in zip(held, run_limits_mps(truth, held), strict=True)
+            },
         )
     gt = load_ground_truth(truth_dir, sc)
     held = [
@@ -321,7 +327,8 @@ def _section_runs(ctx, drive, stage, runs, extra, switch, drivers, progress, des
     sc = ctx.sc
 
     def driver_for(run: int) -> SectionDriver:
-        args = (sc, ctx.section, run)
+        # The run's own speed limits where the truth drew them (a fleet), as Stage II observed.
+        args = (sc, (ctx.run_sections or {}).get(run, ctx.section), run)
         if drive.act is not None:
             d = SectionSpeedDriver(*args, drive.act, drive.safety or sc.deploy.safety)
         elif drive.theta is not None or drive.defaults:

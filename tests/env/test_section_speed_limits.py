@@ -18,6 +18,7 @@ sys.path.insert(0, str(Path(__file__).parents[1] / "deploy"))
 from deploy_nets import merge_net  # noqa: E402
 
 from macromicro_sumo.data.section import psi_table, run_limits_mps, section_snapshots  # noqa: E402
+from macromicro_sumo.deploy.run import load_context  # noqa: E402
 from macromicro_sumo.env.demand import DemandCore  # noqa: E402
 from macromicro_sumo.env.section import SectionCore  # noqa: E402
 from macromicro_sumo.env.section_bank import build_section_bank  # noqa: E402
@@ -203,3 +204,14 @@ def test_micro_pairs_observe_the_runs_limits(ring) -> None:
         assert set(np.unique(obs[:, 1])) <= set(lim.loc[int(run)].to_numpy())
         seen |= set(np.unique(obs[:, 1]))
     assert len(seen) > 1 and NETWORK_LIMIT_MPS not in seen
+
+
+def test_deployment_drivers_observe_the_runs_limits(ring) -> None:
+    """A deployment re-runs held-out runs with their own limits in SUMO; its drivers observe
+    the same limits (the Stage II env's), not the network's."""
+    sc, truth = ring
+    lim = csv_limits(truth)
+    ctx = load_context(sc, truth.folder)
+    assert ctx.held_out and set(ctx.run_sections) == set(ctx.held_out)
+    for run, section in ctx.run_sections.items():
+        np.testing.assert_array_equal(section.limits_mps[:, 0], lim.loc[run].to_numpy())
