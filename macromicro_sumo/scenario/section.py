@@ -164,6 +164,13 @@ class SectionGeneratorConfig:
         "interval's passage spacings widened per bounds_source (the ring's d_max): the loss's "
         "L_max and the placement keep the completed spacings under it",
     )
+    dispersion_error: str = spec(
+        "absolute",
+        choices=("absolute", "squared"),
+        doc="how the measured L_var compares a scene's spacing variance X with psi's: "
+        "|X - sigma^2| / d^2 (absolute: the scenes' median X meets psi's) or "
+        "(X - sigma^2)^2 / (d^2 sigma^2) (squared: their mean does)",
+    )
     spacing_set: str = spec(
         "all",
         choices=("all", "touched"),

@@ -22,7 +22,10 @@ from macromicro_sumo.generator.section_bounds import bounded_gaps
 from macromicro_sumo.generator.section_model import Scene, SectionGeneratorNet, section_losses
 from macromicro_sumo.generator.section_sampler import complete_section
 from macromicro_sumo.generator.section_scene import Gaps, Psi, Road
-from macromicro_sumo.generator.section_train import run_train_section_generator
+from macromicro_sumo.generator.section_train import (
+    run_train_section_generator,
+    squared_dispersion,
+)
 from macromicro_sumo.road.section import Section, read_section
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.scenario.section import SectionGeneratorConfig, SectionScenario
@@ -313,3 +316,28 @@ def test_a_touched_gap_beyond_d_max_draws_the_last_vehicle(ring: Section) -> Non
         assert float(g.hi[i, t]) <= d_max + 1e-9  # the piece behind the last vehicle
         assert float(g.length[i, t] - g.lo[i, t]) <= d_max + 1e-9  # the piece ahead
         assert float(g.room[i, t]) > 0
+
+
+def test_squared_dispersion_error_by_hand(ring: Section) -> None:
+    """dispersion_error = "squared": L_var = (X - sigma^2)^2 / (d^2 sigma^2) with X the
+    scene's spacing variance around the loop's exact mean (dispersion_center = "scene"),
+    sigma and d psi's spacing std and mean spacing (here 6% short, as E2's on the ring)."""
+    snaps = ring_scenes(ring, 5, seed=2, d_max=np.inf)
+    psi_arr = snaps.psi.copy()
+    psi_arr[:, 1] *= 0.94
+    psi_arr[:, 2] = [10.0, 20.0, 30.0, 40.0, 50.0]
+    psi = Psi.of(psi_arr)
+    road = Road.of(ring)
+    lane, arc = torch.as_tensor(snaps.lane), torch.as_tensor(snaps.arc_m)
+    speed, present = torch.as_tensor(snaps.speed_mps), torch.as_tensor(snaps.valid)
+    l_var = section_losses(lane, arc, speed, present, psi, road, "measured", "scene")["L_var"]
+    sq = squared_dispersion(l_var, psi)
+    signs = []
+    for i in range(len(snaps)):
+        a = np.sort(snaps.arc_m[i])
+        x = np.append(np.diff(a), a[0] + ring.length_m - a[-1]).var()
+        d, var = psi_arr[i, 1], psi_arr[i, 2] ** 2
+        assert float(sq[i]) == pytest.approx((x - var) ** 2 / (d * d * var), rel=1e-9)
+        signs.append(np.sign(x - var))
+    assert min(signs) < 0 < max(signs)  # both sides of psi's variance
+    assert SectionGeneratorConfig().dispersion_error == "absolute"
