@@ -24,10 +24,11 @@ and generator, PPO seeds 1 and 2, deployed at 18% and 82% speed-within-5% (docs/
   outside the pairs' per-feature range they lie (``support_weight``) or 1 when free.
 * Pairs that answer another scene. In the rollouts 87% of the observed pairs had a hidden,
   generated leader; behind a generated slow vehicle the prior brakes at -9 m/s^2 where the
-  recorded action (which answered the true leader) was ~0. The likelihood per pair was -4
-  to -8 at update 1 (-14.6 in an earlier training) and the state-independent std grew to 1.2-2.5 m/s^2 fitting those, which
-  weakened the likelihood against PPO's noisy policy gradient (a residual's gradient
-  scales as 1 / std^2 in the likelihood, 1 / std in PPO). ``policy.ppo.train_policy``
+  recorded action (which answered the true leader) was ~0. The likelihood per pair was
+  -3.6 to -7.9 at update 1 (-14.6 in an earlier training) and the state-independent std
+  grew to 1.2-2.5 m/s^2 fitting those, which weakened the likelihood against PPO's noisy
+  policy gradient (a residual's gradient scales as 1 / std^2 in the likelihood, 1 / std
+  in PPO). ``policy.ppo.train_policy``
   takes the recorded pairs (``recorded_pairs``: what the observed vehicles' own sensors
   saw, the pairs the prior was fitted on); the std then stays at the pairs' spread (0.38).
 
@@ -109,7 +110,8 @@ def anchor_loss(
     agent: Agent, anchors: torch.Tensor, support: tuple[torch.Tensor, torch.Tensor]
 ) -> torch.Tensor:
     """Negative log-likelihood per anchor of pseudo-pairs whose action is the prior's,
-    weighted by ``support_weight``: mean(w r^2) / (2 std^2), r the residual. The same
+    weighted by ``support_weight`` (1 in the prior's ``free_regime``): mean(w r^2) /
+    (2 std^2), r the residual. The same
     noise as the data's pairs, so one anchor outside the support counts as one pair."""
     w = torch.maximum(
         support_weight(anchors, support, agent.scale), free_regime(agent, anchors).to(anchors.dtype)
