@@ -216,6 +216,14 @@ def test_ring_paper_section_sets_the_rings_settings() -> None:
         "posterior",
     )
     assert g.dispersion_center == "scene"
+    # item 3: the ring's batch and epochs, mean-matched variance, 4 completions per scene
+    assert (g.batch_size, g.epochs, g.dispersion_error, g.eval_completions) == (
+        256,
+        900,
+        "squared",
+        4,
+    )
+    assert (g.spacing_bounds, g.spacing_set) == ("none", "all")
 
 
 def one_hidden(section: Section, n: int, seed: int) -> SectionSnapshots:
