@@ -359,9 +359,9 @@ class Simulation:
         return int(libsumo.trafficlight.getIDCount()) > 0
 
     def stop_line_m(self, vehicle_id: str) -> float:
-        """Distance from the vehicle's front to the next stop line whose signal is red or
-        yellow for it (inf when none ahead on its route)."""
-        return float(np.nan_to_num(self.stop_lines_m([vehicle_id])[0], nan=np.inf))
+        """Distance [m] from the front to the next red or yellow stop line (inf: none)."""
+        d = float(self.stop_lines_m([vehicle_id])[0])  # nan_to_num would make inf finite
+        return float("inf") if np.isnan(d) else d
 
     def own_speeds(self, vehicle_ids: Sequence[str]) -> np.ndarray:
         """SUMO's own choice of the last step's speed where a command overrode it."""

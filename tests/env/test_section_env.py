@@ -36,6 +36,8 @@ PSI = dict(
     speed_min_mps=0.0,
     speed_max_mps=50.0,
     spacing_min_m=7.0,
+    spacing_max_m=np.inf,  # no spacing bounds (generator.spacing_bounds = "none")
+    spacing_low_m=7.0,
 )
 
 
