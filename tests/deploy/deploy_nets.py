@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import sumolib
 import torch
+from conftest import dump_toml
 
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES, idm_accel
@@ -80,6 +81,34 @@ def merge_net(folder: Path, main_vph: float = 1800.0, ramp_vph: float = 500.0) -
         'departLane="best" departSpeed="max"/>\n</routes>\n'
     )
     return net, routes
+
+
+def merge_scenario(
+    folder: Path,
+    simulation: dict,
+    *,
+    auto_spacing_m: float = 200.0,
+    main_vph: float = 1800.0,
+    ramp_vph: float = 500.0,
+    **tables: dict,
+) -> Path:
+    """``folder/merge.toml``: the merge (``merge_net``) as a section A -> B -> C with the
+    user's route files, 20% instrumented, loops every ``auto_spacing_m``, the given
+    ``[simulation]`` and further tables (``policy``, ``deploy``, ...)."""
+    net, routes = merge_net(folder / "net", main_vph, ramp_vph)
+    table = {
+        "name": "merge",
+        "seed": 9,
+        "network": {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]},
+        "section": {"edges": ["A", "B", "C"]},
+        "instrumented": {"penetration": 0.2},
+        "simulation": simulation,
+        "detectors": {"interval_s": 30.0, "auto_spacing_m": auto_spacing_m},
+        **tables,
+    }
+    path = folder / "merge.toml"
+    path.write_text(dump_toml(table))
+    return path
 
 
 def light_net(folder: Path) -> tuple[Path, Path, Path]:

@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 import torch
 from conftest import dump_toml
-from deploy_nets import idm_agent, merge_net
+from deploy_nets import idm_agent, merge_scenario
 
 from macromicro_sumo.cli import main
 from macromicro_sumo.deploy.run import Drive, load_context, run_method
@@ -30,20 +30,12 @@ from macromicro_sumo.truth.section import simulate_section
 def merge_truth(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """(scenario file, ground truth) of the merge: 2 runs of 60 s warm-up + 120 s."""
     folder = tmp_path_factory.mktemp("deploy_merge")
-    net, routes = merge_net(folder / "net")
-    table = {
-        "name": "merge",
-        "seed": 9,
-        "network": {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]},
-        "section": {"edges": ["A", "B", "C"]},
-        "instrumented": {"penetration": 0.2},
-        "simulation": {"warmup_s": 60.0, "duration_s": 120.0, "n_runs": 2},
-        "detectors": {"interval_s": 30.0, "auto_spacing_m": 200.0},
-        "policy": {"observation": "lookahead"},
-        "deploy": {"fcd_s": 30.0},
-    }
-    path = folder / "merge.toml"
-    path.write_text(dump_toml(table))
+    path = merge_scenario(
+        folder,
+        {"warmup_s": 60.0, "duration_s": 120.0, "n_runs": 2},
+        policy={"observation": "lookahead"},
+        deploy={"fcd_s": 30.0},
+    )
     gt = simulate_section(load_scenario(path), folder / "gt", progress=False)
     return path, gt
 

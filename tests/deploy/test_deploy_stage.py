@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import dump_toml, write_scenario
-from deploy_nets import merge_net
+from conftest import write_scenario
+from deploy_nets import merge_scenario
 
 from macromicro_sumo.cli import main
 from macromicro_sumo.deploy.calibrate import IDM_RANGES
@@ -29,19 +29,12 @@ SECTION_METHODS = ["idm_calibrated", "sumo_default", "oracle"]
 def merge_deployed(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dict]:
     """(ground truth, deploy folder, stage manifest) of the merge: 2 runs of 30 + 90 s."""
     folder = tmp_path_factory.mktemp("deploy_stage")
-    net, routes = merge_net(folder / "net")
-    table = {
-        "name": "merge",
-        "seed": 9,
-        "network": {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]},
-        "section": {"edges": ["A", "B", "C"]},
-        "instrumented": {"penetration": 0.2},
-        "simulation": {"warmup_s": 30.0, "duration_s": 90.0, "n_runs": 2},
-        "detectors": {"interval_s": 30.0, "auto_spacing_m": 300.0},
-        "deploy": {"fcd_s": 30.0},
-    }
-    path = folder / "merge.toml"
-    path.write_text(dump_toml(table))
+    path = merge_scenario(
+        folder,
+        {"warmup_s": 30.0, "duration_s": 90.0, "n_runs": 2},
+        auto_spacing_m=300.0,
+        deploy={"fcd_s": 30.0},
+    )
     sc = load_scenario(path)
     gt = simulate_section(sc, folder / "run" / "ground_truth", progress=False)
     dep = folder / "run" / "deploy"

@@ -10,8 +10,7 @@ import dataclasses
 
 import pandas as pd
 import pytest
-from conftest import dump_toml
-from deploy_nets import idm_agent, merge_net
+from deploy_nets import idm_agent, merge_scenario
 
 from macromicro_sumo.deploy.run import DeployResult, Drive, load_context, run_method
 from macromicro_sumo.deploy.stage import policy_batch
@@ -27,20 +26,14 @@ def dense_merge(tmp_path_factory: pytest.TempPathFactory) -> dict[str, DeployRes
     and sumo, and the oracle: one held-out run, 60 s warm-up + 150 s, trajectories
     throughout."""
     folder = tmp_path_factory.mktemp("dense_merge")
-    net, routes = merge_net(folder / "net", main_vph=2400.0, ramp_vph=700.0)
-    table = {
-        "name": "merge",
-        "seed": 9,
-        "network": {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]},
-        "section": {"edges": ["A", "B", "C"]},
-        "instrumented": {"penetration": 0.2},
-        "simulation": {"warmup_s": 60.0, "duration_s": 150.0, "n_runs": 2},
-        "detectors": {"interval_s": 30.0, "auto_spacing_m": 200.0},
-        "policy": {"observation": "lookahead"},
-        "deploy": {"fcd_s": 1e5},
-    }
-    path = folder / "merge.toml"
-    path.write_text(dump_toml(table))
+    path = merge_scenario(
+        folder,
+        {"warmup_s": 60.0, "duration_s": 150.0, "n_runs": 2},
+        main_vph=2400.0,
+        ramp_vph=700.0,
+        policy={"observation": "lookahead"},
+        deploy={"fcd_s": 1e5},
+    )
     sc = load_scenario(path)
     gt = simulate_section(sc, folder / "gt", progress=False)
     act = policy_batch(idm_agent(sc.policy.observation, 30.0))

@@ -9,10 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import dump_toml
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "deploy"))
-from deploy_nets import merge_net  # noqa: E402
+from deploy_nets import merge_scenario  # noqa: E402
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver  # noqa: E402
 from macromicro_sumo.deploy.drivers import section_observations as deploy_observations  # noqa: E402
@@ -32,19 +31,11 @@ def act(obs: np.ndarray) -> np.ndarray:
 def merge(tmp_path_factory: pytest.TempPathFactory):
     """(scenario, ground truth) of the merge: 2 runs of 60 s warm-up + 120 s."""
     folder = tmp_path_factory.mktemp("demand_merge")
-    net, routes = merge_net(folder / "net")
-    table = {
-        "name": "merge",
-        "seed": 9,
-        "network": {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]},
-        "section": {"edges": ["A", "B", "C"]},
-        "instrumented": {"penetration": 0.2},
-        "simulation": {"warmup_s": 60.0, "duration_s": 120.0, "n_runs": 2},
-        "detectors": {"interval_s": 30.0, "auto_spacing_m": 200.0},
-        "policy": {"observation": "lookahead", "demand_horizon_s": 30.0},
-    }
-    path = folder / "merge.toml"
-    path.write_text(dump_toml(table))
+    path = merge_scenario(
+        folder,
+        {"warmup_s": 60.0, "duration_s": 120.0, "n_runs": 2},
+        policy={"observation": "lookahead", "demand_horizon_s": 30.0},
+    )
     sc = load_scenario(path)
     gt = simulate_section(sc, folder / "gt", progress=False)
     return sc, load_section_truth(gt, sc)

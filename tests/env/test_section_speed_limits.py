@@ -15,7 +15,7 @@ import pytest
 from conftest import ROOT, dump_toml
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "deploy"))
-from deploy_nets import merge_net  # noqa: E402
+from deploy_nets import merge_scenario  # noqa: E402
 
 from macromicro_sumo.data.section import psi_table, run_limits_mps, section_snapshots  # noqa: E402
 from macromicro_sumo.deploy.run import load_context  # noqa: E402
@@ -150,19 +150,11 @@ def test_demand_episodes_of_a_fleet_start_from_the_recorded_run(ring) -> None:
 def merge(tmp_path_factory: pytest.TempPathFactory):
     """A section with the user's route files (an on-ramp merge): no per-run limits."""
     folder = tmp_path_factory.mktemp("limits_merge")
-    net, routes = merge_net(folder / "net")
-    table = {
-        "name": "merge",
-        "seed": 9,
-        "network": {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]},
-        "section": {"edges": ["A", "B", "C"]},
-        "instrumented": {"penetration": 0.2},
-        "simulation": {"warmup_s": 60.0, "duration_s": 60.0, "n_runs": 1},
-        "detectors": {"interval_s": 30.0, "auto_spacing_m": 200.0},
-        "policy": {"observation": "lookahead"},
-    }
-    path = folder / "merge.toml"
-    path.write_text(dump_toml(table))
+    path = merge_scenario(
+        folder,
+        {"warmup_s": 60.0, "duration_s": 60.0, "n_runs": 1},
+        policy={"observation": "lookahead"},
+    )
     sc = load_scenario(path)
     return sc, load_section_truth(simulate_section(sc, folder / "gt", progress=False), sc)
 

@@ -10,10 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import dump_toml
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "deploy"))
-from deploy_nets import merge_net  # noqa: E402
+from deploy_nets import merge_scenario  # noqa: E402
 
 from macromicro_sumo.data.section import section_snapshots  # noqa: E402
 from macromicro_sumo.env.demand import DemandCore  # noqa: E402
@@ -48,28 +47,20 @@ def true_completion(s):
 @pytest.fixture(scope="module")
 def merge(tmp_path_factory: pytest.TempPathFactory):
     folder = tmp_path_factory.mktemp("demand_train")
-    net, routes = merge_net(folder / "net")
-    table = {
-        "name": "merge",
-        "seed": 9,
-        "network": {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]},
-        "section": {"edges": ["A", "B", "C"]},
-        "instrumented": {"penetration": 0.2},
-        "simulation": {"warmup_s": 60.0, "duration_s": 60.0, "n_runs": 2},
-        "detectors": {"interval_s": 30.0, "auto_spacing_m": 200.0},
-        "policy": {
+    path = merge_scenario(
+        folder,
+        {"warmup_s": 60.0, "duration_s": 60.0, "n_runs": 2},
+        policy={
             "observation": "lookahead",
             "episodes": "mixed",
             "demand_horizon_s": 10.0,
             "episodes_per_update": 2,
             "collision_penalty": 1.0,
         },
-    }
-    path = folder / "merge.toml"
-    path.write_text(dump_toml(table))
+    )
     sc = load_scenario(path)
     gt = simulate_section(sc, folder / "gt", progress=False)
-    return sc, load_section_truth(gt, sc), net
+    return sc, load_section_truth(gt, sc), Path(sc.network.net_file)
 
 
 def test_mixed_training_learns_from_demand_episodes(merge, tmp_path: Path) -> None:
