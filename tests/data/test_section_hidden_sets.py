@@ -53,7 +53,7 @@ def fleet_table(hidden: str = "snapshot", seed: int = 2024) -> dict:
             "hidden_eval": [1, 3],
         },
         "policy": {"updates": 1, "episodes_per_update": 8, "horizon": 4, "hidden_train": [1, 3]},
-        "evaluation": {"horizon_steps": 4, "fcd_episodes": 1},
+        "evaluation": {"horizon_steps": 4, "fcd_episodes": 1, "lf_trials": 2},
         "fleet": {
             "n_vehicles": N_VEHICLES,
             "length_m": 5.0,

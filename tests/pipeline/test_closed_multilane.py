@@ -61,7 +61,7 @@ def test_closed_multilane_section_end_to_end(tmp_path: Path) -> None:
         "bounds": {"accel_mps2": [-4.5, 2.6], "min_gap_m": 2.0},
         "generator": {"epochs": 4, "snapshot_every_s": 10.0},
         "policy": {"updates": 2, "episodes_per_update": 8, "observation": "lookahead"},
-        "evaluation": {"fcd_episodes": 1},
+        "evaluation": {"fcd_episodes": 1, "lf_trials": 2},
         "deploy": {"calibration_evals": 2},  # each evaluation re-runs the training runs
     }
     path = tmp_path / "closed_multilane.toml"

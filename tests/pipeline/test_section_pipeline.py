@@ -21,7 +21,7 @@ from macromicro_sumo.sumo.netgen import random_corridor
 SMALL_BUDGET = {
     "generator": {"epochs": 4, "snapshot_every_s": 10.0},
     "policy": {"updates": 2, "episodes_per_update": 8, "observation": "lookahead"},
-    "evaluation": {"fcd_episodes": 2},
+    "evaluation": {"fcd_episodes": 2, "lf_trials": 2},  # leader-follower: 2 trials a method
     # The detector-calibrated IDM's fit re-runs the training runs per evaluation: two do.
     "deploy": {"calibration_evals": 2},
 }
