@@ -270,7 +270,7 @@ class DemandCore:
         sim = self.sim
         stops = np.array([sim.lane_end_m(v, states[v][0], states[v][1]) for v in vids])
         if self._has_lights and len(vids):
-            stops = np.minimum(stops, [sim.stop_line_m(v) for v in vids])
+            stops = np.fmin(stops, sim.stop_lines_m(vids))  # NaN (no signal ahead): no stop
         return stops
 
     def lane_states(self) -> dict[str, tuple[str, float, float, float]]:

@@ -298,7 +298,7 @@ class SectionCore:
         stop_lane = stop_arc = None
         if self._has_lights:
             live = np.flatnonzero(self.active)
-            dist = np.array([self.sim.stop_line_m(self.ids[i]) for i in live], dtype=float)
+            dist = np.fmin(self.sim.stop_lines_m([self.ids[i] for i in live]), np.inf)  # NaN: inf
             stop_lane, stop_arc = stop_points(self.section, self.lane[live], self.arc[live], dist)
         self._obs, self.leader, self.spacing = section_observations(
             self.episode_section,
