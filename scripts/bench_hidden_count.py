@@ -39,6 +39,7 @@ from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.inputs import read_net, scenario_inputs
 from macromicro_sumo.truth.hidden_count import (
     PASSAGE_LAG_STEPS,
+    StationRecord,
     io_pieces,
     k_estimates,
     side_junction_arcs,
@@ -253,11 +254,15 @@ def errors(gt: Path) -> pd.DataFrame:
     macro = detector_macro(det, pas, sc["simulation"]["warmup_s"], 6.5, section)
     dens = k_estimates(traj, macro, section, every, window)
     lag = PASSAGE_LAG_STEPS * sc["simulation"]["step_length_s"]
-    unknown = k_estimates(traj, macro, section, every, window, det, pas, None, lag, from_empty=True)
+    unknown = k_estimates(
+        traj, macro, section, every, window, StationRecord(det, pas, None, lag, from_empty=True)
+    )
     net_file = scenario_inputs(load_scenario(gt.parent / "scenario.toml")).net_file
     side = side_junction_arcs(read_net(net_file), section)
     lag = PASSAGE_LAG_STEPS * sc["simulation"]["step_length_s"]
-    hybrid = k_estimates(traj, macro, section, every, window, det, pas, side, lag, from_empty=True)
+    hybrid = k_estimates(
+        traj, macro, section, every, window, StationRecord(det, pas, side, lag, from_empty=True)
+    )
     snaps = at_snapshot_times(traj, every)
     slow = snaps.groupby(["run", "time_s"])["speed_mps"].apply(
         lambda v: (v <= SLOW_MPS).mean() >= SLOW_SHARE
@@ -292,7 +297,8 @@ def piece_errors(gt: Path) -> pd.DataFrame:
     for run, g in snaps.groupby("run"):
         times = np.sort(g["time_s"].unique())
         lag = PASSAGE_LAG_STEPS * sc["simulation"]["step_length_s"]
-        pieces, _ = io_pieces(det, pas, section, run, times, side, lag, from_empty=True)
+        record = StationRecord(det, pas, side, lag, from_empty=True)
+        pieces, _ = io_pieces(record, section, run, times)
         by_t = g.groupby("time_s")["arc_m"]
         for name, piece in pieces.items():
             true = np.array(

@@ -7,7 +7,7 @@ estimate of the rest (``section_macro``), beside the truth the simulation knows
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pandas as pd
@@ -140,15 +140,26 @@ class Piece:
     vehicles: np.ndarray  # (snapshot times,)
 
 
+@dataclass(frozen=True)
+class StationRecord:
+    """What the detectors recorded for counting, and how to read it.
+
+    ``det``: the detector table (E1 loops only); ``passages``: their per-vehicle passages.
+    ``side_arcs`` (``side_junction_arcs``): where ramps join or leave; None: unknown, every
+    stretch may hold one. ``passage_lag_s``: how far the passages' clock runs behind the
+    snapshot times (a SUMO run: ``PASSAGE_LAG_STEPS`` steps). ``from_empty``: the passages
+    start with the section empty (a simulation from its first step).
+    """
+
+    det: pd.DataFrame
+    passages: pd.DataFrame
+    side_arcs: np.ndarray | None = None
+    passage_lag_s: float = 0.0
+    from_empty: bool = False
+
+
 def io_pieces(
-    det: pd.DataFrame,
-    passages: pd.DataFrame,
-    section: Section,
-    run: int,
-    at_s: np.ndarray,
-    side_arcs: np.ndarray | None = None,
-    passage_lag_s: float = 0.0,
-    from_empty: bool = False,
+    record: StationRecord, section: Section, run: int, at_s: np.ndarray
 ) -> tuple[dict[str, Piece], pd.DataFrame]:
     """The parts of the section counted from the passages at the times ``at_s``, by name,
     and per interval the density estimate of the rest of the section (``begin_s, end_s,
@@ -171,8 +182,9 @@ def io_pieces(
     ``passage_lag_s``: how far the passages' clock runs behind the times ``at_s``
     (``PASSAGE_LAG_STEPS``).
     """
+    det, passages, side_arcs = record.det, record.passages, record.side_arcs
     d = det[det["run"] == run]
-    at_p = np.asarray(at_s, dtype=float) - passage_lag_s  # the same moments, passages' clock
+    at_p = np.asarray(at_s, dtype=float) - record.passage_lag_s  # the same moments, passages' clock
     p = passages[passages["run"] == run]
     arcs = full_stations(d, section)
     pairs = list(zip(arcs[:-1], arcs[1:], strict=True))
@@ -241,7 +253,7 @@ def io_pieces(
     with_ramp = [side_arcs is None or ramp_between(side_arcs, *pair) for pair in pairs]
     between = [q for q, r in zip(pairs, with_ramp, strict=True) if not r]
     ramps = [q for q, r in zip(pairs, with_ramp, strict=True) if r]
-    if from_empty and not section.closed and between:
+    if record.from_empty and not section.closed and between:
         # Counted since the run's start, when the section was empty: the count itself,
         # unless the density estimate's offset says that vehicles depart or arrive inside
         # the stretches (the count then drifts away from it).
@@ -289,20 +301,11 @@ def io_pieces(
 
 
 def io_vehicles(
-    det: pd.DataFrame,
-    passages: pd.DataFrame,
-    section: Section,
-    run: int,
-    at_s: np.ndarray,
-    side_arcs: np.ndarray | None = None,
-    passage_lag_s: float = 0.0,
-    from_empty: bool = False,
+    record: StationRecord, section: Section, run: int, at_s: np.ndarray
 ) -> tuple[np.ndarray, pd.DataFrame]:
     """Vehicles counted at the times ``at_s`` from the passages (``io_pieces``, summed) and
     the density estimate of the rest of the section per interval."""
-    pieces, rest = io_pieces(
-        det, passages, section, run, at_s, side_arcs, passage_lag_s, from_empty
-    )
+    pieces, rest = io_pieces(record, section, run, at_s)
     counted = np.zeros(len(at_s))
     for piece in pieces.values():
         counted += piece.vehicles
@@ -325,40 +328,36 @@ def k_estimates(
     section: Section,
     every_s: float,
     window_s: float,
-    det: pd.DataFrame | None = None,
-    passages: pd.DataFrame | None = None,
-    side_arcs: np.ndarray | None = None,
-    passage_lag_s: float = 0.0,
-    from_empty: bool = False,
+    record: StationRecord | None = None,
 ) -> pd.DataFrame:
     """Hidden count per snapshot time: the truth, and the estimate from the detectors.
 
     Estimate: round(vehicles on the section by the detectors) - observed vehicles on it.
     Vehicles by the detectors: the density estimate (``detector_macro``'s) averaged over
     the intervals centred within ``window_s`` of the snapshot (``detectors.k_window_s``; at
-    least the interval holding it). Given the detector table and the passages, the
-    stretches between stations that count every vehicle take the input-output count at the
-    snapshot instead, and an open section's end pieces the passages projected at their
-    speeds (``io_vehicles``): an interval's mean misses the platoons, signal cycles and
-    growing queues within it. ``side_arcs`` (``side_junction_arcs``): where ramps join or
-    leave; with none between two stations the counts are anchored once for the whole
-    record, else (or None: unknown) by a line over a window. ``passage_lag_s``: how far the
-    passages' clock runs behind the trajectories' (a SUMO run: ``PASSAGE_LAG_STEPS`` steps).
-    ``from_empty``: the passages start with the section empty (``io_pieces``).
+    least the interval holding it). Given the stations' ``record`` (loops and their
+    passages), the stretches between stations that count every vehicle take the
+    input-output count at the snapshot instead, and an open section's end pieces the
+    passages projected at their speeds (``io_vehicles``): an interval's mean misses the
+    platoons, signal cycles and growing queues within it. With no ramp between two
+    stations (``record.side_arcs``) the counts are anchored once for the whole record,
+    else (or unknown) by a line over a window.
     ``k_est_flow_speed``: the former estimate (flow / speed, station cells, interval
     means), for comparison.
     """
     snaps = at_snapshot_times(traj, every_s)
-    hybrid = det is not None and passages is not None and (det["kind"] == "e1").all()
-    if hybrid:
-        det = det.assign(k_point_vpkm=loop_densities(det, passages))
+    if record is not None and not (record.det["kind"] == "e1").all():
+        record = None  # counts need per-vehicle passages at loops; an E2 reads density only
+    if record is not None:
+        det = record.det.assign(k_point_vpkm=loop_densities(record.det, record.passages))
+        record = replace(record, det=det)
     rows = []
     for run, gr in snaps.groupby("run", sort=True):
         r = det_macro[det_macro["run"] == run]
         times = np.sort(gr["time_s"].unique())
         counted, rest = (
-            io_vehicles(det, passages, section, run, times, side_arcs, passage_lag_s, from_empty)
-            if hybrid
+            io_vehicles(record, section, run, times)
+            if record is not None
             else (np.zeros(len(times)), r)
         )
         for t, c in zip(times, counted, strict=True):

@@ -54,6 +54,7 @@ from macromicro_sumo.truth import fleet
 from macromicro_sumo.truth.files import truth_from_files
 from macromicro_sumo.truth.hidden_count import (
     PASSAGE_LAG_STEPS,
+    StationRecord,
     k_estimates,
     side_junction_arcs,
 )
@@ -339,11 +340,13 @@ def simulate_section(
             section,
             sc.generator.snapshot_every_s,
             sc.detectors.k_window_s,
-            det,
-            pas,
-            side_junction_arcs(read_net(inputs.net_file), section),
-            PASSAGE_LAG_STEPS * sc.simulation.step_length_s,
-            from_empty=fleet_demand(sc) is None,  # SUMO starts empty; a fleet on the section
+            StationRecord(
+                det,
+                pas,
+                side_junction_arcs(read_net(inputs.net_file), section),
+                PASSAGE_LAG_STEPS * sc.simulation.step_length_s,
+                from_empty=fleet_demand(sc) is None,  # SUMO starts empty; a fleet on the section
+            ),
         )
         vt = pd.DataFrame(
             [

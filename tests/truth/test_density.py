@@ -28,7 +28,7 @@ from macromicro_sumo.truth.density import (
     profile_integral,
     projected_passages,
 )
-from macromicro_sumo.truth.hidden_count import k_estimates
+from macromicro_sumo.truth.hidden_count import StationRecord, k_estimates
 from macromicro_sumo.truth.section_macro import detector_macro, k_summary
 
 
@@ -198,7 +198,7 @@ def test_queue_over_loops_is_counted(tmp_path: Path) -> None:
     assert ((det["n_veh"] == 0) & (det["occupancy_pct"] > 90.0)).any()
     scenario = json.loads((gt / "manifest.json").read_text())["scenario"]
     macro = detector_macro(det, pas, scenario["simulation"]["warmup_s"], 7.5, section)
-    k = k_estimates(traj, macro, section, 5.0, 30.0, det, pas)
+    k = k_estimates(traj, macro, section, 5.0, 30.0, StationRecord(det, pas))
     err = k_summary(k, section)["mean_abs_error_per_lane_veh"]
     err_fs = float(np.abs(k["k_est_flow_speed"] - k["k_true"]).mean())
     # The queue grows and drains within the 30 s intervals of a 120 s run (few intervals

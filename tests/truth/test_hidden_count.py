@@ -19,6 +19,7 @@ from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.inputs import read_net
 from macromicro_sumo.truth.hidden_count import (
     PASSAGE_LAG_STEPS,
+    StationRecord,
     io_pieces,
     k_estimates,
     side_junction_arcs,
@@ -147,7 +148,9 @@ def estimate(
     np.testing.assert_allclose(side, [section.offsets_m[1]])
     macro = detector_macro(det, pas, 60.0, 7.5, section)
     lag = PASSAGE_LAG_STEPS * 0.5
-    again = k_estimates(traj, macro, section, 5.0, 30.0, det, pas, side, lag, from_empty=True)
+    again = k_estimates(
+        traj, macro, section, 5.0, 30.0, StationRecord(det, pas, side, lag, from_empty=True)
+    )
     np.testing.assert_array_equal(again["k_est"], k["k_est"])
     k["k_density"] = k_estimates(traj, macro, section, 5.0, 30.0)["k_est"].to_numpy()
     snaps = at_snapshot_times(traj, 5.0)
@@ -208,7 +211,8 @@ def test_congested_merge_with_boundary_stations(tmp_path: Path) -> None:
     by_t = snaps.groupby("time_s")["arc_m"]
 
     def between_error(lag_s: float) -> np.ndarray:
-        pieces, _ = io_pieces(det, pas, section, 0, times, side, lag_s, from_empty=True)
+        record = StationRecord(det, pas, side, lag_s, from_empty=True)
+        pieces, _ = io_pieces(record, section, 0, times)
         piece = pieces["between"]
         true = [
             sum(((a >= lo) & (a < hi)).sum() for lo, hi in piece.arcs_m)
@@ -233,6 +237,6 @@ def test_departures_inside_a_counted_stretch_fall_back_to_the_anchor(tmp_path: P
     det = det.assign(k_point_vpkm=loop_densities(det, pas))
     side = side_junction_arcs(read_net(tmp_path / "m.net.xml"), section)
     times = np.sort(k["time_s"].unique())
-    pieces, _ = io_pieces(det, pas, section, 0, times, side, 0.5, from_empty=True)
+    pieces, _ = io_pieces(StationRecord(det, pas, side, 0.5, from_empty=True), section, 0, times)
     assert "between" not in pieces and "stretches" in pieces, list(pieces)
     assert k_summary(k, section)["mean_abs_error_per_lane_veh"] <= 0.5
