@@ -12,7 +12,13 @@ from macromicro_sumo.files import refuse_comma
 from macromicro_sumo.scenario.data import build_data
 from macromicro_sumo.scenario.fields import build_table
 from macromicro_sumo.scenario.ring import Scenario, check_consistency
+from macromicro_sumo.scenario.ring_as_section import ring_to_section
 from macromicro_sumo.scenario.section import SectionScenario, build_section_scenario
+
+# Which wing reads a ring file (top-level ``road``): its own ring modules (the default), or
+# the section wing, the file mapped by ``scenario.ring_as_section``. A section file is a
+# section either way.
+ROADS = ("ring", "section")
 
 
 def read_scenario_toml(path: str | Path) -> tuple[dict[str, Any], dict[str, Any] | None]:
@@ -35,6 +41,9 @@ def load_scenario(
 ) -> Any:
     """Load and validate a scenario TOML; ``overrides`` maps dotted keys to values (sweeps).
 
+    A ring file with ``road = "section"`` (or that override) loads as the section scenario
+    it maps to (``scenario.ring_as_section.ring_to_section``).
+
     A ``[sweep]`` table is for ``macromicro batch``, which passes ``allow_sweep=True`` and
     one variant's values as ``overrides``; elsewhere it is an error.
     """
@@ -51,10 +60,25 @@ def load_scenario(
         for p in parents:
             node = node.setdefault(p, {})
         node[leaf] = value
+    road = table.pop("road", None)
+    if road not in (None, *ROADS):
+        raise UserError(
+            f"{file}: road = {road!r} is not accepted; accepted: one of 'ring', 'section'"
+        )
     network = table.get("network")
     kind = network.get("kind", "ring") if isinstance(network, dict) else "ring"
     if kind == "sumo":
+        if road == "ring":
+            raise UserError(
+                f"{file}: road = 'ring' is for ring files; [network] kind = 'sumo' is a section: "
+                "accepted 'section' or remove the key"
+            )
         return build_section_scenario(table, file, str(path.resolve()))
+    if road == "section" and kind == "ring":
+        # Issue 16: the ring file read as the closed one-lane section of its net (opt-in
+        # until the ring wing goes; the ring wing stays the default).
+        section = ring_to_section(table, path.resolve().parent, file)
+        return build_section_scenario(section, file, str(path.resolve()))
     if kind != "ring":
         raise UserError(
             f"{file}: network.kind = {kind!r} is not accepted; accepted: one of 'ring', 'sumo'"

@@ -1,0 +1,141 @@
+"""A ring file read as a section scenario (``road = "section"``, scenario/ring_as_section.py)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import xml.etree.ElementTree as ET
+
+import pytest
+from conftest import NETS, PAPER_SCENARIO, ROOT
+
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.road.ring import read_ring
+from macromicro_sumo.scenario.load import load_scenario, scenario_from_dict
+from macromicro_sumo.scenario.ring import DetectorConfig, GeneratorConfig, Scenario
+from macromicro_sumo.scenario.ring_as_section import RING_GENERATOR_DEFAULTS, detector_file
+from macromicro_sumo.scenario.section import SectionGeneratorConfig, SectionScenario
+from macromicro_sumo.truth.ring_detectors import detectors_xml
+
+SCENARIOS = ROOT / "scenarios"
+RING_FILES = ["ring_paper", "ring_paper_strict", "ring_sweep", "ring_sugiyama"]
+SECTION = {"road": "section"}
+
+
+def _mapped(name: str) -> SectionScenario:
+    return load_scenario(SCENARIOS / f"{name}.toml", SECTION, allow_sweep=True)
+
+
+def test_ring_paper_maps_to_ring_paper_section_in_every_field_but_its_name():
+    mapped = _mapped("ring_paper")
+    spelled = load_scenario(SCENARIOS / "ring_paper_section.toml")
+    assert isinstance(mapped, SectionScenario)
+    assert mapped.name == "ring_paper" != spelled.name
+    assert dataclasses.replace(mapped, name=spelled.name) == spelled
+    assert mapped.to_dict() | {"name": spelled.name} == spelled.to_dict()
+    # A manifest's copy (JSON) rebuilds the section scenario, not the ring's.
+    stored = json.loads(json.dumps(mapped.to_dict()))
+    assert scenario_from_dict(stored, mapped.source) == mapped
+
+
+def test_the_default_road_is_still_the_ring_wing():
+    assert isinstance(load_scenario(PAPER_SCENARIO), Scenario)
+    assert isinstance(load_scenario(PAPER_SCENARIO, {"road": "ring"}), Scenario)
+
+
+@pytest.mark.parametrize("name", RING_FILES)
+def test_every_ring_file_loads_as_a_section_with_the_ring_wings_settings(name):
+    ring = load_scenario(SCENARIOS / f"{name}.toml", allow_sweep=True)
+    sec = _mapped(name)
+    assert isinstance(ring, Scenario) and isinstance(sec, SectionScenario)
+    assert sec.section.closed and len(sec.section.edges) == ring.network.n_edges
+    assert sec.resolve(sec.network.net_file) == ring.resolve(ring.network.net_file)
+    assert sec.network.route_files == [] and len(sec.network.additional_files) == 1
+    assert (sec.fleet, sec.speed_limits, sec.initial) == (
+        ring.fleet,
+        ring.speed_limits,
+        ring.initial,
+    )
+    assert (sec.seed, sec.policy, sec.deploy) == (ring.seed, ring.policy, ring.deploy)
+    assert sec.simulation.warmup_s == 0.0
+    for key in ("step_length_s", "duration_s", "n_runs"):
+        assert getattr(sec.simulation, key) == getattr(ring.simulation, key)
+    assert sec.detectors.interval_s == ring.detectors.interval_s and sec.detectors.use_user
+    assert sec.bounds.accel_mps2 == ring.bounds.accel_mps2
+    assert sec.bounds.min_gap_m == ring.fleet.min_gap_m[0]
+    # Every generator key both wings have reads as the ring read it, defaults included.
+    shared = {f.name for f in dataclasses.fields(SectionGeneratorConfig)}
+    for f in dataclasses.fields(GeneratorConfig):
+        if f.name in shared:
+            assert getattr(sec.generator, f.name) == getattr(ring.generator, f.name), f.name
+    assert sec.generator.k_source == "truth" and sec.instrumented.hidden == "snapshot"
+    assert sec.generator.eval_completions == ring.evaluation.completions_per_scene
+    assert sec.evaluation == dataclasses.replace(ring.evaluation, completions_per_scene=1)
+
+
+def test_a_section_file_loads_the_same_with_road_section():
+    path = SCENARIOS / "ring_two_lane.toml"
+    assert load_scenario(path, SECTION) == load_scenario(path)
+    with pytest.raises(UserError, match="road = 'ring' is for ring files"):
+        load_scenario(path, {"road": "ring"})
+
+
+def test_the_ring_generator_defaults_are_the_ring_wings_where_the_section_differs():
+    ring = {f.name: f.default for f in dataclasses.fields(GeneratorConfig)}
+    sec = {f.name: f.default for f in dataclasses.fields(SectionGeneratorConfig)}
+    differ = {k: v for k, v in ring.items() if k in sec and sec[k] != v}
+    assert differ == RING_GENERATOR_DEFAULTS
+
+
+@pytest.mark.parametrize(
+    "overrides, drop, says",
+    [
+        ({"generator.lambda_rec": 0.1}, (), "generator.lambda_rec = 0.1 has no section meaning"),
+        ({"generator.psi_source": "trajectories"}, (), "generator.psi_source = 'trajectories'"),
+        ({"generator.bounds_source": "fixed"}, (), "accepted 'extended' or remove the key"),
+        ({"detectors.e1_position": 0.3}, (), "detectors.e1_position = 0.3 has no section"),
+        ({"network.radius_m": 90.0}, (), "accepted radius_m = 100.0000"),
+        ({"network.n_edges": 5}, (), "names edge e4"),
+        ({"network.lanes": 2}, (), "unknown key [network] 'lanes'"),
+        ({"road": "sections"}, (), "road = 'sections' is not accepted"),
+        ({}, ("network.radius_m",), "missing required key 'network.radius_m'"),
+        ({}, ("fleet",), "missing required table [fleet]"),
+    ],
+)
+def test_a_ring_key_without_section_meaning_is_a_one_line_error(
+    make_scenario, overrides, drop, says
+):
+    path = make_scenario({**SECTION, **overrides}, drop=drop)
+    with pytest.raises(UserError) as err:
+        load_scenario(path)
+    assert says in str(err.value) and str(path) in str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_a_net_without_the_rings_detector_file_is_named(tmp_path, make_scenario):
+    net = tmp_path / "ring.net.xml"
+    net.write_text((NETS / "ring_r100_e4.net.xml").read_text())
+    path = make_scenario({**SECTION, "network.net_file": str(net)})
+    with pytest.raises(UserError, match=r"has no ring detector file .*ring\.det\.add\.xml"):
+        load_scenario(path)
+
+
+def _loops(xml: str) -> set[tuple[str, str, float, float]]:
+    """(kind, lane, from, to) of every E1 and E2 of an additional file's text."""
+    out = set()
+    for e in ET.fromstring(xml):
+        if e.tag == "inductionLoop":
+            out.add(("e1", e.get("lane"), round(float(e.get("pos")), 4), 0.0))
+        elif e.tag == "laneAreaDetector":
+            out.add(("e2", e.get("lane"), float(e.get("pos")), round(float(e.get("endPos")), 4)))
+    return out
+
+
+@pytest.mark.parametrize("net", ["ring_r100_e4.net.xml", "ring_r36.6_e4.net.xml"])
+def test_the_shipped_detector_files_place_the_ring_truths_loops(net):
+    """The section reads the ring's detectors from the file beside its net: the same E1 and
+    E2 as the ring truth writes per run (its instantaneous loops aside)."""
+    geo = read_ring(NETS / net)
+    ring = _loops(detectors_xml(geo, DetectorConfig()))
+    shipped = _loops((NETS / detector_file(net)).read_text())
+    assert len(shipped) == 2 * len(geo.edge_ids) and shipped == ring
