@@ -35,7 +35,12 @@ from macromicro_sumo.deploy.population import (
     SwitchedType,
     in_share,
 )
-from macromicro_sumo.deploy.safety import SAFETY_TOLERANCE_MPS, SPEED_MODES, speed_commands
+from macromicro_sumo.deploy.safety import (
+    SAFETY_TOLERANCE_MPS,
+    SPEED_MODES,
+    leader_safe_speed,
+    speed_commands,
+)
 from macromicro_sumo.road.physics import safe_speed
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
 from macromicro_sumo.sumo.simulation import Simulation, VehicleStates
@@ -202,19 +207,16 @@ class SectionSpeedDriver(SectionDriver):
             self.dark.pop(v, None)
 
     def merges(
-        self, sim: Simulation, vids: list[str], st: VehicleStates
-    ) -> tuple[list[str], np.ndarray | None]:
-        """``deploy.merge`` "handover" or "sumo": the driven vehicles commanded this step
-        (those that must leave their lane within ``MERGE_HANDOVER_M`` merge with SUMO's own
-        model, handed over until they are on a lane that carries them on) and, per
-        commanded vehicle, the speed a merge asks of it ("sumo": SUMO's own speed where it
-        blocks a merging vehicle and SUMO wanted it slower than its car-following; inf:
-        none; None: no cap at all)."""
-        index = st.index
-        lanes = [st.lanes[index[v]] for v in vids]
-        pos = np.fromiter(map(index.__getitem__, vids), np.int64, len(vids))
-        ends = self.lane_end_m(sim, vids, lanes) - st.pos_m[pos]
-        must = (ends <= MERGE_HANDOVER_M).tolist()
+        self, sim: Simulation, vids: list[str], ahead_m: np.ndarray
+    ) -> tuple[np.ndarray | None, list[int]]:
+        """``deploy.merge`` "handover" or "sumo", from ``ahead_m``, each driven vehicle's
+        distance to where it must have left its lane: which of ``vids`` are commanded this
+        step (those that must leave their lane within ``MERGE_HANDOVER_M`` merge with
+        SUMO's own model, handed over until they are on a lane that carries them on; None:
+        all) and ("sumo") the indices among the commanded of those that block a merging
+        vehicle's change (SUMO's blocking left follower, whom its lane changer asks to
+        cooperate), the candidates for SUMO's cooperative slow-down (``yields``)."""
+        must = (ahead_m <= MERGE_HANDOVER_M).tolist()
         now = {v for v, m in zip(vids, must, strict=True) if m}
         if now - self.merging:
             sim.release_speeds(sorted(now - self.merging))
@@ -224,38 +226,31 @@ class SectionSpeedDriver(SectionDriver):
         self.merging = now
         self.stats.vehicle_steps_driven -= len(now)
         if not now:
-            return vids, None
-        keep = [v for v, m in zip(vids, must, strict=True) if not m]
+            return None, []
+        keep = ~np.array(must)
         if self.merge != "sumo":
-            return keep, None
-        cap = np.full(len(keep), np.inf)
-        # Only a vehicle that blocks a merging vehicle's change (SUMO's blocking left
-        # follower, whom its lane changer asks to cooperate): every vehicle on the target
-        # lane taking SUMO's lower speed slowed Bremen's stream by 2 m/s (run 1).
+            return keep, []
+        # Only a blocking follower: every vehicle on the target lane taking SUMO's lower
+        # speed slowed Bremen's stream by 2 m/s (run 1).
         blockers = sim.left_blockers(sorted(now))
-        near = [i for i, v in enumerate(keep) if v in blockers]
-        if near:
-            ids = [keep[i] for i in near]
-            own = sim.own_speeds(ids)
-            v_now = st.speed_mps[np.fromiter(map(index.__getitem__, ids), np.int64, len(ids))]
-            # SUMO's car-following alone (Krauss' safe speed behind its leader): where SUMO's
-            # own speed is below it too, its lane changer asked for less (a cooperative
-            # slow-down); SUMO's car-following is not imposed on the policy.
-            leaders = sim.leaders(ids, NO_LEADER_GAP_M)
-            rows = [index.get(lid, -1) for lid, _ in leaders]
-            has = np.array([r >= 0 for r in rows])
-            v_l = np.array([st.speed_mps[r] if r >= 0 else 0.0 for r in rows])
-            b = np.fromiter(map(self.decel_of.__getitem__, ids), float, len(ids))
-            lead_ids = [lid for lid, _ in leaders]
-            b_l = np.array(
-                [self.decel_of.get(lid, bi) for lid, bi in zip(lead_ids, b, strict=True)]
-            )
-            gap = np.array([g for _, g in leaders])
-            dt = self.sc.simulation.step_length_s
-            follow = np.where(has, safe_speed(gap, v_l, b, b_l, dt), np.inf)
-            asked = own < np.minimum(v_now, follow) - MERGE_YIELD_TOLERANCE_MPS
-            cap[near] = np.where(asked, own, np.inf)
-        return keep, cap
+        kept = [v for v, m in zip(vids, must, strict=True) if not m]
+        return keep, [i for i, v in enumerate(kept) if v in blockers]
+
+    def yields(
+        self, sim: Simulation, vids: list[str], near: list[int], speed: np.ndarray, safe: np.ndarray
+    ) -> np.ndarray:
+        """Per commanded vehicle ``vids`` (speeds ``speed``, safe speeds behind what each
+        sees ahead ``safe``: the safety layer's), the speed a merge asks of it: SUMO's own
+        speed where it blocks a merging vehicle (indices ``near``) and SUMO wanted it more
+        than ``MERGE_YIELD_TOLERANCE_MPS`` slower than both its speed and its car-following
+        (the safe speed: where SUMO's own speed is below it too, its lane changer asked for
+        less, a cooperative slow-down; SUMO's car-following is not imposed on the policy);
+        inf: none."""
+        cap = np.full(len(vids), np.inf)
+        own = sim.own_speeds([vids[i] for i in near])
+        asked = own < np.minimum(speed[near], safe[near]) - MERGE_YIELD_TOLERANCE_MPS
+        cap[near] = np.where(asked, own, np.inf)
+        return cap
 
     def lane_end_m(self, sim: Simulation, vids: list[str], lanes: list[str]) -> np.ndarray:
         """Per vehicle, the distance from its lane's start to where it must have left that
@@ -299,13 +294,21 @@ class SectionSpeedDriver(SectionDriver):
         return out
 
     def drive(self, sim: Simulation, vids: list[str], st: VehicleStates) -> None:
-        cap = None
+        rows = np.fromiter(map(st.index.__getitem__, vids), np.int64, len(vids))
+        lanes = [st.lanes[i] for i in rows.tolist()]
+        # Where each must have left its lane: the merges' hand-over and the observation's
+        # standing leader, asked once.
+        ahead = self.lane_end_m(sim, vids, lanes) - st.pos_m[rows]
+        near: list[int] = []
         if self.merge != "none":
-            vids, cap = self.merges(sim, vids, st)
+            keep, near = self.merges(sim, vids, ahead)
+            if keep is not None:
+                vids = [v for v, k in zip(vids, keep.tolist(), strict=True) if k]
+                rows, ahead = rows[keep], ahead[keep]
+                lanes = [st.lanes[i] for i in rows.tolist()]
             if not vids:
                 return
         n = len(vids)
-        rows = np.fromiter(map(st.index.__getitem__, vids), np.int64, n)
         # Last step's command against the speed SUMO applied.
         last_vids, last = self.last
         if self.gone or vids != last_vids:
@@ -318,13 +321,20 @@ class SectionSpeedDriver(SectionDriver):
         )
         if self.has_lights is None:
             self.has_lights = sim.has_traffic_lights()
-        obs, gap, lead_decel, lead = self.observe(sim, vids, rows, st)
+        obs, gap, lead_decel, lead = self.observe(sim, vids, rows, st, stop_m=ahead)
+        # One leader table a step: the safe speed behind what each sees ahead, for both the
+        # merges' yield and the safety layer.
+        own = safe = cap = None
+        if near or self.safety == "sumo":
+            own = np.fromiter(map(self.decel_of.__getitem__, vids), float, n)
+            safe = leader_safe_speed(obs, gap, own, lead_decel, self.sc.simulation.step_length_s)
+        if near:
+            cap = self.yields(sim, vids, near, obs[:, 0], safe)
 
         def layer() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-            own = np.fromiter(map(self.decel_of.__getitem__, vids), float, n)
             return gap, own, lead_decel, lead
 
-        cmd = speed_commands(self.sc, self.act, self.safety, self.stats, obs, layer, cap)
+        cmd = speed_commands(self.sc, self.act, self.safety, self.stats, obs, layer, cap, safe)
         sim.set_speeds(vids, cmd)
         self.last, self.gone = (vids, cmd), set()
 
@@ -335,12 +345,15 @@ class SectionSpeedDriver(SectionDriver):
         rows: np.ndarray,
         st: VehicleStates,
         shapes: Table | None = None,
+        stop_m: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``observe_rows`` of driven vehicles ``vids`` (rows ``rows`` of ``st``): SUMO's
         leaders, lane ends and red lights asked now; ``shapes``: vehicle -> (length,
-        minGap, decel) (default: the vTypes of the vehicles this driver saw arrive)."""
+        minGap, decel) (default: the vTypes of the vehicles this driver saw arrive);
+        ``stop_m``: the distances to their lanes' ends if asked already (``lane_end_m``
+        minus the position)."""
         lanes = [st.lanes[i] for i in rows.tolist()]
-        stop = self.lane_end_m(sim, vids, lanes) - st.pos_m[rows]
+        stop = self.lane_end_m(sim, vids, lanes) - st.pos_m[rows] if stop_m is None else stop_m
         if self.has_lights:
             stop = np.minimum(stop, self.stop_lines_m(sim, vids, lanes))
         leaders = sim.leaders(vids, NO_LEADER_GAP_M)

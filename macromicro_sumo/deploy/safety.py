@@ -46,6 +46,17 @@ SAFETY_TOLERANCE_MPS = 0.01
 FLOOR_SHARE: float = DeployConfig.safety_floor_share
 
 
+def leader_safe_speed(
+    obs: np.ndarray, gap: np.ndarray, decel: np.ndarray, lead_decel: np.ndarray, dt_s: float
+) -> np.ndarray:
+    """Per vehicle, ``safe_speed`` [m/s] behind the leader it observes (``gap``: SUMO's gap
+    to it, ``NO_LEADER_GAP_M`` or more: none, inf; its speed obs[:, 0] - obs[:, 3]; a
+    standing leader at a stop line or lane end included): the cap of ``safety_cap``,
+    computed once a step and shared with a driver's merge handling (``deploy.drivers``)."""
+    safe = safe_speed(gap, obs[:, 0] - obs[:, 3], decel, lead_decel, dt_s)
+    return np.where(gap < NO_LEADER_GAP_M, safe, np.inf)
+
+
 def safety_cap(
     cmd: np.ndarray,
     obs: np.ndarray,
@@ -56,16 +67,18 @@ def safety_cap(
     dt_s: float,
     a_max_mps2: float,
     floor_share: float,
+    safe: np.ndarray | None = None,
 ) -> tuple[np.ndarray, int, int]:
     """Speed commands ``cmd`` [m/s] made safe: capped at ``safe_speed`` behind each
     vehicle's observed leader (``gap``: SUMO's gap to it, ``NO_LEADER_GAP_M`` or more:
     none, no cap; its speed obs[:, 0] - obs[:, 3]), raised to the floor where nothing
     ahead asks for less (``floor_share`` of the lane's limit obs[:, 1]), and capped behind the command of a leader that
     is driven too (``lead``: its index in ``cmd``, -1: none; ``behind_commands``).
+    ``safe``: ``leader_safe_speed`` of these inputs if computed already.
     Returns (commands, how many the layer lowered, how many it raised), each by more than
     ``SAFETY_TOLERANCE_MPS``."""
-    safe = safe_speed(gap, obs[:, 0] - obs[:, 3], decel, lead_decel, dt_s)
-    safe = np.where(gap < NO_LEADER_GAP_M, safe, np.inf)
+    if safe is None:
+        safe = leader_safe_speed(obs, gap, decel, lead_decel, dt_s)
     # The road kept open: never below a share of the lane's limit unless what is ahead
     # (the safe speed) asks for it, and no faster than the vehicle may accelerate to it.
     floor = np.minimum(safe, np.minimum(obs[:, 0] + a_max_mps2 * dt_s, floor_share * obs[:, 1]))
@@ -121,6 +134,7 @@ def speed_commands(
     obs: np.ndarray,
     layer: LayerInputs,
     cap: np.ndarray | None = None,
+    safe: np.ndarray | None = None,
 ) -> np.ndarray:
     """Speed commands v' = max(0, v + a dt) [m/s] of the batched action ``act`` at
     observations ``obs`` (v in column 0, the lane's limit in column 1), a clipped to the
@@ -128,7 +142,8 @@ def speed_commands(
     ``deploy.safety_floor_share``) where ``safety`` is "sumo", its actions counted in
     ``stats``: the one command rule of the ring's and the sections' speed drivers.
     ``cap``: speeds [m/s] the commands are lowered to before the layer (a merge's
-    cooperative slow-down, ``deploy.drivers``; inf: none)."""
+    cooperative slow-down, ``deploy.drivers``; inf: none); ``safe``: the layer's safe
+    speeds (``leader_safe_speed``) where the driver computed them already."""
     a_min, a_max = sc.bounds.accel_mps2
     # np.clip's own overhead is several times that of the two calls (the same values)
     a = np.minimum(np.maximum(act(obs), a_min), a_max)
@@ -140,4 +155,6 @@ def speed_commands(
         return cmd
     gap, decel, lead_decel, lead = layer()
     floor = sc.deploy.safety_floor_share
-    return stats.count_safety(*safety_cap(cmd, obs, gap, decel, lead_decel, lead, dt, a_max, floor))
+    return stats.count_safety(
+        *safety_cap(cmd, obs, gap, decel, lead_decel, lead, dt, a_max, floor, safe)
+    )

@@ -18,9 +18,9 @@ from deploy_nets import CAR, merge_net, netconvert
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver, SectionTypeDriver, SwitchedType
 from macromicro_sumo.deploy.ring_drivers import RingSpeedDriver
 from macromicro_sumo.deploy.run import Drive, load_context, run_method, vtype_xml
-from macromicro_sumo.deploy.safety import behind_commands
+from macromicro_sumo.deploy.safety import behind_commands, leader_safe_speed, safety_cap
 from macromicro_sumo.road.physics import safe_speed
-from macromicro_sumo.road.section import read_section
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, read_section
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.truth.ring import check_ring, run_ring, run_specs
@@ -121,6 +121,30 @@ def test_followers_brake_with_a_driven_leader_that_stops_within_a_step() -> None
     # Where the leaders brake no harder than assumed, nothing changes.
     calm = np.minimum(speed, safe_speed(gap, lead_speed, b, b, dt))
     np.testing.assert_array_equal(behind_commands(calm, gap, lead, b, b, dt), calm)
+
+
+def test_the_layer_caps_at_the_shared_leader_table() -> None:
+    """``leader_safe_speed`` (the one safe speed a step, which a driver's merge yield reads
+    too) is ``safe_speed`` behind an observed leader and no cap without one; the layer
+    given it commands what it commands computing it itself, and never above it."""
+    dt = 0.5
+    rng = np.random.default_rng(3)
+    n = 200
+    v = rng.uniform(0.0, 30.0, n)
+    obs = np.column_stack([v, np.full(n, 30.0), rng.uniform(5.0, 300.0, n), rng.normal(0, 3, n)])
+    gap = np.where(rng.random(n) < 0.2, 250.0, rng.uniform(0.0, 120.0, n))
+    b, b_l = rng.uniform(3.0, 6.0, n), rng.uniform(3.0, 9.0, n)
+    lead = np.where(rng.random(n) < 0.5, rng.integers(0, n, n), -1)
+    safe = leader_safe_speed(obs, gap, b, b_l, dt)
+    has = gap < NO_LEADER_GAP_M
+    assert np.isinf(safe[~has]).all() and np.isfinite(safe[has]).all()
+    np.testing.assert_array_equal(safe[has], safe_speed(gap, v - obs[:, 3], b, b_l, dt)[has])
+    cmd = v + rng.uniform(-4.5, 2.6, n) * dt
+    own = safety_cap(cmd, obs, gap, b, b_l, lead, dt, 2.6, 0.2)
+    shared = safety_cap(cmd, obs, gap, b, b_l, lead, dt, 2.6, 0.2, safe)
+    np.testing.assert_array_equal(own[0], shared[0])
+    assert own[1:] == shared[1:] and own[1] > 0
+    assert np.all(shared[0] <= safe + 1e-12)
 
 
 def _spreewaldring(folder: Path) -> Path:
