@@ -13,8 +13,11 @@ import pandas as pd
 import pytest
 
 from macromicro_sumo.cli import main
-from macromicro_sumo.road.section import Section
+from macromicro_sumo.road.section import Section, read_section
+from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.netgen import random_corridor
+from macromicro_sumo.truth.section import simulate_section
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_SCENARIO = ROOT / "scenarios" / "ring_paper.toml"
@@ -91,6 +94,21 @@ def write_scenario(folder: Path, overrides: dict[str, Any] | None = None) -> Pat
     path = folder / "scenario.toml"
     path.write_text(dump_toml(scenario_table(overrides)))
     return path
+
+
+# Four runs of 120 s on the paper ring: the smallest ground truth the Stage II tests train on.
+SMALL_RING = {"simulation.n_runs": 4, "simulation.duration_s": 120.0}
+
+
+@pytest.fixture(scope="session")
+def small_ring_gt(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The ground truth of the paper ring with ``SMALL_RING``, simulated once. A scenario that
+    differs from it only in later stages' keys (generator.*, policy.*) reads it as its own:
+    the simulation depends on the seed, the fleet and simulation.* alone."""
+    folder = tmp_path_factory.mktemp("small_ring")
+    path = write_scenario(folder, SMALL_RING)
+    assert main(["simulate", str(path), "--out", str(folder / "gt"), "--quiet"]) == 0
+    return folder / "gt"
 
 
 @pytest.fixture(scope="session")
@@ -196,6 +214,31 @@ interval_s = 30.0
     out = folder / "gt"
     assert main(["simulate", str(folder / "corridor.toml"), "--out", str(out), "--quiet"]) == 0
     return out
+
+
+# ------------------------------------------------------------------ the ring as a closed section
+@pytest.fixture(scope="session")
+def ring_loop() -> Section:
+    """The paper ring's network read as a closed one-lane section (628.3 m)."""
+    return read_section(NETS / "ring_r100_e4.net.xml", ["e0", "e1", "e2", "e3"], True)
+
+
+@pytest.fixture(scope="session")
+def ring_section_truth(tmp_path_factory: pytest.TempPathFactory) -> tuple[SectionScenario, Path]:
+    """ring_paper_section's fleet on the ring, two runs of 120 s (real SUMO): one
+    ground truth for every test that checks psi against the recorded passages."""
+    folder = tmp_path_factory.mktemp("ring_section_truth")
+    text = (ROOT / "scenarios" / "ring_paper_section.toml").read_text()
+    text = text.replace("../sumo_nets/", f"{ROOT}/sumo_nets/")
+    text = text.replace("duration_s = 180.0", "duration_s = 120.0").replace(
+        "n_runs = 40", "n_runs = 2"
+    )
+    path = folder / "ring.toml"
+    path.write_text(text)
+    sc = load_scenario(path)
+    assert (sc.simulation.duration_s, sc.simulation.n_runs) == (120.0, 2), "shipped file changed"
+    simulate_section(sc, folder / "gt", progress=False)
+    return sc, folder / "gt"
 
 
 BREMEN_FILES = ROOT / "scenarios" / "highway_bremen_files.toml"

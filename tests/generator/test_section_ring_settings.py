@@ -38,16 +38,11 @@ from macromicro_sumo.scenario.section import (
     SectionScenario,
     SumoNetworkConfig,
 )
-from macromicro_sumo.truth.section import load_section_truth, simulate_section
+from macromicro_sumo.truth.section import load_section_truth
 
 ROOT = Path(__file__).resolve().parents[2]
 S_MIN_M = 7.0
 N_VEHICLES = 5
-
-
-@pytest.fixture(scope="module")
-def ring() -> Section:
-    return read_section(ROOT / "sumo_nets" / "ring_r100_e4.net.xml", ["e0", "e1", "e2", "e3"], True)
 
 
 def ring_snapshots(section: Section, n: int, seed: int) -> SectionSnapshots:
@@ -103,12 +98,12 @@ def test_defaults_are_the_sections_former_behaviour() -> None:
     assert cfg.dispersion_center == "psi"
 
 
-def test_spacing_dispersion_paper_and_measured(ring: Section) -> None:
+def test_spacing_dispersion_paper_and_measured(ring_loop: Section) -> None:
     """L_var by hand on a completed ring scene: measured = |mean (d - psi mean)^2 - psi
     std^2| / psi mean^2, paper = std(d) / psi mean; measured falls back to the paper's
     where psi has no spacing std."""
-    snaps = ring_snapshots(ring, 3, seed=4)
-    road = Road.of(ring)
+    snaps = ring_snapshots(ring_loop, 3, seed=4)
+    road = Road.of(ring_loop)
     lane, arc = torch.as_tensor(snaps.lane), torch.as_tensor(snaps.arc_m)
     speed, present = torch.as_tensor(snaps.speed_mps), torch.as_tensor(snaps.valid)
     psi_arr = snaps.psi.copy()
@@ -118,7 +113,7 @@ def test_spacing_dispersion_paper_and_measured(ring: Section) -> None:
     paper = section_losses(lane, arc, speed, present, psi, road, "paper")["L_var"].numpy()
     for i in range(3):
         a = np.sort(snaps.arc_m[i])
-        d = np.append(np.diff(a), a[0] + ring.length_m - a[-1])
+        d = np.append(np.diff(a), a[0] + ring_loop.length_m - a[-1])
         mu, sigma = psi_arr[i, 1], psi_arr[i, 2]
         own = np.sqrt(d.var() + 1e-8) / mu
         assert paper[i] == pytest.approx(own, rel=1e-9)
@@ -127,12 +122,12 @@ def test_spacing_dispersion_paper_and_measured(ring: Section) -> None:
     assert measured[0] != pytest.approx(measured[1])  # the target counts
 
 
-def test_dispersion_center_scene_is_exact_on_a_closed_section(ring: Section) -> None:
+def test_dispersion_center_scene_is_exact_on_a_closed_section(ring_loop: Section) -> None:
     """With psi's mean spacing 6% short (E2 density on the ring), the measured dispersion
     around it reads the scene (mean - psi mean)^2 too wide; centred on the scene's own
     mean it is the spacings' variance against psi's. On an open section both are psi's."""
-    snaps = ring_snapshots(ring, 3, seed=9)
-    road = Road.of(ring)
+    snaps = ring_snapshots(ring_loop, 3, seed=9)
+    road = Road.of(ring_loop)
     lane, arc = torch.as_tensor(snaps.lane), torch.as_tensor(snaps.arc_m)
     speed, present = torch.as_tensor(snaps.speed_mps), torch.as_tensor(snaps.valid)
     psi_arr = snaps.psi.copy()
@@ -142,9 +137,9 @@ def test_dispersion_center_scene_is_exact_on_a_closed_section(ring: Section) -> 
     at_scene = section_losses(lane, arc, speed, present, psi, road, "measured", "scene")["L_var"]
     for i in range(3):
         a = np.sort(snaps.arc_m[i])
-        d = np.append(np.diff(a), a[0] + ring.length_m - a[-1])
+        d = np.append(np.diff(a), a[0] + ring_loop.length_m - a[-1])
         mu, var = psi_arr[i, 1], psi_arr[i, 2] ** 2
-        assert d.mean() == pytest.approx(ring.length_m / N_VEHICLES)
+        assert d.mean() == pytest.approx(ring_loop.length_m / N_VEHICLES)
         assert float(at_scene[i]) == pytest.approx(abs(d.var() - var) / mu**2, rel=1e-9)
         assert float(at_psi[i]) == pytest.approx(abs(((d - mu) ** 2).mean() - var) / mu**2)
     bremen = read_section(
@@ -161,18 +156,18 @@ def test_dispersion_center_scene_is_exact_on_a_closed_section(ring: Section) -> 
 
 
 def test_weight_averaging_validates_and_keeps_the_averaged_weights(
-    ring: Section, tmp_path: Path
+    ring_loop: Section, tmp_path: Path
 ) -> None:
     """generator.ema_decay on a section, as on the ring: training itself is unchanged (same
     seed, same train losses); validation, early stopping and the saved file see the moving
     average; a vanishing decay is the same as none."""
-    train, val = ring_snapshots(ring, 32, seed=1), ring_snapshots(ring, 16, seed=2)
+    train, val = ring_snapshots(ring_loop, 32, seed=1), ring_snapshots(ring_loop, 16, seed=2)
 
     def fit(decay: float) -> tuple:
-        sc = scenario(ring, ema_decay=decay)
+        sc = scenario(ring_loop, ema_decay=decay)
         out = tmp_path / f"ema{decay}"
         out.mkdir()
-        net, log = train_section_generator(sc, ring, train, val, progress=False, out=out)
+        net, log = train_section_generator(sc, ring_loop, train, val, progress=False, out=out)
         saved = load_section_generator(out / "generator.pt", sc).state_dict()
         return log, saved, net.state_dict()
 
@@ -235,11 +230,11 @@ def one_hidden(section: Section, n: int, seed: int) -> SectionSnapshots:
     return dataclasses.replace(s, observed=observed, k_true=ones, k_est=ones)
 
 
-def test_posterior_gap_choice_is_calibrated_on_one_lane(ring: Section) -> None:
+def test_posterior_gap_choice_is_calibrated_on_one_lane(ring_loop: Section) -> None:
     """With one hidden vehicle the posterior's probability of the largest observed gap
     matches how often the hidden vehicle lies in it (i.i.d.-like Dirichlet spacings)."""
-    snaps = one_hidden(ring, 400, seed=5)
-    road = Road.of(ring)
+    snaps = one_hidden(ring_loop, 400, seed=5)
+    road = Road.of(ring_loop)
     scene = Scene.start(snaps, snaps.k_true, road)
     psi = Psi.of(snaps.psi)
     obs = scene.observe(0, torch.arange(len(snaps)), psi, road, torch.Generator().manual_seed(0))
@@ -251,27 +246,27 @@ def test_posterior_gap_choice_is_calibrated_on_one_lane(ring: Section) -> None:
     largest = length.argmax(axis=1)
     start = obs.gaps.start.numpy()[np.arange(len(snaps)), largest]
     hidden_arc = snaps.arc_m[~snaps.observed]
-    inside = np.mod(hidden_arc - start, ring.length_m) < length[np.arange(len(snaps)), largest]
+    inside = np.mod(hidden_arc - start, ring_loop.length_m) < length[np.arange(len(snaps)), largest]
     assert abs(p[np.arange(len(snaps)), largest].mean() - inside.mean()) < 0.03
     assert p[np.arange(len(snaps)), largest].mean() < 0.9999  # a draw, not an argmax
 
 
-def test_posterior_gap_choice_does_not_depend_on_the_network(ring: Section) -> None:
+def test_posterior_gap_choice_does_not_depend_on_the_network(ring_loop: Section) -> None:
     """Two differently initialised networks with the same seed put the hidden vehicle into
     the same gap (the posterior chooses; the network only says where in it and how fast),
     and every completion is feasible."""
-    snaps = one_hidden(ring, 40, seed=6)
-    sc = scenario(ring, gap_choice="posterior")
+    snaps = one_hidden(ring_loop, 40, seed=6)
+    sc = scenario(ring_loop, gap_choice="posterior")
     gaps = []
     for init in (0, 1):
         torch.manual_seed(init)
         net = SectionGeneratorNet(16, "posterior")
-        comp = complete_section(net, ring, snaps, snaps.k_true, 20, seed=3)
-        assert completion_metrics(ring, snaps, comp, snaps.k_true)["feasible"].all()
+        comp = complete_section(net, ring_loop, snaps, snaps.k_true, 20, seed=3)
+        assert completion_metrics(ring_loop, snaps, comp, snaps.k_true)["feasible"].all()
         arc = comp.arc_m[comp.generated]
         behind = np.array(  # the observed vehicle the new one follows
             [
-                np.mod(arc[i] - snaps.arc_m[i][snaps.observed[i]], ring.length_m).argmin()
+                np.mod(arc[i] - snaps.arc_m[i][snaps.observed[i]], ring_loop.length_m).argmin()
                 for i in range(40)
             ]
         )
@@ -280,7 +275,7 @@ def test_posterior_gap_choice_does_not_depend_on_the_network(ring: Section) -> N
     assert sc.generator.gap_choice == "posterior"
 
 
-def test_posterior_gap_choice_refuses_other_sections(ring: Section) -> None:
+def test_posterior_gap_choice_refuses_other_sections(ring_loop: Section) -> None:
     """Open or multi-lane sections and the paper's dispersion: one-line errors naming the
     field and what is accepted; a checkpoint is only valid for its gap choice."""
     bremen = read_section(
@@ -288,10 +283,10 @@ def test_posterior_gap_choice_refuses_other_sections(ring: Section) -> None:
         ["145354574", "189597495", "E0", "191842213"],
         False,
     )
-    snaps = ring_snapshots(ring, 4, seed=7)
+    snaps = ring_snapshots(ring_loop, 4, seed=7)
     for section, extra, accepted in (
         (bremen, {}, "closed one-lane section"),
-        (ring, {"spacing_dispersion": "paper"}, 'accepted "measured"'),
+        (ring_loop, {"spacing_dispersion": "paper"}, 'accepted "measured"'),
     ):
         sc = scenario(section, gap_choice="posterior", **extra)
         with pytest.raises(UserError) as err:
@@ -300,39 +295,23 @@ def test_posterior_gap_choice_refuses_other_sections(ring: Section) -> None:
         assert "\n" not in msg and "generator.gap_choice" in msg and accepted in msg
 
 
-def test_posterior_checkpoint_round_trip(ring: Section, tmp_path: Path) -> None:
-    train = ring_snapshots(ring, 16, seed=8)
-    sc = scenario(ring, gap_choice="posterior", epochs=2)
-    net, log = train_section_generator(sc, ring, train, train, progress=False, out=tmp_path)
+def test_posterior_checkpoint_round_trip(ring_loop: Section, tmp_path: Path) -> None:
+    train = ring_snapshots(ring_loop, 16, seed=8)
+    sc = scenario(ring_loop, gap_choice="posterior", epochs=2)
+    net, log = train_section_generator(sc, ring_loop, train, train, progress=False, out=tmp_path)
     back = load_section_generator(tmp_path / "generator.pt", sc)
     assert back.gap_choice == "posterior" and np.isfinite(log["val_loss"]).all()
-    other = scenario(ring, epochs=2)
+    other = scenario(ring_loop, epochs=2)
     with pytest.raises(UserError, match="generator.gap_choice"):
         load_section_generator(tmp_path / "generator.pt", other)
 
 
-@pytest.fixture(scope="module")
-def ring_truth(tmp_path_factory: pytest.TempPathFactory) -> tuple[SectionScenario, Path]:
-    """ring_paper_section's fleet on the ring, two short runs (real SUMO)."""
-    folder = tmp_path_factory.mktemp("ring_truth")
-    text = (ROOT / "scenarios" / "ring_paper_section.toml").read_text()
-    text = text.replace("../sumo_nets/", f"{ROOT}/sumo_nets/")
-    text = text.replace("duration_s = 180.0", "duration_s = 120.0").replace(
-        "n_runs = 40", "n_runs = 2"
-    )
-    path = folder / "ring.toml"
-    path.write_text(text)
-    sc = load_scenario(path)
-    simulate_section(sc, folder / "gt", progress=False)
-    return sc, folder / "gt"
-
-
-def test_bounds_source_margin_interval_extended(ring_truth) -> None:
+def test_bounds_source_margin_interval_extended(ring_section_truth) -> None:
     """psi's speed bounds: margin = the passages' extremes x 0.9 / x 1.1 (the section's
     former bounds), interval = the extremes, extended = widened by range / (n - 1) with n
     the interval's passages counted here from detector_passages.csv; the extended bounds
     hold more of the recorded speeds than the interval's."""
-    sc, gt = ring_truth
+    sc, gt = ring_section_truth
     truth = load_section_truth(gt, sc)
 
     def table(source: str) -> pd.DataFrame:
@@ -366,8 +345,8 @@ def test_bounds_source_margin_interval_extended(ring_truth) -> None:
     assert inside_ext > inside_int
 
 
-def test_extended_bounds_need_the_passages(ring_truth, tmp_path: Path) -> None:
-    sc, gt = ring_truth
+def test_extended_bounds_need_the_passages(ring_section_truth, tmp_path: Path) -> None:
+    sc, gt = ring_section_truth
     truth = load_section_truth(gt, sc)
     cfg = dataclasses.replace(sc.generator, bounds_source="extended")
     bare = dataclasses.replace(truth, folder=tmp_path)  # a folder without passages

@@ -26,35 +26,13 @@ from macromicro_sumo.generator.section_train import (
     run_train_section_generator,
     squared_dispersion,
 )
-from macromicro_sumo.road.section import Section, read_section
-from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.section import SectionGeneratorConfig, SectionScenario
-from macromicro_sumo.truth.section import load_section_truth, simulate_section
+from macromicro_sumo.truth.section import load_section_truth
 
 ROOT = Path(__file__).resolve().parents[2]
 N_VEHICLES = 5
 S_MIN_M = 7.0
-
-
-@pytest.fixture(scope="module")
-def ring() -> Section:
-    return read_section(ROOT / "sumo_nets" / "ring_r100_e4.net.xml", ["e0", "e1", "e2", "e3"], True)
-
-
-@pytest.fixture(scope="module")
-def ring_truth(tmp_path_factory: pytest.TempPathFactory) -> tuple[SectionScenario, Path]:
-    """ring_paper_section's fleet on the ring, two short runs (real SUMO)."""
-    folder = tmp_path_factory.mktemp("ring_bounds")
-    text = (ROOT / "scenarios" / "ring_paper_section.toml").read_text()
-    text = text.replace("../sumo_nets/", f"{ROOT}/sumo_nets/")
-    text = text.replace("duration_s = 180.0", "duration_s = 120.0").replace(
-        "n_runs = 40", "n_runs = 2"
-    )
-    path = folder / "ring.toml"
-    path.write_text(text)
-    sc = load_scenario(path)
-    simulate_section(sc, folder / "gt", progress=False)
-    return sc, folder / "gt"
 
 
 def with_generator(sc: SectionScenario, **gen: object) -> SectionScenario:
@@ -75,13 +53,13 @@ def by_hand(passages: pd.DataFrame, run: int, begin: float, end: float, s_min: f
     return np.array(out)
 
 
-def test_psi_spacing_max_from_the_passages_by_hand(ring_truth) -> None:
+def test_psi_spacing_max_from_the_passages_by_hand(ring_section_truth) -> None:
     """spacing_bounds = "passages": psi's shortest and longest spacing are the interval's
     extreme passage spacings (interval), x 0.9 / x 1.1 (margin), widened by range / (n - 1)
     (extended), the shortest never below spacing_min_m; "none" (the default) has no bound.
     The extended bounds hold more of the true spacings around the loop than the
     interval's, and almost all of them."""
-    sc, gt = ring_truth
+    sc, gt = ring_section_truth
     truth = load_section_truth(gt, sc)
     assert SectionGeneratorConfig().spacing_bounds == "none"
     none = psi_table(truth, with_generator(sc, spacing_bounds="none"))
@@ -128,8 +106,8 @@ def test_psi_spacing_max_from_the_passages_by_hand(ring_truth) -> None:
     assert inside_ext >= inside_int and inside_ext / total > 0.97
 
 
-def test_spacing_bounds_need_the_passages(ring_truth, tmp_path: Path) -> None:
-    sc, gt = ring_truth
+def test_spacing_bounds_need_the_passages(ring_section_truth, tmp_path: Path) -> None:
+    sc, gt = ring_section_truth
     truth = load_section_truth(gt, sc)
     bare = dataclasses.replace(truth, folder=tmp_path)  # a folder without passages
     cfg = with_generator(sc, spacing_bounds="passages", bounds_source="interval")
@@ -189,27 +167,27 @@ def touched_spacings(section: Section, arc: np.ndarray, generated: np.ndarray) -
     return np.array([gaps[j], gaps[j - 1]])
 
 
-def test_the_last_vehicle_keeps_both_spacings_under_psis_largest(ring: Section) -> None:
+def test_the_last_vehicle_keeps_both_spacings_under_psis_largest(ring_loop: Section) -> None:
     """With psi's d_max (the largest true spacing of each scene, so the true place fits), the
     one hidden vehicle is placed with both its spacings <= d_max (Algorithm 3's rejection,
     a few projections); without it (inf) the same untrained generator puts some beyond."""
     torch.manual_seed(0)
     net = SectionGeneratorNet(16, "posterior")
-    snaps = ring_scenes(ring, 60, seed=3, d_max=np.inf)
+    snaps = ring_scenes(ring_loop, 60, seed=3, d_max=np.inf)
     true_max = np.zeros(len(snaps))
     for i in range(len(snaps)):
         a = np.sort(snaps.arc_m[i])
-        true_max[i] = np.append(np.diff(a), a[0] + ring.length_m - a[-1]).max()
+        true_max[i] = np.append(np.diff(a), a[0] + ring_loop.length_m - a[-1]).max()
     capped = dataclasses.replace(snaps, psi=snaps.psi.copy())
     capped.psi[:, PSI_FIELDS.index("spacing_max_m")] = true_max
     beyond = {}
     for name, s in (("capped", capped), ("free", snaps)):
-        comp = complete_section(net, ring, s, s.k_true, 20, seed=1)
+        comp = complete_section(net, ring_loop, s, s.k_true, 20, seed=1)
         assert comp.projections.sum() <= len(s) // 10  # rejection; the rest projected inside
         touched = np.array(
             [
                 touched_spacings(
-                    ring, comp.arc_m[i][comp.valid[i]], comp.generated[i][comp.valid[i]]
+                    ring_loop, comp.arc_m[i][comp.valid[i]], comp.generated[i][comp.valid[i]]
                 )
                 for i in range(len(s))
             ]
@@ -218,11 +196,11 @@ def test_the_last_vehicle_keeps_both_spacings_under_psis_largest(ring: Section) 
     assert beyond["capped"] == 0 and beyond["free"] > 0
 
 
-def test_touched_spacing_set_is_the_rings_a(ring: Section) -> None:
+def test_touched_spacing_set_is_the_rings_a(ring_loop: Section) -> None:
     """spacing_set = "touched": the spacing terms count only the spacings with a generated
     vehicle at either end (the ring's A), deviations from the loop's exact mean spacing."""
-    snaps = ring_scenes(ring, 4, seed=8, d_max=np.inf)
-    road = Road.of(ring)
+    snaps = ring_scenes(ring_loop, 4, seed=8, d_max=np.inf)
+    road = Road.of(ring_loop)
     # the first three slots observed, the last two generated
     lane, arc = torch.as_tensor(snaps.lane), torch.as_tensor(snaps.arc_m)
     speed, present = torch.as_tensor(snaps.speed_mps), torch.as_tensor(snaps.valid)
@@ -232,20 +210,20 @@ def test_touched_spacing_set_is_the_rings_a(ring: Section) -> None:
     for i in range(len(snaps)):
         order = np.argsort(snaps.arc_m[i])
         a = snaps.arc_m[i][order]
-        gaps = np.append(np.diff(a), a[0] + ring.length_m - a[-1])
+        gaps = np.append(np.diff(a), a[0] + ring_loop.length_m - a[-1])
         gen = order >= 3
         in_a = gen | np.roll(gen, -1)  # follower or leader generated
-        mu, var = ring.length_m / N_VEHICLES, snaps.psi[i, 2] ** 2
+        mu, var = ring_loop.length_m / N_VEHICLES, snaps.psi[i, 2] ** 2
         want = abs(((gaps[in_a] - mu) ** 2).mean() - var) / mu**2
         assert float(terms["L_var"][i]) == pytest.approx(want, rel=1e-9)
         assert float(terms["L_mean"][i]) == pytest.approx((gaps[in_a].mean() / mu - 1) ** 2)
         assert float(every["L_var"][i]) == pytest.approx(abs(gaps.var() - var) / mu**2)
 
 
-def test_several_completions_per_held_out_scene(ring_truth, tmp_path: Path) -> None:
+def test_several_completions_per_held_out_scene(ring_section_truth, tmp_path: Path) -> None:
     """eval_completions = 3: generator_metrics.csv holds every held-out snapshot three times
     per method (column completion 0..2), from different draws, and the manifest pools them."""
-    sc, gt = ring_truth
+    sc, gt = ring_section_truth
     sc = with_generator(sc, epochs=2, hidden_size=16, eval_completions=3, hidden_eval=[1, 2])
     man = run_train_section_generator(sc, gt, tmp_path / "gen", progress=False)
     m = pd.read_csv(tmp_path / "gen" / "generator_metrics.csv")
@@ -262,21 +240,21 @@ def test_several_completions_per_held_out_scene(ring_truth, tmp_path: Path) -> N
     )
 
 
-def test_a_touched_gap_beyond_d_max_draws_the_last_vehicle(ring: Section) -> None:
+def test_a_touched_gap_beyond_d_max_draws_the_last_vehicle(ring_loop: Section) -> None:
     """Two hidden vehicles (slots 0 and 2, not neighbours): with both still to place every
     gap up to 3 d_max has an accepted part (Algorithm 3's, ``bounded_gaps``). The first is
     then put 8 m ahead of the observed vehicle with the longest gap ahead, which leaves a
     touched gap longer than d_max: the last vehicle is accepted only there, at a point that
     leaves both pieces within d_max."""
     n = 8
-    snaps = ring_scenes(ring, n, seed=11, d_max=np.inf)
+    snaps = ring_scenes(ring_loop, n, seed=11, d_max=np.inf)
     hidden = np.zeros_like(snaps.observed)
     hidden[:, [0, 2]] = True
-    d_max = 1.4 * ring.length_m / N_VEHICLES
+    d_max = 1.4 * ring_loop.length_m / N_VEHICLES
     psi_arr = snaps.psi.copy()
     psi_arr[:, PSI_FIELDS.index("spacing_max_m")] = d_max
     snaps = dataclasses.replace(snaps, observed=~hidden, psi=psi_arr, k_true=np.full(n, 2))
-    road = Road.of(ring)
+    road = Road.of(ring_loop)
     scene = Scene.start(snaps, snaps.k_true, road)
     psi = Psi.of(snaps.psi)
     idx = torch.arange(n)
@@ -295,9 +273,9 @@ def test_a_touched_gap_beyond_d_max_draws_the_last_vehicle(ring: Section) -> Non
     assert bool(short.any()) and bool((first.room[short] > 0).all())
     # the longest observed gap and the vehicle behind it
     a = np.sort(snaps.arc_m[:, [1, 3, 4]], axis=1)
-    ahead = np.concatenate([np.diff(a, axis=1), a[:, :1] + ring.length_m - a[:, -1:]], axis=1)
+    ahead = np.concatenate([np.diff(a, axis=1), a[:, :1] + ring_loop.length_m - a[:, -1:]], axis=1)
     j = ahead.argmax(axis=1)
-    new_arc = torch.as_tensor(np.mod(a[np.arange(n), j] + 8.0, ring.length_m))
+    new_arc = torch.as_tensor(np.mod(a[np.arange(n), j] + 8.0, ring_loop.length_m))
     left = ahead[np.arange(n), j] - 8.0
     scene.place(
         0,
@@ -318,16 +296,16 @@ def test_a_touched_gap_beyond_d_max_draws_the_last_vehicle(ring: Section) -> Non
         assert float(g.room[i, t]) > 0
 
 
-def test_squared_dispersion_error_by_hand(ring: Section) -> None:
+def test_squared_dispersion_error_by_hand(ring_loop: Section) -> None:
     """dispersion_error = "squared": L_var = (X - sigma^2)^2 / (d^2 sigma^2) with X the
     scene's spacing variance around the loop's exact mean (dispersion_center = "scene"),
     sigma and d psi's spacing std and mean spacing (here 6% short, as E2's on the ring)."""
-    snaps = ring_scenes(ring, 5, seed=2, d_max=np.inf)
+    snaps = ring_scenes(ring_loop, 5, seed=2, d_max=np.inf)
     psi_arr = snaps.psi.copy()
     psi_arr[:, 1] *= 0.94
     psi_arr[:, 2] = [10.0, 20.0, 30.0, 40.0, 50.0]
     psi = Psi.of(psi_arr)
-    road = Road.of(ring)
+    road = Road.of(ring_loop)
     lane, arc = torch.as_tensor(snaps.lane), torch.as_tensor(snaps.arc_m)
     speed, present = torch.as_tensor(snaps.speed_mps), torch.as_tensor(snaps.valid)
     l_var = section_losses(lane, arc, speed, present, psi, road, "measured", "scene")["L_var"]
@@ -335,7 +313,7 @@ def test_squared_dispersion_error_by_hand(ring: Section) -> None:
     signs = []
     for i in range(len(snaps)):
         a = np.sort(snaps.arc_m[i])
-        x = np.append(np.diff(a), a[0] + ring.length_m - a[-1]).var()
+        x = np.append(np.diff(a), a[0] + ring_loop.length_m - a[-1]).var()
         d, var = psi_arr[i, 1], psi_arr[i, 2] ** 2
         assert float(sq[i]) == pytest.approx((x - var) ** 2 / (d * d * var), rel=1e-9)
         signs.append(np.sign(x - var))

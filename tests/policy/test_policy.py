@@ -8,13 +8,11 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from conftest import write_scenario
+from policy_rings import ring_scenario, true_state_bank
 
 from macromicro_sumo import cli
-from macromicro_sumo.data.ring import load_ground_truth, split_runs
-from macromicro_sumo.env.ring import RingCore, build_bank
+from macromicro_sumo.env.ring import RingCore
 from macromicro_sumo.policy.ppo import clipped_actions, gae
-from macromicro_sumo.scenario.load import load_scenario
 
 
 def test_gae_matches_hand_computation():
@@ -38,28 +36,14 @@ def test_clipped_actions_counts_share():
 
 
 @pytest.fixture(scope="module")
-def small_gt(tmp_path_factory):
+def small_gt(small_ring_gt, tmp_path_factory):
     folder = tmp_path_factory.mktemp("policy")
-    path = write_scenario(
-        folder,
-        {
-            "simulation.n_runs": 4,
-            "simulation.duration_s": 120.0,
-            "policy.updates": 6,
-            "generator.epochs": 5,
-        },
-    )
-    sc = load_scenario(path)
-    out = folder / "gt"
-    assert cli.main(["simulate", str(path), "--out", str(out), "--quiet"]) == 0
-    return sc, out
+    return ring_scenario(folder, {"policy.updates": 6, "generator.epochs": 5}), small_ring_gt
 
 
 def _bank(sc, gt_dir, k):
-    gt = load_ground_truth(gt_dir, sc)
-    runs = split_runs(gt.runs, sc.generator.held_out_fraction, sc.seed)["train"]
     # Completing with the true hidden states isolates the env from the generator.
-    return build_bank(sc, gt, runs, lambda s: (s.arc_m, s.speed_mps), k, 0)
+    return true_state_bank(sc, gt_dir, k, split="train")[0]
 
 
 def test_replay_of_all_vehicles_reproduces_ground_truth(small_gt):

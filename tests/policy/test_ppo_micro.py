@@ -8,11 +8,9 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
-from conftest import write_scenario
+from policy_rings import ring_scenario, true_state_bank
 
-from macromicro_sumo import cli
-from macromicro_sumo.data.ring import load_ground_truth, split_runs
-from macromicro_sumo.env.ring import RingCore, build_bank
+from macromicro_sumo.env.ring import RingCore
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.ppo import (
@@ -24,7 +22,6 @@ from macromicro_sumo.policy.ppo import (
     train_policy,
     validation_pairs,
 )
-from macromicro_sumo.scenario.load import load_scenario
 
 
 def test_linear_learning_rate_reaches_zero_after_the_last_update():
@@ -43,25 +40,11 @@ def test_split_episodes_keeps_validation_runs_out_of_training():
 
 
 @pytest.fixture(scope="module")
-def ring(tmp_path_factory):
+def ring(small_ring_gt, tmp_path_factory):
     folder = tmp_path_factory.mktemp("micro")
-    path = write_scenario(
-        folder,
-        {
-            "simulation.n_runs": 4,
-            "simulation.duration_s": 120.0,
-            "policy.updates": 4,
-            "policy.episodes_per_update": 8,
-        },
-    )
-    sc = load_scenario(path)
-    out = folder / "gt"
-    assert cli.main(["simulate", str(path), "--out", str(out), "--quiet"]) == 0
-    gt = load_ground_truth(out, sc)
-    splits = split_runs(gt.runs, sc.generator.held_out_fraction, sc.seed)
-    runs = np.concatenate([splits["train"], splits["val"]])
+    sc = ring_scenario(folder, {"policy.updates": 4, "policy.episodes_per_update": 8})
     # Completing with the true hidden states isolates the likelihood term from the generator.
-    bank = build_bank(sc, gt, runs, lambda s: (s.arc_m, s.speed_mps), (1, 3), 0)
+    bank, splits = true_state_bank(sc, small_ring_gt)
     return sc, bank, splits["val"]
 
 

@@ -8,11 +8,8 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
-from conftest import write_scenario
+from policy_rings import gipps_agent, ring_scenario, true_state_bank
 
-from macromicro_sumo import cli
-from macromicro_sumo.data.ring import load_ground_truth, split_runs
-from macromicro_sumo.env.ring import build_bank
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation import idm_fit
 from macromicro_sumo.evaluation.idm_fit import (
@@ -27,7 +24,6 @@ from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.checkpoint import load_policy
 from macromicro_sumo.policy.ppo import train_policy
 from macromicro_sumo.policy.prior import idm_prior_params
-from macromicro_sumo.scenario.load import load_scenario
 
 PARAMS = IdmParams(speed_factor=1.05, tau_s=1.2, accel_mps2=1.4, decel_mps2=2.1, min_gap_m=2.5)
 GIPPS = GippsParams(speed_factor=1.05, accel_mps2=1.7, decel_mps2=4.6, tau_s=1.1, min_gap_m=2.0)
@@ -36,10 +32,7 @@ DT_S = 0.5
 
 
 def _gipps_agent(observation: str = "lookahead", bound: float = 1.0) -> Agent:
-    params = {**GIPPS.as_dict(), "veh_length_m": LENGTH_M, "dt_s": DT_S}
-    return Agent(
-        16, observation=observation, prior="gipps", prior_params=params, residual_bound_mps2=bound
-    )
+    return gipps_agent(GIPPS, LENGTH_M, DT_S, observation=observation, residual_bound_mps2=bound)
 
 
 def _obs(n: int, dim: int, seed: int = 0) -> np.ndarray:
@@ -90,24 +83,10 @@ def test_no_prior_is_the_actor_alone():
 
 
 @pytest.fixture(scope="module")
-def ring(tmp_path_factory):
+def ring(small_ring_gt, tmp_path_factory):
     folder = tmp_path_factory.mktemp("prior")
-    path = write_scenario(
-        folder,
-        {
-            "simulation.n_runs": 4,
-            "simulation.duration_s": 120.0,
-            "policy.episodes_per_update": 8,
-            "policy.prior": "idm",
-        },
-    )
-    sc = load_scenario(path)
-    out = folder / "gt"
-    assert cli.main(["simulate", str(path), "--out", str(out), "--quiet"]) == 0
-    gt = load_ground_truth(out, sc)
-    splits = split_runs(gt.runs, sc.generator.held_out_fraction, sc.seed)
-    runs = np.concatenate([splits["train"], splits["val"]])
-    bank = build_bank(sc, gt, runs, lambda s: (s.arc_m, s.speed_mps), (1, 3), 0)
+    sc = ring_scenario(folder, {"policy.episodes_per_update": 8, "policy.prior": "idm"})
+    bank, _ = true_state_bank(sc, small_ring_gt)
     # Motorway-like parameters, not the ring's fit: the paper ring's slow, gentle IDM
     # (a = 0.28, b = 0.15 m/s^2) brakes at its bound at 51 m too when closing at 6 m/s.
     return sc, bank, idm_prior_params(PARAMS.as_dict(), sc.fleet.length_m)

@@ -6,12 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from conftest import write_scenario
+from policy_rings import gipps_agent, lookahead_pairs, ring_scenario, true_state_bank
 
-from macromicro_sumo import cli
-from macromicro_sumo.data.ring import load_ground_truth, split_runs
 from macromicro_sumo.env.observation import bank_shift_scale
-from macromicro_sumo.env.ring import build_bank
 from macromicro_sumo.evaluation.idm_fit import GippsParams, gipps_policy_accel
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.ppo import train_policy
@@ -24,7 +21,6 @@ from macromicro_sumo.policy.residual import (
     support_weight,
 )
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES
-from macromicro_sumo.scenario.load import load_scenario
 
 GIPPS = GippsParams(speed_factor=1.0, accel_mps2=0.5, decel_mps2=4.5, tau_s=1.0, min_gap_m=2.0)
 LENGTH_M, DT_S = 5.0, 0.5
@@ -34,24 +30,18 @@ def _pairs(n: int, seed: int = 0) -> np.ndarray:
     """Lookahead observations as a corridor's observed pairs: 16-32 m/s on a 30 m/s road,
     half of them with no leader (spacing 250 m), half following at 20-80 m."""
     rng = np.random.default_rng(seed)
-    obs = np.zeros((n, 6), dtype=np.float32)
-    obs[:, 0] = rng.uniform(16.0, 32.0, n)
-    obs[:, 1] = obs[:, 4] = 30.0
-    obs[:, 2] = np.where(np.arange(n) % 2 == 0, 250.0, rng.uniform(20.0, 80.0, n))
-    obs[:, 3] = np.where(obs[:, 2] < 250.0, rng.uniform(-2.0, 4.0, n), 0.0)
-    obs[:, 5] = rng.uniform(0.0, 500.0, n)
-    return obs
+    return lookahead_pairs(rng, n, (16.0, 32.0), 30.0, 250.0, (20.0, 80.0), (-2.0, 4.0), 500.0)
 
 
 def _agent(obs: np.ndarray, seed: int = 0) -> Agent:
     torch.manual_seed(seed)
-    params = {**GIPPS.as_dict(), "veh_length_m": LENGTH_M, "dt_s": DT_S}
-    return Agent(
+    return gipps_agent(
+        GIPPS,
+        LENGTH_M,
+        DT_S,
         32,
         observation="lookahead",
         shift_scale=bank_shift_scale(obs),
-        prior="gipps",
-        prior_params=params,
         residual_bound_mps2=1.0,
     )
 
@@ -129,27 +119,19 @@ def test_anchors_pull_a_residual_to_zero_off_its_pairs():
 
 
 @pytest.fixture(scope="module")
-def trained_ring(tmp_path_factory):
+def trained_ring(small_ring_gt, tmp_path_factory):
     """PPO with an IDM prior on a small ring whose recorded pairs follow the prior + 0.5
     m/s^2 behind a leader and the prior alone on a free road."""
     folder = tmp_path_factory.mktemp("residual")
-    path = write_scenario(
+    sc = ring_scenario(
         folder,
         {
-            "simulation.n_runs": 4,
-            "simulation.duration_s": 120.0,
             "policy.episodes_per_update": 8,
             "policy.prior": "idm",
             "policy.lr": 0.02,  # a large rate: the residual moves far in a few updates
         },
     )
-    sc = load_scenario(path)
-    out = folder / "gt"
-    assert cli.main(["simulate", str(path), "--out", str(out), "--quiet"]) == 0
-    gt = load_ground_truth(out, sc)
-    splits = split_runs(gt.runs, sc.generator.held_out_fraction, sc.seed)
-    runs = np.concatenate([splits["train"], splits["val"]])
-    bank = build_bank(sc, gt, runs, lambda s: (s.arc_m, s.speed_mps), (1, 3), 0)
+    bank, _ = true_state_bank(sc, small_ring_gt)
     params = idm_prior_params(
         {"speed_factor": 1.05, "tau_s": 1.2, "accel_mps2": 1.4, "decel_mps2": 2.1}
         | {"min_gap_m": 2.5, "delta": 4.0},
@@ -157,12 +139,7 @@ def trained_ring(tmp_path_factory):
     )
     rng = np.random.default_rng(0)
     n = 2000
-    obs = np.zeros((n, 6), dtype=np.float32)
-    obs[:, 0] = rng.uniform(8.0, 14.0, n)
-    obs[:, 1] = obs[:, 4] = 13.0
-    obs[:, 2] = np.where(np.arange(n) % 2 == 0, 1000.0, rng.uniform(10.0, 40.0, n))
-    obs[:, 3] = np.where(obs[:, 2] < 1000.0, rng.uniform(-1.0, 3.0, n), 0.0)
-    obs[:, 5] = rng.uniform(0.0, 200.0, n)
+    obs = lookahead_pairs(rng, n, (8.0, 14.0), 13.0, 1000.0, (10.0, 40.0), (-1.0, 3.0), 200.0)
     obs = obs[:, : len(OBSERVATION_FEATURES[sc.policy.observation])]
     probe = Agent(16, observation=sc.policy.observation, prior="idm", prior_params=params)
     with torch.no_grad():
