@@ -5,12 +5,19 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
-import torch
 from conftest import PAPER_SCENARIO, ROOT
+from lf_trials import (
+    SUMMARY_COLUMNS,
+    TRACE_COLUMNS,
+    assert_idm_followers_safe,
+    assert_leader_replays,
+    random_agent,
+    random_policy,
+    rows,
+)
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation import leader_follower as lf
-from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.road.physics import idm_accel
 from macromicro_sumo.scenario.load import load_scenario
 
@@ -69,8 +76,7 @@ def test_idm_follower_in_sumo_matches_numpy_euler(sc, spacing_m):
         np.testing.assert_allclose(d["follower_speed_mps"], speed, rtol=0, atol=1e-6)
         np.testing.assert_allclose(d["gap_m"], gap, rtol=0, atol=1e-6)
         np.testing.assert_array_equal(d["idm_follower_speed_mps"], d["follower_speed_mps"])
-    assert not summary["collision"].any()
-    assert (summary["rmse_vs_idm_mps"] == 0).all()
+    assert_idm_followers_safe(summary, ())
 
 
 def test_close_start_idm_settles_behind_slow_leader(sc):
@@ -136,8 +142,7 @@ def test_bad_arguments(sc):
 @pytest.fixture(scope="module")
 def random_agent_runs(sc):
     """A random-weights agent, 3 stochastic trials, twice with seed 7 and once with seed 8."""
-    torch.manual_seed(0)
-    agent = Agent(observation=sc.policy.observation)
+    agent = random_agent(sc.policy.observation)
     followers = {
         "policy": lf.policy_follower(agent),
         "policy_mean": lf.policy_follower(agent, False),
@@ -169,24 +174,8 @@ def test_policy_traces_are_seeded(random_agent_runs):
 
 def test_trace_table_and_summary(random_agent_runs):
     traces, summary = random_agent_runs[0]
-    assert list(traces.columns) == [
-        "scenario",
-        "method",
-        "trial",
-        "time_s",
-        "leader_speed_mps",
-        "follower_speed_mps",
-        "idm_follower_speed_mps",
-        "gap_m",
-    ]
-    assert list(summary.columns) == [
-        "scenario",
-        "method",
-        "trial",
-        "rmse_vs_idm_mps",
-        "min_gap_m",
-        "collision",
-    ]
+    assert list(traces.columns) == TRACE_COLUMNS
+    assert list(summary.columns) == SUMMARY_COLUMNS
     assert len(summary) == 2 * (1 + 3 + 3)
     assert traces.groupby(["scenario", "method", "trial"]).size().eq(41).all()
     for (scenario, method, trial), g in traces.groupby(["scenario", "method", "trial"]):
@@ -231,10 +220,9 @@ def test_leader_follower_on_a_sugiyama_ring():
     sc = load_scenario(SUGIYAMA_SCENARIO)
     assert sc.fleet.n_vehicles == 22
     assert sc.network.length_m == pytest.approx(230.0, abs=0.1)
-    torch.manual_seed(0)
     params = lf.mean_idm_params(sc)
     followers = {
-        "policy": lf.policy_follower(Agent(observation=sc.policy.observation)),
+        **random_policy(sc.policy.observation),
         "idm_calibrated": lf.idm_follower(params, sc.fleet.length_m),
     }
     profile = lf.LeaderProfile(duration_s=30.0, hold_s=10.0)
@@ -246,17 +234,13 @@ def test_leader_follower_on_a_sugiyama_ring():
     assert moved.high_speed_mps == pytest.approx(13.0 * 10.0 / 14.0)
     assert len(summary) == 2 * (1 + 2 + 2)
     dt = sc.simulation.step_length_s
+    assert_leader_replays(traces, moved, dt)
     for scenario in lf.SCENARIOS:
-        d = traces[(traces["scenario"] == scenario) & (traces["method"] == "IDM")]
-        lead = lf.leader_speeds(scenario, moved, dt)
-        np.testing.assert_array_equal(d["leader_speed_mps"], lead)
+        d = rows(traces, scenario, "IDM")
         assert d["gap_m"].iloc[0] == pytest.approx(moved.spacing_m - sc.fleet.length_m)
         assert d["follower_speed_mps"].max() <= params["speed_factor"] * 10.0 + 1e-9
     # The IDM followers follow the leader without touching it, and are never run into.
-    idm = summary[summary["method"].isin(["IDM", "idm_calibrated"])]
-    assert not idm["collision"].any()
-    assert (idm["min_gap_m"] > params["min_gap_m"]).all()
-    assert (summary.loc[summary["method"] == "idm_calibrated", "rmse_vs_idm_mps"] == 0).all()
+    assert_idm_followers_safe(summary, ("idm_calibrated",), params["min_gap_m"])
     assert traces.groupby(["scenario", "method", "trial"]).size().le(profile.horizon(dt) + 1).all()
 
 

@@ -8,13 +8,19 @@ from dataclasses import replace
 import numpy as np
 import pandas as pd
 import pytest
-import torch
 from conftest import PAPER_SCENARIO, ROOT
+from lf_trials import (
+    TRACE_COLUMNS,
+    assert_idm_followers_safe,
+    assert_leader_replays,
+    random_agent,
+    random_policy,
+    rows,
+)
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation import leader_follower as lf
 from macromicro_sumo.evaluation import leader_follower_section as lfs
-from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.road.section import read_section
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.inputs import scenario_inputs
@@ -57,12 +63,12 @@ def test_idm_follower_reaches_the_leaders_speed_with_a_safe_gap(name, lanes):
     assert f"lanes {lanes}" in res.message and f"limit {limit:.2f} m/s" in res.message
     dt = sc.simulation.step_length_s
     tr = res.traces
+    # The leader is commanded its profile: exact to rounding.
+    assert_leader_replays(tr, moved, dt, atol=1e-9)
     for scenario in lf.SCENARIOS:
-        d = tr[(tr["scenario"] == scenario) & (tr["method"] == "IDM")]
+        d = rows(tr, scenario, "IDM")
         lead = lf.leader_speeds(scenario, moved, dt)
         assert len(d) == len(lead) == 181
-        # The leader is commanded its profile: exact to rounding.
-        np.testing.assert_allclose(d["leader_speed_mps"], lead, rtol=0, atol=1e-9)
         v, gap = d["follower_speed_mps"].to_numpy(), d["gap_m"].to_numpy()
         assert gap[0] == pytest.approx(moved.spacing_m - LENGTH_M, abs=1e-6)
         assert abs(v[-1] - lead[-1]) < 0.15, (scenario, v[-1], lead[-1])
@@ -74,10 +80,9 @@ def test_idm_follower_reaches_the_leaders_speed_with_a_safe_gap(name, lanes):
         if scenario == "decelerate":
             assert np.diff(v).min() < 0  # it braked
         # The ground-truth follower against itself: the same trace, RMSE 0.
-        mine = tr[(tr["scenario"] == scenario) & (tr["method"] == "same_idm")]
+        mine = rows(tr, scenario, "same_idm")
         np.testing.assert_array_equal(mine["follower_speed_mps"], d["follower_speed_mps"])
-    assert (res.summary["rmse_vs_idm_mps"] == 0).all()
-    assert not res.summary["collision"].any()
+    assert_idm_followers_safe(res.summary, ("same_idm",))
 
 
 def test_ring_section_gives_the_ring_wings_traces():
@@ -85,8 +90,7 @@ def test_ring_section_gives_the_ring_wings_traces():
     L / N) against the ring wing's RingCore: the same traces for IDM and a random policy."""
     ring = load_scenario(PAPER_SCENARIO)
     sc, section, net = road("ring_paper_section")
-    torch.manual_seed(0)
-    followers = {"policy": lf.policy_follower(Agent(observation=ring.policy.observation))}
+    followers = random_policy(ring.policy.observation)
     params = lf.mean_idm_params(ring)
     assert lf.mean_idm_params(sc) == params
     profile = lf.LeaderProfile(duration_s=30.0, hold_s=10.0)
@@ -145,8 +149,7 @@ def test_a_follower_that_loses_its_leader_is_skipped(monkeypatch):
     two-lane loop: the test says so in one line instead of comparing against nothing."""
     sc, section, net = road("ring_two_lane")
     monkeypatch.setattr(lfs, "NO_LANE_CHANGE", 1621)
-    torch.manual_seed(0)
-    followers = {"policy": lf.policy_follower(Agent(observation=sc.policy.observation))}
+    followers = random_policy(sc.policy.observation)
     profile = lf.LeaderProfile(duration_s=90.0, hold_s=10.0)
     res = lfs.run_leader_follower_for(sc, section, net, followers, PARAMS, 30.0, 5.0, 3, 0, profile)
     assert res.skipped and "\n" not in res.message
@@ -188,23 +191,13 @@ def test_section_stage_call_on_a_simulated_corridor(field_truth):
     params, what = lfs.reference_idm(sc, truth, length)
     assert what.startswith("IDM fitted to every recorded vehicle of the ground truth (")
     assert params != {k: float(v) for k, v in cal.as_dict().items()}
-    torch.manual_seed(0)
-    agents = {"policy": Agent(observation=sc.policy.observation)}
+    agents = {"policy": random_agent(sc.policy.observation)}
     res = lfs.section_leader_follower_tests(
         sc, truth, scenario_inputs(sc).net_file, agents, cal, length, typical_vclass(truth)
     )
     assert not res.skipped, res.message
     assert res.reference == what and res.message.endswith(f"reference: {what}")
-    assert list(res.traces.columns) == [
-        "scenario",
-        "method",
-        "trial",
-        "time_s",
-        "leader_speed_mps",
-        "follower_speed_mps",
-        "idm_follower_speed_mps",
-        "gap_m",
-    ]
+    assert list(res.traces.columns) == TRACE_COLUMNS
     s = res.summary
     assert s.groupby("method").size().to_dict() == {"IDM": 2, "idm_calibrated": 4, "policy": 4}
     assert (s.loc[s["method"] == "IDM", "rmse_vs_idm_mps"] == 0).all()
