@@ -1,18 +1,59 @@
 """Who is driven in a deployment, and what a driver counts: the action function's type,
-the share drawn per vehicle by a hash, a run's counts (``DriveStats``) and the vType a
-switch gives (``SwitchedType``). Shared by the drivers (``deploy.drivers``) and the runs
-(``deploy.run``)."""
+the population a section deploys to (``population_scenario``), the share drawn per vehicle
+by a hash, a run's counts (``DriveStats``) and the vType a switch gives (``SwitchedType``).
+Shared by the drivers (``deploy.drivers``), the runs (``deploy.run``) and the stage
+(``deploy.stage``)."""
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
+from macromicro_sumo.data.section import hidden_per_snapshot
+
 # Obs (V, D) -> acceleration (V,) [m/s^2]: one batched call for every driven vehicle.
 ActionBatch = Callable[[np.ndarray], np.ndarray]
+
+
+def whole_fleet(sc: Any) -> bool:
+    """Whether a section's deployment drives every vehicle: with ``instrumented.hidden =
+    "snapshot"`` every vehicle is recorded and each snapshot hides K random ones, so nobody
+    is instrumented for good and the population is the whole fleet (as the ring deploys
+    it); otherwise the instrumented vehicles keep their own models."""
+    return hidden_per_snapshot(sc)
+
+
+def population_scenario(sc: Any) -> Any:
+    """``sc`` as a deployment's drivers and runs read it: where ``whole_fleet``, with no
+    vehicle instrumented (the drivers leave instrumented vehicles to SUMO,
+    ``truth.section.is_instrumented``; the deployment's trajectories mark none observed),
+    else ``sc`` itself. ``deploy.share`` and ``deploy.vtype`` still narrow the population.
+    Only ``instrumented`` changes: Stage II's settings (``hidden``, the micro pairs) stay."""
+    if not whole_fleet(sc):
+        return sc
+    nobody = dataclasses.replace(sc.instrumented, ids=[], vtype="", penetration=0.0)
+    return dataclasses.replace(sc, instrumented=nobody)
+
+
+def population_label(sc: Any) -> str:
+    """The deployed population in words (each deploy manifest records it)."""
+    if not hasattr(sc, "instrumented"):  # the ring
+        who = "the whole fleet"
+    elif whole_fleet(sc):
+        who = 'every vehicle (instrumented.hidden = "snapshot": nobody is instrumented for good)'
+    else:
+        who = "every vehicle that is not instrumented"
+    dep = sc.deploy
+    if getattr(dep, "vtype", ""):
+        who += f", of vType {dep.vtype!r}"
+    if dep.share < 1.0:
+        who += f", a share {dep.share:g} of them drawn per vehicle"
+    return who
 
 
 def in_share(seed: int, run: int, vehicle_id: str, share: float) -> bool:

@@ -25,6 +25,11 @@ The methods (``DEPLOY_METHODS``; names as the evaluation's where they are the sa
 A method that is "an IDM vType with parameters theta" is ``Drive(theta=...)``
 (``deploy.run``).
 
+Who is driven (``deploy.population``): on a section every vehicle that is not instrumented,
+or, with ``instrumented.hidden = "snapshot"``, every vehicle (nobody is instrumented for
+good; the ring's population, its whole fleet); ``deploy.share`` and ``deploy.vtype``
+narrow it. The calibration of ``idm_detectors`` drives the same population.
+
 Outputs: ``out/<method>/`` per method (``deploy.run.write_method``: the ground truth's
 files for the held-out runs, runs.csv with the safety counts, SUMO's files under sumo/,
 manifest.json), ``out/deploy_comparison.csv`` and ``out/deploy_summary.csv`` (every method
@@ -50,7 +55,7 @@ import torch
 from macromicro_sumo.data.ring import load_ground_truth, split_runs
 from macromicro_sumo.deploy.calibrate import Calibration, calibration_record, fit_to_detectors
 from macromicro_sumo.deploy.compare import compare_folders
-from macromicro_sumo.deploy.drivers import ActionBatch
+from macromicro_sumo.deploy.population import ActionBatch, population_label, population_scenario
 from macromicro_sumo.deploy.run import (
     SAFETY_COLUMNS,
     DeployContext,
@@ -197,6 +202,8 @@ def policy_batch(agent: Agent) -> ActionBatch:
             out = bound * np.tanh(out / bound)
         return out + prior(obs)
 
+    # policy.driver_speed = "drawn": the drivers (deploy.drivers) draw each one's factor.
+    act.driver_speed = None if agent.driver_speed is None else agent.driver_speed.double().numpy()
     return act
 
 
@@ -302,6 +309,9 @@ def deploy(
     paths = policy_paths(policy_dir, methods)
     agents = {name: load_policy(p, sc) for name, p in paths.items()}
     ctx = load_context(sc, data)
+    # With per-snapshot hidden sets the drivers drive the whole fleet (``population_scenario``).
+    ctx.sc = population_scenario(ctx.sc)
+    population = population_label(sc)
     torch.set_num_threads(1)
     idm, idm_rmse = fit_idm(ctx) if "idm_calibrated" in methods else (None, float("nan"))
     out = prepare_out_dir(out)
@@ -332,6 +342,7 @@ def deploy(
                 ground_truth=str(data),
                 policy=str(paths.get(name, "")),
                 held_out_runs=ctx.held_out,
+                population=population,
                 share=sc.deploy.share,
                 vtype=sc.deploy.vtype,
                 timings_s={"deploy": timings[name]},
@@ -351,6 +362,7 @@ def deploy(
             policy_dir=str(policy_dir or ""),
             methods=methods,
             held_out_runs=ctx.held_out,
+            population=population,
             safety=sc.deploy.safety,
             idm_calibrated=(idm.as_dict() | {"fit_rmse_mps2": idm_rmse}) if idm else None,
             idm_detectors=record,
