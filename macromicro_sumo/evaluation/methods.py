@@ -23,7 +23,9 @@ class Method:
         what: one line for the report.
         objective: the PPO objective that trains it (learned methods only).
         roads: the scenario kinds it runs on (``ring``: the paper's fleet of known IDM
-            parameters; ``sumo``: a section of the user's network).
+            parameters; ``sumo``: a section of the user's network; ``idm_true`` there only
+            where the truth records each vehicle's IDM parameters, a ``[fleet]`` demand:
+            ``evaluation.idm_true``).
     """
 
     name: str
@@ -45,7 +47,6 @@ METHODS: tuple[Method, ...] = (
         "idm_true",
         "oracle",
         "each hidden vehicle's own IDM parameters, given to the generated vehicle it is matched to",
-        roads=("ring",),
     ),
 )
 BY_NAME = {m.name: m for m in METHODS}

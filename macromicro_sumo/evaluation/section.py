@@ -7,7 +7,10 @@ their records, hidden ones are driven by the method. Methods, on the same scenes
 
 * ``ground_truth``: the recorded vehicles (whatever model the user's vTypes have);
 * ``policy``, ``micro_only``, ``macro_only``: the learned policies (stochastic);
-* ``idm_calibrated``: one IDM fitted by least squares to the observed vehicles' data.
+* ``idm_calibrated``: one IDM fitted by least squares to the observed vehicles' data;
+* ``idm_true``: each hidden vehicle's own ground-truth IDM parameters (an oracle bound,
+  ``evaluation.idm_true``), where the truth records them (a ``[fleet]`` demand); left out
+  elsewhere, with the reason in the log and the manifest.
 
 Statistics count every vehicle on the section at every step; spacings are per lane,
 front to front, for vehicles with a leader on the section.
@@ -64,6 +67,11 @@ from macromicro_sumo.env.section_bank import (
 )
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.idm_fit import calibrate_idm
+from macromicro_sumo.evaluation.idm_true import (
+    true_idm_action,
+    true_idm_by_episode,
+    true_idm_table,
+)
 from macromicro_sumo.evaluation.leader_follower_section import section_leader_follower_tests
 from macromicro_sumo.evaluation.methods import method_order
 from macromicro_sumo.evaluation.micro_data import micro_pairs
@@ -269,6 +277,11 @@ def evaluate_section(
     length = typical_length(truth)
     obs_tr, acc_tr = micro_pairs(sc, truth, np.concatenate([splits["train"], splits["val"]]))
     idm, idm_rmse = calibrate_idm(obs_tr, acc_tr, length)
+    oracle, oracle_note = true_idm_table(truth)
+    if oracle is None:
+        print(oracle_note)
+    # The bank's episodes are the snapshots with a recorded future, in order.
+    kept = snaps.take(with_future(truth, snaps, h, sc.simulation.step_length_s))
     rows, samples, safety_rows, k_rows = [], [], [], []
     counts = {"estimated": snaps.k_est, "true": snaps.k_true}
     sources = {"estimated": "estimate", "true": "truth"}  # report label -> k_source
@@ -304,6 +317,9 @@ def evaluate_section(
             bar.update()
             methods: dict[str, ActionFn] = {n: policy_action(a) for n, a in agents.items()}
             methods["idm_calibrated"] = idm_action(lambda core: idm, length)
+            if oracle is not None:
+                params = true_idm_by_episode(truth, oracle, kept, gen_bank)
+                methods["idm_true"] = true_idm_action(params, length)
             for name in [m for m in METHOD_ORDER if m in methods]:
                 ro, counts_, per_k = _run(
                     sc, truth, gen_bank, net_file, vclass, methods[name], h, seed, by_k=by_k
@@ -389,6 +405,7 @@ def evaluate_section(
             },
             safety=_safety(sc),
             idm_calibrated=idm.as_dict() | {"fit_rmse_mps2": idm_rmse},
+            idm_true=oracle_note,
             k_estimate=ks,
             leader_follower={"message": lf.message, "reference": lf.reference},
             timings_s={"evaluate": round(time.perf_counter() - t0, 3)},

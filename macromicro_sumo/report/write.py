@@ -392,7 +392,9 @@ def section_head(r: Run) -> list[str]:
 def idm_calibrated_part(r: Run) -> list[str]:
     ev = r.json("evaluation/evaluation_manifest.json")
     fit = json.dumps(ev.get("idm_calibrated", {}))
-    return [f"IDM calibrated on the observed vehicles: {fit}", ""]
+    lines = [f"IDM calibrated on the observed vehicles: {fit}", ""]
+    # Why the oracle is in the tables, or left out (``evaluation.idm_true``).
+    return lines + ([f"{ev['idm_true']}.", ""] if ev.get("idm_true") else [])
 
 
 def section_leader_follower(r: Run) -> list[str]:

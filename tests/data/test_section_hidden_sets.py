@@ -217,7 +217,7 @@ def test_evaluation_writes_the_per_k_table(run) -> None:
         "episodes",
     ):
         assert col in by_k.columns, col
-    methods = {"ground_truth", "policy", "idm_calibrated"}
+    methods = {"ground_truth", "policy", "idm_calibrated", "idm_true"}  # a fleet: the oracle too
     for label in ("estimated", "true"):
         rows = by_k[by_k["hidden_count"] == label]
         assert sorted(rows["K"].unique()) == [1, 2, 3]
