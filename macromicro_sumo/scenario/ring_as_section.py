@@ -6,7 +6,9 @@ with the fleet as its demand. ``ring_to_section`` rewrites a ring file's raw tab
 section table that ``scenarios/ring_paper_section.toml`` spells out, and the section wing
 runs it. Keys keep their names where both wings have them; a ring key whose value the
 section cannot express is a one-line ``UserError`` naming the key and its replacement.
-What the mapping fills in, a key the file gives itself (a section key) overrides.
+A section key that the file gives inside the ring's tables (``simulation.warmup_s``,
+``generator.dispersion_error``) overrides what the mapping fills in; the section's own
+tables (``[section]``, ``[instrumented]``, ``[data]``) are the mapping's, not the file's.
 
 The mapping reads the ring's defaults from ``RING_GENERATOR_DEFAULTS``, not from
 ``scenario/ring.py``, so it stays when the ring wing goes (``tests/scenario/
@@ -228,9 +230,7 @@ def ring_to_section(table: dict[str, Any], folder: Path, file: str) -> dict[str,
     # The ring knows N: K is given, and every snapshot hides K random vehicles of the fully
     # recorded fleet. penetration only decides k_estimate.csv and who the deployment drives.
     gen.setdefault("k_source", "truth")
-    instrumented = _table(table, "instrumented", file)
-    instrumented.setdefault("hidden", "snapshot")
-    instrumented.setdefault("penetration", 0.5)
+    table["instrumented"] = {"hidden": "snapshot", "penetration": 0.5}
     # The ring's completions per held-out scene: the section draws them in the generator's
     # held-out metrics (its evaluation draws one; docs/design.md, "Ring as a section").
     evaluation = table["evaluation"]

@@ -139,3 +139,14 @@ def test_the_shipped_detector_files_place_the_ring_truths_loops(net):
     ring = _loops(detectors_xml(geo, DetectorConfig()))
     shipped = _loops((NETS / detector_file(net)).read_text())
     assert len(shipped) == 2 * len(geo.edge_ids) and shipped == ring
+
+
+def test_section_keys_in_the_ring_tables_override_the_mapping(make_scenario):
+    sc = load_scenario(
+        make_scenario(
+            {**SECTION, "simulation.warmup_s": 30.0, "generator.dispersion_error": "absolute"}
+        )
+    )
+    assert sc.simulation.warmup_s == 30.0 and sc.generator.dispersion_error == "absolute"
+    with pytest.raises(UserError, match="unknown key 'instrumented' in a ring file"):
+        load_scenario(make_scenario({**SECTION, "instrumented.penetration": 1.0}))
