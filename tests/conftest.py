@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import subprocess
 import tomllib
 from collections.abc import Callable
 from pathlib import Path
@@ -11,6 +12,7 @@ from typing import Any
 
 import pandas as pd
 import pytest
+import sumolib
 
 from macromicro_sumo.cli import main
 from macromicro_sumo.road.section import Section, read_section
@@ -27,6 +29,29 @@ NETS = ROOT / "sumo_nets"
 SMALL = {"simulation.n_runs": 2, "simulation.duration_s": 120.0}
 
 MakeScenario = Callable[..., Path]
+
+
+def netconvert(
+    folder: Path, nodes: str, edges: str, cons: str = "", extra: tuple = (), name: str = "net"
+) -> Path:
+    """``folder / f"{name}.net.xml"``, built by netconvert from the elements inside
+    ``<nodes>``, ``<edges>`` and (where given) ``<connections>``; ``extra``: more options."""
+    (folder / f"{name}.nod.xml").write_text(f"<nodes>\n{nodes}\n</nodes>\n")
+    (folder / f"{name}.edg.xml").write_text(f"<edges>\n{edges}\n</edges>\n")
+    cmd = [
+        sumolib.checkBinary("netconvert"),
+        "--node-files", str(folder / f"{name}.nod.xml"),
+        "--edge-files", str(folder / f"{name}.edg.xml"),
+        "--output-file", str(folder / f"{name}.net.xml"),
+        "--no-turnarounds", "true",
+        "--no-warnings", "true",
+        *extra,
+    ]  # fmt: skip
+    if cons:
+        (folder / f"{name}.con.xml").write_text(f"<connections>\n{cons}\n</connections>\n")
+        cmd += ["--connection-files", str(folder / f"{name}.con.xml")]
+    subprocess.run(cmd, check=True, capture_output=True)
+    return folder / f"{name}.net.xml"
 
 
 def _toml_value(value: Any) -> str:

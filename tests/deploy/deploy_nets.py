@@ -3,13 +3,11 @@ small policy cloned from IDM (the deployment needs one that drives sensibly, qui
 
 from __future__ import annotations
 
-import subprocess
 from pathlib import Path
 
 import numpy as np
-import sumolib
 import torch
-from conftest import dump_toml
+from conftest import dump_toml, netconvert
 
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES, idm_accel
@@ -18,25 +16,6 @@ CAR = (
     '<vType id="car" length="5" minGap="2.5" accel="2.6" decel="4.5" sigma="0.5" '
     'speedFactor="1.0" speedDev="0.1"/>'
 )
-
-
-def netconvert(folder: Path, nodes: str, edges: str, cons: str = "", extra: tuple = ()) -> Path:
-    (folder / "n.nod.xml").write_text(f"<nodes>\n{nodes}\n</nodes>\n")
-    (folder / "e.edg.xml").write_text(f"<edges>\n{edges}\n</edges>\n")
-    cmd = [
-        sumolib.checkBinary("netconvert"),
-        "--node-files", str(folder / "n.nod.xml"),
-        "--edge-files", str(folder / "e.edg.xml"),
-        "--output-file", str(folder / "net.net.xml"),
-        "--no-turnarounds", "true",
-        "--no-warnings", "true",
-        *extra,
-    ]  # fmt: skip
-    if cons:
-        (folder / "c.con.xml").write_text(f"<connections>\n{cons}\n</connections>\n")
-        cmd += ["--connection-files", str(folder / "c.con.xml")]
-    subprocess.run(cmd, check=True, capture_output=True)
-    return folder / "net.net.xml"
 
 
 def merge_net(folder: Path, main_vph: float = 1800.0, ramp_vph: float = 500.0) -> tuple[Path, Path]:

@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
-import sumolib
 import torch
-from conftest import PAPER_SCENARIO, ROOT, dump_toml
+from conftest import PAPER_SCENARIO, ROOT, dump_toml, netconvert
 
 from macromicro_sumo.data.section import PSI_FIELDS, section_snapshots
 from macromicro_sumo.env.ring import EpisodeBank, RingCore
@@ -410,32 +408,18 @@ def signal_net(folder: Path, state: str) -> Path:
     """One lane A (300 m) -> a traffic light whose one phase is ``state`` for good -> B
     (200 m), built by netconvert (the program in the net: the env loads no additional)."""
     folder.mkdir(parents=True, exist_ok=True)
-    (folder / "n.nod.xml").write_text(
-        '<nodes>\n<node id="n0" x="0" y="0"/>\n<node id="tl" x="300" y="0" '
-        'type="traffic_light"/>\n<node id="n2" x="500" y="0"/>\n</nodes>\n'
-    )
-    (folder / "e.edg.xml").write_text(
-        '<edges>\n<edge id="A" from="n0" to="tl" numLanes="1" speed="15"/>\n'
-        '<edge id="B" from="tl" to="n2" numLanes="1" speed="15"/>\n</edges>\n'
-    )
     (folder / "t.tll.xml").write_text(
         '<tlLogics>\n<tlLogic id="tl" type="static" programID="0" offset="0">\n'
         f'<phase duration="10000" state="{state}"/>\n</tlLogic>\n</tlLogics>\n'
     )
-    net = folder / "net.net.xml"
-    subprocess.run(
-        [
-            sumolib.checkBinary("netconvert"),
-            "--node-files", str(folder / "n.nod.xml"),
-            "--edge-files", str(folder / "e.edg.xml"),
-            "--tllogic-files", str(folder / "t.tll.xml"),
-            "--output-file", str(net),
-            "--no-turnarounds", "true",
-        ],
-        check=True,
-        capture_output=True,
-    )  # fmt: skip
-    return net
+    return netconvert(
+        folder,
+        '<node id="n0" x="0" y="0"/>\n<node id="tl" x="300" y="0" type="traffic_light"/>\n'
+        '<node id="n2" x="500" y="0"/>',
+        '<edge id="A" from="n0" to="tl" numLanes="1" speed="15"/>\n'
+        '<edge id="B" from="tl" to="n2" numLanes="1" speed="15"/>',
+        extra=("--tllogic-files", str(folder / "t.tll.xml")),
+    )
 
 
 def idm_policy(obs: np.ndarray) -> np.ndarray:

@@ -6,13 +6,12 @@ the through lanes' indices shift by one at the boundary; the lanes then drop bac
 
 from __future__ import annotations
 
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
-import sumolib
+from conftest import netconvert
 
 from macromicro_sumo.road.section import (
     NO_LEADER_GAP_M,
@@ -30,39 +29,22 @@ EDGES = ["a", "b", "c"]
 def build_merge_net(folder: Path) -> Path:
     """a (2 lanes, 300 m) -> b (3 lanes: the ramp ``r`` joins on the right, 300 m) -> c (2
     lanes, 300 m): a_0 -> b_1, a_1 -> b_2, r_0 -> b_0, b_0 ends, b_1 -> c_0, b_2 -> c_1."""
-    (folder / "m.nod.xml").write_text(
-        '<nodes><node id="n0" x="0" y="0"/><node id="n1" x="300" y="0"/>'
+    return netconvert(
+        folder,
+        '<node id="n0" x="0" y="0"/><node id="n1" x="300" y="0"/>'
         '<node id="n2" x="600" y="0"/><node id="n3" x="900" y="0"/>'
-        '<node id="r0" x="0" y="-60"/></nodes>'
-    )
-    (folder / "m.edg.xml").write_text(
-        '<edges><edge id="a" from="n0" to="n1" numLanes="2" speed="30"/>'
+        '<node id="r0" x="0" y="-60"/>',
+        '<edge id="a" from="n0" to="n1" numLanes="2" speed="30"/>'
         '<edge id="r" from="r0" to="n1" numLanes="1" speed="25"/>'
         '<edge id="b" from="n1" to="n2" numLanes="3" speed="30"/>'
-        '<edge id="c" from="n2" to="n3" numLanes="2" speed="30"/></edges>'
-    )
-    (folder / "m.con.xml").write_text(
-        '<connections><connection from="a" to="b" fromLane="0" toLane="1"/>'
+        '<edge id="c" from="n2" to="n3" numLanes="2" speed="30"/>',
+        '<connection from="a" to="b" fromLane="0" toLane="1"/>'
         '<connection from="a" to="b" fromLane="1" toLane="2"/>'
         '<connection from="r" to="b" fromLane="0" toLane="0"/>'
         '<connection from="b" to="c" fromLane="1" toLane="0"/>'
-        '<connection from="b" to="c" fromLane="2" toLane="1"/></connections>'
+        '<connection from="b" to="c" fromLane="2" toLane="1"/>',
+        name="merge",
     )
-    net = folder / "merge.net.xml"
-    subprocess.run(
-        [
-            sumolib.checkBinary("netconvert"),
-            "-n", str(folder / "m.nod.xml"),
-            "-e", str(folder / "m.edg.xml"),
-            "-x", str(folder / "m.con.xml"),
-            "-o", str(net),
-            "--no-turnarounds", "true",
-            "--no-warnings", "true",
-        ],
-        check=True,
-        capture_output=True,
-    )  # fmt: skip
-    return net
 
 
 @pytest.fixture(scope="module")

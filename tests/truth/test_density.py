@@ -4,14 +4,12 @@ the loops of a tiny network in real SUMO."""
 from __future__ import annotations
 
 import json
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
-import sumolib
-from conftest import dump_toml
+from conftest import dump_toml, netconvert
 
 from macromicro_sumo.cli import main
 from macromicro_sumo.road.section import Section
@@ -139,26 +137,13 @@ def test_end_pieces_projected_from_passages() -> None:
 def queue_network(folder: Path) -> Path:
     """A one-lane 575 m road; a vehicle stops 60 s at 560 m, a queue grows behind it over
     the loops, then drains."""
-    (folder / "q.nod.xml").write_text(
-        '<nodes><node id="a" x="0" y="0"/><node id="b" x="575" y="0"/>'
-        '<node id="c" x="675" y="0"/></nodes>'
+    net = netconvert(
+        folder,
+        '<node id="a" x="0" y="0"/><node id="b" x="575" y="0"/><node id="c" x="675" y="0"/>',
+        '<edge id="r" from="a" to="b" numLanes="1" speed="20"/>'
+        '<edge id="x" from="b" to="c" numLanes="1" speed="20"/>',
+        name="q",
     )
-    (folder / "q.edg.xml").write_text(
-        '<edges><edge id="r" from="a" to="b" numLanes="1" speed="20"/>'
-        '<edge id="x" from="b" to="c" numLanes="1" speed="20"/></edges>'
-    )
-    net = folder / "q.net.xml"
-    subprocess.run(
-        [
-            sumolib.checkBinary("netconvert"),
-            "-n", str(folder / "q.nod.xml"),
-            "-e", str(folder / "q.edg.xml"),
-            "-o", str(net),
-            "--no-turnarounds", "true",
-        ],
-        check=True,
-        capture_output=True,
-    )  # fmt: skip
     (folder / "q.rou.xml").write_text(
         '<routes><vType id="car" length="5" minGap="2.5"/>'
         '<route id="rt" edges="r x"/>'

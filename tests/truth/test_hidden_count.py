@@ -4,13 +4,11 @@ once a queue stands over the loops."""
 
 from __future__ import annotations
 
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import sumolib
-from conftest import dump_toml
+from conftest import dump_toml, netconvert
 
 from macromicro_sumo.cli import main
 from macromicro_sumo.data.section import at_snapshot_times
@@ -58,30 +56,17 @@ def merge_scenario(
     to ``drop_mps``: above that lane's capacity a queue grows back from the lane drop over
     the loops. ``boundary``: ``detectors.auto_boundary_stations``; ``inside_vph``: a flow
     that departs 300 m into the second edge, between two stations."""
-    (folder / "m.nod.xml").write_text(
-        '<nodes><node id="a" x="0" y="0"/><node id="b" x="400" y="0"/>'
+    net = netconvert(
+        folder,
+        '<node id="a" x="0" y="0"/><node id="b" x="400" y="0"/>'
         '<node id="c" x="800" y="0"/><node id="d" x="1100" y="0"/>'
-        '<node id="r" x="100" y="-60"/></nodes>'
-    )
-    (folder / "m.edg.xml").write_text(
-        '<edges><edge id="m0" from="a" to="b" numLanes="2" speed="30" priority="3"/>'
+        '<node id="r" x="100" y="-60"/>',
+        '<edge id="m0" from="a" to="b" numLanes="2" speed="30" priority="3"/>'
         '<edge id="m1" from="b" to="c" numLanes="2" speed="30" priority="3"/>'
         f'<edge id="m2" from="c" to="d" numLanes="1" speed="{drop_mps}" priority="3"/>'
-        '<edge id="on" from="r" to="b" numLanes="1" speed="20" priority="1"/></edges>'
+        '<edge id="on" from="r" to="b" numLanes="1" speed="20" priority="1"/>',
+        name="m",
     )
-    net = folder / "m.net.xml"
-    subprocess.run(
-        [
-            sumolib.checkBinary("netconvert"),
-            "-n", str(folder / "m.nod.xml"),
-            "-e", str(folder / "m.edg.xml"),
-            "-o", str(net),
-            "--no-turnarounds", "true",
-            "--no-warnings", "true",
-        ],
-        check=True,
-        capture_output=True,
-    )  # fmt: skip
     (folder / "m.rou.xml").write_text(
         '<routes><vType id="car" length="5" minGap="2.5"/>'
         '<vType id="truck" length="12" minGap="2.5" vClass="truck" maxSpeed="25"/>'
