@@ -293,8 +293,9 @@ def main(argv: list[str] | None = None) -> int:
                 f"policy / oracle deployment {best['policy'] / best['oracle']:.2f}x (target >= 0.3x)"
             )
             # The same run's three back to back: less exposed to a load that changes.
-            paired = [p / s for p, s in zip(rates["policy"], rates["sumo"], strict=True)]
-            print("  per run, policy / SUMO alone: " + ", ".join(f"{r:.2f}x" for r in paired))
+            for how in ("policy", "oracle"):
+                paired = [p / s for p, s in zip(rates[how], rates["sumo"], strict=True)]
+                print(f"  per run, {how} / SUMO alone: " + ", ".join(f"{r:.2f}x" for r in paired))
 
         print(f"\nStraight {LANES}-lane road, {ROAD_M / 1000:g} km, {args.steps} steps per size, "
               f"best of {args.road_repeats}; microseconds per vehicle-step ({clock} time):")  # fmt: skip

@@ -23,8 +23,8 @@ vType by more than 0.01 m/s^2).
 
 from __future__ import annotations
 
-from itertools import repeat
-from operator import itemgetter
+from itertools import compress, repeat
+from operator import and_, itemgetter, ne, not_
 
 import numpy as np
 
@@ -64,6 +64,9 @@ LANE_END_RECHECK_STEPS = 20
 # defaults).
 MERGE_HANDOVER_M = 400.0
 MERGE_YIELD_TOLERANCE_MPS = 1.0
+# A vehicle's entry in the lane-end and signal caches before it is asked: (lane, value,
+# step from which it is asked again), due at once.
+NOT_ASKED = ("", np.nan, -np.inf)
 
 
 # --------------------------------------------------------------------------- sections
@@ -98,25 +101,28 @@ class SectionDriver:
         # as departed in the last step: on a closed section cars that loop for the whole
         # run (rerouters) departed once, and a departure this driver did not see (before
         # it was attached, or a list read by someone else) must not leave them undriven.
-        types = self.types
-        new = [v for v in st.ids if v not in types]
+        ids = st.ids
+        new = set(ids).difference(self.types)
         if new:
-            self.arrive(sim, tuple(new))
+            self.arrive(sim, tuple(v for v in ids if v in new))
         self.count_brakings(st)
-        lanes, pop = self.section.lanes, self.population
-        # In SUMO's order, which is sorted by ID (``VehicleStates``): no sort needed.
-        vids = [v for v, lane in zip(st.ids, st.lanes, strict=True) if lane in lanes and v in pop]
+        if not self.drives:  # the oracle: no hand-over, no count of driven vehicles
+            return
+        # In SUMO's order, which is sorted by ID (``VehicleStates``): no sort needed. C-level
+        # passes, not a Python loop per vehicle.
+        on = map(self.section.lanes.__contains__, st.lanes)
+        vids = list(compress(ids, map(and_, on, map(self.population.__contains__, ids))))
         now = set(vids)
         # Still in the network (on the road or teleporting), not on the section now.
         gone = sim.arrived() if self.driven else frozenset()
-        left = [v for v in self.driven if v not in now and v not in gone]
+        left = self.driven.difference(now, gone)
         if left:
             self.release(sim, sorted(left))
         entered = sorted(now - self.driven)
         if entered:
             self.take(sim, entered)
         self.driven = now
-        self.stats.vehicle_steps_driven += len(now) if self.drives else 0
+        self.stats.vehicle_steps_driven += len(now)
         if vids:
             self.drive(sim, vids, st)
 
@@ -208,7 +214,7 @@ class SectionSpeedDriver(SectionDriver):
 
     def merges(
         self, sim: Simulation, vids: list[str], ahead_m: np.ndarray
-    ) -> tuple[np.ndarray | None, list[int]]:
+    ) -> tuple[list[bool] | None, list[int]]:
         """``deploy.merge`` "handover" or "sumo", from ``ahead_m``, each driven vehicle's
         distance to where it must have left its lane: which of ``vids`` are commanded this
         step (those that must leave their lane within ``MERGE_HANDOVER_M`` merge with
@@ -217,7 +223,7 @@ class SectionSpeedDriver(SectionDriver):
         vehicle's change (SUMO's blocking left follower, whom its lane changer asks to
         cooperate), the candidates for SUMO's cooperative slow-down (``yields``)."""
         must = (ahead_m <= MERGE_HANDOVER_M).tolist()
-        now = {v for v, m in zip(vids, must, strict=True) if m}
+        now = set(compress(vids, must))
         if now - self.merging:
             sim.release_speeds(sorted(now - self.merging))
         back = sorted(self.merging - now)
@@ -227,14 +233,13 @@ class SectionSpeedDriver(SectionDriver):
         self.stats.vehicle_steps_driven -= len(now)
         if not now:
             return None, []
-        keep = ~np.array(must)
+        keep = list(map(not_, must))
         if self.merge != "sumo":
             return keep, []
         # Only a blocking follower: every vehicle on the target lane taking SUMO's lower
         # speed slowed Bremen's stream by 2 m/s (run 1).
         blockers = sim.left_blockers(sorted(now))
-        kept = [v for v, m in zip(vids, must, strict=True) if not m]
-        return keep, [i for i, v in enumerate(kept) if v in blockers]
+        return keep, [i for i, v in enumerate(compress(vids, keep)) if v in blockers]
 
     def yields(
         self, sim: Simulation, vids: list[str], near: list[int], speed: np.ndarray, safe: np.ndarray
@@ -258,32 +263,31 @@ class SectionSpeedDriver(SectionDriver):
         on a lane for the first time, a lane that carries it on again after
         ``LANE_END_RECHECK_STEPS`` (one call per vehicle and step would cost more than
         SUMO's whole step)."""
-        cache, now = self.lane_ends, self.steps
-        hits = list(map(cache.get, vids))
-        due = [
-            i
-            for i, (lane, hit) in enumerate(zip(lanes, hits, strict=True))
-            if hit is None or hit[0] != lane or hit[2] <= now
-        ]
-        for i in due:
-            end = sim.lane_end_m(vids[i], lanes[i], 0.0)
+        cache, now, n = self.lane_ends, self.steps, len(vids)
+        # The cache checked in C-level passes, not a Python loop per vehicle: due where
+        # not asked yet (``NOT_ASKED``), on another lane, or on a lane to ask again.
+        hits = list(map(cache.get, vids, repeat(NOT_ASKED)))
+        ends = np.fromiter(map(itemgetter(1), hits), float, n)
+        due = np.fromiter(map(ne, map(itemgetter(0), hits), lanes), bool, n)
+        due |= np.fromiter(map(itemgetter(2), hits), float, n) <= now
+        for i in np.flatnonzero(due).tolist():
+            end = ends[i] = sim.lane_end_m(vids[i], lanes[i], 0.0)
             # A lane end, once seen, stays; a lane that carries the vehicle on is asked again.
             again = now + LANE_END_RECHECK_STEPS if end == np.inf else np.inf
-            hits[i] = cache[vids[i]] = (lanes[i], end, again)
-        return np.fromiter(map(itemgetter(1), hits), float, len(hits))
+            cache[vids[i]] = (lanes[i], end, again)
+        return ends
 
     def stop_lines_m(self, sim: Simulation, vids: list[str], lanes: list[str]) -> np.ndarray:
         """Per vehicle, ``Simulation.stop_lines_m`` (inf: no red or yellow ahead), asked
         only of vehicles that may meet a signal: one SUMO found none ahead of on its whole
         route is asked again when it changes lane or ``LANE_END_RECHECK_STEPS`` later (on
         Bremen's highway only the ramp has one: the call was a tenth of the driver)."""
-        dark, now = self.dark, self.steps
-        ask = [
-            i
-            for i, (lane, hit) in enumerate(zip(lanes, map(dark.get, vids), strict=True))
-            if hit is None or hit[0] != lane or hit[1] <= now
-        ]
-        out = np.full(len(vids), np.inf)
+        dark, now, n = self.dark, self.steps, len(vids)
+        hits = list(map(dark.get, vids, repeat(NOT_ASKED)))
+        due = np.fromiter(map(ne, map(itemgetter(0), hits), lanes), bool, n)
+        due |= np.fromiter(map(itemgetter(-1), hits), float, n) <= now
+        ask = np.flatnonzero(due).tolist()
+        out = np.full(n, np.inf)
         got = sim.stop_lines_m([vids[i] for i in ask])
         for i, d in zip(ask, got.tolist(), strict=True):
             if d != d:  # NaN: no signal ahead
@@ -295,7 +299,7 @@ class SectionSpeedDriver(SectionDriver):
 
     def drive(self, sim: Simulation, vids: list[str], st: VehicleStates) -> None:
         rows = np.fromiter(map(st.index.__getitem__, vids), np.int64, len(vids))
-        lanes = [st.lanes[i] for i in rows.tolist()]
+        lanes = list(map(st.lanes.__getitem__, rows.tolist()))
         # Where each must have left its lane: the merges' hand-over and the observation's
         # standing leader, asked once.
         ahead = self.lane_end_m(sim, vids, lanes) - st.pos_m[rows]
@@ -303,9 +307,9 @@ class SectionSpeedDriver(SectionDriver):
         if self.merge != "none":
             keep, near = self.merges(sim, vids, ahead)
             if keep is not None:
-                vids = [v for v, k in zip(vids, keep.tolist(), strict=True) if k]
-                rows, ahead = rows[keep], ahead[keep]
-                lanes = [st.lanes[i] for i in rows.tolist()]
+                vids, lanes = list(compress(vids, keep)), list(compress(lanes, keep))
+                mask = np.array(keep)
+                rows, ahead = rows[mask], ahead[mask]
             if not vids:
                 return
         n = len(vids)
@@ -321,7 +325,7 @@ class SectionSpeedDriver(SectionDriver):
         )
         if self.has_lights is None:
             self.has_lights = sim.has_traffic_lights()
-        obs, gap, lead_decel, lead = self.observe(sim, vids, rows, st, stop_m=ahead)
+        obs, gap, lead_decel, lead = self.observe(sim, vids, rows, st, lanes=lanes, stop_m=ahead)
         # One leader table a step: the safe speed behind what each sees ahead, for both the
         # merges' yield and the safety layer.
         own = safe = cap = None
@@ -345,14 +349,16 @@ class SectionSpeedDriver(SectionDriver):
         rows: np.ndarray,
         st: VehicleStates,
         shapes: Table | None = None,
+        lanes: list[str] | None = None,
         stop_m: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``observe_rows`` of driven vehicles ``vids`` (rows ``rows`` of ``st``): SUMO's
         leaders, lane ends and red lights asked now; ``shapes``: vehicle -> (length,
         minGap, decel) (default: the vTypes of the vehicles this driver saw arrive);
-        ``stop_m``: the distances to their lanes' ends if asked already (``lane_end_m``
-        minus the position)."""
-        lanes = [st.lanes[i] for i in rows.tolist()]
+        ``lanes``, ``stop_m``: their lanes and the distances to those lanes' ends if
+        known already (``lane_end_m`` minus the position)."""
+        if lanes is None:
+            lanes = list(map(st.lanes.__getitem__, rows.tolist()))
         stop = self.lane_end_m(sim, vids, lanes) - st.pos_m[rows] if stop_m is None else stop_m
         if self.has_lights:
             stop = np.minimum(stop, self.stop_lines_m(sim, vids, lanes))

@@ -140,7 +140,7 @@ class VehicleStates:
     @cached_property
     def index(self) -> dict[str, int]:
         """Vehicle ID -> row."""
-        return {v: i for i, v in enumerate(self.ids)}
+        return dict(zip(self.ids, range(len(self.ids)), strict=True))
 
 
 class Driver(Protocol):
@@ -275,8 +275,8 @@ class Simulation:
 
     def set_speeds(self, vehicle_ids: Sequence[str], speeds_mps: Sequence[float]) -> None:
         """Speed commands for the next step (speed mode 0 applies them exactly)."""
-        for vid, v in zip(vehicle_ids, np.asarray(speeds_mps, dtype=float).tolist(), strict=True):
-            _SET_SPEED(vid, v)
+        speeds = np.asarray(speeds_mps, dtype=float).tolist()  # floats, not numpy scalars
+        list(map(_SET_SPEED, vehicle_ids, speeds))
 
     def move_to(
         self,
@@ -467,8 +467,8 @@ class Simulation:
     def leaders(self, vehicle_ids: Sequence[str], lookahead_m: float) -> list[tuple[str, float]]:
         """(leader ID, SUMO's gap: leader's back - own front - minGap; ("", -1): none) of
         each vehicle within ``lookahead_m`` along the network's lanes (``getLeader``)."""
-        get, dist, none = _GET_LEADER, float(lookahead_m), ("", -1.0)
-        return [get(v, dist) or none for v in vehicle_ids]
+        out = list(map(_GET_LEADER, vehicle_ids, [float(lookahead_m)] * len(vehicle_ids)))
+        return out if None not in out else [r or ("", -1.0) for r in out]  # a wrapper's None
 
     def arrived(self) -> frozenset[str]:
         """Vehicles that left the network in the last step."""
