@@ -6,13 +6,14 @@ import json
 import re
 import subprocess
 import tomllib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pandas as pd
 import pytest
 import sumolib
+import torch
 
 from macromicro_sumo.cli import main
 from macromicro_sumo.road.section import Section, read_section
@@ -134,6 +135,27 @@ def small_ring_gt(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = write_scenario(folder, SMALL_RING)
     assert main(["simulate", str(path), "--out", str(folder / "gt"), "--quiet"]) == 0
     return folder / "gt"
+
+
+def assert_one_line_error(capsys: pytest.CaptureFixture, code: int, *fragments: str) -> str:
+    """The command failed as bad input (exit 2) with one ``error: ...`` line on stderr, no
+    traceback, holding every one of ``fragments``; returns the line."""
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "Traceback" not in err
+    assert err.startswith("error: ") and err.count("\n") == 1, err
+    for f in fragments:
+        assert f in err, f"{f!r} not in {err!r}"
+    return err
+
+
+@pytest.fixture(scope="module")
+def keep_torch_threads() -> Iterator[None]:
+    """train-generator sets torch to one thread for the whole process: restore it after the
+    module (``pytestmark = pytest.mark.usefixtures("keep_torch_threads")``)."""
+    threads = torch.get_num_threads()
+    yield
+    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="session")

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from conftest import SMALL
+from conftest import SMALL, assert_one_line_error
 
 from macromicro_sumo import cli
 from macromicro_sumo.errors import UserError
@@ -110,15 +110,6 @@ def listing(folder: Path) -> list[str]:
     return sorted(str(p.relative_to(folder)) for p in folder.rglob("*"))
 
 
-def one_line_error(capsys, code: int, *fragments: str) -> str:
-    err = capsys.readouterr().err
-    assert code == 2, err
-    assert err.startswith("error: ") and err.count("\n") == 1 and "Traceback" not in err, err
-    for fragment in fragments:
-        assert fragment in err, (fragment, err)
-    return err
-
-
 @contextlib.contextmanager
 def read_only(folder: Path) -> Iterator[None]:
     """``folder`` made unwritable: by its mode, or (as root, who ignores modes) immutable."""
@@ -142,7 +133,7 @@ def test_an_existing_read_only_out_is_one_line(make_scenario, tmp_path, capsys):
     out.mkdir()
     with read_only(out):
         code = cli.main(["simulate", str(make_scenario()), "--out", str(out), "--quiet"])
-        one_line_error(capsys, code, f"{out}: output folder is not writable")
+        assert_one_line_error(capsys, code, f"{out}: output folder is not writable")
     assert listing(out) == []
 
 
@@ -181,7 +172,7 @@ def test_disk_full_is_one_line_and_leaves_out_as_it_was(
     monkeypatch.setattr(pd.DataFrame, "to_csv", csv_full)
     monkeypatch.setattr(Path, "write_text", text_full)
     code = cli.main(["simulate", str(make_scenario(SMALL)), "--out", str(out), "--quiet"])
-    one_line_error(capsys, code, f"{out / victim}: cannot write (No space left on device)")
+    assert_one_line_error(capsys, code, f"{out / victim}: cannot write (No space left on device)")
     assert listing(out) == before
 
 
@@ -205,7 +196,9 @@ def test_two_runs_at_once_are_refused_and_a_killed_runs_staging_is_removed(
             assert time.monotonic() < deadline, "the first run never started staging"
             time.sleep(0.05)
         code = cli.main(["simulate", small, "--out", str(out), "--quiet"])
-        one_line_error(capsys, code, f"{out}: another macromicro run is writing into this folder")
+        assert_one_line_error(
+            capsys, code, f"{out}: another macromicro run is writing into this folder"
+        )
     finally:
         first.kill()  # SIGKILL: no clean-up of its own runs
         first.wait()
@@ -244,7 +237,9 @@ def test_a_second_run_is_refused_while_the_first_trains(make_scenario, tmp_path,
         assert first.poll() is None
         before = {p: p.stat().st_mtime_ns for p in (out / "ground_truth").iterdir()}
         code = cli.main(["run", str(slow), "--out", str(out), "--quiet"])
-        one_line_error(capsys, code, f"{out}: another macromicro run is writing into this folder")
+        assert_one_line_error(
+            capsys, code, f"{out}: another macromicro run is writing into this folder"
+        )
         # refused before it touched anything: the first run's ground truth is as it was
         assert {p: p.stat().st_mtime_ns for p in (out / "ground_truth").iterdir()} == before
     finally:

@@ -18,7 +18,7 @@ from typing import Any
 
 import pandas as pd
 import pytest
-from conftest import NETS, ROOT, dump_toml, scenario_table
+from conftest import NETS, ROOT, assert_one_line_error, dump_toml, scenario_table
 
 from macromicro_sumo.batch import backends, tasks
 from macromicro_sumo.batch.runner import run_batch
@@ -48,16 +48,6 @@ def variant_csvs(out: Path) -> dict[str, bytes]:
 
 def summary(out: Path) -> pd.DataFrame:
     return pd.read_csv(out / "batch_summary.csv", keep_default_na=False).set_index("variant")
-
-
-def assert_one_line_error(capsys, code: int, *fragments: str) -> str:
-    err = capsys.readouterr().err
-    assert code == 2, err
-    assert "Traceback" not in err
-    assert err.startswith("error: ") and err.count("\n") == 1, err
-    for f in fragments:
-        assert f in err, f"{f!r} not in {err!r}"
-    return err
 
 
 # --------------------------------------------------------------------------- sweeps

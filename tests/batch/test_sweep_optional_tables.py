@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from conftest import ROOT, dump_toml
+from conftest import ROOT, assert_one_line_error, dump_toml
 
 from macromicro_sumo.batch.sweep import expand
 from macromicro_sumo.cli import main
@@ -84,16 +84,6 @@ def test_a_fleet_sweep_runs_each_variant_with_its_fleet(tmp_path):
         assert (traj.groupby(["run", "time_s"])["vehicle_id"].nunique() == n).all()
         limits = pd.read_csv(gt / "speed_limits.csv")["speed_limit_mps"]
         assert limits.between(12.0, 12.5).all()
-
-
-def assert_one_line_error(capsys, code: int, *fragments: str) -> str:
-    err = capsys.readouterr().err
-    assert code == 2, err
-    assert "Traceback" not in err
-    assert err.startswith("error: ") and err.count("\n") == 1, err
-    for f in fragments:
-        assert f in err, f"{f!r} not in {err!r}"
-    return err
 
 
 @pytest.mark.parametrize(

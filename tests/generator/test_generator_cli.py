@@ -92,12 +92,7 @@ def fails(capsys, argv: list[str], out: Path, *fragments: str) -> str:
     return err
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _keep_torch_threads():
-    """train-generator sets torch to one thread for the whole process: restore it after."""
-    threads = torch.get_num_threads()
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("keep_torch_threads")
 
 
 @pytest.fixture(scope="module")
