@@ -199,6 +199,8 @@ class SectionSpeedDriver(SectionDriver):
         # of it on its route.
         self.dark: dict[str, tuple[str, int]] = {}
         self.merge = sc.deploy.merge  # "none", "handover" or "sumo" (with the yield)
+        make = getattr(act, "driver_speeds", None)  # policy.driver_speed: each driver's factor
+        self.driver_speeds = make(sc, run) if make is not None else None
         self.merging: set[str] = set()  # driven vehicles merging with SUMO's own model now
 
     def take(self, sim: Simulation, vids: list[str]) -> None:
@@ -373,6 +375,7 @@ class SectionSpeedDriver(SectionDriver):
             leaders,
             self.shape_table if shapes is None else shapes,
             stop,
+            self.driver_speeds,
         )
 
 

@@ -11,6 +11,7 @@ from itertools import chain, repeat
 
 import numpy as np
 
+from macromicro_sumo.env.driver_speed import DriverSpeeds, scale_limits
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
 from macromicro_sumo.sumo.simulation import VehicleStates
 
@@ -82,6 +83,7 @@ def observe_rows(
     leaders: list[tuple[str, float]],
     shapes: Table,
     stop_m: np.ndarray,
+    driver_speeds: DriverSpeeds | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Observations (V, obs_dim) of driven vehicles ``vids`` (rows ``rows`` of ``st``, on
     lanes ``lane_ids``), as the section env defines them, the leader SUMO's (``leaders``:
@@ -90,7 +92,8 @@ def observe_rows(
     the vehicle must leave (inf: none), a standing leader there when nearer than the
     leader (its back at the line, a vehicle length long). ``lanes``: the section's
     ``LaneTable``; ``shapes``: vehicle -> (length, minGap, decel), ``STANDING`` where
-    missing.
+    missing; ``driver_speeds``: each driver's desired-speed factor on the limits it
+    observes (``policy.driver_speed``; None: 1).
     Also returns SUMO's gap to what the vehicle sees ahead, that leader's decel, and its
     index in ``vids`` where it is a driven vehicle (-1: none, not driven, or a standing
     leader): the safety layer knows a driven leader's next speed, its command.
@@ -142,6 +145,8 @@ def observe_rows(
         arc = where[:, 2] + st.pos_m[rows] * where[:, 3]
         obs[:, 4] = where[:, 5]
         obs[:, 5] = where[:, 6] - (np.mod(arc, lanes.length_m) if lanes.closed else arc)
+    if driver_speeds is not None:
+        scale_limits(obs, driver_speeds(vids, obs))
     return obs, sumo_gap, lead_decel, lead_index
 
 

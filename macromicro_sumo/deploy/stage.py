@@ -45,6 +45,7 @@ import shutil
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -64,6 +65,7 @@ from macromicro_sumo.deploy.run import (
     run_method,
     write_method,
 )
+from macromicro_sumo.env.driver_speed import DriverSpeeds
 from macromicro_sumo.env.section_bank import typical_length
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation import ring as ring_eval
@@ -202,8 +204,9 @@ def policy_batch(agent: Agent) -> ActionBatch:
             out = bound * np.tanh(out / bound)
         return out + prior(obs)
 
-    # policy.driver_speed = "drawn": the drivers (deploy.drivers) draw each one's factor.
-    act.driver_speed = None if agent.driver_speed is None else agent.driver_speed.double().numpy()
+    # policy.driver_speed: each driven vehicle's factor, set by its driver.
+    q = agent.driver_speed
+    act.driver_speeds = None if q is None else partial(DriverSpeeds, q.double().numpy())
     return act
 
 

@@ -274,11 +274,7 @@ class SectionCore:
             self.active[i] = True
             self.lane[i] = hit[1]
             self.arc[i] = hit[2] + st[1] * hit[3]
-            worst = max(
-                worst,
-                abs(self.arc[i] - want[i]),
-                abs(hit[1] - want_lane[i]),
-            )
+            worst = max(worst, abs(self.arc[i] - want[i]), abs(hit[1] - want_lane[i]))
         if worst > POSITION_TOL_M and not self._error:
             self._error = f"insertion check failed: position off by {worst:.3f} m"
         self.off_record = np.zeros(self.n, dtype=bool)
@@ -309,6 +305,7 @@ class SectionCore:
             self.observation,
             stop_lane,
             stop_arc,
+            self.bank.factor_of(self.episode),  # each driver's own limits (policy.driver_speed)
         )
 
     def observations(self) -> np.ndarray:

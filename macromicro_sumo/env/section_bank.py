@@ -56,6 +56,9 @@ class SectionBank:
     # (E, edges, max lanes) the episode's run's speed limits [m/s] (``run_limits_mps``: drawn
     # per run where the truth has speed_limits.csv); None: the section's own.
     limits_mps: np.ndarray | None = None
+    # (E, N) each slot's desired-speed factor on the limits it observes (``policy.
+    # driver_speed``, ``env.driver_speed``); None: 1 for every driver.
+    driver_factor: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.run)
@@ -76,6 +79,10 @@ class SectionBank:
                 for f in self.__dataclass_fields__
             }
         )
+
+    def factor_of(self, episode: int) -> np.ndarray | None:
+        """Episode ``episode``'s desired-speed factors per slot (None: all 1)."""
+        return None if self.driver_factor is None else self.driver_factor[episode]
 
     def section_of(self, section: Section, episode: int) -> Section:
         """``section`` with episode ``episode``'s speed limits (itself where they agree)."""
@@ -276,9 +283,11 @@ def section_observations(
     observation: str,
     stop_lane: np.ndarray | None = None,
     stop_arc_m: np.ndarray | None = None,
+    factor: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Observations (N, obs_dim), leader (-1: none, ``STOP``: a standing obstacle) and
-    spacing of the active vehicles.
+    spacing of the active vehicles; ``factor`` (N,): each driver's desired-speed factor,
+    which multiplies the limits it observes (``env.driver_speed``; None: 1).
 
     Leaders along the lane connections (``section_leaders``, one sort per call); the end
     of a lane that leads nowhere and the stop points given (red lights) are standing
@@ -305,6 +314,10 @@ def section_observations(
     o[:, 3] = np.where(has, v - v[np.maximum(lead, 0)], np.where(lead == STOP, v, 0.0))
     if o.shape[1] > 4:
         o[:, 4], o[:, 5] = _lookahead(section, ln, s, e, o[:, 1])
+    if factor is not None:
+        o[:, 1] *= factor[idx]
+        if o.shape[1] > 4:
+            o[:, 4] *= factor[idx]
     obs[idx] = o
     return obs, leader, spacing
 

@@ -48,12 +48,15 @@ class Agent(nn.Module):
         prior: str = "none",
         prior_params: Mapping[str, float] | None = None,
         residual_bound_mps2: float = float("inf"),
+        driver_speed: np.ndarray | None = None,
     ) -> None:
         """``shift_scale``: the observation normalisation (None: the ring's OBS_SHIFT_SCALE).
         ``prior_params`` (``policy.prior.PRIOR_KEYS``) for a ``prior`` other than "none"; None
         leaves them NaN, for a checkpoint's state_dict to fill. ``residual_bound_mps2``:
         the largest correction [m/s^2] the actor adds to the prior (inf: unbounded; 0: the
-        prior alone)."""
+        prior alone). ``driver_speed``: the drivers' desired-speed factor quantiles
+        (``policy.driver_speed = "drawn"``, ``env.driver_speed.ratio_quantiles``; a buffer,
+        for the deployment to draw from); None: no buffer."""
         super().__init__()
         if prior not in PRIORS:
             raise UserError(f"policy.prior = {prior!r}: expected one of {', '.join(PRIORS)}")
@@ -85,6 +88,8 @@ class Agent(nn.Module):
         self.log_std = nn.Parameter(torch.full((1,), float(init_log_std)))
         self.hidden_size = hidden_size
         self.prior = prior
+        q = None if driver_speed is None else torch.as_tensor(np.asarray(driver_speed))
+        self.register_buffer("driver_speed", None if q is None else q.to(torch.float32))
         if prior != "none":
             keys = PRIOR_KEYS[prior]
             values = [float("nan")] * len(keys)

@@ -79,6 +79,13 @@ def load_checkpoint(path: Path, sc: Scenario) -> dict[str, Any]:
             f"{path}: policy was trained with policy.prior = {have!r}, scenario {sc.source} has "
             f"{sc.policy.prior!r}"
         )
+    have = payload.get("driver_speed", "none")  # checkpoints from before it: none
+    want_speed = getattr(sc.policy, "driver_speed", "none")
+    if have != want_speed:
+        raise UserError(
+            f"{path}: policy was trained with policy.driver_speed = {have!r}, scenario "
+            f"{sc.source} has {want_speed!r}"
+        )
     return payload
 
 
@@ -127,7 +134,12 @@ def load_policy(path: Path | str, sc: Scenario) -> Agent:
     objective = path.stem.removeprefix("policy").removeprefix("_") or "mix"
     check_beside(path, policy_file(objective, "manifest"))
     payload = load_checkpoint(path, sc)
-    agent = Agent(payload["hidden_size"], observation=sc.policy.observation, prior=sc.policy.prior)
+    agent = Agent(
+        payload["hidden_size"],
+        observation=sc.policy.observation,
+        prior=sc.policy.prior,
+        driver_speed=payload["state_dict"].get("driver_speed"),
+    )
     agent.load_state_dict(payload["state_dict"])
     agent.eval()
     return agent

@@ -236,6 +236,7 @@ def train_policy(
     make_demand: Callable[[], DemandCore] | None = None,
     prior_params: Mapping[str, float] | None = None,
     recorded_pairs: tuple[np.ndarray, np.ndarray] | None = None,
+    driver_speed: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """PPO on the env over ``bank``; writes policy.pt, policy_train_log.csv, checkpoints.
 
@@ -255,7 +256,8 @@ def train_policy(
     ``recorded_pairs`` (obs (N, D), accel (N,)): the observed vehicles' recorded pairs, what
     their own sensors saw (the pairs the prior was fitted on): the likelihood term uses them
     instead of the rollouts' observed pairs, whose leader is often a generated vehicle the
-    recorded action did not answer (``policy.residual``).
+    recorded action did not answer (``policy.residual``). ``driver_speed``: the drivers'
+    desired-speed factor quantiles (``policy.driver_speed = "drawn"``), kept in the agent.
     """
     cfg = sc.policy
     objective = objective or cfg.objective
@@ -286,6 +288,7 @@ def train_policy(
             cfg.prior,
             prior_params,
             cfg.residual_bound_mps2,
+            driver_speed,
         )
         if init is not None:
             agent.load_state_dict(init)
@@ -313,11 +316,10 @@ def train_policy(
             best_val, best_state = ck.get("best_val", best_val), ck.get("best_state_dict")
         a_min, a_max = sc.bounds.accel_mps2
         if recorded_pairs is not None:  # the likelihood's pairs, the same every update
+            clipped = clipped_actions(recorded_pairs[1], a_min, a_max)[0]
             fixed_pairs = (
                 torch.as_tensor(recorded_pairs[0], dtype=torch.float32),
-                torch.as_tensor(
-                    clipped_actions(recorded_pairs[1], a_min, a_max)[0], dtype=torch.float32
-                ),
+                torch.as_tensor(clipped, dtype=torch.float32),
             )
         bar = tqdm(
             range(start, n_updates),
@@ -467,6 +469,7 @@ def train_policy(
                         "log": log,
                         "hidden_size": agent.hidden_size,
                         "prior": agent.prior,
+                        "driver_speed": getattr(cfg, "driver_speed", "none"),
                         "micro_pool": micro_pool,
                         "best_val": best_val,
                         "best_state_dict": best_state,
@@ -487,6 +490,7 @@ def train_policy(
             "state_dict": agent.state_dict(),
             "hidden_size": agent.hidden_size,
             "prior": agent.prior,
+            "driver_speed": getattr(cfg, "driver_speed", "none"),
             "objective": objective,
             "scenario": sc.to_dict(),
         },

@@ -22,10 +22,20 @@ import torch
 from macromicro_sumo.data.ring import load_ground_truth, split_runs
 from macromicro_sumo.data.section import section_snapshots
 from macromicro_sumo.env.demand import DemandCore
+from macromicro_sumo.env.driver_speed import (
+    free_speed_ratios,
+    ratio_quantiles,
+    with_driver_factors,
+)
 from macromicro_sumo.env.ring import RingCore, build_bank, generator_completion
 from macromicro_sumo.env.rollout import rollout
 from macromicro_sumo.env.section import SectionCore
-from macromicro_sumo.env.section_bank import build_section_bank, recorded_min_gap, typical_vclass
+from macromicro_sumo.env.section_bank import (
+    build_section_bank,
+    initial_observations,
+    recorded_min_gap,
+    typical_vclass,
+)
 from macromicro_sumo.files import (
     file_sha256,
     prepare_out_dir,
@@ -63,6 +73,8 @@ class Episodes:
     bank: Any
     make_core: Callable[[Any, int], Any] | None = None
     make_demand: Callable[[], DemandCore] | None = None
+    # The observed drivers' desired-speed ratio quantiles (``policy.driver_speed``).
+    driver_speed: np.ndarray | None = None
 
 
 def policy_run_key(sc, data: Path, generator: Path, objective: str) -> str:
@@ -111,9 +123,15 @@ def heldout_speed(sc: Scenario, gt, net, agent, held: np.ndarray) -> pd.DataFram
 def section_episodes(sc: SectionScenario, truth, net, splits: dict[str, np.ndarray]) -> Episodes:
     """A section policy's episodes: snapshots of the train + val runs completed by the
     generator, its cores, and its demand episodes (``policy.episodes``)."""
-    snaps = section_snapshots(truth, sc, np.concatenate([splits["train"], splits["val"]]))
+    runs = np.concatenate([splits["train"], splits["val"]])
+    snaps = section_snapshots(truth, sc, runs)
     complete = section_completion(net, truth.section, sc, sc.generator.k_source, sc.seed)
     bank = build_section_bank(sc, truth, snaps, complete, sc.policy.horizon, sc.seed)
+    quantiles, kind = None, sc.policy.driver_speed
+    if kind != "none":  # each hidden driver its own desired speed
+        quantiles = ratio_quantiles(free_speed_ratios(sc, truth, runs))
+        obs0 = initial_observations(sc, truth.section, bank)
+        bank = with_driver_factors(bank, kind, quantiles, sc.seed, obs0)
     net_file = scenario_inputs(sc).net_file
     vclass = typical_vclass(truth)
     min_gap = recorded_min_gap(truth)
@@ -142,7 +160,7 @@ def section_episodes(sc: SectionScenario, truth, net, splits: dict[str, np.ndarr
     def make_demand() -> DemandCore:
         return DemandCore(sc, truth, demand_runs, horizon)
 
-    return Episodes(bank, make_core, make_demand)
+    return Episodes(bank, make_core, make_demand, quantiles)
 
 
 @dataclass(frozen=True)
@@ -205,6 +223,7 @@ def run_train_policy(
         make_demand=episodes.make_demand,
         prior_params=prior,
         recorded_pairs=pairs,
+        driver_speed=episodes.driver_speed,
     )
     align = None
     if road.heldout is not None:

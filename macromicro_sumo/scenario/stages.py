@@ -36,6 +36,14 @@ class PolicyConfig:
         doc="with a prior: the largest correction the actor adds to it [m/s^2] (B tanh(out / B); "
         "0: the fitted model alone); unbounded, the residual learned to cancel the IDM's braking",
     )
+    driver_speed: str = spec(
+        "none",
+        choices=("none", "drawn", "memory"),
+        doc="sections: none, every driver takes the limits as they are (one desired speed); "
+        "else each hidden or deployed driver takes them times its own factor: drawn from the "
+        "observed vehicles' free-flow speed ratios (drawn), or its own speed ratio where it "
+        "was first seen, over their median (memory) (env.driver_speed)",
+    )
     hidden_train: tuple[int, int] = spec(
         (1, 4), lo=1, hi=10_000, doc="K range of training episodes"
     )
