@@ -28,6 +28,9 @@ SMALL_RUN = {
     "evaluation.timespace_s": 20.0,
     "evaluation.lf_trials": 2,
     "evaluation.lf_duration_s": 20.0,
+    # Each of the detector-calibrated IDM's evaluations re-runs the training runs: two do
+    # (the default 60 made the deploy stage the pipeline's longest).
+    "deploy.calibration_evals": 2,
 }
 
 
@@ -50,6 +53,7 @@ def test_run_writes_every_stage_and_the_report(pipeline):
         "policy/policy_macro_only.pt",
         "evaluation/macro_alignment.csv",
         "evaluation/micro_consistency.csv",
+        "deploy/deploy_summary.csv",
         "report.md",
         "manifest.json",
     ):
@@ -142,33 +146,6 @@ def test_evaluate_rejects_missing_stage_outputs(pipeline, tmp_path, capsys):
     assert not (tmp_path / "ev").exists() or not any((tmp_path / "ev").iterdir())
 
 
-def test_joint_refinement_switch_runs_and_is_compared_in_the_report(tmp_path):
-    path = write_scenario(
-        tmp_path,
-        {
-            **SMALL_RUN,
-            "policy.refine_iterations": 1,
-            "policy.refine_updates": 2,
-            "policy.refine_epochs": 2,
-        },
-    )
-    out = tmp_path / "run"
-    assert cli.main(["run", str(path), "--out", str(out), "--quiet"]) == 0
-    ref = out / "refined"
-    assert (ref / "generator.pt").is_file() and (ref / "policy.pt").is_file()
-    log = pd.read_csv(ref / "iter_0" / "generator_train_log.csv")
-    # The consistency term against the policy's hidden states is part of the loss.
-    assert "train_L_rec" in log and (log["train_L_rec"] > 0).all()
-    import torch
-
-    a = torch.load(out / "generator" / "generator.pt", weights_only=True)["state_dict"]
-    b = torch.load(ref / "generator.pt", weights_only=True)["state_dict"]
-    assert any(not torch.equal(a[k], b[k]) for k in a)
-    report = (out / "report.md").read_text()
-    assert "## Joint refinement (1 outer iterations) vs single pass" in report
-    assert "| joint refinement |" in report and "| single pass |" in report
-
-
 def test_several_completions_per_scene_pair_each_draw_with_the_true_scene(pipeline, tmp_path):
     """One and two completions of every held-out scene: twice the episodes for every method;
     the ground truth is the same scenes repeated (same figures), the generated methods see a
@@ -227,6 +204,37 @@ def _state(out: Path) -> dict[str, tuple[bytes, int]]:
 
 def _digest(out: Path, stage: str) -> str:
     return json.loads((out / STAGE_MANIFESTS[stage]).read_text())["scenario_sha256"]
+
+
+def test_joint_refinement_switch_runs_and_is_compared_in_the_report(finished_copy, tmp_path):
+    """The switch on a finished run: the refine keys reach no standard stage, so only the
+    refinement and its evaluation run (test_stages_redo_what_an_edit_reaches)."""
+    out = finished_copy
+    before = _state(out)
+    path = write_scenario(
+        tmp_path / "refine",
+        {
+            **SMALL_RUN,
+            "policy.refine_iterations": 1,
+            "policy.refine_updates": 2,
+            "policy.refine_epochs": 2,
+        },
+    )
+    assert cli.main(["run", str(path), "--out", str(out), "--quiet"]) == 0
+    assert {k: v[1] for k, v in _state(out).items()} == {k: v[1] for k, v in before.items()}
+    ref = out / "refined"
+    assert (ref / "generator.pt").is_file() and (ref / "policy.pt").is_file()
+    log = pd.read_csv(ref / "iter_0" / "generator_train_log.csv")
+    # The consistency term against the policy's hidden states is part of the loss.
+    assert "train_L_rec" in log and (log["train_L_rec"] > 0).all()
+    import torch
+
+    a = torch.load(out / "generator" / "generator.pt", weights_only=True)["state_dict"]
+    b = torch.load(ref / "generator.pt", weights_only=True)["state_dict"]
+    assert any(not torch.equal(a[k], b[k]) for k in a)
+    report = (out / "report.md").read_text()
+    assert "## Joint refinement (1 outer iterations) vs single pass" in report
+    assert "| joint refinement |" in report and "| single pass |" in report
 
 
 def test_run_after_a_policy_edit_reuses_ground_truth_and_generator(finished_copy, tmp_path):
