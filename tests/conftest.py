@@ -163,6 +163,23 @@ def scenario_writer() -> Callable[[Path, dict[str, Any] | None], Path]:
     return write_scenario
 
 
+# ------------------------------------------------------------------ a random corridor
+def corridor_table(folder: Path, net_seed: int = 3) -> dict[str, Any]:
+    """A corridor drawn by netgen from ``net_seed`` into ``folder / "net"`` (open, lane counts
+    change along it), as a scenario table: 30 % instrumented, 2 runs of 120 s after a 150 s
+    warm-up, loops every 200 m, 30 s intervals."""
+    cor = random_corridor(folder / "net", net_seed)
+    return {
+        "name": "corridor",
+        "seed": 5,
+        "network": {"kind": "sumo", "sumocfg": str(cor.sumocfg)},
+        "section": {"edges": list(cor.section_edges), "closed": False},
+        "instrumented": {"penetration": 0.3},
+        "simulation": {"warmup_s": 150.0, "duration_s": 120.0, "n_runs": 2},
+        "detectors": {"interval_s": 30.0, "auto_spacing_m": 200.0},
+    }
+
+
 # ------------------------------------------------------------------ field data (tests/fielddata)
 # A small simulated ground truth on a random corridor (lane counts change along it), the
 # source every field-data fixture is exported from. Here, not in a conftest of its own: two
@@ -171,32 +188,9 @@ def scenario_writer() -> Callable[[Path, dict[str, Any] | None], Path]:
 def field_truth(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """One 120 s run (0.2 s of SUMO), 30 % instrumented, E1 loops every 200 m, 30 s intervals."""
     folder = tmp_path_factory.mktemp("field_truth")
-    cor = random_corridor(folder / "net", 3)
-    (folder / "corridor.toml").write_text(
-        f"""name = "corridor"
-seed = 5
-
-[network]
-kind = "sumo"
-sumocfg = {json.dumps(str(cor.sumocfg))}
-
-[section]
-edges = {json.dumps(list(cor.section_edges))}
-closed = false
-
-[instrumented]
-penetration = 0.3
-
-[simulation]
-warmup_s = 150.0
-duration_s = 120.0
-n_runs = 1
-
-[detectors]
-interval_s = 30.0
-auto_spacing_m = 200.0
-"""
-    )
+    table = corridor_table(folder)
+    table["simulation"]["n_runs"] = 1
+    (folder / "corridor.toml").write_text(dump_toml(table))
     assert (
         main(["simulate", str(folder / "corridor.toml"), "--out", str(folder / "gt"), "--quiet"])
         == 0

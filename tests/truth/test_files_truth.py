@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import dump_toml
+from conftest import corridor_table, dump_toml
 
 from macromicro_sumo.cli import main
 from macromicro_sumo.data.section import PSI_FIELDS, section_snapshots
@@ -40,7 +40,6 @@ from macromicro_sumo.scenario.data import (
     build_data,
 )
 from macromicro_sumo.scenario.load import load_scenario
-from macromicro_sumo.sumo.netgen import random_corridor
 from macromicro_sumo.truth.files import (
     K_TRUE_UNKNOWN,
     data_toml,
@@ -66,19 +65,6 @@ PAIRS_SPACING_TOL = 0.005
 IDM_PRED_TOL = 0.15  # m/s^2: the files' accelerations are smoothed (sEMA), the truth's not
 
 
-def _base(folder: Path) -> dict:
-    cor = random_corridor(folder / "net", 3)
-    return {
-        "name": "corridor",
-        "seed": 5,
-        "network": {"kind": "sumo", "sumocfg": str(cor.sumocfg)},
-        "section": {"edges": list(cor.section_edges), "closed": False},
-        "instrumented": {"penetration": 0.3},
-        "simulation": {"warmup_s": 150.0, "duration_s": 120.0, "n_runs": 2},
-        "detectors": {"interval_s": 30.0, "auto_spacing_m": 200.0},
-    }
-
-
 def write_files_scenario(folder: Path, base: dict, data: dict) -> Path:
     path = folder / "files.toml"
     path.write_text(dump_toml({**base, "name": "corridor_files"}) + "\n" + data_toml(data))
@@ -89,7 +75,7 @@ def write_files_scenario(folder: Path, base: dict, data: dict) -> Path:
 def pair(tmp_path_factory: pytest.TempPathFactory) -> dict:
     """The same recording twice: simulated, and read back from its exported files."""
     folder = tmp_path_factory.mktemp("files_truth")
-    base = _base(folder)
+    base = corridor_table(folder)
     (folder / "sim.toml").write_text(dump_toml(base))
     sim = folder / "gt_sim"
     assert main(["simulate", str(folder / "sim.toml"), "--out", str(sim), "--quiet"]) == 0

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import NETS, dump_toml
+from conftest import NETS, corridor_table, dump_toml
 
 from macromicro_sumo.cli import main
 from macromicro_sumo.data.section import section_snapshots
@@ -29,17 +29,7 @@ RING = NETS / "ring_r100_e4.net.xml"
 
 
 def corridor_scenario(folder: Path, seed: int = 3, **tables: dict) -> Path:
-    cor = random_corridor(folder / "net", seed)
-    table = {
-        "name": "corridor",
-        "seed": 5,
-        "network": {"kind": "sumo", "sumocfg": str(cor.sumocfg)},
-        "section": {"edges": list(cor.section_edges), "closed": False},
-        "instrumented": {"penetration": 0.3},
-        "simulation": {"warmup_s": 150.0, "duration_s": 120.0, "n_runs": 2},
-        "detectors": {"interval_s": 30.0, "auto_spacing_m": 200.0},
-        "generator": {"snapshot_every_s": 10.0},
-    }
+    table = corridor_table(folder, seed) | {"generator": {"snapshot_every_s": 10.0}}
     for name, sub in tables.items():
         table.setdefault(name, {}).update(sub)
     path = folder / "corridor.toml"
