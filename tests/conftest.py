@@ -283,6 +283,17 @@ def ring_section_truth(tmp_path_factory: pytest.TempPathFactory) -> tuple[Sectio
 
 
 BREMEN_FILES = ROOT / "scenarios" / "highway_bremen_files.toml"
+# Tiny Stage I and II budgets for the field-data pipeline tests (TOML, for bremen_files_with).
+BREMEN_TINY = """
+[generator]
+epochs = 2
+batch_size = 32
+
+[policy]
+updates = 1
+episodes_per_update = 4
+observation = "lookahead"
+"""
 
 
 def bremen_files_with(folder: Path, budgets: str) -> Path:

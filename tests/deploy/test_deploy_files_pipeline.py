@@ -11,29 +11,23 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import BREMEN_FILES, bremen_files_with
+from conftest import BREMEN_FILES, BREMEN_TINY, bremen_files_with
 
 from macromicro_sumo.cli import main
 from macromicro_sumo.deploy.compare import REFERENCE_FIELD
 from macromicro_sumo.evaluation.section import REFERENCE_MICRO, REFERENCE_STATIONS, STATIONS
 
 EXAMPLE = BREMEN_FILES
-TINY = """
-[generator]
-epochs = 2
-batch_size = 32
-
-[policy]
-updates = 1
-episodes_per_update = 4
-observation = "lookahead"
-
+TINY = (
+    BREMEN_TINY
+    + """
 [evaluation]
 fcd_episodes = 0
 
 [deploy]
 methods = ["policy", "idm_calibrated", "oracle"]
 """
+)
 
 
 def tiny_example(folder: Path) -> Path:

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import BREMEN_FILES, bremen_files_with
+from conftest import BREMEN_FILES, BREMEN_TINY, bremen_files_with
 
 from macromicro_sumo.cli import main
 from macromicro_sumo.scenario.load import load_scenario
@@ -18,19 +18,13 @@ from macromicro_sumo.truth.files import K_TRUE_UNKNOWN
 from macromicro_sumo.truth.section import load_section_truth
 
 EXAMPLE = BREMEN_FILES
-TINY = """
-[generator]
-epochs = 2
-batch_size = 32
-
-[policy]
-updates = 1
-episodes_per_update = 4
-observation = "lookahead"
-
+TINY = (
+    BREMEN_TINY
+    + """
 [evaluation]
 fcd_episodes = 1
 """
+)
 
 
 def tiny_example(folder: Path) -> Path:
