@@ -14,6 +14,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from ring_scenes import N_VEHICLES, ring_scenes
 
 from macromicro_sumo.data.section import SectionSnapshots, psi_table
 from macromicro_sumo.errors import UserError
@@ -41,40 +42,12 @@ from macromicro_sumo.scenario.section import (
 from macromicro_sumo.truth.section import load_section_truth
 
 ROOT = Path(__file__).resolve().parents[2]
-S_MIN_M = 7.0
-N_VEHICLES = 5
 
 
 def ring_snapshots(section: Section, n: int, seed: int) -> SectionSnapshots:
-    """Five vehicles on the loop (Dirichlet spacings above 60 m, as the ring truth draws
-    them), one or two hidden; psi from the whole scene: mean speed, L / N, the spacings'
-    std, speed bounds and the minimum spacing."""
-    rng = np.random.default_rng(seed)
-    length = section.length_m
-    arc, speed = np.zeros((n, N_VEHICLES)), np.zeros((n, N_VEHICLES))
-    observed = np.ones((n, N_VEHICLES), bool)
-    psi = np.zeros((n, 6))
-    for i in range(n):
-        gaps = 60.0 + rng.dirichlet(np.full(N_VEHICLES, 7.0)) * (length - 60.0 * N_VEHICLES)
-        arc[i] = np.mod(
-            rng.uniform(0, length) + np.concatenate([[0.0], np.cumsum(gaps[:-1])]), length
-        )
-        speed[i] = rng.uniform(10.5, 13.5, N_VEHICLES)
-        observed[i, rng.choice(N_VEHICLES, rng.integers(1, 3), replace=False)] = False
-        psi[i] = [speed[i].mean(), length / N_VEHICLES, gaps.std(), 10.0, 14.0, S_MIN_M]
-    hidden = ~observed
-    return SectionSnapshots(
-        run=np.zeros(n, dtype=int),
-        time_s=np.arange(n) * 5.0,
-        lane=np.zeros((n, N_VEHICLES), np.int64),
-        arc_m=arc,
-        speed_mps=speed,
-        length_m=np.full((n, N_VEHICLES), 5.0),
-        valid=np.ones((n, N_VEHICLES), bool),
-        observed=observed,
-        psi=psi,
-        k_true=hidden.sum(axis=1),
-        k_est=hidden.sum(axis=1),
+    """Five vehicles on the loop, one or two hidden; psi as the ring's without d_max."""
+    return ring_scenes(
+        section, n, seed, lambda rng: rng.choice(N_VEHICLES, rng.integers(1, 3), replace=False)
     )
 
 

@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from ring_scenes import N_VEHICLES, S_MIN_M, ring_scenes
 
 from macromicro_sumo.data.section import PSI_FIELDS, SectionSnapshots, psi_table
 from macromicro_sumo.errors import UserError
@@ -31,8 +32,6 @@ from macromicro_sumo.scenario.section import SectionGeneratorConfig, SectionScen
 from macromicro_sumo.truth.section import load_section_truth
 
 ROOT = Path(__file__).resolve().parents[2]
-N_VEHICLES = 5
-S_MIN_M = 7.0
 
 
 def with_generator(sc: SectionScenario, **gen: object) -> SectionScenario:
@@ -117,44 +116,10 @@ def test_spacing_bounds_need_the_passages(ring_section_truth, tmp_path: Path) ->
     assert "\n" not in msg and "detector_passages.csv" in msg and "spacing_bounds" in msg
 
 
-def ring_scenes(section: Section, n: int, seed: int, d_max: float) -> SectionSnapshots:
-    """Five vehicles on the loop (Dirichlet spacings above 60 m), one hidden; psi with the
-    scene's mean speed, L / N, the spacings' std and the largest spacing ``d_max``."""
-    rng = np.random.default_rng(seed)
-    length = section.length_m
-    arc, speed = np.zeros((n, N_VEHICLES)), np.zeros((n, N_VEHICLES))
-    observed = np.ones((n, N_VEHICLES), bool)
-    psi = np.zeros((n, len(PSI_FIELDS)))
-    for i in range(n):
-        gaps = 60.0 + rng.dirichlet(np.full(N_VEHICLES, 7.0)) * (length - 60.0 * N_VEHICLES)
-        arc[i] = np.mod(
-            rng.uniform(0, length) + np.concatenate([[0.0], np.cumsum(gaps[:-1])]), length
-        )
-        speed[i] = rng.uniform(10.5, 13.5, N_VEHICLES)
-        observed[i, rng.integers(N_VEHICLES)] = False
-        psi[i] = [
-            speed[i].mean(),
-            length / N_VEHICLES,
-            gaps.std(),
-            10.0,
-            14.0,
-            S_MIN_M,
-            d_max,
-            S_MIN_M,
-        ]
-    ones = np.ones(n, dtype=int)
-    return SectionSnapshots(
-        run=np.zeros(n, dtype=int),
-        time_s=np.arange(n) * 5.0,
-        lane=np.zeros((n, N_VEHICLES), np.int64),
-        arc_m=arc,
-        speed_mps=speed,
-        length_m=np.full((n, N_VEHICLES), 5.0),
-        valid=np.ones((n, N_VEHICLES), bool),
-        observed=observed,
-        psi=psi,
-        k_true=ones,
-        k_est=ones,
+def scenes_one_hidden(section: Section, n: int, seed: int, d_max: float) -> SectionSnapshots:
+    """Five vehicles on the loop, one hidden; psi's largest spacing ``d_max``."""
+    return ring_scenes(
+        section, n, seed, lambda rng: rng.integers(N_VEHICLES), psi_tail=(d_max, S_MIN_M)
     )
 
 
@@ -173,7 +138,7 @@ def test_the_last_vehicle_keeps_both_spacings_under_psis_largest(ring_loop: Sect
     a few projections); without it (inf) the same untrained generator puts some beyond."""
     torch.manual_seed(0)
     net = SectionGeneratorNet(16, "posterior")
-    snaps = ring_scenes(ring_loop, 60, seed=3, d_max=np.inf)
+    snaps = scenes_one_hidden(ring_loop, 60, seed=3, d_max=np.inf)
     true_max = np.zeros(len(snaps))
     for i in range(len(snaps)):
         a = np.sort(snaps.arc_m[i])
@@ -199,7 +164,7 @@ def test_the_last_vehicle_keeps_both_spacings_under_psis_largest(ring_loop: Sect
 def test_touched_spacing_set_is_the_rings_a(ring_loop: Section) -> None:
     """spacing_set = "touched": the spacing terms count only the spacings with a generated
     vehicle at either end (the ring's A), deviations from the loop's exact mean spacing."""
-    snaps = ring_scenes(ring_loop, 4, seed=8, d_max=np.inf)
+    snaps = scenes_one_hidden(ring_loop, 4, seed=8, d_max=np.inf)
     road = Road.of(ring_loop)
     # the first three slots observed, the last two generated
     lane, arc = torch.as_tensor(snaps.lane), torch.as_tensor(snaps.arc_m)
@@ -247,7 +212,7 @@ def test_a_touched_gap_beyond_d_max_draws_the_last_vehicle(ring_loop: Section) -
     touched gap longer than d_max: the last vehicle is accepted only there, at a point that
     leaves both pieces within d_max."""
     n = 8
-    snaps = ring_scenes(ring_loop, n, seed=11, d_max=np.inf)
+    snaps = scenes_one_hidden(ring_loop, n, seed=11, d_max=np.inf)
     hidden = np.zeros_like(snaps.observed)
     hidden[:, [0, 2]] = True
     d_max = 1.4 * ring_loop.length_m / N_VEHICLES
@@ -300,7 +265,7 @@ def test_squared_dispersion_error_by_hand(ring_loop: Section) -> None:
     """dispersion_error = "squared": L_var = (X - sigma^2)^2 / (d^2 sigma^2) with X the
     scene's spacing variance around the loop's exact mean (dispersion_center = "scene"),
     sigma and d psi's spacing std and mean spacing (here 6% short, as E2's on the ring)."""
-    snaps = ring_scenes(ring_loop, 5, seed=2, d_max=np.inf)
+    snaps = scenes_one_hidden(ring_loop, 5, seed=2, d_max=np.inf)
     psi_arr = snaps.psi.copy()
     psi_arr[:, 1] *= 0.94
     psi_arr[:, 2] = [10.0, 20.0, 30.0, 40.0, 50.0]
