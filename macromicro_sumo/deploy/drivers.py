@@ -4,8 +4,9 @@ A driver (``sumo.simulation.Driver``) reads the live SUMO state it needs and dri
 vehicles of the driven population, the others keep their own SUMO models:
 
 * on a section (``SectionDriver`` and its subclasses) the population is every vehicle that
-  is not instrumented (``truth.section.is_instrumented``), or a share of them drawn per
-  vehicle by a hash, or one vType; each is driven from the step it is on a lane of the
+  is not instrumented (``truth.section.is_instrumented``; where each snapshot hides its
+  own vehicles, ``hidden = "snapshot"``, nobody is: ``deploy.population``), or a share of
+  them drawn per vehicle by a hash, or one vType; each is driven from the step it is on a lane of the
   section until it leaves the section;
 * on the ring (``deploy.ring_drivers``: ``RingDriver`` ...) the population is the fleet,
   or a share of it.
