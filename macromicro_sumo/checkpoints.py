@@ -78,16 +78,20 @@ def load_network(
             f"{path}: not a {what} checkpoint (written by `macromicro train-generator`)"
         )
     try:
-        net = make(int(payload["hidden_size"]))
-        net.load_state_dict(payload["state_dict"])
         trained_for = (before or {}) | dict(payload["signature"])
     except Exception as exc:  # a field missing or of the wrong shape
         raise UserError(f"{corrupt} ({type(exc).__name__})") from None
+    # Before the weights: a key that changes the network's inputs changes their shapes.
     for key, want in signature.items():
         if trained_for.get(key) != want:
             raise UserError(
                 f"{path}: {what} was trained for {key} = {trained_for.get(key)}, "
                 f"scenario {source} has {want}"
             )
+    try:
+        net = make(int(payload["hidden_size"]))
+        net.load_state_dict(payload["state_dict"])
+    except Exception as exc:  # a field missing or of the wrong shape
+        raise UserError(f"{corrupt} ({type(exc).__name__})") from None
     net.eval()
     return net

@@ -47,6 +47,7 @@ from macromicro_sumo.generator.section_scene import (
     Gaps,
     Psi,
     Road,
+    dispersion_budget,
     lane_exists_share,
     lane_order,
     scene_gaps,
@@ -74,6 +75,7 @@ class Observation:
     glob: torch.Tensor  # (B, N_GLOBAL_FEATURES)
     need_v: torch.Tensor  # (B,) mean speed the vehicles still to place need [m/s]
     remaining: torch.Tensor  # (B,) vehicles still to place, the next one included
+    budget: torch.Tensor  # (B, G) ``dispersion_budget`` (read with generator.dispersion_feature)
 
 
 def observe(
@@ -144,7 +146,8 @@ def observe(
         ],
         dim=-1,
     )
-    return Observation(gaps, share, choosable, gap_feat, glob, need_v, remaining)
+    budget = dispersion_budget(gaps, total, psi, road)
+    return Observation(gaps, share, choosable, gap_feat, glob, need_v, remaining, budget)
 
 
 # --------------------------------------------------------------------------- model
@@ -159,14 +162,22 @@ class SectionGeneratorNet(nn.Module):
     ReLU rather than the ring's tanh for the same reason (tanh was half of inference time).
     """
 
-    def __init__(self, hidden_size: int = 64, gap_choice: str = "network") -> None:
+    def __init__(
+        self,
+        hidden_size: int = 64,
+        gap_choice: str = "network",
+        dispersion_feature: bool = False,
+    ) -> None:
         super().__init__()
         self.hidden_size = hidden_size
+        # ``generator.dispersion_feature``: each gap also sees ``dispersion_budget`` (one
+        # more input; off, the network and its initial weights are as before it existed).
+        self.dispersion_feature = dispersion_feature
         # How a rollout picks the next vehicle's gap (``generator.gap_choice``): "network"
         # from the choice logits, "posterior" from ``posterior_log_probs`` (closed one-lane
         # sections; the logits are then unused where psi has a spacing std).
         self.gap_choice = gap_choice
-        self.gap_in = nn.Linear(N_GAP_FEATURES, hidden_size, bias=False)
+        self.gap_in = nn.Linear(N_GAP_FEATURES + int(dispersion_feature), hidden_size, bias=False)
         self.glob_in = nn.Linear(N_GLOBAL_FEATURES, hidden_size)
         self.head = nn.Linear(hidden_size, 5)
 
@@ -217,11 +228,19 @@ class Trials:
     probs: torch.Tensor  # (B, G) the gap choice's distribution (detached)
 
 
+def gap_input(net: SectionGeneratorNet, obs: Observation) -> torch.Tensor:
+    """(B, G, inputs) what the network reads of each gap: its features, and with
+    ``dispersion_feature`` its ``dispersion_budget`` after them."""
+    if not net.dispersion_feature:
+        return obs.gap_feat
+    return torch.cat([obs.gap_feat, obs.budget[..., None]], dim=-1)
+
+
 def propose(
     net: SectionGeneratorNet, obs: Observation, psi: Psi, road: Road, n: int, gen: torch.Generator
 ) -> Trials:
     """Sample ``n`` candidates per scene: a gap, a point in its admissible part, a speed."""
-    out = net(obs.gap_feat, obs.glob, obs.gaps.valid)  # (B, G, 5)
+    out = net(gap_input(net, obs), obs.glob, obs.gaps.valid)  # (B, G, 5)
     b = out.shape[0]
     logits = out[..., 0]
     if net.gap_choice == "posterior":

@@ -345,3 +345,38 @@ def lane_exists_share(gaps: Gaps, road: Road) -> torch.Tensor:
     )
     share = over.clamp(min=0.0).sum(dim=-1) / room.clamp(min=1e-9)
     return torch.where(room > 0, share.clamp(max=1.0), 0.0)
+
+
+def dispersion_budget(gaps: Gaps, total: torch.Tensor, psi: Psi, road: Road) -> torch.Tensor:
+    """(B, G) the share of the completed scene's spacing dispersion still missing if the
+    next vehicle splits each gap in its middle: 1 - S_j / (n sigma^2), S_j the spacings'
+    summed squared deviation from the completed scene's mean spacing (a closed section's
+    exact lane length / n, psi's on an open one) with gap j halved, n the completed
+    scene's vehicles, sigma psi's spacing std; in [-5, 1], 0 where psi has none.
+
+    Why (``generator.dispersion_feature``): the gap features and psi say nothing about
+    the spacings elsewhere in the scene, so a position head cannot tell how far from its
+    gap's middle a vehicle must go for the scene to reach psi's spread. On the ring as a
+    section the last vehicle then sat 0.08-0.09 of its gap off the middle at every K,
+    whether the scene before it (that gap halved) held 0.69 sigma^2 (K = 1, observed
+    spacings) or 0.95 sigma^2 (K = 4, earlier generated ones): K = 1's spread came out
+    3.9% short. Read beside ``spacing_set = "touched"`` (the ring's A: the observed
+    spacings keep their own spread); with every spacing in A the net met psi's sigma^2 in
+    every scene and the scenes came out 3-7% too wide (docs/design.md, "Ring as a
+    section: status", item 3)."""
+    n = total.double().clamp(min=1.0)
+    center = road.lane_length_m / n if road.closed else psi.d_mean
+    m = gaps.length.shape[1] - road.max_lanes  # vehicle gaps first, then one head gap per lane
+    length = gaps.length[:, :m].detach()
+    spacing = gaps.valid[:, :m] & gaps.has_l[:, :m]
+    dev = torch.where(spacing, (length - center[:, None]) ** 2, 0.0)
+    s_now = dev.sum(dim=1, keepdim=True)
+    between = spacing & gaps.has_f[:, :m]
+    halved = s_now - dev + 2.0 * (0.5 * length - center[:, None]) ** 2
+    s_mid = torch.cat(
+        [torch.where(between, halved, s_now), s_now.expand(-1, road.max_lanes)], dim=1
+    )
+    known = psi.d_std_known & (psi.d_std > 0)
+    target = (n * psi.d_std**2).clamp(min=1e-9)[:, None]
+    budget = (1.0 - s_mid / target).clamp(-5.0, 1.0)
+    return torch.where(known[:, None] & gaps.valid, budget, 0.0)

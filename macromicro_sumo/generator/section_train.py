@@ -81,6 +81,7 @@ def signature(sc: SectionScenario) -> dict[str, Any]:
         "section.closed": bool(sc.section.closed),
         "simulation.step_length_s": float(sc.simulation.step_length_s),
         "generator.gap_choice": sc.generator.gap_choice,
+        "generator.dispersion_feature": bool(sc.generator.dispersion_feature),
         "observation_layout": f"section-gaps-v{FEATURE_VERSION}",
     }
 
@@ -101,9 +102,14 @@ def load_section_generator(path: Path | str, sc: SectionScenario) -> SectionGene
         CHECKPOINT_FORMAT,
         "section generator",
         signature(sc),
-        lambda hidden_size: SectionGeneratorNet(hidden_size, sc.generator.gap_choice),
+        lambda hidden_size: SectionGeneratorNet(
+            hidden_size,
+            sc.generator.gap_choice,
+            sc.generator.dispersion_feature,
+        ),
         sc.source or sc.name,
-        before={"generator.gap_choice": "network"},  # the only choice before it was a key
+        # the only values before they were keys
+        before={"generator.gap_choice": "network", "generator.dispersion_feature": False},
     )
 
 
@@ -229,7 +235,7 @@ def _train(
     cfg = sc.generator
     torch.manual_seed(sc.seed)
     road = Road.of(section)
-    net = SectionGeneratorNet(cfg.hidden_size, cfg.gap_choice)
+    net = SectionGeneratorNet(cfg.hidden_size, cfg.gap_choice, cfg.dispersion_feature)
     gen = torch.Generator().manual_seed(sc.seed)
     rng = np.random.default_rng([sc.seed, 31])
     k_train, k_val = k_of(train, cfg.k_source), k_of(val, cfg.k_source)

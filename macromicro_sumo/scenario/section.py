@@ -171,6 +171,12 @@ class SectionGeneratorConfig:
         "|X - sigma^2| / d^2 (absolute: the scenes' median X meets psi's) or "
         "(X - sigma^2)^2 / (d^2 sigma^2) (squared: their mean does)",
     )
+    dispersion_feature: bool = spec(
+        False,
+        doc="each gap's features also say how much of psi's spacing variance the scene still "
+        "lacks if the next vehicle halves that gap (the position head can then tell how far "
+        "from the middle to go; docs/design.md, Ring as a section: status)",
+    )
     spacing_set: str = spec(
         "all",
         choices=("all", "touched"),
