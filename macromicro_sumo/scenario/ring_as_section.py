@@ -241,6 +241,9 @@ def ring_to_section(table: dict[str, Any], folder: Path, file: str) -> dict[str,
         # (docs/design.md, "Ring as a section: status", items 2 and 3).
         gen.setdefault("dispersion_center", "scene")
         gen.setdefault("dispersion_error", "squared")
+        # ... and the ring's A with each gap's dispersion budget (K = 1's spread, item 3)
+        gen.setdefault("spacing_set", "touched")
+        gen.setdefault("dispersion_feature", True)
 
     table["simulation"].setdefault("warmup_s", 0.0)  # the ring records from the insertion on
     detectors = table["detectors"]

@@ -31,6 +31,7 @@ from macromicro_sumo.generator.section_train import (
     train_section_generator,
 )
 from macromicro_sumo.road.section import Section, read_section
+from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.scenario.section import (
     SectionConfig,
     SectionGeneratorConfig,
@@ -170,3 +171,8 @@ def test_off_by_default_and_checkpoints_remember_it(ring: Section, tmp_path: Pat
         torch.testing.assert_close(a, b)
     with pytest.raises(UserError, match="generator.dispersion_feature"):
         load_section_generator(tmp_path / "generator.pt", scenario(ring, gap_choice="posterior"))
+
+
+def test_ring_paper_section_reads_the_budget_beside_the_rings_a() -> None:
+    g = load_scenario(ROOT / "scenarios" / "ring_paper_section.toml").generator
+    assert g.dispersion_feature and g.spacing_set == "touched"

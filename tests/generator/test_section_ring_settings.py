@@ -191,7 +191,7 @@ def test_ring_paper_section_sets_the_rings_settings() -> None:
         "squared",
         4,
     )
-    assert (g.spacing_bounds, g.spacing_set) == ("none", "all")
+    assert (g.spacing_bounds, g.spacing_set) == ("none", "touched")  # touched: K = 1's spread
 
 
 def one_hidden(section: Section, n: int, seed: int) -> SectionSnapshots:
