@@ -15,14 +15,13 @@ Read top to bottom as CleanRL's ppo_continuous_action: rollout, GAE, update (the
   the prior was fitted on (``recorded_pairs``), the residual is fitted only where a leader
   changes the prior's action, and anchors hold it at 0 off its pairs (``policy.residual``:
   why, measured).
-* Ablations (``policy.objective``): ``mix`` (the paper), ``micro_only`` (eta = 0:
-  behaviour cloning), ``macro_only`` (no likelihood term).
+* Ablations (``policy.objective``): ``mix`` (the paper), ``micro_only`` (eta = 0: behaviour
+  cloning), ``macro_only`` (no likelihood term). An empty minibatch (few samples) is skipped.
 * The env core is the ring's ``RingCore`` or a section's ``SectionCore`` (``make_core``).
-  On a section vehicles leave mid-episode and recorded actions can be unknown: steps of
-  an inactive vehicle carry no loss (its value target ends there), NaN actions no
-  likelihood. Observations are normalised with fixed ring constants on the ring and with
-  the mean/std of the bank's initial observations on a section (buffers of the agent, so
-  they travel in the checkpoint's state_dict).
+  On a section vehicles leave mid-episode and recorded actions can be unknown: steps of an
+  inactive vehicle carry no loss (its value target ends there), NaN actions no likelihood.
+  Observations are normalised with fixed ring constants on the ring and with the mean/std
+  of the bank's initial observations on a section (agent buffers, in the checkpoint).
 """
 
 from __future__ import annotations
@@ -428,6 +427,8 @@ def train_policy(
                             anchors = anchor_observations(m_all[pick], gen)
                             loss = loss + anchor_loss(agent, anchors, support)
                         stats["micro_logp"].append(float(micro.detach()))
+                    if not loss.requires_grad:
+                        continue
                     opt.zero_grad()
                     loss.backward()
                     nn.utils.clip_grad_norm_(agent.parameters(), 0.5)

@@ -124,3 +124,15 @@ def test_macro_only_ignores_the_validation_selection(ring, tmp_path):
     saved = torch.load(tmp_path / "policy_macro_only.pt", weights_only=True)["state_dict"]
     for k, v in last["state_dict"].items():
         torch.testing.assert_close(saved[k], v)
+
+
+def test_more_minibatches_than_samples_skips_the_empty_ones(ring, tmp_path):
+    """A small bank split into more minibatches than it has samples leaves some empty: they
+    are skipped (before: 'element 0 of tensors does not require grad' on the first one)."""
+    sc, bank, val_runs = ring
+    sc = dataclasses.replace(sc, policy=dataclasses.replace(sc.policy, minibatches=1000))
+    res = train_policy(
+        sc, bank, tmp_path, objective="micro_only", progress=False, updates=1, val_runs=val_runs
+    )
+    assert [row["update"] for row in res["log"]] == [1]
+    assert np.isfinite(res["log"][0]["micro_logp"])
