@@ -55,11 +55,13 @@ from macromicro_sumo.data.section import (
     section_snapshots,
     snapshots_by_k,
 )
+from macromicro_sumo.env.driver_speed import with_driver_factors
 from macromicro_sumo.env.rollout import ActionFn, Rollouts, rollout
 from macromicro_sumo.env.section import DEFAULT_SAFETY, SectionCore
 from macromicro_sumo.env.section_bank import (
     SectionBank,
     build_section_bank,
+    initial_observations,
     recorded_min_gap,
     typical_length,
     typical_vclass,
@@ -99,6 +101,20 @@ REFERENCE_RECORDED = "ground_truth: every recorded vehicle of the scenes (simula
 REFERENCE_STATIONS = "stations: each scene's detector interval (field data)"
 REFERENCE_MICRO = "held-out observed vehicles' recorded actions"
 STATIONS = "stations"  # macro_alignment.csv's reference row on field data
+
+
+def driven_bank(sc, truth, bank: SectionBank, agent, seed: int) -> SectionBank:
+    """``bank`` as ``agent`` drives it: with each hidden driver's desired-speed factor where
+    the policy was trained with one (``policy.driver_speed``, the quantiles in its
+    checkpoint), as in training and deployment; unchanged for every other method (the IDM
+    baselines know nothing of it)."""
+    quantiles = None if agent is None else getattr(agent, "driver_speed", None)
+    if quantiles is None or sc.policy.driver_speed == "none":
+        return bank
+    kind = sc.policy.driver_speed
+    # Only "memory" reads the drivers' generated starts.
+    obs0 = initial_observations(sc, truth.section, bank) if kind == "memory" else np.empty(0)
+    return with_driver_factors(bank, kind, quantiles.double().numpy(), seed, obs0)
 
 
 def recorded(bank: SectionBank, section: Section, horizon: int, dt: float) -> Rollouts:
@@ -321,8 +337,9 @@ def evaluate_section(
                 params = true_idm_by_episode(truth, oracle, kept, gen_bank)
                 methods["idm_true"] = true_idm_action(params, length)
             for name in [m for m in METHOD_ORDER if m in methods]:
+                bank = driven_bank(sc, truth, gen_bank, agents.get(name), seed)
                 ro, counts_, per_k = _run(
-                    sc, truth, gen_bank, net_file, vclass, methods[name], h, seed, by_k=by_k
+                    sc, truth, bank, net_file, vclass, methods[name], h, seed, by_k=by_k
                 )
                 safety_rows.append({"hidden_count": label, "method": name, **counts_})
                 for k, ro_k in per_k.items():
@@ -331,14 +348,14 @@ def evaluate_section(
                 if name == "policy" and counts_["safety"] != "none":
                     # What the safety layer hides: the policy alone on the same scenes.
                     _, alone, _ = _run(
-                        sc, truth, gen_bank, net_file, vclass, methods[name], h, seed, "none"
+                        sc, truth, bank, net_file, vclass, methods[name], h, seed, "none"
                     )
                     safety_rows.append({"hidden_count": label, "method": name, **alone})
                 if sc.evaluation.fcd_episodes > 0 and label == "estimated":
                     core = SectionCore(
                         sc,
                         truth.section,
-                        gen_bank,
+                        bank,
                         net_file,
                         seed=sc.seed,
                         fcd_file=fcd / f"{name}.fcd.xml",

@@ -1,0 +1,50 @@
+"""The section evaluation drives a policy trained with per-driver desired speeds
+(``policy.driver_speed``) with each hidden driver's factor, as training and deployment do,
+and every other method without."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from types import SimpleNamespace
+
+import numpy as np
+import torch
+
+from macromicro_sumo.env.driver_speed import QUANTILE_LEVELS, with_driver_factors
+from macromicro_sumo.evaluation.section import driven_bank
+
+
+@dataclass(frozen=True)
+class Slots:
+    """What ``with_driver_factors`` reads of a ``SectionBank``."""
+
+    valid: np.ndarray
+    hidden: np.ndarray
+    driver_factor: np.ndarray | None = None
+
+
+def bank() -> Slots:
+    rng = np.random.default_rng(3)
+    valid = rng.random((6, 8)) < 0.8
+    return Slots(valid=valid, hidden=valid & (rng.random((6, 8)) < 0.5))
+
+
+def test_a_policy_with_factors_gets_them_and_others_do_not() -> None:
+    sc = SimpleNamespace(policy=SimpleNamespace(driver_speed="drawn"))
+    quantiles = np.quantile(np.random.default_rng(1).normal(1.0, 0.1, 200), QUANTILE_LEVELS)
+    agent = SimpleNamespace(driver_speed=torch.as_tensor(quantiles, dtype=torch.float32))
+    b = bank()
+    got = driven_bank(sc, None, b, agent, seed=7)
+    factor = got.driver_factor
+    assert factor is not None
+    np.testing.assert_array_equal(factor[~(b.valid & b.hidden)], 1.0)
+    hidden = factor[b.valid & b.hidden]
+    assert hidden.std() > 0.02  # drawn: the spread of the observed drivers' ratios
+    want = with_driver_factors(b, "drawn", quantiles.astype(np.float32).astype(float), 7, None)
+    np.testing.assert_allclose(factor, want.driver_factor)
+    # The IDM baselines (no agent), a policy trained without factors and a scenario that
+    # turned them off drive the bank as it is.
+    assert driven_bank(sc, None, b, None, seed=7) is b
+    assert driven_bank(sc, None, b, SimpleNamespace(driver_speed=None), seed=7) is b
+    off = SimpleNamespace(policy=SimpleNamespace(driver_speed="none"))
+    assert driven_bank(off, None, b, agent, seed=7) is b
