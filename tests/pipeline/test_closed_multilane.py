@@ -62,7 +62,9 @@ def test_closed_multilane_section_end_to_end(tmp_path: Path) -> None:
         "generator": {"epochs": 4, "snapshot_every_s": 10.0},
         "policy": {"updates": 2, "episodes_per_update": 8, "observation": "lookahead"},
         "evaluation": {"fcd_episodes": 1, "lf_trials": 2},
-        "deploy": {"calibration_evals": 2},  # each evaluation re-runs the training runs
+        # The policy and the oracle (every method is deployed on test_section_pipeline's
+        # random corridor); the deploy figures of 30 s: they took half the test's time.
+        "deploy": {"methods": ["policy", "oracle"], "fcd_s": 30.0},
     }
     path = tmp_path / "closed_multilane.toml"
     path.write_text(dump_toml(table))
@@ -90,3 +92,5 @@ def test_closed_multilane_section_end_to_end(tmp_path: Path) -> None:
     assert "`idm_true`" not in report
     manifest = json.loads((out / "manifest.json").read_text())
     assert "evaluate" in manifest["timings_s"]
+    deployed = pd.read_csv(out / "deploy" / "deploy_summary.csv")
+    assert set(deployed["method"]) == {"policy", "oracle"}

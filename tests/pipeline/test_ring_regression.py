@@ -14,7 +14,9 @@ fails. A deliberate change re-writes the reference:
 
     .venv/bin/python tests/pipeline/test_ring_regression.py --write
 
-About 130 s on 2 cores (the generator and policy training dominate); in the default run.
+About 130 s on 2 cores (the generator and policy training dominate): a long training run,
+so it runs in ``make test-slow``, not the default run (the ring's stages are in the default
+run at small budgets: tests/pipeline/test_pipeline.py).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 SCENARIO = ROOT / "scenarios" / "ring_paper.toml"
@@ -75,6 +78,7 @@ def ring_macro_rows(out: Path) -> pd.DataFrame:
     return align[align["method"].isin(METHODS)][COLUMNS].reset_index(drop=True)
 
 
+@pytest.mark.slow
 def test_ring_macro_table_matches_reference(tmp_path: Path) -> None:
     got = ring_macro_rows(tmp_path)
     ref = pd.read_csv(REFERENCE)

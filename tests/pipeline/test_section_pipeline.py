@@ -84,6 +84,9 @@ def test_random_corridor_end_to_end(tmp_path: Path) -> None:
     }
     path = tmp_path / "random_corridor.toml"
     table["policy"]["eta"] = 0.5  # ``table`` holds SMALL_BUDGET since _write
+    # The first run deployed every method; the reruns deploy the retrained policy only
+    # ([deploy] reaches no other stage).
+    table["deploy"]["methods"] = ["policy"]
     path.write_text(dump_toml(table))
     assert main(["run", str(path), "--out", str(out), "--quiet"]) == 0
     assert {f: (out / f).stat().st_mtime_ns for f in kept} == kept
@@ -124,6 +127,8 @@ def test_ring_as_a_closed_section_with_user_demand(tmp_path: Path) -> None:
         "instrumented": {"ids": ["v0", "v2", "v4"]},
         "simulation": {"warmup_s": 60.0, "duration_s": 240.0, "n_runs": 4},
         "detectors": {"interval_s": 60.0, "auto_spacing_m": 150.0},
+        # Every method is deployed on the random corridor; here the policy and the oracle.
+        "deploy": {"methods": ["policy", "oracle"]},
     }
     out = tmp_path / "run"
     # Vehicles depart one after another on lane 0: the routes start on different edges.
