@@ -147,12 +147,11 @@ def check_consistency(sc: Scenario, file: str) -> None:
             f"{file}: deploy.vtype = {sc.deploy.vtype!r} is for section scenarios; on the ring "
             "every vehicle has its own vType: accepted '' (use deploy.share)"
         )
-    for key, value in (("prior", sc.policy.prior), ("driver_speed", sc.policy.driver_speed)):
-        if value != "none":  # the ring wing's env and PPO know neither: say so, not ignore it
-            raise UserError(
-                f'{file}: policy.{key} = "{value}" is for section scenarios (road = "section" '
-                f'runs this ring as one); accepted "none"'
-            )
+    if sc.policy.driver_speed != "none":  # the ring wing's env knows none: say so, not ignore it
+        raise UserError(
+            f'{file}: policy.driver_speed = "{sc.policy.driver_speed}" is for section scenarios '
+            '(road = "section" runs this ring as one); accepted "none"'
+        )
     length = sc.network.length_m
     n = sc.fleet.n_vehicles
     d_min, d_max = sc.bounds.spacing_m

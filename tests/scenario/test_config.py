@@ -55,13 +55,10 @@ def test_overrides_are_applied_and_validated(make_scenario):
         load_scenario(path, {"fleet.n_vehicles": 1})
 
 
-@pytest.mark.parametrize("key", ["prior", "driver_speed"])
-def test_section_only_policy_keys_on_the_ring_are_named(make_scenario, key):
-    """The ring wing's env and PPO know no prior and no per-driver speed: an error, not a
-    silently ignored key."""
-    value = {"prior": "gipps", "driver_speed": "drawn"}[key]
-    with pytest.raises(UserError, match=rf'policy\.{key} = "{value}" is for section scenarios'):
-        load_scenario(make_scenario(), {f"policy.{key}": value})
+def test_driver_speed_on_the_ring_is_named(make_scenario):
+    """The ring wing's env has no per-driver speed: an error, not a silently ignored key."""
+    with pytest.raises(UserError, match=r'policy\.driver_speed = "drawn" is for section scenarios'):
+        load_scenario(make_scenario(), {"policy.driver_speed": "drawn"})
 
 
 def test_scenario_round_trips_through_its_dict():
