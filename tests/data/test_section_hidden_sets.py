@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import NETS, bremen_files_with, dump_toml
+from conftest import bremen_files_with
+from fleet_scenarios import small_fleet_table, write_fleet_scenario
 
 from macromicro_sumo.cli import main
 from macromicro_sumo.data.ring import split_runs
@@ -32,48 +33,14 @@ N_VEHICLES = 4
 
 def fleet_table(hidden: str = "snapshot", seed: int = 2024) -> dict:
     """The ring_paper_section scenario, small: 4 vehicles, 4 runs of 60 s, 30 s intervals."""
-    return {
-        "name": "ring_snapshot_sets",
-        "seed": seed,
-        "network": {
-            "kind": "sumo",
-            "net_file": str(NETS / "ring_r100_e4.net.xml"),
-            "additional_files": [str(NETS / "ring_r100_e4.det.add.xml")],
-        },
-        "section": {"edges": ["e0", "e1", "e2", "e3"], "closed": True},
-        "instrumented": {"hidden": hidden, "penetration": 0.5},
-        "simulation": {"warmup_s": 0.0, "duration_s": 60.0, "n_runs": 4},
-        "detectors": {"interval_s": 30.0, "use_user": True},
-        "bounds": {"accel_mps2": [-1.1, 0.5], "min_gap_m": 2.0},
-        "generator": {
-            "k_source": "truth",
-            "snapshot_every_s": 5.0,
-            "epochs": 2,
-            "hidden_train": [0, N_VEHICLES],
-            "hidden_eval": [1, 3],
-        },
-        "policy": {"updates": 1, "episodes_per_update": 8, "horizon": 4, "hidden_train": [1, 3]},
-        "evaluation": {"horizon_steps": 4, "fcd_episodes": 1, "lf_trials": 2},
-        "fleet": {
-            "n_vehicles": N_VEHICLES,
-            "length_m": 5.0,
-            "accel_mps2": [0.8, 1.2],
-            "decel_mps2": [1.2, 1.8],
-            "tau_s": [1.0, 1.6],
-            "min_gap_m": [2.0, 3.0],
-            "delta": 4.0,
-            "speed_factor": [0.93, 0.98],
-            "max_speed_mps": [50.0, 50.0],
-        },
-        "speed_limits": {"range_mps": [12.0, 14.0], "step_mps": 0.5},
-        "initial": {"speed_mps": [10.5, 13.5], "spacing_concentration": 7.0, "min_spacing_m": 60.0},
-    }
+    table = small_fleet_table(
+        N_VEHICLES, 4, hidden, policy={"observation": "paper"}, evaluation={"fcd_episodes": 1}
+    )
+    return {**table, "name": "ring_snapshot_sets", "seed": seed}
 
 
 def write(folder: Path, table: dict, name: str = "scenario.toml") -> Path:
-    path = folder / name
-    path.write_text(dump_toml(table))
-    return path
+    return write_fleet_scenario(folder, table, name)
 
 
 @pytest.fixture(scope="module")
