@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import netconvert
+from conftest import NETS, netconvert
 
 from macromicro_sumo.road.section import (
     NO_LEADER_GAP_M,
@@ -130,3 +130,28 @@ def test_truth_macro_spacings_follow_the_connections(merge):
     )
     row = trajectory_macro(traj, merge, 1.0, 0.0, 1.0).iloc[0]
     assert row["std_spacing_m"] == pytest.approx(5.0)
+
+
+def test_a_closed_one_lane_loop_finds_the_next_item_round_it() -> None:
+    """The ring's shortcut (``loop_successors``): every vehicle's leader is the nearest item
+    ahead round the loop (a red light's stop line: STOP), equal positions in index order, a
+    lone vehicle its own leader a lap ahead; checked by brute force on drawn positions."""
+    section = read_section(NETS / "ring_r100_e4.net.xml", ["e0", "e1", "e2", "e3"], True)
+    length = section.length_m
+    rng = np.random.default_rng(5)
+    for trial in range(300):
+        n, k = int(rng.integers(1, 25)), int(rng.integers(0, 3))
+        arc = rng.uniform(-5.0, length + 5.0, n)  # the loop wraps either way
+        if trial % 3 == 0 and n > 1:
+            arc[1] = arc[0]
+        stops = rng.uniform(0.0, length, k)
+        leader, spacing = section_leaders(
+            section, np.zeros(n, dtype=np.int64), arc, np.zeros(k, dtype=np.int64), stops
+        )
+        s = np.mod(np.concatenate([arc, stops]), length)
+        ahead = np.mod(s[None, :] - s[:, None], length)
+        index = np.arange(len(s))
+        ahead[(ahead == 0) & (index[None, :] <= index[:, None])] = length  # behind, or itself
+        want = ahead[:n].argmin(axis=1)
+        np.testing.assert_array_equal(leader, np.where(want >= n, STOP, want))
+        np.testing.assert_allclose(spacing, ahead[:n].min(axis=1), atol=1e-9)
