@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from ring_scenes import N_VEHICLES, S_MIN_M
 
 from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.errors import UserError
@@ -30,7 +31,7 @@ from macromicro_sumo.generator.section_train import (
     load_section_generator,
     train_section_generator,
 )
-from macromicro_sumo.road.section import Section, read_section
+from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.scenario.section import (
     SectionConfig,
@@ -40,13 +41,11 @@ from macromicro_sumo.scenario.section import (
 )
 
 ROOT = Path(__file__).resolve().parents[2]
-N_VEHICLES = 5
-S_MIN_M = 7.0
 
 
 @pytest.fixture(scope="module")
-def ring() -> Section:
-    return read_section(ROOT / "sumo_nets" / "ring_r100_e4.net.xml", ["e0", "e1", "e2", "e3"], True)
+def ring(ring_loop: Section) -> Section:
+    return ring_loop
 
 
 def scenes(section: Section, spacings_m: np.ndarray, sigma_m: np.ndarray) -> SectionSnapshots:
