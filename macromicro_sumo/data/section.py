@@ -7,6 +7,7 @@ vehicle. Positions are ``(lane index, arc)`` on the section (``section.Section``
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,6 +30,14 @@ PSI_FIELDS = (
     "spacing_max_m",  # largest admissible spacing (inf unless generator.spacing_bounds)
     "spacing_low_m",  # shortest spacing to place at (spacing_min_m unless spacing_bounds)
 )
+
+
+def vehicle_level(seed: int, run: int, vehicle_id: str, tag: str = "") -> float:
+    """A uniform level in [0, 1) per (seed, run, vehicle): a hash, not a generator, so a
+    vehicle draws the same whatever drives it, in whatever order vehicles appear and however
+    often its run is repeated; ``tag`` keeps the draws of different uses apart."""
+    key = f"{tag}|{seed}|{run}|{vehicle_id}" if tag else f"{seed}|{run}|{vehicle_id}"
+    return int.from_bytes(hashlib.sha256(key.encode()).digest()[:8], "little") / 2**64
 
 
 @dataclass(frozen=True)

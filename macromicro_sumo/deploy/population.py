@@ -7,14 +7,13 @@ Shared by the drivers (``deploy.drivers``), the runs (``deploy.run``) and the st
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from macromicro_sumo.data.section import hidden_per_snapshot
+from macromicro_sumo.data.section import hidden_per_snapshot, vehicle_level
 
 # Obs (V, D) -> acceleration (V,) [m/s^2]: one batched call for every driven vehicle.
 ActionBatch = Callable[[np.ndarray], np.ndarray]
@@ -61,8 +60,7 @@ def in_share(seed: int, run: int, vehicle_id: str, share: float) -> bool:
     vehicles are chosen whatever method drives and however often the run is repeated."""
     if share >= 1.0:
         return True
-    h = hashlib.sha256(f"deploy|{seed}|{run}|{vehicle_id}".encode()).digest()
-    return int.from_bytes(h[:8], "little") / 2**64 < share
+    return vehicle_level(seed, run, vehicle_id, "deploy") < share
 
 
 @dataclass

@@ -23,11 +23,10 @@ method drives and however often a run is repeated (as ``deploy.population.in_sha
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 
 import numpy as np
 
-from macromicro_sumo.data.section import SectionTruth, run_section
+from macromicro_sumo.data.section import SectionTruth, run_section, vehicle_level
 from macromicro_sumo.env.section_bank import SectionBank, recordable, section_observations
 
 DRIVER_SPEEDS = ("none", "drawn", "memory")
@@ -109,12 +108,8 @@ def relative(quantiles: np.ndarray) -> np.ndarray:
 
 
 def driver_levels(seed: int, run: int, vehicle_ids: list[str]) -> np.ndarray:
-    """Per vehicle a uniform level in (0, 1): a hash of (seed, run, vehicle)."""
-    out = np.empty(len(vehicle_ids))
-    for i, v in enumerate(vehicle_ids):
-        h = hashlib.sha256(f"driver_speed|{seed}|{run}|{v}".encode()).digest()
-        out[i] = (int.from_bytes(h[:8], "little") + 0.5) / 2**64
-    return out
+    """Per vehicle a uniform level in [0, 1): a hash of (seed, run, vehicle)."""
+    return np.array([vehicle_level(seed, run, v, "driver_speed") for v in vehicle_ids])
 
 
 def factors_at(quantiles: np.ndarray, levels: np.ndarray) -> np.ndarray:

@@ -16,7 +16,6 @@ reading them back.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import time
 from collections.abc import Callable, Sequence
@@ -27,7 +26,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from macromicro_sumo.data.section import SectionTruth
+from macromicro_sumo.data.section import SectionTruth, vehicle_level
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.fielddata.schema import TRAJ_COLUMNS
 from macromicro_sumo.files import (
@@ -111,8 +110,7 @@ def is_instrumented(sc: SectionScenario, vid: str, vtype: str, run: int) -> bool
         return vid in ins.ids
     if ins.vtype:
         return vtype == ins.vtype
-    h = hashlib.sha256(f"{sc.seed}|{run}|{vid}".encode()).digest()
-    return int.from_bytes(h[:8], "little") / 2**64 < ins.penetration
+    return vehicle_level(sc.seed, run, vid) < ins.penetration
 
 
 # Peak memory of `simulate` per trajectory row on a section: 333 B measured on 268,000 rows
