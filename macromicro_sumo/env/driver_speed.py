@@ -27,7 +27,12 @@ import dataclasses
 import numpy as np
 
 from macromicro_sumo.data.section import SectionTruth, run_section, vehicle_level
-from macromicro_sumo.env.section_bank import SectionBank, recordable, section_observations
+from macromicro_sumo.env.section_bank import (
+    SectionBank,
+    initial_observations,
+    recordable,
+    section_observations,
+)
 
 DRIVER_SPEEDS = ("none", "drawn", "memory")
 # The observation columns that are speed limits (own lane, the look-ahead's next edge).
@@ -151,6 +156,14 @@ def with_driver_factors(
         levels = np.random.default_rng([seed, 211]).random(bank.valid.shape)
         factor = factors_at(quantiles, levels)
     return dataclasses.replace(bank, driver_factor=np.where(bank.valid & bank.hidden, factor, 1.0))
+
+
+def drivers_bank(sc, section, bank: SectionBank, quantiles: np.ndarray, seed: int) -> SectionBank:
+    """``bank`` with its hidden drivers' factors (``sc.policy.driver_speed``, not "none"):
+    ``with_driver_factors`` fed the generated starts where "memory" reads them."""
+    kind = sc.policy.driver_speed
+    obs0 = initial_observations(sc, section, bank) if kind == "memory" else np.empty((0, 2))
+    return with_driver_factors(bank, kind, quantiles, seed, obs0)
 
 
 class DriverSpeeds:

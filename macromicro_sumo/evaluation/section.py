@@ -55,13 +55,12 @@ from macromicro_sumo.data.section import (
     section_snapshots,
     snapshots_by_k,
 )
-from macromicro_sumo.env.driver_speed import with_driver_factors
+from macromicro_sumo.env.driver_speed import drivers_bank
 from macromicro_sumo.env.rollout import ActionFn, Rollouts, rollout
 from macromicro_sumo.env.section import DEFAULT_SAFETY, SectionCore
 from macromicro_sumo.env.section_bank import (
     SectionBank,
     build_section_bank,
-    initial_observations,
     recorded_min_gap,
     typical_length,
     typical_vclass,
@@ -111,10 +110,7 @@ def driven_bank(sc, truth, bank: SectionBank, agent, seed: int) -> SectionBank:
     quantiles = None if agent is None else getattr(agent, "driver_speed", None)
     if quantiles is None or sc.policy.driver_speed == "none":
         return bank
-    kind = sc.policy.driver_speed
-    # Only "memory" reads the drivers' generated starts.
-    obs0 = initial_observations(sc, truth.section, bank) if kind == "memory" else np.empty(0)
-    return with_driver_factors(bank, kind, quantiles.double().numpy(), seed, obs0)
+    return drivers_bank(sc, truth.section, bank, quantiles.double().numpy(), seed)
 
 
 def recorded(bank: SectionBank, section: Section, horizon: int, dt: float) -> Rollouts:

@@ -22,17 +22,12 @@ import torch
 from macromicro_sumo.data.ring import load_ground_truth, split_runs
 from macromicro_sumo.data.section import section_snapshots
 from macromicro_sumo.env.demand import DemandCore
-from macromicro_sumo.env.driver_speed import (
-    free_speed_ratios,
-    ratio_quantiles,
-    with_driver_factors,
-)
+from macromicro_sumo.env.driver_speed import drivers_bank, free_speed_ratios, ratio_quantiles
 from macromicro_sumo.env.ring import RingCore, build_bank, generator_completion
 from macromicro_sumo.env.rollout import rollout
 from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import (
     build_section_bank,
-    initial_observations,
     recorded_min_gap,
     typical_vclass,
 )
@@ -127,11 +122,10 @@ def section_episodes(sc: SectionScenario, truth, net, splits: dict[str, np.ndarr
     snaps = section_snapshots(truth, sc, runs)
     complete = section_completion(net, truth.section, sc, sc.generator.k_source, sc.seed)
     bank = build_section_bank(sc, truth, snaps, complete, sc.policy.horizon, sc.seed)
-    quantiles, kind = None, sc.policy.driver_speed
-    if kind != "none":  # each hidden driver its own desired speed
+    quantiles = None
+    if sc.policy.driver_speed != "none":  # each hidden driver its own desired speed
         quantiles = ratio_quantiles(free_speed_ratios(sc, truth, runs))
-        obs0 = initial_observations(sc, truth.section, bank)
-        bank = with_driver_factors(bank, kind, quantiles, sc.seed, obs0)
+        bank = drivers_bank(sc, truth.section, bank, quantiles, sc.seed)
     net_file = scenario_inputs(sc).net_file
     vclass = typical_vclass(truth)
     min_gap = recorded_min_gap(truth)

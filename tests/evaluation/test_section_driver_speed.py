@@ -23,6 +23,9 @@ class Slots:
     driver_factor: np.ndarray | None = None
 
 
+TRUTH = SimpleNamespace(section=None)  # "drawn" reads no positions
+
+
 def bank() -> Slots:
     rng = np.random.default_rng(3)
     valid = rng.random((6, 8)) < 0.8
@@ -34,7 +37,7 @@ def test_a_policy_with_factors_gets_them_and_others_do_not() -> None:
     quantiles = np.quantile(np.random.default_rng(1).normal(1.0, 0.1, 200), QUANTILE_LEVELS)
     agent = SimpleNamespace(driver_speed=torch.as_tensor(quantiles, dtype=torch.float32))
     b = bank()
-    got = driven_bank(sc, None, b, agent, seed=7)
+    got = driven_bank(sc, TRUTH, b, agent, seed=7)
     factor = got.driver_factor
     assert factor is not None
     np.testing.assert_array_equal(factor[~(b.valid & b.hidden)], 1.0)
@@ -44,7 +47,7 @@ def test_a_policy_with_factors_gets_them_and_others_do_not() -> None:
     np.testing.assert_allclose(factor, want.driver_factor)
     # The IDM baselines (no agent), a policy trained without factors and a scenario that
     # turned them off drive the bank as it is.
-    assert driven_bank(sc, None, b, None, seed=7) is b
-    assert driven_bank(sc, None, b, SimpleNamespace(driver_speed=None), seed=7) is b
+    assert driven_bank(sc, TRUTH, b, None, seed=7) is b
+    assert driven_bank(sc, TRUTH, b, SimpleNamespace(driver_speed=None), seed=7) is b
     off = SimpleNamespace(policy=SimpleNamespace(driver_speed="none"))
-    assert driven_bank(off, None, b, agent, seed=7) is b
+    assert driven_bank(off, TRUTH, b, agent, seed=7) is b
