@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -96,7 +97,12 @@ def load_scenario(
 
 
 def scenario_from_dict(d: dict[str, Any], source: str) -> Any:
-    """Rebuild a scenario stored in a checkpoint or manifest (already validated once)."""
+    """Rebuild a scenario stored in a checkpoint or manifest (already validated once).
+
+    Also takes ``to_dict()`` straight from memory: its tuples become the lists a file holds,
+    so the builders see the same shapes either way.
+    """
+    d = json.loads(json.dumps(d))
     if d.get("network", {}).get("kind") == "sumo":
         d = dict(d)
         data = build_data(d.pop("data", None) or {}, source)  # nested tables: its own builder

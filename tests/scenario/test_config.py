@@ -77,6 +77,15 @@ def test_section_scenario_round_trips_through_its_dict(name):
     assert again.data.source == ("files" if name.endswith("files") else "simulate")
 
 
+@pytest.mark.parametrize("name", ["ring_paper", "highway_bremen", "ring_paper_section"])
+def test_scenario_rebuilds_from_its_dict_in_memory(name):
+    """Straight from to_dict(), tuples and all (a batch variant or a test does this), not via JSON."""
+    sc = load_scenario(PAPER_SCENARIO.parent / f"{name}.toml")
+    again = scenario_from_dict(sc.to_dict(), sc.source)
+    assert again == sc
+    assert again.digest() == sc.digest()
+
+
 def test_digest_is_stable_and_ignores_formatting(tmp_path):
     table = scenario_table()
     plain = tmp_path / "plain.toml"
