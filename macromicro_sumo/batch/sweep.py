@@ -243,7 +243,27 @@ def expand_file(path: Path, prefix: str) -> list[Variant]:
         parts = [(key, v) for (key, _, _), v in zip(keys, combo, strict=True)]
         params = {dotted: v for (_, dotted, _), v in zip(keys, combo, strict=True)}
         out.append(_load(variant_name(parts, prefix), path, params))
+    _refuse_identical(out, file)
     return out
+
+
+def _refuse_identical(variants: Sequence[Variant], file: str) -> None:
+    """Two variants that load to the same scenario would run the same thing twice and read
+    as a sensitivity of zero: a swept key that this scenario never reads (say, a ring key
+    that its section mapping drops)."""
+    seen: dict[str, Variant] = {}
+    for v in variants:
+        if v.scenario is None:
+            continue
+        d = v.scenario.digest()
+        if d in seen:
+            first = seen[d]
+            keys = sorted(k for k in v.params if v.params[k] != first.params.get(k))
+            raise UserError(
+                f"{file}: [sweep] variants {first.name!r} and {v.name!r} load to the same "
+                f"scenario: {', '.join(keys)} has no effect on this scenario; sweep another key"
+            )
+        seen[d] = v
 
 
 def _load(name: str, path: Path, params: dict[str, Any]) -> Variant:

@@ -126,3 +126,24 @@ def test_a_short_key_counts_only_the_files_own_optional_tables(tmp_path):
     assert [v.scenario.bounds.min_gap_m for v in variants] == [1.0, 2.5]
     with pytest.raises(UserError, match="sweep key 'min_gap_m' is ambiguous"):
         expand([with_sweep(RING_SECTION, tmp_path / "r.toml", "min_gap_m = [2.0]")])
+
+
+def test_a_sweep_over_a_key_the_scenario_never_reads_is_refused(tmp_path):
+    """A ring file read as its section drops the ring's fixed speed bounds: sweeping them
+    would run one scenario twice and report no sensitivity. The batch says so instead."""
+    table = tomllib.loads((ROOT / "scenarios" / "ring_paper.toml").read_text())
+    table.pop("sweep", None)
+    table["network"]["net_file"] = str(
+        (ROOT / "scenarios" / table["network"]["net_file"]).resolve()
+    )
+    table["network"]["routes_file"] = str(
+        (ROOT / "scenarios" / table["network"]["routes_file"]).resolve()
+    )
+    path = tmp_path / "ring.toml"
+    sweep = "[sweep]\nbounds.speed_mps = [[10.0, 14.0], [9.0, 15.0]]\n"
+    path.write_text('road = "section"\n' + dump_toml(table) + "\n" + sweep)
+    with pytest.raises(UserError) as err:
+        expand([path])
+    msg = str(err.value)
+    assert "\n" not in msg and msg.startswith(f"{path}: [sweep] variants ")
+    assert "load to the same scenario: bounds.speed_mps has no effect" in msg
