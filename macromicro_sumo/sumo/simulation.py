@@ -23,6 +23,7 @@ import numpy as np
 import sumolib
 
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.sumo.options import SumoOptions
 
 _VARS = (
     libsumo.constants.VAR_ROAD_ID,
@@ -44,11 +45,26 @@ STOP_STATES = frozenset("rRyYu")
 # libsumo's compiled functions for the per-vehicle calls of a deployment's every step (the
 # wrappers as fallback): a wrapper adds a Python frame a call (getSpeed 0.23 -> 0.17 us,
 # libsumo 1.28); the compiled getLeader answers ("", -1.0) where its wrapper may say None.
-_GET_IDS, _GET_LANE, _GET_POS, _GET_SPEED, _GET_ACCEL, _GET_LEADER, _SET_SPEED, _OWN_SPEED = (
+(
+    _GET_IDS,
+    _GET_LANE,
+    _GET_POS,
+    _GET_SPEED,
+    _GET_ACCEL,
+    _GET_LEADER,
+    _SET_SPEED,
+    _OWN_SPEED,
+    _BEST_LANES,
+    _NEXT_TLS,
+    _NEIGHBORS,
+) = (
     getattr(getattr(libsumo, "_libsumo", None), f"vehicle_{f}", None) or getattr(libsumo.vehicle, f)
     for f in ("getIDList", "getLaneID", "getLanePosition", "getSpeed", "getAcceleration")
-    + ("getLeader", "setSpeed", "getSpeedWithoutTraCI")
+    + ("getLeader", "setSpeed", "getSpeedWithoutTraCI", "getBestLanes", "getNextTLS")
+    + ("getNeighbors",)
 )
+# getNeighbors' mode of the left followers that block a change (traci's getLeftFollowers).
+_LEFT_BLOCKERS = 4
 
 
 # SUMO's speed mode (TraCI setSpeedMode) bits: 1 safe speed, 2 max accel, 4 max decel, 8
@@ -83,47 +99,6 @@ def _is_running() -> bool:
     with contextlib.suppress(Exception):
         return libsumo.simulation.getTime() is not None
     return False
-
-
-@dataclass(frozen=True)
-class SumoOptions:
-    """Everything that goes on SUMO's command line."""
-
-    net_file: Path
-    additional_files: tuple[Path, ...]
-    step_length_s: float
-    seed: int
-    error_log: Path | None = None
-    fcd_file: Path | None = None  # SUMO floating-car-data output (evaluation rollouts)
-    route_files: tuple[Path, ...] = ()  # a user's demand (sections); the ring has none
-    # The ring places its vehicles exactly and checks them itself; a user's demand keeps
-    # SUMO's own insertion checks and teleports, as the user's runs have them.
-    user_demand: bool = False
-
-    def args(self) -> list[str]:
-        args = [
-            "-n", str(self.net_file),
-            "--step-length", repr(float(self.step_length_s)),
-            "--seed", str(int(self.seed)),
-            # Collisions are only reported: learning needs every vehicle kept.
-            "--collision.action", "warn",
-            "--no-step-log", "true",
-            "--duration-log.disable", "true",
-            "--no-warnings", "true",
-        ]  # fmt: skip
-        if not self.user_demand:
-            # No teleports; our vehicles are placed exactly where the data says and we
-            # verify insertion ourselves.
-            args += ["--time-to-teleport", "-1", "--insertion-checks", "none"]
-        if self.route_files:
-            args += ["-r", ",".join(str(p) for p in self.route_files)]
-        if self.additional_files:
-            args += ["-a", ",".join(str(p) for p in self.additional_files)]
-        if self.fcd_file is not None:
-            args += ["--fcd-output", str(self.fcd_file)]
-        if self.error_log is not None:
-            args += ["--error-log", str(self.error_log)]
-        return args
 
 
 @dataclass(frozen=True)
@@ -369,13 +344,13 @@ class Simulation:
 
     def left_blockers(self, vehicle_ids: Sequence[str]) -> set[str]:
         """The followers on the lane left of each vehicle that block its lane change."""
-        return {f for v in vehicle_ids for f, _ in libsumo.vehicle.getLeftFollowers(v, True)}
+        return {f for v in vehicle_ids for f, _ in _NEIGHBORS(v, _LEFT_BLOCKERS)}
 
     def lane_end_m(self, vehicle_id: str, lane_id: str, pos_m: float) -> float:
         """Distance from the vehicle's front to the end of its lane when the vehicle must
         leave that lane to follow its route (an acceleration lane, a lane drop); inf when
         the lane carries it on."""
-        for lane, length, _occ, offset, _cont, _next in libsumo.vehicle.getBestLanes(vehicle_id):
+        for lane, length, _occ, offset, _cont, _next in _BEST_LANES(vehicle_id):
             if lane == lane_id:
                 return float(length - pos_m) if offset != 0 else float("inf")
         return float("inf")
@@ -476,7 +451,7 @@ class Simulation:
 
     def stop_lines_m(self, vehicle_ids: Sequence[str]) -> np.ndarray:
         """``stop_line_m`` of each vehicle; NaN: no signal at all ahead on its route."""
-        get, stop, inf = libsumo.vehicle.getNextTLS, STOP_STATES, float("inf")
+        get, stop, inf = _NEXT_TLS, STOP_STATES, float("inf")
         out = np.empty(len(vehicle_ids))
         for i, vid in enumerate(vehicle_ids):
             out[i] = inf if (ahead := get(vid)) else np.nan
