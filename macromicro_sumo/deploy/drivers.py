@@ -25,7 +25,7 @@ vType by more than 0.01 m/s^2).
 from __future__ import annotations
 
 from itertools import compress, repeat
-from operator import and_, itemgetter, ne, not_
+from operator import and_, not_
 
 import numpy as np
 
@@ -33,7 +33,6 @@ from macromicro_sumo.deploy.observe import STANDING, LaneTable, Table, observe_r
 from macromicro_sumo.deploy.population import (
     ActionBatch,
     DriveStats,
-    SwitchedType,
     in_share,
 )
 from macromicro_sumo.deploy.safety import (
@@ -42,7 +41,7 @@ from macromicro_sumo.deploy.safety import (
     leader_safe_speed,
     speed_commands,
 )
-from macromicro_sumo.road.physics import safe_speed
+from macromicro_sumo.deploy.slots import NOT_ASKED, VehicleSlots
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
 from macromicro_sumo.sumo.simulation import Simulation, VehicleStates
 from macromicro_sumo.truth.section import is_instrumented
@@ -65,9 +64,6 @@ LANE_END_RECHECK_STEPS = 20
 # defaults).
 MERGE_HANDOVER_M = 400.0
 MERGE_YIELD_TOLERANCE_MPS = 1.0
-# A vehicle's entry in the lane-end and signal caches before it is asked: (lane, value,
-# step from which it is asked again), due at once.
-NOT_ASKED = ("", np.nan, -np.inf)
 
 
 # --------------------------------------------------------------------------- sections
@@ -187,18 +183,10 @@ class SectionSpeedDriver(SectionDriver):
         self.act = act
         self.safety = safety
         self.mode = SPEED_MODES[safety]
-        # The last step's commands (vehicles, speeds) and who left the section since:
-        # the same vehicles as last step, the common case, need no look-up per vehicle.
-        self.last: tuple[list[str], np.ndarray] = ([], np.empty(0))
-        self.gone: set[str] = set()
         self.has_lights: bool | None = None
-        # vehicle -> (lane, distance from that lane's start to where the vehicle must have
-        # left it [m] (inf: it carries on), step from which it is asked again): SUMO's best
-        # lanes, cached.
-        self.lane_ends: dict[str, tuple[str, float, float]] = {}
-        # vehicle -> (lane, step from which it is asked again): SUMO found no signal ahead
-        # of it on its route.
-        self.dark: dict[str, tuple[str, int]] = {}
+        # Per driven vehicle, in numpy arrays by slot: the last command and the caches of
+        # SUMO's best lanes (where it must have left its lane) and of its signals ahead.
+        self.slots = VehicleSlots()
         self.merge = sc.deploy.merge  # "none", "handover" or "sumo" (with the yield)
         make = getattr(act, "driver_speeds", None)  # policy.driver_speed: each driver's factor
         self.driver_speeds = make(sc, run) if make is not None else None
@@ -206,14 +194,15 @@ class SectionSpeedDriver(SectionDriver):
 
     def take(self, sim: Simulation, vids: list[str]) -> None:
         sim.set_speed_mode(vids, self.mode)
+        for v in vids:
+            if v not in self.slots.of:
+                self.slots.add(v)
+        self.slots.decel[self.slots.slots(vids)] = list(map(self.decel_of.__getitem__, vids))
 
     def release(self, sim: Simulation, vids: list[str]) -> None:
         sim.release_speeds(vids)
-        self.gone.update(vids)
         self.merging.difference_update(vids)
-        for v in vids:
-            self.lane_ends.pop(v, None)
-            self.dark.pop(v, None)
+        self.slots.forget(vids)
 
     def merges(
         self, sim: Simulation, vids: list[str], ahead_m: np.ndarray
@@ -225,7 +214,10 @@ class SectionSpeedDriver(SectionDriver):
         all) and ("sumo") the indices among the commanded of those that block a merging
         vehicle's change (SUMO's blocking left follower, whom its lane changer asks to
         cooperate), the candidates for SUMO's cooperative slow-down (``yields``)."""
-        must = (ahead_m <= MERGE_HANDOVER_M).tolist()
+        must_now = ahead_m <= MERGE_HANDOVER_M
+        if not self.merging and not np.count_nonzero(must_now):
+            return None, []  # nobody merging, before or now
+        must = must_now.tolist()
         now = set(compress(vids, must))
         if now - self.merging:
             sim.release_speeds(sorted(now - self.merging))
@@ -260,90 +252,115 @@ class SectionSpeedDriver(SectionDriver):
         cap[near] = np.where(asked, own, np.inf)
         return cap
 
-    def lane_end_m(self, sim: Simulation, vids: list[str], lanes: list[str]) -> np.ndarray:
+    def slots_of(self, vids: list[str], lanes: list[str]) -> tuple[np.ndarray, np.ndarray]:
+        """(slots, lane codes in ``lane_table``) of driven vehicles ``vids`` on ``lanes``;
+        a slot for any vehicle met without one (a caller observing vehicles it drives not)."""
+        try:
+            slots = self.slots.slots(vids)
+        except KeyError:
+            for v in vids:
+                if v not in self.slots.of:
+                    self.slots.add(v)
+            slots = self.slots.slots(vids)
+        return slots, self.lane_table.codes(lanes)
+
+    def lane_end_m(
+        self,
+        sim: Simulation,
+        vids: list[str],
+        lanes: list[str],
+        at: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> np.ndarray:
         """Per vehicle, the distance from its lane's start to where it must have left that
         lane (inf: the lane carries it on), from SUMO's best lanes: asked when a vehicle is
         on a lane for the first time, a lane that carries it on again after
         ``LANE_END_RECHECK_STEPS`` (one call per vehicle and step would cost more than
-        SUMO's whole step)."""
-        cache, now, n = self.lane_ends, self.steps, len(vids)
-        # The cache checked in C-level passes, not a Python loop per vehicle: due where
-        # not asked yet (``NOT_ASKED``), on another lane, or on a lane to ask again.
-        hits = list(map(cache.get, vids, repeat(NOT_ASKED)))
-        ends = np.fromiter(map(itemgetter(1), hits), float, n)
-        due = np.fromiter(map(ne, map(itemgetter(0), hits), lanes), bool, n)
-        due |= np.fromiter(map(itemgetter(2), hits), float, n) <= now
-        for i in np.flatnonzero(due).tolist():
-            end = ends[i] = sim.lane_end_m(vids[i], lanes[i], 0.0)
+        SUMO's whole step). ``at``: ``slots_of(vids, lanes)`` if known."""
+        slots, codes = self.slots_of(vids, lanes) if at is None else at
+        sl, now = self.slots, self.steps
+        # Due where not asked yet (``NOT_ASKED``), on another lane, or on a lane to ask again.
+        due = np.flatnonzero((sl.end_lane[slots] != codes) | (sl.end_again[slots] <= now))
+        if due.size:
+            s = slots[due]
+            ends = [sim.lane_end_m(vids[i], lanes[i], 0.0) for i in due.tolist()]
+            sl.end_lane[s] = codes[due]
+            sl.end_m[s] = ends
             # A lane end, once seen, stays; a lane that carries the vehicle on is asked again.
-            again = now + LANE_END_RECHECK_STEPS if end == np.inf else np.inf
-            cache[vids[i]] = (lanes[i], end, again)
-        return ends
+            sl.end_again[s] = np.where(sl.end_m[s] == np.inf, now + LANE_END_RECHECK_STEPS, np.inf)
+        return sl.end_m[slots]
 
-    def stop_lines_m(self, sim: Simulation, vids: list[str], lanes: list[str]) -> np.ndarray:
+    def stop_lines_m(
+        self,
+        sim: Simulation,
+        vids: list[str],
+        lanes: list[str],
+        at: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> np.ndarray:
         """Per vehicle, ``Simulation.stop_lines_m`` (inf: no red or yellow ahead), asked
         only of vehicles that may meet a signal: one SUMO found none ahead of on its whole
         route is asked again when it changes lane or ``LANE_END_RECHECK_STEPS`` later (on
-        Bremen's highway only the ramp has one: the call was a tenth of the driver)."""
-        dark, now, n = self.dark, self.steps, len(vids)
-        hits = list(map(dark.get, vids, repeat(NOT_ASKED)))
-        due = np.fromiter(map(ne, map(itemgetter(0), hits), lanes), bool, n)
-        due |= np.fromiter(map(itemgetter(-1), hits), float, n) <= now
-        ask = np.flatnonzero(due).tolist()
-        out = np.full(n, np.inf)
-        got = sim.stop_lines_m([vids[i] for i in ask])
-        for i, d in zip(ask, got.tolist(), strict=True):
-            if d != d:  # NaN: no signal ahead
-                dark[vids[i]] = (lanes[i], now + LANE_END_RECHECK_STEPS)
-            else:
-                dark.pop(vids[i], None)
-                out[i] = d
+        Bremen's highway only the ramp has one: the call was a tenth of the driver).
+        ``at``: ``slots_of(vids, lanes)`` if known."""
+        slots, codes = self.slots_of(vids, lanes) if at is None else at
+        sl, now = self.slots, self.steps
+        out = np.full(len(vids), np.inf)
+        due = np.flatnonzero((sl.dark_lane[slots] != codes) | (sl.dark_again[slots] <= now))
+        if not due.size:
+            return out
+        got = sim.stop_lines_m([vids[i] for i in due.tolist()])
+        dark = np.isnan(got)  # no signal ahead: not asked again for a while
+        s = slots[due]
+        sl.dark_lane[s] = np.where(dark, codes[due], NOT_ASKED)
+        sl.dark_again[s] = np.where(dark, now + LANE_END_RECHECK_STEPS, -np.inf)
+        out[due] = np.where(dark, np.inf, got)
         return out
 
     def drive(self, sim: Simulation, vids: list[str], st: VehicleStates) -> None:
         rows = np.fromiter(map(st.index.__getitem__, vids), np.int64, len(vids))
         lanes = list(map(st.lanes.__getitem__, rows.tolist()))
+        slots, codes = self.slots_of(vids, lanes)
         # Where each must have left its lane: the merges' hand-over and the observation's
         # standing leader, asked once.
-        ahead = self.lane_end_m(sim, vids, lanes) - st.pos_m[rows]
+        ahead = self.lane_end_m(sim, vids, lanes, (slots, codes)) - st.pos_m[rows]
         near: list[int] = []
         if self.merge != "none":
             keep, near = self.merges(sim, vids, ahead)
             if keep is not None:
                 vids, lanes = list(compress(vids, keep)), list(compress(lanes, keep))
                 mask = np.array(keep)
-                rows, ahead = rows[mask], ahead[mask]
+                rows, ahead, slots, codes = rows[mask], ahead[mask], slots[mask], codes[mask]
             if not vids:
                 return
-        n = len(vids)
-        # Last step's command against the speed SUMO applied.
-        last_vids, last = self.last
-        if self.gone or vids != last_vids:
-            known = {
-                v: c for v, c in zip(last_vids, last.tolist(), strict=True) if v not in self.gone
-            }
-            last = np.fromiter(map(known.get, vids, repeat(-np.inf)), float, n)
+        # Last step's command against the speed SUMO applied (-inf: none to compare with).
+        speed = st.speed_mps[rows]
         self.stats.safety_acted += int(
-            np.count_nonzero(st.speed_mps[rows] < last - SAFETY_TOLERANCE_MPS)
+            np.count_nonzero(speed < self.slots.last_mps[slots] - SAFETY_TOLERANCE_MPS)
         )
         if self.has_lights is None:
             self.has_lights = sim.has_traffic_lights()
-        obs, gap, lead_decel, lead = self.observe(sim, vids, rows, st, lanes=lanes, stop_m=ahead)
+        obs, gap, lead_decel, lead = self.observe(
+            sim, vids, rows, st, lanes=lanes, stop_m=ahead, at=(slots, codes)
+        )
         # One leader table a step: the safe speed behind what each sees ahead, for both the
         # merges' yield and the safety layer.
-        own = safe = cap = None
+        own = safe = cap = lead_speed = None
         if near or self.safety == "sumo":
-            own = np.fromiter(map(self.decel_of.__getitem__, vids), float, n)
-            safe = leader_safe_speed(obs, gap, own, lead_decel, self.sc.simulation.step_length_s)
+            own = self.slots.decel[slots]
+            lead_speed = obs[:, 0] - obs[:, 3]
+            safe = leader_safe_speed(
+                obs, gap, own, lead_decel, self.sc.simulation.step_length_s, lead_speed
+            )
         if near:
             cap = self.yields(sim, vids, near, obs[:, 0], safe)
 
         def layer() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
             return gap, own, lead_decel, lead
 
-        cmd = speed_commands(self.sc, self.act, self.safety, self.stats, obs, layer, cap, safe)
+        cmd = speed_commands(
+            self.sc, self.act, self.safety, self.stats, obs, layer, cap, safe, lead_speed
+        )
         sim.set_speeds(vids, cmd)
-        self.last, self.gone = (vids, cmd), set()
+        self.slots.commanded(slots, cmd)
 
     def observe(
         self,
@@ -354,17 +371,22 @@ class SectionSpeedDriver(SectionDriver):
         shapes: Table | None = None,
         lanes: list[str] | None = None,
         stop_m: np.ndarray | None = None,
+        at: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``observe_rows`` of driven vehicles ``vids`` (rows ``rows`` of ``st``): SUMO's
         leaders, lane ends and red lights asked now; ``shapes``: vehicle -> (length,
         minGap, decel) (default: the vTypes of the vehicles this driver saw arrive);
         ``lanes``, ``stop_m``: their lanes and the distances to those lanes' ends if
-        known already (``lane_end_m`` minus the position)."""
+        known already (``lane_end_m`` minus the position); ``at``: ``slots_of``."""
         if lanes is None:
             lanes = list(map(st.lanes.__getitem__, rows.tolist()))
-        stop = self.lane_end_m(sim, vids, lanes) - st.pos_m[rows] if stop_m is None else stop_m
+        if at is None:
+            at = self.slots_of(vids, lanes)
+        if stop_m is None:
+            stop_m = self.lane_end_m(sim, vids, lanes, at) - st.pos_m[rows]
+        stop = stop_m
         if self.has_lights:
-            stop = np.minimum(stop, self.stop_lines_m(sim, vids, lanes))
+            stop = np.minimum(stop, self.stop_lines_m(sim, vids, lanes, at))
         leaders = sim.leaders(vids, NO_LEADER_GAP_M)
         return observe_rows(
             self.lane_table,
@@ -377,6 +399,7 @@ class SectionSpeedDriver(SectionDriver):
             self.shape_table if shapes is None else shapes,
             stop,
             self.driver_speeds,
+            at[1],
         )
 
 
@@ -389,112 +412,3 @@ def section_observations(
     st = states_of(states)
     rows = np.fromiter(map(st.index.__getitem__, vids), np.int64, len(vids))
     return drv.observe(sim, vids, rows, st, Table.of_rows(drv.shape_of, STANDING))[:3]
-
-
-class SectionTypeDriver(SectionDriver):
-    """Driven vehicles switched to another vType while on the section (SUMO drives them
-    with that vType's model and parameters), switched back when they leave it.
-
-    A vType is changed only where the vehicle's next vType fits behind its leader: a
-    bumper gap of at least its minGap, and a speed its model can bring down to the safe
-    speed with its own decel (``fits``). SUMO registers a collision wherever a gap falls
-    below the follower's minGap: on Spreewaldring the race cars (minGap 0) queue at the
-    start 0.1 m apart, and switched there to SUMO's defaults (minGap 2.5 m) every one of
-    them was in collision with its leader until the queue moved (26 collisions a run).
-    A vehicle waits on the section in its own vType (not counted as driven), or past the
-    section's end in the switched one, until the other fits."""
-
-    drives = True
-
-    def __init__(self, sc, section: Section, run: int, switch: SwitchedType) -> None:
-        super().__init__(sc, section, run)
-        self.switch = switch
-        self.own_factor: dict[str, float] = {}
-        self.factor: dict[str, float] = {}  # one draw per vehicle, kept on re-entry
-        self.waiting: set[str] = set()  # on the section, not switched yet
-        self.leaving: set[str] = set()  # off the section, not switched back yet
-        self.new_shapes: dict[str, tuple[float, float, float]] = {}  # switched vType's
-
-    def before_step(self, sim: Simulation) -> None:
-        super().before_step(sim)
-        if self.leaving:
-            st = sim.vehicle_states()
-            # Gone (arrived) or teleporting: nothing to fit behind now.
-            here = sorted(v for v in self.leaving if v in st.index)
-            own = [self.shape_of[v] for v in here]
-            now = [self.switched_shape(sim, v) for v in here]
-            ok = self.fits(sim, here, st, own, now)
-            ready = [v for v, fit in zip(here, ok, strict=True) if fit]
-            if ready:
-                self.switch_back(sim, ready)
-            self.leaving.difference_update(ready)
-            self.leaving.intersection_update(sim.vehicle_ids())
-
-    def take(self, sim: Simulation, vids: list[str]) -> None:
-        back = self.leaving.intersection(vids)  # still in the switched vType
-        self.leaving.difference_update(back)
-        self.waiting.update(v for v in vids if v not in back)
-
-    def drive(self, sim: Simulation, vids: list[str], st: VehicleStates) -> None:
-        if self.waiting:
-            cands = sorted(self.waiting)
-            new = [self.switched_shape(sim, v) for v in cands]
-            ok = self.fits(sim, cands, st, new, [self.shape_of[v] for v in cands])
-            ready = [v for v, fit in zip(cands, ok, strict=True) if fit]
-            if ready:
-                self.switch_to_new(sim, ready)
-                self.waiting.difference_update(ready)
-        self.stats.vehicle_steps_driven -= len(self.waiting)
-
-    def switched_shape(self, sim: Simulation, vid: str) -> tuple[float, float, float]:
-        """(length, minGap, decel) of the vType ``vid`` is switched to."""
-        new = self.switch.type_of[self.types[vid]]
-        if new not in self.new_shapes:
-            self.new_shapes[new] = sim.vtype_shape(new)
-        return self.new_shapes[new]
-
-    def fits(
-        self,
-        sim: Simulation,
-        vids: list[str],
-        st: VehicleStates,
-        shapes: list[tuple[float, float, float]],
-        now: list[tuple[float, float, float]],
-    ) -> np.ndarray:
-        """Per vehicle, whether a vType of shape (length, minGap, decel) ``shapes`` fits
-        behind its leader now (``now``: the shape of the vType it has): bumper gap >= its minGap, and a speed v with v - b dt <=
-        ``safe_speed`` behind the leader (b its decel, the leader's taken as at least b):
-        SUMO's model then follows without braking beyond b, nor into its minGap."""
-        if not vids:
-            return np.zeros(0, dtype=bool)
-        new_gap, new_b = np.array(shapes, dtype=float).reshape(-1, 3)[:, 1:].T
-        leaders = sim.leaders(vids, NO_LEADER_GAP_M)
-        index = st.index
-        lead_row = np.array([index.get(lid, -1) for lid, _ in leaders], dtype=np.int64)
-        has = lead_row >= 0
-        # SUMO's gap is measured to the vehicle's present minGap: the bumper gap is more.
-        now_gap = np.array([shape[1] for shape in now])
-        bumper = np.array([g for _, g in leaders]) + now_gap
-        rows = np.fromiter(map(index.__getitem__, vids), np.int64, len(vids))
-        v = st.speed_mps[rows]
-        v_l = np.where(has, st.speed_mps[lead_row], 0.0)
-        dt = self.sc.simulation.step_length_s
-        safe = safe_speed(bumper - new_gap, v_l, new_b, new_b, dt)
-        return ~has | ((bumper >= new_gap) & (v - new_b * dt <= safe))
-
-    def switch_to_new(self, sim: Simulation, vids: list[str]) -> None:
-        own = sim.speed_factors(vids)
-        fresh = [v for v in vids if v not in self.factor]
-        self.factor.update(zip(fresh, self.switch.factors(len(fresh)).tolist(), strict=True))
-        self.own_factor.update(zip(vids, own.tolist(), strict=True))
-        sim.set_types(vids, [self.switch.type_of[self.types[v]] for v in vids])
-        sim.set_speed_factors(vids, [self.factor[v] for v in vids])
-
-    def switch_back(self, sim: Simulation, vids: list[str]) -> None:
-        sim.set_types(vids, [self.types[v] for v in vids])
-        sim.set_speed_factors(vids, [self.own_factor[v] for v in vids])
-
-    def release(self, sim: Simulation, vids: list[str]) -> None:
-        switched = [v for v in vids if v not in self.waiting]
-        self.waiting.difference_update(vids)
-        self.leaving.update(switched)  # switched back in ``before_step`` once it fits

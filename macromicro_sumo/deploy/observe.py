@@ -44,10 +44,13 @@ class Table:
         self.array = np.array(self.rows, dtype=float)
         return len(self.rows) - 1
 
+    def codes(self, keys: list[str]) -> np.ndarray:
+        """The codes of ``keys`` (0: missing)."""
+        return np.fromiter(map(self.code.get, keys, repeat(0)), np.int64, len(keys))
+
     def of(self, keys: list[str]) -> np.ndarray:
         """(len(keys), width) rows; a missing key's is the ``missing`` row."""
-        codes = np.fromiter(map(self.code.get, keys, repeat(0)), np.int64, len(keys))
-        return self.array[codes]
+        return self.array[self.codes(keys)]
 
 
 class LaneTable(Table):
@@ -84,6 +87,7 @@ def observe_rows(
     shapes: Table,
     stop_m: np.ndarray,
     driver_speeds: DriverSpeeds | None = None,
+    lane_codes: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Observations (V, obs_dim) of driven vehicles ``vids`` (rows ``rows`` of ``st``, on
     lanes ``lane_ids``), as the section env defines them, the leader SUMO's (``leaders``:
@@ -93,7 +97,8 @@ def observe_rows(
     leader (its back at the line, a vehicle length long). ``lanes``: the section's
     ``LaneTable``; ``shapes``: vehicle -> (length, minGap, decel), ``STANDING`` where
     missing; ``driver_speeds``: each driver's desired-speed factor on the limits it
-    observes (``policy.driver_speed``; None: 1).
+    observes (``policy.driver_speed``; None: 1); ``lane_codes``: ``lanes.codes(lane_ids)``
+    if known.
     Also returns SUMO's gap to what the vehicle sees ahead, that leader's decel, and its
     index in ``vids`` where it is a driven vehicle (-1: none, not driven, or a standing
     leader): the safety layer knows a driven leader's next speed, its command.
@@ -106,37 +111,44 @@ def observe_rows(
     if not n:
         return obs, np.empty(0), np.empty(0), np.empty(0, dtype=np.int64)
     speed = st.speed_mps[rows]
-    where = lanes.of(lane_ids)
+    where = lanes.array[lanes.codes(lane_ids) if lane_codes is None else lane_codes]
     lead_ids, gaps = zip(*leaders, strict=True)
-    gap = np.array(gaps, dtype=float)
+    gap = np.fromiter(gaps, float, n)
     # The leader SUMO sees, if it is on the road (in ``st``): row -1 otherwise.
     lead_row = np.fromiter(map(st.index.get, lead_ids, repeat(-1)), np.int64, n)
     has = lead_row >= 0
-    # Own and leaders' shapes in one look-up; a leader off the road is no leader.
+    # Own and leaders' shapes in one look-up; a leader off the road is no leader (code 0).
     codes = np.fromiter(map(shapes.code.get, chain(vids, lead_ids), repeat(0)), np.int64, 2 * n)
-    codes[n:][~has] = 0
+    np.multiply(codes[n:], has, out=codes[n:])
     shape = shapes.array[codes]
     length, min_gap = shape[:n, 0], shape[:n, 1]
-    s = gap + min_gap + shape[n:, 0]
-    ok = has & (s < NO_LEADER_GAP_M)
-    spacing = np.where(ok, s, NO_LEADER_GAP_M)
-    lead_v = np.where(ok, st.speed_mps[lead_row], speed)  # delta_v 0 without a leader
-    sumo_gap = np.where(ok, gap, NO_LEADER_GAP_M)
-    lead_decel = np.where(ok, shape[n:, 2], STOP_DECEL_MPS2)
+    # Fresh arrays overwritten where there is no leader (masked writes: a third of
+    # np.where's cost a call); the leaders' decel column is not read again.
+    spacing = gap + min_gap + shape[n:, 0]
+    ok = has & (spacing < NO_LEADER_GAP_M)
+    none = ~ok
+    lead_v = st.speed_mps[lead_row]
+    np.copyto(lead_v, speed, where=none)  # delta_v 0 without a leader
+    spacing[none] = NO_LEADER_GAP_M
+    sumo_gap = gap
+    sumo_gap[none] = NO_LEADER_GAP_M
+    lead_decel = shape[n:, 2]
+    lead_decel[none] = STOP_DECEL_MPS2
     # A red light, or the end of a lane the vehicle must leave: a standing leader there.
     stop_back = stop_m + length
     closer = stop_back < spacing
-    if closer.any():
-        spacing = np.where(closer, stop_back, spacing)
-        lead_v = np.where(closer, 0.0, lead_v)
-        sumo_gap = np.where(closer, np.maximum(stop_m - min_gap, 0.0), sumo_gap)
-        lead_decel = np.where(closer, STOP_DECEL_MPS2, lead_decel)
+    if np.count_nonzero(closer):
+        np.copyto(spacing, stop_back, where=closer)
+        lead_v[closer] = 0.0
+        np.copyto(sumo_gap, np.maximum(stop_m - min_gap, 0.0), where=closer)
+        lead_decel[closer] = STOP_DECEL_MPS2
         ok &= ~closer
     # A driven leader's index in ``vids``: a row of ``st`` -> its index, -1 elsewhere
     # (the extra last entry answers row -1, no leader).
     driven = np.full(len(st.ids) + 1, -1, dtype=np.int64)
     driven[rows] = np.arange(n)
-    lead_index = np.where(ok, driven[lead_row], -1)
+    lead_index = driven[lead_row]
+    lead_index[~ok] = -1
     obs[:, 0] = speed
     obs[:, 1] = where[:, 4]
     obs[:, 2] = spacing

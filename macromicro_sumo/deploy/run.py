@@ -26,13 +26,7 @@ import pandas as pd
 
 from macromicro_sumo.data.ring import load_ground_truth, split_runs
 from macromicro_sumo.data.section import run_limits_mps
-from macromicro_sumo.deploy.drivers import (
-    ActionBatch,
-    SectionDriver,
-    SectionSpeedDriver,
-    SectionTypeDriver,
-    SwitchedType,
-)
+from macromicro_sumo.deploy.drivers import ActionBatch, SectionDriver, SectionSpeedDriver
 from macromicro_sumo.deploy.field import (
     check_station_grid,
     demand_files,
@@ -40,7 +34,9 @@ from macromicro_sumo.deploy.field import (
     station_interval,
     station_loops,
 )
+from macromicro_sumo.deploy.population import SwitchedType
 from macromicro_sumo.deploy.ring_drivers import RingDriver, RingSpeedDriver, RingTypeDriver
+from macromicro_sumo.deploy.type_driver import SectionTypeDriver
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import write_csv, write_manifest
 from macromicro_sumo.road.ring import RingGeometry

@@ -51,14 +51,23 @@ FLOOR_SHARE: float = DeployConfig.safety_floor_share
 
 
 def leader_safe_speed(
-    obs: np.ndarray, gap: np.ndarray, decel: np.ndarray, lead_decel: np.ndarray, dt_s: float
+    obs: np.ndarray,
+    gap: np.ndarray,
+    decel: np.ndarray,
+    lead_decel: np.ndarray,
+    dt_s: float,
+    lead_speed: np.ndarray | None = None,
 ) -> np.ndarray:
     """Per vehicle, ``safe_speed`` [m/s] behind the leader it observes (``gap``: SUMO's gap
     to it, ``NO_LEADER_GAP_M`` or more: none, inf; its speed obs[:, 0] - obs[:, 3]; a
     standing leader at a stop line or lane end included): the cap of ``safety_cap``,
-    computed once a step and shared with a driver's merge handling (``deploy.drivers``)."""
-    safe = safe_speed(gap, obs[:, 0] - obs[:, 3], decel, lead_decel, dt_s)
-    return np.where(gap < NO_LEADER_GAP_M, safe, np.inf)
+    computed once a step and shared with a driver's merge handling (``deploy.drivers``).
+    ``lead_speed``: obs[:, 0] - obs[:, 3] if computed already."""
+    if lead_speed is None:
+        lead_speed = obs[:, 0] - obs[:, 3]
+    safe = safe_speed(gap, lead_speed, decel, lead_decel, dt_s)
+    safe[~(gap < NO_LEADER_GAP_M)] = np.inf  # no leader: no cap (safe_speed's is fresh)
+    return safe
 
 
 def safety_cap(
@@ -72,25 +81,27 @@ def safety_cap(
     a_max_mps2: float,
     floor_share: float,
     safe: np.ndarray | None = None,
+    lead_speed: np.ndarray | None = None,
 ) -> tuple[np.ndarray, int, int]:
     """Speed commands ``cmd`` [m/s] made safe: capped at ``safe_speed`` behind each
     vehicle's observed leader (``gap``: SUMO's gap to it, ``NO_LEADER_GAP_M`` or more:
     none, no cap; its speed obs[:, 0] - obs[:, 3]), raised to the floor where nothing
     ahead asks for less (``floor_share`` of the lane's limit obs[:, 1]), and capped behind the command of a leader that
     is driven too (``lead``: its index in ``cmd``, -1: none; ``behind_commands``).
-    ``safe``: ``leader_safe_speed`` of these inputs if computed already.
+    ``safe``: ``leader_safe_speed`` of these inputs if computed already; ``lead_speed``:
+    obs[:, 0] - obs[:, 3] if computed already.
     Returns (commands, how many the layer lowered, how many it raised), each by more than
     ``SAFETY_TOLERANCE_MPS``."""
+    if lead_speed is None:
+        lead_speed = obs[:, 0] - obs[:, 3]
     if safe is None:
-        safe = leader_safe_speed(obs, gap, decel, lead_decel, dt_s)
+        safe = leader_safe_speed(obs, gap, decel, lead_decel, dt_s, lead_speed)
     # The road kept open: never below a share of the lane's limit unless what is ahead
     # (the safe speed) asks for it, and no faster than the vehicle may accelerate to it.
     floor = np.minimum(safe, np.minimum(obs[:, 0] + a_max_mps2 * dt_s, floor_share * obs[:, 1]))
     capped = np.minimum(cmd, safe)
     raised = int(np.count_nonzero(floor > capped + SAFETY_TOLERANCE_MPS))
-    out = behind_commands(
-        np.maximum(capped, floor), gap, lead, decel, lead_decel, dt_s, obs[:, 0] - obs[:, 3]
-    )
+    out = behind_commands(np.maximum(capped, floor), gap, lead, decel, lead_decel, dt_s, lead_speed)
     return out, int(np.count_nonzero(out < cmd - SAFETY_TOLERANCE_MPS)), raised
 
 
@@ -120,13 +131,13 @@ def behind_commands(
     Euler braking from v_l is one step at v_l - max(b, b_l) dt and the braking from there;
     a leader slower than max(b, b_l) dt was assumed standing after the step), the margin
     far more than rounding: the same commands, some 25 numpy calls fewer a step."""
-    has = np.flatnonzero(lead >= 0)
+    has = (lead >= 0).nonzero()[0]
     if not has.size:
         return cmd
     if lead_speed is not None:
         brake = np.maximum(decel[has], lead_decel[has]) * dt_s
         least = np.maximum(lead_speed[has] - brake, 0.0) + BEHIND_MARGIN_MPS
-        if not (cmd[lead[has]] < least).any():
+        if not np.count_nonzero(cmd[lead[has]] < least):
             return cmd
     cmd = cmd.copy()
     room, ahead = np.maximum(gap[has], 0.0), lead[has]
@@ -155,6 +166,7 @@ def speed_commands(
     layer: LayerInputs,
     cap: np.ndarray | None = None,
     safe: np.ndarray | None = None,
+    lead_speed: np.ndarray | None = None,
 ) -> np.ndarray:
     """Speed commands v' = max(0, v + a dt) [m/s] of the batched action ``act`` at
     observations ``obs`` (v in column 0, the lane's limit in column 1), a clipped to the
@@ -163,7 +175,8 @@ def speed_commands(
     ``stats``: the one command rule of the ring's and the sections' speed drivers.
     ``cap``: speeds [m/s] the commands are lowered to before the layer (a merge's
     cooperative slow-down, ``deploy.drivers``; inf: none); ``safe``: the layer's safe
-    speeds (``leader_safe_speed``) where the driver computed them already."""
+    speeds (``leader_safe_speed``) and obs[:, 0] - obs[:, 3] (``lead_speed``) where the
+    driver computed them already."""
     a_min, a_max = sc.bounds.accel_mps2
     # np.clip's own overhead is several times that of the two calls (the same values)
     a = np.minimum(np.maximum(act(obs), a_min), a_max)
@@ -176,5 +189,5 @@ def speed_commands(
     gap, decel, lead_decel, lead = layer()
     floor = sc.deploy.safety_floor_share
     return stats.count_safety(
-        *safety_cap(cmd, obs, gap, decel, lead_decel, lead, dt, a_max, floor, safe)
+        *safety_cap(cmd, obs, gap, decel, lead_decel, lead, dt, a_max, floor, safe, lead_speed)
     )

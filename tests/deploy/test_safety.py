@@ -1,5 +1,5 @@
 """The deployment's safety layer against adversarial commands (``deploy.safety``) and
-the vType switch (``deploy.drivers.SectionTypeDriver``): whatever a driver asks for, full
+the vType switch (``deploy.type_driver.SectionTypeDriver``): whatever a driver asks for, full
 throttle, random accelerations from a seeded generator, hard braking, SUMO reports no
 collision and nobody stands for good. Real SUMO."""
 
@@ -15,10 +15,12 @@ import pytest
 from conftest import ROOT, dump_toml, scenario_table
 from deploy_nets import CAR, merge_net, netconvert
 
-from macromicro_sumo.deploy.drivers import SectionSpeedDriver, SectionTypeDriver, SwitchedType
+from macromicro_sumo.deploy.drivers import SectionSpeedDriver
+from macromicro_sumo.deploy.population import SwitchedType
 from macromicro_sumo.deploy.ring_drivers import RingSpeedDriver
 from macromicro_sumo.deploy.run import Drive, load_context, run_method, vtype_xml
 from macromicro_sumo.deploy.safety import behind_commands, leader_safe_speed, safety_cap
+from macromicro_sumo.deploy.type_driver import SectionTypeDriver
 from macromicro_sumo.road.physics import safe_speed
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, read_section
 from macromicro_sumo.scenario.load import load_scenario
