@@ -77,6 +77,7 @@ from macromicro_sumo.evaluation.idm_fit import (
     gipps_policy_accel,
     idm_policy_accel,
 )
+from macromicro_sumo.evaluation.krauss_fit import KraussParams, krauss_policy_accel
 from macromicro_sumo.evaluation.methods import BY_NAME
 from macromicro_sumo.files import prepare_out_dir, staging_dir, write_csv, write_stage_manifest
 from macromicro_sumo.manifest import build_manifest
@@ -178,7 +179,11 @@ def prior_forward(agent: Agent) -> Callable[[np.ndarray], np.ndarray] | None:
     if agent.prior == "idm":
         idm = IdmParams(**{k: v for k, v in p.items() if k != "veh_length_m"})
         return lambda obs: idm_policy_accel(obs, idm, p["veh_length_m"])
-    gipps = GippsParams(**{k: v for k, v in p.items() if k not in ("veh_length_m", "dt_s")})
+    fitted = {k: v for k, v in p.items() if k not in ("veh_length_m", "dt_s")}
+    if agent.prior == "krauss":
+        krauss = KraussParams(**fitted)
+        return lambda obs: krauss_policy_accel(obs, krauss, p["veh_length_m"], p["dt_s"])
+    gipps = GippsParams(**fitted)
     return lambda obs: gipps_policy_accel(obs, gipps, p["veh_length_m"], p["dt_s"])
 
 

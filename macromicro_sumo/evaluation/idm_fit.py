@@ -16,7 +16,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from macromicro_sumo.policy.prior import GIPPS_PRIOR_KEYS, idm_prior_params
+from macromicro_sumo.evaluation.krauss_fit import calibrate_krauss
+from macromicro_sumo.policy.prior import PRIOR_KEYS, idm_prior_params
 from macromicro_sumo.road.physics import idm_accel
 
 
@@ -147,13 +148,17 @@ def calibrate_gipps(
 def fit_policy_prior(
     kind: str, obs: np.ndarray, accel: np.ndarray, veh_length_m: float, dt_s: float
 ) -> tuple[dict[str, float], float]:
-    """``policy.prior``'s model ("idm" or "gipps") fitted to observed pairs: the agent's
-    prior parameters (``policy.prior.PRIOR_KEYS``) and the fit's RMSE [m/s^2]."""
+    """``policy.prior``'s model ("idm", "gipps" or "krauss": ``evaluation.krauss_fit``)
+    fitted to observed pairs: the agent's prior parameters (``policy.prior.PRIOR_KEYS``)
+    and the fit's RMSE [m/s^2]."""
     if kind == "idm":
         idm, rmse = calibrate_idm(obs, accel, veh_length_m)
         return idm_prior_params(idm.as_dict(), veh_length_m), rmse
-    if kind != "gipps":
+    if kind == "gipps":
+        fitted, rmse = calibrate_gipps(obs, accel, veh_length_m, dt_s)
+    elif kind == "krauss":
+        fitted, rmse = calibrate_krauss(obs, accel, veh_length_m, dt_s)
+    else:
         raise ValueError(f"no model to fit for policy.prior = {kind!r}")
-    gipps, rmse = calibrate_gipps(obs, accel, veh_length_m, dt_s)
-    params = {**gipps.as_dict(), "veh_length_m": float(veh_length_m), "dt_s": float(dt_s)}
-    return {k: params[k] for k in GIPPS_PRIOR_KEYS}, rmse
+    params = {**fitted.as_dict(), "veh_length_m": float(veh_length_m), "dt_s": float(dt_s)}
+    return {k: params[k] for k in PRIOR_KEYS[kind]}, rmse

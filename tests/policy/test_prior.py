@@ -78,8 +78,8 @@ def test_no_prior_is_the_actor_alone():
     with torch.no_grad():
         actor = agent.actor((obs - agent.shift) / agent.scale).squeeze(-1)
         torch.testing.assert_close(agent.mean_action(obs), actor)
-    with pytest.raises(UserError, match="policy.prior = 'krauss'"):
-        Agent(16, prior="krauss")
+    with pytest.raises(UserError, match="policy.prior = 'ovm'"):
+        Agent(16, prior="ovm")
 
 
 @pytest.fixture(scope="module")
