@@ -27,6 +27,7 @@ import numpy as np
 
 from macromicro_sumo.deploy.stage import MANIFEST as DEPLOY_MANIFEST
 from macromicro_sumo.deploy.stage import deploy
+from macromicro_sumo.env.driver_speed import prior_pairs
 from macromicro_sumo.env.section_bank import typical_length
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.idm_fit import fit_policy_prior
@@ -282,16 +283,18 @@ def run_pipeline(
 def fit_residual_prior(
     sc, truth, runs: np.ndarray
 ) -> tuple[dict[str, float], dict[str, Any], tuple[np.ndarray, np.ndarray]]:
-    """The model under a section's residual policy (``policy.prior``, "idm" or "gipps"),
-    fitted to the observed pairs as the evaluation's idm_calibrated is (its pairs, runs and
-    length), so the policy starts as that model and its residual is what training adds.
-    Returns the agent's prior parameters, what the policy manifest records of the fit, and
-    the pairs (the residual's likelihood pairs, ``policy.residual``)."""
+    """The model under a section's residual policy (``policy.prior``), fitted to the
+    observed pairs as the evaluation's idm_calibrated is (its pairs, runs and length; the
+    Krauss form to its drivers' own: ``env.driver_speed.prior_pairs``), so the policy
+    starts as that model and its residual is what training adds. Returns the agent's prior
+    parameters, what the policy manifest records of the fit, and the pairs (the residual's
+    likelihood pairs, ``policy.residual``)."""
     length = typical_length(truth)
     obs, acc = micro_pairs(sc, truth, runs)
     kind = sc.policy.prior
-    prior, rmse = fit_policy_prior(kind, obs, acc, length, sc.simulation.step_length_s)
-    extra = {"prior": {"kind": kind, **prior, "fit_rmse_mps2": rmse, "pairs": len(acc)}}
+    fit_obs, fit_acc = prior_pairs(sc, truth, runs, obs, acc)
+    prior, rmse = fit_policy_prior(kind, fit_obs, fit_acc, length, sc.simulation.step_length_s)
+    extra = {"prior": {"kind": kind, **prior, "fit_rmse_mps2": rmse, "pairs": len(fit_acc)}}
     return prior, extra, (obs, acc)
 
 

@@ -6,7 +6,7 @@ it observes, so the Gipps prior cruises at its own desired speed."""
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -20,11 +20,15 @@ from deploy_nets import netconvert  # noqa: E402
 
 from macromicro_sumo.deploy.observe import LaneTable, Table, observe_rows  # noqa: E402
 from macromicro_sumo.env.driver_speed import (  # noqa: E402
+    MIN_OWN_PAIRS,
     QUANTILE_LEVELS,
     DriverSpeeds,
     driver_levels,
     factors_at,
     free_speed_ratios,
+    observed_drivers,
+    own_speed_pairs,
+    prior_pairs,
     ratio_quantiles,
     with_driver_factors,
 )
@@ -103,6 +107,29 @@ def test_free_speed_ratios_recover_sumos_speed_factors(straight) -> None:
     nearest = np.array(FACTORS)[np.argmin(np.abs(ratios[:, None] - np.array(FACTORS)), axis=1)]
     assert np.abs(ratios - nearest).max() < 0.02
     assert set(np.round(nearest, 1)) == set(FACTORS)
+
+
+def test_own_speed_pairs_put_every_driver_at_the_median_drivers_desired_speed(straight) -> None:
+    """Each observed vehicle's pairs carry its own factor in their limits: cruising, the
+    0.9 and the 1.1 drivers alike then drive at one ratio of the scaled limit, the median
+    driver's, which a shared model can fit (unscaled, they sit 0.2 apart)."""
+    sc, truth = straight
+    drivers = observed_drivers(sc, truth, truth.runs)
+    obs, accel = own_speed_pairs(drivers)
+    cruising = (obs[:, 2] > 200.0) & (np.abs(accel) < 0.3) & (obs[:, 0] > 26.0)
+    assert cruising.sum() > 100
+    median = np.median(list(drivers.ratio.values()))
+    ratio = obs[cruising, 0] / obs[cruising, 1]
+    assert np.quantile(np.abs(ratio - median), 0.95) < 0.02
+    free = (drivers.obs[:, 2] > 200.0) & (np.abs(drivers.accel) < 0.3) & (drivers.obs[:, 0] > 26.0)
+    raw = drivers.obs[free, 0] / drivers.obs[free, 1]
+    assert np.quantile(raw, 0.95) - np.quantile(raw, 0.05) > 0.15
+    # Only the "krauss" prior is fitted on them, and only where there are enough.
+    assert len(accel) >= MIN_OWN_PAIRS
+    krauss = replace(sc, policy=replace(sc.policy, prior="krauss"))
+    fit_obs, _ = prior_pairs(krauss, truth, truth.runs, drivers.obs, drivers.accel)
+    assert np.array_equal(fit_obs, obs)
+    assert prior_pairs(sc, truth, truth.runs, drivers.obs, drivers.accel)[0] is drivers.obs
 
 
 def test_draws_follow_the_ratios_and_are_fixed_per_vehicle() -> None:
