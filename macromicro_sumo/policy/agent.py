@@ -27,6 +27,7 @@ from collections.abc import Mapping
 import numpy as np
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 from macromicro_sumo.env.observation import OBS_SHIFT_SCALE
 from macromicro_sumo.env.ring import RingCore
@@ -109,7 +110,7 @@ class Agent(nn.Module):
     def residual(self, obs: torch.Tensor) -> torch.Tensor:
         """The actor's part of the mean action [m/s^2] for raw observations (..., D): its
         output, bounded with a ``prior`` (0 with a bound of 0)."""
-        out = self.actor((obs - self.shift) / self.scale).squeeze(-1)
+        out = _mlp(self.actor, (obs - self.shift) / self.scale).squeeze(-1)
         if self.prior != "none":
             bound = self.residual_bound
             if bound <= 0.0:  # the fitted prior alone (an ablation)
@@ -144,11 +145,29 @@ class Agent(nn.Module):
 
     def dist(self, obs: torch.Tensor) -> torch.distributions.Normal:
         mean = self.mean_action(obs)
-        return torch.distributions.Normal(mean, self.log_std.exp().expand_as(mean))
+        # No argument checks: they cost ~5% of a run (every env step builds one), and a
+        # NaN observation is caught where it is made, not here.
+        return torch.distributions.Normal(
+            mean, self.log_std.exp().expand_as(mean), validate_args=False
+        )
 
     def value(self, obs: torch.Tensor, t_frac: torch.Tensor) -> torch.Tensor:
         x = torch.cat([(obs - self.shift) / self.scale, t_frac[..., None]], dim=-1)
-        return self.critic(x).squeeze(-1)
+        return _mlp(self.critic, x).squeeze(-1)
+
+
+def _mlp(net: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
+    """``net(x)`` for a stack of ``Linear`` and ``Tanh`` layers, the same operations
+    without nn.Module's call machinery: the policy acts on a handful of vehicles per env
+    step, where that machinery cost more than the arithmetic."""
+    for layer in net:
+        if isinstance(layer, nn.Linear):
+            x = F.linear(x, layer.weight, layer.bias)
+        elif isinstance(layer, nn.Tanh):
+            x = torch.tanh(x)
+        else:
+            x = layer(x)
+    return x
 
 
 def policy_action(agent, stochastic: bool = True) -> ActionFn:
