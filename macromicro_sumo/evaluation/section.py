@@ -3,7 +3,11 @@
 The ring's protocol carried over to open, multi-lane roads. Held-out snapshots are completed
 by the generator (with the estimated hidden count, and with the true one to show what the
 estimate costs) and rolled out for ``evaluation.horizon_steps``; observed vehicles replay
-their records, hidden ones are driven by the method. Methods, on the same scenes:
+their records, hidden ones are driven by the method. Where every scene's estimate equals
+its true count (the ring read as a section) the true count's rows (``hidden_count =
+"true"`` in every CSV) are the estimated pass's, relabelled, instead of a second pass that
+would differ only in the seed (the manifest's ``true_count_rows`` says which). Methods, on
+the same scenes:
 
 * ``ground_truth``: the recorded vehicles (whatever model the user's vTypes have);
 * ``policy``, ``micro_only``, ``macro_only``: the learned policies (stochastic);
@@ -84,7 +88,7 @@ from macromicro_sumo.files import (
     write_csv,
     write_stage_manifest,
 )
-from macromicro_sumo.generator.section_sampler import generator_completion
+from macromicro_sumo.generator.section_sampler import generator_completion, k_of
 from macromicro_sumo.generator.section_train import load_section_generator
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.policy.agent import policy_action
@@ -100,6 +104,8 @@ REFERENCE_RECORDED = "ground_truth: every recorded vehicle of the scenes (simula
 REFERENCE_STATIONS = "stations: each scene's detector interval (field data)"
 REFERENCE_MICRO = "held-out observed vehicles' recorded actions"
 STATIONS = "stations"  # macro_alignment.csv's reference row on field data
+# The evaluation manifest's ``true_count_rows`` where the estimated pass stands for the true one.
+TRUE_REUSED = "the estimated pass's: every scene's estimated hidden count is its true one"
 
 
 def driven_bank(sc, truth, bank: SectionBank, agent, seed: int) -> SectionBank:
@@ -216,6 +222,13 @@ def _concat(parts: list[Rollouts]) -> Rollouts:
     )
 
 
+def _relabel(part: dict[str, Any] | pd.DataFrame, label: str) -> dict[str, Any] | pd.DataFrame:
+    """A row (dict) or samples frame of one pass under another ``hidden_count`` label."""
+    if isinstance(part, pd.DataFrame):
+        return part.assign(hidden_count=label)
+    return part | {"hidden_count": label}
+
+
 def _episodes(ro: Rollouts, eps: range) -> Rollouts:
     """The episodes ``eps`` of ``ro`` (the recording: no collisions to split)."""
     arrays = ("arc_m", "speed_mps", "spacing_m", "accel_mps2", "lane", "hidden")
@@ -249,6 +262,7 @@ def _run(
         safety=safety,
         replay_min_gap_m=recorded_min_gap(truth),
     )
+    core.rewarded = False  # the rollouts record states: r_macro would go unread
     per_k: dict[int, Rollouts] = {}
     try:
         if by_k is None:
@@ -298,10 +312,15 @@ def evaluate_section(
     counts = {"estimated": snaps.k_est, "true": snaps.k_true}
     sources = {"estimated": "estimate", "true": "truth"}  # report label -> k_source
     field = sc.data.source == "files"
-    if field:  # the true hidden count of field data is unknown
+    # Where every scene's estimated K is its true K (a closed road whose detectors count
+    # every vehicle, e.g. the ring) the two passes would complete the same scenes with the
+    # same counts, differing only in the seed: the estimated pass's figures stand for both.
+    same_k = not field and np.array_equal(k_of(snaps, "estimate"), k_of(snaps, "truth"))
+    if field or same_k:  # the true hidden count of field data is unknown
         sources.pop("true")
+    n_methods = len(agents) + 1 + (oracle is not None)  # the learned ones, idm_calibrated, idm_true
     bar = tqdm(
-        total=len(counts) * (len(agents) + 2), desc="evaluate", unit="rollout", disable=not progress
+        total=len(sources) * (n_methods + 1), desc="evaluate", unit="rollout", disable=not progress
     )
     with staging_dir(out) as stage:
         fcd = stage / "fcd"
@@ -376,6 +395,11 @@ def evaluate_section(
                 samples.append(samples_frame({"K": np.nan, "hidden_count": label}, name, ro))
                 bar.update()
         bar.close()
+        if same_k:  # the true count's rows: the estimated pass's, relabelled
+            rows, samples, safety_rows, k_rows = (
+                part + [_relabel(x, "true") for x in part]
+                for part in (rows, samples, safety_rows, k_rows)
+            )
         align = pd.DataFrame(rows)
         align.insert(1, "mean_k", [float(np.mean(counts[r])) for r in align["hidden_count"]])
         align.insert(2, "reference", REFERENCE_STATIONS if field else REFERENCE_RECORDED)
@@ -410,6 +434,7 @@ def evaluate_section(
             episodes=len(snaps),
             hidden=sc.instrumented.hidden,
             episodes_by_k={str(k): len(eps) for k, eps in (by_k or {}).items()},
+            true_count_rows=TRUE_REUSED if same_k else ("none" if field else "own pass"),
             data_source=sc.data.source,
             references={
                 "macro": REFERENCE_STATIONS if field else REFERENCE_RECORDED,

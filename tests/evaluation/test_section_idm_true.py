@@ -24,6 +24,7 @@ from macromicro_sumo.data.section import (
 from macromicro_sumo.env.section_bank import build_section_bank, initial_observations
 from macromicro_sumo.evaluation.idm_fit import IdmParams, idm_policy_accel
 from macromicro_sumo.evaluation.idm_true import PARAMS, true_idm_by_episode, true_idm_table
+from macromicro_sumo.evaluation.section import TRUE_REUSED
 from macromicro_sumo.report.write import SECTION_REPORT, Run
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import load_section_truth
@@ -176,6 +177,31 @@ def test_the_evaluation_and_report_show_idm_true(fleet) -> None:
     report = "\n".join(line for part in SECTION_REPORT.parts for line in part(r))
     assert "- `idm_true` (oracle): each hidden vehicle's own IDM parameters" in report
     assert "| idm_true |" in report and "idm_true: each hidden vehicle's own IDM" in report
+
+
+def test_one_pass_stands_for_both_hidden_counts_where_they_agree(fleet) -> None:
+    """The ring's detectors count every vehicle: each scene's estimated K is its true K, so
+    the true count's rows are the estimated pass's, relabelled (one pass instead of two
+    that differ only in the seed), in every table, and the manifest says so."""
+    path, tmp = fleet
+    sc = load_scenario(path)
+    truth = load_section_truth(tmp / "ground_truth", sc)
+    snaps = held_out_scenes(sc, truth)
+    assert np.array_equal(snaps.k_est, snaps.k_true)
+    ev = tmp / "evaluation"
+    manifest = json.loads((ev / "evaluation_manifest.json").read_text())
+    assert manifest["true_count_rows"] == TRUE_REUSED
+    for name in ("macro_alignment.csv", "macro_alignment_by_k.csv", "safety.csv"):
+        table = pd.read_csv(ev / name)
+        est, true = (
+            table[table["hidden_count"] == c].drop(columns="hidden_count").reset_index(drop=True)
+            for c in ("estimated", "true")
+        )
+        assert len(est) >= 4 and len(true) == len(est), name
+        pd.testing.assert_frame_equal(est, true)
+    samples = pd.read_csv(ev / "eval_samples.csv")
+    counts = samples["hidden_count"].value_counts()
+    assert counts["estimated"] == counts["true"] > 0
 
 
 def test_idm_true_is_left_out_where_the_truth_has_no_parameters(field_truth: Path) -> None:
