@@ -279,7 +279,7 @@ class SectionSpeedDriver(SectionDriver):
         slots, codes = self.slots_of(vids, lanes) if at is None else at
         sl, now = self.slots, self.steps
         # Due where not asked yet (``NOT_ASKED``), on another lane, or on a lane to ask again.
-        due = np.flatnonzero((sl.end_lane[slots] != codes) | (sl.end_again[slots] <= now))
+        due = ((sl.end_lane[slots] != codes) | (sl.end_again[slots] <= now)).nonzero()[0]
         if due.size:
             s = slots[due]
             ends = [sim.lane_end_m(vids[i], lanes[i], 0.0) for i in due.tolist()]
@@ -304,7 +304,7 @@ class SectionSpeedDriver(SectionDriver):
         slots, codes = self.slots_of(vids, lanes) if at is None else at
         sl, now = self.slots, self.steps
         out = np.full(len(vids), np.inf)
-        due = np.flatnonzero((sl.dark_lane[slots] != codes) | (sl.dark_again[slots] <= now))
+        due = ((sl.dark_lane[slots] != codes) | (sl.dark_again[slots] <= now)).nonzero()[0]
         if not due.size:
             return out
         got = sim.stop_lines_m([vids[i] for i in due.tolist()])
