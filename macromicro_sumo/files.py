@@ -375,6 +375,13 @@ def out_lock(out: Path) -> Iterator[None]:
         os.close(fd)  # releases the lock
 
 
+def locked_by_caller(folders: Iterable[Path | str]) -> None:
+    """Folders whose ``out_lock`` the process that started this one holds for as long as
+    this one runs (a pipeline's stage in a worker process): this process writes into them
+    without taking the lock again, which would be refused."""
+    _LOCKED.update(str(Path(f).resolve()) for f in folders)
+
+
 def prepare_out_dir(out: Path | str, inputs: Iterable[Path | str] = ()) -> Path:
     """Check that ``out`` can hold outputs: a folder or nothing yet, never a file."""
     check_out_path(out, inputs)

@@ -20,6 +20,7 @@ import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +39,7 @@ from macromicro_sumo.files import check_outputs, prepare_out_dir, write_json
 from macromicro_sumo.generator.ring_train import run_train_generator
 from macromicro_sumo.generator.section_train import run_train_section_generator
 from macromicro_sumo.manifest import build_manifest
+from macromicro_sumo.pipeline.parallel import can_ship, cpu_s, default_jobs, run_side_by_side
 from macromicro_sumo.pipeline.refinement import refine
 from macromicro_sumo.policy.checkpoint import policy_file
 from macromicro_sumo.policy.stage import PriorFit, run_train_policy
@@ -155,7 +157,7 @@ def standard_stages(
     upstream = ("simulate", "train_generator")
 
     def train(objective: str) -> Callable[[], Any]:
-        return lambda: train_policy(gt, gen / "generator.pt", pol, objective, RESUME)
+        return partial(train_policy, gt, gen / "generator.pt", pol, objective, RESUME)
 
     # The paper's policy and its two ablations: (objective, keys it ignores besides).
     policies = {
@@ -191,7 +193,7 @@ def standard_stages(
         Stage(
             "evaluate",
             ev / "evaluation_manifest.json",
-            lambda: evaluate(gt, gen / "generator.pt", policy_paths(pol), ev),
+            partial(_evaluate_job, evaluate, gt, gen / "generator.pt", pol, ev),
             needs=(*upstream, *policies),
             ignores=(*_NOWHERE, *_REFINE),
         ),
@@ -201,12 +203,43 @@ def standard_stages(
             Stage(
                 "deploy",
                 out / "deploy" / DEPLOY_MANIFEST,
-                lambda: deploy(gt, pol, out / "deploy"),
+                partial(deploy, gt, pol, out / "deploy"),
                 needs=("simulate", *policies),
                 ignores=DEPLOY_IGNORES,
             )
         )
     return stages
+
+
+def _evaluate_job(
+    evaluate: Callable[[Path, Path, dict[str, Path], Path], Any],
+    gt: Path,
+    generator: Path,
+    pol: Path,
+    ev: Path,
+) -> Any:
+    """The evaluation stage: its policies are those in ``pol`` when it runs."""
+    return evaluate(gt, generator, policy_paths(pol), ev)
+
+
+def _policy_job(
+    sc: Any, command: str, progress: bool, fit_prior: PriorFit | None, *args: Any
+) -> Any:
+    """A policy stage: ``args`` = (ground truth, generator, policy folder, objective,
+    resume rule)."""
+    gt, gen, pol, objective, resume = args
+    return run_train_policy(
+        sc, gt, gen, pol, resume, command, progress, objective, fit_prior=fit_prior
+    )
+
+
+def _road_job(fn: Callable[..., Any], sc: Any, command: str, progress: bool, *args: Any) -> Any:
+    """A road's stage function ``fn(sc, *folders, command, progress)``."""
+    return fn(sc, *args, command, progress)
+
+
+def _deploy_job(sc: Any, command: str, progress: bool, gt: Path, pol: Path, dep: Path) -> Any:
+    return deploy(sc, gt, pol, dep, command, progress, plots=make_deploy_plots)
 
 
 @dataclass(frozen=True)
@@ -224,28 +257,27 @@ class PipelineRoad:
 
 
 def run_pipeline(
-    sc: Any, road: PipelineRoad, out: Path | str, command: str = "", progress: bool = True
+    sc: Any,
+    road: PipelineRoad,
+    out: Path | str,
+    command: str = "",
+    progress: bool = True,
+    jobs: int | None = None,
 ) -> dict[str, Any]:
     """Every stage of ``road`` on ``sc`` into ``out``, stages done before skipped
-    (``Stage``), then the report; returns the run manifest."""
+    (``Stage``), then the report; returns the run manifest. ``jobs``: processes for stages
+    that can run side by side (None: ``parallel.default_jobs``; 1: one after the other)."""
     out = prepare_out_dir(out)
     gt, gen, pol = out / "ground_truth", out / "generator", out / "policy"
+    # Module-level functions and partials, so that a worker process can run any stage.
     stages = standard_stages(
         out,
-        lambda gt_: road.simulate(sc, gt_, command, progress),
-        lambda gt_, gen_: road.train_generator(sc, gt_, gen_, command, progress),
-        lambda gt_, g, pol_, obj, resume: run_train_policy(
-            sc, gt_, g, pol_, resume, command, progress, obj, fit_prior=road.fit_prior
-        ),
-        lambda gt_, g, pols, ev: road.evaluate(sc, gt_, g, pols, ev, command, progress),
+        partial(_road_job, road.simulate, sc, command, progress),
+        partial(_road_job, road.train_generator, sc, command, progress),
+        partial(_policy_job, sc, command, progress, road.fit_prior),
+        partial(_road_job, road.evaluate, sc, command, progress),
         truth_reads=road.truth_reads,
-        deploy=(
-            lambda gt_, pol_, dep: deploy(
-                sc, gt_, pol_, dep, command, progress, plots=make_deploy_plots
-            )
-        )
-        if road.deploys(sc)
-        else None,
+        deploy=partial(_deploy_job, sc, command, progress) if road.deploys(sc) else None,
     )
     if road.refine and sc.policy.refine_iterations > 0:
         ref = out / "refined"
@@ -275,7 +307,8 @@ def run_pipeline(
                 ignores=_NOWHERE,
             ),
         ]
-    manifest = run_stages(sc, stages, out, command, progress)
+    jobs = default_jobs() if jobs is None else jobs
+    manifest = run_stages(sc, stages, out, command, progress, jobs)
     write_report(sc, out, manifest)
     return manifest
 
@@ -310,32 +343,74 @@ SECTION = PipelineRoad(
 
 
 def run_stages(
-    sc: Any, stages: list[Stage], out: Path, command: str, progress: bool
+    sc: Any, stages: list[Stage], out: Path, command: str, progress: bool, jobs: int = 1
 ) -> dict[str, Any]:
     """Run ``stages`` in order, skipping those done for this scenario (``Stage``); per-stage
-    wall times go into ``out/manifest.json`` (returned)."""
+    wall and CPU times go into ``out/manifest.json`` (returned).
+
+    With ``jobs`` > 1, stages whose inputs are all ready and that do not read each other
+    (the policy and its ablations; the evaluation and the deployment) run side by side in
+    worker processes (``pipeline.parallel``): the same outputs, sooner on several cores."""
     previous = _previous_timings(out / "manifest.json")
     timings: dict[str, Any] = {}
+    cpu: dict[str, float] = {}
     redone: set[str] = set()
-    for stage in stages:
-        why = _why_redo(stage, sc, redone)
-        if why is None:
-            timings[stage.name] = previous.get(stage.name, "skipped (outputs existed)")
-            if progress:
-                print(f"[{stage.name}] skipped: outputs exist for these settings")
-            continue
-        if progress:
-            print(f"[{stage.name}] running: {why}")
-        t0 = time.perf_counter()
-        stage.run()
-        redone.add(stage.name)
-        timings[stage.name] = round(time.perf_counter() - t0, 3)
-        if progress:
-            print(f"[{stage.name}] done in {timings[stage.name]:.1f} s")
+    pending = list(stages)
+    while pending:
+        names = {s.name for s in pending}
+        ready = [s for s in pending if not names.intersection(s.needs)]
+        pending = [s for s in pending if s not in ready]
+        todo: list[tuple[Stage, str]] = []
+        for stage in ready:
+            why = _why_redo(stage, sc, redone)
+            if why is None:
+                timings[stage.name] = previous.get(stage.name, "skipped (outputs existed)")
+                if progress:
+                    print(f"[{stage.name}] skipped: outputs exist for these settings")
+            else:
+                todo.append((stage, why))
+        if jobs > 1 and len(todo) > 1 and all(can_ship(s.run) for s, _ in todo):
+            clocks = _side_by_side(todo, jobs, progress)
+        else:
+            clocks = {stage.name: _in_process(stage, why, progress) for stage, why in todo}
+        for stage, _ in todo:
+            redone.add(stage.name)
+            timings[stage.name] = round(clocks[stage.name][0], 3)
+            cpu[stage.name] = round(clocks[stage.name][1], 3)
     manifest = build_manifest(sc, command, stage="run")
     manifest["timings_s"] = timings
+    manifest["cpu_s"] = cpu  # this call's stages only (a skipped stage has none)
     write_json(manifest, out / "manifest.json")
     return manifest
+
+
+def _in_process(stage: Stage, why: str, progress: bool) -> tuple[float, float]:
+    """Run one stage here; its (wall, CPU) seconds."""
+    if progress:
+        print(f"[{stage.name}] running: {why}")
+    w0, c0 = time.perf_counter(), cpu_s()
+    stage.run()
+    wall = time.perf_counter() - w0
+    if progress:
+        print(f"[{stage.name}] done in {wall:.1f} s")
+    return wall, cpu_s() - c0
+
+
+def _side_by_side(
+    todo: list[tuple[Stage, str]], jobs: int, progress: bool
+) -> dict[str, tuple[float, float]]:
+    """Run the stages of ``todo`` in ``jobs`` worker processes; their (wall, CPU) seconds."""
+    # Their folders, locked by this run until it ends as if it ran them itself.
+    held = [prepare_out_dir(stage.manifest.parent) for stage, _ in todo]
+    if progress:
+        for stage, why in todo:
+            print(f"[{stage.name}] running: {why}")
+        print(f"[{', '.join(s.name for s, _ in todo)}] side by side in {jobs} processes")
+    clocks = run_side_by_side([(s.name, s.run) for s, _ in todo], held, jobs)
+    if progress:
+        for stage, _ in todo:
+            print(f"[{stage.name}] done in {clocks[stage.name][0]:.1f} s")
+    return clocks
 
 
 def _previous_timings(path: Path) -> dict[str, Any]:
