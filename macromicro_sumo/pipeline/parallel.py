@@ -34,8 +34,12 @@ MAX_JOBS = 2  # a stage runs one torch thread and SUMO in one process: 2 cores f
 
 def default_jobs() -> int:
     """Processes ``macromicro run`` uses: up to ``MAX_JOBS`` where the CPUs allow; one
-    inside a worker of its own (a batch variant has its slot: no nesting)."""
+    inside a worker of its own (a batch variant has its slot: no nesting) and where the
+    main script is no file a worker could import (read from standard input)."""
     if multiprocessing.parent_process() is not None:
+        return 1
+    main_file = getattr(sys.modules["__main__"], "__file__", None)
+    if main_file and not Path(main_file).is_file():  # a spawned worker re-imports it: would die
         return 1
     try:
         cpus = len(os.sched_getaffinity(0))
