@@ -274,6 +274,7 @@ def run_leader_follower_for(
     bank = section_bank(uniform, path, moved, start, vehicle_length_m, dt)
     idm = idm_follower(idm_params, vehicle_length_m)
     core = SectionCore(sc, uniform, bank, net_file, seed=seed, vclass=vclass, safety="none")
+    core.rewarded = False  # the traces are speeds and gaps: r_macro would go unread
     lanes = list(section.lanes)
     # SUMO's lane limits as the observation's: the insertion speed is capped at them.
     core.sim.set_lane_speed_limits(lanes, [float(speed_limit_mps)] * len(lanes))
