@@ -43,7 +43,6 @@ from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.generator.ring_posterior import spacing_posterior
 from macromicro_sumo.generator.section_bounds import touched_gaps
 from macromicro_sumo.generator.section_scene import (
-    PSI_INDEX,
     Gaps,
     Psi,
     Road,
@@ -167,9 +166,13 @@ class SectionGeneratorNet(nn.Module):
         hidden_size: int = 64,
         gap_choice: str = "network",
         dispersion_feature: bool = False,
+        hidden_layers: int = 1,
     ) -> None:
         super().__init__()
         self.hidden_size = hidden_size
+        # ``generator.hidden_layers``: a second ReLU layer (the ring's depth) where 2; with 1
+        # the network and its initial weights are as before the key existed.
+        self.hidden_layers = hidden_layers
         # ``generator.dispersion_feature``: each gap also sees ``dispersion_budget`` (one
         # more input; off, the network and its initial weights are as before it existed).
         self.dispersion_feature = dispersion_feature
@@ -179,6 +182,8 @@ class SectionGeneratorNet(nn.Module):
         self.gap_choice = gap_choice
         self.gap_in = nn.Linear(N_GAP_FEATURES + int(dispersion_feature), hidden_size, bias=False)
         self.glob_in = nn.Linear(N_GLOBAL_FEATURES, hidden_size)
+        deep = [(nn.Linear(hidden_size, hidden_size), nn.ReLU()) for _ in range(hidden_layers - 1)]
+        self.deep = nn.Sequential(*(m for pair in deep for m in pair))  # empty: the identity
         self.head = nn.Linear(hidden_size, 5)
 
     def forward(
@@ -188,11 +193,13 @@ class SectionGeneratorNet(nn.Module):
         read 0): most slots of a scene being completed are still empty."""
         g = self.glob_in(glob.float())
         if mask is None:
-            return self.head(torch.relu(self.gap_in(gap_feat.float()) + g[:, None, :])).double()
+            return self.head(
+                self.deep(torch.relu(self.gap_in(gap_feat.float()) + g[:, None, :]))
+            ).double()
         rows, cols = mask.nonzero(as_tuple=True)
         h = torch.relu(self.gap_in(gap_feat[rows, cols].float()) + g[rows])
         out = torch.zeros(*mask.shape, 5, dtype=torch.float64)
-        return out.index_put((rows, cols), self.head(h).double())
+        return out.index_put((rows, cols), self.head(self.deep(h)).double())
 
 
 def speed_range(
@@ -367,28 +374,6 @@ def section_losses(
     )
     # eps under the square roots keeps equal spacings and speeds trainable.
     return macro_terms(speed, present.double(), sp, in_a.double(), target, eps=1e-8)
-
-
-MIN_OBSERVED_FOR_SPREAD = 3  # observed vehicles needed to estimate a speed spread
-
-
-def speed_spread_target(snaps: SectionSnapshots) -> np.ndarray:
-    """(S,) the speed std [m/s] the completed scene should have: psi's ``std_speed_mps``
-    where psi carries one, else the spread of the observed vehicles' speeds (a sample of
-    the same stream; NaN with fewer than MIN_OBSERVED_FOR_SPREAD of them).
-
-    Why: psi's other fields say nothing about the speed spread, and with the mean bridged
-    exactly (``propose``) nothing else in the loss does: the spread stayed at the speed
-    head's initial value (Bremen: 12.2 m/s completed vs 6.9 m/s true)."""
-    if "std_speed_mps" in PSI_INDEX:
-        return np.asarray(snaps.psi[:, PSI_INDEX["std_speed_mps"]], dtype=np.float64)
-    obs = snaps.valid & snaps.observed
-    n = obs.sum(axis=1)
-    v = np.where(obs, snaps.speed_mps, 0.0)
-    mean = v.sum(axis=1) / np.maximum(n, 1)
-    var = (np.where(obs, snaps.speed_mps - mean[:, None], 0.0) ** 2).sum(axis=1)
-    std = np.sqrt(var / np.maximum(n - 1, 1))
-    return np.where(n >= MIN_OBSERVED_FOR_SPREAD, std, np.nan)
 
 
 # --------------------------------------------------------------------------- rollouts

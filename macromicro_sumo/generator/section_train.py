@@ -46,7 +46,6 @@ from macromicro_sumo.generator.section_model import (
     SectionGeneratorNet,
     rollout,
     section_losses,
-    speed_spread_target,
 )
 from macromicro_sumo.generator.section_sampler import (
     complete_section,
@@ -55,6 +54,11 @@ from macromicro_sumo.generator.section_sampler import (
     uniform_completion,
 )
 from macromicro_sumo.generator.section_scene import Psi, Road
+from macromicro_sumo.generator.section_spread import (
+    pooled_dispersion,
+    spacing_variance,
+    speed_spread_target,
+)
 from macromicro_sumo.generator.training import (
     GENERATOR_FILES,
     GENERATOR_MANIFEST,
@@ -82,6 +86,7 @@ def signature(sc: SectionScenario) -> dict[str, Any]:
         "simulation.step_length_s": float(sc.simulation.step_length_s),
         "generator.gap_choice": sc.generator.gap_choice,
         "generator.dispersion_feature": bool(sc.generator.dispersion_feature),
+        "generator.hidden_layers": int(sc.generator.hidden_layers),
         "observation_layout": f"section-gaps-v{FEATURE_VERSION}",
     }
 
@@ -106,10 +111,15 @@ def load_section_generator(path: Path | str, sc: SectionScenario) -> SectionGene
             hidden_size,
             sc.generator.gap_choice,
             sc.generator.dispersion_feature,
+            sc.generator.hidden_layers,
         ),
         sc.source or sc.name,
         # the only values before they were keys
-        before={"generator.gap_choice": "network", "generator.dispersion_feature": False},
+        before={
+            "generator.gap_choice": "network",
+            "generator.dispersion_feature": False,
+            "generator.hidden_layers": 1,
+        },
     )
 
 
@@ -173,6 +183,18 @@ def _batch_loss(
     )
     if sc.generator.dispersion_error == "squared":
         terms["L_var"] = squared_dispersion(terms["L_var"], psi)
+    if sc.generator.dispersion_pool > 0:
+        x = spacing_variance(
+            scene.lane,
+            scene.arc,
+            scene.present,
+            psi,
+            road,
+            sc.generator.dispersion_center,
+            scene.n_obs_slots if sc.generator.spacing_set == "touched" else None,
+        )
+        pooled = pooled_dispersion(x, psi, scene.k)
+        terms["L_var"] = terms["L_var"] + sc.generator.dispersion_pool * pooled
     loss = macro_loss(terms, sc.generator.lambda_v, sc.generator.lambda_d)
     advantage = (loss - loss.mean()).detach()
     surrogate = loss.mean() + (advantage * log_p).mean()
@@ -235,7 +257,9 @@ def _train(
     cfg = sc.generator
     torch.manual_seed(sc.seed)
     road = Road.of(section)
-    net = SectionGeneratorNet(cfg.hidden_size, cfg.gap_choice, cfg.dispersion_feature)
+    net = SectionGeneratorNet(
+        cfg.hidden_size, cfg.gap_choice, cfg.dispersion_feature, cfg.hidden_layers
+    )
     gen = torch.Generator().manual_seed(sc.seed)
     rng = np.random.default_rng([sc.seed, 31])
     k_train, k_val = k_of(train, cfg.k_source), k_of(val, cfg.k_source)
@@ -263,7 +287,13 @@ def _train(
         )
 
     settings = FitSettings(
-        epochs or cfg.epochs, cfg.patience, cfg.lr, cfg.ema_decay, "train-section-generator"
+        epochs or cfg.epochs,
+        cfg.patience,
+        cfg.lr,
+        cfg.ema_decay,
+        "train-section-generator",
+        cfg.ema_warmup,
+        cfg.min_epochs,
     )
     log = fit(net, settings, epoch_batches, validate, save if out is not None else None, progress)
     return net, log
@@ -302,6 +332,11 @@ def _summary(g: pd.DataFrame, n_comp: int = 1) -> dict[str, Any]:
         "snapshots": int(len(g) // n_comp),
         "speed_err_vs_psi_mps": float(g["speed_err_vs_psi_mps"].mean()),
         "spacing_std_ratio": float(g["std_spacing_m"].mean() / g["true_std_spacing_m"].mean()),
+        # sqrt of the mean variance: the pooled figure (the ring's generator metrics, and
+        # what the evaluation's spacing std is on a loop, where every scene has one mean)
+        "spacing_std_pooled_ratio": float(
+            np.sqrt((g["std_spacing_m"] ** 2).mean() / (g["true_std_spacing_m"] ** 2).mean())
+        ),
         "speed_std_ratio": float(g["std_speed_mps"].mean() / g["true_std_speed_mps"].mean()),
         "feasible_share": float(g["feasible"].mean()),
         "projections": int(g["projections"].sum()),

@@ -51,6 +51,26 @@ class FitSettings:
     lr: float
     ema_decay: float = 0.0  # 0: validate and keep the raw weights
     desc: str = "train-generator"  # the progress line's label
+    # The average's decay ramps up as min(ema_decay, (1 + n) / (10 + n)) after n updates,
+    # so that the early average does not hold on to the initial weights (``ema_fn``).
+    ema_warmup: bool = False
+    min_epochs: int = 0  # no early stop before this many epochs
+
+
+def ema_fn(decay: float, warmup: bool) -> Callable[..., torch.Tensor]:
+    """The moving average's update of one parameter tensor (``AveragedModel``'s avg_fn).
+
+    Without warm-up the average keeps decay^n of the initial weights after n updates
+    (0.995: 38% after 200 batches): interpolated with the trained ones they validate
+    worse than either, and early stopping ended trainings on that plateau (ring as a
+    section: 52-181 epochs, spacing std off by up to 16%). With it the initial weights'
+    share is 9 / (9 + n)-ish and the long average only builds up once training settles."""
+
+    def update(avg: torch.Tensor, new: torch.Tensor, n: torch.Tensor | int) -> torch.Tensor:
+        d = min(decay, (1.0 + float(n)) / (10.0 + float(n))) if warmup else decay
+        return d * avg + (1.0 - d) * new
+
+    return update
 
 
 def fit(
@@ -71,11 +91,11 @@ def fit(
     opt = torch.optim.Adam(net.parameters(), lr=settings.lr)
     # The REINFORCE gradient of the gap choice is noisy: averaged weights change less with
     # the training seed than the last step's (ema_decay > 0 validates and keeps them).
-    ema = (
-        AveragedModel(net, multi_avg_fn=get_ema_multi_avg_fn(settings.ema_decay))
-        if settings.ema_decay > 0
-        else None
-    )
+    ema = None
+    if settings.ema_decay > 0 and settings.ema_warmup:
+        ema = AveragedModel(net, avg_fn=ema_fn(settings.ema_decay, True))
+    elif settings.ema_decay > 0:
+        ema = AveragedModel(net, multi_avg_fn=get_ema_multi_avg_fn(settings.ema_decay))
     kept = ema.module if ema is not None else net
     best, best_state, bad, log = math.inf, copy.deepcopy(net.state_dict()), 0, []
     t0 = time.perf_counter()
@@ -116,7 +136,7 @@ def fit(
             val=f"{vs['loss']:.4f}",
             best=f"{best:.4f}",
         )
-        if bad >= settings.patience:
+        if bad >= settings.patience and epoch + 1 >= settings.min_epochs:
             break
     net.load_state_dict(best_state)
     net.eval()

@@ -244,6 +244,14 @@ def ring_to_section(table: dict[str, Any], folder: Path, file: str) -> dict[str,
         # ... and the ring's A with each gap's dispersion budget (K = 1's spread, item 3)
         gen.setdefault("spacing_set", "touched")
         gen.setdefault("dispersion_feature", True)
+        # ... and what makes K = 2..4 hold across training seeds: the scenes' summed
+        # spacing variance per K against psi's, the ring generator's two hidden layers, and
+        # an average that lets go of the initial weights, with no stop on its early plateau
+        # (docs/design.md, "Ring as a section: status", item 3)
+        gen.setdefault("dispersion_pool", 1.0)
+        gen.setdefault("hidden_layers", 2)
+        gen.setdefault("ema_warmup", True)
+        gen.setdefault("min_epochs", 150)
 
     table["simulation"].setdefault("warmup_s", 0.0)  # the ring records from the insertion on
     detectors = table["detectors"]

@@ -199,12 +199,37 @@ class SectionGeneratorConfig:
         "side, n the interval's passages (extended, as the ring: n samples' extremes leave "
         "out ~2 / (n + 1) of the stream)",
     )
+    hidden_layers: int = spec(
+        1,
+        lo=1,
+        hi=2,
+        doc="hidden ReLU layers of the generator's MLP (2: the ring generator's depth)",
+    )
+    dispersion_pool: float = spec(
+        0.0,
+        lo=0.0,
+        hi=1e6,
+        doc="weight of the pooled dispersion term: per hidden count, the scenes' summed spacing "
+        "variance against psi's summed variance, added to L_var (0: off; "
+        "generator/section_spread.py)",
+    )
     ema_decay: float = spec(
         0.0,
         lo=0.0,
         hi=0.9999,
         doc="exponential moving average of the weights per batch, validated and kept instead "
         "of the raw weights (0: off, the paper)",
+    )
+    min_epochs: int = spec(
+        0,
+        lo=0,
+        hi=100_000,
+        doc="no early stop before this many epochs (patience counts on, but ends nothing)",
+    )
+    ema_warmup: bool = spec(
+        False,
+        doc="the moving average's decay ramps up as min(ema_decay, (1 + n) / (10 + n)) after n "
+        "batches, so the early average does not hold on to the initial weights",
     )
     # The ring's keys, read only with instrumented.hidden = "snapshot" (data.section.hide).
     hidden_train: tuple[int, int] = spec(

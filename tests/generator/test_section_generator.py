@@ -22,7 +22,6 @@ from macromicro_sumo.generator.section_model import (
     SectionGeneratorNet,
     section_losses,
     spacings,
-    speed_spread_target,
 )
 from macromicro_sumo.generator.section_sampler import (
     SectionCompletion,
@@ -30,6 +29,7 @@ from macromicro_sumo.generator.section_sampler import (
     uniform_completion,
 )
 from macromicro_sumo.generator.section_scene import Psi, Road, scene_gaps
+from macromicro_sumo.generator.section_spread import speed_spread_target
 from macromicro_sumo.generator.section_train import (
     _eval_loss,
     load_section_generator,
