@@ -153,11 +153,12 @@ def observe(
 
 
 class SectionGeneratorNet(nn.Module):
-    """One-hidden-layer ReLU MLP scoring every gap: (choice logit, position mean, position
-    log-std, speed residual, speed log-std).
+    """ReLU MLP scoring every gap: (choice logit, position mean, position log-std, speed
+    residual, speed log-std).
 
-    One hidden layer: the net runs once per gap per placed vehicle (a 1,000-snapshot
-    completion evaluates it ~10^7 times), and the global features enter once per scene;
+    One hidden layer by default (``hidden_layers``: two, the ring generator's depth): the
+    net runs once per gap per placed vehicle (a 1,000-snapshot completion evaluates it ~10^7
+    times), and the global features enter once per scene;
     ReLU rather than the ring's tanh for the same reason (tanh was half of inference time).
     """
 
