@@ -15,6 +15,7 @@ calibration (``deploy.calibrate``) can deploy any candidate through ``run_method
 from __future__ import annotations
 
 import dataclasses
+import json
 import shutil
 import tempfile
 from dataclasses import dataclass
@@ -132,6 +133,7 @@ def load_context(sc: Any, truth_dir: Path | str) -> DeployContext:
         if sc.data.source == "files":
             return files_context(sc, truth_dir)
         truth = load_section_truth(truth_dir, sc)
+        check_truth_seed(sc, truth_dir)
         held = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)["held_out"]
         inputs, section, vtypes = load_section(sc)
         if sc.deploy.vtype and sc.deploy.vtype not in vtypes:
@@ -169,6 +171,20 @@ def load_context(sc: Any, truth_dir: Path | str) -> DeployContext:
                 "draws (another seed or fleet?); re-run `macromicro simulate`"
             )
     return DeployContext(sc, truth_dir, held, geo=geo, files=(net_file, routes_file), specs=specs)
+
+
+def check_truth_seed(sc: SectionScenario, truth_dir: Path) -> None:
+    """A section's runs are re-run with SUMO seed ``sc.seed + run`` (a fleet's from
+    ``sc.seed``) and their instrumented vehicles drawn from ``sc.seed``: another seed than the
+    ground truth's re-runs other runs and compares them with the recorded ones."""
+    manifest = truth_dir / "manifest.json"
+    recorded = json.loads(manifest.read_text()).get("seed") if manifest.is_file() else None
+    if recorded is not None and int(recorded) != sc.seed:
+        raise UserError(
+            f"{sc.source}: seed = {sc.seed}, but the ground truth {truth_dir} was simulated "
+            f"with seed {recorded}: the deployment would re-run other runs; accepted: seed = "
+            f"{recorded} (or re-run `macromicro simulate`)"
+        )
 
 
 def files_context(sc: SectionScenario, truth_dir: Path) -> DeployContext:
