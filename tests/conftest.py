@@ -16,6 +16,7 @@ import sumolib
 import torch
 
 from macromicro_sumo.cli import main
+from macromicro_sumo.pipeline import parallel
 from macromicro_sumo.road.section import Section, read_section
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.scenario.section import SectionScenario
@@ -306,3 +307,12 @@ def bremen_files_with(folder: Path, budgets: str) -> Path:
     path = folder / "bremen_files.toml"
     path.write_text(head + budgets + "\n[data]\n" + data)
     return path
+
+
+@pytest.fixture(autouse=True)
+def _one_process_pipelines(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Tests' pipelines run their stages one after the other: with their tiny budgets two
+    spawned workers' start-up (importing the package) cost more than the stages gain
+    (a small ring section run: 39 -> 73 s on the loaded machine). tests/pipeline/
+    test_parallel.py asks for two processes explicitly."""
+    monkeypatch.setattr(parallel, "MAX_JOBS", 1)
