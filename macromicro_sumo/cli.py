@@ -2,7 +2,7 @@
 
 ``main(argv)`` parses, runs and returns an exit code, so tests call it without a
 subprocess. Bad input surfaces as one ``error:`` line and exit code 2, never a traceback.
-Each subcommand loads the scenario and calls its stage function for the scenario's kind.
+Each subcommand loads the scenario and calls its stage function.
 """
 
 from __future__ import annotations
@@ -18,7 +18,6 @@ from macromicro_sumo.batch import runner as batch
 from macromicro_sumo.env.examples import example_names, example_scenario, sumo_nets_dir
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import check_out_path
-from macromicro_sumo.generator.ring_train import run_complete
 from macromicro_sumo.pipeline import stages
 from macromicro_sumo.pipeline.build import policy_paths
 from macromicro_sumo.scenario.load import load_scenario
@@ -58,25 +57,11 @@ def _cmd_train_generator(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_complete(args: argparse.Namespace) -> int:
-    sc = _scenario(args)
-    if stages.is_section(sc):
-        raise UserError(
-            f"{args.scenario}: `complete` is for ring scenarios; on a section, `train-generator` "
-            "writes the held-out completions' metrics (generator_metrics.csv)"
-        )
-    path = run_complete(sc, args.generator, args.data, args.out, args.hidden)
-    print(f"completions written to {path}")
-    return 0
-
-
 def _cmd_train_policy(args: argparse.Namespace) -> int:
     sc = _scenario(args)
     m = stages.train_policy(
         sc, args.data, args.generator, args.out, args.resume, args.command_line, not args.quiet
     )
-    if "alignment" in m:
-        print(m["alignment"].round(4).to_string(index=False))
     print(f"policy written to {args.out / 'policy.pt'} ({m['timings_s']['train_policy']:.1f} s)")
     return 0
 
@@ -97,7 +82,6 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         args.out,
         args.command_line,
         not args.quiet,
-        args.hidden,
     )
     print(f"evaluation written to {args.out}")
     return 0
@@ -224,9 +208,6 @@ def build_parser() -> argparse.ArgumentParser:
         "--policy", type=Path, required=True, help="policy.pt (ablations beside it are used too)"
     )
     p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument(
-        "--hidden", type=int, nargs="+", help="hidden counts K (default: generator.hidden_eval)"
-    )
 
     p = add(
         "deploy",
@@ -246,15 +227,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="output folder (one folder per method)")
     p.add_argument(
         "--methods", nargs="+", help="methods to deploy (default: the scenario's deploy.methods)"
-    )
-
-    p = add("complete", _cmd_complete, "complete the held-out snapshots with a trained generator")
-    p.add_argument("scenario", type=Path, help="scenario TOML")
-    p.add_argument("--generator", type=Path, required=True, help="generator.pt")
-    p.add_argument("--data", type=Path, required=True, help="ground-truth folder (from simulate)")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument(
-        "--hidden", type=int, nargs="+", help="hidden counts K (default: generator.hidden_eval)"
     )
 
     add(

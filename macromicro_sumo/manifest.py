@@ -7,7 +7,7 @@ import sys
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
-from macromicro_sumo.scenario.ring import Scenario
+from macromicro_sumo.scenario.section import SectionScenario
 
 
 def package_versions() -> dict[str, str]:
@@ -29,7 +29,7 @@ def package_versions() -> dict[str, str]:
     return out
 
 
-def build_manifest(sc: Scenario, command: str, stage: str) -> dict[str, Any]:
+def build_manifest(sc: SectionScenario, command: str, stage: str) -> dict[str, Any]:
     return {
         "stage": stage,
         "scenario_name": sc.name,

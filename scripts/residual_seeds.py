@@ -26,7 +26,7 @@ import pandas as pd
 import torch
 
 from macromicro_sumo import cli
-from macromicro_sumo.data.ring import split_runs
+from macromicro_sumo.data.section import split_runs
 from macromicro_sumo.pipeline.build import fit_residual_prior
 from macromicro_sumo.policy.ppo import train_policy
 from macromicro_sumo.policy.stage import SECTION

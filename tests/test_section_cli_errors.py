@@ -110,9 +110,9 @@ def test_instrumented_vtype_not_in_the_demand(capsys, files: Path) -> None:
     fails(capsys, scenario(files, instrumented={"vtype": "truck"}), "instrumented.vtype", "'truck'")
 
 
-def test_several_completions_per_scene_are_for_rings(capsys, files: Path) -> None:
+def test_several_completions_per_scene_name_their_replacement(capsys, files: Path) -> None:
     path = scenario(files, evaluation={"completions_per_scene": 4})
-    fails(capsys, path, "evaluation.completions_per_scene = 4", "ring", "accepted 1")
+    fails(capsys, path, "evaluation.completions_per_scene", "generator.eval_completions")
 
 
 def test_route_file_without_vehicles(capsys, files: Path) -> None:

@@ -26,7 +26,6 @@ from typing import Any
 from macromicro_sumo.batch.sweep import AnyScenario
 from macromicro_sumo.batch.tasks import Outcome, Task, one_line, run_task
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.inputs import input_files
 
 RAY_INSTALL = "pip install 'macromicro-sumo[ray]'"
@@ -153,14 +152,12 @@ def _input_key(path: str | Path) -> str:
 def _network_paths(sc: AnyScenario) -> dict[str, str | list[str]]:
     """The scenario's own file keys under ``[network]`` (paths as written, "" when unset)."""
     n = sc.network
-    if isinstance(sc, SectionScenario):
-        return {
-            "sumocfg": n.sumocfg,
-            "net_file": n.net_file,
-            "route_files": list(n.route_files),
-            "additional_files": list(n.additional_files),
-        }
-    return {"net_file": n.net_file, "routes_file": n.routes_file}
+    return {
+        "sumocfg": n.sumocfg,
+        "net_file": n.net_file,
+        "route_files": list(n.route_files),
+        "additional_files": list(n.additional_files),
+    }
 
 
 def shipment(sc: AnyScenario) -> dict[str, bytes]:
@@ -229,8 +226,7 @@ def require_ray() -> Any:
 class RayBackend:
     """Variants as Ray tasks (one CPU each): a local Ray instance with ``workers`` CPUs,
     or the cluster at ``address``. Tasks on the driver's node write into the batch folder;
-    elsewhere the scenario's input files (``shipment``: the ring's net and routes, a
-    section's SUMO files) travel with the task and the variant's folder comes back, so
+    elsewhere the scenario's input files (``shipment``: its SUMO files) travel with the task and the variant's folder comes back, so
     other nodes need macromicro-sumo installed but no shared disk. Each distinct set of
     input files is put into Ray's object store once, however many variants share it."""
 

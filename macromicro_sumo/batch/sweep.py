@@ -6,10 +6,11 @@ expanded into the cartesian product of named variants::
     speed_limits.range_mps = [[10.0, 12.0], [12.0, 14.0]]   # dotted key: table.key
     n_runs = [10, 40]                                       # short key: unique across tables
 
-Sweep keys are those of the file's scenario kind: the ring's tables, or a section's
-(``[network] kind = "sumo"``: ``detectors.auto_spacing_m``, ``instrumented.penetration``, ...),
-the optional tables' included where the file has them (a section's ``[fleet]``,
-``[speed_limits]``, ``[initial]``: ``fleet.n_vehicles``; ``file_keys``).
+Sweep keys are those of the file's kind: a section's (``[network] kind = "sumo"``:
+``detectors.auto_spacing_m``, ``instrumented.penetration``, ...), the optional tables'
+included where the file has them (a section's ``[fleet]``, ``[speed_limits]``, ``[initial]``:
+``fleet.n_vehicles``; ``file_keys``); or a ring file's (its tables' section keys and the ring's
+own, ``scenario.ring_as_section.RING_FILE_KEYS``), applied before the file is mapped.
 """
 
 from __future__ import annotations
@@ -29,10 +30,10 @@ from typing import Any
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.scenario.load import load_scenario, read_scenario_toml
-from macromicro_sumo.scenario.ring import Scenario
+from macromicro_sumo.scenario.ring_as_section import RING_FILE_KEYS, RING_TOP
 from macromicro_sumo.scenario.section import SectionScenario
 
-AnyScenario = Scenario | SectionScenario
+AnyScenario = SectionScenario
 MAX_NAME = 120  # characters; longer variant names are shortened with a hash
 
 
@@ -46,7 +47,7 @@ def _table_type(hint: Any) -> type | None:
     return None
 
 
-def _leaf_keys(cls: type = Scenario, prefix: str = "") -> dict[str, Any]:
+def _leaf_keys(cls: type = SectionScenario, prefix: str = "") -> dict[str, Any]:
     """Every settable scenario key, dotted, mapped to its type hint (an optional table's
     keys too: sweeping ``fleet.n_vehicles`` sets a key of ``[fleet]``, not the table)."""
     out: dict[str, Any] = {}
@@ -63,21 +64,29 @@ def _leaf_keys(cls: type = Scenario, prefix: str = "") -> dict[str, Any]:
 
 
 # Sweepable keys per scenario kind, with an example for error messages.
+_SECTION_KEYS = _leaf_keys(SectionScenario)
 LEAF_KEYS: dict[str, dict[str, Any]] = {
-    "ring": _leaf_keys(Scenario),
-    "section": _leaf_keys(SectionScenario),
+    "ring": {
+        **{
+            k: v
+            for k, v in _SECTION_KEYS.items()
+            if k.split(".")[0] in RING_TOP and not k.startswith("network.")
+        },
+        **RING_FILE_KEYS,
+    },
+    "section": _SECTION_KEYS,
 }
 EXAMPLE_KEY = {"ring": "fleet.n_vehicles", "section": "detectors.auto_spacing_m"}
 # Tables a file may leave out (``X | None``): their keys are sweepable only in a file that
 # has the table, and only there count for short keys (``file_keys``).
 OPTIONAL_TABLES: dict[str, set[str]] = {
-    kind: {
+    "ring": set(),  # a ring file has all its tables ([fleet] is its demand)
+    "section": {
         f.name
-        for f in dataclasses.fields(cls)
-        if not dataclasses.is_dataclass(typing.get_type_hints(cls)[f.name])
-        and _table_type(typing.get_type_hints(cls)[f.name]) is not None
-    }
-    for kind, cls in (("ring", Scenario), ("section", SectionScenario))
+        for f in dataclasses.fields(SectionScenario)
+        if not dataclasses.is_dataclass(typing.get_type_hints(SectionScenario)[f.name])
+        and _table_type(typing.get_type_hints(SectionScenario)[f.name]) is not None
+    },
 }
 
 

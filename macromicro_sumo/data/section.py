@@ -40,6 +40,25 @@ def vehicle_level(seed: int, run: int, vehicle_id: str, tag: str = "") -> float:
     return int.from_bytes(hashlib.sha256(key.encode()).digest()[:8], "little") / 2**64
 
 
+def split_runs(
+    runs: np.ndarray, held_out_fraction: float, seed: int, val_fraction: float = 0.15
+) -> dict[str, np.ndarray]:
+    """Disjoint train / val / held_out run ids (seeded shuffle); val drives early stopping."""
+    rng = np.random.default_rng([seed, 7])
+    perm = rng.permutation(runs)
+    n_held = max(1, int(round(held_out_fraction * len(runs))))
+    n_val = max(1, int(round(val_fraction * len(runs)))) if len(runs) - n_held >= 2 else 0
+    if len(runs) - n_held - n_val < 1:
+        raise UserError(
+            f"need at least 2 ground-truth runs to split train / held-out, got {len(runs)}"
+        )
+    return {
+        "held_out": np.sort(perm[:n_held]),
+        "val": np.sort(perm[n_held : n_held + n_val]),
+        "train": np.sort(perm[n_held + n_val :]),
+    }
+
+
 @dataclass(frozen=True)
 class SectionTruth:
     """A ground-truth folder of ``macromicro simulate`` on a section (see docs/sections.md)."""
@@ -258,7 +277,7 @@ def hide_random(
     snaps: SectionSnapshots, k: np.ndarray | int, rng: np.random.Generator
 ) -> SectionSnapshots:
     """``snaps`` with ``k`` random vehicles of each scene hidden (scalar or per snapshot),
-    every other vehicle observed: the ring's ``data.ring.hide`` on padded scenes.
+    every other vehicle observed (the paper's protocol) on padded scenes.
 
     ``k_true`` becomes ``k``; ``k_est`` the detectors' vehicle count (``k_est`` plus the
     observed vehicles before) minus the observed ones now."""
@@ -287,8 +306,7 @@ def hide_random(
 
 def snapshots_by_k(snaps: SectionSnapshots, ks: range, seed: int) -> dict[int, SectionSnapshots]:
     """The evaluation protocol of ``instrumented.hidden = "snapshot"``: every snapshot with
-    at least K vehicles once per K, its hidden set drawn afresh (seed per K, as the ring's
-    ``data.ring.held_out_by_k``)."""
+    at least K vehicles once per K, its hidden set drawn afresh (seed per K)."""
     out = {}
     for k in ks:
         idx = np.flatnonzero(snaps.valid.sum(axis=1) >= k)

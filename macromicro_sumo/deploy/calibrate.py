@@ -26,7 +26,7 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import minimize
 
-from macromicro_sumo.data.ring import split_runs
+from macromicro_sumo.data.section import split_runs
 from macromicro_sumo.deploy.compare import geh
 from macromicro_sumo.deploy.run import DeployContext, Drive, run_method
 from macromicro_sumo.errors import UserError

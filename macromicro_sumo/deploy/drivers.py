@@ -7,9 +7,7 @@ vehicles of the driven population, the others keep their own SUMO models:
   is not instrumented (``truth.section.is_instrumented``; where each snapshot hides its
   own vehicles, ``hidden = "snapshot"``, nobody is: ``deploy.population``), or a share of
   them drawn per vehicle by a hash, or one vType; each is driven from the step it is on a lane of the
-  section until it leaves the section;
-* on the ring (``deploy.ring_drivers``: ``RingDriver`` ...) the population is the fleet,
-  or a share of it.
+  section until it leaves the section (the paper's ring: its whole fleet, or a share).
 
 Two ways to drive: speed commands (``*SpeedDriver``: v + a dt with a from a batched action
 function, for the learned policies) and a vType switch (``*TypeDriver``: SUMO's own model

@@ -41,9 +41,7 @@ def population_scenario(sc: Any) -> Any:
 
 def population_label(sc: Any) -> str:
     """The deployed population in words (each deploy manifest records it)."""
-    if not hasattr(sc, "instrumented"):  # the ring
-        who = "the whole fleet"
-    elif whole_fleet(sc):
+    if whole_fleet(sc):
         who = 'every vehicle (instrumented.hidden = "snapshot": nobody is instrumented for good)'
     else:
         who = "every vehicle that is not instrumented"

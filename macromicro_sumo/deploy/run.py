@@ -1,9 +1,8 @@
 """One method deployed over whole runs: the ground truth's run loops with a driver.
 
 ``load_context`` reads what every deployment of a scenario shares: the held-out runs of
-its ground truth and how to re-run them with the same seeds (a section: SUMO seed
-``sc.seed + run``; the ring: every ``RunSpec`` re-drawn from ``sc.seed`` in run order), so
-that the only difference from the ground truth is who drives. ``run_method`` steps some of
+its ground truth and how to re-run them with the same seeds (SUMO seed ``sc.seed + run``;
+a fleet's draws per run from ``sc.seed``), so that the only difference from the ground truth is who drives. ``run_method`` steps some of
 those runs with a method's driver and returns the outputs in the ground truth's schemas
 (``DeployResult``); ``write_method`` writes them into one method's folder.
 
@@ -25,8 +24,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from macromicro_sumo.data.ring import load_ground_truth, split_runs
-from macromicro_sumo.data.section import run_limits_mps
+from macromicro_sumo.data.section import run_limits_mps, split_runs
 from macromicro_sumo.deploy.drivers import ActionBatch, SectionDriver, SectionSpeedDriver
 from macromicro_sumo.deploy.field import (
     check_station_grid,
@@ -36,22 +34,13 @@ from macromicro_sumo.deploy.field import (
     station_loops,
 )
 from macromicro_sumo.deploy.population import SwitchedType
-from macromicro_sumo.deploy.ring_drivers import RingDriver, RingSpeedDriver, RingTypeDriver
 from macromicro_sumo.deploy.type_driver import SectionTypeDriver
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import write_csv, write_manifest
-from macromicro_sumo.road.ring import RingGeometry
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.demand import VType, check_demand
 from macromicro_sumo.sumo.inputs import SumoInputs, read_net, scenario_inputs
-from macromicro_sumo.truth.ring import (
-    RunSpec,
-    check_ring,
-    ring_detector_tables,
-    run_ring,
-    run_specs,
-)
 from macromicro_sumo.truth.section import (
     load_section,
     load_section_truth,
@@ -69,9 +58,6 @@ SAFETY_COLUMNS = (
     "vehicle_steps_driven",
     "safety_acted",
 )
-# The vType every driven vehicle of the ring's fleet is switched to (its demand has one
-# vType per vehicle).
-FLEET = "fleet"
 
 
 @dataclass(frozen=True)
@@ -99,9 +85,6 @@ class DeployContext:
     placed: list | None = None
     vtypes: dict[str, VType] | None = None
     vclass: dict[str, str] | None = None  # demand vType -> vClass (from vtypes.csv)
-    geo: RingGeometry | None = None
-    files: tuple[Path, Path] | None = None
-    specs: dict[int, RunSpec] | None = None
     truth_runs: pd.DataFrame | None = None
     run_sections: dict[int, Section] | None = None  # each held-out run's limits (a fleet)
     # Field data: each run's own inputs (a demand sampled from its stations), how the
@@ -109,10 +92,6 @@ class DeployContext:
     run_inputs: dict[int, SumoInputs] | None = None
     demand: dict[str, Any] | None = None
     scratch: tempfile.TemporaryDirectory | None = None
-
-    @property
-    def is_section(self) -> bool:
-        return self.section is not None
 
 
 @dataclass
@@ -126,51 +105,36 @@ class DeployResult:
     runs: pd.DataFrame
 
 
-def load_context(sc: Any, truth_dir: Path | str) -> DeployContext:
+def load_context(sc: SectionScenario, truth_dir: Path | str) -> DeployContext:
     """The held-out runs of the ground truth in ``truth_dir`` and how to re-run them."""
     truth_dir = Path(truth_dir)
-    if isinstance(sc, SectionScenario):
-        if sc.data.source == "files":
-            return files_context(sc, truth_dir)
-        truth = load_section_truth(truth_dir, sc)
-        check_truth_seed(sc, truth_dir)
-        held = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)["held_out"]
-        inputs, section, vtypes = load_section(sc)
-        if sc.deploy.vtype and sc.deploy.vtype not in vtypes:
-            raise UserError(
-                f"{sc.source}: deploy.vtype = {sc.deploy.vtype!r} is not a vType of the demand; "
-                f"accepted: one of {', '.join(sorted(vtypes))}"
-            )
-        vt = truth.vtypes
-        vclass = dict(zip(vt["vtype"], vt["vclass"].astype(str), strict=True))
-        return DeployContext(
-            sc,
-            truth_dir,
-            [int(r) for r in held],
-            section=section,
-            inputs=inputs,
-            placed=place_detectors(sc, inputs, section),
-            vtypes=vtypes,
-            vclass=vclass,
-            run_sections={
-                int(r): dataclasses.replace(section, limits_mps=lim)
-                for r, lim in zip(held, run_limits_mps(truth, held), strict=True)
-            },
+    if sc.data.source == "files":
+        return files_context(sc, truth_dir)
+    truth = load_section_truth(truth_dir, sc)
+    check_truth_seed(sc, truth_dir)
+    held = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)["held_out"]
+    inputs, section, vtypes = load_section(sc)
+    if sc.deploy.vtype and sc.deploy.vtype not in vtypes:
+        raise UserError(
+            f"{sc.source}: deploy.vtype = {sc.deploy.vtype!r} is not a vType of the demand; "
+            f"accepted: one of {', '.join(sorted(vtypes))}"
         )
-    gt = load_ground_truth(truth_dir, sc)
-    held = [
-        int(r) for r in split_runs(gt.runs, sc.generator.held_out_fraction, sc.seed)["held_out"]
-    ]
-    geo, net_file, routes_file = check_ring(sc)
-    specs = {s.run: s for s in run_specs(sc, geo)}
-    for r in held:  # the re-drawn runs must be the recorded ones
-        rec = gt.vehicles[gt.vehicles["run"] == r]["initial_arc_m"].to_numpy()
-        if r not in specs or not np.allclose(rec, specs[r].arc0_m, atol=1e-4):
-            raise UserError(
-                f"{truth_dir}: run {r} of the ground truth is not the one scenario {sc.source} "
-                "draws (another seed or fleet?); re-run `macromicro simulate`"
-            )
-    return DeployContext(sc, truth_dir, held, geo=geo, files=(net_file, routes_file), specs=specs)
+    vt = truth.vtypes
+    vclass = dict(zip(vt["vtype"], vt["vclass"].astype(str), strict=True))
+    return DeployContext(
+        sc,
+        truth_dir,
+        [int(r) for r in held],
+        section=section,
+        inputs=inputs,
+        placed=place_detectors(sc, inputs, section),
+        vtypes=vtypes,
+        vclass=vclass,
+        run_sections={
+            int(r): dataclasses.replace(section, limits_mps=lim)
+            for r, lim in zip(held, run_limits_mps(truth, held), strict=True)
+        },
+    )
 
 
 def check_truth_seed(sc: SectionScenario, truth_dir: Path) -> None:
@@ -292,11 +256,7 @@ def _switch_file(ctx: DeployContext, drive: Drive, stage: Path) -> tuple[tuple[P
     """The additional file with the vTypes a method switches to (none for the others)."""
     if drive.theta is None and not drive.defaults:
         return (), {}
-    sc = ctx.sc
-    if ctx.is_section:
-        rows = {v: (ctx.vclass.get(v, "passenger"), t.length_m) for v, t in ctx.vtypes.items()}
-    else:
-        rows = {FLEET: ("passenger", sc.fleet.length_m)}
+    rows = {v: (ctx.vclass.get(v, "passenger"), t.length_m) for v, t in ctx.vtypes.items()}
     text, type_of = vtype_xml(rows, drive)
     path = stage / "sumo" / "deploy_vtypes.add.xml"
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -326,10 +286,7 @@ def run_method(
     def switch(run: int) -> SwitchedType:
         return SwitchedType(type_of, speed, np.random.default_rng([sc.seed, run, 17]))
 
-    if ctx.is_section:
-        result = _section_runs(ctx, drive, stage, runs, extra, switch, drivers, progress, desc)
-    else:
-        result = _ring_runs(ctx, drive, stage, runs, extra, switch, drivers, progress, desc)
+    result = _section_runs(ctx, drive, stage, runs, extra, switch, drivers, progress, desc)
     counts = pd.DataFrame([{"run": r, **drivers[r].stats.as_dict()} for r in runs])
     result.runs = result.runs.merge(counts, on="run", how="left")
     return result
@@ -389,37 +346,6 @@ def _section_runs(ctx, drive, stage, runs, extra, switch, drivers, progress, des
     return DeployResult(traj, det, pas, macro, pd.DataFrame(rows))
 
 
-def _ring_runs(ctx, drive, stage, runs, extra, switch, drivers, progress, desc):
-    sc = ctx.sc
-    specs = [ctx.specs[r] for r in runs]
-
-    def driver_for(spec: RunSpec) -> RingDriver:
-        ids = list(spec.params["vehicle_id"])
-        decel = spec.params["decel_mps2"].to_numpy()
-        args = (sc, ctx.geo, spec.run, ids, spec.limits_mps, decel)
-        if drive.act is not None:
-            d = RingSpeedDriver(
-                *args,
-                act=drive.act,
-                safety=drive.safety or sc.deploy.safety,
-                length=spec.params["length_m"].to_numpy(),
-                min_gap=spec.params["min_gap_m"].to_numpy(),
-            )
-        elif drive.theta is not None or drive.defaults:
-            d = RingTypeDriver(*args, switch=switch(spec.run))
-        else:
-            d = RingDriver(*args)
-        drivers[spec.run] = d
-        return d
-
-    trajs, rows, _ = run_ring(
-        sc, ctx.geo, ctx.files, stage, specs, progress, driver_for, extra, desc
-    )
-    traj = pd.concat(trajs, ignore_index=True)
-    det, pas, macro = ring_detector_tables(sc, ctx.geo, stage, specs, traj)
-    return DeployResult(traj, det, pas, macro, pd.DataFrame(rows).drop(columns="sim_wall_s"))
-
-
 # --------------------------------------------------------------------------- writing
 
 
@@ -439,11 +365,7 @@ def write_method(
     write_csv(res.passages, folder / "detector_passages.csv")
     write_csv(res.macro, folder / "macro.csv")
     write_csv(res.runs, folder / "runs.csv")
-    if ctx.is_section:
-        ctx.section.write(folder / "section.json")
-    else:
-        specs = [ctx.specs[r] for r in sorted(res.runs["run"])]
-        write_csv(pd.concat([s.params for s in specs], ignore_index=True), folder / "vehicles.csv")
+    ctx.section.write(folder / "section.json")
     totals = {c: int(res.runs[c].sum()) for c in SAFETY_COLUMNS}
     if ctx.demand is not None:  # field data: which demand was deployed, kept beside SUMO's files
         manifest = {**manifest, "demand": ctx.demand}

@@ -27,7 +27,7 @@ A method that is "an IDM vType with parameters theta" is ``Drive(theta=...)``
 
 Who is driven (``deploy.population``): on a section every vehicle that is not instrumented,
 or, with ``instrumented.hidden = "snapshot"``, every vehicle (nobody is instrumented for
-good; the ring's population, its whole fleet); ``deploy.share`` and ``deploy.vtype``
+good: the paper's ring, its whole fleet); ``deploy.share`` and ``deploy.vtype``
 narrow it. The calibration of ``idm_detectors`` drives the same population.
 
 Outputs: ``out/<method>/`` per method (``deploy.run.write_method``: the ground truth's
@@ -53,7 +53,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from macromicro_sumo.data.ring import load_ground_truth, split_runs
+from macromicro_sumo.data.section import split_runs
 from macromicro_sumo.deploy.calibrate import Calibration, calibration_record, fit_to_detectors
 from macromicro_sumo.deploy.compare import compare_folders
 from macromicro_sumo.deploy.population import ActionBatch, population_label, population_scenario
@@ -68,7 +68,6 @@ from macromicro_sumo.deploy.run import (
 from macromicro_sumo.env.driver_speed import DriverSpeeds
 from macromicro_sumo.env.section_bank import typical_length
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.evaluation import ring as ring_eval
 from macromicro_sumo.evaluation import section as section_eval
 from macromicro_sumo.evaluation.idm_fit import (
     GippsParams,
@@ -231,17 +230,10 @@ def fit_idm(ctx: DeployContext) -> tuple[IdmParams, float]:
     """The IDM least-squares-fitted to the observed vehicles of the train and val runs, as
     the evaluation fits it; (parameters, RMSE of the fit [m/s^2])."""
     sc = ctx.sc
-    if ctx.is_section:
-        truth = load_section_truth(ctx.truth_dir, sc)
-        splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
-        obs, acc = section_eval.micro_pairs(
-            sc, truth, np.concatenate([splits["train"], splits["val"]])
-        )
-        return calibrate_idm(obs, acc, typical_length(truth))
-    gt = load_ground_truth(ctx.truth_dir, sc)
-    splits = split_runs(gt.runs, sc.generator.held_out_fraction, sc.seed)
-    obs, acc = ring_eval.micro_pairs(sc, gt, np.concatenate([splits["train"], splits["val"]]))
-    return calibrate_idm(obs, acc, sc.fleet.length_m, sc.fleet.delta)
+    truth = load_section_truth(ctx.truth_dir, sc)
+    splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
+    obs, acc = section_eval.micro_pairs(sc, truth, np.concatenate([splits["train"], splits["val"]]))
+    return calibrate_idm(obs, acc, typical_length(truth))
 
 
 def policy_paths(policy_dir: Path | None, methods: list[str]) -> dict[str, Path]:
@@ -266,8 +258,8 @@ def policy_paths(policy_dir: Path | None, methods: list[str]) -> dict[str, Path]
 
 
 def fixed_idm(ctx: DeployContext) -> dict[str, float]:
-    """IDM parameters a detector fit holds: the ring fleet's delta (SUMO's 4 on sections)."""
-    return {} if ctx.is_section else {"delta": float(ctx.sc.fleet.delta)}
+    """IDM parameters a detector fit holds: none (delta is SUMO's 4)."""
+    return {}
 
 
 def method_drive(

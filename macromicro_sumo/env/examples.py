@@ -30,10 +30,10 @@ from typing import TextIO
 import torch
 
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.generator.ring_train import run_train_generator
+from macromicro_sumo.generator.section_train import run_train_section_generator
 from macromicro_sumo.scenario.load import load_scenario
-from macromicro_sumo.scenario.ring import Scenario
-from macromicro_sumo.truth.ring import simulate
+from macromicro_sumo.scenario.section import SectionScenario
+from macromicro_sumo.truth.section import simulate_section
 
 try:  # POSIX: one process builds the demo while the others wait (vector envs' workers)
     import fcntl
@@ -50,7 +50,7 @@ DEMO_OVERRIDES = {
     "simulation.duration_s": 180.0,
     "generator.epochs": 200,
 }
-DEMO_FORMAT = 1  # bump when what the demo folder holds changes
+DEMO_FORMAT = 2  # bump when what the demo folder holds changes (2: the section stages)
 _DONE = "demo_complete"  # written last: a folder without it is rebuilt
 
 
@@ -103,7 +103,7 @@ def cache_root() -> Path:
 class Demo:
     """A built demo: the scenario (with ``DEMO_OVERRIDES``), its ground truth and generator."""
 
-    scenario: Scenario
+    scenario: SectionScenario
     data: Path
     generator: Path
     folder: Path
@@ -157,8 +157,8 @@ def demo(stream: TextIO | None = None) -> Demo:
         shutil.rmtree(folder, ignore_errors=True)  # an unfinished build's leftovers
         threads = torch.get_num_threads()  # the generator stage sets one thread
         try:
-            simulate(sc, built.data, command="macromicro demo", progress=False)
-            run_train_generator(
+            simulate_section(sc, built.data, command="macromicro demo", progress=False)
+            run_train_section_generator(
                 sc, built.data, built.generator.parent, "macromicro demo", progress=False
             )
         finally:

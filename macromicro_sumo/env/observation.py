@@ -63,3 +63,16 @@ def bank_shift_scale(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return np.zeros(obs.shape[1]), np.ones(obs.shape[1])
     shift, scale = obs.mean(axis=0), obs.std(axis=0)
     return shift, np.where(scale > 1e-6, scale, 1.0)
+
+
+@dataclass
+class StepResult:
+    """What one step of an env core (``env.section.SectionCore``) returns."""
+
+    obs: np.ndarray  # (N, d) every slot's observation
+    r_macro: float
+    terms: dict[str, float]
+    collision: bool
+    truncated: bool
+    error: str
+    active: np.ndarray  # (N,) bool: slots on the road after this step

@@ -1,7 +1,7 @@
 """Stage II on a road section of the user's network: hidden vehicles driven by the shared policy.
 
 ``SectionCore`` owns one SUMO run of the user's network WITHOUT the user's demand (the net
-plus our vehicle types) and is reused for every episode. The ring's ``RingCore`` is the
+plus our vehicle types) and is reused for every episode. The paper's ring is the
 special case of one lane, a closed loop and a fixed fleet; here vehicles enter lanes of
 different widths of road, change lanes and leave the section, and the number of vehicles
 varies per episode (arrays are padded to N slots; ``valid`` and ``active`` say which count).
@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from macromicro_sumo.env.ring import StepResult
+from macromicro_sumo.env.observation import StepResult
 from macromicro_sumo.env.section_bank import (
     SectionBank,
     section_macro_reward,

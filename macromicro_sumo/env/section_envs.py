@@ -1,9 +1,10 @@
-"""The public environments over a section of a user's network: ``SectionHiddenEnv``
-(gymnasium, one hidden vehicle; the others apply ``others``) and
+"""The public environments over a section of a network (the paper's ring among them):
+``SectionHiddenEnv`` (gymnasium, one hidden vehicle; the others apply ``others``) and
 ``SectionHiddenParallelEnv`` (PettingZoo, every hidden vehicle, one shared policy), both
 wrapping ``env.SectionCore``; ``make_section_hidden_env`` is ``gymnasium.make``'s entry
-point for ``macromicro/SectionHidden-v0``. Spaces, rewards and arguments:
-``env/wrappers.py``'s docstring ("Sections").
+point for ``macromicro/SectionHidden-v0`` and ``macromicro/RingHidden-v0``. With no
+``scenario`` and ``data`` they run the demo (``env.examples.demo``). Spaces, rewards and
+arguments: ``env/wrappers.py``'s docstring.
 """
 
 from __future__ import annotations
@@ -18,8 +19,8 @@ from gymnasium import spaces
 from gymnasium.wrappers import TimeLimit
 from pettingzoo import ParallelEnv
 
-from macromicro_sumo.data.ring import split_runs
-from macromicro_sumo.data.section import SectionSnapshots, section_snapshots
+from macromicro_sumo.data.section import SectionSnapshots, section_snapshots, split_runs
+from macromicro_sumo.env.examples import demo
 from macromicro_sumo.env.observation import bank_shift_scale
 from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import (
@@ -30,7 +31,6 @@ from macromicro_sumo.env.section_bank import (
     typical_vclass,
 )
 from macromicro_sumo.env.wrappers import (
-    ENV_ID,
     SECTION_ENV_ID,
     Scaling,
     check_action,
@@ -45,7 +45,6 @@ from macromicro_sumo.generator.section_sampler import (
 from macromicro_sumo.generator.section_train import load_section_generator
 from macromicro_sumo.road.section import NO_LEADER_GAP_M
 from macromicro_sumo.scenario.load import load_scenario
-from macromicro_sumo.scenario.ring import Scenario
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.inputs import scenario_inputs
 from macromicro_sumo.truth.section import SectionTruth, load_section_truth
@@ -69,19 +68,23 @@ def true_section_completion(snaps: SectionSnapshots):
 
 
 def make_section_bank(
-    scenario: str | Path | SectionScenario,
-    data: str | Path,
+    scenario: str | Path | SectionScenario | None,
+    data: str | Path | None,
     generator: str | Path | None,
     split: str = "train",
     seed: int = 0,
 ) -> tuple[SectionScenario, SectionTruth, SectionBank]:
     """Episodes of a section's ``split`` runs that have a hidden vehicle, completed by the
-    generator (``None``: the true hidden vehicles)."""
-    sc = scenario if isinstance(scenario, Scenario | SectionScenario) else load_scenario(scenario)
-    if not isinstance(sc, SectionScenario):
-        raise UserError(
-            f"{sc.source}: a ring scenario; its envs are {ENV_ID} and RingHiddenParallelEnv"
-        )
+    generator (``None``: the true hidden vehicles). ``scenario=None`` (and no ``data`` or
+    ``generator``): the demo (``env.examples.demo``, built into the cache on first use)."""
+    if scenario is None:
+        if data is not None or generator is not None:
+            raise UserError("data and generator go with a scenario; pass scenario= too")
+        built = demo()
+        scenario, data, generator = built.scenario, built.data, built.generator
+    elif data is None:
+        raise UserError("a scenario needs its ground truth: pass data= (from macromicro simulate)")
+    sc = scenario if isinstance(scenario, SectionScenario) else load_scenario(scenario)
     truth = load_section_truth(data, sc)
     runs = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)[split]
     snaps = section_snapshots(truth, sc, runs)
@@ -125,8 +128,8 @@ class SectionHiddenEnv(gym.Env):
 
     def __init__(
         self,
-        scenario: str | Path | SectionScenario,
-        data: str | Path,
+        scenario: str | Path | SectionScenario | None = None,
+        data: str | Path | None = None,
         generator: str | Path | None = None,
         split: str = "train",
         seed: int = 0,
@@ -189,8 +192,8 @@ class SectionHiddenParallelEnv(ParallelEnv):
 
     def __init__(
         self,
-        scenario: str | Path | SectionScenario,
-        data: str | Path,
+        scenario: str | Path | SectionScenario | None = None,
+        data: str | Path | None = None,
         generator: str | Path | None = None,
         split: str = "train",
         seed: int = 0,

@@ -1,10 +1,9 @@
 """Public environments: gymnasium (one hidden vehicle) and PettingZoo (K hidden vehicles,
-one shared policy), over the SUMO ring (``RingHiddenEnv``, ``RingHiddenParallelEnv``: wrap
-``env.RingCore``) and over a section of a user's network (``SectionHiddenEnv``,
-``SectionHiddenParallelEnv``: wrap ``env.SectionCore``; differences under "Sections" below).
-Registered with gymnasium as ``macromicro/RingHidden-v0`` and ``macromicro/SectionHidden-v0``
-when this module is imported. The ring's envs are ``env/ring_envs.py``'s, the section's
-``env/section_envs.py``'s; this module holds what they share and registers them.
+one shared policy) over a section of a network, the paper's ring among them
+(``SectionHiddenEnv``, ``SectionHiddenParallelEnv`` in ``env/section_envs.py``: wrap
+``env.SectionCore``). Registered with gymnasium as ``macromicro/SectionHidden-v0`` and, the
+same env, ``macromicro/RingHidden-v0`` when this module is imported; this module holds what
+the envs share and registers them.
 
 ## Action Space
 Per hidden vehicle: ``Box(a_min, a_max, (1,), float32)``, the longitudinal acceleration
@@ -19,8 +18,8 @@ Per hidden vehicle: ``Box(4,)`` = [v (m/s), v_limit at its position (m/s), spaci
 vehicle ahead, front to front (m), v - v_leader (m/s)], from arc positions (the paper's
 observation). With ``policy.observation = "lookahead"``: ``Box(6,)``, adding the next
 edge's speed limit (m/s) and the distance to it (m). With ``normalize=True`` each feature
-is (value - shift) / scale with the fixed per-feature table of ``env.observation.FEATURES``
-(the one the ring's PPO agent uses), and the bounds move with it.
+is (value - shift) / scale with the mean and std of the bank's initial observations (the
+PPO agent's), and the bounds move with it.
 
 ## Rewards
 r_macro,t = 1 / (1 + lambda_v L_speed,t + lambda_d L_dist,t) on the whole scene
@@ -29,10 +28,7 @@ it by eta). The micro term is not a reward:
 ``info["observed_obs"]`` (M, 4) and ``info["observed_action_mps2"]`` (M,) carry each observed
 vehicle's observation in the simulated scene and its recorded action at this step, for the
 likelihood term. ``info`` also has ``collision``, ``error`` (a SUMO failure, if any), the
-named terms of ``data.objective``: ``L_speed, L_mean, L_min, L_max, L_var``, and on the ring
-``safety_capped``: how many hidden vehicles' commands the safety layer capped this step
-(``policy.safety = "sumo"``, the default: each command at the Krauss safe speed behind its
-leader, ``env.ring.safety_cap``; ``"none"``: applied as asked, always 0).
+named terms of ``data.objective``.
 
 ## Starting State
 A snapshot of a ground-truth run (the ``split``'s runs) with K hidden vehicles, completed
@@ -50,21 +46,21 @@ H steps, so ``env.spec.max_episode_steps`` is the scenario's H.
 ``None`` to start from the true hidden states), ``split`` ("train", "val", "held_out"),
 ``hidden`` (K, or a (low, high) range; gymnasium: 1), ``seed``, ``normalize`` (False:
 SI units; True: actions in [-1, 1] and normalised observations, for off-the-shelf RL
-libraries such as Stable-Baselines3), ``render_mode`` (None only). The ring envs with no
-``scenario``, ``data`` and ``generator`` run the demo: the shipped ``ring_paper`` scenario
-with 20 runs, whose ground truth and generator are built once (about 10 s, seeded) into a
-per-user cache folder (``env.examples``; said on stderr), so that
-``gymnasium.make("macromicro/RingHidden-v0")`` works as is.
+libraries such as Stable-Baselines3), ``render_mode`` (None only). With no ``scenario``,
+``data`` and ``generator`` the envs run the demo: the shipped ``ring_paper`` scenario with
+20 runs, whose ground truth and generator are built once (seeded) into a per-user cache
+folder (``env.examples``; said on stderr), so that ``gymnasium.make("macromicro/RingHidden-v0")``
+works as is.
 
 ## Sections
-The scenario is a section of a user's network (``[network] kind = "sumo"``), the ground
+The scenario is a section of a network (a ring file is its closed one-lane section), the ground
 truth ``macromicro simulate``'s, the generator ``train-generator``'s (``None``: the true
 hidden vehicles). Each episode has its own hidden count K (``generator.k_source``);
 episodes without a hidden vehicle are left out. Vehicles change lanes (SUMO's model) and
 leave an open section. Observations as ``env.SectionCore``'s (spacing ``NO_LEADER_GAP_M``
 = 250 m and delta_v 0 with no leader ahead on the lane; zeros once off the section); with
 ``normalize=True`` the shift and scale are the mean and std of the bank's initial
-observations (another road than the ring's), the section PPO agent's. PettingZoo: agents
+observations, the PPO agent's. PettingZoo: agents
 ``hidden_0 .. hidden_{K-1}``; an agent whose vehicle leaves the section is terminated and
 drops out. Gymnasium: the agent drives one hidden vehicle drawn at each reset; the others
 apply ``others`` (a constant acceleration [m/s^2], default 0, or a function of their raw
@@ -91,7 +87,6 @@ import numpy as np
 from gymnasium import spaces
 
 from macromicro_sumo.env.observation import feature_names, shift_scale
-from macromicro_sumo.env.ring import RingCore
 from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.errors import UserError
 
@@ -208,7 +203,7 @@ def check_action(agent: str, action: Any) -> float:
     return float(a.reshape(-1)[0])
 
 
-def step_info(core: RingCore | SectionCore, res=None) -> dict[str, Any]:
+def step_info(core: SectionCore, res=None) -> dict[str, Any]:
     """The observed vehicles on the road now, their observations and recorded actions (NaN
     where unknown), and the step's outcome and named reward terms."""
     obs = core.observations()
@@ -220,18 +215,17 @@ def step_info(core: RingCore | SectionCore, res=None) -> dict[str, Any]:
         "collision": bool(res.collision) if res else False,
         "error": res.error if res else "",
     }
-    if isinstance(core, RingCore):
-        info["safety_capped"] = int(core.step_capped.sum()) if res else 0
     if res is not None:
         info.update(res.terms)
     return info
 
 
 def register() -> None:
-    """Register the gymnasium envs (idempotent): ``gymnasium.make(ENV_ID, scenario=...,
-    data=..., generator=...)``, and ``SECTION_ENV_ID`` for a section scenario."""
+    """Register the gymnasium envs (idempotent): ``gymnasium.make(SECTION_ENV_ID,
+    scenario=..., data=..., generator=...)``; ``ENV_ID``, the name the ring wing's env had
+    until stop 25, is the same env (its demo with no arguments)."""
     for env_id, entry in (
-        (ENV_ID, "macromicro_sumo.env.ring_envs:make_ring_hidden_env"),
+        (ENV_ID, "macromicro_sumo.env.section_envs:make_section_hidden_env"),
         (SECTION_ENV_ID, "macromicro_sumo.env.section_envs:make_section_hidden_env"),
     ):
         if env_id not in gym.registry:

@@ -1,6 +1,6 @@
 """``idm_true`` on a section: each hidden vehicle driven by its own ground-truth IDM
 parameters, an oracle bound (what no calibration of one shared model can beat by knowing
-more about the drivers), as the ring's ``evaluation.ring.true_idm_params``.
+more about the drivers).
 
 It needs a truth that knows every vehicle's parameters: a ``[fleet]`` demand, whose draws
 ``vehicles.csv`` records per run and vehicle (``truth.fleet``; every vehicle IDM). Route

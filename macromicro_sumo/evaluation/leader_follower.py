@@ -1,31 +1,22 @@
-"""Leader-follower tests of a car-following policy (the paper's Fig. 3), run in SUMO.
+"""Leader-follower tests of a car-following policy (the paper's Fig. 3): the road-free part.
 
-Two vehicles on the scenario's ring under one uniform speed limit: the leader replays a
-prescribed speed profile (``accelerate``: 11 -> 13 m/s, ``decelerate``: 13 -> 11 m/s, a
-smooth ramp between two holds), the follower starts 126 m (front to front) behind it at
-the same speed and is driven by a *follower function* ``fn(obs, rng) -> accel [m/s^2]``
-of its observation o = [v, v_limit, spacing, v - v_leader]. The ground-truth follower is
-IDM with given parameters (deterministic); learned policies sample their Gaussian.
-
-Both run through ``env.RingCore`` exactly as in training: speed mode 0,
-v' = max(0, v + a dt) with a clipped to the scenario's action bounds [a_min, a_max], so the
-IDM follower has the same actuator limits as the policy; without the hidden vehicles'
-safety layer (``policy.safety``, ``env.ring.safety_cap``): the tests measure how the
-follower itself follows, and a collision here is its own. With a ring of 628 m the leader
-(the follower's leader) is 500 m ahead of the follower's back: it never reacts to it.
+Two vehicles under one uniform speed limit: the leader replays a prescribed speed profile
+(``accelerate``: 11 -> 13 m/s, ``decelerate``: 13 -> 11 m/s, a smooth ramp between two
+holds), the follower starts 126 m (front to front) behind it at the same speed and is driven
+by a *follower function* ``fn(obs, rng) -> accel [m/s^2]`` of its observation
+o = [v, v_limit, spacing, v - v_leader]. The ground-truth follower is IDM with given
+parameters (deterministic); learned policies sample their Gaussian.
 
 Those figures are the paper's ring's (R = 100 m, N = 5, limits up to 14 m/s): 126 m is its
-mean spacing L / N and 11-13 m/s lie below its limit. ``run_leader_follower`` moves the
-test to the scenario's ring (``LeaderProfile.on_ring``): speeds scaled by the upper speed
-limit over 14 m/s, the start spacing by L / N over the paper's 125.7 m; the paper's ring
-keeps them exactly. Unscaled, a 230 m ring with 22 vehicles and limits up to 10 m/s put
-the follower at a spacing its fleet never drives, behind a leader faster than its desired
-speed, 104 m ahead of it round the ring: the leader came round and ran into it.
+mean spacing L / N and 11-13 m/s lie below its limit. ``LeaderProfile.moved`` moves the
+test to another road: speeds scaled by its limit over 14 m/s, the start spacing by its mean
+spacing over the paper's 125.7 m; the paper's ring keeps them exactly. Unscaled, a 230 m
+ring with 22 vehicles and limits up to 10 m/s put the follower at a spacing its fleet never
+drives, behind a leader faster than its desired speed: the leader came round and ran into it.
 
 The trials themselves (``run_tests``: every follower, the IDM reference, the traces and
-the summary) take any core with ``reset`` / ``step``: the ring's ``RingCore`` here, the
-section's ``SectionCore`` in ``leader_follower_section`` (open and closed sections of the
-user's network, the same CSVs).
+the summary) take any core with ``reset`` / ``step``: the section's ``SectionCore`` in
+``leader_follower_section`` (open and closed sections, the paper's ring among them).
 """
 
 from __future__ import annotations
@@ -38,11 +29,10 @@ from typing import Protocol
 import numpy as np
 import pandas as pd
 
-from macromicro_sumo.env.ring import EpisodeBank, RingCore, StepResult
+from macromicro_sumo.env.observation import StepResult
 from macromicro_sumo.env.section_bank import SectionBank
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.physics import idm_accel
-from macromicro_sumo.scenario.ring import Scenario
 
 SCENARIOS = ("accelerate", "decelerate")
 IDM_METHOD = "IDM"
@@ -61,8 +51,8 @@ Follower = Callable[[np.ndarray, np.random.Generator], float]
 class LeaderProfile:
     """The leader's prescribed speed profile and the start of a leader-follower test.
 
-    Speeds, ramp and spacing are stated for the paper's ring; ``run_leader_follower`` runs
-    ``on_ring(sc)`` of them (the same values on the paper's ring).
+    Speeds, ramp and spacing are stated for the paper's ring; a test on another road runs
+    ``moved(...)`` of them (the same values on the paper's ring).
     """
 
     low_speed_mps: float = 11.0
@@ -77,13 +67,6 @@ class LeaderProfile:
     """Length of a test [s]; a multiple of the scenario's step length."""
     spacing_m: float = 126.0
     """Initial front-to-front distance from the follower to the leader [m]."""
-
-    def on_ring(self, sc: Scenario) -> LeaderProfile:
-        """This test moved from the paper's ring to the scenario's: the speeds and the ramp
-        scaled by the scenario's upper speed limit over 14 m/s (the ramp keeps its length in
-        time), the start spacing by the mean spacing L / N over 125.7 m. Times stay. On the
-        paper's ring both factors are exactly 1."""
-        return self.moved(sc.speed_limits.range_mps[1], sc.network.length_m / sc.fleet.n_vehicles)
 
     def moved(self, speed_limit_mps: float, mean_spacing_m: float) -> LeaderProfile:
         """This test on a road of limit ``speed_limit_mps`` whose traffic keeps a mean
@@ -126,51 +109,10 @@ def leader_speeds(scenario: str, profile: LeaderProfile, dt_s: float) -> np.ndar
     return profile.high_speed_mps - ramp
 
 
-def leader_follower_bank(
-    sc: Scenario, profile: LeaderProfile, speed_limit_mps: float
-) -> EpisodeBank:
-    """Two-vehicle episodes, one per scenario in ``SCENARIOS`` order: follower 0 (hidden),
-    leader 1 (replays its profile), ``profile.spacing_m`` apart at the leader's start speed."""
-    dt = sc.simulation.step_length_s
-    lead = np.stack([leader_speeds(s, profile, dt) for s in SCENARIOS])  # (E, H + 1)
-    e, h1 = lead.shape
-    if not sc.fleet.length_m < profile.spacing_m < sc.network.length_m - sc.fleet.length_m:
-        raise UserError(
-            f"leader-follower spacing_m = {profile.spacing_m:g} does not fit two "
-            f"{sc.fleet.length_m:g} m vehicles on the {sc.network.length_m:.2f} m ring"
-        )
-    replay = np.zeros((e, h1, 2))
-    replay[:, :, LEADER] = lead
-    arc0 = np.tile([0.0, profile.spacing_m], (e, 1))
-    hidden = np.zeros((e, 2), dtype=bool)
-    hidden[:, FOLLOWER] = True
-    # Psi only enters the macro reward, which these tests ignore; any valid one will do.
-    psi = np.array(
-        [
-            float(np.mean(sc.bounds.speed_mps)),
-            sc.network.length_m / sc.fleet.n_vehicles,
-            *sc.bounds.spacing_m,
-            *sc.bounds.speed_mps,
-        ]
-    )
-    return EpisodeBank(
-        arc0_m=arc0,
-        speed0_mps=np.repeat(lead[:, :1], 2, axis=1),
-        hidden=hidden,
-        psi=np.tile(psi, (e, 1)),
-        limits_mps=np.full((e, sc.network.n_edges), float(speed_limit_mps)),
-        replay_speed_mps=replay,
-        gt_accel_mps2=np.zeros((e, h1 - 1, 2)),
-        true_arc0_m=arc0.copy(),
-        run=np.zeros(e, dtype=np.int64),
-        time_s=np.zeros(e),
-    )
-
-
 # --------------------------------------------------------------------------- followers
 
 
-def mean_idm_params(sc: Scenario) -> dict[str, float]:
+def mean_idm_params(sc) -> dict[str, float]:
     """IDM parameters at the middle of the scenario's fleet ranges (the 'average driver')."""
     f = sc.fleet
     mid = {k: float(np.mean(getattr(f, k))) for k in IDM_KEYS if k != "delta"}
@@ -239,11 +181,11 @@ class Trace:
 
 
 class Core(Protocol):
-    """What the trials need of an env core (``RingCore``, ``SectionCore``)."""
+    """What the trials need of an env core (``SectionCore``)."""
 
     dt: float
-    leader: np.ndarray  # leader slot of every vehicle (the ring's and the section's)
-    bank: EpisodeBank | SectionBank
+    leader: np.ndarray  # leader slot of every vehicle
+    bank: SectionBank
 
     def reset(self, episode: int) -> np.ndarray: ...
     def step(self, accel_hidden: np.ndarray) -> StepResult: ...
@@ -262,7 +204,7 @@ def run_trial(
 
     ``leader_speed_mps`` (H + 1,): the leader is a hidden vehicle too (the section's core,
     where a replayed vehicle follows its recorded positions) and is commanded the profile's
-    next speed every step; None: the bank replays it (the ring). ``after_reset(core)`` runs
+    next speed every step; None: the bank replays it. ``after_reset(core)`` runs
     after each reset (the section's: no lane changes).
     """
     obs = core.reset(episode)
@@ -383,32 +325,6 @@ def run_tests(
                 }
             )
     return pd.concat(frames, ignore_index=True), pd.DataFrame(summary)
-
-
-def run_leader_follower(
-    sc: Scenario,
-    followers: Mapping[str, Follower],
-    idm_params: Mapping[str, float],
-    n_trials: int,
-    seed: int,
-    profile: LeaderProfile = LeaderProfile(),
-    speed_limit_mps: float | None = None,
-) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Both scenarios on the ring: ``run_tests`` with IDM of ``idm_params`` as reference.
-
-    ``profile`` is stated for the paper's ring and runs as ``profile.on_ring(sc)``.
-    ``speed_limit_mps`` is the uniform limit (default: the scenario's upper limit bound).
-    """
-    check_followers(followers, n_trials)
-    limit = sc.speed_limits.range_mps[1] if speed_limit_mps is None else speed_limit_mps
-    bank = leader_follower_bank(sc, profile.on_ring(sc), limit)
-    idm = idm_follower(idm_params, sc.fleet.length_m)
-    # One SUMO run per process, reused for every trial; the follower as it drives itself.
-    core = RingCore(sc, bank, seed=seed, safety="none")
-    try:
-        return run_tests(core, followers, idm, n_trials, seed, sc.fleet.length_m)
-    finally:
-        core.close()
 
 
 def method_summary(summary: pd.DataFrame) -> pd.DataFrame:

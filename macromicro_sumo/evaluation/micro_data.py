@@ -2,16 +2,22 @@
 
 One definition for every stage that fits or judges a driver on them: the evaluation's
 ``idm_calibrated`` and micro consistency, the policy's prior, the leader-follower tests'
-reference IDM and the deployment's calibrated IDM.
+reference IDM and the deployment's calibrated IDM; and the IDM as a method on them.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
+import pandas as pd
+import torch
 
 from macromicro_sumo.data.section import SectionTruth, run_section
+from macromicro_sumo.env.rollout import ActionFn
 from macromicro_sumo.env.section_bank import recordable, section_observations
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.evaluation.idm_fit import IdmParams, idm_policy_accel
 from macromicro_sumo.fielddata.leaders import has_measured_leaders, with_measured_leaders
 
 
@@ -64,3 +70,45 @@ def micro_pairs(
         idx = np.linspace(0, len(acc) - 1, max_pairs).astype(np.int64)
         obs, acc = obs[idx], acc[idx]
     return obs, acc
+
+
+def idm_action(params: Callable[[object], IdmParams], veh_length_m: float) -> ActionFn:
+    """An IDM driving the core's hidden vehicles, its parameters ``params(core)``."""
+
+    def act(core, obs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        return idm_policy_accel(obs[core.hidden], params(core), veh_length_m)
+
+    return act
+
+
+def micro_consistency(
+    agents: dict,
+    idms: dict[str, IdmParams],
+    obs: np.ndarray,
+    accel: np.ndarray,
+    sc,
+    veh_length_m: float,
+) -> pd.DataFrame:
+    """Held-out observed actions: NLL under each learned policy, action RMSE for every method;
+    ``veh_length_m``: the leader length IDM subtracts."""
+    a_min, a_max = sc.bounds.accel_mps2
+    u = np.clip(accel, a_min, a_max)
+    rows = []
+    o = torch.as_tensor(obs, dtype=torch.float32)
+    for name, agent in agents.items():
+        with torch.no_grad():
+            d = agent.dist(o)
+            nll = float(-d.log_prob(torch.as_tensor(u, dtype=torch.float32)).mean())
+            rmse = float(np.sqrt(np.mean((np.clip(d.mean.numpy(), a_min, a_max) - u) ** 2)))
+        rows.append({"method": name, "nll": nll, "action_rmse_mps2": rmse, "n_pairs": len(u)})
+    for name, p in idms.items():
+        pred = np.clip(idm_policy_accel(obs, p, veh_length_m), a_min, a_max)
+        rows.append(
+            {
+                "method": name,
+                "nll": np.nan,
+                "action_rmse_mps2": float(np.sqrt(np.mean((pred - u) ** 2))),
+                "n_pairs": len(u),
+            }
+        )
+    return pd.DataFrame(rows)

@@ -48,7 +48,6 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from macromicro_sumo.data.ring import split_runs
 from macromicro_sumo.data.section import (
     PSI_FIELDS,
     SectionSnapshots,
@@ -58,6 +57,7 @@ from macromicro_sumo.data.section import (
     recorded_snapshots,
     section_snapshots,
     snapshots_by_k,
+    split_runs,
 )
 from macromicro_sumo.env.driver_speed import drivers_bank
 from macromicro_sumo.env.rollout import ActionFn, Rollouts, rollout
@@ -79,8 +79,7 @@ from macromicro_sumo.evaluation.idm_true import (
 )
 from macromicro_sumo.evaluation.leader_follower_section import section_leader_follower_tests
 from macromicro_sumo.evaluation.methods import method_order
-from macromicro_sumo.evaluation.micro_data import micro_pairs
-from macromicro_sumo.evaluation.ring import idm_action, micro_consistency
+from macromicro_sumo.evaluation.micro_data import idm_action, micro_consistency, micro_pairs
 from macromicro_sumo.evaluation.statistics import macro_row, paired_bootstrap_ci, samples_frame
 from macromicro_sumo.files import (
     prepare_out_dir,

@@ -5,7 +5,7 @@ and where the next vehicle may go so that the touched gaps can still end within 
 Why: without an upper bound the completions' spacing spread had a long right tail (the
 paper's ring as a section, K = 2..4: mean scene variance 1.09-1.16 x psi's where the
 truth's is 0.97 x; spacing std +3.5 / +5.5 / +3.8% against the truth). The ring has
-psi's [d_min, d_max] from the passages and its exact look-ahead (``ring_posterior``).
+psi's [d_min, d_max] from the passages and its exact look-ahead (the ring wing, removed in stop 25).
 
 As on the ring the bounds act at inference only, by rejection (Algorithm 3,
 ``complete_section``): the proposal places between s_min and the gap's end in training and

@@ -40,7 +40,7 @@ from torch import nn
 
 from macromicro_sumo.data.objective import MacroTarget, macro_terms
 from macromicro_sumo.data.section import SectionSnapshots
-from macromicro_sumo.generator.ring_posterior import spacing_posterior
+from macromicro_sumo.generator.posterior import spacing_posterior
 from macromicro_sumo.generator.section_bounds import touched_gaps
 from macromicro_sumo.generator.section_scene import (
     Gaps,
@@ -285,7 +285,7 @@ def propose(
 
 def posterior_log_probs(obs: Observation, psi: Psi) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, G) log-probability that the next vehicle goes into each gap under i.i.d. normal
-    spacings with psi's mean and std (``ring_posterior.spacing_posterior``, the ring's
+    spacings with psi's mean and std (``posterior.spacing_posterior``, the ring's
     ``gap_choice = "posterior"``), and (B,) whether psi has a spacing std to use.
 
     One lane of a closed section is the ring: every gap is a spacing between two vehicles

@@ -21,7 +21,6 @@ import torch
 
 from macromicro_sumo.checkpoints import load_network, save_network
 from macromicro_sumo.data.objective import macro_loss
-from macromicro_sumo.data.ring import split_runs
 from macromicro_sumo.data.section import (
     HIDDEN_STREAM,
     SectionSnapshots,
@@ -32,6 +31,7 @@ from macromicro_sumo.data.section import (
     recorded_snapshots,
     section_snapshots,
     snapshots_by_k,
+    split_runs,
 )
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import (

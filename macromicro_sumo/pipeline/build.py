@@ -1,9 +1,8 @@
-"""The whole pipeline in one call, for every road: ground truth -> generator (-> policy ->
-evaluation -> deployment) -> report.
+"""The whole pipeline in one call: ground truth -> generator (-> policy -> evaluation ->
+deployment) -> report.
 
-``run_pipeline`` takes the road's table of stage functions (``PipelineRoad``: ``RING``, the
-paper's ring; ``SECTION``, a section of a user's network) and builds the same stages for
-both; ``pipeline.stages.run`` picks the table.
+``run_pipeline`` takes the table of stage functions (``PipelineRoad``: ``SECTION``, a section
+of a network, the paper's ring among them) and builds the stages from it.
 
 Each stage writes into its own sub-folder of ``out``. It is skipped when its manifest
 records the scenario's values of every key that it, or a stage it reads from, depends on
@@ -33,22 +32,18 @@ from macromicro_sumo.env.section_bank import typical_length
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.idm_fit import fit_policy_prior
 from macromicro_sumo.evaluation.methods import LEARNED, checkpoint_name
-from macromicro_sumo.evaluation.ring import evaluate
 from macromicro_sumo.evaluation.section import evaluate_section, micro_pairs
 from macromicro_sumo.files import check_outputs, prepare_out_dir, write_json
-from macromicro_sumo.generator.ring_train import run_train_generator
 from macromicro_sumo.generator.section_train import run_train_section_generator
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.pipeline.parallel import can_ship, cpu_s, default_jobs, run_side_by_side
-from macromicro_sumo.pipeline.refinement import refine
 from macromicro_sumo.policy.checkpoint import policy_file
 from macromicro_sumo.policy.stage import PriorFit, run_train_policy
 from macromicro_sumo.report.deploy import make_deploy_plots
 from macromicro_sumo.report.write import write_report
-from macromicro_sumo.truth.ring import simulate
 from macromicro_sumo.truth.section import simulate_section
 
-# The one resume rule of the pipeline, ring or section (``policy.checkpoint.resumable_checkpoint``): a
+# The one resume rule of the pipeline (``policy.checkpoint.resumable_checkpoint``): a
 # stage's checkpoint of this very run is continued, one of another run (any input edited
 # since) is ignored and replaced.
 RESUME = "auto"
@@ -57,16 +52,10 @@ RESUME = "auto"
 # ``train-policy`` (the pipeline trains every objective); [deploy] is read by the deploy
 # stage only (its own ignores: ``DEPLOY_IGNORES``).
 _NOWHERE = ("name", "policy.objective", "deploy")
-_REFINE = (
-    "policy.refine_iterations",
-    "policy.refine_updates",
-    "policy.refine_epochs",
-    "policy.refine_lambda_rec",
-)
 _TRUTH_IGNORES = (*_NOWHERE, "generator", "policy", "evaluation")
 # The deploy stage reads [deploy], the ground truth and the policies, not the evaluation.
-DEPLOY_IGNORES = ("name", "policy.objective", "evaluation", *_REFINE)
-_POLICY_IGNORES = (*_NOWHERE, "evaluation", *_REFINE)
+DEPLOY_IGNORES = ("name", "policy.objective", "evaluation")
+_POLICY_IGNORES = (*_NOWHERE, "evaluation")
 
 
 @dataclass(frozen=True)
@@ -195,7 +184,7 @@ def standard_stages(
             ev / "evaluation_manifest.json",
             partial(_evaluate_job, evaluate, gt, gen / "generator.pt", pol, ev),
             needs=(*upstream, *policies),
-            ignores=(*_NOWHERE, *_REFINE),
+            ignores=_NOWHERE,
         ),
     ]
     if deploy is not None:
@@ -244,8 +233,8 @@ def _deploy_job(sc: Any, command: str, progress: bool, gt: Path, pol: Path, dep:
 
 @dataclass(frozen=True)
 class PipelineRoad:
-    """The stages of a road kind (the ring's IDM fleet, a section's demand), each called as
-    ``(sc, <its folders>, command, progress)``, and what its pipeline does differently."""
+    """The stages of the pipeline, each called as ``(sc, <its folders>, command, progress)``,
+    and what the pipeline does besides."""
 
     simulate: Callable[..., Any]
     train_generator: Callable[..., Any]
@@ -253,7 +242,6 @@ class PipelineRoad:
     fit_prior: PriorFit | None = None  # policy.prior's IDM fit (policy.stage.run_train_policy)
     truth_reads: tuple[str, ...] = ()  # keys of later stages' tables the ground truth reads
     deploys: Callable[[Any], bool] = lambda sc: True  # noqa: E731
-    refine: bool = False  # joint refinement (policy.refine_iterations) is built for it
 
 
 def run_pipeline(
@@ -268,7 +256,6 @@ def run_pipeline(
     (``Stage``), then the report; returns the run manifest. ``jobs``: processes for stages
     that can run side by side (None: ``parallel.default_jobs``; 1: one after the other)."""
     out = prepare_out_dir(out)
-    gt, gen, pol = out / "ground_truth", out / "generator", out / "policy"
     # Module-level functions and partials, so that a worker process can run any stage.
     stages = standard_stages(
         out,
@@ -279,34 +266,6 @@ def run_pipeline(
         truth_reads=road.truth_reads,
         deploy=partial(_deploy_job, sc, command, progress) if road.deploys(sc) else None,
     )
-    if road.refine and sc.policy.refine_iterations > 0:
-        ref = out / "refined"
-        stages += [
-            Stage(
-                "refine",
-                ref / "refine_manifest.json",
-                lambda: refine(
-                    sc, gt, gen / "generator.pt", pol / "policy.pt", ref, command, progress
-                ),
-                needs=("simulate", "train_generator", "train_policy"),
-                ignores=(*_NOWHERE, "evaluation"),
-            ),
-            Stage(
-                "evaluate_refined",
-                ref / "evaluation" / "evaluation_manifest.json",
-                lambda: road.evaluate(
-                    sc,
-                    gt,
-                    ref / "generator.pt",
-                    {"policy": ref / "policy.pt"},
-                    ref / "evaluation",
-                    command,
-                    progress,
-                ),
-                needs=("simulate", "refine"),
-                ignores=_NOWHERE,
-            ),
-        ]
     jobs = default_jobs() if jobs is None else jobs
     manifest = run_stages(sc, stages, out, command, progress, jobs)
     write_report(sc, out, manifest)
@@ -331,7 +290,6 @@ def fit_residual_prior(
     return prior, extra, (obs, acc)
 
 
-RING = PipelineRoad(simulate, run_train_generator, evaluate, refine=True)
 SECTION = PipelineRoad(
     simulate_section,
     run_train_section_generator,

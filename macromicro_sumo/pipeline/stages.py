@@ -1,7 +1,5 @@
-"""Each stage as one function for every scenario: the only place that looks at the kind.
-
-The command line and batch runs call these; the scenario (the paper's ring or a section
-of a user's network) picks the implementation, so no caller branches on it.
+"""Each stage as one function for every scenario (a section of a network, the paper's ring
+among them): what the command line and batch runs call.
 """
 
 from __future__ import annotations
@@ -12,12 +10,10 @@ from pathlib import Path
 from typing import Any
 
 from macromicro_sumo.deploy.stage import deploy as deploy_stage
-from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import writer_session
-from macromicro_sumo.pipeline.build import RING, SECTION, PipelineRoad, run_pipeline
+from macromicro_sumo.pipeline.build import SECTION, run_pipeline
 from macromicro_sumo.policy.stage import run_train_policy
 from macromicro_sumo.report.deploy import make_deploy_plots
-from macromicro_sumo.scenario.section import SectionScenario
 
 
 def _one_writer(stage: Callable[..., Any]) -> Callable[..., Any]:
@@ -31,20 +27,10 @@ def _one_writer(stage: Callable[..., Any]) -> Callable[..., Any]:
     return locked
 
 
-def is_section(sc: object) -> bool:
-    """A scenario on a user's SUMO network (``[network] kind = "sumo"``)."""
-    return isinstance(sc, SectionScenario)
-
-
-def road(sc: object) -> PipelineRoad:
-    """The stage functions of ``sc``'s kind of road (``pipeline.build``)."""
-    return SECTION if is_section(sc) else RING
-
-
 @_one_writer
 def simulate(sc: Any, out: Path | str, command: str = "", progress: bool = True) -> Path:
     """Ground truth: the scenario's demand in SUMO, recorded with detectors."""
-    return road(sc).simulate(sc, out, command, progress)
+    return SECTION.simulate(sc, out, command, progress)
 
 
 @_one_writer
@@ -52,7 +38,7 @@ def train_generator(
     sc: Any, data: Path, out: Path, command: str = "", progress: bool = True
 ) -> dict[str, Any]:
     """Stage I: the hidden-vehicle generator, trained on the ground truth in ``data``."""
-    return road(sc).train_generator(sc, data, out, command, progress)
+    return SECTION.train_generator(sc, data, out, command, progress)
 
 
 @_one_writer
@@ -66,7 +52,7 @@ def train_policy(
     progress: bool = True,
 ) -> dict[str, Any]:
     """Stage II: the shared policy, trained with PPO on micro + eta macro."""
-    fit = road(sc).fit_prior
+    fit = SECTION.fit_prior
     return run_train_policy(sc, data, generator, out, resume, command, progress, fit_prior=fit)
 
 
@@ -79,16 +65,8 @@ def evaluate(
     out: Path,
     command: str = "",
     progress: bool = True,
-    hidden: list[int] | None = None,
 ) -> Any:
-    """Every method on the held-out runs; ``hidden`` picks K on the ring."""
-    if not is_section(sc):
-        return RING.evaluate(sc, data, generator, policies, out, command, progress, hidden)
-    if hidden:
-        raise UserError(
-            "--hidden is for ring scenarios; on a section the hidden count is estimated "
-            "from the detectors (generator.k_source)"
-        )
+    """Every method on the held-out runs."""
     return SECTION.evaluate(sc, data, generator, policies, out, command, progress)
 
 
@@ -109,4 +87,4 @@ def deploy(
 @_one_writer
 def run(sc: Any, out: Path | str, command: str = "", progress: bool = True) -> dict[str, Any]:
     """The whole pipeline, stage by stage; stages whose inputs did not change are reused."""
-    return run_pipeline(sc, road(sc), out, command, progress)
+    return run_pipeline(sc, SECTION, out, command, progress)

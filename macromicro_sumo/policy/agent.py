@@ -30,8 +30,8 @@ from torch import nn
 from torch.nn import functional as F
 
 from macromicro_sumo.env.observation import OBS_SHIFT_SCALE
-from macromicro_sumo.env.ring import RingCore
 from macromicro_sumo.env.rollout import ActionFn
+from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.policy.prior import PRIOR_ACCEL, PRIOR_KEYS, PRIORS
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES
@@ -171,7 +171,7 @@ def _mlp(net: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
 
 
 def policy_action(agent, stochastic: bool = True) -> ActionFn:
-    def act(core: RingCore, obs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    def act(core: SectionCore, obs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         with torch.no_grad():
             d = agent.dist(torch.as_tensor(obs[core.hidden], dtype=torch.float32))
         mean, std = d.mean.numpy(), d.stddev.numpy()

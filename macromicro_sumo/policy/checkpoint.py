@@ -5,7 +5,7 @@ for; one that is corrupt, not a policy checkpoint or trained for another scenari
 one-line UserError, and so is one trained with another ``policy.prior`` (recorded as
 "prior"; the prior's parameters and the residual's bound are in the state_dict).
 ``load_policy`` gives the trained agent; ``resumable_checkpoint`` the
-training state to continue from (the one resume rule of ring and section stages).
+training state to continue from (the one resume rule of every stage).
 """
 
 from __future__ import annotations
@@ -19,26 +19,17 @@ from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import check_beside
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES
-from macromicro_sumo.scenario.ring import Scenario
 from macromicro_sumo.scenario.section import SectionScenario
 
 CHECKPOINT_FORMAT = "macromicro-policy"
 
 
-def signature(sc: Scenario | SectionScenario) -> dict[str, Any]:
+def signature(sc: SectionScenario) -> dict[str, Any]:
     """What a policy checkpoint must agree on with the scenario that loads it."""
-    if isinstance(sc, SectionScenario):
-        return {
-            "network.kind": "sumo",
-            "section.edges": ",".join(sc.section.edges),
-            "section.closed": sc.section.closed,
-            "bounds.accel_mps2": list(sc.bounds.accel_mps2),
-            "simulation.step_length_s": sc.simulation.step_length_s,
-            "policy.observation": ",".join(OBSERVATION_FEATURES[sc.policy.observation]),
-        }
     return {
-        "fleet.n_vehicles": sc.fleet.n_vehicles,
-        "network.radius_m": sc.network.radius_m,
+        "network.kind": "sumo",
+        "section.edges": ",".join(sc.section.edges),
+        "section.closed": sc.section.closed,
         "bounds.accel_mps2": list(sc.bounds.accel_mps2),
         "simulation.step_length_s": sc.simulation.step_length_s,
         "policy.observation": ",".join(OBSERVATION_FEATURES[sc.policy.observation]),
@@ -63,7 +54,7 @@ def read_checkpoint(path: Path) -> dict[str, Any]:
     return payload
 
 
-def load_checkpoint(path: Path, sc: Scenario) -> dict[str, Any]:
+def load_checkpoint(path: Path, sc: SectionScenario) -> dict[str, Any]:
     payload = read_checkpoint(path)
     want = signature(sc)
     for key, have in payload["signature"].items():
@@ -90,7 +81,7 @@ def load_checkpoint(path: Path, sc: Scenario) -> dict[str, Any]:
 
 
 def resumable_checkpoint(
-    path: Path, sc: Scenario, run_key: str, resume: bool | str
+    path: Path, sc: SectionScenario, run_key: str, resume: bool | str
 ) -> dict[str, Any] | None:
     """The checkpoint to continue from, if any.
 
@@ -115,18 +106,17 @@ def resumable_checkpoint(
 
 def policy_file(objective: str, kind: str = "pt") -> str:
     """What a policy stage of ``objective`` names its files: ``policy.pt`` for the paper's
-    objective, ``policy_micro_only.pt`` for an ablation; ``kind`` ``manifest``,
-    ``train_log`` or ``heldout_speed`` for the stage's other files."""
+    objective, ``policy_micro_only.pt`` for an ablation; ``kind`` ``manifest`` or
+    ``train_log`` for the stage's other files."""
     suffix = "" if objective == "mix" else f"_{objective}"
     return {
         "pt": f"policy{suffix}.pt",
         "manifest": f"policy_manifest{suffix}.json",
         "train_log": f"policy_train_log{suffix}.csv",
-        "heldout_speed": f"policy_heldout_speed{suffix}.csv",
     }[kind]
 
 
-def load_policy(path: Path | str, sc: Scenario) -> Agent:
+def load_policy(path: Path | str, sc: SectionScenario) -> Agent:
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: policy checkpoint not found (run `macromicro train-policy`)")

@@ -17,11 +17,11 @@ Read top to bottom as CleanRL's ppo_continuous_action: rollout, GAE, update (the
   why, measured).
 * Ablations (``policy.objective``): ``mix`` (the paper), ``micro_only`` (eta = 0: behaviour
   cloning), ``macro_only`` (no likelihood term). An empty minibatch (few samples) is skipped.
-* The env core is the ring's ``RingCore`` or a section's ``SectionCore`` (``make_core``).
+* The env core is a section's ``SectionCore`` (``make_core``; the paper's ring is one).
   On a section vehicles leave mid-episode and recorded actions can be unknown: steps of an
   inactive vehicle carry no loss (its value target ends there), NaN actions no likelihood.
-  Observations are normalised with fixed ring constants on the ring and with the mean/std
-  of the bank's initial observations on a section (agent buffers, in the checkpoint).
+  Observations are normalised with the mean/std of the bank's initial observations
+  (agent buffers, in the checkpoint).
 """
 
 from __future__ import annotations
@@ -41,7 +41,6 @@ from torch import nn
 from macromicro_sumo.checkpoints import save_torch
 from macromicro_sumo.env.demand import DemandCore
 from macromicro_sumo.env.observation import bank_shift_scale
-from macromicro_sumo.env.ring import EpisodeBank, RingCore
 from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import SectionBank, initial_observations
 from macromicro_sumo.errors import UserError
@@ -56,8 +55,9 @@ from macromicro_sumo.policy.checkpoint import (
 from macromicro_sumo.policy.demand_rollout import collect_demand, demand_log, join_demand
 from macromicro_sumo.policy.residual import anchor_loss, anchor_observations, residual_pairs
 from macromicro_sumo.progress import tqdm
-from macromicro_sumo.scenario.ring import Scenario
 from macromicro_sumo.scenario.section import SectionScenario
+from macromicro_sumo.sumo.inputs import scenario_inputs
+from macromicro_sumo.truth.section import load_section
 
 
 def gae(
@@ -98,11 +98,11 @@ class Rollout:
     r_macro: np.ndarray  # (E, H)
     collisions: int
     sumo_errors: int
-    active: np.ndarray  # (E, H, N) bool: the vehicle was on the road at the step (ring: all)
+    active: np.ndarray  # (E, H, N) bool: the vehicle was on the road at the step
     leader_hidden: np.ndarray  # (E, H, N) bool: the vehicle's leader at the step is hidden
 
 
-Core = RingCore | SectionCore
+Core = SectionCore
 
 
 def collect(
@@ -114,7 +114,6 @@ def collect(
     gen: torch.Generator,
 ) -> Rollout:
     n = core.n
-    section = isinstance(core, SectionCore)
     active = np.ones((len(episodes), horizon, n), dtype=bool)
     e_n = len(episodes)
     leader_hidden = np.zeros((e_n, horizon, n), dtype=bool)
@@ -129,8 +128,7 @@ def collect(
     for i, ep in enumerate(episodes):
         o = core.reset(int(ep))
         for t in range(horizon):
-            if section:
-                active[i, t] = core.active
+            active[i, t] = core.active
             leader_hidden[i, t] = (core.leader >= 0) & hidden[i][np.maximum(core.leader, 0)]
             ot = torch.as_tensor(o, dtype=torch.float32)
             with torch.no_grad():
@@ -147,8 +145,7 @@ def collect(
                 errors += bool(res.error)
                 obs[i, t + 1 :] = o  # the episode ends here: later steps carry no reward
                 leader_hidden[i, t + 1 :] = leader_hidden[i, t]
-                if section:
-                    active[i, t + 1 :] = False
+                active[i, t + 1 :] = False
                 break
     return Rollout(
         obs,
@@ -192,7 +189,7 @@ def micro_mask(ro: Rollout, observed_leader: bool) -> np.ndarray:
 
 
 def validation_pairs(
-    agent: Agent, core: Core, episodes: np.ndarray, horizon: int, sc: Scenario | SectionScenario
+    agent: Agent, core: Core, episodes: np.ndarray, horizon: int, sc: SectionScenario
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Observed (o, u) pairs of validation episodes whose observation is recorded.
 
@@ -221,8 +218,8 @@ def learning_rate(lr: float, schedule: str, update: int, n_updates: int) -> floa
 
 
 def train_policy(
-    sc: Scenario | SectionScenario,
-    bank: EpisodeBank | SectionBank,
+    sc: SectionScenario,
+    bank: SectionBank,
     out: Path,
     objective: str | None = None,
     resume: bool | str = False,
@@ -244,8 +241,8 @@ def train_policy(
     learns from ``policy.demand_episodes_per_update`` of them (``policy.demand_rollout``);
     the likelihood term keeps the snapshot episodes' recorded pairs.
 
-    ``make_core(bank, seed)`` builds the env core (default: the ring's ``RingCore``; a
-    section passes one that builds its ``SectionCore``). With ``policy.checkpoint_selection
+    ``make_core(bank, seed)`` builds the env core (default: a ``SectionCore`` on the
+    scenario's section with SUMO's defaults; ``policy.stage`` passes its own). With ``policy.checkpoint_selection
     = "val_micro_logp"``, the episodes of ``val_runs`` are kept out of training and the
     policy returned and saved is the update's with the best validation micro log-likelihood.
 
@@ -267,7 +264,9 @@ def train_policy(
         raise UserError(f"policy.prior = {cfg.prior!r} needs its fitted parameters (sections only)")
     ckpt_path = out / f"policy_{objective}_checkpoint.pt"
     if make_core is None:
-        make_core = lambda b, seed: RingCore(sc, b, seed=seed)  # noqa: E731
+        # The scenario's own section with SUMO's defaults (the stage passes its own core).
+        section, net_file = load_section(sc)[1], scenario_inputs(sc).net_file
+        make_core = lambda b, seed: SectionCore(sc, section, b, net_file, seed=seed)  # noqa: E731
     core = make_core(bank, sc.seed)
     # Demand episodes only where the policy gradient is used (micro_only has none).
     use_demand = make_demand is not None and cfg.episodes != "snapshots" and eta > 0
@@ -275,9 +274,7 @@ def train_policy(
     t0 = time.perf_counter()
     env_steps = 0
     try:
-        shift_scale = None
-        if isinstance(core, SectionCore):
-            shift_scale = bank_shift_scale(initial_observations(sc, core.section, bank))
+        shift_scale = bank_shift_scale(initial_observations(sc, core.section, bank))
         torch.manual_seed(sc.seed)
         agent = Agent(
             cfg.hidden_size,

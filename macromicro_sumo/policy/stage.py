@@ -1,10 +1,8 @@
 """Stage II as a CLI stage: ``train-policy`` for every scenario, and what it is made of.
 
-``run_train_policy``: episodes from the train + val runs completed by the generator, PPO
-(``policy.ppo``), then the road's held-out check. What differs between the ring (the IDM
-fleet) and a section of a user's network (its demand) is one ``PolicyRoad`` each: how the
-ground truth and the generator are read, the episodes and the env cores PPO runs on them,
-and the held-out check (the ring's fleet mean speed per K).
+``run_train_policy``: episodes from the train + val runs completed by the generator (the
+snapshots' bank, the env cores PPO runs on them, the demand episodes), then PPO
+(``policy.ppo``).
 """
 
 from __future__ import annotations
@@ -16,15 +14,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pandas as pd
 import torch
 
-from macromicro_sumo.data.ring import load_ground_truth, split_runs
-from macromicro_sumo.data.section import section_snapshots
+from macromicro_sumo.data.section import section_snapshots, split_runs
 from macromicro_sumo.env.demand import DemandCore
 from macromicro_sumo.env.driver_speed import drivers_bank, free_speed_ratios, ratio_quantiles
-from macromicro_sumo.env.ring import RingCore, build_bank, generator_completion
-from macromicro_sumo.env.rollout import rollout
 from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import (
     build_section_bank,
@@ -34,19 +28,15 @@ from macromicro_sumo.env.section_bank import (
 from macromicro_sumo.files import (
     file_sha256,
     prepare_out_dir,
-    write_csv,
     write_stage_manifest,
 )
-from macromicro_sumo.generator.ring_train import load_generator
 from macromicro_sumo.generator.section_sampler import (
     generator_completion as section_completion,
 )
 from macromicro_sumo.generator.section_train import load_section_generator
 from macromicro_sumo.manifest import build_manifest
-from macromicro_sumo.policy.agent import policy_action
 from macromicro_sumo.policy.checkpoint import policy_file, resumable_checkpoint
 from macromicro_sumo.policy.ppo import train_policy
-from macromicro_sumo.scenario.ring import Scenario
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.inputs import scenario_inputs
 from macromicro_sumo.truth.section import load_section_truth
@@ -63,10 +53,10 @@ PriorFit = Callable[
 
 @dataclass(frozen=True)
 class Episodes:
-    """What PPO trains on: the episode bank, and the road's env cores (None: the ring's)."""
+    """What PPO trains on: the episode bank, and the env cores over it."""
 
     bank: Any
-    make_core: Callable[[Any, int], Any] | None = None
+    make_core: Callable[[Any, int], Any]
     make_demand: Callable[[], DemandCore] | None = None
     # The observed drivers' desired-speed ratio quantiles (``policy.driver_speed``).
     driver_speed: np.ndarray | None = None
@@ -77,42 +67,6 @@ def policy_run_key(sc, data: Path, generator: Path, objective: str) -> str:
     return hashlib.sha256(
         f"{sc.digest()}|{file_sha256(generator)}|{file_sha256(Path(data) / 'trajectories.csv')}|{objective}".encode()
     ).hexdigest()
-
-
-def training_bank(sc: Scenario, gt, net, splits: dict[str, np.ndarray]):
-    """The ring policy's episodes: train + val runs completed by the generator (scenario seed)."""
-    return build_bank(
-        sc,
-        gt,
-        np.concatenate([splits["train"], splits["val"]]),
-        generator_completion(net, sc, sc.seed),
-        sc.policy.hidden_train,
-        sc.seed,
-    )
-
-
-def heldout_speed(sc: Scenario, gt, net, agent, held: np.ndarray) -> pd.DataFrame:
-    """Per K: the fleet's mean speed on the held-out runs, policy-driven vs recorded."""
-    rows, h = [], sc.policy.horizon
-    for k in range(sc.generator.hidden_eval[0], sc.generator.hidden_eval[1] + 1):
-        bank = build_bank(sc, gt, held, generator_completion(net, sc, sc.seed + k), k, sc.seed + k)
-        core = RingCore(sc, bank, seed=sc.seed)
-        try:
-            ro = rollout(core, policy_action(agent), h, sc.seed + k)
-        finally:
-            core.close()
-        v, v_gt = np.nanmean(ro.speed_mps), bank.replay_speed_mps[:, 1 : h + 1].mean()
-        rows.append(
-            {
-                "K": k,
-                "mean_speed_mps": v,
-                "gt_mean_speed_mps": v_gt,
-                "abs_error_mps": abs(v - v_gt),
-                "collisions": ro.collisions,
-                "episodes": len(bank),
-            }
-        )
-    return pd.DataFrame(rows)
 
 
 def section_episodes(sc: SectionScenario, truth, net, splits: dict[str, np.ndarray]) -> Episodes:
@@ -157,29 +111,8 @@ def section_episodes(sc: SectionScenario, truth, net, splits: dict[str, np.ndarr
     return Episodes(bank, make_core, make_demand, quantiles)
 
 
-@dataclass(frozen=True)
-class PolicyRoad:
-    """What the policy stage does differently on a road kind: read the ground truth and the
-    generator, build the training episodes, and check the policy on the held-out runs
-    (``heldout(sc, truth, net, agent, runs)``, written as ``policy_heldout_speed``)."""
-
-    load_truth: Callable[[Path, Any], Any]
-    load_generator: Callable[[Path, Any], Any]
-    episodes: Callable[[Any, Any, Any, dict[str, np.ndarray]], Episodes]
-    heldout: Callable[[Any, Any, Any, Any, np.ndarray], pd.DataFrame] | None = None
-
-
-RING = PolicyRoad(
-    load_ground_truth,
-    load_generator,
-    lambda sc, gt, net, splits: Episodes(training_bank(sc, gt, net, splits)),
-    heldout_speed,
-)
-SECTION = PolicyRoad(load_section_truth, load_section_generator, section_episodes)
-
-
 def run_train_policy(
-    sc: Scenario | SectionScenario,
+    sc: SectionScenario,
     data: Path,
     generator: Path,
     out: Path,
@@ -189,17 +122,16 @@ def run_train_policy(
     objective: str | None = None,
     fit_prior: PriorFit | None = None,
 ) -> dict[str, Any]:
-    """CLI stage: episodes from train+val runs completed by the generator, PPO, held-out
-    check. ``fit_prior``: the model under a residual policy (``policy.prior``), fitted to the
+    """CLI stage: episodes from train+val runs completed by the generator, then PPO.
+    ``fit_prior``: the model under a residual policy (``policy.prior``), fitted to the
     train + val runs' observed pairs; without it PPO refuses a prior."""
     objective = objective or sc.policy.objective
-    road = SECTION if isinstance(sc, SectionScenario) else RING
-    truth = road.load_truth(data, sc)
-    net = road.load_generator(generator, sc)
+    truth = load_section_truth(data, sc)
+    net = load_section_generator(generator, sc)
     out, run_key, splits = open_policy_stage(
         sc, truth.runs, data, generator, out, objective, resume
     )
-    episodes = road.episodes(sc, truth, net, splits)
+    episodes = section_episodes(sc, truth, net, splits)
     prior, extra, pairs = None, {}, None
     if sc.policy.prior != "none" and fit_prior is not None:
         runs = np.concatenate([splits["train"], splits["val"]])
@@ -219,20 +151,15 @@ def run_train_policy(
         recorded_pairs=pairs,
         driver_speed=episodes.driver_speed,
     )
-    align = None
-    if road.heldout is not None:
-        align = road.heldout(sc, truth, net, res["agent"], splits["held_out"])
-        write_csv(align, out / policy_file(objective, "heldout_speed"))
-    manifest = write_policy_manifest(
+    return write_policy_manifest(
         sc, command, objective, res, data, generator, out, episodes=len(episodes.bank), **extra
     )
-    return {"alignment": align, **manifest} if align is not None else manifest
 
 
 def open_policy_stage(
     sc, runs: np.ndarray, data: Path, generator: Path, out: Path, objective: str, resume: bool | str
 ) -> tuple[Path, str, dict[str, np.ndarray]]:
-    """The head of a policy stage (ring or section): the output folder, the run key, and the
+    """The head of a policy stage: the output folder, the run key, and the
     run split. Checks a checkpoint to resume before anything is overwritten."""
     out = prepare_out_dir(out)
     run_key = policy_run_key(sc, data, generator, objective)
@@ -244,7 +171,7 @@ def open_policy_stage(
 def write_policy_manifest(
     sc, command: str, objective: str, res: dict, data: Path, generator: Path, out: Path, **extra
 ) -> dict[str, Any]:
-    """``policy_manifest[_objective].json`` of a policy stage (ring or section); returned.
+    """``policy_manifest[_objective].json`` of a policy stage; returned.
     Written last: the pipeline takes a stage with its manifest as done."""
     stage = "train-policy" if objective == "mix" else f"train-policy_{objective}"
     manifest = build_manifest(sc, command, stage=stage)
@@ -255,6 +182,6 @@ def write_policy_manifest(
         ground_truth=str(data),
         generator=str(generator),
     )
-    own = [policy_file(objective, kind) for kind in ("pt", "train_log", "heldout_speed")]
+    own = [policy_file(objective, kind) for kind in ("pt", "train_log")]
     write_stage_manifest(manifest, out, policy_file(objective, "manifest"), own)
     return manifest

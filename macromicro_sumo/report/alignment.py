@@ -24,7 +24,7 @@ PAPER_POLICY_SPEED_STD = "0.78-0.80"
 PAPER_POLICY_SPACING_STD = "<= 34.79"
 
 
-# The columns of macro_alignment.csv report.md shows: the ring, its joint refinement, a section.
+# The columns of macro_alignment.csv report.md shows: by hidden count K, and a section's.
 RING_ALIGNMENT = (
     "K",
     "method",
@@ -42,16 +42,6 @@ RING_ALIGNMENT = (
     "w1_speed_mps",
     "w1_accel_mps2",
     "w1_spacing_m",
-)
-REFINED_COLUMNS = (
-    "K",
-    "mean_speed_mps",
-    "std_speed_mps",
-    "std_spacing_m",
-    "mean_speed_err_mps",
-    "w1_speed_mps",
-    "w1_spacing_m",
-    "collisions",
 )
 
 

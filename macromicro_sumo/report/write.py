@@ -1,11 +1,7 @@
-"""report.md and its plots for every road: one writer, and per kind of road (the paper's ring,
-a section of a user's network) a table of what its report shows (``ReportKind``).
+"""report.md and its plots: one writer, and the table of what the report shows
+(``ReportKind``: its plots and its parts, in order).
 
-The parts both kinds show are written once here (the generator's table, the macro
-alignment, micro consistency, the deployment, the plots, the manifest); the parts only one
-kind has (the paper's figures beside ours and the leader-follower tests on the ring; the
-section's lanes, demand and hidden-count estimate) are entries of its table. Every part
-reads the run folder's CSVs and is left out where a stage did not write them.
+Every part reads the run folder's CSVs and is left out where a stage did not write them.
 """
 
 from __future__ import annotations
@@ -20,23 +16,18 @@ from typing import Any
 
 import pandas as pd
 
-from macromicro_sumo.evaluation.leader_follower import LeaderProfile, method_summary
+from macromicro_sumo.evaluation.leader_follower import method_summary
 from macromicro_sumo.evaluation.methods import methods_markdown
 from macromicro_sumo.files import write_text
 from macromicro_sumo.report import plots
 from macromicro_sumo.report.alignment import (
-    PAPER_GT,
-    REFINED_COLUMNS,
     RING_ALIGNMENT,
     SECTION_ALIGNMENT,
     alignment_reference,
     closest_methods,
-    figure_winners,
-    paper_policy,
 )
 from macromicro_sumo.report.deploy import deployment_section
 from macromicro_sumo.report.tables import markdown_table, read_if_present, table_section
-from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.truth.section import load_section_truth
 
 ALIGNMENT = "evaluation/macro_alignment.csv"
@@ -115,17 +106,6 @@ def csv_plot(src: str, png: str, draw: Callable[[Path, Path], Path]) -> PlotJob:
         return []
 
     return job
-
-
-def ring_time_space(r: Run) -> list[Path]:
-    """Ground truth beside the policy on the ring (the evaluation's long rollouts)."""
-    df = r.csv("evaluation/timespace.csv")
-    if df is None:
-        return []
-    df = df.rename(columns={"arc_pos_m": "arc_m"})
-    sources = {str(m): g for m, g in df.groupby("method", sort=False)}
-    png, ring_m = r.png("time_space.png"), r.sc.network.length_m
-    return [plots.plot_time_space(sources, png, length_m=ring_m, title="Time-space diagram")]
 
 
 def section_truth_plots(r: Run) -> list[Path]:
@@ -212,154 +192,6 @@ def manifest_part(r: Run) -> list[str]:
     keys = ("timings_s", "versions", "command", "seed")
     text = json.dumps({k: r.manifest[k] for k in keys if k in r.manifest}, indent=2, default=str)
     return ["## Manifest", "", "```json", text, "```", ""]
-
-
-# --------------------------------------------------------------------------- the ring
-
-
-# The generator's held-out figures the report shows (where its metrics have them).
-GENERATOR_COLUMNS = (
-    "method",
-    "K",
-    "feasibility_rate",
-    "n_no_feasible",
-    "projected_vehicles",
-    "speed_rel_err",
-    "L_mean",
-    "L_min",
-    "L_max",
-    "L_var",
-    "pos_err_m",
-    "speed_err_mps",
-)
-
-
-def ring_head(r: Run) -> list[str]:
-    sc = r.sc
-    lines = [
-        f"# macromicro-sumo report: {sc.name}",
-        "",
-        f"Scenario `{sc.source}` (sha256 `{sc.digest()[:12]}`), seed {sc.seed}. "
-        "Every figure below was measured in this run.",
-        "",
-    ]
-    traj, runs = r.csv("ground_truth/trajectories.csv"), r.csv("ground_truth/runs.csv")
-    if traj is None or runs is None:
-        return lines
-    ours = {
-        "": "ours (SUMO)",
-        "mean speed (m/s)": traj["speed_mps"].mean(),
-        "speed std (m/s)": traj["speed_mps"].std(),
-        "mean spacing (m)": traj["spacing_m"].mean(),
-        "spacing std (m)": traj["spacing_m"].std(),
-        "collisions": int(runs["collisions"].sum()),
-        "teleports": int(runs["teleports"].sum()),
-    }
-    paper = dict(zip(ours, ["paper", *PAPER_GT.values(), "", ""], strict=True))
-    lines += ["## Ground truth", "", markdown_table(pd.DataFrame([paper, ours]), 2), ""]
-    macro = r.csv("ground_truth/macro.csv")
-    if macro is not None:
-        d = macro[macro["source"] == "detectors"].set_index(["run", "begin_s"])
-        t = macro[macro["source"] == "trajectories"].set_index(["run", "begin_s"])
-        err = {
-            c: float(((d[c] - t[c]) / t[c]).abs().max() * 100)
-            for c in ("mean_speed_mps", "density_vehpkm", "mean_spacing_m")
-        }
-        worst = ", ".join(f"{k} {v:.2f}%" for k, v in err.items())
-        lines += [f"Detector estimates vs trajectories, worst interval: {worst}.", ""]
-    return lines
-
-
-def refinement_part(r: Run) -> list[str]:
-    align, refined = r.csv(ALIGNMENT), r.csv(f"refined/{ALIGNMENT}")
-    if align is None or refined is None:
-        return []
-    cols = list(REFINED_COLUMNS)
-    single = align[align["method"] == "policy"][cols].assign(run="single pass")
-    joint = refined[refined["method"] == "policy"][cols].assign(run="joint refinement")
-    both = pd.concat([single, joint]).sort_values(["K", "run"], kind="stable")
-    return table_section(
-        f"Joint refinement ({r.sc.policy.refine_iterations} outer iterations) vs single pass",
-        both[["K", "run", *cols[1:]]],
-    )
-
-
-def winners_part(r: Run) -> list[str]:
-    align = r.csv(ALIGNMENT)
-    if align is None:
-        return []
-    micro = r.csv("evaluation/micro_consistency.csv")
-    lf = r.csv("evaluation/leader_follower_summary.csv")
-    intro = (
-        "Lower is better everywhere; `best` among all methods but the ground truth. One "
-        "evaluation of one trained policy per method: the training seed moves these figures "
-        "too (`scripts/lf_seeds.py` measures that spread)."
-    )
-    return table_section(
-        "Which method wins each figure", figure_winners(align, micro, lf), 4, intro=[intro, ""]
-    )
-
-
-def training_part(r: Run) -> list[str]:
-    logs = r.csv("policy/policy_train_log.csv")
-    if logs is None:
-        return []
-    last = logs.iloc[-1]
-    clipped = 100 * logs["gt_actions_clipped_share"].mean()
-    return [
-        "## Training",
-        "",
-        f"Policy: {int(last['update'])} updates, final r_macro {last['r_macro']:.4f}, "
-        f"r_micro per pair {last['r_micro_per_pair']:.3f}, ground-truth actions clipped for "
-        f"the likelihood: {clipped:.2f}%.",
-        "",
-    ]
-
-
-RING_REPORT = ReportKind(
-    plots=(
-        distributions,
-        TRAINING_PLOTS[0],
-        csv_plot(
-            "evaluation/leader_follower.csv", "leader_follower.png", plots.plot_leader_follower
-        ),
-        TRAINING_PLOTS[1],
-        ring_time_space,
-    ),
-    parts=(
-        ring_head,
-        Table(*GENERATOR, 4, lambda g: g[[c for c in GENERATOR_COLUMNS if c in g]]),
-        partial(
-            alignment_part,
-            heading=lambda sc: (
-                "held-out scenes, rollouts of "
-                f"{sc.evaluation.horizon_steps} x {sc.simulation.step_length_s:g} s"
-            ),
-            road="ring",
-            columns=RING_ALIGNMENT,
-            after=paper_policy,
-        ),
-        refinement_part,
-        Table(*MICRO, 4),
-        Table(
-            "Leader-follower (paper Fig. 3)",
-            "evaluation/leader_follower_summary.csv",
-            shape=method_summary,
-            intro=lambda sc: [
-                f"Follower {LeaderProfile().on_ring(sc).spacing_m:.0f} m behind the leader at "
-                "the same speed; the IDM follower has the middle of the fleet's IDM ranges; "
-                f"minimum safe gap {sc.evaluation.min_safe_gap_m:g} m; target: mean RMSE <= 0.3 "
-                "m/s against the IDM follower.",
-                "",
-            ],
-        ),
-        winners_part,
-        deployment_part,
-        plots_part,
-        training_part,
-        manifest_part,
-    ),
-)
 
 
 # --------------------------------------------------------------------------- a section
@@ -459,9 +291,8 @@ SECTION_REPORT = ReportKind(
 
 
 def write_report(sc: Any, out: Path | str, manifest: dict[str, Any]) -> Path:
-    """report.md of the run folder ``out`` (its plots into ``out/plots``), as the kind of
-    road of ``sc`` shows it; returns its path."""
-    kind = SECTION_REPORT if isinstance(sc, SectionScenario) else RING_REPORT
+    """report.md of the run folder ``out`` (its plots into ``out/plots``); returns its path."""
+    kind = SECTION_REPORT
     r = Run(sc, Path(out), manifest)
     for job in kind.plots:
         r.plots += job(r)

@@ -116,6 +116,17 @@ def _table_class(hint: Any) -> Any:
     return None
 
 
+# Keys that stop 25 removed with the ring wing (issue 16): a one-line error naming what
+# replaces them, rather than "unknown key".
+REMOVED_KEYS = {
+    "policy.refine_iterations": "joint refinement was the ring wing's; no replacement",
+    "policy.refine_updates": "joint refinement was the ring wing's; no replacement",
+    "policy.refine_epochs": "joint refinement was the ring wing's; no replacement",
+    "policy.refine_lambda_rec": "joint refinement was the ring wing's; no replacement",
+    "evaluation.completions_per_scene": "replaced by generator.eval_completions",
+}
+
+
 def build_table(cls: type, table: Any, prefix: str, file: str) -> Any:
     """``cls`` built from a TOML table, every key checked (one-line ``UserError`` otherwise)."""
     if not isinstance(table, dict):
@@ -123,6 +134,11 @@ def build_table(cls: type, table: Any, prefix: str, file: str) -> Any:
     hints = typing.get_type_hints(cls)
     known = {f.name: f for f in dataclasses.fields(cls) if f.name != "source"}
     for key in table:
+        dotted = f"{prefix}.{key}" if prefix else key
+        if key not in known and dotted in REMOVED_KEYS:
+            raise UserError(
+                f"{file}: {dotted} was removed in stop 25 ({REMOVED_KEYS[dotted]}); remove the key"
+            )
         if key not in known:
             where = f"[{prefix}] " if prefix else ""
             raise UserError(

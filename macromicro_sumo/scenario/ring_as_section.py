@@ -1,4 +1,4 @@
-"""The paper's ring file read as a section scenario: the mapping behind ``road = "section"``.
+"""The paper's ring file read as a section scenario: how a ring file loads.
 
 Issue 16 wants one road model: a ring file (``[network] radius_m``, ``n_edges``, ``net_file``,
 ``routes_file``, the IDM fleet) is the closed one-lane section of its generated ring network
@@ -10,9 +10,8 @@ A section key that the file gives inside the ring's tables (``simulation.warmup_
 ``generator.dispersion_error``) overrides what the mapping fills in; the section's own
 tables (``[section]``, ``[instrumented]``, ``[data]``) are the mapping's, not the file's.
 
-The mapping reads the ring's defaults from ``RING_GENERATOR_DEFAULTS``, not from
-``scenario/ring.py``, so it stays when the ring wing goes (``tests/scenario/
-test_ring_as_section.py`` checks the two agree while both exist).
+Since stop 25 this mapping is how every ring file loads (the ring wing is gone); the ring's
+generator defaults where they differ from the section's are ``RING_GENERATOR_DEFAULTS``.
 """
 
 from __future__ import annotations
@@ -25,7 +24,7 @@ from typing import Any
 
 from macromicro_sumo.errors import UserError
 
-# The ring's generator defaults where the section's differ (scenario/ring.GeneratorConfig):
+# The ring's generator defaults where the section's differ (the ring wing's, until stop 25):
 # a ring file that leaves them out meant these.
 RING_GENERATOR_DEFAULTS: dict[str, Any] = {
     "epochs": 60,
@@ -36,7 +35,7 @@ RING_GENERATOR_DEFAULTS: dict[str, Any] = {
     "bounds_source": "interval",
 }
 
-# The tables and top-level keys of a ring file (scenario/ring.Scenario); the mapped table
+# The tables and top-level keys of a ring file; the mapped table
 # may add section keys to them (their own validation then applies).
 RING_TOP = (
     "name",
@@ -54,6 +53,20 @@ RING_TOP = (
     "deploy",
 )
 RING_NETWORK = ("kind", "radius_m", "n_edges", "net_file", "routes_file")
+# The keys of a ring file that a section file does not have, with their types (a batch's
+# ``[sweep]`` of a ring file accepts them beside the section keys of its tables).
+RING_FILE_KEYS: dict[str, Any] = {
+    "network.radius_m": float,
+    "network.n_edges": int,
+    "network.net_file": str,
+    "network.routes_file": str,
+    "bounds.speed_mps": tuple[float, float],
+    "bounds.spacing_m": tuple[float, float],
+    "generator.lambda_rec": float,
+    "generator.psi_source": str,
+    "detectors.e1_position": float,
+    "evaluation.completions_per_scene": int,
+}
 # Required by the ring and defaulted differently (or not at all) by the section.
 RING_REQUIRED = (
     "name",
@@ -104,6 +117,19 @@ def _refuse(key: str, value: Any, accepted: Any, why: str, file: str) -> None:
         raise UserError(
             f"{file}: {key} = {value!r} has no section meaning with road = 'section' ({why}); "
             f"accepted {accepted!r} or remove the key"
+        )
+
+
+def _pair(value: Any, key: str, hi: float, file: str) -> None:
+    """A [low, high] pair of numbers in [0, hi], low <= high (one-line error otherwise)."""
+    ok = isinstance(value, list) and len(value) == 2
+    ok = ok and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+    if not ok or not 0 <= value[0] <= hi or not 0 <= value[1] <= hi:
+        raise UserError(f"{file}: {key} = {value!r} must be a pair [low, high] in [0, {hi:g}]")
+    if value[0] > value[1]:
+        raise UserError(
+            f"{file}: {key} = {value!r} is reversed; accepted [low, high] with low <= high, "
+            f"both in [0, {hi:g}]"
         )
 
 
@@ -218,10 +244,11 @@ def ring_to_section(table: dict[str, Any], folder: Path, file: str) -> dict[str,
             "spacing_m are the ring's fixed ones",
             file,
         )
-    # The paper's fixed bounds are read only by bounds_source = "fixed" (refused above).
+    # The paper's fixed bounds were read only by bounds_source = "fixed" (refused above): a
+    # ring file keeps them for reference, checked as pairs, and the section measures its own.
     bounds = table["bounds"]
-    bounds.pop("speed_mps", None)
-    bounds.pop("spacing_m", None)
+    for key, hi in (("speed_mps", 100.0), ("spacing_m", 1e6)):
+        _pair(bounds.pop(key, [0.0, 0.0]), f"bounds.{key}", hi, file)
     # The ring's safety gap is its fleet's smallest jam distance (env/ring.py).
     min_gap = table["fleet"].get("min_gap_m")
     if isinstance(min_gap, list) and min_gap:

@@ -1,9 +1,10 @@
 """Scenarios on a user's own SUMO network: ``[network] kind = "sumo"`` plus a road section.
 
-The ring scenario (``scenario.ring.Scenario``) draws its own IDM fleet; here SUMO runs the user's
-network, demand and vehicle types, and the method works on a section of it: a list of
-connected edges in driving order (an open corridor) or a closed loop. The tables reuse the
-ring's typed-field machinery, so errors read the same (file, key, accepted range).
+SUMO runs the user's network, demand and vehicle types (or the heterogeneous IDM fleet of
+``[fleet]``: the paper's ring, ``scenario.ring_as_section``), and the method works on a
+section of it: a list of connected edges in driving order (an open corridor) or a closed
+loop. The tables use the typed-field machinery of ``scenario.fields``, so errors read the
+same (file, key, accepted range).
 """
 
 from __future__ import annotations
@@ -317,11 +318,6 @@ def _check(sc: SectionScenario, file: str) -> None:
     if not a_min < 0 < a_max:
         raise UserError(
             f"{file}: bounds.accel_mps2 = [{a_min:g}, {a_max:g}] must satisfy a_min < 0 < a_max"
-        )
-    if sc.evaluation.completions_per_scene != 1:
-        raise UserError(
-            f"{file}: evaluation.completions_per_scene = {sc.evaluation.completions_per_scene} "
-            "is for ring scenarios; accepted 1 with [network] kind = 'sumo'"
         )
     if sc.detectors.interval_s > sc.simulation.duration_s:
         raise UserError(

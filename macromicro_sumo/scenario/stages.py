@@ -96,18 +96,10 @@ class PolicyConfig:
         "on the validation runs (their episodes are then not trained on)",
     )
     checkpoint_every: int = spec(5, lo=1, hi=1_000_000, doc="updates between resumable checkpoints")
-    refine_iterations: int = spec(
-        0,
-        lo=0,
-        hi=100,
-        doc="joint refinement: outer iterations of Algorithm 1 (0: single pass, the paper's case study)",
-    )
-    refine_updates: int = spec(20, lo=1, hi=1_000_000, doc="PPO updates per refinement iteration")
-    refine_epochs: int = spec(20, lo=1, hi=100_000, doc="generator epochs per refinement iteration")
     safety: str = spec(
         "sumo",
         choices=("none", "sumo"),
-        doc="hidden vehicles' safety layer in training and evaluation rollouts (ring and sections): sumo "
+        doc="hidden vehicles' safety layer in training and evaluation rollouts: sumo "
         "caps each speed command at SUMO's safe speed behind what it sees ahead (counted); "
         "none applies it exactly",
     )
@@ -118,7 +110,7 @@ class PolicyConfig:
         "a generated completion, the paper's), demand (windows of the training runs' own "
         "demand, the hidden population driven as it enters, as a deployment drives it; "
         "env.demand), or mixed (both); the likelihood term uses the snapshot episodes' "
-        "recorded pairs in every case. The ring has snapshots only",
+        "recorded pairs in every case",
     )
     demand_horizon_s: float = spec(
         120.0, lo=1.0, hi=1e6, doc="length of a demand episode [s] (SUMO warms up before it)"
@@ -131,12 +123,6 @@ class PolicyConfig:
         doc="demand episodes: reward subtracted on the step a driven vehicle collides (its "
         "episode ends there in any case, losing its future eta * r_macro)",
     )
-    refine_lambda_rec: float = spec(
-        1.0,
-        lo=0.0,
-        hi=1e6,
-        doc="weight of the consistency term L_rec against policy-rolled hidden states",
-    )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -145,14 +131,6 @@ class EvaluationConfig:
 
     horizon_steps: int = spec(
         10, lo=1, hi=100_000, doc="rollout length for macro alignment [steps]"
-    )
-    completions_per_scene: int = spec(
-        1,
-        lo=1,
-        hi=1_000,
-        doc="independent generator completions of each held-out scene, each rolled out by every "
-        "method (ring scenarios): each completion is one random draw, so more of them shrink "
-        "the evaluation's noise",
     )
     lf_trials: int = spec(20, lo=1, hi=100_000, doc="stochastic leader-follower trials per method")
     lf_duration_s: float = spec(60.0, lo=1.0, hi=1e5, doc="leader-follower test length [s]")

@@ -23,7 +23,6 @@ import sumolib
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import refuse_comma
-from macromicro_sumo.scenario.ring import Scenario
 from macromicro_sumo.scenario.section import SectionScenario
 
 DETECTOR_PERIOD_DEFAULT_S = 900.0
@@ -296,14 +295,11 @@ def scenario_inputs(sc: SectionScenario) -> SumoInputs:
     )
 
 
-def input_files(sc: Scenario | SectionScenario) -> list[Path]:
-    """Every file besides the scenario file that a scenario reads, once each: the ring's net
-    and routes, or a section's SUMO files (the .sumocfg and every file it names, and the
-    explicit ones). What ``--out`` must not hold and what a batch ships to a Ray node."""
-    if isinstance(sc, SectionScenario):
-        i = scenario_inputs(sc)
-        files = [*([i.sumocfg] if i.sumocfg else []), i.net_file, *i.route_files]
-        files += i.additional_files
-    else:
-        files = [sc.resolve(sc.network.net_file), sc.resolve(sc.network.routes_file)]
+def input_files(sc: SectionScenario) -> list[Path]:
+    """Every file besides the scenario file that a scenario reads, once each: its SUMO
+    files (the .sumocfg and every file it names, and the explicit ones). What ``--out``
+    must not hold and what a batch ships to a Ray node."""
+    i = scenario_inputs(sc)
+    files = [*([i.sumocfg] if i.sumocfg else []), i.net_file, *i.route_files]
+    files += i.additional_files
     return list(dict.fromkeys(Path(f) for f in files))

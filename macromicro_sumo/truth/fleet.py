@@ -164,10 +164,14 @@ def write_fleet_inputs(
     run_dir: Path, spec: RunSpec, geo: RingGeometry, demand: FleetDemand, dt_s: float, span_s: float
 ) -> tuple[Path, Path]:
     """(vTypes, routes) additional files of one run of a fleet on a closed section, with
-    routes long enough for ``span_s`` seconds at the fleet's top speed."""
+    routes long enough for ``span_s`` seconds at the fleet's largest maxSpeed."""
     vtypes, routes = run_dir / "fleet_vtypes.add.xml", run_dir / "fleet_routes.add.xml"
     vtypes.write_text(vtypes_xml(spec.params, dt_s))
-    laps = loop_laps(geo.length_m, demand.top_speed_mps(), span_s)
+    # A deployment's speed commands may take a driven vehicle past its desired speed, up to
+    # its vType's maxSpeed: sized for the fleet's desired speeds the routes ran out (an
+    # adversarial driver on the paper ring lost vehicles off the section within 60 s).
+    top = max(demand.top_speed_mps(), demand.fleet.max_speed_mps[1])
+    laps = loop_laps(geo.length_m, top, span_s)
     routes.write_text(loop_routes_xml(geo.edge_ids, laps))
     return vtypes, routes
 

@@ -20,15 +20,8 @@ from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.inputs import DetectorSpec, SumoInputs, read_net, user_detectors
 from macromicro_sumo.truth.hidden_count import side_junction_arcs
-from macromicro_sumo.truth.ring_detectors import (
-    E1_FILE,
-    E2_FILE,
-    INSTANT_FILE,
-    read_passages,
-    records,
-    speed_or_nan,
-)
 
+E1_FILE, E2_FILE, INSTANT_FILE = "e1.xml", "e2.xml", "instant.xml"
 _DETECTOR_TAGS = {
     "inductionLoop",
     "e1Detector",
@@ -220,3 +213,41 @@ def read_detectors(
     det = pd.DataFrame(rows)
     passages = read_passages(run_dir / INSTANT_FILE, run, required=False)
     return det, passages
+
+
+def records(path: Path, tag: str, required: bool = True) -> list[dict[str, str]]:
+    """Attributes of every ``tag`` element of a SUMO output file (none if it is missing and
+    not ``required``: SUMO writes no file for a detector kind that is not defined)."""
+    if not path.is_file():
+        if not required:
+            return []
+        raise UserError(f"{path}: detector output missing")
+    try:
+        return [el.attrib for el in ET.parse(path).getroot().iter(tag)]
+    except ET.ParseError as exc:
+        raise UserError(f"{path}: detector output is not valid XML ({exc})") from None
+
+
+def read_passages(path: Path, run: int, required: bool = True) -> pd.DataFrame:
+    """Per-vehicle passages ('enter') of the instantaneous loops in ``path``."""
+    return pd.DataFrame(
+        [
+            {
+                "run": run,
+                "detector_id": r["id"],
+                "time_s": float(r["time"]),
+                "vehicle_id": r["vehID"],
+                "speed_mps": float(r["speed"]),
+                "length_m": float(r["length"]),
+            }
+            for r in records(path, "instantOut", required)
+            if r.get("state") == "enter"
+        ],
+        columns=["run", "detector_id", "time_s", "vehicle_id", "speed_mps", "length_m"],
+    )
+
+
+def speed_or_nan(value: str | None) -> float:
+    """SUMO writes -1 for 'no vehicle in this interval'."""
+    v = float(value) if value is not None else -1.0
+    return np.nan if v < 0 else v

@@ -21,11 +21,11 @@ TABLES = ("macro", "detectors", "summary")
 
 @pytest.fixture(scope="module")
 def finished_batch(tmp_path_factory) -> Path:
-    """Three variants, one of them failed (its N breaks the spacing bounds)."""
+    """Four variants, two of them failed (130 vehicles do not fit on the ring)."""
     folder = tmp_path_factory.mktemp("batch")
     table = scenario_table({"simulation.n_runs": 1, "simulation.duration_s": 120.0})
     path = folder / "s.toml"
-    path.write_text(dump_toml(table) + '\n[sweep]\nseed = [1, 2]\n"fleet.n_vehicles" = [5, 9]\n')
+    path.write_text(dump_toml(table) + '\n[sweep]\nseed = [1, 2]\n"fleet.n_vehicles" = [5, 130]\n')
     run_batch([path], folder / "out", workers=2, progress=False)
     return folder / "out"
 
@@ -52,7 +52,7 @@ def test_batch_tables_shape(finished_batch):
     s = pd.read_csv(finished_batch / "batch_summary.csv")
     assert s["status"].value_counts().to_dict() == {"complete": 2, "failed": 2}
     failed = s[s["status"] == "failed"]
-    assert failed["error"].str.contains("bounds.spacing_m").all()
+    assert failed["error"].str.contains("does not fit").all()
     assert failed["traj_mean_speed_mps"].isna().all()
     macro = pd.read_csv(finished_batch / "batch_macro.csv")
     assert set(macro["variant"]) == set(s.loc[s["status"] == "complete", "variant"])

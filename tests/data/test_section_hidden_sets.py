@@ -14,7 +14,7 @@ from conftest import bremen_files_with
 from fleet_scenarios import small_fleet_table, write_fleet_scenario
 
 from macromicro_sumo.cli import main
-from macromicro_sumo.data.ring import split_runs
+from macromicro_sumo.data.section import split_runs
 from macromicro_sumo.data.section import (
     hide_random,
     recorded_snapshots,

@@ -11,7 +11,7 @@ from gymnasium.utils.env_checker import check_env
 from pettingzoo.test import parallel_api_test
 
 from macromicro_sumo.env.examples import cache_root
-from macromicro_sumo.env.ring_envs import RingHiddenParallelEnv
+from macromicro_sumo.env.section_envs import SectionHiddenParallelEnv
 from macromicro_sumo.env.wrappers import ENV_ID
 
 
@@ -43,7 +43,7 @@ def test_no_argument_make_builds_the_demo_once(tmp_path, monkeypatch, capsys):
         assert again.action_space.high[0] == 1.0
     finally:
         again.close()
-    env = RingHiddenParallelEnv()  # PettingZoo: the demo too
+    env = SectionHiddenParallelEnv()  # PettingZoo: the demo too
     try:
         parallel_api_test(env, num_cycles=20)
     finally:

@@ -1,4 +1,5 @@
-"""The public environments pass the official gymnasium and PettingZoo checkers."""
+"""The public environments on the paper ring (a ring file: its closed one-lane section) pass
+the official gymnasium and PettingZoo checkers."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from gymnasium.utils.env_checker import check_env
 from pettingzoo.test import parallel_api_test
 
 from macromicro_sumo import cli
-from macromicro_sumo.env.ring_envs import RingHiddenEnv, RingHiddenParallelEnv
+from macromicro_sumo.env.section_envs import SectionHiddenEnv, SectionHiddenParallelEnv
 from macromicro_sumo.env.wrappers import ENV_ID
 from macromicro_sumo.errors import UserError
 
@@ -41,7 +42,7 @@ def gt(tmp_path_factory):
 
 def test_gymnasium_env_passes_check_env(gt):
     path, data, gen = gt
-    env = RingHiddenEnv(path, data, gen)
+    env = SectionHiddenEnv(path, data, gen)
     try:
         check_env(env, skip_render_check=True)
     finally:
@@ -70,31 +71,41 @@ def test_gymnasium_env_is_registered(gt):
 
 def test_pettingzoo_env_passes_parallel_api_test(gt):
     path, data, gen = gt
-    env = RingHiddenParallelEnv(path, data, gen, hidden=(1, 4))
+    env = SectionHiddenParallelEnv(path, data, gen)
     try:
         parallel_api_test(env, num_cycles=50)
     finally:
         env.close()
 
 
+def reset_with_agents(env, at_least: int) -> tuple[list[str], dict]:
+    """Reset ``env`` (seeds 0, 1, ...) until an episode has ``at_least`` hidden vehicles
+    (each snapshot hides its own K, ``policy.hidden_train``): (its agents, their infos)."""
+    for seed in range(200):
+        _, infos = env.reset(seed=seed)
+        if len(env.agents) >= at_least:
+            return list(env.agents), infos
+    raise AssertionError(f"no episode with {at_least} hidden vehicles in 200 resets")
+
+
 def test_bad_actions_name_the_agent(gt):
     path, data, gen = gt
-    env = RingHiddenParallelEnv(path, data, gen, hidden=2)
+    env = SectionHiddenParallelEnv(path, data, gen)
     try:
-        env.reset(seed=0)
-        with pytest.raises(ValueError, match="agent hidden_1: action must be finite"):
-            env.step({"hidden_0": np.array([0.0]), "hidden_1": np.array([np.nan])})
-        with pytest.raises(ValueError, match="agent hidden_0: action must have shape"):
-            env.step({"hidden_0": np.zeros(3), "hidden_1": np.array([0.0])})
+        a, b = reset_with_agents(env, 2)[0][:2]
+        with pytest.raises(ValueError, match=f"agent {b}: action must be finite"):
+            env.step({x: np.array([0.0]) for x in env.agents} | {b: np.array([np.nan])})
+        with pytest.raises(ValueError, match=f"agent {a}: action must have shape"):
+            env.step({x: np.array([0.0]) for x in env.agents} | {a: np.zeros(3)})
     finally:
         env.close()
 
 
 def test_second_env_in_one_process_is_refused_clearly(gt):
     path, data, gen = gt
-    first = RingHiddenEnv(path, data, gen)
+    first = SectionHiddenEnv(path, data, gen)
     first.reset(seed=0)
-    second = RingHiddenEnv(path, data, gen)
+    second = SectionHiddenEnv(path, data, gen)
     try:
         with pytest.raises(UserError, match="one per process"):
             first.step(np.array([0.0], np.float32))
@@ -107,69 +118,30 @@ def test_second_env_in_one_process_is_refused_clearly(gt):
 
 def test_every_agent_gets_its_own_info_dict(gt):
     path, data, gen = gt
-    env = RingHiddenParallelEnv(path, data, gen, hidden=3)
+    env = SectionHiddenParallelEnv(path, data, gen)
     try:
-        _, infos = env.reset(seed=0)
-        assert len({id(i) for i in infos.values()}) == len(infos) == 3
+        agents, infos = reset_with_agents(env, 3)
+        assert len({id(i) for i in infos.values()}) == len(infos) >= 3
         _, _, _, _, infos = env.step({a: np.array([0.0]) for a in env.agents})
-        infos["hidden_0"]["terminal_observation"] = "only hidden_0's"
-        assert all("terminal_observation" not in infos[a] for a in ("hidden_1", "hidden_2"))
-    finally:
-        env.close()
-
-
-def test_info_counts_the_safety_layers_caps(gt):
-    """``info["safety_capped"]``: this step's capped hidden commands, 0 at a reset; summed,
-    the core's count. On the paper's ring (spacings ~125 m) even full throttle for a whole
-    episode leaves the layer idle: it binds where the ring is dense (test_ring_collisions)."""
-    path, data, gen = gt
-    env = RingHiddenEnv(path, data, gen)
-    try:
-        assert env.core.safety == "sumo"  # the default
-        total, steps = 0, 0
-        for seed in range(3):
-            _, info = env.reset(seed=seed)
-            assert info["safety_capped"] == 0
-            done = False
-            while not done:
-                _, _, term, trunc, info = env.step(np.array([env.action_space.high[0]]))
-                assert info["safety_capped"] in (0, 1)
-                total, steps, done = total + info["safety_capped"], steps + 1, term or trunc
-        assert total == env.core.safety_capped == 0 and env.core.hidden_steps == steps
-        assert not term  # no collision under the layer
+        infos[agents[0]]["terminal_observation"] = "only the first agent's"
+        assert all("terminal_observation" not in infos[a] for a in agents[1:])
     finally:
         env.close()
 
 
 def test_render_mode_none_is_accepted_and_possible_agents_fit_the_bank(gt):
     path, data, gen = gt
-    env = RingHiddenParallelEnv(path, data, gen, hidden=(1, 2), render_mode=None)
+    env = SectionHiddenParallelEnv(path, data, gen, render_mode=None)
     try:
-        assert env.render_mode is None and len(env.possible_agents) == 2
+        most = int(env.core.bank.hidden.sum(axis=1).max())
+        assert env.render_mode is None and len(env.possible_agents) == most
         for seed in range(4):
             env.reset(seed=seed)
             assert set(env.agents) <= set(env.possible_agents)
     finally:
         env.close()
     with pytest.raises(ValueError, match="render_mode 'human' is not supported"):
-        RingHiddenEnv(path, data, gen, render_mode="human")
-
-
-def test_supersuit_vector_wrapper_without_adapters(gt):
-    """SuperSuit's PettingZoo -> vector env conversion (what SB3 users call) steps as is."""
-    import supersuit as ss
-
-    path, data, gen = gt
-    env = RingHiddenParallelEnv(path, data, gen, hidden=2)
-    vec = ss.pettingzoo_env_to_vec_env_v1(env)
-    try:
-        obs, infos = vec.reset(seed=0)
-        assert obs.shape == (2, env.observation_space("hidden_0").shape[0])
-        for _ in range(12):  # past one horizon (10 steps): the auto-reset path runs too
-            obs, rew, term, trunc, infos = vec.step(np.zeros((2, 1), np.float32))
-            assert obs.shape[0] == 2 and np.isfinite(rew).all()
-    finally:
-        env.close()
+        SectionHiddenEnv(path, data, gen, render_mode="human")
 
 
 def test_env_made_by_gymnasium_lives_on_after_check_env(gt):
@@ -191,9 +163,10 @@ def test_env_made_by_gymnasium_lives_on_after_check_env(gt):
 
 def test_displaced_env_says_so_and_reloads_at_reset(gt):
     path, data, gen = gt
-    first = RingHiddenEnv(path, data, gen)
-    second = RingHiddenEnv(path, data, gen)
+    first = SectionHiddenEnv(path, data, gen)
+    second = SectionHiddenEnv(path, data, gen)
     try:
+        second.reset(seed=0)
         first.reset(seed=0)  # takes SUMO back from the second
         first.step(np.array([0.0], np.float32))
         with pytest.raises(UserError, match="reset\\(\\) starts this one's again"):
@@ -278,15 +251,14 @@ def test_spec_max_episode_steps_is_the_scenario_horizon(gt, tmp_path):
 
 
 def test_normalized_spaces_map_onto_the_bounds(gt):
-    from macromicro_sumo.env.observation import shift_scale
-
     path, data, gen = gt
-    raw = RingHiddenEnv(path, data, gen)
-    norm = RingHiddenEnv(path, data, gen, normalize=True)
+    raw = SectionHiddenEnv(path, data, gen)
+    norm = SectionHiddenEnv(path, data, gen, normalize=True)
     try:
         assert (norm.action_space.low, norm.action_space.high) == (-1.0, 1.0)
         check_env(norm, skip_render_check=True)
-        shift, scale = shift_scale(raw.core.sc.policy.observation)
+        # The bank's initial observations' mean and std (the PPO agent's).
+        shift, scale = norm.scaling.shift, norm.scaling.scale
         a_min, a_max = raw.core.sc.bounds.accel_mps2
         dt = raw.core.dt
         for action, accel in ((-1.0, a_min), (1.0, a_max), (0.0, (a_min + a_max) / 2)):
@@ -294,9 +266,10 @@ def test_normalized_spaces_map_onto_the_bounds(gt):
             o_norm, _ = norm.reset(seed=5)
             np.testing.assert_allclose(o_norm, (o_raw - shift) / scale, rtol=1e-5, atol=1e-5)
             assert norm.observation_space.contains(o_norm)
-            v0 = norm.core.speed[norm.core.hidden][0]
+            ego = norm._slots[norm._ego]
+            v0 = norm.core.speed[ego]
             norm.step(np.array([action], np.float32))
-            v1 = norm.core.speed[norm.core.hidden][0]
+            v1 = norm.core.speed[ego]
             assert v1 == pytest.approx(max(0.0, v0 + accel * dt), abs=1e-3)
     finally:
         raw.close()
@@ -305,7 +278,7 @@ def test_normalized_spaces_map_onto_the_bounds(gt):
 
 def test_pettingzoo_env_normalized_passes_parallel_api_test(gt):
     path, data, gen = gt
-    env = RingHiddenParallelEnv(path, data, gen, hidden=(1, 3), normalize=True)
+    env = SectionHiddenParallelEnv(path, data, gen, normalize=True)
     try:
         assert env.action_space("hidden_0").high[0] == 1.0
         parallel_api_test(env, num_cycles=30)

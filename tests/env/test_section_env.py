@@ -8,10 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import PAPER_SCENARIO, ROOT, dump_toml, netconvert
+from conftest import ROOT, dump_toml, netconvert
 
 from macromicro_sumo.data.section import PSI_FIELDS, section_snapshots
-from macromicro_sumo.env.ring import EpisodeBank, RingCore
 from macromicro_sumo.env.section import SectionCore, section_macro_reward, section_target
 from macromicro_sumo.env.section_bank import SectionBank, build_section_bank, typical_length
 from macromicro_sumo.evaluation.idm_fit import fit_policy_prior
@@ -217,9 +216,10 @@ def test_reward_speed_scale_charges_a_bias_in_mps():
     assert r_scaled == pytest.approx(1 / 1.5) and r_paper > 0.9999
 
 
-def test_closed_ring_gives_the_leaders_of_ring_core(tmp_path):
-    """The ring as a one-lane closed section: same leaders and spacings as RingCore."""
-    ring_sc = load_scenario(PAPER_SCENARIO)
+def test_closed_ring_gives_the_leaders_in_arc_order(tmp_path):
+    """The ring as a one-lane closed section: every vehicle's leader is the next one round
+    the loop and its spacing the arc to it, front to front (what the ring's own core gave
+    until stop 25), at every step of driven and replayed vehicles."""
     n, h = 5, 6
     rng = np.random.default_rng(3)
     # Spread out: an observed vehicle replays its record only while that is safe.
@@ -228,44 +228,31 @@ def test_closed_ring_gives_the_leaders_of_ring_core(tmp_path):
     hidden = np.array([True, False, True, True, False])
     replay = speeds + rng.uniform(-0.3, 0.3, (h + 1, n))
     replay[0] = speeds
-    accels = rng.uniform(-1.0, 0.5, (h, hidden.sum()))  # inside both scenarios' bounds
-    bank = EpisodeBank(
-        arc0_m=arcs[None],
-        speed0_mps=speeds[None],
-        hidden=hidden[None],
-        psi=np.array([[12.0, 125.0, 50.0, 300.0, 0.0, 0.0]]),
-        limits_mps=np.full((1, 4), 13.89),
-        replay_speed_mps=replay[None],
-        gt_accel_mps2=(np.diff(replay, axis=0) / DT)[None],
-        true_arc0_m=arcs[None],
-        run=np.array([0]),
-        time_s=np.array([0.0]),
-    )
-    ring = RingCore(ring_sc, bank, seed=0)
-    try:
-        ring.reset(0)
-        want = [(ring.leader.copy(), ring.spacing.copy())]
-        for t in range(h):
-            ring.step(accels[t])
-            want.append((ring.leader.copy(), ring.spacing.copy()))
-    finally:
-        ring.close()
+    accels = rng.uniform(-1.0, 0.5, (h, hidden.sum()))
     sc = section_scenario(tmp_path, RING, ["e0", "e1", "e2", "e3"], True)
     section = read_section(RING, ["e0", "e1", "e2", "e3"], True)
+    length = section.length_m
     sbank = synthetic_bank(np.zeros(n, int), arcs, speeds, hidden, replay, horizon=h)
     core = SectionCore(sc, section, sbank, RING, seed=0)
+
+    def check() -> None:
+        order = np.argsort(core.arc)
+        nxt = np.empty(n, dtype=np.int64)
+        nxt[order] = np.roll(order, -1)
+        np.testing.assert_array_equal(core.leader, nxt)
+        np.testing.assert_allclose(
+            core.spacing, np.mod(core.arc[nxt] - core.arc, length), atol=0.01
+        )
+
     try:
         core.reset(0)
-        got = [(core.leader.copy(), core.spacing.copy())]
+        check()
         for t in range(h):
             res = core.step(accels[t])
             assert not res.error and res.active.all()
-            got.append((core.leader.copy(), core.spacing.copy()))
+            check()
     finally:
         core.close()
-    for (lw, sw), (lg, sg) in zip(want, got, strict=True):
-        np.testing.assert_array_equal(lg, lw)
-        np.testing.assert_allclose(sg, sw, atol=0.01)
 
 
 @pytest.fixture(scope="module")

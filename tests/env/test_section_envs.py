@@ -11,7 +11,6 @@ from gymnasium.utils.env_checker import check_env
 from pettingzoo.test import parallel_api_test
 
 from macromicro_sumo import cli
-from macromicro_sumo.env.ring_envs import RingHiddenEnv
 from macromicro_sumo.env.section_envs import SectionHiddenEnv, SectionHiddenParallelEnv
 from macromicro_sumo.env.wrappers import ENV_ID, SECTION_ENV_ID
 from macromicro_sumo.errors import UserError
@@ -110,8 +109,14 @@ def test_pettingzoo_section_agents_are_the_hidden_vehicles(section):
         env.close()
 
 
-def test_scenario_kind_and_env_must_match(section):
+def test_both_ids_make_the_section_env(section):
+    """``macromicro/RingHidden-v0`` (the ring wing's env until stop 25) is the same env."""
     path, data, gen = section
-    with pytest.raises(UserError, match="a section scenario; its envs are macromicro/Section"):
-        RingHiddenEnv(path, data, gen)
-    assert ENV_ID in gymnasium.registry and SECTION_ENV_ID in gymnasium.registry
+    assert gymnasium.spec(ENV_ID).entry_point == gymnasium.spec(SECTION_ENV_ID).entry_point
+    env = gymnasium.make(ENV_ID, scenario=path, data=data, generator=gen)
+    try:
+        assert isinstance(env.unwrapped, SectionHiddenEnv)
+    finally:
+        env.close()
+    with pytest.raises(UserError, match="pass scenario= too"):
+        SectionHiddenEnv(None, data, gen)

@@ -1,6 +1,7 @@
-"""What the ring and section leader-follower tests share: the tables' columns, a seeded
-random policy as the follower under test, and the checks every leader-follower run must pass
-(the leader replays its profile; the IDM followers are safe and the reference follows itself)."""
+"""What the leader-follower tests share: the tables' columns, a seeded random policy as the
+follower under test, the tests on a ring file's section (``on_ring``), and the checks every
+leader-follower run must pass (the leader replays its profile; the IDM followers are safe and
+the reference follows itself)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,10 @@ import pandas as pd
 import torch
 
 from macromicro_sumo.evaluation import leader_follower as lf
+from macromicro_sumo.evaluation import leader_follower_section as lfs
 from macromicro_sumo.policy.agent import Agent
+from macromicro_sumo.road.section import read_section
+from macromicro_sumo.sumo.inputs import scenario_inputs
 
 TRACE_COLUMNS = [
     "scenario",
@@ -22,6 +26,29 @@ TRACE_COLUMNS = [
     "gap_m",
 ]
 SUMMARY_COLUMNS = ["scenario", "method", "trial", "rmse_vs_idm_mps", "min_gap_m", "collision"]
+
+
+def on_ring(
+    sc, followers, idm_params, n_trials: int, seed: int, profile: lf.LeaderProfile | None = None
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """(traces, summary) of the tests on a ring file's closed one-lane section, the profile
+    moved to its upper speed limit and mean spacing L / N (the evaluation's call)."""
+    net = scenario_inputs(sc).net_file
+    section = read_section(net, list(sc.section.edges), sc.section.closed)
+    res = lfs.run_leader_follower_for(
+        sc,
+        section,
+        net,
+        followers,
+        idm_params,
+        section.length_m / sc.fleet.n_vehicles,
+        sc.fleet.length_m,
+        n_trials,
+        seed,
+        profile,
+    )
+    assert not res.skipped, res.message
+    return res.traces, res.summary
 
 
 def random_agent(observation: str, seed: int = 0) -> Agent:

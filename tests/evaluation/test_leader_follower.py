@@ -1,4 +1,5 @@
-"""Leader-follower tests (the paper's Fig. 3) in real SUMO: IDM physics, profiles, seeding."""
+"""Leader-follower tests (the paper's Fig. 3) in real SUMO on the paper ring (its closed one-lane
+section): IDM physics, profiles, seeding."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from lf_trials import (
     TRACE_COLUMNS,
     assert_idm_followers_safe,
     assert_leader_replays,
+    on_ring,
     random_agent,
     random_policy,
     rows,
@@ -19,7 +21,9 @@ from lf_trials import (
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation import leader_follower as lf
 from macromicro_sumo.road.physics import idm_accel
+from macromicro_sumo.road.section import read_section
 from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.sumo.inputs import scenario_inputs
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +70,7 @@ def test_idm_follower_in_sumo_matches_numpy_euler(sc, spacing_m):
     profile = lf.LeaderProfile(spacing_m=spacing_m)
     params = lf.mean_idm_params(sc)
     limit = sc.speed_limits.range_mps[1]
-    traces, summary = lf.run_leader_follower(sc, {}, params, 1, seed=0, profile=profile)
+    traces, summary = on_ring(sc, {}, params, 1, seed=0, profile=profile)
     assert set(traces["method"]) == {"IDM"}
     for scenario in lf.SCENARIOS:
         d = traces[traces["scenario"] == scenario]
@@ -84,7 +88,7 @@ def test_close_start_idm_settles_behind_slow_leader(sc):
     at least s0 and approaches the IDM equilibrium gap (s0 + vT) / sqrt(1 - (v/v0)^4)."""
     params = lf.mean_idm_params(sc)
     profile = lf.LeaderProfile(spacing_m=30.0, duration_s=120.0)
-    traces, summary = lf.run_leader_follower(sc, {}, params, 1, seed=0, profile=profile)
+    traces, summary = on_ring(sc, {}, params, 1, seed=0, profile=profile)
     d = traces[traces["scenario"] == "decelerate"]
     v0 = params["speed_factor"] * sc.speed_limits.range_mps[1]
     s_eq = (params["min_gap_m"] + 11.0 * params["tau_s"]) / np.sqrt(1 - (11.0 / v0) ** 4)
@@ -97,7 +101,7 @@ def test_close_start_idm_settles_behind_slow_leader(sc):
 
 def test_accelerate_leader_replays_profile_and_idm_ends_near_13(sc):
     profile = lf.LeaderProfile()
-    traces, summary = lf.run_leader_follower(sc, {}, lf.mean_idm_params(sc), 1, seed=0)
+    traces, summary = on_ring(sc, {}, lf.mean_idm_params(sc), 1, seed=0)
     d = traces[traces["scenario"] == "accelerate"]
     lead = lf.leader_speeds("accelerate", profile, sc.simulation.step_length_s)
     np.testing.assert_array_equal(d["leader_speed_mps"].to_numpy(), lead)
@@ -130,13 +134,11 @@ def test_leader_profiles():
 def test_bad_arguments(sc):
     params = lf.mean_idm_params(sc)
     with pytest.raises(UserError, match="reserved"):
-        lf.run_leader_follower(sc, {"IDM": lf.idm_follower(params, 5.0)}, params, 1, 0)
+        on_ring(sc, {"IDM": lf.idm_follower(params, 5.0)}, params, 1, 0)
     with pytest.raises(UserError, match="n_trials"):
-        lf.run_leader_follower(sc, {}, params, 0, 0)
+        on_ring(sc, {}, params, 0, 0)
     with pytest.raises(UserError, match="tau_s"):
         lf.idm_follower({k: v for k, v in params.items() if k != "tau_s"}, 5.0)
-    with pytest.raises(UserError, match="does not fit"):
-        lf.leader_follower_bank(sc, lf.LeaderProfile(spacing_m=2.0), 14.0)
 
 
 @pytest.fixture(scope="module")
@@ -149,7 +151,7 @@ def random_agent_runs(sc):
     }
     profile = lf.LeaderProfile(duration_s=20.0, hold_s=5.0)
     params = lf.mean_idm_params(sc)
-    run = lambda seed: lf.run_leader_follower(sc, followers, params, 3, seed, profile)  # noqa: E731
+    run = lambda seed: on_ring(sc, followers, params, 3, seed, profile)  # noqa: E731
     return run(7), run(7), run(8)
 
 
@@ -207,9 +209,10 @@ SUGIYAMA_SCENARIO = ROOT / "scenarios" / "ring_sugiyama.toml"
 
 
 def test_paper_ring_keeps_the_paper_profile(sc):
-    assert lf.LeaderProfile().on_ring(sc) == lf.LeaderProfile()
+    paper = (sc.speed_limits.range_mps[1], 2 * np.pi * 100.0 / sc.fleet.n_vehicles)
+    assert lf.LeaderProfile().moved(*paper) == lf.LeaderProfile()
     custom = lf.LeaderProfile(spacing_m=30.0, duration_s=20.0, hold_s=5.0)
-    assert custom.on_ring(sc) == custom
+    assert custom.moved(*paper) == custom
 
 
 def test_leader_follower_on_a_sugiyama_ring():
@@ -219,16 +222,18 @@ def test_leader_follower_on_a_sugiyama_ring():
     follower, and a follower that outlived that reference ended in a ValueError."""
     sc = load_scenario(SUGIYAMA_SCENARIO)
     assert sc.fleet.n_vehicles == 22
-    assert sc.network.length_m == pytest.approx(230.0, abs=0.1)
     params = lf.mean_idm_params(sc)
     followers = {
         **random_policy(sc.policy.observation),
         "idm_calibrated": lf.idm_follower(params, sc.fleet.length_m),
     }
     profile = lf.LeaderProfile(duration_s=30.0, hold_s=10.0)
-    traces, summary = lf.run_leader_follower(sc, followers, params, 2, sc.seed, profile)
-    moved = profile.on_ring(sc)
-    mean_spacing = sc.network.length_m / sc.fleet.n_vehicles
+    traces, summary = on_ring(sc, followers, params, 2, sc.seed, profile)
+    net = scenario_inputs(sc).net_file
+    length = read_section(net, list(sc.section.edges), sc.section.closed).length_m
+    assert length == pytest.approx(230.0, abs=0.1)
+    mean_spacing = length / sc.fleet.n_vehicles
+    moved = profile.moved(sc.speed_limits.range_mps[1], mean_spacing)
     assert moved.spacing_m == pytest.approx(126.0 * mean_spacing / (2 * np.pi * 100 / 5))
     assert moved.low_speed_mps == pytest.approx(11.0 * 10.0 / 14.0)
     assert moved.high_speed_mps == pytest.approx(13.0 * 10.0 / 14.0)
@@ -257,7 +262,7 @@ def test_trial_that_outlives_the_reference(sc):
     }
     careful = lf.idm_follower(lf.mean_idm_params(sc), sc.fleet.length_m)
     profile = lf.LeaderProfile(spacing_m=30.0, duration_s=30.0, hold_s=5.0)
-    traces, summary = lf.run_leader_follower(sc, {"careful": careful}, reckless, 1, 0, profile)
+    traces, summary = on_ring(sc, {"careful": careful}, reckless, 1, 0, profile)
     for scenario in lf.SCENARIOS:
         d = traces[traces["scenario"] == scenario]
         ref = d[d["method"] == "IDM"]

@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import PAPER_SCENARIO, ROOT
+from conftest import ROOT
 from lf_trials import (
     TRACE_COLUMNS,
     assert_idm_followers_safe,
@@ -83,34 +83,6 @@ def test_idm_follower_reaches_the_leaders_speed_with_a_safe_gap(name, lanes):
         mine = rows(tr, scenario, "same_idm")
         np.testing.assert_array_equal(mine["follower_speed_mps"], d["follower_speed_mps"])
     assert_idm_followers_safe(res.summary, ("same_idm",))
-
-
-def test_ring_section_gives_the_ring_wings_traces():
-    """ring_paper_section (the ring's net read as a closed section, the fleet's limits and
-    L / N) against the ring wing's RingCore: the same traces for IDM and a random policy."""
-    ring = load_scenario(PAPER_SCENARIO)
-    sc, section, net = road("ring_paper_section")
-    followers = random_policy(ring.policy.observation)
-    params = lf.mean_idm_params(ring)
-    assert lf.mean_idm_params(sc) == params
-    profile = lf.LeaderProfile(duration_s=30.0, hold_s=10.0)
-    tr_r, sm_r = lf.run_leader_follower(ring, followers, params, 2, 7, profile)
-    res = lfs.run_leader_follower_for(
-        sc, section, net, followers, params, section.length_m / 5, LENGTH_M, 2, 7, profile
-    )
-    assert "limit 14.00 m/s" in res.message and "start spacing 126.0 m" in res.message
-    assert list(res.traces.columns) == list(tr_r.columns)
-    assert list(res.summary.columns) == list(sm_r.columns)
-    pd.testing.assert_frame_equal(
-        res.traces[["scenario", "method", "trial", "time_s"]],
-        tr_r[["scenario", "method", "trial", "time_s"]],
-    )
-    # The net's edge lengths carry 2 decimals (L = 628.318532 m, the ring's 2 pi 100 m):
-    # the start spacing differs by 1e-7 m.
-    cols = ["leader_speed_mps", "follower_speed_mps", "idm_follower_speed_mps", "gap_m"]
-    np.testing.assert_allclose(res.traces[cols], tr_r[cols], rtol=0, atol=1e-5)
-    np.testing.assert_allclose(res.summary["rmse_vs_idm_mps"], sm_r["rmse_vs_idm_mps"], atol=1e-6)
-    assert sm_r.loc[sm_r["method"] == "policy", "rmse_vs_idm_mps"].gt(0.1).all()
 
 
 def test_a_section_too_short_is_skipped_in_one_line():

@@ -14,12 +14,12 @@ import pytest
 from fleet_scenarios import small_fleet_table, write_fleet_scenario
 
 from macromicro_sumo.cli import main
-from macromicro_sumo.data.ring import split_runs
 from macromicro_sumo.data.section import (
     SectionSnapshots,
     concat_snapshots,
     recorded_snapshots,
     snapshots_by_k,
+    split_runs,
 )
 from macromicro_sumo.env.section_bank import build_section_bank, initial_observations
 from macromicro_sumo.evaluation.idm_fit import IdmParams, idm_policy_accel

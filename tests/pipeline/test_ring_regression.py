@@ -1,22 +1,23 @@
 """Regression: the paper ring's macro table may not change silently.
 
 Runs the stages of ``macromicro run scenarios/ring_paper.toml`` that the ``policy`` and
-``ground_truth`` rows of ``macro_alignment.csv`` depend on (ground truth, generator, the
-``mix`` policy, the evaluation's rollouts on the held-out scenes: the same functions, seeds
-and scenario file, so the rows equal those of ``runs/ring_paper/evaluation``) and compares
-them with ``tests/pipeline/ring_macro_alignment_reference.csv``.
+``ground_truth`` rows of ``evaluation/macro_alignment_by_k.csv`` depend on (ground truth,
+generator, the ``mix`` policy, the evaluation: the same functions, seeds and scenario file as
+``make run``, so the rows equal those of ``runs/ring_paper/evaluation``) and compares them
+with ``REFERENCE`` below.
 
 Tolerances (``TOLERANCE``): the ground truth replays SUMO deterministically and must match
 to rounding; the policy rows allow float-level differences (another torch or BLAS build)
-but stay well inside the spread over training seeds (``scripts/lf_seeds.py``: held-out
-mean-speed error 0.008-0.025 m/s std across seeds), so a change of the method's results
-fails. A deliberate change re-writes the reference:
+but stay well inside the spread over training seeds, so a change of the method's results
+fails. A deliberate change re-writes the reference: run
 
     .venv/bin/python tests/pipeline/test_ring_regression.py --write
 
-About 130 s on 2 cores (the generator and policy training dominate): a long training run,
-so it runs in ``make test-slow``, not the default run (the ring's stages are in the default
-run at small budgets: tests/pipeline/test_pipeline.py).
+and paste the block it prints over ``REFERENCE``.
+
+A long training run (the whole generator and policy budgets of ring_paper), so it runs in
+``make test-slow``, not the default run (the ring's stages are in the default run at small
+budgets: tests/pipeline/test_pipeline.py).
 """
 
 from __future__ import annotations
@@ -30,7 +31,6 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 SCENARIO = ROOT / "scenarios" / "ring_paper.toml"
-REFERENCE = Path(__file__).with_name("ring_macro_alignment_reference.csv")
 METHODS = ("ground_truth", "policy")
 COLUMNS = [
     "K",
@@ -50,38 +50,46 @@ TOLERANCE = {
     "std_spacing_m": (1e-4, 0.15),
 }
 
+# ---------------------------------------------------------------------------------------
+# TODO(stop 25): RE-MEASURE. The ring wing's reference (its own stages, removed in stop 25)
+# no longer applies: the ring now runs through the section stages. Re-measure with
+# ``--write`` once the section stages' speed-up and generator changes of stop 25 are on
+# main, and paste the rows here (one tuple per COLUMNS row). Until then the test fails
+# with that instruction rather than pass against nothing.
+REFERENCE: list[tuple] | None = None
+# ---------------------------------------------------------------------------------------
+
 
 def ring_macro_rows(out: Path) -> pd.DataFrame:
-    """The policy and ground-truth rows of the ring's macro table, computed in ``out``."""
-    import torch
-
-    from macromicro_sumo.data.ring import load_ground_truth, split_runs
-    from macromicro_sumo.evaluation.ring import macro_alignment
-    from macromicro_sumo.generator.ring_train import load_generator, run_train_generator
-    from macromicro_sumo.policy.checkpoint import load_policy
+    """The policy and ground-truth rows of the ring's macro table by K, computed in ``out``."""
+    from macromicro_sumo.evaluation.section import evaluate_section
+    from macromicro_sumo.generator.section_train import run_train_section_generator
     from macromicro_sumo.policy.stage import run_train_policy
     from macromicro_sumo.scenario.load import load_scenario
-    from macromicro_sumo.truth.ring import simulate
+    from macromicro_sumo.truth.section import simulate_section
 
     sc = load_scenario(SCENARIO)
     gt_dir, gen_dir, pol_dir = out / "ground_truth", out / "generator", out / "policy"
-    simulate(sc, gt_dir, progress=False)
-    run_train_generator(sc, gt_dir, gen_dir, progress=False)
-    run_train_policy(sc, gt_dir, gen_dir / "generator.pt", pol_dir, progress=False, objective="mix")
-    torch.set_num_threads(1)  # as the evaluate stage
-    gt = load_ground_truth(gt_dir, sc)
-    net = load_generator(gen_dir / "generator.pt", sc)
-    agents = {"policy": load_policy(pol_dir / "policy.pt", sc)}
-    held = split_runs(gt.runs, sc.generator.held_out_fraction, sc.seed)["held_out"]
-    lo, hi = sc.generator.hidden_eval
-    align, _ = macro_alignment(sc, gt, net, agents, None, held, list(range(lo, hi + 1)))
+    simulate_section(sc, gt_dir, progress=False)
+    run_train_section_generator(sc, gt_dir, gen_dir, progress=False)
+    gen = gen_dir / "generator.pt"
+    run_train_policy(sc, gt_dir, gen, pol_dir, progress=False, objective="mix")
+    ev = out / "evaluation"
+    evaluate_section(sc, gt_dir, gen, {"policy": pol_dir / "policy.pt"}, ev, progress=False)
+    align = pd.read_csv(ev / "macro_alignment_by_k.csv")
+    align = align[align["hidden_count"] == "estimated"] if "hidden_count" in align else align
     return align[align["method"].isin(METHODS)][COLUMNS].reset_index(drop=True)
 
 
 @pytest.mark.slow
 def test_ring_macro_table_matches_reference(tmp_path: Path) -> None:
+    if REFERENCE is None:
+        pytest.fail(
+            "tests/pipeline/test_ring_regression.py: REFERENCE is not measured yet (TODO of "
+            "stop 25); run it with --write and paste the rows"
+        )
     got = ring_macro_rows(tmp_path)
-    ref = pd.read_csv(REFERENCE)
+    ref = pd.DataFrame(REFERENCE, columns=COLUMNS)
     assert list(got[["K", "method"]].itertuples(index=False)) == list(
         ref[["K", "method"]].itertuples(index=False)
     )
@@ -101,9 +109,11 @@ if __name__ == "__main__":
     import tempfile
 
     if sys.argv[1:] != ["--write"]:
-        raise SystemExit(f"usage: python {sys.argv[0]} --write   (re-writes {REFERENCE})")
+        raise SystemExit(f"usage: python {sys.argv[0]} --write   (prints REFERENCE's rows)")
     with tempfile.TemporaryDirectory() as tmp:
         rows = ring_macro_rows(Path(tmp))
-    REFERENCE.parent.mkdir(parents=True, exist_ok=True)
-    rows.to_csv(REFERENCE, index=False, float_format="%.6f")
-    print(rows.to_string(index=False))
+    print("REFERENCE: list[tuple] | None = [")
+    for r in rows.itertuples(index=False):
+        vals = [f"{v:.6f}" if isinstance(v, float) else repr(v) for v in r]
+        print(f"    ({', '.join(vals)}),")
+    print("]")

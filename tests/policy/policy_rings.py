@@ -1,6 +1,7 @@
-"""What the policy tests share: the small paper ring's scenario, an episode bank completed with
-the true hidden states (which isolates Stage II from the generator), observation pairs of a
-road in the lookahead layout, and a policy with a Gipps prior."""
+"""What the policy tests share: the small paper ring's scenario (its closed one-lane section),
+an episode bank completed with the true hidden states (which isolates Stage II from the
+generator), its env core, observation pairs of a road in the lookahead layout, and a policy
+with a Gipps prior."""
 
 from __future__ import annotations
 
@@ -10,15 +11,19 @@ from typing import Any
 import numpy as np
 from conftest import SMALL_RING, write_scenario
 
-from macromicro_sumo.data.ring import load_ground_truth, split_runs
-from macromicro_sumo.env.ring import EpisodeBank, build_bank
+from macromicro_sumo.data.section import section_snapshots, split_runs
+from macromicro_sumo.env.section import SectionCore
+from macromicro_sumo.env.section_bank import SectionBank, build_section_bank
+from macromicro_sumo.env.section_envs import true_section_completion
 from macromicro_sumo.evaluation.idm_fit import GippsParams
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.scenario.load import load_scenario
-from macromicro_sumo.scenario.ring import Scenario
+from macromicro_sumo.scenario.section import SectionScenario
+from macromicro_sumo.sumo.inputs import scenario_inputs
+from macromicro_sumo.truth.section import load_section, load_section_truth
 
 
-def ring_scenario(folder: Path, overrides: dict[str, Any]) -> Scenario:
+def ring_scenario(folder: Path, overrides: dict[str, Any]) -> SectionScenario:
     """The paper ring with ``SMALL_RING`` and ``overrides`` (keys of the stages after the
     simulation: ``small_ring_gt`` is its ground truth), written into ``folder``."""
     assert not any(k.startswith(("simulation.", "fleet.", "seed")) for k in overrides)
@@ -26,14 +31,25 @@ def ring_scenario(folder: Path, overrides: dict[str, Any]) -> Scenario:
 
 
 def true_state_bank(
-    sc: Scenario, gt_dir: Path, k: int | tuple[int, int] = (1, 3), split: str = "train+val"
-) -> tuple[EpisodeBank, dict[str, np.ndarray]]:
+    sc: SectionScenario,
+    gt_dir: Path,
+    k: int | tuple[int, int] = (1, 3),
+    split: str = "train+val",
+) -> tuple[SectionBank, dict[str, np.ndarray]]:
     """Episodes of ``split``'s runs ("train", or "train+val") with ``k`` hidden vehicles
-    completed by the true hidden states; and the run split."""
-    gt = load_ground_truth(gt_dir, sc)
-    splits = split_runs(gt.runs, sc.generator.held_out_fraction, sc.seed)
+    (or K drawn per snapshot from a range) completed by the true hidden states; and the
+    run split."""
+    truth = load_section_truth(gt_dir, sc)
+    splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
     runs = np.concatenate([splits[s] for s in split.split("+")])
-    return build_bank(sc, gt, runs, lambda s: (s.arc_m, s.speed_mps), k, 0), splits
+    snaps = section_snapshots(truth, sc, runs, (k, k) if isinstance(k, int) else k)
+    bank = build_section_bank(sc, truth, snaps, true_section_completion, sc.policy.horizon, 0)
+    return bank, splits
+
+
+def ring_core(sc: SectionScenario, bank: SectionBank, seed: int = 0) -> SectionCore:
+    """The env core over ``bank`` on the ring's section (``policy.ppo``'s default core)."""
+    return SectionCore(sc, load_section(sc)[1], bank, scenario_inputs(sc).net_file, seed=seed)
 
 
 def lookahead_pairs(

@@ -2,16 +2,13 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pandas as pd
 import pytest
 import torch
-from policy_rings import ring_scenario, true_state_bank
+from policy_rings import ring_core, ring_scenario, true_state_bank
 
 from macromicro_sumo import cli
-from macromicro_sumo.env.ring import RingCore
 from macromicro_sumo.policy.ppo import clipped_actions, gae
 
 
@@ -51,7 +48,7 @@ def test_replay_of_all_vehicles_reproduces_ground_truth(small_gt):
     vehicle too, the env reproduces the recorded fleet exactly (speed mode 0)."""
     sc, gt_dir = small_gt
     bank = _bank(sc, gt_dir, 1)
-    core = RingCore(sc, bank, seed=0)
+    core = ring_core(sc, bank)
     try:
         for ep in range(3):
             core.reset(ep)
@@ -59,7 +56,12 @@ def test_replay_of_all_vehicles_reproduces_ground_truth(small_gt):
             for t in range(sc.policy.horizon):
                 res = core.step(bank.gt_accel_mps2[ep, t][h])
                 assert not res.error and not res.collision
-                np.testing.assert_allclose(core.speed, bank.replay_speed_mps[ep, t + 1], atol=1e-6)
+                # The bank replays the observed vehicles (NaN for the hidden, whose recorded
+                # actions drive them here).
+                want = bank.replay_speed_mps[ep, t + 1]
+                seen = np.isfinite(want)
+                assert seen.sum() == bank.valid[ep].sum() - h.sum()
+                np.testing.assert_allclose(core.speed[seen], want[seen], atol=1e-6)
                 assert 0.0 < res.r_macro <= 1.0
     finally:
         core.close()
@@ -68,7 +70,7 @@ def test_replay_of_all_vehicles_reproduces_ground_truth(small_gt):
 def test_actions_are_clipped_to_bounds(small_gt):
     sc, gt_dir = small_gt
     bank = _bank(sc, gt_dir, 2)
-    core = RingCore(sc, bank, seed=0)
+    core = ring_core(sc, bank)
     try:
         core.reset(0)
         h = bank.hidden[0]
@@ -121,42 +123,4 @@ def test_train_policy_cli_writes_policy_and_log(small_gt, tmp_path):
     } <= set(log.columns)
     # The likelihood of the observed vehicles' actions improves with training.
     assert log["r_micro_per_pair"].iloc[-1] > log["r_micro_per_pair"].iloc[0]
-    align = pd.read_csv(pol / "policy_heldout_speed.csv")
-    assert (align["collisions"] == 0).all()
-    assert (align["abs_error_mps"] < 0.3).all()
     assert (pol / "policy.pt").is_file()
-
-
-@pytest.mark.parametrize("speed_scale", [0.0, 0.1])
-def test_env_macro_reward_equals_the_shared_loss_terms(small_gt, speed_scale):
-    """The env's single-ring fast path computes exactly macro.spacing_losses / speed_loss."""
-    from macromicro_sumo.data.macro import spacing_losses, speed_loss
-    from macromicro_sumo.road.physics import ring_leaders
-
-    sc, gt_dir = small_gt
-    bank = _bank(sc, gt_dir, 3)
-    sc = dataclasses.replace(
-        sc, policy=dataclasses.replace(sc.policy, macro_speed_scale_mps=speed_scale)
-    )
-    core = RingCore(sc, bank, seed=0)
-    try:
-        for ep in range(5):
-            core.reset(ep)
-            res = core.step(np.zeros(3))
-            leader, spacing = ring_leaders(core.arc, core.length)
-            np.testing.assert_allclose(core.spacing, spacing, atol=1e-9)
-            touched = core.hidden | core.hidden[leader]
-            p = core.psi
-            target = None if bank.spacing_std_m is None else bank.spacing_std_m[ep : ep + 1]
-            ref = spacing_losses(spacing[None], touched[None], p[1:2], p[2:3], p[3:4], target)
-            for key, val in ref.items():
-                assert res.terms[key] == pytest.approx(float(val[0]), abs=1e-12)
-            assert res.terms["L_speed"] == pytest.approx(
-                float(speed_loss(core.speed[None], p[0:1], speed_scale)[0]), abs=1e-12
-            )
-            g = sc.generator
-            l_dist = sum(res.terms[k] for k in ("L_mean", "L_min", "L_max", "L_var"))
-            want = 1 / (1 + g.lambda_v * res.terms["L_speed"] + g.lambda_d * l_dist)
-            assert res.r_macro == pytest.approx(want, rel=1e-12)
-    finally:
-        core.close()

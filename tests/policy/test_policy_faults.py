@@ -17,11 +17,12 @@ import torch
 from conftest import write_scenario
 
 from macromicro_sumo import cli
-from macromicro_sumo.env.ring import RingCore
-from macromicro_sumo.env.ring_envs import make_bank
+from macromicro_sumo.env.section import SectionCore
+from macromicro_sumo.env.section_envs import make_section_bank
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.policy.checkpoint import load_checkpoint, load_policy
 from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.sumo.inputs import scenario_inputs
 
 UPDATES = 12
 
@@ -144,17 +145,19 @@ def test_resume_from_another_scenario_is_refused(setup, tmp_path, capsys):
 
 def test_sumo_error_inside_an_episode_truncates_with_reason(setup):
     path, gt, gen = setup
-    sc, bank = make_bank(load_scenario(path), gt, None, "train", 2, 0)
-    core = RingCore(sc, bank, seed=0)
+    sc, truth, bank = make_section_bank(load_scenario(path), gt, None, "train", 0)
+    core = SectionCore(sc, truth.section, bank, scenario_inputs(sc).net_file, seed=0)
     try:
         core.reset(0)
-        core.step(np.zeros(2))
-        core.sim.remove_vehicles([core.ids[0]])  # a vehicle lost mid-episode
-        res = core.step(np.zeros(2))
-        assert res.truncated and "veh0" in res.error
+        k = int(core.hidden.sum())
+        core.step(np.zeros(k))
+        lost = core.ids[int(np.flatnonzero(core.hidden)[0])]
+        core.sim.remove_vehicles([lost])  # a hidden vehicle lost mid-episode
+        res = core.step(np.zeros(k))
+        assert res.truncated and lost in res.error
         # The next episode starts whole again: the lost vehicle is re-inserted.
         core.reset(1)
-        res = core.step(np.zeros(2))
+        res = core.step(np.zeros(int(core.hidden.sum())))
         assert not res.error and not res.truncated
     finally:
         core.close()
@@ -163,7 +166,7 @@ def test_sumo_error_inside_an_episode_truncates_with_reason(setup):
 def test_a_generator_given_as_policy_is_named_for_what_it_is(setup):
     path, _, gen = setup
     with pytest.raises(
-        UserError, match="not a policy checkpoint \\(a 'macromicro-generator' file\\)"
+        UserError, match="not a policy checkpoint \\(a 'macromicro-section-generator' file\\)"
     ):
         load_checkpoint(gen, load_scenario(path))
 

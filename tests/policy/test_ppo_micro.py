@@ -8,9 +8,8 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
-from policy_rings import ring_scenario, true_state_bank
+from policy_rings import ring_core, ring_scenario, true_state_bank
 
-from macromicro_sumo.env.ring import RingCore
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.ppo import (
@@ -49,7 +48,7 @@ def ring(small_ring_gt, tmp_path_factory):
 
 
 def _rollout(sc, bank, agent, episodes):
-    core = RingCore(sc, bank, seed=0)
+    core = ring_core(sc, bank)
     try:
         return collect(agent, core, episodes, 0.0, sc.policy.horizon, torch.Generator())
     finally:
@@ -94,7 +93,7 @@ def test_validation_selection_keeps_the_best_update(ring, tmp_path):
     res = train_policy(sc, bank, tmp_path, progress=False, val_runs=val_runs)
     logged = [row["val_micro_logp"] for row in res["log"]]
     assert np.isfinite(logged).all()
-    core = RingCore(sc, bank, seed=0)
+    core = ring_core(sc, bank)
     try:
         val_obs, val_act = validation_pairs(
             res["agent"], core, split_episodes(bank.run, val_runs)[1], sc.policy.horizon, sc

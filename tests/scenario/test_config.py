@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import subprocess
 import sys
 
@@ -12,24 +11,23 @@ import pytest
 from conftest import PAPER_SCENARIO, ROOT, dump_toml, scenario_table
 
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.scenario.fleet import FleetConfig
 from macromicro_sumo.scenario.load import load_scenario, scenario_from_dict
-from macromicro_sumo.scenario.ring import DetectorConfig, FleetConfig, NetworkConfig, Scenario
+from macromicro_sumo.scenario.section import SectionScenario
 
 
 def test_paper_scenario_loads_into_typed_dataclasses():
+    """A ring file is the closed one-lane section of its generated net, its fleet the demand."""
     sc = load_scenario(PAPER_SCENARIO)
-    assert isinstance(sc, Scenario)
-    assert isinstance(sc.network, NetworkConfig) and isinstance(sc.fleet, FleetConfig)
+    assert isinstance(sc, SectionScenario) and isinstance(sc.fleet, FleetConfig)
     assert (sc.name, sc.seed) == ("ring_paper", 2024)
-    assert sc.network.radius_m == 100.0 and type(sc.network.radius_m) is float
-    assert sc.network.length_m == pytest.approx(2 * math.pi * 100.0)
+    assert sc.network.kind == "sumo" and sc.section.closed
+    assert list(sc.section.edges) == ["e0", "e1", "e2", "e3"]
     assert sc.fleet.n_vehicles == 5 and type(sc.fleet.n_vehicles) is int
     assert sc.fleet.accel_mps2 == (0.8, 1.2)
     assert sc.fleet.max_speed_mps == (50.0, 50.0)
     assert sc.speed_limits.range_mps == (12.0, 14.0)
     assert sc.simulation.step_length_s == 0.5 and sc.simulation.n_runs == 40
-    assert sc.bounds.spacing_m == (115.0, 140.0)
-    assert sc.bounds.speed_mps == (10.5, 14.0)
     assert sc.bounds.accel_mps2 == (-1.1, 0.5)
     assert sc.generator.hidden_train == (0, 5) and sc.generator.t_max == 20
     # eta 0.6 with a 0.1 m/s speed scale: a documented departure (paper: 0.3, relative error)
@@ -43,7 +41,7 @@ def test_paper_scenario_loads_into_typed_dataclasses():
 
 def test_omitted_tables_and_keys_take_defaults(make_scenario):
     sc = load_scenario(make_scenario(drop=("detectors", "fleet.delta", "speed_limits.step_mps")))
-    assert sc.detectors == DetectorConfig()
+    assert sc.detectors.interval_s == 60.0
     assert sc.fleet.delta == 4.0
     assert sc.speed_limits.step_mps == 0.5
 
@@ -55,10 +53,20 @@ def test_overrides_are_applied_and_validated(make_scenario):
         load_scenario(path, {"fleet.n_vehicles": 1})
 
 
-def test_driver_speed_on_the_ring_is_named(make_scenario):
-    """The ring wing's env has no per-driver speed: an error, not a silently ignored key."""
-    with pytest.raises(UserError, match=r'policy\.driver_speed = "drawn" is for section scenarios'):
-        load_scenario(make_scenario(), {"policy.driver_speed": "drawn"})
+def test_road_ring_and_removed_keys_name_the_change(make_scenario):
+    """Stop 25 removed the ring wing: its switch and its keys are one line each, naming what
+    to do; road = "section" (what every file is now) still loads."""
+    path = make_scenario()
+    assert load_scenario(path, {"road": "section"}).name == "ring_paper"
+    with pytest.raises(UserError, match=r"road = 'ring' was removed \(stop 25\)"):
+        load_scenario(path, {"road": "ring"})
+    with pytest.raises(UserError, match=r"policy\.refine_iterations was removed in stop 25"):
+        load_scenario(path, {"policy.refine_iterations": 1})
+    section = PAPER_SCENARIO.parent / "ring_paper_section.toml"
+    with pytest.raises(UserError, match=r"replaced by generator\.eval_completions"):
+        load_scenario(section, {"evaluation.completions_per_scene": 4})
+    # On a ring file the key still maps onto generator.eval_completions.
+    assert load_scenario(path).generator.eval_completions == 4
 
 
 def test_scenario_round_trips_through_its_dict():

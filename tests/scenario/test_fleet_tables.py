@@ -9,16 +9,16 @@ import pytest
 from conftest import PAPER_SCENARIO, ROOT
 
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.scenario import ring, section
-from macromicro_sumo.scenario.fleet import FleetConfig, fleet_demand
+from macromicro_sumo.scenario import section
+from macromicro_sumo.scenario.fleet import fleet_demand
 from macromicro_sumo.scenario.load import load_scenario, scenario_from_dict
 
 RING_AS_SECTION = ROOT / "scenarios" / "ring_paper_section.toml"
 TWO_LANE = ROOT / "scenarios" / "ring_two_lane.toml"
 
 
-def test_ring_and_section_share_the_fleet_dataclasses():
-    assert ring.FleetConfig is FleetConfig
+def test_sections_have_the_fleet_dataclasses():
+    assert section.SectionScenario.__dataclass_fields__["fleet"].type is not None
     hints = section.SectionScenario.__dataclass_fields__
     assert {"fleet", "speed_limits", "initial"} <= set(hints)
 
@@ -26,7 +26,7 @@ def test_ring_and_section_share_the_fleet_dataclasses():
 def test_ring_paper_section_draws_the_demand_of_ring_paper():
     paper, sec = load_scenario(PAPER_SCENARIO), load_scenario(RING_AS_SECTION)
     assert isinstance(sec, section.SectionScenario)
-    assert fleet_demand(sec) == paper.fleet_demand
+    assert fleet_demand(sec) == fleet_demand(paper)
     assert sec.seed == paper.seed
     assert sec.simulation.step_length_s == paper.simulation.step_length_s
     assert sec.simulation.duration_s == paper.simulation.duration_s

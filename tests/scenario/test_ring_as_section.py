@@ -1,25 +1,25 @@
-"""A ring file read as a section scenario (``road = "section"``, scenario/ring_as_section.py)."""
+"""A ring file read as a section scenario (scenario/ring_as_section.py): how every ring file
+loads since stop 25."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import tomllib
 import xml.etree.ElementTree as ET
 
 import pytest
-from conftest import NETS, PAPER_SCENARIO, ROOT
+from conftest import NETS, ROOT
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.ring import read_ring
 from macromicro_sumo.scenario.load import load_scenario, scenario_from_dict
-from macromicro_sumo.scenario.ring import DetectorConfig, GeneratorConfig, Scenario
 from macromicro_sumo.scenario.ring_as_section import RING_GENERATOR_DEFAULTS, detector_file
 from macromicro_sumo.scenario.section import SectionGeneratorConfig, SectionScenario
-from macromicro_sumo.truth.ring_detectors import detectors_xml
 
 SCENARIOS = ROOT / "scenarios"
 RING_FILES = ["ring_paper", "ring_paper_strict", "ring_sweep", "ring_sugiyama"]
-SECTION = {"road": "section"}
+SECTION: dict = {}  # no key needed: a ring file is a section
 
 
 def _mapped(name: str) -> SectionScenario:
@@ -38,53 +38,44 @@ def test_ring_paper_maps_to_ring_paper_section_in_every_field_but_its_name():
     assert scenario_from_dict(stored, mapped.source) == mapped
 
 
-def test_the_default_road_is_still_the_ring_wing():
-    assert isinstance(load_scenario(PAPER_SCENARIO), Scenario)
-    assert isinstance(load_scenario(PAPER_SCENARIO, {"road": "ring"}), Scenario)
-
-
 @pytest.mark.parametrize("name", RING_FILES)
-def test_every_ring_file_loads_as_a_section_with_the_ring_wings_settings(name):
-    ring = load_scenario(SCENARIOS / f"{name}.toml", allow_sweep=True)
+def test_every_ring_file_loads_as_a_section_with_its_settings(name):
+    raw = tomllib.loads((SCENARIOS / f"{name}.toml").read_text())
     sec = _mapped(name)
-    assert isinstance(ring, Scenario) and isinstance(sec, SectionScenario)
-    assert sec.section.closed and len(sec.section.edges) == ring.network.n_edges
-    assert sec.resolve(sec.network.net_file) == ring.resolve(ring.network.net_file)
+    assert isinstance(sec, SectionScenario)
+    assert sec.section.closed and len(sec.section.edges) == raw["network"].get("n_edges", 4)
+    net = (SCENARIOS / raw["network"]["net_file"]).resolve()
+    assert sec.resolve(sec.network.net_file) == net
     assert sec.network.route_files == [] and len(sec.network.additional_files) == 1
-    assert (sec.fleet, sec.speed_limits, sec.initial) == (
-        ring.fleet,
-        ring.speed_limits,
-        ring.initial,
-    )
-    assert (sec.seed, sec.policy, sec.deploy) == (ring.seed, ring.policy, ring.deploy)
-    assert sec.simulation.warmup_s == 0.0
+    assert sec.fleet.n_vehicles == raw["fleet"]["n_vehicles"]
+    assert sec.speed_limits.range_mps == tuple(raw["speed_limits"]["range_mps"])
+    assert sec.seed == raw["seed"] and sec.simulation.warmup_s == 0.0
     for key in ("step_length_s", "duration_s", "n_runs"):
-        assert getattr(sec.simulation, key) == getattr(ring.simulation, key)
-    assert sec.detectors.interval_s == ring.detectors.interval_s and sec.detectors.use_user
-    assert sec.bounds.accel_mps2 == ring.bounds.accel_mps2
-    assert sec.bounds.min_gap_m == ring.fleet.min_gap_m[0]
-    # Every generator key both wings have reads as the ring read it, defaults included.
-    shared = {f.name for f in dataclasses.fields(SectionGeneratorConfig)}
-    for f in dataclasses.fields(GeneratorConfig):
-        if f.name in shared:
-            assert getattr(sec.generator, f.name) == getattr(ring.generator, f.name), f.name
+        assert getattr(sec.simulation, key) == raw["simulation"].get(key, 0.5)
+    assert sec.detectors.use_user
+    assert sec.bounds.accel_mps2 == tuple(raw["bounds"]["accel_mps2"])
+    assert sec.bounds.min_gap_m == raw["fleet"]["min_gap_m"][0]
+    for key, value in raw["generator"].items():  # every generator key reads as written
+        if key not in ("lambda_rec", "psi_source"):  # 0 and "detectors": the section's own
+            got = getattr(sec.generator, key)
+            assert got == (tuple(value) if isinstance(value, list) else value), key
+    for key, default in RING_GENERATOR_DEFAULTS.items():  # ... and the ring's defaults
+        assert getattr(sec.generator, key) == raw["generator"].get(key, default), key
     assert sec.generator.k_source == "truth" and sec.instrumented.hidden == "snapshot"
-    assert sec.generator.eval_completions == ring.evaluation.completions_per_scene
-    assert sec.evaluation == dataclasses.replace(ring.evaluation, completions_per_scene=1)
+    completions = raw.get("evaluation", {}).get("completions_per_scene", 1)
+    assert sec.generator.eval_completions == completions
 
 
 def test_a_section_file_loads_the_same_with_road_section():
     path = SCENARIOS / "ring_two_lane.toml"
     assert load_scenario(path, SECTION) == load_scenario(path)
-    with pytest.raises(UserError, match="road = 'ring' is for ring files"):
+    with pytest.raises(UserError, match="road = 'ring' was removed"):
         load_scenario(path, {"road": "ring"})
 
 
-def test_the_ring_generator_defaults_are_the_ring_wings_where_the_section_differs():
-    ring = {f.name: f.default for f in dataclasses.fields(GeneratorConfig)}
+def test_the_ring_generator_defaults_differ_from_the_sections():
     sec = {f.name: f.default for f in dataclasses.fields(SectionGeneratorConfig)}
-    differ = {k: v for k, v in ring.items() if k in sec and sec[k] != v}
-    assert differ == RING_GENERATOR_DEFAULTS
+    assert all(k in sec and sec[k] != v for k, v in RING_GENERATOR_DEFAULTS.items())
 
 
 @pytest.mark.parametrize(
@@ -133,10 +124,12 @@ def _loops(xml: str) -> set[tuple[str, str, float, float]]:
 
 @pytest.mark.parametrize("net", ["ring_r100_e4.net.xml", "ring_r36.6_e4.net.xml"])
 def test_the_shipped_detector_files_place_the_ring_truths_loops(net):
-    """The section reads the ring's detectors from the file beside its net: the same E1 and
-    E2 as the ring truth writes per run (its instantaneous loops aside)."""
+    """The section reads the ring's detectors from the file beside its net: an E1 loop at
+    mid-edge and an E2 over every edge (as the ring wing's truth wrote them per run)."""
     geo = read_ring(NETS / net)
-    ring = _loops(detectors_xml(geo, DetectorConfig()))
+    edges = list(zip(geo.lane_ids, geo.lengths_m, strict=True))
+    ring = {("e1", lane, round(0.5 * length, 4), 0.0) for lane, length in edges}
+    ring |= {("e2", lane, 0.0, round(length, 4)) for lane, length in edges}
     shipped = _loops((NETS / detector_file(net)).read_text())
     assert len(shipped) == 2 * len(geo.edge_ids) and shipped == ring
 

@@ -1,5 +1,5 @@
-"""The IDM fleet as the demand of a closed one-lane section: the section ground truth on the
-ring network drives the ring truth's vehicles, with the same draws, exactly as it does."""
+"""The IDM fleet as the demand of a closed one-lane section: a ring file and the section
+table spelled out (its own detectors) drive the same vehicles, with the same draws."""
 
 from __future__ import annotations
 
@@ -13,7 +13,6 @@ from conftest import NETS, dump_toml, scenario_table
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.scenario.section import SectionScenario
-from macromicro_sumo.truth.ring import simulate
 from macromicro_sumo.truth.section import load_section, simulate_section
 
 # Small: 2 runs of 60 s, 4 vehicles (a few seconds of SUMO each).
@@ -56,12 +55,12 @@ def truths(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Sectio
     ring_sc = load_scenario(write(tmp / "ring.toml", ring))
     sec_sc = load_scenario(write(tmp / "section.toml", section_table(ring)))
     assert isinstance(sec_sc, SectionScenario)
-    ring_out = simulate(ring_sc, tmp / "ring_truth", progress=False)
+    ring_out = simulate_section(ring_sc, tmp / "ring_truth", progress=False)
     sec_out = simulate_section(sec_sc, tmp / "section_truth", progress=False)
     return ring_out, sec_out, sec_sc
 
 
-def test_section_truth_of_a_fleet_drives_the_ring_truths_vehicles_exactly(truths):
+def test_a_ring_file_and_its_section_table_drive_the_same_vehicles(truths):
     ring_out, sec_out, _ = truths
     ring = pd.read_csv(ring_out / "trajectories.csv", dtype={"vehicle_id": str})
     sec = pd.read_csv(sec_out / "trajectories.csv", dtype={"vehicle_id": str})
@@ -70,10 +69,9 @@ def test_section_truth_of_a_fleet_drives_the_ring_truths_vehicles_exactly(truths
     # The same rows: every vehicle at every step of both runs, on the same time grid.
     assert len(ring) == len(sec) == 2 * 120 * 4
     assert (ring[keys].to_numpy() == sec[keys].to_numpy()).all()
-    # The same states: identical draws, SUMO seeds and vTypes (the routes differ: the
-    # ring's rerouters against the section's long loop routes; SUMO's car following does
-    # not read them on one lane). CSV's decimal rounding is the only tolerance.
-    assert np.abs(ring["arc_pos_m"] - sec["arc_m"]).max() < 1e-6
+    # The same states: identical draws, SUMO seeds and vTypes (the detectors differ: the
+    # ring's E1/E2 file against loops every 157 m; they do not move a vehicle).
+    assert np.abs(ring["arc_m"] - sec["arc_m"]).max() < 1e-6
     assert np.abs(ring["speed_mps"] - sec["speed_mps"]).max() < 1e-6
     # And the dynamics are not trivial: the fleet changes speed away from equilibrium.
     assert ring.groupby("vehicle_id")["speed_mps"].agg(np.ptp).min() > 0.1
