@@ -21,12 +21,12 @@ from pathlib import Path
 import libsumo
 import numpy as np
 import torch
-
 from macromicro_sumo.data.ring import load_ground_truth, split_runs
 from macromicro_sumo.env.ring import RingCore, build_bank
+from macromicro_sumo.truth.ring import simulate
+
 from macromicro_sumo.policy.ppo import train_policy
 from macromicro_sumo.scenario.load import load_scenario
-from macromicro_sumo.truth.ring import simulate
 
 
 def bench_core(core: RingCore, steps: int, horizon: int, rng: np.random.Generator) -> float:

@@ -41,7 +41,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch
-
 from macromicro_sumo.data.ring import (
     GroundTruth,
     Snapshots,
@@ -58,8 +57,9 @@ from macromicro_sumo.generator.ring_train import (
     run_train_generator,
     train_generator,
 )
-from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.ring import simulate
+
+from macromicro_sumo.scenario.load import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGET_ONE_MS = 2.0

@@ -23,15 +23,15 @@ from pathlib import Path
 
 import libsumo  # benchmarks may talk to SUMO directly; the package goes through sumo.py
 import numpy as np
+from macromicro_sumo.scenario.ring import Scenario
+from macromicro_sumo.truth.ring import record_run, simulate
 
 from macromicro_sumo.road.ring import RingGeometry, read_ring
 from macromicro_sumo.scenario.load import load_scenario
-from macromicro_sumo.scenario.ring import Scenario
 from macromicro_sumo.sumo.fleet import vtypes_xml
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.truth import ring_detectors as detectors
 from macromicro_sumo.truth.fleet import RunSpec, sample_run
-from macromicro_sumo.truth.ring import record_run, simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGET_RATIO = 2.0

@@ -24,12 +24,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch
-
 from macromicro_sumo.data.ring import load_ground_truth, split_runs
+from macromicro_sumo.evaluation.ring import leader_follower_tests, micro_pairs
+
 from macromicro_sumo.evaluation import leader_follower as lf
 from macromicro_sumo.evaluation.idm_fit import calibrate_idm
 from macromicro_sumo.evaluation.leader_follower_section import run_leader_follower_for
-from macromicro_sumo.evaluation.ring import leader_follower_tests, micro_pairs
 from macromicro_sumo.policy.checkpoint import load_policy
 from macromicro_sumo.road.section import read_section
 from macromicro_sumo.scenario.load import load_scenario

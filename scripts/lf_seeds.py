@@ -36,8 +36,10 @@ from pathlib import Path
 
 import pandas as pd
 import torch
-
 from macromicro_sumo.data.ring import load_ground_truth, split_runs
+from macromicro_sumo.generator.ring_train import load_generator
+from macromicro_sumo.scenario.ring import Scenario
+
 from macromicro_sumo.evaluation.leader_follower import (
     LeaderProfile,
     mean_idm_params,
@@ -45,11 +47,9 @@ from macromicro_sumo.evaluation.leader_follower import (
     policy_follower,
     run_leader_follower,
 )
-from macromicro_sumo.generator.ring_train import load_generator
 from macromicro_sumo.policy.ppo import train_policy
 from macromicro_sumo.policy.stage import heldout_speed, training_bank
 from macromicro_sumo.scenario.load import load_scenario
-from macromicro_sumo.scenario.ring import Scenario
 
 
 def lf_rmse(sc: Scenario, agent) -> tuple[pd.DataFrame, pd.DataFrame]:

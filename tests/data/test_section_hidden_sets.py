@@ -14,12 +14,12 @@ from conftest import bremen_files_with
 from fleet_scenarios import small_fleet_table, write_fleet_scenario
 
 from macromicro_sumo.cli import main
-from macromicro_sumo.data.section import split_runs
 from macromicro_sumo.data.section import (
     hide_random,
     recorded_snapshots,
     section_snapshots,
     snapshots_by_k,
+    split_runs,
 )
 from macromicro_sumo.env.section_bank import build_section_bank
 from macromicro_sumo.errors import UserError
