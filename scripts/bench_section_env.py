@@ -73,7 +73,15 @@ def bench_bare(core: SectionCore, steps: int, rng: np.random.Generator) -> float
                 depart="now",
                 departLane=str(lane),
                 departPos=repr(pos),
-                departSpeed=repr(min(float(bank.speed0_mps[ep, i]), 44.0)),
+                # No faster than the lane allows (a fleet's limits are per run, the net's
+                # may be lower).
+                departSpeed=repr(
+                    min(
+                        float(bank.speed0_mps[ep, i]),
+                        44.0,
+                        libsumo.lane.getMaxSpeed(f"{sec.edge_ids[e]}_{lane}"),
+                    )
+                ),
             )
         libsumo.simulationStep()
         for vid in ids:

@@ -27,10 +27,12 @@ import torch
 
 from macromicro_sumo import cli
 from macromicro_sumo.data.section import split_runs
+from macromicro_sumo.generator.section_train import load_section_generator
 from macromicro_sumo.pipeline.build import fit_residual_prior
 from macromicro_sumo.policy.ppo import train_policy
-from macromicro_sumo.policy.stage import SECTION
+from macromicro_sumo.policy.stage import section_episodes
 from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.truth.section import load_section_truth
 
 SUMMARY = ["share_geh_below_5", "share_speed_within_5pct", "speed_rmse_mps", "speed_bias_mps"]
 
@@ -45,10 +47,10 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     sc = load_scenario(args.scenario)
-    truth = SECTION.load_truth(args.data, sc)
-    net = SECTION.load_generator(args.generator, sc)
+    truth = load_section_truth(args.data, sc)
+    net = load_section_generator(args.generator, sc)
     splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
-    episodes = SECTION.episodes(sc, truth, net, splits)
+    episodes = section_episodes(sc, truth, net, splits)
     runs = np.concatenate([splits["train"], splits["val"]])
     prior, pairs = None, None
     if sc.policy.prior != "none":
