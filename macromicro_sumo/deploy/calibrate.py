@@ -76,20 +76,8 @@ def detector_loss(truth: pd.DataFrame, sim: pd.DataFrame) -> float:
 
 
 def loss_frame(det: pd.DataFrame) -> pd.DataFrame:
-    """``detector_loss``'s columns from either ``detectors.csv``: a section's as written; the
-    ring's induction loops (``flow_vehph``) with their harmonic-mean (space-mean) speed, as
-    the comparison reads them. SUMO's -1 (nobody passed) is no speed."""
-    if "flow_vehph" in det.columns:
-        e1 = det[det["kind"] == "E1"]
-        det = pd.DataFrame(
-            {
-                "run": e1["run"],
-                "detector_id": e1["detector_id"],
-                "begin_s": e1["begin_s"],
-                "flow_vph": e1["flow_vehph"],
-                "speed_mps": e1["harmonic_mean_speed_mps"],
-            }
-        )
+    """``detector_loss``'s columns from ``detectors.csv``, as written. SUMO's -1 (nobody
+    passed) is no speed."""
     out = det[["run", "detector_id", "begin_s", "flow_vph", "speed_mps"]].copy()
     out["begin_s"] = out["begin_s"].round(3)
     out.loc[out["speed_mps"] < 0, "speed_mps"] = np.nan

@@ -192,42 +192,9 @@ def station_names(kind: pd.Series, arc_m: pd.Series) -> pd.Series:
 
 
 def loop_rows(det: pd.DataFrame) -> pd.DataFrame:
-    """One row per detector and interval in one schema, from either ``detectors.csv``.
-
-    Ring (``edge_id``, ``flow_vehph``): one station per edge, flow and speed from its
-    induction loop (harmonic mean: the space-mean speed), density from its lane-area
-    detector's mean vehicle number per km where it has one, else flow / speed. Section:
-    flow and speed as the file has them, density ``density_vpkm`` (E1: flow / speed; E2:
-    vehicles on the detector per km).
+    """One row per detector and interval from ``detectors.csv``: flow and speed as the file
+    has them, density ``density_vpkm`` (E1: flow / speed; E2: vehicles on the detector per km).
     """
-    if "flow_vehph" in det.columns:
-        e1 = det[det["kind"] == "E1"]
-        e2 = det[det["kind"] == "E2"].set_index(["run", "edge_id", "begin_s"])
-        key = pd.MultiIndex.from_frame(e1[["run", "edge_id", "begin_s"]])
-        flow, speed = e1["flow_vehph"].to_numpy(float), e1["harmonic_mean_speed_mps"].to_numpy()
-        with np.errstate(divide="ignore", invalid="ignore"):
-            from_flow = np.where(speed > 0, flow / speed / 3.6, 0.0)
-        lane_area = (
-            (e2["mean_vehicle_number"] / e2["detector_length_m"] * 1000.0).reindex(key).to_numpy()
-            if len(e2)
-            else np.full(len(e1), np.nan)
-        )
-        return pd.DataFrame(
-            {
-                "run": e1["run"].to_numpy(),
-                "station": e1["edge_id"].astype(str).to_numpy(),
-                "kind": "e1",
-                "lane_index": 0,
-                "arc_m": np.nan,
-                "begin_s": e1["begin_s"].to_numpy(),
-                "end_s": e1["end_s"].to_numpy(),
-                "n_veh": e1["n_veh"].to_numpy(),
-                "flow_vph": flow,
-                "speed_mps": speed,
-                "density_vpkm": np.where(np.isfinite(lane_area), lane_area, from_flow),
-                "sampled_s": np.nan,
-            }
-        )
     out = det.reindex(
         columns=["run", "kind", "lane_index", "arc_m", "begin_s", "end_s", "n_veh", *MEASURES]
     ).copy()

@@ -2,9 +2,8 @@
 speed, acceleration, time headway and time-to-collision, compared by their Wasserstein-1
 distance.
 
-Both schemas of ``trajectories.csv`` are read: the ring's (``arc_pos_m`` with the leader's
-gap and speed already recorded per row) and a section's (``lane_index``, ``arc_m``: leaders
-are found here, per lane, with ``road.section.lane_leaders``). Every function is pure.
+``trajectories.csv`` has ``lane_index`` and ``arc_m``: leaders are found here, per lane, with
+``road.section.lane_leaders``. Every function is pure.
 """
 
 from __future__ import annotations
@@ -83,8 +82,7 @@ def lane_trajectories(
     """Rows of ``trajectories.csv`` in one schema (``LANE_COLUMNS``), with the gap to the
     vehicle ahead and that vehicle's speed (NaN: none on the section).
 
-    Ring rows (``arc_pos_m``) carry their leader already. Section rows get theirs here, per
-    run and time: along the ``section``'s lane connections (``section_leaders``: where a
+    Rows get their leader here, per run and time: along the ``section``'s lane connections (``section_leaders``: where a
     lane is added on the right, the leader is the physically next vehicle, not the one
     with the same lane index), by lane index on an open road without ``section``. A lane's
     end is not a vehicle: no leader there. Gap = spacing - the leader's length (its vType's,
@@ -92,9 +90,6 @@ def lane_trajectories(
     record ``gap_m`` and ``leader_speed_mps`` themselves are taken as they are. Without
     ``leaders`` (plots need none) section rows keep NaN gaps.
     """
-    if "arc_pos_m" in traj.columns:
-        out = traj.rename(columns={"arc_pos_m": "arc_m"}).assign(lane_index=0)
-        return out.reindex(columns=LANE_COLUMNS).reset_index(drop=True)
     out = traj.reindex(columns=[*LANE_COLUMNS, "vtype"]).reset_index(drop=True)
     if traj.columns.isin(["gap_m", "leader_speed_mps"]).sum() == 2 or not leaders:
         return out[list(LANE_COLUMNS)]

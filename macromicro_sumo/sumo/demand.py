@@ -16,7 +16,7 @@ from pathlib import Path
 import sumolib
 
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.sumo.inputs import SumoInputs, local_tag, parse_xml, top_elements
+from macromicro_sumo.sumo.inputs import SumoInputs, local_tag, top_elements
 
 DEFAULT_VEHTYPE = "DEFAULT_VEHTYPE"
 """SUMO's implicit vType for vehicles without ``type=``: passenger, length 5 m, minGap 2.5 m,
@@ -212,54 +212,6 @@ def check_demand(inputs: SumoInputs, net: sumolib.net.Net) -> dict[str, VType]:
                     "of the route or additional files"
                 )
     return used
-
-
-def check_ring_routes(path: Path, edge_ids: Sequence[str], net_file: Path) -> None:
-    """The ring's routes file (``network.routes_file``), checked before SUMO starts.
-
-    Vehicles are inserted on route ``r_<edge>`` of the edge they start on and kept going
-    round by a rerouter on every edge (``scripts/build_ring_net.py`` writes both). A missing
-    route made SUMO fail at the first insertion, a missing rerouter let vehicles leave the
-    ring at the end of their route.
-    """
-    path = Path(path)
-    root = parse_xml(path)
-    tag = local_tag(root.tag)
-    if tag not in ("additional", "routes"):
-        raise UserError(
-            f"{path}: not a SUMO routes file (root element <{tag}>, expected <additional> or "
-            "<routes>)"
-        )
-    routes: dict[str, list[str]] = {}
-    rerouted: set[str] = set()
-    for elem in root:
-        kind = local_tag(elem.tag)
-        if kind == "route":
-            routes[elem.get("id", "")] = elem.get("edges", "").split()
-        elif kind == "rerouter":
-            rerouted.update(elem.get("edges", "").split())
-    ring = set(edge_ids)
-    for edge in edge_ids:
-        rid = f"r_{edge}"
-        if rid not in routes:
-            raise UserError(
-                f"{path}: no route '{rid}'; the ring of {Path(net_file).name} needs a route "
-                f"r_<edge> starting on each of its edges ({', '.join(edge_ids)}); "
-                "scripts/build_ring_net.py writes them"
-            )
-        off = [e for e in routes[rid] if e not in ring]
-        if off:
-            raise UserError(
-                f"{path}: route '{rid}' uses edge '{off[0]}' which is not on the ring of "
-                f"{Path(net_file).name}"
-            )
-        if not routes[rid] or routes[rid][0] != edge:
-            raise UserError(f"{path}: route '{rid}' does not start on edge '{edge}'")
-        if edge not in rerouted:
-            raise UserError(
-                f"{path}: no rerouter on ring edge '{edge}'; vehicles would leave the ring at "
-                "the end of their route (scripts/build_ring_net.py writes routes and rerouters)"
-            )
 
 
 def check_vehicle_ids(inputs: SumoInputs, ids: Sequence[str], where: str) -> None:
