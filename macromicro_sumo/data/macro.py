@@ -177,30 +177,6 @@ def detector_macro(det: pd.DataFrame, passages: pd.DataFrame, length_m: float) -
     return pd.DataFrame(rows, columns=MACRO_COLUMNS)
 
 
-def macro_table(
-    traj: pd.DataFrame,
-    det: pd.DataFrame,
-    passages: pd.DataFrame,
-    length_m: float,
-    interval_s: float,
-    duration_s: float,
-) -> pd.DataFrame:
-    """Both sources, one row per run, source and interval (complete intervals only)."""
-    tr = trajectory_macro(traj, length_m, interval_s, duration_s)
-    de = detector_macro(det, passages, length_m)
-    # SUMO closes a last, partial detector interval when the simulation ends (the insertion
-    # step runs it dt past the duration); its estimates are not comparable.
-    complete = {(round(b, 6), round(e, 6)) for b, e in _intervals(interval_s, duration_s)}
-    keep = [
-        (round(b, 6), round(e, 6)) in complete
-        for b, e in zip(de["begin_s"], de["end_s"], strict=True)
-    ]
-    de = de[keep]
-    return pd.concat([de, tr], ignore_index=True).sort_values(
-        ["run", "source", "begin_s"], ignore_index=True
-    )
-
-
 # --------------------------------------------------------------------------- loss terms
 
 

@@ -91,11 +91,6 @@ def simulate_idm_ring(
     return arc, speed
 
 
-def forward_accel(speed_mps: np.ndarray, dt_s: float) -> np.ndarray:
-    """Acceleration applied in each step, (v[t+1] - v[t]) / dt, along axis 0."""
-    return np.diff(speed_mps, axis=0) / dt_s
-
-
 OBSERVATION_FEATURES = {
     "paper": ("speed_mps", "speed_limit_mps", "spacing_m", "delta_v_mps"),
     "lookahead": (
