@@ -69,13 +69,12 @@ def paired_bootstrap_std_ratio_ci(
 def macro_row(
     labels: dict[str, Any], method: str, ro: Rollouts, ref: Rollouts | None, seed: int = 0
 ) -> dict[str, Any]:
-    """One row of macro_alignment.csv, for any road: ``labels`` (``K`` on the ring, the
-    hidden-count source on a section) and the method's macro statistics over every vehicle
+    """One row of macro_alignment.csv, for any road: ``labels`` (the hidden-count source,
+    and ``K`` where every snapshot is judged at every K) and the method's macro statistics over every vehicle
     on the road at every step. With ``ref`` (the ground truth on the same held-out
     snapshots, episode for episode) the errors against it and 95% paired-bootstrap
     intervals of the signed mean-speed error and of the spacing-std error in % (scenes,
-    completions and action noise of this evaluation; not the training seed's noise:
-    ``scripts/lf_seeds.py --speed``)."""
+    completions and action noise of this evaluation; not the training seed's noise)."""
     v, d, a = ro.speed_mps, ro.spacing_m, ro.accel_mps2
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # an episode that ended at once

@@ -25,6 +25,7 @@ from macromicro_sumo.report.alignment import (
     SECTION_ALIGNMENT,
     alignment_reference,
     closest_methods,
+    paper_policy,
 )
 from macromicro_sumo.report.deploy import deployment_section
 from macromicro_sumo.report.tables import markdown_table, read_if_present, table_section
@@ -229,6 +230,24 @@ def idm_calibrated_part(r: Run) -> list[str]:
     return lines + ([f"{ev['idm_true']}.", ""] if ev.get("idm_true") else [])
 
 
+# The paper's ring: its N and its length 2 pi 100 m (where the paper's figures apply).
+PAPER_RING = (5, 2 * 3.141592653589793 * 100.0)
+
+
+def paper_part(r: Run) -> list[str]:
+    """The paper's policy and ground truth beside ours, and the issue's targets, on the
+    paper's ring (a ring file's section of 5 vehicles on 628.3 m); nothing elsewhere."""
+    by_k = r.csv("evaluation/macro_alignment_by_k.csv")
+    fleet = getattr(r.sc, "fleet", None)
+    if by_k is None or fleet is None or fleet.n_vehicles != PAPER_RING[0]:
+        return []
+    if abs(r.json("ground_truth/manifest.json")["section_length_m"] - PAPER_RING[1]) > 1.0:
+        return []
+    if "hidden_count" in by_k:
+        by_k = by_k[by_k["hidden_count"] == "estimated"]
+    return paper_policy(by_k.reset_index(drop=True))
+
+
 def section_leader_follower(r: Run) -> list[str]:
     """The leader-follower tests on the section's own lane path, where they ran, and what
     the followers were measured against (the evaluation manifest)."""
@@ -280,6 +299,7 @@ SECTION_REPORT = ReportKind(
             "evaluation/macro_alignment_by_k.csv",
             shape=lambda t: t[[c for c in ("hidden_count", *RING_ALIGNMENT) if c in t]],
         ),
+        paper_part,
         Table(*MICRO),
         idm_calibrated_part,
         section_leader_follower,

@@ -63,6 +63,7 @@ def test_run_writes_every_stage_and_the_report(pipeline):
     assert set(timings) >= {"simulate", "train_generator", "train_policy", "evaluate"}
     report = (out / "report.md").read_text()
     assert "## Macro alignment" in report and "| policy |" in report
+    assert "paper policy" in report and "Targets for `policy`" in report  # the paper's ring
 
 
 def test_macro_alignment_has_every_method_and_ground_truth_is_the_recording(pipeline):
