@@ -241,6 +241,8 @@ def paper_part(r: Run) -> list[str]:
     fleet = getattr(r.sc, "fleet", None)
     if by_k is None or fleet is None or fleet.n_vehicles != PAPER_RING[0]:
         return []
+    if not (r.out / "ground_truth" / "manifest.json").is_file():
+        return []
     if abs(r.json("ground_truth/manifest.json")["section_length_m"] - PAPER_RING[1]) > 1.0:
         return []
     if "hidden_count" in by_k:
