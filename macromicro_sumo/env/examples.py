@@ -43,8 +43,8 @@ except ImportError:  # pragma: no cover - Windows
 EXAMPLES = ("scenarios", "sumo_nets")  # the folders shipped as package data
 
 DEMO_EXAMPLE = "ring_paper"
-# 20 runs of 180 s (about 400 training episodes) and a generator trained to its early stop:
-# about 10 s on one core.
+# 20 runs of 180 s (about 400 training episodes) and a generator of 200 epochs at most:
+# 25 s on one core through the section stages (measured 26 Nov 2026, loaded machine).
 DEMO_OVERRIDES = {
     "simulation.n_runs": 20,
     "simulation.duration_s": 180.0,
