@@ -223,6 +223,8 @@ def section_head(r: Run) -> list[str]:
 
 
 def idm_calibrated_part(r: Run) -> list[str]:
+    if not (r.out / "evaluation" / "evaluation_manifest.json").is_file():
+        return []  # no evaluation in this folder (yet)
     ev = r.json("evaluation/evaluation_manifest.json")
     fit = json.dumps(ev.get("idm_calibrated", {}))
     lines = [f"IDM calibrated on the observed vehicles: {fit}", ""]
