@@ -28,7 +28,12 @@ from macromicro_sumo.report.alignment import (
     paper_policy,
 )
 from macromicro_sumo.report.deploy import deployment_section
-from macromicro_sumo.report.tables import markdown_table, read_if_present, table_section
+from macromicro_sumo.report.tables import (
+    generator_summary,
+    markdown_table,
+    read_if_present,
+    table_section,
+)
 from macromicro_sumo.truth.section import load_section_truth
 
 ALIGNMENT = "evaluation/macro_alignment.csv"
@@ -289,7 +294,7 @@ SECTION_REPORT = ReportKind(
             ],
         ),
         # Means of the generator's per-snapshot metrics.
-        Table(*GENERATOR, shape=lambda g: g.select_dtypes("number").mean().to_frame("mean").T),
+        Table(*GENERATOR, shape=generator_summary),
         partial(
             alignment_part,
             heading=lambda sc: "held-out runs",
