@@ -74,11 +74,11 @@ def alignment_verdicts(align: pd.DataFrame) -> pd.DataFrame:
         rows.append(
             {
                 "K": k,
-                "speed error (m/s, <= 0.1)": abs(p["mean_speed_mps"] - g["mean_speed_mps"]),
+                "speed error (m/s, <= 0.05)": abs(p["mean_speed_mps"] - g["mean_speed_mps"]),
                 "speed std vs GT (%, within 25)": 100
                 * (p["std_speed_mps"] / g["std_speed_mps"] - 1),
                 "mean spacing - L/N (m)": p["mean_spacing_m"] - g["mean_spacing_m"],
-                "spacing std vs GT (%, within 1)": 100
+                "spacing std vs GT (%, within 1.5)": 100
                 * (p["std_spacing_m"] / g["std_spacing_m"] - 1),
                 "its 95% interval (%)": _spacing_std_interval(p),
                 "collisions (0)": str(int(p["collisions"])),
