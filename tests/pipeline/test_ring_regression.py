@@ -50,14 +50,18 @@ TOLERANCE = {
     "std_spacing_m": (1e-4, 0.15),
 }
 
-# ---------------------------------------------------------------------------------------
-# TODO(stop 25): RE-MEASURE. The ring wing's reference (its own stages, removed in stop 25)
-# no longer applies: the ring now runs through the section stages. Re-measure with
-# ``--write`` once the section stages' speed-up and generator changes of stop 25 are on
-# main, and paste the rows here (one tuple per COLUMNS row). Until then the test fails
-# with that instruction rather than pass against nothing.
-REFERENCE: list[tuple] | None = None
-# ---------------------------------------------------------------------------------------
+# ``make run`` through the section stages, 26 Nov 2026 (stop 25), estimated-count rows of
+# runs/ring_paper/evaluation/macro_alignment_by_k.csv.
+REFERENCE: list[tuple] | None = [
+    (1, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
+    (2, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
+    (3, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
+    (4, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
+    (1, "policy", 12.015126, 0.498174, 125.663706, 32.443317, 0, 350),
+    (2, "policy", 12.019890, 0.491207, 125.663706, 33.116472, 0, 350),
+    (3, "policy", 12.026129, 0.478628, 125.663706, 32.709267, 0, 350),
+    (4, "policy", 12.038327, 0.471832, 125.663706, 32.341370, 0, 350),
+]
 
 
 def ring_macro_rows(out: Path) -> pd.DataFrame:
