@@ -199,12 +199,26 @@ class SectionHiddenParallelEnv(ParallelEnv):
         seed: int = 0,
         render_mode: str | None = None,
         normalize: bool = False,
+        hidden: int | None = None,
     ) -> None:
         check_render_mode(render_mode)
         self.render_mode = render_mode
         self.core, self.scaling = _section_setup(scenario, data, generator, split, seed, normalize)
         self.horizon = self.core.sc.policy.horizon
-        most = int(self.core.bank.hidden.sum(axis=1).max())
+        counts = self.core.bank.hidden.sum(axis=1)
+        # ``hidden``: only the scenes that hide that many vehicles, so that every episode has
+        # the same agents (SuperSuit's vector wrappers need a fixed number; on a closed
+        # section nobody leaves, so they stay until the episode ends).
+        self._scenes = np.arange(len(counts))
+        if hidden is not None:
+            self._scenes = np.flatnonzero(counts == hidden)
+            if not len(self._scenes):
+                have = ", ".join(str(int(k)) for k in np.unique(counts))
+                raise UserError(
+                    f"SectionHiddenParallelEnv: hidden = {hidden}: no scene of the {split} "
+                    f"bank hides that many vehicles (accepted: {have})"
+                )
+        most = int(counts[self._scenes].max())
         self.possible_agents = [f"hidden_{i}" for i in range(most)]
         self.agents: list[str] = []
         self._act, self._obs = self.scaling.action_space, self.scaling.observation_space
@@ -223,7 +237,7 @@ class SectionHiddenParallelEnv(ParallelEnv):
     def reset(self, seed: int | None = None, options: dict | None = None):
         if seed is not None:
             self._rng = np.random.default_rng(seed)
-        obs = self.core.reset(int(self._rng.integers(len(self.core.bank))))
+        obs = self.core.reset(int(self._scenes[self._rng.integers(len(self._scenes))]))
         self._slots = np.flatnonzero(self.core.hidden)
         self._index = {f"hidden_{k}": k for k in range(len(self._slots))}
         # A hidden vehicle SUMO could not place is not an agent (the first step truncates).

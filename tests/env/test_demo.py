@@ -48,3 +48,26 @@ def test_no_argument_make_builds_the_demo_once(tmp_path, monkeypatch, capsys):
         parallel_api_test(env, num_cycles=20)
     finally:
         env.close()
+
+
+def test_supersuit_vector_wrapper_on_a_fixed_hidden_count():
+    """SuperSuit's PettingZoo -> vector env conversion (what SB3 users call) steps as is
+    where every episode hides the same number of vehicles (``hidden=``, the demo ring)."""
+    import pytest
+    import supersuit as ss
+
+    from macromicro_sumo.errors import UserError
+
+    env = SectionHiddenParallelEnv(hidden=2)
+    vec = ss.pettingzoo_env_to_vec_env_v1(env)
+    try:
+        assert env.possible_agents == ["hidden_0", "hidden_1"]
+        obs, infos = vec.reset(seed=0)
+        assert obs.shape == (2, env.observation_space("hidden_0").shape[0])
+        for _ in range(12):  # past one horizon (10 steps): the auto-reset path runs too
+            obs, rew, term, trunc, infos = vec.step(np.zeros((2, 1), np.float32))
+            assert obs.shape[0] == 2 and np.isfinite(rew).all()
+    finally:
+        env.close()
+    with pytest.raises(UserError, match=r"hidden = 99: no scene of the train bank .*\(accepted: "):
+        SectionHiddenParallelEnv(hidden=99)
