@@ -16,8 +16,12 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from macromicro_sumo.evaluation.krauss_fit import calibrate_krauss
-from macromicro_sumo.policy.prior import PRIOR_KEYS, idm_prior_params
+from macromicro_sumo.evaluation.krauss_fit import (
+    ROBUST_SCALE_MPS2,
+    behind_leader,
+    calibrate_krauss,
+)
+from macromicro_sumo.policy.prior import EMERGENCY_DECEL_MPS2, PRIOR_KEYS, idm_prior_params
 from macromicro_sumo.road.physics import idm_accel
 
 
@@ -56,15 +60,13 @@ def idm_policy_accel(obs: np.ndarray, p: IdmParams, veh_length_m: float) -> np.n
 
 _LOWER = np.array([0.5, 0.3, 0.1, 0.1, 0.0])
 _UPPER = np.array([1.5, 5.0, 5.0, 10.0, 20.0])
-# A car brakes no harder than this (SUMO's emergencyDecel default for passenger cars): IDM's
-# interaction term grows without bound as the gap closes, and a few pairs at a near-zero
-# gap (a lane change into a short gap, a vehicle of another length than veh_length_m) gave
-# residuals of 1e19 m/s^2 that dragged the fit onto its bounds (Bremen: a = 0.1, b = 10).
-EMERGENCY_DECEL_MPS2 = 9.0
-MIN_GAP_M = 0.1  # bumper gaps below this count as this (a gap cannot be negative)
-# The fit's loss is linear beyond this residual [m/s^2] (soft L1): the pairs IDM cannot
+# A car brakes no harder than policy.prior's EMERGENCY_DECEL_MPS2 (SUMO's emergencyDecel
+# default for passenger cars): IDM's interaction term grows without bound as the gap closes,
+# and a few pairs at a near-zero gap (a lane change into a short gap, a vehicle of another
+# length than veh_length_m) gave residuals of 1e19 m/s^2 that dragged the fit onto its
+# bounds (Bremen: a = 0.1, b = 10). ROBUST_SCALE_MPS2 (krauss_fit): the pairs IDM cannot
 # explain (a driver reacting to something it does not see) must not decide the parameters.
-ROBUST_SCALE_MPS2 = 0.5
+MIN_GAP_M = 0.1  # bumper gaps below this count as this (a gap cannot be negative)
 
 
 def calibrate_idm(
@@ -111,14 +113,10 @@ def gipps_policy_accel(
     """Gipps' acceleration [m/s^2] from observations (..., 4): the free acceleration
     2.5 a (1 - v/V) sqrt(0.025 + v/V), or reaching the safe speed
     -b tau + sqrt((b tau)^2 + v_l^2 + 2 b gap) within dt where that is smaller."""
-    v, limit, spacing, dv = obs[..., 0], obs[..., 1], obs[..., 2], obs[..., 3]
+    v, limit = obs[..., 0], obs[..., 1]
     ratio = np.maximum(v / np.maximum(p.speed_factor * limit, 0.1), 0.0)
     free = 2.5 * p.accel_mps2 * (1.0 - ratio) * np.sqrt(0.025 + ratio)
-    bt = p.decel_mps2 * p.tau_s
-    gap = np.maximum(spacing - veh_length_m - p.min_gap_m, 0.0)
-    v_leader = np.maximum(v - dv, 0.0)
-    safe = -bt + np.sqrt(bt**2 + v_leader**2 + 2.0 * p.decel_mps2 * gap)
-    return np.maximum(np.minimum(free, (safe - v) / dt_s), -EMERGENCY_DECEL_MPS2)
+    return behind_leader(obs, free, p.decel_mps2, p.tau_s, p.min_gap_m, veh_length_m, dt_s)
 
 
 _GIPPS_LOWER = np.array([0.5, 0.1, 0.5, 0.1, 0.0])

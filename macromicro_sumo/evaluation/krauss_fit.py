@@ -26,7 +26,7 @@ _X_SCALE = np.array([0.05, 0.5, 0.5, 0.2, 1.0, 0.5])
 # Starts: every (a, T) pair, the rest at Gipps' fit's usual start.
 START_ACCEL_MPS2 = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
 START_RELAX_S = (1.0, 3.0)
-# As evaluation.idm_fit.ROBUST_SCALE_MPS2 (soft L1 beyond it).
+# Robust least squares: residuals beyond it count linearly (soft L1), here and in idm_fit.
 ROBUST_SCALE_MPS2 = 0.5
 
 
@@ -53,13 +53,30 @@ def krauss_policy_accel(
     """Acceleration [m/s^2] from observations (..., >= 4) [v, limit, spacing, v - v_leader]:
     min(a, (V - v) / T), or reaching -b tau + sqrt((b tau)^2 + v_l^2 + 2 b gap) within dt
     where that is smaller."""
-    v, limit, spacing, dv = obs[..., 0], obs[..., 1], obs[..., 2], obs[..., 3]
+    v, limit = obs[..., 0], obs[..., 1]
     desired = np.maximum(p.speed_factor * limit, 0.1)
     free = np.minimum(p.accel_mps2, (desired - v) / max(p.relax_s, dt_s))
-    bt = p.decel_mps2 * p.tau_s
-    gap = np.maximum(spacing - veh_length_m - p.min_gap_m, 0.0)
+    return behind_leader(obs, free, p.decel_mps2, p.tau_s, p.min_gap_m, veh_length_m, dt_s)
+
+
+def behind_leader(
+    obs: np.ndarray,
+    free: np.ndarray,
+    decel_mps2: float,
+    tau_s: float,
+    min_gap_m: float,
+    veh_length_m: float,
+    dt_s: float,
+) -> np.ndarray:
+    """``free`` [m/s^2], or the acceleration reaching Gipps' safe speed
+    -b tau + sqrt((b tau)^2 + v_l^2 + 2 b gap) within dt where that is smaller, bounded below
+    by the emergency deceleration: the numpy twin of ``policy.prior._behind_leader``, shared
+    by the Gipps and Krauss-form fits."""
+    v, spacing, dv = obs[..., 0], obs[..., 2], obs[..., 3]
+    bt = decel_mps2 * tau_s
+    gap = np.maximum(spacing - veh_length_m - min_gap_m, 0.0)
     v_leader = np.maximum(v - dv, 0.0)
-    safe = -bt + np.sqrt(bt**2 + v_leader**2 + 2.0 * p.decel_mps2 * gap)
+    safe = -bt + np.sqrt(bt**2 + v_leader**2 + 2.0 * decel_mps2 * gap)
     return np.maximum(np.minimum(free, (safe - v) / dt_s), -EMERGENCY_DECEL_MPS2)
 
 
