@@ -38,6 +38,15 @@ def ring_scenes(
         speed[i] = rng.uniform(10.5, 13.5, N_VEHICLES)
         observed[i, hide(rng)] = False
         psi[i] = [speed[i].mean(), length / N_VEHICLES, gaps.std(), 10.0, 14.0, S_MIN_M, *psi_tail]
+    return loop_snapshots(arc, speed, observed, psi)
+
+
+def loop_snapshots(
+    arc: np.ndarray, speed: np.ndarray, observed: np.ndarray, psi: np.ndarray
+) -> SectionSnapshots:
+    """Snapshots of N_VEHICLES cars of 5 m on one lane, one every 5 s of run 0, every car
+    recorded; K (true and estimated) is the count of those not observed."""
+    n = len(arc)
     k = (~observed).sum(axis=1)
     return SectionSnapshots(
         run=np.zeros(n, dtype=int),

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from ring_scenes import N_VEHICLES, S_MIN_M
+from ring_scenes import N_VEHICLES, S_MIN_M, loop_snapshots
 
 from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.errors import UserError
@@ -56,7 +56,6 @@ def scenes(section: Section, spacings_m: np.ndarray, sigma_m: np.ndarray) -> Sec
     arc = np.concatenate([np.zeros((n, 1)), np.cumsum(spacings_m[:, :-1], axis=1)], axis=1)
     observed = np.ones((n, N_VEHICLES), bool)
     observed[:, 1] = False
-    ones = np.ones(n, dtype=int)
     psi = np.column_stack(
         [
             np.full(n, 12.0),
@@ -67,19 +66,7 @@ def scenes(section: Section, spacings_m: np.ndarray, sigma_m: np.ndarray) -> Sec
             np.full(n, S_MIN_M),
         ]
     )
-    return SectionSnapshots(
-        run=np.zeros(n, dtype=int),
-        time_s=np.arange(n) * 5.0,
-        lane=np.zeros((n, N_VEHICLES), np.int64),
-        arc_m=arc,
-        speed_mps=np.full((n, N_VEHICLES), 12.0),
-        length_m=np.full((n, N_VEHICLES), 5.0),
-        valid=np.ones((n, N_VEHICLES), bool),
-        observed=observed,
-        psi=psi,
-        k_true=ones,
-        k_est=ones,
-    )
+    return loop_snapshots(arc, np.full((n, N_VEHICLES), 12.0), observed, psi)
 
 
 def two_scenes(section: Section) -> SectionSnapshots:
