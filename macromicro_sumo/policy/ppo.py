@@ -267,7 +267,8 @@ def train_policy(
         # The scenario's own section with SUMO's defaults (the stage passes its own core).
         section, net_file = load_section(sc)[1], scenario_inputs(sc).net_file
         make_core = lambda b, seed: SectionCore(sc, section, b, net_file, seed=seed)  # noqa: E731
-    core = make_core(bank, sc.seed)
+    seed = sc.seed if cfg.seed < 0 else cfg.seed  # policy.seed: a second training
+    core = make_core(bank, seed)
     # Demand episodes only where the policy gradient is used (micro_only has none).
     use_demand = make_demand is not None and cfg.episodes != "snapshots" and eta > 0
     demand = make_demand() if use_demand else None
@@ -275,7 +276,7 @@ def train_policy(
     env_steps = 0
     try:
         shift_scale = bank_shift_scale(initial_observations(sc, core.section, bank))
-        torch.manual_seed(sc.seed)
+        torch.manual_seed(seed)
         agent = Agent(
             cfg.hidden_size,
             cfg.init_log_std,
@@ -294,8 +295,8 @@ def train_policy(
         val_obs, val_act = validation_pairs(agent, core, val_eps, cfg.horizon, sc)
         best_val, best_state = -float("inf"), None
         opt = torch.optim.Adam(agent.parameters(), lr=cfg.lr)
-        rng = np.random.default_rng([sc.seed, 41])
-        gen = torch.Generator().manual_seed(sc.seed)
+        rng = np.random.default_rng([seed, 41])
+        gen = torch.Generator().manual_seed(seed)
         log: list[dict[str, Any]] = []
         start = 0
         # Observed (o, u) pairs of the last ``micro_replay`` rollouts: the likelihood term is

@@ -48,6 +48,13 @@ class PolicyConfig:
     hidden_train: tuple[int, int] = spec(
         (1, 4), lo=1, hi=10_000, doc="K range of training episodes"
     )
+    seed: int = spec(
+        -1,
+        lo=-1,
+        hi=2**31 - 1,
+        doc="PPO's own seed (initial weights, rollouts, minibatches), so a second training "
+        "runs on the same ground truth and generator; -1: the scenario's seed",
+    )
     updates: int = spec(60, lo=1, hi=1_000_000, doc="PPO updates")
     episodes_per_update: int = spec(32, lo=1, hi=100_000, doc="episodes per rollout")
     epochs: int = spec(4, lo=1, hi=1000, doc="PPO epochs per update")

@@ -135,3 +135,21 @@ def test_more_minibatches_than_samples_skips_the_empty_ones(ring, tmp_path):
     )
     assert [row["update"] for row in res["log"]] == [1]
     assert np.isfinite(res["log"][0]["micro_logp"])
+
+
+def test_policy_seed_draws_a_second_training_and_minus_one_is_the_scenarios(ring, tmp_path):
+    """policy.seed changes PPO's own draws (initial weights, rollouts) on the same bank; -1
+    and the scenario's seed are the same training."""
+    sc, bank, val_runs = ring
+
+    def trained(seed: int, name: str) -> dict[str, torch.Tensor]:
+        s = dataclasses.replace(sc, policy=dataclasses.replace(sc.policy, seed=seed))
+        res = train_policy(
+            s, bank, tmp_path / name, objective="micro_only", progress=False, updates=1
+        )
+        return res["agent"].state_dict()
+
+    default, same, other = trained(-1, "a"), trained(sc.seed, "b"), trained(sc.seed + 7, "c")
+    for k in default:
+        torch.testing.assert_close(default[k], same[k])
+    assert any(not torch.equal(default[k], other[k]) for k in default)
