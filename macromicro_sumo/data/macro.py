@@ -1,4 +1,5 @@
-"""Macroscopic statistics: the descriptor Psi, its estimators, and the paper's loss terms.
+"""Macroscopic statistics: the descriptor Psi and its estimators (the loss terms on it:
+``data.objective``).
 
 Two estimators of the same quantities, per run and aggregation interval:
 
@@ -26,8 +27,6 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-
-from macromicro_sumo.data.objective import MacroTarget, spacing_terms, speed_terms
 
 PSI_COLUMNS = [
     "mean_speed_mps",
@@ -175,28 +174,3 @@ def detector_macro(det: pd.DataFrame, passages: pd.DataFrame, length_m: float) -
             }
         )
     return pd.DataFrame(rows, columns=MACRO_COLUMNS)
-
-
-# --------------------------------------------------------------------------- loss terms
-
-
-def spacing_losses(
-    gaps_m: np.ndarray,
-    mask: np.ndarray,
-    mean_target_m: np.ndarray,
-    d_min_m: np.ndarray,
-    d_max_m: np.ndarray,
-    target_std_m: np.ndarray | None = None,
-) -> dict[str, np.ndarray]:
-    """The paper's L_mean, L_min, L_max, L_var over the gaps in ``mask`` (the set A), (B,)
-    each: ``objective.spacing_terms`` with Psi's fields as positional arrays."""
-    target = MacroTarget(np.nan, mean_target_m, d_min_m, d_max_m, target_std_m)
-    return spacing_terms(gaps_m, mask.astype(float), target)
-
-
-def speed_loss(
-    speeds_mps: np.ndarray, target_mps: np.ndarray, scale_mps: float = 0.0
-) -> np.ndarray:
-    """L_speed of (B, N) fleets (every vehicle counted): ``objective.speed_terms``."""
-    target = MacroTarget(target_mps, np.nan, np.nan, np.nan)
-    return speed_terms(speeds_mps, np.ones_like(speeds_mps), target, scale_mps)["L_speed"]

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from conftest import write_scenario
 from gymnasium.utils.env_checker import check_env
+from loss_terms import spacing_losses
 
 from macromicro_sumo import cli
-from macromicro_sumo.data.macro import spacing_losses
 from macromicro_sumo.env.section_envs import SectionHiddenEnv
 from macromicro_sumo.scenario.load import load_scenario
 

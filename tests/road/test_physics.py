@@ -6,15 +6,10 @@ import math
 
 import numpy as np
 import pytest
+from loss_terms import spacing_losses, speed_loss
+from ring_reference import ring_leaders, sorted_spacings
 
-from macromicro_sumo.data.macro import spacing_losses, speed_loss
-from macromicro_sumo.road.physics import (
-    brake_gap,
-    idm_accel,
-    ring_leaders,
-    safe_speed,
-    sorted_spacings,
-)
+from macromicro_sumo.road.physics import brake_gap, idm_accel, safe_speed
 
 L = 2 * math.pi * 100.0  # the paper's ring [m]
 

@@ -11,9 +11,9 @@ import numpy as np
 import pandas as pd
 import pytest
 from conftest import SMALL, write_scenario
+from ring_reference import simulate_idm_ring
 
 from macromicro_sumo.cli import main
-from macromicro_sumo.road.physics import simulate_idm_ring
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import simulate_section
 
