@@ -1,6 +1,5 @@
 """What the macro alignment's tables say, in the report's words: the paper's ring figures
-beside ours and the issue's targets (``alignment_verdicts``), which method wins each figure
-(``figure_winners``, scenes with a known hidden count K), and which method is closest to the
+beside ours and the issue's targets (``alignment_verdicts``), and which method is closest to the
 reference of a section's table (``closest_methods``: the recorded population or, for field
 data, the stations; ``alignment_reference`` says which)."""
 
@@ -120,74 +119,6 @@ def _spacing_std_interval(row: pd.Series) -> str:
     lo = row.get("spacing_std_err_ci_lo_pct", np.nan)
     hi = row.get("spacing_std_err_ci_hi_pct", np.nan)
     return "" if pd.isna(lo) or pd.isna(hi) else f"[{lo:+.2f}, {hi:+.2f}]"
-
-
-# figure -> (column of macro_alignment.csv, how a row scores: lower is better)
-FIGURES = {
-    "mean-speed error (m/s)": ("mean_speed_err_mps", lambda r, g: r["mean_speed_err_mps"]),
-    "speed std vs GT (abs %)": (
-        "std_speed_mps",
-        lambda r, g: 100 * abs(r["std_speed_mps"] / g["std_speed_mps"] - 1),
-    ),
-    "spacing std vs GT (abs %)": (
-        "std_spacing_m",
-        lambda r, g: 100 * abs(r["std_spacing_m"] / g["std_spacing_m"] - 1),
-    ),
-    "W1 speed (m/s)": ("w1_speed_mps", lambda r, g: r["w1_speed_mps"]),
-    "W1 spacing (m)": ("w1_spacing_m", lambda r, g: r["w1_spacing_m"]),
-}
-
-
-def _overlap(a: pd.Series, b: pd.Series) -> bool:
-    cols = ("speed_err_ci_lo_mps", "speed_err_ci_hi_mps")
-    if not all(c in a.index and c in b.index for c in cols):
-        return False
-    return bool(a[cols[0]] <= b[cols[1]] and b[cols[0]] <= a[cols[1]])
-
-
-def _winner_row(figure: str, test: str, scores: dict[str, float], tie: bool = False) -> dict:
-    """One row of ``figure_winners``: the best method of ``scores`` (lower is better) and
-    `policy` vs `micro_only` where both have a score (``tie``: their intervals overlap)."""
-    best = min(scores, key=scores.get)
-    row = {"figure": figure, "K / test": test, "best": best, "best value": scores[best]}
-    row |= {m: scores.get(m, np.nan) for m in ("policy", "micro_only")}
-    if "policy" in scores and "micro_only" in scores:
-        winner = "policy" if scores["policy"] < scores["micro_only"] else "micro_only"
-        row["policy vs micro_only"] = "tie (95% intervals overlap)" if tie else winner
-    return row
-
-
-def figure_winners(
-    align: pd.DataFrame, micro: pd.DataFrame | None = None, lf: pd.DataFrame | None = None
-) -> pd.DataFrame:
-    """Per figure (and K or leader-follower scenario): the best method, and `policy` vs
-    `micro_only` stated plainly. On the mean-speed error the two are called a tie when their
-    95% intervals (``speed_err_ci_*``) overlap: the difference is then within this
-    evaluation's noise."""
-    rows = []
-    gt = align[align["method"] == "ground_truth"].set_index("K")
-    others = align[align["method"] != "ground_truth"]
-    for figure, (col, score) in FIGURES.items():
-        if col not in align:
-            continue
-        for k, grp in others.groupby("K", sort=True):
-            sc = {r["method"]: score(r, gt.loc[k]) for _, r in grp.iterrows()}
-            pair = [grp[grp["method"] == m] for m in ("policy", "micro_only")]
-            tie = col == "mean_speed_err_mps" and all(len(p) for p in pair)
-            tie = tie and _overlap(pair[0].iloc[0], pair[1].iloc[0])
-            rows.append(_winner_row(figure, str(k), sc, tie))
-    if micro is not None:
-        for col, figure in (("nll", "micro NLL"), ("action_rmse_mps2", "action RMSE (m/s2)")):
-            sc = micro.dropna(subset=[col]).set_index("method")[col].to_dict()
-            if sc:
-                rows.append(_winner_row(figure, "held-out", sc))
-    if lf is not None:
-        g = lf[lf["method"] != "IDM"].groupby(["scenario", "method"])["rmse_vs_idm_mps"].mean()
-        for scenario in g.index.get_level_values(0).unique():
-            rows.append(
-                _winner_row("leader-follower RMSE (m/s)", scenario, g.loc[scenario].to_dict())
-            )
-    return pd.DataFrame(rows)
 
 
 def is_field_alignment(align: pd.DataFrame | None) -> bool:
