@@ -417,6 +417,10 @@ class Simulation:
         """Vehicles in collision during the last step."""
         return int(libsumo.simulation.getCollidingVehiclesNumber())
 
+    def colliding_vehicles(self) -> tuple[str, ...]:
+        """The vehicles in collision during the last step (``collisions`` counts them)."""
+        return tuple(libsumo.simulation.getCollidingVehiclesIDList())
+
     def teleports(self) -> int:
         return int(libsumo.simulation.getStartingTeleportNumber())
 
@@ -438,6 +442,20 @@ class Simulation:
                 np.fromiter(map(_GET_ACCEL, ids), float, n),
             )
         return self._states
+
+    def lane_states(self, vehicle_ids: Sequence[str]) -> tuple[list[str], np.ndarray, np.ndarray]:
+        """(lane ID, lane position [m], speed [m/s]) of the given vehicles, by compiled getters
+        (the batched env core's read: no ID list, no subscription); a vehicle not yet on the
+        road has lane ID ""; one SUMO does not know raises ``KeyError``."""
+        n = len(vehicle_ids)
+        try:
+            return (
+                list(map(_GET_LANE, vehicle_ids)),
+                np.fromiter(map(_GET_POS, vehicle_ids), float, n),
+                np.fromiter(map(_GET_SPEED, vehicle_ids), float, n),
+            )
+        except libsumo.TraCIException as exc:
+            raise KeyError(str(exc)) from None
 
     def leaders(self, vehicle_ids: Sequence[str], lookahead_m: float) -> list[tuple[str, float]]:
         """(leader ID, SUMO's gap: leader's back - own front - minGap; ("", -1): none) of
