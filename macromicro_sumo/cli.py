@@ -18,6 +18,7 @@ from macromicro_sumo.batch import runner as batch
 from macromicro_sumo.env.examples import example_names, example_scenario, sumo_nets_dir
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import check_out_path
+from macromicro_sumo.generator.complete import run_complete
 from macromicro_sumo.pipeline import stages
 from macromicro_sumo.pipeline.build import policy_paths
 from macromicro_sumo.scenario.load import load_scenario
@@ -57,6 +58,26 @@ def _cmd_train_generator(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_complete(args: argparse.Namespace) -> int:
+    sc = _scenario(args)
+    m = run_complete(
+        sc,
+        args.generator,
+        args.data,
+        args.out,
+        args.snapshot,
+        args.hidden,
+        args.completions,
+        args.seed,
+        args.command_line,
+    )
+    print(
+        f"{m['scenes']} scene(s) x {m['completions']} completion(s), hidden counts "
+        f"{m['hidden_counts']}, written to {args.out / 'completions.csv'}"
+    )
+    return 0
+
+
 def _cmd_train_policy(args: argparse.Namespace) -> int:
     sc = _scenario(args)
     m = stages.train_policy(
@@ -82,6 +103,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         args.out,
         args.command_line,
         not args.quiet,
+        args.hidden,
     )
     print(f"evaluation written to {args.out}")
     return 0
@@ -208,6 +230,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--policy", type=Path, required=True, help="policy.pt (ablations beside it are used too)"
     )
     p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument(
+        "--hidden",
+        type=int,
+        nargs="+",
+        metavar="K",
+        help="only the held-out scenes hiding K vehicles (default: every scene)",
+    )
 
     p = add(
         "deploy",
@@ -228,6 +257,35 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--methods", nargs="+", help="methods to deploy (default: the scenario's deploy.methods)"
     )
+
+    p = add(
+        "complete",
+        _cmd_complete,
+        "Stage I alone: complete partly observed scenes with a trained generator (CSV)",
+    )
+    p.add_argument("scenario", type=Path, help="scenario TOML")
+    p.add_argument("--generator", type=Path, required=True, help="generator.pt")
+    p.add_argument(
+        "--data", type=Path, required=True, help="ground-truth folder (its detectors give psi)"
+    )
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument(
+        "--snapshot",
+        metavar="CSV|RUN:TIME",
+        help="a CSV of observed vehicles, or one snapshot of the ground truth "
+        "(default: every held-out snapshot)",
+    )
+    p.add_argument(
+        "--hidden",
+        type=int,
+        nargs="+",
+        metavar="K",
+        help="hidden counts: the scenes hiding K (ground truth), or K to place (a CSV)",
+    )
+    p.add_argument(
+        "--completions", type=int, default=1, help="completions per scene (seeded seed + c)"
+    )
+    p.add_argument("--seed", type=int, help="first completion's seed (default: the scenario's)")
 
     add(
         "doctor",

@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from macromicro_sumo.data.hidden_counts import scenes_hiding
 from macromicro_sumo.data.section import (
     PSI_FIELDS,
     SectionSnapshots,
@@ -186,18 +187,27 @@ def _safety(sc) -> str:
 
 
 def held_out_scenes(
-    sc, truth: SectionTruth, held: np.ndarray, horizon: int
+    sc, truth: SectionTruth, held: np.ndarray, horizon: int, hidden: list[int] | None = None
 ) -> tuple[SectionSnapshots, dict[int, range] | None]:
     """The evaluation's scenes, and with ``instrumented.hidden = "snapshot"`` the episodes of
     each K: every held-out snapshot with a recorded future at every K of
     ``generator.hidden_eval``, a fresh hidden set each (``data.section.snapshots_by_k``),
-    one K after the other."""
-    if not hidden_per_snapshot(sc):
-        return section_snapshots(truth, sc, held), None
+    one K after the other. ``hidden`` (``evaluate --hidden``): only the scenes hiding
+    those K, on any road (``data.hidden_counts.scenes_hiding``), split by K."""
     lo, hi = sc.generator.hidden_eval
     recorded_ = recorded_snapshots(truth, sc, held)
+    if hidden:
+        chosen, ranges = scenes_hiding(
+            sc, recorded_, hidden, f"the held-out runs of {truth.folder}", lowest=1
+        )
+        by_k = {k: chosen.take(np.arange(r.start, r.stop)) for k, r in ranges.items()}
+        lo = min(hidden)
+    elif not hidden_per_snapshot(sc):
+        return section_snapshots(truth, sc, held), None
+    else:
+        by_k = snapshots_by_k(recorded_, range(lo, hi + 1), sc.seed)
     parts, episodes, start = [], {}, 0
-    for k, snaps in snapshots_by_k(recorded_, range(lo, hi + 1), sc.seed).items():
+    for k, snaps in by_k.items():
         snaps = snaps.take(with_future(truth, snaps, horizon, sc.simulation.step_length_s))
         if len(snaps):
             parts.append(snaps)
@@ -206,7 +216,7 @@ def held_out_scenes(
     if not parts:
         raise UserError(
             f"{truth.folder}: no held-out snapshot has {lo} vehicles to hide and {horizon} "
-            f"recorded steps after it (generator.hidden_eval = [{lo}, {hi}])"
+            f"recorded steps after it (generator.hidden_eval = [{lo}, {hi}] or --hidden)"
         )
     return concat_snapshots(parts), episodes
 
@@ -283,20 +293,22 @@ def evaluate_section(
     out: Path,
     command: str = "",
     progress: bool = True,
+    hidden: list[int] | None = None,
 ) -> dict[str, Any]:
     """macro_alignment.csv, micro_consistency.csv, k_estimate_summary.csv, samples, FCD and
-    a manifest in ``out``; returns the manifest."""
+    a manifest in ``out``; returns the manifest. ``hidden``: only the scenes hiding those
+    K (``held_out_scenes``), with a per-K table on any road."""
     t0 = time.perf_counter()
     if "policy" not in policies:
         raise UserError("evaluate needs the trained policy (policy.pt)")
     truth = load_section_truth(data, sc)
     net = load_section_generator(generator, sc)
     agents = {name: load_policy(p, sc) for name, p in policies.items()}
-    out = prepare_out_dir(out)
     splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
     held = splits["held_out"]
     h = sc.evaluation.horizon_steps
-    snaps, by_k = held_out_scenes(sc, truth, held, h)
+    snaps, by_k = held_out_scenes(sc, truth, held, h, hidden)
+    out = prepare_out_dir(out)  # once the scenes are known to be good
     net_file = scenario_inputs(sc).net_file
     vclass = typical_vclass(truth)
     length = typical_length(truth)
@@ -403,9 +415,9 @@ def evaluate_section(
         align.insert(1, "mean_k", [float(np.mean(counts[r])) for r in align["hidden_count"]])
         align.insert(2, "reference", REFERENCE_STATIONS if field else REFERENCE_RECORDED)
         write_csv(align, stage / "macro_alignment.csv")
-        if by_k is not None:  # the ring's per-K table (instrumented.hidden = "snapshot")
+        if by_k is not None:  # the per-K table (instrumented.hidden = "snapshot", --hidden)
             by_k_table = pd.DataFrame(k_rows)
-            by_k_table.insert(2, "reference", REFERENCE_RECORDED)
+            by_k_table.insert(2, "reference", REFERENCE_STATIONS if field else REFERENCE_RECORDED)
             write_csv(by_k_table, stage / "macro_alignment_by_k.csv")
         write_csv(pd.concat(samples, ignore_index=True), stage / "eval_samples.csv")
         write_csv(pd.DataFrame(safety_rows), stage / "safety.csv")
@@ -433,6 +445,7 @@ def evaluate_section(
             episodes=len(snaps),
             hidden=sc.instrumented.hidden,
             episodes_by_k={str(k): len(eps) for k, eps in (by_k or {}).items()},
+            hidden_counts=sorted(hidden) if hidden else "all",
             true_count_rows=TRUE_REUSED if same_k else ("none" if field else "own pass"),
             data_source=sc.data.source,
             references={

@@ -65,9 +65,10 @@ def evaluate(
     out: Path,
     command: str = "",
     progress: bool = True,
+    hidden: list[int] | None = None,
 ) -> Any:
-    """Every method on the held-out runs."""
-    return SECTION.evaluate(sc, data, generator, policies, out, command, progress)
+    """Every method on the held-out runs (``hidden``: only the scenes hiding those K)."""
+    return SECTION.evaluate(sc, data, generator, policies, out, command, progress, hidden)
 
 
 @_one_writer
