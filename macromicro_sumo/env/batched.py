@@ -270,13 +270,18 @@ class BatchedSectionCore:
         episode ``reset[b]`` instead (their ``accel`` row is ignored). ``accel``: (B, N)
         accelerations [m/s^2], read at the hidden slots. A scene past its horizon or
         truncated idles (not stepped) until it is reset."""
-        if not self.sim.is_active():
-            raise UserError(
-                "another SUMO simulation was started in this process; libsumo runs one per "
-                "process: build a new BatchedSectionCore"
-            )
         b_n, bk = self.b, self.bank
         rs = np.full(b_n, -1) if reset is None else np.asarray(reset, dtype=np.int64)
+        if not self.sim.is_active():  # another simulation took libsumo's one
+            if not (rs >= 0).all():
+                raise UserError(
+                    "another SUMO simulation was started in this process; libsumo runs one "
+                    "per process: reset every scene to start this one's again"
+                )
+            self.sim.reload()  # a fresh run: no routes, no vehicles, the net's limits
+            self._add_routes()
+            self._sumo_limits = np.repeat(self.section.limits_mps[None], b_n, axis=0)
+            self.ids[:], self.active[:], self.valid[:] = "", False, False
         restart = rs >= 0
         run = ~restart & ~self.done
         err = np.array([bool(x) for x in self._errors])

@@ -182,3 +182,24 @@ def test_capped_replay_catches_up_the_same_way(tmp_path):
                 assert res.r_macro == pytest.approx(res_b.r_macro[s], abs=1e-9)
         finally:
             single.close()
+
+
+def test_batched_core_takes_libsumo_back_on_a_full_reset(tmp_path):
+    """libsumo runs one simulation per process: after another core took it, resetting every
+    scene starts the batched core's own again and gives the same start; a partial step
+    is refused with a one-line error."""
+    sc = section_scenario(tmp_path, RING, EDGES, True)
+    section = read_section(RING, EDGES, True)
+    bank = synthetic_bank([0, 0], [100.0, 400.0], [12.0, 11.0], [True, False], horizon=4)
+    core = BatchedSectionCore(sc, section, bank, RING, 2, seed=0)
+    try:
+        first = core.reset(np.zeros(2, dtype=np.int64))
+        SectionCore(sc, section, bank, RING, seed=0).reset(0)  # takes libsumo over
+        with pytest.raises(UserError, match="reset every scene"):
+            core.step(np.zeros((2, 2)))
+        np.testing.assert_array_equal(core.reset(np.zeros(2, dtype=np.int64)), first)
+        res = core.step(np.full((2, 2), 0.5))
+        assert res.stepped.all() and not res.truncated.any()
+        np.testing.assert_allclose(res.obs[:, 0, 0], 12.25)  # v + a dt, SUMO's speed
+    finally:
+        core.close()
