@@ -96,6 +96,7 @@ class BatchedSectionCore:
         seed: int = 0,
         safety: str | None = None,
         replay_min_gap_m: float | None = None,
+        vclass: str = "passenger",
     ) -> None:
         safety = safety or getattr(sc.policy, "safety", DEFAULT_SAFETY)
         if safety not in SAFETY:
@@ -120,7 +121,7 @@ class BatchedSectionCore:
                 self._vtype,
                 sc.bounds.accel_mps2,
                 sc.bounds.min_gap_m,
-                "passenger",
+                vclass,
                 self.dt,
                 replay_min_gap_m,
             )

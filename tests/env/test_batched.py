@@ -1,5 +1,5 @@
 """The batched env core: B scenes in one SUMO run of B network copies give each scene the
-trajectory, observations and reward ``SectionCore`` gives it alone."""
+trajectory, observations and reward ``SectionCore`` gives it alone; its gymnasium VectorEnv."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from test_section_env import section_scenario, synthetic_bank
 
 from macromicro_sumo.data.section import section_snapshots, split_runs
 from macromicro_sumo.env.batched import BatchedSectionCore
+from macromicro_sumo.env.batched_envs import SectionHiddenVectorEnv
 from macromicro_sumo.env.batched_scene import batch_macro_reward, loop_observations
 from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import (
@@ -203,3 +204,29 @@ def test_batched_core_takes_libsumo_back_on_a_full_reset(tmp_path):
         np.testing.assert_allclose(res.obs[:, 0, 0], 12.25)  # v + a dt, SUMO's speed
     finally:
         core.close()
+
+
+def test_vector_env_steps_every_sub_env_and_autoresets(small_ring_gt, tmp_path):
+    """gymnasium VectorEnv over the batched core: batched spaces, rewards in (0, 1] while
+    the episodes run, every sub-env truncated after H steps and restarted (reward 0, next
+    episode's observation) by the step after."""
+    path = write_scenario(tmp_path, SMALL_RING)
+    env = SectionHiddenVectorEnv(4, path, small_ring_gt, seed=1)
+    try:
+        h = env.core.bank.horizon
+        obs, _ = env.reset(seed=3)
+        assert obs.shape == (4, env.core.obs_dim) and env.observation_space.contains(obs)
+        assert env.action_space.shape == (4, 1)
+        for t in range(h):
+            obs, r, term, trunc, info = env.step(np.full((4, 1), -0.2, dtype=np.float32))
+            assert not term.any() and (r > 0).all() and (r <= 1).all(), info["error"]
+            assert trunc.all() == (t == h - 1)
+        first = env.core.episode.copy()
+        obs, r, term, trunc, _ = env.step(np.zeros((4, 1), dtype=np.float32))
+        assert (r == 0).all() and not (term | trunc).any() and (env.core.t == 0).all()
+        np.testing.assert_allclose(obs[:, 0], env.core.speed[np.arange(4), env._ego], rtol=1e-6)
+        assert not np.array_equal(first, env.core.episode)
+        with pytest.raises(ValueError, match="finite"):
+            env.step(np.full((4, 1), np.nan))
+    finally:
+        env.close()
