@@ -10,7 +10,8 @@ run (repeats interleaved, so every core sees the same machine load):
     loaded machine does not depress;
   * a bare libsumo loop making SectionCore's SUMO calls (``bench_section_env.bench_bare``),
     and the old core's ratio to it;
-  * the gymnasium env's steps/s (info dicts included);
+  * the gymnasium env's steps/s (info dicts included) and the batched gymnasium
+    VectorEnv's (``SectionHiddenVectorEnv``; sub-env steps, autoreset steps included);
   * PPO throughput (env steps/s including updates) and the wall time of a full training.
 
     python scripts/bench_env.py [--scenario scenarios/ring_paper.toml] [--steps 20000]
@@ -31,6 +32,7 @@ from bench_section_env import bench_bare
 
 from macromicro_sumo.data.section import section_snapshots, split_runs
 from macromicro_sumo.env.batched import BatchedSectionCore
+from macromicro_sumo.env.batched_envs import SectionHiddenVectorEnv
 from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import build_section_bank
 from macromicro_sumo.env.section_envs import SectionHiddenEnv, true_section_completion
@@ -114,17 +116,19 @@ def main(argv: list[str] | None = None) -> int:
             f"ring: N = {sc.fleet.n_vehicles}, H = {h}, {args.steps} steps x {args.repeats} "
             "repeats (median), resets every H steps included"
         )
-        print("                                       per wall s     per CPU s   env-steps")
-        print(f"  old: SectionCore, one scene      : {old_w:12,.0f}  {old_c:12,.0f}")
-        print(f"  new: BatchedSectionCore, B = {args.scenes:<4d}: {new_w:12,.0f}  {new_c:12,.0f}")
-        print(f"  new / old                        : {new_w / old_w:12.2f}x {new_c / old_c:12.2f}x")
+        print(f"  {'env-steps/s':33s}  {'per wall s':>12s}  {'per CPU s':>12s}")
+        print(f"  {'old: SectionCore, one scene':33s}: {old_w:12,.0f}  {old_c:12,.0f}")
+        label = f"new: BatchedSectionCore, B = {args.scenes}"
+        print(f"  {label:33s}: {new_w:12,.0f}  {new_c:12,.0f}")
+        print(f"  {'new / old':33s}: {new_w / old_w:11.2f}x  {new_c / old_c:11.2f}x")
+        met = ["met" if x >= TARGET else "NOT met" for x in (new_w, new_c)]
         print(
-            f"  target >= {TARGET:,}                : wall {'met' if new_w >= TARGET else 'NOT met'}"
-            f", CPU {'met' if new_c >= TARGET else 'NOT met'} (load now: "
-            f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs)"
+            f"  {f'target >= {TARGET:,}':33s}: {met[0]:>12s}  {met[1]:>12s}   (load "
+            f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs: the wall figure is this "
+            "machine's share)"
         )
-        print(f"  bare libsumo, SectionCore's calls: {bare_s:12,.0f}")
-        print(f"  old core cost / bare loop        : {bare_s / old_w:12.2f}x")
+        print(f"  {'bare libsumo, SectionCore calls':33s}: {bare_s:12,.0f}")
+        print(f"  {'old core cost / bare loop':33s}: {bare_s / old_w:11.2f}x")
 
         env = SectionHiddenEnv(sc, gt_dir, None)
         env.reset(seed=0)
@@ -136,7 +140,17 @@ def main(argv: list[str] | None = None) -> int:
                 env.reset()
         gym_s = (args.steps // 2) / (time.perf_counter() - t0)
         env.close()
-        print(f"  gymnasium env (one hidden)      : {gym_s:10,.0f} env-steps/s")
+        print(f"  {'gymnasium env (one hidden)':33s}: {gym_s:12,.0f}")
+        venv = SectionHiddenVectorEnv(args.scenes, sc, gt_dir, None)
+        venv.reset(seed=0)
+        t0, done = time.perf_counter(), 0
+        while done < args.steps // 2:
+            venv.step(rng.uniform(-1.1, 0.5, (args.scenes, 1)))
+            done += args.scenes
+        vec_s = done / (time.perf_counter() - t0)
+        venv.close()
+        label = f"gymnasium VectorEnv, {args.scenes} envs"
+        print(f"  {label:33s}: {vec_s:12,.0f}   (autoreset steps included)")
 
         if not args.skip_training:
             t0 = time.perf_counter()
