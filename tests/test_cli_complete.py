@@ -14,9 +14,13 @@ from conftest import SMALL_RING, assert_one_line_error, dump_toml, write_scenari
 
 from macromicro_sumo.cli import main
 from macromicro_sumo.data.section import split_runs
+from macromicro_sumo.env.section_bank import with_future
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.evaluation.section import held_out_scenes
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.netgen import random_corridor
+from macromicro_sumo.truth.section import load_section_truth
 
 pytestmark = pytest.mark.usefixtures("keep_torch_threads")
 
@@ -235,3 +239,20 @@ def test_complete_on_an_open_multilane_section(corridor, tmp_path, capsys):
     capsys.readouterr()
     code = complete(corridor, tmp_path / "bad", "--hidden", "999")
     assert_one_line_error(capsys, code, "--hidden 999", "counted by the simulation", "accepted")
+
+
+def test_evaluation_scenes_hiding_k_on_a_section(corridor):
+    """evaluate --hidden on a section keeps the held-out scenes whose simulated hidden count
+    is K and that have a recorded future, as one K's episodes (the per-K table's)."""
+    sc = load_scenario(corridor["scenario"])
+    truth = load_section_truth(corridor["gt"], sc)
+    held = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)["held_out"]
+    h = sc.evaluation.horizon_steps
+    every, _ = held_out_scenes(sc, truth, held, h)
+    k = int(np.bincount(every.k_true).argmax())
+    scenes, by_k = held_out_scenes(sc, truth, held, h, [k])
+    assert set(scenes.k_true.tolist()) == {k} and by_k == {k: range(0, len(scenes))}
+    kept = every.take(with_future(truth, every, h, sc.simulation.step_length_s))
+    assert len(scenes) == int((kept.k_true == k).sum()) > 0
+    with pytest.raises(UserError, match=r"--hidden 0: .*accepted: \d"):
+        held_out_scenes(sc, truth, held, h, [0])
