@@ -31,6 +31,7 @@ from macromicro_sumo.env.driver_speed import prior_pairs
 from macromicro_sumo.env.section_bank import typical_length
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.idm_fit import fit_policy_prior
+from macromicro_sumo.evaluation.krauss_fit import fit_krauss, network_defaults
 from macromicro_sumo.evaluation.methods import LEARNED, checkpoint_name
 from macromicro_sumo.evaluation.section import evaluate_section, micro_pairs
 from macromicro_sumo.files import check_outputs, prepare_out_dir, write_json
@@ -278,15 +279,24 @@ def fit_residual_prior(
     """The model under a section's residual policy (``policy.prior``), fitted to the
     observed pairs as the evaluation's idm_calibrated is (its pairs, runs and length; the
     Krauss form to its drivers' own: ``env.driver_speed.prior_pairs``), so the policy
-    starts as that model and its residual is what training adds. Returns the agent's prior
-    parameters, what the policy manifest records of the fit, and the pairs (the residual's
-    likelihood pairs, ``policy.residual``)."""
+    starts as that model and its residual is what training adds. The Krauss form's
+    parameters the pairs do not identify take SUMO's defaults for the network's vClass
+    (``evaluation.krauss_fit.fit_krauss``; the manifest records which and why). Returns the
+    agent's prior parameters, what the policy manifest records of the fit, and the pairs
+    (the residual's likelihood pairs, ``policy.residual``)."""
     length = typical_length(truth)
     obs, acc = micro_pairs(sc, truth, runs)
     kind = sc.policy.prior
     fit_obs, fit_acc = prior_pairs(sc, truth, runs, obs, acc)
-    prior, rmse = fit_policy_prior(kind, fit_obs, fit_acc, length, sc.simulation.step_length_s)
-    extra = {"prior": {"kind": kind, **prior, "fit_rmse_mps2": rmse, "pairs": len(fit_acc)}}
+    dt, record = sc.simulation.step_length_s, {}
+    if kind == "krauss":  # guarded: the parameters the pairs do not identify fall back
+        fit = fit_krauss(fit_obs, fit_acc, length, dt, network_defaults(truth.vtypes))
+        prior, rmse, record = fit.prior_params(length, dt), fit.rmse_mps2, fit.record()
+    else:
+        prior, rmse = fit_policy_prior(kind, fit_obs, fit_acc, length, dt)
+    extra = {
+        "prior": {"kind": kind, **prior, "fit_rmse_mps2": rmse, "pairs": len(fit_acc), **record}
+    }
     return prior, extra, (obs, acc)
 
 

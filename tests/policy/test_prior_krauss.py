@@ -58,16 +58,18 @@ def test_krauss_prior_mean_equals_krauss_policy_accel(dim):
     assert params["dt_s"] == DT_S and params["veh_length_m"] == LENGTH_M
 
 
-def _pairs(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Pairs as a motorway's observed vehicles give them: most cruising or following, a
-    tenth accelerating from well below the desired speed; recorded accelerations with
-    Krauss-like noise (0.5 m/s^2)."""
+def _pairs(
+    n: int, seed: int, spacing_m: tuple[float, float] = (20.0, 150.0)
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs as a motorway's observed vehicles give them: most cruising or following (half
+    of them at a spacing drawn from ``spacing_m``), a tenth accelerating from well below the
+    desired speed; recorded accelerations with Krauss-like noise (0.5 m/s^2)."""
     rng = np.random.default_rng(seed)
     limit = 44.4
     v = np.concatenate(
         [rng.uniform(0.90, 1.0, n - n // 10) * 0.97 * limit, rng.uniform(20.0, 40.0, n // 10)]
     )
-    spacing = np.where(rng.random(n) < 0.5, 1000.0, rng.uniform(20.0, 150.0, n))
+    spacing = np.where(rng.random(n) < 0.5, 1000.0, rng.uniform(*spacing_m, n))
     dv = np.where(spacing < 1000.0, rng.normal(0.0, 1.5, n), 0.0)
     obs = np.column_stack([v, np.full(n, limit), spacing, dv])
     accel = krauss_policy_accel(obs, KRAUSS, LENGTH_M, DT_S) + rng.normal(0.0, 0.5, n)

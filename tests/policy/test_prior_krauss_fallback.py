@@ -1,0 +1,130 @@
+"""policy.prior = "krauss" on a network nobody tuned it for: the parameters the observed pairs
+do not identify fall back to SUMO's defaults for the network's vClass, and the policy manifest
+says which and why (real SUMO: game/ramp's congested merge)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import sumo
+from test_prior_krauss import DT_S, KRAUSS, LENGTH_M, _pairs
+
+from macromicro_sumo.env.driver_speed import prior_pairs
+from macromicro_sumo.evaluation.krauss_fit import (
+    MIN_FREE_ACCEL_PAIRS,
+    KraussParams,
+    fit_krauss,
+    krauss_least_squares,
+    krauss_policy_accel,
+    network_defaults,
+    sumo_defaults,
+)
+from macromicro_sumo.pipeline.build import fit_residual_prior
+from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.truth.section import load_section_truth, simulate_section
+
+RAMP = Path(sumo.__file__).resolve().parent / "tools" / "game" / "ramp"
+# SUMO's passenger car (the ramp's vTypes set no accel or decel, so its cars drive with these).
+SUMO_PASSENGER_ACCEL_MPS2 = 2.6
+
+
+@pytest.fixture(scope="module")
+def ramp_truth(tmp_path_factory: pytest.TempPathFactory):
+    """game/ramp's main line, one run of 120 s after 300 s (the demand is past the merge's
+    capacity from 300 s: a queue), half the vehicles observed (~8 s of SUMO)."""
+    folder = tmp_path_factory.mktemp("ramp")
+    (folder / "ramp.toml").write_text(
+        f"""name = "ramp"
+seed = 1
+
+[network]
+kind = "sumo"
+net_file = "{RAMP / "ramp.net.xml"}"
+route_files = ["{RAMP / "ramp.rou.xml"}"]
+
+[section]
+edges = ["gneE3", "gneE7", "gneE8"]
+closed = false
+
+[instrumented]
+penetration = 0.5
+
+[simulation]
+warmup_s = 300.0
+duration_s = 120.0
+n_runs = 1
+step_length_s = 0.5
+
+[detectors]
+interval_s = 60.0
+auto_spacing_m = 250.0
+
+[policy]
+prior = "krauss"
+driver_speed = "drawn"
+"""
+    )
+    sc = load_scenario(folder / "ramp.toml")
+    simulate_section(sc, folder / "gt", progress=False)
+    return sc, load_section_truth(folder / "gt", sc)
+
+
+def test_a_congested_merge_takes_sumos_free_acceleration_and_says_so(ramp_truth):
+    """In the queue the observed cars rarely accelerate on a free road; the unguarded fit
+    takes those held back by what they do not see for cars that barely accelerate. The
+    guard gives a back SUMO's passenger default, which is what these cars drive with, keeps
+    the identified parameters as fitted, and the manifest's record says why."""
+    sc, truth = ramp_truth
+    prior, extra, (obs, acc) = fit_residual_prior(sc, truth, truth.runs)
+    record = extra["prior"]
+    assert record["free_accel_pairs"] < MIN_FREE_ACCEL_PAIRS
+    assert list(record["fallback"]) == ["accel_mps2"]
+    assert "free acceleration" in record["fallback"]["accel_mps2"]
+    assert "accel_mps2" not in record["fitted"] and "decel_mps2" in record["fitted"]
+    assert record["defaults"]["accel_mps2"] == SUMO_PASSENGER_ACCEL_MPS2  # vClass passenger
+    assert prior["accel_mps2"] == SUMO_PASSENGER_ACCEL_MPS2
+    # Unguarded, a is below what SUMO's Krauss does on a free road even with its dawdling
+    # (a (1 - sigma U), 0.75 a on average at sigma 0.5).
+    fit_obs, fit_acc = prior_pairs(sc, truth, truth.runs, obs, acc)
+    x, _, _ = krauss_least_squares(fit_obs, fit_acc, record["veh_length_m"], DT_S)
+    assert x[1] < 0.75 * SUMO_PASSENGER_ACCEL_MPS2
+    unguarded = KraussParams(*x).as_dict()
+    for name in record["fitted"]:
+        assert prior[name] == unguarded[name]
+
+
+def test_a_well_identified_fit_is_the_unguarded_one():
+    """Pairs with a tenth of the vehicles accelerating freely (as on Bremen) and close
+    followers (8-60 m): nothing falls back, the parameters are the unguarded fit's, bit for
+    bit. (At 20-150 m min_gap's standard error is half its value: it takes SUMO's 2.5 m.)"""
+    obs, accel = _pairs(6000, seed=1, spacing_m=(8.0, 60.0))
+    fit = fit_krauss(obs, accel, LENGTH_M, DT_S)
+    assert fit.fallback == {} and fit.free_accel_pairs >= MIN_FREE_ACCEL_PAIRS
+    x, rmse, _ = krauss_least_squares(obs, accel, LENGTH_M, DT_S)
+    assert fit.params == KraussParams(*x) and fit.rmse_mps2 == rmse
+    assert fit.params.accel_mps2 == pytest.approx(KRAUSS.accel_mps2, abs=0.15)
+
+
+def test_parameters_no_pair_decides_fall_back_to_the_vclass_defaults():
+    """A road on which no driver ever has a leader near: nothing shows how they follow, so
+    the interaction parameters (b, tau, min_gap) take the defaults (a truck's, the vClass
+    most vehicles have) while the free term's keep their fit; the RMSE is the returned
+    parameters' own."""
+    rng = np.random.default_rng(4)
+    n = 4000
+    v = np.concatenate([rng.uniform(0.9, 1.0, n // 2) * 30.0, rng.uniform(10.0, 28.0, n // 2)])
+    obs = np.column_stack([v, np.full(n, 30.0 / 0.97), np.full(n, 1000.0), np.zeros(n)])
+    accel = krauss_policy_accel(obs, KRAUSS, LENGTH_M, DT_S) + rng.normal(0.0, 0.3, n)
+    vtypes = pd.DataFrame({"vclass": ["passenger", "truck"], "vehicles": [10, 30]})
+    defaults = network_defaults(vtypes)
+    assert defaults == sumo_defaults("truck") and defaults != sumo_defaults("passenger")
+    fit = fit_krauss(obs, accel, LENGTH_M, DT_S, defaults)
+    assert set(fit.fallback) >= {"decel_mps2", "tau_s"}
+    assert "accel_mps2" not in fit.fallback and "speed_factor" not in fit.fallback
+    assert fit.params.decel_mps2 == defaults.decel_mps2 and fit.params.tau_s == defaults.tau_s
+    assert fit.params.accel_mps2 == pytest.approx(KRAUSS.accel_mps2, abs=0.1)
+    want = krauss_policy_accel(obs, fit.params, LENGTH_M, DT_S)
+    assert fit.rmse_mps2 == pytest.approx(float(np.sqrt(np.mean((want - accel) ** 2))))
