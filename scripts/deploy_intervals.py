@@ -1,104 +1,79 @@
-"""A deployment's summary shares when its detector intervals are pooled into longer ones.
+"""A deployment's shares at several comparison intervals, recomputed from its folders.
 
-GEH < 5 in 85% of the counts is a calibration criterion for hourly flows (TAG M3.1); a
-deployment compares the scenario's detector intervals (Bremen: 30 s, where one vehicle is
-120 veh/h), so its shares measure when each car passes as much as the flow. This script
-reads ``deploy_comparison.csv`` of one or more deploy folders and prints, per method, the
-summary's shares and speed RMSE (``deploy.compare.detector_scores``) with every station's
-intervals pooled in blocks of k (whole blocks only): flows averaged, speeds the
-flow-weighted harmonic mean (the space-mean speed of the vehicles that passed), densities
-averaged. k = 1 reproduces ``deploy_summary.csv``.
+``deploy.compare_interval_s`` sets the one interval ``macromicro deploy`` writes; this
+reads deploy folders (``deploy_manifest.json`` names the ground truth, the method folders
+sit beside it), pools the detectors' intervals as the deployment would
+(``deploy.intervals``) and prints, per folder, method and interval, the summary's station
+figures (``deploy.compare.detector_scores``). Nothing is re-run or written.
 
-    python scripts/deploy_intervals.py DEPLOY_DIR [DEPLOY_DIR ...] [--blocks 1 2 4 10]
-        [--runs 1]
+    python scripts/deploy_intervals.py DEPLOY_DIR [DEPLOY_DIR ...] [--intervals 0 60 120 300]
+        [--truth GROUND_TRUTH] [--methods policy sumo_default] [--runs 1]
 
-Measured 2026-11-26 on highway_bremen (docs/deploy.md, "Measured").
+Interval 0 is the detectors' own (deploy_summary.csv's figures at ``compare_interval_s = 0``).
+Measured 2026-11-26 on highway_bremen (docs/deploy.md, "Comparison interval (stop 26)").
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
 from macromicro_sumo.deploy.compare import (
-    ALL_LANES,
-    COMPARISON_COLUMNS,
+    comparison_table,
     detector_scores,
-    geh,
-    relative_error,
+    read_outputs,
+    truth_geometry,
 )
+from macromicro_sumo.deploy.intervals import block_factor, interval_length_s
 
-GROUP = ["method", "run", "station", "lane", "block"]
 
-
-def pooled(comparison: pd.DataFrame, k: int) -> pd.DataFrame:
-    """``comparison``'s station rows pooled in blocks of k intervals, in its schema."""
-    c = comparison[comparison["lane"] == ALL_LANES].copy()
-    length = float((c["end_s"] - c["begin_s"]).median())
-    c["block"] = np.floor(c["begin_s"] / (k * length) + 1e-9).astype(int)
-    size = c.groupby(GROUP)["begin_s"].transform("size")
-    c = c[size == k]
-    for side in ("truth", "method"):
-        q, v = c[f"flow_{side}_vph"], c[f"speed_{side}_mps"]
-        passed = np.isfinite(v) & (v > 0) & (q > 0)
-        c[f"w_{side}"] = np.where(passed, q, 0.0)
-        c[f"inv_{side}"] = np.where(passed, q / np.where(passed, v, 1.0), 0.0)
-    agg = (
-        c.groupby(GROUP)
-        .agg(
-            arc_m=("arc_m", "first"),
-            begin_s=("begin_s", "min"),
-            end_s=("end_s", "max"),
-            flow_truth_vph=("flow_truth_vph", "mean"),
-            flow_method_vph=("flow_method_vph", "mean"),
-            density_truth_vpkm=("density_truth_vpkm", "mean"),
-            density_method_vpkm=("density_method_vpkm", "mean"),
-            w_truth=("w_truth", "sum"),
-            inv_truth=("inv_truth", "sum"),
-            w_method=("w_method", "sum"),
-            inv_method=("inv_method", "sum"),
-        )
-        .reset_index()
-    )
-    with np.errstate(divide="ignore", invalid="ignore"):
-        for side in ("truth", "method"):
-            w, inv = agg[f"w_{side}"], agg[f"inv_{side}"]
-            agg[f"speed_{side}_mps"] = np.where(inv > 0, w / inv, np.nan)
-    agg["geh"] = geh(agg["flow_method_vph"], agg["flow_truth_vph"])
-    agg["speed_rel_error"] = relative_error(agg["speed_method_mps"], agg["speed_truth_mps"])
-    return agg.reindex(columns=COMPARISON_COLUMNS)
+def folder_scores(
+    folder: Path, truth_dir: Path, methods: list[str], intervals: list[float], runs: list[int]
+) -> list[dict]:
+    """Rows of (folder, method, interval, scores) of one deploy folder."""
+    geometry = truth_geometry(truth_dir)
+    truth = read_outputs(truth_dir, geometry, leaders=False)
+    period = interval_length_s(truth.detectors)
+    rows = []
+    for method in methods:
+        out = read_outputs(folder / method, geometry, leaders=False)
+        for interval in intervals:
+            k = block_factor(interval, period, str(truth_dir / "detectors.csv"))
+            comp = comparison_table(truth.stations_at(k), out.stations_at(k), method)
+            if runs:
+                comp = comp[comp["run"].isin(runs)]
+            s = detector_scores(comp)
+            rows.append(
+                {
+                    "folder": folder.name,
+                    "method": method,
+                    "interval_s": k * period,
+                    "station_intervals": s["station_intervals"],
+                    "geh_below_5": s["share_geh_below_5"],
+                    "speed_within_5pct": s["share_speed_within_5pct"],
+                    "speed_rmse_mps": s["speed_rmse_mps"],
+                }
+            )
+    return rows
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("folders", type=Path, nargs="+")
-    ap.add_argument("--blocks", type=int, nargs="+", default=[1, 2, 4, 10])
-    ap.add_argument("--runs", type=int, nargs="*", default=None, help="only these runs")
+    ap.add_argument("--intervals", type=float, nargs="+", default=[0.0, 60.0, 120.0, 300.0])
+    ap.add_argument("--truth", type=Path, default=None, help="default: the manifest's")
+    ap.add_argument("--methods", nargs="*", default=None, help="default: the manifest's")
+    ap.add_argument("--runs", type=int, nargs="*", default=[], help="only these runs")
     args = ap.parse_args()
     rows = []
     for folder in args.folders:
-        comp = pd.read_csv(folder / "deploy_comparison.csv")
-        if args.runs:
-            comp = comp[comp["run"].isin(args.runs)]
-        for k in args.blocks:
-            table = pooled(comp, k)
-            length = float((table["end_s"] - table["begin_s"]).median())
-            for method, part in table.groupby("method", sort=False):
-                s = detector_scores(part)
-                rows.append(
-                    {
-                        "folder": folder.name,
-                        "method": method,
-                        "interval_s": length,
-                        "station_intervals": s["station_intervals"],
-                        "geh_below_5": s["share_geh_below_5"],
-                        "speed_within_5pct": s["share_speed_within_5pct"],
-                        "speed_rmse_mps": s["speed_rmse_mps"],
-                    }
-                )
+        manifest = json.loads((folder / "deploy_manifest.json").read_text())
+        truth = args.truth or Path(manifest["ground_truth"])
+        methods = args.methods or list(manifest["methods"])
+        rows += folder_scores(folder, truth, methods, args.intervals, args.runs)
     print(pd.DataFrame(rows).round(3).to_string(index=False))
 
 

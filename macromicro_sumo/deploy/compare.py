@@ -11,13 +11,16 @@ was measured, and the summary's ``reference`` says so: the detector figures are 
 field stations, from ``simulation.warmup_s`` on (a deployment's SUMO run starts with an
 empty road and fills it first); the distributions are of speed and acceleration against
 the observed vehicles (a sample of the population), and headway and time-to-collision are
-not compared (NaN: whoever drove between two observed vehicles is unknown). The statistics are pure functions on DataFrames; ``compare_folders``
-reads the folders and ``write_comparison`` writes the two CSVs.
+not compared (NaN: whoever drove between two observed vehicles is unknown).
+
+The station-intervals are of ``deploy.compare_interval_s`` (0: the detectors' own interval;
+else the detectors' intervals pooled, ``deploy.intervals``); the summary also keeps the
+detector-interval shares (``*_detector_interval``). The statistics are pure functions on
+DataFrames; ``compare_folders`` reads the folders and ``write_comparison`` writes the two CSVs.
 """
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +33,7 @@ from macromicro_sumo.deploy.distributions import (
     distribution_distances,
     lane_trajectories,
 )
+from macromicro_sumo.deploy.intervals import KEY, block_factor, interval_length_s, pool_detectors
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import read_manifest, write_csv
 from macromicro_sumo.road.section import Section
@@ -70,10 +74,20 @@ SAFETY_COLUMNS = (
 ACTED_SHARES = {"safety_acted_share": "safety_acted", "floor_acted_share": "floor_acted"}
 REFERENCE_SIMULATED = "ground truth: every vehicle (simulated)"
 REFERENCE_FIELD = "field: stations (detectors), observed vehicles (speed, accel)"
+# The detector-interval figures kept beside those at deploy.compare_interval_s.
+AT_DETECTORS = (
+    "station_intervals",
+    "share_geh_below_5",
+    "share_speed_within_5pct",
+    "speed_rmse_mps",
+)
+DETECTOR_INTERVAL_COLUMNS = {c: f"{c}_detector_interval" for c in AT_DETECTORS}
 SUMMARY_COLUMNS = [
     "method",
     "reference",
     "runs",
+    "compare_interval_s",
+    "detector_interval_s",
     "station_intervals",
     "share_geh_below_5",
     "share_speed_within_5pct",
@@ -81,6 +95,7 @@ SUMMARY_COLUMNS = [
     "speed_rmse_mps",
     "speed_bias_mps",
     "density_rmse_vpkm",
+    *DETECTOR_INTERVAL_COLUMNS.values(),
     "w1_speed_mps",
     "w1_accel_mps2",
     "w1_headway_s",
@@ -288,6 +303,11 @@ class Outputs:
     stations: pd.DataFrame  # station_table
     runs: pd.DataFrame  # runs.csv (may lack SAFETY_COLUMNS)
     lanes: pd.DataFrame  # trajectories in lane_trajectories' schema (may be empty)
+    detectors: pd.DataFrame  # detectors.csv as read (pooled into longer intervals on demand)
+
+    def stations_at(self, k: int) -> pd.DataFrame:
+        """``station_table`` with the detectors' intervals pooled in blocks of k."""
+        return self.stations if k == 1 else station_table(pool_detectors(self.detectors, k))
 
 
 @dataclass(frozen=True)
@@ -338,7 +358,7 @@ def read_outputs(folder: Path | str, geometry: Geometry, leaders: bool = True) -
     )
     if runs.empty:
         runs = pd.DataFrame({"run": sorted(det["run"].unique())})
-    return Outputs(folder, station_table(det), runs, lanes)
+    return Outputs(folder, station_table(det), runs, lanes, det)
 
 
 @dataclass(frozen=True)
@@ -379,9 +399,12 @@ def summary_row(
     method: Outputs,
     comparison: pd.DataFrame,
     reference: Reference | None = None,
+    at_detectors: pd.DataFrame | None = None,
 ) -> dict:
     """One row of deploy_summary.csv: ``method`` against ``truth`` on the runs of
-    ``comparison`` (``comparison_table(truth.stations, method.stations, name)``)."""
+    ``comparison`` (``comparison_table`` of both sides' ``stations_at`` the comparison
+    interval); ``at_detectors``: the same at the detectors' interval (None: ``comparison``
+    is at it)."""
     runs = sorted(int(r) for r in comparison["run"].unique())
     lanes = method.lanes[method.lanes["run"].isin(runs)]
     dist = (
@@ -392,11 +415,17 @@ def summary_row(
     truth_safety = safety_counts(truth.runs, runs)
     safety = safety_counts(method.runs, runs)
     layer, floor = safety_layer(method.folder)
+    at = detector_scores(comparison if at_detectors is None else at_detectors)
     return {
         "method": name,
         "reference": (reference or Reference()).label,
         "runs": len(runs),
+        "compare_interval_s": interval_length_s(comparison),
+        "detector_interval_s": interval_length_s(
+            comparison if at_detectors is None else at_detectors
+        ),
         **detector_scores(comparison),
+        **{col: at[c] for c, col in DETECTOR_INTERVAL_COLUMNS.items()},
         **dist,
         **safety,
         **acted_shares(safety),
@@ -408,27 +437,38 @@ def summary_row(
 
 
 def compare_folders(
-    truth_dir: Path | str, method_dirs: Mapping[str, Path | str]
+    truth_dir: Path | str, method_dirs: Mapping[str, Path | str], compare_interval_s: float = 0.0
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """(deploy_comparison, deploy_summary) of every method's folder against the truth's."""
+    """(deploy_comparison, deploy_summary) of every method's folder against the truth's, at
+    ``compare_interval_s`` (``deploy.compare_interval_s``; 0: the detectors' interval)."""
     geometry = truth_geometry(truth_dir)
     ref = truth_reference(truth_dir)
     # Field data: leaders among the observed vehicles are not the vehicles' leaders.
     truth = read_outputs(truth_dir, geometry, leaders=not ref.field)
-    if ref.field:
-        st = truth.stations
-        truth = dataclasses.replace(truth, stations=st[st["begin_s"] >= ref.from_s - 1e-9])
+    where = Path(truth_dir) / "detectors.csv"
+    k = block_factor(compare_interval_s, interval_length_s(truth.detectors), str(where))
+
+    def after_warmup(st: pd.DataFrame) -> pd.DataFrame:
+        return st[st["begin_s"] >= ref.from_s - 1e-9] if ref.field else st
+
+    truth_st, truth_at = after_warmup(truth.stations), after_warmup(truth.stations_at(k))
     tables, rows = [], []
     for name, folder in method_dirs.items():
         method = read_outputs(folder, geometry)
-        comp = comparison_table(truth.stations, method.stations, name)
-        if comp.empty:
+        at_detectors = comparison_table(truth_st, method.stations, name)
+        if at_detectors.empty:
             raise UserError(
                 f"{folder}: no run, station and interval in common with the ground truth "
                 f"{truth_dir} (another scenario, or other runs?)"
             )
+        comp = at_detectors if k == 1 else comparison_table(truth_at, method.stations_at(k), name)
+        if comp.empty:
+            raise UserError(
+                f"{where}: {KEY} = {compare_interval_s:g} leaves no whole interval of "
+                f"{compare_interval_s:g} s in the runs compared; accepted: at most a run's length"
+            )
         tables.append(comp)
-        rows.append(summary_row(name, truth, method, comp, ref))
+        rows.append(summary_row(name, truth, method, comp, ref, at_detectors))
     comparison = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
     return comparison.reindex(columns=COMPARISON_COLUMNS), pd.DataFrame(
         rows, columns=SUMMARY_COLUMNS
@@ -436,11 +476,14 @@ def compare_folders(
 
 
 def write_comparison(
-    truth_dir: Path | str, method_dirs: Mapping[str, Path | str], out_dir: Path | str
+    truth_dir: Path | str,
+    method_dirs: Mapping[str, Path | str],
+    out_dir: Path | str,
+    compare_interval_s: float = 0.0,
 ) -> tuple[Path, Path]:
     """Write deploy_comparison.csv and deploy_summary.csv into ``out_dir``; their paths."""
     out = Path(out_dir)
-    comparison, summary = compare_folders(truth_dir, method_dirs)
+    comparison, summary = compare_folders(truth_dir, method_dirs, compare_interval_s)
     paths = out / "deploy_comparison.csv", out / "deploy_summary.csv"
     write_csv(comparison, paths[0])
     write_csv(summary, paths[1])

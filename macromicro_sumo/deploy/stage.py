@@ -353,7 +353,8 @@ def deploy(
             write_method(ctx, res, folder, manifest)
             totals[name] = {c: int(res.runs[c].sum()) for c in SAFETY_COLUMNS}
         files = [f"{m}/manifest.json" for m in methods]
-        files += compare_into(Path(data), {m: stage / m for m in methods}, stage, plots)
+        dirs = {m: stage / m for m in methods}
+        files += compare_into(Path(data), dirs, stage, plots, sc.deploy.compare_interval_s)
         if cal is not None:
             files.append(f"idm_detectors/{HISTORY}")
         manifest = build_manifest(sc, command, stage="deploy")
@@ -374,11 +375,15 @@ def deploy(
 
 
 def compare_into(
-    truth_dir: Path, method_dirs: Mapping[str, Path], stage: Path, plots: PlotDeploy | None
+    truth_dir: Path,
+    method_dirs: Mapping[str, Path],
+    stage: Path,
+    plots: PlotDeploy | None,
+    compare_interval_s: float = 0.0,
 ) -> list[str]:
-    """deploy_comparison.csv, deploy_summary.csv and the figures (``plots``) in ``stage``;
-    their names relative to it (the stage's outputs)."""
-    comparison, summary = compare_folders(truth_dir, method_dirs)
+    """deploy_comparison.csv, deploy_summary.csv and the figures (``plots``) in ``stage``, at
+    ``deploy.compare_interval_s``; their names relative to it (the stage's outputs)."""
+    comparison, summary = compare_folders(truth_dir, method_dirs, compare_interval_s)
     write_csv(comparison, stage / COMPARISON)
     write_csv(summary, stage / SUMMARY)
     made = plots(truth_dir, method_dirs, comparison, stage / PLOTS) if plots else []

@@ -22,6 +22,7 @@ from matplotlib.figure import Figure
 
 from macromicro_sumo.deploy.compare import (
     ALL_LANES,
+    DETECTOR_INTERVAL_COLUMNS,
     GEH_LIMIT,
     REFERENCE_FIELD,
     SPEED_TOLERANCE,
@@ -201,13 +202,39 @@ def cell(value: float, how: str) -> str:
     return f"{value:.{how[0]}f}"
 
 
+def intervals_s(summary: pd.DataFrame) -> tuple[float, float]:
+    """(comparison interval, detectors' interval) [s] of a summary; NaN for a summary
+    written before ``deploy.compare_interval_s`` (its figures are at the detectors')."""
+    got = [
+        float(summary[c].max()) if c in summary else np.nan
+        for c in ("compare_interval_s", "detector_interval_s")
+    ]
+    return got[0], got[1]
+
+
+def pooled(summary: pd.DataFrame) -> bool:
+    """Whether the summary's figures are at a longer interval than the detectors'."""
+    compare, detector = intervals_s(summary)
+    return bool(np.isfinite(compare) and np.isfinite(detector) and compare > detector + 1e-9)
+
+
 def summary_markdown(summary: pd.DataFrame) -> str:
-    """deploy_summary.csv as a markdown table, shares in percent."""
+    """deploy_summary.csv as a markdown table, shares in percent; pooled to a longer
+    interval, the shares at the detectors' own interval follow the pooled ones."""
+    extra = []
+    if pooled(summary):
+        at = f" at {intervals_s(summary)[1]:g} s"
+        extra = [
+            (DETECTOR_INTERVAL_COLUMNS[col], head.replace(" (%)", f"{at} (%)"), how)
+            for col, head, how, _ in SUMMARY_TABLE[:2]
+        ]
     rows = []
     for _, r in summary.iterrows():
         row = {"method": str(r["method"]), "runs": f"{r['runs']:.0f}"}
-        for col, head, how, _ in SUMMARY_TABLE:
+        for i, (col, head, how, _) in enumerate(SUMMARY_TABLE):
             row[head] = cell(float(r.get(col, np.nan)), how)
+            if i == 1:
+                row |= {h: cell(float(r.get(c, np.nan)), w) for c, h, w in extra}
         rows.append(row)
     return markdown_table(pd.DataFrame(rows))
 
@@ -257,6 +284,8 @@ def policy_targets(summary: pd.DataFrame) -> list[str]:
     uncalibrated defaults and the IDM fitted to the observed vehicles."""
     s = summary.set_index("method")
     p = s.loc[POLICY]
+    compare, detector = intervals_s(summary)
+    of = f" of {compare:g} s" if np.isfinite(compare) else ""
     lines = []
     for col, what in (
         ("share_geh_below_5", f"flow GEH < {GEH_LIMIT:g}"),
@@ -264,9 +293,15 @@ def policy_targets(summary: pd.DataFrame) -> list[str]:
     ):
         if np.isfinite(p[col]):
             verdict = "met" if p[col] >= TARGET_SHARE else "missed"
+            at = float(p.get(DETECTOR_INTERVAL_COLUMNS[col], np.nan))
+            also = (
+                f"; at the detectors' {detector:g} s: {100 * at:.1f}%"
+                if pooled(summary) and np.isfinite(at)
+                else ""
+            )
             lines.append(
-                f"- The policy: {what} in {100 * p[col]:.1f}% of station-intervals "
-                f"(target at least {TARGET_SHARE:.0%}): {verdict}."
+                f"- The policy: {what} in {100 * p[col]:.1f}% of station-intervals{of} "
+                f"(target at least {TARGET_SHARE:.0%}): {verdict}{also}."
             )
     for name, words in BASELINES.items():
         if name in s.index and np.isfinite(s.loc[name, "speed_rmse_mps"]):
@@ -360,10 +395,31 @@ def reference_words(summary: pd.DataFrame) -> str:
             f"interval by interval (definitions: docs/deploy.md). {measures}; W1: "
             "Wasserstein-1 distance to the ground truth's distribution (every vehicle)."
         )
+    text = " ".join(filter(None, (text, interval_words(summary))))
     refs = summary["reference"].dropna().unique() if "reference" in summary else []
     if len(refs):
         text += f" Reference (`reference`): {'; '.join(map(str, refs))}."
     return text
+
+
+def interval_words(summary: pd.DataFrame) -> str:
+    """At which interval the shares, and so the targets, are judged."""
+    compare, detector = intervals_s(summary)
+    hourly = f"GEH < {GEH_LIMIT:g} in 85% of the counts is a criterion for hourly flows"
+    if pooled(summary):
+        return (
+            f"Station-intervals are of {compare:g} s (`deploy.compare_interval_s`): the "
+            f"detectors' {detector:g} s intervals pooled (counts summed, space-mean speeds); "
+            f"the targets are judged at {compare:g} s ({hourly}), and the shares at "
+            f"{detector:g} s are given beside them."
+        )
+    if np.isfinite(detector):
+        return (
+            f"Station-intervals are the detectors' own {detector:g} s "
+            f"(`deploy.compare_interval_s = 0`), where the targets are judged ({hourly}: "
+            "at shorter intervals the test is stricter)."
+        )
+    return ""
 
 
 def deployment_markdown(summary: pd.DataFrame, plots: Sequence[str] = ()) -> str:

@@ -218,10 +218,28 @@ class DeployConfig:
     calibration_evals: int = spec(
         60, lo=1, hi=100_000, doc="idm_detectors: most whole-run evaluations the fit may use"
     )
+    # GEH's 85% rule is for hourly flows; at Bremen's 30 s loops one vehicle is 120 veh/h.
+    compare_interval_s: float = spec(
+        0.0,
+        lo=0.0,
+        hi=86400.0,
+        doc="interval of deploy_comparison.csv and deploy_summary.csv's shares: the detectors' "
+        "intervals pooled into blocks of this length (counts summed, space-mean speeds); 0: "
+        "the detectors' own interval; else a multiple of detectors.interval_s; the summary "
+        "keeps the detector-interval shares too (docs/deploy.md, GEH) [s]",
+    )
 
 
-def check_deploy(d: DeployConfig, file: str) -> None:
-    """[deploy]'s cross-field checks (both scenario kinds)."""
+def check_deploy(d: DeployConfig, file: str, detector_interval_s: float | None = None) -> None:
+    """[deploy]'s cross-field checks; ``detector_interval_s``: the detectors' period where the
+    scenario fixes it (None: field data's own, checked when the deployment is compared)."""
+    k = d.compare_interval_s / detector_interval_s if detector_interval_s else 1.0
+    if d.compare_interval_s and (k < 1 - 1e-6 or abs(k - round(k)) > 1e-6):
+        raise UserError(
+            f"{file}: deploy.compare_interval_s = {d.compare_interval_s:g} is not a multiple of "
+            f"detectors.interval_s = {detector_interval_s:g}; accepted: 0 (the detectors' own) "
+            f"or k x {detector_interval_s:g} s, k = 1, 2, ..."
+        )
     if not 0.0 < d.share <= 1.0:
         raise UserError(f"{file}: deploy.share = {d.share!r} is out of range; accepted: (0, 1]")
     if not d.methods:

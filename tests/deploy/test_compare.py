@@ -18,6 +18,7 @@ from macromicro_sumo.cli import main
 from macromicro_sumo.deploy.compare import (
     ALL_LANES,
     COMPARISON_COLUMNS,
+    DETECTOR_INTERVAL_COLUMNS,
     SUMMARY_COLUMNS,
     acted_shares,
     compare_folders,
@@ -34,8 +35,10 @@ from macromicro_sumo.deploy.distributions import (
     times_to_collision,
     w1,
 )
+from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.ring import read_ring
 from macromicro_sumo.road.section import read_section
+from macromicro_sumo.scenario.load import load_scenario
 
 RING = NETS / "ring_r100_e4.net.xml"
 
@@ -269,3 +272,71 @@ def test_a_multilane_corridor_compared_with_itself(corridor: Path, tmp_path: Pat
     ]
     assert row["flow_truth_vph"].item() == pytest.approx(per_pos["flow_vph"].sum()[run, arc, begin])
     assert set(comp.loc[comp["arc_m"] == arc, "lane"]) == {ALL_LANES, 0, 1, 2}
+
+
+# --------------------------------------------------------------------------- comparison interval
+
+
+def test_a_longer_comparison_interval_pools_a_real_truth(rings: tuple[Path, Path]) -> None:
+    """deploy.compare_interval_s = 120 s on 60 s detectors: one station-interval per two,
+    flows as summed counts, E1 speeds over every vehicle that passed, E2 speeds weighted by
+    time on the detector; the summary keeps the 60 s shares beside the 120 s ones."""
+    truth, other = rings
+    comp60, s60 = compare_folders(truth, {"other": other})
+    comp, s = compare_folders(truth, {"other": other}, 120.0)
+    a, b = s60.iloc[0], s.iloc[0]
+    assert (a["compare_interval_s"], a["detector_interval_s"]) == (60.0, 60.0)
+    assert (b["compare_interval_s"], b["detector_interval_s"]) == (120.0, 60.0)
+    assert (a["station_intervals"], b["station_intervals"]) == (48, 24)  # 3 runs x 8 x 2 or 1
+    for col, at in DETECTOR_INTERVAL_COLUMNS.items():
+        assert a[at] == a[col] and b[at] == a[col]
+    assert set(comp["end_s"] - comp["begin_s"]) == {120.0}
+    det = pd.read_csv(truth / "detectors.csv")
+    det = det[(det["run"] == 1) & (det["end_s"] - det["begin_s"] == 60.0)]
+    for kind in ("e1", "e2"):
+        loop = det[det["kind"] == kind].sort_values(["arc_m", "begin_s"]).head(2)
+        row = comp[
+            (comp["run"] == 1)
+            & (comp["station"] == f"{kind}_{loop['arc_m'].iloc[0]:.0f}m")
+            & (comp["lane"] == ALL_LANES)
+        ].iloc[0]
+        n, v = loop["n_veh"].to_numpy(float), loop["speed_mps"].to_numpy(float)
+        if kind == "e1":
+            assert row["flow_truth_vph"] == pytest.approx(n.sum() * 3600 / 120)
+            ok = n > 0
+            assert row["speed_truth_mps"] == pytest.approx(n[ok].sum() / (n[ok] / v[ok]).sum())
+        else:
+            ss = loop["sampled_seconds_s"].to_numpy(float)
+            assert np.isnan(row["flow_truth_vph"])
+            assert row["speed_truth_mps"] == pytest.approx((ss * v).sum() / ss.sum())
+        assert row["density_truth_vpkm"] == pytest.approx(loop["density_vpkm"].mean())
+    # Pooling smooths when each car passes: the other seed's speeds agree better.
+    assert b["speed_rmse_mps"] < a["speed_rmse_mps"]
+
+
+def test_the_detectors_own_interval_gives_todays_comparison(rings: tuple[Path, Path]) -> None:
+    truth, other = rings
+    zero, sz = compare_folders(truth, {"other": other})
+    same, ss = compare_folders(truth, {"other": other}, 60.0)
+    pd.testing.assert_frame_equal(zero, same)
+    pd.testing.assert_frame_equal(sz, ss)
+
+
+def test_a_bad_comparison_interval_is_one_line(rings: tuple[Path, Path], tmp_path: Path) -> None:
+    truth, other = rings
+    with pytest.raises(UserError) as err:
+        compare_folders(truth, {"other": other}, 90.0)
+    msg = str(err.value)
+    assert "\n" not in msg and msg.startswith(str(truth / "detectors.csv"))
+    assert "deploy.compare_interval_s = 90 is not a multiple of the detectors' interval 60" in msg
+    with pytest.raises(UserError, match=r"compare_interval_s = 240 leaves no whole interval"):
+        compare_folders(truth, {"other": other}, 240.0)
+    path = write_scenario(tmp_path, {"deploy.compare_interval_s": 45.0})
+    with pytest.raises(UserError) as err:
+        load_scenario(path)
+    msg = str(err.value)
+    assert "\n" not in msg and msg.startswith(f"{path}: deploy.compare_interval_s = 45 ")
+    assert msg.endswith("accepted: 0 (the detectors' own) or k x 60 s, k = 1, 2, ...")
+    assert (
+        load_scenario(path, {"deploy.compare_interval_s": 300.0}).deploy.compare_interval_s == 300
+    )

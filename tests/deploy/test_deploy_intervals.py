@@ -1,83 +1,103 @@
-"""scripts/deploy_intervals.py: pooling a deployment's comparison into longer intervals."""
+"""deploy.intervals: detectors' intervals pooled into the comparison interval, checked by
+hand on a small detectors.csv (the comparison of real folders: tests/deploy/test_compare.py)."""
 
-import importlib.util
-from pathlib import Path
+from __future__ import annotations
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from macromicro_sumo.deploy.compare import ALL_LANES, detector_scores, geh, relative_error
+from macromicro_sumo.deploy.compare import ALL_LANES, station_table
+from macromicro_sumo.deploy.intervals import block_factor, interval_length_s, pool_detectors
+from macromicro_sumo.errors import UserError
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "deploy_intervals.py"
+# Two loops across the lanes of one station and a lane-area detector, four 30 s intervals
+# and the partial one SUMO writes when a run ends (120 s to 120.5 s).
+COUNTS = {"a": [10, 5, 0, 8], "b": [4, 6, 2, 0]}  # vehicles per interval
+SPEEDS = {"a": [20.0, 25.0, np.nan, 30.0], "b": [30.0, 15.0, 10.0, np.nan]}  # harmonic means
+E2_SPEED = [12.0, 18.0, 9.0, 6.0]
+E2_SECONDS = [60.0, 20.0, 0.0, 30.0]  # vehicle-seconds on the detector
 
 
-@pytest.fixture(scope="module")
-def pooled():
-    spec = importlib.util.spec_from_file_location("deploy_intervals", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod.pooled
-
-
-def comparison(seed: int = 0, n: int = 12) -> pd.DataFrame:
-    """Two stations over n 30 s intervals with drawn flows and speeds, and a lane row."""
-    rng = np.random.default_rng(seed)
+def detectors() -> pd.DataFrame:
     rows = []
-    for station, arc in (("e1_100m", 100.0), ("e1_900m", 900.0)):
-        for i in range(n):
-            qt, qm = rng.integers(0, 40, 2) * 120.0
-            vt, vm = rng.uniform(20, 40, 2)
+    bounds = [(30.0 * i, 30.0 * (i + 1)) for i in range(4)] + [(120.0, 120.5)]
+    for i, (b, e) in enumerate(bounds):
+        j = min(i, 3)
+        for det, lane, arc in (("a", 0, 500.0), ("b", 1, 502.0)):
+            n, v = COUNTS[det][j], SPEEDS[det][j]
             rows.append(
                 {
-                    "method": "policy", "run": 1, "station": station, "lane": ALL_LANES,
-                    "begin_s": 30.0 * i, "end_s": 30.0 * (i + 1), "arc_m": arc,
-                    "flow_truth_vph": qt, "flow_method_vph": qm,
-                    "speed_truth_mps": vt if qt > 0 else np.nan,
-                    "speed_method_mps": vm if qm > 0 else np.nan,
-                    "density_truth_vpkm": qt / vt / 3.6, "density_method_vpkm": qm / vm / 3.6,
+                    "run": 0, "detector_id": det, "kind": "e1", "lane_index": lane,
+                    "arc_m": arc, "begin_s": b, "end_s": e, "n_veh": n,
+                    "flow_vph": n * 3600.0 / (e - b), "speed_mps": v,
+                    "density_vpkm": n * 3600.0 / (e - b) / v / 3.6 if n else 0.0,
+                    "sampled_seconds_s": np.nan,
                 }
             )  # fmt: skip
-    c = pd.DataFrame(rows)
-    c["geh"] = geh(c["flow_method_vph"], c["flow_truth_vph"])
-    c["speed_rel_error"] = relative_error(c["speed_method_mps"], c["speed_truth_mps"])
-    lane = c.assign(lane=0)  # per-lane rows are not station-intervals: left out
-    return pd.concat([c, lane], ignore_index=True)
+        rows.append(
+            {
+                "run": 0, "detector_id": "c", "kind": "e2", "lane_index": 0, "arc_m": 900.0,
+                "begin_s": b, "end_s": e, "n_veh": 3, "flow_vph": np.nan,
+                "speed_mps": E2_SPEED[j] if E2_SECONDS[j] else np.nan,
+                "density_vpkm": 2.0 * (j + 1), "sampled_seconds_s": E2_SECONDS[j],
+            }
+        )  # fmt: skip
+    return pd.DataFrame(rows)
 
 
-def test_one_interval_blocks_give_the_summary(pooled):
-    c = comparison()
-    a, b = detector_scores(c), detector_scores(pooled(c, 1))
-    for k in ("station_intervals", "share_geh_below_5", "share_speed_within_5pct"):
-        assert a[k] == pytest.approx(b[k])
-    assert a["speed_rmse_mps"] == pytest.approx(b["speed_rmse_mps"])
+def test_pairs_of_intervals_pool_counts_harmonic_and_timed_speeds() -> None:
+    det = detectors()
+    pooled = pool_detectors(det, 2)
+    assert list(pooled.columns) == list(det.columns)
+    # Two whole blocks of 60 s per detector; the partial interval is left out.
+    assert len(pooled) == 6 and set(pooled["end_s"] - pooled["begin_s"]) == {60.0}
+    a0 = pooled[(pooled["detector_id"] == "a") & (pooled["begin_s"] == 0.0)].iloc[0]
+    # 10 + 5 vehicles in 60 s is 900 veh/h; their space-mean speed 15 / (10/20 + 5/25).
+    assert (a0["n_veh"], a0["flow_vph"]) == (15, pytest.approx(900.0))
+    assert a0["speed_mps"] == pytest.approx(15 / (10 / 20 + 5 / 25))
+    # Density averaged over the intervals is the pooled flow / pooled speed / 3.6.
+    assert a0["density_vpkm"] == pytest.approx(a0["flow_vph"] / a0["speed_mps"] / 3.6)
+    # Nobody passed in 60-90 s: the block's speed is the 8 vehicles of 90-120 s.
+    a1 = pooled[(pooled["detector_id"] == "a") & (pooled["begin_s"] == 60.0)].iloc[0]
+    assert (a1["flow_vph"], a1["speed_mps"]) == (pytest.approx(480.0), pytest.approx(30.0))
+    # The lane-area detector: speeds weighted by time on it, no flow, density averaged.
+    c = pooled[pooled["detector_id"] == "c"].sort_values("begin_s")
+    assert c["speed_mps"].iloc[0] == pytest.approx((60 * 12 + 20 * 18) / 80)
+    assert c["speed_mps"].iloc[1] == pytest.approx(6.0)  # 0 s at 9 m/s count nothing
+    assert c["flow_vph"].isna().all()
+    np.testing.assert_allclose(c["density_vpkm"], [3.0, 7.0])
+    np.testing.assert_allclose(c["sampled_seconds_s"], [80.0, 30.0])
 
 
-def test_blocks_pool_counts_and_space_mean_speeds(pooled):
-    c = comparison(seed=3, n=5)
-    p = pooled(c, 2)
-    # 5 intervals make two whole blocks of 2 per station; the fifth is left out
-    assert len(p) == 4
-    assert set(p["end_s"] - p["begin_s"]) == {60.0}
-    s = c[(c["lane"] == ALL_LANES) & (c["station"] == "e1_900m") & (c["begin_s"] < 60)]
-    first = p[(p["station"] == "e1_900m") & (p["begin_s"] == 0.0)].iloc[0]
-    q, v = s["flow_truth_vph"].to_numpy(), s["speed_truth_mps"].to_numpy()
-    assert first["flow_truth_vph"] == pytest.approx(q.mean())
-    ok = q > 0
-    if ok.any():  # the harmonic mean of the vehicles that passed, weighted by their counts
-        assert first["speed_truth_mps"] == pytest.approx(q[ok].sum() / (q[ok] / v[ok]).sum())
-    assert first["geh"] == pytest.approx(
-        geh(np.array([first["flow_method_vph"]]), np.array([first["flow_truth_vph"]]))[0]
-    )
+def test_the_pooled_station_is_the_station_of_every_vehicle_in_the_block() -> None:
+    st = station_table(pool_detectors(detectors(), 4))
+    row = st[(st["station"] == "e1_501m") & (st["lane"] == ALL_LANES)].iloc[0]
+    n = sum(COUNTS["a"]) + sum(COUNTS["b"])
+    inv = sum(k / v for d in "ab" for k, v in zip(COUNTS[d], SPEEDS[d], strict=True) if k and v > 0)
+    assert (row["begin_s"], row["end_s"]) == (0.0, 120.0)
+    assert row["flow_vph"] == pytest.approx(n * 3600 / 120)
+    assert row["speed_mps"] == pytest.approx(n / inv)
 
 
-def test_longer_intervals_loosen_geh_on_timing_noise(pooled):
-    """The same mean flow with each 30 s count three vehicles off, alternately: GEH fails at
-    30 s and holds once pairs of intervals are pooled."""
-    c = comparison(n=8)
-    c = c[c["lane"] == ALL_LANES].copy()
-    c["flow_truth_vph"] = 480.0
-    c["flow_method_vph"] = np.where((c["begin_s"] // 30) % 2 == 0, 480.0 + 360.0, 480.0 - 360.0)
-    c["geh"] = geh(c["flow_method_vph"], c["flow_truth_vph"])
-    assert detector_scores(c)["share_geh_below_5"] < 0.5
-    assert detector_scores(pooled(c, 2))["share_geh_below_5"] == 1.0
+def test_blocks_of_one_are_the_detectors_own_intervals() -> None:
+    det = detectors()
+    a, b = station_table(det), station_table(pool_detectors(det, 1))
+    pd.testing.assert_frame_equal(a, b, check_dtype=False)
+
+
+def test_three_intervals_of_four_leave_an_incomplete_block_out() -> None:
+    pooled = pool_detectors(detectors(), 3)
+    assert set(pooled["begin_s"]) == {0.0} and set(pooled["end_s"]) == {90.0}
+
+
+def test_the_comparison_interval_must_be_a_multiple_of_the_detectors() -> None:
+    assert interval_length_s(detectors()) == 30.0
+    assert block_factor(0.0, 30.0, "x") == 1 and block_factor(300.0, 30.0, "x") == 10
+    for bad in (45.0, 15.0):
+        with pytest.raises(UserError) as err:
+            block_factor(bad, 30.0, "gt/detectors.csv")
+        msg = str(err.value)
+        assert "\n" not in msg
+        assert msg.startswith(f"gt/detectors.csv: deploy.compare_interval_s = {bad:g} ")
+        assert "accepted: 0 (the detectors' own) or k x 30 s" in msg
