@@ -2,8 +2,9 @@
 trainings of the residual differed").
 
 Trains the Stage II policy of a section scenario several times on one ground truth,
-generator and episode bank, changing only PPO's seed (the actor's initialisation, episode
-draws and action noise: the scenario's seed is kept for everything else), and deploys each
+generator and episode bank, changing only ``policy.seed`` (PPO's own seed: the actor's
+initialisation, episode draws and action noise; the scenario's ``seed`` is kept, so each
+deployment re-runs the truth's own held-out runs, which ``deploy`` checks), and deploys each
 with ``macromicro deploy --methods policy``. Prints one row per seed: the deployment's GEH
 share, speed-within-5% share, speed RMSE and bias, and the training's r_micro per pair at
 the first and last update and the final action std.
@@ -59,7 +60,7 @@ def main() -> None:
     for seed in args.seeds:
         out = args.out / f"seed{seed}"
         res = train_policy(
-            dataclasses.replace(sc, seed=seed),
+            dataclasses.replace(sc, policy=dataclasses.replace(sc.policy, seed=seed)),
             episodes.bank,
             out / "policy",
             progress=False,
