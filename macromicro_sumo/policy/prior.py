@@ -23,7 +23,9 @@ where the data say so.
   model): accelerate at a until the desired speed is near, then close the rest within the
   relaxation time T, min(a, (V - v) / T). Gipps' free term tapers from half-way to V (at
   v = 0.75 V it is 0.55 a), which left Bremen's deployed cars entering at 33 m/s 3-5 m/s
-  behind SUMO's, which accelerate at ~1.9 m/s^2 up to their desired speed.
+  behind SUMO's, which accelerate at ~1.9 m/s^2 up to their desired speed. Its parameters
+  that the pairs do not identify take SUMO's defaults for the network's vClass
+  (``evaluation.krauss_fit.fit_krauss``; the policy manifest says which and why).
 
 The torch functions here equal ``evaluation.idm_fit``'s numpy ones (the same gap floor and
 braking bound: tests/policy/test_prior.py compares them); the parameters are buffers of the
