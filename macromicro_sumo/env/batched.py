@@ -24,13 +24,17 @@ is inserted during that step's simulationStep while the other scenes move, as
 from __future__ import annotations
 
 import tempfile
-from dataclasses import dataclass
 from itertools import repeat
 from pathlib import Path
 
 import numpy as np
 
-from macromicro_sumo.env.batched_scene import batch_macro_reward, loop_observations
+from macromicro_sumo.env.batched_scene import (
+    BatchStep,
+    batch_macro_reward,
+    check_batchable,
+    loop_observations,
+)
 from macromicro_sumo.env.section import (
     COUNTERS,
     DEFAULT_SAFETY,
@@ -39,6 +43,7 @@ from macromicro_sumo.env.section import (
     SAFE_MODE,
     SAFETY,
     SPEED_TOL_MPS,
+    SectionCore,
 )
 from macromicro_sumo.env.section_bank import SectionBank
 from macromicro_sumo.env.section_replay import (
@@ -47,7 +52,6 @@ from macromicro_sumo.env.section_replay import (
     SAFE_SUFFIX,
     arc_lag,
     catch_up_speeds,
-    junction_vias,
     safe_places,
     vtypes_xml,
 )
@@ -58,29 +62,25 @@ from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.sumo.tiling import copy_id, tile_net
 
 
-@dataclass(frozen=True)
-class BatchStep:
-    """What one step of ``BatchedSectionCore`` returns, per scene (B, ...)."""
-
-    obs: np.ndarray  # (B, N, d); a scene reset in this step: its start observation
-    r_macro: np.ndarray  # (B,) 0 for scenes reset in this step or idle
-    terms: dict[str, np.ndarray]  # (B,) named reward terms
-    collision: np.ndarray  # (B,) bool
-    truncated: np.ndarray  # (B,) bool: ended early (an error, no vehicle left)
-    stepped: np.ndarray  # (B,) bool: scenes that took an env step (resets and idle: not)
-    was_reset: np.ndarray  # (B,) bool: scenes (re)started in this step
-    active: np.ndarray  # (B, N) bool
-    errors: tuple[str, ...]  # per scene, "" for none
-
-
-def check_batchable(section: Section, net_has_lights: bool = False) -> None:
-    """One-line error where ``BatchedSectionCore`` does not apply (``SectionCore`` does)."""
-    ok = section.closed and section.max_lanes == 1 and bool(section.links.all())
-    if not ok or junction_vias(section) or net_has_lights:
-        raise UserError(
-            "env.batched: the batched core takes closed one-lane sections without signals "
-            "or junction-internal lanes (a ring); use SectionCore (num_envs = 1) for this one"
+def batched_like(core: SectionCore, n_scenes: int) -> BatchedSectionCore | None:
+    """A batched core of ``n_scenes`` scenes that drives ``core``'s episodes as ``core``
+    does (its scenario, section, bank, net, seed, safety and vTypes file), or None where
+    the section is not one the batched core takes."""
+    try:
+        check_batchable(core.section)
+        opts = core.sim.options
+        return BatchedSectionCore(
+            core.sc,
+            core.section,
+            core.bank,
+            opts.net_file,
+            n_scenes,
+            seed=opts.seed,
+            safety=core.safety,
+            vtypes_file=opts.additional_files[0],
         )
+    except UserError:
+        return None
 
 
 class BatchedSectionCore:
@@ -97,6 +97,7 @@ class BatchedSectionCore:
         safety: str | None = None,
         replay_min_gap_m: float | None = None,
         vclass: str = "passenger",
+        vtypes_file: Path | None = None,
     ) -> None:
         safety = safety or getattr(sc.policy, "safety", DEFAULT_SAFETY)
         if safety not in SAFETY:
@@ -117,7 +118,9 @@ class BatchedSectionCore:
         lengths = np.unique(np.round(lengths[np.isfinite(lengths) & (lengths > 0)], 2))
         self._vtype = {float(x): f"mm_L{i}" for i, x in enumerate(lengths)}
         (tmp / "vtypes.add.xml").write_text(
-            vtypes_xml(
+            Path(vtypes_file).read_text()  # a SectionCore's own (``batched_like``)
+            if vtypes_file is not None
+            else vtypes_xml(
                 self._vtype,
                 sc.bounds.accel_mps2,
                 sc.bounds.min_gap_m,

@@ -1,4 +1,5 @@
-"""What B scenes of a one-lane loop observe and earn, as numpy over (B, N) slot arrays.
+"""What B scenes of a one-lane loop observe and earn, as numpy over (B, N) slot arrays;
+what a step of the batched core returns, and which sections it takes.
 
 The batched env core's (``env/batched.py``) twins of ``section_observations`` and
 ``section_macro_reward`` for the case it takes (a closed one-lane section: the ring): the
@@ -8,11 +9,40 @@ the single-scene functions have them (a test compares them).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from macromicro_sumo.data.objective import macro_reward, macro_terms
 from macromicro_sumo.env.section_bank import section_target
+from macromicro_sumo.env.section_replay import junction_vias
+from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
+
+
+@dataclass(frozen=True)
+class BatchStep:
+    """What one step of ``BatchedSectionCore`` returns, per scene (B, ...)."""
+
+    obs: np.ndarray  # (B, N, d); a scene reset in this step: its start observation
+    r_macro: np.ndarray  # (B,) 0 for scenes reset in this step or idle
+    terms: dict[str, np.ndarray]  # (B,) named reward terms
+    collision: np.ndarray  # (B,) bool
+    truncated: np.ndarray  # (B,) bool: ended early (an error, no vehicle left)
+    stepped: np.ndarray  # (B,) bool: scenes that took an env step (resets and idle: not)
+    was_reset: np.ndarray  # (B,) bool: scenes (re)started in this step
+    active: np.ndarray  # (B, N) bool
+    errors: tuple[str, ...]  # per scene, "" for none
+
+
+def check_batchable(section: Section, net_has_lights: bool = False) -> None:
+    """One-line error where ``BatchedSectionCore`` does not apply (``SectionCore`` does)."""
+    ok = section.closed and section.max_lanes == 1 and bool(section.links.all())
+    if not ok or junction_vias(section) or net_has_lights:
+        raise UserError(
+            "env.batched: the batched core takes closed one-lane sections without signals "
+            "or junction-internal lanes (a ring); use SectionCore (num_envs = 1) for this one"
+        )
 
 
 def loop_leaders(
@@ -28,8 +58,9 @@ def loop_leaders(
     j = np.arange(n)[None, :]
     nj = np.where(j + 1 < k, j + 1, 0)
     s_sorted = np.take_along_axis(s, order, axis=1)
-    gap_sorted = np.take_along_axis(s_sorted, nj, axis=1) - s_sorted
-    gap_sorted = np.where(nj == 0, gap_sorted + length_m, gap_sorted)
+    s_next = np.take_along_axis(s_sorted, nj, axis=1)
+    # loop_successors' own float operations: the last one's gap is first + L - last
+    gap_sorted = np.where(nj == 0, s_next + length_m - s_sorted, s_next - s_sorted)
     leader = np.full((b, n), -1, dtype=np.int64)
     spacing = np.full((b, n), NO_LEADER_GAP_M)
     rows = np.arange(b)[:, None]

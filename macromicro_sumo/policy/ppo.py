@@ -17,7 +17,8 @@ Read top to bottom as CleanRL's ppo_continuous_action: rollout, GAE, update (the
   why, measured).
 * Ablations (``policy.objective``): ``mix`` (the paper), ``micro_only`` (eta = 0: behaviour
   cloning), ``macro_only`` (no likelihood term). An empty minibatch (few samples) is skipped.
-* The env core is a section's ``SectionCore`` (``make_core``; the paper's ring is one).
+* The env core is a section's ``SectionCore`` (``make_core``; the paper's ring is one); on
+  a ring the updates' rollouts run on a ``BatchedSectionCore`` (``policy.rollout``).
   On a section vehicles leave mid-episode and recorded actions can be unknown: steps of an
   inactive vehicle carry no loss (its value target ends there), NaN actions no likelihood.
   Observations are normalised with the mean/std of the bank's initial observations
@@ -29,7 +30,6 @@ from __future__ import annotations
 import copy
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +39,7 @@ import torch
 from torch import nn
 
 from macromicro_sumo.checkpoints import save_torch
+from macromicro_sumo.env.batched import batched_like
 from macromicro_sumo.env.demand import DemandCore
 from macromicro_sumo.env.observation import bank_shift_scale
 from macromicro_sumo.env.section import SectionCore
@@ -54,6 +55,7 @@ from macromicro_sumo.policy.checkpoint import (
 )
 from macromicro_sumo.policy.demand_rollout import collect_demand, demand_log, join_demand
 from macromicro_sumo.policy.residual import anchor_loss, anchor_observations, residual_pairs
+from macromicro_sumo.policy.rollout import Rollout, collect, collect_batched
 from macromicro_sumo.progress import tqdm
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.inputs import scenario_inputs
@@ -83,85 +85,8 @@ def clipped_actions(actions: np.ndarray, a_min: float, a_max: float) -> tuple[np
     return out, float((out != actions).mean()) if actions.size else 0.0
 
 
-# --------------------------------------------------------------------------- rollout
-
-
-@dataclass
-class Rollout:
-    obs: np.ndarray  # (E, H, N, obs_dim)
-    actions: np.ndarray  # (E, H, N)
-    logp: np.ndarray
-    values: np.ndarray
-    rewards: np.ndarray  # (E, H)
-    hidden: np.ndarray  # (E, N)
-    gt_actions: np.ndarray  # (E, H, N) (NaN: unknown)
-    r_macro: np.ndarray  # (E, H)
-    collisions: int
-    sumo_errors: int
-    active: np.ndarray  # (E, H, N) bool: the vehicle was on the road at the step
-    leader_hidden: np.ndarray  # (E, H, N) bool: the vehicle's leader at the step is hidden
-
-
 Core = SectionCore
-
-
-def collect(
-    agent: Agent,
-    core: Core,
-    episodes: np.ndarray,
-    eta: float,
-    horizon: int,
-    gen: torch.Generator,
-) -> Rollout:
-    n = core.n
-    active = np.ones((len(episodes), horizon, n), dtype=bool)
-    e_n = len(episodes)
-    leader_hidden = np.zeros((e_n, horizon, n), dtype=bool)
-    obs = np.zeros((e_n, horizon, n, core.obs_dim), dtype=np.float32)
-    act = np.zeros((e_n, horizon, n), dtype=np.float32)
-    logp = np.zeros_like(act)
-    val = np.zeros_like(act)
-    r_macro = np.zeros((e_n, horizon), dtype=np.float32)
-    hidden = core.bank.hidden[episodes]
-    collisions = errors = 0
-    t_frac = torch.arange(horizon, dtype=torch.float32) / horizon
-    for i, ep in enumerate(episodes):
-        o = core.reset(int(ep))
-        for t in range(horizon):
-            active[i, t] = core.active
-            leader_hidden[i, t] = (core.leader >= 0) & hidden[i][np.maximum(core.leader, 0)]
-            ot = torch.as_tensor(o, dtype=torch.float32)
-            with torch.no_grad():
-                d = agent.dist(ot)
-                a = d.mean + d.stddev * torch.randn(d.mean.shape, generator=gen)
-                obs[i, t], act[i, t] = o, a.numpy()
-                logp[i, t] = d.log_prob(a).numpy()
-                val[i, t] = agent.value(ot, t_frac[t].expand(n)).numpy()
-            res = core.step(act[i, t][hidden[i]])
-            r_macro[i, t] = res.r_macro
-            o = res.obs
-            if res.collision or res.truncated:
-                collisions += res.collision
-                errors += bool(res.error)
-                obs[i, t + 1 :] = o  # the episode ends here: later steps carry no reward
-                leader_hidden[i, t + 1 :] = leader_hidden[i, t]
-                active[i, t + 1 :] = False
-                break
-    return Rollout(
-        obs,
-        act,
-        logp,
-        val,
-        eta * r_macro,
-        hidden,
-        core.bank.gt_accel_mps2[episodes][:, :horizon],
-        r_macro,
-        collisions,
-        errors,
-        active,
-        leader_hidden,
-    )
-
+BATCH_SCENES = 64  # the batched core's scenes: episodes of an update per SUMO step
 
 # --------------------------------------------------------------------------- training
 
@@ -269,6 +194,8 @@ def train_policy(
         make_core = lambda b, seed: SectionCore(sc, section, b, net_file, seed=seed)  # noqa: E731
     seed = sc.seed if cfg.seed < 0 else cfg.seed  # policy.seed: a second training
     core = make_core(bank, seed)
+    # The ring's rollouts, B episodes per SUMO step: the same rollout, to the bit (rollout.py).
+    batched = batched_like(core, min(cfg.episodes_per_update, BATCH_SCENES))
     # Demand episodes only where the policy gradient is used (micro_only has none).
     use_demand = make_demand is not None and cfg.episodes != "snapshots" and eta > 0
     demand = make_demand() if use_demand else None
@@ -329,7 +256,10 @@ def train_policy(
         for update in bar:
             opt.param_groups[0]["lr"] = learning_rate(cfg.lr, cfg.lr_schedule, update, n_updates)
             episodes = train_eps[rng.integers(0, len(train_eps), cfg.episodes_per_update)]
-            ro = collect(agent, core, episodes, eta, cfg.horizon, gen)
+            if batched is None:
+                ro = collect(agent, core, episodes, eta, cfg.horizon, gen)
+            else:
+                ro = collect_batched(agent, batched, episodes, eta, cfg.horizon, gen)
             env_steps += cfg.episodes_per_update * cfg.horizon
             # GAE runs along time: (E, H, N) -> (H, E, N) and back. A vehicle's episode ends
             # when it leaves (no reward, value 0 after): the ring's vehicles never do.
@@ -476,6 +406,8 @@ def train_policy(
                 )
     finally:
         core.close()
+        if batched is not None:
+            batched.close()
         if demand is not None:
             demand.close()
     if best_state is not None:
