@@ -287,8 +287,8 @@ def build_section_scenario(table: dict[str, Any], file: str, source: str) -> Sec
 def _check(sc: SectionScenario, file: str) -> None:
     """Cross-field checks that no single range can express."""
     # Field data's stations have their own interval: checked when the deployment is compared.
-    fixed = sc.detectors.interval_s if sc.data.source != "files" else None
-    check_deploy(sc.deploy, file, fixed)
+    sim, run_s = sc.data.source != "files", sc.simulation.warmup_s + sc.simulation.duration_s
+    check_deploy(sc.deploy, file, sc.detectors.interval_s if sim else None, run_s if sim else None)
     check_data(sc.data, sc.resolve, sc.generator.k_source, file)
     check_fleet_tables(sc, file)
     net = sc.network

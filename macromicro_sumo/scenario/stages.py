@@ -230,9 +230,20 @@ class DeployConfig:
     )
 
 
-def check_deploy(d: DeployConfig, file: str, detector_interval_s: float | None = None) -> None:
-    """[deploy]'s cross-field checks; ``detector_interval_s``: the detectors' period where the
-    scenario fixes it (None: field data's own, checked when the deployment is compared)."""
+def check_deploy(
+    d: DeployConfig,
+    file: str,
+    detector_interval_s: float | None = None,
+    run_s: float | None = None,
+) -> None:
+    """[deploy]'s cross-field checks; ``detector_interval_s`` and ``run_s`` (warm-up and
+    duration): the detectors' period and a run's length where the scenario fixes them (None:
+    field data's own, checked when the deployment is compared)."""
+    if run_s is not None and d.compare_interval_s > run_s + 1e-9:
+        raise UserError(
+            f"{file}: deploy.compare_interval_s = {d.compare_interval_s:g} exceeds a run "
+            f"(simulation.warmup_s + duration_s = {run_s:g} s); accepted: 0 or at most {run_s:g}"
+        )
     k = d.compare_interval_s / detector_interval_s if detector_interval_s else 1.0
     if d.compare_interval_s and (k < 1 - 1e-6 or abs(k - round(k)) > 1e-6):
         raise UserError(

@@ -338,5 +338,8 @@ def test_a_bad_comparison_interval_is_one_line(rings: tuple[Path, Path], tmp_pat
     assert "\n" not in msg and msg.startswith(f"{path}: deploy.compare_interval_s = 45 ")
     assert msg.endswith("accepted: 0 (the detectors' own) or k x 60 s, k = 1, 2, ...")
     assert (
-        load_scenario(path, {"deploy.compare_interval_s": 300.0}).deploy.compare_interval_s == 300
+        load_scenario(path, {"deploy.compare_interval_s": 120.0}).deploy.compare_interval_s == 120
     )
+    # Longer than a run (warm-up + duration, 180 s): refused before anything is deployed.
+    with pytest.raises(UserError, match=r"deploy.compare_interval_s = 240 exceeds a run \("):
+        load_scenario(path, {"deploy.compare_interval_s": 240.0})
