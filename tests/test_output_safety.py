@@ -55,7 +55,7 @@ def test_simulate_keeps_a_users_folder_of_the_same_name(make_scenario, tmp_path,
     users = out / "sumo"
     users.mkdir(parents=True)
     (users / "my.net.xml").write_text("<net/>\n")
-    code = cli.main(["simulate", str(make_scenario()), "--out", str(out), "--quiet"])
+    code = cli.main(["simulate", str(make_scenario(SMALL)), "--out", str(out), "--quiet"])
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "was not written by macromicro-sumo" in err
     assert (users / "my.net.xml").read_text() == "<net/>\n"
@@ -64,7 +64,7 @@ def test_simulate_keeps_a_users_folder_of_the_same_name(make_scenario, tmp_path,
 
 def test_simulate_twice_replaces_its_own_folders(make_scenario, tmp_path):
     out = tmp_path / "out"
-    path = str(make_scenario())
+    path = str(make_scenario(SMALL))
     assert cli.main(["simulate", path, "--out", str(out), "--quiet"]) == 0
     staged = [p for p in out.iterdir() if p.is_dir()]
     assert staged and all((p / OUTPUT_MARK).is_file() for p in staged)

@@ -30,7 +30,8 @@ def test_one_summary_line_per_stage_off_a_terminal(capsys):
 def test_simulate_logs_one_line_to_a_file(make_scenario, tmp_path):
     log = tmp_path / "log.txt"
     with open(log, "w") as f:
-        cmd = [sys.executable, "-m", "macromicro_sumo.cli", "simulate", str(make_scenario())]
+        small = make_scenario({"simulation.n_runs": 2, "simulation.duration_s": 60.0})
+        cmd = [sys.executable, "-m", "macromicro_sumo.cli", "simulate", str(small)]
         subprocess.run([*cmd, "--out", str(tmp_path / "out")], stderr=f, check=True)
     text = log.read_text()
     assert "\r" not in text

@@ -1,5 +1,5 @@
 """gymnasium.make("macromicro/RingHidden-v0") with no arguments: the demo is built into the
-cache on first use (well under a minute), said on stderr, and reused afterwards."""
+cache on first use, said on stderr, and reused afterwards."""
 
 from __future__ import annotations
 
@@ -22,7 +22,6 @@ def test_no_argument_make_builds_the_demo_once(tmp_path, monkeypatch, capsys):
     env = gymnasium.make(ENV_ID)
     built_s = time.perf_counter() - t0
     err = capsys.readouterr().err
-    assert built_s < 60.0
     assert "first use of the demo" in err and "demo built in" in err
     assert str(tmp_path / "cache") in err
     try:

@@ -209,6 +209,7 @@ def test_run_after_a_policy_edit_reuses_ground_truth_and_generator(finished_copy
     assert _state(out) == after
 
 
+@pytest.mark.slow  # the rule itself: test_stages_redo_what_an_edit_reaches (stub stages)
 def test_run_after_a_ground_truth_edit_redoes_every_stage(finished_copy, tmp_path):
     out = finished_copy
     before = _state(out)
