@@ -60,9 +60,9 @@ def test_training_on_the_batched_core_gives_the_same_policy(small_ring_gt, tmp_p
     the bit, so the ring's results do not move."""
     sc = ring_scenario(tmp_path, {"policy.episodes_per_update": 6})
     bank, splits = true_state_bank(sc, small_ring_gt)
-    fast = train_policy(sc, bank, tmp_path / "batched", progress=False, updates=3)
+    fast = train_policy(sc, bank, tmp_path / "batched", progress=False, updates=2)
     monkeypatch.setattr(ppo, "batched_like", lambda core, b: None)
-    slow = train_policy(sc, bank, tmp_path / "single", progress=False, updates=3)
+    slow = train_policy(sc, bank, tmp_path / "single", progress=False, updates=2)
     for k, v in slow["agent"].state_dict().items():
         assert torch.equal(fast["agent"].state_dict()[k], v), k
     logs = [pd.DataFrame(r["log"]).drop(columns="wall_s") for r in (fast, slow)]
