@@ -119,12 +119,12 @@ BYTES_PER_ROW = 384
 MEMORY_CHECK_STEPS = 500
 
 
-def check_run_memory(sc: SectionScenario, rows_per_run: float, run: int) -> None:
-    """Refuse a ground truth whose trajectories will not fit in memory, projected from the
-    rows of run ``run`` so far: how many vehicles drive on the section is known only then."""
+def check_run_memory(sc: SectionScenario, rows_per_run: float, run: int | None) -> None:
+    """Refuse trajectories too large for memory, from run ``run``'s rows (None: a fleet's)."""
+    how = "a fleet's" if run is None else f"as run {run} goes"
     check_memory(
         rows_per_run * sc.simulation.n_runs * BYTES_PER_ROW,
-        f"{sc.source}: about {rows_per_run:,.0f} trajectory rows per run (as run {run} goes) "
+        f"{sc.source}: about {rows_per_run:,.0f} trajectory rows per run ({how}) "
         f"x simulation.n_runs = {sc.simulation.n_runs}",
         "lower simulation.duration_s or n_runs, or choose a shorter section",
     )
@@ -246,6 +246,8 @@ def run_section(
     vclass: dict[str, str] = {}
     demand = fleet_demand(sc)
     if demand is not None:
+        steps = sc.simulation.duration_s / sc.simulation.step_length_s  # refuse before draws
+        check_run_memory(sc, demand.fleet.n_vehicles * steps, None)
         geo, specs = fleet_specs(sc, section)
     sim: Simulation | None = None
     try:
