@@ -128,3 +128,26 @@ def test_parameters_no_pair_decides_fall_back_to_the_vclass_defaults():
     assert fit.params.accel_mps2 == pytest.approx(KRAUSS.accel_mps2, abs=0.1)
     want = krauss_policy_accel(obs, fit.params, LENGTH_M, DT_S)
     assert fit.rmse_mps2 == pytest.approx(float(np.sqrt(np.mean((want - accel) ** 2))))
+
+
+def test_a_contradicted_by_the_free_acceleration_pairs_falls_back():
+    """Enough pairs show free acceleration, but more pairs on a free-looking road do not
+    accelerate (held back by a queue the observation does not see, as on a drawn net whose
+    queue reaches its entry): the unguarded a serves those and is below what the free
+    pairs show; the guard takes the default and says why."""
+    rng = np.random.default_rng(6)
+    limit = 30.0 / KRAUSS.speed_factor
+    v_free = rng.uniform(10.0, 25.0, 1000)
+    v_held = rng.uniform(3.0, 15.0, 3000)
+    v = np.concatenate([v_free, v_held])
+    spacing = np.full(len(v), 1000.0)  # the queue's tail is beyond the section's end
+    obs = np.column_stack([v, np.full(len(v), limit), spacing, np.zeros(len(v))])
+    accel = krauss_policy_accel(obs, KRAUSS, LENGTH_M, DT_S)
+    accel[1000:] = 0.0  # the held-back pairs cruise in their queue
+    accel += rng.normal(0.0, 0.3, len(v))
+    x, _, _ = krauss_least_squares(obs, accel, LENGTH_M, DT_S)
+    fit = fit_krauss(obs, accel, LENGTH_M, DT_S)
+    assert fit.free_accel_pairs >= MIN_FREE_ACCEL_PAIRS
+    assert x[1] < 1.0  # the unguarded a serves the held-back pairs
+    assert "faster than the fit allows" in fit.fallback["accel_mps2"]
+    assert fit.params.accel_mps2 == sumo_defaults().accel_mps2
