@@ -120,15 +120,6 @@ def _evaluate(path, out, dest, *extra, policy=None):
     )
 
 
-def test_evaluate_has_no_hidden_option_any_more(pipeline, tmp_path, capsys):
-    """--hidden picked K on the ring wing; on a section K comes from generator.hidden_eval."""
-    path, out = pipeline
-    with pytest.raises(SystemExit) as exc:
-        _evaluate(path, out, tmp_path / "ev", "--hidden", "2")
-    assert exc.value.code == 2 and "--hidden" in capsys.readouterr().err
-    assert not (tmp_path / "ev").exists()
-
-
 def test_evaluate_rejects_policy_of_another_scenario(pipeline, tmp_path, capsys):
     path, out = pipeline
     other = write_scenario(tmp_path / "other", {**SMALL_RUN, "bounds.accel_mps2": [-2.0, 1.0]})
