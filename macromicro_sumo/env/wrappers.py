@@ -223,13 +223,14 @@ def step_info(core: SectionCore, res=None) -> dict[str, Any]:
 def register() -> None:
     """Register the gymnasium envs (idempotent): ``gymnasium.make(SECTION_ENV_ID,
     scenario=..., data=..., generator=...)``; ``ENV_ID``, the name the ring wing's env had
-    until stop 25, is the same env (its demo with no arguments)."""
-    for env_id, entry in (
-        (ENV_ID, "macromicro_sumo.env.section_envs:make_section_hidden_env"),
-        (SECTION_ENV_ID, "macromicro_sumo.env.section_envs:make_section_hidden_env"),
-    ):
+    until stop 25, is the same env (its demo with no arguments). ``gymnasium.make_vec(...,
+    vectorization_mode="vector_entry_point")`` gives ``SectionHiddenVectorEnv``: every
+    sub-env in one SUMO run (rings)."""
+    entry = "macromicro_sumo.env.section_envs:make_section_hidden_env"
+    vector = "macromicro_sumo.env.batched_envs:SectionHiddenVectorEnv"
+    for env_id in (ENV_ID, SECTION_ENV_ID):
         if env_id not in gym.registry:
-            gym.register(id=env_id, entry_point=entry)
+            gym.register(id=env_id, entry_point=entry, vector_entry_point=vector)
 
 
 register()

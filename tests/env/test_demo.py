@@ -42,6 +42,15 @@ def test_no_argument_make_builds_the_demo_once(tmp_path, monkeypatch, capsys):
         assert again.action_space.high[0] == 1.0
     finally:
         again.close()
+    # Vectorised: every sub-env in one SUMO run, from the same cache.
+    vec = gymnasium.make_vec(ENV_ID, num_envs=4, vectorization_mode="vector_entry_point")
+    try:
+        obs, _ = vec.reset(seed=0)
+        assert obs.shape == (4, *env.observation_space.shape)
+        _, r, _, _, _ = vec.step(np.zeros((4, 1), np.float32))
+        assert r.shape == (4,) and ((r > 0.0) & (r <= 1.0)).all()
+    finally:
+        vec.close()
     env = SectionHiddenParallelEnv()  # PettingZoo: the demo too
     try:
         parallel_api_test(env, num_cycles=20)
