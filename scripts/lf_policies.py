@@ -27,14 +27,18 @@ import torch
 
 from macromicro_sumo.evaluation import leader_follower as lf
 from macromicro_sumo.evaluation.leader_follower_section import run_leader_follower_for
-from macromicro_sumo.policy.checkpoint import load_policy
+from macromicro_sumo.policy.checkpoint import load_policy, read_checkpoint
 from macromicro_sumo.road.section import read_section
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.inputs import scenario_inputs
 
 
 def followers(folder: Path, sc, last: bool) -> dict[str, lf.Follower]:
-    """The selected policy (and the last update), stochastic and by their mean action."""
+    """The selected policy (and the last update), stochastic and by their mean action. The
+    scenario takes the checkpoint's ``policy.prior`` (a policy of another prior than the
+    scenario's: a residual variant measured beside the scenario's own)."""
+    prior = read_checkpoint(folder / "policy.pt").get("prior", "none")
+    sc = dataclasses.replace(sc, policy=dataclasses.replace(sc.policy, prior=prior))
     agents = {"selected": load_policy(folder / "policy.pt", sc)}
     if last:
         agent = load_policy(folder / "policy.pt", sc)
