@@ -22,8 +22,9 @@ vType by more than 0.01 m/s^2).
 
 from __future__ import annotations
 
+from functools import partial
 from itertools import compress, repeat
-from operator import and_, not_
+from operator import and_
 
 import numpy as np
 
@@ -202,21 +203,16 @@ class SectionSpeedDriver(SectionDriver):
         self.merging.difference_update(vids)
         self.slots.forget(vids)
 
-    def merges(
-        self, sim: Simulation, vids: list[str], ahead_m: np.ndarray
-    ) -> tuple[list[bool] | None, list[int]]:
+    def merges(self, sim: Simulation, vids: list[str], ahead_m: np.ndarray) -> np.ndarray | None:
         """``deploy.merge`` "handover" or "sumo", from ``ahead_m``, each driven vehicle's
         distance to where it must have left its lane: which of ``vids`` are commanded this
         step (those that must leave their lane within ``MERGE_HANDOVER_M`` merge with
         SUMO's own model, handed over until they are on a lane that carries them on; None:
-        all) and ("sumo") the indices among the commanded of those that block a merging
-        vehicle's change (SUMO's blocking left follower, whom its lane changer asks to
-        cooperate), the candidates for SUMO's cooperative slow-down (``yields``)."""
+        all). ``merging`` holds the others."""
         must_now = ahead_m <= MERGE_HANDOVER_M
         if not self.merging and not np.count_nonzero(must_now):
-            return None, []  # nobody merging, before or now
-        must = must_now.tolist()
-        now = set(compress(vids, must))
+            return None  # nobody merging, before or now
+        now = set(compress(vids, must_now.tolist()))
         if now - self.merging:
             sim.release_speeds(sorted(now - self.merging))
         back = sorted(self.merging - now)
@@ -224,15 +220,18 @@ class SectionSpeedDriver(SectionDriver):
             sim.set_speed_mode(back, self.mode)
         self.merging = now
         self.stats.vehicle_steps_driven -= len(now)
-        if not now:
-            return None, []
-        keep = list(map(not_, must))
-        if self.merge != "sumo":
-            return keep, []
-        # Only a blocking follower: every vehicle on the target lane taking SUMO's lower
-        # speed slowed Bremen's stream by 2 m/s (run 1).
-        blockers = sim.left_blockers(sorted(now))
-        return keep, [i for i, v in enumerate(compress(vids, keep)) if v in blockers]
+        return ~must_now if now else None
+
+    def blocking(self, sim: Simulation, vids: list[str]) -> list[int]:
+        """``deploy.merge`` "sumo": the indices among the commanded ``vids`` of those that
+        block a merging vehicle's change (SUMO's blocking left follower, whom its lane
+        changer asks to cooperate), the candidates for SUMO's cooperative slow-down
+        (``yields``). Only a blocking follower: every vehicle on the target lane taking
+        SUMO's lower speed slowed Bremen's stream by 2 m/s (run 1)."""
+        if self.merge != "sumo" or not self.merging:
+            return []
+        blockers = sim.left_blockers(sorted(self.merging))
+        return [i for i, v in enumerate(vids) if v in blockers]
 
     def yields(
         self, sim: Simulation, vids: list[str], near: list[int], speed: np.ndarray, safe: np.ndarray
@@ -275,17 +274,20 @@ class SectionSpeedDriver(SectionDriver):
         ``LANE_END_RECHECK_STEPS`` (one call per vehicle and step would cost more than
         SUMO's whole step). ``at``: ``slots_of(vids, lanes)`` if known."""
         slots, codes = self.slots_of(vids, lanes) if at is None else at
-        sl, now = self.slots, self.steps
-        # Due where not asked yet (``NOT_ASKED``), on another lane, or on a lane to ask again.
-        due = ((sl.end_lane[slots] != codes) | (sl.end_again[slots] <= now)).nonzero()[0]
+        cache, now = self.slots.lane_end, self.steps
+        due = cache.due(slots, codes, now)
         if due.size:
-            s = slots[due]
-            ends = [sim.lane_end_m(vids[i], lanes[i], 0.0) for i in due.tolist()]
-            sl.end_lane[s] = codes[due]
-            sl.end_m[s] = ends
+            idx = due.tolist()
+            ends = np.fromiter(
+                map(sim.lane_end_m, map(vids.__getitem__, idx), map(lanes.__getitem__, idx),
+                    repeat(0.0)),
+                float,
+                len(idx),
+            )  # fmt: skip
             # A lane end, once seen, stays; a lane that carries the vehicle on is asked again.
-            sl.end_again[s] = np.where(sl.end_m[s] == np.inf, now + LANE_END_RECHECK_STEPS, np.inf)
-        return sl.end_m[slots]
+            again = np.where(ends == np.inf, now + LANE_END_RECHECK_STEPS, np.inf)
+            cache.store(slots[due], codes[due], ends, again)
+        return cache.value[slots]
 
     def stop_lines_m(
         self,
@@ -297,21 +299,21 @@ class SectionSpeedDriver(SectionDriver):
         """Per vehicle, ``Simulation.stop_lines_m`` (inf: no red or yellow ahead), asked
         only of vehicles that may meet a signal: one SUMO found none ahead of on its whole
         route is asked again when it changes lane or ``LANE_END_RECHECK_STEPS`` later (on
-        Bremen's highway only the ramp has one: the call was a tenth of the driver).
-        ``at``: ``slots_of(vids, lanes)`` if known."""
+        Bremen's highway only the ramp has one: the call was a tenth of the driver), one
+        with a signal ahead every step. ``at``: ``slots_of(vids, lanes)`` if known."""
         slots, codes = self.slots_of(vids, lanes) if at is None else at
-        sl, now = self.slots, self.steps
-        out = np.full(len(vids), np.inf)
-        due = ((sl.dark_lane[slots] != codes) | (sl.dark_again[slots] <= now)).nonzero()[0]
-        if not due.size:
-            return out
-        got = sim.stop_lines_m([vids[i] for i in due.tolist()])
-        dark = np.isnan(got)  # no signal ahead: not asked again for a while
-        s = slots[due]
-        sl.dark_lane[s] = np.where(dark, codes[due], NOT_ASKED)
-        sl.dark_again[s] = np.where(dark, now + LANE_END_RECHECK_STEPS, -np.inf)
-        out[due] = np.where(dark, np.inf, got)
-        return out
+        cache, now = self.slots.dark, self.steps
+        due = cache.due(slots, codes, now)
+        if due.size:
+            got = sim.stop_lines_m([vids[i] for i in due.tolist()])
+            dark = np.isnan(got)  # no signal ahead: not asked again for a while
+            cache.store(
+                slots[due],
+                np.where(dark, codes[due], NOT_ASKED),
+                np.where(dark, np.inf, got),
+                np.where(dark, now + LANE_END_RECHECK_STEPS, -np.inf),
+            )
+        return cache.value[slots]  # inf where not due: dark
 
     def drive(self, sim: Simulation, vids: list[str], st: VehicleStates) -> None:
         rows = np.fromiter(map(st.index.__getitem__, vids), np.int64, len(vids))
@@ -322,13 +324,14 @@ class SectionSpeedDriver(SectionDriver):
         ahead = self.lane_end_m(sim, vids, lanes, (slots, codes)) - st.pos_m[rows]
         near: list[int] = []
         if self.merge != "none":
-            keep, near = self.merges(sim, vids, ahead)
+            keep = self.merges(sim, vids, ahead)
             if keep is not None:
-                vids, lanes = list(compress(vids, keep)), list(compress(lanes, keep))
-                mask = np.array(keep)
-                rows, ahead, slots, codes = rows[mask], ahead[mask], slots[mask], codes[mask]
-            if not vids:
-                return
+                listed = keep.tolist()
+                vids, lanes = list(compress(vids, listed)), list(compress(lanes, listed))
+                rows, ahead, slots, codes = rows[keep], ahead[keep], slots[keep], codes[keep]
+                if not vids:
+                    return
+            near = self.blocking(sim, vids)
         # Last step's command against the speed SUMO applied (-inf: none to compare with).
         speed = st.speed_mps[rows]
         self.stats.safety_acted += int(
@@ -359,6 +362,18 @@ class SectionSpeedDriver(SectionDriver):
         )
         sim.set_speeds(vids, cmd)
         self.slots.commanded(slots, cmd)
+
+    def factors(self, slots: np.ndarray, vids: list[str], obs: np.ndarray) -> np.ndarray:
+        """``policy.driver_speed``: the factors of driven vehicles ``vids`` (slots
+        ``slots``, observations ``obs`` with unscaled limits), kept per slot: the driver's
+        ``DriverSpeeds`` asked only of a vehicle met for the first time."""
+        f = self.slots.factor[slots]
+        new = np.isnan(f).nonzero()[0]
+        if new.size:
+            got = self.driver_speeds([vids[i] for i in new.tolist()], obs[new])
+            f[new] = got
+            self.slots.factor[slots[new]] = got
+        return f
 
     def observe(
         self,
@@ -396,7 +411,7 @@ class SectionSpeedDriver(SectionDriver):
             leaders,
             self.shape_table if shapes is None else shapes,
             stop,
-            self.driver_speeds,
+            None if self.driver_speeds is None else partial(self.factors, at[0]),
             at[1],
         )
 

@@ -7,11 +7,12 @@ vehicle only dictionary look-ups in Python.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from itertools import chain, repeat
 
 import numpy as np
 
-from macromicro_sumo.env.driver_speed import DriverSpeeds, scale_limits
+from macromicro_sumo.env.driver_speed import scale_limits
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
 from macromicro_sumo.sumo.simulation import VehicleStates
 
@@ -21,13 +22,17 @@ STANDING = (0.0, 0.0, STOP_DECEL_MPS2)  # (length, minGap, decel) of a standing 
 
 class Table:
     """Rows of a small table looked up by key with numpy: each key holds the code of a
-    row, the rows are one array; a key not in it gets row 0, ``missing`` (a list of
-    tuples made an array costs ~0.45 us a row, the codes and a take ~0.1: measured)."""
+    row, each column is a 1-D array (``cols``); a key not in it gets row 0, ``missing``.
+    Columns, not one 2-D array: a take of a row per vehicle from a 2-D array costs ~6 us
+    a call, from a column ~0.2 (numpy 2.4, 45 rows; measured)."""
 
     def __init__(self, missing: tuple[float, ...]) -> None:
         self.code: dict[str, int] = {}
         self.rows: list[tuple[float, ...]] = [missing]
-        self.array = np.array(self.rows, dtype=float)
+        self.cols = self._columns()
+
+    def _columns(self) -> tuple[np.ndarray, ...]:
+        return tuple(np.array(c, dtype=float) for c in zip(*self.rows, strict=True))
 
     @classmethod
     def of_rows(cls, rows: dict[str, tuple], missing: tuple[float, ...]) -> Table:
@@ -35,22 +40,18 @@ class Table:
         table = cls(missing)
         table.code = {key: i + 1 for i, key in enumerate(rows)}
         table.rows += list(rows.values())
-        table.array = np.array(table.rows, dtype=float)
+        table.cols = table._columns()
         return table
 
     def add_row(self, row: tuple) -> int:
         """A new row; its code."""
         self.rows.append(row)
-        self.array = np.array(self.rows, dtype=float)
+        self.cols = self._columns()
         return len(self.rows) - 1
 
     def codes(self, keys: list[str]) -> np.ndarray:
         """The codes of ``keys`` (0: missing)."""
         return np.fromiter(map(self.code.get, keys, repeat(0)), np.int64, len(keys))
-
-    def of(self, keys: list[str]) -> np.ndarray:
-        """(len(keys), width) rows; a missing key's is the ``missing`` row."""
-        return self.array[self.codes(keys)]
 
 
 class LaneTable(Table):
@@ -62,18 +63,19 @@ class LaneTable(Table):
     def __init__(self, sec: Section) -> None:
         super().__init__((np.nan,) * 7)
         self.closed, self.length_m = bool(sec.closed), float(sec.length_m)
-        if not sec.lanes:
-            return
-        base = np.array(list(sec.lanes.values()), dtype=float).reshape(-1, 4)
-        edge, lane = base[:, 0].astype(np.int64), base[:, 1].astype(np.int64)
-        limit = sec.limits_mps[edge, np.minimum(lane, sec.n_lanes[edge] - 1)]
-        # The look-ahead at the lane's start: its distance is ``start - arc`` for any arc
-        # (on a loop ``start - arc mod length``), its next limit the lane's.
-        next_limit, start = section_lookahead(sec, lane, np.zeros(len(lane)), edge, limit)
-        rows = np.column_stack([base, limit, next_limit, start])
-        self.code = {key: i + 1 for i, key in enumerate(sec.lanes)}
-        self.rows += [tuple(r) for r in rows.tolist()]
-        self.array = np.array(self.rows, dtype=float)
+        if sec.lanes:
+            base = np.array(list(sec.lanes.values()), dtype=float).reshape(-1, 4)
+            edge, lane = base[:, 0].astype(np.int64), base[:, 1].astype(np.int64)
+            limit = sec.limits_mps[edge, np.minimum(lane, sec.n_lanes[edge] - 1)]
+            # The look-ahead at the lane's start: its distance is ``start - arc`` for any
+            # arc (on a loop ``start - arc mod length``), its next limit the lane's.
+            next_limit, start = section_lookahead(sec, lane, np.zeros(len(lane)), edge, limit)
+            rows = np.column_stack([base, limit, next_limit, start])
+            self.code = {key: i + 1 for i, key in enumerate(sec.lanes)}
+            self.rows += [tuple(r) for r in rows.tolist()]
+            self.cols = self._columns()
+        (_, _, self.arc0_m, self.arc_per_m, self.limit_mps, self.next_limit_mps,
+         self.next_start_m) = self.cols  # fmt: skip
 
 
 def observe_rows(
@@ -86,7 +88,7 @@ def observe_rows(
     leaders: list[tuple[str, float]],
     shapes: Table,
     stop_m: np.ndarray,
-    driver_speeds: DriverSpeeds | None = None,
+    driver_speeds: Callable[[list[str], np.ndarray], np.ndarray] | None = None,
     lane_codes: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Observations (V, obs_dim) of driven vehicles ``vids`` (rows ``rows`` of ``st``, on
@@ -97,34 +99,36 @@ def observe_rows(
     leader (its back at the line, a vehicle length long). ``lanes``: the section's
     ``LaneTable``; ``shapes``: vehicle -> (length, minGap, decel), ``STANDING`` where
     missing; ``driver_speeds``: each driver's desired-speed factor on the limits it
-    observes (``policy.driver_speed``; None: 1); ``lane_codes``: ``lanes.codes(lane_ids)``
-    if known.
+    observes, from the vehicles and their observations with unscaled limits
+    (``policy.driver_speed``; None: 1); ``lane_codes``: ``lanes.codes(lane_ids)`` if known.
     Also returns SUMO's gap to what the vehicle sees ahead, that leader's decel, and its
     index in ``vids`` where it is a driven vehicle (-1: none, not driven, or a standing
     leader): the safety layer knows a driven leader's next speed, its command.
 
-    The fixed cost per call is what a step of a small deployment pays (numpy's ~1 us a
-    call, ~60 calls before): one look-up of each table for all vehicles and leaders, the
-    standing leaders' columns only where one is nearer (``scripts/bench_deploy.py``)."""
+    The fixed cost per call is what a step of a small deployment pays (numpy's ~0.3-1 us a
+    call): one look-up of each table column for all vehicles and leaders, the standing
+    leaders' columns only where one is nearer (``scripts/bench_deploy.py``)."""
     n = len(vids)
     obs = np.empty((n, 6 if observation == "lookahead" else 4))
     if not n:
         return obs, np.empty(0), np.empty(0), np.empty(0, dtype=np.int64)
     speed = st.speed_mps[rows]
-    where = lanes.array[lanes.codes(lane_ids) if lane_codes is None else lane_codes]
+    codes = lanes.codes(lane_ids) if lane_codes is None else lane_codes
     lead_ids, gaps = zip(*leaders, strict=True)
     gap = np.fromiter(gaps, float, n)
     # The leader SUMO sees, if it is on the road (in ``st``): row -1 otherwise.
     lead_row = np.fromiter(map(st.index.get, lead_ids, repeat(-1)), np.int64, n)
     has = lead_row >= 0
     # Own and leaders' shapes in one look-up; a leader off the road is no leader (code 0).
-    codes = np.fromiter(map(shapes.code.get, chain(vids, lead_ids), repeat(0)), np.int64, 2 * n)
-    np.multiply(codes[n:], has, out=codes[n:])
-    shape = shapes.array[codes]
-    length, min_gap = shape[:n, 0], shape[:n, 1]
+    shape = np.fromiter(map(shapes.code.get, chain(vids, lead_ids), repeat(0)), np.int64, 2 * n)
+    np.multiply(shape[n:], has, out=shape[n:])
+    length_m, min_gap_m, decel_mps2 = shapes.cols
+    lengths = length_m[shape]
+    length = lengths[:n]
+    min_gap = min_gap_m[shape[:n]]
     # Fresh arrays overwritten where there is no leader (masked writes: a third of
-    # np.where's cost a call); the leaders' decel column is not read again.
-    spacing = gap + min_gap + shape[n:, 0]
+    # np.where's cost a call).
+    spacing = gap + min_gap + lengths[n:]
     ok = has & (spacing < NO_LEADER_GAP_M)
     none = ~ok
     lead_v = st.speed_mps[lead_row]
@@ -132,7 +136,7 @@ def observe_rows(
     spacing[none] = NO_LEADER_GAP_M
     sumo_gap = gap
     sumo_gap[none] = NO_LEADER_GAP_M
-    lead_decel = shape[n:, 2]
+    lead_decel = decel_mps2[shape[n:]]
     lead_decel[none] = STOP_DECEL_MPS2
     # A red light, or the end of a lane the vehicle must leave: a standing leader there.
     stop_back = stop_m + length
@@ -145,18 +149,20 @@ def observe_rows(
         ok &= ~closer
     # A driven leader's index in ``vids``: a row of ``st`` -> its index, -1 elsewhere
     # (the extra last entry answers row -1, no leader).
-    driven = np.full(len(st.ids) + 1, -1, dtype=np.int64)
+    driven = np.empty(len(st.ids) + 1, dtype=np.int64)
+    driven.fill(-1)
     driven[rows] = np.arange(n)
     lead_index = driven[lead_row]
     lead_index[~ok] = -1
     obs[:, 0] = speed
-    obs[:, 1] = where[:, 4]
+    obs[:, 1] = lanes.limit_mps[codes]
     obs[:, 2] = spacing
     obs[:, 3] = speed - lead_v
     if observation == "lookahead":
-        arc = where[:, 2] + st.pos_m[rows] * where[:, 3]
-        obs[:, 4] = where[:, 5]
-        obs[:, 5] = where[:, 6] - (np.mod(arc, lanes.length_m) if lanes.closed else arc)
+        arc = lanes.arc0_m[codes] + st.pos_m[rows] * lanes.arc_per_m[codes]
+        obs[:, 4] = lanes.next_limit_mps[codes]
+        start = lanes.next_start_m[codes]
+        obs[:, 5] = start - (np.mod(arc, lanes.length_m) if lanes.closed else arc)
     if driver_speeds is not None:
         scale_limits(obs, driver_speeds(vids, obs))
     return obs, sumo_gap, lead_decel, lead_index

@@ -5,10 +5,9 @@ deployment: ~45 driven vehicles a step, where numpy's fixed cost per call and Py
 vehicle were most of the driver's time, ``scripts/bench_deploy.py``).
 
 What is kept per slot: the last step's speed command (``last_mps``, -inf: none, or none to
-compare with) and the two caches of what SUMO was asked about the vehicle's lane
-(``lane_end``: where it must have left its lane; ``dark``: no signal ahead on its route),
-each as (lane code, value, step from which it is asked again), "not asked" being lane code
-``NOT_ASKED`` and step -inf, so that every check is one comparison of integer arrays.
+compare with), the vehicle's demand decel and its driver's desired-speed factor, and two
+``LaneCache``s of what SUMO was asked about the vehicle's lane (``lane_end``: where it
+must have left its lane; ``dark``: no signal ahead on its route).
 """
 
 from __future__ import annotations
@@ -18,6 +17,47 @@ import numpy as np
 NOT_ASKED = -1  # lane code of a cache entry that was never filled (or was dropped)
 
 
+def _grown(old: np.ndarray, fill: float) -> np.ndarray:
+    grown = np.full(2 * len(old), fill, dtype=old.dtype)
+    grown[: len(old)] = old
+    return grown
+
+
+class LaneCache:
+    """Per slot, a value SUMO gave about the vehicle's lane (one call per vehicle, too dear
+    to ask every step), the lane it was asked on (a code) and the step from which it is
+    asked again: due where not asked yet (lane ``NOT_ASKED``, step -inf), on another lane,
+    or at that step, so that the check is one comparison of integer arrays a step."""
+
+    def __init__(self, capacity: int, missing: float) -> None:
+        self.missing = missing
+        self.lane = np.full(capacity, NOT_ASKED, dtype=np.int64)
+        self.again = np.full(capacity, -np.inf)
+        self.value = np.full(capacity, missing)
+
+    def due(self, slots: np.ndarray, lanes: np.ndarray, step: int) -> np.ndarray:
+        """Indices into ``slots`` (vehicles on lane codes ``lanes``) to ask at ``step``."""
+        return ((self.lane[slots] != lanes) | (self.again[slots] <= step)).nonzero()[0]
+
+    def store(
+        self, slots: np.ndarray, lanes: np.ndarray, values: np.ndarray, again: np.ndarray
+    ) -> None:
+        """What SUMO said now: ``values`` on lane codes ``lanes`` (``NOT_ASKED``: ask again
+        next step), due again from step ``again``."""
+        self.lane[slots] = lanes
+        self.value[slots] = values
+        self.again[slots] = again
+
+    def forget(self, slots: np.ndarray) -> None:
+        self.lane[slots] = NOT_ASKED
+        self.again[slots] = -np.inf
+
+    def grow(self) -> None:
+        self.lane = _grown(self.lane, NOT_ASKED)
+        self.again = _grown(self.again, -np.inf)
+        self.value = _grown(self.value, self.missing)
+
+
 class VehicleSlots:
     """A slot (row) per vehicle a driver met, and the arrays of what it keeps per slot."""
 
@@ -25,11 +65,10 @@ class VehicleSlots:
         self.of: dict[str, int] = {}
         self.decel = np.full(capacity, np.nan)  # its demand vType's decel [m/s^2] (``take``)
         self.last_mps = np.full(capacity, -np.inf)
-        self.end_lane = np.full(capacity, NOT_ASKED, dtype=np.int64)
-        self.end_m = np.full(capacity, np.nan)
-        self.end_again = np.full(capacity, -np.inf)
-        self.dark_lane = np.full(capacity, NOT_ASKED, dtype=np.int64)
-        self.dark_again = np.full(capacity, -np.inf)
+        # Its driver's desired-speed factor (``policy.driver_speed``; NaN: not drawn yet).
+        self.factor = np.full(capacity, np.nan)
+        self.lane_end = LaneCache(capacity, np.nan)  # distance to its lane's end [m]
+        self.dark = LaneCache(capacity, np.inf)  # inf: no signal ahead on its route
         # The slots commanded at the last command (``commanded``).
         self.commanded_slots = np.empty(0, dtype=np.int64)
 
@@ -38,32 +77,23 @@ class VehicleSlots:
         slot = len(self.of)
         self.of[vehicle_id] = slot
         if slot == len(self.last_mps):
-            for name, fill in (
-                ("decel", np.nan),
-                ("last_mps", -np.inf),
-                ("end_lane", NOT_ASKED),
-                ("end_m", np.nan),
-                ("end_again", -np.inf),
-                ("dark_lane", NOT_ASKED),
-                ("dark_again", -np.inf),
-            ):
-                old = getattr(self, name)
-                grown = np.full(2 * len(old), fill, dtype=old.dtype)
-                grown[: len(old)] = old
-                setattr(self, name, grown)
+            self.decel = _grown(self.decel, np.nan)
+            self.last_mps = _grown(self.last_mps, -np.inf)
+            self.factor = _grown(self.factor, np.nan)
+            self.lane_end.grow()
+            self.dark.grow()
 
     def slots(self, vehicle_ids: list[str]) -> np.ndarray:
         """The slots of vehicles already met."""
         return np.fromiter(map(self.of.__getitem__, vehicle_ids), np.int64, len(vehicle_ids))
 
     def forget(self, vehicle_ids: list[str]) -> None:
-        """Vehicles handed back to SUMO: no last command to compare with, caches dropped."""
+        """Vehicles handed back to SUMO: no last command to compare with, caches dropped
+        (a driver's factor stays: kept while it is driven, and on re-entry)."""
         s = self.slots(vehicle_ids)
         self.last_mps[s] = -np.inf
-        self.end_lane[s] = NOT_ASKED
-        self.end_again[s] = -np.inf
-        self.dark_lane[s] = NOT_ASKED
-        self.dark_again[s] = -np.inf
+        self.lane_end.forget(s)
+        self.dark.forget(s)
 
     def commanded(self, slots: np.ndarray, cmd: np.ndarray) -> None:
         """The commands of this step: the last command of exactly these slots."""
