@@ -11,6 +11,7 @@ from conftest import dump_toml
 from deploy_nets import idm_agent, light_net, merge_net
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver, section_observations
+from macromicro_sumo.deploy.slots import LaneCache
 from macromicro_sumo.deploy.stage import policy_batch
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, read_section
 from macromicro_sumo.scenario.load import load_scenario
@@ -188,3 +189,22 @@ def test_one_read_per_step_gives_what_subscriptions_give(
     finally:
         sim.close()
     assert compared > 2000 and drv.stats.vehicle_steps_driven > 1000
+
+
+def test_a_lane_cache_asks_again_on_another_lane_at_its_step_and_after_forget() -> None:
+    """``deploy.slots.LaneCache``: due where never asked, where the vehicle is on another
+    lane than the one asked on, and from the step it was stored to be asked again; not
+    due otherwise; a forgotten slot is due again, and the cache grows by doubling."""
+    cache = LaneCache(2, np.nan)
+    slots, lanes = np.array([0, 1]), np.array([3, 4])
+    assert cache.due(slots, lanes, 0).tolist() == [0, 1]  # never asked
+    cache.store(slots, lanes, np.array([120.0, np.inf]), np.array([np.inf, 20.0]))
+    assert cache.due(slots, lanes, 19).size == 0
+    assert cache.due(slots, lanes, 20).tolist() == [1]  # its step has come
+    assert cache.due(slots, np.array([5, 4]), 19).tolist() == [0]  # changed lane
+    assert cache.value[slots].tolist() == [120.0, np.inf]
+    cache.forget(slots[:1])
+    assert cache.due(slots, lanes, 19).tolist() == [0]
+    cache.grow()
+    assert len(cache.lane) == 4 and cache.due(np.array([3]), np.array([3]), 0).tolist() == [0]
+    assert np.isnan(cache.value[3])
