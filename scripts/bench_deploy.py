@@ -10,8 +10,9 @@ with its own models, in the same run.
      driven by the policy (``deploy.drivers.SectionSpeedDriver``: SUMO's state read once
      per step and shared with the recorder (``Simulation.vehicle_states``), SUMO's leaders
      of the driven vehicles, one batched policy call per step, the safety layer on),
-   and the ratios, best of ``--repeats`` and per run (the three of a run back to back:
-   their median is the figure to quote on a loaded machine). The policy is
+   and the ratios per run (the three of a run back to back) with the load average beside
+   each run: their median over ``--repeats`` runs is the figure to quote on a loaded
+   machine (best of the runs too). The policy is
    ``--checkpoint`` (default runs/highway_bremen/policy/policy.pt; it must match the
    scenario's policy settings, prior included) when it exists, else an untrained residual
    on the scenario's prior (Gipps or its Krauss form) with fixed parameters near those
@@ -22,9 +23,10 @@ with its own models, in the same run.
 2. The per-vehicle cost against the number of vehicles: a straight 4-lane road of 30 km
    (netconvert), N = 50 ... 2,000 vehicles placed on it at t = 0 and driven by the policy
    for ``--steps`` steps, next to SUMO driving the same N alone: microseconds per
-   vehicle-step of each and of the driver's own share.
+   vehicle-step of each and of the driver's own share, and how far the curve is from flat
+   (largest over smallest per-vehicle cost).
 
-    python scripts/bench_deploy.py [--steps 200] [--sizes 50 200 500 1000 2000]
+    python scripts/bench_deploy.py [--repeats 5] [--steps 200] [--sizes 50 200 500 1000 2000]
         [--road-repeats 3] [--skip-bremen] [--cpu] [--checkpoint runs/highway_bremen/policy/policy.pt]
 """
 
@@ -32,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import statistics
 import subprocess
 import tempfile
@@ -258,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--steps", type=int, default=200, help="steps per size on the straight road")
     ap.add_argument("--sizes", type=int, nargs="+", default=[50, 200, 500, 1000, 2000])
-    ap.add_argument("--repeats", type=int, default=3, help="Bremen runs per method")
+    ap.add_argument("--repeats", type=int, default=5, help="Bremen runs per method")
     ap.add_argument(
         "--road-repeats", type=int, default=3, help="straight-road runs per size (best counts)"
     )
@@ -284,6 +287,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"{sc.simulation.duration_s:g} s, step {sc.simulation.step_length_s} s); "
                   f"policy: {which}, safety {sc.deploy.safety}; {clock} time")  # fmt: skip
             rates: dict[str, list[float]] = {"sumo": [], "oracle": [], "policy": []}
+            loads: list[float] = []
             for r in range(args.repeats):
                 line = []
                 for how in rates:
@@ -295,32 +299,34 @@ def main(argv: list[str] | None = None) -> int:
                             f"driven {stats['vehicle_steps_driven']:,}, collisions "
                             f"{stats['collisions']}, teleports {stats['teleports']}"
                         )
-                print(f"  run {r}: " + " | ".join(line))
+                loads.append(os.getloadavg()[0])
+                print(f"  run {r} (load {loads[-1]:.1f}): " + " | ".join(line))
+            # The three of a run back to back, their ratio per run and its median over the
+            # runs: on the shared 2-core machine the load moves SUMO alone by 1.6x between
+            # runs, and the best-of ratio moved between 0.16x and 0.29x for the same code.
+            for how in ("policy", "oracle"):
+                paired = [p / s for p, s in zip(rates[how], rates["sumo"], strict=True)]
+                print(
+                    f"  {how} deployment / SUMO alone per run: "
+                    + ", ".join(f"{r:.2f}x" for r in paired)
+                    + f"; median {statistics.median(paired):.2f}x"
+                    + (" (target >= 0.3x)" if how == "policy" else "")
+                )
             best = {k: max(v) for k, v in rates.items()}
             print(
                 f"  best of {args.repeats}: SUMO alone {best['sumo']:,.0f}, oracle deployment "
                 f"{best['oracle']:,.0f}, policy deployment {best['policy']:,.0f} veh-steps/s; "
-                f"ratio policy / SUMO alone {best['policy'] / best['sumo']:.2f}x, "
-                f"policy / oracle deployment {best['policy'] / best['oracle']:.2f}x (target >= 0.3x)"
+                f"load average (1 min) {min(loads):.1f}-{max(loads):.1f}"
             )
-            # The same run's three back to back: less exposed to a load that changes (on
-            # the shared 2-core machine the best-of ratio moved between 0.16x and 0.29x
-            # for the same code); their median is the figure to quote.
-            for how in ("policy", "oracle"):
-                paired = [p / s for p, s in zip(rates[how], rates["sumo"], strict=True)]
-                print(
-                    f"  per run, {how} / SUMO alone: "
-                    + ", ".join(f"{r:.2f}x" for r in paired)
-                    + f" (median {statistics.median(paired):.2f}x)"
-                )
 
         print(f"\nStraight {LANES}-lane road, {ROAD_M / 1000:g} km, {args.steps} steps per size, "
               f"best of {args.road_repeats}; microseconds per vehicle-step ({clock} time):")  # fmt: skip
         net = straight_road(tmp / "road")
         print(
             f"  {'vehicles':>8} {'driven':>7} {'SUMO alone':>11} {'with policy':>12} "
-            f"{'driver share':>13} {'ratio':>6}"
+            f"{'driver share':>13} {'ratio':>6} {'load':>5}"
         )
+        curve: list[float] = []
         for n in args.sizes:
             routes = road_demand(tmp / "road", n)
             rsc = road_scenario(tmp / "road", net, routes)
@@ -330,10 +336,18 @@ def main(argv: list[str] | None = None) -> int:
                 w0, vs0, _ = road_run(rsc, routes, net, None, args.steps)
                 w1, vs1, driven = road_run(rsc, routes, net, act, args.steps)
                 us0, us1 = min(us0, 1e6 * w0 / vs0), min(us1, 1e6 * w1 / vs1)
+            curve.append(us1)
             print(
                 f"  {vs1 / args.steps:8.0f} {driven:7d} {us0:11.2f} {us1:12.2f} "
-                f"{us1 - us0:13.2f} {us0 / us1:6.2f}"
+                f"{us1 - us0:13.2f} {us0 / us1:6.2f} {os.getloadavg()[0]:5.1f}"
             )
+        # Flat: no size costs a vehicle-step much more than the cheapest (a cost growing
+        # with N, a leader search along the lane, would show at the large sizes).
+        print(
+            f"  per-vehicle cost with the policy, largest / smallest over the sizes: "
+            f"{max(curve) / min(curve):.2f}; at {args.sizes[-1]:,} / at {args.sizes[0]:,} "
+            f"vehicles: {curve[-1] / curve[0]:.2f}"
+        )
     return 0
 
 
