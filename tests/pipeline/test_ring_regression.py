@@ -50,17 +50,17 @@ TOLERANCE = {
     "std_spacing_m": (1e-4, 0.15),
 }
 
-# ``make run`` through the section stages, 26 Nov 2026 (stop 25), estimated-count rows of
-# runs/ring_paper/evaluation/macro_alignment_by_k.csv.
+# ``make run`` through the section stages with ring_paper's IDM prior (policy.prior = "idm"),
+# 26 Nov 2026 (stop 26), estimated-count rows of runs/ring_paper/evaluation/macro_alignment_by_k.csv.
 REFERENCE: list[tuple] | None = [
     (1, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
     (2, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
     (3, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
     (4, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
-    (1, "policy", 12.015126, 0.498174, 125.663706, 32.443317, 0, 350),
-    (2, "policy", 12.019890, 0.491207, 125.663706, 33.116472, 0, 350),
-    (3, "policy", 12.026129, 0.478628, 125.663706, 32.709267, 0, 350),
-    (4, "policy", 12.038327, 0.471832, 125.663706, 32.341370, 0, 350),
+    (1, "policy", 12.018770, 0.493349, 125.663706, 32.464382, 0, 350),
+    (2, "policy", 12.018193, 0.482124, 125.663706, 33.136873, 0, 350),
+    (3, "policy", 12.018807, 0.464820, 125.663706, 32.763195, 0, 350),
+    (4, "policy", 12.028023, 0.448531, 125.663706, 32.391262, 0, 350),
 ]
 
 
@@ -68,6 +68,7 @@ def ring_macro_rows(out: Path) -> pd.DataFrame:
     """The policy and ground-truth rows of the ring's macro table by K, computed in ``out``."""
     from macromicro_sumo.evaluation.section import evaluate_section
     from macromicro_sumo.generator.section_train import run_train_section_generator
+    from macromicro_sumo.pipeline.build import fit_residual_prior
     from macromicro_sumo.policy.stage import run_train_policy
     from macromicro_sumo.scenario.load import load_scenario
     from macromicro_sumo.truth.section import simulate_section
@@ -77,7 +78,10 @@ def ring_macro_rows(out: Path) -> pd.DataFrame:
     simulate_section(sc, gt_dir, progress=False)
     run_train_section_generator(sc, gt_dir, gen_dir, progress=False)
     gen = gen_dir / "generator.pt"
-    run_train_policy(sc, gt_dir, gen, pol_dir, progress=False, objective="mix")
+    # policy.prior's fit as the pipeline passes it (make run's stage)
+    run_train_policy(
+        sc, gt_dir, gen, pol_dir, progress=False, objective="mix", fit_prior=fit_residual_prior
+    )
     ev = out / "evaluation"
     evaluate_section(sc, gt_dir, gen, {"policy": pol_dir / "policy.pt"}, ev, progress=False)
     align = pd.read_csv(ev / "macro_alignment_by_k.csv")
