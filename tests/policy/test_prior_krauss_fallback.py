@@ -4,6 +4,7 @@ says which and why (real SUMO: game/ramp's congested merge)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -92,8 +93,10 @@ def test_a_congested_merge_takes_sumos_free_acceleration_and_says_so(ramp_truth)
     x, _, _ = krauss_least_squares(fit_obs, fit_acc, record["veh_length_m"], DT_S)
     assert x[1] < 0.75 * SUMO_PASSENGER_ACCEL_MPS2
     unguarded = KraussParams(*x).as_dict()
+    assert list(record["refitted"]) == ["relax_s"]  # fitted next to the rejected a
     for name in record["fitted"]:
-        assert prior[name] == unguarded[name]
+        if name not in record["refitted"]:
+            assert prior[name] == unguarded[name]
 
 
 def test_a_well_identified_fit_is_the_unguarded_one():
@@ -103,6 +106,7 @@ def test_a_well_identified_fit_is_the_unguarded_one():
     obs, accel = _pairs(6000, seed=1, spacing_m=(8.0, 60.0))
     fit = fit_krauss(obs, accel, LENGTH_M, DT_S)
     assert fit.fallback == {} and fit.free_accel_pairs >= MIN_FREE_ACCEL_PAIRS
+    assert fit.refitted == {} and fit.record()["refitted"] == {}
     x, rmse, _ = krauss_least_squares(obs, accel, LENGTH_M, DT_S)
     assert fit.params == KraussParams(*x) and fit.rmse_mps2 == rmse
     assert fit.params.accel_mps2 == pytest.approx(KRAUSS.accel_mps2, abs=0.15)
@@ -151,3 +155,39 @@ def test_a_contradicted_by_the_free_acceleration_pairs_falls_back():
     assert x[1] < 1.0  # the unguarded a serves the held-back pairs
     assert "faster than the fit allows" in fit.fallback["accel_mps2"]
     assert fit.params.accel_mps2 == sumo_defaults().accel_mps2
+
+
+def test_relax_fitted_next_to_a_rejected_a_is_refitted_alone():
+    """Drivers below their desired speed close the gap slowly (relax_s 8 s), few accelerate
+    freely, and those above it (a lower limit ahead, as on netgen_corridor) brake within
+    ~1 s: the full fit serves both with a low a and a short relax_s. a falls back; kept next
+    to it, the short relax_s would send the default a's cars at full acceleration towards
+    their desired speed. Refitted alone (the others as fitted), it is long again, the fit's
+    RMSE drops, and the record says so."""
+    rng = np.random.default_rng(3)
+    limit = 30.0
+    v = np.concatenate([rng.uniform(0.8, 1.0, 3000), rng.uniform(1.0, 1.15, 1000)]) * limit
+    obs = np.column_stack([v, np.full(len(v), limit), np.full(len(v), 1000.0), np.zeros(len(v))])
+    slow = KraussParams(1.0, 2.6, 4.5, 1.0, 2.5, relax_s=8.0)
+    accel = krauss_policy_accel(obs, slow, LENGTH_M, DT_S)
+    above = v > limit
+    brake = krauss_policy_accel(obs, replace(slow, relax_s=1.0), LENGTH_M, DT_S)
+    accel[above] = brake[above]
+    accel += rng.normal(0.0, 0.2, len(v))
+    x, _, _ = krauss_least_squares(obs, accel, LENGTH_M, DT_S)
+    assert x[1] < 1.0 and x[5] < 2.0  # low a, short relax_s
+    fit = fit_krauss(obs, accel, LENGTH_M, DT_S)
+    assert "free acceleration" in fit.fallback["accel_mps2"]
+    assert fit.params.accel_mps2 == sumo_defaults().accel_mps2
+    assert "relax_s" not in fit.fallback and "relax_s" in fit.fitted
+    assert list(fit.refitted) == ["relax_s"] and fit.record()["refitted"] == fit.refitted
+    assert "a fell back" in fit.refitted["relax_s"]
+    assert fit.params.relax_s > 2.0 * x[5]
+    assert fit.params.speed_factor == x[0]  # the others keep the full fit's values
+    kept = replace(fit.params, relax_s=float(x[5]))
+
+    def rmse(p: KraussParams) -> float:
+        return float(np.sqrt(np.mean((krauss_policy_accel(obs, p, LENGTH_M, DT_S) - accel) ** 2)))
+
+    assert fit.rmse_mps2 == pytest.approx(rmse(fit.params))
+    assert fit.rmse_mps2 < 0.8 * rmse(kept)
