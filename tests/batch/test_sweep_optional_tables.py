@@ -61,6 +61,7 @@ def test_a_sweep_over_fleet_keys_expands_and_each_variant_has_its_values(tmp_pat
     assert {v.scenario.fleet.n_vehicles for v in variants} == {4, 5}
 
 
+@pytest.mark.slow  # the fleet keys' expansion is tested above; batch runs in tests/batch/test_batch.py
 def test_a_fleet_sweep_runs_each_variant_with_its_fleet(tmp_path):
     """``batch --stage simulate``: each variant's ground truth drives its own fleet size
     within its own limits (2 runs of 60 s each)."""

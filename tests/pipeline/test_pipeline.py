@@ -170,6 +170,7 @@ def _digest(out: Path, stage: str) -> str:
     return json.loads((out / STAGE_MANIFESTS[stage]).read_text())["scenario_sha256"]
 
 
+@pytest.mark.slow  # the rule itself: test_stages_redo_what_an_edit_reaches (stub stages)
 def test_run_after_a_policy_edit_reuses_ground_truth_and_generator(finished_copy, tmp_path):
     """Issue 16: `run` after an edit of policy.eta stopped at the policy's checkpoint of the
     first run ("belongs to another run"), after redoing the ground truth and the generator."""

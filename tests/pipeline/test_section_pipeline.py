@@ -79,6 +79,7 @@ def test_random_corridor_end_to_end(tmp_path: Path) -> None:
     # (tests/pipeline/test_pipeline.py): every scenario goes through it.
 
 
+@pytest.mark.slow  # a closed one-lane section runs by default as ring_paper (test_pipeline.py)
 def test_ring_as_a_closed_section_with_user_demand(tmp_path: Path) -> None:
     """Five IDM drivers on the paper's ring, looping by the ring's rerouters: the general
     path with a one-lane closed section."""
