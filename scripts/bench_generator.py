@@ -51,6 +51,7 @@ from macromicro_sumo.data.section import (
 )
 from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import build_section_bank
+from macromicro_sumo.env.section_envs import true_section_completion
 from macromicro_sumo.generator.section_sampler import complete_section
 from macromicro_sumo.generator.section_train import train_section_generator
 from macromicro_sumo.road.ring import build_ring
@@ -118,13 +119,6 @@ def repeated(snaps: SectionSnapshots, count: int) -> SectionSnapshots:
     return snaps.take(np.arange(count) % len(snaps))
 
 
-def true_completion(s: SectionSnapshots):
-    """The recorded hidden vehicles as the generated ones (the env's cost, not Stage I's)."""
-    order = np.argsort(np.where(s.valid, np.where(s.observed, 0, 1), 2), axis=1, kind="stable")
-    take = lambda a: np.take_along_axis(a, order, 1)  # noqa: E731
-    return take(s.lane), take(s.arc_m), take(s.speed_mps), take(s.valid), take(s.hidden)
-
-
 def bench_env(core: SectionCore, steps: int, rng: np.random.Generator) -> float:
     """CPU microseconds per env step (resets included; SUMO runs in this process through
     libsumo), random actions for the hidden ones."""
@@ -177,7 +171,9 @@ def measure(n: int, args: argparse.Namespace, work: Path) -> dict[str, float]:
             times.append(time.process_time() - t1)
         out[f"complete_{label}_s"] = statistics.median(times)
     episodes = hide_random(recorded, K_FIXED, rng)
-    bank = build_section_bank(sc, truth, episodes, true_completion, sc.policy.horizon, sc.seed)
+    bank = build_section_bank(
+        sc, truth, episodes, true_section_completion, sc.policy.horizon, sc.seed
+    )
     core = SectionCore(sc, truth.section, bank, scenario_inputs(sc).net_file, seed=0)
     try:
         bench_env(core, min(200, args.env_steps), rng)  # warm-up: SUMO's first loads
