@@ -6,6 +6,7 @@ import dataclasses
 import re
 from pathlib import Path
 
+import field_export
 import pandas as pd
 import pytest
 
@@ -41,7 +42,7 @@ def test_missing_column(field_truth: Path, section: Section, tmp_path: Path) -> 
 def test_speeds_in_ft_per_s_declared_as_m_per_s(
     field_truth: Path, section: Section, tmp_path: Path
 ) -> None:
-    m = export.export_generic_trajectories(field_truth, tmp_path / "t.csv")
+    m = field_export.export_generic_trajectories(field_truth, tmp_path / "t.csv")
     df = pd.read_csv(tmp_path / "t.csv")
     df["speed_mps"] = df["speed_mps"] / 0.3048 * 1.5  # a fast ft/s file read as m/s
     df.to_csv(tmp_path / "t.csv", index=False)
@@ -53,7 +54,7 @@ def test_speeds_in_ft_per_s_declared_as_m_per_s(
 
 
 def test_trajectory_off_the_section(field_truth: Path, section: Section, tmp_path: Path) -> None:
-    m, _ = export.export_highd(field_truth, tmp_path / "tracks.csv")
+    m, _ = field_export.export_highd(field_truth, tmp_path / "tracks.csv")
     far = dataclasses.replace(m, offset_m=section.length_m)
     with pytest.raises(UserError) as exc:
         read_highd(tmp_path / "tracks.csv", section, far)
@@ -67,7 +68,7 @@ def test_trajectory_off_the_section(field_truth: Path, section: Section, tmp_pat
 
 
 def test_fcd_lane_off_the_section(field_truth: Path, section: Section, tmp_path: Path) -> None:
-    m = export.export_fcd(field_truth, tmp_path / "fcd.xml")
+    m = field_export.export_fcd(field_truth, tmp_path / "fcd.xml")
     text = (tmp_path / "fcd.xml").read_text()
     lane = re.search(r'lane="([^"]+)"', text).group(1)
     (tmp_path / "fcd.xml").write_text(text.replace(f'lane="{lane}"', 'lane="elsewhere_0"', 1))
@@ -109,7 +110,7 @@ def test_station_off_the_section_or_not_placed(
 
 
 def test_empty_interval(field_truth: Path, section: Section, tmp_path: Path) -> None:
-    m = export.export_generic_stations(field_truth, tmp_path / "s.csv")
+    m = field_export.export_generic_stations(field_truth, tmp_path / "s.csv")
     df = pd.read_csv(tmp_path / "s.csv")
     df.loc[3, "end_s"] = df.loc[3, "begin_s"]
     df.to_csv(tmp_path / "s.csv", index=False)

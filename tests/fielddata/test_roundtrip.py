@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import field_export
 import numpy as np
 import pandas as pd
 import pytest
@@ -53,13 +54,13 @@ def test_exact_trajectory_layouts_round_trip(
 ) -> None:
     ids = None
     if layout == "fcd":
-        m = export.export_fcd(field_truth, tmp_path / "fcd.xml")
+        m = field_export.export_fcd(field_truth, tmp_path / "fcd.xml")
         got = read_fcd(tmp_path / "fcd.xml", section, m)
     elif layout == "highd":
-        m, ids = export.export_highd(field_truth, tmp_path / "tracks.csv")
+        m, ids = field_export.export_highd(field_truth, tmp_path / "tracks.csv")
         got = read_highd(tmp_path / "tracks.csv", section, m)
     else:
-        m = export.export_generic_trajectories(field_truth, tmp_path / "t.csv")
+        m = field_export.export_generic_trajectories(field_truth, tmp_path / "t.csv")
         got = read_generic_trajectories(tmp_path / "t.csv", section, m)
     assert tuple(got.frame.columns[: len(TRAJ_COLUMNS)]) == TRAJ_COLUMNS
     assert got.frame["observed"].all()
@@ -86,10 +87,10 @@ def test_measured_leaders_round_trip(
     assert hidden.mean() > 0.2  # and often it is not an observed one
     ids = dict(zip(truth["vehicle_id"], truth["number"], strict=False))
     if layout == "highd":
-        m, ids = export.export_highd(field_truth, tmp_path / "tracks.csv")
+        m, ids = field_export.export_highd(field_truth, tmp_path / "tracks.csv")
         got = read_highd(tmp_path / "tracks.csv", section, m).frame
     elif layout == "generic":
-        export.export_generic_trajectories(field_truth, tmp_path / "t.csv")
+        field_export.export_generic_trajectories(field_truth, tmp_path / "t.csv")
         cols = TrajectoryColumns(
             leader_id="leader_id", spacing="spacing_m", leader_speed="leader_speed_mps"
         )
@@ -167,7 +168,7 @@ def _check_stations(
 def test_e1_xml_round_trip(
     field_truth: Path, section: Section, detectors: pd.DataFrame, tmp_path: Path
 ) -> None:
-    m = export.export_e1_xml(field_truth, tmp_path / "e1.xml", tmp_path / "det.add.xml")
+    m = field_export.export_e1_xml(field_truth, tmp_path / "e1.xml", tmp_path / "det.add.xml")
     got = read_sumo_detectors(tmp_path / "e1.xml", section, tmp_path / "det.add.xml", m)
     _check_stations(got.frame, detectors, ["detector_id", "begin_s"], 0.006)
 
@@ -175,7 +176,7 @@ def test_e1_xml_round_trip(
 def test_generic_station_csv_round_trip(
     field_truth: Path, section: Section, detectors: pd.DataFrame, tmp_path: Path
 ) -> None:
-    m = export.export_generic_stations(field_truth, tmp_path / "st.csv")
+    m = field_export.export_generic_stations(field_truth, tmp_path / "st.csv")
     cols = StationColumns(end="end_s", occupancy="occupancy")
     got = read_generic_stations(tmp_path / "st.csv", section, m, cols)
     _check_stations(got.frame, detectors, ["detector_id", "begin_s"], 1e-4)
