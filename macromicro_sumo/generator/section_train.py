@@ -11,6 +11,7 @@ generator and the uniform baseline (``section_sampler``) and writes their metric
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -43,6 +44,7 @@ from macromicro_sumo.files import (
 from macromicro_sumo.generator.section_metrics import completion_metrics
 from macromicro_sumo.generator.section_model import (
     FEATURE_VERSION,
+    Scene,
     SectionGeneratorNet,
     rollout,
     section_losses,
@@ -73,6 +75,10 @@ from macromicro_sumo.truth.section import load_section_truth
 
 CHECKPOINT_FORMAT = "macromicro-section-generator"
 EVAL_BATCH = 256  # snapshots per forward pass in validation and metrics
+
+# A term added to the loss: its name, weight and per-scene values (B,) on a batch's
+# completed scenes (joint refinement's lambda_rec L_rec: generator/reconstruction.py).
+ExtraTerm = tuple[str, float, Callable[[Scene, SectionSnapshots, Road], torch.Tensor]]
 
 
 # --------------------------------------------------------------------------- checkpoints
@@ -165,6 +171,7 @@ def _batch_loss(
     k: np.ndarray,
     sc: SectionScenario,
     gen: torch.Generator,
+    extra: ExtraTerm | None = None,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """Surrogate loss of one batch (reparameterised terms + score-function term for the gap
     choices, batch-mean baseline) and the batch means of every term."""
@@ -196,6 +203,10 @@ def _batch_loss(
         pooled = pooled_dispersion(x, psi, scene.k)
         terms["L_var"] = terms["L_var"] + sc.generator.dispersion_pool * pooled
     loss = macro_loss(terms, sc.generator.lambda_v, sc.generator.lambda_d)
+    if extra is not None:
+        name, weight, term = extra
+        terms[name] = term(scene, snaps, road)
+        loss = loss + weight * terms[name]
     advantage = (loss - loss.mean()).detach()
     surrogate = loss.mean() + (advantage * log_p).mean()
     if not surrogate.requires_grad:  # nothing generated (K = 0 throughout): a zero step
@@ -211,6 +222,7 @@ def _eval_loss(
     k: np.ndarray,
     sc: SectionScenario,
     seed: int,
+    extra: ExtraTerm | None = None,
 ) -> dict[str, float]:
     """Mean of every term over ``snaps`` with a fixed seed (validation: comparable epochs)."""
     gen = torch.Generator().manual_seed(seed)
@@ -218,7 +230,7 @@ def _eval_loss(
     with torch.no_grad():
         for s in range(0, len(snaps), EVAL_BATCH):
             idx = np.arange(s, min(s + EVAL_BATCH, len(snaps)))
-            _, st = _batch_loss(net, road, snaps.take(idx), k[idx], sc, gen)
+            _, st = _batch_loss(net, road, snaps.take(idx), k[idx], sc, gen, extra)
             for name, v in st.items():
                 sums[name] = sums.get(name, 0.0) + v * len(idx)
     return {name: v / max(len(snaps), 1) for name, v in sums.items()}
@@ -233,16 +245,20 @@ def train_section_generator(
     *,
     out: Path | None = None,
     epochs: int | None = None,
+    init: dict[str, Any] | None = None,
+    extra: ExtraTerm | None = None,
 ) -> tuple[SectionGeneratorNet, pd.DataFrame]:
     """Algorithm 2 on a section: minibatches of training snapshots, early stopping on the
     validation snapshots' loss. Returns the best network and the per-epoch log.
 
     ``out``: write ``generator.pt`` there (atomically) on every improvement, so an
     interrupted run keeps its best weights. ``epochs`` overrides ``sc.generator.epochs``.
+    ``init``: start from these weights (a fine-tune); ``extra``: a term added to the loss
+    of every batch and of validation (joint refinement's L_rec).
     """
     check_gap_choice(sc, section)
     with one_thread():
-        return _train(sc, section, train, val, progress, out, epochs)
+        return _train(sc, section, train, val, progress, out, epochs, init, extra)
 
 
 def _train(
@@ -253,6 +269,8 @@ def _train(
     progress: bool,
     out: Path | None,
     epochs: int | None,
+    init: dict[str, Any] | None = None,
+    extra: ExtraTerm | None = None,
 ) -> tuple[SectionGeneratorNet, pd.DataFrame]:
     cfg = sc.generator
     torch.manual_seed(sc.seed)
@@ -260,6 +278,8 @@ def _train(
     net = SectionGeneratorNet(
         cfg.hidden_size, cfg.gap_choice, cfg.dispersion_feature, cfg.hidden_layers
     )
+    if init is not None:
+        net.load_state_dict(init)
     gen = torch.Generator().manual_seed(sc.seed)
     rng = np.random.default_rng([sc.seed, 31])
     k_train, k_val = k_of(train, cfg.k_source), k_of(val, cfg.k_source)
@@ -272,14 +292,22 @@ def _train(
         perm = rng.permutation(len(snaps))
         return [
             (
-                partial(_batch_loss, road=road, snaps=snaps.take(idx), k=k[idx], sc=sc, gen=gen),
+                partial(
+                    _batch_loss,
+                    road=road,
+                    snaps=snaps.take(idx),
+                    k=k[idx],
+                    sc=sc,
+                    gen=gen,
+                    extra=extra,
+                ),
                 len(idx),
             )
             for idx in (perm[s : s + cfg.batch_size] for s in range(0, len(perm), cfg.batch_size))
         ]
 
     def validate(model: torch.nn.Module) -> dict[str, float]:
-        return _eval_loss(model, road, val, k_val, sc, sc.seed + 17)
+        return _eval_loss(model, road, val, k_val, sc, sc.seed + 17, extra)
 
     def save(model: torch.nn.Module, epoch: int, best: float) -> None:
         save_section_generator(
