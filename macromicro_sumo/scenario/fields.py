@@ -32,13 +32,18 @@ def spec(
     doc: str = "",
     choices: tuple[str, ...] | None = None,
     accepted: str = "",
+    omit_default: bool = False,
 ) -> Any:
     """A dataclass field with its doc, accepted range and (for strings) choices.
 
     ``accepted``: the range as messages state it, where [lo, hi] cannot say it (an open end,
-    checked by the scenario's own cross-field checks).
+    checked by the scenario's own cross-field checks). ``omit_default``: ``to_dict`` leaves
+    the field out while it has its default (a switch, off by default, whose key must not
+    change the digest, checkpoints or recorded runs of the scenarios that do not set it).
     """
     meta = {"range": (lo, hi), "doc": doc, "choices": choices, "accepted": accepted}
+    if omit_default:
+        meta["omit_default"] = True
     if default is dataclasses.MISSING:
         return field(metadata=meta)
     if isinstance(default, list | dict):
@@ -59,12 +64,23 @@ class ScenarioFile:
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
         d.pop("source")
+        _omit_defaults(self, d)
         # An absent optional table is left out: a scenario without one keeps its digest.
         return {k: v for k, v in d.items() if v is not None}
 
     def digest(self) -> str:
         """SHA-256 of the scenario as loaded (not of the file's bytes or comments)."""
         return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()
+
+
+def _omit_defaults(obj: Any, d: dict[str, Any]) -> None:
+    """Drop from ``d`` (``obj`` as a dict) the ``omit_default`` fields at their default."""
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(value) and isinstance(d.get(f.name), dict):
+            _omit_defaults(value, d[f.name])
+        elif f.metadata.get("omit_default") and value == f.default:
+            d.pop(f.name, None)
 
 
 def _describe_range(meta: dict[str, Any]) -> str:
@@ -119,10 +135,6 @@ def _table_class(hint: Any) -> Any:
 # Keys that stop 25 removed with the ring wing (issue 16): a one-line error naming what
 # replaces them, rather than "unknown key".
 REMOVED_KEYS = {
-    "policy.refine_iterations": "joint refinement was the ring wing's; no replacement",
-    "policy.refine_updates": "joint refinement was the ring wing's; no replacement",
-    "policy.refine_epochs": "joint refinement was the ring wing's; no replacement",
-    "policy.refine_lambda_rec": "joint refinement was the ring wing's; no replacement",
     "evaluation.completions_per_scene": "replaced by generator.eval_completions",
 }
 

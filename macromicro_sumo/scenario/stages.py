@@ -130,6 +130,31 @@ class PolicyConfig:
         doc="demand episodes: reward subtracted on the step a driven vehicle collides (its "
         "episode ends there in any case, losing its future eta * r_macro)",
     )
+    # Joint refinement (pipeline/refinement.py), off by default: left out of the scenario's
+    # dict at their defaults, so that a scenario without them keeps its digest and runs.
+    refine_iterations: int = spec(
+        0,
+        lo=0,
+        hi=100,
+        doc="joint refinement: outer iterations of Algorithm 1 after the single pass (0: none, "
+        "the paper's case study); each rolls the policy one step from generated scenes, "
+        "fine-tunes the generator towards those hidden states and the policy on its scenes",
+        omit_default=True,
+    )
+    refine_updates: int = spec(
+        20, lo=1, hi=1_000_000, doc="PPO updates per refinement iteration", omit_default=True
+    )
+    refine_epochs: int = spec(
+        20, lo=1, hi=100_000, doc="generator epochs per refinement iteration", omit_default=True
+    )
+    refine_lambda_rec: float = spec(
+        1.0,
+        lo=0.0,
+        hi=1e6,
+        doc="weight of the consistency term L_rec between the generator's scene at t + 1 and "
+        "the hidden states the policy drove there",
+        omit_default=True,
+    )
 
 
 @dataclass(frozen=True, kw_only=True)

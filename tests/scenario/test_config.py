@@ -53,6 +53,31 @@ def test_overrides_are_applied_and_validated(make_scenario):
         load_scenario(path, {"fleet.n_vehicles": 1})
 
 
+def test_joint_refinement_keys_load_in_their_ranges_and_change_nothing_when_off(make_scenario):
+    """policy.refine_* (stop 27, back from the ring wing): their old names and ranges; at
+    their defaults the scenario's dict and digest are those of a file without them."""
+    path = make_scenario()
+    sc = load_scenario(path, {"policy.refine_iterations": 2, "policy.refine_lambda_rec": 0.5})
+    assert (sc.policy.refine_iterations, sc.policy.refine_lambda_rec) == (2, 0.5)
+    assert sc.to_dict()["policy"]["refine_iterations"] == 2
+    off = {
+        "policy.refine_iterations": 0,
+        "policy.refine_updates": 20,
+        "policy.refine_epochs": 20,
+        "policy.refine_lambda_rec": 1.0,
+    }
+    assert load_scenario(path, off).digest() == load_scenario(path).digest()
+    assert "refine_epochs" not in load_scenario(path).to_dict()["policy"]
+    for key, bad, accepted in (
+        ("policy.refine_iterations", 101, r"\[0, 100\]"),
+        ("policy.refine_updates", 0, r"\[1, 1e\+06\]"),
+        ("policy.refine_epochs", 2.5, r"\[1, 100000\]"),
+        ("policy.refine_lambda_rec", -1.0, r"\[0, 1e\+06\]"),
+    ):
+        with pytest.raises(UserError, match=rf"^{path}: {key} = .*{accepted}$"):
+            load_scenario(path, {key: bad})
+
+
 def test_road_ring_and_removed_keys_name_the_change(make_scenario):
     """Stop 25 removed the ring wing: its switch and its keys are one line each, naming what
     to do; road = "section" (what every file is now) still loads."""
@@ -60,8 +85,6 @@ def test_road_ring_and_removed_keys_name_the_change(make_scenario):
     assert load_scenario(path, {"road": "section"}).name == "ring_paper"
     with pytest.raises(UserError, match=r"road = 'ring' was removed \(stop 25\)"):
         load_scenario(path, {"road": "ring"})
-    with pytest.raises(UserError, match=r"policy\.refine_iterations was removed in stop 25"):
-        load_scenario(path, {"policy.refine_iterations": 1})
     section = PAPER_SCENARIO.parent / "ring_paper_section.toml"
     with pytest.raises(UserError, match=r"replaced by generator\.eval_completions"):
         load_scenario(section, {"evaluation.completions_per_scene": 4})
