@@ -7,8 +7,12 @@ simulation of B disjoint copies of the network (``sumo/tiling.py``: scene b driv
 copy b, whose IDs carry the prefix ``copy_prefix(b)``): one simulationStep and one bulk
 read serve B env steps, and the modelling is numpy over (B, N) arrays. SUMO is still the
 physics: every vehicle's speed command, safe-speed cap and position update is SUMO's, as in
-``SectionCore``; the copies share no lane, so a scene cannot see another's vehicles. A
-scene stepped here follows the same trajectory as in ``SectionCore`` (tested).
+``SectionCore``; the copies share no lane, so a scene cannot see another's vehicles. The
+step itself (commands, SUMO's step and read-back, the replay's bookkeeping) is the one both
+cores run (``env/slot_core.py``), over (B, N) here; what is this core's own is the
+insertion of B scenes at once and the loop's leaders, observations and reward
+(``env/batched_scene.py``). A scene stepped here follows the same trajectory as in
+``SectionCore``, to the bit (tested).
 
 Scope: closed one-lane sections without signals or junction-internal lanes (the paper's
 ring and any ring of another radius or N); other sections raise a one-line error and stay
@@ -23,8 +27,7 @@ is inserted during that step's simulationStep while the other scenes move, as
 
 from __future__ import annotations
 
-import tempfile
-from itertools import repeat
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -35,28 +38,10 @@ from macromicro_sumo.env.batched_scene import (
     check_batchable,
     loop_observations,
 )
-from macromicro_sumo.env.section import (
-    COUNTERS,
-    DEFAULT_SAFETY,
-    EXACT_MODE,
-    POSITION_TOL_M,
-    SAFE_MODE,
-    SAFETY,
-    SPEED_TOL_MPS,
-    SectionCore,
-)
+from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import SectionBank
-from macromicro_sumo.env.section_replay import (
-    REPLAY_SPEED_FACTOR,
-    REPLAY_SUFFIX,
-    SAFE_SUFFIX,
-    arc_lag,
-    catch_up_speeds,
-    safe_places,
-    vtypes_xml,
-)
+from macromicro_sumo.env.slot_core import POSITION_TOL_M, SlotCore
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.road.physics import OBSERVATION_FEATURES
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.sumo.tiling import copy_id, tile_net
@@ -83,7 +68,7 @@ def batched_like(core: SectionCore, n_scenes: int) -> BatchedSectionCore | None:
         return None
 
 
-class BatchedSectionCore:
+class BatchedSectionCore(SlotCore):
     """B scenes of one section in one SUMO run of B network copies (no demand)."""
 
     def __init__(
@@ -97,49 +82,23 @@ class BatchedSectionCore:
         safety: str | None = None,
         replay_min_gap_m: float | None = None,
         vclass: str = "passenger",
-        vtypes_file: Path | None = None,
+        vtypes_file: Path | None = None,  # a SectionCore's own (``batched_like``)
     ) -> None:
-        safety = safety or getattr(sc.policy, "safety", DEFAULT_SAFETY)
-        if safety not in SAFETY:
-            raise UserError(f"safety = {safety!r}: one of {', '.join(SAFETY)}")
         if n_scenes < 1:
             raise UserError(f"n_scenes = {n_scenes}: at least 1")
         check_batchable(section)
-        self.safety, self.sc, self.section, self.bank = safety, sc, section, bank
-        self.counts: dict[str, float] = dict.fromkeys(COUNTERS, 0) | {"replay_lag_m": 0.0}
-        self.b, self.n = n_scenes, bank.arc0_m.shape[1]
-        self.dt = sc.simulation.step_length_s
-        self.a_min, self.a_max = sc.bounds.accel_mps2
-        self.observation = sc.policy.observation
-        self.obs_dim = len(OBSERVATION_FEATURES[self.observation])
-        self._tmp = tempfile.TemporaryDirectory(prefix="macromicro-batched-env-")
-        tmp = Path(self._tmp.name)
-        lengths = np.concatenate([bank.length_m[bank.valid], bank.true_length_m.ravel()])
-        lengths = np.unique(np.round(lengths[np.isfinite(lengths) & (lengths > 0)], 2))
-        self._vtype = {float(x): f"mm_L{i}" for i, x in enumerate(lengths)}
-        (tmp / "vtypes.add.xml").write_text(
-            Path(vtypes_file).read_text()  # a SectionCore's own (``batched_like``)
-            if vtypes_file is not None
-            else vtypes_xml(
-                self._vtype,
-                sc.bounds.accel_mps2,
-                sc.bounds.min_gap_m,
-                vclass,
-                self.dt,
-                replay_min_gap_m,
-            )
-        )
-        net = tile_net(Path(net_file), n_scenes, tmp / "tiled.net.xml")
-        self.sim = Simulation(SumoOptions(net, (tmp / "vtypes.add.xml",), self.dt, seed))
+        vtypes = self._setup(sc, bank, safety, vclass, replay_min_gap_m, vtypes_file)
+        self.section, self.b = section, n_scenes
+        net = tile_net(Path(net_file), n_scenes, vtypes.parent / "tiled.net.xml")
+        self.sim = Simulation(SumoOptions(net, (vtypes,), self.dt, seed))
         if self.sim.has_traffic_lights():
             self.close()
             check_batchable(section, True)
-        self._add_routes()
-        # Every copy's section lanes: ID -> row of (arc of the lane's start, arc per metre).
-        lanes = [(copy_id(b, lid), v) for b in range(n_scenes) for lid, v in section.lanes.items()]
-        self._lane_code = {lid: k for k, (lid, _) in enumerate(lanes)}
-        self._lane_start = np.array([v[2] for _, v in lanes] + [0.0])
-        self._lane_scale = np.array([v[3] for _, v in lanes] + [1.0])
+        copies = range(n_scenes)
+        self._add_routes(
+            np.array([[copy_id(b, e) for e in section.edge_ids] for b in copies], object)
+        )
+        self._index_lanes([partial(copy_id, b) for b in copies])
         self._resets = np.zeros(n_scenes, dtype=np.int64)
         b, n = n_scenes, self.n
         self.episode = np.zeros(b, dtype=np.int64)
@@ -159,26 +118,6 @@ class BatchedSectionCore:
         self._errors = [""] * b
         self._want = np.zeros((b, n))
         self.valid = np.zeros((b, n), dtype=bool)
-        self.rewarded = True
-
-    def _add_routes(self) -> None:
-        """Per copy, one route per start edge round the loop, as ``SectionCore`` has."""
-        bk, edges = self.bank, list(self.section.edge_ids)
-        v = np.nanmax(np.concatenate([bk.speed0_mps[bk.valid], bk.replay_speed_mps.ravel(), [1.0]]))
-        reach = (v + self.a_max * bk.horizon * self.dt) * bk.horizon * self.dt
-        laps = int(np.ceil(reach / self.section.length_m)) + 2
-        for b in range(self.b):
-            for e in range(len(edges)):
-                route = [copy_id(b, x) for x in (edges[e:] + edges[:e]) * laps]
-                self.sim.add_route(self._route(b, e), route)
-
-    @staticmethod
-    def _route(b: int, e: int) -> str:
-        return f"mm_c{b}_r{e}"
-
-    def close(self) -> None:
-        self.sim.close()
-        self._tmp.cleanup()
 
     # ------------------------------------------------------------------ episodes
     def reset(self, episodes: np.ndarray) -> np.ndarray:
@@ -226,9 +165,7 @@ class BatchedSectionCore:
         e = np.where(past, (e + 1) % len(sec.edge_ids), e)
         pos = np.minimum(np.maximum(np.where(past, 0.0, pos), 0.0), sec.lengths_m[e] - 0.01)
         self._want[scenes] = sec.offsets_m[e] + pos  # where SectionCore checks insertion
-        hid = self.hidden[scenes]
-        sfx = np.where(hid, "" if self.safety == "none" else SAFE_SUFFIX, REPLAY_SUFFIX)
-        factor = np.where(sfx == "", 1.0, REPLAY_SPEED_FACTOR)
+        sfx, factor = self._insert_kinds(self.hidden[scenes])
         rows = scenes[:, None]
         v0 = np.minimum(bk.speed0_mps[episodes], factor * lim[rows, e, 0])
         lengths = np.round(bk.length_m[episodes], 2)
@@ -236,7 +173,7 @@ class BatchedSectionCore:
             for i in np.flatnonzero(self.valid[b]):
                 self.sim.add_vehicle(
                     self.ids[b, i],
-                    self._route(b, int(e[j, i])),
+                    self._route_ids[b, e[j, i]],
                     self._vtype[float(lengths[j, i])] + sfx[j, i],
                     0,
                     float(pos[j, i]),
@@ -259,14 +196,9 @@ class BatchedSectionCore:
                 self._errors[b] = f"insertion failed: vehicle {miss} is not on the section"
             elif off[j] > POSITION_TOL_M:
                 self._errors[b] = f"insertion check failed: position off by {off[j]:.3f} m"
-        hid = valid & self.hidden[scenes]
-        obs = valid & ~self.hidden[scenes]
-        self.counts["replay_vehicles"] += int(obs.sum())
-        ids = self.ids[scenes]
-        mode = SAFE_MODE if self.safety == "sumo" else EXACT_MODE
-        self.sim.set_speed_mode(ids[hid].tolist(), mode)
-        self.sim.set_speed_mode(ids[obs].tolist(), SAFE_MODE)
-        self.sim.set_lane_change_mode(ids[obs].tolist(), 0)
+        slots = np.zeros((self.b, self.n), dtype=bool)
+        slots[scenes] = valid
+        self._set_modes(slots)
 
     # ------------------------------------------------------------------ step
     def step(self, accel: np.ndarray, reset: np.ndarray | None = None) -> BatchStep:
@@ -283,7 +215,7 @@ class BatchedSectionCore:
                     "per process: reset every scene to start this one's again"
                 )
             self.sim.reload()  # a fresh run: no routes, no vehicles, the net's limits
-            self._add_routes()
+            self._add_routes(self._edge_ids)
             self._sumo_limits = np.repeat(self.section.limits_mps[None], b_n, axis=0)
             self.ids[:], self.active[:], self.valid[:] = "", False, False
         restart = rs >= 0
@@ -294,51 +226,17 @@ class BatchedSectionCore:
         if restart.any():
             self._queue(np.flatnonzero(restart), rs[restart])
         ep, t = self.episode, np.minimum(self.t, bk.horizon - 1)
-        t1 = t + 1
-        a = np.minimum(np.maximum(accel, self.a_min), self.a_max)
-        hid = self.hidden & run[:, None]
-        cmd = np.where(hid, np.maximum(0.0, self.speed + a * self.dt), 0.0)
-        obs_slots = self.active & ~self.hidden & run[:, None]
-        rv = bk.replay_speed_mps[ep, t1]
-        rec_arc, rec_arc0 = bk.replay_arc_m[ep, t1], bk.replay_arc_m[ep, t]
-        gone = obs_slots & np.isnan(rv)
-        if gone.any():  # the recorded vehicle left the section: it leaves the episode
-            self.active &= ~gone
-            self.sim.remove_vehicles(list(self.ids[gone]))
-        replay = obs_slots & ~gone
-        cmd = np.where(replay, rv, cmd)
-        back = replay & self.off_record
-        if back.any():
-            cmd[back] = catch_up_speeds(
-                self.speed[back],
-                rv[back],
-                rec_arc[back],
-                self.arc[back],
-                arc_lag(self.section, rec_arc0[back], self.arc[back]),
-                self.dt,
-                (self.a_min, self.a_max),
-            )
-        live = self.active & run[:, None]
-        self.sim.set_speeds(list(self.ids[live]), cmd[live])
-        self.sim.step()
-        found, arc, read = self._read(
-            (restart[:, None] & self.valid) | (run[:, None] & self.active)
-        )
+        cmd, replay, live = self._drive(accel, run[:, None], ep, t)
+        state = self._read((restart[:, None] & self.valid) | (run[:, None] & self.active))
         collision = np.zeros(b_n, dtype=bool)
         if self.sim.collisions() > 0:
             for vid in self.sim.colliding_vehicles():
                 if vid.startswith("c") and "." in vid:
                     collision[int(vid[1 : vid.index(".")])] = True
-        self._count_caps(live, cmd, replay, read)
-        lost = live & ~found  # left SUMO (cannot happen on a loop; as SectionCore)
-        self.active &= ~lost
-        upd = live & ~lost
-        self.arc = np.where(upd, arc, self.arc)
-        self.speed = np.where(upd, read, self.speed)
-        self._rejoin(replay, rec_arc)
-        self._follow_records(replay, rec_arc, run)
+        for (b,), msg in self._after(live, cmd, replay, state, ep, t).items():
+            self._errors[b] = msg  # SUMO refused a recorded move: the episode is truncated
         self.t[run] += 1
-        self._started(np.flatnonzero(restart), found, arc)
+        self._started(np.flatnonzero(restart), state[0], state[2])
         scene = run | restart
         self._scene(scene)
         terms: dict[str, np.ndarray] = {}
@@ -363,103 +261,6 @@ class BatchedSectionCore:
             errors,
         )
 
-    def _read(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(on the section, arc, speed; NaN: not read) of the vehicles in ``slots`` (B, N)."""
-        ids = self.ids[slots].tolist()
-        try:
-            lanes, pos, spd = self.sim.lane_states(ids)
-        except KeyError:  # one left SUMO (an open end; not on a loop): read who is there
-            st = self.sim.vehicle_states()
-            rows = [st.index.get(v, -1) for v in ids]
-            lanes = [st.lanes[k] if k >= 0 else "" for k in rows]
-            pos = np.array([st.pos_m[k] if k >= 0 else 0.0 for k in rows])
-            spd = np.array([st.speed_mps[k] if k >= 0 else np.nan for k in rows])
-        # lane ID -> row of the lane tables (-1: no copy's section lane, the tables' last)
-        code = np.fromiter(map(self._lane_code.get, lanes, repeat(-1)), np.int64, len(lanes))
-        on = np.zeros(slots.shape, dtype=bool)
-        on[slots] = code >= 0
-        arc = np.zeros(slots.shape)
-        speed = np.full(slots.shape, np.nan)
-        arc[slots] = self._lane_start[code] + pos * self._lane_scale[code]
-        speed[slots] = np.where(code >= 0, spd, np.nan)
-        # On a lane of no section copy: gone, and removed, as SectionCore has it.
-        stray = [v for v, x, c in zip(ids, lanes, code, strict=True) if x and c < 0]
-        if stray:
-            self.sim.remove_vehicles(stray)
-        return on, arc, speed
-
-    def _count_caps(self, live, cmd, replay, read) -> None:
-        with np.errstate(invalid="ignore"):
-            capped = live & (read < cmd - SPEED_TOL_MPS)
-        hid = live & self.hidden
-        self.counts["replay_steps"] += int(replay.sum())
-        self.counts["replay_capped"] += int((capped & replay).sum())
-        self.counts["hidden_steps"] += int(hid.sum())
-        if self.safety != "none":
-            self.counts["safety_capped"] += int((capped & hid).sum())
-        self._leave_record(capped & replay)
-
-    def _leave_record(self, mask: np.ndarray) -> None:
-        self.counts["replay_off_record"] += int((mask & ~self.off_record).sum())
-        self.off_record |= mask
-
-    def _rejoin(self, replay: np.ndarray, rec_arc: np.ndarray) -> None:
-        off = replay & self.active & self.off_record
-        if not off.any():
-            return
-        lag = np.abs(arc_lag(self.section, rec_arc, self.arc))
-        back = off & (lag <= POSITION_TOL_M)
-        self.off_record &= ~back
-        self.counts["replay_returned"] += int(back.sum())
-        still = off & ~back
-        self.counts["replay_off_steps"] += int(still.sum())
-        self.counts["replay_lag_m"] += float(lag[still].sum())
-
-    def _follow_records(self, replay: np.ndarray, rec_arc: np.ndarray, run: np.ndarray) -> None:
-        """``SectionCore._follow_records`` on one lane: an on-record vehicle drifted more
-        than ``POSITION_TOL_M`` from its record is put back where that is safe (rare: a
-        scene loop only where one drifted)."""
-        sec = self.section
-        on_record = replay & self.active & ~self.off_record
-        off = np.mod(self.arc - rec_arc + sec.length_m / 2, sec.length_m) - sec.length_m / 2
-        fix_all = on_record & (np.abs(off) > POSITION_TOL_M)
-        for b in np.flatnonzero(fix_all.any(axis=1)):
-            fix = np.flatnonzero(fix_all[b])
-            act = np.flatnonzero(self.active[b])
-            ok = safe_places(
-                sec,
-                self.lane[b, act],
-                self.arc[b, act],
-                self.speed[b, act],
-                self.bank.length_m[self.episode[b], act],
-                np.searchsorted(act, fix),
-                np.zeros(fix.size, dtype=np.int64),
-                rec_arc[b, fix],
-                self.dt,
-                self.a_min,
-                self.sc.bounds.min_gap_m,
-            )
-            self.counts["replay_moves_refused"] += int((~ok).sum())
-            refused = np.zeros((self.b, self.n), dtype=bool)
-            refused[b, fix[~ok]] = True
-            self._leave_record(refused)
-            fix = fix[ok]
-            if not fix.size:
-                continue
-            places = [sec.to_lane(0, float(rec_arc[b, i])) for i in fix]
-            try:
-                self.sim.move_to(
-                    list(self.ids[b, fix]),
-                    [f"{copy_id(b, sec.edge_ids[e])}_{k}" for e, k, _ in places],
-                    [p for _, _, p in places],
-                    [self._route(b, e) for e, _, _ in places],
-                )
-            except Exception as exc:  # SUMO refused: this scene's episode is truncated
-                self._errors[b] = f"{type(exc).__name__}: {exc}"
-                continue
-            for i, (e, _k, p) in zip(fix, places, strict=True):
-                self.arc[b, i] = sec.offsets_m[e] + p
-
     # ------------------------------------------------------------------ scene
     def _scene(self, scenes: np.ndarray) -> None:
         """Leaders, spacings and observations of ``scenes`` (the others keep theirs)."""
@@ -477,9 +278,6 @@ class BatchedSectionCore:
         self.leader = np.where(keep, self.leader, leader)
         self.spacing = np.where(keep, self.spacing, spacing)
         self._obs = np.where(keep[..., None], self._obs, obs)
-
-    def observations(self) -> np.ndarray:
-        return self._obs.copy()
 
     def macro_reward(self) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """r_macro (B,) and its named terms of every scene (``section_macro_reward``)."""
