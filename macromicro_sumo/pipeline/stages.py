@@ -1,5 +1,6 @@
 """Each stage as one function for every scenario (a section of a network, the paper's ring
-among them): what the command line and batch runs call.
+among them), holding the lock of every output folder it prepares until it returns: what the
+command line and batch runs call.
 """
 
 from __future__ import annotations
@@ -27,62 +28,11 @@ def _one_writer(stage: Callable[..., Any]) -> Callable[..., Any]:
     return locked
 
 
-@_one_writer
-def simulate(sc: Any, out: Path | str, command: str = "", progress: bool = True) -> Path:
-    """Ground truth: the scenario's demand in SUMO, recorded with detectors."""
-    return SECTION.simulate(sc, out, command, progress)
-
-
-@_one_writer
-def train_generator(
-    sc: Any, data: Path, out: Path, command: str = "", progress: bool = True
-) -> dict[str, Any]:
-    """Stage I: the hidden-vehicle generator, trained on the ground truth in ``data``."""
-    return SECTION.train_generator(sc, data, out, command, progress)
-
-
-@_one_writer
-def train_policy(
-    sc: Any,
-    data: Path,
-    generator: Path,
-    out: Path,
-    resume: bool | str = False,
-    command: str = "",
-    progress: bool = True,
-) -> dict[str, Any]:
-    """Stage II: the shared policy, trained with PPO on micro + eta macro."""
-    fit = SECTION.fit_prior
-    return run_train_policy(sc, data, generator, out, resume, command, progress, fit_prior=fit)
-
-
-@_one_writer
-def evaluate(
-    sc: Any,
-    data: Path,
-    generator: Path,
-    policies: dict[str, Path],
-    out: Path,
-    command: str = "",
-    progress: bool = True,
-    hidden: list[int] | None = None,
-) -> Any:
-    """Every method on the held-out runs (``hidden``: only the scenes hiding those K)."""
-    return SECTION.evaluate(sc, data, generator, policies, out, command, progress, hidden)
-
-
-@_one_writer
-def deploy(
-    sc: Any,
-    data: Path,
-    policy: Path | None,
-    out: Path,
-    command: str = "",
-    progress: bool = True,
-    methods: list[str] | None = None,
-) -> dict[str, Any]:
-    """Stage III: every method over the held-out runs' whole demand, in ``out/<method>``."""
-    return deploy_stage(sc, data, policy, out, command, progress, methods, make_deploy_plots)
+simulate = _one_writer(SECTION.simulate)
+train_generator = _one_writer(SECTION.train_generator)
+train_policy = _one_writer(functools.partial(run_train_policy, fit_prior=SECTION.fit_prior))
+evaluate = _one_writer(SECTION.evaluate)
+deploy = _one_writer(functools.partial(deploy_stage, plots=make_deploy_plots))
 
 
 @_one_writer
