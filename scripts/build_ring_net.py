@@ -10,7 +10,8 @@ import argparse
 import math
 from pathlib import Path
 
-from macromicro_sumo.road.ring import build_ring, read_ring
+from macromicro_sumo.road.ring import build_ring
+from macromicro_sumo.road.section import read_section
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -23,13 +24,11 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     name = args.name or f"ring_r{args.radius:g}_e{args.edges}"
     net, add = build_ring(args.radius, args.edges, args.out, name, lanes=args.lanes)
-    if args.lanes > 1:  # read_ring reads one-lane rings; the section reader takes the rest
-        print(f"{net}: {args.edges} edges, {args.lanes} lanes\n{add}: routes and rerouters")
-        return 0
-    geo = read_ring(net)
-    err = geo.length_m - 2 * math.pi * args.radius
+    sec = read_section(net, [f"e{k}" for k in range(args.edges)], closed=True)
+    err = sec.length_m - 2 * math.pi * args.radius
     print(
-        f"{net}: {len(geo.edge_ids)} edges, lane length {geo.length_m:.6f} m (2 pi R error {err * 1e3:+.3f} mm)"
+        f"{net}: {args.edges} edges, {args.lanes} lane(s), length {sec.length_m:.6f} m "
+        f"(2 pi R error {err * 1e3:+.3f} mm)"
     )
     print(f"{add}: routes and rerouters")
     return 0 if abs(err) < 1e-3 else 1

@@ -1,4 +1,4 @@
-"""Ring networks: build an exact circle with netconvert, and read its 1-D geometry.
+"""Ring networks: build an exact circle with netconvert (``road.section`` reads it).
 
 The ring is a single lane of length exactly 2 pi R, split into edges ``e0 .. e{n-1}`` so
 that speed limits can be piecewise constant. Vehicles circulate forever through one-lap
@@ -10,13 +10,9 @@ from __future__ import annotations
 import math
 import subprocess
 import tempfile
-from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import sumolib
-
-from macromicro_sumo.errors import UserError
 
 NETCONVERT_ARGS = [
     # Without these the lane moves outward, junctions add internal lanes and lengths are
@@ -30,33 +26,6 @@ NETCONVERT_ARGS = [
     "--precision",
     "6",
 ]
-
-
-@dataclass(frozen=True)
-class RingGeometry:
-    """Where each edge of a ring sits on the arc coordinate s in [0, L)."""
-
-    edge_ids: tuple[str, ...]
-    lane_ids: tuple[str, ...]
-    offsets_m: np.ndarray  # start of each edge on the arc [m]
-    lengths_m: np.ndarray  # lane length of each edge [m]
-
-    @property
-    def length_m(self) -> float:
-        return float(self.lengths_m.sum())
-
-    def edge_index(self, arc_m: np.ndarray) -> np.ndarray:
-        """Index of the edge holding each arc position."""
-        s = np.mod(arc_m, self.length_m)
-        return np.clip(
-            np.searchsorted(self.offsets_m, s, side="right") - 1, 0, len(self.edge_ids) - 1
-        )
-
-    def to_edge(self, arc_m: float) -> tuple[int, float]:
-        """(edge index, lane position [m]) of an arc position."""
-        i = int(self.edge_index(np.array([arc_m]))[0])
-        pos = float(np.mod(arc_m, self.length_m) - self.offsets_m[i])
-        return i, min(max(pos, 0.0), float(self.lengths_m[i]))
 
 
 def ring_node_xy(radius_m: float, n_edges: int) -> list[tuple[float, float]]:
@@ -133,40 +102,3 @@ def ring_routes_xml(n_edges: int) -> str:
         )
     # Routes must come before the rerouters that name them.
     return "<additional>\n" + "\n".join(routes + rerouters) + "\n</additional>\n"
-
-
-def read_ring(net_file: Path) -> RingGeometry:
-    """Read the ring's edges in driving order; errors name the file and the problem."""
-    try:
-        net = sumolib.net.readNet(str(net_file))
-    except Exception as exc:  # sumolib raises bare parser errors
-        raise UserError(f"{net_file}: not a readable SUMO network ({type(exc).__name__})") from None
-    edges = [e for e in net.getEdges() if e.getFunction() != "internal"]
-    if not edges:
-        raise UserError(f"{net_file}: network has no edges")
-    start = net.getEdge("e0") if net.hasEdge("e0") else edges[0]
-    ordered = [start]
-    while True:
-        nxt = [e for e in ordered[-1].getOutgoing() if e.getFunction() != "internal"]
-        if len(nxt) != 1:
-            raise UserError(
-                f"{net_file}: edge {ordered[-1].getID()} does not continue a single-lane ring"
-            )
-        if nxt[0] is start:
-            break
-        if nxt[0] in ordered or len(ordered) > len(edges):
-            raise UserError(f"{net_file}: edges do not form a closed ring")
-        ordered.append(nxt[0])
-    for e in ordered:
-        if e.getLaneNumber() != 1:
-            raise UserError(
-                f"{net_file}: ring edge {e.getID()} has {e.getLaneNumber()} lanes; accepted 1"
-            )
-    lengths = np.array([e.getLanes()[0].getLength() for e in ordered], dtype=float)
-    offsets = np.concatenate([[0.0], np.cumsum(lengths)[:-1]])
-    return RingGeometry(
-        edge_ids=tuple(e.getID() for e in ordered),
-        lane_ids=tuple(e.getLanes()[0].getID() for e in ordered),
-        offsets_m=offsets,
-        lengths_m=lengths,
-    )

@@ -16,7 +16,6 @@ import numpy as np
 import pandas as pd
 
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.road.ring import RingGeometry
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.fleet import FleetDemand, check_fleet
 from macromicro_sumo.sumo.demand import VType
@@ -63,9 +62,7 @@ def sample_initial_arcs(
     return np.mod(arc, length_m)
 
 
-def sample_run(
-    demand: FleetDemand, geo: RingGeometry, run: int, rng: np.random.Generator
-) -> RunSpec:
+def sample_run(demand: FleetDemand, geo: Section, run: int, rng: np.random.Generator) -> RunSpec:
     """Run ``run``'s draws, in this order: limits, parameters, arcs, speeds, SUMO's seed.
     ``demand``: anything with the ``fleet``, ``speed_limits`` and ``initial`` tables."""
     f = demand.fleet
@@ -102,14 +99,14 @@ def sample_run(
     return RunSpec(run, int(rng.integers(0, 2**31 - 1)), limits, params, arc0, speed0)
 
 
-def run_specs(demand: FleetDemand, geo: RingGeometry, n_runs: int, seed: int) -> list[RunSpec]:
+def run_specs(demand: FleetDemand, geo: Section, n_runs: int, seed: int) -> list[RunSpec]:
     """Every run's random draws, in run order from ``seed`` (a deployment re-draws them
     identically and picks its runs)."""
     rng = np.random.default_rng(seed)
     return [sample_run(demand, geo, r, rng) for r in range(n_runs)]
 
 
-def limits_frame(specs: list[RunSpec], geo: RingGeometry) -> pd.DataFrame:
+def limits_frame(specs: list[RunSpec], geo: Section) -> pd.DataFrame:
     """speed_limits.csv: each run's limit on each edge, with the edge's arc span."""
     return pd.DataFrame(
         [
@@ -126,9 +123,9 @@ def limits_frame(specs: list[RunSpec], geo: RingGeometry) -> pd.DataFrame:
     )
 
 
-def section_ring(section: Section, where: str) -> RingGeometry:
-    """The ring a fleet drives on: a closed one-lane section without junction arcs, read as
-    the ring's geometry (the same offsets, so the same draws place the same vehicles)."""
+def section_ring(section: Section, where: str) -> Section:
+    """``section``, checked to be a ring a fleet can drive on: closed, one lane, without
+    junction arcs (so the arc of a vehicle is its edge's offset plus its lane position)."""
     if not section.closed:
         raise UserError(
             f"{where}: a [fleet] demand needs a closed section (it has no entry or exit); "
@@ -145,14 +142,13 @@ def section_ring(section: Section, where: str) -> RingGeometry:
             f"{where}: a [fleet] demand needs a section without junction lanes (the ring "
             "network of scripts/build_ring_net.py); accepted: junction lengths 0"
         )
-    lanes = tuple(ids[0] for ids in section.edge_lane_ids)
-    return RingGeometry(section.edge_ids, lanes, section.offsets_m.copy(), section.lengths_m.copy())
+    return section
 
 
 # --------------------------------------------------------------------------- a section's fleet
 
 
-def fleet_vtypes(demand: FleetDemand, geo: RingGeometry, where: str) -> dict[str, VType]:
+def fleet_vtypes(demand: FleetDemand, geo: Section, where: str) -> dict[str, VType]:
     """The fleet's vehicle types as the section stages see them (one per vehicle, named
     as it): length and the smallest jam distance the draws can give; checks the fit."""
     check_fleet(demand, geo.length_m, "section", where)
@@ -161,7 +157,7 @@ def fleet_vtypes(demand: FleetDemand, geo: RingGeometry, where: str) -> dict[str
 
 
 def write_fleet_inputs(
-    run_dir: Path, spec: RunSpec, geo: RingGeometry, demand: FleetDemand, dt_s: float, span_s: float
+    run_dir: Path, spec: RunSpec, geo: Section, demand: FleetDemand, dt_s: float, span_s: float
 ) -> tuple[Path, Path]:
     """(vTypes, routes) additional files of one run of a fleet on a closed section, with
     routes long enough for ``span_s`` seconds at the fleet's largest maxSpeed."""
@@ -176,18 +172,21 @@ def write_fleet_inputs(
     return vtypes, routes
 
 
-def insert_fleet(sim: Simulation, spec: RunSpec, geo: RingGeometry, route_prefix: str) -> None:
+def insert_fleet(sim: Simulation, spec: RunSpec, geo: Section, route_prefix: str) -> None:
     """Set the run's limits and queue every vehicle at its drawn arc and speed, on the
     route ``<route_prefix><edge>`` of its start edge (inserted by the next step)."""
     ids = list(spec.params["vehicle_id"])
-    edges, pos = zip(*(geo.to_edge(a) for a in spec.arc0_m), strict=True)
-    sim.set_lane_speed_limits(geo.lane_ids, spec.limits_mps)
+    edges = geo.edge_index(spec.arc0_m)
+    pos = np.clip(
+        np.mod(spec.arc0_m, geo.length_m) - geo.offsets_m[edges], 0.0, geo.lengths_m[edges]
+    )
+    sim.set_lane_speed_limits([lanes[0] for lanes in geo.edge_lane_ids], spec.limits_mps)
     routes = [f"{route_prefix}{geo.edge_ids[e]}" for e in edges]
-    sim.add_vehicles(ids, routes, ids, pos, spec.speed0_mps)
+    sim.add_vehicles(ids, routes, ids, pos.tolist(), spec.speed0_mps)
 
 
 def insertion_error(
-    spec: RunSpec, geo: RingGeometry, arc_m: np.ndarray, speed_mps: np.ndarray
+    spec: RunSpec, geo: Section, arc_m: np.ndarray, speed_mps: np.ndarray
 ) -> tuple[float, float]:
     """(largest arc error [m], largest speed error [m/s]) of the inserted vehicles against
     their draws; ``arc_m``/``speed_mps`` in the order of ``spec.params``."""
@@ -196,7 +195,7 @@ def insertion_error(
     return float(err.max()), float(np.abs(speed_mps - spec.speed0_mps).max())
 
 
-def check_fleet_inserted(sim: Simulation, spec: RunSpec, geo: RingGeometry) -> None:
+def check_fleet_inserted(sim: Simulation, spec: RunSpec, geo: Section) -> None:
     """After the insertion step: every vehicle is on the road where and as fast as drawn
     (SUMO would otherwise silently delay or move a departure)."""
     ids = list(spec.params["vehicle_id"])
@@ -206,7 +205,7 @@ def check_fleet_inserted(sim: Simulation, spec: RunSpec, geo: RingGeometry) -> N
         raise UserError(
             f"run {spec.run}: SUMO did not insert every vehicle (missing: {missing[:5]})"
         )
-    lane = {lane: i for i, lane in enumerate(geo.lane_ids)}
+    lane = {lanes[0]: i for i, lanes in enumerate(geo.edge_lane_ids)}
     rows = [st.index[v] for v in ids]
     on = [lane.get(st.lanes[r], -1) for r in rows]
     if min(on) < 0:

@@ -41,7 +41,6 @@ from macromicro_sumo.files import (
 )
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.progress import tqdm
-from macromicro_sumo.road.ring import RingGeometry
 from macromicro_sumo.road.section import Section, read_section
 from macromicro_sumo.scenario.fleet import fleet_demand
 from macromicro_sumo.scenario.section import SectionScenario
@@ -90,7 +89,7 @@ def load_section(sc: SectionScenario) -> tuple[SumoInputs, Section, dict[str, VT
     return inputs, section, vtypes
 
 
-def fleet_specs(sc: SectionScenario, section: Section) -> tuple[RingGeometry, list[fleet.RunSpec]]:
+def fleet_specs(sc: SectionScenario, section: Section) -> tuple[Section, list[fleet.RunSpec]]:
     """A fleet scenario's ring and every run's draws, in run order from ``sc.seed``: the
     ring truth's draws for the same seed and tables."""
     demand = fleet_demand(sc)
@@ -136,7 +135,7 @@ def record_run(
     section: Section,
     run: int,
     driver: Driver | None = None,
-    fleet_run: tuple[fleet.RunSpec, RingGeometry] | None = None,
+    fleet_run: tuple[fleet.RunSpec, Section] | None = None,
 ) -> tuple[pd.DataFrame, dict[str, int]]:
     """Step one run; rows of every vehicle on the section after the warm-up. ``driver``
     (a deployment) acts before every step; None: SUMO drives every vehicle. ``fleet_run``:

@@ -36,7 +36,6 @@ from macromicro_sumo.deploy.distributions import (
     w1,
 )
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.road.ring import read_ring
 from macromicro_sumo.road.section import read_section
 from macromicro_sumo.scenario.load import load_scenario
 
@@ -116,8 +115,7 @@ def test_headway_and_ttc_of_a_two_vehicle_trajectory() -> None:
 
 
 def test_closed_section_leader_wraps_around_the_loop() -> None:
-    ring = read_ring(RING)
-    section = read_section(RING, list(ring.edge_ids), closed=True)
+    section = read_section(RING, ["e0", "e1", "e2", "e3"], closed=True)
     traj = pd.DataFrame(
         {
             "run": 0,

@@ -12,7 +12,7 @@ import pytest
 from conftest import NETS, ROOT
 
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.road.ring import read_ring
+from macromicro_sumo.road.section import read_section
 from macromicro_sumo.scenario.load import load_scenario, scenario_from_dict
 from macromicro_sumo.scenario.ring_as_section import RING_GENERATOR_DEFAULTS, detector_file
 from macromicro_sumo.scenario.section import SectionGeneratorConfig, SectionScenario
@@ -126,8 +126,8 @@ def _loops(xml: str) -> set[tuple[str, str, float, float]]:
 def test_the_shipped_detector_files_place_the_ring_truths_loops(net):
     """The section reads the ring's detectors from the file beside its net: an E1 loop at
     mid-edge and an E2 over every edge (as the ring wing's truth wrote them per run)."""
-    geo = read_ring(NETS / net)
-    edges = list(zip(geo.lane_ids, geo.lengths_m, strict=True))
+    geo = read_section(NETS / net, ["e0", "e1", "e2", "e3"], closed=True)
+    edges = list(zip([ids[0] for ids in geo.edge_lane_ids], geo.lengths_m, strict=True))
     ring = {("e1", lane, round(0.5 * length, 4), 0.0) for lane, length in edges}
     ring |= {("e2", lane, 0.0, round(length, 4)) for lane, length in edges}
     shipped = _loops((NETS / detector_file(net)).read_text())

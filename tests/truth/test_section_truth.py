@@ -19,7 +19,6 @@ from conftest import NETS, corridor_table, dump_toml
 from macromicro_sumo.cli import main
 from macromicro_sumo.data.section import section_snapshots
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.road.ring import read_ring
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, lane_leaders, read_section
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.netgen import random_corridor
@@ -49,10 +48,11 @@ def corridor_truth(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path
 
 
 def test_ring_is_a_one_lane_closed_section() -> None:
-    ring = read_ring(RING)
-    sec = read_section(RING, list(ring.edge_ids), closed=True)
-    assert sec.length_m == pytest.approx(ring.length_m, abs=1e-9)
-    np.testing.assert_allclose(sec.offsets_m, ring.offsets_m)
+    sec = read_section(RING, ["e0", "e1", "e2", "e3"], closed=True)
+    # The exact ring: 2 pi R long, four equal edges, no junction arcs.
+    assert sec.length_m == pytest.approx(2 * np.pi * 100.0, abs=1e-3)
+    np.testing.assert_allclose(sec.offsets_m, np.arange(4) * sec.length_m / 4, atol=1e-3)
+    assert (sec.junction_m == 0).all()
     assert sec.max_lanes == 1
     arc = np.array([10.0, 300.0, 620.0])
     leader, spacing = lane_leaders(np.zeros(3, dtype=int), arc, sec.length_m, True)
