@@ -3,17 +3,13 @@ one-lane section of its generated ring network, ``scenario.ring_as_section``).""
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import tomllib
 from pathlib import Path
 from typing import Any
 
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.scenario.data import build_data
-from macromicro_sumo.scenario.fields import build_table
 from macromicro_sumo.scenario.ring_as_section import ring_to_section
-from macromicro_sumo.scenario.section import SectionScenario, build_section_scenario
+from macromicro_sumo.scenario.section import build_section_scenario
 
 # The top-level ``road`` key chose the wing that read a ring file until stop 25; there is one
 # road model now, so only "section" (what every file is) is accepted, for files that say it.
@@ -77,19 +73,3 @@ def load_scenario(
             f"{file}: network.kind = {kind!r} is not accepted; accepted: one of 'ring', 'sumo'"
         )
     return build_section_scenario(table, file, str(path.resolve()))
-
-
-def scenario_from_dict(d: dict[str, Any], source: str) -> Any:
-    """Rebuild a scenario stored in a checkpoint or manifest (already validated once).
-
-    Also takes ``to_dict()`` straight from memory: its tuples become the lists a file holds,
-    so the builders see the same shapes either way.
-    """
-    d = json.loads(json.dumps(d))
-    if d.get("network", {}).get("kind") != "sumo":
-        raise UserError(
-            f"{source}: written by the ring wing, removed in stop 25; run its scenario again"
-        )
-    data = build_data(d.pop("data", None) or {}, source)  # nested tables: its own builder
-    sc = build_table(SectionScenario, d, "", source)
-    return dataclasses.replace(sc, source=source, data=data)

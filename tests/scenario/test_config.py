@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 import subprocess
 import sys
 
@@ -12,7 +11,7 @@ from conftest import PAPER_SCENARIO, ROOT, dump_toml, scenario_table
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.scenario.fleet import FleetConfig
-from macromicro_sumo.scenario.load import load_scenario, scenario_from_dict
+from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.scenario.section import SectionScenario
 
 
@@ -90,31 +89,6 @@ def test_road_ring_and_removed_keys_name_the_change(make_scenario):
         load_scenario(section, {"evaluation.completions_per_scene": 4})
     # On a ring file the key still maps onto generator.eval_completions.
     assert load_scenario(path).generator.eval_completions == 4
-
-
-def test_scenario_round_trips_through_its_dict():
-    sc = load_scenario(PAPER_SCENARIO)
-    again = scenario_from_dict(json.loads(json.dumps(sc.to_dict())), sc.source)
-    assert again == sc
-    assert again.digest() == sc.digest()
-
-
-@pytest.mark.parametrize("name", ["highway_bremen", "highway_bremen_files"])
-def test_section_scenario_round_trips_through_its_dict(name):
-    """A checkpoint's stored scenario rebuilds, nested [data] tables (field files) included."""
-    sc = load_scenario(PAPER_SCENARIO.parent / f"{name}.toml")
-    again = scenario_from_dict(json.loads(json.dumps(sc.to_dict())), sc.source)
-    assert again == sc
-    assert again.data.source == ("files" if name.endswith("files") else "simulate")
-
-
-@pytest.mark.parametrize("name", ["ring_paper", "highway_bremen", "ring_paper_section"])
-def test_scenario_rebuilds_from_its_dict_in_memory(name):
-    """Straight from to_dict(), tuples and all (a batch variant or a test does this), not via JSON."""
-    sc = load_scenario(PAPER_SCENARIO.parent / f"{name}.toml")
-    again = scenario_from_dict(sc.to_dict(), sc.source)
-    assert again == sc
-    assert again.digest() == sc.digest()
 
 
 def test_digest_is_stable_and_ignores_formatting(tmp_path):

@@ -3,15 +3,13 @@ sections, optional on a section, and ring_paper_section.toml's demand is ring_pa
 
 from __future__ import annotations
 
-import json
-
 import pytest
 from conftest import PAPER_SCENARIO, ROOT
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.scenario import section
 from macromicro_sumo.scenario.fleet import fleet_demand
-from macromicro_sumo.scenario.load import load_scenario, scenario_from_dict
+from macromicro_sumo.scenario.load import load_scenario
 
 RING_AS_SECTION = ROOT / "scenarios" / "ring_paper_section.toml"
 TWO_LANE = ROOT / "scenarios" / "ring_two_lane.toml"
@@ -34,13 +32,10 @@ def test_ring_paper_section_draws_the_demand_of_ring_paper():
     assert sec.resolve(sec.network.net_file) == paper.resolve(paper.network.net_file)
 
 
-def test_a_section_without_a_fleet_keeps_its_dict_and_a_fleet_round_trips():
+def test_a_section_without_a_fleet_keeps_its_dict():
     plain = load_scenario(TWO_LANE)
     assert fleet_demand(plain) is None
     assert not {"fleet", "speed_limits", "initial"} & set(plain.to_dict())
-    sec = load_scenario(RING_AS_SECTION)
-    again = scenario_from_dict(json.loads(json.dumps(sec.to_dict())), sec.source)
-    assert again == sec and again.digest() == sec.digest()
 
 
 def test_a_fleet_table_with_a_bad_value_names_its_key(tmp_path):
