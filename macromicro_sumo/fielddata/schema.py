@@ -141,7 +141,3 @@ def read_table(path: Path | str, **kwargs: object) -> pd.DataFrame:
     if df.empty:
         raise UserError(f"{path}: no data rows")
     return df
-
-
-def empty_trajectories() -> pd.DataFrame:
-    return pd.DataFrame({c: [] for c in TRAJ_COLUMNS})

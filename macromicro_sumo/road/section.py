@@ -6,7 +6,7 @@ upstream and a downstream end) or closed (a loop). Every position on it is
 the arc runs along the section from the start of its first edge. Junctions between
 consecutive edges get their own stretch of arc (the length of SUMO's internal lane), so a
 vehicle crossing a junction moves on smoothly. The ring is the special case of a one-lane
-closed section without internal lanes (``RingGeometry`` is what ``as_ring()`` gives back).
+closed section without internal lanes.
 """
 
 from __future__ import annotations
