@@ -38,6 +38,8 @@ from macromicro_sumo.files import check_outputs, prepare_out_dir, write_json
 from macromicro_sumo.generator.section_train import run_train_section_generator
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.pipeline.parallel import can_ship, cpu_s, default_jobs, run_side_by_side
+from macromicro_sumo.pipeline.refinement import MANIFEST as REFINE_MANIFEST
+from macromicro_sumo.pipeline.refinement import refine
 from macromicro_sumo.policy.checkpoint import policy_file
 from macromicro_sumo.policy.stage import PriorFit, run_train_policy
 from macromicro_sumo.report.deploy import make_deploy_plots
@@ -53,10 +55,18 @@ RESUME = "auto"
 # ``train-policy`` (the pipeline trains every objective); [deploy] is read by the deploy
 # stage only (its own ignores: ``DEPLOY_IGNORES``).
 _NOWHERE = ("name", "policy.objective", "deploy")
+# Joint refinement's keys: inputs of the refine stage (and of the evaluation of what it
+# refined), of no stage of the single pass.
+_REFINE = (
+    "policy.refine_iterations",
+    "policy.refine_updates",
+    "policy.refine_epochs",
+    "policy.refine_lambda_rec",
+)
 _TRUTH_IGNORES = (*_NOWHERE, "generator", "policy", "evaluation")
 # The deploy stage reads [deploy], the ground truth and the policies, not the evaluation.
-DEPLOY_IGNORES = ("name", "policy.objective", "evaluation")
-_POLICY_IGNORES = (*_NOWHERE, "evaluation")
+DEPLOY_IGNORES = ("name", "policy.objective", "evaluation", *_REFINE)
+_POLICY_IGNORES = (*_NOWHERE, "evaluation", *_REFINE)
 
 
 @dataclass(frozen=True)
@@ -185,7 +195,7 @@ def standard_stages(
             ev / "evaluation_manifest.json",
             partial(_evaluate_job, evaluate, gt, gen / "generator.pt", pol, ev),
             needs=(*upstream, *policies),
-            ignores=_NOWHERE,
+            ignores=(*_NOWHERE, *_REFINE),
         ),
     ]
     if deploy is not None:
@@ -199,6 +209,45 @@ def standard_stages(
             )
         )
     return stages
+
+
+def refine_stages(
+    out: Path,
+    run_refine: Callable[[Path, Path, Path, Path], Any],
+    evaluate: Callable[[Path, Path, dict[str, Path], Path], Any],
+) -> list[Stage]:
+    """Joint refinement (``policy.refine_iterations`` > 0) of the single pass's generator
+    and policy, and the evaluation of the refined pair, in ``out/refined``; the callables
+    take the folders as ``standard_stages``' do."""
+    gt, ref = out / "ground_truth", out / "refined"
+    return [
+        Stage(
+            "refine",
+            ref / REFINE_MANIFEST,
+            partial(
+                run_refine,
+                gt,
+                out / "generator" / "generator.pt",
+                out / "policy" / "policy.pt",
+                ref,
+            ),
+            needs=("simulate", "train_generator", "train_policy"),
+            ignores=(*_NOWHERE, "evaluation"),
+        ),
+        Stage(
+            "evaluate_refined",
+            ref / "evaluation" / "evaluation_manifest.json",
+            partial(
+                evaluate,
+                gt,
+                ref / "generator.pt",
+                {"policy": ref / "policy.pt"},
+                ref / "evaluation",
+            ),
+            needs=("simulate", "refine"),
+            ignores=_NOWHERE,
+        ),
+    ]
 
 
 def _evaluate_job(
@@ -226,6 +275,13 @@ def _policy_job(
 def _road_job(fn: Callable[..., Any], sc: Any, command: str, progress: bool, *args: Any) -> Any:
     """A road's stage function ``fn(sc, *folders, command, progress)``."""
     return fn(sc, *args, command, progress)
+
+
+def _refine_job(
+    sc: Any, command: str, progress: bool, fit_prior: PriorFit | None, *args: Any
+) -> Any:
+    """The refine stage: ``args`` = (ground truth, generator, policy, output folder)."""
+    return refine(sc, *args, command, progress, fit_prior=fit_prior)
 
 
 def _deploy_job(sc: Any, command: str, progress: bool, gt: Path, pol: Path, dep: Path) -> Any:
@@ -267,6 +323,12 @@ def run_pipeline(
         truth_reads=road.truth_reads,
         deploy=partial(_deploy_job, sc, command, progress) if road.deploys(sc) else None,
     )
+    if sc.policy.refine_iterations > 0:
+        stages += refine_stages(
+            out,
+            partial(_refine_job, sc, command, progress, road.fit_prior),
+            partial(_road_job, road.evaluate, sc, command, progress),
+        )
     jobs = default_jobs() if jobs is None else jobs
     manifest = run_stages(sc, stages, out, command, progress, jobs)
     write_report(sc, out, manifest)

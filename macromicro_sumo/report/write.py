@@ -272,6 +272,57 @@ def section_leader_follower(r: Run) -> list[str]:
     return table_section(title, method_summary(summary), 3, intro)
 
 
+# What the report compares of the single pass and the joint refinement (policy rows).
+REFINED_COLUMNS = (
+    "hidden_count",
+    "K",
+    "run",
+    "mean_speed_mps",
+    "std_speed_mps",
+    "std_spacing_m",
+    "mean_speed_err_mps",
+    "spacing_std_err_pct",
+    "w1_speed_mps",
+    "w1_spacing_m",
+    "collisions",
+)
+
+
+def refinement_part(r: Run) -> list[str]:
+    """The single pass's policy beside the jointly refined one (``policy.refine_
+    iterations``; ``refined/``), by K where the evaluation has a per-K table, and their
+    leader-follower RMSEs; nothing where the run has no refinement."""
+    name = "macro_alignment_by_k.csv"
+    if r.csv(f"refined/evaluation/{name}") is None:
+        name = "macro_alignment.csv"
+    single, joint = r.csv(f"evaluation/{name}"), r.csv(f"refined/evaluation/{name}")
+    if single is None or joint is None:
+        return []
+    both = pd.concat(
+        [
+            single[single["method"] == "policy"].assign(run="single pass"),
+            joint[joint["method"] == "policy"].assign(run="joint refinement"),
+        ]
+    )
+    keys = [c for c in ("hidden_count", "K") if c in both]
+    both = both.sort_values(keys, kind="stable") if keys else both
+    iterations = r.sc.policy.refine_iterations
+    lines = table_section(
+        f"Joint refinement ({iterations} outer iterations) vs single pass",
+        both[[c for c in REFINED_COLUMNS if c in both]],
+    )
+    lf = [r.csv(f"{d}evaluation/leader_follower_summary.csv") for d in ("", "refined/")]
+    if lf[0] is not None and lf[1] is not None:
+        rows = [
+            method_summary(t[t["method"] == "policy"]).assign(run=run)
+            for t, run in zip(lf, ("single pass", "joint refinement"), strict=True)
+        ]
+        table = pd.concat(rows)[["scenario", "run", "mean_rmse_vs_idm_mps", "collisions"]]
+        intro = "Leader-follower, policy: mean RMSE against IDM over the trials [m/s]."
+        lines += [intro, "", markdown_table(table.sort_values("scenario", kind="stable")), ""]
+    return lines
+
+
 SECTION_REPORT = ReportKind(
     plots=(
         section_truth_plots,
@@ -309,6 +360,7 @@ SECTION_REPORT = ReportKind(
             shape=lambda t: t[[c for c in ("hidden_count", *RING_ALIGNMENT) if c in t]],
         ),
         paper_part,
+        refinement_part,
         Table(*MICRO),
         idm_calibrated_part,
         section_leader_follower,

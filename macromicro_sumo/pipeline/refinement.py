@@ -1,0 +1,236 @@
+"""Joint refinement: Algorithm 1's optional outer iterations (``policy.refine_iterations``,
+0 by default: the paper's case study is a single pass).
+
+Each iteration, on the train + val runs' snapshots:
+
+1. completes them with the current generator and rolls the current policy out for one
+   step on the section env core (``SectionCore``: observed vehicles replay their records,
+   hidden ones are driven by the policy);
+2. fine-tunes the generator for ``refine_epochs`` on the scenes at t + 1 (observed vehicles
+   as recorded, the hidden ones where the policy drove them) with L_gen = L_macro +
+   ``refine_lambda_rec`` L_rec, L_rec between its completion and those hidden states
+   (``generator.reconstruction``);
+3. fine-tunes the policy for ``refine_updates`` PPO updates on scenes completed by the
+   updated generator (``policy.stage.section_episodes``, ``policy.ppo.train_policy``).
+
+Writes ``generator.pt`` and ``policy.pt`` (the formats of the generator and policy stages:
+every command that takes those takes these), ``refine_log.csv`` (one row per iteration),
+``iter_<i>/`` (each fine-tune's logs) and ``refine_manifest.json`` (written last).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+
+from macromicro_sumo.checkpoints import save_torch
+from macromicro_sumo.data.section import SectionSnapshots, section_snapshots, split_runs
+from macromicro_sumo.env.rollout import rollout
+from macromicro_sumo.env.section_bank import SectionBank, with_future
+from macromicro_sumo.files import prepare_out_dir, write_csv, write_stage_manifest
+from macromicro_sumo.generator.reconstruction import mean_reconstruction, reconstruction_loss
+from macromicro_sumo.generator.section_model import SectionGeneratorNet
+from macromicro_sumo.generator.section_sampler import k_of
+from macromicro_sumo.generator.section_scene import Road
+from macromicro_sumo.generator.section_train import (
+    load_section_generator,
+    save_section_generator,
+    train_section_generator,
+)
+from macromicro_sumo.manifest import build_manifest
+from macromicro_sumo.policy.agent import Agent, policy_action
+from macromicro_sumo.policy.checkpoint import load_policy, policy_file
+from macromicro_sumo.policy.ppo import train_policy
+from macromicro_sumo.policy.stage import PriorFit, section_episodes
+from macromicro_sumo.scenario.section import SectionScenario
+from macromicro_sumo.truth.section import load_section_truth
+
+MANIFEST = "refine_manifest.json"
+FILES = ("generator.pt", "policy.pt", "refine_log.csv")
+# Seed offsets of each iteration's draws (the policy's one-step rollout, L_rec's figures).
+ROLLOUT_SEED, REC_SEED = 1000, 17
+
+
+def next_step_snapshots(
+    sc: SectionScenario,
+    snaps: SectionSnapshots,
+    bank: SectionBank,
+    make_core: Any,
+    agent: Agent,
+    seed: int,
+) -> SectionSnapshots:
+    """The scenes one step after each episode's start (L_rec's targets): observed vehicles
+    as recorded, hidden ones where the policy drove them (``bank`` completes ``snaps``, one
+    episode each, in order). Episodes the env cut short (a failed insertion) are left
+    out, and so are those with no hidden vehicle left; a hidden vehicle may only be
+    missing where it left an open section within the step. ``make_core(bank, seed)``: the
+    policy stage's env core."""
+    core = make_core(bank, seed)
+    try:
+        ro = rollout(core, policy_action(agent), 1, seed)
+    finally:
+        core.close()
+    dt = sc.simulation.step_length_s
+    hid = bank.hidden & bank.valid
+    lane = np.where(hid, ro.lane[:, 0], bank.replay_lane[:, 1])
+    arc = np.where(hid, ro.arc_m[:, 0], bank.replay_arc_m[:, 1])
+    speed = np.where(hid, ro.speed_mps[:, 0], bank.replay_speed_mps[:, 1])
+    valid = bank.valid & np.isfinite(arc) & np.isfinite(speed)
+    # A hidden vehicle gone after one step: it left the section's open end, or the episode
+    # failed (then the scene is not the policy's).
+    gone = hid & ~valid
+    if core.section.closed:
+        failed = gone.any(axis=1)
+    else:
+        reach = bank.arc0_m + bank.speed0_mps * dt + 2 * max(-sc.bounds.accel_mps2[0], 1.0) * dt
+        failed = (gone & (reach < core.section.length_m)).any(axis=1)
+    keep = np.flatnonzero(~failed & (hid & valid).any(axis=1))
+    observed = valid & ~hid
+    vehicles_est = snaps.k_est + snaps.observed.sum(axis=1)  # the detectors' count at t
+    nxt = SectionSnapshots(
+        run=bank.run,
+        time_s=bank.time_s + dt,
+        lane=np.where(valid, lane, 0).astype(np.int64),
+        arc_m=np.where(valid, arc, 0.0),
+        speed_mps=np.where(valid, speed, 0.0),
+        length_m=bank.length_m,
+        valid=valid,
+        observed=observed,
+        psi=bank.psi,
+        k_true=(valid & hid).sum(axis=1),
+        k_est=np.maximum(0, vehicles_est - observed.sum(axis=1)),
+    )
+    return nxt.take(keep)
+
+
+def _episodes(sc: SectionScenario, truth: Any, net: SectionGeneratorNet, splits: dict):
+    """The policy stage's episodes for ``net`` and the snapshots their bank completes."""
+    ep = section_episodes(sc, truth, net, splits)
+    runs = np.concatenate([splits["train"], splits["val"]])
+    snaps = section_snapshots(truth, sc, runs)
+    snaps = snaps.take(with_future(truth, snaps, sc.policy.horizon, sc.simulation.step_length_s))
+    if len(snaps) != len(ep.bank):  # the bank keeps exactly these snapshots, in order
+        raise AssertionError(f"{len(snaps)} snapshots for {len(ep.bank)} episodes")
+    return ep, snaps
+
+
+def refine(
+    sc: SectionScenario,
+    data: Path,
+    generator: Path,
+    policy: Path,
+    out: Path,
+    command: str = "",
+    progress: bool = True,
+    fit_prior: PriorFit | None = None,
+) -> dict[str, Any]:
+    """``policy.refine_iterations`` outer iterations from the single pass's ``generator``
+    and ``policy``; writes the refined generator.pt and policy.pt into ``out``. ``fit_prior``:
+    the prior's fit (``policy.prior``) as the policy stage gets it; returns the manifest."""
+    t0 = time.perf_counter()
+    cfg = sc.policy
+    truth = load_section_truth(Path(data), sc)
+    net, agent = load_section_generator(generator, sc), load_policy(policy, sc)
+    out = prepare_out_dir(out)
+    torch.set_num_threads(1)
+    splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
+    prior, pairs, extra_manifest = None, None, {}
+    if cfg.prior != "none" and fit_prior is not None:
+        runs = np.concatenate([splits["train"], splits["val"]])
+        prior, extra_manifest, pairs = fit_prior(sc, truth, runs)
+    # The fine-tune keeps each next-step scene's hidden set (the policy's vehicles): no
+    # fresh hidden sets per epoch, as with instrumented.hidden = "run".
+    fixed = dataclasses.replace(sc, instrumented=dataclasses.replace(sc.instrumented, hidden="run"))
+    road = Road.of(truth.section)
+    rec = ("L_rec", cfg.refine_lambda_rec, reconstruction_loss)
+    rows = []
+    for it in range(cfg.refine_iterations):
+        folder = prepare_out_dir(out / f"iter_{it}")
+        seed = sc.seed + ROLLOUT_SEED + it
+        # (1) the current generator's scenes, the current policy one step on.
+        ep, snaps = _episodes(sc, truth, net, splits)
+        nxt = next_step_snapshots(sc, snaps, ep.bank, ep.make_core, agent, seed)
+        is_val = np.isin(nxt.run, splits["val"])
+        train = nxt.take(np.flatnonzero(~is_val))
+        val = nxt.take(np.flatnonzero(is_val)) if is_val.any() else train
+        k_val = k_of(val, sc.generator.k_source)
+        before = mean_reconstruction(net, road, val, k_val, seed + REC_SEED)
+        # (2) the generator towards the hidden states the policy produced.
+        net, log = train_section_generator(
+            fixed,
+            truth.section,
+            train,
+            val,
+            progress,
+            epochs=cfg.refine_epochs,
+            init=net.state_dict(),
+            extra=rec,
+        )
+        write_csv(log, folder / "generator_train_log.csv")
+        after = mean_reconstruction(net, road, val, k_val, seed + REC_SEED)
+        # (3) the policy on scenes the updated generator completes.
+        ep, _ = _episodes(sc, truth, net, splits)
+        res = train_policy(
+            sc,
+            ep.bank,
+            folder,
+            objective="mix",
+            progress=progress,
+            updates=cfg.refine_updates,
+            init=agent.state_dict(),
+            make_core=ep.make_core,
+            val_runs=splits["val"],
+            make_demand=ep.make_demand,
+            prior_params=prior,
+            recorded_pairs=pairs,
+            driver_speed=ep.driver_speed,
+        )
+        agent = res["agent"]
+        last = res["log"][-1]
+        rows.append(
+            {
+                "iteration": it + 1,
+                "next_step_scenes": len(nxt),
+                "L_rec_before": before,
+                "L_rec_after": after,
+                "generator_epochs": len(log),
+                "generator_val_loss": float(log["val_loss"].min()),
+                "r_macro": last["r_macro"],
+                "val_micro_logp": last["val_micro_logp"],
+                "collisions": last["collisions"],
+                "wall_s": round(time.perf_counter() - t0, 3),
+            }
+        )
+        if progress:
+            print(
+                f"[refine] iteration {it + 1}/{cfg.refine_iterations}: L_rec {before:.4f} -> "
+                f"{after:.4f} on {len(val)} validation scenes, r_macro {last['r_macro']:.4f}, "
+                f"val micro logp {last['val_micro_logp']:.3f}"
+            )
+    save_section_generator(
+        out / "generator.pt", net, sc, {"refined_iterations": cfg.refine_iterations}
+    )
+    last_policy = out / f"iter_{cfg.refine_iterations - 1}" / policy_file("mix")
+    # The last fine-tune's checkpoint as written by PPO (none: the single pass's).
+    payload = torch.load(
+        last_policy if cfg.refine_iterations else policy, map_location="cpu", weights_only=True
+    )
+    save_torch(out / "policy.pt", payload)
+    write_csv(pd.DataFrame(rows), out / "refine_log.csv")
+    manifest = build_manifest(sc, command, stage="refine")  # type: ignore[arg-type]
+    manifest.update(
+        ground_truth=str(data),
+        generator=str(generator),
+        policy=str(policy),
+        iterations=rows,
+        timings_s={"refine": round(time.perf_counter() - t0, 3)},
+        **extra_manifest,
+    )
+    write_stage_manifest(manifest, out, MANIFEST, FILES)
+    return manifest
