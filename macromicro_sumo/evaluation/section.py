@@ -181,11 +181,6 @@ def stations_row(labels: dict[str, Any], psi: np.ndarray) -> dict[str, Any]:
 # --------------------------------------------------------------------------- the stage
 
 
-def _safety(sc) -> str:
-    """The hidden vehicles' safety layer in evaluation (``env.section.SAFETY``)."""
-    return str(getattr(sc.evaluation, "safety", DEFAULT_SAFETY))
-
-
 def held_out_scenes(
     sc, truth: SectionTruth, held: np.ndarray, horizon: int, hidden: list[int] | None = None
 ) -> tuple[SectionSnapshots, dict[int, range] | None]:
@@ -260,7 +255,7 @@ def _run(
     collisions, how often an observed vehicle left its record, how often the hidden
     vehicles' safety layer capped a command) and, given ``by_k``, the rollouts of each K's
     episodes (seeded ``seed + K``; all of them together are the first)."""
-    safety = safety or _safety(sc)
+    safety = safety or DEFAULT_SAFETY
     core = SectionCore(
         sc,
         truth.section,
@@ -386,7 +381,7 @@ def evaluate_section(
                         seed=sc.seed,
                         fcd_file=fcd / f"{name}.fcd.xml",
                         vclass=vclass,
-                        safety=_safety(sc),
+                        safety=DEFAULT_SAFETY,
                         replay_min_gap_m=recorded_min_gap(truth),
                     )
                     try:
@@ -453,7 +448,7 @@ def evaluate_section(
                 "macro_station_columns": "station_*: each scene's detector interval (psi)",
                 "micro": REFERENCE_MICRO,
             },
-            safety=_safety(sc),
+            safety=DEFAULT_SAFETY,
             idm_calibrated=idm.as_dict() | {"fit_rmse_mps2": idm_rmse},
             idm_true=oracle_note,
             k_estimate=ks,
