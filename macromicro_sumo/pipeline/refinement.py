@@ -15,7 +15,7 @@ Each iteration, on the train + val runs' snapshots:
 
 Writes ``generator.pt`` and ``policy.pt`` (the formats of the generator and policy stages:
 every command that takes those takes these), ``refine_log.csv`` (one row per iteration),
-``iter_<i>/`` (each fine-tune's logs) and ``refine_manifest.json`` (written last).
+``iter_<i>/`` (each iteration's generator.pt, policy.pt and fine-tune logs) and ``refine_manifest.json`` (written last).
 """
 
 from __future__ import annotations
@@ -173,6 +173,8 @@ def refine(
             extra=rec,
         )
         write_csv(log, folder / "generator_train_log.csv")
+        # Each iteration's pair stays (iter_<i>/policy.pt beside it): any can be evaluated.
+        save_section_generator(folder / "generator.pt", net, sc, {"refined_iterations": it + 1})
         after = mean_reconstruction(net, road, val, k_val, seed + REC_SEED)
         # (3) the policy on scenes the updated generator completes.
         ep, _ = _episodes(sc, truth, net, splits)
