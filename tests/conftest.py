@@ -181,6 +181,35 @@ def corridor_table(folder: Path, net_seed: int = 3) -> dict[str, Any]:
     }
 
 
+@pytest.fixture(scope="session")
+def netgen_corridor(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """An open multi-lane corridor of 3 edges drawn by netgen (seed 4242): 3 runs of 120 s
+    after a 120 s warm-up, 30 % instrumented, loops every 200 m at 30 s, a generator trained
+    for 3 epochs, the lookahead observation and 8-step episodes (the section envs'):
+    {"scenario", "gt", "gen"} paths (the scenario file, its ground truth, generator.pt)."""
+    folder = tmp_path_factory.mktemp("netgen_corridor")
+    cor = random_corridor(folder / "net", 4242, n_edges=3)
+    table = {
+        "name": "netgen_corridor",
+        "seed": 5,
+        "network": {"kind": "sumo", "sumocfg": str(cor.sumocfg)},
+        "section": {"edges": list(cor.section_edges)},
+        "instrumented": {"penetration": 0.3},
+        "simulation": {"warmup_s": 120.0, "duration_s": 120.0, "n_runs": 3},
+        "detectors": {"interval_s": 30.0, "auto_spacing_m": 200.0},
+        "generator": {"epochs": 3, "snapshot_every_s": 10.0},
+        "policy": {"observation": "lookahead", "horizon": 8},
+    }
+    path = folder / "corridor.toml"
+    path.write_text(dump_toml(table))
+    gt, gen = folder / "gt", folder / "gen"
+    assert main(["simulate", str(path), "--out", str(gt), "--quiet"]) == 0
+    assert (
+        main(["train-generator", str(path), "--data", str(gt), "--out", str(gen), "--quiet"]) == 0
+    )
+    return {"scenario": path, "gt": gt, "gen": gen / "generator.pt"}
+
+
 # ------------------------------------------------------------------ field data (tests/fielddata)
 # A small simulated ground truth on a random corridor (lane counts change along it), the
 # source every field-data fixture is exported from. Here, not in a conftest of its own: two

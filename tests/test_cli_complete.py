@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import SMALL_RING, assert_one_line_error, dump_toml, write_scenario
+from conftest import SMALL_RING, assert_one_line_error, write_scenario
 
 from macromicro_sumo.cli import main
 from macromicro_sumo.data.section import split_runs
@@ -19,7 +19,6 @@ from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.section import held_out_scenes
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.load import load_scenario
-from macromicro_sumo.sumo.netgen import random_corridor
 from macromicro_sumo.truth.section import load_section_truth
 
 pytestmark = pytest.mark.usefixtures("keep_torch_threads")
@@ -187,31 +186,8 @@ def test_evaluate_only_the_scenes_hiding_k(ring, tmp_path, capsys):
 # ------------------------------------------------------------------ an open multi-lane section
 
 
-@pytest.fixture(scope="module")
-def corridor(tmp_path_factory) -> dict:
-    folder = tmp_path_factory.mktemp("complete_corridor")
-    cor = random_corridor(folder / "net", 4242, n_edges=3)
-    table = {
-        "name": "complete_corridor",
-        "seed": 5,
-        "network": {"kind": "sumo", "sumocfg": str(cor.sumocfg)},
-        "section": {"edges": list(cor.section_edges)},
-        "instrumented": {"penetration": 0.3},
-        "simulation": {"warmup_s": 120.0, "duration_s": 120.0, "n_runs": 3},
-        "detectors": {"interval_s": 30.0, "auto_spacing_m": 200.0},
-        "generator": {"epochs": 1, "snapshot_every_s": 10.0},
-    }
-    path = folder / "corridor.toml"
-    path.write_text(dump_toml(table))
-    gt, gen = folder / "gt", folder / "gen"
-    assert main(["simulate", str(path), "--out", str(gt), "--quiet"]) == 0
-    assert (
-        main(["train-generator", str(path), "--data", str(gt), "--out", str(gen), "--quiet"]) == 0
-    )
-    return {"scenario": path, "gt": gt, "gen": gen / "generator.pt"}
-
-
-def test_complete_on_an_open_multilane_section(corridor, tmp_path, capsys):
+def test_complete_on_an_open_multilane_section(netgen_corridor, tmp_path, capsys):
+    corridor = netgen_corridor
     assert complete(corridor, tmp_path / "all") == 0
     comp = pd.read_csv(tmp_path / "all" / "completions.csv")
     hidden = pd.read_csv(tmp_path / "all" / "hidden_truth.csv")
@@ -241,9 +217,10 @@ def test_complete_on_an_open_multilane_section(corridor, tmp_path, capsys):
     assert_one_line_error(capsys, code, "--hidden 999", "counted by the simulation", "accepted")
 
 
-def test_evaluation_scenes_hiding_k_on_a_section(corridor):
+def test_evaluation_scenes_hiding_k_on_a_section(netgen_corridor):
     """evaluate --hidden on a section keeps the held-out scenes whose simulated hidden count
     is K and that have a recorded future, as one K's episodes (the per-K table's)."""
+    corridor = netgen_corridor
     sc = load_scenario(corridor["scenario"])
     truth = load_section_truth(corridor["gt"], sc)
     held = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)["held_out"]

@@ -6,40 +6,18 @@ from __future__ import annotations
 import gymnasium
 import numpy as np
 import pytest
-from conftest import dump_toml
 from gymnasium.utils.env_checker import check_env
 from pettingzoo.test import parallel_api_test
 
-from macromicro_sumo import cli
 from macromicro_sumo.env.section_envs import SectionHiddenEnv, SectionHiddenParallelEnv
 from macromicro_sumo.env.wrappers import ENV_ID, SECTION_ENV_ID
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.sumo.netgen import random_corridor
 
 
 @pytest.fixture(scope="module")
-def section(tmp_path_factory):
+def section(netgen_corridor):
     """A corridor from netgen with a short ground truth and a briefly trained generator."""
-    folder = tmp_path_factory.mktemp("section_envs")
-    cor = random_corridor(folder / "net", 4242, n_edges=3)
-    table = {
-        "name": "section_envs",
-        "seed": 5,
-        "network": {"kind": "sumo", "sumocfg": str(cor.sumocfg)},
-        "section": {"edges": list(cor.section_edges)},
-        "instrumented": {"penetration": 0.3},
-        "simulation": {"warmup_s": 120.0, "duration_s": 120.0, "n_runs": 3},
-        "detectors": {"interval_s": 30.0, "auto_spacing_m": 200.0},
-        "generator": {"epochs": 3, "snapshot_every_s": 10.0},
-        "policy": {"observation": "lookahead", "horizon": 8},
-    }
-    path = folder / "section.toml"
-    path.write_text(dump_toml(table))
-    data, gen = folder / "gt", folder / "gen"
-    assert cli.main(["simulate", str(path), "--out", str(data), "--quiet"]) == 0
-    args = ["train-generator", str(path), "--data", str(data), "--out", str(gen), "--quiet"]
-    assert cli.main(args) == 0
-    return path, data, gen / "generator.pt"
+    return netgen_corridor["scenario"], netgen_corridor["gt"], netgen_corridor["gen"]
 
 
 def test_gymnasium_section_env_passes_check_env_and_lives_on(section):
