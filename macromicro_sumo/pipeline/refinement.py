@@ -15,7 +15,8 @@ Each iteration, on the train + val runs' snapshots:
 
 Writes ``generator.pt`` and ``policy.pt`` (the formats of the generator and policy stages:
 every command that takes those takes these), ``refine_log.csv`` (one row per iteration),
-``iter_<i>/`` (each iteration's generator.pt, policy.pt and fine-tune logs) and ``refine_manifest.json`` (written last).
+``iter_<i>/`` (each iteration's generator.pt, policy.pt and fine-tune logs) and
+``refine_manifest.json`` (written last).
 """
 
 from __future__ import annotations
