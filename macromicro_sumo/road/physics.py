@@ -45,27 +45,6 @@ OBSERVATION_FEATURES = {
 }
 
 
-def lookahead_features(
-    arc_m: np.ndarray,
-    edge: np.ndarray,
-    offsets_m: np.ndarray,
-    lengths_m: np.ndarray,
-    limits_mps: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Speed limit of the next edge and the distance to it [m], per vehicle.
-
-    ``arc_m`` and ``edge`` are (V,); ``limits_mps`` is one ring's (n_edges,) or one row per
-    vehicle (V, n_edges). Drivers (and SUMO) slow down ahead of a lower limit: without this
-    the local limit alone cannot tell 'accelerate' from 'hold' on a ring with piecewise limits.
-    """
-    nxt = (edge + 1) % len(offsets_m)
-    if limits_mps.ndim == 1:
-        next_limit = limits_mps[nxt]
-    else:
-        next_limit = np.take_along_axis(limits_mps, nxt[:, None], axis=1)[:, 0]
-    return next_limit, offsets_m[edge] + lengths_m[edge] - arc_m
-
-
 def brake_gap(speed_mps: np.ndarray, decel_mps2: np.ndarray | float, dt_s: float) -> np.ndarray:
     """Distance [m] a vehicle covers braking at ``decel_mps2`` from ``speed_mps`` in Euler
     steps of ``dt_s`` (v' = max(0, v - b dt), x' = x + v' dt): SUMO's ``brakeGap``

@@ -187,21 +187,6 @@ def test_speed_loss_with_a_scale_charges_a_bias_of_the_scale_one():
     assert speed_loss(np.array([[12.04]]), np.array([12.0]), 0.1)[0] == pytest.approx(0.16)
 
 
-def test_lookahead_features_per_vehicle_rows_and_one_ring():
-    from macromicro_sumo.road.physics import lookahead_features
-
-    offsets, lengths = np.array([0.0, 100.0, 200.0]), np.array([100.0, 100.0, 100.0])
-    arc, edge = np.array([10.0, 150.0, 290.0]), np.array([0, 1, 2])
-    one = np.array([12.0, 13.0, 14.0])
-    nxt, dist = lookahead_features(arc, edge, offsets, lengths, one)
-    np.testing.assert_allclose(nxt, [13.0, 14.0, 12.0])
-    np.testing.assert_allclose(dist, [90.0, 50.0, 10.0])
-    rows = np.array([one, one + 1, one + 2])  # one ring's limits per vehicle (different runs)
-    nxt_rows, dist_rows = lookahead_features(arc, edge, offsets, lengths, rows)
-    assert nxt_rows.shape == (3,) and dist_rows.shape == (3,)
-    np.testing.assert_allclose(nxt_rows, [13.0, 15.0, 14.0])
-
-
 # --------------------------------------------------------------------------- safe speed
 
 
