@@ -13,18 +13,31 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from macromicro_sumo.errors import UserError
 from macromicro_sumo.fielddata.export import e1_rows, observed_rows
 from macromicro_sumo.fielddata.mapping import (
     StationMapping,
     StationPlace,
     TrajectoryMapping,
     lane_number,
-    lane_position,
     lanes_at,
 )
 from macromicro_sumo.files import write_csv, write_text
+from macromicro_sumo.road.section import Section
 
 HIGHD_EXPORT_MAPPING = TrajectoryMapping(lane_numbering="left", first_lane=2, frame_rate_hz=2.0)
+
+
+def lane_position(section: Section, lane: int, arc_m: float) -> tuple[str, float]:
+    """(SUMO lane ID, position on it) of a section position, junctions on their internal
+    lane: the exact inverse of ``Section.locate`` (``to_lane`` moves junction positions)."""
+    s = float(np.mod(arc_m, section.length_m)) if section.closed else float(arc_m)
+    e = int(section.edge_index(np.array([s]))[0])
+    on_edge = s <= section.offsets_m[e] + section.lengths_m[e] + 1e-9
+    for lane_id, (ei, idx, start, scale) in section.lanes.items():
+        if ei == e and idx == lane and lane_id.startswith(":") != on_edge:
+            return lane_id, (s - start) / scale
+    raise UserError(f"no lane {lane} at arc {arc_m:.2f} m of the section")
 
 
 def export_fcd(gt: Path, path: Path, run: int = 0) -> TrajectoryMapping:

@@ -28,10 +28,6 @@ from typing import Any
 import numpy as np
 import torch
 
-SPEED_TERMS = ("L_speed", "L_vstd")
-SPACING_TERMS = ("L_mean", "L_min", "L_max", "L_var")
-TERMS = SPEED_TERMS + SPACING_TERMS
-
 
 @dataclass(frozen=True)
 class MacroTarget:

@@ -109,18 +109,6 @@ def lane_number(
     return width - 1 - index + first
 
 
-def lane_position(section: Section, lane: int, arc_m: float) -> tuple[str, float]:
-    """(SUMO lane ID, position on it) of a section position, junctions on their internal
-    lane: the exact inverse of ``Section.locate`` (``to_lane`` moves junction positions)."""
-    s = float(np.mod(arc_m, section.length_m)) if section.closed else float(arc_m)
-    e = int(section.edge_index(np.array([s]))[0])
-    on_edge = s <= section.offsets_m[e] + section.lengths_m[e] + 1e-9
-    for lane_id, (ei, idx, start, scale) in section.lanes.items():
-        if ei == e and idx == lane and lane_id.startswith(":") != on_edge:
-            return lane_id, (s - start) / scale
-    raise UserError(f"no lane {lane} at arc {arc_m:.2f} m of the section")
-
-
 # --------------------------------------------------------------------------- clocks
 
 

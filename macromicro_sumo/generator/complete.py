@@ -53,7 +53,6 @@ MANIFEST = "complete_manifest.json"
 # A user's observed vehicles: every row one vehicle of the scene at (run, time_s); a
 # position is (lane_index, arc_m) on the section or (edge_id, lane_index, pos_m) on SUMO's lane.
 SNAPSHOT_COLUMNS = ("run", "time_s", "lane_index", "speed_mps")
-SNAPSHOT_OPTIONAL = ("arc_m", "edge_id", "pos_m", "length_m", "vehicle_id")
 COMPLETION_COLUMNS = (
     "completion",
     "scene",

@@ -55,7 +55,6 @@ from macromicro_sumo.generator.section_scene import (
 FEATURE_VERSION = 2
 N_GAP_FEATURES = 11
 N_GLOBAL_FEATURES = 10
-LOSS_TERMS = ("L_speed", "L_vstd", "L_mean", "L_min", "L_var")
 FRAC_LOG_STD = (-5.0, 2.0)  # limits of the position head's log-std
 SPEED_LOG_STD = (-6.0, 1.0)  # limits of the speed head's log-std
 

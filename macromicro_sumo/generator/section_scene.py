@@ -30,7 +30,6 @@ from macromicro_sumo.data.section import PSI_FIELDS
 from macromicro_sumo.road.section import Section
 
 END_MARGIN_M = 1e-6  # keeps a vehicle at an open downstream end strictly on the section
-LANE_PROBES = 8  # points per gap that estimate the share of it where its lane exists
 TOL_M = 1e-6  # rounding allowed in the spacing check [m]
 
 PSI_INDEX = {name: i for i, name in enumerate(PSI_FIELDS)}

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from field_export import lane_position
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.fielddata.cleaning import (
@@ -20,7 +21,6 @@ from macromicro_sumo.fielddata.mapping import (
     StationMapping,
     lane_index,
     lane_number,
-    lane_position,
     station_mapping,
     trajectory_mapping,
 )
