@@ -25,9 +25,16 @@ with its own models, in the same run.
    for ``--steps`` steps, next to SUMO driving the same N alone: microseconds per
    vehicle-step of each and of the driver's own share, and how far the curve is from flat
    (largest over smallest per-vehicle cost).
+3. With ``--budget PAIRS``: PAIRS more Bremen policy runs (each beside SUMO alone), their
+   thread CPU time per step split into SUMO's step, the state read, the driver's SUMO
+   calls, the policy, the safety layer's safe speed, the driver's own code
+   (``deploy/*.py``) and the recorder; and the ratio each run would reach with the
+   driver's own code at no cost, the ceiling of any rewrite of the driver's Python and
+   numpy (CPU time: the load moves it less than wall time).
 
     python scripts/bench_deploy.py [--repeats 5] [--steps 200] [--sizes 50 200 500 1000 2000]
-        [--road-repeats 3] [--skip-bremen] [--cpu] [--checkpoint runs/highway_bremen/policy/policy.pt]
+        [--road-repeats 3] [--skip-bremen] [--cpu] [--budget 3]
+        [--checkpoint runs/highway_bremen/policy/policy.pt]
 """
 
 from __future__ import annotations
@@ -39,12 +46,14 @@ import statistics
 import subprocess
 import tempfile
 import time
+from collections import defaultdict
 from pathlib import Path
 
 import libsumo
 import sumolib
 import torch
 
+from macromicro_sumo.deploy import safety
 from macromicro_sumo.deploy.drivers import SectionDriver, SectionSpeedDriver
 from macromicro_sumo.deploy.stage import policy_batch
 from macromicro_sumo.errors import UserError
@@ -159,6 +168,112 @@ def bremen_run(sc, tmp: Path, how: str, act, run: int = 0) -> tuple[float, int, 
         sim.close()
 
 
+# --------------------------------------------------------------------------- budget
+# The Simulation methods a speed driver calls besides the state read (libsumo behind each).
+SUMO_CALLS = (
+    "leaders",
+    "set_speeds",
+    "set_speed_mode",
+    "release_speeds",
+    "own_speeds",
+    "left_blockers",
+    "stop_lines_m",
+    "lane_end_m",
+    "vehicle_type",
+    "vtype_shape",
+    "arrived",
+    "has_traffic_lights",
+)
+
+
+class Budget:
+    """Thread CPU time [s] by part of a policy run, from timers around the parts (each
+    adds ~1 us a call, so the driver's own code reads a little high): SUMO's step, the
+    state read, and within the driver's ``before_step`` its SUMO calls, the policy, the
+    safety layer's ``road.physics.safe_speed`` and the rest, the driver's own code."""
+
+    def __init__(self) -> None:
+        self.s: dict[str, float] = defaultdict(float)
+        self.inner = 0.0  # parts timed inside the driver's before_step
+        self.depth = 0  # > 0: inside the driver's before_step
+
+    def timed(self, f, part: str, driver: bool = False):
+        """``f`` timed into ``part``; a "driver: ..." part counts only inside the driver
+        (the recorder asks SUMO too), ``driver``: the driver's before_step itself."""
+
+        def g(*args, **kwargs):
+            self.depth += driver
+            t0 = time.thread_time()
+            try:
+                return f(*args, **kwargs)
+            finally:
+                dt = time.thread_time() - t0
+                self.depth -= driver
+                if driver or not part.startswith("driver") or self.depth:
+                    self.s[part] += dt
+                if self.depth and not driver:
+                    self.inner += dt
+
+        return g
+
+
+def budget_pair(sc, tmp: Path, act) -> dict[str, float]:
+    """One Bremen run 0 of SUMO alone and of the policy deployment, thread CPU time: seconds
+    by part of the policy run (``Budget``), "SUMO alone" and the vehicle-steps of each."""
+    CLOCK[0], clock = time.thread_time, CLOCK[0]
+    b = Budget()
+    patched = [(Simulation, "step", "SUMO step"), (Simulation, "vehicle_states", "state read")]
+    patched += [(Simulation, n, "driver: SUMO calls") for n in SUMO_CALLS]
+    patched.append((safety, "safe_speed", "driver: safe speed (road.physics)"))
+    patched.append((SectionSpeedDriver, "before_step", "driver"))
+    # What to put back: the owner's own attribute, or none (before_step is SectionDriver's).
+    saved = [(owner, name, owner.__dict__.get(name)) for owner, name, _ in patched]
+    tmp.mkdir()
+    try:
+        alone, vs0, _ = bremen_run(sc, tmp, "sumo", act, run=0)
+        for owner, name, part in patched:
+            setattr(owner, name, b.timed(getattr(owner, name), part, part == "driver"))
+        timed_act = b.timed(act, "driver: policy (actor + prior)")
+        timed_act.driver_speeds = getattr(act, "driver_speeds", None)
+        total, vs, _ = bremen_run(sc, tmp, "policy", timed_act, run=0)
+    finally:
+        for owner, name, f in saved:
+            if f is None:
+                delattr(owner, name)
+            else:
+                setattr(owner, name, f)
+        CLOCK[0] = clock
+    own = b.s["driver"] - b.inner
+    parts = {k: b.s[k] for k in ("SUMO step", "state read")}
+    parts |= {k: v for k, v in b.s.items() if k.startswith("driver: ")}
+    parts["driver: own code (deploy/*.py)"] = own
+    parts["recorder and loop (the rest)"] = total - sum(parts.values())
+    return {**parts, "SUMO alone": alone, "total": total, "vs": vs, "vs0": vs0}
+
+
+def budget_run(sc, tmp: Path, act, pairs: int) -> None:
+    """Print where a policy run's CPU time goes per step, beside SUMO alone: the median of
+    ``pairs`` pairs of runs (``budget_pair``), and the ratio each pair would reach with the
+    driver's own code at no cost."""
+    got = [budget_pair(sc, tmp / f"budget_{i}", act) for i in range(pairs)]
+    steps = int(
+        round((sc.simulation.warmup_s + sc.simulation.duration_s) / sc.simulation.step_length_s)
+    )
+    print(f"\nCPU time per step of a policy run (Bremen run 0, thread CPU time, us/step, median "
+          f"of {pairs} pairs of runs; load {os.getloadavg()[0]:.1f}):")  # fmt: skip
+    for part in [k for k in got[0] if k not in ("total", "vs", "vs0")]:
+        print(f"  {part:40s} {1e6 * statistics.median(g[part] for g in got) / steps:7.0f}")
+    now = [(g["vs"] / g["total"]) / (g["vs0"] / g["SUMO alone"]) for g in got]
+    free = "driver: own code (deploy/*.py)"
+    ceiling = [(g["vs"] / (g["total"] - g[free])) / (g["vs0"] / g["SUMO alone"]) for g in got]
+    print(
+        "  policy deployment / SUMO alone per pair: "
+        + ", ".join(f"{r:.2f}x" for r in now)
+        + "; with the driver's own code at no cost: "
+        + ", ".join(f"{r:.2f}x" for r in ceiling)
+    )
+
+
 def straight_road(folder: Path) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "n.nod.xml").write_text(
@@ -268,6 +383,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--skip-bremen", action="store_true", help="the straight road's curve only")
     ap.add_argument("--cpu", action="store_true", help="CPU time of this process, not wall time")
     ap.add_argument(
+        "--budget",
+        type=int,
+        default=0,
+        metavar="PAIRS",
+        help="also PAIRS Bremen policy runs (each beside SUMO alone) timed by part",
+    )
+    ap.add_argument(
         "--checkpoint",
         type=Path,
         default=ROOT / "runs" / "highway_bremen" / "policy" / "policy.pt",
@@ -318,6 +440,9 @@ def main(argv: list[str] | None = None) -> int:
                 f"{best['oracle']:,.0f}, policy deployment {best['policy']:,.0f} veh-steps/s; "
                 f"load average (1 min) {min(loads):.1f}-{max(loads):.1f}"
             )
+
+        if args.budget:
+            budget_run(sc, tmp, act, args.budget)
 
         print(f"\nStraight {LANES}-lane road, {ROAD_M / 1000:g} km, {args.steps} steps per size, "
               f"best of {args.road_repeats}; microseconds per vehicle-step ({clock} time):")  # fmt: skip
