@@ -28,16 +28,6 @@ NETCONVERT_ARGS = [
 ]
 
 
-def ring_node_xy(radius_m: float, n_edges: int) -> list[tuple[float, float]]:
-    return [
-        (
-            radius_m * math.cos(2 * math.pi * k / n_edges),
-            radius_m * math.sin(2 * math.pi * k / n_edges),
-        )
-        for k in range(n_edges)
-    ]
-
-
 def build_ring(
     radius_m: float,
     n_edges: int,
@@ -50,9 +40,10 @@ def build_ring(
     circle) and ``<name>.add.xml`` (routes + rerouters)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     edge_len = 2 * math.pi * radius_m / n_edges
-    xy = ring_node_xy(radius_m, n_edges)
+    angles = [2 * math.pi * k / n_edges for k in range(n_edges)]
     nodes = "\n".join(
-        f'    <node id="n{k}" x="{x:.6f}" y="{y:.6f}"/>' for k, (x, y) in enumerate(xy)
+        f'    <node id="n{k}" x="{radius_m * math.cos(a):.6f}" y="{radius_m * math.sin(a):.6f}"/>'
+        for k, a in enumerate(angles)
     )
     edges = []
     for k in range(n_edges):
