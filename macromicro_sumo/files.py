@@ -83,11 +83,7 @@ def write_text(text: str, path: Path | str) -> None:
 
 
 def file_sha256(path: Path | str) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
+    return _scan(Path(path))[2]
 
 
 # --------------------------------------------------------------------------- outputs map
