@@ -18,6 +18,14 @@ factor x the driver's own limit, and the residual sees that limit too.
 
 A draw is a hash of (seed, run, vehicle): the same vehicle gets the same factor whatever
 method drives and however often a run is repeated (as ``deploy.population.in_share``).
+
+Censoring (``ratio_estimate``): a vehicle's top v / limit is its desired ratio only where it
+cruised freely long enough and was not held at its vehicle's own maxSpeed (``speed_caps``);
+elsewhere it is a lower bound (a queue follower, a truck at its governor). The ratios are a
+Kaplan-Meier estimate over both; with fewer than ``MIN_EXACT_RATIOS`` exact ones the data do
+not identify them and SUMO's default speedFactor distribution is kept (``DEFAULT_RATIOS``):
+on SUMO's congested ``game/ramp`` 23 of 249 observed vehicles cruised freely, their median
+0.83 (trucks at 27.78 / 33.33 m/s among them) where SUMO's speedFactor median is 1.0.
 """
 
 from __future__ import annotations
@@ -25,6 +33,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from scipy.stats import truncnorm
 
 from macromicro_sumo.data.section import SectionTruth, run_section, vehicle_level
 from macromicro_sumo.env.section_bank import (
@@ -33,6 +42,7 @@ from macromicro_sumo.env.section_bank import (
     recordable,
     section_observations,
 )
+from macromicro_sumo.truth.section import load_section
 
 DRIVER_SPEEDS = ("none", "drawn", "memory")
 # The observation columns that are speed limits (own lane, the look-ahead's next edge).
@@ -58,6 +68,19 @@ MIN_FREE_SAMPLES = 10
 MIN_OWN_PAIRS = 500
 # Quantile levels at which a fitted ratio distribution is kept (the agent's buffer).
 QUANTILE_LEVELS = np.linspace(0.0, 1.0, 41)
+# A vehicle whose top speed is within this share of its vehicle's maxSpeed was held there by
+# the vehicle (SUMO caps every speed at it), not by its driver: its ratio is a lower bound.
+CAP_SHARE = 0.995
+# Exact (uncensored) ratios needed to estimate the distribution (its median to +-0.02 at
+# SUMO's spread of 0.1); fewer: ``DEFAULT_RATIOS``. Measured: netgen_corridor 37,
+# game/ramp 23 (congested, the free ones the slow), Bremen and the drawn nets 97-227.
+MIN_EXACT_RATIOS = 30
+# Exact ratios this many interquartile ranges below the lower quartile count as lower
+# bounds (``ratio_estimate``; Tukey's far-out fence).
+OUTLIER_IQR = 3.0
+# SUMO's default speedFactor distribution (normc(1, 0.1), here cut at two deviations as
+# ``deploy.population.SwitchedType`` draws it) at ``QUANTILE_LEVELS``.
+DEFAULT_RATIOS = truncnorm.ppf(QUANTILE_LEVELS, -2.0, 2.0, loc=1.0, scale=0.1)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,6 +94,44 @@ class ObservedDrivers:
     obs: np.ndarray
     accel: np.ndarray
     keys: list[tuple[int, str]]
+    # Lower bounds: the top v / limit of every other observed vehicle (too few free cruising
+    # samples, or held at its vehicle's maxSpeed).
+    lower: dict[tuple[int, str], float] = dataclasses.field(default_factory=dict)
+
+
+@dataclasses.dataclass(frozen=True)
+class RatioEstimate:
+    """The drivers' desired-speed ratios: ``QUANTILE_LEVELS`` quantiles, the exact and
+    censored counts they come from, and why the data did not identify them (then
+    ``DEFAULT_RATIOS``), or "" where they did."""
+
+    quantiles: np.ndarray
+    exact: int
+    lower_bounds: int
+    fallback: str = ""
+
+    @property
+    def median(self) -> float:
+        return float(np.interp(0.5, QUANTILE_LEVELS, self.quantiles))
+
+    def record(self) -> dict[str, object]:
+        """What a policy manifest records of it."""
+        return {
+            "exact": self.exact,
+            "lower_bounds": self.lower_bounds,
+            "median": round(self.median, 4),
+            "fallback": self.fallback,
+        }
+
+
+def speed_caps(sc, truth: SectionTruth) -> dict[str, float]:
+    """Per vType of the demand its vehicles' maxSpeed [m/s] where the vType sets one (the
+    vehicle's cap: SUMO never drives it faster, whatever its driver wants); none for field
+    data (``data.source = "files"``), which has no vTypes."""
+    if sc.data.source == "files" or truth.vtypes.empty:
+        return {}
+    _, _, vtypes = load_section(sc)
+    return {k: float(t.params["maxSpeed"]) for k, t in vtypes.items() if "maxSpeed" in t.params}
 
 
 def observed_drivers(sc, truth: SectionTruth, runs: np.ndarray) -> ObservedDrivers:
@@ -80,11 +141,15 @@ def observed_drivers(sc, truth: SectionTruth, runs: np.ndarray) -> ObservedDrive
     reach it). Over its free cruising samples only (before), ramp vehicles gave 0.44-0.65:
     free on the acceleration lane, waiting to merge, faster only once merged behind a
     leader (Bremen: their largest v / limit 0.86-0.88); a deployed driver drawn at 0.45 is
-    a 20 m/s roadblock on a 44 m/s motorway."""
+    a 20 m/s roadblock on a 44 m/s motorway. A vehicle with fewer samples, or whose top
+    speed is its vehicle's maxSpeed (``speed_caps``), has its top as a lower bound."""
     dt = sc.simulation.step_length_s
+    caps = speed_caps(sc, truth)
+    vtype_of: dict[tuple[int, str], str] = {}
     traj = truth.trajectories[truth.trajectories["run"].isin(runs)]
     traj = traj[recordable(sc, traj)] if "observed" in traj else traj.iloc[:0]
-    best: dict[tuple[int, str], tuple[int, float]] = {}  # free cruising samples, max v / limit
+    # free cruising samples, max v / limit, max v [m/s]
+    best: dict[tuple[int, str], tuple[int, float, float]] = {}
     obs_rows, acc_rows, keys = [], [], []
     full = truth.trajectories[truth.trajectories["run"].isin(runs)]
     for run, g in full.groupby("run", sort=True):
@@ -117,18 +182,69 @@ def observed_drivers(sc, truth: SectionTruth, runs: np.ndarray) -> ObservedDrive
             accel = (v1 - v) / dt
             free = spacing >= v * FREE_HEADWAY_S + FREE_GAP_M
             cruise = free & (accel < CRUISE_ACCEL_MPS2)
+            types = s["vtype"].to_numpy() if "vtype" in s else np.full(len(s), "")
             for i in np.flatnonzero(o & (limit > 0)):
                 key = (int(run), str(ids[i]))
-                n, top = best.get(key, (0, 0.0))
-                best[key] = (n + int(cruise[i]), max(top, v[i] / limit[i]))
+                n, top, vmax = best.get(key, (0, 0.0, 0.0))
+                best[key] = (n + int(cruise[i]), max(top, v[i] / limit[i]), max(vmax, v[i]))
+                vtype_of.setdefault(key, str(types[i]))
             pair = o & np.isfinite(accel)
             obs_rows.append(obs[pair])
             acc_rows.append(accel[pair])
             keys += [(int(run), str(x)) for x in ids[pair]]
-    ratio = {k: top for k, (n, top) in best.items() if n >= MIN_FREE_SAMPLES}
+    ratio, lower = {}, {}
+    for k, (n, top, vmax) in best.items():
+        capped = vmax >= CAP_SHARE * caps.get(vtype_of[k], np.inf)
+        (ratio if n >= MIN_FREE_SAMPLES and not capped else lower)[k] = top
     if not obs_rows:
-        return ObservedDrivers(ratio, np.empty((0, 4)), np.empty(0), [])
-    return ObservedDrivers(ratio, np.concatenate(obs_rows), np.concatenate(acc_rows), keys)
+        return ObservedDrivers(ratio, np.empty((0, 4)), np.empty(0), [], lower)
+    obs_all, acc_all = np.concatenate(obs_rows), np.concatenate(acc_rows)
+    return ObservedDrivers(ratio, obs_all, acc_all, keys, lower)
+
+
+def censored_quantiles(exact: np.ndarray, lower: np.ndarray) -> np.ndarray:
+    """``QUANTILE_LEVELS`` quantiles of the ratios from ``exact`` values and ``lower``
+    bounds (Kaplan-Meier, redistributed to the right: each bound's weight goes equally to
+    every vehicle above it, an exact value tied with a bound counting as above; what is
+    above the largest exact value goes to it). Each exact value sits at the middle of its
+    mass, linear in between (``np.quantile``'s "hazen", to which it reduces without
+    bounds). ``exact`` must not be empty."""
+    values = np.concatenate([np.asarray(exact, float), np.asarray(lower, float)])
+    is_exact = np.arange(len(values)) < len(exact)
+    order = np.lexsort((~is_exact, values))  # ascending; at a tie, exact first
+    values, is_exact = values[order], is_exact[order]
+    weight = np.ones(len(values))
+    for i in np.flatnonzero(~is_exact):
+        if i + 1 < len(values):
+            weight[i + 1 :] += weight[i] / (len(values) - i - 1)
+        else:
+            weight[np.flatnonzero(is_exact)[-1]] += weight[i]
+        weight[i] = 0.0
+    x, w = values[is_exact], weight[is_exact]
+    cum = np.cumsum(w)
+    return np.interp(QUANTILE_LEVELS, (cum - w / 2.0) / cum[-1], x)
+
+
+def ratio_estimate(drivers: ObservedDrivers) -> RatioEstimate:
+    """The drivers' ratio distribution (``censored_quantiles``), or ``DEFAULT_RATIOS``
+    where fewer than ``MIN_EXACT_RATIOS`` vehicles give an exact ratio. A ratio more than
+    ``OUTLIER_IQR`` interquartile ranges below the lower quartile is taken as a lower bound:
+    such a driver was held back by what the free test does not see more likely than it
+    wants a fifth of the limit (a drawn net's merge: 0.21 where the others' quartiles are
+    0.91 and 1.07; drawn, 2.5% of the deployed drivers were slower than 0.8 of the median,
+    rolling roadblocks)."""
+    exact, lower = list(drivers.ratio.values()), list(drivers.lower.values())
+    if len(exact) >= MIN_EXACT_RATIOS:
+        q1, q3 = np.quantile(exact, [0.25, 0.75])
+        floor = q1 - OUTLIER_IQR * (q3 - q1)
+        lower += [r for r in exact if r < floor]
+        exact = [r for r in exact if r >= floor]
+    if len(exact) < MIN_EXACT_RATIOS:
+        why = f"{len(exact)} observed vehicles cruised freely (< {MIN_EXACT_RATIOS})"
+        return RatioEstimate(DEFAULT_RATIOS.copy(), len(exact), len(lower), why)
+    return RatioEstimate(
+        censored_quantiles(np.array(exact), np.array(lower)), len(exact), len(lower)
+    )
 
 
 def free_speed_ratios(sc, truth: SectionTruth, runs: np.ndarray) -> np.ndarray:
@@ -139,19 +255,43 @@ def free_speed_ratios(sc, truth: SectionTruth, runs: np.ndarray) -> np.ndarray:
     return np.sort(np.asarray(ratios, dtype=float))
 
 
-def own_speed_pairs(drivers: ObservedDrivers) -> tuple[np.ndarray, np.ndarray]:
-    """The pairs of the vehicles with a ratio, their limit columns times their own factor
-    (ratio over the median ratio): each pair as its driver saw the road, so a model fitted
-    to them has one desired speed, the median driver's, as a ``"drawn"`` deployment's
-    drivers do. Why (``policy.prior = "krauss"``): fitted to every pair, drivers cruising
-    at their own desired speeds, which the observation does not carry, looked like
-    drivers that barely accelerate (Bremen: free term's relaxation 10 s, its bound)."""
+def driver_ratios(sc, truth: SectionTruth, runs: np.ndarray) -> RatioEstimate:
+    """The observed drivers' ratio distribution over ``runs`` (``ratio_estimate``): the
+    quantiles ``policy.driver_speed`` draws from or clips to."""
+    return ratio_estimate(observed_drivers(sc, truth, runs))
+
+
+def own_speed_pairs(
+    drivers: ObservedDrivers, median: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs of the vehicles with an exact ratio, their limit columns times their own
+    factor (ratio over ``median``, the ratio estimate's; their own median if None): each
+    pair as its driver saw the road, so a model fitted to them has one desired speed, the
+    median driver's, as a ``"drawn"`` deployment's drivers do. Why (``policy.prior =
+    "krauss"``): fitted to every pair, drivers cruising at their own desired speeds, which
+    the observation does not carry, looked like drivers that barely accelerate (Bremen:
+    free term's relaxation 10 s, its bound)."""
     if not drivers.ratio:
         return drivers.obs[:0], drivers.accel[:0]
-    median = float(np.median(list(drivers.ratio.values())))
+    if median is None:
+        median = float(np.median(list(drivers.ratio.values())))
     factor = np.array([drivers.ratio.get(k, np.nan) / median for k in drivers.keys])
     keep = np.isfinite(factor)
     return scale_limits(drivers.obs[keep].copy(), factor[keep]), drivers.accel[keep]
+
+
+def krauss_pairs(
+    sc, truth: SectionTruth, runs: np.ndarray, obs: np.ndarray, accel: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, RatioEstimate]:
+    """``prior_pairs`` of the Krauss form and the ratio estimate they are scaled by: where it
+    fell back to ``DEFAULT_RATIOS``, the prior's speed factor has no data either
+    (``evaluation.krauss_fit.fit_krauss``'s ``fixed``)."""
+    drivers = observed_drivers(sc, truth, runs)
+    estimate = ratio_estimate(drivers)
+    own_obs, own_accel = own_speed_pairs(drivers, estimate.median)
+    if len(own_accel) < MIN_OWN_PAIRS:
+        return obs, accel, estimate
+    return own_obs, own_accel, estimate
 
 
 def prior_pairs(
@@ -162,10 +302,7 @@ def prior_pairs(
     observed pair, ``evaluation.micro_data.micro_pairs``)."""
     if sc.policy.prior != "krauss":
         return obs, accel
-    own_obs, own_accel = own_speed_pairs(observed_drivers(sc, truth, runs))
-    if len(own_accel) < MIN_OWN_PAIRS:
-        return obs, accel
-    return own_obs, own_accel
+    return krauss_pairs(sc, truth, runs, obs, accel)[:2]
 
 
 def ratio_quantiles(ratios: np.ndarray) -> np.ndarray:

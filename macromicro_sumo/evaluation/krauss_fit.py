@@ -139,7 +139,7 @@ MAX_BEYOND_SHARE = 0.5
 # share of its value is not identified by the pairs.
 MAX_RELATIVE_SE = 0.25
 _NAMES = ("speed_factor", "accel_mps2", "decel_mps2", "tau_s", "min_gap_m", "relax_s")
-_ACCEL, _MIN_GAP, _RELAX = 1, 4, 5
+_SPEED, _ACCEL, _MIN_GAP, _RELAX = 0, 1, 4, 5
 
 
 def sumo_defaults(vclass: str = "passenger") -> KraussParams:
@@ -215,6 +215,7 @@ def fit_krauss(
     veh_length_m: float,
     dt_s: float,
     defaults: KraussParams | None = None,
+    fixed: dict[str, str] | None = None,
 ) -> KraussFit:
     """Robust least-squares fit (soft L1) of (speed_factor, a, b, tau, min_gap, relax) to
     observed pairs, the best of ``START_ACCEL_MPS2`` x ``START_RELAX_S`` starts, with the
@@ -233,15 +234,22 @@ def fit_krauss(
     0.82 to 0.68, slowing every free car as a = 0.36 had; on netgen_corridor's, with a and
     relax_s at theirs, b fell from 4.57 to 0.55 m/s^2. In the Krauss form each pair's
     residual depends only on the branch of the min() that binds, so the interaction
-    parameters (b, tau, min_gap) are fitted on pairs the free term's do not decide."""
+    parameters (b, tau, min_gap) are fitted on pairs the free term's do not decide.
+
+    ``fixed`` (name: why) are held at ``defaults`` throughout, the others fitted beside them:
+    the speed factor where the drivers' desired-speed ratios fell back to SUMO's
+    (``env.driver_speed.ratio_estimate``; on game/ramp fitted 0.82 where SUMO's cars have 1.0;
+    where a or the speed factor falls back, relax_s is refitted alone)."""
     defaults = defaults or sumo_defaults()
     lower = _LOWER.copy()
     lower[5] = dt_s
     default_x = np.clip(np.array([getattr(defaults, n) for n in _NAMES], float), lower, _UPPER)
-    x, rmse, se = krauss_least_squares(obs, accel, veh_length_m, dt_s)
+    pinned = {_NAMES.index(n): float(default_x[_NAMES.index(n)]) for n in (fixed or {})}
+    x, rmse, se = krauss_least_squares(obs, accel, veh_length_m, dt_s, pinned)
     free = free_accel_mask(obs, accel, float(x[0]))
     free_pairs = int(free.sum())
-    fallback = _unidentified(x, se, lower)
+    fallback = {i: why for i, why in _unidentified(x, se, lower).items() if i not in pinned}
+    fallback.update({_NAMES.index(n): why for n, why in (fixed or {}).items()})
     fitted_a = float(x[_ACCEL])
     if free_pairs < MIN_FREE_ACCEL_PAIRS:
         fallback[_ACCEL] = (
@@ -256,12 +264,13 @@ def fit_krauss(
     x = x.copy()
     x[list(fallback)] = default_x[list(fallback)]
     refitted = {}
-    if _ACCEL in fallback:
+    if _ACCEL in fallback or (_SPEED in fallback and _SPEED not in pinned):
         kept = x[_RELAX]
         x[_RELAX] = _refit_relax(obs, accel, x, veh_length_m, dt_s, lower[_RELAX])
+        which = "a" if _ACCEL in fallback else "the speed factor"
         refitted[_RELAX] = (
-            f"a fell back: refitted alone with a = {x[_ACCEL]:.3g} m/s^2 "
-            f"(fitted {kept:.3g} s next to a = {fitted_a:.3g})"
+            f"{which} fell back: refitted alone with a = {x[_ACCEL]:.3g} m/s^2, speed factor "
+            f"{x[_SPEED]:.3g} (fitted {kept:.3g} s next to a = {fitted_a:.3g})"
         )
     if _ACCEL in fallback and free_pairs >= MIN_FREE_ACCEL_PAIRS:
         share = _beyond(obs[free], accel[free], x, veh_length_m, dt_s)
@@ -326,12 +335,20 @@ def _unidentified(x: np.ndarray, se: np.ndarray, lower: np.ndarray) -> dict[int,
 
 
 def krauss_least_squares(
-    obs: np.ndarray, accel: np.ndarray, veh_length_m: float, dt_s: float
+    obs: np.ndarray,
+    accel: np.ndarray,
+    veh_length_m: float,
+    dt_s: float,
+    pinned: dict[int, float] | None = None,
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """The unguarded fit, the best of the multi-start fits: (parameters in ``KraussParams``'
-    order, RMSE [m/s^2], their standard errors)."""
+    order, RMSE [m/s^2], their standard errors); ``pinned`` (index: value) held at their
+    values (bounds a hair apart: least_squares needs lower < upper)."""
     lower = _LOWER.copy()
     lower[5] = dt_s
+    upper = _UPPER.copy()
+    for i, value in (pinned or {}).items():
+        lower[i], upper[i] = value - 1e-9, value + 1e-9
 
     def resid(x: np.ndarray) -> np.ndarray:
         return krauss_policy_accel(obs, KraussParams(*x), veh_length_m, dt_s) - accel
@@ -339,11 +356,11 @@ def krauss_least_squares(
     best = None
     for a0 in START_ACCEL_MPS2:
         for t0 in START_RELAX_S:
-            x0 = np.clip(np.array([1.0, a0, 4.0, 1.0, 2.0, t0]), lower, _UPPER)
+            x0 = np.clip(np.array([1.0, a0, 4.0, 1.0, 2.0, t0]), lower, upper)
             fit = least_squares(
                 resid,
                 x0,
-                bounds=(lower, _UPPER),
+                bounds=(lower, upper),
                 x_scale=_X_SCALE,
                 loss="soft_l1",
                 f_scale=ROBUST_SCALE_MPS2,
@@ -351,15 +368,19 @@ def krauss_least_squares(
             if best is None or fit.cost < best.cost:
                 best = fit
     assert best is not None
-    return best.x, float(np.sqrt(np.mean(best.fun**2))), _standard_errors(best, len(accel))
+    # A pinned parameter is no unknown: its column would inflate the others' errors.
+    free = np.array([i not in (pinned or {}) for i in range(len(_NAMES))])
+    se = np.zeros(len(_NAMES))
+    se[free] = _standard_errors(best.jac[:, free], best.cost, len(accel))
+    return best.x, float(np.sqrt(np.mean(best.fun**2))), se
 
 
-def _standard_errors(fit, pairs: int) -> np.ndarray:
+def _standard_errors(jac: np.ndarray, cost: float, pairs: int) -> np.ndarray:
     """Gauss-Newton standard errors at the solution (``jac`` is the robust loss's weighted
     Jacobian); infinite for a parameter in a direction no pair informs (a zero eigenvalue
     of J'J: a pseudo-inverse would call it exact)."""
-    w, vec = np.linalg.eigh(fit.jac.T @ fit.jac)
+    w, vec = np.linalg.eigh(jac.T @ jac)
     flat = w <= max(float(w.max()), 0.0) * 1e-12
-    var = (vec[:, ~flat] ** 2 / w[~flat]).sum(axis=1) * (2.0 * fit.cost / max(pairs - len(w), 1))
+    var = (vec[:, ~flat] ** 2 / w[~flat]).sum(axis=1) * (2.0 * cost / max(pairs - len(w), 1))
     var[(vec[:, flat] ** 2 > 1e-6).any(axis=1)] = np.inf
     return np.sqrt(var)

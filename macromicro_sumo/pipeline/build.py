@@ -27,10 +27,14 @@ import numpy as np
 
 from macromicro_sumo.deploy.stage import MANIFEST as DEPLOY_MANIFEST
 from macromicro_sumo.deploy.stage import deploy
-from macromicro_sumo.env.driver_speed import prior_pairs
+from macromicro_sumo.env.driver_speed import krauss_pairs
 from macromicro_sumo.env.section_bank import typical_length
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.evaluation.idm_fit import fit_policy_prior
+from macromicro_sumo.evaluation.idm_fit import (
+    MIN_PRIOR_PAIRS,
+    fit_policy_prior,
+    no_lower_limit_ahead,
+)
 from macromicro_sumo.evaluation.krauss_fit import fit_krauss, network_defaults
 from macromicro_sumo.evaluation.methods import LEARNED, checkpoint_name
 from macromicro_sumo.evaluation.section import evaluate_section, micro_pairs
@@ -349,16 +353,21 @@ def fit_residual_prior(
     length = typical_length(truth)
     obs, acc = micro_pairs(sc, truth, runs)
     kind = sc.policy.prior
-    fit_obs, fit_acc = prior_pairs(sc, truth, runs, obs, acc)
-    dt, record = sc.simulation.step_length_s, {}
+    dt, record, pairs = sc.simulation.step_length_s, {}, len(acc)
     if kind == "krauss":  # guarded: the parameters the pairs do not identify fall back
-        fit = fit_krauss(fit_obs, fit_acc, length, dt, network_defaults(truth.vtypes))
+        fit_obs, fit_acc, ratios = krauss_pairs(sc, truth, runs, obs, acc)
+        # No drivers' ratios identified: no desired speed either (both SUMO's defaults).
+        fixed = {"speed_factor": ratios.fallback} if ratios.fallback else None
+        fit = fit_krauss(fit_obs, fit_acc, length, dt, network_defaults(truth.vtypes), fixed)
         prior, rmse, record = fit.prior_params(length, dt), fit.rmse_mps2, fit.record()
+        record["driver_ratios"] = ratios.record()
+        pairs = len(fit_acc)
     else:
-        prior, rmse = fit_policy_prior(kind, fit_obs, fit_acc, length, dt)
-    extra = {
-        "prior": {"kind": kind, **prior, "fit_rmse_mps2": rmse, "pairs": len(fit_acc), **record}
-    }
+        prior, rmse = fit_policy_prior(kind, obs, acc, length, dt)
+        if kind == "idm":  # the pairs its fit took (fit_policy_prior's rule)
+            keep = int(no_lower_limit_ahead(obs).sum())
+            pairs = keep if keep >= MIN_PRIOR_PAIRS else pairs
+    extra = {"prior": {"kind": kind, **prior, "fit_rmse_mps2": rmse, "pairs": pairs, **record}}
     return prior, extra, (obs, acc)
 
 

@@ -18,7 +18,7 @@ import torch
 
 from macromicro_sumo.data.section import section_snapshots, split_runs
 from macromicro_sumo.env.demand import DemandCore
-from macromicro_sumo.env.driver_speed import drivers_bank, free_speed_ratios, ratio_quantiles
+from macromicro_sumo.env.driver_speed import driver_ratios, drivers_bank
 from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import (
     build_section_bank,
@@ -78,7 +78,7 @@ def section_episodes(sc: SectionScenario, truth, net, splits: dict[str, np.ndarr
     bank = build_section_bank(sc, truth, snaps, complete, sc.policy.horizon, sc.seed)
     quantiles = None
     if sc.policy.driver_speed != "none":  # each hidden driver its own desired speed
-        quantiles = ratio_quantiles(free_speed_ratios(sc, truth, runs))
+        quantiles = driver_ratios(sc, truth, runs).quantiles  # censoring-aware
         bank = drivers_bank(sc, truth.section, bank, quantiles, sc.seed)
     net_file = scenario_inputs(sc).net_file
     vclass = typical_vclass(truth)

@@ -82,7 +82,11 @@ def test_a_congested_merge_takes_sumos_free_acceleration_and_says_so(ramp_truth)
     prior, extra, (obs, acc) = fit_residual_prior(sc, truth, truth.runs)
     record = extra["prior"]
     assert record["free_accel_pairs"] < MIN_FREE_ACCEL_PAIRS
-    assert list(record["fallback"]) == ["accel_mps2"]
+    # Few cars cruise freely in the queue: their desired speeds are SUMO's too (the ratios'
+    # fallback, env.driver_speed.ratio_estimate), the speed factor held at 1 in the fit.
+    assert list(record["fallback"]) == ["speed_factor", "accel_mps2"]
+    assert record["fallback"]["speed_factor"] == record["driver_ratios"]["fallback"] != ""
+    assert prior["speed_factor"] == 1.0
     assert "free acceleration" in record["fallback"]["accel_mps2"]
     assert "accel_mps2" not in record["fitted"] and "decel_mps2" in record["fitted"]
     assert record["defaults"]["accel_mps2"] == SUMO_PASSENGER_ACCEL_MPS2  # vClass passenger
@@ -90,7 +94,7 @@ def test_a_congested_merge_takes_sumos_free_acceleration_and_says_so(ramp_truth)
     # Unguarded, a is below what SUMO's Krauss does on a free road even with its dawdling
     # (a (1 - sigma U), 0.75 a on average at sigma 0.5).
     fit_obs, fit_acc = prior_pairs(sc, truth, truth.runs, obs, acc)
-    x, _, _ = krauss_least_squares(fit_obs, fit_acc, record["veh_length_m"], DT_S)
+    x, _, _ = krauss_least_squares(fit_obs, fit_acc, record["veh_length_m"], DT_S, {0: 1.0})
     assert x[1] < 0.75 * SUMO_PASSENGER_ACCEL_MPS2
     unguarded = KraussParams(*x).as_dict()
     assert list(record["refitted"]) == ["relax_s"]  # fitted next to the rejected a
