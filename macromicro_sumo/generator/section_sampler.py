@@ -120,31 +120,6 @@ def _wrapped(road: Road, x: float) -> float:
     return float(np.mod(x, road.length_m)) if road.closed else x
 
 
-@torch.no_grad()
-def complete_section(
-    net: SectionGeneratorNet,
-    section: Section,
-    snaps: SectionSnapshots,
-    k: np.ndarray,
-    t_max: int,
-    seed: int,
-    brake_mps2: float | None = None,
-    reaction_s: float = 0.0,
-) -> SectionCompletion:
-    """Algorithm 3 on a section, batched over snapshots: ``k[s]`` hidden vehicles for
-    snapshot s, each from up to ``t_max`` trials, projection as the counted fallback.
-
-    With ``brake_mps2`` (the scenario's braking bound), generated speeds are then made
-    kinematically consistent with their lane neighbours (``safe_speeds``, with a reaction
-    time of ``reaction_s``)."""
-    kin = None if brake_mps2 is None else (float(brake_mps2), float(reaction_s))
-    with one_thread():
-        comp = _complete(net, section, snaps, k, t_max, seed, kin)
-    if brake_mps2 is not None:
-        safe_speeds(comp, section, snaps.psi[:, PSI_INDEX["spacing_min_m"]], brake_mps2, reaction_s)
-    return comp
-
-
 def generator_completion(net: SectionGeneratorNet, section: Section, sc, k_source: str, seed: int):
     """``completion(snaps)`` for ``section_env.build_section_bank``: Algorithm 3 with the
     hidden count ``k_source`` asks for (each snapshot carries both), then safe speeds with
@@ -294,15 +269,25 @@ def kinematic_speeds(
     return torch.maximum(lo, psi.v_min[:, None]), torch.minimum(hi, psi.v_max[:, None])
 
 
-def _complete(
+@torch.no_grad()
+@one_thread()
+def complete_section(
     net: SectionGeneratorNet,
     section: Section,
     snaps: SectionSnapshots,
     k: np.ndarray,
     t_max: int,
     seed: int,
-    kin: tuple[float, float] | None = None,
+    brake_mps2: float | None = None,
+    reaction_s: float = 0.0,
 ) -> SectionCompletion:
+    """Algorithm 3 on a section, batched over snapshots: ``k[s]`` hidden vehicles for
+    snapshot s, each from up to ``t_max`` trials, projection as the counted fallback.
+
+    With ``brake_mps2`` (the scenario's braking bound), generated speeds are then made
+    kinematically consistent with their lane neighbours (``safe_speeds``, with a reaction
+    time of ``reaction_s``)."""
+    kin = None if brake_mps2 is None else (float(brake_mps2), float(reaction_s))
     t0 = time.perf_counter()
     road = Road.of(section)
     gen = torch.Generator().manual_seed(int(seed))
@@ -370,7 +355,10 @@ def _complete(
             projections[idx_np[failed]] += 1
         v = torch.minimum(torch.maximum(v, sub.v_min), sub.v_max)
         scene.place(step, idx, lane, arc, v)
-    return _unpack(scene, snaps, trials, projections, time.perf_counter() - t0)
+    comp = _unpack(scene, snaps, trials, projections, time.perf_counter() - t0)
+    if brake_mps2 is not None:
+        safe_speeds(comp, section, snaps.psi[:, PSI_INDEX["spacing_min_m"]], brake_mps2, reaction_s)
+    return comp
 
 
 def _unpack(
