@@ -166,20 +166,21 @@ def read_detectors(
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """(per-interval table, per-vehicle passages) of one run's detector output."""
     where = {p.spec.id: p for p in placed}
+
+    def row(r: dict[str, str], kind: str) -> dict[str, object]:
+        p = where[r["id"]]
+        at = {"lane_index": p.lane_index, "arc_m": p.arc_m}
+        return {"run": run, "detector_id": r["id"], "kind": kind, "source": p.source, **at} | {
+            "begin_s": float(r["begin"]),
+            "end_s": float(r["end"]),
+        }
+
     rows = []
     for r in records(run_dir / E1_FILE, "interval", required=False):
-        p = where[r["id"]]
         flow, speed = float(r["flow"]), speed_or_nan(r.get("harmonicMeanSpeed"))
         rows.append(
-            {
-                "run": run,
-                "detector_id": r["id"],
-                "kind": "e1",
-                "source": p.source,
-                "lane_index": p.lane_index,
-                "arc_m": p.arc_m,
-                "begin_s": float(r["begin"]),
-                "end_s": float(r["end"]),
+            row(r, "e1")
+            | {
                 "n_veh": int(r["nVehContrib"]),
                 "flow_vph": flow,
                 "speed_mps": speed,
@@ -190,23 +191,16 @@ def read_detectors(
             }
         )
     for r in records(run_dir / E2_FILE, "interval", required=False):
-        p = where[r["id"]]
+        length = where[r["id"]].spec.length_m
         rows.append(
-            {
-                "run": run,
-                "detector_id": r["id"],
-                "kind": "e2",
-                "source": p.source,
-                "lane_index": p.lane_index,
-                "arc_m": p.arc_m,
-                "begin_s": float(r["begin"]),
-                "end_s": float(r["end"]),
+            row(r, "e2")
+            | {
                 "n_veh": int(r["nVehSeen"]),
                 "flow_vph": np.nan,
                 "speed_mps": speed_or_nan(r.get("meanSpeed")),
                 "occupancy_pct": float(r["meanOccupancy"]),
-                "density_vpkm": float(r["meanVehicleNumber"]) / p.spec.length_m * 1000.0,
-                "length_m": p.spec.length_m,
+                "density_vpkm": float(r["meanVehicleNumber"]) / length * 1000.0,
+                "length_m": length,
                 "sampled_seconds_s": float(r["sampledSeconds"]),
             }
         )
