@@ -12,9 +12,8 @@ import contextlib
 import dataclasses
 import io
 import math
+import multiprocessing
 import os
-import signal
-import sys
 import tarfile
 import tempfile
 from collections.abc import Callable, Sequence
@@ -26,29 +25,12 @@ from typing import Any
 from macromicro_sumo.batch.sweep import AnyScenario
 from macromicro_sumo.batch.tasks import Outcome, Task, one_line, run_task
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.pipeline.parallel import stop_pool, unimportable_main, worker_setup
 from macromicro_sumo.sumo.inputs import input_files
 
 RAY_INSTALL = "pip install 'macromicro-sumo[ray]'"
 
 Done = Callable[[Task, Outcome], None]
-
-
-def _worker_init() -> None:
-    # Ctrl-C goes to the whole process group: the driver alone handles it and stops the
-    # workers, so that no worker prints a traceback.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    # One thread per worker for torch/BLAS (as Ray gives a one-CPU task): workers do not
-    # oversubscribe the CPUs, and results do not depend on the worker count.
-    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-        os.environ.setdefault(var, "1")
-    if sys.platform.startswith("linux"):
-        # A worker must not outlive a driver killed with SIGKILL (it would keep writing).
-        with contextlib.suppress(Exception):
-            import ctypes
-
-            ctypes.CDLL(None).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-            if os.getppid() == 1:
-                os._exit(1)
 
 
 def _failed(task: Task, error: str) -> Outcome:
@@ -64,18 +46,15 @@ class LocalBackend:
     """
 
     def __init__(self, workers: int) -> None:
-        import multiprocessing
-
         self.workers = workers
         self._ctx = multiprocessing.get_context("spawn")
 
     def _pool(self) -> ProcessPoolExecutor:
-        return ProcessPoolExecutor(1, mp_context=self._ctx, initializer=_worker_init)
+        return ProcessPoolExecutor(1, mp_context=self._ctx, initializer=worker_setup)
 
     def run(self, tasks: Sequence[Task], done: Done) -> None:
-        main_file = getattr(sys.modules["__main__"], "__file__", None)
-        if tasks and main_file and not Path(main_file).is_file():
-            # Spawned workers re-import the main script; every one would die at start.
+        main_file = unimportable_main()
+        if tasks and main_file:
             raise UserError(
                 f"local workers cannot start from a script read from {main_file}; "
                 "run the batch from a file or with the macromicro command"
@@ -104,30 +83,15 @@ class LocalBackend:
                     except Exception as exc:
                         outcome = _failed(task, one_line(exc))
                     if not outcome.ok:
-                        _stop(pools[slot])
+                        stop_pool(pools[slot])
                         pools[slot] = self._pool()
                     done(task, outcome)
         except BaseException:
             for pool in pools:
-                _stop(pool)
+                stop_pool(pool)
             raise
         for pool in pools:
             pool.shutdown(wait=True)
-
-
-def _stop(pool: ProcessPoolExecutor) -> None:
-    """Stop a pool now, killing a worker that is still running a variant."""
-    if hasattr(pool, "terminate_workers"):  # Python >= 3.14
-        pool.terminate_workers()
-        return
-    procs = list((getattr(pool, "_processes", None) or {}).values())
-    for p in procs:
-        with contextlib.suppress(Exception):
-            p.terminate()
-    pool.shutdown(wait=False, cancel_futures=True)
-    for p in procs:
-        with contextlib.suppress(Exception):
-            p.join(10)
 
 
 def _pack(folder: Path) -> bytes:

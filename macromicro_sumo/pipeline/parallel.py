@@ -36,16 +36,50 @@ def default_jobs() -> int:
     """Processes ``macromicro run`` uses: up to ``MAX_JOBS`` where the CPUs allow; one
     inside a worker of its own (a batch variant has its slot: no nesting) and where the
     main script is no file a worker could import (read from standard input)."""
-    if multiprocessing.parent_process() is not None:
-        return 1
-    main_file = getattr(sys.modules["__main__"], "__file__", None)
-    if main_file and not Path(main_file).is_file():  # a spawned worker re-imports it: would die
+    if multiprocessing.parent_process() is not None or unimportable_main():
         return 1
     try:
         cpus = len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
         cpus = os.cpu_count() or 1
     return max(1, min(MAX_JOBS, cpus))
+
+
+def unimportable_main() -> str | None:
+    """The main script where a spawned worker, which re-imports it, could not (read from
+    standard input): every worker would die at start; None where it can."""
+    main_file = getattr(sys.modules["__main__"], "__file__", None)
+    return main_file if main_file and not Path(main_file).is_file() else None
+
+
+def worker_setup() -> None:
+    """A spawned worker's start. Ctrl-C reaches the whole process group: the driver alone
+    handles it and stops the workers, so none prints a traceback. One torch/BLAS thread:
+    workers do not oversubscribe the CPUs, and results do not depend on their count. On
+    Linux a worker dies with a driver killed by SIGKILL (it would keep writing)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(Exception):
+            ctypes.CDLL(None).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+            if os.getppid() == 1:
+                os._exit(1)
+
+
+def stop_pool(pool: ProcessPoolExecutor) -> None:
+    """Stop a pool now, killing a worker that is still running a job."""
+    if hasattr(pool, "terminate_workers"):  # Python >= 3.14
+        pool.terminate_workers()
+        return
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    for p in procs:
+        with contextlib.suppress(Exception):
+            p.terminate()
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in procs:
+        with contextlib.suppress(Exception):
+            p.join(10)
 
 
 def can_ship(fn: Callable[[], Any]) -> bool:
@@ -80,19 +114,11 @@ class _LineStream:
 
 
 def _worker_init(held: Sequence[str]) -> None:
-    # Ctrl-C reaches the whole process group: the driver alone handles it and stops us.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-        os.environ.setdefault(var, "1")
+    worker_setup()
     # The driver holds these folders' locks for the whole run: write into them, as its
     # own stages do, without locking them again.
     locked_by_caller(held)
     sys.stderr = _LineStream(sys.stderr)
-    if sys.platform.startswith("linux"):  # a worker must not outlive a killed driver
-        with contextlib.suppress(Exception):
-            ctypes.CDLL(None).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-            if os.getppid() == 1:
-                os._exit(1)
 
 
 def _call(fn: Callable[[], Any]) -> tuple[float, float]:
@@ -121,10 +147,7 @@ def run_side_by_side(
         }
         wait(futures.values())
     except BaseException:  # Ctrl-C: stop the workers now
-        for proc in list((getattr(pool, "_processes", None) or {}).values()):
-            with contextlib.suppress(Exception):
-                proc.terminate()
-        pool.shutdown(wait=False, cancel_futures=True)
+        stop_pool(pool)
         raise
     pool.shutdown(wait=True)
     return {name: fut.result() for name, fut in futures.items()}
