@@ -21,7 +21,6 @@ import glob
 import hashlib
 import itertools
 import re
-import types
 import typing
 from collections.abc import Collection, Iterator, Sequence
 from dataclasses import dataclass
@@ -29,22 +28,13 @@ from pathlib import Path
 from typing import Any
 
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.scenario.fields import table_class
 from macromicro_sumo.scenario.load import load_scenario, read_scenario_toml
 from macromicro_sumo.scenario.ring_as_section import RING_FILE_KEYS, RING_TOP
 from macromicro_sumo.scenario.section import SectionScenario
 
 AnyScenario = SectionScenario
 MAX_NAME = 120  # characters; longer variant names are shortened with a hash
-
-
-def _table_type(hint: Any) -> type | None:
-    """The dataclass a field's hint holds: itself, or ``X`` of an optional table ``X | None``."""
-    if dataclasses.is_dataclass(hint):
-        return hint
-    args = [a for a in typing.get_args(hint) if a is not type(None)]
-    if typing.get_origin(hint) in (typing.Union, types.UnionType) and len(args) == 1:
-        return args[0] if dataclasses.is_dataclass(args[0]) else None
-    return None
 
 
 def _leaf_keys(cls: type = SectionScenario, prefix: str = "") -> dict[str, Any]:
@@ -56,7 +46,7 @@ def _leaf_keys(cls: type = SectionScenario, prefix: str = "") -> dict[str, Any]:
         if f.name == "source":
             continue
         key = f"{prefix}{f.name}"
-        if (table := _table_type(hints[f.name])) is not None:
+        if (table := table_class(hints[f.name])) is not None:
             out.update(_leaf_keys(table, key + "."))
         elif key != "network.kind":  # the kind picks the tables: one file per kind
             out[key] = hints[f.name]
@@ -85,7 +75,7 @@ OPTIONAL_TABLES: dict[str, set[str]] = {
         f.name
         for f in dataclasses.fields(SectionScenario)
         if not dataclasses.is_dataclass(typing.get_type_hints(SectionScenario)[f.name])
-        and _table_type(typing.get_type_hints(SectionScenario)[f.name]) is not None
+        and table_class(typing.get_type_hints(SectionScenario)[f.name]) is not None
     },
 }
 

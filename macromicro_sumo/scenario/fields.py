@@ -120,7 +120,7 @@ def _check_scalar(value: Any, kind: type, key: str, meta: dict[str, Any], file: 
     return value
 
 
-def _table_class(hint: Any) -> Any:
+def table_class(hint: Any) -> Any:
     """The dataclass of a table field: ``Table``, or ``Table | None`` (an optional table,
     absent unless the file has it); None for any other field."""
     if dataclasses.is_dataclass(hint):
@@ -167,9 +167,9 @@ def build_table(cls: type, table: Any, prefix: str, file: str) -> Any:
             continue
         hint = hints[name]
         value = table[name]
-        if _table_class(hint) is not None:
+        if table_class(hint) is not None:
             # None: an optional table stored absent (a scenario rebuilt from its dict).
-            sub = _table_class(hint)
+            sub = table_class(hint)
             kwargs[name] = None if value is None else build_table(sub, value, key, file)
         elif typing.get_origin(hint) is list:
             kind = typing.get_args(hint)[0]
