@@ -167,10 +167,8 @@ def build_table(cls: type, table: Any, prefix: str, file: str) -> Any:
             continue
         hint = hints[name]
         value = table[name]
-        if table_class(hint) is not None:
-            # None: an optional table stored absent (a scenario rebuilt from its dict).
-            sub = table_class(hint)
-            kwargs[name] = None if value is None else build_table(sub, value, key, file)
+        if (sub := table_class(hint)) is not None:
+            kwargs[name] = build_table(sub, value, key, file)
         elif typing.get_origin(hint) is list:
             kind = typing.get_args(hint)[0]
             if not isinstance(value, list):
