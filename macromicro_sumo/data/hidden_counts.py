@@ -55,7 +55,7 @@ def scenes_hiding(
     (``evaluate``: 1, a scene hiding nothing has nothing to drive). A K outside the counts
     the scenes can hide is a one-line UserError with the accepted range."""
     ks = list(dict.fromkeys(int(k) for k in ks))  # in the given order, each once
-    field = getattr(getattr(sc, "data", None), "source", "sumo") == "files"
+    field = sc.data.source == "files"
     if hidden_per_snapshot(sc):
         most = int(recorded.valid.sum(axis=1).max())
         bad = [k for k in ks if not lowest <= k <= most]

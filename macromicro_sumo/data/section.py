@@ -132,7 +132,7 @@ def psi_table(truth: SectionTruth, sc) -> pd.DataFrame:
     m["spacing_min_m"] = float(truth.vtypes["length_m"].min()) + sc.bounds.min_gap_m
     m["spacing_max_m"] = np.inf
     m["spacing_low_m"] = m["spacing_min_m"]
-    if getattr(sc.generator, "spacing_bounds", "none") == "passages":
+    if sc.generator.spacing_bounds == "passages":
         low, high = spacing_bounds_m(truth, m, sc.generator.bounds_source)
         m["spacing_low_m"] = np.maximum(m["spacing_min_m"].to_numpy(), low)
         m["spacing_max_m"] = high
@@ -256,7 +256,7 @@ def section_snapshots(
 
 def hidden_per_snapshot(sc) -> bool:
     """Whether the scenario draws its hidden sets per snapshot (``instrumented.hidden``)."""
-    return getattr(getattr(sc, "instrumented", None), "hidden", "run") == "snapshot"
+    return sc.instrumented.hidden == "snapshot"
 
 
 # The seed stream of the hidden sets (numpy SeedSequence [seed, stream, ...]); the ring's
