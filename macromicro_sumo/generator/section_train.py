@@ -70,7 +70,7 @@ from macromicro_sumo.generator.training import (
 )
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.road.section import Section
-from macromicro_sumo.scenario.section import SectionScenario
+from macromicro_sumo.scenario.section import SectionGeneratorConfig, SectionScenario
 from macromicro_sumo.truth.section import load_section_truth
 
 CHECKPOINT_FORMAT = "macromicro-section-generator"
@@ -169,7 +169,7 @@ def _batch_loss(
     road: Road,
     snaps: SectionSnapshots,
     k: np.ndarray,
-    sc: SectionScenario,
+    cfg: SectionGeneratorConfig,
     gen: torch.Generator,
     extra: ExtraTerm | None = None,
 ) -> tuple[torch.Tensor, dict[str, float]]:
@@ -184,25 +184,25 @@ def _batch_loss(
         scene.present,
         psi,
         road,
-        sc.generator.spacing_dispersion,
-        sc.generator.dispersion_center,
-        scene.n_obs_slots if sc.generator.spacing_set == "touched" else None,
+        cfg.spacing_dispersion,
+        cfg.dispersion_center,
+        scene.n_obs_slots if cfg.spacing_set == "touched" else None,
     )
-    if sc.generator.dispersion_error == "squared":
+    if cfg.dispersion_error == "squared":
         terms["L_var"] = squared_dispersion(terms["L_var"], psi)
-    if sc.generator.dispersion_pool > 0:
+    if cfg.dispersion_pool > 0:
         x = spacing_variance(
             scene.lane,
             scene.arc,
             scene.present,
             psi,
             road,
-            sc.generator.dispersion_center,
-            scene.n_obs_slots if sc.generator.spacing_set == "touched" else None,
+            cfg.dispersion_center,
+            scene.n_obs_slots if cfg.spacing_set == "touched" else None,
         )
         pooled = pooled_dispersion(x, psi, scene.k)
-        terms["L_var"] = terms["L_var"] + sc.generator.dispersion_pool * pooled
-    loss = macro_loss(terms, sc.generator.lambda_v, sc.generator.lambda_d)
+        terms["L_var"] = terms["L_var"] + cfg.dispersion_pool * pooled
+    loss = macro_loss(terms, cfg.lambda_v, cfg.lambda_d)
     if extra is not None:
         name, weight, term = extra
         terms[name] = term(scene, snaps, road)
@@ -220,7 +220,7 @@ def _eval_loss(
     road: Road,
     snaps: SectionSnapshots,
     k: np.ndarray,
-    sc: SectionScenario,
+    cfg: SectionGeneratorConfig,
     seed: int,
     extra: ExtraTerm | None = None,
 ) -> dict[str, float]:
@@ -230,7 +230,7 @@ def _eval_loss(
     with torch.no_grad():
         for s in range(0, len(snaps), EVAL_BATCH):
             idx = np.arange(s, min(s + EVAL_BATCH, len(snaps)))
-            _, st = _batch_loss(net, road, snaps.take(idx), k[idx], sc, gen, extra)
+            _, st = _batch_loss(net, road, snaps.take(idx), k[idx], cfg, gen, extra)
             for name, v in st.items():
                 sums[name] = sums.get(name, 0.0) + v * len(idx)
     return {name: v / max(len(snaps), 1) for name, v in sums.items()}
@@ -297,7 +297,7 @@ def _train(
                     road=road,
                     snaps=snaps.take(idx),
                     k=k[idx],
-                    sc=sc,
+                    cfg=cfg,
                     gen=gen,
                     extra=extra,
                 ),
@@ -307,7 +307,7 @@ def _train(
         ]
 
     def validate(model: torch.nn.Module) -> dict[str, float]:
-        return _eval_loss(model, road, val, k_val, sc, sc.seed + 17, extra)
+        return _eval_loss(model, road, val, k_val, cfg, sc.seed + 17, extra)
 
     def save(model: torch.nn.Module, epoch: int, best: float) -> None:
         save_section_generator(

@@ -302,7 +302,9 @@ def trained(bremen: Section) -> tuple:
     sc = scenario(bremen, epochs=6, batch_size=16, hidden_size=32, k_source="truth", lr=1e-2)
     train, val = synthetic(bremen, 32, seed=10), synthetic(bremen, 16, seed=11)
     net, log = train_section_generator(sc, bremen, train, val, progress=False)
-    before = _eval_loss(untrained(sc.seed), Road.of(bremen), val, val.k_true, sc, sc.seed + 17)
+    before = _eval_loss(
+        untrained(sc.seed), Road.of(bremen), val, val.k_true, sc.generator, sc.seed + 17
+    )
     return net, log, sc, before
 
 
