@@ -43,7 +43,7 @@ from macromicro_sumo.env.section_bank import SectionBank
 from macromicro_sumo.env.slot_core import POSITION_TOL_M, SlotCore
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
-from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
+from macromicro_sumo.sumo.simulation import DEFAULT_LANE_CHANGE_MODE, Simulation, SumoOptions
 from macromicro_sumo.sumo.tiling import copy_id, tile_net
 
 
@@ -83,6 +83,7 @@ class BatchedSectionCore(SlotCore):
         replay_min_gap_m: float | None = None,
         vclass: str = "passenger",
         vtypes_file: Path | None = None,  # a SectionCore's own (``batched_like``)
+        reuse_vehicles: bool = True,  # reset by placing the vehicles there (``_queue``)
     ) -> None:
         if n_scenes < 1:
             raise UserError(f"n_scenes = {n_scenes}: at least 1")
@@ -118,6 +119,10 @@ class BatchedSectionCore(SlotCore):
         self._errors = [""] * b
         self._want = np.zeros((b, n))
         self.valid = np.zeros((b, n), dtype=bool)
+        # Vehicles of reset scenes placed after the step: (IDs, vTypes, lanes, positions,
+        # routes, speeds, detour lanes), ``Simulation.place_vehicles``' arguments.
+        self._moves: tuple[list, ...] = ()
+        self.reuse_vehicles = reuse_vehicles
 
     # ------------------------------------------------------------------ episodes
     def reset(self, episodes: np.ndarray) -> np.ndarray:
@@ -126,9 +131,16 @@ class BatchedSectionCore(SlotCore):
 
     def _queue(self, scenes: np.ndarray, episodes: np.ndarray) -> None:
         """The old vehicles of ``scenes`` out, their ``episodes``' queued for insertion
-        (``SectionCore.reset`` before its step, numpy over the scenes)."""
+        (``SectionCore.reset`` before its step, numpy over the scenes).
+
+        With ``reuse_vehicles``, a vehicle on the road whose slot the new episode fills
+        stays, and is placed after the step (``Simulation.place_vehicles``: its vType,
+        lane, position, route and speed as a fresh insertion has them): vehicle.add was
+        most of a reset. The same trajectories to the bit (tests/env/test_batched.py).
+        """
         bk, sec, n = self.bank, self.section, self.n
-        old = self.ids[scenes][self.active[scenes]].tolist()
+        keep = self.active[scenes] & bk.valid[episodes] & self.reuse_vehicles
+        old = self.ids[scenes][self.active[scenes] & ~keep].tolist()
         was = self.valid[scenes] & ~self.active[scenes]  # a failed insertion may still wait
         if was.any():
             there = set(self.sim.vehicle_ids()) | set(self.sim.pending_vehicles())
@@ -148,8 +160,10 @@ class BatchedSectionCore(SlotCore):
             self._sumo_limits[b] = lim[b]
         self.limits = lim
         self._resets[scenes] += 1
+        kept_ids, was_hidden = self.ids[scenes], self.hidden[scenes]
         for b in scenes:
             self.ids[b] = [f"c{b}.{self._resets[b]}.{i}" for i in range(n)]
+        self.ids[scenes] = np.where(keep, kept_ids, self.ids[scenes])
         self.episode[scenes], self.t[scenes] = episodes, 0
         for b in scenes:
             self._errors[b] = ""
@@ -169,12 +183,30 @@ class BatchedSectionCore(SlotCore):
         rows = scenes[:, None]
         v0 = np.minimum(bk.speed0_mps[episodes], factor * lim[rows, e, 0])
         lengths = np.round(bk.length_m[episodes], 2)
+        # Each slot's vType ("": an empty slot's, whose length is no vehicle's).
+        vtypes = np.vectorize(lambda x: self._vtype.get(float(x), ""), otypes=[object])(lengths)
+        vtypes = vtypes + sfx
+        if keep.any():
+            rows, e_next = np.broadcast_to(rows, keep.shape), (e + 1) % len(sec.edge_ids)
+            self._moves = (
+                self.ids[scenes][keep].tolist(),
+                vtypes[keep].tolist(),
+                [f"{x}_0" for x in self._edge_ids[rows[keep], e[keep]]],
+                pos[keep].tolist(),
+                self._route_ids[rows[keep], e[keep]].tolist(),
+                v0[keep].tolist(),
+                [f"{x}_0" for x in self._edge_ids[rows[keep], e_next[keep]]],
+            )
+            # A hidden vehicle that was observed gets SUMO's default lane changing back
+            # (observed ones have none: ``_set_modes``).
+            back = self.ids[scenes][keep & self.hidden[scenes] & ~was_hidden].tolist()
+            self.sim.set_lane_change_mode(back, DEFAULT_LANE_CHANGE_MODE)
         for j, b in enumerate(scenes):
-            for i in np.flatnonzero(self.valid[b]):
+            for i in np.flatnonzero(self.valid[b] & ~keep[j]):
                 self.sim.add_vehicle(
                     self.ids[b, i],
                     self._route_ids[b, e[j, i]],
-                    self._vtype[float(lengths[j, i])] + sfx[j, i],
+                    vtypes[j, i],
                     0,
                     float(pos[j, i]),
                     float(v0[j, i]),
@@ -227,12 +259,16 @@ class BatchedSectionCore(SlotCore):
             self._queue(np.flatnonzero(restart), rs[restart])
         ep, t = self.episode, np.minimum(self.t, bk.horizon - 1)
         cmd, replay, live = self._drive(accel, run[:, None], ep, t)
+        if self._moves:  # reset scenes' vehicles, where the insertion step leaves new ones
+            self.sim.place_vehicles(*self._moves)
+            self._moves = ()
         state = self._read((restart[:, None] & self.valid) | (run[:, None] & self.active))
         collision = np.zeros(b_n, dtype=bool)
         if self.sim.collisions() > 0:
             for vid in self.sim.colliding_vehicles():
                 if vid.startswith("c") and "." in vid:
                     collision[int(vid[1 : vid.index(".")])] = True
+        collision &= ~restart  # a reset scene's old vehicles still drove in this step
         for (b,), msg in self._after(live, cmd, replay, state, ep, t).items():
             self._errors[b] = msg  # SUMO refused a recorded move: the episode is truncated
         self.t[run] += 1

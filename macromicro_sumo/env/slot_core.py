@@ -233,10 +233,13 @@ class SlotCore:
         on[slots], lane[slots] = code >= 0, self._lane_index[code]
         arc[slots] = self._lane_start[code] + pos * self._lane_scale[code]
         speed[slots] = spd
-        off = [(c < 0 and x != "", x.startswith(":")) for x, c in zip(lanes, code, strict=True)]
-        if any(o for o, _ in off):
-            inner[slots] = [o and i for o, i in off]
-            stray = [v for v, (o, i) in zip(ids, off, strict=True) if o and not i]
+        if (code < 0).any():  # pending (lane ""), internal, or off the section
+            idx = np.flatnonzero(code < 0)
+            off = [k for k in idx.tolist() if lanes[k]]
+            flat = np.zeros(len(ids), dtype=bool)
+            flat[[k for k in off if lanes[k].startswith(":")]] = True
+            inner[slots] = flat
+            stray = [ids[k] for k in off if not lanes[k].startswith(":")]
             if stray:
                 self.sim.remove_vehicles(stray)
         return on, lane, arc, speed, inner

@@ -25,19 +25,11 @@ import sumolib
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.sumo.options import SumoOptions
 
-_VARS = (
-    libsumo.constants.VAR_ROAD_ID,
-    libsumo.constants.VAR_LANEPOSITION,
-    libsumo.constants.VAR_SPEED,
-)
-_LANE_VARS = (
-    libsumo.constants.VAR_LANE_ID,
-    libsumo.constants.VAR_LANEPOSITION,
-    libsumo.constants.VAR_SPEED,
-    libsumo.constants.VAR_ACCELERATION,
-)
+_C = libsumo.constants
+_VARS = (_C.VAR_ROAD_ID, _C.VAR_LANEPOSITION, _C.VAR_SPEED)
+_LANE_VARS = (_C.VAR_LANE_ID, _C.VAR_LANEPOSITION, _C.VAR_SPEED, _C.VAR_ACCELERATION)
 # A driven vehicle's subscription: the lane state plus its leader within a look-ahead.
-_DRIVE_VARS = (*_LANE_VARS, libsumo.constants.VAR_LEADER)
+_DRIVE_VARS = (*_LANE_VARS, _C.VAR_LEADER)
 # Signal states a driver treats as a standing leader at the stop line (red, yellow, red-yellow).
 STOP_STATES = frozenset("rRyYu")
 
@@ -71,6 +63,7 @@ _LEFT_BLOCKERS = 4
 # right of way at junctions, 16 brake for red lights, 32 disregard right of way inside a
 # junction. 31 is SUMO's default.
 DEFAULT_SPEED_MODE = 31
+DEFAULT_LANE_CHANGE_MODE = 0b011001010101  # SUMO's default lane-change mode (1621)
 
 
 def versions() -> dict[str, str]:
@@ -268,6 +261,28 @@ class Simulation:
             libsumo.vehicle.moveTo(vid, lane, float(pos))
             libsumo.vehicle.setRouteID(vid, route)
 
+    def place_vehicles(
+        self, vehicle_ids: Sequence[str], type_ids: Sequence[str], lane_ids: Sequence[str],
+        pos_m: Sequence[float], route_ids: Sequence[str], speeds_mps: Sequence[float],
+        detours: Sequence[str],
+    ) -> None:  # fmt: skip
+        """Vehicles on the road made what ``add_vehicle`` + a step would insert: vType, lane,
+        position, route, speed, acceleration 0 (the same trajectories after, tested). One
+        placed on the lane it is on goes by its detour lane first: a moveTo along its own
+        lane keeps the lane's vehicle order (SUMO 1.28), and it would keep its leaders."""
+        self._states = None
+        v = libsumo.vehicle
+        for vid, vtype, lane, pos, route, speed, detour in zip(
+            vehicle_ids, type_ids, lane_ids, pos_m, route_ids, speeds_mps, detours, strict=True
+        ):
+            if v.getTypeID(vid) != vtype:
+                v.setType(vid, vtype)
+            if v.getLaneID(vid) == lane:
+                v.moveTo(vid, detour, 0.0)
+            v.moveTo(vid, lane, float(pos))
+            v.setRouteID(vid, route)  # after moveTo, as ``move_to`` has it
+            v.setPreviousSpeed(vid, float(speed), 0.0)
+
     # ------------------------------------------------------------------ sections
     def add_route(self, route_id: str, edges: Sequence[str]) -> None:
         libsumo.route.add(route_id, list(edges))
@@ -297,11 +312,6 @@ class Simulation:
                 f"SUMO refused vehicle {vehicle_id} at {pos_m:.2f} m, {speed_mps:.2f} m/s: {exc}"
             ) from None
 
-    def subscribe_lanes(self, vehicle_ids: Sequence[str]) -> None:
-        """Subscribe vehicles to (lane ID, lane position, speed, acceleration)."""
-        for vid in vehicle_ids:
-            libsumo.vehicle.subscribe(vid, _LANE_VARS)
-
     def read_lane_states(self) -> dict[str, tuple[str, float, float, float]]:
         """{vehicle: (lane ID, lane position, speed, acceleration)} of subscribed vehicles
         still in the simulation."""
@@ -313,22 +323,17 @@ class Simulation:
         }
 
     def subscribe_driving(self, vehicle_ids: Sequence[str], lookahead_m: float) -> None:
-        """Subscribe vehicles to the lane state (``subscribe_lanes``'s variables, which
-        ``read_lane_states`` keeps reading) plus their leader within ``lookahead_m``: one
-        subscription per vehicle, since a second one would replace the first."""
-        leader = libsumo.constants.VAR_LEADER
+        """Subscribe vehicles to their lane state (``read_lane_states``) and their leader within
+        ``lookahead_m``: one subscription each, since a second one would replace the first."""
+        params = {_C.VAR_LEADER: float(lookahead_m)}
         for vid in vehicle_ids:
-            libsumo.vehicle.subscribe(vid, _DRIVE_VARS, 0, 2**31 - 1, {leader: float(lookahead_m)})
+            libsumo.vehicle.subscribe(vid, _DRIVE_VARS, 0, 2**31 - 1, params)
 
     def read_leaders(self) -> dict[str, tuple[str, float]]:
         """{vehicle: (leader ID or "", SUMO's gap: leader's back minus own front and minGap)}
         of the vehicles subscribed with ``subscribe_driving``."""
-        leader = libsumo.constants.VAR_LEADER
-        return {
-            vid: r[leader]
-            for vid, r in libsumo.vehicle.getAllSubscriptionResults().items()
-            if leader in r
-        }
+        res = libsumo.vehicle.getAllSubscriptionResults().items()
+        return {vid: r[_C.VAR_LEADER] for vid, r in res if _C.VAR_LEADER in r}
 
     def has_traffic_lights(self) -> bool:
         return int(libsumo.trafficlight.getIDCount()) > 0
@@ -445,7 +450,7 @@ class Simulation:
 
     def lane_states(self, vehicle_ids: Sequence[str]) -> tuple[list[str], np.ndarray, np.ndarray]:
         """(lane ID, lane position [m], speed [m/s]) of the given vehicles, by compiled getters
-        (the batched env core's read: no ID list, no subscription); a vehicle not yet on the
+        (the env cores' read: no ID list, no subscription); a vehicle not yet on the
         road has lane ID ""; one SUMO does not know raises ``KeyError``."""
         n = len(vehicle_ids)
         try:

@@ -91,12 +91,34 @@ def ring_bank(small_ring_gt, tmp_path_factory):
     return sc, truth.section, bank, scenario_inputs(sc).net_file
 
 
-@pytest.mark.parametrize("safety", ["sumo", "none"])
-def test_a_scene_among_b_copies_drives_as_it_does_alone(ring_bank, safety):
+def dense(bank, factor: float):
+    """The bank's scenes squeezed to ``factor`` of their spread (records shifted alike):
+    vehicles close enough that SUMO's safe speed caps commands, replay leaves its record;
+    below 1, lengths of 4, 5 and 6 m that change per slot from one episode to the next."""
+    if factor == 1.0:
+        return bank
+    arc0 = bank.arc0_m * factor
+    shift = (arc0 - bank.arc0_m)[:, None, :]
+    e, n = np.indices(bank.length_m.shape)
+    return dataclasses.replace(
+        bank,
+        arc0_m=arc0,
+        replay_arc_m=bank.replay_arc_m + shift,
+        length_m=4.0 + (e + n) % 3,
+    )
+
+
+@pytest.mark.parametrize(
+    "safety, squeeze", [("sumo", 1.0), ("none", 1.0), ("sumo", 0.15), ("none", 0.15)]
+)
+def test_a_scene_among_b_copies_drives_as_it_does_alone(ring_bank, safety, squeeze):
     """Three scenes with staggered resets (scene 1 restarts mid-way while the others drive
-    on) give, scene by scene, SectionCore's observations, rewards, positions and speeds
-    under the same actions (float noise only), and the same replay counters."""
+    on; a reset places the scene's vehicles on the road where a fresh insertion would put
+    them) give, scene by scene, SectionCore's observations, rewards, positions and speeds
+    under the same actions, to the bit, and the same replay counters; squeezed scenes
+    (``dense``) take the capped, off-record and catch-up paths."""
     sc, section, bank, net = ring_bank
+    bank = dense(bank, squeeze)
     h, b = bank.horizon, 3
     rng = np.random.default_rng(7)
     n_steps = 2 * h + 3
@@ -127,19 +149,20 @@ def test_a_scene_among_b_copies_drives_as_it_does_alone(ring_bank, safety):
         for (s, k), rows in got.items():
             c0 = starts[s][k]
             obs = single.reset(int(episodes[s][k]))
-            np.testing.assert_allclose(obs, rows[0][0], atol=1e-9)
+            np.testing.assert_array_equal(obs, rows[0][0])
             for t, (o, r, arc, speed) in enumerate(rows[1:]):
                 res = single.step(accel[c0 + 1 + t, s][single.hidden])
-                np.testing.assert_allclose(res.obs, o, atol=1e-9)
-                assert res.r_macro == pytest.approx(r, abs=1e-9)
-                np.testing.assert_allclose(single.arc, arc, atol=1e-9)
-                np.testing.assert_allclose(single.speed, speed, atol=1e-9)
+                np.testing.assert_array_equal(res.obs, o)
+                assert res.r_macro == r
+                np.testing.assert_array_equal(single.arc, arc)
+                np.testing.assert_array_equal(single.speed, speed)
         assert len(got) == 7 and len(got[0, 0]) == h + 1 and len(got[1, 0]) == 4
     finally:
         single.close()
     # The single core ran the episodes in another order; the sums agree.
     for key in ("replay_steps", "replay_capped", "hidden_steps", "safety_capped"):
         assert batched_counts[key] == single.counts[key], key
+    assert (batched_counts["replay_capped"] > 0) == (squeeze < 1), batched_counts
 
 
 def test_batched_core_refuses_sections_it_does_not_model(ring_bank):
