@@ -56,7 +56,6 @@ from macromicro_sumo.data.section import (
     concat_snapshots,
     hidden_per_snapshot,
     recorded_snapshots,
-    section_snapshots,
     snapshots_by_k,
     split_runs,
 )
@@ -198,7 +197,7 @@ def held_out_scenes(
         by_k = {k: chosen.take(np.arange(r.start, r.stop)) for k, r in ranges.items()}
         lo = min(hidden)
     elif not hidden_per_snapshot(sc):
-        return section_snapshots(truth, sc, held), None
+        return recorded_, None  # the instrumented vehicles observed: no hidden sets to draw
     else:
         by_k = snapshots_by_k(recorded_, range(lo, hi + 1), sc.seed)
     parts, episodes, start = [], {}, 0
