@@ -8,6 +8,9 @@ run (repeats interleaved, so every core sees the same machine load):
     their ratio and the issue's target (10,000). Each figure twice: per wall second, and
     per CPU second of this process (SUMO runs inside it through libsumo), which a shared,
     loaded machine does not depress;
+  * the batched core with its stop-26 reset (remove + vehicle.add, ``reuse_vehicles=False``)
+    against its reset by placing the vehicles on the road, and the median of their
+    per-repeat ratios;
   * a bare libsumo loop making SectionCore's SUMO calls (``bench_section_env.bench_bare``),
     and the old core's ratio to it;
   * the gymnasium env's steps/s (info dicts included) and the batched gymnasium
@@ -28,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from bench_section_env import bench_bare
+from bench_section_env import bench_bare, run_core
 
 from macromicro_sumo.data.section import section_snapshots, split_runs
 from macromicro_sumo.env.batched import BatchedSectionCore
@@ -50,20 +53,6 @@ def timed(fn, *args) -> tuple[float, float]:
     t0, c0 = time.perf_counter(), time.process_time()
     steps = fn(*args)
     return steps / (time.perf_counter() - t0), steps / (time.process_time() - c0)
-
-
-def run_core(core: SectionCore, steps: int, rng: np.random.Generator) -> int:
-    """``bench_section_env.bench_core``'s loop (random episodes, H steps of random
-    actions); returns the steps it made."""
-    done = 0
-    while done < steps:
-        core.reset(int(rng.integers(len(core.bank))))
-        k = int(core.hidden.sum())
-        for _ in range(core.bank.horizon):
-            done += 1
-            if core.step(rng.uniform(-1.0, 1.0, k)).truncated:
-                break
-    return done
 
 
 def run_batched(core: BatchedSectionCore, steps: int, rng: np.random.Generator) -> int:
@@ -100,17 +89,22 @@ def main(argv: list[str] | None = None) -> int:
         net = scenario_inputs(sc).net_file
         core = SectionCore(sc, truth.section, bank, net, seed=sc.seed)
         batched = BatchedSectionCore(sc, truth.section, bank, net, args.scenes, seed=sc.seed)
-        old_r, new_r, bare_r = [], [], []
+        old_r, new_r, bare_r, insert_r = [], [], [], []
         try:
             for r in range(args.repeats):  # interleaved, so all see the same machine load
                 old_r.append(timed(run_core, core, args.steps, np.random.default_rng(r)))
                 bare_r.append(bench_bare(core, args.steps, np.random.default_rng(r)))
+                batched.reuse_vehicles = False  # reset by remove + vehicle.add (stop 26)
+                insert_r.append(timed(run_batched, batched, args.steps, np.random.default_rng(r)))
+                batched.reuse_vehicles = True
                 new_r.append(timed(run_batched, batched, args.steps, np.random.default_rng(r)))
         finally:
             batched.close()
             core.close()
         old_w, old_c = np.median(old_r, axis=0)
         new_w, new_c = np.median(new_r, axis=0)
+        ins = np.array(insert_r)
+        reuse_gain = np.median(np.array(new_r) / ins, axis=0)  # per repeat, then the median
         bare_s = float(np.median(bare_r))
         print(
             f"ring: N = {sc.fleet.n_vehicles}, H = {h}, {args.steps} steps x {args.repeats} "
@@ -121,6 +115,10 @@ def main(argv: list[str] | None = None) -> int:
         label = f"new: BatchedSectionCore, B = {args.scenes}"
         print(f"  {label:33s}: {new_w:12,.0f}  {new_c:12,.0f}")
         print(f"  {'new / old':33s}: {new_w / old_w:11.2f}x  {new_c / old_c:11.2f}x")
+        ins_w, ins_c = np.median(ins, axis=0)
+        print(f"  {'  reset by insertion (stop 26)':33s}: {ins_w:12,.0f}  {ins_c:12,.0f}")
+        label = "  placed / inserted resets"
+        print(f"  {label:33s}: {reuse_gain[0]:11.2f}x  {reuse_gain[1]:11.2f}x")
         met = ["met" if x >= TARGET else "NOT met" for x in (new_w, new_c)]
         print(
             f"  {f'target >= {TARGET:,}':33s}: {met[0]:>12s}  {met[1]:>12s}   (load "

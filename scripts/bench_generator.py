@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from bench_section_env import bench_core, run_core  # a sibling script: scripts/ is on the path
 
 from macromicro_sumo.data.section import (
     SectionSnapshots,
@@ -119,22 +120,6 @@ def repeated(snaps: SectionSnapshots, count: int) -> SectionSnapshots:
     return snaps.take(np.arange(count) % len(snaps))
 
 
-def bench_env(core: SectionCore, steps: int, rng: np.random.Generator) -> float:
-    """CPU microseconds per env step (resets included; SUMO runs in this process through
-    libsumo), random actions for the hidden ones."""
-    done = 0
-    t0 = time.process_time()
-    while done < steps:
-        core.reset(int(rng.integers(len(core.bank))))
-        k = int(core.hidden.sum())
-        for _ in range(core.bank.horizon):
-            res = core.step(rng.uniform(-1.0, 1.0, k))
-            done += 1
-            if res.truncated:
-                break
-    return 1e6 * (time.process_time() - t0) / done
-
-
 def measure(n: int, args: argparse.Namespace, work: Path) -> dict[str, float]:
     folder = work / f"n{n}"
     folder.mkdir()
@@ -176,8 +161,8 @@ def measure(n: int, args: argparse.Namespace, work: Path) -> dict[str, float]:
     )
     core = SectionCore(sc, truth.section, bank, scenario_inputs(sc).net_file, seed=0)
     try:
-        bench_env(core, min(200, args.env_steps), rng)  # warm-up: SUMO's first loads
-        out["env_us"] = bench_env(core, args.env_steps, rng)
+        run_core(core, min(200, args.env_steps), rng)  # warm-up: SUMO's first loads
+        out["env_us"] = 1e6 / bench_core(core, args.env_steps, rng, time.process_time)
     finally:
         core.close()
     return out

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib.util
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ from conftest import ROOT
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import load_section
 
+sys.path.insert(0, str(ROOT / "scripts"))  # as when run: it imports its sibling scripts
 _spec = importlib.util.spec_from_file_location(
     "bench_generator", ROOT / "scripts" / "bench_generator.py"
 )

@@ -37,6 +37,8 @@ from macromicro_sumo.road.physics import OBSERVATION_FEATURES
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.sumo.simulation import Simulation
 
+Mask = np.ndarray  # (..., N) bool over the slots
+Index = np.ndarray | int  # per scene: a bank episode, a step (one scene: an int)
 POSITION_TOL_M = 0.01  # insertion and replay checks: a placement off by more is an error
 EXACT_MODE = 0  # SUMO speed mode: a speed command applies exactly, no checks
 # SUMO speed mode: a command is capped at the car-following model's safe speed behind
@@ -74,6 +76,7 @@ class SlotCore:
     active: np.ndarray  # (..., N) bool: on the road
     hidden: np.ndarray  # (..., N) bool: driven by the policy (else replayed)
     off_record: np.ndarray  # (..., N) bool: an observed vehicle off its record
+    _obs: np.ndarray  # (..., N, obs_dim) the observations after the last step
     _edge_ids: np.ndarray  # (..., E) each scene's SUMO edge IDs of the section
     _route_ids: np.ndarray  # (..., E) each scene's route from edge e on
 
@@ -136,11 +139,11 @@ class SlotCore:
             reach = (v + self.a_max * b.horizon * self.dt) * b.horizon * self.dt
             laps = int(np.ceil(reach / self.section.length_m)) + 2
         self._route_ids = np.full(edge_ids.shape, "", dtype=object)
+        closed = self.section.closed
         for row in np.ndindex(edge_ids.shape[:-1]):
             edges = list(edge_ids[row])
             for e in range(len(edges)):
-                rid = "mm_r" + "_".join(map(str, (*row, e)))
-                closed = self.section.closed
+                rid = "mm_r" + "_".join(map(str, (*row, e)))  # one scene: mm_r<e>
                 self.sim.add_route(rid, (edges[e:] + edges[:e]) * laps if closed else edges[e:])
                 self._route_ids[(*row, e)] = rid
 
@@ -176,7 +179,7 @@ class SlotCore:
 
     # ------------------------------------------------------------------ step
     def _drive(
-        self, accel: np.ndarray, run: np.ndarray | bool, ep, t
+        self, accel: np.ndarray, run: np.ndarray | bool, ep: Index, t: Index
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Speed commands of the vehicles of running scenes (``run`` broadcast to the
         slots): hidden ones apply ``accel`` (..., N), observed ones replay step t + 1 of
@@ -244,7 +247,9 @@ class SlotCore:
                 self.sim.remove_vehicles(stray)
         return on, lane, arc, speed, inner
 
-    def _after(self, live, cmd, replay, state, ep, t) -> dict[tuple, str]:
+    def _after(
+        self, live: Mask, cmd: np.ndarray, replay: Mask, state: tuple, ep: Index, t: Index
+    ) -> dict[tuple, str]:
         """The read-back of a step (``state``: ``_read`` of at least ``live``): counters,
         new positions (a vehicle off the section's lanes is inactive; on a junction's
         internal lane it moves on by its speed), the replay's rejoin and recorded moves.
@@ -260,7 +265,7 @@ class SlotCore:
         self._rejoin(replay, rec_lane, rec_arc)
         return self._follow_records(replay, rec_lane, rec_arc)
 
-    def _count_caps(self, live, cmd, replay, read) -> None:
+    def _count_caps(self, live: Mask, cmd: np.ndarray, replay: Mask, read: np.ndarray) -> None:
         """Count the commands SUMO's safe speed capped; a capped observed vehicle is off
         its record from now on."""
         with np.errstate(invalid="ignore"):
