@@ -304,6 +304,8 @@ def refinement_part(r: Run) -> list[str]:
             joint[joint["method"] == "policy"].assign(run="joint refinement"),
         ]
     )
+    if name.endswith("_by_k.csv") and "hidden_count" in both:  # as paper_part: the estimate's
+        both = both[both["hidden_count"] == "estimated"]
     keys = [c for c in ("hidden_count", "K") if c in both]
     both = both.sort_values(keys, kind="stable") if keys else both
     iterations = r.sc.policy.refine_iterations
