@@ -33,7 +33,7 @@ import secrets
 import shutil
 import sys
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -43,7 +43,14 @@ from macromicro_sumo.batch.backends import RAY_INSTALL, LocalBackend, RayBackend
 from macromicro_sumo.batch.sweep import Variant, expand
 from macromicro_sumo.batch.tasks import STAGES, Outcome, Task
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.files import OUTPUT_MARK, mark_output, prepare_out_dir, write_json, write_text
+from macromicro_sumo.files import (
+    OUTPUT_MARK,
+    mark_output,
+    out_lock,
+    prepare_out_dir,
+    write_json,
+    write_text,
+)
 
 BACKENDS = ("local", "ray")
 EXPORT_FORMATS = export.FORMATS
@@ -78,19 +85,6 @@ def _discard(partial: Path) -> None:
     partial.with_name(partial.name + ".log").unlink(missing_ok=True)
 
 
-@contextlib.contextmanager
-def _lock(out: Path) -> Iterator[None]:
-    """One batch per folder at a time (the lock dies with its process, even on SIGKILL)."""
-    import fcntl
-
-    with open(out / ".batch.lock", "w") as f:
-        try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            raise UserError(f"{out}: another batch is running in this folder") from None
-        yield
-
-
 def run_batch(
     inputs: Sequence[str | Path],
     out: Path | str,
@@ -118,7 +112,7 @@ def run_batch(
     out = prepare_out_dir(out, [v.file for v in variants if v.file])
     vdir = out / "variants"
     vdir.mkdir(exist_ok=True)
-    with _lock(out):
+    with out_lock(out):  # one batch (or run) per folder at a time
         for leftover in itertools.chain(vdir.glob(".partial-*"), vdir.glob(".trash-*")):
             if leftover.is_dir():
                 shutil.rmtree(leftover, ignore_errors=True)
