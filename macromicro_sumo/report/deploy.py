@@ -218,6 +218,19 @@ def pooled(summary: pd.DataFrame) -> bool:
     return bool(np.isfinite(compare) and np.isfinite(detector) and compare > detector + 1e-9)
 
 
+def pooled_coverage(summary: pd.DataFrame) -> float:
+    """The share of the detectors' station-intervals that the pooled comparison's whole
+    blocks hold (1: the blocks tile every run; Bremen's 720 s runs at 300 s: 600 / 720);
+    NaN where the summary does not say."""
+    compare, detector = intervals_s(summary)
+    col = "station_intervals_detector_interval"
+    if col not in summary or not (np.isfinite(compare) and np.isfinite(detector)):
+        return float("nan")
+    held = float(summary["station_intervals"].max()) * round(compare / detector)
+    total = float(summary[col].max())
+    return held / total if total > 0 else float("nan")
+
+
 def summary_markdown(summary: pd.DataFrame) -> str:
     """deploy_summary.csv as a markdown table, shares in percent; pooled to a longer
     interval, the shares at the detectors' own interval follow the pooled ones."""
@@ -407,12 +420,20 @@ def interval_words(summary: pd.DataFrame) -> str:
     compare, detector = intervals_s(summary)
     hourly = f"GEH < {GEH_LIMIT:g} in 85% of the counts is a criterion for hourly flows"
     if pooled(summary):
-        return (
+        text = (
             f"Station-intervals are of {compare:g} s (`deploy.compare_interval_s`): the "
             f"detectors' {detector:g} s intervals pooled (counts summed, space-mean speeds); "
             f"the targets are judged at {compare:g} s ({hourly}), and the shares at "
             f"{detector:g} s are given beside them."
         )
+        share = pooled_coverage(summary)
+        if share < 1.0 - 1e-6:
+            text += (
+                f" Only whole blocks of {compare:g} s are compared: they hold {share:.0%} of "
+                f"the detectors' intervals, the rest of each run after its last whole block "
+                "is not compared (a comparison interval that divides the run compares it all)."
+            )
+        return text
     if np.isfinite(detector):
         return (
             f"Station-intervals are the detectors' own {detector:g} s "
