@@ -71,6 +71,8 @@ def batched_like(core: SectionCore, n_scenes: int) -> BatchedSectionCore | None:
 class BatchedSectionCore(SlotCore):
     """B scenes of one section in one SUMO run of B network copies (no demand)."""
 
+    _reward_fn = staticmethod(batch_macro_reward)  # ``SlotCore.macro_reward``, per row
+
     def __init__(
         self,
         sc,
@@ -315,17 +317,7 @@ class BatchedSectionCore(SlotCore):
         self.spacing = np.where(keep, self.spacing, spacing)
         self._obs = np.where(keep[..., None], self._obs, obs)
 
-    def macro_reward(self) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        """r_macro (B,) and its named terms of every scene (``section_macro_reward``)."""
-        g = self.sc.generator
-        return batch_macro_reward(
-            self.speed,
-            self.spacing,
-            self.leader,
-            self.hidden,
-            self.active,
-            self.bank.psi[self.episode],
-            g.lambda_v,
-            g.lambda_d,
-            self.sc.policy.macro_speed_scale_mps,
-        )
+    @property
+    def _target(self) -> np.ndarray:
+        """Each scene's psi (B, fields): what its reward compares with."""
+        return self.bank.psi[self.episode]

@@ -67,6 +67,8 @@ __all__ = ["DEFAULT_SAFETY", "SectionCore"]  # the default, importable from here
 class SectionCore(SlotCore):
     """One SUMO run of the user's network (no demand) reused for every episode."""
 
+    _reward_fn = staticmethod(section_macro_reward)  # ``SlotCore.macro_reward``
+
     def __init__(
         self,
         sc,
@@ -207,20 +209,6 @@ class SectionCore(SlotCore):
             stop_lane,
             stop_arc,
             self.bank.factor_of(self.episode),  # each driver's own limits (policy.driver_speed)
-        )
-
-    def macro_reward(self) -> tuple[float, dict[str, float]]:
-        g = self.sc.generator
-        return section_macro_reward(
-            self.speed,
-            self.spacing,
-            self.leader,
-            self.hidden,
-            self.active,
-            self._target,
-            g.lambda_v,
-            g.lambda_d,
-            self.sc.policy.macro_speed_scale_mps,
         )
 
     def _result(self, r: float, terms, collision: bool, truncated: bool, error: str):

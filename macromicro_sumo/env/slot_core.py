@@ -19,6 +19,7 @@ import tempfile
 from collections.abc import Callable
 from itertools import repeat
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -77,6 +78,8 @@ class SlotCore:
     hidden: np.ndarray  # (..., N) bool: driven by the policy (else replayed)
     off_record: np.ndarray  # (..., N) bool: an observed vehicle off its record
     _obs: np.ndarray  # (..., N, obs_dim) the observations after the last step
+    _reward_fn: Callable[..., tuple[Any, dict[str, Any]]]  # the core's reward over (..., N)
+    _target: Any  # what ``_reward_fn`` compares with: one MacroTarget, or psi (B, fields)
     _edge_ids: np.ndarray  # (..., E) each scene's SUMO edge IDs of the section
     _route_ids: np.ndarray  # (..., E) each scene's route from edge e on
 
@@ -125,6 +128,16 @@ class SlotCore:
 
     def observations(self) -> np.ndarray:
         return self._obs.copy()
+
+    def macro_reward(self) -> tuple[Any, dict[str, Any]]:
+        """r_macro and its named terms of the active vehicles against each scene's target
+        (``_reward_fn``: ``section_macro_reward`` for one scene, ``batch_macro_reward`` for
+        B, per row)."""
+        g = self.sc.generator
+        return self._reward_fn(
+            self.speed, self.spacing, self.leader, self.hidden, self.active, self._target,
+            g.lambda_v, g.lambda_d, self.sc.policy.macro_speed_scale_mps,
+        )  # fmt: skip
 
     def _add_routes(self, edge_ids: np.ndarray) -> None:
         """Per scene, one route per start edge to the section's end (a loop: laps for any
