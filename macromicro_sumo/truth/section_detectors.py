@@ -199,7 +199,7 @@ def read_detectors(
                 "flow_vph": np.nan,
                 "speed_mps": speed_or_nan(r.get("meanSpeed")),
                 "occupancy_pct": float(r["meanOccupancy"]),
-                "density_vpkm": float(r["meanVehicleNumber"]) / length * 1000.0,
+                "density_vpkm": e2_vehicles(r) / length * 1000.0,
                 "length_m": length,
                 "sampled_seconds_s": float(r["sampledSeconds"]),
             }
@@ -207,6 +207,26 @@ def read_detectors(
     det = pd.DataFrame(rows)
     passages = read_passages(run_dir / INSTANT_FILE, run, required=False)
     return det, passages
+
+
+def e2_vehicles(r: dict[str, str]) -> float:
+    """Mean vehicles on a lane-area (E2) detector's length in one interval of its output,
+    each counted by the part of it on the detector.
+
+    SUMO counts a vehicle on every detector it overlaps: ``meanVehicleNumber`` and
+    ``sampledSeconds`` count one across an edge boundary on both detectors (a vehicle is
+    on a detector of length l while its front is on l + its own length L: at density k,
+    k (l + L) of them), ``meanVehicleNumber`` also the step in which one leaves. The mean
+    occupancy (the share of l under vehicles, k L) is what the overlap adds, so the
+    vehicle-seconds per second less it is k l, with no vehicle length needed. On
+    ring_sugiyama (22 vehicles, four edge-long E2, 40 runs x 3 intervals): the four
+    ``meanVehicleNumber`` summed to 24.47 (24.22-24.74), this to 21.92 (21.75-22.17).
+    """
+    duration = float(r["end"]) - float(r["begin"])
+    if duration <= 0:
+        return 0.0
+    sampled = float(r["sampledSeconds"]) / duration
+    return max(0.0, sampled - float(r["meanOccupancy"]) / 100.0)
 
 
 def records(path: Path, tag: str, required: bool = True) -> list[dict[str, str]]:
