@@ -82,6 +82,7 @@ class SectionDriver:
         self.shapes: dict[str, tuple[float, float, float]] = {}  # vType -> length, minGap, decel
         self.shape_of: dict[str, tuple[float, float, float]] = {}  # vehicle -> its vType's
         self.decel_of: dict[str, float] = {}  # vehicle -> its vType's decel
+        self.vmax: dict[str, float] = {}  # vType -> its maxSpeed [m/s]
         # shape_of and section.lanes as numpy tables (``deploy.observe``), built once a run
         self.shape_table = Table(STANDING)
         self.type_code: dict[str, int] = {}  # vType -> its row in shape_table
@@ -129,6 +130,7 @@ class SectionDriver:
             self.types[vid] = vt
             if vt not in self.shapes:
                 self.shapes[vt] = sim.vtype_shape(vt)
+                self.vmax[vt] = sim.vtype_max_speed(vt)
                 self.type_code[vt] = self.shape_table.add_row(self.shapes[vt])
             self.shape_of[vid] = self.shapes[vt]
             self.decel_of[vid] = self.shapes[vt][2]
@@ -196,7 +198,9 @@ class SectionSpeedDriver(SectionDriver):
         for v in vids:
             if v not in self.slots.of:
                 self.slots.add(v)
-        self.slots.decel[self.slots.slots(vids)] = list(map(self.decel_of.__getitem__, vids))
+        at = self.slots.slots(vids)
+        self.slots.decel[at] = list(map(self.decel_of.__getitem__, vids))
+        self.slots.vmax[at] = [self.vmax[self.types[v]] for v in vids]
 
     def release(self, sim: Simulation, vids: list[str]) -> None:
         sim.release_speeds(vids)
@@ -357,8 +361,21 @@ class SectionSpeedDriver(SectionDriver):
         def layer() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
             return gap, own, lead_decel, lead
 
+        # The vType's maxSpeed is the vehicle's physics, not safety: SUMO does not impose
+        # it on a command under these speed modes (no max-accel bit; ring_two_lane's vans,
+        # maxSpeed 12, ran at up to 14.9 m/s), so every command is held to it, with or
+        # without the safety layer.
         cmd = speed_commands(
-            self.sc, self.act, self.safety, self.stats, obs, layer, cap, safe, lead_speed
+            self.sc,
+            self.act,
+            self.safety,
+            self.stats,
+            obs,
+            layer,
+            cap,
+            safe,
+            lead_speed,
+            self.slots.vmax[slots],
         )
         sim.set_speeds(vids, cmd)
         self.slots.commanded(slots, cmd)

@@ -11,7 +11,9 @@ no command, however poor or adversarial, makes a vehicle collide or block the ro
   nothing ahead asks for it;
 * ``speed_commands`` is the one command rule of the ring's and the sections' speed drivers
   (``deploy.drivers``): v + a dt of the batched action, a in the scenario's bounds, through
-  this layer where ``deploy.safety = "sumo"``.
+  this layer where ``deploy.safety = "sumo"``, and, with or without it, at most the
+  vehicle's vType maxSpeed (its physics, not safety: SUMO does not impose it on a command
+  under these speed modes).
 
 Pure numpy: tested without SUMO and, through the drivers, with it
 (``tests/deploy/test_safety.py``).
@@ -82,6 +84,7 @@ def safety_cap(
     floor_share: float,
     safe: np.ndarray | None = None,
     lead_speed: np.ndarray | None = None,
+    vmax: np.ndarray | float = np.inf,
 ) -> tuple[np.ndarray, int, int]:
     """Speed commands ``cmd`` [m/s] made safe: capped at ``safe_speed`` behind each
     vehicle's observed leader (``gap``: SUMO's gap to it, ``NO_LEADER_GAP_M`` or more:
@@ -89,7 +92,8 @@ def safety_cap(
     ahead asks for less (``floor_share`` of the lane's limit obs[:, 1]), and capped behind the command of a leader that
     is driven too (``lead``: its index in ``cmd``, -1: none; ``behind_commands``).
     ``safe``: ``leader_safe_speed`` of these inputs if computed already; ``lead_speed``:
-    obs[:, 0] - obs[:, 3] if computed already.
+    obs[:, 0] - obs[:, 3] if computed already; ``vmax``: the vehicles' maxSpeed [m/s], which
+    the floor does not exceed (the commands are at most it already: ``speed_commands``).
     Returns (commands, how many the layer lowered, how many it raised), each by more than
     ``SAFETY_TOLERANCE_MPS``."""
     if lead_speed is None:
@@ -99,6 +103,7 @@ def safety_cap(
     # The road kept open: never below a share of the lane's limit unless what is ahead
     # (the safe speed) asks for it, and no faster than the vehicle may accelerate to it.
     floor = np.minimum(safe, np.minimum(obs[:, 0] + a_max_mps2 * dt_s, floor_share * obs[:, 1]))
+    floor = np.minimum(floor, vmax)
     capped = np.minimum(cmd, safe)
     raised = int(np.count_nonzero(floor > capped + SAFETY_TOLERANCE_MPS))
     out = behind_commands(np.maximum(capped, floor), gap, lead, decel, lead_decel, dt_s, lead_speed)
@@ -167,6 +172,7 @@ def speed_commands(
     cap: np.ndarray | None = None,
     safe: np.ndarray | None = None,
     lead_speed: np.ndarray | None = None,
+    vmax: np.ndarray | float = np.inf,
 ) -> np.ndarray:
     """Speed commands v' = max(0, v + a dt) [m/s] of the batched action ``act`` at
     observations ``obs`` (v in column 0, the lane's limit in column 1), a clipped to the
@@ -176,12 +182,15 @@ def speed_commands(
     ``cap``: speeds [m/s] the commands are lowered to before the layer (a merge's
     cooperative slow-down, ``deploy.drivers``; inf: none); ``safe``: the layer's safe
     speeds (``leader_safe_speed``) and obs[:, 0] - obs[:, 3] (``lead_speed``) where the
-    driver computed them already."""
+    driver computed them already. ``vmax``: each vehicle's vType maxSpeed [m/s], a bound of
+    its physics, not of safety: every command is at most it, with or without the layer
+    (SUMO imposes it only under the max-accel bit, which these speed modes leave off), and
+    is not counted as the layer's action."""
     a_min, a_max = sc.bounds.accel_mps2
     # np.clip's own overhead is several times that of the two calls (the same values)
     a = np.minimum(np.maximum(act(obs), a_min), a_max)
     dt = sc.simulation.step_length_s
-    cmd = np.maximum(0.0, obs[:, 0] + a * dt)
+    cmd = np.minimum(np.maximum(0.0, obs[:, 0] + a * dt), vmax)
     if cap is not None:
         cmd = np.minimum(cmd, cap)
     if safety != "sumo":
@@ -189,5 +198,7 @@ def speed_commands(
     gap, decel, lead_decel, lead = layer()
     floor = sc.deploy.safety_floor_share
     return stats.count_safety(
-        *safety_cap(cmd, obs, gap, decel, lead_decel, lead, dt, a_max, floor, safe, lead_speed)
+        *safety_cap(
+            cmd, obs, gap, decel, lead_decel, lead, dt, a_max, floor, safe, lead_speed, vmax
+        )
     )

@@ -5,9 +5,9 @@ deployment: ~45 driven vehicles a step, where numpy's fixed cost per call and Py
 vehicle were most of the driver's time, ``scripts/bench_deploy.py``).
 
 What is kept per slot: the last step's speed command (``last_mps``, -inf: none, or none to
-compare with), the vehicle's demand decel and its driver's desired-speed factor, and two
-``LaneCache``s of what SUMO was asked about the vehicle's lane (``lane_end``: where it
-must have left its lane; ``dark``: no signal ahead on its route).
+compare with), the vehicle's demand decel and maxSpeed, its driver's desired-speed factor,
+and two ``LaneCache``s of what SUMO was asked about the vehicle's lane (``lane_end``: where
+it must have left its lane; ``dark``: no signal ahead on its route).
 """
 
 from __future__ import annotations
@@ -64,6 +64,7 @@ class VehicleSlots:
     def __init__(self, capacity: int = 256) -> None:
         self.of: dict[str, int] = {}
         self.decel = np.full(capacity, np.nan)  # its demand vType's decel [m/s^2] (``take``)
+        self.vmax = np.full(capacity, np.inf)  # its demand vType's maxSpeed [m/s] (``take``)
         self.last_mps = np.full(capacity, -np.inf)
         # Its driver's desired-speed factor (``policy.driver_speed``; NaN: not drawn yet).
         self.factor = np.full(capacity, np.nan)
@@ -78,6 +79,7 @@ class VehicleSlots:
         self.of[vehicle_id] = slot
         if slot == len(self.last_mps):
             self.decel = _grown(self.decel, np.nan)
+            self.vmax = _grown(self.vmax, np.inf)
             self.last_mps = _grown(self.last_mps, -np.inf)
             self.factor = _grown(self.factor, np.nan)
             self.lane_end.grow()

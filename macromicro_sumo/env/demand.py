@@ -14,8 +14,9 @@ episode is what a deployment does, on a training run of the ground truth:
   population (not instrumented, ``truth.section.is_instrumented``) is driven by the policy
   from the step it is on a lane of the section until it leaves it, instrumented vehicles
   keep their own SUMO models (as in a deployment);
-* speed commands v' = max(0, v + a dt) apply exactly (speed mode 32, the deployment's
-  ``safety = "none"``): the policy meets the consequences of its own actions;
+* speed commands v' = max(0, v + a dt), at most the vType's maxSpeed, apply exactly (speed
+  mode 32, the deployment's ``safety = "none"``): the policy meets the consequences of its
+  own actions;
 * observations are the deployment's, from SUMO's state (``sumo_observations``: SUMO's
   leader along the lane connections, a red light or the end of a lane the vehicle must
   leave as a standing leader) with the section env's lookahead (``env.section_bank``),
@@ -187,6 +188,7 @@ class DemandCore:
         self.run, self.t = -1, 0
         self.types: dict[str, str] = {}
         self.shapes: dict[str, tuple[float, float, float]] = {}  # vType -> shape
+        self.vmax: dict[str, float] = {}  # vType -> maxSpeed [m/s]
         self.population: set[str] = set()
         self.driven: list[str] = []
         self._speed: np.ndarray = np.zeros(0)
@@ -260,6 +262,7 @@ class DemandCore:
             self.types[vid] = vt
             if vt not in self.shapes:
                 self.shapes[vt] = sim.vtype_shape(vt)
+                self.vmax[vt] = sim.vtype_max_speed(vt)
             if not is_instrumented(self.sc, vid, vt, self.run):
                 self.population.add(vid)
 
@@ -312,6 +315,9 @@ class DemandCore:
         driven = self.driven
         if driven:
             cmd = np.maximum(0.0, self._speed + np.clip(accel, a_min, a_max) * self.dt)
+            # At most the vType's maxSpeed, its physics (as a deployment's, ``deploy.safety``):
+            # speed mode 0 would apply a command above it.
+            cmd = np.minimum(cmd, [self.vmax[self.types[v]] for v in driven])
             sim.set_speeds(driven, cmd)
         sim.step()
         self.t += 1

@@ -369,6 +369,9 @@ class Simulation:
             float(vt.getDecel(type_id)),
         )
 
+    def vtype_max_speed(self, type_id: str) -> float:
+        return float(libsumo.vehicletype.getMaxSpeed(type_id))  # [m/s]; commands may exceed it
+
     def set_types(self, vehicle_ids: Sequence[str], type_ids: Sequence[str]) -> None:
         list(map(libsumo.vehicle.setType, vehicle_ids, type_ids))
 
@@ -432,7 +435,6 @@ class Simulation:
     # ------------------------------------------------------------------ bulk reads
     # A deployment's hot path: per-vehicle getters, ~0.9 us a vehicle for the four; a
     # subscription costs SUMO's step ~2.5 us a vehicle and ~2 us more to read (measured).
-
     def vehicle_states(self) -> VehicleStates:
         """Every vehicle on the road now, read once per step: whoever asks again before
         the next step (a recorder after it, a driver before the next) shares the read."""
