@@ -109,3 +109,28 @@ def test_observations_agree_with_the_section_env_and_the_deployment(merge) -> No
     finally:
         core.close()
     assert n_checked > 50
+
+
+def test_driven_vehicles_are_held_to_their_vtypes_max_speed(merge) -> None:
+    """Speed mode 32 applies a command above the vType's maxSpeed; the core holds every
+    command to it: read from SUMO (the merge's cars: a passenger car's default), and with
+    the cap the core keeps per vType lowered below the IDM policy's 30 m/s."""
+    sc, truth = merge
+    top = {}
+    for cap in (None, 20.0):
+        core = DemandCore(sc, truth, truth.runs, 60)
+        try:
+            core.reset(int(truth.runs[0]), 90.0)
+            assert core.vmax and min(core.vmax.values()) > 30.0  # SUMO's, above the limit
+            if cap is not None:
+                core.vmax = dict.fromkeys(core.vmax, cap)
+            fastest = 0.0
+            for _ in range(40):
+                vids, obs = core.observe()
+                core.step(act(obs))
+                states = core.lane_states()
+                fastest = max([fastest] + [states[v][2] for v in vids if v in states])
+            top[cap] = fastest
+        finally:
+            core.close()
+    assert top[20.0] <= 20.0 + 1e-9 and top[None] > 22.0, top
