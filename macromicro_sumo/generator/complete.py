@@ -398,6 +398,7 @@ def run_complete(
                 completion_seeds=[seed + c for c in range(completions)],
                 hidden_counts=sorted({int(x) for x in k}),
                 projections=int(sum(int(c.projections.sum()) for c in comps)),
+                dropped=int(sum(0 if c.dropped is None else int(c.dropped.sum()) for c in comps)),
                 timings_s={"complete": round(wall_s, 3)},
             )
             write_stage_manifest(manifest, stage, MANIFEST, files)

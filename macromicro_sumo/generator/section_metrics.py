@@ -99,6 +99,7 @@ def completion_metrics(
                 "true_std_spacing_m": std_t,
                 "trials": int(comp.trials[i]),
                 "projections": int(comp.projections[i]),
+                "dropped": 0 if comp.dropped is None else int(comp.dropped[i]),
             }
         )
     df = pd.DataFrame(out)

@@ -443,11 +443,20 @@ class Scene:
         )
 
     def place(
-        self, step: int, idx: torch.Tensor, lane: torch.Tensor, arc: torch.Tensor, v: torch.Tensor
+        self,
+        step: int,
+        idx: torch.Tensor,
+        lane: torch.Tensor,
+        arc: torch.Tensor,
+        v: torch.Tensor,
+        present: torch.Tensor | None = None,
     ) -> None:
         """Put the step's vehicle of rows ``idx`` into its slot (out of place: the training
-        graph keeps every earlier step's values)."""
+        graph keeps every earlier step's values); ``present`` False leaves a row's slot
+        empty (a vehicle that fits nowhere)."""
         j = self.n_obs_slots + step
+        if present is None:
+            present = torch.ones_like(idx, dtype=torch.bool)
 
         def put(x: torch.Tensor, new: torch.Tensor) -> torch.Tensor:
             col = x[:, j].index_put((idx,), new)
@@ -456,7 +465,7 @@ class Scene:
         self.lane = put(self.lane, lane)
         self.arc = put(self.arc, arc)
         self.speed = put(self.speed, v)
-        self.present = put(self.present, torch.ones_like(idx, dtype=torch.bool))
+        self.present = put(self.present, present)
 
 
 def _anchor(b: int, road: Road, gen: torch.Generator) -> torch.Tensor:

@@ -7,7 +7,10 @@ behind it and it behind the gap's leader (``kinematic_speeds``; its speed is cli
 into that window); after T_max failures the last trial is projected onto the nearest
 feasible point (of its gap, else of the most likely gap that has one) and counted.
 Gaps with no room at all (a gap shorter than two minimum spacings) are not chosen
-unless no gap has room (the section is fuller than psi allows: projection, counted).
+unless no gap has room (the section is fuller than psi allows: projection, counted). A
+vehicle with no admissible point in any gap is not placed (``dropped``, counted): put
+where it was proposed, it would overlap its neighbours, an impossible start scene that
+the environment then reports as a collision (an over-estimated hidden count did that).
 
 Inference is torch under no_grad, the T_max trials of a step at once, batched over
 snapshots, with the proposal of ``section_model``. ``safe_speeds`` then makes generated
@@ -63,6 +66,7 @@ class SectionCompletion:
     generated: np.ndarray
     trials: np.ndarray  # (S,) trials used over all generated vehicles
     projections: np.ndarray  # (S,) generated vehicles placed by projection
+    dropped: np.ndarray | None = None  # (S,) vehicles not placed: no gap had room
     speed_fixes: np.ndarray | None = None  # (S,) speeds changed by ``safe_speeds``
     wall_s: float = 0.0
 
@@ -296,6 +300,7 @@ def complete_section(
     b = len(snaps)
     trials = np.zeros(b, dtype=np.int64)
     projections = np.zeros(b, dtype=np.int64)
+    dropped = np.zeros(b, dtype=np.int64)
     for step in range(int(scene.k.max()) if b else 0):
         idx = torch.nonzero(scene.k > step).flatten()
         sub = psi.take(idx)
@@ -339,12 +344,14 @@ def complete_section(
         idx_np = idx.numpy()
         trials[idx_np] += pick.numpy() + 1
         failed = np.flatnonzero(~any_ok.numpy())
+        fits = torch.ones(len(idx), dtype=torch.bool)
         if len(failed):
             choice = t.choice[rows, pick]
             for r in failed:
                 window = None if kin is None else partial(_window_of, g, sub, int(r), kin)
                 x, j = _project(road, g, t.probs, int(r), int(choice[r]), float(arc[r]), window)
                 arc[r] = x
+                fits[r] = j >= 0
                 if window is not None and j >= 0:  # its speed into the window where it is
                     off = x - float(g.start[r, j])
                     off = float(np.mod(off, road.length_m)) if road.closed else off
@@ -353,9 +360,11 @@ def complete_section(
                         max(float(v[r]), float(w_lo[0])), max(float(w_lo[0]), float(w_hi[0]))
                     )
             projections[idx_np[failed]] += 1
+            dropped[idx_np] += (~fits).numpy()
         v = torch.minimum(torch.maximum(v, sub.v_min), sub.v_max)
-        scene.place(step, idx, lane, arc, v)
+        scene.place(step, idx, lane, arc, v, fits)
     comp = _unpack(scene, snaps, trials, projections, time.perf_counter() - t0)
+    comp.dropped = dropped
     if brake_mps2 is not None:
         safe_speeds(comp, section, snaps.psi[:, PSI_INDEX["spacing_min_m"]], brake_mps2, reaction_s)
     return comp

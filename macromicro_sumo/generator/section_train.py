@@ -368,6 +368,7 @@ def _summary(g: pd.DataFrame, n_comp: int = 1) -> dict[str, Any]:
         "speed_std_ratio": float(g["std_speed_mps"].mean() / g["true_std_speed_mps"].mean()),
         "feasible_share": float(g["feasible"].mean()),
         "projections": int(g["projections"].sum()),
+        "dropped": int(g["dropped"].sum()),
     }
 
 

@@ -273,14 +273,21 @@ def test_completion_is_feasible_on_the_ring(ring: Section) -> None:
 
 
 def test_overfull_section_projects_and_counts(ring: Section) -> None:
-    """More vehicles than the loop holds at the minimum spacing: every placement without
-    room is projected and counted (no crash, no vehicle dropped)."""
+    """More vehicles than the loop holds at the minimum spacing (an over-estimated hidden
+    count): placements without room are projected and counted, and a vehicle with no room
+    anywhere is dropped and counted, never put onto its neighbours (an impossible scene)."""
     snaps = synthetic(ring, 2, seed=3, mean_gap_m=40.0)
     k = np.full(2, int(ring.length_m / S_MIN) + 10)
     comp = complete_section(untrained(), ring, snaps, k, t_max=5, seed=0)
-    assert np.all(comp.generated.sum(axis=1) == k)
-    assert np.all(comp.projections > 0)
+    assert np.all(comp.generated.sum(axis=1) + comp.dropped == k)
+    assert np.all(comp.projections > 0) and np.all(comp.dropped > 0)
     assert np.all(comp.trials <= 5 * k)
+    for i in range(len(snaps)):
+        for lane in np.unique(comp.lane[i][comp.valid[i]]):
+            on = comp.valid[i] & (comp.lane[i] == lane)
+            a = np.sort(comp.arc_m[i][on])
+            gaps = np.append(np.diff(a), a[0] + ring.length_m - a[-1])
+            assert gaps.min() >= 5.0, (i, lane, gaps.min())
 
 
 def test_completion_is_deterministic_for_a_seed(bremen: Section) -> None:
