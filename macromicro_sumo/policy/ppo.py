@@ -350,11 +350,15 @@ def train_policy(
                     if use_micro and len(im):
                         micro = agent.dist(m_obs[im]).log_prob(m_act[im]).mean()
                         loss = loss - micro
-                        if support is not None:
-                            pick = torch.randint(len(m_all), (len(im),), generator=gen)
-                            anchors = anchor_observations(m_all[pick], gen)
-                            loss = loss + anchor_loss(agent, anchors, support)
                         stats["micro_logp"].append(float(micro.detach()))
+                    if use_micro and support is not None and (len(im) or n_m == 0):
+                        # Where no pair is outside the free regime the anchors still hold
+                        # the residual: without them the policy gradient alone shaped it,
+                        # differently per PPO seed (policy.residual).
+                        n_anchors = len(im) or max(1, len(m_all) // cfg.minibatches)
+                        pick = torch.randint(len(m_all), (n_anchors,), generator=gen)
+                        anchors = anchor_observations(m_all[pick], gen)
+                        loss = loss + anchor_loss(agent, anchors, support)
                     if not loss.requires_grad:
                         continue
                     opt.zero_grad()

@@ -60,8 +60,8 @@ GIPPS_PRIOR_KEYS = (
 )
 KRAUSS_PRIOR_KEYS = (*GIPPS_PRIOR_KEYS, "relax_s")
 PRIOR_KEYS = {"idm": IDM_PRIOR_KEYS, "gipps": GIPPS_PRIOR_KEYS, "krauss": KRAUSS_PRIOR_KEYS}
-# As evaluation.idm_fit (a policy module may not import evaluation; the test checks they agree):
-# a car brakes no harder than SUMO's emergencyDecel default, a gap is never below 0.1 m.
+# Shared with evaluation.idm_fit and krauss_fit, which import them (the numpy twins): a car
+# brakes no harder than SUMO's emergencyDecel default, a gap is never below 0.1 m.
 EMERGENCY_DECEL_MPS2 = 9.0
 MIN_GAP_M = 0.1
 

@@ -22,6 +22,10 @@ and generator, PPO seeds 1 and 2, deployed at 18% and 82% speed-within-5% (docs/
   pseudo-pairs whose recorded action is the prior's, at the pairs' states with the own
   speed redrawn from 0 to 1.2 x the fastest (``anchor_observations``), weighted by how far
   outside the pairs' per-feature range they lie (``support_weight``) or 1 when free.
+  Where every pair is free none is fitted, and the anchors alone hold the residual
+  (``policy.ppo``); without them the policy gradient alone shaped it, its own way per
+  PPO seed (the paper's ring until stop 27: leader-follower RMSE 0.17-0.33 / 0.23-0.35
+  m/s over six seeds; docs/design.md).
 * Pairs that answer another scene. In the rollouts 87% of the observed pairs had a hidden,
   generated leader; behind a generated slow vehicle the prior brakes at -9 m/s^2 where the
   recorded action (which answered the true leader) was ~0. The likelihood per pair was
@@ -45,6 +49,9 @@ from macromicro_sumo.policy.agent import Agent
 # The per-feature range of the pairs that counts as covered (quantiles: a handful of
 # outlying pairs do not stretch it).
 SUPPORT_QUANTILES = (0.005, 0.995)
+# Observation columns of the own limit and the next edge's (the look-ahead layout,
+# road.physics.OBSERVATION_FEATURES["lookahead"]).
+LIMIT_COLUMN, NEXT_LIMIT_COLUMN = 1, 4
 # Anchor speeds are drawn from 0 to this multiple of the fastest pair's speed.
 ANCHOR_SPEED_FACTOR = 1.2
 # Spacing at or above which an observation has no leader (road.section.NO_LEADER_GAP_M):
@@ -81,12 +88,21 @@ def support_weight(
 def free_regime(agent: Agent, obs: torch.Tensor) -> torch.Tensor:
     """(...,) bool: where the prior drives as on an empty road (its acceleration within
     ``FREE_TOL_MPS2`` of the one without a leader): the own desired speed sets the
-    acceleration there, which the observation does not carry."""
+    acceleration there, which the observation does not carry. Under the IDM prior, with a
+    look-ahead, also no lower limit ahead: IDM was fitted without those pairs
+    (``evaluation.idm_fit.no_lower_limit_ahead``: it cannot see the braking for it, which
+    the observation can), so they are the residual's. On the paper's ring that braking was
+    40% of the pairs and every pair was otherwise free; fitted nowhere, the residual was
+    shaped by the policy gradient alone, its own way per PPO seed (docs/design.md,
+    "Leader-follower across PPO seeds")."""
     alone = obs.clone()
     alone[..., 2] = FAR_SPACING_M
     alone[..., 3] = 0.0
     with torch.no_grad():
-        return (agent.prior_accel(obs) - agent.prior_accel(alone)).abs() < FREE_TOL_MPS2
+        free = (agent.prior_accel(obs) - agent.prior_accel(alone)).abs() < FREE_TOL_MPS2
+    if agent.prior == "idm" and obs.shape[-1] > NEXT_LIMIT_COLUMN:
+        free = free & (obs[..., NEXT_LIMIT_COLUMN] >= obs[..., LIMIT_COLUMN])
+    return free
 
 
 def residual_pairs(

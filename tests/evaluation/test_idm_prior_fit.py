@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 
 from macromicro_sumo.evaluation.idm_fit import (
+    BELOW_DESIRED_SHARE,
+    MIN_ACCEL_PAIRS,
     MIN_PRIOR_PAIRS,
     IdmParams,
     calibrate_idm,
@@ -61,3 +63,39 @@ def test_without_a_look_ahead_or_with_too_few_pairs_every_pair_is_fitted() -> No
     from_lookahead, _ = fit_policy_prior("idm", obs[mixed], accel[mixed], LENGTH_M, 0.5)
     from_paper, _ = fit_policy_prior("idm", obs[mixed, :4], accel[mixed], LENGTH_M, 0.5)
     assert from_lookahead == pytest.approx(from_paper)
+
+
+def _cruising_pairs(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Free-road pairs of drivers each cruising at its own desired speed (factor 0.93-0.98
+    of the limit, which the observation does not carry): nine in ten at it, the rest
+    accelerating from up to 25% below it; IDM's acceleration with the driver's own factor,
+    plus noise."""
+    rng = np.random.default_rng(seed)
+    limit = rng.choice([12.0, 13.0, 14.0], n)
+    factor = rng.uniform(0.93, 0.98, n)
+    below = np.where(rng.random(n) < 0.1, rng.uniform(0.0, 0.25, n), 0.0)
+    v = factor * limit * (1.0 - below)
+    spacing = rng.uniform(60.0, 220.0, n)  # the paper ring's: IDM's leader term ~0
+    obs = np.stack([v, limit, spacing, rng.normal(0.0, 0.5, n), limit, np.full(n, 80.0)], axis=1)
+    own = IdmParams(factor, TRUE.tau_s, TRUE.accel_mps2, TRUE.decel_mps2, TRUE.min_gap_m)
+    return obs, idm_policy_accel(obs[:, :4], own, LENGTH_M) + rng.normal(0.0, 0.03, n)
+
+
+def test_the_prior_refits_a_below_the_desired_speed() -> None:
+    """A shared desired speed reads the drivers cruising at their own as weak acceleration:
+    the one-step fit shrinks a; refitted on the pairs below the desired speed it is the
+    drivers' a again, the rest of the fit kept."""
+    obs, accel = _cruising_pairs(4000, 2)
+    once, _ = calibrate_idm(obs[:, :4], accel, LENGTH_M)
+    params, _ = fit_policy_prior("idm", obs, accel, LENGTH_M, 0.5)
+    assert once.accel_mps2 < 0.9
+    assert params["accel_mps2"] == pytest.approx(TRUE.accel_mps2, rel=0.05)
+    assert params["speed_factor"] == pytest.approx(once.speed_factor)
+    assert params["tau_s"] == pytest.approx(once.tau_s)
+    # Too few pairs below the desired speed: the one-step fit stands.
+    near = obs[:, 0] >= BELOW_DESIRED_SHARE * once.speed_factor * obs[:, 1]
+    keep = np.flatnonzero(near)[: len(obs) // 2]
+    keep = np.concatenate([keep, np.flatnonzero(~near)[: MIN_ACCEL_PAIRS - 1]])
+    alone, _ = calibrate_idm(obs[keep, :4], accel[keep], LENGTH_M)
+    params, _ = fit_policy_prior("idm", obs[keep], accel[keep], LENGTH_M, 0.5)
+    assert params["accel_mps2"] == pytest.approx(alone.accel_mps2)

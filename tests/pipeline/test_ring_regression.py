@@ -50,17 +50,18 @@ TOLERANCE = {
     "std_spacing_m": (1e-4, 0.15),
 }
 
-# ``make run`` through the section stages with ring_paper's IDM prior (policy.prior = "idm"),
-# 26 Nov 2026 (stop 26), estimated-count rows of runs/ring_paper/evaluation/macro_alignment_by_k.csv.
+# ``make run`` through the section stages with ring_paper's IDM prior (policy.prior = "idm"; its
+# a refitted below the desired speed, the braking for a lower limit ahead the residual's),
+# 27 Nov 2026 (stop 27), estimated-count rows of evaluation/macro_alignment_by_k.csv.
 REFERENCE: list[tuple] | None = [
     (1, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
     (2, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
     (3, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
     (4, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
-    (1, "policy", 12.018770, 0.493349, 125.663706, 32.464382, 0, 350),
-    (2, "policy", 12.018193, 0.482124, 125.663706, 33.136873, 0, 350),
-    (3, "policy", 12.018807, 0.464820, 125.663706, 32.763195, 0, 350),
-    (4, "policy", 12.028023, 0.448531, 125.663706, 32.391262, 0, 350),
+    (1, "policy", 12.020021, 0.497047, 125.663706, 32.465984, 0, 350),
+    (2, "policy", 12.028754, 0.490536, 125.663706, 33.113864, 0, 350),
+    (3, "policy", 12.039911, 0.473258, 125.663706, 32.706325, 0, 350),
+    (4, "policy", 12.053327, 0.463857, 125.663706, 32.337726, 0, 350),
 ]
 
 

@@ -68,7 +68,6 @@ def test_prior_mean_equals_idm_policy_accel(dim):
     assert want.min() == -idm_fit.EMERGENCY_DECEL_MPS2  # the braking bound was exercised
     # ...and the agent's prior brakes no harder than that bound either.
     assert mean.min() == pytest.approx(-prior_mod.EMERGENCY_DECEL_MPS2, abs=1e-3)
-    assert prior_mod.MIN_GAP_M == idm_fit.MIN_GAP_M
 
 
 def test_no_prior_is_the_actor_alone():

@@ -96,6 +96,24 @@ def test_free_regime_is_where_the_leader_changes_nothing():
     assert free_regime(agent, obs).tolist() == [True, False, False]
 
 
+def test_a_lower_limit_ahead_is_the_residuals_under_the_idm_prior():
+    """IDM was fitted without the pairs braking for a lower limit ahead (it cannot see it;
+    the look-ahead can): on a free road those are the residual's under the IDM prior, and
+    free under Gipps (fitted on them too) or without a look-ahead."""
+    params = idm_prior_params(
+        {"speed_factor": 1.0, "tau_s": 1.2, "accel_mps2": 1.0, "decel_mps2": 2.0}
+        | {"min_gap_m": 2.5, "delta": 4.0},
+        LENGTH_M,
+    )
+    idm = Agent(16, observation="lookahead", prior="idm", prior_params=params)
+    free_road = [[25.0, 30.0, 250.0, 0.0, 30.0, 300.0], [25.0, 30.0, 250.0, 0.0, 20.0, 300.0]]
+    obs = torch.tensor(free_road)  # the next limit the same / lower, 300 m ahead
+    assert free_regime(idm, obs).tolist() == [True, False]
+    assert free_regime(_agent(_pairs(100)), obs).tolist() == [True, True]
+    paper = Agent(16, observation="paper", prior="idm", prior_params=params)
+    assert free_regime(paper, obs[:, :4]).tolist() == [True, True]
+
+
 def test_anchors_pull_a_residual_to_zero_off_its_pairs():
     """A residual that adds 0.5 m/s^2 everywhere is pulled back to ~0 at anchors outside the
     pairs' support and in the free regime, and the loss is 0 for a zero residual."""
@@ -171,3 +189,43 @@ def test_training_fits_the_residual_behind_a_leader_only(trained_ring):
     assert residual[following].mean() > 0.25, residual[following].mean()
     assert abs(residual[~following].mean()) < 0.1, residual[~following].mean()
     assert np.abs(at_rest).max() < 0.1, np.abs(at_rest).max()
+
+
+def test_anchors_hold_the_residual_where_every_pair_is_free(small_ring_gt, tmp_path):
+    """The paper ring's case: every recorded pair is in the prior's free regime (spacing
+    ~126 m), so none is fitted. A residual that starts at +0.5 m/s^2 is pulled back to ~0
+    by the anchors; without them only the policy gradient moved it (to -0.28 here in 4
+    updates; on ring_paper each PPO seed shaped it its own way)."""
+    sc = ring_scenario(
+        tmp_path,
+        {"policy.episodes_per_update": 8, "policy.prior": "idm", "policy.lr": 0.02},
+    )
+    bank, _ = true_state_bank(sc, small_ring_gt)
+    params = idm_prior_params(
+        {"speed_factor": 1.05, "tau_s": 1.2, "accel_mps2": 1.4, "decel_mps2": 2.1}
+        | {"min_gap_m": 2.5, "delta": 4.0},
+        sc.fleet.length_m,
+    )
+    rng = np.random.default_rng(1)
+    obs = lookahead_pairs(rng, 2000, (8.0, 14.0), 13.0, 1000.0, (1000.0, 1000.0), (0, 0), 200.0)
+    obs = obs[:, : len(OBSERVATION_FEATURES[sc.policy.observation])]
+    start = Agent(
+        sc.policy.hidden_size, observation=sc.policy.observation, prior="idm", prior_params=params
+    )
+    assert bool(free_regime(start, torch.as_tensor(obs)).all())
+    with torch.no_grad():
+        accel = start.prior_accel(torch.as_tensor(obs)).numpy() + rng.normal(0.0, 0.2, len(obs))
+    torch.nn.init.constant_(start.actor[-1].bias, 0.5)
+    res = train_policy(
+        sc,
+        bank,
+        tmp_path / "policy",
+        progress=False,
+        updates=4,
+        init=start.state_dict(),
+        prior_params=params,
+        recorded_pairs=(obs, accel),
+    )
+    with torch.no_grad():
+        residual = res["agent"].residual(torch.as_tensor(obs)).numpy()
+    assert abs(residual.mean()) < 0.15, residual.mean()
