@@ -52,16 +52,16 @@ TOLERANCE = {
 
 # ``make run`` through the section stages with ring_paper's IDM prior (policy.prior = "idm"; its
 # a refitted below the desired speed, the braking for a lower limit ahead the residual's),
-# 27 Nov 2026 (stop 27), estimated-count rows of evaluation/macro_alignment_by_k.csv.
+# 27 Nov 2026 (stop 27, --write at 6613956), estimated-count rows of macro_alignment_by_k.csv.
 REFERENCE: list[tuple] | None = [
     (1, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
     (2, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
     (3, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
     (4, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
-    (1, "policy", 12.020021, 0.497047, 125.663706, 32.465984, 0, 350),
-    (2, "policy", 12.028754, 0.490536, 125.663706, 33.113864, 0, 350),
-    (3, "policy", 12.039911, 0.473258, 125.663706, 32.706325, 0, 350),
-    (4, "policy", 12.053327, 0.463857, 125.663706, 32.337726, 0, 350),
+    (1, "policy", 12.014730, 0.501050, 125.663706, 32.540248, 0, 350),
+    (2, "policy", 12.025716, 0.486469, 125.663706, 32.266661, 0, 350),
+    (3, "policy", 12.039729, 0.471668, 125.663706, 31.718662, 0, 350),
+    (4, "policy", 12.045484, 0.453766, 125.663706, 32.812584, 0, 350),
 ]
 
 
