@@ -451,7 +451,15 @@ def read_sumo_detectors(
         ms = numbers(sub, "meanSpeed", path)
         speed[~e1] = np.where(ms < 0, np.nan, ms)
         occ[~e1] = numbers(sub, "meanOccupancy", path)
-        density[~e1] = numbers(sub, "meanVehicleNumber", path) / length[~e1] * 1000.0
+        # SUMO counts a vehicle on an area while any part of it is there (k (l + L) at
+        # density k): less the occupancy (k L) it is k l, as truth.section_detectors reads
+        # its own E2 (vehicle-seconds per second where written, else meanVehicleNumber).
+        if "sampledSeconds" in sub.columns:
+            dur = (end - begin)[~e1]
+            on = numbers(sub, "sampledSeconds", path) / np.where(dur > 0, dur, np.inf)
+        else:
+            on = numbers(sub, "meanVehicleNumber", path)
+        density[~e1] = np.maximum(on - occ[~e1] / 100.0, 0.0) / length[~e1] * 1000.0
     _check_speeds(speed, path, "harmonicMeanSpeed", "m/s", rows)
     frame = _frame(
         {
