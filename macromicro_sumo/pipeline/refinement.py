@@ -22,6 +22,7 @@ every command that takes those takes these), ``refine_log.csv`` (one row per ite
 from __future__ import annotations
 
 import dataclasses
+import shutil
 import time
 from pathlib import Path
 from typing import Any
@@ -30,11 +31,10 @@ import numpy as np
 import pandas as pd
 import torch
 
-from macromicro_sumo.checkpoints import save_torch
 from macromicro_sumo.data.section import SectionSnapshots, section_snapshots, split_runs
 from macromicro_sumo.env.rollout import rollout
 from macromicro_sumo.env.section_bank import SectionBank, with_future
-from macromicro_sumo.files import prepare_out_dir, write_csv, write_stage_manifest
+from macromicro_sumo.files import atomic_path, prepare_out_dir, write_csv, write_stage_manifest
 from macromicro_sumo.generator.reconstruction import mean_reconstruction, reconstruction_loss
 from macromicro_sumo.generator.section_model import SectionGeneratorNet
 from macromicro_sumo.generator.section_sampler import k_of
@@ -220,11 +220,10 @@ def refine(
         out / "generator.pt", net, sc, {"refined_iterations": cfg.refine_iterations}
     )
     last_policy = out / f"iter_{cfg.refine_iterations - 1}" / policy_file("mix")
-    # The last fine-tune's checkpoint as written by PPO (none: the single pass's).
-    payload = torch.load(
-        last_policy if cfg.refine_iterations else policy, map_location="cpu", weights_only=True
-    )
-    save_torch(out / "policy.pt", payload)
+    # The last fine-tune's checkpoint as written by PPO (none: the single pass's), copied
+    # byte for byte: nothing to unpickle.
+    with atomic_path(out / "policy.pt") as tmp:
+        shutil.copyfile(last_policy if cfg.refine_iterations else policy, tmp)
     write_csv(pd.DataFrame(rows), out / "refine_log.csv")
     manifest = build_manifest(sc, command, stage="refine")  # type: ignore[arg-type]
     manifest.update(
