@@ -189,6 +189,10 @@ class DemandCore:
         self.types: dict[str, str] = {}
         self.shapes: dict[str, tuple[float, float, float]] = {}  # vType -> shape
         self.vmax: dict[str, float] = {}  # vType -> maxSpeed [m/s]
+        # Each vehicle's maxSpeed [m/s], its vType's when it arrived (``_arrive``), and those
+        # of the vehicles driven now (``observe``): a step's cap is one array op.
+        self.vmax_of: dict[str, float] = {}
+        self._vmax_driven: np.ndarray = np.zeros(0)
         self.population: set[str] = set()
         self.driven: list[str] = []
         self._speed: np.ndarray = np.zeros(0)
@@ -239,7 +243,7 @@ class DemandCore:
         sim = self.sim
         self.run, self.t = int(run), 0
         self.section = run_section(self.truth, self.run)
-        self.types, self.population, self.driven = {}, set(), []
+        self.types, self.population, self.driven, self.vmax_of = {}, set(), [], {}
         steps = int(round(t0_s / self.dt))
         if fleet_run is not None:
             fleet.insert_fleet(sim, *fleet_run, FLEET_ROUTE_PREFIX)
@@ -263,6 +267,7 @@ class DemandCore:
             if vt not in self.shapes:
                 self.shapes[vt] = sim.vtype_shape(vt)
                 self.vmax[vt] = sim.vtype_max_speed(vt)
+            self.vmax_of[vid] = self.vmax[vt]
             if not is_instrumented(self.sc, vid, vt, self.run):
                 self.population.add(vid)
 
@@ -295,6 +300,7 @@ class DemandCore:
         if gone:
             sim.release_speeds(gone)
         self.driven = now
+        self._vmax_driven = np.fromiter(map(self.vmax_of.__getitem__, now), float, len(now))
         shapes = {v: self.shapes[self.types[v]] for v in states if v in self.types}
         scene = sumo_observations(
             self.observation,
@@ -317,7 +323,7 @@ class DemandCore:
             cmd = np.maximum(0.0, self._speed + np.clip(accel, a_min, a_max) * self.dt)
             # At most the vType's maxSpeed, its physics (as a deployment's, ``deploy.safety``):
             # speed mode 0 would apply a command above it.
-            cmd = np.minimum(cmd, [self.vmax[self.types[v]] for v in driven])
+            cmd = np.minimum(cmd, self._vmax_driven)
             sim.set_speeds(driven, cmd)
         sim.step()
         self.t += 1

@@ -114,7 +114,8 @@ def test_observations_agree_with_the_section_env_and_the_deployment(merge) -> No
 def test_driven_vehicles_are_held_to_their_vtypes_max_speed(merge) -> None:
     """Speed mode 32 applies a command above the vType's maxSpeed; the core holds every
     command to it: read from SUMO (the merge's cars: a passenger car's default), and with
-    the cap the core keeps per vType lowered below the IDM policy's 30 m/s."""
+    the cap the core keeps per vType lowered below the IDM policy's 30 m/s (each vehicle
+    takes its vType's as it arrives: the episode restarted)."""
     sc, truth = merge
     top = {}
     for cap in (None, 20.0):
@@ -124,6 +125,8 @@ def test_driven_vehicles_are_held_to_their_vtypes_max_speed(merge) -> None:
             assert core.vmax and min(core.vmax.values()) > 30.0  # SUMO's, above the limit
             if cap is not None:
                 core.vmax = dict.fromkeys(core.vmax, cap)
+                core.reset(int(truth.runs[0]), 90.0)
+            assert set(core.vmax_of) >= core.population
             fastest = 0.0
             for _ in range(40):
                 vids, obs = core.observe()
