@@ -238,6 +238,12 @@ def _episodes(ro: Rollouts, eps: range) -> Rollouts:
     return Rollouts(*(getattr(ro, a)[eps.start : eps.stop] for a in arrays), 0, ro.errors)
 
 
+def scenario_safety(sc) -> str:
+    """The hidden vehicles' safety layer of the evaluation's rollouts: the scenario's
+    ``policy.safety``, as in training (``env.slot_core``)."""
+    return getattr(sc.policy, "safety", DEFAULT_SAFETY)
+
+
 def _run(
     sc,
     truth: SectionTruth,
@@ -253,8 +259,9 @@ def _run(
     """One method's rollouts of every episode, safety.csv's figures of them (the
     collisions, how often an observed vehicle left its record, how often the hidden
     vehicles' safety layer capped a command) and, given ``by_k``, the rollouts of each K's
-    episodes (seeded ``seed + K``; all of them together are the first)."""
-    safety = safety or DEFAULT_SAFETY
+    episodes (seeded ``seed + K``; all of them together are the first). ``safety``: the
+    hidden vehicles' safety layer, else the scenario's (``policy.safety``)."""
+    safety = safety or scenario_safety(sc)
     core = SectionCore(
         sc,
         truth.section,
@@ -380,7 +387,7 @@ def evaluate_section(
                         seed=sc.seed,
                         fcd_file=fcd / f"{name}.fcd.xml",
                         vclass=vclass,
-                        safety=DEFAULT_SAFETY,
+                        safety=scenario_safety(sc),
                         replay_min_gap_m=recorded_min_gap(truth),
                     )
                     try:
@@ -447,7 +454,7 @@ def evaluate_section(
                 "macro_station_columns": "station_*: each scene's detector interval (psi)",
                 "micro": REFERENCE_MICRO,
             },
-            safety=DEFAULT_SAFETY,
+            safety=scenario_safety(sc),
             idm_calibrated=idm.as_dict() | {"fit_rmse_mps2": idm_rmse},
             idm_true=oracle_note,
             k_estimate=ks,

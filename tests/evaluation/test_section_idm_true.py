@@ -211,3 +211,26 @@ def test_idm_true_is_left_out_where_the_truth_has_no_parameters(field_truth: Pat
     assert note.startswith("idm_true (oracle) left out:") and "\n" not in note
     for model in set(truth.vtypes["car_follow_model"].astype(str)):
         assert model in note
+
+
+def test_the_evaluation_rolls_out_with_the_scenarios_safety_layer(fleet) -> None:
+    """``policy.safety`` holds in evaluation rollouts as in training: with "none" every
+    method's commands apply exactly (nothing capped, no policy-alone rerun), and safety.csv
+    and the manifest say so; the default ("sumo") evaluation beside it, on the same stages."""
+    path, tmp = fleet
+    table = small_fleet_table(N)
+    table["policy"]["safety"] = "none"
+    bare = write_fleet_scenario(tmp, table, "no_safety.toml")
+    gt, gen = tmp / "ground_truth", tmp / "generator" / "generator.pt"
+    args = ["--data", str(gt), "--generator", str(gen), "--policy", str(tmp / "policy/policy.pt")]
+    assert main(["evaluate", str(bare), *args, "--out", str(tmp / "ev_none"), "--quiet"]) == 0
+    for folder, want in (("evaluation", "sumo"), ("ev_none", "none")):
+        safety = pd.read_csv(tmp / folder / "safety.csv")
+        manifest = json.loads((tmp / folder / "evaluation_manifest.json").read_text())
+        assert manifest["safety"] == want, folder
+        # the default adds the policy alone (safety none) beside each policy row
+        assert set(safety["safety"]) == ({"sumo", "none"} if want == "sumo" else {"none"})
+        if want == "none":
+            assert (safety["safety_capped"] == 0).all()
+            assert (safety["hidden_steps"] > 0).all()
+            assert len(safety) == len(pd.read_csv(tmp / "evaluation" / "safety.csv")) - 2
