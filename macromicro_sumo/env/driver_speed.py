@@ -41,8 +41,8 @@ from macromicro_sumo.env.section_bank import (
     initial_observations,
     recordable,
     section_observations,
+    speed_caps,
 )
-from macromicro_sumo.truth.section import load_section
 
 DRIVER_SPEEDS = ("none", "drawn", "memory")
 # The observation columns that are speed limits (own lane, the look-ahead's next edge).
@@ -122,16 +122,6 @@ class RatioEstimate:
             "median": round(self.median, 4),
             "fallback": self.fallback,
         }
-
-
-def speed_caps(sc, truth: SectionTruth) -> dict[str, float]:
-    """Per vType of the demand its vehicles' maxSpeed [m/s] where the vType sets one (the
-    vehicle's cap: SUMO never drives it faster, whatever its driver wants); none for field
-    data (``data.source = "files"``), which has no vTypes."""
-    if sc.data.source == "files" or truth.vtypes.empty:
-        return {}
-    _, _, vtypes = load_section(sc)
-    return {k: float(t.params["maxSpeed"]) for k, t in vtypes.items() if "maxSpeed" in t.params}
 
 
 def observed_drivers(sc, truth: SectionTruth, runs: np.ndarray) -> ObservedDrivers:

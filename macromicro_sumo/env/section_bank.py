@@ -27,6 +27,7 @@ from macromicro_sumo.data.section import (
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, STOP, Section, section_leaders
+from macromicro_sumo.truth.section import load_section
 
 
 @dataclass(frozen=True)
@@ -59,6 +60,9 @@ class SectionBank:
     # (E, N) each slot's desired-speed factor on the limits it observes (``policy.
     # driver_speed``, ``env.driver_speed``); None: 1 for every driver.
     driver_factor: np.ndarray | None = None
+    # (E, N) each slot's vType's maxSpeed [m/s] (``speed_caps``; inf: none): a hidden
+    # vehicle's speed commands are held to it, its physics (as a deployment's); None: no cap.
+    vmax_mps: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.run)
@@ -118,6 +122,7 @@ def build_section_bank(
     dt = sc.simulation.step_length_s
     traj = truth.trajectories
     length_of = dict(zip(truth.vtypes["vtype"], truth.vtypes["length_m"], strict=True))
+    caps = speed_caps(sc, truth)
     runs: dict[int, dict[str, np.ndarray]] = {}
     for r, g in traj.groupby("run", sort=True):
         g = g.sort_values("time_s", kind="stable")
@@ -129,6 +134,7 @@ def build_section_bank(
             "speed": g["speed_mps"].to_numpy(dtype=float),
             "observed": recordable(sc, g),
             "length": g["vtype"].map(length_of).to_numpy(dtype=float),
+            "vmax": g["vtype"].map(caps).fillna(np.inf).to_numpy(dtype=float),
         }
     keep = with_future(truth, snaps, h, dt)
     if not keep.size:
@@ -140,6 +146,7 @@ def build_section_bank(
     e_n, n = arc.shape
     replay = np.full((3, e_n, h + 1, n), np.nan)
     length = np.zeros((e_n, n))
+    vmax = np.full((e_n, n), np.inf)
     windows = []
     for i, (r, t0) in enumerate(zip(snaps.run, snaps.time_s, strict=True)):
         d = runs[int(r)]
@@ -163,13 +170,15 @@ def build_section_bank(
                     f"{lane[i, j]}, {arc[i, j]:.2f} m"
                 )
             slot_of[w["vid"][k]] = j
-            length[i, j] = w["length"][k]
+            length[i, j], vmax[i, j] = w["length"][k], w["vmax"][k]
         for k in range(len(w["time"])):
             j = slot_of.get(w["vid"][k])
             if j is not None:
                 s = w["step"][k]
                 replay[:, i, s, j] = w["lane"][k], w["arc"][k], w["speed"][k]
+    # A generated vehicle is the typical vType, its length and its maxSpeed.
     length[hidden] = typical_length(truth)
+    vmax[hidden] = caps.get(typical_vtype(truth), np.inf)
     spd = replay[2]
     with np.errstate(invalid="ignore"):
         gt_accel = np.diff(spd, axis=1) / dt  # NaN where either end is off the section
@@ -194,6 +203,7 @@ def build_section_bank(
         run=snaps.run,
         time_s=snaps.time_s,
         limits_mps=run_limits_mps(truth, snaps.run),
+        vmax_mps=vmax if np.isfinite(vmax).any() else None,  # None: nothing to cap
     )
 
 
@@ -241,10 +251,26 @@ def typical_vclass(truth: SectionTruth) -> str:
     return str(vt["vclass"].iloc[int(np.argmax(vt["vehicles"].to_numpy()))])
 
 
+def typical_vtype(truth: SectionTruth) -> str:
+    """The vType of generated vehicles: the one with the most vehicles on the section."""
+    vt = truth.vtypes
+    return str(vt["vtype"].iloc[int(np.argmax(vt["vehicles"].to_numpy()))])
+
+
 def typical_length(truth: SectionTruth) -> float:
     """Length of generated vehicles: the vType with the most vehicles on the section."""
     vt = truth.vtypes
     return float(vt["length_m"].iloc[int(np.argmax(vt["vehicles"].to_numpy()))])
+
+
+def speed_caps(sc, truth: SectionTruth) -> dict[str, float]:
+    """Per vType of the demand its vehicles' maxSpeed [m/s] where the vType sets one (the
+    vehicle's cap: SUMO never drives it faster, whatever its driver wants); none for field
+    data (``data.source = "files"``), which has no vTypes."""
+    if sc.data.source == "files" or truth.vtypes.empty:
+        return {}
+    _, _, vtypes = load_section(sc)
+    return {k: float(t.params["maxSpeed"]) for k, t in vtypes.items() if "maxSpeed" in t.params}
 
 
 def recorded_min_gap(truth: SectionTruth) -> float | None:

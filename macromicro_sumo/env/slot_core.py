@@ -201,6 +201,8 @@ class SlotCore:
         bk = self.bank
         a = np.minimum(np.maximum(accel, self.a_min), self.a_max)  # np.clip, faster
         cmd = np.where(self.hidden & run, np.maximum(0.0, self.speed + a * self.dt), 0.0)
+        if bk.vmax_mps is not None:  # at most the vType's maxSpeed, its physics (as deployed):
+            cmd = np.minimum(cmd, bk.vmax_mps[ep])  # SUMO does not cap a command at it
         obs_slots = self.active & ~self.hidden & run
         rv = bk.replay_speed_mps[ep, t + 1]
         gone = obs_slots & np.isnan(rv)
