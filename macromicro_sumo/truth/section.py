@@ -146,7 +146,7 @@ def record_run(
     n_warm = int(round(sc.simulation.warmup_s / dt))
     n_rec = int(round(sc.simulation.duration_s / dt))
     types: dict[str, str] = {}
-    classes: dict[str, str] = {}
+    classes: dict[str, tuple[str, float]] = {}  # vType -> SUMO's (vClass, decel [m/s^2])
     observed: dict[str, bool] = {}
     # One array per column and step (a row per vehicle in Python cost the recording more
     # than SUMO's own step), joined at the end; the lane's columns and the arc from the
@@ -166,10 +166,10 @@ def record_run(
         sim.step()
         new = sim.departed()
         for vid in new:
-            types[vid] = sim.vehicle_type(vid)
-            if types[vid] not in classes:
-                classes[types[vid]] = sim.vehicle_class(types[vid])
-            observed[vid] = is_instrumented(sc, vid, types[vid], run)
+            vt = types[vid] = sim.vehicle_type(vid)
+            if vt not in classes:
+                classes[vt] = (sim.vehicle_class(vt), sim.vtype_shape(vt)[2])
+            observed[vid] = is_instrumented(sc, vid, vt, run)
         collisions += sim.collisions()
         teleports += sim.teleports()
         if step == 0 and fleet_run is not None:
@@ -237,12 +237,12 @@ def run_section(
     progress: bool = True,
     driver_for: Callable[[int], Driver | None] | None = None,
     desc: str = "simulate",
-) -> tuple[list[pd.DataFrame], list[dict], dict[str, str]]:
+) -> tuple[list[pd.DataFrame], list[dict], dict[str, tuple[str, float]]]:
     """Step ``runs`` (SUMO seed ``sc.seed + run``), SUMO's files under ``stage/sumo``;
-    returns (trajectory frames, runs.csv rows, vType -> vClass). ``driver_for(run)``: who
-    drives in that run besides SUMO (a deployment)."""
+    returns (trajectory frames, runs.csv rows, vType -> (vClass, decel)). ``driver_for(run)``:
+    who drives in that run besides SUMO (a deployment)."""
     trajs, rows = [], []
-    vclass: dict[str, str] = {}
+    vclass: dict[str, tuple[str, float]] = {}
     demand = fleet_demand(sc)
     if demand is not None:
         steps = sc.simulation.duration_s / sc.simulation.step_length_s  # refuse before draws
@@ -369,9 +369,10 @@ def simulate_section(
                 {
                     "vtype": v.id,
                     "car_follow_model": v.car_follow_model,
-                    "vclass": vclass.get(v.id, "passenger"),
+                    "vclass": vclass.get(v.id, ("passenger",))[0],
                     "length_m": v.length_m,
                     "min_gap_m": v.min_gap_m,
+                    "decel_mps2": vclass.get(v.id, ("", np.nan))[1],  # SUMO's; NaN: unknown
                     "vehicles": int(traj.loc[traj["vtype"] == v.id, "vehicle_id"].nunique()),
                 }
                 for v in vtypes.values()
