@@ -13,8 +13,8 @@ Read top to bottom as CleanRL's ppo_continuous_action: rollout, GAE, update (the
   Advantages are normalised only when there is no likelihood term (macro_only).
 * With ``policy.prior`` (a residual policy) the likelihood's pairs are the recorded ones
   the prior was fitted on (``recorded_pairs``), the residual is fitted only where a leader
-  changes the prior's action, and anchors hold it at 0 off its pairs (``policy.residual``:
-  why, measured).
+  changes the prior's action and (``policy.residual_pairs``) not on pairs held back far
+  below it, and anchors hold it at 0 off its pairs (``policy.residual``: why, measured).
 * Ablations (``policy.objective``): ``mix`` (the paper), ``micro_only`` (eta = 0: behaviour
   cloning), ``macro_only`` (no likelihood term). An empty minibatch (few samples) is skipped.
 * The env core is a section's ``SectionCore`` (``make_core``; the paper's ring is one); on
@@ -54,7 +54,12 @@ from macromicro_sumo.policy.checkpoint import (
     signature,
 )
 from macromicro_sumo.policy.demand_rollout import collect_demand, demand_log, join_demand
-from macromicro_sumo.policy.residual import anchor_loss, anchor_observations, residual_pairs
+from macromicro_sumo.policy.residual import (
+    anchor_loss,
+    anchor_observations,
+    drops_held_pairs,
+    residual_pairs,
+)
 from macromicro_sumo.policy.rollout import Rollout, collect, collect_batched
 from macromicro_sumo.progress import tqdm
 from macromicro_sumo.scenario.section import SectionScenario
@@ -239,6 +244,9 @@ def train_policy(
             micro_pool = ck.get("micro_pool", [])
             best_val, best_state = ck.get("best_val", best_val), ck.get("best_state_dict")
         a_min, a_max = sc.bounds.accel_mps2
+        # policy.residual_pairs: held-back pairs out of the residual's likelihood.
+        lanes = int(np.max(core.section.n_lanes))
+        drop_held = drops_held_pairs(cfg.residual_pairs, core.section.closed, lanes)
         if recorded_pairs is not None:  # the likelihood's pairs, the same every update
             clipped = clipped_actions(recorded_pairs[1], a_min, a_max)[0]
             fixed_pairs = (
@@ -316,7 +324,7 @@ def train_policy(
             # (policy.residual): anchors are drawn from every pair's state.
             m_all, support = m_obs, None
             if agent.prior != "none" and float(agent.residual_bound) > 0 and n_m > 0:
-                support, m_obs, m_act = residual_pairs(agent, m_obs, m_act)
+                support, m_obs, m_act = residual_pairs(agent, m_obs, m_act, drop_held)
                 n_m = len(m_obs)
             stats: dict[str, list[float]] = {
                 k: [] for k in ("pg_loss", "v_loss", "entropy", "kl", "micro_logp")

@@ -37,6 +37,15 @@ class PolicyConfig:
         doc="with a prior: the largest correction the actor adds to it [m/s^2] (B tanh(out / B); "
         "0: the fitted model alone); unbounded, the residual learned to cancel the IDM's braking",
     )
+    residual_pairs: str = spec(
+        "auto",
+        choices=("auto", "driver", "all"),
+        doc="with a prior: the observed pairs the residual's likelihood fits: driver leaves out "
+        "those accelerating far below the prior (held back by what the observation does not "
+        "carry: a merge, a lane change, a queue beyond the section; policy.residual); all "
+        "keeps them (before stop 28); auto: driver, except all on a closed one-lane section",
+        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+    )
     driver_speed: str = spec(
         "none",
         choices=("none", "drawn", "memory"),

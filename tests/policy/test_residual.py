@@ -16,8 +16,11 @@ from macromicro_sumo.policy.prior import idm_prior_params
 from macromicro_sumo.policy.residual import (
     anchor_loss,
     anchor_observations,
+    drops_held_pairs,
     free_regime,
+    held_back,
     pair_support,
+    residual_pairs,
     support_weight,
 )
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES
@@ -112,6 +115,43 @@ def test_a_lower_limit_ahead_is_the_residuals_under_the_idm_prior():
     assert free_regime(_agent(_pairs(100)), obs).tolist() == [True, True]
     paper = Agent(16, observation="paper", prior="idm", prior_params=params)
     assert free_regime(paper, obs[:, :4]).tolist() == [True, True]
+
+
+def test_held_back_pairs_leave_the_residuals_likelihood():
+    """Following pairs whose drivers chose the prior's action (noise 0.3 m/s^2), 5% of them
+    held back 2.5 m/s^2 below it by something unseen: with drop_held those 5% are out and
+    what the residual is fitted to ((action - prior) of the kept pairs) is ~0; with every
+    pair it is pulled down by ~5% x 2.5 m/s^2. Free pairs are out either way."""
+    rng = np.random.default_rng(3)
+    obs = torch.as_tensor(_pairs(4000))
+    agent = _agent(obs.numpy())
+    with torch.no_grad():
+        prior = agent.prior_accel(obs)
+    held = torch.as_tensor(rng.random(len(obs)) < 0.05)
+    noise = np.clip(rng.normal(0.0, 0.3, len(obs)), -0.9, 0.9)  # within the margin
+    act = prior + torch.as_tensor(noise, dtype=prior.dtype)
+    act = torch.where(held, prior - 2.5, act)
+    assert torch.equal(held_back(agent, obs, act), held)
+    following = ~free_regime(agent, obs)
+    _, o_all, a_all = residual_pairs(agent, obs, act)
+    _, o_drv, a_drv = residual_pairs(agent, obs, act, drop_held=True)
+    assert len(a_all) == int(following.sum())
+    assert len(a_drv) == int((following & ~held).sum())
+    with torch.no_grad():
+        bias_all = float((a_all - agent.prior_accel(o_all)).mean())
+        bias_drv = float((a_drv - agent.prior_accel(o_drv)).mean())
+    assert abs(bias_drv) < 0.03
+    assert bias_all < -0.08
+
+
+def test_held_pairs_stay_on_a_closed_one_lane_section_under_auto():
+    """The leader is a closed one-lane section's only constraint: "auto" keeps every pair
+    there (the paper's ring, bit for bit as before) and drops held ones elsewhere."""
+    assert not drops_held_pairs("auto", closed=True, max_lanes=1)
+    assert drops_held_pairs("auto", closed=True, max_lanes=2)
+    assert drops_held_pairs("auto", closed=False, max_lanes=1)
+    assert drops_held_pairs("driver", closed=True, max_lanes=1)
+    assert not drops_held_pairs("all", closed=False, max_lanes=3)
 
 
 def test_anchors_pull_a_residual_to_zero_off_its_pairs():
