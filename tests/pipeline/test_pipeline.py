@@ -19,9 +19,9 @@ from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.pipeline.build import RESUME, run_stages, standard_stages
 from macromicro_sumo.scenario.load import load_scenario
 
-# Every stage with the smallest budget that still writes all it writes (49 -> 22 s on a
-# loaded machine, from 4 policy updates, 2 FCD episodes, 4 completions a scene, a scene every
-# 5 s and all eight deployed methods).
+# Every stage with the smallest budget that still writes all it writes: 22 s of CPU (was 32,
+# with 4 policy updates, 2 FCD episodes, 4 completions a scene, a scene every 5 s and all
+# eight methods deployed).
 SMALL_RUN = {
     "simulation.n_runs": 4,
     "simulation.duration_s": 120.0,
