@@ -75,10 +75,19 @@ def _train_args(path, gt, gen, out, *extra):
     ]
 
 
-def test_sigkill_then_resume_matches_an_uninterrupted_run(setup, tmp_path):
+@pytest.fixture(scope="module")
+def trained(setup, tmp_path_factory):
+    """One uninterrupted training of ``setup``'s policy (its folder), read by the tests
+    below (a test that changes it works on a copy): three trainings fewer."""
     path, gt, gen = setup
-    ref = tmp_path / "ref"
-    assert cli.main(_train_args(path, gt, gen, ref)) == 0
+    out = tmp_path_factory.mktemp("trained") / "pol"
+    assert cli.main(_train_args(path, gt, gen, out)) == 0
+    return out
+
+
+def test_sigkill_then_resume_matches_an_uninterrupted_run(setup, trained, tmp_path):
+    path, gt, gen = setup
+    ref = trained
     out = tmp_path / "killed"
     ckpt = out / "policy_mix_checkpoint.pt"
     proc = subprocess.Popen(
@@ -128,10 +137,10 @@ def test_resume_from_corrupt_checkpoint_is_refused_and_nothing_overwritten(setup
     assert sorted(p.name for p in out.iterdir()) == ["policy_mix_checkpoint.pt"]
 
 
-def test_resume_from_another_scenario_is_refused(setup, tmp_path, capsys):
+def test_resume_from_another_scenario_is_refused(setup, trained, tmp_path, capsys):
     path, gt, gen = setup
     out = tmp_path / "pol"
-    assert cli.main(_train_args(path, gt, gen, out)) == 0
+    shutil.copytree(trained, out)
     before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
     other = write_scenario(
         tmp_path / "other",
@@ -171,12 +180,14 @@ def test_a_generator_given_as_policy_is_named_for_what_it_is(setup):
         load_checkpoint(gen, load_scenario(path))
 
 
-def test_checkpoints_cut_short_after_their_stage_are_refused_by_name(setup, tmp_path, capsys):
+def test_checkpoints_cut_short_after_their_stage_are_refused_by_name(
+    setup, trained, tmp_path, capsys
+):
     """Generator and policy manifests record their own files: a later stage refuses a
     checkpoint that changed since (issue 19, item 3), before reading a byte of it."""
     path, gt, gen = setup
     pol = tmp_path / "pol"
-    assert cli.main(_train_args(path, gt, gen, pol)) == 0
+    shutil.copytree(trained, pol)
     manifest = json.loads((pol / "policy_manifest.json").read_text())
     assert set(manifest["outputs"]) >= {"policy.pt", "policy_train_log.csv"}
     data = (pol / "policy.pt").read_bytes()
