@@ -10,6 +10,7 @@ generator and the uniform baseline (``section_sampler``) and writes their metric
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from functools import partial
@@ -41,6 +42,7 @@ from macromicro_sumo.files import (
     write_csv,
     write_stage_manifest,
 )
+from macromicro_sumo.generator.pair_dynamics import pair_slope, pair_term, recorded_pair_slope
 from macromicro_sumo.generator.section_metrics import completion_metrics
 from macromicro_sumo.generator.section_model import (
     FEATURE_VERSION,
@@ -172,9 +174,11 @@ def _batch_loss(
     cfg: SectionGeneratorConfig,
     gen: torch.Generator,
     extra: ExtraTerm | None = None,
+    pair_target: float = math.nan,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """Surrogate loss of one batch (reparameterised terms + score-function term for the gap
-    choices, batch-mean baseline) and the batch means of every term."""
+    choices, batch-mean baseline) and the batch means of every term. ``pair_target``: the
+    recorded pairs' correlation L_pair scores against (``generator.lambda_pair``)."""
     scene, log_p = rollout(net, road, snaps, k, gen)
     psi = Psi.of(snaps.psi, speed_spread_target(snaps))
     terms = section_losses(
@@ -209,6 +213,23 @@ def _batch_loss(
         loss = loss + weight * terms[name]
     advantage = (loss - loss.mean()).detach()
     surrogate = loss.mean() + (advantage * log_p).mean()
+    if cfg.lambda_pair > 0:
+        # A batch-level term on the speeds alone: moving the vehicles in their gaps for it
+        # undid the spacing spread (ring: L_var x 6 at the same weight).
+        l_pair = pair_term(
+            scene.lane,
+            scene.arc.detach(),
+            scene.speed,
+            scene.present,
+            scene.k,
+            road,
+            scene.n_obs_slots,
+            pair_target,
+            torch.as_tensor(speed_spread_target(snaps)),
+        )
+        surrogate = surrogate + cfg.lambda_pair * l_pair
+        loss = loss + cfg.lambda_pair * l_pair.detach()
+        terms["L_pair"] = l_pair.expand(len(loss))
     if not surrogate.requires_grad:  # nothing generated (K = 0 throughout): a zero step
         surrogate = surrogate + sum(p.sum() for p in net.parameters()) * 0.0
     stats = {name: float(v.detach().mean()) for name, v in terms.items()}
@@ -223,6 +244,7 @@ def _eval_loss(
     cfg: SectionGeneratorConfig,
     seed: int,
     extra: ExtraTerm | None = None,
+    pair_target: float = math.nan,
 ) -> dict[str, float]:
     """Mean of every term over ``snaps`` with a fixed seed (validation: comparable epochs)."""
     gen = torch.Generator().manual_seed(seed)
@@ -230,7 +252,7 @@ def _eval_loss(
     with torch.no_grad():
         for s in range(0, len(snaps), EVAL_BATCH):
             idx = np.arange(s, min(s + EVAL_BATCH, len(snaps)))
-            _, st = _batch_loss(net, road, snaps.take(idx), k[idx], cfg, gen, extra)
+            _, st = _batch_loss(net, road, snaps.take(idx), k[idx], cfg, gen, extra, pair_target)
             for name, v in st.items():
                 sums[name] = sums.get(name, 0.0) + v * len(idx)
     return {name: v / max(len(snaps), 1) for name, v in sums.items()}
@@ -283,6 +305,12 @@ def _train(
     gen = torch.Generator().manual_seed(sc.seed)
     rng = np.random.default_rng([sc.seed, 31])
     k_train, k_val = k_of(train, cfg.k_source), k_of(val, cfg.k_source)
+    pair_target = math.nan
+    if cfg.lambda_pair > 0:
+        # The micro data: every recorded vehicle where each snapshot hides its own K (the
+        # ring), else the instrumented ones.
+        rec = train.valid if hidden_per_snapshot(sc) else train.valid & train.observed
+        pair_target = recorded_pair_slope(train, rec, road)
 
     def epoch_batches(epoch: int) -> list[Batch]:
         snaps, k = train, k_train
@@ -300,6 +328,7 @@ def _train(
                     cfg=cfg,
                     gen=gen,
                     extra=extra,
+                    pair_target=pair_target,
                 ),
                 len(idx),
             )
@@ -307,7 +336,7 @@ def _train(
         ]
 
     def validate(model: torch.nn.Module) -> dict[str, float]:
-        return _eval_loss(model, road, val, k_val, cfg, sc.seed + 17, extra)
+        return _eval_loss(model, road, val, k_val, cfg, sc.seed + 17, extra, pair_target)
 
     def save(model: torch.nn.Module, epoch: int, best: float) -> None:
         save_section_generator(
@@ -395,6 +424,8 @@ def run_train_section_generator(
         for c in range(n_comp):  # the ring draws 4 per held-out scene: less sampling noise
             comp = fn(net, truth.section, held, k, sc.generator.t_max, sc.seed + c)
             wall_s += comp.wall_s
+            if method == "generator":
+                comp_last = comp
             m = completion_metrics(truth.section, held, comp, k)
             if n_comp > 1:  # the column only where there are several (the CSV as before)
                 m.insert(0, "completion", c)
@@ -407,6 +438,19 @@ def run_train_section_generator(
     if hidden_per_snapshot(sc):  # every held-out snapshot at every K: the ring's table
         for (method, k_true), g in metrics.groupby(["method", "k_true"]):
             summary[f"{method}_K{k_true}"] = _summary(g, n_comp)
+        # How the completed scenes' spread will move once driven (generator/pair_dynamics.py)
+        road = Road.of(truth.section)
+        summary["truth_pair_slope"] = recorded_pair_slope(held, held.valid, road)
+        for kv in np.unique(k):
+            g = k == kv
+            summary.setdefault(f"generator_K{kv}", {})["pair_slope"] = pair_slope(
+                comp_last.lane[g],
+                comp_last.arc_m[g],
+                comp_last.speed_mps[g],
+                comp_last.valid[g],
+                comp_last.valid[g],
+                road,
+            )
     manifest = build_manifest(sc, command, stage="train-section-generator")  # type: ignore[arg-type]
     manifest.update(
         ground_truth=str(data),

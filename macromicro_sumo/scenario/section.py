@@ -214,6 +214,15 @@ class SectionGeneratorConfig:
         "variance against psi's summed variance, added to L_var (0: off; "
         "generator/section_spread.py)",
     )
+    lambda_pair: float = spec(
+        0.0,
+        lo=0.0,
+        hi=1e6,
+        doc="weight of L_pair: per hidden count, the pooled correlation of spacing and leader "
+        "speed - speed over the pairs a generated vehicle touches, against the recorded "
+        "vehicles' own pairs' (how the scene's spread moves once driven; 0: off, the paper; "
+        "generator/pair_dynamics.py)",
+    )
     ema_decay: float = spec(
         0.0,
         lo=0.0,
