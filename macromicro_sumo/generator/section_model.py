@@ -355,8 +355,8 @@ def section_losses(
     if center == "scene" and road.closed:
         # Around a loop A is every spacing of the scene: their mean is exact (the lane
         # loops' lengths over the vehicles), where psi's is an estimate (the paper's ring
-        # as a section: E2 density gives 117.8 m for 125.7 m, and the spread around the
-        # wrong mean reads 60 m^2 too wide, so the generator narrowed the scenes ~4%).
+        # as a section, before E2 counted a vehicle once: 117.8 m for 125.7 m, and the
+        # spread around the wrong mean read 60 m^2 too wide, the scenes ~4% too narrow).
         w = has.double()
         scene_mean = ((sp * w).sum(dim=1) / w.sum(dim=1).clamp(min=1.0)).detach()
     # the touched A is part of the loop: its mean is judged against the loop's exact one

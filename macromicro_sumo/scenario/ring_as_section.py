@@ -263,7 +263,7 @@ def ring_to_section(table: dict[str, Any], folder: Path, file: str) -> dict[str,
     evaluation = table["evaluation"]
     gen.setdefault("eval_completions", evaluation.pop("completions_per_scene", 1))
     if gen["spacing_dispersion"] == "measured":
-        # Around the loop the scene's mean spacing is exact where psi's (E2) reads 6% low,
+        # Around the loop the scene's mean spacing is exact where psi's is an estimate (E2),
         # and the squared error makes the completions' mean spacing variance meet psi's
         # (docs/design.md, "Ring as a section: status", items 2 and 3).
         gen.setdefault("dispersion_center", "scene")
@@ -279,6 +279,11 @@ def ring_to_section(table: dict[str, Any], folder: Path, file: str) -> dict[str,
         gen.setdefault("hidden_layers", 2)
         gen.setdefault("ema_warmup", True)
         gen.setdefault("min_epochs", 150)
+        # ... and speeds that go with their gaps as the recorded pairs' do: without it the
+        # completions put the faster cars into the longer gaps and every method's rollout
+        # closed the spacing spread 3% at K = 3 (docs/design.md, "Which speed goes with which
+        # gap (stop 28)")
+        gen.setdefault("lambda_pair", 0.1)
 
     table["simulation"].setdefault("warmup_s", 0.0)  # the ring records from the insertion on
     detectors = table["detectors"]
