@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "macromicro_sumo"
@@ -33,6 +34,7 @@ RANK = {
 }
 
 
+@functools.cache  # parsed once for the module's tests (they only read the trees)
 def _modules() -> dict[str, ast.Module]:
     out = {}
     for path in PACKAGE.rglob("*.py"):
