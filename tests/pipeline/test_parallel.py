@@ -16,6 +16,7 @@ from fleet_scenarios import small_fleet_table, write_fleet_scenario
 
 from macromicro_sumo.files import write_json, writer_session
 from macromicro_sumo.manifest import build_manifest
+from macromicro_sumo.pipeline import build
 from macromicro_sumo.pipeline.build import SECTION, Stage, run_pipeline, run_stages
 from macromicro_sumo.pipeline.parallel import can_ship
 from macromicro_sumo.scenario.load import load_scenario
@@ -88,6 +89,26 @@ def test_a_stage_a_worker_cannot_import_runs_here(make_scenario, tmp_path) -> No
     with writer_session():
         run_stages(sc, stages, out, "", False, jobs=2)
     assert _pid(out, "both", "c") == _pid(out, "both", "b") == os.getpid()
+
+
+def test_the_pipelines_own_stages_can_go_to_a_worker(make_scenario, tmp_path, monkeypatch):
+    """What a worker needs of ``run_pipeline``'s real stages that run side by side (the
+    policies, the evaluation, the deployment): each pickles (module-level functions and
+    partials of plain arguments). The default run's pipelines run one stage after the other
+    (conftest.py); their run in workers is the slow test below."""
+    seen: dict[str, bool] = {}
+
+    def record(sc, stages, out, command, progress, jobs=1):
+        seen.update({s.name: can_ship(s.run) for s in stages})
+        return {}
+
+    monkeypatch.setattr(build, "run_stages", record)
+    monkeypatch.setattr(build, "write_report", lambda *args: None)
+    with writer_session():
+        run_pipeline(load_scenario(make_scenario()), SECTION, tmp_path / "run", "", False)
+    side = ["train_policy", "train_policy_micro_only", "train_policy_macro_only"]
+    side += ["evaluate", "deploy"]
+    assert {name: seen.get(name) for name in side} == dict.fromkeys(side, True), seen
 
 
 @pytest.mark.slow
