@@ -279,11 +279,6 @@ def ring_to_section(table: dict[str, Any], folder: Path, file: str) -> dict[str,
         gen.setdefault("hidden_layers", 2)
         gen.setdefault("ema_warmup", True)
         gen.setdefault("min_epochs", 150)
-        # ... and speeds that go with their gaps as the recorded pairs' do: without it the
-        # completions put the faster cars into the longer gaps and every method's rollout
-        # closed the spacing spread 3% at K = 3 (docs/design.md, "Which speed goes with which
-        # gap (stop 28)")
-        gen.setdefault("lambda_pair", 0.1)
 
     table["simulation"].setdefault("warmup_s", 0.0)  # the ring records from the insertion on
     detectors = table["detectors"]
