@@ -51,17 +51,18 @@ TOLERANCE = {
 }
 
 # ``make run`` through the section stages with ring_paper's IDM prior (policy.prior = "idm"; its
-# a refitted below the desired speed, the braking for a lower limit ahead the residual's),
-# 27 Nov 2026 (stop 27, --write at 6613956), estimated-count rows of macro_alignment_by_k.csv.
+# a refitted below the desired speed, the braking for a lower limit ahead the residual's) and
+# generator.lambda_pair = 0.1, 27 Nov 2026 (stop 28, a fresh clone's make run at 14c9466),
+# estimated-count rows of macro_alignment_by_k.csv.
 REFERENCE: list[tuple] | None = [
     (1, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
     (2, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
     (3, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
     (4, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
-    (1, "policy", 12.014730, 0.501050, 125.663706, 32.540248, 0, 350),
-    (2, "policy", 12.025716, 0.486469, 125.663706, 32.266661, 0, 350),
-    (3, "policy", 12.039729, 0.471668, 125.663706, 31.718662, 0, 350),
-    (4, "policy", 12.045484, 0.453766, 125.663706, 32.812584, 0, 350),
+    (1, "policy", 12.018680, 0.496399, 125.663706, 32.345927, 0, 350),
+    (2, "policy", 12.023768, 0.485159, 125.663706, 32.716252, 0, 350),
+    (3, "policy", 12.030294, 0.465219, 125.663706, 32.532624, 0, 350),
+    (4, "policy", 12.042407, 0.448359, 125.663706, 33.620106, 0, 350),
 ]
 
 
