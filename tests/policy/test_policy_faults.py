@@ -97,13 +97,13 @@ def test_sigkill_then_resume_matches_an_uninterrupted_run(setup, trained, tmp_pa
     )
     deadline = time.time() + 120
     while time.time() < deadline and proc.poll() is None:
-        if ckpt.is_file() and torch.load(ckpt, weights_only=False)["update"] >= 4:
+        if ckpt.is_file() and torch.load(ckpt, weights_only=True)["update"] >= 4:
             break
         time.sleep(0.05)
     assert proc.poll() is None, "training finished before it could be killed"
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
-    done = torch.load(ckpt, weights_only=False)["update"]
+    done = torch.load(ckpt, weights_only=True)["update"]
     assert done < UPDATES and not (out / "policy.pt").exists()
     assert cli.main(_train_args(path, gt, gen, out, "--resume")) == 0
     log, ref_log = (
@@ -114,8 +114,8 @@ def test_sigkill_then_resume_matches_an_uninterrupted_run(setup, trained, tmp_pa
     # Weights, optimiser and RNG states were restored: the resumed run is the same run.
     cols = ["r_macro", "r_micro_per_pair", "pg_loss", "collisions"]
     pd.testing.assert_frame_equal(log[cols], ref_log[cols], rtol=1e-5)
-    a = torch.load(out / "policy.pt", weights_only=False)["state_dict"]
-    b = torch.load(ref / "policy.pt", weights_only=False)["state_dict"]
+    a = torch.load(out / "policy.pt", weights_only=True)["state_dict"]
+    b = torch.load(ref / "policy.pt", weights_only=True)["state_dict"]
     for k in a:
         torch.testing.assert_close(a[k], b[k])
 
