@@ -179,6 +179,9 @@ def build_section_bank(
     # A generated vehicle is the typical vType, its length and its maxSpeed.
     length[hidden] = typical_length(truth)
     vmax[hidden] = caps.get(typical_vtype(truth), np.inf)
+    # ... and starts at most at it: above it SUMO would slow it down in the first step, a
+    # deceleration that no driver chose (its commands are held to it from then on).
+    speed = np.where(hidden & valid, np.minimum(speed, vmax), speed)
     spd = replay[2]
     with np.errstate(invalid="ignore"):
         gt_accel = np.diff(spd, axis=1) / dt  # NaN where either end is off the section

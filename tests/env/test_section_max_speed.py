@@ -75,6 +75,10 @@ def test_hidden_vehicles_never_exceed_their_vtypes_max_speed(vans) -> None:
     assert cap is not None and (cap[bank.hidden] == VAN_MAX_MPS).all()
     assert set(np.unique(cap[bank.observed])) == {VAN_MAX_MPS, CAR_MAX_MPS}
     assert np.isinf(cap[~bank.valid]).all()
+    # They also start at most at it, where the completion had them faster (the true cars).
+    _, _, speed, valid, generated = (np.asarray(x) for x in true_completion(snaps))
+    assert (speed[valid & generated] > VAN_MAX_MPS + 1.0).any()
+    assert (bank.speed0_mps[bank.hidden] <= VAN_MAX_MPS + 1e-9).all()
     push = lambda core, obs, rng: np.full(int(core.hidden.sum()), 2.6)  # noqa: E731
     top = {}
     for name, b in (("capped", bank), ("uncapped", dataclasses.replace(bank, vmax_mps=None))):
