@@ -178,7 +178,7 @@ def _batch_loss(
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """Surrogate loss of one batch (reparameterised terms + score-function term for the gap
     choices, batch-mean baseline) and the batch means of every term. ``pair_target``: the
-    recorded pairs' correlation L_pair scores against (``generator.lambda_pair``)."""
+    recorded pairs' slope L_pair scores against (``generator.lambda_pair``)."""
     scene, log_p = rollout(net, road, snaps, k, gen)
     psi = Psi.of(snaps.psi, speed_spread_target(snaps))
     terms = section_losses(
@@ -225,7 +225,7 @@ def _batch_loss(
             road,
             scene.n_obs_slots,
             pair_target,
-            torch.as_tensor(speed_spread_target(snaps)),
+            psi.v_std,
         )
         surrogate = surrogate + cfg.lambda_pair * l_pair
         loss = loss + cfg.lambda_pair * l_pair.detach()
@@ -418,14 +418,14 @@ def run_train_section_generator(
     write_csv(log, out / "generator_train_log.csv")
     k = k_of(held, sc.generator.k_source)
     frames, timings = [], {"train_generator": round(train_s, 3)}
+    first: dict[str, Any] = {}  # each method's first completion
     n_comp = sc.generator.eval_completions
     for method, fn in (("generator", complete_section), ("uniform", uniform_completion)):
         wall_s = 0.0
         for c in range(n_comp):  # the ring draws 4 per held-out scene: less sampling noise
             comp = fn(net, truth.section, held, k, sc.generator.t_max, sc.seed + c)
+            first.setdefault(method, comp)
             wall_s += comp.wall_s
-            if method == "generator":
-                comp_last = comp
             m = completion_metrics(truth.section, held, comp, k)
             if n_comp > 1:  # the column only where there are several (the CSV as before)
                 m.insert(0, "completion", c)
@@ -438,18 +438,15 @@ def run_train_section_generator(
     if hidden_per_snapshot(sc):  # every held-out snapshot at every K: the ring's table
         for (method, k_true), g in metrics.groupby(["method", "k_true"]):
             summary[f"{method}_K{k_true}"] = _summary(g, n_comp)
-        # How the completed scenes' spread will move once driven (generator/pair_dynamics.py)
-        road = Road.of(truth.section)
+        # How the completed scenes' spread will move once driven (generator/pair_dynamics.py):
+        # the first generator completion's pairs per K beside the recorded scenes' own.
+        road, gen_c = Road.of(truth.section), first["generator"]
         summary["truth_pair_slope"] = recorded_pair_slope(held, held.valid, road)
         for kv in np.unique(k):
             g = k == kv
+            c = (gen_c.lane[g], gen_c.arc_m[g], gen_c.speed_mps[g], gen_c.valid[g])
             summary.setdefault(f"generator_K{kv}", {})["pair_slope"] = pair_slope(
-                comp_last.lane[g],
-                comp_last.arc_m[g],
-                comp_last.speed_mps[g],
-                comp_last.valid[g],
-                comp_last.valid[g],
-                road,
+                *c, gen_c.valid[g], road
             )
     manifest = build_manifest(sc, command, stage="train-section-generator")  # type: ignore[arg-type]
     manifest.update(

@@ -218,10 +218,10 @@ class SectionGeneratorConfig:
         0.0,
         lo=0.0,
         hi=1e6,
-        doc="weight of L_pair: per hidden count, the pooled correlation of spacing and leader "
-        "speed - speed over the pairs a generated vehicle touches, against the recorded "
-        "vehicles' own pairs' (how the scene's spread moves once driven; 0: off, the paper; "
-        "generator/pair_dynamics.py)",
+        doc="weight of L_pair: per hidden count, the pooled slope of leader speed - speed on "
+        "spacing over the pairs a generated vehicle touches against the recorded vehicles' own "
+        "pairs' (how the scene's spread moves once driven), plus the scenes' pooled speed "
+        "variance against the detectors' (0: off, the paper; generator/pair_dynamics.py)",
     )
     ema_decay: float = spec(
         0.0,

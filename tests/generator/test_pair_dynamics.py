@@ -14,7 +14,6 @@ from macromicro_sumo.generator.pair_dynamics import (
     SLOPE_SCALE,
     pair_states,
     pair_term,
-    pooled_correlation,
     pooled_slope,
     recorded_pair_slope,
 )
@@ -36,14 +35,14 @@ def test_pairs_follow_the_loop(ring_loop: Section) -> None:
     assert counts.all()
 
 
-def test_pooled_correlation_is_pearsons() -> None:
+def test_pooled_slope_is_least_squares() -> None:
     rng = np.random.default_rng(3)
     x, y = rng.normal(size=200), rng.normal(size=200)
     y = y + 0.5 * x
     w = rng.random(200) < 0.7
-    got = pooled_correlation(torch.as_tensor(x), torch.as_tensor(y), torch.as_tensor(w))
-    assert math.isclose(float(got), np.corrcoef(x[w], y[w])[0, 1], rel_tol=1e-9)
-    assert math.isnan(float(pooled_correlation(torch.zeros(2), torch.zeros(2), torch.ones(2))))
+    got = pooled_slope(torch.as_tensor(x), torch.as_tensor(y), torch.as_tensor(w))
+    assert math.isclose(float(got), np.polyfit(x[w], y[w], 1)[0], rel_tol=1e-9)
+    assert math.isnan(float(pooled_slope(torch.zeros(2), torch.zeros(2), torch.ones(2))))
 
 
 def _scenes_with_correlation(section: Section, n: int, slope: float, seed: int):
@@ -85,10 +84,9 @@ def _speed_var(scene) -> torch.Tensor:
     return (w * (scene.speed - m[:, None]) ** 2).sum(1) / (w.sum(1) - 1)  # sample variance
 
 
-def test_the_term_trains_speeds_not_positions(ring_loop: Section) -> None:
-    """Zero where the batch already has the target slope and speed spread; its gradient
-    reaches the generated speeds and, detached as the generator passes them, not the
-    positions; 0 without a target."""
+def test_the_term_is_zero_at_its_targets_and_trains_the_speeds(ring_loop: Section) -> None:
+    """Zero where the batch already has the target slope and speed spread, one per
+    SLOPE_SCALE off; its gradient reaches the generated speeds; 0 without a target."""
     scene, _, road, _ = completed(ring_loop, 60, 2)
     one = scene.k == 2
     sub = (scene.lane[one], scene.arc[one], scene.speed[one], scene.present[one], scene.k[one])

@@ -8,6 +8,7 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 from conftest import write_scenario
@@ -73,6 +74,17 @@ def test_run_writes_every_stage_and_the_report(pipeline):
     report = (out / "report.md").read_text()
     assert "## Macro alignment" in report and "| policy |" in report
     assert "paper policy" in report and "Targets for `policy`" in report  # the paper's ring
+
+
+def test_generator_manifest_gives_the_pairs_slope_per_k(pipeline):
+    """The ring's generator summary: the completions' slope of dv on spacing per K beside
+    the recorded scenes' own (how the completed scenes' spread moves once driven)."""
+    _, out = pipeline
+    summary = json.loads((out / "generator" / "generator_manifest.json").read_text())["summary"]
+    assert np.isfinite(summary["truth_pair_slope"])
+    per_k = [v["pair_slope"] for k, v in summary.items() if k.startswith("generator_K")]
+    assert len(per_k) == 4 and all(np.isfinite(per_k))
+    assert all(abs(s) < 0.2 for s in [summary["truth_pair_slope"], *per_k])  # [1/s]
 
 
 def test_macro_alignment_has_every_method_and_ground_truth_is_the_recording(pipeline):
