@@ -43,10 +43,11 @@ from macromicro_sumo.env.section_bank import (
     section_observations,
     speed_caps,
 )
+from macromicro_sumo.road.physics import LIMIT_COLUMN, NEXT_LIMIT_COLUMN
 
 DRIVER_SPEEDS = ("none", "drawn", "memory")
 # The observation columns that are speed limits (own lane, the look-ahead's next edge).
-LIMIT_COLUMNS = (1, 4)
+LIMIT_COLUMNS = (LIMIT_COLUMN, NEXT_LIMIT_COLUMN)
 # A sample is free when the leader is at least this many seconds ahead at the own speed
 # (plus FREE_GAP_M): Krauss' drivers follow at ~1 s, so at 2 s the leader does not bind
 # (its safe speed is above the own: at 40 m/s, 90 m behind a 38 m/s leader, 43 m/s), and

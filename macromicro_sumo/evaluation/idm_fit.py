@@ -27,7 +27,7 @@ from macromicro_sumo.policy.prior import (
     PRIOR_KEYS,
     idm_prior_params,
 )
-from macromicro_sumo.road.physics import idm_accel
+from macromicro_sumo.road.physics import LIMIT_COLUMN, idm_accel, no_lower_limit_ahead
 
 
 @dataclass(frozen=True)
@@ -154,21 +154,6 @@ MIN_PRIOR_PAIRS = 500
 # where at least MIN_ACCEL_PAIRS are (``refit_free_accel``).
 BELOW_DESIRED_SHARE = 0.95
 MIN_ACCEL_PAIRS = 100
-# Observation columns of the look-ahead (road.physics.OBSERVATION_FEATURES["lookahead"]).
-LIMIT_COLUMN, NEXT_LIMIT_COLUMN = 1, 4
-
-
-def no_lower_limit_ahead(obs: np.ndarray) -> np.ndarray:
-    """(N,) bool: the pairs whose next edge's limit is not below the own one (all of them
-    where the observation has no look-ahead). Why: SUMO's drivers start braking for a lower
-    limit ahead long before they reach it, which IDM's [v, v_limit, spacing, delta_v] cannot
-    see. Fitted to every pair of the paper's ring, IDM took those for drivers that barely
-    accelerate (a = 0.18 m/s^2, the fleet's 0.8-1.2): in the leader-follower tests it fell
-    0.78 / 0.55 m/s behind the fleet's IDM; on these pairs (60%) a = 0.53, 0.22 / 0.20 m/s
-    (docs/design.md, "Leader-follower across PPO seeds")."""
-    if obs.shape[-1] <= NEXT_LIMIT_COLUMN:
-        return np.ones(len(obs), dtype=bool)
-    return obs[:, NEXT_LIMIT_COLUMN] >= obs[:, LIMIT_COLUMN]
 
 
 def refit_free_accel(

@@ -30,11 +30,7 @@ from macromicro_sumo.deploy.stage import deploy
 from macromicro_sumo.env.driver_speed import krauss_pairs
 from macromicro_sumo.env.section_bank import typical_length
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.evaluation.idm_fit import (
-    MIN_PRIOR_PAIRS,
-    fit_policy_prior,
-    no_lower_limit_ahead,
-)
+from macromicro_sumo.evaluation.idm_fit import MIN_PRIOR_PAIRS, fit_policy_prior
 from macromicro_sumo.evaluation.krauss_fit import fit_krauss, network_defaults
 from macromicro_sumo.evaluation.methods import LEARNED, checkpoint_name
 from macromicro_sumo.evaluation.section import evaluate_section, micro_pairs
@@ -48,6 +44,7 @@ from macromicro_sumo.policy.checkpoint import policy_file
 from macromicro_sumo.policy.stage import PriorFit, run_train_policy
 from macromicro_sumo.report.deploy import make_deploy_plots
 from macromicro_sumo.report.write import write_report
+from macromicro_sumo.road.physics import no_lower_limit_ahead
 from macromicro_sumo.truth.section import simulate_section
 
 # The one resume rule of the pipeline (``policy.checkpoint.resumable_checkpoint``): a

@@ -55,13 +55,11 @@ from __future__ import annotations
 import torch
 
 from macromicro_sumo.policy.agent import Agent
+from macromicro_sumo.road.physics import no_lower_limit_ahead
 
 # The per-feature range of the pairs that counts as covered (quantiles: a handful of
 # outlying pairs do not stretch it).
 SUPPORT_QUANTILES = (0.005, 0.995)
-# Observation columns of the own limit and the next edge's (the look-ahead layout,
-# road.physics.OBSERVATION_FEATURES["lookahead"]).
-LIMIT_COLUMN, NEXT_LIMIT_COLUMN = 1, 4
 # Anchor speeds are drawn from 0 to this multiple of the fastest pair's speed.
 ANCHOR_SPEED_FACTOR = 1.2
 # Spacing at or above which an observation has no leader (road.section.NO_LEADER_GAP_M):
@@ -105,7 +103,7 @@ def free_regime(agent: Agent, obs: torch.Tensor) -> torch.Tensor:
     ``FREE_TOL_MPS2`` of the one without a leader): the own desired speed sets the
     acceleration there, which the observation does not carry. Under the IDM prior, with a
     look-ahead, also no lower limit ahead: IDM was fitted without those pairs
-    (``evaluation.idm_fit.no_lower_limit_ahead``: it cannot see the braking for it, which
+    (``road.physics.no_lower_limit_ahead``: it cannot see the braking for it, which
     the observation can), so they are the residual's. On the paper's ring that braking was
     40% of the pairs and every pair was otherwise free; fitted nowhere, the residual was
     shaped by the policy gradient alone, its own way per PPO seed (docs/design.md,
@@ -115,8 +113,8 @@ def free_regime(agent: Agent, obs: torch.Tensor) -> torch.Tensor:
     alone[..., 3] = 0.0
     with torch.no_grad():
         free = (agent.prior_accel(obs) - agent.prior_accel(alone)).abs() < FREE_TOL_MPS2
-    if agent.prior == "idm" and obs.shape[-1] > NEXT_LIMIT_COLUMN:
-        free = free & (obs[..., NEXT_LIMIT_COLUMN] >= obs[..., LIMIT_COLUMN])
+    if agent.prior == "idm":
+        free = free & no_lower_limit_ahead(obs)
     return free
 
 

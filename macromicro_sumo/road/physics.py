@@ -43,6 +43,22 @@ OBSERVATION_FEATURES = {
         "dist_to_next_m",
     ),
 }
+# Columns of the own lane's limit and the next edge's limit (both layouts; "paper" has no
+# next edge).
+LIMIT_COLUMN, NEXT_LIMIT_COLUMN = 1, 4
+
+
+def no_lower_limit_ahead(obs):
+    """(...,) bool of (..., F) observations, numpy or torch: the next edge's limit is not
+    below the own one (all True where the observation has no look-ahead). Why: SUMO's
+    drivers start braking for a lower limit ahead long before they reach it, which IDM's
+    [v, v_limit, spacing, delta_v] cannot see. Fitted to every pair of the paper's ring, IDM
+    took those for drivers that barely accelerate (a = 0.18 m/s^2, the fleet's 0.8-1.2): in
+    the leader-follower tests it fell 0.78 / 0.55 m/s behind the fleet's IDM; on these pairs
+    (60%) a = 0.53, 0.22 / 0.20 m/s (docs/design.md, "Leader-follower across PPO seeds")."""
+    if obs.shape[-1] <= NEXT_LIMIT_COLUMN:  # every pair (``| True``: NaN limits too)
+        return (obs[..., LIMIT_COLUMN] == obs[..., LIMIT_COLUMN]) | True
+    return obs[..., NEXT_LIMIT_COLUMN] >= obs[..., LIMIT_COLUMN]
 
 
 def brake_gap(speed_mps: np.ndarray, decel_mps2: np.ndarray | float, dt_s: float) -> np.ndarray:

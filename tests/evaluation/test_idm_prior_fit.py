@@ -15,8 +15,8 @@ from macromicro_sumo.evaluation.idm_fit import (
     calibrate_idm,
     fit_policy_prior,
     idm_policy_accel,
-    no_lower_limit_ahead,
 )
+from macromicro_sumo.road.physics import no_lower_limit_ahead
 
 TRUE = IdmParams(speed_factor=0.95, tau_s=1.3, accel_mps2=1.0, decel_mps2=1.5, min_gap_m=2.5)
 LENGTH_M = 5.0

@@ -1,5 +1,5 @@
 """The policy manifest's ``prior.pairs`` counts the pairs the prior was fitted on: the IDM
-prior takes only those with no lower limit ahead (``evaluation.idm_fit.no_lower_limit_ahead``),
+prior takes only those with no lower limit ahead (``road.physics.no_lower_limit_ahead``),
 and the count says so (real SUMO: a road whose limit drops from 30 to 15 m/s)."""
 
 from __future__ import annotations
@@ -14,9 +14,10 @@ from conftest import dump_toml
 sys.path.insert(0, str(Path(__file__).parents[1] / "deploy"))
 from deploy_nets import netconvert  # noqa: E402
 
-from macromicro_sumo.evaluation.idm_fit import MIN_PRIOR_PAIRS, no_lower_limit_ahead  # noqa: E402
+from macromicro_sumo.evaluation.idm_fit import MIN_PRIOR_PAIRS  # noqa: E402
 from macromicro_sumo.evaluation.section import micro_pairs  # noqa: E402
 from macromicro_sumo.pipeline.build import fit_residual_prior  # noqa: E402
+from macromicro_sumo.road.physics import no_lower_limit_ahead  # noqa: E402
 from macromicro_sumo.scenario.load import load_scenario  # noqa: E402
 from macromicro_sumo.truth.section import load_section_truth, simulate_section  # noqa: E402
 
