@@ -77,6 +77,42 @@ def station_density(e1: pd.DataFrame, section: Section) -> pd.Series:
     return per_lane * lanes
 
 
+def e2_covered_density(e2: pd.DataFrame, section: Section) -> float:
+    """Density per lane (veh/km) of one interval's lane-area (E2) detectors over the
+    lane-metres they cover, each covered metre once: where detectors overlap, the mean of
+    theirs. A mean over the detectors by their lengths counts an overlap twice (two E2s that
+    share 50 m of a lane put its density in twice) and so leans towards it; over the covered
+    metres a tiling of the section reads its vehicles exactly whatever the density along it.
+    A detector runs ``length_m`` along the arc from ``arc_m`` on its lane index of each edge
+    it crosses (past the closing point of a loop, on from its start; junctions are not
+    covered). No covered metre (no finite density): their mean by length."""
+    pieces: dict[tuple[int, int], list[tuple[float, float, float]]] = {}
+    cols = ["arc_m", "length_m", "lane_index", "density_vpkm"]
+    shifts = (0.0, -section.length_m) if section.closed else (0.0,)
+    for a0, length, lane, k in e2[cols].itertuples(index=False):
+        if not (np.isfinite(k) and length > 0):
+            continue
+        for e, shift in ((e, x) for e in range(len(section.edge_ids)) for x in shifts):
+            lo = max(float(a0) + shift, float(section.offsets_m[e]))
+            hi = min(float(a0 + length) + shift, float(section.offsets_m[e] + section.lengths_m[e]))
+            if hi > lo and int(lane) < int(section.n_lanes[e]):
+                pieces.setdefault((e, int(lane)), []).append((lo, hi, float(k)))
+    covered_m = vehicles_km = 0.0
+    for spans in pieces.values():
+        cuts = np.unique([x for lo, hi, _ in spans for x in (lo, hi)])
+        for lo, hi in zip(cuts[:-1], cuts[1:], strict=True):
+            k = [kk for a, b, kk in spans if a <= lo and b >= hi]
+            if k:
+                covered_m += hi - lo
+                vehicles_km += float(np.mean(k)) * (hi - lo)
+    if covered_m > 0:
+        return vehicles_km / covered_m
+    ok = np.isfinite(e2["density_vpkm"]) & (e2["length_m"] > 0)
+    if not ok.any():
+        return float("nan")
+    return float(np.average(e2.loc[ok, "density_vpkm"], weights=e2.loc[ok, "length_m"]))
+
+
 def integrate_stations(
     per_station: pd.Series, section: Section, lo_m: float = 0.0, hi_m: float | None = None
 ) -> float:
@@ -101,8 +137,8 @@ def detector_macro(
     """Macro statistics per run and interval as the section's detectors estimate them.
 
     Speed: space-mean (E2 weighted by time on the detector; E1 harmonic means weighted by
-    counts). Density per lane: E2 vehicles per metre, E1 flow / speed, averaged over the
-    detectors. Vehicles on the section: E1 stations' density summed over their lanes and
+    counts). Density per lane: E2 vehicles per metre over the lane-metres they cover
+    (``e2_covered_density``), E1 flow / speed averaged over the detectors. Vehicles on the section: E1 stations' density summed over their lanes and
     integrated along the arc (each station stands for the stretch half-way to its
     neighbours: lane counts that change along the section are weighted right); E2: their
     vehicles scaled to the section's lane length. Spacing spread and speed bounds: from
@@ -122,7 +158,7 @@ def detector_macro(
             ss = e2["sampled_seconds_s"].to_numpy()
             v = e2["speed_mps"].to_numpy()
             speed = float(np.nansum(v * ss) / ss.sum()) if ss.sum() > 0 else np.nan
-            density = float(np.average(e2["density_vpkm"], weights=e2["length_m"]))
+            density = e2_covered_density(e2, section)
             vehicles = vehicles_fs = density / 1000.0 * section.lane_length_m
         else:
             n, v = e1["n_veh"].to_numpy(), e1["speed_mps"].to_numpy()

@@ -21,6 +21,7 @@ from conftest import NETS, dump_toml, netconvert
 
 from macromicro_sumo.cli import main
 from macromicro_sumo.road.section import Section
+from macromicro_sumo.truth.section_macro import e2_covered_density
 
 RING2 = NETS / "ring2_r100"
 
@@ -33,22 +34,24 @@ def e2_line(did: str, lane: str, pos_m: float, length_m: float) -> str:
 
 
 def open_road(folder: Path) -> Path:
-    """Three two-lane edges of 150 m, the last limited to 6 m/s so that a queue stands on it,
-    cars and trucks; E2s over every lane of the first and last edge and, on the middle one,
-    two per lane that overlap by 50 m: four boundaries per lane, two of them junctions."""
+    """Three two-lane edges of 150 m, the last limited to 6 m/s so that traffic is dense on
+    it, cars and trucks that drive on past the section's end; E2s over every lane of the
+    first and last edge and, on the middle one, two per lane that overlap by 50 m: four
+    boundaries per lane (two at junctions, two around the overlap) and the section's end."""
     net = netconvert(
         folder,
         '<node id="a" x="0" y="0"/><node id="b" x="150" y="0"/>'
-        '<node id="c" x="300" y="0"/><node id="d" x="450" y="0"/>',
+        '<node id="c" x="300" y="0"/><node id="d" x="450" y="0"/><node id="e" x="550" y="0"/>',
         '<edge id="m0" from="a" to="b" numLanes="2" speed="15" priority="3"/>'
         '<edge id="m1" from="b" to="c" numLanes="2" speed="15" priority="3"/>'
-        '<edge id="m2" from="c" to="d" numLanes="2" speed="6" priority="3"/>',
+        '<edge id="m2" from="c" to="d" numLanes="2" speed="6" priority="3"/>'
+        '<edge id="out" from="d" to="e" numLanes="2" speed="15" priority="3"/>',
         name="road",
     )
     (folder / "road.rou.xml").write_text(
         '<routes><vType id="car" length="5" minGap="2.5"/>'
         '<vType id="truck" length="12" minGap="2.5" vClass="truck" maxSpeed="25"/>'
-        '<route id="main" edges="m0 m1 m2"/>'
+        '<route id="main" edges="m0 m1 m2 out"/>'
         '<flow id="f" type="car" route="main" begin="0" end="600" vehsPerHour="2600" '
         'departLane="free" departSpeed="max"/>'
         '<flow id="t" type="truck" route="main" begin="0" end="600" vehsPerHour="300" '
@@ -158,9 +161,36 @@ def test_e2s_sharing_boundaries_count_every_vehicle_once(truth: Path) -> None:
     error = (both["det"] - both["true"]).mean()
     # The straddlers: about vehicle length x density per lane and boundary; well over a
     # vehicle here, and gone once each vehicle counts by k x length.
+    # An overlap counted once more in the mean over detectors put +0.78 on the open road.
     assert raw_error > 1.5 * lanes, raw_error
-    assert abs(error) < 0.35 * lanes and abs(error) < 0.25 * raw_error, (error, raw_error)
+    assert abs(error) < 0.25 * lanes and abs(error) < 0.2 * raw_error, (error, raw_error)
     k = pd.read_csv(truth / "k_estimate.csv")
     assert len(k) > 20
-    assert abs(k["k_error"].mean()) < 0.5 * lanes, k["k_error"].mean()
+    assert abs(k["k_error"].mean()) < 0.3 * lanes, k["k_error"].mean()
     assert np.abs(k["k_error"]).mean() < lanes, np.abs(k["k_error"]).mean()
+
+
+def test_overlapping_e2s_count_each_covered_metre_once(truth: Path) -> None:
+    section = Section.read(truth / "section.json")
+    start = float(section.offsets_m[0])
+    e2 = pd.DataFrame(
+        {
+            "arc_m": [start, start + 50.0],
+            "length_m": [100.0, 50.0],
+            "lane_index": [0, 0],
+            "density_vpkm": [10.0, 40.0],
+        }
+    )
+    # 50 m at 10 veh/km, then 50 m where both read: their mean, 25 (by length: 20).
+    assert e2_covered_density(e2, section) == pytest.approx(17.5)
+    # Abutting at an edge boundary, on another lane: each its own metres.
+    end0 = float(section.offsets_m[0] + section.lengths_m[0])
+    tiles = pd.DataFrame(
+        {
+            "arc_m": [end0 - 40.0, float(section.offsets_m[1])],
+            "length_m": [40.0, 120.0],
+            "lane_index": [1, 1],
+            "density_vpkm": [30.0, 10.0],
+        }
+    )
+    assert e2_covered_density(tiles, section) == pytest.approx((30 * 40 + 10 * 120) / 160)
