@@ -38,6 +38,7 @@ from macromicro_sumo.deploy.safety import (
     SAFETY_TOLERANCE_MPS,
     SPEED_MODES,
     leader_safe_speed,
+    planned_decel,
     speed_commands,
 )
 from macromicro_sumo.deploy.slots import NOT_ASKED, VehicleSlots
@@ -350,7 +351,7 @@ class SectionSpeedDriver(SectionDriver):
         # merges' yield and the safety layer.
         own = safe = cap = lead_speed = None
         if near or self.safety == "sumo":
-            own = self.slots.decel[slots]
+            own = planned_decel(self.slots.decel[slots], lead_decel, self.sc.deploy.safety_brake)
             lead_speed = obs[:, 0] - obs[:, 3]
             safe = leader_safe_speed(
                 obs, gap, own, lead_decel, self.sc.simulation.step_length_s, lead_speed

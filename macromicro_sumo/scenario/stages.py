@@ -224,6 +224,14 @@ class DeployConfig:
         "that no policy holds a car standing where nothing ahead asks for it; 0: no floor "
         "(runs.csv counts the raised commands: floor_acted) [fraction of the limit]",
     )
+    safety_brake: str = spec(
+        "own",
+        choices=("own", "matched"),
+        doc="safety sumo: the braking each driven vehicle's safe speed plans its stop with: "
+        "own, its vType's decel; matched, at least that of the vehicle ahead (an IDM car's "
+        "decel is its comfortable braking: own holds it behind a Krauss car to gaps SUMO's "
+        "IDM does not keep; docs/deploy.md, Safety layer strictness)",
+    )
     merge: str = spec(
         "sumo",
         choices=("none", "handover", "sumo"),
