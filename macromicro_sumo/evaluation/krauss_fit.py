@@ -22,6 +22,7 @@ a large standard error takes SUMO's default for the network's vehicle class
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -139,7 +140,11 @@ MAX_BEYOND_SHARE = 0.5
 # share of its value is not identified by the pairs.
 MAX_RELATIVE_SE = 0.25
 _NAMES = ("speed_factor", "accel_mps2", "decel_mps2", "tau_s", "min_gap_m", "relax_s")
-_SPEED, _ACCEL, _MIN_GAP, _RELAX = 0, 1, 4, 5
+_SPEED, _ACCEL, _TAU, _MIN_GAP, _RELAX = 0, 1, 3, 4, 5
+# Gipps' safe speed's parameters (b, tau, min_gap): no gradient where it binds on no pair.
+_INTERACTION = (2, 3, 4)
+# ``binding_start``: the share of following pairs on which the safe speed binds at its tau.
+BINDING_QUANTILE = 0.1
 
 
 def sumo_defaults(vclass: str = "passenger") -> KraussParams:
@@ -343,7 +348,10 @@ def krauss_least_squares(
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """The unguarded fit, the best of the multi-start fits: (parameters in ``KraussParams``'
     order, RMSE [m/s^2], their standard errors); ``pinned`` (index: value) held at their
-    values (bounds a hair apart: least_squares needs lower < upper)."""
+    values (bounds a hair apart: least_squares needs lower < upper). Where the best leaves
+    Gipps' safe speed binding on no pair (b, tau and min_gap all without a standard error),
+    one more start from it with tau where the safe speed binds (``binding_start``), kept if
+    its cost is lower."""
     lower = _LOWER.copy()
     lower[5] = dt_s
     upper = _UPPER.copy()
@@ -353,18 +361,20 @@ def krauss_least_squares(
     def resid(x: np.ndarray) -> np.ndarray:
         return krauss_policy_accel(obs, KraussParams(*x), veh_length_m, dt_s) - accel
 
+    def solve(x0: np.ndarray) -> Any:
+        return least_squares(
+            resid,
+            np.clip(x0, lower, upper),
+            bounds=(lower, upper),
+            x_scale=_X_SCALE,
+            loss="soft_l1",
+            f_scale=ROBUST_SCALE_MPS2,
+        )
+
     best = None
     for a0 in START_ACCEL_MPS2:
         for t0 in START_RELAX_S:
-            x0 = np.clip(np.array([1.0, a0, 4.0, 1.0, 2.0, t0]), lower, upper)
-            fit = least_squares(
-                resid,
-                x0,
-                bounds=(lower, upper),
-                x_scale=_X_SCALE,
-                loss="soft_l1",
-                f_scale=ROBUST_SCALE_MPS2,
-            )
+            fit = solve(np.array([1.0, a0, 4.0, 1.0, 2.0, t0]))
             if best is None or fit.cost < best.cost:
                 best = fit
     assert best is not None
@@ -372,7 +382,39 @@ def krauss_least_squares(
     free = np.array([i not in (pinned or {}) for i in range(len(_NAMES))])
     se = np.zeros(len(_NAMES))
     se[free] = _standard_errors(best.jac[:, free], best.cost, len(accel))
+    interaction = [i for i in _INTERACTION if free[i]]
+    if interaction and np.isinf(se[interaction]).all():
+        x0 = binding_start(obs, best.x, veh_length_m, lower, upper)
+        if x0 is not None and (again := solve(x0)).cost < best.cost:
+            best = again
+            se[free] = _standard_errors(best.jac[:, free], best.cost, len(accel))
     return best.x, float(np.sqrt(np.mean(best.fun**2))), se
+
+
+def binding_start(
+    obs: np.ndarray, x: np.ndarray, veh_length_m: float, lower: np.ndarray, upper: np.ndarray
+) -> np.ndarray | None:
+    """``x`` with tau [s] at the ``BINDING_QUANTILE`` of the following pairs' time gaps
+    ((spacing - length - min_gap) / v; a leader nearer than ``FREE_HEADWAY_S`` x v +
+    ``FREE_GAP_M``), so that Gipps' safe speed binds on the closest followers; None where
+    no pair follows or that tau is outside the fit's range.
+
+    Why: every start has tau = 1 s, b = 4 m/s^2, min_gap = 2 m; where the observed drivers
+    all keep more than 1 s (IDM cars in steady traffic, ring_two_lane: 1.55 s at the 1st
+    percentile), the safe speed binds on no pair, the three have no gradient and stay at
+    their starts (standard error inf), and the guard gave them SUMO's defaults, a prior
+    that follows at 1 s (docs/deploy.md, "ring_two_lane (stop 29)")."""
+    v, spacing = obs[:, 0], obs[:, 2]
+    near = (v > 1.0) & (spacing < v * FREE_HEADWAY_S + FREE_GAP_M)
+    if not near.any():
+        return None
+    gaps_s = (spacing[near] - veh_length_m - x[_MIN_GAP]) / v[near]
+    tau0 = float(np.quantile(gaps_s, BINDING_QUANTILE))
+    if not lower[_TAU] < tau0 < upper[_TAU]:
+        return None
+    out = x.copy()
+    out[_TAU] = tau0
+    return out
 
 
 def _standard_errors(jac: np.ndarray, cost: float, pairs: int) -> np.ndarray:
