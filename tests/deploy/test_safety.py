@@ -51,13 +51,17 @@ def adversary(kind: str, a_min: float, a_max: float, seed: int) -> Act:
     return brake
 
 
+@pytest.mark.parametrize("brake", ["own", "matched"])
 @pytest.mark.parametrize(("kind", "a_min"), [("full", -6.0), ("random", -6.0), ("brake", -30.0)])
-def test_no_command_makes_the_ring_collide(tmp_path: Path, kind: str, a_min: float) -> None:
+def test_no_command_makes_the_ring_collide(
+    tmp_path: Path, kind: str, a_min: float, brake: str
+) -> None:
     """The paper's ring with 9 vehicles of unequal decels (1.2 to 1.8 m/s^2) packed at
     35 m: a follower that brakes harder than its leader may not close in at no gap (it
     did: ``road.physics.safe_speed``); behind a leader that stops within one step (30
     m/s^2) its followers brake with it, not one step later (its command is known,
-    ``deploy.drivers.behind_commands``)."""
+    ``deploy.drivers.behind_commands``). With either ``deploy.safety_brake``: "matched"
+    plans a softer-braking follower's stop at its leader's decel."""
     table = scenario_table(
         {
             "fleet.n_vehicles": 9,
@@ -66,6 +70,7 @@ def test_no_command_makes_the_ring_collide(tmp_path: Path, kind: str, a_min: flo
             "bounds.spacing_m": [40.0, 140.0],
             "simulation.duration_s": 90.0,
             "simulation.n_runs": 2,
+            "deploy.safety_brake": brake,
         }
     )
     path = tmp_path / "ring.toml"
