@@ -68,14 +68,15 @@ def test_spacing_variance_is_the_x_of_the_measured_l_var(ring_loop: Section, tou
 
 
 def test_pooled_shares_average_to_each_groups_squared_bias(ring_loop: Section) -> None:
-    """Per hidden count the shares average to r_k^2 sigma^2 / d^2 (r_k the group's summed
-    X - sigma^2 over its summed sigma^2; here sigma and d are one per scene); scenes
-    without a spacing std or with nothing to generate get 0; exact sums give 0."""
+    """With one group per hidden count (``bins=1``) the shares average to r_k^2 sigma^2 / d^2
+    (r_k the group's summed X - sigma^2 over its summed sigma^2; here sigma and d are one
+    per scene); scenes without a spacing std or with nothing to generate get 0; exact sums
+    give 0."""
     scene, psi, road, snaps = completed(ring_loop, 60, 2)
     k = snaps.k_true
     x = spacing_variance(scene.lane, scene.arc, scene.present, psi, road, "scene")
     k_t = torch.as_tensor(k)
-    share = pooled_dispersion(x, psi, k_t)
+    share = pooled_dispersion(x, psi, k_t, bins=1)
     s2 = psi.d_std**2
     for kv in np.unique(k):
         g = k_t == int(kv)
@@ -89,6 +90,45 @@ def test_pooled_shares_average_to_each_groups_squared_bias(ring_loop: Section) -
     assert (pooled_dispersion(x, psi, torch.zeros_like(k_t)) == 0).all()
     exact = s2.clone()
     assert pooled_dispersion(exact, psi, k_t).abs().max() < 1e-15
+
+
+def _psi_with_std(std: torch.Tensor) -> Psi:
+    n = len(std)
+    return Psi.of(
+        np.column_stack([np.full(n, 12.0), np.full(n, 125.0), std.numpy()] + [np.ones(n)] * 3)
+    )
+
+
+def test_pooled_groups_by_psis_spread_score_a_variance_that_ignores_it() -> None:
+    """Scenes whose variance X is the same whatever psi's sigma, with the right sum: one group
+    per hidden count sees no error, groups of sigma do (the low-sigma scenes too wide, the
+    high ones too narrow); X = sigma^2 scene by scene is exact either way."""
+    std = torch.linspace(15.0, 60.0, 30, dtype=torch.float64)
+    psi = _psi_with_std(std)
+    k = torch.full((30,), 4)
+    flat = torch.full((30,), float((std**2).mean()), dtype=torch.float64)
+    assert pooled_dispersion(flat, psi, k, bins=1).abs().max() < 1e-15
+    shares = pooled_dispersion(flat, psi, k)
+    assert float(shares.mean()) > 0.01
+    assert pooled_dispersion(std**2, psi, k).abs().max() < 1e-15
+
+
+def test_pooled_gradient_makes_the_variance_follow_psis_spread() -> None:
+    """Gradient steps on the grouped term move X = a + b sigma^2 from flat (b = 0) to follow
+    sigma^2 (b near 1): what a held-out set with wider spread than the training runs needs."""
+    std = torch.linspace(15.0, 60.0, 60, dtype=torch.float64)
+    psi, k = _psi_with_std(std), torch.full((60,), 2)
+    s2 = std**2
+    a = torch.tensor(float(s2.mean()), dtype=torch.float64, requires_grad=True)
+    b = torch.tensor(0.0, dtype=torch.float64, requires_grad=True)
+    opt = torch.optim.Adam([a, b], lr=0.1)
+    for _ in range(120):
+        x = a + b * (s2 - s2.mean())
+        loss = pooled_dispersion(x, psi, k).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert b.item() > 0.8, b.item()
 
 
 def test_pooled_gradient_moves_the_groups_mean_variance_to_psis() -> None:
