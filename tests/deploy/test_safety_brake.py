@@ -110,10 +110,11 @@ def test_matched_plans_no_softer_than_own_and_keeps_every_gap() -> None:
         assert low.min() >= -1e-9, (brake, low.min())
 
 
-def _truth_lowered(folder: Path, brake: str) -> pd.Series:
-    """Per follower vType, the share of SUMO's own next speeds of a car behind a Krauss
-    car above the layer's safe speed with ``brake`` (the ground truth, nobody driven)."""
-    sc = load_scenario(_mixed_merge(folder, brake))
+def _truth_lowered(folder: Path) -> dict[str, pd.Series]:
+    """Per ``deploy.safety_brake`` and follower vType, the share of SUMO's own next speeds
+    of a car behind a Krauss car above the layer's safe speed (the ground truth, nobody
+    driven: one simulation serves both)."""
+    sc = load_scenario(_mixed_merge(folder, "own"))
     gt = simulate_section(sc, folder / "gt", progress=False)
     tr = pd.read_csv(gt / "trajectories.csv")
     vt = pd.read_csv(gt / "vtypes.csv").set_index("vtype")
@@ -134,11 +135,17 @@ def _truth_lowered(folder: Path, brake: str) -> pd.Series:
         )
         b = f["vtype"].map(DECEL).to_numpy()
         b_l = np.full(len(f), DECEL["car"])
-        safe = safe_speed(gap, ld["speed_mps"].to_numpy(), planned_decel(b, b_l, brake), b_l, dt)
         later = [nxt.get((v, round(t + dt, 6)), np.nan) for v in f["vehicle_id"]]
-        rows.append(pd.DataFrame({"vtype": f["vtype"].to_numpy(), "later": later, "safe": safe}))
+        row = {"vtype": f["vtype"].to_numpy(), "later": later}
+        for brake in SAFETY_BRAKES:
+            b_plan = planned_decel(b, b_l, brake)
+            row[brake] = safe_speed(gap, ld["speed_mps"].to_numpy(), b_plan, b_l, dt)
+        rows.append(pd.DataFrame(row))
     df = pd.concat(rows).dropna()
-    return (df["later"] > df["safe"] + 0.01).groupby(df["vtype"]).mean()
+    return {
+        brake: (df["later"] > df[brake] + 0.01).groupby(df["vtype"]).mean()
+        for brake in SAFETY_BRAKES
+    }
 
 
 def test_own_braking_is_stricter_than_sumos_idm_and_matched_is_not(tmp_path: Path) -> None:
@@ -146,8 +153,8 @@ def test_own_braking_is_stricter_than_sumos_idm_and_matched_is_not(tmp_path: Pat
     a share of the IDM cars' next speeds (it plans their stop at 3.0 m/s^2 behind a
     leader's at 4.5), none of the Krauss cars' (their tau of 1 s asks more than the
     layer's one step); with "matched", next to none of either."""
-    own = _truth_lowered(tmp_path / "own", "own")
-    matched = _truth_lowered(tmp_path / "matched", "matched")
+    shares = _truth_lowered(tmp_path)
+    own, matched = shares["own"], shares["matched"]
     assert own["car_idm"] > 0.05, own
     assert matched["car_idm"] < 0.2 * own["car_idm"], (own, matched)
     assert own["car"] < 0.002 and matched["car"] < 0.002, (own, matched)
