@@ -10,7 +10,8 @@ no command, however poor or adversarial, makes a vehicle collide or block the ro
   (``behind_commands``), so one braking harder than its decel takes its followers along;
 * the command is raised to a floor (``deploy.safety_floor_share`` of the lane's limit,
   default ``FLOOR_SHARE``, at most the safe speed) so that no vehicle is held standing where
-  nothing ahead asks for it;
+  nothing ahead asks for it: any command below it, or, with ``deploy.safety_floor_on =
+  "standing"``, only a vehicle's slower than ``STANDING_BELOW_MPS``;
 * ``speed_commands`` is the one command rule of the ring's and the sections' speed drivers
   (``deploy.drivers``): v + a dt of the batched action, a in the scenario's bounds, through
   this layer where ``deploy.safety = "sumo"``, and, with or without it, at most the
@@ -53,6 +54,12 @@ BEHIND_MARGIN_MPS = 1e-6
 # a run). A fifth: 8.9 m/s at Bremen's 44.4 m/s, below 1.1% of the ground truth's
 # vehicle-steps, all of them queued at the merge.
 FLOOR_SHARE: float = DeployConfig.safety_floor_share
+# ``deploy.safety_floor_on = "standing"``: the floor raises only a vehicle slower than this
+# [m/s], one held standing (or crawling) where nothing ahead asks for it. The default
+# ("all") raised 70% of the slow and queued steps of game/ramp's policy, where it brakes
+# (training has no floor), and the ramp ran 1.9 m/s slow (docs/deploy.md, "Safety layer
+# strictness (stop 29)").
+STANDING_BELOW_MPS = 1.0
 # ``deploy.safety_brake``: the braking the layer plans a driven vehicle to stop with.
 SAFETY_BRAKES = ("own", "matched")
 
@@ -109,7 +116,7 @@ def safety_cap(
     lead: np.ndarray,
     dt_s: float,
     a_max_mps2: float,
-    floor_share: float,
+    floor_share: np.ndarray | float,
     safe: np.ndarray | None = None,
     lead_speed: np.ndarray | None = None,
     vmax: np.ndarray | float = np.inf,
@@ -117,7 +124,8 @@ def safety_cap(
     """Speed commands ``cmd`` [m/s] made safe: capped at ``safe_speed`` behind each
     vehicle's observed leader (``gap``: SUMO's gap to it, ``NO_LEADER_GAP_M`` or more:
     none, no cap; its speed obs[:, 0] - obs[:, 3]), raised to the floor where nothing
-    ahead asks for less (``floor_share`` of the lane's limit obs[:, 1]), and capped behind the command of a leader that
+    ahead asks for less (``floor_share`` of the lane's limit obs[:, 1], per vehicle or one
+    for all; 0: none), and capped behind the command of a leader that
     is driven too (``lead``: its index in ``cmd``, -1: none; ``behind_commands``).
     ``safe``: ``leader_safe_speed`` of these inputs if computed already; ``lead_speed``:
     obs[:, 0] - obs[:, 3] if computed already; ``vmax``: the vehicles' maxSpeed [m/s], which
@@ -205,7 +213,8 @@ def speed_commands(
     """Speed commands v' = max(0, v + a dt) [m/s] of the batched action ``act`` at
     observations ``obs`` (v in column 0, the lane's limit in column 1), a clipped to the
     scenario's bounds, through the safety layer (``deploy.safety.safety_cap``, floor
-    ``deploy.safety_floor_share``) where ``safety`` is "sumo", its actions counted in
+    ``deploy.safety_floor_share``, on the vehicles ``deploy.safety_floor_on`` names) where
+    ``safety`` is "sumo", its actions counted in
     ``stats``: the one command rule of the ring's and the sections' speed drivers.
     ``cap``: speeds [m/s] the commands are lowered to before the layer (a merge's
     cooperative slow-down, ``deploy.drivers``; inf: none); ``safe``: the layer's safe
@@ -225,6 +234,8 @@ def speed_commands(
         return cmd
     gap, decel, lead_decel, lead = layer()
     floor = sc.deploy.safety_floor_share
+    if sc.deploy.safety_floor_on == "standing":
+        floor = np.where(obs[:, 0] < STANDING_BELOW_MPS, floor, 0.0)
     return stats.count_safety(
         *safety_cap(
             cmd, obs, gap, decel, lead_decel, lead, dt, a_max, floor, safe, lead_speed, vmax

@@ -275,9 +275,11 @@ def method_drive(
     if how == "learned":
         safety = METHOD[name].safety or sc.deploy.safety
         floor = sc.deploy.safety_floor_share if safety == "sumo" else None
-        brake = sc.deploy.safety_brake if safety == "sumo" else None
         drive = Drive(act=policy_batch(agents[name]), safety=safety)
-        return drive, {"safety": safety, "safety_floor_share": floor, "safety_brake": brake}
+        record = {"safety": safety, "safety_floor_share": floor}
+        for key in ("safety_floor_on", "safety_brake"):
+            record[key] = getattr(sc.deploy, key) if safety == "sumo" else None
+        return drive, record
     if how == "idm":
         theta = idm_theta(idm)
         return Drive(theta=theta), {"theta": theta}

@@ -224,6 +224,14 @@ class DeployConfig:
         "that no policy holds a car standing where nothing ahead asks for it; 0: no floor "
         "(runs.csv counts the raised commands: floor_acted) [fraction of the limit]",
     )
+    safety_floor_on: str = spec(
+        "all",
+        choices=("all", "standing"),
+        doc="safety sumo: the vehicles the floor raises: all, any whose command is below it; "
+        "standing, only one slower than 1 m/s, so that the floor unsticks a vehicle held "
+        "standing and leaves a moving one's braking to its policy (docs/deploy.md, Safety "
+        "layer strictness)",
+    )
     safety_brake: str = spec(
         "own",
         choices=("own", "matched"),

@@ -1,0 +1,83 @@
+"""``deploy.safety_floor_on``: the vehicles the safety layer's floor raises. "all" (the
+default) raises any command below a share of the limit, a moving car's braking in a queue
+too; "standing" only a vehicle slower than ``STANDING_BELOW_MPS``, which still keeps a
+policy that always brakes from holding cars standing: in numpy and in real SUMO."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from deploy_nets import merge_net
+from test_safety import _merge_scenario, _run_section
+
+from macromicro_sumo.deploy.drivers import SectionSpeedDriver
+from macromicro_sumo.deploy.population import DriveStats
+from macromicro_sumo.deploy.safety import STANDING_BELOW_MPS, speed_commands
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, read_section
+from macromicro_sumo.scenario.load import load_scenario
+
+
+def _merge(folder: Path, floor_on: str) -> Path:
+    """The merge of ``test_safety`` with ``deploy.safety_floor_on``."""
+    net, routes = merge_net(folder / "net")
+    path = _merge_scenario(folder, net, routes)
+    path.write_text(path.read_text() + f'\n[deploy]\nsafety_floor_on = "{floor_on}"\n')
+    return path
+
+
+def test_the_floor_on_is_a_named_option_with_a_one_line_error(tmp_path: Path) -> None:
+    assert load_scenario(_merge(tmp_path / "a", "all")).deploy.safety_floor_on == "all"
+    path = _merge(tmp_path / "b", "moving")
+    with pytest.raises(UserError) as err:
+        load_scenario(path)
+    msg = str(err.value)
+    assert "\n" not in msg and str(path) in msg and "deploy.safety_floor_on" in msg, msg
+    assert "all" in msg and "standing" in msg, msg
+
+
+@pytest.mark.parametrize("floor_on", ["all", "standing"])
+def test_standing_raises_only_the_standing(tmp_path: Path, floor_on: str) -> None:
+    """Three cars on a free 30 m/s lane, each commanded a full stop (a = -30 m/s^2): one at
+    5 m/s, one at 0.5 m/s, one standing. "all" raises each to the floor (a fifth of the
+    limit, at most its speed + 2.6 m/s^2 x 0.5 s); "standing" only those below 1 m/s, and
+    the moving car's braking stands."""
+    sc = load_scenario(_merge(tmp_path, floor_on))
+    v = np.array([5.0, 0.5, 0.0])
+    obs = np.column_stack([v, np.full(3, 30.0), np.full(3, NO_LEADER_GAP_M), np.zeros(3)])
+    obs = np.column_stack([obs, np.full(3, 30.0), np.full(3, 500.0)])  # the look-ahead
+
+    def layer() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        return np.full(3, NO_LEADER_GAP_M), np.full(3, 4.5), np.full(3, 9.0), np.full(3, -1)
+
+    stats = DriveStats()
+    cmd = speed_commands(sc, lambda o: np.full(len(o), -30.0), "sumo", stats, obs, layer)
+    a_max = sc.bounds.accel_mps2[1]
+    reach = np.minimum(v + a_max * sc.simulation.step_length_s, 0.2 * 30.0)
+    below = v < STANDING_BELOW_MPS
+    raised = np.ones(3, bool) if floor_on == "all" else below
+    np.testing.assert_allclose(cmd[raised], reach[raised])
+    braked = np.maximum(v + sc.bounds.accel_mps2[0] * sc.simulation.step_length_s, 0.0)
+    np.testing.assert_allclose(cmd[~raised], braked[~raised])
+    assert stats.floor_acted == int(raised.sum())
+
+
+def test_a_policy_that_always_brakes_holds_nobody_standing(tmp_path: Path) -> None:
+    """With "standing", a policy that brakes at a_min whatever it sees: each car is raised
+    once it is below 1 m/s and braked again, so the stream crawls, but nobody stands
+    longer than a few steps where the queue at the lane end does not ask for it, none
+    collides, and SUMO teleports none."""
+    sc = load_scenario(_merge(tmp_path, "standing"))
+    section = read_section(sc.resolve(sc.network.net_file), ["A", "B", "C"], False)
+    a_min = sc.bounds.accel_mps2[0]
+    drv = SectionSpeedDriver(sc, section, 0, lambda obs: np.full(len(obs), a_min), "sumo")
+    df, stats = _run_section(sc, drv)
+    assert stats["collisions"] == 0 and stats["teleports"] == 0, stats
+    driven = df[~df["observed"]].sort_values(["vehicle_id", "time_s"])
+    standing = driven["speed_mps"] < 0.1
+    runs = standing.groupby([driven["vehicle_id"], (~standing).cumsum()]).sum()
+    assert runs.max() * sc.simulation.step_length_s < 20.0, runs.max()
+    assert driven["speed_mps"].mean() > 0.3, driven["speed_mps"].describe()
+    assert drv.stats.floor_acted > 0.2 * drv.stats.vehicle_steps_driven
