@@ -51,18 +51,19 @@ TOLERANCE = {
 }
 
 # ``make run`` through the section stages with ring_paper's IDM prior (policy.prior = "idm"; its
-# a refitted below the desired speed, the braking for a lower limit ahead the residual's) and
-# generator.lambda_pair = 0.1, 27 Nov 2026 (stop 28, a fresh clone's make run at 14c9466),
-# estimated-count rows of macro_alignment_by_k.csv.
+# a refitted below the desired speed, the braking for a lower limit ahead the residual's),
+# generator.lambda_pair = 0.1 and the pooled dispersion grouped by psi's spread, 27 Nov 2026
+# (stop 29, `macromicro run scenarios/ring_paper.toml` at 12c1cdb), estimated-count rows of
+# macro_alignment_by_k.csv.
 REFERENCE: list[tuple] | None = [
     (1, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
     (2, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
     (3, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
     (4, "ground_truth", 12.005370, 0.494366, 125.663706, 32.732779, 0, 350),
-    (1, "policy", 12.018680, 0.496399, 125.663706, 32.345927, 0, 350),
-    (2, "policy", 12.023768, 0.485159, 125.663706, 32.716252, 0, 350),
-    (3, "policy", 12.030294, 0.465219, 125.663706, 32.532624, 0, 350),
-    (4, "policy", 12.042407, 0.448359, 125.663706, 33.620106, 0, 350),
+    (1, "policy", 12.018946, 0.496280, 125.663706, 32.018659, 0, 350),
+    (2, "policy", 12.026570, 0.485613, 125.663706, 32.950630, 0, 350),
+    (3, "policy", 12.033804, 0.464565, 125.663706, 32.701327, 0, 350),
+    (4, "policy", 12.045280, 0.449261, 125.663706, 32.662237, 0, 350),
 ]
 
 
