@@ -35,7 +35,7 @@ DECEL = {"car": 4.5, "car_idm": 3.0}
 
 def _mixed_merge(folder: Path, brake: str, **extra: dict) -> Path:
     """The merge (``deploy_nets.merge_net``) with a fleet of Krauss cars and IDM cars
-    (half each, 3,300 veh/h), 5% instrumented, one 30 + 150 s run per seed."""
+    (half each, 3,300 veh/h), 5% instrumented, one run of 30 + 150 s."""
     net, _ = merge_net(folder / "net")
     routes = folder / "net" / "mixed.rou.xml"
     routes.write_text(
