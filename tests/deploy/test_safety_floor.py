@@ -86,11 +86,10 @@ def test_a_policy_that_always_brakes_holds_nobody_standing(tmp_path: Path) -> No
 def test_the_default_keeps_a_braking_stream_at_the_floor_where_standing_crawls(
     tmp_path: Path,
 ) -> None:
-    """Why "all" stays the default: a policy that brakes at a_min whatever it sees moves at
-    the floor (a fifth of the 30 m/s limit) under "all"; under "standing" it is raised only
-    below 1 m/s and braked again, so it crawls at no more than one step's acceleration above
-    that, and fewer cars pass. ring_sugiyama's policy did this on 30 of its 40 runs
-    (docs/deploy.md, Safety layer strictness: speed RMSE 1.09 -> 1.97 m/s)."""
+    """The trade-off "standing" makes (docs/deploy.md, Safety layer strictness): a policy
+    that brakes at a_min whatever it sees moves at the floor (a fifth of the 30 m/s limit)
+    under "all"; under "standing" it is raised only below 1 m/s and braked again, so it
+    crawls at no more than one step's acceleration above that, and fewer cars pass."""
     speed, seen = {}, {}
     for floor_on in ("all", "standing"):
         sc = load_scenario(_merge(tmp_path / floor_on, floor_on))
