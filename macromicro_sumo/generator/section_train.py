@@ -398,7 +398,22 @@ def _summary(g: pd.DataFrame, n_comp: int = 1) -> dict[str, Any]:
         "feasible_share": float(g["feasible"].mean()),
         "projections": int(g["projections"].sum()),
         "dropped": int(g["dropped"].sum()),
+        "spread_slope": spread_slope(g, "std_spacing_m"),
+        "true_spread_slope": spread_slope(g, "true_std_spacing_m"),
     }
+
+
+def spread_slope(g: pd.DataFrame, column: str) -> float | None:
+    """Least-squares slope of the scenes' spacing std (``column``: root mean variance per
+    detector interval) on psi's spacing std across the intervals: about 1 for the truth, and
+    for completions that follow the detectors' spread rather than the training runs' (a
+    slope of 0.4-0.8 left held-out runs wider than the training runs 6-15% narrow: docs/
+    design.md, "Spacing spread across seeds (stop 29)"). None with fewer than 3 intervals."""
+    ok = g[np.isfinite(g["psi_std_spacing_m"]) & np.isfinite(g[column])]
+    per = ok.groupby("psi_std_spacing_m")[column].apply(lambda x: np.sqrt((x**2).mean()))
+    if len(per) < 3:
+        return None
+    return float(np.polyfit(per.index.to_numpy(dtype=float), per.to_numpy(dtype=float), 1)[0])
 
 
 def run_train_section_generator(

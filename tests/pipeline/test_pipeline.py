@@ -87,6 +87,16 @@ def test_generator_manifest_gives_the_pairs_slope_per_k(pipeline):
     assert all(abs(s) < 0.2 for s in [summary["truth_pair_slope"], *per_k])  # [1/s]
 
 
+def test_generator_manifest_gives_how_the_spread_follows_psi(pipeline):
+    """Per K and method the slope of the scenes' spacing std on psi's and the truth's
+    (``spread_slope``; None here: the small run holds out two detector intervals)."""
+    _, out = pipeline
+    summary = json.loads((out / "generator" / "generator_manifest.json").read_text())["summary"]
+    per_k = [v for k, v in summary.items() if k.startswith(("generator_K", "uniform_K"))]
+    assert len(per_k) == 8
+    assert all({"spread_slope", "true_spread_slope"} <= set(v) for v in per_k)
+
+
 def test_macro_alignment_has_every_method_and_ground_truth_is_the_recording(pipeline):
     _, out = pipeline
     align = pd.read_csv(out / "evaluation" / "macro_alignment_by_k.csv")
