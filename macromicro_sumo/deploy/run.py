@@ -86,7 +86,7 @@ class DeployContext:
     vtypes: dict[str, VType] | None = None
     vclass: dict[str, str] | None = None  # demand vType -> vClass (from vtypes.csv)
     truth_runs: pd.DataFrame | None = None
-    run_sections: dict[int, Section] | None = None  # each held-out run's limits (a fleet)
+    run_sections: dict[int, Section] | None = None  # each run's limits (a fleet's drawn ones)
     # Field data: each run's own inputs (a demand sampled from its stations), how the
     # demand was made (every manifest records it), and the folder that holds it.
     run_inputs: dict[int, SumoInputs] | None = None
@@ -130,9 +130,11 @@ def load_context(sc: SectionScenario, truth_dir: Path | str) -> DeployContext:
         placed=place_detectors(sc, inputs, section),
         vtypes=vtypes,
         vclass=vclass,
+        # Every run's, not the held-out runs' only: a run deployed without its own drawn
+        # limits would fall back to the network's (a script deploying every run did).
         run_sections={
             int(r): dataclasses.replace(section, limits_mps=lim)
-            for r, lim in zip(held, run_limits_mps(truth, held), strict=True)
+            for r, lim in zip(truth.runs, run_limits_mps(truth, truth.runs), strict=True)
         },
     )
 

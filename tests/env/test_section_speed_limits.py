@@ -204,6 +204,6 @@ def test_deployment_drivers_observe_the_runs_limits(ring) -> None:
     sc, truth = ring
     lim = csv_limits(truth)
     ctx = load_context(sc, truth.folder)
-    assert ctx.held_out and set(ctx.run_sections) == set(ctx.held_out)
+    assert ctx.held_out and set(ctx.run_sections) == set(truth.runs.tolist())
     for run, section in ctx.run_sections.items():
         np.testing.assert_array_equal(section.limits_mps[:, 0], lim.loc[run].to_numpy())
