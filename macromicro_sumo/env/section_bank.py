@@ -245,25 +245,26 @@ def recordable(sc, traj) -> np.ndarray:
     return traj["observed"].to_numpy(dtype=bool)
 
 
+def _typical(truth: SectionTruth, column: str) -> object:
+    """``column`` of the vType with the most vehicles on the section (generated vehicles')."""
+    vt = truth.vtypes
+    return vt[column].iloc[int(np.argmax(vt["vehicles"].to_numpy()))]
+
+
 def typical_vclass(truth: SectionTruth) -> str:
     """SUMO vehicle class for our vehicles: that of the vType with the most vehicles (lanes
     may admit only some classes, e.g. a race track only ``vip``)."""
-    vt = truth.vtypes
-    if "vclass" not in vt:
-        return "passenger"
-    return str(vt["vclass"].iloc[int(np.argmax(vt["vehicles"].to_numpy()))])
+    return str(_typical(truth, "vclass")) if "vclass" in truth.vtypes else "passenger"
 
 
 def typical_vtype(truth: SectionTruth) -> str:
     """The vType of generated vehicles: the one with the most vehicles on the section."""
-    vt = truth.vtypes
-    return str(vt["vtype"].iloc[int(np.argmax(vt["vehicles"].to_numpy()))])
+    return str(_typical(truth, "vtype"))
 
 
 def typical_length(truth: SectionTruth) -> float:
     """Length of generated vehicles: the vType with the most vehicles on the section."""
-    vt = truth.vtypes
-    return float(vt["length_m"].iloc[int(np.argmax(vt["vehicles"].to_numpy()))])
+    return float(_typical(truth, "length_m"))
 
 
 def speed_caps(sc, truth: SectionTruth) -> dict[str, float]:
