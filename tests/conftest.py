@@ -56,6 +56,21 @@ def netconvert(
     return folder / f"{name}.net.xml"
 
 
+def line_net(
+    folder: Path, ends_m: tuple[float, ...], lanes: int, limits_mps: float | tuple[float, ...]
+) -> Path:
+    """A straight road of edges "A", "B", ... ending at ``ends_m`` along x (nodes n0, n1, ...),
+    each with ``lanes`` lanes and its limit (one for all, or one per edge)."""
+    limits = limits_mps if isinstance(limits_mps, tuple) else (limits_mps,) * len(ends_m)
+    xs = (0.0, *ends_m)
+    nodes = "\n".join(f'<node id="n{i}" x="{x:g}" y="0"/>' for i, x in enumerate(xs))
+    edges = "\n".join(
+        f'<edge id="{chr(65 + i)}" from="n{i}" to="n{i + 1}" numLanes="{lanes}" speed="{v:g}"/>'
+        for i, v in enumerate(limits)
+    )
+    return netconvert(folder, nodes, edges)
+
+
 def _toml_value(value: Any) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"

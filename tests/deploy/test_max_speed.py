@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import netconvert
+from conftest import line_net
 from deploy_nets import idm_agent
 from test_drivers import _run, _scenario
 
@@ -23,13 +23,7 @@ LIMIT_MPS = 20.0
 
 def _road(folder: Path) -> tuple[Path, Path]:
     """One straight lane A -> B (1.5 km, limit 20 m/s); vans (maxSpeed 10) every 6 s."""
-    nodes = '<node id="n0" x="0" y="0"/>\n<node id="n1" x="1000" y="0"/>\n'
-    nodes += '<node id="n2" x="1500" y="0"/>'
-    edges = (
-        f'<edge id="A" from="n0" to="n1" numLanes="1" speed="{LIMIT_MPS}"/>\n'
-        f'<edge id="B" from="n1" to="n2" numLanes="1" speed="{LIMIT_MPS}"/>'
-    )
-    net = netconvert(folder, nodes, edges)
+    net = line_net(folder, (1000.0, 1500.0), 1, LIMIT_MPS)
     routes = folder / "vans.rou.xml"
     routes.write_text(
         "<routes>\n"

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import ROOT, dump_toml, scenario_table
-from deploy_nets import CAR, merge_net, netconvert
+from conftest import ROOT, dump_toml, line_net, scenario_table
+from deploy_nets import CAR, merge_net
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.population import SwitchedType, population_scenario
@@ -297,14 +297,7 @@ def test_a_vtype_switch_hands_back_where_the_own_min_gap_fits(tmp_path: Path) ->
     collision. Handed back once their own minGap fits, none is."""
     folder = tmp_path / "net"
     folder.mkdir()
-    nodes = (
-        '<node id="n0" x="0" y="0"/>\n<node id="n1" x="300" y="0"/>\n<node id="n2" x="700" y="0"/>'
-    )
-    edges = (
-        '<edge id="A" from="n0" to="n1" numLanes="1" speed="30"/>\n'
-        '<edge id="B" from="n1" to="n2" numLanes="1" speed="2"/>'
-    )
-    net = netconvert(folder, nodes, edges)
+    net = line_net(folder, (300.0, 700.0), 1, (30.0, 2.0))
     routes = folder / "line.rou.xml"
     routes.write_text(
         f"<routes>\n    {CAR}\n    <route id='r' edges='A B'/>\n"

@@ -9,7 +9,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from conftest import dump_toml, netconvert
+from conftest import dump_toml, line_net
 from test_section_env import true_completion
 
 from macromicro_sumo.data.section import section_snapshots
@@ -27,13 +27,7 @@ HORIZON = 8
 def vans(tmp_path_factory: pytest.TempPathFactory):
     """(scenario, ground truth, net) of the road: one run of 30 s warm-up + 60 s."""
     folder = tmp_path_factory.mktemp("section_max_speed")
-    nodes = '<node id="n0" x="0" y="0"/>\n<node id="n1" x="600" y="0"/>\n'
-    nodes += '<node id="n2" x="1000" y="0"/>'
-    edges = (
-        f'<edge id="A" from="n0" to="n1" numLanes="2" speed="{LIMIT_MPS}"/>\n'
-        f'<edge id="B" from="n1" to="n2" numLanes="2" speed="{LIMIT_MPS}"/>'
-    )
-    net = netconvert(folder, nodes, edges)
+    net = line_net(folder, (600.0, 1000.0), 2, LIMIT_MPS)
     routes = folder / "vans.rou.xml"
     routes.write_text(
         "<routes>\n"

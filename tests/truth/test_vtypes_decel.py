@@ -5,7 +5,7 @@ safety layer, brakes at. Real SUMO: one lane, vans that set decel, cars that do 
 from __future__ import annotations
 
 import pandas as pd
-from conftest import dump_toml, netconvert
+from conftest import dump_toml, line_net
 
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import load_section_truth, simulate_section
@@ -14,8 +14,7 @@ SUMO_PASSENGER_DECEL_MPS2 = 4.5  # sumo.dlr.de/docs/Vehicle_Type_Parameter_Defau
 
 
 def test_vtypes_csv_records_sumos_decel_of_each_vtype(tmp_path) -> None:
-    nodes = '<node id="n0" x="0" y="0"/>\n<node id="n1" x="800" y="0"/>'
-    net = netconvert(tmp_path, nodes, '<edge id="A" from="n0" to="n1" numLanes="1" speed="20"/>')
+    net = line_net(tmp_path, (800.0,), 1, 20.0)
     routes = tmp_path / "mix.rou.xml"
     routes.write_text(
         "<routes>\n"
