@@ -60,8 +60,11 @@ FLOOR_SHARE: float = DeployConfig.safety_floor_share
 # (training has no floor), and the ramp ran 1.9 m/s slow (docs/deploy.md, "Safety layer
 # strictness (stop 29)").
 STANDING_BELOW_MPS = 1.0
-# ``deploy.safety_brake``: the braking the layer plans a driven vehicle to stop with.
-SAFETY_BRAKES = ("own", "matched")
+# ``deploy.safety_brake``: the braking the layer plans a driven vehicle to stop with (the
+# config's choices, one definition).
+SAFETY_BRAKES: tuple[str, ...] = DeployConfig.__dataclass_fields__["safety_brake"].metadata[
+    "choices"
+]
 
 
 def planned_decel(decel: np.ndarray, lead_decel: np.ndarray, brake: str) -> np.ndarray:

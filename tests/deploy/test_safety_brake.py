@@ -18,7 +18,6 @@ from test_safety import _run_section, adversary
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.observe import STOP_DECEL_MPS2
 from macromicro_sumo.deploy.safety import SAFETY_BRAKES, planned_decel
-from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.physics import safe_speed
 from macromicro_sumo.road.section import read_section, section_leaders
 from macromicro_sumo.scenario.load import load_scenario
@@ -62,16 +61,6 @@ def _mixed_merge(folder: Path, brake: str, **extra: dict) -> Path:
     path = folder / f"mixed_{brake}.toml"
     path.write_text(dump_toml(table))
     return path
-
-
-def test_the_brake_is_a_named_option_with_a_one_line_error(tmp_path: Path) -> None:
-    assert load_scenario(_mixed_merge(tmp_path / "a", "own")).deploy.safety_brake == "own"
-    path = _mixed_merge(tmp_path / "b", "harder")
-    with pytest.raises(UserError) as err:
-        load_scenario(path)
-    msg = str(err.value)
-    assert "\n" not in msg and str(path) in msg and "deploy.safety_brake" in msg, msg
-    assert all(choice in msg for choice in SAFETY_BRAKES), msg
 
 
 def _min_gap_after(v, gap, v_l, b, b_l, dt, steps: int = 200) -> np.ndarray:

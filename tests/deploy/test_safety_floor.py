@@ -15,7 +15,6 @@ from test_safety import _merge_scenario, _run_section
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.population import DriveStats
 from macromicro_sumo.deploy.safety import STANDING_BELOW_MPS, speed_commands
-from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, read_section
 from macromicro_sumo.scenario.load import load_scenario
 
@@ -26,16 +25,6 @@ def _merge(folder: Path, floor_on: str) -> Path:
     path = _merge_scenario(folder, net, routes)
     path.write_text(path.read_text() + f'\n[deploy]\nsafety_floor_on = "{floor_on}"\n')
     return path
-
-
-def test_the_floor_on_is_a_named_option_with_a_one_line_error(tmp_path: Path) -> None:
-    assert load_scenario(_merge(tmp_path / "a", "all")).deploy.safety_floor_on == "all"
-    path = _merge(tmp_path / "b", "moving")
-    with pytest.raises(UserError) as err:
-        load_scenario(path)
-    msg = str(err.value)
-    assert "\n" not in msg and str(path) in msg and "deploy.safety_floor_on" in msg, msg
-    assert "all" in msg and "standing" in msg, msg
 
 
 @pytest.mark.parametrize("floor_on", ["all", "standing"])

@@ -147,3 +147,41 @@ def test_staging_moves_manifests_last(tmp_path):
         "a.csv",
         "z.csv",
     }
+
+
+# Choices that load only with another key changed too: a ring file has other tables, and
+# field data needs its files.
+NEEDS_COMPANION = {("network.kind", "ring"), ("data.source", "files")}
+
+
+def _choice_fields(obj: object, prefix: str = ""):
+    """(dotted key, choices) of every string field with choices, nested tables included."""
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(value):
+            yield from _choice_fields(value, f"{prefix}{f.name}.")
+        elif f.metadata.get("choices") and isinstance(value, str):
+            yield f"{prefix}{f.name}", f.metadata["choices"]
+
+
+def test_every_named_option_loads_its_choices_and_refuses_others_in_one_line():
+    """Every option with choices (deploy.safety_brake, deploy.safety_floor_on, the policy's
+    and the generator's switches, the field-data units ...) on a section file: each accepted
+    value loads as itself; another is a one-line error naming the file, the key and every
+    accepted value."""
+    path = ROOT / "scenarios" / "ring_two_lane.toml"
+    fields = list(_choice_fields(load_scenario(path)))
+    assert {"deploy.safety_brake", "deploy.safety_floor_on", "policy.prior"} <= dict(fields).keys()
+    for key, choices in fields:
+        for choice in choices:
+            if (key, choice) in NEEDS_COMPANION:
+                continue
+            value = load_scenario(path, {key: choice})
+            for part in key.split("."):
+                value = getattr(value, part)
+            assert value == choice, (key, choice)
+        with pytest.raises(UserError) as err:
+            load_scenario(path, {key: "no-such-choice"})
+        msg = str(err.value)
+        assert "\n" not in msg and str(path) in msg and key in msg, msg
+        assert all(c in msg for c in choices), msg
