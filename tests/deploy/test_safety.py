@@ -251,13 +251,23 @@ def _run_section(sc, driver, additional: tuple[Path, ...] = ()) -> tuple[pd.Data
         sim.close()
 
 
-def test_a_policy_that_always_brakes_cannot_stop_the_merge(tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    ("floor_on", "min_mean_mps", "min_floor_share"),
+    [("all", 0.2 * 30.0 * 0.9, 0.5), ("standing", 0.3, 0.2)],
+)
+def test_a_policy_that_always_brakes_cannot_stop_the_merge(
+    tmp_path: Path, floor_on: str, min_mean_mps: float, min_floor_share: float
+) -> None:
     """A policy that brakes at a_min whatever it sees would stand every car on the free
     road for good (SUMO teleports a car after 300 s standing, and the stream behind it
     jams): the safety layer's floor (a fifth of the limit, below the safe speed) keeps
-    them rolling; nobody stands longer than the queue at the lane end asks, none collides."""
+    them rolling; nobody stands longer than the queue at the lane end asks, none collides.
+    With ``deploy.safety_floor_on = "standing"`` each car is raised only once below 1 m/s
+    and braked again: the stream crawls, but the same holds."""
     net, routes = merge_net(tmp_path / "net")
-    sc = load_scenario(_merge_scenario(tmp_path, net, routes))
+    path = _merge_scenario(tmp_path, net, routes)
+    path.write_text(path.read_text() + f'\n[deploy]\nsafety_floor_on = "{floor_on}"\n')
+    sc = load_scenario(path)
     section = read_section(net, ["A", "B", "C"], False)
     a_min = sc.bounds.accel_mps2[0]
     drv = SectionSpeedDriver(sc, section, 0, lambda obs: np.full(len(obs), a_min), "sumo")
@@ -268,8 +278,8 @@ def test_a_policy_that_always_brakes_cannot_stop_the_merge(tmp_path: Path) -> No
     # Longest stretch of standing steps of any driven car.
     runs = standing.groupby([driven["vehicle_id"], (~standing).cumsum()]).sum()
     assert runs.max() * sc.simulation.step_length_s < 20.0, runs.max()
-    assert driven["speed_mps"].mean() > 0.2 * 30.0 * 0.9
-    assert drv.stats.floor_acted > 0.5 * drv.stats.vehicle_steps_driven
+    assert driven["speed_mps"].mean() > min_mean_mps, driven["speed_mps"].describe()
+    assert drv.stats.floor_acted > min_floor_share * drv.stats.vehicle_steps_driven
 
 
 @pytest.mark.parametrize("kind", ["full", "random"])

@@ -53,25 +53,6 @@ def test_standing_raises_only_the_standing(tmp_path: Path, floor_on: str) -> Non
     assert stats.floor_acted == int(raised.sum())
 
 
-def test_a_policy_that_always_brakes_holds_nobody_standing(tmp_path: Path) -> None:
-    """With "standing", a policy that brakes at a_min whatever it sees: each car is raised
-    once it is below 1 m/s and braked again, so the stream crawls, but nobody stands
-    longer than a few steps where the queue at the lane end does not ask for it, none
-    collides, and SUMO teleports none."""
-    sc = load_scenario(_merge(tmp_path, "standing"))
-    section = read_section(sc.resolve(sc.network.net_file), ["A", "B", "C"], False)
-    a_min = sc.bounds.accel_mps2[0]
-    drv = SectionSpeedDriver(sc, section, 0, lambda obs: np.full(len(obs), a_min), "sumo")
-    df, stats = _run_section(sc, drv)
-    assert stats["collisions"] == 0 and stats["teleports"] == 0, stats
-    driven = df[~df["observed"]].sort_values(["vehicle_id", "time_s"])
-    standing = driven["speed_mps"] < 0.1
-    runs = standing.groupby([driven["vehicle_id"], (~standing).cumsum()]).sum()
-    assert runs.max() * sc.simulation.step_length_s < 20.0, runs.max()
-    assert driven["speed_mps"].mean() > 0.3, driven["speed_mps"].describe()
-    assert drv.stats.floor_acted > 0.2 * drv.stats.vehicle_steps_driven
-
-
 def test_the_default_keeps_a_braking_stream_at_the_floor_where_standing_crawls(
     tmp_path: Path,
 ) -> None:
