@@ -48,8 +48,9 @@ DISPERSION_BINS = 3
 (``pooled_dispersion``). One group per K matched the scenes' summed variance but not how it
 follows psi: the completions' std rose 0.42-0.83 m per metre of psi's across the intervals
 (the truth's 0.99), so a held-out set whose spread differed from the training runs' was
-under-dispersed (ring_paper, seed 11: held-out spacing std -6..-14% at K = 1..4, its psi
-15% above the training runs'). docs/design.md, "Spacing spread across seeds (stop 29)"."""
+under-dispersed (ring_paper, seed 11: the evaluation's spacing std -6.5..-14.9% at K =
+1..4, its held-out psi 15% above the training runs'). docs/design.md, "Spacing spread
+across seeds (stop 29)"."""
 
 
 def pooled_dispersion(
