@@ -51,6 +51,9 @@ from macromicro_sumo.truth.section import (
 from macromicro_sumo.truth.section_detectors import place_detectors
 
 # runs.csv's columns beyond the ground truth's (``deploy.drivers``), totals in the manifest.
+# The stream of a run's sampled actions (``sampled``): numpy seeds [seed, run, stream], apart
+# from the vType switch's speed factors (17).
+ACTION_STREAM = 30
 SAFETY_COLUMNS = (
     "collisions",
     "teleports",
@@ -63,7 +66,8 @@ SAFETY_COLUMNS = (
 @dataclass(frozen=True)
 class Drive:
     """How a method drives: ``act`` (speed commands, through the safety layer ``safety``;
-    None: the scenario's ``deploy.safety``), ``theta`` (an IDM vType with these
+    None: the scenario's ``deploy.safety``; drawn around it with ``sample_std_mps2``),
+    ``theta`` (an IDM vType with these
     parameters), ``defaults`` (SUMO's default model and parameters of each vClass), or
     nothing of these (the oracle: SUMO drives every vehicle with its true model)."""
 
@@ -71,6 +75,9 @@ class Drive:
     theta: dict[str, float] | None = None
     defaults: bool = False
     safety: str | None = None
+    # ``deploy.action = "sample"``: each step's action drawn from N(act, sample_std^2)
+    # [m/s^2] per driven vehicle (``sampled``); 0: ``act`` itself, the policy's mean.
+    sample_std_mps2: float = 0.0
 
 
 @dataclass
@@ -294,6 +301,22 @@ def run_method(
     return result
 
 
+def sampled(act: ActionBatch, std_mps2: float, rng: np.random.Generator) -> ActionBatch:
+    """``act`` as a Gaussian policy acts (``deploy.action = "sample"``): each call's mean
+    actions plus ``std_mps2`` times standard normal draws from ``rng``, one per vehicle in
+    the order given (the driver's, sorted by ID), still one batched call per step. The
+    bounds, the maxSpeed cap and the safety layer apply to the draw
+    (``deploy.safety.speed_commands``), as the env clips its sample to the bounds."""
+
+    def draw(obs: np.ndarray) -> np.ndarray:
+        mean = act(obs)
+        return mean + std_mps2 * rng.standard_normal(len(mean))
+
+    # policy.driver_speed: each driver's factor, as the mean action's (``deploy.drivers``)
+    draw.driver_speeds = getattr(act, "driver_speeds", None)
+    return draw
+
+
 def _section_runs(ctx, drive, stage, runs, extra, switch, drivers, progress, desc):
     sc = ctx.sc
 
@@ -301,7 +324,11 @@ def _section_runs(ctx, drive, stage, runs, extra, switch, drivers, progress, des
         # The run's own speed limits where the truth drew them (a fleet), as Stage II observed.
         args = (sc, (ctx.run_sections or {}).get(run, ctx.section), run)
         if drive.act is not None:
-            d = SectionSpeedDriver(*args, drive.act, drive.safety or sc.deploy.safety)
+            act = drive.act
+            if drive.sample_std_mps2 > 0.0:  # a generator per run: the same whatever ran before
+                rng = np.random.default_rng([sc.seed, run, ACTION_STREAM])
+                act = sampled(act, drive.sample_std_mps2, rng)
+            d = SectionSpeedDriver(*args, act, drive.safety or sc.deploy.safety)
         elif drive.theta is not None or drive.defaults:
             d = SectionTypeDriver(*args, switch(run))
         else:

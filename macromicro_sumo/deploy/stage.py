@@ -3,8 +3,9 @@
 The methods (``DEPLOY_METHODS``; names as the evaluation's where they are the same method):
 
 * ``policy``, ``micro_only``, ``macro_only``: the learned checkpoints, speed commands from
-  the policy's deterministic mean action, one batched call per step for every driven
-  vehicle (``deploy.drivers``), through the safety layer ``deploy.safety``;
+  the policy's deterministic mean action (``deploy.action = "sample"``: a draw from its
+  Gaussian, ``deploy.run.sampled``), one batched call per step for every driven vehicle
+  (``deploy.drivers``), through the safety layer ``deploy.safety``;
 * ``policy_no_safety``: the learned ``policy`` with its commands applied exactly
   (``safety = "none"``), beside it: what the safety layer changes, and why it is on (a
   collision here is a figure of the summary, not an error);
@@ -214,6 +215,12 @@ def policy_batch(agent: Agent) -> ActionBatch:
     return act
 
 
+def action_std(agent: Agent) -> float:
+    """The std [m/s^2] of the policy's Gaussian (state-independent, learned from the
+    observed vehicles' likelihood): what ``deploy.action = "sample"`` draws with."""
+    return float(agent.log_std.detach().double().exp().item())
+
+
 def idm_theta(p: IdmParams) -> dict[str, float]:
     """IDM parameters as SUMO's vType attributes (what ``Drive.theta`` takes)."""
     return {
@@ -275,8 +282,10 @@ def method_drive(
     if how == "learned":
         safety = METHOD[name].safety or sc.deploy.safety
         floor = sc.deploy.safety_floor_share if safety == "sumo" else None
-        drive = Drive(act=policy_batch(agents[name]), safety=safety)
-        record = {"safety": safety, "safety_floor_share": floor}
+        std = action_std(agents[name]) if sc.deploy.action == "sample" else 0.0
+        drive = Drive(act=policy_batch(agents[name]), safety=safety, sample_std_mps2=std)
+        record = {"safety": safety, "safety_floor_share": floor, "action": sc.deploy.action}
+        record["action_std_mps2"] = std if sc.deploy.action == "sample" else None
         for key in ("safety_floor_on", "safety_brake"):
             record[key] = getattr(sc.deploy, key) if safety == "sumo" else None
         return drive, record
@@ -368,6 +377,7 @@ def deploy(
             held_out_runs=ctx.held_out,
             population=population,
             safety=sc.deploy.safety,
+            action=sc.deploy.action,
             idm_calibrated=(idm.as_dict() | {"fit_rmse_mps2": idm_rmse}) if idm else None,
             idm_detectors=record,
             totals=totals,

@@ -240,6 +240,15 @@ class DeployConfig:
         "decel is its comfortable braking: own holds it behind a Krauss car to gaps SUMO's "
         "IDM does not keep; docs/deploy.md, Safety layer strictness)",
     )
+    action: str = spec(
+        "mean",
+        choices=("mean", "sample"),
+        doc="learned methods: the acceleration each driven vehicle gets every step: mean, the "
+        "policy's deterministic mean action; sample, a draw from its Gaussian (the mean and "
+        "its learned std), from a generator seeded by seed and run, before the bounds and the "
+        "safety layer (docs/deploy.md, Sampled actions)",
+        omit_default=True,
+    )
     merge: str = spec(
         "sumo",
         choices=("none", "handover", "sumo"),
