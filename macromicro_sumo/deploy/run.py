@@ -69,7 +69,9 @@ class Drive:
     None: the scenario's ``deploy.safety``; drawn around it with ``sample_std_mps2``),
     ``theta`` (an IDM vType with these
     parameters), ``defaults`` (SUMO's default model and parameters of each vClass), or
-    nothing of these (the oracle: SUMO drives every vehicle with its true model)."""
+    nothing of these (the oracle: SUMO drives every vehicle with its true model);
+    ``rng_streams``: SUMO's driving random streams re-mapped (``SumoOptions.rng_streams``;
+    None: as the ground truth's runs)."""
 
     act: ActionBatch | None = None
     theta: dict[str, float] | None = None
@@ -78,6 +80,7 @@ class Drive:
     # ``deploy.action = "sample"``: each step's action drawn from N(act, sample_std^2)
     # [m/s^2] per driven vehicle (``sampled``); 0: ``act`` itself, the policy's mean.
     sample_std_mps2: float = 0.0
+    rng_streams: int | None = None
 
 
 @dataclass
@@ -351,6 +354,7 @@ def _section_runs(ctx, drive, stage, runs, extra, switch, drivers, progress, des
             progress,
             driver_for,
             desc,
+            drive.rng_streams,
         )
     else:  # field data without route files: each recording has its own sampled demand
         trajs, rows = [], []
@@ -365,6 +369,7 @@ def _section_runs(ctx, drive, stage, runs, extra, switch, drivers, progress, des
                 progress,
                 driver_for,
                 desc,
+                drive.rng_streams,
             )
             trajs += t
             rows += r

@@ -21,7 +21,12 @@ The methods (``DEPLOY_METHODS``; names as the evaluation's where they are the sa
   parameters of their vClass, only length and vClass kept: what a user gets without
   calibration;
 * ``oracle``: nobody is switched; SUMO drives every vehicle with its true model and
-  parameters, so its detector outputs are the ground truth's.
+  parameters, so its detector outputs are the ground truth's;
+* ``oracle_redrawn``: the oracle with SUMO's driving random streams re-mapped
+  (``REDRAWN_RNG_STREAMS``): the same demand, departures, drivers and speed factors, other
+  random draws (Krauss' dawdling, lane-change randomness). What no model can know: its
+  figures are the floor of the station-interval targets on this truth (docs/deploy.md,
+  "What a near-exact model reaches").
 
 A method that is "an IDM vType with parameters theta" is ``Drive(theta=...)``
 (``deploy.run``).
@@ -95,6 +100,10 @@ PLOTS = "plots"
 # OpenBLAS's threads, which on a loaded 2-core machine cost 1.8 ms at 500 rows instead of
 # 0.3 ms (scripts/bench_deploy.py's sizes).
 ACTOR_ROWS = 128
+# ``oracle_redrawn``'s SUMO random streams: one for every lane instead of SUMO's default 64
+# (one per lane modulo 64), so that every vehicle's draws change (63 would leave a network
+# of fewer than 63 lanes with the truth's mapping: game/ramp repeated its truth exactly).
+REDRAWN_RNG_STREAMS = 1
 # (truth folder, method folders, comparison, plots folder) -> figures written: the report
 # layer's ``report.deploy.make_deploy_plots``, passed in by the pipeline.
 PlotDeploy = Callable[[Path, Mapping[str, Path], pd.DataFrame, Path], list[Path]]
@@ -136,6 +145,11 @@ DEPLOY_METHODS: tuple[DeployMethod, ...] = (
     ),
     DeployMethod("sumo_default", "defaults", "SUMO's default model and parameters of each vClass"),
     DeployMethod("oracle", "oracle", "SUMO drives every vehicle with its true model"),
+    DeployMethod(
+        "oracle_redrawn",
+        "oracle_redrawn",
+        "the oracle with SUMO's own random draws (dawdling, lane changes) redrawn",
+    ),
 )
 METHOD = {m.name: m for m in DEPLOY_METHODS}
 
@@ -296,6 +310,8 @@ def method_drive(
         return Drive(theta=fitted), {"theta": fitted}
     if how == "defaults":
         return Drive(defaults=True), {}
+    if how == "oracle_redrawn":
+        return Drive(rng_streams=REDRAWN_RNG_STREAMS), {"rng_streams": REDRAWN_RNG_STREAMS}
     return Drive(), {}
 
 

@@ -195,6 +195,7 @@ DEPLOY_METHODS = (
     "idm_detectors",
     "sumo_default",
     "oracle",
+    "oracle_redrawn",
 )
 
 

@@ -20,6 +20,10 @@ class SumoOptions:
     # The ring places its vehicles exactly and checks them itself; a user's demand keeps
     # SUMO's own insertion checks and teleports, as the user's runs have them.
     user_demand: bool = False
+    # SUMO's random streams for driving (dawdling, lane changing): None keeps SUMO's default
+    # (64, one per lane modulo 64); another count re-maps them, so the same demand,
+    # departures and speed factors (SUMO's parsing stream) meet other random draws.
+    rng_streams: int | None = None
 
     def args(self) -> list[str]:
         args = [
@@ -42,6 +46,8 @@ class SumoOptions:
             args += ["-a", ",".join(str(p) for p in self.additional_files)]
         if self.fcd_file is not None:
             args += ["--fcd-output", str(self.fcd_file)]
+        if self.rng_streams is not None:
+            args += ["--thread-rngs", str(int(self.rng_streams))]
         if self.error_log is not None:
             args += ["--error-log", str(self.error_log)]
         return args

@@ -10,8 +10,7 @@ loop: its per-vehicle passages give the spread of the spacings, as on the ring. 
 statistics are ``truth/section_macro.py``'s, the K estimates ``truth/hidden_count.py``'s.
 Instrumented vehicles are chosen by a penetration rate, a vType or explicit IDs.
 
-This module: the runs, ``simulate_section`` writing them, and ``load_section_truth``
-reading them back.
+This module: the runs, ``simulate_section`` (writes) and ``load_section_truth`` (reads).
 """
 
 from __future__ import annotations
@@ -90,8 +89,7 @@ def load_section(sc: SectionScenario) -> tuple[SumoInputs, Section, dict[str, VT
 
 
 def fleet_specs(sc: SectionScenario, section: Section) -> tuple[Section, list[fleet.RunSpec]]:
-    """A fleet scenario's ring and every run's draws, in run order from ``sc.seed``: the
-    ring truth's draws for the same seed and tables."""
+    """A fleet scenario's ring and every run's draws from ``sc.seed`` (the ring truth's)."""
     demand = fleet_demand(sc)
     if demand is None:
         raise UserError(f"{sc.source}: no [fleet] table: the demand is the route files")
@@ -237,10 +235,11 @@ def run_section(
     progress: bool = True,
     driver_for: Callable[[int], Driver | None] | None = None,
     desc: str = "simulate",
+    rng_streams: int | None = None,
 ) -> tuple[list[pd.DataFrame], list[dict], dict[str, tuple[str, float]]]:
-    """Step ``runs`` (SUMO seed ``sc.seed + run``), SUMO's files under ``stage/sumo``;
-    returns (trajectory frames, runs.csv rows, vType -> (vClass, decel)). ``driver_for(run)``:
-    who drives in that run besides SUMO (a deployment)."""
+    """Step ``runs`` (SUMO seed ``sc.seed + run``, random streams ``rng_streams``), SUMO's
+    files under ``stage/sumo``; returns (trajectory frames, runs.csv rows, vType -> (vClass,
+    decel)). ``driver_for(run)``: who drives in that run besides SUMO (a deployment)."""
     trajs, rows = [], []
     vclass: dict[str, tuple[str, float]] = {}
     demand = fleet_demand(sc)
@@ -276,6 +275,7 @@ def run_section(
                 error_log=run_dir / "sumo.log",
                 route_files=inputs.route_files,
                 user_demand=demand is None,
+                rng_streams=rng_streams,
             )
             sim = Simulation(opts)
             driver = driver_for(run) if driver_for is not None else None

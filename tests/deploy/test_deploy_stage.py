@@ -22,7 +22,7 @@ from macromicro_sumo.report.write import write_report
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import simulate_section
 
-SECTION_METHODS = ["idm_calibrated", "sumo_default", "oracle"]
+SECTION_METHODS = ["idm_calibrated", "sumo_default", "oracle", "oracle_redrawn"]
 
 
 @pytest.fixture(scope="module")
@@ -59,6 +59,12 @@ def test_the_stage_compares_every_method_and_the_oracle_is_exact(
     assert (o["geh"] == 0.0).all() and (o["flow_truth_vph"] == o["flow_method_vph"]).all()
     # Switching every driven vehicle to SUMO's defaults changes the detectors somewhere.
     assert summary.loc["sumo_default", "speed_rmse_mps"] > 0.0
+    # The merge's Krauss cars dawdle: with SUMO's random streams re-mapped the same drivers
+    # give other detector figures, with nothing driven and no collision.
+    redrawn = summary.loc["oracle_redrawn"]
+    assert redrawn["speed_rmse_mps"] > 0.0 and redrawn["collisions"] == 0
+    assert redrawn["vehicle_steps_driven"] == 0
+    assert json.loads((dep / "oracle_redrawn" / "manifest.json").read_text())["rng_streams"] == 1
     # The manifest lists the comparison and the figures with their sizes.
     outputs = json.loads((dep / MANIFEST).read_text())["outputs"]
     for name in (COMPARISON, SUMMARY, "plots/deploy_fundamental_diagram.png"):
@@ -105,7 +111,9 @@ def test_idm_detectors_moves_towards_the_truths_parameters(
     path, gt = known_ring
     sc = load_scenario(path)
     out = gt.parent / "deploy"
-    m = deploy(sc, gt, None, out, progress=False, methods=["idm_detectors", "oracle"])
+    m = deploy(
+        sc, gt, None, out, progress=False, methods=["idm_detectors", "oracle", "oracle_redrawn"]
+    )
     cal = m["idm_detectors"]
     assert set(cal["training_runs"]).isdisjoint(m["held_out_runs"])
     assert cal["loss"] < 0.5 * cal["start_loss"], cal
@@ -121,6 +129,8 @@ def test_idm_detectors_moves_towards_the_truths_parameters(
     # Deployed on the held-out runs, the fit is closer to the truth than its start point.
     summary = pd.read_csv(out / SUMMARY).set_index("method")
     assert summary.loc["idm_detectors", "share_speed_within_5pct"] >= 0.9
+    # SUMO's IDM draws nothing: its random streams re-mapped, the ring repeats its truth.
+    assert summary.loc["oracle_redrawn", "speed_rmse_mps"] == 0.0
     # report.md of the run folder gets the Deployment section.
     report = write_report(sc, gt.parent, {}).read_text()
     assert "## Deployment" in report and "| idm_detectors " in report and "| oracle " in report

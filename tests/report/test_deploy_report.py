@@ -175,3 +175,16 @@ def test_markdown_says_what_each_data_source_is_compared_with() -> None:
     assert f"Reference (`reference`): {REFERENCE_FIELD}." in field
     assert "- Field data records no collisions or teleports" in field
     assert "- `sumo_default`: 2 collisions and 1 teleports in SUMO." in field
+
+
+@pytest.mark.parametrize(("floor", "out_of_reach"), [(0.6, True), (0.9, False)])
+def test_the_targets_are_read_against_the_redrawn_oracle(floor: float, out_of_reach: bool) -> None:
+    s = summary()
+    row = s[s["method"] == "oracle"].assign(method="oracle_redrawn")
+    row[["share_geh_below_5", "share_speed_within_5pct", "speed_rmse_mps"]] = [floor, floor, 0.35]
+    md = deployment_markdown(pd.concat([s, row], ignore_index=True))
+    assert md.count(f"(`oracle_redrawn`) reaches {100 * floor:.1f}%") == 2
+    assert md.count("out of reach of the true model itself") == (2 if out_of_reach else 0)
+    assert "(`oracle_redrawn`): 0.350 m/s, the floor the policy's 0.420 m/s" in md
+    # Without it the report says nothing of a floor.
+    assert "oracle_redrawn" not in deployment_markdown(s)
