@@ -34,6 +34,7 @@ from macromicro_sumo.deploy.field import (
     station_loops,
 )
 from macromicro_sumo.deploy.population import SwitchedType
+from macromicro_sumo.deploy.redraw_driver import SectionRedrawDriver
 from macromicro_sumo.deploy.type_driver import SectionTypeDriver
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import write_csv, write_manifest
@@ -54,6 +55,7 @@ from macromicro_sumo.truth.section_detectors import place_detectors
 # The stream of a run's sampled actions (``sampled``): numpy seeds [seed, run, stream], apart
 # from the vType switch's speed factors (17).
 ACTION_STREAM = 30
+REDRAW_STREAM = 31  # oracle_population's draws of the drivers' parameters
 SAFETY_COLUMNS = (
     "collisions",
     "teleports",
@@ -71,7 +73,8 @@ class Drive:
     parameters), ``defaults`` (SUMO's default model and parameters of each vClass), or
     nothing of these (the oracle: SUMO drives every vehicle with its true model);
     ``rng_streams``: SUMO's driving random streams re-mapped (``SumoOptions.rng_streams``;
-    None: as the ground truth's runs)."""
+    None: as the ground truth's runs); ``redraw``: nobody driven, each population vehicle's
+    own draws redrawn (``SectionRedrawDriver``)."""
 
     act: ActionBatch | None = None
     theta: dict[str, float] | None = None
@@ -81,6 +84,7 @@ class Drive:
     # [m/s^2] per driven vehicle (``sampled``); 0: ``act`` itself, the policy's mean.
     sample_std_mps2: float = 0.0
     rng_streams: int | None = None
+    redraw: bool = False
 
 
 @dataclass
@@ -334,6 +338,8 @@ def _section_runs(ctx, drive, stage, runs, extra, switch, drivers, progress, des
             d = SectionSpeedDriver(*args, act, drive.safety or sc.deploy.safety)
         elif drive.theta is not None or drive.defaults:
             d = SectionTypeDriver(*args, switch(run))
+        elif drive.redraw:
+            d = SectionRedrawDriver(*args, np.random.default_rng([sc.seed, run, REDRAW_STREAM]))
         else:
             d = SectionDriver(*args)
         drivers[run] = d

@@ -26,7 +26,10 @@ The methods (``DEPLOY_METHODS``; names as the evaluation's where they are the sa
   (``REDRAWN_RNG_STREAMS``): the same demand, departures, drivers and speed factors, other
   random draws (Krauss' dawdling, lane-change randomness). What no model can know: its
   figures are the floor of the station-interval targets on this truth (docs/deploy.md,
-  "What a near-exact model reaches").
+  "What a near-exact model reaches");
+* ``oracle_population``: ``oracle_redrawn`` with each driven vehicle's own draws redrawn
+  from its population (``deploy.redraw_driver``): a perfect model of the population, not
+  of its drivers, the best a shared policy can be.
 
 A method that is "an IDM vType with parameters theta" is ``Drive(theta=...)``
 (``deploy.run``).
@@ -149,6 +152,11 @@ DEPLOY_METHODS: tuple[DeployMethod, ...] = (
         "oracle_redrawn",
         "oracle_redrawn",
         "the oracle with SUMO's own random draws (dawdling, lane changes) redrawn",
+    ),
+    DeployMethod(
+        "oracle_population",
+        "oracle_population",
+        "oracle_redrawn with each driven vehicle's own parameters redrawn from its population",
     ),
 )
 METHOD = {m.name: m for m in DEPLOY_METHODS}
@@ -310,8 +318,10 @@ def method_drive(
         return Drive(theta=fitted), {"theta": fitted}
     if how == "defaults":
         return Drive(defaults=True), {}
-    if how == "oracle_redrawn":
-        return Drive(rng_streams=REDRAWN_RNG_STREAMS), {"rng_streams": REDRAWN_RNG_STREAMS}
+    if how in ("oracle_redrawn", "oracle_population"):
+        redraw = how == "oracle_population"
+        drive = Drive(rng_streams=REDRAWN_RNG_STREAMS, redraw=redraw)
+        return drive, {"rng_streams": REDRAWN_RNG_STREAMS, "redraw": redraw}
     return Drive(), {}
 
 

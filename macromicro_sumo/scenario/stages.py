@@ -196,6 +196,7 @@ DEPLOY_METHODS = (
     "sumo_default",
     "oracle",
     "oracle_redrawn",
+    "oracle_population",
 )
 
 

@@ -155,9 +155,8 @@ class Simulation:
         return Simulation._active is self
 
     def reload(self) -> None:
-        """Start this instance's run again, with its options, after another instance (or a
-        close) took libsumo's one simulation: a fresh run, with no vehicles and nothing
-        added through libsumo (routes, vehicles) since the options' files were loaded."""
+        """Start this instance's run again after another instance (or a close) took libsumo's
+        one simulation: a fresh run, nothing added through libsumo since its files loaded."""
         self._load(self.options)
 
     def close(self) -> None:
@@ -185,13 +184,9 @@ class Simulation:
 
     # ------------------------------------------------------------------ vehicles
     def add_vehicles(
-        self,
-        vehicle_ids: Sequence[str],
-        route_ids: Sequence[str],
-        type_ids: Sequence[str],
-        lane_pos_m: Sequence[float],
-        speeds_mps: Sequence[float],
-    ) -> None:
+        self, vehicle_ids: Sequence[str], route_ids: Sequence[str], type_ids: Sequence[str],
+        lane_pos_m: Sequence[float], speeds_mps: Sequence[float],
+    ) -> None:  # fmt: skip
         """Queue vehicles for insertion on lane 0 at exact positions and speeds (next step)."""
         for vid, route, vtype, pos, v in zip(
             vehicle_ids, route_ids, type_ids, lane_pos_m, speeds_mps, strict=True
@@ -288,14 +283,9 @@ class Simulation:
         libsumo.route.add(route_id, list(edges))
 
     def add_vehicle(
-        self,
-        vehicle_id: str,
-        route_id: str,
-        type_id: str,
-        lane: int,
-        pos_m: float,
+        self, vehicle_id: str, route_id: str, type_id: str, lane: int, pos_m: float,
         speed_mps: float,
-    ) -> None:
+    ) -> None:  # fmt: skip
         """Queue one vehicle at an exact lane, position and speed (inserted next step)."""
         try:
             libsumo.vehicle.add(
@@ -371,6 +361,16 @@ class Simulation:
 
     def vtype_max_speed(self, type_id: str) -> float:
         return float(libsumo.vehicletype.getMaxSpeed(type_id))  # [m/s]; commands may exceed it
+
+    def vtype_speed_factor(self, type_id: str) -> tuple[float, float]:
+        """(mean, deviation) of the speedFactor SUMO draws each vehicle of a vType from."""
+        vt = libsumo.vehicletype
+        return float(vt.getSpeedFactor(type_id)), float(vt.getSpeedDeviation(type_id))
+
+    def set_driver(self, vehicle_id: str, **params: float) -> None:
+        """One vehicle's model parameters by libsumo's names (accel, minGap: ``set<Name>``)."""
+        for name, value in params.items():
+            getattr(libsumo.vehicle, f"set{name[0].upper()}{name[1:]}")(vehicle_id, float(value))
 
     def set_types(self, vehicle_ids: Sequence[str], type_ids: Sequence[str]) -> None:
         list(map(libsumo.vehicle.setType, vehicle_ids, type_ids))

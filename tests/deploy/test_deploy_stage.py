@@ -22,7 +22,13 @@ from macromicro_sumo.report.write import write_report
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import simulate_section
 
-SECTION_METHODS = ["idm_calibrated", "sumo_default", "oracle", "oracle_redrawn"]
+SECTION_METHODS = [
+    "idm_calibrated",
+    "sumo_default",
+    "oracle",
+    "oracle_redrawn",
+    "oracle_population",
+]
 
 
 @pytest.fixture(scope="module")
@@ -65,6 +71,10 @@ def test_the_stage_compares_every_method_and_the_oracle_is_exact(
     assert redrawn["speed_rmse_mps"] > 0.0 and redrawn["collisions"] == 0
     assert redrawn["vehicle_steps_driven"] == 0
     assert json.loads((dep / "oracle_redrawn" / "manifest.json").read_text())["rng_streams"] == 1
+    # Each car's own speedFactor redrawn from its vType's too: further from the truth still.
+    population = summary.loc["oracle_population"]
+    assert population["speed_rmse_mps"] > redrawn["speed_rmse_mps"]
+    assert population["collisions"] == 0 and population["vehicle_steps_driven"] == 0
     # The manifest lists the comparison and the figures with their sizes.
     outputs = json.loads((dep / MANIFEST).read_text())["outputs"]
     for name in (COMPARISON, SUMMARY, "plots/deploy_fundamental_diagram.png"):
@@ -112,7 +122,12 @@ def test_idm_detectors_moves_towards_the_truths_parameters(
     sc = load_scenario(path)
     out = gt.parent / "deploy"
     m = deploy(
-        sc, gt, None, out, progress=False, methods=["idm_detectors", "oracle", "oracle_redrawn"]
+        sc,
+        gt,
+        None,
+        out,
+        progress=False,
+        methods=["idm_detectors", "oracle", "oracle_redrawn", "oracle_population"],
     )
     cal = m["idm_detectors"]
     assert set(cal["training_runs"]).isdisjoint(m["held_out_runs"])
@@ -131,6 +146,8 @@ def test_idm_detectors_moves_towards_the_truths_parameters(
     assert summary.loc["idm_detectors", "share_speed_within_5pct"] >= 0.9
     # SUMO's IDM draws nothing: its random streams re-mapped, the ring repeats its truth.
     assert summary.loc["oracle_redrawn", "speed_rmse_mps"] == 0.0
+    # One set of parameters: its drivers are its population, and redrawn it repeats too.
+    assert summary.loc["oracle_population", "speed_rmse_mps"] == 0.0
     # report.md of the run folder gets the Deployment section.
     report = write_report(sc, gt.parent, {}).read_text()
     assert "## Deployment" in report and "| idm_detectors " in report and "| oracle " in report

@@ -19,6 +19,7 @@ from macromicro_sumo.deploy.compare import (
     compare_folders,
 )
 from macromicro_sumo.report.deploy import (
+    FLOORS,
     deployment_markdown,
     make_deploy_plots,
     plot_speed_heatmaps,
@@ -178,13 +179,20 @@ def test_markdown_says_what_each_data_source_is_compared_with() -> None:
 
 
 @pytest.mark.parametrize(("floor", "out_of_reach"), [(0.6, True), (0.9, False)])
-def test_the_targets_are_read_against_the_redrawn_oracle(floor: float, out_of_reach: bool) -> None:
+def test_the_targets_are_read_against_the_floors(floor: float, out_of_reach: bool) -> None:
     s = summary()
-    row = s[s["method"] == "oracle"].assign(method="oracle_redrawn")
-    row[["share_geh_below_5", "share_speed_within_5pct", "speed_rmse_mps"]] = [floor, floor, 0.35]
-    md = deployment_markdown(pd.concat([s, row], ignore_index=True))
-    assert md.count(f"(`oracle_redrawn`) reaches {100 * floor:.1f}%") == 2
-    assert md.count("out of reach of the true model itself") == (2 if out_of_reach else 0)
-    assert "(`oracle_redrawn`): 0.350 m/s, the floor the policy's 0.420 m/s" in md
-    # Without it the report says nothing of a floor.
+    rows = [s[s["method"] == "oracle"].assign(method=m) for m in FLOORS]
+    for row, share, rmse in zip(rows, (0.95, floor), (0.2, 0.35), strict=True):
+        row[["share_geh_below_5", "share_speed_within_5pct", "speed_rmse_mps"]] = [
+            share,
+            share,
+            rmse,
+        ]
+    md = deployment_markdown(pd.concat([s, *rows], ignore_index=True))
+    assert md.count("(`oracle_redrawn`) reaches 95.0%.") == 2
+    assert md.count(f"(`oracle_population`) reaches {100 * floor:.1f}%") == 2
+    assert md.count("out of its reach here at this interval") == (2 if out_of_reach else 0)
+    assert "(`oracle_redrawn`): 0.200 m/s, a floor for the policy's 0.420 m/s" in md
+    assert "(`oracle_population`): 0.350 m/s" in md
+    # Without them the report says nothing of a floor.
     assert "oracle_redrawn" not in deployment_markdown(s)
