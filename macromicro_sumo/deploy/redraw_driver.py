@@ -1,8 +1,9 @@
 """The population oracle's driver: every vehicle of the driven population keeps its true
 model, but its own draws are redrawn from the population it came from, once, when it
-appears. What a perfect model of the population (not of its drivers) reaches: a shared
-policy learns the population, and no loop or observed vehicle tells it a hidden driver's
-own parameters (docs/deploy.md, "What a near-exact model reaches").
+appears. What a perfect model of the population that knows nothing of each driver
+reaches: no loop or observed vehicle gives a hidden driver's own parameters (a policy that
+reads a driver's own speed, ``policy.driver_speed = "memory"``, knows some of it;
+docs/deploy.md, "What a near-exact model reaches").
 
 * a fleet (the paper's ring): the driver's accel, decel, tau, minGap and speedFactor, each
   uniform in the ``[fleet]`` table's range, as the truth drew them;

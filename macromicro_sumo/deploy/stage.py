@@ -28,8 +28,8 @@ The methods (``DEPLOY_METHODS``; names as the evaluation's where they are the sa
   figures are the floor of the station-interval targets on this truth (docs/deploy.md,
   "What a near-exact model reaches");
 * ``oracle_population``: ``oracle_redrawn`` with each driven vehicle's own draws redrawn
-  from its population (``deploy.redraw_driver``): a perfect model of the population, not
-  of its drivers, the best a shared policy can be.
+  from its population (``deploy.redraw_driver``): a perfect model of the population that
+  knows nothing of each driver.
 
 A method that is "an IDM vType with parameters theta" is ``Drive(theta=...)``
 (``deploy.run``).
