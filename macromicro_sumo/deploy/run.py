@@ -69,9 +69,8 @@ SAFETY_COLUMNS = (
 class Drive:
     """How a method drives: ``act`` (speed commands, through the safety layer ``safety``;
     None: the scenario's ``deploy.safety``; drawn around it with ``sample_std_mps2``),
-    ``theta`` (an IDM vType with these
-    parameters), ``defaults`` (SUMO's default model and parameters of each vClass), or
-    nothing of these (the oracle: SUMO drives every vehicle with its true model);
+    ``theta`` (an IDM vType with these parameters), ``defaults`` (SUMO's default model and
+    parameters of each vClass), or nothing of these (the oracle: SUMO drives every vehicle with its true model);
     ``rng_streams``: SUMO's driving random streams re-mapped (``SumoOptions.rng_streams``;
     None: as the ground truth's runs); ``redraw``: nobody driven, each population vehicle's
     own draws redrawn (``SectionRedrawDriver``)."""
