@@ -51,11 +51,11 @@ from macromicro_sumo.truth.section import (
 )
 from macromicro_sumo.truth.section_detectors import place_detectors
 
-# runs.csv's columns beyond the ground truth's (``deploy.drivers``), totals in the manifest.
-# The stream of a run's sampled actions (``sampled``): numpy seeds [seed, run, stream], apart
-# from the vType switch's speed factors (17).
+# A run's random streams, numpy seeds [seed, run, stream]: its sampled actions (``sampled``)
+# and oracle_population's redrawn drivers, apart from the vType switch's speed factors (17).
 ACTION_STREAM = 30
-REDRAW_STREAM = 31  # oracle_population's draws of the drivers' parameters
+REDRAW_STREAM = 31
+# runs.csv's columns beyond the ground truth's (``deploy.drivers``), totals in the manifest.
 SAFETY_COLUMNS = (
     "collisions",
     "teleports",
