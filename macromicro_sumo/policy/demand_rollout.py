@@ -19,6 +19,7 @@ horizon to count down, unlike snapshot episodes (t / H in [0, 1)).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -153,6 +154,45 @@ def collect_demand(
         teleports,
         steps,
     )
+
+
+def warmup_states(agent: Agent, core: DemandCore, warmup_s: float) -> np.ndarray:
+    """Observations (N, obs_dim) of the population through the warm-up of each of
+    ``core.runs`` (from SUMO's first step to ``warmup_s``), driven by the agent's prior
+    alone: the start every deployment drives into (a ring's fleet departing standing), which
+    no snapshot episode shows (they start after the warm-up). ``policy.residual``'s
+    warm-up anchors hold the residual at 0 where these lie off the pairs."""
+    dt = core.dt
+    out = []
+    for run in core.runs:
+        core.reset(int(run), dt)
+        for _ in range(int(round(warmup_s / dt)) - 1):
+            vids, o = core.observe()
+            a = np.zeros(0)
+            if vids:
+                with torch.no_grad():
+                    a = agent.prior_accel(torch.as_tensor(o, dtype=torch.float32)).numpy()
+                out.append(o)
+            core.step(a)
+    if not out:
+        return np.zeros((0, core.obs_dim), dtype=np.float32)
+    return np.concatenate(out).astype(np.float32)
+
+
+def prior_warmup_states(
+    sc, prior_params: Mapping[str, float], make_demand: Callable[[], DemandCore]
+) -> np.ndarray:
+    """``warmup_states`` of the training runs' demand (``make_demand``) under the fitted
+    prior alone (``policy.prior``, ``prior_params``); a demand core of its own, closed
+    before the snapshot env starts, so that env runs as it did without it."""
+    agent = Agent(
+        observation=sc.policy.observation, prior=sc.policy.prior, prior_params=prior_params
+    )
+    core = make_demand()
+    try:
+        return warmup_states(agent, core, sc.simulation.warmup_s)
+    finally:
+        core.close()
 
 
 def join_demand(batch: tuple[torch.Tensor, ...], db: DemandBatch) -> tuple[torch.Tensor, ...]:

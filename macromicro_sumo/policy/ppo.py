@@ -14,7 +14,8 @@ Read top to bottom as CleanRL's ppo_continuous_action: rollout, GAE, update (the
 * With ``policy.prior`` (a residual policy) the likelihood's pairs are the recorded ones
   the prior was fitted on (``recorded_pairs``), the residual is fitted only where a leader
   changes the prior's action and (``policy.residual_pairs``) not on pairs held back far
-  below it, and anchors hold it at 0 off its pairs (``policy.residual``: why, measured).
+  below it, and anchors hold it at 0 off its pairs and, where the truth has a warm-up, at
+  the warm-up's states off them (``policy.residual``: why, measured).
 * Ablations (``policy.objective``): ``mix`` (the paper), ``micro_only`` (eta = 0: behaviour
   cloning), ``macro_only`` (no likelihood term). An empty minibatch (few samples) is skipped.
 * The env core is a section's ``SectionCore`` (``make_core``; the paper's ring is one); on
@@ -53,12 +54,19 @@ from macromicro_sumo.policy.checkpoint import (
     resumable_checkpoint,
     signature,
 )
-from macromicro_sumo.policy.demand_rollout import collect_demand, demand_log, join_demand
+from macromicro_sumo.policy.demand_rollout import (
+    collect_demand,
+    demand_log,
+    join_demand,
+    prior_warmup_states,
+)
 from macromicro_sumo.policy.residual import (
     anchor_loss,
     anchor_observations,
     drops_held_pairs,
+    off_support,
     residual_pairs,
+    warmup_anchor_loss,
 )
 from macromicro_sumo.policy.rollout import Rollout, collect, collect_batched
 from macromicro_sumo.progress import tqdm
@@ -92,6 +100,21 @@ def clipped_actions(actions: np.ndarray, a_min: float, a_max: float) -> tuple[np
 
 Core = SectionCore
 BATCH_SCENES = 64  # the batched core's scenes: episodes of an update per SUMO step
+WARMUP_SEED_OFFSET = 7919  # the warm-up anchors' generator: seed + this
+
+
+def warmup_anchors(sc: SectionScenario, use_micro: bool) -> bool:
+    """Whether the residual gets warm-up anchors (``policy.residual``): a residual policy
+    with a likelihood term, on a simulated ground truth with a warm-up."""
+    cfg = sc.policy
+    return (
+        use_micro
+        and cfg.prior != "none"
+        and cfg.residual_bound_mps2 > 0
+        and sc.data.source != "files"
+        and sc.simulation.warmup_s > 0
+    )
+
 
 # --------------------------------------------------------------------------- training
 
@@ -198,6 +221,12 @@ def train_policy(
         section, net_file = load_section(sc)[1], scenario_inputs(sc).net_file
         make_core = lambda b, seed: SectionCore(sc, section, b, net_file, seed=seed)  # noqa: E731
     seed = sc.seed if cfg.seed < 0 else cfg.seed  # policy.seed: a second training
+    # The warm-up's states under the prior, anchors of the residual where they lie off its
+    # pairs (policy.residual): the start every deployment drives into. Collected before the
+    # snapshot env starts; none without a warm-up (the ring records from its insertion).
+    warm = None
+    if warmup_anchors(sc, use_micro) and make_demand is not None:
+        warm = torch.as_tensor(prior_warmup_states(sc, prior_params, make_demand))
     core = make_core(bank, seed)
     # The ring's rollouts, B episodes per SUMO step: the same rollout, to the bit (rollout.py).
     batched = batched_like(core, min(cfg.episodes_per_update, BATCH_SCENES))
@@ -229,6 +258,8 @@ def train_policy(
         opt = torch.optim.Adam(agent.parameters(), lr=cfg.lr)
         rng = np.random.default_rng([seed, 41])
         gen = torch.Generator().manual_seed(seed)
+        # The warm-up anchors' own draws: ``gen``'s stay as they were without them.
+        warm_gen = torch.Generator().manual_seed(seed + WARMUP_SEED_OFFSET)
         log: list[dict[str, Any]] = []
         start = 0
         # Observed (o, u) pairs of the last ``micro_replay`` rollouts: the likelihood term is
@@ -243,6 +274,8 @@ def train_policy(
             log, start = ck["log"], ck["update"]
             micro_pool = ck.get("micro_pool", [])
             best_val, best_state = ck.get("best_val", best_val), ck.get("best_state_dict")
+            if "warmup_rng" in ck:
+                warm_gen.set_state(ck["warmup_rng"])
         a_min, a_max = sc.bounds.accel_mps2
         # policy.residual_pairs: held-back pairs out of the residual's likelihood.
         lanes = int(np.max(core.section.n_lanes))
@@ -322,10 +355,12 @@ def train_policy(
             n_b, n_m = len(b_obs), len(m_obs)
             # A residual is fitted where a leader matters and held at 0 off its pairs
             # (policy.residual): anchors are drawn from every pair's state.
-            m_all, support = m_obs, None
+            m_all, support, warm_off = m_obs, None, None
             if agent.prior != "none" and float(agent.residual_bound) > 0 and n_m > 0:
                 support, m_obs, m_act = residual_pairs(agent, m_obs, m_act, drop_held)
                 n_m = len(m_obs)
+                if warm is not None:
+                    warm_off = off_support(warm, support, agent.scale)
             stats: dict[str, list[float]] = {
                 k: [] for k in ("pg_loss", "v_loss", "entropy", "kl", "micro_logp")
             }
@@ -367,6 +402,9 @@ def train_policy(
                         pick = torch.randint(len(m_all), (n_anchors,), generator=gen)
                         anchors = anchor_observations(m_all[pick], gen)
                         loss = loss + anchor_loss(agent, anchors, support)
+                        if warm_off is not None and len(warm_off):
+                            pick = torch.randint(len(warm_off), (n_anchors,), generator=warm_gen)
+                            loss = loss + warmup_anchor_loss(agent, warm_off[pick], support)
                     if not loss.requires_grad:
                         continue
                     opt.zero_grad()
@@ -414,6 +452,7 @@ def train_policy(
                         "micro_pool": micro_pool,
                         "best_val": best_val,
                         "best_state_dict": best_state,
+                        "warmup_rng": warm_gen.get_state(),
                     },
                 )
     finally:
@@ -439,4 +478,7 @@ def train_policy(
         },
     )
     write_csv(pd.DataFrame(log), out / policy_file(objective, "train_log"))
-    return {"agent": agent, "wall_s": wall, "env_steps": env_steps, "log": log}
+    out_res = {"agent": agent, "wall_s": wall, "env_steps": env_steps, "log": log}
+    if warm is not None:
+        out_res["warmup_states"] = len(warm)
+    return out_res

@@ -45,6 +45,14 @@ and generator, PPO seeds 1 and 2, deployed at 18% and 82% speed-within-5% (docs/
   ``HELD_MARGIN_MPS2`` below the prior out (``held_back``), except on a closed one-lane
   section, where the leader is the only constraint (docs/deploy.md, "Residual on untuned
   networks (stop 28)").
+* The start. Snapshot episodes and the recorded pairs begin after the warm-up, and the
+  anchors keep each pair's leader speed, so a platoon that starts together (own and
+  leader's speed low, delta_v near 0) was anchored nowhere: on ring_two_lane, whose fleet
+  departs standing, the trained residual gave -0.15 to -0.24 m/s^2 in the first 20 s, in
+  the prior's free regime, and the deployed policies' first minute was 0.8-1.3 m/s slow
+  (the prior alone 0.4). Where the truth has a warm-up, the warm-up's states driven by the
+  prior (``policy.demand_rollout.warmup_states``) that lie off the pairs are anchors too
+  (``warmup_anchor_loss``; docs/deploy.md, "ring_two_lane's start (stop 30)").
 
 The policy's form (actor, bound, prior) is unchanged, so checkpoints and the deployment's
 numpy twin of ``Agent.mean_action`` are too.
@@ -173,3 +181,22 @@ def anchor_loss(
     )
     std = agent.log_std.detach().exp()
     return ANCHOR_WEIGHT * (w * agent.residual(anchors) ** 2).mean() / (2.0 * std**2).squeeze()
+
+
+def off_support(
+    states: torch.Tensor, support: tuple[torch.Tensor, torch.Tensor], scale: torch.Tensor
+) -> torch.Tensor:
+    """The rows of ``states`` (N, D) outside the pairs' support (``support_weight`` > 0)."""
+    return states[support_weight(states, support, scale) > 0.0]
+
+
+def warmup_anchor_loss(
+    agent: Agent, states: torch.Tensor, support: tuple[torch.Tensor, torch.Tensor]
+) -> torch.Tensor:
+    """``anchor_loss`` for states of the warm-up (``policy.demand_rollout.warmup_states``):
+    pseudo-pairs whose action is the prior's, weighted by ``support_weight`` alone. Inside
+    the support the pairs and the anchors drawn from them set the residual; the warm-up
+    adds the states they do not reach (a standing start)."""
+    w = support_weight(states, support, agent.scale)
+    std = agent.log_std.detach().exp()
+    return ANCHOR_WEIGHT * (w * agent.residual(states) ** 2).mean() / (2.0 * std**2).squeeze()

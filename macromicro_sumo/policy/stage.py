@@ -151,6 +151,8 @@ def run_train_policy(
         recorded_pairs=pairs,
         driver_speed=episodes.driver_speed,
     )
+    if "warmup_states" in res:  # the warm-up anchors' states (policy.residual)
+        extra["warmup_states"] = res["warmup_states"]
     return write_policy_manifest(
         sc, command, objective, res, data, generator, out, episodes=len(episodes.bank), **extra
     )
