@@ -84,6 +84,7 @@ class SectionDriver:
         self.shape_of: dict[str, tuple[float, float, float]] = {}  # vehicle -> its vType's
         self.decel_of: dict[str, float] = {}  # vehicle -> its vType's decel
         self.vmax: dict[str, float] = {}  # vType -> its maxSpeed [m/s]
+        self.accel: dict[str, float] = {}  # vType -> its accel [m/s^2]
         # shape_of and section.lanes as numpy tables (``deploy.observe``), built once a run
         self.shape_table = Table(STANDING)
         self.type_code: dict[str, int] = {}  # vType -> its row in shape_table
@@ -132,6 +133,7 @@ class SectionDriver:
             if vt not in self.shapes:
                 self.shapes[vt] = sim.vtype_shape(vt)
                 self.vmax[vt] = sim.vtype_max_speed(vt)
+                self.accel[vt] = sim.vtype_accel(vt)
                 self.type_code[vt] = self.shape_table.add_row(self.shapes[vt])
             self.shape_of[vid] = self.shapes[vt]
             self.decel_of[vid] = self.shapes[vt][2]
@@ -202,6 +204,7 @@ class SectionSpeedDriver(SectionDriver):
         at = self.slots.slots(vids)
         self.slots.decel[at] = list(map(self.decel_of.__getitem__, vids))
         self.slots.vmax[at] = [self.vmax[self.types[v]] for v in vids]
+        self.slots.accel[at] = [self.accel[self.types[v]] for v in vids]
 
     def release(self, sim: Simulation, vids: list[str]) -> None:
         sim.release_speeds(vids)
@@ -362,10 +365,11 @@ class SectionSpeedDriver(SectionDriver):
         def layer() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
             return gap, own, lead_decel, lead
 
-        # The vType's maxSpeed is the vehicle's physics, not safety: SUMO does not impose
-        # it on a command under these speed modes (no max-accel bit; ring_two_lane's vans,
-        # maxSpeed 12, ran at up to 14.9 m/s), so every command is held to it, with or
-        # without the safety layer.
+        # The vType's maxSpeed and accel are the vehicle's physics, not safety: SUMO does
+        # not impose them on a command under these speed modes (no max-accel bit;
+        # ring_two_lane's vans, maxSpeed 12, ran at up to 14.9 m/s; drawn net 300's trucks,
+        # accel 1.0, accelerated at up to the bound's 2.6 m/s^2), so every command is held
+        # to them, with or without the safety layer.
         cmd = speed_commands(
             self.sc,
             self.act,
@@ -377,6 +381,7 @@ class SectionSpeedDriver(SectionDriver):
             safe,
             lead_speed,
             self.slots.vmax[slots],
+            self.slots.accel[slots],
         )
         sim.set_speeds(vids, cmd)
         self.slots.commanded(slots, cmd)

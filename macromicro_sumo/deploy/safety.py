@@ -118,7 +118,7 @@ def safety_cap(
     lead_decel: np.ndarray,
     lead: np.ndarray,
     dt_s: float,
-    a_max_mps2: float,
+    a_max_mps2: np.ndarray | float,
     floor_share: np.ndarray | float,
     safe: np.ndarray | None = None,
     lead_speed: np.ndarray | None = None,
@@ -132,8 +132,9 @@ def safety_cap(
     is driven too (``lead``: its index in ``cmd``, -1: none; ``behind_commands``).
     ``safe``: ``leader_safe_speed`` of these inputs if computed already; ``lead_speed``:
     obs[:, 0] - obs[:, 3] if computed already; ``vmax``: the vehicles' maxSpeed [m/s], which
-    the floor does not exceed (the commands are at most it already: ``speed_commands``).
-    Returns (commands, how many the layer lowered, how many it raised), each by more than
+    the floor does not exceed (the commands are at most it already: ``speed_commands``);
+    ``a_max_mps2``: the acceleration the floor may lift a vehicle by, one for all or per
+    vehicle (the bound, at most the vType's accel: ``speed_commands``). Returns (commands, how many the layer lowered, how many it raised), each by more than
     ``SAFETY_TOLERANCE_MPS``."""
     if lead_speed is None:
         lead_speed = obs[:, 0] - obs[:, 3]
@@ -212,6 +213,7 @@ def speed_commands(
     safe: np.ndarray | None = None,
     lead_speed: np.ndarray | None = None,
     vmax: np.ndarray | float = np.inf,
+    accel: np.ndarray | float = np.inf,
 ) -> np.ndarray:
     """Speed commands v' = max(0, v + a dt) [m/s] of the batched action ``act`` at
     observations ``obs`` (v in column 0, the lane's limit in column 1), a clipped to the
@@ -225,8 +227,13 @@ def speed_commands(
     driver computed them already. ``vmax``: each vehicle's vType maxSpeed [m/s], a bound of
     its physics, not of safety: every command is at most it, with or without the layer
     (SUMO imposes it only under the max-accel bit, which these speed modes leave off), and
-    is not counted as the layer's action."""
+    is not counted as the layer's action. ``accel``: each vehicle's vType accel [m/s^2],
+    its physics too (SUMO's Krauss and IDM never accelerate harder): a is at most it, and
+    so is the floor's reach (an inf: the bound alone; a scalar bound where none is lower,
+    the same values as before the cap)."""
     a_min, a_max = sc.bounds.accel_mps2
+    if np.any(accel < a_max):  # a vehicle that cannot reach the bound: held to its own
+        a_max = np.minimum(accel, a_max)
     # np.clip's own overhead is several times that of the two calls (the same values)
     a = np.minimum(np.maximum(act(obs), a_min), a_max)
     dt = sc.simulation.step_length_s

@@ -65,6 +65,7 @@ class VehicleSlots:
         self.of: dict[str, int] = {}
         self.decel = np.full(capacity, np.nan)  # its demand vType's decel [m/s^2] (``take``)
         self.vmax = np.full(capacity, np.inf)  # its demand vType's maxSpeed [m/s] (``take``)
+        self.accel = np.full(capacity, np.inf)  # its demand vType's accel [m/s^2] (``take``)
         self.last_mps = np.full(capacity, -np.inf)
         # Its driver's desired-speed factor (``policy.driver_speed``; NaN: not drawn yet).
         self.factor = np.full(capacity, np.nan)
@@ -80,6 +81,7 @@ class VehicleSlots:
         if slot == len(self.last_mps):
             self.decel = _grown(self.decel, np.nan)
             self.vmax = _grown(self.vmax, np.inf)
+            self.accel = _grown(self.accel, np.inf)
             self.last_mps = _grown(self.last_mps, -np.inf)
             self.factor = _grown(self.factor, np.nan)
             self.lane_end.grow()

@@ -353,14 +353,14 @@ class Simulation:
     def vtype_shape(self, type_id: str) -> tuple[float, float, float]:
         """(length, minGap, decel) of a vType [m, m, m/s^2]."""
         vt = libsumo.vehicletype
-        return (
-            float(vt.getLength(type_id)),
-            float(vt.getMinGap(type_id)),
-            float(vt.getDecel(type_id)),
-        )
+        length, gap, decel = (float(f(type_id)) for f in (vt.getLength, vt.getMinGap, vt.getDecel))
+        return length, gap, decel
 
     def vtype_max_speed(self, type_id: str) -> float:
         return float(libsumo.vehicletype.getMaxSpeed(type_id))  # [m/s]; commands may exceed it
+
+    def vtype_accel(self, type_id: str) -> float:
+        return float(libsumo.vehicletype.getAccel(type_id))  # [m/s^2]; commands may exceed it
 
     def vtype_speed_factor(self, type_id: str) -> tuple[float, float]:
         """(mean, deviation) of the speedFactor SUMO draws each vehicle of a vType from."""

@@ -67,6 +67,10 @@ def test_no_command_makes_the_ring_collide(
             "fleet.n_vehicles": 9,
             "initial.min_spacing_m": 35.0,
             "bounds.accel_mps2": [a_min, 3.0],
+            # Vehicles that can accelerate at the bound: commands are held to the vType's
+            # accel (deploy.safety.speed_commands), which at the paper's 0.8-1.2 m/s^2
+            # leaves the random adversary too weak to test the layer.
+            "fleet.accel_mps2": [3.0, 3.0],
             "bounds.spacing_m": [40.0, 140.0],
             "simulation.duration_s": 90.0,
             "simulation.n_runs": 2,
