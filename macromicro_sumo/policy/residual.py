@@ -179,8 +179,14 @@ def anchor_loss(
     w = torch.maximum(
         support_weight(anchors, support, agent.scale), free_regime(agent, anchors).to(anchors.dtype)
     )
+    return _pseudo_pair_loss(agent, anchors, w)
+
+
+def _pseudo_pair_loss(agent: Agent, states: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """ANCHOR_WEIGHT x mean(w r^2) / (2 std^2): pairs at ``states`` whose action is the
+    prior's, r the residual there, weighted by ``w``."""
     std = agent.log_std.detach().exp()
-    return ANCHOR_WEIGHT * (w * agent.residual(anchors) ** 2).mean() / (2.0 * std**2).squeeze()
+    return ANCHOR_WEIGHT * (w * agent.residual(states) ** 2).mean() / (2.0 * std**2).squeeze()
 
 
 def off_support(
@@ -197,6 +203,4 @@ def warmup_anchor_loss(
     pseudo-pairs whose action is the prior's, weighted by ``support_weight`` alone. Inside
     the support the pairs and the anchors drawn from them set the residual; the warm-up
     adds the states they do not reach (a standing start)."""
-    w = support_weight(states, support, agent.scale)
-    std = agent.log_std.detach().exp()
-    return ANCHOR_WEIGHT * (w * agent.residual(states) ** 2).mean() / (2.0 * std**2).squeeze()
+    return _pseudo_pair_loss(agent, states, support_weight(states, support, agent.scale))
