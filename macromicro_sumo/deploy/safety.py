@@ -134,7 +134,8 @@ def safety_cap(
     obs[:, 0] - obs[:, 3] if computed already; ``vmax``: the vehicles' maxSpeed [m/s], which
     the floor does not exceed (the commands are at most it already: ``speed_commands``);
     ``a_max_mps2``: the acceleration the floor may lift a vehicle by, one for all or per
-    vehicle (the bound, at most the vType's accel: ``speed_commands``). Returns (commands, how many the layer lowered, how many it raised), each by more than
+    vehicle (the bound, at most the vType's accel: ``speed_commands``). Returns (commands,
+    how many the layer lowered, how many it raised), each by more than
     ``SAFETY_TOLERANCE_MPS``."""
     if lead_speed is None:
         lead_speed = obs[:, 0] - obs[:, 3]
