@@ -51,7 +51,7 @@ BASELINES = {"sumo_default": "SUMO's uncalibrated defaults", "idm_calibrated": "
 # The targets' floors on a truth (docs/deploy.md, "What a near-exact model reaches").
 FLOORS = {
     "oracle_redrawn": "the true model with SUMO's random draws redrawn",
-    "oracle_population": "the same with each driver's own parameters redrawn (the population)",
+    "oracle_population": "the true model with its draws and each driver's parameters redrawn",
 }
 TARGET_SHARE = 0.85  # GEH < 5 and speed within 5% in at least 85% of station-intervals
 MAX_STATIONS = 16  # fundamental diagrams drawn (the first ones along the road)
@@ -331,8 +331,8 @@ def policy_targets(summary: pd.DataFrame) -> list[str]:
     for name, words in FLOORS.items():
         if name in s.index and np.isfinite(s.loc[name, "speed_rmse_mps"]):
             lines.append(
-                f"- Speed RMSE of {words} (`{name}`): {s.loc[name, 'speed_rmse_mps']:.3f} m/s, "
-                f"a floor for the policy's {p['speed_rmse_mps']:.3f} m/s."
+                f"- Speed RMSE of {words} (`{name}`): {s.loc[name, 'speed_rmse_mps']:.3f} m/s "
+                f"(the policy's: {p['speed_rmse_mps']:.3f} m/s)."
             )
     return lines
 

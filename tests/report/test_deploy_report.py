@@ -192,7 +192,7 @@ def test_the_targets_are_read_against_the_floors(floor: float, out_of_reach: boo
     assert md.count("(`oracle_redrawn`) reaches 95.0%.") == 2
     assert md.count(f"(`oracle_population`) reaches {100 * floor:.1f}%") == 2
     assert md.count("out of its reach here at this interval") == (2 if out_of_reach else 0)
-    assert "(`oracle_redrawn`): 0.200 m/s, a floor for the policy's 0.420 m/s" in md
+    assert "(`oracle_redrawn`): 0.200 m/s (the policy's: 0.420 m/s)." in md
     assert "(`oracle_population`): 0.350 m/s" in md
     # Without them the report says nothing of a floor.
     assert "oracle_redrawn" not in deployment_markdown(s)
