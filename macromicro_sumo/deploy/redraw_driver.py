@@ -40,7 +40,6 @@ class SectionRedrawDriver(SectionDriver):
         self.rng = rng
         demand = fleet_demand(sc)
         self.fleet = demand.fleet if demand is not None else None
-        self.redrawn = 0  # vehicles whose draws were replaced
 
     def arrive(self, sim: Simulation, new: tuple[str, ...]) -> None:
         super().arrive(sim, new)
@@ -57,7 +56,6 @@ class SectionRedrawDriver(SectionDriver):
                     continue
                 draws = {"speedFactor": self.speed_factor(mean, dev)}
             sim.set_driver(vid, **draws)
-            self.redrawn += 1
 
     def speed_factor(self, mean: float, dev: float) -> float:
         """A draw of N(mean, dev) inside ``SPEED_FACTOR_BOUNDS`` (redrawn outside, as SUMO)."""

@@ -71,7 +71,7 @@ def test_the_stage_compares_every_method_and_the_oracle_is_exact(
     assert redrawn["speed_rmse_mps"] > 0.0 and redrawn["collisions"] == 0
     assert redrawn["vehicle_steps_driven"] == 0
     assert json.loads((dep / "oracle_redrawn" / "manifest.json").read_text())["rng_streams"] == 1
-    # Each car's own speedFactor redrawn from its vType's too: further from the truth still.
+    # Each car's own speedFactor redrawn from its vType's too: here further from the truth.
     population = summary.loc["oracle_population"]
     assert population["speed_rmse_mps"] > redrawn["speed_rmse_mps"]
     assert population["collisions"] == 0 and population["vehicle_steps_driven"] == 0
