@@ -13,6 +13,7 @@ from itertools import chain, repeat
 import numpy as np
 
 from macromicro_sumo.env.driver_speed import scale_limits
+from macromicro_sumo.road.physics import OBSERVATION_FEATURES, has_lookahead, set_own_features
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
 from macromicro_sumo.sumo.simulation import VehicleStates
 
@@ -109,7 +110,7 @@ def observe_rows(
     call): one look-up of each table column for all vehicles and leaders, the standing
     leaders' columns only where one is nearer (``scripts/bench_deploy.py``)."""
     n = len(vids)
-    obs = np.empty((n, 6 if observation == "lookahead" else 4))
+    obs = np.empty((n, len(OBSERVATION_FEATURES[observation])))
     if not n:
         return obs, np.empty(0), np.empty(0), np.empty(0, dtype=np.int64)
     speed = st.speed_mps[rows]
@@ -158,11 +159,12 @@ def observe_rows(
     obs[:, 1] = lanes.limit_mps[codes]
     obs[:, 2] = spacing
     obs[:, 3] = speed - lead_v
-    if observation == "lookahead":
+    if has_lookahead(observation):
         arc = lanes.arc0_m[codes] + st.pos_m[rows] * lanes.arc_per_m[codes]
         obs[:, 4] = lanes.next_limit_mps[codes]
         start = lanes.next_start_m[codes]
         obs[:, 5] = start - (np.mod(arc, lanes.length_m) if lanes.closed else arc)
+    set_own_features(obs, observation, length)
     if driver_speeds is not None:
         scale_limits(obs, driver_speeds(vids, obs))
     return obs, sumo_gap, lead_decel, lead_index

@@ -42,6 +42,7 @@ from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import SectionBank
 from macromicro_sumo.env.slot_core import POSITION_TOL_M, SlotCore
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.road.physics import set_own_features
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
 from macromicro_sumo.sumo.simulation import DEFAULT_LANE_CHANGE_MODE, Simulation, SumoOptions
 from macromicro_sumo.sumo.tiling import copy_id, tile_net
@@ -303,15 +304,17 @@ class BatchedSectionCore(SlotCore):
     def _scene(self, scenes: np.ndarray) -> None:
         """Leaders, spacings and observations of ``scenes`` (the others keep theirs)."""
         f = self.bank.driver_factor
+        live = self.active & scenes[:, None]
         obs, leader, spacing = loop_observations(
             self.section,
             self.limits,
             self.arc,
             self.speed,
-            self.active & scenes[:, None],
+            live,
             self.obs_dim,
             None if f is None else f[self.episode],
         )
+        set_own_features(obs, self.observation, np.where(live, self.bank.length_m[self.episode], 0))
         keep = ~scenes[:, None]
         self.leader = np.where(keep, self.leader, leader)
         self.spacing = np.where(keep, self.spacing, spacing)

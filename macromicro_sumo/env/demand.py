@@ -39,7 +39,11 @@ import numpy as np
 
 from macromicro_sumo.data.section import PSI_FIELDS, SectionTruth, psi_table, run_section
 from macromicro_sumo.env.section_bank import section_macro_reward, section_target
-from macromicro_sumo.road.physics import OBSERVATION_FEATURES
+from macromicro_sumo.road.physics import (
+    OBSERVATION_FEATURES,
+    has_lookahead,
+    set_own_features,
+)
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
 from macromicro_sumo.scenario.fleet import fleet_demand
 from macromicro_sumo.sumo.fleet import FLEET_ROUTE_PREFIX
@@ -138,9 +142,12 @@ def sumo_observations(
     edge = section.edge_index(arc)
     limit = section.limits_mps[edge, np.minimum(lane, section.n_lanes[edge] - 1)]
     cols = [speed, limit, spacing, speed - lead_v]
-    if len(OBSERVATION_FEATURES[observation]) > 4:
+    if has_lookahead(observation):
         cols += list(lookahead(section, lane, arc, edge, limit))
-    obs = np.stack(cols, axis=1) if n else np.zeros((0, len(OBSERVATION_FEATURES[observation])))
+    obs = np.zeros((n, len(OBSERVATION_FEATURES[observation])))
+    if n:
+        obs[:, : len(cols)] = np.stack(cols, axis=1)
+    set_own_features(obs, observation, np.array([shapes[v][0] for v in vids]))
     return SumoScene(obs, leader, spacing, gap_out)
 
 

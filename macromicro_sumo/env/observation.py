@@ -35,6 +35,7 @@ FEATURES = {
         Feature("delta_v_mps", "m/s", 0.0, 1.0, "own speed minus the leader's"),
         Feature("next_limit_mps", "m/s", 13.0, 1.0, "speed limit of the next edge"),
         Feature("dist_to_next_m", "m", 80.0, 50.0, "distance to the next edge"),
+        Feature("length_m", "m", 5.0, 3.0, "own vehicle length (its vType's)"),
     )
 }
 
@@ -43,7 +44,8 @@ OBS_SHIFT_SCALE = {name: (f.shift, f.scale) for name, f in FEATURES.items()}
 
 
 def feature_names(observation: str) -> tuple[str, ...]:
-    """The features of ``policy.observation`` (``"paper"`` or ``"lookahead"``), in order."""
+    """The features of ``policy.observation`` (``physics.OBSERVATION_FEATURES``' keys), in
+    order."""
     return OBSERVATION_FEATURES[observation]
 
 

@@ -21,7 +21,8 @@ Observation Space
     leader; a lane end or a red/yellow signal's stop line is a standing leader), v -
     v_leader (0 with no leader) and, with ``"lookahead"``, the next edge's limit on its
     lane and the distance to that edge (on the last edge of an open section: its own
-    limit and the distance to the section's end). Inactive slots are zeros.
+    limit and the distance to the section's end); with ``"lookahead_length"`` then its own
+    length (the slot's vehicle's). Inactive slots are zeros.
 Rewards
     r_macro = 1 / (1 + lambda_v L_speed + lambda_d L_dist) of the active vehicles against
     psi (``section_target``, ``section_macro_reward``).
@@ -210,6 +211,7 @@ class SectionCore(SlotCore):
             stop_lane,
             stop_arc,
             self.bank.factor_of(self.episode),  # each driver's own limits (policy.driver_speed)
+            self.bank.length_m[self.episode],
         )
 
     def _result(self, r: float, terms, collision: bool, truncated: bool, error: str):

@@ -25,7 +25,7 @@ from macromicro_sumo.data.section import (
     run_limits_mps,
 )
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.road.physics import OBSERVATION_FEATURES
+from macromicro_sumo.road.physics import OBSERVATION_FEATURES, set_own_features
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, STOP, Section, section_leaders
 from macromicro_sumo.truth.section import load_section
 
@@ -314,10 +314,13 @@ def section_observations(
     stop_lane: np.ndarray | None = None,
     stop_arc_m: np.ndarray | None = None,
     factor: np.ndarray | None = None,
+    length_m: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Observations (N, obs_dim), leader (-1: none, ``STOP``: a standing obstacle) and
     spacing of the active vehicles; ``factor`` (N,): each driver's desired-speed factor,
-    which multiplies the limits it observes (``env.driver_speed``; None: 1).
+    which multiplies the limits it observes (``env.driver_speed``; None: 1); ``length_m``
+    (N,): each vehicle's length, for an observation with own features (``physics.
+    set_own_features``; None where it has none).
 
     Leaders along the lane connections (``section_leaders``, one sort per call); the end
     of a lane that leads nowhere and the stop points given (red lights) are standing
@@ -348,6 +351,7 @@ def section_observations(
         o[:, 1] *= factor[idx]
         if o.shape[1] > 4:
             o[:, 4] *= factor[idx]
+    set_own_features(o, observation, None if length_m is None else length_m[idx])
     obs[idx] = o
     return obs, leader, spacing
 
@@ -421,6 +425,7 @@ def initial_observations(sc, section: Section, bank: SectionBank) -> np.ndarray:
             bank.speed0_mps[ep],
             valid,
             sc.policy.observation,
+            length_m=bank.length_m[ep],
         )
         rows.append(obs[valid])
     return np.concatenate(rows) if rows else np.zeros((0, 4))

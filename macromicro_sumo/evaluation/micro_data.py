@@ -19,6 +19,7 @@ from macromicro_sumo.env.section_bank import recordable, section_observations
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.idm_fit import IdmParams, idm_policy_accel
 from macromicro_sumo.fielddata.leaders import has_measured_leaders, with_measured_leaders
+from macromicro_sumo.road.physics import OBSERVATION_FEATURES
 
 
 def micro_pairs(
@@ -30,6 +31,8 @@ def micro_pairs(
     dt = sc.simulation.step_length_s
     traj = truth.trajectories[truth.trajectories["run"].isin(runs)]
     measured = has_measured_leaders(traj)
+    own_length = "length_m" in OBSERVATION_FEATURES[sc.policy.observation]
+    lengths = _lengths(truth, traj) if own_length else None
     obs_rows, acc_rows = [], []
     for run, g in traj.groupby("run", sort=True):
         # The run's own speed limits (a fleet draws them per run), as the env observes them.
@@ -54,6 +57,7 @@ def micro_pairs(
                 s["speed_mps"].to_numpy(),
                 np.ones(len(s), dtype=bool),
                 sc.policy.observation,
+                length_m=None if lengths is None else lengths.loc[s.index].to_numpy(dtype=float),
             )
             if measured:  # field data: the leader each vehicle measured (fielddata.leaders)
                 obs, _ = with_measured_leaders(obs, leader, s, sc.policy.observation)
@@ -70,6 +74,20 @@ def micro_pairs(
         idx = np.linspace(0, len(acc) - 1, max_pairs).astype(np.int64)
         obs, acc = obs[idx], acc[idx]
     return obs, acc
+
+
+def _lengths(truth: SectionTruth, traj: pd.DataFrame) -> pd.Series:
+    """Each trajectory row's vehicle length [m], its vType's (``vtypes.csv``)."""
+    vt = truth.vtypes
+    length_of = dict(zip(vt["vtype"], vt["length_m"], strict=True)) if "length_m" in vt else {}
+    lengths = traj["vtype"].map(length_of) if "vtype" in traj else pd.Series(np.nan, traj.index)
+    if lengths.isna().any():
+        missing = sorted(set(traj["vtype"][lengths.isna()])) if "vtype" in traj else ["vtype"]
+        raise UserError(
+            f"{truth.folder}: vtypes.csv: length_m of vType {missing[0]} unknown: "
+            "policy.observation with the own length needs every recorded vType's length (> 0 m)"
+        )
+    return lengths
 
 
 def idm_action(params: Callable[[object], IdmParams], veh_length_m: float) -> ActionFn:

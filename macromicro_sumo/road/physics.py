@@ -32,7 +32,7 @@ def idm_accel(
     return accel_mps2 * (free - (s_star / np.maximum(gap_m, 1e-9)) ** 2)
 
 
-OBSERVATION_FEATURES = {
+SCENE_FEATURES = {
     "paper": ("speed_mps", "speed_limit_mps", "spacing_m", "delta_v_mps"),
     "lookahead": (
         "speed_mps",
@@ -43,9 +43,38 @@ OBSERVATION_FEATURES = {
         "dist_to_next_m",
     ),
 }
-# Columns of the own lane's limit and the next edge's limit (both layouts; "paper" has no
-# next edge).
+# Features of the vehicle itself, not of the scene around it: after the scene's, in this
+# order, each set from an attribute every observer knows (``set_own_features``). Why the
+# own length: one policy drives a mixed fleet, and without a vType in the observation it
+# drove drawn net 300's trucks at the cars' time gap (1.33 s against their 1.63;
+# docs/deploy.md, "Drawn net 300's bottleneck"). The length is what the generator draws,
+# the recorded trajectories' vType gives and SUMO reports of a deployed vehicle.
+OWN_FEATURES = ("length_m",)
+OBSERVATION_FEATURES = {
+    **SCENE_FEATURES,
+    "lookahead_length": SCENE_FEATURES["lookahead"] + ("length_m",),
+}
+# Columns of the own lane's limit and the next edge's limit (the look-ahead layouts; "paper"
+# has no next edge).
 LIMIT_COLUMN, NEXT_LIMIT_COLUMN = 1, 4
+
+
+def has_lookahead(observation: str) -> bool:
+    """Whether ``policy.observation`` carries the next edge's limit and distance."""
+    return "next_limit_mps" in OBSERVATION_FEATURES[observation]
+
+
+def set_own_features(obs: np.ndarray, observation: str, length_m: np.ndarray | None) -> np.ndarray:
+    """Fill ``obs``' (..., F) own-vehicle columns (``OWN_FEATURES``) of ``policy.observation``
+    in place from each vehicle's ``length_m`` (...,); returns ``obs``. The one definition
+    that the training envs, the micro pairs and the deployment share. Scene-only
+    observations are left as they are (``length_m`` may then be None)."""
+    names = OBSERVATION_FEATURES[observation]
+    if "length_m" in names:
+        if length_m is None:
+            raise ValueError(f"policy.observation = {observation!r} needs each vehicle's length")
+        obs[..., names.index("length_m")] = length_m
+    return obs
 
 
 def no_lower_limit_ahead(obs):

@@ -17,8 +17,10 @@ class PolicyConfig:
     objective: str = spec("mix", choices=("mix", "micro_only", "macro_only"), doc="ablation switch")
     observation: str = spec(
         "paper",
-        choices=("paper", "lookahead"),
-        doc="paper: [v, v_limit, spacing, delta_v]; lookahead adds [next edge's limit, distance to it]",
+        choices=("paper", "lookahead", "lookahead_length"),
+        doc="paper: [v, v_limit, spacing, delta_v]; lookahead adds [next edge's limit, distance to it]; "
+        "lookahead_length adds the vehicle's own length [m] (its vType's: one policy that drives "
+        "a mixed fleet's trucks and cars each as they drive)",
     )
     prior: str = spec(
         "none",
