@@ -43,6 +43,7 @@ from macromicro_sumo.deploy.safety import (
 )
 from macromicro_sumo.deploy.slots import NOT_ASKED, VehicleSlots
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
+from macromicro_sumo.road.vtype import VTypePhysics, read_vtype
 from macromicro_sumo.sumo.simulation import Simulation, VehicleStates
 from macromicro_sumo.truth.section import is_instrumented
 
@@ -80,11 +81,11 @@ class SectionDriver:
         self.types: dict[str, str] = {}  # vehicle -> its demand vType
         self.population: set[str] = set()  # vehicles this method may drive
         self.driven: set[str] = set()  # driven now (on the section)
-        self.shapes: dict[str, tuple[float, float, float]] = {}  # vType -> length, minGap, decel
-        self.shape_of: dict[str, tuple[float, float, float]] = {}  # vehicle -> its vType's
-        self.decel_of: dict[str, float] = {}  # vehicle -> its vType's decel
-        self.vmax: dict[str, float] = {}  # vType -> its maxSpeed [m/s]
-        self.accel: dict[str, float] = {}  # vType -> its accel [m/s^2]
+        self.vtypes: dict[str, VTypePhysics] = {}  # demand vType -> its record, read once
+        # Per vehicle, what the hot paths look up of its vType's record: (length, minGap,
+        # decel) and decel.
+        self.shape_of: dict[str, tuple[float, float, float]] = {}
+        self.decel_of: dict[str, float] = {}
         # shape_of and section.lanes as numpy tables (``deploy.observe``), built once a run
         self.shape_table = Table(STANDING)
         self.type_code: dict[str, int] = {}  # vType -> its row in shape_table
@@ -130,13 +131,11 @@ class SectionDriver:
         for vid in new:
             vt = sim.vehicle_type(vid)
             self.types[vid] = vt
-            if vt not in self.shapes:
-                self.shapes[vt] = sim.vtype_shape(vt)
-                self.vmax[vt] = sim.vtype_max_speed(vt)
-                self.accel[vt] = sim.vtype_accel(vt)
-                self.type_code[vt] = self.shape_table.add_row(self.shapes[vt])
-            self.shape_of[vid] = self.shapes[vt]
-            self.decel_of[vid] = self.shapes[vt][2]
+            if vt not in self.vtypes:
+                self.vtypes[vt] = read_vtype(sim, vt)
+                self.type_code[vt] = self.shape_table.add_row(self.vtypes[vt].shape)
+            self.shape_of[vid] = self.vtypes[vt].shape
+            self.decel_of[vid] = self.vtypes[vt].decel_mps2
             self.shape_table.code[vid] = self.type_code[vt]
             if is_instrumented(self.sc, vid, vt, self.run):
                 continue
@@ -203,8 +202,9 @@ class SectionSpeedDriver(SectionDriver):
                 self.slots.add(v)
         at = self.slots.slots(vids)
         self.slots.decel[at] = list(map(self.decel_of.__getitem__, vids))
-        self.slots.vmax[at] = [self.vmax[self.types[v]] for v in vids]
-        self.slots.accel[at] = [self.accel[self.types[v]] for v in vids]
+        phys = [self.vtypes[self.types[v]] for v in vids]
+        self.slots.vmax[at] = [p.max_speed_mps for p in phys]
+        self.slots.accel[at] = [p.accel_mps2 for p in phys]
 
     def release(self, sim: Simulation, vids: list[str]) -> None:
         sim.release_speeds(vids)

@@ -81,7 +81,7 @@ def test_driven_vans_never_exceed_their_max_speed(tmp_path: Path, safety: str) -
         drv = cls(sc, section, 0, policy_batch(agent), safety)
         df, stats = _run(sc, drv)
         assert stats["collisions"] == 0 and drv.stats.vehicle_steps_driven > 500
-        assert set(drv.vmax.values()) == {VAN_MAX_MPS}  # read from SUMO's vType
+        assert {p.max_speed_mps for p in drv.vtypes.values()} == {VAN_MAX_MPS}  # SUMO's
         top[name] = float(df["speed_mps"].max())
     # What SUMO recorded of every driven van after each step: never above its maxSpeed;
     # the same policy without the cap drives them well above it.
@@ -99,7 +99,7 @@ def test_driven_trucks_never_accelerate_beyond_their_vtype(tmp_path: Path, safet
         drv = cls(sc, section, 0, full_throttle, safety)
         df, stats = _run(sc, drv)
         assert stats["collisions"] == 0 and drv.stats.vehicle_steps_driven > 300
-        assert set(drv.accel.values()) == {TRUCK_ACCEL}  # read from SUMO's vType
+        assert {p.accel_mps2 for p in drv.vtypes.values()} == {TRUCK_ACCEL}  # SUMO's
         moving = df[df["speed_mps"] < 24.0]  # below maxSpeed: the throttle is what limits
         top[name] = float(moving["accel_mps2"].max())
         assert float(df["speed_mps"].max()) <= 25.0 + 1e-9  # maxSpeed still holds
