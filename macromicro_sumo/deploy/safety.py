@@ -32,6 +32,7 @@ from macromicro_sumo.deploy.observe import STOP_DECEL_MPS2
 from macromicro_sumo.deploy.population import ActionBatch, DriveStats
 from macromicro_sumo.road.physics import safe_speed
 from macromicro_sumo.road.section import NO_LEADER_GAP_M
+from macromicro_sumo.road.vtype import accel_limit, command_speeds
 from macromicro_sumo.scenario.stages import DeployConfig
 
 # Speed modes of speed-commanded vehicles (SUMO's bits, ``sumo.simulation``). "none" applies
@@ -233,12 +234,9 @@ def speed_commands(
     so is the floor's reach (an inf: the bound alone; a scalar bound where none is lower,
     the same values as before the cap)."""
     a_min, a_max = sc.bounds.accel_mps2
-    if np.any(accel < a_max):  # a vehicle that cannot reach the bound: held to its own
-        a_max = np.minimum(accel, a_max)
-    # np.clip's own overhead is several times that of the two calls (the same values)
-    a = np.minimum(np.maximum(act(obs), a_min), a_max)
+    a_max = accel_limit(a_max, accel)  # a vehicle that cannot reach the bound: its own
     dt = sc.simulation.step_length_s
-    cmd = np.minimum(np.maximum(0.0, obs[:, 0] + a * dt), vmax)
+    cmd = command_speeds(obs[:, 0], act(obs), dt, a_min, a_max, vmax)  # Stage II's rule too
     if cap is not None:
         cmd = np.minimum(cmd, cap)
     if safety != "sumo":
