@@ -84,6 +84,9 @@ class Drive:
     sample_std_mps2: float = 0.0
     rng_streams: int | None = None
     redraw: bool = False
+    # ``deploy.safety_floor_on`` for ``act``'s commands: "all" or "standing" (None: the
+    # scenario's; "auto" is chosen before, ``deploy.floor_choice``).
+    floor_on: str | None = None
 
 
 @dataclass
@@ -334,6 +337,9 @@ def _section_runs(ctx, drive, stage, runs, extra, switch, drivers, progress, des
             if drive.sample_std_mps2 > 0.0:  # a generator per run: the same whatever ran before
                 rng = np.random.default_rng([sc.seed, run, ACTION_STREAM])
                 act = sampled(act, drive.sample_std_mps2, rng)
+            if drive.floor_on is not None:  # the scenario's copy the driver reads it from
+                dep = dataclasses.replace(sc.deploy, safety_floor_on=drive.floor_on)
+                args = (dataclasses.replace(sc, deploy=dep), *args[1:])
             d = SectionSpeedDriver(*args, act, drive.safety or sc.deploy.safety)
         elif drive.theta is not None or drive.defaults:
             d = SectionTypeDriver(*args, switch(run))

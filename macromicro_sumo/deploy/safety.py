@@ -11,7 +11,9 @@ no command, however poor or adversarial, makes a vehicle collide or block the ro
 * the command is raised to a floor (``deploy.safety_floor_share`` of the lane's limit,
   default ``FLOOR_SHARE``, at most the safe speed) so that no vehicle is held standing where
   nothing ahead asks for it: any command below it, or, with ``deploy.safety_floor_on =
-  "standing"``, only a vehicle's slower than ``STANDING_BELOW_MPS``;
+  "standing"``, only a vehicle's slower than ``STANDING_BELOW_MPS`` (``"auto"``: one of the
+  two, chosen by the stage before any driver starts, ``deploy.floor_choice``; a driver
+  built without that choice floors all);
 * ``speed_commands`` is the one command rule of the ring's and the sections' speed drivers
   (``deploy.drivers``): v + a dt of the batched action, a in the scenario's bounds, through
   this layer where ``deploy.safety = "sumo"``, and, with or without it, at most the

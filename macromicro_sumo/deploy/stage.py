@@ -5,7 +5,9 @@ The methods (``DEPLOY_METHODS``; names as the evaluation's where they are the sa
 * ``policy``, ``micro_only``, ``macro_only``: the learned checkpoints, speed commands from
   the policy's deterministic mean action (``deploy.action = "sample"``: a draw from its
   Gaussian, ``deploy.run.sampled``), one batched call per step for every driven vehicle
-  (``deploy.drivers``), through the safety layer ``deploy.safety``;
+  (``deploy.drivers``), through the safety layer ``deploy.safety`` (with
+  ``deploy.safety_floor_on = "auto"`` its floor chosen first on training runs,
+  ``deploy.floor_choice``);
 * ``policy_no_safety``: the learned ``policy`` with its commands applied exactly
   (``safety = "none"``), beside it: what the safety layer changes, and why it is on (a
   collision here is a figure of the summary, not an error);
@@ -65,6 +67,7 @@ import torch
 from macromicro_sumo.data.section import split_runs
 from macromicro_sumo.deploy.calibrate import Calibration, calibration_record, fit_to_detectors
 from macromicro_sumo.deploy.compare import compare_folders
+from macromicro_sumo.deploy.floor_choice import resolve_floor
 from macromicro_sumo.deploy.population import ActionBatch, population_label, population_scenario
 from macromicro_sumo.deploy.run import (
     SAFETY_COLUMNS,
@@ -356,6 +359,7 @@ def deploy(
     timings, totals = {}, {}
     cal: Calibration | None = None
     fitted, record = None, None
+    floors: dict[str, dict[str, Any]] = {}  # learned method -> its floor choice
     with staging_dir(out) as stage:
         if "idm_detectors" in methods:
             t1 = time.perf_counter()
@@ -369,6 +373,12 @@ def deploy(
             drive, extra = method_drive(name, sc, agents, idm, fitted)
             if name == "idm_detectors":
                 extra["calibration"] = record
+            # deploy.safety_floor_on = "auto": the floor chosen on training runs first
+            drive, choice = resolve_floor(ctx, drive, stage / "floor_choice")
+            if choice is not None:
+                shutil.rmtree(stage / "floor_choice", ignore_errors=True)
+                extra.update(safety_floor_on=drive.floor_on, safety_floor_choice=choice)
+                floors[name] = choice
             folder = stage / name
             folder.mkdir()
             res = run_method(ctx, drive, folder)
@@ -406,6 +416,7 @@ def deploy(
             action=sc.deploy.action,
             idm_calibrated=(idm.as_dict() | {"fit_rmse_mps2": idm_rmse}) if idm else None,
             idm_detectors=record,
+            safety_floor_choice=floors or None,
             totals=totals,
             timings_s={"deploy": round(time.perf_counter() - t0, 3), **timings},
         )

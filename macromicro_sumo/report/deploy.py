@@ -30,6 +30,7 @@ from macromicro_sumo.deploy.compare import (
     truth_geometry,
 )
 from macromicro_sumo.deploy.safety import FLOOR_SHARE
+from macromicro_sumo.report.deploy_floor import with_floor_choices
 from macromicro_sumo.report.plots import (
     METHOD_COLORS,
     REFERENCE_COLOR,
@@ -487,14 +488,13 @@ def deployment_markdown(summary: pd.DataFrame, plots: Sequence[str] = ()) -> str
 
 
 def deployment_section(run_dir: Path | str) -> list[str]:
-    """report.md's "Deployment" lines of a run folder: from ``deploy/deploy_summary.csv``
-    and the figures in ``deploy/plots/`` (paths relative to report.md); none when the run
-    has no deployment."""
+    """report.md's "Deployment" lines of a run folder: from ``deploy/deploy_summary.csv``,
+    the floors chosen in ``deploy/deploy_manifest.json`` and the figures in ``deploy/plots/``
+    (paths relative to report.md); none when the run has no deployment."""
     deploy_dir = Path(run_dir) / "deploy"
     path = deploy_dir / "deploy_summary.csv"
     if not path.is_file():
         return []
-    summary = pd.read_csv(path)
     plots = sorted((deploy_dir / "plots").glob("*.png"))
-    text = deployment_markdown(summary, [f"deploy/plots/{p.name}" for p in plots])
-    return [*text.splitlines(), ""]
+    text = deployment_markdown(pd.read_csv(path), [f"deploy/plots/{p.name}" for p in plots])
+    return [*with_floor_choices(text.splitlines(), deploy_dir), ""]

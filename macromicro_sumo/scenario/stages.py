@@ -230,11 +230,21 @@ class DeployConfig:
     )
     safety_floor_on: str = spec(
         "all",
-        choices=("all", "standing"),
+        choices=("all", "standing", "auto"),
         doc="safety sumo: the vehicles the floor raises: all, any whose command is below it; "
         "standing, only one slower than 1 m/s, so that the floor unsticks a vehicle held "
-        "standing and leaves a moving one's braking to its policy (docs/deploy.md, Safety "
-        "layer strictness)",
+        "standing and leaves a moving one's braking to its policy; auto, of these two the one "
+        "whose deployment on safety_floor_runs training runs has the lower speed RMSE "
+        "against the truth's detectors there (a tie: all), chosen per learned method, "
+        "recorded in its manifest.json (docs/deploy.md, Safety layer strictness)",
+    )
+    safety_floor_runs: int = spec(
+        2,
+        lo=1,
+        hi=10_000,
+        doc="safety_floor_on auto: the first this many training runs (never the held-out "
+        "ones) each floor is deployed on to choose",
+        omit_default=True,  # the digests of scenarios that do not set it stay as they were
     )
     safety_brake: str = spec(
         "own",
