@@ -14,7 +14,8 @@ episode is what a deployment does, on a training run of the ground truth:
   population (not instrumented, ``truth.section.is_instrumented``) is driven by the policy
   from the step it is on a lane of the section until it leaves it, instrumented vehicles
   keep their own SUMO models (as in a deployment);
-* speed commands v' = max(0, v + a dt), at most the vType's maxSpeed, apply exactly (speed
+* speed commands v' = max(0, v + a dt), a at most the vType's accel and v' at most its
+  maxSpeed (``road.vtype.command_speeds``, the deployment's rule), apply exactly (speed
   mode 32, the deployment's ``safety = "none"``): the policy meets the consequences of its
   own actions;
 * observations are the deployment's, from SUMO's state (``sumo_observations``: SUMO's
@@ -45,6 +46,7 @@ from macromicro_sumo.road.physics import (
     set_own_features,
 )
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
+from macromicro_sumo.road.vtype import VTypePhysics, accel_limit, command_speeds, read_vtype
 from macromicro_sumo.scenario.fleet import fleet_demand
 from macromicro_sumo.sumo.fleet import FLEET_ROUTE_PREFIX
 from macromicro_sumo.sumo.inputs import scenario_inputs
@@ -193,13 +195,12 @@ class DemandCore:
         }
         self.sim: Simulation | None = None
         self.run, self.t = -1, 0
-        self.types: dict[str, str] = {}
-        self.shapes: dict[str, tuple[float, float, float]] = {}  # vType -> shape
-        self.vmax: dict[str, float] = {}  # vType -> maxSpeed [m/s]
-        # Each vehicle's maxSpeed [m/s], its vType's when it arrived (``_arrive``), and those
-        # of the vehicles driven now (``observe``): a step's cap is one array op.
-        self.vmax_of: dict[str, float] = {}
+        self.types: dict[str, str] = {}  # vehicle -> its vType
+        self.vtypes: dict[str, VTypePhysics] = {}  # vType -> its record, read once
+        # The maxSpeed [m/s] and accel [m/s^2] of the vehicles driven now (``observe``): a
+        # step's cap is one array op.
         self._vmax_driven: np.ndarray = np.zeros(0)
+        self._accel_driven: np.ndarray = np.zeros(0)
         self.population: set[str] = set()
         self.driven: list[str] = []
         self._speed: np.ndarray = np.zeros(0)
@@ -250,7 +251,7 @@ class DemandCore:
         sim = self.sim
         self.run, self.t = int(run), 0
         self.section = run_section(self.truth, self.run)
-        self.types, self.population, self.driven, self.vmax_of = {}, set(), [], {}
+        self.types, self.population, self.driven = {}, set(), []
         steps = int(round(t0_s / self.dt))
         if fleet_run is not None:
             fleet.insert_fleet(sim, *fleet_run, FLEET_ROUTE_PREFIX)
@@ -271,10 +272,8 @@ class DemandCore:
         for vid in vids:
             vt = sim.vehicle_type(vid)
             self.types[vid] = vt
-            if vt not in self.shapes:
-                self.shapes[vt] = sim.vtype_shape(vt)
-                self.vmax[vt] = sim.vtype_max_speed(vt)
-            self.vmax_of[vid] = self.vmax[vt]
+            if vt not in self.vtypes:
+                self.vtypes[vt] = read_vtype(sim, vt)
             if not is_instrumented(self.sc, vid, vt, self.run):
                 self.population.add(vid)
 
@@ -307,8 +306,10 @@ class DemandCore:
         if gone:
             sim.release_speeds(gone)
         self.driven = now
-        self._vmax_driven = np.fromiter(map(self.vmax_of.__getitem__, now), float, len(now))
-        shapes = {v: self.shapes[self.types[v]] for v in states if v in self.types}
+        phys = [self.vtypes[self.types[v]] for v in now]
+        self._vmax_driven = np.array([p.max_speed_mps for p in phys])
+        self._accel_driven = np.array([p.accel_mps2 for p in phys])
+        shapes = {v: self.vtypes[self.types[v]].shape for v in states if v in self.types}
         scene = sumo_observations(
             self.observation,
             self.section,
@@ -327,10 +328,10 @@ class DemandCore:
         a_min, a_max = self.sc.bounds.accel_mps2
         driven = self.driven
         if driven:
-            cmd = np.maximum(0.0, self._speed + np.clip(accel, a_min, a_max) * self.dt)
-            # At most the vType's maxSpeed, its physics (as a deployment's, ``deploy.safety``):
-            # speed mode 0 would apply a command above it.
-            cmd = np.minimum(cmd, self._vmax_driven)
+            # At most the vType's maxSpeed and accel, its physics, by the deployment's rule
+            # (``road.vtype``): speed mode 32 would apply a command beyond either.
+            a_max = accel_limit(a_max, self._accel_driven)
+            cmd = command_speeds(self._speed, accel, self.dt, a_min, a_max, self._vmax_driven)
             sim.set_speeds(driven, cmd)
         sim.step()
         self.t += 1
@@ -349,7 +350,7 @@ class DemandCore:
         hit = []
         for v in on:
             lid, gap = leaders.get(v, ("", -1.0))
-            if lid and gap + self.shapes[self.types[v]][1] < 0.0:
+            if lid and gap + self.vtypes[self.types[v]].min_gap_m < 0.0:
                 hit.append(v)
         if hit:
             sim.remove_vehicles(hit)
@@ -377,7 +378,8 @@ class DemandCore:
             lid, gap = leaders.get(v, ("", -1.0))
             j = index.get(lid, -1) if lid else -1
             if j >= 0:
-                s = gap + self.shapes[self.types[v]][1] + self.shapes[self.types[lid]][0]
+                own, ahead = self.vtypes[self.types[v]], self.vtypes[self.types[lid]]
+                s = gap + own.min_gap_m + ahead.length_m
                 if s < NO_LEADER_GAP_M:
                     leader[i], spacing[i] = j, s
         hidden = np.array([v in self.population for v in on])

@@ -9,8 +9,9 @@ The episodes (``SectionBank``) and the observation are ``env/section_bank.py``'s
 
 Action Space
     One acceleration [m/s^2] per hidden vehicle (``bank.hidden[ep]`` order), clipped to
-    ``sc.bounds.accel_mps2``; applied as a speed command v' = max(0, v + a dt), at most the
-    slot's vType maxSpeed (``SectionBank.vmax_mps``, its physics, as deployed): exactly
+    ``sc.bounds.accel_mps2`` and at most the slot's vType accel, applied as a speed command
+    v' = max(0, v + a dt) at most its vType maxSpeed (``SectionBank.accel_mps2``,
+    ``vmax_mps``: its physics, by the deployment's rule, ``road.vtype``): exactly
     (speed mode 0) with ``safety = "none"``, capped at SUMO's safe speed behind whatever
     SUMO sees ahead (``SAFE_MODE``) with ``safety = "sumo"`` (the default: the policy
     alone does not reach zero collisions at merges; ``counts["safety_capped"]``). Lane

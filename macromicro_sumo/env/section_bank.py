@@ -63,6 +63,9 @@ class SectionBank:
     # (E, N) each slot's vType's maxSpeed [m/s] (``speed_caps``; inf: none): a hidden
     # vehicle's speed commands are held to it, its physics (as a deployment's); None: no cap.
     vmax_mps: np.ndarray | None = None
+    # (E, N) each slot's vType's accel [m/s^2] (``vtype_caps``; inf: none): a hidden
+    # vehicle accelerates at most at it, its physics (as a deployment's); None: no cap.
+    accel_mps2: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.run)
@@ -122,7 +125,7 @@ def build_section_bank(
     dt = sc.simulation.step_length_s
     traj = truth.trajectories
     length_of = dict(zip(truth.vtypes["vtype"], truth.vtypes["length_m"], strict=True))
-    caps = speed_caps(sc, truth)
+    caps, accels = vtype_caps(sc, truth)
     runs: dict[int, dict[str, np.ndarray]] = {}
     for r, g in traj.groupby("run", sort=True):
         g = g.sort_values("time_s", kind="stable")
@@ -135,6 +138,7 @@ def build_section_bank(
             "observed": recordable(sc, g),
             "length": g["vtype"].map(length_of).to_numpy(dtype=float),
             "vmax": g["vtype"].map(caps).fillna(np.inf).to_numpy(dtype=float),
+            "accel": g["vtype"].map(accels).fillna(np.inf).to_numpy(dtype=float),
         }
     keep = with_future(truth, snaps, h, dt)
     if not keep.size:
@@ -146,7 +150,7 @@ def build_section_bank(
     e_n, n = arc.shape
     replay = np.full((3, e_n, h + 1, n), np.nan)
     length = np.zeros((e_n, n))
-    vmax = np.full((e_n, n), np.inf)
+    vmax, accel = np.full((e_n, n), np.inf), np.full((e_n, n), np.inf)
     windows = []
     for i, (r, t0) in enumerate(zip(snaps.run, snaps.time_s, strict=True)):
         d = runs[int(r)]
@@ -170,15 +174,16 @@ def build_section_bank(
                     f"{lane[i, j]}, {arc[i, j]:.2f} m"
                 )
             slot_of[w["vid"][k]] = j
-            length[i, j], vmax[i, j] = w["length"][k], w["vmax"][k]
+            length[i, j], vmax[i, j], accel[i, j] = w["length"][k], w["vmax"][k], w["accel"][k]
         for k in range(len(w["time"])):
             j = slot_of.get(w["vid"][k])
             if j is not None:
                 s = w["step"][k]
                 replay[:, i, s, j] = w["lane"][k], w["arc"][k], w["speed"][k]
-    # A generated vehicle is the typical vType, its length and its maxSpeed.
+    # A generated vehicle is the typical vType, its length, maxSpeed and accel.
     length[hidden] = typical_length(truth)
     vmax[hidden] = caps.get(typical_vtype(truth), np.inf)
+    accel[hidden] = accels.get(typical_vtype(truth), np.inf)
     # ... and starts at most at it: above it SUMO would slow it down in the first step, a
     # deceleration that no driver chose (its commands are held to it from then on).
     speed = np.where(hidden & valid, np.minimum(speed, vmax), speed)
@@ -207,6 +212,7 @@ def build_section_bank(
         time_s=snaps.time_s,
         limits_mps=run_limits_mps(truth, snaps.run),
         vmax_mps=vmax if np.isfinite(vmax).any() else None,  # None: nothing to cap
+        accel_mps2=accel if np.isfinite(accel).any() else None,
     )
 
 
@@ -271,10 +277,24 @@ def speed_caps(sc, truth: SectionTruth) -> dict[str, float]:
     """Per vType of the demand its vehicles' maxSpeed [m/s] where the vType sets one (the
     vehicle's cap: SUMO never drives it faster, whatever its driver wants); none for field
     data (``data.source = "files"``), which has no vTypes."""
+    return vtype_caps(sc, truth)[0]
+
+
+def vtype_caps(sc, truth: SectionTruth) -> tuple[dict[str, float], dict[str, float]]:
+    """Per vType of the demand, where the vType sets them, its maxSpeed [m/s]
+    (``speed_caps``) and its accel [m/s^2] (SUMO's Krauss and IDM never accelerate harder;
+    the deployment holds every command to it, ``road.vtype``). Where a vType sets none
+    has its vClass's defaults, not known without SUMO: no cap (a passenger car's accel,
+    2.6 m/s^2, is at least every shipped scenario's bound; a truck's, 1.3, is not). None
+    for field data (``data.source = "files"``), which has no vTypes."""
     if sc.data.source == "files" or truth.vtypes.empty:
-        return {}
+        return {}, {}
     _, _, vtypes = load_section(sc)
-    return {k: float(t.params["maxSpeed"]) for k, t in vtypes.items() if "maxSpeed" in t.params}
+    speed, accel = (
+        {k: float(t.params[name]) for k, t in vtypes.items() if name in t.params}
+        for name in ("maxSpeed", "accel")
+    )
+    return speed, accel
 
 
 def recorded_min_gap(truth: SectionTruth) -> float | None:

@@ -36,6 +36,7 @@ from macromicro_sumo.env.section_replay import (
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES
 from macromicro_sumo.road.section import Section
+from macromicro_sumo.road.vtype import accel_limit, command_speeds
 from macromicro_sumo.sumo.simulation import Simulation
 
 Mask = np.ndarray  # (..., N) bool over the slots
@@ -199,10 +200,12 @@ class SlotCore:
         their record (catching up where off it; a record that ended: the vehicle leaves the
         episode and SUMO); sets them and steps SUMO. Returns (cmd, replay, live) masks."""
         bk = self.bank
-        a = np.minimum(np.maximum(accel, self.a_min), self.a_max)  # np.clip, faster
-        cmd = np.where(self.hidden & run, np.maximum(0.0, self.speed + a * self.dt), 0.0)
-        if bk.vmax_mps is not None:  # at most the vType's maxSpeed, its physics (as deployed):
-            cmd = np.minimum(cmd, bk.vmax_mps[ep])  # SUMO does not cap a command at it
+        # At most the vType's maxSpeed and accel, its physics, by the deployment's rule
+        # (``road.vtype``): SUMO does not hold a command to either under these speed modes.
+        a_max = self.a_max if bk.accel_mps2 is None else accel_limit(self.a_max, bk.accel_mps2[ep])
+        vmax = np.inf if bk.vmax_mps is None else bk.vmax_mps[ep]
+        hid = command_speeds(self.speed, accel, self.dt, self.a_min, a_max, vmax)
+        cmd = np.where(self.hidden & run, hid, 0.0)
         obs_slots = self.active & ~self.hidden & run
         rv = bk.replay_speed_mps[ep, t + 1]
         gone = obs_slots & np.isnan(rv)

@@ -5,6 +5,7 @@ observes there is what the section env and a deployment observe of the same SUMO
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -99,8 +100,8 @@ def test_observations_agree_with_the_section_env_and_the_deployment(merge) -> No
                 # The deployment's driver on the same state: the same features.
                 drv = SectionSpeedDriver(sc, sec, int(truth.runs[0]), act, "none")
                 drv.types = dict(core.types)
-                drv.shapes = dict(core.shapes)
-                drv.shape_of = {v: core.shapes[t] for v, t in core.types.items()}
+                drv.vtypes = dict(core.vtypes)
+                drv.shape_of = {v: core.vtypes[t].shape for v, t in core.types.items()}
                 drv.has_lights = False
                 dep, _, _ = deploy_observations(drv, core.sim, vids, states)
                 np.testing.assert_allclose(obs, dep, atol=1e-9)
@@ -114,19 +115,19 @@ def test_observations_agree_with_the_section_env_and_the_deployment(merge) -> No
 def test_driven_vehicles_are_held_to_their_vtypes_max_speed(merge) -> None:
     """Speed mode 32 applies a command above the vType's maxSpeed; the core holds every
     command to it: read from SUMO (the merge's cars: a passenger car's default), and with
-    the cap the core keeps per vType lowered below the IDM policy's 30 m/s (each vehicle
-    takes its vType's as it arrives: the episode restarted)."""
+    the cap the core keeps per vType (``vtypes``) lowered below the IDM policy's 30 m/s."""
     sc, truth = merge
     top = {}
     for cap in (None, 20.0):
         core = DemandCore(sc, truth, truth.runs, 60)
         try:
             core.reset(int(truth.runs[0]), 90.0)
-            assert core.vmax and min(core.vmax.values()) > 30.0  # SUMO's, above the limit
+            # SUMO's, above the limit
+            assert core.vtypes and min(p.max_speed_mps for p in core.vtypes.values()) > 30.0
             if cap is not None:
-                core.vmax = dict.fromkeys(core.vmax, cap)
+                core.vtypes = {k: replace(p, max_speed_mps=cap) for k, p in core.vtypes.items()}
                 core.reset(int(truth.runs[0]), 90.0)
-            assert set(core.vmax_of) >= core.population
+            assert set(core.types) >= core.population  # each driven vehicle's vType known
             fastest = 0.0
             for _ in range(40):
                 vids, obs = core.observe()
