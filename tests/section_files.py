@@ -10,6 +10,15 @@ from typing import Any
 from conftest import dump_toml
 
 
+def vtype(type_id: str, **attrs: float | str) -> str:
+    """A ``<vType>`` element of id ``type_id`` with SUMO's attributes ``attrs`` (numbers as
+    ``%g``)."""
+    text = " ".join(
+        f'{k}="{v:g}"' if isinstance(v, float | int) else f'{k}="{v}"' for k, v in attrs.items()
+    )
+    return f'<vType id="{type_id}" {text}/>'
+
+
 def routes_file(
     path: Path, vtypes: Sequence[str] = (), flows: Sequence[str] = (), routes: Sequence[str] = ()
 ) -> Path:
@@ -30,14 +39,15 @@ def section_scenario(
     penetration: float,
     simulation: dict[str, Any],
     detectors: dict[str, Any],
+    name: str | None = None,
     **tables: dict[str, Any],
 ) -> Path:
-    """``path``, a scenario TOML named after its stem: the section ``edges`` (open) of
-    ``net`` with the demand ``routes``, ``penetration`` of the vehicles instrumented, the
-    given ``[simulation]`` and ``[detectors]`` and further tables (``policy``, ``bounds``,
-    ``deploy``, ...)."""
+    """``path``, a scenario TOML (named ``name``, else after its stem): the section
+    ``edges`` (open) of ``net`` with the demand ``routes``, ``penetration`` of the vehicles
+    instrumented, the given ``[simulation]`` and ``[detectors]`` and further tables
+    (``policy``, ``bounds``, ``deploy``, ...)."""
     table = {
-        "name": path.stem,
+        "name": name or path.stem,
         "seed": seed,
         "network": {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]},
         "section": {"edges": list(edges)},

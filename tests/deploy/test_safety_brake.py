@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import dump_toml
 from deploy_nets import CAR, merge_net
+from section_files import routes_file, section_scenario
 from test_safety import _run_section, adversary
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
@@ -32,35 +32,31 @@ CAR_IDM = (
 DECEL = {"car": 4.5, "car_idm": 3.0}
 
 
-def _mixed_merge(folder: Path, brake: str, **extra: dict) -> Path:
+def _mixed_merge(folder: Path, brake: str) -> Path:
     """The merge (``deploy_nets.merge_net``) with a fleet of Krauss cars and IDM cars
     (half each, 3,300 veh/h), 5% instrumented, one run of 30 + 150 s."""
     net, _ = merge_net(folder / "net")
-    routes = folder / "net" / "mixed.rou.xml"
-    routes.write_text(
-        f"<routes>\n    {CAR}\n    {CAR_IDM}\n"
-        '    <vTypeDistribution id="mix" vTypes="car car_idm" probabilities="0.5 0.5"/>\n'
-        '    <route id="main" edges="A B C"/>\n    <route id="ramp" edges="R B C"/>\n'
-        '    <flow id="m" type="mix" route="main" begin="0" end="3600" vehsPerHour="2800" '
-        'departLane="best" departSpeed="max"/>\n'
-        '    <flow id="r" type="mix" route="ramp" begin="0" end="3600" vehsPerHour="500" '
-        'departLane="best" departSpeed="max"/>\n</routes>\n'
+    flow = 'type="mix" begin="0" end="3600" departLane="best" departSpeed="max"'
+    routes = routes_file(
+        folder / "net" / "mixed.rou.xml",
+        [CAR, CAR_IDM, '<vTypeDistribution id="mix" vTypes="car car_idm" probabilities="0.5 0.5"/>'],
+        [f'<flow id="m" route="main" vehsPerHour="2800" {flow}/>',
+         f'<flow id="r" route="ramp" vehsPerHour="500" {flow}/>'],
+        ['<route id="main" edges="A B C"/>', '<route id="ramp" edges="R B C"/>'],
+    )  # fmt: skip
+    return section_scenario(
+        folder / f"mixed_{brake}.toml",
+        net,
+        routes,
+        ["A", "B", "C"],
+        name="mixed_merge",
+        seed=7,
+        penetration=0.05,
+        simulation={"warmup_s": 30.0, "duration_s": 150.0, "n_runs": 1},
+        detectors={"interval_s": 30.0, "auto_spacing_m": 300.0},
+        policy={"observation": "lookahead"},
+        deploy={"safety_brake": brake},
     )
-    table = {
-        "name": "mixed_merge",
-        "seed": 7,
-        "network": {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]},
-        "section": {"edges": ["A", "B", "C"]},
-        "instrumented": {"penetration": 0.05},
-        "simulation": {"warmup_s": 30.0, "duration_s": 150.0, "n_runs": 1},
-        "detectors": {"interval_s": 30.0, "auto_spacing_m": 300.0},
-        "policy": {"observation": "lookahead"},
-        "deploy": {"safety_brake": brake},
-        **extra,
-    }
-    path = folder / f"mixed_{brake}.toml"
-    path.write_text(dump_toml(table))
-    return path
 
 
 def _min_gap_after(v, gap, v_l, b, b_l, dt, steps: int = 200) -> np.ndarray:

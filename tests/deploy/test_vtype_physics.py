@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from conftest import line_net
 from deploy_nets import idm_agent
+from section_files import routes_file, vtype
 from test_drivers import _run, _scenario
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
@@ -24,34 +25,25 @@ LIMIT_MPS = 20.0
 TRUCK_ACCEL = 1.0
 
 
-def _vans_road(folder: Path) -> tuple[Path, Path]:
-    """One straight lane A -> B (1.5 km, limit 20 m/s); vans (maxSpeed 10) every 6 s."""
-    net = line_net(folder, (1000.0, 1500.0), 1, LIMIT_MPS)
-    routes = folder / "vans.rou.xml"
-    routes.write_text(
-        "<routes>\n"
-        f'    <vType id="van" length="6" minGap="2.5" accel="2.6" decel="4.5" sigma="0" '
-        f'maxSpeed="{VAN_MAX_MPS}" speedFactor="1.0" speedDev="0"/>\n'
-        '    <flow id="f" type="van" begin="0" end="40" period="6" departSpeed="5">'
-        '<route edges="A B"/></flow>\n'
-        "</routes>\n"
-    )
-    return net, routes
+VAN = vtype(
+    "van", length=6, minGap=2.5, accel=2.6, decel=4.5, sigma=0, maxSpeed=VAN_MAX_MPS,
+    speedFactor=1, speedDev=0,
+)  # fmt: skip
+TRUCK = vtype(
+    "truck", vClass="truck", length=12, minGap=2.5, accel=TRUCK_ACCEL, decel=4.0, sigma=0,
+    maxSpeed=25, speedFactor=1, speedDev=0,
+)  # fmt: skip
 
 
-def _trucks_road(folder: Path) -> tuple[Path, Path]:
-    """One straight lane A -> B (1.5 km, limit 30 m/s); trucks (accel 1.0) every 8 s."""
-    net = line_net(folder, (1000.0, 1500.0), 1, 30.0)
-    routes = folder / "trucks.rou.xml"
-    routes.write_text(
-        "<routes>\n"
-        f'    <vType id="truck" vClass="truck" length="12" minGap="2.5" accel="{TRUCK_ACCEL}" '
-        'decel="4.0" sigma="0" maxSpeed="25" speedFactor="1.0" speedDev="0"/>\n'
-        '    <flow id="f" type="truck" begin="0" end="40" period="8" departSpeed="2">'
-        '<route edges="A B"/></flow>\n'
-        "</routes>\n"
+def _road(folder: Path, limit_mps: float, kind: str, period_s: float, depart_mps: float):
+    """(net, routes): one straight lane A -> B (1.5 km, limit ``limit_mps``), a vehicle of
+    vType ``kind`` (``VAN``, ``TRUCK``) every ``period_s`` until 40 s at ``depart_mps``."""
+    flow = (
+        f'<flow id="f" type="{kind}" begin="0" end="40" period="{period_s:g}" '
+        f'departSpeed="{depart_mps:g}"><route edges="A B"/></flow>'
     )
-    return net, routes
+    net = line_net(folder, (1000.0, 1500.0), 1, limit_mps)
+    return net, routes_file(folder / f"{kind}s.rou.xml", [VAN if kind == "van" else TRUCK], [flow])
 
 
 def uncapped(slot: str) -> type[SectionSpeedDriver]:
@@ -72,7 +64,7 @@ def full_throttle(obs: np.ndarray) -> np.ndarray:
 
 @pytest.mark.parametrize("safety", ["none", "sumo"])
 def test_driven_vans_never_exceed_their_max_speed(tmp_path: Path, safety: str) -> None:
-    net, routes = _vans_road(tmp_path)
+    net, routes = _road(tmp_path, LIMIT_MPS, "van", 6.0, 5.0)  # vans: maxSpeed 10
     sc = _scenario(tmp_path, net, routes, ["A", "B"])
     section = read_section(net, ["A", "B"], False)
     agent = idm_agent("lookahead", LIMIT_MPS)
@@ -91,7 +83,7 @@ def test_driven_vans_never_exceed_their_max_speed(tmp_path: Path, safety: str) -
 
 @pytest.mark.parametrize("safety", ["none", "sumo"])
 def test_driven_trucks_never_accelerate_beyond_their_vtype(tmp_path: Path, safety: str) -> None:
-    net, routes = _trucks_road(tmp_path)
+    net, routes = _road(tmp_path, 30.0, "truck", 8.0, 2.0)  # trucks: accel 1.0
     sc = _scenario(tmp_path, net, routes, ["A", "B"])
     section = read_section(net, ["A", "B"], False)
     top = {}

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import dump_toml
+from section_files import routes_file, section_scenario, vtype
 from test_prior_krauss import DT_S, KRAUSS, LENGTH_M, _pairs
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "deploy"))
@@ -113,33 +113,28 @@ def capped_scenario(folder: Path) -> Path:
         '<node id="a" x="0" y="0"/>\n<node id="b" x="2500" y="0"/>',
         f'<edge id="E" from="a" to="b" numLanes="2" speed="{LIMIT_MPS}"/>',
     )
-    lc = 'lcStrategic="-1" lcSpeedGain="0" lcKeepRight="0" lcCooperative="0"'
-    routes = folder / "r.rou.xml"
-    routes.write_text(
-        "<routes>\n"
-        f'    <vType id="car" length="5" minGap="2.5" speedFactor="1" speedDev="0" {lc}/>\n'
-        f'    <vType id="truck" length="12" minGap="2.5" speedFactor="1" speedDev="0" '
-        f'maxSpeed="{TRUCK_MAX_MPS}" {lc}/>\n'
-        '    <route id="r" edges="E"/>\n'
-        '    <flow id="c" type="car" route="r" begin="0" end="3600" period="10" '
-        'departSpeed="20" departLane="1"/>\n'
-        '    <flow id="t" type="truck" route="r" begin="5" end="3600" period="10" '
-        'departSpeed="20" departLane="0"/>\n'
-        "</routes>\n"
+    lc = {"lcStrategic": -1, "lcSpeedGain": 0, "lcKeepRight": 0, "lcCooperative": 0}
+    flow = 'route="r" end="3600" period="10" departSpeed="20"'
+    routes = routes_file(
+        folder / "r.rou.xml",
+        [vtype("car", length=5, minGap=2.5, speedFactor=1, speedDev=0, **lc),
+         vtype("truck", length=12, minGap=2.5, speedFactor=1, speedDev=0,
+               maxSpeed=TRUCK_MAX_MPS, **lc)],
+        [f'<flow id="c" type="car" begin="0" departLane="1" {flow}/>',
+         f'<flow id="t" type="truck" begin="5" departLane="0" {flow}/>'],
+        ['<route id="r" edges="E"/>'],
+    )  # fmt: skip
+    return section_scenario(
+        folder / "capped.toml",
+        net,
+        routes,
+        ["E"],
+        seed=3,
+        penetration=1.0,
+        simulation={"warmup_s": 120.0, "duration_s": 90.0, "n_runs": 1},
+        detectors={"interval_s": 30.0, "auto_spacing_m": 1000.0},
+        policy={"prior": "krauss", "driver_speed": "drawn"},
     )
-    table = {
-        "name": "capped",
-        "seed": 3,
-        "network": {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]},
-        "section": {"edges": ["E"]},
-        "instrumented": {"penetration": 1.0},
-        "simulation": {"warmup_s": 120.0, "duration_s": 90.0, "n_runs": 1},
-        "detectors": {"interval_s": 30.0, "auto_spacing_m": 1000.0},
-        "policy": {"prior": "krauss", "driver_speed": "drawn"},
-    }
-    path = folder / "capped.toml"
-    path.write_text(dump_toml(table))
-    return path
 
 
 def test_a_vehicle_at_its_own_max_speed_gives_a_lower_bound(tmp_path: Path):

@@ -9,7 +9,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from conftest import dump_toml
+from section_files import routes_file, section_scenario
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "deploy"))
 from deploy_nets import netconvert  # noqa: E402
@@ -29,23 +29,22 @@ def test_the_idm_priors_pair_count_is_its_own_subset(tmp_path: Path):
         '<edge id="A" from="a" to="b" numLanes="1" speed="30"/>\n'
         '<edge id="B" from="b" to="c" numLanes="1" speed="15"/>',
     )
-    routes = tmp_path / "r.rou.xml"
-    routes.write_text(
-        '<routes>\n    <route id="r" edges="A B"/>\n'
-        '    <flow id="f" route="r" begin="0" end="3600" period="4" departSpeed="max"/>\n'
-        "</routes>\n"
+    routes = routes_file(
+        tmp_path / "r.rou.xml",
+        flows=['<flow id="f" route="r" begin="0" end="3600" period="4" departSpeed="max"/>'],
+        routes=['<route id="r" edges="A B"/>'],
     )
-    table = {
-        "name": "drop",
-        "seed": 3,
-        "network": {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]},
-        "section": {"edges": ["A", "B"]},
-        "instrumented": {"penetration": 1.0},
-        "simulation": {"warmup_s": 60.0, "duration_s": 60.0, "n_runs": 1},
-        "detectors": {"interval_s": 30.0, "auto_spacing_m": 500.0},
-        "policy": {"prior": "idm", "observation": "lookahead"},
-    }
-    (tmp_path / "drop.toml").write_text(dump_toml(table))
+    section_scenario(
+        tmp_path / "drop.toml",
+        net,
+        routes,
+        ["A", "B"],
+        seed=3,
+        penetration=1.0,
+        simulation={"warmup_s": 60.0, "duration_s": 60.0, "n_runs": 1},
+        detectors={"interval_s": 30.0, "auto_spacing_m": 500.0},
+        policy={"prior": "idm", "observation": "lookahead"},
+    )
     sc = load_scenario(tmp_path / "drop.toml")
     truth = load_section_truth(simulate_section(sc, tmp_path / "gt", progress=False), sc)
     obs, _ = micro_pairs(sc, truth, truth.runs)
