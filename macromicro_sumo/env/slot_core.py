@@ -202,7 +202,11 @@ class SlotCore:
         bk = self.bank
         # At most the vType's maxSpeed and accel, its physics, by the deployment's rule
         # (``road.vtype``): SUMO does not hold a command to either under these speed modes.
-        a_max = self.a_max if bk.accel_mps2 is None else accel_limit(self.a_max, bk.accel_mps2[ep])
+        # The accel of the hidden slots only (observed ones replay): where none of theirs is
+        # below the bound, the bound alone (a scalar: a float32 action clipped as before).
+        a_max = self.a_max
+        if bk.accel_mps2 is not None:
+            a_max = accel_limit(a_max, np.where(self.hidden, bk.accel_mps2[ep], np.inf))
         vmax = np.inf if bk.vmax_mps is None else bk.vmax_mps[ep]
         hid = command_speeds(self.speed, accel, self.dt, self.a_min, a_max, vmax)
         cmd = np.where(self.hidden & run, hid, 0.0)

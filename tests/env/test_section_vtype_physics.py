@@ -94,7 +94,7 @@ def trucks(tmp_path_factory: pytest.TempPathFactory):
 
 def _rollouts(road, banks: dict[str, SectionBank], accel_mps2: float) -> dict[tuple, Rollouts]:
     """Per (bank name, safety layer), a rollout of every episode of the bank in the
-    snapshot env with every hidden vehicle asking for ``accel_mps2``."""
+    snapshot env with every hidden vehicle asking for ``accel_mps2`` (of its dtype)."""
     sc, truth, net = road
     push = lambda core, obs, rng: np.full(int(core.hidden.sum()), accel_mps2)  # noqa: E731
     out = {}
@@ -155,6 +155,25 @@ def test_hidden_vehicles_never_exceed_their_vtypes_max_speed(vans) -> None:
     # SUMO's speed after every step: never above the cap; without it, well above.
     assert top["capped", "none"] <= 1e-9 and top["capped", "sumo"] <= 1e-9, top
     assert top["uncapped", "none"] > 2.0 and top["uncapped", "sumo"] > 2.0, top
+
+
+def test_observed_slots_accel_leaves_the_hidden_commands_as_they_were(vans) -> None:
+    """Only the hidden slots' accel caps: observed slots of a lower accel (replayed) leave
+    every command as without a cap, to the bit, also for a float32 action clipped at the
+    bound (a per-slot float64 bound would clip it at 2.6 where the scalar gives its float32,
+    2.5999999: on drawn net 300, whose trucks are observed and its hidden cars set no
+    accel, training drifted from the policy it trained before)."""
+    sc, truth, _ = vans
+    bank = build_section_bank(
+        sc, truth, section_snapshots(truth, sc, truth.runs), true_completion, HORIZON, 0
+    )
+    lower = dataclasses.replace(bank, accel_mps2=np.where(bank.hidden, np.inf, 1.0))
+    banks = {"observed lower": lower, "none": dataclasses.replace(bank, accel_mps2=None)}
+    ro = _rollouts(vans, banks, np.float32(3.0))
+    for safety in ("none", "sumo"):
+        a, b = ro["observed lower", safety], ro["none", safety]
+        assert np.array_equal(a.speed_mps, b.speed_mps, equal_nan=True), safety
+        assert np.array_equal(a.arc_m, b.arc_m, equal_nan=True), safety
 
 
 def test_hidden_trucks_never_accelerate_beyond_their_vtype(trucks) -> None:
