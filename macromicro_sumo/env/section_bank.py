@@ -24,6 +24,7 @@ from macromicro_sumo.data.section import (
     hidden_per_snapshot,
     run_limits_mps,
 )
+from macromicro_sumo.env.vtype_draw import generated_vtypes
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES, set_own_features
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, STOP, Section, section_leaders
@@ -118,9 +119,9 @@ def build_section_bank(
     vehicles first then the generated ones (the generator's ``SectionCompletion``, or the
     true hidden vehicles for tests). Observed vehicles are found in the trajectories by
     (run, time, lane, arc); snapshots with fewer than ``horizon`` recorded steps after them
-    are dropped. ``seed`` is kept for the draws of future completions (none here).
+    are dropped. ``seed``: the generated vehicles' vTypes where they are drawn
+    (``generated_vtypes``).
     """
-    del seed  # every draw of this stage happens inside ``completion``
     h = horizon or sc.policy.horizon
     dt = sc.simulation.step_length_s
     traj = truth.trajectories
@@ -180,10 +181,12 @@ def build_section_bank(
             if j is not None:
                 s = w["step"][k]
                 replay[:, i, s, j] = w["lane"][k], w["arc"][k], w["speed"][k]
-    # A generated vehicle is the typical vType, its length, maxSpeed and accel.
-    length[hidden] = typical_length(truth)
-    vmax[hidden] = caps.get(typical_vtype(truth), np.inf)
-    accel[hidden] = accels.get(typical_vtype(truth), np.inf)
+    # A generated vehicle is the typical vType (or one drawn: ``generated_vtypes``), its
+    # length, maxSpeed and accel.
+    gen = generated_vtypes(sc, truth.vtypes, typical_vtype(truth), int(hidden.sum()), seed)
+    length[hidden] = [length_of[v] for v in gen]
+    vmax[hidden] = [caps.get(v, np.inf) for v in gen]
+    accel[hidden] = [accels.get(v, np.inf) for v in gen]
     # ... and starts at most at it: above it SUMO would slow it down in the first step, a
     # deceleration that no driver chose (its commands are held to it from then on).
     speed = np.where(hidden & valid, np.minimum(speed, vmax), speed)

@@ -2,7 +2,8 @@
 
 On a merge whose demand mixes 5 m cars and 12 m trucks: the section env, the demand env,
 the micro pairs and the deployment give each vehicle its own vType's length, and the scene
-features are the look-ahead's, unchanged; PPO trains on it and the policy loads.
+features are the look-ahead's, unchanged; the generated vehicles are drawn from the
+demand's vTypes; PPO trains on it and the policy loads.
 """
 
 from __future__ import annotations
@@ -122,6 +123,19 @@ def test_section_env_observes_each_slots_length_and_ppo_trains(mixed, tmp_path: 
         return take(s.lane), take(s.arc_m), take(s.speed_mps), take(s.valid), take(s.hidden)
 
     bank = build_section_bank(sc, truth, snaps, true_completion, 4, 0)
+    # Generated vehicles: every vType by the demand's shares, seeded; the typical one
+    # (the car) alone where the policy does not observe its length.
+    gen = bank.length_m[bank.hidden]
+    share = dict(zip(truth.vtypes["vtype"], truth.vtypes["vehicles"], strict=True))
+    assert set(np.unique(gen)) == {5.0, 12.0}
+    assert abs(np.mean(gen == 12.0) - share["truck"] / sum(share.values())) < 0.05
+    again = build_section_bank(sc, truth, snaps, true_completion, 4, 0)
+    np.testing.assert_array_equal(again.length_m, bank.length_m)
+    assert (again.accel_mps2[bank.hidden & (bank.length_m == 12.0)] == 1.0).all()
+    scene_only = build_section_bank(
+        with_observation(sc, "lookahead"), truth, snaps, true_completion, 4, 0
+    )
+    assert (scene_only.length_m[scene_only.hidden] == 5.0).all()
     net = Path(sc.network.net_file)
     core = SectionCore(sc, truth.section, bank, net, seed=0)
     trucks = 0
