@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import torch
 
 from macromicro_sumo.env.observation import FEATURES, OBS_SHIFT_SCALE, shift_scale
 from macromicro_sumo.policy.agent import Agent
-from macromicro_sumo.road.physics import OBSERVATION_FEATURES
+from macromicro_sumo.road.physics import OBSERVATION_FEATURES, OWN_FEATURES, SCENE_FEATURES
+from macromicro_sumo.scenario.stages import PolicyConfig
 
 
 def test_every_observed_feature_has_a_unit_and_a_scaling():
@@ -25,3 +28,14 @@ def test_the_ring_agent_normalises_with_the_registry():
         np.testing.assert_array_equal(agent.shift.numpy(), shift.astype(np.float32))
         np.testing.assert_array_equal(agent.scale.numpy(), scale.astype(np.float32))
         assert agent.shift.dtype == torch.float32
+
+
+def test_the_scenario_accepts_every_registered_observation():
+    """``policy.observation``'s choices are the registry's layouts (the scenario layer sits
+    below road/ and cannot import it), each the scene's features then the vehicle's own."""
+    spec = {f.name: f for f in dataclasses.fields(PolicyConfig)}["observation"]
+    assert spec.metadata["choices"] == tuple(OBSERVATION_FEATURES)
+    for names in OBSERVATION_FEATURES.values():
+        own = [n for n in names if n in OWN_FEATURES]
+        assert list(names[len(names) - len(own) :]) == own
+        assert names[:4] == SCENE_FEATURES["paper"]
