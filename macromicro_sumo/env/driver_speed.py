@@ -110,6 +110,9 @@ class RatioEstimate:
     exact: int
     lower_bounds: int
     fallback: str = ""
+    # The median the Krauss prior's pairs are scaled over where it is not ``median``
+    # (``krauss_pairs``' own_median); None: ``median``.
+    pairs_median: float | None = None
 
     @property
     def median(self) -> float:
@@ -117,12 +120,15 @@ class RatioEstimate:
 
     def record(self) -> dict[str, object]:
         """What a policy manifest records of it."""
-        return {
+        out: dict[str, object] = {
             "exact": self.exact,
             "lower_bounds": self.lower_bounds,
             "median": round(self.median, 4),
             "fallback": self.fallback,
         }
+        if self.pairs_median is not None:
+            out["pairs_median"] = round(self.pairs_median, 4)
+        return out
 
 
 def observed_drivers(sc, truth: SectionTruth, runs: np.ndarray) -> ObservedDrivers:
@@ -272,14 +278,34 @@ def own_speed_pairs(
 
 
 def krauss_pairs(
-    sc, truth: SectionTruth, runs: np.ndarray, obs: np.ndarray, accel: np.ndarray
+    sc,
+    truth: SectionTruth,
+    runs: np.ndarray,
+    obs: np.ndarray,
+    accel: np.ndarray,
+    own_median: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, RatioEstimate]:
     """``prior_pairs`` of the Krauss form and the ratio estimate they are scaled by: where it
     fell back to ``DEFAULT_RATIOS``, the prior's speed factor has no data either
-    (``evaluation.krauss_fit.fit_krauss``'s ``fixed``)."""
+    (``evaluation.krauss_fit.fit_krauss``'s ``fixed``), and each pair's limits are scaled by
+    its driver's own ratio (over ``DEFAULT_RATIOS``' median, 1): the speed factor held at 1
+    then gives each observed driver its own top speed.
+
+    ``own_median``: where the estimate fell back but the speed factor is fitted all the
+    same (a closed section, ``pipeline.build.fit_residual_prior``), over the median of the
+    pairs' own drivers' ratios instead (``RatioEstimate.pairs_median``), so that the fitted
+    speed factor is the typical observed driver's, as a deployed driver's factor (1, or
+    drawn around 1) is. Why: scaled over 1, ring_two_lane's pairs (their drivers' median
+    0.957) fitted a speed factor relative to limits 4% below the deployed drivers', whose
+    prior then cruised towards 12.76 m/s where the observed cars cruise at 11.9
+    (docs/deploy.md, "ring_two_lane's cruise (stop 31)")."""
     drivers = observed_drivers(sc, truth, runs)
     estimate = ratio_estimate(drivers)
-    own_obs, own_accel = own_speed_pairs(drivers, estimate.median)
+    if own_median and estimate.fallback and drivers.ratio:
+        estimate = dataclasses.replace(
+            estimate, pairs_median=float(np.median(list(drivers.ratio.values())))
+        )
+    own_obs, own_accel = own_speed_pairs(drivers, estimate.pairs_median or estimate.median)
     if len(own_accel) < MIN_OWN_PAIRS:
         return obs, accel, estimate
     return own_obs, own_accel, estimate

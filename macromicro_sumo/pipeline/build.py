@@ -352,14 +352,15 @@ def fit_residual_prior(
     kind = sc.policy.prior
     dt, record, pairs = sc.simulation.step_length_s, {}, len(acc)
     if kind == "krauss":  # guarded: the parameters the pairs do not identify fall back
-        fit_obs, fit_acc, ratios = krauss_pairs(sc, truth, runs, obs, acc)
+        closed = truth.section.closed
+        fit_obs, fit_acc, ratios = krauss_pairs(sc, truth, runs, obs, acc, own_median=closed)
         # No drivers' ratios identified: no desired speed either (both SUMO's defaults); on
         # an open section only, where the free term also fits drivers held back by what the
         # pairs do not show (a queue beyond the end, a merge: game/ramp fitted 0.82). A closed
         # one has nothing beyond it: ring_two_lane's fitted 0.92 (its IDM cars cruise below
         # their desired speed) took the deployed policy 0.77-1.04 -> 0.50-0.56 m/s
         # (docs/deploy.md, "ring_two_lane (stop 29)").
-        held = ratios.fallback and not truth.section.closed
+        held = ratios.fallback and not closed
         fixed = {"speed_factor": ratios.fallback} if held else None
         fit = fit_krauss(fit_obs, fit_acc, length, dt, network_defaults(truth.vtypes), fixed)
         prior, rmse, record = fit.prior_params(length, dt), fit.rmse_mps2, fit.record()
