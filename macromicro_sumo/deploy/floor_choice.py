@@ -48,6 +48,8 @@ class FloorChoice:
     speed_rmse_mps: dict[str, float]
     runs: list[int]
     wall_s: float
+    # each candidate's speed RMSE [m/s] per run of ``runs``: how much the runs agree
+    by_run_mps: dict[str, dict[int, float]] = dataclasses.field(default_factory=dict)
 
     def record(self) -> dict[str, Any]:
         """What a manifest records of the choice."""
@@ -56,6 +58,10 @@ class FloorChoice:
             "chosen": self.chosen,
             "training_runs": self.runs,
             "speed_rmse_mps": {k: round(v, 6) for k, v in self.speed_rmse_mps.items()},
+            "speed_rmse_by_run_mps": {
+                k: {str(r): round(v, 6) for r, v in runs.items()}
+                for k, runs in self.by_run_mps.items()
+            },
             "wall_s": round(self.wall_s, 3),
         }
 
@@ -108,6 +114,7 @@ def choose_floor(ctx: DeployContext, drive: Drive, scratch: Path, n_runs: int) -
     ref = truth_reference(ctx.truth_dir)
     interval_s = ctx.sc.deploy.compare_interval_s
     scores: dict[str, float] = {}
+    by_run: dict[str, dict[int, float]] = {}
     scratch.mkdir(parents=True, exist_ok=True)
     for floor_on in FLOOR_CANDIDATES:
         folder = Path(tempfile.mkdtemp(prefix=f"floor_{floor_on}_", dir=scratch))
@@ -116,11 +123,16 @@ def choose_floor(ctx: DeployContext, drive: Drive, scratch: Path, n_runs: int) -
         finally:
             shutil.rmtree(folder, ignore_errors=True)
         scores[floor_on] = speed_rmse(truth, res.detectors, interval_s, ref.from_s)
+        det_run = res.detectors.groupby("run")
+        by_run[floor_on] = {
+            r: speed_rmse(truth[truth["run"] == r], det_run.get_group(r), interval_s, ref.from_s)
+            for r in runs
+        }
     best = FLOOR_CANDIDATES[0]
     for floor_on in FLOOR_CANDIDATES[1:]:
         if scores[floor_on] < scores[best]:  # NaN compares False: the first stays
             best = floor_on
-    return FloorChoice(best, scores, runs, time.perf_counter() - t0)
+    return FloorChoice(best, scores, runs, time.perf_counter() - t0, by_run)
 
 
 def resolve_floor(

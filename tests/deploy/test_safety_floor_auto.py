@@ -89,6 +89,8 @@ def test_auto_keeps_the_floor_closer_to_the_truth_on_training_runs(
     assert rmse[better] < 0.6 * rmse[other], rmse
     splits = split_runs(pd.read_csv(gt / "runs.csv")["run"].unique(), 0.25, ctx.sc.seed)
     assert record["training_runs"] == [int(splits["train"][0])]
+    run = str(record["training_runs"][0])  # one run: its own figure is the pooled one
+    assert {k: v[run] for k, v in record["speed_rmse_by_run_mps"].items()} == rmse
     assert not set(record["training_runs"]) & set(ctx.held_out)
     assert not (tmp_path.exists() and any(tmp_path.rglob("*.xml")))  # SUMO's files removed
     if better == "standing":  # the held-out run deployed as the fixed choice deploys it
