@@ -15,12 +15,13 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from conftest import dump_toml, line_net
+from conftest import dump_toml, line_net, write_scenario
 
 from macromicro_sumo.data.section import split_runs
 from macromicro_sumo.deploy.floor_choice import choose_floor, needs_choice, resolve_floor
 from macromicro_sumo.deploy.run import DeployContext, Drive, load_context, run_method
 from macromicro_sumo.deploy.stage import MANIFEST, SUMMARY, deploy, method_drive
+from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import read_manifest
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.checkpoint import CHECKPOINT_FORMAT, signature
@@ -195,3 +196,22 @@ def test_the_stage_deploys_the_chosen_floor_and_the_report_says_so(
     text = "\n".join(deployment_section(tmp_path / "run"))
     assert "kept `standing`" in text and f"`all` {rmse['all']:.3f} m/s" in text
     assert "policy_no_safety`: `deploy.safety_floor_on" not in text
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "accepted"),
+    [
+        ("safety_floor_runs", 0, "[1, 10000]"),
+        ("safety_floor_runs", "two", "[1, 10000]"),
+        ("safety_floor_on", "best", "auto"),
+    ],
+)
+def test_a_bad_floor_option_is_a_one_line_error(
+    tmp_path: Path, key: str, value: object, accepted: str
+) -> None:
+    path = write_scenario(tmp_path, {f"deploy.{key}": value})
+    with pytest.raises(UserError) as err:
+        load_scenario(path)
+    msg = str(err.value)
+    assert "\n" not in msg and str(path) in msg, msg
+    assert f"deploy.{key}" in msg and accepted in msg, msg
