@@ -128,6 +128,13 @@ def choose_floor(ctx: DeployContext, drive: Drive, scratch: Path, n_runs: int) -
             r: speed_rmse(truth[truth["run"] == r], det_run.get_group(r), interval_s, ref.from_s)
             for r in runs
         }
+        if floor_on == FLOOR_CANDIDATES[0] and int(res.runs["floor_acted"].sum()) == 0:
+            # "all" raised nothing, so every other floor (each raises a subset of what "all"
+            # would at the same state) drives the same runs: a tie, not deployed again (the
+            # paper's ring, where no driver slows below a fifth of the limit).
+            for other in FLOOR_CANDIDATES[1:]:
+                scores[other], by_run[other] = scores[floor_on], by_run[floor_on]
+            break
     best = FLOOR_CANDIDATES[0]
     for floor_on in FLOOR_CANDIDATES[1:]:
         if scores[floor_on] < scores[best]:  # NaN compares False: the first stays

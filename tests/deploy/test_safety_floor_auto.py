@@ -18,6 +18,7 @@ import torch
 from conftest import dump_toml, line_net, write_scenario
 
 from macromicro_sumo.data.section import split_runs
+from macromicro_sumo.deploy import floor_choice
 from macromicro_sumo.deploy.floor_choice import choose_floor, needs_choice, resolve_floor
 from macromicro_sumo.deploy.run import DeployContext, Drive, load_context, run_method
 from macromicro_sumo.deploy.stage import MANIFEST, SUMMARY, deploy, method_drive
@@ -120,6 +121,26 @@ def test_the_choice_never_reads_the_held_out_runs(
     )
     assert after == dataclasses.replace(before, wall_s=after.wall_s)
     assert set(ctx.held_out) <= set(det.loc[other, "run"])
+
+
+def test_a_floor_that_never_acts_is_a_tie_deployed_once(
+    slow_road: tuple[DeployContext, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A policy that cruises at 8 m/s, above the floor of "all" (6 m/s), is never raised:
+    "standing" would drive the same runs, so the choice deploys once, records a tie and
+    keeps "all"."""
+    calls: list[str | None] = []
+
+    def counted(ctx: DeployContext, drive: Drive, *args, **kwargs):
+        calls.append(drive.floor_on)
+        return run_method(ctx, drive, *args, **kwargs)
+
+    monkeypatch.setattr(floor_choice, "run_method", counted)
+    ctx, _ = slow_road
+    choice = choose_floor(ctx, Drive(act=lambda obs: (8.0 - obs[:, 0]) / 0.5), tmp_path, 1)
+    assert calls == ["all"]
+    assert choice.chosen == "all"
+    assert choice.speed_rmse_mps["all"] == choice.speed_rmse_mps["standing"] > 1.0
 
 
 def test_only_a_floored_speed_command_is_chosen_for(slow_road: tuple[DeployContext, Path]) -> None:
