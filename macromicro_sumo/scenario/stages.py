@@ -229,14 +229,15 @@ class DeployConfig:
         "(runs.csv counts the raised commands: floor_acted) [fraction of the limit]",
     )
     safety_floor_on: str = spec(
-        "all",
+        "auto",
         choices=("all", "standing", "auto"),
         doc="safety sumo: the vehicles the floor raises: all, any whose command is below it; "
         "standing, only one slower than 1 m/s, so that the floor unsticks a vehicle held "
         "standing and leaves a moving one's braking to its policy; auto, of these two the one "
         "whose deployment on safety_floor_runs training runs has the lower speed RMSE "
         "against the truth's detectors there (a tie: all), chosen per learned method, "
-        "recorded in its manifest.json (docs/deploy.md, Safety layer strictness)",
+        "recorded in its manifest.json; neither fixed floor is best on every network "
+        "(docs/deploy.md, Safety layer strictness)",
     )
     safety_floor_runs: int = spec(
         2,
