@@ -14,6 +14,7 @@ import pandas as pd
 import pytest
 from conftest import ROOT, dump_toml, line_net, scenario_table
 from deploy_nets import CAR, merge_net
+from section_files import routes_file, section_scenario
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.population import SwitchedType, population_scenario
@@ -223,19 +224,17 @@ def test_a_vtype_switch_waits_until_the_new_min_gap_fits(tmp_path: Path, how: st
 
 def _merge_scenario(folder: Path, net: Path, routes: Path) -> Path:
     """The merge (``deploy_nets.merge_net``) for 120 s, 5% instrumented."""
-    table = {
-        "name": "merge",
-        "seed": 5,
-        "network": {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]},
-        "section": {"edges": ["A", "B", "C"]},
-        "instrumented": {"penetration": 0.05},
-        "simulation": {"warmup_s": 0.0, "duration_s": 120.0, "n_runs": 2},
-        "detectors": {"interval_s": 30.0},
-        "policy": {"observation": "lookahead"},
-    }
-    path = folder / "merge.toml"
-    path.write_text(dump_toml(table))
-    return path
+    return section_scenario(
+        folder / "merge.toml",
+        net,
+        routes,
+        ["A", "B", "C"],
+        seed=5,
+        penetration=0.05,
+        simulation={"warmup_s": 0.0, "duration_s": 120.0, "n_runs": 2},
+        detectors={"interval_s": 30.0},
+        policy={"observation": "lookahead"},
+    )
 
 
 def _run_section(sc, driver, additional: tuple[Path, ...] = ()) -> tuple[pd.DataFrame, dict]:
@@ -312,23 +311,23 @@ def test_a_vtype_switch_hands_back_where_the_own_min_gap_fits(tmp_path: Path) ->
     folder = tmp_path / "net"
     folder.mkdir()
     net = line_net(folder, (300.0, 700.0), 1, (30.0, 2.0))
-    routes = folder / "line.rou.xml"
-    routes.write_text(
-        f"<routes>\n    {CAR}\n    <route id='r' edges='A B'/>\n"
-        "    <flow id='f' type='car' route='r' begin='0' end='3600' vehsPerHour='1800' "
-        "departSpeed='max'/>\n</routes>\n"
+    routes = routes_file(
+        folder / "line.rou.xml",
+        [CAR],
+        ["<flow id='f' type='car' route='r' begin='0' end='3600' vehsPerHour='1800' "
+         "departSpeed='max'/>"],
+        ["<route id='r' edges='A B'/>"],
+    )  # fmt: skip
+    path = section_scenario(
+        tmp_path / "line.toml",
+        net,
+        routes,
+        ["A"],
+        seed=5,
+        penetration=0.01,
+        simulation={"warmup_s": 0.0, "duration_s": 150.0, "n_runs": 2},
+        detectors={"interval_s": 30.0},
     )
-    table = {
-        "name": "line",
-        "seed": 5,
-        "network": {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]},
-        "section": {"edges": ["A"]},
-        "instrumented": {"penetration": 0.01},
-        "simulation": {"warmup_s": 0.0, "duration_s": 150.0, "n_runs": 2},
-        "detectors": {"interval_s": 30.0},
-    }
-    path = tmp_path / "line.toml"
-    path.write_text(dump_toml(table))
     sc = load_scenario(path)
     theta = {"accel": 2.6, "decel": 4.5, "tau": 0.5, "minGap": 0.5, "speedFactor": 1.0}
     text, type_of = vtype_xml({"car": ("passenger", 5.0)}, Drive(theta=theta))

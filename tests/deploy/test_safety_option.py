@@ -12,8 +12,9 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from conftest import dump_toml, write_scenario
+from conftest import write_scenario
 from deploy_nets import merge_net
+from section_files import section_scenario
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.safety import FLOOR_SHARE, safety_cap
@@ -66,21 +67,17 @@ def test_a_standing_command_on_a_free_road_is_raised_to_the_share(share: float) 
 def _merge(folder: Path, **tables: dict) -> Path:
     """The merge (``deploy_nets.merge_net``): 5% instrumented, 2 runs of 30 + 90 s."""
     net, routes = merge_net(folder / "net")
-    table = {
-        "name": "merge",
-        "seed": 5,
-        "network": {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]},
-        "section": {"edges": ["A", "B", "C"]},
-        "instrumented": {"penetration": 0.05},
-        "simulation": {"warmup_s": 30.0, "duration_s": 90.0, "n_runs": 2},
-        "detectors": {"interval_s": 30.0, "auto_spacing_m": 300.0},
-        "policy": {"observation": "lookahead"},
-        "deploy": {"fcd_s": 30.0},
-        **tables,
-    }
-    path = folder / "merge.toml"
-    path.write_text(dump_toml(table))
-    return path
+    return section_scenario(
+        folder / "merge.toml",
+        net,
+        routes,
+        ["A", "B", "C"],
+        seed=5,
+        penetration=0.05,
+        simulation={"warmup_s": 30.0, "duration_s": 90.0, "n_runs": 2},
+        detectors={"interval_s": 30.0, "auto_spacing_m": 300.0},
+        **({"policy": {"observation": "lookahead"}, "deploy": {"fcd_s": 30.0}} | tables),
+    )
 
 
 def test_a_higher_floor_keeps_a_braking_policy_faster(tmp_path: Path) -> None:
