@@ -7,7 +7,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from conftest import dump_toml, netconvert
+from conftest import netconvert
+from section_files import section_scenario
 
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES, idm_accel
@@ -75,19 +76,17 @@ def merge_scenario(
     user's route files, 20% instrumented, loops every ``auto_spacing_m``, the given
     ``[simulation]`` and further tables (``policy``, ``deploy``, ...)."""
     net, routes = merge_net(folder / "net", main_vph, ramp_vph)
-    table = {
-        "name": "merge",
-        "seed": 9,
-        "network": {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]},
-        "section": {"edges": ["A", "B", "C"]},
-        "instrumented": {"penetration": 0.2},
-        "simulation": simulation,
-        "detectors": {"interval_s": 30.0, "auto_spacing_m": auto_spacing_m},
+    return section_scenario(
+        folder / "merge.toml",
+        net,
+        routes,
+        ["A", "B", "C"],
+        seed=9,
+        penetration=0.2,
+        simulation=simulation,
+        detectors={"interval_s": 30.0, "auto_spacing_m": auto_spacing_m},
         **tables,
-    }
-    path = folder / "merge.toml"
-    path.write_text(dump_toml(table))
-    return path
+    )
 
 
 def light_net(folder: Path) -> tuple[Path, Path, Path]:
