@@ -44,11 +44,12 @@ SCENE_FEATURES = {
     ),
 }
 # Features of the vehicle itself, not of the scene around it: after the scene's, in this
-# order, each set from an attribute every observer knows (``set_own_features``). Why the
-# own length: one policy drives a mixed fleet, and without a vType in the observation it
-# drove drawn net 300's trucks at the cars' time gap (1.33 s against their 1.63;
-# docs/deploy.md, "Drawn net 300's bottleneck"). The length is what the generator draws,
-# the recorded trajectories' vType gives and SUMO reports of a deployed vehicle.
+# order, each set from an attribute every observer knows (``set_own_features``). The own
+# length is what the generator draws, the recorded trajectories' vType gives and SUMO
+# reports of a deployed vehicle: one policy could drive a mixed fleet's trucks and cars
+# each as they drive. Measured on drawn nets 300 and 311 it did not (the trucks' time gap
+# moved away from the truth's), so it is an option, not the default (docs/deploy.md, "A
+# policy that knows its vehicle's length (stop 31)").
 OWN_FEATURES = ("length_m",)
 OBSERVATION_FEATURES = {
     **SCENE_FEATURES,
