@@ -28,12 +28,12 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import least_squares
 
-from macromicro_sumo.policy.prior import EMERGENCY_DECEL_MPS2, KRAUSS_PRIOR_KEYS
+from macromicro_sumo.policy.prior import EMERGENCY_DECEL_MPS2, KRAUSS_PRIOR_KEYS, RELAX_UPPER_S
 
 # (speed_factor, a [m/s^2], b [m/s^2], tau [s], min_gap [m], relax [s]); relax's lower
 # bound is the step (a car cannot close a speed gap faster than within one step).
 _LOWER = np.array([0.5, 0.1, 0.5, 0.1, 0.0, 0.0])
-_UPPER = np.array([1.5, 5.0, 10.0, 5.0, 20.0, 10.0])
+_UPPER = np.array([1.5, 5.0, 10.0, 5.0, 20.0, RELAX_UPPER_S])
 _X_SCALE = np.array([0.05, 0.5, 0.5, 0.2, 1.0, 0.5])
 # Starts: every (a, T) pair, the rest at Gipps' fit's usual start.
 START_ACCEL_MPS2 = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
@@ -230,7 +230,8 @@ def fit_krauss(
     if, with the default a, they still do); any parameter at a bound of the fit's range or
     with a standard error above ``MAX_RELATIVE_SE`` of its value. Not relax_s at a bound:
     at the step it is Krauss' own free term, at its upper bound the drivers' neutral
-    cruising at their own speed (docs/deploy.md); nor min_gap_m at 0.
+    cruising at their own speed (docs/deploy.md), which Stage II replaces by a relaxation
+    chosen on the training runs' loops (``policy.relax_choice``); nor min_gap_m at 0.
 
     Where a falls back, relax_s is refitted alone (``_refit_relax``, recorded in
     ``KraussFit.refitted``): the full fit chose it next to the rejected a. The others keep

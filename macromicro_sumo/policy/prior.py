@@ -64,6 +64,9 @@ PRIOR_KEYS = {"idm": IDM_PRIOR_KEYS, "gipps": GIPPS_PRIOR_KEYS, "krauss": KRAUSS
 # brakes no harder than SUMO's emergencyDecel default, a gap is never below 0.1 m.
 EMERGENCY_DECEL_MPS2 = 9.0
 MIN_GAP_M = 0.1
+# The Krauss form's relaxation time's upper bound [s] in its fit (evaluation.krauss_fit):
+# a fit there is the pairs' neutral cruising, not an identified value (policy.relax_choice).
+RELAX_UPPER_S = 10.0
 
 
 def idm_prior_params(params: Mapping[str, float], veh_length_m: float) -> dict[str, float]:

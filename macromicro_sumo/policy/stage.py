@@ -37,6 +37,7 @@ from macromicro_sumo.generator.section_train import load_section_generator
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.policy.checkpoint import policy_file, resumable_checkpoint
 from macromicro_sumo.policy.ppo import train_policy
+from macromicro_sumo.policy.relax_choice import choose_relax, relax_unidentified
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.inputs import scenario_inputs
 from macromicro_sumo.truth.section import load_section_truth
@@ -136,6 +137,12 @@ def run_train_policy(
     if sc.policy.prior != "none" and fit_prior is not None:
         runs = np.concatenate([splits["train"], splits["val"]])
         prior, extra, pairs = fit_prior(sc, truth, runs)
+        # A relaxation time the pairs leave at its bound: chosen on the training runs'
+        # demand, warm-up included, by the prior alone (policy.relax_choice).
+        demand = episodes.make_demand
+        if sc.policy.prior == "krauss" and relax_unidentified(prior) and demand is not None:
+            prior["relax_s"], extra["prior"]["relax_choice"] = choose_relax(sc, prior, demand)
+            extra["prior"]["relax_s"] = prior["relax_s"]
     res = train_policy(
         sc,
         episodes.bank,
