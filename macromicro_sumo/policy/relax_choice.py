@@ -53,9 +53,12 @@ def relax_unidentified(prior_params: Mapping[str, float]) -> bool:
 class Loops:
     """SUMO's induction loops (``detectors.csv`` rows: lane_index, arc_m) read off the
     vehicles of a demand episode: a vehicle counts when its back leaves the loop, at its
-    length over the time it occupied it (SUMO's E1 speed; the speed as its front passes read
-    the ring's standing start 0.55 m/s fast, the rest within 0.01 m/s), the crossings
-    interpolated within the step. ``passages`` after each ``core.step``."""
+    length over the time it occupied it, the crossings interpolated within the step.
+    ``passages`` after each ``core.step``. Replaying ring_two_lane's truth (SUMO's models):
+    the counts per minute are SUMO's within one; the speeds are within 0.01 m/s after the
+    first minute, but 0.51 m/s fast in it (0.55 reading the speed as the front passes):
+    SUMO's loops read the standing start in a way not reproduced here, two loops with a car
+    inserted standing over them 1.3-1.6 m/s slower (hence ``choose_relax`` on counts)."""
 
     def __init__(self, loops: pd.DataFrame) -> None:
         self.arc_m = loops["arc_m"].to_numpy(dtype=float)
