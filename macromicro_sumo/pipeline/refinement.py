@@ -48,7 +48,7 @@ from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.policy.agent import Agent, policy_action
 from macromicro_sumo.policy.checkpoint import load_policy, policy_file
 from macromicro_sumo.policy.ppo import train_policy
-from macromicro_sumo.policy.stage import PriorFit, section_episodes
+from macromicro_sumo.policy.stage import PriorFit, fit_stage_prior, section_episodes
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.truth.section import load_section_truth
 
@@ -141,10 +141,10 @@ def refine(
     out = prepare_out_dir(out)
     torch.set_num_threads(1)
     splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
-    prior, pairs, extra_manifest = None, None, {}
-    if cfg.prior != "none" and fit_prior is not None:
-        runs = np.concatenate([splits["train"], splits["val"]])
-        prior, extra_manifest, pairs = fit_prior(sc, truth, runs)
+    # The policy stage's prior (its relaxation time chosen as there): the fine-tune trains
+    # on the prior the single pass trained on.
+    ep0, snaps0 = _episodes(sc, truth, net, splits)
+    prior, extra_manifest, pairs = fit_stage_prior(sc, truth, splits, fit_prior, ep0.make_demand)
     # The fine-tune keeps each next-step scene's hidden set (the policy's vehicles): no
     # fresh hidden sets per epoch, as with instrumented.hidden = "run".
     fixed = dataclasses.replace(sc, instrumented=dataclasses.replace(sc.instrumented, hidden="run"))
@@ -155,7 +155,7 @@ def refine(
         folder = prepare_out_dir(out / f"iter_{it}")
         seed = sc.seed + ROLLOUT_SEED + it
         # (1) the current generator's scenes, the current policy one step on.
-        ep, snaps = _episodes(sc, truth, net, splits)
+        ep, snaps = (ep0, snaps0) if it == 0 else _episodes(sc, truth, net, splits)
         nxt = next_step_snapshots(sc, snaps, ep.bank, ep.make_core, agent, seed)
         is_val = np.isin(nxt.run, splits["val"])
         train = nxt.take(np.flatnonzero(~is_val))

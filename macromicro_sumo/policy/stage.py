@@ -112,6 +112,28 @@ def section_episodes(sc: SectionScenario, truth, net, splits: dict[str, np.ndarr
     return Episodes(bank, make_core, make_demand, quantiles)
 
 
+def fit_stage_prior(
+    sc: SectionScenario,
+    truth: Any,
+    splits: dict[str, np.ndarray],
+    fit_prior: PriorFit | None,
+    make_demand: Callable[[], DemandCore] | None,
+) -> tuple[dict[str, float] | None, dict[str, Any], tuple[np.ndarray, np.ndarray] | None]:
+    """``policy.prior``'s model fitted to the train + val runs' observed pairs (``fit_prior``;
+    none without it or with ``prior = "none"``): (its parameters, what the manifest records,
+    the pairs). A Krauss relaxation time the pairs leave at its bound is chosen on the
+    training runs' demand, warm-up included, by the prior alone (``policy.relax_choice``).
+    The policy stage and the joint refinement both fit it here, so both train on one prior."""
+    if sc.policy.prior == "none" or fit_prior is None:
+        return None, {}, None
+    runs = np.concatenate([splits["train"], splits["val"]])
+    prior, extra, pairs = fit_prior(sc, truth, runs)
+    if sc.policy.prior == "krauss" and relax_unidentified(prior) and make_demand is not None:
+        prior["relax_s"], extra["prior"]["relax_choice"] = choose_relax(sc, prior, make_demand)
+        extra["prior"]["relax_s"] = prior["relax_s"]
+    return prior, extra, pairs
+
+
 def run_train_policy(
     sc: SectionScenario,
     data: Path,
@@ -133,16 +155,7 @@ def run_train_policy(
         sc, truth.runs, data, generator, out, objective, resume
     )
     episodes = section_episodes(sc, truth, net, splits)
-    prior, extra, pairs = None, {}, None
-    if sc.policy.prior != "none" and fit_prior is not None:
-        runs = np.concatenate([splits["train"], splits["val"]])
-        prior, extra, pairs = fit_prior(sc, truth, runs)
-        # A relaxation time the pairs leave at its bound: chosen on the training runs'
-        # demand, warm-up included, by the prior alone (policy.relax_choice).
-        demand = episodes.make_demand
-        if sc.policy.prior == "krauss" and relax_unidentified(prior) and demand is not None:
-            prior["relax_s"], extra["prior"]["relax_choice"] = choose_relax(sc, prior, demand)
-            extra["prior"]["relax_s"] = prior["relax_s"]
+    prior, extra, pairs = fit_stage_prior(sc, truth, splits, fit_prior, episodes.make_demand)
     res = train_policy(
         sc,
         episodes.bank,
