@@ -156,6 +156,18 @@ def collect_demand(
     )
 
 
+def prior_step(agent: Agent, core: DemandCore) -> np.ndarray | None:
+    """One step of ``core`` with its population driven by ``agent``'s prior alone; the
+    observations it drove on (N, obs_dim), None where no vehicle was driven."""
+    vids, o = core.observe()
+    a = np.zeros(0)
+    if vids:
+        with torch.no_grad():
+            a = agent.prior_accel(torch.as_tensor(o, dtype=torch.float32)).numpy()
+    core.step(a)
+    return o if vids else None
+
+
 def warmup_states(agent: Agent, core: DemandCore, warmup_s: float) -> np.ndarray:
     """Observations (N, obs_dim) of the population through the warm-up of each of
     ``core.runs`` (from SUMO's first step to ``warmup_s``), driven by the agent's prior
@@ -167,13 +179,9 @@ def warmup_states(agent: Agent, core: DemandCore, warmup_s: float) -> np.ndarray
     for run in core.runs:
         core.reset(int(run), dt)
         for _ in range(int(round(warmup_s / dt)) - 1):
-            vids, o = core.observe()
-            a = np.zeros(0)
-            if vids:
-                with torch.no_grad():
-                    a = agent.prior_accel(torch.as_tensor(o, dtype=torch.float32)).numpy()
+            o = prior_step(agent, core)
+            if o is not None:
                 out.append(o)
-            core.step(a)
     if not out:
         return np.zeros((0, core.obs_dim), dtype=np.float32)
     return np.concatenate(out).astype(np.float32)

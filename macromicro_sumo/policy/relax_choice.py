@@ -29,10 +29,10 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-import torch
 
 from macromicro_sumo.env.demand import DemandCore
 from macromicro_sumo.policy.agent import Agent
+from macromicro_sumo.policy.demand_rollout import prior_step
 from macromicro_sumo.policy.prior import RELAX_UPPER_S
 
 # Candidates [s]: from near SUMO's Krauss (the step: a binds until the desired speed is
@@ -144,12 +144,7 @@ def loop_fit(
         core.reset(int(run), dt)
         reader = Loops(loops)
         for _ in range(int(round(end_s / dt)) - 1):
-            vids, o = core.observe()
-            a = np.zeros(0)
-            if vids:
-                with torch.no_grad():
-                    a = agent.prior_accel(torch.as_tensor(o, dtype=torch.float32)).numpy()
-            core.step(a)
+            prior_step(agent, core)
             loop, speed = reader.passages(core)
             k = np.searchsorted(edges, core.time_s(), side="left") - 1  # (begin, end]
             if 0 <= k < total.shape[1]:
