@@ -50,6 +50,8 @@ class FloorChoice:
     wall_s: float
     # each candidate's speed RMSE [m/s] per run of ``runs``: how much the runs agree
     by_run_mps: dict[str, dict[int, float]] = dataclasses.field(default_factory=dict)
+    # the candidates deployed (the others drive the same runs: "all" raised nothing)
+    deployed: tuple[str, ...] = FLOOR_CANDIDATES
 
     def record(self) -> dict[str, Any]:
         """What a manifest records of the choice."""
@@ -62,6 +64,7 @@ class FloorChoice:
                 k: {str(r): round(v, 6) for r, v in runs.items()}
                 for k, runs in self.by_run_mps.items()
             },
+            "deployed": list(self.deployed),
             "wall_s": round(self.wall_s, 3),
         }
 
@@ -115,6 +118,7 @@ def choose_floor(ctx: DeployContext, drive: Drive, scratch: Path, n_runs: int) -
     interval_s = ctx.sc.deploy.compare_interval_s
     scores: dict[str, float] = {}
     by_run: dict[str, dict[int, float]] = {}
+    deployed: list[str] = []
     scratch.mkdir(parents=True, exist_ok=True)
     for floor_on in FLOOR_CANDIDATES:
         folder = Path(tempfile.mkdtemp(prefix=f"floor_{floor_on}_", dir=scratch))
@@ -123,6 +127,7 @@ def choose_floor(ctx: DeployContext, drive: Drive, scratch: Path, n_runs: int) -
         finally:
             shutil.rmtree(folder, ignore_errors=True)
         scores[floor_on] = speed_rmse(truth, res.detectors, interval_s, ref.from_s)
+        deployed.append(floor_on)
         det_run = res.detectors.groupby("run")
         by_run[floor_on] = {
             r: speed_rmse(truth[truth["run"] == r], det_run.get_group(r), interval_s, ref.from_s)
@@ -139,7 +144,7 @@ def choose_floor(ctx: DeployContext, drive: Drive, scratch: Path, n_runs: int) -
     for floor_on in FLOOR_CANDIDATES[1:]:
         if scores[floor_on] < scores[best]:  # NaN compares False: the first stays
             best = floor_on
-    return FloorChoice(best, scores, runs, time.perf_counter() - t0, by_run)
+    return FloorChoice(best, scores, runs, time.perf_counter() - t0, by_run, tuple(deployed))
 
 
 def resolve_floor(

@@ -23,8 +23,11 @@ def floor_choice_lines(choices: Mapping[str, Mapping[str, Any]]) -> list[str]:
     """One line per method of ``choices`` (method -> ``FloorChoice.record``)."""
     lines = []
     for method, c in choices.items():
-        rmse = c["speed_rmse_mps"]
-        figures = " and ".join(f"`{k}` {v:.3f} m/s" for k, v in rmse.items())
+        rmse, deployed = c["speed_rmse_mps"], c.get("deployed", list(c["speed_rmse_mps"]))
+        figures = " and ".join(f"`{k}` {v:.3f} m/s" for k, v in rmse.items() if k in deployed)
+        same = [f"`{k}`" for k in rmse if k not in deployed]
+        if same:  # not deployed: "all" raised no command, so these drive the same runs
+            figures += f" ({', '.join(same)} the same: `all` raised no command there)"
         runs = ", ".join(str(r) for r in c["training_runs"])
         chosen = c["chosen"]
         lines.append(

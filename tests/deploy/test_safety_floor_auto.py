@@ -27,6 +27,7 @@ from macromicro_sumo.files import read_manifest
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.checkpoint import CHECKPOINT_FORMAT, signature
 from macromicro_sumo.report.deploy import deployment_section
+from macromicro_sumo.report.deploy_floor import floor_choice_lines
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import simulate_section
 
@@ -138,9 +139,12 @@ def test_a_floor_that_never_acts_is_a_tie_deployed_once(
     monkeypatch.setattr(floor_choice, "run_method", counted)
     ctx, _ = slow_road
     choice = choose_floor(ctx, Drive(act=lambda obs: (8.0 - obs[:, 0]) / 0.5), tmp_path, 1)
-    assert calls == ["all"]
+    assert calls == ["all"] and choice.deployed == ("all",)
     assert choice.chosen == "all"
     assert choice.speed_rmse_mps["all"] == choice.speed_rmse_mps["standing"] > 1.0
+    (line,) = floor_choice_lines({"policy": choice.record()})
+    assert "`standing` the same: `all` raised no command there" in line
+    assert f"`all` {choice.speed_rmse_mps['all']:.3f} m/s" in line and "`standing` 1" not in line
 
 
 def test_only_a_floored_speed_command_is_chosen_for(slow_road: tuple[DeployContext, Path]) -> None:
