@@ -42,7 +42,7 @@ from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import SectionBank
 from macromicro_sumo.env.slot_core import POSITION_TOL_M, SlotCore
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.road.physics import set_own_features
+from macromicro_sumo.road.physics import observes_length, set_own_features
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
 from macromicro_sumo.sumo.simulation import DEFAULT_LANE_CHANGE_MODE, Simulation, SumoOptions
 from macromicro_sumo.sumo.tiling import copy_id, tile_net
@@ -314,7 +314,9 @@ class BatchedSectionCore(SlotCore):
             self.obs_dim,
             None if f is None else f[self.episode],
         )
-        set_own_features(obs, self.observation, np.where(live, self.bank.length_m[self.episode], 0))
+        if observes_length(self.observation):
+            lengths = np.where(live, self.bank.length_m[self.episode], 0.0)
+            set_own_features(obs, self.observation, lengths)
         keep = ~scenes[:, None]
         self.leader = np.where(keep, self.leader, leader)
         self.spacing = np.where(keep, self.spacing, spacing)

@@ -43,6 +43,7 @@ from macromicro_sumo.env.section_bank import section_macro_reward, section_targe
 from macromicro_sumo.road.physics import (
     OBSERVATION_FEATURES,
     has_lookahead,
+    observes_length,
     set_own_features,
 )
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
@@ -149,7 +150,8 @@ def sumo_observations(
     obs = np.zeros((n, len(OBSERVATION_FEATURES[observation])))
     if n:
         obs[:, : len(cols)] = np.stack(cols, axis=1)
-    set_own_features(obs, observation, np.array([shapes[v][0] for v in vids]))
+    if observes_length(observation):  # a look-up per vehicle only where it is observed
+        set_own_features(obs, observation, np.array([shapes[v][0] for v in vids]))
     return SumoScene(obs, leader, spacing, gap_out)
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from macromicro_sumo.road.physics import OBSERVATION_FEATURES
+from macromicro_sumo.road.physics import observes_length
 
 
 def generated_vtypes(sc, vtypes: pd.DataFrame, typical: str, n: int, seed: int) -> list[str]:
@@ -16,7 +16,7 @@ def generated_vtypes(sc, vtypes: pd.DataFrame, typical: str, n: int, seed: int) 
     at one length and the observed pairs' likelihood alone at the others, so the correction
     the macro reward makes (drawn net 300: +0.18 m/s^2 for 5 m cars) missed the 4.5 m cars
     and 12 m trucks it drives in a deployment."""
-    if "length_m" not in OBSERVATION_FEATURES[sc.policy.observation] or len(vtypes) < 2:
+    if not observes_length(sc.policy.observation) or len(vtypes) < 2:
         return [typical] * n
     share = vtypes["vehicles"].to_numpy(dtype=float)
     pick = np.random.default_rng([seed, n]).choice(len(vtypes), size=n, p=share / share.sum())

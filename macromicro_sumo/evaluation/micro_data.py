@@ -19,7 +19,7 @@ from macromicro_sumo.env.section_bank import recordable, section_observations
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.idm_fit import IdmParams, idm_policy_accel
 from macromicro_sumo.fielddata.leaders import has_measured_leaders, with_measured_leaders
-from macromicro_sumo.road.physics import OBSERVATION_FEATURES
+from macromicro_sumo.road.physics import observes_length
 
 
 def micro_pairs(
@@ -31,8 +31,7 @@ def micro_pairs(
     dt = sc.simulation.step_length_s
     traj = truth.trajectories[truth.trajectories["run"].isin(runs)]
     measured = has_measured_leaders(traj)
-    own_length = "length_m" in OBSERVATION_FEATURES[sc.policy.observation]
-    lengths = _lengths(truth, traj) if own_length else None
+    lengths = _lengths(truth, traj) if observes_length(sc.policy.observation) else None
     obs_rows, acc_rows = [], []
     for run, g in traj.groupby("run", sort=True):
         # The run's own speed limits (a fleet draws them per run), as the env observes them.

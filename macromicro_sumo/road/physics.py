@@ -65,16 +65,20 @@ def has_lookahead(observation: str) -> bool:
     return "next_limit_mps" in OBSERVATION_FEATURES[observation]
 
 
+def observes_length(observation: str) -> bool:
+    """Whether ``policy.observation`` carries the vehicle's own length."""
+    return "length_m" in OBSERVATION_FEATURES[observation]
+
+
 def set_own_features(obs: np.ndarray, observation: str, length_m: np.ndarray | None) -> np.ndarray:
     """Fill ``obs``' (..., F) own-vehicle columns (``OWN_FEATURES``) of ``policy.observation``
     in place from each vehicle's ``length_m`` (...,); returns ``obs``. The one definition
     that the training envs, the micro pairs and the deployment share. Scene-only
     observations are left as they are (``length_m`` may then be None)."""
-    names = OBSERVATION_FEATURES[observation]
-    if "length_m" in names:
+    if observes_length(observation):
         if length_m is None:
             raise ValueError(f"policy.observation = {observation!r} needs each vehicle's length")
-        obs[..., names.index("length_m")] = length_m
+        obs[..., OBSERVATION_FEATURES[observation].index("length_m")] = length_m
     return obs
 
 
