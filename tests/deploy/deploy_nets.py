@@ -70,22 +70,34 @@ def merge_scenario(
     auto_spacing_m: float = 200.0,
     main_vph: float = 1800.0,
     ramp_vph: float = 500.0,
+    seed: int = 9,
+    penetration: float = 0.2,
     **tables: dict,
 ) -> Path:
     """``folder/merge.toml``: the merge (``merge_net``) as a section A -> B -> C with the
-    user's route files, 20% instrumented, loops every ``auto_spacing_m``, the given
-    ``[simulation]`` and further tables (``policy``, ``deploy``, ...)."""
+    user's route files, ``penetration`` instrumented, loops every ``auto_spacing_m``, the
+    given ``[simulation]`` and further tables (``policy``, ``deploy``, ...)."""
     net, routes = merge_net(folder / "net", main_vph, ramp_vph)
     return section_scenario(
         folder / "merge.toml",
         net,
         routes,
         ["A", "B", "C"],
-        seed=9,
-        penetration=0.2,
+        seed=seed,
+        penetration=penetration,
         simulation=simulation,
         detectors={"interval_s": 30.0, "auto_spacing_m": auto_spacing_m},
         **tables,
+    )
+
+
+def sparse_merge(folder: Path, simulation: dict | None = None, **tables: dict) -> Path:
+    """The safety layer's merge: ``merge_scenario`` with 5% instrumented (nearly every car
+    driven), the look-ahead observation, by default 2 runs of 120 s without warm-up."""
+    simulation = simulation or {"warmup_s": 0.0, "duration_s": 120.0, "n_runs": 2}
+    tables = {"policy": {"observation": "lookahead"}} | tables
+    return merge_scenario(
+        folder, simulation, auto_spacing_m=300.0, seed=5, penetration=0.05, **tables
     )
 
 

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 import pytest
 from conftest import ROOT, dump_toml, line_net, scenario_table
-from deploy_nets import CAR, merge_net
+from deploy_nets import CAR, sparse_merge
 from section_files import routes_file, section_scenario
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
@@ -222,21 +222,6 @@ def test_a_vtype_switch_waits_until_the_new_min_gap_fits(tmp_path: Path, how: st
     assert res.runs["vehicle_steps_driven"].min() > 0.4 * 0.8 * 31 * steps
 
 
-def _merge_scenario(folder: Path, net: Path, routes: Path) -> Path:
-    """The merge (``deploy_nets.merge_net``) for 120 s, 5% instrumented."""
-    return section_scenario(
-        folder / "merge.toml",
-        net,
-        routes,
-        ["A", "B", "C"],
-        seed=5,
-        penetration=0.05,
-        simulation={"warmup_s": 0.0, "duration_s": 120.0, "n_runs": 2},
-        detectors={"interval_s": 30.0},
-        policy={"observation": "lookahead"},
-    )
-
-
 def _run_section(sc, driver, additional: tuple[Path, ...] = ()) -> tuple[pd.DataFrame, dict]:
     sim = Simulation(
         SumoOptions(
@@ -267,11 +252,8 @@ def test_a_policy_that_always_brakes_cannot_stop_the_merge(
     them rolling; nobody stands longer than the queue at the lane end asks, none collides.
     With ``deploy.safety_floor_on = "standing"`` each car is raised only once below 1 m/s
     and braked again: the stream crawls, but the same holds."""
-    net, routes = merge_net(tmp_path / "net")
-    path = _merge_scenario(tmp_path, net, routes)
-    path.write_text(path.read_text() + f'\n[deploy]\nsafety_floor_on = "{floor_on}"\n')
-    sc = load_scenario(path)
-    section = read_section(net, ["A", "B", "C"], False)
+    sc = load_scenario(sparse_merge(tmp_path, deploy={"safety_floor_on": floor_on}))
+    section = read_section(sc.resolve(sc.network.net_file), ["A", "B", "C"], False)
     a_min = sc.bounds.accel_mps2[0]
     drv = SectionSpeedDriver(sc, section, 0, lambda obs: np.full(len(obs), a_min), "sumo")
     df, stats = _run_section(sc, drv)
@@ -290,9 +272,8 @@ def test_no_command_makes_the_merge_collide(tmp_path: Path, kind: str) -> None:
     """On the merge (an acceleration lane that ends, lane changes, an added lane where
     SUMO's leader is on another lane index): full throttle, or random accelerations in the
     scenario's bounds [-4.5, 2.6] m/s^2 from a seeded generator, for every driven car."""
-    net, routes = merge_net(tmp_path / "net")
-    sc = load_scenario(_merge_scenario(tmp_path, net, routes))
-    section = read_section(net, ["A", "B", "C"], False)
+    sc = load_scenario(sparse_merge(tmp_path))
+    section = read_section(sc.resolve(sc.network.net_file), ["A", "B", "C"], False)
     act = adversary(kind, *sc.bounds.accel_mps2, seed=3)
     drv = SectionSpeedDriver(sc, section, 0, act, "sumo")
     df, stats = _run_section(sc, drv)

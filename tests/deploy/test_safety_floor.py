@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from deploy_nets import merge_net
-from test_safety import _merge_scenario, _run_section
+from deploy_nets import sparse_merge
+from test_safety import _run_section
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.population import DriveStats
@@ -21,10 +21,7 @@ from macromicro_sumo.scenario.load import load_scenario
 
 def _merge(folder: Path, floor_on: str) -> Path:
     """The merge of ``test_safety`` with ``deploy.safety_floor_on``."""
-    net, routes = merge_net(folder / "net")
-    path = _merge_scenario(folder, net, routes)
-    path.write_text(path.read_text() + f'\n[deploy]\nsafety_floor_on = "{floor_on}"\n')
-    return path
+    return sparse_merge(folder, deploy={"safety_floor_on": floor_on})
 
 
 @pytest.mark.parametrize("floor_on", ["all", "standing"])

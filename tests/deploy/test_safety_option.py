@@ -13,8 +13,7 @@ import pandas as pd
 import pytest
 import torch
 from conftest import write_scenario
-from deploy_nets import merge_net
-from section_files import section_scenario
+from deploy_nets import sparse_merge
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.safety import FLOOR_SHARE, safety_cap
@@ -64,26 +63,14 @@ def test_a_standing_command_on_a_free_road_is_raised_to_the_share(share: float) 
     assert raised == (2 if share > 0 else 0) and lowered == 0
 
 
-def _merge(folder: Path, **tables: dict) -> Path:
-    """The merge (``deploy_nets.merge_net``): 5% instrumented, 2 runs of 30 + 90 s."""
-    net, routes = merge_net(folder / "net")
-    return section_scenario(
-        folder / "merge.toml",
-        net,
-        routes,
-        ["A", "B", "C"],
-        seed=5,
-        penetration=0.05,
-        simulation={"warmup_s": 30.0, "duration_s": 90.0, "n_runs": 2},
-        detectors={"interval_s": 30.0, "auto_spacing_m": 300.0},
-        **({"policy": {"observation": "lookahead"}, "deploy": {"fcd_s": 30.0}} | tables),
-    )
+# Two runs of 30 + 90 s.
+SIMULATION = {"warmup_s": 30.0, "duration_s": 90.0, "n_runs": 2}
 
 
 def test_a_higher_floor_keeps_a_braking_policy_faster(tmp_path: Path) -> None:
     """A policy that always brakes at a_min drives at the floor: half the limit with
     deploy.safety_floor_share = 0.5, where the default fifth holds the cars near 6 m/s."""
-    sc = load_scenario(_merge(tmp_path, deploy={"safety_floor_share": 0.5}))
+    sc = load_scenario(sparse_merge(tmp_path, SIMULATION, deploy={"safety_floor_share": 0.5}))
     section = read_section(sc.resolve(sc.network.net_file), ["A", "B", "C"], False)
     a_min = sc.bounds.accel_mps2[0]
     drv = SectionSpeedDriver(sc, section, 0, lambda obs: np.full(len(obs), a_min), "sumo")
@@ -132,7 +119,9 @@ def test_the_stage_deploys_the_policy_with_and_without_the_safety_layer(tmp_path
     commands applied exactly: at full throttle it collides, and that is a figure of the
     summary and of the report's table, beside the protected policy's 0; the floor share
     the protected one used (deploy.safety_floor_share) is what its row and line say."""
-    sc = load_scenario(_merge(tmp_path, deploy={"fcd_s": 30.0, "safety_floor_share": 0.35}))
+    sc = load_scenario(
+        sparse_merge(tmp_path, SIMULATION, deploy={"fcd_s": 30.0, "safety_floor_share": 0.35})
+    )
     assert "policy_no_safety" in sc.deploy.methods  # on by default
     gt = simulate_section(sc, tmp_path / "gt", progress=False)
     pol = _full_throttle_checkpoint(sc, tmp_path / "policy")
