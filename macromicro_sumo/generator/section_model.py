@@ -391,9 +391,6 @@ class Scene:
     k: torch.Tensor  # (B,) vehicles to generate
     total: torch.Tensor  # (B,) vehicles of the completed scene
 
-    # (B, n_obs_slots) the snapshot slot of each packed observed slot (-1: none)
-    source_slot: np.ndarray | None = None
-
     @classmethod
     def start(cls, snaps: SectionSnapshots, k: np.ndarray, road: Road) -> Scene:
         """The observed vehicles packed to the front (a snapshot's hidden slots are never
@@ -406,7 +403,6 @@ class Scene:
         slot = np.argsort(~obs, axis=1, kind="stable")[:, :n]
         rows = np.arange(b)[:, None]
         packed = obs[rows, slot]
-        source = np.where(packed, slot, -1)
         pad = np.zeros((b, k_max))
         arc = np.where(packed, snaps.arc_m[rows, slot], 0.0)
         if road.closed:
@@ -421,7 +417,6 @@ class Scene:
             n_obs_slots=n,
             k=k_t,
             total=torch.as_tensor(obs.sum(axis=1)) + k_t,
-            source_slot=source,
         )
 
     def observe(

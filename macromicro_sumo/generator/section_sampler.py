@@ -67,7 +67,6 @@ class SectionCompletion:
     trials: np.ndarray  # (S,) trials used over all generated vehicles
     projections: np.ndarray  # (S,) generated vehicles placed by projection
     dropped: np.ndarray | None = None  # (S,) vehicles not placed: no gap had room
-    speed_fixes: np.ndarray | None = None  # (S,) speeds changed by ``safe_speeds``
     wall_s: float = 0.0
 
 
@@ -153,8 +152,7 @@ def safe_speeds(
     reaction_s: float = 0.0,
 ) -> None:
     """Give each generated vehicle a speed it can stop from behind its leader, and raise
-    a generated leader where an observed follower could not stop behind it (in place;
-    speeds changed are counted in ``comp.speed_fixes``).
+    a generated leader where an observed follower could not stop behind it (in place).
 
     The spacing and speed bounds say nothing about pairs: a generated vehicle 15 m/s faster
     than a leader 10 m behind satisfies both and crashes in the first second. The bound is
@@ -174,14 +172,12 @@ def safe_speeds(
     1.7 m/s on the Bremen example (a quarter of the generated vehicles, 5.8 m/s each),
     and every method's rollouts inherited that error.
     """
-    fixes = np.zeros(len(comp.speed_mps), dtype=np.int64)
     for s in range(len(comp.speed_mps)):
         on = np.flatnonzero(comp.valid[s])
         if on.size < 2:
             continue
         lane, arc = comp.lane[s, on], comp.arc_m[s, on]
         v, gen = comp.speed_mps[s, on].copy(), comp.generated[s, on]
-        before = v.copy()
         pool = np.sort(v[gen])
         # Along the lane connections; a lane's end is a standing leader (STOP, < 0).
         leader, spacing = section_leaders(section, lane, arc)
@@ -204,9 +200,7 @@ def safe_speeds(
             if j >= 0 and gen[j]:
                 need = math.sqrt(max(0.0, v[i] ** 2 + 2.0 * bt * v[i] - room[i]))
                 v[j] = max(v[j], min(need, _cap(leader[j], v, room[j], bt)))
-        fixes[s] = int((np.abs(v - before) > 1e-9).sum())
         comp.speed_mps[s, on] = v
-    comp.speed_fixes = fixes
 
 
 def _cap(j: int, v: np.ndarray, room: float, bt: float) -> float:

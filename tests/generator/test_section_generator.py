@@ -376,7 +376,6 @@ def test_safe_speeds_cap_generated_vehicles_behind_slow_leaders() -> None:
     assert v[1] == pytest.approx(np.sqrt(10.0**2 + 2 * 4.5 * (10.0 - 6.5)))
     assert v[2] == pytest.approx(np.sqrt(30.0**2 - 2 * 4.5 * (40.0 - 6.5)))
     assert v[0] == 10.0 and v[3] == 30.0  # observed vehicles keep their recorded speeds
-    assert comp.speed_fixes.tolist() == [2]
 
 
 def test_safe_speeds_deal_the_generated_speeds_out_again() -> None:
@@ -397,7 +396,6 @@ def test_safe_speeds_deal_the_generated_speeds_out_again() -> None:
     )
     safe_speeds(comp, ring, np.array([6.5]), 4.5)
     np.testing.assert_allclose(comp.speed_mps[0], [10.0, 10.0, 30.0])
-    assert comp.speed_fixes.tolist() == [2]
 
 
 def kinematic_violations(
