@@ -45,7 +45,6 @@ from macromicro_sumo.env.section_bank import (
 )
 from macromicro_sumo.road.physics import LIMIT_COLUMN, NEXT_LIMIT_COLUMN
 
-DRIVER_SPEEDS = ("none", "drawn", "memory")
 # The observation columns that are speed limits (own lane, the look-ahead's next edge).
 LIMIT_COLUMNS = (LIMIT_COLUMN, NEXT_LIMIT_COLUMN)
 # A sample is free when the leader is at least this many seconds ahead at the own speed

@@ -31,17 +31,6 @@ class Rollouts:
     collisions: int
     errors: int
 
-    def repeated(self, times: int) -> Rollouts:
-        """The same episodes ``times`` over, one after the other (counts included)."""
-        arrays = (self.arc_m, self.speed_mps, self.spacing_m, self.accel_mps2, self.lane)
-        tiled = (np.concatenate([a] * times) for a in arrays)
-        return Rollouts(
-            *tiled,
-            np.concatenate([self.hidden] * times),
-            self.collisions * times,
-            self.errors * times,
-        )
-
 
 def rollout(
     core: Any, act: ActionFn, horizon: int, seed: int, episodes: range | None = None

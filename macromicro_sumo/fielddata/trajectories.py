@@ -12,7 +12,7 @@ them from noisy positions.
 from __future__ import annotations
 
 import xml.sax
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -61,7 +61,6 @@ class Trajectories:
     frame: pd.DataFrame  # trajectories.csv schema, observed = True
     vehicles: pd.DataFrame  # vehicle_id, vtype, length_m (NaN: unknown), rows
     dropped_off_section: int = 0
-    notes: list[str] = field(default_factory=list)
 
     @property
     def leader_measured(self) -> bool:

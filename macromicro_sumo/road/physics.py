@@ -53,7 +53,7 @@ SCENE_FEATURES = {
 OWN_FEATURES = ("length_m",)
 OBSERVATION_FEATURES = {
     **SCENE_FEATURES,
-    "lookahead_length": SCENE_FEATURES["lookahead"] + ("length_m",),
+    "lookahead_length": SCENE_FEATURES["lookahead"] + OWN_FEATURES,
 }
 # Columns of the own lane's limit and the next edge's limit (the look-ahead layouts; "paper"
 # has no next edge).
