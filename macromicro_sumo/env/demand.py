@@ -85,28 +85,6 @@ class DemandStep:
 # --------------------------------------------------------------------------- observations
 
 
-def lookahead(
-    section: Section, lane: np.ndarray, arc_m: np.ndarray, edge: np.ndarray, own_limit: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """The next edge's limit on the lane the vehicle continues onto and the distance to
-    that edge's start; on an open section's last edge its own limit and the distance to
-    the end (the section env's definition, ``env.section_bank.section_observations``)."""
-    n_e = len(section.edge_ids)
-    s = np.mod(arc_m, section.length_m) if section.closed else arc_m
-    inside = s > section.offsets_m[edge] + section.lengths_m[edge]
-    onto = np.where(inside, lane, section.next_lane(edge, lane))
-    nxt = (edge + 1) % n_e if section.closed else np.minimum(edge + 1, n_e - 1)
-    next_limit = section.limits_mps[nxt, np.minimum(onto, section.n_lanes[nxt] - 1)]
-    if section.closed:
-        start = section.offsets_m[nxt] + np.where(nxt == 0, section.length_m, 0.0)
-        return next_limit, start - s
-    last = edge == n_e - 1
-    return (
-        np.where(last, own_limit, next_limit),
-        np.where(last, section.length_m, section.offsets_m[nxt]) - s,
-    )
-
-
 @dataclass
 class SumoScene:
     """Observations of driven vehicles from SUMO's state, with what the reward needs."""
@@ -158,7 +136,7 @@ def sumo_observations(
     limit = section.limits_mps[edge, np.minimum(lane, section.n_lanes[edge] - 1)]
     cols = [speed, limit, spacing, speed - lead_v]
     if has_lookahead(observation):
-        cols += list(lookahead(section, lane, arc, edge, limit))
+        cols += list(section.lookahead(lane, arc, edge, limit))
     obs = np.zeros((n, len(OBSERVATION_FEATURES[observation])))
     if n:
         obs[:, : len(cols)] = np.stack(cols, axis=1)

@@ -369,7 +369,7 @@ def section_observations(
     o[:, 2] = gap
     o[:, 3] = np.where(has, v - v[np.maximum(lead, 0)], np.where(lead == STOP, v, 0.0))
     if o.shape[1] > 4:
-        o[:, 4], o[:, 5] = _lookahead(section, ln, s, e, o[:, 1])
+        o[:, 4], o[:, 5] = section.lookahead(ln, s, e, o[:, 1])
     if factor is not None:
         o[:, 1] *= factor[idx]
         if o.shape[1] > 4:
@@ -406,27 +406,6 @@ def stop_points(
         arc = np.mod(arc, section.length_m)
     pts = np.unique(np.stack([ln[keep].astype(float), np.round(arc, 6)], axis=1), axis=0)
     return pts[:, 0].astype(np.int64), pts[:, 1]
-
-
-def _lookahead(
-    section: Section, lane: np.ndarray, arc_m: np.ndarray, e: np.ndarray, own_limit: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """The next edge's limit on the vehicle's lane and the distance to that edge's start."""
-    n_e = len(section.edge_ids)
-    s = np.mod(arc_m, section.length_m) if section.closed else arc_m
-    # The lane it continues onto (an on-ramp shifts the through lanes' indices); inside a
-    # junction a vehicle's lane index is already the one it enters.
-    inside = s > section.offsets_m[e] + section.lengths_m[e]
-    onto = np.where(inside, lane, section.next_lane(e, lane))
-    nxt = (e + 1) % n_e if section.closed else np.minimum(e + 1, n_e - 1)
-    next_limit = section.limits_mps[nxt, np.minimum(onto, section.n_lanes[nxt] - 1)]
-    if section.closed:
-        start = section.offsets_m[nxt] + np.where(nxt == 0, section.length_m, 0.0)
-        return next_limit, start - s
-    last = e == n_e - 1
-    limit = np.where(last, own_limit, next_limit)
-    start = np.where(last, section.length_m, section.offsets_m[nxt])
-    return limit, start - s
 
 
 def initial_observations(sc, section: Section, bank: SectionBank) -> np.ndarray:

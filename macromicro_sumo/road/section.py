@@ -111,6 +111,27 @@ class Section:
         nxt = (e + 1) % len(self.edge_ids)
         return np.where(row.any(axis=-1), row.argmax(axis=-1), np.minimum(i, self.n_lanes[nxt] - 1))
 
+    def lookahead(
+        self, lane: np.ndarray, arc_m: np.ndarray, edge: np.ndarray, own_limit: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The look-ahead features of vehicles on ``lane`` of ``edge`` at ``arc_m``: the next
+        edge's limit on the lane each continues onto and the distance to that edge's start;
+        on an open section's last edge its ``own_limit`` and the distance to the end."""
+        n_e = len(self.edge_ids)
+        s = np.mod(arc_m, self.length_m) if self.closed else arc_m
+        # The lane it continues onto (an on-ramp shifts the through lanes' indices); inside a
+        # junction a vehicle's lane index is already the one it enters.
+        inside = s > self.offsets_m[edge] + self.lengths_m[edge]
+        onto = np.where(inside, lane, self.next_lane(edge, lane))
+        nxt = (edge + 1) % n_e if self.closed else np.minimum(edge + 1, n_e - 1)
+        next_limit = self.limits_mps[nxt, np.minimum(onto, self.n_lanes[nxt] - 1)]
+        if self.closed:
+            start = self.offsets_m[nxt] + np.where(nxt == 0, self.length_m, 0.0)
+            return next_limit, start - s
+        last = edge == n_e - 1
+        limit = np.where(last, own_limit, next_limit)
+        return limit, np.where(last, self.length_m, self.offsets_m[nxt]) - s
+
     def ahead_of_lanes(
         self, first_idx: np.ndarray, first_rel: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
