@@ -43,15 +43,9 @@ FEATURES = {
 OBS_SHIFT_SCALE = {name: (f.shift, f.scale) for name, f in FEATURES.items()}
 
 
-def feature_names(observation: str) -> tuple[str, ...]:
-    """The features of ``policy.observation`` (``physics.OBSERVATION_FEATURES``' keys), in
-    order."""
-    return OBSERVATION_FEATURES[observation]
-
-
 def shift_scale(observation: str) -> tuple[np.ndarray, np.ndarray]:
     """The fixed (shift, scale) of ``policy.observation``'s features, in feature order."""
-    names = feature_names(observation)
+    names = OBSERVATION_FEATURES[observation]
     return (
         np.array([FEATURES[n].shift for n in names]),
         np.array([FEATURES[n].scale for n in names]),

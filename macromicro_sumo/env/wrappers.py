@@ -86,9 +86,10 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from macromicro_sumo.env.observation import feature_names, shift_scale
+from macromicro_sumo.env.observation import shift_scale
 from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.road.physics import OBSERVATION_FEATURES
 
 ENV_ID = "macromicro/RingHidden-v0"
 SECTION_ENV_ID = "macromicro/SectionHidden-v0"
@@ -119,7 +120,7 @@ class Scaling:
     ) -> None:
         self.a_min, self.a_max = (float(a) for a in accel_mps2)
         self.normalize = bool(normalize)
-        names = feature_names(observation)
+        names = OBSERVATION_FEATURES[observation]
         lo = np.array([_FEATURE_BOUNDS[n][0] for n in names], dtype=np.float64)
         hi = np.array(
             [
