@@ -12,8 +12,8 @@ from collections.abc import Mapping
 
 import numpy as np
 import pandas as pd
-from scipy.stats import wasserstein_distance
 
+from macromicro_sumo.evaluation.statistics import w1
 from macromicro_sumo.road.section import Section, lane_leaders, section_leaders
 
 # Below this speed a time headway gap / speed is dominated by the division (a queued
@@ -62,15 +62,6 @@ def times_to_collision(
     ok = np.isfinite(gap) & np.isfinite(closing) & (closing > 0)
     ttc = np.maximum(gap[ok], 0.0) / closing[ok]
     return ttc[ttc <= max_s]
-
-
-def w1(a: np.ndarray, b: np.ndarray) -> float:
-    """Wasserstein-1 distance of two samples (in their unit), NaN if either is empty."""
-    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
-    a, b = a[np.isfinite(a)], b[np.isfinite(b)]
-    if not a.size or not b.size:
-        return float("nan")
-    return float(wasserstein_distance(a, b))
 
 
 def lane_trajectories(

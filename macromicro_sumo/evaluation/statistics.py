@@ -15,6 +15,15 @@ from macromicro_sumo.env.rollout import Rollouts
 BOOTSTRAP_RESAMPLES = 2000
 
 
+def w1(a: np.ndarray, b: np.ndarray) -> float:
+    """Wasserstein-1 distance of two samples (in their unit), NaN if either is empty."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    a, b = a[np.isfinite(a)], b[np.isfinite(b)]
+    if not a.size or not b.size:
+        return float("nan")
+    return float(wasserstein_distance(a, b))
+
+
 def paired_bootstrap_ci(
     diff: np.ndarray, seed: int, level: float = 0.95, resamples: int = BOOTSTRAP_RESAMPLES
 ) -> tuple[float, float]:
@@ -92,10 +101,6 @@ def macro_row(
         }
     if ref is None:
         return row
-
-    def w1(x: np.ndarray, y: np.ndarray) -> float:
-        x, y = x[np.isfinite(x)], y[np.isfinite(y)]
-        return float(wasserstein_distance(x, y)) if x.size and y.size else float("nan")
 
     with np.errstate(invalid="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
