@@ -34,7 +34,7 @@ Done = Callable[[Task, Outcome], None]
 
 
 def _failed(task: Task, error: str) -> Outcome:
-    return Outcome(task.name, False, error, math.nan, "", "", 0)
+    return Outcome(task.name, False, error, math.nan, "", "")
 
 
 class LocalBackend:

@@ -52,7 +52,6 @@ class Outcome:
     wall_s: float
     log: str
     host: str
-    pid: int
 
 
 @contextlib.contextmanager
@@ -105,5 +104,4 @@ def run_task(task: Task) -> Outcome:
         round(time.perf_counter() - t0, 3),
         log,
         socket.gethostname(),
-        os.getpid(),
     )
