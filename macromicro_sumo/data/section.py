@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -214,6 +215,18 @@ def run_limits_mps(truth: SectionTruth, runs: np.ndarray) -> np.ndarray:
 def run_section(truth: SectionTruth, run: int) -> Section:
     """The truth's section with run ``run``'s speed limits (``run_limits_mps``)."""
     return dataclasses.replace(truth.section, limits_mps=run_limits_mps(truth, [run])[0])
+
+
+def recorded_steps(run_frame: pd.DataFrame, dt_s: float) -> Iterator[tuple[pd.DataFrame, dict]]:
+    """The steps of one run's trajectories: per recorded time t whose next recorded time is
+    t + ``dt_s``, the rows at t and each vehicle's speed at t + dt (absent: gone). The one
+    definition of a step the observed (observation, action) pairs are read over."""
+    by_t = dict(tuple(run_frame.groupby("time_s")))
+    times = np.sort(np.fromiter(by_t, float))
+    for t0, t1 in zip(times[:-1], times[1:], strict=True):
+        if abs(t1 - t0 - dt_s) <= 1e-6:
+            nxt = by_t[t1]
+            yield by_t[t0], dict(zip(nxt["vehicle_id"], nxt["speed_mps"], strict=True))
 
 
 def interval_passages(truth: SectionTruth, m: pd.DataFrame) -> np.ndarray:

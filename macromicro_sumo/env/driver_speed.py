@@ -35,7 +35,7 @@ import dataclasses
 import numpy as np
 from scipy.stats import truncnorm
 
-from macromicro_sumo.data.section import SectionTruth, run_section, vehicle_level
+from macromicro_sumo.data.section import SectionTruth, recorded_steps, run_section, vehicle_level
 from macromicro_sumo.env.section_bank import (
     SectionBank,
     initial_observations,
@@ -153,12 +153,7 @@ def observed_drivers(sc, truth: SectionTruth, runs: np.ndarray) -> ObservedDrive
         watched = set(traj.loc[traj["run"] == run, "vehicle_id"])
         if not watched:
             continue
-        by_t = dict(tuple(g.groupby("time_s")))
-        times = np.sort(np.fromiter(by_t, float))
-        for t0, t1 in zip(times[:-1], times[1:], strict=True):
-            if abs(t1 - t0 - dt) > 1e-6:
-                continue
-            s = by_t[t0]
+        for s, speed_next in recorded_steps(g, dt):
             ids = s["vehicle_id"].to_numpy()
             o = np.fromiter((v in watched for v in ids), bool, len(ids))
             if not o.any():
@@ -171,8 +166,6 @@ def observed_drivers(sc, truth: SectionTruth, runs: np.ndarray) -> ObservedDrive
                 np.ones(len(s), dtype=bool),
                 "paper",
             )
-            s1 = by_t[t1]
-            speed_next = dict(zip(s1["vehicle_id"], s1["speed_mps"], strict=True))
             v, limit = obs[:, 0], obs[:, 1]
             v1 = np.fromiter((speed_next.get(x, np.nan) for x in ids), float, len(ids))
             accel = (v1 - v) / dt

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from macromicro_sumo.data.section import SectionTruth, run_section
+from macromicro_sumo.data.section import SectionTruth, recorded_steps, run_section
 from macromicro_sumo.env.rollout import ActionFn
 from macromicro_sumo.env.section_bank import recordable, section_observations
 from macromicro_sumo.errors import UserError
@@ -36,16 +36,7 @@ def micro_pairs(
     for run, g in traj.groupby("run", sort=True):
         # The run's own speed limits (a fleet draws them per run), as the env observes them.
         section = run_section(truth, int(run))
-        times = np.sort(g["time_s"].unique())
-        by_t = dict(tuple(g.groupby("time_s")))
-        nxt_speed = {}
-        for t in times:
-            s = by_t[t]
-            nxt_speed[t] = dict(zip(s["vehicle_id"], s["speed_mps"], strict=True))
-        for t0, t1 in zip(times[:-1], times[1:], strict=True):
-            if abs(t1 - t0 - dt) > 1e-6:
-                continue
-            s = by_t[t0]
+        for s, speed_next in recorded_steps(g, dt):
             o = recordable(sc, s)
             if not o.any():
                 continue
@@ -61,7 +52,7 @@ def micro_pairs(
             if measured:  # field data: the leader each vehicle measured (fielddata.leaders)
                 obs, _ = with_measured_leaders(obs, leader, s, sc.policy.observation)
             ids = s["vehicle_id"].to_numpy()[o]
-            v1 = np.array([nxt_speed[t1].get(v, np.nan) for v in ids])
+            v1 = np.array([speed_next.get(v, np.nan) for v in ids])
             a = (v1 - s["speed_mps"].to_numpy()[o]) / dt
             keep = np.isfinite(a)
             obs_rows.append(obs[o][keep])
