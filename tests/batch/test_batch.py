@@ -384,6 +384,19 @@ def test_ray_backend_gives_the_same_bytes_as_local(tmp_path):
     assert (ray_out / "batch_macro.csv").read_bytes() == (local / "batch_macro.csv").read_bytes()
 
 
+def _shipped_csvs(v, inputs: dict, local: Path, tmp_path: Path) -> dict[str, bytes]:
+    """Run variant ``v``'s ground truth as a node does (its inputs as bytes ``inputs``), its
+    outputs unpacked into ``tmp_path / "back"``: the CSVs, checked equal to the local run's."""
+    task = tasks.Task(v.name, v.scenario, ("simulate",), str(tmp_path / "unused"), "test")
+    outcome, blob = backends.run_shipped(task, inputs)
+    assert outcome.ok, outcome.error
+    backends._unpack(blob, tmp_path / "back")
+    here = {p.name: p.read_bytes() for p in (tmp_path / "back").glob("*.csv")}
+    there = {p.name: p.read_bytes() for p in (local / "variants" / v.name).glob("*.csv")}
+    assert here == there
+    return here
+
+
 def test_a_node_without_shared_disk_gets_inputs_and_returns_the_same_bytes(tmp_path):
     """What a remote Ray node does: network files arrive as bytes, outputs leave as a tar."""
     nets = tmp_path / "nets"
@@ -402,13 +415,8 @@ def test_a_node_without_shared_disk_gets_inputs_and_returns_the_same_bytes(tmp_p
     assert sorted(Path(k).name for k in inputs) == sorted(p.name for p in nets.iterdir())
     moved = tmp_path / "elsewhere"
     nets.rename(moved)  # this "node" does not have the network files
-    task = tasks.Task(v.name, v.scenario, ("simulate",), str(tmp_path / "unused"), "test")
-    outcome, blob = backends.run_shipped(task, inputs)
-    assert outcome.ok, outcome.error
-    backends._unpack(blob, tmp_path / "back")
-    here = {p.name: p.read_bytes() for p in (tmp_path / "back").glob("*.csv")}
-    there = {p.name: p.read_bytes() for p in (local / "variants" / v.name).glob("*.csv")}
-    assert here == there and "trajectories.csv" in here
+    here = _shipped_csvs(v, inputs, local, tmp_path)
+    assert "trajectories.csv" in here
     assert (tmp_path / "back" / "sumo" / "run_000" / "e1.xml").is_file()
 
 
@@ -630,13 +638,8 @@ def test_a_node_without_shared_disk_gets_a_sections_files(tmp_path):
     assert run_batch([path], local, workers=1, progress=False).counts["complete"] == 1
     nets.rename(tmp_path / "gone")
     (tmp_path / "extra").rename(tmp_path / "gone_too")  # this "node" has none of them
-    task = tasks.Task(v.name, v.scenario, ("simulate",), str(tmp_path / "unused"), "test")
-    outcome, blob = backends.run_shipped(task, inputs)
-    assert outcome.ok, outcome.error
-    backends._unpack(blob, tmp_path / "back")
-    here = {p.name: p.read_bytes() for p in (tmp_path / "back").glob("*.csv")}
-    there = {p.name: p.read_bytes() for p in (local / "variants" / v.name).glob("*.csv")}
-    assert here == there and set(SECTION_FILES) <= set(here)
+    here = _shipped_csvs(v, inputs, local, tmp_path)
+    assert set(SECTION_FILES) <= set(here)
     det = pd.read_csv(tmp_path / "back" / "detectors.csv")
     assert set(det["detector_id"]) == {"u1", "u3"}  # the shipped additional file's loops
     # Where the files exist, the scenario is left as it is.
