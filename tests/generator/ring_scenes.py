@@ -10,9 +10,17 @@ import numpy as np
 
 from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.road.section import Section
+from macromicro_sumo.scenario.section import (
+    SectionConfig,
+    SectionGeneratorConfig,
+    SectionScenario,
+    SumoNetworkConfig,
+)
 
 N_VEHICLES = 5
 S_MIN_M = 7.0  # the fleet's 5 m length + min_gap_m 2 m
+# The generator settings of the training tests: a few seconds each.
+FAST = {"epochs": 2, "patience": 10, "batch_size": 16, "hidden_size": 16, "k_source": "truth"}
 
 
 def ring_scenes(
@@ -60,4 +68,17 @@ def loop_snapshots(
         psi=psi,
         k_true=k,
         k_est=k,
+    )
+
+
+def generator_scenario(
+    section: Section, base: dict | None = None, **gen: object
+) -> SectionScenario:
+    """A scenario of ``section`` (its net file is never read) whose ``[generator]`` is
+    ``FAST`` (or ``base``) updated by ``gen``."""
+    return SectionScenario(
+        name="synthetic",
+        network=SumoNetworkConfig(net_file="net.xml"),
+        section=SectionConfig(edges=list(section.edge_ids), closed=section.closed),
+        generator=SectionGeneratorConfig(**(FAST if base is None else base) | gen),  # type: ignore[arg-type]
     )

@@ -9,11 +9,13 @@ paper's ring as a closed one-lane section), so no SUMO run is needed.
 from __future__ import annotations
 
 import dataclasses
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from ring_scenes import generator_scenario
 
 from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.errors import UserError
@@ -39,13 +41,11 @@ from macromicro_sumo.generator.section_train import (
 from macromicro_sumo.road.section import Section, read_section
 from macromicro_sumo.scenario.section import (
     SectionConfig,
-    SectionGeneratorConfig,
-    SectionScenario,
-    SumoNetworkConfig,
 )
 
 ROOT = Path(__file__).resolve().parents[2]
 S_MIN = 7.5
+scenario = partial(generator_scenario, base={})  # the scenario's own defaults
 
 
 @pytest.fixture(scope="module")
@@ -106,15 +106,6 @@ def synthetic(
     truth = SectionCompletion(lane, arc, speed, valid, valid & ~observed, psi[:, 0], psi[:, 0])
     psi[:, 2] = completion_metrics(section, snaps, truth, snaps.k_true)["true_std_spacing_m"]
     return snaps
-
-
-def scenario(section: Section, **gen: object) -> SectionScenario:
-    return SectionScenario(
-        name="synthetic",
-        network=SumoNetworkConfig(net_file="net.xml"),
-        section=SectionConfig(edges=list(section.edge_ids), closed=section.closed),
-        generator=SectionGeneratorConfig(**gen),  # type: ignore[arg-type]
-    )
 
 
 def untrained(seed: int = 0) -> SectionGeneratorNet:

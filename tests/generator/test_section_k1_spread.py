@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 import torch
 from ring_scenes import N_VEHICLES, S_MIN_M, loop_snapshots
+from ring_scenes import generator_scenario as scenario
 
 from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.errors import UserError
@@ -34,10 +35,7 @@ from macromicro_sumo.generator.section_train import (
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.scenario.section import (
-    SectionConfig,
     SectionGeneratorConfig,
-    SectionScenario,
-    SumoNetworkConfig,
 )
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -128,16 +126,6 @@ def test_the_position_head_sees_the_rest_of_the_scene(ring: Section) -> None:
         # the position head (mean and log-std of the place in the gap)
         head = [out[i, gap[i], 1:3] for i in range(2)]
         assert (not torch.allclose(head[0], head[1], atol=1e-6)) == feature
-
-
-def scenario(section: Section, **gen: object) -> SectionScenario:
-    base = dict(epochs=2, patience=10, batch_size=16, hidden_size=16, k_source="truth")
-    return SectionScenario(
-        name="k1_spread",
-        network=SumoNetworkConfig(net_file="net.xml"),
-        section=SectionConfig(edges=list(section.edge_ids), closed=section.closed),
-        generator=SectionGeneratorConfig(**(base | gen)),  # type: ignore[arg-type]
-    )
 
 
 def test_off_by_default_and_checkpoints_remember_it(ring: Section, tmp_path: Path) -> None:

@@ -8,13 +8,14 @@ spacings >= the minimum, one or two hidden), so no SUMO run is needed.
 from __future__ import annotations
 
 import dataclasses
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 import torch
-from ring_scenes import N_VEHICLES, ring_scenes
+from ring_scenes import FAST, N_VEHICLES, generator_scenario, ring_scenes
 
 from macromicro_sumo.data.section import SectionSnapshots, psi_table
 from macromicro_sumo.errors import UserError
@@ -34,30 +35,19 @@ from macromicro_sumo.generator.section_train import (
 from macromicro_sumo.road.section import Section, read_section
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.scenario.section import (
-    SectionConfig,
     SectionGeneratorConfig,
-    SectionScenario,
-    SumoNetworkConfig,
 )
 from macromicro_sumo.truth.section import load_section_truth
 
 ROOT = Path(__file__).resolve().parents[2]
+# A few more epochs at a higher rate than the other generator tests.
+scenario = partial(generator_scenario, base=FAST | {"epochs": 3, "lr": 1e-2})
 
 
 def ring_snapshots(section: Section, n: int, seed: int) -> SectionSnapshots:
     """Five vehicles on the loop, one or two hidden; psi as the ring's without d_max."""
     return ring_scenes(
         section, n, seed, lambda rng: rng.choice(N_VEHICLES, rng.integers(1, 3), replace=False)
-    )
-
-
-def scenario(section: Section, **gen: object) -> SectionScenario:
-    base = dict(epochs=3, patience=10, batch_size=16, hidden_size=16, k_source="truth", lr=1e-2)
-    return SectionScenario(
-        name="ring_settings",
-        network=SumoNetworkConfig(net_file="net.xml"),
-        section=SectionConfig(edges=list(section.edge_ids), closed=section.closed),
-        generator=SectionGeneratorConfig(**(base | gen)),  # type: ignore[arg-type]
     )
 
 

@@ -14,6 +14,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from ring_scenes import generator_scenario as scenario
 from ring_scenes import ring_scenes
 
 from macromicro_sumo.data.section import SectionSnapshots
@@ -29,10 +30,7 @@ from macromicro_sumo.generator.training import FitSettings, ema_fn, fit
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.scenario.section import (
-    SectionConfig,
     SectionGeneratorConfig,
-    SectionScenario,
-    SumoNetworkConfig,
 )
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -182,16 +180,6 @@ def test_min_epochs_holds_off_early_stopping() -> None:
         return fit(net, s, batches, lambda m: {"loss": 1.0}, progress=False)
 
     assert len(run(0)) == 4 and len(run(20)) == 20 and len(run(80)) == 50
-
-
-def scenario(section: Section, **gen: object) -> SectionScenario:
-    base = dict(epochs=2, patience=10, batch_size=16, hidden_size=16, k_source="truth")
-    return SectionScenario(
-        name="spread",
-        network=SumoNetworkConfig(net_file="net.xml"),
-        section=SectionConfig(edges=list(section.edge_ids), closed=section.closed),
-        generator=SectionGeneratorConfig(**(base | gen)),  # type: ignore[arg-type]
-    )
 
 
 def test_two_hidden_layers_train_save_and_are_remembered(
