@@ -18,6 +18,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "deploy"))
 from deploy_nets import CAR, merge_scenario  # noqa: E402
+from test_section_env import true_completion  # noqa: E402
 
 from macromicro_sumo.data.section import section_snapshots  # noqa: E402
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver  # noqa: E402
@@ -116,11 +117,6 @@ def test_a_vtype_without_a_length_is_refused(mixed) -> None:
 def test_section_env_observes_each_slots_length_and_ppo_trains(mixed, tmp_path: Path) -> None:
     sc, truth = mixed
     snaps = section_snapshots(truth, sc, truth.runs)
-
-    def true_completion(s):  # the true hidden vehicles as the generated ones
-        order = np.argsort(np.where(s.valid, np.where(s.observed, 0, 1), 2), axis=1, kind="stable")
-        take = lambda a: np.take_along_axis(a, order, 1)  # noqa: E731
-        return take(s.lane), take(s.arc_m), take(s.speed_mps), take(s.valid), take(s.hidden)
 
     bank = build_section_bank(sc, truth, snaps, true_completion, 4, 0)
     # Generated vehicles: every vType by the demand's shares, seeded; the typical one
