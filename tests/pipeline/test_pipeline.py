@@ -245,13 +245,20 @@ def test_run_after_a_ground_truth_edit_redoes_every_stage(finished_copy, tmp_pat
     assert traj["time_s"].max() > 120.0
 
 
-def _stub_stages(sc, out: Path, calls: list, truth_reads: tuple[str, ...] = ()):
-    """The standard stages with stand-ins that only write their manifest for ``sc``."""
+def stub_stage(sc, calls: list):
+    """A stand-in stage that records its name in ``calls`` and writes its manifest for ``sc``."""
 
     def stage(name: str, manifest: Path) -> None:
         calls.append(name)
         manifest.parent.mkdir(parents=True, exist_ok=True)
         write_json(build_manifest(sc, "", name), manifest)
+
+    return stage
+
+
+def stub_stages(sc, out: Path, calls: list, truth_reads: tuple[str, ...] = ()):
+    """The standard stages with stand-ins (``stub_stage``)."""
+    stage = stub_stage(sc, calls)
 
     def policy(gt, gen, pol, objective, resume) -> None:
         assert resume == RESUME == "auto"
@@ -270,7 +277,7 @@ def _stub_stages(sc, out: Path, calls: list, truth_reads: tuple[str, ...] = ()):
 
 def _redone(sc, out: Path, truth_reads: tuple[str, ...] = ()) -> list[str]:
     calls: list[str] = []
-    run_stages(sc, _stub_stages(sc, out, calls, truth_reads), out, "", False)
+    run_stages(sc, stub_stages(sc, out, calls, truth_reads), out, "", False)
     return calls
 
 

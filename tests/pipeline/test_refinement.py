@@ -12,18 +12,15 @@ import pandas as pd
 import pytest
 import torch
 from conftest import SMALL_RING, write_scenario
+from test_pipeline import stub_stage, stub_stages
 
 from macromicro_sumo.cli import main
 from macromicro_sumo.data.section import split_runs
-from macromicro_sumo.files import write_json
 from macromicro_sumo.generator.section_train import load_section_generator
-from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.pipeline.build import (
-    RESUME,
     fit_residual_prior,
     refine_stages,
     run_stages,
-    standard_stages,
 )
 from macromicro_sumo.pipeline.refinement import _episodes, next_step_snapshots, refine
 from macromicro_sumo.policy.checkpoint import load_policy
@@ -134,24 +131,7 @@ def test_refinement_pulls_the_generator_to_the_policy_and_writes_loadable_checkp
 
 def _stub(sc, out: Path, calls: list[str]):
     """The standard and refine stages with stand-ins that only write their manifest."""
-
-    def stage(name: str, manifest: Path) -> None:
-        calls.append(name)
-        manifest.parent.mkdir(parents=True, exist_ok=True)
-        write_json(build_manifest(sc, "", name), manifest)
-
-    def policy(gt, gen, pol, objective, resume) -> None:
-        assert resume == RESUME
-        suffix = "" if objective == "mix" else f"_{objective}"
-        stage(f"train_policy{suffix}", pol / f"policy_manifest{suffix}.json")
-
-    stages = standard_stages(
-        out,
-        lambda gt: stage("simulate", gt / "manifest.json"),
-        lambda gt, gen: stage("train_generator", gen / "generator_manifest.json"),
-        policy,
-        lambda gt, gen, pols, ev: stage("evaluate", ev / "evaluation_manifest.json"),
-    )
+    stages, stage = stub_stages(sc, out, calls), stub_stage(sc, calls)
     if sc.policy.refine_iterations > 0:
         stages += refine_stages(
             out,
