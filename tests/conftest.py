@@ -165,6 +165,11 @@ def assert_one_line_error(capsys: pytest.CaptureFixture, code: int, *fragments: 
     return err
 
 
+def listing(folder: Path) -> list[str]:
+    """Every path below ``folder``, relative to it, sorted: what a command left there."""
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*"))
+
+
 @pytest.fixture(scope="module")
 def keep_torch_threads() -> Iterator[None]:
     """train-generator sets torch to one thread for the whole process: restore it after the

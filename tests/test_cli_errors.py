@@ -7,13 +7,9 @@ import shutil
 from pathlib import Path
 
 import pytest
-from conftest import NETS
+from conftest import NETS, listing
 
 from macromicro_sumo.cli import main
-
-
-def listing(folder: Path) -> list[str]:
-    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*"))
 
 
 def simulate_fails(

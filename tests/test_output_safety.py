@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from conftest import SMALL, assert_one_line_error
+from conftest import SMALL, assert_one_line_error, listing
 
 from macromicro_sumo import cli
 from macromicro_sumo.errors import UserError
@@ -104,10 +104,6 @@ def test_out_that_holds_the_network_is_refused(make_scenario, tmp_path, capsys):
     code = cli.main(["simulate", str(make_scenario()), "--out", str(NETS), "--quiet"])
     err = capsys.readouterr().err
     assert code == 2 and "holds the input" in err and "ring_r" in err
-
-
-def listing(folder: Path) -> list[str]:
-    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*"))
 
 
 @contextlib.contextmanager
