@@ -18,7 +18,6 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "deploy"))
 from deploy_nets import CAR, merge_scenario  # noqa: E402
-from test_section_env import true_completion  # noqa: E402
 
 from macromicro_sumo.data.section import section_snapshots  # noqa: E402
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver  # noqa: E402
@@ -26,6 +25,7 @@ from macromicro_sumo.deploy.drivers import section_observations as deploy_observ
 from macromicro_sumo.env.demand import DemandCore  # noqa: E402
 from macromicro_sumo.env.section import SectionCore  # noqa: E402
 from macromicro_sumo.env.section_bank import build_section_bank  # noqa: E402
+from macromicro_sumo.env.section_envs import true_section_completion  # noqa: E402
 from macromicro_sumo.errors import UserError  # noqa: E402
 from macromicro_sumo.evaluation.micro_data import micro_pairs  # noqa: E402
 from macromicro_sumo.policy.checkpoint import load_policy  # noqa: E402
@@ -118,18 +118,18 @@ def test_section_env_observes_each_slots_length_and_ppo_trains(mixed, tmp_path: 
     sc, truth = mixed
     snaps = section_snapshots(truth, sc, truth.runs)
 
-    bank = build_section_bank(sc, truth, snaps, true_completion, 4, 0)
+    bank = build_section_bank(sc, truth, snaps, true_section_completion, 4, 0)
     # Generated vehicles: every vType by the demand's shares, seeded; the typical one
     # (the car) alone where the policy does not observe its length.
     gen = bank.length_m[bank.hidden]
     share = dict(zip(truth.vtypes["vtype"], truth.vtypes["vehicles"], strict=True))
     assert set(np.unique(gen)) == {5.0, 12.0}
     assert abs(np.mean(gen == 12.0) - share["truck"] / sum(share.values())) < 0.05
-    again = build_section_bank(sc, truth, snaps, true_completion, 4, 0)
+    again = build_section_bank(sc, truth, snaps, true_section_completion, 4, 0)
     np.testing.assert_array_equal(again.length_m, bank.length_m)
     assert (again.accel_mps2[bank.hidden & (bank.length_m == 12.0)] == 1.0).all()
     scene_only = build_section_bank(
-        with_observation(sc, "lookahead"), truth, snaps, true_completion, 4, 0
+        with_observation(sc, "lookahead"), truth, snaps, true_section_completion, 4, 0
     )
     assert (scene_only.length_m[scene_only.hidden] == 5.0).all()
     net = Path(sc.network.net_file)

@@ -13,6 +13,7 @@ from conftest import ROOT, dump_toml, netconvert
 from macromicro_sumo.data.section import PSI_FIELDS, section_snapshots
 from macromicro_sumo.env.section import SectionCore, section_macro_reward, section_target
 from macromicro_sumo.env.section_bank import SectionBank, build_section_bank, typical_length
+from macromicro_sumo.env.section_envs import true_section_completion
 from macromicro_sumo.evaluation.idm_fit import fit_policy_prior
 from macromicro_sumo.evaluation.section import micro_pairs
 from macromicro_sumo.policy.checkpoint import load_policy
@@ -273,20 +274,13 @@ def highway_truth(tmp_path_factory):
     return sc, load_section_truth(out, sc)
 
 
-def true_completion(s):
-    """The true hidden vehicles as the 'generated' ones, observed vehicles first."""
-    order = np.argsort(np.where(s.valid, np.where(s.observed, 0, 1), 2), axis=1, kind="stable")
-    take = lambda a: np.take_along_axis(a, order, 1)  # noqa: E731
-    return take(s.lane), take(s.arc_m), take(s.speed_mps), take(s.valid), take(s.hidden)
-
-
 def test_recorded_scene_is_replayed_and_ppo_trains(highway_truth, tmp_path):
     """On the real motorway ground truth: observed vehicles replay their records exactly
     while that is safe (lane changes and junctions included), no collision; PPO trains and the policy loads with its
     observation normalisation."""
     sc, truth = highway_truth
     snaps = section_snapshots(truth, sc, truth.runs)
-    bank = build_section_bank(sc, truth, snaps, true_completion, 10, 0)
+    bank = build_section_bank(sc, truth, snaps, true_section_completion, 10, 0)
     assert bank.true_valid[:, 0].sum(axis=1).tolist() == bank.valid.sum(axis=1).tolist()
     net = ROOT / "sumo_nets" / "highway_bremen" / "highway.net.xml"
     core = SectionCore(sc, truth.section, bank, net, seed=0)

@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 from conftest import line_net
 from section_files import routes_file, section_scenario, vtype
-from test_section_env import true_completion
 
 from macromicro_sumo.data.section import section_snapshots
 from macromicro_sumo.env.demand import DemandCore
@@ -27,6 +26,7 @@ from macromicro_sumo.env.section_bank import (
     typical_vclass,
     typical_vtype,
 )
+from macromicro_sumo.env.section_envs import true_section_completion
 from macromicro_sumo.road.vtype import accel_limit, command_speeds
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import load_section_truth, simulate_section
@@ -139,14 +139,14 @@ def test_hidden_vehicles_never_exceed_their_vtypes_max_speed(vans) -> None:
     sc, truth, _ = vans
     assert typical_vtype(truth) == "van"  # the generated vehicles' vType
     snaps = section_snapshots(truth, sc, truth.runs)
-    bank = build_section_bank(sc, truth, snaps, true_completion, HORIZON, 0)
+    bank = build_section_bank(sc, truth, snaps, true_section_completion, HORIZON, 0)
     cap = bank.vmax_mps
     # Generated slots: the typical vType's; observed ones: their recorded vType's.
     assert cap is not None and (cap[bank.hidden] == VAN_MAX_MPS).all()
     assert set(np.unique(cap[bank.observed])) == {VAN_MAX_MPS, CAR_MAX_MPS}
     assert np.isinf(cap[~bank.valid]).all()
     # They also start at most at it, where the completion had them faster (the true cars).
-    _, _, speed, valid, generated = (np.asarray(x) for x in true_completion(snaps))
+    _, _, speed, valid, generated = (np.asarray(x) for x in true_section_completion(snaps))
     assert (speed[valid & generated] > VAN_MAX_MPS + 1.0).any()
     assert (bank.speed0_mps[bank.hidden] <= VAN_MAX_MPS + 1e-9).all()
     banks = {"capped": bank, "uncapped": dataclasses.replace(bank, vmax_mps=None)}
@@ -165,7 +165,7 @@ def test_observed_slots_accel_leaves_the_hidden_commands_as_they_were(vans) -> N
     accel, training drifted from the policy it trained before)."""
     sc, truth, _ = vans
     bank = build_section_bank(
-        sc, truth, section_snapshots(truth, sc, truth.runs), true_completion, HORIZON, 0
+        sc, truth, section_snapshots(truth, sc, truth.runs), true_section_completion, HORIZON, 0
     )
     lower = dataclasses.replace(bank, accel_mps2=np.where(bank.hidden, np.inf, 1.0))
     banks = {"observed lower": lower, "none": dataclasses.replace(bank, accel_mps2=None)}
@@ -180,7 +180,7 @@ def test_hidden_trucks_never_accelerate_beyond_their_vtype(trucks) -> None:
     sc, truth, _ = trucks
     assert typical_vtype(truth) == "truck"  # the generated vehicles' vType
     snaps = section_snapshots(truth, sc, truth.runs)
-    bank = build_section_bank(sc, truth, snaps, true_completion, HORIZON, 0)
+    bank = build_section_bank(sc, truth, snaps, true_section_completion, HORIZON, 0)
     assert bank.accel_mps2 is not None and (bank.accel_mps2[bank.valid] == TRUCK_ACCEL).all()
     banks = {"capped": bank, "uncapped": dataclasses.replace(bank, accel_mps2=None)}
 
