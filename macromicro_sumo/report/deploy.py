@@ -29,8 +29,8 @@ from macromicro_sumo.deploy.compare import (
     read_outputs,
     truth_geometry,
 )
-from macromicro_sumo.deploy.safety import FLOOR_SHARE
 from macromicro_sumo.report.deploy_floor import with_floor_choices
+from macromicro_sumo.report.deploy_words import acted_lines, oracle_check, reproduces_truth
 from macromicro_sumo.report.plots import (
     METHOD_COLORS,
     REFERENCE_COLOR,
@@ -343,7 +343,8 @@ def floor_words(s: pd.DataFrame, col: str) -> str:
     out = ""
     for name, words in FLOORS.items():
         if name in s.index and np.isfinite(floor := s.loc[name, col]):
-            gone = ": out of its reach here at this interval" if floor < TARGET_SHARE else ""
+            gone = f": the {TARGET_SHARE:.0%} target is out of its reach here at this interval"
+            gone = gone if floor < TARGET_SHARE else ""
             out += f" {words[0].upper()}{words[1:]} (`{name}`) reaches {100 * floor:.1f}%{gone}."
     return out
 
@@ -373,31 +374,6 @@ def safety_lines(summary: pd.DataFrame) -> list[str]:
             + (" in SUMO." if field else " the ground truth does not have.")
         )
     return lines + acted_lines(summary)
-
-
-def acted_lines(summary: pd.DataFrame) -> list[str]:
-    """Per method whose speed commands went through the safety layer: how many it lowered
-    (to the safe speed behind the leader) and raised (to its floor), of the driven
-    vehicle-steps (``deploy.compare.ACTED_SHARES``)."""
-
-    def of(n: float, total: float) -> str:
-        return f"{n:,.0f} ({100 * n / total:.1f}%)" if np.isfinite(n) else "n/a (not recorded)"
-
-    lines = []
-    for _, r in summary.iterrows():
-        driven = float(r.get("vehicle_steps_driven", np.nan))
-        lowered, raised = (float(r.get(c, np.nan)) for c in ("safety_acted", "floor_acted"))
-        share = float(r.get("safety_floor_share", np.nan))  # deploy.safety_floor_share
-        share = share if np.isfinite(share) else FLOOR_SHARE
-        if not (driven > 0 and (lowered > 0 or raised > 0)):
-            continue
-        lines.append(
-            f"- `{r['method']}`: of {driven:,.0f} driven vehicle-steps, the safety layer "
-            f"lowered the command to the safe speed behind the leader in {of(lowered, driven)} "
-            f"and raised it to its floor ({share:.0%} of the lane's limit) in "
-            f"{of(raised, driven)}."
-        )
-    return lines
 
 
 def reference_words(summary: pd.DataFrame) -> str:
@@ -479,7 +455,9 @@ def deployment_markdown(summary: pd.DataFrame, plots: Sequence[str] = ()) -> str
     if POLICY in methods:
         lines += policy_targets(summary)
         for name, words in CHALLENGERS.items():
-            if name in methods:
+            if name == "oracle" and name in methods and reproduces_truth(summary, name):
+                lines += oracle_check(summary, POLICY, list(FLOORS))
+            elif name in methods:
                 lines += versus(summary, name, words)
         lines.append("")
     lines += [*safety_lines(summary), ""]
