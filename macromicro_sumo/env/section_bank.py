@@ -395,15 +395,11 @@ def stop_points(
         return np.zeros(0, dtype=np.int64), np.zeros(0)
     ln, s, d = np.asarray(lane)[ok], np.asarray(arc_m, dtype=float)[ok], dist_m[ok]
     ends = section.offsets_m + section.lengths_m
-    ahead = ends[None, :] - s[:, None]
-    if section.closed:
-        ahead = np.mod(ahead, section.length_m)
+    ahead = section.wrap(ends[None, :] - s[:, None])
     ahead = np.where(ahead >= 0.0, ahead, np.inf)
     best = ahead[np.arange(len(s)), np.argmin(np.abs(ahead - d[:, None]), axis=1)]
     keep = np.isfinite(best)
-    arc = s[keep] + best[keep]
-    if section.closed:
-        arc = np.mod(arc, section.length_m)
+    arc = section.wrap(s[keep] + best[keep])
     pts = np.unique(np.stack([ln[keep].astype(float), np.round(arc, 6)], axis=1), axis=0)
     return pts[:, 0].astype(np.int64), pts[:, 1]
 
@@ -423,7 +419,7 @@ def initial_observations(sc, section: Section, bank: SectionBank) -> np.ndarray:
         obs, _, _ = section_observations(
             runs[run],
             bank.lane0[ep],
-            _on_section(section, bank.arc0_m[ep]),
+            section.wrap(bank.arc0_m[ep]),
             bank.speed0_mps[ep],
             valid,
             sc.policy.observation,
@@ -431,10 +427,6 @@ def initial_observations(sc, section: Section, bank: SectionBank) -> np.ndarray:
         )
         rows.append(obs[valid])
     return np.concatenate(rows) if rows else np.zeros((0, 4))
-
-
-def _on_section(section: Section, arc_m: np.ndarray) -> np.ndarray:
-    return np.mod(arc_m, section.length_m) if section.closed else arc_m
 
 
 _PSI = {f: i for i, f in enumerate(PSI_FIELDS)}

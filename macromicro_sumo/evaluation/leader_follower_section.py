@@ -166,9 +166,7 @@ def section_bank(
     start speed and both hidden (the leader is commanded its profile)."""
     lead = np.stack([leader_speeds(s, profile, dt_s) for s in SCENARIOS])  # (E, H + 1)
     e, h1 = lead.shape
-    arc = np.array([start_m, start_m + profile.spacing_m])
-    if section.closed:
-        arc = np.mod(arc, section.length_m)
+    arc = section.wrap(np.array([start_m, start_m + profile.spacing_m]))
     lane = path[section.edge_index(arc)]
     nan = np.full((e, h1, 2), np.nan)
     none = np.zeros((e, h1, 0))

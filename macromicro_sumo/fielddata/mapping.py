@@ -80,7 +80,7 @@ def lanes_at(section: Section, arc_m: np.ndarray) -> np.ndarray:
     lane index in a junction is the index of the lane it leads into, as in ``Section``)."""
     arc = np.asarray(arc_m, dtype=float)
     e = section.edge_index(arc)
-    s = np.mod(arc, section.length_m) if section.closed else arc
+    s = section.wrap(arc)
     n = len(section.edge_ids)
     in_junction = s > section.offsets_m[e] + section.lengths_m[e]
     nxt = (e + 1) % n if section.closed else np.minimum(e + 1, n - 1)

@@ -119,8 +119,7 @@ def place(
     t = raw["time"].to_numpy(dtype=float) * tu + m.clock_offset_s
     check_order(vid, t, path, cols["time"], lines)
     arc = m.offset_m + m.direction * raw["pos"].to_numpy(dtype=float) * lu
-    if section.closed:
-        arc = np.mod(arc, section.length_m)
+    arc = section.wrap(arc)
     here = lanes_at(section, np.clip(arc, 0.0, section.length_m))
     lane = lane_index(raw["lane"].to_numpy(), m.lane_numbering, m.first_lane, m.lane_count, here)
     hint = (

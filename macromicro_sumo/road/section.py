@@ -91,16 +91,21 @@ class Section:
         """(E,) arc length of each edge's stretch, the junction before it included."""
         return self.offsets_m + self.lengths_m - self.node_start_m
 
+    def wrap(self, arc_m: np.ndarray) -> np.ndarray:
+        """Arc positions (or arc differences) on the section: modulo its length on a loop, as
+        they are on an open section."""
+        return np.mod(arc_m, self.length_m) if self.closed else arc_m
+
     def node_of(self, arc_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(edge index, arc from that edge's stretch start) of arc positions; a position
         inside a junction belongs to the edge after it."""
         n = len(self.edge_ids)
-        s = np.mod(arc_m, self.length_m) if self.closed else np.asarray(arc_m, dtype=float)
+        s = np.asarray(self.wrap(arc_m), dtype=float)
         e = self.edge_index(s)
         inside = (s > self.offsets_m[e] + self.lengths_m[e]) & (self.closed | (e + 1 < n))
         ne = np.where(inside, (e + 1) % n, e)
         rel = s - self.node_start_m[ne]
-        return ne, np.mod(rel, self.length_m) if self.closed else rel
+        return ne, self.wrap(rel)
 
     def next_lane(self, edge: np.ndarray, lane: np.ndarray) -> np.ndarray:
         """The lane of the next section edge that ``lane`` of ``edge`` continues onto (its
@@ -118,7 +123,7 @@ class Section:
         edge's limit on the lane each continues onto and the distance to that edge's start;
         on an open section's last edge its ``own_limit`` and the distance to the end."""
         n_e = len(self.edge_ids)
-        s = np.mod(arc_m, self.length_m) if self.closed else arc_m
+        s = self.wrap(arc_m)
         # The lane it continues onto (an on-ramp shifts the through lanes' indices); inside a
         # junction a vehicle's lane index is already the one it enters.
         inside = s > self.offsets_m[edge] + self.lengths_m[edge]
@@ -179,7 +184,7 @@ class Section:
 
     def edge_index(self, arc_m: np.ndarray) -> np.ndarray:
         """Index of the edge (or the junction after it) holding each arc position."""
-        s = np.mod(arc_m, self.length_m) if self.closed else np.asarray(arc_m)
+        s = np.asarray(self.wrap(arc_m))
         return np.clip(
             np.searchsorted(self.offsets_m, s, side="right") - 1, 0, len(self.edge_ids) - 1
         )

@@ -141,9 +141,7 @@ def on_step_grid(
         arc = g["arc_m"].to_numpy(dtype=float)
         if section.closed:  # a loop: interpolate the unwrapped arc
             arc = np.unwrap(arc, period=section.length_m)
-        a = np.interp(grid, t, arc)
-        if section.closed:
-            a = np.mod(a, section.length_m)
+        a = section.wrap(np.interp(grid, t, arc))
         lead = grid_leaders(g, t, grid, left) if "leader_spacing_m" in g.columns else {}
         out.append(
             pd.DataFrame(

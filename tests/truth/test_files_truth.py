@@ -250,12 +250,16 @@ def test_step_grid_keeps_samples_on_it_and_bridges_no_gap() -> None:
         }
     )
 
-    class Straight:  # the one thing on_step_grid asks of a section on an open road
+    class Straight:  # what on_step_grid asks of a section on an open road
         closed = False
 
         @staticmethod
         def edge_index(arc: np.ndarray) -> np.ndarray:
             return np.zeros(len(arc), dtype=np.int64)
+
+        @staticmethod
+        def wrap(arc: np.ndarray) -> np.ndarray:
+            return arc
 
     out = on_step_grid(frame, Straight(), 0.5, 3.0)  # type: ignore[arg-type]
     np.testing.assert_allclose(out["time_s"], [0.0, 0.5, 2.5, 3.0])
