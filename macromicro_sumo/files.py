@@ -130,9 +130,9 @@ def record_outputs(folder: Path, skip: Iterable[str] = (MANIFEST,)) -> dict[str,
     }
 
 
-def write_manifest(manifest: dict[str, Any], folder: Path, name: str = MANIFEST) -> None:
-    """Write ``folder/name`` with the outputs map of the files already in ``folder``."""
-    write_json({**manifest, "outputs": record_outputs(folder, skip=(name,))}, folder / name)
+def write_manifest(manifest: dict[str, Any], folder: Path) -> None:
+    """Write ``folder/manifest.json`` with the outputs map of the files already in ``folder``."""
+    write_json({**manifest, "outputs": record_outputs(folder)}, folder / MANIFEST)
 
 
 def write_stage_manifest(

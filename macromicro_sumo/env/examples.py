@@ -25,7 +25,6 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
-from typing import TextIO
 
 import torch
 
@@ -128,9 +127,9 @@ def _locked(path: Path) -> Iterator[None]:
                 fcntl.flock(handle, fcntl.LOCK_UN)
 
 
-def demo(stream: TextIO | None = None) -> Demo:
-    """The demo's ground truth and generator, built into the cache on first use."""
-    stream = sys.stderr if stream is None else stream
+def demo() -> Demo:
+    """The demo's ground truth and generator, built into the cache on first use (what it
+    does then is said on stderr)."""
     sc = load_scenario(example_scenario(DEMO_EXAMPLE), DEMO_OVERRIDES)
     key = hashlib.sha256(f"{sc.digest()} {_package_version()} {DEMO_FORMAT}".encode())
     folder = cache_root() / f"demo-{DEMO_EXAMPLE}-{key.hexdigest()[:12]}"
@@ -151,7 +150,7 @@ def demo(stream: TextIO | None = None) -> Demo:
             f"macromicro: first use of the demo: simulating {sc.simulation.n_runs} runs of the "
             f"example scenario {DEMO_EXAMPLE!r} and training its generator into {folder} "
             "(once; later uses read it from there)",
-            file=stream,
+            file=sys.stderr,
         )
         t0 = time.perf_counter()
         shutil.rmtree(folder, ignore_errors=True)  # an unfinished build's leftovers
@@ -164,5 +163,5 @@ def demo(stream: TextIO | None = None) -> Demo:
         finally:
             torch.set_num_threads(threads)
         (folder / _DONE).write_text(f"built in {time.perf_counter() - t0:.1f} s\n")
-        print(f"macromicro: demo built in {time.perf_counter() - t0:.1f} s", file=stream)
+        print(f"macromicro: demo built in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     return built

@@ -213,16 +213,14 @@ def run_leader_follower_for(
     n_trials: int,
     seed: int,
     profile: LeaderProfile | None = None,
-    speed_limit_mps: float | None = None,
     vclass: str = "passenger",
     reference: str = "IDM",
 ) -> SectionLeaderFollower:
     """Both scenarios on the section: ``run_tests`` with IDM of ``idm_params`` as reference.
 
     ``profile`` (default ``LeaderProfile()``) is stated for the paper's ring and runs as
-    ``profile.moved(limit, mean_spacing_m)``; ``speed_limit_mps`` is the uniform limit
-    (default: the fleet's upper limit where the scenario has ``[speed_limits]``, else the
-    highest on the lane path).
+    ``profile.moved(limit, mean_spacing_m)``, the uniform limit the fleet's upper one where
+    the scenario has ``[speed_limits]``, else the highest on the lane path.
     ``reference`` names the ``IDM`` rows in the result. Skipped (a one-line message) where
     the section cannot hold the test.
     """
@@ -236,8 +234,7 @@ def run_leader_follower_for(
     if path is None:
         return skip("no lane of the first edge leads through the section without a lane change")
     limits = getattr(sc, "speed_limits", None)
-    if speed_limit_mps is None:
-        speed_limit_mps = limits.range_mps[1] if limits is not None else path_limit(section, path)
+    speed_limit_mps = limits.range_mps[1] if limits is not None else path_limit(section, path)
     moved = (profile or LeaderProfile()).moved(speed_limit_mps, mean_spacing_m)
     dt = sc.simulation.step_length_s
     a_min, a_max = sc.bounds.accel_mps2
