@@ -4,24 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import write_scenario
+from conftest import SMALL_RING, write_scenario
 from gymnasium.utils.env_checker import check_env
 from loss_terms import spacing_losses
 
-from macromicro_sumo import cli
 from macromicro_sumo.env.section_envs import SectionHiddenEnv
 from macromicro_sumo.scenario.load import load_scenario
-
-BASE = {"simulation.n_runs": 4, "simulation.duration_s": 120.0}
-
-
-@pytest.fixture(scope="module")
-def gt(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("beyond")
-    path = write_scenario(folder, BASE)
-    out = folder / "gt"
-    assert cli.main(["simulate", str(path), "--out", str(out), "--quiet"]) == 0
-    return folder, out
 
 
 def test_l_var_measured_is_the_distance_to_the_target():
@@ -53,10 +41,9 @@ def test_l_var_measured_is_unbiased_for_the_few_gaps_one_vehicle_touches():
 
 
 @pytest.mark.parametrize(("observation", "dim"), [("paper", 4), ("lookahead", 6)])
-def test_both_observations_pass_the_gymnasium_checker(gt, observation, dim):
-    folder, data = gt
-    path = write_scenario(folder / observation, {**BASE, "policy.observation": observation})
-    env = SectionHiddenEnv(load_scenario(path), data, None)
+def test_both_observations_pass_the_gymnasium_checker(small_ring_gt, tmp_path, observation, dim):
+    path = write_scenario(tmp_path, {**SMALL_RING, "policy.observation": observation})
+    env = SectionHiddenEnv(load_scenario(path), small_ring_gt, None)
     try:
         check_env(env, skip_render_check=True)
         obs, _ = env.reset(seed=1)
