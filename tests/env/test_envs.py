@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import write_scenario
+from conftest import SMALL_RING, write_scenario
 from gymnasium.utils.env_checker import check_env
 from pettingzoo.test import parallel_api_test
 
@@ -16,28 +16,14 @@ from macromicro_sumo.errors import UserError
 
 
 @pytest.fixture(scope="module")
-def gt(tmp_path_factory):
+def gt(tmp_path_factory, small_ring_gt):
+    """(scenario, ground truth, generator) of the small ring; a generator of 3 epochs."""
     folder = tmp_path_factory.mktemp("envs")
-    path = write_scenario(
-        folder, {"simulation.n_runs": 4, "simulation.duration_s": 120.0, "generator.epochs": 3}
-    )
-    out = folder / "gt"
-    assert cli.main(["simulate", str(path), "--out", str(out), "--quiet"]) == 0
-    assert (
-        cli.main(
-            [
-                "train-generator",
-                str(path),
-                "--data",
-                str(out),
-                "--out",
-                str(folder / "gen"),
-                "--quiet",
-            ]
-        )
-        == 0
-    )
-    return path, out, folder / "gen" / "generator.pt"
+    path = write_scenario(folder, {**SMALL_RING, "generator.epochs": 3})
+    gen = folder / "gen"
+    args = ["train-generator", str(path), "--data", str(small_ring_gt), "--out", str(gen)]
+    assert cli.main([*args, "--quiet"]) == 0
+    return path, small_ring_gt, gen / "generator.pt"
 
 
 def test_gymnasium_env_passes_check_env(gt):
