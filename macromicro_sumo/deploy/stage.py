@@ -310,6 +310,8 @@ def method_drive(
         std = action_std(agents[name]) if sc.deploy.action == "sample" else 0.0
         drive = Drive(act=policy_batch(agents[name]), safety=safety, sample_std_mps2=std)
         record = {"safety": safety, "safety_floor_share": floor, "action": sc.deploy.action}
+        # The family it drives with: the checkpoint's (policy.prior = "auto": the chosen one).
+        record["prior"] = agents[name].prior
         record["action_std_mps2"] = std if sc.deploy.action == "sample" else None
         for key in ("safety_floor_on", "safety_brake"):
             record[key] = getattr(sc.deploy, key) if safety == "sumo" else None

@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from macromicro_sumo.deploy.prior_score import deploy_prior
 from macromicro_sumo.deploy.stage import MANIFEST as DEPLOY_MANIFEST
 from macromicro_sumo.deploy.stage import deploy
 from macromicro_sumo.env.driver_speed import krauss_pairs
@@ -41,7 +42,8 @@ from macromicro_sumo.pipeline.parallel import can_ship, cpu_s, default_jobs, run
 from macromicro_sumo.pipeline.refinement import MANIFEST as REFINE_MANIFEST
 from macromicro_sumo.pipeline.refinement import refine
 from macromicro_sumo.policy.checkpoint import policy_file
-from macromicro_sumo.policy.stage import PriorFit, run_train_policy
+from macromicro_sumo.policy.prior_choice import PriorFit, PriorScore
+from macromicro_sumo.policy.stage import run_train_policy
 from macromicro_sumo.report.deploy import make_deploy_plots
 from macromicro_sumo.report.write import write_report
 from macromicro_sumo.road.physics import no_lower_limit_ahead
@@ -263,13 +265,27 @@ def _evaluate_job(
 
 
 def _policy_job(
-    sc: Any, command: str, progress: bool, fit_prior: PriorFit | None, *args: Any
+    sc: Any,
+    command: str,
+    progress: bool,
+    fit_prior: PriorFit | None,
+    score_prior: PriorScore | None,
+    *args: Any,
 ) -> Any:
     """A policy stage: ``args`` = (ground truth, generator, policy folder, objective,
     resume rule)."""
     gt, gen, pol, objective, resume = args
     return run_train_policy(
-        sc, gt, gen, pol, resume, command, progress, objective, fit_prior=fit_prior
+        sc,
+        gt,
+        gen,
+        pol,
+        resume,
+        command,
+        progress,
+        objective,
+        fit_prior=fit_prior,
+        score_prior=score_prior,
     )
 
 
@@ -298,6 +314,8 @@ class PipelineRoad:
     train_generator: Callable[..., Any]
     evaluate: Callable[..., Any]
     fit_prior: PriorFit | None = None  # policy.prior's IDM fit (policy.stage.run_train_policy)
+    # policy.prior = "auto"'s deployment of a prior alone (policy.prior_choice)
+    score_prior: PriorScore | None = None
     truth_reads: tuple[str, ...] = ()  # keys of later stages' tables the ground truth reads
     deploys: Callable[[Any], bool] = lambda sc: True  # noqa: E731
 
@@ -319,7 +337,7 @@ def run_pipeline(
         out,
         partial(_road_job, road.simulate, sc, command, progress),
         partial(_road_job, road.train_generator, sc, command, progress),
-        partial(_policy_job, sc, command, progress, road.fit_prior),
+        partial(_policy_job, sc, command, progress, road.fit_prior, road.score_prior),
         partial(_road_job, road.evaluate, sc, command, progress),
         truth_reads=road.truth_reads,
         deploy=partial(_deploy_job, sc, command, progress) if road.deploys(sc) else None,
@@ -380,6 +398,7 @@ SECTION = PipelineRoad(
     run_train_section_generator,
     evaluate_section,
     fit_prior=fit_residual_prior,
+    score_prior=deploy_prior,
     # The K estimates of the ground truth are on the generator's snapshot grid.
     truth_reads=("generator.snapshot_every_s",),
 )

@@ -48,7 +48,8 @@ from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.policy.agent import Agent, policy_action
 from macromicro_sumo.policy.checkpoint import load_policy, policy_file
 from macromicro_sumo.policy.ppo import train_policy
-from macromicro_sumo.policy.stage import PriorFit, fit_stage_prior, section_episodes
+from macromicro_sumo.policy.prior_choice import PriorFit, with_prior
+from macromicro_sumo.policy.stage import fit_stage_prior, section_episodes
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.truth.section import load_section_truth
 
@@ -142,9 +143,13 @@ def refine(
     torch.set_num_threads(1)
     splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
     # The policy stage's prior (its relaxation time chosen as there): the fine-tune trains
-    # on the prior the single pass trained on.
+    # on the prior the single pass trained on, of the family its checkpoint records (with
+    # policy.prior = "auto" the one the policy stage chose: not chosen again here).
     ep0, snaps0 = _episodes(sc, truth, net, splits)
-    prior, extra_manifest, pairs = fit_stage_prior(sc, truth, splits, fit_prior, ep0.make_demand)
+    trained = with_prior(sc, agent.prior) if sc.policy.prior == "auto" else sc
+    trained, (prior, extra_manifest, pairs) = fit_stage_prior(
+        trained, truth, splits, fit_prior, ep0.make_demand
+    )
     # The fine-tune keeps each next-step scene's hidden set (the policy's vehicles): no
     # fresh hidden sets per epoch, as with instrumented.hidden = "run".
     fixed = dataclasses.replace(sc, instrumented=dataclasses.replace(sc.instrumented, hidden="run"))
@@ -180,7 +185,7 @@ def refine(
         # (3) the policy on scenes the updated generator completes.
         ep, _ = _episodes(sc, truth, net, splits)
         res = train_policy(
-            sc,
+            trained,
             ep.bank,
             folder,
             objective="mix",

@@ -30,7 +30,11 @@ def _one_writer(stage: Callable[..., Any]) -> Callable[..., Any]:
 
 simulate = _one_writer(SECTION.simulate)
 train_generator = _one_writer(SECTION.train_generator)
-train_policy = _one_writer(functools.partial(run_train_policy, fit_prior=SECTION.fit_prior))
+train_policy = _one_writer(
+    functools.partial(
+        run_train_policy, fit_prior=SECTION.fit_prior, score_prior=SECTION.score_prior
+    )
+)
 evaluate = _one_writer(SECTION.evaluate)
 deploy = _one_writer(functools.partial(deploy_stage, plots=make_deploy_plots))
 

@@ -3,7 +3,9 @@
 A checkpoint carries a format tag and the ``signature`` of the scenario it was trained
 for; one that is corrupt, not a policy checkpoint or trained for another scenario is a
 one-line UserError, and so is one trained with another ``policy.prior`` (recorded as
-"prior"; the prior's parameters and the residual's bound are in the state_dict).
+"prior"; the prior's parameters and the residual's bound are in the state_dict). With
+``policy.prior = "auto"`` the family is the one the policy stage chose and recorded:
+``trained_prior`` is where every reader gets it.
 ``load_policy`` gives the trained agent; ``resumable_checkpoint`` the
 training state to continue from (the one resume rule of every stage).
 """
@@ -18,6 +20,7 @@ import torch
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import check_beside
 from macromicro_sumo.policy.agent import Agent
+from macromicro_sumo.policy.prior import PRIORS
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES
 from macromicro_sumo.scenario.section import SectionScenario
 
@@ -62,14 +65,7 @@ def load_checkpoint(path: Path, sc: SectionScenario) -> dict[str, Any]:
             raise UserError(
                 f"{path}: policy was trained for {key} = {have}, scenario {sc.source} has {want.get(key)}"
             )
-    # Checkpoints from before policy.prior have none. Not in the signature, so that those
-    # still load: the policy's mean is another function with and without a prior.
-    have = payload.get("prior", "none")
-    if have != sc.policy.prior:
-        raise UserError(
-            f"{path}: policy was trained with policy.prior = {have!r}, scenario {sc.source} has "
-            f"{sc.policy.prior!r}"
-        )
+    trained_prior(payload, sc, path)
     have = payload.get("driver_speed", "none")  # checkpoints from before it: none
     want_speed = getattr(sc.policy, "driver_speed", "none")
     if have != want_speed:
@@ -78,6 +74,23 @@ def load_checkpoint(path: Path, sc: SectionScenario) -> dict[str, Any]:
             f"{sc.source} has {want_speed!r}"
         )
     return payload
+
+
+def trained_prior(payload: dict[str, Any], sc: SectionScenario, path: Path | str) -> str:
+    """The prior family a policy checkpoint drives with: the one it was trained with
+    (``"prior"``; "none" in checkpoints from before ``policy.prior``), which must be the
+    scenario's ``policy.prior``, or one of the families ``"auto"`` chooses from where the
+    scenario says "auto" (the policy stage resolved it once: ``policy.prior_choice``)."""
+    # Not in the signature, so that checkpoints from before policy.prior still load: the
+    # policy's mean is another function with and without a prior.
+    have = payload.get("prior", "none")
+    want = sc.policy.prior
+    if have == want or (want == "auto" and have in PRIORS and have != "none"):
+        return have
+    raise UserError(
+        f"{path}: policy was trained with policy.prior = {have!r}, scenario {sc.source} has "
+        f"{want!r}"
+    )
 
 
 def resumable_checkpoint(
@@ -127,7 +140,7 @@ def load_policy(path: Path | str, sc: SectionScenario) -> Agent:
     agent = Agent(
         payload["hidden_size"],
         observation=sc.policy.observation,
-        prior=sc.policy.prior,
+        prior=trained_prior(payload, sc, path),
         driver_speed=payload["state_dict"].get("driver_speed"),
     )
     agent.load_state_dict(payload["state_dict"])

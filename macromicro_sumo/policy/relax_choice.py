@@ -122,12 +122,19 @@ class LoopFit:
 
 
 def loop_fit(
-    sc: Any, prior_params: Mapping[str, float], core: DemandCore, span_s: float
+    sc: Any,
+    prior_params: Mapping[str, float],
+    core: DemandCore,
+    span_s: float,
+    family: str | None = None,
 ) -> LoopFit:
     """``LoopFit`` over every run of ``core`` from SUMO's first step to ``span_s`` after the
-    warm-up, the population driven by the prior of ``prior_params`` alone."""
+    warm-up, the population driven by the prior of ``prior_params`` alone (``family``:
+    its model, ``policy.prior``'s when None)."""
     agent = Agent(
-        observation=sc.policy.observation, prior=sc.policy.prior, prior_params=prior_params
+        observation=sc.policy.observation,
+        prior=family or sc.policy.prior,
+        prior_params=prior_params,
     )
     dt, end_s = core.dt, sc.simulation.warmup_s + span_s
     det = core.truth.detectors
@@ -194,7 +201,8 @@ def choose_relax(
     rows: list[tuple[float, LoopFit]] = []
     try:
         for t in sorted({max(float(c), dt) for c in candidates}, reverse=True):
-            rows.append((t, loop_fit(sc, {**prior_params, "relax_s": t}, core, span_s)))
+            fit = loop_fit(sc, {**prior_params, "relax_s": t}, core, span_s, family="krauss")
+            rows.append((t, fit))
         runs = [int(r) for r in core.runs]
     finally:
         core.close()

@@ -25,6 +25,7 @@ from macromicro_sumo.env.section_bank import (
     recorded_min_gap,
     typical_vclass,
 )
+from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import (
     file_sha256,
     prepare_out_dir,
@@ -37,19 +38,28 @@ from macromicro_sumo.generator.section_train import load_section_generator
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.policy.checkpoint import policy_file, resumable_checkpoint
 from macromicro_sumo.policy.ppo import train_policy
-from macromicro_sumo.policy.relax_choice import choose_relax, relax_unidentified
+from macromicro_sumo.policy.prior_choice import (
+    FittedPrior,
+    PriorFit,
+    PriorScore,
+    choose_prior,
+    fit_family,
+    with_prior,
+)
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.inputs import scenario_inputs
 from macromicro_sumo.truth.section import load_section_truth
 
-# Fits ``policy.prior``'s model to the observed pairs of the given runs of a ground truth:
-# (the agent's prior parameters, what the manifest records of the fit, the pairs (obs,
-# accel) it was fitted on, which the residual's likelihood uses: ``policy.residual``). The
-# fit is the evaluation's (a policy module may not import it): the pipeline passes it in.
-PriorFit = Callable[
-    [Any, Any, np.ndarray],
-    tuple[dict[str, float], dict[str, Any], tuple[np.ndarray, np.ndarray]],
-]
+
+@dataclass(frozen=True)
+class StageChoice:
+    """What ``policy.prior = "auto"`` chooses with: the deployment that scores a prior
+    alone, the ground truth's folder, the drivers' speed quantiles, and whether to print."""
+
+    score: PriorScore
+    data: Path
+    driver_speed: np.ndarray | None = None
+    progress: bool = False
 
 
 @dataclass(frozen=True)
@@ -118,20 +128,39 @@ def fit_stage_prior(
     splits: dict[str, np.ndarray],
     fit_prior: PriorFit | None,
     make_demand: Callable[[], DemandCore] | None,
-) -> tuple[dict[str, float] | None, dict[str, Any], tuple[np.ndarray, np.ndarray] | None]:
+    choice: StageChoice | None = None,
+) -> tuple[SectionScenario, FittedPrior | tuple[None, dict[str, Any], None]]:
     """``policy.prior``'s model fitted to the train + val runs' observed pairs (``fit_prior``;
-    none without it or with ``prior = "none"``): (its parameters, what the manifest records,
-    the pairs). A Krauss relaxation time the pairs leave at its bound is chosen on the
-    training runs' demand, warm-up included, by the prior alone (``policy.relax_choice``).
-    The policy stage and the joint refinement both fit it here, so both train on one prior."""
+    none without it or with ``prior = "none"``): (the scenario with its family resolved,
+    (its parameters, what the manifest records, the pairs)). A Krauss relaxation time the
+    pairs leave at its bound is chosen on the training runs' demand (``policy.relax_choice``);
+    ``prior = "auto"`` chooses the family with ``choice`` (``policy.prior_choice``), once:
+    the returned scenario says which, and every stage after this one reads it from the
+    checkpoint (``policy.checkpoint.trained_prior``). The policy stage and the joint
+    refinement both fit it here, so both train on one prior."""
+    auto = sc.policy.prior == "auto"
+    if auto and (fit_prior is None or choice is None):
+        raise UserError(
+            f"{sc.source}: policy.prior = 'auto' is chosen by the policy stage of a section "
+            "(train-policy); accepted here: none, idm, gipps or krauss"
+        )
     if sc.policy.prior == "none" or fit_prior is None:
-        return None, {}, None
+        return sc, (None, {}, None)
     runs = np.concatenate([splits["train"], splits["val"]])
-    prior, extra, pairs = fit_prior(sc, truth, runs)
-    if sc.policy.prior == "krauss" and relax_unidentified(prior) and make_demand is not None:
-        prior["relax_s"], extra["prior"]["relax_choice"] = choose_relax(sc, prior, make_demand)
-        extra["prior"]["relax_s"] = prior["relax_s"]
-    return prior, extra, pairs
+    if not auto:
+        return sc, fit_family(sc, truth, runs, fit_prior, make_demand)
+    family, fitted = choose_prior(
+        sc,
+        truth,
+        runs,
+        fit_prior,
+        make_demand,
+        choice.score,
+        choice.data,
+        choice.driver_speed,
+        progress=choice.progress,
+    )
+    return with_prior(sc, family), fitted
 
 
 def run_train_policy(
@@ -144,10 +173,13 @@ def run_train_policy(
     progress: bool = True,
     objective: str | None = None,
     fit_prior: PriorFit | None = None,
+    score_prior: PriorScore | None = None,
 ) -> dict[str, Any]:
     """CLI stage: episodes from train+val runs completed by the generator, then PPO.
     ``fit_prior``: the model under a residual policy (``policy.prior``), fitted to the
-    train + val runs' observed pairs; without it PPO refuses a prior."""
+    train + val runs' observed pairs; without it PPO refuses a prior. ``score_prior``:
+    ``policy.prior = "auto"``'s deployment of each candidate prior alone
+    (``policy.prior_choice``); without it "auto" is refused."""
     objective = objective or sc.policy.objective
     truth = load_section_truth(data, sc)
     net = load_section_generator(generator, sc)
@@ -155,9 +187,14 @@ def run_train_policy(
         sc, truth.runs, data, generator, out, objective, resume
     )
     episodes = section_episodes(sc, truth, net, splits)
-    prior, extra, pairs = fit_stage_prior(sc, truth, splits, fit_prior, episodes.make_demand)
+    choice = None
+    if score_prior is not None:
+        choice = StageChoice(score_prior, Path(data), episodes.driver_speed, progress)
+    trained, (prior, extra, pairs) = fit_stage_prior(
+        sc, truth, splits, fit_prior, episodes.make_demand, choice
+    )
     res = train_policy(
-        sc,
+        trained,
         episodes.bank,
         out,
         objective=objective,

@@ -24,13 +24,15 @@ class PolicyConfig:
     )
     prior: str = spec(
         "none",
-        choices=("none", "idm", "gipps", "krauss"),
+        choices=("none", "idm", "gipps", "krauss", "auto"),
         doc="sections: the policy's mean action is the actor's output (none, the paper's), or "
         "a car-following model fitted to the training runs' observed pairs (fixed) plus the "
         "actor's output as a residual: idm (as idm_calibrated) or gipps (Gipps' model: brakes "
         "only as late as is safe, as SUMO's Krauss drivers do) or krauss (Gipps' braking, free "
         "acceleration min(a, (V - v) / T) as Krauss'; policy.prior): the model "
-        "reacts to spacing where the observed pairs rarely show close following",
+        "reacts to spacing where the observed pairs rarely show close following; auto: "
+        "each fitted, the one whose prior alone drives the training runs' demand closest "
+        "to the truth's station speeds kept (policy.prior_choice; the manifest says which)",
     )
     residual_bound_mps2: float = spec(
         1.0,
