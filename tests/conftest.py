@@ -179,11 +179,6 @@ def keep_torch_threads() -> Iterator[None]:
     torch.set_num_threads(threads)
 
 
-@pytest.fixture(scope="session")
-def scenario_writer() -> Callable[[Path, dict[str, Any] | None], Path]:
-    return write_scenario
-
-
 # ------------------------------------------------------------------ a random corridor
 def corridor_table(folder: Path, net_seed: int = 3) -> dict[str, Any]:
     """A corridor drawn by netgen from ``net_seed`` into ``folder / "net"`` (open, lane counts
