@@ -140,6 +140,15 @@ def psi_table(truth: SectionTruth, sc) -> pd.DataFrame:
     return m
 
 
+def interval_psi(psi: pd.DataFrame, run: int, time_s: float) -> np.ndarray | None:
+    """psi (``PSI_FIELDS``) of the detector interval of ``psi`` (``psi_table``) that holds
+    run ``run``'s time ``time_s``; None where none does or it measured no speed."""
+    m = psi[(psi["run"] == run) & (psi["begin_s"] <= time_s) & (psi["end_s"] > time_s)]
+    if m.empty or not np.isfinite(m["mean_speed_mps"].iloc[0]):
+        return None
+    return m.iloc[0][list(PSI_FIELDS)].to_numpy(dtype=float)
+
+
 def spacing_bounds_m(truth: SectionTruth, m: pd.DataFrame, source: str) -> tuple[np.ndarray, ...]:
     """(rows of ``m``,) twice: psi's shortest and longest spacing [m] per interval, the ring's
     [d_min, d_max]: the extremes of the interval's passage spacings (headway x mean speed
@@ -348,10 +357,9 @@ def recorded_snapshots(truth: SectionTruth, sc, runs: np.ndarray) -> SectionSnap
     lengths = dict(zip(truth.vtypes["vtype"], truth.vtypes["length_m"], strict=True))
     scenes = []
     for (run, time_s), g in traj.groupby(["run", "time_s"], sort=True):
-        m = psi[(psi["run"] == run) & (psi["begin_s"] <= time_s) & (psi["end_s"] > time_s)]
-        if m.empty or not np.isfinite(m["mean_speed_mps"].iloc[0]) or (run, time_s) not in k.index:
-            continue
-        scenes.append((run, time_s, g, m.iloc[0][list(PSI_FIELDS)].to_numpy(dtype=float)))
+        p = interval_psi(psi, run, time_s)
+        if p is not None and (run, time_s) in k.index:
+            scenes.append((run, time_s, g, p))
     if not scenes:
         raise UserError(
             f"{truth.folder}: no snapshot of runs {list(runs)} falls in a detector interval"

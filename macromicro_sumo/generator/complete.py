@@ -24,11 +24,11 @@ import pandas as pd
 
 from macromicro_sumo.data.hidden_counts import scenes_hiding
 from macromicro_sumo.data.section import (
-    PSI_FIELDS,
     SectionSnapshots,
     SectionTruth,
     concat_snapshots,
     hidden_per_snapshot,
+    interval_psi,
     psi_table,
     recorded_snapshots,
     snapshots_by_k,
@@ -153,14 +153,14 @@ def user_scenes(
     speed, length = np.zeros((s_n, n)), np.zeros((s_n, n))
     valid, psi_rows, k_est = np.zeros((s_n, n), bool), [], []
     for i, ((run, time_s), g) in enumerate(groups):
-        m = psi[(psi["run"] == run) & (psi["begin_s"] <= time_s) & (psi["end_s"] > time_s)]
-        if m.empty or not np.isfinite(m["mean_speed_mps"].iloc[0]):
+        row = interval_psi(psi, run, time_s)
+        if row is None:
             raise UserError(
                 f"{path}: run {run}, time_s {time_s:g}: no detector interval of {truth.folder} "
                 f"with a measured speed holds it; accepted: the ground truth's runs "
                 f"{truth.runs.tolist()} and times inside their detector intervals"
             )
-        psi_rows.append(m.iloc[0][list(PSI_FIELDS)].to_numpy(dtype=float))
+        psi_rows.append(row)
         j = len(g)
         lane[i, :j], arc[i, :j] = g["lane_index"], g["arc_m"]
         speed[i, :j], valid[i, :j] = g["speed_mps"], True
