@@ -34,20 +34,17 @@ from macromicro_sumo.deploy.distributions import (
     lane_trajectories,
 )
 from macromicro_sumo.deploy.intervals import KEY, block_factor, interval_length_s, pool_detectors
+from macromicro_sumo.deploy.stations import (
+    ALL_LANES,
+    KEYS,
+    station_table,
+)
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import read_manifest, write_csv
 from macromicro_sumo.road.section import Section
 
 GEH_LIMIT = 5.0  # DMRB acceptance: GEH < 5 for more than 85% of the counts
 SPEED_TOLERANCE = 0.05  # |method - truth| / truth within 5%
-# Loops of one kind less than this far apart along the section form one station (a
-# user's loops across the lanes of a carriageway are rarely at exactly the same position).
-STATION_TOLERANCE_M = 5.0
-ALL_LANES = -1  # the ``lane`` of a station's row aggregated over its lanes
-
-KEYS = ["run", "station", "lane", "begin_s", "end_s"]
-MEASURES = ("flow_vph", "speed_mps", "density_vpkm")
-STATION_COLUMNS = [*KEYS, "arc_m", "n_veh", *MEASURES]
 COMPARISON_COLUMNS = [
     "method",
     *KEYS,
@@ -188,86 +185,6 @@ def acted_shares(counts: Mapping[str, float]) -> dict[str, float]:
     driven = counts["vehicle_steps_driven"]
     ok = np.isfinite(driven) and driven > 0
     return {k: counts[c] / driven if ok else np.nan for k, c in ACTED_SHARES.items()}
-
-
-# --------------------------------------------------------------------------- stations
-
-
-def station_names(kind: pd.Series, arc_m: pd.Series) -> pd.Series:
-    """Station of every loop: loops of one kind within ``STATION_TOLERANCE_M`` of the next
-    along the arc are one station, named by kind and mean position (``e1_500m``)."""
-    out = pd.Series("", index=arc_m.index, dtype=object)
-    for k, arcs in arc_m.groupby(kind):
-        values = np.sort(arcs.unique())
-        cluster = np.concatenate([[0], np.cumsum(np.diff(values) > STATION_TOLERANCE_M)])
-        centre = pd.Series(values).groupby(cluster).transform("mean").to_numpy()
-        name = {a: f"{str(k).lower()}_{c:.0f}m" for a, c in zip(values, centre, strict=True)}
-        out[arcs.index] = arcs.map(name)
-    return out
-
-
-def loop_rows(det: pd.DataFrame) -> pd.DataFrame:
-    """One row per detector and interval from ``detectors.csv``: flow and speed as the file
-    has them, density ``density_vpkm`` (E1: flow / speed; E2: vehicles on the detector per km).
-    """
-    out = det.reindex(
-        columns=["run", "kind", "lane_index", "arc_m", "begin_s", "end_s", "n_veh", *MEASURES]
-    ).copy()
-    out["sampled_s"] = det.get("sampled_seconds_s", pd.Series(np.nan, index=det.index))
-    out.insert(1, "station", station_names(det["kind"], det["arc_m"]))
-    return out
-
-
-def station_table(det: pd.DataFrame) -> pd.DataFrame:
-    """Per run, station and interval: the station over all its lanes (``lane == ALL_LANES``)
-    and, at stations with loops on more than one lane, every lane on its own. Intervals
-    shorter than the detectors' period (the partial one SUMO writes at the end) are left out.
-
-    Over the lanes: flow and density add up (veh/h and veh/km of the cross-section); speed
-    is the space-mean speed of the vehicles that passed (harmonic mean of the lanes'
-    speeds weighted by their counts) for loops, the mean weighted by time on the detector
-    for lane-area detectors.
-    """
-    loops = loop_rows(det)
-    loops[["begin_s", "end_s"]] = loops[["begin_s", "end_s"]].round(3)
-    # SUMO closes a run with a partial interval (120 s to 120.5 s): not a measurement.
-    length = loops["end_s"] - loops["begin_s"]
-    loops = loops[length >= length.mode().max() - 1e-6]
-    v, n = loops["speed_mps"].to_numpy(float), loops["n_veh"].to_numpy(float)
-    passed = np.isfinite(v) & (v > 0) & (n > 0)
-    ss = loops["sampled_s"].fillna(0.0).to_numpy(float)
-    timed = np.isfinite(v) & (ss > 0)
-    loops = loops.assign(
-        w_n=np.where(passed, n, 0.0),
-        w_inv=np.where(passed, n / np.where(passed, v, 1.0), 0.0),
-        w_ss=np.where(timed, ss, 0.0),
-        w_ssv=np.where(timed, ss * np.where(timed, v, 0.0), 0.0),
-    )
-    group = loops.groupby(["run", "station", "begin_s", "end_s"], sort=True)
-    agg = group.agg(
-        arc_m=("arc_m", "mean"),
-        lanes=("lane_index", "size"),
-        kind=("kind", "first"),
-        loop_speed=("speed_mps", "first"),
-        n_veh=("n_veh", "sum"),
-        flow_vph=("flow_vph", lambda x: x.sum(min_count=1)),
-        density_vpkm=("density_vpkm", lambda x: x.sum(min_count=1)),
-        w_n=("w_n", "sum"),
-        w_inv=("w_inv", "sum"),
-        w_ss=("w_ss", "sum"),
-        w_ssv=("w_ssv", "sum"),
-    ).reset_index()
-    with np.errstate(divide="ignore", invalid="ignore"):
-        harmonic = np.where(agg["w_inv"] > 0, agg["w_n"] / agg["w_inv"], np.nan)
-        timed_mean = np.where(agg["w_ss"] > 0, agg["w_ssv"] / agg["w_ss"], np.nan)
-    speed = np.where(agg["kind"] == "e2", timed_mean, harmonic)
-    # A one-loop station is its loop: its speed as written, not re-derived through n / v.
-    agg["speed_mps"] = np.where(agg["lanes"] == 1, agg["loop_speed"], speed)
-    agg["lane"] = ALL_LANES
-    multi = loops.groupby(["run", "station"])["lane_index"].transform("nunique") > 1
-    lanes = loops[multi].rename(columns={"lane_index": "lane"})
-    out = pd.concat([agg[STATION_COLUMNS], lanes[STATION_COLUMNS]], ignore_index=True)
-    return out.sort_values(KEYS, kind="stable").reset_index(drop=True)
 
 
 def comparison_table(truth: pd.DataFrame, method: pd.DataFrame, name: str) -> pd.DataFrame:
