@@ -58,7 +58,7 @@ class Table:
 class LaneTable(Table):
     """``section.lanes`` with what the observation needs of each lane, tabulated once per
     run: per lane (edge, lane index, arc of its start, arc per lane metre, its speed limit,
-    the look-ahead's next limit and where the next edge starts: ``section_lookahead`` is
+    the look-ahead's next limit and where the next edge starts: ``Section.lookahead`` is
     a function of the lane alone, apart from the vehicle's arc)."""
 
     def __init__(self, sec: Section) -> None:
@@ -68,9 +68,12 @@ class LaneTable(Table):
             base = np.array(list(sec.lanes.values()), dtype=float).reshape(-1, 4)
             edge, lane = base[:, 0].astype(np.int64), base[:, 1].astype(np.int64)
             limit = sec.limits_mps[edge, np.minimum(lane, sec.n_lanes[edge] - 1)]
-            # The look-ahead at the lane's start: its distance is ``start - arc`` for any
-            # arc (on a loop ``start - arc mod length``), its next limit the lane's.
-            next_limit, start = section_lookahead(sec, lane, np.zeros(len(lane)), edge, limit)
+            # The look-ahead at the lane's start (``Section.lookahead``, the envs' own): its
+            # distance is ``start - arc`` for any arc (on a loop ``start - arc mod length``),
+            # its next limit the lane's.
+            arc0 = sec.wrap(base[:, 2])
+            next_limit, ahead = sec.lookahead(lane, arc0, edge, limit)
+            start = ahead + arc0
             rows = np.column_stack([base, limit, next_limit, start])
             self.code = {key: i + 1 for i, key in enumerate(sec.lanes)}
             self.rows += [tuple(r) for r in rows.tolist()]
@@ -168,25 +171,6 @@ def observe_rows(
     if driver_speeds is not None:
         scale_limits(obs, driver_speeds(vids, obs))
     return obs, sumo_gap, lead_decel, lead_index
-
-
-def section_lookahead(
-    sec: Section, lane: np.ndarray, arc_m: np.ndarray, edge: np.ndarray, own_limit: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """The next edge's limit on the vehicle's lane index and the distance to that edge's
-    start; on an open section's last edge the own limit and the distance to its end (the
-    section env's definition, ``env.section_bank``)."""
-    n_e = len(sec.edge_ids)
-    if sec.closed:
-        s = np.mod(arc_m, sec.length_m)
-        nxt = (edge + 1) % n_e
-        start = sec.offsets_m[nxt] + np.where(nxt == 0, sec.length_m, 0.0)
-        return sec.limits_mps[nxt, np.minimum(lane, sec.n_lanes[nxt] - 1)], start - s
-    last = edge == n_e - 1
-    nxt = np.minimum(edge + 1, n_e - 1)
-    limit = np.where(last, own_limit, sec.limits_mps[nxt, np.minimum(lane, sec.n_lanes[nxt] - 1)])
-    start = np.where(last, sec.length_m, sec.offsets_m[nxt])
-    return limit, start - arc_m
 
 
 def states_of(states: dict[str, tuple[str, float, float, float]]) -> VehicleStates:
