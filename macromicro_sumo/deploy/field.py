@@ -42,12 +42,6 @@ FIELD_TYPE = "field"  # the vTypeDistribution of a sampled demand
 DEPARTURE = 'departLane="best" departSpeed="max"'
 
 
-def station_interval(det: pd.DataFrame) -> float:
-    """The stations' aggregation interval [s]: the most common interval length."""
-    length = (det["end_s"] - det["begin_s"]).round(3)
-    return float(length.mode().max())
-
-
 def check_station_grid(det: pd.DataFrame, interval_s: float, where: str) -> None:
     """SUMO's loops aggregate over [k interval, (k + 1) interval) from t = 0: the stations'
     intervals must lie on that grid to be compared interval by interval."""

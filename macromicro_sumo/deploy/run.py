@@ -30,9 +30,9 @@ from macromicro_sumo.deploy.field import (
     check_station_grid,
     demand_files,
     sampled_demand,
-    station_interval,
     station_loops,
 )
+from macromicro_sumo.deploy.intervals import interval_length_s
 from macromicro_sumo.deploy.population import SwitchedType
 from macromicro_sumo.deploy.redraw_driver import SectionRedrawDriver
 from macromicro_sumo.deploy.type_driver import SectionTypeDriver
@@ -180,7 +180,7 @@ def files_context(sc: SectionScenario, truth_dir: Path) -> DeployContext:
     ]
     inputs, section = scenario_inputs(sc), truth.section
     det = truth.detectors
-    interval = station_interval(det)
+    interval = interval_length_s(det)
     check_station_grid(det, interval, str(truth_dir / "detectors.csv"))
     end = float(det["end_s"].max())
     warmup = sc.simulation.warmup_s

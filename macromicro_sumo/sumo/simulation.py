@@ -26,7 +26,6 @@ from macromicro_sumo.errors import UserError
 from macromicro_sumo.sumo.options import SumoOptions
 
 _C = libsumo.constants
-_VARS = (_C.VAR_ROAD_ID, _C.VAR_LANEPOSITION, _C.VAR_SPEED)
 _LANE_VARS = (_C.VAR_LANE_ID, _C.VAR_LANEPOSITION, _C.VAR_SPEED, _C.VAR_ACCELERATION)
 # A driven vehicle's subscription: the lane state plus its leader within a look-ahead.
 _DRIVE_VARS = (*_LANE_VARS, _C.VAR_LEADER)
@@ -193,10 +192,6 @@ class Simulation:
         ):
             self.add_vehicle(vid, route, vtype, 0, pos, v)
 
-    def subscribe(self, vehicle_ids: Sequence[str]) -> None:
-        for vid in vehicle_ids:
-            libsumo.vehicle.subscribe(vid, _VARS)
-
     def pending_vehicles(self) -> tuple[str, ...]:
         return tuple(libsumo.simulation.getPendingVehicles())
 
@@ -212,26 +207,6 @@ class Simulation:
             with contextlib.suppress(libsumo.TraCIException):
                 libsumo.vehicle.unsubscribe(vid)
             libsumo.vehicle.remove(vid)
-
-    def read_states(
-        self, vehicle_ids: Sequence[str], edge_index: dict[str, int]
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(edge index, lane position [m], speed [m/s]) of subscribed vehicles, in given order.
-
-        A vehicle that has left the simulation raises ``KeyError`` naming it.
-        """
-        res = libsumo.vehicle.getAllSubscriptionResults()
-        n = len(vehicle_ids)
-        edge = np.empty(n, dtype=np.int64)
-        pos = np.empty(n)
-        speed = np.empty(n)
-        road, lpos, spd = _VARS
-        for i, vid in enumerate(vehicle_ids):
-            r = res[vid]
-            edge[i] = edge_index[r[road]]
-            pos[i] = r[lpos]
-            speed[i] = r[spd]
-        return edge, pos, speed
 
     def set_speed_mode(self, vehicle_ids: Sequence[str], mode: int) -> None:
         list(map(libsumo.vehicle.setSpeedMode, vehicle_ids, [int(mode)] * len(vehicle_ids)))
