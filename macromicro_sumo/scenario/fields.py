@@ -132,10 +132,14 @@ def table_class(hint: Any) -> Any:
     return None
 
 
-# Keys that stop 25 removed with the ring wing (issue 16): a one-line error naming what
-# replaces them, rather than "unknown key".
+# Removed keys: a one-line error saying when and what replaces them, rather than "unknown
+# key". Stop 25 removed the ring wing (issue 16); stop 32 two settings nothing read.
 REMOVED_KEYS = {
-    "evaluation.completions_per_scene": "replaced by generator.eval_completions",
+    "evaluation.completions_per_scene": "stop 25: replaced by generator.eval_completions",
+    "evaluation.min_safe_gap_m": "stop 32: never read; the leader-follower tests count a "
+    "collision at a bumper gap of 0",
+    "evaluation.timespace_s": "stop 32: never read; the time-space diagrams are drawn from "
+    "the deployment's trajectories",
 }
 
 
@@ -149,7 +153,7 @@ def build_table(cls: type, table: Any, prefix: str, file: str) -> Any:
         dotted = f"{prefix}.{key}" if prefix else key
         if key not in known and dotted in REMOVED_KEYS:
             raise UserError(
-                f"{file}: {dotted} was removed in stop 25 ({REMOVED_KEYS[dotted]}); remove the key"
+                f"{file}: {dotted} was removed in {REMOVED_KEYS[dotted]}; remove the key"
             )
         if key not in known:
             where = f"[{prefix}] " if prefix else ""

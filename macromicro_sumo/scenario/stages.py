@@ -179,14 +179,8 @@ class EvaluationConfig:
     )
     lf_trials: int = spec(20, lo=1, hi=100_000, doc="stochastic leader-follower trials per method")
     lf_duration_s: float = spec(60.0, lo=1.0, hi=1e5, doc="leader-follower test length [s]")
-    min_safe_gap_m: float = spec(
-        2.0, lo=0.0, hi=1e3, doc="minimum safe bumper gap in leader-follower tests [m]"
-    )
     fcd_episodes: int = spec(
         20, lo=0, hi=100_000, doc="episodes per method and K written as SUMO FCD"
-    )
-    timespace_s: float = spec(
-        120.0, lo=1.0, hi=1e5, doc="length of the time-space diagram rollouts [s]"
     )
 
 

@@ -33,7 +33,6 @@ SMALL_RUN = {
     "policy.episodes_per_update": 8,
     "evaluation.completions_per_scene": 1,
     "evaluation.fcd_episodes": 1,
-    "evaluation.timespace_s": 20.0,
     "evaluation.lf_trials": 2,
     "evaluation.lf_duration_s": 20.0,
     # Each of the detector-calibrated IDM's evaluations re-runs the training runs: two do

@@ -204,7 +204,6 @@ def test_run_with_refinement_writes_the_refined_evaluation_and_the_report(tmp_pa
     over = {
         **TINY,
         "evaluation.fcd_episodes": 1,
-        "evaluation.timespace_s": 20.0,
         "evaluation.lf_trials": 2,
         "evaluation.lf_duration_s": 20.0,
         "deploy.methods": ["policy"],

@@ -87,6 +87,8 @@ def test_road_ring_and_removed_keys_name_the_change(make_scenario):
     section = PAPER_SCENARIO.parent / "ring_paper_section.toml"
     with pytest.raises(UserError, match=r"replaced by generator\.eval_completions"):
         load_scenario(section, {"evaluation.completions_per_scene": 4})
+    with pytest.raises(UserError, match=r"evaluation\.timespace_s was removed in stop 32"):
+        load_scenario(section, {"evaluation.timespace_s": 60.0})
     # On a ring file the key still maps onto generator.eval_completions.
     assert load_scenario(path).generator.eval_completions == 4
 
