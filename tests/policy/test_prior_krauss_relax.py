@@ -1,19 +1,19 @@
 """The Krauss prior's relaxation time where the recorded pairs leave it at its bound
-(``policy.relax_choice``): chosen against the training runs' induction loops by driving
-their demand, warm-up included, with the prior alone. Real SUMO: one run of ring_two_lane
-(its fleet departs standing; a few seconds of SUMO)."""
+(``policy.relax_choice``): chosen against the training runs' induction loops (SUMO's own,
+``DemandCore.loop_table``; tests/env/test_demand_loops.py checks them against the truth's)
+by driving their demand, warm-up included, with the prior alone. Real SUMO: one run of
+ring_two_lane (its fleet departs standing; a few seconds of SUMO)."""
 
 from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from macromicro_sumo.env.demand import DemandCore
 from macromicro_sumo.policy.prior import RELAX_UPPER_S
-from macromicro_sumo.policy.relax_choice import Loops, choose_relax, relax_unidentified
+from macromicro_sumo.policy.relax_choice import choose_relax, relax_unidentified
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import load_section_truth, simulate_section
 
@@ -40,38 +40,6 @@ def ring(tmp_path_factory: pytest.TempPathFactory):
     folder = tmp_path_factory.mktemp("r2l_relax")
     simulate_section(sc, folder / "gt", progress=False)
     return sc, load_section_truth(folder / "gt", sc)
-
-
-def test_the_loops_read_off_a_replay_count_as_sumos_own(ring):
-    """The truth's run replayed by the demand core with nobody driven (SUMO's models, the
-    truth's seed): the vehicles ``Loops`` counts per interval, all loops together, are
-    SUMO's loops' counts within one, and after the standing start their mean speed is
-    SUMO's within 0.05 m/s."""
-    sc, truth = ring
-    det = truth.detectors[truth.detectors["run"] == 0]
-    loops = det.drop_duplicates("detector_id").reset_index(drop=True)
-    edges = np.unique(np.concatenate([det["begin_s"], det["end_s"]]))
-    count = np.zeros((len(loops), len(edges) - 1))
-    speed = np.zeros_like(count)
-    core = DemandCore(sc, truth, np.array([0]), 10)
-    try:
-        core.reset(0, core.dt)
-        reader = Loops(loops)
-        for _ in range(int(round(edges[-1] / core.dt)) - 1):
-            core.step(np.zeros(0))
-            loop, v = reader.passages(core)
-            k = np.searchsorted(edges, core.time_s(), side="left") - 1
-            np.add.at(count[:, k], loop, 1.0)
-            np.add.at(speed[:, k], loop, v)
-    finally:
-        core.close()
-    true_count = det.pivot(index="detector_id", columns="begin_s", values="n_veh")
-    true_count = true_count.loc[loops["detector_id"]].to_numpy()
-    assert count.sum() > 100  # the premise: the fleet passes the loops
-    np.testing.assert_allclose(count.sum(axis=0), true_count.sum(axis=0), atol=1.0)
-    later = det[det["begin_s"] > 0]
-    true_mean = np.average(later["speed_mps"], weights=later["n_veh"])
-    assert speed[:, 1:].sum() / count[:, 1:].sum() == pytest.approx(true_mean, abs=0.05)
 
 
 def test_a_relaxation_at_its_bound_is_chosen_on_the_standing_start(ring):
