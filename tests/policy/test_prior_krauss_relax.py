@@ -13,7 +13,12 @@ import pytest
 
 from macromicro_sumo.env.demand import DemandCore
 from macromicro_sumo.policy.prior import RELAX_UPPER_S
-from macromicro_sumo.policy.relax_choice import choose_relax, relax_unidentified
+from macromicro_sumo.policy.relax_choice import (
+    LoopFit,
+    choose_relax,
+    pick_relax,
+    relax_unidentified,
+)
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import load_section_truth, simulate_section
 
@@ -62,3 +67,19 @@ def test_a_relaxation_at_its_bound_is_chosen_on_the_standing_start(ring):
     assert fits[f"{chosen:g}"]["count_rmse"] < fits["10"]["count_rmse"]
     assert fits["10"]["passages"] < fits["1"]["passages"]  # the slower start passes fewer
     assert all(f["collisions"] == 0 and f["teleports"] == 0 for f in fits.values())
+
+
+def _fit(count_rmse: float, collisions: int) -> LoopFit:
+    return LoopFit(count_rmse, 0.0, 100, collisions, 0)
+
+
+def test_the_choice_keeps_the_fitted_relaxation_where_every_run_crashed():
+    """Counts of runs that collided are no measurement (drawn net 311: every candidate
+    collided 606-906 times and the counts picked 7 s, which trained a worse policy): the
+    fitted T stays; a collision-free candidate is chosen over a closer one that crashed,
+    and equals keep the first (the larger T)."""
+    crashed = [(10.0, _fit(85.7, 754)), (7.0, _fit(71.1, 606)), (5.0, _fit(84.3, 906))]
+    assert pick_relax(crashed, 10.0) == 10.0
+    mixed = [(10.0, _fit(8.1, 0)), (7.0, _fit(2.0, 3)), (5.0, _fit(3.9, 0)), (3.0, _fit(3.9, 0))]
+    assert pick_relax(mixed, 10.0) == 5.0
+    assert pick_relax([(10.0, _fit(float("nan"), 0)), (5.0, _fit(6.0, 0))], 10.0) == 5.0
