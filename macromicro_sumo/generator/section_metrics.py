@@ -10,10 +10,11 @@ from __future__ import annotations
 
 import numpy as np
 import pandas as pd
+import torch
 
 from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.generator.section_sampler import SectionCompletion
-from macromicro_sumo.generator.section_scene import PSI_INDEX, TOL_M
+from macromicro_sumo.generator.section_scene import PSI_INDEX, TOL_M, Road
 from macromicro_sumo.road.section import Section, section_leaders
 
 # --------------------------------------------------------------------------- checks, metrics
@@ -34,9 +35,10 @@ def completion_violations(
     section: Section, snaps: SectionSnapshots, comp: SectionCompletion
 ) -> pd.DataFrame:
     """Per snapshot, generated vehicles that break a bound: spacing below psi's minimum to
-    the vehicle ahead or behind in the lane, speed outside psi's range, a lane the edge
-    lacks (``spacing``, ``speed``, ``lane`` counts)."""
+    the vehicle ahead or behind in the lane, speed outside psi's range, a lane that does
+    not exist where it is (``Road.has_lane``) (``spacing``, ``speed``, ``lane`` counts)."""
     rows = []
+    road = Road.of(section)
     s_min = snaps.psi[:, PSI_INDEX["spacing_min_m"]]
     v_lo, v_hi = snaps.psi[:, PSI_INDEX["speed_min_mps"]], snaps.psi[:, PSI_INDEX["speed_max_mps"]]
     for i in range(len(snaps)):
@@ -49,12 +51,13 @@ def completion_violations(
         bad = close & gen
         bad[leader[close & ~gen]] |= gen[leader[close & ~gen]]
         v = comp.speed_mps[i, idx][gen]
-        lanes_there = section.n_lanes[section.edge_index(arc[gen])]
         rows.append(
             {
                 "spacing": int(bad.sum()),
                 "speed": int(((v < v_lo[i] - 1e-9) | (v > v_hi[i] + 1e-9)).sum()),
-                "lane": int((lane[gen] >= lanes_there).sum()),
+                "lane": int(
+                    (~road.has_lane(torch.as_tensor(lane[gen]), torch.as_tensor(arc[gen]))).sum()
+                ),
             }
         )
     return pd.DataFrame(rows)

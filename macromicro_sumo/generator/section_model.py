@@ -86,10 +86,11 @@ def observe(
     psi: Psi,
     road: Road,
     anchor: torch.Tensor,
+    extra: torch.Tensor | None = None,
 ) -> Observation:
     """Gaps and scale-free features of the scenes; ``remaining`` counts the vehicles still to
     place (the next one included), ``total`` the vehicles of the completed scene."""
-    gaps = scene_gaps(lane, arc, speed, present, road, psi.s_min, anchor)
+    gaps = scene_gaps(lane, arc, speed, present, road, psi.s_min, anchor, extra)
     share = lane_exists_share(gaps, road)
     room_ok = gaps.valid & (gaps.room > 0) & (share > 0)
     # None with room: the section is fuller than psi's minimum spacing allows; every
@@ -390,6 +391,7 @@ class Scene:
     n_obs_slots: int
     k: torch.Tensor  # (B,) vehicles to generate
     total: torch.Tensor  # (B,) vehicles of the completed scene
+    extra: torch.Tensor | None = None  # (B, N + K_max) length beyond the shortest [m]
 
     @classmethod
     def start(cls, snaps: SectionSnapshots, k: np.ndarray, road: Road) -> Scene:
@@ -409,6 +411,11 @@ class Scene:
             arc = np.mod(arc, road.length_m)
         lane = np.where(packed, snaps.lane[rows, slot], 0)
         speed = np.where(packed, snaps.speed_mps[rows, slot], 0.0)
+        # psi's s_min is the shortest vType's length + min gap: the snapshots' shortest
+        lengths = np.asarray(snaps.length_m, dtype=float)
+        on = np.asarray(snaps.valid, dtype=bool)
+        shortest = float(lengths[on].min()) if on.any() else 0.0
+        extra = np.where(packed, np.maximum(lengths[rows, slot] - shortest, 0.0), 0.0)
         return cls(
             lane=torch.as_tensor(np.concatenate([lane, pad], 1).astype(np.int64)),
             arc=torch.as_tensor(np.concatenate([arc, pad], 1)),
@@ -417,6 +424,7 @@ class Scene:
             n_obs_slots=n,
             k=k_t,
             total=torch.as_tensor(obs.sum(axis=1)) + k_t,
+            extra=torch.as_tensor(np.concatenate([extra, pad], 1)),
         )
 
     def observe(
@@ -435,6 +443,7 @@ class Scene:
             psi,
             road,
             _anchor(len(idx), road, gen),
+            None if self.extra is None else self.extra[idx, :m],
         )
 
     def place(

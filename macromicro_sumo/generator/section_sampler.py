@@ -150,6 +150,7 @@ def safe_speeds(
     standstill_m: np.ndarray,
     brake_mps2: float,
     reaction_s: float = 0.0,
+    extra_m: np.ndarray | None = None,
 ) -> None:
     """Give each generated vehicle a speed it can stop from behind its leader, and raise
     a generated leader where an observed follower could not stop behind it (in place).
@@ -181,7 +182,10 @@ def safe_speeds(
         pool = np.sort(v[gen])
         # Along the lane connections; a lane's end is a standing leader (STOP, < 0).
         leader, spacing = section_leaders(section, lane, arc)
-        room = 2.0 * brake_mps2 * np.maximum(0.0, spacing - standstill_m[s])
+        # A long leader (a truck) stands its own extra length further back.
+        ex = np.zeros(on.size) if extra_m is None else extra_m[s, on]
+        ex_l = np.where(leader >= 0, ex[np.maximum(leader, 0)], 0.0)
+        room = 2.0 * brake_mps2 * np.maximum(0.0, spacing - standstill_m[s] - ex_l)
         bt = brake_mps2 * reaction_s
 
         # Front first: a leader (on this lane or the one it continues onto) is served first.
@@ -259,7 +263,8 @@ def kinematic_speeds(
     s_min = psi.s_min[:, None]
     v_f, v_l = gaps.v_f.gather(1, choice), gaps.v_l.gather(1, choice)
     room_f = 2.0 * b * (a - s_min).clamp(min=0.0)
-    room_l = 2.0 * b * (gaps.length.gather(1, choice) - a - s_min).clamp(min=0.0)
+    ex_l = 0.0 if gaps.extra_l is None else gaps.extra_l.gather(1, choice)
+    room_l = 2.0 * b * (gaps.length.gather(1, choice) - a - s_min - ex_l).clamp(min=0.0)
     need = torch.sqrt((v_f * v_f + 2.0 * b * tau * v_f - room_f).clamp(min=0.0))
     cap = torch.sqrt(b * b * tau * tau + v_l * v_l + room_l) - b * tau
     lo = torch.where(gaps.has_f.gather(1, choice), need, 0.0)
@@ -346,6 +351,8 @@ def complete_section(
                 x, j = _project(road, g, t.probs, int(r), int(choice[r]), float(arc[r]), window)
                 arc[r] = x
                 fits[r] = j >= 0
+                if j >= 0:  # the gap it went to may be on another lane than the trial's
+                    lane[r] = g.lane[r, j]
                 if window is not None and j >= 0:  # its speed into the window where it is
                     off = x - float(g.start[r, j])
                     off = float(np.mod(off, road.length_m)) if road.closed else off
@@ -360,7 +367,13 @@ def complete_section(
     comp = _unpack(scene, snaps, trials, projections, time.perf_counter() - t0)
     comp.dropped = dropped
     if brake_mps2 is not None:
-        safe_speeds(comp, section, snaps.psi[:, PSI_INDEX["spacing_min_m"]], brake_mps2, reaction_s)
+        obs = np.asarray(snaps.valid & snaps.observed, dtype=bool)
+        lengths = np.where(snaps.valid, snaps.length_m, np.inf)
+        shortest = float(lengths.min()) if snaps.valid.any() else 0.0
+        extra = np.where(obs, np.maximum(snaps.length_m - shortest, 0.0), 0.0)
+        extra = np.concatenate([extra, np.zeros_like(comp.arc_m[:, extra.shape[1] :])], 1)
+        stand = snaps.psi[:, PSI_INDEX["spacing_min_m"]]
+        safe_speeds(comp, section, stand, brake_mps2, reaction_s, extra)
     return comp
 
 

@@ -38,6 +38,40 @@ PSI_INDEX = {name: i for i, name in enumerate(PSI_FIELDS)}
 # --------------------------------------------------------------------------- road and psi
 
 
+def lane_pieces(section: Section) -> list[list[list[float]]]:
+    """Per lane index, the [a, b) arc intervals where it exists: on an edge, the edge's
+    lanes; in the junction after it, the lanes of the next edge that one of its lanes
+    continues onto (``Section.links``): a lane index in a junction is the lane it leads
+    to. Why not the edge's lane count there too: an edge whose lanes 0-1 continue onto
+    lanes 1-2 of the next (an on-ramp joining on the right) has no junction lane 0, and a
+    vehicle put there goes to lane 0 of the next edge's start, into whoever is there
+    (game/cross, net 503: Stage II evaluation collisions)."""
+    n = len(section.edge_ids)
+    ends = np.append(section.offsets_m[1:], section.length_m)
+    pieces: list[list[list[float]]] = [[] for _ in range(section.max_lanes)]
+
+    def add(lane: int, a: float, b: float) -> None:
+        p = pieces[lane]
+        if p and abs(p[-1][1] - a) < 1e-9:
+            p[-1][1] = b
+        else:
+            p.append([a, b])
+
+    for e in range(n):
+        a = float(section.offsets_m[e])
+        mid = a + float(section.lengths_m[e])
+        b = float(ends[e])
+        into = section.links[e].any(axis=0)  # (lanes,) next-edge lanes reached from e
+        if not into.any():  # no connection known: the next edge's lanes
+            into = np.arange(section.max_lanes) < section.n_lanes[(e + 1) % n]
+        for lane in range(section.max_lanes):
+            if lane < section.n_lanes[e]:
+                add(lane, a, mid)
+            if b > mid + 1e-9 and into[lane]:
+                add(lane, mid, b)
+    return pieces
+
+
 @dataclass(frozen=True)
 class Road:
     """What the generator needs of a ``Section``, as torch tensors (positions in float64)."""
@@ -62,18 +96,7 @@ class Road:
         n_lanes = np.asarray(section.n_lanes, dtype=np.int64)
         for e, n in enumerate(n_lanes):
             lim[e, n:] = lim[e, n - 1]
-        ends = np.append(section.offsets_m[1:], section.length_m)
-        spans = []
-        for lane in range(section.max_lanes):
-            has = n_lanes > lane
-            pieces: list[list[float]] = []
-            for e in np.flatnonzero(has):
-                a, b = float(section.offsets_m[e]), float(ends[e])
-                if pieces and abs(pieces[-1][1] - a) < 1e-9:
-                    pieces[-1][1] = b
-                else:
-                    pieces.append([a, b])
-            spans.append(np.array(pieces, dtype=np.float64).reshape(-1, 2))
+        spans = [np.array(p, dtype=np.float64).reshape(-1, 2) for p in lane_pieces(section)]
         reps = 3 if section.closed else 1
         p = max(len(x) for x in spans) * reps
         table = np.zeros((section.max_lanes, p, 2))
@@ -102,8 +125,12 @@ class Road:
         return e.clamp(0, len(self.offsets_m) - 1)
 
     def has_lane(self, lane: torch.Tensor, arc: torch.Tensor) -> torch.Tensor:
-        """Whether the edge at ``arc`` has lane index ``lane`` (same shapes)."""
-        return self.n_lanes[self.edge(arc)] > lane
+        """Whether lane index ``lane`` exists at ``arc`` (same shapes): on an edge its
+        lanes, in a junction the lanes it leads to (``lane_pieces``)."""
+        spans = self.span_table[lane.clamp(0, self.max_lanes - 1)]
+        a = self.wrap(arc.detach())[..., None]
+        inside = (spans[..., 0] <= a) & (a < spans[..., 1])
+        return inside.any(dim=-1) & (lane >= 0) & (lane < self.max_lanes)
 
     def limit(self, lane: torch.Tensor, arc: torch.Tensor) -> torch.Tensor:
         """Speed limit [m/s] of lane ``lane`` at ``arc`` (the edge's leftmost where it lacks it)."""
@@ -221,6 +248,8 @@ class Gaps:
     v_l: torch.Tensor
     valid: torch.Tensor
     n_lane: torch.Tensor  # vehicles already on the gap's lane
+    # the gap's leader's length beyond the shortest vType's [m] (its s_min is the shortest's)
+    extra_l: torch.Tensor | None = None
 
     @property
     def room(self) -> torch.Tensor:
@@ -281,9 +310,13 @@ def scene_gaps(
     road: Road,
     s_min: torch.Tensor,
     anchor: torch.Tensor,
+    extra: torch.Tensor | None = None,
 ) -> Gaps:
     """The gaps of the current scenes (``Gaps``); ``anchor`` (B, lanes) is where an empty
-    lane's gap starts on a closed section."""
+    lane's gap starts on a closed section; ``extra`` (B, M) each vehicle's length beyond
+    the shortest vType's (None: 0), which a new vehicle keeps behind it on top of s_min
+    (s_min is the shortest vehicle plus the minimum gap: with it alone a car was put
+    inside an observed 12 m truck)."""
     b, m = arc.shape
     nl = road.max_lanes
     lo_ = lane_order(lane, arc, present, road)
@@ -298,8 +331,13 @@ def scene_gaps(
     has_l = lo_["has_l"]
     length = lo_["lead_arc"] - lo_["arc"]
     s_min_c = s_min[:, None]
+    ex = torch.zeros_like(arc) if extra is None else extra.to(arc.dtype)
+    ex_first = ex.gather(1, lo_["first_slot"])  # (B, lanes): each lane's first vehicle's
+    ex_next = torch.cat([ex.gather(1, lo_["order"])[:, 1:], ex_first[:, :1]], dim=1)
+    ex_l = torch.where(lo_["has_next"], ex_next, ex_first.gather(1, lane_c))
+    ex_l = torch.where(has_l, ex_l, 0.0)
     lo = s_min_c.expand(b, m)
-    hi = length - torch.where(has_l, s_min_c, END_MARGIN_M)
+    hi = length - torch.where(has_l, s_min_c + ex_l, END_MARGIN_M)
     count = lo_["count"]
     occupied = count > 0
     lanes = torch.arange(nl).expand(b, nl)
@@ -314,7 +352,7 @@ def scene_gaps(
         first_arc = lo_["first_arc"]
         h_start = torch.zeros(b, nl, dtype=torch.float64)
         h_len = torch.where(occupied, first_arc, road.length_m)
-        h_hi = torch.where(occupied, first_arc - s_min_c, road.length_m - END_MARGIN_M)
+        h_hi = torch.where(occupied, first_arc - s_min_c - ex_first, road.length_m - END_MARGIN_M)
         h_valid = torch.ones_like(occupied)
         h_has_l = occupied
         h_v_l = torch.where(occupied, first_v, 0.0)
@@ -330,6 +368,7 @@ def scene_gaps(
         v_l=torch.cat([torch.where(has_l, v_l, 0.0), h_v_l], dim=1),
         valid=torch.cat([lo_["present"], h_valid], dim=1),
         n_lane=torch.cat([count.gather(1, lane_c), count], dim=1).double(),
+        extra_l=torch.cat([ex_l, torch.where(h_has_l, ex_first, 0.0)], dim=1),
     )
 
 

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import torch
 from ring_scenes import generator_scenario
+from section_checks import lane_is_there
 
 from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.errors import UserError
@@ -74,7 +75,7 @@ def synthetic(
         for lane in range(section.max_lanes):
             x = rng.uniform(0, 20)
             while x < section.length_m - (S_MIN if section.closed else 0.0):
-                if section.n_lanes[section.edge_index(np.array([x]))[0]] > lane:
+                if lane_is_there(section, lane, x):
                     lanes.append(lane)
                     arcs.append(x)
                     speeds.append(rng.normal(25 + 3 * lane, 2.0))
@@ -116,7 +117,8 @@ def untrained(seed: int = 0) -> SectionGeneratorNet:
 def check_completion(section: Section, snaps: SectionSnapshots, comp: SectionCompletion, k) -> None:
     """Independent of the module's own check: per lane, every pair of neighbours with a
     generated vehicle is >= S_MIN apart (around a loop too), speeds within psi's range,
-    lanes present on the edge, observed vehicles untouched, K vehicles generated."""
+    lanes present where they are (``lane_is_there``), observed vehicles untouched, K
+    vehicles generated."""
     n = snaps.arc_m.shape[1]
     obs = snaps.valid & snaps.observed
     np.testing.assert_array_equal(comp.valid[:, :n], obs)
@@ -128,8 +130,8 @@ def check_completion(section: Section, snaps: SectionSnapshots, comp: SectionCom
         assert np.all(comp.arc_m[i, g] >= 0) and np.all(comp.arc_m[i, g] < section.length_m)
         v = comp.speed_mps[i, g]
         assert np.all(v >= snaps.psi[i, 3]) and np.all(v <= snaps.psi[i, 4])
-        e = section.edge_index(comp.arc_m[i, g])
-        assert np.all(comp.lane[i, g] < section.n_lanes[e])
+        for ln, x in zip(comp.lane[i, g], comp.arc_m[i, g], strict=True):
+            assert lane_is_there(section, int(ln), float(x)), (i, ln, x)
         for lane in np.unique(comp.lane[i, comp.valid[i]]):
             on = comp.valid[i] & (comp.lane[i] == lane)
             order = np.argsort(comp.arc_m[i, on])
@@ -220,16 +222,21 @@ def test_speed_spread_target_from_observed(bremen: Section) -> None:
 
 
 def test_positions_only_where_the_lane_exists(bremen: Section) -> None:
-    """Lane 3 exists on E0 only: a point in a gap spanning the whole section lands there."""
+    """Lane 3 exists on E0 and in the junction leading onto it (the lane added on the
+    right shifts the through lanes up by one): a point in a gap spanning the whole section
+    lands there, not in the junction after E0 (its lanes 1-3 lead onto lanes 0-2)."""
     road = Road.of(bremen)
     frac = torch.linspace(0.001, 0.999, 50, dtype=torch.float64)
     x = road.place_on_lane(
         torch.full((50,), 3), torch.zeros(50, dtype=torch.float64), torch.full((50,), 1800.0), frac
     )
     e0 = bremen.edge_ids.index("E0")
-    assert np.all(bremen.edge_index(x.numpy()) == e0)
+    start = bremen.offsets_m[e0] - bremen.junction_m[e0 - 1]
+    assert bremen.junction_m[e0 - 1] > 0
+    assert np.all((x.numpy() >= start) & (x.numpy() < bremen.offsets_m[e0] + bremen.lengths_m[e0]))
+    assert all(lane_is_there(bremen, 3, float(a)) for a in x)
     assert road.nearest_on_lane(3, 0.0, 500.0, 100.0) is None
-    assert road.nearest_on_lane(3, 0.0, 1000.0, 100.0) == pytest.approx(bremen.offsets_m[e0])
+    assert road.nearest_on_lane(3, 0.0, 1000.0, 100.0) == pytest.approx(start)
 
 
 # --------------------------------------------------------------------------- completion
