@@ -415,7 +415,7 @@ def uniform_completion(
     seed: int,
 ) -> SectionCompletion:
     """Baseline: hidden vehicles at uniform positions on the section, a lane drawn uniformly
-    among those the edge there has, at psi's mean speed (no bounds checked; ``net`` and
+    among those that exist there, at psi's mean speed (no bounds checked; ``net`` and
     ``t_max`` are unused: the signature is ``complete_section``'s)."""
     t0 = time.perf_counter()
     rng = np.random.default_rng([int(seed), 303])
@@ -424,8 +424,14 @@ def uniform_completion(
     k_max = int(k.max()) if b else 0
     gen_mask = np.arange(k_max)[None, :] < k[:, None]
     arc = rng.uniform(0.0, section.length_m, (b, k_max))
-    lanes_there = section.n_lanes[section.edge_index(arc)]
-    lane = np.floor(rng.random((b, k_max)) * lanes_there).astype(np.int64)
+    # among the lane indices that exist there (in a junction: those it leads to)
+    there = (
+        Road.of(section)
+        .has_lane(torch.arange(section.max_lanes), torch.as_tensor(arc)[..., None])
+        .numpy()
+    )
+    nth = np.floor(rng.random((b, k_max)) * there.sum(axis=-1))[..., None]
+    lane = (np.cumsum(there, axis=-1) <= nth).sum(axis=-1).astype(np.int64)
     obs = snaps.valid & snaps.observed
     v_mean = snaps.psi[:, PSI_INDEX["mean_speed_mps"]]
     return SectionCompletion(

@@ -20,7 +20,7 @@ import torch
 from section_checks import lane_is_there
 from test_section_generator import S_MIN, synthetic, untrained
 
-from macromicro_sumo.generator.section_sampler import complete_section
+from macromicro_sumo.generator.section_sampler import complete_section, uniform_completion
 from macromicro_sumo.generator.section_scene import Road, scene_gaps
 from macromicro_sumo.road.section import Section, read_section, section_leaders
 
@@ -123,3 +123,18 @@ def test_a_projected_vehicle_goes_onto_the_lane_of_its_gap(bremen: Section) -> N
             assert np.all(np.diff(arc[k])[touched] >= S_MIN - 1e-6), (i, ln)
         for ln, x in zip(lane[gen], arc[gen], strict=True):
             assert lane_is_there(bremen, int(ln), float(x)), (i, ln, x)
+
+
+def test_the_uniform_baseline_draws_lanes_that_exist_there(bremen: Section) -> None:
+    """The baseline's lane is drawn among those that exist at its position: in the 13 m
+    of Bremen's junctions, not among the upstream edge's lanes."""
+    snaps = synthetic(bremen, 8, seed=2)
+    k = np.full(len(snaps), 400)
+    comp = uniform_completion(None, bremen, snaps, k, 1, 0)
+    gen = comp.generated
+    ends = bremen.offsets_m + bremen.lengths_m
+    e = bremen.edge_index(comp.arc_m[gen])
+    assert (comp.arc_m[gen] > ends[e]).sum() > 10  # some fall into a junction
+    for ln, x in zip(comp.lane[gen], comp.arc_m[gen], strict=True):
+        assert lane_is_there(bremen, int(ln), float(x)), (ln, x)
+    assert set(np.unique(comp.lane[gen])) == {0, 1, 2, 3}
