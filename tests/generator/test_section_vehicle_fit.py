@@ -110,7 +110,7 @@ def test_a_projected_vehicle_goes_onto_the_lane_of_its_gap(bremen: Section) -> N
     of another lane than the failed trial's puts the vehicle on that gap's lane (it kept
     the trial's lane: vehicles at another's exact position, and on lanes that do not
     exist there)."""
-    snaps = synthetic(bremen, 4, seed=4, mean_gap_m=25.0, p_obs=0.5)
+    snaps = synthetic(bremen, 2, seed=4, mean_gap_m=25.0, p_obs=0.5)
     comp = complete_section(untrained(), bremen, snaps, snaps.k_true, 20, 0, BRAKE_MPS2, REACTION_S)
     assert comp.projections.sum() > 10
     for i in range(len(snaps)):
