@@ -26,9 +26,11 @@ from macromicro_sumo.truth.section_macro import trajectory_macro
 EDGES = ["a", "b", "c"]
 
 
-def build_merge_net(folder: Path) -> Path:
+def build_merge_net(folder: Path, b_limits_mps: tuple[float, ...] = ()) -> Path:
     """a (2 lanes, 300 m) -> b (3 lanes: the ramp ``r`` joins on the right, 300 m) -> c (2
-    lanes, 300 m): a_0 -> b_1, a_1 -> b_2, r_0 -> b_0, b_0 ends, b_1 -> c_0, b_2 -> c_1."""
+    lanes, 300 m): a_0 -> b_1, a_1 -> b_2, r_0 -> b_0, b_0 ends, b_1 -> c_0, b_2 -> c_1.
+    ``b_limits_mps``: b's lanes' own speed limits, right to left (default: the edge's 30)."""
+    b_lanes = "".join(f'<lane index="{i}" speed="{v}"/>' for i, v in enumerate(b_limits_mps))
     return netconvert(
         folder,
         '<node id="n0" x="0" y="0"/><node id="n1" x="300" y="0"/>'
@@ -36,7 +38,7 @@ def build_merge_net(folder: Path) -> Path:
         '<node id="r0" x="0" y="-60"/>',
         '<edge id="a" from="n0" to="n1" numLanes="2" speed="30"/>'
         '<edge id="r" from="r0" to="n1" numLanes="1" speed="25"/>'
-        '<edge id="b" from="n1" to="n2" numLanes="3" speed="30"/>'
+        f'<edge id="b" from="n1" to="n2" numLanes="3" speed="30">{b_lanes}</edge>'
         '<edge id="c" from="n2" to="n3" numLanes="2" speed="30"/>',
         '<connection from="a" to="b" fromLane="0" toLane="1"/>'
         '<connection from="a" to="b" fromLane="1" toLane="2"/>'
