@@ -5,6 +5,7 @@ SUMO ground truths and briefly trained generators; bad input as one line."""
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +21,9 @@ from macromicro_sumo.evaluation.section import held_out_scenes
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import load_section_truth
+
+sys.path.insert(0, str(Path(__file__).resolve().parent / "generator"))
+from section_checks import lane_is_there  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("keep_torch_threads")
 
@@ -193,7 +197,7 @@ def test_complete_on_an_open_multilane_section(netgen_corridor, tmp_path, capsys
     hidden = pd.read_csv(tmp_path / "all" / "hidden_truth.csv")
     section = Section.read(corridor["gt"] / "section.json")
     # The instrumented vehicles are the observed ones; the generator places the detectors'
-    # estimate (k_source), each on a lane its edge has.
+    # estimate (k_source), each on a lane that exists where it stands.
     obs = comp[comp["role"] == "observed"]
     truth = truth_at(corridor["gt"])
     for (run, t), g in obs.groupby(["run", "time_s"]):
@@ -201,8 +205,9 @@ def test_complete_on_an_open_multilane_section(netgen_corridor, tmp_path, capsys
     gen = comp[comp["role"] == "generated"]
     per = gen.groupby("scene").size()
     np.testing.assert_array_equal(per, comp.groupby("scene")["k_generated"].first()[per.index])
-    lanes = section.n_lanes[section.edge_index(gen["arc_m"].to_numpy())]
-    assert (gen["lane_index"].to_numpy() < lanes).all()
+    # In a junction a lane index is the lane it leads to (SUMO's internal lanes say which).
+    where = zip(gen["lane_index"], gen["arc_m"], strict=True)
+    assert all(lane_is_there(section, int(lane), float(arc)) for lane, arc in where)
     k_true = comp.groupby("scene")["k_true"].first()
     hid = hidden.groupby("scene").size().reindex(k_true.index, fill_value=0)
     np.testing.assert_array_equal(hid, k_true)
