@@ -47,6 +47,7 @@ from macromicro_sumo.generator.section_scene import (
     Psi,
     Road,
     dispersion_budget,
+    extra_lengths,
     lane_exists_share,
     lane_order,
     scene_gaps,
@@ -411,11 +412,7 @@ class Scene:
             arc = np.mod(arc, road.length_m)
         lane = np.where(packed, snaps.lane[rows, slot], 0)
         speed = np.where(packed, snaps.speed_mps[rows, slot], 0.0)
-        # psi's s_min is the shortest vType's length + min gap: the snapshots' shortest
-        lengths = np.asarray(snaps.length_m, dtype=float)
-        on = np.asarray(snaps.valid, dtype=bool)
-        shortest = float(lengths[on].min()) if on.any() else 0.0
-        extra = np.where(packed, np.maximum(lengths[rows, slot] - shortest, 0.0), 0.0)
+        extra = np.where(packed, extra_lengths(snaps)[rows, slot], 0.0)
         return cls(
             lane=torch.as_tensor(np.concatenate([lane, pad], 1).astype(np.int64)),
             arc=torch.as_tensor(np.concatenate([arc, pad], 1)),

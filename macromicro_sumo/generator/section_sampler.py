@@ -33,7 +33,14 @@ import torch
 from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.generator.section_bounds import bounded_gaps
 from macromicro_sumo.generator.section_model import Scene, SectionGeneratorNet, propose
-from macromicro_sumo.generator.section_scene import PSI_INDEX, TOL_M, Gaps, Psi, Road
+from macromicro_sumo.generator.section_scene import (
+    PSI_INDEX,
+    TOL_M,
+    Gaps,
+    Psi,
+    Road,
+    extra_lengths,
+)
 from macromicro_sumo.road.section import STOP, Section, section_leaders
 
 PROJECTION_PROBES = 32  # points per gap a projection tries for a kinematically consistent one
@@ -263,7 +270,7 @@ def kinematic_speeds(
     s_min = psi.s_min[:, None]
     v_f, v_l = gaps.v_f.gather(1, choice), gaps.v_l.gather(1, choice)
     room_f = 2.0 * b * (a - s_min).clamp(min=0.0)
-    ex_l = 0.0 if gaps.extra_l is None else gaps.extra_l.gather(1, choice)
+    ex_l = gaps.extra_l.gather(1, choice)
     room_l = 2.0 * b * (gaps.length.gather(1, choice) - a - s_min - ex_l).clamp(min=0.0)
     need = torch.sqrt((v_f * v_f + 2.0 * b * tau * v_f - room_f).clamp(min=0.0))
     cap = torch.sqrt(b * b * tau * tau + v_l * v_l + room_l) - b * tau
@@ -368,9 +375,7 @@ def complete_section(
     comp.dropped = dropped
     if brake_mps2 is not None:
         obs = np.asarray(snaps.valid & snaps.observed, dtype=bool)
-        lengths = np.where(snaps.valid, snaps.length_m, np.inf)
-        shortest = float(lengths.min()) if snaps.valid.any() else 0.0
-        extra = np.where(obs, np.maximum(snaps.length_m - shortest, 0.0), 0.0)
+        extra = np.where(obs, extra_lengths(snaps), 0.0)
         extra = np.concatenate([extra, np.zeros_like(comp.arc_m[:, extra.shape[1] :])], 1)
         stand = snaps.psi[:, PSI_INDEX["spacing_min_m"]]
         safe_speeds(comp, section, stand, brake_mps2, reaction_s, extra)

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from macromicro_sumo.data.section import PSI_FIELDS
+from macromicro_sumo.data.section import PSI_FIELDS, SectionSnapshots
 from macromicro_sumo.road.section import Section
 
 END_MARGIN_M = 1e-6  # keeps a vehicle at an open downstream end strictly on the section
@@ -70,6 +70,16 @@ def lane_pieces(section: Section) -> list[list[list[float]]]:
             if b > mid + 1e-9 and into[lane]:
                 add(lane, mid, b)
     return pieces
+
+
+def extra_lengths(snaps: SectionSnapshots) -> np.ndarray:
+    """(S, N) each recorded vehicle's length beyond the snapshots' shortest [m], 0 where no
+    vehicle is: psi's s_min is the shortest vehicle plus the minimum gap, so a longer
+    leader (a truck) keeps this much more free behind it (``scene_gaps``, ``safe_speeds``)."""
+    valid = np.asarray(snaps.valid, dtype=bool)
+    lengths = np.asarray(snaps.length_m, dtype=float)
+    shortest = float(lengths[valid].min()) if valid.any() else 0.0
+    return np.where(valid, np.maximum(lengths - shortest, 0.0), 0.0)
 
 
 @dataclass(frozen=True)
@@ -249,7 +259,7 @@ class Gaps:
     valid: torch.Tensor
     n_lane: torch.Tensor  # vehicles already on the gap's lane
     # the gap's leader's length beyond the shortest vType's [m] (its s_min is the shortest's)
-    extra_l: torch.Tensor | None = None
+    extra_l: torch.Tensor
 
     @property
     def room(self) -> torch.Tensor:
