@@ -7,6 +7,7 @@ import re
 import subprocess
 import tomllib
 from collections.abc import Callable, Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +22,7 @@ from macromicro_sumo.road.section import Section, read_section
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.netgen import random_corridor
-from macromicro_sumo.truth.section import simulate_section
+from macromicro_sumo.truth.section import load_section_truth, simulate_section
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_SCENARIO = ROOT / "scenarios" / "ring_paper.toml"
@@ -151,6 +152,27 @@ def small_ring_gt(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = write_scenario(folder, SMALL_RING)
     assert main(["simulate", str(path), "--out", str(folder / "gt"), "--quiet"]) == 0
     return folder / "gt"
+
+
+@pytest.fixture(scope="session")
+def bremen() -> Section:
+    """The section of SUMO's Bremen motorway example (3-4 lanes, an on-ramp merge)."""
+    return read_section(
+        ROOT / "sumo_nets" / "highway_bremen" / "highway.net.xml",
+        ["145354574", "189597495", "E0", "191842213"],
+        False,
+    )
+
+
+@pytest.fixture(scope="session")
+def ring_two_lane_short(tmp_path_factory: pytest.TempPathFactory):
+    """(scenario, ground truth) of scenarios/ring_two_lane.toml cut to one run of a 60 s
+    warm-up and 60 s recorded (loops every 60 s): the fleet departs standing, over loops."""
+    sc = load_scenario(ROOT / "scenarios" / "ring_two_lane.toml")
+    sc = replace(sc, simulation=replace(sc.simulation, n_runs=1, warmup_s=60.0, duration_s=60.0))
+    folder = tmp_path_factory.mktemp("r2l_short")
+    simulate_section(sc, folder / "gt", progress=False)
+    return sc, load_section_truth(folder / "gt", sc)
 
 
 def assert_one_line_error(capsys: pytest.CaptureFixture, code: int, *fragments: str) -> str:

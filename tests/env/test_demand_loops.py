@@ -22,18 +22,13 @@ from macromicro_sumo.errors import UserError  # noqa: E402
 from macromicro_sumo.scenario.load import load_scenario  # noqa: E402
 from macromicro_sumo.truth.section import load_section_truth, simulate_section  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[2]
 KEY = ["detector_id", "begin_s", "end_s"]
 
 
 @pytest.fixture(scope="module")
-def ring(tmp_path_factory: pytest.TempPathFactory):
-    """ring_two_lane, one run: 60 s warm-up + 60 s, its loops every 60 s."""
-    sc = load_scenario(ROOT / "scenarios" / "ring_two_lane.toml")
-    sc = replace(sc, simulation=replace(sc.simulation, n_runs=1, warmup_s=60.0, duration_s=60.0))
-    folder = tmp_path_factory.mktemp("r2l_loops")
-    simulate_section(sc, folder / "gt", progress=False)
-    return sc, load_section_truth(folder / "gt", sc)
+def ring(ring_two_lane_short):
+    """ring_two_lane, one run: a 60 s warm-up, 60 s recorded; its loops every 60 s."""
+    return ring_two_lane_short
 
 
 @pytest.fixture(scope="module")

@@ -50,15 +50,6 @@ scenario = partial(generator_scenario, base={})  # the scenario's own defaults
 
 
 @pytest.fixture(scope="module")
-def bremen() -> Section:
-    return read_section(
-        ROOT / "sumo_nets" / "highway_bremen" / "highway.net.xml",
-        ["145354574", "189597495", "E0", "191842213"],
-        False,
-    )
-
-
-@pytest.fixture(scope="module")
 def ring() -> Section:
     return read_section(ROOT / "sumo_nets" / "ring_r100_e4.net.xml", ["e0", "e1", "e2", "e3"], True)
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,20 +21,10 @@ from test_section_generator import S_MIN, synthetic, untrained
 
 from macromicro_sumo.generator.section_sampler import complete_section, uniform_completion
 from macromicro_sumo.generator.section_scene import Road, scene_gaps
-from macromicro_sumo.road.section import Section, read_section, section_leaders
+from macromicro_sumo.road.section import Section, section_leaders
 
-ROOT = Path(__file__).resolve().parents[2]
 CAR_M, TRUCK_M = 5.0, 12.0  # S_MIN = the car's length + a 2.5 m minimum gap
 BRAKE_MPS2, REACTION_S = 4.5, 1.0
-
-
-@pytest.fixture(scope="module")
-def bremen() -> Section:
-    return read_section(
-        ROOT / "sumo_nets" / "highway_bremen" / "highway.net.xml",
-        ["145354574", "189597495", "E0", "191842213"],
-        False,
-    )
 
 
 def test_a_truck_keeps_its_length_free_behind_it(bremen: Section) -> None:

@@ -6,9 +6,6 @@ ring_two_lane (its fleet departs standing; a few seconds of SUMO)."""
 
 from __future__ import annotations
 
-from dataclasses import replace
-from pathlib import Path
-
 import pytest
 
 from macromicro_sumo.env.demand import DemandCore
@@ -19,10 +16,7 @@ from macromicro_sumo.policy.relax_choice import (
     pick_relax,
     relax_unidentified,
 )
-from macromicro_sumo.scenario.load import load_scenario
-from macromicro_sumo.truth.section import load_section_truth, simulate_section
 
-ROOT = Path(__file__).resolve().parents[2]
 # ring_two_lane's fitted prior (stop 31's manifest, rounded) with relax_s at its bound, as
 # the fit leaves it: no recorded pair shows free acceleration.
 PRIOR = {
@@ -38,13 +32,9 @@ PRIOR = {
 
 
 @pytest.fixture(scope="module")
-def ring(tmp_path_factory: pytest.TempPathFactory):
+def ring(ring_two_lane_short):
     """ring_two_lane, one run: a 60 s warm-up, 60 s recorded; its loops every 60 s."""
-    sc = load_scenario(ROOT / "scenarios" / "ring_two_lane.toml")
-    sc = replace(sc, simulation=replace(sc.simulation, n_runs=1, warmup_s=60.0, duration_s=60.0))
-    folder = tmp_path_factory.mktemp("r2l_relax")
-    simulate_section(sc, folder / "gt", progress=False)
-    return sc, load_section_truth(folder / "gt", sc)
+    return ring_two_lane_short
 
 
 def test_a_relaxation_at_its_bound_is_chosen_on_the_standing_start(ring):
