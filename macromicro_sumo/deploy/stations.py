@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from macromicro_sumo.deploy.intervals import interval_length_s
+
 # Loops of one kind less than this far apart along the section form one station (a
 # user's loops across the lanes of a carriageway are rarely at exactly the same position).
 STATION_TOLERANCE_M = 5.0
@@ -76,7 +78,7 @@ def station_table(det: pd.DataFrame) -> pd.DataFrame:
     loops[["begin_s", "end_s"]] = loops[["begin_s", "end_s"]].round(3)
     # SUMO closes a run with a partial interval (120 s to 120.5 s): not a measurement.
     length = loops["end_s"] - loops["begin_s"]
-    loops = loops[length >= length.mode().max() - 1e-6]
+    loops = loops[length >= interval_length_s(loops) - 1e-6]
     v, n = loops["speed_mps"].to_numpy(float), loops["n_veh"].to_numpy(float)
     passed = np.isfinite(v) & (v > 0) & (n > 0)
     ss = loops["sampled_s"].fillna(0.0).to_numpy(float)
