@@ -39,9 +39,6 @@ FEATURES = {
     )
 }
 
-# The table the PPO agent has always used: feature -> (shift, scale).
-OBS_SHIFT_SCALE = {name: (f.shift, f.scale) for name, f in FEATURES.items()}
-
 
 def shift_scale(observation: str) -> tuple[np.ndarray, np.ndarray]:
     """The fixed (shift, scale) of ``policy.observation``'s features, in feature order."""

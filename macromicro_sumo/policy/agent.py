@@ -4,7 +4,7 @@
   clips the sample to [a_min, a_max]. One policy drives every hidden vehicle
   (``policy_action``).
 * Observations are normalised with fixed ring constants on the ring
-  (``env.observation.OBS_SHIFT_SCALE``) and with the mean/std of the bank's initial
+  (``env.observation.shift_scale``) and with the mean/std of the bank's initial
   observations on a section (``env.observation.bank_shift_scale``); both are buffers of the agent,
   so they travel in the checkpoint's state_dict.
 * ``prior`` (``policy.prior``): "none", the mean is the actor's output; "idm" or "gipps",
@@ -29,7 +29,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from macromicro_sumo.env.observation import OBS_SHIFT_SCALE
+from macromicro_sumo.env.observation import shift_scale as fixed_shift_scale
 from macromicro_sumo.env.rollout import ActionFn
 from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.errors import UserError
@@ -51,7 +51,8 @@ class Agent(nn.Module):
         residual_bound_mps2: float = float("inf"),
         driver_speed: np.ndarray | None = None,
     ) -> None:
-        """``shift_scale``: the observation normalisation (None: the ring's OBS_SHIFT_SCALE).
+        """``shift_scale``: the observation normalisation (None: the features' fixed
+        ``env.observation.shift_scale``).
         ``prior_params`` (``policy.prior.PRIOR_KEYS``) for a ``prior`` other than "none"; None
         leaves them NaN, for a checkpoint's state_dict to fill. ``residual_bound_mps2``:
         the largest correction [m/s^2] the actor adds to the prior (inf: unbounded; 0: the
@@ -65,11 +66,9 @@ class Agent(nn.Module):
         obs_dim = len(features)
         self.observation = observation
         if shift_scale is None:
-            shift = torch.tensor([OBS_SHIFT_SCALE[f][0] for f in features])
-            scale = torch.tensor([OBS_SHIFT_SCALE[f][1] for f in features])
-        else:
-            shift = torch.as_tensor(np.asarray(shift_scale[0]), dtype=torch.float32)
-            scale = torch.as_tensor(np.asarray(shift_scale[1]), dtype=torch.float32)
+            shift_scale = fixed_shift_scale(observation)
+        shift = torch.as_tensor(np.asarray(shift_scale[0]), dtype=torch.float32)
+        scale = torch.as_tensor(np.asarray(shift_scale[1]), dtype=torch.float32)
         self.register_buffer("shift", shift)
         self.register_buffer("scale", scale)
         self.actor = nn.Sequential(
