@@ -101,7 +101,6 @@ class DeployContext:
     placed: list | None = None
     vtypes: dict[str, VType] | None = None
     vclass: dict[str, str] | None = None  # demand vType -> vClass (from vtypes.csv)
-    truth_runs: pd.DataFrame | None = None
     run_sections: dict[int, Section] | None = None  # each run's limits (a fleet's drawn ones)
     # Field data: each run's own inputs (a demand sampled from its stations), how the
     # demand was made (every manifest records it), and the folder that holds it.
