@@ -23,6 +23,11 @@ episode is what a deployment does, on a training run of the ground truth:
   leave as a standing leader) with the section env's lookahead (``env.section_bank``),
   at the run's speed limits (``data.section.run_section``);
   tests check both against the env's observation of the same state;
+* with ``policy.driver_speed`` (``set_driver_speeds``), each driven vehicle observes the
+  limits times its own desired-speed factor, set where it is first driven, as a
+  deployment's (``env.driver_speed.DriverSpeeds`` of the run: "drawn" by (seed, run,
+  vehicle), "memory" from its speed there); before, every driver saw the limits as they
+  are (a factor of 1) where the snapshot episodes and the deployment gave each its own;
 * the reward of a step is the section env's r_macro of every vehicle on the section
   against psi of the detector interval holding the step (``section_macro_reward``);
 * a vehicle whose front passed its leader's back (a collision) is removed: its episode
@@ -44,6 +49,7 @@ import numpy as np
 import pandas as pd
 
 from macromicro_sumo.data.section import PSI_FIELDS, SectionTruth, psi_table, run_section
+from macromicro_sumo.env.driver_speed import DriverSpeeds, scale_limits
 from macromicro_sumo.env.section_bank import section_macro_reward, section_target
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.physics import (
@@ -197,12 +203,24 @@ class DemandCore:
         self.driven: list[str] = []
         self._speed: np.ndarray = np.zeros(0)
         self._has_lights = False
+        # policy.driver_speed: the drivers' factor quantiles (``set_driver_speeds``) and
+        # this episode's drivers (None: every driver the limits as they are).
+        self._driver_quantiles: np.ndarray | None = None
+        self.drivers: DriverSpeeds | None = None
         self._placed: list[Placed] | None = None  # the truth's detectors, placed when asked
         self._loops_dir: Path | None = None  # this run's detector output (``loop_table``)
         self._loop_runs = 0
         self.counts = {"episodes": 0, "vehicle_steps": 0, "collisions": 0, "teleports": 0}
 
     # ------------------------------------------------------------------ episodes
+    def set_driver_speeds(self, quantiles: np.ndarray | None) -> None:
+        """``policy.driver_speed`` (not "none"): from the next ``reset`` on, each driven
+        vehicle observes the limits times its own factor from the drivers' ratio
+        ``quantiles`` (the agent's ``driver_speed`` buffer, as a deployment's
+        ``DriverSpeeds`` takes them); None: the limits as they are."""
+        off = quantiles is None or self.sc.policy.driver_speed == "none"
+        self._driver_quantiles = None if off else np.asarray(quantiles, dtype=float)
+
     def windows(self, rng: np.random.Generator, n: int) -> list[tuple[int, float]]:
         """``n`` episode starts (run, t0): a run with psi, a start on the step grid such
         that the window lies after the warm-up and inside the recorded duration."""
@@ -251,6 +269,8 @@ class DemandCore:
         self.run, self.t = int(run), 0
         self.section = run_section(self.truth, self.run)
         self.types, self.population, self.driven = {}, set(), []
+        q = self._driver_quantiles
+        self.drivers = None if q is None else DriverSpeeds(q, self.sc, self.run)
         steps = int(round(t0_s / self.dt))
         if fleet_run is not None:
             fleet.insert_fleet(sim, *fleet_run, FLEET_ROUTE_PREFIX)
@@ -356,6 +376,8 @@ class DemandCore:
             self._stops(now, states),
         )
         self._speed = scene.obs[:, 0].copy() if len(now) else np.zeros(0)
+        if self.drivers is not None and now:  # each driver's own limits (DriverSpeeds)
+            scale_limits(scene.obs, self.drivers(now, scene.obs))
         return now, scene.obs
 
     def step(self, accel: np.ndarray) -> DemandStep:

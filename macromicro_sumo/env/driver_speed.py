@@ -383,9 +383,10 @@ def drivers_bank(sc, section, bank: SectionBank, quantiles: np.ndarray, seed: in
 
 
 class DriverSpeeds:
-    """A deployment run's drivers' factors: each vehicle's set when it is first driven
-    (``"drawn"``: by ``driver_levels`` of (seed, run, vehicle); ``"memory"``: from its
-    speed and limit then) and kept while it is driven."""
+    """A deployment run's (or a demand episode's, ``env.demand``) drivers' factors: each
+    vehicle's set when it is first driven (``"drawn"``: by ``driver_levels`` of (seed,
+    run, vehicle); ``"memory"``: from its speed and limit then) and kept while it is
+    driven."""
 
     def __init__(self, quantiles: np.ndarray, sc, run: int) -> None:
         self.quantiles = np.asarray(quantiles, dtype=float)

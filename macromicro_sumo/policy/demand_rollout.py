@@ -11,7 +11,9 @@ steps:
   for staying on the section, that is for driving slowly);
 * a vehicle that collides is terminal (no future reward) and gets
   ``-policy.collision_penalty`` on that step;
-* the batch's advantages are standardised and weighted by eta (``collect_demand``).
+* the batch's advantages are standardised and weighted by eta (``collect_demand``);
+* with ``policy.driver_speed``, each driver observes its own limits (``driver_quantiles``,
+  ``env.demand.DemandCore.set_driver_speeds``), as the deployed policy's drivers do.
 
 The critic's time input is ``DEMAND_T_FRAC`` for every demand step: these episodes have no
 horizon to count down, unlike snapshot episodes (t / H in [0, 1)).
@@ -73,6 +75,14 @@ def vehicle_gae(
     return adv, adv + values
 
 
+def driver_quantiles(agent: Agent) -> np.ndarray | None:
+    """The drivers' desired-speed ratio quantiles the agent carries (``policy.driver_speed``;
+    None: none), in float64 as the deployment hands them to ``DriverSpeeds``
+    (``deploy.stage``), so that a vehicle gets the same factor in both."""
+    q = getattr(agent, "driver_speed", None)
+    return None if q is None else q.double().numpy()
+
+
 def collect_demand(
     agent: Agent,
     core: DemandCore,
@@ -87,6 +97,7 @@ def collect_demand(
     tracks: list[_Track] = []
     rewards, collided, collisions, teleports, steps = [], 0, 0, 0, 0
     t_frac = torch.tensor(DEMAND_T_FRAC)
+    core.set_driver_speeds(driver_quantiles(agent))
     for run, t0 in windows:
         c0, tp0 = core.counts["collisions"], core.counts["teleports"]
         core.reset(run, t0)

@@ -17,6 +17,13 @@ from deploy_nets import merge_scenario  # noqa: E402
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver  # noqa: E402
 from macromicro_sumo.deploy.drivers import section_observations as deploy_observations  # noqa: E402
 from macromicro_sumo.env.demand import DemandCore  # noqa: E402
+from macromicro_sumo.env.driver_speed import (  # noqa: E402
+    QUANTILE_LEVELS,
+    DriverSpeeds,
+    driver_levels,
+    entry_factors,
+    factors_at,
+)
 from macromicro_sumo.env.section_bank import section_observations  # noqa: E402
 from macromicro_sumo.road.physics import idm_accel  # noqa: E402
 from macromicro_sumo.scenario.load import load_scenario  # noqa: E402
@@ -110,6 +117,65 @@ def test_observations_agree_with_the_section_env_and_the_deployment(merge) -> No
     finally:
         core.close()
     assert n_checked > 50
+
+
+def _deploy_driver(sc, core: DemandCore, run: int, speeds: DriverSpeeds | None):
+    """A deployment's section driver on the core's SUMO state (``speeds``: its drivers'
+    factors, ``policy.driver_speed``)."""
+    drv = SectionSpeedDriver(sc, core.section, run, act, "none")
+    drv.types = dict(core.types)
+    drv.vtypes = dict(core.vtypes)
+    drv.shape_of = {v: core.vtypes[t].shape for v, t in core.types.items()}
+    drv.has_lights = False
+    drv.driver_speeds = speeds
+    return drv
+
+
+@pytest.mark.parametrize("kind", ["drawn", "memory"])
+def test_drivers_take_the_desired_speed_factors_a_deployment_gives_them(merge, kind) -> None:
+    """``policy.driver_speed``: a demand episode's driver observes the limits times the
+    factor a deployment's ``DriverSpeeds`` gives the same vehicle of the same run ("drawn":
+    a hash of (seed, run, vehicle); "memory": its speed ratio where it is first driven),
+    kept while it is driven; every other feature as without factors."""
+    sc0, truth = merge
+    sc = replace(sc0, policy=replace(sc0.policy, driver_speed=kind))
+    q = np.linspace(0.8, 1.25, len(QUANTILE_LEVELS))  # ratios around a median of 1.025
+    run = int(truth.runs[0])
+    core = DemandCore(sc, truth, truth.runs, 60)
+    deployed = DriverSpeeds(q, sc, run)  # the deployment's, asked at the same steps
+    entry: dict[str, float] = {}
+    factors: list[float] = []
+    try:
+        core.set_driver_speeds(q)
+        core.reset(run, 90.0)
+        for _ in range(30):
+            vids, obs = core.observe()
+            if vids:
+                states = core.lane_states()
+                dep, _, _ = deploy_observations(
+                    _deploy_driver(sc, core, run, deployed), core.sim, vids, states
+                )
+                np.testing.assert_allclose(obs, dep, atol=1e-12)
+                plain, _, _ = deploy_observations(
+                    _deploy_driver(sc, core, run, None), core.sim, vids, states
+                )
+                if kind == "drawn":
+                    f = factors_at(q, driver_levels(sc.seed, run, vids))
+                else:  # the first speed ratio seen, kept
+                    for i, v in enumerate(vids):
+                        entry.setdefault(
+                            v, float(entry_factors(q, plain[i : i + 1, 0], plain[i : i + 1, 1])[0])
+                        )
+                    f = np.array([entry[v] for v in vids])
+                np.testing.assert_allclose(
+                    obs[:, [1, 4]], plain[:, [1, 4]] * f[:, None], rtol=1e-12
+                )
+                np.testing.assert_array_equal(obs[:, [0, 2, 3, 5]], plain[:, [0, 2, 3, 5]])
+                factors += f.tolist()
+            core.step(act(obs))
+    finally:
+        core.close()
+    assert len(factors) > 100 and np.ptp(factors) > 0.1  # drivers of their own speeds
 
 
 def test_driven_vehicles_are_held_to_their_vtypes_max_speed(merge) -> None:

@@ -16,9 +16,11 @@ from deploy_nets import merge_scenario  # noqa: E402
 
 from macromicro_sumo.data.section import section_snapshots  # noqa: E402
 from macromicro_sumo.env.demand import DemandCore  # noqa: E402
+from macromicro_sumo.env.driver_speed import QUANTILE_LEVELS, driver_levels, factors_at  # noqa: E402
 from macromicro_sumo.env.section import SectionCore  # noqa: E402
 from macromicro_sumo.env.section_bank import build_section_bank  # noqa: E402
-from macromicro_sumo.policy.demand_rollout import vehicle_gae  # noqa: E402
+from macromicro_sumo.policy.agent import Agent  # noqa: E402
+from macromicro_sumo.policy.demand_rollout import collect_demand, vehicle_gae  # noqa: E402
 from macromicro_sumo.policy.ppo import train_policy  # noqa: E402
 from macromicro_sumo.scenario.load import load_scenario  # noqa: E402
 from macromicro_sumo.truth.section import load_section_truth, simulate_section  # noqa: E402
@@ -109,3 +111,32 @@ def test_mixed_training_learns_from_demand_episodes(merge, tmp_path: Path) -> No
         a["agent"].state_dict().items(), b["agent"].state_dict().values(), strict=True
     ):
         assert torch.equal(x, y), k
+
+
+def test_demand_rollouts_give_drivers_the_agents_desired_speed_factors(merge) -> None:
+    """``policy.driver_speed = "drawn"``: ``collect_demand`` drives each vehicle with the
+    factor the deployment draws from the agent's quantiles for (seed, run, vehicle); the
+    limits it observed are the section's times that factor. An agent without quantiles:
+    every driver the limits as they are."""
+    sc0, truth, _ = merge
+    sc = dataclasses.replace(sc0, policy=dataclasses.replace(sc0.policy, driver_speed="drawn"))
+    q = np.linspace(0.8, 1.25, len(QUANTILE_LEVELS))
+    gen = torch.Generator().manual_seed(0)
+    run = int(truth.runs[0])
+    limits = set(np.round(truth.section.limits_mps.ravel(), 9).tolist())
+    core = DemandCore(sc, truth, truth.runs, 20)
+    try:
+        for quantiles in (q, None):
+            agent = Agent(observation="lookahead", driver_speed=quantiles)
+            db = collect_demand(agent, core, [(run, 70.0)], 1.0, 0.0, 0.99, 0.95, gen)
+            seen = set(np.round(db.obs[:, 1], 4).tolist())
+            if quantiles is None:
+                assert core.drivers is None and seen <= {round(x, 4) for x in limits}
+                continue
+            ids = sorted(core.drivers.factor)
+            assert len(ids) >= 5 and db.vehicle_steps > 20 * 5
+            want = factors_at(agent.driver_speed.double().numpy(), driver_levels(sc.seed, run, ids))
+            np.testing.assert_allclose([core.drivers.factor[v] for v in ids], want, rtol=1e-12)
+            assert len(seen) >= len(ids) and np.ptp(want) > 0.1  # each its own limits
+    finally:
+        core.close()
