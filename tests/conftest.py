@@ -166,10 +166,11 @@ def bremen() -> Section:
 
 @pytest.fixture(scope="session")
 def ring_two_lane_short(tmp_path_factory: pytest.TempPathFactory):
-    """(scenario, ground truth) of scenarios/ring_two_lane.toml cut to one run of a 60 s
-    warm-up and 60 s recorded (loops every 60 s): the fleet departs standing, over loops."""
+    """(scenario, ground truth) of scenarios/ring_two_lane.toml cut to three runs (one to
+    train, validate, hold out) of a 60 s warm-up and 60 s recorded (loops every 60 s): the
+    fleet departs standing, over loops."""
     sc = load_scenario(ROOT / "scenarios" / "ring_two_lane.toml")
-    sc = replace(sc, simulation=replace(sc.simulation, n_runs=1, warmup_s=60.0, duration_s=60.0))
+    sc = replace(sc, simulation=replace(sc.simulation, n_runs=3, warmup_s=60.0, duration_s=60.0))
     folder = tmp_path_factory.mktemp("r2l_short")
     simulate_section(sc, folder / "gt", progress=False)
     return sc, load_section_truth(folder / "gt", sc)

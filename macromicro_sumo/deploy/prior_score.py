@@ -1,16 +1,19 @@
-"""A candidate prior deployed alone on the training runs: the score of ``policy.prior = "auto"``.
+"""A candidate prior deployed alone on the training runs: the project's one prior-alone scorer.
 
 ``policy.prior_choice`` fits every prior family to the observed pairs and keeps the one
 whose prior alone (the residual at 0) drives the training runs' demand closest to the
-truth. ``deploy_prior`` is that drive: the deployment itself (``deploy.run.run_method``,
-its safety layer and driver speeds as the trained policy will meet them) on the first
-``deploy.safety_floor_runs`` training runs (never the held-out runs the report scores, nor
-validation: ``deploy.calibrate.training_runs``), scored with the report's speed RMSE
-against the truth's detectors there (``deploy.floor_choice.speed_rmse``). Why a
-deployment and not the demand env Stage II trains on (``policy.relax_choice.loop_fit``):
-the demand env applies the prior's commands without the safety layer, and on drawn net
-300 each family's prior alone collided 1,386-1,770 times over the three runs, where
-deployed it collided never (docs: "The prior's family chosen (stop 32)").
+truth; ``policy.relax_choice`` keeps the Krauss relaxation time (where the pairs leave it
+at its bound) the same way. ``deploy_prior`` is that drive: the deployment itself
+(``deploy.run.run_method``, its safety layer and driver speeds as the trained policy will
+meet them) on the first ``deploy.safety_floor_runs`` training runs (never the held-out runs
+the report scores, nor validation: ``deploy.calibrate.training_runs``), scored with the
+report's speed RMSE against the truth's detectors there (``deploy.floor_choice.speed_rmse``:
+on a simulated truth every interval from SUMO's first step, so the departure the
+relaxation shapes counts). Why a deployment and not the demand env Stage II trains on: the
+demand env applies the prior's commands without the safety layer, and on drawn net 300
+each family's prior alone collided 1,386-1,770 times over the three runs, where deployed
+it collided never (docs: "The prior's family chosen (stop 32)"); on drawn net 311 every
+relaxation candidate collided 606-906 times there ("One prior-alone scorer (stop 33)").
 """
 
 from __future__ import annotations

@@ -48,7 +48,9 @@ from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.policy.agent import Agent, policy_action
 from macromicro_sumo.policy.checkpoint import load_policy, policy_file
 from macromicro_sumo.policy.ppo import train_policy
+from macromicro_sumo.policy.prior import PRIOR_KEYS
 from macromicro_sumo.policy.prior_choice import PriorFit, with_prior
+from macromicro_sumo.policy.relax_choice import relax_unidentified
 from macromicro_sumo.policy.stage import fit_stage_prior, section_episodes
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.truth.section import load_section_truth
@@ -142,14 +144,17 @@ def refine(
     out = prepare_out_dir(out)
     torch.set_num_threads(1)
     splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
-    # The policy stage's prior (its relaxation time chosen as there): the fine-tune trains
-    # on the prior the single pass trained on, of the family its checkpoint records (with
-    # policy.prior = "auto" the one the policy stage chose: not chosen again here).
+    # The policy stage's prior: the fine-tune trains on the prior the single pass trained
+    # on, of the family its checkpoint records (with policy.prior = "auto" the one the
+    # policy stage chose) and its Krauss relaxation time as chosen there (by deployments
+    # of the prior alone, policy.relax_choice): neither is chosen again here.
     ep0, snaps0 = _episodes(sc, truth, net, splits)
     trained = with_prior(sc, agent.prior) if sc.policy.prior == "auto" else sc
-    trained, (prior, extra_manifest, pairs) = fit_stage_prior(
-        trained, truth, splits, fit_prior, ep0.make_demand
-    )
+    trained, (prior, extra_manifest, pairs) = fit_stage_prior(trained, truth, splits, fit_prior)
+    if prior is not None and agent.prior == "krauss" and relax_unidentified(prior):
+        chosen = {"relax_s": agent.krauss_prior.tolist()[PRIOR_KEYS["krauss"].index("relax_s")]}
+        if not relax_unidentified(chosen):  # the policy stage chose one below the bound
+            prior["relax_s"] = extra_manifest["prior"]["relax_s"] = chosen["relax_s"]
     # The fine-tune keeps each next-step scene's hidden set (the policy's vehicles): no
     # fresh hidden sets per epoch, as with instrumented.hidden = "run".
     fixed = dataclasses.replace(sc, instrumented=dataclasses.replace(sc.instrumented, hidden="run"))

@@ -7,8 +7,10 @@ Krauss prior's at 6.86-7.34, on drawn net 311 Krauss at 2.82 and IDM at 3.41 (do
 family by hand. ``choose_prior`` fits every family of ``PRIOR_FAMILIES`` to the same pairs
 (``fit_family``: as the policy stage fits one, the Krauss form with its relaxation choice,
 ``policy.relax_choice``), deploys each prior alone (the residual at 0) on training runs
-(never the held-out runs; ``PriorScore``, ``deploy.prior_score``), and keeps the family
-whose speed RMSE against the truth's detectors there is lowest.
+(never the held-out runs; ``PriorDeploy``, ``deploy.prior_score``), and keeps the family
+whose speed RMSE against the truth's detectors there is lowest. ``PriorDeploy`` is the
+project's one prior-alone scorer: the Krauss relaxation choice ranks its candidates with it
+too, and the family choice takes the chosen relaxation's figures from there.
 
 The choice is made once, by the policy stage; the checkpoint records the family and every
 later reader takes it from there (``policy.checkpoint.trained_prior``).
@@ -18,15 +20,15 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from macromicro_sumo.env.demand import DemandCore
 from macromicro_sumo.policy.agent import Agent
-from macromicro_sumo.policy.relax_choice import choose_relax, relax_unidentified
+from macromicro_sumo.policy.relax_choice import choose_relax, rank_key, relax_unidentified
 
 # Fits ``policy.prior``'s model to the observed pairs of the given runs of a ground truth:
 # (the agent's prior parameters, what the manifest records of the fit, the pairs (obs,
@@ -48,6 +50,29 @@ PriorScore = Callable[[Any, Path, Agent], dict[str, Any]]
 PRIOR_FAMILIES = ("krauss", "idm", "gipps")
 
 
+@dataclass(frozen=True)
+class PriorDeploy:
+    """The project's one prior-alone scorer, as the policy stage has it: the deployment
+    (``score``), the ground truth's folder, the drivers' desired-speed quantiles the trained
+    policy's will have (``policy.driver_speed``), and whether to print. Called with a
+    scenario (its ``policy.prior`` the family) and the prior's parameters."""
+
+    score: PriorScore
+    data: Path
+    driver_speed: np.ndarray | None = None
+    progress: bool = False
+
+    def __call__(self, sc: Any, params: Mapping[str, float]) -> dict[str, Any]:
+        agent = Agent(
+            observation=sc.policy.observation,
+            prior=sc.policy.prior,
+            prior_params=params,
+            residual_bound_mps2=0.0,  # the prior alone
+            driver_speed=self.driver_speed,
+        )
+        return self.score(sc, self.data, agent)
+
+
 def with_prior(sc: Any, family: str) -> Any:
     """``sc`` with ``policy.prior = family``: what every stage after the choice reads."""
     return dataclasses.replace(sc, policy=dataclasses.replace(sc.policy, prior=family))
@@ -58,22 +83,26 @@ def fit_family(
     truth: Any,
     runs: np.ndarray,
     fit_prior: PriorFit,
-    make_demand: Callable[[], DemandCore] | None,
+    deploy: PriorDeploy | None,
 ) -> FittedPrior:
     """``sc.policy.prior``'s model fitted to ``runs``' observed pairs (``fit_prior``); a
-    Krauss relaxation time the pairs leave at its bound chosen on the training runs'
-    demand, warm-up included, by the prior alone (``policy.relax_choice``)."""
+    Krauss relaxation time the pairs leave at its bound chosen by ``deploy``, the prior
+    alone deployed on training runs with each candidate (``policy.relax_choice``; without
+    ``deploy`` it stays at the bound)."""
     prior, extra, pairs = fit_prior(sc, truth, runs)
-    if sc.policy.prior == "krauss" and relax_unidentified(prior) and make_demand is not None:
-        prior["relax_s"], extra["prior"]["relax_choice"] = choose_relax(sc, prior, make_demand)
+    if sc.policy.prior == "krauss" and relax_unidentified(prior) and deploy is not None:
+        t0 = time.perf_counter()
+        prior["relax_s"], record = choose_relax(
+            prior, lambda p: deploy(sc, p), sc.simulation.step_length_s
+        )
+        extra["prior"]["relax_choice"] = record
         extra["prior"]["relax_s"] = prior["relax_s"]
+        if deploy.progress:
+            print(
+                f"[prior krauss] relax_s {prior['relax_s']:g} s kept of "
+                f"{len(record['candidates'])} deployed alone ({time.perf_counter() - t0:.0f} s)"
+            )
     return prior, extra, pairs
-
-
-def rank_key(score: dict[str, Any]) -> tuple[bool, float]:
-    """Lower is better: a collision-free deployment first, then the speed RMSE (NaN last)."""
-    rmse = float(score["speed_rmse_mps"])
-    return score["collisions"] > 0, rmse if np.isfinite(rmse) else float("inf")
 
 
 def choose_prior(
@@ -81,21 +110,17 @@ def choose_prior(
     truth: Any,
     runs: np.ndarray,
     fit_prior: PriorFit,
-    make_demand: Callable[[], DemandCore] | None,
-    score_prior: PriorScore,
-    data: Path,
-    driver_speed: np.ndarray | None = None,
+    deploy: PriorDeploy,
     families: tuple[str, ...] = PRIOR_FAMILIES,
-    progress: bool = False,
 ) -> tuple[str, FittedPrior]:
     """(the family kept, its ``fit_family``): each of ``families`` fitted to ``runs``' pairs
-    and deployed alone by ``score_prior`` on training runs of the truth in ``data``, its
-    drivers' speeds ``driver_speed`` (``policy.driver_speed``) as the trained policy's
-    will be; the one with the lowest speed RMSE there kept, a collision-free one before any
-    other (``rank_key``; equals: the first of ``families``). Every candidate's fit and
-    deployment figures and the choice go into the manifest record
-    (``extra["prior"]["choice"]``). The deployment's speed RMSE, not the fit's: the fit
-    ranks the families by the observed pairs (net 300: IDM 0.90, Krauss 1.25 m/s^2),
+    and deployed alone by ``deploy`` on training runs, its drivers' speeds as the trained
+    policy's will be; the one with the lowest speed RMSE there kept, a collision-free one
+    before any other (``rank_key``; equals: the first of ``families``). A Krauss prior whose
+    relaxation was chosen was deployed with it there: that figure is taken, not deployed
+    again. Every candidate's fit and deployment figures and the choice go into the manifest
+    record (``extra["prior"]["choice"]``). The deployment's speed RMSE, not the fit's: the
+    fit ranks the families by the observed pairs (net 300: IDM 0.90, Krauss 1.25 m/s^2),
     not by what the population does with them, and the report judges the latter."""
     t0 = time.perf_counter()
     fits: dict[str, FittedPrior] = {}
@@ -103,16 +128,13 @@ def choose_prior(
     for family in families:
         t1 = time.perf_counter()
         one = with_prior(sc, family)
-        fits[family] = fit_family(one, truth, runs, fit_prior, make_demand)
-        agent = Agent(
-            observation=sc.policy.observation,
-            prior=family,
-            prior_params=fits[family][0],
-            residual_bound_mps2=0.0,  # the prior alone
-            driver_speed=driver_speed,
-        )
-        scores[family] = score_prior(one, data, agent)
-        if progress:
+        fits[family] = fit_family(one, truth, runs, fit_prior, deploy)
+        relax = fits[family][1]["prior"].get("relax_choice")
+        if relax is not None:  # the chosen relaxation's deployment: the same configuration
+            scores[family] = relax["candidates"][f"{relax['chosen_s']:g}"]
+        else:
+            scores[family] = deploy(one, fits[family][0])
+        if deploy.progress:
             print(
                 f"[prior auto] {family}: deployed alone, speed RMSE "
                 f"{scores[family]['speed_rmse_mps']:.3f} m/s, collisions "
@@ -133,7 +155,7 @@ def choose_prior(
             for f in families
         },
     }
-    if progress:
+    if deploy.progress:
         print(f"[prior auto] kept {chosen} ({record['wall_s']:.0f} s)")
     prior, extra, pairs = fits[chosen]
     extra["prior"]["choice"] = record

@@ -40,6 +40,7 @@ from macromicro_sumo.policy.checkpoint import policy_file, resumable_checkpoint
 from macromicro_sumo.policy.ppo import train_policy
 from macromicro_sumo.policy.prior_choice import (
     FittedPrior,
+    PriorDeploy,
     PriorFit,
     PriorScore,
     choose_prior,
@@ -49,17 +50,6 @@ from macromicro_sumo.policy.prior_choice import (
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.inputs import scenario_inputs
 from macromicro_sumo.truth.section import load_section_truth
-
-
-@dataclass(frozen=True)
-class StageChoice:
-    """What ``policy.prior = "auto"`` chooses with: the deployment that scores a prior
-    alone, the ground truth's folder, the drivers' speed quantiles, and whether to print."""
-
-    score: PriorScore
-    data: Path
-    driver_speed: np.ndarray | None = None
-    progress: bool = False
 
 
 @dataclass(frozen=True)
@@ -127,19 +117,20 @@ def fit_stage_prior(
     truth: Any,
     splits: dict[str, np.ndarray],
     fit_prior: PriorFit | None,
-    make_demand: Callable[[], DemandCore] | None,
-    choice: StageChoice | None = None,
+    deploy: PriorDeploy | None = None,
 ) -> tuple[SectionScenario, FittedPrior | tuple[None, dict[str, Any], None]]:
     """``policy.prior``'s model fitted to the train + val runs' observed pairs (``fit_prior``;
     none without it or with ``prior = "none"``): (the scenario with its family resolved,
-    (its parameters, what the manifest records, the pairs)). A Krauss relaxation time the
-    pairs leave at its bound is chosen on the training runs' demand (``policy.relax_choice``);
-    ``prior = "auto"`` chooses the family with ``choice`` (``policy.prior_choice``), once:
-    the returned scenario says which, and every stage after this one reads it from the
-    checkpoint (``policy.checkpoint.trained_prior``). The policy stage and the joint
-    refinement both fit it here, so both train on one prior."""
+    (its parameters, what the manifest records, the pairs)). ``deploy`` scores a prior
+    alone on training runs: a Krauss relaxation time the pairs leave at its bound is chosen
+    with it (``policy.relax_choice``; without it the bound stays), and ``prior = "auto"``
+    chooses the family with it (``policy.prior_choice``), once: the returned scenario says
+    which, and every stage after this one reads it from the checkpoint
+    (``policy.checkpoint.trained_prior``). The policy stage and the joint refinement both
+    fit it here; the refinement, without ``deploy``, takes the relaxation from the
+    checkpoint, so both train on one prior."""
     auto = sc.policy.prior == "auto"
-    if auto and (fit_prior is None or choice is None):
+    if auto and (fit_prior is None or deploy is None):
         raise UserError(
             f"{sc.source}: policy.prior = 'auto' is chosen by the policy stage of a section "
             "(train-policy); accepted here: none, idm, gipps or krauss"
@@ -148,18 +139,8 @@ def fit_stage_prior(
         return sc, (None, {}, None)
     runs = np.concatenate([splits["train"], splits["val"]])
     if not auto:
-        return sc, fit_family(sc, truth, runs, fit_prior, make_demand)
-    family, fitted = choose_prior(
-        sc,
-        truth,
-        runs,
-        fit_prior,
-        make_demand,
-        choice.score,
-        choice.data,
-        choice.driver_speed,
-        progress=choice.progress,
-    )
+        return sc, fit_family(sc, truth, runs, fit_prior, deploy)
+    family, fitted = choose_prior(sc, truth, runs, fit_prior, deploy)
     return with_prior(sc, family), fitted
 
 
@@ -177,9 +158,10 @@ def run_train_policy(
 ) -> dict[str, Any]:
     """CLI stage: episodes from train+val runs completed by the generator, then PPO.
     ``fit_prior``: the model under a residual policy (``policy.prior``), fitted to the
-    train + val runs' observed pairs; without it PPO refuses a prior. ``score_prior``:
-    ``policy.prior = "auto"``'s deployment of each candidate prior alone
-    (``policy.prior_choice``); without it "auto" is refused."""
+    train + val runs' observed pairs; without it PPO refuses a prior. ``score_prior``: the
+    deployment of a candidate prior alone, with which a Krauss relaxation the pairs leave
+    at its bound and ``policy.prior = "auto"``'s family are chosen (``PriorDeploy``);
+    without it the relaxation stays at its bound and "auto" is refused."""
     objective = objective or sc.policy.objective
     truth = load_section_truth(data, sc)
     net = load_section_generator(generator, sc)
@@ -187,12 +169,10 @@ def run_train_policy(
         sc, truth.runs, data, generator, out, objective, resume
     )
     episodes = section_episodes(sc, truth, net, splits)
-    choice = None
+    deploy = None
     if score_prior is not None:
-        choice = StageChoice(score_prior, Path(data), episodes.driver_speed, progress)
-    trained, (prior, extra, pairs) = fit_stage_prior(
-        sc, truth, splits, fit_prior, episodes.make_demand, choice
-    )
+        deploy = PriorDeploy(score_prior, Path(data), episodes.driver_speed, progress)
+    trained, (prior, extra, pairs) = fit_stage_prior(sc, truth, splits, fit_prior, deploy)
     res = train_policy(
         trained,
         episodes.bank,

@@ -18,13 +18,18 @@ from section_files import routes_file, section_scenario, vtype
 from macromicro_sumo.data.section import split_runs
 from macromicro_sumo.deploy.prior_score import deploy_prior
 from macromicro_sumo.deploy.stage import deploy
-from macromicro_sumo.env.demand import DemandCore
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.pipeline.build import fit_residual_prior
 from macromicro_sumo.pipeline.stages import train_generator, train_policy
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.checkpoint import load_policy, trained_prior
-from macromicro_sumo.policy.prior_choice import PRIOR_FAMILIES, choose_prior, rank_key
+from macromicro_sumo.policy.prior_choice import (
+    PRIOR_FAMILIES,
+    PriorDeploy,
+    choose_prior,
+    rank_key,
+)
+from macromicro_sumo.policy.relax_choice import RELAX_CANDIDATES_S
 from macromicro_sumo.policy.stage import fit_stage_prior
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import load_section_truth, simulate_section
@@ -89,10 +94,17 @@ def idm_road(tmp_path_factory: pytest.TempPathFactory):
 
 
 def _choose(sc, truth):
+    """choose_prior's result and the families of the deployments it made, in order."""
     splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
     runs = np.concatenate([splits["train"], splits["val"]])
-    demand = lambda: DemandCore(sc, truth, splits["train"], 8)  # noqa: E731
-    return choose_prior(sc, truth, runs, fit_residual_prior, demand, deploy_prior, truth.folder)
+    deployed = []
+
+    def score(one, data, agent):
+        deployed.append(agent.prior)
+        return deploy_prior(one, data, agent)
+
+    deploy = PriorDeploy(score, truth.folder)
+    return choose_prior(sc, truth, runs, fit_residual_prior, deploy), deployed
 
 
 def test_the_choice_keeps_the_prior_closest_to_the_truth_and_records_every_one(idm_road):
@@ -102,9 +114,15 @@ def test_the_choice_keeps_the_prior_closest_to_the_truth_and_records_every_one(i
     road of SUMO IDM cars the IDM prior, whose fit is the closest, deploys near the kept
     one: the choice does not keep a family far off the truth's."""
     sc, truth, _ = idm_road
-    family, (params, extra, pairs) = _choose(sc, truth)
+    (family, (params, extra, pairs)), deployed = _choose(sc, truth)
     record = extra["prior"]["choice"]
     cand = record["candidates"]
+    # Each configuration deployed once: a Krauss prior whose relaxation was chosen (its
+    # candidates deployed by the same scorer) is not deployed again with the chosen one.
+    relax = cand["krauss"]["relax_choice_s"]
+    krauss_runs = deployed.count("krauss")
+    assert deployed.count("idm") == deployed.count("gipps") == 1
+    assert krauss_runs == (1 if relax is None else len(RELAX_CANDIDATES_S))
     assert set(cand) == set(PRIOR_FAMILIES) and record["chosen"] == family
     assert extra["prior"]["kind"] == family and len(pairs[1]) > 100
     rmse = {f: c["deployed"]["speed_rmse_mps"] for f, c in cand.items()}

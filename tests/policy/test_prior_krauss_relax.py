@@ -1,21 +1,20 @@
 """The Krauss prior's relaxation time where the recorded pairs leave it at its bound
-(``policy.relax_choice``): chosen against the training runs' induction loops (SUMO's own,
-``DemandCore.loop_table``; tests/env/test_demand_loops.py checks them against the truth's)
-by driving their demand, warm-up included, with the prior alone. Real SUMO: one run of
-ring_two_lane (its fleet departs standing; a few seconds of SUMO)."""
+(``policy.relax_choice``): each candidate's prior alone deployed on the training runs by
+the project's one prior-alone scorer (``policy.prior_choice.PriorDeploy``,
+``deploy.prior_score.deploy_prior``: the deployment's safety layer and drivers, from
+SUMO's first step), the lowest speed RMSE against the truth's detectors kept. Real SUMO:
+ring_two_lane cut to three runs of a 60 s warm-up and 60 s recorded (its fleet departs
+standing; a few seconds of SUMO per deployment)."""
 
 from __future__ import annotations
 
 import pytest
 
-from macromicro_sumo.env.demand import DemandCore
+from macromicro_sumo.data.section import split_runs
+from macromicro_sumo.deploy.prior_score import deploy_prior
 from macromicro_sumo.policy.prior import RELAX_UPPER_S
-from macromicro_sumo.policy.relax_choice import (
-    LoopFit,
-    choose_relax,
-    pick_relax,
-    relax_unidentified,
-)
+from macromicro_sumo.policy.prior_choice import PriorDeploy
+from macromicro_sumo.policy.relax_choice import choose_relax, relax_unidentified
 
 # ring_two_lane's fitted prior (stop 31's manifest, rounded) with relax_s at its bound, as
 # the fit leaves it: no recorded pair shows free acceleration.
@@ -33,43 +32,56 @@ PRIOR = {
 
 @pytest.fixture(scope="module")
 def ring(ring_two_lane_short):
-    """ring_two_lane, one run: a 60 s warm-up, 60 s recorded; its loops every 60 s."""
+    """ring_two_lane, three runs (one trains, one validates, one is held out): a 60 s
+    warm-up, 60 s recorded; its loops every 60 s."""
     return ring_two_lane_short
 
 
-def test_a_relaxation_at_its_bound_is_chosen_on_the_standing_start(ring):
-    """With relax_s at its bound the fleet closes on its desired speed within 10 s and
-    passes fewer vehicles over the loops in its first minute than the truth's; the choice
-    keeps a shorter one, whose counts are closer, and records every candidate."""
+def test_the_relaxation_is_the_candidate_whose_prior_alone_deploys_closest(ring):
+    """With relax_s at its bound the fleet, departing standing, closes on its desired speed
+    within 10 s and its first minute runs slow; each candidate's prior alone is deployed
+    on the training run, the one with the lowest speed RMSE against the truth's detectors
+    is kept (a shorter one than the bound), every candidate's figures are recorded, and the
+    kept one's figure is what deploying it again gives."""
     sc, truth = ring
     assert relax_unidentified(PRIOR)
     assert not relax_unidentified({**PRIOR, "relax_s": 0.8 * RELAX_UPPER_S})
-    chosen, record = choose_relax(
-        sc,
-        PRIOR,
-        lambda: DemandCore(sc, truth, truth.runs, 10),
-        candidates=(1.0, 3.0, RELAX_UPPER_S),
-        span_s=0.0,  # the warm-up's minute alone
-    )
-    fits = record["candidates"]
-    assert set(fits) == {"1", "3", "10"} and record["runs"] == [0]
-    assert chosen < RELAX_UPPER_S
-    assert fits[f"{chosen:g}"]["count_rmse"] < fits["10"]["count_rmse"]
-    assert fits["10"]["passages"] < fits["1"]["passages"]  # the slower start passes fewer
-    assert all(f["collisions"] == 0 and f["teleports"] == 0 for f in fits.values())
+    deploy = PriorDeploy(deploy_prior, truth.folder)
+    calls = []
+
+    def score(params):
+        calls.append(params["relax_s"])
+        return deploy(sc, params)
+
+    chosen, record = choose_relax(PRIOR, score, 0.5, candidates=(0.2, 3.0, RELAX_UPPER_S))
+    assert calls == [RELAX_UPPER_S, 3.0, 0.5]  # the step at least; each deployed once
+    cand = record["candidates"]
+    assert set(cand) == {"10", "3", "0.5"} and record["chosen_s"] == chosen
+    rmse = {k: c["speed_rmse_mps"] for k, c in cand.items()}
+    assert rmse[f"{chosen:g}"] == min(rmse.values())
+    assert chosen < RELAX_UPPER_S and rmse["10"] > rmse[f"{chosen:g}"] + 0.05
+    assert all(c["collisions"] == 0 and c["teleports"] == 0 for c in cand.values())
+    assert all(c["runs"] == cand["10"]["runs"] for c in cand.values())
+    train = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)["train"]
+    assert cand["10"]["runs"] == [int(r) for r in train]  # never validation nor held out
+    again = deploy(sc, {**PRIOR, "relax_s": chosen})
+    assert again["speed_rmse_mps"] == pytest.approx(rmse[f"{chosen:g}"], abs=1e-9)
 
 
-def _fit(count_rmse: float, collisions: int) -> LoopFit:
-    return LoopFit(count_rmse, 0.0, 100, collisions, 0)
-
-
-def test_the_choice_keeps_the_fitted_relaxation_where_every_run_crashed():
-    """Counts of runs that collided are no measurement (drawn net 311: every candidate
-    collided 606-906 times and the counts picked 7 s, which trained a worse policy): the
-    fitted T stays; a collision-free candidate is chosen over a closer one that crashed,
-    and equals keep the first (the larger T)."""
-    crashed = [(10.0, _fit(85.7, 754)), (7.0, _fit(71.1, 606)), (5.0, _fit(84.3, 906))]
-    assert pick_relax(crashed, 10.0) == 10.0
-    mixed = [(10.0, _fit(8.1, 0)), (7.0, _fit(2.0, 3)), (5.0, _fit(3.9, 0)), (3.0, _fit(3.9, 0))]
-    assert pick_relax(mixed, 10.0) == 5.0
-    assert pick_relax([(10.0, _fit(float("nan"), 0)), (5.0, _fit(6.0, 0))], 10.0) == 5.0
+def test_the_ranking_puts_a_collision_free_deployment_first_and_keeps_the_larger_of_equals():
+    """A deployment that collided ranks behind any that did not (the deployment's safety
+    layer should never let one collide: a defect, not a figure), a NaN RMSE last, and equal
+    figures keep the larger T (the fit's side)."""
+    figures = {
+        10.0: {"speed_rmse_mps": 0.41, "collisions": 0},
+        7.0: {"speed_rmse_mps": 0.30, "collisions": 0},
+        5.0: {"speed_rmse_mps": 0.30, "collisions": 0},
+        3.0: {"speed_rmse_mps": 0.10, "collisions": 2},
+        1.0: {"speed_rmse_mps": float("nan"), "collisions": 0},
+    }
+    chosen, record = choose_relax(PRIOR, lambda p: figures[p["relax_s"]], 0.5, tuple(figures))
+    assert chosen == 7.0 and list(record["candidates"]) == ["10", "7", "5", "3", "1"]
+    assert record["fitted_s"] == RELAX_UPPER_S
+    crashed = {t: {**f, "collisions": 1} for t, f in figures.items()}
+    chosen, _ = choose_relax(PRIOR, lambda p: crashed[p["relax_s"]], 0.5, tuple(crashed))
+    assert chosen == 3.0  # all collided: still the lowest RMSE, none preferred on that ground
