@@ -33,10 +33,6 @@ episode is what a deployment does, on a training run of the ground truth:
 * a vehicle whose front passed its leader's back (a collision) is removed: its episode
   ends there (``DemandStep.collided``); one that leaves the section ends without a
   terminal (``DemandStep.left``);
-* asked for them (``reset(..., loops=True)``, never in PPO's episodes), SUMO runs the
-  truth's own detectors beside the run and ``loop_table`` returns what they measured, in
-  ``detectors.csv``'s rows: the same definitions, interval grid and reader as the truth's
-  (``truth.section_detectors``), so a standing start over a loop reads as SUMO reads it.
 """
 
 from __future__ import annotations
@@ -46,12 +42,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
 from macromicro_sumo.data.section import PSI_FIELDS, SectionTruth, psi_table, run_section
 from macromicro_sumo.env.driver_speed import DriverSpeeds, scale_limits
 from macromicro_sumo.env.section_bank import section_macro_reward, section_target
-from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.physics import (
     OBSERVATION_FEATURES,
     has_lookahead,
@@ -66,13 +60,7 @@ from macromicro_sumo.sumo.inputs import scenario_inputs
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.truth import fleet
 from macromicro_sumo.truth.section import fleet_specs, is_instrumented
-from macromicro_sumo.truth.section_detectors import (
-    Placed,
-    detectors_xml,
-    place_detectors,
-    read_detectors,
-    without_detectors,
-)
+from macromicro_sumo.truth.section_detectors import without_detectors
 
 EXACT_MODE = 32  # speed commands applied exactly (the deployment's safety = "none")
 STOP_DECEL_MPS2 = 9.0  # a standing "leader" (stop line, lane end) never brakes
@@ -207,9 +195,6 @@ class DemandCore:
         # this episode's drivers (None: every driver the limits as they are).
         self._driver_quantiles: np.ndarray | None = None
         self.drivers: DriverSpeeds | None = None
-        self._placed: list[Placed] | None = None  # the truth's detectors, placed when asked
-        self._loops_dir: Path | None = None  # this run's detector output (``loop_table``)
-        self._loop_runs = 0
         self.counts = {"episodes": 0, "vehicle_steps": 0, "collisions": 0, "teleports": 0}
 
     # ------------------------------------------------------------------ episodes
@@ -235,9 +220,9 @@ class DemandCore:
             out.append((r, round(round(t0 / self.dt) * self.dt, 6)))
         return out
 
-    def reset(self, run: int, t0_s: float, loops: bool = False) -> None:
+    def reset(self, run: int, t0_s: float) -> None:
         """Start ``run``'s demand and let SUMO drive everyone until ``t0_s`` (a fleet: at
-        least its insertion step); ``loops``: with the truth's detectors (``loop_table``)."""
+        least its insertion step)."""
         seed, adds, fleet_run = self.sc.seed + int(run), self._adds, None
         if self._fleet is not None:  # the truth's files, seed and exact insertion
             geo, specs = self._fleet
@@ -248,10 +233,6 @@ class DemandCore:
             span_s = self.sc.simulation.warmup_s + self.sc.simulation.duration_s
             demand = fleet_demand(self.sc)
             adds += fleet.write_fleet_inputs(folder, fleet_run[0], geo, demand, self.dt, span_s)
-        self._loops_dir = None
-        if loops:  # after the demand's files, as the truth lists them
-            adds += (self._loops_file(),)
-            self._loops_dir = adds[-1].parent
         opts = SumoOptions(
             self._inputs.net_file,
             adds,
@@ -282,43 +263,6 @@ class DemandCore:
         self._arrive(sim.vehicle_ids())
         self._has_lights = sim.has_traffic_lights()
         self.counts["episodes"] += 1
-
-    def _loops_file(self) -> Path:
-        """Our definitions of the truth's detectors in a fresh folder (SUMO opens their
-        output files as a run loads, emptying what an earlier run wrote there)."""
-        if self._placed is None:
-            placed = place_detectors(self.sc, self._inputs, self.truth.section)
-            ours = {p.spec.id for p in placed}
-            theirs = set(self.truth.detectors["detector_id"].astype(str))
-            if ours != theirs:
-                odd = ", ".join(sorted(theirs ^ ours)[:3])
-                raise UserError(
-                    f"{self.truth.folder / 'detectors.csv'}: detector_id holds {len(theirs)} "
-                    f"detectors, not the {len(ours)} that {self.sc.source} places ({odd} in "
-                    "one only); accepted: a truth simulated from this scenario"
-                )
-            self._placed = placed
-        self._loop_runs += 1
-        folder = Path(self._tmp.name) / f"loops_{self._loop_runs:04d}"
-        folder.mkdir()
-        path = folder / "detectors.add.xml"
-        path.write_text(detectors_xml(self._placed, self.sc.detectors.interval_s))
-        return path
-
-    def loop_table(self) -> pd.DataFrame:
-        """What the truth's detectors measured in the run just driven (``reset(...,
-        loops=True)``): ``detectors.csv``'s columns and rows, SUMO's own counts and speeds
-        on the truth's interval grid from t = 0. Ends the run (SUMO writes its detector
-        output when a run ends): ``reset`` before stepping again. The interval the run
-        ended in is written up to that time, as SUMO closes it."""
-        if self._loops_dir is None or self._placed is None:
-            raise RuntimeError("loop_table: the run was not reset with loops=True")
-        if self.sim is not None:
-            self.sim.close()
-            self.sim = None
-        det, _ = read_detectors(self._loops_dir, self.run, self._placed)
-        self._loops_dir = None
-        return det
 
     def _arrive(self, vids) -> None:
         sim = self.sim
