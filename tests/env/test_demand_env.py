@@ -16,6 +16,8 @@ from deploy_nets import merge_scenario  # noqa: E402
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver  # noqa: E402
 from macromicro_sumo.deploy.drivers import section_observations as deploy_observations  # noqa: E402
+from macromicro_sumo.deploy.population import DriveStats  # noqa: E402
+from macromicro_sumo.deploy.safety import speed_commands  # noqa: E402
 from macromicro_sumo.env.demand import DemandCore  # noqa: E402
 from macromicro_sumo.env.driver_speed import (  # noqa: E402
     QUANTILE_LEVELS,
@@ -204,3 +206,42 @@ def test_driven_vehicles_are_held_to_their_vtypes_max_speed(merge) -> None:
         finally:
             core.close()
     assert top[20.0] <= 20.0 + 1e-9 and top[None] > 22.0, top
+
+
+def test_a_demand_step_commands_what_the_deployment_without_its_layer_commands(merge) -> None:
+    """One state, one policy: the speeds SUMO drives after a demand step are the commands
+    the deployment's rule (``deploy.safety.speed_commands``, ``safety = "none"``, each
+    vehicle held to its vType's maxSpeed and accel) gives the deployment's observation of
+    that state; speed mode 32 applies them exactly. The deployment's default layer
+    (``"sumo"``) is what the demand episodes leave out."""
+    sc, truth = merge
+    run = int(truth.runs[0])
+    core = DemandCore(sc, truth, truth.runs, 60)
+    checked = 0
+    try:
+        core.reset(run, 90.0)
+        for _ in range(20):
+            vids, obs = core.observe()
+            states = core.lane_states()
+            drv = _deploy_driver(sc, core, run, None)
+            dep, _, _ = deploy_observations(drv, core.sim, vids, states)
+            phys = [core.vtypes[core.types[v]] for v in vids]
+            cmd = speed_commands(
+                sc,
+                act,
+                "none",
+                DriveStats(),
+                dep,
+                lambda: None,  # no layer asked
+                vmax=np.array([p.max_speed_mps for p in phys]),
+                accel=np.array([p.accel_mps2 for p in phys]),
+            )
+            res = core.step(act(obs))
+            after = core.lane_states()
+            kept = [i for i, v in enumerate(vids) if v in after and v not in res.collided]
+            got = np.array([after[vids[i]][2] for i in kept])
+            np.testing.assert_allclose(got, cmd[kept], atol=1e-9)
+            checked += len(kept)
+    finally:
+        core.close()
+    assert checked > 100
