@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from conftest import netconvert
+from conftest import ROOT, netconvert
 from section_files import routes_file, section_scenario, vtype
 
 from macromicro_sumo.data.section import split_runs
@@ -23,11 +23,13 @@ from macromicro_sumo.pipeline.build import fit_residual_prior
 from macromicro_sumo.pipeline.stages import train_generator, train_policy
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.checkpoint import load_policy, trained_prior
+from macromicro_sumo.policy.prior import RELAX_UPPER_S
 from macromicro_sumo.policy.prior_choice import (
     PRIOR_FAMILIES,
     PriorDeploy,
     choose_prior,
     rank_key,
+    with_prior,
 )
 from macromicro_sumo.policy.relax_choice import RELAX_CANDIDATES_S
 from macromicro_sumo.policy.stage import fit_stage_prior
@@ -186,3 +188,41 @@ def test_auto_without_the_choice_is_a_one_line_error(idm_road):
     with pytest.raises(UserError, match="policy.prior = 'auto'") as err:
         fit_stage_prior(sc, truth, splits, fit_residual_prior, None)
     assert "\n" not in str(err.value) and sc.source in str(err.value)
+
+
+def test_a_chosen_relaxation_is_not_deployed_again_for_the_family(tmp_path):
+    """With prior = "auto" a Krauss prior whose relaxation the pairs leave at its bound is
+    deployed once per relaxation candidate by the one prior-alone scorer, and the family
+    choice takes the chosen candidate's figures instead of deploying it again; each other
+    family is deployed once. (The scorer here is a table of figures: the bookkeeping.)"""
+    sc = with_prior(load_scenario(ROOT / "scenarios" / "ring_two_lane.toml"), "auto")
+    gipps = {"speed_factor": 1.0, "accel_mps2": 2.6, "decel_mps2": 4.5, "tau_s": 1.0}
+    gipps |= {"min_gap_m": 2.5, "veh_length_m": 5.0, "dt_s": 0.5}
+    params = {
+        "krauss": {**gipps, "relax_s": RELAX_UPPER_S},
+        "idm": {**gipps, "delta": 4.0},
+        "gipps": gipps,
+    }
+
+    def fit(one, truth, runs):
+        kind = one.policy.prior
+        return dict(params[kind]), {"prior": {"kind": kind}}, (np.zeros((1, 4)), np.zeros(1))
+
+    deployed = []
+
+    def score(one, data, agent):
+        relax = float(agent.krauss_prior[-1]) if agent.prior == "krauss" else None
+        deployed.append((agent.prior, relax))
+        rmse = {"idm": 0.9, "gipps": 0.8}.get(agent.prior, 0.5 + 0.1 * abs((relax or 0) - 5))
+        return {"speed_rmse_mps": rmse, "collisions": 0}
+
+    family, (prior, extra, _) = choose_prior(
+        sc, None, np.zeros(1), fit, PriorDeploy(score, tmp_path)
+    )
+    assert family == "krauss" and prior["relax_s"] == 5.0
+    relaxations = sorted(r for f, r in deployed if f == "krauss")
+    assert relaxations == sorted(RELAX_CANDIDATES_S)  # each once, the chosen 5 s included
+    assert [f for f, _ in deployed].count("idm") == [f for f, _ in deployed].count("gipps") == 1
+    kept = extra["prior"]["choice"]["candidates"]["krauss"]
+    assert kept["deployed"]["speed_rmse_mps"] == 0.5 and kept["relax_choice_s"] == 5.0
+    assert extra["prior"]["relax_choice"]["candidates"]["10"]["speed_rmse_mps"] == 1.0
