@@ -133,24 +133,58 @@ def _deploy_driver(sc, core: DemandCore, run: int, speeds: DriverSpeeds | None):
     return drv
 
 
+def _entries(sc, truth, run: int, t0_s: float, speeds: DriverSpeeds) -> dict[str, float]:
+    """SUMO's own drive of ``run`` until ``t0_s``: ``speeds`` asked of each population
+    vehicle at its first step on the section, with the deployment's observation of it
+    there (a deployment's "memory" driver sets its factor then); its speed ratio then
+    (``entry_factors`` of that observation) per vehicle."""
+    core = DemandCore(sc, truth, truth.runs, 60)
+    at_entry: dict[str, float] = {}
+    try:
+        core.reset(run, sc.simulation.step_length_s)
+        for k in range(int(round(t0_s / sc.simulation.step_length_s))):
+            if k:
+                core.sim.step()
+                core._arrive(core.sim.departed())
+            states = core.lane_states()
+            new = sorted(
+                v
+                for v in core.population
+                if v in states and states[v][0] in core.section.lanes and v not in at_entry
+            )
+            if new:
+                drv = _deploy_driver(sc, core, run, speeds)
+                plain, _, _ = deploy_observations(
+                    _deploy_driver(sc, core, run, None), core.sim, new, states
+                )
+                deploy_observations(drv, core.sim, new, states)  # sets their factors
+                ratio = entry_factors(speeds.quantiles, plain[:, 0], plain[:, 1])
+                at_entry.update(zip(new, ratio.tolist(), strict=True))
+    finally:
+        core.close()
+    return at_entry
+
+
 @pytest.mark.parametrize("kind", ["drawn", "memory"])
 def test_drivers_take_the_desired_speed_factors_a_deployment_gives_them(merge, kind) -> None:
     """``policy.driver_speed``: a demand episode's driver observes the limits times the
     factor a deployment's ``DriverSpeeds`` gives the same vehicle of the same run ("drawn":
-    a hash of (seed, run, vehicle); "memory": its speed ratio where it is first driven),
-    kept while it is driven; every other feature as without factors."""
+    a hash of (seed, run, vehicle); "memory": its speed ratio where it entered the section,
+    for a vehicle already there when the window starts its entry before it, while SUMO
+    drove it), kept while it is driven; every other feature as without factors."""
     sc0, truth = merge
     sc = replace(sc0, policy=replace(sc0.policy, driver_speed=kind))
     q = np.linspace(0.8, 1.25, len(QUANTILE_LEVELS))  # ratios around a median of 1.025
-    run = int(truth.runs[0])
+    run, t0 = int(truth.runs[0]), 90.0
+    deployed = DriverSpeeds(q, sc, run)  # the deployment's, asked where a vehicle enters
+    at_entry = _entries(sc, truth, run, t0, deployed) if kind == "memory" else {}
     core = DemandCore(sc, truth, truth.runs, 60)
-    deployed = DriverSpeeds(q, sc, run)  # the deployment's, asked at the same steps
-    entry: dict[str, float] = {}
     factors: list[float] = []
+    moved = 0  # window-start vehicles whose ratio at t0 is not their entry's
     try:
         core.set_driver_speeds(q)
-        core.reset(run, 90.0)
-        for _ in range(30):
+        core.reset(run, t0)
+        for t in range(30):
             vids, obs = core.observe()
             if vids:
                 states = core.lane_states()
@@ -163,12 +197,13 @@ def test_drivers_take_the_desired_speed_factors_a_deployment_gives_them(merge, k
                 )
                 if kind == "drawn":
                     f = factors_at(q, driver_levels(sc.seed, run, vids))
-                else:  # the first speed ratio seen, kept
+                else:  # the ratio where it entered, kept
+                    now = entry_factors(q, plain[:, 0], plain[:, 1])
                     for i, v in enumerate(vids):
-                        entry.setdefault(
-                            v, float(entry_factors(q, plain[i : i + 1, 0], plain[i : i + 1, 1])[0])
-                        )
-                    f = np.array([entry[v] for v in vids])
+                        at_entry.setdefault(v, float(now[i]))
+                    f = np.array([at_entry[v] for v in vids])
+                    if t == 0:
+                        moved = int(np.count_nonzero(np.abs(now - f) > 0.02))
                 np.testing.assert_allclose(
                     obs[:, [1, 4]], plain[:, [1, 4]] * f[:, None], rtol=1e-12
                 )
@@ -178,6 +213,7 @@ def test_drivers_take_the_desired_speed_factors_a_deployment_gives_them(merge, k
     finally:
         core.close()
     assert len(factors) > 100 and np.ptp(factors) > 0.1  # drivers of their own speeds
+    assert kind == "drawn" or moved >= 3  # their factor at t0 would have been another
 
 
 def test_driven_vehicles_are_held_to_their_vtypes_max_speed(merge) -> None:
