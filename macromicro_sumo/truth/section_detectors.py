@@ -19,7 +19,7 @@ from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.inputs import DetectorSpec, SumoInputs, read_net, user_detectors
-from macromicro_sumo.truth.hidden_count import side_junction_arcs
+from macromicro_sumo.truth.hidden_count import STOP_BAR_M, side_junction_arcs
 
 E1_FILE, E2_FILE, INSTANT_FILE = "e1.xml", "e2.xml", "instant.xml"
 _DETECTOR_TAGS = {
@@ -45,6 +45,18 @@ BOUNDARY_STATION_M = 15.0
 """How far inside the section's open ends and either side of a ramp's node the boundary
 stations sit (``detectors.auto_boundary_stations``): past the front of a 12 m truck
 inserted at a lane's start, and clear of the junction."""
+
+STOP_NODE_TYPES = (
+    "traffic_light",
+    "traffic_light_unregulated",
+    "traffic_light_right_on_red",
+    "allway_stop",
+    "priority_stop",
+    "right_before_left",
+    "left_before_right",
+)
+"""SUMO node types at which a section's vehicles may queue at the stop line: a boundary
+station ``STOP_BAR_M`` before it (``boundary_arcs``)."""
 
 
 def place_detectors(sc: SectionScenario, inputs: SumoInputs, section: Section) -> list[Placed]:
@@ -72,7 +84,7 @@ def place_detectors(sc: SectionScenario, inputs: SumoInputs, section: Section) -
     for arc in arcs:
         e = int(section.edge_index(np.array([arc]))[0])
         pos = float(arc - section.offsets_m[e])
-        if pos > section.lengths_m[e] - 0.5:
+        if pos > section.lengths_m[e] - 0.5 + 1e-6:  # a stop bar's 0.5 m, to rounding
             continue  # in a junction: skip this station
         for lane_id in section.edge_lane_ids[e]:
             idx = section.lanes[lane_id][1]
@@ -90,8 +102,10 @@ def boundary_arcs(section: Section, net: sumolib.net.Net) -> np.ndarray:
     """Arcs of the stations that bound every counted stretch: ``BOUNDARY_STATION_M`` inside
     each end of an open section, and as far before and after each node where a ramp joins
     or leaves (``side_junction_arcs``), on the edges either side of it (at most half an
-    edge in). With full stations there, every vehicle that enters or leaves the section
-    passes one: the end pieces and the stretches around a ramp shrink to a few metres, and
+    edge in), and ``STOP_BAR_M`` before the end of every section edge that ends at a
+    signal or a stop sign (``STOP_NODE_TYPES``). With full stations there, every vehicle
+    that enters or leaves the section passes one: the end pieces and the stretches around
+    a ramp shrink to a few metres, a queue at a stop line stands on a counted stretch, and
     every other stretch is counted by its stations alone (docs/sections.md, "Hidden
     count")."""
     n = len(section.edge_ids)
@@ -106,6 +120,10 @@ def boundary_arcs(section: Section, net: sumolib.net.Net) -> np.ndarray:
     for node_arc in side_junction_arcs(net, section):
         e = int(np.argmin(np.abs(section.offsets_m - node_arc)))
         arcs += [inside((e - 1) % n, True), inside(e, False)]
+    for e, eid in enumerate(section.edge_ids):
+        if net.getEdge(eid).getToNode().getType() in STOP_NODE_TYPES:
+            end = float(section.offsets_m[e] + section.lengths_m[e])
+            arcs.append(max(end - STOP_BAR_M, float(section.offsets_m[e])))
     return np.array(sorted(set(arcs)))
 
 

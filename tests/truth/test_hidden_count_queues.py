@@ -1,6 +1,7 @@
 """The hidden-count estimate where queues stand: behind lane drops (the bench's drawn net 501,
-4 -> 2 -> 1 -> 1 -> 4 lanes), in real SUMO, within a vehicle per lane in congestion (issue
-17)."""
+4 -> 2 -> 1 -> 1 -> 4 lanes) and at a red light (a fixed-time junction built here, turners
+leaving and cross traffic turning in), in real SUMO, within a vehicle per lane in
+congestion (issue 17)."""
 
 from __future__ import annotations
 
@@ -8,12 +9,14 @@ import importlib.util
 import sys
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
-from conftest import ROOT, dump_toml
+from conftest import ROOT, dump_toml, netconvert
 
 from macromicro_sumo.cli import main
 from macromicro_sumo.data.section import at_snapshot_times
 from macromicro_sumo.road.section import Section
+from macromicro_sumo.truth.hidden_count import STOP_BAR_M
 from macromicro_sumo.truth.section_macro import k_summary
 
 sys.path.insert(0, str(ROOT / "scripts"))
@@ -57,3 +60,78 @@ def test_queue_behind_lane_drops(tmp_path: Path) -> None:
     share, err, _ = congested_error(tmp_path / "gt", 10.0)
     assert share > 0.5  # the queue stands over the loops in most snapshots
     assert err <= 0.2, err  # 0.01 measured; 2.43 before
+
+
+def signal_scenario(folder: Path) -> Path:
+    """A 4-arm fixed-time junction (netconvert's program): the section is the west approach
+    (2 lanes: right turn only, through only) and the east exit (1 lane); cross traffic from
+    the north turns onto the exit. 600 veh/h through, 200 turning right, 200 turning in."""
+    net = netconvert(
+        folder,
+        '<node id="w" x="-300" y="0"/><node id="v" x="-150" y="0"/>'
+        '<node id="c" x="0" y="0" type="traffic_light"/><node id="e" x="200" y="0"/>'
+        '<node id="n" x="0" y="150"/><node id="s" x="0" y="-150"/>',
+        '<edge id="w0" from="w" to="v" numLanes="2" speed="13.9" priority="2"/>'
+        '<edge id="w1" from="v" to="c" numLanes="2" speed="13.9" priority="2"/>'
+        '<edge id="ce" from="c" to="e" numLanes="1" speed="13.9" priority="2"/>'
+        '<edge id="nc" from="n" to="c" numLanes="1" speed="13.9" priority="1"/>'
+        '<edge id="cs" from="c" to="s" numLanes="1" speed="13.9" priority="1"/>'
+        '<edge id="sc" from="s" to="c" numLanes="1" speed="13.9" priority="1"/>'
+        '<edge id="cn" from="c" to="n" numLanes="1" speed="13.9" priority="1"/>',
+        cons='<connection from="w1" to="ce" fromLane="1" toLane="0"/>'
+        '<connection from="w1" to="cs" fromLane="0" toLane="0"/>'
+        '<connection from="nc" to="ce" fromLane="0" toLane="0"/>'
+        '<connection from="nc" to="cs" fromLane="0" toLane="0"/>'
+        '<connection from="sc" to="cn" fromLane="0" toLane="0"/>',
+        name="x",
+    )
+    flows = (
+        ("t", "w0 w1 ce", 600),
+        ("r", "w0 w1 cs", 200),
+        ("i", "nc ce", 200),
+        ("x", "sc cn", 200),
+    )
+    (folder / "x.rou.xml").write_text(
+        '<routes><vType id="car" length="5" minGap="2.5"/>'
+        + "".join(
+            f'<route id="{f}" edges="{edges}"/><flow id="{f}" type="car" route="{f}" begin="0" '
+            f'end="400" vehsPerHour="{vph}" departLane="best" departSpeed="max"/>'
+            for f, edges, vph in flows
+        )
+        + "</routes>"
+    )
+    table = {
+        "name": "signal",
+        "seed": 5,
+        "network": {
+            "kind": "sumo",
+            "net_file": str(net),
+            "route_files": [str(folder / "x.rou.xml")],
+        },
+        "section": {"edges": ["w0", "w1", "ce"], "closed": False},
+        "instrumented": {"penetration": 0.1},
+        "simulation": {"warmup_s": 60.0, "duration_s": 340.0, "n_runs": 1},
+        "detectors": {"interval_s": 30.0, "auto_spacing_m": 50.0, "k_window_s": 30.0},
+        "generator": {"snapshot_every_s": 5.0},
+    }
+    path = folder / "signal.toml"
+    path.write_text(dump_toml(table))
+    return path
+
+
+def test_queue_at_a_red_light(tmp_path: Path) -> None:
+    """A stop-bar station ``STOP_BAR_M`` before the signal's stop line puts the queue at red
+    on a stretch its stations count; the junction beyond it takes the downstream station's
+    density, not the stop bar's (whose discharge counts the turners too). With the
+    station 15 m before the line the queue between them was the density estimate's, and K
+    was 1.6 vehicles per lane off in congestion (2.6 vehicles low)."""
+    gt = tmp_path / "gt"
+    assert main(["simulate", str(signal_scenario(tmp_path)), "--out", str(gt), "--quiet"]) == 0
+    section = Section.read(gt / "section.json")
+    line = float(section.offsets_m[1] + section.lengths_m[1])  # w1's end, the stop line
+    arcs = pd.read_csv(gt / "detectors.csv")["arc_m"].unique()
+    assert np.isclose(arcs, line - STOP_BAR_M, atol=1e-3).any(), (line, sorted(arcs))
+    assert np.isclose(arcs, line - 15.0, atol=1e-3).any()  # the ramp's boundary station stays
+    share, err, bias = congested_error(gt, 5.0)
+    assert share > 0.3  # a queue stands at the red light in a third of the snapshots
+    assert err <= 0.6, (err, bias)  # 0.33 measured; 1.6 before
