@@ -10,7 +10,8 @@ absolute error of K per lane over the snapshots of each regime (a snapshot is co
 estimate; ``density``, the regime-blended density estimate alone; ``io_ramps_unknown``, the
 passages' estimate not told where the ramps are; ``io``, the estimate ``simulate`` writes
 (``k_estimate.csv``); and the mean error (bias) of ``io``. ``--ramp`` adds SUMO's
-``game/ramp``, ``--examples`` the shipped section examples; ``--boundary-stations`` runs
+``game/ramp``, ``--signals`` its ``game/cross`` and ``game/corridor`` (queues at red
+lights), ``--examples`` the shipped section examples; ``--boundary-stations`` runs
 every network with ``detectors.auto_boundary_stations`` true (else false); ``--pieces``
 adds a table of each part's error in vehicles (``io_pieces``: stretches counted from the
 empty start, a ramp's node, the end pieces; docs/sections.md, "Hidden count").
@@ -62,10 +63,16 @@ def get_options(args: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--out", type=Path, default=Path("/tmp/bench_hidden_count"), help="cache")
     p.add_argument("--ramp", action="store_true", help="add SUMO's game/ramp example")
     p.add_argument(
+        "--signals",
+        action="store_true",
+        help="add SUMO's game/cross and game/corridor (queues at fixed-time signals), 2 runs",
+    )
+    p.add_argument(
         "--boundary-stations",
         action="store_true",
-        help="detectors.auto_boundary_stations = true (a station inside each end and either "
-        "side of each ramp's node) on the drawn networks and the examples; else false",
+        help="detectors.auto_boundary_stations = true (a station inside each end, either "
+        "side of each ramp's node and at each signal's stop bar) on the drawn networks and "
+        "the examples; else false",
     )
     p.add_argument(
         "--pieces",
@@ -207,6 +214,39 @@ def ramp_example(folder: Path) -> tuple[dict, str]:
         "generator": {"snapshot_every_s": 10.0},
     }
     return table, "SUMO game/ramp: merge, demand rising to overload"
+
+
+SIGNAL_SECTIONS = {
+    "cross": ("cross", ["1fi", "1si", "2o", "2fo"], "one junction, 90 s fixed-time program"),
+    "corridor": (
+        "corridor",
+        ["gneE28", "gneE10", "gneE11", "gneE26"],
+        "arterial, three fixed-time signals",
+    ),
+}
+
+
+def signal_example(folder: Path, name: str) -> tuple[dict, str]:
+    """SUMO's game/cross or game/corridor (queues at red lights), the net's own fixed-time
+    programs (not the game's manual ``cross.tls.add.xml``): cross's west-east approach and
+    exit, corridor's arterial; loops every 60 m, 90 s intervals (cross's cycle)."""
+    sub, edges, desc = SIGNAL_SECTIONS[name]
+    game = SUMO_TOOLS / "game" / sub
+    table = {
+        "name": name,
+        "seed": 1,
+        "network": {
+            "kind": "sumo",
+            "net_file": str(game / f"{sub}.net.xml"),
+            "route_files": [str(game / f"{sub}.rou.xml")],
+        },
+        "section": {"edges": edges, "closed": False},
+        "instrumented": {"penetration": 0.2},
+        "simulation": {"warmup_s": 120.0, "duration_s": 900.0, "n_runs": 2},
+        "detectors": {"interval_s": 90.0, "auto_spacing_m": 60.0, "k_window_s": 60.0},
+        "generator": {"snapshot_every_s": 10.0},
+    }
+    return table, f"SUMO game/{sub}: {desc}"
 
 
 def dump_toml(table: dict) -> str:
@@ -365,6 +405,14 @@ def main(options: argparse.Namespace) -> bool:
         table, desc = ramp_example(folder)
         table["detectors"]["auto_boundary_stations"] = options.boundary_stations
         nets.append(("ramp", folder, table, desc))
+    for name in SIGNAL_SECTIONS if options.signals else ():
+        folder = options.out / name
+        if options.boundary_stations:
+            folder = folder / "boundary_stations"
+        folder.mkdir(parents=True, exist_ok=True)
+        table, desc = signal_example(folder, name)
+        table["detectors"]["auto_boundary_stations"] = options.boundary_stations
+        nets.append((name, folder, table, desc))
     for name in EXAMPLES if options.examples else ():
         folder = options.out / name
         if options.boundary_stations:
