@@ -19,6 +19,7 @@ from macromicro_sumo.data.macro import extended_bounds, passage_spacings
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import read_checked_csv
 from macromicro_sumo.road.section import Section
+from macromicro_sumo.sumo.simulation import STOP_STATES
 
 # psi per snapshot, from the detectors' interval that holds it (columns of ``psi``):
 PSI_FIELDS = (
@@ -71,6 +72,9 @@ class SectionTruth:
     macro: pd.DataFrame
     vtypes: pd.DataFrame
     k_estimate: pd.DataFrame
+    # signals.csv (``SIGNAL_COLUMNS``): the states of the signals on the section's links at
+    # every recorded step; None: none recorded (no signal on the section, field data).
+    signals: pd.DataFrame | None = None
 
     @property
     def runs(self) -> np.ndarray:
@@ -92,6 +96,10 @@ class SectionSnapshots:
     psi: np.ndarray  # (S, len(PSI_FIELDS))
     k_true: np.ndarray  # (S,) hidden vehicles on the section (the simulation knows)
     k_est: np.ndarray  # (S,) hidden vehicles estimated from detector density
+    # (S, P) the red or yellow stop lines on the section at the snapshot's time (lane index,
+    # arc; NaN arc: none), standing leaders (``signal_stops``); None: no signal recorded.
+    stop_lane: np.ndarray | None = None
+    stop_arc_m: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.run)
@@ -101,7 +109,68 @@ class SectionSnapshots:
         return self.valid & ~self.observed
 
     def take(self, idx: np.ndarray) -> SectionSnapshots:
-        return SectionSnapshots(**{f: getattr(self, f)[idx] for f in self.__dataclass_fields__})
+        fields = self.__dataclass_fields__
+        return SectionSnapshots(
+            **{f: None if getattr(self, f) is None else getattr(self, f)[idx] for f in fields}
+        )
+
+
+# signals.csv: per recorded step and signalised link along the section (from a section
+# edge's lane onto the next section edge), the signal's program, phase and seconds left in
+# it, and the link's stop line (lane index, arc: its edge's end) with its state letter.
+SIGNAL_COLUMNS = (
+    "run", "time_s", "signal_id", "program", "phase", "left_s", "lane_index", "arc_m", "state"
+)  # fmt: skip
+
+
+def _signal_groups(signals: pd.DataFrame | None) -> dict[tuple[int, float], pd.DataFrame]:
+    if signals is None or signals.empty:
+        return {}
+    key = [signals["run"].astype(int), signals["time_s"].round(6)]
+    return {(int(r), float(t)): g for (r, t), g in signals.groupby(key, sort=False)}
+
+
+def signal_stops(
+    signals: pd.DataFrame | None, runs: np.ndarray, times_s: np.ndarray
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """(lane, arc) (S, P) of the stop lines whose signal shows red or yellow
+    (``sumo.simulation.STOP_STATES``: what a driver treats as a standing leader there, as
+    the envs and the deployment do) at each (run, time); NaN arc: padding. None: no signal."""
+    groups = _signal_groups(signals)
+    if not groups:
+        return None
+    stops = []
+    for r, t in zip(runs, times_s, strict=True):
+        g = groups.get((int(r), round(float(t), 6)))
+        red = g[g["state"].isin(list(STOP_STATES))] if g is not None else None
+        pts = set() if red is None else set(zip(red["lane_index"], red["arc_m"], strict=True))
+        stops.append(sorted(pts))
+    p = max(1, max(len(x) for x in stops))
+    lane, arc = np.zeros((len(stops), p), dtype=np.int64), np.full((len(stops), p), np.nan)
+    for i, pts in enumerate(stops):
+        for j, (ln, a) in enumerate(pts):
+            lane[i, j], arc[i, j] = int(ln), float(a)
+    return lane, arc
+
+
+def signal_settings(
+    signals: pd.DataFrame | None, runs: np.ndarray, times_s: np.ndarray
+) -> np.ndarray | None:
+    """(S,) object array: at each (run, time) the section's signals as recorded, a tuple of
+    (signal ID, program, phase index, seconds left in the phase) (``Simulation.
+    set_signal_states``); an empty tuple where nothing was recorded then. None: no signal."""
+    groups = _signal_groups(signals)
+    if not groups:
+        return None
+    out = np.empty(len(runs), dtype=object)
+    for i, (r, t) in enumerate(zip(runs, times_s, strict=True)):
+        g = groups.get((int(r), round(float(t), 6)))
+        if g is None:
+            out[i] = ()
+            continue
+        rows = g.drop_duplicates("signal_id")[["signal_id", "program", "phase", "left_s"]]
+        out[i] = tuple((str(a), str(b), int(c), float(d)) for a, b, c, d in rows.itertuples(False))
+    return out
 
 
 def at_snapshot_times(traj: pd.DataFrame, every_s: float) -> pd.DataFrame:
@@ -342,7 +411,18 @@ def snapshots_by_k(snaps: SectionSnapshots, ks: range, seed: int) -> dict[int, S
 def concat_snapshots(parts: list[SectionSnapshots]) -> SectionSnapshots:
     """The snapshots of ``parts`` one after the other (the same padding: one recorded set)."""
     fields = SectionSnapshots.__dataclass_fields__
-    return SectionSnapshots(**{f: np.concatenate([getattr(p, f) for p in parts]) for f in fields})
+    out = {}
+    for f in fields:
+        got = [getattr(p, f) for p in parts]
+        if any(x is None for x in got):  # stop lines: all parts' or none
+            out[f] = None
+            continue
+        if f.startswith("stop_"):  # padded to the widest part's count
+            w = max(x.shape[1] for x in got)
+            pad = np.nan if f == "stop_arc_m" else 0
+            got = [np.pad(x, ((0, 0), (0, w - x.shape[1])), constant_values=pad) for x in got]
+        out[f] = np.concatenate(got)
+    return SectionSnapshots(**out)
 
 
 def recorded_snapshots(truth: SectionTruth, sc, runs: np.ndarray) -> SectionSnapshots:
@@ -377,9 +457,11 @@ def recorded_snapshots(truth: SectionTruth, sc, runs: np.ndarray) -> SectionSnap
         valid[i, :j] = True
         observed[i, :j] = g["observed"].to_numpy(dtype=bool)
     keys = [(r, t) for r, t, _, _ in scenes]
+    run_ids, times = np.array([r for r, _ in keys]), np.array([t for _, t in keys])
+    stops = signal_stops(truth.signals, run_ids, times) or (None, None)
     return SectionSnapshots(
-        run=np.array([r for r, _ in keys]),
-        time_s=np.array([t for _, t in keys]),
+        run=run_ids,
+        time_s=times,
         lane=lane,
         arc_m=arc,
         speed_mps=speed,
@@ -389,4 +471,6 @@ def recorded_snapshots(truth: SectionTruth, sc, runs: np.ndarray) -> SectionSnap
         psi=np.stack([p for *_, p in scenes]),
         k_true=k.loc[keys, "k_true"].to_numpy(),
         k_est=k.loc[keys, "k_est"].to_numpy(),
+        stop_lane=stops[0],
+        stop_arc_m=stops[1],
     )

@@ -123,6 +123,8 @@ class SectionCore(SlotCore):
         self._sumo_limits = set_sumo_limits(self.sim, sec, self._sumo_limits)
         self.episode, self.t, self._error = episode, 0, ""
         self.sim.clear_vehicles()
+        if b.signals is not None:  # as the truth's at the snapshot, after the insertion step
+            self.sim.set_signal_states([(*r[:3], r[3] + self.dt) for r in b.signals[episode]])
         self._resets += 1
         self.ids = np.array([f"m{self._resets}.{i}" for i in range(self.n)], dtype=object)
         self.hidden = b.hidden[episode]

@@ -23,6 +23,7 @@ from macromicro_sumo.data.section import (
     SectionTruth,
     hidden_per_snapshot,
     run_limits_mps,
+    signal_settings,
 )
 from macromicro_sumo.env.vtype_draw import generated_vtypes
 from macromicro_sumo.errors import UserError
@@ -67,6 +68,9 @@ class SectionBank:
     # (E, N) each slot's vType's accel [m/s^2] (``vtype_caps``; inf: none): a hidden
     # vehicle accelerates at most at it, its physics (as a deployment's); None: no cap.
     accel_mps2: np.ndarray | None = None
+    # (E,) object: the section's signals at the episode's start as the truth recorded them
+    # (``data.section.signal_settings``), set at reset; None: no signal recorded.
+    signals: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.run)
@@ -216,6 +220,7 @@ def build_section_bank(
         limits_mps=run_limits_mps(truth, snaps.run),
         vmax_mps=vmax if np.isfinite(vmax).any() else None,  # None: nothing to cap
         accel_mps2=accel if np.isfinite(accel).any() else None,
+        signals=signal_settings(truth.signals, snaps.run, snaps.time_s),
     )
 
 

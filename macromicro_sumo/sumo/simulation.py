@@ -308,6 +308,28 @@ class Simulation:
         d = float(self.stop_lines_m([vehicle_id])[0])  # nan_to_num would make inf finite
         return float("inf") if np.isnan(d) else d
 
+    def signal_links(self) -> list[tuple[str, int, str, str, str]]:
+        """(signal, link index, incoming, outgoing, internal lane) of every signalised link."""
+        tl = libsumo.trafficlight
+        by_tls = [(t, enumerate(tl.getControlledLinks(t))) for t in tl.getIDList()]
+        return [(t, i, *link) for t, links in by_tls for i, ls in links for link in ls]
+
+    def signal_states(self, signal_ids: Sequence[str]) -> list[tuple[str, int, float, str]]:
+        """(program, phase index, seconds left in the phase, state string) of each signal."""
+        tl, now = libsumo.trafficlight, libsumo.simulation.getTime()
+        get = (tl.getProgram, tl.getPhase, tl.getNextSwitch, tl.getRedYellowGreenState)
+        rows = [[f(t) for f in get] for t in signal_ids]
+        return [(p, k, n - now, s) for p, k, n, s in rows]
+
+    def set_signal_states(self, rows: Sequence[tuple[str, str, int, float]]) -> None:
+        """Put each signal (ID, program, phase index, seconds left in the phase) where a
+        recording saw it; its program runs on from there."""
+        tl = libsumo.trafficlight
+        for t, program, phase, left_s in rows:
+            tl.setProgram(t, program)
+            tl.setPhase(t, int(phase))
+            tl.setPhaseDuration(t, float(left_s))
+
     def own_speeds(self, vehicle_ids: Sequence[str]) -> np.ndarray:
         """SUMO's own choice of the last step's speed where a command overrode it."""
         return np.fromiter(map(_OWN_SPEED, vehicle_ids), float, len(vehicle_ids))

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from macromicro_sumo.data.section import SectionTruth, vehicle_level
+from macromicro_sumo.data.section import SIGNAL_COLUMNS, SectionTruth, vehicle_level
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.fielddata.schema import TRAJ_COLUMNS
 from macromicro_sumo.files import (
@@ -62,6 +62,7 @@ from macromicro_sumo.truth.section_detectors import (
     without_detectors,
 )
 from macromicro_sumo.truth.section_macro import detector_macro, k_summary, trajectory_macro
+from macromicro_sumo.truth.signals import SignalRecorder
 
 
 def load_section(sc: SectionScenario) -> tuple[SumoInputs, Section, dict[str, VType]]:
@@ -158,6 +159,7 @@ def record_run(
     lane_code = {lane: i for i, lane in enumerate(section.lanes)}
     lane_rows = np.array(list(section.lanes.values()), dtype=float).reshape(-1, 4)
     collisions = teleports = 0
+    signals = SignalRecorder(sim, section)
     for step in range(n_warm + n_rec):
         if driver is not None:
             driver.before_step(sim)
@@ -176,6 +178,7 @@ def record_run(
             continue
         if (step - n_warm + 1) % MEMORY_CHECK_STEPS == 0:
             check_run_memory(sc, len(vids) * n_rec / (step - n_warm + 1), run)
+        signals.record(sim, round((step + 1) * dt, 6))
         st = sim.vehicle_states()
         code = np.fromiter(map(lane_code.get, st.lanes, repeat(-1)), np.int64, len(st.ids))
         on = (code >= 0).nonzero()[0]
@@ -221,6 +224,7 @@ def record_run(
         "collisions": collisions,
         "teleports": teleports,
         "vclass": classes,
+        "signals": signals.frame(run),
     }
     return df, stats
 
@@ -283,6 +287,8 @@ def run_section(
             trajs.append(df)
             check_run_memory(sc, sum(len(d) for d in trajs) / len(trajs), run)
             vclass.update(stats.pop("vclass"))
+            if not (signals := stats.pop("signals")).empty:  # signals.csv's rows of the run
+                signals.to_csv(run_dir / "signals.csv", index=False)
             rows.append({"run": run, "sumo_seed": seed, **stats})
     finally:
         if sim is not None:
@@ -386,6 +392,8 @@ def simulate_section(
         write_csv(pd.concat([det_macro, tr_macro], ignore_index=True), stage / "macro.csv")
         write_csv(k_df, stage / "k_estimate.csv")
         write_csv(pd.DataFrame(runs), stage / "runs.csv")
+        if sig := sorted((stage / "sumo").glob("run_*/signals.csv")):
+            write_csv(pd.concat(map(pd.read_csv, sig), ignore_index=True), stage / "signals.csv")
         if fleet_demand(sc) is not None:  # the draws, as the ring truth writes them
             geo, specs = fleet_specs(sc, section)
             write_csv(
@@ -411,18 +419,10 @@ def simulate_section(
 
 # The columns are the ground truth's schema, one definition with the field-data readers'.
 TRAJ_NUMBERS = tuple(c for c in TRAJ_COLUMNS if c not in ("vehicle_id", "vtype", "observed"))
-MACRO_COLUMNS = (
-    "run",
-    "source",
-    "begin_s",
-    "end_s",
-    "mean_speed_mps",
-    "mean_spacing_m",
-    "std_spacing_m",
-    "speed_min_mps",
-    "speed_max_mps",
-)
+MACRO_COLUMNS = ("run", "source", "begin_s", "end_s", "mean_speed_mps", "mean_spacing_m")
+MACRO_COLUMNS += ("std_spacing_m", "speed_min_mps", "speed_max_mps")
 K_COLUMNS = ("run", "time_s", "k_true", "k_est", "k_error")
+SIGNAL_TEXT = {"signal_id": str, "program": str, "state": str}
 
 
 def check_step_length(manifest: Path, sc: SectionScenario) -> None:
@@ -448,16 +448,8 @@ def load_section_truth(folder: Path | str, sc: SectionScenario | None = None) ->
     ground truth of another section or step length than ``sc``'s (every stage that reads one
     loads it here)."""
     folder = Path(folder)
-    need = (
-        "section.json",
-        "trajectories.csv",
-        "detectors.csv",
-        "macro.csv",
-        "vtypes.csv",
-        "k_estimate.csv",
-        "manifest.json",
-    )
-    for name in need:
+    need = ("section.json", "trajectories.csv", "detectors.csv", "macro.csv", "vtypes.csv")
+    for name in (*need, "k_estimate.csv", "manifest.json"):
         if not (folder / name).is_file():
             raise UserError(
                 f"{folder / name}: missing (run `macromicro simulate` on a section scenario)"
@@ -497,4 +489,9 @@ def load_section_truth(folder: Path | str, sc: SectionScenario | None = None) ->
             dtype={"vtype": str, "vclass": str},
         ),
         k_estimate=read_checked_csv(folder, "k_estimate.csv", manifest, K_COLUMNS, K_COLUMNS),
+        signals=(  # optional: a truth without signals on its section has none
+            read_checked_csv(folder, "signals.csv", manifest, SIGNAL_COLUMNS, dtype=SIGNAL_TEXT)
+            if (folder / "signals.csv").is_file()
+            else None
+        ),
     )

@@ -1,0 +1,103 @@
+"""Signals in Stage II: the truth records them, an episode starts with them as recorded.
+
+SUMO's game/cross (one junction, a static 90 s program) with its west approach as the
+section. A Stage II env runs its own SUMO clock: before signals.csv its lights showed
+whatever that clock said, not the truth's at the snapshot (a car the truth saw drive
+through a green light met a red one and stopped in one step, and the car behind ran
+into it: 12 of 84 evaluation episodes on game/cross).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import sumo
+from section_files import section_scenario
+
+from macromicro_sumo.cli import main
+from macromicro_sumo.data.section import recorded_snapshots
+from macromicro_sumo.env.section import SectionCore
+from macromicro_sumo.env.section_bank import build_section_bank
+from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.sumo.inputs import scenario_inputs
+from macromicro_sumo.truth.section import load_section_truth
+
+CROSS = Path(sumo.__file__).resolve().parent / "tools" / "game" / "cross"
+
+
+@pytest.fixture(scope="module")
+def cross_truth(tmp_path_factory: pytest.TempPathFactory):
+    folder = tmp_path_factory.mktemp("cross")
+    path = section_scenario(
+        folder / "cross.toml",
+        CROSS / "cross.net.xml",
+        CROSS / "cross.rou.xml",
+        ["1fi", "1si", "2o", "2fo"],
+        seed=1,
+        penetration=0.3,
+        simulation={"step_length_s": 0.5, "warmup_s": 60.0, "duration_s": 120.0, "n_runs": 2},
+        detectors={"interval_s": 60.0, "auto_spacing_m": 60.0},
+        generator={"snapshot_every_s": 5.0},
+    )
+    assert main(["simulate", str(path), "--out", str(folder / "gt"), "--quiet"]) == 0
+    sc = load_scenario(path)
+    return sc, load_section_truth(folder / "gt", sc)
+
+
+def test_truth_records_the_signals_on_the_section(cross_truth) -> None:
+    """Every recorded step, the one signal's link from 1si onto 2o, on each of 1si's three
+    lanes (the two turning lanes drive through it on the section's route), at 1si's end;
+    its states follow the program (green 33 s of 90, yellow 3, red)."""
+    sc, truth = cross_truth
+    sig = truth.signals
+    steps = int(round(sc.simulation.duration_s / sc.simulation.step_length_s))
+    assert len(sig) == 2 * steps * 3
+    sec = truth.section
+    end = float(sec.offsets_m[1] + sec.lengths_m[1])
+    assert sorted(sig["lane_index"].unique()) == [0, 1, 2]
+    np.testing.assert_allclose(sig["arc_m"].unique(), [end])
+    one = sig[(sig["run"] == 0) & (sig["lane_index"] == 1)]
+    assert set(one["state"]) == {"G", "y", "r"}
+    # t = 60-180 s: green 90-123 s (33 s of the program's phase 0), yellow 123-126 s
+    assert (one["state"] == "G").mean() == pytest.approx(33 / 120)
+    assert (one["state"] == "y").mean() == pytest.approx(3 / 120)
+
+
+def test_episodes_show_the_truths_signals_at_every_step(cross_truth) -> None:
+    """Reset at a snapshot puts the signal where the truth had it (phase and seconds left),
+    and the program runs on from there as in the truth, over the whole horizon; the
+    snapshots carry the red or yellow stop lines (standing leaders for the generator)."""
+    sc, truth = cross_truth
+    snaps = recorded_snapshots(truth, sc, truth.runs)
+    assert snaps.stop_arc_m is not None
+    red = truth.signals.query("state in ['r', 'y']").drop_duplicates(["run", "time_s"])
+    keys = set(zip(red["run"], red["time_s"].round(6), strict=True))
+    stopped = np.isfinite(snaps.stop_arc_m).any(axis=1)
+    np.testing.assert_array_equal(
+        stopped, [(r, round(t, 6)) in keys for r, t in zip(snaps.run, snaps.time_s, strict=True)]
+    )
+    assert stopped.any() and not stopped.all()
+
+    def true_scene(s):
+        return s.lane, s.arc_m, s.speed_mps, s.valid, s.valid & ~s.observed
+
+    bank = build_section_bank(sc, truth, snaps, true_scene, horizon=6)
+    core = SectionCore(sc, truth.section, bank, scenario_inputs(sc).net_file, seed=1)
+    want = truth.signals.drop_duplicates(["run", "time_s"]).set_index(["run", "time_s"])
+    want.index = want.index.set_levels(want.index.levels[1].to_numpy().round(6), level=1)
+    mismatches = 0
+    try:
+        for ep in range(0, len(bank), 3):
+            core.reset(ep)
+            for k in range(7):
+                if k:
+                    core.step(np.zeros(int(core.hidden.sum())))
+                t = round(float(bank.time_s[ep]) + k * core.dt, 6)
+                program, phase, left, _ = core.sim.signal_states(["0"])[0]
+                rec = want.loc[(int(bank.run[ep]), t)]
+                mismatches += phase != rec["phase"] or abs(left - rec["left_s"]) > 1e-6
+    finally:
+        core.close()
+    assert mismatches == 0
