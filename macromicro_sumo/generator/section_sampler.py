@@ -40,6 +40,8 @@ from macromicro_sumo.generator.section_scene import (
     Psi,
     Road,
     extra_lengths,
+    scene_stops,
+    stop_room_m,
 )
 from macromicro_sumo.road.section import STOP, Section, section_leaders
 
@@ -158,6 +160,7 @@ def safe_speeds(
     brake_mps2: float,
     reaction_s: float = 0.0,
     extra_m: np.ndarray | None = None,
+    stops: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> None:
     """Give each generated vehicle a speed it can stop from behind its leader, and raise
     a generated leader where an observed follower could not stop behind it (in place).
@@ -178,7 +181,9 @@ def safe_speeds(
     so on along the chain, as far as its own leader allows. Capping every offender instead
     lowered the scene's mean speed by
     1.7 m/s on the Bremen example (a quarter of the generated vehicles, 5.8 m/s each),
-    and every method's rollouts inherited that error.
+    and every method's rollouts inherited that error. ``stops``: (S, P) (lane, arc; NaN
+    arc: none) of each scene's red or yellow stop lines (``SectionSnapshots.stop_lane``),
+    standing leaders there as in ``section_leaders`` (the envs' observation).
     """
     for s in range(len(comp.speed_mps)):
         on = np.flatnonzero(comp.valid[s])
@@ -188,7 +193,7 @@ def safe_speeds(
         v, gen = comp.speed_mps[s, on].copy(), comp.generated[s, on]
         pool = np.sort(v[gen])
         # Along the lane connections; a lane's end is a standing leader (STOP, < 0).
-        leader, spacing = section_leaders(section, lane, arc)
+        leader, spacing = section_leaders(section, lane, arc, *_stops_of(stops, s))
         # A long leader (a truck) stands its own extra length further back.
         ex = np.zeros(on.size) if extra_m is None else extra_m[s, on]
         ex_l = np.where(leader >= 0, ex[np.maximum(leader, 0)], 0.0)
@@ -214,6 +219,16 @@ def safe_speeds(
         comp.speed_mps[s, on] = v
 
 
+def _stops_of(
+    stops: tuple[np.ndarray, np.ndarray] | None, s: int | np.ndarray
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Scene(s) ``s``'s stop lines (lane, arc), their padding dropped (one scene)."""
+    if stops is None:
+        return None, None
+    ok = np.isfinite(stops[1][s])
+    return stops[0][s][ok], stops[1][s][ok]
+
+
 def _cap(j: int, v: np.ndarray, room: float, bt: float) -> float:
     """The most a vehicle with leader ``j`` (``STOP``: a lane end, -1: none) can drive and
     still stop behind it: v^2 + 2 bt v <= v_j^2 + room."""
@@ -237,12 +252,21 @@ def _nearest_below(pool: np.ndarray, v: float, cap: float) -> int:
 
 
 def _window_of(
-    g: Gaps, psi: Psi, row: int, kin: tuple[float, float], gap: int, offsets: torch.Tensor
+    g: Gaps,
+    psi: Psi,
+    row: int,
+    kin: tuple[float, float],
+    stops: tuple[torch.Tensor, torch.Tensor] | None,
+    road: Road,
+    gap: int,
+    offsets: torch.Tensor,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``kinematic_speeds`` of points ``offsets`` m into gap ``gap`` of scene ``row``."""
     one = Gaps(*(getattr(g, f)[row : row + 1] for f in g.__dataclass_fields__))
     choice = torch.full((1, len(offsets)), gap, dtype=torch.int64)
-    lo, hi = kinematic_speeds(one, choice, offsets[None], psi.take(torch.tensor([row])), *kin)
+    at = None if stops is None else (stops[0][row : row + 1], stops[1][row : row + 1])
+    psi_r = psi.take(torch.tensor([row]))
+    lo, hi = kinematic_speeds(one, choice, offsets[None], psi_r, *kin, at, road)
     return lo[0].numpy(), hi[0].numpy()
 
 
@@ -253,6 +277,8 @@ def kinematic_speeds(
     psi: Psi,
     brake_mps2: float,
     reaction_s: float,
+    stops: tuple[torch.Tensor, torch.Tensor] | None = None,
+    road: Road | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(lo, hi) speeds [m/s] of candidates at ``a`` m into their gap ``choice`` (B, n) that
     keep both new pairs kinematically consistent (``safe_speeds``'s condition): the
@@ -264,7 +290,10 @@ def kinematic_speeds(
     gaps) a vehicle put into a short gap behind a slow leader and ahead of a fast observed
     follower has no such speed; whichever speed ``safe_speeds`` then gives it, one of
     them must brake far beyond the bound in the first step and the vehicle behind that
-    one runs into it.
+    one runs into it. ``stops`` (with ``road``): the scenes' red or yellow stop lines
+    (``stop_room_m``); the candidate must also stop before the next one on its lane (a
+    car given 12 m/s 1 m before a red light stops there in one step, and the car behind
+    it does not: game/cross).
     """
     b, tau = brake_mps2, reaction_s
     s_min = psi.s_min[:, None]
@@ -276,6 +305,11 @@ def kinematic_speeds(
     cap = torch.sqrt(b * b * tau * tau + v_l * v_l + room_l) - b * tau
     lo = torch.where(gaps.has_f.gather(1, choice), need, 0.0)
     hi = torch.where(gaps.has_l.gather(1, choice), cap, math.inf)
+    if stops is not None and road is not None:
+        arc = road.wrap(gaps.start.gather(1, choice) + a)
+        d = stop_room_m(gaps.lane.gather(1, choice), arc, stops, road)
+        room_s = 2.0 * b * (d - s_min).clamp(min=0.0)  # as safe_speeds: a standing leader
+        hi = torch.minimum(hi, torch.sqrt(b * b * tau * tau + room_s) - b * tau)
     return torch.maximum(lo, psi.v_min[:, None]), torch.minimum(hi, psi.v_max[:, None])
 
 
@@ -304,6 +338,13 @@ def complete_section(
     scene = Scene.start(snaps, k, road)
     psi = Psi.of(snaps.psi)
     b = len(snaps)
+    stop_pts = scene_stops(section, snaps)  # standing obstacles: red lights, lane ends
+    stops = None  # the same as tensors, (B, P) lane and arc (inf: none)
+    if stop_pts is not None:
+        stops = (
+            torch.as_tensor(stop_pts[0], dtype=torch.int64),
+            torch.as_tensor(np.nan_to_num(stop_pts[1], nan=np.inf), dtype=torch.float64),
+        )
     trials = np.zeros(b, dtype=np.int64)
     projections = np.zeros(b, dtype=np.int64)
     dropped = np.zeros(b, dtype=np.int64)
@@ -340,7 +381,8 @@ def complete_section(
             & (t.speed <= sub.v_max[:, None])
         )
         if kin is not None:
-            v_lo, v_hi = kinematic_speeds(g, t.choice, a, sub, *kin)
+            at = None if stops is None else (stops[0][idx], stops[1][idx])
+            v_lo, v_hi = kinematic_speeds(g, t.choice, a, sub, *kin, at, road)
             ok &= v_lo <= v_hi
             t.speed = torch.where(ok, torch.minimum(torch.maximum(t.speed, v_lo), v_hi), t.speed)
         any_ok = ok.any(dim=1)
@@ -354,7 +396,9 @@ def complete_section(
         if len(failed):
             choice = t.choice[rows, pick]
             for r in failed:
-                window = None if kin is None else partial(_window_of, g, sub, int(r), kin)
+                window = None
+                if kin is not None:
+                    window = partial(_window_of, g, sub, int(r), kin, at, road)
                 x, j = _project(road, g, t.probs, int(r), int(choice[r]), float(arc[r]), window)
                 arc[r] = x
                 fits[r] = j >= 0
@@ -378,7 +422,7 @@ def complete_section(
         extra = np.where(obs, extra_lengths(snaps), 0.0)
         extra = np.concatenate([extra, np.zeros_like(comp.arc_m[:, extra.shape[1] :])], 1)
         stand = snaps.psi[:, PSI_INDEX["spacing_min_m"]]
-        safe_speeds(comp, section, stand, brake_mps2, reaction_s, extra)
+        safe_speeds(comp, section, stand, brake_mps2, reaction_s, extra, stop_pts)
     return comp
 
 

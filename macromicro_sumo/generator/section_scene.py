@@ -382,6 +382,41 @@ def scene_gaps(
     )
 
 
+def scene_stops(section: Section, snaps: SectionSnapshots) -> tuple[np.ndarray, np.ndarray] | None:
+    """(S, P) lane index and arc (NaN: padding) of the standing obstacles each scene's
+    generated vehicles must be able to stop at: the snapshot's red or yellow stop lines
+    (``SectionSnapshots.stop_lane``) and the end of every lane that does not continue along
+    the section (a lane end, a turning lane: the envs' vehicles drive the section's route,
+    and SUMO stops one that has not left such a lane at its end). None: there are none."""
+    n = len(section.edge_ids)
+    ends = [
+        (ln, float(section.offsets_m[e] + section.lengths_m[e]))
+        for e in range(n if section.closed else n - 1)
+        for ln in range(int(section.n_lanes[e]))
+        if not section.links[e, ln].any()
+    ]
+    s = len(snaps)
+    lane = np.tile(np.array([x for x, _ in ends], dtype=np.int64), (s, 1))
+    arc = np.tile(np.array([x for _, x in ends], dtype=float), (s, 1))
+    if snaps.stop_arc_m is not None:
+        lane = np.concatenate([lane, snaps.stop_lane], axis=1)
+        arc = np.concatenate([arc, snaps.stop_arc_m], axis=1)
+    return (lane, arc) if np.isfinite(arc).any() else None
+
+
+def stop_room_m(
+    lane: torch.Tensor, arc: torch.Tensor, stops: tuple[torch.Tensor, torch.Tensor], road: Road
+) -> torch.Tensor:
+    """(B, n) distance [m] from candidates at (``lane``, ``arc``) to the nearest red or
+    yellow stop line ahead on their lane (``stops``: (B, P) lane, arc; inf arc: none), inf
+    where there is none: a standing leader there (``safe_speeds``' ``stops``)."""
+    ahead = stops[1][:, None, :] - arc[..., None]  # (B, n, P)
+    if road.closed:
+        ahead = torch.remainder(ahead, road.length_m)
+    mine = (stops[0][:, None, :] == lane[..., None]) & (ahead >= -TOL_M) & torch.isfinite(ahead)
+    return torch.where(mine, ahead.clamp(min=0.0), math.inf).amin(dim=-1)
+
+
 def lane_exists_share(gaps: Gaps, road: Road) -> torch.Tensor:
     """(B, G) share of each gap's admissible part [lo, hi] on edges that have its lane
     (exact: the overlap with the lane's spans; 0 for a gap without room)."""
