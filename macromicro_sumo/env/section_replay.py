@@ -75,7 +75,36 @@ def safe_places(
     """Whether each vehicle ``fix`` (indices into the arrays of the active vehicles, sorted)
     can be put at (``fix_lane``, ``fix_arc_m``) now: its follower there and it can each stop
     behind their leader (braking at ``a_min``, one step to react), bumpers at least
-    ``min_gap_m`` apart."""
+    ``min_gap_m`` apart.
+
+    The moves are judged together, and a refused one stays where it is: the others are
+    judged again without it until none is refused. Judged once with every move applied, a
+    recorded lane change into the place another vehicle left in the record was applied
+    where that vehicle's own move was refused (drawn net 503: an observed car put into the
+    side of an observed truck whose recorded lane change waited behind a generated car)."""
+    keep = np.ones(len(fix), dtype=bool)
+    while True:
+        args = (fix[keep], fix_lane[keep], fix_arc_m[keep], dt, a_min, min_gap_m)
+        ok = _safe_now(section, lane, arc_m, speed_mps, length_m, *args)
+        if ok.all():
+            return keep
+        keep[np.flatnonzero(keep)[~ok]] = False
+
+
+def _safe_now(
+    section: Section,
+    lane: np.ndarray,
+    arc_m: np.ndarray,
+    speed_mps: np.ndarray,
+    length_m: np.ndarray,
+    fix: np.ndarray,
+    fix_lane: np.ndarray,
+    fix_arc_m: np.ndarray,
+    dt: float,
+    a_min: float,
+    min_gap_m: float,
+) -> np.ndarray:
+    """``safe_places``' check of the moves ``fix``, every one of them applied."""
     ln, s = lane.copy(), arc_m.copy()
     ln[fix], s[fix] = fix_lane, fix_arc_m
     lead, spacing = section_leaders(section, ln, s)
