@@ -33,6 +33,7 @@ import torch
 from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.generator.section_bounds import bounded_gaps
 from macromicro_sumo.generator.section_model import Scene, SectionGeneratorNet, propose
+from macromicro_sumo.generator.section_pairs import drop_unsafe_pairs
 from macromicro_sumo.generator.section_scene import (
     PSI_INDEX,
     TOL_M,
@@ -423,6 +424,8 @@ def complete_section(
         extra = np.concatenate([extra, np.zeros_like(comp.arc_m[:, extra.shape[1] :])], 1)
         stand = snaps.psi[:, PSI_INDEX["spacing_min_m"]]
         safe_speeds(comp, section, stand, brake_mps2, reaction_s, extra, stop_pts)
+        args = (section, stand, brake_mps2, reaction_s, extra, stop_pts)
+        comp.dropped = dropped + drop_unsafe_pairs(comp, *args)
     return comp
 
 
