@@ -168,6 +168,22 @@ def node_split(
     return float(k_lo * (line - lo) + k_hi * (hi - line)) / 1000.0
 
 
+JAM_SPACING_M = 5.0
+"""The shortest room a vehicle takes in a standing queue (a 5 m car, no gap): a stretch
+holds at most its lane-metres over it (``sealed_count``)."""
+
+
+def sealed_count(into_s: np.ndarray, out_s: np.ndarray, lane_m: float) -> bool:
+    """Whether a stretch's count since the empty start, the passages ``into_s`` at its
+    upstream station less ``out_s`` at its downstream one, stays a possible count after
+    every passage: never below 0 (a vehicle came in from a side road) and never above
+    ``lane_m`` / ``JAM_SPACING_M`` (vehicles that entered left by one)."""
+    t = np.concatenate([np.asarray(into_s, dtype=float), np.asarray(out_s, dtype=float)])
+    step = np.concatenate([np.ones(len(into_s)), -np.ones(len(out_s))])
+    n = np.cumsum(step[np.lexsort((-step, t))])  # at one time, the entry first
+    return bool(n.size == 0 or (n.min() >= 0 and n.max() <= lane_m / JAM_SPACING_M))
+
+
 @dataclass(frozen=True)
 class Piece:
     """A part of the section and its vehicles counted at each snapshot time."""
@@ -211,9 +227,10 @@ def io_pieces(
     stretches with no ramp, are their input-output count itself (nothing enters or leaves
     them but through their stations), where the density estimate's offset to it agrees
     within ``EMPTY_START_TOLERANCE_VEH`` or ``EMPTY_START_TOLERANCE`` of their count;
-    ``ramps``, the others, are anchored as ``stretches`` are, but for ``ramp_nodes``, the
-    short stretches around a ramp's node, counted by their density estimate
-    (``node_split`` where the upstream station is a stop bar). On an open section ``upstream`` and
+    ``ramps``, the others, are anchored as ``stretches`` are, but for the short stretches
+    around a ramp's node: ``node_counts``, their count where nobody turned there
+    (``sealed_count``), else ``ramp_nodes``, their density estimate (``node_split`` where
+    the upstream station is a stop bar). On an open section ``upstream`` and
     ``downstream``, the end pieces beyond the outermost full stations
     (``density.projected_passages``; upstream blended with the density estimate by the
     station's speed, since a vehicle queued there passes slower than it drove).
@@ -338,9 +355,36 @@ def io_pieces(
         # count drifts at the ramp's flow, and a line over a window followed that worse
         # (SUMO's game/ramp in congestion: 3.5 vehicles off on 3, the density 0.9).
         short = [q for q in pairs if stretch_m(q, section) <= SHORT_STRETCH_M]
+
+        # A node nobody turns at (a signal on a crossing street, a ramp nobody used):
+        # its stretch's count since the empty start is the count, where it stays possible
+        # (``sealed_count``) and within ``EMPTY_START_TOLERANCE_VEH`` of the density
+        # estimate in every interval (a slow drift, vehicles turning off at a few per
+        # minute, stays possible for minutes but not near the density estimate).
+        def sealed(q: tuple[float, float]) -> bool:
+            lane_m = stretch_m(q, section) * float(section.max_lanes)
+            off = np.abs(np.array(dens[q]) - np.array(io_mean[q]))
+            near = bool(np.isfinite(off).any()) and float(np.nanmax(off)) <= (
+                EMPTY_START_TOLERANCE_VEH
+            )
+            return near and sealed_count(times[q[0]], times[q[1]], lane_m)
+
+        closed = [q for q in short if sealed(q)]
+        if closed:
+            pieces["node_counts"] = Piece(
+                spans(closed),
+                np.sum(
+                    [
+                        cumulative_count(times[lo], at_p) - cumulative_count(times[hi], at_p)
+                        for lo, hi in closed
+                    ],
+                    axis=0,
+                ),
+            )
+        short = [q for q in short if q not in closed]
         if short:
             pieces["ramp_nodes"] = Piece(spans(short), np.sum([split[q] for q in short], axis=0)[j])
-        pairs = [q for q in pairs if q not in short]
+        pairs = [q for q in pairs if q not in short and q not in closed]
     # Every other stretch is anchored together: each alone takes the density estimate's
     # error on its stretch (a loop on a curve or before a lane drop does not stand for its
     # neighbours), and those errors cancel in their sum, which is all K needs

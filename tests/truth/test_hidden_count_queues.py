@@ -16,7 +16,7 @@ from conftest import ROOT, dump_toml, netconvert
 from macromicro_sumo.cli import main
 from macromicro_sumo.data.section import at_snapshot_times
 from macromicro_sumo.road.section import Section
-from macromicro_sumo.truth.hidden_count import STOP_BAR_M
+from macromicro_sumo.truth.hidden_count import STOP_BAR_M, sealed_count
 from macromicro_sumo.truth.section_macro import k_summary
 
 sys.path.insert(0, str(ROOT / "scripts"))
@@ -62,10 +62,19 @@ def test_queue_behind_lane_drops(tmp_path: Path) -> None:
     assert err <= 0.2, err  # 0.01 measured; 2.43 before
 
 
-def signal_scenario(folder: Path) -> Path:
+SIGNAL_FLOWS = (
+    ("t", "w0 w1 ce", 600),
+    ("r", "w0 w1 cs", 200),
+    ("i", "nc ce", 200),
+    ("x", "sc cn", 200),
+)
+
+
+def signal_scenario(folder: Path, flows: tuple = SIGNAL_FLOWS) -> Path:
     """A 4-arm fixed-time junction (netconvert's program): the section is the west approach
-    (2 lanes: right turn only, through only) and the east exit (1 lane); cross traffic from
-    the north turns onto the exit. 600 veh/h through, 200 turning right, 200 turning in."""
+    (2 lanes: right turn only, through only) and the east exit (1 lane); by default
+    (``SIGNAL_FLOWS``, veh/h) cross traffic from the north turns onto the exit: 600 through,
+    200 turning right, 200 turning in, 200 crossing from the south."""
     net = netconvert(
         folder,
         '<node id="w" x="-300" y="0"/><node id="v" x="-150" y="0"/>'
@@ -84,12 +93,6 @@ def signal_scenario(folder: Path) -> Path:
         '<connection from="nc" to="cs" fromLane="0" toLane="0"/>'
         '<connection from="sc" to="cn" fromLane="0" toLane="0"/>',
         name="x",
-    )
-    flows = (
-        ("t", "w0 w1 ce", 600),
-        ("r", "w0 w1 cs", 200),
-        ("i", "nc ce", 200),
-        ("x", "sc cn", 200),
     )
     (folder / "x.rou.xml").write_text(
         '<routes><vType id="car" length="5" minGap="2.5"/>'
@@ -135,3 +138,24 @@ def test_queue_at_a_red_light(tmp_path: Path) -> None:
     share, err, bias = congested_error(gt, 5.0)
     assert share > 0.3  # a queue stands at the red light in a third of the snapshots
     assert err <= 0.6, (err, bias)  # 0.33 measured; 1.6 before
+
+
+def test_a_count_with_nobody_turning_stays_possible() -> None:
+    into = np.array([1.0, 2.0, 3.0, 10.0])
+    assert sealed_count(into, np.array([2.0, 4.0, 5.0, 12.0]), lane_m=10.0)  # 2 at most
+    assert not sealed_count(into, np.array([0.5, 4.0, 5.0]), lane_m=10.0)  # one came in
+    assert not sealed_count(into, np.array([12.0]), lane_m=10.0)  # 4 on 10 lane-metres
+
+
+def test_a_signal_nobody_turns_at_is_counted(tmp_path: Path) -> None:
+    """Only crossing traffic at the junction: the stretch from the stop bar over the
+    junction holds the vehicles that passed the stop bar and not yet the station beyond
+    it, exactly (by the stations' densities K was 0.28 vehicles per lane off)."""
+    gt = tmp_path / "gt"
+    flows = (("t", "w0 w1 ce", 600), ("x", "sc cn", 300))
+    toml = signal_scenario(tmp_path, flows)
+    assert main(["simulate", str(toml), "--out", str(gt), "--quiet"]) == 0
+    section = Section.read(gt / "section.json")
+    k = pd.read_csv(gt / "k_estimate.csv")
+    assert k["k_true"].mean() > 5.0
+    assert k_summary(k, section)["mean_abs_error_per_lane_veh"] <= 0.1
