@@ -288,17 +288,12 @@ def io_pieces(
         group: list[tuple[float, float]], window_s: float
     ) -> tuple[np.ndarray, np.ndarray]:
         """(the group's input-output count, the same anchored to its density estimate).
-
         One constant for the record (``window_s`` infinite): each stretch's offset weighted
-        to the intervals in which its own stations flow freely, the offsets summed. One
-        weight per interval for the group (its stretches' mean) kept a queued stretch's
-        intervals near full weight where the others flowed: drawn net 501, a queue over a
-        4 -> 2 -> 1 lane drop where the density estimate was 45-74 vehicles short, failed
-        the empty start's check in 2 of 4 runs and K was 1.6-1.9 vehicles per lane low;
-        weighted per stretch it passes, 0.01. A line over a window: the group's summed
-        offset, weighted by its stretches' mean (a line per stretch through its few free
-        intervals was noisier: seeds 300-307 with the ramps unknown, congested, 1.20
-        vehicles per lane off against 0.97)."""
+        to the intervals its own stations flow freely in, summed (the group's mean weight
+        kept a queued stretch's intervals near full: drawn net 501's lane drops failed the
+        empty start's check, K 1.6-1.9 per lane low; per stretch 0.01). A line over a
+        window: the summed offset by the mean weight (lines per stretch were noisier: seeds
+        300-307, ramps unknown, congested, 1.20 per lane against 0.97)."""
         io = [
             cumulative_count(times[lo], at_p) - cumulative_count(times[hi], at_p)
             for lo, hi in group
@@ -339,12 +334,17 @@ def io_pieces(
     ramps = [q for q, r in zip(pairs, with_ramp, strict=True) if r]
     if record.from_empty and not section.closed and between:
         # Counted since the run's start, when the section was empty: the count itself,
-        # unless the density estimate's offset says that vehicles depart or arrive inside
-        # the stretches (the count then drifts away from it).
+        # unless the density estimate's offset says vehicles depart or arrive inside the
+        # stretches and a stretch's count became impossible (``sealed_count``): in a record
+        # queued throughout the density estimate alone is off (a signalised arterial).
         io, counted = anchored(between, np.inf)
         mean_count = float(np.nanmean(np.sum([dens[pair] for pair in between], axis=0)))
         tolerance = max(EMPTY_START_TOLERANCE_VEH, EMPTY_START_TOLERANCE * mean_count)
-        if abs(float(np.nanmean(counted - io))) <= tolerance:
+        possible = all(
+            sealed_count(times[lo], times[hi], stretch_m((lo, hi), section) * section.max_lanes)
+            for lo, hi in between
+        )
+        if abs(float(np.nanmean(counted - io))) <= tolerance or possible:
             pieces["between"] = Piece(spans(between), io)
             pairs = ramps
     # The interval holding each time (the last one before it, past the record's end).
