@@ -232,3 +232,19 @@ def projected_passages(
     out = np.empty(len(ts))
     out[order] = np.cumsum(steps)[:-1]
     return out
+
+
+JAM_SPACING_M = 5.0
+"""The shortest room a vehicle takes in a standing queue (a 5 m car, no gap): a stretch
+holds at most its lane-metres over it (``sealed_count``)."""
+
+
+def sealed_count(into_s: np.ndarray, out_s: np.ndarray, lane_m: float) -> bool:
+    """Whether a stretch's count since the empty start, the passages ``into_s`` at its
+    upstream station less ``out_s`` at its downstream one, stays a possible count after
+    every passage: never below 0 (a vehicle came in from a side road) and never above
+    ``lane_m`` / ``JAM_SPACING_M`` (vehicles that entered left by one)."""
+    t = np.concatenate([np.asarray(into_s, dtype=float), np.asarray(out_s, dtype=float)])
+    step = np.concatenate([np.ones(len(into_s)), -np.ones(len(out_s))])
+    n = np.cumsum(step[np.lexsort((-step, t))])  # at one time, the entry first
+    return bool(n.size == 0 or (n.min() >= 0 and n.max() <= lane_m / JAM_SPACING_M))

@@ -22,6 +22,7 @@ from macromicro_sumo.truth.density import (
     free_flow_weight,
     occupancy_weight,
     projected_passages,
+    sealed_count,
 )
 from macromicro_sumo.truth.section_macro import (
     K_ESTIMATE_COLUMNS,
@@ -57,6 +58,11 @@ depart or arrive between them. The density estimate's offset to it (free-flow we
 it is the density estimate's own error (on the bench -1.6 to +5.8 vehicles, 1-5%), beyond
 it the count drifts and the offset is taken instead."""
 
+
+NODE_REACH_M = 50.0
+"""How far past a stop bar's stretch the counted stretches give its density: game/cross
+0.55 -> 0.12 vehicles per lane in congestion, a drawn arterial 2.08 -> 1.73 (the first
+stretch alone was noisy; 100-200 m reached into the next queue: 2.21-2.88)."""
 
 SHORT_STRETCH_M = 100.0
 """A stretch with a ramp at most this long between its stations (the boundary stations
@@ -134,11 +140,9 @@ def station_speeds(e1: pd.DataFrame) -> pd.Series:
 
 STOP_BAR_M = 0.5
 """How far before a section edge's end at a signal or a stop sign the tool's boundary
-station sits (``section_detectors.boundary_arcs``): a stop-bar loop. SUMO stops a car at a
-red light 1 m before the lane's end (game/cross), so the queue stands upstream of the
-loop, on a stretch its stations count; with the station 15 m before the line, the queue
-between them was the density estimate's, and the loop saw it only once it reached back
-over it (game/cross: K 1.35 vehicles per lane off in congestion, 1.4 low)."""
+station sits (``section_detectors.boundary_arcs``): SUMO stops a car at red 1 m before the
+lane's end, so the queue stands on a counted stretch (15 m before the line, between them,
+it was the density estimate's: game/cross K 1.35 vehicles per lane off in congestion)."""
 
 
 def node_split(
@@ -149,14 +153,10 @@ def node_split(
     hi: float,
     linear: float,
 ) -> float:
-    """Vehicles on the stretch [lo, hi) around a ramp's node whose upstream station is a stop
-    bar (within ``STOP_BAR_M`` of its edge's end): each station's density for its side of
-    the stop line, ``lo``'s up to it, ``hi``'s over the junction and on. Interpolated
-    across, the stop bar's density (every lane's discharge, turners included) stood for the
-    junction, which carries the section's own link only (game/cross: the node's piece 1.4
-    vehicles high in congestion). ``linear``, the density interpolated from ``lo`` to
-    ``hi``, everywhere else: at a ramp's merge or diverge it was the better one (seeds
-    200-207 and 300-307 in congestion: 0.30 vehicles per lane off against 0.32 split)."""
+    """Vehicles on [lo, hi) around a node whose upstream station is a stop bar (within
+    ``STOP_BAR_M`` of its edge's end): ``lo``'s density up to the line, ``hi``'s on (the
+    stop bar's counts the turners; game/cross 1.4 vehicles high interpolated). Else
+    ``linear`` (at a ramp's merge or diverge the better: seeds 200-307, 0.30 against 0.32)."""
     if side_arcs is None or hi <= lo:
         return linear
     e = int(section.edge_index(np.array([lo]))[0])
@@ -166,22 +166,6 @@ def node_split(
     if not (node and line - lo <= STOP_BAR_M + 1e-6 and np.isfinite(k_lo) and np.isfinite(k_hi)):
         return linear
     return float(k_lo * (line - lo) + k_hi * (hi - line)) / 1000.0
-
-
-JAM_SPACING_M = 5.0
-"""The shortest room a vehicle takes in a standing queue (a 5 m car, no gap): a stretch
-holds at most its lane-metres over it (``sealed_count``)."""
-
-
-def sealed_count(into_s: np.ndarray, out_s: np.ndarray, lane_m: float) -> bool:
-    """Whether a stretch's count since the empty start, the passages ``into_s`` at its
-    upstream station less ``out_s`` at its downstream one, stays a possible count after
-    every passage: never below 0 (a vehicle came in from a side road) and never above
-    ``lane_m`` / ``JAM_SPACING_M`` (vehicles that entered left by one)."""
-    t = np.concatenate([np.asarray(into_s, dtype=float), np.asarray(out_s, dtype=float)])
-    step = np.concatenate([np.ones(len(into_s)), -np.ones(len(out_s))])
-    n = np.cumsum(step[np.lexsort((-step, t))])  # at one time, the entry first
-    return bool(n.size == 0 or (n.min() >= 0 and n.max() <= lane_m / JAM_SPACING_M))
 
 
 @dataclass(frozen=True)
@@ -369,6 +353,24 @@ def io_pieces(
             )
             return near and sealed_count(times[q[0]], times[q[1]], lane_m)
 
+        def node_piece(q: tuple[float, float]) -> np.ndarray:
+            """A stop bar's stretch over the junction: from the line on, the density of the
+            counted stretches beyond it (``NODE_REACH_M``) at the snapshot, where the queue
+            at red or one spilled back from the next signal stands. Else ``split``'s."""
+            e = int(section.edge_index(np.array([q[0]]))[0])
+            line = float(section.offsets_m[e] + section.lengths_m[e])
+            reach, end = [], q[1]
+            while sum(stretch_m(b, section) for b in reach) < NODE_REACH_M:
+                nxt = [b for b in between if b[0] == end and b[1] > b[0]]
+                if not nxt:
+                    break
+                reach.append(nxt[0])
+                end = nxt[0][1]
+            if line - q[0] > STOP_BAR_M + 1e-6 or not reach or q[1] <= q[0]:
+                return np.array(split[q])[j]
+            count = cumulative_count(times[q[1]], at_p) - cumulative_count(times[end], at_p)
+            return count / (end - q[1]) * (q[1] - line)
+
         closed = [q for q in short if sealed(q)]
         if closed:
             pieces["node_counts"] = Piece(
@@ -383,7 +385,9 @@ def io_pieces(
             )
         short = [q for q in short if q not in closed]
         if short:
-            pieces["ramp_nodes"] = Piece(spans(short), np.sum([split[q] for q in short], axis=0)[j])
+            pieces["ramp_nodes"] = Piece(
+                spans(short), np.sum([node_piece(q) for q in short], axis=0)
+            )
         pairs = [q for q in pairs if q not in short and q not in closed]
     # Every other stretch is anchored together: each alone takes the density estimate's
     # error on its stretch (a loop on a curve or before a lane drop does not stand for its

@@ -17,11 +17,11 @@ from macromicro_sumo.cli import main
 from macromicro_sumo.data.section import at_snapshot_times
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.sumo.inputs import read_net
+from macromicro_sumo.truth.density import sealed_count
 from macromicro_sumo.truth.hidden_count import (
     STOP_BAR_M,
     StationRecord,
     io_pieces,
-    sealed_count,
     side_junction_arcs,
 )
 from macromicro_sumo.truth.section_macro import k_summary, loop_densities
@@ -144,7 +144,7 @@ def test_queue_at_a_red_light(tmp_path: Path) -> None:
     assert np.isclose(arcs, line - 15.0, atol=1e-3).any()  # the ramp's boundary station stays
     share, err, bias = congested_error(gt, 5.0)
     assert share > 0.3  # a queue stands at the red light in a third of the snapshots
-    assert err <= 0.6, (err, bias)  # 0.33 measured; 1.6 before
+    assert err <= 0.6, (err, bias)  # 0.37 measured; 1.6 before
 
 
 def test_a_count_with_nobody_turning_stays_possible() -> None:
@@ -253,5 +253,9 @@ def test_stretches_in_spilled_back_queues_are_counted(tmp_path: Path) -> None:
         for a in (by_t.get_group(t).to_numpy() for t in times)
     ]
     assert np.abs(pieces["between"].vehicles - np.array(true)).mean() <= 0.1
-    share, _, _ = congested_error(gt, 10.0)
+    # The junctions after the stop bars take the counted stretches' density beyond them
+    # (NODE_REACH_M): 1.68 per lane in congestion, 2.06 by the stations' interval
+    # densities; still above 1 (docs: a standing queue spilled back over the junction).
+    share, err, _ = congested_error(gt, 10.0)
     assert share > 0.5
+    assert err <= 1.85, err
