@@ -323,12 +323,14 @@ class Simulation:
 
     def set_signal_states(self, rows: Sequence[tuple[str, str, int, float]]) -> None:
         """Put each signal (ID, program, phase index, seconds left in the phase) where a
-        recording saw it; its program runs on from there."""
+        recording saw it; its program runs on from there. A signal or program this run
+        lacks (one from the user's additional files) is left as it is."""
         tl = libsumo.trafficlight
         for t, program, phase, left_s in rows:
-            tl.setProgram(t, program)
-            tl.setPhase(t, int(phase))
-            tl.setPhaseDuration(t, float(left_s))
+            with contextlib.suppress(libsumo.TraCIException):
+                tl.setProgram(t, program)
+                tl.setPhase(t, int(phase))
+                tl.setPhaseDuration(t, float(left_s))
 
     def own_speeds(self, vehicle_ids: Sequence[str]) -> np.ndarray:
         """SUMO's own choice of the last step's speed where a command overrode it."""

@@ -22,6 +22,7 @@ from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import build_section_bank
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.inputs import scenario_inputs
+from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.truth.section import load_section_truth
 
 CROSS = Path(sumo.__file__).resolve().parent / "tools" / "game" / "cross"
@@ -101,3 +102,18 @@ def test_episodes_show_the_truths_signals_at_every_step(cross_truth) -> None:
     finally:
         core.close()
     assert mismatches == 0
+
+
+def test_a_program_the_env_lacks_leaves_the_signal_as_it_is(cross_truth) -> None:
+    """A recorded program the env's run does not have (a user's additional file defines it;
+    the env loads only the net) is no error: that signal keeps the env's own state."""
+    sc, truth = cross_truth
+    sim = Simulation(SumoOptions(scenario_inputs(sc).net_file, (), 0.5, 1))
+    try:
+        before = sim.signal_states(["0"])[0]
+        sim.set_signal_states([("0", "user_program", 4, 7.0), ("no_such_signal", "0", 0, 1.0)])
+        assert sim.signal_states(["0"])[0] == before
+        sim.set_signal_states([("0", "0", 4, 7.0)])
+        assert sim.signal_states(["0"])[0][1:3] == (4, 7.0)
+    finally:
+        sim.close()
