@@ -59,6 +59,7 @@ from macromicro_sumo.env.section_replay import junction_lane, junction_vias
 from macromicro_sumo.env.slot_core import DEFAULT_SAFETY, POSITION_TOL_M, SlotCore
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
+from macromicro_sumo.sumo.inputs import scenario_inputs, signal_programs
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 
 __all__ = ["DEFAULT_SAFETY", "SectionCore"]  # the default, importable from here as before
@@ -87,8 +88,11 @@ class SectionCore(SlotCore):
         vtypes = self._setup(sc, bank, safety, vclass, replay_min_gap_m)
         self.section = section
         self.episode_section, self._sumo_limits = section, section.limits_mps  # see reset
+        # The user's signal programs too: a reset puts each signal on the program the truth
+        # recorded, which may be one of theirs rather than the net's.
+        programs = signal_programs(scenario_inputs(sc), Path(self._tmp.name) / "signals.add.xml")
         self.sim = Simulation(
-            SumoOptions(Path(net_file), (vtypes,), self.dt, seed, fcd_file=fcd_file)
+            SumoOptions(Path(net_file), (vtypes, *programs), self.dt, seed, fcd_file=fcd_file)
         )
         self._add_routes(np.array(section.edge_ids, dtype=object))
         self._index_lanes([str])

@@ -162,6 +162,26 @@ def top_elements(files: Sequence[Path]) -> Iterator[tuple[Path, ET.Element]]:
             yield file, elem
 
 
+# SUMO's traffic-light program elements of an additional file (programs, and the WAUTs that
+# switch between them).
+SIGNAL_PROGRAM_TAGS = ("tlLogic", "WAUT", "wautJunction")
+
+
+def signal_programs(inputs: SumoInputs, dst: Path) -> tuple[Path, ...]:
+    """The traffic-light programs of the user's additional files alone, written to ``dst``
+    (one file; none where they define no program): for a run that defines its own vTypes,
+    routes and detectors (a Stage II env) and must still show the signals the truth's
+    run showed, whose recorded program may be one of these (``signals.csv``)."""
+    found = [e for _, e in top_elements(inputs.additional_files)]
+    found = [e for e in found if local_tag(e.tag) in SIGNAL_PROGRAM_TAGS]
+    if not found:
+        return ()
+    root = ET.Element("additional")
+    root.extend(found)
+    ET.ElementTree(root).write(dst)
+    return (dst,)
+
+
 # ---------------------------------------------------------------- detectors
 
 

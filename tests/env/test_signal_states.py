@@ -117,3 +117,64 @@ def test_a_program_the_env_lacks_leaves_the_signal_as_it_is(cross_truth) -> None
         assert sim.signal_states(["0"])[0][1:3] == (4, 7.0)
     finally:
         sim.close()
+
+
+def test_episodes_run_the_users_own_signal_program(tmp_path: Path) -> None:
+    """A program from the user's additional files (not the net's): the truth records it, and
+    a Stage II episode shows it, phase and seconds left, at every step. Before the env
+    loaded the user's programs, its run lacked the program and kept the net's own."""
+    add = tmp_path / "user.tls.add.xml"
+    add.write_text(
+        '<additional><tlLogic id="0" type="static" programID="user" offset="0">'
+        '<phase duration="7" state="GGGGGGGGGGGG"/><phase duration="2" state="yyyyyyyyyyyy"/>'
+        '<phase duration="11" state="rrrrrrrrrrrr"/></tlLogic></additional>'
+    )
+    net, routes = CROSS / "cross.net.xml", CROSS / "cross.rou.xml"
+    path = section_scenario(
+        tmp_path / "cross_user.toml",
+        net,
+        routes,
+        ["1fi", "1si", "2o", "2fo"],
+        seed=1,
+        penetration=0.3,
+        simulation={"step_length_s": 0.5, "warmup_s": 40.0, "duration_s": 80.0, "n_runs": 1},
+        detectors={"interval_s": 40.0, "auto_spacing_m": 60.0},
+        generator={"snapshot_every_s": 5.0},
+        network={
+            "kind": "sumo",
+            "net_file": str(net),
+            "route_files": [str(routes)],
+            "additional_files": [str(add)],
+        },
+    )
+    out = tmp_path / "gt"
+    assert main(["simulate", str(path), "--out", str(out), "--quiet"]) == 0
+    sc = load_scenario(path)
+    truth = load_section_truth(out, sc)
+    assert set(truth.signals["program"].astype(str)) == {"user"}
+    snaps = recorded_snapshots(truth, sc, truth.runs)
+
+    def true_scene(s):
+        return s.lane, s.arc_m, s.speed_mps, s.valid, s.valid & ~s.observed
+
+    bank = build_section_bank(sc, truth, snaps, true_scene, horizon=4)
+    core = SectionCore(sc, truth.section, bank, scenario_inputs(sc).net_file, seed=1)
+    want = truth.signals.drop_duplicates(["run", "time_s"]).set_index(["run", "time_s"])
+    want.index = want.index.set_levels(want.index.levels[1].to_numpy().round(6), level=1)
+    seen = []
+    try:
+        for ep in range(len(bank)):
+            core.reset(ep)
+            for k in range(5):
+                if k:
+                    core.step(np.zeros(int(core.hidden.sum())))
+                t = round(float(bank.time_s[ep]) + k * core.dt, 6)
+                program, phase, left, state = core.sim.signal_states(["0"])[0]
+                rec = want.loc[(int(bank.run[ep]), t)]
+                seen.append(
+                    (program, phase, round(left, 6))
+                    == ("user", rec["phase"], round(rec["left_s"], 6))
+                )
+    finally:
+        core.close()
+    assert len(seen) > 20 and all(seen)
