@@ -324,7 +324,7 @@ class Simulation:
     def set_signal_states(self, rows: Sequence[tuple[str, str, int, float]]) -> None:
         """Put each signal (ID, program, phase index, seconds left in the phase) where a
         recording saw it; its program runs on from there. A signal or program this run
-        lacks (one from the user's additional files) is left as it is."""
+        lacks (a file it was not given) is left as it is."""
         tl = libsumo.trafficlight
         for t, program, phase, left_s in rows:
             with contextlib.suppress(libsumo.TraCIException):
