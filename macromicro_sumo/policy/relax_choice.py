@@ -15,11 +15,10 @@ cruise (stop 31)").
 drivers' desired speeds, on the first ``deploy.safety_floor_runs`` training runs from
 SUMO's first step, warm-up included), and the one with the lowest speed RMSE against the
 truth's detectors there is kept. Stage II's own r_macro cannot decide it: its targets
-(psi) start after the warm-up, when the start is over. Until stop 33 the candidates drove
-the demand env (no safety layer, one desired speed) and were ranked by SUMO's loops'
-counts: on congested networks every candidate's run collided there (drawn net 311 606-906
-times), and a guard had to keep the fitted T (docs/deploy.md, "One prior-alone scorer
-(stop 33)").
+(psi) start after the warm-up, when the start is over. Nor can the demand env Stage II
+trains on: it drives without the safety layer, and on congested networks every candidate's
+run collided there (drawn net 311: 606-906 times; deployed, none did; docs/deploy.md,
+"One prior-alone scorer (stop 33)").
 """
 
 from __future__ import annotations
