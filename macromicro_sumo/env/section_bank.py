@@ -351,8 +351,10 @@ def section_observations(
     set_own_features``; None where it has none).
 
     Leaders along the lane connections (``section_leaders``, one sort per call); the end
-    of a lane that leads nowhere and the stop points given (red lights) are standing
-    leaders, as a driver sees them. Inactive slots get zeros and no leader.
+    of a lane that does not continue along the section (``Section.lane_ends``: a lane
+    drop, a turning lane) and the stop points given (red lights) are standing leaders, as
+    a driver on the section's route sees them (in ``leader``: -1, no vehicle). Inactive
+    slots get zeros and no leader.
     """
     n = len(arc_m)
     obs = np.zeros((n, len(OBSERVATION_FEATURES[observation])))

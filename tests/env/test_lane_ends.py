@@ -1,0 +1,104 @@
+"""The end of a lane that does not continue along the section is a standing leader in the
+Stage II envs' observation (``Section.lane_ends``, the generator's ``scene_stops`` too).
+
+SUMO's game/cross with its west approach as the section: 1si has three lanes, of which only
+lane 1 links onto 2o; lanes 0 and 2 turn right and left. A vehicle the env drives keeps the
+section's route, and SUMO stops one that has not left a turning lane at its end. Before,
+the envs' observation ended only lanes with no connection at all: a vehicle on 1si's
+left-turn lane saw a free road.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import sumo
+
+from macromicro_sumo.env.section_bank import section_observations
+from macromicro_sumo.generator.section_scene import scene_stops
+from macromicro_sumo.road.section import (
+    NO_LEADER_GAP_M,
+    STOP,
+    Section,
+    read_section,
+    section_leaders,
+)
+from macromicro_sumo.sumo.options import SumoOptions
+from macromicro_sumo.sumo.simulation import Simulation
+
+CROSS = Path(sumo.__file__).resolve().parent / "tools" / "game" / "cross" / "cross.net.xml"
+EDGES = ["1fi", "1si", "2o", "2fo"]
+
+
+@pytest.fixture(scope="module")
+def cross() -> Section:
+    return read_section(CROSS, EDGES, closed=False)
+
+
+def test_a_turning_lanes_end_is_a_standing_leader(cross: Section) -> None:
+    """Vehicles 40 m before 1si's end on each of its lanes: on the turning lanes (0, 2) the
+    lane's end is a standing leader 40 m ahead (delta v = own speed); the through lane
+    (1) sees a free road on 2o. The generator's standing obstacles are the same ends."""
+    end = float(cross.offsets_m[1] + cross.lengths_m[1])
+    lane = np.array([0, 1, 2])
+    speed = np.array([8.0, 9.0, 10.0])
+    obs, leader, _ = section_observations(
+        cross, lane, np.full(3, end - 40.0), speed, np.ones(3, dtype=bool), "lookahead"
+    )
+    assert (leader == -1).all()  # no vehicle ahead
+    np.testing.assert_allclose(obs[:, 2], [40.0, NO_LEADER_GAP_M, 40.0])  # spacing
+    np.testing.assert_allclose(obs[:, 3], [8.0, 0.0, 10.0])  # delta v
+    lead, _ = section_leaders(cross, lane, np.full(3, end - 40.0))
+    np.testing.assert_array_equal(lead, [STOP, -1, STOP])
+    np.testing.assert_array_equal(cross.lane_ends, [[0, 0, 0], [1, 0, 1], [0, 0, 0], [0, 0, 0]])
+    # Another section file (``section.json``) keeps them.
+    np.testing.assert_array_equal(Section.from_json(cross.to_json()).lane_ends, cross.lane_ends)
+
+    class NoLights:
+        stop_arc_m = None
+
+        def __len__(self) -> int:
+            return 1
+
+    st_lane, st_arc = scene_stops(cross, NoLights())  # type: ignore[arg-type]
+    assert sorted(zip(st_lane[0].tolist(), st_arc[0].tolist(), strict=True)) == [
+        (0, pytest.approx(end)),
+        (2, pytest.approx(end)),
+    ]
+
+
+def test_lanes_end_where_sumo_makes_the_sections_route_leave_them(cross: Section) -> None:
+    """In SUMO, vehicles on the section's route on every lane of 1fi, 1si and 2o: the env's
+    observation has a standing leader exactly where SUMO's best lanes say the vehicle must
+    leave its lane (``Simulation.lane_end_m``, the deployment's and the demand env's
+    source), at the distance SUMO gives (within 0.5 m: the lanes' own lengths differ
+    from the section's arc), and none elsewhere."""
+    sim = Simulation(SumoOptions(CROSS, (), 0.5, 1))
+    try:
+        for e in range(3):
+            sim.add_route(f"from{e}", EDGES[e:])  # the section's route from the vehicle's edge
+        places = [(0, 0, 100.0), (1, 0, 30.0), (1, 1, 30.0), (1, 2, 30.0), (2, 0, 100.0)]
+        ids = [f"v{i}" for i in range(len(places))]
+        for vid, (e, ln, pos) in zip(ids, places, strict=True):
+            sim.add_vehicle(vid, f"from{e}", "DEFAULT_VEHTYPE", ln, pos, 0.0)
+        sim.step()
+        lanes, pos, speed = sim.lane_states(ids)
+        want = np.array(
+            [sim.lane_end_m(v, ln, p) for v, ln, p in zip(ids, lanes, pos, strict=True)]
+        )
+    finally:
+        sim.close()
+    at = [cross.locate(ln, p) for ln, p in zip(lanes, pos, strict=True)]
+    lane = np.array([a[0] for a in at])
+    arc = np.array([a[1] for a in at])
+    assert sorted(set(lanes) & {"1si_0", "1si_2"}) == ["1si_0", "1si_2"]
+    obs, _, _ = section_observations(
+        cross, lane, arc, speed, np.ones(len(ids), dtype=bool), "lookahead"
+    )
+    lead, _ = section_leaders(cross, lane, arc)
+    must_leave = np.isfinite(want)
+    assert must_leave.sum() == 2
+    np.testing.assert_array_equal(lead == STOP, must_leave)
+    np.testing.assert_allclose(obs[must_leave, 2], want[must_leave], atol=0.5)
