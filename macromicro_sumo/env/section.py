@@ -202,7 +202,9 @@ class SectionCore(SlotCore):
 
     def _scene(self) -> None:
         """Leaders, spacings and observations of the active vehicles (one sort); a red or
-        yellow signal ahead is a standing leader at its stop line."""
+        yellow signal ahead is a standing leader at its stop line, and so is, for a hidden
+        vehicle (the section's route), the end of a lane that leaves the section; observed
+        vehicles replay their own routes (a turner leaves the section there)."""
         stop_lane = stop_arc = None
         if self._has_lights:
             live = np.flatnonzero(self.active)
@@ -219,6 +221,7 @@ class SectionCore(SlotCore):
             stop_arc,
             self.bank.factor_of(self.episode),  # each driver's own limits (policy.driver_speed)
             self.bank.length_m[self.episode],
+            self.hidden,  # the driven ones drive the section's route: its lane ends
         )
 
     def _result(self, r: float, terms, collision: bool, truncated: bool, error: str):

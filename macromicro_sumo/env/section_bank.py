@@ -343,6 +343,7 @@ def section_observations(
     stop_arc_m: np.ndarray | None = None,
     factor: np.ndarray | None = None,
     length_m: np.ndarray | None = None,
+    on_route: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Observations (N, obs_dim), leader (-1: none, ``STOP``: a standing obstacle) and
     spacing of the active vehicles; ``factor`` (N,): each driver's desired-speed factor,
@@ -351,10 +352,11 @@ def section_observations(
     set_own_features``; None where it has none).
 
     Leaders along the lane connections (``section_leaders``, one sort per call); the end
-    of a lane that does not continue along the section (``Section.lane_ends``: a lane
-    drop, a turning lane) and the stop points given (red lights) are standing leaders, as
-    a driver on the section's route sees them (in ``leader``: -1, no vehicle). Inactive
-    slots get zeros and no leader.
+    of a lane that leads nowhere, for the vehicles ``on_route`` (N,) (the driven ones,
+    which drive the section's route; None: none) that of any lane that does not continue
+    along the section (``Section.route_ends``: a turning lane), and the stop points given
+    (red lights) are standing leaders, as a driver sees them (in ``leader``: -1, no
+    vehicle). Inactive slots get zeros and no leader.
     """
     n = len(arc_m)
     obs = np.zeros((n, len(OBSERVATION_FEATURES[observation])))
@@ -364,7 +366,8 @@ def section_observations(
     if idx.size == 0:
         return obs, leader, spacing
     ln, s, v = lane[idx], arc_m[idx], speed_mps[idx]
-    lead, gap = section_leaders(section, ln, s, stop_lane, stop_arc_m)
+    route = None if on_route is None else on_route[idx]
+    lead, gap = section_leaders(section, ln, s, stop_lane, stop_arc_m, route)
     has = lead >= 0
     leader[idx[has]] = idx[lead[has]]
     spacing[idx] = gap

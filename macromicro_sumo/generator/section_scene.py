@@ -386,12 +386,12 @@ def scene_stops(section: Section, snaps: SectionSnapshots) -> tuple[np.ndarray, 
     """(S, P) lane index and arc (NaN: padding) of the standing obstacles each scene's
     generated vehicles must be able to stop at: the snapshot's red or yellow stop lines
     (``SectionSnapshots.stop_lane``) and the end of every lane that does not continue along
-    the section (``Section.lane_ends``, as the envs' observation sees them: a lane end, a
-    turning lane; SUMO stops one that has not left such a lane at its end). None: there are
-    none."""
+    the section (``Section.route_ends``, as the envs' driven vehicles see them: a lane end,
+    a turning lane; SUMO stops one that has not left such a lane at its end). None: there
+    are none."""
     ends = [
         (ln, float(section.offsets_m[e] + section.lengths_m[e]))
-        for e, ln in zip(*np.nonzero(section.lane_ends), strict=True)
+        for e, ln in zip(*np.nonzero(section.route_ends), strict=True)
     ]
     s = len(snaps)
     lane = np.tile(np.array([x for x, _ in ends], dtype=np.int64), (s, 1))

@@ -45,28 +45,35 @@ class Section:
     # section edge (a loop's last edge: its first), from the network's connections. None
     # (a section file written before connections were kept): lane i onto lane i.
     links: np.ndarray | None = field(default=None, repr=False)
-    # (E, max lanes) bool: the lane does not continue along the section (no link onto the
-    # next section edge; an open section's last edge excepted): its end is a standing
-    # obstacle to whoever drives the section's route on it, as SUMO stops a vehicle there
-    # that has not left it (a lane drop, an on-ramp's acceleration lane, a turning lane).
-    # Derived from ``links`` (a value given adds to it: section files written before).
+    # (E, max lanes) bool: the lane leads nowhere (no connection at all): its end is a
+    # standing obstacle to whoever drives on it (an on-ramp's acceleration lane, a lane drop).
     lane_ends: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
-        n, m = len(self.edge_ids), int(self.n_lanes.max())
+        if self.lane_ends is None:
+            ends = np.zeros((len(self.edge_ids), int(self.n_lanes.max())), dtype=bool)
+            object.__setattr__(self, "lane_ends", ends)
         if self.links is None:
+            n, m = len(self.edge_ids), int(self.n_lanes.max())
             links = np.zeros((n, m, m), dtype=bool)
             for e in range(n if self.closed else n - 1):
                 nxt = int(self.n_lanes[(e + 1) % n])
                 for i in range(int(self.n_lanes[e])):
                     links[e, i, min(i, nxt - 1)] = True
             object.__setattr__(self, "links", links)
-        ends = ~self.links.any(axis=-1) & (np.arange(m)[None, :] < self.n_lanes[:, None])
+
+    @cached_property
+    def route_ends(self) -> np.ndarray:
+        """(E, max lanes) bool: the lane ends for a vehicle that drives the section's route
+        (the envs' and the generator's vehicles): besides ``lane_ends``, every lane with no
+        link onto the next section edge (a turning lane; an open section's last edge
+        excepted), at whose end SUMO stops such a vehicle that has not left it. A recorded
+        vehicle drives its own route: a turner leaves the section there."""
+        exists = np.arange(self.max_lanes)[None, :] < self.n_lanes[:, None]
+        ends = ~self.links.any(axis=-1) & exists
         if not self.closed:
             ends[-1] = False
-        if self.lane_ends is not None:
-            ends |= np.asarray(self.lane_ends, dtype=bool)
-        object.__setattr__(self, "lane_ends", ends)
+        return ends | self.lane_ends
 
     @property
     def length_m(self) -> float:
@@ -311,9 +318,11 @@ def read_section(net_file: Path, edges: list[str], closed: bool, where: str = ""
     n_lanes = np.array([e.getLaneNumber() for e in objs], dtype=np.int64)
     limits = np.full((n, int(n_lanes.max())), np.nan)
     lanes: dict[str, tuple[int, int, float, float]] = {}
+    lane_ends = np.zeros((n, width), dtype=bool)
     for i, e in enumerate(objs):
         for lane in e.getLanes():
             idx = lane.getIndex()
+            lane_ends[i, idx] = not lane.getOutgoing() and (closed or i + 1 < n)
             limits[i, idx] = lane.getSpeed()
             scale = lengths[i] / lane.getLength() if lane.getLength() > 0 else 1.0
             lanes[lane.getID()] = (i, idx, float(offsets[i]), float(scale))
@@ -330,6 +339,7 @@ def read_section(net_file: Path, edges: list[str], closed: bool, where: str = ""
         limits_mps=limits,
         lanes=lanes,
         links=links,
+        lane_ends=lane_ends,
     )
 
 
@@ -371,6 +381,7 @@ def section_leaders(
     arc_m: np.ndarray,
     stop_lane: np.ndarray | None = None,
     stop_arc_m: np.ndarray | None = None,
+    on_route: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Leader index and front-to-front spacing [m] of every vehicle along the network's
     lane connections (what a driver on that lane meets next), not along lane indices.
@@ -378,9 +389,11 @@ def section_leaders(
     Where a lane is added on the right (an on-ramp), the through lanes' indices shift by
     one at the edge boundary: a leader looked up by index would be a vehicle on another
     lane. Leader -1: none on the section (spacing ``NO_LEADER_GAP_M``); ``STOP``: a
-    standing obstacle, at the end of a lane that does not continue along the section
-    (``Section.lane_ends``: a lane drop, a turning lane) or at a stop point given
-    by ``stop_lane`` / ``stop_arc_m`` (a red light's stop line), with the spacing to it.
+    standing obstacle, at the end of a lane that leads nowhere (``Section.lane_ends``), for
+    the vehicles ``on_route`` (V,) (None: none) at the end of any lane that does not
+    continue along the section (``Section.route_ends``: a turning lane too), or at a stop
+    point given by ``stop_lane`` / ``stop_arc_m`` (a red light's stop line), with the
+    spacing to it.
     O(V log V): one sort by (lane of an edge, arc), then one pass over the section's lanes.
     """
     v = len(arc_m)
@@ -419,6 +432,9 @@ def section_leaders(
     nxt[lasts[found]] = ahead[ln[found]]
     gap[lasts[found]] = (to_end + off[ln])[found]
     ends = ~found & section.lane_ends.ravel()[ln]
+    if on_route is not None:  # stop points (index >= v) are no vehicle: their ends unread
+        route = np.concatenate([np.asarray(on_route, dtype=bool), np.zeros(len(arc) - v, bool)])
+        ends |= ~found & section.route_ends.ravel()[ln] & route[lasts]
     nxt[lasts[ends]] = STOP
     gap[lasts[ends]] = to_end[ends]
     nxt, gap = nxt[:v], gap[:v]

@@ -1,11 +1,13 @@
 """The end of a lane that does not continue along the section is a standing leader in the
-Stage II envs' observation (``Section.lane_ends``, the generator's ``scene_stops`` too).
+Stage II envs' observation of a driven vehicle (``Section.route_ends``, the generator's
+``scene_stops`` too).
 
 SUMO's game/cross with its west approach as the section: 1si has three lanes, of which only
 lane 1 links onto 2o; lanes 0 and 2 turn right and left. A vehicle the env drives keeps the
 section's route, and SUMO stops one that has not left a turning lane at its end. Before,
 the envs' observation ended only lanes with no connection at all: a vehicle on 1si's
-left-turn lane saw a free road.
+left-turn lane saw a free road. A recorded vehicle drives its own route (a turner leaves
+the section there): its observation (the micro pairs) keeps the free road.
 """
 
 from __future__ import annotations
@@ -38,23 +40,28 @@ def cross() -> Section:
 
 
 def test_a_turning_lanes_end_is_a_standing_leader(cross: Section) -> None:
-    """Vehicles 40 m before 1si's end on each of its lanes: on the turning lanes (0, 2) the
-    lane's end is a standing leader 40 m ahead (delta v = own speed); the through lane
-    (1) sees a free road on 2o. The generator's standing obstacles are the same ends."""
+    """Driven vehicles 40 m before 1si's end on each of its lanes: on the turning lanes (0,
+    2) the lane's end is a standing leader 40 m ahead (delta v = own speed); the through
+    lane (1) sees a free road on 2o. Recorded vehicles there (turners) see a free road.
+    The generator's standing obstacles are the same ends."""
     end = float(cross.offsets_m[1] + cross.lengths_m[1])
-    lane = np.array([0, 1, 2])
+    lane, arc = np.array([0, 1, 2]), np.full(3, end - 40.0)
     speed = np.array([8.0, 9.0, 10.0])
-    obs, leader, _ = section_observations(
-        cross, lane, np.full(3, end - 40.0), speed, np.ones(3, dtype=bool), "lookahead"
-    )
+    on = np.ones(3, dtype=bool)
+    obs, leader, _ = section_observations(cross, lane, arc, speed, on, "lookahead", on_route=on)
     assert (leader == -1).all()  # no vehicle ahead
     np.testing.assert_allclose(obs[:, 2], [40.0, NO_LEADER_GAP_M, 40.0])  # spacing
     np.testing.assert_allclose(obs[:, 3], [8.0, 0.0, 10.0])  # delta v
-    lead, _ = section_leaders(cross, lane, np.full(3, end - 40.0))
-    np.testing.assert_array_equal(lead, [STOP, -1, STOP])
-    np.testing.assert_array_equal(cross.lane_ends, [[0, 0, 0], [1, 0, 1], [0, 0, 0], [0, 0, 0]])
-    # Another section file (``section.json``) keeps them.
-    np.testing.assert_array_equal(Section.from_json(cross.to_json()).lane_ends, cross.lane_ends)
+    np.testing.assert_array_equal(
+        section_leaders(cross, lane, arc, None, None, on)[0], [STOP, -1, STOP]
+    )
+    # Recorded vehicles (no ``on_route``), one driven among them (lane 2).
+    obs, _, _ = section_observations(cross, lane, arc, speed, on, "lookahead")
+    np.testing.assert_allclose(obs[:, 2], NO_LEADER_GAP_M)
+    mixed = section_leaders(cross, lane, arc, None, None, np.array([False, False, True]))
+    np.testing.assert_array_equal(mixed[0], [-1, -1, STOP])
+    assert not cross.lane_ends.any()  # every lane of the section leads somewhere
+    np.testing.assert_array_equal(cross.route_ends, [[0, 0, 0], [1, 0, 1], [0, 0, 0], [0, 0, 0]])
 
     class NoLights:
         stop_arc_m = None
@@ -71,7 +78,7 @@ def test_a_turning_lanes_end_is_a_standing_leader(cross: Section) -> None:
 
 def test_lanes_end_where_sumo_makes_the_sections_route_leave_them(cross: Section) -> None:
     """In SUMO, vehicles on the section's route on every lane of 1fi, 1si and 2o: the env's
-    observation has a standing leader exactly where SUMO's best lanes say the vehicle must
+    observation of them (driven) has a standing leader exactly where SUMO's best lanes say the vehicle must
     leave its lane (``Simulation.lane_end_m``, the deployment's and the demand env's
     source), at the distance SUMO gives (within 0.5 m: the lanes' own lengths differ
     from the section's arc), and none elsewhere."""
@@ -94,10 +101,9 @@ def test_lanes_end_where_sumo_makes_the_sections_route_leave_them(cross: Section
     lane = np.array([a[0] for a in at])
     arc = np.array([a[1] for a in at])
     assert sorted(set(lanes) & {"1si_0", "1si_2"}) == ["1si_0", "1si_2"]
-    obs, _, _ = section_observations(
-        cross, lane, arc, speed, np.ones(len(ids), dtype=bool), "lookahead"
-    )
-    lead, _ = section_leaders(cross, lane, arc)
+    on = np.ones(len(ids), dtype=bool)
+    obs, _, _ = section_observations(cross, lane, arc, speed, on, "lookahead", on_route=on)
+    lead, _ = section_leaders(cross, lane, arc, on_route=on)
     must_leave = np.isfinite(want)
     assert must_leave.sum() == 2
     np.testing.assert_array_equal(lead == STOP, must_leave)

@@ -178,3 +178,40 @@ def test_episodes_run_the_users_own_signal_program(tmp_path: Path) -> None:
     finally:
         core.close()
     assert len(seen) > 20 and all(seen)
+
+
+def test_driven_vehicles_see_their_turning_lanes_end(cross_truth) -> None:
+    """A hidden vehicle drives the section's route: on 1si's turning lanes (0, 2) with no
+    vehicle ahead on its lane, the lane's end is its standing leader at every step, on
+    green too (before: a free road, 250 m); a replayed observed vehicle there keeps its
+    own route's free road where the light is green."""
+    sc, truth = cross_truth
+    snaps = recorded_snapshots(truth, sc, truth.runs)
+
+    def true_scene(s):
+        return s.lane, s.arc_m, s.speed_mps, s.valid, s.valid & ~s.observed
+
+    bank = build_section_bank(sc, truth, snaps, true_scene, horizon=4)
+    core = SectionCore(sc, truth.section, bank, scenario_inputs(sc).net_file, seed=1)
+    sec = truth.section
+    end = float(sec.offsets_m[1] + sec.lengths_m[1])
+    seen = {True: [], False: []}  # hidden: spacing - distance to the end
+    try:
+        for ep in range(0, len(bank), 2):
+            core.reset(ep)
+            for k in range(5):
+                if k:
+                    core.step(np.zeros(int(core.hidden.sum())))
+                on = np.flatnonzero(core.active)
+                turning = np.isin(core.lane[on], [0, 2]) & (core.arc[on] > sec.offsets_m[1])
+                for i in on[turning & (core.arc[on] < end)]:
+                    same = on[(core.lane[on] == core.lane[i]) & (core.arc[on] > core.arc[i])]
+                    green = not np.isfinite(core.sim.stop_lines_m([core.ids[i]])[0])
+                    if not same.size and green:
+                        gap = core._obs[i, 2] - (end - core.arc[i])
+                        seen[bool(core.hidden[i])].append(gap)
+    finally:
+        core.close()
+    assert len(seen[True]) > 5
+    np.testing.assert_allclose(seen[True], 0.0, atol=1e-6)
+    assert seen[False] and all(g > 100.0 for g in seen[False])
