@@ -355,8 +355,8 @@ def section_observations(
     of a lane that leads nowhere, for the vehicles ``on_route`` (N,) (the driven ones,
     which drive the section's route; None: none) that of any lane that does not continue
     along the section (``Section.route_ends``: a turning lane), and the stop points given
-    (red lights) are standing leaders, as a driver sees them (in ``leader``: -1, no
-    vehicle). Inactive slots get zeros and no leader.
+    (red lights) are standing leaders, as a driver sees them (in ``leader``: ``STOP``).
+    Inactive slots get zeros and no leader.
     """
     n = len(arc_m)
     obs = np.zeros((n, len(OBSERVATION_FEATURES[observation])))
@@ -370,6 +370,7 @@ def section_observations(
     lead, gap = section_leaders(section, ln, s, stop_lane, stop_arc_m, route)
     has = lead >= 0
     leader[idx[has]] = idx[lead[has]]
+    leader[idx[lead == STOP]] = STOP  # readers take >= 0 as a vehicle; the code says which
     spacing[idx] = gap
     e = section.edge_index(s)
     lim = section.limits_mps

@@ -49,7 +49,7 @@ def test_a_turning_lanes_end_is_a_standing_leader(cross: Section) -> None:
     speed = np.array([8.0, 9.0, 10.0])
     on = np.ones(3, dtype=bool)
     obs, leader, _ = section_observations(cross, lane, arc, speed, on, "lookahead", on_route=on)
-    assert (leader == -1).all()  # no vehicle ahead
+    np.testing.assert_array_equal(leader, [STOP, -1, STOP])  # no vehicle ahead
     np.testing.assert_allclose(obs[:, 2], [40.0, NO_LEADER_GAP_M, 40.0])  # spacing
     np.testing.assert_allclose(obs[:, 3], [8.0, 0.0, 10.0])  # delta v
     np.testing.assert_array_equal(
