@@ -27,8 +27,8 @@ episode is what a deployment does, on a training run of the ground truth:
   limits times its own desired-speed factor, as a deployment's driver
   (``env.driver_speed.DriverSpeeds`` of the run: "drawn" by (seed, run, vehicle),
   "memory" from its speed where it entered the section, before the window for a vehicle
-  already there); before, every driver saw the limits as they are (a factor of 1) where
-  the snapshot episodes and the deployment gave each its own;
+  already there), so that the policy meets here the drivers the snapshot episodes and the
+  deployment give it;
 * the reward of a step is the section env's r_macro of every vehicle on the section
   against psi of the detector interval holding the step (``section_macro_reward``);
 * a vehicle whose front passed its leader's back (a collision) is removed: its episode
