@@ -12,6 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 import sumo
 from section_files import section_scenario
@@ -45,6 +46,37 @@ def cross_truth(tmp_path_factory: pytest.TempPathFactory):
     assert main(["simulate", str(path), "--out", str(folder / "gt"), "--quiet"]) == 0
     sc = load_scenario(path)
     return sc, load_section_truth(folder / "gt", sc)
+
+
+def recorded_signals(truth) -> pd.DataFrame:
+    """signals.csv's one row per (run, time) (the one signal's state), indexed by them."""
+    want = truth.signals.drop_duplicates(["run", "time_s"]).set_index(["run", "time_s"])
+    want.index = want.index.set_levels(want.index.levels[1].to_numpy().round(6), level=1)
+    return want
+
+
+def episode_signals(sc, truth, snaps, horizon: int, every: int = 1) -> list[tuple]:
+    """(run, time, program, phase, seconds left) of signal "0" at every step of every
+    ``every``-th Stage II episode on the truth's own scenes (driven at 0 m/s^2)."""
+
+    def true_scene(s):
+        return s.lane, s.arc_m, s.speed_mps, s.valid, s.valid & ~s.observed
+
+    bank = build_section_bank(sc, truth, snaps, true_scene, horizon=horizon)
+    core = SectionCore(sc, truth.section, bank, scenario_inputs(sc).net_file, seed=1)
+    out = []
+    try:
+        for ep in range(0, len(bank), every):
+            core.reset(ep)
+            for k in range(horizon + 1):
+                if k:
+                    core.step(np.zeros(int(core.hidden.sum())))
+                t = round(float(bank.time_s[ep]) + k * core.dt, 6)
+                program, phase, left, _ = core.sim.signal_states(["0"])[0]
+                out.append((int(bank.run[ep]), t, program, phase, left))
+    finally:
+        core.close()
+    return out
 
 
 def test_truth_records_the_signals_on_the_section(cross_truth) -> None:
@@ -81,27 +113,13 @@ def test_episodes_show_the_truths_signals_at_every_step(cross_truth) -> None:
     )
     assert stopped.any() and not stopped.all()
 
-    def true_scene(s):
-        return s.lane, s.arc_m, s.speed_mps, s.valid, s.valid & ~s.observed
-
-    bank = build_section_bank(sc, truth, snaps, true_scene, horizon=6)
-    core = SectionCore(sc, truth.section, bank, scenario_inputs(sc).net_file, seed=1)
-    want = truth.signals.drop_duplicates(["run", "time_s"]).set_index(["run", "time_s"])
-    want.index = want.index.set_levels(want.index.levels[1].to_numpy().round(6), level=1)
-    mismatches = 0
-    try:
-        for ep in range(0, len(bank), 3):
-            core.reset(ep)
-            for k in range(7):
-                if k:
-                    core.step(np.zeros(int(core.hidden.sum())))
-                t = round(float(bank.time_s[ep]) + k * core.dt, 6)
-                program, phase, left, _ = core.sim.signal_states(["0"])[0]
-                rec = want.loc[(int(bank.run[ep]), t)]
-                mismatches += phase != rec["phase"] or abs(left - rec["left_s"]) > 1e-6
-    finally:
-        core.close()
-    assert mismatches == 0
+    states = episode_signals(sc, truth, snaps, horizon=6, every=3)
+    want = recorded_signals(truth)
+    assert len(states) > 20
+    for run, t, program, phase, left in states:
+        rec = want.loc[(run, t)]
+        assert (program, phase) == (str(rec["program"]), rec["phase"])
+        assert left == pytest.approx(rec["left_s"], abs=1e-6)
 
 
 def test_a_program_the_env_lacks_leaves_the_signal_as_it_is(cross_truth) -> None:
@@ -154,30 +172,13 @@ def test_episodes_run_the_users_own_signal_program(tmp_path: Path) -> None:
     assert set(truth.signals["program"].astype(str)) == {"user"}
     snaps = recorded_snapshots(truth, sc, truth.runs)
 
-    def true_scene(s):
-        return s.lane, s.arc_m, s.speed_mps, s.valid, s.valid & ~s.observed
-
-    bank = build_section_bank(sc, truth, snaps, true_scene, horizon=4)
-    core = SectionCore(sc, truth.section, bank, scenario_inputs(sc).net_file, seed=1)
-    want = truth.signals.drop_duplicates(["run", "time_s"]).set_index(["run", "time_s"])
-    want.index = want.index.set_levels(want.index.levels[1].to_numpy().round(6), level=1)
-    seen = []
-    try:
-        for ep in range(len(bank)):
-            core.reset(ep)
-            for k in range(5):
-                if k:
-                    core.step(np.zeros(int(core.hidden.sum())))
-                t = round(float(bank.time_s[ep]) + k * core.dt, 6)
-                program, phase, left, state = core.sim.signal_states(["0"])[0]
-                rec = want.loc[(int(bank.run[ep]), t)]
-                seen.append(
-                    (program, phase, round(left, 6))
-                    == ("user", rec["phase"], round(rec["left_s"], 6))
-                )
-    finally:
-        core.close()
-    assert len(seen) > 20 and all(seen)
+    states = episode_signals(sc, truth, snaps, horizon=4)
+    want = recorded_signals(truth)
+    assert len(states) > 20
+    for run, t, program, phase, left in states:
+        rec = want.loc[(run, t)]
+        assert program == "user"
+        assert (phase, left) == pytest.approx((rec["phase"], rec["left_s"]), abs=1e-6)
 
 
 def test_driven_vehicles_see_their_turning_lanes_end(cross_truth) -> None:
