@@ -282,32 +282,25 @@ def io_pieces(
             cumulative_count(times[lo], at_p) - cumulative_count(times[hi], at_p)
             for lo, hi in group
         ]
-        if np.isfinite(window_s):
-            return np.asarray(sum(io), dtype=float), anchored_counts(
-                sum(io),
-                np.sum([io_mean[pair] for pair in group], axis=0),
-                np.sum([dens[pair] for pair in group], axis=0),
-                centres,
-                at_s,
-                window_s,
-                np.mean([free_flow_weight(np.array(speed[pair])) for pair in group], axis=0),
-            )
-        counted = np.sum(
-            [
-                anchored_counts(
-                    n,
-                    np.array(io_mean[pair]),
-                    np.array(dens[pair]),
-                    centres,
-                    at_s,
-                    window_s,
-                    free_flow_weight(np.array(speed[pair])),
+        total = sum(io)
+        if np.isfinite(window_s):  # one line for the group: its summed count and estimate
+            pieces = [
+                (
+                    total,
+                    np.sum([io_mean[pair] for pair in group], axis=0),
+                    np.sum([dens[pair] for pair in group], axis=0),
+                    np.mean([free_flow_weight(np.array(speed[p])) for p in group], axis=0),
                 )
-                for n, pair in zip(io, group, strict=True)
-            ],
-            axis=0,
+            ]
+        else:  # one constant per stretch, each by its own stations' free flow
+            pieces = [
+                (n, np.array(io_mean[p]), np.array(dens[p]), free_flow_weight(np.array(speed[p])))
+                for n, p in zip(io, group, strict=True)
+            ]
+        counted = np.sum(
+            [anchored_counts(n, m, d, centres, at_s, window_s, w) for n, m, d, w in pieces], axis=0
         )
-        return np.asarray(sum(io), dtype=float), counted
+        return np.asarray(total, dtype=float), counted
 
     def spans(group: list[tuple[float, float]]) -> tuple[tuple[float, float], ...]:
         inside = [(lo, hi) if hi > lo else (lo, section.length_m) for lo, hi in group]
