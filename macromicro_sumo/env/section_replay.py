@@ -82,43 +82,30 @@ def safe_places(
     recorded lane change into the place another vehicle left in the record was applied
     where that vehicle's own move was refused (drawn net 503: an observed car put into the
     side of an observed truck whose recorded lane change waited behind a generated car)."""
+
+    def safe_now(fix: np.ndarray, fix_lane: np.ndarray, fix_arc_m: np.ndarray) -> np.ndarray:
+        """The check of the moves ``fix``, every one of them applied."""
+        ln, s = lane.copy(), arc_m.copy()
+        ln[fix], s[fix] = fix_lane, fix_arc_m
+        lead, spacing = section_leaders(section, ln, s)
+        v = speed_mps
+        has = lead >= 0
+        v_l = np.where(has, v[np.maximum(lead, 0)], 0.0)
+        l_l = np.where(has, length_m[np.maximum(lead, 0)], 0.0)
+        need = min_gap_m + v * dt + np.maximum(0.0, v**2 - v_l**2) / (2 * -a_min)
+        safe = np.where(lead == -1, True, spacing - l_l >= need)
+        ok = safe[fix].copy()
+        # ... and whoever follows it there
+        for f in np.flatnonzero(np.isin(lead, fix)):
+            ok[np.searchsorted(fix, lead[f])] &= bool(safe[f])
+        return ok
+
     keep = np.ones(len(fix), dtype=bool)
     while True:
-        args = (fix[keep], fix_lane[keep], fix_arc_m[keep], dt, a_min, min_gap_m)
-        ok = _safe_now(section, lane, arc_m, speed_mps, length_m, *args)
+        ok = safe_now(fix[keep], fix_lane[keep], fix_arc_m[keep])
         if ok.all():
             return keep
         keep[np.flatnonzero(keep)[~ok]] = False
-
-
-def _safe_now(
-    section: Section,
-    lane: np.ndarray,
-    arc_m: np.ndarray,
-    speed_mps: np.ndarray,
-    length_m: np.ndarray,
-    fix: np.ndarray,
-    fix_lane: np.ndarray,
-    fix_arc_m: np.ndarray,
-    dt: float,
-    a_min: float,
-    min_gap_m: float,
-) -> np.ndarray:
-    """``safe_places``' check of the moves ``fix``, every one of them applied."""
-    ln, s = lane.copy(), arc_m.copy()
-    ln[fix], s[fix] = fix_lane, fix_arc_m
-    lead, spacing = section_leaders(section, ln, s)
-    v = speed_mps
-    has = lead >= 0
-    v_l = np.where(has, v[np.maximum(lead, 0)], 0.0)
-    l_l = np.where(has, length_m[np.maximum(lead, 0)], 0.0)
-    need = min_gap_m + v * dt + np.maximum(0.0, v**2 - v_l**2) / (2 * -a_min)
-    safe = np.where(lead == -1, True, spacing - l_l >= need)
-    ok = safe[fix].copy()
-    # ... and whoever follows it there
-    for f in np.flatnonzero(np.isin(lead, fix)):
-        ok[np.searchsorted(fix, lead[f])] &= bool(safe[f])
-    return ok
 
 
 Via = dict[tuple[int, int], tuple[str, float, float]]
