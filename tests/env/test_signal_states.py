@@ -29,23 +29,40 @@ from macromicro_sumo.truth.section import load_section_truth
 CROSS = Path(sumo.__file__).resolve().parent / "tools" / "game" / "cross"
 
 
-@pytest.fixture(scope="module")
-def cross_truth(tmp_path_factory: pytest.TempPathFactory):
-    folder = tmp_path_factory.mktemp("cross")
+def cross_truth_in(folder: Path, duration_s: float, n_runs: int, *additional: Path):
+    """(scenario, ground truth) of game/cross's west approach and exit, simulated into
+    ``folder`` with the user's ``additional`` files (a signal program)."""
+    net, routes = CROSS / "cross.net.xml", CROSS / "cross.rou.xml"
     path = section_scenario(
         folder / "cross.toml",
-        CROSS / "cross.net.xml",
-        CROSS / "cross.rou.xml",
+        net,
+        routes,
         ["1fi", "1si", "2o", "2fo"],
         seed=1,
         penetration=0.3,
-        simulation={"step_length_s": 0.5, "warmup_s": 60.0, "duration_s": 120.0, "n_runs": 2},
-        detectors={"interval_s": 60.0, "auto_spacing_m": 60.0},
+        simulation={
+            "step_length_s": 0.5,
+            "warmup_s": duration_s / 2,
+            "duration_s": duration_s,
+            "n_runs": n_runs,
+        },
+        detectors={"interval_s": duration_s / 2, "auto_spacing_m": 60.0},
         generator={"snapshot_every_s": 5.0},
+        network={
+            "kind": "sumo",
+            "net_file": str(net),
+            "route_files": [str(routes)],
+            "additional_files": [str(a) for a in additional],
+        },
     )
     assert main(["simulate", str(path), "--out", str(folder / "gt"), "--quiet"]) == 0
     sc = load_scenario(path)
     return sc, load_section_truth(folder / "gt", sc)
+
+
+@pytest.fixture(scope="module")
+def cross_truth(tmp_path_factory: pytest.TempPathFactory):
+    return cross_truth_in(tmp_path_factory.mktemp("cross"), 120.0, 2)
 
 
 def recorded_signals(truth) -> pd.DataFrame:
@@ -147,28 +164,7 @@ def test_episodes_run_the_users_own_signal_program(tmp_path: Path) -> None:
         '<phase duration="7" state="GGGGGGGGGGGG"/><phase duration="2" state="yyyyyyyyyyyy"/>'
         '<phase duration="11" state="rrrrrrrrrrrr"/></tlLogic></additional>'
     )
-    net, routes = CROSS / "cross.net.xml", CROSS / "cross.rou.xml"
-    path = section_scenario(
-        tmp_path / "cross_user.toml",
-        net,
-        routes,
-        ["1fi", "1si", "2o", "2fo"],
-        seed=1,
-        penetration=0.3,
-        simulation={"step_length_s": 0.5, "warmup_s": 40.0, "duration_s": 80.0, "n_runs": 1},
-        detectors={"interval_s": 40.0, "auto_spacing_m": 60.0},
-        generator={"snapshot_every_s": 5.0},
-        network={
-            "kind": "sumo",
-            "net_file": str(net),
-            "route_files": [str(routes)],
-            "additional_files": [str(add)],
-        },
-    )
-    out = tmp_path / "gt"
-    assert main(["simulate", str(path), "--out", str(out), "--quiet"]) == 0
-    sc = load_scenario(path)
-    truth = load_section_truth(out, sc)
+    sc, truth = cross_truth_in(tmp_path, 80.0, 1, add)
     assert set(truth.signals["program"].astype(str)) == {"user"}
     snaps = recorded_snapshots(truth, sc, truth.runs)
 
