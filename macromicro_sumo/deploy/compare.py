@@ -34,6 +34,7 @@ from macromicro_sumo.deploy.distributions import (
     lane_trajectories,
 )
 from macromicro_sumo.deploy.intervals import KEY, block_factor, interval_length_s, pool_detectors
+from macromicro_sumo.deploy.population import SAFETY_COLUMNS
 from macromicro_sumo.deploy.stations import (
     ALL_LANES,
     KEYS,
@@ -58,14 +59,6 @@ COMPARISON_COLUMNS = [
     "density_truth_vpkm",
     "density_method_vpkm",
 ]
-SAFETY_COLUMNS = (
-    "collisions",
-    "teleports",
-    "emergency_brakings",
-    "vehicle_steps_driven",
-    "safety_acted",
-    "floor_acted",
-)
 # How often the safety layer acted, as shares of the driven vehicle-steps: it lowered a
 # command (safe speed) or raised one to its floor (``deploy.safety.FLOOR_SHARE``).
 ACTED_SHARES = {"safety_acted_share": "safety_acted", "floor_acted_share": "floor_acted"}

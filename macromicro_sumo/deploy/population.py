@@ -86,6 +86,10 @@ class DriveStats:
         }
 
 
+# runs.csv's safety columns beyond the ground truth's: SUMO's counts, then ``DriveStats``'.
+SAFETY_COLUMNS = ("collisions", "teleports", *DriveStats().as_dict())
+
+
 @dataclass
 class SwitchedType:
     """A vType switch: the vType each demand vType's vehicles get, and their speed factor

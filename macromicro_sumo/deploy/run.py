@@ -33,7 +33,7 @@ from macromicro_sumo.deploy.field import (
     station_loops,
 )
 from macromicro_sumo.deploy.intervals import interval_length_s
-from macromicro_sumo.deploy.population import SwitchedType
+from macromicro_sumo.deploy.population import SAFETY_COLUMNS, SwitchedType
 from macromicro_sumo.deploy.redraw_driver import SectionRedrawDriver
 from macromicro_sumo.deploy.type_driver import SectionTypeDriver
 from macromicro_sumo.errors import UserError
@@ -55,14 +55,6 @@ from macromicro_sumo.truth.section_detectors import place_detectors
 # and oracle_population's redrawn drivers, apart from the vType switch's speed factors (17).
 ACTION_STREAM = 30
 REDRAW_STREAM = 31
-# runs.csv's columns beyond the ground truth's (``deploy.drivers``), totals in the manifest.
-SAFETY_COLUMNS = (
-    "collisions",
-    "teleports",
-    "emergency_brakings",
-    "vehicle_steps_driven",
-    "safety_acted",
-)
 
 
 @dataclass(frozen=True)
@@ -401,8 +393,9 @@ def first_seconds(traj: pd.DataFrame, seconds: float) -> pd.DataFrame:
 
 def write_method(
     ctx: DeployContext, res: DeployResult, folder: Path, manifest: dict[str, Any]
-) -> None:
-    """One method's folder (SUMO's files already in ``folder/sumo``) and its manifest."""
+) -> dict[str, int]:
+    """One method's folder (SUMO's files already in ``folder/sumo``) and its manifest;
+    returns the runs' totals of ``SAFETY_COLUMNS`` (written into the manifest too)."""
     sc = ctx.sc
     write_csv(first_seconds(res.trajectories, sc.deploy.fcd_s), folder / "trajectories.csv")
     write_csv(res.detectors, folder / "detectors.csv")
@@ -418,3 +411,4 @@ def write_method(
                 for path in demand_files(Path(ctx.scratch.name), int(run)):
                     shutil.copy2(path, folder / "sumo" / path.name)
     write_manifest({**manifest, **totals}, folder)
+    return totals

@@ -70,7 +70,6 @@ from macromicro_sumo.deploy.compare import compare_folders
 from macromicro_sumo.deploy.floor_choice import resolve_floor
 from macromicro_sumo.deploy.population import ActionBatch, population_label, population_scenario
 from macromicro_sumo.deploy.run import (
-    SAFETY_COLUMNS,
     DeployContext,
     Drive,
     load_context,
@@ -400,8 +399,7 @@ def deploy(
             )
             if name == "idm_detectors":
                 write_csv(cal.history, folder / HISTORY)
-            write_method(ctx, res, folder, manifest)
-            totals[name] = {c: int(res.runs[c].sum()) for c in SAFETY_COLUMNS}
+            totals[name] = write_method(ctx, res, folder, manifest)
         files = [f"{m}/manifest.json" for m in methods]
         dirs = {m: stage / m for m in methods}
         files += compare_into(Path(data), dirs, stage, plots, sc.deploy.compare_interval_s)
