@@ -27,6 +27,7 @@ from conftest import ROOT, dump_toml
 from macromicro_sumo.cli import main
 from macromicro_sumo.deploy.compare import REFERENCE_FIELD, compare_folders
 from macromicro_sumo.deploy.field import check_station_grid, edge_counts, station_loops
+from macromicro_sumo.deploy.population import SAFETY_COLUMNS
 from macromicro_sumo.deploy.run import Drive, load_context, run_method, write_method
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.section import Section
@@ -95,6 +96,11 @@ def test_oracle_on_the_route_files_reproduces_the_field_stations(field, tmp_path
     sc, gt = field["routes"]
     row, manifest = _deploy_oracle(sc, gt, tmp_path / "oracle")
     assert manifest["demand"]["source"] == "route files"
+    # The manifest totals every safety column of runs.csv, the floor's raises included.
+    runs = pd.read_csv(tmp_path / "oracle" / "runs.csv")
+    assert {c: manifest[c] for c in SAFETY_COLUMNS} == {
+        c: int(runs[c].sum()) for c in SAFETY_COLUMNS
+    }
     assert row["reference"] == REFERENCE_FIELD
     # The field files are this very SUMO run (same demand and seed) read back.
     assert row["station_intervals"] >= 4 * 3  # 4 intervals after the warm-up, >= 3 stations
