@@ -14,7 +14,7 @@ import numpy as np
 
 from macromicro_sumo.env.driver_speed import scale_limits
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES, has_lookahead, set_own_features
-from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section, nearer_standing
 from macromicro_sumo.sumo.simulation import VehicleStates
 
 STOP_DECEL_MPS2 = 9.0  # a standing "leader" (stop line, lane end) never brakes: any value
@@ -100,7 +100,8 @@ def observe_rows(
     ``Simulation.leaders``): front-to-front spacing = SUMO's gap + own minGap + leader's
     length; ``stop_m``: the distance from each front to a red light or the end of a lane
     the vehicle must leave (inf: none), a standing leader there when nearer than the
-    leader (its back at the line, a vehicle length long). ``lanes``: the section's
+    leader (``road.section.nearer_standing``: length 0, spacing ``stop_m``, as the envs
+    see it). ``lanes``: the section's
     ``LaneTable``; ``shapes``: vehicle -> (length, minGap, decel), ``STANDING`` where
     missing; ``driver_speeds``: each driver's desired-speed factor on the limits it
     observes, from the vehicles and their observations with unscaled limits
@@ -143,10 +144,8 @@ def observe_rows(
     lead_decel = decel_mps2[shape[n:]]
     lead_decel[none] = STOP_DECEL_MPS2
     # A red light, or the end of a lane the vehicle must leave: a standing leader there.
-    stop_back = stop_m + length
-    closer = stop_back < spacing
+    closer = nearer_standing(spacing, stop_m)
     if np.count_nonzero(closer):
-        np.copyto(spacing, stop_back, where=closer)
         lead_v[closer] = 0.0
         np.copyto(sumo_gap, np.maximum(stop_m - min_gap, 0.0), where=closer)
         lead_decel[closer] = STOP_DECEL_MPS2

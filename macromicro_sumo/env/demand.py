@@ -53,7 +53,7 @@ from macromicro_sumo.road.physics import (
     observes_length,
     set_own_features,
 )
-from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section, nearer_standing
 from macromicro_sumo.road.vtype import VTypePhysics, accel_limit, command_speeds, read_vtype
 from macromicro_sumo.scenario.fleet import fleet_demand
 from macromicro_sumo.sumo.fleet import FLEET_ROUTE_PREFIX
@@ -119,8 +119,8 @@ def sumo_observations(
     ``states``: SUMO's lane states, ``leaders``: SUMO's leader and gap (leader's back minus
     own front and minGap), ``shapes``: each vehicle's (length, minGap, decel),
     ``stops_m``: (V,) distance to a red light or the end of a lane the vehicle must leave
-    (inf: none), a standing leader there. Spacing is front to front: gap + own minGap +
-    leader's length, as the env's arcs give it.
+    (inf: none), a standing leader there (``road.section.nearer_standing``). Spacing is
+    front to front: gap + own minGap + leader's length, as the env's arcs give it.
     """
     n = len(vids)
     speed = np.array([states[v][2] for v in vids])
@@ -129,16 +129,20 @@ def sumo_observations(
     gap_out = np.full(n, NO_LEADER_GAP_M)
     lead_v = speed.copy()  # delta_v 0 without a leader
     leader = [""] * n
+    min_gap = np.array([shapes[v][1] for v in vids], dtype=float)
     for i, v in enumerate(vids):
-        length, min_gap, _ = shapes[v]
         lid, gap = leaders.get(v, ("", -1.0))
         if lid and lid in states and lid in shapes:
-            s = gap + min_gap + shapes[lid][0]
+            s = gap + min_gap[i] + shapes[lid][0]
             if s < NO_LEADER_GAP_M:
                 spacing[i], lead_v[i], gap_out[i], leader[i] = s, states[lid][2], gap, lid
-        if stops_m[i] + length < spacing[i]:
-            spacing[i], lead_v[i], leader[i] = stops_m[i] + length, 0.0, ""
-            gap_out[i] = max(stops_m[i] - min_gap, 0.0)
+    # A red light, or the end of a lane the vehicle must leave: a standing leader there.
+    stops = np.asarray(stops_m, dtype=float)
+    closer = nearer_standing(spacing, stops)
+    lead_v[closer] = 0.0
+    gap_out[closer] = np.maximum(stops[closer] - min_gap[closer], 0.0)
+    for i in np.flatnonzero(closer).tolist():
+        leader[i] = ""
     cols = [speed, limit, spacing, speed - lead_v]
     if has_lookahead(observation):
         cols += list(section.lookahead(lane, arc, edge, limit))

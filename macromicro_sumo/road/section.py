@@ -443,6 +443,24 @@ def section_leaders(
     return leader, spacing
 
 
+def nearer_standing(spacing_m: np.ndarray, stop_m: np.ndarray) -> np.ndarray:
+    """Where a standing obstacle ``stop_m`` ahead of a vehicle's front (a red or yellow
+    signal's stop line, the end of a lane it must leave; inf: none) is nearer than its
+    leader at front-to-front ``spacing_m``, the obstacle is its leader: ``spacing_m`` becomes
+    ``stop_m`` there (in place). Returns the mask of those vehicles.
+
+    A standing obstacle is a leader of length 0 at the line: SUMO stops a vehicle's front at
+    a red light's stop line or at the end of its lane, so the front-to-front spacing to it is
+    the distance from the front, as ``section_leaders`` gives it on the section's arc (the
+    Stage II envs' observation, the generator's stops). The one definition of a standing
+    leader for the observations built from SUMO's state: the deployment's
+    (``deploy.observe.observe_rows``) and the demand env's (``env.demand.sumo_observations``).
+    """
+    closer = np.asarray(stop_m) < spacing_m
+    np.copyto(spacing_m, stop_m, where=closer)
+    return closer
+
+
 def loop_successors(s: np.ndarray, length_m: float) -> tuple[np.ndarray, np.ndarray]:
     """On a closed one-lane loop (the ring): each item's next one round the loop and the arc
     to it, for positions ``s`` in [0, length): one sort, where the lane-connection walk of

@@ -1,0 +1,114 @@
+"""One observation of what is ahead in the Stage II envs, the demand env and the deployment.
+
+A red or yellow stop line and the end of a lane a vehicle must leave are standing leaders
+of length 0 at the line (``road.section.nearer_standing``): the spacing is the distance
+from the vehicle's front, where SUMO stops it. The snapshot env reads it on the section's
+arc (``section_observations`` with ``stop_points``, as ``SectionCore._scene``), the
+deployment (``deploy.observe.observe_rows``, as ``deploy.drivers`` composes it) and the
+demand env (``env.demand.sumo_observations``, as ``DemandCore._stops``) from SUMO's state.
+Before, the deployment and the demand env put the standing leader's back at the line, a
+vehicle length long: the spacing was the distance plus the own length, which the policy
+never met in training.
+
+SUMO's game/cross, its west approach as the section (1si: right-turn lane 0, through lane
+1, left-turn lane 2, of which only lane 1 links onto 2o), one SUMO state per signal phase.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import sumo
+
+from macromicro_sumo.deploy.observe import STANDING, LaneTable, Table, observe_rows
+from macromicro_sumo.env.demand import sumo_observations
+from macromicro_sumo.env.section_bank import section_observations, stop_points
+from macromicro_sumo.road.section import Section, read_section
+from macromicro_sumo.sumo.options import SumoOptions
+from macromicro_sumo.sumo.simulation import Simulation
+
+CROSS = Path(sumo.__file__).resolve().parent / "tools" / "game" / "cross" / "cross.net.xml"
+EDGES = ["1fi", "1si", "2o", "2fo"]
+VTYPE = "DEFAULT_VEHTYPE"  # 5 m long, minGap 2.5 m
+# (section edge, lane, metres before the edge's end; on 2o: from its start) of each vehicle:
+# the first on the through lane, one behind it, one on each turning lane, one past the
+# junction.
+PLACES = [(1, 1, 30.0), (1, 1, 50.0), (1, 0, 40.0), (1, 2, 60.0), (2, 0, -50.0)]
+PHASES = {"green": 0, "red": 2}  # the net's program "0": phase 2 is red for 1si -> 2o
+
+
+@pytest.fixture(scope="module")
+def cross() -> Section:
+    return read_section(CROSS, EDGES, closed=False)
+
+
+def three_observations(cross: Section, phase: int) -> tuple[np.ndarray, ...]:
+    """(env, deployment, demand env) observations ("lookahead") of ``PLACES`` in one SUMO
+    state, each vehicle on the section's route, with signal program "0" in ``phase``."""
+    sim = Simulation(SumoOptions(CROSS, (), 0.5, 1))
+    try:
+        sim.set_signal_states([("0", "0", phase, 30.0)])
+        for e in range(3):
+            sim.add_route(f"from{e}", EDGES[e:])
+        ids = [f"v{i}" for i in range(len(PLACES))]
+        for vid, (e, ln, back) in zip(ids, PLACES, strict=True):
+            pos = float(cross.lengths_m[e]) - back if back > 0 else -back
+            sim.add_vehicle(vid, f"from{e}", VTYPE, ln, pos, 5.0)
+        sim.step()
+        lanes, pos, speed = sim.lane_states(ids)
+        red = np.fmin(sim.stop_lines_m(ids), np.inf)  # NaN (no signal ahead): none
+        lane_end = np.array([sim.lane_end_m(v, ln, 0.0) for v, ln in zip(ids, lanes, strict=True)])
+        leaders = sim.leaders(ids, 250.0)
+        st = sim.vehicle_states()
+        shape = sim.vtype_shape(VTYPE)
+    finally:
+        sim.close()
+    # The snapshot env (``SectionCore._scene``): its driven vehicles drive the route.
+    at = [cross.locate(ln, p) for ln, p in zip(lanes, pos, strict=True)]
+    lane = np.array([a[0] for a in at])
+    arc = np.array([a[1] for a in at])
+    on = np.ones(len(ids), dtype=bool)
+    stop_lane, stop_arc = stop_points(cross, lane, arc, red)
+    env, _, _ = section_observations(
+        cross, lane, arc, speed, on, "lookahead", stop_lane, stop_arc, on_route=on
+    )
+    # The deployment (``Driver.observe``): lane ends from the lane's start, less the position.
+    rows = np.array([st.index[v] for v in ids])
+    shapes = Table.of_rows(dict.fromkeys(ids, shape), STANDING)
+    stop = np.minimum(lane_end - st.pos_m[rows], red)
+    deploy = observe_rows(
+        LaneTable(cross), "lookahead", ids, rows, lanes, st, leaders, shapes, stop
+    )
+    # The demand env (``DemandCore._stops``).
+    states = {v: (ln, p, s, 0.0) for v, ln, p, s in zip(ids, lanes, pos, speed, strict=True)}
+    demand = sumo_observations(
+        "lookahead",
+        cross,
+        ids,
+        states,
+        dict(zip(ids, leaders, strict=True)),
+        dict.fromkeys(ids, shape),
+        np.fmin(lane_end - pos, red),
+    )
+    return env, deploy[0], demand.obs
+
+
+@pytest.mark.parametrize("light", sorted(PHASES))
+def test_env_deployment_and_demand_env_see_the_same_ahead(cross: Section, light: str) -> None:
+    """The three observations of one SUMO state agree (within 0.5 m: SUMO's lanes and the
+    section's arc differ by a rounding), and the standing leaders are at the distance from
+    the front: at red the stop line 30 m ahead of the first through vehicle, and in both
+    phases the turning lanes' ends (40 and 60 m)."""
+    env, deploy, demand = three_observations(cross, PHASES[light])
+    np.testing.assert_allclose(deploy, env, atol=0.5)
+    np.testing.assert_allclose(demand, env, atol=0.5)
+    spacing = env[:, 2]
+    np.testing.assert_allclose(spacing[2:4], [40.0, 60.0], atol=0.5)  # lane ends
+    np.testing.assert_allclose(env[2:4, 3], 5.0)  # delta v: a standing leader
+    if light == "red":
+        np.testing.assert_allclose(spacing[0], 30.0, atol=0.5)
+    else:
+        assert spacing[0] > 30.0 + 50.0  # the leader is the vehicle 50 m into 2o
+    np.testing.assert_allclose(spacing[1], 20.0, atol=0.5)  # the vehicle ahead
