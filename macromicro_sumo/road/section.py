@@ -21,6 +21,7 @@ import numpy as np
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import write_json
+from macromicro_sumo.road.ring import loop_successors
 from macromicro_sumo.sumo.inputs import read_net
 
 NO_LEADER_GAP_M = 250.0  # spacing reported when nothing drives ahead on the section
@@ -459,18 +460,3 @@ def nearer_standing(spacing_m: np.ndarray, stop_m: np.ndarray) -> np.ndarray:
     closer = np.asarray(stop_m) < spacing_m
     np.copyto(spacing_m, stop_m, where=closer)
     return closer
-
-
-def loop_successors(s: np.ndarray, length_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """On a closed one-lane loop (the ring): each item's next one round the loop and the arc
-    to it, for positions ``s`` in [0, length): one sort, where the lane-connection walk of
-    ``section_leaders`` loops over the edges in Python (a quarter of a ring run's time).
-    Equal positions keep their index order; a lone item's next is itself, a lap ahead."""
-    order = np.argsort(s, kind="stable")
-    nxt = np.empty(len(s), dtype=np.int64)
-    nxt[order] = np.roll(order, -1)
-    ordered = s[order]
-    gap = np.empty(len(s))
-    gap[order[:-1]] = np.diff(ordered)
-    gap[order[-1]] = ordered[0] + length_m - ordered[-1]
-    return nxt, gap
