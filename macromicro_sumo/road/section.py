@@ -76,6 +76,29 @@ class Section:
             ends[-1] = False
         return ends | self.lane_ends
 
+    def chain_beyond_m(self, ends: np.ndarray) -> np.ndarray:
+        """(E, max lanes) arc from each lane's end to where a driver on it must have left
+        it, for lane ends ``ends`` (``lane_ends``, ``route_ends``): 0 on an ending lane, on
+        a lane all of whose links lead onto lanes that end (netgen_corridor: e4 lane 0 onto
+        e5 lanes 0-1) the end of the chain, the farthest of them (SUMO's best lanes); inf
+        where the lane carries it on."""
+        n = len(self.edge_ids)
+        out = np.where(ends, 0.0, np.inf)
+        for _ in range(2 if self.closed else 1):  # a loop: twice round
+            for e in reversed(range(n if self.closed else n - 1)):
+                k = (e + 1) % n
+                via = np.where(self.links[e], out[k][None, :] + self.node_span_m[k], -np.inf)
+                far = via.max(axis=1, initial=-np.inf)
+                chained = self.links[e].any(axis=1) & ~ends[e] & (far < np.inf)
+                out[e] = np.where(chained, far, out[e])
+        return out
+
+    @cached_property
+    def end_beyond_m(self) -> tuple[np.ndarray, np.ndarray]:
+        """``chain_beyond_m`` of ``lane_ends`` (every vehicle) and of ``route_ends`` (a
+        vehicle on the section's route)."""
+        return self.chain_beyond_m(self.lane_ends), self.chain_beyond_m(self.route_ends)
+
     @property
     def length_m(self) -> float:
         """Arc length of the section (a loop includes its closing junction)."""
@@ -392,7 +415,8 @@ def section_leaders(
     lane. Leader -1: none on the section (spacing ``NO_LEADER_GAP_M``); ``STOP``: a
     standing obstacle, at the end of a lane that leads nowhere (``Section.lane_ends``), for
     the vehicles ``on_route`` (V,) (None: none) at the end of any lane that does not
-    continue along the section (``Section.route_ends``: a turning lane too), or at a stop
+    continue along the section (``Section.route_ends``: a turning lane too), either at the
+    end of the chain of lanes that all end (``Section.chain_beyond_m``), or at a stop
     point given by ``stop_lane`` / ``stop_arc_m`` (a red light's stop line), with the
     spacing to it.
     O(V log V): one sort by (lane of an edge, arc), then one pass over the section's lanes.
@@ -432,12 +456,15 @@ def section_leaders(
     found = ahead[ln] >= 0
     nxt[lasts[found]] = ahead[ln[found]]
     gap[lasts[found]] = (to_end + off[ln])[found]
-    ends = ~found & section.lane_ends.ravel()[ln]
+    # The end of the lane, or of the chain of lanes it leads onto that all end.
+    everyone, driven = section.end_beyond_m
+    beyond = everyone.ravel()[ln]
     if on_route is not None:  # stop points (index >= v) are no vehicle: their ends unread
         route = np.concatenate([np.asarray(on_route, dtype=bool), np.zeros(len(arc) - v, bool)])
-        ends |= ~found & section.route_ends.ravel()[ln] & route[lasts]
+        beyond = np.where(route[lasts], driven.ravel()[ln], beyond)
+    ends = ~found & np.isfinite(beyond)
     nxt[lasts[ends]] = STOP
-    gap[lasts[ends]] = to_end[ends]
+    gap[lasts[ends]] = (to_end + beyond)[ends]
     nxt, gap = nxt[:v], gap[:v]
     leader[:] = np.where(nxt >= v, STOP, nxt)
     spacing[:] = np.where(nxt == -1, NO_LEADER_GAP_M, gap)

@@ -217,12 +217,9 @@ class Simulation:
         list(map(_SET_SPEED, vehicle_ids, speeds))
 
     def move_to(
-        self,
-        vehicle_ids: Sequence[str],
-        lane_ids: Sequence[str],
-        lane_pos_m: Sequence[float],
+        self, vehicle_ids: Sequence[str], lane_ids: Sequence[str], lane_pos_m: Sequence[float],
         route_ids: Sequence[str],
-    ) -> None:
+    ) -> None:  # fmt: skip
         """Place vehicles without insertion checks (soft reset); their routes restart there."""
         self._states = None
         for vid, lane, pos, route in zip(vehicle_ids, lane_ids, lane_pos_m, route_ids, strict=True):
@@ -341,12 +338,16 @@ class Simulation:
         return {f for v in vehicle_ids for f, _ in _NEIGHBORS(v, _LEFT_BLOCKERS)}
 
     def lane_end_m(self, vehicle_id: str, lane_id: str, pos_m: float) -> float:
-        """Distance from the vehicle's front to the end of its lane when the vehicle must
-        leave that lane to follow its route (an acceleration lane, a lane drop); inf when
-        the lane carries it on."""
-        for lane, length, _occ, offset, _cont, _next in _BEST_LANES(vehicle_id):
-            if lane == lane_id:
-                return float(length - pos_m) if offset != 0 else float("inf")
+        """Distance from the vehicle's front to the end of its lane, or of the lanes it
+        leads onto that end too (SUMO's best lanes: netgen_corridor's e4 lane 0 onto e5's),
+        when it must leave them to follow its route (an acceleration lane, a lane drop);
+        inf when the lane carries it on. The junctions between them count (the best lanes'
+        length leaves them out), as on the envs' section arc."""
+        for lane, length, _occ, offset, _cont, chain in _BEST_LANES(vehicle_id):
+            if lane == lane_id and offset != 0:
+                ends = zip(map(libsumo.lane.getLinks, chain[:-1]), chain[1:], strict=False)
+                via = sum(next(k[7] for k in ks if k[0] == b) for ks, b in ends)
+                return float(length - pos_m + via)
         return float("inf")
 
     def vtype_shape(self, type_id: str) -> tuple[float, float, float]:

@@ -108,3 +108,53 @@ def test_lanes_end_where_sumo_makes_the_sections_route_leave_them(cross: Section
     assert must_leave.sum() == 2
     np.testing.assert_array_equal(lead == STOP, must_leave)
     np.testing.assert_allclose(obs[must_leave, 2], want[must_leave], atol=0.5)
+
+
+NETGEN = Path(__file__).resolve().parents[2] / "sumo_nets" / "netgen_corridor" / "corridor.net.xml"
+NETGEN_EDGES = [f"e{i}" for i in range(7)]
+
+
+def test_a_lane_leading_only_onto_ending_lanes_ends_where_they_end() -> None:
+    """netgen_corridor's e4 lane 0 leads only onto e5 lanes 0 and 1, which both end: SUMO
+    makes a vehicle there leave it (its best lanes), at the end of e5's lanes. The envs'
+    observation, of a driven vehicle and of a recorded one alike (both lanes lead
+    nowhere), has its standing leader there, at SUMO's distance along the road
+    (``Simulation.lane_end_m``, the deployment's and the demand env's source; within 0.5 m),
+    and so for the lanes that end themselves; e4 lane 1 (onto e5 lane 2) carries on.
+    Before, the envs saw e4 lane 0's end only from e5 on: a free road (SUMO: 700 m to go,
+    of which 8 m of junction its best lanes leave out)."""
+    sec = read_section(NETGEN, NETGEN_EDGES, closed=False)
+    sim = Simulation(SumoOptions(NETGEN, (), 0.5, 1))
+    try:
+        for e in range(len(NETGEN_EDGES)):
+            sim.add_route(f"from{e}", NETGEN_EDGES[e:])
+        places = [(4, 0, 100.0), (4, 1, 100.0), (5, 1, 50.0), (2, 0, 100.0), (0, 0, 100.0)]
+        ids = [f"v{i}" for i in range(len(places))]
+        for vid, (e, ln, pos) in zip(ids, places, strict=True):
+            sim.add_vehicle(vid, f"from{e}", "DEFAULT_VEHTYPE", ln, pos, 0.0)
+        sim.step()
+        lanes, pos, speed = sim.lane_states(ids)
+        want = np.array(
+            [sim.lane_end_m(v, ln, p) for v, ln, p in zip(ids, lanes, pos, strict=True)]
+        )
+        sumo_leader = sim.leaders(ids[:1], 800.0)[0][0]
+    finally:
+        sim.close()
+    assert lanes == ["e4_0", "e4_1", "e5_1", "e2_0", "e0_0"]
+    at = [sec.locate(ln, p) for ln, p in zip(lanes, pos, strict=True)]
+    lane = np.array([a[0] for a in at])
+    arc = np.array([a[1] for a in at])
+    # e4 lane 0's end is beyond e5_1's vehicle: alone, on its own (the others stay).
+    alone = np.array([0, 1, 3, 4])
+    must_leave = np.isfinite(want[alone])
+    np.testing.assert_array_equal(must_leave, [True, False, True, True])
+    end_of_e5 = float(sec.offsets_m[5] + sec.lengths_m[5])
+    np.testing.assert_allclose(want[0], end_of_e5 - arc[0], atol=0.5)  # along the road
+    for on_route in (np.ones(len(alone), dtype=bool), None):
+        lead, gap = section_leaders(sec, lane[alone], arc[alone], on_route=on_route)
+        np.testing.assert_array_equal(lead == STOP, must_leave)
+        np.testing.assert_allclose(gap[must_leave], want[alone][must_leave], atol=0.5)
+    # With e5_1's vehicle, it is e4 lane 0's leader (before its lane's end), as in SUMO.
+    lead, _ = section_leaders(sec, lane, arc)
+    assert lead[0] == 2
+    assert sumo_leader == ids[2]
