@@ -11,7 +11,9 @@ estimate; ``density``, the regime-blended density estimate alone; ``io_ramps_unk
 passages' estimate not told where the ramps are; ``io``, the estimate ``simulate`` writes
 (``k_estimate.csv``); and the mean error (bias) of ``io``. ``--ramp`` adds SUMO's
 ``game/ramp``, ``--signals`` its ``game/cross`` and ``game/corridor`` (queues at red
-lights), ``--examples`` the shipped section examples; ``--boundary-stations`` runs
+lights), ``--arterials N ...`` signalised arterials whose queues spill back from junction
+to junction (``bench_arterial.py``: 1 and 2 stop 33's, other numbers drawn from that
+seed), ``--examples`` the shipped section examples; ``--boundary-stations`` runs
 every network with ``detectors.auto_boundary_stations`` true (else false); ``--pieces``
 adds a table of each part's error in vehicles (``io_pieces``: stretches counted from the
 empty start, a ramp's node, the end pieces; docs/sections.md, "Hidden count").
@@ -32,6 +34,7 @@ import numpy as np
 import pandas as pd
 import sumo
 import sumolib
+from bench_arterial import arterial
 
 from macromicro_sumo.cli import main as cli_main
 from macromicro_sumo.data.section import at_snapshot_times
@@ -66,6 +69,14 @@ def get_options(args: list[str] | None = None) -> argparse.Namespace:
         "--signals",
         action="store_true",
         help="add SUMO's game/cross and game/corridor (queues at fixed-time signals), 2 runs",
+    )
+    p.add_argument(
+        "--arterials",
+        type=int,
+        nargs="*",
+        default=[],
+        help="signalised arterials (bench_arterial.py): 1 and 2 are stop 33's, any other "
+        "number is drawn from it as a seed",
     )
     p.add_argument(
         "--boundary-stations",
@@ -413,6 +424,14 @@ def main(options: argparse.Namespace) -> bool:
         table, desc = signal_example(folder, name)
         table["detectors"]["auto_boundary_stations"] = options.boundary_stations
         nets.append((name, folder, table, desc))
+    for number in options.arterials:
+        folder = options.out / f"arterial_{number}"
+        if options.boundary_stations:
+            folder = folder / "boundary_stations"
+        folder.mkdir(parents=True, exist_ok=True)
+        table, desc = arterial(folder, number, netconvert)
+        table["detectors"]["auto_boundary_stations"] = options.boundary_stations
+        nets.append((f"arterial {number}", folder, table, desc))
     for name in EXAMPLES if options.examples else ():
         folder = options.out / name
         if options.boundary_stations:

@@ -259,3 +259,26 @@ def test_stretches_in_spilled_back_queues_are_counted(tmp_path: Path) -> None:
     share, err, _ = congested_error(gt, 10.0)
     assert share > 0.5
     assert err <= 1.85, err
+
+
+def test_bench_arterials_are_drawn_from_their_seed(tmp_path: Path) -> None:
+    """``bench_hidden_count.py --arterials``: stop 33's arterial 1 as it measured it (3
+    signals 250 m apart, 2 lanes), and a drawn one the same from the same seed."""
+    from bench_arterial import arterial
+
+    table, desc = arterial(tmp_path, 1, bench.netconvert)
+    assert desc.startswith("3 signals 250 m apart, 2 lanes"), desc
+    assert table["section"]["edges"] == ["m0", "m1", "m2", "m3"] and table["seed"] == 7
+    net = read_net(Path(table["network"]["net_file"]))
+    assert sorted(n.getID() for n in net.getNodes() if n.getType() == "traffic_light") == [
+        "j1",
+        "j2",
+        "j3",
+    ]
+    drawn = []
+    for name in ("a", "b"):
+        (tmp_path / name).mkdir()
+        drawn.append(arterial(tmp_path / name, 600, bench.netconvert)[1])
+    assert drawn[0] == drawn[1]
+    routes = [(tmp_path / name / "art.rou.xml").read_text() for name in ("a", "b")]
+    assert routes[0] == routes[1]
