@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
 
     # The pipeline records each stage's wall and CPU seconds itself where it can run
     # stages in worker processes (wrapping them would keep them in this one).
-    own_clocks = hasattr(build, "run_side_by_side")
+    own_clocks = hasattr(build, "default_jobs")  # pipeline.parallel's, since 74609d0
     if not own_clocks:
         build.run_stages = run_stages
     load0 = os.getloadavg()
