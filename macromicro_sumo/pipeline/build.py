@@ -39,8 +39,15 @@ from macromicro_sumo.pipeline.refinement import MANIFEST as REFINE_MANIFEST
 from macromicro_sumo.pipeline.refinement import refine
 from macromicro_sumo.pipeline.schedule import Stage, run_stages
 from macromicro_sumo.policy.checkpoint import policy_file
+from macromicro_sumo.policy.chosen_prior import (
+    CHOICE_FILE,
+    CHOICE_IGNORES,
+    CHOICE_READS,
+    choice_result,
+    makes_choice,
+)
 from macromicro_sumo.policy.prior_choice import PriorFit, PriorScore
-from macromicro_sumo.policy.stage import run_train_policy
+from macromicro_sumo.policy.stage import run_choose_prior, run_train_policy
 from macromicro_sumo.report.deploy import make_deploy_plots
 from macromicro_sumo.report.write import write_report
 from macromicro_sumo.road.physics import no_lower_limit_ahead
@@ -86,13 +93,31 @@ def standard_stages(
     evaluate: Callable[[Path, Path, dict[str, Path], Path], Any],
     truth_reads: tuple[str, ...] = (),
     deploy: Callable[[Path, Path, Path], Any] | None = None,
+    choose_prior: Callable[[Path, Path], Any] | None = None,
 ) -> list[Stage]:
     """Ground truth -> generator -> the paper's policy and its two ablations -> evaluation
     (-> deployment), in ``out``'s sub-folders; the callables take the folders (and the
     policy's objective and the resume rule). ``truth_reads``: keys of the later stages'
-    tables the ground truth reads too."""
+    tables the ground truth reads too. ``choose_prior`` (ground truth, policy folder): the
+    policies' prior chosen once, beside the generator (``policy.chosen_prior``), before
+    the policy stages, which read it."""
     gt, gen, pol, ev = out / "ground_truth", out / "generator", out / "policy", out / "evaluation"
-    upstream = ("simulate", "train_generator")
+    upstream: tuple[str, ...] = ("simulate", "train_generator")
+    choice: list[Stage] = []
+    if choose_prior is not None:
+        choice_file = pol / CHOICE_FILE
+        choice.append(
+            Stage(
+                "choose_prior",
+                choice_file,
+                partial(choose_prior, gt, pol),
+                needs=("simulate",),
+                ignores=CHOICE_IGNORES,
+                reads=CHOICE_READS,
+                result=partial(choice_result, choice_file),
+            )
+        )
+        upstream = (*upstream, "choose_prior")
 
     def train(objective: str) -> Callable[[], Any]:
         return partial(train_policy, gt, gen / "generator.pt", pol, objective, RESUME)
@@ -118,6 +143,7 @@ def standard_stages(
             needs=("simulate",),
             ignores=(*_NOWHERE, "policy", "evaluation"),
         ),
+        *choice,
         *(
             Stage(
                 name,
@@ -132,7 +158,7 @@ def standard_stages(
             "evaluate",
             ev / "evaluation_manifest.json",
             partial(_evaluate_job, evaluate, gt, gen / "generator.pt", pol, ev),
-            needs=(*upstream, *policies),
+            needs=("simulate", "train_generator", *policies),
             ignores=(*_NOWHERE, *_REFINE),
         ),
     ]
@@ -224,6 +250,19 @@ def _policy_job(
     )
 
 
+def _choice_job(
+    sc: Any,
+    command: str,
+    progress: bool,
+    fit_prior: PriorFit | None,
+    score_prior: PriorScore | None,
+    gt: Path,
+    pol: Path,
+) -> Any:
+    """The prior's choice stage (``policy.stage.run_choose_prior``)."""
+    return run_choose_prior(sc, gt, pol, command, progress, fit_prior, score_prior)
+
+
 def _road_job(fn: Callable[..., Any], sc: Any, command: str, progress: bool, *args: Any) -> Any:
     """A road's stage function ``fn(sc, *folders, command, progress)``."""
     return fn(sc, *args, command, progress)
@@ -267,26 +306,40 @@ def run_pipeline(
     (``Stage``), then the report; returns the run manifest. ``jobs``: processes for stages
     that can run side by side (None: ``parallel.default_jobs``; 1: one after the other)."""
     out = prepare_out_dir(out)
-    # Module-level functions and partials, so that a worker process can run any stage.
-    stages = standard_stages(
-        out,
-        partial(_road_job, road.simulate, sc, command, progress),
-        partial(_road_job, road.train_generator, sc, command, progress),
-        partial(_policy_job, sc, command, progress, road.fit_prior, road.score_prior),
-        partial(_road_job, road.evaluate, sc, command, progress),
-        truth_reads=road.truth_reads,
-        deploy=partial(_deploy_job, sc, command, progress) if road.deploys(sc) else None,
-    )
-    if sc.policy.refine_iterations > 0:
-        stages += refine_stages(
-            out,
-            partial(_refine_job, sc, command, progress, road.fit_prior),
-            partial(_road_job, road.evaluate, sc, command, progress),
-        )
+    stages = pipeline_stages(sc, road, out, command, progress)
     jobs = default_jobs() if jobs is None else jobs
     manifest = run_stages(sc, stages, out, command, progress, jobs)
     write_report(sc, out, manifest)
     return manifest
+
+
+def pipeline_stages(
+    sc: Any, road: PipelineRoad, out: Path, command: str = "", progress: bool = True
+) -> list[Stage]:
+    """``run_pipeline``'s stages of ``road`` on ``sc`` into ``out``: module-level functions
+    and partials, so that a worker process can run any. The prior's choice is a stage of
+    its own where the policy stages would each make it (``policy.chosen_prior``)."""
+    fit, score = road.fit_prior, road.score_prior
+    choose = None
+    if makes_choice(sc) and fit is not None and score is not None:
+        choose = partial(_choice_job, sc, command, progress, fit, score)
+    stages = standard_stages(
+        out,
+        partial(_road_job, road.simulate, sc, command, progress),
+        partial(_road_job, road.train_generator, sc, command, progress),
+        partial(_policy_job, sc, command, progress, fit, score),
+        partial(_road_job, road.evaluate, sc, command, progress),
+        truth_reads=road.truth_reads,
+        deploy=partial(_deploy_job, sc, command, progress) if road.deploys(sc) else None,
+        choose_prior=choose,
+    )
+    if sc.policy.refine_iterations > 0:
+        stages += refine_stages(
+            out,
+            partial(_refine_job, sc, command, progress, fit),
+            partial(_road_job, road.evaluate, sc, command, progress),
+        )
+    return stages
 
 
 def fit_residual_prior(

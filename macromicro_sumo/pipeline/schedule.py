@@ -17,6 +17,7 @@ from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import check_outputs, prepare_out_dir, write_json
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.pipeline.parallel import can_ship, cpu_s, run_side_by_side
+from macromicro_sumo.policy.chosen_prior import settings_of
 
 
 @dataclass(frozen=True)
@@ -31,27 +32,16 @@ class Stage:
     needs: tuple[str, ...] = ()
     ignores: tuple[str, ...] = ()
     reads: tuple[str, ...] = ()  # keys under ``ignores`` that it reads all the same
-
-
-def _flat(table: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for key, value in table.items():
-        if isinstance(value, dict):
-            out.update(_flat(value, f"{prefix}{key}."))
-        else:
-            out[f"{prefix}{key}"] = value
-    return out
+    # What the stages reading it take from its outputs (None: none readable), read before
+    # and after it runs: a stage redone whose result is what it was does not redo them
+    # (the prior's choice redone after a [deploy] edit that left it as it was).
+    result: Callable[[], Any] | None = None
 
 
 def stage_settings(scenario: dict[str, Any], stage: Stage) -> dict[str, Any]:
     """The dotted keys of ``scenario`` (``to_dict`` or a manifest's copy) that ``stage``
     depends on, with their values as a manifest's JSON holds them."""
-    flat = _flat(json.loads(json.dumps(scenario, default=str)))
-
-    def under(key: str, prefixes: tuple[str, ...]) -> bool:
-        return any(key == p or key.startswith(f"{p}.") for p in prefixes)
-
-    return {k: v for k, v in flat.items() if not under(k, stage.ignores) or under(k, stage.reads)}
+    return settings_of(scenario, stage.ignores, stage.reads)
 
 
 def _why_redo(stage: Stage, sc: Any, redone: set[str]) -> str | None:
@@ -100,6 +90,7 @@ def run_stages(
         ready = [s for s in pending if not names.intersection(s.needs)]
         pending = [s for s in pending if s not in ready]
         todo: list[tuple[Stage, str]] = []
+        results: dict[str, Any] = {}
         for stage in ready:
             why = _why_redo(stage, sc, redone)
             if why is None:
@@ -108,12 +99,19 @@ def run_stages(
                     print(f"[{stage.name}] skipped: outputs exist for these settings")
             else:
                 todo.append((stage, why))
+                if stage.result is not None:
+                    results[stage.name] = stage.result()
         if jobs > 1 and len(todo) > 1 and all(can_ship(s.run) for s, _ in todo):
             clocks = _side_by_side(todo, jobs, progress)
         else:
             clocks = {stage.name: _in_process(stage, why, progress) for stage, why in todo}
         for stage, _ in todo:
-            redone.add(stage.name)
+            same = stage.result is not None and results[stage.name] is not None
+            if same and stage.result() == results[stage.name]:  # its readers need not redo
+                if progress:
+                    print(f"[{stage.name}] gave what it gave before: the stages reading it stand")
+            else:
+                redone.add(stage.name)
             timings[stage.name] = round(clocks[stage.name][0], 3)
             cpu[stage.name] = round(clocks[stage.name][1], 3)
     manifest = build_manifest(sc, command, stage="run")

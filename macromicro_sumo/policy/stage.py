@@ -8,6 +8,7 @@ snapshots' bank, the env cores PPO runs on them, the demand episodes), then PPO
 from __future__ import annotations
 
 import hashlib
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +38,13 @@ from macromicro_sumo.generator.section_sampler import (
 from macromicro_sumo.generator.section_train import load_section_generator
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.policy.checkpoint import policy_file, resumable_checkpoint
+from macromicro_sumo.policy.chosen_prior import (
+    CHOICE_FILE,
+    apply_choice,
+    makes_choice,
+    read_choice,
+    write_choice,
+)
 from macromicro_sumo.policy.ppo import train_policy
 from macromicro_sumo.policy.prior_choice import (
     FittedPrior,
@@ -70,6 +78,14 @@ def policy_run_key(sc, data: Path, generator: Path, objective: str) -> str:
     ).hexdigest()
 
 
+def driver_speed_quantiles(sc: SectionScenario, truth, runs: np.ndarray) -> np.ndarray | None:
+    """The observed drivers' desired-speed ratio quantiles (censoring-aware) the hidden ones
+    draw from (``policy.driver_speed``); None where every driver takes the limits."""
+    if sc.policy.driver_speed == "none":
+        return None
+    return driver_ratios(sc, truth, runs).quantiles
+
+
 def section_episodes(sc: SectionScenario, truth, net, splits: dict[str, np.ndarray]) -> Episodes:
     """A section policy's episodes: snapshots of the train + val runs completed by the
     generator, its cores, and its demand episodes (``policy.episodes``)."""
@@ -77,9 +93,8 @@ def section_episodes(sc: SectionScenario, truth, net, splits: dict[str, np.ndarr
     snaps = section_snapshots(truth, sc, runs)
     complete = section_completion(net, truth.section, sc, sc.generator.k_source, sc.seed)
     bank = build_section_bank(sc, truth, snaps, complete, sc.policy.horizon, sc.seed)
-    quantiles = None
-    if sc.policy.driver_speed != "none":  # each hidden driver its own desired speed
-        quantiles = driver_ratios(sc, truth, runs).quantiles  # censoring-aware
+    quantiles = driver_speed_quantiles(sc, truth, runs)
+    if quantiles is not None:  # each hidden driver its own desired speed
         bank = drivers_bank(sc, truth.section, bank, quantiles, sc.seed)
     net_file = scenario_inputs(sc).net_file
     vclass = typical_vclass(truth)
@@ -144,6 +159,65 @@ def fit_stage_prior(
     return with_prior(sc, family), fitted
 
 
+def stage_prior(
+    sc: SectionScenario,
+    truth: Any,
+    data: Path,
+    out: Path,
+    splits: dict[str, np.ndarray],
+    fit_prior: PriorFit | None,
+    deploy: PriorDeploy | None,
+    command: str = "",
+) -> tuple[SectionScenario, FittedPrior | tuple[None, dict[str, Any], None]]:
+    """``fit_stage_prior``'s result for a policy stage writing into ``out``: a prior whose
+    choice deploys candidates (``policy.chosen_prior.CHOSEN``) is taken from ``out``'s
+    ``prior_choice.json`` where that was made for ``sc`` on this ground truth (the
+    pipeline's ``choose_prior`` stage, or the first stage run alone), else chosen here and
+    written there for the next. The manifest's ``prior_choice`` says which."""
+    if not (makes_choice(sc) and fit_prior is not None and deploy is not None):
+        return fit_stage_prior(sc, truth, splits, fit_prior, deploy)
+    path = out / CHOICE_FILE
+    record = read_choice(path, sc, data)
+    got = None if record is None else apply_choice(record, sc, path)
+    made = got is None
+    if got is None:
+        t0 = time.perf_counter()
+        got = fit_stage_prior(sc, truth, splits, fit_prior, deploy)
+        write_choice(path, sc, data, got, time.perf_counter() - t0, command)
+    trained, (prior, extra, pairs) = got
+    extra["prior_choice"] = {"file": str(path), "made_by_this_stage": made}
+    return trained, (prior, extra, pairs)
+
+
+def run_choose_prior(
+    sc: SectionScenario,
+    data: Path,
+    out: Path,
+    command: str = "",
+    progress: bool = True,
+    fit_prior: PriorFit | None = None,
+    score_prior: PriorScore | None = None,
+) -> dict[str, Any]:
+    """The pipeline's ``choose_prior`` stage: the policy stages' prior chosen once
+    (``fit_stage_prior`` with the deployment of a prior alone), from the ground truth in
+    ``data`` alone, into ``out/prior_choice.json`` (returned), which the policy and its
+    ablations then read (``stage_prior``)."""
+    if fit_prior is None or score_prior is None:
+        raise UserError(f"{sc.source}: the prior's choice needs its fit and its deployment")
+    t0 = time.perf_counter()
+    truth = load_section_truth(data, sc)
+    out = prepare_out_dir(out)
+    torch.set_num_threads(1)
+    splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
+    runs = np.concatenate([splits["train"], splits["val"]])
+    quantiles = driver_speed_quantiles(sc, truth, runs)
+    deploy = PriorDeploy(score_prior, Path(data), quantiles, progress)
+    fitted = fit_stage_prior(sc, truth, splits, fit_prior, deploy)
+    return write_choice(
+        out / CHOICE_FILE, sc, Path(data), fitted, time.perf_counter() - t0, command
+    )
+
+
 def run_train_policy(
     sc: SectionScenario,
     data: Path,
@@ -172,7 +246,9 @@ def run_train_policy(
     deploy = None
     if score_prior is not None:
         deploy = PriorDeploy(score_prior, Path(data), episodes.driver_speed, progress)
-    trained, (prior, extra, pairs) = fit_stage_prior(sc, truth, splits, fit_prior, deploy)
+    trained, (prior, extra, pairs) = stage_prior(
+        sc, truth, Path(data), out, splits, fit_prior, deploy, command
+    )
     res = train_policy(
         trained,
         episodes.bank,
