@@ -31,7 +31,12 @@ import numpy as np
 import pandas as pd
 import torch
 
-from macromicro_sumo.data.section import SectionSnapshots, section_snapshots, split_runs
+from macromicro_sumo.data.section import (
+    SectionSnapshots,
+    section_snapshots,
+    signal_stops,
+    split_runs,
+)
 from macromicro_sumo.env.rollout import rollout
 from macromicro_sumo.env.section_bank import SectionBank, with_future
 from macromicro_sumo.files import atomic_path, prepare_out_dir, write_csv, write_stage_manifest
@@ -68,13 +73,16 @@ def next_step_snapshots(
     make_core: Any,
     agent: Agent,
     seed: int,
+    signals: pd.DataFrame | None = None,
 ) -> SectionSnapshots:
     """The scenes one step after each episode's start (L_rec's targets): observed vehicles
     as recorded, hidden ones where the policy drove them (``bank`` completes ``snaps``, one
-    episode each, in order). Episodes the env cut short (a failed insertion) are left
-    out, and so are those with no hidden vehicle left; a hidden vehicle may only be
-    missing where it left an open section within the step. ``make_core(bank, seed)``: the
-    policy stage's env core."""
+    episode each, in order), and the red or yellow stop lines of the truth's ``signals``
+    (signals.csv) at that step, as every snapshot carries its own (standing leaders for
+    the generator; the env ran the signals as recorded). Episodes the env cut short (a
+    failed insertion) are left out, and so are those with no hidden vehicle left; a hidden
+    vehicle may only be missing where it left an open section within the step.
+    ``make_core(bank, seed)``: the policy stage's env core."""
     core = make_core(bank, seed)
     try:
         ro = rollout(core, policy_action(agent), 1, seed)
@@ -97,6 +105,7 @@ def next_step_snapshots(
     keep = np.flatnonzero(~failed & (hid & valid).any(axis=1))
     observed = valid & ~hid
     vehicles_est = snaps.k_est + snaps.observed.sum(axis=1)  # the detectors' count at t
+    stops = signal_stops(signals, bank.run, bank.time_s + dt) or (None, None)
     nxt = SectionSnapshots(
         run=bank.run,
         time_s=bank.time_s + dt,
@@ -109,6 +118,8 @@ def next_step_snapshots(
         psi=bank.psi,
         k_true=(valid & hid).sum(axis=1),
         k_est=np.maximum(0, vehicles_est - observed.sum(axis=1)),
+        stop_lane=stops[0],
+        stop_arc_m=stops[1],
     )
     return nxt.take(keep)
 
@@ -166,7 +177,7 @@ def refine(
         seed = sc.seed + ROLLOUT_SEED + it
         # (1) the current generator's scenes, the current policy one step on.
         ep, snaps = (ep0, snaps0) if it == 0 else _episodes(sc, truth, net, splits)
-        nxt = next_step_snapshots(sc, snaps, ep.bank, ep.make_core, agent, seed)
+        nxt = next_step_snapshots(sc, snaps, ep.bank, ep.make_core, agent, seed, truth.signals)
         is_val = np.isin(nxt.run, splits["val"])
         train = nxt.take(np.flatnonzero(~is_val))
         val = nxt.take(np.flatnonzero(is_val)) if is_val.any() else train
