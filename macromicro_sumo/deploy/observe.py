@@ -100,8 +100,8 @@ def observe_rows(
     ``Simulation.leaders``): front-to-front spacing = SUMO's gap + own minGap + leader's
     length; ``stop_m``: the distance from each front to a red light or the end of a lane
     the vehicle must leave (inf: none), a standing leader there when nearer than the
-    leader (``road.section.nearer_standing``: length 0, spacing ``stop_m``, as the envs
-    see it). ``lanes``: the section's
+    leader (``road.section.nearer_standing``: its spacing the distance plus the own
+    length, as the envs see it). ``lanes``: the section's
     ``LaneTable``; ``shapes``: vehicle -> (length, minGap, decel), ``STANDING`` where
     missing; ``driver_speeds``: each driver's desired-speed factor on the limits it
     observes, from the vehicles and their observations with unscaled limits
@@ -144,7 +144,7 @@ def observe_rows(
     lead_decel = decel_mps2[shape[n:]]
     lead_decel[none] = STOP_DECEL_MPS2
     # A red light, or the end of a lane the vehicle must leave: a standing leader there.
-    closer = nearer_standing(spacing, stop_m)
+    closer = nearer_standing(spacing, stop_m, length)
     if np.count_nonzero(closer):
         lead_v[closer] = 0.0
         np.copyto(sumo_gap, np.maximum(stop_m - min_gap, 0.0), where=closer)

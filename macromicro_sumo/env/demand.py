@@ -138,7 +138,7 @@ def sumo_observations(
                 spacing[i], lead_v[i], gap_out[i], leader[i] = s, states[lid][2], gap, lid
     # A red light, or the end of a lane the vehicle must leave: a standing leader there.
     stops = np.asarray(stops_m, dtype=float)
-    closer = nearer_standing(spacing, stops)
+    closer = nearer_standing(spacing, stops, np.array([shapes[v][0] for v in vids]))
     lead_v[closer] = 0.0
     gap_out[closer] = np.maximum(stops[closer] - min_gap[closer], 0.0)
     for i in np.flatnonzero(closer).tolist():

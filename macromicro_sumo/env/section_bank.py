@@ -28,7 +28,13 @@ from macromicro_sumo.data.section import (
 from macromicro_sumo.env.vtype_draw import generated_vtypes
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES, set_own_features
-from macromicro_sumo.road.section import NO_LEADER_GAP_M, STOP, Section, section_leaders
+from macromicro_sumo.road.section import (
+    NO_LEADER_GAP_M,
+    STOP,
+    Section,
+    section_leaders,
+    standing_spacing_m,
+)
 from macromicro_sumo.truth.section import load_section
 
 
@@ -349,7 +355,8 @@ def section_observations(
     spacing of the active vehicles; ``factor`` (N,): each driver's desired-speed factor,
     which multiplies the limits it observes (``env.driver_speed``; None: 1); ``length_m``
     (N,): each vehicle's length, for an observation with own features (``physics.
-    set_own_features``; None where it has none).
+    set_own_features``) and the spacing to a standing leader (``road.section.
+    standing_spacing_m``: the distance plus it; None: the distance alone).
 
     Leaders along the lane connections (``section_leaders``, one sort per call); the end
     of a lane that leads nowhere, for the vehicles ``on_route`` (N,) (the driven ones,
@@ -368,6 +375,8 @@ def section_observations(
     ln, s, v = lane[idx], arc_m[idx], speed_mps[idx]
     route = None if on_route is None else on_route[idx]
     lead, gap = section_leaders(section, ln, s, stop_lane, stop_arc_m, route)
+    if length_m is not None:  # a standing leader: the distance plus the own length
+        gap = np.where(lead == STOP, standing_spacing_m(gap, length_m[idx]), gap)
     has = lead >= 0
     leader[idx[has]] = idx[lead[has]]
     leader[idx[lead == STOP]] = STOP  # readers take >= 0 as a vehicle; the code says which

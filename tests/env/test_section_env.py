@@ -406,18 +406,19 @@ def signal_net(folder: Path, state: str) -> Path:
 
 
 def idm_policy(obs: np.ndarray) -> np.ndarray:
-    """IDM on the observation (v0 = the limit; the spacing to a standing stop point is the
-    gap itself, to a vehicle the gap plus its 5 m length)."""
+    """IDM on the observation (v0 = the limit; the spacing to a vehicle is the gap plus its
+    5 m length, to a standing stop point the gap plus the own 5 m)."""
     v, limit, spacing, dv = obs[:, 0], obs[:, 1], obs[:, 2], obs[:, 3]
-    gap = np.where(spacing < NO_LEADER_GAP_M, spacing, 1e6)
+    gap = np.where(spacing < NO_LEADER_GAP_M, spacing - 5.0, 1e6)
     return idm_accel(v, np.maximum(gap - 1.0, 0.1), dv, limit, 1.2, 2.0, 3.0, 2.0)
 
 
 @pytest.mark.parametrize("state", ["r", "y"])
 def test_policy_stops_at_a_red_or_yellow_light(tmp_path, state):
     """A red (or yellow) signal ahead is a standing leader at the stop line in the
-    observation: its spacing is SUMO's distance to the stop line, and an IDM policy
-    driving by it (exact commands: SUMO does not brake for it) stops before the line."""
+    observation: its spacing is SUMO's distance to the stop line plus the own 5 m length
+    (``road.section.standing_spacing_m``), and an IDM policy driving by it (exact
+    commands: SUMO does not brake for it) stops before the line."""
     net = signal_net(tmp_path / "net", state)
     sec = read_section(net, ["A", "B"], False)
     sc = section_scenario(tmp_path, net, ["A", "B"], False)
@@ -426,15 +427,15 @@ def test_policy_stops_at_a_red_or_yellow_light(tmp_path, state):
     line = float(sec.offsets_m[0] + sec.lengths_m[0])
     try:
         obs = core.reset(0)
-        assert obs[0, 2] == pytest.approx(core.sim.stop_line_m(core.ids[0]), abs=1e-6)
-        assert obs[0, 2] == pytest.approx(line - 100.0, abs=1e-6)
+        assert obs[0, 2] == pytest.approx(core.sim.stop_line_m(core.ids[0]) + 5.0, abs=1e-6)
+        assert obs[0, 2] == pytest.approx(line - 100.0 + 5.0, abs=1e-6)
         assert obs[0, 3] == pytest.approx(14.0)  # closing on a standing leader
         for _ in range(80):
             res = core.step(idm_policy(obs))
             obs = res.obs
             assert not res.collision and not res.error and res.active[0]
             assert core.arc[0] <= line  # never past the stop line
-            assert obs[0, 2] == pytest.approx(line - core.arc[0], abs=1e-6)
+            assert obs[0, 2] == pytest.approx(line - core.arc[0] + 5.0, abs=1e-6)
         assert core.speed[0] < 0.1 and line - core.arc[0] < 5.0  # stopped at the line
     finally:
         core.close()

@@ -1,14 +1,14 @@
 """One observation of what is ahead in the Stage II envs, the demand env and the deployment.
 
 A red or yellow stop line and the end of a lane a vehicle must leave are standing leaders
-of length 0 at the line (``road.section.nearer_standing``): the spacing is the distance
-from the vehicle's front, where SUMO stops it. The snapshot env reads it on the section's
-arc (``section_observations`` with ``stop_points``, as ``SectionCore._scene``), the
-deployment (``deploy.observe.observe_rows``, as ``deploy.drivers`` composes it) and the
-demand env (``env.demand.sumo_observations``, as ``DemandCore._stops``) from SUMO's state.
-Before, the deployment and the demand env put the standing leader's back at the line, a
-vehicle length long: the spacing was the distance plus the own length, which the policy
-never met in training.
+at the distance from the vehicle's front plus its own length (``road.section.
+standing_spacing_m``: a standing vehicle of its length whose back is at the line, which
+every reader of the spacing takes as gap = the distance, where SUMO stops the front). The
+snapshot env reads it on the section's arc (``section_observations`` with ``stop_points``
+and the vehicles' lengths, as ``SectionCore._scene``), the deployment (``deploy.observe.
+observe_rows``, as ``deploy.drivers`` composes it) and the demand env (``env.demand.
+sumo_observations``, as ``DemandCore._stops``) from SUMO's state. Before (3e1f4d0), the
+envs, in which the policy trains, gave the distance alone: 5 m less than the deployment.
 
 SUMO's game/cross, its west approach as the section (1si: right-turn lane 0, through lane
 1, left-turn lane 2, of which only lane 1 links onto 2o), one SUMO state per signal phase.
@@ -71,8 +71,9 @@ def three_observations(cross: Section, phase: int) -> tuple[np.ndarray, ...]:
     arc = np.array([a[1] for a in at])
     on = np.ones(len(ids), dtype=bool)
     stop_lane, stop_arc = stop_points(cross, lane, arc, red)
+    length = np.full(len(ids), shape[0])
     env, _, _ = section_observations(
-        cross, lane, arc, speed, on, "lookahead", stop_lane, stop_arc, on_route=on
+        cross, lane, arc, speed, on, "lookahead", stop_lane, stop_arc, None, length, on
     )
     # The deployment (``Driver.observe``): lane ends from the lane's start, less the position.
     rows = np.array([st.index[v] for v in ids])
@@ -99,16 +100,16 @@ def three_observations(cross: Section, phase: int) -> tuple[np.ndarray, ...]:
 def test_env_deployment_and_demand_env_see_the_same_ahead(cross: Section, light: str) -> None:
     """The three observations of one SUMO state agree (within 0.5 m: SUMO's lanes and the
     section's arc differ by a rounding), and the standing leaders are at the distance from
-    the front: at red the stop line 30 m ahead of the first through vehicle, and in both
-    phases the turning lanes' ends (40 and 60 m)."""
+    the front plus the own 5 m: at red the stop line 30 m ahead of the first through
+    vehicle, and in both phases the turning lanes' ends (40 and 60 m)."""
     env, deploy, demand = three_observations(cross, PHASES[light])
     np.testing.assert_allclose(deploy, env, atol=0.5)
     np.testing.assert_allclose(demand, env, atol=0.5)
     spacing = env[:, 2]
-    np.testing.assert_allclose(spacing[2:4], [40.0, 60.0], atol=0.5)  # lane ends
+    np.testing.assert_allclose(spacing[2:4], [45.0, 65.0], atol=0.5)  # lane ends
     np.testing.assert_allclose(env[2:4, 3], 5.0)  # delta v: a standing leader
     if light == "red":
-        np.testing.assert_allclose(spacing[0], 30.0, atol=0.5)
+        np.testing.assert_allclose(spacing[0], 35.0, atol=0.5)
     else:
         assert spacing[0] > 30.0 + 50.0  # the leader is the vehicle 50 m into 2o
     np.testing.assert_allclose(spacing[1], 20.0, atol=0.5)  # the vehicle ahead
