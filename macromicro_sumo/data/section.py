@@ -153,6 +153,20 @@ def signal_stops(
     return lane, arc
 
 
+def stop_lines_at(
+    truth: SectionTruth, run: int, times_s: np.ndarray
+) -> dict[float, tuple[np.ndarray, np.ndarray]]:
+    """{time of run ``run`` (rounded to 1e-6 s): (lane, arc) of the red or yellow stop lines
+    then} (``signal_stops``, the snapshots' and so the envs' standing leaders), at
+    ``times_s``; empty: no signal recorded."""
+    got = signal_stops(truth.signals, np.full(len(times_s), run), np.asarray(times_s))
+    if got is None:
+        return {}
+    lane, arc = got
+    ok = np.isfinite(arc)
+    return {round(float(t), 6): (lane[i, ok[i]], arc[i, ok[i]]) for i, t in enumerate(times_s)}
+
+
 def signal_settings(
     signals: pd.DataFrame | None, runs: np.ndarray, times_s: np.ndarray
 ) -> np.ndarray | None:

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from macromicro_sumo.data.section import SectionTruth, recorded_steps, run_section
+from macromicro_sumo.data.section import SectionTruth, recorded_steps, run_section, stop_lines_at
 from macromicro_sumo.env.rollout import ActionFn
 from macromicro_sumo.env.section_bank import recordable, section_observations
 from macromicro_sumo.errors import UserError
@@ -31,11 +31,14 @@ def micro_pairs(
     dt = sc.simulation.step_length_s
     traj = truth.trajectories[truth.trajectories["run"].isin(runs)]
     measured = has_measured_leaders(traj)
-    lengths = _lengths(truth, traj) if observes_length(sc.policy.observation) else None
+    # Lengths: an own feature, and a standing leader's spacing (distance + own length).
+    lengths = _lengths(truth, traj, required=observes_length(sc.policy.observation))
     obs_rows, acc_rows = [], []
     for run, g in traj.groupby("run", sort=True):
         # The run's own speed limits (a fleet draws them per run), as the env observes them.
         section = run_section(truth, int(run))
+        # A red or yellow stop line is a standing leader, as in the envs (data.section).
+        stops = stop_lines_at(truth, int(run), np.unique(g["time_s"].to_numpy()))
         for s, speed_next in recorded_steps(g, dt):
             o = recordable(sc, s)
             if not o.any():
@@ -47,6 +50,7 @@ def micro_pairs(
                 s["speed_mps"].to_numpy(),
                 np.ones(len(s), dtype=bool),
                 sc.policy.observation,
+                *stops.get(round(float(s["time_s"].iloc[0]), 6), (None, None)),
                 length_m=None if lengths is None else lengths.loc[s.index].to_numpy(dtype=float),
             )
             if measured:  # field data: the leader each vehicle measured (fielddata.leaders)
@@ -66,11 +70,14 @@ def micro_pairs(
     return obs, acc
 
 
-def _lengths(truth: SectionTruth, traj: pd.DataFrame) -> pd.Series:
-    """Each trajectory row's vehicle length [m], its vType's (``vtypes.csv``)."""
+def _lengths(truth: SectionTruth, traj: pd.DataFrame, required: bool) -> pd.Series | None:
+    """Each trajectory row's vehicle length [m], its vType's (``vtypes.csv``); where one is
+    unknown an error if ``required``, else None."""
     vt = truth.vtypes
     length_of = dict(zip(vt["vtype"], vt["length_m"], strict=True)) if "length_m" in vt else {}
     lengths = traj["vtype"].map(length_of) if "vtype" in traj else pd.Series(np.nan, traj.index)
+    if lengths.isna().any() and not required:
+        return None
     if lengths.isna().any():
         missing = sorted(set(traj["vtype"][lengths.isna()])) if "vtype" in traj else ["vtype"]
         raise UserError(

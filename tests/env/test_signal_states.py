@@ -21,6 +21,8 @@ from macromicro_sumo.cli import main
 from macromicro_sumo.data.section import recorded_snapshots
 from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import build_section_bank
+from macromicro_sumo.evaluation.micro_data import micro_pairs
+from macromicro_sumo.road.section import NO_LEADER_GAP_M
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.inputs import scenario_inputs
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
@@ -214,3 +216,18 @@ def test_driven_vehicles_see_their_turning_lanes_end(cross_truth) -> None:
     assert len(seen[True]) > 5
     np.testing.assert_allclose(seen[True], 0.0, atol=1e-6)
     assert seen[False] and all(g > 100.0 for g in seen[False])
+
+
+def test_micro_pairs_at_a_red_light_see_the_stop_line(cross_truth) -> None:
+    """The observed vehicles' (observation, action) pairs (``micro_pairs``: idm_calibrated's
+    fit, the prior's) see a red or yellow stop line as the envs show it: a standing leader
+    at the distance plus the own length. Before, a vehicle standing at the line observed a
+    free road (spacing 250 m), and the fit read its standing as a choice of its own."""
+    sc, truth = cross_truth
+    obs, _ = micro_pairs(sc, truth, truth.runs)
+    standing = obs[:, 0] <= 0.1
+    free = obs[:, 2] >= NO_LEADER_GAP_M
+    assert standing.sum() > 20
+    at_line = standing & (obs[:, 2] < 5.0 + 3.0)  # the own 5 m and at most 3 m to go
+    assert at_line.sum() > 10
+    assert (standing & free).sum() < 0.1 * at_line.sum()
