@@ -184,9 +184,12 @@ def warmup_states(agent: Agent, core: DemandCore, warmup_s: float) -> np.ndarray
     ``core.runs`` (from SUMO's first step to ``warmup_s``), driven by the agent's prior
     alone: the start every deployment drives into (a ring's fleet departing standing), which
     no snapshot episode shows (they start after the warm-up). ``policy.residual``'s
-    warm-up anchors hold the residual at 0 where these lie off the pairs."""
+    warm-up anchors hold the residual at 0 where these lie off the pairs. With
+    ``policy.driver_speed`` each driver observes its own limits (``driver_quantiles``), as
+    in ``collect_demand`` and the deployment."""
     dt = core.dt
     out = []
+    core.set_driver_speeds(driver_quantiles(agent))
     for run in core.runs:
         core.reset(int(run), dt)
         for _ in range(int(round(warmup_s / dt)) - 1):
@@ -199,13 +202,21 @@ def warmup_states(agent: Agent, core: DemandCore, warmup_s: float) -> np.ndarray
 
 
 def prior_warmup_states(
-    sc, prior_params: Mapping[str, float], make_demand: Callable[[], DemandCore]
+    sc,
+    prior_params: Mapping[str, float],
+    make_demand: Callable[[], DemandCore],
+    driver_speed: np.ndarray | None = None,
 ) -> np.ndarray:
     """``warmup_states`` of the training runs' demand (``make_demand``) under the fitted
-    prior alone (``policy.prior``, ``prior_params``); a demand core of its own, closed
-    before the snapshot env starts, so that env runs as it did without it."""
+    prior alone (``policy.prior``, ``prior_params``), its drivers' desired-speed factors
+    from ``driver_speed`` (the trained agent's quantiles, ``policy.driver_speed``); a
+    demand core of its own, closed before the snapshot env starts, so that env runs as it
+    did without it."""
     agent = Agent(
-        observation=sc.policy.observation, prior=sc.policy.prior, prior_params=prior_params
+        observation=sc.policy.observation,
+        prior=sc.policy.prior,
+        prior_params=prior_params,
+        driver_speed=driver_speed,
     )
     core = make_demand()
     try:

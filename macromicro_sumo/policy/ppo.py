@@ -226,7 +226,8 @@ def train_policy(
     # snapshot env starts; none without a warm-up (the ring records from its insertion).
     warm = None
     if warmup_anchors(sc, use_micro) and make_demand is not None:
-        warm = torch.as_tensor(prior_warmup_states(sc, prior_params, make_demand))
+        states = prior_warmup_states(sc, prior_params, make_demand, driver_speed)
+        warm = torch.as_tensor(states)
     core = make_core(bank, seed)
     # The ring's rollouts, B episodes per SUMO step: the same rollout, to the bit (rollout.py).
     batched = batched_like(core, min(cfg.episodes_per_update, BATCH_SCENES))
