@@ -84,7 +84,7 @@ def pair_slope(
         return math.nan
     present = torch.as_tensor(valid)
     sp, dv, counts, order, lead = pair_states(
-        torch.as_tensor(lane, dtype=torch.long),
+        torch.as_tensor(road.lane_numbers(lane, arc), dtype=torch.long),
         torch.as_tensor(arc, dtype=torch.float64),
         torch.as_tensor(np.where(valid, speed, 0.0), dtype=torch.float64),
         present,

@@ -43,7 +43,8 @@ def reconstruction_loss(scene: Scene, snaps: SectionSnapshots, road: Road) -> to
     t_on = torch.as_tensor(tgt[rows, slot])
     t_arc = torch.as_tensor(np.where(tgt[rows, slot], snaps.arc_m[rows, slot], 0.0))
     t_v = torch.as_tensor(np.where(tgt[rows, slot], snaps.speed_mps[rows, slot], 0.0))
-    t_lane = torch.as_tensor(np.where(tgt[rows, slot], snaps.lane[rows, slot], 0))
+    t_lane = road.lane_numbers(snaps.lane[rows, slot], snaps.arc_m[rows, slot])
+    t_lane = torch.as_tensor(np.where(tgt[rows, slot], t_lane, 0))
     g_arc, g_v, g_lane = scene.arc[:, n0:], scene.speed[:, n0:], scene.lane[:, n0:]
     da = g_arc[:, :, None] - t_arc[:, None, :]
     if road.closed:  # the shorter way round

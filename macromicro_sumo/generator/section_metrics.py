@@ -56,7 +56,12 @@ def completion_violations(
                 "spacing": int(bad.sum()),
                 "speed": int(((v < v_lo[i] - 1e-9) | (v > v_hi[i] + 1e-9)).sum()),
                 "lane": int(
-                    (~road.has_lane(torch.as_tensor(lane[gen]), torch.as_tensor(arc[gen]))).sum()
+                    (
+                        ~road.has_lane(
+                            torch.as_tensor(road.lane_numbers(lane[gen], arc[gen])),
+                            torch.as_tensor(arc[gen]),
+                        )
+                    ).sum()
                 ),
             }
         )

@@ -104,7 +104,7 @@ def observe(
     usable = share * gaps.room.clamp(min=0.0)
     mid = gaps.start + 0.5 * gaps.length
     limit = road.limit(gaps.lane, mid)
-    lane_rel = gaps.lane.double() / max(road.max_lanes - 1, 1)
+    lane_rel = road.lane_rel[gaps.lane]
     pos_rel = torch.zeros_like(mid) if road.closed else mid.detach() / road.length_m
     gap_feat = torch.stack(
         [
@@ -410,7 +410,8 @@ class Scene:
         arc = np.where(packed, snaps.arc_m[rows, slot], 0.0)
         if road.closed:
             arc = np.mod(arc, road.length_m)
-        lane = np.where(packed, snaps.lane[rows, slot], 0)
+        # the generator's lane numbers, along the connections (``section_lanes``)
+        lane = np.where(packed, np.maximum(road.lane_numbers(snaps.lane[rows, slot], arc), 0), 0)
         speed = np.where(packed, snaps.speed_mps[rows, slot], 0.0)
         extra = np.where(packed, extra_lengths(snaps)[rows, slot], 0.0)
         return cls(

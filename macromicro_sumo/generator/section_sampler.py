@@ -24,7 +24,6 @@ import contextlib
 import math
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
@@ -33,7 +32,11 @@ import torch
 from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.generator.section_bounds import bounded_gaps
 from macromicro_sumo.generator.section_model import Scene, SectionGeneratorNet, propose
-from macromicro_sumo.generator.section_pairs import drop_unsafe_pairs
+from macromicro_sumo.generator.section_pairs import (
+    SectionCompletion,
+    drop_unsafe_pairs,
+    safe_speeds,
+)
 from macromicro_sumo.generator.section_scene import (
     PSI_INDEX,
     TOL_M,
@@ -44,7 +47,7 @@ from macromicro_sumo.generator.section_scene import (
     scene_stops,
     stop_room_m,
 )
-from macromicro_sumo.road.section import STOP, Section, section_leaders
+from macromicro_sumo.road.section import Section
 
 PROJECTION_PROBES = 32  # points per gap a projection tries for a kinematically consistent one
 
@@ -62,22 +65,6 @@ def one_thread() -> Iterator[None]:
 
 
 # --------------------------------------------------------------------------- inference
-
-
-@dataclass
-class SectionCompletion:
-    """Completed scenes (S, N + K_max): the snapshot's observed vehicles in their slots
-    (its hidden slots empty), then the generated ones."""
-
-    lane: np.ndarray
-    arc_m: np.ndarray
-    speed_mps: np.ndarray
-    valid: np.ndarray
-    generated: np.ndarray
-    trials: np.ndarray  # (S,) trials used over all generated vehicles
-    projections: np.ndarray  # (S,) generated vehicles placed by projection
-    dropped: np.ndarray | None = None  # (S,) vehicles not placed: no gap had room
-    wall_s: float = 0.0
 
 
 def k_of(snaps: SectionSnapshots, source: str) -> np.ndarray:
@@ -152,104 +139,6 @@ def generator_completion(net: SectionGeneratorNet, section: Section, sc, k_sourc
         return c.lane, c.arc_m, c.speed_mps, c.valid, c.generated
 
     return fn
-
-
-def safe_speeds(
-    comp: SectionCompletion,
-    section: Section,
-    standstill_m: np.ndarray,
-    brake_mps2: float,
-    reaction_s: float = 0.0,
-    extra_m: np.ndarray | None = None,
-    stops: tuple[np.ndarray, np.ndarray] | None = None,
-) -> None:
-    """Give each generated vehicle a speed it can stop from behind its leader, and raise
-    a generated leader where an observed follower could not stop behind it (in place).
-
-    The spacing and speed bounds say nothing about pairs: a generated vehicle 15 m/s faster
-    than a leader 10 m behind satisfies both and crashes in the first second. The bound is
-    the stopping-distance condition v^2 <= v_leader^2 + 2 b (spacing - standstill spacing),
-    with b the action bound's braking and the standstill spacing psi's smallest spacing;
-    with a reaction time tau the follower first drives on for tau, v^2 + 2 b tau v <= ...
-    (SUMO's safe speed in the environment, tau = one step: without it, 75 of the 123
-    observed vehicles that SUMO held back on the Bremen example were held back in the
-    first step, behind a generated leader). A generated vehicle must also be able to stop before the end of a lane that leads
-    nowhere. The generated speeds are kept as a set and dealt out again: walking the
-    vehicles downstream to upstream (a leader is served first), each gets the speed left
-    in the set nearest its own that it can stop from, and only where none is left is the
-    slowest one capped. Then, upstream to downstream, a generated leader is raised where
-    its follower could not stop behind it (an observed follower keeps its record), and
-    so on along the chain, as far as its own leader allows. Capping every offender instead
-    lowered the scene's mean speed by
-    1.7 m/s on the Bremen example (a quarter of the generated vehicles, 5.8 m/s each),
-    and every method's rollouts inherited that error. ``stops``: (S, P) (lane, arc; NaN
-    arc: none) of each scene's red or yellow stop lines (``SectionSnapshots.stop_lane``),
-    standing leaders there as in ``section_leaders`` (the envs' observation).
-    """
-    for s in range(len(comp.speed_mps)):
-        on = np.flatnonzero(comp.valid[s])
-        if on.size < 2:
-            continue
-        lane, arc = comp.lane[s, on], comp.arc_m[s, on]
-        v, gen = comp.speed_mps[s, on].copy(), comp.generated[s, on]
-        pool = np.sort(v[gen])
-        # Along the lane connections; a lane's end is a standing leader (STOP, < 0).
-        leader, spacing = section_leaders(section, lane, arc, *_stops_of(stops, s))
-        # A long leader (a truck) stands its own extra length further back.
-        ex = np.zeros(on.size) if extra_m is None else extra_m[s, on]
-        ex_l = np.where(leader >= 0, ex[np.maximum(leader, 0)], 0.0)
-        room = 2.0 * brake_mps2 * np.maximum(0.0, spacing - standstill_m[s] - ex_l)
-        bt = brake_mps2 * reaction_s
-
-        # Front first: a leader (on this lane or the one it continues onto) is served first.
-        for i in np.argsort(-arc, kind="stable"):
-            if gen[i]:
-                c = _cap(leader[i], v, room[i], bt)
-                k = _nearest_below(pool, v[i], c)
-                v[i] = min(pool[k], c)
-                pool = np.delete(pool, k)
-        # Back first: a follower that cannot stop behind a generated leader raises it (an
-        # observed one, and a generated one raised so), along whole chains of them, never
-        # beyond what lets the raised one stop behind its own leader (that wins: the
-        # observed follower then brakes in the environment).
-        for i in np.argsort(arc, kind="stable"):
-            j = leader[i]
-            if j >= 0 and gen[j]:
-                need = math.sqrt(max(0.0, v[i] ** 2 + 2.0 * bt * v[i] - room[i]))
-                v[j] = max(v[j], min(need, _cap(leader[j], v, room[j], bt)))
-        comp.speed_mps[s, on] = v
-
-
-def _stops_of(
-    stops: tuple[np.ndarray, np.ndarray] | None, s: int | np.ndarray
-) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """Scene(s) ``s``'s stop lines (lane, arc), their padding dropped (one scene)."""
-    if stops is None:
-        return None, None
-    ok = np.isfinite(stops[1][s])
-    return stops[0][s][ok], stops[1][s][ok]
-
-
-def _cap(j: int, v: np.ndarray, room: float, bt: float) -> float:
-    """The most a vehicle with leader ``j`` (``STOP``: a lane end, -1: none) can drive and
-    still stop behind it: v^2 + 2 bt v <= v_j^2 + room."""
-    if j == STOP:
-        return math.sqrt(bt * bt + room) - bt
-    if j >= 0:
-        return math.sqrt(bt * bt + v[j] ** 2 + room) - bt
-    return math.inf
-
-
-def _nearest_below(pool: np.ndarray, v: float, cap: float) -> int:
-    """Index of the sorted ``pool``'s value nearest ``v`` among those <= ``cap`` (the
-    smallest value's, 0, where none is)."""
-    hi = int(np.searchsorted(pool, cap, side="right"))  # pool[:hi] <= cap
-    if hi == 0:
-        return 0
-    k = min(int(np.searchsorted(pool, v)), hi - 1)
-    if k > 0 and abs(pool[k - 1] - v) <= abs(pool[k] - v):
-        k -= 1
-    return k
 
 
 def _window_of(
@@ -341,9 +230,10 @@ def complete_section(
     b = len(snaps)
     stop_pts = scene_stops(section, snaps)  # standing obstacles: red lights, lane ends
     stops = None  # the same as tensors, (B, P) lane and arc (inf: none)
-    if stop_pts is not None:
+    if stop_pts is not None:  # on the generator's lane numbers (``section_lanes``)
+        at_lane = road.lane_numbers(stop_pts[0], np.nan_to_num(stop_pts[1]))
         stops = (
-            torch.as_tensor(stop_pts[0], dtype=torch.int64),
+            torch.as_tensor(at_lane, dtype=torch.int64),
             torch.as_tensor(np.nan_to_num(stop_pts[1], nan=np.inf), dtype=torch.float64),
         )
     trials = np.zeros(b, dtype=np.int64)
@@ -416,7 +306,7 @@ def complete_section(
             dropped[idx_np] += (~fits).numpy()
         v = torch.minimum(torch.maximum(v, sub.v_min), sub.v_max)
         scene.place(step, idx, lane, arc, v, fits)
-    comp = _unpack(scene, snaps, trials, projections, time.perf_counter() - t0)
+    comp = _unpack(scene, snaps, road, trials, projections, time.perf_counter() - t0)
     comp.dropped = dropped
     if brake_mps2 is not None:
         obs = np.asarray(snaps.valid & snaps.observed, dtype=bool)
@@ -432,18 +322,20 @@ def complete_section(
 def _unpack(
     scene: Scene,
     snaps: SectionSnapshots,
+    road: Road,
     trials: np.ndarray,
     projections: np.ndarray,
     wall_s: float,
 ) -> SectionCompletion:
     """The completed scenes in the output layout: observed vehicles back in their snapshot
-    slots (bit for bit), the generated ones after them."""
+    slots (bit for bit), the generated ones after them, on SUMO's lane indices."""
     b, n = snaps.arc_m.shape
     m = scene.n_obs_slots
     obs = np.asarray(snaps.valid & snaps.observed, dtype=bool)
     gen = scene.present[:, m:].numpy()
+    lane = road.sumo_lanes(scene.lane[:, m:].numpy(), scene.arc[:, m:].numpy())
     return SectionCompletion(
-        lane=np.concatenate([np.where(obs, snaps.lane, 0), np.where(gen, scene.lane[:, m:], 0)], 1),
+        lane=np.concatenate([np.where(obs, snaps.lane, 0), np.where(gen, lane, 0)], 1),
         arc_m=np.concatenate(
             [np.where(obs, snaps.arc_m, 0.0), np.where(gen, scene.arc[:, m:], 0.0)], 1
         ),
@@ -477,13 +369,10 @@ def uniform_completion(
     gen_mask = np.arange(k_max)[None, :] < k[:, None]
     arc = rng.uniform(0.0, section.length_m, (b, k_max))
     # among the lane indices that exist there (in a junction: those it leads to)
-    there = (
-        Road.of(section)
-        .has_lane(torch.arange(section.max_lanes), torch.as_tensor(arc)[..., None])
-        .numpy()
-    )
+    road = Road.of(section)
+    there = road.has_lane(torch.arange(road.max_lanes), torch.as_tensor(arc)[..., None]).numpy()
     nth = np.floor(rng.random((b, k_max)) * there.sum(axis=-1))[..., None]
-    lane = (np.cumsum(there, axis=-1) <= nth).sum(axis=-1).astype(np.int64)
+    lane = road.sumo_lanes((np.cumsum(there, axis=-1) <= nth).sum(axis=-1), arc)
     obs = snaps.valid & snaps.observed
     v_mean = snaps.psi[:, PSI_INDEX["mean_speed_mps"]]
     return SectionCompletion(

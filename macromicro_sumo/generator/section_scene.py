@@ -8,6 +8,10 @@ from the detectors' density). The method is the same (Algorithms 2 and 3 of the 
 the network is ``section_model``, Algorithm 3 ``section_sampler``, training
 ``section_train``.
 
+Lanes are numbered along the network's lane connections (``section_lanes``): a lane keeps
+its number where the through lane changes SUMO index at a junction, so a gap's leader is
+the next vehicle along the connections (``section_leaders``' leader).
+
 Gaps. Every lane is cut by its vehicles into gaps: between consecutive vehicles, and on
 an open section the two open ends (upstream of the lane's last vehicle, downstream of its
 first); on a closed section the last gap wraps around the loop. An empty lane is one gap
@@ -27,49 +31,15 @@ import numpy as np
 import torch
 
 from macromicro_sumo.data.section import PSI_FIELDS, SectionSnapshots
+from macromicro_sumo.generator.section_lanes import END_MARGIN_M, Road
 from macromicro_sumo.road.section import Section
 
-END_MARGIN_M = 1e-6  # keeps a vehicle at an open downstream end strictly on the section
 TOL_M = 1e-6  # rounding allowed in the spacing check [m]
 
 PSI_INDEX = {name: i for i, name in enumerate(PSI_FIELDS)}
 
 
 # --------------------------------------------------------------------------- road and psi
-
-
-def lane_pieces(section: Section) -> list[list[list[float]]]:
-    """Per lane index, the [a, b) arc intervals where it exists: on an edge, the edge's
-    lanes; in the junction after it, the lanes of the next edge that one of its lanes
-    continues onto (``Section.links``): a lane index in a junction is the lane it leads
-    to. Why not the edge's lane count there too: an edge whose lanes 0-1 continue onto
-    lanes 1-2 of the next (an on-ramp joining on the right) has no junction lane 0, and a
-    vehicle put there goes to lane 0 of the next edge's start, into whoever is there
-    (game/cross, net 503: Stage II evaluation collisions)."""
-    n = len(section.edge_ids)
-    ends = np.append(section.offsets_m[1:], section.length_m)
-    pieces: list[list[list[float]]] = [[] for _ in range(section.max_lanes)]
-
-    def add(lane: int, a: float, b: float) -> None:
-        p = pieces[lane]
-        if p and abs(p[-1][1] - a) < 1e-9:
-            p[-1][1] = b
-        else:
-            p.append([a, b])
-
-    for e in range(n):
-        a = float(section.offsets_m[e])
-        mid = a + float(section.lengths_m[e])
-        b = float(ends[e])
-        into = section.links[e].any(axis=0)  # (lanes,) next-edge lanes reached from e
-        if not into.any():  # no connection known: the next edge's lanes
-            into = np.arange(section.max_lanes) < section.n_lanes[(e + 1) % n]
-        for lane in range(section.max_lanes):
-            if lane < section.n_lanes[e]:
-                add(lane, a, mid)
-            if b > mid + 1e-9 and into[lane]:
-                add(lane, mid, b)
-    return pieces
 
 
 def extra_lengths(snaps: SectionSnapshots) -> np.ndarray:
@@ -80,104 +50,6 @@ def extra_lengths(snaps: SectionSnapshots) -> np.ndarray:
     lengths = np.asarray(snaps.length_m, dtype=float)
     shortest = float(lengths[valid].min()) if valid.any() else 0.0
     return np.where(valid, np.maximum(lengths - shortest, 0.0), 0.0)
-
-
-@dataclass(frozen=True)
-class Road:
-    """What the generator needs of a ``Section``, as torch tensors (positions in float64)."""
-
-    length_m: float
-    closed: bool
-    max_lanes: int
-    lane_length_m: float
-    offsets_m: torch.Tensor  # (E,)
-    n_lanes: torch.Tensor  # (E,) int64
-    limits_mps: torch.Tensor  # (E, max lanes); a lane the edge lacks has its leftmost's limit
-    # per lane index: (a, b) arc intervals where that lane exists (numpy, for projection)
-    lane_spans: tuple[np.ndarray, ...]
-    # the same as one (lanes, P, 2) tensor, padded with empty spans; on a loop repeated
-    # one and two lengths on, since a gap may run past the loop's end
-    span_table: torch.Tensor
-    lane_extent_m: torch.Tensor  # (lanes,) arc length on which each lane index exists
-
-    @classmethod
-    def of(cls, section: Section) -> Road:
-        lim = np.array(section.limits_mps, dtype=np.float64)
-        n_lanes = np.asarray(section.n_lanes, dtype=np.int64)
-        for e, n in enumerate(n_lanes):
-            lim[e, n:] = lim[e, n - 1]
-        spans = [np.array(p, dtype=np.float64).reshape(-1, 2) for p in lane_pieces(section)]
-        reps = 3 if section.closed else 1
-        p = max(len(x) for x in spans) * reps
-        table = np.zeros((section.max_lanes, p, 2))
-        for lane, x in enumerate(spans):
-            rep = np.concatenate([x + k * section.length_m for k in range(reps)])
-            table[lane, : len(rep)] = rep
-        return cls(
-            length_m=section.length_m,
-            closed=section.closed,
-            max_lanes=section.max_lanes,
-            lane_length_m=section.lane_length_m,
-            offsets_m=torch.as_tensor(np.asarray(section.offsets_m, dtype=np.float64)),
-            n_lanes=torch.as_tensor(n_lanes),
-            limits_mps=torch.as_tensor(lim),
-            lane_spans=tuple(spans),
-            lane_extent_m=torch.as_tensor([float(np.sum(x[:, 1] - x[:, 0])) for x in spans]),
-            span_table=torch.as_tensor(table),
-        )
-
-    def wrap(self, arc: torch.Tensor) -> torch.Tensor:
-        return torch.remainder(arc, self.length_m) if self.closed else arc
-
-    def edge(self, arc: torch.Tensor) -> torch.Tensor:
-        """Edge index (the junction after an edge counts as that edge) of each position."""
-        e = torch.bucketize(self.wrap(arc.detach()).contiguous(), self.offsets_m, right=True) - 1
-        return e.clamp(0, len(self.offsets_m) - 1)
-
-    def has_lane(self, lane: torch.Tensor, arc: torch.Tensor) -> torch.Tensor:
-        """Whether lane index ``lane`` exists at ``arc`` (same shapes): on an edge its
-        lanes, in a junction the lanes it leads to (``lane_pieces``)."""
-        spans = self.span_table[lane.clamp(0, self.max_lanes - 1)]
-        a = self.wrap(arc.detach())[..., None]
-        inside = (spans[..., 0] <= a) & (a < spans[..., 1])
-        return inside.any(dim=-1) & (lane >= 0) & (lane < self.max_lanes)
-
-    def limit(self, lane: torch.Tensor, arc: torch.Tensor) -> torch.Tensor:
-        """Speed limit [m/s] of lane ``lane`` at ``arc`` (the edge's leftmost where it lacks it)."""
-        e = self.edge(arc)
-        return self.limits_mps[e, lane.clamp(0, self.max_lanes - 1)]
-
-    def place_on_lane(
-        self, lane: torch.Tensor, a: torch.Tensor, room: torch.Tensor, frac: torch.Tensor
-    ) -> torch.Tensor:
-        """The point at share ``frac`` of the length of [a, a + room] on which ``lane``
-        exists (the pieces laid end to end): a gap across a lane drop only offers the
-        part where its lane is. Where the lane is nowhere in it, ``a + frac room``."""
-        spans = self.span_table[lane]  # (..., P, 2)
-        pa = torch.maximum(a[..., None], spans[..., 0])
-        plen = (torch.minimum((a + room)[..., None], spans[..., 1]) - pa).clamp(min=0.0)
-        cum = plen.cumsum(dim=-1)
-        total = cum[..., -1]
-        t = frac * total
-        piece = (t.detach()[..., None] >= cum.detach()).sum(dim=-1, keepdim=True)
-        piece = piece.clamp(max=spans.shape[-2] - 1)
-        x = pa.gather(-1, piece) + (t[..., None] - (cum - plen).gather(-1, piece))
-        return torch.where(total > 0, x[..., 0], a + frac * room)
-
-    def nearest_on_lane(self, lane: int, a: float, b: float, x: float) -> float | None:
-        """The point of [a, b] nearest to ``x`` where lane ``lane`` exists (None: nowhere)."""
-        if b < a:
-            return None
-        spans = self.lane_spans[lane]
-        if self.closed:  # [a, b] may run past the loop's end (a < 2 L, b < 3 L)
-            spans = np.concatenate([spans + k * self.length_m for k in range(3)])
-        lo = np.maximum(spans[:, 0], a)
-        hi = np.minimum(spans[:, 1] - END_MARGIN_M, b)
-        ok = lo <= hi
-        if not ok.any():
-            return None
-        near = np.clip(x, lo[ok], hi[ok])
-        return float(near[np.argmin(np.abs(near - x))])
 
 
 @dataclass(frozen=True)
@@ -358,28 +230,52 @@ def scene_gaps(
         h_valid = ~occupied
         h_has_l = torch.zeros_like(occupied)
         h_v_l = torch.zeros_like(h_len)
+        h_lo = torch.zeros(b, nl, dtype=torch.float64)
+        h_has_f, h_v_f = torch.zeros_like(occupied), torch.zeros_like(h_len)
     else:
         first_arc = lo_["first_arc"]
-        h_start = torch.zeros(b, nl, dtype=torch.float64)
-        h_len = torch.where(occupied, first_arc, road.length_m)
-        h_hi = torch.where(occupied, first_arc - s_min_c - ex_first, road.length_m - END_MARGIN_M)
+        # A lane a fan-out begins (``Road.feeder``): its head gap starts at the feeding
+        # lane's last vehicle before the branch, that vehicle its follower (the envs'
+        # leader search sees a vehicle at the branch's start ahead of it).
+        f_has, f_arc, f_v = _feeders(lane, arc, speed, present, road)
+        h_start = torch.where(f_has, f_arc, 0.0)
+        h_len = torch.where(occupied, first_arc, road.length_m) - h_start
+        h_hi = torch.where(occupied, h_len - s_min_c - ex_first, h_len - END_MARGIN_M)
         h_valid = torch.ones_like(occupied)
         h_has_l = occupied
         h_v_l = torch.where(occupied, first_v, 0.0)
+        h_lo = torch.where(f_has, s_min_c, 0.0)
+        h_has_f, h_v_f = f_has, torch.where(f_has, f_v, 0.0)
     return Gaps(
         start=torch.cat([lo_["arc"], h_start], dim=1),
         length=torch.cat([length, h_len], dim=1),
-        lo=torch.cat([lo, torch.zeros(b, nl, dtype=torch.float64)], dim=1),
+        lo=torch.cat([lo, h_lo], dim=1),
         hi=torch.cat([hi, h_hi], dim=1),
         lane=torch.cat([lo_["lane"], lanes], dim=1),
-        has_f=torch.cat([lo_["present"], torch.zeros_like(occupied)], dim=1),
+        has_f=torch.cat([lo_["present"], h_has_f], dim=1),
         has_l=torch.cat([has_l, h_has_l], dim=1),
-        v_f=torch.cat([torch.where(lo_["present"], s_v, 0.0), torch.zeros_like(h_len)], dim=1),
+        v_f=torch.cat([torch.where(lo_["present"], s_v, 0.0), h_v_f], dim=1),
         v_l=torch.cat([torch.where(has_l, v_l, 0.0), h_v_l], dim=1),
         valid=torch.cat([lo_["present"], h_valid], dim=1),
         n_lane=torch.cat([count.gather(1, lane_c), count], dim=1).double(),
         extra_l=torch.cat([ex_l, torch.where(h_has_l, ex_first, 0.0)], dim=1),
     )
+
+
+def _feeders(
+    lane: torch.Tensor, arc: torch.Tensor, speed: torch.Tensor, present: torch.Tensor, road: Road
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(B, lanes) whether each lane has a follower from a fan-out (``Road.feeder``: the last
+    vehicle of the feeding lane upstream of where it begins), its arc and speed."""
+    fed = road.feeder >= 0
+    if not bool(fed.any()):
+        z = torch.zeros(arc.shape[0], road.max_lanes, dtype=torch.float64)
+        return torch.zeros_like(z, dtype=torch.bool), z, z
+    on = (lane[..., None] == road.feeder) & present[..., None] & fed
+    on = on & (arc.detach()[..., None] < road.branch_m)  # (B, M, lanes)
+    key = torch.where(on, arc.detach()[..., None], -math.inf)
+    slot = key.argmax(dim=1)  # (B, lanes)
+    return on.any(dim=1), arc.gather(1, slot), speed.gather(1, slot)
 
 
 def scene_stops(section: Section, snaps: SectionSnapshots) -> tuple[np.ndarray, np.ndarray] | None:

@@ -39,7 +39,7 @@ from macromicro_sumo.generator.section_train import (
     save_section_generator,
     train_section_generator,
 )
-from macromicro_sumo.road.section import Section, read_section
+from macromicro_sumo.road.section import Section, read_section, section_leaders
 from macromicro_sumo.scenario.section import (
     SectionConfig,
 )
@@ -106,8 +106,8 @@ def untrained(seed: int = 0) -> SectionGeneratorNet:
 
 
 def check_completion(section: Section, snaps: SectionSnapshots, comp: SectionCompletion, k) -> None:
-    """Independent of the module's own check: per lane, every pair of neighbours with a
-    generated vehicle is >= S_MIN apart (around a loop too), speeds within psi's range,
+    """Independent of the module's own check: every pair along the lane connections
+    (``section_leaders``) with a generated vehicle is >= S_MIN apart (around a loop too), speeds within psi's range,
     lanes present where they are (``lane_is_there``), observed vehicles untouched, K
     vehicles generated."""
     n = snaps.arc_m.shape[1]
@@ -123,16 +123,12 @@ def check_completion(section: Section, snaps: SectionSnapshots, comp: SectionCom
         assert np.all(v >= snaps.psi[i, 3]) and np.all(v <= snaps.psi[i, 4])
         for ln, x in zip(comp.lane[i, g], comp.arc_m[i, g], strict=True):
             assert lane_is_there(section, int(ln), float(x)), (i, ln, x)
-        for lane in np.unique(comp.lane[i, comp.valid[i]]):
-            on = comp.valid[i] & (comp.lane[i] == lane)
-            order = np.argsort(comp.arc_m[i, on])
-            a, gen = comp.arc_m[i, on][order], g[on][order]
-            gaps = np.diff(a)
-            touched = gen[1:] | gen[:-1]
-            if section.closed and len(a) > 1:
-                gaps = np.append(gaps, a[0] + section.length_m - a[-1])
-                touched = np.append(touched, gen[0] | gen[-1])
-            assert np.all(gaps[touched] >= S_MIN - 1e-6), (i, lane, gaps[touched].min())
+        # every pair along the lane connections (the environment's leaders)
+        on = np.flatnonzero(comp.valid[i])
+        leader, spacing = section_leaders(section, comp.lane[i, on], comp.arc_m[i, on])
+        pair = leader >= 0
+        touched = pair & (g[on] | g[on][np.maximum(leader, 0)])
+        assert np.all(spacing[touched] >= S_MIN - 1e-6), (i, spacing[touched].min())
 
 
 # --------------------------------------------------------------------------- geometry
@@ -213,19 +209,24 @@ def test_speed_spread_target_from_observed(bremen: Section) -> None:
 
 
 def test_positions_only_where_the_lane_exists(bremen: Section) -> None:
-    """Lane 3 exists on E0 and in the junction leading onto it (the lane added on the
-    right shifts the through lanes up by one): a point in a gap spanning the whole section
-    lands there, not in the junction after E0 (its lanes 1-3 lead onto lanes 0-2)."""
+    """The lane added on the right of E0 (SUMO's lane 0 there; the through lanes shift up by
+    one) is a lane of its own in the generator's numbering along the connections (3), on
+    E0 alone: nothing on the section leads into it, so not in the junction before E0 either
+    (that junction's lanes lead onto E0's through lanes, numbers 0-2). A point in a gap
+    spanning the whole section lands on E0."""
     road = Road.of(bremen)
+    e0 = bremen.edge_ids.index("E0")
+    start = float(bremen.offsets_m[e0])
+    assert road.lane_numbers(np.arange(4), np.full(4, start + 10.0)).tolist() == [3, 0, 1, 2]
+    assert road.lane_numbers(np.array([3]), np.array([start - 1.0])).tolist() == [2]  # junction
+    assert road.sumo_lanes(np.arange(4), np.full(4, start + 10.0)).tolist() == [1, 2, 3, 0]
     frac = torch.linspace(0.001, 0.999, 50, dtype=torch.float64)
     x = road.place_on_lane(
         torch.full((50,), 3), torch.zeros(50, dtype=torch.float64), torch.full((50,), 1800.0), frac
     )
-    e0 = bremen.edge_ids.index("E0")
-    start = bremen.offsets_m[e0] - bremen.junction_m[e0 - 1]
     assert bremen.junction_m[e0 - 1] > 0
-    assert np.all((x.numpy() >= start) & (x.numpy() < bremen.offsets_m[e0] + bremen.lengths_m[e0]))
-    assert all(lane_is_there(bremen, 3, float(a)) for a in x)
+    assert np.all((x.numpy() >= start) & (x.numpy() < start + bremen.lengths_m[e0]))
+    assert all(lane_is_there(bremen, 0, float(a)) for a in x)
     assert road.nearest_on_lane(3, 0.0, 500.0, 100.0) is None
     assert road.nearest_on_lane(3, 0.0, 1000.0, 100.0) == pytest.approx(start)
 

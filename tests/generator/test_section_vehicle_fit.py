@@ -77,21 +77,25 @@ def test_no_vehicle_is_generated_inside_a_truck(bremen: Section) -> None:
 
 
 def test_junction_lanes_are_the_lanes_they_lead_to(bremen: Section) -> None:
-    """Bremen's E0 gains a lane on the right: the junction onto it has lanes 1-3 (those
-    E0's lanes 1-3 are reached by), the junction after it lanes 0-2 (E0's lanes 1-3
-    continue onto the next edge's 0-2); neither has the upstream edge's lane set."""
+    """Bremen's E0 gains a lane on the right (SUMO's lane 0 there, the generator's lane 3:
+    lanes are numbered along the connections): the junction onto E0 has the generator's
+    lanes 0-2 (they lead onto E0's SUMO lanes 1-3), not the ramp's lane 3, which nothing on
+    the section leads into; the junction after it lanes 0-2 too (E0's lanes 1-3 continue
+    onto the next edge's 0-2)."""
     road = Road.of(bremen)
     e0 = bremen.edge_ids.index("E0")
     onto = float(bremen.offsets_m[e0] - 0.5 * bremen.junction_m[e0 - 1])
     after = float(bremen.offsets_m[e0] + bremen.lengths_m[e0] + 0.5 * bremen.junction_m[e0])
-    expect = {onto: [False, True, True, True], after: [True, True, True, False]}
+    expect = {onto: [True, True, True, False], after: [True, True, True, False]}
     for arc, lanes in expect.items():
         got = road.has_lane(torch.arange(4), torch.full((4,), arc, dtype=torch.float64))
         assert got.tolist() == lanes, arc
-        assert lanes == [lane_is_there(bremen, ln, arc) for ln in range(4)]
-    # ... and a gap on lane 0 across the junction onto E0 offers no point inside it
+        sumo = road.sumo_lanes(np.arange(3), np.full(3, arc))
+        assert all(lane_is_there(bremen, int(ln), arc) for ln in sumo)
+    assert road.sumo_lanes(np.arange(3), np.full(3, onto)).tolist() == [1, 2, 3]
+    # ... and a gap on the ramp's lane across the junction onto E0 offers no point inside it
     a, b = onto - 0.4 * bremen.junction_m[e0 - 1], onto + 0.4 * bremen.junction_m[e0 - 1]
-    assert road.nearest_on_lane(0, a, b, onto) is None
+    assert road.nearest_on_lane(3, a, b, onto) is None
 
 
 def test_a_projected_vehicle_goes_onto_the_lane_of_its_gap(bremen: Section) -> None:
