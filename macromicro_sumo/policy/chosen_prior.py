@@ -164,7 +164,9 @@ def stale_reason(record: dict[str, Any], sc: Any, data: Path, path: Path) -> str
     """Why ``record`` (``path``'s) is not the choice for ``sc`` on the ground truth in
     ``data``; None where it is."""
     keys = ("scenario", "ground_truth_manifest_sha256", "family", "params", "prior", "outputs")
-    if any(key not in record for key in keys) or not isinstance(record["scenario"], dict):
+    if any(key not in record for key in keys) or not all(
+        isinstance(record[key], dict) for key in ("scenario", "params", "outputs")
+    ):
         return "not a prior choice of this version"
     have, want = choice_settings(record["scenario"]), choice_settings(sc.to_dict())
     changed = sorted(k for k in have.keys() | want.keys() if have.get(k) != want.get(k))
@@ -200,7 +202,7 @@ def read_choice(path: Path, sc: Any, data: Path) -> dict[str, Any] | None:
 def choice_result(path: Path) -> Any:
     """What a stage reading ``path`` trains on (the family and its parameters), None
     without a readable one: equal before and after a choice redone, its readers need not
-    be (``pipeline.build.Stage.result``)."""
+    be (``pipeline.schedule.Stage.result``)."""
     try:
         record = json.loads(Path(path).read_text())
         return [record["family"], record["params"]]

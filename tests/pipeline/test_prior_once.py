@@ -169,6 +169,10 @@ def test_a_stale_choice_file_is_said_in_one_line_and_made_again(auto_run, tmp_pa
     np.savez(pol / PAIRS_FILE, obs=np.zeros((1, 2)), acc=np.zeros(1))
     assert read_choice(path, sc, gt) is None
     assert f"{PAIRS_FILE}, are missing or changed" in capsys.readouterr().out
+    path.write_text(json.dumps({**json.loads(path.read_text()), "outputs": []}))
+    assert read_choice(path, sc, gt) is None
+    said = capsys.readouterr().out
+    assert said.count("\n") == 1 and "not a prior choice of this version" in said
     # The stage chooses again and writes the file: the deployments' figures a table.
     figures = {"krauss": 0.9, "idm": 0.3, "gipps": 0.6}
     deployed: list[str] = []
