@@ -321,6 +321,7 @@ def evaluate_section(
     # The bank's episodes are the snapshots with a recorded future, in order.
     kept = snaps.take(with_future(truth, snaps, h, sc.simulation.step_length_s))
     rows, samples, safety_rows, k_rows = [], [], [], []
+    generated: dict[str, dict[str, int]] = {}  # per hidden count: vehicles generated, dropped
     counts = {"estimated": snaps.k_est, "true": snaps.k_true}
     sources = {"estimated": "estimate", "true": "truth"}  # report label -> k_source
     field = sc.data.source == "files"
@@ -341,6 +342,8 @@ def evaluate_section(
             seed = sc.seed + 100 + (label == "true")
             complete = generator_completion(net, truth.section, sc, source, seed)
             gen_bank = build_section_bank(sc, truth, snaps, complete, horizon=h)
+            # Stage I's last check (generator.section_pairs) drops a vehicle it cannot fit
+            generated[label] = {"generated": complete.generated, "dropped": complete.dropped}
             labels = {"hidden_count": label}
             if field:
                 ref = None
@@ -458,6 +461,7 @@ def evaluate_section(
             idm_calibrated=idm.as_dict() | {"fit_rmse_mps2": idm_rmse},
             idm_true=oracle_note,
             k_estimate=ks,
+            generated_vehicles=generated,
             leader_follower={"message": lf.message, "reference": lf.reference},
             timings_s={"evaluate": round(time.perf_counter() - t0, 3)},
         )

@@ -24,7 +24,9 @@ import contextlib
 import math
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from functools import partial
+from typing import Any
 
 import numpy as np
 import torch
@@ -120,25 +122,39 @@ def _wrapped(road: Road, x: float) -> float:
     return float(np.mod(x, road.length_m)) if road.closed else x
 
 
-def generator_completion(net: SectionGeneratorNet, section: Section, sc, k_source: str, seed: int):
+@dataclass
+class GeneratorCompletion:
     """``completion(snaps)`` for ``section_env.build_section_bank``: Algorithm 3 with the
     hidden count ``k_source`` asks for (each snapshot carries both), then safe speeds with
-    one step of reaction (what SUMO's safe speed in the environment allows)."""
+    one step of reaction (what SUMO's safe speed in the environment allows). Counts the
+    vehicles it generated and those it dropped (``SectionCompletion.dropped``: no room,
+    or a pair it could not make drivable) over its calls, for the evaluation's manifest."""
 
-    def fn(s: SectionSnapshots):
+    net: SectionGeneratorNet
+    section: Section
+    sc: Any
+    k_source: str
+    seed: int
+    generated: int = 0
+    dropped: int = 0
+
+    def __call__(self, s: SectionSnapshots):
         c = complete_section(
-            net,
-            section,
+            self.net,
+            self.section,
             s,
-            k_of(s, k_source),
-            sc.generator.t_max,
-            seed,
-            -sc.bounds.accel_mps2[0],
-            sc.simulation.step_length_s,
+            k_of(s, self.k_source),
+            self.sc.generator.t_max,
+            self.seed,
+            -self.sc.bounds.accel_mps2[0],
+            self.sc.simulation.step_length_s,
         )
+        self.generated += int(c.generated.sum())
+        self.dropped += 0 if c.dropped is None else int(c.dropped.sum())
         return c.lane, c.arc_m, c.speed_mps, c.valid, c.generated
 
-    return fn
+
+generator_completion = GeneratorCompletion
 
 
 def _window_of(

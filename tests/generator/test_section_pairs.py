@@ -10,12 +10,21 @@ step of Stage II's evaluation).
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import sumo
+import torch
 
+from macromicro_sumo.data.section import SectionSnapshots
+from macromicro_sumo.generator.section_model import SectionGeneratorNet
 from macromicro_sumo.generator.section_pairs import drop_unsafe_pairs
-from macromicro_sumo.generator.section_sampler import SectionCompletion
+from macromicro_sumo.generator.section_sampler import (
+    SectionCompletion,
+    complete_section,
+    generator_completion,
+)
+from macromicro_sumo.generator.section_train import held_out_completion
 from macromicro_sumo.road.section import read_section
 
 CROSS = Path(sumo.__file__).resolve().parent / "tools" / "game" / "cross" / "cross.net.xml"
@@ -54,3 +63,52 @@ def test_pairs_across_a_lane_index_change_are_checked() -> None:
                       [10.0, 10.0, 10.0], [False, True, True])  # fmt: skip
     assert drop_unsafe_pairs(comp, *args).tolist() == [0]
     assert comp.valid.all()
+
+
+def overfull(sec, n: int, k: int) -> SectionSnapshots:
+    """``n`` scenes of one observed car on the cross's approach and ``k`` to hide: more than
+    the section holds at psi's minimum spacing, so some find no room (dropped)."""
+    psi = np.tile([8.0, 10.0, np.nan, 0.0, 14.0, 6.5, np.inf, 6.5], (n, 1))
+    return SectionSnapshots(
+        run=np.zeros(n, dtype=int),
+        time_s=np.arange(n) * 10.0,
+        lane=np.ones((n, 1), dtype=np.int64),
+        arc_m=np.full((n, 1), 60.0),
+        speed_mps=np.full((n, 1), 8.0),
+        length_m=np.full((n, 1), 5.0),
+        valid=np.ones((n, 1), dtype=bool),
+        observed=np.ones((n, 1), dtype=bool),
+        psi=psi,
+        k_true=np.full(n, k),
+        k_est=np.full(n, k),
+    )
+
+
+SC = SimpleNamespace(
+    generator=SimpleNamespace(t_max=5),
+    bounds=SimpleNamespace(accel_mps2=(-4.5, 2.6)),
+    simulation=SimpleNamespace(step_length_s=0.5),
+)
+
+
+def test_the_drops_of_stage_ii_completions_are_counted() -> None:
+    """The completion Stage II's banks are built with (``generator_completion``) counts the
+    vehicles it generated and dropped over its calls (the evaluation's manifest reports
+    them per hidden count); the generator stage scores that same completion, the drops of
+    the pair check included (its manifest's ``dropped`` stayed 0 where the envs' lost
+    vehicles: it completed without the braking bound)."""
+    sec = read_section(CROSS, ["1fi", "1si", "2o", "2fo"], False)
+    snaps = overfull(sec, 3, 80)
+    torch.manual_seed(0)
+    net = SectionGeneratorNet(32)
+    fn = generator_completion(net, sec, SC, "truth", 4)
+    first = fn(snaps)
+    fn(snaps)
+    ref = complete_section(net, sec, snaps, snaps.k_true, 5, 4, 4.5, 0.5)
+    assert 0 < int(ref.dropped.sum()) < 240
+    assert fn.dropped == 2 * int(ref.dropped.sum())
+    assert fn.generated + fn.dropped == 2 * 240
+    np.testing.assert_array_equal(first[1], ref.arc_m)
+    scored = held_out_completion("generator", net, SC, sec, snaps, snaps.k_true, 4)
+    np.testing.assert_array_equal(scored.speed_mps, ref.speed_mps)
+    np.testing.assert_array_equal(scored.dropped, ref.dropped)
