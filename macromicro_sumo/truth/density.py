@@ -234,6 +234,40 @@ def projected_passages(
     return out
 
 
+def node_projection(
+    into_s: np.ndarray,
+    into_mps: np.ndarray,
+    out_s: np.ndarray,
+    out_mps: np.ndarray,
+    at_s: np.ndarray,
+    metres: tuple[float, float, float],
+) -> np.ndarray:
+    """Vehicles at the times ``at_s`` on a short stretch over a node where vehicles turn
+    off and on (a signal's junction, a ramp's), from its stations' passages (times and
+    speeds: ``into`` upstream, ``out`` downstream), each vehicle at the speed it passed
+    with (``projected_passages``). ``metres``: from the upstream station to the node's
+    line, over the junction, from its end to the downstream station. Up to the line, those
+    that passed ``into`` within that distance / speed before (one turning off is on the
+    section there); past the junction, those that pass ``out`` within it after (one that
+    turned on is there); over the junction the fewer of the two stations' projections,
+    since ``into``'s hold those turning off too and ``out``'s those turning on, which flow
+    at other times (at red the stop bar sees no one while the side street turns on).
+    Neither station's count is needed, so the turning flows need not be known."""
+    before, over, after = metres
+
+    def into(m: float) -> np.ndarray:
+        return projected_passages(into_s, into_mps, at_s, m, upstream=False)
+
+    def out(m: float) -> np.ndarray:
+        return projected_passages(out_s, out_mps, at_s, m, upstream=True)
+
+    return (
+        into(before)
+        + np.minimum(into(before + over) - into(before), out(over + after) - out(after))
+        + out(after)
+    )
+
+
 JAM_SPACING_M = 5.0
 """The shortest room a vehicle takes in a standing queue (a 5 m car, no gap): a stretch
 holds at most its lane-metres over it (``sealed_count``)."""

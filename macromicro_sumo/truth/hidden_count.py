@@ -20,6 +20,7 @@ from macromicro_sumo.truth.density import (
     cumulative_count,
     cumulative_mean,
     free_flow_weight,
+    node_projection,
     occupancy_weight,
     projected_passages,
     sealed_count,
@@ -59,15 +60,11 @@ it is the density estimate's own error (on the bench -1.6 to +5.8 vehicles, 1-5%
 it the count drifts and the offset is taken instead."""
 
 
-NODE_REACH_M = 50.0
-"""How far past a stop bar's stretch the counted stretches give its density: game/cross
-0.55 -> 0.12 vehicles per lane in congestion, a drawn arterial 2.08 -> 1.73 (the first
-stretch alone was noisy; 100-200 m reached into the next queue: 2.21-2.88)."""
-
 SHORT_STRETCH_M = 100.0
 """A stretch with a ramp at most this long between its stations (the boundary stations
-either side of a ramp's node: 30 m plus the junction) is estimated from its density;
-a longer one from its input-output count, anchored by a line (``io_pieces``)."""
+either side of a ramp's node: 30 m plus the junction) is estimated from its stations'
+passages each side of the node (``density.node_projection``); a longer one from its
+input-output count, anchored by a line (``io_pieces``)."""
 
 
 def stretch_m(pair: tuple[float, float], section: Section) -> float:
@@ -145,29 +142,6 @@ lane's end, so the queue stands on a counted stretch (15 m before the line, betw
 it was the density estimate's: game/cross K 1.35 vehicles per lane off in congestion)."""
 
 
-def node_split(
-    per_station: pd.Series,
-    section: Section,
-    side_arcs: np.ndarray | None,
-    lo: float,
-    hi: float,
-    linear: float,
-) -> float:
-    """Vehicles on [lo, hi) around a node whose upstream station is a stop bar (within
-    ``STOP_BAR_M`` of its edge's end): ``lo``'s density up to the line, ``hi``'s on (the
-    stop bar's counts the turners; game/cross 1.4 vehicles high interpolated). Else
-    ``linear`` (at a ramp's merge or diverge the better: seeds 200-307, 0.30 against 0.32)."""
-    if side_arcs is None or hi <= lo:
-        return linear
-    e = int(section.edge_index(np.array([lo]))[0])
-    line = float(section.offsets_m[e] + section.lengths_m[e])
-    k_lo, k_hi = per_station.get(lo, np.nan), per_station.get(hi, np.nan)
-    node = ((side_arcs > lo) & (side_arcs <= hi)).any()
-    if not (node and line - lo <= STOP_BAR_M + 1e-6 and np.isfinite(k_lo) and np.isfinite(k_hi)):
-        return linear
-    return float(k_lo * (line - lo) + k_hi * (hi - line)) / 1000.0
-
-
 @dataclass(frozen=True)
 class Piece:
     """A part of the section and its vehicles counted at each snapshot time."""
@@ -213,8 +187,8 @@ def io_pieces(
     within ``EMPTY_START_TOLERANCE_VEH`` or ``EMPTY_START_TOLERANCE`` of their count;
     ``ramps``, the others, are anchored as ``stretches`` are, but for the short stretches
     around a ramp's node: ``node_counts``, their count where nobody turned there
-    (``sealed_count``), else ``ramp_nodes``, their density estimate (``node_split`` where
-    the upstream station is a stop bar). On an open section ``upstream`` and
+    (``sealed_count``), else ``ramp_nodes``, their stations' passages projected each
+    side of the node (``density.node_projection``). On an open section ``upstream`` and
     ``downstream``, the end pieces beyond the outermost full stations
     (``density.projected_passages``; upstream blended with the density estimate by the
     station's speed, since a vehicle queued there passes slower than it drove).
@@ -236,7 +210,6 @@ def io_pieces(
     intervals = d[["begin_s", "end_s"]].drop_duplicates().sort_values("begin_s")
     centres = 0.5 * (intervals["begin_s"] + intervals["end_s"]).to_numpy()
     dens = {pair: [] for pair in pairs}
-    split = {pair: [] for pair in pairs}  # each station for its side of a ramp's node
     io_mean = {pair: [] for pair in pairs}
     speed = {pair: [] for pair in pairs}  # the slower station's, per interval
     ends = not section.closed and len(arcs) > 0
@@ -255,7 +228,6 @@ def io_pieces(
                     per_station, section, 0.0, hi
                 )
             dens[(lo, hi)].append(n)
-            split[(lo, hi)].append(node_split(per_station, section, side_arcs, lo, hi, n))
             io_mean[(lo, hi)].append(
                 cumulative_mean(times[lo], begin, end) - cumulative_mean(times[hi], begin, end)
             )
@@ -328,9 +300,11 @@ def io_pieces(
     j = np.clip(np.searchsorted(intervals["begin_s"].to_numpy(), at_s, "right") - 1, 0, None)
     if "between" in pieces:
         # A short stretch with a ramp (the boundary stations' either side of its node):
-        # its density estimate, which its two stations bound closely; its input-output
-        # count drifts at the ramp's flow, and a line over a window followed that worse
-        # (SUMO's game/ramp in congestion: 3.5 vehicles off on 3, the density 0.9).
+        # its input-output count drifts at the ramp's flow (a line over a window: SUMO's
+        # game/ramp in congestion 3.5 vehicles off on 3), its interval density misses the
+        # queue at red and the platoons (drawn arterials: 2.8 and 5.4 vehicles off on 3.8
+        # and 4.5 in congestion); its stations' passages projected at their speeds each
+        # side of the node follow them (0.25 and 0.31).
         short = [q for q in pairs if stretch_m(q, section) <= SHORT_STRETCH_M]
 
         # A node nobody turns at (a signal on a crossing street, a ramp nobody used):
@@ -347,22 +321,14 @@ def io_pieces(
             return near and sealed_count(times[q[0]], times[q[1]], lane_m)
 
         def node_piece(q: tuple[float, float]) -> np.ndarray:
-            """A stop bar's stretch over the junction: from the line on, the density of the
-            counted stretches beyond it (``NODE_REACH_M``) at the snapshot, where the queue
-            at red or one spilled back from the next signal stands. Else ``split``'s."""
-            e = int(section.edge_index(np.array([q[0]]))[0])
-            line = float(section.offsets_m[e] + section.lengths_m[e])
-            reach, end = [], q[1]
-            while sum(stretch_m(b, section) for b in reach) < NODE_REACH_M:
-                nxt = [b for b in between if b[0] == end and b[1] > b[0]]
-                if not nxt:
-                    break
-                reach.append(nxt[0])
-                end = nxt[0][1]
-            if line - q[0] > STOP_BAR_M + 1e-6 or not reach or q[1] <= q[0]:
-                return np.array(split[q])[j]
-            count = cumulative_count(times[q[1]], at_p) - cumulative_count(times[end], at_p)
-            return count / (end - q[1]) * (q[1] - line)
+            """Its two stations' passages, each on its side of the node
+            (``density.node_projection``)."""
+            node = float(side_arcs[(side_arcs > q[0]) & (side_arcs <= q[1])][0])
+            e = int(section.edge_index(np.array([node]))[0]) - 1
+            line = float(section.offsets_m[e] + section.lengths_m[e])  # where the node begins
+            (t_in, v_in), (t_out, v_out) = (own[a][["time_s", "speed_mps"]].T.to_numpy() for a in q)
+            metres = (line - q[0], node - line, q[1] - node)
+            return node_projection(t_in, v_in, t_out, v_out, at_p, metres)
 
         closed = [q for q in short if sealed(q)]
         if closed:
