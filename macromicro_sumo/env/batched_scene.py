@@ -93,8 +93,9 @@ def loop_observations(
     v = speed_mps
     obs[..., 0] = v
     obs[..., 1] = limits_mps[rows, e, 0]
-    obs[..., 2] = spacing
-    obs[..., 3] = v - np.take_along_axis(v, np.maximum(leader, 0), axis=1)
+    near = spacing < NO_LEADER_GAP_M  # beyond: no leader, as ``section_observations``
+    obs[..., 2] = np.where(near, spacing, NO_LEADER_GAP_M)
+    obs[..., 3] = np.where(near, v - np.take_along_axis(v, np.maximum(leader, 0), axis=1), 0.0)
     if obs_dim > 4:
         nxt = (e + 1) % len(section.edge_ids)
         obs[..., 4] = limits_mps[rows, nxt, 0]

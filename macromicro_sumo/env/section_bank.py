@@ -362,8 +362,10 @@ def section_observations(
     of a lane that leads nowhere, for the vehicles ``on_route`` (N,) (the driven ones,
     which drive the section's route; None: none) that of any lane that does not continue
     along the section (``Section.route_ends``: a turning lane), and the stop points given
-    (red lights) are standing leaders, as a driver sees them (in ``leader``: ``STOP``).
-    Inactive slots get zeros and no leader.
+    (red lights) are standing leaders, as a driver sees them (in ``leader``: ``STOP``). The
+    observation sees no leader (``NO_LEADER_GAP_M``, delta v 0) at that spacing or beyond,
+    as the deployment does; ``leader`` and ``spacing`` keep it. Inactive slots get zeros
+    and no leader.
     """
     n = len(arc_m)
     obs = np.zeros((n, len(OBSERVATION_FEATURES[observation])))
@@ -386,8 +388,12 @@ def section_observations(
     o = obs[idx]
     o[:, 0] = v
     o[:, 1] = lim[e, np.minimum(ln, section.n_lanes[e] - 1)]
-    o[:, 2] = gap
-    o[:, 3] = np.where(has, v - v[np.maximum(lead, 0)], np.where(lead == STOP, v, 0.0))
+    # A leader as far as NO_LEADER_GAP_M or farther is none, as the deployment's look-ahead
+    # (SUMO's getLeader within it) and the demand env's see it.
+    near = gap < NO_LEADER_GAP_M
+    o[:, 2] = np.where(near, gap, NO_LEADER_GAP_M)
+    dv = np.where(has, v - v[np.maximum(lead, 0)], np.where(lead == STOP, v, 0.0))
+    o[:, 3] = np.where(near, dv, 0.0)
     if o.shape[1] > 4:
         o[:, 4], o[:, 5] = section.lookahead(ln, s, e, o[:, 1])
     if factor is not None:

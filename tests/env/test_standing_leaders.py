@@ -25,7 +25,7 @@ import sumo
 from macromicro_sumo.deploy.observe import STANDING, LaneTable, Table, observe_rows
 from macromicro_sumo.env.demand import sumo_observations
 from macromicro_sumo.env.section_bank import section_observations, stop_points
-from macromicro_sumo.road.section import Section, read_section
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section, read_section
 from macromicro_sumo.sumo.options import SumoOptions
 from macromicro_sumo.sumo.simulation import Simulation
 
@@ -44,16 +44,18 @@ def cross() -> Section:
     return read_section(CROSS, EDGES, closed=False)
 
 
-def three_observations(cross: Section, phase: int) -> tuple[np.ndarray, ...]:
-    """(env, deployment, demand env) observations ("lookahead") of ``PLACES`` in one SUMO
+def three_observations(
+    cross: Section, phase: int, places: list[tuple[int, int, float]] = PLACES
+) -> tuple[np.ndarray, ...]:
+    """(env, deployment, demand env) observations ("lookahead") of ``places`` in one SUMO
     state, each vehicle on the section's route, with signal program "0" in ``phase``."""
     sim = Simulation(SumoOptions(CROSS, (), 0.5, 1))
     try:
         sim.set_signal_states([("0", "0", phase, 30.0)])
-        for e in range(3):
+        for e in range(4):
             sim.add_route(f"from{e}", EDGES[e:])
-        ids = [f"v{i}" for i in range(len(PLACES))]
-        for vid, (e, ln, back) in zip(ids, PLACES, strict=True):
+        ids = [f"v{i}" for i in range(len(places))]
+        for vid, (e, ln, back) in zip(ids, places, strict=True):
             pos = float(cross.lengths_m[e]) - back if back > 0 else -back
             sim.add_vehicle(vid, f"from{e}", VTYPE, ln, pos, 5.0)
         sim.step()
@@ -113,3 +115,14 @@ def test_env_deployment_and_demand_env_see_the_same_ahead(cross: Section, light:
     else:
         assert spacing[0] > 30.0 + 50.0  # the leader is the vehicle 50 m into 2o
     np.testing.assert_allclose(spacing[1], 20.0, atol=0.5)  # the vehicle ahead
+
+
+def test_a_leader_beyond_the_look_ahead_is_none_in_all_three(cross: Section) -> None:
+    """A vehicle on 1fi whose leader is 390 m ahead on 2fo (green): the deployment's
+    look-ahead (SUMO's leader within ``NO_LEADER_GAP_M``) sees no leader, and so does the
+    env's observation (spacing 250 m, delta v 0). Before, the env observed the far leader
+    (a spacing of 390 m, which the deployment never shows the policy)."""
+    env, deploy, demand = three_observations(cross, PHASES["green"], [(0, 0, 35.0), (3, 0, 5.0)])
+    np.testing.assert_allclose(deploy, env, atol=0.5)
+    np.testing.assert_allclose(demand, env, atol=0.5)
+    np.testing.assert_allclose(env[0, 2:4], [NO_LEADER_GAP_M, 0.0])
