@@ -144,15 +144,24 @@ def safe_speeds(
                 k = _nearest_below(pool, v[i], c)
                 v[i] = min(pool[k], c)
                 pool = np.delete(pool, k)
-        # Back first: a follower that cannot stop behind a generated leader raises it (an
-        # observed one, and a generated one raised so), along whole chains of them, never
-        # beyond what lets the raised one stop behind its own leader (that wins: the
-        # observed follower then brakes in the environment).
+        # A follower that cannot stop behind a generated leader raises it (an observed one,
+        # and a generated one raised so), along whole chains of them, never beyond what
+        # lets the raised one stop behind its own leader (that wins: the observed follower
+        # then brakes in the environment). Back first, what each must reach: the speed its
+        # follower needs once raised itself; then front first, each raised as far as its
+        # own leader, raised already, allows. One pass back to front instead capped a
+        # vehicle at its leader's speed before that leader was raised: on drawn 503 chains
+        # of generated cars ahead of a fast observed one stayed too slow for it, and the
+        # pair check dropped them (146 of 6,305 in the evaluation's scenes).
+        want = v.copy()
         for i in np.argsort(arc, kind="stable"):
             j = leader[i]
             if j >= 0 and gen[j]:
-                need = math.sqrt(max(0.0, v[i] ** 2 + 2.0 * bt * v[i] - room[i]))
-                v[j] = max(v[j], min(need, _cap(leader[j], v, room[j], bt)))
+                need = math.sqrt(max(0.0, want[i] ** 2 + 2.0 * bt * want[i] - room[i]))
+                want[j] = max(want[j], need)
+        for j in np.argsort(-arc, kind="stable"):
+            if gen[j] and want[j] > v[j]:
+                v[j] = max(v[j], min(want[j], _cap(leader[j], v, room[j], bt)))
         comp.speed_mps[s, on] = v
 
 
