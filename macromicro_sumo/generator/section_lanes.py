@@ -86,18 +86,31 @@ def fan_outs(
 
 def _onto(section: Section, e: int) -> np.ndarray:
     """(max lanes,) the lane of edge e + 1 each lane of edge e continues onto (-1: none):
-    of several, one that goes on along the section (not a turning lane, ``route_ends``),
-    the nearest index first, the right one of two equally near."""
+    of several, one whose links reach the section's end (``_reach``: netgen_corridor's e3
+    fans out onto e4 lane 0, whose only continuation ends on e5, and lane 1, the corridor's
+    through lane), then one that is no turning lane (``route_ends``), the nearest index
+    first, the right one of two equally near."""
     m = section.max_lanes
     out = np.full(m, -1, dtype=np.int64)
     ends = section.route_ends[e + 1]
+    reach = _reach(section)[e + 1]
     for i in range(int(section.n_lanes[e])):
         targets = np.flatnonzero(section.links[e, i])
         if not len(targets):
             continue
-        key = [(bool(ends[j]), abs(int(j) - i), int(j)) for j in targets]
+        key = [(not reach[j], bool(ends[j]), abs(int(j) - i), int(j)) for j in targets]
         out[i] = int(targets[min(range(len(targets)), key=key.__getitem__)])
     return out
+
+
+def _reach(section: Section) -> np.ndarray:
+    """(E, max lanes) whether a lane's links lead on to the open section's last edge."""
+    n, m = len(section.edge_ids), section.max_lanes
+    reach = np.zeros((n, m), dtype=bool)
+    reach[-1] = np.arange(m) < section.n_lanes[-1]
+    for e in range(n - 2, -1, -1):
+        reach[e] = (section.links[e] & reach[e + 1][None, :]).any(axis=1)
+    return reach
 
 
 def lane_pieces(section: Section, lane_of: np.ndarray | None = None) -> list[list[list[float]]]:

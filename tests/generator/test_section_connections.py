@@ -22,6 +22,7 @@ import torch
 from conftest import netconvert
 
 from macromicro_sumo.data.section import SectionSnapshots
+from macromicro_sumo.generator.section_lanes import through_lanes
 from macromicro_sumo.generator.section_model import SectionGeneratorNet
 from macromicro_sumo.generator.section_sampler import complete_section
 from macromicro_sumo.generator.section_scene import Road, scene_gaps
@@ -204,3 +205,24 @@ def test_a_lane_a_fan_out_begins_follows_the_feeding_lanes_last_vehicle(tmp_path
     torch.manual_seed(0)
     comp = complete_section(SectionGeneratorNet(32), sec, snaps, snaps.k_true, 20, 1, BRAKE, STEP)
     assert int(comp.dropped.sum()) == 0
+
+
+def test_a_fan_out_continues_onto_the_lane_that_reaches_the_sections_end(tmp_path) -> None:
+    """A's lane fans out onto B's two; B's lane 0 goes on only onto C's lane 0, which ends
+    (netgen_corridor's e3 -> e4 -> e5), B's lane 1 through C's lane 1 onto D. The
+    generator's number of A's lane goes on along B's lane 1 (it went onto lane 0, the
+    nearest index, and the corridor's through traffic changed number at B)."""
+    nodes = "\n".join(f'<node id="n{i}" x="{300 * i}" y="0"/>' for i in range(5))
+    edges = "\n".join(
+        f'<edge id="{e}" from="n{i}" to="n{i + 1}" numLanes="{k}" speed="20"/>'
+        for i, (e, k) in enumerate([("A", 1), ("B", 2), ("C", 2), ("D", 1)])
+    )
+    cons = "\n".join(
+        f'<connection from="{a}" to="{b}" fromLane="{i}" toLane="{j}"/>'
+        for a, b, i, j in [("A", "B", 0, 0), ("A", "B", 0, 1), ("B", "C", 0, 0),
+                           ("B", "C", 1, 1), ("C", "D", 1, 0)]
+    )  # fmt: skip
+    sec = read_section(netconvert(tmp_path, nodes, edges, cons), ["A", "B", "C", "D"], False)
+    number, _ = through_lanes(sec)
+    assert number[:, 0].tolist() == [0, 1, 1, 0]  # SUMO lane 0 of each edge
+    assert number[1:3, 1].tolist() == [0, 0]  # B's and C's lane 1 go on from A
