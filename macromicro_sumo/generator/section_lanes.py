@@ -33,15 +33,15 @@ from macromicro_sumo.road.section import Section
 END_MARGIN_M = 1e-6  # keeps a vehicle at an open downstream end strictly on the section
 
 
-def through_lanes(section: Section) -> tuple[np.ndarray, np.ndarray]:
+def through_lanes(section: Section, connections: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """(``number``, ``lane``): ``number`` (E, max lanes) each SUMO lane's number along the
     connections (-1: the edge has no such lane); ``lane`` (E, V) the SUMO lane index of
     number v on each edge (-1: v is not on that edge). The identity where the section is
-    closed or its connections keep every index."""
+    closed, its connections keep every index, or ``connections`` is False (SUMO's indices)."""
     n, m = len(section.edge_ids), section.max_lanes
     exists = np.arange(m)[None, :] < section.n_lanes[:, None]
     number = np.where(exists, np.arange(m)[None, :], -1)
-    if not section.closed:
+    if connections and not section.closed:
         nxt = int(section.n_lanes[0])
         for e in range(n - 1):
             onto = _onto(section, e)
@@ -185,8 +185,10 @@ class Road:
     branch_m: torch.Tensor
 
     @classmethod
-    def of(cls, section: Section) -> Road:
-        number, sumo_lane = through_lanes(section)
+    def of(cls, section: Section, connections: bool = True) -> Road:
+        """The section's road, its lanes numbered along the connections (``connections``
+        False: SUMO's indices, and no fan-out followers: the gaps before 2ee18e6)."""
+        number, sumo_lane = through_lanes(section, connections)
         lim = np.array(section.limits_mps, dtype=np.float64)
         n_lanes = np.asarray(section.n_lanes, dtype=np.int64)
         for e, n in enumerate(n_lanes):
@@ -198,6 +200,8 @@ class Road:
         index = sumo_lane[first, np.arange(sumo_lane.shape[1])]
         lane_rel = index / max(section.max_lanes - 1, 1)
         feeder, branch = fan_outs(section, number, sumo_lane)
+        if not connections:
+            feeder, branch = np.full_like(feeder, -1), np.full_like(branch, np.inf)
         spans = [
             np.array(p, dtype=np.float64).reshape(-1, 2) for p in lane_pieces(section, sumo_lane)
         ]

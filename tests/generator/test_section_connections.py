@@ -226,3 +226,16 @@ def test_a_fan_out_continues_onto_the_lane_that_reaches_the_sections_end(tmp_pat
     number, _ = through_lanes(sec)
     assert number[:, 0].tolist() == [0, 1, 1, 0]  # SUMO lane 0 of each edge
     assert number[1:3, 1].tolist() == [0, 0]  # B's and C's lane 1 go on from A
+
+
+def test_the_generator_trains_on_sumo_lane_indices(net) -> None:
+    """Training (``section_train``) reads the road on SUMO's lane indices, with no fan-out
+    followers: the gaps it trained on before the numbering (its weights are 3e1f4d0's bit
+    for bit), while ``complete_section`` completes along the connections."""
+    kind, sec = net
+    plain = Road.of(sec, connections=False)
+    lanes, arcs = np.array([0, 1, 0, 1]), np.array([10.0, 10.0, 500.0, 500.0])
+    exists = lanes < sec.n_lanes[sec.edge_index(arcs)]
+    assert plain.lane_numbers(lanes, arcs)[exists].tolist() == lanes[exists].tolist()
+    assert (plain.feeder < 0).all()
+    assert Road.of(sec).lane_numbers(lanes, arcs)[exists].tolist() != lanes[exists].tolist()
