@@ -18,6 +18,7 @@ import pandas as pd
 
 from macromicro_sumo.fielddata.schema import LEADER_COLUMNS, MAX_SPEED_MPS, check_range
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES
+from macromicro_sumo.road.section import NO_LEADER_GAP_M
 
 # A measured spacing beyond this is no radar's range but a unit declared wrong.
 MAX_LEADER_SPACING_M = 1000.0
@@ -121,15 +122,17 @@ def with_measured_leaders(
     where it is nearer than the leader found among the recorded vehicles (``leader`` -1:
     none found): spacing = the measured one, delta_v = own speed - the measured leader's.
     The recorded vehicles are a subset of the road's, so the true leader is never farther
-    than a recorded one; a lane's end found nearer (``leader`` STOP) stays. Rows without a
-    measurement (NaN) keep the recorded scene's leader. Returns (observations, replaced)."""
+    than a recorded one; a lane's end found nearer (``leader`` STOP) stays, and a leader
+    ``NO_LEADER_GAP_M`` or farther is none (``section_observations``' look-ahead). Rows
+    without a measurement (NaN) keep the recorded scene's leader. Returns (observations,
+    replaced)."""
     names = OBSERVATION_FEATURES[observation]
     i_gap, i_dv = names.index("spacing_m"), names.index("delta_v_mps")
     spacing = frame["leader_spacing_m"].to_numpy(dtype=float)
     lead_v = frame["leader_speed_mps"].to_numpy(dtype=float)
     ok = np.isfinite(spacing) & np.isfinite(lead_v)
-    with np.errstate(invalid="ignore"):
-        use = ok & ((leader == -1) | (spacing < obs[:, i_gap]))
+    with np.errstate(invalid="ignore"):  # one as far as NO_LEADER_GAP_M: none, as observed
+        use = ok & (spacing < NO_LEADER_GAP_M) & ((leader == -1) | (spacing < obs[:, i_gap]))
     out = obs.copy()
     out[use, i_gap] = spacing[use]
     out[use, i_dv] = frame["speed_mps"].to_numpy(dtype=float)[use] - lead_v[use]
