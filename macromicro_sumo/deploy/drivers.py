@@ -42,7 +42,7 @@ from macromicro_sumo.deploy.safety import (
     speed_commands,
 )
 from macromicro_sumo.deploy.slots import NOT_ASKED, VehicleSlots
-from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section, stop_distance_m
 from macromicro_sumo.road.vtype import VTypePhysics, read_vtype
 from macromicro_sumo.sumo.simulation import Simulation, VehicleStates
 from macromicro_sumo.truth.section import is_instrumented
@@ -422,7 +422,7 @@ class SectionSpeedDriver(SectionDriver):
             stop_m = self.lane_end_m(sim, vids, lanes, at) - st.pos_m[rows]
         stop = stop_m
         if self.has_lights:
-            stop = np.minimum(stop, self.stop_lines_m(sim, vids, lanes, at))
+            stop = stop_distance_m(stop, self.stop_lines_m(sim, vids, lanes, at))
         leaders = sim.leaders(vids, NO_LEADER_GAP_M)
         return observe_rows(
             self.lane_table,

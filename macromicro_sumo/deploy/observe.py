@@ -98,11 +98,10 @@ def observe_rows(
     """Observations (V, obs_dim) of driven vehicles ``vids`` (rows ``rows`` of ``st``, on
     lanes ``lane_ids``), as the section env defines them, the leader SUMO's (``leaders``:
     ``Simulation.leaders``): front-to-front spacing = SUMO's gap + own minGap + leader's
-    length; ``stop_m``: the distance from each front to a red light or the end of a lane
-    the vehicle must leave (inf: none), a standing leader there when nearer than the
-    leader (``road.section.nearer_standing``: its spacing the distance plus the own
-    length, as the envs see it). ``lanes``: the section's
-    ``LaneTable``; ``shapes``: vehicle -> (length, minGap, decel), ``STANDING`` where
+    length; ``stop_m``: SUMO's gap from each front to its stop at a red light or the end of
+    a lane the vehicle must leave (``road.section.stop_distance_m``; inf: none), a standing
+    leader there when nearer than the leader (``road.section.nearer_standing``, as the envs
+    see it). ``lanes``: the section's ``LaneTable``; ``shapes``: vehicle -> (length, minGap, decel), ``STANDING`` where
     missing; ``driver_speeds``: each driver's desired-speed factor on the limits it
     observes, from the vehicles and their observations with unscaled limits
     (``policy.driver_speed``; None: 1); ``lane_codes``: ``lanes.codes(lane_ids)`` if known.
@@ -147,7 +146,7 @@ def observe_rows(
     closer = nearer_standing(spacing, stop_m, length)
     if np.count_nonzero(closer):
         lead_v[closer] = 0.0
-        np.copyto(sumo_gap, np.maximum(stop_m - min_gap, 0.0), where=closer)
+        np.copyto(sumo_gap, np.maximum(stop_m, 0.0), where=closer)
         lead_decel[closer] = STOP_DECEL_MPS2
         ok &= ~closer
     # A driven leader's index in ``vids``: a row of ``st`` -> its index, -1 elsewhere

@@ -53,7 +53,12 @@ from macromicro_sumo.road.physics import (
     observes_length,
     set_own_features,
 )
-from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section, nearer_standing
+from macromicro_sumo.road.section import (
+    NO_LEADER_GAP_M,
+    Section,
+    nearer_standing,
+    stop_distance_m,
+)
 from macromicro_sumo.road.vtype import VTypePhysics, accel_limit, command_speeds, read_vtype
 from macromicro_sumo.scenario.fleet import fleet_demand
 from macromicro_sumo.sumo.fleet import FLEET_ROUTE_PREFIX
@@ -118,8 +123,9 @@ def sumo_observations(
 
     ``states``: SUMO's lane states, ``leaders``: SUMO's leader and gap (leader's back minus
     own front and minGap), ``shapes``: each vehicle's (length, minGap, decel),
-    ``stops_m``: (V,) distance to a red light or the end of a lane the vehicle must leave
-    (inf: none), a standing leader there (``road.section.nearer_standing``). Spacing is
+    ``stops_m``: (V,) SUMO's gap to a stop at a red light or the end of a lane the vehicle
+    must leave (``road.section.stop_distance_m``; inf: none), a standing leader there
+    (``road.section.nearer_standing``). Spacing is
     front to front: gap + own minGap + leader's length, as the env's arcs give it.
     """
     n = len(vids)
@@ -140,7 +146,7 @@ def sumo_observations(
     stops = np.asarray(stops_m, dtype=float)
     closer = nearer_standing(spacing, stops, np.array([shapes[v][0] for v in vids]))
     lead_v[closer] = 0.0
-    gap_out[closer] = np.maximum(stops[closer] - min_gap[closer], 0.0)
+    gap_out[closer] = np.maximum(stops[closer], 0.0)  # SUMO's gap to its stop, as deployed
     for i in np.flatnonzero(closer).tolist():
         leader[i] = ""
     cols = [speed, limit, spacing, speed - lead_v]
@@ -322,7 +328,7 @@ class DemandCore:
         sim = self.sim
         stops = np.array([sim.lane_end_m(v, states[v][0], states[v][1]) for v in vids])
         if self._has_lights and len(vids):
-            stops = np.fmin(stops, sim.stop_lines_m(vids))  # NaN (no signal ahead): no stop
+            stops = stop_distance_m(stops, sim.stop_lines_m(vids))  # NaN (no signal): no stop
         return stops
 
     def lane_states(self) -> dict[str, tuple[str, float, float, float]]:

@@ -31,6 +31,7 @@ from macromicro_sumo.road.physics import OBSERVATION_FEATURES, set_own_features
 from macromicro_sumo.road.section import (
     NO_LEADER_GAP_M,
     STOP,
+    STOPLINE_GAP_M,
     Section,
     section_leaders,
     standing_spacing_m,
@@ -123,15 +124,12 @@ def build_section_bank(
     horizon: int | None = None,
     seed: int = 0,
 ) -> SectionBank:
-    """Episodes from ``snaps``: completed start scenes plus the recorded futures.
-
+    """Episodes from ``snaps``: completed start scenes plus the recorded futures;
     ``completion(snaps) -> (lane, arc, speed, valid, generated)``, each (S, N'), observed
     vehicles first then the generated ones (the generator's ``SectionCompletion``, or the
-    true hidden vehicles for tests). Observed vehicles are found in the trajectories by
-    (run, time, lane, arc); snapshots with fewer than ``horizon`` recorded steps after them
-    are dropped. ``seed``: the generated vehicles' vTypes where they are drawn
-    (``generated_vtypes``).
-    """
+    true hidden vehicles for tests). Observed vehicles are found in the trajectories by (run,
+    time, lane, arc); snapshots with fewer than ``horizon`` recorded steps after them are
+    dropped. ``seed``: the generated vehicles' vTypes where drawn (``generated_vtypes``)."""
     h = horizon or sc.policy.horizon
     dt = sc.simulation.step_length_s
     traj = truth.trajectories
@@ -356,7 +354,7 @@ def section_observations(
     which multiplies the limits it observes (``env.driver_speed``; None: 1); ``length_m``
     (N,): each vehicle's length, for an observation with own features (``physics.
     set_own_features``) and the spacing to a standing leader (``road.section.
-    standing_spacing_m``: the distance plus it; None: the distance alone).
+    standing_spacing_m``; None: the distance alone).
 
     Leaders along the lane connections (``section_leaders``, one sort per call); the end
     of a lane that leads nowhere, for the vehicles ``on_route`` (N,) (the driven ones,
@@ -377,8 +375,13 @@ def section_observations(
     ln, s, v = lane[idx], arc_m[idx], speed_mps[idx]
     route = None if on_route is None else on_route[idx]
     lead, gap = section_leaders(section, ln, s, stop_lane, stop_arc_m, route)
-    if length_m is not None:  # a standing leader: the distance plus the own length
-        gap = np.where(lead == STOP, standing_spacing_m(gap, length_m[idx]), gap)
+    if length_m is not None:  # standing: SUMO's stop (at a red line's offset) + minGap + length
+        at = section.wrap(s + gap)[:, None] - np.asarray([] if stop_arc_m is None else stop_arc_m)
+        at = np.abs(section.wrap(at + 1.0) - 1.0) < 0.05  # a stop point given, on the own lane
+        red = (at & (ln[:, None] == np.asarray([] if stop_lane is None else stop_lane))).any(1)
+        gap = np.where(
+            lead == STOP, standing_spacing_m(gap, length_m[idx], STOPLINE_GAP_M * red), gap
+        )
     has = lead >= 0
     leader[idx[has]] = idx[lead[has]]
     leader[idx[lead == STOP]] = STOP  # readers take >= 0 as a vehicle; the code says which

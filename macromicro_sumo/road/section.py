@@ -26,6 +26,8 @@ from macromicro_sumo.sumo.inputs import read_net
 
 NO_LEADER_GAP_M = 250.0  # spacing reported when nothing drives ahead on the section
 STOP = -2  # leader index of a standing obstacle: a lane's end, or a red light's stop line
+STOPLINE_GAP_M = 1.0  # SUMO's jmStoplineGap default: its drivers stop this far before a red
+STANDING_MIN_GAP_M = 2.5  # SUMO's default minGap: a standing leader's (the envs know no own)
 
 
 @dataclass(frozen=True)
@@ -471,26 +473,28 @@ def section_leaders(
     return leader, spacing
 
 
-def standing_spacing_m(dist_m: np.ndarray, length_m: np.ndarray) -> np.ndarray:
-    """The front-to-front spacing a vehicle ``length_m`` long observes to a standing obstacle
-    ``dist_m`` ahead of its front (a red or yellow signal's stop line, the end of a lane it
-    must leave): the distance plus its own length, a standing vehicle of its length whose
-    back is at the line. SUMO stops the front at the line: the gap there is the distance,
-    and every reader of the spacing (idm_calibrated, the IDM and Krauss priors) takes it as
-    gap + a vehicle length (+ minGap). The distance alone reads as a leader the vehicle
-    already overlaps: game/cross micro pairs with the red lines, idm_calibrated's fit RMSE
-    1.64 m/s^2 at the distance, 0.87 at distance + length (0.94 without the lines). The one
-    definition of the envs' (``section_observations``), the demand env's and the
-    deployment's (``nearer_standing``) standing leaders."""
-    return dist_m + length_m
+def standing_spacing_m(
+    dist_m: np.ndarray, length_m: np.ndarray, stop_gap_m: float | np.ndarray = 0.0
+) -> np.ndarray:
+    """Front-to-front spacing a vehicle ``length_m`` long observes to a standing obstacle
+    ``dist_m`` ahead of its front: a standing vehicle of its length ``STANDING_MIN_GAP_M``
+    beyond where SUMO's drivers stop, ``stop_gap_m`` before it (red: ``STOPLINE_GAP_M``, a
+    lane end: 0): SUMO's gap to a red light is distance - jmStoplineGap, to a vehicle distance
+    - minGap, and readers take gap = spacing - length - minGap. The envs', demand env's and
+    deployment's one definition."""
+    return np.maximum(dist_m - stop_gap_m, 0.0) + STANDING_MIN_GAP_M + length_m
 
 
 def nearer_standing(spacing_m: np.ndarray, stop_m: np.ndarray, length_m: np.ndarray) -> np.ndarray:
-    """Where a standing obstacle ``stop_m`` ahead of a vehicle's front (inf: none) is nearer
-    than its leader at front-to-front ``spacing_m``, the obstacle is its leader:
-    ``spacing_m`` becomes ``standing_spacing_m`` there (in place; ``length_m``: each
-    vehicle's own). Returns the mask of those vehicles."""
+    """Where a standing obstacle ``stop_m`` (``stop_distance_m``, inf: none) is nearer than the
+    leader, ``spacing_m`` becomes ``standing_spacing_m`` (in place); the mask of those."""
     standing = standing_spacing_m(np.asarray(stop_m, dtype=float), length_m)
     closer = standing < spacing_m
     np.copyto(spacing_m, standing, where=closer)
     return closer
+
+
+def stop_distance_m(lane_end_m: np.ndarray, red_m: np.ndarray) -> np.ndarray:
+    """SUMO's gap to a stop: a lane end's distance, or a red line's less STOPLINE_GAP_M."""
+    red = np.maximum(np.asarray(red_m, dtype=float) - STOPLINE_GAP_M, 0.0)  # NaN stays
+    return np.fmin(np.asarray(lane_end_m, dtype=float), red)

@@ -408,19 +408,20 @@ def signal_net(folder: Path, state: str) -> Path:
 
 
 def idm_policy(obs: np.ndarray) -> np.ndarray:
-    """IDM on the observation (v0 = the limit; the spacing to a vehicle is the gap plus its
-    5 m length, to a standing stop point the gap plus the own 5 m)."""
+    """IDM on the observation (v0 = the limit; one vehicle: its leader is a standing stop
+    point, its spacing SUMO's gap to its stop + minGap 2.5 m + the own 5 m)."""
     v, limit, spacing, dv = obs[:, 0], obs[:, 1], obs[:, 2], obs[:, 3]
-    gap = np.where(spacing < NO_LEADER_GAP_M, spacing - 5.0, 1e6)
+    gap = np.where(spacing < NO_LEADER_GAP_M, spacing - 7.5, 1e6)
     return idm_accel(v, np.maximum(gap - 1.0, 0.1), dv, limit, 1.2, 2.0, 3.0, 2.0)
 
 
 @pytest.mark.parametrize("state", ["r", "y"])
 def test_policy_stops_at_a_red_or_yellow_light(tmp_path, state):
     """A red (or yellow) signal ahead is a standing leader at the stop line in the
-    observation: its spacing is SUMO's distance to the stop line plus the own 5 m length
-    (``road.section.standing_spacing_m``), and an IDM policy driving by it (exact
-    commands: SUMO does not brake for it) stops before the line."""
+    observation: its spacing is SUMO's distance to the stop line less jmStoplineGap (1 m)
+    plus minGap 2.5 m and the own 5 m length (``road.section.standing_spacing_m``), and an
+    IDM policy driving by it (exact commands: SUMO does not brake for it) stops before the
+    line."""
     net = signal_net(tmp_path / "net", state)
     sec = read_section(net, ["A", "B"], False)
     sc = section_scenario(tmp_path, net, ["A", "B"], False)
@@ -429,15 +430,16 @@ def test_policy_stops_at_a_red_or_yellow_light(tmp_path, state):
     line = float(sec.offsets_m[0] + sec.lengths_m[0])
     try:
         obs = core.reset(0)
-        assert obs[0, 2] == pytest.approx(core.sim.stop_line_m(core.ids[0]) + 5.0, abs=1e-6)
-        assert obs[0, 2] == pytest.approx(line - 100.0 + 5.0, abs=1e-6)
+        assert obs[0, 2] == pytest.approx(core.sim.stop_line_m(core.ids[0]) + 6.5, abs=1e-6)
+        assert obs[0, 2] == pytest.approx(line - 100.0 + 6.5, abs=1e-6)
         assert obs[0, 3] == pytest.approx(14.0)  # closing on a standing leader
         for _ in range(80):
             res = core.step(idm_policy(obs))
             obs = res.obs
             assert not res.collision and not res.error and res.active[0]
             assert core.arc[0] <= line  # never past the stop line
-            assert obs[0, 2] == pytest.approx(line - core.arc[0] + 5.0, abs=1e-6)
+            want = max(line - core.arc[0] - 1.0, 0.0) + 7.5
+            assert obs[0, 2] == pytest.approx(want, abs=1e-6)
         assert core.speed[0] < 0.1 and line - core.arc[0] < 5.0  # stopped at the line
     finally:
         core.close()

@@ -182,8 +182,8 @@ def test_episodes_run_the_users_own_signal_program(tmp_path: Path) -> None:
 def test_driven_vehicles_see_their_turning_lanes_end(cross_truth) -> None:
     """A hidden vehicle drives the section's route: on 1si's turning lanes (0, 2) with no
     vehicle ahead on its lane, the lane's end is its standing leader at every step, on
-    green too (before: a free road, 250 m), at the distance plus its own length
-    (``road.section.standing_spacing_m``); a replayed observed vehicle there keeps its
+    green too (before: a free road, 250 m), at the distance plus minGap 2.5 m and its own
+    length (``road.section.standing_spacing_m``: SUMO stops at a lane's end); a replayed observed vehicle there keeps its
     own route's free road where the light is green."""
     sc, truth = cross_truth
     snaps = recorded_snapshots(truth, sc, truth.runs)
@@ -195,7 +195,7 @@ def test_driven_vehicles_see_their_turning_lanes_end(cross_truth) -> None:
     core = SectionCore(sc, truth.section, bank, scenario_inputs(sc).net_file, seed=1)
     sec = truth.section
     end = float(sec.offsets_m[1] + sec.lengths_m[1])
-    seen = {True: [], False: []}  # hidden: spacing - (distance to the end + own length)
+    seen = {True: [], False: []}  # hidden: spacing - (distance to the end + 2.5 + own length)
     try:
         for ep in range(0, len(bank), 2):
             core.reset(ep)
@@ -209,7 +209,7 @@ def test_driven_vehicles_see_their_turning_lanes_end(cross_truth) -> None:
                     green = not np.isfinite(core.sim.stop_lines_m([core.ids[i]])[0])
                     if not same.size and green:
                         own = float(core.bank.length_m[core.episode, i])
-                        gap = core._obs[i, 2] - (end - core.arc[i] + own)
+                        gap = core._obs[i, 2] - (end - core.arc[i] + 2.5 + own)
                         seen[bool(core.hidden[i])].append(gap)
     finally:
         core.close()

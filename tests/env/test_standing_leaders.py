@@ -1,9 +1,9 @@
 """One observation of what is ahead in the Stage II envs, the demand env and the deployment.
 
 A red or yellow stop line and the end of a lane a vehicle must leave are standing leaders
-at the distance from the vehicle's front plus its own length (``road.section.
-standing_spacing_m``: a standing vehicle of its length whose back is at the line, which
-every reader of the spacing takes as gap = the distance, where SUMO stops the front). The
+(``road.section.standing_spacing_m``): a standing vehicle of the own length whose back is
+minGap (2.5 m) beyond where SUMO stops the front, 1 m before a red line (jmStoplineGap), at
+a lane's end, so that every reader of the spacing takes SUMO's gap to the stop. The
 snapshot env reads it on the section's arc (``section_observations`` with ``stop_points``
 and the vehicles' lengths, as ``SectionCore._scene``), the deployment (``deploy.observe.
 observe_rows``, as ``deploy.drivers`` composes it) and the demand env (``env.demand.
@@ -25,7 +25,14 @@ import sumo
 from macromicro_sumo.deploy.observe import STANDING, LaneTable, Table, observe_rows
 from macromicro_sumo.env.demand import sumo_observations
 from macromicro_sumo.env.section_bank import section_observations, stop_points
-from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section, read_section
+from macromicro_sumo.road.section import (
+    NO_LEADER_GAP_M,
+    Section,
+    nearer_standing,
+    read_section,
+    standing_spacing_m,
+    stop_distance_m,
+)
 from macromicro_sumo.sumo.options import SumoOptions
 from macromicro_sumo.sumo.simulation import Simulation
 
@@ -80,7 +87,7 @@ def three_observations(
     # The deployment (``Driver.observe``): lane ends from the lane's start, less the position.
     rows = np.array([st.index[v] for v in ids])
     shapes = Table.of_rows(dict.fromkeys(ids, shape), STANDING)
-    stop = np.minimum(lane_end - st.pos_m[rows], red)
+    stop = stop_distance_m(lane_end - st.pos_m[rows], red)
     deploy = observe_rows(
         LaneTable(cross), "lookahead", ids, rows, lanes, st, leaders, shapes, stop
     )
@@ -93,7 +100,7 @@ def three_observations(
         states,
         dict(zip(ids, leaders, strict=True)),
         dict.fromkeys(ids, shape),
-        np.fmin(lane_end - pos, red),
+        stop_distance_m(lane_end - pos, red),
     )
     return env, deploy[0], demand.obs
 
@@ -101,18 +108,19 @@ def three_observations(
 @pytest.mark.parametrize("light", sorted(PHASES))
 def test_env_deployment_and_demand_env_see_the_same_ahead(cross: Section, light: str) -> None:
     """The three observations of one SUMO state agree (within 0.5 m: SUMO's lanes and the
-    section's arc differ by a rounding), and the standing leaders are at the distance from
-    the front plus the own 5 m: at red the stop line 30 m ahead of the first through
-    vehicle, and in both phases the turning lanes' ends (40 and 60 m)."""
+    section's arc differ by a rounding), and the standing leaders are at SUMO's stop plus
+    minGap 2.5 m and the own 5 m: at the turning lanes' ends (40 and 60 m) on green, at red
+    1 m before the stop lines (the first through vehicle's 30 m ahead, and the turning
+    lanes', whose links are red too: SUMO's red governs where it meets a lane's end)."""
     env, deploy, demand = three_observations(cross, PHASES[light])
     np.testing.assert_allclose(deploy, env, atol=0.5)
     np.testing.assert_allclose(demand, env, atol=0.5)
     spacing = env[:, 2]
-    np.testing.assert_allclose(spacing[2:4], [45.0, 65.0], atol=0.5)  # lane ends
     np.testing.assert_allclose(env[2:4, 3], 5.0)  # delta v: a standing leader
     if light == "red":
-        np.testing.assert_allclose(spacing[0], 35.0, atol=0.5)
+        np.testing.assert_allclose(spacing[[0, 2, 3]], [36.5, 46.5, 66.5], atol=0.2)
     else:
+        np.testing.assert_allclose(spacing[2:4], [47.5, 67.5], atol=0.2)  # lane ends
         assert spacing[0] > 30.0 + 50.0  # the leader is the vehicle 50 m into 2o
     np.testing.assert_allclose(spacing[1], 20.0, atol=0.5)  # the vehicle ahead
 
@@ -126,3 +134,23 @@ def test_a_leader_beyond_the_look_ahead_is_none_in_all_three(cross: Section) -> 
     np.testing.assert_allclose(deploy, env, atol=0.5)
     np.testing.assert_allclose(demand, env, atol=0.5)
     np.testing.assert_allclose(env[0, 2:4], [NO_LEADER_GAP_M, 0.0])
+
+
+def test_standing_spacing_by_hand() -> None:
+    """A red line 30 m ahead of a 5 m car: SUMO stops it 1 m before (jmStoplineGap), so its
+    standing leader is at 29 + minGap 2.5 + 5 = 36.5 m, and a reader's gap (spacing -
+    length - minGap) is SUMO's 29 m; a lane's end 40 m ahead (SUMO stops at it): 47.5 m;
+    a front within the stop gap already: 7.5 m (gap 0). ``stop_distance_m`` takes the
+    nearer of a lane end and a red line less 1 m (NaN, inf: none)."""
+    np.testing.assert_allclose(
+        standing_spacing_m(np.array([30.0, 40.0, 0.4]), 5.0, np.array([1.0, 0.0, 1.0])),
+        [36.5, 47.5, 7.5],
+    )
+    stop = stop_distance_m(
+        np.array([40.0, np.inf, 40.0, 3.0, 9.0]), np.array([30.0, np.inf, np.nan, 0.5, 9.5])
+    )
+    np.testing.assert_allclose(stop, [29.0, np.inf, 40.0, 0.0, 8.5])
+    spacing = np.array([20.0, 100.0, NO_LEADER_GAP_M])
+    closer = nearer_standing(spacing, np.array([29.0, 29.0, np.inf]), np.full(3, 5.0))
+    np.testing.assert_array_equal(closer, [False, True, False])
+    np.testing.assert_allclose(spacing, [20.0, 36.5, NO_LEADER_GAP_M])

@@ -1,0 +1,101 @@
+"""Where a deployed prior's queue stands at a red light: where SUMO's own drivers stand.
+
+SUMO's drivers stop jmStoplineGap (1 m, its default) before a red line and keep no minGap
+to it; the observation's standing leader (``road.section.standing_spacing_m``) sits minGap
+beyond that stop, so a prior keeping its minGap to it stops there too. Before, its back was
+at the line and the prior (game/cross's Krauss fit, minGap 2.49 m) stopped 2.2 m before it:
+the queue stood 1.2 m upstream of the truth's, and a loop 36 m before the line read a car
+standing on it (hU, stop 34).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import sumo
+from conftest import dump_toml
+
+from macromicro_sumo.deploy.drivers import SectionSpeedDriver
+from macromicro_sumo.deploy.stage import policy_batch
+from macromicro_sumo.policy.agent import Agent
+from macromicro_sumo.road.section import read_section
+from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
+from macromicro_sumo.truth.section import record_run
+
+CROSS = Path(sumo.__file__).resolve().parent / "tools" / "game" / "cross" / "cross.net.xml"
+EDGES = ["1fi", "1si", "2o", "2fo"]
+# game/cross's fitted Krauss prior (hU's run at stop 34, policy/policy_manifest.json).
+PRIOR = {
+    "speed_factor": 1.0327,
+    "accel_mps2": 2.6,
+    "decel_mps2": 5.629,
+    "tau_s": 1.0896,
+    "min_gap_m": 2.4947,
+    "veh_length_m": 5.0,
+    "dt_s": 0.5,
+    "relax_s": 0.5545,
+}
+
+
+class Standing(SectionSpeedDriver):
+    """The deployment's driver, also keeping each driven vehicle's distance to the red line
+    ahead (SUMO's, along its lane) at its last step."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.at: dict[str, tuple[float, float]] = {}  # vehicle: (distance to the line, speed)
+
+    def drive(self, sim, vids, st) -> None:
+        super().drive(sim, vids, st)
+        for v, d in zip(vids, sim.stop_lines_m(vids), strict=True):
+            self.at[v] = (float(d), float(st.speed_mps[st.index[v]]))
+
+
+def test_the_prior_alone_stands_where_sumo_stands_at_a_red_light(tmp_path: Path) -> None:
+    """Three cars from 1fi to 2fo, every one driven by the prior alone (residual 0, the
+    deployment's safety layer), the light red all along: the first stands 1.0 +- 0.2 m
+    before 1si's stop line, as SUMO's own drivers (1.00 m), the next ones 7.5 m apart, as
+    SUMO's queue. Before: 2.2 m (the prior's min gap to a leader whose back is at the line,
+    less its overshoot). Without the safety layer it stands 0.71 m before the line (the
+    prior's approach overshoots by 0.3 m, as it did before)."""
+    routes = tmp_path / "r.rou.xml"
+    cars = "".join(
+        f'    <vehicle id="v{i}" depart="{2 * i}" departSpeed="10" departLane="best">'
+        f'<route edges="{" ".join(EDGES)}"/></vehicle>\n'
+        for i in range(3)
+    )
+    routes.write_text(f"<routes>\n{cars}</routes>\n")
+    red = tmp_path / "red.add.xml"
+    red.write_text(
+        '<additional>\n    <tlLogic id="0" type="static" programID="red" offset="0">\n'
+        '        <phase duration="10000" state="rrrrrrrrrrrr"/>\n    </tlLogic>\n</additional>\n'
+    )
+    table = {
+        "name": "t",
+        "seed": 5,
+        "network": {"kind": "sumo", "net_file": str(CROSS), "route_files": [str(routes)]},
+        "section": {"edges": EDGES},
+        "simulation": {"warmup_s": 0.0, "duration_s": 80.0, "n_runs": 2},
+        "detectors": {"interval_s": 40.0},
+        "instrumented": {"ids": ["probe"]},
+        "policy": {"observation": "lookahead"},
+    }
+    (tmp_path / "s.toml").write_text(dump_toml(table))
+    sc = load_scenario(tmp_path / "s.toml")
+    agent = Agent(
+        observation="lookahead", prior="krauss", prior_params=PRIOR, residual_bound_mps2=0.0
+    )
+    drv = Standing(sc, read_section(CROSS, EDGES, False), 0, policy_batch(agent), "sumo")
+    sim = Simulation(SumoOptions(CROSS, (red,), 0.5, 5, route_files=(routes,), user_demand=True))
+    try:
+        _, stats = record_run(sim, sc, drv.section, 0, drv)
+    finally:
+        sim.close()
+    assert stats["collisions"] == 0
+    dist = np.array([drv.at[f"v{i}"][0] for i in range(3)])
+    speed = np.array([drv.at[f"v{i}"][1] for i in range(3)])
+    assert (speed < 0.1).all(), speed
+    assert abs(dist[0] - 1.0) < 0.2, dist
+    np.testing.assert_allclose(np.diff(dist), 7.5, atol=0.3)
