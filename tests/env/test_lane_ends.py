@@ -39,6 +39,34 @@ def cross() -> Section:
     return read_section(CROSS, EDGES, closed=False)
 
 
+def sumo_lane_ends(net: Path, edges: list[str], places, section: Section, leader_of=None):
+    """Vehicles placed in SUMO at ``places`` (edge index, lane, position), each on the
+    section's route from its edge, after one step: their lanes, the section's lane and arc
+    of each, their speeds, SUMO's distance to where each must leave its lane
+    (``Simulation.lane_end_m``) and, for ``leader_of``'s index, SUMO's leader within 800 m."""
+    sim = Simulation(SumoOptions(net, (), 0.5, 1))
+    try:
+        for e in range(len(edges)):
+            sim.add_route(f"from{e}", edges[e:])
+        ids = [f"v{i}" for i in range(len(places))]
+        for vid, (e, ln, pos) in zip(ids, places, strict=True):
+            sim.add_vehicle(vid, f"from{e}", "DEFAULT_VEHTYPE", ln, pos, 0.0)
+        sim.step()
+        lanes, pos, speed = sim.lane_states(ids)
+        want = np.array(
+            [sim.lane_end_m(v, ln, p) for v, ln, p in zip(ids, lanes, pos, strict=True)]
+        )
+        leader = (
+            None if leader_of is None else sim.leaders(ids[leader_of : leader_of + 1], 800.0)[0][0]
+        )
+    finally:
+        sim.close()
+    at = [section.locate(ln, p) for ln, p in zip(lanes, pos, strict=True)]
+    lane = np.array([a[0] for a in at])
+    arc = np.array([a[1] for a in at])
+    return ids, lanes, lane, arc, speed, want, leader
+
+
 def test_a_turning_lanes_end_is_a_standing_leader(cross: Section) -> None:
     """Driven vehicles 40 m before 1si's end on each of its lanes: on the turning lanes (0,
     2) the lane's end is a standing leader 40 m ahead (delta v = own speed); the through
@@ -82,24 +110,8 @@ def test_lanes_end_where_sumo_makes_the_sections_route_leave_them(cross: Section
     leave its lane (``Simulation.lane_end_m``, the deployment's and the demand env's
     source), at the distance SUMO gives (within 0.5 m: the lanes' own lengths differ
     from the section's arc), and none elsewhere."""
-    sim = Simulation(SumoOptions(CROSS, (), 0.5, 1))
-    try:
-        for e in range(3):
-            sim.add_route(f"from{e}", EDGES[e:])  # the section's route from the vehicle's edge
-        places = [(0, 0, 100.0), (1, 0, 30.0), (1, 1, 30.0), (1, 2, 30.0), (2, 0, 100.0)]
-        ids = [f"v{i}" for i in range(len(places))]
-        for vid, (e, ln, pos) in zip(ids, places, strict=True):
-            sim.add_vehicle(vid, f"from{e}", "DEFAULT_VEHTYPE", ln, pos, 0.0)
-        sim.step()
-        lanes, pos, speed = sim.lane_states(ids)
-        want = np.array(
-            [sim.lane_end_m(v, ln, p) for v, ln, p in zip(ids, lanes, pos, strict=True)]
-        )
-    finally:
-        sim.close()
-    at = [cross.locate(ln, p) for ln, p in zip(lanes, pos, strict=True)]
-    lane = np.array([a[0] for a in at])
-    arc = np.array([a[1] for a in at])
+    places = [(0, 0, 100.0), (1, 0, 30.0), (1, 1, 30.0), (1, 2, 30.0), (2, 0, 100.0)]
+    ids, lanes, lane, arc, speed, want, _ = sumo_lane_ends(CROSS, EDGES, places, cross)
     assert sorted(set(lanes) & {"1si_0", "1si_2"}) == ["1si_0", "1si_2"]
     on = np.ones(len(ids), dtype=bool)
     obs, _, _ = section_observations(cross, lane, arc, speed, on, "lookahead", on_route=on)
@@ -124,26 +136,11 @@ def test_a_lane_leading_only_onto_ending_lanes_ends_where_they_end() -> None:
     Before, the envs saw e4 lane 0's end only from e5 on: a free road (SUMO: 700 m to go,
     of which 8 m of junction its best lanes leave out)."""
     sec = read_section(NETGEN, NETGEN_EDGES, closed=False)
-    sim = Simulation(SumoOptions(NETGEN, (), 0.5, 1))
-    try:
-        for e in range(len(NETGEN_EDGES)):
-            sim.add_route(f"from{e}", NETGEN_EDGES[e:])
-        places = [(4, 0, 100.0), (4, 1, 100.0), (5, 1, 50.0), (2, 0, 100.0), (0, 0, 100.0)]
-        ids = [f"v{i}" for i in range(len(places))]
-        for vid, (e, ln, pos) in zip(ids, places, strict=True):
-            sim.add_vehicle(vid, f"from{e}", "DEFAULT_VEHTYPE", ln, pos, 0.0)
-        sim.step()
-        lanes, pos, speed = sim.lane_states(ids)
-        want = np.array(
-            [sim.lane_end_m(v, ln, p) for v, ln, p in zip(ids, lanes, pos, strict=True)]
-        )
-        sumo_leader = sim.leaders(ids[:1], 800.0)[0][0]
-    finally:
-        sim.close()
+    places = [(4, 0, 100.0), (4, 1, 100.0), (5, 1, 50.0), (2, 0, 100.0), (0, 0, 100.0)]
+    ids, lanes, lane, arc, _, want, sumo_leader = sumo_lane_ends(
+        NETGEN, NETGEN_EDGES, places, sec, leader_of=0
+    )
     assert lanes == ["e4_0", "e4_1", "e5_1", "e2_0", "e0_0"]
-    at = [sec.locate(ln, p) for ln, p in zip(lanes, pos, strict=True)]
-    lane = np.array([a[0] for a in at])
-    arc = np.array([a[1] for a in at])
     # e4 lane 0's end is beyond e5_1's vehicle: alone, on its own (the others stay).
     alone = np.array([0, 1, 3, 4])
     must_leave = np.isfinite(want[alone])
