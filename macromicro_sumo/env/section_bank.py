@@ -375,16 +375,17 @@ def section_observations(
     ln, s, v = lane[idx], arc_m[idx], speed_mps[idx]
     route = None if on_route is None else on_route[idx]
     lead, gap = section_leaders(section, ln, s, stop_lane, stop_arc_m, route)
-    if length_m is not None:  # standing: SUMO's stop (at a red line's offset) + minGap + length
-        at = section.wrap(s + gap)[:, None] - np.asarray([] if stop_arc_m is None else stop_arc_m)
-        at = np.abs(section.wrap(at + 1.0) - 1.0) < 0.05  # a stop point given, on the own lane
-        red = (at & (ln[:, None] == np.asarray([] if stop_lane is None else stop_lane))).any(1)
-        gap = np.where(
-            lead == STOP, standing_spacing_m(gap, length_m[idx], STOPLINE_GAP_M * red), gap
-        )
+    standing = lead == STOP
+    if length_m is not None and standing.any():
+        red = np.zeros(len(s), dtype=bool)  # at a given stop point on the own lane; else an end
+        if stop_arc_m is not None and len(stop_arc_m):
+            k = np.flatnonzero(standing)
+            d = section.wrap(section.wrap(s[k] + gap[k])[:, None] - stop_arc_m + 1.0) - 1.0
+            red[k] = ((np.abs(d) < 0.05) & (ln[k, None] == stop_lane)).any(1)
+        gap = np.where(standing, standing_spacing_m(gap, length_m[idx], STOPLINE_GAP_M * red), gap)
     has = lead >= 0
     leader[idx[has]] = idx[lead[has]]
-    leader[idx[lead == STOP]] = STOP  # readers take >= 0 as a vehicle; the code says which
+    leader[idx[standing]] = STOP  # readers take >= 0 as a vehicle; the code says which
     spacing[idx] = gap
     e = section.edge_index(s)
     lim = section.limits_mps
@@ -395,7 +396,7 @@ def section_observations(
     # (SUMO's getLeader within it) and the demand env's see it.
     near = gap < NO_LEADER_GAP_M
     o[:, 2] = np.where(near, gap, NO_LEADER_GAP_M)
-    dv = np.where(has, v - v[np.maximum(lead, 0)], np.where(lead == STOP, v, 0.0))
+    dv = np.where(has, v - v[np.maximum(lead, 0)], np.where(standing, v, 0.0))
     o[:, 3] = np.where(near, dv, 0.0)
     if o.shape[1] > 4:
         o[:, 4], o[:, 5] = section.lookahead(ln, s, e, o[:, 1])
