@@ -101,8 +101,8 @@ def observe_rows(
     length; ``stop_m``: SUMO's gap from each front to its stop at a red light or the end of
     a lane the vehicle must leave (``road.section.stop_distance_m``; inf: none), a standing
     leader there when nearer than the leader (``road.section.nearer_standing``, as the envs
-    see it). ``lanes``: the section's ``LaneTable``; ``shapes``: vehicle -> (length, minGap, decel), ``STANDING`` where
-    missing; ``driver_speeds``: each driver's desired-speed factor on the limits it
+    see it). ``lanes``: the section's ``LaneTable``; ``shapes``: vehicle -> (length,
+    minGap, decel), ``STANDING`` where missing; ``driver_speeds``: each driver's desired-speed factor on the limits it
     observes, from the vehicles and their observations with unscaled limits
     (``policy.driver_speed``; None: 1); ``lane_codes``: ``lanes.codes(lane_ids)`` if known.
     Also returns SUMO's gap to what the vehicle sees ahead, that leader's decel, and its
