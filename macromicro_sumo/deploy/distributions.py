@@ -3,7 +3,7 @@ speed, acceleration, time headway and time-to-collision, compared by their Wasse
 distance.
 
 ``trajectories.csv`` has ``lane_index`` and ``arc_m``: leaders are found here, per lane, with
-``road.section.lane_leaders``. Every function is pure.
+``road.leaders.lane_leaders``. Every function is pure.
 """
 
 from __future__ import annotations
@@ -14,7 +14,8 @@ import numpy as np
 import pandas as pd
 
 from macromicro_sumo.evaluation.statistics import w1
-from macromicro_sumo.road.section import Section, lane_leaders, section_leaders
+from macromicro_sumo.road.leaders import lane_leaders, section_leaders
+from macromicro_sumo.road.section import Section
 
 # Below this speed a time headway gap / speed is dominated by the division (a queued
 # vehicle 2 m behind its leader at 0.01 m/s would have a 200 s headway).

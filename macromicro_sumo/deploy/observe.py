@@ -13,8 +13,9 @@ from itertools import chain, repeat
 import numpy as np
 
 from macromicro_sumo.env.driver_speed import scale_limits
+from macromicro_sumo.road.leaders import nearer_standing
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES, has_lookahead, set_own_features
-from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section, nearer_standing
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
 from macromicro_sumo.sumo.simulation import VehicleStates
 
 STOP_DECEL_MPS2 = 9.0  # a standing "leader" (stop line, lane end) never brakes: any value
@@ -99,8 +100,8 @@ def observe_rows(
     lanes ``lane_ids``), as the section env defines them, the leader SUMO's (``leaders``:
     ``Simulation.leaders``): front-to-front spacing = SUMO's gap + own minGap + leader's
     length; ``stop_m``: SUMO's gap from each front to its stop at a red light or the end of
-    a lane the vehicle must leave (``road.section.stop_distance_m``; inf: none), a standing
-    leader there when nearer than the leader (``road.section.nearer_standing``, as the envs
+    a lane the vehicle must leave (``road.leaders.stop_distance_m``; inf: none), a standing
+    leader there when nearer than the leader (``road.leaders.nearer_standing``, as the envs
     see it). ``lanes``: the section's ``LaneTable``; ``shapes``: vehicle -> (length,
     minGap, decel), ``STANDING`` where missing; ``driver_speeds``: each driver's desired-speed factor on the limits it
     observes, from the vehicles and their observations with unscaled limits

@@ -47,18 +47,14 @@ import numpy as np
 from macromicro_sumo.data.section import PSI_FIELDS, SectionTruth, psi_table, run_section
 from macromicro_sumo.env.driver_speed import DriverSpeeds, scale_limits
 from macromicro_sumo.env.section_bank import section_macro_reward, section_target
+from macromicro_sumo.road.leaders import nearer_standing, stop_distance_m
 from macromicro_sumo.road.physics import (
     OBSERVATION_FEATURES,
     has_lookahead,
     observes_length,
     set_own_features,
 )
-from macromicro_sumo.road.section import (
-    NO_LEADER_GAP_M,
-    Section,
-    nearer_standing,
-    stop_distance_m,
-)
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
 from macromicro_sumo.road.vtype import VTypePhysics, accel_limit, command_speeds, read_vtype
 from macromicro_sumo.scenario.fleet import fleet_demand
 from macromicro_sumo.sumo.fleet import FLEET_ROUTE_PREFIX
@@ -124,8 +120,8 @@ def sumo_observations(
     ``states``: SUMO's lane states, ``leaders``: SUMO's leader and gap (leader's back minus
     own front and minGap), ``shapes``: each vehicle's (length, minGap, decel),
     ``stops_m``: (V,) SUMO's gap to a stop at a red light or the end of a lane the vehicle
-    must leave (``road.section.stop_distance_m``; inf: none), a standing leader there
-    (``road.section.nearer_standing``). Spacing is
+    must leave (``road.leaders.stop_distance_m``; inf: none), a standing leader there
+    (``road.leaders.nearer_standing``). Spacing is
     front to front: gap + own minGap + leader's length, as the env's arcs give it.
     """
     n = len(vids)

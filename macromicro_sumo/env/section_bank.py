@@ -27,15 +27,9 @@ from macromicro_sumo.data.section import (
 )
 from macromicro_sumo.env.vtype_draw import generated_vtypes
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.road.leaders import STOPLINE_GAP_M, section_leaders, standing_spacing_m
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES, set_own_features
-from macromicro_sumo.road.section import (
-    NO_LEADER_GAP_M,
-    STOP,
-    STOPLINE_GAP_M,
-    Section,
-    section_leaders,
-    standing_spacing_m,
-)
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, STOP, Section
 from macromicro_sumo.truth.section import load_section
 
 
@@ -353,7 +347,7 @@ def section_observations(
     spacing of the active vehicles; ``factor`` (N,): each driver's desired-speed factor,
     which multiplies the limits it observes (``env.driver_speed``; None: 1); ``length_m``
     (N,): each vehicle's length, for an observation with own features (``physics.
-    set_own_features``) and the spacing to a standing leader (``road.section.
+    set_own_features``) and the spacing to a standing leader (``road.leaders.
     standing_spacing_m``; None: the distance alone).
 
     Leaders along the lane connections (``section_leaders``, one sort per call); the end

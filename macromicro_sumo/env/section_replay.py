@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from macromicro_sumo.road.section import Section, section_leaders
+from macromicro_sumo.road.leaders import section_leaders
+from macromicro_sumo.road.section import Section
 
 REPLAY_SUFFIX = "_replay"  # observed vehicles' vTypes: no speed-limit cap (``vtypes_xml``)
 SAFE_SUFFIX = "_safe"  # hidden vehicles' vTypes under the safety layer: no speed-limit cap

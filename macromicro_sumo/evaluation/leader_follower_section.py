@@ -56,7 +56,8 @@ from macromicro_sumo.evaluation.leader_follower import (
     run_tests,
 )
 from macromicro_sumo.evaluation.micro_data import micro_pairs
-from macromicro_sumo.road.section import Section, section_leaders
+from macromicro_sumo.road.leaders import section_leaders
+from macromicro_sumo.road.section import Section
 
 SKIPPED = "leader-follower tests skipped"
 NO_LANE_CHANGE = 0  # SUMO lane-change mode: no lane change of any kind

@@ -31,7 +31,7 @@ def micro_pairs(
     dt = sc.simulation.step_length_s
     traj = truth.trajectories[truth.trajectories["run"].isin(runs)]
     measured = has_measured_leaders(traj)
-    # Lengths: an own feature, and a standing leader's spacing (road.section.standing_spacing_m).
+    # Lengths: an own feature, and a standing leader's spacing (road.leaders.standing_spacing_m).
     lengths = _lengths(truth, traj, required=observes_length(sc.policy.observation))
     obs_rows, acc_rows = [], []
     for run, g in traj.groupby("run", sort=True):

@@ -93,7 +93,8 @@ from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.policy.agent import policy_action
 from macromicro_sumo.policy.checkpoint import load_policy
 from macromicro_sumo.progress import tqdm
-from macromicro_sumo.road.section import Section, section_leaders
+from macromicro_sumo.road.leaders import section_leaders
+from macromicro_sumo.road.section import Section
 from macromicro_sumo.sumo.inputs import scenario_inputs
 from macromicro_sumo.truth.section import load_section_truth
 from macromicro_sumo.truth.section_macro import k_summary

@@ -27,7 +27,8 @@ from macromicro_sumo.fielddata.mapping import (
 from macromicro_sumo.fielddata.stations import PEMS_FIXED, PEMS_LANE, PEMS_MAPPING
 from macromicro_sumo.fielddata.trajectories import NGSIM_MAPPING, derive_rates
 from macromicro_sumo.files import write_csv
-from macromicro_sumo.road.section import Section, section_leaders
+from macromicro_sumo.road.leaders import section_leaders
+from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.data import FT, SPEED_UNITS
 
 NGSIM_EPOCH_MS = 1_118_846_980_200  # US-101's first Global_Time (2005-06-15 07:49:40.2 PDT)

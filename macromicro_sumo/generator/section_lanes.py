@@ -13,7 +13,7 @@ vehicles on drawn 501 / 503, game/cross).
 So the generator numbers its lanes along the connections (``through_lanes``): a lane keeps
 the number of the lane it continues from, a lane nothing continues onto (a lane added, a
 ramp's) gets a new one. The leader of a vehicle in the generator's gaps is then the one
-``road.section.section_leaders`` finds along the connections. Where a lane fans out onto
+``road.leaders.section_leaders`` finds along the connections. Where a lane fans out onto
 several, it continues onto one of them (``_onto``: one that goes on along the section,
 the nearest index first); the others begin as lanes of their own. Where several lanes
 continue onto one (a merge), the first keeps its number and the others end there. On a

@@ -15,7 +15,8 @@ import torch
 from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.generator.section_sampler import SectionCompletion
 from macromicro_sumo.generator.section_scene import PSI_INDEX, TOL_M, Road
-from macromicro_sumo.road.section import Section, section_leaders
+from macromicro_sumo.road.leaders import section_leaders
+from macromicro_sumo.road.section import Section
 
 # --------------------------------------------------------------------------- checks, metrics
 

@@ -22,7 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from macromicro_sumo.road.section import STOP, Section, section_leaders
+from macromicro_sumo.road.leaders import section_leaders
+from macromicro_sumo.road.section import STOP, Section
 
 TOL = 1e-6
 

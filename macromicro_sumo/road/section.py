@@ -21,13 +21,10 @@ import numpy as np
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import write_json
-from macromicro_sumo.road.ring import loop_successors
 from macromicro_sumo.sumo.inputs import read_net
 
 NO_LEADER_GAP_M = 250.0  # spacing reported when nothing drives ahead on the section
 STOP = -2  # leader index of a standing obstacle: a lane's end, or a red light's stop line
-STOPLINE_GAP_M = 1.0  # SUMO's jmStoplineGap default: its drivers stop this far before a red
-STANDING_MIN_GAP_M = 2.5  # SUMO's default minGap: a standing leader's (the envs know no own)
 
 
 @dataclass(frozen=True)
@@ -367,134 +364,3 @@ def read_section(net_file: Path, edges: list[str], closed: bool, where: str = ""
         links=links,
         lane_ends=lane_ends,
     )
-
-
-def lane_leaders(
-    lane: np.ndarray, arc_m: np.ndarray, length_m: float, closed: bool
-) -> tuple[np.ndarray, np.ndarray]:
-    """Leader index (-1: none) and front-to-front spacing [m] of every vehicle, per lane.
-
-    O(V log V) for V vehicles: one sort by (lane, arc). On an open section the first
-    vehicle of a lane has no leader (spacing ``NO_LEADER_GAP_M``); on a closed one it
-    follows the last vehicle of its lane around the loop.
-    """
-    v = len(arc_m)
-    leader = np.full(v, -1, dtype=np.int64)
-    spacing = np.full(v, NO_LEADER_GAP_M)
-    if v == 0:
-        return leader, spacing
-    order = np.lexsort((arc_m, lane))
-    ln, s = lane[order], arc_m[order]
-    same = ln[1:] == ln[:-1]
-    behind, ahead = order[:-1][same], order[1:][same]
-    leader[behind] = ahead
-    spacing[behind] = (s[1:] - s[:-1])[same]
-    if closed:
-        # Last vehicle of each lane follows that lane's first vehicle, around the loop.
-        first = np.concatenate([[True], ~same])
-        last = np.concatenate([~same, [True]])
-        firsts, lasts = order[first], order[last]
-        leader[lasts] = firsts
-        spacing[lasts] = s[first] + length_m - s[last]
-        alone = firsts == lasts
-        spacing[lasts[alone]] = length_m
-    return leader, spacing
-
-
-def section_leaders(
-    section: Section,
-    lane: np.ndarray,
-    arc_m: np.ndarray,
-    stop_lane: np.ndarray | None = None,
-    stop_arc_m: np.ndarray | None = None,
-    on_route: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Leader index and front-to-front spacing [m] of every vehicle along the network's
-    lane connections (what a driver on that lane meets next), not along lane indices.
-
-    Where a lane is added on the right (an on-ramp), the through lanes' indices shift by
-    one at the edge boundary: a leader looked up by index would be a vehicle on another
-    lane. Leader -1: none on the section (spacing ``NO_LEADER_GAP_M``); ``STOP``: a
-    standing obstacle, at the end of a lane that leads nowhere (``Section.lane_ends``), for
-    the vehicles ``on_route`` (V,) (None: none) at the end of any lane that does not
-    continue along the section (``Section.route_ends``: a turning lane too), either at the
-    end of the chain of lanes that all end (``Section.chain_beyond_m``), or at a stop
-    point given by ``stop_lane`` / ``stop_arc_m`` (a red light's stop line), with the
-    spacing to it.
-    O(V log V): one sort by (lane of an edge, arc), then one pass over the section's lanes.
-    """
-    v = len(arc_m)
-    leader = np.full(v, -1, dtype=np.int64)
-    spacing = np.full(v, NO_LEADER_GAP_M)
-    if v == 0:
-        return leader, spacing
-    lane = np.asarray(lane, dtype=np.int64)
-    arc = np.asarray(arc_m, dtype=float)
-    if stop_lane is not None and stop_arc_m is not None and len(stop_arc_m):
-        lane = np.concatenate([lane, np.asarray(stop_lane, dtype=np.int64)])
-        arc = np.concatenate([arc, np.asarray(stop_arc_m, dtype=float)])
-    if section.closed and section.max_lanes == 1 and section.links.all():
-        nxt, gap = loop_successors(np.mod(arc, section.length_m), section.length_m)
-        nxt, gap = nxt[:v], gap[:v]
-        return np.where(nxt >= v, STOP, nxt), gap
-    m = section.max_lanes
-    edge, rel = section.node_of(arc)
-    node = edge * m + np.clip(lane, 0, section.n_lanes[edge] - 1)
-    order = np.lexsort((rel, node))
-    nd, r = node[order], rel[order]
-    same = nd[1:] == nd[:-1]
-    nxt = np.full(len(arc), -1, dtype=np.int64)
-    gap = np.full(len(arc), NO_LEADER_GAP_M)
-    nxt[order[:-1][same]] = order[1:][same]
-    gap[order[:-1][same]] = (r[1:] - r[:-1])[same]
-    first = np.concatenate([[True], ~same])
-    last = np.concatenate([~same, [True]])
-    first_idx = np.full(len(section.edge_ids) * m, -1, dtype=np.int64)
-    first_rel = np.full(len(section.edge_ids) * m, np.inf)
-    first_idx[nd[first]], first_rel[nd[first]] = order[first], r[first]
-    ahead, off = section.ahead_of_lanes(first_idx, first_rel)
-    lasts, ln = order[last], nd[last]
-    to_end = section.node_span_m[edge[lasts]] - rel[lasts]
-    found = ahead[ln] >= 0
-    nxt[lasts[found]] = ahead[ln[found]]
-    gap[lasts[found]] = (to_end + off[ln])[found]
-    # The end of the lane, or of the chain of lanes it leads onto that all end.
-    everyone, driven = section.end_beyond_m
-    beyond = everyone.ravel()[ln]
-    if on_route is not None:  # stop points (index >= v) are no vehicle: their ends unread
-        route = np.concatenate([np.asarray(on_route, dtype=bool), np.zeros(len(arc) - v, bool)])
-        beyond = np.where(route[lasts], driven.ravel()[ln], beyond)
-    ends = ~found & np.isfinite(beyond)
-    nxt[lasts[ends]] = STOP
-    gap[lasts[ends]] = (to_end + beyond)[ends]
-    nxt, gap = nxt[:v], gap[:v]
-    leader[:] = np.where(nxt >= v, STOP, nxt)
-    spacing[:] = np.where(nxt == -1, NO_LEADER_GAP_M, gap)
-    return leader, spacing
-
-
-def standing_spacing_m(
-    dist_m: np.ndarray, length_m: np.ndarray, stop_gap_m: float | np.ndarray = 0.0
-) -> np.ndarray:
-    """Front-to-front spacing a vehicle ``length_m`` long observes to a standing obstacle
-    ``dist_m`` ahead of its front: a standing vehicle of its length ``STANDING_MIN_GAP_M``
-    beyond where SUMO's drivers stop, ``stop_gap_m`` before it (red: ``STOPLINE_GAP_M``, a
-    lane end: 0): SUMO's gap to a red light is distance - jmStoplineGap, to a vehicle distance
-    - minGap, and readers take gap = spacing - length - minGap. The envs', demand env's and
-    deployment's one definition."""
-    return np.maximum(dist_m - stop_gap_m, 0.0) + STANDING_MIN_GAP_M + length_m
-
-
-def nearer_standing(spacing_m: np.ndarray, stop_m: np.ndarray, length_m: np.ndarray) -> np.ndarray:
-    """Where a standing obstacle ``stop_m`` (``stop_distance_m``, inf: none) is nearer than the
-    leader, ``spacing_m`` becomes ``standing_spacing_m`` (in place); the mask of those."""
-    standing = standing_spacing_m(np.asarray(stop_m, dtype=float), length_m)
-    closer = standing < spacing_m
-    np.copyto(spacing_m, standing, where=closer)
-    return closer
-
-
-def stop_distance_m(lane_end_m: np.ndarray, red_m: np.ndarray) -> np.ndarray:
-    """SUMO's gap to a stop: a lane end's distance, or a red line's less STOPLINE_GAP_M."""
-    red = np.maximum(np.asarray(red_m, dtype=float) - STOPLINE_GAP_M, 0.0)  # NaN stays
-    return np.fmin(np.asarray(lane_end_m, dtype=float), red)

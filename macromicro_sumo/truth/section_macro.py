@@ -9,7 +9,8 @@ import numpy as np
 import pandas as pd
 
 from macromicro_sumo.data.macro import passage_spacings
-from macromicro_sumo.road.section import Section, section_leaders
+from macromicro_sumo.road.leaders import section_leaders
+from macromicro_sumo.road.section import Section
 from macromicro_sumo.truth.density import (
     DEFAULT_VEHICLE_LENGTH_M,
     point_density,

@@ -18,8 +18,9 @@ from test_safety import _run_section, adversary
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.observe import STOP_DECEL_MPS2
 from macromicro_sumo.deploy.safety import SAFETY_BRAKES, planned_decel
+from macromicro_sumo.road.leaders import section_leaders
 from macromicro_sumo.road.physics import safe_speed
-from macromicro_sumo.road.section import read_section, section_leaders
+from macromicro_sumo.road.section import read_section
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import simulate_section
 

@@ -1,7 +1,7 @@
 """Where a deployed prior's queue stands at a red light: where SUMO's own drivers stand.
 
 SUMO's drivers stop jmStoplineGap (1 m, its default) before a red line and keep no minGap
-to it; the observation's standing leader (``road.section.standing_spacing_m``) sits minGap
+to it; the observation's standing leader (``road.leaders.standing_spacing_m``) sits minGap
 beyond that stop, so a prior keeping its minGap to it stops there too. Before, its back was
 at the line and the prior (game/cross's Krauss fit, minGap 2.49 m) stopped 2.2 m before it:
 the queue stood 1.2 m upstream of the truth's, and a loop 36 m before the line read a car

@@ -419,7 +419,7 @@ def idm_policy(obs: np.ndarray) -> np.ndarray:
 def test_policy_stops_at_a_red_or_yellow_light(tmp_path, state):
     """A red (or yellow) signal ahead is a standing leader at the stop line in the
     observation: its spacing is SUMO's distance to the stop line less jmStoplineGap (1 m)
-    plus minGap 2.5 m and the own 5 m length (``road.section.standing_spacing_m``), and an
+    plus minGap 2.5 m and the own 5 m length (``road.leaders.standing_spacing_m``), and an
     IDM policy driving by it (exact commands: SUMO does not brake for it) stops before the
     line."""
     net = signal_net(tmp_path / "net", state)

@@ -183,7 +183,7 @@ def test_driven_vehicles_see_their_turning_lanes_end(cross_truth) -> None:
     """A hidden vehicle drives the section's route: on 1si's turning lanes (0, 2) with no
     vehicle ahead on its lane, the lane's end is its standing leader at every step, on
     green too (before: a free road, 250 m), at the distance plus minGap 2.5 m and its own
-    length (``road.section.standing_spacing_m``: SUMO stops at a lane's end); a replayed observed vehicle there keeps its
+    length (``road.leaders.standing_spacing_m``: SUMO stops at a lane's end); a replayed observed vehicle there keeps its
     own route's free road where the light is green."""
     sc, truth = cross_truth
     snaps = recorded_snapshots(truth, sc, truth.runs)

@@ -1,7 +1,7 @@
 """One observation of what is ahead in the Stage II envs, the demand env and the deployment.
 
 A red or yellow stop line and the end of a lane a vehicle must leave are standing leaders
-(``road.section.standing_spacing_m``): a standing vehicle of the own length whose back is
+(``road.leaders.standing_spacing_m``): a standing vehicle of the own length whose back is
 minGap (2.5 m) beyond where SUMO stops the front, 1 m before a red line (jmStoplineGap), at
 a lane's end, so that every reader of the spacing takes SUMO's gap to the stop. The
 snapshot env reads it on the section's arc (``section_observations`` with ``stop_points``
@@ -25,14 +25,8 @@ import sumo
 from macromicro_sumo.deploy.observe import STANDING, LaneTable, Table, observe_rows
 from macromicro_sumo.env.demand import sumo_observations
 from macromicro_sumo.env.section_bank import section_observations, stop_points
-from macromicro_sumo.road.section import (
-    NO_LEADER_GAP_M,
-    Section,
-    nearer_standing,
-    read_section,
-    standing_spacing_m,
-    stop_distance_m,
-)
+from macromicro_sumo.road.leaders import nearer_standing, standing_spacing_m, stop_distance_m
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section, read_section
 from macromicro_sumo.sumo.options import SumoOptions
 from macromicro_sumo.sumo.simulation import Simulation
 

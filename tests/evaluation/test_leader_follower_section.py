@@ -141,7 +141,7 @@ def test_section_stage_call_on_a_simulated_corridor(field_truth):
     from macromicro_sumo.env.section_bank import typical_length, typical_vclass
     from macromicro_sumo.evaluation.idm_fit import calibrate_idm
     from macromicro_sumo.evaluation.micro_data import micro_pairs
-    from macromicro_sumo.road.section import section_leaders
+    from macromicro_sumo.road.leaders import section_leaders
     from macromicro_sumo.truth.section import load_section_truth
 
     sc = load_scenario(field_truth.parent / "corridor.toml")

@@ -26,7 +26,8 @@ from macromicro_sumo.generator.section_lanes import through_lanes
 from macromicro_sumo.generator.section_model import SectionGeneratorNet
 from macromicro_sumo.generator.section_sampler import complete_section
 from macromicro_sumo.generator.section_scene import Road, scene_gaps
-from macromicro_sumo.road.section import Section, read_section, section_leaders
+from macromicro_sumo.road.leaders import section_leaders
+from macromicro_sumo.road.section import Section, read_section
 
 S_MIN = 7.5  # psi's smallest front-to-front spacing [m]: a 5 m car and 2.5 m of gap
 BRAKE = 4.5

@@ -39,7 +39,8 @@ from macromicro_sumo.generator.section_train import (
     save_section_generator,
     train_section_generator,
 )
-from macromicro_sumo.road.section import Section, read_section, section_leaders
+from macromicro_sumo.road.leaders import section_leaders
+from macromicro_sumo.road.section import Section, read_section
 from macromicro_sumo.scenario.section import (
     SectionConfig,
 )
@@ -393,7 +394,7 @@ def kinematic_violations(
 ):
     """Pairs touching a generated vehicle whose follower cannot stop behind its leader
     (v_f^2 + 2 b tau v_f > v_l^2 + 2 b (spacing - s_min)), over all scenes."""
-    from macromicro_sumo.road.section import section_leaders
+    from macromicro_sumo.road.leaders import section_leaders
 
     bad = 0
     for i in range(len(comp.valid)):

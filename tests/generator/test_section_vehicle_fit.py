@@ -21,7 +21,8 @@ from test_section_generator import S_MIN, synthetic, untrained
 
 from macromicro_sumo.generator.section_sampler import complete_section, uniform_completion
 from macromicro_sumo.generator.section_scene import Road, scene_gaps
-from macromicro_sumo.road.section import Section, section_leaders
+from macromicro_sumo.road.leaders import section_leaders
+from macromicro_sumo.road.section import Section
 
 CAR_M, TRUCK_M = 5.0, 12.0  # S_MIN = the car's length + a 2.5 m minimum gap
 BRAKE_MPS2, REACTION_S = 4.5, 1.0

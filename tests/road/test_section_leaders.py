@@ -1,4 +1,4 @@
-"""Leaders along the network's lane connections (``road.section.section_leaders``).
+"""Leaders along the network's lane connections (``road.leaders.section_leaders``).
 
 A tiny merge built with netconvert: a 2-lane road gains an on-ramp lane on the right, so
 the through lanes' indices shift by one at the boundary; the lanes then drop back to two.
@@ -13,14 +13,8 @@ import pandas as pd
 import pytest
 from conftest import NETS, netconvert
 
-from macromicro_sumo.road.section import (
-    NO_LEADER_GAP_M,
-    STOP,
-    Section,
-    lane_leaders,
-    read_section,
-    section_leaders,
-)
+from macromicro_sumo.road.leaders import lane_leaders, section_leaders
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, STOP, Section, read_section
 from macromicro_sumo.truth.section_macro import trajectory_macro
 
 EDGES = ["a", "b", "c"]

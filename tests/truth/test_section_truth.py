@@ -19,7 +19,8 @@ from conftest import NETS, corridor_table, dump_toml
 from macromicro_sumo.cli import main
 from macromicro_sumo.data.section import section_snapshots
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.road.section import NO_LEADER_GAP_M, lane_leaders, read_section
+from macromicro_sumo.road.leaders import lane_leaders
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, read_section
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.netgen import random_corridor
 from macromicro_sumo.truth.section import load_section_truth, simulate_section
