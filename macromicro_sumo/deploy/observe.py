@@ -1,6 +1,6 @@
 """What a deployment's driven vehicle on a section sees, from SUMO's state read once per
 step (``sumo.simulation.VehicleStates``): the section env's observation
-(``env.section_bank.section_observations``) with SUMO's own leader, and what the safety
+(``env.section_observations.section_observations``) with SUMO's own leader, and what the safety
 layer needs (``deploy.drivers.safety_cap``). Vectorised over the driven vehicles: per
 vehicle only dictionary look-ups in Python.
 """

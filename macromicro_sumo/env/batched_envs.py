@@ -22,12 +22,9 @@ from gymnasium.vector.utils import batch_space
 
 from macromicro_sumo.env.batched import BatchedSectionCore
 from macromicro_sumo.env.observation import bank_shift_scale
-from macromicro_sumo.env.section_bank import (
-    initial_observations,
-    recorded_min_gap,
-    typical_vclass,
-)
+from macromicro_sumo.env.section_bank import recorded_min_gap, typical_vclass
 from macromicro_sumo.env.section_envs import make_section_bank
+from macromicro_sumo.env.section_observations import initial_observations
 from macromicro_sumo.env.wrappers import Scaling
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.section import NO_LEADER_GAP_M

@@ -36,13 +36,8 @@ import numpy as np
 from scipy.stats import truncnorm
 
 from macromicro_sumo.data.section import SectionTruth, recorded_steps, run_section, vehicle_level
-from macromicro_sumo.env.section_bank import (
-    SectionBank,
-    initial_observations,
-    recordable,
-    section_observations,
-    speed_caps,
-)
+from macromicro_sumo.env.section_bank import SectionBank, recordable, speed_caps
+from macromicro_sumo.env.section_observations import initial_observations, section_observations
 from macromicro_sumo.road.physics import LIMIT_COLUMN, NEXT_LIMIT_COLUMN
 
 # The observation columns that are speed limits (own lane, the look-ahead's next edge).
@@ -363,7 +358,7 @@ def with_driver_factors(
 ) -> SectionBank:
     """``bank`` with a factor per episode and hidden slot (``kind`` "drawn": from
     ``quantiles``, seeded; "memory": from its generated start, ``obs0`` the valid slots'
-    initial observations, ``env.section_bank.initial_observations``); observed slots keep 1
+    initial observations, ``env.section_observations.initial_observations``); observed slots keep 1
     (they replay their records; the likelihood's pairs are the recorded ones)."""
     if kind == "memory":
         factor = np.ones(bank.valid.shape)

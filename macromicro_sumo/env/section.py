@@ -50,11 +50,10 @@ from macromicro_sumo.env.observation import StepResult
 from macromicro_sumo.env.section_bank import (
     SectionBank,
     section_macro_reward,
-    section_observations,
     section_target,
     set_sumo_limits,
-    stop_points,
 )
+from macromicro_sumo.env.section_observations import section_observations, stop_points
 from macromicro_sumo.env.section_replay import junction_lane, junction_vias
 from macromicro_sumo.env.slot_core import DEFAULT_SAFETY, POSITION_TOL_M, SlotCore
 from macromicro_sumo.errors import UserError

@@ -26,10 +26,10 @@ from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import (
     SectionBank,
     build_section_bank,
-    initial_observations,
     recorded_min_gap,
     typical_vclass,
 )
+from macromicro_sumo.env.section_observations import initial_observations
 from macromicro_sumo.env.wrappers import (
     SECTION_ENV_ID,
     Scaling,

@@ -15,7 +15,8 @@ import torch
 
 from macromicro_sumo.data.section import SectionTruth, recorded_steps, run_section, stop_lines_at
 from macromicro_sumo.env.rollout import ActionFn
-from macromicro_sumo.env.section_bank import recordable, section_observations
+from macromicro_sumo.env.section_bank import recordable
+from macromicro_sumo.env.section_observations import section_observations
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.idm_fit import IdmParams, idm_policy_accel
 from macromicro_sumo.fielddata.leaders import has_measured_leaders, with_measured_leaders

@@ -44,7 +44,8 @@ from macromicro_sumo.env.batched import batched_like
 from macromicro_sumo.env.demand import DemandCore
 from macromicro_sumo.env.observation import bank_shift_scale
 from macromicro_sumo.env.section import SectionCore
-from macromicro_sumo.env.section_bank import SectionBank, initial_observations
+from macromicro_sumo.env.section_bank import SectionBank
+from macromicro_sumo.env.section_observations import initial_observations
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import write_csv
 from macromicro_sumo.policy.agent import Agent

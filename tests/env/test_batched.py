@@ -18,10 +18,10 @@ from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import (
     build_section_bank,
     section_macro_reward,
-    section_observations,
     section_target,
 )
 from macromicro_sumo.env.section_envs import true_section_completion
+from macromicro_sumo.env.section_observations import section_observations
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.section import read_section
 from macromicro_sumo.scenario.load import load_scenario

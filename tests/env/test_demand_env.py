@@ -26,7 +26,7 @@ from macromicro_sumo.env.driver_speed import (  # noqa: E402
     entry_factors,
     factors_at,
 )
-from macromicro_sumo.env.section_bank import section_observations  # noqa: E402
+from macromicro_sumo.env.section_observations import section_observations  # noqa: E402
 from macromicro_sumo.road.physics import idm_accel  # noqa: E402
 from macromicro_sumo.scenario.load import load_scenario  # noqa: E402
 from macromicro_sumo.truth.section import load_section_truth, simulate_section  # noqa: E402

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import sumo
 
-from macromicro_sumo.env.section_bank import section_observations
+from macromicro_sumo.env.section_observations import section_observations
 from macromicro_sumo.generator.section_scene import scene_stops
 from macromicro_sumo.road.leaders import section_leaders
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, STOP, Section, read_section

@@ -24,7 +24,7 @@ import sumo
 
 from macromicro_sumo.deploy.observe import STANDING, LaneTable, Table, observe_rows
 from macromicro_sumo.env.demand import sumo_observations
-from macromicro_sumo.env.section_bank import section_observations, stop_points
+from macromicro_sumo.env.section_observations import section_observations, stop_points
 from macromicro_sumo.road.leaders import nearer_standing, standing_spacing_m, stop_distance_m
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section, read_section
 from macromicro_sumo.sumo.options import SumoOptions

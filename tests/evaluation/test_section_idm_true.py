@@ -21,7 +21,8 @@ from macromicro_sumo.data.section import (
     snapshots_by_k,
     split_runs,
 )
-from macromicro_sumo.env.section_bank import build_section_bank, initial_observations
+from macromicro_sumo.env.section_bank import build_section_bank
+from macromicro_sumo.env.section_observations import initial_observations
 from macromicro_sumo.evaluation.idm_fit import IdmParams, idm_policy_accel
 from macromicro_sumo.evaluation.idm_true import PARAMS, true_idm_by_episode, true_idm_table
 from macromicro_sumo.evaluation.section import TRUE_REUSED

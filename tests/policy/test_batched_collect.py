@@ -12,7 +12,7 @@ from policy_rings import ring_core, ring_scenario, true_state_bank
 
 from macromicro_sumo.env.batched import BatchedSectionCore
 from macromicro_sumo.env.observation import bank_shift_scale
-from macromicro_sumo.env.section_bank import initial_observations
+from macromicro_sumo.env.section_observations import initial_observations
 from macromicro_sumo.policy import ppo
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.ppo import train_policy

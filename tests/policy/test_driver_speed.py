@@ -32,7 +32,7 @@ from macromicro_sumo.env.driver_speed import (  # noqa: E402
     ratio_quantiles,
     with_driver_factors,
 )
-from macromicro_sumo.env.section_bank import section_observations  # noqa: E402
+from macromicro_sumo.env.section_observations import section_observations  # noqa: E402
 from macromicro_sumo.errors import UserError  # noqa: E402
 from macromicro_sumo.policy.agent import Agent  # noqa: E402
 from macromicro_sumo.policy.checkpoint import CHECKPOINT_FORMAT, load_checkpoint, signature  # noqa: E402

@@ -1,0 +1,140 @@
+"""What a vehicle observes on a section (Stage II's envs, the micro pairs, the demand env).
+
+``section_observations``: the observations, leaders and spacings of the active vehicles
+(leaders along the lane connections, standing obstacles as standing leaders);
+``stop_points``: the red lines ahead of vehicles as stop points on the section's arc;
+``initial_observations``: every vehicle's observation at every episode's start, what the
+policy's input normalisation is fitted on.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from macromicro_sumo.env.section_bank import SectionBank
+from macromicro_sumo.road.leaders import STOPLINE_GAP_M, section_leaders, standing_spacing_m
+from macromicro_sumo.road.physics import OBSERVATION_FEATURES, set_own_features
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, STOP, Section
+
+
+def section_observations(
+    section: Section,
+    lane: np.ndarray,
+    arc_m: np.ndarray,
+    speed_mps: np.ndarray,
+    active: np.ndarray,
+    observation: str,
+    stop_lane: np.ndarray | None = None,
+    stop_arc_m: np.ndarray | None = None,
+    factor: np.ndarray | None = None,
+    length_m: np.ndarray | None = None,
+    on_route: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Observations (N, obs_dim), leader (-1: none, ``STOP``: a standing obstacle) and
+    spacing of the active vehicles; ``factor`` (N,): each driver's desired-speed factor,
+    which multiplies the limits it observes (``env.driver_speed``; None: 1); ``length_m``
+    (N,): each vehicle's length, for an observation with own features (``physics.
+    set_own_features``) and the spacing to a standing leader (``road.leaders.
+    standing_spacing_m``; None: the distance alone).
+
+    Leaders along the lane connections (``section_leaders``, one sort per call); the end
+    of a lane that leads nowhere, for the vehicles ``on_route`` (N,) (the driven ones,
+    which drive the section's route; None: none) that of any lane that does not continue
+    along the section (``Section.route_ends``: a turning lane), and the stop points given
+    (red lights) are standing leaders, as a driver sees them (in ``leader``: ``STOP``). The
+    observation sees no leader (``NO_LEADER_GAP_M``, delta v 0) at that spacing or beyond,
+    as the deployment does; ``leader`` and ``spacing`` keep it. Inactive slots get zeros
+    and no leader.
+    """
+    n = len(arc_m)
+    obs = np.zeros((n, len(OBSERVATION_FEATURES[observation])))
+    leader = np.full(n, -1, dtype=np.int64)
+    spacing = np.full(n, NO_LEADER_GAP_M)
+    idx = np.flatnonzero(active)
+    if idx.size == 0:
+        return obs, leader, spacing
+    ln, s, v = lane[idx], arc_m[idx], speed_mps[idx]
+    route = None if on_route is None else on_route[idx]
+    lead, gap = section_leaders(section, ln, s, stop_lane, stop_arc_m, route)
+    standing = lead == STOP
+    if length_m is not None and standing.any():
+        red = np.zeros(len(s), dtype=bool)  # at a given stop point on the own lane; else an end
+        if stop_arc_m is not None and len(stop_arc_m):
+            k = np.flatnonzero(standing)
+            d = section.wrap(section.wrap(s[k] + gap[k])[:, None] - stop_arc_m + 1.0) - 1.0
+            red[k] = ((np.abs(d) < 0.05) & (ln[k, None] == stop_lane)).any(1)
+        gap = np.where(standing, standing_spacing_m(gap, length_m[idx], STOPLINE_GAP_M * red), gap)
+    has = lead >= 0
+    leader[idx[has]] = idx[lead[has]]
+    leader[idx[standing]] = STOP  # readers take >= 0 as a vehicle; the code says which
+    spacing[idx] = gap
+    e = section.edge_index(s)
+    lim = section.limits_mps
+    o = obs[idx]
+    o[:, 0] = v
+    o[:, 1] = lim[e, np.minimum(ln, section.n_lanes[e] - 1)]
+    # A leader as far as NO_LEADER_GAP_M or farther is none, as the deployment's look-ahead
+    # (SUMO's getLeader within it) and the demand env's see it.
+    near = gap < NO_LEADER_GAP_M
+    o[:, 2] = np.where(near, gap, NO_LEADER_GAP_M)
+    dv = np.where(has, v - v[np.maximum(lead, 0)], np.where(standing, v, 0.0))
+    o[:, 3] = np.where(near, dv, 0.0)
+    if o.shape[1] > 4:
+        o[:, 4], o[:, 5] = section.lookahead(ln, s, e, o[:, 1])
+    if factor is not None:
+        o[:, 1] *= factor[idx]
+        if o.shape[1] > 4:
+            o[:, 4] *= factor[idx]
+    set_own_features(o, observation, None if length_m is None else length_m[idx])
+    obs[idx] = o
+    return obs, leader, spacing
+
+
+def stop_points(
+    section: Section, lane: np.ndarray, arc_m: np.ndarray, dist_m: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(lane, arc) of the stop lines ``dist_m`` ahead of vehicles at (``lane``, ``arc_m``)
+    (inf: none), one per distinct place.
+
+    A stop line is the end of an edge: the distance SUMO gives is along the vehicle's own
+    lane, whose length can differ from the section's arc of that edge (a curve), so each
+    point is snapped to the edge end nearest that distance ahead; the spacing observed is
+    then the arc to it. Lines past an open section's end are dropped.
+    """
+    ok = np.isfinite(dist_m)
+    if not ok.any():
+        return np.zeros(0, dtype=np.int64), np.zeros(0)
+    ln, s, d = np.asarray(lane)[ok], np.asarray(arc_m, dtype=float)[ok], dist_m[ok]
+    ends = section.offsets_m + section.lengths_m
+    ahead = section.wrap(ends[None, :] - s[:, None])
+    ahead = np.where(ahead >= 0.0, ahead, np.inf)
+    best = ahead[np.arange(len(s)), np.argmin(np.abs(ahead - d[:, None]), axis=1)]
+    keep = np.isfinite(best)
+    arc = section.wrap(s[keep] + best[keep])
+    pts = np.unique(np.stack([ln[keep].astype(float), np.round(arc, 6)], axis=1), axis=0)
+    return pts[:, 0].astype(np.int64), pts[:, 1]
+
+
+def initial_observations(sc, section: Section, bank: SectionBank) -> np.ndarray:
+    """Every valid vehicle's observation at the start of every episode, (V, obs_dim).
+
+    What the policy's input normalisation is fitted on (no SUMO run needed).
+    """
+    rows = []
+    runs: dict[int, Section] = {}  # one section per run: its speed limits
+    for ep in range(len(bank)):
+        valid = bank.valid[ep]
+        run = int(bank.run[ep])
+        if run not in runs:
+            runs[run] = bank.section_of(section, ep)
+        obs, _, _ = section_observations(
+            runs[run],
+            bank.lane0[ep],
+            section.wrap(bank.arc0_m[ep]),
+            bank.speed0_mps[ep],
+            valid,
+            sc.policy.observation,
+            length_m=bank.length_m[ep],
+        )
+        rows.append(obs[valid])
+    return np.concatenate(rows) if rows else np.zeros((0, 4))
