@@ -29,7 +29,7 @@ from pathlib import Path
 import torch
 
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.generator.section_train import run_train_section_generator
+from macromicro_sumo.generator.section_stage import run_train_section_generator
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.truth.section import simulate_section

@@ -33,7 +33,7 @@ from macromicro_sumo.evaluation.krauss_fit import fit_krauss, network_defaults
 from macromicro_sumo.evaluation.methods import LEARNED, checkpoint_name
 from macromicro_sumo.evaluation.section import evaluate_section, micro_pairs
 from macromicro_sumo.files import prepare_out_dir
-from macromicro_sumo.generator.section_train import run_train_section_generator
+from macromicro_sumo.generator.section_stage import run_train_section_generator
 from macromicro_sumo.pipeline.parallel import default_jobs
 from macromicro_sumo.pipeline.refinement import MANIFEST as REFINE_MANIFEST
 from macromicro_sumo.pipeline.refinement import refine

@@ -24,7 +24,7 @@ from macromicro_sumo.data.section import (
 from macromicro_sumo.env.section_bank import build_section_bank
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.section import micro_pairs
-from macromicro_sumo.generator.section_train import stage_snapshots
+from macromicro_sumo.generator.section_stage import stage_snapshots
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import load_section_truth
 

@@ -24,7 +24,7 @@ from macromicro_sumo.generator.section_sampler import (
     complete_section,
     generator_completion,
 )
-from macromicro_sumo.generator.section_train import held_out_completion
+from macromicro_sumo.generator.section_stage import held_out_completion
 from macromicro_sumo.road.section import read_section
 
 CROSS = Path(sumo.__file__).resolve().parent / "tools" / "game" / "cross" / "cross.net.xml"

@@ -23,10 +23,8 @@ from macromicro_sumo.generator.section_bounds import bounded_gaps
 from macromicro_sumo.generator.section_model import Scene, SectionGeneratorNet, section_losses
 from macromicro_sumo.generator.section_sampler import complete_section
 from macromicro_sumo.generator.section_scene import Gaps, Psi, Road
-from macromicro_sumo.generator.section_train import (
-    run_train_section_generator,
-    squared_dispersion,
-)
+from macromicro_sumo.generator.section_stage import run_train_section_generator
+from macromicro_sumo.generator.section_train import squared_dispersion
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.section import SectionGeneratorConfig, SectionScenario
 from macromicro_sumo.truth.section import load_section_truth

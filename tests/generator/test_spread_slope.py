@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from macromicro_sumo.generator.section_train import spread_slope
+from macromicro_sumo.generator.section_stage import spread_slope
 
 
 def _metrics(psi_std: np.ndarray, scene_std: np.ndarray) -> pd.DataFrame:

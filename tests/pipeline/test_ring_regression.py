@@ -70,7 +70,7 @@ REFERENCE: list[tuple] | None = [
 def ring_macro_rows(out: Path) -> pd.DataFrame:
     """The policy and ground-truth rows of the ring's macro table by K, computed in ``out``."""
     from macromicro_sumo.evaluation.section import evaluate_section
-    from macromicro_sumo.generator.section_train import run_train_section_generator
+    from macromicro_sumo.generator.section_stage import run_train_section_generator
     from macromicro_sumo.pipeline.build import fit_residual_prior
     from macromicro_sumo.policy.stage import run_train_policy
     from macromicro_sumo.scenario.load import load_scenario
