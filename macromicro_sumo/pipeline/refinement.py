@@ -52,6 +52,7 @@ from macromicro_sumo.generator.section_train import (
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.policy.agent import Agent, policy_action
 from macromicro_sumo.policy.checkpoint import load_policy, policy_file
+from macromicro_sumo.policy.chosen_prior import CHOICE_FILE, apply_choice, makes_choice, read_choice
 from macromicro_sumo.policy.ppo import train_policy
 from macromicro_sumo.policy.prior import PRIOR_KEYS
 from macromicro_sumo.policy.prior_choice import PriorFit, with_prior
@@ -124,6 +125,48 @@ def next_step_snapshots(
     return nxt.take(keep)
 
 
+def refine_prior(
+    sc: SectionScenario,
+    truth: Any,
+    data: Path,
+    policy: Path,
+    agent: Agent,
+    splits: dict,
+    fit_prior: PriorFit | None,
+) -> tuple[SectionScenario, Any]:
+    """The prior the single pass trained ``agent`` (``policy``'s) on, as
+    ``policy.stage.fit_stage_prior`` returns it: the fine-tune trains on it, nothing is
+    chosen again. A prior the pipeline chooses once (``policy.chosen_prior.CHOSEN``) is read
+    from ``prior_choice.json`` and its pairs beside ``policy`` where that file is fresh
+    (``read_choice``: made for ``sc`` on the ground truth in ``data``) and is the one the
+    checkpoint drives with (its family and parameters); else the checkpoint's family is
+    fitted to the train + val runs' pairs again, its Krauss relaxation time taken from the
+    checkpoint (the policy stage chose it by deployments of the prior alone)."""
+    path = policy.parent / CHOICE_FILE
+    if makes_choice(sc) and fit_prior is not None:
+        record = read_choice(path, sc, data, "fitting the policy's prior again")
+        if record is not None:
+            got = apply_choice(record, sc, path)
+            if got[0].policy.prior == agent.prior and _drives_with(agent, got[1][0]):
+                got[1][1]["prior_choice"] = {"file": str(path), "made_by_this_stage": False}
+                return got
+            print(f"{path}: not the prior {policy} drives with; fitting the policy's prior again")
+    trained = with_prior(sc, agent.prior) if sc.policy.prior == "auto" else sc
+    trained, (prior, extra, pairs) = fit_stage_prior(trained, truth, splits, fit_prior)
+    if prior is not None and agent.prior == "krauss" and relax_unidentified(prior):
+        chosen = {"relax_s": agent.krauss_prior.tolist()[PRIOR_KEYS["krauss"].index("relax_s")]}
+        if not relax_unidentified(chosen):  # the policy stage chose one below the bound
+            prior["relax_s"] = extra["prior"]["relax_s"] = chosen["relax_s"]
+    return trained, (prior, extra, pairs)
+
+
+def _drives_with(agent: Agent, params: dict[str, float]) -> bool:
+    """Whether ``agent``'s prior parameters (float32 buffers) are ``params``."""
+    have = getattr(agent, f"{agent.prior}_prior").numpy()
+    want = np.array([params[k] for k in PRIOR_KEYS[agent.prior]], dtype=have.dtype)
+    return bool(np.array_equal(have, want))
+
+
 def _episodes(sc: SectionScenario, truth: Any, net: SectionGeneratorNet, splits: dict):
     """The policy stage's episodes for ``net`` and the snapshots their bank completes."""
     ep = section_episodes(sc, truth, net, splits)
@@ -155,17 +198,10 @@ def refine(
     out = prepare_out_dir(out)
     torch.set_num_threads(1)
     splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
-    # The policy stage's prior: the fine-tune trains on the prior the single pass trained
-    # on, of the family its checkpoint records (with policy.prior = "auto" the one the
-    # policy stage chose) and its Krauss relaxation time as chosen there (by deployments
-    # of the prior alone, policy.relax_choice): neither is chosen again here.
     ep0, snaps0 = _episodes(sc, truth, net, splits)
-    trained = with_prior(sc, agent.prior) if sc.policy.prior == "auto" else sc
-    trained, (prior, extra_manifest, pairs) = fit_stage_prior(trained, truth, splits, fit_prior)
-    if prior is not None and agent.prior == "krauss" and relax_unidentified(prior):
-        chosen = {"relax_s": agent.krauss_prior.tolist()[PRIOR_KEYS["krauss"].index("relax_s")]}
-        if not relax_unidentified(chosen):  # the policy stage chose one below the bound
-            prior["relax_s"] = extra_manifest["prior"]["relax_s"] = chosen["relax_s"]
+    trained, (prior, extra_manifest, pairs) = refine_prior(
+        sc, truth, Path(data), Path(policy), agent, splits, fit_prior
+    )
     # The fine-tune keeps each next-step scene's hidden set (the policy's vehicles): no
     # fresh hidden sets per epoch, as with instrumented.hidden = "run".
     fixed = dataclasses.replace(sc, instrumented=dataclasses.replace(sc.instrumented, hidden="run"))

@@ -6,9 +6,10 @@ candidate priors alone on training runs: minutes. The paper's policy and its two
 (micro_only, macro_only) train on the same prior, chosen from the same pairs and runs, so the
 choice is made once and written to ``prior_choice.json`` in the policy folder (``CHOICE_FILE``:
 the family, its parameters, and what the policy manifests record, every candidate's figures
-included); each policy stage reads it (``policy.stage.stage_prior``). The pipeline makes it
-in a stage of its own (``choose_prior``), beside the generator's training: it reads only the
-ground truth. A stage run alone (``train-policy``) makes the file where it is missing.
+included); each policy stage reads it (``policy.stage.stage_prior``), and so does the joint
+refinement (``pipeline.refinement.refine_prior``). The pipeline makes it in a stage of its
+own (``choose_prior``), beside the generator's training: it reads only the ground truth. A
+stage run alone (``train-policy``) makes the file where it is missing.
 The chosen family's pairs (its fit's, which the residual's likelihood uses) go beside it
 (``PAIRS_FILE``): a Krauss fit alone takes half a minute.
 
@@ -182,9 +183,12 @@ def stale_reason(record: dict[str, Any], sc: Any, data: Path, path: Path) -> str
     return None
 
 
-def read_choice(path: Path, sc: Any, data: Path) -> dict[str, Any] | None:
+def read_choice(
+    path: Path, sc: Any, data: Path, then: str = "choosing the prior again"
+) -> dict[str, Any] | None:
     """The choice in ``path`` where it was made for ``sc`` on the ground truth in ``data``;
-    None where there is none, or it is stale (said in one line: it costs a choice)."""
+    None where there is none, or it is stale (said in one line, with what the reader does
+    ``then``: it costs a choice, or a fit)."""
     if not path.is_file():
         return None
     try:
@@ -195,7 +199,7 @@ def read_choice(path: Path, sc: Any, data: Path) -> dict[str, Any] | None:
         why = stale_reason(record, sc, data, path) if isinstance(record, dict) else "unreadable"
     if why is None:
         return record
-    print(f"{path}: {why}; choosing the prior again")
+    print(f"{path}: {why}; {then}")
     return None
 
 

@@ -27,7 +27,10 @@ from macromicro_sumo.pipeline.build import (
     run_stages,
     standard_stages,
 )
+from macromicro_sumo.pipeline.refinement import refine, refine_prior
+from macromicro_sumo.policy.checkpoint import load_policy
 from macromicro_sumo.policy.chosen_prior import CHOICE_FILE, PAIRS_FILE, read_choice
+from macromicro_sumo.policy.prior import PRIOR_KEYS
 from macromicro_sumo.policy.prior_choice import PriorDeploy
 from macromicro_sumo.policy.relax_choice import RELAX_CANDIDATES_S
 from macromicro_sumo.policy.stage import run_train_policy, stage_prior
@@ -189,6 +192,47 @@ def test_a_stale_choice_file_is_said_in_one_line_and_made_again(auto_run, tmp_pa
     assert trained.policy.prior == "idm" and extra["prior_choice"]["made_by_this_stage"]
     assert {"idm", "gipps", "krauss"} <= set(deployed)
     assert read_choice(path, brake, gt)["family"] == "idm"
+
+
+def test_the_refinement_reads_the_choice_and_trains_on_the_same_prior(auto_run, tmp_path, capsys):
+    """The joint refinement takes the single pass's prior from its policy folder's choice
+    file and pairs (no fit: a Krauss fit alone is half a minute); where the file is missing
+    or stale (one line says so) it fits the checkpoint's family again, to the same
+    parameters and pairs. Before, it fitted every time (``fit_prior`` called once)."""
+    sc, out, _, _, _ = auto_run
+    gt, pol = out / "ground_truth", tmp_path / "policy"
+    shutil.copytree(out / "policy", pol)
+    fits: list[str] = []
+
+    def fit(one, truth, runs):
+        fits.append(one.policy.prior)
+        return SECTION.fit_prior(one, truth, runs)
+
+    refined = dataclasses.replace(sc, policy=dataclasses.replace(sc.policy, refine_iterations=0))
+    m = refine(refined, gt, out / "generator" / "generator.pt", pol / "policy.pt", tmp_path / "r",
+               progress=False, fit_prior=fit)  # fmt: skip
+    choice = json.loads((pol / CHOICE_FILE).read_text())
+    assert fits == [] and m["prior_choice"]["made_by_this_stage"] is False
+    assert m["prior"] == choice["prior"]
+    truth = load_section_truth(gt, sc)
+    splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
+    agent = load_policy(pol / "policy.pt", sc)
+    read = refine_prior(sc, truth, gt, pol / "policy.pt", agent, splits, fit)
+    (pol / CHOICE_FILE).unlink()
+    fitted = refine_prior(sc, truth, gt, pol / "policy.pt", agent, splits, fit)
+    assert fits == [choice["family"]] and capsys.readouterr().out == ""
+    brake = dataclasses.replace(sc, deploy=dataclasses.replace(sc.deploy, safety_brake="matched"))
+    shutil.copy(out / "policy" / CHOICE_FILE, pol / CHOICE_FILE)
+    refine_prior(brake, truth, gt, pol / "policy.pt", agent, splits, fit)
+    said = capsys.readouterr().out
+    assert said.count("\n") == 1 and "fitting the policy's prior again" in said
+    assert len(fits) == 2
+    for got in (read, fitted):
+        assert got[0].policy.prior == agent.prior == choice["family"]
+    keys = PRIOR_KEYS[agent.prior]
+    assert [read[1][0][k] for k in keys] == pytest.approx([fitted[1][0][k] for k in keys])
+    for a, b in zip(read[1][2], fitted[1][2], strict=True):
+        assert np.array_equal(a, b)
 
 
 # --------------------------------------------------------------------------- the skip rule
