@@ -12,7 +12,12 @@ from __future__ import annotations
 import numpy as np
 
 from macromicro_sumo.env.section_bank import SectionBank
-from macromicro_sumo.road.leaders import STOPLINE_GAP_M, section_leaders, standing_spacing_m
+from macromicro_sumo.road.leaders import (
+    AHEAD_RED,
+    STOPLINE_GAP_M,
+    section_ahead,
+    standing_spacing_m,
+)
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES, set_own_features
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, STOP, Section
 
@@ -37,11 +42,12 @@ def section_observations(
     set_own_features``) and the spacing to a standing leader (``road.leaders.
     standing_spacing_m``; None: the distance alone).
 
-    Leaders along the lane connections (``section_leaders``, one sort per call); the end
+    Leaders along the lane connections (``section_ahead``, one sort per call); the end
     of a lane that leads nowhere, for the vehicles ``on_route`` (N,) (the driven ones,
     which drive the section's route; None: none) that of any lane that does not continue
     along the section (``Section.route_ends``: a turning lane), and the stop points given
-    (red lights) are standing leaders, as a driver sees them (in ``leader``: ``STOP``). The
+    (red lights) are standing leaders, as a driver sees them (in ``leader``: ``STOP``;
+    which of them ``section_ahead`` says: a stop point found takes the stop line's gap). The
     observation sees no leader (``NO_LEADER_GAP_M``, delta v 0) at that spacing or beyond,
     as the deployment does; ``leader`` and ``spacing`` keep it. Inactive slots get zeros
     and no leader.
@@ -55,14 +61,10 @@ def section_observations(
         return obs, leader, spacing
     ln, s, v = lane[idx], arc_m[idx], speed_mps[idx]
     route = None if on_route is None else on_route[idx]
-    lead, gap = section_leaders(section, ln, s, stop_lane, stop_arc_m, route)
+    lead, gap, kind = section_ahead(section, ln, s, stop_lane, stop_arc_m, route)
     standing = lead == STOP
     if length_m is not None and standing.any():
-        red = np.zeros(len(s), dtype=bool)  # at a given stop point on the own lane; else an end
-        if stop_arc_m is not None and len(stop_arc_m):
-            k = np.flatnonzero(standing)
-            d = section.wrap(section.wrap(s[k] + gap[k])[:, None] - stop_arc_m + 1.0) - 1.0
-            red[k] = ((np.abs(d) < 0.05) & (ln[k, None] == stop_lane)).any(1)
+        red = kind == AHEAD_RED  # a stop point given (a red line); else a lane's end
         gap = np.where(standing, standing_spacing_m(gap, length_m[idx], STOPLINE_GAP_M * red), gap)
     has = lead >= 0
     leader[idx[has]] = idx[lead[has]]
@@ -99,7 +101,9 @@ def stop_points(
     A stop line is the end of an edge: the distance SUMO gives is along the vehicle's own
     lane, whose length can differ from the section's arc of that edge (a curve), so each
     point is snapped to the edge end nearest that distance ahead; the spacing observed is
-    then the arc to it. Lines past an open section's end are dropped.
+    then the arc to it. The point lies on the lane the vehicle reaches there along the
+    lane connections (``lane_reached``), not on its own lane index: past an on-ramp the
+    through lanes' indices shift. Lines past an open section's end are dropped.
     """
     ok = np.isfinite(dist_m)
     if not ok.any():
@@ -108,11 +112,36 @@ def stop_points(
     ends = section.offsets_m + section.lengths_m
     ahead = section.wrap(ends[None, :] - s[:, None])
     ahead = np.where(ahead >= 0.0, ahead, np.inf)
-    best = ahead[np.arange(len(s)), np.argmin(np.abs(ahead - d[:, None]), axis=1)]
+    end = np.argmin(np.abs(ahead - d[:, None]), axis=1)
+    best = ahead[np.arange(len(s)), end]
     keep = np.isfinite(best)
     arc = section.wrap(s[keep] + best[keep])
-    pts = np.unique(np.stack([ln[keep].astype(float), np.round(arc, 6)], axis=1), axis=0)
+    at = lane_reached(section, section.node_of(s[keep])[0], ln[keep], end[keep])
+    pts = np.unique(np.stack([at.astype(float), np.round(arc, 6)], axis=1), axis=0)
     return pts[:, 0].astype(np.int64), pts[:, 1]
+
+
+def lane_reached(
+    section: Section, edge: np.ndarray, lane: np.ndarray, to_edge: np.ndarray
+) -> np.ndarray:
+    """The lane index on ``to_edge`` (at or after ``edge``) that ``lane`` of ``edge`` leads
+    onto along the connections: where a lane continues onto several, the rightmost that
+    carries on along the section (not a ``Section.route_ends`` lane, a turning lane), else
+    the rightmost; a lane continuing nowhere keeps its index (clipped)."""
+    n = len(section.edge_ids)
+    e = np.asarray(edge, dtype=np.int64).copy()
+    ln = np.minimum(np.asarray(lane, dtype=np.int64), section.n_lanes[e] - 1)
+    for _ in range(n):
+        go = np.flatnonzero(e != to_edge)
+        if not go.size:
+            break
+        row = section.links[e[go], ln[go]]
+        k = (e[go] + 1) % n
+        through = row & ~section.route_ends[k]
+        pick = np.where(through.any(-1), through.argmax(-1), row.argmax(-1))
+        ln[go] = np.where(row.any(-1), pick, np.minimum(ln[go], section.n_lanes[k] - 1))
+        e[go] = k
+    return ln
 
 
 def initial_observations(sc, section: Section, bank: SectionBank) -> np.ndarray:

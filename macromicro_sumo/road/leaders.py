@@ -15,6 +15,9 @@ from macromicro_sumo.road.section import NO_LEADER_GAP_M, STOP, Section
 
 STOPLINE_GAP_M = 1.0  # SUMO's jmStoplineGap default: its drivers stop this far before a red
 STANDING_MIN_GAP_M = 2.5  # SUMO's default minGap: a standing leader's (the envs know no own)
+# What ``section_ahead`` found ahead of a vehicle: nothing, a vehicle, a stop point given
+# (a red or yellow light's stop line), the end of a lane (a standing obstacle, ``STOP``).
+AHEAD_NONE, AHEAD_VEHICLE, AHEAD_RED, AHEAD_END = 0, 1, 2, 3
 
 
 def lane_leaders(
@@ -58,7 +61,22 @@ def section_leaders(
     on_route: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Leader index and front-to-front spacing [m] of every vehicle along the network's
-    lane connections (what a driver on that lane meets next), not along lane indices.
+    lane connections: ``section_ahead`` without the kinds."""
+    leader, spacing, _ = section_ahead(section, lane, arc_m, stop_lane, stop_arc_m, on_route)
+    return leader, spacing
+
+
+def section_ahead(
+    section: Section,
+    lane: np.ndarray,
+    arc_m: np.ndarray,
+    stop_lane: np.ndarray | None = None,
+    stop_arc_m: np.ndarray | None = None,
+    on_route: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Leader index, front-to-front spacing [m] and the kind of what is ahead (``AHEAD_*``)
+    of every vehicle along the network's lane connections (what a driver on that lane meets
+    next), not along lane indices.
 
     Where a lane is added on the right (an on-ramp), the through lanes' indices shift by
     one at the edge boundary: a leader looked up by index would be a vehicle on another
@@ -68,14 +86,15 @@ def section_leaders(
     continue along the section (``Section.route_ends``: a turning lane too), either at the
     end of the chain of lanes that all end (``Section.chain_beyond_m``), or at a stop
     point given by ``stop_lane`` / ``stop_arc_m`` (a red light's stop line), with the
-    spacing to it.
+    spacing to it. The kind says which: ``AHEAD_RED`` a stop point given, ``AHEAD_END`` a
+    lane's end (a driver stops 1 m before the one, at the other: ``standing_spacing_m``).
     O(V log V): one sort by (lane of an edge, arc), then one pass over the section's lanes.
     """
     v = len(arc_m)
     leader = np.full(v, -1, dtype=np.int64)
     spacing = np.full(v, NO_LEADER_GAP_M)
     if v == 0:
-        return leader, spacing
+        return leader, spacing, np.zeros(0, dtype=np.int8)
     lane = np.asarray(lane, dtype=np.int64)
     arc = np.asarray(arc_m, dtype=float)
     if stop_lane is not None and stop_arc_m is not None and len(stop_arc_m):
@@ -84,7 +103,7 @@ def section_leaders(
     if section.closed and section.max_lanes == 1 and section.links.all():
         nxt, gap = loop_successors(np.mod(arc, section.length_m), section.length_m)
         nxt, gap = nxt[:v], gap[:v]
-        return np.where(nxt >= v, STOP, nxt), gap
+        return np.where(nxt >= v, STOP, nxt), gap, _kinds(nxt, v)
     m = section.max_lanes
     edge, rel = section.node_of(arc)
     node = edge * m + np.clip(lane, 0, section.n_lanes[edge] - 1)
@@ -118,7 +137,16 @@ def section_leaders(
     nxt, gap = nxt[:v], gap[:v]
     leader[:] = np.where(nxt >= v, STOP, nxt)
     spacing[:] = np.where(nxt == -1, NO_LEADER_GAP_M, gap)
-    return leader, spacing
+    return leader, spacing, _kinds(nxt, v)
+
+
+def _kinds(nxt: np.ndarray, v: int) -> np.ndarray:
+    """``AHEAD_*`` of successors ``nxt`` (-1: none, ``STOP``: a lane's end, >= ``v``: a
+    stop point given, else a vehicle)."""
+    kind = np.where(nxt >= 0, AHEAD_VEHICLE, AHEAD_NONE).astype(np.int8)
+    kind[nxt >= v] = AHEAD_RED
+    kind[nxt == STOP] = AHEAD_END
+    return kind
 
 
 def standing_spacing_m(
