@@ -115,9 +115,10 @@ class SectionSnapshots:
         )
 
 
-# signals.csv: per recorded step and signalised link along the section (from a section
-# edge's lane onto the next section edge), the signal's program, phase and seconds left in
-# it, and the link's stop line (lane index, arc: its edge's end) with its state letter.
+# signals.csv: per recorded step and signalised link of each lane of a section edge with a
+# link onto the next section edge (the lane's own links: ``truth.signals``), the signal's
+# program, phase and seconds left in it, and the link's stop line (lane index, arc: its
+# edge's end) with its state letter.
 SIGNAL_COLUMNS = (
     "run", "time_s", "signal_id", "program", "phase", "left_s", "lane_index", "arc_m", "state"
 )  # fmt: skip

@@ -4,10 +4,11 @@ A Stage II episode starts from a snapshot at time t of a run, in a SUMO run of i
 its signals must show what the truth's showed at t, or a car the truth saw pass a green
 light meets a red one (game/cross: 12 of 84 evaluation episodes ended in a collision at a
 stop line), and the generator must know which stop lines were red or yellow at t (a
-standing leader there, as for the envs' drivers). Both read this record: per step after
-the warm-up and per signalised link along the section, the signal's program, phase and
-seconds left in the phase (what ``Simulation.set_signal_states`` puts back) and the link's
-stop line (lane index, arc) with its state letter.
+standing leader there, as for the envs' drivers; the micro pairs too). Both read this
+record: per step after the warm-up and per signalised link of each lane along the section
+(its own links, ``section_signal_links``), the signal's program, phase and seconds left in
+the phase (what ``Simulation.set_signal_states`` puts back) and the link's stop line (lane
+index, arc) with its state letter.
 """
 
 from __future__ import annotations
@@ -21,30 +22,33 @@ from macromicro_sumo.sumo.simulation import Simulation
 
 
 def section_signal_links(sim: Simulation, section: Section) -> list[tuple[str, int, int, float]]:
-    """(signal, link index, lane index, arc of the stop line) of every signalised link from
-    a lane of a section edge onto the next section edge (a loop's last edge: its first). The
-    stop line is the incoming edge's end, where ``env.section_bank.stop_points`` snaps the
-    distances SUMO gives a driver. A lane of that edge with no link onto the next section
-    edge (a turning lane: a driver on the section's route must leave it) gets the edge's
-    links too: such a driver meets the signal of the lane it changes to (SUMO's
-    ``getNextTLS`` along its route, what the envs read)."""
+    """(signal, link index, lane index, arc of the stop line) of the signalised links of
+    every lane of a section edge that has one onto the next section edge (a loop's last
+    edge: its first). The stop line is the incoming edge's end, where
+    ``env.section_bank.stop_points`` snaps the distances SUMO gives a driver.
+
+    Each lane gets its own links' states, those SUMO's drivers on it meet (``getNextTLS``):
+    a lane with a link onto the next section edge that link (a lane shared with a turn: the
+    section's route, which its vehicles that stay on the section and the envs' driven ones
+    take); a lane with none (a turning lane: its recorded vehicles turn off there) each of
+    its own links, a red or yellow one of which makes its stop line a standing leader
+    (``data.section.signal_stops``). A lane with no signalised link gets no row. Before,
+    a turning lane got the through link's state: on game/cross the left-turn lane showed
+    red in its own protected phase."""
     n = len(section.edge_ids)
-    out: set[tuple[str, int, int, float]] = set()
+    through: dict[tuple[int, int], set[tuple[str, int]]] = {}
+    turns: dict[tuple[int, int], set[tuple[str, int]]] = {}
     for tls, i, src, dst, _via in sim.signal_links():
-        a, b = section.lanes.get(src), section.lanes.get(dst)
-        if a is None or b is None or src.startswith(":") or dst.startswith(":"):
+        a = section.lanes.get(src)
+        if a is None or src.startswith(":") or not (section.closed or a[0] + 1 < n):
             continue
-        e = a[0]
-        if b[0] == (e + 1) % n and (section.closed or e + 1 < n):
-            out.add((tls, i, e, a[1]))
-    for e in {x[2] for x in out}:
-        own = {x[3] for x in out if x[2] == e}
-        links = {x[:2] for x in out if x[2] == e}
-        out |= {
-            (*k, e, ln) for k in links for ln in range(int(section.n_lanes[e])) if ln not in own
-        }
+        b = None if dst.startswith(":") else section.lanes.get(dst)
+        onto = b is not None and b[0] == (a[0] + 1) % n
+        (through if onto else turns).setdefault((a[0], a[1]), set()).add((tls, i))
+    edges = {e for e, _ in through}
+    lanes = {**{k: v for k, v in turns.items() if k[0] in edges}, **through}
     ends = section.offsets_m + section.lengths_m
-    return sorted((t, i, ln, float(ends[e])) for t, i, e, ln in out)
+    return sorted((t, i, ln, float(ends[e])) for (e, ln), links in lanes.items() for t, i in links)
 
 
 class SignalRecorder:
