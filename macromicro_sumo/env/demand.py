@@ -140,7 +140,7 @@ def sumo_observations(
                 spacing[i], lead_v[i], gap_out[i], leader[i] = s, states[lid][2], gap, lid
     # A red light, or the end of a lane the vehicle must leave: a standing leader there.
     stops = np.asarray(stops_m, dtype=float)
-    closer = nearer_standing(spacing, stops, np.array([shapes[v][0] for v in vids]))
+    closer = nearer_standing(spacing, stops, np.array([shapes[v][0] for v in vids]), min_gap)
     lead_v[closer] = 0.0
     gap_out[closer] = np.maximum(stops[closer], 0.0)  # SUMO's gap to its stop, as deployed
     for i in np.flatnonzero(closer).tolist():
@@ -324,7 +324,8 @@ class DemandCore:
         sim = self.sim
         stops = np.array([sim.lane_end_m(v, states[v][0], states[v][1]) for v in vids])
         if self._has_lights and len(vids):
-            stops = stop_distance_m(stops, sim.stop_lines_m(vids))  # NaN (no signal): no stop
+            gaps = [self.vtypes[self.types[v]].stopline_gap_m for v in vids]
+            stops = stop_distance_m(stops, sim.stop_lines_m(vids), np.array(gaps))  # NaN: none
         return stops
 
     def lane_states(self) -> dict[str, tuple[str, float, float, float]]:

@@ -221,6 +221,7 @@ class SectionCore(SlotCore):
             self.bank.factor_of(self.episode),  # each driver's own limits (policy.driver_speed)
             self.bank.length_m[self.episode],
             self.hidden,  # the driven ones drive the section's route: its lane ends
+            **self.bank.gaps_of(self.episode),  # each vType's minGap, jmStoplineGap
         )
 
     def _result(self, r: float, terms, collision: bool, truncated: bool, error: str):

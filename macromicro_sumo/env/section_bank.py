@@ -26,6 +26,7 @@ from macromicro_sumo.data.section import (
 )
 from macromicro_sumo.env.vtype_draw import generated_vtypes
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.road.leaders import STANDING_MIN_GAP_M, STOPLINE_GAP_M
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.truth.section import load_section
 
@@ -69,6 +70,11 @@ class SectionBank:
     # (E,) object: the section's signals at the episode's start as the truth recorded them
     # (``data.section.signal_settings``), set at reset; None: no signal recorded.
     signals: np.ndarray | None = None
+    # (E, N) each slot's vType's minGap and jmStoplineGap [m] (``standing_gaps``): where its
+    # driver stands before a standing leader (``road.leaders.standing_spacing_m``); None:
+    # SUMO's defaults (2.5 and 1 m) for every slot.
+    min_gap_m: np.ndarray | None = None
+    stopline_gap_m: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.run)
@@ -89,6 +95,14 @@ class SectionBank:
                 for f in self.__dataclass_fields__
             }
         )
+
+    def gaps_of(self, episode: int) -> dict[str, np.ndarray | None]:
+        """Episode ``episode``'s minGap and jmStoplineGap per slot, as ``section_observations``
+        takes them (None: SUMO's defaults)."""
+        return {
+            k: None if getattr(self, k) is None else getattr(self, k)[episode]
+            for k in ("min_gap_m", "stopline_gap_m")
+        }
 
     def factor_of(self, episode: int) -> np.ndarray | None:
         """Episode ``episode``'s desired-speed factors per slot (None: all 1)."""
@@ -126,6 +140,7 @@ def build_section_bank(
     traj = truth.trajectories
     length_of = dict(zip(truth.vtypes["vtype"], truth.vtypes["length_m"], strict=True))
     caps, accels = vtype_caps(sc, truth)
+    gaps = standing_gaps(sc, truth)  # per vType: minGap, jmStoplineGap (none: the defaults)
     runs: dict[int, dict[str, np.ndarray]] = {}
     for r, g in traj.groupby("run", sort=True):
         g = g.sort_values("time_s", kind="stable")
@@ -139,6 +154,10 @@ def build_section_bank(
             "length": g["vtype"].map(length_of).to_numpy(dtype=float),
             "vmax": g["vtype"].map(caps).fillna(np.inf).to_numpy(dtype=float),
             "accel": g["vtype"].map(accels).fillna(np.inf).to_numpy(dtype=float),
+            **{
+                k: g["vtype"].map(of).fillna(default).to_numpy(dtype=float)
+                for k, (of, default) in gaps.items()
+            },
         }
     keep = with_future(truth, snaps, h, dt)
     if not keep.size:
@@ -151,6 +170,7 @@ def build_section_bank(
     replay = np.full((3, e_n, h + 1, n), np.nan)
     length = np.zeros((e_n, n))
     vmax, accel = np.full((e_n, n), np.inf), np.full((e_n, n), np.inf)
+    gap = {k: np.full((e_n, n), default) for k, (_, default) in gaps.items()}
     windows = []
     for i, (r, t0) in enumerate(zip(snaps.run, snaps.time_s, strict=True)):
         d = runs[int(r)]
@@ -175,6 +195,8 @@ def build_section_bank(
                 )
             slot_of[w["vid"][k]] = j
             length[i, j], vmax[i, j], accel[i, j] = w["length"][k], w["vmax"][k], w["accel"][k]
+            for name, per in gap.items():
+                per[i, j] = w[name][k]
         for k in range(len(w["time"])):
             j = slot_of.get(w["vid"][k])
             if j is not None:
@@ -186,6 +208,8 @@ def build_section_bank(
     length[hidden] = [length_of[v] for v in gen]
     vmax[hidden] = [caps.get(v, np.inf) for v in gen]
     accel[hidden] = [accels.get(v, np.inf) for v in gen]
+    for name, (of, default) in gaps.items():
+        gap[name][hidden] = [of.get(v, default) for v in gen]
     # ... and starts at most at it: above it SUMO would slow it down in the first step, a
     # deceleration that no driver chose (its commands are held to it from then on).
     speed = np.where(hidden & valid, np.minimum(speed, vmax), speed)
@@ -216,6 +240,7 @@ def build_section_bank(
         vmax_mps=vmax if np.isfinite(vmax).any() else None,  # None: nothing to cap
         accel_mps2=accel if np.isfinite(accel).any() else None,
         signals=signal_settings(truth.signals, snaps.run, snaps.time_s),
+        **{k: v if gaps[k][0] else None for k, v in gap.items()},  # None: the defaults
     )
 
 
@@ -298,6 +323,23 @@ def vtype_caps(sc, truth: SectionTruth) -> tuple[dict[str, float], dict[str, flo
         for name in ("maxSpeed", "accel")
     )
     return speed, accel
+
+
+def standing_gaps(sc, truth: SectionTruth) -> dict[str, tuple[dict[str, float], float]]:
+    """Per vType of the demand, as ``vtypes.csv`` records them, its minGap and jmStoplineGap
+    [m] (``min_gap_m``, ``stopline_gap_m``), each with SUMO's default for the vTypes it
+    does not know: where its driver stands before a standing leader. None known (no such
+    column, a vType without a value): the defaults; field data (``data.source =
+    "files"``), whose vtypes.csv minGap is the scenario's, keeps them."""
+    vt = truth.vtypes
+    out = {}
+    for col, default in (("min_gap_m", STANDING_MIN_GAP_M), ("stopline_gap_m", STOPLINE_GAP_M)):
+        known = {}
+        if col in vt and sc.data.source != "files":
+            rows = vt[["vtype", col]].dropna()
+            known = dict(zip(rows["vtype"], rows[col].astype(float), strict=True))
+        out[col] = (known, default)
+    return out
 
 
 def recorded_min_gap(truth: SectionTruth) -> float | None:

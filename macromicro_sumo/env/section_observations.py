@@ -14,6 +14,7 @@ import numpy as np
 from macromicro_sumo.env.section_bank import SectionBank
 from macromicro_sumo.road.leaders import (
     AHEAD_RED,
+    STANDING_MIN_GAP_M,
     STOPLINE_GAP_M,
     section_ahead,
     standing_spacing_m,
@@ -34,13 +35,16 @@ def section_observations(
     factor: np.ndarray | None = None,
     length_m: np.ndarray | None = None,
     on_route: np.ndarray | None = None,
+    min_gap_m: np.ndarray | None = None,
+    stopline_gap_m: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Observations (N, obs_dim), leader (-1: none, ``STOP``: a standing obstacle) and
     spacing of the active vehicles; ``factor`` (N,): each driver's desired-speed factor,
     which multiplies the limits it observes (``env.driver_speed``; None: 1); ``length_m``
     (N,): each vehicle's length, for an observation with own features (``physics.
     set_own_features``) and the spacing to a standing leader (``road.leaders.
-    standing_spacing_m``; None: the distance alone).
+    standing_spacing_m``; None: the distance alone), with each vehicle's own vType's
+    ``min_gap_m`` and ``stopline_gap_m`` (jmStoplineGap) (N,) (None: SUMO's defaults).
 
     Leaders along the lane connections (``section_ahead``, one sort per call); the end
     of a lane that leads nowhere, for the vehicles ``on_route`` (N,) (the driven ones,
@@ -65,7 +69,11 @@ def section_observations(
     standing = lead == STOP
     if length_m is not None and standing.any():
         red = kind == AHEAD_RED  # a stop point given (a red line); else a lane's end
-        gap = np.where(standing, standing_spacing_m(gap, length_m[idx], STOPLINE_GAP_M * red), gap)
+        stop_gap = STOPLINE_GAP_M if stopline_gap_m is None else stopline_gap_m[idx]
+        min_gap = STANDING_MIN_GAP_M if min_gap_m is None else min_gap_m[idx]
+        gap = np.where(
+            standing, standing_spacing_m(gap, length_m[idx], stop_gap * red, min_gap), gap
+        )
     has = lead >= 0
     leader[idx[has]] = idx[lead[has]]
     leader[idx[standing]] = STOP  # readers take >= 0 as a vehicle; the code says which
@@ -164,6 +172,7 @@ def initial_observations(sc, section: Section, bank: SectionBank) -> np.ndarray:
             valid,
             sc.policy.observation,
             length_m=bank.length_m[ep],
+            **bank.gaps_of(ep),
         )
         rows.append(obs[valid])
     return np.concatenate(rows) if rows else np.zeros((0, 4))

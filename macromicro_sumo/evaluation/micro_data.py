@@ -15,7 +15,7 @@ import torch
 
 from macromicro_sumo.data.section import SectionTruth, recorded_steps, run_section, stop_lines_at
 from macromicro_sumo.env.rollout import ActionFn
-from macromicro_sumo.env.section_bank import recordable
+from macromicro_sumo.env.section_bank import recordable, standing_gaps
 from macromicro_sumo.env.section_observations import section_observations
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.idm_fit import IdmParams, idm_policy_accel
@@ -34,6 +34,9 @@ def micro_pairs(
     measured = has_measured_leaders(traj)
     # Lengths: an own feature, and a standing leader's spacing (road.leaders.standing_spacing_m).
     lengths = _lengths(truth, traj, required=observes_length(sc.policy.observation))
+    # Each vType's minGap and jmStoplineGap: where its driver stands before a standing leader.
+    types = traj["vtype"] if "vtype" in traj else pd.Series("", index=traj.index)
+    gaps = {k: types.map(of).fillna(d) for k, (of, d) in standing_gaps(sc, truth).items()}
     obs_rows, acc_rows = [], []
     for run, g in traj.groupby("run", sort=True):
         # The run's own speed limits (a fleet draws them per run), as the env observes them.
@@ -53,6 +56,7 @@ def micro_pairs(
                 sc.policy.observation,
                 *stops.get(round(float(s["time_s"].iloc[0]), 6), (None, None)),
                 length_m=None if lengths is None else lengths.loc[s.index].to_numpy(dtype=float),
+                **{k: v.loc[s.index].to_numpy(dtype=float) for k, v in gaps.items()},
             )
             if measured:  # field data: the leader each vehicle measured (fielddata.leaders)
                 obs, _ = with_measured_leaders(obs, leader, s, sc.policy.observation)

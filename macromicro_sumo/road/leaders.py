@@ -13,8 +13,11 @@ import numpy as np
 from macromicro_sumo.road.ring import loop_successors
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, STOP, Section
 
-STOPLINE_GAP_M = 1.0  # SUMO's jmStoplineGap default: its drivers stop this far before a red
-STANDING_MIN_GAP_M = 2.5  # SUMO's default minGap: a standing leader's (the envs know no own)
+# SUMO's defaults where a vType sets neither, for every carFollowModel (SUMO 1.28, measured:
+# Krauss, IDM, EIDM, ACC, CACC, W99 ... stop 1.00-1.07 m before a red line): its drivers
+# stop jmStoplineGap before a red line, and minGap behind a vehicle (a passenger car's).
+STOPLINE_GAP_M = 1.0
+STANDING_MIN_GAP_M = 2.5
 # What ``section_ahead`` found ahead of a vehicle: nothing, a vehicle, a stop point given
 # (a red or yellow light's stop line), the end of a lane (a standing obstacle, ``STOP``).
 AHEAD_NONE, AHEAD_VEHICLE, AHEAD_RED, AHEAD_END = 0, 1, 2, 3
@@ -150,27 +153,42 @@ def _kinds(nxt: np.ndarray, v: int) -> np.ndarray:
 
 
 def standing_spacing_m(
-    dist_m: np.ndarray, length_m: np.ndarray, stop_gap_m: float | np.ndarray = 0.0
+    dist_m: np.ndarray,
+    length_m: np.ndarray,
+    stop_gap_m: float | np.ndarray = 0.0,
+    min_gap_m: float | np.ndarray = STANDING_MIN_GAP_M,
 ) -> np.ndarray:
     """Front-to-front spacing a vehicle ``length_m`` long observes to a standing obstacle
-    ``dist_m`` ahead of its front: a standing vehicle of its length ``STANDING_MIN_GAP_M``
-    beyond where SUMO's drivers stop, ``stop_gap_m`` before it (red: ``STOPLINE_GAP_M``, a
-    lane end: 0): SUMO's gap to a red light is distance - jmStoplineGap, to a vehicle distance
-    - minGap, and readers take gap = spacing - length - minGap. The envs', demand env's and
-    deployment's one definition."""
-    return np.maximum(dist_m - stop_gap_m, 0.0) + STANDING_MIN_GAP_M + length_m
+    ``dist_m`` ahead of its front: a standing vehicle of its length ``min_gap_m`` (its own
+    minGap; SUMO's default ``STANDING_MIN_GAP_M``) beyond where SUMO's driver stops,
+    ``stop_gap_m`` before it (a red line: its jmStoplineGap, SUMO's default
+    ``STOPLINE_GAP_M``; a lane end: 0): SUMO's gap to a red light is distance -
+    jmStoplineGap, to a vehicle distance - minGap, and readers take gap = spacing - length
+    - minGap. The envs', demand env's and deployment's one definition."""
+    return np.maximum(dist_m - stop_gap_m, 0.0) + min_gap_m + length_m
 
 
-def nearer_standing(spacing_m: np.ndarray, stop_m: np.ndarray, length_m: np.ndarray) -> np.ndarray:
+def nearer_standing(
+    spacing_m: np.ndarray,
+    stop_m: np.ndarray,
+    length_m: np.ndarray,
+    min_gap_m: float | np.ndarray = STANDING_MIN_GAP_M,
+) -> np.ndarray:
     """Where a standing obstacle ``stop_m`` (``stop_distance_m``, inf: none) is nearer than the
-    leader, ``spacing_m`` becomes ``standing_spacing_m`` (in place); the mask of those."""
-    standing = standing_spacing_m(np.asarray(stop_m, dtype=float), length_m)
+    leader, ``spacing_m`` becomes ``standing_spacing_m`` (in place) with the vehicles' own
+    ``min_gap_m``; the mask of those."""
+    standing = standing_spacing_m(np.asarray(stop_m, dtype=float), length_m, 0.0, min_gap_m)
     closer = standing < spacing_m
     np.copyto(spacing_m, standing, where=closer)
     return closer
 
 
-def stop_distance_m(lane_end_m: np.ndarray, red_m: np.ndarray) -> np.ndarray:
-    """SUMO's gap to a stop: a lane end's distance, or a red line's less STOPLINE_GAP_M."""
-    red = np.maximum(np.asarray(red_m, dtype=float) - STOPLINE_GAP_M, 0.0)  # NaN stays
+def stop_distance_m(
+    lane_end_m: np.ndarray,
+    red_m: np.ndarray,
+    stopline_gap_m: float | np.ndarray = STOPLINE_GAP_M,
+) -> np.ndarray:
+    """SUMO's gap to a stop: a lane end's distance, or a red line's less the vehicles'
+    jmStoplineGap ``stopline_gap_m`` (SUMO's default ``STOPLINE_GAP_M``)."""
+    red = np.maximum(np.asarray(red_m, dtype=float) - stopline_gap_m, 0.0)  # NaN stays
     return np.fmin(np.asarray(lane_end_m, dtype=float), red)

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from macromicro_sumo.road.leaders import STOPLINE_GAP_M
 from macromicro_sumo.sumo.simulation import Simulation
 
 
@@ -30,6 +31,9 @@ class VTypePhysics:
     decel_mps2: float  # its model's braking, what safe speeds plan a stop with
     max_speed_mps: float  # the vehicle's cap: no command takes it faster
     accel_mps2: float  # its model's acceleration: no command accelerates it harder
+    # jmStoplineGap: where its driver stops before a red line (``road.leaders.
+    # stop_distance_m``); SUMO's default until ``Simulation`` reads a vType's own.
+    stopline_gap_m: float = STOPLINE_GAP_M
 
     @property
     def shape(self) -> tuple[float, float, float]:

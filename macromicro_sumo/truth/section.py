@@ -63,6 +63,7 @@ from macromicro_sumo.truth.section_detectors import (
 )
 from macromicro_sumo.truth.section_macro import detector_macro, k_summary, trajectory_macro
 from macromicro_sumo.truth.signals import SignalRecorder
+from macromicro_sumo.truth.vtypes import vtype_frame
 
 
 def load_section(sc: SectionScenario) -> tuple[SumoInputs, Section, dict[str, VType]]:
@@ -370,20 +371,7 @@ def simulate_section(
                 from_empty=fleet_demand(sc) is None,  # SUMO starts empty; a fleet on the section
             ),
         )
-        vt = pd.DataFrame(
-            [
-                {
-                    "vtype": v.id,
-                    "car_follow_model": v.car_follow_model,
-                    "vclass": vclass.get(v.id, ("passenger",))[0],
-                    "length_m": v.length_m,
-                    "min_gap_m": v.min_gap_m,
-                    "decel_mps2": vclass.get(v.id, ("", np.nan))[1],  # SUMO's; NaN: unknown
-                    "vehicles": int(traj.loc[traj["vtype"] == v.id, "vehicle_id"].nunique()),
-                }
-                for v in vtypes.values()
-            ]
-        )
+        vt = vtype_frame(vtypes, vclass, traj)
         section.write(stage / "section.json")
         write_csv(traj, stage / "trajectories.csv")
         write_csv(vt, stage / "vtypes.csv")

@@ -1,0 +1,147 @@
+"""A standing leader where the vehicle's own vType stops: its minGap and jmStoplineGap.
+
+SUMO's driver stops jmStoplineGap before a red line (its vType's; SUMO's default 1 m for
+every carFollowModel) and stands minGap behind a vehicle. The observation's standing
+leader (``road.leaders.standing_spacing_m``) is a standing vehicle minGap beyond that
+stop, so that a reader's gap (spacing - length - own minGap) is 0 where SUMO's driver
+stands. Before (stop 34), every vehicle took 1 m and 2.5 m: a vType with minGap 4 m and
+jmStoplineGap 3 m read 0.5 m of room where SUMO's driver of that type had none.
+
+Real SUMO: one lane A (300 m) into a light that stays red, a queue of "far" cars (minGap
+4 m, jmStoplineGap 3 m) and default cars.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import netconvert
+from section_files import routes_file, section_scenario, vtype
+
+from macromicro_sumo.data.section import section_snapshots, stop_lines_at
+from macromicro_sumo.env.section_bank import build_section_bank, standing_gaps
+from macromicro_sumo.env.section_envs import true_section_completion
+from macromicro_sumo.env.section_observations import section_observations
+from macromicro_sumo.road.section import STOP
+from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.truth.section import load_section_truth, simulate_section
+
+FAR = {"length": 5, "minGap": 4, "jmStoplineGap": 3, "sigma": 0, "speedDev": 0}
+CAR = {"length": 5, "sigma": 0, "speedDev": 0}  # SUMO's defaults: minGap 2.5, stop gap 1
+
+
+def light_net(folder: Path) -> tuple[Path, Path]:
+    """A (1 lane, 300 m) -> a traffic light that stays red -> B (200 m); (net, red program)."""
+    nodes = "\n".join(
+        [
+            '<node id="n0" x="0" y="0"/>',
+            '<node id="tl" x="300" y="0" type="traffic_light"/>',
+            '<node id="n2" x="500" y="0"/>',
+        ]
+    )
+    edges = "\n".join(
+        [
+            '<edge id="A" from="n0" to="tl" numLanes="1" speed="15"/>',
+            '<edge id="B" from="tl" to="n2" numLanes="1" speed="15"/>',
+        ]
+    )
+    net = netconvert(folder, nodes, edges)
+    red = folder / "red.add.xml"
+    red.write_text(
+        '<additional>\n    <tlLogic id="tl" type="static" programID="red" offset="0">\n'
+        '        <phase duration="10000" state="r"/>\n    </tlLogic>\n</additional>\n'
+    )
+    return net, red
+
+
+@pytest.fixture(scope="module")
+def queue(tmp_path_factory: pytest.TempPathFactory):
+    """(scenario, ground truth, net, red program): far cars and default cars alternating
+    every 4 s from t = 0 into the red light, 20 s warm-up and 40 s recorded."""
+    folder = tmp_path_factory.mktemp("vtype_stop_gaps")
+    net, red = light_net(folder)
+    routes = routes_file(
+        folder / "queue.rou.xml",
+        [vtype("far", **FAR), vtype("car", **CAR)],
+        ['<flow id="f" type="far" begin="0" end="60" period="8" departSpeed="10">'
+         '<route edges="A B"/></flow>',
+         '<flow id="c" type="car" begin="4" end="60" period="8" departSpeed="10">'
+         '<route edges="A B"/></flow>'],
+    )  # fmt: skip
+    path = section_scenario(
+        folder / "queue.toml",
+        net,
+        routes,
+        ["A", "B"],
+        seed=1,
+        penetration=1.0,
+        simulation={"warmup_s": 20.0, "duration_s": 40.0, "n_runs": 1},
+        detectors={"interval_s": 20.0},
+        generator={"snapshot_every_s": 5.0},
+        network={
+            "kind": "sumo",
+            "net_file": str(net),
+            "route_files": [str(routes)],
+            "additional_files": [str(red)],
+        },
+    )
+    sc = load_scenario(path)
+    truth = load_section_truth(simulate_section(sc, folder / "gt", progress=False), sc)
+    return sc, truth, net, red
+
+
+def test_vtypes_csv_records_each_vtypes_gaps_and_the_envs_take_them(queue) -> None:
+    """vtypes.csv: far 4 m / 3 m, car SUMO's 2.5 m / 1 m; ``standing_gaps`` reads them, and
+    the bank carries them per slot. Without the columns, and for field data, the defaults."""
+    sc, truth, _, _ = queue
+    vt = truth.vtypes.set_index("vtype")
+    assert vt.loc["far", ["min_gap_m", "stopline_gap_m"]].tolist() == [4.0, 3.0]
+    assert vt.loc["car", ["min_gap_m", "stopline_gap_m"]].tolist() == [2.5, 1.0]
+    gaps = standing_gaps(sc, truth)
+    assert gaps["min_gap_m"] == ({"far": 4.0, "car": 2.5}, 2.5)
+    assert gaps["stopline_gap_m"] == ({"far": 3.0, "car": 1.0}, 1.0)
+    older = dataclasses.replace(truth, vtypes=truth.vtypes.drop(columns=["stopline_gap_m"]))
+    assert standing_gaps(sc, older)["stopline_gap_m"] == ({}, 1.0)
+    files = dataclasses.replace(sc, data=dataclasses.replace(sc.data, source="files"))
+    assert all(known == {} for known, _ in standing_gaps(files, truth).values())
+    snaps = section_snapshots(truth, sc, np.array([0]))
+    bank = build_section_bank(sc, truth, snaps, true_section_completion, 4, 0)
+    pairs = set(zip(bank.min_gap_m[bank.valid], bank.stopline_gap_m[bank.valid], strict=True))
+    assert pairs == {(4.0, 3.0), (2.5, 1.0)}
+    plain = build_section_bank(sc, older, snaps, true_section_completion, 4, 0)
+    assert plain.stopline_gap_m is None and plain.gaps_of(0)["stopline_gap_m"] is None
+
+
+def test_the_envs_queue_stands_where_sumos_drivers_stand(queue) -> None:
+    """Every standing vehicle of the recorded queue (the micro pairs' and envs' observation
+    of it, ``section_observations`` with each vType's gaps): a reader's gap spacing -
+    length - own minGap is 0 (+- 0.05 m), the head a far car 3 m before the line. Before:
+    0.5 m for a far car at the head (1 m and 2.5 m)."""
+    sc, truth, _, _ = queue
+    traj = truth.trajectories
+    last = traj[traj["time_s"] == traj["time_s"].max()]
+    gaps = standing_gaps(sc, truth)
+    stops = stop_lines_at(truth, 0, np.array([last["time_s"].iloc[0]]))
+    own = {k: last["vtype"].map(of).to_numpy(dtype=float) for k, (of, _) in gaps.items()}
+    obs, leader, spacing = section_observations(
+        truth.section,
+        last["lane_index"].to_numpy(),
+        last["arc_m"].to_numpy(),
+        last["speed_mps"].to_numpy(),
+        np.ones(len(last), dtype=bool),
+        "paper",
+        *next(iter(stops.values())),
+        length_m=np.full(len(last), 5.0),
+        **own,
+    )
+    standing = last["speed_mps"].to_numpy() < 0.01
+    assert standing.sum() >= 4
+    head = np.flatnonzero(leader == STOP)
+    assert len(head) == 1 and last["vtype"].iloc[head[0]] == "far"
+    end_a = float(truth.section.lengths_m[0])
+    assert last["arc_m"].iloc[head[0]] == pytest.approx(end_a - 3.0, abs=0.05)
+    room = spacing - 5.0 - own["min_gap_m"]
+    np.testing.assert_allclose(room[standing], 0.0, atol=0.05)
