@@ -144,7 +144,7 @@ def observe_rows(
     lead_decel = decel_mps2[shape[n:]]
     lead_decel[none] = STOP_DECEL_MPS2
     # A red light, or the end of a lane the vehicle must leave: a standing leader there.
-    closer = nearer_standing(spacing, stop_m, length)
+    closer = nearer_standing(spacing, stop_m, length, min_gap)
     if np.count_nonzero(closer):
         lead_v[closer] = 0.0
         np.copyto(sumo_gap, np.maximum(stop_m, 0.0), where=closer)

@@ -22,11 +22,14 @@ from conftest import netconvert
 from section_files import routes_file, section_scenario, vtype
 
 from macromicro_sumo.data.section import section_snapshots, stop_lines_at
+from macromicro_sumo.deploy.observe import STANDING, LaneTable, Table, observe_rows
 from macromicro_sumo.env.section_bank import build_section_bank, standing_gaps
 from macromicro_sumo.env.section_envs import true_section_completion
 from macromicro_sumo.env.section_observations import section_observations
-from macromicro_sumo.road.section import STOP
+from macromicro_sumo.road.leaders import stop_distance_m
+from macromicro_sumo.road.section import STOP, read_section
 from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.truth.section import load_section_truth, simulate_section
 
 FAR = {"length": 5, "minGap": 4, "jmStoplineGap": 3, "sigma": 0, "speedDev": 0}
@@ -145,3 +148,41 @@ def test_the_envs_queue_stands_where_sumos_drivers_stand(queue) -> None:
     assert last["arc_m"].iloc[head[0]] == pytest.approx(end_a - 3.0, abs=0.05)
     room = spacing - 5.0 - own["min_gap_m"]
     np.testing.assert_allclose(room[standing], 0.0, atol=0.05)
+
+
+def test_the_deployment_stands_where_sumos_driver_stands(queue) -> None:
+    """A far car driven by SUMO into the red light: the deployment's observation of it
+    (``observe_rows`` with SUMO's minGap of its vType, ``stop_distance_m`` with its
+    jmStoplineGap) leaves it no room where it stands, and on its approach puts the stop
+    where SUMO then stops it (within 0.1 m). Before: 0.5 m of room."""
+    _, _, net, red = queue
+    folder = net.parent
+    types = routes_file(folder / "types.rou.xml", [vtype("far", **FAR)])
+    sim = Simulation(SumoOptions(net, (red,), 0.5, 1, route_files=(types,)))
+    section = read_section(net, ["A", "B"], closed=False)
+    seen = []
+    try:
+        sim.add_route("r", ["A", "B"])
+        sim.add_vehicle("v", "r", "far", 0, 100.0, 10.0)
+        for step in range(120):
+            sim.step()
+            if step in (2, 119):
+                st = sim.vehicle_states()
+                lanes, rows = ["A_0"], np.array([st.index["v"]])
+                red_m = np.fmin(sim.stop_lines_m(["v"]), np.inf)
+                lane_end = np.array([sim.lane_end_m("v", "A_0", 0.0)]) - st.pos_m[rows]
+                stop = stop_distance_m(lane_end, red_m, FAR["jmStoplineGap"])
+                shapes = Table.of_rows({"v": sim.vtype_shape("far")}, STANDING)
+                obs = observe_rows(
+                    LaneTable(section), "paper", ["v"], rows, lanes, st,
+                    sim.leaders(["v"], 250.0), shapes, stop,
+                )[0]  # fmt: skip
+                seen.append(
+                    (float(st.pos_m[rows[0]]), float(obs[0, 2]), float(st.speed_mps[rows[0]]))
+                )
+    finally:
+        sim.close()
+    (pos0, spacing0, _), (pos1, spacing1, speed1) = seen
+    assert speed1 < 0.01 and pos1 == pytest.approx(300.0 - 3.0, abs=0.05)
+    assert spacing1 - 5.0 - FAR["minGap"] == pytest.approx(0.0, abs=0.05)
+    assert pos0 + spacing0 - 5.0 - FAR["minGap"] == pytest.approx(pos1, abs=0.1)
