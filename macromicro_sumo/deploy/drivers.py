@@ -22,6 +22,7 @@ vType by more than 0.01 m/s^2).
 
 from __future__ import annotations
 
+import math
 from functools import partial
 from itertools import compress, repeat
 from operator import and_
@@ -93,6 +94,8 @@ class SectionDriver:
         self.lane_table = LaneTable(section)
         self.steps = 0
         self._brake_limit: tuple[tuple[str, ...], np.ndarray] = ((), np.empty(0))
+        # -decel - tolerance of the least decel among the vTypes met: the loosest threshold.
+        self._loosest_brake = -np.inf
 
     def before_step(self, sim: Simulation) -> None:
         self.steps += 1
@@ -103,9 +106,9 @@ class SectionDriver:
         # run (rerouters) departed once, and a departure this driver did not see (before
         # it was attached, or a list read by someone else) must not leave them undriven.
         ids = st.ids
-        new = set(ids).difference(self.types)
+        new = [v for v in ids if v not in self.types]  # in SUMO's order
         if new:
-            self.arrive(sim, tuple(v for v in ids if v in new))
+            self.arrive(sim, tuple(new))
         self.count_brakings(st)
         if not self.drives:  # the oracle: no hand-over, no count of driven vehicles
             return
@@ -114,9 +117,11 @@ class SectionDriver:
         on = map(self.section.lanes.__contains__, st.lanes)
         vids = list(compress(ids, map(and_, on, map(self.population.__contains__, ids))))
         now = set(vids)
-        # Still in the network (on the road or teleporting), not on the section now.
-        gone = sim.arrived() if self.driven else frozenset()
-        left = self.driven.difference(now, gone)
+        # Still in the network (on the road or teleporting), not on the section now: SUMO's
+        # arrivals asked only where a driven vehicle is gone from the section.
+        left = self.driven.difference(now)
+        if left:
+            left.difference_update(sim.arrived())
         if left:
             self.release(sim, sorted(left))
         entered = sorted(now - self.driven)
@@ -135,6 +140,8 @@ class SectionDriver:
             if vt not in self.vtypes:
                 self.vtypes[vt] = read_vtype(sim, vt)
                 self.type_code[vt] = self.shape_table.add_row(self.vtypes[vt].shape)
+                least = min(p.decel_mps2 for p in self.vtypes.values())
+                self._loosest_brake = -least - BRAKING_TOLERANCE_MPS2
             self.shape_of[vid] = self.vtypes[vt].shape
             self.decel_of[vid] = self.vtypes[vt].decel_mps2
             self.shape_table.code[vid] = self.type_code[vt]
@@ -149,7 +156,9 @@ class SectionDriver:
         """Vehicles on the road braking harder than their demand vType's decel (one
         teleporting is not on the road: SUMO's acceleration of it is a placeholder)."""
         n = len(st.ids)
-        if not n:
+        # Nobody below the loosest threshold (that of the least decel met; rounding is
+        # monotonic): nobody below their own, and no per-vehicle thresholds a step.
+        if not n or not np.count_nonzero(st.accel_mps2 < self._loosest_brake):
             return
         # The decel of the vehicle's own demand vType, whatever it drives with now, as the
         # threshold -decel - tolerance; kept while the vehicles on the road are the same.
@@ -286,16 +295,13 @@ class SectionSpeedDriver(SectionDriver):
         cache, now = self.slots.lane_end, self.steps
         due = cache.due(slots, codes, now)
         if due.size:
-            idx = due.tolist()
-            ends = np.fromiter(
-                map(sim.lane_end_m, map(vids.__getitem__, idx), map(lanes.__getitem__, idx),
-                    repeat(0.0)),
-                float,
-                len(idx),
-            )  # fmt: skip
-            # A lane end, once seen, stays; a lane that carries the vehicle on is asked again.
-            again = np.where(ends == np.inf, now + LANE_END_RECHECK_STEPS, np.inf)
-            cache.store(slots[due], codes[due], ends, again)
+            # A few vehicles a step: scalar writes, not a dozen array calls for them.
+            for i in due.tolist():
+                end = sim.lane_end_m(vids[i], lanes[i], 0.0)
+                # A lane end, once seen, stays; a lane that carries the vehicle on is asked
+                # again.
+                again = now + LANE_END_RECHECK_STEPS if end == math.inf else math.inf
+                cache.put(int(slots[i]), int(codes[i]), end, again)
         return cache.value[slots]
 
     def stop_lines_m(
@@ -314,14 +320,13 @@ class SectionSpeedDriver(SectionDriver):
         cache, now = self.slots.dark, self.steps
         due = cache.due(slots, codes, now)
         if due.size:
-            got = sim.stop_lines_m([vids[i] for i in due.tolist()])
-            dark = np.isnan(got)  # no signal ahead: not asked again for a while
-            cache.store(
-                slots[due],
-                np.where(dark, codes[due], NOT_ASKED),
-                np.where(dark, np.inf, got),
-                np.where(dark, now + LANE_END_RECHECK_STEPS, -np.inf),
-            )
+            idx = due.tolist()
+            got = sim.stop_lines_m([vids[i] for i in idx]).tolist()
+            for i, d in zip(idx, got, strict=True):
+                if d != d:  # NaN, no signal ahead: not asked again for a while
+                    cache.put(int(slots[i]), int(codes[i]), math.inf, now + LANE_END_RECHECK_STEPS)
+                else:
+                    cache.put(int(slots[i]), NOT_ASKED, d, -math.inf)
         return cache.value[slots]  # inf where not due: dark
 
     def drive(self, sim: Simulation, vids: list[str], st: VehicleStates) -> None:
@@ -335,9 +340,11 @@ class SectionSpeedDriver(SectionDriver):
         if self.merge != "none":
             keep = self.merges(sim, vids, ahead)
             if keep is not None:
-                listed = keep.tolist()
-                vids, lanes = list(compress(vids, listed)), list(compress(lanes, listed))
-                rows, ahead, slots, codes = rows[keep], ahead[keep], slots[keep], codes[keep]
+                # Indices, not the mask: a take by index costs a fraction of a masked one.
+                idx = keep.nonzero()[0]
+                listed = idx.tolist()
+                vids, lanes = [vids[i] for i in listed], [lanes[i] for i in listed]
+                rows, ahead, slots, codes = rows[idx], ahead[idx], slots[idx], codes[idx]
                 if not vids:
                     return
             near = self.blocking(sim, vids)
@@ -423,7 +430,10 @@ class SectionSpeedDriver(SectionDriver):
             stop_m = self.lane_end_m(sim, vids, lanes, at) - st.pos_m[rows]
         stop = stop_m
         if self.has_lights:
-            stop = stop_distance_m(stop, self.stop_lines_m(sim, vids, lanes, at))
+            red = self.stop_lines_m(sim, vids, lanes, at)
+            # No red or yellow ahead of anyone (inf): the stops are the lane ends as they are.
+            if np.count_nonzero(red < np.inf):
+                stop = stop_distance_m(stop, red)
         leaders = sim.leaders(vids, NO_LEADER_GAP_M)
         return observe_rows(
             self.lane_table,

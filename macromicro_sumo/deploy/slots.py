@@ -48,6 +48,12 @@ class LaneCache:
         self.value[slots] = values
         self.again[slots] = again
 
+    def put(self, slot: int, lane: int, value: float, again: float) -> None:
+        """``store`` of one slot (scalar writes: a few vehicles a step)."""
+        self.lane[slot] = lane
+        self.value[slot] = value
+        self.again[slot] = again
+
     def forget(self, slots: np.ndarray) -> None:
         self.lane[slots] = NOT_ASKED
         self.again[slots] = -np.inf

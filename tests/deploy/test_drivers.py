@@ -208,3 +208,56 @@ def test_a_lane_cache_asks_again_on_another_lane_at_its_step_and_after_forget() 
     cache.grow()
     assert len(cache.lane) == 4 and cache.due(np.array([3]), np.array([3]), 0).tolist() == [0]
     assert np.isnan(cache.value[3])
+
+
+def test_a_lane_cache_put_is_a_store_of_one_slot() -> None:
+    """``LaneCache.put`` (the drivers' scalar writes for the few vehicles due a step) leaves
+    the arrays ``store`` leaves, slot by slot."""
+    one, many = LaneCache(4, np.nan), LaneCache(4, np.nan)
+    slots, lanes = np.array([2, 0]), np.array([7, 3])
+    values, again = np.array([np.inf, 81.5]), np.array([20.0, np.inf])
+    many.store(slots, lanes, values, again)
+    for i in range(len(slots)):
+        one.put(int(slots[i]), int(lanes[i]), float(values[i]), float(again[i]))
+    for name in ("lane", "value", "again"):
+        np.testing.assert_array_equal(getattr(one, name), getattr(many, name))
+    assert one.due(slots, lanes, 19).size == 0 and one.due(slots, lanes, 20).tolist() == [0]
+
+
+def test_emergency_brakings_are_counted_per_vehicle_threshold(tmp_path: Path) -> None:
+    """``count_brakings`` counts a vehicle where its acceleration is below minus its own
+    vType's decel by more than the tolerance, also where the whole step is skipped because
+    nobody is below the loosest threshold (the least decel met): over seeded accelerations
+    around each vehicle's threshold on a real SUMO run's vehicles (two vTypes of decel 4.5
+    and 7.5, light_net), the per-vehicle count."""
+    from macromicro_sumo.deploy.drivers import BRAKING_TOLERANCE_MPS2, SectionDriver
+    from macromicro_sumo.sumo.simulation import VehicleStates
+
+    net, routes, _red = light_net(tmp_path)
+    text = routes.read_text().replace('id="probe" type="car"', 'id="probe" type="hard"')
+    routes.write_text(text.replace("<routes>", '<routes>\n<vType id="hard" decel="7.5"/>'))
+    sc = _scenario(tmp_path, net, routes, ["A", "B"])
+    drv = SectionDriver(sc, read_section(net, ["A", "B"], False), 0)
+    sim = Simulation(SumoOptions(net, (), 0.5, 1, route_files=(routes,), user_demand=True))
+    try:
+        for _ in range(40):
+            drv.before_step(sim)
+            sim.step()
+        st = sim.vehicle_states()
+    finally:
+        sim.close()
+    decel = np.array([drv.decel_of[v] for v in st.ids])
+    assert len(st.ids) >= 2 and {4.5, 7.5} <= set(decel.tolist()), decel
+    rng = np.random.default_rng(3)
+    expected = counted = 0
+    for _ in range(300):
+        limit = -decel - BRAKING_TOLERANCE_MPS2
+        accel = limit + rng.choice([-1e-9, 0.0, 1e-9, -0.5, 0.5, 3.5], len(decel))
+        accel = np.where(rng.random(len(decel)) < 0.2, np.nextafter(limit, -np.inf), accel)
+        before = drv.stats.emergency_brakings
+        drv.count_brakings(VehicleStates(st.ids, st.lanes, st.pos_m, st.speed_mps, accel))
+        got = drv.stats.emergency_brakings - before
+        assert got == int(np.count_nonzero(accel < limit)), (accel, limit)
+        expected += got
+        counted += got == 0
+    assert expected > 100 and counted > 10, (expected, counted)
