@@ -25,7 +25,7 @@ def section_signal_links(sim: Simulation, section: Section) -> list[tuple[str, i
     """(signal, link index, lane index, arc of the stop line) of the signalised links of
     every lane of a section edge that has one onto the next section edge (a loop's last
     edge: its first). The stop line is the incoming edge's end, where
-    ``env.section_bank.stop_points`` snaps the distances SUMO gives a driver.
+    ``env.section_observations.stop_points`` snaps the distances SUMO gives a driver.
 
     Each lane gets its own links' states, those SUMO's drivers on it meet (``getNextTLS``):
     a lane with a link onto the next section edge that link (a lane shared with a turn: the
