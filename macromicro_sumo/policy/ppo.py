@@ -166,6 +166,15 @@ def mean_logp(agent: Agent, obs: torch.Tensor, actions: torch.Tensor) -> float:
         return float(agent.dist(obs).log_prob(actions).mean())
 
 
+def mean_rmse(agent: Agent, obs: torch.Tensor, actions: torch.Tensor) -> float:
+    """RMSE [m/s^2] of the agent's mean action, the deployed one, against ``actions``
+    (NaN without pairs). Unlike ``mean_logp`` it does not move with the action std."""
+    if len(obs) == 0:
+        return float("nan")
+    with torch.no_grad():
+        return float(((agent.mean_action(obs) - actions) ** 2).mean().sqrt())
+
+
 def learning_rate(lr: float, schedule: str, update: int, n_updates: int) -> float:
     """Adam's rate at ``update`` (0-based): constant, or linear decay reaching 0 after the last."""
     return lr * (1.0 - update / n_updates) if schedule == "linear" else lr
@@ -196,9 +205,9 @@ def train_policy(
     the likelihood term keeps the snapshot episodes' recorded pairs.
 
     ``make_core(bank, seed)`` builds the env core (default: a ``SectionCore`` on the
-    scenario's section with SUMO's defaults; ``policy.stage`` passes its own). With ``policy.checkpoint_selection
-    = "val_micro_logp"``, the episodes of ``val_runs`` are kept out of training and the
-    policy returned and saved is the update's with the best validation micro log-likelihood.
+    scenario's section with SUMO's defaults; ``policy.stage`` passes its own). With ``policy.checkpoint_selection``
+    other than "last", the episodes of ``val_runs`` are kept out of training and the policy
+    returned and saved is the update's best on them (``mean_logp`` or ``mean_rmse``).
 
     ``prior_params`` (``policy.prior.PRIOR_KEYS``; ``evaluation.idm_fit.fit_policy_prior``):
     the fitted model under the actor with a ``policy.prior`` (required then), whose residual
@@ -253,7 +262,7 @@ def train_policy(
         if init is not None:
             agent.load_state_dict(init)
         # macro_only never sees observed actions: choosing its update by them would leak them.
-        select = cfg.checkpoint_selection == "val_micro_logp" and objective != "macro_only"
+        select = cfg.checkpoint_selection != "last" and objective != "macro_only"
         train_eps, val_eps = split_episodes(bank.run, val_runs if select else None)
         val_obs, val_act = validation_pairs(agent, core, val_eps, cfg.horizon, sc)
         best_val, best_state = -float("inf"), None
@@ -415,14 +424,17 @@ def train_policy(
                     opt.step()
             micro_all = mean_logp(agent, *micro_pool[-1])
             val_logp = mean_logp(agent, val_obs, val_act)
-            if val_logp > best_val:  # NaN (no validation pairs) never is: the last one is kept
-                best_val, best_state = val_logp, copy.deepcopy(agent.state_dict())
+            val_rmse = mean_rmse(agent, val_obs, val_act)
+            score = -val_rmse if cfg.checkpoint_selection == "val_micro_rmse" else val_logp
+            if score > best_val:  # NaN (no validation pairs) never is: the last one is kept
+                best_val, best_state = score, copy.deepcopy(agent.state_dict())
             row = {
                 "update": update + 1,
                 "env_steps": (update + 1) * cfg.episodes_per_update * cfg.horizon,
                 "r_macro": float(ro.r_macro.mean()),
                 "r_micro_per_pair": micro_all,
                 "val_micro_logp": val_logp,
+                "val_micro_rmse_mps2": val_rmse,
                 **{k: float(np.mean(v)) if v else float("nan") for k, v in stats.items()},
                 "action_std_mps2": float(agent.log_std.detach().exp()),
                 "collisions": ro.collisions,

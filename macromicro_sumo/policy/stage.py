@@ -117,7 +117,7 @@ def section_episodes(sc: SectionScenario, truth, net, splits: dict[str, np.ndarr
     # Demand episodes (policy.episodes): windows of the runs the policy trains on; the
     # validation runs stay out where they choose the checkpoint.
     demand_runs = splits["train"]
-    if sc.policy.checkpoint_selection != "val_micro_logp":
+    if sc.policy.checkpoint_selection == "last":
         demand_runs = np.concatenate([splits["train"], splits["val"]])
     horizon = int(round(sc.policy.demand_horizon_s / sc.simulation.step_length_s))
 

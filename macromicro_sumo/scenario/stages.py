@@ -111,9 +111,10 @@ class PolicyConfig:
     )
     checkpoint_selection: str = spec(
         "last",
-        choices=("last", "val_micro_logp"),
+        choices=("last", "val_micro_logp", "val_micro_rmse"),
         doc="policy kept: the last update's, or the update's with the best micro log-likelihood "
-        "on the validation runs (their episodes are then not trained on)",
+        "(val_micro_logp) or the lowest RMSE of its mean action, the deployed one "
+        "(val_micro_rmse), on the validation runs (their episodes are then not trained on)",
     )
     checkpoint_every: int = spec(5, lo=1, hi=1_000_000, doc="updates between resumable checkpoints")
     safety: str = spec(
