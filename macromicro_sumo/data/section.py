@@ -19,7 +19,7 @@ from macromicro_sumo.data.macro import extended_bounds, passage_spacings
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import read_checked_csv
 from macromicro_sumo.road.section import Section
-from macromicro_sumo.sumo.simulation import STOP_STATES
+from macromicro_sumo.sumo.states import STOP_STATES
 
 # psi per snapshot, from the detectors' interval that holds it (columns of ``psi``):
 PSI_FIELDS = (
@@ -135,7 +135,7 @@ def signal_stops(
     signals: pd.DataFrame | None, runs: np.ndarray, times_s: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """(lane, arc) (S, P) of the stop lines whose signal shows red or yellow
-    (``sumo.simulation.STOP_STATES``: what a driver treats as a standing leader there, as
+    (``sumo.states.STOP_STATES``: what a driver treats as a standing leader there, as
     the envs and the deployment do) at each (run, time); NaN arc: padding. None: no signal."""
     groups = _signal_groups(signals)
     if not groups:

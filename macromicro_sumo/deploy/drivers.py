@@ -46,7 +46,8 @@ from macromicro_sumo.deploy.slots import NOT_ASKED, VehicleSlots
 from macromicro_sumo.road.leaders import stop_distance_m
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
 from macromicro_sumo.road.vtype import VTypePhysics, read_vtype
-from macromicro_sumo.sumo.simulation import Simulation, VehicleStates
+from macromicro_sumo.sumo.simulation import Simulation
+from macromicro_sumo.sumo.states import VehicleStates
 from macromicro_sumo.truth.section import is_instrumented
 
 BRAKING_TOLERANCE_MPS2 = 0.01

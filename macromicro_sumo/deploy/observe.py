@@ -1,5 +1,5 @@
 """What a deployment's driven vehicle on a section sees, from SUMO's state read once per
-step (``sumo.simulation.VehicleStates``): the section env's observation
+step (``sumo.states.VehicleStates``): the section env's observation
 (``env.section_observations.section_observations``) with SUMO's own leader, and what the safety
 layer needs (``deploy.drivers.safety_cap``). Vectorised over the driven vehicles: per
 vehicle only dictionary look-ups in Python.
@@ -16,7 +16,7 @@ from macromicro_sumo.env.driver_speed import scale_limits
 from macromicro_sumo.road.leaders import nearer_standing
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES, has_lookahead, set_own_features
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
-from macromicro_sumo.sumo.simulation import VehicleStates
+from macromicro_sumo.sumo.states import VehicleStates
 
 STOP_DECEL_MPS2 = 9.0  # a standing "leader" (stop line, lane end) never brakes: any value
 STANDING = (0.0, 0.0, STOP_DECEL_MPS2)  # (length, minGap, decel) of a standing leader

@@ -10,7 +10,8 @@ from macromicro_sumo.deploy.drivers import SectionDriver
 from macromicro_sumo.deploy.population import SwitchedType
 from macromicro_sumo.road.physics import safe_speed
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
-from macromicro_sumo.sumo.simulation import Simulation, VehicleStates
+from macromicro_sumo.sumo.simulation import Simulation
+from macromicro_sumo.sumo.states import VehicleStates
 
 
 class SectionTypeDriver(SectionDriver):

@@ -44,7 +44,8 @@ from macromicro_sumo.env.slot_core import POSITION_TOL_M, SlotCore
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.physics import observes_length, set_own_features
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
-from macromicro_sumo.sumo.simulation import DEFAULT_LANE_CHANGE_MODE, Simulation, SumoOptions
+from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
+from macromicro_sumo.sumo.states import DEFAULT_LANE_CHANGE_MODE
 from macromicro_sumo.sumo.tiling import copy_id, tile_net
 
 

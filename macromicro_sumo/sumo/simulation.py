@@ -1,8 +1,8 @@
 """The SUMO boundary: the only module that talks to libsumo.
 
 It builds SUMO's command line explicitly, starts one simulation per process (libsumo
-allows no more) and reloads it for later runs, and exchanges plain numpy arrays with
-the rest of the package. The ground truth and the environments compute leaders and gaps
+allows no more) and reloads it for later runs, and exchanges plain numpy arrays (and
+``sumo.states``' values) with the rest of the package. The ground truth and the environments compute leaders and gaps
 from arc positions; a deployment on a user's network reads SUMO's own leader (``getLeader``
 follows the network's lane connections, where lane indices shift at an added lane).
 """
@@ -13,8 +13,6 @@ import contextlib
 import os
 import subprocess
 from collections.abc import Sequence
-from dataclasses import dataclass
-from functools import cached_property
 from pathlib import Path
 from typing import Protocol
 
@@ -24,13 +22,12 @@ import sumolib
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.sumo.options import SumoOptions
+from macromicro_sumo.sumo.states import DEFAULT_SPEED_MODE, STOP_STATES, VehicleStates
 
 _C = libsumo.constants
 _LANE_VARS = (_C.VAR_LANE_ID, _C.VAR_LANEPOSITION, _C.VAR_SPEED, _C.VAR_ACCELERATION)
 # A driven vehicle's subscription: the lane state plus its leader within a look-ahead.
 _DRIVE_VARS = (*_LANE_VARS, _C.VAR_LEADER)
-# Signal states a driver treats as a standing leader at the stop line (red, yellow, red-yellow).
-STOP_STATES = frozenset("rRyYu")
 
 
 # libsumo's compiled functions for the per-vehicle calls of a deployment's every step (the
@@ -56,13 +53,6 @@ STOP_STATES = frozenset("rRyYu")
 )
 # getNeighbors' mode of the left followers that block a change (traci's getLeftFollowers).
 _LEFT_BLOCKERS = 4
-
-
-# SUMO's speed mode (TraCI setSpeedMode) bits: 1 safe speed, 2 max accel, 4 max decel, 8
-# right of way at junctions, 16 brake for red lights, 32 disregard right of way inside a
-# junction. 31 is SUMO's default.
-DEFAULT_SPEED_MODE = 31
-DEFAULT_LANE_CHANGE_MODE = 0b011001010101  # SUMO's default lane-change mode (1621)
 
 
 def versions() -> dict[str, str]:
@@ -91,23 +81,6 @@ def _is_running() -> bool:
     with contextlib.suppress(Exception):
         return libsumo.simulation.getTime() is not None
     return False
-
-
-@dataclass(frozen=True)
-class VehicleStates:
-    """Every vehicle on the road (not teleporting) after a step, in SUMO's order: sorted
-    by ID (its vehicle dictionary is a std::map); row i for ``ids[i]``."""
-
-    ids: tuple[str, ...]
-    lanes: list[str]
-    pos_m: np.ndarray  # position on its lane [m]
-    speed_mps: np.ndarray
-    accel_mps2: np.ndarray
-
-    @cached_property
-    def index(self) -> dict[str, int]:
-        """Vehicle ID -> row."""
-        return dict(zip(self.ids, range(len(self.ids)), strict=True))
 
 
 class Driver(Protocol):

@@ -231,7 +231,7 @@ def test_emergency_brakings_are_counted_per_vehicle_threshold(tmp_path: Path) ->
     around each vehicle's threshold on a real SUMO run's vehicles (two vTypes of decel 4.5
     and 7.5, light_net), the per-vehicle count."""
     from macromicro_sumo.deploy.drivers import BRAKING_TOLERANCE_MPS2, SectionDriver
-    from macromicro_sumo.sumo.simulation import VehicleStates
+    from macromicro_sumo.sumo.states import VehicleStates
 
     net, routes, _red = light_net(tmp_path)
     text = routes.read_text().replace('id="probe" type="car"', 'id="probe" type="hard"')

@@ -37,7 +37,7 @@ from macromicro_sumo.errors import UserError  # noqa: E402
 from macromicro_sumo.policy.agent import Agent  # noqa: E402
 from macromicro_sumo.policy.checkpoint import CHECKPOINT_FORMAT, load_checkpoint, signature  # noqa: E402
 from macromicro_sumo.scenario.load import load_scenario  # noqa: E402
-from macromicro_sumo.sumo.simulation import VehicleStates  # noqa: E402
+from macromicro_sumo.sumo.states import VehicleStates  # noqa: E402
 from macromicro_sumo.truth.section import load_section_truth, simulate_section  # noqa: E402
 
 LIMIT_MPS = 30.0

@@ -23,7 +23,8 @@ from macromicro_sumo.data.section import stop_lines_at
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.inputs import scenario_inputs
 from macromicro_sumo.sumo.options import SumoOptions
-from macromicro_sumo.sumo.simulation import STOP_STATES, Simulation
+from macromicro_sumo.sumo.simulation import Simulation
+from macromicro_sumo.sumo.states import STOP_STATES
 from macromicro_sumo.truth.section import load_section_truth
 
 CROSS = Path(sumo.__file__).resolve().parent / "tools" / "game" / "cross"
