@@ -434,7 +434,8 @@ class SectionSpeedDriver(SectionDriver):
             red = self.stop_lines_m(sim, vids, lanes, at)
             # No red or yellow ahead of anyone (inf): the stops are the lane ends as they are.
             if np.count_nonzero(red < np.inf):
-                stop = stop_distance_m(stop, red)
+                gaps = [self.vtypes[self.types[v]].stopline_gap_m for v in vids]  # jmStoplineGap
+                stop = stop_distance_m(stop, red, np.array(gaps))
         leaders = sim.leaders(vids, NO_LEADER_GAP_M)
         return observe_rows(
             self.lane_table,

@@ -32,7 +32,7 @@ class VTypePhysics:
     max_speed_mps: float  # the vehicle's cap: no command takes it faster
     accel_mps2: float  # its model's acceleration: no command accelerates it harder
     # jmStoplineGap: where its driver stops before a red line (``road.leaders.
-    # stop_distance_m``); SUMO's default until ``Simulation`` reads a vType's own.
+    # stop_distance_m``); SUMO's default where the vType sets none.
     stopline_gap_m: float = STOPLINE_GAP_M
 
     @property
@@ -44,8 +44,12 @@ class VTypePhysics:
 def read_vtype(sim: Simulation, type_id: str) -> VTypePhysics:
     """vType ``type_id``'s record from the running simulation ``sim`` (SUMO's values, its
     vClass's defaults where the user's files set none)."""
+    gap = sim.vtype_stopline_gap(type_id)
     return VTypePhysics(
-        *sim.vtype_shape(type_id), sim.vtype_max_speed(type_id), sim.vtype_accel(type_id)
+        *sim.vtype_shape(type_id),
+        sim.vtype_max_speed(type_id),
+        sim.vtype_accel(type_id),
+        STOPLINE_GAP_M if gap is None else gap,
     )
 
 

@@ -329,6 +329,12 @@ class Simulation:
         length, gap, decel = (float(f(type_id)) for f in (vt.getLength, vt.getMinGap, vt.getDecel))
         return length, gap, decel
 
+    def vtype_stopline_gap(self, type_id: str) -> float | None:
+        """A vType's jmStoplineGap [m], where its drivers stop before a red line; None where
+        the vType sets none (SUMO's default, 1 m, for every carFollowModel)."""
+        got = libsumo.vehicletype.getParameter(type_id, "junctionModel.jmStoplineGap")
+        return float(got) if got else None
+
     def vtype_max_speed(self, type_id: str) -> float:
         return float(libsumo.vehicletype.getMaxSpeed(type_id))  # [m/s]; commands may exceed it
 

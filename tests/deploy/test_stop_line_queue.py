@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import sumo
-from conftest import dump_toml
+from conftest import dump_toml, netconvert
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.stage import policy_batch
@@ -99,3 +99,71 @@ def test_the_prior_alone_stands_where_sumo_stands_at_a_red_light(tmp_path: Path)
     assert (speed < 0.1).all(), speed
     assert abs(dist[0] - 1.0) < 0.2, dist
     np.testing.assert_allclose(np.diff(dist), 7.5, atol=0.3)
+
+
+# A vType that stops 3 m before a red line and keeps 4 m to a leader (SUMO's Krauss).
+FAR = '<vType id="far" length="5" minGap="4" jmStoplineGap="3" sigma="0" speedDev="0"/>'
+
+
+def test_the_deployment_stops_where_sumo_stops_a_vtype_with_its_own_stopline_gap(
+    tmp_path: Path,
+) -> None:
+    """One "far" car (jmStoplineGap 3 m, minGap 4 m) from A (300 m, one lane) into a light
+    that stays red: driven by the deployment's driver (the prior alone with the far type's
+    minGap, residual 0, the safety layer), it stands where SUMO's own driver of that vType
+    stands, 3.0 m before the line (within 0.15 m). Before (the driver's red line less
+    SUMO's default 1 m, whatever the vType): 1.0 m before it."""
+    nodes = '<node id="n0" x="0" y="0"/><node id="tl" x="300" y="0" type="traffic_light"/>'
+    edges = (
+        '<edge id="A" from="n0" to="tl" numLanes="1" speed="15"/>'
+        '<edge id="B" from="tl" to="n2" numLanes="1" speed="15"/>'
+    )
+    net = netconvert(tmp_path, nodes + '<node id="n2" x="500" y="0"/>', edges)
+    routes = tmp_path / "r.rou.xml"
+    routes.write_text(
+        f"<routes>\n    {FAR}\n"
+        '    <vehicle id="v0" type="far" depart="0" departSpeed="10" departPos="50">'
+        '<route edges="A B"/></vehicle>\n</routes>\n'
+    )
+    red = tmp_path / "red.add.xml"
+    red.write_text(
+        '<additional>\n    <tlLogic id="tl" type="static" programID="red" offset="0">\n'
+        '        <phase duration="10000" state="r"/>\n    </tlLogic>\n</additional>\n'
+    )
+    table = {
+        "name": "t",
+        "seed": 5,
+        "network": {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]},
+        "section": {"edges": ["A", "B"]},
+        "simulation": {"warmup_s": 0.0, "duration_s": 60.0, "n_runs": 2},
+        "detectors": {"interval_s": 30.0},
+        "instrumented": {"ids": ["probe"]},
+        "policy": {"observation": "lookahead"},
+    }
+    (tmp_path / "s.toml").write_text(dump_toml(table))
+    sc = load_scenario(tmp_path / "s.toml")
+    opts = SumoOptions(net, (red,), 0.5, 5, route_files=(routes,), user_demand=True)
+    sim = Simulation(opts)
+    try:  # SUMO's own driver of the far type
+        for _ in range(120):
+            sim.step()
+        sumo_stop = sim.stop_line_m("v0")
+        assert sim.vehicle_states().speed_mps[0] < 0.01
+    finally:
+        sim.close()
+    assert abs(sumo_stop - 3.0) < 0.05, sumo_stop
+    prior = {**PRIOR, "min_gap_m": 4.0}
+    agent = Agent(
+        observation="lookahead", prior="krauss", prior_params=prior, residual_bound_mps2=0.0
+    )
+    section = read_section(net, ["A", "B"], False)
+    drv = Standing(sc, section, 0, policy_batch(agent), "sumo")
+    sim = Simulation(opts)
+    try:
+        _, stats = record_run(sim, sc, drv.section, 0, drv)
+    finally:
+        sim.close()
+    assert stats["collisions"] == 0
+    dist, speed = drv.at["v0"]
+    assert speed < 0.1, speed
+    assert abs(dist - sumo_stop) < 0.15, (dist, sumo_stop)

@@ -28,6 +28,7 @@ from macromicro_sumo.env.section_envs import true_section_completion
 from macromicro_sumo.env.section_observations import section_observations
 from macromicro_sumo.road.leaders import stop_distance_m
 from macromicro_sumo.road.section import STOP, read_section
+from macromicro_sumo.road.vtype import read_vtype
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.truth.section import load_section_truth, simulate_section
@@ -186,3 +187,20 @@ def test_the_deployment_stands_where_sumos_driver_stands(queue) -> None:
     assert speed1 < 0.01 and pos1 == pytest.approx(300.0 - 3.0, abs=0.05)
     assert spacing1 - 5.0 - FAR["minGap"] == pytest.approx(0.0, abs=0.05)
     assert pos0 + spacing0 - 5.0 - FAR["minGap"] == pytest.approx(pos1, abs=0.1)
+
+
+def test_the_deployment_reads_each_vtypes_stopline_gap_from_sumo(queue) -> None:
+    """``read_vtype`` (the deployment's drivers' and the demand env's vType record) has the
+    vType's jmStoplineGap as SUMO drives it: 3 m for far, SUMO's default 1 m for a vType
+    that sets none (``Simulation.vtype_stopline_gap``: None). Before: 1 m for both."""
+    _, _, net, red = queue
+    types = routes_file(net.parent / "both.rou.xml", [vtype("far", **FAR), vtype("car", **CAR)])
+    sim = Simulation(SumoOptions(net, (red,), 0.5, 1, route_files=(types,)))
+    try:
+        sim.step()
+        far, car = read_vtype(sim, "far"), read_vtype(sim, "car")
+        assert sim.vtype_stopline_gap("car") is None
+    finally:
+        sim.close()
+    assert (far.stopline_gap_m, far.min_gap_m) == (3.0, 4.0)
+    assert (car.stopline_gap_m, car.min_gap_m) == (1.0, 2.5)
