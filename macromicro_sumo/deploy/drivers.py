@@ -61,13 +61,31 @@ LANE_END_RECHECK_STEPS = 20
 # speed SUMO's car-following would choose (getFollowSpeed), a dense 2-lane merge queued 326
 # vehicle-steps at the acceleration lane's end where SUMO alone queued none, and Bremen's
 # 419 where SUMO alone queued 73 (docs/deploy.md, "Merges"). "handover": a driven vehicle
-# that must leave its lane within MERGE_HANDOVER_M merges with SUMO's own model; "sumo":
+# that must leave its lane merges with SUMO's own model from where SUMO's lane changer
+# (LC2013) makes that change urgent (``handover_m``); "sumo":
 # also, a driven vehicle that blocks its change (SUMO's blocking left follower) takes SUMO's
 # own speed where SUMO wanted more than MERGE_YIELD_TOLERANCE_MPS less than both its speed
 # and its car-following (Krauss' dawdling is at most sigma accel dt = 0.65 m/s at SUMO's
 # defaults).
-MERGE_HANDOVER_M = 400.0
+# LC2013: a change for the route is urgent once the distance left per change needed is
+# below v_la LOOK_FORWARD (x lcLookaheadLeft 2 to the left) + 2 (length + minGap), v_la the
+# speed, up at once, down with memory 0.9/s. A fixed 400 m before: on drawn 501 m0's lane 0
+# (three changes, urgent 1,491 m ahead at 24 m/s) was commanded where SUMO's drivers slowed.
+LC_LOOK_FORWARD_S = 10.0
+LC_LOOKAHEAD_LEFT = 2.0
+LC_LOOKAHEAD_MEMORY = 0.9  # per second
 MERGE_YIELD_TOLERANCE_MPS = 1.0
+
+
+def strategic_reach_m(
+    offset: np.ndarray, lookahead_mps: np.ndarray, with_gap_m: np.ndarray
+) -> np.ndarray:
+    """How far before where it must have left its lane SUMO's lane changer (LC2013) makes a
+    vehicle's change for its route urgent: ``offset`` lane changes (SUMO's best-lane
+    offset, > 0 to the left) of laDist each, from its look-ahead speed and its length plus
+    minGap ``with_gap_m``; 0 where it needs none."""
+    side = np.where(offset > 0, LC_LOOKAHEAD_LEFT, 1.0)
+    return np.abs(offset) * (lookahead_mps * LC_LOOK_FORWARD_S * side + 2.0 * with_gap_m)
 
 
 # --------------------------------------------------------------------------- sections
@@ -222,13 +240,24 @@ class SectionSpeedDriver(SectionDriver):
         self.merging.difference_update(vids)
         self.slots.forget(vids)
 
-    def merges(self, sim: Simulation, vids: list[str], ahead_m: np.ndarray) -> np.ndarray | None:
+    def handover_m(self, vids: list[str], slots: np.ndarray, speed: np.ndarray) -> np.ndarray:
+        """Per driven vehicle ``strategic_reach_m`` (0: no change needed), after updating
+        each one's look-ahead speed."""
+        keep = 1.0 - (1.0 - LC_LOOKAHEAD_MEMORY) * self.sc.simulation.step_length_s
+        la = self.slots.lookahead_mps[slots]
+        la = np.where(np.isnan(la) | (speed > la), speed, keep * la + (1.0 - keep) * speed)
+        self.slots.lookahead_mps[slots] = la
+        with_gap = np.fromiter((sum(self.shape_of[v][:2]) for v in vids), float, len(vids))
+        return strategic_reach_m(self.slots.lane_end.offset[slots], la, with_gap)
+
+    def merges(self, sim: Simulation, vids: list[str], ahead_m: np.ndarray,
+               reach_m: np.ndarray) -> np.ndarray | None:  # fmt: skip
         """``deploy.merge`` "handover" or "sumo", from ``ahead_m``, each driven vehicle's
         distance to where it must have left its lane: which of ``vids`` are commanded this
-        step (those that must leave their lane within ``MERGE_HANDOVER_M`` merge with
-        SUMO's own model, handed over until they are on a lane that carries them on; None:
-        all). ``merging`` holds the others."""
-        must_now = ahead_m <= MERGE_HANDOVER_M
+        step (those that must leave their lane within ``reach_m``, ``handover_m``, merge
+        with SUMO's own model, handed over until they are on a lane that carries them on;
+        None: all). ``merging`` holds the others."""
+        must_now = ahead_m <= reach_m
         if not self.merging and not np.count_nonzero(must_now):
             return None  # nobody merging, before or now
         now = set(compress(vids, must_now.tolist()))
@@ -298,11 +327,11 @@ class SectionSpeedDriver(SectionDriver):
         if due.size:
             # A few vehicles a step: scalar writes, not a dozen array calls for them.
             for i in due.tolist():
-                end = sim.lane_end_m(vids[i], lanes[i], 0.0)
+                end, offset = sim.lane_end(vids[i], lanes[i], 0.0)
                 # A lane end, once seen, stays; a lane that carries the vehicle on is asked
                 # again.
                 again = now + LANE_END_RECHECK_STEPS if end == math.inf else math.inf
-                cache.put(int(slots[i]), int(codes[i]), end, again)
+                cache.put(int(slots[i]), int(codes[i]), end, again, offset)
         return cache.value[slots]
 
     def stop_lines_m(
@@ -338,8 +367,14 @@ class SectionSpeedDriver(SectionDriver):
         # standing leader, asked once.
         ahead = self.lane_end_m(sim, vids, lanes, (slots, codes)) - st.pos_m[rows]
         near: list[int] = []
+        if self.driver_speeds is not None:  # a factor where first seen, handed over or not
+            first = np.isnan(self.slots.factor[slots])
+            if first.any():
+                seen = np.column_stack([st.speed_mps[rows], self.lane_table.limit_mps[codes]])
+                self.factors(slots, vids, seen)
         if self.merge != "none":
-            keep = self.merges(sim, vids, ahead)
+            reach = self.handover_m(vids, slots, st.speed_mps[rows])
+            keep = self.merges(sim, vids, ahead, reach)
             if keep is not None:
                 # Indices, not the mask: a take by index costs a fraction of a masked one.
                 idx = keep.nonzero()[0]

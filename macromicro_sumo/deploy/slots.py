@@ -34,25 +34,34 @@ class LaneCache:
         self.lane = np.full(capacity, NOT_ASKED, dtype=np.int64)
         self.again = np.full(capacity, -np.inf)
         self.value = np.full(capacity, missing)
+        self.offset = np.zeros(capacity)  # a second value SUMO gave with it (0: none)
 
     def due(self, slots: np.ndarray, lanes: np.ndarray, step: int) -> np.ndarray:
         """Indices into ``slots`` (vehicles on lane codes ``lanes``) to ask at ``step``."""
         return ((self.lane[slots] != lanes) | (self.again[slots] <= step)).nonzero()[0]
 
     def store(
-        self, slots: np.ndarray, lanes: np.ndarray, values: np.ndarray, again: np.ndarray
+        self,
+        slots: np.ndarray,
+        lanes: np.ndarray,
+        values: np.ndarray,
+        again: np.ndarray,
+        offset: np.ndarray | None = None,
     ) -> None:
-        """What SUMO said now: ``values`` on lane codes ``lanes`` (``NOT_ASKED``: ask again
-        next step), due again from step ``again``."""
+        """What SUMO said now: ``values`` (and ``offset``) on lane codes ``lanes``
+        (``NOT_ASKED``: ask again next step), due again from step ``again``."""
         self.lane[slots] = lanes
         self.value[slots] = values
         self.again[slots] = again
+        if offset is not None:
+            self.offset[slots] = offset
 
-    def put(self, slot: int, lane: int, value: float, again: float) -> None:
+    def put(self, slot: int, lane: int, value: float, again: float, offset: float = 0.0) -> None:
         """``store`` of one slot (scalar writes: a few vehicles a step)."""
         self.lane[slot] = lane
         self.value[slot] = value
         self.again[slot] = again
+        self.offset[slot] = offset
 
     def forget(self, slots: np.ndarray) -> None:
         self.lane[slots] = NOT_ASKED
@@ -62,6 +71,7 @@ class LaneCache:
         self.lane = _grown(self.lane, NOT_ASKED)
         self.again = _grown(self.again, -np.inf)
         self.value = _grown(self.value, self.missing)
+        self.offset = _grown(self.offset, 0.0)
 
 
 class VehicleSlots:
@@ -75,6 +85,8 @@ class VehicleSlots:
         self.last_mps = np.full(capacity, -np.inf)
         # Its driver's desired-speed factor (``policy.driver_speed``; NaN: not drawn yet).
         self.factor = np.full(capacity, np.nan)
+        # SUMO's lane changer's look-ahead speed (``drivers.handover_m``; NaN: none yet).
+        self.lookahead_mps = np.full(capacity, np.nan)
         self.lane_end = LaneCache(capacity, np.nan)  # distance to its lane's end [m]
         self.dark = LaneCache(capacity, np.inf)  # inf: no signal ahead on its route
         # The slots commanded at the last command (``commanded``).
@@ -90,6 +102,7 @@ class VehicleSlots:
             self.accel = _grown(self.accel, np.inf)
             self.last_mps = _grown(self.last_mps, -np.inf)
             self.factor = _grown(self.factor, np.nan)
+            self.lookahead_mps = _grown(self.lookahead_mps, np.nan)
             self.lane_end.grow()
             self.dark.grow()
 
@@ -102,6 +115,7 @@ class VehicleSlots:
         (a driver's factor stays: kept while it is driven, and on re-entry)."""
         s = self.slots(vehicle_ids)
         self.last_mps[s] = -np.inf
+        self.lookahead_mps[s] = np.nan
         self.lane_end.forget(s)
         self.dark.forget(s)
 

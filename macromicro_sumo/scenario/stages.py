@@ -264,8 +264,9 @@ class DeployConfig:
     merge: str = spec(
         "sumo",
         choices=("none", "handover", "sumo"),
-        doc="handover: a speed-commanded vehicle that must leave its lane within 400 m (an "
-        "acceleration lane) merges with SUMO's model; sumo: also, a commanded vehicle that "
+        doc="handover: a speed-commanded vehicle that must leave its lane (an acceleration "
+        "lane, a lane drop) merges with SUMO's model from where SUMO's lane changer makes "
+        "the change urgent (LC2013's strategic look-ahead); sumo: also, a commanded vehicle that "
         "blocks it takes SUMO's cooperative slow-down; none: commands everywhere "
         "(docs/deploy.md, Merges)",
     )

@@ -311,17 +311,17 @@ class Simulation:
         return {f for v in vehicle_ids for f, _ in _NEIGHBORS(v, _LEFT_BLOCKERS)}
 
     def lane_end_m(self, vehicle_id: str, lane_id: str, pos_m: float) -> float:
-        """Distance from the vehicle's front to the end of its lane, or of the lanes it
-        leads onto that end too (SUMO's best lanes: netgen_corridor's e4 lane 0 onto e5's),
-        when it must leave them to follow its route (an acceleration lane, a lane drop);
-        inf when the lane carries it on. The junctions between them count (the best lanes'
-        length leaves them out), as on the envs' section arc."""
+        return self.lane_end(vehicle_id, lane_id, pos_m)[0]
+
+    def lane_end(self, vehicle_id: str, lane_id: str, pos_m: float) -> tuple[float, int]:
+        """(front to where it must have left its lane(s) for its route, junctions counted, inf
+        where it carries on; SUMO's best-lane offset there: changes needed, > 0 left)."""
         for lane, length, _occ, offset, _cont, chain in _BEST_LANES(vehicle_id):
             if lane == lane_id and offset != 0:
                 ends = zip(map(libsumo.lane.getLinks, chain[:-1]), chain[1:], strict=False)
                 via = sum(next(k[7] for k in ks if k[0] == b) for ks, b in ends)
-                return float(length - pos_m + via)
-        return float("inf")
+                return float(length - pos_m + via), int(offset)
+        return float("inf"), 0
 
     def vtype_shape(self, type_id: str) -> tuple[float, float, float]:
         """(length, minGap, decel) of a vType [m, m, m/s^2]."""
