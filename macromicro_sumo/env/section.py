@@ -207,8 +207,11 @@ class SectionCore(SlotCore):
         stop_lane = stop_arc = None
         if self._has_lights:
             live = np.flatnonzero(self.active)
-            dist = np.fmin(self.sim.stop_lines_m([self.ids[i] for i in live]), np.inf)  # NaN: inf
-            stop_lane, stop_arc = stop_points(self.section, self.lane[live], self.arc[live], dist)
+            dist, links = self.sim.stop_line_lanes([self.ids[i] for i in live])
+            dist = np.fmin(dist, np.inf)  # NaN: inf
+            stop_lane, stop_arc = stop_points(
+                self.section, self.lane[live], self.arc[live], dist, links
+            )
         self._obs, self.leader, self.spacing = section_observations(
             self.episode_section,
             self.lane,

@@ -101,7 +101,11 @@ def section_observations(
 
 
 def stop_points(
-    section: Section, lane: np.ndarray, arc_m: np.ndarray, dist_m: np.ndarray
+    section: Section,
+    lane: np.ndarray,
+    arc_m: np.ndarray,
+    dist_m: np.ndarray,
+    link_lanes: list[str] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(lane, arc) of the stop lines ``dist_m`` ahead of vehicles at (``lane``, ``arc_m``)
     (inf: none), one per distinct place.
@@ -111,7 +115,11 @@ def stop_points(
     point is snapped to the edge end nearest that distance ahead; the spacing observed is
     then the arc to it. The point lies on the lane the vehicle reaches there along the
     lane connections (``lane_reached``), not on its own lane index: past an on-ramp the
-    through lanes' indices shift. Lines past an open section's end are dropped.
+    through lanes' indices shift. Where ``link_lanes`` gives the lane of the red link
+    (``Simulation.stop_line_lanes``) on that edge, the point lies on it: on game/cross a car
+    routed through on 1si's right-turn lane sees the through link's red, which would
+    otherwise stop the right turners behind it at a green light. Lines past an open
+    section's end are dropped.
     """
     ok = np.isfinite(dist_m)
     if not ok.any():
@@ -125,6 +133,11 @@ def stop_points(
     keep = np.isfinite(best)
     arc = section.wrap(s[keep] + best[keep])
     at = lane_reached(section, section.node_of(s[keep])[0], ln[keep], end[keep])
+    if link_lanes is not None:  # SUMO's own lane of the red link, on the edge it ends
+        own = [section.lanes.get(x) for x in np.asarray(link_lanes, dtype=object)[ok][keep]]
+        for j, (got, e) in enumerate(zip(own, end[keep], strict=True)):
+            if got is not None and got[0] == int(e):
+                at[j] = got[1]
     pts = np.unique(np.stack([at.astype(float), np.round(arc, 6)], axis=1), axis=0)
     return pts[:, 0].astype(np.int64), pts[:, 1]
 

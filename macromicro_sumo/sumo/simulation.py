@@ -465,6 +465,23 @@ class Simulation:
                     break
         return out
 
+    def stop_line_lanes(self, vehicle_ids: Sequence[str]) -> tuple[np.ndarray, list[str]]:
+        """``stop_lines_m`` and the lane of each red or yellow link found ("": none): its
+        incoming lane, SUMO's own, not the vehicle's (game/cross: a car routed through on
+        1si's right-turn lane 0 stops at the through link, from 1si_1)."""
+        links: dict[str, list] = {}  # signal: its links' (incoming, outgoing, via) tuples
+        out, lanes = np.full(len(vehicle_ids), np.nan), [""] * len(vehicle_ids)
+        for i, vid in enumerate(vehicle_ids):
+            for tls, link, dist, state in (ahead := _NEXT_TLS(vid)):
+                if state in STOP_STATES:
+                    if tls not in links:
+                        links[tls] = libsumo.trafficlight.getControlledLinks(tls)
+                    out[i], lanes[i] = dist, links[tls][link][0][0] if links[tls][link] else ""
+                    break
+            else:
+                out[i] = np.inf if ahead else np.nan
+        return out, lanes
+
 
 def quick_check(net_file: Path, additional: Path) -> str:
     """Run one simulated second on ``net_file``; returns SUMO's version string."""
