@@ -99,9 +99,10 @@ def episode_signals(sc, truth, snaps, horizon: int, every: int = 1) -> list[tupl
 
 
 def test_truth_records_the_signals_on_the_section(cross_truth) -> None:
-    """Every recorded step, the one signal's link from 1si onto 2o, on each of 1si's three
-    lanes (the two turning lanes drive through it on the section's route), at 1si's end;
-    its states follow the program (green 33 s of 90, yellow 3, red)."""
+    """Every recorded step, a row for each of 1si's three lanes at 1si's end, each lane
+    its own link's state (truth.signals.section_signal_links; tests/truth/test_signal_lanes.py
+    checks each letter against SUMO); the through lane's follow the program (green 33 s of
+    90, yellow 3, red)."""
     sc, truth = cross_truth
     sig = truth.signals
     steps = int(round(sc.simulation.duration_s / sc.simulation.step_length_s))
