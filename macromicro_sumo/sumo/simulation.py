@@ -311,6 +311,7 @@ class Simulation:
         return {f for v in vehicle_ids for f, _ in _NEIGHBORS(v, _LEFT_BLOCKERS)}
 
     def lane_end_m(self, vehicle_id: str, lane_id: str, pos_m: float) -> float:
+        """``lane_end``'s distance alone (inf where the lane carries the vehicle on)."""
         return self.lane_end(vehicle_id, lane_id, pos_m)[0]
 
     def lane_end(self, vehicle_id: str, lane_id: str, pos_m: float) -> tuple[float, int]:
