@@ -24,6 +24,7 @@ from macromicro_sumo.pipeline.build import policy_paths
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo import simulation as sumo
 from macromicro_sumo.sumo.inputs import input_files
+from macromicro_sumo.sumo.versions import versions
 
 
 def _scenario(args: argparse.Namespace) -> Any:
@@ -160,7 +161,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def _cmd_doctor(args: argparse.Namespace) -> int:
     root = sumo_nets_dir()  # shipped with the package (package data), as the examples
-    info = sumo.versions()
+    info = versions()
     print(f"SUMO binary : {info['sumo_binary']}")
     print(f"SUMO        : {info['sumo']}")
     print(f"libsumo     : {info['libsumo']}")

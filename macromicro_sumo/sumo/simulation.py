@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import subprocess
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Protocol
@@ -30,51 +29,27 @@ _LANE_VARS = (_C.VAR_LANE_ID, _C.VAR_LANEPOSITION, _C.VAR_SPEED, _C.VAR_ACCELERA
 _DRIVE_VARS = (*_LANE_VARS, _C.VAR_LEADER)
 
 
-# libsumo's compiled functions for the per-vehicle calls of a deployment's every step (the
-# wrappers as fallback): a wrapper adds a Python frame a call (getSpeed 0.23 -> 0.17 us,
-# libsumo 1.28); the compiled getLeader answers ("", -1.0) where its wrapper may say None.
-(
-    _GET_IDS,
-    _GET_LANE,
-    _GET_POS,
-    _GET_SPEED,
-    _GET_ACCEL,
-    _GET_LEADER,
-    _SET_SPEED,
-    _OWN_SPEED,
-    _BEST_LANES,
-    _NEXT_TLS,
-    _NEIGHBORS,
-) = (
-    getattr(getattr(libsumo, "_libsumo", None), f"vehicle_{f}", None) or getattr(libsumo.vehicle, f)
-    for f in ("getIDList", "getLaneID", "getLanePosition", "getSpeed", "getAcceleration")
-    + ("getLeader", "setSpeed", "getSpeedWithoutTraCI", "getBestLanes", "getNextTLS")
-    + ("getNeighbors",)
+def _compiled(names: str) -> list:
+    """libsumo's compiled per-vehicle functions for a deployment's every step (wrappers as
+    fallback): a wrapper adds a Python frame a call (getSpeed 0.23 -> 0.17 us, libsumo 1.28);
+    the compiled getLeader answers ("", -1.0) where its wrapper may say None."""
+    lib, v = getattr(libsumo, "_libsumo", None), libsumo.vehicle
+    return [getattr(lib, f"vehicle_{f}", None) or getattr(v, f) for f in names.split()]
+
+
+_GET_IDS, _GET_LANE, _GET_POS, _GET_SPEED, _GET_ACCEL, _GET_LEADER = _compiled(
+    "getIDList getLaneID getLanePosition getSpeed getAcceleration getLeader"
+)
+_SET_SPEED, _OWN_SPEED, _BEST_LANES, _NEXT_TLS, _NEIGHBORS = _compiled(
+    "setSpeed getSpeedWithoutTraCI getBestLanes getNextTLS getNeighbors"
 )
 # getNeighbors' mode of the left followers that block a change (traci's getLeftFollowers).
 _LEFT_BLOCKERS = 4
 
 
-def versions() -> dict[str, str]:
-    """Versions of the SUMO binary and of libsumo in use."""
-    sumo_bin = sumolib.checkBinary("sumo")
-    first = subprocess.run([sumo_bin, "--version"], capture_output=True, text=True).stdout
-    first = first.splitlines()
-    return {
-        "sumo_binary": sumo_bin,
-        "sumo": first[0].strip() if first else "unknown",
-        "libsumo": _dist_version("libsumo"),
-        "libsumo_api": str(libsumo.getVersion()[1]) if _is_running() else "",
-    }
-
-
-def _dist_version(name: str) -> str:
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        return version(name)
-    except PackageNotFoundError:
-        return "unknown"
+def api_version() -> str:
+    """libsumo's API version where a simulation runs ("" where none)."""
+    return str(libsumo.getVersion()[1]) if _is_running() else ""
 
 
 def _is_running() -> bool:
