@@ -62,6 +62,7 @@ from macromicro_sumo.truth.section_detectors import (
     without_detectors,
 )
 from macromicro_sumo.truth.section_macro import detector_macro, k_summary, trajectory_macro
+from macromicro_sumo.truth.section_speed import edie_speeds, stop_line_edges
 from macromicro_sumo.truth.signals import SignalRecorder
 from macromicro_sumo.truth.vtypes import vtype_frame
 
@@ -357,20 +358,19 @@ def simulate_section(
         # every regime: anchored together, weighted to free-flowing intervals, once for the
         # record where no ramp lies between stations, they beat the density estimate in
         # free flow too (docs/sections.md, "Hidden count"; scripts/bench_hidden_count.py).
-        k_df = k_estimates(
-            traj,
-            det_macro,
-            section,
-            sc.generator.snapshot_every_s,
-            sc.detectors.k_window_s,
-            StationRecord(
-                det,
-                pas,
-                side_junction_arcs(read_net(inputs.net_file), section),
-                PASSAGE_LAG_STEPS * sc.simulation.step_length_s,
-                from_empty=fleet_demand(sc) is None,  # SUMO starts empty; a fleet on the section
-            ),
+        net = read_net(inputs.net_file)
+        record = StationRecord(
+            det,
+            pas,
+            side_junction_arcs(net, section),
+            PASSAGE_LAG_STEPS * sc.simulation.step_length_s,
+            from_empty=fleet_demand(sc) is None,  # SUMO starts empty; a fleet on the section
         )
+        k_df = k_estimates(
+            traj, det_macro, section, sc.generator.snapshot_every_s, sc.detectors.k_window_s, record
+        )
+        if stop_line_edges(section, net):  # queues stand between the loops: Edie's speed
+            det_macro = edie_speeds(det_macro, record, section, sc.simulation.step_length_s)
         vt = vtype_frame(vtypes, vclass, traj)
         section.write(stage / "section.json")
         write_csv(traj, stage / "trajectories.csv")
