@@ -234,6 +234,7 @@ class SectionSpeedDriver(SectionDriver):
         phys = [self.vtypes[self.types[v]] for v in vids]
         self.slots.vmax[at] = [p.max_speed_mps for p in phys]
         self.slots.accel[at] = [p.accel_mps2 for p in phys]
+        self.slots.with_gap[at] = [sum(self.shape_of[v][:2]) for v in vids]
 
     def release(self, sim: Simulation, vids: list[str]) -> None:
         sim.release_speeds(vids)
@@ -247,8 +248,10 @@ class SectionSpeedDriver(SectionDriver):
         la = self.slots.lookahead_mps[slots]
         la = np.where(np.isnan(la) | (speed > la), speed, keep * la + (1.0 - keep) * speed)
         self.slots.lookahead_mps[slots] = la
-        with_gap = np.fromiter((sum(self.shape_of[v][:2]) for v in vids), float, len(vids))
-        return strategic_reach_m(self.slots.lane_end.offset[slots], la, with_gap)
+        offset = self.slots.lane_end.offset[slots]
+        if not np.count_nonzero(offset):  # nobody must change lane: 0 for all, as below
+            return np.zeros(len(vids))
+        return strategic_reach_m(offset, la, self.slots.with_gap[slots])
 
     def merges(self, sim: Simulation, vids: list[str], ahead_m: np.ndarray,
                reach_m: np.ndarray) -> np.ndarray | None:  # fmt: skip
@@ -309,13 +312,8 @@ class SectionSpeedDriver(SectionDriver):
             slots = self.slots.slots(vids)
         return slots, self.lane_table.codes(lanes)
 
-    def lane_end_m(
-        self,
-        sim: Simulation,
-        vids: list[str],
-        lanes: list[str],
-        at: tuple[np.ndarray, np.ndarray] | None = None,
-    ) -> np.ndarray:
+    def lane_end_m(self, sim: Simulation, vids: list[str], lanes: list[str],
+                   at: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:  # fmt: skip
         """Per vehicle, the distance from its lane's start to where it must have left that
         lane (inf: the lane carries it on), from SUMO's best lanes: asked when a vehicle is
         on a lane for the first time, a lane that carries it on again after
@@ -334,13 +332,8 @@ class SectionSpeedDriver(SectionDriver):
                 cache.put(int(slots[i]), int(codes[i]), end, again, offset)
         return cache.value[slots]
 
-    def stop_lines_m(
-        self,
-        sim: Simulation,
-        vids: list[str],
-        lanes: list[str],
-        at: tuple[np.ndarray, np.ndarray] | None = None,
-    ) -> np.ndarray:
+    def stop_lines_m(self, sim: Simulation, vids: list[str], lanes: list[str],
+                     at: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:  # fmt: skip
         """Per vehicle, ``Simulation.stop_lines_m`` (inf: no red or yellow ahead), asked
         only of vehicles that may meet a signal: one SUMO found none ahead of on its whole
         route is asked again when it changes lane or ``LANE_END_RECHECK_STEPS`` later (on
@@ -366,14 +359,16 @@ class SectionSpeedDriver(SectionDriver):
         # Where each must have left its lane: the merges' hand-over and the observation's
         # standing leader, asked once.
         ahead = self.lane_end_m(sim, vids, lanes, (slots, codes)) - st.pos_m[rows]
+        speed = st.speed_mps[rows]
         near: list[int] = []
+        factor = None
         if self.driver_speeds is not None:  # a factor where first seen, handed over or not
-            first = np.isnan(self.slots.factor[slots])
-            if first.any():
-                seen = np.column_stack([st.speed_mps[rows], self.lane_table.limit_mps[codes]])
-                self.factors(slots, vids, seen)
+            factor = self.slots.factor[slots]
+            if np.isnan(factor).nonzero()[0].size:
+                seen = np.column_stack([speed, self.lane_table.limit_mps[codes]])
+                factor = self.factors(slots, vids, seen)
         if self.merge != "none":
-            reach = self.handover_m(vids, slots, st.speed_mps[rows])
+            reach = self.handover_m(vids, slots, speed)
             keep = self.merges(sim, vids, ahead, reach)
             if keep is not None:
                 # Indices, not the mask: a take by index costs a fraction of a masked one.
@@ -381,18 +376,19 @@ class SectionSpeedDriver(SectionDriver):
                 listed = idx.tolist()
                 vids, lanes = [vids[i] for i in listed], [lanes[i] for i in listed]
                 rows, ahead, slots, codes = rows[idx], ahead[idx], slots[idx], codes[idx]
+                speed = speed[idx]
+                factor = None if factor is None else factor[idx]
                 if not vids:
                     return
             near = self.blocking(sim, vids)
         # Last step's command against the speed SUMO applied (-inf: none to compare with).
-        speed = st.speed_mps[rows]
         self.stats.safety_acted += int(
             np.count_nonzero(speed < self.slots.last_mps[slots] - SAFETY_TOLERANCE_MPS)
         )
         if self.has_lights is None:
             self.has_lights = sim.has_traffic_lights()
         obs, gap, lead_decel, lead = self.observe(
-            sim, vids, rows, st, lanes=lanes, stop_m=ahead, at=(slots, codes)
+            sim, vids, rows, st, lanes=lanes, stop_m=ahead, at=(slots, codes), factor=factor
         )
         # One leader table a step: the safe speed behind what each sees ahead, for both the
         # merges' yield and the safety layer.
@@ -409,11 +405,10 @@ class SectionSpeedDriver(SectionDriver):
         def layer() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
             return gap, own, lead_decel, lead
 
-        # The vType's maxSpeed and accel are the vehicle's physics, not safety: SUMO does
-        # not impose them on a command under these speed modes (no max-accel bit;
-        # ring_two_lane's vans, maxSpeed 12, ran at up to 14.9 m/s; drawn net 300's trucks,
-        # accel 1.0, accelerated at up to the bound's 2.6 m/s^2), so every command is held
-        # to them, with or without the safety layer.
+        # The vType's maxSpeed and accel are the vehicle's physics, not safety: SUMO does not
+        # impose them on a command under these speed modes (no max-accel bit; ring_two_lane's
+        # vans, maxSpeed 12, ran at up to 14.9 m/s; drawn net 300's trucks, accel 1.0, at up
+        # to the bound's 2.6 m/s^2): every command is held to them, with or without the layer.
         cmd = speed_commands(
             self.sc,
             self.act,
@@ -430,10 +425,15 @@ class SectionSpeedDriver(SectionDriver):
         sim.set_speeds(vids, cmd)
         self.slots.commanded(slots, cmd)
 
-    def factors(self, slots: np.ndarray, vids: list[str], obs: np.ndarray) -> np.ndarray:
+    def factors(
+        self, slots: np.ndarray, vids: list[str], obs: np.ndarray, known: np.ndarray | None = None
+    ) -> np.ndarray:
         """``policy.driver_speed``: the factors of driven vehicles ``vids`` (slots
         ``slots``, observations ``obs`` with unscaled limits), kept per slot: the driver's
-        ``DriverSpeeds`` asked only of a vehicle met for the first time."""
+        ``DriverSpeeds`` asked only of a vehicle met for the first time; ``known``: these
+        factors, read already (none new)."""
+        if known is not None:
+            return known
         f = self.slots.factor[slots]
         new = np.isnan(f).nonzero()[0]
         if new.size:
@@ -452,12 +452,14 @@ class SectionSpeedDriver(SectionDriver):
         lanes: list[str] | None = None,
         stop_m: np.ndarray | None = None,
         at: tuple[np.ndarray, np.ndarray] | None = None,
+        factor: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``observe_rows`` of driven vehicles ``vids`` (rows ``rows`` of ``st``): SUMO's
         leaders, lane ends and red lights asked now; ``shapes``: vehicle -> (length,
         minGap, decel) (default: the vTypes of the vehicles this driver saw arrive);
         ``lanes``, ``stop_m``: their lanes and the distances to those lanes' ends if
-        known already (``lane_end_m`` minus the position); ``at``: ``slots_of``."""
+        known already (``lane_end_m`` minus the position); ``at``: ``slots_of``;
+        ``factor``: their drivers' factors (``factors``) if known already."""
         if lanes is None:
             lanes = list(map(st.lanes.__getitem__, rows.tolist()))
         if at is None:
@@ -482,7 +484,7 @@ class SectionSpeedDriver(SectionDriver):
             leaders,
             self.shape_table if shapes is None else shapes,
             stop,
-            None if self.driver_speeds is None else partial(self.factors, at[0]),
+            None if self.driver_speeds is None else partial(self.factors, at[0], known=factor),
             at[1],
         )
 

@@ -5,7 +5,7 @@ deployment: ~45 driven vehicles a step, where numpy's fixed cost per call and Py
 vehicle were most of the driver's time, ``scripts/bench_deploy.py``).
 
 What is kept per slot: the last step's speed command (``last_mps``, -inf: none, or none to
-compare with), the vehicle's demand decel and maxSpeed, its driver's desired-speed factor,
+compare with), the vehicle's demand decel, maxSpeed, accel and length + minGap, its driver's desired-speed factor,
 and two ``LaneCache``s of what SUMO was asked about the vehicle's lane (``lane_end``: where
 it must have left its lane; ``dark``: no signal ahead on its route).
 """
@@ -82,6 +82,8 @@ class VehicleSlots:
         self.decel = np.full(capacity, np.nan)  # its demand vType's decel [m/s^2] (``take``)
         self.vmax = np.full(capacity, np.inf)  # its demand vType's maxSpeed [m/s] (``take``)
         self.accel = np.full(capacity, np.inf)  # its demand vType's accel [m/s^2] (``take``)
+        # Its demand vType's length + minGap [m] (``take``; ``drivers.handover_m``).
+        self.with_gap = np.full(capacity, np.nan)
         self.last_mps = np.full(capacity, -np.inf)
         # Its driver's desired-speed factor (``policy.driver_speed``; NaN: not drawn yet).
         self.factor = np.full(capacity, np.nan)
@@ -100,6 +102,7 @@ class VehicleSlots:
             self.decel = _grown(self.decel, np.nan)
             self.vmax = _grown(self.vmax, np.inf)
             self.accel = _grown(self.accel, np.inf)
+            self.with_gap = _grown(self.with_gap, np.nan)
             self.last_mps = _grown(self.last_mps, -np.inf)
             self.factor = _grown(self.factor, np.nan)
             self.lookahead_mps = _grown(self.lookahead_mps, np.nan)
