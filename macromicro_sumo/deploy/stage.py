@@ -179,10 +179,31 @@ def actor_forward(agent: Agent) -> Callable[[np.ndarray], np.ndarray]:
         else:
             raise TypeError(f"policy_batch: actor layer {type(m).__name__} not supported")
 
+    last = max(i for i, layer in enumerate(layers) if layer is not None)
+    # The hidden layers' outputs, kept between calls (grown as needed): written in place, the
+    # same products and sums as fresh arrays, without a step's allocations.
+    kept = [np.empty((0, 0 if layer is None else len(layer[1]))) for layer in layers]
+
     def forward(obs: np.ndarray) -> np.ndarray:
-        x0 = (obs - shift) / scale
-        out = np.empty(len(x0))
-        for start in range(0, len(x0), ACTOR_ROWS):
+        x0 = np.subtract(obs, shift)
+        np.divide(x0, scale, out=x0)
+        n = len(x0)
+        if n <= ACTOR_ROWS:  # one product per layer
+            x = x0
+            for i, layer in enumerate(layers):
+                if layer is None:
+                    np.tanh(x, out=x)
+                    continue
+                if i == last:  # a fresh output
+                    x = np.matmul(x, layer[0])
+                else:
+                    if len(kept[i]) < n:
+                        kept[i] = np.empty((max(n, ACTOR_ROWS // 2), len(layer[1])))
+                    x = np.matmul(x, layer[0], out=kept[i][:n])
+                np.add(x, layer[1], out=x)
+            return x[:, 0]
+        out = np.empty(n)
+        for start in range(0, n, ACTOR_ROWS):
             x = x0[start : start + ACTOR_ROWS]
             for layer in layers:
                 x = np.tanh(x, out=x) if layer is None else x @ layer[0] + layer[1]
@@ -229,7 +250,9 @@ def policy_batch(agent: Agent) -> ActionBatch:
         if bound <= 0.0:  # the fitted prior alone (an ablation)
             return prior(obs)
         out = actor(obs)
-        if math.isfinite(bound):
+        if bound == 1.0:  # x / 1 and 1 y are x and y: the same values, two calls fewer
+            out = np.tanh(out)
+        elif math.isfinite(bound):
             out = bound * np.tanh(out / bound)
         return out + prior(obs)
 
