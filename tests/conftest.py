@@ -33,6 +33,24 @@ SMALL = {"simulation.n_runs": 2, "simulation.duration_s": 120.0}
 
 MakeScenario = Callable[..., Path]
 
+# game/cross's fitted Krauss prior (hU's run at stop 34, policy/policy_manifest.json).
+CROSS_KRAUSS = {
+    "speed_factor": 1.0327,
+    "accel_mps2": 2.6,
+    "decel_mps2": 5.629,
+    "tau_s": 1.0896,
+    "min_gap_m": 2.4947,
+    "veh_length_m": 5.0,
+    "dt_s": 0.5,
+    "relax_s": 0.5545,
+}
+
+
+@pytest.fixture
+def cross_krauss() -> dict[str, float]:
+    """``CROSS_KRAUSS``, a copy for one test to change."""
+    return dict(CROSS_KRAUSS)
+
 
 def netconvert(
     folder: Path, nodes: str, edges: str, cons: str = "", extra: tuple = (), name: str = "net"

@@ -207,10 +207,10 @@ class SectionCore(SlotCore):
         stop_lane = stop_arc = None
         if self._has_lights:
             live = np.flatnonzero(self.active)
-            dist, links = self.sim.stop_line_lanes([self.ids[i] for i in live])
-            dist = np.fmin(dist, np.inf)  # NaN: inf
+            lines = self.sim.stop_lines([self.ids[i] for i in live])
+            dist = np.fmin(lines.dist_m, np.inf)  # NaN: inf
             stop_lane, stop_arc = stop_points(
-                self.section, self.lane[live], self.arc[live], dist, links
+                self.section, self.lane[live], self.arc[live], dist, lines.lanes
             )
         self._obs, self.leader, self.spacing = section_observations(
             self.episode_section,

@@ -21,7 +21,12 @@ import sumolib
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.sumo.options import SumoOptions
-from macromicro_sumo.sumo.states import DEFAULT_SPEED_MODE, STOP_STATES, VehicleStates
+from macromicro_sumo.sumo.states import (
+    DEFAULT_SPEED_MODE,
+    STOP_STATES,
+    StopLines,
+    VehicleStates,
+)
 
 _C = libsumo.constants
 _LANE_VARS = (_C.VAR_LANE_ID, _C.VAR_LANEPOSITION, _C.VAR_SPEED, _C.VAR_ACCELERATION)
@@ -95,6 +100,8 @@ class Simulation:
         self.options = options
         self._dt = float(options.step_length_s)
         self._states: VehicleStates | None = None
+        self._links: dict[tuple[str, int], str] = {}  # ``_link_lane``'s, asked once a run
+        self._carry: dict[tuple[str, str, str], bool] = {}  # ``_carries_on``'s
         Simulation._active = self
 
     def is_active(self) -> bool:
@@ -147,9 +154,8 @@ class Simulation:
         return tuple(libsumo.vehicle.getIDList())
 
     def remove_vehicles(self, vehicle_ids: Sequence[str]) -> None:
-        """Remove vehicles, subscribed or not: libsumo 1.28 fails every later step
-        ("Vehicle ... is not known") when a subscribed vehicle is removed without
-        unsubscribing it first."""
+        """Remove vehicles, subscribed or not: libsumo 1.28 fails every later step ("Vehicle
+        ... is not known") when a subscribed vehicle is removed without unsubscribing it."""
         self._states = None
         for vid in vehicle_ids:
             with contextlib.suppress(libsumo.TraCIException):
@@ -223,8 +229,7 @@ class Simulation:
             ) from None
 
     def read_lane_states(self) -> dict[str, tuple[str, float, float, float]]:
-        """{vehicle: (lane ID, lane position, speed, acceleration)} of subscribed vehicles
-        still in the simulation."""
+        """{vehicle: (lane ID, lane position, speed, acceleration)} of subscribed vehicles."""
         lane, pos, spd, acc = _LANE_VARS
         return {
             vid: (r[lane], r[pos], r[spd], r[acc])
@@ -240,8 +245,8 @@ class Simulation:
             libsumo.vehicle.subscribe(vid, _DRIVE_VARS, 0, 2**31 - 1, params)
 
     def read_leaders(self) -> dict[str, tuple[str, float]]:
-        """{vehicle: (leader ID or "", SUMO's gap: leader's back minus own front and minGap)}
-        of the vehicles subscribed with ``subscribe_driving``."""
+        """{vehicle: (leader ID or "", SUMO's gap: leader's back - own front - minGap)} of the
+        vehicles subscribed with ``subscribe_driving``."""
         res = libsumo.vehicle.getAllSubscriptionResults().items()
         return {vid: r[_C.VAR_LEADER] for vid, r in res if _C.VAR_LEADER in r}
 
@@ -249,7 +254,7 @@ class Simulation:
         return int(libsumo.trafficlight.getIDCount()) > 0
 
     def stop_line_m(self, vehicle_id: str) -> float:
-        """Distance [m] from the front to the next red or yellow stop line (inf: none)."""
+        """``stop_lines_m`` of one vehicle, inf where none."""
         d = float(self.stop_lines_m([vehicle_id])[0])  # nan_to_num would make inf finite
         return float("inf") if np.isnan(d) else d
 
@@ -268,8 +273,7 @@ class Simulation:
 
     def set_signal_states(self, rows: Sequence[tuple[str, str, int, float]]) -> None:
         """Put each signal (ID, program, phase index, seconds left in the phase) where a
-        recording saw it; its program runs on from there. A signal or program this run
-        lacks (a file it was not given) is left as it is."""
+        recording saw it, its program running on; one this run lacks is left as it is."""
         tl = libsumo.trafficlight
         for t, program, phase, left_s in rows:
             with contextlib.suppress(libsumo.TraCIException):
@@ -429,34 +433,48 @@ class Simulation:
         """Vehicles that left the network in the last step."""
         return frozenset(libsumo.simulation.getArrivedIDList())
 
-    def stop_lines_m(self, vehicle_ids: Sequence[str]) -> np.ndarray:
-        """``stop_line_m`` of each vehicle; NaN: no signal at all ahead on its route."""
-        get, stop, inf = _NEXT_TLS, STOP_STATES, float("inf")
-        out = np.empty(len(vehicle_ids))
+    def stop_lines(self, vehicle_ids: Sequence[str]) -> StopLines:
+        """The next red or yellow line of each vehicle (``StopLines``; every caller's query):
+        getNextTLS, its link's lane and whether that is its own (``_carries_on``)."""
+        n, links, carry = len(vehicle_ids), self._links, self._carry
+        dist, lanes, own = [np.nan] * n, [""] * n, [True] * n
         for i, vid in enumerate(vehicle_ids):
-            out[i] = inf if (ahead := get(vid)) else np.nan
-            for _tls, _link, dist, state in ahead:
-                if state in stop:
-                    out[i] = dist
-                    break
-        return out
-
-    def stop_line_lanes(self, vehicle_ids: Sequence[str]) -> tuple[np.ndarray, list[str]]:
-        """``stop_lines_m`` and the lane of each red or yellow link found ("": none): its
-        incoming lane, SUMO's own, not the vehicle's (game/cross: a car routed through on
-        1si's right-turn lane 0 stops at the through link, from 1si_1)."""
-        links: dict[str, list] = {}  # signal: its links' (incoming, outgoing, via) tuples
-        out, lanes = np.full(len(vehicle_ids), np.nan), [""] * len(vehicle_ids)
-        for i, vid in enumerate(vehicle_ids):
-            for tls, link, dist, state in (ahead := _NEXT_TLS(vid)):
+            for tls, link, d, state in (ahead := _NEXT_TLS(vid)):
                 if state in STOP_STATES:
-                    if tls not in links:
-                        links[tls] = libsumo.trafficlight.getControlledLinks(tls)
-                    out[i], lanes[i] = dist, links[tls][link][0][0] if links[tls][link] else ""
+                    dist[i] = d
+                    lanes[i] = lane = links.get((tls, link)) or self._link_lane(tls, link)
+                    if lane and (here := _GET_LANE(vid)) != lane:
+                        if (o := carry.get((vid, here, lane))) is None:
+                            o = carry[vid, here, lane] = _carries_on(vid, here, lane)
+                        own[i] = o
                     break
             else:
-                out[i] = np.inf if ahead else np.nan
-        return out, lanes
+                dist[i] = np.inf if ahead else np.nan
+        return StopLines(np.array(dist), lanes, np.array(own))
+
+    def _link_lane(self, tls: str, link: int) -> str:
+        """A signal's link's incoming lane ("": none), asked of SUMO once a run."""
+        got = enumerate(libsumo.trafficlight.getControlledLinks(tls))
+        self._links.update(((tls, k), ls[0][0] if ls else "") for k, ls in got)
+        return self._links[tls, link]
+
+    def stop_lines_m(self, vehicle_ids: Sequence[str]) -> np.ndarray:
+        """``StopLines.line_m``: each vehicle's red line; inf: no red or yellow ahead, or
+        another lane's link (it stops 0 m before its lane's end, ``lane_end``, not 1); NaN:
+        no signal at all ahead on its route."""
+        return self.stop_lines(vehicle_ids).line_m()
+
+
+def _carries_on(vehicle_id: str, lane: str, lane_id: str) -> bool:
+    """Whether ``lane_id``, not the vehicle's ``lane``, is on its best lanes' continuation
+    (SUMO's driver stops at its links; True in a junction, where its best lanes start after);
+    asked once a vehicle, lane and link lane (``Simulation._carry``)."""
+    if not lane.startswith(":") and lane.rpartition("_")[0] == lane_id.rpartition("_")[0]:
+        return False  # another lane of the same edge
+    for best, _length, _occ, _offset, _cont, chain in _BEST_LANES(vehicle_id):
+        if best == lane:
+            return lane_id in chain
+    return True
 
 
 def quick_check(net_file: Path, additional: Path) -> str:

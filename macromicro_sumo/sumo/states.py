@@ -34,3 +34,30 @@ class VehicleStates:
     def index(self) -> dict[str, int]:
         """Vehicle ID -> row."""
         return dict(zip(self.ids, range(len(self.ids)), strict=True))
+
+
+# SUMO's jmStoplineGap where a vType sets none, for every carFollowModel [m].
+SUMO_STOPLINE_GAP_M = 1.0
+
+
+@dataclass(frozen=True)
+class StopLines:
+    """The next red or yellow stop line ahead of each vehicle (``Simulation.stop_lines``):
+    SUMO's getNextTLS, the red link's lane and whether SUMO's driver stops at that line."""
+
+    dist_m: np.ndarray  # front to the line; inf: no red or yellow ahead; NaN: no signal at all
+    lanes: list[str]  # the red link's incoming lane, SUMO's own ("": none)
+    # The link leaves the vehicle's lane (or the lanes it carries on to): SUMO's driver stops
+    # before the line. False: its lane ends there (game/cross: a car routed through on 1si's
+    # right-turn lane gets the through link's red); it stops at its lane's end, 0 m before.
+    own: np.ndarray
+
+    def stop_m(self, stopline_gap_m: float | np.ndarray = SUMO_STOPLINE_GAP_M) -> np.ndarray:
+        """SUMO's gap to where its driver of a vType with jmStoplineGap ``stopline_gap_m``
+        stands at the line: dist - jmStoplineGap, >= 0; inf where the link is not its own
+        (its lane's end is its stop); NaN stays."""
+        return np.where(self.own, np.maximum(self.dist_m - stopline_gap_m, 0.0), self.line_m())
+
+    def line_m(self) -> np.ndarray:
+        """The line where the link is its own, inf where not; NaN stays."""
+        return np.where(self.own, self.dist_m, np.inf + self.dist_m)

@@ -51,8 +51,8 @@ def test_a_red_link_puts_its_stop_point_on_its_own_lane(tmp_path: Path) -> None:
         sim.set_lane_change_mode(ids, 0)
         sim.step()
         lanes, pos, speed = sim.lane_states(ids)
-        dist, links = sim.stop_line_lanes(ids)
-        assert np.array_equal(dist, sim.stop_lines_m(ids))
+        lines = sim.stop_lines(ids)
+        dist, links = lines.dist_m, lines.lanes
     finally:
         sim.close()
     assert lanes == ["1si_0", "1si_0", "1si_1"] and links == ["1si_1", "", "1si_1"]

@@ -103,16 +103,18 @@ def three_observations(
 def test_env_deployment_and_demand_env_see_the_same_ahead(cross: Section, light: str) -> None:
     """The three observations of one SUMO state agree (within 0.5 m: SUMO's lanes and the
     section's arc differ by a rounding), and the standing leaders are at SUMO's stop plus
-    minGap 2.5 m and the own 5 m: at the turning lanes' ends (40 and 60 m) on green, at red
-    1 m before the stop lines (the first through vehicle's 30 m ahead, and the turning
-    lanes', whose links are red too: SUMO's red governs where it meets a lane's end)."""
+    minGap 2.5 m and the own 5 m: at the turning lanes' ends (40 and 60 m) on green and on
+    red, and at red 1 m before the first through vehicle's stop line (30 m ahead). SUMO
+    gives the through vehicles on the turning lanes the through link's red, but its driver
+    of them stands 0.00 m before its lane's end (measured, lane changes off), not 1 m: the
+    link is not their lane's (``StopLines.own``). Before (stop 35): 1 m before the line."""
     env, deploy, demand = three_observations(cross, PHASES[light])
     np.testing.assert_allclose(deploy, env, atol=0.5)
     np.testing.assert_allclose(demand, env, atol=0.5)
     spacing = env[:, 2]
     np.testing.assert_allclose(env[2:4, 3], 5.0)  # delta v: a standing leader
     if light == "red":
-        np.testing.assert_allclose(spacing[[0, 2, 3]], [36.5, 46.5, 66.5], atol=0.2)
+        np.testing.assert_allclose(spacing[[0, 2, 3]], [36.5, 47.5, 67.5], atol=0.2)
     else:
         np.testing.assert_allclose(spacing[2:4], [47.5, 67.5], atol=0.2)  # lane ends
         assert spacing[0] > 30.0 + 50.0  # the leader is the vehicle 50 m into 2o
