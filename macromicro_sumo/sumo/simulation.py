@@ -24,9 +24,11 @@ from macromicro_sumo.sumo.options import SumoOptions
 from macromicro_sumo.sumo.states import (
     DEFAULT_SPEED_MODE,
     STOP_STATES,
+    SUMO_STOPLINE_GAP_M,
     StopLines,
     VehicleStates,
 )
+from macromicro_sumo.sumo.stop_offsets import lane_stop_offsets
 
 _C = libsumo.constants
 _LANE_VARS = (_C.VAR_LANE_ID, _C.VAR_LANEPOSITION, _C.VAR_SPEED, _C.VAR_ACCELERATION)
@@ -102,6 +104,7 @@ class Simulation:
         self._states: VehicleStates | None = None
         self._links: dict[tuple[str, int], str] = {}  # ``_link_lane``'s, asked once a run
         self._carry: dict[tuple[str, str, str], bool] = {}  # ``_carries_on``'s
+        self._stop_offsets = lane_stop_offsets(Path(options.net_file))
         Simulation._active = self
 
     def is_active(self) -> bool:
@@ -435,9 +438,9 @@ class Simulation:
 
     def stop_lines(self, vehicle_ids: Sequence[str]) -> StopLines:
         """The next red or yellow line of each vehicle (``StopLines``; every caller's query):
-        getNextTLS, its link's lane and whether that is its own (``_carries_on``)."""
-        n, links, carry = len(vehicle_ids), self._links, self._carry
-        dist, lanes, own = [np.nan] * n, [""] * n, [True] * n
+        getNextTLS, its link's lane (``_carries_on``: its own?), that lane's stopOffset."""
+        n, links, carry, offsets = len(vehicle_ids), self._links, self._carry, self._stop_offsets
+        dist, lanes, own, offset = [np.nan] * n, [""] * n, [True] * n, [0.0] * n
         for i, vid in enumerate(vehicle_ids):
             for tls, link, d, state in (ahead := _NEXT_TLS(vid)):
                 if state in STOP_STATES:
@@ -447,10 +450,13 @@ class Simulation:
                         if (o := carry.get((vid, here, lane))) is None:
                             o = carry[vid, here, lane] = _carries_on(vid, here, lane)
                         own[i] = o
+                    if offsets and (so := offsets.get(lane)) is not None:
+                        ok = so.applies(libsumo.vehicle.getVehicleClass(vid))
+                        offset[i] = so.value_m if ok else 0.0
                     break
             else:
                 dist[i] = np.inf if ahead else np.nan
-        return StopLines(np.array(dist), lanes, np.array(own))
+        return StopLines(np.array(dist), lanes, np.array(own), np.array(offset))
 
     def _link_lane(self, tls: str, link: int) -> str:
         """A signal's link's incoming lane ("": none), asked of SUMO once a run."""
@@ -459,10 +465,14 @@ class Simulation:
         return self._links[tls, link]
 
     def stop_lines_m(self, vehicle_ids: Sequence[str]) -> np.ndarray:
-        """``StopLines.line_m``: each vehicle's red line; inf: no red or yellow ahead, or
-        another lane's link (it stops 0 m before its lane's end, ``lane_end``, not 1); NaN:
-        no signal at all ahead on its route."""
-        return self.stop_lines(vehicle_ids).line_m()
+        """``StopLines.line_m`` with each vehicle's jmStoplineGap: its red line less what a
+        lane's stopOffset adds; inf: no red or yellow ahead, or another lane's link (it stops
+        0 m before its lane's end, ``lane_end``, not 1); NaN: no signal at all ahead."""
+        lines, gap = self.stop_lines(vehicle_ids), np.full(len(vehicle_ids), SUMO_STOPLINE_GAP_M)
+        for i in np.flatnonzero(lines.offset_m).tolist():
+            if (got := self.vtype_stopline_gap(self.vehicle_type(vehicle_ids[i]))) is not None:
+                gap[i] = got
+        return lines.line_m(gap)
 
 
 def _carries_on(vehicle_id: str, lane: str, lane_id: str) -> bool:

@@ -51,13 +51,18 @@ class StopLines:
     # before the line. False: its lane ends there (game/cross: a car routed through on 1si's
     # right-turn lane gets the through link's red); it stops at its lane's end, 0 m before.
     own: np.ndarray
+    offset_m: np.ndarray  # the link lane's stopOffset for the vehicle's class (0: none)
 
     def stop_m(self, stopline_gap_m: float | np.ndarray = SUMO_STOPLINE_GAP_M) -> np.ndarray:
         """SUMO's gap to where its driver of a vType with jmStoplineGap ``stopline_gap_m``
-        stands at the line: dist - jmStoplineGap, >= 0; inf where the link is not its own
-        (its lane's end is its stop); NaN stays."""
-        return np.where(self.own, np.maximum(self.dist_m - stopline_gap_m, 0.0), self.line_m())
+        stands at the line: dist - max(jmStoplineGap, stopOffset), >= 0 (measured, SUMO
+        1.28); inf where the link is not its own (its lane's end is its stop); NaN stays."""
+        gap = np.maximum(stopline_gap_m, self.offset_m)
+        return np.where(self.own, np.maximum(self.dist_m - gap, 0.0), np.inf + self.dist_m)
 
-    def line_m(self) -> np.ndarray:
-        """The line where the link is its own, inf where not; NaN stays."""
-        return np.where(self.own, self.dist_m, np.inf + self.dist_m)
+    def line_m(self, stopline_gap_m: float | np.ndarray = SUMO_STOPLINE_GAP_M) -> np.ndarray:
+        """The line as a reader that stops ``stopline_gap_m`` (its vType's jmStoplineGap)
+        before it takes it: ``stop_m`` + that gap, the stopOffset's excess moving it
+        upstream; inf where not its own; NaN stays."""
+        excess = np.maximum(self.offset_m - stopline_gap_m, 0.0)
+        return np.where(self.own, self.dist_m - excess, np.inf + self.dist_m)

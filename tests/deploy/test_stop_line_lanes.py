@@ -1,20 +1,22 @@
 """The deployment stops a driven car where SUMO's driver of it stops at a red light, on
-every lane: one routed through on a turning lane.
+every lane: one routed through on a turning lane, and a lane with a stopOffset.
 
 SUMO's getNextTLS gives a car whose lane does not lead its way the red of the link it
 should take (game/cross: a car routed through on 1si's right-turn lane 0 gets the through
 link 7's, from 1si_1); SUMO's driver of it stops 0 m before its lane's end, not its
-jmStoplineGap before the line (``Simulation.stop_lines``' ``own``).
+jmStoplineGap before the line (``Simulation.stop_lines``' ``own``). At a lane with a
+stopOffset SUMO's driver stands max(jmStoplineGap, stopOffset) before the line.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 import sumo
 import sumolib
-from conftest import dump_toml
+from conftest import dump_toml, netconvert
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.stage import policy_batch
@@ -137,3 +139,36 @@ def test_a_car_on_a_lane_that_does_not_lead_its_way_stops_at_the_lanes_end(
         assert sumo_at[v][1] < 0.01 and abs(sumo_at[v][0] - want) < 0.05, sumo_at
         assert deployed[v][1] < 0.1, deployed
         assert abs(deployed[v][0] - sumo_at[v][0]) < 0.15, (v, deployed[v], sumo_at[v])
+
+
+def test_the_deployment_stops_before_a_lanes_stop_offset(
+    tmp_path: Path, cross_krauss: dict
+) -> None:
+    """A (300 m, 2 lanes) into a light that stays red, with a stopOffset of 3 m on A and
+    of 6 m on lane 1 for passenger cars: SUMO's drivers (jmStoplineGap 1 m) stand 3.00 m
+    before the line on lane 0 and 6.00 m on lane 1; the deployment's driver (the prior
+    alone) stands each where SUMO does (within 0.15 m). Before: 1.0 m before the line."""
+    nodes = (
+        '<node id="n0" x="0" y="0"/><node id="tl" x="300" y="0" type="traffic_light"/>'
+        '<node id="n2" x="500" y="0"/>'
+    )
+    edges = (
+        '<edge id="A" from="n0" to="tl" numLanes="2" speed="15"><stopOffset value="3"/>'
+        '<lane index="1"><stopOffset value="6" vClasses="passenger"/></lane></edge>'
+        '<edge id="B" from="tl" to="n2" numLanes="2" speed="15"/>'
+    )
+    net = netconvert(tmp_path, nodes, edges)
+    add = red_program(tmp_path, "tl", "rrrr")
+    routes = tmp_path / "r.rou.xml"
+    cars = "".join(
+        f'    <vehicle id="v{k}" depart="0" departSpeed="10" departLane="{k}" departPos="50">'
+        '<route edges="A B"/></vehicle>\n'
+        for k in (0, 1)
+    )
+    routes.write_text(f"<routes>\n{cars}</routes>\n")
+    sumo_at, deployed = stands(tmp_path, net, add, routes, ["A", "B"], cross_krauss)
+    for v, want in (("v0", 3.0), ("v1", 6.0)):
+        assert sumo_at[v][1] < 0.01 and abs(sumo_at[v][0] - want) < 0.05, sumo_at
+        assert deployed[v][1] < 0.1, deployed
+        assert abs(deployed[v][0] - sumo_at[v][0]) < 0.15, (v, deployed[v], sumo_at[v])
+    assert np.isfinite([deployed[v][0] for v in ("v0", "v1")]).all()

@@ -7,9 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import sumo
+from conftest import netconvert
 
 from macromicro_sumo.sumo.options import SumoOptions
 from macromicro_sumo.sumo.simulation import Simulation
+from macromicro_sumo.sumo.stop_offsets import lane_stop_offsets
 
 CROSS = Path(sumo.__file__).resolve().parent / "tools" / "game" / "cross" / "cross.net.xml"
 
@@ -51,8 +53,62 @@ def test_a_red_link_from_another_lane_is_not_the_vehicles_own(tmp_path: Path) ->
     assert lines.lanes == ["1si_1", "1si_1", "1si_1", ""]
     assert lines.own.tolist()[:3] == [False, True, True]
     np.testing.assert_allclose(lines.dist_m[:2], 135.75 - pos[:2], atol=1e-6)
-    assert lines.dist_m[3] == np.inf
+    assert lines.dist_m[3] == np.inf and not lines.offset_m.any()
     assert line_m[0] == np.inf and line_m[3] == np.inf
     np.testing.assert_array_equal(line_m[1:3], lines.dist_m[1:3])
     stop = lines.stop_m(1.0)
     assert stop[0] == np.inf and np.allclose(stop[1:3], lines.dist_m[1:3] - 1.0)
+
+
+def offset_net(folder: Path) -> Path:
+    """A (300 m, 2 lanes; stopOffset 3 m, lane 1's own 6 m for passenger cars) -> a light
+    -> B (200 m)."""
+    nodes = (
+        '<node id="n0" x="0" y="0"/><node id="tl" x="300" y="0" type="traffic_light"/>'
+        '<node id="n2" x="500" y="0"/>'
+    )
+    edges = (
+        '<edge id="A" from="n0" to="tl" numLanes="2" speed="15"><stopOffset value="3"/>'
+        '<lane index="1"><stopOffset value="6" vClasses="passenger"/></lane></edge>'
+        '<edge id="B" from="tl" to="n2" numLanes="2" speed="15"/>'
+    )
+    return netconvert(folder, nodes, edges)
+
+
+def test_a_lanes_stop_offset_is_read_from_the_net(tmp_path: Path) -> None:
+    """netconvert writes A's stopOffset on the edge and lane 1's on the lane; the lane's
+    replaces the edge's. A passenger car on A_0 reads 3 m, on A_1 6 m, a bus on A_1 none
+    (lane 1's names only passenger cars). ``stop_lines_m`` moves the line upstream by what
+    the offset adds to the vType's jmStoplineGap (1 m; 5 m for "far": 3 m on A_0, none
+    beyond its own 5 m), so that the line less that gap is where SUMO stops it
+    (max(jmStoplineGap, stopOffset) before the line, measured in
+    tests/deploy/test_stop_line_lanes.py)."""
+    net = offset_net(tmp_path)
+    got = lane_stop_offsets(net)
+    assert set(got) == {"A_0", "A_1"}
+    assert got["A_0"].value_m == 3.0 and got["A_0"].applies("bus")
+    assert got["A_1"].value_m == 6.0 and got["A_1"].applies("passenger")
+    assert not got["A_1"].applies("bus")
+    routes = tmp_path / "r.rou.xml"
+    routes.write_text(
+        '<routes>\n    <vType id="bus" vClass="bus"/>\n    <vType id="far" jmStoplineGap="5"/>\n'
+        '    <route id="r" edges="A B"/>\n</routes>\n'
+    )
+    opts = SumoOptions(net, (program(tmp_path, "tl", "rrrr"),), 0.5, 1, route_files=(routes,))
+    sim = Simulation(opts)
+    ids = ["c0", "c1", "b1", "f0"]
+    try:
+        places = [("DEFAULT_VEHTYPE", 0, 50.0), ("DEFAULT_VEHTYPE", 1, 50.0)]
+        places += [("bus", 1, 150.0), ("far", 0, 150.0)]
+        for vid, (vtype, lane, pos) in zip(ids, places, strict=True):
+            sim.add_vehicle(vid, "r", vtype, lane, pos, 10.0)
+        sim.set_lane_change_mode(ids, 0)
+        sim.step()
+        lines = sim.stop_lines(ids)
+        line_m = sim.stop_lines_m(ids)
+    finally:
+        sim.close()
+    assert lines.own.all() and lines.lanes == ["A_0", "A_1", "A_1", "A_0"]
+    np.testing.assert_array_equal(lines.offset_m, [3.0, 6.0, 0.0, 3.0])
+    np.testing.assert_allclose(line_m, lines.dist_m - [2.0, 5.0, 0.0, 0.0])
+    np.testing.assert_allclose(lines.stop_m([1.0, 1.0, 1.0, 5.0]), lines.dist_m - [3, 6, 1, 5])
