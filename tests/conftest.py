@@ -17,7 +17,9 @@ import sumolib
 import torch
 
 from macromicro_sumo.cli import main
+from macromicro_sumo.deploy.stage import policy_batch
 from macromicro_sumo.pipeline import parallel
+from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.road.section import Section, read_section
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.scenario.section import SectionScenario
@@ -50,6 +52,72 @@ CROSS_KRAUSS = {
 def cross_krauss() -> dict[str, float]:
     """``CROSS_KRAUSS``, a copy for one test to change."""
     return dict(CROSS_KRAUSS)
+
+
+def prior_alone(params: dict[str, float], prior: str = "krauss") -> Callable:
+    """The deployment's action batch (``deploy.stage.policy_batch``) of a ``prior`` with
+    ``params`` alone: residual 0, the "lookahead" observation."""
+    agent = Agent(
+        observation="lookahead", prior=prior, prior_params=params, residual_bound_mps2=0.0
+    )
+    return policy_batch(agent)
+
+
+def one_phase_program(folder: Path, tls: str, state: str, name: str = "red") -> Path:
+    """``folder / f"{name}.add.xml"``: signal ``tls``'s program ``name``, one phase of
+    ``state`` that lasts the whole run."""
+    path = folder / f"{name}.add.xml"
+    path.write_text(
+        f'<additional>\n    <tlLogic id="{tls}" type="static" programID="{name}" offset="0">\n'
+        f'        <phase duration="10000" state="{state}"/>\n    </tlLogic>\n</additional>\n'
+    )
+    return path
+
+
+def small_section_scenario(
+    folder: Path, net: Path, routes: Path, edges: list[str], additional: tuple[Path, ...] = (),
+    **tables: Any,
+) -> SectionScenario:  # fmt: skip
+    """``section_files.section_scenario`` loaded, written to ``folder / "s.toml"``: seed 5,
+    two runs of 60 s without warm-up, 30 s detector intervals, 10% instrumented (the
+    default), the "lookahead" observation, the ``additional`` files; ``tables``: top-level
+    tables added or replaced (``simulation``, ``instrumented``, ...)."""
+    from section_files import section_scenario  # it imports this module
+
+    if additional:
+        network = {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]}
+        tables = {"network": {**network, "additional_files": list(map(str, additional))}, **tables}
+    tables = {
+        "simulation": {"warmup_s": 0.0, "duration_s": 60.0, "n_runs": 2},
+        "detectors": {"interval_s": 30.0},
+        "policy": {"observation": "lookahead"},
+        **tables,
+    }
+    path = section_scenario(
+        folder / "s.toml", net, routes, edges, seed=5, penetration=0.1, **tables
+    )
+    return load_scenario(path)
+
+
+def cross_program(folder: Path, green: tuple[int, ...] = ()) -> Path:
+    """game/cross's signal "0" red on every link but ``green`` (link indices) all along
+    (``one_phase_program``)."""
+    return one_phase_program(folder, "0", "".join("G" if k in green else "r" for k in range(12)))
+
+
+def stop_offset_net(folder: Path) -> Path:
+    """A (300 m, 2 lanes; stopOffset 3 m, lane 1's own 6 m for passenger cars) -> a light
+    "tl" -> B (200 m, 2 lanes), built by netconvert."""
+    nodes = (
+        '<node id="n0" x="0" y="0"/><node id="tl" x="300" y="0" type="traffic_light"/>'
+        '<node id="n2" x="500" y="0"/>'
+    )
+    edges = (
+        '<edge id="A" from="n0" to="tl" numLanes="2" speed="15"><stopOffset value="3"/>'
+        '<lane index="1"><stopOffset value="6" vClasses="passenger"/></lane></edge>'
+        '<edge id="B" from="tl" to="n2" numLanes="2" speed="15"/>'
+    )
+    return netconvert(folder, nodes, edges)
 
 
 def netconvert(

@@ -7,32 +7,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import dump_toml
+from conftest import small_section_scenario
 from deploy_nets import idm_agent, light_net, merge_net
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver, section_observations
 from macromicro_sumo.deploy.slots import LaneCache
 from macromicro_sumo.deploy.stage import policy_batch
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, read_section
-from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.truth.section import record_run
-
-
-def _scenario(folder: Path, net: Path, routes: Path, edges: list[str], **tables) -> object:
-    table = {
-        "name": "t",
-        "seed": 5,
-        "network": {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]},
-        "section": {"edges": edges},
-        "simulation": {"warmup_s": 0.0, "duration_s": 60.0, "n_runs": 2},
-        "detectors": {"interval_s": 30.0},
-        "policy": {"observation": "lookahead"},
-        **tables,
-    }
-    path = folder / "s.toml"
-    path.write_text(dump_toml(table))
-    return load_scenario(path)
 
 
 class Recording(SectionSpeedDriver):
@@ -99,7 +82,9 @@ def test_leader_across_an_added_lane_is_the_physically_next_vehicle(
     """Where B adds a lane on the right, A's lane 0 goes on as B's lane 1: the spacing a
     driver on A sees is to the next vehicle on its through lane (lane indices differ)."""
     net, routes = merge_files
-    sc = _scenario(tmp_path, net, routes, ["A", "B", "C"], instrumented={"penetration": 0.01})
+    sc = small_section_scenario(
+        tmp_path, net, routes, ["A", "B", "C"], instrumented={"penetration": 0.01}
+    )
     section = read_section(net, ["A", "B", "C"], False)
     agent = idm_agent("lookahead", 30.0)
     drv = Recording(sc, section, 0, policy_batch(agent), "sumo")
@@ -133,7 +118,7 @@ def test_leader_across_an_added_lane_is_the_physically_next_vehicle(
 
 def test_a_red_light_stops_a_policy_driven_vehicle_before_the_stop_line(tmp_path: Path) -> None:
     net, routes, red = light_net(tmp_path)
-    sc = _scenario(
+    sc = small_section_scenario(
         tmp_path,
         net,
         routes,
@@ -163,7 +148,9 @@ def test_one_read_per_step_gives_what_subscriptions_give(
     same vehicles in the same order, the same numbers; a teleporting vehicle (lane "") is
     not on the road. With a policy driving, so that speed commands are in play."""
     net, routes = merge_files
-    sc = _scenario(tmp_path, net, routes, ["A", "B", "C"], instrumented={"penetration": 0.2})
+    sc = small_section_scenario(
+        tmp_path, net, routes, ["A", "B", "C"], instrumented={"penetration": 0.2}
+    )
     section = read_section(net, ["A", "B", "C"], False)
     drv = SectionSpeedDriver(sc, section, 0, policy_batch(idm_agent("lookahead", 30.0)), "sumo")
     sim = Simulation(
@@ -236,7 +223,7 @@ def test_emergency_brakings_are_counted_per_vehicle_threshold(tmp_path: Path) ->
     net, routes, _red = light_net(tmp_path)
     text = routes.read_text().replace('id="probe" type="car"', 'id="probe" type="hard"')
     routes.write_text(text.replace("<routes>", '<routes>\n<vType id="hard" decel="7.5"/>'))
-    sc = _scenario(tmp_path, net, routes, ["A", "B"])
+    sc = small_section_scenario(tmp_path, net, routes, ["A", "B"])
     drv = SectionDriver(sc, read_section(net, ["A", "B"], False), 0)
     sim = Simulation(SumoOptions(net, (), 0.5, 1, route_files=(routes,), user_demand=True))
     try:

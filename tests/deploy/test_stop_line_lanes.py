@@ -16,13 +16,16 @@ import numpy as np
 import pytest
 import sumo
 import sumolib
-from conftest import dump_toml, netconvert
+from conftest import (
+    cross_program,
+    one_phase_program,
+    prior_alone,
+    small_section_scenario,
+    stop_offset_net,
+)
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
-from macromicro_sumo.deploy.stage import policy_batch
-from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.road.section import read_section
-from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.truth.section import record_run
 
@@ -59,47 +62,25 @@ class SumoLaneEnds:
             self.at[v] = (self.lengths[ln] - float(p), float(s))
 
 
-def red_program(folder: Path, tls: str, state: str) -> Path:
-    path = folder / "red.add.xml"
-    path.write_text(
-        f'<additional>\n    <tlLogic id="{tls}" type="static" programID="red" offset="0">\n'
-        f'        <phase duration="10000" state="{state}"/>\n    </tlLogic>\n</additional>\n'
-    )
-    return path
-
-
 def stands(
     folder: Path, net: Path, add: Path, routes: Path, edges: list[str], prior: dict,
     merge: str = "sumo",
 ):  # fmt: skip
     """{vehicle: (distance to its lane's end, speed)} at the last step, SUMO's own drivers
     and the deployment's (the prior alone: residual 0, SUMO's safety layer, ``merge``)."""
-    table = {
-        "name": "t",
-        "seed": 5,
-        "network": {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]},
-        "section": {"edges": edges},
-        "simulation": {"warmup_s": 0.0, "duration_s": 60.0, "n_runs": 2},
-        "detectors": {"interval_s": 30.0},
-        "instrumented": {"ids": ["probe"]},
-        "policy": {"observation": "lookahead"},
-        "deploy": {"merge": merge},
-    }
-    (folder / "s.toml").write_text(dump_toml(table))
-    sc = load_scenario(folder / "s.toml")
+    sc = small_section_scenario(
+        folder, net, routes, edges, instrumented={"ids": ["probe"]}, deploy={"merge": merge}
+    )
     opts = SumoOptions(net, (add,), 0.5, 5, route_files=(routes,), user_demand=True)
     lanes = sumolib.net.readNet(str(net), withInternal=True).getEdges(withInternal=True)
     lengths = {ln.getID(): ln.getLength() for e in lanes for ln in e.getLanes()}
     out = []
     for driver in ("sumo", "deployment"):
-        agent = Agent(
-            observation="lookahead", prior="krauss", prior_params=prior, residual_bound_mps2=0.0
-        )
         section = read_section(net, edges, False)
         drv = (
             SumoLaneEnds(lengths)
             if driver == "sumo"
-            else LaneEnds(lengths, sc, section, 0, policy_batch(agent), "sumo")
+            else LaneEnds(lengths, sc, section, 0, prior_alone(prior), "sumo")
         )
         sim = Simulation(opts)
         try:
@@ -122,9 +103,7 @@ def test_a_car_on_a_lane_that_does_not_lead_its_way_stops_at_the_lanes_end(
     Before, with ``deploy.merge = "none"``: thr 1.0 m before the end (the through link's
     red less 1 m); with "sumo" (the default) thr is handed to SUMO's model there, as
     before."""
-    state = ["r"] * 12
-    state[6] = "G"
-    add = red_program(tmp_path, "0", "".join(state))
+    add = cross_program(tmp_path, green=(6,))
     routes = tmp_path / "r.rou.xml"
     routes.write_text(
         "<routes>\n"
@@ -148,17 +127,8 @@ def test_the_deployment_stops_before_a_lanes_stop_offset(
     of 6 m on lane 1 for passenger cars: SUMO's drivers (jmStoplineGap 1 m) stand 3.00 m
     before the line on lane 0 and 6.00 m on lane 1; the deployment's driver (the prior
     alone) stands each where SUMO does (within 0.15 m). Before: 1.0 m before the line."""
-    nodes = (
-        '<node id="n0" x="0" y="0"/><node id="tl" x="300" y="0" type="traffic_light"/>'
-        '<node id="n2" x="500" y="0"/>'
-    )
-    edges = (
-        '<edge id="A" from="n0" to="tl" numLanes="2" speed="15"><stopOffset value="3"/>'
-        '<lane index="1"><stopOffset value="6" vClasses="passenger"/></lane></edge>'
-        '<edge id="B" from="tl" to="n2" numLanes="2" speed="15"/>'
-    )
-    net = netconvert(tmp_path, nodes, edges)
-    add = red_program(tmp_path, "tl", "rrrr")
+    net = stop_offset_net(tmp_path)
+    add = one_phase_program(tmp_path, "tl", "rrrr")
     routes = tmp_path / "r.rou.xml"
     cars = "".join(
         f'    <vehicle id="v{k}" depart="0" departSpeed="10" departLane="{k}" departPos="50">'

@@ -14,29 +14,15 @@ from pathlib import Path
 
 import numpy as np
 import sumo
-from conftest import dump_toml, netconvert
+from conftest import netconvert, one_phase_program, prior_alone, small_section_scenario
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
-from macromicro_sumo.deploy.stage import policy_batch
-from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.road.section import read_section
-from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.truth.section import record_run
 
 CROSS = Path(sumo.__file__).resolve().parent / "tools" / "game" / "cross" / "cross.net.xml"
 EDGES = ["1fi", "1si", "2o", "2fo"]
-# game/cross's fitted Krauss prior (hU's run at stop 34, policy/policy_manifest.json).
-PRIOR = {
-    "speed_factor": 1.0327,
-    "accel_mps2": 2.6,
-    "decel_mps2": 5.629,
-    "tau_s": 1.0896,
-    "min_gap_m": 2.4947,
-    "veh_length_m": 5.0,
-    "dt_s": 0.5,
-    "relax_s": 0.5545,
-}
 
 
 class Standing(SectionSpeedDriver):
@@ -53,7 +39,9 @@ class Standing(SectionSpeedDriver):
             self.at[v] = (float(d), float(st.speed_mps[st.index[v]]))
 
 
-def test_the_prior_alone_stands_where_sumo_stands_at_a_red_light(tmp_path: Path) -> None:
+def test_the_prior_alone_stands_where_sumo_stands_at_a_red_light(
+    tmp_path: Path, cross_krauss: dict
+) -> None:
     """Three cars from 1fi to 2fo, every one driven by the prior alone (residual 0, the
     deployment's safety layer), the light red all along: the first stands 1.0 +- 0.2 m
     before 1si's stop line, as SUMO's own drivers (1.00 m), the next ones 7.5 m apart, as
@@ -67,27 +55,13 @@ def test_the_prior_alone_stands_where_sumo_stands_at_a_red_light(tmp_path: Path)
         for i in range(3)
     )
     routes.write_text(f"<routes>\n{cars}</routes>\n")
-    red = tmp_path / "red.add.xml"
-    red.write_text(
-        '<additional>\n    <tlLogic id="0" type="static" programID="red" offset="0">\n'
-        '        <phase duration="10000" state="rrrrrrrrrrrr"/>\n    </tlLogic>\n</additional>\n'
-    )
-    table = {
-        "name": "t",
-        "seed": 5,
-        "network": {"kind": "sumo", "net_file": str(CROSS), "route_files": [str(routes)]},
-        "section": {"edges": EDGES},
-        "simulation": {"warmup_s": 0.0, "duration_s": 80.0, "n_runs": 2},
-        "detectors": {"interval_s": 40.0},
-        "instrumented": {"ids": ["probe"]},
-        "policy": {"observation": "lookahead"},
-    }
-    (tmp_path / "s.toml").write_text(dump_toml(table))
-    sc = load_scenario(tmp_path / "s.toml")
-    agent = Agent(
-        observation="lookahead", prior="krauss", prior_params=PRIOR, residual_bound_mps2=0.0
-    )
-    drv = Standing(sc, read_section(CROSS, EDGES, False), 0, policy_batch(agent), "sumo")
+    red = one_phase_program(tmp_path, "0", "r" * 12)
+    sc = small_section_scenario(
+        tmp_path, CROSS, routes, EDGES, instrumented={"ids": ["probe"]},
+        simulation={"warmup_s": 0.0, "duration_s": 80.0, "n_runs": 2},
+        detectors={"interval_s": 40.0},
+    )  # fmt: skip
+    drv = Standing(sc, read_section(CROSS, EDGES, False), 0, prior_alone(cross_krauss), "sumo")
     sim = Simulation(SumoOptions(CROSS, (red,), 0.5, 5, route_files=(routes,), user_demand=True))
     try:
         _, stats = record_run(sim, sc, drv.section, 0, drv)
@@ -106,7 +80,7 @@ FAR = '<vType id="far" length="5" minGap="4" jmStoplineGap="3" sigma="0" speedDe
 
 
 def test_the_deployment_stops_where_sumo_stops_a_vtype_with_its_own_stopline_gap(
-    tmp_path: Path,
+    tmp_path: Path, cross_krauss: dict
 ) -> None:
     """One "far" car (jmStoplineGap 3 m, minGap 4 m) from A (300 m, one lane) into a light
     that stays red: driven by the deployment's driver (the prior alone with the far type's
@@ -125,23 +99,8 @@ def test_the_deployment_stops_where_sumo_stops_a_vtype_with_its_own_stopline_gap
         '    <vehicle id="v0" type="far" depart="0" departSpeed="10" departPos="50">'
         '<route edges="A B"/></vehicle>\n</routes>\n'
     )
-    red = tmp_path / "red.add.xml"
-    red.write_text(
-        '<additional>\n    <tlLogic id="tl" type="static" programID="red" offset="0">\n'
-        '        <phase duration="10000" state="r"/>\n    </tlLogic>\n</additional>\n'
-    )
-    table = {
-        "name": "t",
-        "seed": 5,
-        "network": {"kind": "sumo", "net_file": str(net), "route_files": [str(routes)]},
-        "section": {"edges": ["A", "B"]},
-        "simulation": {"warmup_s": 0.0, "duration_s": 60.0, "n_runs": 2},
-        "detectors": {"interval_s": 30.0},
-        "instrumented": {"ids": ["probe"]},
-        "policy": {"observation": "lookahead"},
-    }
-    (tmp_path / "s.toml").write_text(dump_toml(table))
-    sc = load_scenario(tmp_path / "s.toml")
+    red = one_phase_program(tmp_path, "tl", "r")
+    sc = small_section_scenario(tmp_path, net, routes, ["A", "B"], instrumented={"ids": ["probe"]})
     opts = SumoOptions(net, (red,), 0.5, 5, route_files=(routes,), user_demand=True)
     sim = Simulation(opts)
     try:  # SUMO's own driver of the far type
@@ -152,12 +111,8 @@ def test_the_deployment_stops_where_sumo_stops_a_vtype_with_its_own_stopline_gap
     finally:
         sim.close()
     assert abs(sumo_stop - 3.0) < 0.05, sumo_stop
-    prior = {**PRIOR, "min_gap_m": 4.0}
-    agent = Agent(
-        observation="lookahead", prior="krauss", prior_params=prior, residual_bound_mps2=0.0
-    )
     section = read_section(net, ["A", "B"], False)
-    drv = Standing(sc, section, 0, policy_batch(agent), "sumo")
+    drv = Standing(sc, section, 0, prior_alone({**cross_krauss, "min_gap_m": 4.0}), "sumo")
     sim = Simulation(opts)
     try:
         _, stats = record_run(sim, sc, drv.section, 0, drv)

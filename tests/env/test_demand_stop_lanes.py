@@ -11,12 +11,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import sumo
-from conftest import dump_toml
+from conftest import cross_program, prior_alone, small_section_scenario
 
-from macromicro_sumo.deploy.stage import policy_batch
 from macromicro_sumo.env.demand import DemandCore
-from macromicro_sumo.policy.agent import Agent
-from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import load_section_truth, simulate_section
 
 CROSS = Path(sumo.__file__).resolve().parent / "tools" / "game" / "cross" / "cross.net.xml"
@@ -32,14 +29,7 @@ def test_the_demand_env_stops_a_through_car_on_a_turning_lane_at_the_lanes_end(
     (0.00 m, ``tests/deploy/test_stop_line_lanes.py``). Before: 0.78 m (a standing
     leader at the through link's red less SUMO's 1 m, the prior's approach overshooting
     it by 0.2 m)."""
-    state = ["r"] * 12
-    state[6] = "G"
-    red = tmp_path / "red.add.xml"
-    red.write_text(
-        '<additional>\n    <tlLogic id="0" type="static" programID="red" offset="0">\n'
-        f'        <phase duration="10000" state="{"".join(state)}"/>\n'
-        "    </tlLogic>\n</additional>\n"
-    )
+    red = cross_program(tmp_path, green=(6,))
     routes = tmp_path / "r.rou.xml"
     routes.write_text(
         "<routes>\n"
@@ -48,32 +38,13 @@ def test_the_demand_env_stops_a_through_car_on_a_turning_lane_at_the_lanes_end(
         '    <vehicle id="probe" depart="55"><route edges="1si 2o 2fo"/></vehicle>\n'
         "</routes>\n"
     )
-    table = {
-        "name": "one",
-        "seed": 5,
-        "network": {
-            "kind": "sumo",
-            "net_file": str(CROSS),
-            "route_files": [str(routes)],
-            "additional_files": [str(red)],
-        },
-        "section": {"edges": ["1fi", "1si", "2o", "2fo"]},
-        "simulation": {"warmup_s": 0.0, "duration_s": 60.0, "n_runs": 1},
-        "detectors": {"interval_s": 30.0},
-        "instrumented": {"ids": ["probe"]},
-        "policy": {"observation": "lookahead"},
-    }
-    (tmp_path / "one.toml").write_text(dump_toml(table))
-    sc = load_scenario(tmp_path / "one.toml")
+    sc = small_section_scenario(
+        tmp_path, CROSS, routes, ["1fi", "1si", "2o", "2fo"], (red,),
+        simulation={"warmup_s": 0.0, "duration_s": 60.0, "n_runs": 1},
+        instrumented={"ids": ["probe"]},
+    )  # fmt: skip
     truth = load_section_truth(simulate_section(sc, tmp_path / "gt", progress=False), sc)
-    act = policy_batch(
-        Agent(
-            observation="lookahead",
-            prior="krauss",
-            prior_params=cross_krauss,
-            residual_bound_mps2=0.0,
-        )
-    )
+    act = prior_alone(cross_krauss)
     core = DemandCore(sc, truth, truth.runs, 120)
     try:
         core.reset(int(truth.runs[0]), 0.5)

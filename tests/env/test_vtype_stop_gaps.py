@@ -18,17 +18,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import dump_toml, netconvert
+from conftest import netconvert, one_phase_program, prior_alone, small_section_scenario
 from section_files import routes_file, section_scenario, vtype
 
 from macromicro_sumo.data.section import section_snapshots, stop_lines_at
 from macromicro_sumo.deploy.observe import STANDING, LaneTable, Table, observe_rows
-from macromicro_sumo.deploy.stage import policy_batch
 from macromicro_sumo.env.demand import DemandCore
 from macromicro_sumo.env.section_bank import build_section_bank, standing_gaps
 from macromicro_sumo.env.section_envs import true_section_completion
 from macromicro_sumo.env.section_observations import section_observations
-from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.road.leaders import stop_distance_m
 from macromicro_sumo.road.section import STOP, read_section
 from macromicro_sumo.road.vtype import read_vtype
@@ -38,17 +36,6 @@ from macromicro_sumo.truth.section import load_section_truth, simulate_section
 
 FAR = {"length": 5, "minGap": 4, "jmStoplineGap": 3, "sigma": 0, "speedDev": 0}
 CAR = {"length": 5, "sigma": 0, "speedDev": 0}  # SUMO's defaults: minGap 2.5, stop gap 1
-# game/cross's fitted Krauss prior (hU's run at stop 34; tests/deploy/test_stop_line_queue.py).
-KRAUSS = {
-    "speed_factor": 1.0327,
-    "accel_mps2": 2.6,
-    "decel_mps2": 5.629,
-    "tau_s": 1.0896,
-    "min_gap_m": 2.4947,
-    "veh_length_m": 5.0,
-    "dt_s": 0.5,
-    "relax_s": 0.5545,
-}
 
 
 def light_net(folder: Path) -> tuple[Path, Path]:
@@ -67,12 +54,7 @@ def light_net(folder: Path) -> tuple[Path, Path]:
         ]
     )
     net = netconvert(folder, nodes, edges)
-    red = folder / "red.add.xml"
-    red.write_text(
-        '<additional>\n    <tlLogic id="tl" type="static" programID="red" offset="0">\n'
-        '        <phase duration="10000" state="r"/>\n    </tlLogic>\n</additional>\n'
-    )
-    return net, red
+    return net, one_phase_program(folder, "tl", "r")
 
 
 @pytest.fixture(scope="module")
@@ -221,7 +203,7 @@ def test_the_deployment_reads_each_vtypes_stopline_gap_from_sumo(queue) -> None:
 
 
 def test_the_demand_env_stops_where_sumo_stops_a_vtype_with_its_own_stopline_gap(
-    tmp_path: Path,
+    tmp_path: Path, cross_krauss: dict
 ) -> None:
     """One far car (jmStoplineGap 3 m, minGap 4 m) from A into the light that stays red,
     driven by the demand env (``DemandCore``: SUMO's state, ``read_vtype``'s
@@ -237,36 +219,17 @@ def test_the_demand_env_stops_where_sumo_stops_a_vtype_with_its_own_stopline_gap
          '<route edges="A B"/></vehicle>',
          '<vehicle id="probe" type="car" depart="55"><route edges="A B"/></vehicle>'],
     )  # fmt: skip
-    table = {
-        "name": "one",
-        "seed": 5,
-        "network": {
-            "kind": "sumo",
-            "net_file": str(net),
-            "route_files": [str(routes)],
-            "additional_files": [str(red)],
-        },
-        "section": {"edges": ["A", "B"]},
-        "simulation": {"warmup_s": 0.0, "duration_s": 60.0, "n_runs": 1},
-        "detectors": {"interval_s": 30.0},
-        "instrumented": {"ids": ["probe"]},
-        "policy": {"observation": "lookahead"},
-    }
-    (tmp_path / "one.toml").write_text(dump_toml(table))
-    sc = load_scenario(tmp_path / "one.toml")
+    sc = small_section_scenario(
+        tmp_path, net, routes, ["A", "B"], (red,),
+        simulation={"warmup_s": 0.0, "duration_s": 60.0, "n_runs": 1},
+        instrumented={"ids": ["probe"]},
+    )  # fmt: skip
     truth = load_section_truth(simulate_section(sc, tmp_path / "gt", progress=False), sc)
     traj = truth.trajectories[truth.trajectories["vehicle_id"] == "v0"]
     last = traj[traj["time_s"] == traj["time_s"].max()]
     sumo_stop = float(truth.section.lengths_m[0] - last["arc_m"].iloc[0])  # SUMO's own driver
     assert last["speed_mps"].iloc[0] < 0.01 and abs(sumo_stop - 3.0) < 0.05, sumo_stop
-    act = policy_batch(
-        Agent(
-            observation="lookahead",
-            prior="krauss",
-            prior_params={**KRAUSS, "min_gap_m": FAR["minGap"]},
-            residual_bound_mps2=0.0,
-        )
-    )
+    act = prior_alone({**cross_krauss, "min_gap_m": FAR["minGap"]})
     core = DemandCore(sc, truth, truth.runs, 120)
     try:
         core.reset(int(truth.runs[0]), 0.5)

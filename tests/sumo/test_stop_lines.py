@@ -7,22 +7,13 @@ from pathlib import Path
 
 import numpy as np
 import sumo
-from conftest import netconvert
+from conftest import one_phase_program, stop_offset_net
 
 from macromicro_sumo.sumo.options import SumoOptions
 from macromicro_sumo.sumo.simulation import Simulation
 from macromicro_sumo.sumo.stop_offsets import lane_stop_offsets
 
 CROSS = Path(sumo.__file__).resolve().parent / "tools" / "game" / "cross" / "cross.net.xml"
-
-
-def program(folder: Path, tls: str, state: str) -> Path:
-    path = folder / "p.add.xml"
-    path.write_text(
-        f'<additional>\n    <tlLogic id="{tls}" type="static" programID="p" offset="0">\n'
-        f'        <phase duration="10000" state="{state}"/>\n    </tlLogic>\n</additional>\n'
-    )
-    return path
 
 
 def test_a_red_link_from_another_lane_is_not_the_vehicles_own(tmp_path: Path) -> None:
@@ -33,7 +24,9 @@ def test_a_red_link_from_another_lane_is_not_the_vehicles_own(tmp_path: Path) ->
     end), the line itself for the others; "rgt" (right turn, link 6 green) has none."""
     state = ["r"] * 12
     state[6] = "G"
-    sim = Simulation(SumoOptions(CROSS, (program(tmp_path, "0", "".join(state)),), 0.5, 1))
+    sim = Simulation(
+        SumoOptions(CROSS, (one_phase_program(tmp_path, "0", "".join(state)),), 0.5, 1)
+    )
     ids = ["thr0", "thr1", "up", "rgt"]
     try:
         sim.add_route("thr", ["1si", "2o"])
@@ -60,21 +53,6 @@ def test_a_red_link_from_another_lane_is_not_the_vehicles_own(tmp_path: Path) ->
     assert stop[0] == np.inf and np.allclose(stop[1:3], lines.dist_m[1:3] - 1.0)
 
 
-def offset_net(folder: Path) -> Path:
-    """A (300 m, 2 lanes; stopOffset 3 m, lane 1's own 6 m for passenger cars) -> a light
-    -> B (200 m)."""
-    nodes = (
-        '<node id="n0" x="0" y="0"/><node id="tl" x="300" y="0" type="traffic_light"/>'
-        '<node id="n2" x="500" y="0"/>'
-    )
-    edges = (
-        '<edge id="A" from="n0" to="tl" numLanes="2" speed="15"><stopOffset value="3"/>'
-        '<lane index="1"><stopOffset value="6" vClasses="passenger"/></lane></edge>'
-        '<edge id="B" from="tl" to="n2" numLanes="2" speed="15"/>'
-    )
-    return netconvert(folder, nodes, edges)
-
-
 def test_a_lanes_stop_offset_is_read_from_the_net(tmp_path: Path) -> None:
     """netconvert writes A's stopOffset on the edge and lane 1's on the lane; the lane's
     replaces the edge's. A passenger car on A_0 reads 3 m, on A_1 6 m, a bus on A_1 none
@@ -83,7 +61,7 @@ def test_a_lanes_stop_offset_is_read_from_the_net(tmp_path: Path) -> None:
     beyond its own 5 m), so that the line less that gap is where SUMO stops it
     (max(jmStoplineGap, stopOffset) before the line, measured in
     tests/deploy/test_stop_line_lanes.py)."""
-    net = offset_net(tmp_path)
+    net = stop_offset_net(tmp_path)  # A: stopOffset 3 m, A_1's own 6 m (passenger)
     got = lane_stop_offsets(net)
     assert set(got) == {"A_0", "A_1"}
     assert got["A_0"].value_m == 3.0 and got["A_0"].applies("bus")
@@ -94,7 +72,9 @@ def test_a_lanes_stop_offset_is_read_from_the_net(tmp_path: Path) -> None:
         '<routes>\n    <vType id="bus" vClass="bus"/>\n    <vType id="far" jmStoplineGap="5"/>\n'
         '    <route id="r" edges="A B"/>\n</routes>\n'
     )
-    opts = SumoOptions(net, (program(tmp_path, "tl", "rrrr"),), 0.5, 1, route_files=(routes,))
+    opts = SumoOptions(
+        net, (one_phase_program(tmp_path, "tl", "rrrr"),), 0.5, 1, route_files=(routes,)
+    )
     sim = Simulation(opts)
     ids = ["c0", "c1", "b1", "f0"]
     try:
