@@ -10,10 +10,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import line_net
+from conftest import line_net, small_section_scenario
 from deploy_nets import idm_agent
 from section_files import routes_file, vtype
-from test_drivers import _run, _scenario
+from test_drivers import _run
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.safety import safety_cap
@@ -65,7 +65,7 @@ def full_throttle(obs: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("safety", ["none", "sumo"])
 def test_driven_vans_never_exceed_their_max_speed(tmp_path: Path, safety: str) -> None:
     net, routes = _road(tmp_path, LIMIT_MPS, "van", 6.0, 5.0)  # vans: maxSpeed 10
-    sc = _scenario(tmp_path, net, routes, ["A", "B"])
+    sc = small_section_scenario(tmp_path, net, routes, ["A", "B"])
     section = read_section(net, ["A", "B"], False)
     agent = idm_agent("lookahead", LIMIT_MPS)
     top = {}
@@ -84,7 +84,7 @@ def test_driven_vans_never_exceed_their_max_speed(tmp_path: Path, safety: str) -
 @pytest.mark.parametrize("safety", ["none", "sumo"])
 def test_driven_trucks_never_accelerate_beyond_their_vtype(tmp_path: Path, safety: str) -> None:
     net, routes = _road(tmp_path, 30.0, "truck", 8.0, 2.0)  # trucks: accel 1.0
-    sc = _scenario(tmp_path, net, routes, ["A", "B"])
+    sc = small_section_scenario(tmp_path, net, routes, ["A", "B"])
     section = read_section(net, ["A", "B"], False)
     top = {}
     for name, cls in (("capped", SectionSpeedDriver), ("uncapped", uncapped("accel"))):
