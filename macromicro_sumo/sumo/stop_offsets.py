@@ -36,12 +36,17 @@ def _offset(attrs: dict[str, str]) -> StopOffset:
     )
 
 
-@functools.cache
 def lane_stop_offsets(net_file: Path) -> dict[str, StopOffset]:
     """{lane ID: its stopOffset} of the lanes of ``net_file`` that have one (their own or
-    their edge's); read once per file and process."""
+    their edge's); read once per file and process, again where the file changed."""
+    st = Path(net_file).stat()
+    return _read(str(net_file), st.st_mtime_ns, st.st_size)
+
+
+@functools.cache
+def _read(net_file: str, _mtime_ns: int, _size: int) -> dict[str, StopOffset]:
     out: dict[str, StopOffset] = {}
-    opener = gzip.open if str(net_file).endswith(".gz") else open
+    opener = gzip.open if net_file.endswith(".gz") else open
     stack: list[ET.Element] = []
     edge_offset: StopOffset | None = None
     lanes: list[str] = []  # the current edge's lanes without an offset of their own

@@ -3,6 +3,7 @@ demand env's and the snapshot env's), on real SUMO nets."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -92,3 +93,16 @@ def test_a_lanes_stop_offset_is_read_from_the_net(tmp_path: Path) -> None:
     np.testing.assert_array_equal(lines.offset_m, [3.0, 6.0, 0.0, 3.0])
     np.testing.assert_allclose(line_m, lines.dist_m - [2.0, 5.0, 0.0, 0.0])
     np.testing.assert_allclose(lines.stop_m([1.0, 1.0, 1.0, 5.0]), lines.dist_m - [3, 6, 1, 5])
+
+
+def test_a_net_written_again_at_the_same_path_is_read_again(tmp_path: Path) -> None:
+    """``lane_stop_offsets`` reads a file once, and again where it changed: a net without
+    stopOffset, then one with, written to the same path (a pipeline that builds its net
+    again in one process). Before: the first read's empty answer stood."""
+    net = stop_offset_net(tmp_path)
+    text = net.read_text()
+    plain = re.sub(r"\s*<stopOffset[^>]*/>", "", text)
+    net.write_text(plain)
+    assert lane_stop_offsets(net) == {}
+    net.write_text(text)
+    assert set(lane_stop_offsets(net)) == {"A_0", "A_1"}
