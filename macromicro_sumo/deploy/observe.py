@@ -13,8 +13,13 @@ from itertools import chain, repeat
 import numpy as np
 
 from macromicro_sumo.env.driver_speed import scale_limits
-from macromicro_sumo.road.leaders import nearer_standing
-from macromicro_sumo.road.physics import OBSERVATION_FEATURES, has_lookahead, set_own_features
+from macromicro_sumo.road.leaders import nearer_standing, set_leader_gap
+from macromicro_sumo.road.physics import (
+    OBSERVATION_FEATURES,
+    has_lookahead,
+    observes_gap,
+    set_own_features,
+)
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
 from macromicro_sumo.sumo.states import VehicleStates
 
@@ -99,8 +104,10 @@ def observe_rows(
     """Observations (V, obs_dim) of driven vehicles ``vids`` (rows ``rows`` of ``st``, on
     lanes ``lane_ids``), as the section env defines them, the leader SUMO's (``leaders``:
     ``Simulation.leaders``): front-to-front spacing = SUMO's gap + own minGap + leader's
-    length; ``stop_m``: SUMO's gap from each front to its stop at a red light or the end of
-    a lane the vehicle must leave (``road.leaders.stop_distance_m``; inf: none), a standing
+    length (a gap layout: the leader column is that less the leader's length, SUMO's vType
+    length; a standing leader's the own, ``road.leaders.set_leader_gap``); ``stop_m``:
+    SUMO's gap from each front to its stop at a red light or the end of a lane the vehicle
+    must leave (``road.leaders.stop_distance_m``; inf: none), a standing
     leader there when nearer than the leader (``road.leaders.nearer_standing``, as the envs
     see it). ``lanes``: the section's ``LaneTable``; ``shapes``: vehicle -> (length,
     minGap, decel), ``STANDING`` where missing; ``driver_speeds``: each driver's desired-speed factor on the limits it
@@ -167,6 +174,10 @@ def observe_rows(
         start = lanes.next_start_m[codes]
         obs[:, 5] = start - (np.mod(arc, lanes.length_m) if lanes.closed else arc)
     set_own_features(obs, observation, length)
+    if observes_gap(observation):  # no leader: its code 0 (length 0) keeps NO_LEADER_GAP_M
+        lead_length = lengths[n:]
+        np.copyto(lead_length, length, where=closer)
+        set_leader_gap(obs, observation, lead_length)
     if driver_speeds is not None:
         scale_limits(obs, driver_speeds(vids, obs))
     return obs, sumo_gap, lead_decel, lead_index

@@ -47,11 +47,10 @@ import numpy as np
 from macromicro_sumo.data.section import PSI_FIELDS, SectionTruth, psi_table, run_section
 from macromicro_sumo.env.driver_speed import DriverSpeeds, scale_limits
 from macromicro_sumo.env.section_bank import section_macro_reward, section_target
-from macromicro_sumo.road.leaders import nearer_standing, stop_distance_m
+from macromicro_sumo.road.leaders import nearer_standing, set_leader_gap, stop_distance_m
 from macromicro_sumo.road.physics import (
     OBSERVATION_FEATURES,
     has_lookahead,
-    observes_length,
     set_own_features,
 )
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
@@ -122,13 +121,16 @@ def sumo_observations(
     ``stops_m``: (V,) SUMO's gap to a stop at a red light or the end of a lane the vehicle
     must leave (``road.leaders.stop_distance_m``; inf: none), a standing leader there
     (``road.leaders.nearer_standing``). Spacing is
-    front to front: gap + own minGap + leader's length, as the env's arcs give it.
+    front to front: gap + own minGap + leader's length, as the env's arcs give it (a gap
+    layout observes it less the leader's length, ``road.leaders.set_leader_gap``).
     """
     n = len(vids)
     speed = np.array([states[v][2] for v in vids])
     lane, arc, edge, limit = lane_places(section, vids, states)
     spacing = np.full(n, NO_LEADER_GAP_M)
     gap_out = np.full(n, NO_LEADER_GAP_M)
+    own_length = np.array([shapes[v][0] for v in vids], dtype=float)
+    lead_length = own_length.copy()  # a standing leader's (the gap layouts' leader column)
     lead_v = speed.copy()  # delta_v 0 without a leader
     leader = [""] * n
     min_gap = np.array([shapes[v][1] for v in vids], dtype=float)
@@ -138,9 +140,11 @@ def sumo_observations(
             s = gap + min_gap[i] + shapes[lid][0]
             if s < NO_LEADER_GAP_M:
                 spacing[i], lead_v[i], gap_out[i], leader[i] = s, states[lid][2], gap, lid
+                lead_length[i] = shapes[lid][0]
     # A red light, or the end of a lane the vehicle must leave: a standing leader there.
     stops = np.asarray(stops_m, dtype=float)
-    closer = nearer_standing(spacing, stops, np.array([shapes[v][0] for v in vids]), min_gap)
+    closer = nearer_standing(spacing, stops, own_length, min_gap)
+    lead_length[closer] = own_length[closer]
     lead_v[closer] = 0.0
     gap_out[closer] = np.maximum(stops[closer], 0.0)  # SUMO's gap to its stop, as deployed
     for i in np.flatnonzero(closer).tolist():
@@ -151,8 +155,8 @@ def sumo_observations(
     obs = np.zeros((n, len(OBSERVATION_FEATURES[observation])))
     if n:
         obs[:, : len(cols)] = np.stack(cols, axis=1)
-    if observes_length(observation):  # a look-up per vehicle only where it is observed
-        set_own_features(obs, observation, np.array([shapes[v][0] for v in vids]))
+    set_own_features(obs, observation, own_length)
+    set_leader_gap(obs, observation, lead_length)  # a gap layout: the bumper gap
     return SumoScene(obs, leader, spacing, gap_out)
 
 

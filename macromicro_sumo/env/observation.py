@@ -32,6 +32,9 @@ FEATURES = {
         Feature("speed_mps", "m/s", 12.0, 2.0, "own speed"),
         Feature("speed_limit_mps", "m/s", 13.0, 1.0, "speed limit where the vehicle is"),
         Feature("spacing_m", "m", 125.0, 50.0, "front-to-front spacing to the leader"),
+        # The spacing's scale, its shift one 5 m car less: a fleet of 5 m cars normalises
+        # its gaps as "lookahead" its spacings.
+        Feature("gap_m", "m", 120.0, 50.0, "bumper-to-bumper gap to the leader (its length)"),
         Feature("delta_v_mps", "m/s", 0.0, 1.0, "own speed minus the leader's"),
         Feature("next_limit_mps", "m/s", 13.0, 1.0, "speed limit of the next edge"),
         Feature("dist_to_next_m", "m", 80.0, 50.0, "distance to the next edge"),

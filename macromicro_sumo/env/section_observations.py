@@ -17,9 +17,10 @@ from macromicro_sumo.road.leaders import (
     STANDING_MIN_GAP_M,
     STOPLINE_GAP_M,
     section_ahead,
+    set_leader_gap,
     standing_spacing_m,
 )
-from macromicro_sumo.road.physics import OBSERVATION_FEATURES, set_own_features
+from macromicro_sumo.road.physics import OBSERVATION_FEATURES, observes_gap, set_own_features
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, STOP, Section
 
 
@@ -45,6 +46,9 @@ def section_observations(
     set_own_features``) and the spacing to a standing leader (``road.leaders.
     standing_spacing_m``; None: the distance alone), with each vehicle's own vType's
     ``min_gap_m`` and ``stopline_gap_m`` (jmStoplineGap) (N,) (None: SUMO's defaults).
+    A gap layout (``physics.observes_gap``) needs ``length_m``: its leader column is the
+    spacing less the leader's length, a standing leader's the own (``road.leaders.
+    bumper_gap_m``); ``spacing`` stays front to front.
 
     Leaders along the lane connections (``section_ahead``, one sort per call); the end
     of a lane that leads nowhere, for the vehicles ``on_route`` (N,) (the driven ones,
@@ -57,6 +61,8 @@ def section_observations(
     and no leader.
     """
     n = len(arc_m)
+    if length_m is None and observes_gap(observation):
+        raise ValueError(f"policy.observation = {observation!r} needs each vehicle's length")
     obs = np.zeros((n, len(OBSERVATION_FEATURES[observation])))
     leader = np.full(n, -1, dtype=np.int64)
     spacing = np.full(n, NO_LEADER_GAP_M)
@@ -95,7 +101,10 @@ def section_observations(
         o[:, 1] *= factor[idx]
         if o.shape[1] > 4:
             o[:, 4] *= factor[idx]
-    set_own_features(o, observation, None if length_m is None else length_m[idx])
+    own = None if length_m is None else length_m[idx]
+    set_own_features(o, observation, own)
+    if observes_gap(observation):  # the leader's length; a standing leader's is the own
+        set_leader_gap(o, observation, np.where(has, own[np.maximum(lead, 0)], own))
     obs[idx] = o
     return obs, leader, spacing
 

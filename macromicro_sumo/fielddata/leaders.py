@@ -17,7 +17,8 @@ import numpy as np
 import pandas as pd
 
 from macromicro_sumo.fielddata.schema import LEADER_COLUMNS, MAX_SPEED_MPS, check_range
-from macromicro_sumo.road.physics import OBSERVATION_FEATURES
+from macromicro_sumo.road.leaders import bumper_gap_m
+from macromicro_sumo.road.physics import LEADER_COLUMN, OBSERVATION_FEATURES, observes_gap
 from macromicro_sumo.road.section import NO_LEADER_GAP_M
 
 # A measured spacing beyond this is no radar's range but a unit declared wrong.
@@ -117,6 +118,7 @@ def with_measured_leaders(
     leader: np.ndarray,
     frame: pd.DataFrame,
     observation: str,
+    lengths: pd.Series | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Observations ``obs`` (rows of ``frame``, one scene) with each row's measured leader
     where it is nearer than the leader found among the recorded vehicles (``leader`` -1:
@@ -124,16 +126,37 @@ def with_measured_leaders(
     The recorded vehicles are a subset of the road's, so the true leader is never farther
     than a recorded one; a lane's end found nearer (``leader`` STOP) stays, and a leader
     ``NO_LEADER_GAP_M`` or farther is none (``section_observations``' look-ahead). Rows
-    without a measurement (NaN) keep the recorded scene's leader. Returns (observations,
-    replaced)."""
-    names = OBSERVATION_FEATURES[observation]
-    i_gap, i_dv = names.index("spacing_m"), names.index("delta_v_mps")
+    without a measurement (NaN) keep the recorded scene's leader. A gap layout
+    (``physics.observes_gap``) observes the measured spacing less the leader's length
+    (``measured_leader_length_m``: ``lengths``, each recorded vehicle's length by id).
+    Returns (observations, replaced)."""
     spacing = frame["leader_spacing_m"].to_numpy(dtype=float)
     lead_v = frame["leader_speed_mps"].to_numpy(dtype=float)
-    ok = np.isfinite(spacing) & np.isfinite(lead_v)
+    seen = spacing
+    if observes_gap(observation):  # compared and written as the gap it observes
+        seen = bumper_gap_m(spacing, measured_leader_length_m(frame, lengths))
+    ok = np.isfinite(spacing) & np.isfinite(lead_v) & np.isfinite(seen)
     with np.errstate(invalid="ignore"):  # one as far as NO_LEADER_GAP_M: none, as observed
-        use = ok & (spacing < NO_LEADER_GAP_M) & ((leader == -1) | (spacing < obs[:, i_gap]))
+        use = ok & (spacing < NO_LEADER_GAP_M) & ((leader == -1) | (seen < obs[:, LEADER_COLUMN]))
     out = obs.copy()
-    out[use, i_gap] = spacing[use]
-    out[use, i_dv] = frame["speed_mps"].to_numpy(dtype=float)[use] - lead_v[use]
+    out[use, LEADER_COLUMN] = seen[use]
+    out[use, OBSERVATION_FEATURES[observation].index("delta_v_mps")] = (
+        frame["speed_mps"].to_numpy(dtype=float)[use] - lead_v[use]
+    )
     return out, use
+
+
+def measured_leader_length_m(frame: pd.DataFrame, lengths: pd.Series | None) -> np.ndarray:
+    """Each row's measured leader's length [m]: the leader's own (``lengths``: each recorded
+    vehicle's length, indexed by vehicle id; the leader's ``leader_id`` among them), else
+    the median of ``lengths`` (the recorded vehicles', as ``measured_leaders`` takes for a
+    bumper gap's leader it cannot find: the data's typical vehicle), else NaN (no length
+    known: that row keeps the recorded scene's leader)."""
+    n = len(frame)
+    if lengths is None or not lengths.notna().any():
+        return np.full(n, np.nan)
+    fallback = float(lengths.median())
+    if "leader_id" not in frame:
+        return np.full(n, fallback)
+    own = frame["leader_id"].astype(str).map(lengths.groupby(lengths.index.astype(str)).first())
+    return own.fillna(fallback).to_numpy(dtype=float)

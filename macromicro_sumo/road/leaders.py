@@ -3,13 +3,15 @@
 ``lane_leaders`` (per lane index) and ``section_leaders`` (along the network's lane
 connections, with a lane's end and a red light's stop line as standing leaders, ``STOP``);
 ``standing_spacing_m``, ``nearer_standing`` and ``stop_distance_m``: where SUMO's drivers
-stop before such an obstacle, and the spacing a standing leader is observed at.
+stop before such an obstacle, and the spacing a standing leader is observed at;
+``bumper_gap_m`` and ``set_leader_gap``: the gap layouts' leader column from the spacing.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from macromicro_sumo.road.physics import LEADER_COLUMN, observes_gap
 from macromicro_sumo.road.ring import loop_successors
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, STOP, Section
 
@@ -192,3 +194,29 @@ def stop_distance_m(
     jmStoplineGap ``stopline_gap_m`` (SUMO's default ``STOPLINE_GAP_M``)."""
     red = np.maximum(np.asarray(red_m, dtype=float) - stopline_gap_m, 0.0)  # NaN stays
     return np.fmin(np.asarray(lane_end_m, dtype=float), red)
+
+
+def bumper_gap_m(spacing_m: np.ndarray, leader_length_m: np.ndarray | float) -> np.ndarray:
+    """The bumper-to-bumper gap [m] (the leader's rear minus the own front) of a front-to-
+    front ``spacing_m``: spacing - the leader's length. A standing obstacle's leader length
+    is the vehicle's own (``standing_spacing_m`` stands a vehicle of its length there), so
+    its gap is SUMO's gap to where the driver stops plus its minGap, as behind a vehicle,
+    where SUMO stops it minGap behind the rear. No leader (``NO_LEADER_GAP_M`` or farther)
+    keeps ``NO_LEADER_GAP_M``. The envs', demand env's and deployment's one definition."""
+    spacing = np.asarray(spacing_m, dtype=float)
+    return np.where(spacing < NO_LEADER_GAP_M, spacing - leader_length_m, NO_LEADER_GAP_M)
+
+
+def set_leader_gap(
+    obs: np.ndarray, observation: str, leader_length_m: np.ndarray | None
+) -> np.ndarray:
+    """Where ``policy.observation``'s leader column is the gap (``physics.observes_gap``),
+    make ``obs``' (..., F) column of front-to-front spacings the bumper gap (in place) with
+    each row's ``leader_length_m`` (...,): the leader vehicle's length, the own length for
+    a standing obstacle, any value where there is no leader (``bumper_gap_m``). Other
+    layouts are left as they are (``leader_length_m`` may then be None); returns ``obs``."""
+    if observes_gap(observation):
+        if leader_length_m is None:
+            raise ValueError(f"policy.observation = {observation!r} needs the leaders' lengths")
+        obs[..., LEADER_COLUMN] = bumper_gap_m(obs[..., LEADER_COLUMN], leader_length_m)
+    return obs

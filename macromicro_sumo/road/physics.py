@@ -42,6 +42,19 @@ SCENE_FEATURES = {
         "next_limit_mps",
         "dist_to_next_m",
     ),
+    # The leader column is the bumper-to-bumper gap (the leader's rear minus the own front,
+    # with the leader's own length), not the front-to-front spacing: behind a 12 m truck a
+    # 13 m spacing is a 1 m gap, which "lookahead" showed the policy as a car's 8 m one (on
+    # drawn 501, 17 of 57 Stage II episodes with the safety layer off ran a hidden car into
+    # an observed truck; docs/deploy.md, "Drawn 501 at stop 35").
+    "lookahead_gap": (
+        "speed_mps",
+        "speed_limit_mps",
+        "gap_m",
+        "delta_v_mps",
+        "next_limit_mps",
+        "dist_to_next_m",
+    ),
 }
 # Features of the vehicle itself, not of the scene around it: after the scene's, in this
 # order, each set from an attribute every observer knows (``set_own_features``). The own
@@ -54,10 +67,11 @@ OWN_FEATURES = ("length_m",)
 OBSERVATION_FEATURES = {
     **SCENE_FEATURES,
     "lookahead_length": SCENE_FEATURES["lookahead"] + OWN_FEATURES,
+    "lookahead_gap_length": SCENE_FEATURES["lookahead_gap"] + OWN_FEATURES,
 }
-# Columns of the own lane's limit and the next edge's limit (the look-ahead layouts; "paper"
-# has no next edge).
-LIMIT_COLUMN, NEXT_LIMIT_COLUMN = 1, 4
+# Columns of the own lane's limit, the leader (spacing or gap) and the next edge's limit
+# (the look-ahead layouts; "paper" has no next edge).
+LIMIT_COLUMN, LEADER_COLUMN, NEXT_LIMIT_COLUMN = 1, 2, 4
 
 
 def has_lookahead(observation: str) -> bool:
@@ -68,6 +82,20 @@ def has_lookahead(observation: str) -> bool:
 def observes_length(observation: str) -> bool:
     """Whether ``policy.observation`` carries the vehicle's own length."""
     return "length_m" in OBSERVATION_FEATURES[observation]
+
+
+def observes_gap(observation: str) -> bool:
+    """Whether ``policy.observation``'s leader column is the bumper-to-bumper gap
+    (``gap_m``), not the front-to-front spacing (``spacing_m``)."""
+    return "gap_m" in OBSERVATION_FEATURES[observation]
+
+
+def leader_length_m(observation: str, length_m: float) -> float:
+    """The length a car-following model subtracts from ``policy.observation``'s leader
+    column to get the bumper gap: ``length_m`` (the leader taken as long as the vehicle, all
+    a spacing tells) where it is the spacing, 0 where it is the gap already (the leader's
+    true length in it)."""
+    return 0.0 if observes_gap(observation) else float(length_m)
 
 
 def set_own_features(obs: np.ndarray, observation: str, length_m: np.ndarray | None) -> np.ndarray:

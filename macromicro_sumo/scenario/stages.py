@@ -17,10 +17,13 @@ class PolicyConfig:
     objective: str = spec("mix", choices=("mix", "micro_only", "macro_only"), doc="ablation switch")
     observation: str = spec(
         "paper",
-        choices=("paper", "lookahead", "lookahead_length"),
+        choices=("paper", "lookahead", "lookahead_gap", "lookahead_length", "lookahead_gap_length"),
         doc="paper: [v, v_limit, spacing, delta_v]; lookahead adds [next edge's limit, distance to it]; "
         "lookahead_length adds the vehicle's own length [m] (its vType's; not the default: on "
-        "drawn mixed-fleet nets it did not bring the trucks' time gaps nearer the truth's)",
+        "drawn mixed-fleet nets it did not bring the trucks' time gaps nearer the truth's); "
+        "lookahead_gap is lookahead with the bumper-to-bumper gap to the leader (its own "
+        "length: a truck's) in place of the front-to-front spacing, lookahead_gap_length "
+        "that with the own length",
     )
     prior: str = spec(
         "none",
