@@ -42,7 +42,8 @@ from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import SectionBank
 from macromicro_sumo.env.slot_core import POSITION_TOL_M, SlotCore
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.road.physics import observes_length, set_own_features
+from macromicro_sumo.road.leaders import set_leader_gap
+from macromicro_sumo.road.physics import observes_gap, set_own_features
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.sumo.states import DEFAULT_LANE_CHANGE_MODE
@@ -315,9 +316,11 @@ class BatchedSectionCore(SlotCore):
             self.obs_dim,
             None if f is None else f[self.episode],
         )
-        if observes_length(self.observation):
-            lengths = np.where(live, self.bank.length_m[self.episode], 0.0)
-            set_own_features(obs, self.observation, lengths)
+        lengths = np.where(live, self.bank.length_m[self.episode], 0.0)
+        set_own_features(obs, self.observation, lengths)
+        if observes_gap(self.observation):  # the leader's own length (inactive: 0 stays 0)
+            lead = np.take_along_axis(lengths, np.maximum(leader, 0), axis=1)
+            set_leader_gap(obs, self.observation, np.where(live, lead, 0.0))
         keep = ~scenes[:, None]
         self.leader = np.where(keep, self.leader, leader)
         self.spacing = np.where(keep, self.spacing, spacing)

@@ -109,15 +109,25 @@ def dense(bank, factor: float):
 
 
 @pytest.mark.parametrize(
-    "safety, squeeze", [("sumo", 1.0), ("none", 1.0), ("sumo", 0.15), ("none", 0.15)]
+    "safety, squeeze, observation",
+    [
+        ("sumo", 1.0, None),
+        ("none", 1.0, None),
+        ("sumo", 0.15, None),
+        ("none", 0.15, None),
+        ("sumo", 0.15, "lookahead_gap"),
+    ],
 )
-def test_a_scene_among_b_copies_drives_as_it_does_alone(ring_bank, safety, squeeze):
+def test_a_scene_among_b_copies_drives_as_it_does_alone(ring_bank, safety, squeeze, observation):
     """Three scenes with staggered resets (scene 1 restarts mid-way while the others drive
     on; a reset places the scene's vehicles on the road where a fresh insertion would put
     them) give, scene by scene, SectionCore's observations, rewards, positions and speeds
     under the same actions, to the bit, and the same replay counters; squeezed scenes
-    (``dense``) take the capped, off-record and catch-up paths."""
+    (``dense``) take the capped, off-record and catch-up paths. With the gap layout and
+    squeezed scenes' 4-6 m vehicles: each leader's own length, as the single core's."""
     sc, section, bank, net = ring_bank
+    if observation is not None:
+        sc = dataclasses.replace(sc, policy=dataclasses.replace(sc.policy, observation=observation))
     bank = dense(bank, squeeze)
     h, b = bank.horizon, 3
     rng = np.random.default_rng(7)
