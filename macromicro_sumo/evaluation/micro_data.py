@@ -20,7 +20,7 @@ from macromicro_sumo.env.section_observations import section_observations
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation.idm_fit import IdmParams, idm_policy_accel
 from macromicro_sumo.fielddata.leaders import has_measured_leaders, with_measured_leaders
-from macromicro_sumo.road.physics import observes_length
+from macromicro_sumo.road.physics import observes_gap, observes_length
 
 
 def micro_pairs(
@@ -33,7 +33,11 @@ def micro_pairs(
     traj = truth.trajectories[truth.trajectories["run"].isin(runs)]
     measured = has_measured_leaders(traj)
     # Lengths: an own feature, and a standing leader's spacing (road.leaders.standing_spacing_m).
-    lengths = _lengths(truth, traj, required=observes_length(sc.policy.observation))
+    # A gap layout needs the leaders' lengths too.
+    need = observes_length(sc.policy.observation) or observes_gap(sc.policy.observation)
+    lengths = _lengths(truth, traj, required=need)
+    # Each recorded vehicle's length by id: a measured leader's (fielddata.leaders).
+    by_id = None if lengths is None else pd.Series(lengths.to_numpy(), traj["vehicle_id"])
     # Each vType's minGap and jmStoplineGap: where its driver stands before a standing leader.
     types = traj["vtype"] if "vtype" in traj else pd.Series("", index=traj.index)
     gaps = {k: types.map(of).fillna(d) for k, (of, d) in standing_gaps(sc, truth).items()}
@@ -59,7 +63,7 @@ def micro_pairs(
                 **{k: v.loc[s.index].to_numpy(dtype=float) for k, v in gaps.items()},
             )
             if measured:  # field data: the leader each vehicle measured (fielddata.leaders)
-                obs, _ = with_measured_leaders(obs, leader, s, sc.policy.observation)
+                obs, _ = with_measured_leaders(obs, leader, s, sc.policy.observation, by_id)
             ids = s["vehicle_id"].to_numpy()[o]
             v1 = np.array([speed_next.get(v, np.nan) for v in ids])
             a = (v1 - s["speed_mps"].to_numpy()[o]) / dt
@@ -87,7 +91,8 @@ def _lengths(truth: SectionTruth, traj: pd.DataFrame, required: bool) -> pd.Seri
         missing = sorted(set(traj["vtype"][lengths.isna()])) if "vtype" in traj else ["vtype"]
         raise UserError(
             f"{truth.folder}: vtypes.csv: length_m of vType {missing[0]} unknown: "
-            "policy.observation with the own length needs every recorded vType's length (> 0 m)"
+            "policy.observation with the own length or the gap needs every recorded vType's "
+            "length (> 0 m)"
         )
     return lengths
 
