@@ -38,7 +38,7 @@ from scipy.stats import truncnorm
 from macromicro_sumo.data.section import SectionTruth, recorded_steps, run_section, vehicle_level
 from macromicro_sumo.env.section_bank import SectionBank, recordable, speed_caps
 from macromicro_sumo.env.section_observations import initial_observations, section_observations
-from macromicro_sumo.road.physics import LIMIT_COLUMN, NEXT_LIMIT_COLUMN
+from macromicro_sumo.road.physics import LIMIT_COLUMN, NEXT_LIMIT_COLUMN, observes_gap
 
 # The observation columns that are speed limits (own lane, the look-ahead's next edge).
 LIMIT_COLUMNS = (LIMIT_COLUMN, NEXT_LIMIT_COLUMN)
@@ -143,6 +143,11 @@ def observed_drivers(sc, truth: SectionTruth, runs: np.ndarray) -> ObservedDrive
     best: dict[tuple[int, str], tuple[int, float, float]] = {}
     obs_rows, acc_rows, keys = [], [], []
     full = truth.trajectories[truth.trajectories["run"].isin(runs)]
+    # The pairs' leader column as the policy's: the gap where it observes the gap (each
+    # leader's vType length; micro_pairs has refused unknown lengths), else the spacing.
+    gap = observes_gap(sc.policy.observation)
+    vt = truth.vtypes
+    length_of = dict(zip(vt["vtype"], vt["length_m"], strict=True)) if "length_m" in vt else {}
     for run, g in full.groupby("run", sort=True):
         section = run_section(truth, int(run))
         watched = set(traj.loc[traj["run"] == run, "vehicle_id"])
@@ -159,8 +164,10 @@ def observed_drivers(sc, truth: SectionTruth, runs: np.ndarray) -> ObservedDrive
                 s["arc_m"].to_numpy(),
                 s["speed_mps"].to_numpy(),
                 np.ones(len(s), dtype=bool),
-                "paper",
+                "lookahead_gap" if gap else "paper",
+                length_m=s["vtype"].map(length_of).to_numpy(dtype=float) if gap else None,
             )
+            obs = obs[:, :4]  # the paper's columns (the gap layout's: the gap in the third)
             v, limit = obs[:, 0], obs[:, 1]
             v1 = np.fromiter((speed_next.get(x, np.nan) for x in ids), float, len(ids))
             accel = (v1 - v) / dt
