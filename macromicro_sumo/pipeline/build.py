@@ -50,7 +50,7 @@ from macromicro_sumo.policy.prior_choice import PriorFit, PriorScore
 from macromicro_sumo.policy.stage import run_choose_prior, run_train_policy
 from macromicro_sumo.report.deploy import make_deploy_plots
 from macromicro_sumo.report.write import write_report
-from macromicro_sumo.road.physics import no_lower_limit_ahead
+from macromicro_sumo.road.physics import leader_length_m, no_lower_limit_ahead
 from macromicro_sumo.truth.section import simulate_section
 
 # The one resume rule of the pipeline (``policy.checkpoint.resumable_checkpoint``): a
@@ -353,7 +353,9 @@ def fit_residual_prior(
     (``evaluation.krauss_fit.fit_krauss``; the manifest records which and why). Returns the
     agent's prior parameters, what the policy manifest records of the fit, and the pairs
     (the residual's likelihood pairs, ``policy.residual``)."""
-    length = typical_length(truth)
+    # What the model subtracts from the leader column (a gap layout: nothing, the leader's
+    # own length is in it; physics.leader_length_m).
+    length = leader_length_m(sc.policy.observation, typical_length(truth))
     obs, acc = micro_pairs(sc, truth, runs)
     kind = sc.policy.prior
     dt, record, pairs = sc.simulation.step_length_s, {}, len(acc)

@@ -12,17 +12,27 @@ behind a vehicle. "lookahead" is unchanged (its column is still the spacing).
 
 from __future__ import annotations
 
+import dataclasses
+import sys
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
 from conftest import netconvert
 from section_files import routes_file, vtype
 
+sys.path.insert(0, str(Path(__file__).parent))
+from test_own_length import mixed, with_observation  # noqa: E402, F401 (a fixture)
+
 from macromicro_sumo.deploy.observe import STANDING, LaneTable, Table, observe_rows
 from macromicro_sumo.env.demand import sumo_observations
+from macromicro_sumo.env.driver_speed import observed_drivers
 from macromicro_sumo.env.observation import FEATURES, shift_scale
 from macromicro_sumo.env.section_observations import section_observations
+from macromicro_sumo.evaluation.micro_data import micro_pairs
 from macromicro_sumo.fielddata.leaders import measured_leader_length_m, with_measured_leaders
+from macromicro_sumo.pipeline.build import fit_residual_prior
 from macromicro_sumo.road.leaders import bumper_gap_m, set_leader_gap
 from macromicro_sumo.road.physics import (
     OBSERVATION_FEATURES,
@@ -186,3 +196,28 @@ def test_the_gap_layout_needs_the_lengths(truck_state) -> None:
         section_observations(
             section, np.zeros(1, int), np.zeros(1), np.zeros(1), np.ones(1, bool), "lookahead_gap"
         )
+
+
+def test_micro_pairs_and_the_prior_take_each_leaders_length(mixed) -> None:  # noqa: F811
+    """The merge with trucks (``test_own_length``'s): the micro pairs' and the Krauss
+    prior's pairs' leader column is the spacing less 5 m behind a car, 12 m behind a truck;
+    the prior fitted to them subtracts no length of its own (``veh_length_m`` 0), and
+    "lookahead"'s pairs and prior are as they were (the spacing, the typical 5 m)."""
+    sc, truth = mixed
+    gap_sc = with_observation(dataclasses.replace(sc, policy=dataclasses.replace(
+        sc.policy, prior="krauss")), "lookahead_gap")  # fmt: skip
+    old_sc = with_observation(gap_sc, "lookahead")
+    gap, acc = micro_pairs(gap_sc, truth, truth.runs)
+    old, acc0 = micro_pairs(old_sc, truth, truth.runs)
+    np.testing.assert_array_equal(acc, acc0)
+    np.testing.assert_array_equal(np.delete(gap, 2, axis=1), np.delete(old, 2, axis=1))
+    less = np.round(old[:, 2] - gap[:, 2], 6)
+    assert {5.0, 12.0} <= set(np.unique(less)) <= {0.0, 5.0, 12.0}
+    drivers = observed_drivers(gap_sc, truth, truth.runs)
+    plain = observed_drivers(old_sc, truth, truth.runs)
+    assert drivers.obs.shape == plain.obs.shape == (len(plain.obs), 4)
+    less = np.round(plain.obs[:, 2] - drivers.obs[:, 2], 6)
+    assert {5.0, 12.0} <= set(np.unique(less))
+    prior, _, _ = fit_residual_prior(gap_sc, truth, truth.runs)
+    assert prior["veh_length_m"] == 0.0
+    assert fit_residual_prior(old_sc, truth, truth.runs)[0]["veh_length_m"] == 5.0
