@@ -57,6 +57,7 @@ from macromicro_sumo.evaluation.leader_follower import (
 )
 from macromicro_sumo.evaluation.micro_data import micro_pairs
 from macromicro_sumo.road.leaders import section_leaders
+from macromicro_sumo.road.physics import leader_length_m
 from macromicro_sumo.road.section import Section
 
 SKIPPED = "leader-follower tests skipped"
@@ -268,7 +269,9 @@ def run_leader_follower_for(
         limits_mps=np.where(np.isnan(section.limits_mps), np.nan, float(speed_limit_mps)),
     )
     bank = section_bank(uniform, path, moved, start, vehicle_length_m, dt)
-    idm = idm_follower(idm_params, vehicle_length_m)
+    # What a model subtracts from the observation's leader column (a gap layout: nothing).
+    lead_m = leader_length_m(sc.policy.observation, vehicle_length_m)
+    idm = idm_follower(idm_params, lead_m)
     core = SectionCore(sc, uniform, bank, net_file, seed=seed, vclass=vclass, safety="none")
     core.rewarded = False  # the traces are speeds and gaps: r_macro would go unread
     lanes = list(section.lanes)
@@ -279,9 +282,7 @@ def run_leader_follower_for(
         c.sim.set_lane_change_mode([c.ids[FOLLOWER], c.ids[LEADER]], NO_LANE_CHANGE)
 
     try:
-        traces, summary = run_tests(
-            core, followers, idm, n_trials, seed, vehicle_length_m, lead, keep_lanes
-        )
+        traces, summary = run_tests(core, followers, idm, n_trials, seed, lead_m, lead, keep_lanes)
     except UserError as exc:  # the section could not hold a trial: say so, go on
         return skip(str(exc).removeprefix("leader-follower test: "))
     finally:
@@ -336,7 +337,7 @@ def reference_idm(sc, truth: SectionTruth, vehicle_length_m: float) -> tuple[dic
         return mean_idm_params(sc), "the fleet's IDM, the middle of its [fleet] ranges"
     everyone = replace(truth, trajectories=truth.trajectories.assign(observed=True))
     obs, acc = micro_pairs(sc, everyone, truth.runs)
-    params, rmse = calibrate_idm(obs, acc, vehicle_length_m)
+    params, rmse = calibrate_idm(obs, acc, leader_length_m(sc.policy.observation, vehicle_length_m))
     what = "the recorded vehicles" if sc.data.source == "files" else "every recorded vehicle"
     return _idm_dict(params), (
         f"IDM fitted to {what} of the ground truth ({len(acc)} pairs, fit RMSE "
@@ -360,7 +361,8 @@ def section_leader_follower_tests(
     """The section evaluation's tests: every learned method (stochastic) and the calibrated
     IDM against the ground-truth follower, ``evaluation.lf_trials`` trials each."""
     followers: dict[str, Follower] = {n: policy_follower(a) for n, a in agents.items()}
-    followers["idm_calibrated"] = idm_follower(_idm_dict(idm_calibrated), vehicle_length_m)
+    lead_m = leader_length_m(sc.policy.observation, vehicle_length_m)
+    followers["idm_calibrated"] = idm_follower(_idm_dict(idm_calibrated), lead_m)
     params, what = reference_idm(sc, truth, vehicle_length_m)
     duration = sc.evaluation.lf_duration_s
     return run_leader_follower_for(

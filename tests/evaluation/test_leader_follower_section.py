@@ -21,6 +21,7 @@ from lf_trials import (
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation import leader_follower as lf
 from macromicro_sumo.evaluation import leader_follower_section as lfs
+from macromicro_sumo.road.physics import leader_length_m
 from macromicro_sumo.road.section import read_section
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.inputs import scenario_inputs
@@ -53,7 +54,9 @@ def test_idm_follower_reaches_the_leaders_speed_with_a_safe_gap(name, lanes):
     sc, section, net = road(name)
     assert lfs.lane_path(section).tolist() == lanes
     profile = lf.LeaderProfile(duration_s=90.0, hold_s=10.0)
-    same = lf.idm_follower(PARAMS, LENGTH_M)
+    # The length IDM subtracts from the leader column: none where it is the gap
+    # (netgen_corridor's "lookahead_gap"), the vehicle's where it is the spacing.
+    same = lf.idm_follower(PARAMS, leader_length_m(sc.policy.observation, LENGTH_M))
     res = lfs.run_leader_follower_for(
         sc, section, net, {"same_idm": same}, PARAMS, 30.0, LENGTH_M, 1, 0, profile
     )
