@@ -94,6 +94,7 @@ from macromicro_sumo.policy.agent import policy_action
 from macromicro_sumo.policy.checkpoint import load_policy
 from macromicro_sumo.progress import tqdm
 from macromicro_sumo.road.leaders import section_leaders
+from macromicro_sumo.road.physics import leader_length_m
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.sumo.inputs import scenario_inputs
 from macromicro_sumo.truth.section import load_section_truth
@@ -313,9 +314,12 @@ def evaluate_section(
     out = prepare_out_dir(out)  # once the scenes are known to be good
     net_file = scenario_inputs(sc).net_file
     vclass = typical_vclass(truth)
+    # The length the IDM subtracts from the observation's leader column: the typical
+    # vehicle's where it is the spacing, none where it is the gap (physics.leader_length_m).
     length = typical_length(truth)
+    lead_m = leader_length_m(sc.policy.observation, length)
     obs_tr, acc_tr = micro_pairs(sc, truth, np.concatenate([splits["train"], splits["val"]]))
-    idm, idm_rmse = calibrate_idm(obs_tr, acc_tr, length)
+    idm, idm_rmse = calibrate_idm(obs_tr, acc_tr, lead_m)
     oracle, oracle_note = true_idm_table(truth)
     if oracle is None:
         print(oracle_note)
@@ -363,10 +367,10 @@ def evaluate_section(
                     )
             bar.update()
             methods: dict[str, ActionFn] = {n: policy_action(a) for n, a in agents.items()}
-            methods["idm_calibrated"] = idm_action(lambda core: idm, length)
+            methods["idm_calibrated"] = idm_action(lambda core: idm, lead_m)
             if oracle is not None:
                 params = true_idm_by_episode(truth, oracle, kept, gen_bank)
-                methods["idm_true"] = true_idm_action(params, length)
+                methods["idm_true"] = true_idm_action(params, lead_m)
             for name in [m for m in METHOD_ORDER if m in methods]:
                 bank = driven_bank(sc, truth, gen_bank, agents.get(name), seed)
                 ro, counts_, per_k = _run(
@@ -427,7 +431,7 @@ def evaluate_section(
         write_csv(pd.concat(samples, ignore_index=True), stage / "eval_samples.csv")
         write_csv(pd.DataFrame(safety_rows), stage / "safety.csv")
         obs_ho, acc_ho = micro_pairs(sc, truth, held)
-        micro = micro_consistency(agents, {"idm_calibrated": idm}, obs_ho, acc_ho, sc, length)
+        micro = micro_consistency(agents, {"idm_calibrated": idm}, obs_ho, acc_ho, sc, lead_m)
         micro.insert(0, "reference", REFERENCE_MICRO)
         write_csv(micro, stage / "micro_consistency.csv")
         lf = section_leader_follower_tests(sc, truth, net_file, agents, idm, length, vclass)
