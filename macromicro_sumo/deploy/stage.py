@@ -95,6 +95,7 @@ from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.checkpoint import load_policy, policy_file
 from macromicro_sumo.policy.prior import PRIOR_KEYS
 from macromicro_sumo.progress import tqdm
+from macromicro_sumo.road.physics import leader_length_m
 from macromicro_sumo.truth.section import load_section_truth
 
 MANIFEST = "deploy_manifest.json"
@@ -287,7 +288,7 @@ def fit_idm(ctx: DeployContext) -> tuple[IdmParams, float]:
     truth = load_section_truth(ctx.truth_dir, sc)
     splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
     obs, acc = section_eval.micro_pairs(sc, truth, np.concatenate([splits["train"], splits["val"]]))
-    return calibrate_idm(obs, acc, typical_length(truth))
+    return calibrate_idm(obs, acc, leader_length_m(sc.policy.observation, typical_length(truth)))
 
 
 def policy_paths(policy_dir: Path | None, methods: list[str]) -> dict[str, Path]:
