@@ -273,7 +273,8 @@ def own_speed_pairs(
 
 def censored_following_pairs(drivers: ObservedDrivers) -> tuple[np.ndarray, np.ndarray]:
     """The pairs of the drivers with a lower bound only (``ObservedDrivers.lower``) where a
-    leader is near (spacing below ``FREE_HEADWAY_S`` x v + ``FREE_GAP_M``), limits as they are:
+    leader is near (the pairs' leader column, the spacing or in a gap layout the bumper gap,
+    below ``FREE_HEADWAY_S`` x v + ``FREE_GAP_M``), limits as they are:
     how they follow does not need their desired speed, which they do not show. Why
     (``krauss_pairs``, an open section whose ratios fell back): the exact drivers' own pairs
     alone are a few, selected drivers' (drawn 502: 24 of 235, the free cruisers; 3,712 pairs
