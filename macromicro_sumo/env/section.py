@@ -23,7 +23,8 @@ Observation Space
     v_leader (0 with no leader) and, with ``"lookahead"``, the next edge's limit on its
     lane and the distance to that edge (on the last edge of an open section: its own
     limit and the distance to the section's end); with ``"lookahead_length"`` then its own
-    length (the slot's vehicle's). Inactive slots are zeros.
+    length (the slot's vehicle's). The ``"lookahead_gap"`` layouts observe the bumper-to-bumper
+    gap (the leader's own length) in place of the spacing. Inactive slots are zeros.
 Rewards
     r_macro = 1 / (1 + lambda_v L_speed + lambda_d L_dist) of the active vehicles against
     psi (``section_target``, ``section_macro_reward``).

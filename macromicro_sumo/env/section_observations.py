@@ -125,7 +125,7 @@ def stop_points(
     then the arc to it. The point lies on the lane the vehicle reaches there along the
     lane connections (``lane_reached``), not on its own lane index: past an on-ramp the
     through lanes' indices shift. Where ``link_lanes`` gives the lane of the red link
-    (``Simulation.stop_line_lanes``) on that edge, the point lies on it: on game/cross a car
+    (``Simulation.stop_lines``) on that edge, the point lies on it: on game/cross a car
     routed through on 1si's right-turn lane sees the through link's red, which would
     otherwise stop the right turners behind it at a green light. Lines past an open
     section's end are dropped.

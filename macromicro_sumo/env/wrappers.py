@@ -17,7 +17,8 @@ NaN/inf raises ``ValueError`` naming the agent.
 Per hidden vehicle: ``Box(4,)`` = [v (m/s), v_limit at its position (m/s), spacing to the
 vehicle ahead, front to front (m), v - v_leader (m/s)], from arc positions (the paper's
 observation). With ``policy.observation = "lookahead"``: ``Box(6,)``, adding the next
-edge's speed limit (m/s) and the distance to it (m). With ``normalize=True`` each feature
+edge's speed limit (m/s) and the distance to it (m); ``"lookahead_gap"`` has the
+bumper-to-bumper gap to the leader (its own length) in place of the spacing. With ``normalize=True`` each feature
 is (value - shift) / scale with the mean and std of the bank's initial observations (the
 PPO agent's), and the bounds move with it.
 
