@@ -13,6 +13,7 @@ from typing import Any
 
 import pandas as pd
 import pytest
+import sumo
 import sumolib
 import torch
 
@@ -156,6 +157,47 @@ def line_net(
         for i, v in enumerate(limits)
     )
     return netconvert(folder, nodes, edges)
+
+
+def game_ramp_truth(folder: Path, driver_speed: str) -> tuple[SectionScenario, Any]:
+    """game/ramp's main line, one run of 120 s after 300 s (the demand is past the merge's
+    capacity from 300 s: a queue), half the vehicles observed, a Krauss prior with
+    ``driver_speed`` (~8 s of SUMO). Returns the scenario and its loaded ground truth."""
+    ramp = Path(sumo.__file__).resolve().parent / "tools" / "game" / "ramp"
+    (folder / "ramp.toml").write_text(
+        f"""name = "ramp"
+seed = 1
+
+[network]
+kind = "sumo"
+net_file = "{ramp / "ramp.net.xml"}"
+route_files = ["{ramp / "ramp.rou.xml"}"]
+
+[section]
+edges = ["gneE3", "gneE7", "gneE8"]
+closed = false
+
+[instrumented]
+penetration = 0.5
+
+[simulation]
+warmup_s = 300.0
+duration_s = 120.0
+n_runs = 1
+step_length_s = 0.5
+
+[detectors]
+interval_s = 60.0
+auto_spacing_m = 250.0
+
+[policy]
+prior = "krauss"
+driver_speed = "{driver_speed}"
+"""
+    )
+    sc = load_scenario(folder / "ramp.toml")
+    simulate_section(sc, folder / "gt", progress=False)
+    return sc, load_section_truth(folder / "gt", sc)
 
 
 def _toml_value(value: Any) -> str:

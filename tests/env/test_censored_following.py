@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import sumo
+from conftest import game_ramp_truth
 
 from macromicro_sumo.env.driver_speed import (
     FREE_GAP_M,
@@ -26,48 +26,13 @@ from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import load_section_truth, simulate_section
 
 ROOT = Path(__file__).resolve().parents[2]
-RAMP = Path(sumo.__file__).resolve().parent / "tools" / "game" / "ramp"
 
 
 @pytest.fixture(scope="module")
 def ramp(tmp_path_factory: pytest.TempPathFactory):
     """game/ramp's main line, one run of 120 s after 300 s (a queue at the merge), half the
     vehicles observed (~8 s of SUMO)."""
-    folder = tmp_path_factory.mktemp("ramp_censored")
-    (folder / "ramp.toml").write_text(
-        f"""name = "ramp"
-seed = 1
-
-[network]
-kind = "sumo"
-net_file = "{RAMP / "ramp.net.xml"}"
-route_files = ["{RAMP / "ramp.rou.xml"}"]
-
-[section]
-edges = ["gneE3", "gneE7", "gneE8"]
-closed = false
-
-[instrumented]
-penetration = 0.5
-
-[simulation]
-warmup_s = 300.0
-duration_s = 120.0
-n_runs = 1
-step_length_s = 0.5
-
-[detectors]
-interval_s = 60.0
-auto_spacing_m = 250.0
-
-[policy]
-prior = "krauss"
-driver_speed = "memory"
-"""
-    )
-    sc = load_scenario(folder / "ramp.toml")
-    simulate_section(sc, folder / "gt", progress=False)
-    return sc, load_section_truth(folder / "gt", sc)
+    return game_ramp_truth(tmp_path_factory.mktemp("ramp_censored"), "memory")
 
 
 def test_censored_drivers_following_pairs_join_the_fallback_fit(ramp):

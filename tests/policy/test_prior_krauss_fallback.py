@@ -5,12 +5,11 @@ says which and why (real SUMO: game/ramp's congested merge)."""
 from __future__ import annotations
 
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
-import sumo
+from conftest import game_ramp_truth
 from test_prior_krauss import DT_S, KRAUSS, LENGTH_M, _pairs
 
 from macromicro_sumo.env.driver_speed import prior_pairs
@@ -24,10 +23,7 @@ from macromicro_sumo.evaluation.krauss_fit import (
     sumo_defaults,
 )
 from macromicro_sumo.pipeline.build import fit_residual_prior
-from macromicro_sumo.scenario.load import load_scenario
-from macromicro_sumo.truth.section import load_section_truth, simulate_section
 
-RAMP = Path(sumo.__file__).resolve().parent / "tools" / "game" / "ramp"
 # SUMO's passenger car (the ramp's vTypes set no accel or decel, so its cars drive with these).
 SUMO_PASSENGER_ACCEL_MPS2 = 2.6
 
@@ -36,41 +32,7 @@ SUMO_PASSENGER_ACCEL_MPS2 = 2.6
 def ramp_truth(tmp_path_factory: pytest.TempPathFactory):
     """game/ramp's main line, one run of 120 s after 300 s (the demand is past the merge's
     capacity from 300 s: a queue), half the vehicles observed (~8 s of SUMO)."""
-    folder = tmp_path_factory.mktemp("ramp")
-    (folder / "ramp.toml").write_text(
-        f"""name = "ramp"
-seed = 1
-
-[network]
-kind = "sumo"
-net_file = "{RAMP / "ramp.net.xml"}"
-route_files = ["{RAMP / "ramp.rou.xml"}"]
-
-[section]
-edges = ["gneE3", "gneE7", "gneE8"]
-closed = false
-
-[instrumented]
-penetration = 0.5
-
-[simulation]
-warmup_s = 300.0
-duration_s = 120.0
-n_runs = 1
-step_length_s = 0.5
-
-[detectors]
-interval_s = 60.0
-auto_spacing_m = 250.0
-
-[policy]
-prior = "krauss"
-driver_speed = "drawn"
-"""
-    )
-    sc = load_scenario(folder / "ramp.toml")
-    simulate_section(sc, folder / "gt", progress=False)
-    return sc, load_section_truth(folder / "gt", sc)
+    return game_ramp_truth(tmp_path_factory.mktemp("ramp"), "drawn")
 
 
 def test_a_congested_merge_takes_sumos_free_acceleration_and_says_so(ramp_truth):
