@@ -13,8 +13,11 @@ from itertools import chain, repeat
 import numpy as np
 
 from macromicro_sumo.env.driver_speed import scale_limits
-from macromicro_sumo.road.leaders import nearer_standing, set_leader_gap
+from macromicro_sumo.road.leaders import bumper_gap_m, nearer_standing
 from macromicro_sumo.road.physics import (
+    LEADER_COLUMN,
+    LIMIT_COLUMN,
+    NEXT_LIMIT_COLUMN,
     OBSERVATION_FEATURES,
     has_lookahead,
     observes_gap,
@@ -86,6 +89,30 @@ class LaneTable(Table):
             self.cols = self._columns()
         (_, _, self.arc0_m, self.arc_per_m, self.limit_mps, self.next_limit_mps,
          self.next_start_m) = self.cols  # fmt: skip
+        self._obs_rows: dict[str, np.ndarray] = {}
+        self._driven = np.full(1, -1, dtype=np.int64)
+
+    def obs_rows(self, observation: str) -> np.ndarray:
+        """(rows, F) per lane code: ``policy.observation``'s columns that are the lane's
+        alone (its limit; with a look-ahead the next limit, and where the next edge starts
+        in the distance's column), 0 in the others; one take gives a step's observations
+        these columns. Built once per run and layout."""
+        if (tab := self._obs_rows.get(observation)) is None:
+            tab = np.zeros((len(self.rows), len(OBSERVATION_FEATURES[observation])))
+            tab[:, LIMIT_COLUMN] = self.limit_mps
+            if has_lookahead(observation):
+                tab[:, NEXT_LIMIT_COLUMN] = self.next_limit_mps
+                tab[:, NEXT_LIMIT_COLUMN + 1] = self.next_start_m
+            self._obs_rows[observation] = tab
+        return tab
+
+    def driven_rows(self, n_rows: int) -> np.ndarray:
+        """A buffer of -1 longer than ``n_rows`` (a step's vehicles), kept between steps:
+        the caller writes the driven vehicles' indices at their rows, reads, and writes -1
+        back; its last entry, which row -1 reads, stays -1."""
+        if len(self._driven) <= n_rows:
+            self._driven = np.full(2 * n_rows + 1, -1, dtype=np.int64)
+        return self._driven
 
 
 def observe_rows(
@@ -105,7 +132,7 @@ def observe_rows(
     lanes ``lane_ids``), as the section env defines them, the leader SUMO's (``leaders``:
     ``Simulation.leaders``): front-to-front spacing = SUMO's gap + own minGap + leader's
     length (a gap layout: the leader column is that less the leader's length, SUMO's vType
-    length; a standing leader's the own, ``road.leaders.set_leader_gap``); ``stop_m``:
+    length; a standing leader's the own, ``road.leaders.bumper_gap_m``); ``stop_m``:
     SUMO's gap from each front to its stop at a red light or the end of a lane the vehicle
     must leave (``road.leaders.stop_distance_m``; inf: none), a standing
     leader there when nearer than the leader (``road.leaders.nearer_standing``, as the envs
@@ -121,26 +148,30 @@ def observe_rows(
     call): one look-up of each table column for all vehicles and leaders, the standing
     leaders' columns only where one is nearer (``scripts/bench_deploy.py``)."""
     n = len(vids)
-    obs = np.empty((n, len(OBSERVATION_FEATURES[observation])))
     if not n:
+        obs = np.empty((0, len(OBSERVATION_FEATURES[observation])))
         return obs, np.empty(0), np.empty(0), np.empty(0, dtype=np.int64)
-    speed = st.speed_mps[rows]
     codes = lanes.codes(lane_ids) if lane_codes is None else lane_codes
+    # The lanes' own columns in one take (a fresh array): the limits, and where the next
+    # edge starts in the distance's column.
+    obs = lanes.obs_rows(observation).take(codes, axis=0)  # a third of [codes]'s cost
+    speed = st.speed_mps[rows]
     lead_ids, gaps = zip(*leaders, strict=True)
     gap = np.fromiter(gaps, float, n)
     # The leader SUMO sees, if it is on the road (in ``st``): row -1 otherwise.
     lead_row = np.fromiter(map(st.index.get, lead_ids, repeat(-1)), np.int64, n)
     has = lead_row >= 0
-    # Own and leaders' shapes in one look-up; a leader off the road is no leader (code 0).
+    # Own and leaders' shapes in one look-up. A leader off the road may have a shape: what
+    # reads it (spacing, decel) is overwritten below where there is no leader.
     shape = np.fromiter(map(shapes.code.get, chain(vids, lead_ids), repeat(0)), np.int64, 2 * n)
-    np.multiply(shape[n:], has, out=shape[n:])
     length_m, min_gap_m, decel_mps2 = shapes.cols
     lengths = length_m[shape]
     length = lengths[:n]
     min_gap = min_gap_m[shape[:n]]
     # Fresh arrays overwritten where there is no leader (masked writes: a third of
     # np.where's cost a call).
-    spacing = gap + min_gap + lengths[n:]
+    spacing = gap + min_gap
+    spacing += lengths[n:]
     ok = has & (spacing < NO_LEADER_GAP_M)
     none = ~ok
     lead_v = st.speed_mps[lead_row]
@@ -150,34 +181,35 @@ def observe_rows(
     sumo_gap[none] = NO_LEADER_GAP_M
     lead_decel = decel_mps2[shape[n:]]
     lead_decel[none] = STOP_DECEL_MPS2
+    # A driven leader's index in ``vids``: a row of ``st`` -> its index, -1 elsewhere
+    # (a buffer of -1 kept per run; its last entry answers row -1, no leader).
+    driven = lanes.driven_rows(len(st.ids))
+    driven[rows] = np.arange(n)
+    lead_index = driven[lead_row]
+    driven[rows] = -1
+    lead_index[none] = -1
     # A red light, or the end of a lane the vehicle must leave: a standing leader there.
     closer = nearer_standing(spacing, stop_m, length, min_gap)
-    if np.count_nonzero(closer):
+    if any_closer := bool(np.count_nonzero(closer)):
         lead_v[closer] = 0.0
         np.copyto(sumo_gap, np.maximum(stop_m, 0.0), where=closer)
         lead_decel[closer] = STOP_DECEL_MPS2
-        ok &= ~closer
-    # A driven leader's index in ``vids``: a row of ``st`` -> its index, -1 elsewhere
-    # (the extra last entry answers row -1, no leader).
-    driven = np.empty(len(st.ids) + 1, dtype=np.int64)
-    driven.fill(-1)
-    driven[rows] = np.arange(n)
-    lead_index = driven[lead_row]
-    lead_index[~ok] = -1
+        lead_index[closer] = -1
     obs[:, 0] = speed
-    obs[:, 1] = lanes.limit_mps[codes]
-    obs[:, 2] = spacing
     obs[:, 3] = speed - lead_v
-    if has_lookahead(observation):
-        arc = lanes.arc0_m[codes] + st.pos_m[rows] * lanes.arc_per_m[codes]
-        obs[:, 4] = lanes.next_limit_mps[codes]
-        start = lanes.next_start_m[codes]
-        obs[:, 5] = start - (np.mod(arc, lanes.length_m) if lanes.closed else arc)
+    if has_lookahead(observation):  # the distance: the next edge's start - the arc
+        arc = lanes.arc_per_m[codes]
+        arc *= st.pos_m[rows]
+        arc += lanes.arc0_m[codes]  # arc0 + pos x arc_per_m: + and x commute exactly
+        obs[:, 5] -= np.mod(arc, lanes.length_m) if lanes.closed else arc
     set_own_features(obs, observation, length)
-    if observes_gap(observation):  # no leader: its code 0 (length 0) keeps NO_LEADER_GAP_M
-        lead_length = lengths[n:]
-        np.copyto(lead_length, length, where=closer)
-        set_leader_gap(obs, observation, lead_length)
+    if observes_gap(observation):  # ``set_leader_gap``'s gap, from the spacing at hand
+        lead_length = lengths[n:]  # no leader: NO_LEADER_GAP_M stays, whatever the length
+        if any_closer:
+            np.copyto(lead_length, length, where=closer)
+        obs[:, LEADER_COLUMN] = bumper_gap_m(spacing, lead_length)
+    else:
+        obs[:, LEADER_COLUMN] = spacing
     if driver_speeds is not None:
         scale_limits(obs, driver_speeds(vids, obs))
     return obs, sumo_gap, lead_decel, lead_index

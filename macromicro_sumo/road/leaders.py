@@ -166,8 +166,10 @@ def standing_spacing_m(
     ``stop_gap_m`` before it (a red line: its jmStoplineGap, SUMO's default
     ``STOPLINE_GAP_M``; a lane end: 0): SUMO's gap to a red light is distance -
     jmStoplineGap, to a vehicle distance - minGap, and readers take gap = spacing - length
-    - minGap. The envs', demand env's and deployment's one definition."""
-    return np.maximum(dist_m - stop_gap_m, 0.0) + min_gap_m + length_m
+    - minGap. The envs', demand env's and deployment's one definition. A ``stop_gap_m`` of
+    0.0 is not subtracted (x - 0.0 is x, -0.0 included): one array call less a step."""
+    stop = dist_m if isinstance(stop_gap_m, float) and stop_gap_m == 0.0 else dist_m - stop_gap_m
+    return np.maximum(stop, 0.0) + min_gap_m + length_m
 
 
 def nearer_standing(
