@@ -21,7 +21,6 @@ baseline.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import math
 import time
 from collections.abc import Iterator
@@ -50,7 +49,6 @@ from macromicro_sumo.generator.section_scene import (
     scene_stops,
     stop_room_m,
 )
-from macromicro_sumo.generator.section_stations import StationSpeeds, profile_level, speed_offset
 from macromicro_sumo.road.section import Section
 
 PROJECTION_PROBES = 32  # points per gap a projection tries for a kinematically consistent one
@@ -137,8 +135,6 @@ class GeneratorCompletion:
     sc: Any
     k_source: str
     seed: int
-    # the ground truth's station speeds (``section_stations``; None: the scene's mean alone)
-    stations: StationSpeeds | None = None
     generated: int = 0
     dropped: int = 0
 
@@ -152,7 +148,6 @@ class GeneratorCompletion:
             self.seed,
             -self.sc.bounds.accel_mps2[0],
             self.sc.simulation.step_length_s,
-            self.stations,
         )
         self.generated += int(c.generated.sum())
         self.dropped += 0 if c.dropped is None else int(c.dropped.sum())
@@ -179,15 +174,6 @@ def _window_of(
     psi_r = psi.take(torch.tensor([row]))
     lo, hi = kinematic_speeds(one, choice, offsets[None], psi_r, *kin, at, road)
     return lo[0].numpy(), hi[0].numpy()
-
-
-def real_speeds(g: Gaps, offset) -> Gaps:
-    """``g`` with its followers' and leaders' speeds back from the detrended frame:
-    ``offset(arc)`` (B, G) added at the follower's arc (the gap's start) and the leader's
-    (its end)."""
-    v_f = torch.where(g.has_f, g.v_f + offset(g.start), g.v_f)
-    v_l = torch.where(g.has_l, g.v_l + offset(g.start + g.length), g.v_l)
-    return dataclasses.replace(g, v_f=v_f, v_l=v_l)
 
 
 def kinematic_speeds(
@@ -244,18 +230,13 @@ def complete_section(
     seed: int,
     brake_mps2: float | None = None,
     reaction_s: float = 0.0,
-    stations: StationSpeeds | None = None,
-    level: np.ndarray | None = None,
 ) -> SectionCompletion:
     """Algorithm 3 on a section, batched over snapshots: ``k[s]`` hidden vehicles for
     snapshot s, each from up to ``t_max`` trials, projection as the counted fallback.
 
     With ``brake_mps2`` (the scenario's braking bound), generated speeds are then made
     kinematically consistent with their lane neighbours (``safe_speeds``, with a reaction
-    time of ``reaction_s``). With ``stations`` the speeds follow the detector stations'
-    speeds along the section (proposed detrended, ``section_stations``), about the
-    ``level`` (B,) that keeps the scene's mean at psi's: None, from a first completion
-    (``profile_level``)."""
+    time of ``reaction_s``)."""
     kin = None if brake_mps2 is None else (float(brake_mps2), float(reaction_s))
     t0 = time.perf_counter()
     road = Road.of(section)
@@ -271,29 +252,13 @@ def complete_section(
             torch.as_tensor(at_lane, dtype=torch.int64),
             torch.as_tensor(np.nan_to_num(stop_pts[1], nan=np.inf), dtype=torch.float64),
         )
-    prof = None  # the stations' speeds along the section, (B, P) arcs and speeds
-    centre = psi.v_mean
-    if stations is not None and not road.closed:  # a loop's speed is one stream's
-        prof = tuple(torch.as_tensor(x) for x in stations.profile(snaps))
-        if level is None:
-            args = (net, section, snaps, k, t_max, seed, brake_mps2, reaction_s, stations)
-            first = complete_section(*args, psi.v_mean.numpy())
-            level = profile_level(prof, first.arc_m, first.valid, psi.v_mean.numpy())
-        centre = torch.as_tensor(level, dtype=torch.float64)
-
-    def offset(rows: torch.Tensor, at: torch.Tensor) -> torch.Tensor:
-        p = None if prof is None else (prof[0][rows], prof[1][rows])
-        return speed_offset(p, at, centre[rows])
-
-    every = torch.arange(b)
-    scene.speed = scene.speed - torch.where(scene.present, offset(every, scene.arc), 0.0)
     trials = np.zeros(b, dtype=np.int64)
     projections = np.zeros(b, dtype=np.int64)
     dropped = np.zeros(b, dtype=np.int64)
     for step in range(int(scene.k.max()) if b else 0):
         idx = torch.nonzero(scene.k > step).flatten()
         sub = psi.take(idx)
-        obs = scene.observe(step, idx, sub, road, gen)  # speeds detrended
+        obs = scene.observe(step, idx, sub, road, gen)
         m = scene.n_obs_slots + step
         bounded = bounded_gaps(
             obs.gaps,
@@ -310,8 +275,6 @@ def complete_section(
             obs.choosable = obs.choosable & (fits | ~(fits & obs.choosable).any(1, keepdim=True))
         t = propose(net, obs, sub, road, t_max, gen)
         g = obs.gaps if bounded is None else bounded
-        g = real_speeds(g, partial(offset, idx))
-        t.speed = t.speed + offset(idx, t.arc)
         a = t.arc - g.start.gather(1, t.choice)
         if road.closed:
             a = torch.remainder(a, road.length_m)
@@ -358,8 +321,7 @@ def complete_section(
             projections[idx_np[failed]] += 1
             dropped[idx_np] += (~fits).numpy()
         v = torch.minimum(torch.maximum(v, sub.v_min), sub.v_max)
-        scene.place(step, idx, lane, arc, v - offset(idx, arc[:, None])[:, 0], fits)
-    scene.speed = scene.speed + torch.where(scene.present, offset(every, scene.arc), 0.0)
+        scene.place(step, idx, lane, arc, v, fits)
     comp = _unpack(scene, snaps, road, trials, projections, time.perf_counter() - t0)
     comp.dropped = dropped
     if brake_mps2 is not None:
