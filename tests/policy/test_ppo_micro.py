@@ -94,17 +94,22 @@ def test_validation_selection_keeps_the_best_update(ring, tmp_path):
     res = train_policy(sc, bank, tmp_path, progress=False, val_runs=val_runs)
     logged = [row["val_micro_logp"] for row in res["log"]]
     assert np.isfinite(logged).all()
-    core = ring_core(sc, bank)
-    try:
-        val_obs, val_act = validation_pairs(
-            res["agent"], core, split_episodes(bank.run, val_runs)[1], sc.policy.horizon, sc
-        )
-    finally:
-        core.close()
+    val_obs, val_act = _validation_pairs(res["agent"], sc, bank, val_runs)
     assert mean_logp(res["agent"], val_obs, val_act) == pytest.approx(max(logged), abs=1e-5)
     saved = torch.load(tmp_path / "policy.pt", weights_only=True)["state_dict"]
     for k, v in res["agent"].state_dict().items():
         torch.testing.assert_close(saved[k], v)
+
+
+def _validation_pairs(agent, sc, bank, val_runs):
+    """The validation runs' observed (obs, action) pairs, as train_policy scores them."""
+    core = ring_core(sc, bank)
+    try:
+        return validation_pairs(
+            agent, core, split_episodes(bank.run, val_runs)[1], sc.policy.horizon, sc
+        )
+    finally:
+        core.close()
 
 
 def test_rmse_selection_keeps_the_update_whose_mean_action_fits_best(ring, tmp_path):
@@ -119,13 +124,7 @@ def test_rmse_selection_keeps_the_update_whose_mean_action_fits_best(ring, tmp_p
     res = train_policy(sc, bank, tmp_path, progress=False, val_runs=val_runs)
     logged = [row["val_micro_rmse_mps2"] for row in res["log"]]
     assert np.isfinite(logged).all() and len(set(logged)) == len(logged)
-    core = ring_core(sc, bank)
-    try:
-        val_obs, val_act = validation_pairs(
-            res["agent"], core, split_episodes(bank.run, val_runs)[1], sc.policy.horizon, sc
-        )
-    finally:
-        core.close()
+    val_obs, val_act = _validation_pairs(res["agent"], sc, bank, val_runs)
     assert mean_rmse(res["agent"], val_obs, val_act) == pytest.approx(min(logged), abs=1e-6)
     # The std is not part of it: the same mean with another std has the same RMSE.
     with torch.no_grad():
