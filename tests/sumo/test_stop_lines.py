@@ -41,6 +41,7 @@ def test_a_red_link_from_another_lane_is_not_the_vehicles_own(tmp_path: Path) ->
         lines = sim.stop_lines(ids)
         line_m = sim.stop_lines_m(ids)
         lanes, pos, _ = sim.lane_states(ids)
+        empty = sim.stop_lines([]), sim.stop_lines_m([])
     finally:
         sim.close()
     assert lanes[:3] == ["1si_0", "1si_1", "1fi_0"]
@@ -50,6 +51,9 @@ def test_a_red_link_from_another_lane_is_not_the_vehicles_own(tmp_path: Path) ->
     assert lines.dist_m[3] == np.inf and not lines.offset_m.any()
     assert line_m[0] == np.inf and line_m[3] == np.inf
     np.testing.assert_array_equal(line_m[1:3], lines.dist_m[1:3])
+    # stop_lines_m's plain floats: StopLines.line_m's values bit for bit (NaN none here)
+    assert line_m.tobytes() == lines.line_m(1.0).tobytes()
+    assert empty[0].dist_m.shape == empty[1].shape == (0,) and empty[0].lanes == []
     stop = lines.stop_m(1.0)
     assert stop[0] == np.inf and np.allclose(stop[1:3], lines.dist_m[1:3] - 1.0)
 
@@ -92,6 +96,7 @@ def test_a_lanes_stop_offset_is_read_from_the_net(tmp_path: Path) -> None:
     assert lines.own.all() and lines.lanes == ["A_0", "A_1", "A_1", "A_0"]
     np.testing.assert_array_equal(lines.offset_m, [3.0, 6.0, 0.0, 3.0])
     np.testing.assert_allclose(line_m, lines.dist_m - [2.0, 5.0, 0.0, 0.0])
+    assert line_m.tobytes() == lines.line_m(np.array([1.0, 1.0, 1.0, 5.0])).tobytes()
     np.testing.assert_allclose(lines.stop_m([1.0, 1.0, 1.0, 5.0]), lines.dist_m - [3, 6, 1, 5])
 
 
