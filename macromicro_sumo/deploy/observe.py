@@ -127,6 +127,7 @@ def observe_rows(
     stop_m: np.ndarray,
     driver_speeds: Callable[[list[str], np.ndarray], np.ndarray] | None = None,
     lane_codes: np.ndarray | None = None,
+    stop_gap_m: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Observations (V, obs_dim) of driven vehicles ``vids`` (rows ``rows`` of ``st``, on
     lanes ``lane_ids``), as the section env defines them, the leader SUMO's (``leaders``:
@@ -139,7 +140,13 @@ def observe_rows(
     see it). ``lanes``: the section's ``LaneTable``; ``shapes``: vehicle -> (length,
     minGap, decel), ``STANDING`` where missing; ``driver_speeds``: each driver's desired-speed factor on the limits it
     observes, from the vehicles and their observations with unscaled limits
-    (``policy.driver_speed``; None: 1); ``lane_codes``: ``lanes.codes(lane_ids)`` if known.
+    (``policy.driver_speed``; None: 1); ``lane_codes``: ``lanes.codes(lane_ids)`` if known;
+    ``stop_gap_m``: the bumper gap the policy stops at (its prior's fitted minGap,
+    ``deploy.stage.policy_batch``; None: not known, the leader column as above): a vehicle
+    whose own minGap is larger observes its leader, a standing one included, that much
+    nearer (``min_gap_deficit_m``), so that the policy's stop falls at its own minGap, not
+    inside it, where SUMO counts a collision (its collisionMinGapFactor 1; Stage II's
+    replay counts only an overlap).
     Also returns SUMO's gap to what the vehicle sees ahead, that leader's decel, and its
     index in ``vids`` where it is a driven vehicle (-1: none, not driven, or a standing
     leader): the safety layer knows a driven leader's next speed, its command.
@@ -210,9 +217,22 @@ def observe_rows(
         obs[:, LEADER_COLUMN] = bumper_gap_m(spacing, lead_length)
     else:
         obs[:, LEADER_COLUMN] = spacing
+    if stop_gap_m is not None:
+        deficit = min_gap_deficit_m(min_gap, stop_gap_m)
+        lead = obs[:, LEADER_COLUMN]  # a view: no leader keeps NO_LEADER_GAP_M
+        np.subtract(lead, deficit, out=lead, where=ok | closer)
     if driver_speeds is not None:
         scale_limits(obs, driver_speeds(vids, obs))
     return obs, sumo_gap, lead_decel, lead_index
+
+
+def min_gap_deficit_m(min_gap_m: np.ndarray, stop_gap_m: float) -> np.ndarray:
+    """Per vehicle, how much its own minGap ``min_gap_m`` exceeds the gap its policy stops
+    at ``stop_gap_m`` (0 where it does not): what ``observe_rows`` takes off the leader
+    column. On drawn net 501 the Krauss prior's fitted minGap, 2.458 m, is a fleet's (cars
+    and trucks 2.5 m, IDM cars 2.0): without the layer, cars and trucks crept at 0.01-0.08
+    m/s into the minGap of the standing car ahead, all 475 collision events of 4 runs."""
+    return np.maximum(min_gap_m - stop_gap_m, 0.0)
 
 
 def states_of(states: dict[str, tuple[str, float, float, float]]) -> VehicleStates:
