@@ -466,13 +466,12 @@ class SectionSpeedDriver(SectionDriver):
             at = self.slots_of(vids, lanes)
         if stop_m is None:
             stop_m = self.lane_end_m(sim, vids, lanes, at) - st.pos_m[rows]
-        stop = stop_m
         if self.has_lights:
             red = self.stop_lines_m(sim, vids, lanes, at)
             # No red or yellow ahead of anyone (inf): the stops are the lane ends as they are.
             if np.count_nonzero(red < np.inf):
                 gaps = [self.vtypes[self.types[v]].stopline_gap_m for v in vids]  # jmStoplineGap
-                stop = stop_distance_m(stop, red, np.array(gaps))
+                stop_m = stop_distance_m(stop_m, red, np.array(gaps))
         leaders = sim.leaders(vids, NO_LEADER_GAP_M)
         return observe_rows(
             self.lane_table,
@@ -483,9 +482,10 @@ class SectionSpeedDriver(SectionDriver):
             st,
             leaders,
             self.shape_table if shapes is None else shapes,
-            stop,
+            stop_m,
             None if self.driver_speeds is None else partial(self.factors, at[0], known=factor),
             at[1],
+            getattr(self.act, "stop_gap_m", None),  # its prior's minGap
         )
 
 
