@@ -260,7 +260,18 @@ def policy_batch(agent: Agent) -> ActionBatch:
     # policy.driver_speed: each driven vehicle's factor, set by its driver.
     q = agent.driver_speed
     act.driver_speeds = None if q is None else partial(DriverSpeeds, q.double().numpy())
+    # The gap the policy stops at: its prior's minGap (``deploy.observe.observe_rows``).
+    act.stop_gap_m = prior_stop_gap_m(agent)
     return act
+
+
+def prior_stop_gap_m(agent: Agent) -> float | None:
+    """The bumper gap [m] at which the agent's prior stops behind a standing leader, its
+    fitted minGap (Krauss, Gipps; IDM's s0); None without a prior."""
+    if agent.prior == "none":
+        return None
+    values = getattr(agent, f"{agent.prior}_prior").detach().double().tolist()
+    return float(dict(zip(PRIOR_KEYS[agent.prior], values, strict=True))["min_gap_m"])
 
 
 def action_std(agent: Agent) -> float:
