@@ -364,9 +364,11 @@ class SectionSpeedDriver(SectionDriver):
         factor = None
         if self.driver_speeds is not None:  # a factor where first seen, handed over or not
             factor = self.slots.factor[slots]
-            if np.isnan(factor).nonzero()[0].size:
-                seen = np.column_stack([speed, self.lane_table.limit_mps[codes]])
-                factor = self.factors(slots, vids, seen)
+            new = np.isnan(factor).nonzero()[0]
+            if new.size:  # ``factors``, the rows of the new ones alone (its obs[new])
+                seen = np.column_stack([speed[new], self.lane_table.limit_mps[codes[new]]])
+                factor[new] = got = self.driver_speeds([vids[i] for i in new.tolist()], seen)
+                self.slots.factor[slots[new]] = got
         if self.merge != "none":
             reach = self.handover_m(vids, slots, speed)
             keep = self.merges(sim, vids, ahead, reach)

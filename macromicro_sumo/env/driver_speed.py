@@ -415,6 +415,7 @@ class DriverSpeeds:
 
     def __init__(self, quantiles: np.ndarray, sc, run: int) -> None:
         self.quantiles = np.asarray(quantiles, dtype=float)
+        self.relative = relative(self.quantiles)  # ``factors_at``'s, once a run, not a call
         self.kind, self.seed, self.run = sc.policy.driver_speed, sc.seed, run
         self.factor: dict[str, float] = {}
 
@@ -426,6 +427,7 @@ class DriverSpeeds:
             if self.kind == "memory":
                 f = entry_factors(self.quantiles, obs[new, 0], obs[new, 1])
             else:
-                f = factors_at(self.quantiles, driver_levels(self.seed, self.run, ids))
+                levels = driver_levels(self.seed, self.run, ids)
+                f = np.interp(levels, QUANTILE_LEVELS, self.relative)  # factors_at's values
             self.factor.update(zip(ids, f.tolist(), strict=True))
         return np.fromiter(map(self.factor.__getitem__, vehicle_ids), float, len(vehicle_ids))
