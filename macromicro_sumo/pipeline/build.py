@@ -26,8 +26,9 @@ import numpy as np
 from macromicro_sumo.deploy.prior_score import deploy_prior
 from macromicro_sumo.deploy.stage import MANIFEST as DEPLOY_MANIFEST
 from macromicro_sumo.deploy.stage import deploy
-from macromicro_sumo.env.driver_speed import krauss_pairs
+from macromicro_sumo.env.driver_speed import krauss_pairs, observed_drivers
 from macromicro_sumo.env.section_bank import typical_length
+from macromicro_sumo.evaluation.driver_follow import driver_tau_record
 from macromicro_sumo.evaluation.idm_fit import MIN_PRIOR_PAIRS, fit_policy_prior
 from macromicro_sumo.evaluation.krauss_fit import fit_krauss, network_defaults
 from macromicro_sumo.evaluation.methods import LEARNED, checkpoint_name
@@ -373,6 +374,11 @@ def fit_residual_prior(
         fit = fit_krauss(fit_obs, fit_acc, length, dt, network_defaults(truth.vtypes), fixed)
         prior, rmse, record = fit.prior_params(length, dt), fit.rmse_mps2, fit.record()
         record["driver_ratios"] = ratios.record()
+        # The observed drivers' own taus beside the prior's one (evaluation.driver_follow).
+        drivers = observed_drivers(sc, truth, runs)
+        record["driver_taus"] = driver_tau_record(
+            drivers.obs, drivers.accel, drivers.keys, fit.params, length, dt
+        )
         pairs = len(fit_acc)
     else:
         prior, rmse = fit_policy_prior(kind, obs, acc, length, dt)

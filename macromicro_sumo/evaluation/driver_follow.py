@@ -1,0 +1,176 @@
+"""Per-driver following: each observed driver's own reaction time (the Krauss-form prior's
+tau) from its following pairs, their distribution, and seeded draws of it for the drivers
+the data do not show.
+
+Why: the Krauss prior fitted to the pooled pairs has one tau, the shortest followers'. On
+the pooled pairs the safe speed binds only on the drivers who follow at about that tau;
+the others' pairs fall to the free term, which at a relaxation of 10 s costs them nothing.
+Drawn net 502's truth mixes 57% Krauss cars (tau 1 s) with 38% IDM cars (T 1.2 s,
+accel 1.5): the pooled fit gave tau 1.056 s and a deployed stream 0.9 m/s faster than the
+truth (docs/deploy.md, "Drawn 502's +1.0 m/s"). Fitted per driver with the pooled fit's
+other parameters (``driver_taus``), its 197 observed drivers with a binding safe speed
+give two groups, the Krauss cars at a median 1.065 s (132 of them) and the IDM cars at
+1.46 s (57): the IDM's gap at its own T is larger than Gipps' at that tau.
+
+``driver_taus`` is a grid search, not a local fit: a driver's cost in tau is flat where
+the safe speed binds on none of its pairs, and a local fit stayed at its start there.
+A driver's tau is kept where the safe speed binds on at least ``MIN_BINDING_PAIRS`` of its
+pairs at that tau (a driver who always kept a long gap says only that its tau is short
+enough) and it is not at the grid's edge (SUMO's game/ramp, a congested merge: 5% of its
+Krauss drivers at 0.3 s, the grid's lower end). ``tau_quantiles`` keeps the distribution at ``env.driver_speed.QUANTILE_LEVELS``
+where at least ``MIN_DRIVER_TAUS`` drivers give one; ``taus_at`` draws from it at uniform
+levels: per (seed, run, vehicle) a hash (``driver_tau_levels``, as a deployed driver's
+desired-speed factor), or per bank slot a seeded generator (``slot_tau_levels``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Hashable, Sequence
+
+import numpy as np
+
+from macromicro_sumo.data.section import vehicle_level
+from macromicro_sumo.env.driver_speed import FREE_GAP_M, FREE_HEADWAY_S, QUANTILE_LEVELS
+from macromicro_sumo.evaluation.krauss_fit import (
+    ROBUST_SCALE_MPS2,
+    KraussParams,
+    behind_leader,
+    krauss_policy_accel,
+)
+
+# The taus searched [s]: the Krauss fit's range cut to what a driver on a road keeps.
+TAU_GRID_S = np.round(np.arange(0.3, 3.0 + 1e-9, 0.005), 3)
+# A driver's tau needs its safe speed binding on this many of its pairs (5 s at 0.5 s
+# steps); fewer: the driver is left out (its tau is at most the grid's smallest binding).
+MIN_BINDING_PAIRS = 10
+# A pair follows where its leader is nearer than FREE_HEADWAY_S x v + FREE_GAP_M (the free
+# test of ``env.driver_speed``) and the driver moves (v above this).
+MIN_SPEED_MPS = 1.0
+# Drivers with a tau needed for a distribution (its median to about +-0.02 s at 502's
+# spread); fewer: ``tau_quantiles`` gives None (the prior's one tau stays).
+MIN_DRIVER_TAUS = 30
+# The draws' tag in ``vehicle_level`` and the generator's stream for bank slots.
+TAU_TAG = "driver_tau"
+SLOT_STREAM = 223
+
+
+def following(obs: np.ndarray) -> np.ndarray:
+    """(N,) bool: the pairs whose leader is near (the leader column, the spacing or a gap
+    layout's gap, below ``FREE_HEADWAY_S`` x v + ``FREE_GAP_M``) with v above
+    ``MIN_SPEED_MPS``."""
+    v, spacing = obs[:, 0], obs[:, 2]
+    return (v > MIN_SPEED_MPS) & (spacing < v * FREE_HEADWAY_S + FREE_GAP_M)
+
+
+def _soft_l1(resid: np.ndarray) -> np.ndarray:
+    """The Krauss fit's robust loss (``least_squares``' soft L1 at ``ROBUST_SCALE_MPS2``)."""
+    z = (resid / ROBUST_SCALE_MPS2) ** 2
+    return 2.0 * (np.sqrt(1.0 + z) - 1.0)
+
+
+def driver_taus(
+    obs: np.ndarray,
+    accel: np.ndarray,
+    keys: Sequence[Hashable],
+    params: KraussParams,
+    veh_length_m: float,
+    dt_s: float,
+) -> dict[Hashable, float]:
+    """Per driver (``keys``, one per pair) its tau [s]: the ``TAU_GRID_S`` value whose
+    Krauss-form accelerations (the other parameters at ``params``) fit its following pairs
+    (``following``) best under the robust loss, where the safe speed binds on at least
+    ``MIN_BINDING_PAIRS`` of them there and it is inside the grid; the other drivers are
+    left out."""
+    index: dict[Hashable, int] = {}
+    driver = np.fromiter((index.setdefault(k, len(index)) for k in keys), np.int64, len(keys))
+    near = following(obs)
+    obs, accel, driver = obs[near], accel[near], driver[near]
+    if not len(accel):
+        return {}
+    v, limit = obs[:, 0], obs[:, 1]
+    desired = np.maximum(params.speed_factor * limit, 0.1)
+    free = np.minimum(params.accel_mps2, (desired - v) / max(params.relax_s, dt_s))
+    out: dict[Hashable, float] = {}
+    for key, d in index.items():
+        m = driver == d
+        if not m.any():
+            continue
+        o, a, f = obs[m], accel[m], free[m]
+        # (taus, pairs): every grid tau at once.
+        fitted = behind_leader(
+            o[None, :, :],
+            f[None, :],
+            params.decel_mps2,
+            TAU_GRID_S[:, None],
+            params.min_gap_m,
+            veh_length_m,
+            dt_s,
+        )
+        best = int(np.argmin(_soft_l1(fitted - a[None, :]).sum(axis=1)))
+        inside = 0 < best < len(TAU_GRID_S) - 1  # at the grid's edge: not identified
+        if inside and np.count_nonzero(fitted[best] < f - 1e-9) >= MIN_BINDING_PAIRS:
+            out[key] = float(TAU_GRID_S[best])
+    return out
+
+
+def tau_quantiles(taus: Sequence[float]) -> np.ndarray | None:
+    """``QUANTILE_LEVELS`` quantiles of the drivers' taus; None with fewer than
+    ``MIN_DRIVER_TAUS`` of them (the data do not give a distribution)."""
+    if len(taus) < MIN_DRIVER_TAUS:
+        return None
+    return np.quantile(np.asarray(taus, dtype=float), QUANTILE_LEVELS)
+
+
+def taus_at(quantiles: np.ndarray, levels: np.ndarray) -> np.ndarray:
+    """The taus [s] at uniform ``levels`` (inverse CDF, linear between the kept quantiles)."""
+    return np.interp(levels, QUANTILE_LEVELS, quantiles)
+
+
+def driver_tau_levels(seed: int, run: int, vehicle_ids: Sequence[str]) -> np.ndarray:
+    """Per vehicle a uniform level: a hash of (seed, run, vehicle), so that a driver draws
+    the same tau whatever drives it and however often its run is repeated."""
+    return np.array([vehicle_level(seed, run, str(v), TAU_TAG) for v in vehicle_ids])
+
+
+def slot_tau_levels(seed: int, shape: tuple[int, ...]) -> np.ndarray:
+    """Uniform levels for a bank's (episode, slot) drivers from a generator seeded by
+    ``seed`` (its own stream, apart from the desired-speed factors')."""
+    return np.random.default_rng([seed, SLOT_STREAM]).random(shape)
+
+
+def krauss_accel_per_driver(
+    obs: np.ndarray, params: KraussParams, tau_s: np.ndarray, veh_length_m: float, dt_s: float
+) -> np.ndarray:
+    """``krauss_policy_accel`` with each row's own tau [s] (``tau_s``, one per row)."""
+    per_row = dataclasses.replace(params, tau_s=np.asarray(tau_s, dtype=float))
+    return krauss_policy_accel(obs, per_row, veh_length_m, dt_s)
+
+
+def driver_tau_record(
+    obs: np.ndarray,
+    accel: np.ndarray,
+    keys: Sequence[Hashable],
+    params: KraussParams,
+    veh_length_m: float,
+    dt_s: float,
+) -> dict[str, object]:
+    """What a policy manifest records of the observed drivers' own taus (``driver_taus``
+    with the fitted prior's other parameters): how many drivers give one, their 5/25/50/
+    75/95% quantiles [s], and the share of them at or below the prior's one tau (502: the
+    pooled fit's 1.056 s has 27% of its 216 drivers at or below it; their upper quartile,
+    its IDM cars, follows at 1.37 s and beyond)."""
+    taus = np.array(list(driver_taus(obs, accel, keys, params, veh_length_m, dt_s).values()))
+    q = tau_quantiles(taus)
+    return {
+        "drivers": len(taus),
+        "quantiles_s": None
+        if q is None
+        else {
+            f"{level:g}": round(float(np.interp(level, QUANTILE_LEVELS, q)), 3)
+            for level in (0.05, 0.25, 0.5, 0.75, 0.95)
+        },
+        "share_at_or_below_prior": round(float(np.mean(taus <= params.tau_s + 1e-9)), 3)
+        if len(taus)
+        else None,
+    }
