@@ -29,6 +29,7 @@ from operator import and_
 
 import numpy as np
 
+from macromicro_sumo.deploy.lane_change import lookahead_speeds, strategic_reach_m
 from macromicro_sumo.deploy.observe import STANDING, LaneTable, Table, observe_rows, states_of
 from macromicro_sumo.deploy.population import (
     ActionBatch,
@@ -62,30 +63,12 @@ LANE_END_RECHECK_STEPS = 20
 # vehicle-steps at the acceleration lane's end where SUMO alone queued none, and Bremen's
 # 419 where SUMO alone queued 73 (docs/deploy.md, "Merges"). "handover": a driven vehicle
 # that must leave its lane merges with SUMO's own model from where SUMO's lane changer
-# (LC2013) makes that change urgent (``handover_m``); "sumo":
+# (LC2013) makes that change urgent (``handover_m``, ``deploy.lane_change``); "sumo":
 # also, a driven vehicle that blocks its change (SUMO's blocking left follower) takes SUMO's
 # own speed where SUMO wanted more than MERGE_YIELD_TOLERANCE_MPS less than both its speed
 # and its car-following (Krauss' dawdling is at most sigma accel dt = 0.65 m/s at SUMO's
 # defaults).
-# LC2013: a change for the route is urgent once the distance left per change needed is
-# below v_la LOOK_FORWARD (x lcLookaheadLeft 2 to the left) + 2 (length + minGap), v_la the
-# speed, up at once, down with memory 0.9/s. A fixed 400 m before: on drawn 501 m0's lane 0
-# (three changes, urgent 1,491 m ahead at 24 m/s) was commanded where SUMO's drivers slowed.
-LC_LOOK_FORWARD_S = 10.0
-LC_LOOKAHEAD_LEFT = 2.0
-LC_LOOKAHEAD_MEMORY = 0.9  # per second
 MERGE_YIELD_TOLERANCE_MPS = 1.0
-
-
-def strategic_reach_m(
-    offset: np.ndarray, lookahead_mps: np.ndarray, with_gap_m: np.ndarray
-) -> np.ndarray:
-    """How far before where it must have left its lane SUMO's lane changer (LC2013) makes a
-    vehicle's change for its route urgent: ``offset`` lane changes (SUMO's best-lane
-    offset, > 0 to the left) of laDist each, from its look-ahead speed and its length plus
-    minGap ``with_gap_m``; 0 where it needs none."""
-    side = np.where(offset > 0, LC_LOOKAHEAD_LEFT, 1.0)
-    return np.abs(offset) * (lookahead_mps * LC_LOOK_FORWARD_S * side + 2.0 * with_gap_m)
 
 
 # --------------------------------------------------------------------------- sections
@@ -244,9 +227,8 @@ class SectionSpeedDriver(SectionDriver):
     def handover_m(self, vids: list[str], slots: np.ndarray, speed: np.ndarray) -> np.ndarray:
         """Per driven vehicle ``strategic_reach_m`` (0: no change needed), after updating
         each one's look-ahead speed."""
-        keep = 1.0 - (1.0 - LC_LOOKAHEAD_MEMORY) * self.sc.simulation.step_length_s
         la = self.slots.lookahead_mps[slots]
-        la = np.where(np.isnan(la) | (speed > la), speed, keep * la + (1.0 - keep) * speed)
+        la = lookahead_speeds(la, speed, self.sc.simulation.step_length_s)
         self.slots.lookahead_mps[slots] = la
         offset = self.slots.lane_end.offset[slots]
         if not np.count_nonzero(offset):  # nobody must change lane: 0 for all, as below

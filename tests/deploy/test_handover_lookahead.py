@@ -16,7 +16,11 @@ from pathlib import Path
 import numpy as np
 from conftest import ROOT
 
-from macromicro_sumo.deploy.drivers import strategic_reach_m
+from macromicro_sumo.deploy.lane_change import (
+    LC_LOOKAHEAD_MEMORY,
+    lookahead_speeds,
+    strategic_reach_m,
+)
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 
 sys.path.insert(0, str(ROOT / "scripts"))
@@ -60,3 +64,22 @@ def test_lane_changes_to_the_route_from_sumo_best_lanes(tmp_path: Path) -> None:
     # A change to the right reaches half as far (lcLookaheadLeft 2 is the left's).
     right = strategic_reach_m(np.array([-1.0]), np.array([10.0]), np.array([7.5]))
     np.testing.assert_allclose(right, [115.0])
+
+
+def test_the_lookahead_speed_rises_at_once_and_decays_with_memory() -> None:
+    """``lookahead_speeds``: none yet (NaN) or a faster vehicle takes its speed, a slower
+    one decays towards it with memory 0.9/s; bit for bit the values of the expression it
+    replaced in ``SectionSpeedDriver.handover_m`` (isnan(la) | (v > la)), over random
+    speeds with ties, NaNs, zeros and -0.0."""
+    rng = np.random.default_rng(3)
+    la = rng.uniform(0.0, 40.0, 400)
+    v = rng.uniform(0.0, 40.0, 400)
+    la[::7] = np.nan
+    v[::11] = la[::11]  # ties
+    la[5::13], v[6::13] = 0.0, -0.0
+    got = lookahead_speeds(la, v, 0.5)
+    keep = 1.0 - (1.0 - LC_LOOKAHEAD_MEMORY) * 0.5
+    old = np.where(np.isnan(la) | (v > la), v, keep * la + (1.0 - keep) * v)
+    assert got.tobytes() == old.tobytes()
+    small = lookahead_speeds(np.array([np.nan, 10.0, 30.0]), np.array([20.0, 20.0, 20.0]), 0.5)
+    np.testing.assert_allclose(small, [20.0, 20.0, 0.95 * 30.0 + 0.05 * 20.0])

@@ -1,0 +1,39 @@
+"""SUMO's lane changer (LC2013) as a speed-commanding driver (``deploy.drivers``) models it
+for ``deploy.merge = "handover"``: from how far ahead of where a vehicle must have left
+its lane SUMO makes that change urgent (``strategic_reach_m``), and the look-ahead speed
+that distance grows with (``lookahead_speeds``). Pure numpy.
+
+LC2013: a change for the route is urgent once the distance left per change needed is below
+v_la LOOK_FORWARD (x lcLookaheadLeft 2 to the left) + 2 (length + minGap), v_la the speed,
+up at once, down with memory 0.9/s. A fixed 400 m before: on drawn 501 m0's lane 0 (three
+changes, urgent 1,491 m ahead at 24 m/s) was commanded where SUMO's drivers slowed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+LC_LOOK_FORWARD_S = 10.0
+LC_LOOKAHEAD_LEFT = 2.0
+LC_LOOKAHEAD_MEMORY = 0.9  # per second
+
+
+def strategic_reach_m(
+    offset: np.ndarray, lookahead_mps: np.ndarray, with_gap_m: np.ndarray
+) -> np.ndarray:
+    """How far before where it must have left its lane SUMO's lane changer (LC2013) makes a
+    vehicle's change for its route urgent: ``offset`` lane changes (SUMO's best-lane
+    offset, > 0 to the left) of laDist each, from its look-ahead speed and its length plus
+    minGap ``with_gap_m``; 0 where it needs none."""
+    side = np.where(offset > 0, LC_LOOKAHEAD_LEFT, 1.0)
+    return np.abs(offset) * (lookahead_mps * LC_LOOK_FORWARD_S * side + 2.0 * with_gap_m)
+
+
+def lookahead_speeds(lookahead_mps: np.ndarray, speed_mps: np.ndarray, dt_s: float) -> np.ndarray:
+    """Each vehicle's look-ahead speed after a step at ``speed_mps``: the speed where it is
+    higher or where there is none yet (NaN), else the last one decayed towards it with
+    memory ``LC_LOOKAHEAD_MEMORY``. Where(la >= v, ...): a NaN compares False, so one
+    comparison stands for isnan(la) | (v > la) (the same values, two array calls fewer)."""
+    keep = 1.0 - (1.0 - LC_LOOKAHEAD_MEMORY) * dt_s
+    la = lookahead_mps
+    return np.where(la >= speed_mps, keep * la + (1.0 - keep) * speed_mps, speed_mps)
