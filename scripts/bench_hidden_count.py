@@ -7,7 +7,9 @@ to another half-way through the run (free flow up to queues behind the narrowest
 merge). ``simulate`` writes each ground truth (cached in ``--out``); the table is the mean
 absolute error of K per lane over the snapshots of each regime (a snapshot is congested when
 10% of its vehicles are at or below 5 m/s) for: ``flow_speed``, the former flow / speed
-estimate; ``density``, the regime-blended density estimate alone; ``io_ramps_unknown``, the
+estimate; ``density``, the regime-blended density estimate alone; ``intervals``, the
+stations' interval counts between stations (``truth.interval_counts``: what field data
+gives; the density estimate alone where the section has a stop line); ``io_ramps_unknown``, the
 passages' estimate not told where the ramps are; ``io``, the estimate ``simulate`` writes
 (``k_estimate.csv``); and the mean error (bias) of ``io``. ``--ramp`` adds SUMO's
 ``game/ramp``, ``--signals`` its ``game/cross`` and ``game/corridor`` (queues at red
@@ -48,6 +50,7 @@ from macromicro_sumo.truth.hidden_count import (
     k_estimates,
     side_junction_arcs,
 )
+from macromicro_sumo.truth.interval_counts import interval_record
 from macromicro_sumo.truth.section_macro import detector_macro, loop_densities
 
 SLOW_MPS = 5.0  # a snapshot is congested when ...
@@ -308,9 +311,9 @@ def errors(gt: Path) -> pd.DataFrame:
     unknown = k_estimates(
         traj, macro, section, every, window, StationRecord(det, pas, None, lag, from_empty=True)
     )
-    net_file = scenario_inputs(load_scenario(gt.parent / "scenario.toml")).net_file
-    side = side_junction_arcs(read_net(net_file), section)
-    lag = PASSAGE_LAG_STEPS * sc["simulation"]["step_length_s"]
+    net = read_net(scenario_inputs(load_scenario(gt.parent / "scenario.toml")).net_file)
+    side = side_junction_arcs(net, section)
+    counts = k_estimates(traj, macro, section, every, window, interval_record(det, section, net))
     hybrid = k_estimates(
         traj, macro, section, every, window, StationRecord(det, pas, side, lag, from_empty=True)
     )
@@ -324,6 +327,7 @@ def errors(gt: Path) -> pd.DataFrame:
     out["flow_speed"] = dens["k_est_flow_speed"] - dens["k_true"]
     out["density"] = dens["k_error"]
     at = pd.MultiIndex.from_frame(out[keys])
+    out["intervals"] = counts.set_index(keys)["k_error"].reindex(at).to_numpy()
     out["io_ramps_unknown"] = unknown.set_index(keys)["k_error"].reindex(at).to_numpy()
     out["io"] = hybrid.set_index(keys)["k_error"].reindex(at).to_numpy()
     out["lanes"] = float((section.n_lanes * section.lengths_m).sum() / section.lengths_m.sum())
@@ -378,7 +382,7 @@ def piece_rows(name: str, e: pd.DataFrame, p: pd.DataFrame) -> list[str]:
     return rows
 
 
-ESTIMATORS = ("flow_speed", "density", "io_ramps_unknown", "io")
+ESTIMATORS = ("flow_speed", "density", "intervals", "io_ramps_unknown", "io")
 
 
 def table_rows(name: str, desc: str, e: pd.DataFrame) -> list[str]:

@@ -95,6 +95,29 @@ def point_density(
     return np.where(w >= 1.0, k_occ, w * k_occ + (1.0 - w) * np.nan_to_num(k_fs))
 
 
+def effective_length_m(
+    flow_vph: np.ndarray,
+    speed_mps: np.ndarray,
+    occupancy_pct: np.ndarray,
+    default_m: float = DEFAULT_VEHICLE_LENGTH_M,
+    above_mps: float = SPEED_FLOW_ABOVE_MPS,
+) -> float:
+    """A loop's effective vehicle length (m: the vehicles' mean length plus the loop's own)
+    from its free-flowing intervals (speed at or above ``SPEED_FLOW_ABOVE_MPS``), where flow
+    / speed is the density: occupancy / that density, summed over them (each vehicle is
+    over the loop for (length + loop length) / speed). ``default_m`` where none flowed
+    freely. What the occupancy estimate divides by where no passage tells the lengths: a
+    loop's traffic with 10 % trucks is ~12 % longer than a car."""
+    q = np.asarray(flow_vph, dtype=float)
+    v = np.asarray(speed_mps, dtype=float)
+    occ = np.asarray(occupancy_pct, dtype=float)
+    k = flow_speed_density(q, v)
+    ok = np.isfinite(k) & np.isfinite(occ) & (v >= above_mps) & (k > 0)
+    if not ok.any():
+        return float(default_m)
+    return float(occ[ok].sum() / 100.0 / (k[ok].sum() / 1000.0))
+
+
 def profile_integral(
     station_arcs_m: np.ndarray,
     k_vpkm: np.ndarray,
