@@ -64,9 +64,10 @@ from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.progress import tqdm
 from macromicro_sumo.road.section import Section, read_section
 from macromicro_sumo.scenario.section import SectionScenario
-from macromicro_sumo.sumo.inputs import scenario_inputs
+from macromicro_sumo.sumo.inputs import read_net, scenario_inputs
 from macromicro_sumo.truth.density import DEFAULT_VEHICLE_LENGTH_M
 from macromicro_sumo.truth.hidden_count import k_estimates
+from macromicro_sumo.truth.interval_counts import interval_record
 from macromicro_sumo.truth.section_macro import detector_macro
 
 K_TRUE_UNKNOWN = -1
@@ -302,8 +303,10 @@ def truth_from_files(
     det_macro = observed_speed_bounds(
         detector_macro(det, passages, start, min_spacing, section), traj
     )
+    # The stations' interval counts between stations where speeds collapse (none at signals).
+    record = interval_record(det, section, read_net(inputs.net_file))
     k_df = k_estimates(
-        traj, det_macro, section, sc.generator.snapshot_every_s, sc.detectors.k_window_s
+        traj, det_macro, section, sc.generator.snapshot_every_s, sc.detectors.k_window_s, record
     )
     if k_df.empty:
         raise UserError(

@@ -12,6 +12,7 @@ from test_hidden_count import merge_scenario
 from macromicro_sumo.cli import main
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.sumo.inputs import read_net
+from macromicro_sumo.truth.files import data_toml, export_field_files
 from macromicro_sumo.truth.hidden_count import StationRecord, k_estimates
 from macromicro_sumo.truth.interval_counts import (
     interval_passages,
@@ -135,3 +136,17 @@ def test_congested_merge_from_interval_counts(tmp_path: Path) -> None:
     after = k_summary(k_estimates(traj, macro, section, 5.0, 30.0, record), section)
     assert after["mean_abs_error_per_lane_veh"] <= 1.0, (before, after)  # 0.56 measured
     assert after["mean_abs_error_per_lane_veh"] < before["mean_abs_error_per_lane_veh"]  # 2.60
+    # The same through field files (PeMS stations, NGSIM trajectories): the files' K is the
+    # interval counts' (within a vehicle; PeMS rounds), not the density estimate's.
+    data = export_field_files(gt, tmp_path / "field")
+    for kind in ("trajectories", "stations"):
+        data[kind]["files"] = [str(tmp_path / "field" / f) for f in data[kind]["files"]]
+    files_toml = tmp_path / "files.toml"
+    files_toml.write_text(toml.read_text() + "\n" + data_toml(data))
+    assert main(["simulate", str(files_toml), "--out", str(tmp_path / "gt_files"), "--quiet"]) == 0
+    k = pd.read_csv(tmp_path / "gt_files" / "k_estimate.csv")
+    truth = pd.read_csv(gt / "k_estimate.csv")[["run", "time_s", "k_true"]]
+    m = k.drop(columns="k_true").merge(truth, on=["run", "time_s"])
+    lanes = float((section.n_lanes * section.lengths_m).sum() / section.lengths_m.sum())
+    per_lane = float(np.abs(m["k_est"] - m["k_true"]).mean()) / lanes
+    assert len(m) > 30 and per_lane <= 1.0, per_lane
