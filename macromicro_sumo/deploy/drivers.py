@@ -47,6 +47,7 @@ from macromicro_sumo.deploy.slots import NOT_ASKED, VehicleSlots
 from macromicro_sumo.road.leaders import stop_distance_m
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
 from macromicro_sumo.road.vtype import VTypePhysics, read_vtype
+from macromicro_sumo.sumo.signal_reach import signal_lanes
 from macromicro_sumo.sumo.simulation import Simulation
 from macromicro_sumo.sumo.states import VehicleStates
 from macromicro_sumo.truth.section import is_instrumented
@@ -199,6 +200,7 @@ class SectionSpeedDriver(SectionDriver):
         self.safety = safety
         self.mode = SPEED_MODES[safety]
         self.has_lights: bool | None = None
+        self.signal_lanes: frozenset[str] = frozenset()  # lanes that can have one ahead
         # Per driven vehicle, in numpy arrays by slot: the last command and the caches of
         # SUMO's best lanes (where it must have left its lane) and of its signals ahead.
         self.slots = VehicleSlots()
@@ -325,8 +327,13 @@ class SectionSpeedDriver(SectionDriver):
         cache, now = self.slots.dark, self.steps
         due = cache.due(slots, codes, now)
         if due.size:
-            idx = due.tolist()
-            got = sim.stop_lines_m([vids[i] for i in idx]).tolist()
+            idx, ask = [], self.signal_lanes.__contains__
+            for i in due.tolist():  # on a lane that reaches no signal: NaN, for good
+                if ask(lanes[i]):
+                    idx.append(i)
+                else:
+                    cache.put(int(slots[i]), int(codes[i]), math.inf, math.inf)
+            got = sim.stop_lines_m([vids[i] for i in idx]).tolist() if idx else []
             for i, d in zip(idx, got, strict=True):
                 if d != d:  # NaN, no signal ahead: not asked again for a while
                     cache.put(int(slots[i]), int(codes[i]), math.inf, now + LANE_END_RECHECK_STEPS)
@@ -371,6 +378,8 @@ class SectionSpeedDriver(SectionDriver):
         )
         if self.has_lights is None:
             self.has_lights = sim.has_traffic_lights()
+            if self.has_lights:
+                self.signal_lanes = signal_lanes(sim.options.net_file)
         obs, gap, lead_decel, lead = self.observe(
             sim, vids, rows, st, lanes=lanes, stop_m=ahead, at=(slots, codes), factor=factor
         )
@@ -450,7 +459,9 @@ class SectionSpeedDriver(SectionDriver):
             at = self.slots_of(vids, lanes)
         if stop_m is None:
             stop_m = self.lane_end_m(sim, vids, lanes, at) - st.pos_m[rows]
-        if self.has_lights:
+        # Nobody on a lane from which a signal can be reached: none ahead (getNextTLS would
+        # say NaN for each, inf in the cache), not asked (Bremen's section: every step).
+        if self.has_lights and not self.signal_lanes.isdisjoint(lanes):
             red = self.stop_lines_m(sim, vids, lanes, at)
             # No red or yellow ahead of anyone (inf): the stops are the lane ends as they are.
             if np.count_nonzero(red < np.inf):
