@@ -261,14 +261,15 @@ def section_leader_follower(r: Run) -> list[str]:
     """The leader-follower tests on the section's own lane path, where they ran, and what
     the followers were measured against (the evaluation manifest)."""
     summary = r.csv("evaluation/leader_follower_summary.csv")
-    if summary is None:
-        return []
-    ev = r.json("evaluation/evaluation_manifest.json").get("leader_follower", {})
+    manifest = "evaluation/evaluation_manifest.json"
+    ev = r.json(manifest).get("leader_follower", {}) if (r.out / manifest).is_file() else {}
+    title = "Leader-follower (paper Fig. 3, on the section's lane path)"
+    if summary is None:  # skipped (the section too short, a standing obstacle): say why
+        return [f"## {title}", "", f"{ev['message']}.", ""] if ev.get("message") else []
     intro = [
         f"{ev.get('message', '')}. Run without the safety layer: a collision is the follower's.",
         "",
     ]
-    title = "Leader-follower (paper Fig. 3, on the section's lane path)"
     return table_section(title, method_summary(summary), 3, intro)
 
 
