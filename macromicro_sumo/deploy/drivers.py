@@ -480,7 +480,8 @@ class SectionSpeedDriver(SectionDriver):
             stop_m,
             None if self.driver_speeds is None else partial(self.factors, at[0], known=factor),
             at[1],
-            getattr(self.act, "stop_gap_m", None),  # its prior's minGap
+            # Its prior's minGap where no layer holds the vType's (observe_rows' stop_gap_m).
+            getattr(self.act, "stop_gap_m", None) if self.safety == "none" else None,
         )
 
 
