@@ -90,3 +90,51 @@ def test_the_deficit_is_the_own_min_gap_beyond_the_stop_gap() -> None:
                        "tau_s": 1.0, "min_gap_m": 2.4, "veh_length_m": 5.0, "dt_s": 0.5,
                        "relax_s": 0.0})  # fmt: skip
     assert sampled(act, 0.3, np.random.default_rng(0)).stop_gap_m == pytest.approx(2.4)
+
+
+class Columns(SectionSpeedDriver):
+    """The deployment's driver, also keeping the leader column less SUMO's gap of every
+    driven vehicle behind a vehicle (the "lookahead" layout: own minGap + leader length)."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.extra: list[float] = []
+
+    def observe(self, sim, vids, rows, st, *args, **kwargs):
+        obs, gap, decel, lead = super().observe(sim, vids, rows, st, *args, **kwargs)
+        near = gap < 100.0
+        self.extra += (obs[near, 2] - gap[near]).tolist()
+        return obs, gap, decel, lead
+
+
+@pytest.mark.parametrize(("safety", "extra"), [("sumo", 7.5), ("none", 7.3)])
+def test_only_a_deployment_without_the_layer_observes_the_deficit(
+    tmp_path: Path, cross_krauss: dict, safety: str, extra: float
+) -> None:
+    """With the safety layer, which holds each vehicle at its own minGap (SUMO's safe speed
+    on SUMO's gap), the policy observes what Stage II trained on: the leader column is
+    SUMO's gap + the car's minGap 2.5 + the leader's length 5. Without it, 0.2 m less
+    (the prior's 2.3). Before, both read 7.3: on Bremen (prior 2.397 m, cars 2.5 m) the
+    layer-on deployment's speed RMSE went 1.146 -> 1.217 m/s over 4 runs."""
+    routes = tmp_path / "r.rou.xml"
+    cars = "".join(
+        f'    <vehicle id="v{i}" depart="{2 * i}" departSpeed="10" departLane="best">'
+        f'<route edges="{" ".join(EDGES)}"/></vehicle>\n'
+        for i in range(3)
+    )
+    routes.write_text(f"<routes>\n{cars}</routes>\n")
+    red = one_phase_program(tmp_path, "0", "r" * 12)
+    sc = small_section_scenario(
+        tmp_path, CROSS, routes, EDGES, instrumented={"ids": ["probe"]},
+        simulation={"warmup_s": 0.0, "duration_s": 40.0, "n_runs": 2},
+        detectors={"interval_s": 20.0},
+    )  # fmt: skip
+    act = prior_alone({**cross_krauss, "min_gap_m": 2.3})
+    drv = Columns(sc, read_section(CROSS, EDGES, False), 0, act, safety)
+    sim = Simulation(SumoOptions(CROSS, (red,), 0.5, 5, route_files=(routes,), user_demand=True))
+    try:
+        record_run(sim, sc, drv.section, 0, drv)
+    finally:
+        sim.close()
+    assert len(drv.extra) > 20
+    np.testing.assert_allclose(drv.extra, extra, atol=1e-9)
