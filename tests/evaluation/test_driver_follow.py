@@ -156,3 +156,21 @@ def test_the_prior_record_has_the_observed_drivers_taus(tmp_path) -> None:
     assert q["0.05"] <= q["0.5"] <= q["0.95"]
     assert 0.0 <= taus["share_at_or_below_prior"] <= 1.0
     assert q["0.5"] == pytest.approx(1.0, abs=0.25)  # SUMO's tau, the cars' own
+
+
+def test_the_torch_prior_takes_a_tau_per_row() -> None:
+    """The carrier's contract: the agent's Krauss prior (``policy.prior``) with a tau per
+    row equals the numpy per-driver model (both in float64)."""
+    import torch
+
+    from macromicro_sumo.policy.prior import KRAUSS_PRIOR_KEYS, krauss_prior_accel
+
+    obs, _, _, _ = _two_types()
+    rows = obs[:300:15]
+    tau = np.linspace(0.8, 1.8, len(rows))
+    p = {**POOLED.as_dict(), "veh_length_m": LENGTH_M, "dt_s": DT_S}
+    buf = {k: torch.tensor(float(p[k]), dtype=torch.float64) for k in KRAUSS_PRIOR_KEYS}
+    buf["tau_s"] = torch.as_tensor(tau)
+    got = krauss_prior_accel(torch.as_tensor(rows), buf).numpy()
+    want = krauss_accel_per_driver(rows, POOLED, tau, LENGTH_M, DT_S)
+    assert np.allclose(got, want)
