@@ -142,7 +142,8 @@ def observe_rows(
     observes, from the vehicles and their observations with unscaled limits
     (``policy.driver_speed``; None: 1); ``lane_codes``: ``lanes.codes(lane_ids)`` if known;
     ``stop_gap_m``: the bumper gap the policy stops at (its prior's fitted minGap,
-    ``deploy.stage.policy_batch``; None: not known, the leader column as above): a vehicle
+    ``deploy.stage.policy_batch``; the driver gives it only with safety "none", where no
+    layer holds the vType's minGap; None: the leader column as above): a vehicle
     whose own minGap is larger observes its leader, a standing one included, that much
     nearer (``min_gap_deficit_m``), so that the policy's stop falls at its own minGap, not
     inside it, where SUMO counts a collision (its collisionMinGapFactor 1; Stage II's
