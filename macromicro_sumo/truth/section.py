@@ -20,7 +20,6 @@ import time
 from collections.abc import Callable, Sequence
 from itertools import repeat
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -62,6 +61,7 @@ from macromicro_sumo.truth.section_detectors import (
     without_detectors,
 )
 from macromicro_sumo.truth.section_macro import detector_macro, k_summary, trajectory_macro
+from macromicro_sumo.truth.section_rows import SectionRows
 from macromicro_sumo.truth.section_speed import edie_speeds, stop_line_edges
 from macromicro_sumo.truth.signals import SignalRecorder
 from macromicro_sumo.truth.vtypes import vtype_frame
@@ -149,19 +149,12 @@ def record_run(
     types: dict[str, str] = {}
     classes: dict[str, tuple[str, float]] = {}  # vType -> SUMO's (vClass, decel [m/s^2])
     observed: dict[str, bool] = {}
-    # One array per column and step (a row per vehicle in Python cost the recording more
-    # than SUMO's own step), joined at the end; the lane's columns and the arc from the
-    # lane codes there, in one pass (the same element-wise arithmetic).
-    names = ("lane_code", "pos_m", "speed_mps", "accel_mps2")
-    chunks: dict[str, list[np.ndarray]] = {k: [] for k in names}
-    times: list[float] = []
-    counts: list[int] = []
-    vids: list[str] = []
-    # section.lanes as codes into one array: (edge, lane index, arc at lane start, scale).
-    lane_code = {lane: i for i, lane in enumerate(section.lanes)}
-    lane_rows = np.array(list(section.lanes.values()), dtype=float).reshape(-1, 4)
+    # The rows: each step's read kept, filtered to the section every memory check and at
+    # the end (a row per vehicle in Python cost the recording more than SUMO's own step).
+    rows = SectionRows(section)
     collisions = teleports = 0
     signals = SignalRecorder(sim, section)
+    record_signals = signals.record if signals.links else None  # none: nothing to call
     for step in range(n_warm + n_rec):
         if driver is not None:
             driver.before_step(sim)
@@ -179,33 +172,11 @@ def record_run(
         if step < n_warm:
             continue
         if (step - n_warm + 1) % MEMORY_CHECK_STEPS == 0:
-            check_run_memory(sc, len(vids) * n_rec / (step - n_warm + 1), run)
-        signals.record(sim, round((step + 1) * dt, 6))
-        st = sim.vehicle_states()
-        code = np.fromiter(map(lane_code.get, st.lanes, repeat(-1)), np.int64, len(st.ids))
-        on = (code >= 0).nonzero()[0]
-        if not on.size:
-            continue
-        vids.extend(map(st.ids.__getitem__, on.tolist()))
-        times.append(round((step + 1) * dt, 6))
-        counts.append(len(on))
-        chunks["lane_code"].append(code[on])
-        chunks["pos_m"].append(st.pos_m[on])
-        chunks["speed_mps"].append(st.speed_mps[on])
-        chunks["accel_mps2"].append(st.accel_mps2[on])
-    if counts:
-        cols: dict[str, Any] = {k: np.concatenate(v) for k, v in chunks.items()}
-        where = lane_rows[cols.pop("lane_code")]
-        cols = {
-            "time_s": np.repeat(np.array(times, dtype=float), counts),
-            "lane_index": where[:, 1].astype(np.int64),
-            "edge_index": where[:, 0].astype(np.int64),
-            "arc_m": where[:, 2] + cols.pop("pos_m") * where[:, 3],
-            **cols,
-        }
-    else:  # nobody on the section: the empty columns as ever
-        empty = ("time_s", "lane_index", "edge_index", "arc_m", "speed_mps", "accel_mps2")
-        cols = {k: [] for k in empty}
+            check_run_memory(sc, rows.flush() * n_rec / (step - n_warm + 1), run)
+        if record_signals is not None:
+            record_signals(sim, round((step + 1) * dt, 6))
+        rows.add(round((step + 1) * dt, 6), sim.vehicle_states())
+    cols, vids = rows.columns()
     df = pd.DataFrame({"time_s": cols.pop("time_s"), "vehicle_id": vids, **cols})
     df.insert(0, "run", run)
     # Dict look-ups, not Series.map (a tenth of the time on pandas 3's strings); where a
@@ -213,7 +184,6 @@ def record_run(
     vtype = [types.get(v, np.nan) for v in vids] if vids else df["vehicle_id"].map(types)
     df.insert(3, "vtype", vtype)
     df.insert(4, "observed", np.fromiter(map(observed.get, vids, repeat(True)), bool, len(vids)))
-    df = df.sort_values(["time_s", "lane_index", "arc_m"], kind="stable").reset_index(drop=True)
     if fleet_run is not None and len(df) != n_rec * len(fleet_run[0].params):
         # A closed road keeps its fleet: a vehicle missing from a step left the road.
         raise UserError(
