@@ -4,7 +4,9 @@ lane and arc.
 
 Each step keeps SUMO's read of the road (``VehicleStates``: its arrays, not copies; nobody
 writes to them) and the steps are filtered to the section's lanes together, in a few
-C-level passes, at most every ``flush`` (the memory check's steps) and at the end. A
+C-level passes, at every ``flush`` (the memory check's steps), at the end, and where
+the steps kept hold ``PENDING_ROWS`` vehicles (~160 B each: the ID and lane strings, three
+floats), so that a large network around a short section does not keep hundreds of MB. A
 filter per step cost ~20 us of numpy and Python calls a step on Bremen, for ~42 rows.
 """
 
@@ -19,6 +21,7 @@ from macromicro_sumo.road.section import Section
 from macromicro_sumo.sumo.states import VehicleStates
 
 _STATES = ("pos_m", "speed_mps", "accel_mps2")
+PENDING_ROWS = 200_000
 
 
 class SectionRows:
@@ -29,6 +32,7 @@ class SectionRows:
         self.lane_code = {lane: i for i, lane in enumerate(section.lanes)}
         self.lane_rows = np.array(list(section.lanes.values()), dtype=float).reshape(-1, 4)
         self.pending: list[VehicleStates] = []
+        self.pending_rows = 0
         self.pending_times: list[float] = []
         self.times: list[float] = []
         self.counts: list[int] = []  # rows of each step in ``times`` (0: nobody on it)
@@ -40,6 +44,9 @@ class SectionRows:
         if st.ids:
             self.pending.append(st)
             self.pending_times.append(time_s)
+            self.pending_rows += len(st.ids)
+            if self.pending_rows >= PENDING_ROWS:
+                self.flush()
 
     def flush(self) -> int:
         """Filter the steps added since the last flush; the rows so far."""
@@ -59,6 +66,7 @@ class SectionRows:
             self.chunks[name].append(np.concatenate([getattr(st, name) for st in self.pending])[on])
         self.pending.clear()
         self.pending_times.clear()
+        self.pending_rows = 0
         return len(self.vids)
 
     def columns(self) -> tuple[dict[str, Any], list[str]]:

@@ -9,11 +9,13 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pytest
 import sumo
 
 from macromicro_sumo.road.section import read_section
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.sumo.states import VehicleStates
+from macromicro_sumo.truth import section_rows
 from macromicro_sumo.truth.section_rows import SectionRows
 
 CROSS = Path(sumo.__file__).resolve().parent / "tools" / "game" / "cross"
@@ -48,17 +50,22 @@ def collected(section, steps, flush_every: int) -> pd.DataFrame:
     return pd.DataFrame({"time_s": cols.pop("time_s"), "vehicle_id": vids, **cols})
 
 
-def test_rows_of_a_real_run_equal_a_filter_per_step(tmp_path: Path) -> None:
-    section = read_section(CROSS / "cross.net.xml", ["1fi", "1si", "2o", "2fo"], False)
+def cross_steps(n: int) -> list[tuple[float, VehicleStates]]:
     opts = SumoOptions(CROSS / "cross.net.xml", (), 1.0, 3, route_files=(CROSS / "cross.rou.xml",))
     sim = Simulation(opts)
     steps = []
     try:
-        for _ in range(300):
+        for _ in range(n):
             sim.step()
             steps.append((sim.time_s(), sim.vehicle_states()))
     finally:
         sim.close()
+    return steps
+
+
+def test_rows_of_a_real_run_equal_a_filter_per_step() -> None:
+    section = read_section(CROSS / "cross.net.xml", ["1fi", "1si", "2o", "2fo"], False)
+    steps = cross_steps(300)
     want = per_step(section, steps)
     # Vehicles off the section (the other approaches) and steps with nobody on it.
     assert 0 < len(want) < sum(len(st.ids) for _, st in steps)
@@ -83,3 +90,22 @@ def test_ties_keep_sumo_order_and_an_empty_run_has_the_empty_columns() -> None:
     assert got["vehicle_id"].tolist() == ["d", "a", "c"] * 2  # a before c: SUMO's order
     cols, vids = SectionRows(section).columns()
     assert vids == [] and all(v == [] for v in cols.values())
+
+
+def test_the_steps_kept_are_filtered_once_they_hold_pending_rows(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A large network around a short section: the reads kept stay bounded by vehicles,
+    not only by the memory check's steps; the frame stays the same."""
+    section = read_section(CROSS / "cross.net.xml", ["1fi", "1si", "2o", "2fo"], False)
+    steps = cross_steps(300)
+    monkeypatch.setattr(section_rows, "PENDING_ROWS", 40)
+    rows = SectionRows(section)
+    most = 0
+    for t, st in steps:
+        rows.add(t, st)
+        most = max(most, sum(len(s.ids) for s in rows.pending))
+    assert most < 40 and max(len(st.ids) for _, st in steps) < 40
+    cols, vids = rows.columns()
+    got = pd.DataFrame({"time_s": cols.pop("time_s"), "vehicle_id": vids, **cols})
+    pd.testing.assert_frame_equal(got, per_step(section, steps), check_exact=True)
