@@ -15,32 +15,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import sumo
-from conftest import one_phase_program, prior_alone, small_section_scenario
+from conftest import prior_alone
+from red_light import CROSS, EDGES, Standing, red_light_queue
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.observe import min_gap_deficit_m
 from macromicro_sumo.deploy.run import sampled
 from macromicro_sumo.road.section import read_section
-from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.truth.section import record_run
-
-CROSS = Path(sumo.__file__).resolve().parent / "tools" / "game" / "cross" / "cross.net.xml"
-EDGES = ["1fi", "1si", "2o", "2fo"]
-
-
-class Standing(SectionSpeedDriver):
-    """The deployment's driver, also keeping each driven vehicle's distance to the red line
-    ahead and its speed at its last step."""
-
-    def __init__(self, *args, **kwargs) -> None:
-        super().__init__(*args, **kwargs)
-        self.at: dict[str, tuple[float, float]] = {}
-
-    def drive(self, sim, vids, st) -> None:
-        super().drive(sim, vids, st)
-        for v, d in zip(vids, sim.stop_lines_m(vids), strict=True):
-            self.at[v] = (float(d), float(st.speed_mps[st.index[v]]))
 
 
 def test_a_prior_below_the_vehicles_min_gap_stops_at_its_own_without_the_layer(
@@ -52,23 +34,10 @@ def test_a_prior_below_the_vehicles_min_gap_stops_at_its_own_without_the_layer(
     more. Before: the prior ran the red light (a stop point never read below 0 room: its
     standing leader's gap stayed at 2.5 m) and its followers crept to 2.3 m behind the car
     ahead, SUMO's collisions."""
-    routes = tmp_path / "r.rou.xml"
-    cars = "".join(
-        f'    <vehicle id="v{i}" depart="{2 * i}" departSpeed="10" departLane="best">'
-        f'<route edges="{" ".join(EDGES)}"/></vehicle>\n'
-        for i in range(4)
-    )
-    routes.write_text(f"<routes>\n{cars}</routes>\n")
-    red = one_phase_program(tmp_path, "0", "r" * 12)
-    sc = small_section_scenario(
-        tmp_path, CROSS, routes, EDGES, instrumented={"ids": ["probe"]},
-        simulation={"warmup_s": 0.0, "duration_s": 80.0, "n_runs": 2},
-        detectors={"interval_s": 40.0},
-    )  # fmt: skip
+    sc, sim = red_light_queue(tmp_path, 4, 80.0)
     act = prior_alone({**cross_krauss, "min_gap_m": 2.3})
     assert act.stop_gap_m == pytest.approx(2.3)
     drv = Standing(sc, read_section(CROSS, EDGES, False), 0, act, "none")
-    sim = Simulation(SumoOptions(CROSS, (red,), 0.5, 5, route_files=(routes,), user_demand=True))
     try:
         _, stats = record_run(sim, sc, drv.section, 0, drv)
     finally:
@@ -116,22 +85,9 @@ def test_only_a_deployment_without_the_layer_observes_the_deficit(
     SUMO's gap + the car's minGap 2.5 + the leader's length 5. Without it, 0.2 m less
     (the prior's 2.3). Before, both read 7.3: on Bremen (prior 2.397 m, cars 2.5 m) the
     layer-on deployment's speed RMSE went 1.146 -> 1.217 m/s over 4 runs."""
-    routes = tmp_path / "r.rou.xml"
-    cars = "".join(
-        f'    <vehicle id="v{i}" depart="{2 * i}" departSpeed="10" departLane="best">'
-        f'<route edges="{" ".join(EDGES)}"/></vehicle>\n'
-        for i in range(3)
-    )
-    routes.write_text(f"<routes>\n{cars}</routes>\n")
-    red = one_phase_program(tmp_path, "0", "r" * 12)
-    sc = small_section_scenario(
-        tmp_path, CROSS, routes, EDGES, instrumented={"ids": ["probe"]},
-        simulation={"warmup_s": 0.0, "duration_s": 40.0, "n_runs": 2},
-        detectors={"interval_s": 20.0},
-    )  # fmt: skip
+    sc, sim = red_light_queue(tmp_path, 3, 40.0)
     act = prior_alone({**cross_krauss, "min_gap_m": 2.3})
     drv = Columns(sc, read_section(CROSS, EDGES, False), 0, act, safety)
-    sim = Simulation(SumoOptions(CROSS, (red,), 0.5, 5, route_files=(routes,), user_demand=True))
     try:
         record_run(sim, sc, drv.section, 0, drv)
     finally:

@@ -13,30 +13,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import sumo
 from conftest import netconvert, one_phase_program, prior_alone, small_section_scenario
+from red_light import CROSS, EDGES, Standing, red_light_queue
 
-from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.road.section import read_section
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.truth.section import record_run
-
-CROSS = Path(sumo.__file__).resolve().parent / "tools" / "game" / "cross" / "cross.net.xml"
-EDGES = ["1fi", "1si", "2o", "2fo"]
-
-
-class Standing(SectionSpeedDriver):
-    """The deployment's driver, also keeping each driven vehicle's distance to the red line
-    ahead (SUMO's, along its lane) at its last step."""
-
-    def __init__(self, *args, **kwargs) -> None:
-        super().__init__(*args, **kwargs)
-        self.at: dict[str, tuple[float, float]] = {}  # vehicle: (distance to the line, speed)
-
-    def drive(self, sim, vids, st) -> None:
-        super().drive(sim, vids, st)
-        for v, d in zip(vids, sim.stop_lines_m(vids), strict=True):
-            self.at[v] = (float(d), float(st.speed_mps[st.index[v]]))
 
 
 def test_the_prior_alone_stands_where_sumo_stands_at_a_red_light(
@@ -48,21 +30,8 @@ def test_the_prior_alone_stands_where_sumo_stands_at_a_red_light(
     SUMO's queue. Before: 2.2 m (the prior's min gap to a leader whose back is at the line,
     less its overshoot). Without the safety layer it stands 0.71 m before the line (the
     prior's approach overshoots by 0.3 m, as it did before)."""
-    routes = tmp_path / "r.rou.xml"
-    cars = "".join(
-        f'    <vehicle id="v{i}" depart="{2 * i}" departSpeed="10" departLane="best">'
-        f'<route edges="{" ".join(EDGES)}"/></vehicle>\n'
-        for i in range(3)
-    )
-    routes.write_text(f"<routes>\n{cars}</routes>\n")
-    red = one_phase_program(tmp_path, "0", "r" * 12)
-    sc = small_section_scenario(
-        tmp_path, CROSS, routes, EDGES, instrumented={"ids": ["probe"]},
-        simulation={"warmup_s": 0.0, "duration_s": 80.0, "n_runs": 2},
-        detectors={"interval_s": 40.0},
-    )  # fmt: skip
+    sc, sim = red_light_queue(tmp_path, 3, 80.0)
     drv = Standing(sc, read_section(CROSS, EDGES, False), 0, prior_alone(cross_krauss), "sumo")
-    sim = Simulation(SumoOptions(CROSS, (red,), 0.5, 5, route_files=(routes,), user_demand=True))
     try:
         _, stats = record_run(sim, sc, drv.section, 0, drv)
     finally:
