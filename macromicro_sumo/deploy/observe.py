@@ -197,8 +197,12 @@ def observe_rows(
     driven[rows] = -1
     lead_index[none] = -1
     # A red light, or the end of a lane the vehicle must leave: a standing leader there.
-    closer = nearer_standing(spacing, stop_m, length, min_gap)
-    if any_closer := bool(np.count_nonzero(closer)):
+    # None ahead of anyone (inf or NaN: nothing can be nearer; every step of Bremen's
+    # section): nearer_standing's five array calls not made.
+    closer = None
+    if np.count_nonzero(stop_m < np.inf):
+        closer = nearer_standing(spacing, stop_m, length, min_gap)
+    if any_closer := closer is not None and bool(np.count_nonzero(closer)):
         lead_v[closer] = 0.0
         np.copyto(sumo_gap, np.maximum(stop_m, 0.0), where=closer)
         lead_decel[closer] = STOP_DECEL_MPS2
@@ -221,7 +225,7 @@ def observe_rows(
     if stop_gap_m is not None:
         deficit = min_gap_deficit_m(min_gap, stop_gap_m)
         lead = obs[:, LEADER_COLUMN]  # a view: no leader keeps NO_LEADER_GAP_M
-        np.subtract(lead, deficit, out=lead, where=ok | closer)
+        np.subtract(lead, deficit, out=lead, where=ok if closer is None else ok | closer)
     if driver_speeds is not None:
         scale_limits(obs, driver_speeds(vids, obs))
     return obs, sumo_gap, lead_decel, lead_index
