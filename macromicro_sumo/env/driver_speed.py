@@ -31,6 +31,7 @@ on SUMO's congested ``game/ramp`` 23 of 249 observed vehicles cruised freely, th
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 
 import numpy as np
 from scipy.stats import truncnorm
@@ -353,9 +354,12 @@ def relative(quantiles: np.ndarray) -> np.ndarray:
     return quantiles / np.interp(0.5, QUANTILE_LEVELS, quantiles)
 
 
-def driver_levels(seed: int, run: int, vehicle_ids: list[str]) -> np.ndarray:
-    """Per vehicle a uniform level in [0, 1): a hash of (seed, run, vehicle)."""
-    return np.array([vehicle_level(seed, run, v, "driver_speed") for v in vehicle_ids])
+def driver_levels(
+    seed: int, run: int, vehicle_ids: Sequence[str], tag: str = "driver_speed"
+) -> np.ndarray:
+    """Per vehicle a uniform level in [0, 1): a hash of (seed, run, vehicle, ``tag``); each
+    drawn quantity its own ``tag`` (the desired speed's, ``driver_follow``'s tau's)."""
+    return np.array([vehicle_level(seed, run, str(v), tag) for v in vehicle_ids])
 
 
 def factors_at(quantiles: np.ndarray, levels: np.ndarray) -> np.ndarray:

@@ -30,8 +30,12 @@ from collections.abc import Hashable, Sequence
 
 import numpy as np
 
-from macromicro_sumo.data.section import vehicle_level
-from macromicro_sumo.env.driver_speed import FREE_GAP_M, FREE_HEADWAY_S, QUANTILE_LEVELS
+from macromicro_sumo.env.driver_speed import (
+    FREE_GAP_M,
+    FREE_HEADWAY_S,
+    QUANTILE_LEVELS,
+    driver_levels,
+)
 from macromicro_sumo.evaluation.krauss_fit import (
     ROBUST_SCALE_MPS2,
     KraussParams,
@@ -50,7 +54,7 @@ MIN_SPEED_MPS = 1.0
 # Drivers with a tau needed for a distribution (its median to about +-0.02 s at 502's
 # spread); fewer: ``tau_quantiles`` gives None (the prior's one tau stays).
 MIN_DRIVER_TAUS = 30
-# The draws' tag in ``vehicle_level`` and the generator's stream for bank slots.
+# The draws' tag in ``driver_levels`` and the generator's stream for bank slots.
 TAU_TAG = "driver_tau"
 SLOT_STREAM = 223
 
@@ -130,7 +134,7 @@ def taus_at(quantiles: np.ndarray, levels: np.ndarray) -> np.ndarray:
 def driver_tau_levels(seed: int, run: int, vehicle_ids: Sequence[str]) -> np.ndarray:
     """Per vehicle a uniform level: a hash of (seed, run, vehicle), so that a driver draws
     the same tau whatever drives it and however often its run is repeated."""
-    return np.array([vehicle_level(seed, run, str(v), TAU_TAG) for v in vehicle_ids])
+    return driver_levels(seed, run, vehicle_ids, TAU_TAG)
 
 
 def slot_tau_levels(seed: int, shape: tuple[int, ...]) -> np.ndarray:
