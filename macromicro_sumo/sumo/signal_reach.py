@@ -12,28 +12,21 @@ connections. The net file is read once per file and process, again where it chan
 
 from __future__ import annotations
 
-import functools
-import gzip
 import xml.etree.ElementTree as ET
 from collections import defaultdict
-from pathlib import Path
+
+from macromicro_sumo.sumo.net_xml import once_per_file, open_net
 
 
-def signal_lanes(net_file: Path) -> frozenset[str]:
+@once_per_file
+def signal_lanes(net_file: str) -> frozenset[str]:
     """The lane IDs (internal lanes included) of ``net_file``'s edges from which a
     signalised link can be reached; empty where the network has no signal."""
-    st = Path(net_file).stat()
-    return _read(str(net_file), st.st_mtime_ns, st.st_size)
-
-
-@functools.cache
-def _read(net_file: str, _mtime_ns: int, _size: int) -> frozenset[str]:
     lanes: dict[str, list[str]] = defaultdict(list)  # edge -> its lanes
     before: dict[str, set[str]] = defaultdict(set)  # edge -> the edges that lead onto it
     signalised: set[str] = set()  # edges with a signalised link
-    opener = gzip.open if net_file.endswith(".gz") else open
     edge = ""
-    with opener(net_file, "rb") as fh:
+    with open_net(net_file) as fh:
         for event, el in ET.iterparse(fh, events=("start", "end")):
             if event == "start":
                 if el.tag == "edge":

@@ -9,11 +9,10 @@ its jmStoplineGap, not at the edge's offset).
 
 from __future__ import annotations
 
-import functools
-import gzip
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
-from pathlib import Path
+
+from macromicro_sumo.sumo.net_xml import once_per_file, open_net
 
 
 @dataclass(frozen=True)
@@ -36,21 +35,15 @@ def _offset(attrs: dict[str, str]) -> StopOffset:
     )
 
 
-def lane_stop_offsets(net_file: Path) -> dict[str, StopOffset]:
+@once_per_file
+def lane_stop_offsets(net_file: str) -> dict[str, StopOffset]:
     """{lane ID: its stopOffset} of the lanes of ``net_file`` that have one (their own or
     their edge's); read once per file and process, again where the file changed."""
-    st = Path(net_file).stat()
-    return _read(str(net_file), st.st_mtime_ns, st.st_size)
-
-
-@functools.cache
-def _read(net_file: str, _mtime_ns: int, _size: int) -> dict[str, StopOffset]:
     out: dict[str, StopOffset] = {}
-    opener = gzip.open if net_file.endswith(".gz") else open
     stack: list[ET.Element] = []
     edge_offset: StopOffset | None = None
     lanes: list[str] = []  # the current edge's lanes without an offset of their own
-    with opener(net_file, "rb") as fh:
+    with open_net(net_file) as fh:
         for event, el in ET.iterparse(fh, events=("start", "end")):
             if event == "start":
                 stack.append(el)
