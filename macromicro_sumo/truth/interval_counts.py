@@ -34,13 +34,13 @@ from macromicro_sumo.truth.density import (
     occupancy_weight,
     point_density,
 )
-from macromicro_sumo.truth.hidden_count import (
+from macromicro_sumo.truth.section_speed import stop_line_edges
+from macromicro_sumo.truth.stations import (
     StationRecord,
     full_stations,
     side_junction_arcs,
     station_speeds,
 )
-from macromicro_sumo.truth.section_speed import stop_line_edges
 
 QUEUE_BLEND_MPS = (10.0, 15.0)
 """The slowest station's interval speed (m/s) at or below which the interval counts' estimate
