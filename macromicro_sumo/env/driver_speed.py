@@ -39,7 +39,9 @@ from scipy.stats import truncnorm
 from macromicro_sumo.data.section import SectionTruth, recorded_steps, run_section, vehicle_level
 from macromicro_sumo.env.section_bank import SectionBank, recordable, speed_caps
 from macromicro_sumo.env.section_observations import initial_observations, section_observations
+from macromicro_sumo.road.leaders import STANDING_MIN_GAP_M, bumper_gap_m
 from macromicro_sumo.road.physics import LIMIT_COLUMN, NEXT_LIMIT_COLUMN, observes_gap
+from macromicro_sumo.road.section import STOP
 
 # The observation columns that are speed limits (own lane, the look-ahead's next edge).
 LIMIT_COLUMNS = (LIMIT_COLUMN, NEXT_LIMIT_COLUMN)
@@ -56,6 +58,18 @@ FREE_GAP_M = 10.0
 # ... and when the vehicle is not still accelerating towards it (Krauss accelerates at
 # a (1 - sigma U) >= 1.3 m/s^2 at SUMO's defaults; cruising, its dawdling averages ~0).
 CRUISE_ACCEL_MPS2 = 1.0
+# The free test reads the bumper gap (``road.leaders.bumper_gap_m``: the spacing less the
+# leader's length), at least FREE_HEADWAY_S x v + FREE_BUMPER_GAP_M: behind a 5 m car the
+# spacing test above (FREE_GAP_M = 5 m + 5 m), behind a 12 m truck 7 m stricter. Why: on the
+# signalised arterial 521 cars standing 14.5 m behind a 12 m truck passed the spacing test,
+# and their top speeds (0.28-0.54 of the limit) were taken as exact ratios (docs/deploy.md,
+# "Arterial 521's slow exact ratios"). A leader of unknown length counts as a car.
+FREE_BUMPER_GAP_M = 5.0
+CAR_LENGTH_M = FREE_GAP_M - FREE_BUMPER_GAP_M
+# ... and a sample slower than this share of its limit is not cruising: a car standing at a
+# green light before a blocked junction (accel 0, its leader beyond the junction) is not
+# at its desired speed (521: three exact ratios of 0.42-0.49 of such cars).
+CRUISE_MIN_SHARE = 0.1
 # A vehicle's ratio needs this many free cruising samples (5 s at 0.5 s steps): fewer
 # leave its maximum below its desired speed (Krauss dawdles below it most steps).
 MIN_FREE_SAMPLES = 10
@@ -159,21 +173,21 @@ def observed_drivers(sc, truth: SectionTruth, runs: np.ndarray) -> ObservedDrive
             o = np.fromiter((v in watched for v in ids), bool, len(ids))
             if not o.any():
                 continue
-            obs, _, spacing = section_observations(
+            lengths = s["vtype"].map(length_of).to_numpy(dtype=float) if length_of else None
+            obs, leader, spacing = section_observations(
                 section,
                 s["lane_index"].to_numpy(),
                 s["arc_m"].to_numpy(),
                 s["speed_mps"].to_numpy(),
                 np.ones(len(s), dtype=bool),
                 "lookahead_gap" if gap else "paper",
-                length_m=s["vtype"].map(length_of).to_numpy(dtype=float) if gap else None,
+                length_m=lengths if gap else None,
             )
             obs = obs[:, :4]  # the paper's columns (the gap layout's: the gap in the third)
             v, limit = obs[:, 0], obs[:, 1]
             v1 = np.fromiter((speed_next.get(x, np.nan) for x in ids), float, len(ids))
             accel = (v1 - v) / dt
-            free = spacing >= v * FREE_HEADWAY_S + FREE_GAP_M
-            cruise = free & (accel < CRUISE_ACCEL_MPS2)
+            cruise = cruising(v, limit, accel, free_gap_m(spacing, leader, lengths, gap))
             types = s["vtype"].to_numpy() if "vtype" in s else np.full(len(s), "")
             for i in np.flatnonzero(o & (limit > 0)):
                 key = (int(run), str(ids[i]))
@@ -192,6 +206,34 @@ def observed_drivers(sc, truth: SectionTruth, runs: np.ndarray) -> ObservedDrive
         return ObservedDrivers(ratio, np.empty((0, 4)), np.empty(0), [], lower)
     obs_all, acc_all = np.concatenate(obs_rows), np.concatenate(acc_rows)
     return ObservedDrivers(ratio, obs_all, acc_all, keys, lower)
+
+
+def free_gap_m(
+    spacing_m: np.ndarray, leader: np.ndarray, length_m: np.ndarray | None, with_length: bool
+) -> np.ndarray:
+    """The bumper gap the free test reads (``road.leaders.bumper_gap_m``) of a step's
+    ``section_observations``' front-to-front ``spacing_m`` and ``leader`` (-1: none, ``STOP``:
+    a standing obstacle), with the vehicles' ``length_m`` (None or NaN: ``CAR_LENGTH_M``).
+    ``with_length``: the observations were given the lengths (a gap layout), so a standing
+    obstacle's spacing is a standing vehicle's of the own length ``STANDING_MIN_GAP_M``
+    beyond it; else it is the distance alone, and its gap that distance + that minGap, as
+    well. The same gap in either layout."""
+    n = len(spacing_m)
+    own = (
+        np.full(n, CAR_LENGTH_M) if length_m is None else np.nan_to_num(length_m, nan=CAR_LENGTH_M)
+    )
+    lead_len = np.where(leader >= 0, own[np.maximum(leader, 0)], 0.0)
+    lead_len = np.where(leader == STOP, own if with_length else -STANDING_MIN_GAP_M, lead_len)
+    return bumper_gap_m(spacing_m, lead_len)
+
+
+def cruising(v: np.ndarray, limit: np.ndarray, accel: np.ndarray, gap_m: np.ndarray) -> np.ndarray:
+    """(N,) bool: the samples at a driver's own desired speed: the bumper gap ``gap_m``
+    (``free_gap_m``) at least ``FREE_HEADWAY_S`` x v + ``FREE_BUMPER_GAP_M``, not
+    accelerating (below ``CRUISE_ACCEL_MPS2``) and not standing (at least
+    ``CRUISE_MIN_SHARE`` of the ``limit``)."""
+    free = gap_m >= v * FREE_HEADWAY_S + FREE_BUMPER_GAP_M
+    return free & (accel < CRUISE_ACCEL_MPS2) & (v >= CRUISE_MIN_SHARE * limit)
 
 
 def censored_quantiles(exact: np.ndarray, lower: np.ndarray) -> np.ndarray:
