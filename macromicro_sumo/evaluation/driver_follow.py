@@ -34,8 +34,12 @@ from macromicro_sumo.env.driver_speed import (
     FREE_GAP_M,
     FREE_HEADWAY_S,
     QUANTILE_LEVELS,
-    driver_levels,
 )
+
+# The draws live beside their carrier (``env.driver_tau``); re-exported here.
+from macromicro_sumo.env.driver_tau import driver_tau_levels as driver_tau_levels
+from macromicro_sumo.env.driver_tau import slot_tau_levels as slot_tau_levels
+from macromicro_sumo.env.driver_tau import taus_at as taus_at
 from macromicro_sumo.evaluation.krauss_fit import (
     ROBUST_SCALE_MPS2,
     KraussParams,
@@ -54,9 +58,6 @@ MIN_SPEED_MPS = 1.0
 # Drivers with a tau needed for a distribution (its median to about +-0.02 s at 502's
 # spread); fewer: ``tau_quantiles`` gives None (the prior's one tau stays).
 MIN_DRIVER_TAUS = 30
-# The draws' tag in ``driver_levels`` and the generator's stream for bank slots.
-TAU_TAG = "driver_tau"
-SLOT_STREAM = 223
 
 
 def following(obs: np.ndarray) -> np.ndarray:
@@ -124,23 +125,6 @@ def tau_quantiles(taus: Sequence[float]) -> np.ndarray | None:
     if len(taus) < MIN_DRIVER_TAUS:
         return None
     return np.quantile(np.asarray(taus, dtype=float), QUANTILE_LEVELS)
-
-
-def taus_at(quantiles: np.ndarray, levels: np.ndarray) -> np.ndarray:
-    """The taus [s] at uniform ``levels`` (inverse CDF, linear between the kept quantiles)."""
-    return np.interp(levels, QUANTILE_LEVELS, quantiles)
-
-
-def driver_tau_levels(seed: int, run: int, vehicle_ids: Sequence[str]) -> np.ndarray:
-    """Per vehicle a uniform level: a hash of (seed, run, vehicle), so that a driver draws
-    the same tau whatever drives it and however often its run is repeated."""
-    return driver_levels(seed, run, vehicle_ids, TAU_TAG)
-
-
-def slot_tau_levels(seed: int, shape: tuple[int, ...]) -> np.ndarray:
-    """Uniform levels for a bank's (episode, slot) drivers from a generator seeded by
-    ``seed`` (its own stream, apart from the desired-speed factors')."""
-    return np.random.default_rng([seed, SLOT_STREAM]).random(shape)
 
 
 def krauss_accel_per_driver(
