@@ -13,6 +13,7 @@ from itertools import chain, repeat
 import numpy as np
 
 from macromicro_sumo.env.driver_speed import scale_limits
+from macromicro_sumo.env.driver_tau import with_tau
 from macromicro_sumo.road.leaders import bumper_gap_m, nearer_standing
 from macromicro_sumo.road.physics import (
     LEADER_COLUMN,
@@ -128,6 +129,7 @@ def observe_rows(
     driver_speeds: Callable[[list[str], np.ndarray], np.ndarray] | None = None,
     lane_codes: np.ndarray | None = None,
     stop_gap_m: float | None = None,
+    driver_taus: Callable[[list[str]], np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Observations (V, obs_dim) of driven vehicles ``vids`` (rows ``rows`` of ``st``, on
     lanes ``lane_ids``), as the section env defines them, the leader SUMO's (``leaders``:
@@ -147,7 +149,9 @@ def observe_rows(
     whose own minGap is larger observes its leader, a standing one included, that much
     nearer (``min_gap_deficit_m``), so that the policy's stop falls at its own minGap, not
     inside it, where SUMO counts a collision (its collisionMinGapFactor 1; Stage II's
-    replay counts only an overlap).
+    replay counts only an overlap). ``driver_taus``: each driver's own tau [s] from the
+    vehicles (``policy.driver_follow``, ``env.driver_tau.DriverTaus``), appended as a
+    trailing column (None: no column).
     Also returns SUMO's gap to what the vehicle sees ahead, that leader's decel, and its
     index in ``vids`` where it is a driven vehicle (-1: none, not driven, or a standing
     leader): the safety layer knows a driven leader's next speed, its command.
@@ -157,7 +161,7 @@ def observe_rows(
     leaders' columns only where one is nearer (``scripts/bench_deploy.py``)."""
     n = len(vids)
     if not n:
-        obs = np.empty((0, len(OBSERVATION_FEATURES[observation])))
+        obs = np.empty((0, len(OBSERVATION_FEATURES[observation]) + (driver_taus is not None)))
         return obs, np.empty(0), np.empty(0), np.empty(0, dtype=np.int64)
     codes = lanes.codes(lane_ids) if lane_codes is None else lane_codes
     # The lanes' own columns in one take (a fresh array): the limits, and where the next
@@ -228,6 +232,8 @@ def observe_rows(
         np.subtract(lead, deficit, out=lead, where=ok if closer is None else ok | closer)
     if driver_speeds is not None:
         scale_limits(obs, driver_speeds(vids, obs))
+    if driver_taus is not None:  # policy.driver_follow: each driver's own tau, last
+        obs = with_tau(obs, driver_taus(vids))
     return obs, sumo_gap, lead_decel, lead_index
 
 

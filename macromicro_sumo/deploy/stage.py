@@ -51,12 +51,10 @@ caller passes its plotting function (the report layer's, ``report.deploy``), and
 
 from __future__ import annotations
 
-import math
 import shutil
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -68,7 +66,12 @@ from macromicro_sumo.data.section import split_runs
 from macromicro_sumo.deploy.calibrate import Calibration, calibration_record, fit_to_detectors
 from macromicro_sumo.deploy.compare import compare_folders
 from macromicro_sumo.deploy.floor_choice import resolve_floor
-from macromicro_sumo.deploy.population import ActionBatch, population_label, population_scenario
+from macromicro_sumo.deploy.policy_batch import ACTOR_ROWS as ACTOR_ROWS
+from macromicro_sumo.deploy.policy_batch import action_std, policy_batch
+from macromicro_sumo.deploy.policy_batch import actor_forward as actor_forward
+from macromicro_sumo.deploy.policy_batch import prior_forward as prior_forward
+from macromicro_sumo.deploy.policy_batch import prior_stop_gap_m as prior_stop_gap_m
+from macromicro_sumo.deploy.population import population_label, population_scenario
 from macromicro_sumo.deploy.run import (
     DeployContext,
     Drive,
@@ -76,24 +79,18 @@ from macromicro_sumo.deploy.run import (
     run_method,
     write_method,
 )
-from macromicro_sumo.env.driver_speed import DriverSpeeds
 from macromicro_sumo.env.section_bank import typical_length
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.evaluation import section as section_eval
 from macromicro_sumo.evaluation.idm_fit import (
-    GippsParams,
     IdmParams,
     calibrate_idm,
-    gipps_policy_accel,
-    idm_policy_accel,
 )
-from macromicro_sumo.evaluation.krauss_fit import KraussParams, krauss_policy_accel
 from macromicro_sumo.evaluation.methods import BY_NAME
 from macromicro_sumo.files import prepare_out_dir, staging_dir, write_csv, write_stage_manifest
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.checkpoint import load_policy, policy_file
-from macromicro_sumo.policy.prior import PRIOR_KEYS
 from macromicro_sumo.progress import tqdm
 from macromicro_sumo.road.physics import leader_length_m
 from macromicro_sumo.truth.section import load_section_truth
@@ -102,10 +99,6 @@ MANIFEST = "deploy_manifest.json"
 COMPARISON, SUMMARY = "deploy_comparison.csv", "deploy_summary.csv"
 HISTORY = "calibration_history.csv"
 PLOTS = "plots"
-# Rows per matrix product of the actor's numpy forward pass: larger products start
-# OpenBLAS's threads, which on a loaded 2-core machine cost 1.8 ms at 500 rows instead of
-# 0.3 ms (scripts/bench_deploy.py's sizes).
-ACTOR_ROWS = 128
 # ``oracle_redrawn``'s SUMO random streams: one for every lane instead of SUMO's default 64
 # (one per lane modulo 64), so that every vehicle's draws change (63 would leave a network
 # of fewer than 63 lanes with the truth's mapping: game/ramp repeated its truth exactly).
@@ -163,121 +156,6 @@ DEPLOY_METHODS: tuple[DeployMethod, ...] = (
     ),
 )
 METHOD = {m.name: m for m in DEPLOY_METHODS}
-
-
-def actor_forward(agent: Agent) -> Callable[[np.ndarray], np.ndarray]:
-    """The agent's actor as a numpy function of raw observations (n, D), float64, its
-    weights read once: the actor's output before any prior or bound."""
-    shift = agent.shift.detach().double().numpy()
-    scale = agent.scale.detach().double().numpy()
-    layers: list[tuple[np.ndarray, np.ndarray] | None] = []  # None: tanh
-    for m in agent.actor:
-        if isinstance(m, torch.nn.Linear):
-            w = m.weight.detach().double().numpy().T.copy()
-            layers.append((w, m.bias.detach().double().numpy().copy()))
-        elif isinstance(m, torch.nn.Tanh):
-            layers.append(None)
-        else:
-            raise TypeError(f"policy_batch: actor layer {type(m).__name__} not supported")
-
-    last = max(i for i, layer in enumerate(layers) if layer is not None)
-    # The hidden layers' outputs, kept between calls (grown as needed): written in place, the
-    # same products and sums as fresh arrays, without a step's allocations.
-    kept = [np.empty((0, 0 if layer is None else len(layer[1]))) for layer in layers]
-
-    def forward(obs: np.ndarray) -> np.ndarray:
-        x0 = np.subtract(obs, shift)
-        np.divide(x0, scale, out=x0)
-        n = len(x0)
-        if n <= ACTOR_ROWS:  # one product per layer
-            x = x0
-            for i, layer in enumerate(layers):
-                if layer is None:
-                    np.tanh(x, out=x)
-                    continue
-                if i == last:  # a fresh output
-                    x = np.matmul(x, layer[0])
-                else:
-                    if len(kept[i]) < n:
-                        kept[i] = np.empty((max(n, ACTOR_ROWS // 2), len(layer[1])))
-                    x = np.matmul(x, layer[0], out=kept[i][:n])
-                np.add(x, layer[1], out=x)
-            return x[:, 0]
-        out = np.empty(n)
-        for start in range(0, n, ACTOR_ROWS):
-            x = x0[start : start + ACTOR_ROWS]
-            for layer in layers:
-                x = np.tanh(x, out=x) if layer is None else x @ layer[0] + layer[1]
-            out[start : start + ACTOR_ROWS] = x[:, 0]
-        return out
-
-    return forward
-
-
-def prior_forward(agent: Agent) -> Callable[[np.ndarray], np.ndarray] | None:
-    """The agent's prior acceleration [m/s^2] as a numpy function of raw observations
-    (``evaluation.idm_fit``'s twins of ``policy.prior``'s torch functions, which
-    tests/policy/test_prior.py holds equal); None without a prior."""
-    if agent.prior == "none":
-        return None
-    values = getattr(agent, f"{agent.prior}_prior").detach().double().tolist()
-    p = dict(zip(PRIOR_KEYS[agent.prior], values, strict=True))
-    if agent.prior == "idm":
-        idm = IdmParams(**{k: v for k, v in p.items() if k != "veh_length_m"})
-        return lambda obs: idm_policy_accel(obs, idm, p["veh_length_m"])
-    fitted = {k: v for k, v in p.items() if k not in ("veh_length_m", "dt_s")}
-    if agent.prior == "krauss":
-        krauss = KraussParams(**fitted)
-        return lambda obs: krauss_policy_accel(obs, krauss, p["veh_length_m"], p["dt_s"])
-    gipps = GippsParams(**fitted)
-    return lambda obs: gipps_policy_accel(obs, gipps, p["veh_length_m"], p["dt_s"])
-
-
-def policy_batch(agent: Agent) -> ActionBatch:
-    """The policy's deterministic mean action (``Agent.mean_action``) for every driven
-    vehicle, one numpy call per step.
-
-    Numpy, float64, the weights read once: torch's fixed cost per call (~0.1 ms for the
-    actor, ~0.3 ms more for a prior's dozen small ops) was most of a step's policy time
-    below 500 driven vehicles (``scripts/bench_deploy.py``). Equal to
-    ``Agent.mean_action`` in float64 (tests/deploy/test_deploy_run.py)."""
-    actor, prior = actor_forward(agent), prior_forward(agent)
-    bound = float(agent.residual_bound) if prior is not None else math.inf
-
-    def act(obs: np.ndarray) -> np.ndarray:
-        obs = np.asarray(obs, dtype=np.float64)
-        if prior is None:
-            return actor(obs)
-        if bound <= 0.0:  # the fitted prior alone (an ablation)
-            return prior(obs)
-        out = actor(obs)
-        if bound == 1.0:  # x / 1 and 1 y are x and y: the same values, two calls fewer
-            out = np.tanh(out)
-        elif math.isfinite(bound):
-            out = bound * np.tanh(out / bound)
-        return out + prior(obs)
-
-    # policy.driver_speed: each driven vehicle's factor, set by its driver.
-    q = agent.driver_speed
-    act.driver_speeds = None if q is None else partial(DriverSpeeds, q.double().numpy())
-    # The gap the policy stops at: its prior's minGap (``deploy.observe.observe_rows``).
-    act.stop_gap_m = prior_stop_gap_m(agent)
-    return act
-
-
-def prior_stop_gap_m(agent: Agent) -> float | None:
-    """The bumper gap [m] at which the agent's prior stops behind a standing leader, its
-    fitted minGap (Krauss, Gipps; IDM's s0); None without a prior."""
-    if agent.prior == "none":
-        return None
-    values = getattr(agent, f"{agent.prior}_prior").detach().double().tolist()
-    return float(dict(zip(PRIOR_KEYS[agent.prior], values, strict=True))["min_gap_m"])
-
-
-def action_std(agent: Agent) -> float:
-    """The std [m/s^2] of the policy's Gaussian (state-independent, learned from the
-    observed vehicles' likelihood): what ``deploy.action = "sample"`` draws with."""
-    return float(agent.log_std.detach().double().exp().item())
 
 
 def idm_theta(p: IdmParams) -> dict[str, float]:

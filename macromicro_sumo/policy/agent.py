@@ -16,6 +16,11 @@
   the IDM (Bremen, 40 m/s: IDM -9, residual +8.5 m/s^2), so the policy lost the IDM's
   spacing response it was meant to keep. ``mean_action`` is that mean; everything that
   acts or scores goes through it (``dist``).
+* ``driver_tau`` (``policy.driver_follow``): the observed drivers' Krauss tau quantiles
+  (``evaluation.driver_follow``), a buffer; with it the observation may carry each row's
+  own tau as a trailing column (``env.driver_tau.with_tau``): the actor and the critic read
+  the first D columns, the prior takes its tau from the last. Without the column (or
+  without the buffer: checkpoints from before it) the prior has its one fitted tau.
 
 Training is ``policy.ppo``, checkpoints ``policy.checkpoint``.
 """
@@ -50,6 +55,7 @@ class Agent(nn.Module):
         prior_params: Mapping[str, float] | None = None,
         residual_bound_mps2: float = float("inf"),
         driver_speed: np.ndarray | None = None,
+        driver_tau: np.ndarray | None = None,
     ) -> None:
         """``shift_scale``: the observation normalisation (None: the features' fixed
         ``env.observation.shift_scale``).
@@ -58,12 +64,14 @@ class Agent(nn.Module):
         the largest correction [m/s^2] the actor adds to the prior (inf: unbounded; 0: the
         prior alone). ``driver_speed``: the drivers' desired-speed factor quantiles
         (``policy.driver_speed = "drawn"``, ``env.driver_speed.ratio_quantiles``; a buffer,
-        for the deployment to draw from); None: no buffer."""
+        for the deployment to draw from); None: no buffer. ``driver_tau``: the drivers' tau
+        quantiles (``policy.driver_follow``; a buffer, as ``driver_speed``)."""
         super().__init__()
         if prior not in PRIORS:
             raise UserError(f"policy.prior = {prior!r}: expected one of {', '.join(PRIORS)}")
         features = OBSERVATION_FEATURES[observation]
         obs_dim = len(features)
+        self.obs_dim = obs_dim  # the features' columns; a tau column may follow
         self.observation = observation
         if shift_scale is None:
             shift_scale = fixed_shift_scale(observation)
@@ -90,6 +98,8 @@ class Agent(nn.Module):
         self.prior = prior
         q = None if driver_speed is None else torch.as_tensor(np.asarray(driver_speed))
         self.register_buffer("driver_speed", None if q is None else q.to(torch.float32))
+        t = None if driver_tau is None else torch.as_tensor(np.asarray(driver_tau))
+        self.register_buffer("driver_tau", None if t is None else t.to(torch.float32))
         if prior != "none":
             keys = PRIOR_KEYS[prior]
             values = [float("nan")] * len(keys)
@@ -109,7 +119,7 @@ class Agent(nn.Module):
     def residual(self, obs: torch.Tensor) -> torch.Tensor:
         """The actor's part of the mean action [m/s^2] for raw observations (..., D): its
         output, bounded with a ``prior`` (0 with a bound of 0)."""
-        out = _mlp(self.actor, (obs - self.shift) / self.scale).squeeze(-1)
+        out = _mlp(self.actor, (self.features(obs) - self.shift) / self.scale).squeeze(-1)
         if self.prior != "none":
             bound = self.residual_bound
             if bound <= 0.0:  # the fitted prior alone (an ablation)
@@ -119,12 +129,27 @@ class Agent(nn.Module):
                 out = bound * torch.tanh(out / bound)
         return out
 
+    def features(self, obs: torch.Tensor) -> torch.Tensor:
+        """The observation's feature columns: all of them, or the first D where a tau
+        column may follow (``driver_tau``)."""
+        return obs if self.driver_tau is None else obs[..., : self.obs_dim]
+
+    def row_tau(self, obs: torch.Tensor) -> torch.Tensor | None:
+        """Each row's own tau [s] (the trailing column, ``policy.driver_follow``); None
+        without the buffer or the column (the prior's one tau)."""
+        if self.driver_tau is None or obs.shape[-1] <= self.obs_dim:
+            return None
+        return obs[..., self.obs_dim]
+
     def prior_accel(self, obs: torch.Tensor) -> torch.Tensor:
-        """The fixed prior's acceleration [m/s^2] (0 without a ``prior``)."""
+        """The fixed prior's acceleration [m/s^2] (0 without a ``prior``), with each row's
+        own tau where the observation carries one (``row_tau``)."""
         if self.prior == "none":
             return torch.zeros(obs.shape[:-1], dtype=obs.dtype)
         buffer = getattr(self, f"{self.prior}_prior")
         p = dict(zip(PRIOR_KEYS[self.prior], buffer.unbind(), strict=True))
+        if (tau := self.row_tau(obs)) is not None:
+            p["tau_s"] = tau
         return PRIOR_ACCEL[self.prior](obs, p)
 
     def mean_action(self, obs: torch.Tensor) -> torch.Tensor:
@@ -140,6 +165,11 @@ class Agent(nn.Module):
         key = prefix + "residual_bound"
         if self.prior != "none" and key not in state_dict:
             state_dict[key] = torch.tensor(float("inf"))
+        # A checkpoint with drivers' taus (policy.driver_follow) loads them into an agent
+        # made without (``policy.checkpoint.load_policy`` makes it from the scenario).
+        tau = state_dict.get(prefix + "driver_tau")
+        if tau is not None and self.driver_tau is None:
+            self.driver_tau = torch.empty_like(tau)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def dist(self, obs: torch.Tensor) -> torch.distributions.Normal:
@@ -151,7 +181,7 @@ class Agent(nn.Module):
         )
 
     def value(self, obs: torch.Tensor, t_frac: torch.Tensor) -> torch.Tensor:
-        x = torch.cat([(obs - self.shift) / self.scale, t_frac[..., None]], dim=-1)
+        x = torch.cat([(self.features(obs) - self.shift) / self.scale, t_frac[..., None]], dim=-1)
         return _mlp(self.critic, x).squeeze(-1)
 
 
