@@ -207,6 +207,8 @@ class SectionSpeedDriver(SectionDriver):
         self.merge = sc.deploy.merge  # "none", "handover" or "sumo" (with the yield)
         make = getattr(act, "driver_speeds", None)  # policy.driver_speed: each driver's factor
         self.driver_speeds = make(sc, run) if make is not None else None
+        taus = getattr(act, "driver_taus", None)  # policy.driver_follow: each driver's tau
+        self.driver_taus = taus(sc, run) if taus is not None else None
         self.merging: set[str] = set()  # driven vehicles merging with SUMO's own model now
 
     def take(self, sim: Simulation, vids: list[str]) -> None:
@@ -482,6 +484,7 @@ class SectionSpeedDriver(SectionDriver):
             at[1],
             # Its prior's minGap where no layer holds the vType's (observe_rows' stop_gap_m).
             getattr(self.act, "stop_gap_m", None) if self.safety == "none" else None,
+            self.driver_taus,
         )
 
 

@@ -314,6 +314,7 @@ def sampled(act: ActionBatch, std_mps2: float, rng: np.random.Generator) -> Acti
 
     # policy.driver_speed: each driver's factor, as the mean action's (``deploy.drivers``)
     draw.driver_speeds = getattr(act, "driver_speeds", None)
+    draw.driver_taus = getattr(act, "driver_taus", None)  # policy.driver_follow's, too
     draw.stop_gap_m = getattr(act, "stop_gap_m", None)  # the mean's prior (observe_rows)
     return draw
 
