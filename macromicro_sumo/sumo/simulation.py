@@ -21,13 +21,8 @@ import sumolib
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.sumo.options import SumoOptions
-from macromicro_sumo.sumo.states import (
-    DEFAULT_SPEED_MODE,
-    STOP_STATES,
-    SUMO_STOPLINE_GAP_M,
-    StopLines,
-    VehicleStates,
-)
+from macromicro_sumo.sumo.states import DEFAULT_SPEED_MODE, StopLines, VehicleStates
+from macromicro_sumo.sumo.stop_lines import StopLineReader
 from macromicro_sumo.sumo.stop_offsets import lane_stop_offsets
 
 _C = libsumo.constants
@@ -102,9 +97,15 @@ class Simulation:
         self.options = options
         self._dt = float(options.step_length_s)
         self._states: VehicleStates | None = None
-        self._links: dict[tuple[str, int], str] = {}  # ``_link_lane``'s, asked once a run
-        self._carry: dict[tuple[str, str, str], bool] = {}  # ``_carries_on``'s
-        self._stop_offsets = lane_stop_offsets(Path(options.net_file))
+        self._lines = StopLineReader(
+            _NEXT_TLS,
+            _GET_LANE,
+            _BEST_LANES,
+            libsumo.trafficlight.getControlledLinks,
+            libsumo.vehicle.getVehicleClass,
+            lambda vid: self.vtype_stopline_gap(self.vehicle_type(vid)),
+            lane_stop_offsets(Path(options.net_file)),
+        )
         Simulation._active = self
 
     def is_active(self) -> bool:
@@ -435,56 +436,15 @@ class Simulation:
 
     def stop_lines(self, vehicle_ids: Sequence[str]) -> StopLines:
         """The next red or yellow line of each vehicle (``StopLines``; every caller's query):
-        getNextTLS, its link's lane (``_carries_on``: its own?), that lane's stopOffset."""
-        got = list(map(self._stop_line, vehicle_ids))
-        dist, lanes, own, offset = (list(c) for c in zip(*got, strict=True)) if got else ([],) * 4
-        return StopLines(np.array(dist), lanes, np.array(own), np.array(offset))
-
-    def _stop_line(self, vid: str) -> tuple[float, str, bool, float]:
-        """``stop_lines``' (distance, lane, own, stopOffset) of one vehicle, plain values."""
-        for tls, link, d, state in (ahead := _NEXT_TLS(vid)):
-            if state in STOP_STATES:
-                lane = self._links.get((tls, link)) or self._link_lane(tls, link)
-                here, own, offset = (_GET_LANE(vid) if lane else lane), True, 0.0
-                if here != lane and (own := self._carry.get((vid, here, lane))) is None:
-                    own = self._carry[vid, here, lane] = _carries_on(vid, here, lane)
-                so = self._stop_offsets.get(lane) if self._stop_offsets else None
-                if so is not None and so.applies(libsumo.vehicle.getVehicleClass(vid)):
-                    offset = so.value_m
-                return d, lane, own, offset
-        return (np.inf if ahead else np.nan), "", True, 0.0
-
-    def _link_lane(self, tls: str, link: int) -> str:
-        """A signal's link's incoming lane ("": none), asked of SUMO once a run."""
-        got = enumerate(libsumo.trafficlight.getControlledLinks(tls))
-        self._links.update(((tls, k), ls[0][0] if ls else "") for k, ls in got)
-        return self._links[tls, link]
+        getNextTLS, its link's lane (its own, or one its lane carries it on to?), that
+        lane's stopOffset (``sumo.stop_lines``)."""
+        return self._lines.stop_lines(vehicle_ids)
 
     def stop_lines_m(self, vehicle_ids: Sequence[str]) -> np.ndarray:
         """``StopLines.line_m`` with each vehicle's jmStoplineGap: its red line less what a
         lane's stopOffset adds; inf: no red or yellow ahead, or another lane's link (it stops
-        0 m before its lane's end, ``lane_end``, not 1); NaN: no signal at all ahead. In plain
-        floats, line_m's arithmetic (a driver's few a step: StopLines' arrays cost ~30 us)."""
-        out = []
-        for vid in vehicle_ids:
-            d, _, own, offset = self._stop_line(vid)
-            gap = SUMO_STOPLINE_GAP_M
-            if offset and (got := self.vtype_stopline_gap(self.vehicle_type(vid))) is not None:
-                gap = got
-            out.append(d - max(offset - gap, 0.0) if own else np.inf + d)
-        return np.array(out, dtype=float)
-
-
-def _carries_on(vehicle_id: str, lane: str, lane_id: str) -> bool:
-    """Whether ``lane_id``, not the vehicle's ``lane``, is on its best lanes' continuation
-    (SUMO's driver stops at its links; True in a junction, where its best lanes start after);
-    asked once a vehicle, lane and link lane (``Simulation._carry``)."""
-    if not lane.startswith(":") and lane.rpartition("_")[0] == lane_id.rpartition("_")[0]:
-        return False  # another lane of the same edge
-    for best, _length, _occ, _offset, _cont, chain in _BEST_LANES(vehicle_id):
-        if best == lane:
-            return lane_id in chain
-    return True
+        0 m before its lane's end, ``lane_end``, not 1); NaN: no signal at all ahead."""
+        return self._lines.stop_lines_m(vehicle_ids)
 
 
 def quick_check(net_file: Path, additional: Path) -> str:
