@@ -61,6 +61,17 @@ class PolicyConfig:
         "observed vehicles' free-flow speed ratios (drawn), or its own speed ratio where it "
         "was first seen, over their median (memory) (env.driver_speed)",
     )
+    driver_follow: str = spec(
+        "none",
+        choices=("none", "drawn", "auto"),
+        doc="sections, with the krauss prior: none, every hidden or deployed driver follows at "
+        "the prior's one fitted tau; drawn, each at its own tau drawn from the observed "
+        "drivers' own fitted taus (evaluation.driver_follow; where at least 30 drivers give "
+        "one, else the one tau), carried as a trailing observation column (env.driver_tau); "
+        "auto: drawn or none, the one whose prior alone drives the training runs closer to "
+        "the truth's station speeds (as policy.relax_choice; the manifest says which)",
+        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+    )
     hidden_train: tuple[int, int] = spec(
         (1, 4), lo=1, hi=10_000, doc="K range of training episodes"
     )
@@ -303,6 +314,16 @@ class DeployConfig:
         "the detectors' own interval; else a multiple of detectors.interval_s; the summary "
         "keeps the detector-interval shares too (docs/deploy.md, GEH) [s]",
     )
+
+
+def check_policy(p: PolicyConfig, file: str) -> None:
+    """[policy]'s cross-field checks: per-driver taus are the Krauss prior's."""
+    if p.driver_follow != "none" and p.prior not in ("krauss", "auto"):
+        raise UserError(
+            f"{file}: policy.driver_follow = {p.driver_follow!r} needs policy.prior = 'krauss' "
+            f"or 'auto' (the taus are the Krauss prior's), not {p.prior!r}; accepted with "
+            f"policy.prior = {p.prior!r}: 'none'"
+        )
 
 
 def check_deploy(
