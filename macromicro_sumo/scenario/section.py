@@ -27,6 +27,7 @@ from macromicro_sumo.scenario.stages import (
     EvaluationConfig,
     PolicyConfig,
     check_deploy,
+    check_policy,
 )
 
 
@@ -298,6 +299,7 @@ def _check(sc: SectionScenario, file: str) -> None:
     # Field data's stations have their own interval: checked when the deployment is compared.
     sim, run_s = sc.data.source != "files", sc.simulation.warmup_s + sc.simulation.duration_s
     check_deploy(sc.deploy, file, sc.detectors.interval_s if sim else None, run_s if sim else None)
+    check_policy(sc.policy, file)
     check_data(sc.data, sc.resolve, sc.generator.k_source, file)
     check_fleet_tables(sc, file)
     net = sc.network
