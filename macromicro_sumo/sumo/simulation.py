@@ -160,6 +160,7 @@ class Simulation:
         """Remove vehicles, subscribed or not: libsumo 1.28 fails every later step ("Vehicle
         ... is not known") when a subscribed vehicle is removed without unsubscribing it."""
         self._states = None
+        self._lines.forget(vehicle_ids)
         for vid in vehicle_ids:
             with contextlib.suppress(libsumo.TraCIException):
                 libsumo.vehicle.unsubscribe(vid)
@@ -380,6 +381,8 @@ class Simulation:
     def step(self) -> None:
         self._states = None
         libsumo.simulationStep()
+        if self._lines.carry:  # only vehicles still in the network kept (a signal's nets)
+            self._lines.forget(libsumo.simulation.getArrivedIDList())
 
     def collisions(self) -> int:
         """Vehicles in collision during the last step."""

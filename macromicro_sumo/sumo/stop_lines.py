@@ -8,7 +8,7 @@ plain Python over their answers.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -22,7 +22,8 @@ BestLanes = Callable[[str], Sequence[tuple]]
 
 class StopLineReader:
     """One run's stop-line queries. ``carry`` holds ``_carries_on``'s answers by vehicle,
-    asked once per vehicle, lane and link lane."""
+    asked once per vehicle, lane and link lane; ``forget`` drops a vehicle's (SUMO's
+    arrivals each step, removals): it holds only vehicles still in the network."""
 
     def __init__(
         self,
@@ -39,6 +40,12 @@ class StopLineReader:
         self._stopline_gap, self._stop_offsets = stopline_gap, stop_offsets
         self._links: dict[tuple[str, int], str] = {}  # ``_link_lane``'s, asked once a run
         self.carry: dict[str, dict[tuple[str, str], bool]] = {}  # vehicle -> _carries_on's
+
+    def forget(self, vehicle_ids: Iterable[str]) -> None:
+        """Vehicles gone from the network: their ``carry`` answers dropped."""
+        pop = self.carry.pop
+        for vid in vehicle_ids:
+            pop(vid, None)
 
     def stop_lines(self, vehicle_ids: Sequence[str]) -> StopLines:
         """``Simulation.stop_lines``."""
