@@ -1,0 +1,123 @@
+"""The observed drivers' desired-speed ratios as a distribution (``env.driver_speed``'s
+estimate, which ``policy.driver_speed`` draws from or clips to).
+
+Censoring (``ratio_estimate``): a vehicle's top v / limit is its desired ratio only where it
+cruised freely long enough and was not held at its vehicle's own maxSpeed (``speed_caps``);
+elsewhere it is a lower bound (a queue follower, a truck at its governor). The ratios are a
+Kaplan-Meier estimate over both; with fewer than ``MIN_EXACT_RATIOS`` exact ones the data do
+not identify them and SUMO's default speedFactor distribution is kept (``DEFAULT_RATIOS``):
+on SUMO's congested ``game/ramp`` 23 of 249 observed vehicles cruised freely, their median
+0.83 (trucks at 27.78 / 33.33 m/s among them) where SUMO's speedFactor median is 1.0.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.stats import truncnorm
+
+# Quantile levels at which a fitted ratio distribution is kept (the agent's buffer).
+QUANTILE_LEVELS = np.linspace(0.0, 1.0, 41)
+# Exact (uncensored) ratios needed to estimate the distribution (its median to +-0.02 at
+# SUMO's spread of 0.1); fewer: ``DEFAULT_RATIOS``. Measured: netgen_corridor 37,
+# game/ramp 23 (congested, the free ones the slow), Bremen and the drawn nets 97-227.
+MIN_EXACT_RATIOS = 30
+# Exact ratios this many interquartile ranges below the lower quartile count as lower
+# bounds (``ratio_estimate``; Tukey's far-out fence).
+OUTLIER_IQR = 3.0
+# SUMO's default speedFactor distribution (normc(1, 0.1), here cut at two deviations as
+# ``deploy.population.SwitchedType`` draws it) at ``QUANTILE_LEVELS``.
+DEFAULT_RATIOS = truncnorm.ppf(QUANTILE_LEVELS, -2.0, 2.0, loc=1.0, scale=0.1)
+
+
+@dataclasses.dataclass(frozen=True)
+class ObservedDrivers:
+    """The observed vehicles of some runs: each one's desired-speed ratio where it cruised
+    freely long enough (``ratio``, keyed by (run, vehicle id)), and their (observation,
+    acceleration) pairs ("paper" observations: [v, limit, spacing, delta_v]) with the
+    (run, vehicle id) of each."""
+
+    ratio: dict[tuple[int, str], float]
+    obs: np.ndarray
+    accel: np.ndarray
+    keys: list[tuple[int, str]]
+    # Lower bounds: the top v / limit of every other observed vehicle (too few free cruising
+    # samples, or held at its vehicle's maxSpeed).
+    lower: dict[tuple[int, str], float] = dataclasses.field(default_factory=dict)
+
+
+@dataclasses.dataclass(frozen=True)
+class RatioEstimate:
+    """The drivers' desired-speed ratios: ``QUANTILE_LEVELS`` quantiles, the exact and
+    censored counts they come from, and why the data did not identify them (then
+    ``DEFAULT_RATIOS``), or "" where they did."""
+
+    quantiles: np.ndarray
+    exact: int
+    lower_bounds: int
+    fallback: str = ""
+    # The median the Krauss prior's pairs are scaled over where it is not ``median``
+    # (``krauss_pairs``' own_median); None: ``median``.
+    pairs_median: float | None = None
+
+    @property
+    def median(self) -> float:
+        return float(np.interp(0.5, QUANTILE_LEVELS, self.quantiles))
+
+    def record(self) -> dict[str, object]:
+        """What a policy manifest records of it."""
+        out: dict[str, object] = {
+            "exact": self.exact,
+            "lower_bounds": self.lower_bounds,
+            "median": round(self.median, 4),
+            "fallback": self.fallback,
+        }
+        if self.pairs_median is not None:
+            out["pairs_median"] = round(self.pairs_median, 4)
+        return out
+
+
+def censored_quantiles(exact: np.ndarray, lower: np.ndarray) -> np.ndarray:
+    """``QUANTILE_LEVELS`` quantiles of the ratios from ``exact`` values and ``lower``
+    bounds (Kaplan-Meier, redistributed to the right: each bound's weight goes equally to
+    every vehicle above it, an exact value tied with a bound counting as above; what is
+    above the largest exact value goes to it). Each exact value sits at the middle of its
+    mass, linear in between (``np.quantile``'s "hazen", to which it reduces without
+    bounds). ``exact`` must not be empty."""
+    values = np.concatenate([np.asarray(exact, float), np.asarray(lower, float)])
+    is_exact = np.arange(len(values)) < len(exact)
+    order = np.lexsort((~is_exact, values))  # ascending; at a tie, exact first
+    values, is_exact = values[order], is_exact[order]
+    weight = np.ones(len(values))
+    for i in np.flatnonzero(~is_exact):
+        if i + 1 < len(values):
+            weight[i + 1 :] += weight[i] / (len(values) - i - 1)
+        else:
+            weight[np.flatnonzero(is_exact)[-1]] += weight[i]
+        weight[i] = 0.0
+    x, w = values[is_exact], weight[is_exact]
+    cum = np.cumsum(w)
+    return np.interp(QUANTILE_LEVELS, (cum - w / 2.0) / cum[-1], x)
+
+
+def ratio_estimate(drivers: ObservedDrivers) -> RatioEstimate:
+    """The drivers' ratio distribution (``censored_quantiles``), or ``DEFAULT_RATIOS``
+    where fewer than ``MIN_EXACT_RATIOS`` vehicles give an exact ratio. A ratio more than
+    ``OUTLIER_IQR`` interquartile ranges below the lower quartile is taken as a lower bound:
+    such a driver was held back by what the free test does not see more likely than it
+    wants a fifth of the limit (a drawn net's merge: 0.21 where the others' quartiles are
+    0.91 and 1.07; drawn, 2.5% of the deployed drivers were slower than 0.8 of the median,
+    rolling roadblocks)."""
+    exact, lower = list(drivers.ratio.values()), list(drivers.lower.values())
+    if len(exact) >= MIN_EXACT_RATIOS:
+        q1, q3 = np.quantile(exact, [0.25, 0.75])
+        floor = q1 - OUTLIER_IQR * (q3 - q1)
+        lower += [r for r in exact if r < floor]
+        exact = [r for r in exact if r >= floor]
+    if len(exact) < MIN_EXACT_RATIOS:
+        why = f"{len(exact)} observed vehicles cruised freely (< {MIN_EXACT_RATIOS})"
+        return RatioEstimate(DEFAULT_RATIOS.copy(), len(exact), len(lower), why)
+    return RatioEstimate(
+        censored_quantiles(np.array(exact), np.array(lower)), len(exact), len(lower)
+    )
