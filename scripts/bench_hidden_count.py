@@ -9,7 +9,7 @@ absolute error of K per lane over the snapshots of each regime (a snapshot is co
 10% of its vehicles are at or below 5 m/s) for: ``flow_speed``, the former flow / speed
 estimate; ``density``, the regime-blended density estimate alone; ``intervals``, the
 stations' interval counts between stations (``truth.interval_counts``: what field data
-gives; the density estimate alone where the section has a stop line); ``io_ramps_unknown``, the
+gives; at signals the approaches by the programs, ``truth.signal_counts``); ``io_ramps_unknown``, the
 passages' estimate not told where the ramps are; ``io``, the estimate ``simulate`` writes
 (``k_estimate.csv``); and the mean error (bias) of ``io``. ``--ramp`` adds SUMO's
 ``game/ramp``, ``--signals`` its ``game/cross`` and ``game/corridor`` (queues at red
@@ -311,9 +311,11 @@ def errors(gt: Path) -> pd.DataFrame:
     unknown = k_estimates(
         traj, macro, section, every, window, StationRecord(det, pas, None, lag, from_empty=True)
     )
-    net = read_net(scenario_inputs(load_scenario(gt.parent / "scenario.toml")).net_file)
+    net_file = scenario_inputs(load_scenario(gt.parent / "scenario.toml")).net_file
+    net = read_net(net_file)
     side = side_junction_arcs(net, section)
-    counts = k_estimates(traj, macro, section, every, window, interval_record(det, section, net))
+    record = interval_record(det, section, net, net_file)
+    counts = k_estimates(traj, macro, section, every, window, record)
     hybrid = k_estimates(
         traj, macro, section, every, window, StationRecord(det, pas, side, lag, from_empty=True)
     )

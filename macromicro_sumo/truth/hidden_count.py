@@ -31,6 +31,7 @@ from macromicro_sumo.truth.section_macro import (
     loop_densities,
     station_density,
 )
+from macromicro_sumo.truth.signal_counts import approach_pieces
 from macromicro_sumo.truth.stations import (
     PASSAGE_LAG_STEPS,
     STOP_BAR_M,
@@ -319,7 +320,12 @@ def io_vehicles(
 ) -> tuple[np.ndarray, pd.DataFrame]:
     """Vehicles counted at the times ``at_s`` from the passages (``io_pieces``, summed) and
     the density estimate of the rest of the section per interval."""
-    pieces, rest = io_pieces(record, section, run, at_s)
+    if record.stop_lines:
+        side = record.side_arcs if record.side_arcs is not None else np.array([])
+        lines = list(record.stop_lines)
+        pieces, rest = approach_pieces(record.det, section, lines, side, run, at_s)
+    else:
+        pieces, rest = io_pieces(record, section, run, at_s)
     counted = np.zeros(len(at_s))
     for piece in pieces.values():
         counted += piece.vehicles

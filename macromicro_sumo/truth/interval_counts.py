@@ -15,13 +15,15 @@ outermost stations and a short stretch around a ramp's node (its count drifts at
 ramp's flow within an interval) keep the density estimate; occupancy is divided by the
 run's effective vehicle length (``effective_densities``), as no passage tells the lengths.
 
-Not at signals: a stop-line loop's count is timed by the cycle within its interval, and
-vehicles change lanes over the loops before the line. With stop lines allowed, the bench's
-arterials 1, 2, 600-603 went from 4.09 / 6.62 vehicles per lane (free / congested, the
-density estimate alone) to 4.32 / 9.32, and 604-606 from 5.52 / 5.38 to 13.11 / 12.02.
+At signals (a section with a stop line) the approaches are counted from the signals'
+programs instead (``signal_counts``): spread evenly, a stop-line loop's count is timed by
+the cycle within its interval (with stop lines allowed here, the bench's arterials 1, 2,
+600-603 went from 4.09 / 6.62 vehicles per lane, free / congested, to 4.32 / 9.32).
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -35,6 +37,7 @@ from macromicro_sumo.truth.density import (
     point_density,
 )
 from macromicro_sumo.truth.section_speed import stop_line_edges
+from macromicro_sumo.truth.signal_counts import approaches, stop_lines
 from macromicro_sumo.truth.stations import (
     StationRecord,
     full_stations,
@@ -129,20 +132,36 @@ def complete_counts(det: pd.DataFrame) -> bool:
 
 
 def interval_record(
-    det: pd.DataFrame, section: Section, net: sumolib.net.Net
+    det: pd.DataFrame, section: Section, net: sumolib.net.Net, net_file: Path | None = None
 ) -> StationRecord | None:
     """The stations' record for ``hidden_count.k_estimates`` from their interval counts
     alone (``interval_passages``, ramps from ``net``, weighted by ``queued_weight``), or None
-    (the density estimate alone) where the section has a stop line (a signal, a stop
-    sign), fewer than two stations count every lane, or a count is missing."""
-    if section.closed or stop_line_edges(section, net) or not complete_counts(det):
+    (the density estimate alone) where fewer than two stations count every lane or a count
+    is missing. Where the section has a stop line: its signals' programs from ``net_file``
+    (``signal_counts.stop_lines``), the approaches to them counted by conservation
+    (``signal_counts.approach_pieces``); None where ``net_file`` is not given, a stop line
+    has no fixed-time signal (a stop sign) or no approach has its two stations."""
+    if section.closed or not complete_counts(det):
         return None
     if any(len(full_stations(d, section)) < 2 for _, d in det.groupby("run")):
         return None
+    det = det.assign(k_point_vpkm=effective_densities(det))
+    side = side_junction_arcs(net, section)
+    if stop_line_edges(section, net):
+        if net_file is None:
+            return None
+        lines = stop_lines(net_file, section)
+        if len(lines) != len(stop_line_edges(section, net)) or not any(
+            approaches(d, section, lines, side) for _, d in det.groupby("run")
+        ):
+            return None
+        return StationRecord(
+            det, pd.DataFrame(), side, interval_counts=True, stop_lines=tuple(lines)
+        )
     return StationRecord(
-        det.assign(k_point_vpkm=effective_densities(det)),
+        det,
         interval_passages(det),
-        side_junction_arcs(net, section),
+        side,
         interval_counts=True,
         weight=queued_weight(det),
     )

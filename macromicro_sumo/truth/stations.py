@@ -119,6 +119,8 @@ class StationRecord:
     (``interval_counts.interval_passages``): the end pieces are left to the density
     estimate. ``weight``: per interval (``run, begin_s, end_s, weight``) the counted
     estimate's weight against the density estimate alone; None: the counted one only.
+    ``stop_lines`` (``signal_counts.StopLine``): with interval counts, the signals' programs;
+    the approaches to them are counted by ``signal_counts.approach_pieces`` instead.
     """
 
     det: pd.DataFrame
@@ -128,3 +130,4 @@ class StationRecord:
     from_empty: bool = False
     interval_counts: bool = False
     weight: pd.DataFrame | None = None
+    stop_lines: tuple = ()
