@@ -303,8 +303,9 @@ def truth_from_files(
     det_macro = observed_speed_bounds(
         detector_macro(det, passages, start, min_spacing, section), traj
     )
-    # The stations' interval counts between stations where speeds collapse (none at signals).
-    record = interval_record(det, section, read_net(inputs.net_file))
+    # The stations' interval counts between stations where speeds collapse; at signals the
+    # approaches by the net file's programs (the data's clock taken as the programs').
+    record = interval_record(det, section, read_net(inputs.net_file), inputs.net_file)
     k_df = k_estimates(
         traj, det_macro, section, sc.generator.snapshot_every_s, sc.detectors.k_window_s, record
     )
