@@ -298,7 +298,11 @@ class Simulation:
 
     def lane_end(self, vehicle_id: str, lane_id: str, pos_m: float) -> tuple[float, int]:
         """(front to where it must have left its lane(s) for its route, junctions counted, inf
-        where it carries on; SUMO's best-lane offset there: changes needed, > 0 left)."""
+        where it carries on; SUMO's best-lane offset there: changes needed, > 0 left). On a
+        junction's internal lane, not asked: SUMO's best lanes there are the next edge's
+        (its routes hold no internal edge), none of them the lane itself (inf, 0)."""
+        if lane_id.startswith(":"):
+            return float("inf"), 0
         for lane, length, _occ, offset, _cont, chain in _BEST_LANES(vehicle_id):
             if lane == lane_id and offset != 0:
                 ends = zip(map(libsumo.lane.getLinks, chain[:-1]), chain[1:], strict=False)
