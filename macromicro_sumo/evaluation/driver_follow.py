@@ -147,7 +147,8 @@ def driver_tau_record(
     with the fitted prior's other parameters): how many drivers give one, their 5/25/50/
     75/95% quantiles [s], and the share of them at or below the prior's one tau (502: the
     pooled fit's 1.056 s has 27% of its 216 drivers at or below it; their upper quartile,
-    its IDM cars, follows at 1.37 s and beyond)."""
+    its IDM cars, follows at 1.37 s and beyond), and every quantile (``levels_s``): the
+    agent's ``driver_tau`` buffer with ``policy.driver_follow``."""
     taus = np.array(list(driver_taus(obs, accel, keys, params, veh_length_m, dt_s).values()))
     q = tau_quantiles(taus)
     return {
@@ -161,4 +162,6 @@ def driver_tau_record(
         "share_at_or_below_prior": round(float(np.mean(taus <= params.tau_s + 1e-9)), 3)
         if len(taus)
         else None,
+        # Every quantile (``QUANTILE_LEVELS``): what policy.driver_follow draws from.
+        "levels_s": None if q is None else [float(x) for x in q],
     }
