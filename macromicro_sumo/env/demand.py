@@ -29,6 +29,8 @@ episode is what a deployment does, on a training run of the ground truth:
   "memory" from its speed where it entered the section, before the window for a vehicle
   already there), so that the policy meets here the drivers the snapshot episodes and the
   deployment give it;
+* with ``policy.driver_follow`` (``set_driver_taus``), each driven vehicle observes its own
+  tau as a trailing column (``env.driver_tau.DriverTaus`` of the run, the deployment's);
 * the reward of a step is the section env's r_macro of every vehicle on the section
   against psi of the detector interval holding the step (``section_macro_reward``);
 * a vehicle whose front passed its leader's back (a collision) is removed: its episode
@@ -46,6 +48,7 @@ import numpy as np
 
 from macromicro_sumo.data.section import PSI_FIELDS, SectionTruth, psi_table, run_section
 from macromicro_sumo.env.driver_speed import DriverSpeeds, scale_limits
+from macromicro_sumo.env.driver_tau import DriverTaus, with_tau
 from macromicro_sumo.env.section_bank import section_macro_reward, section_target
 from macromicro_sumo.road.leaders import nearer_standing, set_leader_gap, stop_distance_m
 from macromicro_sumo.road.physics import (
@@ -216,6 +219,9 @@ class DemandCore:
         # this episode's drivers (None: every driver the limits as they are).
         self._driver_quantiles: np.ndarray | None = None
         self.drivers: DriverSpeeds | None = None
+        # policy.driver_follow: the drivers' tau quantiles and this episode's taus.
+        self._tau_quantiles: np.ndarray | None = None
+        self.taus: DriverTaus | None = None
         self.counts = {"episodes": 0, "vehicle_steps": 0, "collisions": 0, "teleports": 0}
 
     # ------------------------------------------------------------------ episodes
@@ -226,6 +232,13 @@ class DemandCore:
         ``DriverSpeeds`` takes them); None: the limits as they are."""
         off = quantiles is None or self.sc.policy.driver_speed == "none"
         self._driver_quantiles = None if off else np.asarray(quantiles, dtype=float)
+
+    def set_driver_taus(self, quantiles: np.ndarray | None) -> None:
+        """``policy.driver_follow``: from the next ``reset`` on, each driven vehicle's
+        observation ends in its own tau from the drivers' tau ``quantiles`` (the agent's
+        ``driver_tau`` buffer, as the deployment's ``DriverTaus``); None: no column."""
+        self._tau_quantiles = None if quantiles is None else np.asarray(quantiles, dtype=float)
+        self.obs_dim = len(OBSERVATION_FEATURES[self.observation]) + (quantiles is not None)
 
     def windows(self, rng: np.random.Generator, n: int) -> list[tuple[int, float]]:
         """``n`` episode starts (run, t0): a run with psi, a start on the step grid such
@@ -273,6 +286,8 @@ class DemandCore:
         self.types, self.population, self.driven = {}, set(), []
         q = self._driver_quantiles
         self.drivers = None if q is None else DriverSpeeds(q, self.sc, self.run)
+        q = self._tau_quantiles
+        self.taus = None if q is None else DriverTaus(q, self.sc, self.run)
         steps = int(round(t0_s / self.dt))
         if fleet_run is not None:
             fleet.insert_fleet(sim, *fleet_run, FLEET_ROUTE_PREFIX)
@@ -367,6 +382,8 @@ class DemandCore:
         self._speed = scene.obs[:, 0].copy() if len(now) else np.zeros(0)
         if self.drivers is not None and now:  # each driver's own limits (DriverSpeeds)
             scale_limits(scene.obs, self.drivers(now, scene.obs))
+        if self.taus is not None:  # policy.driver_follow: each driver's own tau, last
+            return now, with_tau(scene.obs, self.taus(now))
         return now, scene.obs
 
     def step(self, accel: np.ndarray) -> DemandStep:

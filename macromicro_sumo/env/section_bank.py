@@ -61,6 +61,10 @@ class SectionBank:
     # (E, N) each slot's desired-speed factor on the limits it observes (``policy.
     # driver_speed``, ``env.driver_speed``); None: 1 for every driver.
     driver_factor: np.ndarray | None = None
+    # (E, N) each slot's Krauss tau [s] (``policy.driver_follow``, ``env.driver_tau``): the
+    # policy's rollouts append it to the observations (``policy.rollout.own_taus``); None:
+    # the prior's one tau.
+    driver_tau: np.ndarray | None = None
     # (E, N) each slot's vType's maxSpeed [m/s] (``speed_caps``; inf: none): a hidden
     # vehicle's speed commands are held to it, its physics (as a deployment's); None: no cap.
     vmax_mps: np.ndarray | None = None

@@ -207,3 +207,20 @@ def policy_action(agent, stochastic: bool = True) -> ActionFn:
         return mean + std * rng.standard_normal(mean.shape) if stochastic else mean
 
     return act
+
+
+def mean_logp(agent: Agent, obs: torch.Tensor, actions: torch.Tensor) -> float:
+    """Mean log-likelihood of ``actions`` under the agent (NaN without pairs)."""
+    if len(obs) == 0:
+        return float("nan")
+    with torch.no_grad():
+        return float(agent.dist(obs).log_prob(actions).mean())
+
+
+def mean_rmse(agent: Agent, obs: torch.Tensor, actions: torch.Tensor) -> float:
+    """RMSE [m/s^2] of the agent's mean action, the deployed one, against ``actions``
+    (NaN without pairs). Unlike ``mean_logp`` it does not move with the action std."""
+    if len(obs) == 0:
+        return float("nan")
+    with torch.no_grad():
+        return float(((agent.mean_action(obs) - actions) ** 2).mean().sqrt())

@@ -72,6 +72,7 @@ _PPO = tuple(
         "collision_penalty",
         "residual_bound_mps2",
         "residual_pairs",
+        "driver_follow",  # chosen after the prior, with it (policy.driver_follow)
         "refine_iterations",
         "refine_updates",
         "refine_epochs",
@@ -174,6 +175,11 @@ def stale_reason(record: dict[str, Any], sc: Any, data: Path, path: Path) -> str
     if changed:
         more = f" and {len(changed) - 3} more" if len(changed) > 3 else ""
         return f"made for other settings ({', '.join(changed[:3])}{more} changed)"
+    # A Krauss prior's record keeps the drivers' taus policy.driver_follow draws from.
+    taus = record["prior"].get("driver_taus") if isinstance(record["prior"], dict) else None
+    krauss = record["family"] == "krauss"
+    if krauss and sc.policy.driver_follow != "none" and "levels_s" not in (taus or {}):
+        return "made before the drivers' taus were kept (policy.driver_follow draws them)"
     if record["ground_truth_manifest_sha256"] != file_sha256(Path(data) / "manifest.json"):
         return f"made on another ground truth (its manifest.json is not {data}'s)"
     pairs = path.parent / PAIRS_FILE

@@ -83,6 +83,13 @@ def driver_quantiles(agent: Agent) -> np.ndarray | None:
     return None if q is None else q.double().numpy()
 
 
+def tau_quantiles(agent: Agent) -> np.ndarray | None:
+    """The drivers' tau quantiles the agent carries (``policy.driver_follow``; None: none),
+    in float64 as the deployment hands them to ``DriverTaus`` (``deploy.policy_batch``)."""
+    q = getattr(agent, "driver_tau", None)
+    return None if q is None else q.double().numpy()
+
+
 def collect_demand(
     agent: Agent,
     core: DemandCore,
@@ -98,6 +105,7 @@ def collect_demand(
     rewards, collided, collisions, teleports, steps = [], 0, 0, 0, 0
     t_frac = torch.tensor(DEMAND_T_FRAC)
     core.set_driver_speeds(driver_quantiles(agent))
+    core.set_driver_taus(tau_quantiles(agent))
     for run, t0 in windows:
         c0, tp0 = core.counts["collisions"], core.counts["teleports"]
         core.reset(run, t0)
@@ -190,6 +198,7 @@ def warmup_states(agent: Agent, core: DemandCore, warmup_s: float) -> np.ndarray
     dt = core.dt
     out = []
     core.set_driver_speeds(driver_quantiles(agent))
+    core.set_driver_taus(tau_quantiles(agent))
     for run in core.runs:
         core.reset(int(run), dt)
         for _ in range(int(round(warmup_s / dt)) - 1):
@@ -206,17 +215,20 @@ def prior_warmup_states(
     prior_params: Mapping[str, float],
     make_demand: Callable[[], DemandCore],
     driver_speed: np.ndarray | None = None,
+    driver_tau: np.ndarray | None = None,
 ) -> np.ndarray:
     """``warmup_states`` of the training runs' demand (``make_demand``) under the fitted
     prior alone (``policy.prior``, ``prior_params``), its drivers' desired-speed factors
     from ``driver_speed`` (the trained agent's quantiles, ``policy.driver_speed``); a
-    demand core of its own, closed before the snapshot env starts, so that env runs as it
+    demand core of its own (each driver's own tau from ``driver_tau``,
+    ``policy.driver_follow``), closed before the snapshot env starts, so that env runs as it
     did without it."""
     agent = Agent(
         observation=sc.policy.observation,
         prior=sc.policy.prior,
         prior_params=prior_params,
         driver_speed=driver_speed,
+        driver_tau=driver_tau,
     )
     core = make_demand()
     try:

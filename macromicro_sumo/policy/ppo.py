@@ -48,7 +48,7 @@ from macromicro_sumo.env.section_bank import SectionBank
 from macromicro_sumo.env.section_observations import initial_observations
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import write_csv
-from macromicro_sumo.policy.agent import Agent
+from macromicro_sumo.policy.agent import Agent, mean_logp, mean_rmse
 from macromicro_sumo.policy.checkpoint import (
     CHECKPOINT_FORMAT,
     policy_file,
@@ -61,6 +61,7 @@ from macromicro_sumo.policy.demand_rollout import (
     join_demand,
     prior_warmup_states,
 )
+from macromicro_sumo.policy.driver_follow import follow_inputs
 from macromicro_sumo.policy.residual import (
     anchor_loss,
     anchor_observations,
@@ -158,23 +159,6 @@ def validation_pairs(
     return torch.as_tensor(ro.obs[keep]), torch.as_tensor(act, dtype=torch.float32)
 
 
-def mean_logp(agent: Agent, obs: torch.Tensor, actions: torch.Tensor) -> float:
-    """Mean log-likelihood of ``actions`` under the agent (NaN without pairs)."""
-    if len(obs) == 0:
-        return float("nan")
-    with torch.no_grad():
-        return float(agent.dist(obs).log_prob(actions).mean())
-
-
-def mean_rmse(agent: Agent, obs: torch.Tensor, actions: torch.Tensor) -> float:
-    """RMSE [m/s^2] of the agent's mean action, the deployed one, against ``actions``
-    (NaN without pairs). Unlike ``mean_logp`` it does not move with the action std."""
-    if len(obs) == 0:
-        return float("nan")
-    with torch.no_grad():
-        return float(((agent.mean_action(obs) - actions) ** 2).mean().sqrt())
-
-
 def learning_rate(lr: float, schedule: str, update: int, n_updates: int) -> float:
     """Adam's rate at ``update`` (0-based): constant, or linear decay reaching 0 after the last."""
     return lr * (1.0 - update / n_updates) if schedule == "linear" else lr
@@ -196,6 +180,7 @@ def train_policy(
     prior_params: Mapping[str, float] | None = None,
     recorded_pairs: tuple[np.ndarray, np.ndarray] | None = None,
     driver_speed: np.ndarray | None = None,
+    driver_tau: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """PPO on the env over ``bank``; writes policy.pt, policy_train_log.csv, checkpoints.
 
@@ -216,7 +201,8 @@ def train_policy(
     their own sensors saw (the pairs the prior was fitted on): the likelihood term uses them
     instead of the rollouts' observed pairs, whose leader is often a generated vehicle the
     recorded action did not answer (``policy.residual``). ``driver_speed``: the drivers'
-    desired-speed factor quantiles (``policy.driver_speed = "drawn"``), kept in the agent.
+    desired-speed factor quantiles (``policy.driver_speed = "drawn"``), kept in the agent;
+    ``driver_tau``: the drivers' tau quantiles (``policy.driver_follow``), the same.
     """
     cfg = sc.policy
     objective = objective or cfg.objective
@@ -236,8 +222,10 @@ def train_policy(
     # snapshot env starts; none without a warm-up (the ring records from its insertion).
     warm = None
     if warmup_anchors(sc, use_micro) and make_demand is not None:
-        states = prior_warmup_states(sc, prior_params, make_demand, driver_speed)
+        states = prior_warmup_states(sc, prior_params, make_demand, driver_speed, driver_tau)
         warm = torch.as_tensor(states)
+    # policy.driver_follow: each slot's tau, and the likelihood pairs' one (the prior's).
+    bank, recorded_pairs = follow_inputs(bank, recorded_pairs, prior_params, driver_tau, seed)
     core = make_core(bank, seed)
     # The ring's rollouts, B episodes per SUMO step: the same rollout, to the bit (rollout.py).
     batched = batched_like(core, min(cfg.episodes_per_update, BATCH_SCENES))
@@ -258,6 +246,7 @@ def train_policy(
             prior_params,
             cfg.residual_bound_mps2,
             driver_speed,
+            driver_tau,
         )
         if init is not None:
             agent.load_state_dict(init)
@@ -463,6 +452,7 @@ def train_policy(
                         "hidden_size": agent.hidden_size,
                         "prior": agent.prior,
                         "driver_speed": getattr(cfg, "driver_speed", "none"),
+                        "driver_follow": getattr(cfg, "driver_follow", "none"),
                         "micro_pool": micro_pool,
                         "best_val": best_val,
                         "best_state_dict": best_state,
@@ -487,6 +477,7 @@ def train_policy(
             "hidden_size": agent.hidden_size,
             "prior": agent.prior,
             "driver_speed": getattr(cfg, "driver_speed", "none"),
+            "driver_follow": getattr(cfg, "driver_follow", "none"),
             "objective": objective,
             "scenario": sc.to_dict(),
         },

@@ -61,6 +61,8 @@ class PriorDeploy:
     data: Path
     driver_speed: np.ndarray | None = None
     progress: bool = False
+    # The drivers' tau quantiles (``policy.driver_follow``'s "auto" deploys with them).
+    driver_tau: np.ndarray | None = None
 
     def __call__(self, sc: Any, params: Mapping[str, float]) -> dict[str, Any]:
         agent = Agent(
@@ -69,6 +71,7 @@ class PriorDeploy:
             prior_params=params,
             residual_bound_mps2=0.0,  # the prior alone
             driver_speed=self.driver_speed,
+            driver_tau=self.driver_tau,
         )
         return self.score(sc, self.data, agent)
 

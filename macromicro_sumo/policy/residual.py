@@ -100,8 +100,10 @@ def support_weight(
     obs: torch.Tensor, support: tuple[torch.Tensor, torch.Tensor], scale: torch.Tensor
 ) -> torch.Tensor:
     """(...,) in [0, 1]: 0 inside the support, rising linearly to 1 at one normalisation
-    std (``scale``) outside it in the furthest feature."""
-    lo, hi = support
+    std (``scale``) outside it in the furthest feature. The features are ``scale``'s; a tau
+    column after them (``policy.driver_follow``) is no feature of the support."""
+    d = scale.shape[-1]
+    lo, hi, obs = support[0][..., :d], support[1][..., :d], obs[..., :d]
     outside = torch.clamp(torch.maximum(lo - obs, obs - hi), min=0.0) / scale
     return torch.clamp(outside.amax(dim=-1), max=1.0)
 

@@ -10,6 +10,10 @@ fewer for an episode that ends early, so a chunk of episodes runs on noise drawn
 ran H steps and, where one ended early, the episodes after it run again on the noise they
 would have had. ``policy.ppo.train_policy`` uses it where the section is one the batched
 core takes (the ring): docs/design.md, "Env speed (stop 26)".
+
+With ``policy.driver_follow`` the bank holds each slot's tau (``SectionBank.driver_tau``):
+both append it to every observation as a trailing column (``own_taus``), which the agent's
+prior reads and PPO's stored observations keep.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ import numpy as np
 import torch
 
 from macromicro_sumo.env.batched import BatchedSectionCore
+from macromicro_sumo.env.driver_tau import with_tau
 from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.policy.agent import Agent
 
@@ -40,6 +45,12 @@ class Rollout:
     leader_hidden: np.ndarray  # (E, H, N) bool: the vehicle's leader at the step is hidden
 
 
+def own_taus(obs: np.ndarray, taus: np.ndarray | None, episodes) -> np.ndarray:
+    """``obs`` (..., N, D) of ``episodes`` (an episode, or one per scene) with each slot's
+    tau (``taus``: the bank's ``driver_tau``) as a trailing column; as it is without."""
+    return obs if taus is None else with_tau(obs, taus[episodes])
+
+
 def collect(
     agent: Agent,
     core: SectionCore,
@@ -52,7 +63,9 @@ def collect(
     active = np.ones((len(episodes), horizon, n), dtype=bool)
     e_n = len(episodes)
     leader_hidden = np.zeros((e_n, horizon, n), dtype=bool)
-    obs = np.zeros((e_n, horizon, n, core.obs_dim), dtype=np.float32)
+    taus = core.bank.driver_tau
+    dim = core.obs_dim + (taus is not None)
+    obs = np.zeros((e_n, horizon, n, dim), dtype=np.float32)
     act = np.zeros((e_n, horizon, n), dtype=np.float32)
     logp = np.zeros_like(act)
     val = np.zeros_like(act)
@@ -61,7 +74,7 @@ def collect(
     collisions = errors = 0
     t_frac = torch.arange(horizon, dtype=torch.float32) / horizon
     for i, ep in enumerate(episodes):
-        o = core.reset(int(ep))
+        o = own_taus(core.reset(int(ep)), taus, int(ep))
         for t in range(horizon):
             active[i, t] = core.active
             leader_hidden[i, t] = (core.leader >= 0) & hidden[i][np.maximum(core.leader, 0)]
@@ -74,7 +87,7 @@ def collect(
                 val[i, t] = agent.value(ot, t_frac[t].expand(n)).numpy()
             res = core.step(act[i, t][hidden[i]])
             r_macro[i, t] = res.r_macro
-            o = res.obs
+            o = own_taus(res.obs, taus, int(ep))
             if res.collision or res.truncated:
                 collisions += res.collision
                 errors += bool(res.error)
@@ -108,8 +121,9 @@ def collect_batched(
 ) -> Rollout:
     """``collect``'s rollout of ``episodes``, ``core.b`` of them per SUMO step."""
     n, e_n = core.n, len(episodes)
+    dim = core.obs_dim + (core.bank.driver_tau is not None)
     ro = Rollout(
-        np.zeros((e_n, horizon, n, core.obs_dim), dtype=np.float32),
+        np.zeros((e_n, horizon, n, dim), dtype=np.float32),
         np.zeros((e_n, horizon, n), dtype=np.float32),
         np.zeros((e_n, horizon, n), dtype=np.float32),
         np.zeros((e_n, horizon, n), dtype=np.float32),
@@ -166,7 +180,8 @@ def _run_chunk(
     # not recorded): a full reset also takes libsumo back from another core.
     reset = np.full(core.b, episodes[idx[0]])
     reset[:m] = episodes[idx]
-    o = core.step(np.zeros((core.b, n), dtype=np.float32), reset).obs
+    taus = core.bank.driver_tau
+    o = own_taus(core.step(np.zeros((core.b, n), dtype=np.float32), reset).obs, taus, reset)
     live = np.ones(m, dtype=bool)
     t_frac = torch.arange(horizon, dtype=torch.float32) / horizon
     accel = np.zeros((core.b, n), dtype=np.float32)  # float32 as collect's: same clipping
@@ -185,15 +200,16 @@ def _run_chunk(
                 ro.values[i, t] = agent.value(ot, t_frac[t].expand(n)).numpy()
         accel[:m] = ro.actions[idx, t]
         res = core.step(accel)
+        res_obs = own_taus(res.obs, taus, reset)
         for j in np.flatnonzero(live):
             i = idx[j]
             ro.rewards[i, t] = res.r_macro[j]
             if res.collision[j] or res.truncated[j]:
                 collided[i] = res.collision[j]
                 failed[i] = bool(res.errors[j])
-                ro.obs[i, t + 1 :] = res.obs[j]  # the episode ends: later steps carry no reward
+                ro.obs[i, t + 1 :] = res_obs[j]  # the episode ends: later steps carry no reward
                 ro.leader_hidden[i, t + 1 :] = ro.leader_hidden[i, t]
                 ro.active[i, t + 1 :] = False
                 length[i] = t + 1
                 live[j] = False
-        o = res.obs
+        o = res_obs

@@ -45,6 +45,7 @@ from macromicro_sumo.policy.chosen_prior import (
     read_choice,
     write_choice,
 )
+from macromicro_sumo.policy.driver_follow import follow_choice
 from macromicro_sumo.policy.ppo import train_policy
 from macromicro_sumo.policy.prior_choice import (
     FittedPrior,
@@ -249,6 +250,10 @@ def run_train_policy(
     trained, (prior, extra, pairs) = stage_prior(
         sc, truth, Path(data), out, splits, fit_prior, deploy, command
     )
+    # policy.driver_follow: each driver's own tau, its quantiles (None: the prior's one).
+    taus, follow = follow_choice(trained, extra.get("prior", {}), prior, deploy)
+    if follow is not None:
+        extra["driver_follow"] = follow
     res = train_policy(
         trained,
         episodes.bank,
@@ -263,6 +268,7 @@ def run_train_policy(
         prior_params=prior,
         recorded_pairs=pairs,
         driver_speed=episodes.driver_speed,
+        driver_tau=taus,
     )
     if "warmup_states" in res:  # the warm-up anchors' states (policy.residual)
         extra["warmup_states"] = res["warmup_states"]

@@ -162,6 +162,21 @@ def test_a_stale_choice_file_is_said_in_one_line_and_made_again(auto_run, tmp_pa
     assert read_choice(path, brake, gt) is None
     said = capsys.readouterr().out
     assert said.count("\n") == 1 and "deploy.safety_brake changed" in said and str(path) in said
+    # policy.driver_follow is not read by the choice, but a Krauss choice made before the
+    # drivers' taus were kept (no "levels_s") cannot give them: made again for it alone.
+    follow = dataclasses.replace(sc, policy=dataclasses.replace(sc.policy, driver_follow="drawn"))
+    kept = path.read_text()
+    old = json.loads(kept)
+    taus = {"drivers": 3, "levels_s": None}
+    path.write_text(json.dumps({**old, "family": "krauss", "prior": {"driver_taus": taus}}))
+    assert read_choice(path, follow, gt) is not None
+    path.write_text(json.dumps({**old, "family": "krauss", "prior": {}}))
+    assert read_choice(path, sc, gt) is not None
+    assert capsys.readouterr().out == ""
+    assert read_choice(path, follow, gt) is None
+    said = capsys.readouterr().out
+    assert said.count("\n") == 1 and "drivers' taus" in said
+    path.write_text(kept)
     other_gt = tmp_path / "gt"
     shutil.copytree(gt, other_gt)
     manifest = json.loads((other_gt / "manifest.json").read_text())

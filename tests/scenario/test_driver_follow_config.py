@@ -49,3 +49,13 @@ def test_per_driver_taus_need_the_krauss_prior(tmp_path: Path, prior: str) -> No
     msg = str(err.value)
     assert "\n" not in msg and "s.toml" in msg and "policy.driver_follow" in msg
     assert "krauss" in msg and "accepted" in msg
+
+
+def test_the_priors_choice_does_not_read_it(tmp_path: Path) -> None:
+    """The prior's family and relaxation are chosen before the drivers' taus, with one tau:
+    a choice made without per-driver taus stays valid with them (no choice again)."""
+    from macromicro_sumo.policy.chosen_prior import choice_settings
+
+    plain = scenario(tmp_path, prior="krauss").to_dict()
+    drawn = scenario(tmp_path, prior="krauss", driver_follow="drawn").to_dict()
+    assert choice_settings(drawn) == choice_settings(plain)

@@ -1,0 +1,157 @@
+"""``policy.driver_follow`` in Stage II (real SUMO: ring_two_lane, two runs of 40 s after a
+30 s warm-up; real torch): a driver's tau is the same in the demand env and in the
+deployment (a hash of seed, run and vehicle); the snapshot episodes' rollouts carry each
+slot's tau as the last observation column and the prior brakes with it; PPO keeps the
+quantiles in the agent, which a deployment then draws from."""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_warmup_anchors import true_completion  # noqa: E402
+
+from macromicro_sumo.data.section import section_snapshots  # noqa: E402
+from macromicro_sumo.deploy.policy_batch import policy_batch  # noqa: E402
+from macromicro_sumo.deploy.run import Drive, load_context, run_method  # noqa: E402
+from macromicro_sumo.env.demand import DemandCore  # noqa: E402
+from macromicro_sumo.env.driver_speed import QUANTILE_LEVELS  # noqa: E402
+from macromicro_sumo.env.section import SectionCore  # noqa: E402
+from macromicro_sumo.env.section_bank import build_section_bank  # noqa: E402
+from macromicro_sumo.pipeline.build import fit_residual_prior  # noqa: E402
+from macromicro_sumo.policy.agent import Agent  # noqa: E402
+from macromicro_sumo.policy.demand_rollout import tau_quantiles  # noqa: E402
+from macromicro_sumo.policy.driver_follow import follow_choice, follow_inputs  # noqa: E402
+from macromicro_sumo.policy.ppo import train_policy  # noqa: E402
+from macromicro_sumo.policy.rollout import collect  # noqa: E402
+from macromicro_sumo.scenario.load import load_scenario  # noqa: E402
+from macromicro_sumo.sumo.inputs import scenario_inputs  # noqa: E402
+from macromicro_sumo.truth.section import load_section_truth, simulate_section  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+TAU_Q = np.interp(QUANTILE_LEVELS, [0.0, 0.05, 0.5, 0.75, 0.95, 1.0],
+                  [1.0, 1.035, 1.075, 1.37, 1.79, 2.0])  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def ring(tmp_path_factory: pytest.TempPathFactory):
+    sc = load_scenario(ROOT / "scenarios" / "ring_two_lane.toml")
+    sc = replace(
+        sc,
+        simulation=replace(sc.simulation, n_runs=2, warmup_s=30.0, duration_s=40.0),
+        policy=replace(sc.policy, driver_follow="drawn", episodes_per_update=2),
+    )
+    folder = tmp_path_factory.mktemp("driver_follow")
+    gt = simulate_section(sc, folder / "gt", progress=False)
+    truth = load_section_truth(gt, sc)
+    prior, extra, pairs = fit_residual_prior(sc, truth, truth.runs)
+    return sc, Path(gt), truth, prior, pairs, extra["prior"]
+
+
+def prior_agent(sc, prior) -> Agent:
+    return Agent(observation=sc.policy.observation, prior="krauss", prior_params=prior,
+                 residual_bound_mps2=0.0, driver_tau=TAU_Q)  # fmt: skip
+
+
+def test_a_driver_has_one_tau_in_the_demand_env_and_the_deployment(ring, tmp_path) -> None:
+    sc, gt, truth, prior, _, _ = ring
+    agent = prior_agent(sc, prior)
+    core = DemandCore(sc, truth, truth.runs, 10)
+    demand: dict[str, float] = {}
+    try:
+        core.set_driver_taus(tau_quantiles(agent))  # as collect_demand sets them
+        core.reset(0, 10.0)
+        for _ in range(6):
+            vids, obs = core.observe()
+            assert obs.shape[1] == core.obs_dim == 7  # lookahead + the tau
+            for v, t in zip(vids, obs[:, -1], strict=True):
+                assert demand.setdefault(v, t) == t
+            core.step(np.zeros(len(vids)))
+    finally:
+        core.close()
+    act = policy_batch(agent)
+    seen: dict[str, float] = {}
+    make = act.driver_taus
+
+    def recording(sc_, run):
+        taus = make(sc_, run)
+
+        def call(vids):
+            got = taus(vids)
+            for v, t in zip(vids, got, strict=True):
+                assert seen.setdefault(v, t) == t
+            return got
+
+        return call
+
+    act.driver_taus = recording
+    run_method(load_context(sc, gt), Drive(act=act), tmp_path, [0])
+    common = sorted(set(demand) & set(seen))
+    assert len(common) >= 10
+    assert [demand[v] for v in common] == [seen[v] for v in common]
+    assert len({round(t, 6) for t in seen.values()}) > len(seen) // 2  # drawn, not one
+
+
+def test_snapshot_rollouts_carry_each_slots_tau_and_ppo_keeps_the_quantiles(ring, tmp_path) -> None:
+    sc, _, truth, prior, (obs, acc), _ = ring
+    torch.set_num_threads(1)
+    snaps = section_snapshots(truth, sc, truth.runs)
+    bank = build_section_bank(sc, truth, snaps, true_completion, 10, 0)
+    net = scenario_inputs(sc).net_file
+    taus_bank, pairs = follow_inputs(bank, (obs, acc), prior, TAU_Q, sc.seed)
+    assert bank.driver_tau is None and taus_bank.driver_tau.shape == bank.valid.shape
+    assert pairs[0].shape[1] == obs.shape[1] + 1
+    assert (pairs[0][:, -1] == prior["tau_s"]).all()
+    again, _ = follow_inputs(bank, None, prior, TAU_Q, sc.seed)
+    np.testing.assert_array_equal(again.driver_tau, taus_bank.driver_tau)  # seeded
+    core = SectionCore(sc, truth.section, taus_bank, net, seed=0)
+    agent = prior_agent(sc, prior)
+    eps = np.arange(min(3, len(bank)))
+    try:
+        ro = collect(agent, core, eps, 0.0, 4, torch.Generator().manual_seed(0))
+    finally:
+        core.close()
+    assert ro.obs.shape[-1] == 7
+    want = np.broadcast_to(taus_bank.driver_tau[eps][:, None, :], ro.obs.shape[:-1])
+    np.testing.assert_array_equal(ro.obs[..., -1], want.astype(np.float32))
+    one = Agent(observation=sc.policy.observation, prior="krauss", prior_params=prior,
+                residual_bound_mps2=0.0)  # fmt: skip
+    o = torch.as_tensor(ro.obs[ro.active])
+    with torch.no_grad():
+        own, single = agent.mean_action(o), one.mean_action(o[:, :6])
+    assert not torch.equal(own, single)  # the rows' own taus moved the prior
+
+    def make_core(b, seed):
+        return SectionCore(sc, truth.section, b, net, seed=seed)
+
+    res = train_policy(sc, bank, tmp_path, updates=1, progress=False, make_core=make_core,
+                       prior_params=prior, recorded_pairs=(obs, acc),
+                       driver_tau=TAU_Q)  # fmt: skip
+    np.testing.assert_array_equal(res["agent"].driver_tau.numpy(), TAU_Q.astype(np.float32))
+    ck = torch.load(tmp_path / "policy.pt", weights_only=True)
+    assert ck["driver_follow"] == "drawn" and "driver_tau" in ck["state_dict"]
+
+
+def test_the_fit_records_the_quantiles_drawn_from(ring) -> None:
+    """The Krauss fit's record keeps every quantile of the drivers' taus (or None under 30
+    drivers); "drawn" takes them, "none" nothing, and a record without them keeps the one
+    tau."""
+    sc, _, truth, prior, _, fitted = ring
+    record = fitted["driver_taus"]
+    assert "levels_s" in record
+    off = replace(sc, policy=replace(sc.policy, driver_follow="none"))
+    assert follow_choice(off, fitted, prior, None) == (None, None)
+    q, got = follow_choice(sc, fitted, prior, None)
+    assert got["setting"] == "drawn" and got["drivers_with_tau"] == record["drivers"]
+    assert (q is None) == (record["drivers"] < 30) == (record["levels_s"] is None)
+    assert got["chosen"] == ("none" if q is None else "drawn")
+    made = {**fitted, "driver_taus": {**record, "levels_s": TAU_Q.tolist(), "drivers": 40}}
+    q, got = follow_choice(sc, made, prior, None)
+    np.testing.assert_array_equal(q, TAU_Q)
+    assert got["chosen"] == "drawn" and got["drivers_with_tau"] == 40
