@@ -29,7 +29,7 @@ from operator import and_
 
 import numpy as np
 
-from macromicro_sumo.deploy.lane_change import lookahead_speeds, strategic_reach_m
+from macromicro_sumo.deploy.lane_change import keep_right_caps, lookahead_speeds, strategic_reach_m
 from macromicro_sumo.deploy.observe import STANDING, LaneTable, Table, observe_rows, states_of
 from macromicro_sumo.deploy.population import (
     ActionBatch,
@@ -394,6 +394,7 @@ class SectionSpeedDriver(SectionDriver):
             )
         if near:
             cap = self.yields(sim, vids, near, obs[:, 0], safe)
+        cap = keep_right_caps(self.sc, self.section, self.shape_of, st, rows, cap)
 
         def layer() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
             return gap, own, lead_decel, lead
