@@ -11,9 +11,11 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
+import pytest
 from conftest import netconvert, small_section_scenario
-from deploy_nets import CAR
+from deploy_nets import CAR, idm_agent
 
+from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.lane_change import (
     CONGESTED_MPS,
     blocked,
@@ -21,7 +23,9 @@ from macromicro_sumo.deploy.lane_change import (
     left_lane,
     no_pass_right_cap,
 )
+from macromicro_sumo.deploy.stage import policy_batch
 from macromicro_sumo.road.section import read_section
+from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.sumo.states import VehicleStates
 
 SLOW = [f"q{k}" for k in range(8)]  # the queue on lane 1, SUMO's own drivers
@@ -116,3 +120,58 @@ def _queue_files(folder: Path) -> tuple[Path, Path]:
         'departPos="100" departSpeed="25"/>\n</routes>\n'
     )
     return net, routes
+
+
+@pytest.fixture(scope="module")
+def passes(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[tuple]]:
+    """Per deploy.merge ("sumo": the ban, "handover": none), the ego's (lane, position,
+    speed) and the queue's rearmost and foremost positions each step until the ego leaves
+    (80 s at most), the ego commanded by a policy cloned from IDM (desired 30 m/s)."""
+    folder = tmp_path_factory.mktemp("keep_right")
+    net, routes = _queue_files(folder)
+    base = small_section_scenario(
+        folder, net, routes, ["A"], instrumented={"ids": SLOW},
+        simulation={"warmup_s": 0.0, "duration_s": 80.0, "n_runs": 2},
+    )  # fmt: skip
+    section = read_section(net, ["A"], False)
+    out = {}
+    for merge in ("sumo", "handover"):
+        sc = dataclasses.replace(base, deploy=dataclasses.replace(base.deploy, merge=merge))
+        drv = SectionSpeedDriver(sc, section, 0, policy_batch(idm_agent("lookahead", 30.0)), "sumo")
+        opts = SumoOptions(net, (), sc.simulation.step_length_s, sc.seed, route_files=(routes,))
+        sim = Simulation(dataclasses.replace(opts, user_demand=True))
+        seen = []
+        try:
+            for _ in range(int(80.0 / sc.simulation.step_length_s)):
+                drv.before_step(sim)
+                sim.step()
+                st = sim.vehicle_states()
+                if "ego" not in st.index:
+                    break
+                e = st.index["ego"]
+                q = [st.pos_m[st.index[v]] for v in SLOW if v in st.index]
+                seen.append((st.lanes[e], st.pos_m[e], st.speed_mps[e], min(q), max(q)))
+        finally:
+            sim.close()
+        assert drv.stats.vehicle_steps_driven > 50, merge
+        out[merge] = seen
+    return out
+
+
+def test_a_commanded_car_passes_a_queue_on_its_left_at_sumo_s_60_kmh(
+    passes: dict[str, list[tuple]],
+) -> None:
+    """Alongside the queue (its front between the rearmost car's back and the foremost
+    car's front) on lane 0, with the ban, the ego drives at most 60 km/h + one step's
+    acceleration (measured: 14.7-17.5 m/s; SUMO's lane changer first moved it behind the
+    queue on lane 1, to 18.8 m/s, and back), and it does pass the queue; without (merge
+    "handover") at up to 30 m/s (measured 22.5-29.0). Fails without ``keep_right_caps``
+    (29.0 with "sumo")."""
+    top = {}
+    for merge, seen in passes.items():
+        beside = [v for ln, p, v, rear, front in seen if ln == "A_0" and rear - 5.0 < p < front]
+        assert len(beside) > 10, (merge, len(beside))
+        assert seen[-1][1] > seen[-1][4], merge  # it passed the whole queue
+        top[merge] = max(beside)
+    assert top["sumo"] < CONGESTED_MPS + 1.5, top
+    assert top["handover"] > CONGESTED_MPS + 5.0, top
