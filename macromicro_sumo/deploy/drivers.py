@@ -96,7 +96,6 @@ class SectionDriver:
         self.type_code: dict[str, int] = {}  # vType -> its row in shape_table
         self.lane_table = LaneTable(section)
         self.steps = 0
-        self.picked: tuple[list[str], list[bool]] = ([], [])  # before_step's vids and mask
         self._brake_limit: tuple[tuple[str, ...], np.ndarray] = ((), np.empty(0))
         # -decel - tolerance of the least decel among the vTypes met: the loosest threshold.
         self._loosest_brake = -np.inf
@@ -119,9 +118,7 @@ class SectionDriver:
         # In SUMO's order, which is sorted by ID (``VehicleStates``): no sort needed. C-level
         # passes, not a Python loop per vehicle.
         on = map(self.section.lanes.__contains__, st.lanes)
-        mask = list(map(and_, on, map(self.population.__contains__, ids)))
-        vids = list(compress(ids, mask))
-        self.picked = (vids, mask)  # ``drive``'s rows by the mask
+        vids = list(compress(ids, map(and_, on, map(self.population.__contains__, ids))))
         now = set(vids)
         # Still in the network (on the road or teleporting), not on the section now: SUMO's
         # arrivals asked only where a driven vehicle is gone from the section.
@@ -340,9 +337,7 @@ class SectionSpeedDriver(SectionDriver):
         return cache.value[slots]  # inf where not due: dark
 
     def drive(self, sim: Simulation, vids: list[str], st: VehicleStates) -> None:
-        got, mask = self.picked  # before_step's mask: its rows without ID look-ups
-        at = compress(range(len(mask)), mask) if got is vids else map(st.index.__getitem__, vids)
-        rows = np.fromiter(at, np.int64, len(vids))
+        rows = np.fromiter(map(st.index.__getitem__, vids), np.int64, len(vids))
         lanes = list(map(st.lanes.__getitem__, rows.tolist()))
         slots, codes = self.slots_of(vids, lanes)
         # Where each must have left its lane: the merges' hand-over and the observation's
