@@ -284,6 +284,16 @@ class DeployConfig:
         "blocks it takes SUMO's cooperative slow-down; none: commands everywhere "
         "(docs/deploy.md, Merges)",
     )
+    keep_right: str = spec(
+        "off",
+        choices=("off", "blocked"),
+        doc="merge sumo: blocked, a commanded vehicle at 60 km/h or more passes a slower, "
+        "blocked leader on the lane to its left no faster than LC2013's ban on overtaking on "
+        "the right lets SUMO's drivers (deploy.lane_change.keep_right_caps; not with "
+        "policy.driver_speed drawn); off, no such cap (drawn 501 3.02 -> 2.75 m/s with "
+        "blocked, drawn 549 4.39 -> 4.95: docs/deploy.md, Keep right)",
+        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+    )
     fcd_s: float = spec(
         120.0, lo=0.0, hi=1e6, doc="trajectories.csv keeps the first fcd_s recorded seconds [s]"
     )
@@ -346,6 +356,11 @@ def check_deploy(
             f"{file}: deploy.compare_interval_s = {d.compare_interval_s:g} is not a multiple of "
             f"detectors.interval_s = {detector_interval_s:g}; accepted: 0 (the detectors' own) "
             f"or k x {detector_interval_s:g} s, k = 1, 2, ..."
+        )
+    if d.keep_right != "off" and d.merge != "sumo":
+        raise UserError(
+            f"{file}: deploy.keep_right = {d.keep_right!r} needs deploy.merge = 'sumo', not "
+            f"{d.merge!r}; accepted with deploy.merge = {d.merge!r}: 'off'"
         )
     if not 0.0 < d.share <= 1.0:
         raise UserError(f"{file}: deploy.share = {d.share!r} is out of range; accepted: (0, 1]")
