@@ -158,9 +158,10 @@ def test_memory_keeps_the_entry_ratio_within_the_observed_range() -> None:
     q = ratio_quantiles(np.linspace(0.8, 1.2, 41))  # median 1.0
     sc = SimpleNamespace(seed=7, policy=SimpleNamespace(driver_speed="memory"))
     drivers = DriverSpeeds(q, sc, 0)
-    # Entering at 27, 33 and 0 m/s on a 30 m/s road: 0.9, 1.1, and the slowest observed
-    # ratio for the car that entered standing.
-    first = np.array([[27.0, 30.0, 250.0, 0.0], [33.0, 30.0, 250.0, 0.0], [0.0, 30.0, 9.0, 0.0]])
+    # Entering at 27, 33 and 21 m/s on a 30 m/s road: 0.9, 1.1, and the slowest observed
+    # ratio for the car that entered at 0.7 (a queued one, below 0.65, is drawn:
+    # tests/policy/test_memory_queued_entry.py).
+    first = np.array([[27.0, 30.0, 250.0, 0.0], [33.0, 30.0, 250.0, 0.0], [21.0, 30.0, 9.0, 0.0]])
     assert np.allclose(drivers(["a", "b", "c"], first), [0.9, 1.1, 0.8])
     # Kept while driven, whatever the speed now.
     assert np.allclose(drivers(["c", "a"], first[[0, 1]] * [2.0, 1.0, 1.0, 1.0]), [0.8, 0.9])
