@@ -1,8 +1,8 @@
 """SUMO's lane changer (LC2013) as a speed-commanding driver (``deploy.drivers``) models it
 for ``deploy.merge = "handover"``: from how far ahead of where a vehicle must have left
 its lane SUMO makes that change urgent (``strategic_reach_m``), and the look-ahead speed
-that distance grows with (``lookahead_speeds``); for ``deploy.merge = "sumo"`` its ban on
-overtaking on the right, for commanded cars beside a queue on their left
+that distance grows with (``lookahead_speeds``); for ``deploy.keep_right = "blocked"`` its
+ban on overtaking on the right, for commanded cars beside a queue on their left
 (``keep_right_caps``). Pure numpy.
 
 LC2013: a change for the route is urgent once the distance left per change needed is below
@@ -91,19 +91,25 @@ def keep_right_caps(
     rows: np.ndarray,
     cap: np.ndarray | None,
 ) -> np.ndarray | None:
-    """With ``deploy.merge = "sumo"``: ``cap`` (per commanded vehicle, rows ``rows`` of the
-    road's state ``st``; None: none) lowered to ``no_pass_right_cap`` where the vehicle's
-    nearest leader on the lane to its left, on the same edge of ``section``, is slower and
-    itself blocked (``blocked``): a commanded car passes a queue on its left no faster
-    than SUMO's drivers do. Drawn 501's m0 lane 2 beside the queue on lane 3: 16.6 m/s in
-    the truth, 22-24 commanded. Not beside a free leader: the merge's commanded followers
-    held behind free cars on the lane to their left closed the gaps a SUMO ramp car
-    merges into (stood 23 steps at the acceleration lane's end). Not with
+    """With ``deploy.keep_right = "blocked"`` (and ``deploy.merge = "sumo"``): ``cap`` (per
+    commanded vehicle, rows ``rows`` of the road's state ``st``; None: none) lowered to
+    ``no_pass_right_cap`` where the vehicle's nearest leader on the lane to its left, on
+    the same edge of ``section``, is slower and itself blocked (``blocked``): a commanded
+    car passes a queue on its left no faster than SUMO's drivers do. Drawn 501's m0 lane 2
+    beside the queue on lane 3: 16.6 m/s in the truth, 22-24 commanded. Not beside a free
+    leader: the merge's commanded followers held behind free cars on the lane to their
+    left closed the gaps a SUMO ramp car merges into (stood 23 steps at the acceleration
+    lane's end). Not with
     ``policy.driver_speed = "drawn"``: SUMO's lane changer sorts the cars by their own
     speedFactor, to which a drawn factor is blind, and the ban passed the policy's slow
-    left lane on Bremen (-3 m/s) to the lanes on its right (1.146 -> 1.292 m/s).
+    left lane on Bremen (-3 m/s) to the lanes on its right (1.146 -> 1.292 m/s). Off by
+    default: on drawn 549 the caps at its busy 3-lane entry (1,560 veh/h a lane, so every
+    left leader at 2 s spacing counts as blocked) helped the lane drop's queue spill back to
+    the entry (all 4 runs 4.39 -> 4.95 m/s); a blocked test at 1 s x v + 10 m instead gave
+    549 4.23 but 501 3.00 (3.02 without the ban, 2.75 with it): 501's gain gone.
     ``shape_of``: vehicle -> (length, minGap, decel)."""
-    if sc.deploy.merge != "sumo" or sc.policy.driver_speed == "drawn":
+    d = sc.deploy
+    if d.keep_right != "blocked" or d.merge != "sumo" or sc.policy.driver_speed == "drawn":
         return cap
     speed, pos, lanes = st.speed_mps, st.pos_m, st.lanes
     own = speed[rows]

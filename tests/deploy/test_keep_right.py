@@ -2,8 +2,10 @@
 driver at 60 km/h or more does not pass a slower leader on the lane to its left; a speed
 command overrode that. On drawn 501 SUMO's cars on m0's lane 2 hold 16.6 m/s beside the
 queue on lane 3 (60 km/h, where SUMO lifts the ban), the commanded ones drove 22-24 m/s:
-60% of the policy's excess over the oracle (docs/deploy.md, stop 37). With ``deploy.merge
-= "sumo"`` a commanded car beside a queue on its left now passes it at SUMO's 60 km/h."""
+60% of the policy's excess over the oracle (docs/deploy.md, stop 37). With ``deploy.keep_right
+= "blocked"`` (and merge "sumo") a commanded car beside a queue on its left passes it at
+SUMO's 60 km/h. Off by default: on drawn 549 it made the deployment worse (4.39 -> 4.95 m/s,
+the lane drop's queue spilling back to the busy entry)."""
 
 from __future__ import annotations
 
@@ -24,6 +26,7 @@ from macromicro_sumo.deploy.lane_change import (
     no_pass_right_cap,
 )
 from macromicro_sumo.deploy.stage import policy_batch
+from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.section import read_section
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.sumo.states import VehicleStates
@@ -57,16 +60,44 @@ def test_the_cap_binds_a_fast_car_behind_a_slower_left_leader() -> None:
 
 def test_no_cap_with_drawn_driver_speeds_or_another_merge(tmp_path: Path) -> None:
     """``policy.driver_speed = "drawn"`` (Bremen: SUMO's lane changer sorts cars by their
-    own speedFactor, blind to the drawn factor) and merge "none" / "handover": the cap
-    passes through as it is."""
+    own speedFactor, blind to the drawn factor), merge "none" / "handover", and
+    ``deploy.keep_right = "off"`` (the default): the cap passes through as it is."""
     net, routes = _queue_files(tmp_path)
     sc = small_section_scenario(
         tmp_path, net, routes, ["A"], policy={"observation": "lookahead", "driver_speed": "drawn"}
     )
     cap = np.array([3.0])
+    section = read_section(net, ["A"], False)
     for merge in ("none", "handover", "sumo"):
-        c = dataclasses.replace(sc, deploy=dataclasses.replace(sc.deploy, merge=merge))
-        assert keep_right_caps(c, read_section(net, ["A"], False), {}, None, None, cap) is cap
+        d = dataclasses.replace(sc.deploy, merge=merge, keep_right="blocked")
+        c = dataclasses.replace(sc, deploy=d)
+        assert keep_right_caps(c, section, {}, None, None, cap) is cap
+    plain = small_section_scenario(tmp_path, net, routes, ["A"])
+    assert plain.deploy.keep_right == "off" and plain.policy.driver_speed != "drawn"
+    assert keep_right_caps(plain, section, {}, None, None, cap) is cap
+
+
+def test_keep_right_is_off_by_default_and_checked(tmp_path: Path) -> None:
+    """``deploy.keep_right``: "off" by default and then left out of the scenario's dict
+    (every existing scenario keeps its digest); "blocked" needs merge "sumo"; an unknown
+    value or "blocked" with another merge is one line naming file, field and what is
+    accepted."""
+    net, routes = _queue_files(tmp_path)
+    plain = small_section_scenario(tmp_path, net, routes, ["A"])
+    assert plain.deploy.keep_right == "off" and "keep_right" not in plain.to_dict()["deploy"]
+    said = small_section_scenario(tmp_path, net, routes, ["A"], deploy={"keep_right": "off"})
+    assert said.digest() == plain.digest()
+    on = small_section_scenario(tmp_path, net, routes, ["A"], deploy={"keep_right": "blocked"})
+    assert on.deploy.keep_right == "blocked" and on.digest() != plain.digest()
+    for bad, want in (
+        ({"keep_right": "always"}, "'off', 'blocked'"),
+        ({"keep_right": "blocked", "merge": "handover"}, "deploy.merge = 'sumo'"),
+    ):
+        with pytest.raises(UserError) as err:
+            small_section_scenario(tmp_path, net, routes, ["A"], deploy=bad)
+        msg = str(err.value)
+        assert "\n" not in msg and "s.toml" in msg and "deploy.keep_right" in msg, msg
+        assert want in msg, msg
 
 
 def test_the_caps_from_the_road_s_state(tmp_path: Path) -> None:
@@ -76,7 +107,7 @@ def test_the_caps_from_the_road_s_state(tmp_path: Path) -> None:
     with nobody ahead on lane 1 gets none; with lane 1 empty nobody does (the cap passes
     through; an empty lane's index array once raised)."""
     net, routes = _queue_files(tmp_path)
-    sc = small_section_scenario(tmp_path, net, routes, ["A"])
+    sc = small_section_scenario(tmp_path, net, routes, ["A"], deploy={"keep_right": "blocked"})
     section = read_section(net, ["A"], False)
     shape = (5.0, 2.5, 4.5)
     ids = ("a", "b", "c", "ego")
@@ -124,8 +155,9 @@ def _queue_files(folder: Path) -> tuple[Path, Path]:
 
 @pytest.fixture(scope="module")
 def passes(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[tuple]]:
-    """Per deploy.merge ("sumo": the ban, "handover": none), the ego's (lane, position,
-    speed) and the queue's rearmost and foremost positions each step until the ego leaves
+    """Per side ("blocked": deploy.keep_right = "blocked", merge "sumo", the ban; "off":
+    the default keep_right, merge "sumo"; "handover": merge "handover"), the ego's (lane,
+    position, speed) and the queue's rearmost and foremost positions each step until the ego leaves
     (80 s at most), the ego commanded by a policy cloned from IDM (desired 30 m/s)."""
     folder = tmp_path_factory.mktemp("keep_right")
     net, routes = _queue_files(folder)
@@ -135,8 +167,14 @@ def passes(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[tuple]]:
     )  # fmt: skip
     section = read_section(net, ["A"], False)
     out = {}
-    for merge in ("sumo", "handover"):
-        sc = dataclasses.replace(base, deploy=dataclasses.replace(base.deploy, merge=merge))
+    sides = {
+        "blocked": ("sumo", "blocked"),
+        "off": ("sumo", "off"),
+        "handover": ("handover", "off"),
+    }
+    for side, (merge, keep) in sides.items():
+        d = dataclasses.replace(base.deploy, merge=merge, keep_right=keep)
+        sc = dataclasses.replace(base, deploy=d)
         drv = SectionSpeedDriver(sc, section, 0, policy_batch(idm_agent("lookahead", 30.0)), "sumo")
         opts = SumoOptions(net, (), sc.simulation.step_length_s, sc.seed, route_files=(routes,))
         sim = Simulation(dataclasses.replace(opts, user_demand=True))
@@ -153,8 +191,8 @@ def passes(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[tuple]]:
                 seen.append((st.lanes[e], st.pos_m[e], st.speed_mps[e], min(q), max(q)))
         finally:
             sim.close()
-        assert drv.stats.vehicle_steps_driven > 50, merge
-        out[merge] = seen
+        assert drv.stats.vehicle_steps_driven > 50, side
+        out[side] = seen
     return out
 
 
@@ -162,16 +200,18 @@ def test_a_commanded_car_passes_a_queue_on_its_left_at_sumo_s_60_kmh(
     passes: dict[str, list[tuple]],
 ) -> None:
     """Alongside the queue (its front between the rearmost car's back and the foremost
-    car's front) on lane 0, with the ban, the ego drives at most 60 km/h + one step's
-    acceleration (measured: 14.7-17.5 m/s; SUMO's lane changer first moved it behind the
-    queue on lane 1, to 18.8 m/s, and back), and it does pass the queue; without (merge
-    "handover") at up to 30 m/s (measured 22.5-29.0). Fails without ``keep_right_caps``
-    (29.0 with "sumo")."""
+    car's front) on lane 0, with the ban (keep_right "blocked"), the ego drives at most
+    60 km/h + one step's acceleration (measured: 14.7-17.5 m/s; SUMO's lane changer first
+    moved it behind the queue on lane 1, to 18.8 m/s, and back), and it does pass the queue;
+    without (keep_right "off", the default, or merge "handover") at up to 30 m/s (measured
+    22.5-29.0). Fails without ``keep_right_caps`` (29.0 with "blocked"); the "off" side
+    failed before keep_right was a setting (the ban bound with merge "sumo": 17.5)."""
     top = {}
-    for merge, seen in passes.items():
+    for side, seen in passes.items():
         beside = [v for ln, p, v, rear, front in seen if ln == "A_0" and rear - 5.0 < p < front]
-        assert len(beside) > 10, (merge, len(beside))
-        assert seen[-1][1] > seen[-1][4], merge  # it passed the whole queue
-        top[merge] = max(beside)
-    assert top["sumo"] < CONGESTED_MPS + 1.5, top
+        assert len(beside) > 10, (side, len(beside))
+        assert seen[-1][1] > seen[-1][4], side  # it passed the whole queue
+        top[side] = max(beside)
+    assert top["blocked"] < CONGESTED_MPS + 1.5, top
+    assert top["off"] > CONGESTED_MPS + 5.0, top
     assert top["handover"] > CONGESTED_MPS + 5.0, top
