@@ -4,8 +4,7 @@ estimate, which ``policy.driver_speed`` draws from or clips to).
 Censoring (``ratio_estimate``): a vehicle's top v / limit is its desired ratio only where it
 cruised freely long enough and was not held at its vehicle's own maxSpeed (``speed_caps``);
 elsewhere it is a lower bound (a queue follower, a truck at its governor). The ratios are a
-Kaplan-Meier estimate over both for their median, the exact ones alone for the spread around it
-(``spread_around_median``); with fewer than ``MIN_EXACT_RATIOS`` exact ones the data do
+Kaplan-Meier estimate over both; with fewer than ``MIN_EXACT_RATIOS`` exact ones the data do
 not identify them and SUMO's default speedFactor distribution is kept (``DEFAULT_RATIOS``):
 on SUMO's congested ``game/ramp`` 23 of 249 observed vehicles cruised freely, their median
 0.83 (trucks at 27.78 / 33.33 m/s among them) where SUMO's speedFactor median is 1.0.
@@ -103,7 +102,7 @@ def censored_quantiles(exact: np.ndarray, lower: np.ndarray) -> np.ndarray:
 
 
 def ratio_estimate(drivers: ObservedDrivers) -> RatioEstimate:
-    """The drivers' ratio distribution (``spread_around_median``), or ``DEFAULT_RATIOS``
+    """The drivers' ratio distribution (``censored_quantiles``), or ``DEFAULT_RATIOS``
     where fewer than ``MIN_EXACT_RATIOS`` vehicles give an exact ratio. A ratio more than
     ``OUTLIER_IQR`` interquartile ranges below the lower quartile is taken as a lower bound:
     such a driver was held back by what the free test does not see more likely than it
@@ -119,24 +118,6 @@ def ratio_estimate(drivers: ObservedDrivers) -> RatioEstimate:
     if len(exact) < MIN_EXACT_RATIOS:
         why = f"{len(exact)} observed vehicles cruised freely (< {MIN_EXACT_RATIOS})"
         return RatioEstimate(DEFAULT_RATIOS.copy(), len(exact), len(lower), why)
-    return RatioEstimate(spread_around_median(exact, lower), len(exact), len(lower))
-
-
-def spread_around_median(exact: list[float], lower: list[float]) -> np.ndarray:
-    """``QUANTILE_LEVELS`` quantiles: the median of ``censored_quantiles`` over every
-    vehicle, the spread around it (each quantile over the median) of the ``exact`` ratios
-    alone. Why: which vehicles cruise freely long enough depends on their desired speed
-    where queues are seen (on arterial 521 only slow drivers get free road, and most
-    lower bounds are tops reached behind a leader near the driver's own desired speed), so
-    Kaplan-Meier's independent censoring fails: each bound's weight went to the few fast
-    exact ratios above it, the median rose to 1.12 (the exact ratios' own 0.95) and the
-    slow exact ones sat at 0.66-0.71 of it (drawn factors below 0.8: 9.2%, SUMO's
-    normc(1, 0.1): 2.3%). A selection smooth in the desired speed (an exponential tilt of
-    a normal) moves the exact ratios' location, not their spread. Without bounds: the
-    exact ratios' quantiles as before."""
-    x = np.array(exact, dtype=float)
-    spread = censored_quantiles(x, np.empty(0))
-    if not lower:
-        return spread
-    median = np.interp(0.5, QUANTILE_LEVELS, censored_quantiles(x, np.array(lower)))
-    return spread / np.interp(0.5, QUANTILE_LEVELS, spread) * median
+    return RatioEstimate(
+        censored_quantiles(np.array(exact), np.array(lower)), len(exact), len(lower)
+    )
