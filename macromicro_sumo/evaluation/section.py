@@ -60,6 +60,7 @@ from macromicro_sumo.data.section import (
     split_runs,
 )
 from macromicro_sumo.env.driver_speed import drivers_bank
+from macromicro_sumo.env.driver_tau import with_tau
 from macromicro_sumo.env.rollout import ActionFn, Rollouts, rollout
 from macromicro_sumo.env.section import DEFAULT_SAFETY, SectionCore
 from macromicro_sumo.env.section_bank import (
@@ -92,6 +93,7 @@ from macromicro_sumo.generator.section_train import load_section_generator
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.policy.agent import policy_action
 from macromicro_sumo.policy.checkpoint import load_policy
+from macromicro_sumo.policy.driver_follow import follow_inputs
 from macromicro_sumo.progress import tqdm
 from macromicro_sumo.road.leaders import section_leaders
 from macromicro_sumo.road.physics import leader_length_m
@@ -112,12 +114,30 @@ TRUE_REUSED = "the estimated pass's: every scene's estimated hidden count is its
 def driven_bank(sc, truth, bank: SectionBank, agent, seed: int) -> SectionBank:
     """``bank`` as ``agent`` drives it: with each hidden driver's desired-speed factor where
     the policy was trained with one (``policy.driver_speed``, the quantiles in its
-    checkpoint), as in training and deployment; unchanged for every other method (the IDM
-    baselines know nothing of it)."""
+    checkpoint) and each slot's tau where it has a ``driver_tau`` buffer
+    (``policy.driver_follow``: the training rollouts' draw, ``follow_inputs``), as in
+    training and deployment; unchanged for every other method (the IDM baselines know
+    nothing of either)."""
     quantiles = None if agent is None else getattr(agent, "driver_speed", None)
-    if quantiles is None or sc.policy.driver_speed == "none":
-        return bank
-    return drivers_bank(sc, truth.section, bank, quantiles.double().numpy(), seed)
+    if quantiles is not None and sc.policy.driver_speed != "none":
+        bank = drivers_bank(sc, truth.section, bank, quantiles.double().numpy(), seed)
+    taus = None if agent is None else getattr(agent, "driver_tau", None)
+    return bank if taus is None else follow_inputs(bank, None, None, taus.numpy(), seed)[0]
+
+
+def agent_action(agent, stochastic: bool = True) -> ActionFn:
+    """``policy_action`` on the observation with each slot's tau (the core's bank's
+    ``driver_tau``, ``driven_bank``) as a trailing column, as the training rollouts hand it
+    (``policy.rollout.own_taus``); the observation as it is for an agent without a
+    ``driver_tau`` buffer or on a bank without taus."""
+    act = policy_action(agent, stochastic)
+    reads = getattr(agent, "driver_tau", None) is not None
+
+    def with_taus(core: SectionCore, obs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        taus = core.bank.driver_tau if reads else None
+        return act(core, obs if taus is None else with_tau(obs, taus[core.episode]), rng)
+
+    return with_taus
 
 
 def recorded(bank: SectionBank, section: Section, horizon: int, dt: float) -> Rollouts:
@@ -366,7 +386,7 @@ def evaluate_section(
                         macro_row(labels | {"K": k}, "ground_truth", ref_k, ref_k, sc.seed + k)
                     )
             bar.update()
-            methods: dict[str, ActionFn] = {n: policy_action(a) for n, a in agents.items()}
+            methods: dict[str, ActionFn] = {n: agent_action(a) for n, a in agents.items()}
             methods["idm_calibrated"] = idm_action(lambda core: idm, lead_m)
             if oracle is not None:
                 params = true_idm_by_episode(truth, oracle, kept, gen_bank)
