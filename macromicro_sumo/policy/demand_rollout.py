@@ -12,7 +12,7 @@ steps:
 * a vehicle that collides is terminal (no future reward) and gets
   ``-policy.collision_penalty`` on that step;
 * the batch's advantages are standardised and weighted by eta (``collect_demand``);
-* with ``policy.driver_speed``, each driver observes its own limits (``driver_quantiles``,
+* with ``policy.driver_speed``, each driver observes its own limits (``agent_quantiles``,
   ``env.demand.DemandCore.set_driver_speeds``), as the deployed policy's drivers do.
 
 The critic's time input is ``DEMAND_T_FRAC`` for every demand step: these episodes have no
@@ -75,19 +75,20 @@ def vehicle_gae(
     return adv, adv + values
 
 
-def driver_quantiles(agent: Agent) -> np.ndarray | None:
-    """The drivers' desired-speed ratio quantiles the agent carries (``policy.driver_speed``;
-    None: none), in float64 as the deployment hands them to ``DriverSpeeds``
-    (``deploy.stage``), so that a vehicle gets the same factor in both."""
-    q = getattr(agent, "driver_speed", None)
+def agent_quantiles(agent: Agent, buffer: str) -> np.ndarray | None:
+    """The drivers' quantiles the agent carries in ``buffer`` ("driver_speed": desired-speed
+    ratios, ``policy.driver_speed``; "driver_tau": taus, ``policy.driver_follow``; None:
+    none), in float64 as the deployment hands them to ``DriverSpeeds`` / ``DriverTaus``
+    (``deploy.policy_batch``), so that a vehicle gets the same factor and tau in both."""
+    q = getattr(agent, buffer, None)
     return None if q is None else q.double().numpy()
 
 
-def tau_quantiles(agent: Agent) -> np.ndarray | None:
-    """The drivers' tau quantiles the agent carries (``policy.driver_follow``; None: none),
-    in float64 as the deployment hands them to ``DriverTaus`` (``deploy.policy_batch``)."""
-    q = getattr(agent, "driver_tau", None)
-    return None if q is None else q.double().numpy()
+def set_driver_draws(core: DemandCore, agent: Agent) -> None:
+    """The demand core's drivers draw their desired-speed factors and taus from the agent's
+    quantiles (``agent_quantiles``), as the deployment's do."""
+    core.set_driver_speeds(agent_quantiles(agent, "driver_speed"))
+    core.set_driver_taus(agent_quantiles(agent, "driver_tau"))
 
 
 def collect_demand(
@@ -104,8 +105,7 @@ def collect_demand(
     tracks: list[_Track] = []
     rewards, collided, collisions, teleports, steps = [], 0, 0, 0, 0
     t_frac = torch.tensor(DEMAND_T_FRAC)
-    core.set_driver_speeds(driver_quantiles(agent))
-    core.set_driver_taus(tau_quantiles(agent))
+    set_driver_draws(core, agent)
     for run, t0 in windows:
         c0, tp0 = core.counts["collisions"], core.counts["teleports"]
         core.reset(run, t0)
@@ -193,12 +193,11 @@ def warmup_states(agent: Agent, core: DemandCore, warmup_s: float) -> np.ndarray
     alone: the start every deployment drives into (a ring's fleet departing standing), which
     no snapshot episode shows (they start after the warm-up). ``policy.residual``'s
     warm-up anchors hold the residual at 0 where these lie off the pairs. With
-    ``policy.driver_speed`` each driver observes its own limits (``driver_quantiles``), as
+    ``policy.driver_speed`` each driver observes its own limits (``agent_quantiles``), as
     in ``collect_demand`` and the deployment."""
     dt = core.dt
     out = []
-    core.set_driver_speeds(driver_quantiles(agent))
-    core.set_driver_taus(tau_quantiles(agent))
+    set_driver_draws(core, agent)
     for run in core.runs:
         core.reset(int(run), dt)
         for _ in range(int(round(warmup_s / dt)) - 1):

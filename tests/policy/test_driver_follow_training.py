@@ -26,7 +26,7 @@ from macromicro_sumo.env.section import SectionCore  # noqa: E402
 from macromicro_sumo.env.section_bank import build_section_bank  # noqa: E402
 from macromicro_sumo.pipeline.build import fit_residual_prior  # noqa: E402
 from macromicro_sumo.policy.agent import Agent  # noqa: E402
-from macromicro_sumo.policy.demand_rollout import tau_quantiles  # noqa: E402
+from macromicro_sumo.policy.demand_rollout import set_driver_draws  # noqa: E402
 from macromicro_sumo.policy.driver_follow import follow_choice, follow_inputs  # noqa: E402
 from macromicro_sumo.policy.ppo import train_policy  # noqa: E402
 from macromicro_sumo.policy.rollout import collect  # noqa: E402
@@ -65,7 +65,7 @@ def test_a_driver_has_one_tau_in_the_demand_env_and_the_deployment(ring, tmp_pat
     core = DemandCore(sc, truth, truth.runs, 10)
     demand: dict[str, float] = {}
     try:
-        core.set_driver_taus(tau_quantiles(agent))  # as collect_demand sets them
+        set_driver_draws(core, agent)  # as collect_demand sets them
         core.reset(0, 10.0)
         for _ in range(6):
             vids, obs = core.observe()
