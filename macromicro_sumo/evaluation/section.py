@@ -60,7 +60,6 @@ from macromicro_sumo.data.section import (
     split_runs,
 )
 from macromicro_sumo.env.driver_speed import drivers_bank
-from macromicro_sumo.env.driver_tau import with_tau
 from macromicro_sumo.env.rollout import ActionFn, Rollouts, rollout
 from macromicro_sumo.env.section import DEFAULT_SAFETY, SectionCore
 from macromicro_sumo.env.section_bank import (
@@ -94,6 +93,7 @@ from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.policy.agent import policy_action
 from macromicro_sumo.policy.checkpoint import load_policy
 from macromicro_sumo.policy.driver_follow import follow_inputs
+from macromicro_sumo.policy.rollout import own_taus
 from macromicro_sumo.progress import tqdm
 from macromicro_sumo.road.leaders import section_leaders
 from macromicro_sumo.road.physics import leader_length_m
@@ -134,8 +134,7 @@ def agent_action(agent, stochastic: bool = True) -> ActionFn:
     reads = getattr(agent, "driver_tau", None) is not None
 
     def with_taus(core: SectionCore, obs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        taus = core.bank.driver_tau if reads else None
-        return act(core, obs if taus is None else with_tau(obs, taus[core.episode]), rng)
+        return act(core, own_taus(obs, core.bank.driver_tau if reads else None, core.episode), rng)
 
     return with_taus
 
