@@ -29,7 +29,7 @@ CONGESTED_MPS = 60.0 / 3.6
 # The headway of the Krauss follow speed LC2013's advice brakes to (SUMO's default tau) [s].
 KRAUSS_TAU_S = 1.0
 # A leader on the lane to the left is free (the ban does not bind) where the next vehicle
-# ahead of it is at least this far, front to front (env.driver_speed's free test).
+# ahead of it is at least this far, front to front (``blocked``).
 FREE_HEADWAY_S = 2.0
 FREE_SPACING_M = 10.0
 
@@ -154,7 +154,8 @@ def keep_right_caps(
 def blocked(pos: np.ndarray, speed: np.ndarray, at: int) -> bool:
     """Whether the vehicle at index ``at`` of a lane's vehicles (``pos`` ascending, their
     ``speed``) is itself blocked: the next one ahead nearer than ``FREE_HEADWAY_S`` x v +
-    ``FREE_SPACING_M`` front to front (``env.driver_speed``'s free test), or none ahead
-    on the edge (it may be queued on the next)."""
+    ``FREE_SPACING_M`` front to front (``env.driver_speed``'s free test before it read the
+    bumper gap, stop 38; measured with this one), or none ahead on the edge (it may be
+    queued on the next)."""
     ahead = at + 1
     return ahead >= pos.size or pos[ahead] - pos[at] < FREE_HEADWAY_S * speed[at] + FREE_SPACING_M
