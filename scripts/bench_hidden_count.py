@@ -43,15 +43,10 @@ from macromicro_sumo.data.section import at_snapshot_times
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.inputs import read_net, scenario_inputs
-from macromicro_sumo.truth.hidden_count import (
-    PASSAGE_LAG_STEPS,
-    StationRecord,
-    io_pieces,
-    k_estimates,
-    side_junction_arcs,
-)
+from macromicro_sumo.truth.hidden_count import io_pieces, k_estimates
 from macromicro_sumo.truth.interval_counts import interval_record
 from macromicro_sumo.truth.section_macro import detector_macro, loop_densities
+from macromicro_sumo.truth.stations import PASSAGE_LAG_STEPS, StationRecord, side_junction_arcs
 
 SLOW_MPS = 5.0  # a snapshot is congested when ...
 SLOW_SHARE = 0.10  # ... this share of its vehicles is at or below SLOW_MPS

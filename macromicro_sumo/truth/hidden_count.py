@@ -33,33 +33,14 @@ from macromicro_sumo.truth.section_macro import (
 )
 from macromicro_sumo.truth.signal_counts import approach_pieces
 from macromicro_sumo.truth.stations import (
-    PASSAGE_LAG_STEPS,
-    STOP_BAR_M,
     Piece,
     StationRecord,
     full_stations,
     ramp_between,
-    side_junction_arcs,
     station_passages,
     station_speeds,
     stretch_m,
 )
-
-# The stations' names stay importable from here (``truth/stations.py`` split off at stop 38).
-__all__ = [
-    "PASSAGE_LAG_STEPS",
-    "STOP_BAR_M",
-    "Piece",
-    "StationRecord",
-    "full_stations",
-    "io_pieces",
-    "io_vehicles",
-    "k_estimates",
-    "side_junction_arcs",
-    "station_passages",
-    "station_speeds",
-    "window_mean",
-]
 
 IO_ANCHOR_WINDOW_S = 180.0
 """Window of the line by which the stretches' summed input-output count takes its level

@@ -48,12 +48,7 @@ from macromicro_sumo.sumo.inputs import SumoInputs, read_net, scenario_inputs
 from macromicro_sumo.sumo.simulation import Driver, Simulation, SumoOptions
 from macromicro_sumo.truth import fleet
 from macromicro_sumo.truth.files import truth_from_files
-from macromicro_sumo.truth.hidden_count import (
-    PASSAGE_LAG_STEPS,
-    StationRecord,
-    k_estimates,
-    side_junction_arcs,
-)
+from macromicro_sumo.truth.hidden_count import k_estimates
 from macromicro_sumo.truth.section_detectors import (
     detectors_xml,
     place_detectors,
@@ -64,6 +59,7 @@ from macromicro_sumo.truth.section_macro import detector_macro, k_summary, traje
 from macromicro_sumo.truth.section_rows import SectionRows
 from macromicro_sumo.truth.section_speed import edie_speeds, stop_line_edges
 from macromicro_sumo.truth.signals import SignalRecorder
+from macromicro_sumo.truth.stations import PASSAGE_LAG_STEPS, StationRecord, side_junction_arcs
 from macromicro_sumo.truth.vtypes import vtype_frame
 
 

@@ -19,7 +19,7 @@ from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.inputs import DetectorSpec, SumoInputs, read_net, user_detectors
-from macromicro_sumo.truth.hidden_count import STOP_BAR_M, side_junction_arcs
+from macromicro_sumo.truth.stations import STOP_BAR_M, side_junction_arcs
 
 E1_FILE, E2_FILE, INSTANT_FILE = "e1.xml", "e2.xml", "instant.xml"
 _DETECTOR_TAGS = {

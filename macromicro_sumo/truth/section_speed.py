@@ -26,15 +26,15 @@ import sumolib
 
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.truth.density import SPEED_FLOW_ABOVE_MPS
-from macromicro_sumo.truth.hidden_count import (
+from macromicro_sumo.truth.hidden_count import io_vehicles
+from macromicro_sumo.truth.section_detectors import STOP_NODE_TYPES
+from macromicro_sumo.truth.section_macro import loop_densities, station_cells
+from macromicro_sumo.truth.stations import (
     StationRecord,
     full_stations,
-    io_vehicles,
     station_passages,
     station_speeds,
 )
-from macromicro_sumo.truth.section_detectors import STOP_NODE_TYPES
-from macromicro_sumo.truth.section_macro import loop_densities, station_cells
 
 
 def stop_line_edges(section: Section, net: sumolib.net.Net) -> list[str]:
@@ -47,9 +47,9 @@ def station_flows(
     d: pd.DataFrame, passages: pd.DataFrame, section: Section, begins: np.ndarray, ends: np.ndarray
 ) -> dict[float, np.ndarray]:
     """{station arc: its flow over all its lanes (veh/s) in each [begin, end)}: a station
-    with a loop on every lane (``hidden_count.full_stations``) counts its passages as the
+    with a loop on every lane (``stations.full_stations``) counts its passages as the
     input-output count does, a vehicle that changes lane over its loops once
-    (``hidden_count.station_passages``); another its loops' mean flow times its edge's
+    (``stations.station_passages``); another its loops' mean flow times its edge's
     lanes."""
     lap_s = section.length_m / (1.5 * float(np.nanmax(section.limits_mps)))
     full = set(full_stations(d, section).tolist())
@@ -71,7 +71,7 @@ def edie_speeds(
     det_macro: pd.DataFrame, record: StationRecord, section: Section, step_s: float
 ) -> pd.DataFrame:
     """``det_macro`` (``section_macro.detector_macro``) with the ``mean_speed_mps`` of each
-    interval in which a station's speed (``hidden_count.station_speeds``: 0 where nobody
+    interval in which a station's speed (``stations.station_speeds``: 0 where nobody
     passed) is below ``density.SPEED_FLOW_ABOVE_MPS`` the section's total distance over its
     total time (the module's docstring); unchanged where the stations give no count (E2
     detectors, no passages) or the interval no distance or no vehicle. Where every station

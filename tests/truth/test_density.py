@@ -26,8 +26,9 @@ from macromicro_sumo.truth.density import (
     profile_integral,
     projected_passages,
 )
-from macromicro_sumo.truth.hidden_count import StationRecord, k_estimates
+from macromicro_sumo.truth.hidden_count import k_estimates
 from macromicro_sumo.truth.section_macro import detector_macro, k_summary
+from macromicro_sumo.truth.stations import StationRecord
 
 
 def test_occupancy_and_flow_speed_densities() -> None:

@@ -15,17 +15,16 @@ from macromicro_sumo.data.section import at_snapshot_times
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.inputs import read_net
-from macromicro_sumo.truth.hidden_count import (
-    PASSAGE_LAG_STEPS,
-    StationRecord,
-    io_pieces,
-    k_estimates,
-    side_junction_arcs,
-    station_passages,
-)
+from macromicro_sumo.truth.hidden_count import io_pieces, k_estimates
 from macromicro_sumo.truth.section import load_section
 from macromicro_sumo.truth.section_detectors import place_detectors
 from macromicro_sumo.truth.section_macro import detector_macro, k_summary, loop_densities
+from macromicro_sumo.truth.stations import (
+    PASSAGE_LAG_STEPS,
+    StationRecord,
+    side_junction_arcs,
+    station_passages,
+)
 
 
 def test_a_vehicle_counts_once_per_station_and_lap() -> None:

@@ -18,13 +18,9 @@ from macromicro_sumo.data.section import at_snapshot_times
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.sumo.inputs import read_net
 from macromicro_sumo.truth.density import node_projection, sealed_count
-from macromicro_sumo.truth.hidden_count import (
-    STOP_BAR_M,
-    StationRecord,
-    io_pieces,
-    side_junction_arcs,
-)
+from macromicro_sumo.truth.hidden_count import io_pieces
 from macromicro_sumo.truth.section_macro import k_summary, loop_densities
+from macromicro_sumo.truth.stations import STOP_BAR_M, StationRecord, side_junction_arcs
 
 sys.path.insert(0, str(ROOT / "scripts"))
 _spec = importlib.util.spec_from_file_location(

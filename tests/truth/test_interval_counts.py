@@ -13,13 +13,14 @@ from macromicro_sumo.cli import main
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.sumo.inputs import read_net
 from macromicro_sumo.truth.files import data_toml, export_field_files
-from macromicro_sumo.truth.hidden_count import StationRecord, k_estimates
+from macromicro_sumo.truth.hidden_count import k_estimates
 from macromicro_sumo.truth.interval_counts import (
     interval_passages,
     interval_record,
     queued_weight,
 )
 from macromicro_sumo.truth.section_macro import detector_macro, k_summary
+from macromicro_sumo.truth.stations import StationRecord
 
 NO_PASSAGES = pd.DataFrame(
     {c: [] for c in ("run", "detector_id", "time_s", "speed_mps", "length_m")}
