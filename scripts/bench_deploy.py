@@ -55,7 +55,7 @@ import torch
 
 from macromicro_sumo.deploy import safety
 from macromicro_sumo.deploy.drivers import SectionDriver, SectionSpeedDriver
-from macromicro_sumo.deploy.stage import policy_batch
+from macromicro_sumo.deploy.policy_batch import policy_batch
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.checkpoint import load_policy

@@ -25,9 +25,9 @@ import pandas as pd
 import torch
 
 from macromicro_sumo.deploy.compare import compare_folders
+from macromicro_sumo.deploy.policy_batch import policy_batch
 from macromicro_sumo.deploy.population import population_scenario
 from macromicro_sumo.deploy.run import Drive, load_context, run_method, write_method
-from macromicro_sumo.deploy.stage import policy_batch
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.policy.checkpoint import load_policy
 from macromicro_sumo.scenario.load import load_scenario

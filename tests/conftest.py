@@ -18,7 +18,7 @@ import sumolib
 import torch
 
 from macromicro_sumo.cli import main
-from macromicro_sumo.deploy.stage import policy_batch
+from macromicro_sumo.deploy.policy_batch import policy_batch
 from macromicro_sumo.pipeline import parallel
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.road.section import Section, read_section

@@ -29,9 +29,9 @@ import pandas as pd
 
 from macromicro_sumo.deploy.compare import truth_reference
 from macromicro_sumo.deploy.floor_choice import AUTO, FLOOR_CANDIDATES, choice_runs, speed_rmse
+from macromicro_sumo.deploy.policy_batch import policy_batch
 from macromicro_sumo.deploy.population import population_scenario
 from macromicro_sumo.deploy.run import Drive, load_context, run_method
-from macromicro_sumo.deploy.stage import policy_batch
 from macromicro_sumo.policy.agent import Agent
 
 

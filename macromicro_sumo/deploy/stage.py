@@ -66,11 +66,10 @@ from macromicro_sumo.data.section import split_runs
 from macromicro_sumo.deploy.calibrate import Calibration, calibration_record, fit_to_detectors
 from macromicro_sumo.deploy.compare import compare_folders
 from macromicro_sumo.deploy.floor_choice import resolve_floor
-from macromicro_sumo.deploy.policy_batch import ACTOR_ROWS as ACTOR_ROWS
-from macromicro_sumo.deploy.policy_batch import action_std, policy_batch
-from macromicro_sumo.deploy.policy_batch import actor_forward as actor_forward
-from macromicro_sumo.deploy.policy_batch import prior_forward as prior_forward
-from macromicro_sumo.deploy.policy_batch import prior_stop_gap_m as prior_stop_gap_m
+from macromicro_sumo.deploy.policy_batch import (
+    action_std,
+    policy_batch,
+)
 from macromicro_sumo.deploy.population import population_label, population_scenario
 from macromicro_sumo.deploy.run import (
     DeployContext,

@@ -30,14 +30,10 @@ from collections.abc import Sequence
 import numpy as np
 
 from macromicro_sumo.data.section import SectionTruth, recorded_steps, run_section, vehicle_level
-from macromicro_sumo.env.driver_speed_ratios import (  # noqa: F401 (re-exported)
-    DEFAULT_RATIOS,
-    MIN_EXACT_RATIOS,
-    OUTLIER_IQR,
+from macromicro_sumo.env.driver_speed_ratios import (
     QUANTILE_LEVELS,
     ObservedDrivers,
     RatioEstimate,
-    censored_quantiles,
     ratio_estimate,
 )
 from macromicro_sumo.env.section_bank import SectionBank, recordable, speed_caps

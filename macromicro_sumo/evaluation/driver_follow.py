@@ -35,11 +35,6 @@ from macromicro_sumo.env.driver_speed import (
     FREE_HEADWAY_S,
     QUANTILE_LEVELS,
 )
-
-# The draws live beside their carrier (``env.driver_tau``); re-exported here.
-from macromicro_sumo.env.driver_tau import driver_tau_levels as driver_tau_levels
-from macromicro_sumo.env.driver_tau import slot_tau_levels as slot_tau_levels
-from macromicro_sumo.env.driver_tau import taus_at as taus_at
 from macromicro_sumo.evaluation.krauss_fit import (
     ROBUST_SCALE_MPS2,
     KraussParams,

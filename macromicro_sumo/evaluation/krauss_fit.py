@@ -244,7 +244,7 @@ def fit_krauss(
 
     ``fixed`` (name: why) are held at ``defaults`` throughout, the others fitted beside them:
     the speed factor where the drivers' desired-speed ratios fell back to SUMO's
-    (``env.driver_speed.ratio_estimate``; on game/ramp fitted 0.82 where SUMO's cars have 1.0;
+    (``env.driver_speed_ratios.ratio_estimate``; on game/ramp fitted 0.82 where SUMO's cars have 1.0;
     where a or the speed factor falls back, relax_s is refitted alone)."""
     defaults = defaults or sumo_defaults()
     lower = _LOWER.copy()

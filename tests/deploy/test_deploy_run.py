@@ -17,8 +17,9 @@ from conftest import dump_toml
 from deploy_nets import idm_agent, merge_scenario
 
 from macromicro_sumo.cli import main
+from macromicro_sumo.deploy.policy_batch import policy_batch
 from macromicro_sumo.deploy.run import Drive, load_context, run_method
-from macromicro_sumo.deploy.stage import deploy, policy_batch
+from macromicro_sumo.deploy.stage import deploy
 from macromicro_sumo.evaluation.idm_fit import GippsParams, IdmParams
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.prior import idm_prior_params

@@ -11,8 +11,8 @@ from conftest import small_section_scenario
 from deploy_nets import idm_agent, light_net, merge_net
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver, section_observations
+from macromicro_sumo.deploy.policy_batch import policy_batch
 from macromicro_sumo.deploy.slots import LaneCache
-from macromicro_sumo.deploy.stage import policy_batch
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, read_section
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.truth.section import record_run

@@ -25,7 +25,7 @@ from macromicro_sumo.deploy.lane_change import (
     left_lane,
     no_pass_right_cap,
 )
-from macromicro_sumo.deploy.stage import policy_batch
+from macromicro_sumo.deploy.policy_batch import policy_batch
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.section import read_section
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions

@@ -12,8 +12,8 @@ import pandas as pd
 import pytest
 from deploy_nets import idm_agent, merge_scenario
 
+from macromicro_sumo.deploy.policy_batch import policy_batch
 from macromicro_sumo.deploy.run import DeployResult, Drive, load_context, run_method
-from macromicro_sumo.deploy.stage import policy_batch
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import simulate_section
 

@@ -1,4 +1,4 @@
-"""The deployment's numpy actor (``deploy.stage.actor_forward``, through ``policy_batch``):
+"""The deployment's numpy actor (``deploy.policy_batch.actor_forward``, through ``policy_batch``):
 its one product per layer up to ``ACTOR_ROWS`` vehicles, written into buffers kept between
 calls, gives to the bit what fresh products give (the deployment's commands unchanged), and
 an action it returned is not overwritten by the next call."""
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from macromicro_sumo.deploy.stage import ACTOR_ROWS, policy_batch, prior_forward
+from macromicro_sumo.deploy.policy_batch import ACTOR_ROWS, policy_batch, prior_forward
 from macromicro_sumo.policy.agent import Agent
 
 IDM = {"speed_factor": 1.0, "tau_s": 1.2, "accel_mps2": 1.5, "decel_mps2": 2.0}

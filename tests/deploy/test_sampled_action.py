@@ -15,8 +15,9 @@ import pytest
 import torch
 from deploy_nets import idm_agent, merge_scenario
 
+from macromicro_sumo.deploy.policy_batch import policy_batch
 from macromicro_sumo.deploy.run import ACTION_STREAM, Drive, load_context, run_method, sampled
-from macromicro_sumo.deploy.stage import method_drive, policy_batch
+from macromicro_sumo.deploy.stage import method_drive
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import simulate_section
 

@@ -16,8 +16,8 @@ from section_files import routes_file, vtype
 from test_drivers import _run
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
+from macromicro_sumo.deploy.policy_batch import policy_batch
 from macromicro_sumo.deploy.safety import safety_cap
-from macromicro_sumo.deploy.stage import policy_batch
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, read_section
 
 VAN_MAX_MPS = 10.0

@@ -8,14 +8,12 @@ import dataclasses
 import numpy as np
 import pytest
 
+from macromicro_sumo.env.driver_tau import driver_tau_levels, slot_tau_levels, taus_at
 from macromicro_sumo.evaluation.driver_follow import (
     MIN_DRIVER_TAUS,
-    driver_tau_levels,
     driver_taus,
     krauss_accel_per_driver,
-    slot_tau_levels,
     tau_quantiles,
-    taus_at,
 )
 from macromicro_sumo.evaluation.krauss_fit import KraussParams, krauss_policy_accel
 

@@ -1,4 +1,4 @@
-"""Desired-speed ratios under censoring (``env.driver_speed.ratio_estimate``): a vehicle held
+"""Desired-speed ratios under censoring (``env.driver_speed_ratios.ratio_estimate``): a vehicle held
 at its own maxSpeed or never cruising freely gives a lower bound, not a ratio; the ratios are
 a Kaplan-Meier estimate over both; too few exact ones keep SUMO's default distribution, and
 then the Krauss-form prior's speed factor is held at SUMO's too (real SUMO for the cap)."""
@@ -16,15 +16,13 @@ from test_prior_krauss import DT_S, KRAUSS, LENGTH_M, _pairs
 sys.path.insert(0, str(Path(__file__).parents[1] / "deploy"))
 from deploy_nets import netconvert  # noqa: E402
 
-from macromicro_sumo.env.driver_speed import (  # noqa: E402
+from macromicro_sumo.env.driver_speed import QUANTILE_LEVELS, observed_drivers, speed_caps
+from macromicro_sumo.env.driver_speed_ratios import (
     DEFAULT_RATIOS,
     MIN_EXACT_RATIOS,
-    QUANTILE_LEVELS,
     ObservedDrivers,
     censored_quantiles,
-    observed_drivers,
     ratio_estimate,
-    speed_caps,
 )
 from macromicro_sumo.evaluation.krauss_fit import fit_krauss, sumo_defaults  # noqa: E402
 from macromicro_sumo.scenario.load import load_scenario  # noqa: E402

@@ -8,7 +8,7 @@ import pytest
 import torch
 from test_prior import _drive_to_a_wall, _obs
 
-from macromicro_sumo.deploy.stage import policy_batch
+from macromicro_sumo.deploy.policy_batch import policy_batch
 from macromicro_sumo.evaluation import idm_fit
 from macromicro_sumo.evaluation.idm_fit import GippsParams, fit_policy_prior
 from macromicro_sumo.evaluation.krauss_fit import (
