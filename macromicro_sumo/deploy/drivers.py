@@ -29,7 +29,8 @@ from operator import and_
 
 import numpy as np
 
-from macromicro_sumo.deploy.lane_change import keep_right_caps, lookahead_speeds, strategic_reach_m
+from macromicro_sumo.deploy.keep_right import keep_right_caps
+from macromicro_sumo.deploy.lane_change import lookahead_speeds, strategic_reach_m
 from macromicro_sumo.deploy.observe import STANDING, LaneTable, Table, observe_rows, states_of
 from macromicro_sumo.deploy.population import (
     ActionBatch,

@@ -1,4 +1,4 @@
-"""LC2013's ban on overtaking on the right (``deploy.lane_change.keep_right_caps``): SUMO's
+"""LC2013's ban on overtaking on the right (``deploy.keep_right.keep_right_caps``): SUMO's
 driver at 60 km/h or more does not pass a slower leader on the lane to its left; a speed
 command overrode that. On drawn 501 SUMO's cars on m0's lane 2 hold 16.6 m/s beside the
 queue on lane 3 (60 km/h, where SUMO lifts the ban), the commanded ones drove 22-24 m/s:
@@ -18,7 +18,7 @@ from conftest import netconvert, small_section_scenario
 from deploy_nets import CAR, idm_agent
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
-from macromicro_sumo.deploy.lane_change import (
+from macromicro_sumo.deploy.keep_right import (
     CONGESTED_MPS,
     blocked,
     keep_right_caps,
