@@ -26,7 +26,6 @@ the density estimate. The programs' clock is taken as the data's (a simulation's
 
 from __future__ import annotations
 
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -34,7 +33,7 @@ import numpy as np
 import pandas as pd
 
 from macromicro_sumo.road.section import Section
-from macromicro_sumo.sumo.net_xml import once_per_file, open_net
+from macromicro_sumo.sumo.net_xml import net_links
 from macromicro_sumo.truth.density import JAM_SPACING_M, occupancy_weight
 from macromicro_sumo.truth.section_macro import integrate_stations, station_density
 from macromicro_sumo.truth.stations import Piece, full_stations, ramp_between, station_speeds
@@ -98,30 +97,18 @@ class StopLine:
         return np.sort(times[(times >= begin_s) & (times <= end_s)])
 
 
-@once_per_file
-def _programs(net_file: str) -> tuple[dict, dict]:
+def _programs(net_file: Path) -> tuple[dict, dict]:
     """({tls id: (offset, durations, states)} of each signal's first program,
-    {(from edge, to edge): [(tls id, link index), ...]}) from the net file."""
-    programs: dict[str, tuple[float, list[float], list[str]]] = {}
+    {(from edge, to edge): [(tls id, link index), ...]}) from the net file
+    (``sumo.net_xml.net_links``)."""
+    net = net_links(net_file)
+    programs = {
+        k: (p.offset_s, list(p.durations_s), list(p.states)) for k, p in net.programs.items()
+    }
     links: dict[tuple[str, str], list[tuple[str, int]]] = {}
-    current = None
-    with open_net(net_file) as fh:
-        for event, el in ET.iterparse(fh, events=("start", "end")):
-            if event == "start":
-                if el.tag == "tlLogic" and el.get("id", "") not in programs:
-                    current = el.get("id", "")
-                    programs[current] = (float(el.get("offset", "0")), [], [])
-                elif el.tag == "phase" and current is not None:
-                    programs[current][1].append(float(el.get("duration", "0")))
-                    programs[current][2].append(el.get("state", ""))
-                continue
-            if el.tag == "tlLogic":
-                current = None
-            elif el.tag == "connection" and el.get("tl"):
-                key = (el.get("from", ""), el.get("to", ""))
-                links.setdefault(key, []).append((el.get("tl", ""), int(el.get("linkIndex", -1))))
-            if el.tag in ("edge", "connection", "junction"):
-                el.clear()
+    for c in net.connections:
+        if c.tl:
+            links.setdefault((c.src, c.dst), []).append((c.tl, c.link_index))
     return programs, links
 
 
