@@ -26,7 +26,7 @@ desired-speed factor), or per bank slot a seeded generator (``slot_tau_levels``)
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Hashable, Sequence
+from collections.abc import Hashable, Mapping, Sequence
 
 import numpy as np
 
@@ -35,6 +35,7 @@ from macromicro_sumo.env.driver_speed import (
     FREE_HEADWAY_S,
     QUANTILE_LEVELS,
 )
+from macromicro_sumo.env.driver_tau import DriverTaus
 from macromicro_sumo.evaluation.krauss_fit import (
     ROBUST_SCALE_MPS2,
     KraussParams,
@@ -144,7 +145,12 @@ def driver_tau_record(
     pooled fit's 1.056 s has 27% of its 216 drivers at or below it; their upper quartile,
     its IDM cars, follows at 1.37 s and beyond), and every quantile (``levels_s``): the
     agent's ``driver_tau`` buffer with ``policy.driver_follow``."""
-    taus = np.array(list(driver_taus(obs, accel, keys, params, veh_length_m, dt_s).values()))
+    return tau_record(driver_taus(obs, accel, keys, params, veh_length_m, dt_s), params)
+
+
+def tau_record(own: Mapping[Hashable, float], params: KraussParams) -> dict[str, object]:
+    """``driver_tau_record`` of the drivers' own taus ``own`` (``driver_taus``)."""
+    taus = np.array(list(own.values()), dtype=float)
     q = tau_quantiles(taus)
     return {
         "drivers": len(taus),
@@ -160,3 +166,28 @@ def driver_tau_record(
         # Every quantile (``QUANTILE_LEVELS``): what policy.driver_follow draws from.
         "levels_s": None if q is None else [float(x) for x in q],
     }
+
+
+def pair_taus(
+    sc,
+    keys: Sequence[tuple[int, str]],
+    own: Mapping[Hashable, float],
+    quantiles: Sequence[float] | None,
+) -> np.ndarray | None:
+    """Each likelihood pair's driver's tau [s] (``keys``: (run, vehicle ID) per pair,
+    ``evaluation.micro_data.keyed_micro_pairs``): its own fitted one (``own``,
+    ``driver_taus``) where it has one, else the tau the deployment and the demand env draw
+    for that driver (``env.driver_tau.DriverTaus`` on ``quantiles`` as the agent's float32
+    buffer holds them); None without quantiles (under ``MIN_DRIVER_TAUS`` drivers: the
+    prior's one tau). Why: with the prior's one tau on every pair the residual's likelihood
+    fitted the observed drivers as if they shared it, the long-tau drivers' larger gaps
+    then a correction the actor, blind to the tau column, applied to every driver."""
+    if quantiles is None:
+        return None
+    q = np.asarray(quantiles, dtype=np.float32).astype(float)
+    out = np.array([own.get(k, np.nan) for k in keys], dtype=float)
+    draws: dict[int, DriverTaus] = {}
+    for i in np.flatnonzero(np.isnan(out)):
+        run, vid = keys[i]
+        out[i] = draws.setdefault(run, DriverTaus(q, sc, run))([vid])[0]
+    return out

@@ -29,6 +29,15 @@ def micro_pairs(
     """Observed vehicles' (observation, action) pairs: what their own sensors saw (the true
     scene around them) and the acceleration they applied over the next step. With
     ``instrumented.hidden = "snapshot"`` every recorded vehicle's (the ring's micro data)."""
+    return keyed_micro_pairs(sc, truth, runs, max_pairs)[:2]
+
+
+def keyed_micro_pairs(
+    sc, truth: SectionTruth, runs: np.ndarray, max_pairs: int = 20_000
+) -> tuple[np.ndarray, np.ndarray, list[tuple[int, str]]]:
+    """``micro_pairs`` with each pair's driver, (run, vehicle ID) as
+    ``env.driver_speed.observed_drivers`` keys it: the key a driver's own fitted tau is
+    found by (``evaluation.driver_follow.pair_taus``)."""
     dt = sc.simulation.step_length_s
     traj = truth.trajectories[truth.trajectories["run"].isin(runs)]
     measured = has_measured_leaders(traj)
@@ -41,7 +50,7 @@ def micro_pairs(
     # Each vType's minGap and jmStoplineGap: where its driver stands before a standing leader.
     types = traj["vtype"] if "vtype" in traj else pd.Series("", index=traj.index)
     gaps = {k: types.map(of).fillna(d) for k, (of, d) in standing_gaps(sc, truth).items()}
-    obs_rows, acc_rows = [], []
+    obs_rows, acc_rows, keys = [], [], []
     for run, g in traj.groupby("run", sort=True):
         # The run's own speed limits (a fleet draws them per run), as the env observes them.
         section = run_section(truth, int(run))
@@ -70,13 +79,14 @@ def micro_pairs(
             keep = np.isfinite(a)
             obs_rows.append(obs[o][keep])
             acc_rows.append(a[keep])
+            keys += [(int(run), str(v)) for v in ids[keep]]
     if not obs_rows:
         raise UserError(f"{truth.folder}: no observed vehicle pair in runs {list(runs)}")
     obs, acc = np.concatenate(obs_rows), np.concatenate(acc_rows)
     if len(acc) > max_pairs:  # evenly thinned: neighbouring steps say nearly the same
         idx = np.linspace(0, len(acc) - 1, max_pairs).astype(np.int64)
-        obs, acc = obs[idx], acc[idx]
-    return obs, acc
+        obs, acc, keys = obs[idx], acc[idx], [keys[i] for i in idx]
+    return obs, acc, keys
 
 
 def _lengths(truth: SectionTruth, traj: pd.DataFrame, required: bool) -> pd.Series | None:

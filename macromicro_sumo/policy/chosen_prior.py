@@ -32,8 +32,8 @@ from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.policy.prior_choice import FittedPrior, with_prior
 
 CHOICE_FILE = "prior_choice.json"
-# The chosen family's pairs (observations, accelerations), its fit's: the residual's
-# likelihood pairs (``policy.residual``), kept so that no stage fits the family again.
+# The chosen family's pairs (observations, accelerations, and where the Krauss fit gives
+# them each pair's driver's tau, "tau"), its fit's: the residual's likelihood pairs (``policy.residual``), kept so that no stage fits the family again.
 PAIRS_FILE = "prior_pairs.npz"
 # The families whose prior a choice may set: "auto" (the family) and "krauss" (the relaxation
 # the pairs leave at its bound; where they identify it, the file records the fit alone).
@@ -143,10 +143,13 @@ def write_choice(
     ``fitted`` (``policy.stage.fit_stage_prior``'s result: the scenario with its family,
     (parameters, manifest record, pairs)) made for ``sc`` on the ground truth in ``data``;
     the record returned."""
-    trained, (prior, extra, (obs, acc)) = fitted
+    trained, (prior, extra, pairs_in) = fitted
+    obs, acc = pairs_in[:2]
+    taus = pairs_in[2] if len(pairs_in) > 2 else None
     pairs = path.parent / PAIRS_FILE
+    own = {} if taus is None else {"tau": np.asarray(taus)}  # each pair's driver's tau
     with atomic_path(pairs) as tmp, tmp.open("wb") as fh:
-        np.savez(fh, obs=np.asarray(obs), acc=np.asarray(acc))
+        np.savez(fh, obs=np.asarray(obs), acc=np.asarray(acc), **own)
     record = build_manifest(sc, command, stage="choose-prior")
     record.update(
         ground_truth=str(data),
@@ -186,7 +189,21 @@ def stale_reason(record: dict[str, Any], sc: Any, data: Path, path: Path) -> str
     want = record["outputs"].get(PAIRS_FILE) or {}
     if not pairs.is_file() or file_sha256(pairs) != want.get("sha256"):
         return f"its pairs, {PAIRS_FILE}, are missing or changed"
+    # policy.driver_follow hands each likelihood pair its driver's tau (pair_taus).
+    follows = krauss and sc.policy.driver_follow != "none" and (taus or {}).get("levels_s")
+    if follows and not _has_pair_taus(pairs):
+        return f"made before its pairs, {PAIRS_FILE}, kept their drivers' taus"
     return None
+
+
+def _has_pair_taus(pairs: Path) -> bool:
+    """Whether the pairs file ``pairs`` keeps each pair's driver's tau (a missing or
+    unreadable one says no: the choice is made again)."""
+    try:
+        with np.load(pairs, allow_pickle=False) as z:
+            return "tau" in z.files
+    except (OSError, ValueError):
+        return False
 
 
 def read_choice(
@@ -225,6 +242,6 @@ def apply_choice(record: dict[str, Any], sc: Any, path: Path) -> tuple[Any, Fitt
     ``policy.stage.fit_stage_prior`` returns it: the scenario with the chosen family, (its
     parameters, what the manifest records, the pairs the residual's likelihood uses)."""
     with np.load(path.parent / PAIRS_FILE, allow_pickle=False) as z:
-        pairs = (z["obs"], z["acc"])
+        pairs = (z["obs"], z["acc"], z["tau"] if "tau" in z.files else None)
     params = {k: float(v) for k, v in record["params"].items()}
     return with_prior(sc, record["family"]), (params, {"prior": record["prior"]}, pairs)

@@ -16,9 +16,11 @@ row's tau (``follow_inputs``).
   prior-alone scorer, as ``policy.relax_choice`` ranks its candidates); the draws are
   kept where their speed RMSE is lower (a tie keeps the one tau). The manifest records
   both figures and the choice.
-* The residual's likelihood pairs (the observed drivers' recorded pairs) carry the prior's
-  one tau, the one the prior was fitted with: their drivers' own fitted taus would need
-  each pair's driver, which ``evaluation.micro_data.micro_pairs`` does not keep (next).
+* The residual's likelihood pairs (the observed drivers' recorded pairs) carry each pair's
+  driver's own tau (``evaluation.driver_follow.pair_taus``: its fitted one, else the
+  deployment's draw for that driver), so the likelihood fits every observed driver with
+  the headway it keeps; pairs without them (a fit from before, or none kept) carry the
+  prior's one tau, the one the prior was fitted with.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ import numpy as np
 from macromicro_sumo.env.driver_tau import slot_tau_levels, taus_at, with_tau
 from macromicro_sumo.env.section_bank import SectionBank
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.policy.prior_choice import PriorDeploy
+from macromicro_sumo.policy.prior_choice import LikelihoodPairs, PriorDeploy
 from macromicro_sumo.policy.relax_choice import rank_key
 
 
@@ -85,13 +87,14 @@ def follow_choice(
 
 def follow_inputs(
     bank: SectionBank,
-    pairs: tuple[np.ndarray, np.ndarray] | None,
+    pairs: LikelihoodPairs | tuple[np.ndarray, np.ndarray] | None,
     prior: Mapping[str, float] | None,
     quantiles: np.ndarray | None,
     seed: int,
-) -> tuple[SectionBank, tuple[np.ndarray, np.ndarray] | None]:
+) -> tuple[SectionBank, LikelihoodPairs | tuple[np.ndarray, np.ndarray] | None]:
     """The bank with each slot's tau drawn from ``quantiles`` and the likelihood ``pairs``
-    with the prior's one tau as their trailing column; both as they are without
+    with each pair's driver's own tau (their third item, ``LikelihoodPairs``) as their
+    trailing column, or the prior's one tau where they have none; both as they are without
     ``quantiles``."""
     if quantiles is None:
         return bank, pairs
@@ -99,6 +102,10 @@ def follow_inputs(
     q = np.asarray(quantiles, dtype=np.float32).astype(float)
     taus = taus_at(q, slot_tau_levels(seed, bank.valid.shape))
     bank = SectionBank(**{**bank.__dict__, "driver_tau": taus})
-    if pairs is not None and prior is not None:
-        pairs = (with_tau(np.asarray(pairs[0]), float(prior["tau_s"])), pairs[1])
+    own = pairs[2] if pairs is not None and len(pairs) > 2 else None
+    if pairs is not None and own is not None:
+        obs = np.asarray(pairs[0])
+        pairs = (with_tau(obs, np.asarray(own, dtype=obs.dtype)), pairs[1], own)
+    elif pairs is not None and prior is not None:
+        pairs = (with_tau(np.asarray(pairs[0]), float(prior["tau_s"])), pairs[1], None)
     return bank, pairs

@@ -62,6 +62,7 @@ from macromicro_sumo.policy.demand_rollout import (
     prior_warmup_states,
 )
 from macromicro_sumo.policy.driver_follow import follow_inputs
+from macromicro_sumo.policy.prior_choice import LikelihoodPairs
 from macromicro_sumo.policy.residual import (
     anchor_loss,
     anchor_observations,
@@ -178,7 +179,7 @@ def train_policy(
     val_runs: np.ndarray | None = None,
     make_demand: Callable[[], DemandCore] | None = None,
     prior_params: Mapping[str, float] | None = None,
-    recorded_pairs: tuple[np.ndarray, np.ndarray] | None = None,
+    recorded_pairs: LikelihoodPairs | tuple[np.ndarray, np.ndarray] | None = None,
     driver_speed: np.ndarray | None = None,
     driver_tau: np.ndarray | None = None,
 ) -> dict[str, Any]:
@@ -197,7 +198,8 @@ def train_policy(
     ``prior_params`` (``policy.prior.PRIOR_KEYS``; ``evaluation.idm_fit.fit_policy_prior``):
     the fitted model under the actor with a ``policy.prior`` (required then), whose residual
     is bounded by ``policy.residual_bound_mps2``; the checkpoints record the prior.
-    ``recorded_pairs`` (obs (N, D), accel (N,)): the observed vehicles' recorded pairs, what
+    ``recorded_pairs`` (obs (N, D), accel (N,), and each pair's driver's tau or None:
+    ``policy.prior_choice.LikelihoodPairs``): the observed vehicles' recorded pairs, what
     their own sensors saw (the pairs the prior was fitted on): the likelihood term uses them
     instead of the rollouts' observed pairs, whose leader is often a generated vehicle the
     recorded action did not answer (``policy.residual``). ``driver_speed``: the drivers'
@@ -224,7 +226,7 @@ def train_policy(
     if warmup_anchors(sc, use_micro) and make_demand is not None:
         states = prior_warmup_states(sc, prior_params, make_demand, driver_speed, driver_tau)
         warm = torch.as_tensor(states)
-    # policy.driver_follow: each slot's tau, and the likelihood pairs' one (the prior's).
+    # policy.driver_follow: each slot's tau, and each likelihood pair's driver's own.
     bank, recorded_pairs = follow_inputs(bank, recorded_pairs, prior_params, driver_tau, seed)
     core = make_core(bank, seed)
     # The ring's rollouts, B episodes per SUMO step: the same rollout, to the bit (rollout.py).

@@ -30,15 +30,19 @@ import numpy as np
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.relax_choice import choose_relax, rank_key, relax_unidentified
 
+# The residual's likelihood pairs (``policy.residual``): observations (N, D), accelerations
+# (N,), and each pair's driver's own tau [s] (N,) where the Krauss fit gives the drivers'
+# taus (``policy.driver_follow``), else None (the prior's one tau).
+LikelihoodPairs = tuple[np.ndarray, np.ndarray, np.ndarray | None]
 # Fits ``policy.prior``'s model to the observed pairs of the given runs of a ground truth:
-# (the agent's prior parameters, what the manifest records of the fit, the pairs (obs,
-# accel) it was fitted on, which the residual's likelihood uses: ``policy.residual``). The
-# fit is the evaluation's (a policy module may not import it): the pipeline passes it in.
+# (the agent's prior parameters, what the manifest records of the fit, the pairs it was
+# fitted on, ``LikelihoodPairs``). The fit is the evaluation's (a policy module may not
+# import it): the pipeline passes it in.
 PriorFit = Callable[
     [Any, Any, np.ndarray],
-    tuple[dict[str, float], dict[str, Any], tuple[np.ndarray, np.ndarray]],
+    tuple[dict[str, float], dict[str, Any], LikelihoodPairs],
 ]
-FittedPrior = tuple[dict[str, float], dict[str, Any], tuple[np.ndarray, np.ndarray]]
+FittedPrior = tuple[dict[str, float], dict[str, Any], LikelihoodPairs]
 
 # A prior alone (an ``Agent`` whose residual bound is 0) deployed on training runs of the
 # ground truth in the given folder: {"speed_rmse_mps": ..., "collisions": ..., ...}
