@@ -28,11 +28,12 @@ from macromicro_sumo.deploy.stage import MANIFEST as DEPLOY_MANIFEST
 from macromicro_sumo.deploy.stage import deploy
 from macromicro_sumo.env.driver_speed import krauss_pairs, observed_drivers
 from macromicro_sumo.env.section_bank import typical_length
-from macromicro_sumo.evaluation.driver_follow import driver_tau_record
+from macromicro_sumo.evaluation.driver_follow import driver_taus, pair_taus, tau_record
 from macromicro_sumo.evaluation.idm_fit import MIN_PRIOR_PAIRS, fit_policy_prior
 from macromicro_sumo.evaluation.krauss_fit import fit_krauss, network_defaults
 from macromicro_sumo.evaluation.methods import LEARNED, checkpoint_name
-from macromicro_sumo.evaluation.section import evaluate_section, micro_pairs
+from macromicro_sumo.evaluation.micro_data import keyed_micro_pairs
+from macromicro_sumo.evaluation.section import evaluate_section
 from macromicro_sumo.files import prepare_out_dir
 from macromicro_sumo.generator.section_stage import run_train_section_generator
 from macromicro_sumo.pipeline.parallel import default_jobs
@@ -345,7 +346,7 @@ def pipeline_stages(
 
 def fit_residual_prior(
     sc, truth, runs: np.ndarray
-) -> tuple[dict[str, float], dict[str, Any], tuple[np.ndarray, np.ndarray]]:
+) -> tuple[dict[str, float], dict[str, Any], tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
     """The model under a section's residual policy (``policy.prior``), fitted to the
     observed pairs as the evaluation's idm_calibrated is (its pairs, runs and length; the
     Krauss form to its drivers' own: ``env.driver_speed.prior_pairs``), so the policy
@@ -353,13 +354,15 @@ def fit_residual_prior(
     parameters the pairs do not identify take SUMO's defaults for the network's vClass
     (``evaluation.krauss_fit.fit_krauss``; the manifest records which and why). Returns the
     agent's prior parameters, what the policy manifest records of the fit, and the pairs
-    (the residual's likelihood pairs, ``policy.residual``)."""
+    (the residual's likelihood pairs, ``policy.residual``: observations, accelerations and
+    the Krauss form's each pair's driver's own tau, ``evaluation.driver_follow.pair_taus``,
+    which ``policy.driver_follow`` hands the prior; None: the prior's one tau)."""
     # What the model subtracts from the leader column (a gap layout: nothing, the leader's
     # own length is in it; physics.leader_length_m).
     length = leader_length_m(sc.policy.observation, typical_length(truth))
-    obs, acc = micro_pairs(sc, truth, runs)
+    obs, acc, keys = keyed_micro_pairs(sc, truth, runs)
     kind = sc.policy.prior
-    dt, record, pairs = sc.simulation.step_length_s, {}, len(acc)
+    dt, record, pairs, taus = sc.simulation.step_length_s, {}, len(acc), None
     if kind == "krauss":  # guarded: the parameters the pairs do not identify fall back
         closed = truth.section.closed
         fit_obs, fit_acc, ratios = krauss_pairs(sc, truth, runs, obs, acc, own_median=closed)
@@ -376,9 +379,9 @@ def fit_residual_prior(
         record["driver_ratios"] = ratios.record()
         # The observed drivers' own taus beside the prior's one (evaluation.driver_follow).
         drivers = observed_drivers(sc, truth, runs)
-        record["driver_taus"] = driver_tau_record(
-            drivers.obs, drivers.accel, drivers.keys, fit.params, length, dt
-        )
+        own = driver_taus(drivers.obs, drivers.accel, drivers.keys, fit.params, length, dt)
+        record["driver_taus"] = tau_record(own, fit.params)
+        taus = pair_taus(sc, keys, own, record["driver_taus"]["levels_s"])
         pairs = len(fit_acc)
     else:
         prior, rmse = fit_policy_prior(kind, obs, acc, length, dt)
@@ -386,7 +389,7 @@ def fit_residual_prior(
             keep = int(no_lower_limit_ahead(obs).sum())
             pairs = keep if keep >= MIN_PRIOR_PAIRS else pairs
     extra = {"prior": {"kind": kind, **prior, "fit_rmse_mps2": rmse, "pairs": pairs, **record}}
-    return prior, extra, (obs, acc)
+    return prior, extra, (obs, acc, taus)
 
 
 SECTION = PipelineRoad(

@@ -22,10 +22,19 @@ from macromicro_sumo.deploy.policy_batch import policy_batch  # noqa: E402
 from macromicro_sumo.deploy.run import Drive, load_context, run_method  # noqa: E402
 from macromicro_sumo.env.demand import DemandCore  # noqa: E402
 from macromicro_sumo.env.driver_speed import QUANTILE_LEVELS  # noqa: E402
+from macromicro_sumo.env.driver_tau import DriverTaus  # noqa: E402
 from macromicro_sumo.env.section import SectionCore  # noqa: E402
 from macromicro_sumo.env.section_bank import build_section_bank  # noqa: E402
+from macromicro_sumo.evaluation.driver_follow import following, pair_taus  # noqa: E402
+from macromicro_sumo.evaluation.micro_data import keyed_micro_pairs  # noqa: E402
 from macromicro_sumo.pipeline.build import fit_residual_prior  # noqa: E402
 from macromicro_sumo.policy.agent import Agent  # noqa: E402
+from macromicro_sumo.policy.chosen_prior import (  # noqa: E402
+    CHOICE_FILE,
+    apply_choice,
+    read_choice,
+    write_choice,
+)
 from macromicro_sumo.policy.demand_rollout import set_driver_draws  # noqa: E402
 from macromicro_sumo.policy.driver_follow import follow_choice, follow_inputs  # noqa: E402
 from macromicro_sumo.policy.ppo import train_policy  # noqa: E402
@@ -99,7 +108,7 @@ def test_a_driver_has_one_tau_in_the_demand_env_and_the_deployment(ring, tmp_pat
 
 
 def test_snapshot_rollouts_carry_each_slots_tau_and_ppo_keeps_the_quantiles(ring, tmp_path) -> None:
-    sc, _, truth, prior, (obs, acc), _ = ring
+    sc, _, truth, prior, (obs, acc, _), _ = ring
     torch.set_num_threads(1)
     snaps = section_snapshots(truth, sc, truth.runs)
     bank = build_section_bank(sc, truth, snaps, true_completion, 10, 0)
@@ -155,3 +164,74 @@ def test_the_fit_records_the_quantiles_drawn_from(ring) -> None:
     q, got = follow_choice(sc, made, prior, None)
     np.testing.assert_array_equal(q, TAU_Q)
     assert got["chosen"] == "drawn" and got["drivers_with_tau"] == 40
+
+
+def test_each_likelihood_pair_takes_its_own_drivers_tau(ring) -> None:
+    """Two observed drivers on the ring's recorded scenes who follow at different taus
+    (1.2 s and 2.0 s, their actions the prior's at that tau): each pair carries its own
+    driver's tau (``pair_taus``; a driver without a fitted one the deployment's draw for
+    it) into the likelihood pairs (``follow_inputs``), where the prior with each driver's
+    own tau gives that driver's actions a higher likelihood than with the other's tau or
+    the prior's one. Before, every pair carried the prior's one tau."""
+    sc, _, truth, prior, pairs, fitted = ring
+    obs, acc, keys = keyed_micro_pairs(sc, truth, truth.runs)
+    np.testing.assert_array_equal(obs, pairs[0])  # micro_pairs' pairs, now with drivers
+    assert (pairs[2] is None) == (fitted["driver_taus"]["levels_s"] is None)
+    near = following(obs)
+    counts: dict = {}
+    for k in np.asarray(keys, dtype=object)[near]:
+        counts[tuple(k)] = counts.get(tuple(k), 0) + 1
+    a, b = sorted(counts, key=lambda k: (-counts[k], k))[:2]
+    own = {a: 1.2, b: 2.0}
+    taus = pair_taus(sc, keys, own, TAU_Q)
+    assert pair_taus(sc, keys, own, None) is None  # under 30 drivers: the prior's one tau
+    is_a = np.array([k == a for k in keys])
+    is_b = np.array([k == b for k in keys])
+    assert (taus[is_a] == 1.2).all() and (taus[is_b] == 2.0).all()
+    other = ~(is_a | is_b)  # the deployment's draw for each of the other drivers
+    run, vid = keys[int(np.flatnonzero(other)[0])]
+    drawn = DriverTaus(TAU_Q.astype(np.float32).astype(float), sc, run)([vid])[0]
+    assert taus[int(np.flatnonzero(other)[0])] == drawn
+    agent = prior_agent(sc, prior)
+    f32 = lambda x: torch.as_tensor(np.asarray(x), dtype=torch.float32)  # noqa: E731
+    one = agent.prior_accel(f32(np.c_[obs, np.full(len(obs), 1.2)])).numpy()
+    two = agent.prior_accel(f32(np.c_[obs, np.full(len(obs), 2.0)])).numpy()
+    assert np.abs(one - two)[near & (is_a | is_b)].max() > 0.5  # the taus part them
+    acc = np.where(is_a, one, np.where(is_b, two, acc))  # their own headways
+    bank = build_section_bank(sc, truth, section_snapshots(truth, sc, truth.runs),
+                              true_completion, 4, 0)  # fmt: skip
+    _, got = follow_inputs(bank, (obs, acc, taus), prior, TAU_Q, sc.seed)
+    np.testing.assert_array_equal(got[0][:, -1], taus.astype(obs.dtype))
+
+    def logp(rows: np.ndarray, column: np.ndarray | float) -> float:
+        o = f32(np.c_[obs[rows], np.broadcast_to(column, rows.sum())])
+        with torch.no_grad():
+            return float(agent.dist(o).log_prob(f32(acc[rows])).mean())
+
+    for rows, mine, theirs in ((is_a & near, 1.2, 2.0), (is_b & near, 2.0, 1.2)):
+        carried = logp(rows, got[0][rows, -1])
+        assert carried == logp(rows, mine)
+        assert carried > logp(rows, theirs) + 0.1
+        assert carried > logp(rows, prior["tau_s"]) + 0.1
+
+
+def test_the_prior_choice_keeps_each_pairs_tau(ring, tmp_path) -> None:
+    """The choice's pairs file keeps each pair's driver's tau and gives it back; one made
+    without them is made again where ``policy.driver_follow`` draws taus, and read as it
+    is with "none"."""
+    sc, gt, _, prior, (obs, acc, _), fitted = ring
+    assert sc.policy.prior == "krauss"
+    made = {**fitted, "driver_taus": {**fitted["driver_taus"], "levels_s": TAU_Q.tolist()}}
+    taus = np.linspace(1.0, 2.0, len(acc))
+    path = tmp_path / CHOICE_FILE
+    write_choice(path, sc, gt, (sc, (prior, {"prior": made}, (obs, acc, taus))), 0.0)
+    record = read_choice(path, sc, gt)
+    assert record is not None
+    got = apply_choice(record, sc, path)[1][2]
+    np.testing.assert_array_equal(got[0], obs)
+    np.testing.assert_array_equal(got[2], taus)
+    write_choice(path, sc, gt, (sc, (prior, {"prior": made}, (obs, acc, None))), 0.0)
+    assert read_choice(path, sc, gt) is None
+    off = replace(sc, policy=replace(sc.policy, driver_follow="none"))
+    record = read_choice(path, off, gt)
+    assert record is not None and apply_choice(record, off, path)[1][2][2] is None

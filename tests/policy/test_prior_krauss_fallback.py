@@ -41,7 +41,7 @@ def test_a_congested_merge_takes_sumos_free_acceleration_and_says_so(ramp_truth)
     guard gives a back SUMO's passenger default, which is what these cars drive with, keeps
     the identified parameters as fitted, and the manifest's record says why."""
     sc, truth = ramp_truth
-    prior, extra, (obs, acc) = fit_residual_prior(sc, truth, truth.runs)
+    prior, extra, (obs, acc, _) = fit_residual_prior(sc, truth, truth.runs)
     record = extra["prior"]
     assert record["free_accel_pairs"] < MIN_FREE_ACCEL_PAIRS
     # Few cars cruise freely in the queue: their desired speeds are SUMO's too (the ratios'

@@ -50,7 +50,7 @@ def test_the_idm_priors_pair_count_is_its_own_subset(tmp_path: Path):
     obs, _ = micro_pairs(sc, truth, truth.runs)
     own = int(no_lower_limit_ahead(obs).sum())
     assert MIN_PRIOR_PAIRS <= own < len(obs)  # some pairs see the drop ahead, enough do not
-    _, extra, (all_obs, _) = fit_residual_prior(sc, truth, truth.runs)
+    _, extra, (all_obs, _, _) = fit_residual_prior(sc, truth, truth.runs)
     assert extra["prior"]["pairs"] == own and len(all_obs) == len(obs)
     # The other priors are fitted on every pair.
     gipps = replace(sc, policy=replace(sc.policy, prior="gipps"))

@@ -43,7 +43,7 @@ def start(tmp_path_factory: pytest.TempPathFactory):
     folder = tmp_path_factory.mktemp("r2l_start")
     simulate_section(sc, folder / "gt", progress=False)
     truth = load_section_truth(folder / "gt", sc)
-    prior, _, (obs, acc) = fit_residual_prior(sc, truth, np.array([0]))
+    prior, _, (obs, acc, _) = fit_residual_prior(sc, truth, np.array([0]))
     states = prior_warmup_states(sc, prior, lambda: DemandCore(sc, truth, truth.runs, 10))
     return sc, truth, prior, obs.astype(np.float32), states, acc
 
