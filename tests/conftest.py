@@ -20,6 +20,7 @@ import torch
 from macromicro_sumo.cli import main
 from macromicro_sumo.deploy.policy_batch import policy_batch
 from macromicro_sumo.pipeline import parallel
+from macromicro_sumo.pipeline.build import fit_residual_prior
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.road.section import Section, read_section
 from macromicro_sumo.scenario.load import load_scenario
@@ -302,6 +303,25 @@ def ring_two_lane_short(tmp_path_factory: pytest.TempPathFactory):
     folder = tmp_path_factory.mktemp("r2l_short")
     simulate_section(sc, folder / "gt", progress=False)
     return sc, load_section_truth(folder / "gt", sc)
+
+
+@pytest.fixture(scope="session")
+def ring_driver_follow(tmp_path_factory: pytest.TempPathFactory):
+    """(scenario, ground-truth folder, truth, fitted prior, its likelihood pairs, the fit's
+    manifest record) of scenarios/ring_two_lane.toml cut to two runs of 40 s after a 30 s
+    warm-up, with ``policy.driver_follow = "drawn"`` and 2 episodes an update: the ring of
+    the driver-tau tests (tests/policy/test_driver_follow_training.py,
+    tests/evaluation/test_section_driver_tau.py), simulated and fitted once."""
+    sc = load_scenario(ROOT / "scenarios" / "ring_two_lane.toml")
+    sc = replace(
+        sc,
+        simulation=replace(sc.simulation, n_runs=2, warmup_s=30.0, duration_s=40.0),
+        policy=replace(sc.policy, driver_follow="drawn", episodes_per_update=2),
+    )
+    gt = simulate_section(sc, tmp_path_factory.mktemp("driver_follow") / "gt", progress=False)
+    truth = load_section_truth(gt, sc)
+    prior, extra, pairs = fit_residual_prior(sc, truth, truth.runs)
+    return sc, Path(gt), truth, prior, pairs, extra["prior"]
 
 
 def assert_one_line_error(capsys: pytest.CaptureFixture, code: int, *fragments: str) -> str:

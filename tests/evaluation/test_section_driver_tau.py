@@ -2,12 +2,12 @@
 (``policy.driver_follow``, the agent's ``driver_tau`` buffer) with each hidden slot's seeded
 tau as the last observation column, drawn as the training rollouts draw it
 (``policy.driver_follow.follow_inputs``); a policy without the buffer sees no column.
-Real SUMO (ring_two_lane, one run of 40 s after a 30 s warm-up) and real torch."""
+Real SUMO (ring_two_lane, two runs of 40 s after a 30 s warm-up: tests/conftest.py's
+``ring_driver_follow``) and real torch."""
 
 from __future__ import annotations
 
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -23,29 +23,18 @@ from macromicro_sumo.env.driver_tau import with_tau  # noqa: E402
 from macromicro_sumo.env.section import SectionCore  # noqa: E402
 from macromicro_sumo.env.section_bank import build_section_bank  # noqa: E402
 from macromicro_sumo.evaluation.section import agent_action, driven_bank  # noqa: E402
-from macromicro_sumo.pipeline.build import fit_residual_prior  # noqa: E402
 from macromicro_sumo.policy.agent import Agent, policy_action  # noqa: E402
 from macromicro_sumo.policy.driver_follow import follow_inputs  # noqa: E402
-from macromicro_sumo.scenario.load import load_scenario  # noqa: E402
 from macromicro_sumo.sumo.inputs import scenario_inputs  # noqa: E402
-from macromicro_sumo.truth.section import load_section_truth, simulate_section  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[2]
 TAU_Q = np.interp(QUANTILE_LEVELS, [0.0, 0.05, 0.5, 0.75, 0.95, 1.0],
                   [0.6, 0.8, 1.1, 1.4, 1.8, 2.2])  # fmt: skip
 
 
 @pytest.fixture(scope="module")
-def ring(tmp_path_factory: pytest.TempPathFactory):
-    sc = load_scenario(ROOT / "scenarios" / "ring_two_lane.toml")
-    sc = replace(
-        sc,
-        simulation=replace(sc.simulation, n_runs=1, warmup_s=30.0, duration_s=40.0),
-        policy=replace(sc.policy, driver_follow="drawn"),
-    )
-    gt = simulate_section(sc, tmp_path_factory.mktemp("driver_tau") / "gt", progress=False)
-    truth = load_section_truth(gt, sc)
-    prior, _, _ = fit_residual_prior(sc, truth, truth.runs)
+def ring(ring_driver_follow):
+    """tests/conftest.py's ring, its fitted prior and a bank of its snapshots."""
+    sc, _, truth, prior, _, _ = ring_driver_follow
     bank = build_section_bank(sc, truth, section_snapshots(truth, sc, truth.runs),
                               true_completion, 10, 0)  # fmt: skip
     return sc, truth, prior, bank

@@ -27,7 +27,6 @@ from macromicro_sumo.env.section import SectionCore  # noqa: E402
 from macromicro_sumo.env.section_bank import build_section_bank  # noqa: E402
 from macromicro_sumo.evaluation.driver_follow import following, pair_taus  # noqa: E402
 from macromicro_sumo.evaluation.micro_data import keyed_micro_pairs  # noqa: E402
-from macromicro_sumo.pipeline.build import fit_residual_prior  # noqa: E402
 from macromicro_sumo.policy.agent import Agent  # noqa: E402
 from macromicro_sumo.policy.chosen_prior import (  # noqa: E402
     CHOICE_FILE,
@@ -39,28 +38,16 @@ from macromicro_sumo.policy.demand_rollout import set_driver_draws  # noqa: E402
 from macromicro_sumo.policy.driver_follow import follow_choice, follow_inputs  # noqa: E402
 from macromicro_sumo.policy.ppo import train_policy  # noqa: E402
 from macromicro_sumo.policy.rollout import collect  # noqa: E402
-from macromicro_sumo.scenario.load import load_scenario  # noqa: E402
 from macromicro_sumo.sumo.inputs import scenario_inputs  # noqa: E402
-from macromicro_sumo.truth.section import load_section_truth, simulate_section  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[2]
 TAU_Q = np.interp(QUANTILE_LEVELS, [0.0, 0.05, 0.5, 0.75, 0.95, 1.0],
                   [1.0, 1.035, 1.075, 1.37, 1.79, 2.0])  # fmt: skip
 
 
 @pytest.fixture(scope="module")
-def ring(tmp_path_factory: pytest.TempPathFactory):
-    sc = load_scenario(ROOT / "scenarios" / "ring_two_lane.toml")
-    sc = replace(
-        sc,
-        simulation=replace(sc.simulation, n_runs=2, warmup_s=30.0, duration_s=40.0),
-        policy=replace(sc.policy, driver_follow="drawn", episodes_per_update=2),
-    )
-    folder = tmp_path_factory.mktemp("driver_follow")
-    gt = simulate_section(sc, folder / "gt", progress=False)
-    truth = load_section_truth(gt, sc)
-    prior, extra, pairs = fit_residual_prior(sc, truth, truth.runs)
-    return sc, Path(gt), truth, prior, pairs, extra["prior"]
+def ring(ring_driver_follow):
+    """tests/conftest.py's ring: (sc, gt, truth, prior, pairs, the fit's record)."""
+    return ring_driver_follow
 
 
 def prior_agent(sc, prior) -> Agent:
