@@ -92,6 +92,7 @@ class LaneTable(Table):
          self.next_start_m) = self.cols  # fmt: skip
         self._obs_rows: dict[str, np.ndarray] = {}
         self._driven = np.full(1, -1, dtype=np.int64)
+        self.order = np.arange(1)
 
     def obs_rows(self, observation: str) -> np.ndarray:
         """(rows, F) per lane code: ``policy.observation``'s columns that are the lane's
@@ -110,9 +111,11 @@ class LaneTable(Table):
     def driven_rows(self, n_rows: int) -> np.ndarray:
         """A buffer of -1 longer than ``n_rows`` (a step's vehicles), kept between steps:
         the caller writes the driven vehicles' indices at their rows, reads, and writes -1
-        back; its last entry, which row -1 reads, stays -1."""
+        back; its last entry, which row -1 reads, stays -1. ``order`` grows with it: 0, 1,
+        ... as long, the indices to write (a slice of it, not an ``arange`` a step)."""
         if len(self._driven) <= n_rows:
             self._driven = np.full(2 * n_rows + 1, -1, dtype=np.int64)
+            self.order = np.arange(len(self._driven))
         return self._driven
 
 
@@ -185,9 +188,10 @@ def observe_rows(
     spacing = gap + min_gap
     spacing += lengths[n:]
     ok = has & (spacing < NO_LEADER_GAP_M)
-    none = ~ok
+    # Those without one, as indices: a write by index costs ~2/3 of a masked one (five).
+    none = (~ok).nonzero()[0]
     lead_v = st.speed_mps[lead_row]
-    np.copyto(lead_v, speed, where=none)  # delta_v 0 without a leader
+    lead_v[none] = speed[none]  # delta_v 0 without a leader
     spacing[none] = NO_LEADER_GAP_M
     sumo_gap = gap
     sumo_gap[none] = NO_LEADER_GAP_M
@@ -196,7 +200,7 @@ def observe_rows(
     # A driven leader's index in ``vids``: a row of ``st`` -> its index, -1 elsewhere
     # (a buffer of -1 kept per run; its last entry answers row -1, no leader).
     driven = lanes.driven_rows(len(st.ids))
-    driven[rows] = np.arange(n)
+    driven[rows] = lanes.order[:n]
     lead_index = driven[lead_row]
     driven[rows] = -1
     lead_index[none] = -1
