@@ -54,8 +54,11 @@ def actor_forward(agent: Agent) -> Callable[[np.ndarray], np.ndarray]:
 
     last = max(i for i, layer in enumerate(layers) if layer is not None)
     # The hidden layers' outputs, kept between calls (grown as needed): written in place, the
-    # same products and sums as fresh arrays, without a step's allocations.
+    # same products and sums as fresh arrays, without a step's allocations. Their biases as
+    # rows as many (``tiled``): the same sums as the broadcast bias, a contiguous add
+    # (~1 us less a layer at 42 rows, numpy 2.4).
     kept = [np.empty((0, 0 if layer is None else len(layer[1]))) for layer in layers]
+    tiled = list(kept)
 
     def forward(obs: np.ndarray) -> np.ndarray:
         x0 = np.subtract(obs, shift)
@@ -69,11 +72,14 @@ def actor_forward(agent: Agent) -> Callable[[np.ndarray], np.ndarray]:
                     continue
                 if i == last:  # a fresh output
                     x = np.matmul(x, layer[0])
-                else:
-                    if len(kept[i]) < n:
-                        kept[i] = np.empty((max(n, ACTOR_ROWS // 2), len(layer[1])))
-                    x = np.matmul(x, layer[0], out=kept[i][:n])
-                np.add(x, layer[1], out=x)
+                    np.add(x, layer[1], out=x)
+                    continue
+                if len(kept[i]) < n:
+                    rows = max(n, ACTOR_ROWS // 2)
+                    kept[i] = np.empty((rows, len(layer[1])))
+                    tiled[i] = np.tile(layer[1], (rows, 1))
+                x = np.matmul(x, layer[0], out=kept[i][:n])
+                np.add(x, tiled[i][:n], out=x)
             return x[:, 0]
         out = np.empty(n)
         for start in range(0, n, ACTOR_ROWS):
