@@ -17,10 +17,13 @@ from macromicro_sumo.sumo.states import VehicleStates
 CONGESTED_MPS = 60.0 / 3.6
 # The headway of the Krauss follow speed LC2013's advice brakes to (SUMO's default tau) [s].
 KRAUSS_TAU_S = 1.0
-# A leader on the lane to the left is free (the ban does not bind) where the next vehicle
-# ahead of it is at least this far, front to front (``blocked``).
-FREE_HEADWAY_S = 2.0
-FREE_SPACING_M = 10.0
+# A leader on the lane to the left is blocked (the ban binds behind it) where the next
+# vehicle ahead of it is nearer than BLOCKED_HEADWAY_S x its speed + BLOCKED_SPACING_M, front
+# to front (``blocked``): it follows that one at about a Krauss driver's headway (SUMO's
+# default tau, ``KRAUSS_TAU_S``), held by it. At 2 s (stop 38) a dense free-flowing lane
+# counted as blocked: drawn 549's entry, 1,560 veh/h a lane at 28 m/s, 65 m apart < 66 m.
+BLOCKED_HEADWAY_S = KRAUSS_TAU_S
+BLOCKED_SPACING_M = 10.0
 
 
 def no_pass_right_cap(
@@ -72,10 +75,13 @@ def keep_right_caps(
     speedFactor, to which a drawn factor is blind, and the ban passed the policy's slow
     left lane on Bremen (-3 m/s) to the lanes on its right (1.146 -> 1.292 m/s). Off by
     default: on drawn 549 the caps at its busy 3-lane entry (1,560 veh/h a lane, so every
-    left leader at 2 s spacing counts as blocked) helped the lane drop's queue spill back to
-    the entry (all 4 runs 4.39 -> 4.95 m/s); a blocked test at 1 s x v + 10 m instead gave
-    549 4.23 but 501 3.00 (3.02 without the ban, 2.75 with it): 501's gain gone.
-    ``shape_of``: vehicle -> (length, minGap, decel)."""
+    left leader at 2 s spacing counted as blocked) helped the lane drop's queue spill back to
+    the entry (all 4 runs 4.38 -> 4.98 m/s). With ``blocked``'s 1 s (stop 39) a free-flowing
+    left lane caps nobody: 549 4.16, 501 3.00 (3.02 off, 2.75 with the 2 s test: 501's gain
+    is gone), both within the spread of headways 0.9-1.2 s (549 4.16-4.93, 501 2.98-3.24);
+    no blocked test tried (speed below 0.7-0.8 x the limit or 2-4 m/s below the leader's
+    own allowed speed, none ahead free, none in the first 150-300 m) kept 501's gain without
+    549's loss. ``shape_of``: vehicle -> (length, minGap, decel)."""
     d = sc.deploy
     if d.keep_right != "blocked" or d.merge != "sumo" or sc.policy.driver_speed == "drawn":
         return cap
@@ -121,9 +127,9 @@ def keep_right_caps(
 
 def blocked(pos: np.ndarray, speed: np.ndarray, at: int) -> bool:
     """Whether the vehicle at index ``at`` of a lane's vehicles (``pos`` ascending, their
-    ``speed``) is itself blocked: the next one ahead nearer than ``FREE_HEADWAY_S`` x v +
-    ``FREE_SPACING_M`` front to front (``env.driver_speed``'s free test before it read the
-    bumper gap, stop 38; measured with this one), or none ahead on the edge (it may be
-    queued on the next)."""
+    ``speed``) is itself blocked: the next one ahead nearer than ``BLOCKED_HEADWAY_S`` x v +
+    ``BLOCKED_SPACING_M`` front to front (it follows at about a Krauss driver's 1 s), or none
+    ahead on the edge (it may be queued on the next)."""
     ahead = at + 1
-    return ahead >= pos.size or pos[ahead] - pos[at] < FREE_HEADWAY_S * speed[at] + FREE_SPACING_M
+    reach = BLOCKED_HEADWAY_S * speed[at] + BLOCKED_SPACING_M
+    return ahead >= pos.size or pos[ahead] - pos[at] < reach

@@ -288,10 +288,11 @@ class DeployConfig:
         "off",
         choices=("off", "blocked"),
         doc="merge sumo: blocked, a commanded vehicle at 60 km/h or more passes a slower, "
-        "blocked leader on the lane to its left no faster than LC2013's ban on overtaking on "
-        "the right lets SUMO's drivers (deploy.keep_right.keep_right_caps; not with "
-        "policy.driver_speed drawn); off, no such cap (drawn 501 3.02 -> 2.75 m/s with "
-        "blocked, drawn 549 4.39 -> 4.95: docs/deploy.md, Keep right)",
+        "blocked leader (its own leader nearer than 1 s x v + 10 m) on the lane to its left "
+        "no faster than LC2013's ban on overtaking on the right lets SUMO's drivers "
+        "(deploy.keep_right.keep_right_caps; not with policy.driver_speed drawn); off, no "
+        "such cap (drawn 501 3.02 -> 3.00 m/s with blocked, drawn 549 4.38 -> 4.16, both "
+        "within the runs' spread: docs/deploy.md, Keep right)",
         omit_default=True,  # the digests of scenarios that do not set it stay as they were
     )
     fcd_s: float = spec(

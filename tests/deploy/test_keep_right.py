@@ -52,9 +52,9 @@ def test_the_cap_binds_a_fast_car_behind_a_slower_left_leader() -> None:
     lanes = {"A_0": 0, "A_1": 0, ":n1_0_0": 0, ":n1_0_1": 0}
     assert left_lane("A_0", lanes) == "A_1" and left_lane("A_1", lanes) is None
     assert left_lane(":n1_0_0", lanes) is None  # a junction's lanes: none
-    # At 8 m/s the next car 20 m ahead (< 2 x 8 + 10) blocks, 30 m ahead not; the foremost
+    # At 8 m/s the next car 16 m ahead (< 1 s x 8 + 10) blocks, 20 m ahead not; the foremost
     # on the edge counts as blocked (it may be queued on the next edge).
-    pos, v = np.array([0.0, 20.0, 50.0]), np.full(3, 8.0)
+    pos, v = np.array([0.0, 16.0, 36.0]), np.full(3, 8.0)
     assert blocked(pos, v, 0) and not blocked(pos, v, 1) and blocked(pos, v, 2)
 
 
@@ -125,6 +125,35 @@ def test_the_caps_from_the_road_s_state(tmp_path: Path) -> None:
     assert (
         keep_right_caps(sc, section, dict.fromkeys(ids, shape), alone, np.arange(2), None) is None
     )
+
+
+def test_a_free_flowing_dense_left_lane_does_not_cap_a_blocked_one_does(tmp_path: Path) -> None:
+    """Drawn 549's entry: 1,560 veh/h a lane at 28 m/s, 65 m apart. A commanded car at
+    30 m/s on lane 0, 2.5 m behind-right of the rearmost of three cars at 28 m/s on lane 1,
+    60 m apart front to front (2.1 s: flowing freely, each far more than a Krauss driver's
+    1 s x v + 10 m behind the next), gets no cap: it may pass them. Fails with stop 38's
+    test (2 s x v + 10 m = 66 m: blocked), which capped it at 28 m/s. Beside cars at 10 m/s
+    15 m apart (a queue: < 1 s x 10 + 10 m) it is capped (``no_pass_right_cap``)."""
+    net, routes = _queue_files(tmp_path)
+    sc = small_section_scenario(tmp_path, net, routes, ["A"], deploy={"keep_right": "blocked"})
+    section = read_section(net, ["A"], False)
+    ids = ("a", "b", "c", "ego")
+    shapes = dict.fromkeys(ids, (5.0, 2.5, 4.5))
+    lanes = ["A_1", "A_1", "A_1", "A_0"]
+    dt = sc.simulation.step_length_s
+    free = VehicleStates(ids, lanes, np.array([200.0, 260.0, 320.0, 192.5]),
+                         np.array([28.0, 28.0, 28.0, 30.0]), np.zeros(4))  # fmt: skip
+    held = no_pass_right_cap(np.array([30.0]), np.array([28.0]), np.array([0.0]),
+                             np.array([4.5]), dt)  # fmt: skip
+    assert held[0] < 29.0  # what stop 38's test made of it
+    assert keep_right_caps(sc, section, shapes, free, np.array([3]), None) is None
+    queue = VehicleStates(ids, lanes, np.array([200.0, 215.0, 230.0, 192.5]),
+                          np.array([10.0, 10.0, 10.0, 22.0]), np.zeros(4))  # fmt: skip
+    got = keep_right_caps(sc, section, shapes, queue, np.array([3]), None)
+    want = no_pass_right_cap(np.array([22.0]), np.array([10.0]), np.array([0.0]),
+                             np.array([4.5]), dt)  # fmt: skip
+    assert got is not None and got[0] < 22.0, got
+    np.testing.assert_allclose(got, want)
 
 
 def _queue_files(folder: Path) -> tuple[Path, Path]:
