@@ -61,6 +61,16 @@ class PolicyConfig:
         "observed vehicles' free-flow speed ratios (drawn), or its own speed ratio where it "
         "was first seen, over their median (memory) (env.driver_speed)",
     )
+    driver_ratios: str = spec(
+        "kaplan_meier",
+        choices=("kaplan_meier", "reached"),
+        doc="sections, with driver_speed or the krauss prior: the observed drivers' desired-"
+        "speed ratios where few cruise freely long enough: kaplan_meier, each other vehicle's "
+        "top v / limit is a lower bound; reached, one reached with nothing holding it there "
+        "(not accelerating, a free gap or a leader as fast) is its ratio (signalised "
+        "arterials; env.driver_speed.unheld)",
+        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+    )
     driver_follow: str = spec(
         "none",
         choices=("none", "drawn", "auto"),
