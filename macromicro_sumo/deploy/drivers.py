@@ -30,7 +30,7 @@ from operator import and_
 import numpy as np
 
 from macromicro_sumo.deploy.keep_right import keep_right_caps
-from macromicro_sumo.deploy.merge_yield import MergeYield
+from macromicro_sumo.deploy.merge_yield import LANE_END_RECHECK_STEPS, MergeYield
 from macromicro_sumo.deploy.observe import STANDING, LaneTable, Table, observe_rows, states_of
 from macromicro_sumo.deploy.population import (
     ActionBatch,
@@ -54,10 +54,6 @@ from macromicro_sumo.sumo.states import VehicleStates
 from macromicro_sumo.truth.section import is_instrumented
 
 BRAKING_TOLERANCE_MPS2 = 0.01
-# A lane that carries a vehicle on is asked again (SUMO's best lanes, one call per vehicle)
-# this many steps later: SUMO sees a lane's end only within its look-ahead (~3 km), which
-# a vehicle nears by at most a few hundred metres meanwhile; a lane end, once seen, stays.
-LANE_END_RECHECK_STEPS = 20
 
 
 # --------------------------------------------------------------------------- sections
@@ -191,6 +187,7 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
         taus = getattr(act, "driver_taus", None)  # policy.driver_follow: each driver's tau
         self.driver_taus = taus(sc, run) if taus is not None else None
         self.merging: set[str] = set()  # driven vehicles merging with SUMO's own model now
+        self.others: dict[str, tuple[str, int, float]] = {}  # ``MergeYield.must_change``
 
     def take(self, sim: Simulation, vids: list[str]) -> None:
         sim.set_speed_mode(vids, self.mode)
@@ -285,7 +282,8 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
                 self.slots.factor[slots[new]] = got
         if self.merge != "none":
             reach = self.handover_m(vids, slots, speed)
-            keep = self.merges(sim, vids, ahead, reach)
+            usable = self.usable_m(ahead, rows, lanes, slots, st)
+            keep = self.merges(sim, vids, usable, reach)
             if keep is not None:
                 # Indices, not the mask: a take by index costs a fraction of a masked one.
                 idx = keep.nonzero()[0]
@@ -296,7 +294,7 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
                 factor = None if factor is None else factor[idx]
                 if not vids:
                     return
-            near = self.blocking(sim, vids)
+            near = self.blocking(sim, vids, slots, st)
         # Last step's command against the speed SUMO applied (-inf: none to compare with).
         self.stats.safety_acted += int(
             np.count_nonzero(speed < self.slots.last_mps[slots] - SAFETY_TOLERANCE_MPS)
