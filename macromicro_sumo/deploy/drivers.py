@@ -188,6 +188,8 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
         self.driver_taus = taus(sc, run) if taus is not None else None
         self.merging: set[str] = set()  # driven vehicles merging with SUMO's own model now
         self.others: dict[str, tuple[str, int, float]] = {}  # ``MergeYield.must_change``
+        # deploy.merge_reach "occupation": LC2013's lane drop (``MergeYield``)
+        self.occupation = self.yield_all = sc.deploy.merge_reach == "occupation"
 
     def take(self, sim: Simulation, vids: list[str]) -> None:
         sim.set_speed_mode(vids, self.mode)

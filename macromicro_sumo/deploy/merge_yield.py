@@ -45,10 +45,10 @@ LANE_END_RECHECK_STEPS = 20
 class MergeYield:
     """``deploy.merge`` for ``SectionSpeedDriver``: the hand-over and the yield.
 
-    ``occupation`` and ``yield_all`` (off by default, together LC2013's lane drop): the
-    hand-over at LC2013's usable distance, the distance left less the best lane's
-    occupation (``occupations_m``), and the yield to the blockers of every vehicle that must
-    leave its lane (``must_change``). On drawn 522 (2 lanes dropping to 1 in a queue) the
+    ``occupation`` and ``yield_all`` (``deploy.merge_reach = "occupation"`` sets both; off
+    by default): the hand-over at LC2013's usable distance, the distance left less the best
+    lane's occupation (``occupations_m``), and the yield to the blockers of every vehicle
+    that must leave its lane (``must_change``). On drawn 522 (2 lanes dropping to 1 in a queue) the
     truth's cars leave the ending lane all along it, the commanded ones stayed on to
     400-600 m and zippered in at its end, the through lane jammed (8 against 13 m/s). Both
     on, all 4 runs, speed RMSE: 522 3.39 -> 3.42 m/s ("memory"; m0's 375 m station -3.27

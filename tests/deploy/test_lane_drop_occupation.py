@@ -24,6 +24,7 @@ from macromicro_sumo.deploy.lane_change import (
     usable_distance_m,
 )
 from macromicro_sumo.deploy.policy_batch import policy_batch
+from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.section import read_section
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 
@@ -90,9 +91,9 @@ def test_usable_distance_and_continuations(tmp_path: Path) -> None:
 
 @pytest.fixture(scope="module")
 def drops(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict]:
-    """Per variant ("plain": the hand-over at the plain reach, the yield to handed-over
-    cars' blockers; "occupation": at LC2013's usable distance, the yield to the blockers of
-    every car that must leave its lane), the drop with every car but the slow one
+    """Per ``deploy.merge_reach`` ("plain": the hand-over at the plain reach, the yield to
+    handed-over cars' blockers; "occupation": at LC2013's usable distance, the yield to the
+    blockers of every car that must leave its lane), the drop with every car but the slow one
     commanded by a policy cloned from IDM (desired 25 m/s), 120 s: the ego's distance to its lane's
     end and reach when first handed over, where it left lane 0, the yields (commanded cars
     that took SUMO's slow-down, per step) and the collisions and teleports."""
@@ -106,9 +107,11 @@ def drops(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict]:
     act = policy_batch(idm_agent("lookahead", 25.0))
     out: dict[str, dict] = {}
     for name, on in (("plain", False), ("occupation", True)):
-        sc = dataclasses.replace(base, deploy=dataclasses.replace(base.deploy, merge="sumo"))
-        drv = Recording(sc, section, 0, act, "sumo")
-        drv.occupation = drv.yield_all = on
+        reach = "occupation" if on else "plain"
+        d = dataclasses.replace(base.deploy, merge="sumo", merge_reach=reach)
+        drv = Recording(dataclasses.replace(base, deploy=d), section, 0, act, "sumo")
+        assert drv.occupation is on and drv.yield_all is on
+        sc = drv.sc
         opts = SumoOptions(net, (), sc.simulation.step_length_s, sc.seed, route_files=(routes,))
         sim = Simulation(dataclasses.replace(opts, user_demand=True))
         left_at = None
@@ -179,3 +182,34 @@ def test_the_yield_opens_a_gap_collision_free(drops: dict[str, dict]) -> None:
     assert drops["occupation"]["yields"] > 0, drops
     for name, got in drops.items():
         assert got["collisions"] == 0 and got["teleports"] == 0, (name, got)
+
+
+def test_merge_reach_is_plain_by_default_and_checked(tmp_path: Path) -> None:
+    """``deploy.merge_reach``: "plain" by default and then left out of the scenario's dict
+    (every existing scenario keeps its digest), the driver's occupation and yield_all off;
+    "occupation" turns both on and needs merge "sumo"; an unknown value or "occupation"
+    with another merge is one line naming file, field and what is accepted."""
+    net, routes = _drop_files(tmp_path)
+    plain = small_section_scenario(tmp_path, net, routes, ["A", "B"])
+    assert plain.deploy.merge_reach == "plain" and "merge_reach" not in plain.to_dict()["deploy"]
+    said = small_section_scenario(
+        tmp_path, net, routes, ["A", "B"], deploy={"merge_reach": "plain"}
+    )
+    assert said.digest() == plain.digest()
+    on = small_section_scenario(
+        tmp_path, net, routes, ["A", "B"], deploy={"merge_reach": "occupation"}
+    )
+    assert on.deploy.merge_reach == "occupation" and on.digest() != plain.digest()
+    section = read_section(net, ["A", "B"], False)
+    for sc, want in ((plain, False), (on, True)):
+        drv = SectionSpeedDriver(sc, section, 0, None, "sumo")  # type: ignore[arg-type]
+        assert drv.occupation is want and drv.yield_all is want
+    for bad, msg_has in (
+        ({"merge_reach": "always"}, "'plain', 'occupation'"),
+        ({"merge_reach": "occupation", "merge": "handover"}, "deploy.merge = 'sumo'"),
+    ):
+        with pytest.raises(UserError) as err:
+            small_section_scenario(tmp_path, net, routes, ["A", "B"], deploy=bad)
+        msg = str(err.value)
+        assert "\n" not in msg and "s.toml" in msg and "deploy.merge_reach" in msg, msg
+        assert msg_has in msg, msg
