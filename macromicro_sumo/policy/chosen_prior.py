@@ -33,7 +33,8 @@ from macromicro_sumo.policy.prior_choice import FittedPrior, with_prior
 
 CHOICE_FILE = "prior_choice.json"
 # The chosen family's pairs (observations, accelerations, and where the Krauss fit gives
-# them each pair's driver's tau, "tau"), its fit's: the residual's likelihood pairs (``policy.residual``), kept so that no stage fits the family again.
+# them each pair's driver's tau, "tau"), its fit's: the residual's likelihood pairs
+# (``policy.residual``), kept so that no stage fits the family again.
 PAIRS_FILE = "prior_pairs.npz"
 # The families whose prior a choice may set: "auto" (the family) and "krauss" (the relaxation
 # the pairs leave at its bound; where they identify it, the file records the fit alone).
