@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Hashable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -34,6 +35,7 @@ from macromicro_sumo.env.driver_speed import (
     FREE_GAP_M,
     FREE_HEADWAY_S,
     QUANTILE_LEVELS,
+    observed_drivers,
 )
 from macromicro_sumo.env.driver_tau import DriverTaus
 from macromicro_sumo.evaluation.krauss_fit import (
@@ -42,6 +44,8 @@ from macromicro_sumo.evaluation.krauss_fit import (
     behind_leader,
     krauss_policy_accel,
 )
+from macromicro_sumo.evaluation.micro_data import keyed_micro_pairs
+from macromicro_sumo.policy.prior import KRAUSS_PRIOR_KEYS
 
 # The taus searched [s]: the Krauss fit's range cut to what a driver on a road keeps.
 TAU_GRID_S = np.round(np.arange(0.3, 3.0 + 1e-9, 0.005), 3)
@@ -191,3 +195,46 @@ def pair_taus(
         run, vid = keys[i]
         out[i] = draws.setdefault(run, DriverTaus(q, sc, run))([vid])[0]
     return out
+
+
+def held_out_pairs(
+    sc, truth, runs, agents: Mapping[str, Any], veh_length_m: float
+) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray | None], dict[str, Any]]:
+    """The held-out observed pairs of ``runs`` (``micro_pairs``) for micro consistency,
+    with ``held_out_taus`` of their drivers and its record."""
+    obs, acc, keys = keyed_micro_pairs(sc, truth, runs)
+    return obs, acc, *held_out_taus(sc, truth, runs, keys, agents, veh_length_m)
+
+
+def held_out_taus(
+    sc, truth, runs, keys: Sequence[tuple[int, str]], agents: Mapping[str, Any], veh_length_m: float
+) -> tuple[dict[str, np.ndarray | None], dict[str, Any]]:
+    """Each held-out pair's driver's tau [s] (``keys``, ``keyed_micro_pairs`` of ``runs``)
+    for every agent trained with the drivers' taus (its ``driver_tau`` buffer, a Krauss
+    prior): ``pair_taus``, as the training's likelihood pairs take them, with the drivers'
+    own taus fitted on ``runs`` (``driver_taus`` with the agent's prior), else the
+    deployment's draw; None for the others (the prior's one tau, as before). Returns them
+    by agent and what the manifest records (pairs, pairs with the driver's own tau). Why:
+    micro consistency scored the held-out drivers with the prior's one tau while the
+    training judged every observed driver with its own."""
+    taus: dict[str, np.ndarray | None] = {}
+    record: dict[str, Any] = {}
+    drivers, own_of = None, {}
+    for name, agent in agents.items():
+        q = getattr(agent, "driver_tau", None)
+        if q is None or agent.prior != "krauss":
+            taus[name] = None
+            continue
+        p = dict(zip(KRAUSS_PRIOR_KEYS, agent.krauss_prior.tolist(), strict=True))
+        params = KraussParams(**{k: p[k] for k in KraussParams.__dataclass_fields__})
+        if drivers is None:
+            drivers = observed_drivers(sc, truth, runs)
+        if params not in own_of:
+            dt = sc.simulation.step_length_s
+            own_of[params] = driver_taus(
+                drivers.obs, drivers.accel, drivers.keys, params, veh_length_m, dt
+            )
+        own = own_of[params]
+        taus[name] = pair_taus(sc, keys, own, q.numpy())
+        record[name] = {"pairs": len(keys), "own_tau": sum(k in own for k in keys)}
+    return taus, record

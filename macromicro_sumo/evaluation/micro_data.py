@@ -7,13 +7,14 @@ reference IDM and the deployment's calibrated IDM; and the IDM as a method on th
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import numpy as np
 import pandas as pd
 import torch
 
 from macromicro_sumo.data.section import SectionTruth, recorded_steps, run_section, stop_lines_at
+from macromicro_sumo.env.driver_tau import with_tau
 from macromicro_sumo.env.rollout import ActionFn
 from macromicro_sumo.env.section_bank import recordable, standing_gaps
 from macromicro_sumo.env.section_observations import section_observations
@@ -123,14 +124,18 @@ def micro_consistency(
     accel: np.ndarray,
     sc,
     veh_length_m: float,
+    taus: Mapping[str, np.ndarray | None] | None = None,
 ) -> pd.DataFrame:
     """Held-out observed actions: NLL under each learned policy, action RMSE for every method;
-    ``veh_length_m``: the leader length IDM subtracts."""
+    ``veh_length_m``: the leader length IDM subtracts; ``taus``: by policy, each pair's
+    driver's tau as its observations' trailing column (``policy.driver_follow``,
+    ``evaluation.driver_follow.held_out_taus``); none: the prior's one tau."""
     a_min, a_max = sc.bounds.accel_mps2
     u = np.clip(accel, a_min, a_max)
     rows = []
-    o = torch.as_tensor(obs, dtype=torch.float32)
     for name, agent in agents.items():
+        own = (taus or {}).get(name)
+        o = torch.as_tensor(obs if own is None else with_tau(obs, own), dtype=torch.float32)
         with torch.no_grad():
             d = agent.dist(o)
             nll = float(-d.log_prob(torch.as_tensor(u, dtype=torch.float32)).mean())

@@ -71,6 +71,7 @@ from macromicro_sumo.env.section_bank import (
     with_future,
 )
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.evaluation.driver_follow import held_out_pairs
 from macromicro_sumo.evaluation.idm_fit import calibrate_idm
 from macromicro_sumo.evaluation.idm_true import (
     true_idm_action,
@@ -449,8 +450,8 @@ def evaluate_section(
             write_csv(by_k_table, stage / "macro_alignment_by_k.csv")
         write_csv(pd.concat(samples, ignore_index=True), stage / "eval_samples.csv")
         write_csv(pd.DataFrame(safety_rows), stage / "safety.csv")
-        obs_ho, acc_ho = micro_pairs(sc, truth, held)
-        micro = micro_consistency(agents, {"idm_calibrated": idm}, obs_ho, acc_ho, sc, lead_m)
+        obs_ho, acc_ho, taus, tau_record = held_out_pairs(sc, truth, held, agents, lead_m)
+        micro = micro_consistency(agents, {"idm_calibrated": idm}, obs_ho, acc_ho, sc, lead_m, taus)
         micro.insert(0, "reference", REFERENCE_MICRO)
         write_csv(micro, stage / "micro_consistency.csv")
         lf = section_leader_follower_tests(sc, truth, net_file, agents, idm, length, vclass)
@@ -472,6 +473,7 @@ def evaluate_section(
             held_out_runs=[int(r) for r in held],
             episodes=len(snaps),
             hidden=sc.instrumented.hidden,
+            micro_pair_taus=tau_record or None,
             episodes_by_k={str(k): len(eps) for k, eps in (by_k or {}).items()},
             hidden_counts=sorted(hidden) if hidden else "all",
             true_count_rows=TRUE_REUSED if same_k else ("none" if field else "own pass"),

@@ -1,0 +1,75 @@
+"""Micro consistency scores a policy trained with the drivers' own taus
+(``policy.driver_follow``, the agent's ``driver_tau`` buffer) on the held-out observed pairs
+with each pair's driver's own tau as the observations' trailing column (``pair_taus``, as
+the training's likelihood pairs take them: the driver's tau fitted on its record, else the
+deployment's draw for it); a policy without the buffer with the prior's one tau, as before.
+Real SUMO (tests/conftest.py's ``ring_driver_follow``) and real torch."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from macromicro_sumo.data.section import split_runs
+from macromicro_sumo.env.driver_speed import QUANTILE_LEVELS, observed_drivers
+from macromicro_sumo.env.driver_tau import DriverTaus, with_tau
+from macromicro_sumo.env.section_bank import typical_length
+from macromicro_sumo.evaluation.driver_follow import driver_taus, held_out_pairs
+from macromicro_sumo.evaluation.idm_fit import calibrate_idm
+from macromicro_sumo.evaluation.krauss_fit import KraussParams
+from macromicro_sumo.evaluation.micro_data import keyed_micro_pairs, micro_consistency
+from macromicro_sumo.policy.agent import Agent
+from macromicro_sumo.road.physics import leader_length_m
+
+TAU_Q = np.interp(QUANTILE_LEVELS, [0.0, 0.05, 0.5, 0.75, 0.95, 1.0],
+                  [0.6, 0.8, 1.1, 1.4, 1.8, 2.2])  # fmt: skip
+
+
+def test_micro_consistency_scores_each_held_out_pair_with_its_drivers_tau(
+    ring_driver_follow,
+) -> None:
+    sc, _, truth, prior, _, _ = ring_driver_follow
+    held = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)["held_out"]
+    lead = leader_length_m(sc.policy.observation, typical_length(truth))
+    make = lambda taus: Agent(observation=sc.policy.observation, prior="krauss",  # noqa: E731
+                              prior_params=prior, residual_bound_mps2=0.0, driver_tau=taus)  # fmt: skip
+    agents = {"policy": make(TAU_Q), "micro_only": make(None)}
+    obs, acc, taus, record = held_out_pairs(sc, truth, held, agents, lead)
+    want_obs, want_acc, keys = keyed_micro_pairs(sc, truth, held)
+    np.testing.assert_array_equal(obs, want_obs)  # micro_pairs' held-out pairs
+    np.testing.assert_array_equal(acc, want_acc)
+    assert taus["micro_only"] is None  # no buffer: the prior's one tau, as before
+    # The drivers' own taus: fitted on the held-out record with the agent's prior.
+    p = {k: float(v) for k, v in prior.items() if k in KraussParams.__dataclass_fields__}
+    params = KraussParams(**{k: float(np.float32(v)) for k, v in p.items()})
+    drivers = observed_drivers(sc, truth, held)
+    own = driver_taus(drivers.obs, drivers.accel, drivers.keys, params, lead,
+                      sc.simulation.step_length_s)  # fmt: skip
+    has_own = np.array([k in own for k in keys])
+    assert has_own.sum() >= 50 and (~has_own).sum() >= 1, (has_own.sum(), len(keys))
+    assert record == {"policy": {"pairs": len(keys), "own_tau": int(has_own.sum())}}
+    got = taus["policy"]
+    np.testing.assert_array_equal(
+        got[has_own], [own[k] for k, m in zip(keys, has_own, strict=True) if m]
+    )
+    i = int(np.flatnonzero(~has_own)[0])  # the others: the deployment's draw for the driver
+    assert (
+        got[i]
+        == DriverTaus(TAU_Q.astype(np.float32).astype(float), sc, keys[i][0])([keys[i][1]])[0]
+    )
+    assert (np.abs(got - prior["tau_s"]) > 0.05).mean() > 0.5  # not the prior's one tau
+    # The score: the policy's NLL and RMSE with each pair's tau column, not the one tau.
+    idm, _ = calibrate_idm(obs, acc, lead)
+    micro = micro_consistency(agents, {"idm_calibrated": idm}, obs, acc, sc, lead, taus)
+    one = micro_consistency(agents, {"idm_calibrated": idm}, obs, acc, sc, lead)
+    a_min, a_max = sc.bounds.accel_mps2
+    u = torch.as_tensor(np.clip(acc, a_min, a_max), dtype=torch.float32)
+    with torch.no_grad():
+        d = agents["policy"].dist(torch.as_tensor(with_tau(obs, got), dtype=torch.float32))
+        nll = float(-d.log_prob(u).mean())
+    row = micro.set_index("method")
+    assert row.loc["policy", "nll"] == nll
+    assert abs(row.loc["policy", "nll"] - one.set_index("method").loc["policy", "nll"]) > 1e-3
+    # The methods without taus score as before.
+    for m in ("micro_only", "idm_calibrated"):
+        assert row.loc[m].equals(one.set_index("method").loc[m])
