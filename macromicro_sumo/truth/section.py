@@ -18,10 +18,8 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable, Sequence
-from itertools import repeat
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
 from macromicro_sumo.data.section import SIGNAL_COLUMNS, SectionTruth, vehicle_level
@@ -172,14 +170,7 @@ def record_run(
         if record_signals is not None:
             record_signals(sim, round((step + 1) * dt, 6))
         rows.add(round((step + 1) * dt, 6), sim.vehicle_states())
-    cols, vids = rows.columns()
-    df = pd.DataFrame({"time_s": cols.pop("time_s"), "vehicle_id": vids, **cols})
-    df.insert(0, "run", run)
-    # Dict look-ups, not Series.map (a tenth of the time on pandas 3's strings); where a
-    # vehicle were missing, what map gave: NaN, and NaN as a bool (True).
-    vtype = [types.get(v, np.nan) for v in vids] if vids else df["vehicle_id"].map(types)
-    df.insert(3, "vtype", vtype)
-    df.insert(4, "observed", np.fromiter(map(observed.get, vids, repeat(True)), bool, len(vids)))
+    df, seen, seen_observed = rows.frame(run, types, observed)
     if fleet_run is not None and len(df) != n_rec * len(fleet_run[0].params):
         # A closed road keeps its fleet: a vehicle missing from a step left the road.
         raise UserError(
@@ -187,8 +178,8 @@ def record_run(
             f"{len(fleet_run[0].params)} vehicles (a fleet vehicle left the section)"
         )
     stats = {
-        "vehicles_seen": int(df["vehicle_id"].nunique()),
-        "observed": int(df.loc[df["observed"], "vehicle_id"].nunique()),
+        "vehicles_seen": seen,
+        "observed": seen_observed,
         "collisions": collisions,
         "teleports": teleports,
         "vclass": classes,
