@@ -82,12 +82,12 @@ class VehicleSlots:
         self.decel = np.full(capacity, np.nan)  # its demand vType's decel [m/s^2] (``take``)
         self.vmax = np.full(capacity, np.inf)  # its demand vType's maxSpeed [m/s] (``take``)
         self.accel = np.full(capacity, np.inf)  # its demand vType's accel [m/s^2] (``take``)
-        # Its demand vType's length + minGap [m] (``take``; ``drivers.handover_m``).
+        # Its demand vType's length + minGap [m] (``take``; ``merge_yield.handover_m``).
         self.with_gap = np.full(capacity, np.nan)
         self.last_mps = np.full(capacity, -np.inf)
         # Its driver's desired-speed factor (``policy.driver_speed``; NaN: not drawn yet).
         self.factor = np.full(capacity, np.nan)
-        # SUMO's lane changer's look-ahead speed (``drivers.handover_m``; NaN: none yet).
+        # SUMO's lane changer's look-ahead speed (``merge_yield.handover_m``; NaN: none yet).
         self.lookahead_mps = np.full(capacity, np.nan)
         self.lane_end = LaneCache(capacity, np.nan)  # distance to its lane's end [m]
         self.dark = LaneCache(capacity, np.inf)  # inf: no signal ahead on its route
