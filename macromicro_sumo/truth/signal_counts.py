@@ -91,18 +91,6 @@ class StopLine:
         within = np.where(np.array(self.passing)[k], pos - start, 0.0)
         return n * cum_g[-1] + cum_g[k] + within
 
-    def green_ends(self, begin_s: float, end_s: float) -> np.ndarray:
-        """The times in [begin_s, end_s] at which a passing phase gives way to a stopping one."""
-        d = np.array(self.durations_s, dtype=float)
-        cycle = float(d.sum())
-        ends = np.cumsum(d)
-        nxt = np.roll(np.array(self.passing), -1)
-        at = ends[np.array(self.passing) & ~nxt]  # within the cycle
-        first = np.floor((begin_s - self.offset_s) / cycle)
-        last = np.ceil((end_s - self.offset_s) / cycle)
-        times = (np.arange(first, last + 1)[:, None] * cycle + at[None, :] + self.offset_s).ravel()
-        return np.sort(times[(times >= begin_s) & (times <= end_s)])
-
 
 def _programs(net_file: Path) -> tuple[dict, dict]:
     """({tls id: (offset, durations, states)} of each signal's first program,

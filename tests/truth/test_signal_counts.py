@@ -21,7 +21,7 @@ from macromicro_sumo.truth.section_macro import detector_macro, k_summary
 from macromicro_sumo.truth.signal_counts import StopLine, approach_pieces, stop_lines
 
 
-def test_a_programs_passing_seconds_and_green_ends() -> None:
+def test_a_programs_passing_seconds() -> None:
     """netconvert's 90 s program: the section's lanes pass in phases 2 and 3 (42 s green, 3 s
     yellow), from 45 s to 90 s of each cycle; an offset delays it."""
     line = StopLine(100.0, 0.0, (42.0, 3.0, 42.0, 3.0), (False, False, True, True))
@@ -32,9 +32,8 @@ def test_a_programs_passing_seconds_and_green_ends() -> None:
         45.0,
         90.0,
     ]
-    assert line.green_ends(0.0, 200.0).tolist() == [90.0, 180.0]
     late = StopLine(100.0, 10.0, line.durations_s, line.passing)
-    assert late.green_ends(0.0, 200.0).tolist() == [10.0, 100.0, 190.0]
+    assert late.green_s(np.array([10.0, 55.0, 100.0])).tolist() == [0.0, 0.0, 45.0]
 
 
 def simulated(folder: Path, make, net: str) -> tuple[Path, Path]:
