@@ -37,7 +37,7 @@ import numpy as np
 import pandas as pd
 
 from macromicro_sumo.road.section import Section
-from macromicro_sumo.sumo.net_xml import net_links
+from macromicro_sumo.sumo.net_xml import NetLinks, net_links
 from macromicro_sumo.truth.density import JAM_SPACING_M, occupancy_weight
 from macromicro_sumo.truth.section_macro import integrate_stations, station_density
 from macromicro_sumo.truth.stations import Piece, full_stations, ramp_between, station_speeds
@@ -92,26 +92,22 @@ class StopLine:
         return n * cum_g[-1] + cum_g[k] + within
 
 
-def _programs(net_file: Path) -> tuple[dict, dict]:
-    """({tls id: (offset, durations, states)} of each signal's first program,
-    {(from edge, to edge): [(tls id, link index), ...]}) from the net file
-    (``sumo.net_xml.net_links``)."""
-    net = net_links(net_file)
-    programs = {
-        k: (p.offset_s, list(p.durations_s), list(p.states)) for k, p in net.programs.items()
-    }
+def _signal_links(net: NetLinks) -> dict[tuple[str, str], list[tuple[str, int]]]:
+    """{(from edge, to edge): [(tls id, link index), ...]} of the net's signalled
+    connections."""
     links: dict[tuple[str, str], list[tuple[str, int]]] = {}
     for c in net.connections:
         if c.tl:
             links.setdefault((c.src, c.dst), []).append((c.tl, c.link_index))
-    return programs, links
+    return links
 
 
 def stop_lines(net_file: Path, section: Section) -> list[StopLine]:
     """The section's signalled stop lines (fixed-time programs), in arc order: one per
     section edge whose links along the section (to the next section edge; the last edge:
     any) are signalled."""
-    programs, links = _programs(Path(net_file))
+    net = net_links(Path(net_file))
+    programs, links = net.programs, _signal_links(net)
     out = []
     for e, eid in enumerate(section.edge_ids):
         nxt = section.edge_ids[e + 1] if e + 1 < len(section.edge_ids) else None
@@ -121,13 +117,15 @@ def stop_lines(net_file: Path, section: Section) -> list[StopLine]:
         ids = {tl for tl, _ in own}
         if len(ids) != 1 or next(iter(ids)) not in programs:
             continue
-        offset, durations, states = programs[next(iter(ids))]
+        program = programs[next(iter(ids))]
         idx = [i for _, i in own]
-        passing = tuple(any(i < len(s) and s[i] in PASSING_STATES for i in idx) for s in states)
-        if not durations or not any(passing) or all(passing):
+        passing = tuple(
+            any(i < len(s) and s[i] in PASSING_STATES for i in idx) for s in program.states
+        )
+        if not program.durations_s or not any(passing) or all(passing):
             continue
         arc = float(section.offsets_m[e] + section.lengths_m[e])
-        out.append(StopLine(arc, offset, tuple(durations), passing))
+        out.append(StopLine(arc, program.offset_s, program.durations_s, passing))
     return out
 
 
