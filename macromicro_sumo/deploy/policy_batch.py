@@ -29,7 +29,7 @@ from macromicro_sumo.evaluation.idm_fit import (
 )
 from macromicro_sumo.evaluation.krauss_fit import KraussParams, krauss_policy_accel
 from macromicro_sumo.policy.agent import Agent
-from macromicro_sumo.policy.prior import PRIOR_KEYS
+from macromicro_sumo.policy.prior import prior_buffer
 
 # Rows per matrix product of the actor's numpy forward pass: larger products start
 # OpenBLAS's threads, which on a loaded 2-core machine cost 1.8 ms at 500 rows instead of
@@ -98,8 +98,7 @@ def prior_forward(agent: Agent) -> Callable[[np.ndarray], np.ndarray] | None:
     tests/policy/test_prior.py holds equal); None without a prior."""
     if agent.prior == "none":
         return None
-    values = getattr(agent, f"{agent.prior}_prior").detach().double().tolist()
-    p = dict(zip(PRIOR_KEYS[agent.prior], values, strict=True))
+    p = prior_buffer(agent)
     if agent.prior == "idm":
         idm = IdmParams(**{k: v for k, v in p.items() if k != "veh_length_m"})
         return lambda obs: idm_policy_accel(obs, idm, p["veh_length_m"])
@@ -172,8 +171,7 @@ def prior_stop_gap_m(agent: Agent) -> float | None:
     fitted minGap (Krauss, Gipps; IDM's s0); None without a prior."""
     if agent.prior == "none":
         return None
-    values = getattr(agent, f"{agent.prior}_prior").detach().double().tolist()
-    return float(dict(zip(PRIOR_KEYS[agent.prior], values, strict=True))["min_gap_m"])
+    return float(prior_buffer(agent)["min_gap_m"])
 
 
 def action_std(agent: Agent) -> float:

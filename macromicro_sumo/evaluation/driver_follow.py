@@ -45,7 +45,7 @@ from macromicro_sumo.evaluation.krauss_fit import (
     krauss_policy_accel,
 )
 from macromicro_sumo.evaluation.micro_data import keyed_micro_pairs
-from macromicro_sumo.policy.prior import KRAUSS_PRIOR_KEYS
+from macromicro_sumo.policy.prior import prior_buffer
 
 # The taus searched [s]: the Krauss fit's range cut to what a driver on a road keeps.
 TAU_GRID_S = np.round(np.arange(0.3, 3.0 + 1e-9, 0.005), 3)
@@ -225,7 +225,7 @@ def held_out_taus(
         if q is None or agent.prior != "krauss":
             taus[name] = None
             continue
-        p = dict(zip(KRAUSS_PRIOR_KEYS, agent.krauss_prior.tolist(), strict=True))
+        p = prior_buffer(agent)
         params = KraussParams(**{k: p[k] for k in KraussParams.__dataclass_fields__})
         if drivers is None:
             drivers = observed_drivers(sc, truth, runs)

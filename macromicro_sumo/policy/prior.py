@@ -60,6 +60,16 @@ GIPPS_PRIOR_KEYS = (
 )
 KRAUSS_PRIOR_KEYS = (*GIPPS_PRIOR_KEYS, "relax_s")
 PRIOR_KEYS = {"idm": IDM_PRIOR_KEYS, "gipps": GIPPS_PRIOR_KEYS, "krauss": KRAUSS_PRIOR_KEYS}
+
+
+def prior_buffer(agent) -> dict[str, float]:
+    """An agent's prior parameters by name (its ``<prior>_prior`` buffer, ``PRIOR_KEYS``'
+    order), as float64: what the numpy twins of the prior (the deployment's, the
+    evaluation's) are built from."""
+    values = getattr(agent, f"{agent.prior}_prior").detach().double().tolist()
+    return dict(zip(PRIOR_KEYS[agent.prior], values, strict=True))
+
+
 # Shared with evaluation.idm_fit and krauss_fit, which import them (the numpy twins): a car
 # brakes no harder than SUMO's emergencyDecel default, a gap is never below 0.1 m.
 EMERGENCY_DECEL_MPS2 = 9.0
