@@ -278,6 +278,7 @@ def krauss_pairs(
     obs: np.ndarray,
     accel: np.ndarray,
     own_median: bool = False,
+    drivers: ObservedDrivers | None = None,
 ) -> tuple[np.ndarray, np.ndarray, RatioEstimate]:
     """``prior_pairs`` of the Krauss form and the ratio estimate they are scaled by: where it
     fell back to ``DEFAULT_RATIOS``, the prior's speed factor has no data either
@@ -295,8 +296,11 @@ def krauss_pairs(
     (docs/deploy.md, "ring_two_lane's cruise (stop 31)").
 
     On an open section whose estimate fell back the censored drivers' following pairs join
-    (``censored_following_pairs``); a closed one keeps its own drivers' pairs (stop 31)."""
-    drivers = observed_drivers(sc, truth, runs)
+    (``censored_following_pairs``); a closed one keeps its own drivers' pairs (stop 31).
+    ``drivers``: ``observed_drivers`` of ``runs`` where the caller has them (one pass over
+    the trajectories)."""
+    if drivers is None:
+        drivers = observed_drivers(sc, truth, runs)
     estimate = ratio_estimate(drivers, ratio_censoring(sc))
     if own_median and estimate.fallback and drivers.ratio:
         estimate = dataclasses.replace(

@@ -365,7 +365,10 @@ def fit_residual_prior(
     dt, record, pairs, taus = sc.simulation.step_length_s, {}, len(acc), None
     if kind == "krauss":  # guarded: the parameters the pairs do not identify fall back
         closed = truth.section.closed
-        fit_obs, fit_acc, ratios = krauss_pairs(sc, truth, runs, obs, acc, own_median=closed)
+        drivers = observed_drivers(sc, truth, runs)
+        fit_obs, fit_acc, ratios = krauss_pairs(
+            sc, truth, runs, obs, acc, own_median=closed, drivers=drivers
+        )
         # No drivers' ratios identified: no desired speed either (both SUMO's defaults); on
         # an open section only, where the free term also fits drivers held back by what the
         # pairs do not show (a queue beyond the end, a merge: game/ramp fitted 0.82). A closed
@@ -378,7 +381,6 @@ def fit_residual_prior(
         prior, rmse, record = fit.prior_params(length, dt), fit.rmse_mps2, fit.record()
         record["driver_ratios"] = ratios.record()
         # The observed drivers' own taus beside the prior's one (evaluation.driver_follow).
-        drivers = observed_drivers(sc, truth, runs)
         own = driver_taus(drivers.obs, drivers.accel, drivers.keys, fit.params, length, dt)
         record["driver_taus"] = tau_record(own, fit.params)
         taus = pair_taus(sc, keys, own, record["driver_taus"]["levels_s"])
