@@ -187,7 +187,7 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
         taus = getattr(act, "driver_taus", None)  # policy.driver_follow: each driver's tau
         self.driver_taus = taus(sc, run) if taus is not None else None
         self.merging: set[str] = set()  # driven vehicles merging with SUMO's own model now
-        self.others: dict[str, tuple[str, int, float]] = {}  # ``MergeYield.must_change``
+        self.others: set[str] = set()  # ``MergeYield.must_change``
         # deploy.merge_reach "occupation": LC2013's lane drop (``MergeYield``)
         self.occupation = self.yield_all = sc.deploy.merge_reach == "occupation"
 
@@ -226,7 +226,9 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
         lane (inf: the lane carries it on), from SUMO's best lanes: asked when a vehicle is
         on a lane for the first time, a lane that carries it on again after
         ``LANE_END_RECHECK_STEPS`` (one call per vehicle and step would cost more than
-        SUMO's whole step). ``at``: ``slots_of(vids, lanes)`` if known."""
+        SUMO's whole step). The one cache of SUMO's lane ends, per slot, the driven
+        vehicles' and those ``MergeYield.must_change`` asks of (its ``offset``). ``at``:
+        ``slots_of(vids, lanes)`` if known."""
         slots, codes = self.slots_of(vids, lanes) if at is None else at
         cache, now = self.slots.lane_end, self.steps
         due = cache.due(slots, codes, now)

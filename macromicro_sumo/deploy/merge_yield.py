@@ -5,7 +5,6 @@ blocks it (the yield). A mixin: the driver holds the state (``slots``, ``merging
 
 from __future__ import annotations
 
-import math
 from itertools import compress
 
 import numpy as np
@@ -70,8 +69,15 @@ class MergeYield:
     _chains: dict[str, tuple[str, ...]] | None = None
     driven: set[str]
     steps: int
-    # vehicle not driven -> (its lane, SUMO's best-lane offset there, step to ask again)
-    others: dict[str, tuple[str, int, float]]
+    # vehicles not driven on the section with an entry in ``slots.lane_end`` (``must_change``)
+    others: set[str]
+
+    def slots_of(self, vids: list[str], lanes: list[str]) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError  # ``SectionSpeedDriver.slots_of``
+
+    def lane_end_m(self, sim: Simulation, vids: list[str], lanes: list[str],
+                   at: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:  # fmt: skip
+        raise NotImplementedError  # ``SectionSpeedDriver.lane_end_m``
 
     def occupations_m(
         self, rows: np.ndarray, lanes: list[str], slots: np.ndarray, st: VehicleStates
@@ -188,23 +194,32 @@ class MergeYield:
     ) -> list[str]:
         """The vehicles on the section's lanes that must leave their lane to the left for
         their route (SUMO's best-lane offset > 0, where ``left_blockers`` are the followers
-        that block it): the commanded ``vids`` from their slots' lane ends, the vehicles
-        not driven from SUMO's best lanes, asked once per vehicle and lane (a lane that
-        carries one on again ``LANE_END_RECHECK_STEPS`` later)."""
-        offset = self.slots.lane_end.offset[slots]
-        out = list(compress(vids, (offset > 0).tolist()))
-        known = self.others
-        lanes, driven, now = self.section.lanes, self.driven, self.steps
-        for v, lane in zip(st.ids, st.lanes, strict=True):
-            if v in driven or lane.startswith(":") or lane not in lanes:
-                continue
-            got = known.get(v)
-            if got is None or got[0] != lane or got[2] <= now:
-                off = sim.lane_end(v, lane, 0.0)[1]
-                got = (lane, off, now + LANE_END_RECHECK_STEPS if off == 0 else math.inf)
-                known[v] = got
-            if got[1] > 0:
-                out.append(v)
+        that block it): the commanded ``vids`` (slots ``slots``) and the vehicles not
+        driven, all from the one lane-end cache (``lane_end_m``: asked once per vehicle and
+        lane, a lane that carries one on again ``LANE_END_RECHECK_STEPS`` later). A vehicle
+        not driven that left the section's lanes since the last call is dropped from it
+        (``others``), as ``release`` drops a driven one."""
+        out = list(compress(vids, (self.slots.lane_end.offset[slots] > 0).tolist()))
+        lanes, driven = self.section.lanes, self.driven
+        on = [
+            (v, lane)
+            for v, lane in zip(st.ids, st.lanes, strict=True)
+            if lane in lanes and v not in driven
+        ]
+        gone = self.others.difference(v for v, _ in on)
+        if gone:
+            self.slots.lane_end.forget(self.slots.slots(sorted(gone)))
+            self.others.difference_update(gone)
+        # Not on a junction's internal lane: SUMO's best lanes there are the next edge's.
+        asked = [(v, lane) for v, lane in on if not lane.startswith(":")]
+        if not asked:
+            return out
+        ids, on_lanes = [v for v, _ in asked], [lane for _, lane in asked]
+        at = self.slots_of(ids, on_lanes)
+        self.lane_end_m(sim, ids, on_lanes, at)
+        self.others.update(ids)
+        # The arrays as they are now: a new slot may have grown them.
+        out.extend(compress(ids, (self.slots.lane_end.offset[at[0]] > 0).tolist()))
         return out
 
     def yields(
