@@ -54,7 +54,7 @@ from macromicro_sumo.policy.agent import Agent, policy_action
 from macromicro_sumo.policy.checkpoint import load_policy, policy_file
 from macromicro_sumo.policy.chosen_prior import CHOICE_FILE, apply_choice, makes_choice, read_choice
 from macromicro_sumo.policy.ppo import train_policy
-from macromicro_sumo.policy.prior import PRIOR_KEYS
+from macromicro_sumo.policy.prior import PRIOR_KEYS, prior_buffer
 from macromicro_sumo.policy.prior_choice import PriorFit, with_prior
 from macromicro_sumo.policy.relax_choice import relax_unidentified
 from macromicro_sumo.policy.stage import fit_stage_prior, section_episodes
@@ -154,7 +154,7 @@ def refine_prior(
     trained = with_prior(sc, agent.prior) if sc.policy.prior == "auto" else sc
     trained, (prior, extra, pairs) = fit_stage_prior(trained, truth, splits, fit_prior)
     if prior is not None and agent.prior == "krauss" and relax_unidentified(prior):
-        chosen = {"relax_s": agent.krauss_prior.tolist()[PRIOR_KEYS["krauss"].index("relax_s")]}
+        chosen = {"relax_s": prior_buffer(agent)["relax_s"]}
         if not relax_unidentified(chosen):  # the policy stage chose one below the bound
             prior["relax_s"] = extra["prior"]["relax_s"] = chosen["relax_s"]
     return trained, (prior, extra, pairs)
