@@ -44,7 +44,7 @@ from macromicro_sumo.evaluation.krauss_fit import (
     behind_leader,
     krauss_policy_accel,
 )
-from macromicro_sumo.evaluation.micro_data import keyed_micro_pairs
+from macromicro_sumo.evaluation.micro_data import OutOfSample, keyed_micro_pairs
 from macromicro_sumo.policy.prior import prior_buffer
 
 # The taus searched [s]: the Krauss fit's range cut to what a driver on a road keeps.
@@ -199,11 +199,70 @@ def pair_taus(
 
 def held_out_pairs(
     sc, truth, runs, agents: Mapping[str, Any], veh_length_m: float
-) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray | None], dict[str, Any]]:
+) -> tuple[
+    np.ndarray, np.ndarray, dict[str, np.ndarray | None], OutOfSample | None, dict[str, Any]
+]:
     """The held-out observed pairs of ``runs`` (``micro_pairs``) for micro consistency,
-    with ``held_out_taus`` of their drivers and its record."""
+    with ``held_out_taus`` of their drivers (in-sample), ``out_of_sample_taus`` and their
+    record (each agent's ``out_of_sample`` entry beside its in-sample counts)."""
     obs, acc, keys = keyed_micro_pairs(sc, truth, runs)
-    return obs, acc, *held_out_taus(sc, truth, runs, keys, agents, veh_length_m)
+    taus, record = held_out_taus(sc, truth, runs, keys, agents, veh_length_m)
+    later = out_of_sample_taus(sc, obs, acc, keys, agents, veh_length_m)
+    if later is not None:
+        for name, t in later.taus.items():
+            own = later.own[name]
+            record[name]["out_of_sample"] = {"pairs": len(t), "own_tau": int(np.sum(own))}
+    return obs, acc, taus, later, record
+
+
+def record_halves(keys: Sequence[Hashable]) -> np.ndarray:
+    """(N,) bool: the pairs in the second half of their driver's record (``keys``, one per
+    pair, each driver's pairs in the order they were recorded, as ``keyed_micro_pairs``
+    gives them): a driver's first n // 2 pairs are its first half, the others its second."""
+    count: dict[Hashable, int] = {}
+    for k in keys:
+        count[k] = count.get(k, 0) + 1
+    seen: dict[Hashable, int] = {}
+    later = np.empty(len(keys), dtype=bool)
+    for i, k in enumerate(keys):
+        j = seen.get(k, 0)
+        seen[k] = j + 1
+        later[i] = j >= count[k] // 2
+    return later
+
+
+def out_of_sample_taus(
+    sc,
+    obs: np.ndarray,
+    accel: np.ndarray,
+    keys: Sequence[tuple[int, str]],
+    agents: Mapping[str, Any],
+    veh_length_m: float,
+) -> OutOfSample | None:
+    """Each held-out driver's tau fitted on the first half of its pairs (``record_halves``;
+    ``driver_taus`` with the agent's prior), for the pairs of the second half, which
+    micro consistency scores with it; a driver without a tau from its first half gets the
+    deployment's draw (``pair_taus``). For every agent with a ``driver_tau`` buffer and a
+    Krauss prior; None where there is none. Why: ``held_out_taus`` fits each driver's tau
+    on the same record that is then scored (in-sample): one parameter per driver, chosen
+    on the scored pairs."""
+    later = record_halves(keys)
+    first = ~later
+    first_keys = [k for k, f in zip(keys, first, strict=True) if f]
+    later_keys = [k for k, f in zip(keys, later, strict=True) if f]
+    taus: dict[str, np.ndarray] = {}
+    own_of: dict[str, np.ndarray] = {}
+    dt = sc.simulation.step_length_s
+    for name, agent in agents.items():
+        q = getattr(agent, "driver_tau", None)
+        if q is None or agent.prior != "krauss":
+            continue
+        p = prior_buffer(agent)
+        params = KraussParams(**{k: p[k] for k in KraussParams.__dataclass_fields__})
+        own = driver_taus(obs[first], accel[first], first_keys, params, veh_length_m, dt)
+        taus[name] = pair_taus(sc, later_keys, own, q.numpy())
+        own_of[name] = np.array([k in own for k in later_keys], dtype=bool)
+    return OutOfSample(later, taus, own_of) if taus else None
 
 
 def held_out_taus(

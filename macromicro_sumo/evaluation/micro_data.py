@@ -8,6 +8,7 @@ reference IDM and the deployment's calibrated IDM; and the IDM as a method on th
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
@@ -117,6 +118,25 @@ def idm_action(params: Callable[[object], IdmParams], veh_length_m: float) -> Ac
     return act
 
 
+@dataclass(frozen=True)
+class OutOfSample:
+    """Held-out pairs scored with taus fitted on other pairs of their drivers
+    (``evaluation.driver_follow.out_of_sample_taus``): ``later`` (N,) bool, the pairs of
+    each driver's second half; by agent, each of those pairs' tau [s] (fitted on its
+    driver's first half, else the deployment's draw) and whether it is a fitted one."""
+
+    later: np.ndarray
+    taus: dict[str, np.ndarray]
+    own: dict[str, np.ndarray]
+
+
+# micro_consistency.csv's driver_tau column (only where a policy carries the drivers' taus):
+# each driver's own tau fitted on the scored pairs themselves, on other pairs of the
+# driver (its first half; the row scores the second half), or the prior's one tau.
+IN_SAMPLE, OUT_OF_SAMPLE, ONE_TAU = "in_sample", "out_of_sample", "one"
+OUT_OF_SAMPLE_SUFFIX = "_tau_out_of_sample"
+
+
 def micro_consistency(
     agents: dict,
     idms: dict[str, IdmParams],
@@ -125,22 +145,37 @@ def micro_consistency(
     sc,
     veh_length_m: float,
     taus: Mapping[str, np.ndarray | None] | None = None,
+    out_of_sample: OutOfSample | None = None,
 ) -> pd.DataFrame:
     """Held-out observed actions: NLL under each learned policy, action RMSE for every method;
     ``veh_length_m``: the leader length IDM subtracts; ``taus``: by policy, each pair's
     driver's tau as its observations' trailing column (``policy.driver_follow``,
-    ``evaluation.driver_follow.held_out_taus``); none: the prior's one tau."""
+    ``evaluation.driver_follow.held_out_taus``: fitted on these pairs, in-sample); none: the
+    prior's one tau. ``out_of_sample``: a row more for each policy it has taus for, named
+    ``<policy>_tau_out_of_sample``, on the second half of each driver's pairs with taus
+    fitted on the first half. Where a policy carries taus a ``driver_tau`` column says
+    which (``IN_SAMPLE``, ``OUT_OF_SAMPLE``, ``ONE_TAU``; empty for the IDMs)."""
     a_min, a_max = sc.bounds.accel_mps2
     u = np.clip(accel, a_min, a_max)
     rows = []
-    for name, agent in agents.items():
-        own = (taus or {}).get(name)
-        o = torch.as_tensor(obs if own is None else with_tau(obs, own), dtype=torch.float32)
+
+    def score(name: str, o: np.ndarray, u: np.ndarray, agent, tau_kind: str) -> dict:
         with torch.no_grad():
-            d = agent.dist(o)
+            d = agent.dist(torch.as_tensor(o, dtype=torch.float32))
             nll = float(-d.log_prob(torch.as_tensor(u, dtype=torch.float32)).mean())
             rmse = float(np.sqrt(np.mean((np.clip(d.mean.numpy(), a_min, a_max) - u) ** 2)))
-        rows.append({"method": name, "nll": nll, "action_rmse_mps2": rmse, "n_pairs": len(u)})
+        return {"method": name, "nll": nll, "action_rmse_mps2": rmse, "n_pairs": len(u),
+                "driver_tau": tau_kind}  # fmt: skip
+
+    for name, agent in agents.items():
+        own = (taus or {}).get(name)
+        o = obs if own is None else with_tau(obs, own)
+        rows.append(score(name, o, u, agent, ONE_TAU if own is None else IN_SAMPLE))
+        later = None if out_of_sample is None else out_of_sample.taus.get(name)
+        if later is not None:
+            m = out_of_sample.later
+            o = with_tau(obs[m], later)
+            rows.append(score(name + OUT_OF_SAMPLE_SUFFIX, o, u[m], agent, OUT_OF_SAMPLE))
     for name, p in idms.items():
         pred = np.clip(idm_policy_accel(obs, p, veh_length_m), a_min, a_max)
         rows.append(
@@ -149,6 +184,10 @@ def micro_consistency(
                 "nll": np.nan,
                 "action_rmse_mps2": float(np.sqrt(np.mean((pred - u) ** 2))),
                 "n_pairs": len(u),
+                "driver_tau": "",
             }
         )
-    return pd.DataFrame(rows)
+    table = pd.DataFrame(rows)
+    if not any(t is not None for t in (taus or {}).values()):
+        table = table.drop(columns="driver_tau")  # no policy carries taus: as before
+    return table

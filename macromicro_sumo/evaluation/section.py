@@ -450,8 +450,9 @@ def evaluate_section(
             write_csv(by_k_table, stage / "macro_alignment_by_k.csv")
         write_csv(pd.concat(samples, ignore_index=True), stage / "eval_samples.csv")
         write_csv(pd.DataFrame(safety_rows), stage / "safety.csv")
-        obs_ho, acc_ho, taus, tau_record = held_out_pairs(sc, truth, held, agents, lead_m)
-        micro = micro_consistency(agents, {"idm_calibrated": idm}, obs_ho, acc_ho, sc, lead_m, taus)
+        obs_ho, acc_ho, taus, later, tau_record = held_out_pairs(sc, truth, held, agents, lead_m)
+        idms = {"idm_calibrated": idm}
+        micro = micro_consistency(agents, idms, obs_ho, acc_ho, sc, lead_m, taus, later)
         micro.insert(0, "reference", REFERENCE_MICRO)
         write_csv(micro, stage / "micro_consistency.csv")
         lf = section_leader_follower_tests(sc, truth, net_file, agents, idm, length, vclass)

@@ -34,7 +34,7 @@ def test_micro_consistency_scores_each_held_out_pair_with_its_drivers_tau(
     make = lambda taus: Agent(observation=sc.policy.observation, prior="krauss",  # noqa: E731
                               prior_params=prior, residual_bound_mps2=0.0, driver_tau=taus)  # fmt: skip
     agents = {"policy": make(TAU_Q), "micro_only": make(None)}
-    obs, acc, taus, record = held_out_pairs(sc, truth, held, agents, lead)
+    obs, acc, taus, _, record = held_out_pairs(sc, truth, held, agents, lead)
     want_obs, want_acc, keys = keyed_micro_pairs(sc, truth, held)
     np.testing.assert_array_equal(obs, want_obs)  # micro_pairs' held-out pairs
     np.testing.assert_array_equal(acc, want_acc)
@@ -47,7 +47,8 @@ def test_micro_consistency_scores_each_held_out_pair_with_its_drivers_tau(
                       sc.simulation.step_length_s)  # fmt: skip
     has_own = np.array([k in own for k in keys])
     assert has_own.sum() >= 50 and (~has_own).sum() >= 1, (has_own.sum(), len(keys))
-    assert record == {"policy": {"pairs": len(keys), "own_tau": int(has_own.sum())}}
+    assert record["policy"]["pairs"] == len(keys)
+    assert record["policy"]["own_tau"] == int(has_own.sum())
     got = taus["policy"]
     np.testing.assert_array_equal(
         got[has_own], [own[k] for k, m in zip(keys, has_own, strict=True) if m]
@@ -71,5 +72,67 @@ def test_micro_consistency_scores_each_held_out_pair_with_its_drivers_tau(
     assert row.loc["policy", "nll"] == nll
     assert abs(row.loc["policy", "nll"] - one.set_index("method").loc["policy", "nll"]) > 1e-3
     # The methods without taus score as before.
+    cols = list(one.columns.drop("method"))
     for m in ("micro_only", "idm_calibrated"):
-        assert row.loc[m].equals(one.set_index("method").loc[m])
+        assert row.loc[m, cols].equals(one.set_index("method").loc[m, cols])
+    assert row.loc["policy", "driver_tau"] == "in_sample"
+    assert row.loc["micro_only", "driver_tau"] == "one"
+    assert "driver_tau" not in one.columns  # no policy carries taus: the columns as before
+
+
+def test_micro_consistency_out_of_sample_row_fits_on_first_half_scores_second(
+    ring_driver_follow,
+) -> None:
+    """The in-sample row fits each held-out driver's tau on the pairs it scores; the
+    out-of-sample row scores each driver's second half of pairs with the tau fitted on its
+    first half (else the deployment's draw), on the ring's real short record."""
+    sc, _, truth, prior, _, _ = ring_driver_follow
+    held = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)["held_out"]
+    lead = leader_length_m(sc.policy.observation, typical_length(truth))
+    make = lambda taus: Agent(observation=sc.policy.observation, prior="krauss",  # noqa: E731
+                              prior_params=prior, residual_bound_mps2=0.0, driver_tau=taus)  # fmt: skip
+    agents = {"policy": make(TAU_Q), "micro_only": make(None)}
+    obs, acc, taus, later, record = held_out_pairs(sc, truth, held, agents, lead)
+    _, _, keys = keyed_micro_pairs(sc, truth, held)
+    assert later is not None and set(later.taus) == {"policy"}  # no buffer: no row
+    m = later.later
+    # Each driver's pairs split in their recorded order: first n // 2, then the rest.
+    for k in set(keys):
+        idx = np.array([i for i, kk in enumerate(keys) if kk == k])
+        n = len(idx)
+        assert m[idx].sum() == n - n // 2
+        assert not m[idx[: n // 2]].any() and m[idx[n // 2 :]].all()
+    assert 0.4 < m.mean() < 0.6, m.mean()
+    # The taus: fitted on the first halves alone, with the agent's prior.
+    p = {k: float(v) for k, v in prior.items() if k in KraussParams.__dataclass_fields__}
+    params = KraussParams(**{k: float(np.float32(v)) for k, v in p.items()})
+    first = [k for k, f in zip(keys, ~m, strict=True) if f]
+    own = driver_taus(obs[~m], acc[~m], first, params, lead, sc.simulation.step_length_s)
+    later_keys = [k for k, f in zip(keys, m, strict=True) if f]
+    got = later.taus["policy"]
+    has = later.own["policy"]
+    assert len(got) == m.sum() and has.sum() >= 20, (has.sum(), len(got))
+    np.testing.assert_array_equal(has, [k in own for k in later_keys])
+    np.testing.assert_array_equal(
+        got[has], [own[k] for k, h in zip(later_keys, has, strict=True) if h]
+    )
+    assert record["policy"]["out_of_sample"] == {"pairs": int(m.sum()), "own_tau": int(has.sum())}
+    # The others: the deployment's draw for their driver.
+    i = int(np.flatnonzero(~has)[0])
+    draw = DriverTaus(TAU_Q.astype(np.float32).astype(float), sc, later_keys[i][0])
+    assert got[i] == draw([later_keys[i][1]])[0]
+    # The row: the second halves scored with these taus, beside the in-sample row.
+    idm, _ = calibrate_idm(obs, acc, lead)
+    micro = micro_consistency(agents, {"idm_calibrated": idm}, obs, acc, sc, lead, taus, later)
+    row = micro.set_index("method")
+    assert list(row.index) == ["policy", "policy_tau_out_of_sample", "micro_only", "idm_calibrated"]
+    oos = row.loc["policy_tau_out_of_sample"]
+    assert oos["driver_tau"] == "out_of_sample" and oos["n_pairs"] == m.sum()
+    a_min, a_max = sc.bounds.accel_mps2
+    u = torch.as_tensor(np.clip(acc[m], a_min, a_max), dtype=torch.float32)
+    with torch.no_grad():
+        d = agents["policy"].dist(torch.as_tensor(with_tau(obs[m], got), dtype=torch.float32))
+    assert oos["nll"] == float(-d.log_prob(u).mean())
+    assert row.loc["policy", "driver_tau"] == "in_sample" and row.loc["policy", "n_pairs"] == len(
+        acc
+    )
