@@ -282,7 +282,15 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
             new = np.isnan(factor).nonzero()[0]
             if new.size:  # ``factors``, the rows of the new ones alone (its obs[new])
                 seen = np.column_stack([speed[new], self.lane_table.limit_mps[codes[new]]])
-                factor[new] = got = self.driver_speeds([vids[i] for i in new.tolist()], seen)
+                fresh = [vids[i] for i in new.tolist()]
+                if self.driver_speeds.kind == "memory":  # their observation: what is ahead
+                    at = (slots[new], codes[new])
+                    lane_of = [lanes[i] for i in new.tolist()]
+                    one = np.ones(new.size)
+                    seen = self.observe(
+                        sim, fresh, rows[new], st, None, lane_of, ahead[new], at, one
+                    )[0]
+                factor[new] = got = self.driver_speeds(fresh, seen)
                 self.slots.factor[slots[new]] = got
         if self.merge != "none":
             reach = self.handover_m(vids, slots, speed)

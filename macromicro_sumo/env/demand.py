@@ -319,9 +319,13 @@ class DemandCore:
         new = [
             v for v in states if v in self.population and v not in known and states[v][0] in lanes
         ]
-        if new:
-            speed = np.array([states[v][2] for v in new])
-            self.drivers(new, np.stack([speed, lane_places(self.section, new, states)[3]], axis=1))
+        if new:  # their observations, as the deployment's first sight (what is ahead)
+            shapes = {v: self.vtypes[self.types[v]].shape for v in states if v in self.types}
+            leaders, stops = self.sim.read_leaders(), self._stops(new, states)
+            scene = sumo_observations(
+                self.observation, self.section, new, states, leaders, shapes, stops
+            )
+            self.drivers(new, scene.obs)
 
     def _arrive(self, vids) -> None:
         sim = self.sim
