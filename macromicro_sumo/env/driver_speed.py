@@ -39,8 +39,13 @@ from macromicro_sumo.env.driver_speed_ratios import (
 from macromicro_sumo.env.section_bank import SectionBank, recordable, speed_caps
 from macromicro_sumo.env.section_observations import initial_observations, section_observations
 from macromicro_sumo.road.leaders import STANDING_MIN_GAP_M, bumper_gap_m
-from macromicro_sumo.road.physics import LIMIT_COLUMN, NEXT_LIMIT_COLUMN, observes_gap
-from macromicro_sumo.road.section import STOP
+from macromicro_sumo.road.physics import (
+    LEADER_COLUMN,
+    LIMIT_COLUMN,
+    NEXT_LIMIT_COLUMN,
+    observes_gap,
+)
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, STOP
 
 # The observation columns that are speed limits (own lane, the look-ahead's next edge).
 LIMIT_COLUMNS = (LIMIT_COLUMN, NEXT_LIMIT_COLUMN)
@@ -91,6 +96,8 @@ UNHELD_HEADWAY_S = 1.0
 # hD). Not the observed range's lowest ratio: on drawn net 549 cars entering at 25-27 m/s
 # behind trucks (0.74-0.81 of its median) are not queued, and drawing them was worse there
 # (speed RMSE 4.39 -> 4.90 m/s over 4 runs); 1.6% of its drivers are below 0.65.
+# A first sight held by what is ahead (``held_at_sight``) is drawn as well, whatever its
+# speed.
 QUEUED_ENTRY_SHARE = 0.65
 
 
@@ -355,23 +362,62 @@ def factors_at(quantiles: np.ndarray, levels: np.ndarray) -> np.ndarray:
     return np.interp(levels, QUANTILE_LEVELS, relative(quantiles))
 
 
+def held_at_sight(obs: np.ndarray, gap_layout: bool) -> np.ndarray:
+    """(N,) bool: first sights whose speed what is ahead holds, so that it says nothing of
+    the driver's desired speed: ``unheld``'s test of one observation (limits unscaled; no
+    next speed, so without its acceleration clause): a leader (a vehicle, or a standing
+    obstacle: a red light, a lane's end) within ``cruising``'s free bumper gap,
+    ``FREE_HEADWAY_S`` x v + ``FREE_BUMPER_GAP_M``, unless it is faster than the own
+    (delta v < 0) and at least ``UNHELD_HEADWAY_S`` x v + ``FREE_BUMPER_GAP_M`` ahead. The
+    leader column is the bumper gap where ``gap_layout`` (``physics.observes_gap``), else
+    the spacing, less ``CAR_LENGTH_M`` (a leader of unknown length counts as a car, as in
+    ``free_gap_m``); ``NO_LEADER_GAP_M`` or more: none. The rule the observed drivers'
+    exact ratios are read by (``observed_drivers``), so a deployed driver's speed counts
+    as its desired one where an observed driver's would."""
+    v, lead, dv = obs[:, 0], obs[:, LEADER_COLUMN], obs[:, 3]
+    gap = lead if gap_layout else lead - CAR_LENGTH_M
+    near = lead < NO_LEADER_GAP_M
+    free = ~near | (gap >= v * FREE_HEADWAY_S + FREE_BUMPER_GAP_M)
+    pulling_away = (dv < 0) & (gap >= v * UNHELD_HEADWAY_S + FREE_BUMPER_GAP_M)
+    return ~(free | pulling_away)
+
+
 def entry_factors(
     quantiles: np.ndarray,
     speed_mps: np.ndarray,
     limit_mps: np.ndarray,
     levels: np.ndarray | None = None,
+    held: np.ndarray | None = None,
 ) -> np.ndarray:
     """``"memory"``: each driver's speed ratio where it was first seen (its entry, or a
     generated vehicle's start) over the observed median, within the observed drivers'
     range (a car that entered standing still has a desired speed all the same). With
     ``levels`` (uniform, per driver): one first seen below ``QUEUED_ENTRY_SHARE`` of it is
-    queued there, and takes ``"drawn"``'s factor at its level instead."""
+    queued there, and one ``held`` (``held_at_sight``; None: none) is held there by its
+    leader: either takes ``"drawn"``'s factor at its level instead. Why the held ones: on
+    drawn 522 with ``deploy.merge_reach = "occupation"`` the entry queues less deeply, and
+    9.8% of the drivers, first seen moving at 0.65-0.72 of the median in the stream behind
+    their leaders, kept the range's lowest ratio (0.717) and led platoons on the one-lane
+    edges (speed RMSE, all 4 runs, 3.422 m/s; with the held ones drawn 2.727)."""
     rel = relative(quantiles)
     ratio = speed_mps / np.maximum(limit_mps, 0.1) / np.interp(0.5, QUANTILE_LEVELS, quantiles)
     kept = np.clip(ratio, rel[0], rel[-1])
     if levels is None:
         return kept
-    return np.where(ratio < QUEUED_ENTRY_SHARE, np.interp(levels, QUANTILE_LEVELS, rel), kept)
+    drawn = ratio < QUEUED_ENTRY_SHARE
+    if held is not None:
+        drawn |= held
+    return np.where(drawn, np.interp(levels, QUANTILE_LEVELS, rel), kept)
+
+
+def sight_factors(
+    quantiles: np.ndarray, obs: np.ndarray, levels: np.ndarray, gap_layout: bool
+) -> np.ndarray:
+    """``"memory"``'s ``entry_factors`` of first-sight observations ``obs`` (V, D), limits
+    unscaled, at ``levels``: the queued and the ``held_at_sight`` ones drawn. The one rule
+    of Stage II's banks (``with_driver_factors``) and the deployment (``DriverSpeeds``)."""
+    held = held_at_sight(obs, gap_layout)
+    return entry_factors(quantiles, obs[:, 0], obs[:, LIMIT_COLUMN], levels, held)
 
 
 def scale_limits(obs: np.ndarray, factor: np.ndarray) -> np.ndarray:
@@ -383,17 +429,23 @@ def scale_limits(obs: np.ndarray, factor: np.ndarray) -> np.ndarray:
 
 
 def with_driver_factors(
-    bank: SectionBank, kind: str, quantiles: np.ndarray, seed: int, obs0: np.ndarray
+    bank: SectionBank,
+    kind: str,
+    quantiles: np.ndarray,
+    seed: int,
+    obs0: np.ndarray,
+    gap_layout: bool = False,
 ) -> SectionBank:
     """``bank`` with a factor per episode and hidden slot (``kind`` "drawn": from
     ``quantiles``, seeded; "memory": from its generated start, ``obs0`` the valid slots'
-    initial observations, ``env.section_observations.initial_observations``, a queued start
+    initial observations, ``env.section_observations.initial_observations``, whose leader
+    column is the bumper gap where ``gap_layout``: ``sight_factors``, a queued or held start
     drawn at a seeded level, as a deployed driver is); observed slots keep 1
     (they replay their records; the likelihood's pairs are the recorded ones)."""
     if kind == "memory":
         factor = np.ones(bank.valid.shape)
         levels = np.random.default_rng([seed, 212]).random(bank.valid.shape)[bank.valid]
-        factor[bank.valid] = entry_factors(quantiles, obs0[:, 0], obs0[:, 1], levels)
+        factor[bank.valid] = sight_factors(quantiles, obs0, levels, gap_layout)
     else:
         levels = np.random.default_rng([seed, 211]).random(bank.valid.shape)
         factor = factors_at(quantiles, levels)
@@ -404,30 +456,34 @@ def drivers_bank(sc, section, bank: SectionBank, quantiles: np.ndarray, seed: in
     """``bank`` with its hidden drivers' factors (``sc.policy.driver_speed``, not "none"):
     ``with_driver_factors`` fed the generated starts where "memory" reads them."""
     kind = sc.policy.driver_speed
-    obs0 = initial_observations(sc, section, bank) if kind == "memory" else np.empty((0, 2))
-    return with_driver_factors(bank, kind, quantiles, seed, obs0)
+    obs0 = initial_observations(sc, section, bank) if kind == "memory" else np.empty((0, 4))
+    gap = kind == "memory" and observes_gap(sc.policy.observation)
+    return with_driver_factors(bank, kind, quantiles, seed, obs0, gap)
 
 
 class DriverSpeeds:
     """A deployment run's (or a demand episode's, ``env.demand``) drivers' factors: each
     vehicle's set when it is first driven (``"drawn"``: by ``driver_levels`` of (seed,
-    run, vehicle); ``"memory"``: from its speed and limit then) and kept while it is
-    driven."""
+    run, vehicle); ``"memory"``: ``sight_factors`` of its observation then) and kept while
+    it is driven."""
 
     def __init__(self, quantiles: np.ndarray, sc, run: int) -> None:
         self.quantiles = np.asarray(quantiles, dtype=float)
         self.relative = relative(self.quantiles)  # ``factors_at``'s, once a run, not a call
         self.kind, self.seed, self.run = sc.policy.driver_speed, sc.seed, run
+        # "memory": whether the leader column is the gap (``held_at_sight``)
+        self.gap = self.kind == "memory" and observes_gap(sc.policy.observation)
         self.factor: dict[str, float] = {}
 
     def __call__(self, vehicle_ids: list[str], obs: np.ndarray) -> np.ndarray:
-        """Per vehicle its factor; ``obs``: their observations now, limits unscaled."""
+        """Per vehicle its factor; ``obs``: their observations now (``policy.observation``'s
+        layout), limits unscaled."""
         new = [i for i, v in enumerate(vehicle_ids) if v not in self.factor]
         if new:
             ids = [vehicle_ids[i] for i in new]
             levels = driver_levels(self.seed, self.run, ids)
-            if self.kind == "memory":  # a queued one as "drawn" (``entry_factors``)
-                f = entry_factors(self.quantiles, obs[new, 0], obs[new, 1], levels)
+            if self.kind == "memory":  # a queued or held one as "drawn" (``sight_factors``)
+                f = sight_factors(self.quantiles, obs[new], levels, self.gap)
             else:
                 f = np.interp(levels, QUANTILE_LEVELS, self.relative)  # factors_at's values
             self.factor.update(zip(ids, f.tolist(), strict=True))

@@ -23,11 +23,11 @@ from macromicro_sumo.env.driver_speed import (  # noqa: E402
     QUANTILE_LEVELS,
     DriverSpeeds,
     driver_levels,
-    entry_factors,
     factors_at,
+    sight_factors,
 )
 from macromicro_sumo.env.section_observations import section_observations  # noqa: E402
-from macromicro_sumo.road.physics import idm_accel  # noqa: E402
+from macromicro_sumo.road.physics import idm_accel, observes_gap  # noqa: E402
 from macromicro_sumo.scenario.load import load_scenario  # noqa: E402
 from macromicro_sumo.truth.section import load_section_truth, simulate_section  # noqa: E402
 
@@ -137,7 +137,7 @@ def _entries(sc, truth, run: int, t0_s: float, speeds: DriverSpeeds) -> dict[str
     """SUMO's own drive of ``run`` until ``t0_s``: ``speeds`` asked of each population
     vehicle at its first step on the section, with the deployment's observation of it
     there (a deployment's "memory" driver sets its factor then); its speed ratio then
-    (``entry_factors`` of that observation) per vehicle."""
+    (``sight_factors`` of that observation, a held or queued one drawn) per vehicle."""
     core = DemandCore(sc, truth, truth.runs, 60)
     at_entry: dict[str, float] = {}
     try:
@@ -158,11 +158,17 @@ def _entries(sc, truth, run: int, t0_s: float, speeds: DriverSpeeds) -> dict[str
                     _deploy_driver(sc, core, run, None), core.sim, new, states
                 )
                 deploy_observations(drv, core.sim, new, states)  # sets their factors
-                ratio = entry_factors(speeds.quantiles, plain[:, 0], plain[:, 1])
+                ratio = _sight(sc, run, speeds.quantiles, new, plain)
                 at_entry.update(zip(new, ratio.tolist(), strict=True))
     finally:
         core.close()
     return at_entry
+
+
+def _sight(sc, run: int, q: np.ndarray, vids: list[str], plain: np.ndarray) -> np.ndarray:
+    """ "memory"'s factors of ``vids`` first seen with observations ``plain``."""
+    levels = driver_levels(sc.seed, run, vids)
+    return sight_factors(q, plain, levels, observes_gap(sc.policy.observation))
 
 
 @pytest.mark.parametrize("kind", ["drawn", "memory"])
@@ -198,7 +204,7 @@ def test_drivers_take_the_desired_speed_factors_a_deployment_gives_them(merge, k
                 if kind == "drawn":
                     f = factors_at(q, driver_levels(sc.seed, run, vids))
                 else:  # the ratio where it entered, kept
-                    now = entry_factors(q, plain[:, 0], plain[:, 1])
+                    now = _sight(sc, run, q, vids, plain)
                     for i, v in enumerate(vids):
                         at_entry.setdefault(v, float(now[i]))
                     f = np.array([at_entry[v] for v in vids])

@@ -156,12 +156,12 @@ def test_draws_follow_the_ratios_and_are_fixed_per_vehicle() -> None:
 
 def test_memory_keeps_the_entry_ratio_within_the_observed_range() -> None:
     q = ratio_quantiles(np.linspace(0.8, 1.2, 41))  # median 1.0
-    sc = SimpleNamespace(seed=7, policy=SimpleNamespace(driver_speed="memory"))
+    sc = SimpleNamespace(seed=7, policy=SimpleNamespace(driver_speed="memory", observation="paper"))
     drivers = DriverSpeeds(q, sc, 0)
-    # Entering at 27, 33 and 21 m/s on a 30 m/s road: 0.9, 1.1, and the slowest observed
-    # ratio for the car that entered at 0.7 (a queued one, below 0.65, is drawn:
-    # tests/policy/test_memory_queued_entry.py).
-    first = np.array([[27.0, 30.0, 250.0, 0.0], [33.0, 30.0, 250.0, 0.0], [21.0, 30.0, 9.0, 0.0]])
+    # Entering free at 27, 33 and 21 m/s on a 30 m/s road: 0.9, 1.1, and the slowest
+    # observed ratio for the car that entered at 0.7 (a queued one, below 0.65, or a held
+    # one is drawn: tests/policy/test_memory_queued_entry.py, test_memory_held_entry.py).
+    first = np.array([[27.0, 30.0, 250.0, 0.0], [33.0, 30.0, 250.0, 0.0], [21.0, 30.0, 250.0, 0.0]])
     assert np.allclose(drivers(["a", "b", "c"], first), [0.9, 1.1, 0.8])
     # Kept while driven, whatever the speed now.
     assert np.allclose(drivers(["c", "a"], first[[0, 1]] * [2.0, 1.0, 1.0, 1.0]), [0.8, 0.9])
@@ -186,7 +186,7 @@ def test_the_factor_moves_only_the_observed_limits(straight) -> None:
     args = (LaneTable(sec), "lookahead", ["a", "b"], np.arange(2), [lane_id] * 2, st)
     rest = ([("b", 293.0), ("", -1.0)], Table((5.0, 2.5, 4.5)), np.full(2, np.inf))
     base = observe_rows(*args, *rest)[0]
-    sc = SimpleNamespace(seed=1, policy=SimpleNamespace(driver_speed="memory"))
+    sc = SimpleNamespace(seed=1, policy=SimpleNamespace(driver_speed="memory", observation="paper"))
     q = ratio_quantiles(np.array([0.75, 25.0 / 27.5, 1.25]))  # median: 25 m/s on 27.5
     mine = observe_rows(*args, *rest, DriverSpeeds(q, sc, 0))[0]
     factor = base[:, [0]] / base[:, [1]] / (25.0 / 27.5)  # both at 25 m/s when first seen
@@ -219,7 +219,7 @@ def test_with_driver_factors_sets_hidden_slots_only() -> None:
     hidden = np.array([[False, True, True, False]] * 50)
     q = ratio_quantiles(np.linspace(0.8, 1.2, 21))
     obs0 = np.tile(
-        [[30.0, 30.0, 250.0, 0.0], [27.0, 30.0, 250.0, 0.0], [33.0, 30.0, 9.0, 0.0]], (50, 1)
+        [[30.0, 30.0, 250.0, 0.0], [27.0, 30.0, 250.0, 0.0], [33.0, 30.0, 250.0, 0.0]], (50, 1)
     )
     for kind in ("drawn", "memory"):
         f = with_driver_factors(Slots(valid, hidden), kind, q, 11, obs0).driver_factor

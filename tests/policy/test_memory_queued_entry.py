@@ -25,7 +25,8 @@ LIMIT_MPS = 24.0
 
 
 def _drivers(q: np.ndarray, kind: str) -> DriverSpeeds:
-    return DriverSpeeds(q, SimpleNamespace(seed=522, policy=SimpleNamespace(driver_speed=kind)), 1)
+    policy = SimpleNamespace(driver_speed=kind, observation="paper")
+    return DriverSpeeds(q, SimpleNamespace(seed=522, policy=policy), 1)
 
 
 def test_a_queued_entry_is_drawn_a_slow_moving_one_keeps_the_range() -> None:
