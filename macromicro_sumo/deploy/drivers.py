@@ -418,7 +418,7 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
             at[1],
             # Its prior's minGap where no layer holds the vType's (observe_rows' stop_gap_m).
             getattr(self.act, "stop_gap_m", None) if self.safety == "none" else None,
-            self.driver_taus,
+            None if self.driver_taus is None else partial(self.driver_taus, step=self.steps),
         )
 
 

@@ -132,7 +132,7 @@ def observe_rows(
     driver_speeds: Callable[[list[str], np.ndarray], np.ndarray] | None = None,
     lane_codes: np.ndarray | None = None,
     stop_gap_m: float | None = None,
-    driver_taus: Callable[[list[str]], np.ndarray] | None = None,
+    driver_taus: Callable[[list[str], np.ndarray], np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Observations (V, obs_dim) of driven vehicles ``vids`` (rows ``rows`` of ``st``, on
     lanes ``lane_ids``), as the section env defines them, the leader SUMO's (``leaders``:
@@ -153,8 +153,8 @@ def observe_rows(
     nearer (``min_gap_deficit_m``), so that the policy's stop falls at its own minGap, not
     inside it, where SUMO counts a collision (its collisionMinGapFactor 1; Stage II's
     replay counts only an overlap). ``driver_taus``: each driver's own tau [s] from the
-    vehicles (``policy.driver_follow``, ``env.driver_tau.DriverTaus``), appended as a
-    trailing column (None: no column).
+    vehicles and their observations (``policy.driver_follow``, ``env.driver_tau.DriverTaus``
+    and its hand-over), appended as a trailing column (None: no column).
     Also returns SUMO's gap to what the vehicle sees ahead, that leader's decel, and its
     index in ``vids`` where it is a driven vehicle (-1: none, not driven, or a standing
     leader): the safety layer knows a driven leader's next speed, its command.
@@ -237,7 +237,7 @@ def observe_rows(
     if driver_speeds is not None:
         scale_limits(obs, driver_speeds(vids, obs))
     if driver_taus is not None:  # policy.driver_follow: each driver's own tau, last
-        obs = with_tau(obs, driver_taus(vids))
+        obs = with_tau(obs, driver_taus(vids, obs))
     return obs, sumo_gap, lead_decel, lead_index
 
 

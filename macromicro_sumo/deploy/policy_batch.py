@@ -155,7 +155,8 @@ def policy_batch(agent: Agent) -> ActionBatch:
     act.driver_speeds = None if q is None else partial(DriverSpeeds, q.double().numpy())
     # policy.driver_follow: each driven vehicle's own tau, a trailing column (observe_rows).
     t = agent.driver_tau
-    act.driver_taus = None if t is None else partial(DriverTaus, t.double().numpy())
+    handover = prior_buffer(agent) if agent.prior == "krauss" else None
+    act.driver_taus = None if t is None else partial(DriverTaus, t.double().numpy(), prior=handover)
     # The gap the policy stops at: its prior's minGap (``deploy.observe.observe_rows``).
     act.stop_gap_m = prior_stop_gap_m(agent)
     return act

@@ -17,16 +17,24 @@ from red_light import CROSS, EDGES, red_light_queue
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.policy_batch import policy_batch
 from macromicro_sumo.env.driver_speed import QUANTILE_LEVELS
-from macromicro_sumo.env.driver_tau import driver_tau_levels, taus_at
+from macromicro_sumo.env.driver_tau import (
+    HANDOVER_RATE_S_PER_S,
+    driver_tau_levels,
+    supported_taus,
+    taus_at,
+)
 from macromicro_sumo.evaluation.driver_follow import krauss_accel_per_driver
 from macromicro_sumo.evaluation.krauss_fit import KraussParams
 from macromicro_sumo.policy.agent import Agent
+from macromicro_sumo.policy.prior import prior_buffer
 from macromicro_sumo.road.section import read_section
 from macromicro_sumo.truth.section import record_run
 
 # 502's drivers' taus (h2, stop 37): Krauss cars near 1.06 s, IDM cars at 1.4-1.8 s.
 TAU_Q = np.interp(QUANTILE_LEVELS, [0.0, 0.05, 0.5, 0.75, 0.95, 1.0],
                   [1.0, 1.035, 1.075, 1.37, 1.79, 2.0])  # fmt: skip
+# Draws longer than a queue's gaps support at the section's entry: the hand-over's.
+LONG_Q = TAU_Q + 1.5
 
 
 def agent(cross_krauss: dict, driver_tau: np.ndarray | None) -> Agent:
@@ -46,10 +54,12 @@ class Recorder(SectionSpeedDriver):
     def __init__(self, *args, **kwargs) -> None:
         super().__init__(*args, **kwargs)
         self.rows: list[tuple[list[str], np.ndarray]] = []
+        self.at_step: list[int] = []  # the step of each of ``rows``
 
     def observe(self, sim, vids, rows, st, *args, **kwargs):
         out = super().observe(sim, vids, rows, st, *args, **kwargs)
         self.rows.append((list(vids), out[0].copy()))
+        self.at_step.append(self.steps)
         return out
 
 
@@ -67,19 +77,36 @@ def deploy_once(folder: Path, act) -> Recorder:
 def test_each_driver_observes_its_own_tau_the_same_in_two_runs(
     tmp_path: Path, cross_krauss: dict
 ) -> None:
-    act = policy_batch(agent(cross_krauss, TAU_Q))
+    """Each driver's tau column is its draw, handed over (``DriverTaus.handed_over``): from
+    the tau its first observed state supports where the draw is longer, up at
+    ``HANDOVER_RATE_S_PER_S``; the same in two runs."""
+    a = agent(cross_krauss, LONG_Q)
+    act = policy_batch(a)
     first = deploy_once(tmp_path / "a", act)
     second = deploy_once(tmp_path / "b", act)
     assert len(first.rows) > 20
-    taus: dict[str, float] = {}
-    for vids, obs in first.rows:
+    seen: dict[str, list[tuple[int, float, np.ndarray]]] = {}
+    for (vids, obs), step in zip(first.rows, first.at_step, strict=True):
         assert obs.shape[1] == 7  # lookahead's 6 features + the tau
-        for v, t in zip(vids, obs[:, -1], strict=True):
-            assert taus.setdefault(v, t) == t  # one tau a driver, all along
-    assert len(taus) == 4 and len(set(taus.values())) == 4
-    q = TAU_Q.astype(np.float32).astype(float)  # the agent's buffer is float32
-    want = taus_at(q, driver_tau_levels(first.sc.seed, 0, list(taus)))
-    np.testing.assert_array_equal(list(taus.values()), want)
+        for v, o in zip(vids, obs, strict=True):
+            seen.setdefault(v, []).append((step, o[-1], o[:6]))
+    assert len(seen) == 4
+    q = LONG_Q.astype(np.float32).astype(float)  # the agent's buffer is float32
+    drawn = dict(
+        zip(seen, taus_at(q, driver_tau_levels(first.sc.seed, 0, list(seen))), strict=True)
+    )
+    assert len(set(drawn.values())) == 4
+    dt = first.sc.simulation.step_length_s
+    held = 0
+    for v, rows in seen.items():
+        step0, tau0, obs0 = rows[0]
+        ok = supported_taus(obs0[None, :], prior_buffer(a))[0]
+        assert tau0 == min(drawn[v], max(ok, q[0]))
+        held += tau0 < drawn[v]
+        for step, tau, _ in rows:
+            assert tau == min(drawn[v], tau0 + HANDOVER_RATE_S_PER_S * dt * (step - step0))
+        assert rows[-1][1] == drawn[v] or rows[-1][0] - step0 < 2.0 / (HANDOVER_RATE_S_PER_S * dt)
+    assert held >= 1  # a queue at a red light: some draws are longer than their gap supports
     assert [(v, o.tolist()) for v, o in first.rows] == [(v, o.tolist()) for v, o in second.rows]
 
 
