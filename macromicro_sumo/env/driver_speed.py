@@ -96,8 +96,8 @@ UNHELD_HEADWAY_S = 1.0
 # hD). Not the observed range's lowest ratio: on drawn net 549 cars entering at 25-27 m/s
 # behind trucks (0.74-0.81 of its median) are not queued, and drawing them was worse there
 # (speed RMSE 4.39 -> 4.90 m/s over 4 runs); 1.6% of its drivers are below 0.65.
-# A first sight held by what is ahead (``held_at_sight``) is drawn as well, whatever its
-# speed.
+# With ``policy.driver_entry = "held"`` a first sight held by what is ahead
+# (``held_at_sight``) is drawn as well, whatever its speed.
 QUEUED_ENTRY_SHARE = 0.65
 
 
@@ -371,9 +371,8 @@ def held_at_sight(obs: np.ndarray, gap_layout: bool) -> np.ndarray:
     (delta v < 0) and at least ``UNHELD_HEADWAY_S`` x v + ``FREE_BUMPER_GAP_M`` ahead. The
     leader column is the bumper gap where ``gap_layout`` (``physics.observes_gap``), else
     the spacing, less ``CAR_LENGTH_M`` (a leader of unknown length counts as a car, as in
-    ``free_gap_m``); ``NO_LEADER_GAP_M`` or more: none. The rule the observed drivers'
-    exact ratios are read by (``observed_drivers``), so a deployed driver's speed counts
-    as its desired one where an observed driver's would."""
+    ``free_gap_m``); ``NO_LEADER_GAP_M`` or more: none. The observed drivers' rule
+    (``observed_drivers``): a deployed driver's speed counts where an observed one's would."""
     v, lead, dv = obs[:, 0], obs[:, LEADER_COLUMN], obs[:, 3]
     gap = lead if gap_layout else lead - CAR_LENGTH_M
     near = lead < NO_LEADER_GAP_M
@@ -394,11 +393,13 @@ def entry_factors(
     range (a car that entered standing still has a desired speed all the same). With
     ``levels`` (uniform, per driver): one first seen below ``QUEUED_ENTRY_SHARE`` of it is
     queued there, and one ``held`` (``held_at_sight``; None: none) is held there by its
-    leader: either takes ``"drawn"``'s factor at its level instead. Why the held ones: on
-    drawn 522 with ``deploy.merge_reach = "occupation"`` the entry queues less deeply, and
-    9.8% of the drivers, first seen moving at 0.65-0.72 of the median in the stream behind
-    their leaders, kept the range's lowest ratio (0.717) and led platoons on the one-lane
-    edges (speed RMSE, all 4 runs, 3.422 m/s; with the held ones drawn 2.727)."""
+    leader: either takes ``"drawn"``'s factor at its level instead. Why the held ones
+    (``policy.driver_entry = "held"``): on drawn 522 with ``deploy.merge_reach =
+    "occupation"`` the entry queues less deeply, and 9.8% of the drivers, first seen moving
+    at 0.65-0.72 of the median in the stream behind their leaders, kept the range's lowest
+    ratio (0.717) and led platoons on the one-lane edges (speed RMSE, all 4 runs, 3.422
+    -> 2.727 m/s). Not the default: netgen_corridor's 15% first seen within 2 s of a
+    leader at about the median are at their own speed (0.460 -> 0.682 m/s drawn)."""
     rel = relative(quantiles)
     ratio = speed_mps / np.maximum(limit_mps, 0.1) / np.interp(0.5, QUANTILE_LEVELS, quantiles)
     kept = np.clip(ratio, rel[0], rel[-1])
@@ -411,13 +412,19 @@ def entry_factors(
 
 
 def sight_factors(
-    quantiles: np.ndarray, obs: np.ndarray, levels: np.ndarray, gap_layout: bool
+    quantiles: np.ndarray, obs: np.ndarray, levels: np.ndarray, entry: str, gap_layout: bool
 ) -> np.ndarray:
     """``"memory"``'s ``entry_factors`` of first-sight observations ``obs`` (V, D), limits
-    unscaled, at ``levels``: the queued and the ``held_at_sight`` ones drawn. The one rule
-    of Stage II's banks (``with_driver_factors``) and the deployment (``DriverSpeeds``)."""
-    held = held_at_sight(obs, gap_layout)
+    unscaled, at ``levels``: the queued ones drawn, and with ``entry`` "held"
+    (``policy.driver_entry``) the ``held_at_sight`` ones. The one rule of Stage II's banks
+    (``with_driver_factors``) and the deployment (``DriverSpeeds``)."""
+    held = held_at_sight(obs, gap_layout) if entry == "held" else None
     return entry_factors(quantiles, obs[:, 0], obs[:, LIMIT_COLUMN], levels, held)
+
+
+def driver_entry(sc) -> str:
+    """``policy.driver_entry`` (a scenario without it: "queued")."""
+    return str(getattr(sc.policy, "driver_entry", "queued"))
 
 
 def scale_limits(obs: np.ndarray, factor: np.ndarray) -> np.ndarray:
@@ -434,18 +441,19 @@ def with_driver_factors(
     quantiles: np.ndarray,
     seed: int,
     obs0: np.ndarray,
+    entry: str = "queued",
     gap_layout: bool = False,
 ) -> SectionBank:
     """``bank`` with a factor per episode and hidden slot (``kind`` "drawn": from
     ``quantiles``, seeded; "memory": from its generated start, ``obs0`` the valid slots'
     initial observations, ``env.section_observations.initial_observations``, whose leader
-    column is the bumper gap where ``gap_layout``: ``sight_factors``, a queued or held start
-    drawn at a seeded level, as a deployed driver is); observed slots keep 1
+    column is the bumper gap where ``gap_layout``: ``sight_factors`` by ``entry``, a queued
+    (or held) start drawn at a seeded level, as a deployed driver is); observed slots keep 1
     (they replay their records; the likelihood's pairs are the recorded ones)."""
     if kind == "memory":
         factor = np.ones(bank.valid.shape)
         levels = np.random.default_rng([seed, 212]).random(bank.valid.shape)[bank.valid]
-        factor[bank.valid] = sight_factors(quantiles, obs0, levels, gap_layout)
+        factor[bank.valid] = sight_factors(quantiles, obs0, levels, entry, gap_layout)
     else:
         levels = np.random.default_rng([seed, 211]).random(bank.valid.shape)
         factor = factors_at(quantiles, levels)
@@ -458,7 +466,7 @@ def drivers_bank(sc, section, bank: SectionBank, quantiles: np.ndarray, seed: in
     kind = sc.policy.driver_speed
     obs0 = initial_observations(sc, section, bank) if kind == "memory" else np.empty((0, 4))
     gap = kind == "memory" and observes_gap(sc.policy.observation)
-    return with_driver_factors(bank, kind, quantiles, seed, obs0, gap)
+    return with_driver_factors(bank, kind, quantiles, seed, obs0, driver_entry(sc), gap)
 
 
 class DriverSpeeds:
@@ -471,7 +479,8 @@ class DriverSpeeds:
         self.quantiles = np.asarray(quantiles, dtype=float)
         self.relative = relative(self.quantiles)  # ``factors_at``'s, once a run, not a call
         self.kind, self.seed, self.run = sc.policy.driver_speed, sc.seed, run
-        # "memory": whether the leader column is the gap (``held_at_sight``)
+        # "memory": ``policy.driver_entry``, and whether the leader column is the gap
+        self.entry = driver_entry(sc)
         self.gap = self.kind == "memory" and observes_gap(sc.policy.observation)
         self.factor: dict[str, float] = {}
 
@@ -483,7 +492,7 @@ class DriverSpeeds:
             ids = [vehicle_ids[i] for i in new]
             levels = driver_levels(self.seed, self.run, ids)
             if self.kind == "memory":  # a queued or held one as "drawn" (``sight_factors``)
-                f = sight_factors(self.quantiles, obs[new], levels, self.gap)
+                f = sight_factors(self.quantiles, obs[new], levels, self.entry, self.gap)
             else:
                 f = np.interp(levels, QUANTILE_LEVELS, self.relative)  # factors_at's values
             self.factor.update(zip(ids, f.tolist(), strict=True))

@@ -22,6 +22,7 @@ from macromicro_sumo.env.demand import DemandCore  # noqa: E402
 from macromicro_sumo.env.driver_speed import (  # noqa: E402
     QUANTILE_LEVELS,
     DriverSpeeds,
+    driver_entry,
     driver_levels,
     factors_at,
     sight_factors,
@@ -168,7 +169,8 @@ def _entries(sc, truth, run: int, t0_s: float, speeds: DriverSpeeds) -> dict[str
 def _sight(sc, run: int, q: np.ndarray, vids: list[str], plain: np.ndarray) -> np.ndarray:
     """ "memory"'s factors of ``vids`` first seen with observations ``plain``."""
     levels = driver_levels(sc.seed, run, vids)
-    return sight_factors(q, plain, levels, observes_gap(sc.policy.observation))
+    entry = driver_entry(sc)
+    return sight_factors(q, plain, levels, entry, observes_gap(sc.policy.observation))
 
 
 @pytest.mark.parametrize("kind", ["drawn", "memory"])

@@ -1,14 +1,18 @@
-"""``policy.driver_speed = "memory"``: a driver first seen held by what is ahead
-(``held_at_sight``: a leader within the free gap, not pulling away) takes ``"drawn"``'s
-factor at its level, as a queued one does; a free first sight keeps its own ratio. Drawn
-net 522 with ``deploy.merge_reach = "occupation"`` (stop 40): 9.8% of the drivers, first
-seen moving at 0.65-0.72 of the median behind their leaders, kept the range's lowest
-ratio and led platoons on the one-lane edges."""
+"""``policy.driver_speed = "memory"`` with ``policy.driver_entry = "held"``: a driver first
+seen held by what is ahead (``held_at_sight``: a leader within the free gap, not pulling
+away) takes ``"drawn"``'s factor at its level, as a queued one does; a free first sight
+keeps its own ratio. Drawn net 522 with ``deploy.merge_reach = "occupation"`` (stop 40):
+9.8% of the drivers, first seen moving at 0.65-0.72 of the median behind their leaders,
+kept the range's lowest ratio and led platoons on the one-lane edges. The default
+("queued") keeps every moving first sight's ratio (netgen_corridor's)."""
 
 import dataclasses
+import sys
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from macromicro_sumo.env.driver_speed import (
     FREE_BUMPER_GAP_M,
@@ -22,7 +26,12 @@ from macromicro_sumo.env.driver_speed import (
     ratio_quantiles,
     with_driver_factors,
 )
+from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.section import NO_LEADER_GAP_M
+from macromicro_sumo.scenario.load import load_scenario
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_driver_speed import straight_scenario  # noqa: E402
 
 LIMIT_MPS = 24.0
 Q = ratio_quantiles(np.linspace(0.8, 1.2, 41))  # median 1.0, range 0.8-1.2
@@ -61,19 +70,27 @@ def test_held_at_sight_reads_the_leader_as_the_observed_drivers_rule() -> None:
         np.testing.assert_array_equal(held_at_sight(obs, layout_gap), HELD)
 
 
+def _scenario(observation: str, entry: str | None) -> SimpleNamespace:
+    policy = SimpleNamespace(driver_speed="memory", observation=observation)
+    if entry is not None:
+        policy.driver_entry = entry
+    return SimpleNamespace(seed=522, policy=policy)
+
+
 def test_a_held_first_sight_is_drawn_a_free_one_keeps_its_ratio() -> None:
     for observation, layout_gap in (("lookahead_gap", True), ("lookahead", False)):
         obs, ids = _sights(layout_gap)
-        sc = SimpleNamespace(
-            seed=522, policy=SimpleNamespace(driver_speed="memory", observation=observation)
-        )
-        f = DriverSpeeds(Q, sc, 1)(ids, obs)
+        f = DriverSpeeds(Q, _scenario(observation, "held"), 1)(ids, obs)
         drawn = factors_at(Q, driver_levels(522, 1, ids))
         # Held: "drawn"'s factor at its level; free or pulling away: its own ratio, within
         # the range (0.75 -> the lowest, 0.8; 1.1 its own).
         np.testing.assert_allclose(f[HELD], drawn[HELD])
         np.testing.assert_allclose(f[~HELD], [0.8, 0.8, 1.1])
         assert not np.allclose(f[[1, 3]], 0.8)  # before: the held ones kept the lowest ratio
+        # The default, "queued" (and a scenario without the setting): every ratio kept.
+        for entry in ("queued", None):
+            kept = DriverSpeeds(Q, _scenario(observation, entry), 1)(ids, obs)
+            np.testing.assert_allclose(kept, [0.8, 0.8, 0.8, 0.8, 1.1, 1.1, 1.1])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,7 +110,35 @@ def test_stage_two_draws_a_held_generated_start() -> None:
         (300, 1),
     )
     bank = Slots(valid, valid)
-    f = with_driver_factors(bank, "memory", Q, 11, obs0, True).driver_factor
+    f = with_driver_factors(bank, "memory", Q, 11, obs0, "held", True).driver_factor
     np.testing.assert_allclose(f[:, 1], 0.9)  # free: its ratio
     assert f[:, 0].std() > 0.05 and abs(np.median(f[:, 0]) - 1.0) < 0.05  # held: drawn
+    queued = with_driver_factors(bank, "memory", Q, 11, obs0, "queued", True).driver_factor
+    np.testing.assert_allclose(queued, [[0.8, 0.9]] * 300)  # the default: both kept
     assert np.interp(0.5, QUANTILE_LEVELS, Q) == 1.0
+
+
+def test_driver_entry_is_queued_by_default_and_checked(tmp_path: Path) -> None:
+    """``policy.driver_entry``: "queued" by default and then left out of the scenario's dict
+    (every existing scenario keeps its digest); "held" read; an unknown value is one line
+    naming file, field and what is accepted."""
+    path = straight_scenario(tmp_path, "memory")
+    plain = load_scenario(path)
+    assert plain.policy.driver_entry == "queued"
+    assert "driver_entry" not in plain.to_dict()["policy"]
+    text = path.read_text()
+    for value, same in (("queued", True), ("held", False)):
+        path.write_text(
+            text.replace(
+                'driver_speed = "memory"', f'driver_speed = "memory"\ndriver_entry = "{value}"'
+            )
+        )
+        sc = load_scenario(path)
+        assert sc.policy.driver_entry == value and (sc.digest() == plain.digest()) is same
+    path.write_text(
+        text.replace('driver_speed = "memory"', 'driver_speed = "memory"\ndriver_entry = "late"')
+    )
+    with pytest.raises(UserError) as err:
+        load_scenario(path)
+    msg = str(err.value)
+    assert "\n" not in msg and "policy.driver_entry" in msg and "'queued', 'held'" in msg, msg
