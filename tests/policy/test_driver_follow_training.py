@@ -78,10 +78,12 @@ def test_a_driver_has_one_tau_in_the_demand_env_and_the_deployment(ring, tmp_pat
     def recording(sc_, run):
         taus = make(sc_, run)
 
-        def call(vids):
-            got = taus(vids)
-            for v, t in zip(vids, got, strict=True):
+        def call(vids, obs=None, step=None):
+            drawn = taus(vids)  # the draws themselves, without the hand-over
+            for v, t in zip(vids, drawn, strict=True):
                 assert seen.setdefault(v, t) == t
+            got = taus(vids, obs, step)  # handed over (env.driver_tau): at most the draw
+            assert (got <= drawn).all()
             return got
 
         return call
