@@ -209,7 +209,7 @@ def observe_rows(
     # section): nearer_standing's five array calls not made.
     closer = None
     if np.count_nonzero(stop_m < np.inf):
-        closer = nearer_standing(spacing, stop_m, length, min_gap)
+        closer = nearer_standing(spacing, stop_m, length, min_gap, lengths[n:])
     if any_closer := closer is not None and bool(np.count_nonzero(closer)):
         lead_v[closer] = 0.0
         np.copyto(sumo_gap, np.maximum(stop_m, 0.0), where=closer)
