@@ -16,7 +16,12 @@ The constant: the one that puts the approach on its density estimate on average 
 record (``density_constant``), raised where that leaves fewer vehicles than the lower
 bounds: at the intervals' bounds (where the counts are exact) the count is at least the
 vehicles that crossed the upstream station within the free travel time over the approach
-(they cannot have reached the line; ``CLEAR_QUANTILE`` of these) and at least 0. A record
+(they cannot have reached the line; ``CLEAR_QUANTILE`` of these) and at least 0, and at
+the starts of green where a queue stands (a station's interval speed at or below
+``QUEUE_REACH_MPS``) at least the queue that reaches back to it at jam spacing
+(``queue_floor``, ``queue_constant``; the density estimate of a queue reads its loops, which
+a standing queue's gaps can leave empty: from 240 s on, arterials 1, 2, 600-603 in
+congestion 3.95 -> 2.92 vehicles per lane). A record
 starts mid-traffic in the field: the lower bounds alone, whose largest was taken until
 stop 39, held only where the record started from an empty road (a simulation's start):
 from 240 s on, arterials 1, 2, 600-603 were 11.19 / 14.82 vehicles per lane, free /
@@ -38,7 +43,12 @@ import pandas as pd
 
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.sumo.net_xml import NetLinks, net_links
-from macromicro_sumo.truth.density import JAM_SPACING_M, occupancy_weight
+from macromicro_sumo.truth.density import (
+    DEFAULT_VEHICLE_LENGTH_M,
+    JAM_SPACING_M,
+    effective_length_m,
+    occupancy_weight,
+)
 from macromicro_sumo.truth.section_macro import integrate_stations, station_density
 from macromicro_sumo.truth.stations import Piece, full_stations, ramp_between, station_speeds
 
@@ -63,6 +73,16 @@ gap, one starting about every 1.1 s)."""
 QUEUED_MPS = (5.0, 10.0)
 """An up station's interval speed at or below which it stands in the queue (its passages
 come when the green's wave reaches it), at or above which it flows; linear between."""
+
+QUEUE_REACH_MPS = 7.0
+"""A station on an approach (not its stop bar, nor within ``AFTER_LINE_M`` past the
+previous signal, whose discharge crosses it slowly) whose interval speed is at or below
+this has the queue reach back over it. At 5 m/s (the occupancy threshold) a queue that
+reaches a loop only briefly was missed (arterial 602's middle approach, 6.4-8.2 m/s)."""
+
+MIN_GAP_M = 2.5
+"""The gap between standing vehicles (SUMO's default ``minGap``): the jam spacing is the
+vehicles' effective length, from the free-flowing loops, plus it (``jam_spacing_m``)."""
 
 PASSING_STATES = frozenset("GgyYs")
 """A link's states in which vehicles cross the stop line (green, yellow: those that cannot
@@ -90,6 +110,23 @@ class StopLine:
         start = ends[k] - d[k]
         within = np.where(np.array(self.passing)[k], pos - start, 0.0)
         return n * cum_g[-1] + cum_g[k] + within
+
+    def green_starts(self, begin_s: float, end_s: float) -> list[tuple[float, float]]:
+        """Each start of passing in [``begin_s``, ``end_s``) and the stopping seconds (the
+        red and the yellow the section's lanes stop at) just before it."""
+        d, p = np.array(self.durations_s, dtype=float), self.passing
+        starts, cycle = np.concatenate([[0.0], np.cumsum(d)[:-1]]), float(d.sum())
+        out = []
+        first = int(np.floor((begin_s - self.offset_s) / cycle)) - 1
+        for n in range(first, int(np.ceil((end_s - self.offset_s) / cycle)) + 1):
+            for k in (k for k in range(len(d)) if p[k] and not p[k - 1]):
+                t = self.offset_s + n * cycle + float(starts[k])
+                red, j = 0.0, k - 1
+                while not p[j % len(d)]:
+                    red, j = red + float(d[j % len(d)]), j - 1
+                if begin_s <= t < end_s:
+                    out.append((t, red))
+        return sorted(out)
 
 
 def _signal_links(net: NetLinks) -> dict[tuple[str, str], list[tuple[str, int]]]:
@@ -231,6 +268,81 @@ def arrivals(det: pd.DataFrame, a: Approach, at_s: np.ndarray) -> np.ndarray:
     return even + w * (cumulative(det, a.up_m, at_s, late) - even)
 
 
+def jam_spacing_m(det: pd.DataFrame) -> float:
+    """Room a vehicle takes in a standing queue: the median over the loops of their
+    effective vehicle length (``density.effective_length_m``, from their free-flowing
+    intervals; SUMO's passenger car where none flowed) plus ``MIN_GAP_M``."""
+    cols = ["flow_vph", "speed_mps", "occupancy_pct"]
+    lengths = [
+        effective_length_m(*(g[c].to_numpy(dtype=float) for c in cols), np.nan)
+        for _, g in det[det["kind"] == "e1"].groupby("detector_id")
+    ]
+    ok = [x for x in lengths if np.isfinite(x)]
+    return float(np.median(ok) if ok else DEFAULT_VEHICLE_LENGTH_M) + MIN_GAP_M
+
+
+def queue_floor(
+    det: pd.DataFrame, e1: pd.DataFrame, section: Section, a: Approach, spacing_m: float
+) -> list[tuple[float, float]]:
+    """``(t, vehicles)``: the fewest vehicles on the approach at each start of green ``t``
+    in the interval of ``e1`` (one interval's rows) where a queue stands on it; [] where
+    none does. A station (not the stop bar) whose interval speed is at or below
+    ``QUEUE_REACH_MPS`` has the queue's farthest reach at or past it (the approach's whole
+    length where that is its up station). That reach comes after the start of green
+    (Lighthill-Whitham: the queue's back runs up at ``w``, the arrival flow over the jam
+    density less the arrivals', until the start of green, running back at ``WAVE_MPS``,
+    meets it), so at the start of green the queue stands at least that reach times
+    ``1 - w / WAVE_MPS``; the arrival flow: the vehicles that crossed the up station during
+    the red (``arrivals``). Count: that station's lanes whose loop reads the queue (a lane
+    may turn off freely) x that length / ``spacing_m``, and the rest of
+    the approach: at an entry (steady arrivals) its stations' interval density outside the
+    queue; past a signal (platoons: the interval density over-counts the start of green)
+    the vehicles that crossed the up station within the free travel to the queue's back."""
+    arcs = full_stations(e1, section)
+    arcs = arcs[(arcs >= a.up_m) & (arcs < a.line.arc_m - STOP_BAR_REACH_M)]
+    if a.before is not None:  # past a signal: its discharge crosses slowly
+        arcs = arcs[arcs > a.before[1].arc_m + AFTER_LINE_M]
+    speeds = station_speeds(e1[e1["arc_m"].isin(arcs)]).reindex(arcs).to_numpy(dtype=float)
+    queued = np.flatnonzero(speeds <= QUEUE_REACH_MPS)
+    if not len(queued):
+        return []
+    far = float(arcs[int(queued[0])])  # arcs ascend
+    reach = a.line.arc_m - max(far, a.up_m)
+    loops = e1[(e1["arc_m"] == far) & (e1["kind"] == "e1")]
+    stand = int(((loops["n_veh"] == 0) | (loops["speed_mps"] <= QUEUE_REACH_MPS)).sum())
+    e = section.edge_index(np.array([a.bar_m]))[0]
+    lanes, v_free = int(section.n_lanes[e]), float(np.nanmax(section.limits_mps[e]))
+    per_station = station_density(e1, section)
+    b, end = float(e1["begin_s"].iloc[0]), float(e1["end_s"].iloc[0])
+    out = []
+    for t, red in a.line.green_starts(b, end):
+        flow = max(float(np.diff(arrivals(det, a, np.array([t - red, t])))[0]), 0.0) / lanes / red
+        w = flow / max(1.0 / spacing_m - flow / v_free, 1e-6)
+        length = reach * float(np.clip(1.0 - w / WAVE_MPS, 0.0, 1.0))
+        back = a.line.arc_m - length
+        if a.before is None:  # steady arrivals: the stations' interval density outside
+            outside = per_station[per_station.index.to_numpy(dtype=float) < back]
+            rest = integrate_stations(outside, section, a.up_m, back) if len(outside) else 0.0
+        else:  # platoons: those that crossed the up station within the travel to the back
+            travel = (back - a.up_m) / v_free
+            rest = float(np.diff(arrivals(det, a, np.array([t - travel, t])))[0])
+        out.append((t, min(stand, lanes) * length / spacing_m + max(rest, 0.0)))
+    return out
+
+
+def queue_constant(det: pd.DataFrame, section: Section, a: Approach, io) -> float:
+    """The ``CLEAR_QUANTILE`` over the starts of green where a queue stands of the fewest
+    vehicles there (``queue_floor``) less ``io``: a lower bound on the approach's constant;
+    -inf where no queue stands."""
+    t, n, spacing = [], [], jam_spacing_m(det)
+    for _, e1 in det[det["kind"] == "e1"].groupby(["begin_s", "end_s"], sort=True):
+        for x, y in queue_floor(det, e1, section, a, spacing):
+            t, n = [*t, x], [*n, y]
+    if not t:
+        return -np.inf
+    return float(np.quantile(np.array(n) - io(np.array(t)), CLEAR_QUANTILE))
+
+
 def density_constant(det: pd.DataFrame, section: Section, a: Approach, io) -> float:
     """The constant that puts the counted approach ``a`` (``io(t)`` plus it) on its density
     estimate on average over the record: the mean over the intervals of the stations'
@@ -264,6 +376,7 @@ def approach_count(
     moving = arrivals(det, a, t) - arrivals(det, a, t - travel_s)
     low = max(
         density_constant(det, section, a, io),
+        queue_constant(det, section, a, io),
         float(np.quantile(moving - io(t), CLEAR_QUANTILE)),
         -float(io(bounds).min()),
     )

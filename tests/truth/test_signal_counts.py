@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from conftest import dump_toml, netconvert
 from test_hidden_count_queues import arterial_scenario, signal_scenario
 
 from macromicro_sumo.cli import main
@@ -19,6 +20,7 @@ from macromicro_sumo.truth.hidden_count import k_estimates
 from macromicro_sumo.truth.interval_counts import interval_record
 from macromicro_sumo.truth.section_macro import detector_macro, k_summary
 from macromicro_sumo.truth.signal_counts import StopLine, approach_pieces, stop_lines
+from macromicro_sumo.truth.stations import station_speeds
 
 
 def test_a_programs_passing_seconds() -> None:
@@ -147,3 +149,73 @@ def test_an_arterial_counted_from_a_record_that_starts_mid_traffic(tmp_path: Pat
     alone, counted = congested(None), congested(record)
     assert alone >= 4.0, alone
     assert counted <= 3.0, (counted, alone)
+
+
+def queued_scenario(folder: Path) -> Path:
+    """One fixed-time junction (netconvert's 90 s program) at the end of a 1-lane 400 m
+    approach, 1000 veh/h on it (above the 42 s green's capacity: the queue grows back over
+    the loops, 100 m apart), 300 veh/h crossing; 90 s intervals."""
+    net = netconvert(
+        folder,
+        '<node id="w" x="-400" y="0"/><node id="c" x="0" y="0" type="traffic_light"/>'
+        '<node id="e" x="300" y="0"/><node id="n" x="0" y="150"/><node id="s" x="0" y="-150"/>',
+        '<edge id="wc" from="w" to="c" numLanes="1" speed="13.9" priority="2"/>'
+        '<edge id="ce" from="c" to="e" numLanes="1" speed="13.9" priority="2"/>'
+        '<edge id="sc" from="s" to="c" numLanes="1" speed="13.9" priority="1"/>'
+        '<edge id="cn" from="c" to="n" numLanes="1" speed="13.9" priority="1"/>',
+        name="q",
+    )
+    (folder / "q.rou.xml").write_text(
+        '<routes><vType id="car" length="5" minGap="2.5"/>'
+        + "".join(
+            f'<route id="{f}" edges="{e}"/><flow id="{f}" type="car" route="{f}" begin="0" '
+            f'end="1000" vehsPerHour="{v}" departLane="best" departSpeed="max"/>'
+            for f, e, v in (("t", "wc ce", 1000), ("x", "sc cn", 300))
+        )
+        + "</routes>"
+    )
+    table = {
+        "name": "queued",
+        "seed": 3,
+        "network": {
+            "kind": "sumo",
+            "net_file": str(net),
+            "route_files": [str(folder / "q.rou.xml")],
+        },
+        "section": {"edges": ["wc", "ce"], "closed": False},
+        "instrumented": {"penetration": 0.1},
+        "simulation": {"warmup_s": 60.0, "duration_s": 900.0, "n_runs": 1},
+        "detectors": {"interval_s": 90.0, "auto_spacing_m": 100.0},
+    }
+    path = folder / "q.toml"
+    path.write_text(dump_toml(table))
+    return path
+
+
+def test_a_queued_approach_counted_from_where_its_queue_stands(tmp_path: Path) -> None:
+    """A queue that never clears stands over a loop 146 m before the line; the record starts
+    at 240 s (mid-traffic). The approach's constant is raised to where the queue stands (a
+    loop at or below ``QUEUE_REACH_MPS``: the queue's reach past it, at jam spacing, less
+    the part that comes after the start of green), and the approach is within a vehicle per
+    lane of the truth (0.89 measured). Before, its constant was the density estimate's: the
+    loops near the line stand in the queue's gaps, and it was 2.27 vehicles low."""
+    gt, net_file = simulated(tmp_path, queued_scenario, "q.net.xml")
+    section = Section.read(gt / "section.json")
+    det = pd.read_csv(gt / "detectors.csv")
+    traj = pd.read_csv(gt / "trajectories.csv", dtype={"vehicle_id": str, "vtype": str})
+    det, traj = det[det["begin_s"] >= 240.0], traj[traj["time_s"] >= 240.0]
+    lines = stop_lines(net_file, section)
+    far = det[(det["arc_m"] < lines[0].arc_m - 100.0) & (det["arc_m"] > 15.0)]
+    slow = [station_speeds(g).min() for _, g in far.groupby("begin_s")]
+    assert min(slow) <= 5.0  # the queue stands over a loop 100 m or more before the line
+    record = interval_record(det, section, read_net(net_file), net_file)
+    assert record is not None
+    snaps = at_snapshot_times(traj, 10.0)
+    times = np.sort(snaps["time_s"].unique())
+    pieces, _ = approach_pieces(record.det, section, lines, record.side_arcs, 0, times)
+    ((lo, hi),) = pieces["approaches"].arcs_m
+    by_t = snaps.groupby("time_s")["arc_m"]
+    true = np.array([((a >= lo) & (a < hi)).sum() for a in (by_t.get_group(t) for t in times)])
+    assert true.mean() >= 20  # 1 lane, 380 m: a long queue stands
+    error = float(np.abs(pieces["approaches"].vehicles - true).mean())
+    assert error <= 1.0, error
