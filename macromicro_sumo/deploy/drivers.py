@@ -281,7 +281,6 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
             factor = self.slots.factor[slots]
             new = np.isnan(factor).nonzero()[0]
             if new.size:  # ``factors``, the rows of the new ones alone (its obs[new])
-                seen = np.column_stack([speed[new], self.lane_table.limit_mps[codes[new]]])
                 fresh = [vids[i] for i in new.tolist()]
                 if self.driver_speeds.kind == "memory":  # their observation: what is ahead
                     at = (slots[new], codes[new])
@@ -290,6 +289,8 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
                     seen = self.observe(
                         sim, fresh, rows[new], st, None, lane_of, ahead[new], at, one
                     )[0]
+                else:  # "drawn" reads no observation
+                    seen = np.column_stack([speed[new], self.lane_table.limit_mps[codes[new]]])
                 factor[new] = got = self.driver_speeds(fresh, seen)
                 self.slots.factor[slots[new]] = got
         if self.merge != "none":

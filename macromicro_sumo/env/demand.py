@@ -311,8 +311,9 @@ class DemandCore:
 
     def _remember_entries(self) -> None:
         """``DriverSpeeds`` of the population vehicles on the section now that it has not
-        met yet: their factors from their speeds and limits here (SUMO drives them before
-        the window as it drives them into a deployment's section)."""
+        met yet: their factors from their observations here, as a deployed driver's first
+        sight (SUMO drives them before the window as it drives them into a deployment's
+        section)."""
         self._arrive([v for v in self.sim.vehicle_ids() if v not in self.types])
         states = self.lane_states()
         lanes, known = self.section.lanes, self.drivers.factor
