@@ -25,15 +25,21 @@ TAU_Q = np.interp(QUANTILE_LEVELS, [0.0, 0.05, 0.5, 0.75, 0.95, 1.0],
                   [0.6, 0.8, 1.1, 1.4, 1.8, 2.2])  # fmt: skip
 
 
-def test_micro_consistency_scores_each_held_out_pair_with_its_drivers_tau(
-    ring_driver_follow,
-) -> None:
+def held_out_setup(ring_driver_follow):
+    """The ring fixture's scenario, truth, prior, held-out runs, leader length, and two
+    agents on its prior: ``policy`` with the drivers' tau quantiles, ``micro_only`` without."""
     sc, _, truth, prior, _, _ = ring_driver_follow
     held = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)["held_out"]
     lead = leader_length_m(sc.policy.observation, typical_length(truth))
     make = lambda taus: Agent(observation=sc.policy.observation, prior="krauss",  # noqa: E731
                               prior_params=prior, residual_bound_mps2=0.0, driver_tau=taus)  # fmt: skip
-    agents = {"policy": make(TAU_Q), "micro_only": make(None)}
+    return sc, truth, prior, held, lead, {"policy": make(TAU_Q), "micro_only": make(None)}
+
+
+def test_micro_consistency_scores_each_held_out_pair_with_its_drivers_tau(
+    ring_driver_follow,
+) -> None:
+    sc, truth, prior, held, lead, agents = held_out_setup(ring_driver_follow)
     obs, acc, taus, _, record = held_out_pairs(sc, truth, held, agents, lead)
     want_obs, want_acc, keys = keyed_micro_pairs(sc, truth, held)
     np.testing.assert_array_equal(obs, want_obs)  # micro_pairs' held-out pairs
@@ -86,12 +92,7 @@ def test_micro_consistency_out_of_sample_row_fits_on_first_half_scores_second(
     """The in-sample row fits each held-out driver's tau on the pairs it scores; the
     out-of-sample row scores each driver's second half of pairs with the tau fitted on its
     first half (else the deployment's draw), on the ring's real short record."""
-    sc, _, truth, prior, _, _ = ring_driver_follow
-    held = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)["held_out"]
-    lead = leader_length_m(sc.policy.observation, typical_length(truth))
-    make = lambda taus: Agent(observation=sc.policy.observation, prior="krauss",  # noqa: E731
-                              prior_params=prior, residual_bound_mps2=0.0, driver_tau=taus)  # fmt: skip
-    agents = {"policy": make(TAU_Q), "micro_only": make(None)}
+    sc, truth, prior, held, lead, agents = held_out_setup(ring_driver_follow)
     obs, acc, taus, later, record = held_out_pairs(sc, truth, held, agents, lead)
     _, _, keys = keyed_micro_pairs(sc, truth, held)
     assert later is not None and set(later.taus) == {"policy"}  # no buffer: no row
