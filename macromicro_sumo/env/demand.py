@@ -41,6 +41,7 @@ episode is what a deployment does, on a training run of the ground truth:
 from __future__ import annotations
 
 import tempfile
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -219,8 +220,10 @@ class DemandCore:
         # this episode's drivers (None: every driver the limits as they are).
         self._driver_quantiles: np.ndarray | None = None
         self.drivers: DriverSpeeds | None = None
-        # policy.driver_follow: the drivers' tau quantiles and this episode's taus.
+        # policy.driver_follow: the drivers' tau quantiles, the Krauss prior that hands a
+        # tau over (None: the draw from the first step) and this episode's taus.
         self._tau_quantiles: np.ndarray | None = None
+        self._tau_prior: Mapping[str, float] | None = None
         self.taus: DriverTaus | None = None
         self.counts = {"episodes": 0, "vehicle_steps": 0, "collisions": 0, "teleports": 0}
 
@@ -233,11 +236,17 @@ class DemandCore:
         off = quantiles is None or self.sc.policy.driver_speed == "none"
         self._driver_quantiles = None if off else np.asarray(quantiles, dtype=float)
 
-    def set_driver_taus(self, quantiles: np.ndarray | None) -> None:
+    def set_driver_taus(
+        self, quantiles: np.ndarray | None, prior: Mapping[str, float] | None = None
+    ) -> None:
         """``policy.driver_follow``: from the next ``reset`` on, each driven vehicle's
         observation ends in its own tau from the drivers' tau ``quantiles`` (the agent's
-        ``driver_tau`` buffer, as the deployment's ``DriverTaus``); None: no column."""
+        ``driver_tau`` buffer, as the deployment's ``DriverTaus``); None: no column.
+        ``prior``: the Krauss prior's parameters by name, with which a driver's tau is
+        handed over from the one its first observed gap supports, as in the deployment
+        (``DriverTaus``, ``deploy.policy_batch``)."""
         self._tau_quantiles = None if quantiles is None else np.asarray(quantiles, dtype=float)
+        self._tau_prior = prior
         self.obs_dim = len(OBSERVATION_FEATURES[self.observation]) + (quantiles is not None)
 
     def windows(self, rng: np.random.Generator, n: int) -> list[tuple[int, float]]:
@@ -287,7 +296,7 @@ class DemandCore:
         q = self._driver_quantiles
         self.drivers = None if q is None else DriverSpeeds(q, self.sc, self.run)
         q = self._tau_quantiles
-        self.taus = None if q is None else DriverTaus(q, self.sc, self.run)
+        self.taus = None if q is None else DriverTaus(q, self.sc, self.run, self._tau_prior)
         steps = int(round(t0_s / self.dt))
         if fleet_run is not None:
             fleet.insert_fleet(sim, *fleet_run, FLEET_ROUTE_PREFIX)
@@ -388,7 +397,7 @@ class DemandCore:
         if self.drivers is not None and now:  # each driver's own limits (DriverSpeeds)
             scale_limits(scene.obs, self.drivers(now, scene.obs))
         if self.taus is not None:  # policy.driver_follow: each driver's own tau, last
-            return now, with_tau(scene.obs, self.taus(now))
+            return now, with_tau(scene.obs, self.taus(now, scene.obs, self.t))
         return now, scene.obs
 
     def step(self, accel: np.ndarray) -> DemandStep:

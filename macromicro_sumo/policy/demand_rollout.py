@@ -29,6 +29,7 @@ import torch
 
 from macromicro_sumo.env.demand import DemandCore
 from macromicro_sumo.policy.agent import Agent
+from macromicro_sumo.policy.prior import prior_buffer
 
 DEMAND_T_FRAC = -1.0
 
@@ -88,7 +89,8 @@ def set_driver_draws(core: DemandCore, agent: Agent) -> None:
     """The demand core's drivers draw their desired-speed factors and taus from the agent's
     quantiles (``agent_quantiles``), as the deployment's do."""
     core.set_driver_speeds(agent_quantiles(agent, "driver_speed"))
-    core.set_driver_taus(agent_quantiles(agent, "driver_tau"))
+    handover = prior_buffer(agent) if agent.prior == "krauss" else None  # as policy_batch
+    core.set_driver_taus(agent_quantiles(agent, "driver_tau"), handover)
 
 
 def collect_demand(

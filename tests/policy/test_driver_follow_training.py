@@ -60,17 +60,26 @@ def test_a_driver_has_one_tau_in_the_demand_env_and_the_deployment(ring, tmp_pat
     agent = prior_agent(sc, prior)
     core = DemandCore(sc, truth, truth.runs, 10)
     demand: dict[str, float] = {}
+    columns: dict[str, list[float]] = {}
     try:
         set_driver_draws(core, agent)  # as collect_demand sets them
         core.reset(0, 10.0)
         for _ in range(6):
             vids, obs = core.observe()
             assert obs.shape[1] == core.obs_dim == 7  # lookahead + the tau
-            for v, t in zip(vids, obs[:, -1], strict=True):
+            drawn = core.taus(vids)  # the draws themselves, without the hand-over
+            for v, t, col in zip(vids, drawn, obs[:, -1], strict=True):
                 assert demand.setdefault(v, t) == t
+                columns.setdefault(v, []).append(float(col))
             core.step(np.zeros(len(vids)))
     finally:
         core.close()
+    # Handed over as in the deployment (the agent's Krauss prior): from the tau the first
+    # gap supports, at least the lowest quantile, rising to the draw, never above it.
+    for v, col in columns.items():
+        assert np.all(np.diff(col) >= -1e-6) and max(col) <= demand[v] + 1e-6
+        assert min(col) >= np.float32(TAU_Q[0]) - 1e-6
+    assert any(col[0] < demand[v] - 0.05 for v, col in columns.items())  # some handed over
     act = policy_batch(agent)
     seen: dict[str, float] = {}
     make = act.driver_taus
