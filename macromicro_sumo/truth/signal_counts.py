@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from macromicro_sumo.road.leaders import STANDING_MIN_GAP_M
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.sumo.net_xml import NetLinks, net_links
 from macromicro_sumo.truth.density import (
@@ -79,10 +80,6 @@ QUEUE_REACH_MPS = 7.0
 previous signal, whose discharge crosses it slowly) whose interval speed is at or below
 this has the queue reach back over it. At 5 m/s (the occupancy threshold) a queue that
 reaches a loop only briefly was missed (arterial 602's middle approach, 6.4-8.2 m/s)."""
-
-MIN_GAP_M = 2.5
-"""The gap between standing vehicles (SUMO's default ``minGap``): the jam spacing is the
-vehicles' effective length, from the free-flowing loops, plus it (``jam_spacing_m``)."""
 
 PASSING_STATES = frozenset("GgyYs")
 """A link's states in which vehicles cross the stop line (green, yellow: those that cannot
@@ -271,14 +268,15 @@ def arrivals(det: pd.DataFrame, a: Approach, at_s: np.ndarray) -> np.ndarray:
 def jam_spacing_m(det: pd.DataFrame) -> float:
     """Room a vehicle takes in a standing queue: the median over the loops of their
     effective vehicle length (``density.effective_length_m``, from their free-flowing
-    intervals; SUMO's passenger car where none flowed) plus ``MIN_GAP_M``."""
+    intervals; SUMO's passenger car where none flowed) plus the gap between standing
+    vehicles, SUMO's default minGap (``road.leaders.STANDING_MIN_GAP_M``)."""
     cols = ["flow_vph", "speed_mps", "occupancy_pct"]
     lengths = [
         effective_length_m(*(g[c].to_numpy(dtype=float) for c in cols), np.nan)
         for _, g in det[det["kind"] == "e1"].groupby("detector_id")
     ]
     ok = [x for x in lengths if np.isfinite(x)]
-    return float(np.median(ok) if ok else DEFAULT_VEHICLE_LENGTH_M) + MIN_GAP_M
+    return float(np.median(ok) if ok else DEFAULT_VEHICLE_LENGTH_M) + STANDING_MIN_GAP_M
 
 
 def queue_floor(
@@ -330,17 +328,19 @@ def queue_floor(
     return out
 
 
-def queue_constant(det: pd.DataFrame, section: Section, a: Approach, io) -> float:
+def queue_constant(det: pd.DataFrame, section: Section, a: Approach, io, spacing_m: float) -> float:
     """The ``CLEAR_QUANTILE`` over the starts of green where a queue stands of the fewest
-    vehicles there (``queue_floor``) less ``io``: a lower bound on the approach's constant;
-    -inf where no queue stands."""
-    t, n, spacing = [], [], jam_spacing_m(det)
-    for _, e1 in det[det["kind"] == "e1"].groupby(["begin_s", "end_s"], sort=True):
-        for x, y in queue_floor(det, e1, section, a, spacing):
-            t, n = [*t, x], [*n, y]
-    if not t:
+    vehicles there (``queue_floor``, at jam spacing ``spacing_m``) less ``io``: a lower
+    bound on the approach's constant; -inf where no queue stands."""
+    floors = [
+        floor
+        for _, e1 in det[det["kind"] == "e1"].groupby(["begin_s", "end_s"], sort=True)
+        for floor in queue_floor(det, e1, section, a, spacing_m)
+    ]
+    if not floors:
         return -np.inf
-    return float(np.quantile(np.array(n) - io(np.array(t)), CLEAR_QUANTILE))
+    t, n = np.array(floors).T
+    return float(np.quantile(n - io(t), CLEAR_QUANTILE))
 
 
 def density_constant(det: pd.DataFrame, section: Section, a: Approach, io) -> float:
@@ -355,11 +355,12 @@ def density_constant(det: pd.DataFrame, section: Section, a: Approach, io) -> fl
 
 
 def approach_count(
-    det: pd.DataFrame, section: Section, a: Approach, at_s: np.ndarray
+    det: pd.DataFrame, section: Section, a: Approach, at_s: np.ndarray, spacing_m: float
 ) -> np.ndarray | None:
     """Vehicles on the approach ``a`` at ``at_s`` by conservation, anchored on the density
-    estimate and the lower bounds at the intervals' bounds (module doc); None where the
-    counts drift past what it can hold."""
+    estimate and the lower bounds at the intervals' bounds (module doc; a standing queue's
+    at jam spacing ``spacing_m``, ``jam_spacing_m``); None where the counts drift past what
+    it can hold."""
     begin, end, _ = station_counts(det, a.bar_m)
     length = a.bar_m - a.up_m
     e = section.edge_index(np.array([a.bar_m]))[0]
@@ -376,7 +377,7 @@ def approach_count(
     moving = arrivals(det, a, t) - arrivals(det, a, t - travel_s)
     low = max(
         density_constant(det, section, a, io),
-        queue_constant(det, section, a, io),
+        queue_constant(det, section, a, io, spacing_m),
         float(np.quantile(moving - io(t), CLEAR_QUANTILE)),
         -float(io(bounds).min()),
     )
@@ -445,8 +446,9 @@ def approach_pieces(
     d = det[det["run"] == run]
     at = np.asarray(at_s, dtype=float)
     counted, spans = np.zeros(len(at)), []
+    spacing = jam_spacing_m(d)  # the run's loops, once for its approaches
     for a in approaches(d, section, lines, side_arcs):
-        n = approach_count(d, section, a, at)
+        n = approach_count(d, section, a, at, spacing)
         if n is not None:
             counted += n
             spans.append((a.up_m, a.bar_m))
