@@ -23,6 +23,16 @@ from macromicro_sumo.truth.signal_counts import StopLine, approach_pieces, stop_
 from macromicro_sumo.truth.stations import station_speeds
 
 
+def congested_error(traj, macro, section, slow, record, min_scenes: int) -> float:
+    """The hidden count's mean absolute error per lane over the congested snapshots
+    (``slow``: by time, at least a tenth of the vehicles at or below 5 m/s), with the
+    interval ``record`` or the density estimate alone (None); at least ``min_scenes``."""
+    k = k_estimates(traj, macro, section, 10.0, 60.0, record)
+    cong = k[slow.reindex(k["time_s"]).to_numpy()]
+    assert len(cong) >= min_scenes
+    return k_summary(cong, section)["mean_abs_error_per_lane_veh"]
+
+
 def test_a_programs_passing_seconds() -> None:
     """netconvert's 90 s program: the section's lanes pass in phases 2 and 3 (42 s green, 3 s
     yellow), from 45 s to 90 s of each cycle; an offset delays it."""
@@ -86,13 +96,7 @@ def test_signalised_arterial_from_the_interval_counts(tmp_path: Path) -> None:
     snaps = at_snapshot_times(traj, 10.0)
     slow = snaps.groupby("time_s")["speed_mps"].apply(lambda v: (v <= 5.0).mean() >= 0.1)
 
-    def congested(rec) -> float:
-        k = k_estimates(traj, macro, section, 10.0, 60.0, rec)
-        cong = k[slow.reindex(k["time_s"]).to_numpy()]
-        assert len(cong) >= 30
-        return k_summary(cong, section)["mean_abs_error_per_lane_veh"]
-
-    alone, counted = congested(None), congested(record)
+    alone, counted = (congested_error(traj, macro, section, slow, r, 30) for r in (None, record))
     assert alone >= 4.0, alone
     assert counted <= 2.5, counted
 
@@ -140,13 +144,7 @@ def test_an_arterial_counted_from_a_record_that_starts_mid_traffic(tmp_path: Pat
     start_count = len(snaps[snaps["time_s"] == snaps["time_s"].min()])
     assert start_count >= 40  # the road is full when the record starts
 
-    def congested(rec) -> float:
-        k = k_estimates(traj, macro, section, 10.0, 60.0, rec)
-        cong = k[slow.reindex(k["time_s"]).to_numpy()]
-        assert len(cong) >= 20
-        return k_summary(cong, section)["mean_abs_error_per_lane_veh"]
-
-    alone, counted = congested(None), congested(record)
+    alone, counted = (congested_error(traj, macro, section, slow, r, 20) for r in (None, record))
     assert alone >= 4.0, alone
     assert counted <= 3.0, (counted, alone)
 
