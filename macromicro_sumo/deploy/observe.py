@@ -12,8 +12,8 @@ from itertools import chain, repeat
 
 import numpy as np
 
-from macromicro_sumo.env.driver_speed import scale_limits
 from macromicro_sumo.env.driver_tau import with_tau
+from macromicro_sumo.env.observed_drivers import scale_limits
 from macromicro_sumo.road.leaders import bumper_gap_m, nearer_standing
 from macromicro_sumo.road.physics import (
     LEADER_COLUMN,

@@ -48,8 +48,9 @@ from pathlib import Path
 import numpy as np
 
 from macromicro_sumo.data.section import PSI_FIELDS, SectionTruth, psi_table, run_section
-from macromicro_sumo.env.driver_speed import DriverSpeeds, scale_limits
+from macromicro_sumo.env.driver_speed import DriverSpeeds
 from macromicro_sumo.env.driver_tau import DriverTaus, with_tau
+from macromicro_sumo.env.observed_drivers import scale_limits
 from macromicro_sumo.env.section_bank import section_macro_reward, section_target
 from macromicro_sumo.road.leaders import nearer_standing, set_leader_gap, stop_distance_m
 from macromicro_sumo.road.physics import (

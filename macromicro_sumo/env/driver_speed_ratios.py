@@ -10,7 +10,7 @@ on SUMO's congested ``game/ramp`` 23 of 249 observed vehicles cruised freely, th
 0.83 (trucks at 27.78 / 33.33 m/s among them) where SUMO's speedFactor median is 1.0.
 
 ``policy.driver_ratios = "reached"``: a lower bound whose top speed the vehicle reached with
-nothing holding it there (``ObservedDrivers.reached``, ``env.driver_speed.unheld``) counts as
+nothing holding it there (``ObservedDrivers.reached``, ``env.observed_drivers.unheld``) counts as
 exact. Why: on the signalised arterial 521, 212 of 261 observed vehicles give a bound, and
 the bounds above 0.8 are 0.98-0.99 of their driver's true speedFactor (re-read from SUMO,
 the median over each tenth of the bounds). Kaplan-Meier gave their weight to the few fast

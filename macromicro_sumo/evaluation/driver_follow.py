@@ -31,13 +31,9 @@ from typing import Any
 
 import numpy as np
 
-from macromicro_sumo.env.driver_speed import (
-    FREE_GAP_M,
-    FREE_HEADWAY_S,
-    QUANTILE_LEVELS,
-    observed_drivers,
-)
+from macromicro_sumo.env.driver_speed import QUANTILE_LEVELS
 from macromicro_sumo.env.driver_tau import DriverTaus
+from macromicro_sumo.env.observed_drivers import FREE_GAP_M, FREE_HEADWAY_S, observed_drivers
 from macromicro_sumo.evaluation.krauss_fit import (
     ROBUST_SCALE_MPS2,
     KraussParams,

@@ -38,7 +38,7 @@ def keyed_micro_pairs(
     sc, truth: SectionTruth, runs: np.ndarray, max_pairs: int = 20_000
 ) -> tuple[np.ndarray, np.ndarray, list[tuple[int, str]]]:
     """``micro_pairs`` with each pair's driver, (run, vehicle ID) as
-    ``env.driver_speed.observed_drivers`` keys it: the key a driver's own fitted tau is
+    ``env.observed_drivers.observed_drivers`` keys it: the key a driver's own fitted tau is
     found by (``evaluation.driver_follow.pair_taus``)."""
     dt = sc.simulation.step_length_s
     traj = truth.trajectories[truth.trajectories["run"].isin(runs)]

@@ -26,7 +26,7 @@ import numpy as np
 from macromicro_sumo.deploy.prior_score import deploy_prior
 from macromicro_sumo.deploy.stage import MANIFEST as DEPLOY_MANIFEST
 from macromicro_sumo.deploy.stage import deploy
-from macromicro_sumo.env.driver_speed import krauss_pairs, observed_drivers
+from macromicro_sumo.env.observed_drivers import krauss_pairs, observed_drivers
 from macromicro_sumo.env.section_bank import typical_length
 from macromicro_sumo.evaluation.driver_follow import driver_taus, pair_taus, tau_record
 from macromicro_sumo.evaluation.idm_fit import MIN_PRIOR_PAIRS, fit_policy_prior
@@ -349,7 +349,7 @@ def fit_residual_prior(
 ) -> tuple[dict[str, float], dict[str, Any], tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
     """The model under a section's residual policy (``policy.prior``), fitted to the
     observed pairs as the evaluation's idm_calibrated is (its pairs, runs and length; the
-    Krauss form to its drivers' own: ``env.driver_speed.prior_pairs``), so the policy
+    Krauss form to its drivers' own: ``env.observed_drivers.prior_pairs``), so the policy
     starts as that model and its residual is what training adds. The Krauss form's
     parameters the pairs do not identify take SUMO's defaults for the network's vClass
     (``evaluation.krauss_fit.fit_krauss``; the manifest records which and why). Returns the

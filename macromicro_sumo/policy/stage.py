@@ -19,7 +19,8 @@ import torch
 
 from macromicro_sumo.data.section import section_snapshots, split_runs
 from macromicro_sumo.env.demand import DemandCore
-from macromicro_sumo.env.driver_speed import driver_ratios, drivers_bank
+from macromicro_sumo.env.driver_speed import drivers_bank
+from macromicro_sumo.env.observed_drivers import driver_ratios
 from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import (
     build_section_bank,

@@ -79,7 +79,7 @@ class PolicyConfig:
         "speed ratios where few cruise freely long enough: kaplan_meier, each other vehicle's "
         "top v / limit is a lower bound; reached, one reached with nothing holding it there "
         "(not accelerating, a free gap or a leader as fast) is its ratio (signalised "
-        "arterials; env.driver_speed.unheld). Not the default: against the true speedFactors "
+        "arterials; env.observed_drivers.unheld). Not the default: against the true speedFactors "
         "its median moved away on drawn 522 and 549, and on highway_bremen three PPO seeds "
         "deployed no better",
         omit_default=True,  # the digests of scenarios that do not set it stay as they were

@@ -1,6 +1,6 @@
 """The Krauss prior's pairs on an open section whose drivers' ratios fell back: the drivers seen
 only as lower bounds (they never cruised freely) give their following pairs too, not only the
-few free cruisers theirs (``env.driver_speed.censored_following_pairs``; real SUMO: game/ramp's
+few free cruisers theirs (``env.observed_drivers.censored_following_pairs``; real SUMO: game/ramp's
 congested merge, where 23 of 249 observed vehicles cruised freely)."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from conftest import game_ramp_truth
 
-from macromicro_sumo.env.driver_speed import (
+from macromicro_sumo.env.observed_drivers import (
     FREE_GAP_M,
     FREE_HEADWAY_S,
     MIN_OWN_PAIRS,

@@ -27,8 +27,8 @@ from test_own_length import mixed, with_observation  # noqa: E402, F401 (a fixtu
 
 from macromicro_sumo.deploy.observe import STANDING, LaneTable, Table, observe_rows
 from macromicro_sumo.env.demand import sumo_observations
-from macromicro_sumo.env.driver_speed import observed_drivers
 from macromicro_sumo.env.observation import FEATURES, shift_scale
+from macromicro_sumo.env.observed_drivers import observed_drivers
 from macromicro_sumo.env.section_observations import section_observations
 from macromicro_sumo.evaluation.micro_data import micro_pairs
 from macromicro_sumo.fielddata.leaders import measured_leader_length_m, with_measured_leaders

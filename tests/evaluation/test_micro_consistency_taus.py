@@ -11,8 +11,9 @@ import numpy as np
 import torch
 
 from macromicro_sumo.data.section import split_runs
-from macromicro_sumo.env.driver_speed import QUANTILE_LEVELS, observed_drivers
+from macromicro_sumo.env.driver_speed import QUANTILE_LEVELS
 from macromicro_sumo.env.driver_tau import DriverTaus, with_tau
+from macromicro_sumo.env.observed_drivers import observed_drivers
 from macromicro_sumo.env.section_bank import typical_length
 from macromicro_sumo.evaluation.driver_follow import driver_taus, held_out_pairs
 from macromicro_sumo.evaluation.idm_fit import calibrate_idm

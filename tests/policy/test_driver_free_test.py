@@ -1,4 +1,4 @@
-"""The desired-speed ratios' free test (``env.driver_speed.observed_drivers``): it reads the
+"""The desired-speed ratios' free test (``env.observed_drivers.observed_drivers``): it reads the
 bumper gap to the leader (the spacing less the leader's length), not the front-to-front
 spacing, and a standing sample is not cruising. Before, a car crawling behind a 12 m truck
 (or standing 14.5 m behind it in a queue) passed the spacing test, and its top speed was
@@ -16,7 +16,7 @@ from section_files import routes_file, section_scenario, vtype
 sys.path.insert(0, str(Path(__file__).parents[1] / "deploy"))
 from deploy_nets import netconvert  # noqa: E402
 
-from macromicro_sumo.env.driver_speed import (  # noqa: E402
+from macromicro_sumo.env.observed_drivers import (
     CRUISE_MIN_SHARE,
     FREE_GAP_M,
     FREE_HEADWAY_S,

@@ -16,7 +16,7 @@ from test_prior_krauss import DT_S, KRAUSS, LENGTH_M, _pairs
 sys.path.insert(0, str(Path(__file__).parents[1] / "deploy"))
 from deploy_nets import netconvert  # noqa: E402
 
-from macromicro_sumo.env.driver_speed import QUANTILE_LEVELS, observed_drivers, speed_caps
+from macromicro_sumo.env.driver_speed import QUANTILE_LEVELS
 from macromicro_sumo.env.driver_speed_ratios import (
     DEFAULT_RATIOS,
     MIN_EXACT_RATIOS,
@@ -24,6 +24,7 @@ from macromicro_sumo.env.driver_speed_ratios import (
     censored_quantiles,
     ratio_estimate,
 )
+from macromicro_sumo.env.observed_drivers import observed_drivers, speed_caps
 from macromicro_sumo.evaluation.krauss_fit import fit_krauss, sumo_defaults  # noqa: E402
 from macromicro_sumo.scenario.load import load_scenario  # noqa: E402
 from macromicro_sumo.truth.section import load_section_truth, simulate_section  # noqa: E402

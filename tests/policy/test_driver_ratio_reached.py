@@ -1,7 +1,7 @@
 """Lower bounds reached with nothing holding them (``policy.driver_ratios = "reached"``): a
 vehicle that never cruised freely long enough but whose top speed nothing held it at (not
 accelerating, no vehicle within a free gap, or a faster leader pulling away) gives its own
-ratio there (``env.driver_speed.unheld``, ``ObservedDrivers.reached``). Kaplan-Meier takes such
+ratio there (``env.observed_drivers.unheld``, ``ObservedDrivers.reached``). Kaplan-Meier takes such
 a top for a lower bound and gives its weight to the few fast exact ratios above it: on the
 signalised arterial 521 its median was 1.12 where the observed drivers' true speedFactors'
 median is 1.00."""
@@ -18,13 +18,13 @@ from section_files import routes_file, section_scenario, vtype
 sys.path.insert(0, str(Path(__file__).parents[1] / "deploy"))
 from deploy_nets import netconvert  # noqa: E402
 
-from macromicro_sumo.env.driver_speed import (  # noqa: E402
+from macromicro_sumo.env.driver_speed_ratios import ObservedDrivers, ratio_estimate  # noqa: E402
+from macromicro_sumo.env.observed_drivers import (
     CRUISE_ACCEL_MPS2,
     driver_ratios,
     observed_drivers,
     unheld,
 )
-from macromicro_sumo.env.driver_speed_ratios import ObservedDrivers, ratio_estimate  # noqa: E402
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, STOP  # noqa: E402
 from macromicro_sumo.scenario.load import load_scenario  # noqa: E402
 from macromicro_sumo.truth.section import load_section_truth, simulate_section  # noqa: E402

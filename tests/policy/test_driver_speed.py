@@ -19,18 +19,20 @@ sys.path.insert(0, str(Path(__file__).parents[1] / "deploy"))
 from deploy_nets import netconvert  # noqa: E402
 
 from macromicro_sumo.deploy.observe import LaneTable, Table, observe_rows  # noqa: E402
-from macromicro_sumo.env.driver_speed import (  # noqa: E402
-    MIN_OWN_PAIRS,
+from macromicro_sumo.env.driver_speed import (
     QUANTILE_LEVELS,
     DriverSpeeds,
     driver_levels,
     factors_at,
+    ratio_quantiles,
+    with_driver_factors,
+)
+from macromicro_sumo.env.observed_drivers import (
+    MIN_OWN_PAIRS,
     free_speed_ratios,
     observed_drivers,
     own_speed_pairs,
     prior_pairs,
-    ratio_quantiles,
-    with_driver_factors,
 )
 from macromicro_sumo.env.section_observations import section_observations  # noqa: E402
 from macromicro_sumo.errors import UserError  # noqa: E402

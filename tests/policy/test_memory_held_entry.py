@@ -15,10 +15,7 @@ import numpy as np
 import pytest
 
 from macromicro_sumo.env.driver_speed import (
-    FREE_BUMPER_GAP_M,
-    FREE_HEADWAY_S,
     QUANTILE_LEVELS,
-    UNHELD_HEADWAY_S,
     DriverSpeeds,
     driver_levels,
     factors_at,
@@ -26,6 +23,7 @@ from macromicro_sumo.env.driver_speed import (
     ratio_quantiles,
     with_driver_factors,
 )
+from macromicro_sumo.env.observed_drivers import FREE_BUMPER_GAP_M, FREE_HEADWAY_S, UNHELD_HEADWAY_S
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.section import NO_LEADER_GAP_M
 from macromicro_sumo.scenario.load import load_scenario

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from macromicro_sumo.env.driver_speed import krauss_pairs, observed_drivers
+from macromicro_sumo.env.observed_drivers import krauss_pairs, observed_drivers
 from macromicro_sumo.env.section_bank import typical_length
 from macromicro_sumo.evaluation.krauss_fit import (
     KraussParams,

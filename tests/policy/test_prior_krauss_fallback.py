@@ -12,7 +12,7 @@ import pytest
 from conftest import game_ramp_truth
 from test_prior_krauss import DT_S, KRAUSS, LENGTH_M, _pairs
 
-from macromicro_sumo.env.driver_speed import prior_pairs
+from macromicro_sumo.env.observed_drivers import prior_pairs
 from macromicro_sumo.evaluation.krauss_fit import (
     MIN_FREE_ACCEL_PAIRS,
     KraussParams,

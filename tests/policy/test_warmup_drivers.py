@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from macromicro_sumo.env.demand import DemandCore
-from macromicro_sumo.env.driver_speed import driver_ratios
+from macromicro_sumo.env.observed_drivers import driver_ratios
 from macromicro_sumo.pipeline.build import fit_residual_prior
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.demand_rollout import prior_step, prior_warmup_states
