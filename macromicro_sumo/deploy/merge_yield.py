@@ -6,6 +6,7 @@ blocks it (the yield). A mixin: the driver holds the state (``slots``, ``merging
 from __future__ import annotations
 
 from itertools import compress
+from typing import Protocol
 
 import numpy as np
 
@@ -41,6 +42,22 @@ MERGE_YIELD_TOLERANCE_MPS = 1.0
 LANE_END_RECHECK_STEPS = 20
 
 
+class LaneEnds(Protocol):
+    """What ``MergeYield.must_change`` asks of the class it is mixed into
+    (``SectionSpeedDriver``): its state, the slots and lane codes of vehicles
+    (``slots_of``) and the one lane-end cache (``lane_end_m``)."""
+
+    slots: VehicleSlots
+    section: Section
+    driven: set[str]
+    others: set[str]
+
+    def slots_of(self, vids: list[str], lanes: list[str]) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def lane_end_m(self, sim: Simulation, vids: list[str], lanes: list[str],
+                   at: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray: ...  # fmt: skip
+
+
 class MergeYield:
     """``deploy.merge`` for ``SectionSpeedDriver``: the hand-over and the yield.
 
@@ -71,13 +88,6 @@ class MergeYield:
     steps: int
     # vehicles not driven on the section with an entry in ``slots.lane_end`` (``must_change``)
     others: set[str]
-
-    def slots_of(self, vids: list[str], lanes: list[str]) -> tuple[np.ndarray, np.ndarray]:
-        raise NotImplementedError  # ``SectionSpeedDriver.slots_of``
-
-    def lane_end_m(self, sim: Simulation, vids: list[str], lanes: list[str],
-                   at: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:  # fmt: skip
-        raise NotImplementedError  # ``SectionSpeedDriver.lane_end_m``
 
     def occupations_m(
         self, rows: np.ndarray, lanes: list[str], slots: np.ndarray, st: VehicleStates
@@ -190,7 +200,7 @@ class MergeYield:
         return [i for i, v in enumerate(vids) if v in blockers]
 
     def must_change(
-        self, sim: Simulation, vids: list[str], slots: np.ndarray, st: VehicleStates
+        self: LaneEnds, sim: Simulation, vids: list[str], slots: np.ndarray, st: VehicleStates
     ) -> list[str]:
         """The vehicles on the section's lanes that must leave their lane to the left for
         their route (SUMO's best-lane offset > 0, where ``left_blockers`` are the followers
