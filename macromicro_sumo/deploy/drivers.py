@@ -282,14 +282,19 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
             new = np.isnan(factor).nonzero()[0]
             if new.size:  # ``factors``, the rows of the new ones alone (its obs[new])
                 fresh = [vids[i] for i in new.tolist()]
-                if self.driver_speeds.kind == "memory":  # their observation: what is ahead
+                # Their whole observation (what is ahead) for "memory" with
+                # policy.driver_entry "held" (``held_at_sight``: the leader), or with a
+                # driver's tau (``DriverTaus`` starts its hand-over from that observation);
+                # "drawn", and "memory" "queued" alone, read only the speed and limit.
+                ds = self.driver_speeds
+                if ds.kind == "memory" and (ds.entry != "queued" or self.driver_taus is not None):
                     at = (slots[new], codes[new])
                     lane_of = [lanes[i] for i in new.tolist()]
                     one = np.ones(new.size)
                     seen = self.observe(
                         sim, fresh, rows[new], st, None, lane_of, ahead[new], at, one
                     )[0]
-                else:  # "drawn" reads no observation
+                else:  # the observation's speed and unscaled limit (its columns 0 and 1)
                     seen = np.column_stack([speed[new], self.lane_table.limit_mps[codes[new]]])
                 factor[new] = got = self.driver_speeds(fresh, seen)
                 self.slots.factor[slots[new]] = got
