@@ -54,6 +54,7 @@ from macromicro_sumo.env.observed_drivers import scale_limits
 from macromicro_sumo.env.section_bank import section_macro_reward, section_target
 from macromicro_sumo.road.leaders import nearer_standing, set_leader_gap, stop_distance_m
 from macromicro_sumo.road.physics import (
+    LIMIT_COLUMN,
     OBSERVATION_FEATURES,
     has_lookahead,
     set_own_features,
@@ -323,14 +324,20 @@ class DemandCore:
         """``DriverSpeeds`` of the population vehicles on the section now that it has not
         met yet: their factors from their observations here, as a deployed driver's first
         sight (SUMO drives them before the window as it drives them into a deployment's
-        section)."""
+        section). With ``policy.driver_entry`` "queued" the speed and limit columns alone
+        (``sight_factors`` reads no more): no leaders or stops asked of SUMO."""
         self._arrive([v for v in self.sim.vehicle_ids() if v not in self.types])
         states = self.lane_states()
         lanes, known = self.section.lanes, self.drivers.factor
         new = [
             v for v in states if v in self.population and v not in known and states[v][0] in lanes
         ]
-        if new:  # their observations, as the deployment's first sight (what is ahead)
+        if new and self.drivers.entry == "queued":  # reads the speed and limit alone
+            sight = np.zeros((len(new), LIMIT_COLUMN + 1))  # an observation's first columns
+            sight[:, 0] = [states[v][2] for v in new]
+            sight[:, LIMIT_COLUMN] = lane_places(self.section, new, states)[3]
+            self.drivers(new, sight)
+        elif new:  # their observations, as the deployment's first sight (what is ahead)
             shapes = {v: self.vtypes[self.types[v]].shape for v in states if v in self.types}
             leaders, stops = self.sim.read_leaders(), self._stops(new, states)
             scene = sumo_observations(

@@ -30,6 +30,7 @@ from macromicro_sumo.env.driver_speed import (  # noqa: E402
 from macromicro_sumo.env.section_observations import section_observations  # noqa: E402
 from macromicro_sumo.road.physics import idm_accel, observes_gap  # noqa: E402
 from macromicro_sumo.scenario.load import load_scenario  # noqa: E402
+from macromicro_sumo.sumo.simulation import Simulation  # noqa: E402
 from macromicro_sumo.truth.section import load_section_truth, simulate_section  # noqa: E402
 
 
@@ -289,3 +290,38 @@ def test_a_demand_step_commands_what_the_deployment_without_its_layer_commands(m
     finally:
         core.close()
     assert checked > 100
+
+
+@pytest.mark.parametrize("entry", ["queued", "held"])
+def test_memory_asks_sumo_what_is_ahead_of_an_entry_only_where_its_rule_reads_it(
+    merge, entry, monkeypatch
+) -> None:
+    """``policy.driver_entry`` "queued" reads a first sight's speed and limit alone
+    (``sight_factors``): the window's warm-up, where each entering driver's factor is set
+    (``_remember_entries``), asks SUMO for no leaders or lane ends; "held" reads the leader
+    (``held_at_sight``) and asks. Each entering driver has its factor either way."""
+    sc0, truth = merge
+    policy = replace(sc0.policy, driver_speed="memory", driver_entry=entry)
+    sc = replace(sc0, policy=policy)
+    asked = {"read_leaders": 0, "lane_end_m": 0}
+    for name in asked:
+        real = getattr(Simulation, name)
+
+        def spy(self, *a, _real=real, _name=name, **k):
+            asked[_name] += 1
+            return _real(self, *a, **k)
+
+        monkeypatch.setattr(Simulation, name, spy)
+    core = DemandCore(sc, truth, truth.runs, 60)
+    try:
+        core.set_driver_speeds(np.linspace(0.8, 1.25, len(QUANTILE_LEVELS)))
+        core.reset(int(truth.runs[0]), 90.0)
+        on = [v for v, s in core.lane_states().items() if s[0] in core.section.lanes]
+        entered = [v for v in on if v in core.population]
+        assert len(entered) > 5 and set(entered) <= set(core.drivers.factor)
+    finally:
+        core.close()
+    if entry == "queued":
+        assert asked == {"read_leaders": 0, "lane_end_m": 0}
+    else:
+        assert asked["read_leaders"] > 10 and asked["lane_end_m"] > 10
