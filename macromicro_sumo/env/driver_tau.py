@@ -94,7 +94,9 @@ class DriverTaus:
         self._known: dict[str, float] = {}
         self.prior = prior
         self.dt_s = float(sc.simulation.step_length_s)
-        self._start: dict[str, tuple[float, int]] = {}  # vehicle -> (tau at hand-over, step)
+        # vehicle -> its tau at the hand-over, and the step of it
+        self._first: dict[str, float] = {}
+        self._since: dict[str, int] = {}
 
     def __call__(
         self, vids: Sequence[str], obs: np.ndarray | None = None, step: int | None = None
@@ -113,14 +115,19 @@ class DriverTaus:
         self, vids: Sequence[str], taus: np.ndarray, obs: np.ndarray, step: int
     ) -> np.ndarray:
         """``taus`` (the draws of ``vids``) as the hand-over holds them at ``step``, from
-        each driver's state at the first step it was asked with observations (``obs``)."""
-        start = self._start
-        new = [i for i, v in enumerate(vids) if v not in start]
-        if new:
+        each driver's state at the first step it was asked with observations (``obs``).
+        Per step C-level lookups of each driver's start (``_first``, ``_since``), the rows
+        of the new ones alone in Python: the same values as a list per vehicle a step."""
+        first_of, since_of = self._first, self._since
+        new_ids = set(vids).difference(first_of)
+        if new_ids:
+            new = [i for i, v in enumerate(vids) if v in new_ids]
             ok = supported_taus(obs[new], self.prior)
             floor = float(self.quantiles[0])
             for i, t in zip(new, ok.tolist(), strict=True):
-                start[vids[i]] = (min(taus[i], max(t, floor)), step)
-        first = np.array([start[v][0] for v in vids])
-        since = np.array([step - start[v][1] for v in vids], dtype=float)
+                first_of[vids[i]] = min(taus[i], max(t, floor))
+                since_of[vids[i]] = step
+        n = len(vids)
+        first = np.fromiter(map(first_of.__getitem__, vids), float, n)
+        since = step - np.fromiter(map(since_of.__getitem__, vids), float, n)
         return np.minimum(taus, first + HANDOVER_RATE_S_PER_S * self.dt_s * since)
