@@ -1,0 +1,67 @@
+"""The safety layer's hand-over of a new driver's planned braking
+(``deploy.safety.BrakeHandover``, ``supported_decel``): a vehicle taken over from SUMO's
+own model arrives at the gap that model kept; SUMO's IDM cars (decel 3.0) keep gaps
+behind Krauss cars (decel 4.5) at which the layer, planning their stop at 3.0, braked them
+harder than their decel at their first driven step. Real SUMO, and numpy for the bound."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from macromicro_sumo.deploy.observe import STOP_DECEL_MPS2
+from macromicro_sumo.deploy.safety import (
+    HANDOVER_DECEL_RATE_MPS2_PER_S,
+    BrakeHandover,
+    planned_decel,
+    supported_decel,
+)
+from macromicro_sumo.road.physics import safe_speed
+from macromicro_sumo.road.section import NO_LEADER_GAP_M
+
+
+def test_supported_decel_is_the_least_braking_at_which_the_speed_is_safe() -> None:
+    """Over seeded random states: the vType's decel where its safe speed is at least the
+    speed already, where nothing is ahead and behind a standing obstacle; elsewhere the
+    least b up to the moving leader's decel at which it is (1e-6 less is not), or that
+    decel where even it is not."""
+    rng = np.random.default_rng(41)
+    n, dt = 4000, 0.5
+    b = rng.choice([1.5, 3.0, 4.0, 4.5], n)
+    b_l = np.where(rng.random(n) < 0.1, STOP_DECEL_MPS2, rng.choice([1.5, 3.0, 4.0, 4.5], n))
+    v = rng.uniform(0.0, 35.0, n)
+    v_l = np.where(b_l == STOP_DECEL_MPS2, 0.0, np.maximum(v + rng.normal(0.0, 3.0, n), 0.0))
+    gap = np.where(rng.random(n) < 0.05, NO_LEADER_GAP_M, rng.uniform(0.0, 80.0, n))
+    got = supported_decel(gap, v_l, v, b, b_l, dt)
+    hi = planned_decel(b, b_l, "matched")
+    assert np.all(got >= b) and np.all(got <= hi)
+    ok_own = safe_speed(gap, v_l, b, b_l, dt) >= v
+    same = ok_own | (gap >= NO_LEADER_GAP_M) | (b_l == STOP_DECEL_MPS2)
+    np.testing.assert_array_equal(got[same], b[same])
+    raised = got > b
+    assert 200 < raised.sum() < n - 200  # both kinds are met
+    at = safe_speed(gap, v_l, got, b_l, dt)
+    ok_hi = safe_speed(gap, v_l, hi, b_l, dt) >= v
+    inner = raised & ok_hi
+    assert np.all(at[inner] >= v[inner])
+    below = safe_speed(gap[inner], v_l[inner], got[inner] - 1e-6, b_l[inner], dt)
+    assert np.all(below < v[inner])
+    np.testing.assert_array_equal(got[raised & ~ok_hi], hi[raised & ~ok_hi])
+
+
+def test_the_handed_over_braking_falls_to_the_own_at_its_rate() -> None:
+    """One vehicle whose arrival state asks 4.0 m/s^2 of the layer (own 3.0) and one whose
+    state supports its own: the first's braking falls by the rate each step to 3.0 and
+    stays there, whatever its state later; the second's is 3.0 throughout."""
+    dt = 0.5
+    hand = BrakeHandover(dt)
+    v, v_l, b_l = np.array([20.0, 20.0]), np.array([20.0, 20.0]), np.array([4.5, 4.5])
+    own = np.array([3.0, 3.0])
+    g = float(np.interp(20.0, safe_speed(np.linspace(0, 60, 6001), 20.0, 4.0, 4.5, dt),
+                        np.linspace(0, 60, 6001)))  # fmt: skip
+    gap = np.array([g + 1e-6, 80.0])
+    first = hand(["a", "b"], own, b_l, gap, v, v_l, 7)
+    assert abs(first[0] - 4.0) < 1e-3 and first[1] == 3.0
+    step = HANDOVER_DECEL_RATE_MPS2_PER_S * dt
+    for k in range(1, 8):  # later states (a gap of 0) do not restart it
+        got = hand(["a", "b"], own, b_l, np.zeros(2), v, v_l, 7 + k)
+        np.testing.assert_allclose(got, [max(3.0, first[0] - step * k), 3.0])
