@@ -75,6 +75,11 @@ PULL_AWAY_MPS = 0.5
 # Why: drawn 522's main0.322 had its top at the run's last step, still accelerating at
 # 0.78 m/s^2 (under CRUISE_ACCEL_MPS2) at 0.608 x the limit, its true factor 1.100.
 UNHELD_ACCEL_MPS2 = 0.01
+# ... and not braking harder than Krauss' dawdling (sigma x accel, 0.5 x 2.6 m/s^2 at SUMO's
+# defaults): a driver braking harder is held by what the observation does not show. Why:
+# drawn 561's IDM car main1.45 braked at 1.94 m/s^2 at 11.8 m/s, 52 m behind a leader 4 m/s
+# faster, a top of 0.513 of the limit where its true factor is 0.991.
+UNHELD_BRAKE_MPS2 = 1.3
 # A lower bound is reached where the vehicle was unheld at a sample within this share of its
 # top (``ObservedDrivers.reached``): its top is one sample, Krauss dawdles below its desired
 # speed most steps, and on a signalised arterial a car often has its top while it already
@@ -190,7 +195,8 @@ def unheld(
 ) -> np.ndarray:
     """(N,) bool: the samples at which nothing but the driver holds the speed (a top speed
     there is its desired one, ``ObservedDrivers.reached``): the next speed known and not
-    above the own (``UNHELD_ACCEL_MPS2``), not standing (``CRUISE_MIN_SHARE``), and either no
+    above the own (``UNHELD_ACCEL_MPS2``) nor braking harder than ``UNHELD_BRAKE_MPS2``, not
+    standing (``CRUISE_MIN_SHARE``), and either no
     vehicle ahead within a free bumper gap ``gap_m`` (``cruising``'s; ``leader`` -1 or a
     standing obstacle) or a vehicle leader faster than the own by ``PULL_AWAY_MPS`` at least
     ``UNHELD_HEADWAY_S`` x v + ``FREE_BUMPER_GAP_M`` ahead. Why: on the signalised arterial
@@ -204,7 +210,8 @@ def unheld(
     pulling_away = (lead_v >= v + PULL_AWAY_MPS) & (
         gap_m >= v * UNHELD_HEADWAY_S + FREE_BUMPER_GAP_M
     )
-    return (free | pulling_away) & (accel <= UNHELD_ACCEL_MPS2) & (v >= CRUISE_MIN_SHARE * limit)
+    own_speed = (accel <= UNHELD_ACCEL_MPS2) & (accel >= -UNHELD_BRAKE_MPS2)
+    return (free | pulling_away) & own_speed & (v >= CRUISE_MIN_SHARE * limit)
 
 
 def free_speed_ratios(sc, truth: SectionTruth, runs: np.ndarray) -> np.ndarray:

@@ -5,7 +5,8 @@ within ``REACHED_SHARE`` of it. Why: on drawn 522 two IDM cars' bounds were take
 0.55 and 0.84 of their true speedFactor (one at the run's last step still accelerating, one
 2.05 s behind a leader faster by 0.008 m/s: IDM's interaction term holds it there); on the
 signalised arterials a car's top often comes as it already closes on a queue, unheld a few
-samples before at 0.98-0.99 of it (521: the median 1.033 -> 1.015, true 0.998)."""
+samples before at 0.98-0.99 of it (521: the median 1.033 -> 1.015, true 0.998). Nor a
+sample braking harder than Krauss' dawdling (``UNHELD_BRAKE_MPS2``)."""
 
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ from deploy_nets import netconvert  # noqa: E402
 
 from macromicro_sumo.env.observed_drivers import (  # noqa: E402
     PULL_AWAY_MPS,
+    UNHELD_BRAKE_MPS2,
     observed_drivers,
     unheld,
 )
@@ -42,6 +44,18 @@ def test_unheld_needs_no_speed_gain_and_a_leader_pulling_away():
     assert got[1]
     assert not got[2]  # the leader barely faster: not pulling away
     assert got[4]  # faster by PULL_AWAY_MPS, 1 s x v + 5 m ahead
+
+
+def test_unheld_is_not_braking_harder_than_dawdling():
+    """561's IDM car main1.45: at 11.8 m/s braking at 1.94 m/s^2, 52.1 m behind a leader at
+    15.79 m/s, is held (by what the observation does not show); braking at
+    ``UNHELD_BRAKE_MPS2`` (Krauss' dawdling at most) it is not."""
+    v = np.array([11.8, 15.79, 11.8])
+    leader = np.array([1, -1, 1])
+    gap = np.array([52.1, NO_LEADER_GAP_M, 52.1])
+    accel = np.array([-1.94, 0.0, -UNHELD_BRAKE_MPS2])
+    got = unheld(v, np.full(3, 23.0), accel, gap, leader)
+    assert got.tolist() == [False, True, True]
 
 
 def one_road(
