@@ -40,6 +40,7 @@ from macromicro_sumo.deploy.population import (
 from macromicro_sumo.deploy.safety import (
     SAFETY_TOLERANCE_MPS,
     SPEED_MODES,
+    BrakeHandover,
     leader_safe_speed,
     planned_decel,
     speed_commands,
@@ -176,6 +177,9 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
         self.act = act
         self.safety = safety
         self.mode = SPEED_MODES[safety]
+        # deploy.safety "sumo": a driver's planned braking handed over from its arrival
+        dt = sc.simulation.step_length_s
+        self.brake_handover = BrakeHandover(dt) if safety == "sumo" else None
         self.has_lights: bool | None = None
         self.signal_lanes: frozenset[str] = frozenset()  # lanes that can have one ahead
         # Per driven vehicle, in numpy arrays by slot: the last command and the caches of
@@ -330,6 +334,10 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
         if near or self.safety == "sumo":
             own = planned_decel(self.slots.decel[slots], lead_decel, self.sc.deploy.safety_brake)
             lead_speed = obs[:, 0] - obs[:, 3]
+            if self.brake_handover is not None:  # a new driver's braking from its arrival
+                own = self.brake_handover(
+                    vids, own, lead_decel, gap, obs[:, 0], lead_speed, self.steps
+                )
             safe = leader_safe_speed(
                 obs, gap, own, lead_decel, self.sc.simulation.step_length_s, lead_speed
             )

@@ -6,8 +6,16 @@ harder than their decel at their first driven step. Real SUMO, and numpy for the
 
 from __future__ import annotations
 
-import numpy as np
+from pathlib import Path
 
+import numpy as np
+from conftest import line_net
+from deploy_nets import CAR
+from section_files import routes_file, section_scenario
+from test_safety import _run_section
+from test_safety_brake import CAR_IDM, DECEL
+
+from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.observe import STOP_DECEL_MPS2
 from macromicro_sumo.deploy.safety import (
     HANDOVER_DECEL_RATE_MPS2_PER_S,
@@ -16,7 +24,8 @@ from macromicro_sumo.deploy.safety import (
     supported_decel,
 )
 from macromicro_sumo.road.physics import safe_speed
-from macromicro_sumo.road.section import NO_LEADER_GAP_M
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, read_section
+from macromicro_sumo.scenario.load import load_scenario
 
 
 def test_supported_decel_is_the_least_braking_at_which_the_speed_is_safe() -> None:
@@ -65,3 +74,50 @@ def test_the_handed_over_braking_falls_to_the_own_at_its_rate() -> None:
     for k in range(1, 8):  # later states (a gap of 0) do not restart it
         got = hand(["a", "b"], own, b_l, np.zeros(2), v, v_l, 7 + k)
         np.testing.assert_allclose(got, [max(3.0, first[0] - step * k), 3.0])
+
+
+def _inserted_mix(folder: Path) -> Path:
+    """Drawn net 502's entry: a two-lane road (limit 22.9 m/s) whose section starts where
+    the vehicles are inserted (departLane free, departSpeed max), 4,000 veh/h of Krauss
+    cars and IDM cars, half each: SUMO inserts each at a gap its own model accepts. 3%
+    instrumented, one run of 60 + 180 s."""
+    (folder / "net").mkdir(parents=True)
+    net = line_net(folder / "net", (450.0, 1150.0, 1650.0), 2, 22.9)
+    flow = 'type="mix" begin="0" end="3600" departLane="free" departSpeed="max"'
+    routes = routes_file(
+        folder / "net" / "mix.rou.xml",
+        [CAR, CAR_IDM, '<vTypeDistribution id="mix" vTypes="car car_idm" probabilities="0.5 0.5"/>'],
+        [f'<flow id="m" route="r" vehsPerHour="4000" {flow}/>'],
+        ['<route id="r" edges="A B C"/>'],
+    )  # fmt: skip
+    return section_scenario(
+        folder / "mix.toml",
+        net,
+        routes,
+        ["A", "B"],
+        seed=11,
+        penetration=0.03,
+        simulation={"warmup_s": 60.0, "duration_s": 180.0, "n_runs": 1},
+        detectors={"interval_s": 60.0, "auto_spacing_m": 500.0},
+        policy={"observation": "lookahead"},
+    )
+
+
+def test_an_idm_car_taken_over_behind_a_krauss_car_is_not_braked_hard(tmp_path: Path) -> None:
+    """Krauss cars and IDM cars inserted on the section, every hidden one driven at its
+    speed (an action of 0) through the layer from its first step: before the hand-over
+    the layer braked 12 IDM cars (of 248 driven vehicles) at more than their decel on
+    their first driven step, behind Krauss cars it planned to stop at 4.5 m/s^2 where
+    they could at 3.0; now none, and none collides or teleports."""
+    sc = load_scenario(_inserted_mix(tmp_path))
+    section = read_section(sc.resolve(sc.network.net_file), ["A", "B"], False)
+    drv = SectionSpeedDriver(sc, section, 0, lambda obs: np.zeros(len(obs)), "sumo")
+    df, stats = _run_section(sc, drv)
+    assert stats["collisions"] == 0 and stats["teleports"] == 0, stats
+    driven = df[~df["observed"]].sort_values(["vehicle_id", "time_s"])
+    assert driven["vehicle_id"].nunique() > 200
+    # Each driven vehicle's acceleration over its first driven step: its second row.
+    first = driven.groupby("vehicle_id").nth(1)
+    assert (first["vtype"] == "car_idm").sum() > 80
+    hard = first["accel_mps2"] < -first["vtype"].map(DECEL) - 0.01
+    assert not hard.any(), (int(hard.sum()), first[hard]["vtype"].value_counts().to_dict())
