@@ -135,6 +135,9 @@ class OutOfSample:
 # driver (its first half; the row scores the second half), or the prior's one tau.
 IN_SAMPLE, OUT_OF_SAMPLE, ONE_TAU = "in_sample", "out_of_sample", "one"
 OUT_OF_SAMPLE_SUFFIX = "_tau_out_of_sample"
+# The IDMs' rows on the out-of-sample rows' pairs (each driver's second half): the rows that
+# compare with those, where the IDMs' own rows score every held-out pair.
+SECOND_HALF_SUFFIX = "_second_half"
 
 
 def micro_consistency(
@@ -153,7 +156,8 @@ def micro_consistency(
     ``evaluation.driver_follow.held_out_taus``: fitted on these pairs, in-sample); none: the
     prior's one tau. ``out_of_sample``: a row more for each policy it has taus for, named
     ``<policy>_tau_out_of_sample``, on the second half of each driver's pairs with taus
-    fitted on the first half. Where a policy carries taus a ``driver_tau`` column says
+    fitted on the first half, and with it a row more for each IDM on those pairs
+    (``<idm>_second_half``). Where a policy carries taus a ``driver_tau`` column says
     which (``IN_SAMPLE``, ``OUT_OF_SAMPLE``, ``ONE_TAU``; empty for the IDMs)."""
     a_min, a_max = sc.bounds.accel_mps2
     u = np.clip(accel, a_min, a_max)
@@ -167,6 +171,7 @@ def micro_consistency(
         return {"method": name, "nll": nll, "action_rmse_mps2": rmse, "n_pairs": len(u),
                 "driver_tau": tau_kind}  # fmt: skip
 
+    second = False  # an out-of-sample row written: the IDMs on its pairs too
     for name, agent in agents.items():
         own = (taus or {}).get(name)
         o = obs if own is None else with_tau(obs, own)
@@ -176,17 +181,22 @@ def micro_consistency(
             m = out_of_sample.later
             o = with_tau(obs[m], later)
             rows.append(score(name + OUT_OF_SAMPLE_SUFFIX, o, u[m], agent, OUT_OF_SAMPLE))
+            second = True
     for name, p in idms.items():
         pred = np.clip(idm_policy_accel(obs, p, veh_length_m), a_min, a_max)
-        rows.append(
-            {
-                "method": name,
-                "nll": np.nan,
-                "action_rmse_mps2": float(np.sqrt(np.mean((pred - u) ** 2))),
-                "n_pairs": len(u),
-                "driver_tau": "",
-            }
-        )
+        halves = [(name, np.ones(len(u), dtype=bool))]
+        if second:
+            halves.append((name + SECOND_HALF_SUFFIX, out_of_sample.later))
+        for label, m in halves:
+            rows.append(
+                {
+                    "method": label,
+                    "nll": np.nan,
+                    "action_rmse_mps2": float(np.sqrt(np.mean((pred[m] - u[m]) ** 2))),
+                    "n_pairs": int(m.sum()),
+                    "driver_tau": "",
+                }
+            )
     table = pd.DataFrame(rows)
     if not any(t is not None for t in (taus or {}).values()):
         table = table.drop(columns="driver_tau")  # no policy carries taus: as before

@@ -16,7 +16,7 @@ from macromicro_sumo.env.driver_tau import DriverTaus, with_tau
 from macromicro_sumo.env.observed_drivers import observed_drivers
 from macromicro_sumo.env.section_bank import typical_length
 from macromicro_sumo.evaluation.driver_follow import driver_taus, held_out_pairs
-from macromicro_sumo.evaluation.idm_fit import calibrate_idm
+from macromicro_sumo.evaluation.idm_fit import calibrate_idm, idm_policy_accel
 from macromicro_sumo.evaluation.krauss_fit import KraussParams
 from macromicro_sumo.evaluation.micro_data import keyed_micro_pairs, micro_consistency
 from macromicro_sumo.policy.agent import Agent
@@ -127,7 +127,13 @@ def test_micro_consistency_out_of_sample_row_fits_on_first_half_scores_second(
     idm, _ = calibrate_idm(obs, acc, lead)
     micro = micro_consistency(agents, {"idm_calibrated": idm}, obs, acc, sc, lead, taus, later)
     row = micro.set_index("method")
-    assert list(row.index) == ["policy", "policy_tau_out_of_sample", "micro_only", "idm_calibrated"]
+    assert list(row.index) == [
+        "policy",
+        "policy_tau_out_of_sample",
+        "micro_only",
+        "idm_calibrated",
+        "idm_calibrated_second_half",
+    ]
     oos = row.loc["policy_tau_out_of_sample"]
     assert oos["driver_tau"] == "out_of_sample" and oos["n_pairs"] == m.sum()
     a_min, a_max = sc.bounds.accel_mps2
@@ -138,3 +144,11 @@ def test_micro_consistency_out_of_sample_row_fits_on_first_half_scores_second(
     assert row.loc["policy", "driver_tau"] == "in_sample" and row.loc["policy", "n_pairs"] == len(
         acc
     )
+    # The IDM on the same second halves beside its row on every pair, so that they compare.
+    pred = np.clip(idm_policy_accel(obs, idm, lead), a_min, a_max)
+    half = row.loc["idm_calibrated_second_half"]
+    assert half["n_pairs"] == m.sum() and half["driver_tau"] == ""
+    u_m = np.clip(acc[m], a_min, a_max)
+    assert half["action_rmse_mps2"] == float(np.sqrt(np.mean((pred[m] - u_m) ** 2)))
+    assert row.loc["idm_calibrated", "n_pairs"] == len(acc)
+    assert half["action_rmse_mps2"] != row.loc["idm_calibrated", "action_rmse_mps2"]
