@@ -20,12 +20,13 @@ no bound qualifies; on Bremen 10 of 58 (0.995-1.0; the median 1.015 -> 1.007, tr
 Stop 41: a top is reached where the driver was unheld at a sample within
 ``env.observed_drivers.REACHED_SHARE`` of it, its next speed not above the own, a leader
 pulling away only where faster by ``PULL_AWAY_MPS`` (drawn 522's IDM misfires at 0.55 and
-0.84 of the true factor are gone). Medians against the observed drivers' true one (train +
-val runs; kaplan_meier / reached / true): 521 1.119 / 1.015 / 0.998, 528 1.140 / 1.022 /
-1.012, Bremen 1.015 / 1.004 / 1.008, drawn 501 1.028 / 0.997 / 1.003; untuned arterial 533
-1.012 / 0.996 / 0.994, drawn 561 0.980 / 0.978 / 0.998. Not the default: on drawn 549
-0.966 / 0.949 / 0.995 (its exact ratios are the slower drivers, its IDM cars' 0.92 of
-their factor, and the reached bounds are slow drivers' too).
+0.84 of the true factor are gone), and an exact ratio whose top had no next speed or was
+still rising is a bound (``ObservedDrivers.unsettled``). Medians against the observed
+drivers' true one (train + val runs; kaplan_meier / reached / true): 521 1.119 / 1.017 /
+0.998, 528 1.140 / 1.027 / 1.012, 549 0.966 / 0.995 / 0.995, 522 1.016 / 1.009 / 1.008,
+Bremen 1.015 / 1.005 / 1.008, drawn 501 1.028 / 1.003 / 1.003; not tuned for: arterial 537
+1.038 / 1.002 / 0.998, drawn 566 1.016 / 0.994 / 0.993 (12 nets, reached within 0.02 on
+each, kaplan_meier on 6).
 """
 
 from __future__ import annotations
@@ -67,6 +68,11 @@ class ObservedDrivers:
     # accelerating, nor standing, with a free gap or a leader at least as fast; not its
     # vehicle's maxSpeed): their bound is their ratio (``ratio_estimate``'s "reached").
     reached: frozenset[tuple[int, str]] = frozenset()
+    # The keys of ``ratio`` whose top had no next speed or was still accelerating (the
+    # vehicle left the section, or the run ended, on its way up) and was not reached: a lower
+    # bound in ``ratio_estimate``'s "reached" (drawn 549: 36 exact ratios at their last row,
+    # 0.88 / 0.93 of their Krauss / IDM car's true factor).
+    unsettled: frozenset[tuple[int, str]] = frozenset()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -137,13 +143,16 @@ def ratio_estimate(drivers: ObservedDrivers, censoring: str = "kaplan_meier") ->
     rolling roadblocks).
 
     ``censoring`` (``policy.driver_ratios``): "kaplan_meier", every lower bound is one;
-    "reached", those in ``drivers.reached`` count as exact ratios (module docstring)."""
+    "reached", those in ``drivers.reached`` count as exact ratios and the exact ratios in
+    ``drivers.unsettled`` as lower bounds (module docstring)."""
     exact, lower = list(drivers.ratio.values()), list(drivers.lower.values())
     reached = 0
     if censoring == "reached":
+        exact = [r for k, r in drivers.ratio.items() if k not in drivers.unsettled]
+        lower = [r for k, r in drivers.ratio.items() if k in drivers.unsettled]
         exact += [r for k, r in drivers.lower.items() if k in drivers.reached]
-        lower = [r for k, r in drivers.lower.items() if k not in drivers.reached]
-        reached = len(exact) - len(drivers.ratio)
+        lower += [r for k, r in drivers.lower.items() if k not in drivers.reached]
+        reached = sum(k in drivers.reached for k in drivers.lower)
     if len(exact) >= MIN_EXACT_RATIOS:
         q1, q3 = np.quantile(exact, [0.25, 0.75])
         floor = q1 - OUTLIER_IQR * (q3 - q1)

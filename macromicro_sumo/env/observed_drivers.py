@@ -141,25 +141,31 @@ def observed_drivers(sc, truth: SectionTruth, runs: np.ndarray) -> ObservedDrive
             types = s["vtype"].to_numpy() if "vtype" in s else np.full(len(s), "")
             for i in np.flatnonzero(o & (limit > 0)):
                 key = (int(run), str(ids[i]))
-                n, top, vmax, own_top = best.get(key, (0, 0.0, 0.0, 0.0))
+                n, top, vmax, own_top, settled = best.get(key, (0, 0.0, 0.0, 0.0, False))
                 r = v[i] / limit[i]
                 own_top = max(own_top, r) if own[i] else own_top  # the top where unheld
-                best[key] = (n + int(cruise[i]), max(top, r), max(vmax, v[i]), own_top)
+                # at the (first) top: the next speed known and not above it
+                settled = bool(accel[i] <= UNHELD_ACCEL_MPS2) if r > top else settled
+                best[key] = (n + int(cruise[i]), max(top, r), max(vmax, v[i]), own_top, settled)
                 vtype_of.setdefault(key, str(types[i]))
             pair = o & np.isfinite(accel)
             obs_rows.append(obs[pair])
             acc_rows.append(accel[pair])
             keys += [(int(run), str(x)) for x in ids[pair]]
-    ratio, lower, reached = {}, {}, set()
-    for k, (n, top, vmax, own_top) in best.items():
+    ratio, lower, reached, unsettled = {}, {}, set(), set()
+    for k, (n, top, vmax, own_top, settled) in best.items():
         capped = vmax >= CAP_SHARE * caps.get(vtype_of[k], np.inf)
         (ratio if n >= MIN_FREE_SAMPLES and not capped else lower)[k] = top
-        if k in lower and own_top >= (1.0 - REACHED_SHARE) * top > 0.0 and not capped:
+        own = own_top >= (1.0 - REACHED_SHARE) * top > 0.0 and not capped
+        if k in lower and own:
             reached.add(k)
+        if k in ratio and not settled and not own:
+            unsettled.add(k)
+    done = frozenset(reached), frozenset(unsettled)
     if not obs_rows:
-        return ObservedDrivers(ratio, np.empty((0, 4)), np.empty(0), [], lower, frozenset(reached))
+        return ObservedDrivers(ratio, np.empty((0, 4)), np.empty(0), [], lower, *done)
     obs_all, acc_all = np.concatenate(obs_rows), np.concatenate(acc_rows)
-    return ObservedDrivers(ratio, obs_all, acc_all, keys, lower, frozenset(reached))
+    return ObservedDrivers(ratio, obs_all, acc_all, keys, lower, *done)
 
 
 def free_gap_m(

@@ -79,11 +79,11 @@ class PolicyConfig:
         "speed ratios where few cruise freely long enough: kaplan_meier, each other vehicle's "
         "top v / limit is a lower bound; reached, one reached with nothing holding it there "
         "(at a sample within 2% of the top: the next speed not above it, a free gap or a "
-        "leader pulling away 0.5 m/s faster) is its ratio (signalised arterials; "
-        "env.observed_drivers.unheld). Not the default: against the true speedFactors its "
-        "median is within 0.02 on 9 of 10 nets (arterial 521 1.015, true 0.998; 528 1.022, "
-        "1.012) but 0.046 low on drawn 549 (0.949, true 0.995), and on highway_bremen three "
-        "PPO seeds deployed no better (stop 40)",
+        "leader pulling away 0.5 m/s faster) is its ratio, and an exact ratio whose top was "
+        "still rising a bound (env.observed_drivers.unheld). Against the true speedFactors "
+        "its median is within 0.02 on 12 nets (arterial 521 1.017, true 0.998; 528 1.027, "
+        "1.012; kaplan_meier 1.119, 1.140). Not the default: not yet retrained on every net "
+        "(stop 40's rule deployed no better on highway_bremen, three PPO seeds)",
         omit_default=True,  # the digests of scenarios that do not set it stay as they were
     )
     driver_follow: str = spec(

@@ -10,6 +10,7 @@ sample braking harder than Krauss' dawdling (``UNHELD_BRAKE_MPS2``)."""
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -20,6 +21,7 @@ from section_files import routes_file, section_scenario, vtype
 sys.path.insert(0, str(Path(__file__).parents[1] / "deploy"))
 from deploy_nets import netconvert  # noqa: E402
 
+from macromicro_sumo.env.driver_speed_ratios import ratio_estimate  # noqa: E402
 from macromicro_sumo.env.observed_drivers import (  # noqa: E402
     PULL_AWAY_MPS,
     UNHELD_BRAKE_MPS2,
@@ -132,3 +134,31 @@ def test_a_top_held_near_unheld_samples_is_reached(tmp_path: Path):
     assert (0, "b") in drivers.lower
     assert drivers.lower[(0, "b")] == pytest.approx(0.8, abs=0.005)
     assert (0, "b") in drivers.reached
+
+
+def test_an_exact_ratio_whose_top_is_still_rising_is_a_bound_when_reached(tmp_path: Path):
+    """Real SUMO: s (accel 0.5 m/s^2, speedFactor 1) enters at 5 m/s and accelerates along
+    the whole 150 m road, alone: free cruising at every sample (under 1 m/s^2), so an exact
+    ratio, its top 0.88 at its last row with no next speed. It is ``unsettled``: with
+    "reached" a lower bound, with "kaplan_meier" still an exact ratio. c (speedFactor 0.8,
+    no dawdling) cruises at its desired 12 m/s: settled."""
+    sc = one_road(
+        tmp_path,
+        150.0,
+        15.0,
+        [vtype("slowacc", length=5, minGap=2.5, speedFactor=1.0, speedDev=0, sigma=0, accel=0.5),
+         vtype("own", length=5, minGap=2.5, speedFactor=0.8, speedDev=0, sigma=0)],
+        ['<vehicle id="s" type="slowacc" route="r" depart="0" departSpeed="5"/>',
+         '<vehicle id="c" type="own" route="r" depart="60" departSpeed="max"/>'],
+    )  # fmt: skip
+    truth = load_section_truth(simulate_section(sc, tmp_path / "gt", progress=False), sc)
+    drivers = observed_drivers(sc, truth, truth.runs)
+    assert 0.8 < drivers.ratio[(0, "s")] < 0.95
+    assert drivers.ratio[(0, "c")] == pytest.approx(0.8, abs=0.005)
+    assert drivers.unsettled == frozenset({(0, "s")})
+    # 40 exact ratios at 0.9-1.1 besides: s's 0.88 is an exact ratio or a bound
+    more = {(1, f"v{i}"): 0.9 + 0.005 * i for i in range(40)}
+    both = dataclasses.replace(drivers, ratio={**drivers.ratio, **more})
+    km, reached = ratio_estimate(both), ratio_estimate(both, "reached")
+    assert (km.exact, km.lower_bounds) == (42, 0)
+    assert (reached.exact, reached.lower_bounds, reached.reached) == (41, 1, 0)
