@@ -31,8 +31,8 @@ from macromicro_sumo.scenario.load import load_scenario
 def test_supported_decel_is_the_least_braking_at_which_the_speed_is_safe() -> None:
     """Over seeded random states: the vType's decel where its safe speed is at least the
     speed already, where nothing is ahead and behind a standing obstacle; elsewhere the
-    least b up to the moving leader's decel at which it is (1e-6 less is not), or that
-    decel where even it is not."""
+    least b up to the moving leader's decel at which it is (within 1e-9 m/s; 1e-6 less is
+    not), or that decel where even it is not."""
     rng = np.random.default_rng(41)
     n, dt = 4000, 0.5
     b = rng.choice([1.5, 3.0, 4.0, 4.5], n)
@@ -51,7 +51,7 @@ def test_supported_decel_is_the_least_braking_at_which_the_speed_is_safe() -> No
     at = safe_speed(gap, v_l, got, b_l, dt)
     ok_hi = safe_speed(gap, v_l, hi, b_l, dt) >= v
     inner = raised & ok_hi
-    assert np.all(at[inner] >= v[inner])
+    assert np.all(at[inner] >= v[inner] - 1e-9)
     below = safe_speed(gap[inner], v_l[inner], got[inner] - 1e-6, b_l[inner], dt)
     assert np.all(below < v[inner])
     np.testing.assert_array_equal(got[raised & ~ok_hi], hi[raised & ~ok_hi])
