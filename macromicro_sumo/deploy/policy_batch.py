@@ -35,18 +35,24 @@ from macromicro_sumo.policy.prior import prior_buffer
 # OpenBLAS's threads, which on a loaded 2-core machine cost 1.8 ms at 500 rows instead of
 # 0.3 ms (scripts/bench_deploy.py's sizes).
 ACTOR_ROWS = 128
+# ``policy_batch``'s actor_dtype: float64 (the default, Agent.mean_action's values) or float32.
+ACTOR_DTYPES: dict[str, type[np.floating]] = {"float64": np.float64, "float32": np.float32}
 
 
-def actor_forward(agent: Agent) -> Callable[[np.ndarray], np.ndarray]:
+def actor_forward(
+    agent: Agent, dtype: type[np.floating] = np.float64
+) -> Callable[[np.ndarray], np.ndarray]:
     """The agent's actor as a numpy function of raw observations (n, D), float64, its
-    weights read once: the actor's output before any prior or bound."""
+    weights read once: the actor's output (float64) before any prior or bound. ``dtype``:
+    of its weights and products after the (float64) normalisation (``policy_batch``'s
+    ``actor_dtype``)."""
     shift = agent.shift.detach().double().numpy()
     scale = agent.scale.detach().double().numpy()
     layers: list[tuple[np.ndarray, np.ndarray] | None] = []  # None: tanh
     for m in agent.actor:
         if isinstance(m, torch.nn.Linear):
-            w = m.weight.detach().double().numpy().T.copy()
-            layers.append((w, m.bias.detach().double().numpy().copy()))
+            w = np.ascontiguousarray(m.weight.detach().double().numpy().T, dtype=dtype)
+            layers.append((w, m.bias.detach().double().numpy().astype(dtype)))
         elif isinstance(m, torch.nn.Tanh):
             layers.append(None)
         else:
@@ -57,12 +63,15 @@ def actor_forward(agent: Agent) -> Callable[[np.ndarray], np.ndarray]:
     # same products and sums as fresh arrays, without a step's allocations. Their biases as
     # rows as many (``tiled``): the same sums as the broadcast bias, a contiguous add
     # (~1 us less a layer at 42 rows, numpy 2.4).
-    kept = [np.empty((0, 0 if layer is None else len(layer[1]))) for layer in layers]
+    kept = [np.empty((0, 0 if layer is None else len(layer[1])), dtype) for layer in layers]
     tiled = list(kept)
+    f64 = dtype is np.float64
 
     def forward(obs: np.ndarray) -> np.ndarray:
         x0 = np.subtract(obs, shift)
         np.divide(x0, scale, out=x0)
+        if not f64:
+            x0 = x0.astype(dtype)
         n = len(x0)
         if n <= ACTOR_ROWS:  # one product per layer
             x = x0
@@ -76,11 +85,11 @@ def actor_forward(agent: Agent) -> Callable[[np.ndarray], np.ndarray]:
                     continue
                 if len(kept[i]) < n:
                     rows = max(n, ACTOR_ROWS // 2)
-                    kept[i] = np.empty((rows, len(layer[1])))
+                    kept[i] = np.empty((rows, len(layer[1])), dtype)
                     tiled[i] = np.tile(layer[1], (rows, 1))
                 x = np.matmul(x, layer[0], out=kept[i][:n])
                 np.add(x, tiled[i][:n], out=x)
-            return x[:, 0]
+            return x[:, 0] if f64 else x[:, 0].astype(np.float64)
         out = np.empty(n)
         for start in range(0, n, ACTOR_ROWS):
             x = x0[start : start + ACTOR_ROWS]
@@ -120,9 +129,15 @@ def prior_forward(agent: Agent) -> Callable[[np.ndarray], np.ndarray] | None:
     return lambda obs: gipps_policy_accel(obs, gipps, p["veh_length_m"], p["dt_s"])
 
 
-def policy_batch(agent: Agent) -> ActionBatch:
+def policy_batch(agent: Agent, actor_dtype: str = "float64") -> ActionBatch:
     """The policy's deterministic mean action (``Agent.mean_action``) for every driven
     vehicle, one numpy call per step.
+
+    ``actor_dtype`` "float32" (opt-in; ``scripts/bench_deploy.py --actor-float32``): the
+    actor's weights and products in float32, the prior and the rest float64. Not the same
+    actions: within 1e-7 m/s^2 of float64's on Bremen's 60,368 (run 0, lead40's policy);
+    a Bremen policy run 24.6 us a step cheaper (median of 12 interleaved pairs, all 12
+    faster; SUMO's own step 8 us of it).
 
     With a ``driver_tau`` buffer the actor reads the first D columns and the prior its
     tau from a trailing one where the observation has it (``act.driver_taus``: the run's
@@ -132,7 +147,9 @@ def policy_batch(agent: Agent) -> ActionBatch:
     actor, ~0.3 ms more for a prior's dozen small ops) was most of a step's policy time
     below 500 driven vehicles (``scripts/bench_deploy.py``). Equal to
     ``Agent.mean_action`` in float64 (tests/deploy/test_deploy_run.py)."""
-    actor, prior = actor_forward(agent), prior_forward(agent)
+    if actor_dtype not in ACTOR_DTYPES:
+        raise ValueError(f"actor_dtype {actor_dtype!r}: accepted {', '.join(ACTOR_DTYPES)}")
+    actor, prior = actor_forward(agent, ACTOR_DTYPES[actor_dtype]), prior_forward(agent)
     bound = float(agent.residual_bound) if prior is not None else math.inf
     if agent.driver_tau is not None:  # a tau column may follow: the actor reads D columns
         actor = partial(_features, actor, agent.obs_dim)
