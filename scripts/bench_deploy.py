@@ -34,7 +34,7 @@ with its own models, in the same run.
 
     python scripts/bench_deploy.py [--repeats 5] [--steps 200] [--sizes 50 200 500 1000 2000]
         [--road-repeats 3] [--skip-bremen] [--cpu] [--budget 3]
-        [--checkpoint runs/highway_bremen/policy/policy.pt]
+        [--checkpoint runs/highway_bremen/policy/policy.pt] [--actor-float32]
 """
 
 from __future__ import annotations
@@ -395,6 +395,11 @@ def main(argv: list[str] | None = None) -> int:
         default=ROOT / "runs" / "highway_bremen" / "policy" / "policy.pt",
         help="the Bremen policy (policy.pt of a run of scenarios/highway_bremen.toml)",
     )
+    ap.add_argument(
+        "--actor-float32",
+        action="store_true",
+        help="the actor in float32 (policy_batch's opt-in actor_dtype; not the same actions)",
+    )
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     CLOCK[0] = time.process_time if args.cpu else time.perf_counter
@@ -403,7 +408,9 @@ def main(argv: list[str] | None = None) -> int:
         tmp = Path(tmp_name)
         sc = bremen_scenario(tmp)
         agent, which = agent_for(sc, args.checkpoint)
-        act = policy_batch(agent)
+        act = policy_batch(agent, "float32" if args.actor_float32 else "float64")
+        if args.actor_float32:
+            which += " (actor in float32)"
         if not args.skip_bremen:
             print(f"Bremen example's demand, one whole run ({sc.simulation.warmup_s:g} s warm-up + "
                   f"{sc.simulation.duration_s:g} s, step {sc.simulation.step_length_s} s); "
