@@ -336,7 +336,7 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
             lead_speed = obs[:, 0] - obs[:, 3]
             if self.brake_handover is not None:  # a new driver's braking from its arrival
                 own = self.brake_handover(
-                    vids, own, lead_decel, gap, obs[:, 0], lead_speed, self.steps
+                    slots, own, lead_decel, gap, obs[:, 0], lead_speed, self.steps
                 )
             safe = leader_safe_speed(
                 obs, gap, own, lead_decel, self.sc.simulation.step_length_s, lead_speed

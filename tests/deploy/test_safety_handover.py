@@ -68,11 +68,11 @@ def test_the_handed_over_braking_falls_to_the_own_at_its_rate() -> None:
     g = float(np.interp(20.0, safe_speed(np.linspace(0, 60, 6001), 20.0, 4.0, 4.5, dt),
                         np.linspace(0, 60, 6001)))  # fmt: skip
     gap = np.array([g + 1e-6, 80.0])
-    first = hand(["a", "b"], own, b_l, gap, v, v_l, 7)
+    first = hand(np.array([0, 1]), own, b_l, gap, v, v_l, 7)
     assert abs(first[0] - 4.0) < 1e-3 and first[1] == 3.0
     step = HANDOVER_DECEL_RATE_MPS2_PER_S * dt
     for k in range(1, 8):  # later states (a gap of 0) do not restart it
-        got = hand(["a", "b"], own, b_l, np.zeros(2), v, v_l, 7 + k)
+        got = hand(np.array([0, 1]), own, b_l, np.zeros(2), v, v_l, 7 + k)
         np.testing.assert_allclose(got, [max(3.0, first[0] - step * k), 3.0])
 
 
