@@ -241,9 +241,17 @@ class MergeYield:
         than ``MERGE_YIELD_TOLERANCE_MPS`` slower than both its speed and its car-following
         (the safe speed: where SUMO's own speed is below it too, its lane changer asked for
         less, a cooperative slow-down; SUMO's car-following is not imposed on the policy);
-        inf: none."""
+        inf: none. At least v - decel dt, the vehicle's vType's decel: SUMO's own speed is
+        the last step's, chosen from the speed it had then; where the command accelerated
+        it since, that speed asked now brakes harder than its decel, which a follower SUMO
+        drives does not plan for (drawn 501: 3.36 -> 0 m/s in a step, 6.7 m/s^2, and the
+        car just merged behind it collided)."""
         cap = np.full(len(vids), np.inf)
-        own = sim.own_speeds([vids[i] for i in near])
+        ids = [vids[i] for i in near]
+        own = sim.own_speeds(ids)
         asked = own < np.minimum(speed[near], safe[near]) - MERGE_YIELD_TOLERANCE_MPS
+        if np.count_nonzero(asked):
+            decel = np.fromiter((self.shape_of[v][2] for v in ids), float, len(ids))
+            own = np.maximum(own, speed[near] - decel * self.sc.simulation.step_length_s)
         cap[near] = np.where(asked, own, np.inf)
         return cap
