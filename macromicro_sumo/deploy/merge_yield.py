@@ -251,7 +251,7 @@ class MergeYield:
         own = sim.own_speeds(ids)
         asked = own < np.minimum(speed[near], safe[near]) - MERGE_YIELD_TOLERANCE_MPS
         if np.count_nonzero(asked):
-            decel = np.fromiter((self.shape_of[v][2] for v in ids), float, len(ids))
+            decel = np.fromiter(map(self.decel_of.__getitem__, ids), float, len(ids))
             own = np.maximum(own, speed[near] - decel * self.sc.simulation.step_length_s)
         cap[near] = np.where(asked, own, np.inf)
         return cap
