@@ -1,0 +1,136 @@
+"""Deploy a finished run's methods on chosen runs of its ground truth (default: every run),
+to measure a change on more than the one held-out run ``macromicro run`` deploys.
+
+Each method drives as the deploy stage drives it (``deploy.stage.method_drive``; the floor
+chosen on the training runs where ``deploy.safety_floor_on = "auto"``); ``--set`` changes a
+``[deploy]`` or ``[policy]`` key of the scenario for this deployment only (what a change
+under test is switched by). Written into ``--out`` (a new or empty folder): a folder per
+method (without SUMO's files), ``deploy_comparison.csv`` and ``deploy_summary.csv`` against
+the ground truth over the runs deployed, and ``deploy_runs.csv``, each run's speed RMSE and
+safety counts per method. The runs' figures in docs/deploy.md ("all 4 runs") are this.
+
+    .venv/bin/python scripts/deploy_runs.py SCENARIO.toml RUN_DIR --out DIR \\
+        [--methods policy sumo_default] [--runs 0 1] [--set deploy.merge_reach=occupation]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+import torch
+
+from macromicro_sumo.deploy.compare import compare_folders
+from macromicro_sumo.deploy.floor_choice import resolve_floor
+from macromicro_sumo.deploy.population import population_scenario
+from macromicro_sumo.deploy.run import load_context, run_method, write_method
+from macromicro_sumo.deploy.stage import fit_idm, method_drive, policy_paths
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.policy.checkpoint import load_policy
+from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.truth.section import load_section_truth
+
+SHOWN = (
+    "method",
+    "station_intervals",
+    "share_geh_below_5",
+    "share_speed_within_5pct",
+    "speed_rmse_mps",
+    "speed_bias_mps",
+    "collisions",
+    "teleports",
+    "emergency_brakings",
+)
+PER_RUN = ("collisions", "teleports", "emergency_brakings")
+
+
+def get_options(args: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("scenario", type=Path, help="the run's scenario TOML")
+    p.add_argument("run", type=Path, help="a finished `macromicro run` folder")
+    p.add_argument("--out", type=Path, required=True, help="a new or empty output folder")
+    p.add_argument("--methods", nargs="+", default=["policy"], help="deploy methods")
+    p.add_argument("--runs", nargs="+", type=int, default=None, help="runs (default: all)")
+    p.add_argument("--set", nargs="*", default=[], metavar="TABLE.KEY=VALUE", dest="changes")
+    return p.parse_args(args)
+
+
+def changed(sc, changes: list[str]):
+    """``sc`` with each ``deploy.KEY=VALUE`` / ``policy.KEY=VALUE`` set (typed as the field)."""
+    for item in changes:
+        key, _, text = item.partition("=")
+        table, _, name = key.partition(".")
+        if table not in ("deploy", "policy") or not hasattr(getattr(sc, table), name):
+            raise UserError(f"--set {item}: accepted: deploy.KEY=VALUE or policy.KEY=VALUE")
+        old = getattr(getattr(sc, table), name)
+        value = type(old)(float(text)) if isinstance(old, int | float) else text
+        sc = dataclasses.replace(
+            sc, **{table: dataclasses.replace(getattr(sc, table), **{name: value})}
+        )
+    return sc
+
+
+def deploy_runs(options: argparse.Namespace) -> pd.DataFrame:
+    """Every method of ``options`` deployed on its runs; the summary of them all."""
+    sc = changed(load_scenario(options.scenario), options.changes)
+    truth_dir = options.run / "ground_truth"
+    out = options.out
+    if out.exists() and any(out.iterdir()):
+        raise UserError(f"{out}: not empty; give a new folder")
+    runs = options.runs or [int(r) for r in load_section_truth(truth_dir, sc).runs]
+    paths = policy_paths(options.run / "policy", options.methods)
+    agents = {name: load_policy(p, sc) for name, p in paths.items()}
+    ctx = load_context(sc, truth_dir)
+    ctx.sc = population_scenario(ctx.sc)  # as the deploy stage's drivers read it
+    idm = fit_idm(ctx)[0] if "idm_calibrated" in options.methods else None
+    torch.set_num_threads(1)
+    dirs, per_run = {}, []
+    for name in options.methods:
+        t0 = time.perf_counter()
+        drive, record = method_drive(name, sc, agents, idm)
+        drive, _ = resolve_floor(ctx, drive, out / "floor_choice")
+        shutil.rmtree(out / "floor_choice", ignore_errors=True)
+        folder = out / name
+        folder.mkdir(parents=True)
+        res = run_method(ctx, drive, folder, runs=runs)
+        wall = round(time.perf_counter() - t0, 1)
+        write_method(ctx, res, folder, {"method": name, "runs": runs, "wall_s": wall, **record})
+        shutil.rmtree(folder / "sumo", ignore_errors=True)
+        dirs[name] = folder
+        per_run.append(res.runs[["run", *PER_RUN]].assign(method=name))
+        print(f"{name}: runs {runs}, {wall} s", flush=True)
+    comparison, summary = compare_folders(truth_dir, dirs, sc.deploy.compare_interval_s)
+    comparison.to_csv(out / "deploy_comparison.csv", index=False)
+    summary.to_csv(out / "deploy_summary.csv", index=False)
+    c = comparison.dropna(subset=["speed_method_mps", "speed_truth_mps"])
+    rmse = (
+        c.assign(se=(c["speed_method_mps"] - c["speed_truth_mps"]) ** 2)
+        .groupby(["method", "run"])["se"]
+        .mean()
+        .pow(0.5)
+        .rename("speed_rmse_mps")
+        .reset_index()
+    )
+    pd.concat(per_run).merge(rmse, on=["method", "run"], how="left").to_csv(
+        out / "deploy_runs.csv", index=False
+    )
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        summary = deploy_runs(get_options(argv))
+    except UserError as e:
+        print(f"deploy_runs: {e}", file=sys.stderr)
+        return 2
+    print(summary[[c for c in SHOWN if c in summary]].round(3).to_string(index=False))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
