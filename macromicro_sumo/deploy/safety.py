@@ -327,6 +327,22 @@ def behind_commands(
     return cmd
 
 
+def command_brake(a_min_mps2: float, decel: np.ndarray, brake: str) -> np.ndarray | float:
+    """The least acceleration [m/s^2] a driven vehicle's command may ask before the safety
+    layer (``deploy.command_brake``): "bounds", the scenario's lower bound ``a_min_mps2``;
+    "decel", at least -``decel``, the braking the layer plans the vehicle's stop with
+    (``planned_decel``: its vType's decel, ``decel_of``, but during a ``BrakeHandover``
+    ramp or with ``deploy.safety_brake = "matched"``). The layer lowers a command further
+    where what is ahead asks for it (``safety_cap``): a real emergency, kept.
+
+    Why: the bound (-4.5 m/s^2 in the examples) is below an IDM car's decel (3.0) or a
+    truck's (4.0); a policy braking at it is an emergency braking by SUMO's count, one a
+    follower SUMO drives does not plan for, where nothing ahead asked for it."""
+    if brake == "bounds":
+        return a_min_mps2
+    return np.maximum(a_min_mps2, -decel)
+
+
 # Per driven vehicle (SUMO's gap to what it sees ahead, its decel, that leader's decel, the
 # leader's index among the driven or -1): what the safety layer needs, asked only with it.
 LayerInputs = Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
@@ -367,12 +383,14 @@ def speed_commands(
     if not isinstance(accel, np.ndarray) or np.count_nonzero(np.less(accel, a_max)):
         a_max = accel_limit(a_max, accel)
     dt = sc.simulation.step_length_s
+    if safety == "sumo":
+        gap, decel, lead_decel, lead = layer()
+        a_min = command_brake(a_min, decel, sc.deploy.command_brake)
     cmd = command_speeds(obs[:, 0], act(obs), dt, a_min, a_max, vmax)  # Stage II's rule too
     if cap is not None:
         cmd = np.minimum(cmd, cap)
     if safety != "sumo":
         return cmd
-    gap, decel, lead_decel, lead = layer()
     floor = sc.deploy.safety_floor_share
     if sc.deploy.safety_floor_on == "standing":
         floor = np.where(obs[:, 0] < STANDING_BELOW_MPS, floor, 0.0)

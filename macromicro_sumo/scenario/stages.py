@@ -292,6 +292,17 @@ class DeployConfig:
         "decel is its comfortable braking: own holds it behind a Krauss car to gaps SUMO's "
         "IDM does not keep; docs/deploy.md, Safety layer strictness)",
     )
+    command_brake: str = spec(
+        "bounds",
+        choices=("bounds", "decel"),
+        doc="safety sumo: the hardest braking a driven vehicle's command may ask before the "
+        "safety layer: bounds, the scenario's bounds.accel_mps2; decel, at most the braking "
+        "the layer plans its stop with (its vType's decel), so that a policy bound below it "
+        "brakes no car harder than SUMO's own would where nothing ahead asks for it; the "
+        "layer still brakes harder where what is ahead asks for it (deploy.safety."
+        "command_brake)",
+        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+    )
     action: str = spec(
         "mean",
         choices=("mean", "sample"),
