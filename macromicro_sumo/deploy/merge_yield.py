@@ -43,10 +43,13 @@ LANE_END_RECHECK_STEPS = 20
 
 
 class LaneEnds(Protocol):
-    """What ``MergeYield.must_change`` asks of the class it is mixed into
-    (``SectionSpeedDriver``): its state, the slots and lane codes of vehicles
-    (``slots_of``) and the one lane-end cache (``lane_end_m``)."""
+    """What ``MergeYield.must_change`` and ``MergeYield.yields`` ask of the class they are
+    mixed into (``SectionSpeedDriver``): its state (the scenario, for the step length; each
+    vehicle's vType decel, ``SectionDriver.decel_of``), the slots and lane codes of
+    vehicles (``slots_of``) and the one lane-end cache (``lane_end_m``)."""
 
+    sc: SectionScenario
+    decel_of: dict[str, float]
     slots: VehicleSlots
     section: Section
     driven: set[str]
@@ -81,6 +84,7 @@ class MergeYield:
     mode: int  # the commanded vehicles' speed mode
     section: Section
     shape_of: dict[str, tuple[float, float, float]]
+    decel_of: dict[str, float]  # vehicle -> its demand vType's decel (``SectionDriver``)
     occupation = False  # the hand-over at LC2013's usable distance (``usable_m``)
     yield_all = False  # the yield to the blockers of every vehicle that must change
     _chains: dict[str, tuple[str, ...]] | None = None
@@ -233,7 +237,12 @@ class MergeYield:
         return out
 
     def yields(
-        self, sim: Simulation, vids: list[str], near: list[int], speed: np.ndarray, safe: np.ndarray
+        self: LaneEnds,
+        sim: Simulation,
+        vids: list[str],
+        near: list[int],
+        speed: np.ndarray,
+        safe: np.ndarray,
     ) -> np.ndarray:
         """Per commanded vehicle ``vids`` (speeds ``speed``, safe speeds behind what each
         sees ahead ``safe``: the safety layer's), the speed a merge asks of it: SUMO's own
