@@ -8,15 +8,24 @@ at ``env.driver_speed.QUANTILE_LEVELS``) at uniform levels: per (seed, run, vehi
 driver has the same tau whatever drives it), or per bank slot a seeded generator
 (``slot_tau_levels``: the snapshot episodes). The agent reads the column where it has a
 ``driver_tau`` buffer (``policy.agent``); without one nothing appends it.
+
+``policy.driver_follow = "by_vtype"``: the buffer is a table (``vtype_table``), and a driver
+draws at its level from its own vType's observed drivers' quantiles (its vType read from
+the running SUMO), else from the pooled ones; the bank slots draw from the pooled ones.
+Why: on drawn 501 a Krauss-form tau drawn from all drivers gave the IDM cars the Krauss
+cars' discharge headway (1.77 s at 1125 m, truth 2.24 s; docs/deploy.md, "Drawn 501").
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+import zlib
+from collections.abc import Callable, Mapping, Sequence
+from itertools import repeat
 
 import numpy as np
 
 from macromicro_sumo.env.driver_speed import QUANTILE_LEVELS, driver_levels
+from macromicro_sumo.sumo.simulation import Simulation
 
 # The draws' tag in ``driver_levels`` and the generator's stream for bank slots.
 TAU_TAG = "driver_tau"
@@ -28,6 +37,44 @@ SLOT_STREAM = 223
 # Drawn 502, prior alone, all 4 runs: 0.2 / 0.5 / 1.0 s/s gave 82 / 74 / 112 emergency
 # brakings against 159 without it, speed RMSE 1.115 / 1.112 / 1.104 against 1.111.
 HANDOVER_RATE_S_PER_S = 0.5
+
+
+# ``policy.driver_follow = "by_vtype"``: the agent's ``driver_tau`` buffer is a table, one
+# row per vType with its first column the vType's key (``vtype_key``) and the quantiles
+# after it; its first row, keyed ``POOLED_KEY``, the pooled quantiles ("drawn"'s), which the
+# snapshot episodes' slots and a driver of a vType without a row draw from. Keys, not names:
+# a float buffer holds them exactly (24 bits fit float32's mantissa), so the checkpoint and
+# its loading stay as they are.
+POOLED_KEY = -1.0
+
+
+def vtype_key(vtype: str) -> float:
+    """A vType's row key in a ``by_vtype`` table: the low 24 bits of its name's CRC-32."""
+    return float(zlib.crc32(vtype.encode()) & 0xFFFFFF)
+
+
+def vtype_table(pooled: Sequence[float], by_vtype: Mapping[str, Sequence[float]]) -> np.ndarray:
+    """The ``by_vtype`` table (1 + n types, 1 + levels) of the ``pooled`` quantiles and each
+    vType's (``by_vtype``, in name order); refuses two names with one key."""
+    names = sorted(by_vtype)
+    keys = [vtype_key(n) for n in names]
+    if len(set(keys)) < len(keys):
+        raise ValueError(f"vTypes {names}: two share a tau table key; rename one")
+    rows = [[POOLED_KEY, *pooled]] + [[k, *by_vtype[n]] for k, n in zip(keys, names, strict=True)]
+    return np.asarray(rows, dtype=float)
+
+
+def pooled_quantiles(quantiles: np.ndarray) -> np.ndarray:
+    """The pooled tau quantiles of an agent's ``driver_tau`` buffer: itself (``drawn``), or
+    a ``by_vtype`` table's first row."""
+    q = np.asarray(quantiles, dtype=float)
+    return q if q.ndim == 1 else q[0, 1:]
+
+
+def sumo_vtypes(vids: Sequence[str]) -> list[str]:
+    """The running SUMO's vType of each vehicle (``Simulation.vehicle_type`` reads libsumo
+    and nothing of its instance; the deployment and the demand env drive one SUMO)."""
+    return [Simulation.vehicle_type(None, v) for v in vids]  # type: ignore[arg-type]
 
 
 def taus_at(quantiles: np.ndarray, levels: np.ndarray) -> np.ndarray:
@@ -87,9 +134,19 @@ class DriverTaus:
     a median drawn tau of 1.76 s, where the entry gap supported 1.04 s; the truth had 1."""
 
     def __init__(
-        self, quantiles: np.ndarray, sc, run: int, prior: Mapping[str, float] | None = None
+        self,
+        quantiles: np.ndarray,
+        sc,
+        run: int,
+        prior: Mapping[str, float] | None = None,
+        vtypes_of: Callable[[Sequence[str]], list[str]] = sumo_vtypes,
     ) -> None:
-        self.quantiles = np.asarray(quantiles, dtype=float)
+        q = np.asarray(quantiles, dtype=float)
+        self.quantiles = pooled_quantiles(q)
+        # policy.driver_follow = "by_vtype": a new driver draws, at its level, from its
+        # vType's row (``vtypes_of``: the running SUMO's types), else the pooled one.
+        self.rows = None if q.ndim == 1 else {float(r[0]): r[1:] for r in q[1:]}
+        self.vtypes_of = vtypes_of
         self.seed, self.run = int(sc.seed), int(run)
         self._known: dict[str, float] = {}
         self.prior = prior
@@ -101,12 +158,23 @@ class DriverTaus:
     def __call__(
         self, vids: Sequence[str], obs: np.ndarray | None = None, step: int | None = None
     ) -> np.ndarray:
-        known = self._known
-        new = [v for v in vids if v not in known]
-        if new:
-            got = taus_at(self.quantiles, driver_tau_levels(self.seed, self.run, new))
+        known, n = self._known, len(vids)
+        # C-level lookups, NaN where a driver is new (no draw is NaN): no set or list of
+        # the step's vehicles is built in Python once every driver is known.
+        taus = np.fromiter(map(known.get, vids, repeat(np.nan)), float, n)
+        miss = np.flatnonzero(np.isnan(taus))
+        if len(miss):
+            new = [vids[i] for i in miss]
+            levels = driver_tau_levels(self.seed, self.run, new)
+            if self.rows is None:
+                got = taus_at(self.quantiles, levels)
+            else:
+                rows = [self.rows.get(vtype_key(t), self.quantiles) for t in self.vtypes_of(new)]
+                got = np.array(
+                    [np.interp(x, QUANTILE_LEVELS, r) for x, r in zip(levels, rows, strict=True)]
+                )
             known.update(zip(new, got.tolist(), strict=True))
-        taus = np.fromiter(map(known.__getitem__, vids), float, len(vids))
+            taus = np.fromiter(map(known.__getitem__, vids), float, n)
         if self.prior is None or obs is None or step is None:
             return taus
         return self.handed_over(vids, taus, obs, step)
@@ -116,18 +184,18 @@ class DriverTaus:
     ) -> np.ndarray:
         """``taus`` (the draws of ``vids``) as the hand-over holds them at ``step``, from
         each driver's state at the first step it was asked with observations (``obs``).
-        Per step C-level lookups of each driver's start (``_first``, ``_since``), the rows
-        of the new ones alone in Python: the same values as a list per vehicle a step."""
-        first_of, since_of = self._first, self._since
-        new_ids = set(vids).difference(first_of)
-        if new_ids:
-            new = [i for i, v in enumerate(vids) if v in new_ids]
+        Per step C-level lookups of each driver's start (``_first``, ``_since``; NaN where
+        it is new), the rows of the new ones alone in Python: the same values as a list per
+        vehicle a step, and no set of the step's vehicles (~30 us a step at Bremen's)."""
+        first_of, since_of, n = self._first, self._since, len(vids)
+        first = np.fromiter(map(first_of.get, vids, repeat(np.nan)), float, n)
+        new = np.flatnonzero(np.isnan(first))  # no start is NaN (min with a draw)
+        if len(new):
             ok = supported_taus(obs[new], self.prior)
             floor = float(self.quantiles[0])
-            for i, t in zip(new, ok.tolist(), strict=True):
+            for i, t in zip(new.tolist(), ok.tolist(), strict=True):
                 first_of[vids[i]] = min(taus[i], max(t, floor))
                 since_of[vids[i]] = step
-        n = len(vids)
-        first = np.fromiter(map(first_of.__getitem__, vids), float, n)
+            first = np.fromiter(map(first_of.__getitem__, vids), float, n)
         since = step - np.fromiter(map(since_of.__getitem__, vids), float, n)
         return np.minimum(taus, first + HANDOVER_RATE_S_PER_S * self.dt_s * since)

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from macromicro_sumo.env.driver_speed import QUANTILE_LEVELS
-from macromicro_sumo.env.driver_tau import DriverTaus
+from macromicro_sumo.env.driver_tau import DriverTaus, pooled_quantiles, supported_taus
 from macromicro_sumo.env.observed_drivers import FREE_GAP_M, FREE_HEADWAY_S, observed_drivers
 from macromicro_sumo.evaluation.krauss_fit import (
     ROBUST_SCALE_MPS2,
@@ -54,6 +54,17 @@ MIN_SPEED_MPS = 1.0
 # Drivers with a tau needed for a distribution (its median to about +-0.02 s at 502's
 # spread); fewer: ``tau_quantiles`` gives None (the prior's one tau stays).
 MIN_DRIVER_TAUS = 30
+# A vType's own quantiles (``policy.driver_follow = "by_vtype"``) need this many of its
+# drivers with a tau; fewer: its drivers draw from the pooled ones. Fewer than the pooled
+# distribution's 30: 501's 8% trucks at 10% penetration are a few dozen observed drivers.
+MIN_VTYPE_TAUS = 10
+# ``driver_gap_taus``: a following pair is steady where the driver neither brakes nor
+# speeds up much and keeps its leader's pace above a crawl; a driver's kept tau needs
+# this many steady pairs (5 s at 0.5 s steps).
+STEADY_ACCEL_MPS2 = 0.3
+STEADY_DV_MPS = 1.0
+STEADY_MIN_SPEED_MPS = 5.0
+MIN_STEADY_PAIRS = 10
 
 
 def following(obs: np.ndarray) -> np.ndarray:
@@ -115,6 +126,38 @@ def driver_taus(
     return out
 
 
+def driver_gap_taus(
+    obs: np.ndarray,
+    accel: np.ndarray,
+    keys: Sequence[Hashable],
+    params: KraussParams,
+    veh_length_m: float,
+) -> dict[Hashable, float]:
+    """Per driver (``keys``, one per pair) the tau [s] it keeps: the median over its steady
+    following pairs (``following``, ``STEADY_*``; at least ``MIN_STEADY_PAIRS``) of the tau
+    at which the Krauss form's safe speed is its speed (``env.driver_tau.supported_taus``;
+    at pace, gap = v tau). Why: ``driver_taus`` fits the pairs where the safe speed brakes,
+    where 501's IDM cars (T 1.2 s) fit the Krauss cars' tau (medians 1.13 / 1.10 s), while
+    they keep gaps of about 2.0 s headway to the Krauss cars' 1.5 at 12-22 m/s: the
+    IDM's s0 + v T / sqrt(1 - (v / v0)^4), which no braking shows."""
+    steady = (
+        following(obs)
+        & (obs[:, 0] > STEADY_MIN_SPEED_MPS)
+        & (np.abs(accel) < STEADY_ACCEL_MPS2)
+        & (np.abs(obs[:, 3]) < STEADY_DV_MPS)
+    )
+    prior = {
+        "decel_mps2": params.decel_mps2,
+        "veh_length_m": veh_length_m,
+        "min_gap_m": params.min_gap_m,
+    }
+    taus = supported_taus(obs[steady], prior)
+    by: dict[Hashable, list[float]] = {}
+    for k, t in zip((k for k, m in zip(keys, steady, strict=True) if m), taus, strict=True):
+        by.setdefault(k, []).append(float(t))
+    return {k: float(np.median(t)) for k, t in by.items() if len(t) >= MIN_STEADY_PAIRS}
+
+
 def tau_quantiles(taus: Sequence[float]) -> np.ndarray | None:
     """``QUANTILE_LEVELS`` quantiles of the drivers' taus; None with fewer than
     ``MIN_DRIVER_TAUS`` of them (the data do not give a distribution)."""
@@ -148,10 +191,51 @@ def driver_tau_record(
     return tau_record(driver_taus(obs, accel, keys, params, veh_length_m, dt_s), params)
 
 
-def tau_record(own: Mapping[Hashable, float], params: KraussParams) -> dict[str, object]:
-    """``driver_tau_record`` of the drivers' own taus ``own`` (``driver_taus``)."""
+def driver_vtypes(truth, keys: Sequence[tuple[int, str]]) -> dict[tuple[int, str], str]:
+    """The vType (``trajectories.csv``'s ``vtype``) of each (run, vehicle) in ``keys``."""
+    traj = truth.trajectories
+    if "vtype" not in traj:
+        return {}
+    first = traj.drop_duplicates(["run", "vehicle_id"])
+    of = {
+        (int(r), str(v)): str(t)
+        for r, v, t in zip(first["run"], first["vehicle_id"], first["vtype"], strict=True)
+    }
+    return {k: of[k] for k in keys if k in of}
+
+
+def vtype_levels(
+    own: Mapping[Hashable, float], vtypes: Mapping[Hashable, str]
+) -> dict[str, dict[str, object]]:
+    """Per vType with at least ``MIN_VTYPE_TAUS`` drivers with a tau (``own``; each
+    driver's vType in ``vtypes``): how many and its quantiles at ``QUANTILE_LEVELS``
+    (``levels_s``), what ``policy.driver_follow = "by_vtype"`` draws a driver of it from."""
+    by: dict[str, list[float]] = {}
+    for k, t in own.items():
+        if k in vtypes:
+            by.setdefault(vtypes[k], []).append(t)
+    return {
+        name: {
+            "drivers": len(taus),
+            "median_s": round(float(np.median(taus)), 3),
+            "levels_s": [float(x) for x in np.quantile(np.asarray(taus), QUANTILE_LEVELS)],
+        }
+        for name, taus in sorted(by.items())
+        if len(taus) >= MIN_VTYPE_TAUS
+    }
+
+
+def tau_record(
+    own: Mapping[Hashable, float],
+    params: KraussParams,
+    vtypes: Mapping[Hashable, str] | None = None,
+) -> dict[str, object]:
+    """``driver_tau_record`` of the drivers' own taus ``own`` (``driver_taus``); with
+    ``vtypes`` (each driver's vType, ``policy.driver_follow = "by_vtype"``) each vType's
+    quantiles too (``by_vtype``, ``vtype_levels``)."""
     taus = np.array(list(own.values()), dtype=float)
     q = tau_quantiles(taus)
+    extra = {} if vtypes is None else {"by_vtype": vtype_levels(own, vtypes)}
     return {
         "drivers": len(taus),
         "quantiles_s": None
@@ -165,6 +249,7 @@ def tau_record(own: Mapping[Hashable, float], params: KraussParams) -> dict[str,
         else None,
         # Every quantile (``QUANTILE_LEVELS``): what policy.driver_follow draws from.
         "levels_s": None if q is None else [float(x) for x in q],
+        **extra,
     }
 
 
@@ -184,7 +269,8 @@ def pair_taus(
     then a correction the actor, blind to the tau column, applied to every driver."""
     if quantiles is None:
         return None
-    q = np.asarray(quantiles, dtype=np.float32).astype(float)
+    # by_vtype's table: the pooled row (no SUMO runs here to give a vType).
+    q = pooled_quantiles(np.asarray(quantiles, dtype=np.float32).astype(float))
     out = np.array([own.get(k, np.nan) for k in keys], dtype=float)
     draws: dict[int, DriverTaus] = {}
     for i in np.flatnonzero(np.isnan(out)):

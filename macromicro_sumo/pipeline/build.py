@@ -28,7 +28,14 @@ from macromicro_sumo.deploy.stage import MANIFEST as DEPLOY_MANIFEST
 from macromicro_sumo.deploy.stage import deploy
 from macromicro_sumo.env.observed_drivers import krauss_pairs, observed_drivers
 from macromicro_sumo.env.section_bank import typical_length
-from macromicro_sumo.evaluation.driver_follow import driver_taus, pair_taus, tau_record
+from macromicro_sumo.evaluation.driver_follow import (
+    driver_gap_taus,
+    driver_taus,
+    driver_vtypes,
+    pair_taus,
+    tau_record,
+    vtype_levels,
+)
 from macromicro_sumo.evaluation.idm_fit import MIN_PRIOR_PAIRS, fit_policy_prior
 from macromicro_sumo.evaluation.krauss_fit import fit_krauss, network_defaults
 from macromicro_sumo.evaluation.methods import LEARNED, checkpoint_name
@@ -382,7 +389,15 @@ def fit_residual_prior(
         record["driver_ratios"] = ratios.record()
         # The observed drivers' own taus beside the prior's one (evaluation.driver_follow).
         own = driver_taus(drivers.obs, drivers.accel, drivers.keys, fit.params, length, dt)
-        record["driver_taus"] = tau_record(own, fit.params)
+        # policy.driver_follow = "by_vtype": each vType's quantiles too; "by_vtype_gap":
+        # each vType's of the taus its drivers keep (driver_gap_taus).
+        follow = sc.policy.driver_follow
+        vtypes = driver_vtypes(truth, own) if follow.startswith("by_vtype") else None
+        record["driver_taus"] = tau_record(own, fit.params, vtypes)
+        if follow == "by_vtype_gap":
+            kept = driver_gap_taus(drivers.obs, drivers.accel, drivers.keys, fit.params, length)
+            by = vtype_levels(kept, driver_vtypes(truth, kept))
+            record["driver_taus"]["by_vtype_gap"] = by
         taus = pair_taus(sc, keys, own, record["driver_taus"]["levels_s"])
         pairs = len(fit_acc)
     else:

@@ -184,6 +184,9 @@ def stale_reason(record: dict[str, Any], sc: Any, data: Path, path: Path) -> str
     krauss = record["family"] == "krauss"
     if krauss and sc.policy.driver_follow != "none" and "levels_s" not in (taus or {}):
         return "made before the drivers' taus were kept (policy.driver_follow draws them)"
+    by = sc.policy.driver_follow
+    if krauss and by.startswith("by_vtype") and by not in (taus or {}):
+        return f"made without each vType's taus (policy.driver_follow = {by!r} draws them)"
     if record["ground_truth_manifest_sha256"] != file_sha256(Path(data) / "manifest.json"):
         return f"made on another ground truth (its manifest.json is not {data}'s)"
     pairs = path.parent / PAIRS_FILE

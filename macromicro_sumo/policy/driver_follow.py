@@ -32,7 +32,13 @@ from typing import Any
 
 import numpy as np
 
-from macromicro_sumo.env.driver_tau import slot_tau_levels, taus_at, with_tau
+from macromicro_sumo.env.driver_tau import (
+    pooled_quantiles,
+    slot_tau_levels,
+    taus_at,
+    vtype_table,
+    with_tau,
+)
 from macromicro_sumo.env.section_bank import SectionBank
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.policy.prior_choice import LikelihoodPairs, PriorDeploy
@@ -49,6 +55,10 @@ def driver_tau_quantiles(sc, record: Mapping[str, Any] | None) -> tuple[np.ndarr
         return None, 0
     levels = record.get("levels_s")
     q = None if levels is None else np.asarray(levels, dtype=float)
+    setting = sc.policy.driver_follow
+    by = record.get(setting) if setting in ("by_vtype", "by_vtype_gap") else None
+    if q is not None and by:  # a table: the pooled row, then each vType's own
+        q = vtype_table(q, {name: r["levels_s"] for name, r in by.items()})
     return q, int(record.get("drivers", 0))
 
 
@@ -69,7 +79,11 @@ def follow_choice(
     t0 = time.perf_counter()
     q, drivers = driver_tau_quantiles(sc, fitted.get("driver_taus"))
     record: dict[str, Any] = {"setting": setting, "drivers_with_tau": drivers}
-    record["quantiles_s"] = None if q is None else [round(float(x), 4) for x in q]
+    pooled = None if q is None else pooled_quantiles(q)
+    record["quantiles_s"] = None if q is None else [round(float(x), 4) for x in pooled]
+    if q is not None and q.ndim == 2:  # by_vtype: the vTypes with their own, and medians
+        by = fitted.get("driver_taus", {}).get(setting, {})
+        record["by_vtype"] = {n: {k: r[k] for k in ("drivers", "median_s")} for n, r in by.items()}
     if q is not None and setting == "auto":
         if deploy is None:
             raise UserError(
@@ -80,7 +94,7 @@ def follow_choice(
         drawn = dataclasses.replace(deploy, driver_tau=q)(sc, prior)
         record["candidates"] = {"none": one, "drawn": drawn}
         q = q if rank_key(drawn) < rank_key(one) else None
-    record["chosen"] = "none" if q is None else "drawn"
+    record["chosen"] = "none" if q is None else setting if q.ndim == 2 else "drawn"
     record["wall_s"] = round(time.perf_counter() - t0, 1)
     return q, record
 
@@ -98,8 +112,9 @@ def follow_inputs(
     ``quantiles``."""
     if quantiles is None:
         return bank, pairs
-    # float32 as the agent's buffer: a slot's tau is the one the deployment would draw.
-    q = np.asarray(quantiles, dtype=np.float32).astype(float)
+    # float32 as the agent's buffer: a slot's tau is the one the deployment would draw;
+    # by_vtype's slots (no vType) draw from its pooled row.
+    q = pooled_quantiles(np.asarray(quantiles, dtype=np.float32).astype(float))
     taus = taus_at(q, slot_tau_levels(seed, bank.valid.shape))
     bank = SectionBank(**{**bank.__dict__, "driver_tau": taus})
     own = pairs[2] if pairs is not None and len(pairs) > 2 else None

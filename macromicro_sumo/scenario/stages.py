@@ -89,11 +89,15 @@ class PolicyConfig:
     )
     driver_follow: str = spec(
         "none",
-        choices=("none", "drawn", "auto"),
+        choices=("none", "drawn", "auto", "by_vtype", "by_vtype_gap"),
         doc="sections, with the krauss prior: none, every hidden or deployed driver follows at "
         "the prior's one fitted tau; drawn, each at its own tau drawn from the observed "
         "drivers' own fitted taus (evaluation.driver_follow; where at least 30 drivers give "
         "one, else the one tau), carried as a trailing observation column (env.driver_tau); "
+        "by_vtype: as drawn, a driver drawing from its own vType's observed drivers' taus "
+        "where at least 10 of them give one (IDM cars and trucks keep longer headways than "
+        "Krauss cars), else from all drivers'; by_vtype_gap: as by_vtype, from the taus its "
+        "vType's drivers keep at pace (the gaps they follow at, not their braking); "
         "auto: drawn or none, the one whose prior alone drives the training runs closer to "
         "the truth's station speeds (as policy.relax_choice; the manifest says which)",
         omit_default=True,  # the digests of scenarios that do not set it stay as they were

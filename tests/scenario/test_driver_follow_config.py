@@ -32,6 +32,8 @@ def test_the_default_keeps_the_digest(tmp_path: Path) -> None:
     drawn = scenario(tmp_path, prior="krauss", driver_follow="drawn")
     assert drawn.policy.driver_follow == "drawn" and drawn.digest() != plain.digest()
     assert scenario(tmp_path, prior="auto", driver_follow="auto").policy.driver_follow == "auto"
+    by = scenario(tmp_path, prior="krauss", driver_follow="by_vtype")
+    assert by.policy.driver_follow == "by_vtype" and by.digest() != drawn.digest()
 
 
 def test_an_unknown_value_is_one_line_naming_file_field_and_choices(tmp_path: Path) -> None:
