@@ -1,0 +1,151 @@
+"""Where the hidden count's error sits on a signalised section's interval record: per signal
+approach, its true constant against each lower bound ``signal_counts.approach_count`` takes
+the largest of, and the error left with the true constant (the within-interval spread of the
+counts); per snapshot, the error of each part (the counted approaches, the stretch past the
+last signal, the rest on the density estimate).
+
+An approach's count is a constant plus the up station's count less the stop bar's
+(``truth.signal_counts``). Its true constant here is the median over the snapshots of the
+true count less that difference; ``spread`` is the mean absolute error that is left with it
+(what no constant can remove); ``density``, ``queue``, ``moving`` and ``empty`` are each
+bound's constant less the true one (``density_constant``, ``queue_constant``, the median of
+the free-travel count, count >= 0 at the first bound: exact from an empty road).
+
+    .venv/bin/python scripts/bench_signal_approaches.py --start-s 240 \\
+        --out /tmp/approaches GT_DIR ...       # a ground truth (``simulate``) per argument
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_hidden_count import SLOW_MPS, SLOW_SHARE, read_truth  # noqa: E402
+
+from macromicro_sumo.data.section import at_snapshot_times  # noqa: E402
+from macromicro_sumo.road.section import Section  # noqa: E402
+from macromicro_sumo.scenario.load import load_scenario  # noqa: E402
+from macromicro_sumo.sumo.inputs import read_net, scenario_inputs  # noqa: E402
+from macromicro_sumo.truth import signal_counts as sc  # noqa: E402
+from macromicro_sumo.truth.hidden_count import window_mean  # noqa: E402
+from macromicro_sumo.truth.interval_counts import effective_densities  # noqa: E402
+from macromicro_sumo.truth.stations import side_junction_arcs  # noqa: E402
+
+
+def approach_rows(gt: Path, start_s: float = 0.0) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """(one row per run and approach: the constants' errors, vehicles; one row per snapshot:
+    each part's error, vehicles) of the ground truth ``gt`` scored from ``start_s`` on."""
+    man = json.loads((gt / "manifest.json").read_text())["scenario"]
+    section = Section.read(gt / "section.json")
+    traj, det, _ = read_truth(gt, start_s)
+    det = det.assign(k_point_vpkm=effective_densities(det))
+    net_file = scenario_inputs(load_scenario(gt.parent / "scenario.toml")).net_file
+    side = side_junction_arcs(read_net(net_file), section)
+    lines = sc.stop_lines(net_file, section)
+    snaps = at_snapshot_times(traj, man["generator"]["snapshot_every_s"])
+    window = man["detectors"]["k_window_s"]
+    lanes_mean = float((section.n_lanes * section.lengths_m).sum() / section.lengths_m.sum())
+    rows, parts = [], []
+    for run, g in snaps.groupby("run"):
+        d = det[det["run"] == run]
+        times = np.sort(g["time_s"].unique())
+        arcs_at = {t: x["arc_m"].to_numpy() for t, x in g.groupby("time_s")}
+        spacing = sc.jam_spacing_m(d)
+        for i, a in enumerate(sc.approaches(d, section, lines, side)):
+            true = np.array(
+                [((arcs_at[t] >= a.up_m) & (arcs_at[t] < a.bar_m)).sum() for t in times]
+            )
+
+            def io(x: np.ndarray, a: sc.Approach = a, d: pd.DataFrame = d) -> np.ndarray:
+                return sc.arrivals(d, a, x) - sc.cumulative(d, a.bar_m, x, a.line)
+
+            io_t = io(times)
+            c_true = float(np.median(true - io_t))
+            begin, end, _ = sc.station_counts(d, a.bar_m)
+            e = section.edge_index(np.array([a.bar_m]))[0]
+            lanes = int(section.n_lanes[e])
+            travel = (a.bar_m - a.up_m) / float(np.nanmax(section.limits_mps[e]))
+            bounds = np.concatenate([begin, end[-1:]])
+            tb = bounds[bounds >= begin[0] + travel]
+            moving = sc.arrivals(d, a, tb) - sc.arrivals(d, a, tb - travel)
+            est = sc.approach_count(d, section, a, times, spacing)
+            rows.append(
+                {
+                    "truth": gt.parent.parent.name,
+                    "run": run,
+                    "approach": i,
+                    "up_m": a.up_m,
+                    "bar_m": a.bar_m,
+                    "lanes": lanes,
+                    "entry": a.before is None,
+                    "true_vehicles": float(true.mean()),
+                    "room": lanes * (a.bar_m - a.up_m) / spacing,
+                    "true_constant": c_true,
+                    "spread": float(np.abs(true - io_t - c_true).mean()),
+                    "density": sc.density_constant(d, section, a, io) - c_true,
+                    "queue": sc.queue_constant(d, section, a, io, spacing) - c_true,
+                    "moving": float(np.quantile(moving - io(tb), sc.CLEAR_QUANTILE)) - c_true,
+                    "empty": -float(io(bounds).min()) - c_true,
+                    "error": float(np.abs(est - true).mean()) if est is not None else np.nan,
+                    "bias": float((est - true).mean()) if est is not None else np.nan,
+                }
+            )
+        pieces, rest = sc.approach_pieces(d, section, lines, side, run, times)
+        for k, t in enumerate(times):
+            arcs = arcs_at[t]
+            slow = (g.loc[g["time_s"] == t, "speed_mps"] <= SLOW_MPS).mean() >= SLOW_SHARE
+            row = {"truth": gt.parent.parent.name, "run": run, "time_s": t}
+            row |= {"congested": bool(slow), "lanes": lanes_mean}
+            inside = np.zeros(len(arcs), bool)
+            for name, piece in pieces.items():
+                on = np.zeros(len(arcs), bool)
+                for lo, hi in piece.arcs_m:
+                    on |= (arcs >= lo) & (arcs < hi)
+                inside |= on
+                row[name] = float(piece.vehicles[k] - on.sum())
+            row["rest"] = window_mean(rest, "vehicles", t, window) - float((~inside).sum())
+            parts.append(row)
+    return pd.DataFrame(rows), pd.DataFrame(parts)
+
+
+def part_summary(parts: pd.DataFrame) -> pd.DataFrame:
+    """Mean absolute error and bias per lane of each part, free / congested."""
+    cols = [c for c in ("approaches", "exit", "rest") if c in parts]
+    out = {}
+    for c in cols:
+        per_lane = parts[c] / parts["lanes"]
+        out[f"{c} abs"] = per_lane.abs().groupby(parts["congested"]).mean()
+        out[f"{c} bias"] = per_lane.groupby(parts["congested"]).mean()
+    total = parts[cols].fillna(0.0).sum(axis=1) / parts["lanes"]
+    out["all abs"] = total.abs().groupby(parts["congested"]).mean()
+    return pd.DataFrame(out).round(2)
+
+
+def main(args: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("truths", type=Path, nargs="+", help="ground-truth folders (simulate --out)")
+    p.add_argument("--start-s", type=float, default=0.0, help="score from this time on (s)")
+    p.add_argument("--out", type=Path, default=None, help="write approaches.csv, parts.csv")
+    o = p.parse_args(args)
+    both = [approach_rows(gt, o.start_s) for gt in o.truths]
+    rows = pd.concat([r for r, _ in both], ignore_index=True)
+    parts = pd.concat([x for _, x in both], ignore_index=True)
+    with pd.option_context("display.width", 250, "display.max_rows", 1000):
+        print(rows.round(2).to_string(index=False))
+        print(part_summary(parts).to_string())
+    if o.out is not None:
+        o.out.mkdir(parents=True, exist_ok=True)
+        rows.to_csv(o.out / "approaches.csv", index=False)
+        parts.to_csv(o.out / "parts.csv", index=False)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
