@@ -249,7 +249,15 @@ def own_speed_pairs(
     median driver's, as a ``"drawn"`` deployment's drivers do. Why (``policy.prior =
     "krauss"``): fitted to every pair, drivers cruising at their own desired speeds, which
     the observation does not carry, looked like drivers that barely accelerate (Bremen:
-    free term's relaxation 10 s, its bound)."""
+    free term's relaxation 10 s, its bound).
+
+    With ``policy.driver_ratios = "reached"`` it still takes ``drivers.ratio`` as it is:
+    the unsettled exact ratios in, the reached bounds out. Taking the rule's own set
+    instead was measured (stop 42, train + val runs) and left: it adds pairs (Bremen
+    15,193 -> 15,709, drawn arterial 528 4,540 -> 11,415) but barely moves the fitted
+    Krauss prior (speed factor 0.9978 -> 0.9978 and 1.0173 -> 1.0181, tau 1.0815 ->
+    1.0818 and 1.1152 -> 1.1079 s, Bremen's accel 1.804 -> 1.846 m/s^2; netgen_corridor
+    tau 1.0685 -> 1.0667 s), well inside what a PPO seed moves the deployment by."""
     if not drivers.ratio:
         return drivers.obs[:0], drivers.accel[:0]
     if median is None:
