@@ -297,15 +297,18 @@ class DeployConfig:
         "IDM does not keep; docs/deploy.md, Safety layer strictness)",
     )
     command_brake: str = spec(
-        "bounds",
+        "decel",
         choices=("bounds", "decel"),
         doc="safety sumo: the hardest braking a driven vehicle's command may ask before the "
         "safety layer: bounds, the scenario's bounds.accel_mps2; decel, at most the braking "
         "the layer plans its stop with (its vType's decel), so that a policy bound below it "
         "brakes no car harder than SUMO's own would where nothing ahead asks for it; the "
         "layer still brakes harder where what is ahead asks for it (deploy.safety."
-        "command_brake)",
-        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+        "command_brake; drawn 501 all 4 runs: emergency brakings 458 -> 233, speed RMSE "
+        "3.32 -> 3.28 m/s; with merge_reach occupation 341 -> 191, 2.53 -> 2.40)",
+        # A deployment setting: the digests (and checkpoints) of scenarios that do not set it
+        # stay as they were when its default moved from bounds to decel.
+        omit_default=True,
     )
     action: str = spec(
         "mean",

@@ -1,6 +1,6 @@
 """``deploy.command_brake``: a driven vehicle's command brakes at most at the decel the
-safety layer plans its stop with ("decel"), not at the scenario's lower bound ("bounds",
-the default), unless what is ahead asks for more (then the layer's braking stands). In
+safety layer plans its stop with ("decel", the default), not at the scenario's lower
+bound ("bounds"), unless what is ahead asks for more (then the layer's braking stands). In
 numpy and in real SUMO: IDM cars (decel 3.0) under a policy that always brakes at the
 bound (-4.5 m/s^2) make SUMO's emergency brakings with "bounds", none with "decel"."""
 
@@ -52,7 +52,7 @@ def _road(folder: Path, brake: str) -> Path:
         '    <flow id="f" type="idm" begin="0" end="3600" period="4" departSpeed="25">'
         '<route edges="A B"/></flow>\n</routes>\n'
     )
-    deploy = {} if brake == "bounds" else {"command_brake": brake}
+    deploy = {} if brake == "decel" else {"command_brake": brake}  # decel: the default
     return section_scenario(
         folder / "road.toml",
         net,
