@@ -116,7 +116,10 @@ def approach_rows(gt: Path, start_s: float = 0.0) -> tuple[pd.DataFrame, pd.Data
 
 
 def part_summary(parts: pd.DataFrame) -> pd.DataFrame:
-    """Mean absolute error and bias per lane of each part, free / congested."""
+    """Mean absolute error and bias per lane of each part, free / congested, over the
+    snapshots the estimate covers (the rest's interval density exists: ``k_estimates``
+    skips the others)."""
+    parts = parts[np.isfinite(parts["rest"])]
     cols = [c for c in ("approaches", "exit", "rest") if c in parts]
     out = {}
     for c in cols:

@@ -48,3 +48,7 @@ def test_the_approaches_and_parts_of_a_signalised_record(tmp_path: Path) -> None
     assert np.abs(both["parts"] - both["intervals"]).max() <= 0.5 + 1e-9
     table = script.part_summary(parts)
     assert {"approaches abs", "rest abs", "all abs"} <= set(table.columns)
+    cong = both.join(parts.set_index(["run", "time_s"])[["congested", "lanes"]])
+    cong = cong[cong["congested"]]
+    k_per_lane = float((cong["intervals"].abs() / cong["lanes"]).mean())
+    assert abs(float(table.loc[True, "all abs"]) - k_per_lane) <= 0.5 / cong["lanes"].iloc[0]
