@@ -18,8 +18,10 @@ commands of the step before (the one SUMO applied):
 * ``instrumented``: outside the driven population (the observed vehicles SUMO drives);
 * ``off_section`` / ``sumo``: another vehicle SUMO drives, off the section or not.
 
-``cut_in``: what the vehicle saw ahead was more than 5 m nearer than the step before (a
-new leader: one that changed lanes in front of it, or its own lane change); ``yield_steps``: its merge yield on its
+``cut_in``: what the vehicle saw ahead was more than 5 m nearer than the step before's
+could have come at its speed (a new leader: one that changed lanes in front of it, its own
+lane change, or one come into view); ``last_stop_ahead``: what it saw ahead was a lane end
+or a red light; ``yield_steps``: its merge yield on its
 last commanded steps ("y1010": on, off, on, off).
 
 Writes ``--out``/brakings.csv (one row per emergency braking) and prints the counts by
@@ -43,6 +45,7 @@ from deploy_runs import changed
 
 from macromicro_sumo.deploy import drivers
 from macromicro_sumo.deploy.floor_choice import resolve_floor
+from macromicro_sumo.deploy.observe import STOP_DECEL_MPS2
 from macromicro_sumo.deploy.population import population_scenario
 from macromicro_sumo.deploy.run import load_context, run_method
 from macromicro_sumo.deploy.safety import command_brake
@@ -104,9 +107,10 @@ def install(sc) -> Callable[[], None]:
         v = obs[:, 0]
         n = len(v)
         if safety == "sumo":
-            gap, decel, _, lead = layer()
+            gap, decel, lead_decel, lead = layer()
         else:
             gap, decel, lead = np.full(n, np.nan), np.full(n, np.inf), np.full(n, -1)
+            lead_decel = np.full(n, np.nan)
         lo = command_brake(a_min, decel, sc_.deploy.command_brake)
         a = np.maximum(got["a"], lo)
         yc = REC.yield_cap if REC.yield_cap is not None else np.full(n, np.inf)
@@ -117,6 +121,10 @@ def install(sc) -> Callable[[], None]:
             "cap": np.full(n, np.inf) if cap is None else np.asarray(cap, dtype=float) * np.ones(n),
             "cmd": np.asarray(cmd, dtype=float).copy(),
             "gap": np.asarray(gap, dtype=float).copy(),
+            "lead_v": obs[:, 0] - obs[:, 3],
+            # What it sees ahead stands for good: a lane end or a red light (observe's
+            # STOP_DECEL_MPS2 as its decel), not a vehicle.
+            "stop_ahead": (np.asarray(lead_decel, dtype=float) >= STOP_DECEL_MPS2).astype(float),
             "lead_driven": (np.asarray(lead) >= 0).astype(float),
         }
         REC.yield_cap = None
@@ -209,9 +217,13 @@ def classify(vid: str, st, i: int, decel: float, driver, dt: float) -> dict:
         # Its merge yield on the last commanded steps, oldest first ("y1010": on, off, ...).
         row["yield_steps"] = "y" + REC.yielding.get(vid, "")
         pstep, prev = REC.prev.get(vid, (-1, None))
-        # A leader nearer than the last step's by more than 5 m: one that cut in.
+        # What is ahead more than 5 m nearer than the step before's, moved on at its speed,
+        # could have come: a new leader (one that cut in, or its own lane change), or one
+        # that came into view from beyond NO_LEADER_GAP_M.
         row["cut_in"] = bool(
-            prev is not None and pstep == step - 1 and rec["gap"] < prev["gap"] - 5.0
+            prev is not None
+            and pstep == step - 1
+            and rec["gap"] < prev["gap"] - (prev["v"] - prev["lead_v"]) * dt - 5.0
         )
         row["prev_gap"] = np.nan if prev is None else prev["gap"]
     elif vid in getattr(driver, "merging", ()):
