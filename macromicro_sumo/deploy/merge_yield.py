@@ -42,6 +42,35 @@ MERGE_YIELD_TOLERANCE_MPS = 1.0
 LANE_END_RECHECK_STEPS = 20
 
 
+def yield_caps(
+    own: np.ndarray,
+    speed: np.ndarray,
+    safe: np.ndarray,
+    decel: np.ndarray,
+    dt_s: float,
+    held: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The merge yield's caps [m/s] (``MergeYield.yields``) of blocking vehicles at speeds
+    ``speed``, safe speeds ``safe``, vType decels ``decel``, from SUMO's own speeds ``own``
+    (the last step's, getSpeedWithoutTraCI), and where SUMO asked for them: ``own`` where
+    it is more than ``MERGE_YIELD_TOLERANCE_MPS`` below both the speed and the safe speed
+    (its lane changer asked for less), at least v - decel dt (``own`` was chosen from last
+    step's speed); inf where not asked. ``held`` (``deploy.merge_reach = "occupation"``):
+    the vehicles SUMO asked last step; one not asked now is held at its speed for this
+    step, no acceleration. Why: the step after a yield SUMO's own speed is the one it chose
+    from the speed before the yield, about the yield's cap, so it is not asked again; the
+    policy then accelerated the blocker by up to 2.6 m/s^2 and the next step's own speed
+    braked it again, on/off every other step (occupation, all 4 runs: of the yields whose
+    vehicle still blocked the next step, 4,906 of 5,518 free then on drawn 549, 884 of 919
+    on Bremen; held, none). Held while it blocks (a hold after a hold) held blockers up to
+    33 s and 549's run 2 went 3.63 -> 6.10 m/s (docs/deploy.md, stop 42, hO)."""
+    asked = own < np.minimum(speed, safe) - MERGE_YIELD_TOLERANCE_MPS
+    cap = np.where(asked, np.maximum(own, speed - decel * dt_s), np.inf)
+    if held is not None:
+        cap = np.where(held & ~asked, speed, cap)
+    return cap, asked
+
+
 class LaneEnds(Protocol):
     """What ``MergeYield.must_change`` and ``MergeYield.yields`` ask of the class they are
     mixed into (``SectionSpeedDriver``): its state (the scenario, for the step length; each
@@ -50,6 +79,8 @@ class LaneEnds(Protocol):
 
     sc: SectionScenario
     decel_of: dict[str, float]
+    yield_all: bool
+    yielded: frozenset[str]
     slots: VehicleSlots
     section: Section
     driven: set[str]
@@ -74,7 +105,8 @@ class MergeYield:
     -> +0.95 m/s bias, downstream slower through memory's entry factors), 2.86 with
     "drawn"; 549 4.53 -> 3.82; 501 3.02 -> 2.72 (held-out 3.23 -> 4.00); Bremen 1.15 ->
     1.19; netgen_corridor and arterial 521 the same. The occupation alone costs 549
-    (5.55), the yield alone 549 and 501 (4.72, 3.09)."""
+    (5.55), the yield alone 549 and 501 (4.72, 3.09). A vehicle SUMO asked to yield is
+    held at its speed the next step (``yield_caps``)."""
 
     sc: SectionScenario
     slots: VehicleSlots
@@ -87,6 +119,8 @@ class MergeYield:
     decel_of: dict[str, float]  # vehicle -> its demand vType's decel (``SectionDriver``)
     occupation = False  # the hand-over at LC2013's usable distance (``usable_m``)
     yield_all = False  # the yield to the blockers of every vehicle that must change
+    # With ``yield_all``: the vehicles SUMO asked to yield last step (``yield_caps``' held)
+    yielded: frozenset[str] = frozenset()
     _chains: dict[str, tuple[str, ...]] | None = None
     driven: set[str]
     steps: int
@@ -199,9 +233,13 @@ class MergeYield:
         if self.yield_all:
             asking.update(self.must_change(sim, vids, slots, st))
         if not asking:
+            self.yielded = frozenset()  # nobody blocks now: none held next step
             return []
         blockers = sim.left_blockers(sorted(asking))
-        return [i for i, v in enumerate(vids) if v in blockers]
+        near = [i for i, v in enumerate(vids) if v in blockers]
+        if not near:
+            self.yielded = frozenset()
+        return near
 
     def must_change(
         self: LaneEnds, sim: Simulation, vids: list[str], slots: np.ndarray, st: VehicleStates
@@ -254,13 +292,23 @@ class MergeYield:
         the last step's, chosen from the speed it had then; where the command accelerated
         it since, that speed asked now brakes harder than its decel, which a follower SUMO
         drives does not plan for (drawn 501: 3.36 -> 0 m/s in a step, 6.7 m/s^2, and the
-        car just merged behind it collided)."""
+        car just merged behind it collided). With ``yield_all`` a vehicle SUMO asked last
+        step and not now is held at its speed for this step (``yield_caps``)."""
         cap = np.full(len(vids), np.inf)
         ids = [vids[i] for i in near]
-        own = sim.own_speeds(ids)
-        asked = own < np.minimum(speed[near], safe[near]) - MERGE_YIELD_TOLERANCE_MPS
-        if np.count_nonzero(asked):
-            decel = np.fromiter(map(self.decel_of.__getitem__, ids), float, len(ids))
-            own = np.maximum(own, speed[near] - decel * self.sc.simulation.step_length_s)
-        cap[near] = np.where(asked, own, np.inf)
+        decel = np.fromiter(map(self.decel_of.__getitem__, ids), float, len(ids))
+        held = None
+        if self.yield_all:
+            held = np.fromiter(map(self.yielded.__contains__, ids), bool, len(ids))
+        got, asked = yield_caps(
+            sim.own_speeds(ids),
+            speed[near],
+            safe[near],
+            decel,
+            self.sc.simulation.step_length_s,
+            held,
+        )
+        if self.yield_all:
+            self.yielded = frozenset(compress(ids, asked.tolist()))
+        cap[near] = got
         return cap
