@@ -128,6 +128,10 @@ def supported_decel(
     lo = np.asarray(decel, dtype=float)
     hi = planned_decel(lo, lead_decel, "matched")
     short = (gap < NO_LEADER_GAP_M) & (hi > lo)
+    # Where no leader can hold more than the vehicle's decel (every step on Bremen), the
+    # safe-speed test on no vehicles is skipped: some 15 numpy calls on empty arrays.
+    if not short.any():
+        return lo.copy()
     short[short] = (
         safe_speed(gap[short], lead_speed[short], lo[short], lead_decel[short], dt_s) < speed[short]
     )
@@ -166,20 +170,20 @@ class BrakeHandover:
 
     def __init__(self, dt_s: float) -> None:
         self.dt_s = float(dt_s)
-        # Per slot (``deploy.slots.VehicleSlots``: one per vehicle met, never reused):
-        # whether its hand-over was decided, its planned braking then, that step, and the
-        # step its ramp ends (-inf: none). Arrays, so that a step with no new driver and
-        # no ramp costs a few array reads (a set of the driven ids a step cost ~30 us on
-        # Bremen, a tenth of the driver's time).
-        self._met = np.zeros(0, dtype=bool)
+        # Per slot (``deploy.slots.VehicleSlots``: one per vehicle met, never reused): its
+        # planned braking at its hand-over and that step, and the step its ramp ends (-inf:
+        # none; +inf: the vehicle is not met yet, so that one read of the driven vehicles'
+        # slots finds both the new drivers and the ramps). A step with no new driver and no
+        # ramp costs a gather, a comparison and a nonzero (a set of the driven ids a step
+        # cost ~30 us on Bremen, a tenth of the driver's time; a separate "met" array, its
+        # slots.max() and its reads, ~8 numpy calls a step).
         self._start = np.zeros((0, 2))
         self._end = np.zeros(0)
 
     def _grow(self, size: int) -> None:
-        n = max(size, 2 * len(self._met), 64)
-        self._met = np.concatenate([self._met, np.zeros(n - len(self._met), dtype=bool)])
+        n = max(size, 2 * len(self._end), 64)
         self._start = np.concatenate([self._start, np.zeros((n - len(self._start), 2))])
-        self._end = np.concatenate([self._end, np.full(n - len(self._end), -np.inf)])
+        self._end = np.concatenate([self._end, np.full(n - len(self._end), np.inf)])
 
     def __call__(
         self,
@@ -196,21 +200,31 @@ class BrakeHandover:
         now (SUMO's ``gap`` to what each sees ahead, its ``speed``, its leader's speed and
         decel) where a vehicle is met for the first time."""
         rate = HANDOVER_DECEL_RATE_MPS2_PER_S * self.dt_s
-        if slots.size and slots.max() >= len(self._met):
+        try:
+            end = self._end[slots]
+        except IndexError:  # a slot beyond the arrays: grown (slots are never negative)
             self._grow(int(slots.max()) + 1)
-        new = (~self._met[slots]).nonzero()[0]
-        if new.size:
-            self._met[slots[new]] = True
+            end = self._end[slots]
+        on = (end >= step).nonzero()[0]  # new drivers (+inf) and ramps
+        if not on.size:
+            return decel
+        fresh = end[on] == np.inf
+        if fresh.any():
+            new = on[fresh]
             got = supported_decel(
                 gap[new], lead_speed[new], speed[new], decel[new], lead_decel[new], self.dt_s
             )
             ramp = got > decel[new]
-            s, b = slots[new[ramp]], got[ramp]
-            self._start[s, 0], self._start[s, 1] = b, step
-            self._end[s] = step + np.ceil((b - decel[new[ramp]]) / rate)
-        on = (self._end[slots] >= step).nonzero()[0]
-        if not on.size:
-            return decel
+            self._end[slots[new]] = -np.inf
+            if ramp.any():
+                s, b = slots[new[ramp]], got[ramp]
+                self._start[s, 0], self._start[s, 1] = b, step
+                self._end[s] = step + np.ceil((b - decel[new[ramp]]) / rate)
+                on = (self._end[slots] >= step).nonzero()[0]
+            else:
+                on = on[~fresh]
+            if not on.size:
+                return decel
         start = self._start[slots[on]]
         out = decel.copy()
         out[on] = np.maximum(decel[on], start[:, 0] - rate * (step - start[:, 1]))

@@ -76,6 +76,44 @@ def test_the_handed_over_braking_falls_to_the_own_at_its_rate() -> None:
         np.testing.assert_allclose(got, [max(3.0, first[0] - step * k), 3.0])
 
 
+def test_the_hand_over_is_decided_once_per_slot_as_the_vehicles_come_and_go() -> None:
+    """Seeded random steps of driven slots (up to 900, past the arrays' first 64; vehicles
+    leave and come back): each call equals a per-vehicle reference to the bit, the hand-over
+    decided at a slot's first driven step alone (``supported_decel`` then; its ramp, if
+    any, from that step), never again at a later return; a ramp meets both kinds."""
+    dt = 0.5
+    rate = HANDOVER_DECEL_RATE_MPS2_PER_S * dt
+    rng = np.random.default_rng(42)
+    hand = BrakeHandover(dt)
+    ramps: dict[int, tuple[float, float, float]] = {}  # slot: (b at first step, step, end)
+    met: set[int] = set()
+    ramped = returned = 0
+    for step in range(120):
+        seen = 20 + 7 * step
+        slots = rng.choice(min(seen, 900), size=min(rng.integers(0, 60), seen), replace=False)
+        m = slots.size
+        own = rng.choice([3.0, 4.0, 4.5], m)
+        b_l = rng.choice([3.0, 4.5, STOP_DECEL_MPS2], m)
+        gap = np.where(rng.random(m) < 0.2, NO_LEADER_GAP_M, rng.uniform(0.0, 80.0, m))
+        v, v_l = rng.uniform(0.0, 30.0, m), rng.uniform(0.0, 30.0, m)
+        first = supported_decel(gap, v_l, v, own, b_l, dt)
+        want = own.copy()
+        for i, slot in enumerate(slots.tolist()):
+            if slot not in met:
+                met.add(slot)
+                if first[i] > own[i]:
+                    end = step + float(np.ceil((first[i] - own[i]) / rate))
+                    ramps[slot] = (float(first[i]), float(step), end)
+            else:
+                returned += 1
+            if slot in ramps and ramps[slot][2] >= step:
+                b0, s0, _ = ramps[slot]
+                want[i] = max(own[i], b0 - rate * (step - s0))
+                ramped += 1
+        np.testing.assert_array_equal(hand(slots, own, b_l, gap, v, v_l, step), want)
+    assert ramped > 40 and returned > 1000 and len(ramps) > 25
+
+
 def _inserted_mix(folder: Path) -> Path:
     """Drawn net 502's entry: a two-lane road (limit 22.9 m/s) whose section starts where
     the vehicles are inserted (departLane free, departSpeed max), 4,000 veh/h of Krauss
