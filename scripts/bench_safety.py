@@ -1,0 +1,188 @@
+"""The safety layer's own time a step at Bremen, A/B: the inputs of every call of
+``BrakeHandover``, ``leader_safe_speed`` and ``safety_cap`` (``deploy.safety``) in one
+Bremen policy run (``scripts/ab_deploy.py``'s run 0, the base package driving) are
+recorded, then replayed through the ``deploy/safety.py`` of the base package and of
+NEW_ROOT (another checkout or worktree), alternated over rounds: the median time a call
+of each function, and whether every output is the same to the bit.
+
+Why: the functions cost tens of us a step, while a whole deployment run's A/B
+(``ab_deploy.py``) moves by hundreds at this machine's load; replayed alone, identical code
+differs by about +-2 us a call (stop 42).
+
+    PYTHONPATH=$PWD .venv/bin/python scripts/bench_safety.py NEW_ROOT [--rounds 5]
+        [--reps 3] [--checkpoint POLICY.pt]
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+import torch
+
+HERE = Path(__file__).resolve().parent
+FUNCTIONS = ("BrakeHandover", "leader_safe_speed", "safety_cap")
+Call = tuple[str, tuple]
+
+
+def safety_module(root: Path, name: str) -> ModuleType:
+    """``macromicro_sumo/deploy/safety.py`` under ``root`` as a module called ``name``."""
+    path = root / "macromicro_sumo" / "deploy" / "safety.py"
+    if not path.is_file():
+        raise SystemExit(f"bench_safety.py: {path} not found (NEW_ROOT)")
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def record(checkpoint: Path) -> tuple[list[Call], float]:
+    """The safety-layer calls (name, copied arguments) of one Bremen run, and its step."""
+    sys.path.insert(0, str(HERE))
+    import ab_deploy  # noqa: PLC0415 (a script beside this one)
+
+    import macromicro_sumo.deploy.drivers as drivers  # noqa: PLC0415
+    import macromicro_sumo.deploy.safety as safety  # noqa: PLC0415
+
+    calls: list[Call] = []
+
+    def copied(args: tuple) -> tuple:
+        return tuple(a.copy() if isinstance(a, np.ndarray) else a for a in args)
+
+    handover, safe, cap = (
+        safety.BrakeHandover.__call__,
+        drivers.leader_safe_speed,
+        safety.safety_cap,
+    )
+
+    def rec_handover(self, *args):
+        calls.append(("BrakeHandover", copied(args)))
+        return handover(self, *args)
+
+    def rec_safe(*args):
+        calls.append(("leader_safe_speed", copied(args)))
+        return safe(*args)
+
+    def rec_cap(*args):
+        calls.append(("safety_cap", copied(args)))
+        return cap(*args)
+
+    safety.BrakeHandover.__call__, drivers.leader_safe_speed, safety.safety_cap = (
+        rec_handover,
+        rec_safe,
+        rec_cap,
+    )
+    try:
+        torch.set_num_threads(1)
+        bench = ab_deploy.bench_module()
+        with tempfile.TemporaryDirectory() as tmp_name:
+            tmp = Path(tmp_name)
+            sc = bench.bremen_scenario(tmp)
+            agent, _ = bench.agent_for(sc, checkpoint)
+            act = ab_deploy.base_batch.policy_batch(agent)
+            ab_deploy.one_run(sc, tmp / "run", drivers.SectionSpeedDriver, act)
+    finally:
+        safety.BrakeHandover.__call__, drivers.leader_safe_speed, safety.safety_cap = (
+            handover,
+            safe,
+            cap,
+        )
+    return calls, sc.simulation.step_length_s
+
+
+def replay(module: ModuleType, calls: list[Call], dt_s: float) -> tuple[dict[str, float], list]:
+    """Seconds spent in each function over ``calls`` (one ``BrakeHandover`` for them all,
+    as a run has), and every output."""
+    spent = dict.fromkeys(FUNCTIONS, 0.0)
+    outs = []
+    handover = module.BrakeHandover(dt_s)
+    run = {
+        "BrakeHandover": handover,
+        "leader_safe_speed": module.leader_safe_speed,
+        "safety_cap": module.safety_cap,
+    }
+    for name, args in calls:
+        fresh = tuple(a.copy() if isinstance(a, np.ndarray) else a for a in args)
+        f = run[name]
+        t0 = time.perf_counter()
+        out = f(*fresh)
+        spent[name] += time.perf_counter() - t0
+        outs.append(out)
+    return spent, outs
+
+
+def same(x, y) -> bool:
+    """Equal to the bit (arrays: dtype, shape and bytes), through tuples."""
+    if isinstance(x, tuple):
+        return isinstance(y, tuple) and len(x) == len(y) and all(map(same, x, y))
+    if isinstance(x, np.ndarray):
+        return (
+            isinstance(y, np.ndarray)
+            and x.dtype == y.dtype
+            and x.shape == y.shape
+            and x.tobytes() == y.tobytes()
+        )
+    return type(x) is type(y) and x == y
+
+
+def compare(
+    base: ModuleType, new: ModuleType, calls: list[Call], dt_s: float, rounds: int, reps: int
+) -> tuple[dict[str, tuple[float, float]], bool]:
+    """Per function, the median us a call of base and new over ``rounds`` alternated rounds
+    of ``reps`` replays each, and whether every output of new equals base's to the bit."""
+    per = {f: max(1, sum(n == f for n, _ in calls)) for f in FUNCTIONS}
+    times: dict[str, dict[str, list[float]]] = {"base": {}, "new": {}}
+    outs: dict[str, list] = {}
+    for r in range(rounds):
+        for arm in ("base", "new") if r % 2 == 0 else ("new", "base"):
+            module = base if arm == "base" else new
+            total = dict.fromkeys(FUNCTIONS, 0.0)
+            for _ in range(reps):
+                spent, outs[arm] = replay(module, calls, dt_s)
+                for f in FUNCTIONS:
+                    total[f] += spent[f]
+            for f in FUNCTIONS:
+                times[arm].setdefault(f, []).append(1e6 * total[f] / (reps * per[f]))
+    medians = {
+        f: (statistics.median(times["base"][f]), statistics.median(times["new"][f]))
+        for f in FUNCTIONS
+    }
+    equal = len(outs["base"]) == len(outs["new"]) and all(map(same, outs["base"], outs["new"]))
+    return medians, equal
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("new_root", type=Path, help="the checkout whose deploy/safety.py is new")
+    ap.add_argument("--rounds", type=int, default=5, help="alternated rounds (default 5)")
+    ap.add_argument("--reps", type=int, default=3, help="replays a round (default 3)")
+    ap.add_argument(
+        "--checkpoint",
+        type=Path,
+        default=HERE.parent / "runs" / "highway_bremen" / "policy" / "policy.pt",
+        help="the Bremen policy (as bench_deploy.py's)",
+    )
+    args = ap.parse_args(argv)
+    import macromicro_sumo.deploy.safety as base  # noqa: PLC0415
+
+    new = safety_module(args.new_root.resolve(), "bench_safety_new")
+    calls, dt = record(args.checkpoint)
+    medians, equal = compare(base, new, calls, dt, args.rounds, args.reps)
+    print(f"{len(calls)} calls recorded (Bremen run 0); us a call, median of {args.rounds}:")
+    for f, (b, n) in medians.items():
+        print(f"  {f:18s} base {b:7.2f}  new {n:7.2f}  diff {n - b:+6.2f}")
+    print(f"  outputs: {'the same to the bit' if equal else 'DIFFERENT'}")
+    return 0 if equal else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
