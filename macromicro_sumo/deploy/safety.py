@@ -126,12 +126,31 @@ def supported_decel(
     replaces cost some 130 us a new driver). Within rounding of the speed: at most 7e-15
     m/s below it over 20,390 seeded states that need more than the vType's decel."""
     lo = np.asarray(decel, dtype=float)
-    hi = planned_decel(lo, lead_decel, "matched")
-    short = (gap < NO_LEADER_GAP_M) & (hi > lo)
+    short = _beyond_own(gap, lo, lead_decel)
     # Where no leader can hold more than the vehicle's decel (every step on Bremen), the
     # safe-speed test on no vehicles is skipped: some 15 numpy calls on empty arrays.
     if not short.any():
         return lo.copy()
+    return _supported(short, gap, lead_speed, speed, lo, lead_decel, dt_s)
+
+
+def _beyond_own(gap: np.ndarray, lo: np.ndarray, lead_decel: np.ndarray) -> np.ndarray:
+    """``supported_decel``'s vehicles that may need more than their decel ``lo``: a leader
+    (``gap`` below ``NO_LEADER_GAP_M``) whose braking "matched" plans above ``lo``."""
+    return (gap < NO_LEADER_GAP_M) & (planned_decel(lo, lead_decel, "matched") > lo)
+
+
+def _supported(
+    short: np.ndarray,
+    gap: np.ndarray,
+    lead_speed: np.ndarray,
+    speed: np.ndarray,
+    lo: np.ndarray,
+    lead_decel: np.ndarray,
+    dt_s: float,
+) -> np.ndarray:
+    """``supported_decel`` where ``short`` (``_beyond_own``) has a vehicle (``short`` is overwritten)."""
+    hi = planned_decel(lo, lead_decel, "matched")
     short[short] = (
         safe_speed(gap[short], lead_speed[short], lo[short], lead_decel[short], dt_s) < speed[short]
     )
@@ -211,15 +230,19 @@ class BrakeHandover:
         fresh = end[on] == np.inf
         if fresh.any():
             new = on[fresh]
-            got = supported_decel(
-                gap[new], lead_speed[new], speed[new], decel[new], lead_decel[new], self.dt_s
-            )
-            ramp = got > decel[new]
             self._end[slots[new]] = -np.inf
-            if ramp.any():
+            # supported_decel's, its state read only where a leader may ask more (no new
+            # driver's on Bremen: there each step with one costs a few numpy calls).
+            lo, ahead, lead_b = decel[new], gap[new], lead_decel[new]
+            short = _beyond_own(ahead, lo, lead_b)
+            got = ramp = None
+            if short.any():
+                got = _supported(short, ahead, lead_speed[new], speed[new], lo, lead_b, self.dt_s)
+                ramp = got > lo
+            if ramp is not None and ramp.any():
                 s, b = slots[new[ramp]], got[ramp]
                 self._start[s, 0], self._start[s, 1] = b, step
-                self._end[s] = step + np.ceil((b - decel[new[ramp]]) / rate)
+                self._end[s] = step + np.ceil((b - lo[ramp]) / rate)
                 on = (self._end[slots] >= step).nonzero()[0]
             else:
                 on = on[~fresh]
