@@ -81,10 +81,13 @@ class PolicyConfig:
         "(at a sample within 2% of the top: the next speed not above it, a free gap or a "
         "leader pulling away 0.5 m/s faster) is its ratio, and an exact ratio whose top was "
         "still rising a bound (env.observed_drivers.unheld). Against the true speedFactors "
-        "its median is within 0.02 on 12 nets (arterial 521 1.017, true 0.998; 528 1.027, "
-        "1.012; kaplan_meier 1.119, 1.140). Not the default: retrained (one PPO seed, all 4 "
-        "runs' speed RMSE) 528 1.564 -> 1.510 m/s, netgen_corridor 0.461 -> 0.460, but "
-        "highway_bremen 1.146 -> 1.196, above kaplan_meier's seeds (1.119-1.146)",
+        "its median is within 0.02 on 12 of 13 nets (arterial 521 1.017, true 0.998; 528 "
+        "1.027, 1.012; kaplan_meier 1.119, 1.140; not scripts/draw_scenario.py's arterial "
+        "528: 1.040, true 1.016, kaplan_meier's fallback 1.0). Not the default: retrained, "
+        "all 4 runs' speed RMSE, highway_bremen the same over five PPO seeds (1.065-1.295 "
+        "-> 0.927-1.240 m/s, means 1.127 -> 1.118), draw_scenario's arterial 528 worse "
+        "over two (1.357-1.372 -> 1.558-1.622), its 521 the same over two (1.081-1.088 -> "
+        "1.080-1.082), netgen_corridor 0.460 -> 0.458 (docs/deploy.md, stop 42)",
         omit_default=True,  # the digests of scenarios that do not set it stay as they were
     )
     driver_follow: str = spec(
