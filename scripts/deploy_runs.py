@@ -6,8 +6,9 @@ chosen on the training runs where ``deploy.safety_floor_on = "auto"``); ``--set`
 ``[deploy]`` or ``[policy]`` key of the scenario for this deployment only (what a change
 under test is switched by). Written into ``--out`` (a new or empty folder): a folder per
 method (without SUMO's files), ``deploy_comparison.csv`` and ``deploy_summary.csv`` against
-the ground truth over the runs deployed, and ``deploy_runs.csv``, each run's speed RMSE and
-safety counts per method. The runs' figures in docs/deploy.md ("all 4 runs") are this.
+the ground truth over the runs deployed, and ``deploy_runs.csv``, each run's safety counts
+and station scores per method (``deploy.compare.detector_scores``: the station rows, not
+the per-lane ones). The runs' figures in docs/deploy.md ("all 4 runs") are this.
 
     .venv/bin/python scripts/deploy_runs.py SCENARIO.toml RUN_DIR --out DIR \\
         [--methods policy sumo_default] [--runs 0 1] [--set deploy.merge_reach=occupation]
@@ -25,7 +26,7 @@ from pathlib import Path
 import pandas as pd
 import torch
 
-from macromicro_sumo.deploy.compare import compare_folders
+from macromicro_sumo.deploy.compare import compare_folders, detector_scores
 from macromicro_sumo.deploy.floor_choice import resolve_floor
 from macromicro_sumo.deploy.population import population_scenario
 from macromicro_sumo.deploy.run import load_context, run_method, write_method
@@ -47,6 +48,13 @@ SHOWN = (
     "emergency_brakings",
 )
 PER_RUN = ("collisions", "teleports", "emergency_brakings")
+PER_RUN_SCORES = (
+    "station_intervals",
+    "share_geh_below_5",
+    "share_speed_within_5pct",
+    "speed_rmse_mps",
+    "speed_bias_mps",
+)
 
 
 def get_options(args: list[str] | None = None) -> argparse.Namespace:
@@ -107,16 +115,14 @@ def deploy_runs(options: argparse.Namespace) -> pd.DataFrame:
     comparison, summary = compare_folders(truth_dir, dirs, sc.deploy.compare_interval_s)
     comparison.to_csv(out / "deploy_comparison.csv", index=False)
     summary.to_csv(out / "deploy_summary.csv", index=False)
-    c = comparison.dropna(subset=["speed_method_mps", "speed_truth_mps"])
-    rmse = (
-        c.assign(se=(c["speed_method_mps"] - c["speed_truth_mps"]) ** 2)
-        .groupby(["method", "run"])["se"]
-        .mean()
-        .pow(0.5)
-        .rename("speed_rmse_mps")
-        .reset_index()
+    # Per run, the summary's own scores (station rows only, not the per-lane ones).
+    scores = pd.DataFrame(
+        [
+            {"method": m, "run": r, **{k: detector_scores(g)[k] for k in PER_RUN_SCORES}}
+            for (m, r), g in comparison.groupby(["method", "run"])
+        ]
     )
-    pd.concat(per_run).merge(rmse, on=["method", "run"], how="left").to_csv(
+    pd.concat(per_run).merge(scores, on=["method", "run"], how="left").to_csv(
         out / "deploy_runs.csv", index=False
     )
     return summary

@@ -41,7 +41,14 @@ def test_every_run_is_deployed_and_the_oracle_is_exact(merge_run, tmp_path: Path
     assert (oracle["speed_rmse_mps"] == 0.0).all() and (oracle["collisions"] == 0).all()
     summary = pd.read_csv(out / "deploy_summary.csv").set_index("method")
     assert summary.loc["oracle", "share_geh_below_5"] == 1.0
+    # Each run's RMSE is over the station rows the summary scores: pooled, they give it.
+    d = per_run[per_run["method"] == "sumo_default"].set_index("run")
     comp = pd.read_csv(out / "deploy_comparison.csv")
+    rows = comp[(comp["method"] == "sumo_default") & (comp["lane"] == -1)]
+    n = rows.dropna(subset=["speed_truth_mps", "speed_method_mps"]).groupby("run").size()
+    assert n.sum() < len(comp[comp["method"] == "sumo_default"])  # lanes' rows left out
+    pooled = (n * d.loc[n.index, "speed_rmse_mps"] ** 2).sum() / n.sum()
+    assert pooled**0.5 == pytest.approx(summary.loc["sumo_default", "speed_rmse_mps"], rel=1e-9)
     assert set(comp["run"]) == {0, 1}
     assert not (out / "oracle" / "sumo").exists()  # SUMO's files are not kept
     assert "oracle" in capsys.readouterr().out
