@@ -10,7 +10,11 @@ The scenario file sets the keys README's "Your own network" names and a budget t
     python scripts/draw_scenario.py --seed 501 --out drawn/501
     macromicro run drawn/501/k501.toml --out runs/k501
 
-Drawn 501, 502, 522, 549 ... are the networks docs/deploy.md measures ("drawn NNN").
+Motorway seeds give the networks docs/deploy.md measures as "drawn NNN" (501: lanes
+4-2-1-1-4; 549: 3-3-2-3 with both ramps). Arterial seeds draw ``bench_arterial``'s nets, with
+netconvert's 90 s programs: not the "arterial 521 / 528" of stops 38-41, whose scratch
+script also redrew the signal programs and demand (hS, stop 42: 120 / 114 observed drivers
+on the train + val runs here against 261 / 224 there).
 """
 
 from __future__ import annotations
