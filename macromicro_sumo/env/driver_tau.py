@@ -72,9 +72,9 @@ def pooled_quantiles(quantiles: np.ndarray) -> np.ndarray:
 
 
 def sumo_vtypes(vids: Sequence[str]) -> list[str]:
-    """The running SUMO's vType of each vehicle (``Simulation.vehicle_type`` reads libsumo
-    and nothing of its instance; the deployment and the demand env drive one SUMO)."""
-    return [Simulation.vehicle_type(None, v) for v in vids]  # type: ignore[arg-type]
+    """The running SUMO's vType of each vehicle (``Simulation.vehicle_type``; the deployment
+    and the demand env drive one SUMO)."""
+    return list(map(Simulation.vehicle_type, vids))
 
 
 def taus_at(quantiles: np.ndarray, levels: np.ndarray) -> np.ndarray:

@@ -360,7 +360,9 @@ class Simulation:
         """Vehicles that entered the network in the last step."""
         return tuple(libsumo.simulation.getDepartedIDList())
 
-    def vehicle_type(self, vehicle_id: str) -> str:
+    @staticmethod
+    def vehicle_type(vehicle_id: str) -> str:
+        """The running SUMO's vType of a vehicle (libsumo drives one SUMO a process)."""
         return str(libsumo.vehicle.getTypeID(vehicle_id))
 
     def vehicle_class(self, type_id: str) -> str:
