@@ -41,22 +41,18 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch
-from deploy_runs import changed
+from deploy_runs import prepared
 
 from macromicro_sumo.deploy import drivers
 from macromicro_sumo.deploy.floor_choice import resolve_floor
 from macromicro_sumo.deploy.observe import STOP_DECEL_MPS2
-from macromicro_sumo.deploy.population import population_scenario
-from macromicro_sumo.deploy.run import load_context, run_method
+from macromicro_sumo.deploy.run import run_method
 from macromicro_sumo.deploy.safety import command_brake
-from macromicro_sumo.deploy.stage import method_drive, policy_paths
+from macromicro_sumo.deploy.stage import method_drive
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.policy.checkpoint import load_policy
-from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.simulation import Simulation
-from macromicro_sumo.truth.section import load_section_truth
 
-TOL_MPS2 = 0.01  # the driver's BRAKING_TOLERANCE_MPS2
+TOL_MPS2 = drivers.BRAKING_TOLERANCE_MPS2  # what the driver counts as beyond decel
 RECENT_STEPS = 10
 
 
@@ -250,15 +246,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--set", nargs="*", default=[], dest="changes")
     o = p.parse_args(argv)
     try:
-        sc = changed(load_scenario(o.scenario), o.changes)
+        sc, ctx, runs, agents = prepared(o.scenario, o.run, o.changes, [o.method], o.runs, o.out)
     except UserError as e:
         print(f"classify_brakings: {e}", file=sys.stderr)
         return 2
-    truth_dir = o.run / "ground_truth"
-    runs = o.runs or [int(r) for r in load_section_truth(truth_dir, sc).runs]
-    agents = {n: load_policy(q, sc) for n, q in policy_paths(o.run / "policy", [o.method]).items()}
-    ctx = load_context(sc, truth_dir)
-    ctx.sc = population_scenario(ctx.sc)
     torch.set_num_threads(1)
     drive, _ = method_drive(o.method, sc, agents, None)
     o.out.mkdir(parents=True, exist_ok=True)

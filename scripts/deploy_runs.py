@@ -83,18 +83,36 @@ def changed(sc, changes: list[str]):
     return sc
 
 
-def deploy_runs(options: argparse.Namespace) -> pd.DataFrame:
-    """Every method of ``options`` deployed on its runs; the summary of them all."""
-    sc = changed(load_scenario(options.scenario), options.changes)
-    truth_dir = options.run / "ground_truth"
-    out = options.out
+def prepared(
+    scenario: Path,
+    run: Path,
+    changes: list[str],
+    methods: list[str],
+    runs: list[int] | None,
+    out: Path,
+):
+    """(scenario with ``changes``, deploy context, runs (default: every run of the truth),
+    the learned methods' agents) of a finished ``run``, as the deploy stage prepares them;
+    ``out`` must be new or empty (also scripts/classify_brakings.py's)."""
+    sc = changed(load_scenario(scenario), changes)
     if out.exists() and any(out.iterdir()):
         raise UserError(f"{out}: not empty; give a new folder")
-    runs = options.runs or [int(r) for r in load_section_truth(truth_dir, sc).runs]
-    paths = policy_paths(options.run / "policy", options.methods)
+    truth_dir = run / "ground_truth"
+    runs = runs or [int(r) for r in load_section_truth(truth_dir, sc).runs]
+    paths = policy_paths(run / "policy", methods)
     agents = {name: load_policy(p, sc) for name, p in paths.items()}
     ctx = load_context(sc, truth_dir)
     ctx.sc = population_scenario(ctx.sc)  # as the deploy stage's drivers read it
+    return sc, ctx, runs, agents
+
+
+def deploy_runs(options: argparse.Namespace) -> pd.DataFrame:
+    """Every method of ``options`` deployed on its runs; the summary of them all."""
+    out = options.out
+    sc, ctx, runs, agents = prepared(
+        options.scenario, options.run, options.changes, options.methods, options.runs, out
+    )
+    truth_dir = ctx.truth_dir
     idm = fit_idm(ctx)[0] if "idm_calibrated" in options.methods else None
     torch.set_num_threads(1)
     dirs, per_run = {}, []
