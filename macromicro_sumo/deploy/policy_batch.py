@@ -133,7 +133,8 @@ def policy_batch(agent: Agent, actor_dtype: str = "float64") -> ActionBatch:
     """The policy's deterministic mean action (``Agent.mean_action``) for every driven
     vehicle, one numpy call per step.
 
-    ``actor_dtype`` "float32" (opt-in; ``scripts/bench_deploy.py --actor-float32``): the
+    ``actor_dtype`` "float32" (the scenario's ``deploy.actor_dtype``, as ``deploy.stage.
+    method_drive`` passes it; ``scripts/bench_deploy.py --actor-float32``): the
     actor's weights and products in float32, the prior and the rest float64. Not the same
     actions: within 1e-7 m/s^2 of float64's on Bremen's 60,368 (run 0, lead40's policy);
     a Bremen policy run 24.6 us a step cheaper (median of 12 interleaved pairs, all 12

@@ -219,7 +219,8 @@ def method_drive(
         safety = METHOD[name].safety or sc.deploy.safety
         floor = sc.deploy.safety_floor_share if safety == "sumo" else None
         std = action_std(agents[name]) if sc.deploy.action == "sample" else 0.0
-        drive = Drive(act=policy_batch(agents[name]), safety=safety, sample_std_mps2=std)
+        act = policy_batch(agents[name], sc.deploy.actor_dtype)
+        drive = Drive(act=act, safety=safety, sample_std_mps2=std)
         record = {"safety": safety, "safety_floor_share": floor, "action": sc.deploy.action}
         # The family it drives with: the checkpoint's (policy.prior = "auto": the chosen one).
         record["prior"] = agents[name].prior

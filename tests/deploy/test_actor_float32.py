@@ -4,12 +4,18 @@ float64 path the same values as before (``Agent.mean_action`` in float64)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
+from deploy_nets import merge_scenario
 
 from macromicro_sumo.deploy.policy_batch import ACTOR_ROWS, actor_forward, policy_batch
+from macromicro_sumo.deploy.stage import method_drive
+from macromicro_sumo.errors import UserError
 from macromicro_sumo.policy.agent import Agent
+from macromicro_sumo.scenario.load import load_scenario
 
 
 def _agent() -> Agent:
@@ -48,3 +54,25 @@ def test_the_default_actor_is_float64_and_other_dtypes_are_refused() -> None:
     np.testing.assert_array_equal(actor_forward(agent)(obs), actor_forward(agent, np.float64)(obs))
     with pytest.raises(ValueError, match="actor_dtype 'float16': accepted float64, float32"):
         policy_batch(agent, "float16")
+
+
+def test_the_scenario_setting_reaches_every_learned_method(tmp_path: Path) -> None:
+    """``deploy.actor_dtype``: float64 by default and left out of the scenario's digest;
+    "float32" gives each learned method's drive the float32 actor (the same actions as
+    ``policy_batch(agent, "float32")``, not the float64 ones); another value is refused
+    with one line naming the field and what it accepts."""
+    path = merge_scenario(tmp_path, {"warmup_s": 10.0, "duration_s": 30.0, "n_runs": 2})
+    sc = load_scenario(path)
+    assert sc.deploy.actor_dtype == "float64" and "actor_dtype" not in sc.to_dict()["deploy"]
+    f32 = load_scenario(path, {"deploy.actor_dtype": "float32"})
+    assert f32.digest() != sc.digest()
+    agent, obs = _agent(), _obs(40)
+    want32, want64 = policy_batch(agent, "float32")(obs), policy_batch(agent)(obs)
+    for name in ("policy", "policy_no_safety", "micro_only", "macro_only"):
+        drive, _ = method_drive(name, f32, {name: agent}, None)
+        np.testing.assert_array_equal(drive.act(obs), want32)
+        drive, _ = method_drive(name, sc, {name: agent}, None)
+        np.testing.assert_array_equal(drive.act(obs), want64)
+    with pytest.raises(UserError, match="actor_dtype") as err:
+        load_scenario(path, {"deploy.actor_dtype": "float16"})
+    assert "\n" not in str(err.value) and "float32" in str(err.value)
