@@ -84,6 +84,13 @@ def get_options(args: list[str] | None = None) -> argparse.Namespace:
         "the examples; else false",
     )
     p.add_argument(
+        "--occupancy-loop-m",
+        type=float,
+        default=0.0,
+        help="detectors.auto_occupancy_loop_m: dual loops, a second E1 this long (m) beside "
+        "each placed point loop for its occupancy (0: point loops only; a new cache folder)",
+    )
+    p.add_argument(
         "--start-s",
         type=float,
         default=0.0,
@@ -414,6 +421,20 @@ def table_rows(name: str, desc: str, e: pd.DataFrame) -> list[str]:
     return rows
 
 
+def with_occupancy_loops(
+    name: str, folder: Path, table: dict | str, desc: str, loop_m: float
+) -> tuple[str, Path, dict | str, str]:
+    """A bench network with ``detectors.auto_occupancy_loop_m`` = ``loop_m`` (dual loops),
+    cached in its own subfolder of ``folder``."""
+    folder = folder / f"occupancy_loop_{loop_m:g}m"
+    folder.mkdir(exist_ok=True)
+    if isinstance(table, str):
+        table = table.replace("[detectors]\n", f"[detectors]\nauto_occupancy_loop_m = {loop_m}\n")
+    else:
+        table = {**table, "detectors": {**table["detectors"], "auto_occupancy_loop_m": loop_m}}
+    return name, folder, table, f"{desc}, {loop_m:g} m occupancy loops"
+
+
 def main(options: argparse.Namespace) -> bool:
     options.out.mkdir(parents=True, exist_ok=True)
     nets: list[tuple[str, Path, dict | str, str]] = []
@@ -458,6 +479,8 @@ def main(options: argparse.Namespace) -> bool:
         folder.mkdir(parents=True, exist_ok=True)
         toml = example_toml(name, options.boundary_stations)
         nets.append((name, folder, toml, f"shipped example, {EXAMPLE_RUNS} runs"))
+    if options.occupancy_loop_m > 0:
+        nets = [with_occupancy_loops(*net, options.occupancy_loop_m) for net in nets]
     print(
         "| network | drawn | regime | snapshots | mean K | "
         + " | ".join(ESTIMATORS)

@@ -101,6 +101,17 @@ class SectionDetectorConfig:
         "of every node where a ramp joins or leaves, so that the hidden count is counted "
         "(docs/sections.md, Hidden count)",
     )
+    auto_occupancy_loop_m: float = spec(
+        0.0,
+        lo=0.0,
+        hi=10.0,
+        doc="with placed loops: beside each point loop a second E1 loop this long [m], ending "
+        "at it, whose interval occupancy replaces the point loop's (a dual loop; counts and "
+        "speeds stay the point loop's). 0: point loops only. A point loop near a stop line "
+        "can sit in a gap of SUMO's standing queue and read a third of its density "
+        "(docs/sections.md, stop 43); the user's own detectors are never changed",
+        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+    )
     k_window_s: float = spec(
         60.0,
         lo=0.0,

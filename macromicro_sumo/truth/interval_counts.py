@@ -36,6 +36,7 @@ from macromicro_sumo.truth.density import (
     occupancy_weight,
     point_density,
 )
+from macromicro_sumo.truth.section_macro import loop_lengths_m
 from macromicro_sumo.truth.section_speed import stop_line_edges
 from macromicro_sumo.truth.signal_counts import approaches, stop_lines
 from macromicro_sumo.truth.stations import (
@@ -112,7 +113,8 @@ def effective_densities(det: pd.DataFrame) -> np.ndarray:
         lambda g: effective_length_m(*(g[c].to_numpy(dtype=float) for c in cols), np.nan)
     )
     run = per_loop.groupby(level="run").median().reindex(det["run"]).to_numpy(dtype=float)
-    length = np.where(np.isfinite(run), run, DEFAULT_VEHICLE_LENGTH_M)
+    # The calibrated length holds the loop's own; the passenger car's does not.
+    length = np.where(np.isfinite(run), run, DEFAULT_VEHICLE_LENGTH_M + loop_lengths_m(det))
     return point_density(*(det[c].to_numpy(dtype=float) for c in cols), length)
 
 

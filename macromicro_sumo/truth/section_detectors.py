@@ -22,6 +22,9 @@ from macromicro_sumo.sumo.inputs import DetectorSpec, SumoInputs, read_net, user
 from macromicro_sumo.truth.stations import STOP_BAR_M, side_junction_arcs
 
 E1_FILE, E2_FILE, INSTANT_FILE = "e1.xml", "e2.xml", "instant.xml"
+OCCUPANCY_FILE = "e1_occupancy.xml"
+"""The occupancy loops' output (``detectors.auto_occupancy_loop_m``): ids ``o_`` + the
+point loop's."""
 _DETECTOR_TAGS = {
     "inductionLoop",
     "e1Detector",
@@ -79,6 +82,7 @@ def place_detectors(sc: SectionScenario, inputs: SumoInputs, section: Section) -
             "detectors.auto_spacing_m = 0 switches placement off; accepted: auto_spacing_m > 0"
         )
     period = sc.detectors.interval_s
+    occupancy_loop = sc.detectors.auto_occupancy_loop_m
     arcs = np.arange(step / 2, section.length_m, step)
     if not section.closed:
         arcs = np.unique(np.minimum(arcs, exit_arc(section)))
@@ -91,7 +95,10 @@ def place_detectors(sc: SectionScenario, inputs: SumoInputs, section: Section) -
             continue  # in a junction: skip this station
         for lane_id in section.edge_lane_ids[e]:
             idx = section.lanes[lane_id][1]
-            spec = DetectorSpec(f"auto_{lane_id}_{arc:.0f}", "e1", lane_id, pos, 0.0, period, "")
+            # An E1's length_m: its occupancy loop's (dual loop, ``detectors_xml``), 0: none.
+            spec = DetectorSpec(
+                f"auto_{lane_id}_{arc:.0f}", "e1", lane_id, pos, occupancy_loop, period, ""
+            )
             placed.append(Placed(spec, "auto", idx, float(arc)))
     if not placed:
         raise UserError(
@@ -151,7 +158,14 @@ def merge_arcs(arcs_m: np.ndarray, extra_m: np.ndarray, apart_m: float = 1.0) ->
 
 
 def detectors_xml(placed: list[Placed], interval_s: float) -> str:
-    """Our definitions of the detectors (E1 + an instantaneous loop beside it, or E2)."""
+    """Our definitions of the detectors (E1 + an instantaneous loop beside it, or E2).
+
+    A placed E1 with a ``length_m`` (``detectors.auto_occupancy_loop_m``) is a dual loop: the
+    point loop gives the counts and speeds, a second E1 that long, ending at it, the interval
+    occupancy only (``read_detectors``). Not one E1 with a length: SUMO's counts a vehicle
+    when it leaves the loop and drops one that changes lane over it (drawn seed 500, 2 runs:
+    9537 -> 9396 counted, the interval counts' K 0.96 -> 7.58 per lane; docs/sections.md,
+    stop 42 hL), where a field loop counts on entry."""
     rows = ["<additional>"]
     for p in placed:
         s = p.spec
@@ -161,6 +175,14 @@ def detectors_xml(placed: list[Placed], interval_s: float) -> str:
                 f'    <inductionLoop id={did} lane={lane} pos="{s.pos_m:.3f}" '
                 f'period="{interval_s:g}" file="{E1_FILE}"/>'
             )
+            if p.source == "auto" and s.length_m > 0:
+                # Ends at the point loop (a loop past a lane's end is refused by SUMO; stop
+                # bars sit 0.5 m before it), from the lane's start where that is nearer.
+                rows.append(
+                    f"    <inductionLoop id={quoteattr('o_' + s.id)} lane={lane} "
+                    f'pos="{max(s.pos_m - s.length_m, 0.0):.3f}" length="{s.length_m:g}" '
+                    f'period="{interval_s:g}" file="{OCCUPANCY_FILE}"/>'
+                )
             rows.append(
                 f"    <instantInductionLoop id={quoteattr('i_' + s.id)} lane={lane} "
                 f'pos="{s.pos_m:.3f}" file="{INSTANT_FILE}"/>'
@@ -208,19 +230,26 @@ def read_detectors(
             "end_s": float(r["end"]),
         }
 
+    # The occupancy loops' (dual loops): their occupancy and length replace the point's.
+    occupancy = {
+        (r["id"].removeprefix("o_"), r["begin"]): float(r["occupancy"])
+        for r in records(run_dir / OCCUPANCY_FILE, "interval", required=False)
+    }
     rows = []
     for r in records(run_dir / E1_FILE, "interval", required=False):
         flow, speed = float(r["flow"]), speed_or_nan(r.get("harmonicMeanSpeed"))
+        occ = occupancy.get((r["id"], r["begin"]))
         rows.append(
             row(r, "e1")
             | {
                 "n_veh": int(r["nVehContrib"]),
                 "flow_vph": flow,
                 "speed_mps": speed,
-                "occupancy_pct": float(r["occupancy"]),
+                "occupancy_pct": float(r["occupancy"]) if occ is None else occ,
                 # Fundamental relation k = q / v (harmonic mean: the space-mean speed).
                 "density_vpkm": flow / speed / 3.6 if speed > 0 else 0.0,
-                "length_m": 0.0,
+                # The loop whose occupancy this is: a point (0) or the occupancy loop.
+                "length_m": 0.0 if occ is None else where[r["id"]].spec.length_m,
             }
         )
     for r in records(run_dir / E2_FILE, "interval", required=False):

@@ -38,7 +38,8 @@ def station_cells(arcs: np.ndarray, section: Section) -> np.ndarray:
 
 def loop_densities(det: pd.DataFrame, passages: pd.DataFrame) -> np.ndarray:
     """Each E1 row's density (veh/km, ``density.point_density``: flow / harmonic speed in
-    free flow, occupancy / vehicle length where speeds collapse); E2 rows keep theirs.
+    free flow, occupancy / (vehicle + loop length) where speeds collapse); E2 rows keep
+    theirs.
 
     The vehicle length is the mean of the loop's own passages in that run (its traffic's
     mix of cars and trucks), else of every loop's in the run, else SUMO's passenger car.
@@ -61,9 +62,20 @@ def loop_densities(det: pd.DataFrame, passages: pd.DataFrame) -> np.ndarray:
         det["speed_mps"].to_numpy(dtype=float),
         det["occupancy_pct"].to_numpy(dtype=float),
         length,
+        loop_lengths_m(det),
     )
     out[e1] = k[e1]
     return out
+
+
+def loop_lengths_m(det: pd.DataFrame) -> np.ndarray:
+    """Each row's occupancy loop length (m): an E1 row's ``length_m`` (0 for a point loop, the
+    occupancy loop's with ``detectors.auto_occupancy_loop_m``); 0 where the table has none
+    (field data)."""
+    if "length_m" not in det:
+        return np.zeros(len(det))
+    e1 = (det["kind"] == "e1").to_numpy()
+    return np.where(e1, np.nan_to_num(det["length_m"].to_numpy(dtype=float)), 0.0)
 
 
 def station_density(e1: pd.DataFrame, section: Section) -> pd.Series:

@@ -50,7 +50,11 @@ from macromicro_sumo.truth.density import (
     effective_length_m,
     occupancy_weight,
 )
-from macromicro_sumo.truth.section_macro import integrate_stations, station_density
+from macromicro_sumo.truth.section_macro import (
+    integrate_stations,
+    loop_lengths_m,
+    station_density,
+)
 from macromicro_sumo.truth.stations import Piece, full_stations, ramp_between, station_speeds
 
 STOP_BAR_REACH_M = 5.0
@@ -271,9 +275,13 @@ def jam_spacing_m(det: pd.DataFrame) -> float:
     intervals; SUMO's passenger car where none flowed) plus the gap between standing
     vehicles, SUMO's default minGap (``road.leaders.STANDING_MIN_GAP_M``)."""
     cols = ["flow_vph", "speed_mps", "occupancy_pct"]
+    e1 = det[det["kind"] == "e1"]
+    loop = pd.Series(loop_lengths_m(e1), index=e1.index)
+    # Less the occupancy loop's own length (dual loops), which the calibration holds.
     lengths = [
         effective_length_m(*(g[c].to_numpy(dtype=float) for c in cols), np.nan)
-        for _, g in det[det["kind"] == "e1"].groupby("detector_id")
+        - float(loop[g.index].max())
+        for _, g in e1.groupby("detector_id")
     ]
     ok = [x for x in lengths if np.isfinite(x)]
     return float(np.median(ok) if ok else DEFAULT_VEHICLE_LENGTH_M) + STANDING_MIN_GAP_M
