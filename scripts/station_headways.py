@@ -11,6 +11,20 @@ docs/deploy.md):
 
 Only where the point has one lane: on several lanes the vehicle passing before may be on
 another one.
+
+``--start-lags SIGNALS`` (the ground truth's signals.csv) measures instead how a queue
+standing at the stop line ``--arc`` starts at each green (issue 17, drawn arterial 528,
+docs/deploy.md stop 43): the vehicles standing (< ``STANDING_MPS``) within ``REACH_M``
+upstream of the line as the light turns green, in queue order; each one's start (its
+first sample faster than ``MOVING_MPS``) after the green, and its lag behind the start of
+the vehicle ahead of it in the queue (the head: behind the green); a vehicle that has not
+moved by the window's end (or ``START_WITHIN_S``) ends its queue. Several ``--arc`` pool
+their stop lines. Prints per file the queues, the mean lag by queue position and when the
+5th, 10th and 20th vehicles start:
+
+    .venv/bin/python scripts/station_headways.py --arc 195.8 --arc 398.8 --arc 601.8 \\
+        --arc 804.8 --start-lags RUN/ground_truth/signals.csv \\
+        truth=RUN/ground_truth/trajectories.csv policy=DEPLOY/policy/trajectories.csv
 """
 
 from __future__ import annotations
@@ -57,6 +71,71 @@ def headways(p: pd.DataFrame, t0_s: float, t1_s: float) -> pd.DataFrame:
     return p[keep]
 
 
+# --start-lags: a vehicle stands below this speed, moves above the other [m/s]; the queue
+# counted reaches this far upstream of the line [m] (a block of drawn arterial 528: 203 m);
+# a queued vehicle that has not moved this long after the green ends its queue [s].
+STANDING_MPS = 0.1
+MOVING_MPS = 0.5
+REACH_M = 200.0
+START_WITHIN_S = 40.0
+# Queue positions grouped (first, last) for the printed means.
+POSITIONS = ((1, 1), (2, 4), (5, 10), (11, 10_000))
+
+
+def green_onsets(signals: pd.DataFrame, arc_m: float) -> pd.DataFrame:
+    """run, time_s of each switch to green (state G or g after another state) of the links
+    whose stop line is at ``arc_m`` (within 0.5 m) in a signals.csv frame."""
+    at = signals[(signals["arc_m"] - arc_m).abs() <= 0.5].sort_values(["run", "time_s"])
+    at = at.drop_duplicates(["run", "time_s"])  # one row per step (the same signal's links)
+    green = at["state"].isin(["G", "g"]).to_numpy()
+    same_run = at["run"].to_numpy()[1:] == at["run"].to_numpy()[:-1]
+    onset = np.concatenate([[False], green[1:] & ~green[:-1] & same_run])
+    return at.loc[onset, ["run", "time_s"]].reset_index(drop=True)
+
+
+def start_lags(traj: pd.DataFrame, arc_m: float, onsets: pd.DataFrame) -> pd.DataFrame:
+    """One row per queued vehicle and green (``green_onsets``) the trajectories cover: run,
+    green time, queue position (1: the head), vehicle, vType, start [s after the green] and
+    lag [s] behind the start of the one ahead (the head's: its start)."""
+    rows = []
+    for run, tr in traj.groupby("run"):
+        times = np.sort(tr["time_s"].unique())
+        for g in onsets.loc[onsets["run"] == run, "time_s"]:
+            before = times[times < g]
+            if not len(before) or g >= times[-1]:
+                continue  # the window does not hold this green's start
+            snap = tr[tr["time_s"] == before[-1]]
+            queue = snap[
+                (snap["arc_m"] < arc_m)
+                & (snap["arc_m"] > arc_m - REACH_M)
+                & (snap["speed_mps"] < STANDING_MPS)
+            ].sort_values("arc_m", ascending=False)
+            after = tr[(tr["time_s"] >= g) & (tr["time_s"] <= g + START_WITHIN_S)]
+            first = after[after["speed_mps"] > MOVING_MPS].groupby("vehicle_id")["time_s"].min()
+            ahead = 0.0
+            for k, r in enumerate(queue.itertuples(index=False), 1):
+                if r.vehicle_id not in first.index:
+                    break  # it did not start: the queue behind it is held by it
+                start = float(first[r.vehicle_id]) - g
+                rows.append((run, g, k, r.vehicle_id, r.vtype, start, start - ahead))
+                ahead = start
+    cols = ["run", "green_s", "position", "vehicle_id", "vtype", "start_s", "lag_s"]
+    return pd.DataFrame(rows, columns=cols)
+
+
+def lag_summary(lags: pd.DataFrame) -> dict[str, float]:
+    """Queues (greens with a queue), mean lag [s] per ``POSITIONS`` group, and the mean start
+    [s after the green] of the 5th, 10th and 20th queued vehicle."""
+    keys = [k for k in ("run", "green_s", "arc_m") if k in lags]  # arc_m: lines pooled
+    out = {"queues": float(lags.groupby(keys).ngroups)}
+    for lo, hi in POSITIONS:
+        name = f"lag_{lo}" if hi == lo else f"lag_{lo}+" if hi >= 10_000 else f"lag_{lo}-{hi}"
+        out[name] = lags.loc[lags["position"].between(lo, hi), "lag_s"].mean()
+    for k in (5, 10, 20):
+        out[f"start_{k}th_s"] = lags.loc[lags["position"] == k, "start_s"].mean()
+    return out
+
+
 def summary(h: pd.DataFrame, runs: int) -> dict[str, float]:
     """Passages a run, mean headway [s] overall and by vType, mean passing speed [m/s]."""
     out = {"passages_per_run": len(h) / max(runs, 1), "headway_s": h["headway_s"].mean()}
@@ -66,11 +145,32 @@ def summary(h: pd.DataFrame, runs: int) -> dict[str, float]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--arc", type=float, required=True, help="the point's arc [m]")
+    ap.add_argument(
+        "--arc",
+        type=float,
+        action="append",
+        required=True,
+        help="the point's arc [m]; with --start-lags one --arc per stop line",
+    )
     ap.add_argument("--from", dest="t0", type=float, default=0.0, help="window start [s]")
     ap.add_argument("--to", dest="t1", type=float, default=np.inf, help="window end [s]")
+    ap.add_argument(
+        "--start-lags",
+        metavar="SIGNALS_CSV",
+        help="the truth's signals.csv: queue start-up lags at each green of the stop line --arc",
+    )
     ap.add_argument("files", nargs="+", metavar="LABEL=trajectories.csv")
     o = ap.parse_args(argv)
+    onsets = None
+    if o.start_lags is not None:
+        if not Path(o.start_lags).is_file():
+            print(f"station_headways: --start-lags {o.start_lags}: no such file", file=sys.stderr)
+            return 2
+        signals = pd.read_csv(o.start_lags)
+        onsets = {arc: green_onsets(signals, arc) for arc in o.arc}
+    elif len(o.arc) != 1:
+        print(f"station_headways: --arc takes one point, got {len(o.arc)}", file=sys.stderr)
+        return 2
     rows = {}
     for item in o.files:
         label, sep, path = item.partition("=")
@@ -81,7 +181,12 @@ def main(argv: list[str] | None = None) -> int:
             )
             return 2
         traj = pd.read_csv(path, usecols=COLUMNS)
-        rows[label] = summary(headways(passages(traj, o.arc), o.t0, o.t1), traj["run"].nunique())
+        if onsets is not None:
+            lags = [start_lags(traj, arc, g).assign(arc_m=arc) for arc, g in onsets.items()]
+            rows[label] = lag_summary(pd.concat(lags, ignore_index=True))
+            continue
+        p = passages(traj, o.arc[0])
+        rows[label] = summary(headways(p, o.t0, o.t1), traj["run"].nunique())
     print(pd.DataFrame(rows).T.round(2).to_string())
     return 0
 

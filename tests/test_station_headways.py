@@ -52,3 +52,50 @@ def test_a_missing_file_is_one_line(tmp_path: Path, capsys) -> None:
     assert sh.main(["--arc", "100", f"x={tmp_path / 'none.csv'}"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "none.csv" in err[0]
+
+
+def queue_files(tmp: Path) -> tuple[Path, Path]:
+    """A stop line at 100 m, red until 10.0 s then green (signals.csv rows every 0.5 s, two
+    links of the line: one row a step counts); three cars standing 7.5 m apart before it
+    start 0.0, 1.0 and 2.5 s after the green; a fourth standing 300 m back (beyond
+    REACH_M) and a fifth moving are not in the queue."""
+    sig, traj = [], []
+    for k in range(0, 81):
+        t = k * 0.5
+        for link in (0, 1):
+            sig.append((0, t, "j1", 0, 0 if t < 10 else 2, 1.0, 0, 100.0 + 0.1 * link,
+                        "r" if t < 10 else "G"))  # fmt: skip
+        for vid, x0, start in (("a", 99.0, 10.0), ("b", 91.5, 11.0), ("c", 84.0, 13.5),
+                               ("far", -200.0, 20.0), ("m", 50.0, -1.0)):  # fmt: skip
+            moving = t >= start
+            v = 0.0 if not moving else 2.0
+            x = x0 + (2.0 * (t - start) if moving else 0.0)
+            traj.append((0, t, vid, "car", x, v))
+    s, p = tmp / "signals.csv", tmp / "traj.csv"
+    pd.DataFrame(sig, columns=["run", "time_s", "signal_id", "program", "phase", "left_s",
+                               "lane_index", "arc_m", "state"]).to_csv(s, index=False)  # fmt: skip
+    pd.DataFrame(traj, columns=sh.COLUMNS).to_csv(p, index=False)
+    return s, p
+
+
+def test_start_lags_of_the_queue_at_green(tmp_path: Path, capsys) -> None:
+    s, p = queue_files(tmp_path)
+    onsets = sh.green_onsets(pd.read_csv(s), 100.0)
+    assert onsets["time_s"].tolist() == [10.0]  # one onset, though two links carry it
+    lags = sh.start_lags(pd.read_csv(p), 100.0, onsets)
+    assert lags["vehicle_id"].tolist() == ["a", "b", "c"]  # queue order; far, m left out
+    assert lags["start_s"].tolist() == pytest.approx([0.0, 1.0, 3.5])  # > MOVING_MPS
+    assert lags["lag_s"].tolist() == pytest.approx([0.0, 1.0, 2.5])
+    got = sh.lag_summary(lags)
+    assert got["queues"] == 1 and got["lag_2-4"] == pytest.approx(1.75)
+    assert sh.main(["--arc", "100", "--start-lags", str(s), f"x={p}"]) == 0
+    assert "1.75" in capsys.readouterr().out
+
+
+def test_start_lags_needs_its_signals_and_one_arc_for_headways(tmp_path: Path, capsys) -> None:
+    _, p = queue_files(tmp_path)
+    assert sh.main(["--arc", "100", "--start-lags", str(tmp_path / "none.csv"), f"x={p}"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "none.csv" in err[0]
+    assert sh.main(["--arc", "100", "--arc", "200", f"x={p}"]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
