@@ -298,8 +298,10 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
                     seen = self.observe(
                         sim, fresh, rows[new], st, None, lane_of, ahead[new], at, one
                     )[0]
-                else:  # the observation's speed and unscaled limit (its columns 0 and 1)
+                elif ds.kind == "memory":  # the observation's speed and unscaled limit
                     seen = np.column_stack([speed[new], self.lane_table.limit_mps[codes[new]]])
+                else:  # "drawn": a hash of the vehicle alone, no observation read
+                    seen = None
                 factor[new] = got = self.driver_speeds(fresh, seen)
                 self.slots.factor[slots[new]] = got
         if self.merge != "none":

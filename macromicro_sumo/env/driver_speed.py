@@ -206,9 +206,9 @@ class DriverSpeeds:
         self.gap = self.kind == "memory" and observes_gap(sc.policy.observation)
         self.factor: dict[str, float] = {}
 
-    def __call__(self, vehicle_ids: list[str], obs: np.ndarray) -> np.ndarray:
+    def __call__(self, vehicle_ids: list[str], obs: np.ndarray | None) -> np.ndarray:
         """Per vehicle its factor; ``obs``: their observations now (``policy.observation``'s
-        layout), limits unscaled."""
+        layout), limits unscaled ("drawn" reads none: None will do)."""
         new = [i for i, v in enumerate(vehicle_ids) if v not in self.factor]
         if new:
             ids = [vehicle_ids[i] for i in new]
