@@ -35,7 +35,8 @@ from macromicro_sumo.policy.prior import prior_buffer
 # OpenBLAS's threads, which on a loaded 2-core machine cost 1.8 ms at 500 rows instead of
 # 0.3 ms (scripts/bench_deploy.py's sizes).
 ACTOR_ROWS = 128
-# ``policy_batch``'s actor_dtype: float64 (the default, Agent.mean_action's values) or float32.
+# ``policy_batch``'s actor_dtype: float64 (its argument's default, Agent.mean_action's values)
+# or float32 (the deployment's, ``deploy.actor_dtype``'s default: the dtype torch trains in).
 ACTOR_DTYPES: dict[str, type[np.floating]] = {"float64": np.float64, "float32": np.float32}
 
 
@@ -133,8 +134,8 @@ def policy_batch(agent: Agent, actor_dtype: str = "float64") -> ActionBatch:
     """The policy's deterministic mean action (``Agent.mean_action``) for every driven
     vehicle, one numpy call per step.
 
-    ``actor_dtype`` "float32" (the scenario's ``deploy.actor_dtype``, as ``deploy.stage.
-    method_drive`` passes it; ``scripts/bench_deploy.py --actor-float32``): the
+    ``actor_dtype`` "float32" (the scenario's ``deploy.actor_dtype``, its default, as
+    ``deploy.stage.method_drive`` passes it; ``scripts/bench_deploy.py --actor-dtype``): the
     actor's weights and products in float32, the prior and the rest float64. Not the same
     actions: within 1e-7 m/s^2 of float64's on Bremen's 60,368 (run 0, lead40's policy);
     a Bremen policy run 24.6 us a step cheaper (median of 12 interleaved pairs, all 12

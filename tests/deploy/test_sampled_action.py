@@ -104,16 +104,15 @@ def test_sampled_deployment_differs_from_the_mean_repeats_and_does_not_collide(
     merge_truth: tuple[Path, Path], tmp_path: Path
 ) -> None:
     """Real SUMO, the merge with its on-ramp: the mean action's deployment is the one a
-    plain ``Drive(act=policy_batch(...))`` gives (the default unchanged, bit for bit); the
-    sampled one differs from it, is the same again with the same seed, and jitters: the
-    driven vehicles' step-to-step acceleration changes spread wider than the mean's."""
+    plain ``Drive(act=policy_batch(..., deploy.actor_dtype))`` gives (the default unchanged,
+    bit for bit); the sampled one differs from it, is the same again with the same seed,
+    and jitters: the driven vehicles' step-to-step acceleration changes spread wider than
+    the mean's."""
     path, gt = merge_truth
     mean = _deploy(path, gt, "mean", tmp_path / "mean")
     sc = load_scenario(path)
-    plain = run_method(
-        load_context(sc, gt), Drive(act=policy_batch(idm_agent(sc.policy.observation, 30.0))),
-        tmp_path / "plain",
-    )  # fmt: skip
+    act = policy_batch(idm_agent(sc.policy.observation, 30.0), sc.deploy.actor_dtype)
+    plain = run_method(load_context(sc, gt), Drive(act=act), tmp_path / "plain")
     pd.testing.assert_frame_equal(plain.trajectories, mean, check_exact=True)
     first = _deploy(path, gt, "sample", tmp_path / "sample")
     again = _deploy(path, gt, "sample", tmp_path / "again")
