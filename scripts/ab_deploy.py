@@ -17,7 +17,7 @@ pairs the new variant was faster in.
 
     PYTHONPATH=$PWD .venv/bin/python scripts/ab_deploy.py NEW_ROOT [--pairs 8]
         [--modules deploy.policy_batch deploy.drivers] [--checkpoint POLICY.pt]
-        [--new-actor-float32]
+        [--actor-dtype float64|float32] [--new-actor-dtype float64|float32]
 """
 
 from __future__ import annotations
@@ -157,10 +157,16 @@ def main(argv: list[str] | None = None) -> int:
         help="the Bremen policy (as bench_deploy.py's)",
     )
     ap.add_argument(
-        "--new-actor-float32",
-        action="store_true",
-        help="the new variant's actor in float32 (policy_batch's opt-in; other commands)",
+        "--actor-dtype",
+        choices=tuple(base_batch.ACTOR_DTYPES),
+        help="both variants' actor dtype (default: the scenario's deploy.actor_dtype)",
     )
+    ap.add_argument(
+        "--new-actor-dtype",
+        choices=tuple(base_batch.ACTOR_DTYPES),
+        help="the new variant's actor dtype alone (other commands where it differs)",
+    )
+    ap.add_argument("--new-actor-float32", action="store_true", help="--new-actor-dtype float32")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     bench = bench_module()
@@ -172,12 +178,16 @@ def main(argv: list[str] | None = None) -> int:
         tmp = Path(tmp_name)
         sc = bench.bremen_scenario(tmp)
         agent, which = bench.agent_for(sc, args.checkpoint)
-        dtype = "float32" if args.new_actor_float32 else "float64"
+        dtype = args.actor_dtype or sc.deploy.actor_dtype
+        new_dtype = "float32" if args.new_actor_float32 else args.new_actor_dtype or dtype
         arms = {
-            "base": (base_drivers.SectionSpeedDriver, base_batch.policy_batch(agent)),
-            "new": (new_drivers.SectionSpeedDriver, new_batch.policy_batch(agent, dtype)),
+            "base": (base_drivers.SectionSpeedDriver, base_batch.policy_batch(agent, dtype)),
+            "new": (new_drivers.SectionSpeedDriver, new_batch.policy_batch(agent, new_dtype)),
         }
-        print(f"policy: {which}; new: {', '.join(args.modules)} from {args.new_root}")
+        print(
+            f"policy: {which}; actor {dtype} -> {new_dtype}; new: {', '.join(args.modules)} "
+            f"from {args.new_root}"
+        )
         steps = round(
             (sc.simulation.warmup_s + sc.simulation.duration_s) / sc.simulation.step_length_s
         )

@@ -34,7 +34,7 @@ with its own models, in the same run.
 
     python scripts/bench_deploy.py [--repeats 5] [--steps 200] [--sizes 50 200 500 1000 2000]
         [--road-repeats 3] [--skip-bremen] [--cpu] [--budget 3]
-        [--checkpoint runs/highway_bremen/policy/policy.pt] [--actor-float32]
+        [--checkpoint runs/highway_bremen/policy/policy.pt] [--actor-dtype float64|float32]
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ import torch
 
 from macromicro_sumo.deploy import safety
 from macromicro_sumo.deploy.drivers import SectionDriver, SectionSpeedDriver
-from macromicro_sumo.deploy.policy_batch import policy_batch
+from macromicro_sumo.deploy.policy_batch import ACTOR_DTYPES, policy_batch
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.checkpoint import load_policy
@@ -396,10 +396,12 @@ def main(argv: list[str] | None = None) -> int:
         help="the Bremen policy (policy.pt of a run of scenarios/highway_bremen.toml)",
     )
     ap.add_argument(
-        "--actor-float32",
-        action="store_true",
-        help="the actor in float32 (policy_batch's opt-in actor_dtype; not the same actions)",
+        "--actor-dtype",
+        choices=tuple(ACTOR_DTYPES),
+        help="the actor's dtype (policy_batch's actor_dtype; default: the scenario's "
+        "deploy.actor_dtype, as its deployment drives)",
     )
+    ap.add_argument("--actor-float32", action="store_true", help="--actor-dtype float32")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     CLOCK[0] = time.process_time if args.cpu else time.perf_counter
@@ -408,9 +410,11 @@ def main(argv: list[str] | None = None) -> int:
         tmp = Path(tmp_name)
         sc = bremen_scenario(tmp)
         agent, which = agent_for(sc, args.checkpoint)
-        act = policy_batch(agent, "float32" if args.actor_float32 else "float64")
-        if args.actor_float32:
-            which += " (actor in float32)"
+        dtype = "float32" if args.actor_float32 else args.actor_dtype or sc.deploy.actor_dtype
+        act = policy_batch(agent, dtype)
+        which += f" (actor in {dtype})"
+        if args.skip_bremen:
+            print(f"policy: {which}")
         if not args.skip_bremen:
             print(f"Bremen example's demand, one whole run ({sc.simulation.warmup_s:g} s warm-up + "
                   f"{sc.simulation.duration_s:g} s, step {sc.simulation.step_length_s} s); "

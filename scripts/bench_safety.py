@@ -86,7 +86,7 @@ def record(checkpoint: Path) -> tuple[list[Call], float]:
             tmp = Path(tmp_name)
             sc = bench.bremen_scenario(tmp)
             agent, _ = bench.agent_for(sc, checkpoint)
-            act = ab_deploy.base_batch.policy_batch(agent)
+            act = ab_deploy.base_batch.policy_batch(agent, sc.deploy.actor_dtype)
             ab_deploy.one_run(sc, tmp / "run", drivers.SectionSpeedDriver, act)
     finally:
         safety.BrakeHandover.__call__, drivers.leader_safe_speed, safety.safety_cap = (
