@@ -9,6 +9,8 @@ method (without SUMO's files), ``deploy_comparison.csv`` and ``deploy_summary.cs
 the ground truth over the runs deployed, and ``deploy_runs.csv``, each run's safety counts
 and station scores per method (``deploy.compare.detector_scores``: the station rows, not
 the per-lane ones). The runs' figures in docs/deploy.md ("all 4 runs") are this.
+``idm_detectors`` drives with the IDM the run's deploy stage fitted to the detectors (its
+``deploy/idm_detectors/manifest.json``'s ``theta``), not fitted again.
 
     .venv/bin/python scripts/deploy_runs.py SCENARIO.toml RUN_DIR --out DIR \\
         [--methods policy sumo_default] [--runs 0 1] [--set deploy.merge_reach=occupation]
@@ -32,6 +34,7 @@ from macromicro_sumo.deploy.population import population_scenario
 from macromicro_sumo.deploy.run import load_context, run_method, write_method
 from macromicro_sumo.deploy.stage import fit_idm, method_drive, policy_paths
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.files import read_manifest
 from macromicro_sumo.policy.checkpoint import load_policy
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import load_section_truth
@@ -106,9 +109,26 @@ def prepared(
     return sc, ctx, runs, agents
 
 
+def detector_theta(run: Path) -> dict[str, float]:
+    """The IDM vType parameters the deploy stage of ``run`` fitted to the detectors (what
+    ``idm_detectors`` drives with). Without them method_drive's theta is None, which drives
+    the truth's own vTypes: the oracle under another name."""
+    path = run / "deploy" / "idm_detectors" / "manifest.json"
+    if not path.is_file():
+        raise UserError(
+            f"{path}: missing; idm_detectors needs the run's deploy stage to have fitted it "
+            "(deploy.methods with idm_detectors), or leave it out of --methods"
+        )
+    theta = read_manifest(path).get("theta")
+    if not isinstance(theta, dict) or not theta:
+        raise UserError(f"{path}: theta: missing or empty; accepted: the fitted IDM parameters")
+    return {str(k): float(v) for k, v in theta.items()}
+
+
 def deploy_runs(options: argparse.Namespace) -> pd.DataFrame:
     """Every method of ``options`` deployed on its runs; the summary of them all."""
     out = options.out
+    fitted = detector_theta(options.run) if "idm_detectors" in options.methods else None
     sc, ctx, runs, agents = prepared(
         options.scenario, options.run, options.changes, options.methods, options.runs, out
     )
@@ -118,7 +138,7 @@ def deploy_runs(options: argparse.Namespace) -> pd.DataFrame:
     dirs, per_run = {}, []
     for name in options.methods:
         t0 = time.perf_counter()
-        drive, record = method_drive(name, sc, agents, idm)
+        drive, record = method_drive(name, sc, agents, idm, fitted)
         drive, _ = resolve_floor(ctx, drive, out / "floor_choice")
         shutil.rmtree(out / "floor_choice", ignore_errors=True)
         folder = out / name

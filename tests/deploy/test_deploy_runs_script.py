@@ -5,6 +5,8 @@ line (real SUMO on the merge of tests/deploy/deploy_nets.py)."""
 from __future__ import annotations
 
 import importlib.util
+import json
+import shutil
 from pathlib import Path
 
 import pandas as pd
@@ -69,3 +71,23 @@ def test_a_folder_with_files_is_refused(merge_run, tmp_path: Path, capsys) -> No
     assert script.main([str(scen), str(run), "--out", str(tmp_path), "--methods", "oracle"]) == 2
     assert "not empty" in capsys.readouterr().err
     assert [p.name for p in tmp_path.iterdir()] == ["mine.txt"]
+
+
+def test_idm_detectors_drives_the_fit_of_the_run(merge_run, tmp_path: Path, capsys) -> None:
+    scen, run = merge_run
+    mine = tmp_path / "run"
+    shutil.copytree(run / "ground_truth", mine / "ground_truth")
+    argv = [str(scen), str(mine), "--methods", "idm_detectors", "oracle", "--runs", "0"]
+    # Without the run's fit it is refused, not driven with the truth's own vTypes.
+    assert script.main([*argv, "--out", str(tmp_path / "none")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "idm_detectors/manifest.json: missing" in err
+    theta = {"accel": 1.0, "decel": 2.0, "minGap": 2.5, "speedFactor": 0.9, "tau": 1.5}
+    (mine / "deploy" / "idm_detectors").mkdir(parents=True)
+    (mine / "deploy" / "idm_detectors" / "manifest.json").write_text(json.dumps({"theta": theta}))
+    out = tmp_path / "out"
+    assert script.main([*argv, "--out", str(out)]) == 0
+    summary = pd.read_csv(out / "deploy_summary.csv").set_index("method")
+    assert summary.loc["oracle", "speed_rmse_mps"] == 0.0
+    assert summary.loc["idm_detectors", "speed_rmse_mps"] > 0.5  # 0.9 x the limit: slower
+    assert json.loads((out / "idm_detectors" / "manifest.json").read_text())["theta"] == theta
