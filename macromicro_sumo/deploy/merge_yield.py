@@ -138,7 +138,7 @@ class MergeYield:
         offset = self.slots.lane_end.offset[slots]
         occ = np.zeros(len(rows))
         best: dict[int, str] = {}
-        for i in np.flatnonzero(offset).tolist():
+        for i in offset.nonzero()[0].tolist():  # offset is 1-D: flatnonzero's call less
             lane = lanes[i]
             if not lane.startswith(":"):
                 edge, _, k = lane.rpartition("_")
@@ -155,19 +155,22 @@ class MergeYield:
             on[lane] = []
             for c in chains.get(lane, ()):
                 on[c] = []
-        for j, lane in enumerate(st.lanes):
-            got = on.get(lane)
-            if got is not None:
-                got.append(j)
+        # The rows on those lanes, in order: filtered in C, not a Python step per vehicle.
+        all_lanes = st.lanes
+        for j in compress(range(len(all_lanes)), map(on.__contains__, all_lanes)):
+            on[all_lanes[j]].append(j)
         ids, pos, shape = st.ids, st.pos_m, self.shape_of
         brutto = {
             lane: np.array([shape[ids[j]][0] + shape[ids[j]][1] for j in js])
             for lane, js in on.items()
         }
-        total = {lane: float(b.sum()) for lane, b in brutto.items()}
+        # Summed where a continuation reads it (a best lane alone needs none); the positions
+        # on a best lane taken once for all its vehicles.
+        targets = set(best.values())
+        total = {c: float(brutto[c].sum()) for t in targets for c in chains.get(t, ())}
+        at = {t: pos[on[t]] for t in targets if on[t]}
         for i, lane in best.items():
-            js = on[lane]
-            ahead = float(brutto[lane][pos[js] > pos[rows[i]]].sum()) if js else 0.0
+            ahead = float(brutto[lane][at[lane] > pos[rows[i]]].sum()) if lane in at else 0.0
             occ[i] = ahead + sum(total[c] for c in chains.get(lane, ()))
         return occ
 
