@@ -90,6 +90,28 @@ def station_density(e1: pd.DataFrame, section: Section) -> pd.Series:
     return per_lane * lanes
 
 
+def cut_at_lines(per_station: pd.Series, lines_m: list[float]) -> pd.Series:
+    """``per_station`` (``station_density``) with a station 1 cm past each stop line of
+    ``lines_m`` that reads as the first station downstream of it with a value: the density
+    steps at the line rather than running linearly from the stop bar's queue over the
+    junction to the station past it (a queue's density there over-counts the junction
+    stretch; it needs a stop bar that reads the queue: ``detectors.auto_occupancy_loop_m``)."""
+    arcs = per_station.index.to_numpy(dtype=float)
+    ok = np.isfinite(per_station.to_numpy(dtype=float))
+    add = {}
+    for line in lines_m:
+        after = np.flatnonzero(ok & (arcs > line + LINE_CUT_M))
+        if len(after):
+            add[line + LINE_CUT_M] = float(per_station.iloc[after[0]])
+    if not add:
+        return per_station
+    return pd.concat([per_station, pd.Series(add)]).sort_index()
+
+
+LINE_CUT_M = 0.01
+"""How far past a stop line ``cut_at_lines`` puts the station that starts the next stretch."""
+
+
 def e2_covered_density(e2: pd.DataFrame, section: Section) -> float:
     """Density per lane (veh/km) of one interval's lane-area (E2) detectors over the
     lane-metres they cover, each covered metre once: where detectors overlap, the mean of

@@ -51,6 +51,7 @@ from macromicro_sumo.truth.density import (
     occupancy_weight,
 )
 from macromicro_sumo.truth.section_macro import (
+    cut_at_lines,
     integrate_stations,
     loop_lengths_m,
     station_density,
@@ -462,8 +463,10 @@ def approach_pieces(
             spans.append((a.up_m, a.bar_m))
     tail = exit_stretch(d, section, lines, side_arcs)
     rest, tail_dens = [], []
+    # Dual loops' stop bars read the queue: the rest's density steps at each stop line.
+    cut = [line.arc_m for line in lines] if (loop_lengths_m(d) > 0).any() else []
     for (begin, end), e1 in d[d["kind"] == "e1"].groupby(["begin_s", "end_s"], sort=True):
-        per_station = station_density(e1, section)
+        per_station = cut_at_lines(station_density(e1, section), cut)
         inside = sum(integrate_stations(per_station, section, lo, hi) for lo, hi in spans)
         if tail is not None:
             tail_dens.append(integrate_stations(per_station, section, tail.up_m, tail.bar_m))

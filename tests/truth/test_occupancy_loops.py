@@ -13,8 +13,9 @@ from test_hidden_count import merge_scenario
 from macromicro_sumo.cli import main
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.inputs import DetectorSpec
+from macromicro_sumo.truth.density import profile_integral
 from macromicro_sumo.truth.section_detectors import Placed, detectors_xml
-from macromicro_sumo.truth.section_macro import loop_densities
+from macromicro_sumo.truth.section_macro import LINE_CUT_M, cut_at_lines, loop_densities
 
 
 def with_loops(toml: Path, loop_m: float) -> Path:
@@ -76,3 +77,22 @@ def test_dual_loops_read_the_queue_and_keep_the_counts(tmp_path: Path) -> None:
     k = loop_densities(b.iloc[np.flatnonzero(slow)], passages)
     k0 = loop_densities(b.iloc[np.flatnonzero(slow)].assign(length_m=0.0), passages)
     assert (k < k0).all()  # occupancy / (vehicle + 2 m), not / vehicle
+
+
+def test_the_density_steps_at_a_stop_line() -> None:
+    """A stop bar reading a queue (120 veh/km) 0.5 m before the line, the next station with
+    a value 30 m past it (20): past the line the stretch reads the next station's density,
+    not a line from the queue's (a station with no value is skipped)."""
+    per_station = pd.Series([40.0, 120.0, np.nan, 20.0], index=[0.0, 99.5, 110.0, 130.0])
+    cut = cut_at_lines(per_station, [100.0])
+    assert cut.index.is_monotonic_increasing and len(cut) == 5
+
+    def vehicles(k: pd.Series, lo: float, hi: float) -> float:  # an open 200 m section
+        return profile_integral(k.index.to_numpy(), k.to_numpy(), 200.0, False, lo, hi)
+
+    lo, hi = 100.0 + LINE_CUT_M, 130.0
+    assert np.isclose(vehicles(cut, lo, hi), 20.0 * (hi - lo) / 1000.0)
+    assert vehicles(per_station, lo, hi) > 1.5 * vehicles(cut, lo, hi)
+    # Up to the stop bar nothing moves.
+    assert np.isclose(vehicles(cut, 0.0, 99.5), vehicles(per_station, 0.0, 99.5))
+    assert cut_at_lines(per_station, [140.0]) is per_station  # no station past that line
