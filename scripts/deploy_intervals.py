@@ -10,7 +10,7 @@ figures (``deploy.compare.detector_scores``). Nothing is re-run or written.
         [--truth GROUND_TRUTH] [--methods policy sumo_default] [--runs 1]
 
 Interval 0 is the detectors' own (deploy_summary.csv's figures at ``compare_interval_s = 0``).
-Measured 2026-11-26 on highway_bremen (docs/deploy.md, "Comparison interval (stop 26)").
+Measured 2026-11-26 on highway_bremen (docs/deploy-log.md, "Comparison interval (stop 26)").
 """
 
 from __future__ import annotations

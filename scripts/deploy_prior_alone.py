@@ -8,7 +8,7 @@ manifest.json``), so that only the residual differs. Written into ``--out`` (def
 ``RUN/prior_alone``): ``prior_alone/`` (the method's folder, without SUMO's files),
 ``deploy_comparison.csv`` and ``deploy_summary.csv`` of the run's methods and
 ``prior_alone`` against the ground truth (``deploy.compare.compare_folders``); the summary's
-speed figures are printed. Measured use: docs/deploy.md, the untuned networks at stop 34.
+speed figures are printed. Measured use: docs/deploy-log.md, the untuned networks at stop 34.
 
     .venv/bin/python scripts/deploy_prior_alone.py SCENARIO.toml RUN_DIR
 """

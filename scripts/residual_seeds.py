@@ -1,4 +1,4 @@
-"""Spread of a section's deployed policy over PPO seeds (issue 17; docs/deploy.md, "Why two
+"""Spread of a section's deployed policy over PPO seeds (issue 17; docs/deploy-log.md, "Why two
 trainings of the residual differed").
 
 Trains the Stage II policy of a section scenario several times on one ground truth,
@@ -13,7 +13,7 @@ the first and last update and the final action std.
         [--seeds 1 2 3] [--out /tmp/residual_seeds]
 
 Measured 2026-11-26 on scenarios/netgen_corridor.toml (fresh truth and generator, seeds
-1 2 3): docs/deploy.md.
+1 2 3): docs/deploy-log.md.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """``deploy.safety_floor_on = "auto"``: the safety layer's floor chosen from the training runs.
 
 Which vehicles the floor raises (``deploy.safety``) is a trade-off no fixed default wins
-everywhere (docs/deploy.md, "Safety layer strictness"): "all" keeps a standing start and a
+everywhere (docs/deploy-log.md, "Safety layer strictness"): "all" keeps a standing start and a
 policy that always brakes moving at a fifth of the limit, "standing" leaves a moving car's
 braking in a queue to its policy. "auto" deploys the learned method with each
 (``FLOOR_CANDIDATES``) on the first ``deploy.safety_floor_runs`` TRAINING runs of the

@@ -28,7 +28,7 @@ from macromicro_sumo.sumo.states import VehicleStates
 # slows to open a gap) that a speed command overrides: with every vehicle commanded the
 # speed SUMO's car-following would choose (getFollowSpeed), a dense 2-lane merge queued 326
 # vehicle-steps at the acceleration lane's end where SUMO alone queued none, and Bremen's
-# 419 where SUMO alone queued 73 (docs/deploy.md, "Merges"). "handover": a driven vehicle
+# 419 where SUMO alone queued 73 (docs/deploy-log.md, "Merges"). "handover": a driven vehicle
 # that must leave its lane merges with SUMO's own model from where SUMO's lane changer
 # (LC2013) makes that change urgent (``handover_m``, ``deploy.lane_change``); "sumo":
 # also, a driven vehicle that blocks its change (SUMO's blocking left follower) takes SUMO's
@@ -63,7 +63,7 @@ def yield_caps(
     braked it again, on/off every other step (occupation, all 4 runs: of the yields whose
     vehicle still blocked the next step, 4,906 of 5,518 free then on drawn 549, 884 of 919
     on Bremen; held, none). Held while it blocks (a hold after a hold) held blockers up to
-    33 s and 549's run 2 went 3.63 -> 6.10 m/s (docs/deploy.md, stop 42, hO)."""
+    33 s and 549's run 2 went 3.63 -> 6.10 m/s (docs/deploy-log.md, stop 42, hO)."""
     asked = own < np.minimum(speed, safe) - MERGE_YIELD_TOLERANCE_MPS
     cap = np.where(asked, np.maximum(own, speed - decel * dt_s), np.inf)
     if held is not None:

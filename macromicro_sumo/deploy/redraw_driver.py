@@ -3,7 +3,7 @@ model, but its own draws are redrawn from the population it came from, once, whe
 appears. What a perfect model of the population that knows nothing of each driver
 reaches: no loop or observed vehicle gives a hidden driver's own parameters (a policy that
 reads a driver's own speed, ``policy.driver_speed = "memory"``, knows some of it;
-docs/deploy.md, "What a near-exact model reaches").
+docs/deploy-log.md, "What a near-exact model reaches").
 
 * a fleet (the paper's ring): the driver's accel, decel, tau, minGap and speedFactor, each
   uniform in the ``[fleet]`` table's range, as the truth drew them;

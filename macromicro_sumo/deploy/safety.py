@@ -63,7 +63,7 @@ FLOOR_SHARE: float = DeployConfig.safety_floor_share
 # ``deploy.safety_floor_on = "standing"``: the floor raises only a vehicle slower than this
 # [m/s], one held standing (or crawling) where nothing ahead asks for it. The default
 # ("all") raised 70% of the slow and queued steps of game/ramp's policy, where it brakes
-# (training has no floor), and the ramp ran 1.9 m/s slow (docs/deploy.md, "Safety layer
+# (training has no floor), and the ramp ran 1.9 m/s slow (docs/deploy-log.md, "Safety layer
 # strictness (stop 29)").
 STANDING_BELOW_MPS = 1.0
 # ``deploy.safety_brake``: the braking the layer plans a driven vehicle to stop with (the
@@ -99,7 +99,7 @@ def planned_decel(decel: np.ndarray, lead_decel: np.ndarray, brake: str) -> np.n
     ahead of it may, below any car's emergency braking; a standing obstacle does not brake
     (its ``STOP_DECEL_MPS2`` is a placeholder), so there the vehicle's own decel holds.
     The stop condition stays SUMO's (``safe_speed``). Not the default: deployed, it was
-    not better (docs/deploy.md, "Safety layer strictness (stop 29)")."""
+    not better (docs/deploy-log.md, "Safety layer strictness (stop 29)")."""
     if brake == "own":
         return decel
     return np.where(lead_decel < STOP_DECEL_MPS2, np.maximum(decel, lead_decel), decel)

@@ -27,7 +27,7 @@ The methods (``DEPLOY_METHODS``; names as the evaluation's where they are the sa
 * ``oracle_redrawn``: the oracle with SUMO's driving random streams re-mapped
   (``REDRAWN_RNG_STREAMS``): the same demand, departures, drivers and speed factors, other
   random draws (Krauss' dawdling, lane-change randomness). What no model can know: its
-  figures are the floor of the station-interval targets on this truth (docs/deploy.md,
+  figures are the floor of the station-interval targets on this truth (docs/deploy-log.md,
   "What a near-exact model reaches");
 * ``oracle_population``: ``oracle_redrawn`` with each driven vehicle's own draws redrawn
   from its population (``deploy.redraw_driver``): a perfect model of the population that

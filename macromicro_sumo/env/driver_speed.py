@@ -4,7 +4,7 @@ limits as its own, scaled by a factor drawn once per driver.
 Why: one shared policy gives every car one desired speed, where SUMO's drivers each have
 their own (``speedFactor``: desired speed = factor x limit, drawn per vehicle from the
 vType's distribution, ``normc(1, 0.1, 0.2, 2)`` for passenger cars). On Bremen the truth's
-upstream left lanes ran 40-47 m/s where the deployed policy's ran 35-41 (docs/deploy.md,
+upstream left lanes ran 40-47 m/s where the deployed policy's ran 35-41 (docs/deploy-log.md,
 "Measured"): without fast drivers nobody overtakes on the left.
 
 What is legitimate: a hidden vehicle's own parameters are unknown, but the observed

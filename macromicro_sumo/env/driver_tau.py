@@ -13,7 +13,7 @@ driver has the same tau whatever drives it), or per bank slot a seeded generator
 draws at its level from its own vType's observed drivers' quantiles (its vType read from
 the running SUMO), else from the pooled ones; the bank slots draw from the pooled ones.
 Why: on drawn 501 a Krauss-form tau drawn from all drivers gave the IDM cars the Krauss
-cars' discharge headway (1.77 s at 1125 m, truth 2.24 s; docs/deploy.md, "Drawn 501").
+cars' discharge headway (1.77 s at 1125 m, truth 2.24 s; docs/deploy-log.md, "Drawn 501").
 """
 
 from __future__ import annotations

@@ -44,7 +44,7 @@ CRUISE_ACCEL_MPS2 = 1.0
 # leader's length), at least FREE_HEADWAY_S x v + FREE_BUMPER_GAP_M: behind a 5 m car the
 # spacing test above (FREE_GAP_M = 5 m + 5 m), behind a 12 m truck 7 m stricter. Why: on the
 # signalised arterial 521 cars standing 14.5 m behind a 12 m truck passed the spacing test,
-# and their top speeds (0.28-0.54 of the limit) were taken as exact ratios (docs/deploy.md,
+# and their top speeds (0.28-0.54 of the limit) were taken as exact ratios (docs/deploy-log.md,
 # "Arterial 521's slow exact ratios"). A leader of unknown length counts as a car.
 FREE_BUMPER_GAP_M = 5.0
 CAR_LENGTH_M = FREE_GAP_M - FREE_BUMPER_GAP_M
@@ -305,7 +305,7 @@ def krauss_pairs(
     drawn around 1) is. Why: scaled over 1, ring_two_lane's pairs (their drivers' median
     0.957) fitted a speed factor relative to limits 4% below the deployed drivers', whose
     prior then cruised towards 12.76 m/s where the observed cars cruise at 11.9
-    (docs/deploy.md, "ring_two_lane's cruise (stop 31)").
+    (docs/deploy-log.md, "ring_two_lane's cruise (stop 31)").
 
     On an open section whose estimate fell back the censored drivers' following pairs join
     (``censored_following_pairs``); a closed one keeps its own drivers' pairs (stop 31).

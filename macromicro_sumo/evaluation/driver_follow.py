@@ -7,7 +7,7 @@ the pooled pairs the safe speed binds only on the drivers who follow at about th
 the others' pairs fall to the free term, which at a relaxation of 10 s costs them nothing.
 Drawn net 502's truth mixes 57% Krauss cars (tau 1 s) with 38% IDM cars (T 1.2 s,
 accel 1.5): the pooled fit gave tau 1.056 s and a deployed stream 0.9 m/s faster than the
-truth (docs/deploy.md, "Drawn 502's +1.0 m/s"). Fitted per driver with the pooled fit's
+truth (docs/deploy-log.md, "Drawn 502's +1.0 m/s"). Fitted per driver with the pooled fit's
 other parameters (``driver_taus``), its 197 observed drivers with a binding safe speed
 give two groups, the Krauss cars at a median 1.065 s (132 of them) and the IDM cars at
 1.46 s (57): the IDM's gap at its own T is larger than Gipps' at that tau.

@@ -230,7 +230,7 @@ def fit_krauss(
     if, with the default a, they still do); any parameter at a bound of the fit's range or
     with a standard error above ``MAX_RELATIVE_SE`` of its value. Not relax_s at a bound:
     at the step it is Krauss' own free term, at its upper bound the drivers' neutral
-    cruising at their own speed (docs/deploy.md), which Stage II replaces by a relaxation
+    cruising at their own speed (docs/deploy-log.md), which Stage II replaces by a relaxation
     chosen on the training runs' loops (``policy.relax_choice``); nor min_gap_m at 0.
 
     Where a falls back, relax_s is refitted alone (``_refit_relax``, recorded in
@@ -404,7 +404,7 @@ def binding_start(
     all keep more than 1 s (IDM cars in steady traffic, ring_two_lane: 1.55 s at the 1st
     percentile), the safe speed binds on no pair, the three have no gradient and stay at
     their starts (standard error inf), and the guard gave them SUMO's defaults, a prior
-    that follows at 1 s (docs/deploy.md, "ring_two_lane (stop 29)")."""
+    that follows at 1 s (docs/deploy-log.md, "ring_two_lane (stop 29)")."""
     v, spacing = obs[:, 0], obs[:, 2]
     near = (v > 1.0) & (spacing < v * FREE_HEADWAY_S + FREE_GAP_M)
     if not near.any():

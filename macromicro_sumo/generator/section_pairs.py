@@ -12,7 +12,7 @@ index at a junction (501: lane 1 of a two-lane edge onto lane 0 of a one-lane ed
 gaps, one per SUMO lane index, put a car 0.6 m behind another across it, or 6.5 m ahead of
 an observed car at 21 m/s with a slow car ahead. What it still drops are chains of
 generated vehicles whose dealt-out speeds an observed follower cannot stop behind
-(docs/sections.md, stop 34).
+(docs/sections-log.md, stop 34).
 """
 
 from __future__ import annotations

@@ -381,7 +381,7 @@ def fit_residual_prior(
         # pairs do not show (a queue beyond the end, a merge: game/ramp fitted 0.82). A closed
         # one has nothing beyond it: ring_two_lane's fitted 0.92 (its IDM cars cruise below
         # their desired speed) took the deployed policy 0.77-1.04 -> 0.50-0.56 m/s
-        # (docs/deploy.md, "ring_two_lane (stop 29)").
+        # (docs/deploy-log.md, "ring_two_lane (stop 29)").
         held = ratios.fallback and not closed
         fixed = {"speed_factor": ratios.fallback} if held else None
         fit = fit_krauss(fit_obs, fit_acc, length, dt, network_defaults(truth.vtypes), fixed)

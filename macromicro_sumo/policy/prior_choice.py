@@ -2,7 +2,7 @@
 
 Which family a section's residual policy should rest on is not a property of the fit: on
 drawn net 300 the IDM prior's trained policy deployed at 4.83-6.42 m/s speed RMSE and the
-Krauss prior's at 6.86-7.34, on drawn net 311 Krauss at 2.82 and IDM at 3.41 (docs/deploy.md,
+Krauss prior's at 6.86-7.34, on drawn net 311 Krauss at 2.82 and IDM at 3.41 (docs/deploy-log.md,
 "A policy that knows its vehicle's length (stop 31)"), while each example file picked its
 family by hand. ``choose_prior`` fits every family of ``PRIOR_FAMILIES`` to the same pairs
 (``fit_family``: as the policy stage fits one, the Krauss form with its relaxation choice,

@@ -5,7 +5,7 @@ recorded pairs decide T only where they show drivers far below their desired spe
 ring_two_lane (recorded after the warm-up, steady traffic) none of 10,183 pairs shows free
 acceleration, and the fit leaves T at its bound, 10 s (``evaluation.krauss_fit``): the
 fleet, departing standing, then closes on its desired speed with a 10 s time constant and
-the deployment's first minute ran 0.7-0.8 m/s slow (docs/deploy.md, "ring_two_lane's
+the deployment's first minute ran 0.7-0.8 m/s slow (docs/deploy-log.md, "ring_two_lane's
 cruise (stop 31)").
 
 ``choose_relax`` decides such a T from what the pairs do not show: the start. Each of
@@ -17,7 +17,7 @@ SUMO's first step, warm-up included), and the one with the lowest speed RMSE aga
 truth's detectors there is kept. Stage II's own r_macro cannot decide it: its targets
 (psi) start after the warm-up, when the start is over. Nor can the demand env Stage II
 trains on: it drives without the safety layer, and on congested networks every candidate's
-run collided there (drawn net 311: 606-906 times; deployed, none did; docs/deploy.md,
+run collided there (drawn net 311: 606-906 times; deployed, none did; docs/deploy-log.md,
 "One prior-alone scorer (stop 33)").
 """
 

@@ -3,7 +3,7 @@ its training pairs are (``policy.residual``).
 
 With ``policy.prior`` the policy's mean is a fitted car-following model plus the actor's
 bounded residual (``policy.agent``). Two trainings of netgen_corridor on one ground truth
-and generator, PPO seeds 1 and 2, deployed at 18% and 82% speed-within-5% (docs/deploy.md,
+and generator, PPO seeds 1 and 2, deployed at 18% and 82% speed-within-5% (docs/deploy-log.md,
 "Measured"). Three causes, measured there:
 
 * Neutral cruising. On a free road the recorded accelerations average 0 at every cruising
@@ -43,7 +43,7 @@ and generator, PPO seeds 1 and 2, deployed at 18% and 82% speed-within-5% (docs/
   merge, a quarter changing lanes; a Gaussian likelihood took them for drivers' choices
   and held the residual at -0.07 to -0.18 m/s^2 in every regime, queues included. ``policy.residual_pairs`` leaves pairs more than
   ``HELD_MARGIN_MPS2`` below the prior out (``held_back``), except on a closed one-lane
-  section, where the leader is the only constraint (docs/deploy.md, "Residual on untuned
+  section, where the leader is the only constraint (docs/deploy-log.md, "Residual on untuned
   networks (stop 28)").
 * The start. Snapshot episodes and the recorded pairs begin after the warm-up, and the
   anchors keep each pair's leader speed, so a platoon that starts together (own and
@@ -52,7 +52,7 @@ and generator, PPO seeds 1 and 2, deployed at 18% and 82% speed-within-5% (docs/
   the prior's free regime, and the deployed policies' first minute was 0.8-1.3 m/s slow
   (the prior alone 0.4). Where the truth has a warm-up, the warm-up's states driven by the
   prior (``policy.demand_rollout.warmup_states``) that lie off the pairs are anchors too
-  (``warmup_anchor_loss``; docs/deploy.md, "ring_two_lane's start (stop 30)").
+  (``warmup_anchor_loss``; docs/deploy-log.md, "ring_two_lane's start (stop 30)").
 
 The policy's form (actor, bound, prior) is unchanged, so checkpoints and the deployment's
 numpy twin of ``Agent.mean_action`` are too.
@@ -80,12 +80,12 @@ FREE_TOL_MPS2 = 0.05
 # How many pairs' weight one anchor has. Weighing one pair, the residual fitted behind
 # leaders still leaked into the free regime: free-road speeds up to 2.6 m/s below the
 # prior's (netgen_corridor, 59-64% speed within 5% over PPO seeds 1-3); at 10, within
-# 0.3 m/s (docs/deploy.md, "Why two trainings of the residual differed").
+# 0.3 m/s (docs/deploy-log.md, "Why two trainings of the residual differed").
 ANCHOR_WEIGHT = 10.0
 # A pair whose acceleration falls this far below the prior's is held back by something the
 # observation does not carry (``held_back``). On game/ramp's fitted pairs (acc - prior)
 # runs from -0.77 (5th percentile) to +0.60 m/s^2 (95th), the lowest 2% beyond -2.3; 3.9%
-# lie beyond -1 (docs/deploy.md, "Residual on untuned networks (stop 28)").
+# lie beyond -1 (docs/deploy-log.md, "Residual on untuned networks (stop 28)").
 HELD_MARGIN_MPS2 = 1.0
 
 

@@ -49,7 +49,7 @@ POLICY = "policy"
 CHALLENGERS = {"idm_detectors": "the detector-calibrated IDM", "oracle": "the oracle"}
 # The policy is also to beat these on speed RMSE (issue 17's criterion).
 BASELINES = {"sumo_default": "SUMO's uncalibrated defaults", "idm_calibrated": "the fitted IDM"}
-# The targets' floors on a truth (docs/deploy.md, "What a near-exact model reaches").
+# The targets' floors on a truth (docs/deploy-log.md, "What a near-exact model reaches").
 FLOORS = {
     "oracle_redrawn": "the true model with SUMO's random draws redrawn",
     "oracle_population": "the true model with its draws and each driver's parameters redrawn",

@@ -46,7 +46,7 @@ SCENE_FEATURES = {
     # with the leader's own length), not the front-to-front spacing: behind a 12 m truck a
     # 13 m spacing is a 1 m gap, which "lookahead" showed the policy as a car's 8 m one (on
     # drawn 501, 17 of 57 Stage II episodes with the safety layer off ran a hidden car into
-    # an observed truck; docs/deploy.md, "Drawn 501 at stop 35").
+    # an observed truck; docs/deploy-log.md, "Drawn 501 at stop 35").
     "lookahead_gap": (
         "speed_mps",
         "speed_limit_mps",
@@ -61,7 +61,7 @@ SCENE_FEATURES = {
 # length is what the generator draws, the recorded trajectories' vType gives and SUMO
 # reports of a deployed vehicle: one policy could drive a mixed fleet's trucks and cars
 # each as they drive. Measured on drawn nets 300 and 311 it did not (the trucks' time gap
-# moved away from the truth's), so it is an option, not the default (docs/deploy.md, "A
+# moved away from the truth's), so it is an option, not the default (docs/deploy-log.md, "A
 # policy that knows its vehicle's length (stop 31)").
 OWN_FEATURES = ("length_m",)
 OBSERVATION_FEATURES = {

@@ -69,7 +69,7 @@ class PolicyConfig:
         "leader within 2 s x v + 5 m, not a faster one 1 s x v + 5 m ahead; env.driver_speed."
         "held_at_sight), in Stage II's banks and the deployment (drawn 522 with deploy."
         "merge_reach occupation 3.42 -> 2.73 m/s, 549 3.82 -> 3.64; netgen_corridor "
-        "0.46 -> 0.68: docs/deploy.md, Held entries)",
+        "0.46 -> 0.68: docs/deploy-log.md, Held entries)",
         omit_default=True,  # the digests of scenarios that do not set it stay as they were
     )
     driver_ratios: str = spec(
@@ -87,7 +87,7 @@ class PolicyConfig:
         "all 4 runs' speed RMSE, highway_bremen the same over five PPO seeds (1.065-1.295 "
         "-> 0.927-1.240 m/s, means 1.127 -> 1.118), draw_scenario's arterial 528 worse "
         "over two (1.357-1.372 -> 1.558-1.622), its 521 the same over two (1.081-1.088 -> "
-        "1.080-1.082), netgen_corridor 0.460 -> 0.458 (docs/deploy.md, stop 42)",
+        "1.080-1.082), netgen_corridor 0.460 -> 0.458 (docs/deploy-log.md, stop 42)",
         omit_default=True,  # the digests of scenarios that do not set it stay as they were
     )
     driver_follow: str = spec(
@@ -281,7 +281,7 @@ class DeployConfig:
         "whose deployment on safety_floor_runs training runs has the lower speed RMSE "
         "against the truth's detectors there (a tie: all), chosen per learned method, "
         "recorded in its manifest.json; neither fixed floor is best on every network "
-        "(docs/deploy.md, Safety layer strictness)",
+        "(docs/deploy-log.md, Safety layer strictness)",
     )
     safety_floor_runs: int = spec(
         2,
@@ -297,7 +297,7 @@ class DeployConfig:
         doc="safety sumo: the braking each driven vehicle's safe speed plans its stop with: "
         "own, its vType's decel; matched, at least that of the vehicle ahead (an IDM car's "
         "decel is its comfortable braking: own holds it behind a Krauss car to gaps SUMO's "
-        "IDM does not keep; docs/deploy.md, Safety layer strictness)",
+        "IDM does not keep; docs/deploy-log.md, Safety layer strictness)",
     )
     command_brake: str = spec(
         "decel",
@@ -319,7 +319,7 @@ class DeployConfig:
         doc="learned methods: the acceleration each driven vehicle gets every step: mean, the "
         "policy's deterministic mean action; sample, a draw from its Gaussian (the mean and "
         "its learned std), from a generator seeded by seed and run, before the bounds and the "
-        "safety layer (docs/deploy.md, Sampled actions)",
+        "safety layer (docs/deploy-log.md, Sampled actions)",
         omit_default=True,
     )
     actor_dtype: str = spec(
@@ -342,7 +342,7 @@ class DeployConfig:
         "lane, a lane drop) merges with SUMO's model from where SUMO's lane changer makes "
         "the change urgent (LC2013's strategic look-ahead); sumo: also, a commanded vehicle that "
         "blocks it takes SUMO's cooperative slow-down; none: commands everywhere "
-        "(docs/deploy.md, Merges)",
+        "(docs/deploy-log.md, Merges)",
     )
     merge_reach: str = spec(
         "plain",
@@ -352,7 +352,7 @@ class DeployConfig:
         "must reach, so in a queue far before the plain reach) and commanded vehicles yield to "
         "every vehicle that must leave its lane (deploy.merge_yield); plain, the plain reach and "
         "the yield to handed-over vehicles (drawn 549 4.53 -> 3.82 m/s, 501 3.02 -> 2.72, "
-        "Bremen 1.15 -> 1.19 with occupation: docs/deploy.md, Lane drops; since stop 42 a "
+        "Bremen 1.15 -> 1.19 with occupation: docs/deploy-log.md, Lane drops; since stop 42 a "
         "vehicle asked to yield is held a step, all 4 runs plain -> occupation: Bremen 1.08 -> "
         "0.91, 501 3.28 -> 1.99, 549 4.33 -> 3.68, 522 2.99 -> 3.46 m/s; the Bremen example "
         "sets it)",
@@ -366,7 +366,7 @@ class DeployConfig:
         "no faster than LC2013's ban on overtaking on the right lets SUMO's drivers "
         "(deploy.keep_right.keep_right_caps; not with policy.driver_speed drawn); off, no "
         "such cap (drawn 501 3.02 -> 3.00 m/s with blocked, drawn 549 4.38 -> 4.16, both "
-        "within the runs' spread: docs/deploy.md, Keep right)",
+        "within the runs' spread: docs/deploy-log.md, Keep right)",
         omit_default=True,  # the digests of scenarios that do not set it stay as they were
     )
     fcd_s: float = spec(

@@ -2,7 +2,7 @@
 driver at 60 km/h or more does not pass a slower leader on the lane to its left; a speed
 command overrode that. On drawn 501 SUMO's cars on m0's lane 2 hold 16.6 m/s beside the
 queue on lane 3 (60 km/h, where SUMO lifts the ban), the commanded ones drove 22-24 m/s:
-60% of the policy's excess over the oracle (docs/deploy.md, stop 37). With ``deploy.keep_right
+60% of the policy's excess over the oracle (docs/deploy-log.md, stop 37). With ``deploy.keep_right
 = "blocked"`` (and merge "sumo") a commanded car beside a queue on its left passes it at
 SUMO's 60 km/h. Off by default: on drawn 549 it made the deployment worse (4.39 -> 4.95 m/s,
 the lane drop's queue spilling back to the busy entry)."""

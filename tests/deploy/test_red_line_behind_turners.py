@@ -6,8 +6,8 @@ Before, the red line and SUMO's leader were compared as front-to-front spacings,
 standing vehicle of the own length: a truck (12 m) took a car (5 m) that stood or moved
 less than 7 m past its stop as the nearer, lost the line and crept up to it, where SUMO's
 red-light braking held it on the stop-line loop through the red (arterial 521: 5 of the 7
-trucks at the head of a queue stood at the line, SUMO's at 1.0 m; docs/deploy.md, "Arterial
-521: where the policy's extra error lies (stop 40)").
+trucks at the head of a queue stood at the line, SUMO's at 1.0 m; docs/deploy-log.md, "Arterial
+521: where the policy's extra error lies (stop 40, hA)").
 """
 
 from __future__ import annotations

@@ -53,7 +53,7 @@ def test_standing_raises_only_the_standing(tmp_path: Path, floor_on: str) -> Non
 def test_the_default_keeps_a_braking_stream_at_the_floor_where_standing_crawls(
     tmp_path: Path,
 ) -> None:
-    """The trade-off "standing" makes (docs/deploy.md, Safety layer strictness): a policy
+    """The trade-off "standing" makes (docs/deploy-log.md, Safety layer strictness): a policy
     that brakes at a_min whatever it sees moves at the floor (a fifth of the 30 m/s limit)
     under "all"; under "standing" it is raised only below 1 m/s and braked again, so it
     crawls at no more than one step's acceleration above that, and fewer cars pass."""

@@ -1,6 +1,6 @@
 """The Krauss-form fit where every observed driver keeps more than the starts' 1 s: Gipps' safe
 speed binds on no pair at any start, so b, tau and min_gap have no gradient; one more start
-with tau from the pairs' own time gaps finds them (ring_two_lane's IDM cars, docs/deploy.md,
+with tau from the pairs' own time gaps finds them (ring_two_lane's IDM cars, docs/deploy-log.md,
 "ring_two_lane (stop 29)")."""
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 (ring_two_lane: few observed cars cruise freely, so the ratio estimate is SUMO's default,
 median 1, while the speed factor is fitted all the same): the pairs are scaled over their
 own drivers' median ratio, so the fitted speed factor is the typical observed driver's and a
-deployed driver (factor 1) cruises where the observed cars cruise (docs/deploy.md,
+deployed driver (factor 1) cruises where the observed cars cruise (docs/deploy-log.md,
 "ring_two_lane's cruise (stop 31)"). Real SUMO: one run of ring_two_lane."""
 
 from __future__ import annotations

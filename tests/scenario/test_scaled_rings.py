@@ -14,7 +14,7 @@ def test_ring_sugiyama_trains_the_paper_rings_policy():
     """Stage II as on the paper's ring, its IDM prior included: without it (the file had
     none where ring_paper has it) the deployed 22-car ring sped up from 4.1 to 4.8 m/s where
     the truth's waves slow it from 3.9 to 2.9 (speed RMSE 1.58 m/s at 359e04c, 1.13 with the
-    prior; docs/deploy.md, stop 35)."""
+    prior; docs/deploy-log.md, stop 35)."""
     paper = load_scenario(PAPER_SCENARIO)
     sugiyama = load_scenario(ROOT / "scenarios" / "ring_sugiyama.toml")
     assert sugiyama.policy.prior == "idm"
