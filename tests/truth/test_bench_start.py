@@ -36,3 +36,16 @@ def test_the_bench_scores_a_record_from_a_later_start(tmp_path: Path) -> None:
     per_lane = float((cong["intervals"].abs() / cong["lanes"]).mean())
     assert per_lane <= 3.0, per_lane
     assert bench.get_options(["--start-s", "270"]).start_s == 270.0
+
+
+def test_the_bench_sets_occupancy_loops_in_a_folder_of_their_own(tmp_path: Path) -> None:
+    """``--occupancy-loop-m``: the table or TOML text gets ``detectors.auto_occupancy_loop_m``
+    and caches in its own subfolder (a point-loop truth there would be read as dual)."""
+    table = {"name": "a", "detectors": {"interval_s": 30.0}}
+    name, folder, out, desc = bench.with_occupancy_loops("a", tmp_path, table, "drawn", 2.0)
+    assert folder == tmp_path / "occupancy_loop_2m" and folder.is_dir()
+    assert out["detectors"] == {"interval_s": 30.0, "auto_occupancy_loop_m": 2.0}
+    assert table["detectors"] == {"interval_s": 30.0}  # the point-loop table is left as it was
+    text = bench.with_occupancy_loops("b", tmp_path, "[detectors]\ninterval_s = 30\n", "", 2.0)[2]
+    assert text == "[detectors]\nauto_occupancy_loop_m = 2.0\ninterval_s = 30\n"
+    assert bench.get_options(["--occupancy-loop-m", "2"]).occupancy_loop_m == 2.0
