@@ -81,6 +81,8 @@ class SectionDriver:
         self.type_code: dict[str, int] = {}  # vType -> its row in shape_table
         self.lane_table = LaneTable(section)
         self.steps = 0
+        # The last ``before_step``'s states, per vehicle on a section lane and in the population
+        self.flags: tuple[VehicleStates | None, list[bool], list[bool]] = (None, [], [])
         self._brake_limit: tuple[tuple[str, ...], np.ndarray] = ((), np.empty(0))
         # -decel - tolerance of the least decel among the vTypes met: the loosest threshold.
         self._loosest_brake = -np.inf
@@ -102,8 +104,12 @@ class SectionDriver:
             return
         # In SUMO's order, which is sorted by ID (``VehicleStates``): no sort needed. C-level
         # passes, not a Python loop per vehicle.
-        on = map(self.section.lanes.__contains__, st.lanes)
-        vids = list(compress(ids, map(and_, on, map(self.population.__contains__, ids))))
+        on = list(map(self.section.lanes.__contains__, st.lanes))
+        ours = list(map(self.population.__contains__, ids))
+        # Kept for this step's ``MergeYield.must_change``: those on the section and not ours
+        # are the vehicles not driven there, without a second pass over every vehicle.
+        self.flags = (st, on, ours)
+        vids = list(compress(ids, map(and_, on, ours)))
         now = set(vids)
         # Still in the network (on the road or teleporting), not on the section now: SUMO's
         # arrivals asked only where a driven vehicle is gone from the section.

@@ -6,6 +6,7 @@ blocks it (the yield). A mixin: the driver holds the state (``slots``, ``merging
 from __future__ import annotations
 
 from itertools import compress
+from operator import and_, not_
 from typing import Protocol
 
 import numpy as np
@@ -85,6 +86,10 @@ class LaneEnds(Protocol):
     section: Section
     driven: set[str]
     others: set[str]
+    steps: int
+    flags: tuple[VehicleStates | None, list[bool], list[bool]]  # ``SectionDriver.before_step``
+    _plain: frozenset[str] | None
+    _last_others: tuple[list[str], list[str], float, list[str]] | None
 
     def slots_of(self, vids: list[str], lanes: list[str]) -> tuple[np.ndarray, np.ndarray]: ...
 
@@ -122,6 +127,9 @@ class MergeYield:
     # With ``yield_all``: the vehicles SUMO asked to yield last step (``yield_caps``' held)
     yielded: frozenset[str] = frozenset()
     _chains: dict[str, tuple[str, ...]] | None = None
+    _plain: frozenset[str] | None = None  # the section's lanes that are not internal ones
+    # ``must_change``'s last vehicles not driven: (ids, lanes, step due again, must change)
+    _last_others: tuple[list[str], list[str], float, list[str]] | None = None
     driven: set[str]
     steps: int
     # vehicles not driven on the section with an entry in ``slots.lane_end`` (``must_change``)
@@ -254,27 +262,45 @@ class MergeYield:
         lane, a lane that carries one on again ``LANE_END_RECHECK_STEPS`` later). A vehicle
         not driven that left the section's lanes since the last call is dropped from it
         (``others``), as ``release`` drops a driven one."""
-        out = list(compress(vids, (self.slots.lane_end.offset[slots] > 0).tolist()))
-        lanes, driven = self.section.lanes, self.driven
-        on = [
-            (v, lane)
-            for v, lane in zip(st.ids, st.lanes, strict=True)
-            if lane in lanes and v not in driven
-        ]
-        gone = self.others.difference(v for v, _ in on)
+        cache = self.slots.lane_end
+        out = list(compress(vids, (cache.offset[slots] > 0).tolist()))
+        # Not driven, on the section: on its lanes and not in the population (the driven
+        # ones are the population's there, ``before_step``, whose flags these are), filtered
+        # in C; without this step's flags, from ``driven``.
+        held, on, ours = self.flags
+        if held is not st:
+            on = list(map(self.section.lanes.__contains__, st.lanes))
+            ours = list(map(self.driven.__contains__, st.ids))
+        keep = list(map(and_, on, map(not_, ours)))
+        ids, lanes = list(compress(st.ids, keep)), list(compress(st.lanes, keep))
+        gone = self.others.difference(ids)
         if gone:
-            self.slots.lane_end.forget(self.slots.slots(sorted(gone)))
+            cache.forget(self.slots.slots(sorted(gone)))
             self.others.difference_update(gone)
+            self._last_others = None  # a forgotten entry is asked again if it comes back
         # Not on a junction's internal lane: SUMO's best lanes there are the next edge's.
-        asked = [(v, lane) for v, lane in on if not lane.startswith(":")]
-        if not asked:
+        if self._plain is None:
+            self._plain = frozenset(k for k in self.section.lanes if not k.startswith(":"))
+        plain = list(map(self._plain.__contains__, lanes))
+        if not all(plain):
+            ids, lanes = list(compress(ids, plain)), list(compress(lanes, plain))
+        if not ids:
             return out
-        ids, on_lanes = [v for v, _ in asked], [lane for _, lane in asked]
-        at = self.slots_of(ids, on_lanes)
-        self.lane_end_m(sim, ids, on_lanes, at)
+        # The same vehicles on the same lanes as at the last call, none due again yet: their
+        # entries are as they were (only this method writes those slots; the lanes equal,
+        # each entry's lane is its lane's), so are their offsets.
+        last = self._last_others
+        if last is not None and self.steps < last[2] and last[0] == ids and last[1] == lanes:
+            out.extend(last[3])
+            return out
+        at = self.slots_of(ids, lanes)
+        self.lane_end_m(sim, ids, lanes, at)
         self.others.update(ids)
         # The arrays as they are now: a new slot may have grown them.
-        out.extend(compress(ids, (self.slots.lane_end.offset[at[0]] > 0).tolist()))
+        cache = self.slots.lane_end
+        change = list(compress(ids, (cache.offset[at[0]] > 0).tolist()))
+        self._last_others = (ids, lanes, float(cache.again[at[0]].min()), change)
+        out.extend(change)
         return out
 
     def yields(
