@@ -2,7 +2,7 @@
 a main road of equal edges between fixed-time junctions (netconvert's programs), each with
 a side street turning onto it, one turning off it and one crossing it; the queues at the
 signals spill back from junction to junction. ``ARTERIALS`` 1 and 2 are the two that stop
-33 measured (docs/sections.md, "The hidden count in queues"); any other number draws one
+33 measured (docs/sections-log.md, "The hidden count in queues"); any other number draws one
 from that seed.
 """
 

@@ -3,7 +3,7 @@
 after ``--cut`` metres) and by interval (``--bins`` edges, s), speed RMSE, speed bias and
 flow bias against the ground truth per folder; then per run (the split by position).
 How drawn 522's loss with ``deploy.merge_reach = "occupation"`` was found to lie
-downstream of its lane drop (docs/deploy.md, stop 43, hO43).
+downstream of its lane drop (docs/deploy-log.md, stop 43, hO43).
 
     .venv/bin/python scripts/deploy_split.py DIR_A DIR_B [...] --cut 700 \\
         [--bins 0 120 300 600 720] [--method policy]

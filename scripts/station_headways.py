@@ -4,7 +4,7 @@ the window), each vehicle's passage of ``--arc`` (linear between its samples), t
 to the vehicle that passed before it in the same run, kept where it passes in
 [``--from``, ``--to``) s. Prints per file: passages a run, mean headway, the mean by the
 follower's vType, the mean passing speed. Issue 17 (drawn 501's queue discharge at 1125 m,
-docs/deploy.md):
+docs/deploy-log.md, stop 42, hQ):
 
     .venv/bin/python scripts/station_headways.py --arc 1125 --from 330 --to 600 \\
         truth=RUN/ground_truth/trajectories.csv policy=DEPLOY/policy/trajectories.csv
@@ -14,7 +14,7 @@ another one.
 
 ``--start-lags SIGNALS`` (the ground truth's signals.csv) measures instead how a queue
 standing at the stop line ``--arc`` starts at each green (issue 17, drawn arterial 528,
-docs/deploy.md stop 43): the vehicles standing (< ``STANDING_MPS``) within ``REACH_M``
+docs/deploy-log.md stop 43): the vehicles standing (< ``STANDING_MPS``) within ``REACH_M``
 upstream of the line as the light turns green, in queue order; each one's start (its
 first sample faster than ``MOVING_MPS``) after the green, and its lag behind the start of
 the vehicle ahead of it in the queue (the head: behind the green); a vehicle that has not

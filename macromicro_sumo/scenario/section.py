@@ -109,7 +109,7 @@ class SectionDetectorConfig:
         "at it, whose interval occupancy replaces the point loop's (a dual loop; counts and "
         "speeds stay the point loop's). 0: point loops only. A point loop near a stop line "
         "can sit in a gap of SUMO's standing queue and read a third of its density "
-        "(docs/sections.md, stop 43); the user's own detectors are never changed",
+        "(docs/sections-log.md, stop 43); the user's own detectors are never changed",
         omit_default=True,  # the digests of scenarios that do not set it stay as they were
     )
     k_window_s: float = spec(

@@ -164,7 +164,7 @@ def detectors_xml(placed: list[Placed], interval_s: float) -> str:
     point loop gives the counts and speeds, a second E1 that long, ending at it, the interval
     occupancy only (``read_detectors``). Not one E1 with a length: SUMO's counts a vehicle
     when it leaves the loop and drops one that changes lane over it (drawn seed 500, 2 runs:
-    9537 -> 9396 counted, the interval counts' K 0.96 -> 7.58 per lane; docs/sections.md,
+    9537 -> 9396 counted, the interval counts' K 0.96 -> 7.58 per lane; docs/sections-log.md,
     stop 42 hL), where a field loop counts on entry."""
     rows = ["<additional>"]
     for p in placed:

@@ -5,7 +5,7 @@ SUMO counts a vehicle on every E2 it overlaps (``meanVehicleNumber``, ``sampledS
 one across an edge boundary is on both detectors, one over two detectors that overlap on
 both. Read that way, E2s tiling a road put vehicle length x density x boundaries too many
 vehicles on it (issue 17: ring_sugiyama's K 2-3 too high).
-``section_detectors.e2_vehicles`` reads k x length instead (docs/sections.md, "Detectors
+``section_detectors.e2_vehicles`` reads k x length instead (docs/sections-log.md, "Detectors
 that share a boundary (stop 29)").
 """
 
