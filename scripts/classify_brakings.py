@@ -41,14 +41,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch
-from deploy_runs import prepared
+from deploy_runs import detector_theta, prepared
 
 from macromicro_sumo.deploy import drivers
 from macromicro_sumo.deploy.floor_choice import resolve_floor
 from macromicro_sumo.deploy.observe import STOP_DECEL_MPS2
 from macromicro_sumo.deploy.run import run_method
 from macromicro_sumo.deploy.safety import command_brake
-from macromicro_sumo.deploy.stage import method_drive
+from macromicro_sumo.deploy.stage import fit_idm, method_drive
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.sumo.simulation import Simulation
 
@@ -251,7 +251,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"classify_brakings: {e}", file=sys.stderr)
         return 2
     torch.set_num_threads(1)
-    drive, _ = method_drive(o.method, sc, agents, None)
+    try:  # the fits the deploy stage drove idm_calibrated / idm_detectors with
+        idm = fit_idm(ctx)[0] if o.method == "idm_calibrated" else None
+        fitted = detector_theta(o.run) if o.method == "idm_detectors" else None
+    except UserError as e:
+        print(f"classify_brakings: {e}", file=sys.stderr)
+        return 2
+    drive, _ = method_drive(o.method, sc, agents, idm, fitted)
     o.out.mkdir(parents=True, exist_ok=True)
     drive, _ = resolve_floor(ctx, drive, o.out / "floor_choice")
     undo = install(ctx.sc)  # after the floor's choice: only the runs classified are recorded

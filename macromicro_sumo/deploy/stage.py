@@ -229,9 +229,14 @@ def method_drive(
             record[key] = getattr(sc.deploy, key) if safety == "sumo" else None
         return drive, record
     if how == "idm":
+        if idm is None:
+            raise ValueError(f"{name}: needs the IDM fitted to the observed vehicles (fit_idm)")
         theta = idm_theta(idm)
         return Drive(theta=theta), {"theta": theta}
     if how == "detectors":
+        # Drive(theta=None) drives the truth's own vTypes: the oracle under another name.
+        if fitted is None:
+            raise ValueError(f"{name}: needs the IDM fitted to the detectors (fit_to_detectors)")
         return Drive(theta=fitted), {"theta": fitted}
     if how == "defaults":
         return Drive(defaults=True), {}
