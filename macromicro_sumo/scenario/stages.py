@@ -369,6 +369,17 @@ class DeployConfig:
         "within the runs' spread: docs/deploy-log.md, Keep right)",
         omit_default=True,  # the digests of scenarios that do not set it stay as they were
     )
+    turns: str = spec(
+        "off",
+        choices=("off", "limit", "handover"),
+        doc="a driven vehicle whose route leaves the section at the coming junction (a turner, "
+        "its route read once when it enters; deploy.turns): limit, its look-ahead shows the "
+        "turn's internal-lane limit at the stop line instead of the next section edge's; "
+        "handover, it is handed back to SUMO's model before the line, where SUMO would start "
+        "braking for the turn; off, neither (SUMO braked turners handed back inside the "
+        "junction at 5-9 m/s^2 on drawn arterial 528: docs/deploy-log.md)",
+        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+    )
     fcd_s: float = spec(
         120.0, lo=0.0, hi=1e6, doc="trajectories.csv keeps the first fcd_s recorded seconds [s]"
     )
