@@ -46,6 +46,7 @@ from macromicro_sumo.deploy.safety import (
     speed_commands,
 )
 from macromicro_sumo.deploy.slots import NOT_ASKED, VehicleSlots
+from macromicro_sumo.deploy.turns import Turns
 from macromicro_sumo.road.leaders import stop_distance_m
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
 from macromicro_sumo.road.vtype import VTypePhysics, read_vtype
@@ -200,8 +201,17 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
         self.others: set[str] = set()  # ``MergeYield.must_change``
         # deploy.merge_reach "occupation": LC2013's lane drop (``MergeYield``)
         self.occupation = self.yield_all = sc.deploy.merge_reach == "occupation"
+        # deploy.turns: the turners' routes, read when they enter (built at the first take)
+        self.turns_mode = sc.deploy.turns
+        self.turns: Turns | None = None
 
     def take(self, sim: Simulation, vids: list[str]) -> None:
+        if self.turns_mode != "off":
+            if self.turns is None:
+                opts = sim.options
+                dt = self.sc.simulation.step_length_s
+                self.turns = Turns(self.section, opts.net_file, tuple(opts.route_files), dt)
+            self.turns.enter(vids)
         sim.set_speed_mode(vids, self.mode)
         for v in vids:
             if v not in self.slots.of:
@@ -281,6 +291,18 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
         rows = np.fromiter(map(st.index.__getitem__, vids), np.int64, len(vids))
         lanes = list(map(st.lanes.__getitem__, rows.tolist()))
         slots, codes = self.slots_of(vids, lanes)
+        if self.turns_mode == "handover":  # turners near their line: SUMO's for good
+            near = self.turns.to_hand(vids, self.lane_table, codes, rows, slots, st, self.slots)
+            if near.size:
+                gone = [vids[i] for i in near.tolist()]
+                self.population.difference_update(gone)
+                self.driven.difference_update(gone)
+                self.release(sim, gone)
+                idx = np.delete(np.arange(len(vids)), near)
+                vids, lanes = [vids[i] for i in idx.tolist()], [lanes[i] for i in idx.tolist()]
+                rows, slots, codes = rows[idx], slots[idx], codes[idx]
+                if not vids:
+                    return
         # Where each must have left its lane: the merges' hand-over and the observation's
         # standing leader, asked once.
         ahead = self.lane_end_m(sim, vids, lanes, (slots, codes)) - st.pos_m[rows]
@@ -441,6 +463,9 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
             # Its prior's minGap where no layer holds the vType's (observe_rows' stop_gap_m).
             getattr(self.act, "stop_gap_m", None) if self.safety == "none" else None,
             None if self.driver_taus is None else partial(self.driver_taus, step=self.steps),
+            self.turns.ahead(vids, self.lane_table, at[1], st.pos_m[rows])
+            if self.turns is not None and self.turns_mode == "limit"
+            else None,
         )
 
 

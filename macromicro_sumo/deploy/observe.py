@@ -133,6 +133,7 @@ def observe_rows(
     lane_codes: np.ndarray | None = None,
     stop_gap_m: float | None = None,
     driver_taus: Callable[[list[str], np.ndarray], np.ndarray] | None = None,
+    turns: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Observations (V, obs_dim) of driven vehicles ``vids`` (rows ``rows`` of ``st``, on
     lanes ``lane_ids``), as the section env defines them, the leader SUMO's (``leaders``:
@@ -154,7 +155,10 @@ def observe_rows(
     inside it, where SUMO counts a collision (its collisionMinGapFactor 1; Stage II's
     replay counts only an overlap). ``driver_taus``: each driver's own tau [s] from the
     vehicles and their observations (``policy.driver_follow``, ``env.driver_tau.DriverTaus``
-    and its hand-over), appended as a trailing column (None: no column).
+    and its hand-over), appended as a trailing column (None: no column). ``turns``:
+    (indices, the turn's limit, the arc of its stop line) of turners before the line where
+    they leave the section (``deploy.turns`` "limit", ``deploy.turns.Turns.ahead``): their
+    look-ahead is that limit at that line, not the next section edge's (None: none).
     Also returns SUMO's gap to what the vehicle sees ahead, that leader's decel, and its
     index in ``vids`` where it is a driven vehicle (-1: none, not driven, or a standing
     leader): the safety layer knows a driven leader's next speed, its command.
@@ -170,6 +174,9 @@ def observe_rows(
     # The lanes' own columns in one take (a fresh array): the limits, and where the next
     # edge starts in the distance's column.
     obs = lanes.obs_rows(observation).take(codes, axis=0)  # a third of [codes]'s cost
+    if turns is not None and turns[0].size and has_lookahead(observation):
+        obs[turns[0], NEXT_LIMIT_COLUMN] = turns[1]
+        obs[turns[0], NEXT_LIMIT_COLUMN + 1] = turns[2]  # the line, less the arc below
     speed = st.speed_mps[rows]
     lead_ids, gaps = zip(*leaders, strict=True)
     gap = np.fromiter(gaps, float, n)

@@ -1,0 +1,149 @@
+"""``deploy.turns``: driven vehicles whose route turns off the section at a junction of it
+(``deploy.turns.Turns``), on a real network through libsumo.
+
+A (300 m, one lane, 15 m/s) -> junction -> B (200 m) with a right turn onto R (200 m): the
+section is A, B; cars on "A R" turn off at the end of A through an internal lane slower
+than A (netconvert's turning speed), cars on "A B" go through.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import netconvert, one_phase_program, prior_alone, small_section_scenario
+
+from macromicro_sumo.deploy.drivers import SectionSpeedDriver
+from macromicro_sumo.deploy.observe import LaneTable
+from macromicro_sumo.deploy.turns import NO_EXIT, Turns, file_routes, turn_limits
+from macromicro_sumo.road.physics import NEXT_LIMIT_COLUMN
+from macromicro_sumo.road.section import read_section
+from macromicro_sumo.sumo.inputs import read_net
+from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
+from macromicro_sumo.truth.section import record_run
+
+
+def _turn_net(folder: Path, mode: str = "off") -> tuple:
+    nodes = (
+        '<node id="n0" x="0" y="0"/><node id="j" x="300" y="0" type="traffic_light"/>'
+        '<node id="n2" x="500" y="0"/><node id="s0" x="300" y="-200"/>'
+    )
+    edges = (
+        '<edge id="A" from="n0" to="j" numLanes="1" speed="15"/>'
+        '<edge id="B" from="j" to="n2" numLanes="1" speed="15"/>'
+        '<edge id="R" from="j" to="s0" numLanes="1" speed="15"/>'
+    )
+    net = netconvert(folder, nodes, edges)
+    green = one_phase_program(folder, "j", "GG", "green")
+    routes = folder / "r.rou.xml"
+    routes.write_text(
+        '<routes>\n    <vType id="car" length="5" minGap="2.5"/>\n'
+        '    <route id="through" edges="A B"/>\n'
+        '    <flow id="thru" type="car" route="through" begin="0" end="60" period="6" '
+        'departSpeed="max"/>\n'
+        '    <flow id="turn" type="car" begin="3" end="60" period="6" departSpeed="max">'
+        '<route edges="A R"/></flow>\n</routes>\n'
+    )
+    sc = small_section_scenario(
+        folder, net, routes, ["A", "B"], instrumented={"ids": ["probe"]},
+        simulation={"warmup_s": 0.0, "duration_s": 80.0, "n_runs": 2},
+        detectors={"interval_s": 40.0}, deploy={"turns": mode}, additional=(green,),
+    )  # fmt: skip
+    opts = SumoOptions(net, (green,), 0.5, 5, route_files=(routes,), user_demand=True)
+    return sc, net, routes, opts
+
+
+def _via_speed(net: Path) -> float:
+    n = read_net(net, with_internal=True)
+    (con,) = [c for c in n.getEdge("A").getLanes()[0].getOutgoing() if c.getTo().getID() == "R"]
+    return float(n.getLane(con.getViaLaneID()).getSpeed())
+
+
+def test_a_turner_exits_at_its_junction_with_the_turn_s_limit(tmp_path: Path) -> None:
+    """Routes from the files (a flow's vehicles FLOW.N, named or inner routes); the turner
+    leaves at edge 0, its line at A's end, its limit the internal lane's (below A's 15);
+    the through car and a vehicle the files do not know: no exit."""
+    _, net, routes, _ = _turn_net(tmp_path)
+    section = read_section(net, ["A", "B"], False)
+    assert file_routes((routes,)) == {"thru": ("A", "B"), "turn": ("A", "R")}
+    via = _via_speed(net)
+    assert via < 15.0
+    assert turn_limits(net, section)[(0, "R")] == via
+    turns = Turns(section, net, (routes,), 0.5)
+    turns.enter(["turn.3", "thru.2", "other"])
+    line = float(section.offsets_m[0] + section.lengths_m[0])
+    assert turns.exit == {"turn.3": (0, line, via), "thru.2": NO_EXIT, "other": NO_EXIT}
+    lanes = LaneTable(section)
+    codes = lanes.codes(["A_0", "A_0", "B_0"])
+    idx, limit, at = turns.ahead(["turn.3", "thru.2", "turn.3"], lanes, codes, np.full(3, 100.0))
+    assert idx.tolist() == [0] and limit.tolist() == [via] and at.tolist() == [line]
+
+
+def _turn_speeds(df, net: Path) -> np.ndarray:
+    """The turners' recorded speeds on A's last 5 m."""
+    line = float(read_section(net, ["A", "B"], False).lengths_m[0])
+    turner = df["vehicle_id"].str.startswith("turn") & df["arc_m"].between(line - 5.0, line)
+    return df.loc[turner, "speed_mps"].to_numpy()
+
+
+def _deploy(tmp_path: Path, mode: str, cross_krauss: dict) -> tuple:
+    sc, net, _, opts = _turn_net(tmp_path, mode)
+    section = read_section(net, ["A", "B"], False)
+    seen: list[np.ndarray] = []
+    act = prior_alone(cross_krauss)
+
+    def spy(obs: np.ndarray) -> np.ndarray:
+        seen.append(obs.copy())
+        return act(obs)
+
+    drv = SectionSpeedDriver(sc, section, 0, spy, "sumo")
+    sim = Simulation(opts)
+    try:
+        df, stats = record_run(sim, sc, section, 0, drv)
+    finally:
+        sim.close()
+    return df, stats, np.concatenate(seen), net, drv
+
+
+@pytest.mark.parametrize("mode", ["off", "handover"])
+def test_turners_handed_over_before_the_line_come_to_the_turn_slower(
+    tmp_path: Path, cross_krauss: dict, mode: str
+) -> None:
+    """Driven by the prior (residual 0), the turners cross A's last 5 m at A's 15 m/s, far
+    above the turn's limit and SUMO's own drivers ("off"; on drawn arterial 528 SUMO then
+    braked such turners at 5-9 m/s^2 inside the turn); handed to SUMO before the line
+    ("handover") they come to it as SUMO's own drivers do (within 0.5 m/s of their fastest),
+    no emergency braking. 0 collisions, 0 teleports either way."""
+    df, stats, _, net, drv = _deploy(tmp_path, mode, cross_krauss)
+    assert stats["collisions"] == 0 and stats["teleports"] == 0, stats
+    sc, _, _, opts = _turn_net(tmp_path)
+    sim = Simulation(opts)
+    try:
+        own, _ = record_run(sim, sc, read_section(net, ["A", "B"], False), 0)
+    finally:
+        sim.close()
+    v, v_own = _turn_speeds(df, net), _turn_speeds(own, net)
+    assert len(v) > 5 and len(v_own) > 5
+    if mode == "off":
+        assert drv.turns is None
+        assert v.max() > 14.0 > v_own.max() + 3.0
+    else:
+        assert v.max() < v_own.max() + 0.5 and drv.stats.emergency_brakings == 0
+
+
+def test_a_turner_s_look_ahead_is_the_turn_s_limit_at_its_line(
+    tmp_path: Path, cross_krauss: dict
+) -> None:
+    """deploy.turns "limit": a driven turner on A sees the turn's limit as its next limit,
+    its distance the line's (the through cars the next edge's, 15 m/s at B's start)."""
+    _, _, obs, net, _ = _deploy(tmp_path, "limit", cross_krauss)
+    nxt = obs[:, NEXT_LIMIT_COLUMN]
+    via = _via_speed(net)
+    assert np.isclose(nxt, via).any() and np.isclose(nxt, 15.0).any()
+    section = read_section(net, ["A", "B"], False)
+    turn = np.isclose(nxt, via)
+    line, b_start = section.lengths_m[0], section.offsets_m[1]
+    # distance to the line < distance to B's start for the same position; both positive
+    assert (obs[turn, NEXT_LIMIT_COLUMN + 1] >= 0).all()
+    assert (obs[turn, NEXT_LIMIT_COLUMN + 1] <= line).all() and b_start > line
