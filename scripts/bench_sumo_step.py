@@ -12,6 +12,9 @@ process (``--repeats`` rounds of every variant), medians per variant:
   (the same run: its vehicle-steps and speed-command hash equal the policy's, checked):
   what SUMO's step costs under the policy's commands without the driver's work between
   steps;
+- shadow: the policy's driver doing all its work each step (SUMO's leaders included) with
+  nothing it sends reaching SUMO: SUMO drives everyone (the oracle's run), the driver's
+  work between SUMO's steps is the policy run's;
 - actor: the oracle's loop plus the policy's action function on the recorded observations
   of that step, sending nothing: the policy's numpy work alone between SUMO's steps;
 - leaders: the oracle's loop plus SUMO's leader (``Simulation.leaders``) of the vehicles
@@ -43,7 +46,7 @@ from macromicro_sumo.road.section import NO_LEADER_GAP_M
 from macromicro_sumo.sumo.simulation import Simulation
 
 HERE = Path(__file__).resolve().parent
-VARIANTS = ("sumo", "oracle", "policy", "replay", "actor", "leaders", "flush")
+VARIANTS = ("sumo", "oracle", "policy", "replay", "shadow", "actor", "leaders", "flush")
 # The Simulation methods of a speed driver that change the run (recorded, replayed).
 SENT = ("set_speed_mode", "set_speeds", "release_speeds")
 FLUSH = np.ones(4_000_000)  # 32 MB
@@ -62,6 +65,7 @@ class Recording:
 
     def __init__(self) -> None:
         self.on = False
+        self.mute = False  # the sending methods send nothing (the "shadow" variant)
         self.step = 0  # steps made so far in the run now (every run, recording or not)
         self.sent: dict[int, list[tuple[str, tuple]]] = defaultdict(list)
         self.obs: dict[int, np.ndarray] = {}
@@ -80,7 +84,8 @@ class Recording:
                 if _name == "set_speeds":
                     self.hash.update(np.asarray(args[0], dtype=float).tobytes())
                     self.hash.update("|".join(vids).encode())
-                _f(sim, vids, *args)
+                if not self.mute:
+                    _f(sim, vids, *args)
 
             setattr(Simulation, name, g)
         step = Simulation.step
@@ -210,7 +215,8 @@ def _rounds(bd, ab, rec: Recording, variants, repeats: int, checkpoint: Path):
                     rows[how].append((s, vs, "-"))
                     continue
                 rec.on = how == "policy" and r == 0
-                if how == "policy":
+                rec.mute = how == "shadow"
+                if how in ("policy", "shadow"):
                     cls = SectionSpeedDriver
                     used = rec.act(act)
                 else:
@@ -232,7 +238,7 @@ def _rounds(bd, ab, rec: Recording, variants, repeats: int, checkpoint: Path):
                     parts, _ = ab.one_run(sc, folder, cls, used)
                 finally:
                     Simulation.step = orig
-                rec.on = False
+                rec.on = rec.mute = False
                 rows[how].append(
                     (parts["SUMO step"], count.vehicle_steps, rec.hash.hexdigest()[:12])
                 )
