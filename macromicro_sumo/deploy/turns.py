@@ -31,6 +31,7 @@ from macromicro_sumo.deploy.observe import LaneTable
 from macromicro_sumo.deploy.slots import VehicleSlots
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.sumo.inputs import read_net
+from macromicro_sumo.sumo.net_xml import open_net
 from macromicro_sumo.sumo.states import VehicleStates
 
 # Beyond the braking distance to the turn's limit and a step's travel: room for a few
@@ -55,7 +56,8 @@ def file_routes(route_files: tuple[Path, ...]) -> dict[str, tuple[str, ...]]:
     named: dict[str, tuple[str, ...]] = {}
     out: dict[str, tuple[str, ...]] = {}
     for f in route_files:
-        root = ET.parse(f).getroot()
+        with open_net(str(f)) as fh:  # SUMO reads .rou.xml.gz as well
+            root = ET.parse(fh).getroot()
         for r in root.iter("route"):
             if r.get("id") and r.get("edges"):
                 named[r.get("id")] = tuple(r.get("edges").split())

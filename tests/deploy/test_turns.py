@@ -8,6 +8,7 @@ than A (netconvert's turning speed), cars on "A B" go through.
 
 from __future__ import annotations
 
+import gzip
 from pathlib import Path
 
 import numpy as np
@@ -67,6 +68,9 @@ def test_a_turner_exits_at_its_junction_with_the_turn_s_limit(tmp_path: Path) ->
     _, net, routes, _ = _turn_net(tmp_path)
     section = read_section(net, ["A", "B"], False)
     assert file_routes((routes,)) == {"thru": ("A", "B"), "turn": ("A", "R")}
+    packed = tmp_path / "routes.rou.xml.gz"  # SUMO reads gzip route files too
+    packed.write_bytes(gzip.compress(routes.read_bytes()))
+    assert file_routes((packed,)) == file_routes((routes,))
     via = _via_speed(net)
     assert via < 15.0
     assert turn_limits(net, section)[(0, "R")] == via
