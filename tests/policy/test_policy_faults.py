@@ -90,10 +90,15 @@ def test_sigkill_then_resume_matches_an_uninterrupted_run(setup, trained, tmp_pa
     ref = trained
     out = tmp_path / "killed"
     ckpt = out / "policy_mix_checkpoint.pt"
+    # A SIGKILL leaves the killed process's temporary folders (its env's vTypes file): in
+    # this test's own tmp_path, not the machine's /tmp.
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
     proc = subprocess.Popen(
         [sys.executable, "-m", "macromicro_sumo.cli", *_train_args(path, gt, gen, out)],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
+        env={**os.environ, "TMPDIR": str(scratch)},
     )
     deadline = time.time() + 120
     while time.time() < deadline and proc.poll() is None:
