@@ -22,7 +22,6 @@ as staying on the section: it is driven as with ``off``.
 
 from __future__ import annotations
 
-import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
@@ -30,8 +29,7 @@ import numpy as np
 from macromicro_sumo.deploy.observe import LaneTable
 from macromicro_sumo.deploy.slots import VehicleSlots
 from macromicro_sumo.road.section import Section
-from macromicro_sumo.sumo.inputs import read_net
-from macromicro_sumo.sumo.net_xml import open_net
+from macromicro_sumo.sumo.inputs import parse_xml, read_net
 from macromicro_sumo.sumo.states import VehicleStates
 
 # Beyond the braking distance to the turn's limit and a step's travel: room for a few
@@ -56,8 +54,7 @@ def file_routes(route_files: tuple[Path, ...]) -> dict[str, tuple[str, ...]]:
     named: dict[str, tuple[str, ...]] = {}
     out: dict[str, tuple[str, ...]] = {}
     for f in route_files:
-        with open_net(str(f)) as fh:  # SUMO reads .rou.xml.gz as well
-            root = ET.parse(fh).getroot()
+        root = parse_xml(f)  # gzip too, as SUMO reads them; a non-XML file is one line
         for r in root.iter("route"):
             if r.get("id") and r.get("edges"):
                 named[r.get("id")] = tuple(r.get("edges").split())
