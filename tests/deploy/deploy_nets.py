@@ -134,6 +134,19 @@ def light_net(folder: Path) -> tuple[Path, Path, Path]:
     return net, routes, red
 
 
+def lane_drop_net(folder: Path, a_m: float = 600.0, b_m: float = 400.0) -> Path:
+    """A (2 lanes, ``a_m``, 25 m/s) -> B (1 lane, ``b_m``): A's lane 1 goes on as B's lane
+    0, A's lane 0 ends (a lane drop)."""
+    return netconvert(
+        folder,
+        f'<node id="n0" x="0" y="0"/>\n<node id="n1" x="{a_m:g}" y="0"/>\n'
+        f'<node id="n2" x="{a_m + b_m:g}" y="0"/>',
+        '<edge id="A" from="n0" to="n1" numLanes="2" speed="25"/>\n'
+        '<edge id="B" from="n1" to="n2" numLanes="1" speed="25"/>',
+        '<connection from="A" to="B" fromLane="1" toLane="0"/>',
+    )
+
+
 def idm_agent(observation: str, limit: float, seed: int = 0, steps: int = 400) -> Agent:
     """An agent whose mean action is IDM's (v0 = limit, T 1.2 s, a 2, b 3, s0 2 m, 5 m cars),
     cloned by regression on random observations: a sensible small policy in seconds."""

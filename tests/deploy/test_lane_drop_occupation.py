@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import netconvert, small_section_scenario
-from deploy_nets import CAR, idm_agent
+from conftest import small_section_scenario
+from deploy_nets import CAR, idm_agent, lane_drop_net
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.lane_change import (
@@ -38,14 +38,7 @@ def _drop_files(folder: Path) -> tuple[Path, Path]:
     A's lane 0 ends. A slow SUMO car (4 m/s) on lane 1 at 590 m, 54 cars at 4 m/s behind it
     from 100 m, 9 m apart (a dense platoon), the ego on lane 0 at 300 m at 4 m/s,
     ``EGO_MAX`` at most (its plain reach 5 x 10 x 2 + 2 x 7.5 = 115 m)."""
-    net = netconvert(
-        folder,
-        '<node id="n0" x="0" y="0"/>\n<node id="n1" x="600" y="0"/>\n'
-        '<node id="n2" x="1000" y="0"/>',
-        '<edge id="A" from="n0" to="n1" numLanes="2" speed="25"/>\n'
-        '<edge id="B" from="n1" to="n2" numLanes="1" speed="25"/>',
-        '<connection from="A" to="B" fromLane="1" toLane="0"/>',
-    )
+    net = lane_drop_net(folder)
     slow = (
         '<vType id="slow" length="5" minGap="2.5" maxSpeed="4" sigma="0" '
         'lcCooperative="0" lcSpeedGain="0"/>'

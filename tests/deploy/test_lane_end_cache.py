@@ -10,8 +10,8 @@ import dataclasses
 import math
 from pathlib import Path
 
-from conftest import netconvert, small_section_scenario
-from deploy_nets import CAR, idm_agent
+from conftest import small_section_scenario
+from deploy_nets import CAR, idm_agent, lane_drop_net
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.policy_batch import policy_batch
@@ -43,13 +43,7 @@ def test_a_vehicle_not_driven_shares_the_cache_and_is_dropped_when_it_left(
     entry in the driven vehicles' cache; commanded cars depart every 3 s until 72 s, so the
     driver is called after "s0" left B. Then its entry is gone (``NOT_ASKED``, not in
     ``others``), where the per-vehicle dictionary before kept every vehicle it met."""
-    net = netconvert(
-        tmp_path,
-        '<node id="n0" x="0" y="0"/>\n<node id="n1" x="300" y="0"/>\n<node id="n2" x="600" y="0"/>',
-        '<edge id="A" from="n0" to="n1" numLanes="2" speed="25"/>\n'
-        '<edge id="B" from="n1" to="n2" numLanes="1" speed="25"/>',
-        '<connection from="A" to="B" fromLane="1" toLane="0"/>',
-    )
+    net = lane_drop_net(tmp_path, 300.0, 300.0)
     routes = tmp_path / "r.rou.xml"
     cars = "\n".join(
         f'    <vehicle id="c{k}" type="car" route="r" depart="{3 * k}" departLane="1" '

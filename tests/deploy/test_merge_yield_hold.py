@@ -11,8 +11,8 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
-from conftest import netconvert, small_section_scenario
-from deploy_nets import CAR, idm_agent
+from conftest import small_section_scenario
+from deploy_nets import CAR, idm_agent, lane_drop_net
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.merge_yield import MERGE_YIELD_TOLERANCE_MPS, yield_caps
@@ -55,14 +55,7 @@ def _moving_merge(folder: Path) -> tuple[Path, Path]:
     """A (2 lanes, 600 m, 25 m/s) -> B (1 lane, 400 m), A's lane 0 ends: a platoon on lane
     1 at 12 m/s, 20 m apart, and 8 cars on lane 0 at 12 m/s, 40 m apart from 100 m, that
     must merge into it while it moves."""
-    net = netconvert(
-        folder,
-        '<node id="n0" x="0" y="0"/>\n<node id="n1" x="600" y="0"/>\n'
-        '<node id="n2" x="1000" y="0"/>',
-        '<edge id="A" from="n0" to="n1" numLanes="2" speed="25"/>\n'
-        '<edge id="B" from="n1" to="n2" numLanes="1" speed="25"/>',
-        '<connection from="A" to="B" fromLane="1" toLane="0"/>',
-    )
+    net = lane_drop_net(folder)
     platoon = "\n".join(
         f'    <vehicle id="p{k:02d}" type="car" route="r" depart="0" departLane="1" '
         f'departPos="{20 + 20 * k}" departSpeed="12"/>'

@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from conftest import netconvert
+from deploy_nets import lane_drop_net
 
 from macromicro_sumo.deploy.merge_yield import MergeYield
 from macromicro_sumo.deploy.slots import VehicleSlots
@@ -38,14 +38,7 @@ class Host(MergeYield):
 
 
 def test_occupations_sum_the_best_lane_ahead_and_its_continuation(tmp_path: Path) -> None:
-    net = netconvert(
-        tmp_path,
-        '<node id="n0" x="0" y="0"/>\n<node id="n1" x="600" y="0"/>\n'
-        '<node id="n2" x="1000" y="0"/>',
-        '<edge id="A" from="n0" to="n1" numLanes="2" speed="25"/>\n'
-        '<edge id="B" from="n1" to="n2" numLanes="1" speed="25"/>',
-        '<connection from="A" to="B" fromLane="1" toLane="0"/>',
-    )
+    net = lane_drop_net(tmp_path)
     host = Host(
         read_section(net, ["A", "B"], False),
         {v: (length, gap, 4.5) for v, (_, _, length, gap, _) in VEHICLES.items()},
