@@ -90,6 +90,10 @@ def station_density(e1: pd.DataFrame, section: Section) -> pd.Series:
     return per_lane * lanes
 
 
+LINE_CUT_M = 0.01
+"""How far past a stop line ``cut_at_lines`` puts the station that starts the next stretch."""
+
+
 def cut_at_lines(per_station: pd.Series, lines_m: list[float]) -> pd.Series:
     """``per_station`` (``station_density``) with a station 1 cm past each stop line of
     ``lines_m`` that reads as the first station downstream of it with a value: the density
@@ -106,10 +110,6 @@ def cut_at_lines(per_station: pd.Series, lines_m: list[float]) -> pd.Series:
     if not add:
         return per_station
     return pd.concat([per_station, pd.Series(add)]).sort_index()
-
-
-LINE_CUT_M = 0.01
-"""How far past a stop line ``cut_at_lines`` puts the station that starts the next stretch."""
 
 
 def e2_covered_density(e2: pd.DataFrame, section: Section) -> float:
