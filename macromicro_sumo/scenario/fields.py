@@ -33,6 +33,7 @@ def spec(
     choices: tuple[str, ...] | None = None,
     accepted: str = "",
     omit_default: bool = False,
+    omit_value: Any = dataclasses.MISSING,
 ) -> Any:
     """A dataclass field with its doc, accepted range and (for strings) choices.
 
@@ -40,10 +41,17 @@ def spec(
     checked by the scenario's own cross-field checks). ``omit_default``: ``to_dict`` leaves
     the field out while it has its default (a switch, off by default, whose key must not
     change the digest, checkpoints or recorded runs of the scenarios that do not set it).
+    ``omit_value``: with ``omit_default``, the value left out instead of the default, for a
+    field whose default moved: the value that does what the package did before the key
+    existed. A scenario that does not set the key then records the new default, so a stage
+    done under the old one is redone (``pipeline.schedule`` compares recorded keys), while
+    one that sets the old value keeps its digest.
     """
     meta = {"range": (lo, hi), "doc": doc, "choices": choices, "accepted": accepted}
     if omit_default:
         meta["omit_default"] = True
+        if omit_value is not dataclasses.MISSING:
+            meta["omit_value"] = omit_value
     if default is dataclasses.MISSING:
         return field(metadata=meta)
     if isinstance(default, list | dict):
@@ -74,12 +82,13 @@ class ScenarioFile:
 
 
 def _omit_defaults(obj: Any, d: dict[str, Any]) -> None:
-    """Drop from ``d`` (``obj`` as a dict) the ``omit_default`` fields at their default."""
+    """Drop from ``d`` (``obj`` as a dict) the ``omit_default`` fields at their default (or
+    at their ``omit_value``, where the default moved)."""
     for f in dataclasses.fields(obj):
         value = getattr(obj, f.name)
         if dataclasses.is_dataclass(value) and isinstance(d.get(f.name), dict):
             _omit_defaults(value, d[f.name])
-        elif f.metadata.get("omit_default") and value == f.default:
+        elif f.metadata.get("omit_default") and value == f.metadata.get("omit_value", f.default):
             d.pop(f.name, None)
 
 

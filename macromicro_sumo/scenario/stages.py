@@ -309,9 +309,10 @@ class DeployConfig:
         "layer still brakes harder where what is ahead asks for it (deploy.safety."
         "command_brake; drawn 501 all 4 runs: emergency brakings 458 -> 233, speed RMSE "
         "3.32 -> 3.28 m/s; with merge_reach occupation 341 -> 191, 2.53 -> 2.40)",
-        # A deployment setting: the digests (and checkpoints) of scenarios that do not set it
-        # stay as they were when its default moved from bounds to decel.
+        # A deployment setting whose default moved from bounds to decel (stop 42): left out
+        # of the digest at bounds, so that a run deployed before is redeployed.
         omit_default=True,
+        omit_value="bounds",
     )
     action: str = spec(
         "mean",
@@ -331,9 +332,10 @@ class DeployConfig:
         "float64's and a Bremen step some 10-25 us cheaper; float64, Agent.mean_action's "
         "values in float64 (all 4 runs, float64 -> float32: netgen_corridor, drawn 501 and "
         "502 the same figures, Bremen speed RMSE 0.9142 -> 0.9143 m/s, 0 collisions)",
-        # A deployment setting: the digests (and checkpoints) of scenarios that do not set it
-        # stay as they were when its default moved from float64 to float32.
+        # A deployment setting whose default moved from float64 to float32 (stop 43): left
+        # out of the digest at float64, so that a run deployed before is redeployed.
         omit_default=True,
+        omit_value="float64",
     )
     merge: str = spec(
         "sumo",

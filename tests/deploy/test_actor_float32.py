@@ -57,14 +57,15 @@ def test_the_default_actor_is_float64_and_other_dtypes_are_refused() -> None:
 
 
 def test_the_scenario_setting_reaches_every_learned_method(tmp_path: Path) -> None:
-    """``deploy.actor_dtype``: float32 by default and left out of the scenario's digest;
+    """``deploy.actor_dtype``: float32 by default and in the scenario's digest (the default
+    moved from float64, which is left out: ``test_moved_default``);
     it gives each learned method's drive the float32 actor (the same actions as
     ``policy_batch(agent, "float32")``, not the float64 ones), "float64" the float64 one
     (``Agent.mean_action``'s values); another value is refused with one line naming the
     field and what it accepts."""
     path = merge_scenario(tmp_path, {"warmup_s": 10.0, "duration_s": 30.0, "n_runs": 2})
     f32 = load_scenario(path)
-    assert f32.deploy.actor_dtype == "float32" and "actor_dtype" not in f32.to_dict()["deploy"]
+    assert f32.deploy.actor_dtype == "float32" and f32.to_dict()["deploy"]["actor_dtype"] == "float32"
     sc = load_scenario(path, {"deploy.actor_dtype": "float64"})
     assert f32.digest() != sc.digest()
     agent, obs = _agent(), _obs(40)

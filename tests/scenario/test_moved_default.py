@@ -1,0 +1,43 @@
+"""A key whose default moved (``spec(..., omit_value=...)``): a scenario that does not set it
+records the new default, so a stage done under the old default is redone, while one that
+sets the old value keeps the digest it had before the key existed."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from conftest import PAPER_SCENARIO
+
+from macromicro_sumo.pipeline.schedule import Stage, stage_settings
+from macromicro_sumo.scenario.load import load_scenario
+
+# (key, default now, the value that does what the package did before the key existed)
+MOVED = (("command_brake", "decel", "bounds"), ("actor_dtype", "float32", "float64"))
+
+
+def test_moved_defaults_are_recorded_and_their_old_values_left_out() -> None:
+    sc = load_scenario(PAPER_SCENARIO)
+    deploy = sc.to_dict()["deploy"]
+    for key, now, old in MOVED:
+        assert getattr(sc.deploy, key) == now and deploy[key] == now
+        said_old = load_scenario(PAPER_SCENARIO, {f"deploy.{key}": old})
+        assert key not in said_old.to_dict()["deploy"]
+        assert said_old.digest() != sc.digest()
+    # Keys whose default never moved stay out at their default (keep_right "off").
+    assert "keep_right" not in deploy and sc.deploy.keep_right == "off"
+
+
+def test_a_stage_recorded_before_the_default_moved_is_redone(tmp_path: Path) -> None:
+    """The recorded scenario of a run deployed before (neither key: the old defaults) differs
+    from today's in exactly the moved keys, which is what ``pipeline.schedule`` redoes on."""
+    sc = load_scenario(PAPER_SCENARIO)
+    before = sc.to_dict()
+    for key, _, _ in MOVED:
+        del before["deploy"][key]
+    stage = Stage("deploy", tmp_path / "manifest.json", run=lambda: None)
+    have, want = stage_settings(before, stage), stage_settings(sc.to_dict(), stage)
+    changed = {k for k in have.keys() | want.keys() if have.get(k) != want.get(k)}
+    assert changed == {"deploy.command_brake", "deploy.actor_dtype"}
+    # A run that set the old values explicitly recorded none of them: nothing to redo.
+    old = {f"deploy.{key}": value for key, _, value in MOVED}
+    assert stage_settings(load_scenario(PAPER_SCENARIO, old).to_dict(), stage) == have
