@@ -65,7 +65,9 @@ def test_the_scenario_setting_reaches_every_learned_method(tmp_path: Path) -> No
     field and what it accepts."""
     path = merge_scenario(tmp_path, {"warmup_s": 10.0, "duration_s": 30.0, "n_runs": 2})
     f32 = load_scenario(path)
-    assert f32.deploy.actor_dtype == "float32" and f32.to_dict()["deploy"]["actor_dtype"] == "float32"
+    assert (
+        f32.deploy.actor_dtype == "float32" and f32.to_dict()["deploy"]["actor_dtype"] == "float32"
+    )
     sc = load_scenario(path, {"deploy.actor_dtype": "float64"})
     assert f32.digest() != sc.digest()
     agent, obs = _agent(), _obs(40)
