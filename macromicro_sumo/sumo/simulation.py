@@ -361,6 +361,13 @@ class Simulation:
         return tuple(libsumo.simulation.getDepartedIDList())
 
     @staticmethod
+    def route_ahead(vehicle_id: str) -> tuple[str, ...]:
+        """The edges of a vehicle's route from the one it is on (or last left, on a junction)
+        to its end, as SUMO holds it now: a trip's route SUMO found, a rerouter's new one."""
+        v = libsumo.vehicle
+        return tuple(v.getRoute(vehicle_id)[v.getRouteIndex(vehicle_id) :])
+
+    @staticmethod
     def vehicle_type(vehicle_id: str) -> str:
         """The running SUMO's vType of a vehicle (libsumo drives one SUMO a process)."""
         return str(libsumo.vehicle.getTypeID(vehicle_id))
