@@ -1,6 +1,6 @@
 """Turners in a deployment (``deploy.turns``): driven vehicles whose route leaves the
-section at a junction of it (a right turn off a signalised arterial), read once per vehicle
-when it enters the section.
+section at a junction of it (a right turn off a signalised arterial), from the route SUMO
+holds for them (``sumo.simulation.Simulation.route_ahead``).
 
 The section's look-ahead (``road.section.Section.lookahead``) shows every vehicle the next
 section edge's limit, so a turner approaches its turn at the through speed. On drawn arterial
@@ -14,10 +14,14 @@ turners handed back to SUMO inside the turn's internal lane, braked there at 5-9
   within ``handover_reach_m``, so that SUMO's own driver approaches the link and slows for
   the turn as the ground truth's do.
 
-Routes come from the run's route files (a flow's vehicles ``FLOW.N`` drive its route), the
-turn's limit from the network: only ``sumo.simulation`` may ask SUMO, and it has no route
-query. A vehicle whose route the files do not give (a trip, a rerouted vehicle) is taken
-as staying on the section: it is driven as with ``off``.
+A vehicle's route is asked of SUMO when it is first seen on a section edge from which a
+connection leaves the section (a "junction edge"), and again on each junction edge it
+comes to (a loop's next lap included): a trip's route is the one SUMO found for it, a
+rerouter's new route is SUMO's from the edge the rerouter sits on (it reroutes on entry,
+before the read). Not seen: a route SUMO changes while the vehicle is on the junction edge
+(a rerouting device's periodic reroute), until its next junction edge. One call per vehicle
+and junction edge, not per step (the bench's budget, ``scripts/bench_deploy.py``); a
+section with no junction edge (no connection off it: netgen_corridor, Bremen) asks nothing.
 """
 
 from __future__ import annotations
@@ -29,13 +33,13 @@ import numpy as np
 from macromicro_sumo.deploy.observe import LaneTable
 from macromicro_sumo.deploy.slots import VehicleSlots
 from macromicro_sumo.road.section import Section
-from macromicro_sumo.sumo.inputs import parse_xml, read_net
+from macromicro_sumo.sumo.inputs import read_net
+from macromicro_sumo.sumo.simulation import Simulation
 from macromicro_sumo.sumo.states import VehicleStates
 
 # Beyond the braking distance to the turn's limit and a step's travel: room for a few
 # steps of SUMO's own driving before the line (its approach to the link registered).
 HANDOVER_MARGIN_M = 10.0
-NO_EXIT = (-1, np.inf, np.nan)  # (exit edge, line arc, turn limit) of a through vehicle
 
 
 def handover_reach_m(
@@ -46,26 +50,6 @@ def handover_reach_m(
     travel and ``HANDOVER_MARGIN_M``."""
     excess = np.maximum(speed_mps**2 - turn_limit_mps**2, 0.0)
     return excess / (2.0 * decel_mps2) + speed_mps * dt_s + HANDOVER_MARGIN_M
-
-
-def file_routes(route_files: tuple[Path, ...]) -> dict[str, tuple[str, ...]]:
-    """Vehicle or flow ID -> its route's edges, from SUMO route files (named ``<route>``s
-    referenced by ``route=``, or a ``<route>`` inside the vehicle or flow)."""
-    named: dict[str, tuple[str, ...]] = {}
-    out: dict[str, tuple[str, ...]] = {}
-    for f in route_files:
-        root = parse_xml(f)  # gzip too, as SUMO reads them; a non-XML file is one line
-        for r in root.iter("route"):
-            if r.get("id") and r.get("edges"):
-                named[r.get("id")] = tuple(r.get("edges").split())
-        for tag in ("vehicle", "flow"):
-            for v in root.iter(tag):
-                inner = v.find("route")
-                if inner is not None and inner.get("edges"):
-                    out[v.get("id")] = tuple(inner.get("edges").split())
-                elif v.get("route") in named:
-                    out[v.get("id")] = named[v.get("route")]
-    return out
 
 
 def turn_limits(net_file: Path, section: Section) -> dict[tuple[int, str], float]:
@@ -86,39 +70,42 @@ def turn_limits(net_file: Path, section: Section) -> dict[tuple[int, str], float
 
 
 class Turns:
-    """Per driven vehicle that turns off the section: (exit edge index, arc of its stop
-    line, the turn's limit [m/s]). Read from its route once, when it enters."""
+    """Which driven vehicles turn off the section at the end of the junction edge they are
+    on: per vehicle on a junction edge, (that edge's index, the arc of its stop line, the
+    turn's limit [m/s]; NaN: it goes on), asked of SUMO when it comes onto the edge and
+    dropped when it leaves it (kept for the vehicles of the last call only)."""
 
     def __init__(
-        self, section: Section, net_file: Path, route_files: tuple[Path, ...], dt_s: float
-    ) -> None:
+        self, section: Section, net_file: Path, route_files: tuple[Path, ...] = (),
+        dt_s: float = 0.5,
+    ) -> None:  # fmt: skip
+        """``route_files`` is not read (routes are SUMO's); ``deploy.drivers`` passes it."""
         self.section, self.dt_s = section, dt_s
-        self.index = {e: i for i, e in enumerate(section.edge_ids)}
-        self.routes = file_routes(route_files)
         self.limits = turn_limits(net_file, section)
-        self.exit: dict[str, tuple[int, float, float]] = {}
+        n = len(section.edge_ids)
+        nxt = {i: section.edge_ids[(i + 1) % n] for i in range(n if section.closed else n - 1)}
+        # Junction edges: a connection off the section (an open section's last edge has
+        # none: leaving there is leaving the section at its end).
+        self.junction = np.zeros(n, dtype=bool)
+        for i, to in self.limits:
+            self.junction[i] |= i in nxt and to != nxt[i]
+        self.lines_m = np.asarray(section.offsets_m + section.lengths_m, dtype=float)
+        self.read: dict[str, tuple[int, float]] = {}  # vehicle -> (edge index, turn limit)
+        self._on: np.ndarray | None = None  # per lane code of a ``LaneTable``: on a junction edge
 
     def enter(self, vehicle_ids: list[str]) -> None:
-        """Read the routes of vehicles entering the section (a vehicle read once)."""
-        for vid in vehicle_ids:
-            if vid not in self.exit:
-                route = self.routes.get(vid) or self.routes.get(vid.rpartition(".")[0])
-                self.exit[vid] = self.exit_of(route) if route else NO_EXIT
+        """Nothing to read on entry (``deploy.drivers`` calls it): routes are asked on
+        junction edges."""
 
-    def exit_of(self, route: tuple[str, ...]) -> tuple[int, float, float]:
-        """Where ``route`` leaves the section at one of its junctions: (edge index, arc of
-        the stop line, the turn's limit); ``NO_EXIT`` where it stays on to the section's
-        end (or leaves where an open section ends)."""
-        sec, n = self.section, len(self.section.edge_ids)
-        for k, edge in enumerate(route[:-1]):
-            i = self.index.get(edge)
-            if i is None or (not sec.closed and i == n - 1):
-                continue
-            if route[k + 1] == sec.edge_ids[(i + 1) % n]:
-                continue
-            limit = self.limits.get((i, route[k + 1]), np.nan)
-            return i, float(sec.offsets_m[i] + sec.lengths_m[i]), float(limit)
-        return NO_EXIT
+    def turn_at(self, edge: int, route: tuple[str, ...]) -> float:
+        """The turn's limit where ``route`` (from section edge ``edge`` on) leaves the
+        section at that edge's end; NaN where it goes on along the section or ends there."""
+        sec = self.section
+        if len(route) < 2 or route[0] != sec.edge_ids[edge]:
+            return np.nan
+        if route[1] == sec.edge_ids[(edge + 1) % len(sec.edge_ids)]:
+            return np.nan
+        return float(self.limits.get((edge, route[1]), np.nan))
 
     def ahead(
         self, vehicle_ids: list[str], lanes: LaneTable, codes: np.ndarray, pos_m: np.ndarray
@@ -126,14 +113,31 @@ class Turns:
         """Of vehicles ``vehicle_ids`` on lanes ``codes`` of the section's ``LaneTable`` at
         lane positions ``pos_m``, those on their exit edge before its stop line: (their
         indices, the turn's limit, the line's arc)."""
-        got = [self.exit.get(v, NO_EXIT) for v in vehicle_ids]
-        ex = np.fromiter((g[0] for g in got), np.int64, len(got))
-        line = np.fromiter((g[1] for g in got), float, len(got))
-        limit = np.fromiter((g[2] for g in got), float, len(got))
-        arc = lanes.arc0_m[codes] + pos_m * lanes.arc_per_m[codes]
-        edge = lanes.cols[0][codes]  # NaN off the table: never an exit edge
-        idx = ((ex == edge) & (arc <= line) & (limit == limit)).nonzero()[0]
-        return idx, limit[idx], line[idx]
+        none = np.zeros(0, dtype=np.int64)
+        if not self.junction.any():
+            return none, np.zeros(0), np.zeros(0)
+        edge = lanes.cols[0]
+        if self._on is None or len(self._on) != len(edge):
+            known = edge == edge  # NaN off the table (code 0)
+            self._on = np.zeros(len(edge), dtype=bool)
+            self._on[known] = self.junction[edge[known].astype(np.int64)]
+        idx = self._on[codes].nonzero()[0]
+        old, new = self.read, {}
+        at = edge[codes[idx]].astype(np.int64).tolist()
+        route, turn_at = Simulation.route_ahead, self.turn_at
+        for i, e in zip(idx.tolist(), at, strict=True):
+            v = vehicle_ids[i]
+            got = old.get(v)
+            if got is None or got[0] != e:  # onto this junction edge: ask SUMO
+                got = (e, turn_at(e, route(v)))
+            new[v] = got
+        self.read = new  # the vehicles gone off junction edges dropped
+        limit = np.fromiter((new[vehicle_ids[i]][1] for i in idx.tolist()), float, len(idx))
+        line = self.lines_m[np.asarray(at, dtype=np.int64)]
+        c = codes[idx]
+        arc = lanes.arc0_m[c] + pos_m[idx] * lanes.arc_per_m[c]
+        keep = ((limit == limit) & (arc <= line)).nonzero()[0]
+        return idx[keep], limit[keep], line[keep]
 
     def to_hand(
         self, vehicle_ids: list[str], lanes: LaneTable, codes: np.ndarray, rows: np.ndarray,

@@ -1,14 +1,15 @@
 """``deploy.turns``: driven vehicles whose route turns off the section at a junction of it
 (``deploy.turns.Turns``), on a real network through libsumo.
 
-A (300 m, one lane, 15 m/s) -> junction -> B (200 m) with a right turn onto R (200 m): the
-section is A, B; cars on "A R" turn off at the end of A through an internal lane slower
-than A (netconvert's turning speed), cars on "A B" go through.
+U (100 m) -> A (300 m, one lane, 15 m/s) -> junction -> B (200 m) with a right turn onto R
+(200 m): the section is A, B; cars whose route goes on to R turn off at the end of A
+through an internal lane slower than A (netconvert's turning speed), cars on to B go
+through. The turners are trips (from A to R): SUMO finds their route, no route file has it. U is
+where the through cars come from when a rerouter on A sends them to R.
 """
 
 from __future__ import annotations
 
-import gzip
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +18,7 @@ from conftest import netconvert, one_phase_program, prior_alone, small_section_s
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.observe import LaneTable
-from macromicro_sumo.deploy.turns import NO_EXIT, Turns, file_routes, turn_limits
+from macromicro_sumo.deploy.turns import Turns, turn_limits
 from macromicro_sumo.road.physics import NEXT_LIMIT_COLUMN
 from macromicro_sumo.road.section import read_section
 from macromicro_sumo.sumo.inputs import read_net
@@ -25,12 +26,14 @@ from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.truth.section import record_run
 
 
-def _turn_net(folder: Path, mode: str = "off") -> tuple:
+def _turn_net(folder: Path, mode: str = "off", rerouter: bool = False) -> tuple:
     nodes = (
+        '<node id="u" x="-100" y="0"/>'
         '<node id="n0" x="0" y="0"/><node id="j" x="300" y="0" type="traffic_light"/>'
         '<node id="n2" x="500" y="0"/><node id="s0" x="300" y="-200"/>'
     )
     edges = (
+        '<edge id="U" from="u" to="n0" numLanes="1" speed="15"/>'
         '<edge id="A" from="n0" to="j" numLanes="1" speed="15"/>'
         '<edge id="B" from="j" to="n2" numLanes="1" speed="15"/>'
         '<edge id="R" from="j" to="s0" numLanes="1" speed="15"/>'
@@ -40,18 +43,26 @@ def _turn_net(folder: Path, mode: str = "off") -> tuple:
     routes = folder / "r.rou.xml"
     routes.write_text(
         '<routes>\n    <vType id="car" length="5" minGap="2.5"/>\n'
-        '    <route id="through" edges="A B"/>\n'
+        f'    <route id="through" edges="{"U A B" if rerouter else "A B"}"/>\n'
         '    <flow id="thru" type="car" route="through" begin="0" end="60" period="6" '
         'departSpeed="max"/>\n'
-        '    <flow id="turn" type="car" begin="3" end="60" period="6" departSpeed="max">'
-        '<route edges="A R"/></flow>\n</routes>\n'
+        '    <flow id="turn" type="car" begin="3" end="60" period="6" departSpeed="max" '
+        'from="A" to="R"/>\n</routes>\n'
     )
+    extra = (green,)
+    if rerouter:  # every car entering A sent to R: the files' through route turns then
+        extra += (folder / "rerouter.add.xml",)
+        extra[-1].write_text(
+            '<additional>\n    <rerouter id="off" edges="A">\n'
+            '        <interval begin="0" end="1000"><destProbReroute id="R"/></interval>\n'
+            "    </rerouter>\n</additional>\n"
+        )
     sc = small_section_scenario(
         folder, net, routes, ["A", "B"], instrumented={"ids": ["probe"]},
         simulation={"warmup_s": 0.0, "duration_s": 80.0, "n_runs": 2},
-        detectors={"interval_s": 40.0}, deploy={"turns": mode}, additional=(green,),
+        detectors={"interval_s": 40.0}, deploy={"turns": mode}, additional=extra,
     )  # fmt: skip
-    opts = SumoOptions(net, (green,), 0.5, 5, route_files=(routes,), user_demand=True)
+    opts = SumoOptions(net, extra, 0.5, 5, route_files=(routes,), user_demand=True)
     return sc, net, routes, opts
 
 
@@ -61,27 +72,71 @@ def _via_speed(net: Path) -> float:
     return float(n.getLane(con.getViaLaneID()).getSpeed())
 
 
+def _on_a(sim: Simulation, want: int) -> list[str]:
+    """Step until ``want`` vehicles drive on A; their IDs."""
+    for _ in range(200):
+        sim.step()
+        st = sim.vehicle_states()
+        on = [v for v, lane in zip(st.ids, st.lanes, strict=True) if lane == "A_0"]
+        if len(on) >= want:
+            return on
+    raise AssertionError("no vehicles on A")
+
+
 def test_a_turner_exits_at_its_junction_with_the_turn_s_limit(tmp_path: Path) -> None:
-    """Routes from the files (a flow's vehicles FLOW.N, named or inner routes); the turner
-    leaves at edge 0, its line at A's end, its limit the internal lane's (below A's 15);
-    the through car and a vehicle the files do not know: no exit."""
-    _, net, routes, _ = _turn_net(tmp_path)
+    """Routes from SUMO: the trip's (from A to R) SUMO found, turning at the end of A (edge
+    0) with the internal lane's limit (below A's 15), its line at A's end; the through
+    car goes on (NaN). A vehicle is asked once per junction edge (a second call reads
+    nothing: the route query is broken, it still answers) and dropped off it."""
+    _, net, _, opts = _turn_net(tmp_path)
     section = read_section(net, ["A", "B"], False)
-    assert file_routes((routes,)) == {"thru": ("A", "B"), "turn": ("A", "R")}
-    packed = tmp_path / "routes.rou.xml.gz"  # SUMO reads gzip route files too
-    packed.write_bytes(gzip.compress(routes.read_bytes()))
-    assert file_routes((packed,)) == file_routes((routes,))
     via = _via_speed(net)
     assert via < 15.0
     assert turn_limits(net, section)[(0, "R")] == via
-    turns = Turns(section, net, (routes,), 0.5)
-    turns.enter(["turn.3", "thru.2", "other"])
+    turns = Turns(section, net, (), 0.5)
+    assert turns.junction.tolist() == [True, False]  # an open section's last edge: none
     line = float(section.offsets_m[0] + section.lengths_m[0])
-    assert turns.exit == {"turn.3": (0, line, via), "thru.2": NO_EXIT, "other": NO_EXIT}
-    lanes = LaneTable(section)
-    codes = lanes.codes(["A_0", "A_0", "B_0"])
-    idx, limit, at = turns.ahead(["turn.3", "thru.2", "turn.3"], lanes, codes, np.full(3, 100.0))
-    assert idx.tolist() == [0] and limit.tolist() == [via] and at.tolist() == [line]
+    sim = Simulation(opts)
+    try:
+        on = _on_a(sim, 2)
+        turner = next(v for v in on if v.startswith("turn"))
+        thru = next(v for v in on if v.startswith("thru"))
+        assert sim.route_ahead(turner) == ("A", "R") and sim.route_ahead(thru) == ("A", "B")
+        lanes = LaneTable(section)
+        vids = [thru, turner, "elsewhere"]
+        codes = lanes.codes(["A_0", "A_0", "B_0"])
+        idx, limit, at = turns.ahead(vids, lanes, codes, np.full(3, 100.0))
+        assert idx.tolist() == [1] and limit.tolist() == [via] and at.tolist() == [line]
+        assert set(turns.read) == {thru, turner}
+        past = turns.ahead(vids, lanes, codes, np.full(3, line + 1.0))  # beyond its line
+        assert past[0].size == 0
+        turns.turn_at = None  # asked again, this would fail
+        again = turns.ahead(vids, lanes, codes, np.full(3, 100.0))
+        assert again[0].tolist() == [1]
+        gone = turns.ahead(vids[:1], lanes, codes[:1], np.full(1, 100.0))
+        assert gone[0].size == 0 and set(turns.read) == {thru}  # pruned: not seen on A
+    finally:
+        sim.close()
+
+
+def test_a_car_a_rerouter_sends_off_the_section_turns(tmp_path: Path) -> None:
+    """A rerouter on A (destProbReroute R): the through cars of the route file ("U A B")
+    turn at A's end; the route SUMO holds when they drive on A says so, and ``ahead`` hands
+    them its limit. The file's route alone would have taken them as through."""
+    _, net, _, opts = _turn_net(tmp_path, rerouter=True)
+    section = read_section(net, ["A", "B"], False)
+    turns = Turns(section, net, (), 0.5)
+    sim = Simulation(opts)
+    try:
+        on = _on_a(sim, 2)
+        thru = [v for v in on if v.startswith("thru")]
+        assert thru and all(sim.route_ahead(v) == ("A", "R") for v in thru)
+        lanes = LaneTable(section)
+        codes = lanes.codes(["A_0"] * len(thru))
+        idx, limit, _ = turns.ahead(thru, lanes, codes, np.full(len(thru), 50.0))
+        assert idx.tolist() == list(range(len(thru))) and (limit == _via_speed(net)).all()
+    finally:
+        sim.close()
 
 
 def _turn_speeds(df, net: Path) -> np.ndarray:
