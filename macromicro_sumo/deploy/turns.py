@@ -40,6 +40,7 @@ from macromicro_sumo.sumo.states import VehicleStates
 # Beyond the braking distance to the turn's limit and a step's travel: room for a few
 # steps of SUMO's own driving before the line (its approach to the link registered).
 HANDOVER_MARGIN_M = 10.0
+NONE = np.zeros(0, dtype=np.int64)  # no vehicle (read only)
 
 
 def handover_reach_m(
@@ -89,6 +90,7 @@ class Turns:
         self.junction = np.zeros(n, dtype=bool)
         for i, to in self.limits:
             self.junction[i] |= i in nxt and to != nxt[i]
+        self.any = bool(self.junction.any())  # else no vehicle can turn: nothing to do
         self.lines_m = np.asarray(section.offsets_m + section.lengths_m, dtype=float)
         self.read: dict[str, tuple[int, float]] = {}  # vehicle -> (edge index, turn limit)
         self._on: np.ndarray | None = None  # per lane code of a ``LaneTable``: on a junction edge
@@ -113,9 +115,8 @@ class Turns:
         """Of vehicles ``vehicle_ids`` on lanes ``codes`` of the section's ``LaneTable`` at
         lane positions ``pos_m``, those on their exit edge before its stop line: (their
         indices, the turn's limit, the line's arc)."""
-        none = np.zeros(0, dtype=np.int64)
-        if not self.junction.any():
-            return none, np.zeros(0), np.zeros(0)
+        if not self.any:
+            return NONE, NONE.astype(float), NONE.astype(float)
         edge = lanes.cols[0]
         if self._on is None or len(self._on) != len(edge):
             known = edge == edge  # NaN off the table (code 0)
@@ -146,6 +147,8 @@ class Turns:
         """deploy.turns "handover": the indices of the turners among driven vehicles
         ``vehicle_ids`` (rows ``rows`` of ``st``, slots ``slots`` of ``vslots``) that are
         within ``handover_reach_m`` of their line."""
+        if not self.any:  # Bremen, netgen_corridor: the handover costs a call a step
+            return NONE
         pos = st.pos_m[rows]
         idx, limit, line = self.ahead(vehicle_ids, lanes, codes, pos)
         if not idx.size:

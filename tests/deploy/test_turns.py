@@ -95,6 +95,7 @@ def test_a_turner_exits_at_its_junction_with_the_turn_s_limit(tmp_path: Path) ->
     assert turn_limits(net, section)[(0, "R")] == via
     turns = Turns(section, net, (), 0.5)
     assert turns.junction.tolist() == [True, False]  # an open section's last edge: none
+    assert turns.any and not Turns(read_section(net, ["A"], False), net).any  # A: the end
     line = float(section.offsets_m[0] + section.lengths_m[0])
     sim = Simulation(opts)
     try:
