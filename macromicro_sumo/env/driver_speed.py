@@ -26,16 +26,19 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
 from macromicro_sumo.data.section import vehicle_level
-from macromicro_sumo.env.driver_speed_ratios import QUANTILE_LEVELS
+from macromicro_sumo.env.driver_speed_ratios import QUANTILE_LEVELS, ObservedDrivers
 from macromicro_sumo.env.observed_drivers import (
     CAR_LENGTH_M,
     FREE_BUMPER_GAP_M,
     FREE_HEADWAY_S,
+    REACHED_SHARE,
     UNHELD_HEADWAY_S,
+    observed_drivers,
 )
 from macromicro_sumo.env.section_bank import SectionBank
 from macromicro_sumo.env.section_observations import initial_observations
@@ -54,6 +57,17 @@ from macromicro_sumo.road.section import NO_LEADER_GAP_M
 # With ``policy.driver_entry = "held"`` a first sight held by what is ahead
 # (``held_at_sight``) is drawn as well, whatever its speed.
 QUEUED_ENTRY_SHARE = 0.65
+# ``policy.driver_entry = "auto"`` (``entry_choice``): "held" where the observed drivers' own
+# held first sights are below their own speed, "queued" where they are at it. At it: the
+# first sight's v / limit within ``REACHED_SHARE`` of the driver's top v / limit over its
+# record (the tolerance a top is "reached" with), at the median of the held first sights.
+# Train + val runs' observed drivers (stop 44), median first sight / top of the held ones:
+# netgen_corridor 1.00 (7 held; departSpeed "desired": SUMO inserts at the own speed),
+# drawn 522 0.36 (102; departSpeed "max": inserted at the safe speed behind the queue),
+# 549 0.93 (138), 501 0.74 (21), 563 0.91 (11).
+ENTRY_AT_OWN_SHARE = 1.0 - REACHED_SHARE
+# Fewer observed held first sights than this tell nothing: "queued" (the default's rule).
+MIN_HELD_SIGHTS = 5
 
 
 def ratio_quantiles(ratios: np.ndarray) -> np.ndarray:
@@ -152,9 +166,79 @@ def sight_factors(
     return entry_factors(quantiles, obs[:, 0], obs[:, LIMIT_COLUMN], levels, held)
 
 
+@dataclasses.dataclass(frozen=True)
+class EntryChoice:
+    """``entry_choice``'s answer: the rule (``entry``), the observed held first sights it
+    read (``held_sights``) and their median first-sight v / limit over their top
+    (``at_own``; NaN where none)."""
+
+    entry: str
+    held_sights: int
+    at_own: float
+
+
+def first_sights(observed: ObservedDrivers) -> np.ndarray:
+    """The indices of each observed driver's first pair (its first sight on the section;
+    ``observed.keys`` are in time order within a run)."""
+    _, first = np.unique(np.array([f"{r}|{v}" for r, v in observed.keys]), return_index=True)
+    return np.sort(first)
+
+
+def entry_choice(observed: ObservedDrivers, gap_layout: bool) -> EntryChoice:
+    """``policy.driver_entry = "auto"``: "held" where the observed drivers' first sights that
+    what is ahead holds (``held_at_sight``) are below their drivers' own speed (their median
+    first-sight v / limit under ``ENTRY_AT_OWN_SHARE`` of the driver's top v / limit over its
+    record, an exact ratio or a lower bound: the share is then an upper bound), else
+    "queued". Why: whether a held first sight says the driver's desired speed is a property
+    of how the net's demand inserts vehicles, which its observed drivers show: netgen_corridor
+    inserts at the own speed (held first sights 1.00 of their tops), so drawing them cost
+    0.460 -> 0.682 m/s; drawn 522 at the safe speed behind the queue (0.36), where keeping
+    them cost 2.39 -> 3.46 m/s with deploy.merge_reach "occupation" (stop 43). A per-sight
+    share of the median (below 0.8) changed netgen too (0.460 -> 0.480) and was worse on 522
+    (2.73 against held's 2.39; stop 43, hO43)."""
+    if not observed.keys:
+        return EntryChoice("queued", 0, float("nan"))
+    idx = first_sights(observed)
+    obs = observed.obs[idx]
+    held = held_at_sight(obs, gap_layout)
+    keys = [observed.keys[i] for i in idx.tolist()]
+    top = np.array([observed.ratio.get(k, observed.lower.get(k, np.nan)) for k in keys])
+    ratio = obs[:, 0] / np.maximum(obs[:, LIMIT_COLUMN], 0.1)
+    ok = held & np.isfinite(top) & (top > 0)
+    n = int(ok.sum())
+    at_own = float(np.median(ratio[ok] / top[ok])) if n else float("nan")
+    below = n >= MIN_HELD_SIGHTS and at_own < ENTRY_AT_OWN_SHARE
+    return EntryChoice("held" if below else "queued", n, at_own)
+
+
+def resolved_entry(sc, truth, runs: np.ndarray) -> tuple[Any, EntryChoice | None]:
+    """``sc`` with ``policy.driver_entry`` "auto" resolved (``entry_choice`` of the observed
+    drivers of ``runs``: the train + val runs, those the drivers' ratios come from), and the
+    choice; ``sc`` itself and None where it is not "auto". Where ``policy.driver_speed`` is
+    not "memory" nobody reads the entry: "queued". Every stage that builds drivers (Stage
+    II's banks and demand episodes, a prior's deployment, the deployment) resolves it from
+    the same runs, so they read one rule; what a stage records keeps "auto"."""
+    if getattr(sc.policy, "driver_entry", "queued") != "auto":
+        return sc, None
+    if sc.policy.driver_speed != "memory":
+        choice = EntryChoice("queued", 0, float("nan"))
+    else:
+        gap = observes_gap(sc.policy.observation)
+        choice = entry_choice(observed_drivers(sc, truth, runs), gap)
+    policy = dataclasses.replace(sc.policy, driver_entry=choice.entry)
+    return dataclasses.replace(sc, policy=policy), choice
+
+
 def driver_entry(sc) -> str:
-    """``policy.driver_entry`` (a scenario without it: "queued")."""
-    return str(getattr(sc.policy, "driver_entry", "queued"))
+    """``policy.driver_entry`` (a scenario without it: "queued"); "auto" must have been
+    resolved (``entry_choice``) before a driver reads it."""
+    entry = str(getattr(sc.policy, "driver_entry", "queued"))
+    if entry == "auto":
+        raise ValueError(
+            f"{getattr(sc, 'source', 'scenario')}: policy.driver_entry 'auto' is resolved from "
+            "the observed drivers (env.driver_speed.entry_choice) before the drivers read it"
+        )
+    return entry
 
 
 def with_driver_factors(
