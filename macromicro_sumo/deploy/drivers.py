@@ -56,6 +56,7 @@ from macromicro_sumo.sumo.states import VehicleStates
 from macromicro_sumo.truth.section import is_instrumented
 
 BRAKING_TOLERANCE_MPS2 = 0.01
+_SAFETY_TOLERANCE = np.array(SAFETY_TOLERANCE_MPS)  # 0-d: no conversion a step (observe._const)
 
 
 # --------------------------------------------------------------------------- sections
@@ -86,7 +87,8 @@ class SectionDriver:
         self.flags: tuple[VehicleStates | None, list[bool], list[bool]] = (None, [], [])
         self._brake_limit: tuple[tuple[str, ...], np.ndarray] = ((), np.empty(0))
         # -decel - tolerance of the least decel among the vTypes met: the loosest threshold.
-        self._loosest_brake = -np.inf
+        # A numpy 0-d array: compared every step without numpy's conversion of a float.
+        self._loosest_brake = np.array(-np.inf)
 
     def before_step(self, sim: Simulation) -> None:
         self.steps += 1
@@ -136,7 +138,7 @@ class SectionDriver:
                 self.vtypes[vt] = read_vtype(sim, vt)
                 self.type_code[vt] = self.shape_table.add_row(self.vtypes[vt].shape)
                 least = min(p.decel_mps2 for p in self.vtypes.values())
-                self._loosest_brake = -least - BRAKING_TOLERANCE_MPS2
+                self._loosest_brake = np.array(-least - BRAKING_TOLERANCE_MPS2)
             self.shape_of[vid] = self.vtypes[vt].shape
             self.decel_of[vid] = self.vtypes[vt].decel_mps2
             self.shape_table.code[vid] = self.type_code[vt]
@@ -349,7 +351,7 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
             near = self.blocking(sim, vids, slots, st)
         # Last step's command against the speed SUMO applied (-inf: none to compare with).
         self.stats.safety_acted += int(
-            np.count_nonzero(speed < self.slots.last_mps[slots] - SAFETY_TOLERANCE_MPS)
+            np.count_nonzero(speed < self.slots.last_mps[slots] - _SAFETY_TOLERANCE)
         )
         if self.has_lights is None:
             self.has_lights = sim.has_traffic_lights()
