@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from macromicro_sumo.data.section import vehicle_level
+from macromicro_sumo.data.section import split_runs, vehicle_level
 from macromicro_sumo.env.driver_speed_ratios import QUANTILE_LEVELS, ObservedDrivers
 from macromicro_sumo.env.observed_drivers import (
     CAR_LENGTH_M,
@@ -211,10 +211,10 @@ def entry_choice(observed: ObservedDrivers, gap_layout: bool) -> EntryChoice:
     return EntryChoice("held" if below else "queued", n, at_own)
 
 
-def resolved_entry(sc, truth, runs: np.ndarray) -> tuple[Any, EntryChoice | None]:
+def resolved_entry(sc, truth, runs: np.ndarray | None = None) -> tuple[Any, EntryChoice | None]:
     """``sc`` with ``policy.driver_entry`` "auto" resolved (``entry_choice`` of the observed
-    drivers of ``runs``: the train + val runs, those the drivers' ratios come from), and the
-    choice; ``sc`` itself and None where it is not "auto". Where ``policy.driver_speed`` is
+    drivers of ``runs``; None: the train + val runs, those the drivers' ratios come from),
+    and the choice; ``sc`` itself and None where it is not "auto". Where ``policy.driver_speed`` is
     not "memory" nobody reads the entry: "queued". Every stage that builds drivers (Stage
     II's banks and demand episodes, a prior's deployment, the deployment) resolves it from
     the same runs, so they read one rule; what a stage records keeps "auto"."""
@@ -223,6 +223,9 @@ def resolved_entry(sc, truth, runs: np.ndarray) -> tuple[Any, EntryChoice | None
     if sc.policy.driver_speed != "memory":
         choice = EntryChoice("queued", 0, float("nan"))
     else:
+        if runs is None:
+            splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
+            runs = np.concatenate([splits["train"], splits["val"]])
         gap = observes_gap(sc.policy.observation)
         choice = entry_choice(observed_drivers(sc, truth, runs), gap)
     policy = dataclasses.replace(sc.policy, driver_entry=choice.entry)
