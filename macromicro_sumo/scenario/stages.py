@@ -291,6 +291,16 @@ class DeployConfig:
         "ones) each floor is deployed on to choose",
         omit_default=True,  # the digests of scenarios that do not set it stay as they were
     )
+    safety_floor_reaction_s: float = spec(
+        0.0,
+        lo=0.0,
+        hi=5.0,
+        doc="safety sumo: the reaction time of the safe speed the floor lifts a standing "
+        "vehicle (below 1 m/s) to (deploy.safety.reaction_safe_speed); 0: one step, the "
+        "cap's own; the drivers' tau (SUMO's Krauss: 1 s) starts a standing queue nearer "
+        "SUMO's lags (docs/deploy-log.md, Floor reaction, stop 44). The cap stays one step [s]",
+        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+    )
     safety_brake: str = spec(
         "own",
         choices=("own", "matched"),

@@ -1,0 +1,178 @@
+"""``deploy.safety_floor_reaction_s``: the safety layer's floor capped at SUMO's Krauss safe
+speed with a reaction time (``deploy.safety.reaction_safe_speed``) instead of one step, so
+that a car of a standing queue is lifted later and slower behind its leader. The closed form
+against SUMO's one-step safe speed and its own stopping distance (numpy), then a queue at a
+real SUMO light started by the floor alone."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from conftest import netconvert
+from deploy_nets import CAR
+from section_files import section_scenario
+
+from macromicro_sumo.deploy.drivers import SectionSpeedDriver
+from macromicro_sumo.deploy.population import DriveStats
+from macromicro_sumo.deploy.safety import reaction_safe_speed, speed_commands
+from macromicro_sumo.road.physics import brake_gap, safe_speed
+from macromicro_sumo.road.section import NO_LEADER_GAP_M, read_section
+from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
+from macromicro_sumo.truth.section import record_run
+
+DT = 0.5
+GREEN_S = 80.0  # the queue's light turns green [s]
+
+
+def _states(n: int, seed: int) -> tuple[np.ndarray, ...]:
+    rng = np.random.default_rng(seed)
+    return (
+        rng.uniform(0.0, 80.0, n),  # gap
+        rng.uniform(0.0, 30.0, n),  # leader speed
+        rng.uniform(1.0, 6.0, n),  # decel
+        rng.uniform(1.0, 8.0, n),  # leader decel
+    )
+
+
+def test_one_step_reaction_is_the_caps_safe_speed() -> None:
+    """With the reaction one step it is ``safe_speed`` (SUMO's Euler form), within
+    rounding, over seeded states; no leader (gap ``NO_LEADER_GAP_M`` or more): inf."""
+    gap, v_l, b, b_l = _states(20_000, 1)
+    got = reaction_safe_speed(gap, v_l, b, b_l, DT, DT)
+    np.testing.assert_allclose(got, safe_speed(gap, v_l, b, b_l, DT), rtol=0, atol=1e-12)
+    far = reaction_safe_speed(np.array([NO_LEADER_GAP_M, 5.0]), np.zeros(2), 4.5, 4.5, DT, 1.0)
+    assert far[0] == np.inf and np.isfinite(far[1])
+
+
+@pytest.mark.parametrize("tau", [0.5, 1.0, 1.107, 2.0])
+def test_the_speed_stops_in_the_room_with_its_reaction(tau: float) -> None:
+    """The speed it returns, held for the reaction and braked at b in Euler steps after
+    it, stops exactly in the room gap + brake_gap(v_l, max(b, b_l)): v tau +
+    brake_gap(v, b) equals it (the fastest such speed), and a longer reaction is slower."""
+    gap, v_l, b, b_l = _states(20_000, 2)
+    v = reaction_safe_speed(gap, v_l, b, b_l, DT, tau)
+    room = gap + brake_gap(v_l, np.maximum(b, b_l), DT)
+    np.testing.assert_allclose(v * tau + brake_gap(v, b, DT), room, rtol=1e-12, atol=1e-9)
+    longer = reaction_safe_speed(gap, v_l, b, b_l, DT, tau + 0.5)
+    assert (longer < v).all()
+
+
+def test_only_a_standing_vehicles_floor_waits(tmp_path: Path) -> None:
+    """``speed_commands`` with a policy that always brakes: two cars at 0 and 5 m/s, 0.5
+    and 8 m behind a leader at their speed. With ``safety_floor_reaction_s`` = 1 the
+    standing car is lifted to ``reaction_safe_speed``'s (half the one-step room / dt), the
+    moving one to the same floor as without it (``STANDING_BELOW_MPS``)."""
+    obs = np.zeros((2, 4))
+    obs[:, 0] = [0.0, 5.0]  # own speed; column 1 the limit, 3 the closing speed
+    obs[:, 1] = 14.0
+    gap, decel = np.array([0.5, 8.0]), np.full(2, 4.5)
+
+    def layer() -> tuple[np.ndarray, ...]:
+        return gap, decel, decel, np.full(2, -1)
+
+    got = {}
+    for reaction in (0.0, 1.0):
+        sc = load_scenario(_queue_scenario(tmp_path / str(reaction), reaction))
+        act = lambda obs: np.full(len(obs), -4.5)  # noqa: E731
+        got[reaction] = speed_commands(sc, act, "sumo", DriveStats(), obs, layer)
+    one_step = safe_speed(gap, obs[:, 0], decel, decel, DT)
+    assert got[0.0][0] == pytest.approx(min(one_step[0], 0.0 + 2.6 * DT))
+    assert got[1.0][0] == pytest.approx(reaction_safe_speed(gap, obs[:, 0], 4.5, 4.5, DT, 1.0)[0])
+    assert got[1.0][0] == pytest.approx(0.5 * got[0.0][0])  # room / tau against room / dt
+    assert got[1.0][1] == got[0.0][1] == pytest.approx(0.2 * 14.0)
+
+
+def _queue_scenario(tmp_path: Path, reaction_s: float) -> Path:
+    """One lane A (150 m, 14 m/s) -> a light, red for the first ``GREEN_S``, then green ->
+    B (200 m); 12 cars leave 2 s apart and queue at the red (the always-braking policy's
+    floor brings them at 2.8 m/s)."""
+    folder = tmp_path / "net"
+    folder.mkdir(parents=True, exist_ok=True)
+    nodes = "\n".join(
+        [
+            '<node id="n0" x="0" y="0"/>',
+            '<node id="tl" x="150" y="0" type="traffic_light"/>',
+            '<node id="n2" x="350" y="0"/>',
+        ]
+    )
+    edges = "\n".join(
+        [
+            '<edge id="A" from="n0" to="tl" numLanes="1" speed="14"/>',
+            '<edge id="B" from="tl" to="n2" numLanes="1" speed="14"/>',
+        ]
+    )
+    net = netconvert(folder, nodes, edges)
+    cars = "\n".join(
+        f'<vehicle id="c{k:02d}" type="car" depart="{2 * k}" departSpeed="max">'
+        '<route edges="A B"/></vehicle>'
+        for k in range(12)
+    )
+    routes = folder / "queue.rou.xml"
+    routes.write_text(f"<routes>\n{CAR}\n{cars}\n</routes>\n")
+    light = folder / "light.add.xml"
+    light.write_text(
+        '<additional>\n<tlLogic id="tl" type="static" programID="p" offset="0">\n'
+        f'<phase duration="{GREEN_S:g}" state="r"/>\n<phase duration="1000" state="G"/>\n'
+        "</tlLogic>\n</additional>\n"
+    )
+    deploy = {"safety_floor_reaction_s": reaction_s} if reaction_s else {}
+    return section_scenario(
+        tmp_path / f"queue_{reaction_s}.toml",
+        net,
+        routes,
+        ["A", "B"],
+        seed=3,
+        penetration=0.01,
+        simulation={"warmup_s": 0.0, "duration_s": GREEN_S + 40.0, "n_runs": 1},
+        detectors={"interval_s": 30.0},
+        deploy={"safety_floor_on": "all", **deploy},
+    )
+
+
+def _queue_starts(tmp_path: Path, reaction_s: float) -> tuple[pd.Series, dict]:
+    """Each queued car's start after the green [s] (its first step above 0.5 m/s), in queue
+    order, the cars driven by a policy that always brakes: the floor alone starts them."""
+    sc = load_scenario(_queue_scenario(tmp_path, reaction_s))
+    section = read_section(sc.resolve(sc.network.net_file), ["A", "B"], False)
+    a_min = sc.bounds.accel_mps2[0]
+    drv = SectionSpeedDriver(sc, section, 0, lambda obs: np.full(len(obs), a_min), "sumo")
+    light = sc.resolve(sc.network.net_file).parent / "light.add.xml"
+    sim = Simulation(
+        SumoOptions(
+            sc.resolve(sc.network.net_file),
+            (light,),
+            sc.simulation.step_length_s,
+            sc.seed,
+            route_files=tuple(sc.resolve(r) for r in sc.network.route_files),
+            user_demand=True,
+        )
+    )
+    try:
+        df, stats = record_run(sim, sc, drv.section, 0, drv)
+    finally:
+        sim.close()
+    after = df[df["time_s"] > GREEN_S]
+    starts = after[after["speed_mps"] > 0.5].groupby("vehicle_id")["time_s"].min() - GREEN_S
+    queued = df[(df["time_s"] == GREEN_S) & (df["speed_mps"] < 0.1)]["vehicle_id"]
+    return starts.loc[sorted(queued)], stats
+
+
+def test_a_reaction_time_starts_the_floored_queue_later(tmp_path: Path) -> None:
+    """A queue that the floor alone starts (the policy always brakes): with one step each
+    car moves off the step after its leader (0.5 s a car; drawn 528's policy 0.53 s, the
+    truth's Krauss drivers 0.84-0.97 s); with SUMO's Krauss tau (1 s) the floor lifts it to
+    half that speed, below 0.5 m/s at every other car's first step: 0.8 s a car; none
+    collides or teleports."""
+    lags = {}
+    for reaction in (0.0, 1.0):
+        starts, stats = _queue_starts(tmp_path / str(reaction), reaction)
+        assert stats["collisions"] == 0 and stats["teleports"] == 0, stats
+        assert len(starts) >= 8, starts  # the queue stood
+        lags[reaction] = starts.diff().dropna()
+    assert (lags[0.0] == DT).all(), lags[0.0].tolist()
+    assert lags[1.0].mean() >= 0.7, lags[1.0].tolist()
+    assert (lags[1.0] >= DT).all(), lags[1.0].tolist()
