@@ -25,6 +25,15 @@ their stop lines. Prints per file the queues, the mean lag by queue position and
     .venv/bin/python scripts/station_headways.py --arc 195.8 --arc 398.8 --arc 601.8 \\
         --arc 804.8 --start-lags RUN/ground_truth/signals.csv \\
         truth=RUN/ground_truth/trajectories.csv policy=DEPLOY/policy/trajectories.csv
+
+``--yellow-onsets SIGNALS`` (the same arguments) measures what the vehicles do at each
+yellow onset of the lines (``deploy`` stop 44, hF44): each one moving (> ``MOVING_MPS``)
+within ``REACH_M`` upstream of a line at the last sample before the yellow, whether it could
+brake before the line at its decel (SUMO's Euler brakeGap at most its distance less SUMO's
+1 m jmStoplineGap; decel ``YELLOW_DECEL_MPS2``, a vType's own with ``--decel VTYPE=B``) and
+whether it crossed the line before the red; the onsets in [``--from``, ``--to``). Prints per
+file the onsets, the vehicles that could brake and those of them that crossed on the
+yellow, and the same of those that could not.
 """
 
 from __future__ import annotations
@@ -123,6 +132,76 @@ def start_lags(traj: pd.DataFrame, arc_m: float, onsets: pd.DataFrame) -> pd.Dat
     return pd.DataFrame(rows, columns=cols)
 
 
+# --yellow-onsets: the decel a vType brakes at where ``--decel`` names none (SUMO's Krauss
+# passenger car's) [m/s^2]; a yellow line's jmStoplineGap [m], SUMO's default.
+YELLOW_DECEL_MPS2 = 4.5
+STOPLINE_GAP_M = 1.0
+
+
+def yellow_onsets(signals: pd.DataFrame, arc_m: float) -> pd.DataFrame:
+    """run, time_s of each switch from green to yellow (G or g, then y or Y) and the time
+    of the red after it (red_s; inf: the yellow outlasts the file) of the links whose stop
+    line is at ``arc_m`` (within 0.5 m) in a signals.csv frame."""
+    at = signals[(signals["arc_m"] - arc_m).abs() <= 0.5].sort_values(["run", "time_s"])
+    at = at.drop_duplicates(["run", "time_s"])
+    rows = []
+    for run, g in at.groupby("run"):
+        st, t = g["state"].to_numpy(), g["time_s"].to_numpy()
+        yellow = np.isin(st, ["y", "Y"])
+        for i in np.flatnonzero(yellow[1:] & np.isin(st[:-1], ["G", "g"])) + 1:
+            after = np.flatnonzero(~yellow[i:])
+            rows.append((run, t[i], t[i + after[0]] if after.size else np.inf))
+    return pd.DataFrame(rows, columns=["run", "time_s", "red_s"])
+
+
+def euler_brake_gap(v: np.ndarray, b: np.ndarray, dt_s: float) -> np.ndarray:
+    """SUMO's brakeGap [m] in Euler steps of ``dt_s`` (``road.physics.brake_gap``)."""
+    steps = np.floor(v / (b * dt_s))
+    return dt_s * (steps * v - b * dt_s * steps * (steps + 1.0) / 2.0)
+
+
+def at_yellow(
+    traj: pd.DataFrame, arc_m: float, onsets: pd.DataFrame, decel: dict[str, float]
+) -> pd.DataFrame:
+    """One row per vehicle moving within ``REACH_M`` upstream of the line at the last sample
+    before a yellow onset (``yellow_onsets``) the trajectories cover: run, onset, vehicle,
+    distance [m], speed [m/s], whether it could brake before the line at its decel
+    (``decel``: by vType, else ``YELLOW_DECEL_MPS2``) and whether it crossed before the red."""
+    rows = []
+    for run, tr in traj.groupby("run"):
+        times = np.sort(tr["time_s"].unique())
+        dt = float(np.median(np.diff(times))) if len(times) > 1 else 0.5
+        for y, red in onsets.loc[onsets["run"] == run, ["time_s", "red_s"]].itertuples(False):
+            before = times[times < y]
+            if not len(before) or y >= times[-1]:
+                continue
+            snap = tr[tr["time_s"] == before[-1]]
+            near = snap[
+                (snap["arc_m"] < arc_m)
+                & (snap["arc_m"] > arc_m - REACH_M)
+                & (snap["speed_mps"] > MOVING_MPS)
+            ]
+            past = tr[(tr["time_s"] >= y) & (tr["time_s"] < red) & (tr["arc_m"] >= arc_m)]
+            crossed = set(past["vehicle_id"])
+            for r in near.itertuples(index=False):
+                d, b = arc_m - r.arc_m, decel.get(r.vtype, YELLOW_DECEL_MPS2)
+                can = float(euler_brake_gap(np.float64(r.speed_mps), b, dt)) <= d - STOPLINE_GAP_M
+                rows.append((run, y, r.vehicle_id, d, r.speed_mps, can, r.vehicle_id in crossed))
+    cols = ["run", "yellow_s", "vehicle_id", "distance_m", "speed_mps", "can_brake", "crossed"]
+    return pd.DataFrame(rows, columns=cols)
+
+
+def yellow_summary(cars: pd.DataFrame) -> dict[str, float]:
+    """Onsets, and per could / could not brake: vehicles and those that crossed on the yellow."""
+    keys = [k for k in ("run", "yellow_s", "arc_m") if k in cars]
+    out = {"onsets": float(cars.groupby(keys).ngroups)}
+    for can, name in ((True, "could_brake"), (False, "could_not")):
+        sel = cars[cars["can_brake"] == can]
+        out[name] = float(len(sel))
+        out[f"{name}_crossed"] = float(sel["crossed"].sum())
+    return out
+
+
 def lag_summary(lags: pd.DataFrame) -> dict[str, float]:
     """Queues (greens with a queue), mean lag [s] per ``POSITIONS`` group, and the mean start
     [s after the green] of the 5th, 10th and 20th queued vehicle."""
@@ -159,15 +238,45 @@ def main(argv: list[str] | None = None) -> int:
         metavar="SIGNALS_CSV",
         help="the truth's signals.csv: queue start-up lags at each green of the stop line --arc",
     )
+    ap.add_argument(
+        "--yellow-onsets",
+        metavar="SIGNALS_CSV",
+        help="the truth's signals.csv: who could brake and who crossed at each yellow of --arc",
+    )
+    ap.add_argument(
+        "--decel",
+        action="append",
+        default=[],
+        metavar="VTYPE=B",
+        help=f"--yellow-onsets: a vType's decel [m/s^2] (default {YELLOW_DECEL_MPS2})",
+    )
     ap.add_argument("files", nargs="+", metavar="LABEL=trajectories.csv")
     o = ap.parse_args(argv)
-    onsets = None
-    if o.start_lags is not None:
-        if not Path(o.start_lags).is_file():
-            print(f"station_headways: --start-lags {o.start_lags}: no such file", file=sys.stderr)
+    onsets = yellows = None
+    decel: dict[str, float] = {}
+    for item in o.decel:
+        name, sep, value = item.partition("=")
+        try:
+            decel[name] = float(value)
+        except ValueError:
+            sep = ""
+        if not sep or not decel.get(name, 0.0) > 0.0:
+            print(f"station_headways: --decel {item}: give VTYPE=B, B > 0", file=sys.stderr)
             return 2
-        signals = pd.read_csv(o.start_lags)
-        onsets = {arc: green_onsets(signals, arc) for arc in o.arc}
+    signals_file = o.start_lags or o.yellow_onsets
+    if o.start_lags is not None and o.yellow_onsets is not None:
+        print("station_headways: --start-lags or --yellow-onsets, not both", file=sys.stderr)
+        return 2
+    if signals_file is not None:
+        if not Path(signals_file).is_file():
+            print(f"station_headways: {signals_file}: no such signals file", file=sys.stderr)
+            return 2
+        signals = pd.read_csv(signals_file)
+        if o.start_lags is not None:
+            onsets = {arc: green_onsets(signals, arc) for arc in o.arc}
+        else:
+            got = {arc: yellow_onsets(signals, arc) for arc in o.arc}  # within --from, --to
+            yellows = {a: y[y["time_s"].between(o.t0, o.t1, "left")] for a, y in got.items()}
     elif len(o.arc) != 1:
         print(f"station_headways: --arc takes one point, got {len(o.arc)}", file=sys.stderr)
         return 2
@@ -181,6 +290,10 @@ def main(argv: list[str] | None = None) -> int:
             )
             return 2
         traj = pd.read_csv(path, usecols=COLUMNS)
+        if yellows is not None:
+            cars = [at_yellow(traj, arc, y, decel).assign(arc_m=arc) for arc, y in yellows.items()]
+            rows[label] = yellow_summary(pd.concat(cars, ignore_index=True))
+            continue
         if onsets is not None:
             lags = [start_lags(traj, arc, g).assign(arc_m=arc) for arc, g in onsets.items()]
             rows[label] = lag_summary(pd.concat(lags, ignore_index=True))

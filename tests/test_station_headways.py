@@ -99,3 +99,47 @@ def test_start_lags_needs_its_signals_and_one_arc_for_headways(tmp_path: Path, c
     assert len(err) == 1 and "none.csv" in err[0]
     assert sh.main(["--arc", "100", "--arc", "200", f"x={p}"]) == 2
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
+
+
+def yellow_files(tmp: Path) -> tuple[Path, Path]:
+    """A stop line at 100 m: green until 10.0 s, yellow until 13.0 s, red after. At 9.5 s
+    (the last sample before the yellow) "near" is 5 m before it at 10 m/s (it needs 8.75 m
+    to brake at 4.5 m/s^2 in Euler steps of 0.5 s: it cannot) and drives on; "far" is
+    50 m before it at 10 m/s (it can) and stops at 99 m; "truck", 9.5 m before it at 10
+    m/s, could brake at --decel truck=9 (4.45 m) but not at 4.5, and crosses at 11 s."""
+    sig, traj = [], []
+    for k in range(0, 61):
+        t = k * 0.5
+        state = "G" if t < 10 else "y" if t < 13 else "r"
+        sig.append((0, t, "j1", 0, 0, 1.0, 0, 100.0, state))
+        traj.append((0, t, "near", "car", 95.0 + 10.0 * (t - 9.5), 10.0))
+        x = min(50.0 + 10.0 * (t - 9.5), 99.0)
+        traj.append((0, t, "far", "car", x, 10.0 if x < 99.0 else 0.0))
+        traj.append((0, t, "truck", "truck", 90.5 + 10.0 * (t - 9.5), 10.0))
+    s, p = tmp / "signals.csv", tmp / "traj.csv"
+    pd.DataFrame(sig, columns=["run", "time_s", "signal_id", "program", "phase", "left_s",
+                               "lane_index", "arc_m", "state"]).to_csv(s, index=False)  # fmt: skip
+    pd.DataFrame(traj, columns=sh.COLUMNS).to_csv(p, index=False)
+    return s, p
+
+
+def test_who_could_brake_and_who_crossed_at_the_yellow(tmp_path: Path, capsys) -> None:
+    s, p = yellow_files(tmp_path)
+    onsets = sh.yellow_onsets(pd.read_csv(s), 100.0)
+    assert onsets[["time_s", "red_s"]].values.tolist() == [[10.0, 13.0]]
+    cars = sh.at_yellow(pd.read_csv(p), 100.0, onsets, {}).set_index("vehicle_id")
+    assert cars["can_brake"].to_dict() == {"near": False, "far": True, "truck": False}
+    assert cars["crossed"].to_dict() == {"near": True, "far": False, "truck": True}
+    braked = sh.at_yellow(pd.read_csv(p), 100.0, onsets, {"truck": 9.0})
+    assert braked.set_index("vehicle_id").loc["truck", "can_brake"]
+    got = sh.yellow_summary(cars.reset_index())
+    assert got == {"onsets": 1.0, "could_brake": 1.0, "could_brake_crossed": 0.0,
+                   "could_not": 2.0, "could_not_crossed": 2.0}  # fmt: skip
+    assert sh.main(["--arc", "100", "--yellow-onsets", str(s), f"x={p}"]) == 0
+    assert "could_not_crossed" in capsys.readouterr().out
+    # Onsets outside --from / --to are left out; a bad --decel is one line.
+    assert sh.main(["--arc", "100", "--from", "20", "--yellow-onsets", str(s), f"x={p}"]) == 0
+    assert capsys.readouterr().out.splitlines()[1].split()[:2] == ["x", "0.0"]
+    assert sh.main(["--arc", "100", "--decel", "truck", "--yellow-onsets", str(s), f"x={p}"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--decel truck" in err[0]
