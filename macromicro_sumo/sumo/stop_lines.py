@@ -2,12 +2,22 @@
 ``stop_lines_m``), from SUMO's answers and the net file's stopOffsets, with what a run asks
 of SUMO once: a signal's link lanes and whether a vehicle's lane carries it on to a link.
 
+A yellow is a stop, but where the reader is told to decide it at onset
+(``StopLineReader.decide_yellow``): then each vehicle decides each yellow once, the first
+step it sees it, as SUMO's drivers do (``canBrakeBeforeStopLine``): a stop where it can
+still brake before the line at its decel (``euler_brake_gap`` at most its distance less its
+jmStoplineGap), else it passes while the light stays yellow; a red is always a stop. In the
+ground truth of drawn arterials 528, 521 and 565 (4 runs, every yellow onset, cars within
+120 m of the line) none of the 3,610 cars that could brake so crossed on the yellow, and
+75-88% of the 329 that could not did.
+
 ``sumo.simulation`` hands in libsumo's functions (only it imports libsumo), so this is
 plain Python over their answers.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable, Sequence
 
 import numpy as np
@@ -18,6 +28,16 @@ from macromicro_sumo.sumo.stop_offsets import StopOffset
 # libsumo's answers this reads: getNextTLS, getLaneID, getBestLanes, getControlledLinks,
 # getVehicleClass of a vehicle, and jmStoplineGap of a vehicle's vType (None: SUMO's 1 m).
 BestLanes = Callable[[str], Sequence[tuple]]
+# Signal states that are a yellow (``StopLineReader.decide_yellow``); red-yellow (u) is a red.
+YELLOW_STATES = frozenset("yY")
+
+
+def euler_brake_gap(speed_mps: float, decel_mps2: float, dt_s: float) -> float:
+    """SUMO's brakeGap [m] in Euler steps (``road.physics.brake_gap``'s, for one vehicle:
+    the sumo layer does not import road)."""
+    reduction = decel_mps2 * dt_s
+    steps = math.floor(speed_mps / reduction)
+    return dt_s * (steps * speed_mps - reduction * steps * (steps + 1.0) / 2.0)
 
 
 class StopLineReader:
@@ -40,12 +60,46 @@ class StopLineReader:
         self._stopline_gap, self._stop_offsets = stopline_gap, stop_offsets
         self._links: dict[tuple[str, int], str] = {}  # ``_link_lane``'s, asked once a run
         self.carry: dict[str, dict[tuple[str, str], bool]] = {}  # vehicle -> _carries_on's
+        # ``decide_yellow``: a vehicle's speed and decel, the step; None: a yellow is a stop.
+        self._yellow_by: tuple[Callable[[str], float], Callable[[str], float], float] | None
+        self._yellow_by = None
+        self.passing: dict[str, set[tuple[str, int]]] = {}  # vehicle -> yellow links it passes
+        self._decided: dict[str, set[tuple[str, int]]] = {}  # vehicle -> yellow links decided
+
+    def decide_yellow(
+        self, speed_of: Callable[[str], float], decel_of: Callable[[str], float], dt_s: float
+    ) -> None:
+        """From now on each vehicle decides each yellow at its onset (the module's rule),
+        from its speed and decel (libsumo's getSpeed, getDecel) in steps of ``dt_s``."""
+        self._yellow_by = (speed_of, decel_of, float(dt_s))
 
     def forget(self, vehicle_ids: Iterable[str]) -> None:
-        """Vehicles gone from the network: their ``carry`` answers dropped."""
-        pop = self.carry.pop
-        for vid in vehicle_ids:
-            pop(vid, None)
+        """Vehicles gone from the network: their ``carry`` answers and yellow decisions
+        dropped."""
+        for held in (self.carry, self.passing, self._decided):
+            if held:
+                for vid in vehicle_ids:
+                    held.pop(vid, None)
+
+    def _passes(self, vid: str, key: tuple[str, int], d: float) -> bool:
+        """Whether ``vid`` passes the yellow link ``key`` ``d`` m ahead: decided the first
+        step it sees this yellow (``decide_yellow``), kept while the link stays yellow."""
+        decided = self._decided.setdefault(vid, set())
+        if key not in decided:
+            speed_of, decel_of, dt = self._yellow_by
+            gap = self._stopline_gap(vid)
+            stop_m = d - (SUMO_STOPLINE_GAP_M if gap is None else gap)
+            decided.add(key)
+            if stop_m < euler_brake_gap(speed_of(vid), decel_of(vid), dt):
+                self.passing.setdefault(vid, set()).add(key)
+        return key in self.passing.get(vid, ())
+
+    def _undecide(self, vid: str, key: tuple[str, int]) -> None:
+        """The link ``key`` is no longer yellow: ``vid``'s decision of it dropped (the next
+        yellow is decided afresh)."""
+        if key in self._decided.get(vid, ()):
+            self._decided[vid].discard(key)
+            self.passing.get(vid, set()).discard(key)
 
     def stop_lines(self, vehicle_ids: Sequence[str]) -> StopLines:
         """``Simulation.stop_lines``."""
@@ -56,6 +110,12 @@ class StopLineReader:
     def stop_line(self, vid: str) -> tuple[float, str, bool, float]:
         """``stop_lines``' (distance, lane, own, stopOffset) of one vehicle, plain values."""
         for tls, link, d, state in (ahead := self._next_tls(vid)):
+            if self._yellow_by is not None:  # a yellow decided at onset (``decide_yellow``)
+                if state in YELLOW_STATES:
+                    if self._passes(vid, (tls, link), d):
+                        continue  # it drives on while the light is yellow
+                elif vid in self._decided:
+                    self._undecide(vid, (tls, link))
             if state in STOP_STATES:
                 lane = self._links.get((tls, link)) or self._link_lane(tls, link)
                 here, own, offset = (self._lane_of(vid) if lane else lane), True, 0.0
