@@ -12,7 +12,11 @@ from macromicro_sumo.pipeline.schedule import Stage, stage_settings
 from macromicro_sumo.scenario.load import load_scenario
 
 # (key, default now, the value that does what the package did before the key existed)
-MOVED = (("command_brake", "decel", "bounds"), ("actor_dtype", "float32", "float64"))
+MOVED = (
+    ("command_brake", "decel", "bounds"),
+    ("actor_dtype", "float32", "float64"),
+    ("turns", "handover", "off"),
+)
 
 
 def test_moved_defaults_are_recorded_and_their_old_values_left_out() -> None:
@@ -37,7 +41,7 @@ def test_a_stage_recorded_before_the_default_moved_is_redone(tmp_path: Path) -> 
     stage = Stage("deploy", tmp_path / "manifest.json", run=lambda: None)
     have, want = stage_settings(before, stage), stage_settings(sc.to_dict(), stage)
     changed = {k for k in have.keys() | want.keys() if have.get(k) != want.get(k)}
-    assert changed == {"deploy.command_brake", "deploy.actor_dtype"}
+    assert changed == {f"deploy.{key}" for key, _, _ in MOVED}
     # A run that set the old values explicitly recorded none of them: nothing to redo.
     old = {f"deploy.{key}": value for key, _, value in MOVED}
     assert stage_settings(load_scenario(PAPER_SCENARIO, old).to_dict(), stage) == have
