@@ -56,7 +56,8 @@ from macromicro_sumo.sumo.states import VehicleStates
 from macromicro_sumo.truth.section import is_instrumented
 
 BRAKING_TOLERANCE_MPS2 = 0.01
-_SAFETY_TOLERANCE = np.array(SAFETY_TOLERANCE_MPS)  # 0-d: no conversion a step (observe._const)
+# 0-d arrays: no conversion of a Python float a step (``deploy.observe._const``)
+_SAFETY_TOLERANCE, _INF = np.array(SAFETY_TOLERANCE_MPS), np.array(np.inf)
 
 
 # --------------------------------------------------------------------------- sections
@@ -446,7 +447,7 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
         if self.has_lights and not self.signal_lanes.isdisjoint(lanes):
             red = self.stop_lines_m(sim, vids, lanes, at)
             # No red or yellow ahead of anyone (inf): the stops are the lane ends as they are.
-            if np.count_nonzero(red < np.inf):
+            if np.count_nonzero(red < _INF):
                 gaps = [self.vtypes[self.types[v]].stopline_gap_m for v in vids]  # jmStoplineGap
                 stop_m = stop_distance_m(stop_m, red, np.array(gaps))
         leaders = sim.leaders(vids, NO_LEADER_GAP_M)

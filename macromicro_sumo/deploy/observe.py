@@ -42,6 +42,7 @@ def _const(value: float, dtype: type = np.float64) -> np.ndarray:
 
 
 _NO_GAP, _STOP_DECEL, _INF = _const(NO_LEADER_GAP_M), _const(STOP_DECEL_MPS2), _const(np.inf)
+_ZERO = _const(0.0)
 _ROW_0, _NO_INDEX = _const(0, np.int64), _const(-1, np.int64)
 
 
@@ -233,7 +234,7 @@ def observe_rows(
         closer = nearer_standing(spacing, stop_m, length, min_gap, lengths[n:])
     if any_closer := closer is not None and bool(np.count_nonzero(closer)):
         lead_v[closer] = 0.0
-        np.copyto(sumo_gap, np.maximum(stop_m, 0.0), where=closer)
+        np.copyto(sumo_gap, np.maximum(stop_m, _ZERO), where=closer)
         lead_decel[closer] = STOP_DECEL_MPS2
         lead_index[closer] = -1
     obs[:, 0] = speed

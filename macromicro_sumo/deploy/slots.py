@@ -15,6 +15,10 @@ from __future__ import annotations
 import numpy as np
 
 NOT_ASKED = -1  # lane code of a cache entry that was never filled (or was dropped)
+# No command (``VehicleSlots.commanded``'s write a step): a 0-d array, which numpy writes
+# without converting a Python float each call (``deploy.observe._const``).
+_NO_COMMAND = np.array(-np.inf)
+_NO_COMMAND.flags.writeable = False
 
 
 def _grown(old: np.ndarray, fill: float) -> np.ndarray:
@@ -124,6 +128,6 @@ class VehicleSlots:
 
     def commanded(self, slots: np.ndarray, cmd: np.ndarray) -> None:
         """The commands of this step: the last command of exactly these slots."""
-        self.last_mps[self.commanded_slots] = -np.inf
+        self.last_mps[self.commanded_slots] = _NO_COMMAND
         self.last_mps[slots] = cmd
         self.commanded_slots = slots
