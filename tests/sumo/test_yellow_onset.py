@@ -1,14 +1,21 @@
 """``StopLineReader.decide_yellow``: a yellow decided once per vehicle and link at its onset
 (SUMO's ``canBrakeBeforeStopLine``): a stop where the vehicle can brake before the line at
 its decel, else it passes while the light stays yellow; never a red. Without it a yellow is a
-stop (the default). Plain Python over scripted answers: the reader's inputs are libsumo's."""
+stop (the default). Scripted answers (the reader's inputs are libsumo's), then a real SUMO
+light."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import libsumo
 import numpy as np
 import pytest
+from conftest import netconvert
 
 from macromicro_sumo.road.physics import brake_gap
+from macromicro_sumo.sumo.options import SumoOptions
+from macromicro_sumo.sumo.simulation import Simulation
 from macromicro_sumo.sumo.stop_lines import StopLineReader, euler_brake_gap
 
 DT = 0.5
@@ -92,3 +99,69 @@ def test_each_yellow_is_decided_afresh() -> None:
     assert r.stop_line("car")[0] == 60.0
     r.forget(["car"])
     assert "car" not in r.passing
+
+
+def test_at_a_real_light_those_that_cannot_brake_pass_the_yellow(tmp_path: Path) -> None:
+    """A (200 m, 13.9 m/s) -> a light, green 30 s, yellow 4 s, red -> B; Krauss cars
+    without dawdling every 1.5 s. Every car on A asks its stop line every step: at the
+    yellow's first step one whose Euler braking distance at 4.5 m/s^2 exceeds its distance
+    less 1 m has none ahead (inf), the others the line; through the yellow the answers
+    hold; at the red every car before the line has it."""
+    nodes = (
+        '<node id="n0" x="0" y="0"/>\n<node id="tl" x="200" y="0" type="traffic_light"/>\n'
+        '<node id="n2" x="400" y="0"/>'
+    )
+    edges = (
+        '<edge id="A" from="n0" to="tl" numLanes="1" speed="13.9"/>\n'
+        '<edge id="B" from="tl" to="n2" numLanes="1" speed="13.9"/>'
+    )
+    net = netconvert(tmp_path, nodes, edges)
+    cars = "".join(
+        f'<vehicle id="c{k:02d}" type="k" depart="{1.5 * k}" departSpeed="13.9">'
+        '<route edges="A B"/></vehicle>\n'
+        for k in range(30)
+    )
+    routes = tmp_path / "r.rou.xml"
+    routes.write_text(
+        '<routes><vType id="k" sigma="0" decel="4.5" speedDev="0" minGap="2.5"/>\n'
+        f"{cars}</routes>\n"
+    )
+    light = tmp_path / "light.add.xml"
+    light.write_text(
+        '<additional><tlLogic id="tl" type="static" programID="p" offset="0">'
+        '<phase duration="30" state="G"/><phase duration="4" state="y"/>'
+        '<phase duration="100" state="r"/></tlLogic></additional>\n'
+    )
+    sim = Simulation(SumoOptions(net, (light,), DT, 1, route_files=(routes,), user_demand=True))
+    # The run's reader, told as a Simulation.decide_yellow would tell it (libsumo's answers).
+    sim._lines.decide_yellow(libsumo.vehicle.getSpeed, libsumo.vehicle.getDecel, DT)
+    first: dict[str, float] = {}
+    passing: set[str] = set()
+    try:
+        while sim.time_s() < 40.0:
+            sim.step()
+            veh = libsumo.vehicle
+            on_a = {
+                v: (veh.getLanePosition(v), veh.getSpeed(v))
+                for v in sim.vehicle_ids()
+                if veh.getLaneID(v) == "A_0"
+            }
+            ids = sorted(on_a)
+            got = dict(zip(ids, sim.stop_lines_m(ids).tolist(), strict=True))
+            state = libsumo.trafficlight.getRedYellowGreenState("tl")
+            t = sim.time_s()
+            if state == "y" and not first and on_a:  # the yellow's first step
+                for v, (pos, speed) in on_a.items():
+                    can = euler_brake_gap(speed, 4.5, DT) <= 200.0 - pos - 1.0
+                    first[v] = got[v]
+                    assert (got[v] < np.inf) == can, (v, pos, speed, got[v])
+                    if not can:
+                        passing.add(v)
+            elif state == "y":
+                for v in passing & set(ids):
+                    assert got[v] == np.inf, (t, v)
+            elif state == "r":
+                assert all(d < np.inf for d in got.values()), (t, got)
+    finally:
+        sim.close()
+    assert first and passing and len(passing) < len(first), (first, passing)
