@@ -391,8 +391,8 @@ class DeployConfig:
         "the stop line instead of the next section edge's; off, neither (SUMO braked turners "
         "handed back inside the junction at 5-9 m/s^2 on drawn arterial 528). All 4 runs, "
         "policy, off -> handover: drawn arterials 528 1.370 -> 1.136, 565 1.590 -> 1.305, "
-        "521 1.081 -> 1.037, 917 0.989 -> 0.856 m/s; netgen_corridor, Bremen, Spreewaldring "
-        "the same (docs/deploy-log.md, Turners)",
+        "521 1.081 -> 1.037, 917 0.989 -> 0.856, 944 1.111 -> 0.990 m/s; netgen_corridor, "
+        "Bremen, Spreewaldring the same (docs/deploy-log.md, Turners)",
         # A deployment setting whose default moved from off to handover (stop 44): left out
         # of the digest at off, so that a run deployed before is redeployed.
         omit_default=True,
