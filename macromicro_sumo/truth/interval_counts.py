@@ -32,11 +32,10 @@ import sumolib
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.truth.density import (
     DEFAULT_VEHICLE_LENGTH_M,
-    effective_length_m,
     occupancy_weight,
     point_density,
 )
-from macromicro_sumo.truth.section_macro import loop_lengths_m
+from macromicro_sumo.truth.section_macro import run_vehicle_lengths
 from macromicro_sumo.truth.section_speed import stop_line_edges
 from macromicro_sumo.truth.signal_counts import approaches, stop_lines
 from macromicro_sumo.truth.stations import (
@@ -109,13 +108,7 @@ def effective_densities(det: pd.DataFrame) -> np.ndarray:
     seed 210's entry); on seeds 200-207, per lane free / congested 0.89 / 1.24 with the
     run's median, 0.86 / 1.29 per loop, 1.05 / 1.31 with a 5 m car."""
     cols = ["flow_vph", "speed_mps", "occupancy_pct"]
-    per_loop = det.groupby(["run", "detector_id"])[cols].apply(
-        lambda g: effective_length_m(*(g[c].to_numpy(dtype=float) for c in cols), np.nan)
-    )
-    run = per_loop.groupby(level="run").median().reindex(det["run"]).to_numpy(dtype=float)
-    # The calibrated length holds the loop's own; the passenger car's does not.
-    length = np.where(np.isfinite(run), run, DEFAULT_VEHICLE_LENGTH_M + loop_lengths_m(det))
-    return point_density(*(det[c].to_numpy(dtype=float) for c in cols), length)
+    return point_density(*(det[c].to_numpy(dtype=float) for c in cols), run_vehicle_lengths(det))
 
 
 def complete_counts(det: pd.DataFrame) -> bool:

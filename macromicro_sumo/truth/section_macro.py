@@ -13,6 +13,8 @@ from macromicro_sumo.road.leaders import section_leaders
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.truth.density import (
     DEFAULT_VEHICLE_LENGTH_M,
+    effective_length_m,
+    occupancy_density,
     point_density,
     profile_integral,
 )
@@ -76,6 +78,30 @@ def loop_lengths_m(det: pd.DataFrame) -> np.ndarray:
         return np.zeros(len(det))
     e1 = (det["kind"] == "e1").to_numpy()
     return np.where(e1, np.nan_to_num(det["length_m"].to_numpy(dtype=float)), 0.0)
+
+
+def run_vehicle_lengths(det: pd.DataFrame) -> np.ndarray:
+    """Each E1 row's effective vehicle length (m, the loop's own length held): its run's
+    median over the loops of theirs (``density.effective_length_m``); SUMO's passenger car
+    plus the loop's length where no loop of the run flowed freely."""
+    cols = ["flow_vph", "speed_mps", "occupancy_pct"]
+    per_loop = det.groupby(["run", "detector_id"])[cols].apply(
+        lambda g: effective_length_m(*(g[c].to_numpy(dtype=float) for c in cols), np.nan)
+    )
+    run = per_loop.groupby(level="run").median().reindex(det["run"]).to_numpy(dtype=float)
+    # The calibrated length holds the loop's own; the passenger car's does not.
+    return np.where(np.isfinite(run), run, DEFAULT_VEHICLE_LENGTH_M + loop_lengths_m(det))
+
+
+def edie_densities(e1: pd.DataFrame) -> pd.DataFrame:
+    """``e1`` (E1 rows with ``k_point_vpkm``) with each dual loop's density its occupancy
+    over the run's effective length (``run_vehicle_lengths``) at any speed: Edie's, which
+    counts a vehicle standing over the loop at red; flow / speed, which the blend takes
+    above ``density.SPEED_OCCUPANCY_BELOW_MPS``, misses it (the crawl past a stop bar is
+    at 8-10 m/s). Point loops keep theirs (their occupancy is SUMO's per-step sample)."""
+    dual = loop_lengths_m(e1) > 0
+    occ = occupancy_density(e1["occupancy_pct"].to_numpy(dtype=float), run_vehicle_lengths(e1))
+    return e1.assign(k_point_vpkm=np.where(dual, occ, e1["k_point_vpkm"].to_numpy(dtype=float)))
 
 
 def station_density(e1: pd.DataFrame, section: Section) -> pd.Series:

@@ -49,9 +49,11 @@ from macromicro_sumo.truth.density import (
     JAM_SPACING_M,
     effective_length_m,
     occupancy_weight,
+    rising_integral,
 )
 from macromicro_sumo.truth.section_macro import (
     cut_at_lines,
+    edie_densities,
     integrate_stations,
     loop_lengths_m,
     station_density,
@@ -355,10 +357,17 @@ def queue_constant(det: pd.DataFrame, section: Section, a: Approach, io, spacing
 def density_constant(det: pd.DataFrame, section: Section, a: Approach, io) -> float:
     """The constant that puts the counted approach ``a`` (``io(t)`` plus it) on its density
     estimate on average over the record: the mean over the intervals of the stations'
-    density integrated over the approach less ``io``'s mean over the interval."""
-    rows = []
-    for (b, e), e1 in det[det["kind"] == "e1"].groupby(["begin_s", "end_s"], sort=True):
-        k = integrate_stations(station_density(e1, section), section, a.up_m, a.bar_m)
+    density integrated over the approach less ``io``'s mean over the interval. Dual loops:
+    their occupancy's density (``section_macro.edie_densities``), rising toward the line as
+    ``density.rising_integral`` (docs/sections-log.md, stop 44)."""
+    e1s, rows = det[det["kind"] == "e1"], []
+    dual = bool((loop_lengths_m(e1s) > 0).any())
+    for (b, e), e1 in (edie_densities(e1s) if dual else e1s).groupby(["begin_s", "end_s"]):
+        k = station_density(e1, section)
+        if dual:
+            k = rising_integral(k.index.to_numpy(dtype=float), k.to_numpy(), a.up_m, a.bar_m)
+        else:
+            k = integrate_stations(k, section, a.up_m, a.bar_m)
         rows.append(k - float(np.mean(io(np.linspace(b, e, 7)))))
     return float(np.mean(rows))
 
