@@ -219,12 +219,15 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
         for v in vids:
             if v not in self.slots.of:
                 self.slots.add(v)
-        at = self.slots.slots(vids)
-        self.slots.decel[at] = list(map(self.decel_of.__getitem__, vids))
-        phys = [self.vtypes[self.types[v]] for v in vids]
-        self.slots.vmax[at] = [p.max_speed_mps for p in phys]
-        self.slots.accel[at] = [p.accel_mps2 for p in phys]
-        self.slots.with_gap[at] = [sum(self.shape_of[v][:2]) for v in vids]
+        # A vehicle or two a step: scalar writes, the values four index writes from lists
+        # wrote (2 vehicles: 0.9 against 8.0 us, numpy 2.4), after any growth of the arrays.
+        s = self.slots
+        for v in vids:
+            i, p = s.of[v], self.vtypes[self.types[v]]
+            s.decel[i] = self.decel_of[v]
+            s.vmax[i] = p.max_speed_mps
+            s.accel[i] = p.accel_mps2
+            s.with_gap[i] = sum(self.shape_of[v][:2])
 
     def release(self, sim: Simulation, vids: list[str]) -> None:
         sim.release_speeds(vids)
