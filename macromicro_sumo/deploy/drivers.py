@@ -361,6 +361,8 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
             self.has_lights = sim.has_traffic_lights()
             if self.has_lights:
                 self.signal_lanes = signal_lanes(sim.options.net_file)
+                if self.sc.deploy.yellow == "onset":  # SUMO's yellow rule, decided at onset
+                    sim.decide_yellow()
         obs, gap, lead_decel, lead = self.observe(
             sim, vids, rows, st, lanes=lanes, stop_m=ahead, at=(slots, codes), factor=factor
         )

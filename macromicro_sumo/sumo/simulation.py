@@ -458,6 +458,12 @@ class Simulation:
         """Vehicles that left the network in the last step."""
         return frozenset(libsumo.simulation.getArrivedIDList())
 
+    def decide_yellow(self) -> None:
+        """From now on each vehicle asking its stop lines decides each yellow at its onset
+        (``sumo.stop_lines.StopLineReader.decide_yellow``, with libsumo's getSpeed and
+        getDecel): ``deploy.yellow = "onset"``."""
+        self._lines.decide_yellow(libsumo.vehicle.getSpeed, libsumo.vehicle.getDecel, self._dt)
+
     def stop_lines(self, vehicle_ids: Sequence[str]) -> StopLines:
         """The next red or yellow line of each vehicle (``StopLines``; every caller's query):
         getNextTLS, its link's lane (its own, or one its lane carries it on to?), that

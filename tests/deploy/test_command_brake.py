@@ -19,6 +19,7 @@ from macromicro_sumo.deploy.population import DriveStats
 from macromicro_sumo.deploy.safety import command_brake, speed_commands
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, read_section
 from macromicro_sumo.scenario.load import load_scenario
+from macromicro_sumo.scenario.stages import DeployConfig
 
 # SUMO's IDM with the drawn networks' car decel: comfortable braking 3.0 m/s^2, below the
 # examples' bound of -4.5.
@@ -107,17 +108,16 @@ def test_the_layer_still_brakes_harder_where_what_is_ahead_asks() -> None:
     def layer() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         return gap, decel, lead_decel, np.full(2, -1)
 
-    class Sc:  # the three settings speed_commands reads, the examples' values
+    class Sc:  # the tables speed_commands reads, the examples' values
         class bounds:
             accel_mps2 = (-4.5, 2.6)
 
         class simulation:
             step_length_s = 0.5
 
-        class deploy:
-            command_brake = "decel"
-            safety_floor_share = 0.2
-            safety_floor_on = "all"
+        # The package's deploy defaults (command_brake decel, floor 0.2), the floor on all:
+        # a setting the layer reads later is there with its default.
+        deploy = DeployConfig(safety_floor_on="all")
 
     cmd = speed_commands(Sc, lambda o: np.full(len(o), -4.5), "sumo", DriveStats(), obs, layer)
     assert cmd[0] < 20.0 - 4.5 * 0.5  # the layer's braking, beyond the bound even

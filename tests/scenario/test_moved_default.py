@@ -16,6 +16,7 @@ MOVED = (
     ("command_brake", "decel", "bounds"),
     ("actor_dtype", "float32", "float64"),
     ("turns", "handover", "off"),
+    ("yellow", "onset", "stop"),
 )
 
 
