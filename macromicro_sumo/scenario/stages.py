@@ -298,7 +298,8 @@ class DeployConfig:
         doc="safety sumo: the reaction time of the safe speed the floor lifts a standing "
         "vehicle (below 1 m/s) to (deploy.safety.reaction_safe_speed); 0: one step, the "
         "cap's own; the drivers' tau (SUMO's Krauss: 1 s) starts a standing queue nearer "
-        "SUMO's lags (docs/deploy-log.md, Floor reaction, stop 44). The cap stays one step [s]",
+        "SUMO's lags (docs/deploy-log.md, Floor reaction and the yellow decided at onset). The "
+        "cap stays one step [s]",
         omit_default=True,  # the digests of scenarios that do not set it stay as they were
     )
     yellow: str = spec(
@@ -310,7 +311,8 @@ class DeployConfig:
         "sumo.stop_lines; drawn arterials 528 / 565 / 521 / 837, all 4 runs: speed RMSE "
         "1.136 -> 1.150, 1.305 -> 1.247, 1.037 -> 0.995, 1.198 -> 1.029 m/s, emergency "
         "brakings 28-53% fewer; the truth's drivers: none of 8,342 that could brake at onset "
-        "crossed, 84% of 438 that could not did; docs/deploy-log.md, Yellow at onset)",
+        "crossed, 84% of 438 that could not did; docs/deploy-log.md, Floor reaction and the "
+        "yellow decided at onset)",
         # A deployment setting whose default moved from stop to onset (stop 44): left out of
         # the digest at stop, so that a run deployed before is redeployed.
         omit_default=True,
@@ -407,7 +409,7 @@ class DeployConfig:
         "handed back inside the junction at 5-9 m/s^2 on drawn arterial 528). All 4 runs, "
         "policy, off -> handover: drawn arterials 528 1.370 -> 1.136, 565 1.590 -> 1.305, "
         "521 1.081 -> 1.037, 917 0.989 -> 0.856, 944 1.111 -> 0.990 m/s; netgen_corridor, "
-        "Bremen, Spreewaldring the same (docs/deploy-log.md, Turners)",
+        "Bremen, Spreewaldring the same (docs/deploy-log.md, Turners from SUMO's own routes)",
         # A deployment setting whose default moved from off to handover (stop 44): left out
         # of the digest at off, so that a run deployed before is redeployed.
         omit_default=True,
