@@ -92,7 +92,8 @@ def test_auto_reads_whether_the_observed_held_first_sights_are_at_their_speed(
     resolved, got = resolved_entry(auto, truth, truth.runs)
     assert got == choice and resolved.policy.driver_entry == entry
     assert DriverSpeeds(np.ones(len(QUANTILE_LEVELS)), resolved, 0).entry == entry
-    assert resolved_entry(sc, truth, truth.runs) == (sc, None)
+    queued = dataclasses.replace(sc, policy=dataclasses.replace(sc.policy, driver_entry="queued"))
+    assert resolved_entry(queued, truth, truth.runs) == (queued, None)
     drawn = dataclasses.replace(auto, policy=dataclasses.replace(auto.policy, driver_speed="drawn"))
     assert resolved_entry(drawn, truth, truth.runs)[0].policy.driver_entry == "queued"
 
