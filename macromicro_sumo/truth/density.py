@@ -156,7 +156,7 @@ where the queue holds in the cycle, nearer the station that reads the queue than
 puts it (fresh arterial 769 from 240 s, the approach 590-844 m: the true density steps up
 at 720-740 m between stations at 650 and 750 m; the approach's constant on the chord 4.3 and
 4.7 vehicles high in its two runs, with the power 2 1.8 and 2.1; picked on 769 and 770, then
-measured on 741-760, 761-780, 801-820 and the tuned set: docs/sections-log.md, stop 44)."""
+measured on 741-760, 761-780, 801-820 and the tuned set: docs/sections-log.md, "Dual loops on signal approaches")."""
 
 
 def rising_integral(

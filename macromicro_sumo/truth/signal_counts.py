@@ -359,7 +359,7 @@ def density_constant(det: pd.DataFrame, section: Section, a: Approach, io) -> fl
     estimate on average over the record: the mean over the intervals of the stations'
     density integrated over the approach less ``io``'s mean over the interval. Dual loops:
     their occupancy's density (``section_macro.edie_densities``), rising toward the line as
-    ``density.rising_integral`` (docs/sections-log.md, stop 44)."""
+    ``density.rising_integral`` (docs/sections-log.md, "Dual loops on signal approaches")."""
     e1s, rows = det[det["kind"] == "e1"], []
     dual = bool((loop_lengths_m(e1s) > 0).any())
     for (b, e), e1 in (edie_densities(e1s) if dual else e1s).groupby(["begin_s", "end_s"]):
