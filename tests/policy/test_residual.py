@@ -161,7 +161,7 @@ def test_anchors_pull_a_residual_to_zero_off_its_pairs():
     agent = _agent(obs.numpy())
     support = pair_support(obs)
     anchors = anchor_observations(obs, torch.Generator().manual_seed(1))
-    assert float(anchor_loss(agent, anchors, support)) == 0.0
+    assert anchor_loss(agent, anchors, support).item() == 0.0
     torch.nn.init.constant_(agent.actor[-1].bias, 0.5)
     opt = torch.optim.Adam(agent.actor.parameters(), lr=0.01)
     for _ in range(300):
