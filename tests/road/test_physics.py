@@ -270,3 +270,31 @@ def test_a_follower_capped_at_the_safe_speed_never_collides_nor_brakes_beyond_it
         assert gap.min() > -1e-9
         v, v_l = cmd, v_l_next
     assert v.max() > 10.0  # not all standing: the loop exercised moving traffic
+
+
+def test_safe_speed_with_constant_arrays_is_the_python_float_formula_to_the_bit():
+    """``safe_speed`` and ``brake_gap`` with their constants as 0-d arrays (stop 44, speed
+    only) give the Python-float formula's values to the bit on float64 rows, over more step
+    lengths than the constants cache keeps (it stays at 16)."""
+    from macromicro_sumo.road import physics
+
+    def brake_gap_ref(v, b, dt):
+        reduction = np.multiply(b, dt)
+        steps = np.floor(np.asarray(v) / reduction)
+        return dt * (steps * v - reduction * steps * (steps + 1.0) / 2.0)
+
+    def safe_speed_ref(gap, v_l, b, b_l, dt):
+        room = np.maximum(gap, 0.0) + brake_gap_ref(v_l, np.maximum(b, b_l), dt)
+        bdt2 = np.multiply(b, dt**2)
+        n = np.floor((-1.0 + np.sqrt(1.0 + 8.0 * room / bdt2)) / 2.0)
+        return (room + bdt2 * n * (n + 1.0) / 2.0) / (dt * (n + 1.0))
+
+    rng = np.random.default_rng(44)
+    for k in range(24):
+        dt = 0.05 + 0.05 * k
+        gap, v_l = rng.uniform(-1.0, 200.0, 64), rng.uniform(0.0, 40.0, 64)
+        b, b_l = rng.uniform(1.0, 9.0, 64), rng.uniform(1.0, 9.0, 64)
+        got, want = physics.safe_speed(gap, v_l, b, b_l, dt), safe_speed_ref(gap, v_l, b, b_l, dt)
+        assert got.dtype == np.float64 and np.array_equal(got.view(np.int64), want.view(np.int64))
+        assert np.array_equal(physics.brake_gap(v_l, b, dt), brake_gap_ref(v_l, b, dt))
+    assert len(physics._STEP_CONSTANTS) <= 16
