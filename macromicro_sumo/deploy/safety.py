@@ -37,7 +37,7 @@ import numpy as np
 
 from macromicro_sumo.deploy.observe import STOP_DECEL_MPS2
 from macromicro_sumo.deploy.population import ActionBatch, DriveStats
-from macromicro_sumo.road.physics import brake_gap, safe_speed
+from macromicro_sumo.road.physics import brake_gap, constant, safe_speed, step_constants
 from macromicro_sumo.road.section import NO_LEADER_GAP_M
 from macromicro_sumo.road.vtype import accel_limit, command_speeds
 from macromicro_sumo.scenario.stages import DeployConfig
@@ -82,6 +82,14 @@ SAFETY_BRAKES: tuple[str, ...] = DeployConfig.__dataclass_fields__["safety_brake
 # without it (a faster return brakes the driver by the layer's own fall), speed RMSE
 # 1.106 / 1.110 / 1.115 / 1.113 m/s against 1.112.
 HANDOVER_DECEL_RATE_MPS2_PER_S = 0.5
+# The per-step operands above as read-only 0-d arrays made once (``road.physics.constant``):
+# a Python float costs a numpy call a conversion and a weak-scalar promotion, some 0.3 us of
+# ~1 us at ~40 rows; on float64 arrays (the deployment's) the values are the same to the bit.
+_NO_LEADER_GAP, _INF, _ZERO = constant(NO_LEADER_GAP_M), constant(np.inf), constant(0.0)
+_TOLERANCE, _BEHIND_MARGIN = constant(SAFETY_TOLERANCE_MPS), constant(BEHIND_MARGIN_MPS)
+_STANDING_BELOW = constant(STANDING_BELOW_MPS)
+_NO_LEAD = np.zeros((), dtype=np.int64)  # ``lead``'s 0: the first index, -1 is none
+_NO_LEAD.flags.writeable = False
 
 
 def planned_decel(decel: np.ndarray, lead_decel: np.ndarray, brake: str) -> np.ndarray:
@@ -272,7 +280,7 @@ def leader_safe_speed(
     if lead_speed is None:
         lead_speed = obs[:, 0] - obs[:, 3]
     safe = safe_speed(gap, lead_speed, decel, lead_decel, dt_s)
-    safe[~(gap < NO_LEADER_GAP_M)] = np.inf  # no leader: no cap (safe_speed's is fresh)
+    safe[~(gap < _NO_LEADER_GAP)] = _INF  # no leader: no cap (safe_speed's is fresh)
     return safe
 
 
@@ -348,9 +356,9 @@ def safety_cap(
     floor = np.minimum(under, np.minimum(obs[:, 0] + a_max_mps2 * dt_s, floor_share * obs[:, 1]))
     floor = np.minimum(floor, vmax)
     capped = np.minimum(cmd, safe)
-    raised = int(np.count_nonzero(floor > capped + SAFETY_TOLERANCE_MPS))
+    raised = int(np.count_nonzero(floor > capped + _TOLERANCE))
     out = behind_commands(np.maximum(capped, floor), gap, lead, decel, lead_decel, dt_s, lead_speed)
-    return out, int(np.count_nonzero(out < cmd - SAFETY_TOLERANCE_MPS)), raised
+    return out, int(np.count_nonzero(out < cmd - _TOLERANCE)), raised
 
 
 def behind_commands(
@@ -379,12 +387,12 @@ def behind_commands(
     Euler braking from v_l is one step at v_l - max(b, b_l) dt and the braking from there;
     a leader slower than max(b, b_l) dt was assumed standing after the step), the margin
     far more than rounding: the same commands, some 25 numpy calls fewer a step."""
-    led = lead >= 0
+    led = lead >= _NO_LEAD
     if lead_speed is not None:
         # Over every vehicle, those without a driven leader masked out: fewer array calls a
         # step than gathering the others first (cmd[-1] stands in for no leader).
-        brake = np.maximum(decel, lead_decel) * dt_s
-        least = np.maximum(lead_speed - brake, 0.0) + BEHIND_MARGIN_MPS
+        brake = np.maximum(decel, lead_decel) * step_constants(dt_s)[0]
+        least = np.maximum(lead_speed - brake, _ZERO) + _BEHIND_MARGIN
         if not np.count_nonzero(led & (cmd[lead] < least)):
             return cmd
     has = led.nonzero()[0]
@@ -473,11 +481,11 @@ def speed_commands(
         return cmd
     floor = sc.deploy.safety_floor_share
     if sc.deploy.safety_floor_on == "standing":
-        floor = np.where(obs[:, 0] < STANDING_BELOW_MPS, floor, 0.0)
+        floor = np.where(obs[:, 0] < _STANDING_BELOW, floor, _ZERO)
     floor_safe, tau = None, sc.deploy.safety_floor_reaction_s
     if tau > 0.0:  # a standing vehicle's floor: its safe speed with a reaction time
         v_l = obs[:, 0] - obs[:, 3] if lead_speed is None else lead_speed
         floor_safe = reaction_safe_speed(gap, v_l, decel, lead_decel, dt, tau)
-        floor_safe[obs[:, 0] >= STANDING_BELOW_MPS] = np.inf
+        floor_safe[obs[:, 0] >= _STANDING_BELOW] = _INF
     args = (cmd, obs, gap, decel, lead_decel, lead, dt, a_max, floor, safe, lead_speed, vmax)
     return stats.count_safety(*safety_cap(*args, floor_safe))

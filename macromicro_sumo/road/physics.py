@@ -123,7 +123,7 @@ def no_lower_limit_ahead(obs):
     return obs[..., NEXT_LIMIT_COLUMN] >= obs[..., LIMIT_COLUMN]
 
 
-def _constant(value: float) -> np.ndarray:
+def constant(value: float) -> np.ndarray:
     """``value`` as a read-only 0-d float64 array."""
     out = np.array(float(value))
     out.flags.writeable = False
@@ -135,19 +135,19 @@ def _constant(value: float) -> np.ndarray:
 # 0.3-0.5 us of a 0.7-1.2 us call at ~40 rows (docs/deploy-log.md, hB44 at stop 44); on
 # float64 inputs the values are the same to the bit. A 0-d array is a strong type, though:
 # float32 inputs now give float64 results (every caller passes float64).
-_ZERO, _ONE, _MINUS_ONE, _TWO, _EIGHT = map(_constant, (0.0, 1.0, -1.0, 2.0, 8.0))
-# Per step length dt [s] met: (dt, dt * dt) as 0-d arrays (``_step_constants``).
+_ZERO, _ONE, _MINUS_ONE, _TWO, _EIGHT = map(constant, (0.0, 1.0, -1.0, 2.0, 8.0))
+# Per step length dt [s] met: (dt, dt * dt) as 0-d arrays (``step_constants``).
 _STEP_CONSTANTS: dict[float, tuple[np.ndarray, np.ndarray]] = {}
 
 
-def _step_constants(dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+def step_constants(dt_s: float) -> tuple[np.ndarray, np.ndarray]:
     """(dt, dt**2) of the step length ``dt_s`` [s] as read-only 0-d arrays, kept per dt (a
     run has one; at most 16 kept, so that a caller sweeping dt cannot grow the cache)."""
     dt = float(dt_s)
     try:
         return _STEP_CONSTANTS[dt]
     except KeyError:
-        got = (_constant(dt), _constant(dt**2))
+        got = (constant(dt), constant(dt**2))
         if len(_STEP_CONSTANTS) < 16:
             _STEP_CONSTANTS[dt] = got
         return got
@@ -158,7 +158,7 @@ def brake_gap(speed_mps: np.ndarray, decel_mps2: np.ndarray | float, dt_s: float
     steps of ``dt_s`` (v' = max(0, v - b dt), x' = x + v' dt): SUMO's ``brakeGap``
     (headway 0). At most the continuous v^2 / 2b; short by up to v dt / 2 when b dt is large
     next to v, the braking that a few coarse steps stop."""
-    dt = _step_constants(dt_s)[0]
+    dt = step_constants(dt_s)[0]
     reduction = np.multiply(decel_mps2, dt)
     steps = np.floor(np.asarray(speed_mps) / reduction)
     return dt * (steps * speed_mps - reduction * steps * (steps + _ONE) / _TWO)
@@ -193,7 +193,7 @@ def safe_speed(
     it stops, so the gap only shrinks). ``gap_m`` is the bumper-to-bumper gap; a negative
     one counts as 0. Never negative.
     """
-    dt, dt2 = _step_constants(dt_s)
+    dt, dt2 = step_constants(dt_s)
     lead_b = np.maximum(decel_mps2, leader_decel_mps2)
     room = np.maximum(gap_m, _ZERO) + brake_gap(leader_speed_mps, lead_b, dt_s)
     # v dt + brake_gap(v, b) is piecewise linear in v, (n + 1) v dt - b dt^2 n (n + 1) / 2
