@@ -37,7 +37,7 @@ import numpy as np
 
 from macromicro_sumo.deploy.observe import STOP_DECEL_MPS2
 from macromicro_sumo.deploy.population import ActionBatch, DriveStats
-from macromicro_sumo.road.physics import brake_gap, constant, safe_speed, step_constants
+from macromicro_sumo.road.physics import brake_gap, constants, safe_speed, step_constants
 from macromicro_sumo.road.section import NO_LEADER_GAP_M
 from macromicro_sumo.road.vtype import accel_limit, command_speeds
 from macromicro_sumo.scenario.stages import DeployConfig
@@ -82,12 +82,12 @@ SAFETY_BRAKES: tuple[str, ...] = DeployConfig.__dataclass_fields__["safety_brake
 # without it (a faster return brakes the driver by the layer's own fall), speed RMSE
 # 1.106 / 1.110 / 1.115 / 1.113 m/s against 1.112.
 HANDOVER_DECEL_RATE_MPS2_PER_S = 0.5
-# The per-step operands above as read-only 0-d arrays made once (``road.physics.constant``):
+# The per-step operands above as read-only 0-d arrays made once (``road.physics.constants``):
 # a Python float costs a numpy call a conversion and a weak-scalar promotion, some 0.3 us of
 # ~1 us at ~40 rows; on float64 arrays (the deployment's) the values are the same to the bit.
-_NO_LEADER_GAP, _INF, _ZERO = constant(NO_LEADER_GAP_M), constant(np.inf), constant(0.0)
-_TOLERANCE, _BEHIND_MARGIN = constant(SAFETY_TOLERANCE_MPS), constant(BEHIND_MARGIN_MPS)
-_STANDING_BELOW = constant(STANDING_BELOW_MPS)
+_NO_LEADER_GAP, _INF, _ZERO, _TOLERANCE, _BEHIND_MARGIN, _STANDING_BELOW = constants(
+    NO_LEADER_GAP_M, np.inf, 0.0, SAFETY_TOLERANCE_MPS, BEHIND_MARGIN_MPS, STANDING_BELOW_MPS
+)
 _NO_LEAD = np.zeros((), dtype=np.int64)  # ``lead``'s 0: the first index, -1 is none
 _NO_LEAD.flags.writeable = False
 
@@ -466,14 +466,18 @@ def speed_commands(
     so is the floor's reach (an inf: the bound alone; a scalar bound where none is lower,
     the same values as before the cap)."""
     a_min, a_max = sc.bounds.accel_mps2
+    lo, hi = constants(a_min, a_max)
     # A vehicle that cannot reach the bound: its own (accel_limit; where none is below the
     # bound it is the bound: count_nonzero here costs a tenth of np.any there, a step).
-    if not isinstance(accel, np.ndarray) or np.count_nonzero(np.less(accel, a_max)):
+    if not isinstance(accel, np.ndarray) or np.count_nonzero(np.less(accel, hi)):
         a_max = accel_limit(a_max, accel)
     dt = sc.simulation.step_length_s
     if safety == "sumo":
         gap, decel, lead_decel, lead = layer()
-        a_min = command_brake(a_min, decel, sc.deploy.command_brake)
+        brake = sc.deploy.command_brake
+        # The 0-d bound where it meets the float64 decels only ("bounds" hands the bound on
+        # to the actions, which keep Python's weak float).
+        a_min = command_brake(a_min if brake == "bounds" else lo, decel, brake)
     cmd = command_speeds(obs[:, 0], act(obs), dt, a_min, a_max, vmax)  # Stage II's rule too
     if cap is not None:
         cmd = np.minimum(cmd, cap)

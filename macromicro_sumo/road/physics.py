@@ -153,6 +153,22 @@ def step_constants(dt_s: float) -> tuple[np.ndarray, np.ndarray]:
         return got
 
 
+# Per tuple of values met: the values as 0-d arrays (``constants``).
+_CONSTANTS: dict[tuple[float, ...], tuple[np.ndarray, ...]] = {}
+
+
+def constants(*values: float) -> tuple[np.ndarray, ...]:
+    """``values`` as read-only 0-d float64 arrays (``constant``), kept per tuple of values:
+    a run's per-step operands (its bounds, ...) made once (at most 64 tuples kept)."""
+    try:
+        return _CONSTANTS[values]
+    except KeyError:
+        got = tuple(map(constant, values))
+        if len(_CONSTANTS) < 64:
+            _CONSTANTS[values] = got
+        return got
+
+
 def brake_gap(speed_mps: np.ndarray, decel_mps2: np.ndarray | float, dt_s: float) -> np.ndarray:
     """Distance [m] a vehicle covers braking at ``decel_mps2`` from ``speed_mps`` in Euler
     steps of ``dt_s`` (v' = max(0, v - b dt), x' = x + v' dt): SUMO's ``brakeGap``

@@ -298,3 +298,15 @@ def test_safe_speed_with_constant_arrays_is_the_python_float_formula_to_the_bit(
         assert got.dtype == np.float64 and np.array_equal(got.view(np.int64), want.view(np.int64))
         assert np.array_equal(physics.brake_gap(v_l, b, dt), brake_gap_ref(v_l, b, dt))
     assert len(physics._STEP_CONSTANTS) <= 16
+
+
+def test_constants_are_read_only_0d_float64_arrays_made_once():
+    """``constants`` (the deployment's per-step operands): the values as read-only 0-d
+    float64 arrays, the same objects on the next call (made once), none writable."""
+    from macromicro_sumo.road.physics import constants
+
+    lo, hi = constants(-4.5, 2.6)
+    assert lo.shape == () and lo.dtype == np.float64 and float(lo) == -4.5 and float(hi) == 2.6
+    assert constants(-4.5, 2.6)[0] is lo
+    with pytest.raises(ValueError):
+        lo[...] = 0.0
