@@ -7,11 +7,11 @@ else by the signed distance d to the nearest line: ``far before`` (d < -20), ``b
 Per lane: speed bias / RMSE of the lane rows and the lane's share of the station's flow
 (method against truth). Issue 17, drawn arterial 565 (docs/deploy.md, stop 44, hD44):
 
-    .venv/bin/python scripts/deploy_zones.py --lines 253.8 514.8 775.8 \\
-        policy=OUT/deploy_comparison.csv:policy \\
-        sumo_default=BASE/deploy_comparison.csv:sumo_default
+    .venv/bin/python scripts/deploy_zones.py policy=OUT/deploy_comparison.csv:policy \\
+        sumo_default=BASE/deploy_comparison.csv:sumo_default --lines 253.8 514.8 775.8
 
-Each argument is LABEL=PATH[:METHOD] (METHOD defaults to the label).
+Each argument is LABEL=PATH[:METHOD] (METHOD defaults to the label), before ``--lines``
+(which takes every number after it).
 """
 
 from __future__ import annotations
