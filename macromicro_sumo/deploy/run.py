@@ -36,6 +36,7 @@ from macromicro_sumo.deploy.intervals import interval_length_s
 from macromicro_sumo.deploy.population import SAFETY_COLUMNS, SwitchedType
 from macromicro_sumo.deploy.redraw_driver import SectionRedrawDriver
 from macromicro_sumo.deploy.type_driver import SectionTypeDriver
+from macromicro_sumo.env.driver_speed import resolved_entry
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import write_csv, write_manifest
 from macromicro_sumo.road.section import Section
@@ -119,6 +120,9 @@ def load_context(sc: SectionScenario, truth_dir: Path | str) -> DeployContext:
         return files_context(sc, truth_dir)
     truth = load_section_truth(truth_dir, sc)
     check_truth_seed(sc, truth_dir)
+    # policy.driver_entry "auto": the drivers read the rule Stage II's banks read (the train
+    # + val runs' observed drivers); the stage's manifest keeps the scenario's "auto"
+    sc = resolved_entry(sc, truth)[0]
     held = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)["held_out"]
     inputs, section, vtypes = load_section(sc)
     if sc.deploy.vtype and sc.deploy.vtype not in vtypes:
@@ -165,6 +169,7 @@ def files_context(sc: SectionScenario, truth_dir: Path) -> DeployContext:
     to the stations' last interval, and the scenario's route files as the demand, or where
     it has none a demand per held-out recording sampled from its station counts."""
     truth = load_section_truth(truth_dir, sc)
+    sc = resolved_entry(sc, truth)[0]  # policy.driver_entry "auto", as load_context
     runs = [int(r) for r in truth.runs]
     held = [
         int(r) for r in split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)["held_out"]

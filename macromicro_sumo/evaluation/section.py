@@ -59,7 +59,7 @@ from macromicro_sumo.data.section import (
     snapshots_by_k,
     split_runs,
 )
-from macromicro_sumo.env.driver_speed import drivers_bank
+from macromicro_sumo.env.driver_speed import drivers_bank, resolved_entry
 from macromicro_sumo.env.rollout import ActionFn, Rollouts, rollout
 from macromicro_sumo.env.section import DEFAULT_SAFETY, SectionCore
 from macromicro_sumo.env.section_bank import (
@@ -121,7 +121,8 @@ def driven_bank(sc, truth, bank: SectionBank, agent, seed: int) -> SectionBank:
     nothing of either)."""
     quantiles = None if agent is None else getattr(agent, "driver_speed", None)
     if quantiles is not None and sc.policy.driver_speed != "none":
-        bank = drivers_bank(sc, truth.section, bank, quantiles.double().numpy(), seed)
+        dsc = resolved_entry(sc, truth)[0]  # policy.driver_entry "auto": the train + val runs' rule
+        bank = drivers_bank(dsc, truth.section, bank, quantiles.double().numpy(), seed)
     taus = None if agent is None else getattr(agent, "driver_tau", None)
     return bank if taus is None else follow_inputs(bank, None, None, taus.numpy(), seed)[0]
 

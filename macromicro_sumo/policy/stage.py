@@ -19,7 +19,7 @@ import torch
 
 from macromicro_sumo.data.section import section_snapshots, split_runs
 from macromicro_sumo.env.demand import DemandCore
-from macromicro_sumo.env.driver_speed import drivers_bank
+from macromicro_sumo.env.driver_speed import drivers_bank, resolved_entry
 from macromicro_sumo.env.observed_drivers import driver_ratios
 from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import (
@@ -96,8 +96,11 @@ def section_episodes(sc: SectionScenario, truth, net, splits: dict[str, np.ndarr
     complete = section_completion(net, truth.section, sc, sc.generator.k_source, sc.seed)
     bank = build_section_bank(sc, truth, snaps, complete, sc.policy.horizon, sc.seed)
     quantiles = driver_speed_quantiles(sc, truth, runs)
+    # policy.driver_entry "auto": the rule the observed drivers of these runs say, read by
+    # the banks and the demand episodes as by the deployment (``resolved_entry``)
+    drivers_sc = resolved_entry(sc, truth, runs)[0]
     if quantiles is not None:  # each hidden driver its own desired speed
-        bank = drivers_bank(sc, truth.section, bank, quantiles, sc.seed)
+        bank = drivers_bank(drivers_sc, truth.section, bank, quantiles, sc.seed)
     net_file = scenario_inputs(sc).net_file
     vclass = typical_vclass(truth)
     min_gap = recorded_min_gap(truth)
@@ -124,7 +127,7 @@ def section_episodes(sc: SectionScenario, truth, net, splits: dict[str, np.ndarr
     horizon = int(round(sc.policy.demand_horizon_s / sc.simulation.step_length_s))
 
     def make_demand() -> DemandCore:
-        return DemandCore(sc, truth, demand_runs, horizon)
+        return DemandCore(drivers_sc, truth, demand_runs, horizon)
 
     return Episodes(bank, make_core, make_demand, quantiles)
 

@@ -63,13 +63,13 @@ class PolicyConfig:
     )
     driver_entry: str = spec(
         "queued",
-        choices=("queued", "held"),
+        choices=("queued", "held", "auto"),
         doc="driver_speed memory: queued, a driver first seen below 0.65 of the observed "
-        "median takes drawn's factor; held, also one first seen held by what is ahead (a "
-        "leader within 2 s x v + 5 m, not a faster one 1 s x v + 5 m ahead; env.driver_speed."
-        "held_at_sight), in Stage II's banks and the deployment (drawn 522 with deploy."
-        "merge_reach occupation 3.42 -> 2.73 m/s, 549 3.82 -> 3.64; netgen_corridor "
-        "0.46 -> 0.68: docs/deploy-log.md, Held entries)",
+        "median takes drawn's factor; held, also one first seen held by what is ahead "
+        "(env.driver_speed.held_at_sight), in Stage II's banks and the deployment (drawn 522 "
+        "with merge_reach occupation 3.42 -> 2.73 m/s; netgen_corridor 0.46 -> 0.68); auto, "
+        "held where the observed drivers' held first sights are below their top speed "
+        "(env.driver_speed.entry_choice; docs/deploy-log.md, Held entries and stop 44)",
         omit_default=True,  # the digests of scenarios that do not set it stay as they were
     )
     driver_ratios: str = spec(

@@ -125,7 +125,7 @@ def test_driver_entry_is_queued_by_default_and_checked(tmp_path: Path) -> None:
     assert plain.policy.driver_entry == "queued"
     assert "driver_entry" not in plain.to_dict()["policy"]
     text = path.read_text()
-    for value, same in (("queued", True), ("held", False)):
+    for value, same in (("queued", True), ("held", False), ("auto", False)):
         path.write_text(
             text.replace(
                 'driver_speed = "memory"', f'driver_speed = "memory"\ndriver_entry = "{value}"'
@@ -139,4 +139,6 @@ def test_driver_entry_is_queued_by_default_and_checked(tmp_path: Path) -> None:
     with pytest.raises(UserError) as err:
         load_scenario(path)
     msg = str(err.value)
-    assert "\n" not in msg and "policy.driver_entry" in msg and "'queued', 'held'" in msg, msg
+    assert "\n" not in msg and "policy.driver_entry" in msg and "'queued', 'held', 'auto'" in msg, (
+        msg
+    )
