@@ -118,6 +118,17 @@ def effective_length_m(
     return float(occ[ok].sum() / 100.0 / (k[ok].sum() / 1000.0))
 
 
+def _stations_by_arc(
+    station_arcs_m: np.ndarray, k_vpkm: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The stations with a finite density, in arc order: arcs [m] and densities [veh/m]."""
+    a = np.asarray(station_arcs_m, dtype=float)
+    k = np.asarray(k_vpkm, dtype=float) / 1000.0
+    ok = np.isfinite(k)
+    order = np.argsort(a[ok])
+    return a[ok][order], k[ok][order]
+
+
 def profile_integral(
     station_arcs_m: np.ndarray,
     k_vpkm: np.ndarray,
@@ -129,14 +140,9 @@ def profile_integral(
     """Vehicles on [lo_m, hi_m] (default: the whole section) when the density (veh/km over
     all lanes) is linear in arc between stations, constant beyond the outermost ones of an
     open section and periodic on a closed one: the trapezoid rule, exact for it."""
-    a = np.asarray(station_arcs_m, dtype=float)
-    k = np.asarray(k_vpkm, dtype=float) / 1000.0
-    ok = np.isfinite(k)
-    a, k = a[ok], k[ok]
+    a, k = _stations_by_arc(station_arcs_m, k_vpkm)
     if a.size == 0:
         return float("nan")
-    order = np.argsort(a)
-    a, k = a[order], k[order]
     hi = float(length_m) if hi_m is None else float(hi_m)
     if closed:
         # One station before the first and one after the last, a lap away: periodic.
@@ -166,14 +172,9 @@ def rising_integral(
     profile between them as ``profile_integral``'s) where the density rises from one station
     to the next as ``RISE_POWER`` of the way (a stretch's mean: the lower density plus the
     rise over ``RISE_POWER + 1``) and falls linearly."""
-    a = np.asarray(station_arcs_m, dtype=float)
-    k = np.asarray(k_vpkm, dtype=float) / 1000.0
-    ok = np.isfinite(k)
-    a, k = a[ok], k[ok]
+    a, k = _stations_by_arc(station_arcs_m, k_vpkm)
     if a.size == 0:
         return float("nan")
-    order = np.argsort(a)
-    a, k = a[order], k[order]
     grid = np.unique(np.concatenate([a, [lo_m, hi_m]]))
     grid = grid[(grid >= lo_m) & (grid <= hi_m)]
     dens = np.interp(grid, a, k)
