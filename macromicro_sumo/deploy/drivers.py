@@ -48,6 +48,7 @@ from macromicro_sumo.deploy.safety import (
 from macromicro_sumo.deploy.slots import NOT_ASKED, VehicleSlots
 from macromicro_sumo.deploy.turns import Turns
 from macromicro_sumo.road.leaders import stop_distance_m
+from macromicro_sumo.road.physics import safe_speed
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
 from macromicro_sumo.road.vtype import VTypePhysics, read_vtype
 from macromicro_sumo.sumo.signal_reach import signal_lanes
@@ -379,6 +380,14 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
             safe = leader_safe_speed(
                 obs, gap, own, lead_decel, self.sc.simulation.step_length_s, lead_speed
             )
+            # A red line beyond a nearer leader (one passing its yellow): SUMO's driver
+            # stops at the line too; behind the leader alone it sped up to it (565, hC44).
+            red = self.red_gap_m
+            if red is not None and np.count_nonzero(behind := (red < _INF) & (gap < red)):
+                dt = self.sc.simulation.step_length_s
+                b = own[behind]
+                line = safe_speed(red[behind], np.zeros_like(b), b, b, dt)
+                safe[behind] = np.minimum(safe[behind], line)
         if near:
             cap = self.yields(sim, vids, near, obs[:, 0], safe)
         cap = keep_right_caps(self.sc, self.section, self.shape_of, st, rows, cap)
@@ -447,6 +456,7 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
             at = self.slots_of(vids, lanes)
         if stop_m is None:
             stop_m = self.lane_end_m(sim, vids, lanes, at) - st.pos_m[rows]
+        self.red_gap_m = None  # SUMO's gap to each one's red line (inf: none), for ``drive``
         # Nobody on a lane from which a signal can be reached: none ahead (getNextTLS would
         # say NaN for each, inf in the cache), not asked (Bremen's section: every step).
         if self.has_lights and not self.signal_lanes.isdisjoint(lanes):
@@ -455,6 +465,7 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
             if np.count_nonzero(red < _INF):
                 gaps = [self.vtypes[self.types[v]].stopline_gap_m for v in vids]  # jmStoplineGap
                 stop_m = stop_distance_m(stop_m, red, np.array(gaps))
+                self.red_gap_m = stop_distance_m(_INF, red, np.array(gaps))
         leaders = sim.leaders(vids, NO_LEADER_GAP_M)
         return observe_rows(
             self.lane_table,
