@@ -205,17 +205,15 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
         self.others: set[str] = set()  # ``MergeYield.must_change``
         # deploy.merge_reach "occupation": LC2013's lane drop (``MergeYield``)
         self.occupation = self.yield_all = sc.deploy.merge_reach == "occupation"
-        # deploy.turns: the turners' routes, read when they enter (built at the first take)
+        # deploy.turns: the turners, their routes asked of SUMO on junction edges (built at
+        # the first take, which knows the net file)
         self.turns_mode = sc.deploy.turns
         self.turns: Turns | None = None
 
     def take(self, sim: Simulation, vids: list[str]) -> None:
-        if self.turns_mode != "off":
-            if self.turns is None:
-                opts = sim.options
-                dt = self.sc.simulation.step_length_s
-                self.turns = Turns(self.section, opts.net_file, tuple(opts.route_files), dt)
-            self.turns.enter(vids)
+        if self.turns_mode != "off" and self.turns is None:
+            dt = self.sc.simulation.step_length_s
+            self.turns = Turns(self.section, sim.options.net_file, dt)
         sim.set_speed_mode(vids, self.mode)
         for v in vids:
             if v not in self.slots.of:

@@ -76,11 +76,7 @@ class Turns:
     turn's limit [m/s]; NaN: it goes on), asked of SUMO when it comes onto the edge and
     dropped when it leaves it (kept for the vehicles of the last call only)."""
 
-    def __init__(
-        self, section: Section, net_file: Path, route_files: tuple[Path, ...] = (),
-        dt_s: float = 0.5,
-    ) -> None:  # fmt: skip
-        """``route_files`` is not read (routes are SUMO's); ``deploy.drivers`` passes it."""
+    def __init__(self, section: Section, net_file: Path, dt_s: float = 0.5) -> None:
         self.section, self.dt_s = section, dt_s
         self.limits = turn_limits(net_file, section)
         n = len(section.edge_ids)
@@ -94,10 +90,6 @@ class Turns:
         self.lines_m = np.asarray(section.offsets_m + section.lengths_m, dtype=float)
         self.read: dict[str, tuple[int, float]] = {}  # vehicle -> (edge index, turn limit)
         self._on: np.ndarray | None = None  # per lane code of a ``LaneTable``: on a junction edge
-
-    def enter(self, vehicle_ids: list[str]) -> None:
-        """Nothing to read on entry (``deploy.drivers`` calls it): routes are asked on
-        junction edges."""
 
     def turn_at(self, edge: int, route: tuple[str, ...]) -> float:
         """The turn's limit where ``route`` (from section edge ``edge`` on) leaves the

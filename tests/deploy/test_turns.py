@@ -93,7 +93,7 @@ def test_a_turner_exits_at_its_junction_with_the_turn_s_limit(tmp_path: Path) ->
     via = _via_speed(net)
     assert via < 15.0
     assert turn_limits(net, section)[(0, "R")] == via
-    turns = Turns(section, net, (), 0.5)
+    turns = Turns(section, net, 0.5)
     assert turns.junction.tolist() == [True, False]  # an open section's last edge: none
     assert turns.any and not Turns(read_section(net, ["A"], False), net).any  # A: the end
     line = float(section.offsets_m[0] + section.lengths_m[0])
@@ -126,7 +126,7 @@ def test_a_car_a_rerouter_sends_off_the_section_turns(tmp_path: Path) -> None:
     them its limit. The file's route alone would have taken them as through."""
     _, net, _, opts = _turn_net(tmp_path, rerouter=True)
     section = read_section(net, ["A", "B"], False)
-    turns = Turns(section, net, (), 0.5)
+    turns = Turns(section, net, 0.5)
     sim = Simulation(opts)
     try:
         on = _on_a(sim, 2)
