@@ -145,6 +145,22 @@ def netconvert(
     return folder / f"{name}.net.xml"
 
 
+def light_road(folder: Path, a_m: float, b_m: float, speed_mps: float) -> Path:
+    """One lane A (``a_m``) -> a traffic light "tl" -> B (``b_m``), both at ``speed_mps``:
+    the net file (the light's program is the test's own additional file)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    x_b = a_m + b_m
+    nodes = (
+        f'<node id="n0" x="0" y="0"/>\n<node id="tl" x="{a_m:g}" y="0" type="traffic_light"/>\n'
+        f'<node id="n2" x="{x_b:g}" y="0"/>'
+    )
+    edges = (
+        f'<edge id="A" from="n0" to="tl" numLanes="1" speed="{speed_mps:g}"/>\n'
+        f'<edge id="B" from="tl" to="n2" numLanes="1" speed="{speed_mps:g}"/>'
+    )
+    return netconvert(folder, nodes, edges)
+
+
 def line_net(
     folder: Path, ends_m: tuple[float, ...], lanes: int, limits_mps: float | tuple[float, ...]
 ) -> Path:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from conftest import netconvert
+from conftest import light_road, netconvert
 from section_files import section_scenario
 
 from macromicro_sumo.policy.agent import Agent
@@ -104,21 +104,7 @@ def sparse_merge(folder: Path, simulation: dict | None = None, **tables: dict) -
 def light_net(folder: Path) -> tuple[Path, Path, Path]:
     """One lane A (400 m) -> a traffic light that stays red -> B (200 m); one car.
     Returns (net, routes, additional with the all-red program)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    nodes = "\n".join(
-        [
-            '<node id="n0" x="0" y="0"/>',
-            '<node id="tl" x="400" y="0" type="traffic_light"/>',
-            '<node id="n2" x="600" y="0"/>',
-        ]
-    )
-    edges = "\n".join(
-        [
-            '<edge id="A" from="n0" to="tl" numLanes="1" speed="20"/>',
-            '<edge id="B" from="tl" to="n2" numLanes="1" speed="20"/>',
-        ]
-    )
-    net = netconvert(folder, nodes, edges)
+    net = light_road(folder, 400.0, 200.0, 20.0)
     routes = folder / "light.rou.xml"
     routes.write_text(
         f"<routes>\n    {CAR}\n"

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import netconvert
+from conftest import light_road
 from deploy_nets import CAR
 from section_files import section_scenario
 
@@ -91,21 +91,7 @@ def _queue_scenario(tmp_path: Path, reaction_s: float) -> Path:
     B (200 m); 12 cars leave 2 s apart and queue at the red (the always-braking policy's
     floor brings them at 2.8 m/s)."""
     folder = tmp_path / "net"
-    folder.mkdir(parents=True, exist_ok=True)
-    nodes = "\n".join(
-        [
-            '<node id="n0" x="0" y="0"/>',
-            '<node id="tl" x="150" y="0" type="traffic_light"/>',
-            '<node id="n2" x="350" y="0"/>',
-        ]
-    )
-    edges = "\n".join(
-        [
-            '<edge id="A" from="n0" to="tl" numLanes="1" speed="14"/>',
-            '<edge id="B" from="tl" to="n2" numLanes="1" speed="14"/>',
-        ]
-    )
-    net = netconvert(folder, nodes, edges)
+    net = light_road(folder, 150.0, 200.0, 14.0)
     cars = "\n".join(
         f'<vehicle id="c{k:02d}" type="car" depart="{2 * k}" departSpeed="max">'
         '<route edges="A B"/></vehicle>'

@@ -16,7 +16,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from conftest import netconvert, prior_alone, small_section_scenario
+from conftest import light_road, prior_alone, small_section_scenario
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.road.section import read_section
@@ -46,15 +46,7 @@ def test_a_car_stopping_for_a_yellow_its_leader_passes_brakes_at_its_decel(
     the yellow decided at onset): the follower stands before the line and never brakes
     harder than its decel 4.5 m/s^2 (0.05 tolerance); before, it kept up with the leader
     and braked at about 9 m/s^2 once the leader had crossed. No collision."""
-    nodes = (
-        '<node id="n0" x="0" y="0"/><node id="tl" x="300" y="0" type="traffic_light"/>'
-        '<node id="n2" x="500" y="0"/>'
-    )
-    edges = (
-        '<edge id="A" from="n0" to="tl" numLanes="1" speed="15"/>'
-        '<edge id="B" from="tl" to="n2" numLanes="1" speed="15"/>'
-    )
-    net = netconvert(tmp_path, nodes, edges)
+    net = light_road(tmp_path, 300.0, 200.0, 15.0)
     routes = tmp_path / "r.rou.xml"
     cars = "".join(
         f'    <vehicle id="{v}" depart="0" departSpeed="15" departPos="{pos}">'

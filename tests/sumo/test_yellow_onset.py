@@ -11,7 +11,7 @@ from pathlib import Path
 import libsumo
 import numpy as np
 import pytest
-from conftest import netconvert
+from conftest import light_road
 
 from macromicro_sumo.road.physics import brake_gap
 from macromicro_sumo.sumo.options import SumoOptions
@@ -107,15 +107,7 @@ def test_at_a_real_light_those_that_cannot_brake_pass_the_yellow(tmp_path: Path)
     yellow's first step one whose Euler braking distance at 4.5 m/s^2 exceeds its distance
     less 1 m has none ahead (inf), the others the line; through the yellow the answers
     hold; at the red every car before the line has it."""
-    nodes = (
-        '<node id="n0" x="0" y="0"/>\n<node id="tl" x="200" y="0" type="traffic_light"/>\n'
-        '<node id="n2" x="400" y="0"/>'
-    )
-    edges = (
-        '<edge id="A" from="n0" to="tl" numLanes="1" speed="13.9"/>\n'
-        '<edge id="B" from="tl" to="n2" numLanes="1" speed="13.9"/>'
-    )
-    net = netconvert(tmp_path, nodes, edges)
+    net = light_road(tmp_path, 200.0, 200.0, 13.9)
     cars = "".join(
         f'<vehicle id="c{k:02d}" type="k" depart="{1.5 * k}" departSpeed="13.9">'
         '<route edges="A B"/></vehicle>\n'
