@@ -14,6 +14,7 @@ import pytest
 from conftest import light_road
 from deploy_nets import CAR
 from section_files import section_scenario
+from test_safety import _run_section
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.population import DriveStats
@@ -21,8 +22,6 @@ from macromicro_sumo.deploy.safety import reaction_safe_speed, speed_commands
 from macromicro_sumo.road.physics import brake_gap, safe_speed
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, read_section
 from macromicro_sumo.scenario.load import load_scenario
-from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
-from macromicro_sumo.truth.section import record_run
 
 DT = 0.5
 GREEN_S = 80.0  # the queue's light turns green [s]
@@ -127,20 +126,7 @@ def _queue_starts(tmp_path: Path, reaction_s: float) -> tuple[pd.Series, dict]:
     a_min = sc.bounds.accel_mps2[0]
     drv = SectionSpeedDriver(sc, section, 0, lambda obs: np.full(len(obs), a_min), "sumo")
     light = sc.resolve(sc.network.net_file).parent / "light.add.xml"
-    sim = Simulation(
-        SumoOptions(
-            sc.resolve(sc.network.net_file),
-            (light,),
-            sc.simulation.step_length_s,
-            sc.seed,
-            route_files=tuple(sc.resolve(r) for r in sc.network.route_files),
-            user_demand=True,
-        )
-    )
-    try:
-        df, stats = record_run(sim, sc, drv.section, 0, drv)
-    finally:
-        sim.close()
+    df, stats = _run_section(sc, drv, (light,))
     after = df[df["time_s"] > GREEN_S]
     starts = after[after["speed_mps"] > 0.5].groupby("vehicle_id")["time_s"].min() - GREEN_S
     queued = df[(df["time_s"] == GREEN_S) & (df["speed_mps"] < 0.1)]["vehicle_id"]
