@@ -461,9 +461,9 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
             red = self.stop_lines_m(sim, vids, lanes, at)
             # No red or yellow ahead of anyone (inf): the stops are the lane ends as they are.
             if np.count_nonzero(red < _INF):
-                gaps = [self.vtypes[self.types[v]].stopline_gap_m for v in vids]  # jmStoplineGap
-                stop_m = stop_distance_m(stop_m, red, np.array(gaps))
-                self.red_gap_m = stop_distance_m(_INF, red, np.array(gaps))
+                gaps = np.array([self.vtypes[self.types[v]].stopline_gap_m for v in vids])
+                stop_m = stop_distance_m(stop_m, red, gaps)  # gaps: jmStoplineGap
+                self.red_gap_m = stop_distance_m(_INF, red, gaps)
         leaders = sim.leaders(vids, NO_LEADER_GAP_M)
         return observe_rows(
             self.lane_table,
