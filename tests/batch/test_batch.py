@@ -10,6 +10,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import tomllib
@@ -373,8 +374,19 @@ def test_combined_csv_has_one_row_per_variant_run_source_and_interval(tmp_path):
     assert (out / "logs" / f"{v}.log").is_file()
 
 
-def test_ray_backend_gives_the_same_bytes_as_local(tmp_path):
+@pytest.fixture
+def ray_tmp(monkeypatch):
+    """Ray's session files (sockets, logs) in a folder of the test's own, removed afterwards:
+    by default Ray leaves a session folder in /tmp/ray for every start. Short, under /tmp,
+    because Ray's socket paths must fit the 107-byte limit of a Unix socket."""
     pytest.importorskip("ray")
+    folder = tempfile.mkdtemp(prefix="mmray", dir="/tmp")
+    monkeypatch.setenv("RAY_TMPDIR", folder)
+    yield folder
+    shutil.rmtree(folder, ignore_errors=True)
+
+
+def test_ray_backend_gives_the_same_bytes_as_local(tmp_path, ray_tmp):
     path = write_sweep(tmp_path / "s.toml", "seed = [1, 2]")
     local, ray_out = tmp_path / "local", tmp_path / "ray"
     assert run_batch([path], local, workers=1, progress=False).counts["complete"] == 2
@@ -382,6 +394,7 @@ def test_ray_backend_gives_the_same_bytes_as_local(tmp_path):
     assert res.counts["complete"] == 2
     assert variant_csvs(ray_out) == variant_csvs(local)
     assert (ray_out / "batch_macro.csv").read_bytes() == (local / "batch_macro.csv").read_bytes()
+    assert any(Path(ray_tmp).iterdir())  # Ray's session went to the test's folder, not /tmp/ray
 
 
 def _shipped_csvs(v, inputs: dict, local: Path, tmp_path: Path) -> dict[str, bytes]:
@@ -646,8 +659,7 @@ def test_a_node_without_shared_disk_gets_a_sections_files(tmp_path):
     assert backends._localise(v.scenario, {}, tmp_path) is v.scenario
 
 
-def test_ray_backend_runs_a_section_sweep_with_the_same_bytes(section_batch, tmp_path):
-    pytest.importorskip("ray")
+def test_ray_backend_runs_a_section_sweep_with_the_same_bytes(section_batch, tmp_path, ray_tmp):
     path, local = section_batch
     ray_out = tmp_path / "ray"
     res = run_batch([path], ray_out, workers=2, backend="ray", progress=False)
