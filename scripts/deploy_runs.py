@@ -28,7 +28,7 @@ from pathlib import Path
 import pandas as pd
 import torch
 
-from macromicro_sumo.deploy.compare import compare_folders, detector_scores
+from macromicro_sumo.deploy.compare import HEADLINE_SCORES, compare_folders, detector_scores
 from macromicro_sumo.deploy.floor_choice import resolve_floor
 from macromicro_sumo.deploy.population import population_scenario
 from macromicro_sumo.deploy.run import load_context, run_method, write_method
@@ -39,25 +39,8 @@ from macromicro_sumo.policy.checkpoint import load_policy
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import load_section_truth
 
-SHOWN = (
-    "method",
-    "station_intervals",
-    "share_geh_below_5",
-    "share_speed_within_5pct",
-    "speed_rmse_mps",
-    "speed_bias_mps",
-    "collisions",
-    "teleports",
-    "emergency_brakings",
-)
+SHOWN = ("method", *HEADLINE_SCORES, "collisions", "teleports", "emergency_brakings")
 PER_RUN = ("collisions", "teleports", "emergency_brakings")
-PER_RUN_SCORES = (
-    "station_intervals",
-    "share_geh_below_5",
-    "share_speed_within_5pct",
-    "speed_rmse_mps",
-    "speed_bias_mps",
-)
 
 
 def get_options(args: list[str] | None = None) -> argparse.Namespace:
@@ -156,7 +139,7 @@ def deploy_runs(options: argparse.Namespace) -> pd.DataFrame:
     # Per run, the summary's own scores (station rows only, not the per-lane ones).
     scores = pd.DataFrame(
         [
-            {"method": m, "run": r, **{k: detector_scores(g)[k] for k in PER_RUN_SCORES}}
+            {"method": m, "run": r, **{k: detector_scores(g)[k] for k in HEADLINE_SCORES}}
             for (m, r), g in comparison.groupby(["method", "run"])
         ]
     )

@@ -20,20 +20,18 @@ from pathlib import Path
 
 import pandas as pd
 
-from macromicro_sumo.deploy.compare import comparison_table, detector_scores, read_table
+from macromicro_sumo.deploy.compare import (
+    HEADLINE_SCORES,
+    comparison_table,
+    detector_scores,
+    read_table,
+)
 from macromicro_sumo.deploy.intervals import block_factor, interval_length_s, pool_detectors
 from macromicro_sumo.deploy.stations import station_table
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.scenario.load import load_scenario
 
-SHOWN = (
-    "pair",
-    "station_intervals",
-    "share_geh_below_5",
-    "share_speed_within_5pct",
-    "speed_rmse_mps",
-    "speed_bias_mps",
-)
+SHOWN = ("pair", *HEADLINE_SCORES)
 
 
 def get_options(args: list[str] | None = None) -> argparse.Namespace:

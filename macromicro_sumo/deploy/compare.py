@@ -134,6 +134,16 @@ def relative_error(method: np.ndarray, truth: np.ndarray) -> np.ndarray:
         return np.where(t > 0, (m - t) / t, np.nan)
 
 
+# The scores of ``detector_scores`` that the scripts print, in the order they print them.
+HEADLINE_SCORES = (
+    "station_intervals",
+    "share_geh_below_5",
+    "share_speed_within_5pct",
+    "speed_rmse_mps",
+    "speed_bias_mps",
+)
+
+
 def detector_scores(comparison: pd.DataFrame) -> dict[str, float]:
     """Summary of station-intervals (rows with ``lane == ALL_LANES``) of a comparison.
 
