@@ -292,6 +292,16 @@ class Simulation:
         """SUMO's own choice of the last step's speed where a command overrode it."""
         return np.fromiter(map(_OWN_SPEED, vehicle_ids), float, len(vehicle_ids))
 
+    @staticmethod
+    def blocked_changes(ids: Sequence[str], sides: Sequence[int]) -> tuple[np.ndarray, dict]:
+        """Per (vehicle, side -1 right / 1 left) LC2013 urgently wants to change to for its route,
+        blocked: its own last speed (NaN: none), and {a follower blocking it: its own speed}."""
+        s, c = list(map(libsumo.vehicle.getLaneChangeState, ids, sides)), libsumo.constants
+        hit = [x[0] & c.LCA_BLOCKED and not ~x[0] & (c.LCA_STRATEGIC | c.LCA_URGENT) for x in s]
+        on = [(v, 4 + (d < 0), h) for v, d, h in zip(ids, sides, hit, strict=True)]
+        back = {f: _OWN_SPEED(f) for v, m, h in on if h for f, _ in _NEIGHBORS(v, m)}
+        return np.array([_OWN_SPEED(v) if h else np.nan for v, _, h in on]), back
+
     def left_blockers(self, vehicle_ids: Sequence[str]) -> set[str]:
         """The followers on the lane left of each vehicle that block its lane change."""
         return {f for v in vehicle_ids for f, _ in _NEIGHBORS(v, _LEFT_BLOCKERS)}
