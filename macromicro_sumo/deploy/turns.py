@@ -18,10 +18,12 @@ A vehicle's route is asked of SUMO when it is first seen on a section edge from 
 connection leaves the section (a "junction edge"), and again on each junction edge it
 comes to (a loop's next lap included): a trip's route is the one SUMO found for it, a
 rerouter's new route is SUMO's from the edge the rerouter sits on (it reroutes on entry,
-before the read). Not seen: a route SUMO changes while the vehicle is on the junction edge
-(a rerouting device's periodic reroute), until its next junction edge. One call per vehicle
-and junction edge, not per step (the bench's budget, ``scripts/bench_deploy.py``); a
-section with no junction edge (no connection off it: netgen_corridor, Bremen) asks nothing.
+before the read). A route SUMO changes while the vehicle is on the junction edge or its
+junction's internal lane (a rerouting device's periodic reroute, a TraCI client's
+changeTarget) is read again ``ROUTE_RECHECK_S`` after the last read at the latest. About one
+call per vehicle and ``ROUTE_RECHECK_S``, not per step (the bench's budget,
+``scripts/bench_deploy.py``); a section with no junction edge (no connection off it:
+netgen_corridor, Bremen) asks nothing.
 """
 
 from __future__ import annotations
@@ -41,6 +43,10 @@ from macromicro_sumo.sumo.states import VehicleStates
 # steps of SUMO's own driving before the line (its approach to the link registered).
 HANDOVER_MARGIN_M = 10.0
 NONE = np.zeros(0, dtype=np.int64)  # no vehicle (read only)
+# A vehicle's route is asked again this long after its last read while it stays on its
+# junction edge (and the internal lane after it, part of the edge's arc): a reroute meanwhile
+# is seen within it, about 28 m at 14 m/s, well before the hand-over's reach of a turner.
+ROUTE_RECHECK_S = 2.0
 
 
 def handover_reach_m(
@@ -88,7 +94,10 @@ class Turns:
             self.junction[i] |= i in nxt and to != nxt[i]
         self.any = bool(self.junction.any())  # else no vehicle can turn: nothing to do
         self.lines_m = np.asarray(section.offsets_m + section.lengths_m, dtype=float)
-        self.read: dict[str, tuple[int, float]] = {}  # vehicle -> (edge index, turn limit)
+        # vehicle -> (edge index, turn limit, the call (``calls``) it was read at)
+        self.read: dict[str, tuple[int, float, int]] = {}
+        self.calls = 0  # of ``ahead``: one a step
+        self.recheck = max(1, round(ROUTE_RECHECK_S / dt_s))  # calls
         self._on: np.ndarray | None = None  # per lane code of a ``LaneTable``: on a junction edge
 
     def turn_at(self, edge: int, route: tuple[str, ...]) -> float:
@@ -116,13 +125,16 @@ class Turns:
             self._on[known] = self.junction[edge[known].astype(np.int64)]
         idx = self._on[codes].nonzero()[0]
         old, new = self.read, {}
+        self.calls = now = self.calls + 1
+        due = now - self.recheck
         at = edge[codes[idx]].astype(np.int64).tolist()
         route, turn_at = Simulation.route_ahead, self.turn_at
         for i, e in zip(idx.tolist(), at, strict=True):
             v = vehicle_ids[i]
             got = old.get(v)
-            if got is None or got[0] != e:  # onto this junction edge: ask SUMO
-                got = (e, turn_at(e, route(v)))
+            # Onto this junction edge, or read ROUTE_RECHECK_S ago (a reroute since): ask SUMO.
+            if got is None or got[0] != e or got[2] <= due:
+                got = (e, turn_at(e, route(v)), now)
             new[v] = got
         self.read = new  # the vehicles gone off junction edges dropped
         limit = np.fromiter((new[vehicle_ids[i]][1] for i in idx.tolist()), float, len(idx))

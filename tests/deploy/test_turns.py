@@ -12,13 +12,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import libsumo
 import numpy as np
 import pytest
 from conftest import netconvert, one_phase_program, prior_alone, small_section_scenario
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.observe import LaneTable
-from macromicro_sumo.deploy.turns import Turns, turn_limits
+from macromicro_sumo.deploy.turns import ROUTE_RECHECK_S, Turns, turn_limits
 from macromicro_sumo.road.physics import NEXT_LIMIT_COLUMN
 from macromicro_sumo.road.section import read_section
 from macromicro_sumo.sumo.inputs import read_net
@@ -136,6 +137,33 @@ def test_a_car_a_rerouter_sends_off_the_section_turns(tmp_path: Path) -> None:
         codes = lanes.codes(["A_0"] * len(thru))
         idx, limit, _ = turns.ahead(thru, lanes, codes, np.full(len(thru), 50.0))
         assert idx.tolist() == list(range(len(thru))) and (limit == _via_speed(net)).all()
+    finally:
+        sim.close()
+
+
+def test_a_route_changed_on_the_junction_edge_is_read_again(tmp_path: Path) -> None:
+    """A through car whose route SUMO changes while it drives on A (a TraCI changeTarget, as
+    a rerouting device's periodic reroute would) is taken as going on until ``ahead`` asks
+    again, ``ROUTE_RECHECK_S`` after its read, and as a turner from then on (before the fix
+    it stayed a through car to the end of A)."""
+    _, net, _, opts = _turn_net(tmp_path)
+    section = read_section(net, ["A", "B"], False)
+    turns = Turns(section, net, 0.5)
+    assert turns.recheck == round(ROUTE_RECHECK_S / 0.5) > 1
+    sim = Simulation(opts)
+    try:
+        on = _on_a(sim, 2)
+        thru = next(v for v in on if v.startswith("thru"))
+        lanes = LaneTable(section)
+        codes = lanes.codes(["A_0"])
+        first = turns.ahead([thru], lanes, codes, np.full(1, 50.0))
+        assert first[0].size == 0  # read: through
+        libsumo.vehicle.changeTarget(thru, "R")
+        assert sim.route_ahead(thru) == ("A", "R")
+        seen = [turns.ahead([thru], lanes, codes, np.full(1, 50.0))[0].size for _ in range(8)]
+        k = turns.recheck - 1  # calls before the read is due again
+        assert seen[:k] == [0] * k and seen[k:] == [1] * (8 - k), seen
+        assert turns.read[thru][1] == _via_speed(net)
     finally:
         sim.close()
 
