@@ -1,0 +1,140 @@
+"""``deploy.turn_gap``: a commanded turner that must change lanes before its junction slows
+for a gap on its turn lane, and the commanded follower there opens one, as SUMO's lane
+changer (LC2013) asks of its own drivers (``deploy.turn_gap.turn_gap_caps``), on a real
+network through libsumo.
+
+A (400 m, two lanes, 15 m/s) -> a light j -> B (through, from lane 1 only) or R (the turn,
+from lane 0 only). R's link is red for the first 70 s: a flow of turners on lane 0 queues
+back from the line. At 40 s turner "t" enters on lane 1 beside that flow and must reach
+lane 0 before the line.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import sumolib
+from conftest import netconvert, prior_alone, small_section_scenario
+
+from macromicro_sumo.deploy.drivers import SectionSpeedDriver
+from macromicro_sumo.deploy.turn_gap import TURN_GAP_TOLERANCE_MPS, change_sides, gap_caps
+from macromicro_sumo.road.section import read_section
+from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
+from macromicro_sumo.truth.section import record_run
+
+
+def _gap_net(folder: Path, gap: str) -> tuple:
+    nodes = (
+        '<node id="n0" x="0" y="0"/><node id="j" x="400" y="0" type="traffic_light"/>'
+        '<node id="n2" x="600" y="0"/><node id="s0" x="400" y="-200"/>'
+    )
+    edges = (
+        '<edge id="A" from="n0" to="j" numLanes="2" speed="15"/>'
+        '<edge id="B" from="j" to="n2" numLanes="1" speed="15"/>'
+        '<edge id="R" from="j" to="s0" numLanes="1" speed="15"/>'
+    )
+    cons = (
+        '<connection from="A" to="R" fromLane="0" toLane="0"/>'
+        '<connection from="A" to="B" fromLane="1" toLane="0"/>'
+    )
+    net = netconvert(folder, nodes, edges, cons)
+    a = sumolib.net.readNet(str(net)).getEdge("A")
+    link = {c.getTo().getID(): c.getTLLinkIndex() for cs in a.getOutgoing().values() for c in cs}
+
+    def state(r: str) -> str:
+        s = ["G", "G"]
+        s[link["R"]] = r
+        return "".join(s)
+
+    prog = folder / "p.add.xml"
+    prog.write_text(
+        '<additional>\n    <tlLogic id="j" type="static" programID="q" offset="0">\n'
+        f'        <phase duration="70" state="{state("r")}"/>\n'
+        f'        <phase duration="1000" state="{state("G")}"/>\n    </tlLogic>\n</additional>\n'
+    )
+    routes = folder / "r.rou.xml"
+    routes.write_text(
+        '<routes>\n    <vType id="car" length="5" minGap="2.5"/>\n'
+        '    <route id="off" edges="A R"/>\n'
+        '    <flow id="q" type="car" route="off" begin="0" end="60" period="2" departLane="0" '
+        'departSpeed="max"/>\n'
+        '    <vehicle id="t" type="car" route="off" depart="40" departLane="1" '
+        'departSpeed="max"/>\n</routes>\n'
+    )
+    sc = small_section_scenario(
+        folder, net, routes, ["A"], instrumented={"ids": ["probe"]},
+        simulation={"warmup_s": 0.0, "duration_s": 100.0, "n_runs": 2},
+        detectors={"interval_s": 50.0}, deploy={"turn_gap": gap}, additional=(prog,),
+    )  # fmt: skip
+    opts = SumoOptions(net, (prog,), 0.5, 5, route_files=(routes,), user_demand=True)
+    return sc, net, opts
+
+
+def _turner(tmp_path: Path, gap: str | None, cross_krauss: dict) -> tuple:
+    """Turner t's rows (lane, arc, speed) of one run: commanded by the prior with
+    ``deploy.turn_gap = gap``, or SUMO's own drivers alone (None); the run's stats."""
+    sc, net, opts = _gap_net(tmp_path, gap or "off")
+    section = read_section(net, ["A"], False)
+    act = prior_alone(cross_krauss)
+    drv = None if gap is None else SectionSpeedDriver(sc, section, 0, act, "sumo")
+    sim = Simulation(opts)
+    try:
+        df, stats = record_run(sim, sc, section, 0, drv)
+    finally:
+        sim.close()
+    return df[df["vehicle_id"] == "t"], stats, drv
+
+
+@pytest.mark.parametrize("gap", ["off", "sumo"])
+def test_a_commanded_turner_reaches_its_turn_lane_with_turn_gap(
+    tmp_path: Path, cross_krauss: dict, gap: str
+) -> None:
+    """SUMO's own t changes to lane 0 and joins the queue's end (about 242 m). Commanded,
+    without the setting, it drives on beside the queue at 15 m/s, its follower on lane 0
+    never letting it in, and stands at the line on lane 1 to the end of the run; with
+    ``turn_gap = "sumo"`` it reaches lane 0 before the queue and stands at its end as SUMO's
+    own does. 0 collisions, 0 teleports, no emergency braking."""
+    t, stats, drv = _turner(tmp_path, gap, cross_krauss)
+    assert stats["collisions"] == 0 and stats["teleports"] == 0, stats
+    assert drv.stats.emergency_brakings == 0
+    end = t.iloc[-1]
+    stood = t[(t["speed_mps"] < 0.5)]
+    if gap == "off":
+        assert end["lane_index"] == 1 and end["arc_m"] > 385.0
+        assert (stood["lane_index"] == 1).all() and len(stood) > 40
+    else:
+        assert end["lane_index"] == 0
+        changed = t[t["lane_index"] == 0]["arc_m"].min()
+        assert changed < 240.0
+        assert (stood["lane_index"] == 0).all() and stood["arc_m"].max() < 250.0
+
+
+def test_sumo_s_own_turner_joins_the_queue_s_end(tmp_path: Path, cross_krauss: dict) -> None:
+    """The reference: SUMO's own drivers, no command, t changes to lane 0 before 150 m and
+    stands at the queue's end, 240-245 m, where the commanded one with the setting stands."""
+    t, stats, _ = _turner(tmp_path, None, cross_krauss)
+    assert stats["collisions"] == 0
+    assert t[t["lane_index"] == 0]["arc_m"].min() < 150.0
+    stood = t[t["speed_mps"] < 0.5]
+    assert (stood["lane_index"] == 0).all() and stood["arc_m"].between(238.0, 246.0).all()
+
+
+def test_gap_caps_take_sumo_s_speed_only_where_it_asked_for_less() -> None:
+    """Own speeds within the tolerance (dawdling) or NaN (not asked) cap nothing; one asked
+    for less is capped to it, but not below one step's braking at the vType's decel."""
+    tol = TURN_GAP_TOLERANCE_MPS
+    own = np.array([np.nan, 10.0 - tol / 2, 8.5, 0.0])
+    speed = np.full(4, 10.0)
+    got = gap_caps(own, speed, np.full(4, 4.5), 0.5)
+    assert np.isinf(got[:2]).all() and got[2] == 8.5 and got[3] == 10.0 - 4.5 * 0.5
+
+
+def test_change_sides_skip_one_lane_edges_and_internal_lanes(tmp_path: Path) -> None:
+    """A's lane 0 asks to the left only, lane 1 to the right only; a lane off the section
+    and a junction's internal lane ask nothing (a one-lane road asks SUMO nothing)."""
+    _, net, _ = _gap_net(tmp_path, "off")
+    section = read_section(net, ["A"], False)
+    at, sides = change_sides(section, ["A_0", "A_1", "R_0", ":j_0_0"])
+    assert at == [0, 1] and sides == [1, -1]
