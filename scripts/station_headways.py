@@ -34,6 +34,13 @@ brake before the line at its decel (SUMO's Euler brakeGap at most its distance l
 whether it crossed the line before the red; the onsets in [``--from``, ``--to``). Prints per
 file the onsets, the vehicles that could brake and those of them that crossed on the
 yellow, and the same of those that could not.
+
+``--greens SIGNALS`` (the same arguments) measures the discharge of each green at the lines
+(issue 17, drawn arterials, stop 45): per green (its onset to the red after its yellow) and
+lane, the vehicles crossing the line, when the 1st, 4th and 12th crossed after the onset,
+and the saturation headway (t_12 - t_4) / 8 where at least 12 crossed; greens whose onset
+is in [``--from``, ``--to``). Prints per file the crossings per green and lane (lanes that
+carried any), t_1 / t_4 / t_12 and the saturation headway (the greens with 12).
 """
 
 from __future__ import annotations
@@ -215,6 +222,71 @@ def lag_summary(lags: pd.DataFrame) -> dict[str, float]:
     return out
 
 
+# --greens: the crossing after the onset whose time starts and ends the saturation headway
+# (1-based; hA43's tools/greens.py: the 4th to the 12th, past the start-up loss).
+SAT_FIRST, SAT_LAST = 4, 12
+
+
+def green_windows(signals: pd.DataFrame, arc_m: float) -> pd.DataFrame:
+    """run, time_s of each green onset (``green_onsets``) of the line at ``arc_m`` and the
+    time of the first step after it neither green nor yellow (red_s; inf: the file ends)."""
+    at = signals[(signals["arc_m"] - arc_m).abs() <= 0.5].sort_values(["run", "time_s"])
+    at = at.drop_duplicates(["run", "time_s"])
+    rows = []
+    for run, g in at.groupby("run"):
+        st, t = g["state"].to_numpy(), g["time_s"].to_numpy()
+        green, open_ = np.isin(st, ["G", "g"]), np.isin(st, ["G", "g", "y", "Y"])
+        for i in np.flatnonzero(green[1:] & ~green[:-1]) + 1:
+            after = np.flatnonzero(~open_[i:])
+            rows.append((run, t[i], t[i + after[0]] if after.size else np.inf))
+    return pd.DataFrame(rows, columns=["run", "time_s", "red_s"])
+
+
+def green_discharge(traj: pd.DataFrame, arc_m: float, windows: pd.DataFrame) -> pd.DataFrame:
+    """One row per green (``green_windows``) the trajectories cover and lane that a vehicle
+    crossed the line at ``arc_m`` on during it (its lane the sample before): run, green,
+    lane, crossings, t_1, t_4, t_12 [s after the onset] (nan: fewer crossed) and the
+    saturation headway (t_12 - t_4) / 8 [s]. A lane nothing crossed on has no row."""
+    traj = traj.sort_values(["run", "vehicle_id", "time_s"])
+    a = traj["arc_m"].to_numpy()
+    same = (traj["run"].to_numpy()[1:] == traj["run"].to_numpy()[:-1]) & (
+        traj["vehicle_id"].to_numpy()[1:] == traj["vehicle_id"].to_numpy()[:-1]
+    )
+    i = np.flatnonzero(same & (a[:-1] < arc_m) & (a[1:] >= arc_m))
+    t = traj["time_s"].to_numpy()
+    cross = pd.DataFrame(
+        {
+            "run": traj["run"].to_numpy()[i],
+            "lane": traj["lane_index"].to_numpy()[i],
+            "time_s": t[i] + (arc_m - a[i]) / (a[i + 1] - a[i]) * (t[i + 1] - t[i]),
+        }
+    )
+    rows = []
+    for run, cr in cross.groupby("run"):
+        times = traj.loc[traj["run"] == run, "time_s"]
+        t_lo, t_hi = times.min(), times.max()
+        for g, red in windows.loc[windows["run"] == run, ["time_s", "red_s"]].itertuples(False):
+            if g < t_lo or red > t_hi:
+                continue  # the trajectories do not cover this green
+            inside = cr[(cr["time_s"] >= g) & (cr["time_s"] < red)]
+            for lane, c in inside.groupby("lane"):
+                c = np.sort(c["time_s"].to_numpy()) - g
+                at = [c[k - 1] if len(c) >= k else np.nan for k in (1, SAT_FIRST, SAT_LAST)]
+                sat = (at[2] - at[1]) / (SAT_LAST - SAT_FIRST)
+                rows.append((run, g, int(lane), len(c), *at, sat))
+    cols = ["run", "green_s", "lane", "crossings", "t_1_s", "t_4_s", "t_12_s", "sat_headway_s"]
+    return pd.DataFrame(rows, columns=cols)
+
+
+def green_summary(d: pd.DataFrame) -> dict[str, float]:
+    """Green-lanes, crossings per green and lane, mean t_1 / t_4 / t_12 and saturation
+    headway (the green-lanes with ``SAT_LAST`` crossings), and how many had them."""
+    out = {"green_lanes": float(len(d)), "crossings": d["crossings"].mean()}
+    full = d[d["crossings"] >= SAT_LAST]
+    out |= {k: full[k].mean() for k in ("t_1_s", "t_4_s", "t_12_s", "sat_headway_s")}
+    return out | {"with_12": float(len(full))}
+
+
 def summary(h: pd.DataFrame, runs: int) -> dict[str, float]:
     """Passages a run, mean headway [s] overall and by vType, mean passing speed [m/s]."""
     out = {"passages_per_run": len(h) / max(runs, 1), "headway_s": h["headway_s"].mean()}
@@ -244,6 +316,11 @@ def main(argv: list[str] | None = None) -> int:
         help="the truth's signals.csv: who could brake and who crossed at each yellow of --arc",
     )
     ap.add_argument(
+        "--greens",
+        metavar="SIGNALS_CSV",
+        help="the truth's signals.csv: crossings per green and saturation headway at --arc",
+    )
+    ap.add_argument(
         "--decel",
         action="append",
         default=[],
@@ -252,7 +329,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("files", nargs="+", metavar="LABEL=trajectories.csv")
     o = ap.parse_args(argv)
-    onsets = yellows = None
+    onsets = yellows = greens = None
     decel: dict[str, float] = {}
     for item in o.decel:
         name, sep, value = item.partition("=")
@@ -263,10 +340,11 @@ def main(argv: list[str] | None = None) -> int:
         if not sep or not decel.get(name, 0.0) > 0.0:
             print(f"station_headways: --decel {item}: give VTYPE=B, B > 0", file=sys.stderr)
             return 2
-    signals_file = o.start_lags or o.yellow_onsets
-    if o.start_lags is not None and o.yellow_onsets is not None:
-        print("station_headways: --start-lags or --yellow-onsets, not both", file=sys.stderr)
+    modes = [m for m in (o.start_lags, o.yellow_onsets, o.greens) if m is not None]
+    if len(modes) > 1:
+        print("station_headways: one of --start-lags, --yellow-onsets, --greens", file=sys.stderr)
         return 2
+    signals_file = modes[0] if modes else None
     if signals_file is not None:
         if not Path(signals_file).is_file():
             print(f"station_headways: {signals_file}: no such signals file", file=sys.stderr)
@@ -274,6 +352,9 @@ def main(argv: list[str] | None = None) -> int:
         signals = pd.read_csv(signals_file)
         if o.start_lags is not None:
             onsets = {arc: green_onsets(signals, arc) for arc in o.arc}
+        elif o.greens is not None:
+            got = {arc: green_windows(signals, arc) for arc in o.arc}
+            greens = {a: w[w["time_s"].between(o.t0, o.t1, "left")] for a, w in got.items()}
         else:
             got = {arc: yellow_onsets(signals, arc) for arc in o.arc}  # within --from, --to
             yellows = {a: y[y["time_s"].between(o.t0, o.t1, "left")] for a, y in got.items()}
@@ -289,7 +370,11 @@ def main(argv: list[str] | None = None) -> int:
                 file=sys.stderr,
             )
             return 2
-        traj = pd.read_csv(path, usecols=COLUMNS)
+        traj = pd.read_csv(path, usecols=COLUMNS + (["lane_index"] if greens is not None else []))
+        if greens is not None:
+            d = [green_discharge(traj, arc, w).assign(arc_m=arc) for arc, w in greens.items()]
+            rows[label] = green_summary(pd.concat(d, ignore_index=True))
+            continue
         if yellows is not None:
             cars = [at_yellow(traj, arc, y, decel).assign(arc_m=arc) for arc, y in yellows.items()]
             rows[label] = yellow_summary(pd.concat(cars, ignore_index=True))

@@ -7,6 +7,7 @@ from __future__ import annotations
 import importlib.util
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 from conftest import ROOT
@@ -143,3 +144,41 @@ def test_who_could_brake_and_who_crossed_at_the_yellow(tmp_path: Path, capsys) -
     assert sh.main(["--arc", "100", "--decel", "truck", "--yellow-onsets", str(s), f"x={p}"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--decel truck" in err[0]
+
+
+def green_files(tmp: Path) -> tuple[Path, Path]:
+    """A stop line at 100 m: red until 10.0 s, green until 40.0, yellow until 43.0, red
+    after. On lane 0, 13 cars cross at 11, 13, ..., 35 s (one every 2 s) and one more at
+    44 s (after the red: not counted); on lane 1 one car crosses at 12 s; one car crosses
+    lane 0 at 5 s (before the onset: not counted)."""
+    sig, traj = [], []
+    crossings = [(f"c{k}", 0, 11.0 + 2.0 * k) for k in range(13)]
+    crossings += [("late", 0, 44.0), ("l1", 1, 12.0), ("early", 0, 5.0)]
+    for k in range(0, 101):
+        t = k * 0.5
+        state = "r" if t < 10 else "G" if t < 40 else "y" if t < 43 else "r"
+        sig.append((0, t, "j1", 0, 0, 1.0, 0, 100.0, state))
+        for vid, lane, t_cross in crossings:
+            traj.append((0, t, vid, "car", 100.0 + 10.0 * (t - t_cross), 10.0, lane))
+    s, p = tmp / "signals.csv", tmp / "traj.csv"
+    pd.DataFrame(sig, columns=["run", "time_s", "signal_id", "program", "phase", "left_s",
+                               "lane_index", "arc_m", "state"]).to_csv(s, index=False)  # fmt: skip
+    pd.DataFrame(traj, columns=[*sh.COLUMNS, "lane_index"]).to_csv(p, index=False)
+    return s, p
+
+
+def test_crossings_per_green_and_the_saturation_headway(tmp_path: Path, capsys) -> None:
+    s, p = green_files(tmp_path)
+    windows = sh.green_windows(pd.read_csv(s), 100.0)
+    assert windows[["time_s", "red_s"]].values.tolist() == [[10.0, 43.0]]  # green + yellow
+    d = sh.green_discharge(pd.read_csv(p), 100.0, windows).set_index("lane")
+    assert d["crossings"].to_dict() == {0: 13, 1: 1}  # "late" and "early" left out
+    assert d.loc[0, ["t_1_s", "t_4_s", "t_12_s"]].tolist() == pytest.approx([1.0, 7.0, 23.0])
+    assert d.loc[0, "sat_headway_s"] == pytest.approx(2.0) and np.isnan(d.loc[1, "t_4_s"])
+    got = sh.green_summary(d.reset_index())
+    assert got["crossings"] == pytest.approx(7.0) and got["with_12"] == 1.0
+    assert got["sat_headway_s"] == pytest.approx(2.0)
+    assert sh.main(["--arc", "100", "--greens", str(s), f"x={p}"]) == 0
+    assert "sat_headway_s" in capsys.readouterr().out
+    assert sh.main(["--arc", "100", "--greens", str(s), "--start-lags", str(s), f"x={p}"]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
