@@ -11,6 +11,11 @@ true count less that difference; ``spread`` is the mean absolute error that is l
 bound's constant less the true one (``density_constant``, ``queue_constant``, the median of
 the free-travel count, count >= 0 at the first bound: exact from an empty road).
 
+``--junction-counts`` adds the junction stretches counted from their stop bars' counts
+timed by the programs (``truth.junction_counts``; opt-in) as the part ``junctions``, taken
+out of the rest. A ground truth is ``simulate``'s folder (its scenario beside it) or a
+run's ``ground_truth`` (its scenario named by the run's manifest).
+
     .venv/bin/python scripts/bench_signal_approaches.py --start-s 240 \\
         --out /tmp/approaches GT_DIR ...       # a ground truth (``simulate``) per argument
 """
@@ -36,17 +41,30 @@ from macromicro_sumo.sumo.inputs import read_net, scenario_inputs  # noqa: E402
 from macromicro_sumo.truth import signal_counts as sc  # noqa: E402
 from macromicro_sumo.truth.hidden_count import window_mean  # noqa: E402
 from macromicro_sumo.truth.interval_counts import effective_densities  # noqa: E402
+from macromicro_sumo.truth.junction_counts import junction_pieces  # noqa: E402
 from macromicro_sumo.truth.stations import side_junction_arcs  # noqa: E402
 
 
-def approach_rows(gt: Path, start_s: float = 0.0) -> tuple[pd.DataFrame, pd.DataFrame]:
+def scenario_file(gt: Path) -> Path:
+    """The scenario of the ground truth ``gt``: ``simulate``'s beside it, else the one the
+    manifest of the run holding it names (``macromicro run``'s ``ground_truth``)."""
+    toml = gt.parent / "scenario.toml"
+    if toml.is_file():
+        return toml
+    return Path(json.loads((gt.parent / "manifest.json").read_text())["scenario_file"])
+
+
+def approach_rows(
+    gt: Path, start_s: float = 0.0, junctions: bool = False
+) -> tuple[pd.DataFrame, pd.DataFrame]:
     """(one row per run and approach: the constants' errors, vehicles; one row per snapshot:
-    each part's error, vehicles) of the ground truth ``gt`` scored from ``start_s`` on."""
+    each part's error, vehicles) of the ground truth ``gt`` scored from ``start_s`` on;
+    ``junctions``: the junction stretches counted too (``junction_counts``)."""
     man = json.loads((gt / "manifest.json").read_text())["scenario"]
     section = Section.read(gt / "section.json")
     traj, det, _ = read_truth(gt, start_s)
     det = det.assign(k_point_vpkm=effective_densities(det))
-    net_file = scenario_inputs(load_scenario(gt.parent / "scenario.toml")).net_file
+    net_file = scenario_inputs(load_scenario(scenario_file(gt))).net_file
     side = side_junction_arcs(read_net(net_file), section)
     lines = sc.stop_lines(net_file, section)
     snaps = at_snapshot_times(traj, man["generator"]["snapshot_every_s"])
@@ -98,6 +116,9 @@ def approach_rows(gt: Path, start_s: float = 0.0) -> tuple[pd.DataFrame, pd.Data
                 }
             )
         pieces, rest = sc.approach_pieces(d, section, lines, side, run, times)
+        if junctions:
+            more, rest = junction_pieces(d, section, lines, run, times, rest)
+            pieces |= more
         for k, t in enumerate(times):
             arcs = arcs_at[t]
             slow = (g.loc[g["time_s"] == t, "speed_mps"] <= SLOW_MPS).mean() >= SLOW_SHARE
@@ -120,7 +141,7 @@ def part_summary(parts: pd.DataFrame) -> pd.DataFrame:
     snapshots the estimate covers (the rest's interval density exists: ``k_estimates``
     skips the others)."""
     parts = parts[np.isfinite(parts["rest"])]
-    cols = [c for c in ("approaches", "exit", "rest") if c in parts]
+    cols = [c for c in ("approaches", "exit", "junctions", "rest") if c in parts]
     out = {}
     for c in cols:
         per_lane = parts[c] / parts["lanes"]
@@ -136,8 +157,13 @@ def main(args: list[str] | None = None) -> int:
     p.add_argument("truths", type=Path, nargs="+", help="ground-truth folders (simulate --out)")
     p.add_argument("--start-s", type=float, default=0.0, help="score from this time on (s)")
     p.add_argument("--out", type=Path, default=None, help="write approaches.csv, parts.csv")
+    p.add_argument(
+        "--junction-counts",
+        action="store_true",
+        help="the junction stretches from their stop bars' counts timed by the programs",
+    )
     o = p.parse_args(args)
-    both = [approach_rows(gt, o.start_s) for gt in o.truths]
+    both = [approach_rows(gt, o.start_s, o.junction_counts) for gt in o.truths]
     rows = pd.concat([r for r, _ in both], ignore_index=True)
     parts = pd.concat([x for _, x in both], ignore_index=True)
     with pd.option_context("display.width", 250, "display.max_rows", 1000):

@@ -52,3 +52,25 @@ def test_the_approaches_and_parts_of_a_signalised_record(tmp_path: Path) -> None
     cong = cong[cong["congested"]]
     k_per_lane = float((cong["intervals"].abs() / cong["lanes"]).mean())
     assert abs(float(table.loc[True, "all abs"]) - k_per_lane) <= 0.5 / cong["lanes"].iloc[0]
+    # The junction stretches counted (--junction-counts): a part of their own, taken out of
+    # the rest; the parts still add up to the bench's intervals error with them counted.
+    _, parts_j = script.approach_rows(gt, junctions=True)
+    k_j = bench.errors(gt, junctions=True).set_index(["run", "time_s"])["intervals"]
+    total_j = parts_j.set_index(["run", "time_s"])[["approaches", "exit", "junctions", "rest"]]
+    both_j = total_j.fillna(0.0).sum(axis=1).to_frame("parts").join(k_j, how="inner").dropna()
+    assert len(both_j) == len(both)
+    assert np.abs(both_j["parts"] - both_j["intervals"]).max() <= 0.5 + 1e-9
+    assert "junctions abs" in script.part_summary(parts_j).columns
+    assert not np.allclose(parts_j["rest"], parts["rest"])
+
+
+def test_a_runs_ground_truth_names_its_scenario(tmp_path: Path) -> None:
+    """A run's ``ground_truth`` has no scenario beside it: the run's manifest names it."""
+    script = _load("bench_signal_approaches")
+    (tmp_path / "gt").mkdir()
+    (tmp_path / "gt" / "scenario.toml").write_text("")
+    assert script.scenario_file(tmp_path / "gt" / "x") == tmp_path / "gt" / "scenario.toml"
+    run = tmp_path / "run"
+    (run / "ground_truth").mkdir(parents=True)
+    (run / "manifest.json").write_text('{"scenario_file": "/elsewhere/k528.toml"}')
+    assert script.scenario_file(run / "ground_truth") == Path("/elsewhere/k528.toml")
