@@ -338,9 +338,7 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
                 factor[new] = got = self.driver_speeds(fresh, seen)
                 self.slots.factor[slots[new]] = got
         if self.merge != "none":
-            reach = self.handover_m(vids, slots, speed)
-            usable = self.usable_m(ahead, rows, lanes, slots, st)
-            keep = self.merges(sim, vids, usable, reach)
+            keep = self.handed_over(sim, vids, ahead, rows, lanes, slots, speed, st)
             if keep is not None:
                 # Indices, not the mask: a take by index costs a fraction of a masked one.
                 idx = keep.nonzero()[0]

@@ -6,7 +6,7 @@ blocks it (the yield). A mixin: the driver holds the state (``slots``, ``merging
 from __future__ import annotations
 
 from itertools import compress
-from operator import and_, not_
+from operator import gt
 from typing import Protocol
 
 import numpy as np
@@ -196,16 +196,41 @@ class MergeYield:
             return ahead_m
         return usable_distance_m(ahead_m, self.occupations_m(rows, lanes, slots, st))
 
-    def handover_m(self, vids: list[str], slots: np.ndarray, speed: np.ndarray) -> np.ndarray:
+    def handover_m(
+        self, vids: list[str], slots: np.ndarray, speed: np.ndarray
+    ) -> np.ndarray | None:
         """Per driven vehicle ``strategic_reach_m`` (0: no change needed), after updating
-        each one's look-ahead speed."""
+        each one's look-ahead speed; None where none needs a change (0 for all)."""
         la = self.slots.lookahead_mps[slots]
         la = lookahead_speeds(la, speed, self.sc.simulation.step_length_s)
         self.slots.lookahead_mps[slots] = la
         offset = self.slots.lane_end.offset[slots]
-        if not np.count_nonzero(offset):  # nobody must change lane: 0 for all, as below
-            return np.zeros(len(vids))
+        if not np.count_nonzero(offset):  # nobody must change lane: 0 for all
+            return None
         return strategic_reach_m(offset, la, self.slots.with_gap[slots])
+
+    def handed_over(
+        self,
+        sim: Simulation,
+        vids: list[str],
+        ahead_m: np.ndarray,
+        rows: np.ndarray,
+        lanes: list[str],
+        slots: np.ndarray,
+        speed: np.ndarray,
+        st: VehicleStates,
+    ) -> np.ndarray | None:
+        """``merges`` from ``handover_m``'s reach and ``usable_m``'s distance left (``ahead_m``:
+        to each one's lane end) of the driven ``vids`` (rows ``rows`` of ``st``, speeds
+        ``speed``): which are commanded this step (None: all). Where nobody must change lane
+        (a finite lane end comes with its offset: every end inf, none within a reach of 0)
+        and nobody is merging, all, without the occupations' and the reach's array calls
+        (the same answer: ``merges`` keeps all then)."""
+        reach = self.handover_m(vids, slots, speed)
+        if reach is None and not self.merging:
+            return None
+        usable = self.usable_m(ahead_m, rows, lanes, slots, st)
+        return self.merges(sim, vids, usable, np.zeros(len(vids)) if reach is None else reach)
 
     def merges(self, sim: Simulation, vids: list[str], ahead_m: np.ndarray,
                reach_m: np.ndarray) -> np.ndarray | None:  # fmt: skip
@@ -271,7 +296,7 @@ class MergeYield:
         if held is not st:
             on = list(map(self.section.lanes.__contains__, st.lanes))
             ours = list(map(self.driven.__contains__, st.ids))
-        keep = list(map(and_, on, map(not_, ours)))
+        keep = list(map(gt, on, ours))  # on and not ours (bools: True > False alone)
         ids, lanes = list(compress(st.ids, keep)), list(compress(st.lanes, keep))
         gone = self.others.difference(ids)
         if gone:
