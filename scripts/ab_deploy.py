@@ -41,7 +41,15 @@ from macromicro_sumo.truth.section import load_section, record_run
 from macromicro_sumo.truth.section_detectors import detectors_xml, place_detectors
 
 HERE = Path(__file__).resolve().parent
-MODULES = ("deploy.slots", "deploy.observe", "deploy.policy_batch", "deploy.drivers")
+# The driver and what its hot path is made of, each before the modules importing it (the
+# merge mixin too: without it an A/B of deploy/merge_yield.py ran the base's in both arms).
+MODULES = (
+    "deploy.slots",
+    "deploy.observe",
+    "deploy.merge_yield",
+    "deploy.policy_batch",
+    "deploy.drivers",
+)
 PARTS = ("total", "SUMO step", "driver", "act")
 
 

@@ -47,3 +47,11 @@ def test_a_module_missing_from_the_new_checkout_is_one_line(tmp_path: Path) -> N
         script.variant(tmp_path, ["deploy.slots"])
     assert "macromicro_sumo.deploy.slots" in sys.modules
     assert sys.modules["macromicro_sumo.deploy.slots"] is base_slots
+
+
+def test_the_default_modules_hold_the_drivers_mixin_before_the_driver() -> None:
+    """The default variant is the driver with its slots, observation and merge mixin, each
+    loaded before ``deploy.drivers`` imports it (else the base's would run in both arms)."""
+    order = list(script.MODULES)
+    for m in ("deploy.slots", "deploy.observe", "deploy.merge_yield", "deploy.policy_batch"):
+        assert m in order and order.index(m) < order.index("deploy.drivers"), order
