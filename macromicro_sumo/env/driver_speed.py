@@ -25,13 +25,18 @@ The ratios' distribution under censoring (lower bounds): ``env.driver_speed_rati
 from __future__ import annotations
 
 import dataclasses
+import weakref
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
 from macromicro_sumo.data.section import split_runs, vehicle_level
-from macromicro_sumo.env.driver_speed_ratios import QUANTILE_LEVELS, ObservedDrivers
+from macromicro_sumo.env.driver_speed_ratios import (
+    QUANTILE_LEVELS,
+    ObservedDrivers,
+    ratio_estimate,
+)
 from macromicro_sumo.env.observed_drivers import (
     CAR_LENGTH_M,
     FREE_BUMPER_GAP_M,
@@ -39,6 +44,7 @@ from macromicro_sumo.env.observed_drivers import (
     REACHED_SHARE,
     UNHELD_HEADWAY_S,
     observed_drivers,
+    ratio_censoring,
 )
 from macromicro_sumo.env.section_bank import SectionBank
 from macromicro_sumo.env.section_observations import initial_observations
@@ -60,11 +66,15 @@ QUEUED_ENTRY_SHARE = 0.65
 # ``policy.driver_entry = "auto"`` (``entry_choice``): "held" where the observed drivers' own
 # held first sights are below their own speed, "queued" where they are at it. At it: the
 # first sight's v / limit within ``REACHED_SHARE`` of the driver's top v / limit over its
-# record (the tolerance a top is "reached" with), at the median of the held first sights.
-# Train + val runs' observed drivers (stop 44), median first sight / top of the held ones:
-# netgen_corridor 1.00 (7 held; departSpeed "desired": SUMO inserts at the own speed),
-# drawn 522 0.36 (102; departSpeed "max": inserted at the safe speed behind the queue),
-# 549 0.93 (138), 501 0.74 (21), 563 0.91 (11).
+# record (the tolerance a top is "reached" with), at the median of the held first sights
+# that "queued" keeps (at least ``QUEUED_ENTRY_SHARE`` of the observed median: the two rules
+# differ on those alone; a sight standing or crawling in a queue is drawn by both).
+# Train + val runs' observed drivers (stop 45), those held sights and their median first
+# sight / top: netgen_corridor 7, 1.00 (departSpeed "desired": inserted at the own speed),
+# drawn 522 33, 0.88 (departSpeed "max": at the safe speed behind the queue), 549 133,
+# 0.93, 501 17, 0.75, 563 11, 0.91; the signalised arterials' held sights stand in a
+# red's queue: 528 0 of 62, 521 2 of 61, 837 3 of 140 ("queued"; with every held sight,
+# stop 44: "held" at 0.13, 0.22, 0.27); 565's 25 of 62 move at 0.79 of their tops ("held").
 ENTRY_AT_OWN_SHARE = 1.0 - REACHED_SHARE
 # Fewer observed held first sights than this tell nothing: "queued" (the default's rule).
 MIN_HELD_SIGHTS = 5
@@ -169,8 +179,8 @@ def sight_factors(
 @dataclasses.dataclass(frozen=True)
 class EntryChoice:
     """``entry_choice``'s answer: the rule (``entry``), the observed held first sights it
-    read (``held_sights``) and their median first-sight v / limit over their top
-    (``at_own``; NaN where none)."""
+    read (``held_sights``: those "queued" keeps) and their median first-sight v / limit over
+    their top (``at_own``; NaN where none)."""
 
     entry: str
     held_sights: int
@@ -184,18 +194,26 @@ def first_sights(observed: ObservedDrivers) -> np.ndarray:
     return np.sort(first)
 
 
-def entry_choice(observed: ObservedDrivers, gap_layout: bool) -> EntryChoice:
+def entry_choice(
+    observed: ObservedDrivers, gap_layout: bool, censoring: str = "kaplan_meier"
+) -> EntryChoice:
     """``policy.driver_entry = "auto"``: "held" where the observed drivers' first sights that
-    what is ahead holds (``held_at_sight``) are below their drivers' own speed (their median
-    first-sight v / limit under ``ENTRY_AT_OWN_SHARE`` of the driver's top v / limit over its
-    record, an exact ratio or a lower bound: the share is then an upper bound), else
-    "queued". Why: whether a held first sight says the driver's desired speed is a property
-    of how the net's demand inserts vehicles, which its observed drivers show: netgen_corridor
-    inserts at the own speed (held first sights 1.00 of their tops), so drawing them cost
-    0.460 -> 0.682 m/s; drawn 522 at the safe speed behind the queue (0.36), where keeping
-    them cost 2.39 -> 3.46 m/s with deploy.merge_reach "occupation" (stop 43). A per-sight
-    share of the median (below 0.8) changed netgen too (0.460 -> 0.480) and was worse on 522
-    (2.73 against held's 2.39; stop 43, hO43)."""
+    what is ahead holds (``held_at_sight``) and "queued" keeps (v / limit at least
+    ``QUEUED_ENTRY_SHARE`` of the median of the ratios, ``ratio_estimate`` under
+    ``censoring``, as the drivers' factors read them) are below their drivers' own speed
+    (their median first-sight v / limit under ``ENTRY_AT_OWN_SHARE`` of the driver's top v /
+    limit over its record, an exact ratio or a lower bound: the share is then an upper
+    bound), else "queued". Why: whether a held first sight says the driver's desired speed is
+    a property of how the net's demand inserts vehicles, which its observed drivers show:
+    netgen_corridor inserts at the own speed (held first sights 1.00 of their tops), so
+    drawing them cost 0.460 -> 0.682 m/s; drawn 522 at the safe speed behind the queue,
+    where keeping them cost 2.39 -> 3.46 m/s with deploy.merge_reach "occupation" (stop 43).
+    Only the sights "queued" keeps: a signalised arterial's held first sights mostly stand
+    in a red's queue (528: 62, at a median 0.13 of their tops), which "queued" draws as well,
+    so they say nothing of which rule fits; read with them, 528 chose "held" and lost 1.370
+    -> 1.465 m/s (stop 44), where it has none of the others (stop 45). A per-sight share of
+    the median (below 0.8) changed netgen too (0.460 -> 0.480) and was worse on 522 (2.73
+    against held's 2.39; stop 43, hO43)."""
     if not observed.keys:
         return EntryChoice("queued", 0, float("nan"))
     idx = first_sights(observed)
@@ -204,11 +222,33 @@ def entry_choice(observed: ObservedDrivers, gap_layout: bool) -> EntryChoice:
     keys = [observed.keys[i] for i in idx.tolist()]
     top = np.array([observed.ratio.get(k, observed.lower.get(k, np.nan)) for k in keys])
     ratio = obs[:, 0] / np.maximum(obs[:, LIMIT_COLUMN], 0.1)
-    ok = held & np.isfinite(top) & (top > 0)
+    median = np.interp(0.5, QUANTILE_LEVELS, ratio_estimate(observed, censoring).quantiles)
+    kept = ratio / median >= QUEUED_ENTRY_SHARE  # ``entry_factors``' test, the other way
+    ok = held & kept & np.isfinite(top) & (top > 0)
     n = int(ok.sum())
     at_own = float(np.median(ratio[ok] / top[ok])) if n else float("nan")
     below = n >= MIN_HELD_SIGHTS and at_own < ENTRY_AT_OWN_SHARE
     return EntryChoice("held" if below else "queued", n, at_own)
+
+
+# ``resolved_entry``'s choices: (id of the truth, scenario digest and file, runs) -> (a weak
+# reference to that truth, the choice). Stage II and the evaluation each resolve "auto"
+# (the evaluation once per agent), and each read of the observed drivers steps every
+# recorded scene of the runs; the weak reference tells a new truth at a reused id.
+_CHOICES: dict[tuple, tuple[weakref.ref, EntryChoice]] = {}
+
+
+def _memo_choice(sc, truth, runs: np.ndarray, gap: bool) -> EntryChoice:
+    """``entry_choice`` of the observed drivers of ``runs``, once per (truth, scenario, runs)."""
+    key = (id(truth), sc.digest(), str(getattr(sc, "source", "")), np.asarray(runs).tobytes())
+    hit = _CHOICES.get(key)
+    if hit is not None and hit[0]() is truth:
+        return hit[1]
+    for k in [k for k, (ref, _) in _CHOICES.items() if ref() is None]:
+        del _CHOICES[k]  # their truths are gone
+    choice = entry_choice(observed_drivers(sc, truth, runs), gap, ratio_censoring(sc))
+    _CHOICES[key] = (weakref.ref(truth), choice)
+    return choice
 
 
 def resolved_entry(sc, truth, runs: np.ndarray | None = None) -> tuple[Any, EntryChoice | None]:
@@ -217,7 +257,8 @@ def resolved_entry(sc, truth, runs: np.ndarray | None = None) -> tuple[Any, Entr
     and the choice; ``sc`` itself and None where it is not "auto". Where ``policy.driver_speed`` is
     not "memory" nobody reads the entry: "queued". Every stage that builds drivers (Stage
     II's banks and demand episodes, a prior's deployment, the deployment) resolves it from
-    the same runs, so they read one rule; what a stage records keeps "auto"."""
+    the same runs, so they read one rule; what a stage records keeps "auto". The choice is
+    kept per (truth, scenario, runs) while the truth lives: read once, not per call."""
     if getattr(sc.policy, "driver_entry", "queued") != "auto":
         return sc, None
     if sc.policy.driver_speed != "memory":
@@ -226,8 +267,7 @@ def resolved_entry(sc, truth, runs: np.ndarray | None = None) -> tuple[Any, Entr
         if runs is None:
             splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
             runs = np.concatenate([splits["train"], splits["val"]])
-        gap = observes_gap(sc.policy.observation)
-        choice = entry_choice(observed_drivers(sc, truth, runs), gap)
+        choice = _memo_choice(sc, truth, runs, observes_gap(sc.policy.observation))
     policy = dataclasses.replace(sc.policy, driver_entry=choice.entry)
     return dataclasses.replace(sc, policy=policy), choice
 
