@@ -99,12 +99,6 @@ def get_options(args: list[str] | None = None) -> argparse.Namespace:
         "s on, arterials 1, 2, 600-603 were 11.19 / 14.82 vehicles per lane before stop 39)",
     )
     p.add_argument(
-        "--junction-counts",
-        action="store_true",
-        help="intervals: the junction stretches of signalised sections from their stop bars' "
-        "counts timed by the programs (truth.junction_counts; opt-in), not their density",
-    )
-    p.add_argument(
         "--pieces",
         action="store_true",
         help="also a table of each part's error (vehicles): between stations, with a ramp, "
@@ -324,10 +318,9 @@ def read_truth(gt: Path, start_s: float) -> tuple[pd.DataFrame, pd.DataFrame, pd
     return traj, det, pas
 
 
-def errors(gt: Path, start_s: float = 0.0, junctions: bool = False) -> pd.DataFrame:
+def errors(gt: Path, start_s: float = 0.0) -> pd.DataFrame:
     """Per snapshot: regime, lanes and each estimator's K error, the record scored from
-    ``start_s`` on (``read_truth``; after 0 the passages do not start from an empty road);
-    ``junctions``: ``intervals`` counts the junction stretches (``truth.junction_counts``)."""
+    ``start_s`` on (``read_truth``; after 0 the passages do not start from an empty road)."""
     sc = json.loads((gt / "manifest.json").read_text())["scenario"]
     section = Section.read(gt / "section.json")
     traj, det, pas = read_truth(gt, start_s)
@@ -343,7 +336,7 @@ def errors(gt: Path, start_s: float = 0.0, junctions: bool = False) -> pd.DataFr
     net_file = scenario_inputs(load_scenario(gt.parent / "scenario.toml")).net_file
     net = read_net(net_file)
     side = side_junction_arcs(net, section)
-    record = interval_record(det, section, net, net_file, junctions)
+    record = interval_record(det, section, net, net_file)
     counts = k_estimates(traj, macro, section, every, window, record)
     hybrid = k_estimates(
         traj, macro, section, every, window, StationRecord(det, pas, side, lag, from_empty=empty)
@@ -496,7 +489,7 @@ def main(options: argparse.Namespace) -> bool:
     print("|---" * (6 + len(ESTIMATORS)) + "|")
     every = []
     for name, folder, table, desc in nets:
-        e = errors(ground_truth(folder, table), options.start_s, options.junction_counts)
+        e = errors(ground_truth(folder, table), options.start_s)
         every.append(e)
         for row in table_rows(name, desc, e):
             print(row, flush=True)

@@ -11,9 +11,10 @@ true count less that difference; ``spread`` is the mean absolute error that is l
 bound's constant less the true one (``density_constant``, ``queue_constant``, the median of
 the free-travel count, count >= 0 at the first bound: exact from an empty road).
 
-``--junction-counts`` adds the junction stretches counted from their stop bars' counts
-timed by the programs (``truth.junction_counts``; opt-in) as the part ``junctions``, taken
-out of the rest. A ground truth is ``simulate``'s folder (its scenario beside it) or a
+``--junction-counts`` adds, beside the parts, the junction stretches' error counted from
+their stop bars' counts timed by the programs (``truth.junction_counts``: ``junctions``)
+and that of the interval density the rest holds on them (``junction_density``); the parts
+and their sum are unchanged. A ground truth is ``simulate``'s folder (its scenario beside it) or a
 run's ``ground_truth`` (its scenario named by the run's manifest).
 
     .venv/bin/python scripts/bench_signal_approaches.py --start-s 240 \\
@@ -59,7 +60,7 @@ def approach_rows(
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """(one row per run and approach: the constants' errors, vehicles; one row per snapshot:
     each part's error, vehicles) of the ground truth ``gt`` scored from ``start_s`` on;
-    ``junctions``: the junction stretches counted too (``junction_counts``)."""
+    ``junctions``: the junction stretches' errors, counted and by the rest's density, too."""
     man = json.loads((gt / "manifest.json").read_text())["scenario"]
     section = Section.read(gt / "section.json")
     traj, det, _ = read_truth(gt, start_s)
@@ -116,9 +117,10 @@ def approach_rows(
                 }
             )
         pieces, rest = sc.approach_pieces(d, section, lines, side, run, times)
-        if junctions:
-            more, rest = junction_pieces(d, section, lines, run, times, rest)
-            pieces |= more
+        more, less = (
+            junction_pieces(d, section, lines, run, times, rest) if junctions else ({}, rest)
+        )
+        on_junctions = rest.assign(vehicles=rest["vehicles"] - less["vehicles"])
         for k, t in enumerate(times):
             arcs = arcs_at[t]
             slow = (g.loc[g["time_s"] == t, "speed_mps"] <= SLOW_MPS).mean() >= SLOW_SHARE
@@ -132,6 +134,13 @@ def approach_rows(
                 inside |= on
                 row[name] = float(piece.vehicles[k] - on.sum())
             row["rest"] = window_mean(rest, "vehicles", t, window) - float((~inside).sum())
+            for piece in more.values():  # beside the parts: the rest still holds them
+                on = np.zeros(len(arcs), bool)
+                for lo, hi in piece.arcs_m:
+                    on |= (arcs >= lo) & (arcs < hi)
+                row["junctions"] = float(piece.vehicles[k] - on.sum())
+                dens = window_mean(on_junctions, "vehicles", t, window)
+                row["junction_density"] = dens - float(on.sum())
             parts.append(row)
     return pd.DataFrame(rows), pd.DataFrame(parts)
 
@@ -141,9 +150,10 @@ def part_summary(parts: pd.DataFrame) -> pd.DataFrame:
     snapshots the estimate covers (the rest's interval density exists: ``k_estimates``
     skips the others)."""
     parts = parts[np.isfinite(parts["rest"])]
-    cols = [c for c in ("approaches", "exit", "junctions", "rest") if c in parts]
+    cols = [c for c in ("approaches", "exit", "rest") if c in parts]
+    aside = [c for c in ("junctions", "junction_density") if c in parts]
     out = {}
-    for c in cols:
+    for c in cols + aside:  # aside: the junction stretches, also in the rest
         per_lane = parts[c] / parts["lanes"]
         out[f"{c} abs"] = per_lane.abs().groupby(parts["congested"]).mean()
         out[f"{c} bias"] = per_lane.groupby(parts["congested"]).mean()
@@ -160,7 +170,8 @@ def main(args: list[str] | None = None) -> int:
     p.add_argument(
         "--junction-counts",
         action="store_true",
-        help="the junction stretches from their stop bars' counts timed by the programs",
+        help="also the junction stretches' error from their stop bars' counts timed by the "
+        "programs and from the rest's density (a diagnostic: not added to the parts)",
     )
     o = p.parse_args(args)
     both = [approach_rows(gt, o.start_s, o.junction_counts) for gt in o.truths]

@@ -25,7 +25,6 @@ from macromicro_sumo.truth.density import (
     projected_passages,
     sealed_count,
 )
-from macromicro_sumo.truth.junction_counts import junction_pieces
 from macromicro_sumo.truth.section_macro import (
     K_ESTIMATE_COLUMNS,
     integrate_stations,
@@ -306,9 +305,6 @@ def io_vehicles(
         side = record.side_arcs if record.side_arcs is not None else np.array([])
         lines = list(record.stop_lines)
         pieces, rest = approach_pieces(record.det, section, lines, side, run, at_s)
-        if record.junctions:
-            more, rest = junction_pieces(record.det, section, lines, run, at_s, rest)
-            pieces |= more
     else:
         pieces, rest = io_pieces(record, section, run, at_s)
     counted = np.zeros(len(at_s))

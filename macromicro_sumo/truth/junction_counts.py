@@ -1,15 +1,22 @@
-"""The hidden count on a signalised junction stretch (from the stop bar through the junction
-to the first station past it) from the stop bar's interval counts timed by the signal's
-program, rather than the interval density estimate (opt-in: ``StationRecord.junctions``).
+"""A signalised junction stretch's vehicles (from the stop bar through the junction to the
+first station past it) from the stop bar's interval counts timed by the signal's program:
+a diagnostic (``scripts/bench_signal_approaches.py --junction-counts``), not a part of K.
 
 A junction stretch holds the vehicles that crossed its stop bar within the time they take
 to cross it: many during green (the stop bar discharges at saturation), none a crossing
-time after the end of green. An interval's mean density (90 s, a whole cycle) holds the
-mean of both at every snapshot; the counts follow the cycle (``signal_counts.arrivals``:
-the stop bar's count spread over its line's passing seconds, the vehicles that turn in
-from the side streets over its stopping seconds). Where the station past the junction
-stands in a queue (the next approach's queue reaches back over it) the vehicles in the
-junction stand too and the density estimate is kept (``signal_counts.queued_share``).
+time after the end of green. The interval density estimate (90 s, a whole cycle) holds the
+cycle's mean at every snapshot; the counts follow the cycle (``signal_counts.arrivals``:
+the station past the junction's count spread over the line's passing seconds, the
+vehicles that turn in from the side streets over its stopping seconds). Where that station
+stands in a queue the density estimate is kept (``signal_counts.queued_share``).
+
+Why not in K (docs/sections-log.md, stop 45): the approach past the junction already
+counts these vehicles, its arrivals being timed at the previous stop bar; the junction's
+interval density in the rest is a double count of their mean that the approach's
+constant, set on the density estimate, takes out. Added to K as it stands, the count
+doubles them within the cycle: arterials 801-820 from 240 s, dual loops, 2.53 / 2.71 ->
+2.42 / 3.39 vehicles per lane free / congested. Made consistent (the approach's arrivals a
+crossing later) it gives 2.17 / 2.78 and is mixed on the drawn scenarios' arterials.
 """
 
 from __future__ import annotations
@@ -92,7 +99,7 @@ def junction_pieces(
     """The junction stretches counted at ``at_s`` (``junction_count``, blended with their
     density estimate by its weight) as one piece, ``junctions``, and ``rest`` (per interval
     ``begin_s, end_s, vehicles``, ``signal_counts.approach_pieces``') less their density
-    estimate."""
+    estimate (the difference: what the rest holds on them)."""
     d = det[det["run"] == run]
     stretches = junction_stretches(d, section, lines)
     if not stretches:

@@ -121,8 +121,6 @@ class StationRecord:
     estimate's weight against the density estimate alone; None: the counted one only.
     ``stop_lines`` (``signal_counts.StopLine``): with interval counts, the signals' programs;
     the approaches to them are counted by ``signal_counts.approach_pieces`` instead.
-    ``junctions``: with ``stop_lines``, the junction stretches too, from their stop bars'
-    counts timed by the programs (``junction_counts.junction_pieces``; opt-in).
     """
 
     det: pd.DataFrame
@@ -133,4 +131,3 @@ class StationRecord:
     interval_counts: bool = False
     weight: pd.DataFrame | None = None
     stop_lines: tuple = ()
-    junctions: bool = False
