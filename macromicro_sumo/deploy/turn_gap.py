@@ -20,11 +20,14 @@ turner's and a lane drop's alike.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from pathlib import Path
 
 import numpy as np
 
+from macromicro_sumo.deploy.turns import junction_edges, turn_limits
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.section import SectionScenario
+from macromicro_sumo.sumo.inputs import scenario_inputs
 from macromicro_sumo.sumo.simulation import Simulation
 from macromicro_sumo.sumo.states import VehicleStates
 
@@ -44,16 +47,29 @@ def gap_caps(own: np.ndarray, speed: np.ndarray, decel: np.ndarray, dt_s: float)
     return np.where(asked, np.maximum(own, speed - decel * dt_s), np.inf)
 
 
-def change_sides(section: Section, lanes: list[str]) -> tuple[list[int], list[int]]:
+def junction_lanes(section: Section, net_file: Path) -> frozenset[str]:
+    """The lanes of ``section``'s junction edges (``deploy.turns.junction_edges``: a
+    connection off the section), where a turner changes lanes for its turn; no internal
+    lane."""
+    junction = junction_edges(section, turn_limits(net_file, section))
+    return frozenset(
+        lane for lane, got in section.lanes.items() if junction[got[0]] and lane[0] != ":"
+    )
+
+
+def change_sides(
+    section: Section, lanes: list[str], on: frozenset[str]
+) -> tuple[list[int], list[int]]:
     """(index into ``lanes``, side -1 right / 1 left) for each side of each vehicle on a lane
-    of ``section`` with a neighbour lane on that side of its edge (none on a junction's
-    internal lane)."""
-    at, sides = [], []
+    in ``on`` (``junction_lanes`` of ``section``) with a neighbour lane on that side of its
+    edge."""
+    at: list[int] = []
+    sides: list[int] = []
     table, n_lanes = section.lanes, section.n_lanes
     for k, lane in enumerate(lanes):
-        got = table.get(lane)
-        if got is None or lane.startswith(":"):
+        if lane not in on:
             continue
+        got = table[lane]
         edge, index = got[0], got[1]
         if index > 0:
             at.append(k)
@@ -62,6 +78,20 @@ def change_sides(section: Section, lanes: list[str]) -> tuple[list[int], list[in
             at.append(k)
             sides.append(1)
     return at, sides
+
+
+# Per scenario object (held, so its id is not reused) and section: its ``junction_lanes``,
+# read from the net once (a call a step to resolve the scenario's files would cost more
+# than the caps).
+_JUNCTION_LANES: dict[int, tuple[SectionScenario, tuple[str, ...], frozenset[str]]] = {}
+
+
+def _lanes_of(sc: SectionScenario, section: Section) -> frozenset[str]:
+    got = _JUNCTION_LANES.get(id(sc))
+    if got is None or got[0] is not sc or got[1] != section.edge_ids:
+        lanes = junction_lanes(section, scenario_inputs(sc).net_file)
+        got = _JUNCTION_LANES[id(sc)] = (sc, section.edge_ids, lanes)
+    return got[2]
 
 
 def turn_gap_caps(
@@ -81,7 +111,10 @@ def turn_gap_caps(
     minGap, decel)."""
     if sc.deploy.turn_gap != "sumo" or not len(rows):
         return cap
-    at, sides = change_sides(section, st.lanes)
+    on = _lanes_of(sc, section)
+    if not on:  # no junction edge (a motorway section): nothing to ask, nothing asked
+        return cap
+    at, sides = change_sides(section, st.lanes, on)
     if not at:  # one lane everywhere: nothing asked of SUMO
         return cap
     ids = st.ids

@@ -76,6 +76,18 @@ def turn_limits(net_file: Path, section: Section) -> dict[tuple[int, str], float
     return out
 
 
+def junction_edges(section: Section, limits: dict[tuple[int, str], float]) -> np.ndarray:
+    """(E,) bool: the section's junction edges, those with a connection off the section
+    (``turn_limits``' keys ``limits``; an open section's last edge has none: leaving there
+    is leaving the section at its end)."""
+    n = len(section.edge_ids)
+    nxt = {i: section.edge_ids[(i + 1) % n] for i in range(n if section.closed else n - 1)}
+    junction = np.zeros(n, dtype=bool)
+    for i, to in limits:
+        junction[i] |= i in nxt and to != nxt[i]
+    return junction
+
+
 class Turns:
     """Which driven vehicles turn off the section at the end of the junction edge they are
     on: per vehicle on a junction edge, (that edge's index, the arc of its stop line, the
@@ -85,13 +97,7 @@ class Turns:
     def __init__(self, section: Section, net_file: Path, dt_s: float = 0.5) -> None:
         self.section, self.dt_s = section, dt_s
         self.limits = turn_limits(net_file, section)
-        n = len(section.edge_ids)
-        nxt = {i: section.edge_ids[(i + 1) % n] for i in range(n if section.closed else n - 1)}
-        # Junction edges: a connection off the section (an open section's last edge has
-        # none: leaving there is leaving the section at its end).
-        self.junction = np.zeros(n, dtype=bool)
-        for i, to in self.limits:
-            self.junction[i] |= i in nxt and to != nxt[i]
+        self.junction = junction_edges(section, self.limits)
         self.any = bool(self.junction.any())  # else no vehicle can turn: nothing to do
         self.lines_m = np.asarray(section.offsets_m + section.lengths_m, dtype=float)
         # vehicle -> (edge index, turn limit, the call (``calls``) it was read at)
