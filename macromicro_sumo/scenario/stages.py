@@ -415,7 +415,7 @@ class DeployConfig:
         omit_default=True,
         omit_value="off",
     )
-    turn_gap: str = spec("off", choices=("off", "sumo"), doc="deploy.turn_gap", omit_default=True)
+    turn_gap: str = spec("sumo", choices=("off", "sumo"), omit_default=True, omit_value="off")
     command_dawdle: float = spec(0.0, lo=0.0, hi=1.0, doc="deploy.safety", omit_default=True)
     fcd_s: float = spec(
         120.0, lo=0.0, hi=1e6, doc="trajectories.csv keeps the first fcd_s recorded seconds [s]"

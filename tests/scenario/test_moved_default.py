@@ -17,6 +17,7 @@ MOVED = (
     ("actor_dtype", "float32", "float64"),
     ("turns", "handover", "off"),
     ("yellow", "onset", "stop"),
+    ("turn_gap", "sumo", "off"),
 )
 
 
