@@ -80,14 +80,8 @@ class PolicyConfig:
         "top v / limit is a lower bound; reached, one reached with nothing holding it there "
         "(at a sample within 2% of the top: the next speed not above it, a free gap or a "
         "leader pulling away 0.5 m/s faster) is its ratio, and an exact ratio whose top was "
-        "still rising a bound (env.observed_drivers.unheld). Against the true speedFactors "
-        "its median is within 0.02 on 12 of 13 nets (arterial 521 1.017, true 0.998; 528 "
-        "1.027, 1.012; kaplan_meier 1.119, 1.140; not scripts/draw_scenario.py's arterial "
-        "528: 1.040, true 1.016, kaplan_meier's fallback 1.0). Not the default: retrained, "
-        "all 4 runs' speed RMSE, highway_bremen the same over five PPO seeds (1.065-1.295 "
-        "-> 0.927-1.240 m/s, means 1.127 -> 1.118), draw_scenario's arterial 528 worse "
-        "over two (1.357-1.372 -> 1.558-1.622), its 521 the same over two (1.081-1.088 -> "
-        "1.080-1.082), netgen_corridor 0.460 -> 0.458 (docs/deploy-log.md, stop 42)",
+        "still rising a bound (env.observed_drivers.unheld; measured: docs/deploy.md, The "
+        "defaults)",
         omit_default=True,  # the digests of scenarios that do not set it stay as they were
     )
     driver_follow: str = spec(
@@ -308,11 +302,7 @@ class DeployConfig:
         doc="a driven vehicle's yellow light: stop, a stop like a red; onset, decided the "
         "first step it sees it as SUMO's drivers do: a stop where it can brake before the "
         "line at its decel, else it passes while the light stays yellow (never a red; "
-        "sumo.stop_lines; drawn arterials 528 / 565 / 521 / 837, all 4 runs: speed RMSE "
-        "1.136 -> 1.150, 1.305 -> 1.247, 1.037 -> 0.995, 1.198 -> 1.029 m/s, emergency "
-        "brakings 28-53% fewer; the truth's drivers: none of 8,342 that could brake at onset "
-        "crossed, 84% of 438 that could not did; docs/deploy-log.md, Floor reaction and the "
-        "yellow decided at onset)",
+        "sumo.stop_lines; measured: docs/deploy.md, The defaults)",
         # A deployment setting whose default moved from stop to onset (stop 44): left out of
         # the digest at stop, so that a run deployed before is redeployed.
         omit_default=True,
@@ -334,8 +324,7 @@ class DeployConfig:
         "the layer plans its stop with (its vType's decel), so that a policy bound below it "
         "brakes no car harder than SUMO's own would where nothing ahead asks for it; the "
         "layer still brakes harder where what is ahead asks for it (deploy.safety."
-        "command_brake; drawn 501 all 4 runs: emergency brakings 458 -> 233, speed RMSE "
-        "3.32 -> 3.28 m/s; with merge_reach occupation 341 -> 191, 2.53 -> 2.40)",
+        "command_brake; measured: docs/deploy.md, The defaults)",
         # A deployment setting whose default moved from bounds to decel (stop 42): left out
         # of the digest at bounds, so that a run deployed before is redeployed.
         omit_default=True,
@@ -357,8 +346,7 @@ class DeployConfig:
         "(deploy.policy_batch; the normalisation, prior, bound and safety layer stay float64): "
         "float32, the dtype torch trains the actor in, its actions within 1e-7 m/s^2 of "
         "float64's and a Bremen step some 10-25 us cheaper; float64, Agent.mean_action's "
-        "values in float64 (all 4 runs, float64 -> float32: netgen_corridor, drawn 501 and "
-        "502 the same figures, Bremen speed RMSE 0.9142 -> 0.9143 m/s, 0 collisions)",
+        "values in float64 (measured: docs/deploy.md, The defaults)",
         # A deployment setting whose default moved from float64 to float32 (stop 43): left
         # out of the digest at float64, so that a run deployed before is redeployed.
         omit_default=True,
