@@ -382,8 +382,7 @@ class DeployConfig:
         "blocked leader (its own leader nearer than 1 s x v + 10 m) on the lane to its left "
         "no faster than LC2013's ban on overtaking on the right lets SUMO's drivers "
         "(deploy.keep_right.keep_right_caps; not with policy.driver_speed drawn); off, no "
-        "such cap (drawn 501 3.02 -> 3.00 m/s with blocked, drawn 549 4.38 -> 4.16, both "
-        "within the runs' spread: docs/deploy-log.md, Keep right)",
+        "such cap",
         omit_default=True,  # the digests of scenarios that do not set it stay as they were
     )
     turns: str = spec(
@@ -394,17 +393,29 @@ class DeployConfig:
         "handover, it is handed back to SUMO's model before the line, where SUMO would start "
         "braking for the turn; limit, its look-ahead shows the turn's internal-lane limit at "
         "the stop line instead of the next section edge's; off, neither (SUMO braked turners "
-        "handed back inside the junction at 5-9 m/s^2 on drawn arterial 528). All 4 runs, "
-        "policy, off -> handover: drawn arterials 528 1.370 -> 1.136, 565 1.590 -> 1.305, "
-        "521 1.081 -> 1.037, 917 0.989 -> 0.856, 944 1.111 -> 0.990 m/s; netgen_corridor, "
-        "Bremen, Spreewaldring the same (docs/deploy-log.md, Turners from SUMO's own routes)",
+        "handed back inside the junction at 5-9 m/s^2 on drawn arterial 528)",
         # A deployment setting whose default moved from off to handover (stop 44): left out
         # of the digest at off, so that a run deployed before is redeployed.
         omit_default=True,
         omit_value="off",
     )
-    turn_gap: str = spec("sumo", choices=("off", "sumo"), omit_default=True, omit_value="off")
-    command_dawdle: float = spec(0.0, lo=0.0, hi=1.0, doc="deploy.safety", omit_default=True)
+    turn_gap: str = spec(
+        "sumo",
+        choices=("off", "sumo"),
+        doc="a driven vehicle whose route change LC2013 finds blocked on a junction edge, and "
+        "a driven follower blocking it: sumo, SUMO's own slower speed; off, the command",
+        # A deployment setting whose default moved from off to sumo (stop 45): left out of
+        # the digest at off, so that a run deployed before is redeployed.
+        omit_default=True,
+        omit_value="off",
+    )
+    command_dawdle: float = spec(
+        0.0,
+        lo=0.0,
+        hi=1.0,
+        doc="driven vehicles accelerate at most as Krauss dawdling with this sigma; 0: off",
+        omit_default=True,
+    )
     fcd_s: float = spec(
         120.0, lo=0.0, hi=1e6, doc="trajectories.csv keeps the first fcd_s recorded seconds [s]"
     )
