@@ -15,7 +15,7 @@ import numpy as np
 from macromicro_sumo.deploy.observe import STOP_DECEL_MPS2
 from macromicro_sumo.road.physics import brake_gap, safe_speed
 from macromicro_sumo.road.section import NO_LEADER_GAP_M
-from macromicro_sumo.scenario.stages import DeployConfig
+from macromicro_sumo.scenario.deploy_settings import DeployConfig
 
 # ``deploy.safety_brake``: the braking the layer plans a driven vehicle to stop with (the
 # config's choices, one definition).

@@ -49,7 +49,7 @@ from macromicro_sumo.deploy.population import ActionBatch, DriveStats
 from macromicro_sumo.road.physics import brake_gap, constants, safe_speed, step_constants
 from macromicro_sumo.road.section import NO_LEADER_GAP_M
 from macromicro_sumo.road.vtype import accel_limit, command_speeds
-from macromicro_sumo.scenario.stages import DeployConfig
+from macromicro_sumo.scenario.deploy_settings import DeployConfig
 
 # Speed modes of speed-commanded vehicles (SUMO's bits, ``sumo.simulation``). "none" applies
 # the command exactly (32: no safe speed, no accel/decel limits, no right of way, no braking

@@ -15,6 +15,7 @@ from typing import Any
 
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.scenario.data import DataConfig, build_data, check_data
+from macromicro_sumo.scenario.deploy_settings import DeployConfig, check_deploy
 from macromicro_sumo.scenario.fields import ScenarioFile, build_table, spec
 from macromicro_sumo.scenario.fleet import (
     FleetConfig,
@@ -22,13 +23,7 @@ from macromicro_sumo.scenario.fleet import (
     SpeedLimitConfig,
     check_fleet_tables,
 )
-from macromicro_sumo.scenario.stages import (
-    DeployConfig,
-    EvaluationConfig,
-    PolicyConfig,
-    check_deploy,
-    check_policy,
-)
+from macromicro_sumo.scenario.stages import EvaluationConfig, PolicyConfig, check_policy
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -18,8 +18,8 @@ from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.population import DriveStats
 from macromicro_sumo.deploy.safety import command_brake, speed_commands
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, read_section
+from macromicro_sumo.scenario.deploy_settings import DeployConfig
 from macromicro_sumo.scenario.load import load_scenario
-from macromicro_sumo.scenario.stages import DeployConfig
 
 # SUMO's IDM with the drawn networks' car decel: comfortable braking 3.0 m/s^2, below the
 # examples' bound of -4.5.

@@ -1,0 +1,271 @@
+"""Stage III's settings, shared by every scenario kind: which methods are deployed and how
+the driven vehicles are driven (``[deploy]``; docs/deploy.md, The defaults)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from macromicro_sumo.errors import UserError
+from macromicro_sumo.scenario.fields import spec
+
+DEPLOY_METHODS = (
+    "policy",
+    "policy_no_safety",
+    "micro_only",
+    "macro_only",
+    "idm_calibrated",
+    "idm_detectors",
+    "sumo_default",
+    "oracle",
+    "oracle_redrawn",
+    "oracle_population",
+)
+
+
+@dataclass(frozen=True, kw_only=True)
+class DeployConfig:
+    """Stage III: every method deployed population-wide over the held-out runs' whole demand."""
+
+    methods: list[str] = spec(
+        list(DEPLOY_METHODS),
+        choices=DEPLOY_METHODS,
+        doc="methods deployed, each into deploy/<method>/ (default: all); policy_no_safety is "
+        "the learned policy with safety none, beside policy with the scenario's safety",
+    )
+    # On by default: the policy alone collided on the Bremen example (0 collisions with it).
+    safety: str = spec(
+        "sumo",
+        choices=("none", "sumo"),
+        doc="sumo: SUMO caps the speed commands at its model's safe speed, right of way and "
+        "red lights (runs.csv counts how often: safety_acted); none: applied exactly",
+    )
+    safety_floor_share: float = spec(
+        0.2,
+        lo=0.0,
+        hi=1.0,
+        doc="safety sumo: each speed command is raised to at least this share of the lane's "
+        "speed limit (at most the safe speed and what the vehicle can reach in a step), so "
+        "that no policy holds a car standing where nothing ahead asks for it; 0: no floor "
+        "(runs.csv counts the raised commands: floor_acted) [fraction of the limit]",
+    )
+    safety_floor_on: str = spec(
+        "auto",
+        choices=("all", "standing", "auto"),
+        doc="safety sumo: the vehicles the floor raises: all, any whose command is below it; "
+        "standing, only one slower than 1 m/s, so that the floor unsticks a vehicle held "
+        "standing and leaves a moving one's braking to its policy; auto, of these two the one "
+        "whose deployment on safety_floor_runs training runs has the lower speed RMSE "
+        "against the truth's detectors there (a tie: all), chosen per learned method, "
+        "recorded in its manifest.json; neither fixed floor is best on every network "
+        "(docs/deploy-log.md, Safety layer strictness)",
+    )
+    safety_floor_runs: int = spec(
+        2,
+        lo=1,
+        hi=10_000,
+        doc="safety_floor_on auto: the first this many training runs (never the held-out "
+        "ones) each floor is deployed on to choose",
+        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+    )
+    safety_floor_reaction_s: float = spec(
+        0.0,
+        lo=0.0,
+        hi=5.0,
+        doc="safety sumo: the reaction time of the safe speed the floor lifts a standing "
+        "vehicle (below 1 m/s) to (deploy.safety.reaction_safe_speed); 0: one step, the "
+        "cap's own; the drivers' tau (SUMO's Krauss: 1 s) starts a standing queue nearer "
+        "SUMO's lags (docs/deploy-log.md, Floor reaction and the yellow decided at onset). The "
+        "cap stays one step [s]",
+        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+    )
+    yellow: str = spec(
+        "onset",
+        choices=("stop", "onset"),
+        doc="a driven vehicle's yellow light: stop, a stop like a red; onset, decided the "
+        "first step it sees it as SUMO's drivers do: a stop where it can brake before the "
+        "line at its decel, else it passes while the light stays yellow (never a red; "
+        "sumo.stop_lines; measured: docs/deploy.md, The defaults)",
+        # A deployment setting whose default moved from stop to onset (stop 44): left out of
+        # the digest at stop, so that a run deployed before is redeployed.
+        omit_default=True,
+        omit_value="stop",
+    )
+    safety_brake: str = spec(
+        "own",
+        choices=("own", "matched"),
+        doc="safety sumo: the braking each driven vehicle's safe speed plans its stop with: "
+        "own, its vType's decel; matched, at least that of the vehicle ahead (an IDM car's "
+        "decel is its comfortable braking: own holds it behind a Krauss car to gaps SUMO's "
+        "IDM does not keep; docs/deploy-log.md, Safety layer strictness)",
+    )
+    command_brake: str = spec(
+        "decel",
+        choices=("bounds", "decel"),
+        doc="safety sumo: the hardest braking a driven vehicle's command may ask before the "
+        "safety layer: bounds, the scenario's bounds.accel_mps2; decel, at most the braking "
+        "the layer plans its stop with (its vType's decel), so that a policy bound below it "
+        "brakes no car harder than SUMO's own would where nothing ahead asks for it; the "
+        "layer still brakes harder where what is ahead asks for it (deploy.safety."
+        "command_brake; measured: docs/deploy.md, The defaults)",
+        # A deployment setting whose default moved from bounds to decel (stop 42): left out
+        # of the digest at bounds, so that a run deployed before is redeployed.
+        omit_default=True,
+        omit_value="bounds",
+    )
+    action: str = spec(
+        "mean",
+        choices=("mean", "sample"),
+        doc="learned methods: the acceleration each driven vehicle gets every step: mean, the "
+        "policy's deterministic mean action; sample, a draw from its Gaussian (the mean and "
+        "its learned std), from a generator seeded by seed and run, before the bounds and the "
+        "safety layer (docs/deploy-log.md, Sampled actions)",
+        omit_default=True,
+    )
+    actor_dtype: str = spec(
+        "float32",
+        choices=("float64", "float32"),
+        doc="learned methods: the dtype of the actor's weights and products in the deployment "
+        "(deploy.policy_batch; the normalisation, prior, bound and safety layer stay float64): "
+        "float32, the dtype torch trains the actor in, its actions within 1e-7 m/s^2 of "
+        "float64's and a Bremen step some 10-25 us cheaper; float64, Agent.mean_action's "
+        "values in float64 (measured: docs/deploy.md, The defaults)",
+        # A deployment setting whose default moved from float64 to float32 (stop 43): left
+        # out of the digest at float64, so that a run deployed before is redeployed.
+        omit_default=True,
+        omit_value="float64",
+    )
+    merge: str = spec(
+        "sumo",
+        choices=("none", "handover", "sumo"),
+        doc="handover: a speed-commanded vehicle that must leave its lane (an acceleration "
+        "lane, a lane drop) merges with SUMO's model from where SUMO's lane changer makes "
+        "the change urgent (LC2013's strategic look-ahead); sumo: also, a commanded vehicle that "
+        "blocks it takes SUMO's cooperative slow-down; none: commands everywhere "
+        "(docs/deploy-log.md, Merges)",
+    )
+    merge_reach: str = spec(
+        "plain",
+        choices=("plain", "occupation"),
+        doc="merge sumo: occupation, a commanded vehicle that must leave its lane is handed over "
+        "from LC2013's usable distance (the distance left less the occupation of the lane it "
+        "must reach, so in a queue far before the plain reach) and commanded vehicles yield to "
+        "every vehicle that must leave its lane (deploy.merge_yield); plain, the plain reach and "
+        "the yield to handed-over vehicles (drawn 549 4.53 -> 3.82 m/s, 501 3.02 -> 2.72, "
+        "Bremen 1.15 -> 1.19 with occupation: docs/deploy-log.md, Lane drops; since stop 42 a "
+        "vehicle asked to yield is held a step, all 4 runs plain -> occupation: Bremen 1.08 -> "
+        "0.91, 501 3.28 -> 1.99, 549 4.33 -> 3.68, 522 2.99 -> 3.46 m/s; the Bremen example "
+        "sets it)",
+        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+    )
+    keep_right: str = spec(
+        "off",
+        choices=("off", "blocked"),
+        doc="merge sumo: blocked, a commanded vehicle at 60 km/h or more passes a slower, "
+        "blocked leader (its own leader nearer than 1 s x v + 10 m) on the lane to its left "
+        "no faster than LC2013's ban on overtaking on the right lets SUMO's drivers "
+        "(deploy.keep_right.keep_right_caps; not with policy.driver_speed drawn); off, no "
+        "such cap",
+        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+    )
+    turns: str = spec(
+        "handover",
+        choices=("off", "limit", "handover"),
+        doc="a driven vehicle whose route leaves the section at the coming junction (a turner, "
+        "its route asked of SUMO on each section edge with a connection off it; deploy.turns): "
+        "handover, it is handed back to SUMO's model before the line, where SUMO would start "
+        "braking for the turn; limit, its look-ahead shows the turn's internal-lane limit at "
+        "the stop line instead of the next section edge's; off, neither (SUMO braked turners "
+        "handed back inside the junction at 5-9 m/s^2 on drawn arterial 528)",
+        # A deployment setting whose default moved from off to handover (stop 44): left out
+        # of the digest at off, so that a run deployed before is redeployed.
+        omit_default=True,
+        omit_value="off",
+    )
+    turn_gap: str = spec(
+        "sumo",
+        choices=("off", "sumo"),
+        doc="a driven vehicle whose route change LC2013 finds blocked on a junction edge, and "
+        "a driven follower blocking it: sumo, SUMO's own slower speed; off, the command",
+        # A deployment setting whose default moved from off to sumo (stop 45): left out of
+        # the digest at off, so that a run deployed before is redeployed.
+        omit_default=True,
+        omit_value="off",
+    )
+    command_dawdle: float = spec(
+        0.0,
+        lo=0.0,
+        hi=1.0,
+        doc="driven vehicles accelerate at most as Krauss dawdling with this sigma; 0: off",
+        omit_default=True,
+    )
+    fcd_s: float = spec(
+        120.0, lo=0.0, hi=1e6, doc="trajectories.csv keeps the first fcd_s recorded seconds [s]"
+    )
+    share: float = spec(
+        1.0,
+        accepted="(0, 1]",
+        doc="share of the population that is driven, drawn per vehicle (hash of seed, run, id)",
+    )
+    vtype: str = spec(
+        "", doc="instead: only vehicles of this vType are driven (sections; '' = any vType)"
+    )
+    calibration_budget_s: float = spec(
+        300.0,
+        lo=1.0,
+        hi=1e6,
+        doc="idm_detectors: wall-clock budget of the IDM fit to the training runs' detectors [s]",
+    )
+    calibration_evals: int = spec(
+        60, lo=1, hi=100_000, doc="idm_detectors: most whole-run evaluations the fit may use"
+    )
+    # GEH's 85% rule is for hourly flows; at Bremen's 30 s loops one vehicle is 120 veh/h.
+    compare_interval_s: float = spec(
+        0.0,
+        lo=0.0,
+        hi=86400.0,
+        doc="interval of deploy_comparison.csv and deploy_summary.csv's shares: the detectors' "
+        "intervals pooled into blocks of this length (counts summed, space-mean speeds); 0: "
+        "the detectors' own interval; else a multiple of detectors.interval_s; the summary "
+        "keeps the detector-interval shares too (docs/deploy.md, GEH) [s]",
+    )
+
+
+def check_deploy(
+    d: DeployConfig,
+    file: str,
+    detector_interval_s: float | None = None,
+    run_s: float | None = None,
+) -> None:
+    """[deploy]'s cross-field checks; ``detector_interval_s`` and ``run_s`` (warm-up and
+    duration): the detectors' period and a run's length where the scenario fixes them (None:
+    field data's own, checked when the deployment is compared)."""
+    if run_s is not None and d.compare_interval_s > run_s + 1e-9:
+        raise UserError(
+            f"{file}: deploy.compare_interval_s = {d.compare_interval_s:g} exceeds a run "
+            f"(simulation.warmup_s + duration_s = {run_s:g} s); accepted: 0 or at most {run_s:g}"
+        )
+    k = d.compare_interval_s / detector_interval_s if detector_interval_s else 1.0
+    if d.compare_interval_s and (k < 1 - 1e-6 or abs(k - round(k)) > 1e-6):
+        raise UserError(
+            f"{file}: deploy.compare_interval_s = {d.compare_interval_s:g} is not a multiple of "
+            f"detectors.interval_s = {detector_interval_s:g}; accepted: 0 (the detectors' own) "
+            f"or k x {detector_interval_s:g} s, k = 1, 2, ..."
+        )
+    if d.keep_right != "off" and d.merge != "sumo":
+        raise UserError(
+            f"{file}: deploy.keep_right = {d.keep_right!r} needs deploy.merge = 'sumo', not "
+            f"{d.merge!r}; accepted with deploy.merge = {d.merge!r}: 'off'"
+        )
+    if d.merge_reach != "plain" and d.merge != "sumo":
+        raise UserError(
+            f"{file}: deploy.merge_reach = {d.merge_reach!r} needs deploy.merge = 'sumo', not "
+            f"{d.merge!r}; accepted with deploy.merge = {d.merge!r}: 'plain'"
+        )
+    if not 0.0 < d.share <= 1.0:
+        raise UserError(f"{file}: deploy.share = {d.share!r} is out of range; accepted: (0, 1]")
+    if not d.methods:
+        raise UserError(
+            f"{file}: deploy.methods is empty; accepted: one or more of {', '.join(DEPLOY_METHODS)}"
+        )
+    if len(set(d.methods)) != len(d.methods):
+        raise UserError(f"{file}: deploy.methods lists a method twice")
