@@ -43,7 +43,15 @@ from macromicro_sumo.truth import signal_counts as sc  # noqa: E402
 from macromicro_sumo.truth.hidden_count import window_mean  # noqa: E402
 from macromicro_sumo.truth.interval_counts import effective_densities  # noqa: E402
 from macromicro_sumo.truth.junction_counts import junction_pieces  # noqa: E402
-from macromicro_sumo.truth.stations import side_junction_arcs  # noqa: E402
+from macromicro_sumo.truth.section_macro import station_density  # noqa: E402
+from macromicro_sumo.truth.stations import side_junction_arcs, station_speeds  # noqa: E402
+
+NEAR_M = 20.0
+"""The true density at a station: the vehicles within this either side of it."""
+
+BANDS_M = (-1.0, 5.0, 25.0, 80.0, np.inf)
+BAND_NAMES = ("stop bar", "bar to 25 m", "25-80 m", "farther or none")
+"""Station bands by the distance to the next stop line ahead (m)."""
 
 
 def scenario_file(gt: Path) -> Path:
@@ -145,6 +153,58 @@ def approach_rows(
     return pd.DataFrame(rows), pd.DataFrame(parts)
 
 
+def station_rows(gt: Path, start_s: float = 0.0) -> pd.DataFrame:
+    """One row per run, interval and station of the ground truth ``gt`` from ``start_s``:
+    its distance to the next stop line ahead (``to_line_m``, inf past the last) and band,
+    its interval speed, its density as the count reads it (``station_density``) and the
+    true one (the trajectories' vehicles within ``NEAR_M`` either side, over the
+    interval's samples), both per lane in veh/km."""
+    section = Section.read(gt / "section.json")
+    traj, det, _ = read_truth(gt, start_s)
+    det = det.assign(k_point_vpkm=effective_densities(det))
+    net_file = scenario_inputs(load_scenario(scenario_file(gt))).net_file
+    lines = np.array([line.arc_m for line in sc.stop_lines(net_file, section)])
+    rows = []
+    for (run, begin, end), e1 in det[det["kind"] == "e1"].groupby(["run", "begin_s", "end_s"]):
+        x = traj[(traj["run"] == run) & (traj["time_s"] >= begin) & (traj["time_s"] < end)]
+        samples = x["time_s"].nunique()
+        if samples == 0:
+            continue
+        k, v, arcs = station_density(e1, section), station_speeds(e1), x["arc_m"].to_numpy()
+        for arc, est in k.items():
+            ahead = lines[lines >= arc]
+            lanes = int(section.n_lanes[section.edge_index(np.array([arc]))[0]])
+            near = ((arcs >= arc - NEAR_M) & (arcs < arc + NEAR_M)).sum() / samples
+            rows.append(
+                {
+                    "truth": gt.parent.parent.name,
+                    "run": run,
+                    "begin_s": begin,
+                    "arc_m": arc,
+                    "to_line_m": float(ahead[0] - arc) if len(ahead) else np.inf,
+                    "speed_mps": float(v.get(arc, np.nan)),
+                    "est_vpkm": float(est) / lanes,
+                    "true_vpkm": float(near) / (2.0 * NEAR_M / 1000.0) / lanes,
+                }
+            )
+    out = pd.DataFrame(rows)
+    out["band"] = pd.cut(out["to_line_m"], BANDS_M, labels=BAND_NAMES)
+    return out
+
+
+def station_summary(stations: pd.DataFrame) -> pd.DataFrame:
+    """Per band: stations' intervals, mean interval speed, mean read and true density."""
+    g = stations.groupby("band", observed=True)
+    return pd.DataFrame(
+        {
+            "intervals": g.size(),
+            "speed_mps": g["speed_mps"].mean(),
+            "est_vpkm": g["est_vpkm"].mean(),
+            "true_vpkm": g["true_vpkm"].mean(),
+        }
+    ).round(1)
+
+
 def part_summary(parts: pd.DataFrame) -> pd.DataFrame:
     """Mean absolute error and bias per lane of each part, free / congested, over the
     snapshots the estimate covers (the rest's interval density exists: ``k_estimates``
@@ -173,6 +233,12 @@ def main(args: list[str] | None = None) -> int:
         help="also the junction stretches' error from their stop bars' counts timed by the "
         "programs and from the rest's density (a diagnostic: not added to the parts)",
     )
+    p.add_argument(
+        "--stations",
+        action="store_true",
+        help="also each station's read density against the true one within 20 m, by its "
+        "distance to the next stop line (stations.csv)",
+    )
     o = p.parse_args(args)
     both = [approach_rows(gt, o.start_s, o.junction_counts) for gt in o.truths]
     rows = pd.concat([r for r, _ in both], ignore_index=True)
@@ -180,6 +246,12 @@ def main(args: list[str] | None = None) -> int:
     with pd.option_context("display.width", 250, "display.max_rows", 1000):
         print(rows.round(2).to_string(index=False))
         print(part_summary(parts).to_string())
+    if o.stations:
+        stations = pd.concat([station_rows(gt, o.start_s) for gt in o.truths], ignore_index=True)
+        print(station_summary(stations).to_string())
+        if o.out is not None:
+            o.out.mkdir(parents=True, exist_ok=True)
+            stations.to_csv(o.out / "stations.csv", index=False)
     if o.out is not None:
         o.out.mkdir(parents=True, exist_ok=True)
         rows.to_csv(o.out / "approaches.csv", index=False)

@@ -60,6 +60,16 @@ def test_the_approaches_and_parts_of_a_signalised_record(tmp_path: Path) -> None
     table_j = script.part_summary(parts_j)
     assert table_j["all abs"].equals(table["all abs"])
     assert (table_j["junctions abs"] < table_j["junction_density abs"]).all(), table_j
+    # --stations: every station of every interval, banded by its distance to the next stop
+    # line; the point loops at the stop bars read fewer vehicles than stand there (a queue's
+    # standing time is not in flow over the passing speed; docs/sections-log.md, stop 45).
+    stations = script.station_rows(gt)
+    per = stations.groupby(["run", "begin_s"]).size()
+    assert len(per) >= 4 and (per == per.iloc[0]).all()
+    assert (stations["true_vpkm"] >= 0).all() and np.isinf(stations["to_line_m"]).any()
+    summary = script.station_summary(stations)
+    assert summary.loc["stop bar", "est_vpkm"] < summary.loc["stop bar", "true_vpkm"], summary
+    assert summary["intervals"].sum() == len(stations)
 
 
 def test_a_runs_ground_truth_names_its_scenario(tmp_path: Path) -> None:
