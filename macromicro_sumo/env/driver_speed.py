@@ -74,7 +74,8 @@ QUEUED_ENTRY_SHARE = 0.65
 # drawn 522 33, 0.88 (departSpeed "max": at the safe speed behind the queue), 549 133,
 # 0.93, 501 17, 0.75, 563 11, 0.91; the signalised arterials' held sights stand in a
 # red's queue: 528 0 of 62, 521 2 of 61, 837 3 of 140 ("queued"; with every held sight,
-# stop 44: "held" at 0.13, 0.22, 0.27); 565's 25 of 62 move at 0.79 of their tops ("held").
+# stop 44: "held" at 0.13, 0.22, 0.27); 565's 25 of 62 move at 0.79 of their tops ("held",
+# which loses there once deploy.turn_gap is "sumo": 0.773 -> 0.853 m/s, so "auto" stays opt-in).
 ENTRY_AT_OWN_SHARE = 1.0 - REACHED_SHARE
 # Fewer observed held first sights than this tell nothing: "queued" (the default's rule).
 MIN_HELD_SIGHTS = 5
