@@ -46,6 +46,7 @@ from macromicro_sumo.deploy.safety import (
     speed_commands,
 )
 from macromicro_sumo.deploy.slots import NOT_ASKED, VehicleSlots
+from macromicro_sumo.deploy.turn_gap import turn_gap_caps
 from macromicro_sumo.deploy.turns import Turns
 from macromicro_sumo.road.leaders import stop_distance_m
 from macromicro_sumo.road.physics import safe_speed
@@ -386,6 +387,8 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
                 safe[behind] = np.minimum(safe[behind], line)
         if near:
             cap = self.yields(sim, vids, near, obs[:, 0], safe)
+        # LC2013's speed requests a command overrides: a gap to change into, no passing right.
+        cap = turn_gap_caps(self.sc, self.section, self.shape_of, st, rows, cap)
         cap = keep_right_caps(self.sc, self.section, self.shape_of, st, rows, cap)
 
         def layer() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -9,7 +9,6 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from macromicro_sumo.deploy.turn_gap import turn_gap_caps
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.states import VehicleStates
@@ -83,8 +82,6 @@ def keep_right_caps(
     no blocked test tried (speed below 0.7-0.8 x the limit or 2-4 m/s below the leader's
     own allowed speed, none ahead free, none in the first 150-300 m) kept 501's gain without
     549's loss. ``shape_of``: vehicle -> (length, minGap, decel)."""
-    # deploy.turn_gap: LC2013's other speed request a command overrides (``deploy.turn_gap``)
-    cap = turn_gap_caps(sc, section, shape_of, st, rows, cap)
     d = sc.deploy
     if d.keep_right != "blocked" or d.merge != "sumo" or sc.policy.driver_speed == "drawn":
         return cap
