@@ -49,7 +49,6 @@ from macromicro_sumo.deploy.slots import NOT_ASKED, VehicleSlots
 from macromicro_sumo.deploy.turn_gap import turn_gap_caps
 from macromicro_sumo.deploy.turns import Turns
 from macromicro_sumo.road.leaders import stop_distance_m
-from macromicro_sumo.road.physics import safe_speed
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
 from macromicro_sumo.road.vtype import VTypePhysics, read_vtype
 from macromicro_sumo.sumo.signal_reach import signal_lanes
@@ -374,17 +373,8 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
                 own = self.brake_handover(
                     slots, own, lead_decel, gap, obs[:, 0], lead_speed, self.steps
                 )
-            safe = leader_safe_speed(
-                obs, gap, own, lead_decel, self.sc.simulation.step_length_s, lead_speed
-            )
-            # A red line beyond a nearer leader (one passing its yellow): SUMO's driver
-            # stops at the line too; behind the leader alone it sped up to it (565, hC44).
-            red = self.red_gap_m
-            if red is not None and np.count_nonzero(behind := (red < _INF) & (gap < red)):
-                dt = self.sc.simulation.step_length_s
-                b = own[behind]
-                line = safe_speed(red[behind], np.zeros_like(b), b, b, dt)
-                safe[behind] = np.minimum(safe[behind], line)
+            dt = self.sc.simulation.step_length_s
+            safe = leader_safe_speed(obs, gap, own, lead_decel, dt, lead_speed, self.red_gap_m)
         if near:
             cap = self.yields(sim, vids, near, obs[:, 0], safe)
         # LC2013's speed requests a command overrides: a gap to change into, no passing right.

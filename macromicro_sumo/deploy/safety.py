@@ -94,16 +94,24 @@ def leader_safe_speed(
     lead_decel: np.ndarray,
     dt_s: float,
     lead_speed: np.ndarray | None = None,
+    red_gap: np.ndarray | None = None,
 ) -> np.ndarray:
     """Per vehicle, ``safe_speed`` [m/s] behind the leader it observes (``gap``: SUMO's gap
     to it, ``NO_LEADER_GAP_M`` or more: none, inf; its speed obs[:, 0] - obs[:, 3]; a
     standing leader at a stop line or lane end included): the cap of ``safety_cap``,
     computed once a step and shared with a driver's merge handling (``deploy.drivers``).
-    ``lead_speed``: obs[:, 0] - obs[:, 3] if computed already."""
+    ``lead_speed``: obs[:, 0] - obs[:, 3] if computed already. ``red_gap``: the gap to each
+    one's red line (inf: none; None: no light ahead of anyone); a red line beyond a nearer
+    leader (one passing its yellow) caps too, as SUMO's driver stops at the line: behind
+    the leader alone it sped up to it (drawn 565, stop 44, hC44)."""
     if lead_speed is None:
         lead_speed = obs[:, 0] - obs[:, 3]
     safe = safe_speed(gap, lead_speed, decel, lead_decel, dt_s)
     safe[~(gap < _NO_LEADER_GAP)] = _INF  # no leader: no cap (safe_speed's is fresh)
+    if red_gap is not None and np.count_nonzero(behind := (red_gap < _INF) & (gap < red_gap)):
+        b = decel[behind]
+        line = safe_speed(red_gap[behind], np.zeros_like(b), b, b, dt_s)
+        safe[behind] = np.minimum(safe[behind], line)
     return safe
 
 
