@@ -46,7 +46,7 @@ from macromicro_sumo.deploy.safety import (
     speed_commands,
 )
 from macromicro_sumo.deploy.slots import NOT_ASKED, VehicleSlots
-from macromicro_sumo.deploy.turn_gap import turn_gap_caps
+from macromicro_sumo.deploy.turn_gap import junction_lanes, turn_gap_caps
 from macromicro_sumo.deploy.turns import Turns
 from macromicro_sumo.road.leaders import stop_distance_m
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
@@ -209,11 +209,17 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
         # the first take, which knows the net file)
         self.turns_mode = sc.deploy.turns
         self.turns: Turns | None = None
+        self.gap_lanes: frozenset[str] | None = None  # deploy.turn_gap's junction lanes
 
     def take(self, sim: Simulation, vids: list[str]) -> None:
         if self.turns_mode != "off" and self.turns is None:
             dt = self.sc.simulation.step_length_s
             self.turns = Turns(self.section, sim.options.net_file, dt)
+        if self.gap_lanes is None:  # where a turner changes lanes, read from the net once
+            on = self.sc.deploy.turn_gap == "sumo"
+            self.gap_lanes = (
+                junction_lanes(self.section, sim.options.net_file) if on else frozenset()
+            )
         sim.set_speed_mode(vids, self.mode)
         for v in vids:
             if v not in self.slots.of:
@@ -378,7 +384,7 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
         if near:
             cap = self.yields(sim, vids, near, obs[:, 0], safe)
         # LC2013's speed requests a command overrides: a gap to change into, no passing right.
-        cap = turn_gap_caps(self.sc, self.section, self.shape_of, st, rows, cap)
+        cap = turn_gap_caps(self.sc, self.section, self.shape_of, st, rows, cap, self.gap_lanes)
         cap = keep_right_caps(self.sc, self.section, self.shape_of, st, rows, cap)
 
         def layer() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -33,7 +33,6 @@ import numpy as np
 from macromicro_sumo.deploy.turns import junction_edges, turn_limits
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.section import SectionScenario
-from macromicro_sumo.sumo.inputs import scenario_inputs
 from macromicro_sumo.sumo.simulation import Simulation
 from macromicro_sumo.sumo.states import VehicleStates
 
@@ -86,20 +85,6 @@ def change_sides(
     return at, sides
 
 
-# Per scenario object (held, so its id is not reused) and section: its ``junction_lanes``,
-# read from the net once (a call a step to resolve the scenario's files would cost more
-# than the caps).
-_JUNCTION_LANES: dict[int, tuple[SectionScenario, tuple[str, ...], frozenset[str]]] = {}
-
-
-def _lanes_of(sc: SectionScenario, section: Section) -> frozenset[str]:
-    got = _JUNCTION_LANES.get(id(sc))
-    if got is None or got[0] is not sc or got[1] != section.edge_ids:
-        lanes = junction_lanes(section, scenario_inputs(sc).net_file)
-        got = _JUNCTION_LANES[id(sc)] = (sc, section.edge_ids, lanes)
-    return got[2]
-
-
 def turn_gap_caps(
     sc: SectionScenario,
     section: Section,
@@ -107,6 +92,7 @@ def turn_gap_caps(
     st: VehicleStates,
     rows: np.ndarray,
     cap: np.ndarray | None,
+    on: frozenset[str] | None,
 ) -> np.ndarray | None:
     """With ``deploy.turn_gap = "sumo"``: ``cap`` (per commanded vehicle, rows ``rows`` of the
     road's state ``st``; None: none) lowered to ``gap_caps`` where SUMO asked a commanded
@@ -114,10 +100,9 @@ def turn_gap_caps(
     own (it falls back to a gap) and a follower's that blocks the change (it opens one, as
     LC2013 asks a SUMO driver to cooperate), any vehicle on the section's lanes the changer
     (one SUMO drives, a handed-over one, a commanded one). ``shape_of``: vehicle -> (length,
-    minGap, decel)."""
+    minGap, decel); ``on``: the section's ``junction_lanes`` (the driver reads them once)."""
     if sc.deploy.turn_gap != "sumo":
         return cap
-    on = _lanes_of(sc, section)
     if not on or not len(rows):  # no junction edge (a motorway section): nothing asked
         return cap
     at, sides = change_sides(section, st.lanes, on)
