@@ -29,6 +29,7 @@ from operator import and_
 
 import numpy as np
 
+from macromicro_sumo.deploy.brake_plan import BrakeHandover, planned_decel
 from macromicro_sumo.deploy.keep_right import keep_right_caps
 from macromicro_sumo.deploy.merge_yield import LANE_END_RECHECK_STEPS, MergeYield
 from macromicro_sumo.deploy.observe import STANDING, LaneTable, Table, observe_rows, states_of
@@ -40,9 +41,7 @@ from macromicro_sumo.deploy.population import (
 from macromicro_sumo.deploy.safety import (
     SAFETY_TOLERANCE_MPS,
     SPEED_MODES,
-    BrakeHandover,
     leader_safe_speed,
-    planned_decel,
     speed_commands,
 )
 from macromicro_sumo.deploy.slots import NOT_ASKED, VehicleSlots
