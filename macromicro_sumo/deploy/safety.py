@@ -36,15 +36,6 @@ from collections.abc import Callable
 
 import numpy as np
 
-# The planned braking, split into deploy.brake_plan (stop 45): the drivers and the tests
-# import these names from here.
-from macromicro_sumo.deploy.brake_plan import (  # noqa: F401
-    HANDOVER_DECEL_RATE_MPS2_PER_S,
-    SAFETY_BRAKES,
-    BrakeHandover,
-    planned_decel,
-    supported_decel,
-)
 from macromicro_sumo.deploy.population import ActionBatch, DriveStats
 from macromicro_sumo.road.physics import brake_gap, constants, safe_speed, step_constants
 from macromicro_sumo.road.section import NO_LEADER_GAP_M

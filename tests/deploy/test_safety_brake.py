@@ -1,5 +1,5 @@
 """``deploy.safety_brake``: the braking the safety layer plans a driven vehicle's stop
-with (``deploy.safety.planned_decel``). "own" (its vType's decel) holds an IDM car behind
+with (``deploy.brake_plan.planned_decel``). "own" (its vType's decel) holds an IDM car behind
 a Krauss car to gaps SUMO's own IDM does not keep, since IDM's decel is its comfortable
 braking; "matched" (at least the leader's) does not, and still keeps every gap >= 0, in
 numpy and in real SUMO against adversarial commands."""
@@ -15,9 +15,9 @@ from deploy_nets import CAR, merge_net
 from section_files import routes_file, section_scenario
 from test_safety import _run_section, adversary
 
+from macromicro_sumo.deploy.brake_plan import SAFETY_BRAKES, planned_decel
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.observe import STOP_DECEL_MPS2
-from macromicro_sumo.deploy.safety import SAFETY_BRAKES, planned_decel
 from macromicro_sumo.road.leaders import section_leaders
 from macromicro_sumo.road.physics import safe_speed
 from macromicro_sumo.road.section import read_section

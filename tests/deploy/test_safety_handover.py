@@ -1,5 +1,5 @@
 """The safety layer's hand-over of a new driver's planned braking
-(``deploy.safety.BrakeHandover``, ``supported_decel``): a vehicle taken over from SUMO's
+(``deploy.brake_plan.BrakeHandover``, ``supported_decel``): a vehicle taken over from SUMO's
 own model arrives at the gap that model kept; SUMO's IDM cars (decel 3.0) keep gaps
 behind Krauss cars (decel 4.5) at which the layer, planning their stop at 3.0, braked them
 harder than their decel at their first driven step. Real SUMO, and numpy for the bound."""
@@ -15,14 +15,14 @@ from section_files import routes_file, section_scenario
 from test_safety import _run_section
 from test_safety_brake import CAR_IDM, DECEL
 
-from macromicro_sumo.deploy.drivers import SectionSpeedDriver
-from macromicro_sumo.deploy.observe import STOP_DECEL_MPS2
-from macromicro_sumo.deploy.safety import (
+from macromicro_sumo.deploy.brake_plan import (
     HANDOVER_DECEL_RATE_MPS2_PER_S,
     BrakeHandover,
     planned_decel,
     supported_decel,
 )
+from macromicro_sumo.deploy.drivers import SectionSpeedDriver
+from macromicro_sumo.deploy.observe import STOP_DECEL_MPS2
 from macromicro_sumo.road.physics import safe_speed
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, read_section
 from macromicro_sumo.scenario.load import load_scenario
