@@ -1,53 +1,102 @@
 """The safety layer's own time a step at Bremen, A/B: the inputs of every call of
-``BrakeHandover``, ``leader_safe_speed`` and ``safety_cap`` (``deploy.safety``) in one
-Bremen policy run (``scripts/ab_deploy.py``'s run 0, the base package driving) are
-recorded, then replayed through the ``deploy/safety.py`` of the base package and of
-NEW_ROOT (another checkout or worktree), alternated over rounds: the median time a call
-of each function, and whether every output is the same to the bit.
+``BrakeHandover`` (``deploy.brake_plan``), ``leader_safe_speed`` and ``safety_cap``
+(``deploy.safety``) in one Bremen policy run (``scripts/ab_deploy.py``'s run 0, the base
+package driving) are recorded, then replayed through the ``deploy/brake_plan.py`` and
+``deploy/safety.py`` of the base package and of NEW_ROOT (another checkout or worktree),
+alternated over rounds: the median time a call of each function, and whether every output
+is the same to the bit.
 
 Why: the functions cost tens of us a step, while a whole deployment run's A/B
 (``ab_deploy.py``) moves by hundreds at this machine's load; replayed alone, identical code
 differs by about +-2 us a call (stop 42).
 
     PYTHONPATH=$PWD .venv/bin/python scripts/bench_safety.py NEW_ROOT [--rounds 5]
-        [--reps 3] [--checkpoint POLICY.pt]
+        [--reps 3] [--checkpoint POLICY.pt] [--duration-s S]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib.util
 import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
-from types import ModuleType
+from types import ModuleType, SimpleNamespace
 
 import numpy as np
 import torch
 
 HERE = Path(__file__).resolve().parent
 FUNCTIONS = ("BrakeHandover", "leader_safe_speed", "safety_cap")
+# The layer's modules in import order: safety.py may import brake_plan's names, so
+# brake_plan is loaded first and stands in sys.modules while safety.py runs. A root from
+# before brake_plan was split off safety.py (stop 45) has safety.py alone.
+LAYER = ("deploy.brake_plan", "deploy.safety")
 Call = tuple[str, tuple]
 
 
-def safety_module(root: Path, name: str) -> ModuleType:
-    """``macromicro_sumo/deploy/safety.py`` under ``root`` as a module called ``name``."""
-    path = root / "macromicro_sumo" / "deploy" / "safety.py"
-    if not path.is_file():
-        raise SystemExit(f"bench_safety.py: {path} not found (NEW_ROOT)")
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def layer_modules(root: Path) -> dict[str, ModuleType]:
+    """``LAYER``'s modules loaded from the package under ``root`` (registered as
+    ``macromicro_sumo.<m>`` while each loads, so a later one imports that root's copy of an
+    earlier one; ``sys.modules`` left as it was), keyed by the short name."""
+    full = [f"macromicro_sumo.{m}" for m in LAYER]
+    saved = {m: sys.modules.get(m) for m in full}
+    got: dict[str, ModuleType] = {}
+    safety = root / "macromicro_sumo" / "deploy" / "safety.py"
+    if not safety.is_file():
+        raise SystemExit(f"bench_safety.py: {safety} not found (NEW_ROOT)")
+    try:
+        for short, m in zip(LAYER, full, strict=True):
+            path = root / (m.replace(".", "/") + ".py")
+            if not path.is_file():  # brake_plan.py before stop 45
+                continue
+            spec = importlib.util.spec_from_file_location(m, path)
+            got[short] = sys.modules[m] = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(got[short])
+    finally:
+        for m, module in saved.items():
+            if module is None:
+                sys.modules.pop(m, None)
+            else:
+                sys.modules[m] = module
+    return got
 
 
-def record(checkpoint: Path) -> tuple[list[Call], float]:
-    """The safety-layer calls (name, copied arguments) of one Bremen run, and its step."""
+def layer(modules: dict[str, ModuleType]) -> SimpleNamespace:
+    """The replayed functions of one copy of the layer: ``BrakeHandover`` from brake_plan
+    (from safety where the copy has no brake_plan), the others from safety."""
+    safety = modules["deploy.safety"]
+    plan = modules.get("deploy.brake_plan", safety)
+    return SimpleNamespace(
+        BrakeHandover=plan.BrakeHandover,
+        leader_safe_speed=safety.leader_safe_speed,
+        safety_cap=safety.safety_cap,
+    )
+
+
+def root_layer(root: Path) -> SimpleNamespace:
+    """``layer`` of the package under ``root``."""
+    return layer(layer_modules(root))
+
+
+def base_layer() -> SimpleNamespace:
+    """``layer`` of the package this interpreter imports."""
+    import macromicro_sumo.deploy.brake_plan as plan  # noqa: PLC0415
+    import macromicro_sumo.deploy.safety as safety  # noqa: PLC0415
+
+    return layer({"deploy.brake_plan": plan, "deploy.safety": safety})
+
+
+def record(checkpoint: Path, duration_s: float | None = None) -> tuple[list[Call], float]:
+    """The safety-layer calls (name, copied arguments) of one Bremen run, and its step;
+    ``duration_s``: the run's length after the warm-up (None: the scenario's)."""
     sys.path.insert(0, str(HERE))
     import ab_deploy  # noqa: PLC0415 (a script beside this one)
 
+    import macromicro_sumo.deploy.brake_plan as plan  # noqa: PLC0415
     import macromicro_sumo.deploy.drivers as drivers  # noqa: PLC0415
     import macromicro_sumo.deploy.safety as safety  # noqa: PLC0415
 
@@ -56,8 +105,11 @@ def record(checkpoint: Path) -> tuple[list[Call], float]:
     def copied(args: tuple) -> tuple:
         return tuple(a.copy() if isinstance(a, np.ndarray) else a for a in args)
 
+    # Where each is looked up when a driver runs: the class's method (drivers holds the
+    # class), drivers' own name for leader_safe_speed, safety's global for safety_cap
+    # (speed_commands calls it).
     handover, safe, cap = (
-        safety.BrakeHandover.__call__,
+        plan.BrakeHandover.__call__,
         drivers.leader_safe_speed,
         safety.safety_cap,
     )
@@ -74,7 +126,7 @@ def record(checkpoint: Path) -> tuple[list[Call], float]:
         calls.append(("safety_cap", copied(args)))
         return cap(*args)
 
-    safety.BrakeHandover.__call__, drivers.leader_safe_speed, safety.safety_cap = (
+    plan.BrakeHandover.__call__, drivers.leader_safe_speed, safety.safety_cap = (
         rec_handover,
         rec_safe,
         rec_cap,
@@ -85,11 +137,14 @@ def record(checkpoint: Path) -> tuple[list[Call], float]:
         with tempfile.TemporaryDirectory() as tmp_name:
             tmp = Path(tmp_name)
             sc = bench.bremen_scenario(tmp)
+            if duration_s is not None:
+                sim = dataclasses.replace(sc.simulation, duration_s=float(duration_s))
+                sc = dataclasses.replace(sc, simulation=sim)
             agent, _ = bench.agent_for(sc, checkpoint)
             act = ab_deploy.base_batch.policy_batch(agent, sc.deploy.actor_dtype)
             ab_deploy.one_run(sc, tmp / "run", drivers.SectionSpeedDriver, act)
     finally:
-        safety.BrakeHandover.__call__, drivers.leader_safe_speed, safety.safety_cap = (
+        plan.BrakeHandover.__call__, drivers.leader_safe_speed, safety.safety_cap = (
             handover,
             safe,
             cap,
@@ -97,16 +152,15 @@ def record(checkpoint: Path) -> tuple[list[Call], float]:
     return calls, sc.simulation.step_length_s
 
 
-def replay(module: ModuleType, calls: list[Call], dt_s: float) -> tuple[dict[str, float], list]:
+def replay(funcs: SimpleNamespace, calls: list[Call], dt_s: float) -> tuple[dict[str, float], list]:
     """Seconds spent in each function over ``calls`` (one ``BrakeHandover`` for them all,
     as a run has), and every output."""
     spent = dict.fromkeys(FUNCTIONS, 0.0)
     outs = []
-    handover = module.BrakeHandover(dt_s)
     run = {
-        "BrakeHandover": handover,
-        "leader_safe_speed": module.leader_safe_speed,
-        "safety_cap": module.safety_cap,
+        "BrakeHandover": funcs.BrakeHandover(dt_s),
+        "leader_safe_speed": funcs.leader_safe_speed,
+        "safety_cap": funcs.safety_cap,
     }
     for name, args in calls:
         fresh = tuple(a.copy() if isinstance(a, np.ndarray) else a for a in args)
@@ -133,7 +187,12 @@ def same(x, y) -> bool:
 
 
 def compare(
-    base: ModuleType, new: ModuleType, calls: list[Call], dt_s: float, rounds: int, reps: int
+    base: SimpleNamespace,
+    new: SimpleNamespace,
+    calls: list[Call],
+    dt_s: float,
+    rounds: int,
+    reps: int,
 ) -> tuple[dict[str, tuple[float, float]], bool]:
     """Per function, the median us a call of base and new over ``rounds`` alternated rounds
     of ``reps`` replays each, and whether every output of new equals base's to the bit."""
@@ -142,10 +201,10 @@ def compare(
     outs: dict[str, list] = {}
     for r in range(rounds):
         for arm in ("base", "new") if r % 2 == 0 else ("new", "base"):
-            module = base if arm == "base" else new
+            funcs = base if arm == "base" else new
             total = dict.fromkeys(FUNCTIONS, 0.0)
             for _ in range(reps):
-                spent, outs[arm] = replay(module, calls, dt_s)
+                spent, outs[arm] = replay(funcs, calls, dt_s)
                 for f in FUNCTIONS:
                     total[f] += spent[f]
             for f in FUNCTIONS:
@@ -162,7 +221,9 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("new_root", type=Path, help="the checkout whose deploy/safety.py is new")
+    ap.add_argument(
+        "new_root", type=Path, help="the checkout whose deploy/brake_plan.py and safety.py are new"
+    )
     ap.add_argument("--rounds", type=int, default=5, help="alternated rounds (default 5)")
     ap.add_argument("--reps", type=int, default=3, help="replays a round (default 3)")
     ap.add_argument(
@@ -171,13 +232,21 @@ def main(argv: list[str] | None = None) -> int:
         default=HERE.parent / "runs" / "highway_bremen" / "policy" / "policy.pt",
         help="the Bremen policy (as bench_deploy.py's)",
     )
+    ap.add_argument(
+        "--duration-s",
+        type=float,
+        default=None,
+        help="the recorded run's length after the warm-up (default: the scenario's 600 s)",
+    )
     args = ap.parse_args(argv)
-    import macromicro_sumo.deploy.safety as base  # noqa: PLC0415
-
-    new = safety_module(args.new_root.resolve(), "bench_safety_new")
-    calls, dt = record(args.checkpoint)
+    base = base_layer()
+    new = root_layer(args.new_root.resolve())
+    calls, dt = record(args.checkpoint, args.duration_s)
     medians, equal = compare(base, new, calls, dt, args.rounds, args.reps)
-    print(f"{len(calls)} calls recorded (Bremen run 0); us a call, median of {args.rounds}:")
+    counts = ", ".join(f"{f} {sum(n == f for n, _ in calls)}" for f in FUNCTIONS)
+    print(
+        f"{len(calls)} calls recorded (Bremen run 0: {counts}); us a call, median of {args.rounds}:"
+    )
     for f, (b, n) in medians.items():
         print(f"  {f:18s} base {b:7.2f}  new {n:7.2f}  diff {n - b:+6.2f}")
     print(f"  outputs: {'the same to the bit' if equal else 'DIFFERENT'}")
