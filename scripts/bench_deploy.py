@@ -232,7 +232,12 @@ def budget_pair(sc, tmp: Path, act) -> dict[str, float]:
     try:
         alone, vs0, _ = bremen_run(sc, tmp, "sumo", act, run=0)
         for owner, name, part in patched:
-            setattr(owner, name, b.timed(getattr(owner, name), part, part == "driver"))
+            timed = b.timed(getattr(owner, name), part, part == "driver")
+            # A static method (``Simulation.vehicle_type``) stays one: a plain function set
+            # on the class would be handed the instance as its first argument.
+            if isinstance(owner.__dict__.get(name), staticmethod):
+                timed = staticmethod(timed)
+            setattr(owner, name, timed)
         timed_act = b.timed(act, "driver: policy (actor + prior)")
         timed_act.driver_speeds = getattr(act, "driver_speeds", None)
         total, vs, _ = bremen_run(sc, tmp, "policy", timed_act, run=0)

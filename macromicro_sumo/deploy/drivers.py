@@ -48,6 +48,7 @@ from macromicro_sumo.deploy.slots import NOT_ASKED, VehicleSlots
 from macromicro_sumo.deploy.turn_gap import junction_lanes, turn_gap_caps
 from macromicro_sumo.deploy.turns import Turns
 from macromicro_sumo.road.leaders import stop_distance_m
+from macromicro_sumo.road.physics import count_nonzero
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
 from macromicro_sumo.road.vtype import VTypePhysics, read_vtype
 from macromicro_sumo.sumo.signal_reach import signal_lanes
@@ -156,7 +157,7 @@ class SectionDriver:
         n = len(st.ids)
         # Nobody below the loosest threshold (that of the least decel met; rounding is
         # monotonic): nobody below their own, and no per-vehicle thresholds a step.
-        if not n or not np.count_nonzero(st.accel_mps2 < self._loosest_brake):
+        if not n or not count_nonzero(st.accel_mps2 < self._loosest_brake):
             return
         # The decel of the vehicle's own demand vType, whatever it drives with now, as the
         # threshold -decel - tolerance; kept while the vehicles on the road are the same.
@@ -165,7 +166,7 @@ class SectionDriver:
             decel = np.fromiter(map(self.decel_of.get, st.ids, repeat(np.inf)), float, n)
             limit = -decel - BRAKING_TOLERANCE_MPS2
             self._brake_limit = (st.ids, limit)
-        self.stats.emergency_brakings += int(np.count_nonzero(st.accel_mps2 < limit))
+        self.stats.emergency_brakings += int(count_nonzero(st.accel_mps2 < limit))
 
     def take(self, sim: Simulation, vids: list[str]) -> None:
         """Vehicles that entered the section (or the population's drive) this step."""
@@ -357,7 +358,7 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
             near = self.blocking(sim, vids, slots, st)
         # Last step's command against the speed SUMO applied (-inf: none to compare with).
         self.stats.safety_acted += int(
-            np.count_nonzero(speed < self.slots.last_mps[slots] - _SAFETY_TOLERANCE)
+            count_nonzero(speed < self.slots.last_mps[slots] - _SAFETY_TOLERANCE)
         )
         if self.has_lights is None:
             self.has_lights = sim.has_traffic_lights()
@@ -456,7 +457,7 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
         if self.has_lights and not self.signal_lanes.isdisjoint(lanes):
             red = self.stop_lines_m(sim, vids, lanes, at)
             # No red or yellow ahead of anyone (inf): the stops are the lane ends as they are.
-            if np.count_nonzero(red < _INF):
+            if count_nonzero(red < _INF):
                 gaps = np.array([self.vtypes[self.types[v]].stopline_gap_m for v in vids])
                 stop_m = stop_distance_m(stop_m, red, gaps)  # gaps: jmStoplineGap
                 self.red_gap_m = stop_distance_m(_INF, red, gaps)

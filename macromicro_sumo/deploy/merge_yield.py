@@ -19,6 +19,7 @@ from macromicro_sumo.deploy.lane_change import (
 )
 from macromicro_sumo.deploy.population import DriveStats
 from macromicro_sumo.deploy.slots import VehicleSlots
+from macromicro_sumo.road.physics import count_nonzero
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.simulation import Simulation
@@ -205,7 +206,7 @@ class MergeYield:
         la = lookahead_speeds(la, speed, self.sc.simulation.step_length_s)
         self.slots.lookahead_mps[slots] = la
         offset = self.slots.lane_end.offset[slots]
-        if not np.count_nonzero(offset):  # nobody must change lane: 0 for all
+        if not count_nonzero(offset):  # nobody must change lane: 0 for all
             return None
         return strategic_reach_m(offset, la, self.slots.with_gap[slots])
 
@@ -240,7 +241,7 @@ class MergeYield:
         with SUMO's own model, handed over until they are on a lane that carries them on;
         None: all). ``merging`` holds the others."""
         must_now = ahead_m <= reach_m
-        if not self.merging and not np.count_nonzero(must_now):
+        if not self.merging and not count_nonzero(must_now):
             return None  # nobody merging, before or now
         now = set(compress(vids, must_now.tolist()))
         if now - self.merging:

@@ -20,6 +20,7 @@ from macromicro_sumo.road.physics import (
     LIMIT_COLUMN,
     NEXT_LIMIT_COLUMN,
     OBSERVATION_FEATURES,
+    count_nonzero,
     has_lookahead,
     observes_gap,
     set_own_features,
@@ -230,9 +231,9 @@ def observe_rows(
     # None ahead of anyone (inf or NaN: nothing can be nearer; every step of Bremen's
     # section): nearer_standing's five array calls not made.
     closer = None
-    if np.count_nonzero(stop_m < _INF):
+    if count_nonzero(stop_m < _INF):
         closer = nearer_standing(spacing, stop_m, length, min_gap, lengths[n:])
-    if any_closer := closer is not None and bool(np.count_nonzero(closer)):
+    if any_closer := closer is not None and bool(count_nonzero(closer)):
         lead_v[closer] = 0.0
         np.copyto(sumo_gap, np.maximum(stop_m, _ZERO), where=closer)
         lead_decel[closer] = STOP_DECEL_MPS2

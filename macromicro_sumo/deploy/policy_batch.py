@@ -67,13 +67,20 @@ def actor_forward(
     kept = [np.empty((0, 0 if layer is None else len(layer[1])), dtype) for layer in layers]
     tiled = list(kept)
     f64 = dtype is np.float64
+    # float32: the normalised observations, kept between calls as the layers' outputs are
+    # (``normed``): the float64 quotient is cast as it is written, astype's values to the bit
+    # (round to nearest), one array pass and allocation fewer a step.
+    normed = [np.empty((0, len(shift)), dtype)]
 
     def forward(obs: np.ndarray) -> np.ndarray:
         x0 = np.subtract(obs, shift)
-        np.divide(x0, scale, out=x0)
-        if not f64:
-            x0 = x0.astype(dtype)
         n = len(x0)
+        if f64:
+            np.divide(x0, scale, out=x0)
+        else:
+            if len(normed[0]) < n:
+                normed[0] = np.empty((max(n, ACTOR_ROWS // 2), len(shift)), dtype)
+            x0 = np.divide(x0, scale, out=normed[0][:n])
         if n <= ACTOR_ROWS:  # one product per layer
             x = x0
             for i, layer in enumerate(layers):

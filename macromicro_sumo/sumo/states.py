@@ -4,8 +4,9 @@ lane-change mode bits. Plain values, no libsumo: readers need not start SUMO."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from functools import cached_property
+from typing import Any
 
 import numpy as np
 
@@ -19,6 +20,27 @@ DEFAULT_SPEED_MODE = 31
 DEFAULT_LANE_CHANGE_MODE = 0b011001010101  # SUMO's default lane-change mode (1621)
 
 
+class _Once:
+    """``functools.cached_property`` without its lock: the value computed at the first read
+    and kept in the instance's ``__dict__``, which later reads find first (a non-data
+    descriptor). Python 3.11's cached_property takes an RLock at that first read, ~1 us of
+    a step (``VehicleStates.index``, read first by a deployment's driver every step); the
+    state read is one thread's (3.12 dropped the lock)."""
+
+    def __init__(self, func: Callable[[Any], Any]) -> None:
+        self.func, self.name = func, func.__name__
+        self.__doc__ = func.__doc__
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    def __get__(self, obj: Any, owner: type | None = None) -> Any:
+        if obj is None:
+            return self
+        value = obj.__dict__[self.name] = self.func(obj)
+        return value
+
+
 @dataclass(frozen=True)
 class VehicleStates:
     """Every vehicle on the road (not teleporting) after a step, in SUMO's order: sorted
@@ -30,7 +52,7 @@ class VehicleStates:
     speed_mps: np.ndarray
     accel_mps2: np.ndarray
 
-    @cached_property
+    @_Once
     def index(self) -> dict[str, int]:
         """Vehicle ID -> row."""
         return dict(zip(self.ids, range(len(self.ids)), strict=True))
