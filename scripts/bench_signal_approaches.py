@@ -14,7 +14,12 @@ the free-travel count, count >= 0 at the first bound: exact from an empty road).
 ``--junction-counts`` adds, beside the parts, the junction stretches' error counted from
 their stop bars' counts timed by the programs (``truth.junction_counts``: ``junctions``)
 and that of the interval density the rest holds on them (``junction_density``); the parts
-and their sum are unchanged. A ground truth is ``simulate``'s folder (its scenario beside it) or a
+and their sum are unchanged. ``--levels`` splits the rest by where it lies (``REST_PARTS``: the
+junction stretches from a stop bar to the first station past its line, the ends beyond the
+outermost stations, the other stretches) and each part's error into its level (the
+interval's mean estimate less the interval's mean truth over its snapshots) and its shape
+(the rest: where within the interval the snapshot falls); ``level_summary`` tables them per
+net and regime. A ground truth is ``simulate``'s folder (its scenario beside it) or a
 run's ``ground_truth`` (its scenario named by the run's manifest).
 
     .venv/bin/python scripts/bench_signal_approaches.py --start-s 240 \\
@@ -43,11 +48,24 @@ from macromicro_sumo.truth import signal_counts as sc  # noqa: E402
 from macromicro_sumo.truth.hidden_count import window_mean  # noqa: E402
 from macromicro_sumo.truth.interval_counts import effective_densities  # noqa: E402
 from macromicro_sumo.truth.junction_counts import junction_pieces  # noqa: E402
-from macromicro_sumo.truth.section_macro import station_density  # noqa: E402
-from macromicro_sumo.truth.stations import side_junction_arcs, station_speeds  # noqa: E402
+from macromicro_sumo.truth.section_macro import (  # noqa: E402
+    cut_at_lines,
+    integrate_stations,
+    loop_lengths_m,
+    station_density,
+)
+from macromicro_sumo.truth.stations import (  # noqa: E402
+    full_stations,
+    side_junction_arcs,
+    station_speeds,
+)
 
 NEAR_M = 20.0
 """The true density at a station: the vehicles within this either side of it."""
+
+REST_PARTS = ("junctions", "up_end", "down_end", "other")
+"""Where the rest (the density estimate) lies: from a stop bar over its junction to the first
+full station past the line, before the first full station, past the last one, elsewhere."""
 
 BANDS_M = (-1.0, 5.0, 25.0, 80.0, np.inf)
 BAND_NAMES = ("stop bar", "bar to 25 m", "25-80 m", "farther or none")
@@ -63,12 +81,101 @@ def scenario_file(gt: Path) -> Path:
     return Path(json.loads((gt.parent / "manifest.json").read_text())["scenario_file"])
 
 
+def rest_spans(
+    arcs: np.ndarray, lines: list[float], covered: list[tuple[float, float]], length_m: float
+) -> dict[str, list[tuple[float, float]]]:
+    """The section's stretches outside the counted pieces (``covered``) by ``REST_PARTS``,
+    cut at the full stations ``arcs`` (ascending) and the pieces' ends."""
+    ends = [x for span in covered for x in span]
+    cuts = sorted({0.0, float(length_m), *map(float, arcs), *ends})
+    out: dict[str, list[tuple[float, float]]] = {name: [] for name in REST_PARTS}
+    for lo, hi in zip(cuts[:-1], cuts[1:], strict=True):
+        mid = 0.5 * (lo + hi)
+        if hi - lo < 1e-6 or any(a <= mid < b for a, b in covered):
+            continue
+        if mid < arcs[0]:
+            out["up_end"].append((lo, hi))
+        elif mid >= arcs[-1]:
+            out["down_end"].append((lo, hi))
+        else:
+            below, above = arcs[arcs <= mid].max(), arcs[arcs > mid].min()
+            over = any(below < line <= above for line in lines)
+            out["junctions" if over else "other"].append((lo, hi))
+    return out
+
+
+def level_rows(
+    d: pd.DataFrame,
+    section: Section,
+    lines: list[float],
+    pieces: dict,
+    snaps: pd.DataFrame,
+    times: np.ndarray,
+    window_s: float,
+) -> pd.DataFrame:
+    """Per snapshot of one run: each counted piece's and each rest part's (``rest_spans``)
+    error, and its level (the interval's mean estimate less the interval's mean truth over
+    its snapshots, the interval being the one holding the snapshot)."""
+    covered = [span for piece in pieces.values() for span in piece.arcs_m]
+    spans = rest_spans(full_stations(d, section), lines, covered, section.length_m)
+    cut = lines if (loop_lengths_m(d) > 0).any() else []
+    dens = []
+    for (begin, end), e1 in d[d["kind"] == "e1"].groupby(["begin_s", "end_s"], sort=True):
+        per_station = cut_at_lines(station_density(e1, section), cut)
+        row = {"begin_s": begin, "end_s": end}
+        for name, parts in spans.items():
+            row[name] = sum(integrate_stations(per_station, section, lo, hi) for lo, hi in parts)
+        dens.append(row)
+    dens = pd.DataFrame(dens)
+    arcs_at = {t: x["arc_m"].to_numpy() for t, x in snaps.groupby("time_s")}
+
+    def on(t: float, parts) -> float:
+        a = arcs_at[t]
+        return float(sum(((a >= lo) & (a < hi)).sum() for lo, hi in parts))
+
+    rows = pd.DataFrame({"time_s": times})
+    rows["interval"] = np.searchsorted(dens["begin_s"].to_numpy(), times, "right") - 1
+    for name, piece in pieces.items():
+        rows[f"{name}_est"] = piece.vehicles
+        rows[f"{name}_true"] = [on(t, piece.arcs_m) for t in times]
+    for name, parts in spans.items():
+        rows[f"{name}_est"] = [window_mean(dens, name, t, window_s) for t in times]
+        rows[f"{name}_true"] = [on(t, parts) for t in times]
+    for name in [*pieces, *spans]:
+        est, true = rows.pop(f"{name}_est"), rows.pop(f"{name}_true")
+        by = rows["interval"]
+        rows[name] = est - true
+        rows[f"{name}_level"] = est.groupby(by).transform("mean") - true.groupby(by).transform(
+            "mean"
+        )
+    return rows.drop(columns="interval")
+
+
+def level_summary(levels: pd.DataFrame) -> pd.DataFrame:
+    """Per net (``truth``) and regime, and over all: each part's bias per lane, its level
+    and its shape (bias less level), over the snapshots the estimate covers (the rest's
+    interval density exists: ``k_estimates`` skips the others)."""
+    levels = levels[np.isfinite(levels["rest"])]
+    names = [c for c in ("approaches", "exit", *REST_PARTS) if c in levels]
+    out = pd.DataFrame(index=levels.index)
+    for c in names:
+        out[c] = levels[c].fillna(0.0) / levels["lanes"]
+        out[f"{c} level"] = levels[f"{c}_level"].fillna(0.0) / levels["lanes"]
+        out[f"{c} shape"] = out[c] - out[f"{c} level"]
+    keys = [levels["truth"], levels["congested"]]
+    table = out.groupby(keys).mean()
+    every = out.groupby(levels["congested"]).mean()
+    every.index = pd.MultiIndex.from_product([["all"], every.index])
+    return pd.concat([table, every]).round(2)
+
+
 def approach_rows(
-    gt: Path, start_s: float = 0.0, junctions: bool = False
+    gt: Path, start_s: float = 0.0, junctions: bool = False, levels: bool = False
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """(one row per run and approach: the constants' errors, vehicles; one row per snapshot:
     each part's error, vehicles) of the ground truth ``gt`` scored from ``start_s`` on;
-    ``junctions``: the junction stretches' errors, counted and by the rest's density, too."""
+    ``junctions``: the junction stretches' errors, counted and by the rest's density, too;
+    ``levels``: each part's and each rest part's error and level (``level_rows``)."""
     man = json.loads((gt / "manifest.json").read_text())["scenario"]
     section = Section.read(gt / "section.json")
     traj, det, _ = read_truth(gt, start_s)
@@ -129,6 +236,8 @@ def approach_rows(
             junction_pieces(d, section, lines, run, times, rest) if junctions else ({}, rest)
         )
         on_junctions = rest.assign(vehicles=rest["vehicles"] - less["vehicles"])
+        line_arcs = [line.arc_m for line in lines]
+        split = level_rows(d, section, line_arcs, pieces, g, times, window) if levels else None
         for k, t in enumerate(times):
             arcs = arcs_at[t]
             slow = (g.loc[g["time_s"] == t, "speed_mps"] <= SLOW_MPS).mean() >= SLOW_SHARE
@@ -149,6 +258,8 @@ def approach_rows(
                 row["junctions"] = float(piece.vehicles[k] - on.sum())
                 dens = window_mean(on_junctions, "vehicles", t, window)
                 row["junction_density"] = dens - float(on.sum())
+            if split is not None:
+                row |= split.iloc[k].drop("time_s").to_dict()
             parts.append(row)
     return pd.DataFrame(rows), pd.DataFrame(parts)
 
@@ -234,18 +345,26 @@ def main(args: list[str] | None = None) -> int:
         "programs and from the rest's density (a diagnostic: not added to the parts)",
     )
     p.add_argument(
+        "--levels",
+        action="store_true",
+        help="also the rest split into junction stretches, ends and other stretches, and each "
+        "part's error split into its level (interval mean) and shape (within the interval)",
+    )
+    p.add_argument(
         "--stations",
         action="store_true",
         help="also each station's read density against the true one within 20 m, by its "
         "distance to the next stop line (stations.csv)",
     )
     o = p.parse_args(args)
-    both = [approach_rows(gt, o.start_s, o.junction_counts) for gt in o.truths]
+    both = [approach_rows(gt, o.start_s, o.junction_counts, o.levels) for gt in o.truths]
     rows = pd.concat([r for r, _ in both], ignore_index=True)
     parts = pd.concat([x for _, x in both], ignore_index=True)
     with pd.option_context("display.width", 250, "display.max_rows", 1000):
         print(rows.round(2).to_string(index=False))
         print(part_summary(parts).to_string())
+        if o.levels:
+            print(level_summary(parts).to_string())
     if o.stations:
         stations = pd.concat([station_rows(gt, o.start_s) for gt in o.truths], ignore_index=True)
         print(station_summary(stations).to_string())

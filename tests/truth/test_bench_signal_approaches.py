@@ -60,6 +60,21 @@ def test_the_approaches_and_parts_of_a_signalised_record(tmp_path: Path) -> None
     table_j = script.part_summary(parts_j)
     assert table_j["all abs"].equals(table["all abs"])
     assert (table_j["junctions abs"] < table_j["junction_density abs"]).all(), table_j
+    # --levels: the rest split where it lies; those parts add up to the rest, each part's
+    # level is one value per interval, and the parts' errors stay as they were.
+    _, parts_l = script.approach_rows(gt, levels=True)
+    assert parts_l[cols].equals(parts[cols])
+    ok = parts_l[np.isfinite(parts_l["rest"])]
+    split = ok[list(script.REST_PARTS)].sum(axis=1)
+    assert len(ok) >= 20 and np.allclose(split, ok["rest"], atol=1e-6)
+    assert (ok["junctions"] != 0).any() and (ok["up_end"] != 0).any()
+    begins = np.searchsorted(np.arange(0.0, 1e4, 90.0), ok["time_s"], "right")
+    for name in ("approaches", "junctions"):
+        assert (ok.groupby(["run", begins])[f"{name}_level"].nunique() == 1).all()
+        shape = ok[name] - ok[f"{name}_level"]
+        assert np.abs(shape.groupby([ok["run"], begins]).mean()).max() <= 1e-6
+    levels = script.level_summary(parts_l)
+    assert "all" in levels.index.get_level_values(0) and "junctions shape" in levels
     # --stations: every station of every interval, banded by its distance to the next stop
     # line; the point loops at the stop bars read fewer vehicles than stand there (a queue's
     # standing time is not in flow over the passing speed; docs/sections-log.md, stop 45).
