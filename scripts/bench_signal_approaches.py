@@ -81,6 +81,13 @@ def scenario_file(gt: Path) -> Path:
     return Path(json.loads((gt.parent / "manifest.json").read_text())["scenario_file"])
 
 
+def truth_name(gt: Path) -> str:
+    """The net a ground truth stands for: a run's folder (``macromicro run``'s
+    ``ground_truth``), else the folder above the scenario's (the bench's
+    ``arterial_NNN/<variant>/gt``)."""
+    return gt.parent.name if gt.name == "ground_truth" else gt.parent.parent.name
+
+
 def rest_spans(
     arcs: np.ndarray, lines: list[float], covered: list[tuple[float, float]], length_m: float
 ) -> dict[str, list[tuple[float, float]]]:
@@ -212,7 +219,7 @@ def approach_rows(
             est = sc.approach_count(d, section, a, times, spacing)
             rows.append(
                 {
-                    "truth": gt.parent.parent.name,
+                    "truth": truth_name(gt),
                     "run": run,
                     "approach": i,
                     "up_m": a.up_m,
@@ -241,7 +248,7 @@ def approach_rows(
         for k, t in enumerate(times):
             arcs = arcs_at[t]
             slow = (g.loc[g["time_s"] == t, "speed_mps"] <= SLOW_MPS).mean() >= SLOW_SHARE
-            row = {"truth": gt.parent.parent.name, "run": run, "time_s": t}
+            row = {"truth": truth_name(gt), "run": run, "time_s": t}
             row |= {"congested": bool(slow), "lanes": lanes_mean}
             inside = np.zeros(len(arcs), bool)
             for name, piece in pieces.items():
@@ -288,7 +295,7 @@ def station_rows(gt: Path, start_s: float = 0.0) -> pd.DataFrame:
             near = ((arcs >= arc - NEAR_M) & (arcs < arc + NEAR_M)).sum() / samples
             rows.append(
                 {
-                    "truth": gt.parent.parent.name,
+                    "truth": truth_name(gt),
                     "run": run,
                     "begin_s": begin,
                     "arc_m": arc,

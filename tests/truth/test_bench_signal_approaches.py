@@ -97,3 +97,8 @@ def test_a_runs_ground_truth_names_its_scenario(tmp_path: Path) -> None:
     (run / "ground_truth").mkdir(parents=True)
     (run / "manifest.json").write_text('{"scenario_file": "/elsewhere/k528.toml"}')
     assert script.scenario_file(run / "ground_truth") == Path("/elsewhere/k528.toml")
+    # Tables name the net: the run's folder, else the bench's arterial above its variant.
+    assert script.truth_name(run / "ground_truth") == "run"
+    assert script.truth_name(tmp_path / "arterial_801" / "boundary_stations" / "gt") == (
+        "arterial_801"
+    )
