@@ -25,7 +25,6 @@ The ratios' distribution under censoring (lower bounds): ``env.driver_speed_rati
 from __future__ import annotations
 
 import dataclasses
-import weakref
 from collections.abc import Sequence
 from typing import Any
 
@@ -232,34 +231,15 @@ def entry_choice(
     return EntryChoice("held" if below else "queued", n, at_own)
 
 
-# ``resolved_entry``'s choices: (id of the truth, scenario digest and file, runs) -> (a weak
-# reference to that truth, the choice). Stage II and the evaluation each resolve "auto"
-# (the evaluation once per agent), and each read of the observed drivers steps every
-# recorded scene of the runs; the weak reference tells a new truth at a reused id.
-_CHOICES: dict[tuple, tuple[weakref.ref, EntryChoice]] = {}
-
-
-def _memo_choice(sc, truth, runs: np.ndarray, gap: bool) -> EntryChoice:
-    """``entry_choice`` of the observed drivers of ``runs``, once per (truth, scenario, runs)."""
-    key = (id(truth), sc.digest(), str(getattr(sc, "source", "")), np.asarray(runs).tobytes())
-    hit = _CHOICES.get(key)
-    if hit is not None and hit[0]() is truth:
-        return hit[1]
-    for k in [k for k, (ref, _) in _CHOICES.items() if ref() is None]:
-        del _CHOICES[k]  # their truths are gone
-    choice = entry_choice(observed_drivers(sc, truth, runs), gap, ratio_censoring(sc))
-    _CHOICES[key] = (weakref.ref(truth), choice)
-    return choice
-
-
 def resolved_entry(sc, truth, runs: np.ndarray | None = None) -> tuple[Any, EntryChoice | None]:
     """``sc`` with ``policy.driver_entry`` "auto" resolved (``entry_choice`` of the observed
     drivers of ``runs``; None: the train + val runs, those the drivers' ratios come from),
     and the choice; ``sc`` itself and None where it is not "auto". Where ``policy.driver_speed`` is
     not "memory" nobody reads the entry: "queued". Every stage that builds drivers (Stage
     II's banks and demand episodes, a prior's deployment, the deployment) resolves it from
-    the same runs, so they read one rule; what a stage records keeps "auto". The choice is
-    kept per (truth, scenario, runs) while the truth lives: read once, not per call."""
+    the same runs, so they read one rule; what a stage records keeps "auto". Each read steps
+    every recorded scene of the runs: a stage resolves once where it loads the truth and
+    passes the resolved scenario down (the evaluation to each agent's bank)."""
     if getattr(sc.policy, "driver_entry", "queued") != "auto":
         return sc, None
     if sc.policy.driver_speed != "memory":
@@ -268,7 +248,8 @@ def resolved_entry(sc, truth, runs: np.ndarray | None = None) -> tuple[Any, Entr
         if runs is None:
             splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
             runs = np.concatenate([splits["train"], splits["val"]])
-        choice = _memo_choice(sc, truth, runs, observes_gap(sc.policy.observation))
+        drivers = observed_drivers(sc, truth, runs)
+        choice = entry_choice(drivers, observes_gap(sc.policy.observation), ratio_censoring(sc))
     policy = dataclasses.replace(sc.policy, driver_entry=choice.entry)
     return dataclasses.replace(sc, policy=policy), choice
 

@@ -118,11 +118,10 @@ def driven_bank(sc, truth, bank: SectionBank, agent, seed: int) -> SectionBank:
     checkpoint) and each slot's tau where it has a ``driver_tau`` buffer
     (``policy.driver_follow``: the training rollouts' draw, ``follow_inputs``), as in
     training and deployment; unchanged for every other method (the IDM baselines know
-    nothing of either)."""
+    nothing of either). ``sc``: ``policy.driver_entry`` resolved (``resolved_entry``)."""
     quantiles = None if agent is None else getattr(agent, "driver_speed", None)
     if quantiles is not None and sc.policy.driver_speed != "none":
-        dsc = resolved_entry(sc, truth)[0]  # policy.driver_entry "auto": the train + val runs' rule
-        bank = drivers_bank(dsc, truth.section, bank, quantiles.double().numpy(), seed)
+        bank = drivers_bank(sc, truth.section, bank, quantiles.double().numpy(), seed)
     taus = None if agent is None else getattr(agent, "driver_tau", None)
     return bank if taus is None else follow_inputs(bank, None, None, taus.numpy(), seed)[0]
 
@@ -326,6 +325,7 @@ def evaluate_section(
     if "policy" not in policies:
         raise UserError("evaluate needs the trained policy (policy.pt)")
     truth = load_section_truth(data, sc)
+    drivers_sc = resolved_entry(sc, truth)[0]  # driver_entry "auto": the train + val runs' rule
     net = load_section_generator(generator, sc)
     agents = {name: load_policy(p, sc) for name, p in policies.items()}
     splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
@@ -393,7 +393,7 @@ def evaluate_section(
                 params = true_idm_by_episode(truth, oracle, kept, gen_bank)
                 methods["idm_true"] = true_idm_action(params, lead_m)
             for name in [m for m in METHOD_ORDER if m in methods]:
-                bank = driven_bank(sc, truth, gen_bank, agents.get(name), seed)
+                bank = driven_bank(drivers_sc, truth, gen_bank, agents.get(name), seed)
                 ro, counts_, per_k = _run(
                     sc, truth, bank, net_file, vclass, methods[name], h, seed, by_k=by_k
                 )

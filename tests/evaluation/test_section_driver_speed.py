@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 import torch
 
 from macromicro_sumo.env.driver_speed import QUANTILE_LEVELS, with_driver_factors
@@ -51,3 +52,8 @@ def test_a_policy_with_factors_gets_them_and_others_do_not() -> None:
     assert driven_bank(sc, TRUTH, b, SimpleNamespace(driver_speed=None), seed=7) is b
     off = SimpleNamespace(policy=SimpleNamespace(driver_speed="none"))
     assert driven_bank(off, TRUTH, b, agent, seed=7) is b
+    # policy.driver_entry "auto" is resolved once by evaluate_section, not per agent's bank:
+    # handed unresolved, the bank refuses it
+    auto = SimpleNamespace(policy=SimpleNamespace(driver_speed="drawn", driver_entry="auto"))
+    with pytest.raises(ValueError, match="policy.driver_entry 'auto' is resolved"):
+        driven_bank(auto, TRUTH, b, agent, seed=7)

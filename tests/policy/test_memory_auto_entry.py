@@ -93,12 +93,13 @@ def test_auto_reads_whether_the_observed_held_first_sights_are_at_their_speed(
         DriverSpeeds(np.ones(len(QUANTILE_LEVELS)), auto, 0)
     resolved, got = resolved_entry(auto, truth, truth.runs)
     assert got == choice and resolved.policy.driver_entry == entry
-    # read once per (truth, scenario, runs): Stage II and the evaluation ask again
+    # no memo (stop 46): each call reads the observed drivers of its runs, the same choice
+    # each time; a stage resolves once where it loads the truth and passes the result down
     reads = []
     monkeypatch.setattr(driver_speed, "observed_drivers", lambda *a: reads.append(a) or drivers)
-    assert resolved_entry(auto, truth, truth.runs)[1] is got and not reads
+    assert resolved_entry(auto, truth, truth.runs)[1] == got and len(reads) == 1
     assert resolved_entry(auto, truth, truth.runs[:1].astype(np.int32))[1] == got
-    assert len(reads) == 1  # other runs: read
+    assert len(reads) == 2 and reads[1][2].tolist() == truth.runs[:1].tolist()
     assert DriverSpeeds(np.ones(len(QUANTILE_LEVELS)), resolved, 0).entry == entry
     queued = dataclasses.replace(sc, policy=dataclasses.replace(sc.policy, driver_entry="queued"))
     assert resolved_entry(queued, truth, truth.runs) == (queued, None)
