@@ -83,9 +83,12 @@ def scenario_file(gt: Path) -> Path:
 
 def truth_name(gt: Path) -> str:
     """The net a ground truth stands for: a run's folder (``macromicro run``'s
-    ``ground_truth``), else the folder above the scenario's (the bench's
-    ``arterial_NNN/<variant>/gt``)."""
-    return gt.parent.name if gt.name == "ground_truth" else gt.parent.parent.name
+    ``ground_truth``), else the bench's net folder above it (``arterial_NNN/<variant>/gt``,
+    ``.../<variant>/occupancy_loop_2m/gt``), else the folder above the scenario's."""
+    if gt.name == "ground_truth":
+        return gt.parent.name
+    nets = [p.name for p in gt.parents if p.name.startswith(("arterial_", "seed_"))]
+    return nets[0] if nets else gt.parent.parent.name
 
 
 def rest_spans(

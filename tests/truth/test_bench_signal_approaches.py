@@ -99,6 +99,7 @@ def test_a_runs_ground_truth_names_its_scenario(tmp_path: Path) -> None:
     assert script.scenario_file(run / "ground_truth") == Path("/elsewhere/k528.toml")
     # Tables name the net: the run's folder, else the bench's arterial above its variant.
     assert script.truth_name(run / "ground_truth") == "run"
-    assert script.truth_name(tmp_path / "arterial_801" / "boundary_stations" / "gt") == (
-        "arterial_801"
-    )
+    bench = tmp_path / "arterial_801" / "boundary_stations"
+    assert script.truth_name(bench / "gt") == "arterial_801"
+    assert script.truth_name(bench / "occupancy_loop_2m" / "gt") == "arterial_801"
+    assert script.truth_name(tmp_path / "x" / "y" / "gt") == "x"
