@@ -2,7 +2,7 @@
 stop with: its vType's decel, or with ``deploy.safety_brake = "matched"`` at least its moving
 leader's (``planned_decel``); a vehicle taken over from its own model starts from the braking
 its arrival gap supports (``supported_decel``) and returns to that gradually
-(``BrakeHandover``). Split from ``deploy.safety`` (stop 45), which re-exports these names.
+(``BrakeHandover``). Split from ``deploy.safety`` (stop 45); import these names from here.
 
 Pure numpy: tested without SUMO and, through the drivers, with it
 (``tests/deploy/test_safety_brake.py``, ``tests/deploy/test_safety_handover.py``).
