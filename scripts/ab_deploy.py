@@ -42,8 +42,11 @@ from macromicro_sumo.truth.section_detectors import detectors_xml, place_detecto
 
 HERE = Path(__file__).resolve().parent
 # The driver and what its hot path is made of, each before the modules importing it (the
-# merge mixin too: without it an A/B of deploy/merge_yield.py ran the base's in both arms).
+# merge mixin too: without it an A/B of deploy/merge_yield.py ran the base's in both arms;
+# road.physics first: the driver, observation and merge mixin take count_nonzero from it,
+# which a base checkout before stop 46 lacks).
 MODULES = (
+    "road.physics",
     "deploy.slots",
     "deploy.observe",
     "deploy.merge_yield",

@@ -55,3 +55,5 @@ def test_the_default_modules_hold_the_drivers_mixin_before_the_driver() -> None:
     order = list(script.MODULES)
     for m in ("deploy.slots", "deploy.observe", "deploy.merge_yield", "deploy.policy_batch"):
         assert m in order and order.index(m) < order.index("deploy.drivers"), order
+    # road.physics (count_nonzero) before every deploy module that imports it
+    assert order[0] == "road.physics", order
