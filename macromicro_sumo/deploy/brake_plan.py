@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from macromicro_sumo.deploy.observe import STOP_DECEL_MPS2
-from macromicro_sumo.road.physics import brake_gap, safe_speed
+from macromicro_sumo.road.physics import brake_gap, count_nonzero, safe_speed
 from macromicro_sumo.road.section import NO_LEADER_GAP_M
 from macromicro_sumo.scenario.deploy_settings import DeployConfig
 
@@ -80,7 +80,7 @@ def supported_decel(
     short = _beyond_own(gap, lo, lead_decel)
     # Where no leader can hold more than the vehicle's decel (every step on Bremen), the
     # safe-speed test on no vehicles is skipped: some 15 numpy calls on empty arrays.
-    if not short.any():
+    if not count_nonzero(short):
         return lo.copy()
     return _supported(short, gap, lead_speed, speed, lo, lead_decel, dt_s)
 
@@ -106,7 +106,7 @@ def _supported(
         safe_speed(gap[short], lead_speed[short], lo[short], lead_decel[short], dt_s) < speed[short]
     )
     out = lo.copy()
-    if not short.any():
+    if not count_nonzero(short):
         return out
     v = speed[short]
     spare = (
@@ -179,7 +179,7 @@ class BrakeHandover:
         if not on.size:
             return decel
         fresh = end[on] == np.inf
-        if fresh.any():
+        if count_nonzero(fresh):
             new = on[fresh]
             self._end[slots[new]] = -np.inf
             # supported_decel's, its state read only where a leader may ask more (no new
@@ -187,10 +187,10 @@ class BrakeHandover:
             lo, ahead, lead_b = decel[new], gap[new], lead_decel[new]
             short = _beyond_own(ahead, lo, lead_b)
             got = ramp = None
-            if short.any():
+            if count_nonzero(short):
                 got = _supported(short, ahead, lead_speed[new], speed[new], lo, lead_b, self.dt_s)
                 ramp = got > lo
-            if ramp is not None and ramp.any():
+            if ramp is not None and count_nonzero(ramp):
                 s, b = slots[new[ramp]], got[ramp]
                 self._start[s, 0], self._start[s, 1] = b, step
                 self._end[s] = step + np.ceil((b - lo[ramp]) / rate)

@@ -37,7 +37,13 @@ from collections.abc import Callable
 import numpy as np
 
 from macromicro_sumo.deploy.population import ActionBatch, DriveStats
-from macromicro_sumo.road.physics import brake_gap, constants, safe_speed, step_constants
+from macromicro_sumo.road.physics import (
+    brake_gap,
+    constants,
+    count_nonzero,
+    safe_speed,
+    step_constants,
+)
 from macromicro_sumo.road.section import NO_LEADER_GAP_M
 from macromicro_sumo.road.vtype import accel_limit, command_speeds
 from macromicro_sumo.scenario.deploy_settings import DeployConfig
@@ -99,7 +105,7 @@ def leader_safe_speed(
         lead_speed = obs[:, 0] - obs[:, 3]
     safe = safe_speed(gap, lead_speed, decel, lead_decel, dt_s)
     safe[~(gap < _NO_LEADER_GAP)] = _INF  # no leader: no cap (safe_speed's is fresh)
-    if red_gap is not None and np.count_nonzero(behind := (red_gap < _INF) & (gap < red_gap)):
+    if red_gap is not None and count_nonzero(behind := (red_gap < _INF) & (gap < red_gap)):
         b = decel[behind]
         line = safe_speed(red_gap[behind], np.zeros_like(b), b, b, dt_s)
         safe[behind] = np.minimum(safe[behind], line)
@@ -178,9 +184,9 @@ def safety_cap(
     floor = np.minimum(under, np.minimum(obs[:, 0] + a_max_mps2 * dt_s, floor_share * obs[:, 1]))
     floor = np.minimum(floor, vmax)
     capped = np.minimum(cmd, safe)
-    raised = int(np.count_nonzero(floor > capped + _TOLERANCE))
+    raised = int(count_nonzero(floor > capped + _TOLERANCE))
     out = behind_commands(np.maximum(capped, floor), gap, lead, decel, lead_decel, dt_s, lead_speed)
-    return out, int(np.count_nonzero(out < cmd - _TOLERANCE)), raised
+    return out, int(count_nonzero(out < cmd - _TOLERANCE)), raised
 
 
 def behind_commands(
@@ -215,7 +221,7 @@ def behind_commands(
         # step than gathering the others first (cmd[-1] stands in for no leader).
         brake = np.maximum(decel, lead_decel) * step_constants(dt_s)[0]
         least = np.maximum(lead_speed - brake, _ZERO) + _BEHIND_MARGIN
-        if not np.count_nonzero(led & (cmd[lead] < least)):
+        if not count_nonzero(led & (cmd[lead] < least)):
             return cmd
     has = led.nonzero()[0]
     if not has.size:
@@ -227,7 +233,7 @@ def behind_commands(
         v_l = cmd[ahead]
         alt = safe_speed(room + v_l * dt_s, v_l, b, b_l, dt_s)
         lower = alt < cmd[has]
-        if not lower.any():
+        if not count_nonzero(lower):
             break
         cmd[has[lower]] = alt[lower]
     return cmd
@@ -308,7 +314,7 @@ def speed_commands(
     lo, hi = constants(a_min, a_max)
     # A vehicle that cannot reach the bound: its own (accel_limit; where none is below the
     # bound it is the bound: count_nonzero here costs a tenth of np.any there, a step).
-    if not isinstance(accel, np.ndarray) or np.count_nonzero(np.less(accel, hi)):
+    if not isinstance(accel, np.ndarray) or count_nonzero(np.less(accel, hi)):
         a_max = accel_limit(a_max, accel)
     if sc.deploy.command_dawdle > 0.0:
         a_max = dawdled_accel(a_max, obs[:, 0], sc.deploy.command_dawdle)
