@@ -54,6 +54,16 @@ def get_options(args: list[str] | None = None) -> argparse.Namespace:
     return p.parse_args(args)
 
 
+def _number(text: str) -> bool:
+    """Whether ``text`` reads as a number (a field of ``float | str``, deploy.command_dawdle,
+    takes a word too)."""
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def changed(sc, changes: list[str]):
     """``sc`` with each ``deploy.KEY=VALUE`` / ``policy.KEY=VALUE`` set (typed as the field)."""
     for item in changes:
@@ -62,7 +72,7 @@ def changed(sc, changes: list[str]):
         if table not in ("deploy", "policy") or not hasattr(getattr(sc, table), name):
             raise UserError(f"--set {item}: accepted: deploy.KEY=VALUE or policy.KEY=VALUE")
         old = getattr(getattr(sc, table), name)
-        value = type(old)(float(text)) if isinstance(old, int | float) else text
+        value = type(old)(float(text)) if isinstance(old, int | float) and _number(text) else text
         sc = dataclasses.replace(
             sc, **{table: dataclasses.replace(getattr(sc, table), **{name: value})}
         )

@@ -224,6 +224,8 @@ def policy_batch(agent: Agent, actor_dtype: str = "float64") -> ActionBatch:
     act.driver_taus = None if t is None else partial(DriverTaus, t.double().numpy(), prior=handover)
     # The gap the policy stops at: its prior's minGap (``deploy.observe.observe_rows``).
     act.stop_gap_m = prior_stop_gap_m(agent)
+    # deploy.command_dawdle = "auto": the Krauss prior's a (``deploy.safety``); None: none.
+    act.prior_accel_mps2 = handover["accel_mps2"] if handover is not None else None
     return act
 
 

@@ -321,6 +321,7 @@ def sampled(act: ActionBatch, std_mps2: float, rng: np.random.Generator) -> Acti
     draw.driver_speeds = getattr(act, "driver_speeds", None)
     draw.driver_taus = getattr(act, "driver_taus", None)  # policy.driver_follow's, too
     draw.stop_gap_m = getattr(act, "stop_gap_m", None)  # the mean's prior (observe_rows)
+    draw.prior_accel_mps2 = getattr(act, "prior_accel_mps2", None)  # command_dawdle "auto"
     return draw
 
 

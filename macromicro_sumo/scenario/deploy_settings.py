@@ -191,11 +191,16 @@ class DeployConfig:
         omit_default=True,
         omit_value="off",
     )
-    command_dawdle: float = spec(
+    command_dawdle: float | str = spec(
         0.0,
         lo=0.0,
         hi=1.0,
-        doc="driven vehicles accelerate at most as Krauss dawdling with this sigma; 0: off",
+        choices=("auto",),
+        accepted="a number in [0, 1] or 'auto'",
+        doc="driven vehicles accelerate at most as Krauss dawdling with this sigma; 0: off; "
+        "auto: sigma 0.5 on a vehicle whose policy's Krauss prior's accel exceeds its vType's "
+        "dawdled mean a (1 - 0.5 / 2) (a prior that fell back to the vType's a), else off "
+        "(a fitted prior's a, or a prior other than krauss)",
         omit_default=True,
     )
     fcd_s: float = spec(

@@ -204,5 +204,8 @@ def build_table(cls: type, table: Any, prefix: str, file: str) -> Any:
             kind = hint if isinstance(hint, type) else typing.get_args(hint)[0]
             if isinstance(hint, types.UnionType):
                 kind = typing.get_args(hint)[0]
+                # A number or a word (``float | str``: a number in range or one of choices).
+                if isinstance(value, str) and str in typing.get_args(hint):
+                    kind = str
             kwargs[name] = _check_scalar(value, kind, key, f.metadata, file)
     return cls(**kwargs)
