@@ -406,6 +406,7 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
             lead_speed,
             self.slots.vmax[slots],
             self.slots.accel[slots],
+            bool(self.has_lights),  # deploy.command_dawdle = "signals"
         )
         sim.set_speeds(vids, cmd)
         self.slots.commanded(slots, cmd)

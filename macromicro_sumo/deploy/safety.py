@@ -322,6 +322,7 @@ def speed_commands(
     lead_speed: np.ndarray | None = None,
     vmax: np.ndarray | float = np.inf,
     accel: np.ndarray | float = np.inf,
+    lights: bool = False,
 ) -> np.ndarray:
     """Speed commands v' = max(0, v + a dt) [m/s] of the batched action ``act`` at
     observations ``obs`` (v in column 0, the lane's limit in column 1), a clipped to the
@@ -339,7 +340,8 @@ def speed_commands(
     its physics too (SUMO's Krauss and IDM never accelerate harder): a is at most it, and
     so is the floor's reach (an inf: the bound alone; a scalar bound where none is lower,
     the same values as before the cap); with ``deploy.command_dawdle`` both are at most
-    ``dawdled_accel``'s."""
+    ``dawdled_accel``'s (``auto_dawdled_accel``'s with "auto", and with "signals" where
+    ``lights``: the network has traffic lights)."""
     a_min, a_max = sc.bounds.accel_mps2
     lo, hi = constants(a_min, a_max)
     # A vehicle that cannot reach the bound: its own (accel_limit; where none is below the
@@ -347,9 +349,9 @@ def speed_commands(
     if not isinstance(accel, np.ndarray) or count_nonzero(np.less(accel, hi)):
         a_max = accel_limit(a_max, accel)
     sigma = sc.deploy.command_dawdle
-    if sigma == "auto":
+    if sigma == "auto" or (sigma == "signals" and lights):
         a_max = auto_dawdled_accel(a_max, obs[:, 0], getattr(act, "prior_accel_mps2", None))
-    elif sigma > 0.0:
+    elif not isinstance(sigma, str) and sigma > 0.0:
         a_max = dawdled_accel(a_max, obs[:, 0], sigma)
     dt = sc.simulation.step_length_s
     if safety == "sumo":

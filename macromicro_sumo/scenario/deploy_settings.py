@@ -195,12 +195,13 @@ class DeployConfig:
         0.0,
         lo=0.0,
         hi=1.0,
-        choices=("auto",),
-        accepted="a number in [0, 1] or 'auto'",
+        choices=("auto", "signals"),
+        accepted="a number in [0, 1], 'auto' or 'signals'",
         doc="driven vehicles accelerate at most as Krauss dawdling with this sigma; 0: off; "
         "auto: sigma 0.5 on a vehicle whose policy's Krauss prior's accel exceeds its vType's "
         "dawdled mean a (1 - 0.5 / 2) (a prior that fell back to the vType's a), else off "
-        "(a fitted prior's a, or a prior other than krauss)",
+        "(a fitted prior's a, or a prior other than krauss); signals: auto on a network with "
+        "traffic lights, off on one without",
         omit_default=True,
     )
     fcd_s: float = spec(

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import CROSS_KRAUSS, ROOT, prior_alone
+from deploy_nets import sparse_merge
 from test_command_dawdle import _queue
 from test_safety import _run_section
 
@@ -45,10 +46,11 @@ def test_auto_is_off_below_the_dawdled_mean_and_on_above() -> None:
 
 
 def test_the_setting_loads_auto_and_refuses_other_words_in_one_line(tmp_path: Path) -> None:
-    """The values "auto", 0 and 0.5 load; "often", 1.5 and true are refused, each in one line naming the
+    """The values "auto", "signals", 0 and 0.5 load; "often", 1.5 and true are refused, each in one line naming the
     file, the field and the accepted values; 0 is left out of the digest (the scenarios that
     do not set it keep theirs), "auto" is not."""
     assert load_scenario(_queue(tmp_path / "a", "auto")).deploy.command_dawdle == "auto"
+    assert load_scenario(_queue(tmp_path / "s", "signals")).deploy.command_dawdle == "signals"
     off = load_scenario(_queue(tmp_path / "o", 0.0))
     assert off.deploy.command_dawdle == 0.0 and "command_dawdle" not in off.to_dict()["deploy"]
     auto = load_scenario(_queue(tmp_path / "b", "auto"))
@@ -59,7 +61,7 @@ def test_the_setting_loads_auto_and_refuses_other_words_in_one_line(tmp_path: Pa
             load_scenario(path)
         msg = str(err.value)
         assert "\n" not in msg and str(path) in msg and "deploy.command_dawdle" in msg, msg
-        assert "[0, 1]" in msg and "'auto'" in msg, msg
+        assert "[0, 1]" in msg and "'auto'" in msg and "'signals'" in msg, msg
 
 
 @pytest.mark.parametrize(("prior", "want"), [("krauss", 2.6), ("idm", None), ("none", None)])
@@ -84,15 +86,21 @@ def test_the_action_batch_carries_a_krauss_priors_a_only(prior: str, want: float
     assert draw.prior_accel_mps2 == act.prior_accel_mps2
 
 
-def _deploy(tmp_path: Path, sigma: float | str, prior_accel: float):
-    """The queue of ``test_command_dawdle`` driven by the Krauss prior alone (a =
-    ``prior_accel``) at ``deploy.command_dawdle = sigma``: its trajectories and counts."""
-    sc = load_scenario(_queue(tmp_path / f"{sigma}_{prior_accel}", sigma))
-    section = read_section(sc.resolve(sc.network.net_file), ["A", "B"], False)
+def _deploy(tmp_path: Path, sigma: float | str, prior_accel: float, merge: bool = False):
+    """The queue of ``test_command_dawdle`` (``merge``: ``sparse_merge``, a network without
+    traffic lights) driven by the Krauss prior alone (a = ``prior_accel``) at
+    ``deploy.command_dawdle = sigma``: its trajectories and counts."""
+    folder = tmp_path / f"{sigma}_{prior_accel}_{merge}"
+    if merge:
+        sc = load_scenario(sparse_merge(folder, deploy={"command_dawdle": sigma}))
+        edges, extra = ["A", "B", "C"], ()
+    else:
+        sc = load_scenario(_queue(folder, sigma))
+        edges, extra = ["A", "B"], (sc.resolve(sc.network.net_file).parent / "light.add.xml",)
+    section = read_section(sc.resolve(sc.network.net_file), edges, False)
     act = prior_alone({**CROSS_KRAUSS, "accel_mps2": prior_accel, "dt_s": 0.5})
     drv = SectionSpeedDriver(sc, section, 0, act, "sumo")
-    light = sc.resolve(sc.network.net_file).parent / "light.add.xml"
-    df, stats = _run_section(sc, drv, (light,))
+    df, stats = _run_section(sc, drv, extra)
     assert stats["collisions"] == 0 and stats["teleports"] == 0, (sigma, stats)
     return df.drop(columns=[c for c in df.columns if "source" in c]), stats
 
@@ -103,19 +111,21 @@ def test_auto_deploys_as_off_under_a_fitted_prior_and_as_half_under_a_fallback(
     """In real SUMO, a queue at a light discharged by a Krauss prior: auto with the prior's a
     at 1.80 (fitted, below 1.95) drives the same trajectories to the bit as 0; at 2.6 (the
     fallback) the same as 0.5. Under either prior 0 and 0.5 differ (at 1.80 through the
-    floor's capped reach), so auto chose."""
+    floor's capped reach), so auto chose. "signals" is auto here: the queue has a light."""
     got = {}
     runs = (("auto", 1.80), (0.0, 1.80), (0.5, 1.80), ("auto", 2.6), (0.5, 2.6), (0.0, 2.6))
+    runs += (("signals", 1.80), ("signals", 2.6))
     for sigma, a in runs:
         got[sigma, a] = _deploy(tmp_path, sigma, a)
-    for a, same in ((1.80, 0.0), (2.6, 0.5)):
-        df, stats = got["auto", a]
+    for (sigma, a), same in {("auto", 1.80): 0.0, ("auto", 2.6): 0.5, ("signals", 1.80): 0.0,
+                             ("signals", 2.6): 0.5}.items():  # fmt: skip
+        df, stats = got[sigma, a]
         want_df, want_stats = got[same, a]
-        assert df.equals(want_df), a
+        assert df.equals(want_df), (sigma, a)
         for key, value in stats.items():
             other = want_stats[key]
             same_value = value.equals(other) if hasattr(value, "equals") else value == other
-            assert same_value, (a, key)
+            assert same_value, (sigma, a, key)
     # 0 and 0.5 differ under either prior (0.5 caps the floor's reach at 1.80 too): auto
     # chose between two different deployments.
     for a in (1.80, 2.6):
@@ -134,3 +144,11 @@ def test_deploy_runs_sets_auto_or_a_number(tmp_path: Path) -> None:
     assert script.changed(sc, ["deploy.command_dawdle=auto"]).deploy.command_dawdle == "auto"
     half = script.changed(sc, ["deploy.command_dawdle=0.5"]).deploy.command_dawdle
     assert half == 0.5 and isinstance(half, float)
+
+
+def test_signals_is_off_on_a_network_without_traffic_lights(tmp_path: Path) -> None:
+    """On a merge without traffic lights, driven by a fallback prior (a 2.6): "signals" drives
+    the same trajectories to the bit as 0, where "auto" (the same as 0.5) differs."""
+    off = _deploy(tmp_path, 0.0, 2.6, merge=True)[0]
+    assert _deploy(tmp_path, "signals", 2.6, merge=True)[0].equals(off)
+    assert not _deploy(tmp_path, "auto", 2.6, merge=True)[0].equals(off)
