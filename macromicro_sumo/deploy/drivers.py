@@ -204,7 +204,9 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
         self.merging: set[str] = set()  # driven vehicles merging with SUMO's own model now
         self.others: set[str] = set()  # ``MergeYield.must_change``
         # deploy.merge_reach "occupation": LC2013's lane drop (``MergeYield``)
-        self.occupation = self.yield_all = sc.deploy.merge_reach == "occupation"
+        # (merge none or handover: the default occupation acts as plain, ``check_deploy``)
+        reach = sc.deploy.merge_reach == "occupation" and self.merge == "sumo"
+        self.occupation = self.yield_all = reach
         # deploy.turns: the turners, their routes asked of SUMO on junction edges (built at
         # the first take, which knows the net file)
         self.turns_mode = sc.deploy.turns

@@ -101,8 +101,8 @@ class LaneEnds(Protocol):
 class MergeYield:
     """``deploy.merge`` for ``SectionSpeedDriver``: the hand-over and the yield.
 
-    ``occupation`` and ``yield_all`` (``deploy.merge_reach = "occupation"`` sets both; off
-    by default): the hand-over at LC2013's usable distance, the distance left less the best
+    ``occupation`` and ``yield_all`` (``deploy.merge_reach = "occupation"`` sets both, the
+    default since stop 46, with merge "sumo"): the hand-over at LC2013's usable distance, the distance left less the best
     lane's occupation (``occupations_m``), and the yield to the blockers of every vehicle
     that must leave its lane (``must_change``). On drawn 522 (2 lanes dropping to 1 in a queue) the
     truth's cars leave the ending lane all along it, the commanded ones stayed on to

@@ -293,18 +293,22 @@ class SectionScenario(ScenarioFile):
 def build_section_scenario(table: dict[str, Any], file: str, source: str) -> SectionScenario:
     """Validate a ``kind = "sumo"`` scenario table (raw TOML) into a ``SectionScenario``."""
     table = dict(table)
+    deploy = table.get("deploy", {})
+    said = frozenset(deploy) if isinstance(deploy, dict) else None  # [deploy]'s keys set
     data = build_data(table.pop("data", {}), file)
     sc = build_table(SectionScenario, table, "", file)
     sc = dataclasses.replace(sc, source=source, data=data)
-    _check(sc, file)
+    _check(sc, file, said)
     return sc
 
 
-def _check(sc: SectionScenario, file: str) -> None:
-    """Cross-field checks that no single range can express."""
+def _check(sc: SectionScenario, file: str, deploy_keys: frozenset[str] | None = None) -> None:
+    """Cross-field checks that no single range can express; ``deploy_keys``: the [deploy]
+    keys the scenario sets (``check_deploy``)."""
     # Field data's stations have their own interval: checked when the deployment is compared.
     sim, run_s = sc.data.source != "files", sc.simulation.warmup_s + sc.simulation.duration_s
-    check_deploy(sc.deploy, file, sc.detectors.interval_s if sim else None, run_s if sim else None)
+    interval = sc.detectors.interval_s if sim else None
+    check_deploy(sc.deploy, file, interval, run_s if sim else None, deploy_keys)
     check_policy(sc.policy, file)
     check_data(sc.data, sc.resolve, sc.generator.k_source, file)
     check_fleet_tables(sc, file)

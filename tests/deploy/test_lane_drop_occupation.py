@@ -177,29 +177,37 @@ def test_the_yield_opens_a_gap_collision_free(drops: dict[str, dict]) -> None:
         assert got["collisions"] == 0 and got["teleports"] == 0, (name, got)
 
 
-def test_merge_reach_is_plain_by_default_and_checked(tmp_path: Path) -> None:
-    """``deploy.merge_reach``: "plain" by default and then left out of the scenario's dict
-    (every existing scenario keeps its digest), the driver's occupation and yield_all off;
-    "occupation" turns both on and needs merge "sumo"; an unknown value or "occupation"
-    with another merge is one line naming file, field and what is accepted."""
+def test_merge_reach_is_occupation_by_default_and_checked(tmp_path: Path) -> None:
+    """``deploy.merge_reach``: "occupation" by default (stop 46), recorded in the scenario's
+    dict; "plain" said is left out of it (a run deployed before the default moved keeps its
+    digest), the driver's occupation and yield_all on and off. With merge "none" or
+    "handover" the default is accepted and acts as plain (both off); "occupation" said with
+    them, or an unknown value, is one line naming file, field and what is accepted."""
     net, routes = _drop_files(tmp_path)
-    plain = small_section_scenario(tmp_path, net, routes, ["A", "B"])
-    assert plain.deploy.merge_reach == "plain" and "merge_reach" not in plain.to_dict()["deploy"]
+    on = small_section_scenario(tmp_path, net, routes, ["A", "B"])
+    assert on.deploy.merge_reach == "occupation"
+    assert on.to_dict()["deploy"]["merge_reach"] == "occupation"
     said = small_section_scenario(
-        tmp_path, net, routes, ["A", "B"], deploy={"merge_reach": "plain"}
-    )
-    assert said.digest() == plain.digest()
-    on = small_section_scenario(
         tmp_path, net, routes, ["A", "B"], deploy={"merge_reach": "occupation"}
     )
-    assert on.deploy.merge_reach == "occupation" and on.digest() != plain.digest()
+    assert said.digest() == on.digest()
+    plain = small_section_scenario(
+        tmp_path, net, routes, ["A", "B"], deploy={"merge_reach": "plain"}
+    )
+    assert "merge_reach" not in plain.to_dict()["deploy"] and plain.digest() != on.digest()
     section = read_section(net, ["A", "B"], False)
     for sc, want in ((plain, False), (on, True)):
         drv = SectionSpeedDriver(sc, section, 0, None, "sumo")  # type: ignore[arg-type]
         assert drv.occupation is want and drv.yield_all is want
+    for merge in ("none", "handover"):  # the implicit default: accepted, acts as plain
+        sc = small_section_scenario(tmp_path, net, routes, ["A", "B"], deploy={"merge": merge})
+        assert sc.deploy.merge_reach == "occupation" and sc.deploy.merge == merge
+        drv = SectionSpeedDriver(sc, section, 0, None, "sumo")  # type: ignore[arg-type]
+        assert drv.occupation is False and drv.yield_all is False
     for bad, msg_has in (
         ({"merge_reach": "always"}, "'plain', 'occupation'"),
         ({"merge_reach": "occupation", "merge": "handover"}, "deploy.merge = 'sumo'"),
+        ({"merge_reach": "occupation", "merge": "none"}, "accepted with deploy.merge = 'none'"),
     ):
         with pytest.raises(UserError) as err:
             small_section_scenario(tmp_path, net, routes, ["A", "B"], deploy=bad)

@@ -18,6 +18,7 @@ MOVED = (
     ("turns", "handover", "off"),
     ("yellow", "onset", "stop"),
     ("turn_gap", "sumo", "off"),
+    ("merge_reach", "occupation", "plain"),
 )
 
 
