@@ -31,7 +31,7 @@ import numpy as np
 
 from macromicro_sumo.deploy.brake_plan import BrakeHandover, planned_decel
 from macromicro_sumo.deploy.keep_right import keep_right_caps
-from macromicro_sumo.deploy.merge_yield import LANE_END_RECHECK_STEPS, MergeYield
+from macromicro_sumo.deploy.merge_yield import LANE_END_RECHECK_STEPS, MergeYield, drop_chain_lanes
 from macromicro_sumo.deploy.observe import STANDING, LaneTable, Table, observe_rows, states_of
 from macromicro_sumo.deploy.population import (
     ActionBatch,
@@ -207,6 +207,8 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
         # (merge none or handover: the default occupation acts as plain, ``check_deploy``)
         reach = sc.deploy.merge_reach == "occupation" and self.merge == "sumo"
         self.occupation = self.yield_all = reach
+        if reach:  # the lanes occupation acts on, once per driver
+            self.drop_lanes = drop_chain_lanes(section)
         # deploy.turns: the turners, their routes asked of SUMO on junction edges (built at
         # the first take, which knows the net file)
         self.turns_mode = sc.deploy.turns

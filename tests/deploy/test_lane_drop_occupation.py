@@ -23,6 +23,7 @@ from macromicro_sumo.deploy.lane_change import (
     strategic_reach_m,
     usable_distance_m,
 )
+from macromicro_sumo.deploy.merge_yield import drop_chain_lanes
 from macromicro_sumo.deploy.policy_batch import policy_batch
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.section import read_section
@@ -78,8 +79,14 @@ def test_usable_distance_and_continuations(tmp_path: Path) -> None:
     np.testing.assert_allclose(usable, [250.0, 550.0])
     assert usable[0] < reach[0] < usable[1]
     net, _ = _drop_files(tmp_path)
-    chains = continuation_lanes(read_section(net, ["A", "B"], False))
+    section = read_section(net, ["A", "B"], False)
+    chains = continuation_lanes(section)
     assert chains == {"A_0": (), "A_1": ("B_0",), "B_0": ()}, chains
+    # Occupation acts on the ending lane A_0 and the junction's internal lanes, not on the
+    # lanes that carry on (A_1 onto B_0, and B_0, the open section's last edge).
+    drop = drop_chain_lanes(section)
+    assert "A_0" in drop and not drop & {"A_1", "B_0"}, drop
+    assert all(lane == "A_0" or lane.startswith(":") for lane in drop), drop
 
 
 @pytest.fixture(scope="module")

@@ -126,12 +126,31 @@ def test_a_commanded_turner_reaches_its_turn_lane_with_turn_gap(
         assert (stood["lane_index"] == 1).all() and (stood["arc_m"] > 385.0).all()
         assert len(stood) >= 10
     else:
-        # With occupation the queue ends a car farther back: t stands at 234 m (measured),
-        # still at the queue's end on lane 0.
-        lo = 238.0 if reach == "plain" else 230.0
         assert changed < 240.0
-        assert (stood["lane_index"] == 0).all() and stood["arc_m"].between(lo, 246.0).all()
+        assert (stood["lane_index"] == 0).all() and stood["arc_m"].between(238.0, 246.0).all()
         assert len(stood) >= 10
+
+
+def test_occupation_leaves_the_turners_to_the_plain_reach(
+    tmp_path: Path, cross_krauss: dict
+) -> None:
+    """Occupation acts only on the lanes whose chain ends (``drop_chain_lanes``): here A_0,
+    exit-only for the through route, and the junction's internal lanes; t's change from
+    A_1, which carries on, is a turner's. So nobody on A_1 is handed over at the usable
+    distance nor yielded to, and with every queued turner on A_0 needing no change, the
+    run with occupation is the plain one to the bit (before, occupation's hand-over and
+    yield took t too: its queue ended a car farther back, t standing at 234 m)."""
+    (tmp_path / "p").mkdir()
+    (tmp_path / "o").mkdir()
+    plain, _, _ = _turner(tmp_path / "p", "sumo", cross_krauss, "plain")
+    occ, stats, drv = _turner(tmp_path / "o", "sumo", cross_krauss, "occupation")
+    assert drv.occupation and drv.yield_all
+    assert "A_0" in drv.drop_lanes and "A_1" not in drv.drop_lanes
+    assert all(lane == "A_0" or lane.startswith(":") for lane in drv.drop_lanes)
+    assert stats["collisions"] == 0 and stats["teleports"] == 0, stats
+    cols = ["time_s", "lane_index", "arc_m", "speed_mps"]
+    assert len(occ) > 50
+    assert occ[cols].reset_index(drop=True).equals(plain[cols].reset_index(drop=True))
 
 
 def test_sumo_s_own_turner_joins_the_queue_s_end(tmp_path: Path, cross_krauss: dict) -> None:
