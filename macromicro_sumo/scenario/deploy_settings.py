@@ -197,7 +197,7 @@ class DeployConfig:
         omit_value="off",
     )
     command_dawdle: float | str = spec(
-        0.0,
+        "signals",
         lo=0.0,
         hi=1.0,
         choices=("auto", "signals"),
@@ -208,6 +208,7 @@ class DeployConfig:
         "(a fitted prior's a, or a prior other than krauss); signals: auto on a network with "
         "traffic lights, off on one without",
         omit_default=True,
+        omit_value=0.0,
     )
     fcd_s: float = spec(
         120.0, lo=0.0, hi=1e6, doc="trajectories.csv keeps the first fcd_s recorded seconds [s]"

@@ -45,11 +45,10 @@ def _free(n: int, v: np.ndarray) -> tuple[np.ndarray, object]:
 @pytest.mark.parametrize("sigma", [0.0, 0.5])
 def test_commands_on_a_free_road(tmp_path: Path, sigma: float) -> None:
     """A policy asking 10 m/s^2 of cars at 0, 1, 5 and 20 m/s on a free road: without the
-    setting each gets v + a dt at the bound's 2.6 (the default, unchanged); with sigma 0.5,
+    dawdle (0) each gets v + a dt at the bound's 2.6; with sigma 0.5,
     v + (2.6 - 0.25 min(v, 2.6)) dt. A braking policy's cars are raised to the floor (a
     fifth of the limit), which reaches no further than that acceleration either."""
-    deploy = {"command_dawdle": sigma} if sigma else {}
-    sc = load_scenario(sparse_merge(tmp_path, deploy=deploy))
+    sc = load_scenario(sparse_merge(tmp_path, deploy={"command_dawdle": sigma}))
     assert sc.deploy.command_dawdle == sigma
     v = np.array([0.0, 1.0, 5.0, 20.0])
     obs, layer = _free(4, v)
@@ -90,7 +89,7 @@ def _queue(tmp_path: Path, sigma: float) -> Path:
         penetration=0.01,
         simulation={"warmup_s": 0.0, "duration_s": GREEN_S + 60.0, "n_runs": 1},
         detectors={"interval_s": 30.0},
-        deploy={"command_dawdle": sigma} if sigma else {},
+        deploy={"command_dawdle": sigma},
     )
 
 

@@ -19,6 +19,7 @@ MOVED = (
     ("yellow", "onset", "stop"),
     ("turn_gap", "sumo", "off"),
     ("merge_reach", "occupation", "plain"),
+    ("command_dawdle", "signals", 0.0),
 )
 
 
