@@ -64,17 +64,22 @@ def bench_module():
     return module
 
 
-def variant(root: Path, names: list[str]) -> dict[str, object]:
+def variant(
+    root: Path, names: list[str], optional: frozenset[str] = frozenset()
+) -> dict[str, object]:
     """``names`` (in import order) loaded from the package under ``root``, each importing
-    the ones loaded before it; ``sys.modules`` left as it was (base)."""
+    the ones loaded before it; ``sys.modules`` left as it was (base). A name in ``optional``
+    whose file ``root`` lacks is skipped (an older checkout); any other is an error."""
     full = [f"macromicro_sumo.{m}" for m in names]
     saved = {m: sys.modules.get(m) for m in full}
     got: dict[str, object] = {}
     try:
         for m in full:
             path = root / (m.replace(".", "/") + ".py")
+            if not path.is_file() and m.removeprefix("macromicro_sumo.") in optional:
+                continue
             if not path.is_file():
-                raise SystemExit(f"ab_deploy.py: {path} not found (--modules, NEW_ROOT)")
+                raise SystemExit(f"{path} not found (NEW_ROOT)")
             spec = importlib.util.spec_from_file_location(m, path)
             got[m] = sys.modules[m] = importlib.util.module_from_spec(spec)
             spec.loader.exec_module(got[m])

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import importlib.util
 import statistics
 import sys
 import tempfile
@@ -39,30 +38,18 @@ Call = tuple[str, tuple]
 
 
 def layer_modules(root: Path) -> dict[str, ModuleType]:
-    """``LAYER``'s modules loaded from the package under ``root`` (registered as
-    ``macromicro_sumo.<m>`` while each loads, so a later one imports that root's copy of an
-    earlier one; ``sys.modules`` left as it was), keyed by the short name."""
-    full = [f"macromicro_sumo.{m}" for m in LAYER]
-    saved = {m: sys.modules.get(m) for m in full}
-    got: dict[str, ModuleType] = {}
+    """``LAYER``'s modules loaded from the package under ``root`` (``ab_deploy.variant``:
+    registered as ``macromicro_sumo.<m>`` while each loads, so a later one imports that
+    root's copy of an earlier one; ``sys.modules`` left as it was), keyed by the short name;
+    brake_plan.py may be missing (before stop 45)."""
+    sys.path.insert(0, str(HERE))
+    import ab_deploy  # noqa: PLC0415 (a script beside this one)
+
     safety = root / "macromicro_sumo" / "deploy" / "safety.py"
     if not safety.is_file():
         raise SystemExit(f"bench_safety.py: {safety} not found (NEW_ROOT)")
-    try:
-        for short, m in zip(LAYER, full, strict=True):
-            path = root / (m.replace(".", "/") + ".py")
-            if not path.is_file():  # brake_plan.py before stop 45
-                continue
-            spec = importlib.util.spec_from_file_location(m, path)
-            got[short] = sys.modules[m] = importlib.util.module_from_spec(spec)
-            spec.loader.exec_module(got[short])
-    finally:
-        for m, module in saved.items():
-            if module is None:
-                sys.modules.pop(m, None)
-            else:
-                sys.modules[m] = module
-    return got
+    got = ab_deploy.variant(root, list(LAYER), optional=frozenset({"deploy.brake_plan"}))
+    return {m.removeprefix("macromicro_sumo."): mod for m, mod in got.items()}
 
 
 def layer(modules: dict[str, ModuleType]) -> SimpleNamespace:
