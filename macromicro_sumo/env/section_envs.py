@@ -27,6 +27,7 @@ from macromicro_sumo.env.section_bank import (
     SectionBank,
     build_section_bank,
     recorded_min_gap,
+    typical_length,
     typical_vclass,
 )
 from macromicro_sumo.env.section_observations import initial_observations
@@ -92,7 +93,8 @@ def make_section_bank(
         complete = true_section_completion
     else:
         net = load_section_generator(generator, sc)
-        complete = section_completion(net, truth.section, sc, sc.generator.k_source, seed)
+        k_source, length = sc.generator.k_source, typical_length(truth)
+        complete = section_completion(net, truth.section, sc, k_source, seed, length)
     bank = build_section_bank(sc, truth, snaps, complete, sc.policy.horizon, seed)
     keep = np.flatnonzero(bank.hidden.any(axis=1))
     if keep.size == 0:

@@ -366,7 +366,7 @@ def evaluate_section(
         fcd.mkdir()
         for label, source in sources.items():
             seed = sc.seed + 100 + (label == "true")
-            complete = generator_completion(net, truth.section, sc, source, seed)
+            complete = generator_completion(net, truth.section, sc, source, seed, length)
             gen_bank = build_section_bank(sc, truth, snaps, complete, horizon=h)
             # Stage I's last check (generator.section_pairs) drops a vehicle it cannot fit
             generated[label] = {"generated": complete.generated, "dropped": complete.dropped}

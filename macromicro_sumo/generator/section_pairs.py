@@ -80,7 +80,10 @@ def drop_unsafe_pairs(
                 v * v + 2.0 * bt * v
                 > v_l * v_l + 2.0 * brake_mps2 * np.maximum(free, 0.0) * (1 + TOL) + TOL
             )
-            overlap = has & (free < -TOL)
+            # A generated leader's extra length (``complete_section``: in a junction) is room
+            # a moving follower needs; a standing one may stand closer (SUMO keeps it there).
+            standing_ok = (v <= 0.0) & gen[j] & (free + ex_l >= -TOL)
+            overlap = has & (free < -TOL) & ~standing_ok
             bad = (has | (lead == STOP)) & (cannot_stop | overlap) & (gen | (has & gen[j]))
             if not bad.any():
                 break

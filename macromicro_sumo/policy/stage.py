@@ -25,6 +25,7 @@ from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import (
     build_section_bank,
     recorded_min_gap,
+    typical_length,
     typical_vclass,
 )
 from macromicro_sumo.errors import UserError
@@ -93,7 +94,9 @@ def section_episodes(sc: SectionScenario, truth, net, splits: dict[str, np.ndarr
     generator, its cores, and its demand episodes (``policy.episodes``)."""
     runs = np.concatenate([splits["train"], splits["val"]])
     snaps = section_snapshots(truth, sc, runs)
-    complete = section_completion(net, truth.section, sc, sc.generator.k_source, sc.seed)
+    complete = section_completion(
+        net, truth.section, sc, sc.generator.k_source, sc.seed, typical_length(truth)
+    )
     bank = build_section_bank(sc, truth, snaps, complete, sc.policy.horizon, sc.seed)
     quantiles = driver_speed_quantiles(sc, truth, runs)
     # policy.driver_entry "auto": the rule the observed drivers of these runs say, read by
