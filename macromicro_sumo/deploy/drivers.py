@@ -45,7 +45,7 @@ from macromicro_sumo.deploy.safety import (
     speed_commands,
 )
 from macromicro_sumo.deploy.slots import NOT_ASKED, VehicleSlots
-from macromicro_sumo.deploy.turn_gap import junction_lanes, turn_gap_caps
+from macromicro_sumo.deploy.turn_gap import asked_lanes, turn_gap_caps
 from macromicro_sumo.deploy.turns import Turns
 from macromicro_sumo.road.leaders import stop_distance_m
 from macromicro_sumo.road.physics import count_nonzero
@@ -213,7 +213,7 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
         # the first take, which knows the net file)
         self.turns_mode = sc.deploy.turns
         self.turns: Turns | None = None
-        self.gap_lanes: frozenset[str] | None = None  # deploy.turn_gap's junction lanes
+        self.gap_lanes: frozenset[str] | None = None  # deploy.turn_gap's lanes to ask on
 
     def take(self, sim: Simulation, vids: list[str]) -> None:
         if self.turns_mode != "off" and self.turns is None:
@@ -221,9 +221,8 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
             self.turns = Turns(self.section, sim.options.net_file, dt)
         if self.gap_lanes is None:  # where a turner changes lanes, read from the net once
             on = self.sc.deploy.turn_gap == "sumo"
-            self.gap_lanes = (
-                junction_lanes(self.section, sim.options.net_file) if on else frozenset()
-            )
+            net, occ = sim.options.net_file, self.occupation
+            self.gap_lanes = asked_lanes(self.section, net, occ) if on else frozenset()
         sim.set_speed_mode(vids, self.mode)
         for v in vids:
             if v not in self.slots.of:

@@ -71,17 +71,32 @@ def drop_lanes(section: Section, on: frozenset[str]) -> frozenset[str]:
     return frozenset(lane for lane in on if ends[table[lane][0], table[lane][1]])
 
 
+def asked_lanes(section: Section, net_file: Path, occupation: bool) -> frozenset[str]:
+    """The lanes ``turn_gap_caps`` asks on: ``junction_lanes``, less the ones that lead
+    nowhere (``drop_lanes``) where the driver's ``occupation`` is on (``deploy.merge_reach``
+    with merge "sumo"). Why: occupation's hand-over and yield (``deploy.merge_yield``) take
+    the vehicles that must leave an ending lane, and both together held the traffic twice
+    for the same merge. Drawn 1045 (4 lanes to 2 where its off-ramp leaves: lane 3 ends),
+    all 4 runs, policy, occupation, speed RMSE: turn_gap off 1.647, every blocked change
+    2.195, not the ending lane's changers 1.661 m/s (every run better; also skipping the
+    exit-only lane 0's: the same 1.661, but drawn 549's exit-only lane 3.597 -> 3.684).
+    Drawn 549 and the drawn arterials have no ending junction lane: nothing skipped (stop
+    46, hM46). Read from the net once per driver."""
+    on = junction_lanes(section, net_file)
+    return on - drop_lanes(section, on) if occupation else on
+
+
 def change_sides(
-    section: Section, lanes: list[str], on: frozenset[str], skip: frozenset[str] = frozenset()
+    section: Section, lanes: list[str], on: frozenset[str]
 ) -> tuple[list[int], list[int]]:
     """(index into ``lanes``, side -1 right / 1 left) for each side of each vehicle on a lane
-    in ``on`` (``junction_lanes`` of ``section``) but not in ``skip`` with a neighbour lane on
-    that side of its edge."""
+    in ``on`` (``asked_lanes`` of ``section``) with a neighbour lane on that side of its
+    edge."""
     at: list[int] = []
     sides: list[int] = []
     table, n_lanes = section.lanes, section.n_lanes
     for k, lane in enumerate(lanes):
-        if lane not in on or lane in skip:
+        if lane not in on:
             continue
         got = table[lane]
         edge, index = got[0], got[1]
@@ -109,23 +124,12 @@ def turn_gap_caps(
     own (it falls back to a gap) and a follower's that blocks the change (it opens one, as
     LC2013 asks a SUMO driver to cooperate), any vehicle on the section's lanes the changer
     (one SUMO drives, a handed-over one, a commanded one). ``shape_of``: vehicle -> (length,
-    minGap, decel); ``on``: the section's ``junction_lanes`` (the driver reads them once).
-
-    With ``deploy.merge_reach = "occupation"`` the changers on a lane of ``on`` that leads
-    nowhere (``drop_lanes``) are not asked: occupation's hand-over and yield
-    (``deploy.merge_yield``) take the vehicles that must leave an ending lane, and both
-    together held the traffic twice for the same merge. Drawn 1045 (4 lanes to 2 where its
-    off-ramp leaves: lane 3 ends), all 4 runs, policy, occupation, speed RMSE: turn_gap off
-    1.647, every blocked change 2.195, not the ending lane's changers 1.661 m/s (every run
-    better; also skipping the exit-only lane 0's: the same 1.661, but drawn 549's exit-only
-    lane 3.597 -> 3.684). Drawn 549 and the drawn arterials have no ending junction lane:
-    nothing skipped (stop 46, hM46)."""
+    minGap, decel); ``on``: the lanes to ask on (``asked_lanes``, read once by the driver)."""
     if sc.deploy.turn_gap != "sumo":
         return cap
     if not on or not len(rows):  # no junction edge (a motorway section): nothing asked
         return cap
-    skip = drop_lanes(section, on) if sc.deploy.merge_reach == "occupation" else frozenset()
-    at, sides = change_sides(section, st.lanes, on, skip)
+    at, sides = change_sides(section, st.lanes, on)
     if not at:  # one lane everywhere: nothing asked of SUMO
         return cap
     ids = st.ids

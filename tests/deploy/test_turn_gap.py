@@ -22,6 +22,7 @@ from conftest import netconvert, prior_alone, small_section_scenario
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.turn_gap import (
     TURN_GAP_TOLERANCE_MPS,
+    asked_lanes,
     change_sides,
     drop_lanes,
     gap_caps,
@@ -200,7 +201,9 @@ def test_drop_lanes_are_the_junction_lanes_that_lead_nowhere(tmp_path: Path) -> 
     section = read_section(net, ["A", "B"], False)
     on = junction_lanes(section, net)
     assert on == {"A_0", "A_1"} and drop_lanes(section, on) == {"A_0"}
-    at, sides = change_sides(section, ["A_0", "A_1", "B_0"], on, frozenset({"A_0"}))
+    assert asked_lanes(section, net, occupation=True) == {"A_1"}
+    assert asked_lanes(section, net, occupation=False) == on
+    at, sides = change_sides(section, ["A_0", "A_1", "B_0"], asked_lanes(section, net, True))
     assert at == [1] and sides == [-1]
 
 
@@ -221,7 +224,9 @@ def _asked(folder: Path, cons: str) -> dict[str, set[str]]:
     folder.mkdir()
     sc, net, opts = _gap_net(folder, "sumo", THROUGH, cons=cons)
     section = read_section(net, ["A", "B"], False)
-    on = junction_lanes(section, net)
+    on = {
+        r: asked_lanes(section, net, occupation=r == "occupation") for r in ("plain", "occupation")
+    }
     by = {
         reach: dataclasses.replace(sc, deploy=dataclasses.replace(sc.deploy, merge_reach=reach))
         for reach in ("plain", "occupation")
@@ -237,7 +242,7 @@ def _asked(folder: Path, cons: str) -> dict[str, set[str]]:
             st = dataclasses.replace(now, speed_mps=now.speed_mps + 50.0)
             rows = np.arange(len(st.ids))
             shape = {v: (5.0, 2.5, 4.5) for v in st.ids}
-            got = {r: turn_gap_caps(by[r], section, shape, st, rows, None, on) for r in by}
+            got = {r: turn_gap_caps(by[r], section, shape, st, rows, None, on[r]) for r in by}
             for r, cap in got.items():
                 if cap is not None:
                     asked[r] |= {st.ids[i] for i in np.isfinite(cap).nonzero()[0]}
