@@ -47,6 +47,7 @@ from macromicro_sumo.generator.section_scene import (
     Road,
     extra_lengths,
     scene_stops,
+    shortest_length,
     stop_room_m,
 )
 from macromicro_sumo.road.section import Section
@@ -338,9 +339,7 @@ def complete_section(
         # stopped that car at the junction and the car behind ran into it (fresh 1169, stop
         # 46). On a lane SUMO's car-following brakes such a follower: there psi's spacing
         # holds, as before (applied everywhere it dropped 3-8% of the generated vehicles).
-        extra = np.concatenate(
-            [extra, _junction_extra(section, snaps, comp, generated_length_m)], 1
-        )
+        extra = np.concatenate([extra, junction_extra(section, snaps, comp, generated_length_m)], 1)
         stand = snaps.psi[:, PSI_INDEX["spacing_min_m"]]
         safe_speeds(comp, section, stand, brake_mps2, reaction_s, extra, stop_pts)
         args = (section, stand, brake_mps2, reaction_s, extra, stop_pts)
@@ -348,14 +347,13 @@ def complete_section(
     return comp
 
 
-def _junction_extra(
+def junction_extra(
     section: Section, snaps: SectionSnapshots, comp: SectionCompletion, length_m: float | None
 ) -> np.ndarray:
     """(S, K_max) the generated vehicles' length beyond the snapshots' shortest where they
     stand in a junction, else 0 (``complete_section``'s ``generated_length_m``)."""
     arc = comp.arc_m[:, snaps.arc_m.shape[1] :]
-    valid = np.asarray(snaps.valid, dtype=bool)
-    shortest = float(np.asarray(snaps.length_m)[valid].min()) if valid.any() else 0.0
+    shortest = shortest_length(snaps)
     if length_m is None or length_m <= shortest:
         return np.zeros_like(arc)
     s = section.wrap(np.where(np.isfinite(arc), arc, 0.0).ravel())

@@ -48,8 +48,14 @@ def extra_lengths(snaps: SectionSnapshots) -> np.ndarray:
     leader (a truck) keeps this much more free behind it (``scene_gaps``, ``safe_speeds``)."""
     valid = np.asarray(snaps.valid, dtype=bool)
     lengths = np.asarray(snaps.length_m, dtype=float)
-    shortest = float(lengths[valid].min()) if valid.any() else 0.0
-    return np.where(valid, np.maximum(lengths - shortest, 0.0), 0.0)
+    return np.where(valid, np.maximum(lengths - shortest_length(snaps), 0.0), 0.0)
+
+
+def shortest_length(snaps: SectionSnapshots) -> float:
+    """The snapshots' shortest recorded vehicle [m] (0 where none is): the length psi's
+    s_min holds (``extra_lengths``)."""
+    valid = np.asarray(snaps.valid, dtype=bool)
+    return float(np.asarray(snaps.length_m, dtype=float)[valid].min()) if valid.any() else 0.0
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,7 @@ import pytest
 
 from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.generator.section_pairs import drop_unsafe_pairs
-from macromicro_sumo.generator.section_sampler import _junction_extra
+from macromicro_sumo.generator.section_sampler import junction_extra
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_section_connections import build  # noqa: E402
@@ -57,7 +57,7 @@ def _check(sec, follower_arc: float, follower_v: float, leader_arc: float, lengt
     (in the junction: the fan-out's other internal lane) at 21 m/s."""
     comp = completion([0, 1], [follower_arc, leader_arc], [follower_v, 21.0], [False, True])
     snaps = _snaps(1)
-    extra = np.concatenate([np.zeros((1, 1)), _junction_extra(sec, snaps, comp, length)], 1)
+    extra = np.concatenate([np.zeros((1, 1)), junction_extra(sec, snaps, comp, length)], 1)
     args = (sec, np.array([S_MIN]), BRAKE, REACTION, extra, None)
     return int(drop_unsafe_pairs(comp, *args)[0])
 
@@ -78,4 +78,4 @@ def test_a_generated_leader_in_the_junction_keeps_its_length_of_room(fan_out) ->
     assert _check(sec, j0 - 1.0, 0.0, j0 + 5.6, 5.0) == 0
     # The same spacing on B's lanes, away from the junction: psi's spacing holds, kept.
     comp = completion([1, 1], [b0 + 100.0, b0 + 106.6], [18.5, 21.0], [False, True])
-    assert not _junction_extra(sec, _snaps(1), comp, 5.0).any()
+    assert not junction_extra(sec, _snaps(1), comp, 5.0).any()
