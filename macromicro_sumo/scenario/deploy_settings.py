@@ -155,8 +155,8 @@ class DeployConfig:
         "vehicle asked to yield is held a step, all 4 runs plain -> occupation: Bremen 1.08 -> "
         "0.91, 501 3.28 -> 1.99, 549 4.33 -> 3.68, 522 2.99 -> 3.46 m/s; the default since "
         "stop 46: on 13 nets it won on 7, tied on 4, lost on 522 and 837, docs/deploy.md); "
-        "with merge none or handover the default acts as plain, and occupation set in the "
-        "scenario is refused",
+        "with merge none or handover the default is plain (set at load, so the recorded "
+        "scenario says what runs), and occupation set in the scenario is refused",
         # A deployment setting whose default moved from plain to occupation (stop 46): left
         # out of the digest at plain, so that a run deployed before is redeployed.
         omit_default=True,

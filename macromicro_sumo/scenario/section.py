@@ -298,8 +298,20 @@ def build_section_scenario(table: dict[str, Any], file: str, source: str) -> Sec
     data = build_data(table.pop("data", {}), file)
     sc = build_table(SectionScenario, table, "", file)
     sc = dataclasses.replace(sc, source=source, data=data)
+    sc = _resolved_reach(sc, said)
     _check(sc, file, said)
     return sc
+
+
+def _resolved_reach(sc: SectionScenario, said: frozenset[str] | None) -> SectionScenario:
+    """``deploy.merge_reach`` left at its default under ``deploy.merge`` "none" or
+    "handover": "plain", what the driver does there (its occupation needs merge "sumo"), so
+    that the scenario the run records says what runs; one the scenario sets stays as set,
+    for ``check_deploy`` to refuse "occupation". "plain" is left out of the digest
+    (``omit_value``): such a scenario keeps the digest it had before stop 46."""
+    if said is None or "merge_reach" in said or sc.deploy.merge == "sumo":
+        return sc
+    return dataclasses.replace(sc, deploy=dataclasses.replace(sc.deploy, merge_reach="plain"))
 
 
 def _check(sc: SectionScenario, file: str, deploy_keys: frozenset[str] | None = None) -> None:

@@ -188,7 +188,7 @@ def test_merge_reach_is_occupation_by_default_and_checked(tmp_path: Path) -> Non
     """``deploy.merge_reach``: "occupation" by default (stop 46), recorded in the scenario's
     dict; "plain" said is left out of it (a run deployed before the default moved keeps its
     digest), the driver's occupation and yield_all on and off. With merge "none" or
-    "handover" the default is accepted and acts as plain (both off); "occupation" said with
+    "handover" the default loads as plain (both off); "occupation" said with
     them, or an unknown value, is one line naming file, field and what is accepted."""
     net, routes = _drop_files(tmp_path)
     on = small_section_scenario(tmp_path, net, routes, ["A", "B"])
@@ -206,9 +206,9 @@ def test_merge_reach_is_occupation_by_default_and_checked(tmp_path: Path) -> Non
     for sc, want in ((plain, False), (on, True)):
         drv = SectionSpeedDriver(sc, section, 0, None, "sumo")  # type: ignore[arg-type]
         assert drv.occupation is want and drv.yield_all is want
-    for merge in ("none", "handover"):  # the implicit default: accepted, acts as plain
+    for merge in ("none", "handover"):  # the implicit default: accepted, loads as plain
         sc = small_section_scenario(tmp_path, net, routes, ["A", "B"], deploy={"merge": merge})
-        assert sc.deploy.merge_reach == "occupation" and sc.deploy.merge == merge
+        assert sc.deploy.merge_reach == "plain" and sc.deploy.merge == merge
         drv = SectionSpeedDriver(sc, section, 0, None, "sumo")  # type: ignore[arg-type]
         assert drv.occupation is False and drv.yield_all is False
     for bad, msg_has in (
