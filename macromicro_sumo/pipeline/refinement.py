@@ -37,6 +37,7 @@ from macromicro_sumo.data.section import (
     signal_stops,
     split_runs,
 )
+from macromicro_sumo.env.driver_speed import resolved_entry
 from macromicro_sumo.env.rollout import rollout
 from macromicro_sumo.env.section_bank import SectionBank, with_future
 from macromicro_sumo.files import atomic_path, prepare_out_dir, write_csv, write_stage_manifest
@@ -167,12 +168,25 @@ def _drives_with(agent: Agent, params: dict[str, float]) -> bool:
     return bool(np.array_equal(have, want))
 
 
-def _episodes(sc: SectionScenario, truth: Any, net: SectionGeneratorNet, splits: dict):
-    """The policy stage's episodes for ``net`` and the snapshots their bank completes."""
-    ep = section_episodes(sc, truth, net, splits)
+def _snapshots(sc: SectionScenario, truth: Any, splits: dict) -> SectionSnapshots:
+    """The train + val runs' snapshots the policy stage's bank completes (those with the
+    horizon's future recorded), in its order: the same every iteration."""
     runs = np.concatenate([splits["train"], splits["val"]])
     snaps = section_snapshots(truth, sc, runs)
-    snaps = snaps.take(with_future(truth, snaps, sc.policy.horizon, sc.simulation.step_length_s))
+    return snaps.take(with_future(truth, snaps, sc.policy.horizon, sc.simulation.step_length_s))
+
+
+def _episodes(
+    sc: SectionScenario,
+    truth: Any,
+    net: SectionGeneratorNet,
+    splits: dict,
+    snaps: SectionSnapshots | None = None,
+):
+    """The policy stage's episodes for ``net`` and the snapshots their bank completes
+    (``snaps``: ``_snapshots``' where the caller has them)."""
+    ep = section_episodes(sc, truth, net, splits)
+    snaps = _snapshots(sc, truth, splits) if snaps is None else snaps
     if len(snaps) != len(ep.bank):  # the bank keeps exactly these snapshots, in order
         raise AssertionError(f"{len(snaps)} snapshots for {len(ep.bank)} episodes")
     return ep, snaps
@@ -198,7 +212,12 @@ def refine(
     out = prepare_out_dir(out)
     torch.set_num_threads(1)
     splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
-    ep0, snaps0 = _episodes(sc, truth, net, splits)
+    # policy.driver_entry "auto" resolved once from the train + val runs' observed drivers,
+    # as section_episodes would every call (resolved_entry: the same rule, a read of every
+    # recorded scene each time); what the checkpoints record keeps sc ("auto").
+    drivers_sc = resolved_entry(sc, truth, np.concatenate([splits["train"], splits["val"]]))[0]
+    snaps = _snapshots(sc, truth, splits)
+    ep0, _ = _episodes(drivers_sc, truth, net, splits, snaps)
     trained, (prior, extra_manifest, pairs) = refine_prior(
         sc, truth, Path(data), Path(policy), agent, splits, fit_prior
     )
@@ -212,7 +231,7 @@ def refine(
         folder = prepare_out_dir(out / f"iter_{it}")
         seed = sc.seed + ROLLOUT_SEED + it
         # (1) the current generator's scenes, the current policy one step on.
-        ep, snaps = (ep0, snaps0) if it == 0 else _episodes(sc, truth, net, splits)
+        ep = ep0 if it == 0 else _episodes(drivers_sc, truth, net, splits, snaps)[0]
         nxt = next_step_snapshots(sc, snaps, ep.bank, ep.make_core, agent, seed, truth.signals)
         is_val = np.isin(nxt.run, splits["val"])
         train = nxt.take(np.flatnonzero(~is_val))
@@ -235,7 +254,7 @@ def refine(
         save_section_generator(folder / "generator.pt", net, sc, {"refined_iterations": it + 1})
         after = mean_reconstruction(net, road, val, k_val, seed + REC_SEED)
         # (3) the policy on scenes the updated generator completes.
-        ep, _ = _episodes(sc, truth, net, splits)
+        ep, _ = _episodes(drivers_sc, truth, net, splits, snaps)
         res = train_policy(
             trained,
             ep.bank,
