@@ -8,16 +8,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import SMALL_RING, write_scenario
+from conftest import SMALL_RING
+from tiny_pass import tiny_single_pass
 
-from macromicro_sumo.cli import main
 from macromicro_sumo.data.section import split_runs
 from macromicro_sumo.env import driver_speed
 from macromicro_sumo.generator.section_train import load_section_generator
 from macromicro_sumo.pipeline.build import fit_residual_prior
 from macromicro_sumo.pipeline.refinement import _episodes, refine
-from macromicro_sumo.policy.stage import run_train_policy
-from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import load_section_truth
 
 pytestmark = pytest.mark.usefixtures("keep_torch_threads")
@@ -38,22 +36,14 @@ TINY_AUTO = {
 def test_refinement_resolves_the_entry_once_with_the_same_episodes(
     small_ring_gt: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    path = write_scenario(tmp_path, TINY_AUTO)
-    gen = tmp_path / "generator"
-    args = ["train-generator", str(path), "--data", str(small_ring_gt), "--out", str(gen)]
-    assert main([*args, "--quiet"]) == 0
-    sc = load_scenario(path)
-    pol = tmp_path / "policy"
-    run_train_policy(
-        sc, small_ring_gt, gen / "generator.pt", pol, progress=False, fit_prior=fit_residual_prior
-    )
+    sc, gen, pol = tiny_single_pass(tmp_path, small_ring_gt, TINY_AUTO)
     # The episodes of the rule resolved beforehand are those section_episodes resolves.
     truth = load_section_truth(small_ring_gt, sc)
     splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
     runs = np.concatenate([splits["train"], splits["val"]])
     resolved = driver_speed.resolved_entry(sc, truth, runs)[0]
     assert resolved.policy.driver_entry in ("queued", "held")
-    net = load_section_generator(gen / "generator.pt", sc)
+    net = load_section_generator(gen, sc)
     own, _ = _episodes(sc, truth, net, splits)
     once, _ = _episodes(resolved, truth, net, splits)
     for name in ("driver_factor", "arc0_m", "speed0_mps", "hidden", "valid"):
@@ -69,7 +59,7 @@ def test_refinement_resolves_the_entry_once_with_the_same_episodes(
 
     monkeypatch.setattr(driver_speed, "observed_drivers", counted)
     manifest = refine(
-        sc, small_ring_gt, gen / "generator.pt", pol / "policy.pt", tmp_path / "refined",
+        sc, small_ring_gt, gen, pol, tmp_path / "refined",
         progress=False, fit_prior=fit_residual_prior,
     )  # fmt: skip
     assert len(manifest["iterations"]) == 2

@@ -13,6 +13,7 @@ import pytest
 import torch
 from conftest import SMALL_RING, write_scenario
 from test_pipeline import stub_stage, stub_stages
+from tiny_pass import tiny_single_pass
 
 from macromicro_sumo.cli import main
 from macromicro_sumo.data.section import split_runs
@@ -24,7 +25,6 @@ from macromicro_sumo.pipeline.build import (
 )
 from macromicro_sumo.pipeline.refinement import _episodes, next_step_snapshots, refine
 from macromicro_sumo.policy.checkpoint import load_policy
-from macromicro_sumo.policy.stage import run_train_policy
 from macromicro_sumo.report.write import Run, refinement_part
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import load_section_truth
@@ -47,17 +47,8 @@ TINY = {
 @pytest.fixture(scope="module")
 def single_pass(small_ring_gt: Path, tmp_path_factory: pytest.TempPathFactory):
     """(scenario, ground truth, generator.pt, policy.pt) of a tiny single pass."""
-    folder = tmp_path_factory.mktemp("refine")
-    path = write_scenario(folder, TINY)
-    gen = folder / "generator"
-    args = ["train-generator", str(path), "--data", str(small_ring_gt), "--out", str(gen)]
-    assert main([*args, "--quiet"]) == 0
-    sc = load_scenario(path)
-    pol = folder / "policy"
-    run_train_policy(
-        sc, small_ring_gt, gen / "generator.pt", pol, progress=False, fit_prior=fit_residual_prior
-    )
-    return sc, small_ring_gt, gen / "generator.pt", pol / "policy.pt"
+    sc, gen, pol = tiny_single_pass(tmp_path_factory.mktemp("refine"), small_ring_gt, TINY)
+    return sc, small_ring_gt, gen, pol
 
 
 @pytest.fixture(scope="module")
