@@ -99,6 +99,12 @@ def get_options(args: list[str] | None = None) -> argparse.Namespace:
         "s on, arterials 1, 2, 600-603 were 11.19 / 14.82 vehicles per lane before stop 39)",
     )
     p.add_argument(
+        "--near-line",
+        action="store_true",
+        help="intervals: signal approaches with the near-line loops' standing queue where the "
+        "free-travel bound is the largest (truth.standing; StationRecord.near_line)",
+    )
+    p.add_argument(
         "--pieces",
         action="store_true",
         help="also a table of each part's error (vehicles): between stations, with a ramp, "
@@ -318,9 +324,10 @@ def read_truth(gt: Path, start_s: float) -> tuple[pd.DataFrame, pd.DataFrame, pd
     return traj, det, pas
 
 
-def errors(gt: Path, start_s: float = 0.0) -> pd.DataFrame:
+def errors(gt: Path, start_s: float = 0.0, near_line: bool = False) -> pd.DataFrame:
     """Per snapshot: regime, lanes and each estimator's K error, the record scored from
-    ``start_s`` on (``read_truth``; after 0 the passages do not start from an empty road)."""
+    ``start_s`` on (``read_truth``; after 0 the passages do not start from an empty road);
+    ``near_line``: the interval counts' ``StationRecord.near_line``."""
     sc = json.loads((gt / "manifest.json").read_text())["scenario"]
     section = Section.read(gt / "section.json")
     traj, det, pas = read_truth(gt, start_s)
@@ -336,7 +343,7 @@ def errors(gt: Path, start_s: float = 0.0) -> pd.DataFrame:
     net_file = scenario_inputs(load_scenario(gt.parent / "scenario.toml")).net_file
     net = read_net(net_file)
     side = side_junction_arcs(net, section)
-    record = interval_record(det, section, net, net_file)
+    record = interval_record(det, section, net, net_file, near_line)
     counts = k_estimates(traj, macro, section, every, window, record)
     hybrid = k_estimates(
         traj, macro, section, every, window, StationRecord(det, pas, side, lag, from_empty=empty)
@@ -489,7 +496,7 @@ def main(options: argparse.Namespace) -> bool:
     print("|---" * (6 + len(ESTIMATORS)) + "|")
     every = []
     for name, folder, table, desc in nets:
-        e = errors(ground_truth(folder, table), options.start_s)
+        e = errors(ground_truth(folder, table), options.start_s, options.near_line)
         every.append(e)
         for row in table_rows(name, desc, e):
             print(row, flush=True)

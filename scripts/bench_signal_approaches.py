@@ -180,12 +180,17 @@ def level_summary(levels: pd.DataFrame) -> pd.DataFrame:
 
 
 def approach_rows(
-    gt: Path, start_s: float = 0.0, junctions: bool = False, levels: bool = False
+    gt: Path,
+    start_s: float = 0.0,
+    junctions: bool = False,
+    levels: bool = False,
+    near_line: bool = False,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """(one row per run and approach: the constants' errors, vehicles; one row per snapshot:
-    each part's error, vehicles) of the ground truth ``gt`` scored from ``start_s`` on;
-    ``junctions``: the junction stretches' errors, counted and by the rest's density, too;
-    ``levels``: each part's and each rest part's error and level (``level_rows``)."""
+    """(one row per run and approach: the constants' errors, which bound is the largest,
+    vehicles; one row per snapshot: each part's error, vehicles) of the ground truth ``gt``
+    scored from ``start_s`` on; ``junctions``: the junction stretches' errors, counted and by
+    the rest's density, too; ``levels``: each part's and each rest part's error and level
+    (``level_rows``); ``near_line``: the approaches counted so (``approach_count``)."""
     man = json.loads((gt / "manifest.json").read_text())["scenario"]
     section = Section.read(gt / "section.json")
     traj, det, _ = read_truth(gt, start_s)
@@ -219,7 +224,13 @@ def approach_rows(
             bounds = np.concatenate([begin, end[-1:]])
             tb = bounds[bounds >= begin[0] + travel]
             moving = sc.arrivals(d, a, tb) - sc.arrivals(d, a, tb - travel)
-            est = sc.approach_count(d, section, a, times, spacing)
+            est = sc.approach_count(d, section, a, times, spacing, near_line)
+            bound = {
+                "density": sc.density_constant(d, section, a, io) - c_true,
+                "queue": sc.queue_constant(d, section, a, io, spacing) - c_true,
+                "moving": float(np.quantile(moving - io(tb), sc.CLEAR_QUANTILE)) - c_true,
+                "empty": -float(io(bounds).min()) - c_true,
+            }
             rows.append(
                 {
                     "truth": truth_name(gt),
@@ -233,15 +244,14 @@ def approach_rows(
                     "room": lanes * (a.bar_m - a.up_m) / spacing,
                     "true_constant": c_true,
                     "spread": float(np.abs(true - io_t - c_true).mean()),
-                    "density": sc.density_constant(d, section, a, io) - c_true,
-                    "queue": sc.queue_constant(d, section, a, io, spacing) - c_true,
-                    "moving": float(np.quantile(moving - io(tb), sc.CLEAR_QUANTILE)) - c_true,
-                    "empty": -float(io(bounds).min()) - c_true,
+                    **bound,
+                    "bound": max(bound, key=bound.get),
+                    "near_line": sc.density_constant(d, section, a, io, spacing) - c_true,
                     "error": float(np.abs(est - true).mean()) if est is not None else np.nan,
                     "bias": float((est - true).mean()) if est is not None else np.nan,
                 }
             )
-        pieces, rest = sc.approach_pieces(d, section, lines, side, run, times)
+        pieces, rest = sc.approach_pieces(d, section, lines, side, run, times, near_line)
         more, less = (
             junction_pieces(d, section, lines, run, times, rest) if junctions else ({}, rest)
         )
@@ -366,8 +376,16 @@ def main(args: list[str] | None = None) -> int:
         help="also each station's read density against the true one within 20 m, by its "
         "distance to the next stop line (stations.csv)",
     )
+    p.add_argument(
+        "--near-line",
+        action="store_true",
+        help="count the approaches with the near-line loops' standing queue where the "
+        "free-travel bound is the largest (truth.standing; StationRecord.near_line)",
+    )
     o = p.parse_args(args)
-    both = [approach_rows(gt, o.start_s, o.junction_counts, o.levels) for gt in o.truths]
+    both = [
+        approach_rows(gt, o.start_s, o.junction_counts, o.levels, o.near_line) for gt in o.truths
+    ]
     rows = pd.concat([r for r, _ in both], ignore_index=True)
     parts = pd.concat([x for _, x in both], ignore_index=True)
     with pd.option_context("display.width", 250, "display.max_rows", 1000):

@@ -304,7 +304,9 @@ def io_vehicles(
     if record.stop_lines:
         side = record.side_arcs if record.side_arcs is not None else np.array([])
         lines = list(record.stop_lines)
-        pieces, rest = approach_pieces(record.det, section, lines, side, run, at_s)
+        pieces, rest = approach_pieces(
+            record.det, section, lines, side, run, at_s, record.near_line
+        )
     else:
         pieces, rest = io_pieces(record, section, run, at_s)
     counted = np.zeros(len(at_s))

@@ -127,7 +127,11 @@ def complete_counts(det: pd.DataFrame) -> bool:
 
 
 def interval_record(
-    det: pd.DataFrame, section: Section, net: sumolib.net.Net, net_file: Path | None = None
+    det: pd.DataFrame,
+    section: Section,
+    net: sumolib.net.Net,
+    net_file: Path | None = None,
+    near_line: bool = False,
 ) -> StationRecord | None:
     """The stations' record for ``hidden_count.k_estimates`` from their interval counts
     alone (``interval_passages``, ramps from ``net``, weighted by ``queued_weight``), or None
@@ -135,7 +139,8 @@ def interval_record(
     is missing. Where the section has a stop line: its signals' programs from ``net_file``
     (``signal_counts.stop_lines``), the approaches to them counted by conservation
     (``signal_counts.approach_pieces``); None where ``net_file`` is not given, a stop line
-    has no fixed-time signal (a stop sign) or no approach has its two stations."""
+    has no fixed-time signal (a stop sign) or no approach has its two stations.
+    ``near_line``: ``StationRecord.near_line``."""
     if section.closed or not complete_counts(det):
         return None
     if any(len(full_stations(d, section)) < 2 for _, d in det.groupby("run")):
@@ -151,7 +156,12 @@ def interval_record(
         ):
             return None
         return StationRecord(
-            det, pd.DataFrame(), side, interval_counts=True, stop_lines=tuple(lines)
+            det,
+            pd.DataFrame(),
+            side,
+            interval_counts=True,
+            stop_lines=tuple(lines),
+            near_line=near_line,
         )
     return StationRecord(
         det,

@@ -41,16 +41,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from macromicro_sumo.road.leaders import STANDING_MIN_GAP_M
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.sumo.net_xml import NetLinks, net_links
-from macromicro_sumo.truth.density import (
-    DEFAULT_VEHICLE_LENGTH_M,
-    JAM_SPACING_M,
-    effective_length_m,
-    occupancy_weight,
-    rising_integral,
-)
+from macromicro_sumo.truth.density import JAM_SPACING_M, occupancy_weight, rising_integral
 from macromicro_sumo.truth.section_macro import (
     cut_at_lines,
     edie_densities,
@@ -58,6 +51,7 @@ from macromicro_sumo.truth.section_macro import (
     loop_lengths_m,
     station_density,
 )
+from macromicro_sumo.truth.standing import jam_spacing_m, standing_density
 from macromicro_sumo.truth.stations import Piece, full_stations, ramp_between, station_speeds
 
 STOP_BAR_REACH_M = 5.0
@@ -272,24 +266,6 @@ def arrivals(det: pd.DataFrame, a: Approach, at_s: np.ndarray) -> np.ndarray:
     return even + w * (cumulative(det, a.up_m, at_s, late) - even)
 
 
-def jam_spacing_m(det: pd.DataFrame) -> float:
-    """Room a vehicle takes in a standing queue: the median over the loops of their
-    effective vehicle length (``density.effective_length_m``, from their free-flowing
-    intervals; SUMO's passenger car where none flowed) plus the gap between standing
-    vehicles, SUMO's default minGap (``road.leaders.STANDING_MIN_GAP_M``)."""
-    cols = ["flow_vph", "speed_mps", "occupancy_pct"]
-    e1 = det[det["kind"] == "e1"]
-    loop = pd.Series(loop_lengths_m(e1), index=e1.index)
-    # Less the occupancy loop's own length (dual loops), which the calibration holds.
-    lengths = [
-        effective_length_m(*(g[c].to_numpy(dtype=float) for c in cols), np.nan)
-        - float(loop[g.index].max())
-        for _, g in e1.groupby("detector_id")
-    ]
-    ok = [x for x in lengths if np.isfinite(x)]
-    return float(np.median(ok) if ok else DEFAULT_VEHICLE_LENGTH_M) + STANDING_MIN_GAP_M
-
-
 def queue_floor(
     det: pd.DataFrame, e1: pd.DataFrame, section: Section, a: Approach, spacing_m: float
 ) -> list[tuple[float, float]]:
@@ -354,16 +330,32 @@ def queue_constant(det: pd.DataFrame, section: Section, a: Approach, io, spacing
     return float(np.quantile(n - io(t), CLEAR_QUANTILE))
 
 
-def density_constant(det: pd.DataFrame, section: Section, a: Approach, io) -> float:
+def density_constant(
+    det: pd.DataFrame, section: Section, a: Approach, io, spacing_m: float | None = None
+) -> float:
     """The constant that puts the counted approach ``a`` (``io(t)`` plus it) on its density
     estimate on average over the record: the mean over the intervals of the stations'
     density integrated over the approach less ``io``'s mean over the interval. Dual loops:
     their occupancy's density (``section_macro.edie_densities``), rising toward the line as
-    ``density.rising_integral`` (docs/sections-log.md, "Dual loops on signal approaches")."""
+    ``density.rising_integral`` (docs/sections-log.md, "Dual loops on signal approaches").
+    Point loops with ``spacing_m``: the stations near the line with the red's standing queue
+    added (``standing.standing_density``; the vehicles arriving at the line in the red:
+    ``arrivals`` a free travel earlier)."""
     e1s, rows = det[det["kind"] == "e1"], []
     dual = bool((loop_lengths_m(e1s) > 0).any())
+    e = section.edge_index(np.array([a.bar_m]))[0]
+    lanes, v_free = int(section.n_lanes[e]), float(np.nanmax(section.limits_mps[e]))
+    travel = (a.line.arc_m - a.up_m) / v_free
     for (b, e), e1 in (edie_densities(e1s) if dual else e1s).groupby(["begin_s", "end_s"]):
         k = station_density(e1, section)
+        if spacing_m is not None and not dual:
+            x = a.line.arc_m - k.index.to_numpy(dtype=float)
+            reds = [
+                (float(np.diff(arrivals(det, a, np.array([t - r, t]) - travel))[0]), r)
+                for t, r in a.line.green_starts(b, e)
+            ]
+            add = standing_density(x, reds, e - b, lanes, spacing_m, v_free, WAVE_MPS)
+            k = k + np.where(k.index.to_numpy(dtype=float) > a.up_m, add, 0.0)
         if dual:
             k = rising_integral(k.index.to_numpy(dtype=float), k.to_numpy(), a.up_m, a.bar_m)
         else:
@@ -373,12 +365,18 @@ def density_constant(det: pd.DataFrame, section: Section, a: Approach, io) -> fl
 
 
 def approach_count(
-    det: pd.DataFrame, section: Section, a: Approach, at_s: np.ndarray, spacing_m: float
+    det: pd.DataFrame,
+    section: Section,
+    a: Approach,
+    at_s: np.ndarray,
+    spacing_m: float,
+    near_line: bool = False,
 ) -> np.ndarray | None:
     """Vehicles on the approach ``a`` at ``at_s`` by conservation, anchored on the density
     estimate and the lower bounds at the intervals' bounds (module doc; a standing queue's
     at jam spacing ``spacing_m``, ``jam_spacing_m``); None where the counts drift past what
-    it can hold."""
+    it can hold. ``near_line``: where the free-travel bound is the largest (no station reads
+    a queue), the density estimate with the near-line loops' standing queue added."""
     begin, end, _ = station_counts(det, a.bar_m)
     length = a.bar_m - a.up_m
     e = section.edge_index(np.array([a.bar_m]))[0]
@@ -393,12 +391,11 @@ def approach_count(
     if len(t) == 0:
         return None
     moving = arrivals(det, a, t) - arrivals(det, a, t - travel_s)
-    low = max(
-        density_constant(det, section, a, io),
-        queue_constant(det, section, a, io, spacing_m),
-        float(np.quantile(moving - io(t), CLEAR_QUANTILE)),
-        -float(io(bounds).min()),
-    )
+    mov = float(np.quantile(moving - io(t), CLEAR_QUANTILE))
+    others = (density_constant(det, section, a, io), queue_constant(det, section, a, io, spacing_m))
+    low = max(mov, *others, -float(io(bounds).min()))
+    if near_line and low == mov and mov > max(others):
+        low = max(low, density_constant(det, section, a, io, spacing_m))
     room = lanes * length / JAM_SPACING_M
     high = room - float(io(bounds).max())
     if low > high:
@@ -456,17 +453,18 @@ def approach_pieces(
     side_arcs: np.ndarray,
     run: int,
     at_s: np.ndarray,
+    near_line: bool = False,
 ) -> tuple[dict[str, Piece], pd.DataFrame]:
     """The approaches counted at ``at_s`` (``approach_count``) and the stretch past the last
     signal (``exit_stretch``, ``free_count``) as pieces, and per interval the density
     estimate of the rest of the section (``begin_s, end_s, vehicles``), as
-    ``hidden_count.io_pieces`` gives them."""
+    ``hidden_count.io_pieces`` gives them (``near_line``: ``approach_count``'s)."""
     d = det[det["run"] == run]
     at = np.asarray(at_s, dtype=float)
     counted, spans = np.zeros(len(at)), []
     spacing = jam_spacing_m(d)  # the run's loops, once for its approaches
     for a in approaches(d, section, lines, side_arcs):
-        n = approach_count(d, section, a, at, spacing)
+        n = approach_count(d, section, a, at, spacing, near_line)
         if n is not None:
             counted += n
             spans.append((a.up_m, a.bar_m))
