@@ -43,7 +43,12 @@ from macromicro_sumo.files import (
     writer_session,
 )
 from macromicro_sumo.generator.section_metrics import completion_metrics
-from macromicro_sumo.generator.section_sampler import SectionCompletion, complete_section, k_of
+from macromicro_sumo.generator.section_sampler import (
+    SectionCompletion,
+    complete_section,
+    generated_length,
+    k_of,
+)
 from macromicro_sumo.generator.section_train import load_section_generator
 from macromicro_sumo.manifest import build_manifest
 from macromicro_sumo.road.section import Section
@@ -371,6 +376,7 @@ def run_complete(
                 seed + c,
                 -sc.bounds.accel_mps2[0],
                 sc.simulation.step_length_s,
+                generated_length(truth),  # Stage II's generated vehicles'
             )
             for c in range(completions)
         ]

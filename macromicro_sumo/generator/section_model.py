@@ -7,12 +7,11 @@ and 3 of the paper):
   (gap / psi's mean spacing, neighbours' speeds relative to psi's mean speed, the lane's
   limit, its relative index, whether the gap is an open end, how full the lane already is)
   plus global ones: a categorical over all gaps picks where the next vehicle goes, a
-  logit-normal picks its place inside the part of the gap that keeps the front-to-front
-  spacing >= psi's spacing_min to both neighbours, a logit-normal on psi's
-  [speed_min, speed_max] its speed, centred on the speed the vehicles still to place need
-  for psi's mean and restricted to the speeds that keep that mean reachable, with the
-  spread of a sum-constrained draw (``propose``): the completed mean equals psi's. The place is thus feasible for spacing by construction, the
-  ``truncate`` limit of the ring generator, so training and inference sample the same law.
+  logit-normal its place in the part of the gap that keeps the spacing >= psi's
+  spacing_min (plus a longer leader's extra length) to both neighbours, a logit-normal on
+  [speed_min, speed_max] its speed, aimed at psi's mean within the speeds that keep it
+  reachable, with a sum-constrained draw's spread (``propose``): the completed mean is
+  psi's. The place is feasible by construction (the ring's ``truncate``): one law.
 * Training. The completed scene is scored with the paper's macro terms, per snapshot:
   L_speed = (mean speed / psi mean speed - 1)^2 over all vehicles, and the spacing terms
   over the front-to-front spacings of every vehicle to its leader in its lane:
@@ -88,10 +87,11 @@ def observe(
     road: Road,
     anchor: torch.Tensor,
     extra: torch.Tensor | None = None,
+    new_extra: float = 0.0,
 ) -> Observation:
     """Gaps and scale-free features of the scenes; ``remaining`` counts the vehicles still to
     place (the next one included), ``total`` the vehicles of the completed scene."""
-    gaps = scene_gaps(lane, arc, speed, present, road, psi.s_min, anchor, extra)
+    gaps = scene_gaps(lane, arc, speed, present, road, psi.s_min, anchor, extra, new_extra)
     share = lane_exists_share(gaps, road)
     room_ok = gaps.valid & (gaps.room > 0) & (share > 0)
     # None with room: the section is fuller than psi's minimum spacing allows; every
@@ -393,6 +393,7 @@ class Scene:
     k: torch.Tensor  # (B,) vehicles to generate
     total: torch.Tensor  # (B,) vehicles of the completed scene
     extra: torch.Tensor | None = None  # (B, N + K_max) length beyond the shortest [m]
+    new_extra: float = 0.0  # a generated one's (``complete_section``: ``generated_extra``)
 
     @classmethod
     def start(cls, snaps: SectionSnapshots, k: np.ndarray, road: Road) -> Scene:
@@ -442,6 +443,7 @@ class Scene:
             road,
             _anchor(len(idx), road, gen),
             None if self.extra is None else self.extra[idx, :m],
+            self.new_extra,
         )
 
     def place(

@@ -46,6 +46,7 @@ from macromicro_sumo.generator.section_scene import (
     Psi,
     Road,
     extra_lengths,
+    generated_extra,
     scene_stops,
     shortest_length,
     stop_room_m,
@@ -160,6 +161,17 @@ class GeneratorCompletion:
 generator_completion = GeneratorCompletion
 
 
+def generated_length(truth: Any) -> float | None:
+    """The generated vehicles' length in the environment [m]: the vType with the most
+    vehicles on the section, as ``env.section_bank.typical_length`` (which this layer may
+    not import) gives the Stage II envs and evaluation; None without vTypes. Stage I's own
+    scoring (``section_stage``, ``complete``) completes with it, as Stage II does."""
+    vt = getattr(truth, "vtypes", None)
+    if vt is None or not len(vt) or "length_m" not in vt or "vehicles" not in vt:
+        return None
+    return float(vt["length_m"].iloc[int(np.argmax(vt["vehicles"].to_numpy()))])
+
+
 def _window_of(
     g: Gaps,
     psi: Psi,
@@ -207,7 +219,7 @@ def kinematic_speeds(
     b, tau = brake_mps2, reaction_s
     s_min = psi.s_min[:, None]
     v_f, v_l = gaps.v_f.gather(1, choice), gaps.v_l.gather(1, choice)
-    room_f = 2.0 * b * (a - s_min).clamp(min=0.0)
+    room_f = 2.0 * b * (a - s_min - gaps.extra_new.gather(1, choice)).clamp(min=0.0)
     ex_l = gaps.extra_l.gather(1, choice)
     room_l = 2.0 * b * (gaps.length.gather(1, choice) - a - s_min - ex_l).clamp(min=0.0)
     need = torch.sqrt((v_f * v_f + 2.0 * b * tau * v_f - room_f).clamp(min=0.0))
@@ -241,14 +253,20 @@ def complete_section(
     With ``brake_mps2`` (the scenario's braking bound), generated speeds are then made
     kinematically consistent with their lane neighbours (``safe_speeds``, with a reaction
     time of ``reaction_s``). ``generated_length_m``: the generated vehicles' length in the
-    environment (``env.section_bank.typical_length``); a generated leader longer than the
-    snapshots' shortest vehicle keeps that much more room behind it there, as an observed
-    one does (``extra_lengths``). None: the shortest's."""
+    environment (``env.section_bank.typical_length``; None: the snapshots' shortest). Where
+    it is longer, each generated vehicle is placed with that much more room behind it and
+    keeps it ahead of the next (``generated_extra``), as an observed truck does: the scene
+    is admissible for the vehicles SUMO inserts. Inference alone: a net trained without it
+    (its rollouts at psi's s_min) completes with it. The pair check's extra stays the
+    junction's (``junction_extra``; a standing follower may stand closer)."""
     kin = None if brake_mps2 is None else (float(brake_mps2), float(reaction_s))
     t0 = time.perf_counter()
     road = Road.of(section)
     gen = torch.Generator().manual_seed(int(seed))
     scene = Scene.start(snaps, k, road)
+    scene.new_extra = generated_extra(snaps, generated_length_m)
+    if scene.new_extra > 0.0:  # the generated slots' length, once placed (observe's extra)
+        scene.extra[:, scene.n_obs_slots :] = scene.new_extra
     psi = Psi.of(snaps.psi)
     b = len(snaps)
     stop_pts = scene_stops(section, snaps)  # standing obstacles: red lights, lane ends

@@ -58,6 +58,17 @@ def shortest_length(snaps: SectionSnapshots) -> float:
     return float(np.asarray(snaps.length_m, dtype=float)[valid].min()) if valid.any() else 0.0
 
 
+def generated_extra(snaps: SectionSnapshots, length_m: float | None) -> float:
+    """The generated vehicles' length beyond the snapshots' shortest [m] (0: None, or not
+    longer). Placed at psi's s_min (the shortest vehicle plus the minimum gap) a 5 m
+    generated car left its follower 1.5 m of a 2.0 m minimum gap behind a 4.5 m car's
+    spacing (fresh 1169, stop 46): ``Scene.start`` places each with this much more room
+    behind it (``scene_gaps``' ``new_extra``) and keeps it ahead of the next (``extra``)."""
+    if length_m is None or not len(snaps):
+        return 0.0
+    return max(float(length_m) - shortest_length(snaps), 0.0)
+
+
 @dataclass(frozen=True)
 class Psi:
     """psi of a batch of snapshots as named (B,) float64 tensors."""
@@ -138,6 +149,9 @@ class Gaps:
     n_lane: torch.Tensor  # vehicles already on the gap's lane
     # the gap's leader's length beyond the shortest vType's [m] (its s_min is the shortest's)
     extra_l: torch.Tensor
+    # the new vehicle's own length beyond the shortest's [m]: its follower keeps this much
+    # more behind it (``scene_gaps``' ``new_extra``; lo holds it, ``kinematic_speeds`` too)
+    extra_new: torch.Tensor
 
     @property
     def room(self) -> torch.Tensor:
@@ -199,12 +213,14 @@ def scene_gaps(
     s_min: torch.Tensor,
     anchor: torch.Tensor,
     extra: torch.Tensor | None = None,
+    new_extra: float = 0.0,
 ) -> Gaps:
     """The gaps of the current scenes (``Gaps``); ``anchor`` (B, lanes) is where an empty
     lane's gap starts on a closed section; ``extra`` (B, M) each vehicle's length beyond
     the shortest vType's (None: 0), which a new vehicle keeps behind it on top of s_min
     (s_min is the shortest vehicle plus the minimum gap: with it alone a car was put
-    inside an observed 12 m truck)."""
+    inside an observed 12 m truck); ``new_extra`` the new vehicle's own
+    (``generated_extra``), which the gap's follower keeps behind it (0: psi's s_min)."""
     b, m = arc.shape
     nl = road.max_lanes
     lo_ = lane_order(lane, arc, present, road)
@@ -224,7 +240,7 @@ def scene_gaps(
     ex_next = torch.cat([ex.gather(1, lo_["order"])[:, 1:], ex_first[:, :1]], dim=1)
     ex_l = torch.where(lo_["has_next"], ex_next, ex_first.gather(1, lane_c))
     ex_l = torch.where(has_l, ex_l, 0.0)
-    lo = s_min_c.expand(b, m)
+    lo = (s_min_c + new_extra).expand(b, m)
     hi = length - torch.where(has_l, s_min_c + ex_l, END_MARGIN_M)
     count = lo_["count"]
     occupied = count > 0
@@ -250,7 +266,7 @@ def scene_gaps(
         h_valid = torch.ones_like(occupied)
         h_has_l = occupied
         h_v_l = torch.where(occupied, first_v, 0.0)
-        h_lo = torch.where(f_has, s_min_c, 0.0)
+        h_lo = torch.where(f_has, s_min_c + new_extra, 0.0)
         h_has_f, h_v_f = f_has, torch.where(f_has, f_v, 0.0)
     return Gaps(
         start=torch.cat([lo_["arc"], h_start], dim=1),
@@ -265,6 +281,7 @@ def scene_gaps(
         valid=torch.cat([lo_["present"], h_valid], dim=1),
         n_lane=torch.cat([count.gather(1, lane_c), count], dim=1).double(),
         extra_l=torch.cat([ex_l, torch.where(h_has_l, ex_first, 0.0)], dim=1),
+        extra_new=torch.full((b, m + nl), float(new_extra), dtype=torch.float64),
     )
 
 

@@ -35,6 +35,7 @@ from macromicro_sumo.generator.section_model import SectionGeneratorNet
 from macromicro_sumo.generator.section_sampler import (
     SectionCompletion,
     complete_section,
+    generated_length,
     k_of,
     uniform_completion,
 )
@@ -84,16 +85,18 @@ def held_out_completion(
     held: SectionSnapshots,
     k: np.ndarray,
     seed: int,
+    generated_length_m: float | None = None,
 ) -> SectionCompletion:
     """One completion of the held-out snapshots that the stage scores: the generator's as
     Stage II gets it (``generator_completion``: the braking bound, one step of reaction), so
     that the manifest's ``dropped`` counts the vehicles the pair check drops too (scored
-    without it, the count stayed 0 where the envs' completions dropped some); the uniform
-    baseline's as it is."""
+    without it, the count stayed 0 where the envs' completions dropped some; with the
+    generated vehicles' length, ``generated_length``); the uniform baseline's as it is."""
     args = (net, section, held, k, sc.generator.t_max, seed)
     if method == "uniform":
         return uniform_completion(*args)
-    return complete_section(*args, -sc.bounds.accel_mps2[0], sc.simulation.step_length_s)
+    dt = sc.simulation.step_length_s
+    return complete_section(*args, -sc.bounds.accel_mps2[0], dt, generated_length_m)
 
 
 def _summary(g: pd.DataFrame, n_comp: int = 1) -> dict[str, Any]:
@@ -146,13 +149,15 @@ def run_train_section_generator(
     save_section_generator(out / "generator.pt", net, sc, {"epochs": len(log)})
     write_csv(log, out / "generator_train_log.csv")
     k = k_of(held, sc.generator.k_source)
+    length = generated_length(truth)  # Stage II's generated vehicles'
     frames, timings = [], {"train_generator": round(train_s, 3)}
     first: dict[str, Any] = {}  # each method's first completion
     n_comp = sc.generator.eval_completions
     for method in ("generator", "uniform"):
         wall_s = 0.0
         for c in range(n_comp):  # the ring draws 4 per held-out scene: less sampling noise
-            comp = held_out_completion(method, net, sc, truth.section, held, k, sc.seed + c)
+            args = (method, net, sc, truth.section, held, k, sc.seed + c, length)
+            comp = held_out_completion(*args)
             first.setdefault(method, comp)
             wall_s += comp.wall_s
             m = completion_metrics(truth.section, held, comp, k)
