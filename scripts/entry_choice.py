@@ -2,7 +2,11 @@
 (``env.driver_speed.entry_choice``): the observed drivers of the train + val runs, how many
 of their first sights were held by what is ahead at a speed "queued" keeps (at least
 ``QUEUED_ENTRY_SHARE`` of the observed median), and those sights' median v / limit over their
-driver's top; "held" below ``ENTRY_AT_OWN_SHARE``.
+driver's top; "held" below ``ENTRY_AT_OWN_SHARE``. Then the same for the free first sights
+(neither held nor below that share: the ones every rule keeps as the driver's desired speed),
+``free_sights`` and ``free_at_own``: at 1.000 where the net inserts vehicles at their own speed;
+below it a kept sight is slower than its driver (drawn 522: 5 at 0.806, every other net of
+stop 47 at 1.000; docs/deploy.md, stop 47, hM47).
 
     .venv/bin/python scripts/entry_choice.py SCENARIO.toml GROUND_TRUTH [SCENARIO GROUND_TRUTH ...]
 """
@@ -15,11 +19,36 @@ import sys
 import numpy as np
 
 from macromicro_sumo.data.section import split_runs
-from macromicro_sumo.env.driver_speed import entry_choice
+from macromicro_sumo.env.driver_speed import (
+    QUEUED_ENTRY_SHARE,
+    entry_choice,
+    first_sights,
+    held_at_sight,
+)
+from macromicro_sumo.env.driver_speed_ratios import QUANTILE_LEVELS, ObservedDrivers, ratio_estimate
 from macromicro_sumo.env.observed_drivers import observed_drivers, ratio_censoring
-from macromicro_sumo.road.physics import observes_gap
+from macromicro_sumo.road.physics import LIMIT_COLUMN, observes_gap
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import load_section_truth
+
+
+def free_sights(observed: ObservedDrivers, gap_layout: bool, censoring: str) -> tuple[int, float]:
+    """The observed drivers' free first sights (not ``held_at_sight``, at least
+    ``QUEUED_ENTRY_SHARE`` of the median ratio, a known top) and their median first-sight v /
+    limit over their driver's top (NaN where none): ``entry_choice``'s reading of the sights it
+    does not read."""
+    if not observed.keys:
+        return 0, float("nan")
+    idx = first_sights(observed)
+    obs = observed.obs[idx]
+    keys = [observed.keys[i] for i in idx.tolist()]
+    top = np.array([observed.ratio.get(k, observed.lower.get(k, np.nan)) for k in keys])
+    ratio = obs[:, 0] / np.maximum(obs[:, LIMIT_COLUMN], 0.1)
+    median = np.interp(0.5, QUANTILE_LEVELS, ratio_estimate(observed, censoring).quantiles)
+    ok = ~held_at_sight(obs, gap_layout) & (ratio / median >= QUEUED_ENTRY_SHARE)
+    ok &= np.isfinite(top) & (top > 0)
+    n = int(ok.sum())
+    return n, float(np.median(ratio[ok] / top[ok])) if n else float("nan")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -28,14 +57,19 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if len(args.pairs) % 2:
         ap.error("give a ground-truth folder after each scenario")
-    print("scenario,observed,held_sights,at_own,entry")
+    print("scenario,observed,held_sights,at_own,entry,free_sights,free_at_own")
     for toml, data in zip(args.pairs[::2], args.pairs[1::2], strict=True):
         sc = load_scenario(toml)
         truth = load_section_truth(data, sc)
         splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
         drivers = observed_drivers(sc, truth, np.concatenate([splits["train"], splits["val"]]))
-        c = entry_choice(drivers, observes_gap(sc.policy.observation), ratio_censoring(sc))
-        print(f"{sc.name},{len(set(drivers.keys))},{c.held_sights},{c.at_own:.3f},{c.entry}")
+        gap, censoring = observes_gap(sc.policy.observation), ratio_censoring(sc)
+        c = entry_choice(drivers, gap, censoring)
+        n_free, free_at_own = free_sights(drivers, gap, censoring)
+        print(
+            f"{sc.name},{len(set(drivers.keys))},{c.held_sights},{c.at_own:.3f},{c.entry},"
+            f"{n_free},{free_at_own:.3f}"
+        )
     return 0
 
 
