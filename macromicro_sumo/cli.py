@@ -12,7 +12,7 @@ import shlex
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from macromicro_sumo.batch import runner as batch
 from macromicro_sumo.env.examples import example_names, example_scenario, sumo_nets_dir
@@ -170,8 +170,20 @@ def _cmd_doctor(args: argparse.Namespace) -> int:
     return 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with its usage errors on one ``error:`` line, as every other bad input
+    (README, Bad input), instead of the usage block and a second line; exit code 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"error: {self.prog}: {message}; see {self.prog} --help\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="macromicro", description=__doc__.splitlines()[0])
+    ap = _Parser(
+        prog="macromicro",
+        description="Learn a driving policy in SUMO that matches the observed vehicles and "
+        "the detectors, and deploy it: one subcommand per pipeline stage.",
+    )
     sub = ap.add_subparsers(dest="command", required=True)
 
     def add(
@@ -200,7 +212,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = add(
         "run",
         _cmd_run,
-        "the whole pipeline: ground truth, generator, policies, evaluation, report (stages resume)",
+        "the whole pipeline: ground truth, generator, policies, evaluation, deployment, report "
+        "(each stage redone only when its settings or an earlier stage changed)",
     )
     scenario_or_example(p)
     p.add_argument("--out", type=Path, required=True, help="output folder")
