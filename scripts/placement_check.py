@@ -8,9 +8,10 @@ start scene that collides does so in every method's rollouts), counting collisio
 
 One line of key=value figures: generated, dropped, episodes, collisions (episodes with
 one), k_err (mean |placed - true hidden count| per scene), k_bias (mean placed - true),
-speed_err (mean |completed mean speed - true|, m/s), spacing_err (mean |completed mean
-spacing - true|, m), std_ratio (completed / true spacing std, pooled), tight (generated
-pairs with a front-to-back gap under the minimum gap, on the section's leaders).
+speed_err (mean |completed mean speed - true|, m/s), speed_bias (mean completed - true),
+spacing_err (mean |completed mean spacing - true|, m), std_ratio (completed / true spacing
+std, pooled), tight (generated pairs with a front-to-back gap under the minimum gap, on the
+section's leaders), digest (md5 of the completed scenes, first 12 characters).
 """
 
 from __future__ import annotations
@@ -98,7 +99,7 @@ def main() -> None:
     bank = build_section_bank(sc, truth, snaps, complete, horizon=h)
     gen = sum(int(c.generated.sum()) for _, c in comps)
     drop = sum(int(c.dropped.sum()) for _, c in comps)
-    kerr, kbias, serr, derr, std_c, std_t, tight = [], [], [], [], [], [], 0
+    kerr, kbias, serr, sbias, derr, std_c, std_t, tight = [], [], [], [], [], [], [], 0
     min_gap = recorded_min_gap(truth)
     gap_floor = 2.0 if min_gap is None else min_gap  # SUMO's default minGap
     for s, c in comps:
@@ -107,6 +108,7 @@ def main() -> None:
         kbias.append(placed - s.k_true)
         m = completion_metrics(truth.section, s, c, k_of(s, "estimate"))
         serr.append(np.abs(m["mean_speed_mps"] - m["true_mean_speed_mps"]))
+        sbias.append(m["mean_speed_mps"] - m["true_mean_speed_mps"])
         derr.append(np.abs(m["mean_spacing_m"] - m["true_mean_spacing_m"]))
         std_c.append(m["std_spacing_m"] ** 2)
         std_t.append(m["true_std_spacing_m"] ** 2)
@@ -122,6 +124,7 @@ def main() -> None:
         "k_err": float(np.mean(cat(kerr))),
         "k_bias": float(np.mean(cat(kbias))),
         "speed_err": float(np.nanmean(cat(serr))),
+        "speed_bias": float(np.nanmean(cat(sbias))),
         "spacing_err": float(np.nanmean(cat(derr))),
         "std_ratio": float(np.sqrt(np.nanmean(cat(std_c)) / np.nanmean(cat(std_t)))),
         "tight": tight,
