@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from functools import partial
-from itertools import compress, repeat
+from itertools import compress, filterfalse, repeat
 from operator import and_
 
 import numpy as np
@@ -33,11 +33,7 @@ from macromicro_sumo.deploy.brake_plan import BrakeHandover, planned_decel
 from macromicro_sumo.deploy.keep_right import keep_right_caps
 from macromicro_sumo.deploy.merge_yield import LANE_END_RECHECK_STEPS, MergeYield, drop_chain_lanes
 from macromicro_sumo.deploy.observe import STANDING, LaneTable, Table, observe_rows, states_of
-from macromicro_sumo.deploy.population import (
-    ActionBatch,
-    DriveStats,
-    in_share,
-)
+from macromicro_sumo.deploy.population import ActionBatch, DriveStats, in_share
 from macromicro_sumo.deploy.safety import (
     SAFETY_TOLERANCE_MPS,
     SPEED_MODES,
@@ -87,6 +83,7 @@ class SectionDriver:
         self.steps = 0
         # The last ``before_step``'s states, per vehicle on a section lane and in the population
         self.flags: tuple[VehicleStates | None, list[bool], list[bool]] = (None, [], [])
+        self.at_rows: tuple[list[str], np.ndarray, list[str]] = ([], np.empty(0, np.int64), [])
         self._brake_limit: tuple[tuple[str, ...], np.ndarray] = ((), np.empty(0))
         # -decel - tolerance of the least decel among the vTypes met: the loosest threshold.
         # A numpy 0-d array: compared every step without numpy's conversion of a float.
@@ -101,7 +98,7 @@ class SectionDriver:
         # run (rerouters) departed once, and a departure this driver did not see (before
         # it was attached, or a list read by someone else) must not leave them undriven.
         ids = st.ids
-        new = [v for v in ids if v not in self.types]  # in SUMO's order
+        new = list(filterfalse(self.types.__contains__, ids))  # SUMO's order, in C
         if new:
             self.arrive(sim, tuple(new))
         self.count_brakings(st)
@@ -114,7 +111,8 @@ class SectionDriver:
         # Kept for this step's ``MergeYield.must_change``: those on the section and not ours
         # are the vehicles not driven there, without a second pass over every vehicle.
         self.flags = (st, on, ours)
-        vids = list(compress(ids, map(and_, on, ours)))
+        mask = list(map(and_, on, ours))
+        vids = list(compress(ids, mask))
         now = set(vids)
         # Still in the network (on the road or teleporting), not on the section now: SUMO's
         # arrivals asked only where a driven vehicle is gone from the section.
@@ -128,7 +126,9 @@ class SectionDriver:
             self.take(sim, entered)
         self.driven = now
         self.stats.vehicle_steps_driven += len(now)
-        if vids:
+        if vids:  # ``drive``'s rows and lanes of this list by the mask, in C (no st.index)
+            rows = np.fromiter(compress(range(len(ids)), mask), np.int64, len(vids))
+            self.at_rows = (vids, rows, list(compress(st.lanes, mask)))
             self.drive(sim, vids, st)
 
     def arrive(self, sim: Simulation, new: tuple[str, ...]) -> None:
@@ -302,8 +302,10 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
         return cache.value[slots]  # inf where not due: dark
 
     def drive(self, sim: Simulation, vids: list[str], st: VehicleStates) -> None:
-        rows = np.fromiter(map(st.index.__getitem__, vids), np.int64, len(vids))
-        lanes = list(map(st.lanes.__getitem__, rows.tolist()))
+        held, rows, lanes = self.at_rows
+        if held is not vids:  # not ``before_step``'s list (a subclass's own)
+            rows = np.fromiter(map(st.index.__getitem__, vids), np.int64, len(vids))
+            lanes = list(map(st.lanes.__getitem__, rows.tolist()))
         slots, codes = self.slots_of(vids, lanes)
         if self.turns_mode == "handover":  # turners near their line: SUMO's for good
             near = self.turns.to_hand(vids, self.lane_table, codes, rows, slots, st, self.slots)
