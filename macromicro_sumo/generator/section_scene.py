@@ -62,8 +62,9 @@ def generated_extra(snaps: SectionSnapshots, length_m: float | None) -> float:
     """The generated vehicles' length beyond the snapshots' shortest [m] (0: None, or not
     longer). Placed at psi's s_min (the shortest vehicle plus the minimum gap) a 5 m
     generated car left its follower 1.5 m of a 2.0 m minimum gap behind a 4.5 m car's
-    spacing (fresh 1169, stop 46): ``Scene.start`` places each with this much more room
-    behind it (``scene_gaps``' ``new_extra``) and keeps it ahead of the next (``extra``)."""
+    spacing (fresh 1169, stop 46): ``complete_section`` places each with this much more
+    room behind it (``scene_gaps``' ``new_extra``) and keeps it ahead of the next
+    (``Scene.extra``)."""
     if length_m is None or not len(snaps):
         return 0.0
     return max(float(length_m) - shortest_length(snaps), 0.0)

@@ -20,6 +20,7 @@ import torch
 from conftest import game_ramp_truth
 
 from macromicro_sumo.data.section import section_snapshots
+from macromicro_sumo.env.section_bank import typical_length
 from macromicro_sumo.generator.section_model import SectionGeneratorNet
 from macromicro_sumo.generator.section_sampler import complete_section, generated_length
 from macromicro_sumo.generator.section_scene import PSI_INDEX, shortest_length
@@ -98,6 +99,7 @@ def test_as_long_as_the_shortest_the_completion_is_unchanged(ramp) -> None:
     netgen_corridor): the completion is the one without a length, bit for bit, and that one
     is the completion before stop 47 (its digest at 4a4958d)."""
     _, truth, snaps, _ = ramp
+    assert generated_length(truth) == typical_length(truth)  # Stage II's, the same rule
     assert generated_length(truth) == pytest.approx(shortest_length(snaps))
     same = _complete(ramp, generated_length(truth))
     none = _complete(ramp, None)
