@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.out.exists() and any(args.out.iterdir()):
             raise UserError(f"{args.out}: not empty; give a new folder")
         spent: dict[str, list[tuple[float, float]]] = {}
-        for name in ("_episodes", "resolved_entry", "section_episodes"):
+        for name in ("_episodes", "resolved_entry", "episode_inputs", "section_episodes"):
             if hasattr(refinement, name):
                 setattr(refinement, name, _timed(name, getattr(refinement, name), spent))
         t0, c0 = time.perf_counter(), time.process_time()
