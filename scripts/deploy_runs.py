@@ -19,7 +19,6 @@ the per-lane ones). The runs' figures in docs/deploy.md ("all 4 runs") are this.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import shutil
 import sys
 import time
@@ -65,18 +64,27 @@ def _number(text: str) -> bool:
 
 
 def changed(sc, changes: list[str]):
-    """``sc`` with each ``deploy.KEY=VALUE`` / ``policy.KEY=VALUE`` set (typed as the field)."""
+    """``sc``'s file loaded again with each ``deploy.KEY=VALUE`` / ``policy.KEY=VALUE`` set
+    (typed as the field), so that the scenario's own checks (ranges, choices,
+    ``check_deploy``) and its load-time defaults (``deploy.merge_reach`` under merge none or
+    handover) apply to them: set on the loaded dataclasses, a value outside the choices
+    (``deploy.merge_reach=always``) was deployed as whatever the driver made of it."""
+    overrides = {}
     for item in changes:
         key, _, text = item.partition("=")
         table, _, name = key.partition(".")
         if table not in ("deploy", "policy") or not hasattr(getattr(sc, table), name):
             raise UserError(f"--set {item}: accepted: deploy.KEY=VALUE or policy.KEY=VALUE")
         old = getattr(getattr(sc, table), name)
-        value = type(old)(float(text)) if isinstance(old, int | float) and _number(text) else text
-        sc = dataclasses.replace(
-            sc, **{table: dataclasses.replace(getattr(sc, table), **{name: value})}
-        )
-    return sc
+        if isinstance(old, bool):
+            value = {"true": True, "false": False}.get(text.lower(), text)
+        elif _number(text):
+            value = float(text)
+            value = int(value) if isinstance(old, int) and value.is_integer() else value
+        else:
+            value = text
+        overrides[key] = value
+    return load_scenario(sc.source, overrides) if overrides else sc
 
 
 def prepared(

@@ -65,6 +65,24 @@ def test_a_set_key_that_does_not_exist_is_one_line(merge_run, tmp_path: Path, ca
     assert not (tmp_path / "o").exists()
 
 
+def test_set_values_are_checked_as_the_scenario_file_s(merge_run, tmp_path: Path, capsys) -> None:
+    """--set goes through the scenario's own checks: a value outside a field's choices is
+    one line naming the file and the key (it was deployed as is), and the load-time
+    default of merge_reach under merge none holds (plain, not the default occupation)."""
+    scen, run = merge_run
+    argv = [str(scen), str(run), "--out", str(tmp_path / "o"), "--set", "deploy.merge_reach=always"]
+    assert script.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "deploy.merge_reach" in err and "'occupation'" in err, err
+    assert not (tmp_path / "o").exists()
+    sc = load_scenario(scen)
+    none = script.changed(sc, ["deploy.merge=none"])
+    assert (none.deploy.merge, none.deploy.merge_reach) == ("none", "plain")
+    typed = script.changed(sc, ["deploy.safety_floor_runs=3", "deploy.command_dawdle=0.5"])
+    assert typed.deploy.safety_floor_runs == 3 and typed.deploy.command_dawdle == 0.5
+    assert script.changed(sc, []) is sc
+
+
 def test_a_folder_with_files_is_refused(merge_run, tmp_path: Path, capsys) -> None:
     scen, run = merge_run
     (tmp_path / "mine.txt").write_text("keep")
