@@ -33,11 +33,9 @@ import torch
 
 from macromicro_sumo.data.section import (
     SectionSnapshots,
-    section_snapshots,
     signal_stops,
     split_runs,
 )
-from macromicro_sumo.env.driver_speed import resolved_entry
 from macromicro_sumo.env.rollout import rollout
 from macromicro_sumo.env.section_bank import SectionBank, with_future
 from macromicro_sumo.files import atomic_path, prepare_out_dir, write_csv, write_stage_manifest
@@ -58,7 +56,12 @@ from macromicro_sumo.policy.ppo import train_policy
 from macromicro_sumo.policy.prior import PRIOR_KEYS, prior_buffer
 from macromicro_sumo.policy.prior_choice import PriorFit, with_prior
 from macromicro_sumo.policy.relax_choice import relax_unidentified
-from macromicro_sumo.policy.stage import fit_stage_prior, section_episodes
+from macromicro_sumo.policy.stage import (
+    EpisodeInputs,
+    episode_inputs,
+    fit_stage_prior,
+    section_episodes,
+)
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.truth.section import load_section_truth
 
@@ -168,11 +171,10 @@ def _drives_with(agent: Agent, params: dict[str, float]) -> bool:
     return bool(np.array_equal(have, want))
 
 
-def _snapshots(sc: SectionScenario, truth: Any, splits: dict) -> SectionSnapshots:
+def _snapshots(sc: SectionScenario, truth: Any, inputs: EpisodeInputs) -> SectionSnapshots:
     """The train + val runs' snapshots the policy stage's bank completes (those with the
     horizon's future recorded), in its order: the same every iteration."""
-    runs = np.concatenate([splits["train"], splits["val"]])
-    snaps = section_snapshots(truth, sc, runs)
+    snaps = inputs.snaps
     return snaps.take(with_future(truth, snaps, sc.policy.horizon, sc.simulation.step_length_s))
 
 
@@ -181,12 +183,13 @@ def _episodes(
     truth: Any,
     net: SectionGeneratorNet,
     splits: dict,
-    snaps: SectionSnapshots | None = None,
+    inputs: EpisodeInputs | None = None,
 ):
     """The policy stage's episodes for ``net`` and the snapshots their bank completes
-    (``snaps``: ``_snapshots``' where the caller has them)."""
-    ep = section_episodes(sc, truth, net, splits)
-    snaps = _snapshots(sc, truth, splits) if snaps is None else snaps
+    (``inputs``: ``episode_inputs``' where the caller has them)."""
+    inputs = episode_inputs(sc, truth, splits) if inputs is None else inputs
+    ep = section_episodes(sc, truth, net, splits, inputs)
+    snaps = _snapshots(sc, truth, inputs)
     if len(snaps) != len(ep.bank):  # the bank keeps exactly these snapshots, in order
         raise AssertionError(f"{len(snaps)} snapshots for {len(ep.bank)} episodes")
     return ep, snaps
@@ -212,12 +215,11 @@ def refine(
     out = prepare_out_dir(out)
     torch.set_num_threads(1)
     splits = split_runs(truth.runs, sc.generator.held_out_fraction, sc.seed)
-    # policy.driver_entry "auto" resolved once from the train + val runs' observed drivers,
-    # as section_episodes would every call (resolved_entry: the same rule, a read of every
-    # recorded scene each time); what the checkpoints record keeps sc ("auto").
-    drivers_sc = resolved_entry(sc, truth, np.concatenate([splits["train"], splits["val"]]))[0]
-    snaps = _snapshots(sc, truth, splits)
-    ep0, _ = _episodes(drivers_sc, truth, net, splits, snaps)
+    # What the episodes read of the ground truth alone (the snapshots, policy.driver_entry
+    # "auto" resolved, the drivers' speed quantiles), once: section_episodes would read the
+    # observed drivers' every recorded scene twice at each of the 1 + 2 x iterations builds.
+    inputs = episode_inputs(sc, truth, splits)
+    ep0, snaps = _episodes(sc, truth, net, splits, inputs)
     trained, (prior, extra_manifest, pairs) = refine_prior(
         sc, truth, Path(data), Path(policy), agent, splits, fit_prior
     )
@@ -231,7 +233,7 @@ def refine(
         folder = prepare_out_dir(out / f"iter_{it}")
         seed = sc.seed + ROLLOUT_SEED + it
         # (1) the current generator's scenes, the current policy one step on.
-        ep = ep0 if it == 0 else _episodes(drivers_sc, truth, net, splits, snaps)[0]
+        ep = ep0 if it == 0 else _episodes(sc, truth, net, splits, inputs)[0]
         nxt = next_step_snapshots(sc, snaps, ep.bank, ep.make_core, agent, seed, truth.signals)
         is_val = np.isin(nxt.run, splits["val"])
         train = nxt.take(np.flatnonzero(~is_val))
@@ -254,7 +256,7 @@ def refine(
         save_section_generator(folder / "generator.pt", net, sc, {"refined_iterations": it + 1})
         after = mean_reconstruction(net, road, val, k_val, seed + REC_SEED)
         # (3) the policy on scenes the updated generator completes.
-        ep, _ = _episodes(drivers_sc, truth, net, splits, snaps)
+        ep, _ = _episodes(sc, truth, net, splits, inputs)
         res = train_policy(
             trained,
             ep.bank,

@@ -89,19 +89,47 @@ def driver_speed_quantiles(sc: SectionScenario, truth, runs: np.ndarray) -> np.n
     return driver_ratios(sc, truth, runs).quantiles
 
 
-def section_episodes(sc: SectionScenario, truth, net, splits: dict[str, np.ndarray]) -> Episodes:
-    """A section policy's episodes: snapshots of the train + val runs completed by the
-    generator, its cores, and its demand episodes (``policy.episodes``)."""
+@dataclass(frozen=True)
+class EpisodeInputs:
+    """What ``section_episodes`` reads of the ground truth alone, the same for every
+    generator: the train + val runs' snapshots, the scenario with ``policy.driver_entry``
+    "auto" resolved, and the observed drivers' desired-speed ratio quantiles (None: none)."""
+
+    snaps: Any
+    drivers_sc: Any
+    quantiles: np.ndarray | None
+
+
+def episode_inputs(sc: SectionScenario, truth, splits: dict[str, np.ndarray]) -> EpisodeInputs:
+    """``EpisodeInputs`` of ``splits``' train + val runs; each of the entry rule and the
+    quantiles reads every recorded scene of the observed drivers."""
     runs = np.concatenate([splits["train"], splits["val"]])
-    snaps = section_snapshots(truth, sc, runs)
+    # policy.driver_entry "auto": the rule the observed drivers of these runs say, read by
+    # the banks and the demand episodes as by the deployment (``resolved_entry``)
+    return EpisodeInputs(
+        section_snapshots(truth, sc, runs),
+        resolved_entry(sc, truth, runs)[0],
+        driver_speed_quantiles(sc, truth, runs),
+    )
+
+
+def section_episodes(
+    sc: SectionScenario,
+    truth,
+    net,
+    splits: dict[str, np.ndarray],
+    inputs: EpisodeInputs | None = None,
+) -> Episodes:
+    """A section policy's episodes: snapshots of the train + val runs completed by the
+    generator, its cores, and its demand episodes (``policy.episodes``). ``inputs``:
+    ``episode_inputs``' where the caller builds episodes for several generators (the joint
+    refinement), read once."""
+    inputs = episode_inputs(sc, truth, splits) if inputs is None else inputs
+    snaps, drivers_sc, quantiles = inputs.snaps, inputs.drivers_sc, inputs.quantiles
     complete = section_completion(
         net, truth.section, sc, sc.generator.k_source, sc.seed, typical_length(truth)
     )
     bank = build_section_bank(sc, truth, snaps, complete, sc.policy.horizon, sc.seed)
-    quantiles = driver_speed_quantiles(sc, truth, runs)
-    # policy.driver_entry "auto": the rule the observed drivers of these runs say, read by
-    # the banks and the demand episodes as by the deployment (``resolved_entry``)
-    drivers_sc = resolved_entry(sc, truth, runs)[0]
     if quantiles is not None:  # each hidden driver its own desired speed
         bank = drivers_bank(drivers_sc, truth.section, bank, quantiles, sc.seed)
     net_file = scenario_inputs(sc).net_file

@@ -1,6 +1,7 @@
-"""The joint refinement reads ``policy.driver_entry = "auto"``'s rule once (the observed
-drivers of the train + val runs), not at every episode build: the same episodes as the
-policy stage's own resolution, on the small paper ring (real SUMO, torch)."""
+"""The joint refinement reads ``policy.driver_entry = "auto"``'s rule and the drivers' speed
+quantiles once (the observed drivers of the train + val runs), not at every episode build:
+the same episodes as the policy stage's own resolution, on the small paper ring (real
+SUMO, torch)."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from tiny_pass import tiny_single_pass
 
 from macromicro_sumo.data.section import split_runs
 from macromicro_sumo.env import driver_speed
+from macromicro_sumo.env import observed_drivers as observed_drivers_module
 from macromicro_sumo.generator.section_train import load_section_generator
 from macromicro_sumo.pipeline.build import fit_residual_prior
 from macromicro_sumo.pipeline.refinement import _episodes, refine
@@ -49,18 +51,20 @@ def test_refinement_resolves_the_entry_once_with_the_same_episodes(
     for name in ("driver_factor", "arc0_m", "speed0_mps", "hidden", "valid"):
         assert np.array_equal(getattr(own.bank, name), getattr(once.bank, name)), name
     assert (own.bank.driver_factor != 1.0).any()  # memory drivers drawn: a real comparison
-    # Two iterations (three episode builds): one read of the observed drivers for the rule.
-    reads: list[int] = []
-    real = driver_speed.observed_drivers
+    # Two iterations (three episode builds): one read of the observed drivers for the rule
+    # and one for the speed quantiles (before: one of each per build).
+    reads: dict[str, int] = {"entry": 0, "quantiles": 0}
+    for module, name in ((driver_speed, "entry"), (observed_drivers_module, "quantiles")):
+        real = module.observed_drivers
 
-    def counted(*a, **k):
-        reads.append(1)
-        return real(*a, **k)
+        def counted(*a, _real=real, _name=name, **k):
+            reads[_name] += 1
+            return _real(*a, **k)
 
-    monkeypatch.setattr(driver_speed, "observed_drivers", counted)
+        monkeypatch.setattr(module, "observed_drivers", counted)
     manifest = refine(
         sc, small_ring_gt, gen, pol, tmp_path / "refined",
         progress=False, fit_prior=fit_residual_prior,
     )  # fmt: skip
     assert len(manifest["iterations"]) == 2
-    assert len(reads) == 1
+    assert reads == {"entry": 1, "quantiles": 1}
