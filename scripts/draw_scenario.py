@@ -78,6 +78,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--variant", choices=["k", "d"], default="k", help="see the module doc")
     p.add_argument("--out", type=Path, required=True, help="a new or empty folder")
     a = p.parse_args(argv)
+    if not 0 <= a.seed < 2**32:
+        print(f"draw_scenario: --seed {a.seed}: give an integer in [0, 2**32)", file=sys.stderr)
+        return 2
     if a.out.exists() and any(a.out.iterdir()):
         print(f"draw_scenario: {a.out} is not empty; give a new folder", file=sys.stderr)
         return 2

@@ -47,3 +47,11 @@ def test_a_folder_with_files_is_refused(tmp_path: Path, capsys) -> None:
     assert draw.main(["--seed", "501", "--out", str(tmp_path)]) == 2
     assert "not empty" in capsys.readouterr().err
     assert [p.name for p in tmp_path.iterdir()] == ["mine.txt"]
+
+
+def test_a_negative_seed_is_one_line_and_writes_nothing(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "d"
+    assert draw.main(["--seed", "-1", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "--seed -1" in err and "[0, 2**32)" in err
+    assert not out.exists()
