@@ -256,13 +256,8 @@ def resolved_entry(sc, truth, runs: np.ndarray | None = None) -> tuple[Any, Entr
 
 def driver_entry(sc) -> str:
     """``policy.driver_entry`` (a scenario without it: "queued"); "auto" must have been
-    resolved (``entry_choice``) before a "memory" driver reads it. Where
-    ``policy.driver_speed`` is not "memory" nobody reads the entry: "queued", as
-    ``resolved_entry`` resolves it there (before, "auto" unresolved was refused there too:
-    a demand episode's or the warm-up's "drawn" drivers built from the scenario as set)."""
+    resolved (``entry_choice``) before a driver reads it."""
     entry = str(getattr(sc.policy, "driver_entry", "queued"))
-    if getattr(sc.policy, "driver_speed", "memory") != "memory":
-        return "queued"
     if entry == "auto":
         raise ValueError(
             f"{getattr(sc, 'source', 'scenario')}: policy.driver_entry 'auto' is resolved from "
