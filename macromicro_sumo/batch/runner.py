@@ -306,6 +306,8 @@ def register(sub: Any) -> None:
         "(batch_*.FORMAT) or run (export_*.FORMAT) into its folder.",
     )
     p.set_defaults(func=_cmd_export)
-    p.add_argument("folder", type=Path, help="output folder of `macromicro batch` or `simulate`")
+    p.add_argument(
+        "folder", type=Path, help="output folder of `macromicro batch`, `run` or `simulate`"
+    )
     p.add_argument("--format", choices=EXPORT_FORMATS, default="csv", help="table format")
     p.add_argument("--quiet", action="store_true", help="accepted for symmetry; prints paths")
