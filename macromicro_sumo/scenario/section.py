@@ -113,6 +113,15 @@ class SectionDetectorConfig:
         hi=1e6,
         doc="the hidden-count estimate averages detector density over this window [s]",
     )
+    near_line_queue: bool = spec(
+        False,
+        doc="field data (data.source = files) with signals and point loops: where no station "
+        "reads an approach's queue (its free-travel bound the largest), the hidden count adds "
+        "the red's standing queue the loops within 25 m of the stop line miss (truth.standing; "
+        "docs/sections-log.md, stop 47). Off: better on 12 of 37 arterials, worse on 565, "
+        "817, 818 and free-flowing 1304, 1309, whose other parts' errors it no longer cancels",
+        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+    )
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -305,7 +305,9 @@ def truth_from_files(
     )
     # The stations' interval counts between stations where speeds collapse; at signals the
     # approaches by the net file's programs (the data's clock taken as the programs').
-    record = interval_record(det, section, read_net(inputs.net_file), inputs.net_file)
+    record = interval_record(
+        det, section, read_net(inputs.net_file), inputs.net_file, sc.detectors.near_line_queue
+    )
     k_df = k_estimates(
         traj, det_macro, section, sc.generator.snapshot_every_s, sc.detectors.k_window_s, record
     )
