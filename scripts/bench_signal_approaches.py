@@ -41,6 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_hidden_count import SLOW_MPS, SLOW_SHARE, read_truth  # noqa: E402
 
 from macromicro_sumo.data.section import at_snapshot_times  # noqa: E402
+from macromicro_sumo.road.leaders import STANDING_MIN_GAP_M  # noqa: E402
 from macromicro_sumo.road.section import Section  # noqa: E402
 from macromicro_sumo.scenario.load import load_scenario  # noqa: E402
 from macromicro_sumo.sumo.inputs import read_net, scenario_inputs  # noqa: E402
@@ -54,6 +55,7 @@ from macromicro_sumo.truth.section_macro import (  # noqa: E402
     loop_lengths_m,
     station_density,
 )
+from macromicro_sumo.truth.standing import jam_spacing_m  # noqa: E402
 from macromicro_sumo.truth.stations import (  # noqa: E402
     full_stations,
     side_junction_arcs,
@@ -66,6 +68,11 @@ NEAR_M = 20.0
 REST_PARTS = ("junctions", "up_end", "down_end", "other")
 """Where the rest (the density estimate) lies: from a stop bar over its junction to the first
 full station past the line, before the first full station, past the last one, elsewhere."""
+
+STANDING_FRONT_M = 1.0
+"""How far before its stop line SUMO's first standing vehicle's front stands (measured on
+arterial 818's entry and drawn 565's second approach: the median 1.0 m, and the fronts behind
+it at 1.0 m plus a whole number of jam spacings, 170 m back)."""
 
 BANDS_M = (-1.0, 5.0, 25.0, 80.0, np.inf)
 BAND_NAMES = ("stop bar", "bar to 25 m", "25-80 m", "farther or none")
@@ -289,12 +296,18 @@ def station_rows(gt: Path, start_s: float = 0.0) -> pd.DataFrame:
     its distance to the next stop line ahead (``to_line_m``, inf past the last) and band,
     its interval speed, its density as the count reads it (``station_density``) and the
     true one (the trajectories' vehicles within ``NEAR_M`` either side, over the
-    interval's samples), both per lane in veh/km."""
+    interval's samples), both per lane in veh/km, and ``standing``: where the loop falls in
+    the red's standing queue, "under a car" or "in a gap" ("past the last line"). SUMO's
+    equal cars stand at fixed places (fronts ``STANDING_FRONT_M`` plus a whole number of
+    jam spacings, ``standing.jam_spacing_m``, before the line), so a point loop under one
+    reads occupancy over the car's length (1 / 5 m where the queue stands: 200 veh/km
+    per lane against 133) and one in a gap reads nothing while it stands."""
     section = Section.read(gt / "section.json")
     traj, det, _ = read_truth(gt, start_s)
     det = det.assign(k_point_vpkm=effective_densities(det))
     net_file = scenario_inputs(load_scenario(scenario_file(gt))).net_file
     lines = np.array([line.arc_m for line in sc.stop_lines(net_file, section)])
+    spacing = {run: jam_spacing_m(d) for run, d in det.groupby("run")}
     rows = []
     for (run, begin, end), e1 in det[det["kind"] == "e1"].groupby(["run", "begin_s", "end_s"]):
         x = traj[(traj["run"] == run) & (traj["time_s"] >= begin) & (traj["time_s"] < end)]
@@ -306,16 +319,22 @@ def station_rows(gt: Path, start_s: float = 0.0) -> pd.DataFrame:
             ahead = lines[lines >= arc]
             lanes = int(section.n_lanes[section.edge_index(np.array([arc]))[0]])
             near = ((arcs >= arc - NEAR_M) & (arcs < arc + NEAR_M)).sum() / samples
+            to_line = float(ahead[0] - arc) if len(ahead) else np.inf
+            lattice = np.mod(to_line - STANDING_FRONT_M, spacing[run])
+            car = spacing[run] - STANDING_MIN_GAP_M  # the car over the loop from its front
             rows.append(
                 {
                     "truth": truth_name(gt),
                     "run": run,
                     "begin_s": begin,
                     "arc_m": arc,
-                    "to_line_m": float(ahead[0] - arc) if len(ahead) else np.inf,
+                    "to_line_m": to_line,
                     "speed_mps": float(v.get(arc, np.nan)),
                     "est_vpkm": float(est) / lanes,
                     "true_vpkm": float(near) / (2.0 * NEAR_M / 1000.0) / lanes,
+                    "standing": "past the last line"
+                    if not len(ahead)
+                    else ("under a car" if lattice < car else "in a gap"),
                 }
             )
     out = pd.DataFrame(rows)
@@ -324,8 +343,9 @@ def station_rows(gt: Path, start_s: float = 0.0) -> pd.DataFrame:
 
 
 def station_summary(stations: pd.DataFrame) -> pd.DataFrame:
-    """Per band: stations' intervals, mean interval speed, mean read and true density."""
-    g = stations.groupby("band", observed=True)
+    """Per band and place in the standing queue (``station_rows``' ``standing``): stations'
+    intervals, mean interval speed, mean read and true density."""
+    g = stations.groupby(["band", "standing"], observed=True)
     return pd.DataFrame(
         {
             "intervals": g.size(),

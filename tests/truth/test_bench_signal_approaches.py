@@ -83,8 +83,16 @@ def test_the_approaches_and_parts_of_a_signalised_record(tmp_path: Path) -> None
     assert len(per) >= 4 and (per == per.iloc[0]).all()
     assert (stations["true_vpkm"] >= 0).all() and np.isinf(stations["to_line_m"]).any()
     summary = script.station_summary(stations)
-    assert summary.loc["stop bar", "est_vpkm"] < summary.loc["stop bar", "true_vpkm"], summary
+    bar = summary.loc["stop bar"]
+    assert (bar["est_vpkm"] < bar["true_vpkm"]).all(), summary
     assert summary["intervals"].sum() == len(stations)
+    # Where each loop falls in SUMO's standing lattice (fronts 1 m + n x 7.5 m before the
+    # line): the stop bar (0.5 m) stands in front of the first car, so "in a gap"; the
+    # stations past the last line are "past the last line"; one place per station.
+    assert set(bar.index) == {"in a gap"}, summary
+    past = stations[np.isinf(stations["to_line_m"])]
+    assert (past["standing"] == "past the last line").all() and len(past)
+    assert (stations.groupby(["run", "arc_m"])["standing"].nunique() == 1).all()
 
 
 def test_a_runs_ground_truth_names_its_scenario(tmp_path: Path) -> None:
