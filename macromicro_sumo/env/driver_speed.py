@@ -74,9 +74,14 @@ QUEUED_ENTRY_SHARE = 0.65
 # 0.93, 501 17, 0.75, 563 11, 0.91; the signalised arterials' held sights stand in a
 # red's queue: 528 0 of 62, 521 2 of 61, 837 3 of 140 ("queued"; with every held sight,
 # stop 44: "held" at 0.13, 0.22, 0.27); 565's 25 of 62 move at 0.79 of their tops ("held",
-# which loses there once deploy.turn_gap is "sumo": 0.773 -> 0.853 m/s, so "auto" stays opt-in).
+# which lost there at stop 45's defaults, 0.773 -> 0.853 m/s). At stop 46's (merge_reach
+# "occupation" on lanes that end, command_dawdle "signals"), retrained with "auto", all 4
+# runs, policy: 522 3.624 -> 3.023, 501 2.670 -> 2.454, 565 0.748 -> 0.725, 1161 1.061 ->
+# 1.037, 1169 2.190 -> 2.057, 615 0.896 -> 0.896, 563 1.011 -> 1.035 (its deployed drivers the
+# same under both: Stage II's training);
+# netgen and Bremen md5-equal (stop 47, hM47): the default.
 ENTRY_AT_OWN_SHARE = 1.0 - REACHED_SHARE
-# Fewer observed held first sights than this tell nothing: "queued" (the default's rule).
+# Fewer observed held first sights than this tell nothing: "queued".
 MIN_HELD_SIGHTS = 5
 
 
@@ -256,8 +261,13 @@ def resolved_entry(sc, truth, runs: np.ndarray | None = None) -> tuple[Any, Entr
 
 def driver_entry(sc) -> str:
     """``policy.driver_entry`` (a scenario without it: "queued"); "auto" must have been
-    resolved (``entry_choice``) before a driver reads it."""
+    resolved (``entry_choice``) before a "memory" driver reads it. Where
+    ``policy.driver_speed`` is not "memory" nobody reads the entry: "queued", as
+    ``resolved_entry`` resolves it there (before, "auto" unresolved was refused there too:
+    a demand episode's or the warm-up's "drawn" drivers built from the scenario as set)."""
     entry = str(getattr(sc.policy, "driver_entry", "queued"))
+    if getattr(sc.policy, "driver_speed", "memory") != "memory":
+        return "queued"
     if entry == "auto":
         raise ValueError(
             f"{getattr(sc, 'source', 'scenario')}: policy.driver_entry 'auto' is resolved from "

@@ -63,15 +63,17 @@ class PolicyConfig:
         "was first seen, over their median (memory) (env.driver_speed)",
     )
     driver_entry: str = spec(
-        "queued",
+        "auto",
         choices=("queued", "held", "auto"),
         doc="driver_speed memory: queued, a driver first seen below 0.65 of the observed "
         "median takes drawn's factor; held, also one first seen held by what is ahead "
         "(env.driver_speed.held_at_sight), in Stage II's banks and the deployment (drawn 522 "
         "with merge_reach occupation 3.42 -> 2.73 m/s; netgen_corridor 0.46 -> 0.68); auto, "
         "held where the observed drivers' held first sights are below their top speed "
-        "(env.driver_speed.entry_choice; docs/deploy-log.md, Held entries and stop 44)",
-        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+        "(env.driver_speed.entry_choice; docs/deploy-log.md, Held entries and stop 44); the "
+        "default since stop 47 (before: queued)",
+        omit_default=True,  # a run trained under "queued" (left out) is retrained
+        omit_value="queued",
     )
     driver_ratios: str = spec(
         "kaplan_meier",

@@ -182,7 +182,8 @@ def test_drivers_take_the_desired_speed_factors_a_deployment_gives_them(merge, k
     for a vehicle already there when the window starts its entry before it, while SUMO
     drove it), kept while it is driven; every other feature as without factors."""
     sc0, truth = merge
-    sc = replace(sc0, policy=replace(sc0.policy, driver_speed=kind))
+    # the entry rule as set ("auto" is resolved by the stage that loads the truth, stop 47)
+    sc = replace(sc0, policy=replace(sc0.policy, driver_speed=kind, driver_entry="queued"))
     q = np.linspace(0.8, 1.25, len(QUANTILE_LEVELS))  # ratios around a median of 1.025
     run, t0 = int(truth.runs[0]), 90.0
     deployed = DriverSpeeds(q, sc, run)  # the deployment's, asked where a vehicle enters

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from macromicro_sumo.env.driver_speed import QUANTILE_LEVELS, with_driver_factors
+from macromicro_sumo.env.driver_speed import QUANTILE_LEVELS, driver_entry, with_driver_factors
 from macromicro_sumo.evaluation.section import driven_bank
 
 
@@ -52,8 +52,11 @@ def test_a_policy_with_factors_gets_them_and_others_do_not() -> None:
     assert driven_bank(sc, TRUTH, b, SimpleNamespace(driver_speed=None), seed=7) is b
     off = SimpleNamespace(policy=SimpleNamespace(driver_speed="none"))
     assert driven_bank(off, TRUTH, b, agent, seed=7) is b
-    # policy.driver_entry "auto" is resolved once by evaluate_section, not per agent's bank:
-    # handed unresolved, the bank refuses it
+    # policy.driver_entry "auto" is resolved once by evaluate_section, not per agent's bank;
+    # "drawn" drivers do not read it (the same bank as the resolved "queued"), a "memory"
+    # driver handed it unresolved refuses it (env.driver_speed.driver_entry)
     auto = SimpleNamespace(policy=SimpleNamespace(driver_speed="drawn", driver_entry="auto"))
+    np.testing.assert_array_equal(driven_bank(auto, TRUTH, b, agent, seed=7).driver_factor, factor)
+    memory = SimpleNamespace(policy=SimpleNamespace(driver_speed="memory", driver_entry="auto"))
     with pytest.raises(ValueError, match="policy.driver_entry 'auto' is resolved"):
-        driven_bank(auto, TRUTH, b, agent, seed=7)
+        driver_entry(memory)

@@ -116,23 +116,28 @@ def test_stage_two_draws_a_held_generated_start() -> None:
     assert np.interp(0.5, QUANTILE_LEVELS, Q) == 1.0
 
 
-def test_driver_entry_is_queued_by_default_and_checked(tmp_path: Path) -> None:
-    """``policy.driver_entry``: "queued" by default and then left out of the scenario's dict
-    (every existing scenario keeps its digest); "held" read; an unknown value is one line
-    naming file, field and what is accepted."""
+def test_driver_entry_is_auto_by_default_and_checked(tmp_path: Path) -> None:
+    """``policy.driver_entry``: "auto" by default (stop 47) and recorded in the scenario's
+    dict, so a run trained under "queued" (before, left out) is trained again; "queued" said
+    is left out (the digest it had before the key existed); "held" read; an unknown value is
+    one line naming file, field and what is accepted."""
     path = straight_scenario(tmp_path, "memory")
     plain = load_scenario(path)
-    assert plain.policy.driver_entry == "queued"
-    assert "driver_entry" not in plain.to_dict()["policy"]
+    assert plain.policy.driver_entry == "auto"
+    assert plain.to_dict()["policy"]["driver_entry"] == "auto"
     text = path.read_text()
-    for value, same in (("queued", True), ("held", False), ("auto", False)):
+    digests = {}
+    for value in ("queued", "held", "auto"):
         path.write_text(
             text.replace(
                 'driver_speed = "memory"', f'driver_speed = "memory"\ndriver_entry = "{value}"'
             )
         )
         sc = load_scenario(path)
-        assert sc.policy.driver_entry == value and (sc.digest() == plain.digest()) is same
+        assert sc.policy.driver_entry == value
+        assert ("driver_entry" in sc.to_dict()["policy"]) is (value != "queued")
+        digests[value] = sc.digest()
+    assert digests["auto"] == plain.digest() and len(set(digests.values())) == 3
     path.write_text(
         text.replace('driver_speed = "memory"', 'driver_speed = "memory"\ndriver_entry = "late"')
     )

@@ -49,3 +49,27 @@ def test_a_stage_recorded_before_the_default_moved_is_redone(tmp_path: Path) -> 
     # A run that set the old values explicitly recorded none of them: nothing to redo.
     old = {f"deploy.{key}": value for key, _, value in MOVED}
     assert stage_settings(load_scenario(PAPER_SCENARIO, old).to_dict(), stage) == have
+
+
+# policy keys whose default moved (key, default now, the value before): the policy stage is
+# trained again where a run recorded none (stop 47: driver_entry "queued" -> "auto")
+POLICY_MOVED = (("driver_entry", "auto", "queued"),)
+
+
+def test_moved_policy_defaults_are_recorded_and_retrain(tmp_path: Path) -> None:
+    sc = load_scenario(PAPER_SCENARIO)
+    policy = sc.to_dict()["policy"]
+    for key, now, old in POLICY_MOVED:
+        assert getattr(sc.policy, key) == now and policy[key] == now
+        said_old = load_scenario(PAPER_SCENARIO, {f"policy.{key}": old})
+        assert key not in said_old.to_dict()["policy"]
+        assert said_old.digest() != sc.digest()
+    before = sc.to_dict()
+    for key, _, _ in POLICY_MOVED:
+        del before["policy"][key]
+    stage = Stage("policy", tmp_path / "manifest.json", run=lambda: None)
+    have, want = stage_settings(before, stage), stage_settings(sc.to_dict(), stage)
+    changed = {k for k in have.keys() | want.keys() if have.get(k) != want.get(k)}
+    assert changed == {f"policy.{key}" for key, _, _ in POLICY_MOVED}
+    old = {f"policy.{key}": value for key, _, value in POLICY_MOVED}
+    assert stage_settings(load_scenario(PAPER_SCENARIO, old).to_dict(), stage) == have
