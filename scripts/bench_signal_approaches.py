@@ -320,7 +320,7 @@ def station_rows(gt: Path, start_s: float = 0.0) -> pd.DataFrame:
             lanes = int(section.n_lanes[section.edge_index(np.array([arc]))[0]])
             near = ((arcs >= arc - NEAR_M) & (arcs < arc + NEAR_M)).sum() / samples
             to_line = float(ahead[0] - arc) if len(ahead) else np.inf
-            lattice = np.mod(to_line - STANDING_FRONT_M, spacing[run])
+            lattice = np.mod(to_line - STANDING_FRONT_M, spacing[run]) if len(ahead) else 0.0
             car = spacing[run] - STANDING_MIN_GAP_M  # the car over the loop from its front
             rows.append(
                 {
