@@ -9,7 +9,8 @@ OUT    ?= runs/ring_paper
 
 .PHONY: setup run test test-slow lint format bench clean
 
-$(VENV)/.installed: pyproject.toml constraints-cpu.txt
+# setup.py and road/kernels.c: the optional compiled kernels, built in place by the install.
+$(VENV)/.installed: pyproject.toml constraints-cpu.txt setup.py macromicro_sumo/road/kernels.c
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	# CPU torch first: a plain torch requirement would pull the CUDA build.

@@ -4,7 +4,12 @@
 their networks as ``../sumo_nets/...``); a wheel carries both as
 ``macromicro_sumo/examples/scenarios`` and ``macromicro_sumo/examples/sumo_nets``, where
 ``macromicro_sumo.env.examples`` finds them. An editable install reads the checkout's own
-folders. The sdist carries them through MANIFEST.in. Everything else is in pyproject.toml.
+folders. The sdist carries them through MANIFEST.in.
+
+The one compiled part, optional: ``road/kernels.c`` (``road.physics.safe_speed`` in one
+pass, bit for bit its numpy form), built where a C compiler and Python's headers are found;
+where not, the install goes on and ``road.physics`` computes with numpy (the same values,
+more time a deployment step). Everything else is in pyproject.toml.
 """
 
 from __future__ import annotations
@@ -12,7 +17,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from setuptools import setup
+from setuptools import Extension, setup
 from setuptools.command.build_py import build_py
 
 ROOT = Path(__file__).resolve().parent
@@ -34,4 +39,12 @@ class BuildPyWithExamples(build_py):
             )
 
 
-setup(cmdclass={"build_py": BuildPyWithExamples})
+KERNELS = Extension(
+    "macromicro_sumo.road.kernels",
+    ["macromicro_sumo/road/kernels.c"],
+    # No fused multiply-add and no fast math: numpy's roundings, operation by operation.
+    extra_compile_args=["-O2", "-ffp-contract=off", "-fno-fast-math"],
+    optional=True,
+)
+
+setup(cmdclass={"build_py": BuildPyWithExamples}, ext_modules=[KERNELS])

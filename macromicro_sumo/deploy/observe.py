@@ -26,6 +26,11 @@ from macromicro_sumo.road.physics import (
     set_own_features,
 )
 from macromicro_sumo.road.section import NO_LEADER_GAP_M, Section
+
+try:  # road/kernels.c, where setup.py built it (``observe_rows``' leader columns)
+    from macromicro_sumo.road import kernels
+except ImportError:  # not built: numpy's form, the same values
+    kernels = None
 from macromicro_sumo.sumo.states import VehicleStates
 
 STOP_DECEL_MPS2 = 9.0  # a standing "leader" (stop line, lane end) never brakes: any value
@@ -198,41 +203,47 @@ def observe_rows(
     gap = np.fromiter(gaps, float, n)
     # The leader SUMO sees, if it is on the road (in ``st``): row -1 otherwise.
     lead_row = np.fromiter(map(st.index.get, lead_ids, repeat(-1)), np.int64, n)
-    has = lead_row >= _ROW_0
     # Own and leaders' shapes in one look-up. A leader off the road may have a shape: what
     # reads it (spacing, decel) is overwritten below where there is no leader.
     shape = np.fromiter(map(shapes.code.get, chain(vids, lead_ids), repeat(0)), np.int64, 2 * n)
     length_m, min_gap_m, decel_mps2 = shapes.cols
-    lengths = length_m[shape]
-    length = lengths[:n]
-    min_gap = min_gap_m[shape[:n]]
-    # Fresh arrays overwritten where there is no leader (masked writes: a third of
-    # np.where's cost a call).
-    spacing = gap + min_gap
-    spacing += lengths[n:]
-    ok = has & (spacing < _NO_GAP)
-    # Those without one, as indices: a write by index costs ~2/3 of a masked one (five).
-    none = (~ok).nonzero()[0]
-    lead_v = st.speed_mps[lead_row]
-    lead_v[none] = speed[none]  # delta_v 0 without a leader
-    spacing[none] = _NO_GAP
-    sumo_gap = gap
-    sumo_gap[none] = _NO_GAP
-    lead_decel = decel_mps2[shape[n:]]
-    lead_decel[none] = _STOP_DECEL
+    sumo_gap, bumper = gap, None
     # A driven leader's index in ``vids``: a row of ``st`` -> its index, -1 elsewhere
     # (a buffer of -1 kept per run; its last entry answers row -1, no leader).
     driven = lanes.driven_rows(len(st.ids))
-    driven[rows] = lanes.order[:n]
-    lead_index = driven[lead_row]
-    driven[rows] = _NO_INDEX
-    lead_index[none] = _NO_INDEX
+    if kernels is not None:  # the compiled pass (road/kernels.c): the same values
+        cols, lead_index, ok = np.empty((7, n)), np.empty(n, np.int64), np.empty(n, bool)
+        args = (gap, lead_row, rows, shape, st.speed_mps, length_m, min_gap_m, decel_mps2)
+        if kernels.leader_columns(*args, driven, NO_LEADER_GAP_M, STOP_DECEL_MPS2, cols, lead_index, ok):  # fmt: skip
+            spacing, lead_v, lead_decel, length, min_gap, lead_length, bumper = cols
+    if bumper is None:
+        has = lead_row >= _ROW_0
+        lengths = length_m[shape]
+        length, lead_length = lengths[:n], lengths[n:]
+        min_gap = min_gap_m[shape[:n]]
+        # Fresh arrays overwritten where there is no leader (masked writes: a third of
+        # np.where's cost a call).
+        spacing = gap + min_gap
+        spacing += lead_length
+        ok = has & (spacing < _NO_GAP)
+        # Those without one, as indices: a write by index costs ~2/3 of a masked one (five).
+        none = (~ok).nonzero()[0]
+        lead_v = st.speed_mps[lead_row]
+        lead_v[none] = speed[none]  # delta_v 0 without a leader
+        spacing[none] = _NO_GAP
+        sumo_gap[none] = _NO_GAP
+        lead_decel = decel_mps2[shape[n:]]
+        lead_decel[none] = _STOP_DECEL
+        driven[rows] = lanes.order[:n]
+        lead_index = driven[lead_row]
+        driven[rows] = _NO_INDEX
+        lead_index[none] = _NO_INDEX
     # A red light, or the end of a lane the vehicle must leave: a standing leader there.
     # None ahead of anyone (inf or NaN: nothing can be nearer; every step of Bremen's
     # section): nearer_standing's five array calls not made.
     closer = None
     if count_nonzero(stop_m < _INF):
-        closer = nearer_standing(spacing, stop_m, length, min_gap, lengths[n:])
+        closer = nearer_standing(spacing, stop_m, length, min_gap, lead_length)
     if any_closer := closer is not None and bool(count_nonzero(closer)):
         lead_v[closer] = 0.0
         np.copyto(sumo_gap, np.maximum(stop_m, _ZERO), where=closer)
@@ -247,13 +258,14 @@ def observe_rows(
         obs[:, 5] -= np.mod(arc, lanes.length_m) if lanes.closed else arc
     set_own_features(obs, observation, length)
     if observes_gap(observation):  # ``set_leader_gap``'s gap, from the spacing at hand
-        lead_length = lengths[n:]  # no leader: NO_LEADER_GAP_M stays, whatever the length
+        # no leader: NO_LEADER_GAP_M stays, whatever the length
         if any_closer:
             np.copyto(lead_length, length, where=closer)
             obs[:, LEADER_COLUMN] = bumper_gap_m(spacing, lead_length)
         else:  # ``bumper_gap_m``'s values: spacing < NO_LEADER_GAP_M exactly where ``ok``
-            bumper = spacing - lead_length
-            bumper[none] = _NO_GAP
+            if bumper is None:  # the kernel's where it ran
+                bumper = spacing - lead_length
+                bumper[none] = _NO_GAP
             obs[:, LEADER_COLUMN] = bumper
     else:
         obs[:, LEADER_COLUMN] = spacing

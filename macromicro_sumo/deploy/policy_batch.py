@@ -31,6 +31,11 @@ from macromicro_sumo.evaluation.krauss_fit import KraussParams, krauss_policy_ac
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.prior import EMERGENCY_DECEL_MPS2, prior_buffer
 
+try:  # road/kernels.c, where setup.py built it (``krauss_batch``)
+    from macromicro_sumo.road import kernels
+except ImportError:  # not built: numpy's form, the same values
+    kernels = None
+
 # Rows per matrix product of the actor's numpy forward pass: larger products start
 # OpenBLAS's threads, which on a loaded 2-core machine cost 1.8 ms at 500 rows instead of
 # 0.3 ms (scripts/bench_deploy.py's sizes).
@@ -165,7 +170,13 @@ def krauss_batch(
     relax, dt, least = c(max(p.relax_s, dt_s)), c(dt_s), c(-EMERGENCY_DECEL_MPS2)
     bt2, minus_bt = c(bt**2), c(-bt)
 
+    consts = (speed_factor, floor, accel, relax, length, min_gap, bt2, decel2, minus_bt, dt, least)
+
     def prior(obs: np.ndarray) -> np.ndarray:
+        if kernels is not None:  # the compiled pass (road/kernels.c): the same values
+            out = np.empty(len(obs))
+            if kernels.krauss_prior(obs, *consts, out):
+                return out
         v = obs[:, 0]
         free = np.minimum(accel, (np.maximum(speed_factor * obs[:, 1], floor) - v) / relax)
         gap = np.maximum(obs[:, 2] - length - min_gap, zero)

@@ -16,6 +16,10 @@ except ImportError:  # numpy 1.x: the wrapper (the same counts)
 # with no axis gives it, without its Python wrapper and array-function dispatch: 0.16-0.20
 # against 0.55-0.68 us a call at 42 values (numpy 2.4, measured, stop 46). The hot paths of
 # a deployment's step ask it a dozen times ("is anyone ...?"), each one between SUMO's steps.
+try:  # road/kernels.c, built by setup.py where a C compiler is found (``safe_speed``)
+    from macromicro_sumo.road import kernels as _kernels
+except ImportError:  # not built: numpy's form, the same values
+    _kernels = None
 
 
 def idm_accel(
@@ -219,6 +223,14 @@ def safe_speed(
     one counts as 0. Never negative.
     """
     dt, dt2 = step_constants(dt_s)
+    # The compiled pass where built and the operands are float64 vectors or scalars: the
+    # same values to the bit (tests/road/test_kernels.py), one call for numpy's ~28.
+    if _kernels is not None and type(gap_m) is np.ndarray:
+        out = np.empty(gap_m.shape)
+        if _kernels.safe_speed(
+            gap_m, leader_speed_mps, decel_mps2, leader_decel_mps2, dt, dt2, out
+        ):
+            return out
     lead_b = np.maximum(decel_mps2, leader_decel_mps2)
     room = np.maximum(gap_m, _ZERO) + brake_gap(leader_speed_mps, lead_b, dt_s)
     # v dt + brake_gap(v, b) is piecewise linear in v, (n + 1) v dt - b dt^2 n (n + 1) / 2

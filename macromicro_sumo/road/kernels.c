@@ -1,0 +1,320 @@
+/* road.kernels: road.physics.safe_speed as one compiled pass over the vehicles, with the
+   same IEEE float64 operations in the same order as its numpy form, so the same values to
+   the bit (compiled with -ffp-contract=off: no fused multiply-add). Why: a deployment's
+   step calls it on ~40 vehicles, where numpy's ~28 calls cost ~0.5-2 us each and the
+   arithmetic itself well under 1 us (scripts/bench_instructions.py). Optional: setup.py
+   builds it where a C compiler is found, road.physics falls back to numpy elsewhere. */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+
+/* np.maximum on float64: NaN in either operand gives NaN, else a if a >= b. */
+static inline double np_maximum(double a, double b) {
+    if (a != a) return a;
+    if (b != b) return b;
+    return a >= b ? a : b;
+}
+
+/* An operand: a float64 buffer of 0 or 1 dimension (a 0-d array, a length-1 or length-n
+   vector), or a Python float; step 0 broadcasts one value. */
+typedef struct {
+    Py_buffer view;
+    int held;
+    double value;
+    const char *data;
+    Py_ssize_t step;
+} operand;
+
+/* 1: read; 0: not a form this kernel takes (numpy's path answers). */
+static int take(PyObject *obj, Py_ssize_t n, operand *op, int writable) {
+    op->held = 0;
+    if (!writable && PyFloat_CheckExact(obj)) {
+        op->value = PyFloat_AS_DOUBLE(obj);
+        op->data = (const char *)&op->value;
+        op->step = 0;
+        return 1;
+    }
+    int flags = PyBUF_FORMAT | PyBUF_STRIDES | (writable ? PyBUF_WRITABLE : 0);
+    if (!PyObject_CheckBuffer(obj) || PyObject_GetBuffer(obj, &op->view, flags) < 0) {
+        PyErr_Clear();
+        return 0;
+    }
+    op->held = 1;
+    Py_buffer *v = &op->view;
+    if (v->itemsize != 8 || v->format == NULL || strcmp(v->format, "d") != 0 || v->ndim > 1)
+        return 0;
+    op->data = (const char *)v->buf;
+    if (v->ndim == 0) {
+        op->step = 0;
+        return !writable;
+    }
+    if (v->shape[0] == n || n < 0) { /* n < 0: any length (the output, which sets n) */
+        op->step = v->strides[0];
+        return 1;
+    }
+    if (v->shape[0] == 1 && !writable) {
+        op->step = 0;
+        return 1;
+    }
+    return 0;
+}
+
+static void release(operand *ops, int count) {
+    for (int i = 0; i < count; i++)
+        if (ops[i].held) PyBuffer_Release(&ops[i].view);
+}
+
+#define AT(op, i) (*(const double *)((op).data + (i) * (op).step))
+
+/* safe_speed(gap, leader_speed, decel, leader_decel, dt, dt2, out) -> bool: out (a
+   writable float64 vector of n) filled with road.physics.safe_speed's values, dt and dt2
+   its step_constants; False (out untouched) where an operand is not a float64 0-d or
+   1-d of n or 1, or a Python float: numpy broadcasts those, this kernel does not. */
+static PyObject *safe_speed(PyObject *self, PyObject *args) {
+    PyObject *obj[7];
+    if (!PyArg_UnpackTuple(args, "safe_speed", 7, 7, &obj[0], &obj[1], &obj[2], &obj[3],
+                           &obj[4], &obj[5], &obj[6]))
+        return NULL;
+    operand ops[7];
+    int got = 0;
+    if (!take(obj[6], -1, &ops[6], 1) || ops[6].view.ndim != 1) {
+        release(&ops[6], 1);
+        Py_RETURN_FALSE;
+    }
+    Py_ssize_t n = ops[6].view.shape[0];
+    for (; got < 6; got++) {
+        if (!take(obj[got], n, &ops[got], 0)) {
+            got++;
+            release(ops, got);
+            release(&ops[6], 1);
+            Py_RETURN_FALSE;
+        }
+    }
+    const double dt = AT(ops[4], 0), dt2 = AT(ops[5], 0);
+    char *out = ops[6].view.buf;
+    const Py_ssize_t out_step = ops[6].view.strides[0];
+    for (Py_ssize_t i = 0; i < n; i++) {
+        const double gap = AT(ops[0], i), v_l = AT(ops[1], i);
+        const double b = AT(ops[2], i), b_l = AT(ops[3], i);
+        /* brake_gap(v_l, max(b, b_l), dt) */
+        const double reduction = np_maximum(b, b_l) * dt;
+        const double steps = floor(v_l / reduction);
+        const double lead_gap = dt * (steps * v_l - reduction * steps * (steps + 1.0) / 2.0);
+        const double room = np_maximum(gap, 0.0) + lead_gap;
+        const double bdt2 = b * dt2;
+        const double k = floor((-1.0 + sqrt(1.0 + 8.0 * room / bdt2)) / 2.0);
+        const double k1 = k + 1.0;
+        *(double *)(out + i * out_step) = (room + bdt2 * k * k1 / 2.0) / (dt * k1);
+    }
+    release(ops, 6);
+    release(&ops[6], 1);
+    Py_RETURN_TRUE;
+}
+
+/* np.minimum on float64: NaN in either operand gives NaN, else a if a <= b. */
+static inline double np_minimum(double a, double b) {
+    if (a != a) return a;
+    if (b != b) return b;
+    return a <= b ? a : b;
+}
+
+/* krauss_prior(obs, speed_factor, floor, accel, relax, length, min_gap, bt2, decel2,
+   minus_bt, dt, least, out) -> bool: deploy.policy_batch.krauss_batch's prior of
+   observations obs (a float64 2-D buffer of n rows, >= 4 columns: speed, limit, spacing,
+   delta v) into out (a writable float64 vector of n), its constants float64 0-d arrays
+   or Python floats; False (out untouched) for any other form. */
+static PyObject *krauss_prior(PyObject *self, PyObject *args) {
+    enum { NC = 11 };
+    PyObject *obs_obj, *out_obj, *c[NC];
+    if (!PyArg_UnpackTuple(args, "krauss_prior", NC + 2, NC + 2, &obs_obj, &c[0], &c[1],
+                           &c[2], &c[3], &c[4], &c[5], &c[6], &c[7], &c[8], &c[9], &c[10],
+                           &out_obj))
+        return NULL;
+    operand out;
+    if (!take(out_obj, -1, &out, 1) || out.view.ndim != 1) {
+        release(&out, 1);
+        Py_RETURN_FALSE;
+    }
+    const Py_ssize_t n = out.view.shape[0];
+    Py_buffer obs;
+    if (PyObject_GetBuffer(obs_obj, &obs, PyBUF_FORMAT | PyBUF_STRIDES) < 0) {
+        PyErr_Clear();
+        release(&out, 1);
+        Py_RETURN_FALSE;
+    }
+    double k[NC];
+    int ok = obs.itemsize == 8 && obs.format != NULL && strcmp(obs.format, "d") == 0 &&
+             obs.ndim == 2 && obs.shape[0] == n && obs.shape[1] >= 4;
+    for (int i = 0; ok && i < NC; i++) {
+        operand op;
+        ok = take(c[i], 1, &op, 0) && op.step == 0;
+        if (ok) k[i] = AT(op, 0);
+        release(&op, 1);
+    }
+    if (!ok) {
+        PyBuffer_Release(&obs);
+        release(&out, 1);
+        Py_RETURN_FALSE;
+    }
+    const double speed_factor = k[0], floor_ = k[1], accel = k[2], relax = k[3];
+    const double length = k[4], min_gap = k[5], bt2 = k[6], decel2 = k[7];
+    const double minus_bt = k[8], dt = k[9], least = k[10];
+    const char *row = obs.buf;
+    const Py_ssize_t rs = obs.strides[0], cs = obs.strides[1];
+    char *o = out.view.buf;
+    const Py_ssize_t os = out.view.strides[0];
+    for (Py_ssize_t i = 0; i < n; i++, row += rs) {
+        const double v = *(const double *)row, limit = *(const double *)(row + cs);
+        const double spacing = *(const double *)(row + 2 * cs);
+        const double delta_v = *(const double *)(row + 3 * cs);
+        const double free = np_minimum(accel, (np_maximum(speed_factor * limit, floor_) - v) / relax);
+        const double gap = np_maximum(spacing - length - min_gap, 0.0);
+        const double v_leader = np_maximum(v - delta_v, 0.0);
+        const double safe = minus_bt + sqrt(bt2 + v_leader * v_leader + decel2 * gap);
+        *(double *)(o + i * os) = np_maximum(np_minimum(free, (safe - v) / dt), least);
+    }
+    PyBuffer_Release(&obs);
+    release(&out, 1);
+    Py_RETURN_TRUE;
+}
+
+/* A buffer of itemsize 8, 1-d, float64 ("d") or int64 ("l", "q"), or bool ("?", 1-d);
+   its element count in *n. 0: not that form. */
+static int vector(PyObject *obj, Py_buffer *v, char kind, int writable, Py_ssize_t *n) {
+    int flags = PyBUF_FORMAT | PyBUF_ND | (writable ? PyBUF_WRITABLE : 0); /* C-contiguous */
+    if (!PyObject_CheckBuffer(obj) || PyObject_GetBuffer(obj, v, flags) < 0) {
+        PyErr_Clear();
+        return 0;
+    }
+    const char *f = v->format;
+    int ok = f != NULL && v->ndim == 1 &&
+             (kind == 'd'   ? v->itemsize == 8 && strcmp(f, "d") == 0
+              : kind == 'i' ? v->itemsize == 8 && (strcmp(f, "l") == 0 || strcmp(f, "q") == 0)
+                            : v->itemsize == 1 && strcmp(f, "?") == 0);
+    if (!ok) {
+        PyBuffer_Release(v);
+        return 0;
+    }
+    *n = v->shape[0];
+    return 1;
+}
+
+/* leader_columns(gap, lead_row, rows, shape, speeds, length, min_gap, decel, driven,
+   no_gap, stop_decel, out, index, ok) -> bool: deploy.observe.observe_rows' columns of
+   SUMO's leaders, before any standing leader (stop line, lane end): per driven vehicle i
+   of n (row rows[i] of the step's speeds, leader at row lead_row[i], -1: none; SUMO's gap
+   gap[i]; own and leader's shape codes shape[i], shape[n + i] into the length, min_gap
+   and decel columns), with a leader where it is on the road and spacing < no_gap:
+   out (7, n) = spacing, leader's speed (own where none), leader's decel (stop_decel),
+   own length, own minGap, leader's length, bumper gap (no_gap where none); gap made
+   SUMO's gap (no_gap where none); index = the leader's index among the driven (-1); ok =
+   has a leader. driven: observe's buffer of -1 longer than the speeds, left as found.
+   False (nothing written) for any other form or an index out of range. */
+static PyObject *leader_columns(PyObject *self, PyObject *args) {
+    enum { NV = 9, NO = 3 };
+    PyObject *o[NV + 2 + NO];
+    if (!PyArg_UnpackTuple(args, "leader_columns", 14, 14, &o[0], &o[1], &o[2], &o[3], &o[4],
+                           &o[5], &o[6], &o[7], &o[8], &o[9], &o[10], &o[11], &o[12], &o[13]))
+        return NULL;
+    static const char kinds[NV] = {'d', 'i', 'i', 'i', 'd', 'd', 'd', 'd', 'i'};
+    Py_buffer v[NV], out, index, okv;
+    Py_ssize_t len[NV], n_out = 0, n_index = 0, n_ok = 0;
+    int got = 0, have_out = 0, have_index = 0, have_ok = 0, ok = 1;
+    for (; ok && got < NV; got++)
+        if (!vector(o[got], &v[got], kinds[got], got == 0 || got == 8, &len[got])) {
+            ok = 0;
+            break;
+        }
+    double no_gap = 0.0, stop_decel = 0.0;
+    if (ok) {
+        no_gap = PyFloat_AsDouble(o[9]);
+        stop_decel = PyFloat_AsDouble(o[10]);
+        if (PyErr_Occurred()) {
+            PyErr_Clear();
+            ok = 0;
+        }
+    }
+    if (ok && PyObject_GetBuffer(o[11], &out, PyBUF_FORMAT | PyBUF_ND | PyBUF_WRITABLE) == 0) {
+        have_out = 1;
+        n_out = out.ndim == 2 && out.itemsize == 8 && strcmp(out.format, "d") == 0
+                    && out.shape[0] == 7 ? out.shape[1] : -1;
+    } else
+        PyErr_Clear();
+    if (ok && have_out) have_index = vector(o[12], &index, 'i', 1, &n_index);
+    if (ok && have_index) have_ok = vector(o[13], &okv, '?', 1, &n_ok);
+    const Py_ssize_t n = len[0];
+    const Py_ssize_t N = ok ? len[4] : 0;
+    ok = ok && have_ok && n_out == n && n_index == n && n_ok == n && len[1] == n &&
+         len[2] == n && len[3] == 2 * n && len[5] == len[6] && len[6] == len[7] &&
+         len[8] > N;
+    if (ok) {
+        const int64_t *lead_row = v[1].buf, *rows = v[2].buf, *shape = v[3].buf;
+        const Py_ssize_t n_shapes = len[5];
+        for (Py_ssize_t i = 0; ok && i < n; i++)
+            ok = rows[i] >= 0 && rows[i] < N && lead_row[i] >= -1 && lead_row[i] < N &&
+                 shape[i] >= 0 && shape[i] < n_shapes && shape[n + i] >= 0 &&
+                 shape[n + i] < n_shapes;
+    }
+    if (ok) {
+        double *gap = v[0].buf;
+        const int64_t *lead_row = v[1].buf, *rows = v[2].buf, *shape = v[3].buf;
+        const double *speed = v[4].buf, *length = v[5].buf, *min_gap = v[6].buf;
+        const double *decel = v[7].buf;
+        int64_t *driven = v[8].buf;
+        double *spacing = out.buf, *lead_v = spacing + n, *lead_decel = lead_v + n;
+        double *own_length = lead_decel + n, *own_min_gap = own_length + n;
+        double *lead_length = own_min_gap + n, *bumper = lead_length + n;
+        int64_t *lead_index = index.buf;
+        char *has = okv.buf;
+        for (Py_ssize_t i = 0; i < n; i++) driven[rows[i]] = (int64_t)i;
+        for (Py_ssize_t i = 0; i < n; i++) {
+            const double mg = min_gap[shape[i]], ll = length[shape[n + i]];
+            const double sp = gap[i] + mg + ll; /* (gap + minGap) + the leader's length */
+            const int64_t r = lead_row[i];
+            const int with = r >= 0 && sp < no_gap;
+            own_length[i] = length[shape[i]];
+            own_min_gap[i] = mg;
+            lead_length[i] = ll;
+            has[i] = (char)with;
+            if (with) {
+                spacing[i] = sp;
+                lead_v[i] = speed[r];
+                lead_decel[i] = decel[shape[n + i]];
+                lead_index[i] = driven[r];
+                bumper[i] = sp - ll;
+            } else {
+                spacing[i] = no_gap;
+                lead_v[i] = speed[rows[i]];
+                lead_decel[i] = stop_decel;
+                lead_index[i] = -1;
+                bumper[i] = no_gap;
+                gap[i] = no_gap;
+            }
+        }
+        for (Py_ssize_t i = 0; i < n; i++) driven[rows[i]] = -1;
+    }
+    for (int i = 0; i < got; i++) PyBuffer_Release(&v[i]);
+    if (have_out) PyBuffer_Release(&out);
+    if (have_index) PyBuffer_Release(&index);
+    if (have_ok) PyBuffer_Release(&okv);
+    if (ok) Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
+static PyMethodDef methods[] = {
+    {"leader_columns", leader_columns, METH_VARARGS,
+     "deploy.observe.observe_rows' leader columns, bit for bit; False where numpy must answer."},
+    {"krauss_prior", krauss_prior, METH_VARARGS,
+     "deploy.policy_batch's Krauss prior into out, bit for bit; False where numpy must answer."},
+    {"safe_speed", safe_speed, METH_VARARGS,
+     "road.physics.safe_speed into out, bit for bit; False where numpy must answer."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {
+    PyModuleDef_HEAD_INIT, "kernels", "road.physics' hot arithmetic, compiled.", -1, methods,
+};
+
+PyMODINIT_FUNC PyInit_kernels(void) { return PyModule_Create(&module); }
