@@ -369,8 +369,8 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
             self.has_lights = sim.has_traffic_lights()
             if self.has_lights:
                 self.signal_lanes = signal_lanes(sim.options.net_file)
-                if self.sc.deploy.yellow == "onset":  # SUMO's yellow rule, decided at onset
-                    sim.decide_yellow()
+                if self.sc.deploy.yellow != "stop":  # SUMO's yellow rule, decided at onset
+                    sim.decide_yellow(ahead=self.sc.deploy.yellow == "ahead")
         obs, gap, lead_decel, lead = self.observe(
             sim, vids, rows, st, lanes=lanes, stop_m=ahead, at=(slots, codes), factor=factor
         )

@@ -30,6 +30,7 @@ from macromicro_sumo.sumo.stop_offsets import StopOffset
 BestLanes = Callable[[str], Sequence[tuple]]
 # Signal states that are a yellow (``StopLineReader.decide_yellow``); red-yellow (u) is a red.
 YELLOW_STATES = frozenset("yY")
+GREEN_STATES = frozenset("gG")
 
 
 def euler_brake_gap(speed_mps: float, decel_mps2: float, dt_s: float) -> float:
@@ -38,6 +39,28 @@ def euler_brake_gap(speed_mps: float, decel_mps2: float, dt_s: float) -> float:
     reduction = decel_mps2 * dt_s
     steps = math.floor(speed_mps / reduction)
     return dt_s * (steps * speed_mps - reduction * steps * (steps + 1.0) / 2.0)
+
+
+class Upcoming:
+    """A light's state string from the coming step on where it switches then (its program's
+    next phase), else None: ``StopLineReader.decide_yellow``'s ``upcoming`` with
+    ``deploy.yellow = "ahead"``. ``sumo``: libsumo, handed in by ``Simulation`` (the only
+    module that imports it); a program's phase states are read once."""
+
+    def __init__(self, sumo, dt_s: float) -> None:
+        self._tl, self._time, self._dt = sumo.trafficlight, sumo.simulation.getTime, float(dt_s)
+        self._phases: dict[tuple[str, str], list[str]] = {}
+
+    def __call__(self, tls: str) -> str | None:
+        tl = self._tl
+        if tl.getNextSwitch(tls) - self._time() > self._dt + 1e-6:
+            return None
+        key = (tls, tl.getProgram(tls))
+        if (phases := self._phases.get(key)) is None:
+            logics = tl.getAllProgramLogics(tls)
+            logic = next((lg for lg in logics if lg.programID == key[1]), logics[0])
+            phases = self._phases[key] = [p.state for p in logic.phases]
+        return phases[(tl.getPhase(tls) + 1) % len(phases)]
 
 
 class StopLineReader:
@@ -63,15 +86,25 @@ class StopLineReader:
         # ``decide_yellow``: a vehicle's speed and decel, the step; None: a yellow is a stop.
         self._yellow_by: tuple[Callable[[str], float], Callable[[str], float], float] | None
         self._yellow_by = None
+        self._upcoming: Callable[[str], str | None] | None = None
         self.passing: dict[str, set[tuple[str, int]]] = {}  # vehicle -> yellow links it passes
         self._decided: dict[str, set[tuple[str, int]]] = {}  # vehicle -> yellow links decided
 
     def decide_yellow(
-        self, speed_of: Callable[[str], float], decel_of: Callable[[str], float], dt_s: float
+        self,
+        speed_of: Callable[[str], float],
+        decel_of: Callable[[str], float],
+        dt_s: float,
+        upcoming: Callable[[str], str | None] | None = None,
     ) -> None:
         """From now on each vehicle decides each yellow at its onset (the module's rule),
-        from its speed and decel (libsumo's getSpeed, getDecel) in steps of ``dt_s``."""
+        from its speed and decel (libsumo's getSpeed, getDecel) in steps of ``dt_s``.
+        ``upcoming``: a light's state string from the coming step on where it switches
+        then (None: it does not): a green link turning yellow is decided now, as SUMO's
+        drivers meet the switch within that step (the light switches before they move),
+        where a driver that waits for it decides a step late, a step nearer the line."""
         self._yellow_by = (speed_of, decel_of, float(dt_s))
+        self._upcoming = upcoming
 
     def forget(self, vehicle_ids: Iterable[str]) -> None:
         """Vehicles gone from the network: their ``carry`` answers and yellow decisions
@@ -110,6 +143,10 @@ class StopLineReader:
     def stop_line(self, vid: str) -> tuple[float, str, bool, float]:
         """``stop_lines``' (distance, lane, own, stopOffset) of one vehicle, plain values."""
         for tls, link, d, state in (ahead := self._next_tls(vid)):
+            if self._upcoming is not None and state in GREEN_STATES:
+                nxt = self._upcoming(tls)
+                if nxt is not None and link < len(nxt) and nxt[link] in YELLOW_STATES:
+                    state = nxt[link]  # yellow from the coming step: decided now
             if self._yellow_by is not None:  # a yellow decided at onset (``decide_yellow``)
                 if state in YELLOW_STATES:
                     if self._passes(vid, (tls, link), d):
