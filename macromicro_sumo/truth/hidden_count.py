@@ -196,7 +196,7 @@ def io_pieces(
         mean_count = float(np.nanmean(np.sum([dens[pair] for pair in between], axis=0)))
         tolerance = max(EMPTY_START_TOLERANCE_VEH, EMPTY_START_TOLERANCE * mean_count)
         possible = all(
-            sealed_count(times[lo], times[hi], stretch_m((lo, hi), section) * section.max_lanes)
+            sealed_count(times[lo], times[hi], stretch_m((lo, hi), section), section.max_lanes)
             for lo, hi in between
         )
         if abs(float(np.nanmean(counted - io))) <= tolerance or possible:
@@ -219,12 +219,13 @@ def io_pieces(
         # estimate in every interval (a slow drift, vehicles turning off at a few per
         # minute, stays possible for minutes but not near the density estimate).
         def sealed(q: tuple[float, float]) -> bool:
-            lane_m = stretch_m(q, section) * float(section.max_lanes)
             off = np.abs(np.array(dens[q]) - np.array(io_mean[q]))
             near = bool(np.isfinite(off).any()) and float(np.nanmax(off)) <= (
                 EMPTY_START_TOLERANCE_VEH
             )
-            return near and sealed_count(times[q[0]], times[q[1]], lane_m)
+            return near and sealed_count(
+                times[q[0]], times[q[1]], stretch_m(q, section), section.max_lanes
+            )
 
         def node_piece(q: tuple[float, float]) -> np.ndarray:
             """Its two stations' passages, each on its side of the node

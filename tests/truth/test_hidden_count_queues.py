@@ -163,9 +163,9 @@ def test_turning_vehicles_at_a_node_by_its_stations() -> None:
 
 def test_a_count_with_nobody_turning_stays_possible() -> None:
     into = np.array([1.0, 2.0, 3.0, 10.0])
-    assert sealed_count(into, np.array([2.0, 4.0, 5.0, 12.0]), lane_m=10.0)  # 2 at most
-    assert not sealed_count(into, np.array([0.5, 4.0, 5.0]), lane_m=10.0)  # one came in
-    assert not sealed_count(into, np.array([12.0]), lane_m=10.0)  # 4 on 10 lane-metres
+    assert sealed_count(into, np.array([2.0, 4.0, 5.0, 12.0]), 10.0, 1)  # 2 at most
+    assert not sealed_count(into, np.array([0.5, 4.0, 5.0]), 10.0, 1)  # one came in
+    assert not sealed_count(into, np.array([12.0]), 10.0, 1)  # 4 on 10 m, room for 3
 
 
 def test_a_signal_nobody_turns_at_is_counted(tmp_path: Path) -> None:
