@@ -30,6 +30,7 @@ from operator import and_
 import numpy as np
 
 from macromicro_sumo.deploy.brake_plan import BrakeHandover, planned_decel
+from macromicro_sumo.deploy.keep_clear import keep_clear_lines
 from macromicro_sumo.deploy.keep_right import keep_right_caps
 from macromicro_sumo.deploy.merge_yield import LANE_END_RECHECK_STEPS, MergeYield, drop_chain_lanes
 from macromicro_sumo.deploy.observe import STANDING, LaneTable, Table, observe_rows, states_of
@@ -458,16 +459,15 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
         if stop_m is None:
             stop_m = self.lane_end_m(sim, vids, lanes, at) - st.pos_m[rows]
         self.red_gap_m = None  # SUMO's gap to each one's red line (inf: none), for ``drive``
-        # Nobody on a lane from which a signal can be reached: none ahead (getNextTLS would
-        # say NaN for each, inf in the cache), not asked (Bremen's section: every step).
+        # Nobody on a lane reaching a signal: none ahead (NaN; inf in the cache), not asked.
+        leaders = sim.leaders(vids, NO_LEADER_GAP_M)
         if self.has_lights and not self.signal_lanes.isdisjoint(lanes):
-            red = self.stop_lines_m(sim, vids, lanes, at)
+            red = keep_clear_lines(self, sim, self.stop_lines_m(sim, vids, lanes, at), lanes, rows, st, leaders, vids)  # fmt: skip
             # No red or yellow ahead of anyone (inf): the stops are the lane ends as they are.
             if count_nonzero(red < _INF):
                 gaps = np.array([self.vtypes[self.types[v]].stopline_gap_m for v in vids])
                 stop_m = stop_distance_m(stop_m, red, gaps)  # gaps: jmStoplineGap
                 self.red_gap_m = stop_distance_m(_INF, red, gaps)
-        leaders = sim.leaders(vids, NO_LEADER_GAP_M)
         return observe_rows(
             self.lane_table,
             self.sc.policy.observation,

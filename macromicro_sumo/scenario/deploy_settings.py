@@ -212,6 +212,15 @@ class DeployConfig:
         omit_default=True,
         omit_value=0.0,
     )
+    keep_clear: str = spec(
+        "off",
+        choices=("off", "lane", "lane1"),
+        doc="lane: a driven vehicle does not enter a signalised junction where the room on "
+        "the lane past it up to its waiting vehicle (below 0.1 m/s; lane1: 1 m/s), less the "
+        "vehicles ahead of it, is short of its length and minGap: it waits at its line, as "
+        "SUMO's drivers (deploy.keep_clear); off: it follows its leader into the junction",
+        omit_default=True,
+    )
     fcd_s: float = spec(
         120.0, lo=0.0, hi=1e6, doc="trajectories.csv keeps the first fcd_s recorded seconds [s]"
     )

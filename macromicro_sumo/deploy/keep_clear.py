@@ -1,0 +1,154 @@
+"""``deploy.keep_clear``: a driven vehicle does not drive into a signalised junction it cannot
+leave, as SUMO's drivers (``MSVehicle::checkRewindLinkLanes`` with
+``getSpaceTillLastStanding``): from the lane past the junction, the room up to the back of its
+upstream-most waiting vehicle (slower than ``WAITING_MPS``), less every moving vehicle's
+length and minGap behind that one, less the vehicles' ahead of the driver on its own lane and
+in the junction, must hold the driver's length and minGap; else it stops at its line though
+the light is green. A lane past the junction with no waiting vehicle leaves room further on
+(SUMO adds the next lanes' space): no stop.
+
+Why: under speed commands (``deploy.safety.SPEED_MODES``: no safe-speed bit) SUMO does not
+hold a commanded vehicle at the line for this, and the safety layer followed the leader
+past the line into the junction: on arterial 1164 (one lane, 4 signals 274 m apart) the
+policy's cars stood or crept inside the first junction 4x as often as the truth's (1,127
+against 271 samples below 3 m/s), each green let 1.3 more cars over the first stop line
+(14.50 against 13.22) and 6% more cars entered the network (812 against 765 veh/h at the
+entry loop) (docs/deploy.md, stop 47, hA47). hA47's rule looked only at the vehicle ahead
+past the junction (``"signals"`` in its patch; lost on 1161); this one counts the lane, as
+SUMO does. Pure but for the driver's cached shapes: the driver hands the states in.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from macromicro_sumo.road.leaders import STOPLINE_GAP_M
+from macromicro_sumo.road.physics import brake_gap
+from macromicro_sumo.sumo.net_xml import net_links, once_per_file
+
+# SUMO's SUMO_const_haltingSpeed [m/s]: below it a vehicle counts as standing in
+# getSpaceTillLastStanding. "lane1" takes 1 m/s instead: the policy's queues creep (hA47:
+# the vehicle past 1164's first junction was never below 0.1 m/s while SUMO's stood).
+WAITING_MPS = {"lane": 0.1, "lane1": 1.0}
+# Length and minGap [m] of a vehicle whose shape the driver has not seen (SUMO's passenger).
+DEFAULT_SHAPE = (5.0, 2.5)
+
+
+def lane_rooms(
+    lanes: Sequence[str],
+    pos_m: np.ndarray,
+    speed_mps: np.ndarray,
+    brutto_m: np.ndarray,
+    length_m: np.ndarray,
+    waiting_mps: float,
+) -> dict[str, float]:
+    """Room [m] on each lane holding a waiting vehicle (slower than ``waiting_mps``): the back
+    of the upstream-most waiting one (``pos_m`` less ``length_m``) less ``brutto_m`` (length
+    plus minGap) of each vehicle behind it; lanes without one are absent (room further on)."""
+    on: dict[str, list[int]] = defaultdict(list)
+    for r, lane in enumerate(lanes):
+        on[lane].append(r)
+    out = {}
+    for lane, rows in on.items():
+        behind = 0.0
+        for r in sorted(rows, key=pos_m.__getitem__):  # upstream first, as SUMO's lane
+            if speed_mps[r] < waiting_mps:
+                out[lane] = float(pos_m[r] - length_m[r]) - behind
+                break
+            behind += float(brutto_m[r])
+    return out
+
+
+@once_per_file
+def signal_ends(net_file: str) -> frozenset[str]:
+    """The lanes of ``net_file``'s edges with a signalised link at their end: where the
+    junction to keep clear is signalised (hA47's finding; SUMO keeps every junction clear)."""
+    net = net_links(net_file)
+    return frozenset(ln for c in net.connections if c.tl for ln in net.lanes.get(c.src, ()))
+
+
+def keep_clear_lines(
+    driver: Any,
+    sim: Any,
+    red: np.ndarray,
+    lanes: Sequence[str],
+    rows: np.ndarray,
+    st: Any,
+    leaders: Sequence[tuple[str, float]],
+    vids: Sequence[str],
+) -> np.ndarray:
+    """``red`` [m] (each driven vehicle's distance to its next red or yellow line, inf: none,
+    NaN: no signal ahead) with a line at its lane's end where ``driver.sc.deploy.keep_clear``
+    is on and it must not enter the junction there (``sim``: the simulation, its net
+    file). ``driver``: the section driver
+    (``section``, ``shape_of``, ``sc``); ``st``: every vehicle's state
+    (``sumo.states.VehicleStates``), ``rows``: the driven ones' rows; ``leaders``: SUMO's
+    (ID, gap) of each. The lane past the junction is the first lane other than the driver's
+    along the chain of leaders, past any in the junction (":..."). Returns a new array where
+    any line is added, else ``red`` itself."""
+    mode = driver.sc.deploy.keep_clear
+    if mode == "off":
+        return red
+    sec, shape_of = driver.section, driver.shape_of
+    n = len(st.ids)
+    brutto, length = np.empty(n), np.empty(n)
+    for r, v in enumerate(st.ids):
+        got = shape_of.get(v)
+        length[r], gap = (got[0], got[1]) if got is not None else DEFAULT_SHAPE
+        brutto[r] = length[r] + gap
+    rooms = lane_rooms(st.lanes, st.pos_m, st.speed_mps, brutto, length, WAITING_MPS[mode])
+    held: set[str] = driver.__dict__.setdefault("keep_clear_held", set())
+    if not rooms:
+        held.clear()
+        return red
+    index, ends = st.index, signal_ends(sim.options.net_file)
+    ahead_of = {v: lid for v, (lid, _) in zip(vids, leaders, strict=True) if lid}
+    dt = driver.sc.simulation.step_length_s
+    # Held last step: held on whatever its speed (the brake check is for a new hold only; a
+    # car braking for the line would fail it near the line and drive in).
+    now: set[str] = set()
+    out = red
+    for i, v in enumerate(vids):
+        lane = lanes[i]
+        if red[i] != red[i] or lane not in ends or lane not in sec.lanes:
+            continue  # no signal at its lane's end, or off the section
+        got = sec.lanes[lane]
+        r = int(rows[i])
+        end = float(sec.lengths_m[got[0]]) / got[3] - float(st.pos_m[r])
+        if red[i] <= end or end <= 0.0:
+            continue  # a red or yellow line nearer already (SUMO stops there anyway)
+        # Vehicles ahead of it on its lane and in the junction must fit too (SUMO's
+        # lengthsInFront and the internal lane's vehicles).
+        front, lid, past, hops = 0.0, ahead_of.get(v, ""), "", 0
+        while lid and hops < 64:
+            lr = index.get(lid)
+            if lr is None:
+                break
+            ll = st.lanes[lr]
+            if ll != lane and not ll.startswith(":"):
+                past = ll
+                break
+            front += float(brutto[lr])
+            lid, hops = ahead_of.get(lid, ""), hops + 1
+        room = rooms.get(past) if past else None
+        if room is None:
+            continue  # nobody waiting past the junction: room further on
+        if room - front >= brutto[r]:
+            continue
+        speed, decel = float(st.speed_mps[r]), shape_of[v][2]
+        # Too near to stop jmStoplineGap before the line at its decel: it drives on. SUMO
+        # keeps the request only nearer than brakeGap - tau v, but its drivers then brake
+        # harder than decel; ours would count emergency brakings (1164: 1 -> 6-9).
+        if v not in held and float(brake_gap(np.float64(speed), decel, dt)) > end - STOPLINE_GAP_M:
+            continue
+        now.add(v)
+        if out is red:
+            out = np.array(red, dtype=float)
+        out[i] = end
+    held.clear()
+    held.update(now)
+    return out
