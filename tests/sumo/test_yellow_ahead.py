@@ -10,10 +10,8 @@ from pathlib import Path
 
 import libsumo
 import numpy as np
-from conftest import light_road
-from test_yellow_onset import DT, Scripted
+from test_yellow_onset import DT, Scripted, light_cars
 
-from macromicro_sumo.sumo.options import SumoOptions
 from macromicro_sumo.sumo.simulation import Simulation
 from macromicro_sumo.sumo.stop_lines import StopLineReader, euler_brake_gap
 
@@ -55,24 +53,7 @@ def test_the_upcoming_state_at_a_real_light(tmp_path: Path) -> None:
     yellow only on the green's last step, and the light shows it after that step; every
     car decided then as the reader's rule (its Euler braking distance at 4.5 m/s^2 against
     its distance less 1 m) keeps its decision through the yellow."""
-    net = light_road(tmp_path, 200.0, 200.0, 13.9)
-    cars = "".join(
-        f'<vehicle id="c{k:02d}" type="k" depart="{1.5 * k}" departSpeed="13.9">'
-        '<route edges="A B"/></vehicle>\n'
-        for k in range(30)
-    )
-    routes = tmp_path / "r.rou.xml"
-    routes.write_text(
-        '<routes><vType id="k" sigma="0" decel="4.5" speedDev="0" minGap="2.5"/>\n'
-        f"{cars}</routes>\n"
-    )
-    light = tmp_path / "light.add.xml"
-    light.write_text(
-        '<additional><tlLogic id="tl" type="static" programID="p" offset="0">'
-        '<phase duration="30" state="G"/><phase duration="4" state="y"/>'
-        '<phase duration="100" state="r"/></tlLogic></additional>\n'
-    )
-    sim = Simulation(SumoOptions(net, (light,), DT, 1, route_files=(routes,), user_demand=True))
+    sim = Simulation(light_cars(tmp_path))
     sim.decide_yellow(ahead=True)
     said, decided = [], {}
     try:

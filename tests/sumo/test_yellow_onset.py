@@ -101,30 +101,36 @@ def test_each_yellow_is_decided_afresh() -> None:
     assert "car" not in r.passing
 
 
+def light_cars(folder: Path) -> SumoOptions:
+    """A (200 m, 13.9 m/s) -> a light, green 30 s, yellow 4 s, red -> B; 30 Krauss cars
+    without dawdling, one every 1.5 s (also test_yellow_ahead's)."""
+    net = light_road(folder, 200.0, 200.0, 13.9)
+    cars = "".join(
+        f'<vehicle id="c{k:02d}" type="k" depart="{1.5 * k}" departSpeed="13.9">'
+        '<route edges="A B"/></vehicle>\n'
+        for k in range(30)
+    )
+    routes = folder / "r.rou.xml"
+    routes.write_text(
+        '<routes><vType id="k" sigma="0" decel="4.5" speedDev="0" minGap="2.5"/>\n'
+        f"{cars}</routes>\n"
+    )
+    light = folder / "light.add.xml"
+    light.write_text(
+        '<additional><tlLogic id="tl" type="static" programID="p" offset="0">'
+        '<phase duration="30" state="G"/><phase duration="4" state="y"/>'
+        '<phase duration="100" state="r"/></tlLogic></additional>\n'
+    )
+    return SumoOptions(net, (light,), DT, 1, route_files=(routes,), user_demand=True)
+
+
 def test_at_a_real_light_those_that_cannot_brake_pass_the_yellow(tmp_path: Path) -> None:
     """A (200 m, 13.9 m/s) -> a light, green 30 s, yellow 4 s, red -> B; Krauss cars
     without dawdling every 1.5 s. Every car on A asks its stop line every step: at the
     yellow's first step one whose Euler braking distance at 4.5 m/s^2 exceeds its distance
     less 1 m has none ahead (inf), the others the line; through the yellow the answers
     hold; at the red every car before the line has it."""
-    net = light_road(tmp_path, 200.0, 200.0, 13.9)
-    cars = "".join(
-        f'<vehicle id="c{k:02d}" type="k" depart="{1.5 * k}" departSpeed="13.9">'
-        '<route edges="A B"/></vehicle>\n'
-        for k in range(30)
-    )
-    routes = tmp_path / "r.rou.xml"
-    routes.write_text(
-        '<routes><vType id="k" sigma="0" decel="4.5" speedDev="0" minGap="2.5"/>\n'
-        f"{cars}</routes>\n"
-    )
-    light = tmp_path / "light.add.xml"
-    light.write_text(
-        '<additional><tlLogic id="tl" type="static" programID="p" offset="0">'
-        '<phase duration="30" state="G"/><phase duration="4" state="y"/>'
-        '<phase duration="100" state="r"/></tlLogic></additional>\n'
-    )
-    sim = Simulation(SumoOptions(net, (light,), DT, 1, route_files=(routes,), user_demand=True))
+    sim = Simulation(light_cars(tmp_path))
     # The run's reader, told as a Simulation.decide_yellow would tell it (libsumo's answers).
     sim._lines.decide_yellow(libsumo.vehicle.getSpeed, libsumo.vehicle.getDecel, DT)
     first: dict[str, float] = {}
