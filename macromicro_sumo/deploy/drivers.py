@@ -204,8 +204,7 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
         self.driver_taus = taus(sc, run) if taus is not None else None
         self.merging: set[str] = set()  # driven vehicles merging with SUMO's own model now
         self.others: set[str] = set()  # ``MergeYield.must_change``
-        # deploy.merge_reach "occupation": LC2013's lane drop (``MergeYield``)
-        # (merge none or handover: the default occupation acts as plain, ``check_deploy``)
+        # deploy.merge_reach "occupation", with merge "sumo": LC2013's lane drop (MergeYield)
         reach = sc.deploy.merge_reach == "occupation" and self.merge == "sumo"
         self.occupation = self.yield_all = reach
         if reach:  # the lanes occupation acts on, once per driver
@@ -462,7 +461,8 @@ class SectionSpeedDriver(MergeYield, SectionDriver):
         # Nobody on a lane reaching a signal: none ahead (NaN; inf in the cache), not asked.
         leaders = sim.leaders(vids, NO_LEADER_GAP_M)
         if self.has_lights and not self.signal_lanes.isdisjoint(lanes):
-            red = keep_clear_lines(self, sim, self.stop_lines_m(sim, vids, lanes, at), lanes, rows, st, leaders, vids)  # fmt: skip
+            red = self.stop_lines_m(sim, vids, lanes, at)
+            red = keep_clear_lines(self, sim, red, lanes, rows, st, leaders, vids)
             # No red or yellow ahead of anyone (inf): the stops are the lane ends as they are.
             if count_nonzero(red < _INF):
                 gaps = np.array([self.vtypes[self.types[v]].stopline_gap_m for v in vids])

@@ -214,7 +214,8 @@ def observe_rows(
     if kernels is not None:  # the compiled pass (road/kernels.c): the same values
         cols, lead_index, ok = np.empty((7, n)), np.empty(n, np.int64), np.empty(n, bool)
         args = (gap, lead_row, rows, shape, st.speed_mps, length_m, min_gap_m, decel_mps2)
-        if kernels.leader_columns(*args, driven, NO_LEADER_GAP_M, STOP_DECEL_MPS2, cols, lead_index, ok):  # fmt: skip
+        outs = (cols, lead_index, ok)
+        if kernels.leader_columns(*args, driven, NO_LEADER_GAP_M, STOP_DECEL_MPS2, *outs):
             spacing, lead_v, lead_decel, length, min_gap, lead_length, bumper = cols
     if bumper is None:
         has = lead_row >= _ROW_0
