@@ -10,7 +10,7 @@ from pathlib import Path
 
 import libsumo
 import numpy as np
-from test_yellow_onset import DT, Scripted, light_cars
+from test_yellow_onset import DT, Scripted, light_cars, stop_lines_on_a
 
 from macromicro_sumo.sumo.simulation import Simulation
 from macromicro_sumo.sumo.stop_lines import StopLineReader, euler_brake_gap
@@ -59,14 +59,7 @@ def test_the_upcoming_state_at_a_real_light(tmp_path: Path) -> None:
     try:
         while sim.time_s() < 36.0:
             sim.step()
-            veh = libsumo.vehicle
-            on_a = {
-                v: (veh.getLanePosition(v), veh.getSpeed(v))
-                for v in sim.vehicle_ids()
-                if veh.getLaneID(v) == "A_0"
-            }
-            ids = sorted(on_a)
-            got = dict(zip(ids, sim.stop_lines_m(ids).tolist(), strict=True))
+            on_a, got = stop_lines_on_a(sim)
             up = sim._lines._upcoming("tl")
             state = libsumo.trafficlight.getRedYellowGreenState("tl")
             if up is not None:
@@ -77,7 +70,7 @@ def test_the_upcoming_state_at_a_real_light(tmp_path: Path) -> None:
                     assert (got[v] < np.inf) == can, (v, pos, speed, got[v])
                     decided[v] = can
             elif state == "y":
-                for v in set(decided) & set(ids):
+                for v in set(decided) & set(got):
                     assert (got[v] < np.inf) == decided[v], (sim.time_s(), v)
     finally:
         sim.close()

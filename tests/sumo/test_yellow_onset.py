@@ -124,6 +124,18 @@ def light_cars(folder: Path) -> SumoOptions:
     return SumoOptions(net, (light,), DT, 1, route_files=(routes,), user_demand=True)
 
 
+def stop_lines_on_a(sim: Simulation) -> tuple[dict, dict]:
+    """Each car on A's lane: (position, speed), and its stop line as the run's reader says."""
+    veh = libsumo.vehicle
+    on_a = {
+        v: (veh.getLanePosition(v), veh.getSpeed(v))
+        for v in sim.vehicle_ids()
+        if veh.getLaneID(v) == "A_0"
+    }
+    ids = sorted(on_a)
+    return on_a, dict(zip(ids, sim.stop_lines_m(ids).tolist(), strict=True))
+
+
 def test_at_a_real_light_those_that_cannot_brake_pass_the_yellow(tmp_path: Path) -> None:
     """A (200 m, 13.9 m/s) -> a light, green 30 s, yellow 4 s, red -> B; Krauss cars
     without dawdling every 1.5 s. Every car on A asks its stop line every step: at the
@@ -138,14 +150,7 @@ def test_at_a_real_light_those_that_cannot_brake_pass_the_yellow(tmp_path: Path)
     try:
         while sim.time_s() < 40.0:
             sim.step()
-            veh = libsumo.vehicle
-            on_a = {
-                v: (veh.getLanePosition(v), veh.getSpeed(v))
-                for v in sim.vehicle_ids()
-                if veh.getLaneID(v) == "A_0"
-            }
-            ids = sorted(on_a)
-            got = dict(zip(ids, sim.stop_lines_m(ids).tolist(), strict=True))
+            on_a, got = stop_lines_on_a(sim)
             state = libsumo.trafficlight.getRedYellowGreenState("tl")
             t = sim.time_s()
             if state == "y" and not first and on_a:  # the yellow's first step
@@ -156,7 +161,7 @@ def test_at_a_real_light_those_that_cannot_brake_pass_the_yellow(tmp_path: Path)
                     if not can:
                         passing.add(v)
             elif state == "y":
-                for v in passing & set(ids):
+                for v in passing & set(got):
                     assert got[v] == np.inf, (t, v)
             elif state == "r":
                 assert all(d < np.inf for d in got.values()), (t, got)
