@@ -24,6 +24,7 @@ from macromicro_sumo.data.section import (
     run_limits_mps,
     signal_settings,
 )
+from macromicro_sumo.data.vtypes import typical
 from macromicro_sumo.env.vtype_draw import generated_vtypes
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.leaders import STANDING_MIN_GAP_M, STOPLINE_GAP_M
@@ -285,8 +286,7 @@ def recordable(sc, traj) -> np.ndarray:
 
 def _typical(truth: SectionTruth, column: str) -> object:
     """``column`` of the vType with the most vehicles on the section (generated vehicles')."""
-    vt = truth.vtypes
-    return vt[column].iloc[int(np.argmax(vt["vehicles"].to_numpy()))]
+    return typical(truth.vtypes, column)
 
 
 def typical_vclass(truth: SectionTruth) -> str:

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from macromicro_sumo.data.section import SectionSnapshots
+from macromicro_sumo.data.vtypes import typical
 from macromicro_sumo.generator.section_bounds import bounded_gaps
 from macromicro_sumo.generator.section_model import Scene, SectionGeneratorNet, propose
 from macromicro_sumo.generator.section_pairs import (
@@ -163,13 +164,13 @@ generator_completion = GeneratorCompletion
 
 def generated_length(truth: Any) -> float | None:
     """The generated vehicles' length in the environment [m]: the vType with the most
-    vehicles on the section, as ``env.section_bank.typical_length`` (which this layer may
-    not import) gives the Stage II envs and evaluation; None without vTypes. Stage I's own
+    vehicles on the section (``data.vtypes.typical``, as ``env.section_bank.typical_length``
+    gives the Stage II envs and evaluation); None without vTypes. Stage I's own
     scoring (``section_stage``, ``complete``) completes with it, as Stage II does."""
     vt = getattr(truth, "vtypes", None)
     if vt is None or not len(vt) or "length_m" not in vt or "vehicles" not in vt:
         return None
-    return float(vt["length_m"].iloc[int(np.argmax(vt["vehicles"].to_numpy()))])
+    return float(typical(vt, "length_m"))
 
 
 def _window_of(
