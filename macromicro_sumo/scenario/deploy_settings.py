@@ -78,6 +78,17 @@ class DeployConfig:
         "cap stays one step [s]",
         omit_default=True,  # the digests of scenarios that do not set it stay as they were
     )
+    start_dawdle: float = spec(
+        0.0,
+        lo=0.0,
+        hi=1.0,
+        doc="safety sumo: a driven vehicle's speed command below its accel (as a number) "
+        "lowered by the mean of SUMO's Krauss dawdle of a starting driver with this sigma, "
+        "v' (1 - sigma dt / 2), after the safe speed's cap and the floor "
+        "(deploy.safety.start_dawdled): a standing queue starts as late as SUMO's drivers; "
+        "0: off",
+        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+    )
     yellow: str = spec(
         "onset",
         choices=("stop", "onset", "ahead"),
