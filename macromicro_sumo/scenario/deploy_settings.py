@@ -89,6 +89,16 @@ class DeployConfig:
         "0: off",
         omit_default=True,  # the digests of scenarios that do not set it stay as they were
     )
+    start_reaction_s: float = spec(
+        0.0,
+        lo=0.0,
+        hi=5.0,
+        doc="safety sumo: a standing driven vehicle's (below 1 m/s) command and floor at most "
+        "SUMO's Krauss safe speed with this reaction time (deploy.safety.reaction_safe_speed; "
+        "SUMO's Krauss tau: 1 s), so that a standing queue starts as SUMO's drivers do; 0: off "
+        "(the one-step cap alone) [s]",
+        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+    )
     yellow: str = spec(
         "onset",
         choices=("stop", "onset", "ahead"),
