@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from macromicro_sumo.truth.vtype_spread import spread_routes
+
 
 @dataclass(frozen=True)
 class Arterial:
@@ -58,10 +60,12 @@ def draw_arterial(seed: int) -> Arterial:
     )
 
 
-def arterial(folder: Path, number: int, netconvert) -> tuple[dict, str]:
+def arterial(folder: Path, number: int, netconvert, spread: bool = False) -> tuple[dict, str]:
     """Arterial ``number`` (``ARTERIALS``, else drawn from it as a seed) in ``folder``: the
     scenario table (2 runs of 900 s after 120 s, loops every 100 m, 90 s intervals) and a
-    description. ``netconvert(folder, name, nodes, edges)`` builds the net."""
+    description. ``netconvert(folder, name, nodes, edges)`` builds the net. ``spread``: each
+    vType a seeded distribution of lengths and minGaps (``truth.vtype_spread``), so that
+    standing queues do not sit on SUMO's 7.5 m lattice."""
     a = ARTERIALS.get(number) or draw_arterial(number)
     south = a.south_spacing_m or a.spacing_m
     n = a.junctions + 1
@@ -114,6 +118,8 @@ def arterial(folder: Path, number: int, netconvert) -> tuple[dict, str]:
         )
     rows.append("</routes>")
     (folder / "art.rou.xml").write_text("".join(rows))
+    if spread:
+        spread_routes(folder / "art.rou.xml", folder / "art.rou.xml", a.seed)
     table = {
         "name": "arterial",
         "seed": a.seed,
@@ -130,6 +136,6 @@ def arterial(folder: Path, number: int, netconvert) -> tuple[dict, str]:
     desc = (
         f"{a.junctions} signals {a.spacing_m:g} m apart, {a.lanes} lanes, {a.speed_mps} m/s, "
         f"{a.main_vph:g} + {a.truck_vph:g} trucks veh/h, side {a.on_vph:g} on / "
-        f"{a.off_vph:g} off / {a.across_vph:g} across"
+        f"{a.off_vph:g} off / {a.across_vph:g} across" + (", vTypes spread" if spread else "")
     )
     return table, desc

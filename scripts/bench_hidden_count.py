@@ -99,6 +99,12 @@ def get_options(args: list[str] | None = None) -> argparse.Namespace:
         "s on, arterials 1, 2, 600-603 were 11.19 / 14.82 vehicles per lane before stop 39)",
     )
     p.add_argument(
+        "--vtype-spread",
+        action="store_true",
+        help="arterials: each vType a seeded distribution of lengths and minGaps "
+        "(truth.vtype_spread: no standing lattice; a new cache folder)",
+    )
+    p.add_argument(
         "--near-line",
         action="store_true",
         help="intervals: signal approaches with the near-line loops' standing queue where the "
@@ -475,8 +481,10 @@ def main(options: argparse.Namespace) -> bool:
         folder = options.out / f"arterial_{number}"
         if options.boundary_stations:
             folder = folder / "boundary_stations"
+        if options.vtype_spread:
+            folder = folder / "vtype_spread"
         folder.mkdir(parents=True, exist_ok=True)
-        table, desc = arterial(folder, number, netconvert)
+        table, desc = arterial(folder, number, netconvert, options.vtype_spread)
         table["detectors"]["auto_boundary_stations"] = options.boundary_stations
         nets.append((f"arterial {number}", folder, table, desc))
     for name in EXAMPLES if options.examples else ():
