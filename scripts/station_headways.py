@@ -223,8 +223,11 @@ def lag_summary(lags: pd.DataFrame) -> dict[str, float]:
 
 
 # --greens: the crossing after the onset whose time starts and ends the saturation headway
-# (1-based; hA43's tools/greens.py: the 4th to the 12th, past the start-up loss).
+# (1-based; hA43's tools/greens.py: the 4th to the 12th, past the start-up loss); the
+# crossings whose headway behind the one before is reported alone (the 2nd to the 6th: the
+# start-up of a standing queue, issue 17, arterials 1164 / 1407, stop 48).
 SAT_FIRST, SAT_LAST = 4, 12
+HEADWAYS = (2, 3, 4, 5, 6)
 
 
 def green_windows(signals: pd.DataFrame, arc_m: float) -> pd.DataFrame:
@@ -273,18 +276,25 @@ def green_discharge(traj: pd.DataFrame, arc_m: float, windows: pd.DataFrame) -> 
                 c = np.sort(c["time_s"].to_numpy()) - g
                 at = [c[k - 1] if len(c) >= k else np.nan for k in (1, SAT_FIRST, SAT_LAST)]
                 sat = (at[2] - at[1]) / (SAT_LAST - SAT_FIRST)
-                rows.append((run, g, int(lane), len(c), *at, sat))
+                first = [c[k - 1] - c[k - 2] if len(c) >= k else np.nan for k in HEADWAYS]
+                rows.append((run, g, int(lane), len(c), *at, sat, *first))
     cols = ["run", "green_s", "lane", "crossings", "t_1_s", "t_4_s", "t_12_s", "sat_headway_s"]
-    return pd.DataFrame(rows, columns=cols)
+    return pd.DataFrame(rows, columns=cols + [f"h_{k}_s" for k in HEADWAYS])
 
 
 def green_summary(d: pd.DataFrame) -> dict[str, float]:
     """Green-lanes, crossings per green and lane, mean t_1 / t_4 / t_12 and saturation
-    headway (the green-lanes with ``SAT_LAST`` crossings), and how many had them."""
+    headway (the green-lanes with ``SAT_LAST`` crossings), and how many had them; the mean
+    t_1 and headways h_2 .. h_6 of the green-lanes with 6 crossings (``HEADWAYS``: the
+    queue's start-up), and how many had them."""
     out = {"green_lanes": float(len(d)), "crossings": d["crossings"].mean()}
     full = d[d["crossings"] >= SAT_LAST]
     out |= {k: full[k].mean() for k in ("t_1_s", "t_4_s", "t_12_s", "sat_headway_s")}
-    return out | {"with_12": float(len(full))}
+    out |= {"with_12": float(len(full))}
+    six = d[d["crossings"] >= HEADWAYS[-1]]
+    out |= {"t_1_of6_s": six["t_1_s"].mean()}
+    out |= {f"h_{k}_s": six[f"h_{k}_s"].mean() for k in HEADWAYS}
+    return out | {"with_6": float(len(six))}
 
 
 def summary(h: pd.DataFrame, runs: int) -> dict[str, float]:

@@ -178,7 +178,12 @@ def test_crossings_per_green_and_the_saturation_headway(tmp_path: Path, capsys) 
     got = sh.green_summary(d.reset_index())
     assert got["crossings"] == pytest.approx(7.0) and got["with_12"] == 1.0
     assert got["sat_headway_s"] == pytest.approx(2.0)
+    # The start-up: t_1 and the 2nd-6th crossings' headways, of the lanes with 6 crossings.
+    assert d.loc[0, [f"h_{k}_s" for k in sh.HEADWAYS]].tolist() == pytest.approx([2.0] * 5)
+    assert np.isnan(d.loc[1, "h_2_s"])
+    assert got["with_6"] == 1.0 and got["t_1_of6_s"] == pytest.approx(1.0)
+    assert got["h_2_s"] == pytest.approx(2.0) and got["h_6_s"] == pytest.approx(2.0)
     assert sh.main(["--arc", "100", "--greens", str(s), f"x={p}"]) == 0
-    assert "sat_headway_s" in capsys.readouterr().out
+    assert "h_6_s" in capsys.readouterr().out
     assert sh.main(["--arc", "100", "--greens", str(s), "--start-lags", str(s), f"x={p}"]) == 2
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
