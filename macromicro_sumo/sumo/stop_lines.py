@@ -11,6 +11,13 @@ ground truth of drawn arterials 528, 521 and 565 (4 runs, every yellow onset, ca
 120 m of the line) none of the 3,610 cars that could brake so crossed on the yellow, and
 75-88% of the 329 that could not did.
 
+``deploy.yellow = "sumo"`` decides as SUMO's ``MSVehicle::planMoveInternal`` does
+(``sumo_stop_decel``, ``StopLineReader.decide_yellow``'s ``by_offset``): from the state at
+the start of the step in which the light switches (``Upcoming`` within 0 s; ``"ahead"``'s
+within one step decides a step before that, a step further from the line), a stop where
+``seen - stopOffset >= brakeGap(v, max(min(3, emergencyDecel), decel))``: the lane's
+stopOffset, not jmStoplineGap (that is only where it stops).
+
 ``sumo.simulation`` hands in libsumo's functions (only it imports libsumo), so this is
 plain Python over their answers.
 """
@@ -31,6 +38,22 @@ BestLanes = Callable[[str], Sequence[tuple]]
 # Signal states that are a yellow (``StopLineReader.decide_yellow``); red-yellow (u) is a red.
 YELLOW_STATES = frozenset("yY")
 GREEN_STATES = frozenset("gG")
+# SUMO's --tls.yellow.min-decel (default 3 m/s^2): a driver deciding a yellow or red brakes at
+# least this hard, at most at its emergencyDecel (MSVehicle::planMoveInternal's stopDecel).
+TLS_YELLOW_MIN_DECEL_MPS2 = 3.0
+
+
+def sumo_stop_decel(
+    decel_of: Callable[[str], float], emergency_of: Callable[[str], float]
+) -> Callable[[str], float]:
+    """A vehicle's braking [m/s^2] in SUMO's yellow decision: its decel, raised to
+    ``TLS_YELLOW_MIN_DECEL_MPS2`` where its emergencyDecel allows (libsumo's getDecel,
+    getEmergencyDecel handed in)."""
+
+    def stop_decel(vid: str) -> float:
+        return max(min(TLS_YELLOW_MIN_DECEL_MPS2, emergency_of(vid)), decel_of(vid))
+
+    return stop_decel
 
 
 def euler_brake_gap(speed_mps: float, decel_mps2: float, dt_s: float) -> float:
@@ -42,13 +65,18 @@ def euler_brake_gap(speed_mps: float, decel_mps2: float, dt_s: float) -> float:
 
 
 class Upcoming:
-    """A light's state string from the coming step on where it switches then (its program's
-    next phase), else None: ``StopLineReader.decide_yellow``'s ``upcoming`` with
-    ``deploy.yellow = "ahead"``. ``sumo``: libsumo, handed in by ``Simulation`` (the only
-    module that imports it); a program's phase states are read once."""
+    """A light's program's next phase's state string where its next switch
+    (getNextSwitch) is at most ``within_s`` from now, else None: ``StopLineReader.
+    decide_yellow``'s ``upcoming``. ``within_s`` 0 (``deploy.yellow = "sumo"``): SUMO
+    switches a light at the start of the step that begins at its switch time, before its
+    drivers move, so it says the yellow on exactly that step; one step (``"ahead"``): it
+    says it a step before too, and the reader decides there (measured, SUMO 1.28: at
+    t = 30.0 a light switching at 30.0 still shows green, at 30.5 yellow). ``sumo``: libsumo,
+    handed in by ``Simulation`` (the only module that imports it); a program's phase states
+    are read once."""
 
-    def __init__(self, sumo, dt_s: float) -> None:
-        self._tl, self._time, self._dt = sumo.trafficlight, sumo.simulation.getTime, float(dt_s)
+    def __init__(self, sumo, within_s: float) -> None:
+        self._tl, self._time, self._dt = sumo.trafficlight, sumo.simulation.getTime, float(within_s)
         self._phases: dict[tuple[str, str], list[str]] = {}
 
     def __call__(self, tls: str) -> str | None:
@@ -61,6 +89,18 @@ class Upcoming:
             logic = next((lg for lg in logics if lg.programID == key[1]), logics[0])
             phases = self._phases[key] = [p.state for p in logic.phases]
         return phases[(tl.getPhase(tls) + 1) % len(phases)]
+
+
+def yellow_rule(sumo, dt_s: float, ahead: bool, by_sumo: bool) -> tuple:
+    """``StopLineReader.decide_yellow``'s arguments from libsumo (``sumo``, handed in by
+    ``Simulation``) for steps of ``dt_s``: onset's (getSpeed, getDecel; neither flag),
+    ``ahead``'s (an ``Upcoming`` within a step) or SUMO's own (``by_sumo``: ``Upcoming``
+    within 0 s, ``sumo_stop_decel``, the line less its stopOffset)."""
+    veh, dt = sumo.vehicle, float(dt_s)
+    if by_sumo:
+        decel = sumo_stop_decel(veh.getDecel, veh.getEmergencyDecel)
+        return veh.getSpeed, decel, dt, Upcoming(sumo, 0.0), True
+    return veh.getSpeed, veh.getDecel, dt, (Upcoming(sumo, dt) if ahead else None), False
 
 
 class StopLineReader:
@@ -86,6 +126,7 @@ class StopLineReader:
         # ``decide_yellow``: a vehicle's speed and decel, the step; None: a yellow is a stop.
         self._yellow_by: tuple[Callable[[str], float], Callable[[str], float], float] | None
         self._yellow_by = None
+        self._by_offset = False  # ``decide_yellow``'s: the line less its stopOffset (SUMO's)
         self._upcoming: Callable[[str], str | None] | None = None
         self.passing: dict[str, set[tuple[str, int]]] = {}  # vehicle -> yellow links it passes
         self._decided: dict[str, set[tuple[str, int]]] = {}  # vehicle -> yellow links decided
@@ -96,15 +137,20 @@ class StopLineReader:
         decel_of: Callable[[str], float],
         dt_s: float,
         upcoming: Callable[[str], str | None] | None = None,
+        by_offset: bool = False,
     ) -> None:
         """From now on each vehicle decides each yellow at its onset (the module's rule),
         from its speed and decel (libsumo's getSpeed, getDecel) in steps of ``dt_s``.
         ``upcoming``: a light's state string from the coming step on where it switches
         then (None: it does not): a green link turning yellow is decided now, as SUMO's
         drivers meet the switch within that step (the light switches before they move),
-        where a driver that waits for it decides a step late, a step nearer the line."""
+        where a driver that waits for it decides a step late, a step nearer the line.
+        ``by_offset``: it can stop where its braking distance is at most its distance less
+        the link lane's stopOffset for its class (0: none), SUMO's canBrakeBeforeStopLine,
+        not less its jmStoplineGap."""
         self._yellow_by = (speed_of, decel_of, float(dt_s))
         self._upcoming = upcoming
+        self._by_offset = bool(by_offset)
 
     def forget(self, vehicle_ids: Iterable[str]) -> None:
         """Vehicles gone from the network: their ``carry`` answers and yellow decisions
@@ -120,12 +166,21 @@ class StopLineReader:
         decided = self._decided.setdefault(vid, set())
         if key not in decided:
             speed_of, decel_of, dt = self._yellow_by
-            gap = self._stopline_gap(vid)
-            stop_m = d - (SUMO_STOPLINE_GAP_M if gap is None else gap)
+            if self._by_offset:
+                stop_m = d - self._link_offset(vid, key)
+            else:
+                gap = self._stopline_gap(vid)
+                stop_m = d - (SUMO_STOPLINE_GAP_M if gap is None else gap)
             decided.add(key)
             if stop_m < euler_brake_gap(speed_of(vid), decel_of(vid), dt):
                 self.passing.setdefault(vid, set()).add(key)
         return key in self.passing.get(vid, ())
+
+    def _link_offset(self, vid: str, key: tuple[str, int]) -> float:
+        """The stopOffset [m] of link ``key``'s lane for ``vid``'s class (0: none)."""
+        lane = self._links.get(key) or self._link_lane(*key)
+        so = self._stop_offsets.get(lane) if self._stop_offsets else None
+        return so.value_m if so is not None and so.applies(self._vehicle_class(vid)) else 0.0
 
     def _undecide(self, vid: str, key: tuple[str, int]) -> None:
         """The link ``key`` is no longer yellow: ``vid``'s decision of it dropped (the next

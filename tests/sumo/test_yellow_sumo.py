@@ -1,0 +1,112 @@
+"""``deploy.yellow = "sumo"`` (``sumo.stop_lines.yellow_rule``): each car decides a yellow as
+SUMO's own drivers (``MSVehicle::planMoveInternal``): from its state at the start of the step
+in which the light switches, a stop where its distance less the lane's stopOffset holds its
+Euler braking distance at max(min(3, emergencyDecel), decel). On a real light cycling
+under SUMO's own cars, the reader's decision is each car's: a stop for those that stopped,
+none for those that crossed on the yellow; "ahead" (a step earlier) and "onset" (a step
+later, less 1 m) each get some cars wrong there (arterial 1161, stop 48)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import libsumo
+import pytest
+from conftest import light_road
+
+from macromicro_sumo.sumo.options import SumoOptions
+from macromicro_sumo.sumo.simulation import Simulation
+from macromicro_sumo.sumo.stop_lines import euler_brake_gap, sumo_stop_decel, yellow_rule
+
+DT = 0.5
+LINE_M = 200.0
+
+
+def _cycling_light(folder: Path, decel: float) -> SumoOptions:
+    """A (200 m, 13.9 m/s) -> a light cycling green 10 s, yellow 4 s, red 6 s -> B; 120
+    Krauss cars without dawdling, one every 1.7 s (its phase against the cycle moves, so the
+    cars meet the yellow at every distance)."""
+    net = light_road(folder, LINE_M, 200.0, 13.9)
+    cars = "".join(
+        f'<vehicle id="c{k:03d}" type="k" depart="{1.7 * k:.1f}" departSpeed="13.9">'
+        '<route edges="A B"/></vehicle>\n'
+        for k in range(120)
+    )
+    routes = folder / "r.rou.xml"
+    routes.write_text(
+        f'<routes><vType id="k" sigma="0" decel="{decel:g}" speedDev="0" minGap="2.5"/>\n'
+        f"{cars}</routes>\n"
+    )
+    light = folder / "light.add.xml"
+    light.write_text(
+        '<additional><tlLogic id="tl" type="static" programID="p" offset="0">'
+        '<phase duration="10" state="G"/><phase duration="4" state="y"/>'
+        '<phase duration="6" state="r"/></tlLogic></additional>\n'
+    )
+    return SumoOptions(net, (light,), DT, 1, route_files=(routes,), user_demand=True)
+
+
+def _decisions(folder: Path, decel: float) -> list[tuple[bool, bool, bool, bool]]:
+    """Per car moving on A at a yellow onset: (reader's stop, SUMO's stop (it did not cross
+    before the red), "ahead"'s stop, "onset"'s stop)."""
+    sim = Simulation(_cycling_light(folder, decel))
+    # The run's reader, told as ``Simulation.decide_yellow(sumo=True)`` tells it.
+    sim._lines.decide_yellow(*yellow_rule(libsumo, DT, False, True))
+    veh, tl = libsumo.vehicle, libsumo.trafficlight
+    out, pending, before, seen_y = [], {}, {}, {}
+    try:
+        while sim.time_s() < 230.0:
+            sim.step()
+            state, now = tl.getRedYellowGreenState("tl"), sim.time_s()
+            on_a = {
+                v: (veh.getLanePosition(v), veh.getSpeed(v))
+                for v in sim.vehicle_ids()
+                if veh.getLaneID(v) == "A_0"
+            }
+            ids = sorted(on_a)
+            got = dict(zip(ids, sim.stop_lines_m(ids).tolist(), strict=True))
+            if state == "G" and tl.getNextSwitch("tl") <= now + 1e-9:
+                assert sim._lines._upcoming("tl") == "y"
+                b = decel
+                for v, (pos, speed) in on_a.items():
+                    if speed > 0.1:
+                        prev = before.get(v, (pos, speed))
+                        ahead = euler_brake_gap(prev[1], b, DT) <= LINE_M - prev[0] - 1.0
+                        pending[v] = [got[v] < float("inf"), None, ahead, None]
+            elif state == "y":
+                for v in pending:
+                    if v in on_a and v not in seen_y:
+                        pos, speed = on_a[v]
+                        seen_y[v] = euler_brake_gap(speed, b, DT) <= LINE_M - pos - 1.0
+            elif state == "r" and pending:
+                for v, row in pending.items():
+                    row[1] = v in on_a  # still before the line at the red: it stopped
+                    row[3] = seen_y.get(v, False)  # crossed before the yellow's first step
+                    out.append(tuple(row))
+                pending, seen_y = {}, {}
+            before = on_a
+    finally:
+        sim.close()
+    return out
+
+
+@pytest.mark.parametrize("decel", [4.5, 2.0])
+def test_each_car_decides_the_yellow_as_sumo_did(tmp_path: Path, decel: float) -> None:
+    """At every yellow onset of a light cycling under SUMO's cars (decel 4.5; 2.0, where
+    SUMO brakes at 3 m/s^2 for the yellow), the reader says a stop for exactly the cars
+    that stopped; "ahead" and "onset" say otherwise for some."""
+    rows = _decisions(tmp_path, decel)
+    assert len(rows) > 40, len(rows)
+    assert [r[0] for r in rows] == [r[1] for r in rows], rows
+    assert any(r[1] for r in rows) and not all(r[1] for r in rows)
+    assert sum(r[2] != r[1] for r in rows) > 0  # "ahead": a step early
+    assert sum(r[3] != r[1] for r in rows) > 0  # "onset": a step late
+
+
+def test_the_stop_decel_is_raised_to_sumos_yellow_minimum() -> None:
+    """max(min(3, emergencyDecel), decel): a low decel is raised to 3 m/s^2, not beyond
+    its emergencyDecel; a decel above 3 stays."""
+    decel = {"slow": 2.0, "weak": 1.5, "car": 4.5}
+    emergency = {"slow": 9.0, "weak": 2.5, "car": 9.0}
+    stop = sumo_stop_decel(decel.__getitem__, emergency.__getitem__)
+    assert (stop("slow"), stop("weak"), stop("car")) == (3.0, 2.5, 4.5)
