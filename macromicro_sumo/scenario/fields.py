@@ -34,6 +34,7 @@ def spec(
     accepted: str = "",
     omit_default: bool = False,
     omit_value: Any = dataclasses.MISSING,
+    omit_unless: tuple[str, Any] | None = None,
 ) -> Any:
     """A dataclass field with its doc, accepted range and (for strings) choices.
 
@@ -45,13 +46,18 @@ def spec(
     field whose default moved: the value that does what the package did before the key
     existed. A scenario that does not set the key then records the new default, so a stage
     done under the old one is redone (``pipeline.schedule`` compares recorded keys), while
-    one that sets the old value keeps its digest.
+    one that sets the old value keeps its digest. ``omit_unless``: (sibling key, value):
+    ``to_dict`` leaves the field out, whatever its value, where the sibling does not hold
+    that value, for a key read only under it (nobody reads it elsewhere: it must not change
+    the digest, nor redo a stage, of a scenario where it does nothing).
     """
     meta = {"range": (lo, hi), "doc": doc, "choices": choices, "accepted": accepted}
     if omit_default:
         meta["omit_default"] = True
         if omit_value is not dataclasses.MISSING:
             meta["omit_value"] = omit_value
+    if omit_unless is not None:
+        meta["omit_unless"] = omit_unless
     if default is dataclasses.MISSING:
         return field(metadata=meta)
     if isinstance(default, list | dict):
@@ -83,12 +89,16 @@ class ScenarioFile:
 
 def _omit_defaults(obj: Any, d: dict[str, Any]) -> None:
     """Drop from ``d`` (``obj`` as a dict) the ``omit_default`` fields at their default (or
-    at their ``omit_value``, where the default moved)."""
+    at their ``omit_value``, where the default moved) and the ``omit_unless`` fields whose
+    sibling does not hold the value they are read under."""
     for f in dataclasses.fields(obj):
         value = getattr(obj, f.name)
+        unless = f.metadata.get("omit_unless")
+        at_default = value == f.metadata.get("omit_value", f.default)
+        unread = unless is not None and getattr(obj, unless[0]) != unless[1]
         if dataclasses.is_dataclass(value) and isinstance(d.get(f.name), dict):
             _omit_defaults(value, d[f.name])
-        elif f.metadata.get("omit_default") and value == f.metadata.get("omit_value", f.default):
+        elif (f.metadata.get("omit_default") and at_default) or unread:
             d.pop(f.name, None)
 
 

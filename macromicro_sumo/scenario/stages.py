@@ -74,6 +74,8 @@ class PolicyConfig:
         "default since stop 47 (before: queued)",
         omit_default=True,  # a run trained under "queued" (left out) is retrained
         omit_value="queued",
+        # read only by "memory" drivers: elsewhere out of the digest (no retraining)
+        omit_unless=("driver_speed", "memory"),
     )
     driver_ratios: str = spec(
         "kaplan_meier",

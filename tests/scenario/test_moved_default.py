@@ -52,16 +52,18 @@ def test_a_stage_recorded_before_the_default_moved_is_redone(tmp_path: Path) -> 
 
 
 # policy keys whose default moved (key, default now, the value before): the policy stage is
-# trained again where a run recorded none (stop 47: driver_entry "queued" -> "auto")
+# trained again where a run recorded none (stop 47: driver_entry "queued" -> "auto"; only
+# where policy.driver_speed = "memory" reads it: tests/scenario/test_entry_digest.py)
 POLICY_MOVED = (("driver_entry", "auto", "queued"),)
+MEMORY = {"policy.driver_speed": "memory"}
 
 
 def test_moved_policy_defaults_are_recorded_and_retrain(tmp_path: Path) -> None:
-    sc = load_scenario(PAPER_SCENARIO)
+    sc = load_scenario(PAPER_SCENARIO, MEMORY)
     policy = sc.to_dict()["policy"]
     for key, now, old in POLICY_MOVED:
         assert getattr(sc.policy, key) == now and policy[key] == now
-        said_old = load_scenario(PAPER_SCENARIO, {f"policy.{key}": old})
+        said_old = load_scenario(PAPER_SCENARIO, {**MEMORY, f"policy.{key}": old})
         assert key not in said_old.to_dict()["policy"]
         assert said_old.digest() != sc.digest()
     before = sc.to_dict()
@@ -72,4 +74,5 @@ def test_moved_policy_defaults_are_recorded_and_retrain(tmp_path: Path) -> None:
     changed = {k for k in have.keys() | want.keys() if have.get(k) != want.get(k)}
     assert changed == {f"policy.{key}" for key, _, _ in POLICY_MOVED}
     old = {f"policy.{key}": value for key, _, value in POLICY_MOVED}
-    assert stage_settings(load_scenario(PAPER_SCENARIO, old).to_dict(), stage) == have
+    said = load_scenario(PAPER_SCENARIO, {**MEMORY, **old}).to_dict()
+    assert stage_settings(said, stage) == have
