@@ -15,10 +15,14 @@ import numpy as np
 import pandas as pd
 
 from macromicro_sumo.data.macro import extended_bounds, passage_spacings
+
+# Re-exported: importable from here as before the split (truth.signals, env.section_bank).
+from macromicro_sumo.data.section_signals import SIGNAL_COLUMNS as SIGNAL_COLUMNS
+from macromicro_sumo.data.section_signals import signal_settings as signal_settings
+from macromicro_sumo.data.section_signals import signal_stops
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import read_checked_csv
 from macromicro_sumo.road.section import Section
-from macromicro_sumo.sumo.states import STOP_STATES
 
 # psi per snapshot, from the detectors' interval that holds it (columns of ``psi``):
 PSI_FIELDS = (
@@ -124,45 +128,6 @@ class SectionSnapshots:
         )
 
 
-# signals.csv: per recorded step and signalised link of each lane of a section edge with a
-# link onto the next section edge (the lane's own links: ``truth.signals``), the signal's
-# program, phase and seconds left in it, and the link's stop line (lane index, arc: its
-# edge's end) with its state letter.
-SIGNAL_COLUMNS = (
-    "run", "time_s", "signal_id", "program", "phase", "left_s", "lane_index", "arc_m", "state"
-)  # fmt: skip
-
-
-def _signal_groups(signals: pd.DataFrame | None) -> dict[tuple[int, float], pd.DataFrame]:
-    if signals is None or signals.empty:
-        return {}
-    key = [signals["run"].astype(int), signals["time_s"].round(6)]
-    return {(int(r), float(t)): g for (r, t), g in signals.groupby(key, sort=False)}
-
-
-def signal_stops(
-    signals: pd.DataFrame | None, runs: np.ndarray, times_s: np.ndarray
-) -> tuple[np.ndarray, np.ndarray] | None:
-    """(lane, arc) (S, P) of the stop lines whose signal shows red or yellow
-    (``sumo.states.STOP_STATES``: what a driver treats as a standing leader there, as
-    the envs and the deployment do) at each (run, time); NaN arc: padding. None: no signal."""
-    groups = _signal_groups(signals)
-    if not groups:
-        return None
-    stops = []
-    for r, t in zip(runs, times_s, strict=True):
-        g = groups.get((int(r), round(float(t), 6)))
-        red = g[g["state"].isin(list(STOP_STATES))] if g is not None else None
-        pts = set() if red is None else set(zip(red["lane_index"], red["arc_m"], strict=True))
-        stops.append(sorted(pts))
-    p = max(1, max(len(x) for x in stops))
-    lane, arc = np.zeros((len(stops), p), dtype=np.int64), np.full((len(stops), p), np.nan)
-    for i, pts in enumerate(stops):
-        for j, (ln, a) in enumerate(pts):
-            lane[i, j], arc[i, j] = int(ln), float(a)
-    return lane, arc
-
-
 def stop_lines_at(
     truth: SectionTruth, run: int, times_s: np.ndarray
 ) -> dict[float, tuple[np.ndarray, np.ndarray]]:
@@ -175,26 +140,6 @@ def stop_lines_at(
     lane, arc = got
     ok = np.isfinite(arc)
     return {round(float(t), 6): (lane[i, ok[i]], arc[i, ok[i]]) for i, t in enumerate(times_s)}
-
-
-def signal_settings(
-    signals: pd.DataFrame | None, runs: np.ndarray, times_s: np.ndarray
-) -> np.ndarray | None:
-    """(S,) object array: at each (run, time) the section's signals as recorded, a tuple of
-    (signal ID, program, phase index, seconds left in the phase) (``Simulation.
-    set_signal_states``); an empty tuple where nothing was recorded then. None: no signal."""
-    groups = _signal_groups(signals)
-    if not groups:
-        return None
-    out = np.empty(len(runs), dtype=object)
-    for i, (r, t) in enumerate(zip(runs, times_s, strict=True)):
-        g = groups.get((int(r), round(float(t), 6)))
-        if g is None:
-            out[i] = ()
-            continue
-        rows = g.drop_duplicates("signal_id")[["signal_id", "program", "phase", "left_s"]]
-        out[i] = tuple((str(a), str(b), int(c), float(d)) for a, b, c, d in rows.itertuples(False))
-    return out
 
 
 def at_snapshot_times(traj: pd.DataFrame, every_s: float) -> pd.DataFrame:
