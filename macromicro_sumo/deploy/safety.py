@@ -158,6 +158,7 @@ def safety_cap(
     lead_speed: np.ndarray | None = None,
     vmax: np.ndarray | float = np.inf,
     floor_safe: np.ndarray | None = None,
+    start: tuple[np.ndarray | float, float] | None = None,
 ) -> tuple[np.ndarray, int, int]:
     """Speed commands ``cmd`` [m/s] made safe: capped at ``safe_speed`` behind each
     vehicle's observed leader (``gap``: SUMO's gap to it, ``NO_LEADER_GAP_M`` or more:
@@ -171,7 +172,9 @@ def safety_cap(
     ``a_max_mps2``: the acceleration the floor may lift a vehicle by, one for all or per
     vehicle (the bound, at most the vType's accel: ``speed_commands``); ``floor_safe``:
     the safe speed the floor is capped at where it is not ``safe`` (at most it:
-    ``reaction_safe_speed``, ``deploy.safety_floor_reaction_s``). Returns (commands,
+    ``reaction_safe_speed``, ``deploy.safety_floor_reaction_s``); ``start``: (the
+    vehicles' accel, sigma) of ``deploy.start_dawdle`` (``start_dawdled``, applied to the
+    capped and floored command and, for the counts, to ``cmd``). Returns (commands,
     how many the layer lowered, how many it raised), each by more than
     ``SAFETY_TOLERANCE_MPS``."""
     if lead_speed is None:
@@ -185,8 +188,40 @@ def safety_cap(
     floor = np.minimum(floor, vmax)
     capped = np.minimum(cmd, safe)
     raised = int(count_nonzero(floor > capped + _TOLERANCE))
-    out = behind_commands(np.maximum(capped, floor), gap, lead, decel, lead_decel, dt_s, lead_speed)
+    out = np.maximum(capped, floor)
+    if start is not None:  # before behind_commands: a driven follower sees the dawdled one
+        least = obs[:, 0] - decel * dt_s  # never braking beyond the decel, as SUMO's
+        out = start_dawdled(out, start[0], start[1], dt_s, least)
+        cmd = start_dawdled(cmd, start[0], start[1], dt_s, least)
+    out = behind_commands(out, gap, lead, decel, lead_decel, dt_s, lead_speed)
     return out, int(count_nonzero(out < cmd - _TOLERANCE)), raised
+
+
+def start_dawdled(
+    cmd: np.ndarray,
+    accel: np.ndarray | float,
+    sigma: float,
+    dt_s: float,
+    least: np.ndarray | float = 0.0,
+) -> np.ndarray:
+    """``deploy.start_dawdle`` = ``sigma``: each speed command [m/s] below the vehicle's
+    ``accel`` [m/s^2, as a number] lowered by SUMO's Krauss dawdle of a starting driver,
+    at its mean: v' (1 - sigma dt / 2), but not below ``least`` (v - b dt: the speed its
+    decel brakes to in the step) unless the command was. ``MSCFModel_Krauss::dawdle2``
+    takes sigma v' U dt off a next speed v' below a (U uniform in [0, 1)), after the safe
+    speed's cap, and ``finalizeSpeed`` keeps it at least v - b dt: the step a standing car
+    starts in, and every creeping one, not only the acceleration (without that bound a car
+    braking at its decel to below a braked beyond it: 1164, 1,084 emergency brakings).
+    ``dawdled_accel`` (``deploy.command_dawdle``) takes its mean off the acceleration
+    bound from the current speed v, nothing at v = 0, and never off a command the safe
+    speed capped: a standing queue's car went at room / dt the step after its leader
+    moved (1164: start lags 0.52-0.58 s a car, the truth's 0.84-0.95). Lowering a command
+    is safe; the driven followers are capped behind it (``behind_commands``)."""
+    low = cmd < accel
+    if not count_nonzero(low):
+        return cmd
+    dawdled = np.maximum(cmd * (1.0 - 0.5 * sigma * dt_s), np.minimum(cmd, least))
+    return np.where(low, dawdled, cmd)
 
 
 def behind_commands(
@@ -351,6 +386,8 @@ def speed_commands(
     # bound it is the bound: count_nonzero here costs a tenth of np.any there, a step).
     if not isinstance(accel, np.ndarray) or count_nonzero(np.less(accel, hi)):
         a_max = accel_limit(a_max, accel)
+    start_sigma = sc.deploy.start_dawdle
+    start = (a_max, start_sigma) if start_sigma > 0.0 else None  # undawdled: SUMO's a
     sigma = sc.deploy.command_dawdle
     if sigma == "auto" or (sigma == "signals" and lights):
         a_max = auto_dawdled_accel(a_max, obs[:, 0], getattr(act, "prior_accel_mps2", None))
@@ -376,5 +413,13 @@ def speed_commands(
         v_l = obs[:, 0] - obs[:, 3] if lead_speed is None else lead_speed
         floor_safe = reaction_safe_speed(gap, v_l, decel, lead_decel, dt, tau)
         floor_safe[obs[:, 0] >= _STANDING_BELOW] = _INF
+    if (start_tau := sc.deploy.start_reaction_s) > 0.0:
+        # A standing vehicle's command and floor at most SUMO's Krauss safe speed with the
+        # drivers' tau, as its own drivers start (deploy.start_reaction_s).
+        v_l = obs[:, 0] - obs[:, 3] if lead_speed is None else lead_speed
+        start_safe = reaction_safe_speed(gap, v_l, decel, lead_decel, dt, start_tau)
+        start_safe[obs[:, 0] >= _STANDING_BELOW] = _INF
+        cmd = np.minimum(cmd, start_safe)
+        floor_safe = start_safe if floor_safe is None else np.minimum(floor_safe, start_safe)
     args = (cmd, obs, gap, decel, lead_decel, lead, dt, a_max, floor, safe, lead_speed, vmax)
-    return stats.count_safety(*safety_cap(*args, floor_safe))
+    return stats.count_safety(*safety_cap(*args, floor_safe, start))
