@@ -80,12 +80,16 @@ BAND_NAMES = ("stop bar", "bar to 25 m", "25-80 m", "farther or none")
 
 
 def scenario_file(gt: Path) -> Path:
-    """The scenario of the ground truth ``gt``: ``simulate``'s beside it, else the one the
-    manifest of the run holding it names (``macromicro run``'s ``ground_truth``)."""
+    """The scenario of the ground truth ``gt``: the bench's ``scenario.toml`` beside it, else
+    the one the manifest of the run holding it names (``macromicro run``'s ``ground_truth``),
+    else the one its own manifest names (``simulate SCENARIO --out GT`` anywhere)."""
     toml = gt.parent / "scenario.toml"
     if toml.is_file():
         return toml
-    return Path(json.loads((gt.parent / "manifest.json").read_text())["scenario_file"])
+    run = gt.parent / "manifest.json"
+    return Path(
+        json.loads((run if run.is_file() else gt / "manifest.json").read_text())["scenario_file"]
+    )
 
 
 def truth_name(gt: Path) -> str:

@@ -96,7 +96,8 @@ def test_the_approaches_and_parts_of_a_signalised_record(tmp_path: Path) -> None
 
 
 def test_a_runs_ground_truth_names_its_scenario(tmp_path: Path) -> None:
-    """A run's ``ground_truth`` has no scenario beside it: the run's manifest names it."""
+    """A run's ``ground_truth`` has no scenario beside it: the run's manifest names it; a
+    ground truth simulated on its own, its own manifest."""
     script = _load("bench_signal_approaches")
     (tmp_path / "gt").mkdir()
     (tmp_path / "gt" / "scenario.toml").write_text("")
@@ -105,6 +106,11 @@ def test_a_runs_ground_truth_names_its_scenario(tmp_path: Path) -> None:
     (run / "ground_truth").mkdir(parents=True)
     (run / "manifest.json").write_text('{"scenario_file": "/elsewhere/k528.toml"}')
     assert script.scenario_file(run / "ground_truth") == Path("/elsewhere/k528.toml")
+    # ``simulate SCENARIO --out GT`` anywhere: the ground truth's own manifest names it.
+    alone = tmp_path / "s1161" / "gt"
+    alone.mkdir(parents=True)
+    (alone / "manifest.json").write_text('{"scenario_file": "/elsewhere/k1161.toml"}')
+    assert script.scenario_file(alone) == Path("/elsewhere/k1161.toml")
     # Tables name the net: the run's folder, else the bench's arterial above its variant.
     assert script.truth_name(run / "ground_truth") == "run"
     bench = tmp_path / "arterial_801" / "boundary_stations"
