@@ -16,7 +16,8 @@ ground truth of drawn arterials 528, 521 and 565 (4 runs, every yellow onset, ca
 the start of the step in which the light switches (``Upcoming`` within 0 s; ``"ahead"``'s
 within one step decides a step before that, a step further from the line), a stop where
 ``seen - stopOffset >= brakeGap(v, max(min(3, emergencyDecel), decel))``: the lane's
-stopOffset, not jmStoplineGap (that is only where it stops).
+stopOffset, not jmStoplineGap (that is only where it stops, and nearer the line where its
+braking distance leaves less: ``StopLineReader._brake_room``).
 
 ``sumo.simulation`` hands in libsumo's functions (only it imports libsumo), so this is
 plain Python over their answers.
@@ -41,6 +42,7 @@ GREEN_STATES = frozenset("gG")
 # SUMO's --tls.yellow.min-decel (default 3 m/s^2): a driver deciding a yellow or red brakes at
 # least this hard, at most at its emergencyDecel (MSVehicle::planMoveInternal's stopDecel).
 TLS_YELLOW_MIN_DECEL_MPS2 = 3.0
+POSITION_EPS_M = 0.1  # SUMO's POSITION_EPS: the nearest a stop before a line falls to it
 
 
 def sumo_stop_decel(
@@ -176,6 +178,19 @@ class StopLineReader:
                 self.passing.setdefault(vid, set()).add(key)
         return key in self.passing.get(vid, ())
 
+    def _brake_room(self, vid: str, d: float, offset: float) -> float:
+        """How far [m] a red or yellow line ``d`` m ahead of ``vid`` moves on so that the
+        driver's stop before it (``stop_lines_m``, less max(jmStoplineGap, stopOffset)) lands
+        where SUMO's driver stops (``decide_yellow``'s ``by_offset``; planMoveInternal's
+        laneStopOffset): at most that far before the line, no further than its braking
+        distance at its stop decel allows (at least POSITION_EPS before it), so a stop decided
+        within that distance brakes at its decel; 0 where it cannot stop before the line."""
+        speed_of, decel_of, dt = self._yellow_by
+        gap = self._stopline_gap(vid)
+        major = max(SUMO_STOPLINE_GAP_M if gap is None else gap, offset)
+        room = d - euler_brake_gap(speed_of(vid), decel_of(vid), dt)
+        return major - max(room, POSITION_EPS_M) if 0.0 <= room < major else 0.0
+
     def _link_offset(self, vid: str, key: tuple[str, int]) -> float:
         """The stopOffset [m] of link ``key``'s lane for ``vid``'s class (0: none)."""
         lane = self._links.get(key) or self._link_lane(*key)
@@ -218,6 +233,8 @@ class StopLineReader:
                 so = self._stop_offsets.get(lane) if self._stop_offsets else None
                 if so is not None and so.applies(self._vehicle_class(vid)):
                     offset = so.value_m
+                if self._by_offset and own:
+                    d += self._brake_room(vid, d, offset)
                 return d, lane, own, offset
         return (np.inf if ahead else np.nan), "", True, 0.0
 

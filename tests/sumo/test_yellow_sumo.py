@@ -46,14 +46,18 @@ def _cycling_light(folder: Path, decel: float) -> SumoOptions:
     return SumoOptions(net, (light,), DT, 1, route_files=(routes,), user_demand=True)
 
 
-def _decisions(folder: Path, decel: float) -> list[tuple[bool, bool, bool, bool]]:
+def _decisions(
+    folder: Path, decel: float
+) -> tuple[list[tuple[bool, bool, bool, bool]], list[tuple[float, float]]]:
     """Per car moving on A at a yellow onset: (reader's stop, SUMO's stop (it did not cross
-    before the red), "ahead"'s stop, "onset"'s stop)."""
+    before the red), "ahead"'s stop, "onset"'s stop); and per car that stopped at the line
+    (the first of its queue): (where the reader has it stop then, where it stood) [m before
+    the line]."""
     sim = Simulation(_cycling_light(folder, decel))
     # The run's reader, told as ``Simulation.decide_yellow(sumo=True)`` tells it.
     sim._lines.decide_yellow(*yellow_rule(libsumo, DT, False, True))
     veh, tl = libsumo.vehicle, libsumo.trafficlight
-    out, pending, before, seen_y = [], {}, {}, {}
+    out, pending, before, seen_y, stop_at, stood = [], {}, {}, {}, {}, []
     try:
         while sim.time_s() < 230.0:
             sim.step()
@@ -73,6 +77,8 @@ def _decisions(folder: Path, decel: float) -> list[tuple[bool, bool, bool, bool]
                         prev = before.get(v, (pos, speed))
                         ahead = euler_brake_gap(prev[1], b, DT) <= LINE_M - prev[0] - 1.0
                         pending[v] = [got[v] < float("inf"), None, ahead, None]
+                        # The driver stops its jmStoplineGap (1 m) before what it is told.
+                        stop_at[v] = LINE_M - pos - (got[v] - 1.0)
             elif state == "y":
                 for v in pending:
                     if v in on_a and v not in seen_y:
@@ -84,10 +90,13 @@ def _decisions(folder: Path, decel: float) -> list[tuple[bool, bool, bool, bool]
                     row[3] = seen_y.get(v, False)  # crossed before the yellow's first step
                     out.append(tuple(row))
                 pending, seen_y = {}, {}
+            for v, (pos, speed) in on_a.items():
+                if v in stop_at and speed < 0.01 and LINE_M - pos < 1.5:
+                    stood.append((stop_at.pop(v), LINE_M - pos))
             before = on_a
     finally:
         sim.close()
-    return out
+    return out, stood
 
 
 @pytest.mark.parametrize("decel", [4.5, 2.0])
@@ -95,12 +104,22 @@ def test_each_car_decides_the_yellow_as_sumo_did(tmp_path: Path, decel: float) -
     """At every yellow onset of a light cycling under SUMO's cars (decel 4.5; 2.0, where
     SUMO brakes at 3 m/s^2 for the yellow), the reader says a stop for exactly the cars
     that stopped; "ahead" and "onset" say otherwise for some."""
-    rows = _decisions(tmp_path, decel)
+    rows = _decisions(tmp_path, decel)[0]
     assert len(rows) > 40, len(rows)
     assert [r[0] for r in rows] == [r[1] for r in rows], rows
     assert any(r[1] for r in rows) and not all(r[1] for r in rows)
     assert sum(r[2] != r[1] for r in rows) > 0  # "ahead": a step early
     assert sum(r[3] != r[1] for r in rows) > 0  # "onset": a step late
+
+
+def test_a_car_that_decides_late_stops_nearer_the_line_as_sumos(tmp_path: Path) -> None:
+    """A car whose braking distance leaves less than its jmStoplineGap (1 m) before the
+    line stops nearer it (SUMO's laneStopOffset): the reader's stop, told at the switch,
+    is where each of SUMO's cars stood, within 1 cm, some of them under 0.9 m."""
+    stood = _decisions(tmp_path, 4.5)[1]
+    assert len(stood) >= 5, stood
+    assert all(abs(told - at) < 0.01 for told, at in stood), stood
+    assert any(at < 0.9 for _, at in stood), stood
 
 
 def test_the_stop_decel_is_raised_to_sumos_yellow_minimum() -> None:
