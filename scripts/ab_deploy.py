@@ -51,8 +51,14 @@ MODULES = (
     "deploy.observe",
     "deploy.merge_yield",
     "deploy.policy_batch",
+    "deploy.section_driver",
+    "deploy.lane_asks",
+    "deploy.driver_observe",
     "deploy.drivers",
 )
+# The driver's parts split from deploy/drivers.py at stop 48: a checkout before that lacks
+# them, and its drivers.py imports none of them (skipped there, not an error).
+SPLIT = frozenset({"deploy.section_driver", "deploy.lane_asks", "deploy.driver_observe"})
 PARTS = ("total", "SUMO step", "driver", "act")
 
 
@@ -186,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     bench = bench_module()
-    new = variant(args.new_root.resolve(), args.modules)
+    new = variant(args.new_root.resolve(), args.modules, SPLIT)
     new_drivers = new.get("macromicro_sumo.deploy.drivers", base_drivers)
     new_batch = new.get("macromicro_sumo.deploy.policy_batch", base_batch)
     patch_simulation()

@@ -53,7 +53,15 @@ def test_the_default_modules_hold_the_drivers_mixin_before_the_driver() -> None:
     """The default variant is the driver with its slots, observation and merge mixin, each
     loaded before ``deploy.drivers`` imports it (else the base's would run in both arms)."""
     order = list(script.MODULES)
-    for m in ("deploy.slots", "deploy.observe", "deploy.merge_yield", "deploy.policy_batch"):
+    for m in (
+        "deploy.slots",
+        "deploy.observe",
+        "deploy.merge_yield",
+        "deploy.policy_batch",
+        "deploy.section_driver",
+        "deploy.lane_asks",
+        "deploy.driver_observe",
+    ):
         assert m in order and order.index(m) < order.index("deploy.drivers"), order
     # road.physics (count_nonzero) before every deploy module that imports it
     assert order[0] == "road.physics", order
