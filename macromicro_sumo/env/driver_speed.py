@@ -83,6 +83,19 @@ QUEUED_ENTRY_SHARE = 0.65
 ENTRY_AT_OWN_SHARE = 1.0 - REACHED_SHARE
 # Fewer observed held first sights than this tell nothing: "queued".
 MIN_HELD_SIGHTS = 5
+# ``policy.driver_entry = "insertion"`` (``at_insertion``): a net whose demand inserts at
+# departSpeed "max" puts a vehicle in at SUMO's safe speed behind a slower leader, Krauss's
+# vsafe(gap - minGap, leader speed) at the typical car's decel and tau (SUMO's defaults for
+# passenger cars), even where the gap is beyond ``held_at_sight``'s free gap: drawn 522's
+# truth (all 4 runs, 351 first sights at the entry moving at 0.65 of the limit or more): 307
+# held by the free-gap rule at a median -0.16 m/s from vsafe, and 16 of the 44 unheld ones
+# below their top (under 0.95 of it), at -1.7 to +0.7 m/s from vsafe (IDM cars and trucks
+# brake less hard: below it). Such a sight is a lower bound on the desired speed.
+INSERTION_DECEL_MPS2 = 4.5
+INSERTION_TAU_S = 1.0
+INSERTION_MIN_GAP_M = 2.5
+INSERTION_BELOW_MPS = 1.5  # a sight this far below vsafe or less ...
+INSERTION_ABOVE_MPS = 0.5  # ... to this far above it is at the insertion speed
 
 
 def ratio_quantiles(ratios: np.ndarray) -> np.ndarray:
@@ -140,6 +153,24 @@ def held_at_sight(obs: np.ndarray, gap_layout: bool) -> np.ndarray:
     return ~(free | pulling_away)
 
 
+def at_insertion(obs: np.ndarray, gap_layout: bool) -> np.ndarray:
+    """(N,) bool: first sights behind a slower leader (a vehicle within ``NO_LEADER_GAP_M``,
+    delta v > 0) at the speed SUMO inserts a vehicle at with departSpeed "max": Krauss's
+    safe speed vsafe = -b tau + sqrt((b tau)^2 + vL^2 + 2 b (gap - minGap)) at
+    ``INSERTION_DECEL_MPS2``, ``INSERTION_TAU_S``, ``INSERTION_MIN_GAP_M``, within
+    ``INSERTION_BELOW_MPS`` below to ``INSERTION_ABOVE_MPS`` above it. The gap as
+    ``held_at_sight`` reads it (the spacing less ``CAR_LENGTH_M`` where not
+    ``gap_layout``)."""
+    v, lead, dv = obs[:, 0], obs[:, LEADER_COLUMN], obs[:, 3]
+    gap = lead if gap_layout else lead - CAR_LENGTH_M
+    v_lead = v - dv
+    bt = INSERTION_DECEL_MPS2 * INSERTION_TAU_S
+    room = np.maximum(gap - INSERTION_MIN_GAP_M, 0.0)
+    vsafe = -bt + np.sqrt(bt**2 + np.maximum(v_lead, 0.0) ** 2 + 2 * INSERTION_DECEL_MPS2 * room)
+    near = (lead < NO_LEADER_GAP_M) & (dv > 0)
+    return near & (v >= vsafe - INSERTION_BELOW_MPS) & (v <= vsafe + INSERTION_ABOVE_MPS)
+
+
 def entry_factors(
     quantiles: np.ndarray,
     speed_mps: np.ndarray,
@@ -175,9 +206,15 @@ def sight_factors(
 ) -> np.ndarray:
     """``"memory"``'s ``entry_factors`` of first-sight observations ``obs`` (V, D), limits
     unscaled, at ``levels``: the queued ones drawn, and with ``entry`` "held"
-    (``policy.driver_entry``) the ``held_at_sight`` ones. The one rule of Stage II's banks
-    (``with_driver_factors``) and the deployment (``DriverSpeeds``)."""
-    held = held_at_sight(obs, gap_layout) if entry == "held" else None
+    (``policy.driver_entry``) the ``held_at_sight`` ones; "insertion" draws those and the
+    ones ``at_insertion`` as well (a lower bound on the desired speed; drawn above their own
+    ratio instead lost on drawn 522, 2.377 -> 2.806 m/s, stop 48). The one rule of Stage
+    II's banks (``with_driver_factors``) and the deployment (``DriverSpeeds``)."""
+    held = None
+    if entry in ("held", "insertion"):
+        held = held_at_sight(obs, gap_layout)
+    if entry == "insertion":
+        held |= at_insertion(obs, gap_layout)
     return entry_factors(quantiles, obs[:, 0], obs[:, LIMIT_COLUMN], levels, held)
 
 

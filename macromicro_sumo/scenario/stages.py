@@ -64,14 +64,16 @@ class PolicyConfig:
     )
     driver_entry: str = spec(
         "auto",
-        choices=("queued", "held", "auto"),
+        choices=("queued", "held", "auto", "insertion"),
         doc="driver_speed memory: queued, a driver first seen below 0.65 of the observed "
         "median takes drawn's factor; held, also one first seen held by what is ahead "
         "(env.driver_speed.held_at_sight), in Stage II's banks and the deployment (drawn 522 "
         "with merge_reach occupation 3.42 -> 2.73 m/s; netgen_corridor 0.46 -> 0.68); auto, "
         "held where the observed drivers' held first sights are below their top speed "
         "(env.driver_speed.entry_choice; docs/deploy-log.md, Held entries and stop 44); the "
-        "default since stop 47 (before: queued)",
+        "default since stop 47 (before: queued); insertion (opt-in), held and also one first "
+        "seen at SUMO's departSpeed max insertion speed behind a slower leader "
+        "(env.driver_speed.at_insertion)",
         omit_default=True,  # a run trained under "queued" (left out) is retrained
         omit_value="queued",
         # read only by "memory" drivers: elsewhere out of the digest (no retraining)

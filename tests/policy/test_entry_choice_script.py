@@ -64,3 +64,22 @@ def test_free_sights_are_those_no_rule_draws_and_their_speed_against_their_top()
     empty = ObservedDrivers({}, np.empty((0, 4)), np.empty(0), [])
     assert script.free_sights(empty, False, "kaplan_meier")[0] == 0
     assert 0.1 < QUEUED_ENTRY_SHARE < 0.8  # the sights above are on the sides they are meant to be
+
+
+def test_insertion_sights_split_the_free_ones_at_the_insertion_speed() -> None:
+    """A free sight 60 m behind a leader at 18 m/s, at Krauss's safe speed there (what SUMO
+    inserts at with departSpeed "max"), is counted apart from one with nobody ahead."""
+    n = 6
+    gap, v_lead = 60.0, 18.0
+    vsafe = -4.5 + np.sqrt(4.5**2 + v_lead**2 + 2 * 4.5 * (gap - 2.5))
+    ins = _sights(vsafe, gap + 5.0, n)  # spacing layout: the gap plus a car's length
+    ins[:, 3] = vsafe - v_lead
+    free = _sights(0.8 * LIMIT_MPS, NO_LEADER_GAP_M, n)
+    assert not held_at_sight(ins, False).any()
+    tops = [vsafe / LIMIT_MPS / 0.8] * n + [0.8] * n  # the inserted ones at 0.8 of their tops
+    got = script.insertion_sights(
+        _drivers(np.concatenate([ins, free]), tops), False, "kaplan_meier"
+    )
+    assert got == (n, pytest.approx(0.8), pytest.approx(1.0))
+    none = script.insertion_sights(_drivers(free, [0.8] * n), False, "kaplan_meier")
+    assert none[0] == 0 and np.isnan(none[1]) and none[2] == pytest.approx(1.0)
