@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from macromicro_sumo.deploy.keep_clear import keep_clear_lines
+from macromicro_sumo.deploy.keep_clear import KeepClear
 from macromicro_sumo.deploy.observe import STANDING, LaneTable, Table, observe_rows, states_of
 from macromicro_sumo.deploy.slots import VehicleSlots
 from macromicro_sumo.road.leaders import stop_distance_m
@@ -44,6 +44,7 @@ class DriverObserve:
     signal_lanes: frozenset[str]
     turns: Any  # ``deploy.turns.Turns``, or None
     turns_mode: str
+    keep_clear: KeepClear | None
     steps: int
     red_gap_m: np.ndarray | None
 
@@ -132,7 +133,9 @@ class DriverObserve:
         leaders = sim.leaders(vids, NO_LEADER_GAP_M)
         if self.has_lights and not self.signal_lanes.isdisjoint(lanes):
             red = self.stop_lines_m(sim, vids, lanes, at)
-            red = keep_clear_lines(self, sim, red, lanes, rows, st, leaders, vids)
+            if self.keep_clear is not None:  # deploy.keep_clear: a line where it cannot clear
+                net, shapes_of = sim.options.net_file, self.shape_of
+                red = self.keep_clear.lines(net, red, lanes, rows, st, leaders, vids, shapes_of)
             # No red or yellow ahead of anyone (inf): the stops are the lane ends as they are.
             if count_nonzero(red < _INF):
                 gaps = np.array([self.vtypes[self.types[v]].stopline_gap_m for v in vids])

@@ -32,6 +32,7 @@ import numpy as np
 
 from macromicro_sumo.deploy.brake_plan import BrakeHandover, planned_decel
 from macromicro_sumo.deploy.driver_observe import DriverObserve, section_observations
+from macromicro_sumo.deploy.keep_clear import KeepClear
 from macromicro_sumo.deploy.keep_right import keep_right_caps
 from macromicro_sumo.deploy.lane_asks import LaneAsks
 from macromicro_sumo.deploy.merge_yield import MergeYield, drop_chain_lanes
@@ -101,6 +102,8 @@ class SectionSpeedDriver(DriverObserve, LaneAsks, MergeYield, SectionDriver):
         self.turns_mode = sc.deploy.turns
         self.turns: Turns | None = None
         self.gap_lanes: frozenset[str] | None = None  # deploy.turn_gap's lanes to ask on
+        kc = sc.deploy.keep_clear  # its holds and the vehicles' shapes, for this driver
+        self.keep_clear = None if kc == "off" else KeepClear(kc, section, dt)
 
     def take(self, sim: Simulation, vids: list[str]) -> None:
         if self.turns_mode != "off" and self.turns is None:

@@ -15,20 +15,23 @@ against 271 samples below 3 m/s), each green let 1.3 more cars over the first st
 (14.50 against 13.22) and 6% more cars entered the network (812 against 765 veh/h at the
 entry loop) (docs/deploy.md, stop 47, hA47). hA47's rule looked only at the vehicle ahead
 past the junction (``"signals"`` in its patch; lost on 1161); this one counts the lane, as
-SUMO does. Pure but for the driver's cached shapes: the driver hands the states in.
+SUMO does. ``KeepClear``: the state one driver owns (its holds, each vehicle's length and
+length + minGap as first met); the driver hands the states in.
 """
 
 from __future__ import annotations
 
 from collections import defaultdict
 from collections.abc import Sequence
-from typing import Any
+from itertools import compress, filterfalse
 
 import numpy as np
 
 from macromicro_sumo.road.leaders import STOPLINE_GAP_M
 from macromicro_sumo.road.physics import brake_gap
+from macromicro_sumo.road.section import Section
 from macromicro_sumo.sumo.net_xml import net_links, once_per_file
+from macromicro_sumo.sumo.states import VehicleStates
 
 # SUMO's SUMO_const_haltingSpeed [m/s]: below it a vehicle counts as standing in
 # getSpaceTillLastStanding. "lane1" takes 1 m/s instead: the policy's queues creep (hA47:
@@ -36,6 +39,7 @@ from macromicro_sumo.sumo.net_xml import net_links, once_per_file
 WAITING_MPS = {"lane": 0.1, "lane1": 1.0}
 # Length and minGap [m] of a vehicle whose shape the driver has not seen (SUMO's passenger).
 DEFAULT_SHAPE = (5.0, 2.5)
+DEFAULT_BRUTTO_M = DEFAULT_SHAPE[0] + DEFAULT_SHAPE[1]
 
 
 def lane_rooms(
@@ -71,84 +75,115 @@ def signal_ends(net_file: str) -> frozenset[str]:
     return frozenset(ln for c in net.connections if c.tl for ln in net.lanes.get(c.src, ()))
 
 
-def keep_clear_lines(
-    driver: Any,
-    sim: Any,
-    red: np.ndarray,
-    lanes: Sequence[str],
-    rows: np.ndarray,
-    st: Any,
-    leaders: Sequence[tuple[str, float]],
-    vids: Sequence[str],
-) -> np.ndarray:
-    """``red`` [m] (each driven vehicle's distance to its next red or yellow line, inf: none,
-    NaN: no signal ahead) with a line at its lane's end where ``driver.sc.deploy.keep_clear``
-    is on and it must not enter the junction there (``sim``: the simulation, its net
-    file). ``driver``: the section driver
-    (``section``, ``shape_of``, ``sc``); ``st``: every vehicle's state
-    (``sumo.states.VehicleStates``), ``rows``: the driven ones' rows; ``leaders``: SUMO's
-    (ID, gap) of each. The lane past the junction is the first lane other than the driver's
-    along the chain of leaders, past any in the junction (":..."). Returns a new array where
-    any line is added, else ``red`` itself."""
-    mode = driver.sc.deploy.keep_clear
-    if mode == "off":
-        return red
-    sec, shape_of = driver.section, driver.shape_of
-    n = len(st.ids)
-    brutto, length = np.empty(n), np.empty(n)
-    for r, v in enumerate(st.ids):
-        got = shape_of.get(v)
-        length[r], gap = (got[0], got[1]) if got is not None else DEFAULT_SHAPE
-        brutto[r] = length[r] + gap
-    rooms = lane_rooms(st.lanes, st.pos_m, st.speed_mps, brutto, length, WAITING_MPS[mode])
-    held: set[str] = driver.__dict__.setdefault("keep_clear_held", set())
-    if not rooms:
-        held.clear()
-        return red
-    index, ends = st.index, signal_ends(sim.options.net_file)
-    ahead_of = {v: lid for v, (lid, _) in zip(vids, leaders, strict=True) if lid}
-    dt = driver.sc.simulation.step_length_s
-    # Held last step: held on whatever its speed (the brake check is for a new hold only; a
-    # car braking for the line would fail it near the line and drive in).
-    now: set[str] = set()
-    out = red
-    for i, v in enumerate(vids):
-        lane = lanes[i]
-        if red[i] != red[i] or lane not in ends or lane not in sec.lanes:
-            continue  # no signal at its lane's end, or off the section
-        got = sec.lanes[lane]
-        r = int(rows[i])
-        end = float(sec.lengths_m[got[0]]) / got[3] - float(st.pos_m[r])
-        if red[i] <= end or end <= 0.0:
-            continue  # a red or yellow line nearer already (SUMO stops there anyway)
-        # Vehicles ahead of it on its lane and in the junction must fit too (SUMO's
-        # lengthsInFront and the internal lane's vehicles).
-        front, lid, past, hops = 0.0, ahead_of.get(v, ""), "", 0
-        while lid and hops < 64:
-            lr = index.get(lid)
-            if lr is None:
-                break
-            ll = st.lanes[lr]
-            if ll != lane and not ll.startswith(":"):
-                past = ll
-                break
-            front += float(brutto[lr])
-            lid, hops = ahead_of.get(lid, ""), hops + 1
-        room = rooms.get(past) if past else None
-        if room is None:
-            continue  # nobody waiting past the junction: room further on
-        if room - front >= brutto[r]:
-            continue
-        speed, decel = float(st.speed_mps[r]), shape_of[v][2]
-        # Too near to stop jmStoplineGap before the line at its decel: it drives on. SUMO
-        # keeps the request only nearer than brakeGap - tau v, but its drivers then brake
-        # harder than decel; ours would count emergency brakings (1164: 1 -> 6-9).
-        if v not in held and float(brake_gap(np.float64(speed), decel, dt)) > end - STOPLINE_GAP_M:
-            continue
-        now.add(v)
-        if out is red:
-            out = np.array(red, dtype=float)
-        out[i] = end
-    held.clear()
-    held.update(now)
-    return out
+class KeepClear:
+    """``deploy.keep_clear`` for one driver (``mode`` "lane" or "lane1", on ``section``,
+    steps of ``dt`` [s]): the cars it holds at their line, kept from step to step (held on
+    whatever their speed: the brake check is for a new hold only; a car braking for the line
+    would fail it near the line and drive in), and each vehicle's length and length + minGap
+    [m], kept from the first step it is met with a known shape (before: rebuilt for every
+    vehicle on the road every step, a Python loop)."""
+
+    def __init__(self, mode: str, section: Section, dt: float) -> None:
+        if mode not in WAITING_MPS:
+            raise ValueError(f"deploy.keep_clear: {mode!r} is not one of {sorted(WAITING_MPS)}")
+        self.mode, self.section, self.dt = mode, section, dt
+        self.waiting_mps = WAITING_MPS[mode]
+        self.held: set[str] = set()
+        self.length_m: dict[str, float] = {}
+        self.brutto_m: dict[str, float] = {}  # length + minGap
+
+    def meet(self, ids: Sequence[str], shape_of: dict[str, tuple[float, float, float]]) -> None:
+        """Keeps the length and length + minGap of each of ``ids`` not met yet whose shape
+        (length, minGap, decel) ``shape_of`` holds; one it lacks is asked again next time."""
+        for v in filterfalse(self.length_m.__contains__, ids):
+            got = shape_of.get(v)
+            if got is not None:
+                self.length_m[v] = got[0]
+                self.brutto_m[v] = got[0] + got[1]
+
+    def rooms(self, st: VehicleStates, past: set[str]) -> dict[str, float]:
+        """``lane_rooms`` of lanes ``past`` alone (the lanes past a junction some driven car
+        asks about): the vehicles on other lanes play no part in these lanes' rooms."""
+        rows = list(compress(range(len(st.ids)), map(past.__contains__, st.lanes)))
+        if not rows:
+            return {}
+        ids = [st.ids[r] for r in rows]
+        length = np.array([self.length_m.get(v, DEFAULT_SHAPE[0]) for v in ids])
+        brutto = np.array([self.brutto_m.get(v, DEFAULT_BRUTTO_M) for v in ids])
+        lanes = [st.lanes[r] for r in rows]
+        idx = np.array(rows, np.int64)
+        return lane_rooms(lanes, st.pos_m[idx], st.speed_mps[idx], brutto, length, self.waiting_mps)
+
+    def lines(
+        self,
+        net_file: str,
+        red: np.ndarray,
+        lanes: Sequence[str],
+        rows: np.ndarray,
+        st: VehicleStates,
+        leaders: Sequence[tuple[str, float]],
+        vids: Sequence[str],
+        shape_of: dict[str, tuple[float, float, float]],
+    ) -> np.ndarray:
+        """``red`` [m] (each driven vehicle's distance to its next red or yellow line, inf:
+        none, NaN: no signal ahead) with a line at its lane's end where it must not enter
+        the junction there (``net_file``: the simulation's net). ``st``: every vehicle's
+        state, ``rows``: the driven ones' rows, ``lanes`` their lanes; ``leaders``: SUMO's
+        (ID, gap) of each; ``shape_of``: vehicle -> (length, minGap, decel) as the driver
+        met it. The lane past the junction is the first lane other than the driver's along
+        the chain of leaders, past any in the junction (":..."). Returns a new array where
+        any line is added, else ``red`` itself."""
+        self.meet(st.ids, shape_of)
+        sec, ends, index = self.section, signal_ends(net_file), st.index
+        ahead_of = {v: lid for v, (lid, _) in zip(vids, leaders, strict=True) if lid}
+        brutto = self.brutto_m
+        # Per driven car that may have to wait: (its index, the lane past, the length and
+        # minGap of those ahead of it up to that lane, the distance to its lane's end).
+        asks: list[tuple[int, str, float, float]] = []
+        for i, v in enumerate(vids):
+            lane = lanes[i]
+            if red[i] != red[i] or lane not in ends or lane not in sec.lanes:
+                continue  # no signal at its lane's end, or off the section
+            got = sec.lanes[lane]
+            end = float(sec.lengths_m[got[0]]) / got[3] - float(st.pos_m[int(rows[i])])
+            if red[i] <= end or end <= 0.0:
+                continue  # a red or yellow line nearer already (SUMO stops there anyway)
+            # Vehicles ahead of it on its lane and in the junction must fit too (SUMO's
+            # lengthsInFront and the internal lane's vehicles).
+            front, lid, past, hops = 0.0, ahead_of.get(v, ""), "", 0
+            while lid and hops < 64:
+                lr = index.get(lid)
+                if lr is None:
+                    break
+                ll = st.lanes[lr]
+                if ll != lane and not ll.startswith(":"):
+                    past = ll
+                    break
+                front += brutto.get(lid, DEFAULT_BRUTTO_M)
+                lid, hops = ahead_of.get(lid, ""), hops + 1
+            if past:
+                asks.append((i, past, front, end))
+        rooms = self.rooms(st, {a[1] for a in asks}) if asks else {}
+        now: set[str] = set()
+        out = red
+        for i, past, front, end in asks:
+            room = rooms.get(past)
+            if room is None:
+                continue  # nobody waiting past the junction: room further on
+            v = vids[i]
+            if room - front >= brutto.get(v, DEFAULT_BRUTTO_M):
+                continue
+            speed, decel = float(st.speed_mps[int(rows[i])]), shape_of[v][2]
+            # Too near to stop jmStoplineGap before the line at its decel: it drives on.
+            # SUMO keeps the request only nearer than brakeGap - tau v, but its drivers then
+            # brake harder than decel; ours would count emergency brakings (1164: 1 -> 6-9).
+            if v not in self.held and (
+                float(brake_gap(np.float64(speed), decel, self.dt)) > end - STOPLINE_GAP_M
+            ):
+                continue
+            now.add(v)
+            if out is red:
+                out = np.array(red, dtype=float)
+            out[i] = end
+        self.held = now
+        return out

@@ -14,7 +14,8 @@ from section_files import section_scenario
 from test_safety import _run_section
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
-from macromicro_sumo.deploy.keep_clear import lane_rooms, signal_ends
+from macromicro_sumo.deploy.keep_clear import DEFAULT_SHAPE, KeepClear, lane_rooms, signal_ends
+from macromicro_sumo.deploy.observe import states_of
 from macromicro_sumo.road.section import read_section
 from macromicro_sumo.scenario.load import load_scenario
 
@@ -133,6 +134,48 @@ def test_the_lanes_ending_at_a_signal(tmp_path: Path) -> None:
     sc = load_scenario(_blocked_exit(tmp_path, "lane", []))
     ends = signal_ends(str(sc.resolve(sc.network.net_file)))
     assert "A_0" in ends and "S_0" in ends and "B_0" not in ends
+
+
+def test_the_driver_owns_its_keep_clear_and_each_shape_is_kept_from_first_sight(
+    tmp_path: Path,
+) -> None:
+    """A driver with ``keep_clear`` on owns a ``KeepClear`` (none with "off"); the rooms of
+    the lanes asked about are those ``lane_rooms`` gives over every vehicle on the road, from
+    the lengths and minGaps kept when each vehicle was first met (an unknown one: SUMO's
+    passenger, asked again next time)."""
+    sc = load_scenario(_blocked_exit(tmp_path / "lane", "lane", []))
+    section = read_section(sc.resolve(sc.network.net_file), ["A", "B"], False)
+    drv = SectionSpeedDriver(sc, section, 0, _stopper, "sumo")
+    assert isinstance(drv.keep_clear, KeepClear) and drv.keep_clear.waiting_mps == 0.1
+    off = load_scenario(_blocked_exit(tmp_path / "off", "off", []))
+    assert SectionSpeedDriver(off, section, 0, _stopper, "sumo").keep_clear is None
+    kc = KeepClear("lane1", section, 0.5)
+    st = states_of(
+        {
+            "a": ("B_0", 40.0, 0.0, 0.0),
+            "b": ("A_0", 30.0, 0.5, 0.0),
+            "c": ("B_0", 20.0, 0.5, 0.0),
+            "d": ("B_0", 12.0, 3.0, 0.0),
+            "e": ("S_0", 9.0, 0.0, 0.0),
+        }
+    )
+    shape_of = {"a": (4.0, 2.0, 4.5), "b": (12.0, 3.0, 4.0), "d": (7.0, 2.5, 4.5)}
+    kc.meet(st.ids, shape_of)
+    assert kc.brutto_m == {"a": 6.0, "b": 15.0, "d": 9.5} and "c" not in kc.length_m
+    shape_of["a"] = (99.0, 99.0, 4.5)  # met already: kept as first seen
+    length = np.array([(shape_of.get(v) or DEFAULT_SHAPE)[0] for v in st.ids])
+    length[0] = 4.0
+    brutto = np.array([sum((shape_of.get(v) or DEFAULT_SHAPE)[:2]) for v in st.ids])
+    brutto[0] = 6.0
+    whole = lane_rooms(st.lanes, st.pos_m, st.speed_mps, brutto, length, 1.0)
+    assert kc.rooms(st, {"B_0"}) == {"B_0": whole["B_0"]} == {"B_0": 20.0 - 5.0 - 9.5}
+    assert kc.rooms(st, {"B_0", "S_0"}) == {k: whole[k] for k in ("B_0", "S_0")}
+    assert kc.rooms(st, {"C_0"}) == {}
+    shape_of["c"] = (3.0, 1.0, 4.5)  # first known now: kept from here on
+    kc.meet(st.ids, shape_of)
+    assert kc.brutto_m["c"] == 4.0 and kc.rooms(st, {"B_0"}) == {"B_0": 20.0 - 3.0 - 9.5}
+    with pytest.raises(ValueError, match="keep_clear"):
+        KeepClear("off", section, 0.5)
 
 
 @pytest.mark.parametrize("bad", ["on", "yes"])
