@@ -132,6 +132,8 @@ class StopLineReader:
         self._upcoming: Callable[[str], str | None] | None = None
         self.passing: dict[str, set[tuple[str, int]]] = {}  # vehicle -> yellow links it passes
         self._decided: dict[str, set[tuple[str, int]]] = {}  # vehicle -> yellow links decided
+        # ``by_offset``: vehicle -> {red or yellow link: ``_brake_room``, from its first sight}
+        self._rooms: dict[str, dict[tuple[str, int], float]] = {}
 
     def decide_yellow(
         self,
@@ -157,7 +159,7 @@ class StopLineReader:
     def forget(self, vehicle_ids: Iterable[str]) -> None:
         """Vehicles gone from the network: their ``carry`` answers and yellow decisions
         dropped."""
-        for held in (self.carry, self.passing, self._decided):
+        for held in (self.carry, self.passing, self._decided, self._rooms):
             if held:
                 for vid in vehicle_ids:
                     held.pop(vid, None)
@@ -184,7 +186,10 @@ class StopLineReader:
         where SUMO's driver stops (``decide_yellow``'s ``by_offset``; planMoveInternal's
         laneStopOffset): at most that far before the line, no further than its braking
         distance at its stop decel allows (at least POSITION_EPS before it), so a stop decided
-        within that distance brakes at its decel; 0 where it cannot stop before the line."""
+        within that distance brakes at its decel; 0 where it cannot stop before the line.
+        Asked once, at the first step the line stops it (SUMO's driver, braking at that
+        decel, keeps the same room; a driver braking softer first would move it on to the
+        line, the front over a loop 0.5 m before it: 1161's stop-line loops' error doubled)."""
         speed_of, decel_of, dt = self._yellow_by
         gap = self._stopline_gap(vid)
         major = max(SUMO_STOPLINE_GAP_M if gap is None else gap, offset)
@@ -233,9 +238,14 @@ class StopLineReader:
                 so = self._stop_offsets.get(lane) if self._stop_offsets else None
                 if so is not None and so.applies(self._vehicle_class(vid)):
                     offset = so.value_m
-                if self._by_offset and own:
-                    d += self._brake_room(vid, d, offset)
+                if self._by_offset and own:  # where it stops, planned once per light
+                    held = self._rooms.setdefault(vid, {})
+                    if (room := held.get((tls, link))) is None:
+                        room = held[tls, link] = self._brake_room(vid, d, offset)
+                    d += room
                 return d, lane, own, offset
+            if self._by_offset and (tls, link) in self._rooms.get(vid, ()):
+                del self._rooms[vid][tls, link]  # green again: the next stop planned afresh
         return (np.inf if ahead else np.nan), "", True, 0.0
 
     def _link_lane(self, tls: str, link: int) -> str:
