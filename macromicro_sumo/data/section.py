@@ -168,7 +168,7 @@ def psi_table(truth: SectionTruth, sc) -> pd.DataFrame:
     m["speed_min_mps"] = lo.fillna(0.0)
     hi = hi.to_numpy(dtype=float)
     m["speed_max_mps"] = np.minimum(np.where(np.isnan(hi), vmax_lim, hi), vmax_lim * 1.5)
-    m["spacing_min_m"] = float(truth.vtypes["length_m"].min()) + sc.bounds.min_gap_m
+    m["spacing_min_m"] = float(truth.vtypes["length_m"].min()) + psi_min_gap_m(truth, sc)
     m["spacing_max_m"] = np.inf
     m["spacing_low_m"] = m["spacing_min_m"]
     if sc.generator.spacing_bounds == "passages":
@@ -176,6 +176,16 @@ def psi_table(truth: SectionTruth, sc) -> pd.DataFrame:
         m["spacing_low_m"] = np.maximum(m["spacing_min_m"].to_numpy(), low)
         m["spacing_max_m"] = high
     return m
+
+
+def psi_min_gap_m(truth: SectionTruth, sc) -> float:
+    """The bumper gap [m] psi's smallest spacing adds to the shortest vType:
+    ``bounds.min_gap_m``, or with ``bounds.psi_min_gap = "recorded"`` the recorded vTypes'
+    smallest minGap where the truth records one (SUMO's drivers stand no closer)."""
+    vt = truth.vtypes
+    if sc.bounds.psi_min_gap == "recorded" and "min_gap_m" in vt and len(vt):
+        return float(vt["min_gap_m"].min())
+    return sc.bounds.min_gap_m
 
 
 def interval_psi(psi: pd.DataFrame, run: int, time_s: float) -> np.ndarray | None:

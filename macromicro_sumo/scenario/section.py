@@ -132,6 +132,14 @@ class SectionBoundsConfig:
         (-4.5, 2.6), lo=-50.0, hi=50.0, doc="action bounds [a_min, a_max] [m/s^2]"
     )
     min_gap_m: float = spec(2.0, lo=0.0, hi=100.0, doc="smallest admissible bumper gap [m]")
+    psi_min_gap: str = spec(
+        "bounds",
+        choices=("bounds", "recorded"),
+        doc="psi's smallest spacing (Stage I's placement bound) is the shortest recorded vType "
+        "plus bounds: min_gap_m; recorded: the recorded vTypes' smallest minGap where the truth "
+        "records one (1161, 615, Bremen: 2.5 m; generated pairs no longer start 2.0-2.5 m apart)",
+        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+    )
 
 
 @dataclass(frozen=True, kw_only=True)
