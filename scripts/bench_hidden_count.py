@@ -106,9 +106,13 @@ def get_options(args: list[str] | None = None) -> argparse.Namespace:
     )
     p.add_argument(
         "--near-line",
-        action="store_true",
+        nargs="?",
+        const=True,
+        default=False,
+        choices=["all"],
         help="intervals: signal approaches with the near-line loops' standing queue where the "
-        "free-travel bound is the largest (truth.standing; StationRecord.near_line)",
+        "free-travel bound is the largest (truth.standing; StationRecord.near_line); all: half of "
+        "it on every approach (signal_counts.NEAR_LINE_ALL_SHARE)",
     )
     p.add_argument(
         "--pieces",
@@ -330,7 +334,7 @@ def read_truth(gt: Path, start_s: float) -> tuple[pd.DataFrame, pd.DataFrame, pd
     return traj, det, pas
 
 
-def errors(gt: Path, start_s: float = 0.0, near_line: bool = False) -> pd.DataFrame:
+def errors(gt: Path, start_s: float = 0.0, near_line: bool | str = False) -> pd.DataFrame:
     """Per snapshot: regime, lanes and each estimator's K error, the record scored from
     ``start_s`` on (``read_truth``; after 0 the passages do not start from an empty road);
     ``near_line``: the interval counts' ``StationRecord.near_line``."""

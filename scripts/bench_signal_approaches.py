@@ -195,7 +195,7 @@ def approach_rows(
     start_s: float = 0.0,
     junctions: bool = False,
     levels: bool = False,
-    near_line: bool = False,
+    near_line: bool | str = False,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """(one row per run and approach: the constants' errors, which bound is the largest,
     vehicles; one row per snapshot: each part's error, vehicles) of the ground truth ``gt``
@@ -402,9 +402,13 @@ def main(args: list[str] | None = None) -> int:
     )
     p.add_argument(
         "--near-line",
-        action="store_true",
+        nargs="?",
+        const=True,
+        default=False,
+        choices=["all"],
         help="count the approaches with the near-line loops' standing queue where the "
-        "free-travel bound is the largest (truth.standing; StationRecord.near_line)",
+        "free-travel bound is the largest (truth.standing; StationRecord.near_line); all: half of "
+        "it on every approach (signal_counts.NEAR_LINE_ALL_SHARE)",
     )
     o = p.parse_args(args)
     both = [

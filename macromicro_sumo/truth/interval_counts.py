@@ -131,7 +131,7 @@ def interval_record(
     section: Section,
     net: sumolib.net.Net,
     net_file: Path | None = None,
-    near_line: bool = False,
+    near_line: bool | str = False,
 ) -> StationRecord | None:
     """The stations' record for ``hidden_count.k_estimates`` from their interval counts
     alone (``interval_passages``, ramps from ``net``, weighted by ``queued_weight``), or None

@@ -12,25 +12,24 @@ seconds and the rest (side streets turning in) over its stopping ones; at the en
 or, where the station stands in the queue (``QUEUED_MPS``), over its own line's passing
 seconds as late as the start of green takes to run back to it (``WAVE_MPS``).
 
-The constant: the one that puts the approach on its density estimate on average over the
-record (``density_constant``), raised where that leaves fewer vehicles than the lower
-bounds: at the intervals' bounds (where the counts are exact) the count is at least the
-vehicles that crossed the upstream station within the free travel time over the approach
-(they cannot have reached the line; ``CLEAR_QUANTILE`` of these) and at least 0, and at
-the starts of green where a queue stands (a station's interval speed at or below
-``QUEUE_REACH_MPS``) at least the queue that reaches back to it at jam spacing
-(``queue_floor``, ``queue_constant``; the density estimate of a queue reads its loops, which
-a standing queue's gaps can leave empty: from 240 s on, arterials 1, 2, 600-603 in
-congestion 3.95 -> 2.92 vehicles per lane). A record
-starts mid-traffic in the field: the lower bounds alone, whose largest was taken until
-stop 39, held only where the record started from an empty road (a simulation's start):
-from 240 s on, arterials 1, 2, 600-603 were 11.19 / 14.82 vehicles per lane, free /
-congested. The constant must leave the count below the approach's room (lane-metres over
-``density.JAM_SPACING_M``) at every interval bound, else the counts drift (a loop that
-misses or double-counts) and the approach keeps the density estimate. The stretch past the last signal is the vehicles that crossed its first station
-within the travel time at its stations' interval speed (``free_count``; its density
-estimate where they stand). The rest of the section (the junctions, the end pieces) keeps
-the density estimate. The programs' clock is taken as the data's (a simulation's: SUMO's).
+The constant: the one that puts the approach on its density estimate on average over the record
+(``density_constant``), raised where that leaves fewer vehicles than the lower bounds: at the
+intervals' bounds (where the counts are exact) the count is at least the vehicles that crossed
+the upstream station within the free travel time over the approach (they cannot have reached the
+line; ``CLEAR_QUANTILE`` of these) and at least 0, and at the starts of green where a queue
+stands (a station's interval speed at or below ``QUEUE_REACH_MPS``) at least the queue that
+reaches back to it at jam spacing (``queue_floor``, ``queue_constant``; the density estimate of
+a queue reads its loops, which a standing queue's gaps can leave empty: from 240 s on, arterials
+1, 2, 600-603 in congestion 3.95 -> 2.92 vehicles per lane). A record starts mid-traffic in the
+field: the lower bounds alone, whose largest was taken until stop 39, held only where the record
+started from an empty road (a simulation's start): from 240 s on, arterials 1, 2, 600-603 were
+11.19 / 14.82 vehicles per lane, free / congested. The constant must leave the count below the
+approach's room (lane-metres over ``density.JAM_SPACING_M``) at every interval bound, else the
+counts drift (a loop that misses or double-counts) and the approach keeps the density estimate.
+The stretch past the last signal is the vehicles that crossed its first station within the
+travel time at its stations' interval speed (``free_count``; its density estimate where they
+stand). The rest of the section (the junctions, the end pieces) keeps the density estimate. The
+programs' clock is taken as the data's (a simulation's: SUMO's).
 """
 
 from __future__ import annotations
@@ -51,7 +50,7 @@ from macromicro_sumo.truth.section_macro import (
     loop_lengths_m,
     station_density,
 )
-from macromicro_sumo.truth.standing import jam_spacing_m, standing_density
+from macromicro_sumo.truth.standing import NEAR_LINE_ALL_SHARE, jam_spacing_m, standing_density
 from macromicro_sumo.truth.stations import Piece, full_stations, ramp_between, station_speeds
 
 STOP_BAR_REACH_M = 5.0
@@ -331,7 +330,12 @@ def queue_constant(det: pd.DataFrame, section: Section, a: Approach, io, spacing
 
 
 def density_constant(
-    det: pd.DataFrame, section: Section, a: Approach, io, spacing_m: float | None = None
+    det: pd.DataFrame,
+    section: Section,
+    a: Approach,
+    io,
+    spacing_m: float | None = None,
+    share: float = 1.0,
 ) -> float:
     """The constant that puts the counted approach ``a`` (``io(t)`` plus it) on its density
     estimate on average over the record: the mean over the intervals of the stations'
@@ -339,8 +343,8 @@ def density_constant(
     their occupancy's density (``section_macro.edie_densities``), rising toward the line as
     ``density.rising_integral`` (docs/sections-log.md, "Dual loops on signal approaches").
     Point loops with ``spacing_m``: the stations near the line with the red's standing queue
-    added (``standing.standing_density``; the vehicles arriving at the line in the red:
-    ``arrivals`` a free travel earlier)."""
+    added (``standing.standing_density``, times ``share``; the vehicles arriving at the line
+    in the red: ``arrivals`` a free travel earlier)."""
     e1s, rows = det[det["kind"] == "e1"], []
     dual = bool((loop_lengths_m(e1s) > 0).any())
     e = section.edge_index(np.array([a.bar_m]))[0]
@@ -354,7 +358,7 @@ def density_constant(
                 (float(np.diff(arrivals(det, a, np.array([t - r, t]) - travel))[0]), r)
                 for t, r in a.line.green_starts(b, e)
             ]
-            add = standing_density(x, reds, e - b, lanes, spacing_m, v_free, WAVE_MPS)
+            add = share * standing_density(x, reds, e - b, lanes, spacing_m, v_free, WAVE_MPS)
             k = k + np.where(k.index.to_numpy(dtype=float) > a.up_m, add, 0.0)
         if dual:
             k = rising_integral(k.index.to_numpy(dtype=float), k.to_numpy(), a.up_m, a.bar_m)
@@ -370,13 +374,14 @@ def approach_count(
     a: Approach,
     at_s: np.ndarray,
     spacing_m: float,
-    near_line: bool = False,
+    near_line: bool | str = False,
 ) -> np.ndarray | None:
     """Vehicles on the approach ``a`` at ``at_s`` by conservation, anchored on the density
     estimate and the lower bounds at the intervals' bounds (module doc; a standing queue's
     at jam spacing ``spacing_m``, ``jam_spacing_m``); None where the counts drift past what
     it can hold. ``near_line``: where the free-travel bound is the largest (no station reads
-    a queue), the density estimate with the near-line loops' standing queue added."""
+    a queue), the density estimate with the near-line loops' standing queue added; "all":
+    every approach's density estimate with ``NEAR_LINE_ALL_SHARE`` of it added."""
     begin, end, _ = station_counts(det, a.bar_m)
     length = a.bar_m - a.up_m
     e = section.edge_index(np.array([a.bar_m]))[0]
@@ -392,9 +397,12 @@ def approach_count(
         return None
     moving = arrivals(det, a, t) - arrivals(det, a, t - travel_s)
     mov = float(np.quantile(moving - io(t), CLEAR_QUANTILE))
-    others = (density_constant(det, section, a, io), queue_constant(det, section, a, io, spacing_m))
+    every = near_line == "all"  # a share of the standing queue on every approach
+    near = (spacing_m, NEAR_LINE_ALL_SHARE) if every else ()
+    dens = density_constant(det, section, a, io, *near)
+    others = (dens, queue_constant(det, section, a, io, spacing_m))
     low = max(mov, *others, -float(io(bounds).min()))
-    if near_line and low == mov and mov > max(others):
+    if near_line and not every and low == mov and mov > max(others):
         low = max(low, density_constant(det, section, a, io, spacing_m))
     room = lanes * length / JAM_SPACING_M
     high = room - float(io(bounds).max())
@@ -453,7 +461,7 @@ def approach_pieces(
     side_arcs: np.ndarray,
     run: int,
     at_s: np.ndarray,
-    near_line: bool = False,
+    near_line: bool | str = False,
 ) -> tuple[dict[str, Piece], pd.DataFrame]:
     """The approaches counted at ``at_s`` (``approach_count``) and the stretch past the last
     signal (``exit_stretch``, ``free_count``) as pieces, and per interval the density
@@ -478,13 +486,8 @@ def approach_pieces(
         if tail is not None:
             tail_dens.append(integrate_stations(per_station, section, tail.up_m, tail.bar_m))
             inside += tail_dens[-1]
-        rest.append(
-            {
-                "begin_s": begin,
-                "end_s": end,
-                "vehicles": integrate_stations(per_station, section) - inside,
-            }
-        )
+        total = integrate_stations(per_station, section)
+        rest.append({"begin_s": begin, "end_s": end, "vehicles": total - inside})
     pieces = {"approaches": Piece(tuple(spans), counted)} if spans else {}
     if tail is not None:
         free, w = free_count(d, tail, at)

@@ -25,6 +25,16 @@ NEAR_LINE_M = 25.0
 reads the green's discharge, not the red's standing queue."""
 
 
+NEAR_LINE_ALL_SHARE = 0.5
+"""``signal_counts.approach_count(near_line="all")``: the share of ``standing_density``
+added to the near-line stations of every approach. On ground truths without SUMO's
+standing lattice (``truth.vtype_spread``) the near-line loops still read low (spread 802,
+per lane: the stop bar 27 against 68 veh/km, the 15 m loop 42 against 98), and the whole
+of it overshoots (stop 48, hH48, from 240 s, K per lane free / congested: 801-812, 1161,
+1407 3.76 / 4.10, bias -3.30 / -3.41 -> bias +1.93 / +1.96). Half, set on those: 2.59 /
+2.90; on the held-out 813-820 3.52 / 3.98 -> 2.10 / 2.49 (bias -0.47 / -0.52)."""
+
+
 def jam_spacing_m(det: pd.DataFrame) -> float:
     """Room a vehicle takes in a standing queue: the median over the loops of their
     effective vehicle length (``density.effective_length_m``, from their free-flowing

@@ -121,8 +121,8 @@ class StationRecord:
     estimate's weight against the density estimate alone; None: the counted one only.
     ``stop_lines`` (``signal_counts.StopLine``): with interval counts, the signals' programs;
     the approaches to them are counted by ``signal_counts.approach_pieces`` instead;
-    ``near_line``: with the near-line loops' standing queue where no station reads one
-    (``signal_counts.approach_count``).
+    ``near_line``: with the near-line loops' standing queue where no station reads one, or
+    "all": a share of it on every approach (``signal_counts.approach_count``).
     """
 
     det: pd.DataFrame
@@ -133,4 +133,4 @@ class StationRecord:
     interval_counts: bool = False
     weight: pd.DataFrame | None = None
     stop_lines: tuple = ()
-    near_line: bool = False
+    near_line: bool | str = False
