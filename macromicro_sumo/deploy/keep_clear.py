@@ -185,5 +185,10 @@ class KeepClear:
             if out is red:
                 out = np.array(red, dtype=float)
             out[i] = end
-        self.held = now
+        # Only the cars asked about now are decided: a call for some of them (the first
+        # sight's observation of new drivers alone, ``DriverObserve.first_sight``) keeps the
+        # others' holds, which it used to drop (a held car then faced the brake check again
+        # in the same step); a car gone from the road is forgotten.
+        asked = set(vids)
+        self.held = {v for v in self.held if v in index and v not in asked} | now
         return out

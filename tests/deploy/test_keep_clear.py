@@ -178,6 +178,28 @@ def test_the_driver_owns_its_keep_clear_and_each_shape_is_kept_from_first_sight(
         KeepClear("off", section, 0.5)
 
 
+def test_a_call_for_some_cars_keeps_the_others_holds(tmp_path: Path) -> None:
+    """``KeepClear.lines`` decides only the cars it is asked about: the first sight's call
+    for new drivers alone keeps a held car's hold (it used to drop it); a car asked about
+    and not held now loses it; a car gone from the road is forgotten."""
+    sc = load_scenario(_blocked_exit(tmp_path, "lane", []))
+    net = str(sc.resolve(sc.network.net_file))
+    section = read_section(net, ["A", "B"], False)
+    kc = KeepClear("lane", section, 0.5)
+    st = states_of({"c0": ("A_0", 100.0, 0.0, 0.0), "c1": ("A_0", 20.0, 10.0, 0.0)})
+    shape_of = {"c0": (5.0, 2.5, 4.5), "c1": (5.0, 2.5, 4.5)}
+    kc.held = {"c0"}
+    red = np.array([np.inf])  # c1 alone: a green ahead, nobody waiting past: no hold
+    out = kc.lines(net, red, ["A_0"], np.array([1]), st, [("c0", 72.5)], ["c1"], shape_of)
+    assert out is red and kc.held == {"c0"}
+    kc.lines(net, np.array([np.inf, np.inf]), ["A_0", "A_0"], np.array([0, 1]), st,
+             [("", -1.0), ("c0", 72.5)], ["c0", "c1"], shape_of)  # fmt: skip
+    assert kc.held == set()  # asked about, nothing waiting past the junction
+    kc.held = {"gone"}
+    kc.lines(net, red, ["A_0"], np.array([1]), st, [("c0", 72.5)], ["c1"], shape_of)
+    assert kc.held == set()
+
+
 @pytest.mark.parametrize("bad", ["on", "yes"])
 def test_a_bad_word_is_refused(tmp_path: Path, bad: str) -> None:
     with pytest.raises(Exception, match="keep_clear"):
