@@ -150,3 +150,40 @@ def test_standing_spacing_by_hand() -> None:
     closer = nearer_standing(spacing, np.array([29.0, 29.0, np.inf]), np.full(3, 5.0))
     np.testing.assert_array_equal(closer, [False, True, False])
     np.testing.assert_allclose(spacing, [20.0, 36.5, NO_LEADER_GAP_M])
+
+
+@pytest.mark.parametrize(
+    ("front_past_m", "leader_length_m", "sees_car"),
+    [(2.0, 5.0, True), (13.0, 12.0, True), (6.0, 5.0, True), (7.0, 5.0, False), (30.0, 5.0, False)],
+)
+def test_a_vehicle_across_a_red_line_stays_its_followers_leader(
+    cross: Section, front_past_m: float, leader_length_m: float, sees_car: bool
+) -> None:
+    """A vehicle whose front is ``front_past_m`` past 1si's red line, its tail still before
+    the line or less than 1.5 m past it, is nearer than the line for the 5 m car 12 m before
+    the line: SUMO's gap to it, 12 + front_past - length - minGap 2.5, is less than SUMO's
+    gap to the line, 12 - jmStoplineGap 1 (the deployment's comparison, ``nearer_standing``).
+    Before (stop 48; drawn arterial 1701, a Stage II evaluation collision): the stop points
+    sorted by the line and the vehicles by their fronts, so the follower saw the line
+    (spacing 18.5 m) and braked for it, not for the car whose tail was 9 m ahead."""
+    end = float(cross.offsets_m[1] + cross.lengths_m[1])
+    on = np.ones(2, dtype=bool)
+    _, leader, spacing = section_observations(
+        cross,
+        np.array([1, 0]),
+        np.array([end - 12.0, end + front_past_m]),
+        np.array([4.0, 0.5]),
+        on,
+        "lookahead",
+        np.array([1]),
+        np.array([end]),
+        None,
+        np.array([5.0, leader_length_m]),
+        on,
+    )
+    if sees_car:
+        assert leader[0] == 1
+        np.testing.assert_allclose(spacing[0], 12.0 + front_past_m)
+    else:
+        assert leader[0] < 0  # STOP: the line
+        np.testing.assert_allclose(spacing[0], 11.0 + 2.5 + 5.0)
