@@ -222,11 +222,14 @@ def sight_factors(
 class EntryChoice:
     """``entry_choice``'s answer: the rule (``entry``), the observed held first sights it
     read (``held_sights``: those "queued" keeps) and their median first-sight v / limit over
-    their top (``at_own``; NaN where none)."""
+    their top (``at_own``; NaN where none); the same of the free ones (not held, kept:
+    ``free_sights``, ``free_at_own``)."""
 
     entry: str
     held_sights: int
     at_own: float
+    free_sights: int = 0
+    free_at_own: float = float("nan")
 
 
 def first_sights(observed: ObservedDrivers) -> np.ndarray:
@@ -255,7 +258,16 @@ def entry_choice(
     so they say nothing of which rule fits; read with them, 528 chose "held" and lost 1.370
     -> 1.465 m/s (stop 44), where it has none of the others (stop 45). A per-sight share of
     the median (below 0.8) changed netgen too (0.460 -> 0.480) and was worse on 522 (2.73
-    against held's 2.39; stop 43, hO43)."""
+    against held's 2.39; stop 43, hO43).
+    "insertion" instead of "held" where the free first sights (neither held nor queued) are
+    below their drivers' own speed as well (at least ``MIN_HELD_SIGHTS``, their median under
+    ``ENTRY_AT_OWN_SHARE`` of their tops): the net inserts slower than the drivers want even
+    beyond the free gap (departSpeed "max" behind slower leaders). Train + val observed
+    drivers (stop 47): 522 5 free sights at 0.806; 549, 501, 563, 1045, 1169, 565, 615, 1161,
+    netgen all at 1.000 (unchanged: "held" / "queued"). Why not wherever "held": deployed, all
+    4 runs, "insertion" wins on 522 (2.377 -> 2.318; policy trained auto 3.023 -> 2.241),
+    549 (3.587 -> 3.249), 1169, 615 by 0.01-0.02, but loses on arterial 1161 (1.028 ->
+    1.052; stop 48, hM48)."""
     if not observed.keys:
         return EntryChoice("queued", 0, float("nan"))
     idx = first_sights(observed)
@@ -270,7 +282,12 @@ def entry_choice(
     n = int(ok.sum())
     at_own = float(np.median(ratio[ok] / top[ok])) if n else float("nan")
     below = n >= MIN_HELD_SIGHTS and at_own < ENTRY_AT_OWN_SHARE
-    return EntryChoice("held" if below else "queued", n, at_own)
+    free = ~held & kept & np.isfinite(top) & (top > 0)
+    n_free = int(free.sum())
+    free_at_own = float(np.median(ratio[free] / top[free])) if n_free else float("nan")
+    slow_free = n_free >= MIN_HELD_SIGHTS and free_at_own < ENTRY_AT_OWN_SHARE
+    entry = ("insertion" if slow_free else "held") if below else "queued"
+    return EntryChoice(entry, n, at_own, n_free, free_at_own)
 
 
 def resolved_entry(sc, truth, runs: np.ndarray | None = None) -> tuple[Any, EntryChoice | None]:

@@ -1,6 +1,6 @@
 """``policy.driver_entry = "auto"`` (``env.driver_speed.entry_choice``): "held" where the
-observed drivers' own held first sights are below their speed, "queued" where they are at
-it. Real SUMO: the same road and demand, inserted at ``departSpeed="max"`` (behind a slow
+observed drivers' own held first sights are below their speed ("insertion" where their free
+ones are as well), "queued" where they are at it. Real SUMO: the same road and demand, inserted at ``departSpeed="max"`` (behind a slow
 platoon: the safe speed, below the own) or ``"desired"`` (SUMO waits until the own speed is
 safe), as drawn 522 and netgen_corridor insert theirs (stop 44)."""
 
@@ -144,3 +144,27 @@ def test_auto_reads_each_drivers_first_pair_and_needs_enough_held_ones() -> None
     free[:, 2] = NO_LEADER_GAP_M
     none = entry_choice(_drivers(free, 29.0, [1.0] * n), gap_layout=False)
     assert (none.entry, none.held_sights) == ("queued", 0)
+
+
+def test_auto_is_insertion_where_the_free_first_sights_are_below_their_tops_too() -> None:
+    """Held first sights below their tops ("held"); free ones (nobody ahead) below theirs as
+    well: the net inserts slower than its drivers want beyond the free gap, "insertion"
+    (drawn 522: 5 free sights at 0.806, stop 47); at their tops, or too few: "held"."""
+    n = MIN_HELD_SIGHTS + 2
+    held = np.column_stack(
+        [np.full(n, 0.7 * LIMIT_MPS), np.full(n, LIMIT_MPS), np.full(n, 15.0), np.full(n, 2.0)]
+    )
+    free = held.copy()
+    free[:, 2] = NO_LEADER_GAP_M
+    first = np.concatenate([held, free])
+    slow = entry_choice(_drivers(first, 29.0, [1.0] * 2 * n), gap_layout=False)
+    assert (slow.entry, slow.held_sights, slow.free_sights) == ("insertion", n, n)
+    assert slow.free_at_own == pytest.approx(0.7)
+    # the free ones at their own tops: "held", as before stop 48
+    tops = [1.0] * n + [0.7] * n
+    at = entry_choice(_drivers(first, 29.0, tops), gap_layout=False)
+    assert (at.entry, at.free_at_own) == ("held", pytest.approx(1.0))
+    # too few free ones to read: "held"
+    few = np.concatenate([held, free[: MIN_HELD_SIGHTS - 1]])
+    k = n + MIN_HELD_SIGHTS - 1
+    assert entry_choice(_drivers(few, 29.0, [1.0] * k), gap_layout=False).entry == "held"
