@@ -6,10 +6,11 @@ their networks as ``../sumo_nets/...``); a wheel carries both as
 ``macromicro_sumo.env.examples`` finds them. An editable install reads the checkout's own
 folders. The sdist carries them through MANIFEST.in.
 
-The one compiled part, optional: ``road/kernels.c`` (``road.physics.safe_speed`` in one
-pass, bit for bit its numpy form), built where a C compiler and Python's headers are found;
-where not, the install goes on and ``road.physics`` computes with numpy (the same values,
-more time a deployment step). Everything else is in pyproject.toml.
+The compiled parts, optional: ``road/kernels.c`` (``road.physics.safe_speed`` and two more
+of a deployment step's arithmetic in one pass each, bit for bit their numpy form) and
+``sumo/calls.c`` (a step's per-vehicle libsumo calls and look-ups in one C loop each, the
+same calls), built where a C compiler and Python's headers are found; where not, the
+install goes on and numpy answers (the same values, more time a deployment step). Everything else is in pyproject.toml.
 """
 
 from __future__ import annotations
@@ -46,5 +47,11 @@ KERNELS = Extension(
     extra_compile_args=["-O2", "-ffp-contract=off", "-fno-fast-math"],
     optional=True,
 )
+CALLS = Extension(
+    "macromicro_sumo.sumo.calls",
+    ["macromicro_sumo/sumo/calls.c"],
+    extra_compile_args=["-O2"],  # no arithmetic: calls and copies
+    optional=True,
+)
 
-setup(cmdclass={"build_py": BuildPyWithExamples}, ext_modules=[KERNELS])
+setup(cmdclass={"build_py": BuildPyWithExamples}, ext_modules=[KERNELS, CALLS])

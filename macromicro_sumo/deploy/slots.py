@@ -14,6 +14,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from macromicro_sumo.sumo.reads import codes
+
+try:  # road/kernels.c, where setup.py built it (``LaneCache.due``)
+    from macromicro_sumo.road import kernels
+except ImportError:  # not built: numpy's form, the same indices
+    kernels = None
+# None where not built, or built before it had the pass (a stale build: numpy answers).
+_lane_due = getattr(kernels, "lane_due", None)
+
 NOT_ASKED = -1  # lane code of a cache entry that was never filled (or was dropped)
 # No command (``VehicleSlots.commanded``'s write a step): a 0-d array, which numpy writes
 # without converting a Python float each call (``deploy.observe._const``).
@@ -42,6 +51,11 @@ class LaneCache:
 
     def due(self, slots: np.ndarray, lanes: np.ndarray, step: int) -> np.ndarray:
         """Indices into ``slots`` (vehicles on lane codes ``lanes``) to ask at ``step``."""
+        if _lane_due is not None and type(step) is int:  # road/kernels.c: one pass, not seven
+            out = np.empty(len(slots), np.int64)
+            count = _lane_due(self.lane, self.again, slots, lanes, step, out)
+            if count >= 0:
+                return out[:count]
         return ((self.lane[slots] != lanes) | (self.again[slots] <= step)).nonzero()[0]
 
     def store(
@@ -115,7 +129,7 @@ class VehicleSlots:
 
     def slots(self, vehicle_ids: list[str]) -> np.ndarray:
         """The slots of vehicles already met."""
-        return np.fromiter(map(self.of.__getitem__, vehicle_ids), np.int64, len(vehicle_ids))
+        return codes(self.of, vehicle_ids)  # KeyError for one not met
 
     def forget(self, vehicle_ids: list[str]) -> None:
         """Vehicles handed back to SUMO: no last command to compare with, caches dropped

@@ -303,7 +303,119 @@ static PyObject *leader_columns(PyObject *self, PyObject *args) {
     Py_RETURN_FALSE;
 }
 
+/* lane_due(lane, again, slots, lanes, step, out) -> int: deploy.slots.LaneCache.due's
+   indices into out (a writable int64 vector of at least n): the i of n (ascending) where
+   lane[slots[i]] != lanes[i] or again[slots[i]] <= step (a Python int, compared as the
+   float64 numpy makes of it); their count. -1 (out untouched) where a form does not fit
+   or a slot is outside the cache (numpy raises or wraps it there). */
+static PyObject *lane_due(PyObject *self, PyObject *args) {
+    PyObject *o[6];
+    if (!PyArg_UnpackTuple(args, "lane_due", 6, 6, &o[0], &o[1], &o[2], &o[3], &o[4], &o[5]))
+        return NULL;
+    if (!PyLong_CheckExact(o[4])) return PyLong_FromLong(-1);
+    const double step = PyLong_AsDouble(o[4]); /* correctly rounded, as numpy converts it */
+    if (step == -1.0 && PyErr_Occurred()) {
+        PyErr_Clear();
+        return PyLong_FromLong(-1);
+    }
+    static const char kinds[5] = {'i', 'd', 'i', 'i', 'i'};
+    Py_buffer v[5];
+    Py_ssize_t len[5];
+    int got = 0, ok = 1;
+    for (; got < 5; got++)
+        if (!vector(o[got < 4 ? got : 5], &v[got], kinds[got], got == 4, &len[got])) {
+            ok = 0;
+            break;
+        }
+    const Py_ssize_t n = ok ? len[2] : 0, cap = ok ? len[0] : 0;
+    ok = ok && len[1] == cap && len[3] == n && len[4] >= n;
+    Py_ssize_t count = -1;
+    if (ok) {
+        const int64_t *lane = v[0].buf, *slots = v[2].buf, *lanes = v[3].buf;
+        const double *again = v[1].buf;
+        for (Py_ssize_t i = 0; ok && i < n; i++) ok = slots[i] >= 0 && slots[i] < cap;
+        if (ok) {
+            int64_t *out = v[4].buf;
+            count = 0;
+            for (Py_ssize_t i = 0; i < n; i++) {
+                const int64_t s = slots[i];
+                if (lane[s] != lanes[i] || again[s] <= step) out[count++] = (int64_t)i;
+            }
+        }
+    }
+    for (int i = 0; i < got; i++) PyBuffer_Release(&v[i]);
+    return PyLong_FromSsize_t(count);
+}
+
+/* own_columns(obs, rows, codes, speeds, pos, lead_v, arc_per_m, arc0, lookahead) -> bool:
+   deploy.observe.observe_rows' own columns of n driven vehicles (rows rows of the step's
+   speeds and positions, lane codes codes): obs[i, 0] = v = speeds[rows[i]], obs[i, 3] =
+   v - lead_v[i], and with the look-ahead (lookahead true) obs[i, 5] -= arc_per_m[c] *
+   pos[rows[i]] + arc0[c] (an open section's arc: numpy's arc, its products and sums in
+   that order). obs a writable C-contiguous float64 (n, >= 4, or >= 6 with the look-ahead).
+   False (nothing written) for any other form or an index out of range. */
+static PyObject *own_columns(PyObject *self, PyObject *args) {
+    PyObject *o[9];
+    if (!PyArg_UnpackTuple(args, "own_columns", 9, 9, &o[0], &o[1], &o[2], &o[3], &o[4], &o[5],
+                           &o[6], &o[7], &o[8]))
+        return NULL;
+    const int lookahead = PyObject_IsTrue(o[8]);
+    if (lookahead < 0) {
+        PyErr_Clear();
+        Py_RETURN_FALSE;
+    }
+    Py_buffer obs;
+    if (!PyObject_CheckBuffer(o[0]) ||
+        PyObject_GetBuffer(o[0], &obs, PyBUF_FORMAT | PyBUF_ND | PyBUF_WRITABLE) < 0) {
+        PyErr_Clear();
+        Py_RETURN_FALSE;
+    }
+    int ok = obs.itemsize == 8 && obs.format != NULL && strcmp(obs.format, "d") == 0 &&
+             obs.ndim == 2 && obs.shape[1] >= (lookahead ? 6 : 4);
+    static const char kinds[7] = {'i', 'i', 'd', 'd', 'd', 'd', 'd'};
+    Py_buffer v[7];
+    Py_ssize_t len[7];
+    int got = 0;
+    for (; ok && got < 7; got++)
+        if (!vector(o[1 + got], &v[got], kinds[got], 0, &len[got])) {
+            ok = 0;
+            break;
+        }
+    const Py_ssize_t n = ok ? obs.shape[0] : 0, f = ok ? obs.shape[1] : 0;
+    const Py_ssize_t N = ok ? len[2] : 0, lanes = ok ? len[5] : 0;
+    ok = ok && len[0] == n && len[1] == n && len[3] == N && len[4] == n && len[6] == lanes;
+    if (ok) {
+        const int64_t *rows = v[0].buf, *codes = v[1].buf;
+        for (Py_ssize_t i = 0; ok && i < n; i++)
+            ok = rows[i] >= 0 && rows[i] < N && codes[i] >= 0 && codes[i] < lanes;
+    }
+    if (ok) {
+        const int64_t *rows = v[0].buf, *codes = v[1].buf;
+        const double *speeds = v[2].buf, *pos = v[3].buf, *lead_v = v[4].buf;
+        const double *arc_per_m = v[5].buf, *arc0 = v[6].buf;
+        double *row = obs.buf;
+        for (Py_ssize_t i = 0; i < n; i++, row += f) {
+            const double speed = speeds[rows[i]];
+            row[0] = speed;
+            row[3] = speed - lead_v[i];
+            if (lookahead) {
+                const double arc = arc_per_m[codes[i]] * pos[rows[i]] + arc0[codes[i]];
+                row[5] = row[5] - arc;
+            }
+        }
+    }
+    for (int i = 0; i < got; i++) PyBuffer_Release(&v[i]);
+    PyBuffer_Release(&obs);
+    if (ok) Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
 static PyMethodDef methods[] = {
+    {"own_columns", own_columns, METH_VARARGS,
+     "deploy.observe.observe_rows' own columns (speed, delta v, the look-ahead's distance), "
+     "bit for bit; False where numpy must answer."},
+    {"lane_due", lane_due, METH_VARARGS,
+     "deploy.slots.LaneCache.due's indices into out, their count; -1 where numpy must answer."},
     {"leader_columns", leader_columns, METH_VARARGS,
      "deploy.observe.observe_rows' leader columns, bit for bit; False where numpy must answer."},
     {"krauss_prior", krauss_prior, METH_VARARGS,

@@ -12,7 +12,6 @@ from __future__ import annotations
 import contextlib
 import os
 from collections.abc import Sequence
-from itertools import repeat
 from pathlib import Path
 from typing import Protocol
 
@@ -21,6 +20,7 @@ import numpy as np
 import sumolib
 
 from macromicro_sumo.errors import UserError
+from macromicro_sumo.sumo import reads
 from macromicro_sumo.sumo.options import SumoOptions
 from macromicro_sumo.sumo.states import DEFAULT_SPEED_MODE, StopLines, VehicleStates
 from macromicro_sumo.sumo.stop_lines import StopLineReader, Upcoming
@@ -175,8 +175,7 @@ class Simulation:
 
     def set_speeds(self, vehicle_ids: Sequence[str], speeds_mps: Sequence[float]) -> None:
         """Speed commands for the next step (speed mode 0 applies them exactly)."""
-        speeds = np.asarray(speeds_mps, dtype=float).tolist()  # floats, not numpy scalars
-        list(map(_SET_SPEED, vehicle_ids, speeds))
+        reads.send(_SET_SPEED, vehicle_ids, np.asarray(speeds_mps, dtype=float))
 
     def move_to(
         self, vehicle_ids: Sequence[str], lane_ids: Sequence[str], lane_pos_m: Sequence[float],
@@ -290,7 +289,7 @@ class Simulation:
 
     def own_speeds(self, vehicle_ids: Sequence[str]) -> np.ndarray:
         """SUMO's own choice of the last step's speed where a command overrode it."""
-        return np.fromiter(map(_OWN_SPEED, vehicle_ids), float, len(vehicle_ids))
+        return reads.floats((_OWN_SPEED,), vehicle_ids)[0]
 
     @staticmethod
     def blocked_changes(ids: Sequence[str], sides: Sequence[int]) -> tuple[np.ndarray, dict]:
@@ -430,34 +429,25 @@ class Simulation:
         the next step (a recorder after it, a driver before the next) shares the read."""
         if self._states is None:
             ids = _GET_IDS()
-            n = len(ids)
-            self._states = VehicleStates(
-                ids,
-                list(map(_GET_LANE, ids)),
-                np.fromiter(map(_GET_POS, ids), float, n),
-                np.fromiter(map(_GET_SPEED, ids), float, n),
-                np.fromiter(map(_GET_ACCEL, ids), float, n),
-            )
+            pos, speed, accel = reads.floats((_GET_POS, _GET_SPEED, _GET_ACCEL), ids)
+            self._states = VehicleStates(ids, reads.each(_GET_LANE, ids), pos, speed, accel)
         return self._states
 
     def lane_states(self, vehicle_ids: Sequence[str]) -> tuple[list[str], np.ndarray, np.ndarray]:
         """(lane ID, lane position [m], speed [m/s]) of the given vehicles, by compiled getters
         (the env cores' read: no ID list, no subscription); a vehicle not yet on the
         road has lane ID ""; one SUMO does not know raises ``KeyError``."""
-        n = len(vehicle_ids)
         try:
-            return (
-                list(map(_GET_LANE, vehicle_ids)),
-                np.fromiter(map(_GET_POS, vehicle_ids), float, n),
-                np.fromiter(map(_GET_SPEED, vehicle_ids), float, n),
-            )
+            lanes = reads.each(_GET_LANE, vehicle_ids)
+            pos, speed = reads.floats((_GET_POS, _GET_SPEED), vehicle_ids)
+            return lanes, pos, speed
         except libsumo.TraCIException as exc:
             raise KeyError(str(exc)) from None
 
     def leaders(self, vehicle_ids: Sequence[str], lookahead_m: float) -> list[tuple[str, float]]:
         """(leader ID, SUMO's gap: leader's back - own front - minGap; ("", -1): none) of
         each vehicle within ``lookahead_m`` along the network's lanes (``getLeader``)."""
-        out = list(map(_GET_LEADER, vehicle_ids, repeat(float(lookahead_m))))
+        out = reads.each(_GET_LEADER, vehicle_ids, float(lookahead_m))
         # Only the wrapper (no compiled getLeader) may say None: the scan for it, ~2 us a
         # step of ~42 driven vehicles, is made only then.
         if _LEADER_MAY_BE_NONE and None in out:
