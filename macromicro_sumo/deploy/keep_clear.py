@@ -40,6 +40,7 @@ WAITING_MPS = {"lane": 0.1, "lane1": 1.0}
 # Length and minGap [m] of a vehicle whose shape the driver has not seen (SUMO's passenger).
 DEFAULT_SHAPE = (5.0, 2.5)
 DEFAULT_BRUTTO_M = DEFAULT_SHAPE[0] + DEFAULT_SHAPE[1]
+_UNSEEN = object()  # a lane ``KeepClear.lane_end_m`` has not met yet
 
 
 def lane_rooms(
@@ -91,6 +92,7 @@ class KeepClear:
         self.held: set[str] = set()
         self.length_m: dict[str, float] = {}
         self.brutto_m: dict[str, float] = {}  # length + minGap
+        self.lane_end_m: dict[str, float | None] = {}  # ``signal_end`` per lane met
 
     def meet(self, ids: Sequence[str], shape_of: dict[str, tuple[float, float, float]]) -> None:
         """Keeps the length and length + minGap of each of ``ids`` not met yet whose shape
@@ -100,6 +102,15 @@ class KeepClear:
             if got is not None:
                 self.length_m[v] = got[0]
                 self.brutto_m[v] = got[0] + got[1]
+
+    def signal_end(self, net_file: str, lane: str) -> float | None:
+        """The arc length [m] of ``lane`` of the section where a signalised link ends it
+        (``signal_ends`` of ``net_file``), as the driver's position counts it; None: no
+        signal at its end, or not a section lane."""
+        if lane not in signal_ends(net_file) or lane not in self.section.lanes:
+            return None
+        got = self.section.lanes[lane]
+        return float(self.section.lengths_m[got[0]]) / got[3]
 
     def rooms(self, st: VehicleStates, past: set[str]) -> dict[str, float]:
         """``lane_rooms`` of lanes ``past`` alone (the lanes past a junction some driven car
@@ -134,20 +145,27 @@ class KeepClear:
         the chain of leaders, past any in the junction (":..."). Returns a new array where
         any line is added, else ``red`` itself."""
         self.meet(st.ids, shape_of)
-        sec, ends, index = self.section, signal_ends(net_file), st.index
-        ahead_of = {v: lid for v, (lid, _) in zip(vids, leaders, strict=True) if lid}
-        brutto = self.brutto_m
+        index, brutto = st.index, self.brutto_m
+        ahead_of: dict[str, str] | None = None  # built at the first car that may wait
+        # Plain floats: a numpy scalar's compare or conversion per car cost more (same values).
+        red_l, pos_l = red.tolist(), st.pos_m[rows].tolist()
         # Per driven car that may have to wait: (its index, the lane past, the length and
         # minGap of those ahead of it up to that lane, the distance to its lane's end).
         asks: list[tuple[int, str, float, float]] = []
         for i, v in enumerate(vids):
             lane = lanes[i]
-            if red[i] != red[i] or lane not in ends or lane not in sec.lanes:
+            if red_l[i] != red_l[i]:
+                continue  # no signal ahead
+            at_end = self.lane_end_m.get(lane, _UNSEEN)
+            if at_end is _UNSEEN:
+                at_end = self.lane_end_m[lane] = self.signal_end(net_file, lane)
+            if at_end is None:
                 continue  # no signal at its lane's end, or off the section
-            got = sec.lanes[lane]
-            end = float(sec.lengths_m[got[0]]) / got[3] - float(st.pos_m[int(rows[i])])
-            if red[i] <= end or end <= 0.0:
+            end = at_end - pos_l[i]
+            if red_l[i] <= end or end <= 0.0:
                 continue  # a red or yellow line nearer already (SUMO stops there anyway)
+            if ahead_of is None:
+                ahead_of = {u: lid for u, (lid, _) in zip(vids, leaders, strict=True) if lid}
             # Vehicles ahead of it on its lane and in the junction must fit too (SUMO's
             # lengthsInFront and the internal lane's vehicles).
             front, lid, past, hops = 0.0, ahead_of.get(v, ""), "", 0
