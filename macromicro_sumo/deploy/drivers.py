@@ -180,7 +180,9 @@ class SectionSpeedDriver(DriverObserve, LaneAsks, MergeYield, SectionDriver):
             if self.has_lights:
                 self.signal_lanes = signal_lanes(sim.options.net_file)
                 if self.sc.deploy.yellow != "stop":  # SUMO's yellow rule, decided at onset
-                    sim.decide_yellow(ahead=self.sc.deploy.yellow == "ahead")
+                    sim.decide_yellow(
+                        self.sc.deploy.yellow == "ahead", self.sc.deploy.yellow == "sumo"
+                    )
         obs, gap, lead_decel, lead = self.observe(
             sim, vids, rows, st, lanes=lanes, stop_m=ahead, at=(slots, codes), factor=factor
         )

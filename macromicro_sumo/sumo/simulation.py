@@ -23,7 +23,7 @@ from macromicro_sumo.errors import UserError
 from macromicro_sumo.sumo import reads
 from macromicro_sumo.sumo.options import SumoOptions
 from macromicro_sumo.sumo.states import DEFAULT_SPEED_MODE, StopLines, VehicleStates
-from macromicro_sumo.sumo.stop_lines import StopLineReader, Upcoming
+from macromicro_sumo.sumo.stop_lines import StopLineReader, yellow_rule
 from macromicro_sumo.sumo.stop_offsets import lane_stop_offsets
 
 _C = libsumo.constants
@@ -458,11 +458,11 @@ class Simulation:
         """Vehicles that left the network in the last step."""
         return frozenset(libsumo.simulation.getArrivedIDList())
 
-    def decide_yellow(self, ahead: bool = False) -> None:
+    def decide_yellow(self, ahead: bool = False, sumo: bool = False) -> None:
         """Each vehicle asking its stop lines decides each yellow at its onset from now on
-        (``StopLineReader.decide_yellow``; ``ahead``: on the last green step): deploy.yellow."""
-        up = Upcoming(libsumo, self._dt) if ahead else None  # the lights' programs, read once
-        self._lines.decide_yellow(libsumo.vehicle.getSpeed, libsumo.vehicle.getDecel, self._dt, up)
+        (``sumo.stop_lines.yellow_rule``; ``ahead``: on the last green step but one; ``sumo``:
+        on the switch's step, by SUMO's own rule): deploy.yellow."""
+        self._lines.decide_yellow(*yellow_rule(libsumo, self._dt, ahead, sumo))
 
     def stop_lines(self, vehicle_ids: Sequence[str]) -> StopLines:
         """The next red or yellow line of each vehicle (``StopLines``; every caller's query):

@@ -14,9 +14,10 @@ import libsumo
 import pytest
 from conftest import light_road
 
+from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.options import SumoOptions
 from macromicro_sumo.sumo.simulation import Simulation
-from macromicro_sumo.sumo.stop_lines import euler_brake_gap, sumo_stop_decel, yellow_rule
+from macromicro_sumo.sumo.stop_lines import euler_brake_gap, sumo_stop_decel
 
 DT = 0.5
 LINE_M = 200.0
@@ -54,8 +55,7 @@ def _decisions(
     (the first of its queue): (where the reader has it stop then, where it stood) [m before
     the line]."""
     sim = Simulation(_cycling_light(folder, decel))
-    # The run's reader, told as ``Simulation.decide_yellow(sumo=True)`` tells it.
-    sim._lines.decide_yellow(*yellow_rule(libsumo, DT, False, True))
+    sim.decide_yellow(sumo=True)  # deploy.yellow = "sumo"
     veh, tl = libsumo.vehicle, libsumo.trafficlight
     out, pending, before, seen_y, stop_at, stood = [], {}, {}, {}, {}, []
     try:
@@ -129,3 +129,20 @@ def test_the_stop_decel_is_raised_to_sumos_yellow_minimum() -> None:
     emergency = {"slow": 9.0, "weak": 2.5, "car": 9.0}
     stop = sumo_stop_decel(decel.__getitem__, emergency.__getitem__)
     assert (stop("slow"), stop("weak"), stop("car")) == (3.0, 2.5, 4.5)
+
+
+@pytest.mark.parametrize(("word", "ok"), [("sumo", True), ("sumo1", False)])
+def test_the_setting_takes_sumo(tmp_path: Path, word: str, ok: bool) -> None:
+    """``deploy.yellow = "sumo"`` loads (the driver hands it to ``Simulation.decide_yellow``);
+    a word it does not know is refused, naming the field."""
+    root = Path(__file__).resolve().parents[2] / "scenarios"
+    text = (root / "highway_bremen.toml").read_text()
+    text = text.replace("[deploy]\n", f'[deploy]\nyellow = "{word}"\n', 1)
+    text = text.replace('"../sumo_nets', f'"{root.parent}/sumo_nets')
+    path = tmp_path / "s.toml"
+    path.write_text(text)
+    if ok:
+        assert load_scenario(path).deploy.yellow == "sumo"
+    else:
+        with pytest.raises(Exception, match="yellow"):
+            load_scenario(path)
