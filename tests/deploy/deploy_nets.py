@@ -162,3 +162,35 @@ def idm_agent(observation: str, limit: float, seed: int = 0, steps: int = 400) -
         opt.step()
     agent.eval()
     return agent
+
+
+def queue_at_light(toml: Path, green_s: float, deploy: dict) -> Path:
+    """One lane A (150 m, 14 m/s) -> a light, red for the first ``green_s``, then green ->
+    B (200 m); 12 cars leave 2 s apart and queue at the red. Returns the scenario file
+    ``toml`` (its folder's ``net`` holds the files), deploying with ``deploy``."""
+    folder = toml.parent / "net"
+    net = light_road(folder, 150.0, 200.0, 14.0)
+    cars = "\n".join(
+        f'<vehicle id="c{k:02d}" type="car" depart="{2 * k}" departSpeed="max">'
+        '<route edges="A B"/></vehicle>'
+        for k in range(12)
+    )
+    routes = folder / "queue.rou.xml"
+    routes.write_text(f"<routes>\n{CAR}\n{cars}\n</routes>\n")
+    light = folder / "light.add.xml"
+    light.write_text(
+        '<additional>\n<tlLogic id="tl" type="static" programID="p" offset="0">\n'
+        f'<phase duration="{green_s:g}" state="r"/>\n<phase duration="1000" state="G"/>\n'
+        "</tlLogic>\n</additional>\n"
+    )
+    return section_scenario(
+        toml,
+        net,
+        routes,
+        ["A", "B"],
+        seed=3,
+        penetration=0.01,
+        simulation={"warmup_s": 0.0, "duration_s": green_s + 40.0, "n_runs": 1},
+        detectors={"interval_s": 30.0},
+        deploy=deploy,
+    )

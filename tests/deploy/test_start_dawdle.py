@@ -14,9 +14,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import light_road
-from deploy_nets import CAR
-from section_files import section_scenario
+from deploy_nets import queue_at_light
 from test_safety import _run_section
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
@@ -48,36 +46,10 @@ def test_only_commands_below_the_accel_dawdle() -> None:
 
 
 def _queue_scenario(tmp_path: Path, sigma: float, reaction_s: float = 0.0) -> Path:
-    """One lane A (150 m, 14 m/s) -> a light, red for the first ``GREEN_S``, then green ->
-    B (200 m); 12 cars leave 2 s apart and queue at the red."""
-    folder = tmp_path / "net"
-    net = light_road(folder, 150.0, 200.0, 14.0)
-    cars = "\n".join(
-        f'<vehicle id="c{k:02d}" type="car" depart="{2 * k}" departSpeed="max">'
-        '<route edges="A B"/></vehicle>'
-        for k in range(12)
-    )
-    routes = folder / "queue.rou.xml"
-    routes.write_text(f"<routes>\n{CAR}\n{cars}\n</routes>\n")
-    light = folder / "light.add.xml"
-    light.write_text(
-        '<additional>\n<tlLogic id="tl" type="static" programID="p" offset="0">\n'
-        f'<phase duration="{GREEN_S:g}" state="r"/>\n<phase duration="1000" state="G"/>\n'
-        "</tlLogic>\n</additional>\n"
-    )
+    """``deploy_nets.queue_at_light`` with the start dawdle ``sigma`` and reaction."""
     deploy = {"start_dawdle": sigma} if sigma else {}
     deploy |= {"start_reaction_s": reaction_s} if reaction_s else {}
-    return section_scenario(
-        tmp_path / f"queue_{sigma}_{reaction_s}.toml",
-        net,
-        routes,
-        ["A", "B"],
-        seed=3,
-        penetration=0.01,
-        simulation={"warmup_s": 0.0, "duration_s": GREEN_S + 40.0, "n_runs": 1},
-        detectors={"interval_s": 30.0},
-        deploy=deploy,
-    )
+    return queue_at_light(tmp_path / f"queue_{sigma}_{reaction_s}.toml", GREEN_S, deploy)
 
 
 def test_speed_commands_start_later(tmp_path: Path) -> None:
