@@ -36,13 +36,12 @@ from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import load_section_truth
 
 
-def free_sights(observed: ObservedDrivers, gap_layout: bool, censoring: str) -> tuple[int, float]:
-    """The observed drivers' free first sights (not ``held_at_sight``, at least
-    ``QUEUED_ENTRY_SHARE`` of the median ratio, a known top) and their median first-sight v /
-    limit over their driver's top (NaN where none): ``entry_choice``'s reading of the sights it
-    does not read."""
-    if not observed.keys:
-        return 0, float("nan")
+def _free_first_sights(
+    observed: ObservedDrivers, gap_layout: bool, censoring: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The observed drivers' first sights (their observation rows), each one's first-sight
+    v / limit over its driver's top, and which are free: not ``held_at_sight``, at least
+    ``QUEUED_ENTRY_SHARE`` of the median ratio, a known top."""
     idx = first_sights(observed)
     obs = observed.obs[idx]
     keys = [observed.keys[i] for i in idx.tolist()]
@@ -51,8 +50,21 @@ def free_sights(observed: ObservedDrivers, gap_layout: bool, censoring: str) -> 
     median = np.interp(0.5, QUANTILE_LEVELS, ratio_estimate(observed, censoring).quantiles)
     ok = ~held_at_sight(obs, gap_layout) & (ratio / median >= QUEUED_ENTRY_SHARE)
     ok &= np.isfinite(top) & (top > 0)
-    n = int(ok.sum())
-    return n, float(np.median(ratio[ok] / top[ok])) if n else float("nan")
+    return obs, ratio / np.where(ok, top, 1.0), ok
+
+
+def _median(at_own: np.ndarray, sel: np.ndarray) -> float:
+    return float(np.median(at_own[sel])) if sel.any() else float("nan")
+
+
+def free_sights(observed: ObservedDrivers, gap_layout: bool, censoring: str) -> tuple[int, float]:
+    """How many of the observed drivers' first sights are free (``_free_first_sights``) and
+    their median first-sight v / limit over their driver's top (NaN where none):
+    ``entry_choice``'s reading of the sights it does not read."""
+    if not observed.keys:
+        return 0, float("nan")
+    _, at_own, ok = _free_first_sights(observed, gap_layout, censoring)
+    return int(ok.sum()), _median(at_own, ok)
 
 
 def insertion_sights(
@@ -62,21 +74,9 @@ def insertion_sights(
     limit over their driver's top, and the same over the other free sights (NaN where none)."""
     if not observed.keys:
         return 0, float("nan"), float("nan")
-    idx = first_sights(observed)
-    obs = observed.obs[idx]
-    keys = [observed.keys[i] for i in idx.tolist()]
-    top = np.array([observed.ratio.get(k, observed.lower.get(k, np.nan)) for k in keys])
-    ratio = obs[:, 0] / np.maximum(obs[:, LIMIT_COLUMN], 0.1)
-    median = np.interp(0.5, QUANTILE_LEVELS, ratio_estimate(observed, censoring).quantiles)
-    ok = ~held_at_sight(obs, gap_layout) & (ratio / median >= QUEUED_ENTRY_SHARE)
-    ok &= np.isfinite(top) & (top > 0)
+    obs, at_own, ok = _free_first_sights(observed, gap_layout, censoring)
     ins = ok & at_insertion(obs, gap_layout)
-    rest = ok & ~ins
-
-    def med(sel: np.ndarray) -> float:
-        return float(np.median(ratio[sel] / top[sel])) if sel.any() else float("nan")
-
-    return int(ins.sum()), med(ins), med(rest)
+    return int(ins.sum()), _median(at_own, ins), _median(at_own, ok & ~ins)
 
 
 def main(argv: list[str] | None = None) -> int:
