@@ -91,13 +91,15 @@ def _queue_scenario(tmp_path: Path, reaction_s: float) -> Path:
     return queue_at_light(tmp_path / f"queue_{reaction_s}.toml", GREEN_S, deploy)
 
 
-def _queue_starts(tmp_path: Path, reaction_s: float) -> tuple[pd.Series, dict]:
+def queue_starts(toml: Path, bound: int) -> tuple[pd.Series, dict]:
     """Each queued car's start after the green [s] (its first step above 0.5 m/s), in queue
-    order, the cars driven by a policy that always brakes: the floor alone starts them."""
-    sc = load_scenario(_queue_scenario(tmp_path, reaction_s))
+    order, of ``deploy_nets.queue_at_light``'s scenario ``toml``, the cars driven at the
+    accel bound ``bound`` (0: always braking, the floor alone starts them; 1: full throttle,
+    the safe speed's cap alone)."""
+    sc = load_scenario(toml)
     section = read_section(sc.resolve(sc.network.net_file), ["A", "B"], False)
-    a_min = sc.bounds.accel_mps2[0]
-    drv = SectionSpeedDriver(sc, section, 0, lambda obs: np.full(len(obs), a_min), "sumo")
+    a = sc.bounds.accel_mps2[bound]
+    drv = SectionSpeedDriver(sc, section, 0, lambda obs: np.full(len(obs), a), "sumo")
     light = sc.resolve(sc.network.net_file).parent / "light.add.xml"
     df, stats = _run_section(sc, drv, (light,))
     after = df[df["time_s"] > GREEN_S]
@@ -114,7 +116,7 @@ def test_a_reaction_time_starts_the_floored_queue_later(tmp_path: Path) -> None:
     collides or teleports."""
     lags = {}
     for reaction in (0.0, 1.0):
-        starts, stats = _queue_starts(tmp_path / str(reaction), reaction)
+        starts, stats = queue_starts(_queue_scenario(tmp_path / str(reaction), reaction), 0)
         assert stats["collisions"] == 0 and stats["teleports"] == 0, stats
         assert len(starts) >= 8, starts  # the queue stood
         lags[reaction] = starts.diff().dropna()

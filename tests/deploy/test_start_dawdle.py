@@ -12,21 +12,17 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import pytest
 from deploy_nets import queue_at_light
-from test_safety import _run_section
+from test_floor_reaction import GREEN_S, queue_starts
 
-from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.population import DriveStats
 from macromicro_sumo.deploy.safety import reaction_safe_speed, speed_commands, start_dawdled
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.road.physics import safe_speed
-from macromicro_sumo.road.section import read_section
 from macromicro_sumo.scenario.load import load_scenario
 
 DT = 0.5
-GREEN_S = 80.0  # the queue's light turns green [s]
 
 
 def test_only_commands_below_the_accel_dawdle() -> None:
@@ -84,21 +80,6 @@ def test_speed_commands_start_later(tmp_path: Path) -> None:
         assert got[k][1] == pytest.approx(8.0 + 2.6 * DT)
 
 
-def _queue_starts(tmp_path: Path, sigma: float, reaction_s: float) -> tuple[pd.Series, dict]:
-    """Each queued car's start after the green [s] (its first step above 0.5 m/s), in queue
-    order, the cars driven full throttle: the safe speed's cap alone starts them."""
-    sc = load_scenario(_queue_scenario(tmp_path, sigma, reaction_s))
-    section = read_section(sc.resolve(sc.network.net_file), ["A", "B"], False)
-    a_max = sc.bounds.accel_mps2[1]
-    drv = SectionSpeedDriver(sc, section, 0, lambda obs: np.full(len(obs), a_max), "sumo")
-    light = sc.resolve(sc.network.net_file).parent / "light.add.xml"
-    df, stats = _run_section(sc, drv, (light,))
-    after = df[df["time_s"] > GREEN_S]
-    starts = after[after["speed_mps"] > 0.5].groupby("vehicle_id")["time_s"].min() - GREEN_S
-    queued = df[(df["time_s"] == GREEN_S) & (df["speed_mps"] < 0.1)]["vehicle_id"]
-    return starts.loc[sorted(queued)], stats
-
-
 def test_the_rules_start_a_full_throttle_queue_later(tmp_path: Path) -> None:
     """A standing queue driven full throttle at a real SUMO light: with one-step safe
     speeds each car moves off (above 0.5 m/s) the step after its leader (0.5 s a car;
@@ -107,7 +88,8 @@ def test_the_rules_start_a_full_throttle_queue_later(tmp_path: Path) -> None:
     sooner than a step; none collides or teleports."""
     lags = {}
     for sigma, reaction in ((0.0, 0.0), (0.5, 0.0), (0.5, 1.0)):
-        starts, stats = _queue_starts(tmp_path / f"{sigma}_{reaction}", sigma, reaction)
+        toml = _queue_scenario(tmp_path / f"{sigma}_{reaction}", sigma, reaction)
+        starts, stats = queue_starts(toml, 1)  # full throttle: the cap alone starts them
         assert stats["collisions"] == 0 and stats["teleports"] == 0, stats
         assert len(starts) >= 8, starts  # the queue stood
         lags[sigma, reaction] = starts.diff().dropna()
