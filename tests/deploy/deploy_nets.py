@@ -164,12 +164,15 @@ def idm_agent(observation: str, limit: float, seed: int = 0, steps: int = 400) -
     return agent
 
 
-def queue_at_light(toml: Path, green_s: float, deploy: dict) -> Path:
+def queue_at_light(
+    toml: Path, green_s: float, deploy: dict, b_m: float = 200.0, after_s: float = 40.0
+) -> Path:
     """One lane A (150 m, 14 m/s) -> a light, red for the first ``green_s``, then green ->
-    B (200 m); 12 cars leave 2 s apart and queue at the red. Returns the scenario file
-    ``toml`` (its folder's ``net`` holds the files), deploying with ``deploy``."""
+    B (``b_m``); 12 cars leave 2 s apart and queue at the red; the run ends ``after_s``
+    after the green. Returns the scenario file ``toml`` (its folder's ``net`` holds the
+    files), deploying with ``deploy``."""
     folder = toml.parent / "net"
-    net = light_road(folder, 150.0, 200.0, 14.0)
+    net = light_road(folder, 150.0, b_m, 14.0)
     cars = "\n".join(
         f'<vehicle id="c{k:02d}" type="car" depart="{2 * k}" departSpeed="max">'
         '<route edges="A B"/></vehicle>'
@@ -190,7 +193,7 @@ def queue_at_light(toml: Path, green_s: float, deploy: dict) -> Path:
         ["A", "B"],
         seed=3,
         penetration=0.01,
-        simulation={"warmup_s": 0.0, "duration_s": green_s + 40.0, "n_runs": 1},
+        simulation={"warmup_s": 0.0, "duration_s": green_s + after_s, "n_runs": 1},
         detectors={"interval_s": 30.0},
         deploy=deploy,
     )

@@ -9,9 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import light_road
-from deploy_nets import CAR, sparse_merge
-from section_files import section_scenario
+from deploy_nets import queue_at_light, sparse_merge
 from test_safety import _run_section
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
@@ -65,32 +63,10 @@ GREEN_S = 60.0  # the queue's light turns green [s]
 
 
 def _queue(tmp_path: Path, sigma: float) -> Path:
-    """One lane A (150 m, 14 m/s) -> a light, red for the first ``GREEN_S``, then green ->
-    B (300 m); 12 cars leave 2 s apart and queue at the red; ``deploy.command_dawdle``."""
-    folder = tmp_path / "net"
-    net = light_road(folder, 150.0, 300.0, 14.0)
-    cars = "\n".join(
-        f'<vehicle id="c{k:02d}" type="car" depart="{2 * k}" departSpeed="max">'
-        '<route edges="A B"/></vehicle>'
-        for k in range(12)
-    )
-    (folder / "queue.rou.xml").write_text(f"<routes>\n{CAR}\n{cars}\n</routes>\n")
-    (folder / "light.add.xml").write_text(
-        '<additional>\n<tlLogic id="tl" type="static" programID="p" offset="0">\n'
-        f'<phase duration="{GREEN_S:g}" state="r"/>\n<phase duration="1000" state="G"/>\n'
-        "</tlLogic>\n</additional>\n"
-    )
-    return section_scenario(
-        tmp_path / f"queue_{sigma}.toml",
-        net,
-        folder / "queue.rou.xml",
-        ["A", "B"],
-        seed=3,
-        penetration=0.01,
-        simulation={"warmup_s": 0.0, "duration_s": GREEN_S + 60.0, "n_runs": 1},
-        detectors={"interval_s": 30.0},
-        deploy={"command_dawdle": sigma},
-    )
+    """``deploy_nets.queue_at_light`` with B 300 m long, 60 s of green and
+    ``deploy.command_dawdle``."""
+    toml = tmp_path / f"queue_{sigma}.toml"
+    return queue_at_light(toml, GREEN_S, {"command_dawdle": sigma}, b_m=300.0, after_s=60.0)
 
 
 def test_a_queue_discharges_at_the_dawdled_acceleration_in_sumo(tmp_path: Path) -> None:
