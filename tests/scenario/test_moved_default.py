@@ -35,6 +35,14 @@ def test_moved_defaults_are_recorded_and_their_old_values_left_out() -> None:
     assert "keep_right" not in deploy and sc.deploy.keep_right == "off"
 
 
+def _redone(name: str, before: dict, now: dict, tmp_path: Path) -> tuple[Stage, dict, set[str]]:
+    """Stage ``name``, its settings as ``before`` recorded them, and the keys whose recorded
+    value differs from ``now``'s: what ``pipeline.schedule`` redoes the stage on."""
+    stage = Stage(name, tmp_path / "manifest.json", run=lambda: None)
+    have, want = stage_settings(before, stage), stage_settings(now, stage)
+    return stage, have, {k for k in have.keys() | want.keys() if have.get(k) != want.get(k)}
+
+
 def test_a_stage_recorded_before_the_default_moved_is_redone(tmp_path: Path) -> None:
     """The recorded scenario of a run deployed before (neither key: the old defaults) differs
     from today's in exactly the moved keys, which is what ``pipeline.schedule`` redoes on."""
@@ -42,9 +50,7 @@ def test_a_stage_recorded_before_the_default_moved_is_redone(tmp_path: Path) -> 
     before = sc.to_dict()
     for key, _, _ in MOVED:
         del before["deploy"][key]
-    stage = Stage("deploy", tmp_path / "manifest.json", run=lambda: None)
-    have, want = stage_settings(before, stage), stage_settings(sc.to_dict(), stage)
-    changed = {k for k in have.keys() | want.keys() if have.get(k) != want.get(k)}
+    stage, have, changed = _redone("deploy", before, sc.to_dict(), tmp_path)
     assert changed == {f"deploy.{key}" for key, _, _ in MOVED}
     # A run that set the old values explicitly recorded none of them: nothing to redo.
     old = {f"deploy.{key}": value for key, _, value in MOVED}
@@ -69,9 +75,7 @@ def test_moved_policy_defaults_are_recorded_and_retrain(tmp_path: Path) -> None:
     before = sc.to_dict()
     for key, _, _ in POLICY_MOVED:
         del before["policy"][key]
-    stage = Stage("policy", tmp_path / "manifest.json", run=lambda: None)
-    have, want = stage_settings(before, stage), stage_settings(sc.to_dict(), stage)
-    changed = {k for k in have.keys() | want.keys() if have.get(k) != want.get(k)}
+    stage, have, changed = _redone("policy", before, sc.to_dict(), tmp_path)
     assert changed == {f"policy.{key}" for key, _, _ in POLICY_MOVED}
     old = {f"policy.{key}": value for key, _, value in POLICY_MOVED}
     said = load_scenario(PAPER_SCENARIO, {**MEMORY, **old}).to_dict()
