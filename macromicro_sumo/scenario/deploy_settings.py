@@ -99,6 +99,15 @@ class DeployConfig:
         "(the one-step cap alone) [s]",
         omit_default=True,  # the digests of scenarios that do not set it stay as they were
     )
+    start_rules: str = spec(
+        "all",
+        choices=("all", "signal_lanes"),
+        doc="the vehicles start_dawdle and start_reaction_s apply to: all, every driven one; "
+        "signal_lanes, those on a lane that can have a signal ahead "
+        "(sumo.signal_reach.signal_lanes): a queue at a light starts as SUMO's drivers, a "
+        "standing one elsewhere (a motorway's merge queue) as without the rules",
+        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+    )
     yellow: str = spec(
         "onset",
         choices=("stop", "onset", "ahead", "sumo"),
