@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from macromicro_sumo.data.vtypes import MEMBER_SEP
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.sumo.demand import VCLASS_DEFAULT, VCLASS_DEFAULTS
 
@@ -34,9 +35,6 @@ MIN_GAP_SD_M = 0.5
 MIN_GAP_RANGE_M = (1.0, 4.0)
 LENGTH_CLIP = 2.0
 """Members' lengths and minGaps are cut at this many standard deviations (no 0 m car)."""
-MEMBER_SEP = "~"
-"""Between a vType's id and its member's number (``car~07``): a character SUMO ids allow
-and the demands seen do not use."""
 
 
 def member_shapes(
