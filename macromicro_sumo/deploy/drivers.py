@@ -224,6 +224,16 @@ class SectionSpeedDriver(DriverObserve, LaneAsks, MergeYield, SectionDriver):
             self.slots.vmax[slots],
             self.slots.accel[slots],
             bool(self.has_lights),  # deploy.command_dawdle = "signals"
+            self.start_on(lanes),
         )
         sim.set_speeds(vids, cmd)
         self.slots.commanded(slots, cmd)
+
+    def start_on(self, lanes: list[str]) -> np.ndarray | None:
+        """``deploy.start_rules`` "signal_lanes": per driven vehicle, whether its lane can have
+        a signal ahead (the start rules apply to it); None: all (the rules apply to all)."""
+        if self.sc.deploy.start_rules == "all":
+            return None
+        if not self.signal_lanes:  # no light, or none reached from the section: nobody
+            return np.zeros(len(lanes), bool)
+        return np.fromiter(map(self.signal_lanes.__contains__, lanes), bool, len(lanes))

@@ -158,7 +158,7 @@ def safety_cap(
     lead_speed: np.ndarray | None = None,
     vmax: np.ndarray | float = np.inf,
     floor_safe: np.ndarray | None = None,
-    start: tuple[np.ndarray | float, float] | None = None,
+    start: tuple[np.ndarray | float, float, np.ndarray | None] | None = None,
 ) -> tuple[np.ndarray, int, int]:
     """Speed commands ``cmd`` [m/s] made safe: capped at ``safe_speed`` behind each
     vehicle's observed leader (``gap``: SUMO's gap to it, ``NO_LEADER_GAP_M`` or more:
@@ -173,8 +173,9 @@ def safety_cap(
     vehicle (the bound, at most the vType's accel: ``speed_commands``); ``floor_safe``:
     the safe speed the floor is capped at where it is not ``safe`` (at most it:
     ``reaction_safe_speed``, ``deploy.safety_floor_reaction_s``); ``start``: (the
-    vehicles' accel, sigma) of ``deploy.start_dawdle`` (``start_dawdled``, applied to the
-    capped and floored command and, for the counts, to ``cmd``). Returns (commands,
+    vehicles' accel, sigma, the vehicles it applies to or None: all) of
+    ``deploy.start_dawdle`` (``start_dawdled``, applied to the capped and floored command
+    and, for the counts, to ``cmd``). Returns (commands,
     how many the layer lowered, how many it raised), each by more than
     ``SAFETY_TOLERANCE_MPS``."""
     if lead_speed is None:
@@ -191,8 +192,8 @@ def safety_cap(
     out = np.maximum(capped, floor)
     if start is not None:  # before behind_commands: a driven follower sees the dawdled one
         least = obs[:, 0] - decel * dt_s  # never braking beyond the decel, as SUMO's
-        out = start_dawdled(out, start[0], start[1], dt_s, least)
-        cmd = start_dawdled(cmd, start[0], start[1], dt_s, least)
+        out = start_dawdled(out, start[0], start[1], dt_s, least, start[2])
+        cmd = start_dawdled(cmd, start[0], start[1], dt_s, least, start[2])
     out = behind_commands(out, gap, lead, decel, lead_decel, dt_s, lead_speed)
     return out, int(count_nonzero(out < cmd - _TOLERANCE)), raised
 
@@ -203,6 +204,7 @@ def start_dawdled(
     sigma: float,
     dt_s: float,
     least: np.ndarray | float = 0.0,
+    on: np.ndarray | None = None,
 ) -> np.ndarray:
     """``deploy.start_dawdle`` = ``sigma``: each speed command [m/s] below the vehicle's
     ``accel`` [m/s^2, as a number] lowered by SUMO's Krauss dawdle of a starting driver,
@@ -216,8 +218,11 @@ def start_dawdled(
     bound from the current speed v, nothing at v = 0, and never off a command the safe
     speed capped: a standing queue's car went at room / dt the step after its leader
     moved (1164: start lags 0.52-0.58 s a car, the truth's 0.84-0.95). Lowering a command
-    is safe; the driven followers are capped behind it (``behind_commands``)."""
+    is safe; the driven followers are capped behind it (``behind_commands``). ``on``: the
+    vehicles it applies to (``deploy.start_rules``; None: all)."""
     low = cmd < accel
+    if on is not None:
+        low &= on
     if not count_nonzero(low):
         return cmd
     dawdled = np.maximum(cmd * (1.0 - 0.5 * sigma * dt_s), np.minimum(cmd, least))
@@ -361,6 +366,7 @@ def speed_commands(
     vmax: np.ndarray | float = np.inf,
     accel: np.ndarray | float = np.inf,
     lights: bool = False,
+    start_on: np.ndarray | None = None,
 ) -> np.ndarray:
     """Speed commands v' = max(0, v + a dt) [m/s] of the batched action ``act`` at
     observations ``obs`` (v in column 0, the lane's limit in column 1), a clipped to the
@@ -379,15 +385,20 @@ def speed_commands(
     so is the floor's reach (an inf: the bound alone; a scalar bound where none is lower,
     the same values as before the cap); with ``deploy.command_dawdle`` both are at most
     ``dawdled_accel``'s (``auto_dawdled_accel``'s with "auto", and with "signals" where
-    ``lights``: the network has traffic lights)."""
+    ``lights``: the network has traffic lights). ``start_on``: the vehicles the start rules
+    (``deploy.start_dawdle``, ``deploy.start_reaction_s``) apply to, by
+    ``deploy.start_rules`` (None: all; none of them: the commands without the rules, to the
+    bit)."""
     a_min, a_max = sc.bounds.accel_mps2
     lo, hi = constants(a_min, a_max)
     # A vehicle that cannot reach the bound: its own (accel_limit; where none is below the
     # bound it is the bound: count_nonzero here costs a tenth of np.any there, a step).
     if not isinstance(accel, np.ndarray) or count_nonzero(np.less(accel, hi)):
         a_max = accel_limit(a_max, accel)
-    start_sigma = sc.deploy.start_dawdle
-    start = (a_max, start_sigma) if start_sigma > 0.0 else None  # undawdled: SUMO's a
+    start_sigma, start_tau = sc.deploy.start_dawdle, sc.deploy.start_reaction_s
+    if start_on is not None and not count_nonzero(start_on):
+        start_sigma = start_tau = 0.0  # nobody's: the path without the rules
+    start = (a_max, start_sigma, start_on) if start_sigma > 0.0 else None  # SUMO's a
     sigma = sc.deploy.command_dawdle
     if sigma == "auto" or (sigma == "signals" and lights):
         a_max = auto_dawdled_accel(a_max, obs[:, 0], getattr(act, "prior_accel_mps2", None))
@@ -413,13 +424,26 @@ def speed_commands(
         v_l = obs[:, 0] - obs[:, 3] if lead_speed is None else lead_speed
         floor_safe = reaction_safe_speed(gap, v_l, decel, lead_decel, dt, tau)
         floor_safe[obs[:, 0] >= _STANDING_BELOW] = _INF
-    if (start_tau := sc.deploy.start_reaction_s) > 0.0:
+    if start_tau > 0.0:
         # A standing vehicle's command and floor at most SUMO's Krauss safe speed with the
-        # drivers' tau, as its own drivers start (deploy.start_reaction_s).
-        v_l = obs[:, 0] - obs[:, 3] if lead_speed is None else lead_speed
-        start_safe = reaction_safe_speed(gap, v_l, decel, lead_decel, dt, start_tau)
-        start_safe[obs[:, 0] >= _STANDING_BELOW] = _INF
-        cmd = np.minimum(cmd, start_safe)
-        floor_safe = start_safe if floor_safe is None else np.minimum(floor_safe, start_safe)
+        # drivers' tau, as its own drivers start (deploy.start_reaction_s): computed for
+        # the standing ones alone (elementwise IEEE operations: the same values as over all).
+        standing = obs[:, 0] < _STANDING_BELOW
+        if start_on is not None:
+            standing &= start_on
+        idx = standing.nonzero()[0]
+        if idx.size:  # none: the floor's and the cap's values as with every one at inf
+            v_l = obs[:, 0] - obs[:, 3] if lead_speed is None else lead_speed
+            start_safe = np.full(len(cmd), _INF)
+            start_safe[idx] = reaction_safe_speed(
+                gap[idx], v_l[idx], _at(decel, idx), _at(lead_decel, idx), dt, start_tau
+            )
+            cmd = np.minimum(cmd, start_safe)
+            floor_safe = start_safe if floor_safe is None else np.minimum(floor_safe, start_safe)
     args = (cmd, obs, gap, decel, lead_decel, lead, dt, a_max, floor, safe, lead_speed, vmax)
     return stats.count_safety(*safety_cap(*args, floor_safe, start))
+
+
+def _at(x: np.ndarray | float, idx: np.ndarray) -> np.ndarray | float:
+    """``x`` at ``idx`` where it is per vehicle, else the one value for all."""
+    return x[idx] if np.ndim(x) else x
