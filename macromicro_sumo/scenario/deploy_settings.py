@@ -111,13 +111,15 @@ class DeployConfig:
     yellow: str = spec(
         "onset",
         choices=("stop", "onset", "ahead", "sumo"),
-        doc="a driven vehicle's yellow light: stop, a stop like a red; onset, decided the "
-        "first step it sees it as SUMO's drivers do: a stop where it can brake before the "
-        "line at its decel, else it passes while the light stays yellow (never a red; "
-        "sumo.stop_lines; measured: docs/deploy.md, The defaults); ahead, onset's rule "
-        "decided on the last green step, from the state SUMO's drivers decide it from (the "
-        "light switches at the start of SUMO's step, before they move; measured: a step "
-        "before that); sumo, SUMO's own rule: decided on the switch's step, a stop where the "
+        doc="a driven vehicle's yellow light: stop, a stop like a red; onset, decided once, "
+        "the first step it sees it (a step after SUMO's drivers): a stop where it can brake "
+        "before the line less its jmStoplineGap at its decel, else it passes while the light "
+        "stays yellow (never a red; sumo.stop_lines; measured: docs/deploy.md, The "
+        "defaults); ahead, onset's rule decided on the last green step but one (the "
+        "light's next switch within one step), a step before SUMO's drivers decide and a "
+        "step further from the line: it stops more cars than SUMO's rule; sumo, SUMO's own "
+        "rule: decided on the switch's step (the last step that reads green: the light "
+        "switches at the start of SUMO's step, before its drivers move), a stop where the "
         "distance less the lane's stopOffset holds the braking distance at max(min(3, "
         "emergencyDecel), decel) (sumo.stop_lines)",
         # A deployment setting whose default moved from stop to onset (stop 44): left out of
