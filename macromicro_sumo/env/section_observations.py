@@ -71,18 +71,18 @@ def section_observations(
         return obs, leader, spacing
     ln, s, v = lane[idx], arc_m[idx], speed_mps[idx]
     route = None if on_route is None else on_route[idx]
-    lead, gap, kind = section_ahead(section, ln, s, stop_lane, stop_arc_m, route)
+    own = None if length_m is None else length_m[idx]
+    stop_gap = STOPLINE_GAP_M if stopline_gap_m is None else stopline_gap_m[idx]
+    min_gap = STANDING_MIN_GAP_M if min_gap_m is None else min_gap_m[idx]
+    # With the lengths, a vehicle standing across a red line leads its follower where SUMO's
+    # gap to it is less than to the line (the stop points ordered against the tails).
+    lead, gap, kind = section_ahead(
+        section, ln, s, stop_lane, stop_arc_m, route, own, min_gap, stop_gap
+    )
     standing = lead == STOP
-    if length_m is not None and standing.any():
+    if own is not None and standing.any():
         red = kind == AHEAD_RED  # a stop point given (a red line); else a lane's end
-        stop_gap = STOPLINE_GAP_M if stopline_gap_m is None else stopline_gap_m[idx]
-        min_gap = STANDING_MIN_GAP_M if min_gap_m is None else min_gap_m[idx]
-        gap = np.where(
-            standing, standing_spacing_m(gap, length_m[idx], stop_gap * red, min_gap), gap
-        )
-        if red.any():
-            lead, gap = _across_the_line(section, ln, s, route, length_m[idx], red, lead, gap)
-            standing = lead == STOP
+        gap = np.where(standing, standing_spacing_m(gap, own, stop_gap * red, min_gap), gap)
     has = lead >= 0
     leader[idx[has]] = idx[lead[has]]
     leader[idx[standing]] = STOP  # readers take >= 0 as a vehicle; the code says which
@@ -104,38 +104,11 @@ def section_observations(
         o[:, 1] *= factor[idx]
         if o.shape[1] > 4:
             o[:, 4] *= factor[idx]
-    own = None if length_m is None else length_m[idx]
     set_own_features(o, observation, own)
     if observes_gap(observation):  # the leader's length; a standing leader's is the own
         set_leader_gap(o, observation, np.where(has, own[np.maximum(lead, 0)], own))
     obs[idx] = o
     return obs, leader, spacing
-
-
-def _across_the_line(
-    section: Section,
-    lane: np.ndarray,
-    arc_m: np.ndarray,
-    on_route: np.ndarray | None,
-    length_m: np.ndarray,
-    red: np.ndarray,
-    lead: np.ndarray,
-    spacing: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """``lead`` / ``spacing`` where a vehicle standing across a red line is nearer than the
-    line: the stop points sort by the line's arc and vehicles by their fronts, so a vehicle
-    whose front is past the line but whose tail is not hid behind the line from whoever
-    followed it (drawn arterial 1701: a follower braked for the line 17.6 m ahead and ran
-    into the tail 8.4 m ahead, stop 48). The vehicles' own leaders are found again without
-    the stop points and compared as the deployment compares SUMO's leader with its stop
-    (``road.leaders.nearer_standing``: the leader's length against the own)."""
-    veh, veh_spacing, _ = section_ahead(section, lane, arc_m, None, None, on_route)
-    car = red & (veh >= 0)
-    own = length_m
-    lead_len = np.where(car, length_m[np.maximum(veh, 0)], own)
-    # The line is nearer where its standing spacing, shifted to the leader's length, is less.
-    nearer_car = car & ~(spacing + lead_len - own < veh_spacing)
-    return np.where(nearer_car, veh, lead), np.where(nearer_car, veh_spacing, spacing)
 
 
 def stop_points(
