@@ -148,7 +148,9 @@ class StopLineReader:
         ``upcoming``: a light's state string from the coming step on where it switches
         then (None: it does not): a green link turning yellow is decided now, as SUMO's
         drivers meet the switch within that step (the light switches before they move),
-        where a driver that waits for it decides a step late, a step nearer the line.
+        where a driver that waits for it decides a step late, a step nearer the line; one
+        that says it a step before the switch too (``Upcoming`` within a step,
+        ``deploy.yellow = "ahead"``) decides there, a step before SUMO's drivers.
         ``by_offset``: it can stop where its braking distance is at most its distance less
         the link lane's stopOffset for its class (0: none), SUMO's canBrakeBeforeStopLine,
         not less its jmStoplineGap."""
