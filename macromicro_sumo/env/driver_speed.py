@@ -313,6 +313,37 @@ def resolved_entry(sc, truth, runs: np.ndarray | None = None) -> tuple[Any, Entr
     return dataclasses.replace(sc, policy=policy), choice
 
 
+def entry_record(choice: EntryChoice) -> dict[str, Any]:
+    """What a stage records of ``policy.driver_entry = "auto"`` resolved (``entry_choice``):
+    the rule, the observed first sights it read and why, so that a manifest says which rule
+    its policy trained with (auto's meaning moved at stop 48: "insertion" where the free
+    sights are slow too). NaN shares (no such sight) are None, which JSON can hold."""
+
+    def share(x: float) -> float | None:
+        return round(float(x), 4) if np.isfinite(x) else None
+
+    held_below = choice.held_sights >= MIN_HELD_SIGHTS and choice.at_own < ENTRY_AT_OWN_SHARE
+    free_below = choice.free_sights >= MIN_HELD_SIGHTS and choice.free_at_own < ENTRY_AT_OWN_SHARE
+    test = f"at least {MIN_HELD_SIGHTS} sights, median under {ENTRY_AT_OWN_SHARE:g} of their tops"
+    if choice.held_sights == 0 and choice.free_sights == 0:
+        why = "no observed first sight read (none, or policy.driver_speed not memory): queued"
+    elif not held_below:
+        why = f"held first sights not below their drivers' speed ({test}): queued"
+    elif free_below:
+        why = f"held and free first sights both below their drivers' speed ({test}): insertion"
+    else:
+        why = f"held first sights below their drivers' speed, free ones not ({test}): held"
+    return {
+        "setting": "auto",
+        "resolved": choice.entry,
+        "held_sights": int(choice.held_sights),
+        "held_at_own": share(choice.at_own),
+        "free_sights": int(choice.free_sights),
+        "free_at_own": share(choice.free_at_own),
+        "why": why,
+    }
+
+
 def driver_entry(sc) -> str:
     """``policy.driver_entry`` (a scenario without it: "queued"); "auto" must have been
     resolved (``entry_choice``) before a "memory" driver reads it. Where

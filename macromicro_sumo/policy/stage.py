@@ -19,7 +19,12 @@ import torch
 
 from macromicro_sumo.data.section import section_snapshots, split_runs
 from macromicro_sumo.env.demand import DemandCore
-from macromicro_sumo.env.driver_speed import drivers_bank, resolved_entry
+from macromicro_sumo.env.driver_speed import (
+    EntryChoice,
+    drivers_bank,
+    entry_record,
+    resolved_entry,
+)
 from macromicro_sumo.env.observed_drivers import driver_ratios
 from macromicro_sumo.env.section import SectionCore
 from macromicro_sumo.env.section_bank import (
@@ -72,6 +77,8 @@ class Episodes:
     make_demand: Callable[[], DemandCore] | None = None
     # The observed drivers' desired-speed ratio quantiles (``policy.driver_speed``).
     driver_speed: np.ndarray | None = None
+    # policy.driver_entry "auto" resolved (None: set explicitly), for the manifest.
+    entry: EntryChoice | None = None
 
 
 def policy_run_key(sc, data: Path, generator: Path, objective: str) -> str:
@@ -93,11 +100,13 @@ def driver_speed_quantiles(sc: SectionScenario, truth, runs: np.ndarray) -> np.n
 class EpisodeInputs:
     """What ``section_episodes`` reads of the ground truth alone, the same for every
     generator: the train + val runs' snapshots, the scenario with ``policy.driver_entry``
-    "auto" resolved, and the observed drivers' desired-speed ratio quantiles (None: none)."""
+    "auto" resolved, the observed drivers' desired-speed ratio quantiles (None: none), and
+    what "auto" resolved to (None: set explicitly)."""
 
     snaps: Any
     drivers_sc: Any
     quantiles: np.ndarray | None
+    entry: EntryChoice | None = None
 
 
 def episode_inputs(sc: SectionScenario, truth, splits: dict[str, np.ndarray]) -> EpisodeInputs:
@@ -106,10 +115,12 @@ def episode_inputs(sc: SectionScenario, truth, splits: dict[str, np.ndarray]) ->
     runs = np.concatenate([splits["train"], splits["val"]])
     # policy.driver_entry "auto": the rule the observed drivers of these runs say, read by
     # the banks and the demand episodes as by the deployment (``resolved_entry``)
+    drivers_sc, entry = resolved_entry(sc, truth, runs)
     return EpisodeInputs(
         section_snapshots(truth, sc, runs),
-        resolved_entry(sc, truth, runs)[0],
+        drivers_sc,
         driver_speed_quantiles(sc, truth, runs),
+        entry,
     )
 
 
@@ -160,7 +171,7 @@ def section_episodes(
     def make_demand() -> DemandCore:
         return DemandCore(drivers_sc, truth, demand_runs, horizon)
 
-    return Episodes(bank, make_core, make_demand, quantiles)
+    return Episodes(bank, make_core, make_demand, quantiles, inputs.entry)
 
 
 def fit_stage_prior(
@@ -307,6 +318,8 @@ def run_train_policy(
     )
     if "warmup_states" in res:  # the warm-up anchors' states (policy.residual)
         extra["warmup_states"] = res["warmup_states"]
+    if episodes.entry is not None:  # what "auto" trained with, and why (its meaning moved)
+        extra["driver_entry"] = entry_record(episodes.entry)
     return write_policy_manifest(
         sc, command, objective, res, data, generator, out, episodes=len(episodes.bank), **extra
     )
