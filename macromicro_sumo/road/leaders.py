@@ -181,31 +181,40 @@ def _across_the_line(
     f = np.flatnonzero(nxt[:v] >= v)
     if not f.size:
         return
-    line = gap[f]
-    car = nxt[nxt[f]]
-    spacing = line + gap[nxt[f]]
-    hops = np.zeros(f.size, dtype=np.int64)
-    for _ in range(len(nxt) - v):  # two red lines within a vehicle's length: rare
-        more = np.flatnonzero(car >= v)
-        if not more.size:
-            break
-        spacing[more] += gap[car[more]]
-        car[more] = nxt[car[more]]
-        hops[more] += 1
+    p = nxt[f]
+    car, past = nxt[p], gap[p]  # what lies past the line, the arc from the line to it
+    hops = None
+    if (car >= v).any():  # two red lines within a vehicle's length: rare
+        hops = np.zeros(f.size, dtype=np.int64)
+        for _ in range(len(nxt) - v):
+            more = np.flatnonzero(car >= v)
+            if not more.size:
+                break
+            past[more] += gap[car[more]]
+            car[more] = nxt[car[more]]
+            hops[more] += 1
+    # Only a vehicle whose tail is less than minGap past the line can be nearer than it
+    # (SUMO's gap to it, past - its length - minGap, against the line's, at least 0): most
+    # followers of a line are done here (0.01 m spare for the sums' last bits).
     ok = car >= 0
+    ok &= past - length_m[np.where(ok, car, 0)] < np.max(min_gap_m) + 0.01
+    if not ok.any():
+        return
+    f, p, car = f[ok], p[ok], car[ok]
+    line = gap[f]
+    spacing = line + past[ok]
     if walk is not None:
         span, edge, rel, node, off = walk
-        nd, c = node[f], np.maximum(car, 0)
+        nd = node[f]
         # In the follower's node (past an open section's last edge end): the arcs' difference.
-        same = ok & (node[c] == nd)
-        spacing = np.where(same, rel[c] - rel[f], spacing)
+        same = node[car] == nd
         # The line its node's last, the vehicle the one met downstream of that node: the arc
         # to the node's end plus the node's offset to it.
-        beyond = ok & ~same & (hops == 0) & (node[nxt[f]] == nd)
+        beyond = ~same & (node[p] == nd)
+        if hops is not None:
+            beyond &= hops[ok] == 0
+        spacing = np.where(same, rel[car] - rel[f], spacing)
         spacing = np.where(beyond, (span[edge[f]] - rel[f]) + off[nd], spacing)
-    f, line, car, spacing = f[ok], line[ok], car[ok], spacing[ok]
-    if not f.size:
-        return
     own = length_m[f]
     mg = min_gap_m if np.ndim(min_gap_m) == 0 else np.asarray(min_gap_m)[f]
     sg = stopline_gap_m if np.ndim(stopline_gap_m) == 0 else np.asarray(stopline_gap_m)[f]
