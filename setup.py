@@ -9,7 +9,8 @@ folders. The sdist carries them through MANIFEST.in.
 The compiled parts, optional: ``road/kernels.c`` (``road.physics.safe_speed`` and two more
 of a deployment step's arithmetic in one pass each, bit for bit their numpy form) and
 ``sumo/calls.c`` (a step's per-vehicle libsumo calls and look-ups in one C loop each, the
-same calls), built where a C compiler and Python's headers are found; where not, the
+same calls) and ``sumo/libsumo_cxx.cpp`` (those libsumo calls on libsumo's C++ functions,
+not their SWIG wrappers), built where a C (C++) compiler and Python's headers are found; where not, the
 install goes on and numpy answers (the same values, more time a deployment step). Everything else is in pyproject.toml.
 """
 
@@ -54,4 +55,12 @@ CALLS = Extension(
     optional=True,
 )
 
-setup(cmdclass={"build_py": BuildPyWithExamples}, ext_modules=[KERNELS, CALLS])
+DIRECT = Extension(
+    "macromicro_sumo.sumo.libsumo_cxx",
+    ["macromicro_sumo/sumo/libsumo_cxx.cpp"],
+    extra_compile_args=["-O2"],  # no arithmetic: calls and copies
+    language="c++",
+    optional=True,
+)
+
+setup(cmdclass={"build_py": BuildPyWithExamples}, ext_modules=[KERNELS, CALLS, DIRECT])

@@ -20,7 +20,7 @@ import numpy as np
 import sumolib
 
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.sumo import reads
+from macromicro_sumo.sumo import direct, reads
 from macromicro_sumo.sumo.options import SumoOptions
 from macromicro_sumo.sumo.states import DEFAULT_SPEED_MODE, StopLines, VehicleStates
 from macromicro_sumo.sumo.stop_lines import StopLineReader, yellow_rule
@@ -175,7 +175,7 @@ class Simulation:
 
     def set_speeds(self, vehicle_ids: Sequence[str], speeds_mps: Sequence[float]) -> None:
         """Speed commands for the next step (speed mode 0 applies them exactly)."""
-        reads.send(_SET_SPEED, vehicle_ids, np.asarray(speeds_mps, dtype=float))
+        direct.send(_SET_SPEED, vehicle_ids, np.asarray(speeds_mps, dtype=float))
 
     def move_to(
         self, vehicle_ids: Sequence[str], lane_ids: Sequence[str], lane_pos_m: Sequence[float],
@@ -289,7 +289,7 @@ class Simulation:
 
     def own_speeds(self, vehicle_ids: Sequence[str]) -> np.ndarray:
         """SUMO's own choice of the last step's speed where a command overrode it."""
-        return reads.floats((_OWN_SPEED,), vehicle_ids)[0]
+        return direct.floats("o", (_OWN_SPEED,), vehicle_ids)[0]
 
     @staticmethod
     def blocked_changes(ids: Sequence[str], sides: Sequence[int]) -> tuple[np.ndarray, dict]:
@@ -429,8 +429,8 @@ class Simulation:
         the next step (a recorder after it, a driver before the next) shares the read."""
         if self._states is None:
             ids = _GET_IDS()
-            pos, speed, accel = reads.floats((_GET_POS, _GET_SPEED, _GET_ACCEL), ids)
-            self._states = VehicleStates(ids, reads.each(_GET_LANE, ids), pos, speed, accel)
+            pos, speed, accel = direct.floats("psa", (_GET_POS, _GET_SPEED, _GET_ACCEL), ids)
+            self._states = VehicleStates(ids, direct.lanes(_GET_LANE, ids), pos, speed, accel)
         return self._states
 
     def lane_states(self, vehicle_ids: Sequence[str]) -> tuple[list[str], np.ndarray, np.ndarray]:
@@ -438,8 +438,8 @@ class Simulation:
         (the env cores' read: no ID list, no subscription); a vehicle not yet on the
         road has lane ID ""; one SUMO does not know raises ``KeyError``."""
         try:
-            lanes = reads.each(_GET_LANE, vehicle_ids)
-            pos, speed = reads.floats((_GET_POS, _GET_SPEED), vehicle_ids)
+            lanes = direct.lanes(_GET_LANE, vehicle_ids)
+            pos, speed = direct.floats("ps", (_GET_POS, _GET_SPEED), vehicle_ids)
             return lanes, pos, speed
         except libsumo.TraCIException as exc:
             raise KeyError(str(exc)) from None
@@ -447,12 +447,13 @@ class Simulation:
     def leaders(self, vehicle_ids: Sequence[str], lookahead_m: float) -> list[tuple[str, float]]:
         """(leader ID, SUMO's gap: leader's back - own front - minGap; ("", -1): none) of
         each vehicle within ``lookahead_m`` along the network's lanes (``getLeader``)."""
-        out = reads.each(_GET_LEADER, vehicle_ids, float(lookahead_m))
         # Only the wrapper (no compiled getLeader) may say None: the scan for it, ~2 us a
-        # step of ~42 driven vehicles, is made only then.
-        if _LEADER_MAY_BE_NONE and None in out:
-            return [r or ("", -1.0) for r in out]
-        return out
+        # step of ~42 driven vehicles, is made only then; libsumo's C++ getLeader answers
+        # as the compiled one.
+        if not _LEADER_MAY_BE_NONE:
+            return direct.leaders(_GET_LEADER, vehicle_ids, float(lookahead_m))
+        out = reads.each(_GET_LEADER, vehicle_ids, float(lookahead_m))
+        return [r or ("", -1.0) for r in out] if None in out else out
 
     def arrived(self) -> frozenset[str]:
         """Vehicles that left the network in the last step."""

@@ -15,7 +15,7 @@ import sumo
 
 from macromicro_sumo.deploy.observe import Table
 from macromicro_sumo.deploy.slots import VehicleSlots
-from macromicro_sumo.sumo import reads
+from macromicro_sumo.sumo import direct, reads
 from macromicro_sumo.sumo.options import SumoOptions
 from macromicro_sumo.sumo.simulation import Simulation
 
@@ -26,11 +26,13 @@ CROSS = Path(sumo.__file__).resolve().parent / "tools" / "game" / "cross" / "cro
 
 @pytest.fixture
 def numpy_path(monkeypatch: pytest.MonkeyPatch):
-    """A function that runs ``f()`` with sumo/calls.c switched off (numpy's path)."""
+    """A function that runs ``f()`` with sumo/calls.c switched off (numpy's path), and
+    sumo/libsumo_cxx.cpp (libsumo's C++ functions, ``sumo.direct``): the wrappers asked."""
 
     def run(f):
         with monkeypatch.context() as m:
             m.setattr(reads, "calls", None)
+            m.setattr(direct, "lib", None)
             return f()
 
     return run
