@@ -387,8 +387,9 @@ def speed_commands(
     ``dawdled_accel``'s (``auto_dawdled_accel``'s with "auto", and with "signals" where
     ``lights``: the network has traffic lights). ``start_on``: the vehicles the start rules
     (``deploy.start_dawdle``, ``deploy.start_reaction_s``) apply to, by
-    ``deploy.start_rules`` (None: all; none of them: the commands without the rules, to the
-    bit)."""
+    ``deploy.start_rules`` (None: all where it is "all", none where it is "signal_lanes":
+    a caller that does not name them, which knows no lanes, gets the commands without the
+    rules; none named: those commands, to the bit)."""
     a_min, a_max = sc.bounds.accel_mps2
     lo, hi = constants(a_min, a_max)
     # A vehicle that cannot reach the bound: its own (accel_limit; where none is below the
@@ -396,7 +397,9 @@ def speed_commands(
     if not isinstance(accel, np.ndarray) or count_nonzero(np.less(accel, hi)):
         a_max = accel_limit(a_max, accel)
     start_sigma, start_tau = sc.deploy.start_dawdle, sc.deploy.start_reaction_s
-    if start_on is not None and not count_nonzero(start_on):
+    if start_on is None and sc.deploy.start_rules != "all":
+        start_sigma = start_tau = 0.0  # gated, and nobody named
+    elif start_on is not None and not count_nonzero(start_on):
         start_sigma = start_tau = 0.0  # nobody's: the path without the rules
     start = (a_max, start_sigma, start_on) if start_sigma > 0.0 else None  # SUMO's a
     sigma = sc.deploy.command_dawdle

@@ -55,6 +55,9 @@ def test_speed_commands_apply_the_rules_where_named(tmp_path: Path) -> None:
     mixed = commands(RULES, np.array([True, False]))
     assert mixed[0] == on_all[0] and mixed[1] == off[1]
     np.testing.assert_array_equal(commands(RULES, np.zeros(2, bool)), off)
+    # Gated and nobody named (a caller that knows no lanes): as without the rules.
+    gated = {**RULES, "start_rules": "signal_lanes"}
+    np.testing.assert_array_equal(commands(gated, None), off)
 
 
 def _jam_scenario(folder: Path, deploy: dict) -> Path:
