@@ -109,10 +109,11 @@ def get_options(args: list[str] | None = None) -> argparse.Namespace:
         nargs="?",
         const=True,
         default=False,
-        choices=["all"],
+        choices=["all", "station"],
         help="intervals: signal approaches with the near-line loops' standing queue where the "
         "free-travel bound is the largest (truth.standing; StationRecord.near_line); all: half of "
-        "it on every approach (signal_counts.NEAR_LINE_ALL_SHARE)",
+        "it on every approach (standing.NEAR_LINE_ALL_SHARE); station: on every approach, what "
+        "each near-line station's loops missed of it (standing.seen_share)",
     )
     p.add_argument(
         "--pieces",

@@ -217,7 +217,7 @@ def approach_rows(
         d = det[det["run"] == run]
         times = np.sort(g["time_s"].unique())
         arcs_at = {t: x["arc_m"].to_numpy() for t, x in g.groupby("time_s")}
-        spacing = sc.jam_spacing_m(d)
+        spacing = sc.standing.jam_spacing_m(d)
         for i, a in enumerate(sc.approaches(d, section, lines, side)):
             true = np.array(
                 [((arcs_at[t] >= a.up_m) & (arcs_at[t] < a.bar_m)).sum() for t in times]
@@ -405,10 +405,11 @@ def main(args: list[str] | None = None) -> int:
         nargs="?",
         const=True,
         default=False,
-        choices=["all"],
+        choices=["all", "station"],
         help="count the approaches with the near-line loops' standing queue where the "
         "free-travel bound is the largest (truth.standing; StationRecord.near_line); all: half of "
-        "it on every approach (signal_counts.NEAR_LINE_ALL_SHARE)",
+        "it on every approach (standing.NEAR_LINE_ALL_SHARE); station: on every approach, what "
+        "each near-line station's loops missed of it (standing.seen_share)",
     )
     o = p.parse_args(args)
     both = [

@@ -42,6 +42,7 @@ import pandas as pd
 
 from macromicro_sumo.road.section import Section
 from macromicro_sumo.sumo.net_xml import NetLinks, net_links
+from macromicro_sumo.truth import standing
 from macromicro_sumo.truth.density import JAM_SPACING_M, occupancy_weight, rising_integral
 from macromicro_sumo.truth.section_macro import (
     cut_at_lines,
@@ -50,7 +51,6 @@ from macromicro_sumo.truth.section_macro import (
     loop_lengths_m,
     station_density,
 )
-from macromicro_sumo.truth.standing import NEAR_LINE_ALL_SHARE, jam_spacing_m, standing_density
 from macromicro_sumo.truth.stations import Piece, full_stations, ramp_between, station_speeds
 
 STOP_BAR_REACH_M = 5.0
@@ -336,6 +336,7 @@ def density_constant(
     io,
     spacing_m: float | None = None,
     share: float = 1.0,
+    by_station: bool = False,
 ) -> float:
     """The constant that puts the counted approach ``a`` (``io(t)`` plus it) on its density
     estimate on average over the record: the mean over the intervals of the stations'
@@ -343,8 +344,8 @@ def density_constant(
     their occupancy's density (``section_macro.edie_densities``), rising toward the line as
     ``density.rising_integral`` (docs/sections-log.md, "Dual loops on signal approaches").
     Point loops with ``spacing_m``: the stations near the line with the red's standing queue
-    added (``standing.standing_density``, times ``share``; the vehicles arriving at the line
-    in the red: ``arrivals`` a free travel earlier)."""
+    added (``standing.standing_density``, times ``share``, ``by_station`` by ``seen_share``;
+    the vehicles arriving at the line in the red: ``arrivals`` a free travel earlier)."""
     e1s, rows = det[det["kind"] == "e1"], []
     dual = bool((loop_lengths_m(e1s) > 0).any())
     e = section.edge_index(np.array([a.bar_m]))[0]
@@ -353,13 +354,12 @@ def density_constant(
     for (b, e), e1 in (edie_densities(e1s) if dual else e1s).groupby(["begin_s", "end_s"]):
         k = station_density(e1, section)
         if spacing_m is not None and not dual:
-            x = a.line.arc_m - k.index.to_numpy(dtype=float)
             reds = [
                 (float(np.diff(arrivals(det, a, np.array([t - r, t]) - travel))[0]), r)
                 for t, r in a.line.green_starts(b, e)
             ]
-            add = share * standing_density(x, reds, e - b, lanes, spacing_m, v_free, WAVE_MPS)
-            k = k + np.where(k.index.to_numpy(dtype=float) > a.up_m, add, 0.0)
+            q = (reds, e - b, lanes, spacing_m, v_free, WAVE_MPS)
+            k = standing.near_line_profile(k, e1, a.line.arc_m, a.up_m, q, share, by_station)
         if dual:
             k = rising_integral(k.index.to_numpy(dtype=float), k.to_numpy(), a.up_m, a.bar_m)
         else:
@@ -380,8 +380,8 @@ def approach_count(
     estimate and the lower bounds at the intervals' bounds (module doc; a standing queue's
     at jam spacing ``spacing_m``, ``jam_spacing_m``); None where the counts drift past what
     it can hold. ``near_line``: where the free-travel bound is the largest (no station reads
-    a queue), the density estimate with the near-line loops' standing queue added; "all":
-    every approach's density estimate with ``NEAR_LINE_ALL_SHARE`` of it added."""
+    a queue), the density estimate with the near-line loops' standing queue added; "all" or
+    "station": every approach's, with ``standing.near_line_share`` of it added."""
     begin, end, _ = station_counts(det, a.bar_m)
     length = a.bar_m - a.up_m
     e = section.edge_index(np.array([a.bar_m]))[0]
@@ -397,8 +397,8 @@ def approach_count(
         return None
     moving = arrivals(det, a, t) - arrivals(det, a, t - travel_s)
     mov = float(np.quantile(moving - io(t), CLEAR_QUANTILE))
-    every = near_line == "all"  # a share of the standing queue on every approach
-    near = (spacing_m, NEAR_LINE_ALL_SHARE) if every else ()
+    share = standing.near_line_share(near_line)  # a share on every approach
+    every, near = share is not None, (spacing_m, *share) if share is not None else ()
     dens = density_constant(det, section, a, io, *near)
     others = (dens, queue_constant(det, section, a, io, spacing_m))
     low = max(mov, *others, -float(io(bounds).min()))
@@ -470,7 +470,7 @@ def approach_pieces(
     d = det[det["run"] == run]
     at = np.asarray(at_s, dtype=float)
     counted, spans = np.zeros(len(at)), []
-    spacing = jam_spacing_m(d)  # the run's loops, once for its approaches
+    spacing = standing.jam_spacing_m(d)  # the run's loops, once for its approaches
     for a in approaches(d, section, lines, side_arcs):
         n = approach_count(d, section, a, at, spacing, near_line)
         if n is not None:

@@ -25,7 +25,11 @@ from macromicro_sumo.truth.signal_counts import (
 from macromicro_sumo.truth.standing import (
     NEAR_LINE_ALL_SHARE,
     NEAR_LINE_M,
+    NEAR_LINE_STATION_SHARE,
+    SEEN_RATIO,
     jam_spacing_m,
+    near_line_share,
+    seen_share,
     standing_density,
     standing_seconds,
 )
@@ -53,6 +57,20 @@ def test_the_standing_density_is_jam_density_times_the_share_standing() -> None:
     assert abs(k[0] - 0.5 * 2 * 1000.0 / 7.5) < 1e-9
     assert 0.0 < k[1] < k[0]
     assert k[2] == 0.0
+
+
+def test_a_station_whose_loops_read_the_queue_takes_none_of_it() -> None:
+    """Two lanes at 7.5 m spacing, the queue standing half the interval over each station
+    (133 veh/km per lane added): loops occupied 10 % (passing cars only: missed it) take all
+    of it, 50 % and more (a car stood over them) none, 35 % half-way between
+    ``SEEN_RATIO``'s ends; a station no occupancy was reported for takes all."""
+    stand = np.full(5, 2 * 0.5 * 1000.0 / 7.5)
+    occ = np.array([10.0, 50.0, 80.0, 50.0 * sum(SEEN_RATIO) / 2, np.nan])  # 35 %: mid-way
+    got = seen_share(occ, stand, 2, 7.5)
+    assert np.allclose(got, [1.0, 0.0, 0.0, 0.5, 1.0]), got
+    assert near_line_share("station") == (NEAR_LINE_STATION_SHARE, True)
+    assert near_line_share("all") == (NEAR_LINE_ALL_SHARE, False)
+    assert near_line_share(True) is None and near_line_share(False) is None
 
 
 def light_arterial(folder: Path) -> Path:
@@ -123,7 +141,7 @@ def test_all_approaches_take_a_share_of_the_standing_queue_off_the_lattice(tmp_p
     times = np.sort(snaps["time_s"].unique())
     arcs = [g["arc_m"].to_numpy() for _, g in snaps.groupby("time_s", sort=True)]
     d, spacing = record.det, jam_spacing_m(record.det)
-    errors = []
+    errors, stations = [], []
     for a in approaches(d, section, list(record.stop_lines), record.side_arcs):
 
         def io(x: np.ndarray, a=a) -> np.ndarray:
@@ -133,6 +151,10 @@ def test_all_approaches_take_a_share_of_the_standing_queue_off_the_lattice(tmp_p
         none, half, whole = (density_constant(d, section, a, io, spacing, s) for s in (0, 0.5, 1))
         assert none == plain and whole > plain
         assert abs(half - (NEAR_LINE_ALL_SHARE * whole + (1 - NEAR_LINE_ALL_SHARE) * none)) < 1e-9
+        # "station": each near-line station's share of it, at most all and some of it
+        station = density_constant(d, section, a, io, spacing, 1.0, True)
+        assert plain < station <= whole
+        stations.append(whole - station)
         true = np.array([((x >= a.up_m) & (x < a.bar_m)).sum() for x in arcs])
         base, near, every = (
             approach_count(d, section, a, times, spacing, n) for n in (False, True, "all")
@@ -142,3 +164,5 @@ def test_all_approaches_take_a_share_of_the_standing_queue_off_the_lattice(tmp_p
     assert len(errors) == 3
     base, near, every = errors[2]
     assert every < base - 0.2 and every < near - 1.0, errors
+    # A car stood over some approach's 15 m loop in some interval: "station" left it out.
+    assert max(stations) > 0.1, stations
