@@ -193,11 +193,13 @@ def _across_the_line(
             past[more] += gap[car[more]]
             car[more] = nxt[car[more]]
             hops[more] += 1
-    # Only a vehicle whose tail is less than minGap past the line can be nearer than it
-    # (SUMO's gap to it, past - its length - minGap, against the line's, at least 0): most
-    # followers of a line are done here (0.01 m spare for the sums' last bits).
+    # Only a vehicle whose tail is less than minGap - min(jmStoplineGap, 0) past the line
+    # can be nearer than it (SUMO's gap to it, past - its length - minGap, against the
+    # line's, distance - jmStoplineGap or 0): most followers of a line are done here (0.01 m
+    # spare for the sums' last bits).
+    reach = np.max(min_gap_m) - min(float(np.min(stopline_gap_m)), 0.0) + 0.01
     ok = car >= 0
-    ok &= past - length_m[np.where(ok, car, 0)] < np.max(min_gap_m) + 0.01
+    ok &= past - length_m[np.where(ok, car, 0)] < reach
     if not ok.any():
         return
     f, p, car = f[ok], p[ok], car[ok]

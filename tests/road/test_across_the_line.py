@@ -73,7 +73,7 @@ def crowd(
         rng.random(n) < 0.5,
         rng.uniform(4.0, 16.0, n),
         rng.uniform(1.0, 3.0, n),
-        rng.uniform(0.5, 2.0, n),
+        rng.uniform(-0.5, 2.0, n),  # a negative jmStoplineGap too: SUMO reads it
     )
 
 
@@ -162,3 +162,31 @@ def test_without_lengths_or_stop_points_nothing_moves(nets) -> None:
     with_len = section_ahead(section, lane, arc, None, None, route, length, min_gap, stop_gap)
     for a, b in zip(plain, with_len, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize(("stopline_gap_m", "leads"), [(-1.0, True), (1.0, False), (0.0, False)])
+def test_a_negative_stopline_gap_reaches_further(nets, stopline_gap_m: float, leads: bool) -> None:
+    """A 5 m car whose tail is 3 m past a's red line; its follower 20 m before the line,
+    minGap 2.5 m: SUMO's gap to the car is 20 + 3 - 2.5 = 20.5 m, to the line 20 -
+    jmStoplineGap. A jmStoplineGap of -1 m (the driver stops 1 m past the line) makes the
+    car nearer (21 m to the line), 1 m or 0 leaves the line nearer: the search's early test
+    (only a tail less than minGap - min(jmStoplineGap, 0) past the line) keeps the first."""
+    section, _ = nets["short"]
+    ends = section.offsets_m + section.lengths_m
+    arc = np.array([ends[0] - 20.0, ends[0] + 8.0])
+    zero = np.zeros(2, np.int64)
+    lead, gap, kind = section_ahead(
+        section,
+        zero,
+        arc,
+        zero[:1],
+        np.round(ends[:1], 6),
+        None,
+        np.array([5.0, 5.0]),
+        np.array([2.5, 2.5]),
+        np.array([stopline_gap_m, 1.0]),
+    )
+    if leads:
+        assert lead[0] == 1 and kind[0] == AHEAD_VEHICLE and gap[0] == pytest.approx(28.0)
+    else:
+        assert kind[0] == AHEAD_RED and gap[0] == pytest.approx(20.0)
