@@ -26,6 +26,7 @@
 
 #include <cstring>
 #include <string>
+#include <unordered_map>
 #include <utility>
 
 namespace {
@@ -72,6 +73,31 @@ bool id_of(PyObject *obj, std::string &out) {
 // A string answer as SWIG's std::string typemap makes it (UTF-8, surrogateescape).
 PyObject *text(const std::string &s) {
     return PyUnicode_DecodeUTF8(s.data(), static_cast<Py_ssize_t>(s.size()), "surrogateescape");
+}
+
+// ``text`` of the lane and leader IDs answered, one str object per ID met: a step answers
+// the same few lanes and vehicles again and again, and the str kept has its hash cached,
+// so each dictionary look-up of it downstream (the section's lanes, the lane codes, the
+// rows) skips hashing it. Equal strings either way: the same values. At most CACHED IDs
+// kept (dropped all at once past that: a long run meets vehicles by the thousand).
+constexpr size_t CACHED = 1 << 14;
+std::unordered_map<std::string, PyObject *> kept;
+
+PyObject *kept_text(const std::string &s) {
+    auto it = kept.find(s);
+    if (it != kept.end()) {
+        Py_INCREF(it->second);
+        return it->second;
+    }
+    PyObject *got = text(s);
+    if (got == nullptr) return nullptr;
+    if (kept.size() >= CACHED) {
+        for (auto &k : kept) Py_DECREF(k.second);
+        kept.clear();
+    }
+    Py_INCREF(got);
+    kept.emplace(s, got);
+    return got;
 }
 
 // A list or tuple's items (borrowed) and their number; false: neither.
@@ -157,7 +183,7 @@ PyObject *lanes(PyObject *, PyObject *ids) {
         PyObject *item = nullptr;
         if (!id_of(id[i], s)) break;
         try {
-            item = text(get_lane(s));
+            item = kept_text(get_lane(s));
         } catch (...) {
             break;
         }
@@ -194,7 +220,7 @@ PyObject *leaders(PyObject *, PyObject *args) {
         if (!id_of(id[i], s)) break;
         try {
             std::pair<std::string, double> r = get_leader(s, dist);
-            name = text(r.first);  // the wrapper's tuple: its string typemap, a float
+            name = kept_text(r.first);  // the wrapper's tuple: its string typemap, a float
             gap = r.second;
         } catch (...) {
             break;
