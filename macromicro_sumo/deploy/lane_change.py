@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from macromicro_sumo.road.physics import constants
 from macromicro_sumo.road.section import Section
 
 LC_LOOK_FORWARD_S = 10.0
@@ -45,8 +46,12 @@ def lookahead_speeds(lookahead_mps: np.ndarray, speed_mps: np.ndarray, dt_s: flo
     memory ``LC_LOOKAHEAD_MEMORY``. Where(la >= v, ...): a NaN compares False, so one
     comparison stands for isnan(la) | (v > la) (the same values, two array calls fewer)."""
     keep = 1.0 - (1.0 - LC_LOOKAHEAD_MEMORY) * dt_s
+    # The two weights as 0-d arrays kept per dt (``road.physics.constants``): the same
+    # products for float64 operands (every caller's), without numpy's conversion of a
+    # Python float each call (every step).
+    old, new = constants(keep, 1.0 - keep)
     la = lookahead_mps
-    return np.where(la >= speed_mps, keep * la + (1.0 - keep) * speed_mps, speed_mps)
+    return np.where(la >= speed_mps, old * la + new * speed_mps, speed_mps)
 
 
 def usable_distance_m(ahead_m: np.ndarray, occupation_m: np.ndarray) -> np.ndarray:

@@ -302,7 +302,7 @@ class MergeYield:
             self.yielded = frozenset()  # nobody blocks now: none held next step
             return []
         blockers = sim.left_blockers(sorted(asking))
-        near = [i for i, v in enumerate(vids) if v in blockers]
+        near = list(compress(range(len(vids)), map(blockers.__contains__, vids)))  # in C
         if not near:
             self.yielded = frozenset()
         return near
