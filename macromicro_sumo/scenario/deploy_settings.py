@@ -79,7 +79,7 @@ class DeployConfig:
         omit_default=True,  # the digests of scenarios that do not set it stay as they were
     )
     start_dawdle: float = spec(
-        0.0,
+        0.5,
         lo=0.0,
         hi=1.0,
         doc="safety sumo: a driven vehicle's speed command below its accel (as a number) "
@@ -87,29 +87,38 @@ class DeployConfig:
         "v' (1 - sigma dt / 2), after the safe speed's cap and the floor "
         "(deploy.safety.start_dawdled): a standing queue starts as late as SUMO's drivers; "
         "0: off",
-        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+        # Moved at stop 49 (hA49, the arterial rules with start_rules signal_lanes): left out
+        # of the digest at the old value, so that a run deployed before is redeployed.
+        omit_default=True,
+        omit_value=0.0,
     )
     start_reaction_s: float = spec(
-        0.0,
+        1.0,
         lo=0.0,
         hi=5.0,
         doc="safety sumo: a standing driven vehicle's (below 1 m/s) command and floor at most "
         "SUMO's Krauss safe speed with this reaction time (deploy.safety.reaction_safe_speed; "
         "SUMO's Krauss tau: 1 s), so that a standing queue starts as SUMO's drivers do; 0: off "
         "(the one-step cap alone) [s]",
-        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+        # Moved at stop 49 (hA49, the arterial rules with start_rules signal_lanes): left out
+        # of the digest at the old value, so that a run deployed before is redeployed.
+        omit_default=True,
+        omit_value=0.0,
     )
     start_rules: str = spec(
-        "all",
+        "signal_lanes",
         choices=("all", "signal_lanes"),
         doc="the vehicles start_dawdle and start_reaction_s apply to: all, every driven one; "
         "signal_lanes, those on a lane that can have a signal ahead "
         "(sumo.signal_reach.signal_lanes): a queue at a light starts as SUMO's drivers, a "
         "standing one elsewhere (a motorway's merge queue) as without the rules",
-        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+        # Moved at stop 49 (hA49, the arterial rules with start_rules signal_lanes): left out
+        # of the digest at the old value, so that a run deployed before is redeployed.
+        omit_default=True,
+        omit_value="all",
     )
     yellow: str = spec(
-        "onset",
+        "ahead",
         choices=("stop", "onset", "ahead", "sumo"),
         doc="a driven vehicle's yellow light: stop, a stop like a red; onset, decided once, "
         "the first step it sees it (a step after SUMO's drivers): a stop where it can brake "
@@ -248,13 +257,16 @@ class DeployConfig:
         omit_value=0.0,
     )
     keep_clear: str = spec(
-        "off",
+        "lane1",
         choices=("off", "lane", "lane1"),
         doc="lane: a driven vehicle does not enter a signalised junction where the room on "
         "the lane past it up to its waiting vehicle (below 0.1 m/s; lane1: 1 m/s), less the "
         "vehicles ahead of it, is short of its length and minGap: it waits at its line, as "
         "SUMO's drivers (deploy.keep_clear); off: it follows its leader into the junction",
+        # Moved at stop 49 (hA49): left out of the digest at off, so a run deployed before is
+        # redeployed.
         omit_default=True,
+        omit_value="off",
     )
     fcd_s: float = spec(
         120.0, lo=0.0, hi=1e6, doc="trajectories.csv keeps the first fcd_s recorded seconds [s]"

@@ -87,7 +87,8 @@ def _queue_scenario(tmp_path: Path, reaction_s: float) -> Path:
     """``deploy_nets.queue_at_light`` with the floor on everyone and its reaction (the
     always-braking policy's floor brings the cars at 2.8 m/s)."""
     deploy = {"safety_floor_reaction_s": reaction_s} if reaction_s else {}
-    deploy = {"safety_floor_on": "all", **deploy}
+    # The start rules off (their defaults since stop 49): the floor's reaction alone.
+    deploy = {"safety_floor_on": "all", "start_dawdle": 0.0, "start_reaction_s": 0.0, **deploy}
     return queue_at_light(tmp_path / f"queue_{reaction_s}.toml", GREEN_S, deploy)
 
 

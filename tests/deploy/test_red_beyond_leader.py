@@ -60,7 +60,10 @@ def test_a_car_stopping_for_a_yellow_its_leader_passes_brakes_at_its_decel(
         '        <phase duration="5" state="G"/>\n        <phase duration="4" state="y"/>\n'
         '        <phase duration="10000" state="r"/>\n    </tlLogic>\n</additional>\n'
     )
-    sc = small_section_scenario(tmp_path, net, routes, ["A", "B"], instrumented={"ids": ["probe"]})
+    # The yellow at onset, the start rules and keep_clear off (stop 49 moved their defaults).
+    old = {"yellow": "onset", "keep_clear": "off", "start_dawdle": 0.0, "start_reaction_s": 0.0}
+    ids = {"ids": ["probe"]}
+    sc = small_section_scenario(tmp_path, net, routes, ["A", "B"], instrumented=ids, deploy=old)
     assert sc.deploy.yellow == "onset"
     opts = SumoOptions(net, (program,), 0.5, 5, route_files=(routes,), user_demand=True)
     section = read_section(net, ["A", "B"], False)

@@ -43,8 +43,8 @@ def test_only_commands_below_the_accel_dawdle() -> None:
 
 def _queue_scenario(tmp_path: Path, sigma: float, reaction_s: float = 0.0) -> Path:
     """``deploy_nets.queue_at_light`` with the start dawdle ``sigma`` and reaction."""
-    deploy = {"start_dawdle": sigma} if sigma else {}
-    deploy |= {"start_reaction_s": reaction_s} if reaction_s else {}
+    # Each set, 0 included (their defaults moved at stop 49), on every driven vehicle.
+    deploy = {"start_dawdle": sigma, "start_reaction_s": reaction_s, "start_rules": "all"}
     return queue_at_light(tmp_path / f"queue_{sigma}_{reaction_s}.toml", GREEN_S, deploy)
 
 

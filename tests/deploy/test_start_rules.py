@@ -27,7 +27,9 @@ from macromicro_sumo.road.section import read_section
 from macromicro_sumo.scenario.load import load_scenario
 
 DT = 0.5
-RULES = {"start_dawdle": 0.5, "start_reaction_s": 1.0}
+RULES = {"start_dawdle": 0.5, "start_reaction_s": 1.0, "start_rules": "all"}
+OFF = {"start_dawdle": 0.0, "start_reaction_s": 0.0}
+GATED = {**RULES, "start_rules": "signal_lanes"}  # the defaults since stop 49
 
 
 def test_speed_commands_apply_the_rules_where_named(tmp_path: Path) -> None:
@@ -44,20 +46,20 @@ def test_speed_commands_apply_the_rules_where_named(tmp_path: Path) -> None:
         return gap, decel, decel, np.full(2, -1)
 
     def commands(deploy: dict, start_on: np.ndarray | None) -> np.ndarray:
-        sc = load_scenario(queue_at_light(tmp_path / f"q{len(deploy)}.toml", GREEN_S, deploy))
+        name = f"q{len(list(tmp_path.glob('q*.toml')))}"  # a fresh scenario file each call
+        sc = load_scenario(queue_at_light(tmp_path / f"{name}.toml", GREEN_S, deploy))
         act = lambda o: np.full(len(o), 2.6)  # noqa: E731
         args = (sc, act, "sumo", DriveStats(), obs, layer)
         return speed_commands(*args, vmax=np.inf, accel=2.6, start_on=start_on)
 
-    off = commands({}, None)
+    off = commands(OFF, None)
     on_all = commands(RULES, None)
     assert on_all[0] < 0.9 * off[0]  # the rules start it later
     mixed = commands(RULES, np.array([True, False]))
     assert mixed[0] == on_all[0] and mixed[1] == off[1]
     np.testing.assert_array_equal(commands(RULES, np.zeros(2, bool)), off)
     # Gated and nobody named (a caller that knows no lanes): as without the rules.
-    gated = {**RULES, "start_rules": "signal_lanes"}
-    np.testing.assert_array_equal(commands(gated, None), off)
+    np.testing.assert_array_equal(commands(GATED, None), off)
 
 
 def _jam_scenario(folder: Path, deploy: dict) -> Path:
@@ -123,9 +125,9 @@ def test_a_jam_without_a_signal_ahead_is_left_as_without_the_rules(tmp_path: Pat
     those without the rules, to the bit. None collides or teleports."""
     runs = {}
     for name, deploy in (
-        ("off", {}),
+        ("off", OFF),
         ("all", RULES),
-        ("gated", {**RULES, "start_rules": "signal_lanes"}),
+        ("gated", GATED),
     ):
         runs[name] = _jam_run(_jam_scenario(tmp_path / name, deploy))
         stats = runs[name][1]
@@ -141,8 +143,7 @@ def test_a_queue_at_a_light_starts_late_with_the_gate(tmp_path: Path) -> None:
     """The queue at a real SUMO light stands on a signal lane: with the rules gated to
     those it starts as late as with them on all (about 0.8 s a car, never sooner than a
     step); without a collision."""
-    deploy = {**RULES, "start_rules": "signal_lanes"}
-    starts, stats = queue_starts(queue_at_light(tmp_path / "q.toml", GREEN_S, deploy), 1)
+    starts, stats = queue_starts(queue_at_light(tmp_path / "q.toml", GREEN_S, GATED), 1)
     assert stats["collisions"] == 0 and stats["teleports"] == 0, stats
     lags = starts.diff().dropna()
     assert len(lags) >= 7 and lags.mean() >= 0.7 and (lags >= DT).all(), lags.tolist()

@@ -83,7 +83,10 @@ def _gap_net(
     sc = small_section_scenario(
         folder, net, routes, ["A", "B"], instrumented={"ids": ["probe"]},
         simulation={"warmup_s": 0.0, "duration_s": 100.0, "n_runs": 2},
-        detectors={"interval_s": 50.0}, deploy={"turn_gap": gap, "merge_reach": reach}, additional=(prog,),
+        detectors={"interval_s": 50.0}, additional=(prog,),
+        # the junction and start rules off, as before stop 49 moved their defaults
+        deploy={"turn_gap": gap, "merge_reach": reach, "keep_clear": "off", "yellow": "onset",
+                "start_dawdle": 0.0, "start_reaction_s": 0.0},
     )  # fmt: skip
     opts = SumoOptions(net, (prog,), 0.5, 5, route_files=(routes,), user_demand=True)
     return sc, net, opts

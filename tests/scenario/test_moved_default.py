@@ -16,10 +16,14 @@ MOVED = (
     ("command_brake", "decel", "bounds"),
     ("actor_dtype", "float32", "float64"),
     ("turns", "handover", "off"),
-    ("yellow", "onset", "stop"),
+    ("yellow", "ahead", "stop"),
     ("turn_gap", "sumo", "off"),
     ("merge_reach", "occupation", "plain"),
     ("command_dawdle", "signals", 0.0),
+    ("start_dawdle", 0.5, 0.0),
+    ("start_reaction_s", 1.0, 0.0),
+    ("start_rules", "signal_lanes", "all"),
+    ("keep_clear", "lane1", "off"),
 )
 
 
