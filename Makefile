@@ -9,8 +9,8 @@ OUT    ?= runs/ring_paper
 
 .PHONY: setup run test test-slow lint format bench clean
 
-# setup.py, road/kernels.c and sumo/calls.c: the optional compiled parts, built in place by the install.
-$(VENV)/.installed: pyproject.toml constraints-cpu.txt setup.py macromicro_sumo/road/kernels.c macromicro_sumo/sumo/calls.c
+# setup.py, road/kernels.c, sumo/calls.c and sumo/libsumo_cxx.cpp: the optional compiled parts, built in place by the install.
+$(VENV)/.installed: pyproject.toml constraints-cpu.txt setup.py macromicro_sumo/road/kernels.c macromicro_sumo/sumo/calls.c macromicro_sumo/sumo/libsumo_cxx.cpp
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	# CPU torch first: a plain torch requirement would pull the CUDA build.
