@@ -41,6 +41,12 @@ def floats(
     return reads.floats(getters, ids)
 
 
+def vehicle_ids(getter: Callable[[], tuple[str, ...]]) -> tuple[str, ...]:
+    """``getter()`` of the compiled getIDList: the vehicles on the road, SUMO's order."""
+    got = None if lib is None else lib.ids()
+    return getter() if got is None else got
+
+
 def lanes(getter: Callable[[str], str], ids: Sequence[str]) -> list[str]:
     """``reads.each(getter, ids)`` of getLaneID."""
     got = None if lib is None else lib.lanes(ids)

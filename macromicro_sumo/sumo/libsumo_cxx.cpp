@@ -1,5 +1,5 @@
-/* sumo.libsumo_cxx: a deployment step's per-vehicle libsumo calls (the state read's four
-   getters, getLeader, getSpeedWithoutTraCI and setSpeed) made on libsumo's C++ functions
+/* sumo.libsumo_cxx: a deployment step's per-vehicle libsumo calls (the state read's ID list
+   and four getters, getLeader, getSpeedWithoutTraCI and setSpeed) made on libsumo's C++ functions
    themselves, not through their SWIG wrappers.
 
    Why: per call the wrapper parses its argument tuple (PyArg_ParseTupleAndKeywords, ~245
@@ -28,6 +28,7 @@
 #include <string>
 #include <unordered_map>
 #include <utility>
+#include <vector>
 
 namespace {
 
@@ -35,10 +36,11 @@ typedef double (*getter_t)(const std::string &);
 typedef std::string (*text_t)(const std::string &);
 typedef std::pair<std::string, double> (*leader_t)(const std::string &, double);
 typedef void (*setter_t)(const std::string &, double);
+typedef std::vector<std::string> (*list_t)();
 
 // libsumo::Vehicle's functions (their Itanium C++ names, std::string of the C++11 ABI).
 #define STR "RKNSt7__cxx1112basic_stringIcSt11char_traitsIcESaIcEEE"
-const char *const NAMES[7] = {
+const char *const NAMES[8] = {
     "_ZN7libsumo7Vehicle15getLanePositionE" STR,
     "_ZN7libsumo7Vehicle8getSpeedE" STR,
     "_ZN7libsumo7Vehicle15getAccelerationE" STR,
@@ -46,6 +48,7 @@ const char *const NAMES[7] = {
     "_ZN7libsumo7Vehicle9getLaneIDE" STR,
     "_ZN7libsumo7Vehicle9getLeaderE" STR "d",
     "_ZN7libsumo7Vehicle8setSpeedE" STR "d",
+    "_ZN7libsumo7Vehicle9getIDListB5cxx11Ev",
 };
 #undef STR
 // The getters ``floats`` takes, by letter: p lane position, s speed, a acceleration, o
@@ -55,6 +58,7 @@ getter_t getters[4] = {nullptr, nullptr, nullptr, nullptr};
 text_t get_lane = nullptr;
 leader_t get_leader = nullptr;
 setter_t set_speed = nullptr;
+list_t get_ids = nullptr;
 bool found = false;
 
 // The ID as the wrapper passes it: an exact str, UTF-8 (false: not that form, no error).
@@ -75,7 +79,7 @@ PyObject *text(const std::string &s) {
     return PyUnicode_DecodeUTF8(s.data(), static_cast<Py_ssize_t>(s.size()), "surrogateescape");
 }
 
-// ``text`` of the lane and leader IDs answered, one str object per ID met: a step answers
+// ``text`` of the vehicle, lane and leader IDs answered, one str object per ID met: a step answers
 // the same few lanes and vehicles again and again, and the str kept has its hash cached,
 // so each dictionary look-up of it downstream (the section's lanes, the lane codes, the
 // rows) skips hashing it. Equal strings either way: the same values. At most CACHED IDs
@@ -199,6 +203,34 @@ PyObject *lanes(PyObject *, PyObject *ids) {
     Py_RETURN_NONE;
 }
 
+/* ids(): getIDList() as the compiled wrapper answers it (a tuple of str, SUMO's order);
+   None: a C++ exception (no simulation) or a string it cannot decode. */
+PyObject *ids(PyObject *, PyObject *) {
+    if (!found) Py_RETURN_NONE;
+    std::vector<std::string> got;
+    try {
+        got = get_ids();
+    } catch (...) {
+        Py_RETURN_NONE;
+    }
+    PyObject *out = PyTuple_New(static_cast<Py_ssize_t>(got.size()));
+    if (out == nullptr) return nullptr;
+    for (size_t i = 0; i < got.size(); i++) {
+        PyObject *item = nullptr;
+        try {
+            item = kept_text(got[i]);
+        } catch (...) {
+        }
+        if (item == nullptr) {
+            PyErr_Clear();
+            Py_DECREF(out);
+            Py_RETURN_NONE;
+        }
+        PyTuple_SET_ITEM(out, static_cast<Py_ssize_t>(i), item);
+    }
+    return out;
+}
+
 /* leaders(ids, dist): [getLeader(id, dist) for id in ids], each (leader ID, gap) as the
    compiled wrapper answers (("", -1.0): none); None: not that form, or an exception. */
 PyObject *leaders(PyObject *, PyObject *args) {
@@ -286,6 +318,7 @@ PyMethodDef METHODS[] = {
     {"available", available, METH_NOARGS, "Whether libsumo's functions were all found."},
     {"floats", floats, METH_VARARGS, "floats(codes, ids, out) -> bool"},
     {"lanes", lanes, METH_O, "lanes(ids) -> list | None"},
+    {"ids", ids, METH_NOARGS, "ids() -> tuple | None"},
     {"leaders", leaders, METH_VARARGS, "leaders(ids, dist) -> list | None"},
     {"send", send, METH_VARARGS, "send(ids, values) -> bool"},
     {nullptr, nullptr, 0, nullptr},
@@ -323,8 +356,8 @@ void find() {
     Py_XDECREF(file);
     PyErr_Clear();
     if (lib == nullptr) return;
-    void *f[7];
-    for (int i = 0; i < 7; i++) {
+    void *f[8];
+    for (int i = 0; i < 8; i++) {
         f[i] = dlsym(lib, NAMES[i]);
         if (f[i] == nullptr) return;  // the handle stays: the library stays loaded anyway
     }
@@ -332,6 +365,7 @@ void find() {
     get_lane = reinterpret_cast<text_t>(f[4]);
     get_leader = reinterpret_cast<leader_t>(f[5]);
     set_speed = reinterpret_cast<setter_t>(f[6]);
+    get_ids = reinterpret_cast<list_t>(f[7]);
     found = true;
 }
 

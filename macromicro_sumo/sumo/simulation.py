@@ -428,7 +428,7 @@ class Simulation:
         """Every vehicle on the road now, read once per step: whoever asks again before
         the next step (a recorder after it, a driver before the next) shares the read."""
         if self._states is None:
-            ids = _GET_IDS()
+            ids = direct.vehicle_ids(_GET_IDS)
             pos, speed, accel = direct.floats("psa", (_GET_POS, _GET_SPEED, _GET_ACCEL), ids)
             self._states = VehicleStates(ids, direct.lanes(_GET_LANE, ids), pos, speed, accel)
         return self._states

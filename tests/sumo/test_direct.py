@@ -76,6 +76,7 @@ def test_a_runs_reads_and_commands_are_the_wrappers_to_the_bit(tmp_path: Path, w
                     sim._states = None
                     want = wrappers(sim.vehicle_states)
                     assert st.ids == want.ids and st.lanes == want.lanes
+                    assert type(st.ids) is type(want.ids) is tuple
                     assert all(type(x) is str for x in st.lanes)
                     for a, b in zip(
                         (st.pos_m, st.speed_mps, st.accel_mps2),
@@ -142,6 +143,8 @@ def test_forms_it_does_not_take_go_back_to_the_wrappers(tmp_path: Path) -> None:
         assert not lib.floats("s", unknown, np.empty((1, 3)))  # SUMO's exception: declined
         assert lib.lanes(unknown) is None and lib.leaders(unknown, 50.0) is None
         assert lib.lanes([]) == [] and lib.leaders((), 50.0) == []
+        assert lib.ids() == tuple(libsumo.vehicle.getIDList())
+        assert all(a is b for a, b in zip(lib.ids(), lib.ids(), strict=True))  # kept
         assert not lib.send(unknown, np.zeros(3)) and not lib.send(ids, np.zeros(1))
         with pytest.raises(KeyError):
             sim.lane_states(unknown)
