@@ -24,6 +24,7 @@
 #include <Python.h>
 #include <dlfcn.h>
 
+#include <cstdlib>
 #include <cstring>
 #include <string>
 #include <unordered_map>
@@ -327,14 +328,20 @@ PyMethodDef METHODS[] = {
 PyModuleDef MODULE = {PyModuleDef_HEAD_INIT, "libsumo_cxx", nullptr, -1, METHODS,
                       nullptr, nullptr, nullptr, nullptr};
 
-// Whether libsumo is of the major version whose signatures these are (1.x: the getters'
-// double, getLaneID's std::string, getLeader's std::pair<std::string, double>, from 1.20
-// to 1.28 at least): a C++ name says the arguments, not what a function returns.
+// Whether libsumo is of a release whose signatures these are (the getters' double,
+// getLaneID's std::string, getLeader's std::pair<std::string, double>: 1.20 to 1.28, the
+// releases pyproject admits up to the one tested): a C++ name says the arguments, not what
+// a function returns, so a later release is asked through its wrappers until checked.
 bool known_version() {
     PyObject *pkg = PyImport_ImportModule("libsumo");
     PyObject *v = pkg == nullptr ? nullptr : PyObject_GetAttrString(pkg, "__version__");
     const char *s = v == nullptr || !PyUnicode_Check(v) ? nullptr : PyUnicode_AsUTF8(v);
-    bool ok = s != nullptr && std::strncmp(s, "1.", 2) == 0;
+    bool ok = false;
+    if (s != nullptr && std::strncmp(s, "1.", 2) == 0) {
+        char *end = nullptr;
+        long minor = std::strtol(s + 2, &end, 10);
+        ok = end != s + 2 && minor >= 20 && minor <= 28;
+    }
     Py_XDECREF(v);
     Py_XDECREF(pkg);
     PyErr_Clear();
