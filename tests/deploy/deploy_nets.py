@@ -164,6 +164,17 @@ def idm_agent(observation: str, limit: float, seed: int = 0, steps: int = 400) -
     return agent
 
 
+def twelve_cars() -> str:
+    """A route file's text: 12 cars (``CAR``) leaving 2 s apart at their top speed on route
+    A B (a queue's worth for the one-lane roads of ``queue_at_light`` and the jam tests)."""
+    cars = "\n".join(
+        f'<vehicle id="c{k:02d}" type="car" depart="{2 * k}" departSpeed="max">'
+        '<route edges="A B"/></vehicle>'
+        for k in range(12)
+    )
+    return f"<routes>\n{CAR}\n{cars}\n</routes>\n"
+
+
 def queue_at_light(
     toml: Path, green_s: float, deploy: dict, b_m: float = 200.0, after_s: float = 40.0
 ) -> Path:
@@ -173,13 +184,8 @@ def queue_at_light(
     files), deploying with ``deploy``."""
     folder = toml.parent / "net"
     net = light_road(folder, 150.0, b_m, 14.0)
-    cars = "\n".join(
-        f'<vehicle id="c{k:02d}" type="car" depart="{2 * k}" departSpeed="max">'
-        '<route edges="A B"/></vehicle>'
-        for k in range(12)
-    )
     routes = folder / "queue.rou.xml"
-    routes.write_text(f"<routes>\n{CAR}\n{cars}\n</routes>\n")
+    routes.write_text(twelve_cars())
     light = folder / "light.add.xml"
     light.write_text(
         '<additional>\n<tlLogic id="tl" type="static" programID="p" offset="0">\n'

@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 import pytest
 from conftest import line_net
-from deploy_nets import CAR, queue_at_light
+from deploy_nets import queue_at_light, twelve_cars
 from section_files import section_scenario
 from test_floor_reaction import GREEN_S, queue_starts
 from test_safety import _run_section
@@ -69,13 +69,8 @@ def _jam_scenario(folder: Path, deploy: dict) -> Path:
     net_dir = folder / "net"
     net_dir.mkdir(parents=True)
     net = line_net(net_dir, (400.0, 600.0), 1, 14.0)
-    cars = "\n".join(
-        f'<vehicle id="c{k:02d}" type="car" depart="{2 * k}" departSpeed="max">'
-        '<route edges="A B"/></vehicle>'
-        for k in range(12)
-    )
     routes = net_dir / "jam.rou.xml"
-    routes.write_text(f"<routes>\n{CAR}\n{cars}\n</routes>\n")
+    routes.write_text(twelve_cars())
     return section_scenario(
         folder / "jam.toml",
         net,
