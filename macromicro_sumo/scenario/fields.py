@@ -117,7 +117,10 @@ def _check_scalar(value: Any, kind: type, key: str, meta: dict[str, Any], file: 
     accepted = _describe_range(meta)
     if kind is bool:
         if not isinstance(value, bool):
-            raise UserError(f"{file}: {key} = {value!r} must be true or false")
+            # A switch that also takes words (``bool | str``) names them all.
+            raise UserError(
+                f"{file}: {key} = {value!r} must be {meta.get('accepted') or 'true or false'}"
+            )
         return value
     if kind is str:
         if not isinstance(value, str):

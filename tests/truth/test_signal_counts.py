@@ -121,6 +121,33 @@ def test_a_signal_approach_through_field_files(tmp_path: Path) -> None:
     assert len(m) > 30 and per_lane <= 1.0, per_lane
 
 
+def test_near_line_queue_words_reach_the_field_files_count(tmp_path: Path) -> None:
+    """``detectors.near_line_queue`` "all" and "station" (``truth.standing.near_line_share``)
+    reach the hidden count of field files: on the junction's exported files each moves K
+    off the default's (this truth's cars are equal, so their queues sit on SUMO's 7.5 m
+    lattice and the loops near the line read them; measured: per lane 0.64 default and
+    true, 0.79 "all", 1.31 "station": the words are for data whose cars vary)."""
+    gt, _ = simulated(tmp_path, signal_scenario, "x.net.xml")
+    data = export_field_files(gt, tmp_path / "field")
+    for kind in ("trajectories", "stations"):
+        data[kind]["files"] = [str(tmp_path / "field" / f) for f in data[kind]["files"]]
+    text = (tmp_path / "signal.toml").read_text()
+    assert "[detectors]\n" in text
+    k = {}
+    for word in (None, "all", "station"):
+        toml = tmp_path / f"files_{word}.toml"
+        line = "" if word is None else f'near_line_queue = "{word}"\n'
+        toml.write_text(
+            text.replace("[detectors]\n", "[detectors]\n" + line) + "\n" + data_toml(data)
+        )
+        out = tmp_path / f"gt_{word}"
+        assert main(["simulate", str(toml), "--out", str(out), "--quiet"]) == 0
+        k[word] = pd.read_csv(out / "k_estimate.csv").set_index(["run", "time_s"])["k_est"]
+    for word in ("all", "station"):
+        assert k[word].index.equals(k[None].index)
+        assert (k[word] != k[None]).any(), word
+
+
 def test_an_arterial_counted_from_a_record_that_starts_mid_traffic(tmp_path: Path) -> None:
     """Field records start with the road full. The three junctions' record from 270 s on
     (queues standing at its start): the approaches' constant from the density estimate and
