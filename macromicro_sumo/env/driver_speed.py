@@ -281,11 +281,11 @@ def entry_choice(
     ok = held & kept & np.isfinite(top) & (top > 0)
     n = int(ok.sum())
     at_own = float(np.median(ratio[ok] / top[ok])) if n else float("nan")
-    below = n >= MIN_HELD_SIGHTS and at_own < ENTRY_AT_OWN_SHARE
+    below = _below_own(n, at_own)
     free = ~held & kept & np.isfinite(top) & (top > 0)
     n_free = int(free.sum())
     free_at_own = float(np.median(ratio[free] / top[free])) if n_free else float("nan")
-    slow_free = n_free >= MIN_HELD_SIGHTS and free_at_own < ENTRY_AT_OWN_SHARE
+    slow_free = _below_own(n_free, free_at_own)
     entry = ("insertion" if slow_free else "held") if below else "queued"
     return EntryChoice(entry, n, at_own, n_free, free_at_own)
 
@@ -313,6 +313,12 @@ def resolved_entry(sc, truth, runs: np.ndarray | None = None) -> tuple[Any, Entr
     return dataclasses.replace(sc, policy=policy), choice
 
 
+def _below_own(sights: int, at_own: float) -> bool:
+    """``entry_choice``'s test of a kind of first sight: at least ``MIN_HELD_SIGHTS`` of them,
+    their median share of their drivers' tops under ``ENTRY_AT_OWN_SHARE``."""
+    return sights >= MIN_HELD_SIGHTS and at_own < ENTRY_AT_OWN_SHARE
+
+
 def entry_record(choice: EntryChoice) -> dict[str, Any]:
     """What a stage records of ``policy.driver_entry = "auto"`` resolved (``entry_choice``):
     the rule, the observed first sights it read and why, so that a manifest says which rule
@@ -322,17 +328,16 @@ def entry_record(choice: EntryChoice) -> dict[str, Any]:
     def share(x: float) -> float | None:
         return round(float(x), 4) if np.isfinite(x) else None
 
-    held_below = choice.held_sights >= MIN_HELD_SIGHTS and choice.at_own < ENTRY_AT_OWN_SHARE
-    free_below = choice.free_sights >= MIN_HELD_SIGHTS and choice.free_at_own < ENTRY_AT_OWN_SHARE
+    # Why, by the rule entry_choice resolved (its test, _below_own, is not applied again).
     test = f"at least {MIN_HELD_SIGHTS} sights, median under {ENTRY_AT_OWN_SHARE:g} of their tops"
-    if choice.held_sights == 0 and choice.free_sights == 0:
-        why = "no observed first sight read (none, or policy.driver_speed not memory): queued"
-    elif not held_below:
-        why = f"held first sights not below their drivers' speed ({test}): queued"
-    elif free_below:
+    if choice.entry == "insertion":
         why = f"held and free first sights both below their drivers' speed ({test}): insertion"
-    else:
+    elif choice.entry == "held":
         why = f"held first sights below their drivers' speed, free ones not ({test}): held"
+    elif choice.held_sights == 0 and choice.free_sights == 0:
+        why = "no observed first sight read (none, or policy.driver_speed not memory): queued"
+    else:
+        why = f"held first sights not below their drivers' speed ({test}): queued"
     return {
         "setting": "auto",
         "resolved": choice.entry,
