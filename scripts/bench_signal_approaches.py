@@ -55,6 +55,7 @@ from macromicro_sumo.truth.section_macro import (  # noqa: E402
     loop_lengths_m,
     station_density,
 )
+from macromicro_sumo.truth.signal_lines import stop_lines  # noqa: E402
 from macromicro_sumo.truth.standing import jam_spacing_m  # noqa: E402
 from macromicro_sumo.truth.stations import (  # noqa: E402
     full_stations,
@@ -208,7 +209,7 @@ def approach_rows(
     det = det.assign(k_point_vpkm=effective_densities(det))
     net_file = scenario_inputs(load_scenario(scenario_file(gt))).net_file
     side = side_junction_arcs(read_net(net_file), section)
-    lines = sc.stop_lines(net_file, section)
+    lines = stop_lines(net_file, section)
     snaps = at_snapshot_times(traj, man["generator"]["snapshot_every_s"])
     window = man["detectors"]["k_window_s"]
     lanes_mean = float((section.n_lanes * section.lengths_m).sum() / section.lengths_m.sum())
@@ -310,7 +311,7 @@ def station_rows(gt: Path, start_s: float = 0.0) -> pd.DataFrame:
     traj, det, _ = read_truth(gt, start_s)
     det = det.assign(k_point_vpkm=effective_densities(det))
     net_file = scenario_inputs(load_scenario(scenario_file(gt))).net_file
-    lines = np.array([line.arc_m for line in sc.stop_lines(net_file, section)])
+    lines = np.array([line.arc_m for line in stop_lines(net_file, section)])
     spacing = {run: jam_spacing_m(d) for run, d in det.groupby("run")}
     rows = []
     for (run, begin, end), e1 in det[det["kind"] == "e1"].groupby(["run", "begin_s", "end_s"]):

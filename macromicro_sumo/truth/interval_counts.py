@@ -37,7 +37,8 @@ from macromicro_sumo.truth.density import (
 )
 from macromicro_sumo.truth.section_macro import run_vehicle_lengths
 from macromicro_sumo.truth.section_speed import stop_line_edges
-from macromicro_sumo.truth.signal_counts import approaches, stop_lines
+from macromicro_sumo.truth.signal_counts import approaches
+from macromicro_sumo.truth.signal_lines import stop_lines
 from macromicro_sumo.truth.stations import (
     StationRecord,
     full_stations,

@@ -35,11 +35,11 @@ from macromicro_sumo.truth.signal_counts import (
     AFTER_LINE_M,
     STOP_BAR_REACH_M,
     Approach,
-    StopLine,
     arrivals,
     queued_share,
     station_counts,
 )
+from macromicro_sumo.truth.signal_lines import StopLine
 from macromicro_sumo.truth.stations import Piece, full_stations, station_speeds
 
 

@@ -21,8 +21,8 @@ from macromicro_sumo.truth.signal_counts import (
     arrivals,
     cumulative,
     density_constant,
-    stop_lines,
 )
+from macromicro_sumo.truth.signal_lines import stop_lines
 
 
 def test_the_density_rises_toward_the_line_as_the_power() -> None:

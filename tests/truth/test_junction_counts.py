@@ -17,7 +17,8 @@ from macromicro_sumo.road.section import Section
 from macromicro_sumo.sumo.inputs import read_net
 from macromicro_sumo.truth.interval_counts import interval_record
 from macromicro_sumo.truth.junction_counts import junction_pieces, junction_stretches
-from macromicro_sumo.truth.signal_counts import approach_pieces, stop_lines
+from macromicro_sumo.truth.signal_counts import approach_pieces
+from macromicro_sumo.truth.signal_lines import stop_lines
 
 
 @pytest.fixture(scope="module")

@@ -19,7 +19,8 @@ from macromicro_sumo.truth.files import data_toml, export_field_files
 from macromicro_sumo.truth.hidden_count import k_estimates
 from macromicro_sumo.truth.interval_counts import interval_record
 from macromicro_sumo.truth.section_macro import detector_macro, k_summary
-from macromicro_sumo.truth.signal_counts import StopLine, approach_pieces, stop_lines
+from macromicro_sumo.truth.signal_counts import approach_pieces
+from macromicro_sumo.truth.signal_lines import StopLine, stop_lines
 from macromicro_sumo.truth.stations import station_speeds
 
 
