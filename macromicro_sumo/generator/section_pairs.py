@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from macromicro_sumo.road.leaders import section_leaders
+from macromicro_sumo.road.leaders import section_ahead, section_leaders
 from macromicro_sumo.road.section import STOP, Section
 
 TOL = 1e-6
@@ -70,7 +70,7 @@ def drop_unsafe_pairs(
                 break
             lane, arc, v = comp.lane[s, on], comp.arc_m[s, on], comp.speed_mps[s, on]
             gen, ex = comp.generated[s, on], extra_m[s, on]
-            lead, spacing = section_leaders(section, lane, arc, stop_lane, stop_arc)
+            lead, spacing, line = pair_leaders(section, lane, arc, ex, stop_lane, stop_arc)
             has = lead >= 0
             j = np.maximum(lead, 0)
             ex_l = np.where(has, ex[j], 0.0)
@@ -85,10 +85,21 @@ def drop_unsafe_pairs(
             standing_ok = (v <= 0.0) & gen[j] & (free + ex_l >= -TOL)
             overlap = has & (free < -TOL) & ~standing_ok
             bad = (has | (lead == STOP)) & (cannot_stop | overlap) & (gen | (has & gen[j]))
+            # Behind a vehicle across a red line the line holds too (a generated follower).
+            room_line = 2.0 * brake_mps2 * np.maximum(line - standstill_m[s], 0.0)
+            bad |= gen & (v * v + 2.0 * bt * v > room_line * (1 + TOL) + TOL)
+            other = j
+            if stop_lane is not None and (lead == STOP).any():
+                # Where the line leads, the vehicle past it must not overlap either (a
+                # follower standing within the standstill spacing of the line).
+                other, in_past = _overlaps_past(section, lane, arc, v, gen, ex, standstill_m[s])
+                in_past &= (lead == STOP) & (gen | gen[other])
+                bad |= in_past
+                other = np.where(in_past, other, j)
             if not bad.any():
                 break
             f = int(np.flatnonzero(bad)[0])
-            victim = on[f] if gen[f] else on[j[f]]
+            victim = on[f] if gen[f] else on[other[f]]
             comp.valid[s, victim] = comp.generated[s, victim] = False
             dropped[s] += 1
     return dropped
@@ -124,7 +135,8 @@ def safe_speeds(
     1.7 m/s on the Bremen example (a quarter of the generated vehicles, 5.8 m/s each),
     and every method's rollouts inherited that error. ``stops``: (S, P) (lane, arc; NaN
     arc: none) of each scene's red or yellow stop lines (``SectionSnapshots.stop_lane``),
-    standing leaders there as in ``section_leaders`` (the envs' observation).
+    standing leaders there, ordered against the tails of the vehicles past them as in the
+    envs' observation (``pair_leaders``).
     """
     for s in range(len(comp.speed_mps)):
         on = np.flatnonzero(comp.valid[s])
@@ -133,18 +145,21 @@ def safe_speeds(
         lane, arc = comp.lane[s, on], comp.arc_m[s, on]
         v, gen = comp.speed_mps[s, on].copy(), comp.generated[s, on]
         pool = np.sort(v[gen])
-        # Along the lane connections; a lane's end is a standing leader (STOP, < 0).
-        leader, spacing = section_leaders(section, lane, arc, *_stops_of(stops, s))
         # A long leader (a truck) stands its own extra length further back.
         ex = np.zeros(on.size) if extra_m is None else extra_m[s, on]
+        # Along the lane connections; a lane's end is a standing leader (STOP, < 0).
+        leader, spacing, line = pair_leaders(section, lane, arc, ex, *_stops_of(stops, s))
         ex_l = np.where(leader >= 0, ex[np.maximum(leader, 0)], 0.0)
         room = 2.0 * brake_mps2 * np.maximum(0.0, spacing - standstill_m[s] - ex_l)
         bt = brake_mps2 * reaction_s
+        # The red line a vehicle across it hides: its cap holds beside the vehicle's.
+        line_cap = np.sqrt(bt * bt + 2.0 * brake_mps2 * np.maximum(0.0, line - standstill_m[s]))
+        line_cap -= bt
 
         # Front first: a leader (on this lane or the one it continues onto) is served first.
         for i in np.argsort(-arc, kind="stable"):
             if gen[i]:
-                c = _cap(leader[i], v, room[i], bt)
+                c = min(_cap(leader[i], v, room[i], bt), line_cap[i])
                 k = _nearest_below(pool, v[i], c)
                 v[i] = min(pool[k], c)
                 pool = np.delete(pool, k)
@@ -165,8 +180,61 @@ def safe_speeds(
                 want[j] = max(want[j], need)
         for j in np.argsort(-arc, kind="stable"):
             if gen[j] and want[j] > v[j]:
-                v[j] = max(v[j], min(want[j], _cap(leader[j], v, room[j], bt)))
+                v[j] = max(v[j], min(want[j], _cap(leader[j], v, room[j], bt), line_cap[j]))
         comp.speed_mps[s, on] = v
+
+
+def pair_leaders(
+    section: Section,
+    lane: np.ndarray,
+    arc_m: np.ndarray,
+    extra_m: np.ndarray,
+    stop_lane: np.ndarray | None,
+    stop_arc_m: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Leader (``STOP``: a stop line or lane end, -1: none) and front-to-front spacing of
+    each vehicle of a scene, and the spacing to the stop line a vehicle standing across it
+    hides (inf: none).
+
+    The one leader search (``road.leaders.section_ahead``) with the vehicles' extra lengths
+    (``extra_m``, beyond the snapshots' shortest) orders a stop line against the tails of the
+    vehicles past it, as the envs' observation and the deployment do: a truck 12 m long whose
+    front stands 3 m past a red line leads its follower, its tail 9 m before the line (by
+    fronts the line led and the pair check allowed the follower up to 7 m nearer the truck's
+    tail than psi's standstill spacing, stop 49). With minGap and jmStoplineGap 0, a vehicle
+    past the line is the leader where the pair check's free room to it (spacing - standstill
+    - its extra) is no more than to the line (distance - standstill, a shortest vehicle's
+    front at the line). The line still holds for the follower (SUMO stops there at red
+    whatever moves ahead): ``line``, from the search by fronts, where the two differ."""
+    lead, spacing, _ = section_ahead(
+        section, lane, arc_m, stop_lane, stop_arc_m, None, extra_m, 0.0, 0.0
+    )
+    line = np.full(len(arc_m), np.inf)
+    # Only a vehicle longer than the shortest can hide a line (none: the search by fronts).
+    if stop_lane is not None and len(stop_lane) and (lead >= 0).any() and (extra_m > 0).any():
+        front, by_front = section_leaders(section, lane, arc_m, stop_lane, stop_arc_m)
+        hid = (front == STOP) & (lead >= 0)
+        line[hid] = by_front[hid]
+    return lead, spacing, line
+
+
+def _overlaps_past(
+    section: Section,
+    lane: np.ndarray,
+    arc: np.ndarray,
+    v: np.ndarray,
+    gen: np.ndarray,
+    ex: np.ndarray,
+    standstill_m: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The next vehicle along the lane connections, stop lines aside (index, 0: none), and
+    where a vehicle overlaps it (``drop_unsafe_pairs``' overlap: a standing follower may
+    stand a generated leader's extra length closer)."""
+    car, spacing = section_leaders(section, lane, arc)
+    k = np.maximum(car, 0)
+    free = spacing - standstill_m - ex[k]
+    standing_ok = (v <= 0.0) & gen[k] & (free + ex[k] >= -TOL)
+    return k, (car >= 0) & (free < -TOL) & ~standing_ok
 
 
 def _stops_of(
