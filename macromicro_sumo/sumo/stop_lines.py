@@ -19,6 +19,12 @@ within one step decides a step before that, a step further from the line), a sto
 stopOffset, not jmStoplineGap (that is only where it stops, and nearer the line where its
 braking distance leaves less: ``StopLineReader._brake_room``).
 
+``deploy.green = "switch"`` (``StopLineReader.decide_green``): a red link that turns green
+at the start of the coming step (``Upcoming`` within 0 s) is no stop now, as SUMO's drivers
+move off within the step the light switches in; read as it shows, the queue's head stood a
+step longer at every green (drawn 1706, 4 runs: the head's first move 0.4 s after the
+truth's, the truth's head 1.1 m/s at the first green sample, the policy's 0.2).
+
 ``sumo.simulation`` hands in libsumo's functions (only it imports libsumo), so this is
 plain Python over their answers.
 """
@@ -130,6 +136,7 @@ class StopLineReader:
         self._yellow_by = None
         self._by_offset = False  # ``decide_yellow``'s: the line less its stopOffset (SUMO's)
         self._upcoming: Callable[[str], str | None] | None = None
+        self._greens: Callable[[str], str | None] | None = None  # ``decide_green``'s
         self.passing: dict[str, set[tuple[str, int]]] = {}  # vehicle -> yellow links it passes
         self._decided: dict[str, set[tuple[str, int]]] = {}  # vehicle -> yellow links decided
         # ``by_offset``: vehicle -> {red or yellow link: ``_brake_room``, from its first sight}
@@ -157,6 +164,14 @@ class StopLineReader:
         self._yellow_by = (speed_of, decel_of, float(dt_s))
         self._upcoming = upcoming
         self._by_offset = bool(by_offset)
+
+    def decide_green(self, upcoming: Callable[[str], str | None]) -> None:
+        """From now on a red link whose light switches to green at the start of the coming
+        step (``upcoming``: the light's state string from the coming step on where it switches
+        then, ``Upcoming`` within 0 s) is no stop: SUMO switches the light before its drivers
+        move, so they start within that step; a driver that waits to see the green starts a
+        step later (``deploy.green = "switch"``)."""
+        self._greens = upcoming
 
     def forget(self, vehicle_ids: Iterable[str]) -> None:
         """Vehicles gone from the network: their ``carry`` answers and yellow decisions
@@ -224,6 +239,10 @@ class StopLineReader:
                 nxt = self._upcoming(tls)
                 if nxt is not None and link < len(nxt) and nxt[link] in YELLOW_STATES:
                     state = nxt[link]  # yellow from the coming step: decided now
+            elif self._greens is not None and state in STOP_STATES:
+                nxt = self._greens(tls)
+                if nxt is not None and link < len(nxt) and nxt[link] in GREEN_STATES:
+                    state = nxt[link]  # green from the coming step: SUMO's drivers go in it
             if self._yellow_by is not None:  # a yellow decided at onset (``decide_yellow``)
                 if state in YELLOW_STATES:
                     if self._passes(vid, (tls, link), d):
