@@ -19,7 +19,8 @@ import torch
 from scipy.optimize import linear_sum_assignment
 
 from macromicro_sumo.data.section import SectionSnapshots
-from macromicro_sumo.generator.section_model import Scene, SectionGeneratorNet, rollout
+from macromicro_sumo.generator.section_model import SectionGeneratorNet
+from macromicro_sumo.generator.section_rollout import Scene, rollout
 from macromicro_sumo.generator.section_scene import Psi, Road
 
 

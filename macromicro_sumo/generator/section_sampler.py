@@ -34,12 +34,13 @@ import torch
 from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.data.vtypes import typical
 from macromicro_sumo.generator.section_bounds import bounded_gaps
-from macromicro_sumo.generator.section_model import Scene, SectionGeneratorNet, propose
+from macromicro_sumo.generator.section_model import SectionGeneratorNet, propose
 from macromicro_sumo.generator.section_pairs import (
     SectionCompletion,
     drop_unsafe_pairs,
     safe_speeds,
 )
+from macromicro_sumo.generator.section_rollout import Scene
 from macromicro_sumo.generator.section_scene import (
     PSI_INDEX,
     TOL_M,

@@ -25,11 +25,10 @@ from macromicro_sumo.files import check_beside
 from macromicro_sumo.generator.pair_dynamics import pair_term, recorded_pair_slope
 from macromicro_sumo.generator.section_model import (
     FEATURE_VERSION,
-    Scene,
     SectionGeneratorNet,
-    rollout,
     section_losses,
 )
+from macromicro_sumo.generator.section_rollout import Scene, rollout
 from macromicro_sumo.generator.section_sampler import k_of, one_thread
 from macromicro_sumo.generator.section_scene import Psi, Road
 from macromicro_sumo.generator.section_spread import (

@@ -7,7 +7,7 @@ import torch
 
 from macromicro_sumo.data.section import PSI_FIELDS, SectionSnapshots
 from macromicro_sumo.generator.reconstruction import reconstruction_loss
-from macromicro_sumo.generator.section_model import Scene
+from macromicro_sumo.generator.section_rollout import Scene
 from macromicro_sumo.generator.section_scene import Road
 
 MEAN_SPACING_M, V_MIN, V_MAX = 125.0, 10.0, 14.0  # v_scale = 2 m/s

@@ -21,12 +21,8 @@ from ring_scenes import generator_scenario as scenario
 
 from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.generator.section_model import (
-    N_GAP_FEATURES,
-    Scene,
-    SectionGeneratorNet,
-    gap_input,
-)
+from macromicro_sumo.generator.section_model import N_GAP_FEATURES, SectionGeneratorNet, gap_input
+from macromicro_sumo.generator.section_rollout import Scene
 from macromicro_sumo.generator.section_scene import Psi, Road
 from macromicro_sumo.generator.section_train import (
     load_section_generator,

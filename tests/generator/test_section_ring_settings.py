@@ -21,11 +21,11 @@ from macromicro_sumo.data.section import SectionSnapshots, psi_table
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.generator.section_metrics import completion_metrics
 from macromicro_sumo.generator.section_model import (
-    Scene,
     SectionGeneratorNet,
     posterior_log_probs,
     section_losses,
 )
+from macromicro_sumo.generator.section_rollout import Scene
 from macromicro_sumo.generator.section_sampler import complete_section
 from macromicro_sumo.generator.section_scene import Psi, Road
 from macromicro_sumo.generator.section_train import (

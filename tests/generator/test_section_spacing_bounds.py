@@ -20,7 +20,8 @@ from ring_scenes import N_VEHICLES, S_MIN_M, ring_scenes
 from macromicro_sumo.data.section import PSI_FIELDS, SectionSnapshots, psi_table
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.generator.section_bounds import bounded_gaps
-from macromicro_sumo.generator.section_model import Scene, SectionGeneratorNet, section_losses
+from macromicro_sumo.generator.section_model import SectionGeneratorNet, section_losses
+from macromicro_sumo.generator.section_rollout import Scene
 from macromicro_sumo.generator.section_sampler import complete_section
 from macromicro_sumo.generator.section_scene import Gaps, Psi, Road
 from macromicro_sumo.generator.section_stage import run_train_section_generator

@@ -19,7 +19,8 @@ from ring_scenes import ring_scenes
 
 from macromicro_sumo.data.section import SectionSnapshots
 from macromicro_sumo.errors import UserError
-from macromicro_sumo.generator.section_model import Scene, SectionGeneratorNet, section_losses
+from macromicro_sumo.generator.section_model import SectionGeneratorNet, section_losses
+from macromicro_sumo.generator.section_rollout import Scene
 from macromicro_sumo.generator.section_scene import Psi, Road
 from macromicro_sumo.generator.section_spread import pooled_dispersion, spacing_variance
 from macromicro_sumo.generator.section_train import (
