@@ -48,6 +48,11 @@ from macromicro_sumo.road.section import NO_LEADER_GAP_M
 from macromicro_sumo.road.vtype import accel_limit, command_speeds
 from macromicro_sumo.scenario.deploy_settings import DeployConfig
 
+try:  # road/kernels.c, built by setup.py where a C compiler is found (``safety_cap``)
+    from macromicro_sumo.road import kernels as _kernels
+except ImportError:  # not built: numpy's form, the same values
+    _kernels = None
+
 # Speed modes of speed-commanded vehicles (SUMO's bits, ``sumo.simulation``). "none" applies
 # the command exactly (32: no safe speed, no accel/decel limits, no right of way, no braking
 # for red lights). "sumo" (24) keeps right of way and red lights, and the driver caps each
@@ -182,6 +187,21 @@ def safety_cap(
         lead_speed = obs[:, 0] - obs[:, 3]
     if safe is None:
         safe = leader_safe_speed(obs, gap, decel, lead_decel, dt_s, lead_speed)
+    if _kernels is not None and type(cmd) is np.ndarray and cmd.ndim == 1:
+        # One compiled pass where built and no driven leader is commanded below what
+        # safe_speed assumed (behind_commands' test, most steps): numpy's values and
+        # counts to the bit (tests/road/test_kernels_safety.py), its ~25 calls a step
+        # between SUMO's steps in one (stop 50). None: numpy's path below answers.
+        s = (
+            (None, 1.0, None)
+            if start is None
+            else (start[0], 1.0 - 0.5 * start[1] * dt_s, start[2])
+        )
+        out = np.empty(cmd.shape[0])
+        args = (cmd, obs[:, 0], obs[:, 1], safe, floor_safe, a_max_mps2, dt_s, floor_share, vmax)
+        more = (decel, lead_decel, lead, lead_speed, _BEHIND_MARGIN, _TOLERANCE, out)
+        if (got := _kernels.safety_cap(*args, *s, *more)) is not None:
+            return out, got[0], got[1]
     # The road kept open: never below a share of the lane's limit unless what is ahead
     # (the safe speed) asks for it, and no faster than the vehicle may accelerate to it.
     under = safe if floor_safe is None else np.minimum(safe, floor_safe)

@@ -410,6 +410,163 @@ static PyObject *own_columns(PyObject *self, PyObject *args) {
     Py_RETURN_FALSE;
 }
 
+/* command_speeds(v, accel, dt, a_min, a_max, vmax, out) -> bool: road.vtype.command_speeds
+   into out (a writable float64 vector of n): min(max(0, v + min(max(accel, a_min), a_max)
+   dt), vmax), accel a float64 vector of n, the rest float64 0-d or 1-d of n or 1, or
+   Python floats; False (out untouched) for any other form. */
+static PyObject *command_speeds(PyObject *self, PyObject *args) {
+    PyObject *obj[7];
+    if (!PyArg_UnpackTuple(args, "command_speeds", 7, 7, &obj[0], &obj[1], &obj[2], &obj[3],
+                           &obj[4], &obj[5], &obj[6]))
+        return NULL;
+    operand ops[7];
+    int got = 0;
+    if (!take(obj[6], -1, &ops[6], 1) || ops[6].view.ndim != 1) {
+        release(&ops[6], 1);
+        Py_RETURN_FALSE;
+    }
+    const Py_ssize_t n = ops[6].view.shape[0];
+    for (; got < 6; got++) {
+        if (!take(obj[got], n, &ops[got], 0) || (got == 1 && ops[1].step == 0 && n != 1)) {
+            got++;
+            release(ops, got);
+            release(&ops[6], 1);
+            Py_RETURN_FALSE;
+        }
+    }
+    const double dt = AT(ops[2], 0);
+    char *out = ops[6].view.buf;
+    const Py_ssize_t out_step = ops[6].view.strides[0];
+    for (Py_ssize_t i = 0; i < n; i++) {
+        const double a = np_minimum(np_maximum(AT(ops[1], i), AT(ops[3], i)), AT(ops[4], i));
+        const double v = np_maximum(0.0, AT(ops[0], i) + a * dt);
+        *(double *)(out + i * out_step) = np_minimum(v, AT(ops[5], i));
+    }
+    release(ops, 6);
+    release(&ops[6], 1);
+    Py_RETURN_TRUE;
+}
+
+/* safety_cap(cmd, v, limit, safe, floor_safe, a_max, dt, share, vmax, start_accel,
+   start_factor, start_on, decel, lead_decel, lead, lead_speed, margin, tol, out)
+   -> (lowered, raised) | None: deploy.safety.safety_cap into out (a writable float64
+   vector of n) where behind_commands' test finds no driven leader commanded below what
+   safe_speed assumed (the common step): capped at safe, floored, start-dawdled
+   (start_accel None: off; start_on None: all; start_factor 1 - sigma dt / 2), and the
+   counts numpy makes. floor_safe None: safe alone. lead an int64 vector of n (-1: none),
+   start_on a bool vector of n. None (out scribbled) where a driven leader may lower a
+   command (numpy's loop answers), a leader index is out of [-1, n), or any form does not
+   fit. */
+enum { SC_CMD, SC_V, SC_LIMIT, SC_SAFE, SC_FLOOR_SAFE, SC_AMAX, SC_DT, SC_SHARE, SC_VMAX,
+       SC_START_ACCEL, SC_START_FACTOR, SC_START_ON, SC_DECEL, SC_LEAD_DECEL, SC_LEAD,
+       SC_LEAD_SPEED, SC_MARGIN, SC_TOL, SC_OUT, SC_N };
+
+static PyObject *safety_cap(PyObject *self, PyObject *args) {
+    if (!PyTuple_CheckExact(args) || PyTuple_GET_SIZE(args) != SC_N) {
+        PyErr_SetString(PyExc_TypeError, "safety_cap takes 19 arguments");
+        return NULL;
+    }
+    PyObject *o[SC_N];
+    for (int i = 0; i < SC_N; i++) o[i] = PyTuple_GET_ITEM(args, i);
+    operand ops[SC_N];
+    for (int i = 0; i < SC_N; i++) ops[i].held = 0;
+    Py_buffer lead_v, on_v;
+    int have_lead = 0, have_on = 0, ok = take(o[SC_OUT], -1, &ops[SC_OUT], 1) &&
+                                         ops[SC_OUT].view.ndim == 1;
+    const Py_ssize_t n = ok ? ops[SC_OUT].view.shape[0] : 0;
+    const int floor_safe = o[SC_FLOOR_SAFE] != Py_None, start = o[SC_START_ACCEL] != Py_None;
+    const int on = o[SC_START_ON] != Py_None;
+    for (int i = 0; ok && i < SC_OUT; i++) {
+        if (i == SC_LEAD || i == SC_START_ON) continue;
+        if ((i == SC_FLOOR_SAFE && !floor_safe) || (i == SC_START_ACCEL && !start)) continue;
+        ok = take(o[i], n, &ops[i], 0);
+        /* the vectors numpy's result takes its length from: of n, not broadcast */
+        if (ok && (i == SC_CMD || i == SC_V || i == SC_SAFE || i == SC_LEAD_SPEED))
+            ok = ops[i].step != 0 || n == 1;
+    }
+    Py_ssize_t len = 0;
+    if (ok) ok = have_lead = vector(o[SC_LEAD], &lead_v, 'i', 0, &len);
+    ok = ok && len == n;
+    if (ok && on) ok = have_on = vector(o[SC_START_ON], &on_v, '?', 0, &len);
+    ok = ok && len == n;
+    PyObject *result = NULL;
+    if (ok) {
+        const double dt = AT(ops[SC_DT], 0), margin = AT(ops[SC_MARGIN], 0);
+        const double tol = AT(ops[SC_TOL], 0);
+        const double factor = start ? AT(ops[SC_START_FACTOR], 0) : 1.0;
+        const int64_t *lead = lead_v.buf;
+        const char *on_b = have_on ? on_v.buf : NULL;
+        double *out = ops[SC_OUT].view.buf; /* written at its strides below */
+        const Py_ssize_t os = ops[SC_OUT].view.strides[0];
+#define OUT(i) (*(double *)((char *)out + (i) * os))
+        Py_ssize_t raised = 0, lowered = 0;
+        int chained = 0;
+        for (Py_ssize_t i = 0; i < n; i++) {
+            const double v = AT(ops[SC_V], i), safe = AT(ops[SC_SAFE], i);
+            const double under =
+                floor_safe ? np_minimum(safe, AT(ops[SC_FLOOR_SAFE], i)) : safe;
+            const double reach = v + AT(ops[SC_AMAX], i) * dt;
+            const double share = AT(ops[SC_SHARE], i) * AT(ops[SC_LIMIT], i);
+            double fl = np_minimum(under, np_minimum(reach, share));
+            fl = np_minimum(fl, AT(ops[SC_VMAX], i));
+            const double capped = np_minimum(AT(ops[SC_CMD], i), safe);
+            raised += fl > capped + tol;
+            OUT(i) = np_maximum(capped, fl);
+        }
+        /* start_dawdled on out and on cmd: each changed only where some vehicle is low */
+        int out_low = 0, cmd_low = 0;
+        if (start) {
+            for (Py_ssize_t i = 0; i < n; i++) {
+                if (on_b != NULL && !on_b[i]) continue;
+                const double a = AT(ops[SC_START_ACCEL], i);
+                out_low |= OUT(i) < a;
+                cmd_low |= AT(ops[SC_CMD], i) < a;
+            }
+        }
+        for (Py_ssize_t i = 0; i < n && !chained; i++) {
+            const int64_t j = lead[i];
+            if (j < -1 || j >= n) chained = 1; /* numpy raises or wraps: its to answer */
+        }
+        for (Py_ssize_t i = 0; i < n; i++) {
+            const double c = AT(ops[SC_CMD], i);
+            double cmd_d = c;
+            if (out_low || cmd_low) {
+                const int here = on_b == NULL || on_b[i];
+                const double a = AT(ops[SC_START_ACCEL], i);
+                const double least = AT(ops[SC_V], i) - AT(ops[SC_DECEL], i) * dt;
+                if (out_low && here && OUT(i) < a)
+                    OUT(i) = np_maximum(OUT(i) * factor, np_minimum(OUT(i), least));
+                if (cmd_low && here && c < a)
+                    cmd_d = np_maximum(c * factor, np_minimum(c, least));
+            }
+            lowered += OUT(i) < cmd_d - tol;
+        }
+        /* behind_commands' test: a driven leader commanded below max(v_l - max(b, b_l) dt,
+           0) + margin may lower its follower's command: numpy's loop answers then. */
+        for (Py_ssize_t i = 0; i < n && !chained; i++) {
+            const int64_t j = lead[i];
+            if (j < 0) continue;
+            const double brake = np_maximum(AT(ops[SC_DECEL], i), AT(ops[SC_LEAD_DECEL], i)) * dt;
+            const double least = np_maximum(AT(ops[SC_LEAD_SPEED], i) - brake, 0.0) + margin;
+            chained = OUT(j) < least;
+        }
+#undef OUT
+        if (chained) {
+            result = Py_None;
+            Py_INCREF(result);
+        } else {
+            result = Py_BuildValue("(nn)", lowered, raised);
+        }
+    } else {
+        result = Py_None;
+        Py_INCREF(result);
+    }
+    release(ops, SC_N);
+    if (have_lead) PyBuffer_Release(&lead_v);
+    if (have_on) PyBuffer_Release(&on_v);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"own_columns", own_columns, METH_VARARGS,
      "deploy.observe.observe_rows' own columns (speed, delta v, the look-ahead's distance), "
@@ -420,6 +577,11 @@ static PyMethodDef methods[] = {
      "deploy.observe.observe_rows' leader columns, bit for bit; False where numpy must answer."},
     {"krauss_prior", krauss_prior, METH_VARARGS,
      "deploy.policy_batch's Krauss prior into out, bit for bit; False where numpy must answer."},
+    {"command_speeds", command_speeds, METH_VARARGS,
+     "road.vtype.command_speeds into out, bit for bit; False where numpy must answer."},
+    {"safety_cap", safety_cap, METH_VARARGS,
+     "deploy.safety.safety_cap's commands into out and (lowered, raised); None where numpy "
+     "must answer."},
     {"safe_speed", safe_speed, METH_VARARGS,
      "road.physics.safe_speed into out, bit for bit; False where numpy must answer."},
     {NULL, NULL, 0, NULL},

@@ -21,6 +21,11 @@ import numpy as np
 from macromicro_sumo.road.leaders import STOPLINE_GAP_M
 from macromicro_sumo.sumo.simulation import Simulation
 
+try:  # road/kernels.c, built by setup.py where a C compiler is found (``command_speeds``)
+    from macromicro_sumo.road import kernels as _kernels
+except ImportError:  # not built: numpy's form, the same values
+    _kernels = None
+
 
 @dataclass(frozen=True)
 class VTypePhysics:
@@ -75,6 +80,15 @@ def command_speeds(
     """Speed commands v' = max(0, v + a dt) [m/s] of vehicles at speeds ``speed_mps`` asked
     for accelerations ``accel_mps2``: a clipped to [``a_min_mps2``, ``a_max_mps2``] (per
     vehicle: ``accel_limit``), v' at most each vehicle's maxSpeed ``vmax_mps``."""
+    # The compiled pass where built and the operands are float64 (the deployment's): the
+    # same values to the bit (tests/road/test_kernels_safety.py), one call for numpy's
+    # six, each step between SUMO's (stop 50).
+    if _kernels is not None and type(accel_mps2) is np.ndarray and accel_mps2.ndim == 1:
+        out = np.empty(accel_mps2.shape[0])
+        if _kernels.command_speeds(
+            speed_mps, accel_mps2, dt_s, a_min_mps2, a_max_mps2, vmax_mps, out
+        ):
+            return out
     # np.clip's own overhead is several times that of the two calls (the same values).
     a = np.minimum(np.maximum(accel_mps2, a_min_mps2), a_max_mps2)
     return np.minimum(np.maximum(0.0, speed_mps + a * dt_s), vmax_mps)
