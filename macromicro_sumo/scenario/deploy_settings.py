@@ -308,6 +308,16 @@ class DeployConfig:
         "the detectors' own interval; else a multiple of detectors.interval_s; the summary "
         "keeps the detector-interval shares too (docs/deploy.md, GEH) [s]",
     )
+    speed_level: str = spec(
+        "fit",
+        choices=("fit", "tops"),
+        doc="sections, the policy with the krauss prior and driver_speed: the deployed drivers' "
+        "level; fit, the prior's fitted speed factor; tops, the median of the observed "
+        "drivers' top-speed ratios the policy carries, so that each driver's desired speed "
+        "is its drawn top speed (policy.checkpoint.with_speed_level; no retraining; drawn 522 "
+        "over 11 PPO seeds: docs/deploy.md, stop 50)",
+        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+    )
 
 
 def check_deploy(
