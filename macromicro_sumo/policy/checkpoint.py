@@ -15,8 +15,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
+from macromicro_sumo.env.driver_speed_ratios import QUANTILE_LEVELS
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import check_beside
 from macromicro_sumo.policy.agent import Agent
@@ -145,4 +147,27 @@ def load_policy(path: Path | str, sc: SectionScenario) -> Agent:
     )
     agent.load_state_dict(payload["state_dict"])
     agent.eval()
+    return with_speed_level(agent, str(getattr(getattr(sc, "deploy", None), "speed_level", "fit")))
+
+
+def with_speed_level(agent: Agent, level: str) -> Agent:
+    """``agent`` with ``deploy.speed_level`` applied, in place: "fit" as trained; "tops", the
+    Krauss prior's speed factor (the median driver's desired speed over the limit) set to the
+    median of the drivers' ratio estimate (its ``driver_speed`` buffer, the observed drivers'
+    top v / limit, ``env.driver_speed_ratios``), so that each deployed driver's desired speed is
+    its drawn top speed rather than the fit's level below it. An agent without the Krauss prior
+    or the drivers' quantiles is left as it is.
+
+    Why: the fit reads the level from every pair of the free drivers, scaled by their ratio
+    over the median, so it takes in what keeps a SUMO driver below its top: Krauss' dawdling
+    and the acceleration phases (drawn 522: speed factor 0.984 = 0.969 x the median 1.016;
+    the truth's free drivers cruise at 0.974-0.986 of their tops; highway_bremen 0.993 x).
+    A deployed driver does not dawdle, and on one-lane edges a platoon runs at its leader's
+    desired speed: on drawn 522 the policy ran 0.8-1.5 m/s slow downstream of the drop on
+    every PPO seed (stop 49, hM49). Measured with "tops": docs/deploy.md (stop 50, hM50)."""
+    if level == "fit" or agent.prior != "krauss" or agent.driver_speed is None:
+        return agent
+    quantiles = agent.driver_speed.detach().double().numpy()
+    with torch.no_grad():
+        agent.krauss_prior[0] = float(np.interp(0.5, QUANTILE_LEVELS, quantiles))
     return agent
