@@ -41,6 +41,12 @@ lane, the vehicles crossing the line, when the 1st, 4th and 12th crossed after t
 and the saturation headway (t_12 - t_4) / 8 where at least 12 crossed; greens whose onset
 is in [``--from``, ``--to``). Prints per file the crossings per green and lane (lanes that
 carried any), t_1 / t_4 / t_12 and the saturation headway (the greens with 12).
+
+``--pull-away SIGNALS`` (the same arguments) measures how each queue leaves its green
+(issue 17, drawn 1706, stop 50, hA50): ``--start-lags``' queues, and per queue position
+(the first ``PULL_POSITIONS``) the mean speed ``PULL_TIMES_S`` after the green and when it
+crosses the line and ``PULL_PAST_M`` past it [s after the green]; the trajectories must
+cover the run (``deploy.fcd_s``).
 """
 
 from __future__ import annotations
@@ -282,6 +288,32 @@ def green_discharge(traj: pd.DataFrame, arc_m: float, windows: pd.DataFrame) -> 
     return pd.DataFrame(rows, columns=cols + [f"h_{k}_s" for k in HEADWAYS])
 
 
+# --pull-away: the queue positions, the times after the green [s] and the distances past the
+# line [m] it reports.
+PULL_POSITIONS = 5
+PULL_TIMES_S = (0.0, 2.0, 4.0, 6.0, 8.0)
+PULL_PAST_M = (0.0, 50.0, 100.0)
+
+
+def pull_away(traj: pd.DataFrame, arc_m: float, onsets: pd.DataFrame) -> pd.DataFrame:
+    """One row per queued vehicle (``start_lags``) in the first ``PULL_POSITIONS``: its
+    position, speed [m/s] ``PULL_TIMES_S`` after the green (v_T) and when [s after the
+    green] it passes the line and ``PULL_PAST_M`` beyond (x_D), linear between its
+    samples (NaN: beyond its samples)."""
+    queued = start_lags(traj, arc_m, onsets)
+    queued = queued[queued["position"] <= PULL_POSITIONS]
+    cars = traj.set_index(["run", "vehicle_id"]).sort_index()
+    rows = []
+    for r in queued.itertuples(index=False):
+        car = cars.loc[(r.run, r.vehicle_id)].sort_values("time_s")
+        t = car["time_s"].to_numpy() - r.green_s
+        v = np.interp(PULL_TIMES_S, t, car["speed_mps"].to_numpy(), right=np.nan)
+        x = np.interp(np.add(arc_m, PULL_PAST_M), car["arc_m"].to_numpy(), t, right=np.nan)
+        rows.append((r.position, *v, *x))
+    cols = [f"v_{t:g}s" for t in PULL_TIMES_S] + [f"x_{d:g}m" for d in PULL_PAST_M]
+    return pd.DataFrame(rows, columns=["position", *cols])
+
+
 def green_summary(d: pd.DataFrame) -> dict[str, float]:
     """Green-lanes, crossings per green and lane, mean t_1 / t_4 / t_12 and saturation
     headway (the green-lanes with ``SAT_LAST`` crossings), and how many had them; the mean
@@ -331,6 +363,11 @@ def main(argv: list[str] | None = None) -> int:
         help="the truth's signals.csv: crossings per green and saturation headway at --arc",
     )
     ap.add_argument(
+        "--pull-away",
+        metavar="SIGNALS_CSV",
+        help="the truth's signals.csv: each queue position's speeds and crossings after a green",
+    )
+    ap.add_argument(
         "--decel",
         action="append",
         default=[],
@@ -350,9 +387,10 @@ def main(argv: list[str] | None = None) -> int:
         if not sep or not decel.get(name, 0.0) > 0.0:
             print(f"station_headways: --decel {item}: give VTYPE=B, B > 0", file=sys.stderr)
             return 2
-    modes = [m for m in (o.start_lags, o.yellow_onsets, o.greens) if m is not None]
+    modes = [m for m in (o.start_lags, o.yellow_onsets, o.greens, o.pull_away) if m is not None]
     if len(modes) > 1:
-        print("station_headways: one of --start-lags, --yellow-onsets, --greens", file=sys.stderr)
+        modes_text = "--start-lags, --yellow-onsets, --greens, --pull-away"
+        print(f"station_headways: one of {modes_text}", file=sys.stderr)
         return 2
     signals_file = modes[0] if modes else None
     if signals_file is not None:
@@ -360,7 +398,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"station_headways: {signals_file}: no such signals file", file=sys.stderr)
             return 2
         signals = pd.read_csv(signals_file)
-        if o.start_lags is not None:
+        if o.start_lags is not None or o.pull_away is not None:
             onsets = {arc: green_onsets(signals, arc) for arc in o.arc}
         elif o.greens is not None:
             got = {arc: green_windows(signals, arc) for arc in o.arc}
@@ -389,13 +427,19 @@ def main(argv: list[str] | None = None) -> int:
             cars = [at_yellow(traj, arc, y, decel).assign(arc_m=arc) for arc, y in yellows.items()]
             rows[label] = yellow_summary(pd.concat(cars, ignore_index=True))
             continue
+        if onsets is not None and o.pull_away is not None:
+            cars = pd.concat([pull_away(traj, arc, g) for arc, g in onsets.items()])
+            table = cars.groupby("position").mean().assign(n=cars.groupby("position").size())
+            print(f"{label}:\n{table.round(2).to_string()}")
+            continue
         if onsets is not None:
             lags = [start_lags(traj, arc, g).assign(arc_m=arc) for arc, g in onsets.items()]
             rows[label] = lag_summary(pd.concat(lags, ignore_index=True))
             continue
         p = passages(traj, o.arc[0])
         rows[label] = summary(headways(p, o.t0, o.t1), traj["run"].nunique())
-    print(pd.DataFrame(rows).T.round(2).to_string())
+    if rows:
+        print(pd.DataFrame(rows).T.round(2).to_string())
     return 0
 
 

@@ -187,3 +187,21 @@ def test_crossings_per_green_and_the_saturation_headway(tmp_path: Path, capsys) 
     assert "h_6_s" in capsys.readouterr().out
     assert sh.main(["--arc", "100", "--greens", str(s), "--start-lags", str(s), f"x={p}"]) == 2
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
+
+
+def test_pull_away_speeds_and_crossings_by_queue_position(tmp_path: Path, capsys) -> None:
+    """The queue of ``queue_files`` (green at 10 s, line at 100 m; a, b, c at 2 m/s from 10,
+    11 and 13.5 s): by position the speed 0 and 2 s after the green and when each passes the
+    line and 50 m past it; 100 m past it is beyond the samples (NaN)."""
+    s, p = queue_files(tmp_path)
+    onsets = sh.green_onsets(pd.read_csv(s), 100.0)
+    d = sh.pull_away(pd.read_csv(p), 100.0, onsets).set_index("position")
+    assert d.index.tolist() == [1, 2, 3]
+    assert d["v_0s"].tolist() == pytest.approx([2.0, 0.0, 0.0])
+    assert d["v_2s"].tolist() == pytest.approx([2.0, 2.0, 0.0])
+    assert d["x_0m"].tolist() == pytest.approx([0.5, 5.25, 11.5])  # 1, 8.5, 16 m at 2 m/s
+    assert d.loc[1, "x_50m"] == pytest.approx(25.5) and d["x_100m"].isna().all()
+    assert sh.main(["--arc", "100", "--pull-away", str(s), f"x={p}"]) == 0
+    assert "x_50m" in capsys.readouterr().out
+    assert sh.main(["--arc", "100", "--pull-away", str(s), "--greens", str(s), f"x={p}"]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
