@@ -52,6 +52,9 @@ try:  # road/kernels.c, built by setup.py where a C compiler is found (``safety_
     from macromicro_sumo.road import kernels as _kernels
 except ImportError:  # not built: numpy's form, the same values
     _kernels = None
+# Each None where not built, or built before it (a checkout's stale build): numpy answers.
+_safety_cap = getattr(_kernels, "safety_cap", None)
+_leader_safe_speed = getattr(_kernels, "leader_safe_speed", None)
 
 # Speed modes of speed-commanded vehicles (SUMO's bits, ``sumo.simulation``). "none" applies
 # the command exactly (32: no safe speed, no accel/decel limits, no right of way, no braking
@@ -108,8 +111,17 @@ def leader_safe_speed(
     the leader alone it sped up to it (drawn 565, stop 44, hC44)."""
     if lead_speed is None:
         lead_speed = obs[:, 0] - obs[:, 3]
-    safe = safe_speed(gap, lead_speed, decel, lead_decel, dt_s)
-    safe[~(gap < _NO_LEADER_GAP)] = _INF  # no leader: no cap (safe_speed's is fresh)
+    safe = None
+    if _leader_safe_speed is not None and type(gap) is np.ndarray:  # no leader's inf too
+        safe = np.empty(gap.shape)
+        consts = step_constants(dt_s)
+        if not _leader_safe_speed(
+            gap, lead_speed, decel, lead_decel, *consts, safe, _NO_LEADER_GAP
+        ):
+            safe = None
+    if safe is None:
+        safe = safe_speed(gap, lead_speed, decel, lead_decel, dt_s)
+        safe[~(gap < _NO_LEADER_GAP)] = _INF  # no leader: no cap (safe_speed's is fresh)
     if red_gap is not None and count_nonzero(behind := (red_gap < _INF) & (gap < red_gap)):
         b = decel[behind]
         line = safe_speed(red_gap[behind], np.zeros_like(b), b, b, dt_s)
@@ -187,7 +199,7 @@ def safety_cap(
         lead_speed = obs[:, 0] - obs[:, 3]
     if safe is None:
         safe = leader_safe_speed(obs, gap, decel, lead_decel, dt_s, lead_speed)
-    if _kernels is not None and type(cmd) is np.ndarray and cmd.ndim == 1:
+    if _safety_cap is not None and type(cmd) is np.ndarray and cmd.ndim == 1:
         # One compiled pass where built and no driven leader is commanded below what
         # safe_speed assumed (behind_commands' test, most steps): numpy's values and
         # counts to the bit (tests/road/test_kernels_safety.py), its ~25 calls a step
@@ -200,7 +212,7 @@ def safety_cap(
         out = np.empty(cmd.shape[0])
         args = (cmd, obs[:, 0], obs[:, 1], safe, floor_safe, a_max_mps2, dt_s, floor_share, vmax)
         more = (decel, lead_decel, lead, lead_speed, _BEHIND_MARGIN, _TOLERANCE, out)
-        if (got := _kernels.safety_cap(*args, *s, *more)) is not None:
+        if (got := _safety_cap(*args, *s, *more)) is not None:
             return out, got[0], got[1]
     # The road kept open: never below a share of the lane's limit unless what is ahead
     # (the safe speed) asks for it, and no faster than the vehicle may accelerate to it.

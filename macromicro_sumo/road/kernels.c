@@ -68,17 +68,28 @@ static void release(operand *ops, int count) {
 
 #define AT(op, i) (*(const double *)((op).data + (i) * (op).step))
 
-/* safe_speed(gap, leader_speed, decel, leader_decel, dt, dt2, out) -> bool: out (a
-   writable float64 vector of n) filled with road.physics.safe_speed's values, dt and dt2
-   its step_constants; False (out untouched) where an operand is not a float64 0-d or
-   1-d of n or 1, or a Python float: numpy broadcasts those, this kernel does not. */
+/* safe_speed(gap, leader_speed, decel, leader_decel, dt, dt2, out[, no_gap]) -> bool: out
+   (a writable float64 vector of n) filled with road.physics.safe_speed's values, dt and
+   dt2 its step_constants; with no_gap (a float64 0-d or Python float), inf where not gap <
+   no_gap (deploy.safety.leader_safe_speed's no leader, NaN included); False (out
+   untouched) where an operand is not a float64 0-d or 1-d of n or 1, or a Python float:
+   numpy broadcasts those, this kernel does not. */
 static PyObject *safe_speed(PyObject *self, PyObject *args) {
-    PyObject *obj[7];
-    if (!PyArg_UnpackTuple(args, "safe_speed", 7, 7, &obj[0], &obj[1], &obj[2], &obj[3],
-                           &obj[4], &obj[5], &obj[6]))
+    PyObject *obj[8] = {NULL};
+    if (!PyArg_UnpackTuple(args, "safe_speed", 7, 8, &obj[0], &obj[1], &obj[2], &obj[3],
+                           &obj[4], &obj[5], &obj[6], &obj[7]))
         return NULL;
     operand ops[7];
     int got = 0;
+    double no_gap = 0.0;
+    const int mark = obj[7] != NULL;
+    if (mark) {
+        operand op;
+        const int ok = take(obj[7], 1, &op, 0) && op.step == 0;
+        if (ok) no_gap = AT(op, 0);
+        release(&op, 1);
+        if (!ok) Py_RETURN_FALSE;
+    }
     if (!take(obj[6], -1, &ops[6], 1) || ops[6].view.ndim != 1) {
         release(&ops[6], 1);
         Py_RETURN_FALSE;
@@ -106,7 +117,8 @@ static PyObject *safe_speed(PyObject *self, PyObject *args) {
         const double bdt2 = b * dt2;
         const double k = floor((-1.0 + sqrt(1.0 + 8.0 * room / bdt2)) / 2.0);
         const double k1 = k + 1.0;
-        *(double *)(out + i * out_step) = (room + bdt2 * k * k1 / 2.0) / (dt * k1);
+        *(double *)(out + i * out_step) =
+            mark && !(gap < no_gap) ? INFINITY : (room + bdt2 * k * k1 / 2.0) / (dt * k1);
     }
     release(ops, 6);
     release(&ops[6], 1);
@@ -582,6 +594,9 @@ static PyMethodDef methods[] = {
     {"safety_cap", safety_cap, METH_VARARGS,
      "deploy.safety.safety_cap's commands into out and (lowered, raised); None where numpy "
      "must answer."},
+    {"leader_safe_speed", safe_speed, METH_VARARGS,
+     "safe_speed with no_gap: deploy.safety.leader_safe_speed into out, bit for bit; False "
+     "where numpy must answer."},
     {"safe_speed", safe_speed, METH_VARARGS,
      "road.physics.safe_speed into out, bit for bit; False where numpy must answer."},
     {NULL, NULL, 0, NULL},

@@ -25,6 +25,7 @@ try:  # road/kernels.c, built by setup.py where a C compiler is found (``command
     from macromicro_sumo.road import kernels as _kernels
 except ImportError:  # not built: numpy's form, the same values
     _kernels = None
+_command_speeds = getattr(_kernels, "command_speeds", None)  # None: built before it too
 
 
 @dataclass(frozen=True)
@@ -83,11 +84,9 @@ def command_speeds(
     # The compiled pass where built and the operands are float64 (the deployment's): the
     # same values to the bit (tests/road/test_kernels_safety.py), one call for numpy's
     # six, each step between SUMO's (stop 50).
-    if _kernels is not None and type(accel_mps2) is np.ndarray and accel_mps2.ndim == 1:
+    if _command_speeds is not None and type(accel_mps2) is np.ndarray and accel_mps2.ndim == 1:
         out = np.empty(accel_mps2.shape[0])
-        if _kernels.command_speeds(
-            speed_mps, accel_mps2, dt_s, a_min_mps2, a_max_mps2, vmax_mps, out
-        ):
+        if _command_speeds(speed_mps, accel_mps2, dt_s, a_min_mps2, a_max_mps2, vmax_mps, out):
             return out
     # np.clip's own overhead is several times that of the two calls (the same values).
     a = np.minimum(np.maximum(accel_mps2, a_min_mps2), a_max_mps2)

@@ -15,13 +15,21 @@ kernels = pytest.importorskip(
 )
 
 
+SWITCHES = ("_command_speeds", "_safety_cap", "_leader_safe_speed")
+
+
 def numpy_only(module, f, *args):
     """``module.f`` with the kernels switched off: numpy's form."""
-    saved, module._kernels = module._kernels, None
+    names = [n for n in SWITCHES if hasattr(module, n)]
+    saved = [getattr(module, n) for n in names]
+    assert all(k is not None for k in saved)  # built: the kernels answer otherwise
+    for n in names:
+        setattr(module, n, None)
     try:
         return f(*args)
     finally:
-        module._kernels = saved
+        for n, k in zip(names, saved, strict=True):
+            setattr(module, n, k)
 
 
 def same(got, want) -> None:
@@ -148,3 +156,27 @@ def test_safety_cap_other_forms_left_to_numpy() -> None:
     bad = (cmd, obs, gap, decel, lead_decel, np.full(12, 40), 0.1, 2.6, 0.2, safe, lead_speed)
     with pytest.raises(IndexError):
         safety.safety_cap(*bad)
+
+
+@pytest.mark.parametrize("dt", [0.1, 0.5, 1.0])
+def test_leader_safe_speed_to_the_bit(dt: float) -> None:
+    """The safe speed behind each observed leader, no leader (gap at or past
+    NO_LEADER_GAP_M, NaN too) inf, red lines or not: numpy's values."""
+    rng = np.random.default_rng(int(dt * 100))
+    for n in (1, 3, 42, 301):
+        for trial in range(30):
+            _, obs, gap, decel, lead_decel, _ = layer_draws(rng, n)
+            gap[rng.random(n) < 0.05] = np.nan
+            red = None
+            if trial % 2:
+                red = np.where(rng.random(n) < 0.3, rng.uniform(0.0, 200.0, n), np.inf)
+            args = (obs, gap, decel, lead_decel, dt, None, red)
+            with np.errstate(invalid="ignore"):
+                want = numpy_only(safety, safety.leader_safe_speed, *args)
+                got = safety.leader_safe_speed(*args)
+            same(got, want)
+    out = np.empty(n)
+    dts = safety.step_constants(dt)
+    v_l = obs[:, 0] - obs[:, 3]
+    assert kernels.leader_safe_speed(gap, v_l, decel, lead_decel, *dts, out, 1000.0) is True
+    assert kernels.leader_safe_speed(gap, v_l, decel, lead_decel, *dts, out, gap) is False
