@@ -51,6 +51,7 @@ def yield_caps(
     decel: np.ndarray,
     dt_s: float,
     held: np.ndarray | None = None,
+    follow: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The merge yield's caps [m/s] (``MergeYield.yields``) of blocking vehicles at speeds
     ``speed``, safe speeds ``safe``, vType decels ``decel``, from SUMO's own speeds ``own``
@@ -65,12 +66,38 @@ def yield_caps(
     braked it again, on/off every other step (occupation, all 4 runs: of the yields whose
     vehicle still blocked the next step, 4,906 of 5,518 free then on drawn 549, 884 of 919
     on Bremen; held, none). Held while it blocks (a hold after a hold) held blockers up to
-    33 s and 549's run 2 went 3.63 -> 6.10 m/s (docs/deploy-log.md, stop 42, hO)."""
+    33 s and 549's run 2 went 3.63 -> 6.10 m/s (docs/deploy-log.md, stop 42, hO).
+    ``follow`` (with ``held``; ``deploy.merge_follow``): where on, a held vehicle SUMO wants
+    slower by any amount takes ``own`` (at least v - decel dt) and counts as asked, so it
+    stays held while SUMO wants it slower."""
     asked = own < np.minimum(speed, safe) - MERGE_YIELD_TOLERANCE_MPS
     cap = np.where(asked, np.maximum(own, speed - decel * dt_s), np.inf)
     if held is not None:
         cap = np.where(held & ~asked, speed, cap)
+        if follow is not None:
+            # ``deploy.merge_follow``: a held blocker that may follow takes SUMO's own slower
+            # speed by any amount and stays held while it does (``last_lanes``).
+            keep = held & ~asked & follow & (own < speed)
+            cap = np.where(keep, np.maximum(own, speed - decel * dt_s), cap)
+            asked = asked | keep
     return cap, asked
+
+
+def last_lanes(section: Section) -> frozenset[str]:
+    """The leftmost lane of each of ``section``'s edges (no internal lane): the blockers
+    ``deploy.merge_follow = "last_lane"`` keeps on SUMO's speed (``yield_caps``' follow).
+    Why: a blocker there has no lane to move over to, only its speed opens its merger's gap;
+    LC2013 asks it to fall back by less than ``MERGE_YIELD_TOLERANCE_MPS`` a step, so a
+    yield, a hold and a release kept it level with the merger (fresh motorway 1803, 4 -> 1:
+    the merger stood at the lane end, hF49). On a lane with one to its left (Bremen's
+    on-ramp, 549's 3 -> 2) the follower moves over instead, and following SUMO there too
+    cost Bremen 0.914 -> 1.374 m/s (hF49's follow-hold experiment)."""
+    top: dict[str, int] = {}
+    for lane in section.lanes:
+        if not lane.startswith(":"):
+            edge, _, k = lane.rpartition("_")
+            top[edge] = max(top.get(edge, -1), int(k))
+    return frozenset(f"{e}_{k}" for e, k in top.items())
 
 
 def drop_chain_lanes(section: Section) -> frozenset[str]:
@@ -147,6 +174,10 @@ class MergeYield:
     drop_lanes: frozenset[str] = frozenset()
     # With ``yield_all``: the vehicles SUMO asked to yield last step (``yield_caps``' held)
     yielded: frozenset[str] = frozenset()
+    # With ``deploy.merge_follow = "last_lane"``: this step's blockers that follow SUMO's
+    # own speed while held (on a ``last_lanes`` lane), and those lanes, once
+    follows: frozenset[str] = frozenset()
+    _last_lanes: frozenset[str] | None = None
     _chains: dict[str, tuple[str, ...]] | None = None
     _plain: frozenset[str] | None = None  # the section's lanes that are not internal ones
     # ``must_change``'s last vehicles not driven: (ids, lanes, step due again, must change)
@@ -302,6 +333,11 @@ class MergeYield:
             self.yielded = frozenset()  # nobody blocks now: none held next step
             return []
         blockers = sim.left_blockers(sorted(asking))
+        if self.yield_all and self.sc.deploy.merge_follow == "last_lane":
+            if self._last_lanes is None:
+                self._last_lanes = last_lanes(self.section)
+            index, on, last = st.index, st.lanes, self._last_lanes
+            self.follows = frozenset(b for b in blockers if b in index and on[index[b]] in last)
         near = list(compress(range(len(vids)), map(blockers.__contains__, vids)))  # in C
         if not near:
             self.yielded = frozenset()
@@ -381,9 +417,11 @@ class MergeYield:
         cap = np.full(len(vids), np.inf)
         ids = [vids[i] for i in near]
         decel = np.fromiter(map(self.decel_of.__getitem__, ids), float, len(ids))
-        held = None
+        held = follow = None
         if self.yield_all:
             held = np.fromiter(map(self.yielded.__contains__, ids), bool, len(ids))
+            if self.sc.deploy.merge_follow == "last_lane":
+                follow = np.fromiter(map(self.follows.__contains__, ids), bool, len(ids))
         got, asked = yield_caps(
             sim.own_speeds(ids),
             speed[near],
@@ -391,6 +429,7 @@ class MergeYield:
             decel,
             self.sc.simulation.step_length_s,
             held,
+            follow,
         )
         if self.yield_all:
             self.yielded = frozenset(compress(ids, asked.tolist()))
