@@ -183,6 +183,8 @@ class SectionSpeedDriver(DriverObserve, LaneAsks, MergeYield, SectionDriver):
                     sim.decide_yellow(
                         self.sc.deploy.yellow == "ahead", self.sc.deploy.yellow == "sumo"
                     )
+                if self.sc.deploy.green == "switch":  # a green met in the step it comes
+                    sim.decide_green()
         obs, gap, lead_decel, lead = self.observe(
             sim, vids, rows, st, lanes=lanes, stop_m=ahead, at=(slots, codes), factor=factor
         )

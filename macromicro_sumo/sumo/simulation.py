@@ -23,7 +23,7 @@ from macromicro_sumo.errors import UserError
 from macromicro_sumo.sumo import direct, reads
 from macromicro_sumo.sumo.options import SumoOptions
 from macromicro_sumo.sumo.states import DEFAULT_SPEED_MODE, StopLines, VehicleStates
-from macromicro_sumo.sumo.stop_lines import StopLineReader, yellow_rule
+from macromicro_sumo.sumo.stop_lines import StopLineReader, Upcoming, yellow_rule
 from macromicro_sumo.sumo.stop_offsets import lane_stop_offsets
 
 _C = libsumo.constants
@@ -464,6 +464,11 @@ class Simulation:
         (``sumo.stop_lines.yellow_rule``; ``ahead``: on the last green step but one; ``sumo``:
         on the switch's step, by SUMO's own rule): deploy.yellow."""
         self._lines.decide_yellow(*yellow_rule(libsumo, self._dt, ahead, sumo))
+
+    def decide_green(self) -> None:
+        """A red link whose light turns green at the start of the coming step is no stop
+        from now on (``sumo.stop_lines.StopLineReader.decide_green``): deploy.green."""
+        self._lines.decide_green(Upcoming(libsumo, 0.0))
 
     def stop_lines(self, vehicle_ids: Sequence[str]) -> StopLines:
         """The next red or yellow line of each vehicle (``StopLines``; every caller's query):
