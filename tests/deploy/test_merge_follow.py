@@ -7,13 +7,24 @@ level with an urgent merger to the lane end, where the merger stood (hF49's trac
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
-from deploy_nets import lane_drop_net, merge_net
+from conftest import small_section_scenario
+from deploy_nets import idm_agent, lane_drop_net, merge_net
 
+from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.merge_yield import last_lanes, yield_caps
+from macromicro_sumo.deploy.policy_batch import policy_batch
 from macromicro_sumo.road.section import read_section
+from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
+
+# Cars without dawdling: SUMO's own speed below a command is its lane changer's ask
+IDM = (
+    '<vType id="car" carFollowModel="IDM" length="5" minGap="2.5" accel="2.6" decel="4.5" '
+    'sigma="0" tau="1.0" speedFactor="1.0" speedDev="0"/>'
+)
 
 
 def test_yield_caps_follow_keeps_a_held_blocker_on_sumos_speed() -> None:
@@ -51,3 +62,92 @@ def test_last_lanes_are_each_edges_leftmost(tmp_path: Path) -> None:
     got = last_lanes(merge)
     assert got == frozenset({"A_1", "B_2", "C_1"}), got
     assert not any(lane.startswith(":") for lane in got)
+
+
+class Follows(SectionSpeedDriver):
+    """Records each blocker's step, ID, lane, speed, SUMO's own speed and cap (inf: none)."""
+
+    rows: list[tuple[int, str, str, float, float, float]]
+
+    def yields(self, sim, vids, near, speed, safe):  # type: ignore[no-untyped-def]
+        cap = super().yields(sim, vids, near, speed, safe)
+        ids = [vids[i] for i in near]
+        own = sim.own_speeds(ids)
+        st = sim.vehicle_states()
+        lanes = dict(zip(st.ids, st.lanes, strict=True))
+        for k, i in enumerate(near):
+            row = (self.steps, vids[i], lanes[vids[i]], float(speed[i]), float(own[k]))
+            self.rows.append((*row, float(cap[i])))
+        return cap
+
+
+def _platoon_and_mergers(folder: Path) -> tuple[Path, Path]:
+    """The lane drop (A 2 lanes, 600 m -> B 1 lane): a platoon of 16 IDM cars (no dawdling)
+    on A's lane 1 at 25 m/s, 22 m apart, and 6 on the ending lane 0 at 25 m/s, 25 m apart
+    from 350 m, level with it: each must get into the platoon before 600 m."""
+    net = lane_drop_net(folder)
+    platoon = "\n".join(
+        f'    <vehicle id="p{k:02d}" type="car" route="r" depart="0" departLane="1" '
+        f'departPos="{340 - 22 * k}" departSpeed="25"/>'
+        for k in range(16)
+    )
+    merging = "\n".join(
+        f'    <vehicle id="m{k}" type="car" route="r" depart="0" departLane="0" '
+        f'departPos="{350 - 25 * k}" departSpeed="25"/>'
+        for k in range(6)
+    )
+    routes = folder / "follow.rou.xml"
+    routes.write_text(
+        f'<routes>\n    {IDM}\n    <route id="r" edges="A B"/>\n{platoon}\n{merging}\n</routes>\n'
+    )
+    return net, routes
+
+
+def test_held_blockers_on_the_last_lane_follow_and_mergers_get_in(tmp_path: Path) -> None:
+    """The platoon and its mergers, every car commanded by a policy cloned from IDM,
+    occupation with ``merge_follow = "last_lane"``, 40 s: every blocker on A's lane 1 (the
+    last lane) that was asked or followed the step before and that SUMO wants slower now
+    is capped at SUMO's own speed (at least v - decel dt), never held at or released above
+    its speed; no merger stands (below 1 m/s) on the ending lane; all get in; nobody
+    collides."""
+    net, routes = _platoon_and_mergers(tmp_path)
+    base = small_section_scenario(
+        tmp_path, net, routes, ["A", "B"], instrumented={"ids": []},
+        simulation={"warmup_s": 0.0, "duration_s": 40.0, "n_runs": 2},
+    )  # fmt: skip
+    d = dataclasses.replace(base.deploy, merge="sumo", merge_follow="last_lane")
+    sc = dataclasses.replace(base, deploy=d)
+    assert sc.deploy.merge_reach == "occupation"
+    drv = Follows(sc, read_section(net, ["A", "B"], False), 0, policy_batch(idm_agent("lookahead", 25.0)), "sumo")  # fmt: skip
+    drv.rows = []
+    dt = sc.simulation.step_length_s
+    opts = SumoOptions(net, (), dt, sc.seed, route_files=(routes,))
+    sim = Simulation(dataclasses.replace(opts, user_demand=True))
+    standing = 0
+    on_b: set[str] = set()
+    try:
+        for _ in range(int(40.0 / dt)):
+            drv.before_step(sim)
+            sim.step()
+            st = sim.vehicle_states()
+            for v, lane, speed in zip(st.ids, st.lanes, st.speed_mps.tolist(), strict=True):
+                if v.startswith("m") and lane == "A_0" and speed < 1.0:
+                    standing += 1
+                if v.startswith("m") and lane.startswith("B"):
+                    on_b.add(v)
+        collisions = sim.collisions()
+    finally:
+        sim.close()
+    rows = {(s, v): (lane, speed, own, cap) for s, v, lane, speed, own, cap in drv.rows}
+    capped = {(s, v) for (s, v), (_, speed, _, cap) in rows.items() if cap < speed}
+    again = [
+        rows[(s + 1, v)]
+        for s, v in capped
+        if (s + 1, v) in rows and rows[(s + 1, v)][0] == "A_1" and rows[(s + 1, v)][2] < rows[(s + 1, v)][1]
+    ]  # fmt: skip
+    assert len(again) > 3, (len(capped), len(again))
+    for _lane, speed, own, cap in again:
+        assert cap <= max(own, speed - 4.5 * dt) + 1e-9, (speed, own, cap)
+    assert standing == 0
+    assert on_b == {f"m{k}" for k in range(6)}
+    assert collisions == 0
