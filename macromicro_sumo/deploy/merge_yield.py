@@ -43,10 +43,12 @@ MERGE_YIELD_TOLERANCE_MPS = 1.0
 # a vehicle nears by at most a few hundred metres meanwhile; a lane end, once seen, stays.
 LANE_END_RECHECK_STEPS = 20
 # ``deploy.merge_follow = "last_lane"``: only a blocker at this speed or more follows
-# (``last_lanes``). A blocker in a queue follows LC2013's stop-and-go asks there: drawn 501's
-# 4-2-1 chain (its blockers' median 5.1 m/s, 1803's 20.7) went 1.989 -> 2.543 m/s with every
-# speed and 2.405 with this one, 1803 3.259 -> 2.558 and 2.212 (all 4 runs, policy, hD50).
-FOLLOW_MIN_MPS = 15.0
+# (``last_lanes``). A slower one follows LC2013's stop-and-go asks in a queue: drawn 501's
+# 4-2-1 chain (its blockers' median 5.1 m/s, 1803's 20.7). All 4 runs, policy, from
+# every speed / 15 / 20 / 25 m/s: 1803 2.558 / 2.212 / 2.026 / 2.408 (3.259 off), 501
+# 2.543 / 2.405 / 2.230 / 1.986 (1.989), 1045 1.724 / 1.744 / 1.622 / 1.661 md5-equal
+# (1.661), 522 2.619 / 2.491 / 2.255 / 2.318 md5-equal (2.318; hD50, stop 50).
+FOLLOW_MIN_MPS = 25.0
 
 
 def yield_caps(
