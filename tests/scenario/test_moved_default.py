@@ -24,6 +24,7 @@ MOVED = (
     ("start_reaction_s", 1.0, 0.0),
     ("start_rules", "signal_lanes", "all"),
     ("keep_clear", "lane1", "off"),
+    ("merge_follow", "last_lane", "off"),
 )
 
 
