@@ -18,15 +18,7 @@ from conftest import light_road  # isort: skip
 
 
 def _reader(s: Scripted, upcoming: dict[str, str | None] | None) -> StopLineReader:
-    reader = StopLineReader(
-        s.next_tls,
-        lambda vid: "m0_0",
-        lambda vid: [],
-        lambda tls: [[("m0_0", "m1_0", ":j_0")]],
-        lambda vid: "passenger",
-        lambda vid: None,
-        {},
-    )
+    reader = s.reader()
     if upcoming is not None:
         reader.decide_green(upcoming.get)
     return reader

@@ -17,15 +17,7 @@ from macromicro_sumo.sumo.stop_lines import StopLineReader, euler_brake_gap
 
 
 def _reader(s: Scripted, upcoming: dict[str, str | None]) -> StopLineReader:
-    reader = StopLineReader(
-        s.next_tls,
-        lambda vid: "m0_0",
-        lambda vid: [],
-        lambda tls: [[("m0_0", "m1_0", ":j_0")]],
-        lambda vid: "passenger",
-        lambda vid: None,
-        {},
-    )
+    reader = s.reader()
     reader.decide_yellow(lambda vid: s.v, lambda vid: 4.5, DT, upcoming.get)
     return reader
 

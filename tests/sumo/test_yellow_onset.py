@@ -30,17 +30,22 @@ class Scripted:
     def next_tls(self, vid: str) -> list[tuple[str, int, float, str]]:
         return [("j1", 0, self.d, self.state), ("j2", 0, self.d + 200.0, self.state)]
 
+    def reader(self) -> StopLineReader:
+        """A reader of these answers: one lane m0_0 through one light link, no decision
+        yet (each test decides the yellow or the green its own way)."""
+        return StopLineReader(
+            self.next_tls,
+            lambda vid: "m0_0",
+            lambda vid: [],
+            lambda tls: [[("m0_0", "m1_0", ":j_0")]],
+            lambda vid: "passenger",
+            lambda vid: None,
+            {},
+        )
+
 
 def _reader(s: Scripted, decide: bool) -> StopLineReader:
-    reader = StopLineReader(
-        s.next_tls,
-        lambda vid: "m0_0",
-        lambda vid: [],
-        lambda tls: [[("m0_0", "m1_0", ":j_0")]],
-        lambda vid: "passenger",
-        lambda vid: None,
-        {},
-    )
+    reader = s.reader()
     if decide:
         reader.decide_yellow(lambda vid: s.v, lambda vid: 4.5, DT)
     return reader
