@@ -68,7 +68,7 @@ def deploy_prior_alone(scenario: Path, run: Path, out: Path) -> pd.DataFrame:
     sc = load_scenario(scenario)
     truth = run / "ground_truth"
     floor = policy_floor(run)
-    agent = load_policy(run / "policy" / "policy.pt", sc)
+    agent = load_policy(run / "policy" / "policy.pt", sc, sc.deploy.speed_level)
     with torch.no_grad():
         agent.residual_bound.fill_(0.0)  # policy_batch: the fitted prior alone
     ctx = load_context(sc, truth)

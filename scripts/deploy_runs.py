@@ -104,7 +104,7 @@ def prepared(
     truth_dir = run / "ground_truth"
     runs = runs or [int(r) for r in load_section_truth(truth_dir, sc).runs]
     paths = policy_paths(run / "policy", methods)
-    agents = {name: load_policy(p, sc) for name, p in paths.items()}
+    agents = {name: load_policy(p, sc, sc.deploy.speed_level) for name, p in paths.items()}
     ctx = load_context(sc, truth_dir)
     ctx.sc = population_scenario(ctx.sc)  # as the deploy stage's drivers read it
     return sc, ctx, runs, agents

@@ -267,7 +267,7 @@ def deploy(
         raise UserError(f"unknown deploy method {unknown[0]!r}; accepted: {', '.join(METHOD)}")
     policy_dir = Path(policy_dir) if policy_dir is not None else None
     paths = policy_paths(policy_dir, methods)
-    agents = {name: load_policy(p, sc) for name, p in paths.items()}
+    agents = {name: load_policy(p, sc, sc.deploy.speed_level) for name, p in paths.items()}
     ctx = load_context(sc, data)
     # With per-snapshot hidden sets the drivers drive the whole fleet (``population_scenario``).
     ctx.sc = population_scenario(ctx.sc)

@@ -131,7 +131,9 @@ def policy_file(objective: str, kind: str = "pt") -> str:
     }[kind]
 
 
-def load_policy(path: Path | str, sc: SectionScenario) -> Agent:
+def load_policy(path: Path | str, sc: SectionScenario, speed_level: str = "fit") -> Agent:
+    """The trained policy at ``path`` for ``sc``; ``speed_level``: ``deploy.speed_level``,
+    passed by the deployment only (Stage II's evaluation judges the policy as trained)."""
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: policy checkpoint not found (run `macromicro train-policy`)")
@@ -147,7 +149,7 @@ def load_policy(path: Path | str, sc: SectionScenario) -> Agent:
     )
     agent.load_state_dict(payload["state_dict"])
     agent.eval()
-    return with_speed_level(agent, str(getattr(getattr(sc, "deploy", None), "speed_level", "fit")))
+    return with_speed_level(agent, speed_level)
 
 
 def with_speed_level(agent: Agent, level: str) -> Agent:
