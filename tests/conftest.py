@@ -26,6 +26,7 @@ from macromicro_sumo.road.section import Section, read_section
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.netgen import random_corridor
+from macromicro_sumo.sumo.options import SumoOptions
 from macromicro_sumo.truth.section import load_section_truth, simulate_section
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -159,6 +160,40 @@ def light_road(folder: Path, a_m: float, b_m: float, speed_mps: float) -> Path:
         f'<edge id="B" from="tl" to="n2" numLanes="1" speed="{speed_mps:g}"/>'
     )
     return netconvert(folder, nodes, edges)
+
+
+def light_queue(
+    folder: Path,
+    cars: int,
+    every_s: float,
+    phases: tuple[tuple[float, str], ...],
+    vtype: str,
+    dt_s: float,
+    line_m: float = 200.0,
+) -> SumoOptions:
+    """``light_road`` (A ``line_m``, B 200 m, 13.9 m/s) with a static program of ``phases``
+    ((duration s, state), looping) at "tl", and ``cars`` vehicles of vType "k" (its
+    attributes ``vtype``) entering A at 13.9 m/s one every ``every_s``, ids c0, c1, ...
+    zero-padded to one width (c00 ... c29 for 30): SUMO's options for a user-demand run."""
+    net = light_road(folder, line_m, 200.0, 13.9)
+    width = len(str(cars - 1))
+    routes = folder / "r.rou.xml"
+    routes.write_text(
+        f'<routes><vType id="k" {vtype}/>\n'
+        + "".join(
+            f'<vehicle id="c{k:0{width}d}" type="k" depart="{every_s * k:.6g}" '
+            'departSpeed="13.9"><route edges="A B"/></vehicle>\n'
+            for k in range(cars)
+        )
+        + "</routes>\n"
+    )
+    light = folder / "light.add.xml"
+    program = "".join(f'<phase duration="{d:g}" state="{s}"/>' for d, s in phases)
+    light.write_text(
+        '<additional><tlLogic id="tl" type="static" programID="p" offset="0">'
+        f"{program}</tlLogic></additional>\n"
+    )
+    return SumoOptions(net, (light,), dt_s, 1, route_files=(routes,), user_demand=True)
 
 
 def line_net(

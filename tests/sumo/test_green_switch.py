@@ -14,7 +14,7 @@ from test_yellow_onset import DT, Scripted
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 from macromicro_sumo.sumo.stop_lines import StopLineReader, Upcoming
 
-from conftest import light_road  # isort: skip
+from conftest import light_queue  # isort: skip
 
 
 def _reader(s: Scripted, upcoming: dict[str, str | None] | None) -> StopLineReader:
@@ -40,21 +40,7 @@ def test_a_red_that_turns_green_in_the_coming_step_is_no_stop() -> None:
 
 def _red_then_green(folder: Path) -> SumoOptions:
     """A (200 m) -> a light, red 20 s then green -> B; 6 Krauss cars queue at the red."""
-    net = light_road(folder, 200.0, 200.0, 13.9)
-    cars = "".join(
-        f'<vehicle id="c{k}" type="k" depart="{2 * k}" departSpeed="13.9">'
-        '<route edges="A B"/></vehicle>\n'
-        for k in range(6)
-    )
-    routes = folder / "r.rou.xml"
-    routes.write_text(f'<routes><vType id="k" sigma="0" decel="4.5"/>\n{cars}</routes>\n')
-    light = folder / "light.add.xml"
-    light.write_text(
-        '<additional><tlLogic id="tl" type="static" programID="p" offset="0">'
-        '<phase duration="20" state="r"/><phase duration="100" state="G"/>'
-        "</tlLogic></additional>\n"
-    )
-    return SumoOptions(net, (light,), DT, 1, route_files=(routes,), user_demand=True)
+    return light_queue(folder, 6, 2.0, ((20, "r"), (100, "G")), 'sigma="0" decel="4.5"', DT)
 
 
 def test_at_a_real_light_the_green_is_met_in_its_switch_step(tmp_path: Path) -> None:

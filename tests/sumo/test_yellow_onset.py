@@ -11,7 +11,7 @@ from pathlib import Path
 import libsumo
 import numpy as np
 import pytest
-from conftest import light_road
+from conftest import light_queue
 
 from macromicro_sumo.road.physics import brake_gap
 from macromicro_sumo.sumo.options import SumoOptions
@@ -109,24 +109,8 @@ def test_each_yellow_is_decided_afresh() -> None:
 def light_cars(folder: Path) -> SumoOptions:
     """A (200 m, 13.9 m/s) -> a light, green 30 s, yellow 4 s, red -> B; 30 Krauss cars
     without dawdling, one every 1.5 s (also test_yellow_ahead's)."""
-    net = light_road(folder, 200.0, 200.0, 13.9)
-    cars = "".join(
-        f'<vehicle id="c{k:02d}" type="k" depart="{1.5 * k}" departSpeed="13.9">'
-        '<route edges="A B"/></vehicle>\n'
-        for k in range(30)
-    )
-    routes = folder / "r.rou.xml"
-    routes.write_text(
-        '<routes><vType id="k" sigma="0" decel="4.5" speedDev="0" minGap="2.5"/>\n'
-        f"{cars}</routes>\n"
-    )
-    light = folder / "light.add.xml"
-    light.write_text(
-        '<additional><tlLogic id="tl" type="static" programID="p" offset="0">'
-        '<phase duration="30" state="G"/><phase duration="4" state="y"/>'
-        '<phase duration="100" state="r"/></tlLogic></additional>\n'
-    )
-    return SumoOptions(net, (light,), DT, 1, route_files=(routes,), user_demand=True)
+    vtype = 'sigma="0" decel="4.5" speedDev="0" minGap="2.5"'
+    return light_queue(folder, 30, 1.5, ((30, "G"), (4, "y"), (100, "r")), vtype, DT)
 
 
 def stop_lines_on_a(sim: Simulation) -> tuple[dict, dict]:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import libsumo
 import pytest
-from conftest import light_road
+from conftest import light_queue
 
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.sumo.options import SumoOptions
@@ -27,24 +27,9 @@ def _cycling_light(folder: Path, decel: float) -> SumoOptions:
     """A (200 m, 13.9 m/s) -> a light cycling green 10 s, yellow 4 s, red 6 s -> B; 120
     Krauss cars without dawdling, one every 1.7 s (its phase against the cycle moves, so the
     cars meet the yellow at every distance)."""
-    net = light_road(folder, LINE_M, 200.0, 13.9)
-    cars = "".join(
-        f'<vehicle id="c{k:03d}" type="k" depart="{1.7 * k:.1f}" departSpeed="13.9">'
-        '<route edges="A B"/></vehicle>\n'
-        for k in range(120)
-    )
-    routes = folder / "r.rou.xml"
-    routes.write_text(
-        f'<routes><vType id="k" sigma="0" decel="{decel:g}" speedDev="0" minGap="2.5"/>\n'
-        f"{cars}</routes>\n"
-    )
-    light = folder / "light.add.xml"
-    light.write_text(
-        '<additional><tlLogic id="tl" type="static" programID="p" offset="0">'
-        '<phase duration="10" state="G"/><phase duration="4" state="y"/>'
-        '<phase duration="6" state="r"/></tlLogic></additional>\n'
-    )
-    return SumoOptions(net, (light,), DT, 1, route_files=(routes,), user_demand=True)
+    vtype = f'sigma="0" decel="{decel:g}" speedDev="0" minGap="2.5"'
+    phases = ((10, "G"), (4, "y"), (6, "r"))
+    return light_queue(folder, 120, 1.7, phases, vtype, DT, LINE_M)
 
 
 def _decisions(
