@@ -34,6 +34,7 @@ from macromicro_sumo.data.section import split_runs, vehicle_level
 from macromicro_sumo.env.driver_speed_ratios import (
     QUANTILE_LEVELS,
     ObservedDrivers,
+    quantile_median,
     ratio_estimate,
 )
 from macromicro_sumo.env.observed_drivers import (
@@ -109,7 +110,7 @@ def ratio_quantiles(ratios: np.ndarray) -> np.ndarray:
 def relative(quantiles: np.ndarray) -> np.ndarray:
     """The quantiles over their median: the factors, so that the fitted prior's speed
     factor stays the median driver's."""
-    return quantiles / np.interp(0.5, QUANTILE_LEVELS, quantiles)
+    return quantiles / quantile_median(quantiles)
 
 
 def driver_levels(
@@ -191,7 +192,7 @@ def entry_factors(
     -> 2.727 m/s). Not the default: netgen_corridor's 15% first seen within 2 s of a
     leader at about the median are at their own speed (0.460 -> 0.682 m/s drawn)."""
     rel = relative(quantiles)
-    ratio = speed_mps / np.maximum(limit_mps, 0.1) / np.interp(0.5, QUANTILE_LEVELS, quantiles)
+    ratio = speed_mps / np.maximum(limit_mps, 0.1) / quantile_median(quantiles)
     kept = np.clip(ratio, rel[0], rel[-1])
     if levels is None:
         return kept
@@ -276,7 +277,7 @@ def entry_choice(
     keys = [observed.keys[i] for i in idx.tolist()]
     top = np.array([observed.ratio.get(k, observed.lower.get(k, np.nan)) for k in keys])
     ratio = obs[:, 0] / np.maximum(obs[:, LIMIT_COLUMN], 0.1)
-    median = np.interp(0.5, QUANTILE_LEVELS, ratio_estimate(observed, censoring).quantiles)
+    median = ratio_estimate(observed, censoring).median
     kept = ratio / median >= QUEUED_ENTRY_SHARE  # ``entry_factors``' test, the other way
     ok = held & kept & np.isfinite(top) & (top > 0)
     n = int(ok.sum())

@@ -93,7 +93,7 @@ class RatioEstimate:
 
     @property
     def median(self) -> float:
-        return float(np.interp(0.5, QUANTILE_LEVELS, self.quantiles))
+        return quantile_median(self.quantiles)
 
     def record(self) -> dict[str, object]:
         """What a policy manifest records of it."""
@@ -108,6 +108,11 @@ class RatioEstimate:
         if self.reached:
             out["reached"] = self.reached
         return out
+
+
+def quantile_median(quantiles: np.ndarray) -> float:
+    """The median of a distribution given by its ``QUANTILE_LEVELS`` quantiles."""
+    return float(np.interp(0.5, QUANTILE_LEVELS, quantiles))
 
 
 def censored_quantiles(exact: np.ndarray, lower: np.ndarray) -> np.ndarray:

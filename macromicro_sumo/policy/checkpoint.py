@@ -15,10 +15,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 
-from macromicro_sumo.env.driver_speed_ratios import QUANTILE_LEVELS
+from macromicro_sumo.env.driver_speed_ratios import quantile_median
 from macromicro_sumo.errors import UserError
 from macromicro_sumo.files import check_beside
 from macromicro_sumo.policy.agent import Agent
@@ -175,5 +174,5 @@ def with_speed_level(agent: Agent, level: str) -> Agent:
         return agent
     quantiles = agent.driver_speed.detach().double().numpy()
     with torch.no_grad():
-        agent.krauss_prior[0] = float(np.interp(0.5, QUANTILE_LEVELS, quantiles))
+        agent.krauss_prior[0] = quantile_median(quantiles)
     return agent
