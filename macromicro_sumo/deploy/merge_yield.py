@@ -100,12 +100,8 @@ def last_lanes(section: Section) -> frozenset[str]:
     the merger stood at the lane end, hF49). On a lane with one to its left (Bremen's
     on-ramp, 549's 3 -> 2) the follower moves over instead, and following SUMO there too
     cost Bremen 0.914 -> 1.374 m/s (hF49's follow-hold experiment)."""
-    top: dict[str, int] = {}
-    for lane in section.lanes:
-        if not lane.startswith(":"):
-            edge, _, k = lane.rpartition("_")
-            top[edge] = max(top.get(edge, -1), int(k))
-    return frozenset(f"{e}_{k}" for e, k in top.items())
+    lanes = zip(section.edge_ids, section.n_lanes.tolist(), strict=True)
+    return frozenset(f"{edge}_{n - 1}" for edge, n in lanes)
 
 
 def drop_chain_lanes(section: Section) -> frozenset[str]:
