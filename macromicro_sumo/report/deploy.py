@@ -29,7 +29,7 @@ from macromicro_sumo.deploy.compare import (
     read_outputs,
     truth_geometry,
 )
-from macromicro_sumo.report.deploy_floor import with_floor_choices
+from macromicro_sumo.report.deploy_floor import with_manifest_lines
 from macromicro_sumo.report.deploy_words import acted_lines, oracle_check, reproduces_truth
 from macromicro_sumo.report.plots import (
     METHOD_COLORS,
@@ -475,4 +475,4 @@ def deployment_section(run_dir: Path | str) -> list[str]:
         return []
     plots = sorted((deploy_dir / "plots").glob("*.png"))
     text = deployment_markdown(pd.read_csv(path), [f"deploy/plots/{p.name}" for p in plots])
-    return [*with_floor_choices(text.splitlines(), deploy_dir), ""]
+    return [*with_manifest_lines(text.splitlines(), deploy_dir), ""]

@@ -148,6 +148,10 @@ def test_idm_detectors_moves_towards_the_truths_parameters(
     assert summary.loc["oracle_redrawn", "speed_rmse_mps"] == 0.0
     # One set of parameters: its drivers are its population, and redrawn it repeats too.
     assert summary.loc["oracle_population", "speed_rmse_mps"] == 0.0
+    # The report says how the fit ended: here the count or convergence, never the clock.
+    (line,) = [x for x in deployment_section(gt.parent) if x.startswith("- `idm_detectors`")]
+    assert f"in {cal['evaluations']} whole-run evaluation(s)" in line
+    assert cal["stopped_by"] in ("evaluations", "converged") and "wall-clock" not in line
     # report.md of the run folder gets the Deployment section.
     report = write_report(sc, gt.parent, {}).read_text()
     assert "## Deployment" in report and "| idm_detectors " in report and "| oracle " in report
