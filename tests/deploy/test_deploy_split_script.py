@@ -57,3 +57,27 @@ def test_the_split_finds_where_and_when_a_deployment_errs(tmp_path: Path, capsys
     assert "--bins" in capsys.readouterr().err
     with pytest.raises(SystemExit, match="deploy_comparison.csv not found"):
         script.main([str(tmp_path), "--cut", "500"])
+
+
+def test_the_decomposition_tells_a_level_from_a_wave_at_another_time() -> None:
+    """Upstream a wave (20 -> 5 -> 20 m/s) the method has one interval late, downstream the
+    truth's speeds 1 m/s slow: the upstream error is all timing (same level, same swing),
+    the downstream one all level; each zone's parts sum to its MSE."""
+    truth_up = [20.0, 5.0, 20.0, 20.0]
+    late_up = [20.0, 20.0, 5.0, 20.0]
+    rows = [
+        {"arc_m": arc, "speed_truth_mps": t, "speed_method_mps": m}
+        for arc, ts, ms in (
+            (100.0, truth_up, late_up),
+            (900.0, [20.0, 21.0, 22.0, 21.0], [19.0, 20.0, 21.0, 20.0]),
+        )
+        for t, m in zip(ts, ms, strict=True)
+    ]
+    d = script.decompose(pd.DataFrame(rows), 500.0)
+    parts = d[["level", "swing", "timing"]].sum(axis=1)
+    assert np.allclose(parts, d["speed_rmse_mps"] ** 2)
+    assert d.loc["up", "level"] == 0.0 and d.loc["up", "swing"] == 0.0
+    assert d.loc["up", "timing"] == pytest.approx(2 * 15.0**2 / 4)  # two intervals 15 off
+    assert d.loc["down", "level"] == pytest.approx(1.0) and d.loc["down", "timing"] < 1e-12
+    assert d.loc["down", "corr"] == pytest.approx(1.0)
+    assert d.loc["all", "n"] == 8
