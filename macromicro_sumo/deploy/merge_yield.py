@@ -49,6 +49,17 @@ LANE_END_RECHECK_STEPS = 20
 # 2.543 / 2.405 / 2.230 / 1.986 (1.989), 1045 1.724 / 1.744 / 1.622 / 1.661 md5-equal
 # (1.661), 522 2.619 / 2.491 / 2.255 / 2.318 md5-equal (2.318; hD50, stop 50).
 FOLLOW_MIN_MPS = 25.0
+# ``deploy.merge_follow = "last_lane"``: a blocker that may follow (``last_lanes``, at
+# ``FOLLOW_MIN_MPS`` or more) on a lane moving at ``FOLLOW_FREE_FRACTION`` of its limit or
+# more (``free_lanes``) yields where SUMO's own speed is ``FOLLOW_TOLERANCE_MPS`` below its
+# speed and safe speed, not ``MERGE_YIELD_TOLERANCE_MPS``. LC2013 asks the follower of an
+# urgent merger far behind it to fall back gently, 0.1-0.9 m/s a 0.5 s step (1803, run 2:
+# for 10 s, closing 70 -> 30 m at 29 -> 27 m/s); never asked at 1 m/s, it stayed beside the
+# merger, which stood 100 s at the lane end. All 4 runs, policy (hD51, stop 51): 1803
+# 2.398 -> 1.410 m/s (standing at the drop 22 -> 9 vehicles; the truth 1), 501 2.416 ->
+# 2.260; without the lane gate 501 lost (2.672): its last lanes queue, at capacity.
+FOLLOW_TOLERANCE_MPS = 0.5
+FOLLOW_FREE_FRACTION = 0.6
 
 
 def yield_caps(
@@ -59,6 +70,7 @@ def yield_caps(
     dt_s: float,
     held: np.ndarray | None = None,
     follow: np.ndarray | None = None,
+    gentle: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The merge yield's caps [m/s] (``MergeYield.yields``) of blocking vehicles at speeds
     ``speed``, safe speeds ``safe``, vType decels ``decel``, from SUMO's own speeds ``own``
@@ -76,8 +88,12 @@ def yield_caps(
     33 s and 549's run 2 went 3.63 -> 6.10 m/s (docs/deploy-log.md, stop 42, hO).
     ``follow`` (with ``held``; ``deploy.merge_follow``): where on, a held vehicle SUMO wants
     slower by any amount takes ``own`` (at least v - decel dt) and counts as asked, so it
-    stays held while SUMO wants it slower."""
-    asked = own < np.minimum(speed, safe) - MERGE_YIELD_TOLERANCE_MPS
+    stays held while SUMO wants it slower. ``gentle``: where on, a vehicle is asked where
+    ``own`` is more than ``FOLLOW_TOLERANCE_MPS`` below (``MergeYield.blocking``)."""
+    low = np.minimum(speed, safe)
+    asked = own < low - MERGE_YIELD_TOLERANCE_MPS
+    if gentle is not None:  # a free-flowing follower yields to a gentler ask
+        asked |= gentle & (own < low - FOLLOW_TOLERANCE_MPS)
     cap = np.where(asked, np.maximum(own, speed - decel * dt_s), np.inf)
     if held is not None:
         cap = np.where(held & ~asked, speed, cap)
@@ -102,6 +118,24 @@ def last_lanes(section: Section) -> frozenset[str]:
     cost Bremen 0.914 -> 1.374 m/s (hF49's follow-hold experiment)."""
     lanes = zip(section.edge_ids, section.n_lanes.tolist(), strict=True)
     return frozenset(f"{edge}_{n - 1}" for edge, n in lanes)
+
+
+def free_lanes(
+    section: Section, lanes: set[str], on: list[str], speed: np.ndarray
+) -> frozenset[str]:
+    """Those of ``lanes`` (the section's, not internal) whose vehicles now (on lanes ``on``
+    at speeds ``speed``, every vehicle's) move at ``FOLLOW_FREE_FRACTION`` of the lane's
+    speed limit or more on average: the lanes where a follower yields to LC2013's gentle
+    ask (``yield_caps``' gentle). Why: on a lane at capacity, its vehicles queueing (drawn
+    501's 4 -> 2 -> 1 at 1.25 x capacity), the gentle yield lost 2.416 -> 2.672 m/s (all
+    4 runs, policy); in free flow (1803's through lane at 22-27 m/s of 34.4) it gained."""
+    free = set()
+    for lane in lanes:
+        e, i = section.lanes[lane][:2]
+        mean = float(np.mean(speed[[x == lane for x in on]]))
+        if mean >= FOLLOW_FREE_FRACTION * float(section.limits_mps[e, i]):
+            free.add(lane)
+    return frozenset(free)
 
 
 def drop_chain_lanes(section: Section) -> frozenset[str]:
@@ -181,6 +215,7 @@ class MergeYield:
     # With ``deploy.merge_follow = "last_lane"``: this step's blockers that follow SUMO's
     # own speed while held (on a ``last_lanes`` lane), and those lanes, once
     follows: frozenset[str] = frozenset()
+    gentle: frozenset[str] = frozenset()  # of ``follows``, those on a ``free_lanes`` lane
     _last_lanes: frozenset[str] | None = None
     _chains: dict[str, tuple[str, ...]] | None = None
     _plain: frozenset[str] | None = None  # the section's lanes that are not internal ones
@@ -346,6 +381,8 @@ class MergeYield:
                 for b in blockers
                 if b in index and on[index[b]] in last and v[index[b]] >= FOLLOW_MIN_MPS
             )
+            free = free_lanes(self.section, {on[index[b]] for b in self.follows}, on, v)
+            self.gentle = frozenset(b for b in self.follows if on[index[b]] in free)
         near = list(compress(range(len(vids)), map(blockers.__contains__, vids)))  # in C
         if not near:
             self.yielded = frozenset()
@@ -425,11 +462,12 @@ class MergeYield:
         cap = np.full(len(vids), np.inf)
         ids = [vids[i] for i in near]
         decel = np.fromiter(map(self.decel_of.__getitem__, ids), float, len(ids))
-        held = follow = None
+        held = follow = gentle = None
         if self.yield_all:
             held = np.fromiter(map(self.yielded.__contains__, ids), bool, len(ids))
             if self.sc.deploy.merge_follow == "last_lane":
                 follow = np.fromiter(map(self.follows.__contains__, ids), bool, len(ids))
+                gentle = np.fromiter(map(self.gentle.__contains__, ids), bool, len(ids))
         got, asked = yield_caps(
             sim.own_speeds(ids),
             speed[near],
@@ -438,6 +476,7 @@ class MergeYield:
             self.sc.simulation.step_length_s,
             held,
             follow,
+            gentle,
         )
         if self.yield_all:
             self.yielded = frozenset(compress(ids, asked.tolist()))
