@@ -221,6 +221,7 @@ def fit_krauss(
     dt_s: float,
     defaults: KraussParams | None = None,
     fixed: dict[str, str] | None = None,
+    dawdle_sigma: float = 0.0,
 ) -> KraussFit:
     """Robust least-squares fit (soft L1) of (speed_factor, a, b, tau, min_gap, relax) to
     observed pairs, the best of ``START_ACCEL_MPS2`` x ``START_RELAX_S`` starts, with the
@@ -241,6 +242,15 @@ def fit_krauss(
     relax_s at theirs, b fell from 4.57 to 0.55 m/s^2. In the Krauss form each pair's
     residual depends only on the branch of the min() that binds, so the interaction
     parameters (b, tau, min_gap) are fitted on pairs the free term's do not decide.
+
+    ``dawdle_sigma`` > 0: where a falls back, relax_s is refitted next to SUMO's dawdled
+    mean a (1 - sigma / 2) (``dawdled_mean_accel``), the a the deployment drives a fallen-back
+    prior with where it dawdles the commands (``deploy.command_dawdle``), not next to a
+    itself; the prior keeps a, whose fallback the deployment's dawdle reads. Why: the pairs of
+    SUMO's dawdling drivers accelerate at about that mean, and a relaxation fitted next to the
+    undawdled 2.6 lengthens until (V - v) / T matches it well below V. Drawn arterial 1706's
+    pairs: 3.43 s next to 2.6, 0.61 s next to 1.95; its deployed cars then accelerated at
+    0.44 m/s^2 at 8-10 m/s, the truth's at 1.08 (docs/deploy-log.md, stop 51, hP51).
 
     ``fixed`` (name: why) are held at ``defaults`` throughout, the others fitted beside them:
     the speed factor where the drivers' desired-speed ratios fell back to SUMO's
@@ -271,12 +281,15 @@ def fit_krauss(
     x[list(fallback)] = default_x[list(fallback)]
     refitted = {}
     if _ACCEL in fallback or (_SPEED in fallback and _SPEED not in pinned):
-        kept = x[_RELAX]
-        x[_RELAX] = _refit_relax(obs, accel, x, veh_length_m, dt_s, lower[_RELAX])
+        kept, beside = x[_RELAX], x.copy()
+        if _ACCEL in fallback and dawdle_sigma > 0.0:
+            beside[_ACCEL] = dawdled_mean_accel(x[_ACCEL], dawdle_sigma)
+        x[_RELAX] = _refit_relax(obs, accel, beside, veh_length_m, dt_s, lower[_RELAX])
         which = "a" if _ACCEL in fallback else "the speed factor"
+        dawdled = f" (dawdled at sigma {dawdle_sigma:g})" if beside[_ACCEL] != x[_ACCEL] else ""
         refitted[_RELAX] = (
-            f"{which} fell back: refitted alone with a = {x[_ACCEL]:.3g} m/s^2, speed factor "
-            f"{x[_SPEED]:.3g} (fitted {kept:.3g} s next to a = {fitted_a:.3g})"
+            f"{which} fell back: refitted alone with a = {beside[_ACCEL]:.3g} m/s^2{dawdled}, "
+            f"speed factor {x[_SPEED]:.3g} (fitted {kept:.3g} s next to a = {fitted_a:.3g})"
         )
     if _ACCEL in fallback and free_pairs >= MIN_FREE_ACCEL_PAIRS:
         share = _beyond(obs[free], accel[free], x, veh_length_m, dt_s)
@@ -290,6 +303,13 @@ def fit_krauss(
     why = {_NAMES[i]: fallback[i] for i in sorted(fallback)}
     again = {_NAMES[i]: why_ for i, why_ in refitted.items()}
     return KraussFit(KraussParams(*map(float, x)), rmse, free_pairs, why, defaults, again)
+
+
+def dawdled_mean_accel(accel_mps2: float, sigma: float) -> float:
+    """SUMO's Krauss driver's mean free acceleration [m/s^2] at a = ``accel_mps2`` and
+    imperfection ``sigma``, a (1 - sigma / 2) (``deploy.safety.dawdled_accel`` from v = a
+    on): 1.95 at SUMO's defaults."""
+    return float(accel_mps2) * (1.0 - 0.5 * float(sigma))
 
 
 def _refit_relax(
