@@ -14,7 +14,6 @@ import pandas as pd
 
 from macromicro_sumo.data.section import at_snapshot_times
 from macromicro_sumo.road.section import Section
-from macromicro_sumo.truth import signal_timing
 from macromicro_sumo.truth.density import (
     JAM_SPACING_M,
     anchored_counts,
@@ -26,7 +25,6 @@ from macromicro_sumo.truth.density import (
     projected_passages,
     sealed_count,
 )
-from macromicro_sumo.truth.junction_counts import junction_pieces
 from macromicro_sumo.truth.section_macro import (
     K_ESTIMATE_COLUMNS,
     integrate_stations,
@@ -310,9 +308,6 @@ def io_vehicles(
         pieces, rest = approach_pieces(
             record.det, section, lines, side, run, at_s, record.near_line
         )
-        if signal_timing.TIMING == "front_junctions":  # the junction stretches counted, timed alike
-            junctions, rest = junction_pieces(record.det, section, lines, run, at_s, rest)
-            pieces.update(junctions)
     else:
         pieces, rest = io_pieces(record, section, run, at_s)
     counted = np.zeros(len(at_s))

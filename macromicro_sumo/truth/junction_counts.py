@@ -1,7 +1,6 @@
 """A signalised junction stretch's vehicles (from the stop bar through the junction to the
 first station past it) from the stop bar's interval counts timed by the signal's program:
-a diagnostic (``scripts/bench_signal_approaches.py --junction-counts``), a part of K only
-opt-in (``signal_timing.TIMING = "front_junctions"``: its arrivals a crossing later).
+a diagnostic (``scripts/bench_signal_approaches.py --junction-counts``), not a part of K.
 
 A junction stretch holds the vehicles that crossed its stop bar within the time they take
 to cross it: many during green (the stop bar discharges at saturation), none a crossing
@@ -26,7 +25,6 @@ import numpy as np
 import pandas as pd
 
 from macromicro_sumo.road.section import Section
-from macromicro_sumo.truth import signal_timing
 from macromicro_sumo.truth.section_macro import (
     cut_at_lines,
     integrate_stations,
@@ -40,7 +38,6 @@ from macromicro_sumo.truth.signal_counts import (
     arrivals,
     queued_share,
     station_counts,
-    station_front,
 )
 from macromicro_sumo.truth.signal_lines import StopLine
 from macromicro_sumo.truth.stations import Piece, full_stations, station_speeds
@@ -88,11 +85,6 @@ def junction_count(
     k = np.clip(np.searchsorted(begin, at, side="right") - 1, 0, len(begin) - 1)
     w = np.where(np.isfinite(harmonic[k]), queued_share(det, j.bar_m)[k], 1.0)
     travel = (j.bar_m - j.up_m) / np.where(np.isfinite(harmonic[k]), harmonic[k], 1.0)
-    if signal_timing.TIMING.startswith(
-        "front"
-    ):  # its arrivals come a crossing after the stop bar's
-        ahead = station_front(det, j.bar_m, j.line)[1][k]
-        return np.maximum(arrivals(det, past, at + ahead) - arrivals(det, past, at), 0.0), w
     return np.maximum(arrivals(det, past, at) - arrivals(det, past, at - travel), 0.0), w
 
 

@@ -41,7 +41,7 @@ import numpy as np
 import pandas as pd
 
 from macromicro_sumo.road.section import Section
-from macromicro_sumo.truth import signal_timing, standing
+from macromicro_sumo.truth import standing
 from macromicro_sumo.truth.density import JAM_SPACING_M, occupancy_weight, rising_integral
 from macromicro_sumo.truth.section_macro import (
     cut_at_lines,
@@ -134,12 +134,9 @@ def cumulative(
     at_s: np.ndarray,
     line: StopLine | None = None,
     share: np.ndarray | None = None,
-    front: tuple[int, np.ndarray] | None = None,
 ) -> np.ndarray:
     """A station's cumulative count at ``at_s``: exact at its intervals' bounds, spread
-    within each over its signal's passing seconds (``line``) or evenly (None); with
-    ``front`` (lanes, per interval the delay after the line) and ``signal_timing.TIMING``
-    ``front``, the passing share front-loaded (``signal_timing.front_fraction``). With
+    within each over its signal's passing seconds (``line``) or evenly (None). With
     ``share`` (per interval, 0-1), that share of each interval's count passes while
     ``line`` lets pass, the rest while it stops the section's lanes (the side streets
     turning in)."""
@@ -153,20 +150,6 @@ def cumulative(
     g0, g1, gt = line.green_s(begin[j]), line.green_s(end[j]), line.green_s(t)
     span = g1 - g0
     frac = np.where(span > 0, (gt - g0) / np.where(span > 0, span, 1.0), even)
-    if front is not None and signal_timing.TIMING.startswith("front"):
-        through = n if share is None else share * n
-        # The mean flow over a cycle at least: an interval shorter than it holds a share
-        # of the cycle's green, not of its arrivals.
-        cycle, centre = float(np.sum(line.durations_s)), 0.5 * (begin + end)
-        for k in np.unique(j):
-            at = j == k
-            near = np.abs(centre - centre[k]) <= max(cycle - (end[k] - begin[k]), 0.0) / 2 + 1e-6
-            flow = through[near].sum() / (end[near] - begin[near]).sum()
-            f = signal_timing.front_fraction(
-                line, begin[k], end[k], flow, front[0], t[at], float(front[1][k])
-            )
-            if f is not None:
-                frac[at] = f
     if share is None:
         return cum[j] + frac * n[j]
     red = (end[j] - begin[j]) - span
@@ -183,20 +166,6 @@ def queued_share(det: pd.DataFrame, arc: float) -> np.ndarray:
     return occupancy_weight(np.array(speeds), *QUEUED_MPS)
 
 
-def station_front(
-    det: pd.DataFrame, arc: float, line: StopLine | None = None
-) -> tuple[int, np.ndarray]:
-    """``cumulative``'s ``front`` for the station at ``arc``: its lanes and, past ``line``,
-    per interval the time from the line to it at its interval speed (0 at a stop bar)."""
-    e1 = det[(det["arc_m"] == arc) & (det["kind"] == "e1")]
-    groups = list(e1.groupby("begin_s", sort=True))
-    if line is None:
-        return int(e1["lane_index"].nunique()), np.zeros(len(groups))
-    speeds = np.array([float(station_speeds(g).iloc[0]) for _, g in groups])
-    speeds = np.where(np.isfinite(speeds) & (speeds > 1.0), speeds, 1.0)
-    return int(e1["lane_index"].nunique()), (arc - line.arc_m) / speeds
-
-
 def arrivals(det: pd.DataFrame, a: Approach, at_s: np.ndarray) -> np.ndarray:
     """The approach's cumulative arrivals at its up station: past a signal (``a.before``)
     the previous stop bar's count while that signal lets pass, the rest (side streets
@@ -206,7 +175,7 @@ def arrivals(det: pd.DataFrame, a: Approach, at_s: np.ndarray) -> np.ndarray:
         bar, line = a.before
         n_up, n_bar = station_counts(det, a.up_m)[2], station_counts(det, bar)[2]
         share = np.where(n_up > 0, np.minimum(n_bar, n_up) / np.where(n_up > 0, n_up, 1.0), 1.0)
-        return cumulative(det, a.up_m, at_s, line, share, station_front(det, a.up_m, line))
+        return cumulative(det, a.up_m, at_s, line, share)
     even = cumulative(det, a.up_m, at_s)
     late = replace(a.line, offset_s=a.line.offset_s + (a.line.arc_m - a.up_m) / WAVE_MPS)
     begin = station_counts(det, a.up_m)[0]
@@ -314,12 +283,7 @@ def density_constant(
             k = rising_integral(k.index.to_numpy(dtype=float), k.to_numpy(), a.up_m, a.bar_m)
         else:
             k = integrate_stations(k, section, a.up_m, a.bar_m)
-        at = (
-            b + (np.arange(np.ceil(e - b)) + 0.5) * (e - b) / np.ceil(e - b)
-            if signal_timing.IO_MEAN_EXACT
-            else np.linspace(b, e, 7)
-        )
-        rows.append(k - float(np.mean(io(at))))
+        rows.append(k - float(np.mean(io(np.linspace(b, e, 7)))))
     return float(np.mean(rows))
 
 
@@ -344,10 +308,9 @@ def approach_count(
     lanes = int(section.n_lanes[e])
     bounds = np.concatenate([begin, end[-1:]])
     t = bounds[bounds >= begin[0] + travel_s]
-    bar_front = station_front(det, a.bar_m)
 
     def io(x: np.ndarray) -> np.ndarray:
-        return arrivals(det, a, x) - cumulative(det, a.bar_m, x, a.line, front=bar_front)
+        return arrivals(det, a, x) - cumulative(det, a.bar_m, x, a.line)
 
     if len(t) == 0:
         return None
