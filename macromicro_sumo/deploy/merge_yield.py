@@ -51,14 +51,13 @@ LANE_END_RECHECK_STEPS = 20
 FOLLOW_MIN_MPS = 25.0
 # ``deploy.merge_follow = "last_lane"``: a blocker that may follow (``last_lanes``, at
 # ``FOLLOW_MIN_MPS`` or more) on a lane moving at ``FOLLOW_FREE_FRACTION`` of its limit or
-# more (``free_lanes``) yields where SUMO's own speed is ``FOLLOW_TOLERANCE_MPS`` below its
-# speed and safe speed, not ``MERGE_YIELD_TOLERANCE_MPS``. LC2013 asks the follower of an
+# more (``free_lanes``) yields where SUMO's own speed is ``deploy.merge_follow_tolerance_mps``
+# (0.5) below its speed and safe speed, not ``MERGE_YIELD_TOLERANCE_MPS``. LC2013 asks the follower of an
 # urgent merger far behind it to fall back gently, 0.1-0.9 m/s a 0.5 s step (1803, run 2:
 # for 10 s, closing 70 -> 30 m at 29 -> 27 m/s); never asked at 1 m/s, it stayed beside the
 # merger, which stood 100 s at the lane end. All 4 runs, policy (hD51, stop 51): 1803
 # 2.398 -> 1.410 m/s (standing at the drop 22 -> 9 vehicles; the truth 1), 501 2.416 ->
 # 2.260; without the lane gate 501 lost (2.672): its last lanes queue, at capacity.
-FOLLOW_TOLERANCE_MPS = 0.5
 FOLLOW_FREE_FRACTION = 0.6
 
 
@@ -71,6 +70,7 @@ def yield_caps(
     held: np.ndarray | None = None,
     follow: np.ndarray | None = None,
     gentle: np.ndarray | None = None,
+    gentle_tolerance_mps: float = MERGE_YIELD_TOLERANCE_MPS,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The merge yield's caps [m/s] (``MergeYield.yields``) of blocking vehicles at speeds
     ``speed``, safe speeds ``safe``, vType decels ``decel``, from SUMO's own speeds ``own``
@@ -89,11 +89,12 @@ def yield_caps(
     ``follow`` (with ``held``; ``deploy.merge_follow``): where on, a held vehicle SUMO wants
     slower by any amount takes ``own`` (at least v - decel dt) and counts as asked, so it
     stays held while SUMO wants it slower. ``gentle``: where on, a vehicle is asked where
-    ``own`` is more than ``FOLLOW_TOLERANCE_MPS`` below (``MergeYield.blocking``)."""
+    ``own`` is more than ``gentle_tolerance_mps`` below (``deploy.merge_follow_tolerance_mps``,
+    ``MergeYield.blocking``)."""
     low = np.minimum(speed, safe)
     asked = own < low - MERGE_YIELD_TOLERANCE_MPS
     if gentle is not None:  # a free-flowing follower yields to a gentler ask
-        asked |= gentle & (own < low - FOLLOW_TOLERANCE_MPS)
+        asked |= gentle & (own < low - gentle_tolerance_mps)
     cap = np.where(asked, np.maximum(own, speed - decel * dt_s), np.inf)
     if held is not None:
         cap = np.where(held & ~asked, speed, cap)
@@ -477,6 +478,7 @@ class MergeYield:
             held,
             follow,
             gentle,
+            self.sc.deploy.merge_follow_tolerance_mps,
         )
         if self.yield_all:
             self.yielded = frozenset(compress(ids, asked.tolist()))

@@ -1,7 +1,7 @@
 """``deploy.merge_follow = "last_lane"``: a blocker that may follow (on its edge's last
 lane, at ``FOLLOW_MIN_MPS`` or more), on a lane moving at ``FOLLOW_FREE_FRACTION`` of its
 limit or more (``free_lanes``), yields where SUMO's own speed is more than
-``FOLLOW_TOLERANCE_MPS`` (0.5 m/s) below its speed and safe speed, not only more than the
+``deploy.merge_follow_tolerance_mps`` (0.5 m/s) below its speed and safe speed, not only more than the
 yield's ``MERGE_YIELD_TOLERANCE_MPS`` (1 m/s). Why: LC2013 asks the follower of an urgent
 merger far behind it to fall back gently, 0.1-0.9 m/s a 0.5 s step; under 1 m/s the
 commanded follower was never asked, closed on its merger for 10 s (70 -> 30 m at 29 -> 27
@@ -21,13 +21,13 @@ from test_merge_follow import Follows, _platoon_and_mergers
 from macromicro_sumo.deploy.merge_yield import (
     FOLLOW_FREE_FRACTION,
     FOLLOW_MIN_MPS,
-    FOLLOW_TOLERANCE_MPS,
     MERGE_YIELD_TOLERANCE_MPS,
     free_lanes,
     yield_caps,
 )
 from macromicro_sumo.deploy.policy_batch import policy_batch
 from macromicro_sumo.road.section import read_section
+from macromicro_sumo.scenario.deploy_settings import DeployConfig
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 
 
@@ -40,10 +40,14 @@ def test_yield_caps_asks_a_follower_at_its_tolerance() -> None:
     own = np.array([29.3, 29.3, 29.7, 29.7, 28.5, 28.5])
     gentle = np.array([True, False, True, False, True, False])
     held = np.zeros(6, bool)
-    cap, asked = yield_caps(own, v, safe, np.full(6, 4.5), 0.5, held, gentle, gentle)
+    tolerance = DeployConfig().merge_follow_tolerance_mps
+    assert MERGE_YIELD_TOLERANCE_MPS > 0.7 > tolerance > 0.3
+    cap, asked = yield_caps(own, v, safe, np.full(6, 4.5), 0.5, held, gentle, gentle, tolerance)
     np.testing.assert_allclose(cap, [29.3, np.inf, np.inf, np.inf, 28.5, 28.5])
     assert asked.tolist() == [True, False, False, False, True, True]
-    assert MERGE_YIELD_TOLERANCE_MPS > 0.7 > FOLLOW_TOLERANCE_MPS > 0.3
+    # At the yield's own tolerance (stop 50's rule) the gentle ask adds nothing.
+    old = yield_caps(own, v, safe, np.full(6, 4.5), 0.5, held, gentle, gentle, 1.0)[1]
+    assert old.tolist() == [False, False, False, False, True, True]
 
 
 def test_free_lanes_by_the_lanes_mean_speed(tmp_path: Path) -> None:

@@ -25,6 +25,7 @@ MOVED = (
     ("start_rules", "signal_lanes", "all"),
     ("keep_clear", "lane1", "off"),
     ("merge_follow", "last_lane", "off"),
+    ("merge_follow_tolerance_mps", 0.5, 1.0),
 )
 
 
