@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from macromicro_sumo.deploy.prior_score import deploy_prior
+from macromicro_sumo.deploy.safety import AUTO_SIGMA
 from macromicro_sumo.deploy.stage import MANIFEST as DEPLOY_MANIFEST
 from macromicro_sumo.deploy.stage import deploy
 from macromicro_sumo.env.observed_drivers import krauss_pairs, observed_drivers
@@ -384,7 +385,8 @@ def fit_residual_prior(
         # (docs/deploy-log.md, "ring_two_lane (stop 29)").
         held = ratios.fallback and not closed
         fixed = {"speed_factor": ratios.fallback} if held else None
-        fit = fit_krauss(fit_obs, fit_acc, length, dt, network_defaults(truth.vtypes), fixed)
+        defaults, sigma = network_defaults(truth.vtypes), relax_dawdle(sc, truth)
+        fit = fit_krauss(fit_obs, fit_acc, length, dt, defaults, fixed, dawdle_sigma=sigma)
         prior, rmse, record = fit.prior_params(length, dt), fit.rmse_mps2, fit.record()
         record["driver_ratios"] = ratios.record()
         # The observed drivers' own taus beside the prior's one (evaluation.driver_follow).
@@ -407,6 +409,19 @@ def fit_residual_prior(
             pairs = keep if keep >= MIN_PRIOR_PAIRS else pairs
     extra = {"prior": {"kind": kind, **prior, "fit_rmse_mps2": rmse, "pairs": pairs, **record}}
     return prior, extra, (obs, acc, taus)
+
+
+def relax_dawdle(sc, truth) -> float:
+    """The sigma a fallen-back Krauss a's relaxation is refitted at (``policy.relax_refit``
+    "dawdled"): the deployment's command dawdle on this section (``deploy.command_dawdle``:
+    "auto", a number, or "signals" where the truth recorded signals), else 0."""
+    dawdle = sc.deploy.command_dawdle
+    if sc.policy.relax_refit != "dawdled":
+        return 0.0
+    signals = getattr(truth, "signals", None)
+    if dawdle == "auto" or (dawdle == "signals" and signals is not None and not signals.empty):
+        return AUTO_SIGMA
+    return 0.0 if isinstance(dawdle, str) else float(dawdle)
 
 
 SECTION = PipelineRoad(

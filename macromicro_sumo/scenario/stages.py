@@ -107,6 +107,17 @@ class PolicyConfig:
         "the truth's station speeds (as policy.relax_choice; the manifest says which)",
         omit_default=True,  # the digests of scenarios that do not set it stay as they were
     )
+    relax_refit: str = spec(
+        "vtype",
+        choices=("vtype", "dawdled"),
+        doc="sections, with the krauss prior: where the observed pairs' free acceleration a "
+        "falls back to the vType's, the relaxation time is refitted next to that a (vtype), "
+        "or, where the deployment dawdles the commands (deploy.command_dawdle: auto, a "
+        "sigma, or signals on a section with signals), next to SUMO's dawdled mean a (1 - "
+        "sigma / 2) (dawdled, opt-in; evaluation.krauss_fit.fit_krauss; docs/deploy-log.md, "
+        "stop 51 hP51)",
+        omit_default=True,  # the digests of scenarios that do not set it stay as they were
+    )
     hidden_train: tuple[int, int] = spec(
         (1, 4), lo=1, hi=10_000, doc="K range of training episodes"
     )
