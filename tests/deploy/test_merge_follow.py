@@ -18,6 +18,7 @@ from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.merge_yield import FOLLOW_MIN_MPS, last_lanes, yield_caps
 from macromicro_sumo.deploy.policy_batch import policy_batch
 from macromicro_sumo.road.section import read_section
+from macromicro_sumo.scenario.section import SectionScenario
 from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 
 # Cars without dawdling: SUMO's own speed below a command is its lane changer's ask
@@ -110,6 +111,26 @@ def _platoon_and_mergers(folder: Path) -> tuple[Path, Path]:
     return net, routes
 
 
+def platoon_run(
+    tmp_path: Path, driver: type[Follows]
+) -> tuple[SectionScenario, Follows, Simulation]:
+    """The platoon and its mergers (40 s, ``merge = "sumo"``, ``merge_follow = "last_lane"``),
+    every car commanded by ``driver`` (a recording ``SectionSpeedDriver``) with a policy cloned
+    from IDM (36 m/s); its SUMO started, the caller steps and closes it."""
+    net, routes = _platoon_and_mergers(tmp_path)
+    base = small_section_scenario(
+        tmp_path, net, routes, ["A", "B"], instrumented={"ids": []},
+        simulation={"warmup_s": 0.0, "duration_s": 40.0, "n_runs": 2},
+    )  # fmt: skip
+    d = dataclasses.replace(base.deploy, merge="sumo", merge_follow="last_lane")
+    sc = dataclasses.replace(base, deploy=d)
+    agent = policy_batch(idm_agent("lookahead", 36.0))
+    drv = driver(sc, read_section(net, ["A", "B"], False), 0, agent, "sumo")
+    drv.rows = []
+    opts = SumoOptions(net, (), sc.simulation.step_length_s, sc.seed, route_files=(routes,))
+    return sc, drv, Simulation(dataclasses.replace(opts, user_demand=True))
+
+
 def test_held_blockers_on_the_last_lane_follow_and_mergers_get_in(tmp_path: Path) -> None:
     """The platoon and its mergers, every car commanded by a policy cloned from IDM (36 m/s),
     occupation with ``merge_follow = "last_lane"``, 40 s: every blocker on A's lane 1 (the
@@ -118,19 +139,9 @@ def test_held_blockers_on_the_last_lane_follow_and_mergers_get_in(tmp_path: Path
     held at or released above its speed (with "off": held at 18.01 where SUMO wanted 17.33,
     in the first version of this scene); no merger is left standing at the lane end: all 6
     get in (one waits 8.5 s, 17 steps, below 1 m/s); nobody collides."""
-    net, routes = _platoon_and_mergers(tmp_path)
-    base = small_section_scenario(
-        tmp_path, net, routes, ["A", "B"], instrumented={"ids": []},
-        simulation={"warmup_s": 0.0, "duration_s": 40.0, "n_runs": 2},
-    )  # fmt: skip
-    d = dataclasses.replace(base.deploy, merge="sumo", merge_follow="last_lane")
-    sc = dataclasses.replace(base, deploy=d)
+    sc, drv, sim = platoon_run(tmp_path, Follows)
     assert sc.deploy.merge_reach == "occupation"
-    drv = Follows(sc, read_section(net, ["A", "B"], False), 0, policy_batch(idm_agent("lookahead", 36.0)), "sumo")  # fmt: skip
-    drv.rows = []
     dt = sc.simulation.step_length_s
-    opts = SumoOptions(net, (), dt, sc.seed, route_files=(routes,))
-    sim = Simulation(dataclasses.replace(opts, user_demand=True))
     standing = 0
     on_b: set[str] = set()
     try:

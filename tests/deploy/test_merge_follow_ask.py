@@ -10,13 +10,11 @@ own drivers leave the ending lanes early and none stands (stop 51, hD51)."""
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
-from conftest import small_section_scenario
-from deploy_nets import idm_agent, lane_drop_net
-from test_merge_follow import Follows, _platoon_and_mergers
+from deploy_nets import lane_drop_net
+from test_merge_follow import Follows, platoon_run
 
 from macromicro_sumo.deploy.merge_yield import (
     FOLLOW_FREE_FRACTION,
@@ -25,10 +23,8 @@ from macromicro_sumo.deploy.merge_yield import (
     free_lanes,
     yield_caps,
 )
-from macromicro_sumo.deploy.policy_batch import policy_batch
 from macromicro_sumo.road.section import read_section
 from macromicro_sumo.scenario.deploy_settings import DeployConfig
-from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 
 
 def test_yield_caps_asks_a_follower_at_its_tolerance() -> None:
@@ -84,19 +80,9 @@ def test_a_follower_is_asked_below_the_yields_tolerance(tmp_path: Path) -> None:
     is capped there (at own, at least v - decel dt), not left to the policy (with the
     1 m/s tolerance alone: capped only when held from the step before); all 6 mergers get
     in; nobody collides."""
-    net, routes = _platoon_and_mergers(tmp_path)
-    base = small_section_scenario(
-        tmp_path, net, routes, ["A", "B"], instrumented={"ids": []},
-        simulation={"warmup_s": 0.0, "duration_s": 40.0, "n_runs": 2},
-    )  # fmt: skip
-    d = dataclasses.replace(base.deploy, merge="sumo", merge_follow="last_lane")
-    sc = dataclasses.replace(base, deploy=d)
-    section = read_section(net, ["A", "B"], False)
-    drv = Asked(sc, section, 0, policy_batch(idm_agent("lookahead", 36.0)), "sumo")
-    drv.rows, drv.extra = [], {}
+    sc, drv, sim = platoon_run(tmp_path, Asked)
+    drv.extra = {}
     dt = sc.simulation.step_length_s
-    opts = SumoOptions(net, (), dt, sc.seed, route_files=(routes,))
-    sim = Simulation(dataclasses.replace(opts, user_demand=True))
     on_b: set[str] = set()
     collisions = 0
     try:
