@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-ALL_LANES = -1  # deploy.stations.ALL_LANES: a station's row pooled over its lanes
+from macromicro_sumo.deploy.stations import ALL_LANES
+
 ORDER = ("policy", "sumo_default", "idm_calibrated", "idm_detectors", "oracle_population", "oracle")
 SAFETY = ("collisions", "teleports", "emergency_brakings")
 HEADER = (
