@@ -3,15 +3,25 @@ small policy cloned from IDM (the deployment needs one that drives sensibly, qui
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 import torch
-from conftest import light_road, netconvert
+from conftest import light_road, netconvert, small_section_scenario
 from section_files import section_scenario
 
+from macromicro_sumo.deploy.drivers import SectionSpeedDriver
+from macromicro_sumo.deploy.policy_batch import policy_batch
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.road.physics import OBSERVATION_FEATURES, idm_accel
+from macromicro_sumo.road.section import read_section
+from macromicro_sumo.scenario.section import SectionScenario
+from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
+
+D = TypeVar("D", bound=SectionSpeedDriver)
 
 CAR = (
     '<vType id="car" length="5" minGap="2.5" accel="2.6" decel="4.5" sigma="0.5" '
@@ -120,17 +130,71 @@ def light_net(folder: Path) -> tuple[Path, Path, Path]:
     return net, routes, red
 
 
-def lane_drop_net(folder: Path, a_m: float = 600.0, b_m: float = 400.0) -> Path:
-    """A (2 lanes, ``a_m``, 25 m/s) -> B (1 lane, ``b_m``): A's lane 1 goes on as B's lane
-    0, A's lane 0 ends (a lane drop)."""
+def lane_drop_net(
+    folder: Path, a_m: float = 600.0, b_m: float = 400.0, speed_mps: float = 25.0
+) -> Path:
+    """A (2 lanes, ``a_m``) -> B (1 lane, ``b_m``), both at ``speed_mps``: A's lane 1 goes on
+    as B's lane 0, A's lane 0 ends (a lane drop)."""
     return netconvert(
         folder,
         f'<node id="n0" x="0" y="0"/>\n<node id="n1" x="{a_m:g}" y="0"/>\n'
         f'<node id="n2" x="{a_m + b_m:g}" y="0"/>',
-        '<edge id="A" from="n0" to="n1" numLanes="2" speed="25"/>\n'
-        '<edge id="B" from="n1" to="n2" numLanes="1" speed="25"/>',
+        f'<edge id="A" from="n0" to="n1" numLanes="2" speed="{speed_mps:g}"/>\n'
+        f'<edge id="B" from="n1" to="n2" numLanes="1" speed="{speed_mps:g}"/>',
         '<connection from="A" to="B" fromLane="1" toLane="0"/>',
     )
+
+
+def lane_drop_traffic(
+    folder: Path,
+    vtype: str,
+    platoon_m: Sequence[float],
+    mergers_m: Sequence[float],
+    speed_mps: float,
+    merger_id: str = "m",
+) -> Path:
+    """The routes of ``lane_drop_net`` (A B): cars of ``vtype`` (its XML, id "car") leaving at
+    0 s at ``speed_mps``, a platoon ``p00``, ``p01``, ... on A's lane 1 at ``platoon_m`` and
+    mergers ``{merger_id}0``, ... on the ending lane 0 at ``mergers_m``."""
+
+    def cars(prefix: str, lane: int, at: Sequence[float], width: int) -> str:
+        return "\n".join(
+            f'    <vehicle id="{prefix}{k:0{width}d}" type="car" route="r" depart="0" '
+            f'departLane="{lane}" departPos="{x:g}" departSpeed="{speed_mps:g}"/>'
+            for k, x in enumerate(at)
+        )
+
+    platoon, merging = cars("p", 1, platoon_m, 2), cars(merger_id, 0, mergers_m, 1)
+    routes = folder / "lane_drop.rou.xml"
+    routes.write_text(
+        f'<routes>\n    {vtype}\n    <route id="r" edges="A B"/>\n{platoon}\n{merging}\n</routes>\n'
+    )
+    return routes
+
+
+def recorded_drive(
+    folder: Path,
+    net: Path,
+    routes: Path,
+    driver: type[D],
+    duration_s: float,
+    limit_mps: float,
+    **deploy: str,
+) -> tuple[SectionScenario, D, Simulation]:
+    """Every car of ``routes`` on ``net``'s section A B commanded by ``driver`` (a
+    ``SectionSpeedDriver`` that records what it does, ``rows`` emptied) with a policy cloned
+    from IDM at ``limit_mps``, ``deploy.merge = "sumo"`` and the ``deploy`` settings given;
+    its SUMO started (``duration_s`` of demand): the caller steps and closes it."""
+    base = small_section_scenario(
+        folder, net, routes, ["A", "B"], instrumented={"ids": []},
+        simulation={"warmup_s": 0.0, "duration_s": duration_s, "n_runs": 2},
+    )  # fmt: skip
+    sc = dataclasses.replace(base, deploy=dataclasses.replace(base.deploy, merge="sumo", **deploy))
+    agent = policy_batch(idm_agent("lookahead", limit_mps))
+    drv = driver(sc, read_section(net, ["A", "B"], False), 0, agent, "sumo")
+    drv.rows = []
+    opts = SumoOptions(net, (), sc.simulation.step_length_s, sc.seed, route_files=(routes,))
+    return sc, drv, Simulation(dataclasses.replace(opts, user_demand=True))
 
 
 def idm_agent(observation: str, limit: float, seed: int = 0, steps: int = 400) -> Agent:

@@ -7,19 +7,19 @@ level with an urgent merger to the lane end, where the merger stood (hF49's trac
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
-from conftest import netconvert, small_section_scenario
-from deploy_nets import idm_agent, lane_drop_net, merge_net
+from deploy_nets import lane_drop_net, lane_drop_traffic, merge_net, recorded_drive
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.merge_yield import FOLLOW_MIN_MPS, last_lanes, yield_caps
-from macromicro_sumo.deploy.policy_batch import policy_batch
 from macromicro_sumo.road.section import read_section
 from macromicro_sumo.scenario.section import SectionScenario
-from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
+from macromicro_sumo.sumo.simulation import Simulation
+
+F = TypeVar("F", bound="Follows")
 
 # Cars without dawdling: SUMO's own speed below a command is its lane changer's ask
 IDM = (
@@ -87,48 +87,16 @@ def _platoon_and_mergers(folder: Path) -> tuple[Path, Path]:
     ends): a platoon of 14 IDM cars (no dawdling) on A's lane 1 at 33 m/s, 24 m apart, and
     6 on the ending lane 0 at 33 m/s, 30 m apart from 350 m, level with it: each must get
     into the platoon before 600 m, the blockers above ``FOLLOW_MIN_MPS``."""
-    net = netconvert(
-        folder,
-        '<node id="n0" x="0" y="0"/>\n<node id="n1" x="600" y="0"/>\n<node id="n2" x="1000" y="0"/>',
-        '<edge id="A" from="n0" to="n1" numLanes="2" speed="36"/>\n'
-        '<edge id="B" from="n1" to="n2" numLanes="1" speed="36"/>',
-        '<connection from="A" to="B" fromLane="1" toLane="0"/>',
-    )
-    platoon = "\n".join(
-        f'    <vehicle id="p{k:02d}" type="car" route="r" depart="0" departLane="1" '
-        f'departPos="{340 - 24 * k}" departSpeed="33"/>'
-        for k in range(14)
-    )
-    merging = "\n".join(
-        f'    <vehicle id="m{k}" type="car" route="r" depart="0" departLane="0" '
-        f'departPos="{350 - 30 * k}" departSpeed="33"/>'
-        for k in range(6)
-    )
-    routes = folder / "follow.rou.xml"
-    routes.write_text(
-        f'<routes>\n    {IDM}\n    <route id="r" edges="A B"/>\n{platoon}\n{merging}\n</routes>\n'
-    )
-    return net, routes
+    net = lane_drop_net(folder, speed_mps=36.0)
+    platoon, mergers = [340 - 24 * k for k in range(14)], [350 - 30 * k for k in range(6)]
+    return net, lane_drop_traffic(folder, IDM, platoon, mergers, 33.0)
 
 
-def platoon_run(
-    tmp_path: Path, driver: type[Follows]
-) -> tuple[SectionScenario, Follows, Simulation]:
-    """The platoon and its mergers (40 s, ``merge = "sumo"``, ``merge_follow = "last_lane"``),
-    every car commanded by ``driver`` (a recording ``SectionSpeedDriver``) with a policy cloned
-    from IDM (36 m/s); its SUMO started, the caller steps and closes it."""
+def platoon_run(tmp_path: Path, driver: type[F]) -> tuple[SectionScenario, F, Simulation]:
+    """The platoon and its mergers (40 s, ``merge_follow = "last_lane"``), every car
+    commanded by ``driver`` with a policy cloned from IDM (36 m/s): ``recorded_drive``."""
     net, routes = _platoon_and_mergers(tmp_path)
-    base = small_section_scenario(
-        tmp_path, net, routes, ["A", "B"], instrumented={"ids": []},
-        simulation={"warmup_s": 0.0, "duration_s": 40.0, "n_runs": 2},
-    )  # fmt: skip
-    d = dataclasses.replace(base.deploy, merge="sumo", merge_follow="last_lane")
-    sc = dataclasses.replace(base, deploy=d)
-    agent = policy_batch(idm_agent("lookahead", 36.0))
-    drv = driver(sc, read_section(net, ["A", "B"], False), 0, agent, "sumo")
-    drv.rows = []
-    opts = SumoOptions(net, (), sc.simulation.step_length_s, sc.seed, route_files=(routes,))
-    return sc, drv, Simulation(dataclasses.replace(opts, user_demand=True))
+    return recorded_drive(tmp_path, net, routes, driver, 40.0, 36.0, merge_follow="last_lane")
 
 
 def test_held_blockers_on_the_last_lane_follow_and_mergers_get_in(tmp_path: Path) -> None:

@@ -7,18 +7,13 @@ blocked the next step were free then)."""
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
-from conftest import small_section_scenario
-from deploy_nets import CAR, idm_agent, lane_drop_net
+from deploy_nets import CAR, lane_drop_net, lane_drop_traffic, recorded_drive
 
 from macromicro_sumo.deploy.drivers import SectionSpeedDriver
 from macromicro_sumo.deploy.merge_yield import MERGE_YIELD_TOLERANCE_MPS, yield_caps
-from macromicro_sumo.deploy.policy_batch import policy_batch
-from macromicro_sumo.road.section import read_section
-from macromicro_sumo.sumo.simulation import Simulation, SumoOptions
 
 
 def test_yield_caps_hold_a_capped_vehicle_not_asked_now() -> None:
@@ -55,22 +50,8 @@ def _moving_merge(folder: Path) -> tuple[Path, Path]:
     """A (2 lanes, 600 m, 25 m/s) -> B (1 lane, 400 m), A's lane 0 ends: a platoon on lane
     1 at 12 m/s, 20 m apart, and 8 cars on lane 0 at 12 m/s, 40 m apart from 100 m, that
     must merge into it while it moves."""
-    net = lane_drop_net(folder)
-    platoon = "\n".join(
-        f'    <vehicle id="p{k:02d}" type="car" route="r" depart="0" departLane="1" '
-        f'departPos="{20 + 20 * k}" departSpeed="12"/>'
-        for k in range(28)
-    )
-    merging = "\n".join(
-        f'    <vehicle id="e{k}" type="car" route="r" depart="0" departLane="0" '
-        f'departPos="{100 + 40 * k}" departSpeed="12"/>'
-        for k in range(8)
-    )
-    routes = folder / "merge.rou.xml"
-    routes.write_text(
-        f'<routes>\n    {CAR}\n    <route id="r" edges="A B"/>\n{platoon}\n{merging}\n</routes>\n'
-    )
-    return net, routes
+    platoon, mergers = [20 + 20 * k for k in range(28)], [100 + 40 * k for k in range(8)]
+    return lane_drop_net(folder), lane_drop_traffic(folder, CAR, platoon, mergers, 12.0, "e")
 
 
 def test_a_blocker_is_not_freed_the_step_after_a_yield(tmp_path: Path) -> None:
@@ -80,18 +61,10 @@ def test_a_blocker_is_not_freed_the_step_after_a_yield(tmp_path: Path) -> None:
     (fails before the hold: 18 of the 18 such of 26 yields were free; after, 0 of 17 of 23),
     and nobody collides."""
     net, routes = _moving_merge(tmp_path)
-    base = small_section_scenario(
-        tmp_path, net, routes, ["A", "B"], instrumented={"ids": []},
-        simulation={"warmup_s": 0.0, "duration_s": 60.0, "n_runs": 2},
-    )  # fmt: skip
-    d = dataclasses.replace(base.deploy, merge="sumo", merge_reach="occupation")
-    sc = dataclasses.replace(base, deploy=d)
-    act = policy_batch(idm_agent("lookahead", 25.0))
-    drv = Yields(sc, read_section(net, ["A", "B"], False), 0, act, "sumo")
-    drv.rows = []
+    sc, drv, sim = recorded_drive(
+        tmp_path, net, routes, Yields, 60.0, 25.0, merge_reach="occupation"
+    )
     dt = sc.simulation.step_length_s
-    opts = SumoOptions(net, (), dt, sc.seed, route_files=(routes,))
-    sim = Simulation(dataclasses.replace(opts, user_demand=True))
     try:
         for _ in range(int(60.0 / dt)):
             drv.before_step(sim)
