@@ -352,6 +352,16 @@ def dawdled_accel(accel: np.ndarray | float, speed: np.ndarray, sigma: float) ->
 AUTO_SIGMA = 0.5
 
 
+def command_dawdle_sigma(setting: str | float, lights: bool) -> str | float:
+    """``deploy.command_dawdle`` on a network with or without traffic lights: "auto" where
+    the prior-gated rule acts (``auto_dawdled_accel``: "auto", or "signals" with lights),
+    else the sigma the commands dawdle at (0: none). The deployment's rule, and the one
+    ``policy.relax_refit = "dawdled"`` fits the relaxation to (``pipeline.build``)."""
+    if setting == "auto" or (setting == "signals" and lights):
+        return "auto"
+    return 0.0 if isinstance(setting, str) else float(setting)
+
+
 def auto_dawdled_accel(
     accel: np.ndarray | float, speed: np.ndarray, prior_accel: float | None
 ) -> np.ndarray | float:
@@ -434,10 +444,10 @@ def speed_commands(
     elif start_on is not None and not count_nonzero(start_on):
         start_sigma = start_tau = 0.0  # nobody's: the path without the rules
     start = (a_max, start_sigma, start_on) if start_sigma > 0.0 else None  # SUMO's a
-    sigma = sc.deploy.command_dawdle
-    if sigma == "auto" or (sigma == "signals" and lights):
+    sigma = command_dawdle_sigma(sc.deploy.command_dawdle, lights)
+    if sigma == "auto":
         a_max = auto_dawdled_accel(a_max, obs[:, 0], getattr(act, "prior_accel_mps2", None))
-    elif not isinstance(sigma, str) and sigma > 0.0:
+    elif sigma > 0.0:
         a_max = dawdled_accel(a_max, obs[:, 0], sigma)
     dt = sc.simulation.step_length_s
     if safety == "sumo":

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from macromicro_sumo.deploy.prior_score import deploy_prior
-from macromicro_sumo.deploy.safety import AUTO_SIGMA
+from macromicro_sumo.deploy.safety import AUTO_SIGMA, command_dawdle_sigma
 from macromicro_sumo.deploy.stage import MANIFEST as DEPLOY_MANIFEST
 from macromicro_sumo.deploy.stage import deploy
 from macromicro_sumo.env.observed_drivers import krauss_pairs, observed_drivers
@@ -411,17 +411,16 @@ def fit_residual_prior(
     return prior, extra, (obs, acc, taus)
 
 
-def relax_dawdle(sc, truth) -> float:
+def relax_dawdle(sc: Any, truth: Any) -> float:
     """The sigma a fallen-back Krauss a's relaxation is refitted at (``policy.relax_refit``
     "dawdled"): the deployment's command dawdle on this section (``deploy.command_dawdle``:
     "auto", a number, or "signals" where the truth recorded signals), else 0."""
-    dawdle = sc.deploy.command_dawdle
     if sc.policy.relax_refit != "dawdled":
         return 0.0
     signals = getattr(truth, "signals", None)
-    if dawdle == "auto" or (dawdle == "signals" and signals is not None and not signals.empty):
-        return AUTO_SIGMA
-    return 0.0 if isinstance(dawdle, str) else float(dawdle)
+    lights = signals is not None and not signals.empty
+    sigma = command_dawdle_sigma(sc.deploy.command_dawdle, lights)
+    return AUTO_SIGMA if sigma == "auto" else float(sigma)
 
 
 SECTION = PipelineRoad(
