@@ -29,7 +29,7 @@ from macromicro_sumo.deploy.compare import (
     read_outputs,
     truth_geometry,
 )
-from macromicro_sumo.report.deploy_floor import with_manifest_lines
+from macromicro_sumo.report.deploy_manifest_lines import with_manifest_lines
 from macromicro_sumo.report.deploy_words import acted_lines, oracle_check, reproduces_truth
 from macromicro_sumo.report.plots import (
     METHOD_COLORS,

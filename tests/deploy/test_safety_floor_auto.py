@@ -27,7 +27,7 @@ from macromicro_sumo.files import read_manifest
 from macromicro_sumo.policy.agent import Agent
 from macromicro_sumo.policy.checkpoint import CHECKPOINT_FORMAT, signature
 from macromicro_sumo.report.deploy import deployment_section
-from macromicro_sumo.report.deploy_floor import floor_choice_lines
+from macromicro_sumo.report.deploy_manifest_lines import floor_choice_lines
 from macromicro_sumo.scenario.load import load_scenario
 from macromicro_sumo.truth.section import simulate_section
 

@@ -1,4 +1,4 @@
-"""report.md's line on the detector-calibrated IDM's fit (``report.deploy_floor``): how many
+"""report.md's line on the detector-calibrated IDM's fit (``report.deploy_manifest_lines``): how many
 whole-run evaluations, the loss, and what ended the fit; where the wall clock ended it, the
 line warns that a busier machine gets another baseline."""
 
@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 
 from macromicro_sumo.deploy.stage import MANIFEST
-from macromicro_sumo.report.deploy_floor import calibration_line, with_manifest_lines
+from macromicro_sumo.report.deploy_manifest_lines import calibration_line, with_manifest_lines
 
 # The ring's record at load 19 (stop 51): 18 evaluations in the 300 s budget.
 RECORD = {
